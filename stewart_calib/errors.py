@@ -1,0 +1,17 @@
+"""The project's error types: messages a user can act on.
+
+Every refusal of a bad file, argument or sample raises :class:`CalibError` with a
+single line naming the file, row, column or key and what was expected. The command
+line prints that line and exits non-zero; it never shows a traceback for one.
+"""
+
+
+class CalibError(ValueError):
+    """A user-facing error: ``str(err)`` is one line naming what is wrong and where."""
+
+
+class SampleRejected(CalibError):
+    """An estimator refused one sample (NaN, out of range, FK failure, gated outlier).
+
+    The estimator's state is untouched when this is raised; ``str(err)`` says why.
+    """

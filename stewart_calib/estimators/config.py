@@ -1,0 +1,196 @@
+"""Estimator settings: typed dataclasses with documented defaults, loaded from TOML.
+
+``configs/estimators/default.toml`` mirrors these defaults with comments. Every estimator
+takes the whole :class:`EstimatorConfig`; the ``[noise]`` section is shared so that the
+EKFs and the factor graph use the same process and measurement noise (design.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..errors import CalibError
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    """Noise model shared by ``ekf``, ``isam2`` and ``lm``.
+
+    Attributes:
+        reading_sigma_mm: σ_s of one tracker grating reading [mm] (ruler noise plus the
+            tracker's residual geometry error, taken as white).
+        stroke_sigma_mm: σ_q of one executed drive stroke [mm] (encoder).
+        random_walk_mm_per_sqrt_s: parameter random walk [mm/√s]: over Δt each parameter's
+            variance grows by ``random_walk² Δt`` (paper eq. 15's Q; graph between-factors).
+        prior_sigma_mm: prior σ of each δM component [mm] (manufacturing tolerance).
+    """
+
+    reading_sigma_mm: float = 0.002
+    stroke_sigma_mm: float = 0.001
+    random_walk_mm_per_sqrt_s: float = 1e-3
+    prior_sigma_mm: float = 5.0
+
+
+@dataclass(frozen=True)
+class LSConfig:
+    """The paper's batch least squares (Gauss–Newton on ``P_v − P_m = J_p δM``).
+
+    Attributes:
+        tolerance_mm: stop when the largest step component is below this [mm].
+        max_iterations: Gauss–Newton iteration cap.
+    """
+
+    tolerance_mm: float = 1e-9
+    max_iterations: int = 20
+
+
+@dataclass(frozen=True)
+class PaperEKFConfig:
+    """The paper's EKF (eq. 14–19, §4.1).
+
+    Attributes:
+        process_noise: diagonal of Q per update (paper: 1e-5) [mm² / rad²-mixed, as the paper].
+        measurement_noise: diagonal of R (paper: 4e-2).
+        adaptive: innovation-based adaptive Q/R (paper ref. [28]).
+        adaptive_window: innovations averaged by the adaptive update.
+        gate_probability: χ² innovation gate (0 = off); samples beyond it are rejected.
+    """
+
+    process_noise: float = 1e-5
+    measurement_noise: float = 4e-2
+    adaptive: bool = False
+    adaptive_window: int = 50
+    gate_probability: float = 0.0
+
+
+@dataclass(frozen=True)
+class EKFConfig:
+    """EKF on the leg-length model (same noise as the graph, from ``[noise]``).
+
+    Attributes:
+        gate_probability: χ² innovation gate (0 = off); samples beyond it are rejected.
+    """
+
+    gate_probability: float = 0.0
+
+
+@dataclass(frozen=True)
+class ISAM2Config:
+    """Factor graph solved online by iSAM2 in a fixed-lag smoother.
+
+    Attributes:
+        coupling: ``tight`` (one factor per tracker reading) or ``loose`` (tracker FK pose prior).
+        window_s: a new parameter variable every ``window_s`` seconds [s].
+        lag_s: smoother lag [s]; older variables are marginalised.
+        robust: ``none``, ``huber`` or ``cauchy`` kernel on measurement factors.
+        robust_k: kernel width in σ units.
+        factorization: ``QR`` or ``CHOLESKY``.
+        relinearize_threshold: iSAM2 relinearisation threshold.
+    """
+
+    coupling: str = "tight"
+    window_s: float = 1.0
+    lag_s: float = 3.0
+    robust: str = "none"
+    robust_k: float = 3.0
+    factorization: str = "QR"
+    relinearize_threshold: float = 1e-3
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """All estimator settings; see ``configs/estimators/default.toml``."""
+
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    ls: LSConfig = field(default_factory=LSConfig)
+    paper_ekf: PaperEKFConfig = field(default_factory=PaperEKFConfig)
+    ekf: EKFConfig = field(default_factory=EKFConfig)
+    isam2: ISAM2Config = field(default_factory=ISAM2Config)
+
+
+_CHOICES = {
+    ("isam2", "coupling"): ("tight", "loose"),
+    ("isam2", "robust"): ("none", "huber", "cauchy"),
+    ("isam2", "factorization"): ("QR", "CHOLESKY"),
+}
+
+
+def _coerce(source: str, key: str, value: Any, default: Any) -> Any:
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise CalibError(f"{source}: key '{key}': expected true or false, got {value!r}")
+        return value
+    if isinstance(default, (int, float)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise CalibError(f"{source}: key '{key}': expected a number, got {value!r}")
+        if isinstance(default, int) and not isinstance(value, int):
+            raise CalibError(f"{source}: key '{key}': expected a whole number, got {value!r}")
+        if not value == value or value in (float("inf"), float("-inf")) or value < 0:
+            raise CalibError(f"{source}: key '{key}': expected a finite non-negative number, got {value!r}")
+        return type(default)(value)
+    if not isinstance(value, str):
+        raise CalibError(f"{source}: key '{key}': expected a string, got {value!r}")
+    return value
+
+
+def config_from_dict(doc: dict, source: str = "<config>", base: EstimatorConfig | None = None) -> EstimatorConfig:
+    """Overlay a ``{section: {key: value}}`` dict on ``base`` (default: the defaults).
+
+    Raises:
+        CalibError: an unknown section or key, a wrong type or a value outside its choices.
+    """
+    config = base or EstimatorConfig()
+    sections = {f.name: f for f in dataclasses.fields(EstimatorConfig)}
+    updates = {}
+    for section, table in doc.items():
+        if section not in sections:
+            raise CalibError(f"{source}: unknown section '{section}': expected one of {', '.join(sections)}")
+        if not isinstance(table, dict):
+            raise CalibError(f"{source}: key '{section}': expected a table")
+        current = getattr(config, section)
+        known = {f.name for f in dataclasses.fields(current)}
+        changes = {}
+        for key, value in table.items():
+            full = f"{section}.{key}"
+            if key not in known:
+                raise CalibError(f"{source}: unknown key '{full}': expected one of {', '.join(sorted(known))}")
+            value = _coerce(source, full, value, getattr(current, key))
+            choices = _CHOICES.get((section, key))
+            if choices and value not in choices:
+                raise CalibError(f"{source}: key '{full}': expected one of {', '.join(choices)}, got {value!r}")
+            changes[key] = value
+        updates[section] = dataclasses.replace(current, **changes)
+    return dataclasses.replace(config, **updates)
+
+
+def load_estimator_config(path: str | Path | None = None, overrides: list[str] | None = None) -> EstimatorConfig:
+    """Defaults, then the TOML at ``path``, then ``section.key=value`` overrides (command line).
+
+    Raises:
+        CalibError: naming the file (or ``--set``) and the offending key.
+    """
+    config = EstimatorConfig()
+    if path is not None:
+        path = Path(path)
+        try:
+            doc = tomllib.loads(path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise CalibError(f"{path}: estimator config not found") from None
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
+            raise CalibError(f"{path}: cannot read estimator config ({err})") from None
+        config = config_from_dict(doc, str(path), config)
+    for item in overrides or []:
+        key, sep, text = item.partition("=")
+        section, dot, name = key.strip().partition(".")
+        if not sep or not dot:
+            raise CalibError(f"--set {item!r}: expected section.key=value, e.g. isam2.lag_s=5")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        config = config_from_dict({section: {name: value}}, "--set", config)
+    return config

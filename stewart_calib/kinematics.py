@@ -1,0 +1,398 @@
+"""Kinematics of a 6-6 Stewart platform: pure numpy, vectorised over poses, mm and rad.
+
+Conventions (spec §1, paper §3.1):
+
+* A pose is the platform frame {D} in the base frame {J}: ``(R, t)`` with ``R`` of shape
+  ``(..., 3, 3)`` and ``t`` of shape ``(..., 3)`` [mm], or a *pose6* vector
+  ``[x, y, z [mm], roll, pitch, yaw [rad]]`` with ``R = Rz(yaw) Ry(pitch) Rx(roll)``
+  (paper eq. 20–21).
+* Pose perturbations for Jacobians, Newton steps and GTSAM are in the body-frame tangent
+  ``ξ = [ω, v]`` (rotation first), ``R ← R Exp(ω)``, ``t ← t + R v`` — exactly
+  ``gtsam.Pose3.retract``.
+* A leg between base joint ``b_i`` (in {J}) and platform joint ``p_i`` (in {D}) has length
+  ``‖t + R p_i − b_i‖`` = ``initial_length_i + stroke_i`` (paper eq. 1, Table 2).
+
+No I/O and no estimator state live here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import CalibError
+from .platform import N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
+
+# ----------------------------------------------------------------------------- rotations
+
+
+def rpy_to_rotation(rpy: np.ndarray) -> np.ndarray:
+    """``R = Rz(γ) Ry(β) Rx(α)`` for ``rpy = [α, β, γ]`` [rad] (paper eq. 5, 20–21).
+
+    Args:
+        rpy: ``(..., 3)`` roll, pitch, yaw [rad].
+    Returns:
+        ``(..., 3, 3)`` rotation matrices.
+    """
+    rpy = np.asarray(rpy, dtype=float)
+    ca, cb, cg = np.cos(rpy[..., 0]), np.cos(rpy[..., 1]), np.cos(rpy[..., 2])
+    sa, sb, sg = np.sin(rpy[..., 0]), np.sin(rpy[..., 1]), np.sin(rpy[..., 2])
+    R = np.empty(rpy.shape[:-1] + (3, 3))
+    R[..., 0, 0] = cb * cg
+    R[..., 0, 1] = sa * sb * cg - sg * ca
+    R[..., 0, 2] = sb * ca * cg + sa * sg
+    R[..., 1, 0] = sg * cb
+    R[..., 1, 1] = sa * sb * sg + ca * cg
+    R[..., 1, 2] = sb * sg * ca - sa * cg
+    R[..., 2, 0] = -sb
+    R[..., 2, 1] = sa * cb
+    R[..., 2, 2] = ca * cb
+    return R
+
+
+def rotation_to_rpy(R: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`rpy_to_rotation` for pitch in (−90°, 90°) [rad]."""
+    R = np.asarray(R, dtype=float)
+    roll = np.arctan2(R[..., 2, 1], R[..., 2, 2])
+    pitch = np.arctan2(-R[..., 2, 0], np.hypot(R[..., 2, 1], R[..., 2, 2]))
+    yaw = np.arctan2(R[..., 1, 0], R[..., 0, 0])
+    return np.stack([roll, pitch, yaw], axis=-1)
+
+
+def euler_rate_matrix(rpy: np.ndarray) -> np.ndarray:
+    """Paper eq. 4–5: ``T`` with ``ω = T δθ``, ``δθ = [δα, δβ, δγ]``, ω in the base frame.
+
+    Args:
+        rpy: ``(..., 3)`` [rad]; only pitch β and yaw γ enter.
+    Returns:
+        ``(..., 3, 3)``.
+    """
+    rpy = np.asarray(rpy, dtype=float)
+    cb, sb = np.cos(rpy[..., 1]), np.sin(rpy[..., 1])
+    cg, sg = np.cos(rpy[..., 2]), np.sin(rpy[..., 2])
+    T = np.zeros(rpy.shape[:-1] + (3, 3))
+    T[..., 0, 0] = cb * cg
+    T[..., 0, 1] = -sg
+    T[..., 1, 0] = sg * cb
+    T[..., 1, 1] = cg
+    T[..., 2, 0] = -sb
+    T[..., 2, 2] = 1.0
+    return T
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` → ``(..., 3, 3)`` with ``skew(a) @ b = a × b``."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def so3_exp(omega: np.ndarray) -> np.ndarray:
+    """Rodrigues: ``(..., 3)`` rotation vector [rad] → ``(..., 3, 3)``."""
+    omega = np.asarray(omega, dtype=float)
+    theta2 = np.sum(omega * omega, axis=-1)[..., None, None]
+    theta = np.sqrt(theta2)
+    small = theta2 < 1e-12
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
+    K = skew(omega)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Angle of a rotation ``(..., 3, 3)`` [rad], accurate near 0 and π."""
+    R = np.asarray(R, dtype=float)
+    # atan2(|axis·sinθ|, cosθ) keeps precision at small angles where arccos(trace) loses it.
+    sin_part = 0.5 * np.linalg.norm(
+        np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1),
+        axis=-1,
+    )
+    cos_part = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    return np.arctan2(sin_part, cos_part)
+
+
+# ----------------------------------------------------------------------------- poses
+
+
+def pose_to_rt(pose6: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(..., 6)`` ``[x, y, z [mm], roll, pitch, yaw [rad]]`` → ``(R, t)``."""
+    pose6 = np.asarray(pose6, dtype=float)
+    return rpy_to_rotation(pose6[..., 3:]), pose6[..., :3].copy()
+
+
+def rt_to_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(R, t)`` → ``(..., 6)`` ``[x, y, z [mm], roll, pitch, yaw [rad]]``."""
+    return np.concatenate([np.asarray(t, dtype=float), rotation_to_rpy(R)], axis=-1)
+
+
+def retract(R: np.ndarray, t: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``Pose3.retract``: ``R Exp(ω)``, ``t + R v`` for body tangent ``ξ = [ω, v]`` ``(..., 6)``."""
+    xi = np.asarray(xi, dtype=float)
+    return R @ so3_exp(xi[..., :3]), t + np.einsum("...ij,...j->...i", R, xi[..., 3:])
+
+
+def compose(R_a_b: np.ndarray, t_a_b: np.ndarray, R_b_c: np.ndarray, t_b_c: np.ndarray):
+    """``T_a_c = T_a_b T_b_c`` on ``(R, t)`` pairs (broadcasting)."""
+    return R_a_b @ R_b_c, t_a_b + np.einsum("...ij,...j->...i", R_a_b, t_b_c)
+
+
+def invert(R_a_b: np.ndarray, t_a_b: np.ndarray):
+    """``T_b_a = T_a_b⁻¹`` on an ``(R, t)`` pair."""
+    R_b_a = np.swapaxes(R_a_b, -1, -2)
+    return R_b_a, -np.einsum("...ij,...j->...i", R_b_a, t_a_b)
+
+
+def transform_points(R: np.ndarray, t: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Map ``(..., K, 3)`` points of frame b into frame a with ``(R_a_b, t_a_b)``."""
+    return np.einsum("...ij,...kj->...ki", R, points) + t[..., None, :]
+
+
+def pose_error(R_desired, t_desired, R_actual, t_actual) -> tuple[np.ndarray, np.ndarray]:
+    """Pose-error metrics in local coordinates (never raw Euler differences).
+
+    Returns:
+        ``(position_error_mm, orientation_error_deg)``: ``‖t_actual − t_desired‖`` [mm] and the
+        rotation angle of ``R_desiredᵀ R_actual`` [deg], each of shape ``(...)``.
+    """
+    position_error_mm = np.linalg.norm(np.asarray(t_actual) - np.asarray(t_desired), axis=-1)
+    relative = np.swapaxes(np.asarray(R_desired), -1, -2) @ np.asarray(R_actual)
+    return position_error_mm, np.degrees(rotation_angle(relative))
+
+
+# ----------------------------------------------------------------------------- legs
+
+
+def leg_vectors(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Closed-loop vectors ``l_i n_i = t + R p_i − b_i`` (paper eq. 1), ``(..., 6, 3)`` [mm]."""
+    return transform_points(R, t, legs.platform_joints) - legs.base_joints
+
+
+def leg_lengths(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``‖t + R p_i − b_i‖`` for the six legs, ``(..., 6)`` [mm]."""
+    return np.linalg.norm(leg_vectors(legs, R, t), axis=-1)
+
+
+def inverse_kinematics(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Strokes (drive ``q_i``) or readings (tracker ``s_i``) that put the platform at ``(R, t)``.
+
+    Returns:
+        ``(..., 6)`` ``‖t + R p_i − b_i‖ − initial_length_i`` [mm].
+    """
+    return leg_lengths(legs, R, t) - legs.initial_lengths
+
+
+def leg_pose_jacobian(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``∂ length_i / ∂ξ`` for the body tangent ``ξ = [ω, v]`` (GTSAM order), ``(..., 6, 6)``.
+
+    With ``p = t + R p_i``, ``δp = −R[p_i]× ω + R v``, so the row of leg i is
+    ``[ (p_i × Rᵀn_i)ᵀ, (Rᵀn_i)ᵀ ]`` with ``n_i`` the unit leg vector.
+    """
+    vec = leg_vectors(legs, R, t)
+    n = vec / np.linalg.norm(vec, axis=-1, keepdims=True)
+    n_body = np.einsum("...ji,...kj->...ki", R, n)  # Rᵀ n_i per leg
+    return np.concatenate([np.cross(legs.platform_joints, n_body), n_body], axis=-1)
+
+
+@dataclass(frozen=True)
+class FKSolution:
+    """Result of :func:`forward_kinematics`.
+
+    Attributes:
+        R: ``(..., 3, 3)`` platform orientation.
+        t: ``(..., 3)`` platform position [mm].
+        iterations: ``(...)`` Newton iterations used per pose.
+        converged: ``(...)`` whether the length residual fell below the tolerance.
+        residual_mm: ``(...)`` max |length error| at the returned pose [mm].
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+    residual_mm: np.ndarray
+
+    @property
+    def pose6(self) -> np.ndarray:
+        return rt_to_pose(self.R, self.t)
+
+
+class FKError(CalibError):
+    """Forward kinematics did not converge or the leg lengths are unreachable."""
+
+
+def default_guess(legs: LegGeometry, strokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A level pose above the base centre whose mean leg length matches the mean of ``strokes``."""
+    target = np.asarray(strokes, dtype=float) + legs.initial_lengths
+    radial = legs.base_joints[:, :2] - legs.platform_joints[:, :2]
+    dz = np.sqrt(np.maximum(target**2 - np.sum(radial**2, axis=-1), 1.0))
+    z = np.mean(dz + legs.base_joints[:, 2] - legs.platform_joints[:, 2], axis=-1)
+    t = np.zeros(target.shape[:-1] + (3,))
+    t[..., 2] = z
+    return np.broadcast_to(np.eye(3), target.shape[:-1] + (3, 3)).copy(), t
+
+
+def forward_kinematics(
+    legs: LegGeometry,
+    strokes: np.ndarray,
+    guess: tuple[np.ndarray, np.ndarray] | None = None,
+    tol_mm: float = 1e-9,
+    max_iterations: int = 30,
+    strict: bool = True,
+) -> FKSolution:
+    """Forward kinematics by Newton–Raphson on the leg lengths (paper §3.2, step 1).
+
+    Solves ``‖t + R p_i − b_i‖ = initial_length_i + stroke_i`` for ``(R, t)``, stepping in the
+    body tangent ``ξ = [ω, v]`` with the leg Jacobian of :func:`leg_pose_jacobian`. Each pose
+    of a batch iterates until its own residual is below ``tol_mm``.
+
+    Args:
+        legs: drive or tracker geometry.
+        strokes: ``(..., 6)`` strokes q_i or readings s_i [mm].
+        guess: starting ``(R, t)`` broadcastable to the batch (warm start from the previous
+            pose); default: a level pose from :func:`default_guess`.
+        tol_mm: convergence tolerance on max |length residual| [mm].
+        max_iterations: iteration cap.
+        strict: raise :class:`FKError` if any pose fails; otherwise report it in ``converged``.
+    Raises:
+        FKError: lengths unreachable (no pose fits them) or no convergence within the cap.
+    """
+    strokes = np.asarray(strokes, dtype=float)
+    batch = strokes.shape[:-1]
+    target = strokes.reshape(-1, 6) + legs.initial_lengths
+    if guess is None:
+        R, t = default_guess(legs, target - legs.initial_lengths)
+    else:
+        R = np.broadcast_to(np.asarray(guess[0], dtype=float), batch + (3, 3)).reshape(-1, 3, 3).copy()
+        t = np.broadcast_to(np.asarray(guess[1], dtype=float), batch + (3,)).reshape(-1, 3).copy()
+    iterations = np.zeros(len(target), dtype=int)
+    finite = np.all(np.isfinite(target), axis=-1)
+    active = finite.copy()
+    residual = np.full(len(target), np.inf)
+
+    for _ in range(max_iterations + 1):
+        idx = np.flatnonzero(active)
+        err = target[idx] - leg_lengths(legs, R[idx], t[idx])
+        residual[idx] = np.max(np.abs(err), axis=-1)
+        keep = (residual[idx] > tol_mm) & (iterations[idx] < max_iterations)
+        active[idx[~keep]] = False
+        idx, err = idx[keep], err[keep]
+        if idx.size == 0:
+            break
+        step = _solve_steps(leg_pose_jacobian(legs, R[idx], t[idx]), err)
+        # Cap wild steps from a poor guess so Newton stays in its basin: 0.2 rad, 100 mm.
+        scale = np.minimum(
+            1.0,
+            np.minimum(
+                0.2 / np.maximum(np.linalg.norm(step[:, :3], axis=-1), 1e-300),
+                100.0 / np.maximum(np.linalg.norm(step[:, 3:], axis=-1), 1e-300),
+            ),
+        )
+        R[idx], t[idx] = retract(R[idx], t[idx], step * scale[:, None])
+        iterations[idx] += 1
+
+    converged = residual <= tol_mm
+    if strict and not np.all(converged):
+        first = int(np.flatnonzero(~converged)[0])
+        where = f" (pose {np.unravel_index(first, batch)})" if batch else ""
+        reason = "non-finite lengths" if not finite[first] else f"residual {residual[first]:.3g} mm"
+        raise FKError(
+            f"forward kinematics did not converge{where}: {reason} after {iterations[first]} "
+            "Newton iterations; the leg lengths may be unreachable"
+        )
+    return FKSolution(
+        R.reshape(batch + (3, 3)),
+        t.reshape(batch + (3,)),
+        iterations.reshape(batch),
+        converged.reshape(batch),
+        residual.reshape(batch),
+    )
+
+
+def _solve_steps(J: np.ndarray, err: np.ndarray) -> np.ndarray:
+    """Newton steps ``J ξ = err``; a singular Jacobian (degenerate pose) gets a least-squares step."""
+    try:
+        return np.linalg.solve(J, err[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return np.stack([np.linalg.lstsq(Ji, ei, rcond=None)[0] for Ji, ei in zip(J, err)])
+
+
+# ----------------------------------------------------------------------------- error model
+
+
+def leg_unit_vectors(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``n_i`` of paper eq. 1, ``(..., 6, 3)``."""
+    vec = leg_vectors(legs, R, t)
+    return vec / np.linalg.norm(vec, axis=-1, keepdims=True)
+
+
+def error_jacobian(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The paper's error Jacobian ``J_p = J_r J_s`` (eq. 8–11), ``(..., 6, 42)``.
+
+    ``δE = J_p δM`` with ``δE = [δh, δθ]`` (position [mm], roll-pitch-yaw [rad]) the change of
+    the pose reached with fixed strokes when the parameters change by δM (paper order).
+    ``J_r⁻¹`` has rows ``[n_iᵀ, (R d_i × n_i)ᵀ T]`` (eq. 10); ``J_s`` is block-diagonal with
+    rows ``[n_iᵀ, −n_iᵀ R, 1]`` on ``[δj_i, δd_i, δl_i]`` (eq. 11).
+    """
+    rpy = rotation_to_rpy(R)
+    n = leg_unit_vectors(legs, R, t)
+    Rd = np.einsum("...ij,kj->...ki", R, legs.platform_joints)
+    T = euler_rate_matrix(rpy)
+    J_r_inv = np.concatenate([n, np.einsum("...ki,...ij->...kj", np.cross(Rd, n), T)], axis=-1)
+    blocks = np.concatenate(
+        [n, -np.einsum("...ki,...ij->...kj", n, R), np.ones(n.shape[:-1] + (1,))], axis=-1
+    )  # (..., 6, 7): row i of J_s restricted to leg i's parameters
+    # J_p = J_r J_s and J_s is block diagonal: column block i of J_p is J_r[:, i] ⊗ blocks[i].
+    J_r = np.linalg.inv(J_r_inv)
+    J_p = J_r[..., :, :, None] * blocks[..., None, :, :]
+    return J_p.reshape(J_p.shape[:-2] + (N_PARAMS,))
+
+
+def leg_residuals(legs: LegGeometry, R: np.ndarray, t: np.ndarray, strokes: np.ndarray) -> np.ndarray:
+    """Leg-length model ``r_i = ‖t + R d_i − j_i‖ − (l_i + q_i)``, ``(..., 6)`` [mm]."""
+    return leg_lengths(legs, R, t) - legs.initial_lengths - np.asarray(strokes, dtype=float)
+
+
+def leg_residual_param_jacobian(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``∂r_i/∂(j_i, d_i, l_i)`` = ``[−n_iᵀ, n_iᵀ R, −1]`` for each leg, ``(..., 6, 7)``.
+
+    Leg i's residual depends only on leg i's seven parameters; :func:`block_diagonal_params`
+    spreads these rows into the full ``(..., 6, 42)`` Jacobian.
+    """
+    n = leg_unit_vectors(legs, R, t)
+    return np.concatenate(
+        [-n, np.einsum("...ki,...ij->...kj", n, R), -np.ones(n.shape[:-1] + (1,))], axis=-1
+    )
+
+
+def block_diagonal_params(per_leg: np.ndarray) -> np.ndarray:
+    """``(..., 6, 7)`` per-leg rows → ``(..., 6, 42)`` with leg i's row in columns 7i…7i+6."""
+    out = np.zeros(per_leg.shape[:-1] + (N_PARAMS,))
+    for i in range(per_leg.shape[-2]):
+        out[..., i, N_PARAMS_PER_LEG * i : N_PARAMS_PER_LEG * (i + 1)] = per_leg[..., i, :]
+    return out
+
+
+def leg_residual_jacobians(
+    legs: LegGeometry, R: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobians of :func:`leg_residuals`: ``(∂r/∂ξ (..., 6, 6), ∂r/∂M (..., 6, 42))``.
+
+    The pose Jacobian is in the body tangent ``ξ = [ω, v]`` (see :func:`leg_pose_jacobian`).
+    """
+    return leg_pose_jacobian(legs, R, t), block_diagonal_params(leg_residual_param_jacobian(legs, R, t))
+
+
+def pose_covariance_from_legs(legs: LegGeometry, R: np.ndarray, t: np.ndarray, sigma_mm: float) -> np.ndarray:
+    """Covariance of an FK pose in the body tangent ``[ω, v]`` from i.i.d. length noise σ [mm].
+
+    First-order propagation ``Σ_ξ = σ² (JᵀJ)⁻¹`` with ``J`` = :func:`leg_pose_jacobian`; this is
+    the *loose* tracker measurement's covariance. ``(..., 6, 6)`` [rad², rad·mm, mm²].
+    """
+    J = leg_pose_jacobian(legs, R, t)
+    J_inv = np.linalg.inv(J)
+    return sigma_mm**2 * J_inv @ np.swapaxes(J_inv, -1, -2)

@@ -1,0 +1,308 @@
+"""Nominal geometry of a 6-6 Stewart platform and its in-situ tracker; the 42-vector layout.
+
+Fixed geometry lives here and nowhere else; per-sample data (strokes, readings, poses)
+is passed to the pure functions of :mod:`stewart_calib.kinematics`.
+
+The 42 kinematic parameters follow the paper's order (δM, eq. 9)::
+
+    [j1x j1y j1z d1x d1y d1z l1  j2x ... l2  ...  j6x j6y j6z d6x d6y d6z l6]
+
+and are held as a ``(6, 7)`` array ``[j_i (3) | d_i (3) | l_i]`` per leg; :func:`params_to_vector`
+and :func:`vector_to_params` convert between the two, and nothing else reorders them.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .errors import CalibError
+
+N_LEGS = 6
+N_PARAMS_PER_LEG = 7
+N_PARAMS = N_LEGS * N_PARAMS_PER_LEG
+PARAMETER_NAMES: tuple[str, ...] = tuple(
+    f"{name[0]}{leg}{name[1:]}"
+    for leg in range(1, N_LEGS + 1)
+    for name in ("jx", "jy", "jz", "dx", "dy", "dz", "l")
+)
+
+
+@dataclass(frozen=True)
+class LegGeometry:
+    """Six legs between base and platform: ``length_i = ‖t + R p_i − b_i‖``.
+
+    For the drive this is (j_i, d_i, l_i) of paper eq. 1; for the tracker (z_i, h_i, l_si)
+    of Table 2. ``length_i = initial_lengths[i] + stroke_i``.
+
+    Attributes:
+        base_joints: ``(6, 3)`` joint centres in the base frame {J} [mm].
+        platform_joints: ``(6, 3)`` joint centres in the platform frame {D} [mm].
+        initial_lengths: ``(6,)`` leg lengths at zero stroke / zero reading [mm].
+    """
+
+    base_joints: np.ndarray
+    platform_joints: np.ndarray
+    initial_lengths: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name, shape in (("base_joints", (6, 3)), ("platform_joints", (6, 3)), ("initial_lengths", (6,))):
+            value = np.array(getattr(self, name), dtype=float)
+            if value.shape != shape:
+                raise ValueError(f"{name} must have shape {shape}, got {value.shape}")
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+
+    @property
+    def params(self) -> np.ndarray:
+        """``(6, 7)`` array ``[j_i | d_i | l_i]`` per leg [mm]."""
+        return np.hstack([self.base_joints, self.platform_joints, self.initial_lengths[:, None]])
+
+    @classmethod
+    def from_params(cls, params: np.ndarray) -> "LegGeometry":
+        """Build from a ``(6, 7)`` array or a 42-vector in the paper's order [mm]."""
+        p = np.asarray(params, dtype=float).reshape(N_LEGS, N_PARAMS_PER_LEG)
+        return cls(p[:, 0:3], p[:, 3:6], p[:, 6])
+
+    def as_vector(self) -> np.ndarray:
+        """The 42-vector M in the paper's order [mm]."""
+        return params_to_vector(self.params)
+
+    def perturbed(self, delta: np.ndarray) -> "LegGeometry":
+        """Geometry ``M + δM`` for a 42-vector (or ``(6, 7)``) error δM [mm]."""
+        return LegGeometry.from_params(self.params + np.asarray(delta, dtype=float).reshape(N_LEGS, N_PARAMS_PER_LEG))
+
+
+def params_to_vector(params: np.ndarray) -> np.ndarray:
+    """``(..., 6, 7)`` per-leg parameters → ``(..., 42)`` paper-order vector."""
+    p = np.asarray(params, dtype=float)
+    return p.reshape(*p.shape[:-2], N_PARAMS)
+
+
+def vector_to_params(vector: np.ndarray) -> np.ndarray:
+    """``(..., 42)`` paper-order vector → ``(..., 6, 7)`` per-leg parameters."""
+    v = np.asarray(vector, dtype=float)
+    return v.reshape(*v.shape[:-1], N_LEGS, N_PARAMS_PER_LEG)
+
+
+@dataclass(frozen=True)
+class Workspace:
+    """Reachable box about home (paper §4.1: ±200 mm, ±20°).
+
+    Attributes:
+        home: ``(6,)`` home pose ``[x, y, z [mm], roll, pitch, yaw [rad]]``.
+        translation_limit: ± per axis about home [mm].
+        rotation_limit: ± per axis about home [rad].
+    """
+
+    home: np.ndarray
+    translation_limit: float = 200.0
+    rotation_limit: float = math.radians(20.0)
+
+
+@dataclass(frozen=True)
+class Platform:
+    """A platform file: nominal drive geometry, known tracker geometry, ranges, workspace.
+
+    Attributes:
+        name: free-text identifier.
+        drive: nominal drive legs (j_i, d_i, l_i) — what the controller believes.
+        tracker: tracker legs (z_i, h_i, l_si) — taken as known (paper Table 2).
+        stroke_range: ``(min, max)`` drive stroke q_i [mm], or None.
+        reading_range: ``(min, max)`` grating reading s_i [mm], or None.
+        workspace: reachable box, or None.
+        description: free text.
+    """
+
+    name: str
+    drive: LegGeometry
+    tracker: LegGeometry
+    stroke_range: tuple[float, float] | None = None
+    reading_range: tuple[float, float] | None = None
+    workspace: Workspace | None = None
+    description: str = ""
+    source: str = field(default="<memory>", compare=False)
+
+    def with_drive(self, drive: LegGeometry) -> "Platform":
+        return replace(self, drive=drive)
+
+
+def _refuse(source: str, key: str, expected: str) -> CalibError:
+    return CalibError(f"{source}: key '{key}': expected {expected}")
+
+
+def _array(table: dict, key: str, shape: tuple[int, ...], source: str, prefix: str) -> np.ndarray:
+    full = f"{prefix}.{key}"
+    if key not in table:
+        raise _refuse(source, full, f"{_shape_words(shape)} (missing)")
+    try:
+        value = np.array(table[key], dtype=float)
+    except (TypeError, ValueError):
+        raise _refuse(source, full, f"{_shape_words(shape)} of numbers") from None
+    if value.shape != shape:
+        raise _refuse(source, full, f"{_shape_words(shape)}, got shape {value.shape}")
+    if not np.all(np.isfinite(value)):
+        raise _refuse(source, full, f"{_shape_words(shape)} of finite numbers")
+    return value
+
+
+def _shape_words(shape: tuple[int, ...]) -> str:
+    if shape == (6, 3):
+        return "6 rows of [x, y, z] in mm"
+    if len(shape) == 1:
+        return f"a list of {shape[0]} numbers"
+    return f"an array of shape {shape}"
+
+
+def _range(table: dict, key: str, source: str, prefix: str) -> tuple[float, float] | None:
+    if key not in table:
+        return None
+    lo, hi = _array(table, key, (2,), source, prefix)
+    if not lo < hi:
+        raise _refuse(source, f"{prefix}.{key}", f"[min, max] with min < max, got [{lo}, {hi}]")
+    return float(lo), float(hi)
+
+
+def _legs(doc: dict, section: str, source: str) -> tuple[LegGeometry, dict]:
+    table = doc.get(section)
+    if not isinstance(table, dict):
+        raise _refuse(source, section, f"a [{section}] table")
+    legs = LegGeometry(
+        _array(table, "base_joints_mm", (6, 3), source, section),
+        _array(table, "platform_joints_mm", (6, 3), source, section),
+        _array(table, "initial_lengths_mm", (6,), source, section),
+    )
+    if np.any(legs.initial_lengths <= 0):
+        raise _refuse(source, f"{section}.initial_lengths_mm", "6 positive lengths in mm")
+    return legs, table
+
+
+def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
+    """Validate a parsed platform TOML document (spec §2) and build a :class:`Platform`.
+
+    Raises:
+        CalibError: naming ``source``, the key and what was expected.
+    """
+    name = doc.get("name")
+    if not isinstance(name, str) or not name.strip():
+        raise _refuse(source, "name", "a non-empty string")
+    description = doc.get("description", "")
+    if not isinstance(description, str):
+        raise _refuse(source, "description", "a string")
+    drive, drive_table = _legs(doc, "drive", source)
+    tracker, tracker_table = _legs(doc, "tracker", source)
+    stroke_range = _range(drive_table, "stroke_range_mm", source, "drive")
+    reading_range = _range(tracker_table, "reading_range_mm", source, "tracker")
+
+    workspace = None
+    if "workspace" in doc:
+        ws = doc["workspace"]
+        if not isinstance(ws, dict):
+            raise _refuse(source, "workspace", "a [workspace] table")
+        home = _array(ws, "home", (6,), source, "workspace")
+        limits = {}
+        for key, default in (("translation_limit_mm", 200.0), ("rotation_limit_deg", 20.0)):
+            value = ws.get(key, default)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise _refuse(source, f"workspace.{key}", "a finite non-negative number")
+            limits[key] = float(value)
+        workspace = Workspace(
+            home=np.concatenate([home[:3], np.radians(home[3:])]),
+            translation_limit=limits["translation_limit_mm"],
+            rotation_limit=math.radians(limits["rotation_limit_deg"]),
+        )
+
+    platform = Platform(name, drive, tracker, stroke_range, reading_range, workspace, description, source)
+    if workspace is not None:
+        _check_home_reachable(platform, source)
+    return platform
+
+
+def _check_home_reachable(platform: Platform, source: str) -> None:
+    from .kinematics import leg_lengths, pose_to_rt  # kinematics imports platform
+
+    R, t = pose_to_rt(platform.workspace.home)
+    for legs, bounds, what in (
+        (platform.drive, platform.stroke_range, "drive strokes"),
+        (platform.tracker, platform.reading_range, "tracker readings"),
+    ):
+        if bounds is None:
+            continue
+        strokes = leg_lengths(legs, R, t) - legs.initial_lengths
+        bad = np.flatnonzero((strokes < bounds[0]) | (strokes > bounds[1]))
+        if bad.size:
+            i = int(bad[0])
+            raise _refuse(
+                source,
+                "workspace.home",
+                f"a home pose whose {what} lie within [{bounds[0]}, {bounds[1]}] mm; "
+                f"leg {i + 1} needs {strokes[i]:.3f} mm",
+            )
+
+
+def load_platform(path: str | Path) -> Platform:
+    """Read and validate a platform TOML file (spec §2).
+
+    Raises:
+        CalibError: one line naming the file, the key and what was expected.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CalibError(f"{path}: platform file not found") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise CalibError(f"{path}: cannot read platform file ({err.__class__.__name__})") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise CalibError(f"{path}: not valid TOML ({err})") from None
+    return parse_platform(doc, str(path))
+
+
+def _toml_rows(rows: np.ndarray) -> str:
+    return "[\n" + "".join(f"    [{', '.join(repr(float(v)) for v in row)}],\n" for row in rows) + "]"
+
+
+def _toml_list(values) -> str:
+    return "[" + ", ".join(repr(float(v)) for v in values) + "]"
+
+
+def platform_to_toml(platform: Platform) -> str:
+    """Serialise to the spec §2 TOML; ``parse_platform(tomllib.loads(...))`` round-trips exactly."""
+    lines = [f"name = {_toml_str(platform.name)}"]
+    if platform.description:
+        lines.append(f"description = {_toml_str(platform.description)}")
+    for section, legs, key, bounds in (
+        ("drive", platform.drive, "stroke_range_mm", platform.stroke_range),
+        ("tracker", platform.tracker, "reading_range_mm", platform.reading_range),
+    ):
+        lines += [
+            "",
+            f"[{section}]",
+            f"base_joints_mm = {_toml_rows(legs.base_joints)}",
+            f"platform_joints_mm = {_toml_rows(legs.platform_joints)}",
+            f"initial_lengths_mm = {_toml_list(legs.initial_lengths)}",
+        ]
+        if bounds is not None:
+            lines.append(f"{key} = {_toml_list(bounds)}")
+    if platform.workspace is not None:
+        ws = platform.workspace
+        home = np.concatenate([ws.home[:3], np.degrees(ws.home[3:])])
+        lines += [
+            "",
+            "[workspace]",
+            f"home = {_toml_list(home)}",
+            f"translation_limit_mm = {float(ws.translation_limit)!r}",
+            f"rotation_limit_deg = {math.degrees(ws.rotation_limit)!r}",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def _toml_str(text: str) -> str:
+    escaped = text.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
+    return f'"{escaped}"'

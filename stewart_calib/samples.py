@@ -1,0 +1,77 @@
+"""Per-sample working data: what one row of the measurement log holds (spec §3).
+
+Kept apart from the fixed geometry in :mod:`stewart_calib.platform`. Code works in mm and
+rad; the log's degrees are converted at the file edge (:mod:`stewart_calib.io`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One measurement: executed drive strokes and tracker readings at time ``t_s``.
+
+    Attributes:
+        t_s: time [s].
+        strokes: ``(6,)`` drive strokes q_i as executed (encoders) [mm].
+        readings: ``(6,)`` tracker grating readings s_i [mm].
+        desired_pose: ``(6,)`` pose the controller was asked for ``[mm, rad]``, or None.
+        stage: free label of the experiment stage ("" when absent).
+        load_kg: payload, for reports only — no estimator may read it.
+    """
+
+    t_s: float
+    strokes: np.ndarray
+    readings: np.ndarray
+    desired_pose: np.ndarray | None = None
+    stage: str = ""
+    load_kg: float | None = None
+
+
+@dataclass
+class Log:
+    """A measurement log as arrays (spec §3), N samples.
+
+    Attributes:
+        t_s: ``(N,)`` [s], non-decreasing.
+        strokes: ``(N, 6)`` q_i [mm].
+        readings: ``(N, 6)`` s_i [mm].
+        desired_poses: ``(N, 6)`` ``[mm, rad]`` or None when the log has no pose columns.
+        stages: N labels or None.
+        load_kg: ``(N,)`` or None.
+        skipped: ``(row, reason)`` of rows skipped on reading (1-based file line numbers).
+    """
+
+    t_s: np.ndarray
+    strokes: np.ndarray
+    readings: np.ndarray
+    desired_poses: np.ndarray | None = None
+    stages: list[str] | None = None
+    load_kg: np.ndarray | None = None
+    skipped: list[tuple[int, str]] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.t_s)
+
+    def __getitem__(self, k: int) -> Sample:
+        return Sample(
+            float(self.t_s[k]),
+            self.strokes[k],
+            self.readings[k],
+            None if self.desired_poses is None else self.desired_poses[k],
+            "" if self.stages is None else self.stages[k],
+            None if self.load_kg is None else float(self.load_kg[k]),
+        )
+
+    def __iter__(self):
+        return (self[k] for k in range(len(self)))
+
+    def select(self, mask_or_index) -> "Log":
+        """A sub-log of the rows picked by a boolean mask, slice or index array."""
+        pick = lambda a: None if a is None else a[mask_or_index]  # noqa: E731
+        stages = None if self.stages is None else list(np.asarray(self.stages, dtype=object)[mask_or_index])
+        return Log(pick(self.t_s), pick(self.strokes), pick(self.readings), pick(self.desired_poses), stages, pick(self.load_kg))

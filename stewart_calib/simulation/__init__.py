@@ -1,0 +1,1 @@
+"""The laboratory: true robot, load model, in-situ tracker, trajectories and the closed loop."""
