@@ -7,8 +7,9 @@ Conventions (spec §1, paper §3.1):
   ``[x, y, z [mm], roll, pitch, yaw [rad]]`` with ``R = Rz(yaw) Ry(pitch) Rx(roll)``
   (paper eq. 20–21).
 * Pose perturbations for Jacobians, Newton steps and GTSAM are in the body-frame tangent
-  ``ξ = [ω, v]`` (rotation first), ``R ← R Exp(ω)``, ``t ← t + R v`` — exactly
-  ``gtsam.Pose3.retract``.
+  ``ξ = [ω, v]`` (rotation first), ``R ← R Exp(ω)``, ``t ← t + R v`` — the same tangent and
+  the same first derivative as ``gtsam.Pose3.retract`` (which in gtsam 4.3.0 is the full SE(3)
+  exponential, ``t + R V(ω) v``: equal Jacobians at ξ = 0, different at second order).
 * A leg between base joint ``b_i`` (in {J}) and platform joint ``p_i`` (in {D}) has length
   ``‖t + R p_i − b_i‖`` = ``initial_length_i + stroke_i`` (paper eq. 1, Table 2).
 
@@ -131,7 +132,7 @@ def rt_to_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def retract(R: np.ndarray, t: np.ndarray, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``Pose3.retract``: ``R Exp(ω)``, ``t + R v`` for body tangent ``ξ = [ω, v]`` ``(..., 6)``."""
+    """``R Exp(ω)``, ``t + R v`` for body tangent ``ξ = [ω, v]`` ``(..., 6)`` (``Pose3.retract`` to first order)."""
     xi = np.asarray(xi, dtype=float)
     return R @ so3_exp(xi[..., :3]), t + np.einsum("...ij,...j->...i", R, xi[..., 3:])
 
@@ -298,7 +299,7 @@ def forward_kinematics(
     converged = residual <= tol_mm
     if strict and not np.all(converged):
         first = int(np.flatnonzero(~converged)[0])
-        where = f" (pose {np.unravel_index(first, batch)})" if batch else ""
+        where = f" (pose {tuple(int(i) for i in np.unravel_index(first, batch))})" if batch else ""
         reason = "non-finite lengths" if not finite[first] else f"residual {residual[first]:.3g} mm"
         raise FKError(
             f"forward kinematics did not converge{where}: {reason} after {iterations[first]} "

@@ -1,0 +1,351 @@
+"""Kinematics (stewart_calib.kinematics) against its definitions, the paper and finite differences.
+
+Poses are compared in local coordinates: translation norm [mm] and the rotation angle of
+``R_aᵀ R_b`` [rad] (never raw Euler differences). Jacobians are compared with the shared
+central-difference helper in :mod:`tests.numdiff`.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import gtsam
+import numpy as np
+import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from stewart_calib import kinematics as kin
+from stewart_calib.platform import LegGeometry
+
+from .numdiff import (
+    EPS_MM,
+    EPS_RAD,
+    numerical_jacobian,
+    numerical_pose3_jacobian,
+    numerical_pose_jacobian,
+    relative_error,
+)
+from .synthetic import nim_stewart, random_poses
+
+PLATFORM = nim_stewart()
+WS = PLATFORM.workspace
+HALF_BOX = np.r_[[WS.translation_limit] * 3, [WS.rotation_limit] * 3]  # ±200 mm, ±20°
+MECHANISMS = {"drive": PLATFORM.drive, "tracker": PLATFORM.tracker}
+
+# Round-trip tolerance: 1e-9 mm / 1e-9 rad. FK is solved to 1e-11 mm on the lengths; the
+# pose error is then ≤ cond(J) · 1e-11 with cond(J) ≲ 2.5e3 (mm, rad mixed) at the box corners,
+# i.e. ≤ 3e-8 in the worst case but ~1e-11 measured: tol_mm=1e-9 alone would leave ~1e-9 mm.
+ROUND_TRIP_MM = 1e-9
+ROUND_TRIP_RAD = 1e-9
+FK_TOL_MM = 1e-11
+# Jacobian checks: the helper's steps give ~1e-10 relative error (tests/numdiff.py), so 1e-6
+# fails any wrong term (a sign or a missing factor is an O(1) relative error) with wide margin.
+JACOBIAN_REL_TOL = 1e-6
+
+unit = st.floats(min_value=-1.0, max_value=1.0, allow_nan=False)  # hypothesis draws ±1 (edges) often
+box_fraction = st.lists(unit, min_size=6, max_size=6).map(np.array)
+CORNER = [1.0, -1.0, 1.0, -1.0, 1.0, -1.0]
+
+
+def workspace_pose(fraction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` at ``home + fraction · (±200 mm, ±20°)``."""
+    return kin.pose_to_rt(WS.home + fraction * HALF_BOX)
+
+
+def assert_same_pose(R_a, t_a, R_b, t_b, tol_mm=ROUND_TRIP_MM, tol_rad=ROUND_TRIP_RAD):
+    position_mm, angle_deg = kin.pose_error(R_a, t_a, R_b, t_b)
+    assert np.max(position_mm) <= tol_mm, f"position differs by {np.max(position_mm):.3g} mm"
+    assert np.max(np.radians(angle_deg)) <= tol_rad, f"rotation differs by {np.max(np.radians(angle_deg)):.3g} rad"
+
+
+# ----------------------------------------------------------------------------- FK / IK
+
+
+@pytest.mark.parametrize("mechanism", MECHANISMS)
+@settings(max_examples=40, deadline=None)
+@given(fraction=box_fraction)
+@example(fraction=np.ones(6))
+@example(fraction=-np.ones(6))
+@example(fraction=np.array(CORNER))
+def test_fk_of_ik_is_the_pose(mechanism, fraction):
+    legs = MECHANISMS[mechanism]
+    R, t = workspace_pose(fraction)
+    solution = kin.forward_kinematics(legs, kin.inverse_kinematics(legs, R, t), tol_mm=FK_TOL_MM)
+    assert_same_pose(R, t, solution.R, solution.t)
+
+
+# Stroke boxes about home whose 64 corners all reach FK (checked): ±30 mm on every leg moves
+# the platform by up to ~70 mm / ~20°, inside the workspace of both mechanisms.
+STROKE_HALF_RANGE_MM = 30.0
+
+
+@pytest.mark.parametrize("mechanism", MECHANISMS)
+@settings(max_examples=40, deadline=None)
+@given(fraction=box_fraction)
+@example(fraction=np.ones(6))
+@example(fraction=np.array(CORNER))
+def test_ik_of_fk_is_the_lengths(mechanism, fraction):
+    legs = MECHANISMS[mechanism]
+    strokes = kin.inverse_kinematics(legs, *kin.pose_to_rt(WS.home)) + STROKE_HALF_RANGE_MM * fraction
+    solution = kin.forward_kinematics(legs, strokes, tol_mm=FK_TOL_MM)
+    # IK(FK(q)) − q is the FK residual itself: ≤ tol_mm by construction, ≤ 1e-9 mm asked.
+    np.testing.assert_allclose(kin.inverse_kinematics(legs, solution.R, solution.t), strokes, rtol=0, atol=ROUND_TRIP_MM)
+
+
+@pytest.mark.parametrize("mechanism", MECHANISMS)
+def test_batched_fk_equals_single(mechanism):
+    legs = MECHANISMS[mechanism]
+    poses = random_poses(PLATFORM, 20, np.random.default_rng(1))
+    strokes = kin.inverse_kinematics(legs, *kin.pose_to_rt(poses))
+    batch = kin.forward_kinematics(legs, strokes.reshape(4, 5, 6), tol_mm=FK_TOL_MM)
+    assert batch.R.shape == (4, 5, 3, 3) and batch.iterations.shape == (4, 5)
+    for k, q in enumerate(strokes):
+        single = kin.forward_kinematics(legs, q, tol_mm=FK_TOL_MM)
+        i, j = divmod(k, 5)
+        # Same Newton iterates per pose; only the last bits of batched BLAS may differ.
+        assert single.iterations == batch.iterations[i, j]
+        assert_same_pose(single.R, single.t, batch.R[i, j], batch.t[i, j], tol_mm=1e-12, tol_rad=1e-14)
+
+
+@pytest.mark.parametrize("mechanism", MECHANISMS)
+def test_warm_start_needs_no_more_iterations_than_cold(mechanism):
+    legs = MECHANISMS[mechanism]
+    # A 1 kHz trajectory: 100 ms of a circle of 150 mm radius at 1 rev/s plus a 10° roll sweep.
+    time_s = np.arange(100) * 1e-3
+    poses = np.tile(WS.home, (len(time_s), 1))
+    poses[:, 0] += 150.0 * np.cos(2 * np.pi * time_s)
+    poses[:, 1] += 150.0 * np.sin(2 * np.pi * time_s)
+    poses[:, 3] += np.radians(10.0) * np.sin(2 * np.pi * time_s)
+    R, t = kin.pose_to_rt(poses)
+    strokes = kin.inverse_kinematics(legs, R, t)
+    cold = kin.forward_kinematics(legs, strokes[1:]).iterations
+    warm = np.array([kin.forward_kinematics(legs, strokes[k], guess=(R[k - 1], t[k - 1])).iterations for k in range(1, len(poses))])
+    assert np.all(warm <= cold)
+    assert warm.sum() < cold.sum()
+
+
+def test_fk_refuses_inconsistent_lengths():
+    legs = PLATFORM.drive
+    strokes = kin.inverse_kinematics(legs, *kin.pose_to_rt(WS.home))
+    strokes[2] = 10_000.0 - legs.initial_lengths[2]  # one leg 10 m, the others at home
+    with pytest.raises(kin.FKError, match="did not converge.*unreachable"):
+        kin.forward_kinematics(legs, strokes)
+    report = kin.forward_kinematics(legs, strokes, strict=False)
+    assert not report.converged
+    # Far from any consistent pose: the residual stays at the scale of the 9 m mismatch.
+    assert report.residual_mm > 1.0
+
+
+def test_fk_refuses_nan_and_reports_it_per_pose():
+    legs = PLATFORM.tracker
+    strokes = np.zeros((3, 6))
+    strokes[1, 4] = np.nan
+    with pytest.raises(kin.FKError, match=r"\(pose \(1,\)\): non-finite lengths"):
+        kin.forward_kinematics(legs, strokes)
+    report = kin.forward_kinematics(legs, strokes, strict=False)
+    np.testing.assert_array_equal(report.converged, [True, False, True])
+    assert np.all(np.isfinite(report.R[[0, 2]])) and np.all(np.isfinite(report.t[[0, 2]]))
+
+
+def test_fk_refuses_too_few_iterations():
+    legs = PLATFORM.drive
+    R, t = workspace_pose(np.array(CORNER))
+    strokes = kin.inverse_kinematics(legs, R, t)
+    # From the level default guess a box corner needs ≥ 4 Newton steps to reach 1e-9 mm.
+    with pytest.raises(kin.FKError, match="after 1 Newton iterations"):
+        kin.forward_kinematics(legs, strokes, max_iterations=1)
+    report = kin.forward_kinematics(legs, strokes, max_iterations=1, strict=False)
+    assert not report.converged and report.iterations == 1 and report.residual_mm > 1e-9
+
+
+def test_tracker_reads_zero_at_home():
+    readings = kin.inverse_kinematics(PLATFORM.tracker, *kin.pose_to_rt(WS.home))
+    # Table 2 rounds the joint coordinates to 10 µm (±5 µm each); the six leg lengths at home
+    # then agree only to ±2.5 µm (measured 2.48 µm max), so 3 µm is the rounding, not slack.
+    assert np.max(np.abs(readings)) <= 3e-3
+
+
+def test_drive_strokes_are_zero_at_home():
+    strokes = kin.inverse_kinematics(PLATFORM.drive, *kin.pose_to_rt(WS.home))
+    # The assumed drive geometry is rounded to 1 µm and its initial lengths to 1 nm:
+    # ≤ 1 µm (measured 0.44 µm).
+    assert np.max(np.abs(strokes)) <= 1e-3
+
+
+# ----------------------------------------------------------------------------- rotations
+
+angle = st.floats(min_value=-np.radians(179.0), max_value=np.radians(179.0))
+pitch = st.floats(min_value=-np.radians(89.0), max_value=np.radians(89.0))
+rpy_strategy = st.tuples(angle, pitch, angle).map(np.array)
+
+
+def Rx(a):  # paper eq. 21
+    return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+
+
+def Ry(b):  # paper eq. 21
+    return np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+
+
+def Rz(g):  # paper eq. 21
+    return np.array([[np.cos(g), -np.sin(g), 0], [np.sin(g), np.cos(g), 0], [0, 0, 1]])
+
+
+@settings(max_examples=100, deadline=None)
+@given(rpy=rpy_strategy)
+def test_rpy_is_rz_ry_rx_and_round_trips(rpy):
+    R = kin.rpy_to_rotation(rpy)
+    # eq. 20: R = Rz(γ) Ry(β) Rx(α); both are a few flops on O(1) numbers: 1e-15.
+    np.testing.assert_allclose(R, Rz(rpy[2]) @ Ry(rpy[1]) @ Rx(rpy[0]), rtol=0, atol=1e-15)
+    # atan2 recovery with |pitch| ≤ 89°: the conditioning 1/cos(89°) ≈ 57 costs ~2 digits.
+    np.testing.assert_allclose(kin.rotation_to_rpy(R), rpy, rtol=0, atol=1e-13)
+
+
+def test_rotation_to_rpy_round_trips_random_rotations():
+    R = Rotation.random(200, random_state=np.random.default_rng(2)).as_matrix()
+    back = kin.rpy_to_rotation(kin.rotation_to_rpy(R))
+    assert np.max(kin.rotation_angle(np.swapaxes(R, -1, -2) @ back)) <= 1e-12
+
+
+@settings(max_examples=50, deadline=None)
+@given(rpy=rpy_strategy)
+def test_euler_rate_matrix_maps_rpy_rates_to_base_angular_velocity(rpy):
+    # eq. 4–5: [ω]× = (∂R/∂θ_k) Rᵀ per unit δθ_k, so column k of T is vee((∂R/∂θ_k) Rᵀ).
+    R = kin.rpy_to_rotation(rpy)
+    dR = numerical_jacobian(kin.rpy_to_rotation, rpy, EPS_RAD)  # (3, 3, 3)
+    omega_hat = np.einsum("ijk,lj->kil", dR, R)  # per column k: (∂R/∂θ_k) Rᵀ
+    np.testing.assert_allclose(omega_hat, -np.swapaxes(omega_hat, -1, -2), atol=1e-9)  # skew
+    columns = np.stack([omega_hat[:, 2, 1], omega_hat[:, 0, 2], omega_hat[:, 1, 0]], axis=-1)
+    # entries O(1); central difference with 1e-5 rad: error ~1e-10.
+    np.testing.assert_allclose(columns.T, kin.euler_rate_matrix(rpy), rtol=0, atol=1e-9)
+
+
+def test_pose_error_known_cases():
+    eye, t0 = np.eye(3), np.array([10.0, -20.0, 1100.0])
+    position_mm, angle_deg = kin.pose_error(eye, t0, eye, t0 + [3.0, 4.0, 0.0])
+    assert position_mm == pytest.approx(5.0, abs=1e-12) and angle_deg == pytest.approx(0.0, abs=1e-12)
+
+    axis = np.array([1.0, 2.0, -2.0]) / 3.0
+    R_a = kin.rpy_to_rotation(np.radians([5.0, -10.0, 30.0]))
+    R_b = R_a @ kin.so3_exp(np.radians(7.5) * axis)  # 7.5° about a body axis
+    position_mm, angle_deg = kin.pose_error(R_a, t0, R_b, t0)
+    assert position_mm == 0.0 and angle_deg == pytest.approx(7.5, abs=1e-12)
+
+    # Near 0 and π, where arccos(trace) would lose half the digits.
+    tiny = kin.so3_exp(1e-9 * axis)
+    half_turn = kin.so3_exp((np.pi - 1e-7) * axis)
+    _, angle_deg = kin.pose_error(np.stack([eye, eye]), np.zeros((2, 3)), np.stack([tiny, half_turn]), np.zeros((2, 3)))
+    np.testing.assert_allclose(np.radians(angle_deg), [1e-9, np.pi - 1e-7], rtol=1e-9)
+
+
+# ----------------------------------------------------------------------------- error model
+
+J_P_POSES = random_poses(PLATFORM, 3, np.random.default_rng(3))
+J_P_POSES[0] = WS.home + np.array(CORNER) * HALF_BOX * 0.9  # near an edge of the workspace
+
+
+def fk_pose_vector(legs: LegGeometry, strokes: np.ndarray, guess) -> np.ndarray:
+    """``[t [mm], rpy [rad]]`` (paper's δE coordinates) of FK solved to 1e-12 mm."""
+    solution = kin.forward_kinematics(legs, strokes, guess=guess, tol_mm=1e-12)
+    return np.concatenate([solution.t, kin.rotation_to_rpy(solution.R)], axis=-1)
+
+
+@pytest.mark.parametrize("pose", J_P_POSES, ids=["edge", "random1", "random2"])
+def test_error_jacobian_matches_finite_differences_of_fk(pose):
+    drive = PLATFORM.drive
+    R, t = kin.pose_to_rt(pose)
+    strokes = kin.inverse_kinematics(drive, R, t)  # fixed strokes
+    M = drive.as_vector()
+    numeric = numerical_jacobian(lambda m: fk_pose_vector(LegGeometry.from_params(m), strokes, (R, t)), M, EPS_MM)
+    assert relative_error(kin.error_jacobian(drive, R, t), numeric) <= JACOBIAN_REL_TOL
+
+
+def test_error_jacobian_linearisation_is_second_order():
+    drive = PLATFORM.drive
+    R, t = kin.pose_to_rt(J_P_POSES[1])
+    strokes = kin.inverse_kinematics(drive, R, t)
+    E0 = fk_pose_vector(drive, strokes, (R, t))
+    J_p = kin.error_jacobian(drive, R, t)
+    direction = np.random.default_rng(4).normal(0.0, 1.0, 42)  # δM of ~1 mm per parameter
+
+    def linearisation_error(scale):
+        delta = scale * direction
+        remainder = fk_pose_vector(drive.perturbed(delta), strokes, (R, t)) - E0 - J_p @ delta
+        return np.linalg.norm(remainder[:3]), np.linalg.norm(remainder[3:])  # [mm], [rad]
+
+    errors = np.array([linearisation_error(s) for s in (1.0, 0.5, 0.25)])  # (3 scales, [mm, rad])
+    # Second order: the remainder scales as |δM|², so each halving divides it by 4. Position
+    # and rotation are checked apart (mixing mm and rad would hide the rotation rows): scaling
+    # either block of J_p by 1.01 leaves a first-order remainder and ratios ≈ 2.0–2.4.
+    # FK noise (~1e-12 mm, 1e-15 rad) is far below the smallest remainders (~2e-3 mm, 3e-6 rad).
+    assert np.all(errors[-1] > [1e-6, 1e-9])
+    ratios = errors[:-1] / errors[1:]
+    assert np.all((ratios >= 3.0) & (ratios <= 5.0)), ratios
+
+
+@pytest.mark.parametrize("mechanism", MECHANISMS)
+@pytest.mark.parametrize("pose", J_P_POSES, ids=["edge", "random1", "random2"])
+def test_leg_residual_jacobians_match_finite_differences(mechanism, pose):
+    legs = MECHANISMS[mechanism]
+    R, t = kin.pose_to_rt(pose)
+    strokes = kin.inverse_kinematics(legs, R, t) + np.array([0.3, -0.2, 0.1, 0.0, 0.5, -0.4])  # r ≠ 0
+    H_pose, H_params = kin.leg_residual_jacobians(legs, R, t)
+
+    numeric_pose = numerical_pose_jacobian(lambda R_, t_: kin.leg_residuals(legs, R_, t_, strokes), R, t)
+    assert relative_error(H_pose, numeric_pose) <= JACOBIAN_REL_TOL
+
+    pose3 = gtsam.Pose3(gtsam.Rot3(R), t)
+    numeric_pose3 = numerical_pose3_jacobian(
+        lambda p: kin.leg_residuals(legs, p.rotation().matrix(), p.translation(), strokes), pose3
+    )
+    assert relative_error(H_pose, numeric_pose3) <= JACOBIAN_REL_TOL  # GTSAM's H convention
+
+    numeric_params = numerical_jacobian(
+        lambda m: kin.leg_residuals(LegGeometry.from_params(m), R, t, strokes), legs.as_vector(), EPS_MM
+    )
+    assert relative_error(H_params, numeric_params) <= JACOBIAN_REL_TOL
+
+
+def test_leg_pose_jacobian_batched_equals_single():
+    R, t = kin.pose_to_rt(J_P_POSES)
+    batched = kin.leg_pose_jacobian(PLATFORM.tracker, R, t)
+    single = np.stack([kin.leg_pose_jacobian(PLATFORM.tracker, R[k], t[k]) for k in range(len(R))])
+    np.testing.assert_allclose(batched, single, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("pose", J_P_POSES[:2], ids=["edge", "random1"])
+def test_pose_covariance_from_legs_matches_monte_carlo(pose):
+    tracker = PLATFORM.tracker
+    sigma_mm = 0.005  # 5 µm reading noise: FK is linear to ~σ²/L ≈ 2.5e-8 mm here
+    R, t = kin.pose_to_rt(pose)
+    readings = kin.inverse_kinematics(tracker, R, t)
+    n = 4000
+    noisy = readings + np.random.default_rng(5).normal(0.0, sigma_mm, (n, 6))
+    solution = kin.forward_kinematics(tracker, noisy, guess=(R, t), tol_mm=1e-11)
+    # Body-tangent coordinates of each FK pose about the true pose (the chart of kin.retract).
+    omega = Rotation.from_matrix(R.T @ solution.R).as_rotvec()
+    v = (solution.t - t) @ R
+    xi = np.hstack([omega, v])
+    sample = xi.T @ xi / n  # about the known mean: N·sample ~ Wishart(Σ, N)
+
+    sigma = kin.pose_covariance_from_legs(tracker, R, t, sigma_mm)
+    L_inv = np.linalg.inv(np.linalg.cholesky(sigma))
+    whitened = L_inv @ sample @ L_inv.T  # ~ Wishart(I, N)/N if Σ is right
+    # Under Wishart(I, N)/N the diagonal has sd √(2/N) = 0.022 and the off-diagonal √(1/N) = 0.016;
+    # 5 sd over the 21 entries gives a false-alarm probability < 1e-5 (measured: ≤ 2.5 sd);
+    # Σ scaled by 1.2 (0.8) puts the diagonal 8 (13) sd off, so a wrong Σ cannot pass.
+    deviation = np.abs(whitened - np.eye(6))
+    assert np.max(np.diag(deviation)) <= 5 * np.sqrt(2 / n)
+    assert np.max(deviation[~np.eye(6, dtype=bool)]) <= 5 * np.sqrt(1 / n)
+
+
+def test_fk_has_no_nans_at_box_corners():
+    """Smoke-level but numeric: all 64 box corners of both mechanisms solve to 1e-9 mm."""
+    fractions = np.array(list(itertools.product([-1.0, 1.0], repeat=6)))
+    R, t = workspace_pose(fractions)
+    for legs in MECHANISMS.values():
+        solution = kin.forward_kinematics(legs, kin.inverse_kinematics(legs, R, t), tol_mm=FK_TOL_MM)
+        assert np.all(np.isfinite(solution.R)) and np.all(solution.residual_mm <= FK_TOL_MM)
+        assert_same_pose(R, t, solution.R, solution.t)
