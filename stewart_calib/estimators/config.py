@@ -42,10 +42,15 @@ class LSConfig:
     Attributes:
         tolerance_mm: stop when the largest step component is below this [mm].
         max_iterations: Gauss–Newton iteration cap.
+        rotation_weight_mm: the rotation rows of ``δE`` [rad] are multiplied by this length
+            [mm] so that both halves of the residual are in mm and weigh alike (about the
+            platform radius; it also lowers the condition number ~4×, measured-facts.md).
+            1.0 is the paper's unweighted form.
     """
 
     tolerance_mm: float = 1e-9
     max_iterations: int = 20
+    rotation_weight_mm: float = 300.0
 
 
 @dataclass(frozen=True)
@@ -57,6 +62,8 @@ class PaperEKFConfig:
         measurement_noise: diagonal of R (paper: 4e-2).
         adaptive: innovation-based adaptive Q/R (paper ref. [28]).
         adaptive_window: innovations averaged by the adaptive update.
+        adaptive_min_variance: floor on the eigenvalues of the adapted R (keeps it positive
+            definite when the windowed innovation covariance falls below ``H P Hᵀ``).
         gate_probability: χ² innovation gate (0 = off); samples beyond it are rejected.
     """
 
@@ -64,6 +71,7 @@ class PaperEKFConfig:
     measurement_noise: float = 4e-2
     adaptive: bool = False
     adaptive_window: int = 50
+    adaptive_min_variance: float = 1e-12
     gate_probability: float = 0.0
 
 
@@ -85,6 +93,10 @@ class ISAM2Config:
     Attributes:
         coupling: ``tight`` (one factor per tracker reading) or ``loose`` (tracker FK pose prior).
         window_s: a new parameter variable every ``window_s`` seconds [s].
+        window_samples: if > 0, a new parameter variable every this many samples instead.
+        chain_sigma_floor_mm: least σ of the random walk between parameter variables [mm]; with
+            random walk 0, ``isam2`` ties its chain of variables with this near-hard σ (a single
+            static variable inside the fixed-lag smoother keeps growing), ``lm`` uses one variable.
         lag_s: smoother lag [s]; older variables are marginalised.
         robust: ``none``, ``huber`` or ``cauchy`` kernel on measurement factors.
         robust_k: kernel width in σ units.
@@ -94,6 +106,8 @@ class ISAM2Config:
 
     coupling: str = "tight"
     window_s: float = 1.0
+    window_samples: int = 0
+    chain_sigma_floor_mm: float = 1e-5
     lag_s: float = 3.0
     robust: str = "none"
     robust_k: float = 3.0

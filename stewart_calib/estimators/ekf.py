@@ -1,0 +1,67 @@
+"""EKF on the leg-length model: the same model and noise as the factor graph.
+
+State ``X = δM`` (42, paper order). Observation per sample: the six drive-leg residuals
+``r_i = ‖t + R d_i − j_i‖ − (l_i + q_i)`` at the tracker's pose (FK of the readings), with
+``(j_i, d_i, l_i)`` of the current model ``M + X``; the expected value is 0, so the
+innovation is ``−r`` and ``H = ∂r/∂M``.
+
+Measurement covariance: ``J_x Σ_x J_xᵀ + σ_q² I`` (full 6×6), with ``Σ_x`` the tracker pose
+covariance from i.i.d. reading noise ``σ_s`` (``pose_covariance_from_legs``) and ``J_x`` the
+residuals' pose Jacobian — all six residuals share the one tracker pose, so their errors
+are correlated; with ``σ² I`` alone this filter diverges (measured-facts.md).
+
+Process noise: a random walk per parameter, ``Q = ρ² Δt I`` with ``ρ`` =
+``noise.random_walk_mm_per_sqrt_s`` and ``Δt`` between samples (``t_s``), as in the graph.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .. import kinematics as kin
+from ..errors import SampleRejected
+from ..platform import N_PARAMS, Platform
+from ..samples import Sample
+from .base import Estimate
+from .config import EstimatorConfig
+from .kalman import FilterState
+from .measurement import WarmFK, check_sample
+
+
+class LegEKF:
+    """Leg-length EKF; ``update(sample)`` then ``estimate()``.
+
+    Attributes:
+        filter: the :class:`FilterState` (``x``, ``P``, ``Q``, last NIS).
+    """
+
+    name = "ekf"
+
+    def __init__(self, platform: Platform, config: EstimatorConfig):
+        self.platform = platform
+        self.noise = config.noise
+        self.filter = FilterState(self.name, config.noise.prior_sigma_mm, config.ekf.gate_probability)
+        self._tracker_fk = WarmFK()
+        self._stroke_variance = np.eye(6) * self.noise.stroke_sigma_mm**2
+
+    def update(self, sample: Sample) -> None:
+        """Fold in one sample; ``SampleRejected`` leaves the state untouched."""
+        strokes, readings = check_sample(self.platform, sample)
+        last_t_s = self.filter.t_s
+        dt_s = 0.0 if math.isnan(last_t_s) else sample.t_s - last_t_s
+        if dt_s < 0.0:
+            raise SampleRejected(f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)")
+        R_v, t_v = self._tracker_fk.solve(self.platform.tracker, readings, "tracker")
+        drive = self.platform.drive.perturbed(self.filter.x)
+        residual = kin.leg_residuals(drive, R_v, t_v, strokes)
+        J_x, H = kin.leg_residual_jacobians(drive, R_v, t_v)
+        Sigma_x = kin.pose_covariance_from_legs(self.platform.tracker, R_v, t_v, self.noise.reading_sigma_mm)
+        R_meas = J_x @ Sigma_x @ J_x.T + self._stroke_variance
+        self.filter.Q[np.diag_indices(N_PARAMS)] = self.noise.random_walk_mm_per_sqrt_s**2 * dt_s
+        self.filter.update(H, -residual, R_meas, sample.t_s)
+
+    def estimate(self) -> Estimate:
+        """``δM`` and ``P`` after the last accepted sample."""
+        return self.filter.estimate()

@@ -1,0 +1,146 @@
+"""The paper's baseline: batch least squares on ``P_v − P_m = J_p δM`` (eq. 9–11), iterated.
+
+For every sample the tracker gives the measured pose ``P_v`` (FK of the readings); the
+model ``M + δM`` gives ``P_m`` (FK of the executed strokes). Stacking ``J_p`` over the
+samples and solving for the step is one Gauss–Newton iteration; it is repeated at the
+updated model until the step is below ``ls.tolerance_mm``.
+
+Rotation rows [rad] are scaled by ``ls.rotation_weight_mm`` so the stacked residual is in
+mm throughout. Covariance: the Gauss–Newton covariance ``σ̂² (AᵀA)⁻¹`` of the weighted
+stacked Jacobian ``A``, scaled by the residual variance ``σ̂² = ‖b − A δ‖² / (6N − 42)`` —
+the data's own noise level, since the paper's LS has no noise model. It is None when the
+system is rank deficient (too few or too poor poses); ``singular_values`` says which.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import kinematics as kin
+from ..errors import CalibError, SampleRejected
+from ..platform import N_PARAMS, LegGeometry, Platform
+from ..samples import Sample
+from .base import Estimate
+from .config import EstimatorConfig, LSConfig
+from .measurement import WarmFK, check_sample, pose_difference
+
+#: singular values below this fraction of the largest count as zero (rank deficiency).
+RANK_TOLERANCE = 1e-10
+
+
+@dataclass(frozen=True)
+class LSSolution:
+    """Result of :func:`gauss_newton`.
+
+    Attributes:
+        error: ``(42,)`` δM [mm].
+        covariance: ``(42, 42)`` [mm²], or None when rank deficient.
+        singular_values: ``(min(6N, 42),)`` of the weighted stacked ``J_p`` at the solution,
+            descending [mm / mm]; their ratio is the conditioning of the identification.
+        iterations: Gauss–Newton iterations taken.
+        residual_rms_mm: RMS of the weighted stacked residual at the solution [mm].
+    """
+
+    error: np.ndarray
+    covariance: np.ndarray | None
+    singular_values: np.ndarray
+    iterations: int
+    residual_rms_mm: float
+
+
+def gauss_newton(
+    nominal: LegGeometry,
+    strokes: np.ndarray,
+    R_v: np.ndarray,
+    t_v: np.ndarray,
+    config: LSConfig,
+) -> LSSolution:
+    """Iterated least squares ``min Σ_k ‖W (P_v,k − P_m,k(δM))‖²`` (paper eq. 9–11).
+
+    Args:
+        nominal: nominal drive geometry M.
+        strokes: ``(N, 6)`` executed strokes [mm].
+        R_v, t_v: ``(N, 3, 3)``, ``(N, 3)`` measured poses P_v.
+        config: tolerance, iteration cap, rotation weight.
+    Raises:
+        CalibError: the model's FK fails (the iteration diverged) or no convergence.
+    """
+    n = len(strokes)
+    weight = np.r_[np.ones(3), np.full(3, config.rotation_weight_mm)]
+    error = np.zeros(N_PARAMS)
+    R_m, t_m = R_v, t_v  # the measured pose is the best warm start for the model's FK
+    for iteration in range(1, config.max_iterations + 1):
+        drive = nominal.perturbed(error)
+        sol = kin.forward_kinematics(drive, strokes, guess=(R_m, t_m), strict=False)
+        if not np.all(sol.converged):
+            raise CalibError(f"ls: model forward kinematics failed at iteration {iteration}; the fit diverged")
+        R_m, t_m = sol.R, sol.t
+        b = (pose_difference(R_v, t_v, R_m, t_m) * weight).reshape(-1)
+        A = (kin.error_jacobian(drive, R_m, t_m) * weight[:, None]).reshape(-1, N_PARAMS)
+        U, s, Vt = np.linalg.svd(A, full_matrices=False)
+        keep = s > RANK_TOLERANCE * s[0]
+        step = Vt[keep].T @ ((U[:, keep].T @ b) / s[keep])
+        error = error + step
+        if np.max(np.abs(step)) < config.tolerance_mm:
+            break
+    else:
+        raise CalibError(f"ls: Gauss–Newton did not converge in {config.max_iterations} iterations")
+    residual = b - A @ step
+    dof = 6 * n - N_PARAMS
+    covariance = None
+    if np.all(keep) and dof > 0:
+        sigma2 = float(residual @ residual) / dof
+        covariance = sigma2 * (Vt.T / s**2) @ Vt
+    return LSSolution(error, covariance, s, iteration, float(np.sqrt(np.mean(residual**2))))
+
+
+class LeastSquares:
+    """Batch LS: ``update`` buffers measured poses, ``estimate`` fits all of them.
+
+    Attributes:
+        singular_values: of the weighted stacked ``J_p`` at the last fit (None before).
+        rejected: ``(t_s, reason)`` of samples :meth:`fit` skipped.
+    """
+
+    name = "ls"
+
+    def __init__(self, platform: Platform, config: EstimatorConfig):
+        self.platform = platform
+        self.config = config.ls
+        self._fk = WarmFK()
+        self._strokes: list[np.ndarray] = []
+        self._R_v: list[np.ndarray] = []
+        self._t_v: list[np.ndarray] = []
+        self._t_s = float("nan")
+        self.singular_values: np.ndarray | None = None
+        self.rejected: list[tuple[float, str]] = []
+
+    def update(self, sample: Sample) -> None:
+        """Buffer one sample's strokes and measured pose ``P_v`` (paper Fig. 3 step 1)."""
+        strokes, readings = check_sample(self.platform, sample)
+        R_v, t_v = self._fk.solve(self.platform.tracker, readings, "tracker")
+        self._strokes.append(strokes)
+        self._R_v.append(R_v)
+        self._t_v.append(t_v)
+        self._t_s = sample.t_s
+
+    def fit(self, samples) -> Estimate:
+        """Fit the whole log, skipping (and recording in ``rejected``) unusable samples."""
+        for sample in samples:
+            try:
+                self.update(sample)
+            except SampleRejected as err:
+                self.rejected.append((sample.t_s, str(err)))
+        return self.estimate()
+
+    def estimate(self) -> Estimate:
+        """Fit every buffered sample; zeros and no covariance before the first sample."""
+        if not self._strokes:
+            return Estimate(np.zeros(N_PARAMS), None, self.name)
+        solution = gauss_newton(
+            self.platform.drive, np.array(self._strokes), np.array(self._R_v), np.array(self._t_v), self.config
+        )
+        self.singular_values = solution.singular_values
+        return Estimate(solution.error, solution.covariance, self.name, len(self._strokes), self._t_s)

@@ -1,0 +1,89 @@
+"""From one sample to what the estimators observe (paper Fig. 3, steps 1–2).
+
+* :func:`check_sample` — refuse an unusable sample (non-finite, outside the platform's
+  ranges) with :class:`~stewart_calib.errors.SampleRejected` before any state is touched.
+* :class:`WarmFK` — forward kinematics of one leg set, warm-started from the previous
+  solution (2 Newton iterations instead of 4–5 on a smooth trajectory), falling back to
+  a cold start before giving up; FK failure becomes ``SampleRejected``.
+* :func:`pose_difference` — ``P_v − P_m`` as the paper's ``δE = [δh, δθ]`` (eq. 9).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import kinematics as kin
+from ..errors import SampleRejected
+from ..platform import LegGeometry, Platform
+from ..samples import Sample
+
+
+def check_sample(platform: Platform, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
+    """Strokes and readings of ``sample`` as float arrays, or :class:`SampleRejected`.
+
+    Refuses non-finite values and values outside ``platform.stroke_range`` /
+    ``platform.reading_range`` (inclusive bounds, spec §3).
+    """
+    strokes = np.asarray(sample.strokes, dtype=float)
+    readings = np.asarray(sample.readings, dtype=float)
+    if not np.isfinite(sample.t_s):
+        raise SampleRejected(f"sample at t = {sample.t_s} s: non-finite time")
+    for values, bounds, what in (
+        (strokes, platform.stroke_range, "stroke q"),
+        (readings, platform.reading_range, "reading s"),
+    ):
+        if values.shape != (6,):
+            raise SampleRejected(f"sample at t = {sample.t_s} s: expected 6 {what} values, got shape {values.shape}")
+        bad = np.flatnonzero(~np.isfinite(values))
+        if bad.size:
+            raise SampleRejected(f"sample at t = {sample.t_s} s: {what}{bad[0] + 1} is not finite")
+        if bounds is not None:
+            bad = np.flatnonzero((values < bounds[0]) | (values > bounds[1]))
+            if bad.size:
+                i = int(bad[0])
+                raise SampleRejected(
+                    f"sample at t = {sample.t_s} s: {what}{i + 1} = {values[i]:.6g} mm outside "
+                    f"[{bounds[0]}, {bounds[1]}] mm"
+                )
+    return strokes, readings
+
+
+class WarmFK:
+    """Forward kinematics for a stream of samples, warm-started from the last solution.
+
+    Args:
+        tol_mm: Newton tolerance on the leg lengths [mm].
+    """
+
+    def __init__(self, tol_mm: float = 1e-9):
+        self.tol_mm = tol_mm
+        self._guess: tuple[np.ndarray, np.ndarray] | None = None
+
+    def solve(self, legs: LegGeometry, lengths: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """``(R, t)`` with ``‖t + R p_i − b_i‖ = initial_i + lengths_i`` (paper step 1).
+
+        Tries the previous pose first, then the default cold guess (a jump between
+        samples can leave the old pose outside Newton's basin).
+
+        Raises:
+            SampleRejected: neither start converges; ``what`` names the leg set.
+        """
+        for guess in (self._guess, None) if self._guess is not None else (None,):
+            sol = kin.forward_kinematics(legs, lengths, guess=guess, tol_mm=self.tol_mm, strict=False)
+            if sol.converged:
+                self._guess = (sol.R, sol.t)
+                return sol.R, sol.t
+        raise SampleRejected(
+            f"{what} forward kinematics did not converge (residual {float(sol.residual_mm):.3g} mm): "
+            "the lengths may be unreachable"
+        )
+
+
+def pose_difference(R_v: np.ndarray, t_v: np.ndarray, R_m: np.ndarray, t_m: np.ndarray) -> np.ndarray:
+    """``Y = P_v − P_m`` as ``[δh [mm], δθ [rad]]`` (paper eq. 9 and Fig. 3 step 2).
+
+    ``δθ`` is the difference of roll-pitch-yaw, wrapped to (−π, π], the coordinates in
+    which :func:`~stewart_calib.kinematics.error_jacobian` is written.
+    """
+    d_rpy = kin.rotation_to_rpy(R_v) - kin.rotation_to_rpy(R_m)
+    return np.concatenate([t_v - t_m, np.angle(np.exp(1j * d_rpy))], axis=-1)

@@ -1,0 +1,84 @@
+"""The paper's EKF (§3.2, eq. 14–19; Q and R of §4.1; Fig. 3 steps 1–4).
+
+State ``X = δM`` (42, paper order), random-walk prediction ``P ← P + Q`` per update
+(eq. 14–15), observation ``Y = P_v − P_m = J_k X + E`` (eq. 16) with ``J_k = J_p``
+(eq. 9–11). ``P_v`` is the tracker's pose (FK of the readings, step 1). ``P_m`` is the pose
+the *current* model ``M + X`` predicts for the executed strokes, and ``J_p`` is taken at
+that model and pose: a true EKF, which at ``X = 0`` is exactly the paper's form and which
+stays right when the controller already compensates with an earlier estimate.
+
+Optional adaptive Q/R (paper ref. [28]; innovation-based, Mohamed & Schwarz 1999): over
+the last ``adaptive_window`` updates, ``R = mean(ν νᵀ − H P⁻ Hᵀ)`` with its eigenvalues
+floored at ``adaptive_min_variance`` (positive definite), and ``Q = mean(Δx Δxᵀ)`` with
+``Δx = K ν`` (positive semidefinite). Both are used from the update after the window fills.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import kinematics as kin
+from ..platform import N_PARAMS, Platform
+from ..samples import Sample
+from .base import Estimate
+from .config import EstimatorConfig
+from .kalman import FilterState
+from .measurement import WarmFK, check_sample, pose_difference
+
+
+class PaperEKF:
+    """The paper's pose-error EKF; ``update(sample)`` then ``estimate()``.
+
+    Attributes:
+        filter: the :class:`FilterState` (``x``, ``P``, ``Q``, last NIS).
+        R: ``(6, 6)`` measurement covariance in use (adapted when ``adaptive``).
+    """
+
+    name = "paper-ekf"
+
+    def __init__(self, platform: Platform, config: EstimatorConfig):
+        c = config.paper_ekf
+        self.platform = platform
+        self.config = c
+        self.filter = FilterState(self.name, config.noise.prior_sigma_mm, c.gate_probability)
+        self.filter.Q[np.diag_indices(N_PARAMS)] = c.process_noise
+        self.R = np.eye(6) * c.measurement_noise
+        self._tracker_fk = WarmFK()
+        self._model_fk = WarmFK()
+        window = max(1, c.adaptive_window)
+        self._innovations = np.zeros((window, 6))
+        self._predicted = np.zeros((window, 6, 6))  # H P⁻ Hᵀ
+        self._corrections = np.zeros((window, N_PARAMS))  # K ν
+        self._filled = 0
+
+    def update(self, sample: Sample) -> None:
+        """Fold in one sample (Fig. 3 steps 1–3); ``SampleRejected`` leaves the state untouched."""
+        strokes, readings = check_sample(self.platform, sample)
+        R_v, t_v = self._tracker_fk.solve(self.platform.tracker, readings, "tracker")
+        drive = self.platform.drive.perturbed(self.filter.x)
+        R_m, t_m = self._model_fk.solve(drive, strokes, "drive model")
+        Y = pose_difference(R_v, t_v, R_m, t_m)
+        J_k = kin.error_jacobian(drive, R_m, t_m)
+        x_before = self.filter.x.copy()
+        self.filter.update(J_k, Y, self.R, sample.t_s)
+        if self.config.adaptive:
+            self._adapt(Y, self.filter.S - self.R, self.filter.x - x_before)
+
+    def _adapt(self, innovation: np.ndarray, HPHt: np.ndarray, correction: np.ndarray) -> None:
+        k = self._filled % len(self._innovations)
+        self._innovations[k] = innovation
+        self._predicted[k] = HPHt
+        self._corrections[k] = correction
+        self._filled += 1
+        if self._filled < len(self._innovations):
+            return
+        nu = self._innovations
+        R = (nu.T @ nu) / len(nu) - self._predicted.mean(axis=0)
+        eigenvalues, vectors = np.linalg.eigh(0.5 * (R + R.T))
+        self.R = (vectors * np.maximum(eigenvalues, self.config.adaptive_min_variance)) @ vectors.T
+        dx = self._corrections
+        self.filter.Q[:] = (dx.T @ dx) / len(dx)
+
+    def estimate(self) -> Estimate:
+        """``δM`` and ``P`` after the last accepted sample."""
+        return self.filter.estimate()
