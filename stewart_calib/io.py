@@ -246,7 +246,7 @@ def _parse(path: Path, header: list[str], text: str, numeric, textual=(), blank_
 def _flag_non_finite(table: _Table, columns) -> None:
     for name in columns:
         values = table.numbers[name]
-        table.flag(~np.isfinite(values), lambda k: f"column '{name}': expected a finite number, got {values[k]!r}")
+        table.flag(~np.isfinite(values), lambda k: f"column '{name}': expected a finite number, got {float(values[k])!r}")
 
 
 def _flag_out_of_range(table: _Table, columns, bounds, what: str, key: str) -> None:
@@ -257,7 +257,7 @@ def _flag_out_of_range(table: _Table, columns, bounds, what: str, key: str) -> N
         values = table.numbers[name]
         table.flag(
             (values < lo) | (values > hi),
-            lambda k: f"column '{name}': expected a {what} within [{lo!r}, {hi!r}] mm ({key}), got {values[k]!r}",
+            lambda k: f"column '{name}': expected a {what} within [{lo!r}, {hi!r}] mm ({key}), got {float(values[k])!r}",
         )
 
 
@@ -267,7 +267,7 @@ def _flag_time_backwards(table: _Table) -> None:
     good = np.ones(len(t), dtype=bool)
     good[list(table.issues)] = False
     latest = np.maximum.accumulate(np.r_[-np.inf, np.where(good, t, -np.inf)[:-1]])
-    table.flag(good & (t < latest), lambda k: f"column 't_s': expected time non-decreasing, got {t[k]!r} after {latest[k]!r}")
+    table.flag(good & (t < latest), lambda k: f"column 't_s': expected time non-decreasing, got {float(t[k])!r} after {float(latest[k])!r}")
 
 
 def _refuse_first(path: Path, table: _Table) -> None:

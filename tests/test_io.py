@@ -1,0 +1,339 @@
+"""Logs, truth files, results and traces: exact round trips and every refusal of spec §3–§5."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import numpy as np
+import pytest
+
+from stewart_calib.errors import CalibError
+from stewart_calib.estimators.base import Estimate
+from stewart_calib.io import (
+    PARAMETER_NAMES,
+    Truth,
+    atomic_write_text,
+    read_log,
+    read_result,
+    read_truth,
+    result_dict,
+    write_log,
+    write_result,
+    write_trace,
+    write_truth,
+)
+from stewart_calib.samples import Log
+from tests.synthetic import nim_stewart
+
+HEADER = "t_s," + ",".join(f"q{i}_mm" for i in range(1, 7)) + "," + ",".join(f"s{i}_mm" for i in range(1, 7))
+
+
+def _row(t: float, q: float = 1.0, s: float = 2.0) -> str:
+    return ",".join([repr(t), *[repr(q)] * 6, *[repr(s)] * 6])
+
+
+def _write(tmp_path, text: str, name: str = "log.csv"):
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _refusal(path, *args, **kwargs) -> str:
+    with pytest.raises(CalibError) as info:
+        read_log(path, *args, **kwargs)
+    message = str(info.value)
+    assert "\n" not in message and message.startswith(str(path))
+    return message
+
+
+@pytest.fixture(scope="module")
+def platform():
+    return nim_stewart()
+
+
+def _random_log(n: int, rng: np.random.Generator, poses: bool = True) -> Log:
+    return Log(
+        t_s=np.cumsum(rng.uniform(0.0, 0.1, n)),
+        strokes=rng.uniform(-100, 100, (n, 6)),
+        readings=rng.uniform(-100, 100, (n, 6)),
+        desired_poses=np.c_[rng.normal(0, 100, (n, 3)), rng.normal(0, 0.2, (n, 3))] if poses else None,
+        stages=[rng.choice(["no-load", "20kg", 'odd, "quoted" label']) for _ in range(n)] if poses else None,
+        load_kg=rng.choice([0.0, 20.0, np.nan], n) if poses else None,
+    )
+
+
+# ----------------------------------------------------------------------------- round trips
+
+
+def test_log_round_trip_is_exact(tmp_path):
+    log = _random_log(200, np.random.default_rng(1))
+    write_log(tmp_path / "log.csv", log)
+    back = read_log(tmp_path / "log.csv")
+    np.testing.assert_array_equal(back.t_s, log.t_s)
+    np.testing.assert_array_equal(back.strokes, log.strokes)
+    np.testing.assert_array_equal(back.readings, log.readings)
+    np.testing.assert_array_equal(back.load_kg, log.load_kg)
+    assert back.stages == log.stages
+    # positions are exact; angles pass through degrees and back, within one rounding [rad]
+    np.testing.assert_array_equal(back.desired_poses[:, :3], log.desired_poses[:, :3])
+    np.testing.assert_allclose(back.desired_poses[:, 3:], log.desired_poses[:, 3:], rtol=4e-16, atol=0)
+    assert back.skipped == []
+
+
+def test_log_header_is_spec_order_and_degrees(tmp_path):
+    log = Log(np.array([0.0]), np.zeros((1, 6)), np.zeros((1, 6)), np.array([[1.0, 2.0, 3.0, np.pi / 2, 0.0, 0.0]]))
+    write_log(tmp_path / "log.csv", log)
+    header, row = (tmp_path / "log.csv").read_text().splitlines()
+    assert header == HEADER + ",x_mm,y_mm,z_mm,roll_deg,pitch_deg,yaw_deg"
+    assert row.split(",")[13:17] == ["1.0", "2.0", "3.0", "90.0"]
+
+
+def test_log_minimal_columns_order_free_unknown_ignored(tmp_path):
+    names = HEADER.split(",")
+    order = names[::-1] + ["comment"]
+    values = {"t_s": "0.5", **{n: str(i) for i, n in enumerate(names[1:])}}
+    path = _write(tmp_path, ",".join(order) + "\n" + ",".join([values[n] for n in names[::-1]] + ["hello"]) + "\n")
+    log = read_log(path)
+    assert log.t_s.tolist() == [0.5]
+    assert log.strokes.tolist() == [[0, 1, 2, 3, 4, 5]]
+    assert log.readings.tolist() == [[6, 7, 8, 9, 10, 11]]
+    assert log.desired_poses is None and log.stages is None and log.load_kg is None
+
+
+def test_log_tolerates_bom_crlf_and_blank_lines(tmp_path):
+    text = "\ufeff" + HEADER + "\r\n" + _row(0.0) + "\r\n\r\n" + _row(1.0) + "\r\n"
+    log = read_log(_write(tmp_path, text))
+    assert log.t_s.tolist() == [0.0, 1.0]
+
+
+def test_truth_round_trip_is_exact(tmp_path):
+    rng = np.random.default_rng(2)
+    truth = Truth(np.arange(5) * 0.1, rng.normal(0, 500, (5, 42)), np.c_[rng.normal(0, 100, (5, 3)), rng.normal(0, 0.2, (5, 3))])
+    write_truth(tmp_path / "truth.csv", truth)
+    back = read_truth(tmp_path / "truth.csv")
+    np.testing.assert_array_equal(back.t_s, truth.t_s)
+    np.testing.assert_array_equal(back.params, truth.params)
+    np.testing.assert_allclose(back.true_poses, truth.true_poses, rtol=4e-16, atol=0)
+    header = (tmp_path / "truth.csv").read_text().splitlines()[0].split(",")
+    assert header[:43] == ["t_s", *PARAMETER_NAMES] and header[43] == "true_x_mm" and header[-1] == "true_yaw_deg"
+    write_truth(tmp_path / "bare.csv", Truth(truth.t_s, truth.params))
+    assert read_truth(tmp_path / "bare.csv").true_poses is None
+
+
+def test_truth_refuses_missing_parameter_column_and_nan(tmp_path):
+    path = _write(tmp_path, "t_s," + ",".join(PARAMETER_NAMES[:-1]) + "\n" + ",".join(["0"] * 42) + "\n", "truth.csv")
+    with pytest.raises(CalibError, match=r"truth\.csv: row 1: missing required column\(s\) l6$"):
+        read_truth(path)
+    path = _write(tmp_path, "t_s," + ",".join(PARAMETER_NAMES) + "\n" + ",".join(["0"] * 42 + ["nan"]) + "\n", "truth.csv")
+    with pytest.raises(CalibError, match=r"truth\.csv: row 2: column 'l6': expected a finite number, got nan"):
+        read_truth(path)
+
+
+def test_trace_has_t_and_42_parameters(tmp_path):
+    params = np.random.default_rng(3).normal(0, 1, (4, 42))
+    write_trace(tmp_path / "trace.csv", np.arange(4.0), params)
+    rows = [line.split(",") for line in (tmp_path / "trace.csv").read_text().splitlines()]
+    assert rows[0] == ["t_s", *PARAMETER_NAMES]
+    np.testing.assert_array_equal(np.array(rows[1:], dtype=float), np.c_[np.arange(4.0), params])
+    with pytest.raises(ValueError, match="trace needs"):
+        write_trace(tmp_path / "bad.csv", np.arange(3.0), params)
+
+
+# ----------------------------------------------------------------------------- log refusals
+
+
+def test_refuses_missing_and_unreadable_files(tmp_path):
+    assert _refusal(tmp_path / "nope.csv") == f"{tmp_path / 'nope.csv'}: log file not found"
+    assert "cannot read log file" in _refusal(tmp_path)  # a directory
+    path = tmp_path / "latin1.csv"
+    path.write_bytes((HEADER + ",stage\n" + _row(0.0) + ",caf\xe9\n").encode("latin-1"))
+    assert "not UTF-8 text (byte 0xe9 at offset" in _refusal(path)
+
+
+@pytest.mark.parametrize("text", ["", "\n", HEADER + "\n"])
+def test_refuses_log_without_sample_rows(tmp_path, text):
+    assert "no sample rows" in _refusal(_write(tmp_path, text))
+
+
+def test_refuses_missing_required_column(tmp_path):
+    header = HEADER.replace("q3_mm,", "").replace(",s6_mm", "")
+    message = _refusal(_write(tmp_path, header + "\n" + ",".join(["0"] * 11) + "\n"))
+    assert message.endswith("row 1: missing required column(s) q3_mm, s6_mm")
+
+
+def test_refuses_duplicate_column(tmp_path):
+    message = _refusal(_write(tmp_path, HEADER + ",q1_mm\n" + _row(0.0) + ",1\n"))
+    assert message.endswith("row 1: column 'q1_mm' appears twice; expected unique column names")
+
+
+def test_refuses_partial_pose_columns(tmp_path):
+    message = _refusal(_write(tmp_path, HEADER + ",x_mm,y_mm,z_mm,roll_deg\n" + _row(0.0) + ",0,0,0,0\n"))
+    assert "row 1: columns x_mm, y_mm, z_mm, roll_deg, pitch_deg, yaw_deg come all six or none" in message
+    assert message.endswith("missing pitch_deg, yaw_deg")
+
+
+@pytest.mark.parametrize(
+    ("bad_row", "expected"),
+    [
+        ("0.2,1,1,1", "row 4: expected 13 fields as in the header, got 4"),
+        (_row(0.2) + ",7", "row 4: expected 13 fields as in the header, got 14"),
+        (_row(0.2).replace("2.0", "nan", 1), "row 4: column 's1_mm': expected a finite number, got nan"),
+        (_row(0.2).replace("1.0", "inf", 1), "row 4: column 'q1_mm': expected a finite number, got inf"),
+        (_row(0.2).replace("1.0", "", 1), "row 4: column 'q1_mm': expected a number, got an empty field"),
+        (_row(0.2).replace("2.0", "abc", 1), "row 4: column 's1_mm': expected a number, got 'abc'"),
+        (_row(0.05), "row 4: column 't_s': expected time non-decreasing, got 0.05 after 0.1"),
+    ],
+)
+def test_refuses_bad_row_naming_row_and_column(tmp_path, bad_row, expected):
+    text = "\n".join([HEADER, _row(0.0), _row(0.1), bad_row, _row(0.3)]) + "\n"
+    message = _refusal(_write(tmp_path, text))
+    assert message == f"{tmp_path / 'log.csv'}: {expected}"
+
+
+def test_refuses_readings_and_strokes_out_of_range_inclusive(tmp_path, platform):
+    lo_s, hi_s = platform.reading_range
+    lo_q, hi_q = platform.stroke_range
+    at_bounds = "\n".join([HEADER, _row(0.0, q=lo_q, s=lo_s), _row(0.1, q=hi_q, s=hi_s)]) + "\n"
+    assert len(read_log(_write(tmp_path, at_bounds), platform)) == 2
+    reading = _refusal(_write(tmp_path, at_bounds + _row(0.2, s=hi_s + 0.001) + "\n"), platform)
+    assert reading.endswith(
+        "row 4: column 's1_mm': expected a reading within [-276.0, 318.0] mm (tracker.reading_range_mm), got 318.001"
+    )
+    stroke = _refusal(_write(tmp_path, at_bounds + _row(0.2, q=lo_q - 1.0) + "\n"), platform)
+    assert stroke.endswith(
+        "row 4: column 'q1_mm': expected a stroke within [-420.0, 520.0] mm (drive.stroke_range_mm), got -421.0"
+    )
+    assert len(read_log(_write(tmp_path, at_bounds + _row(0.2, s=hi_s + 0.001) + "\n"))) == 3  # no platform, no ranges
+
+
+def test_refuses_bad_value_in_quoted_file_with_its_line(tmp_path):
+    text = HEADER + ",stage\n" + _row(0.0) + ',"two\nlines"\n' + _row(0.1).replace("1.0", "x", 1) + ",a\n"
+    assert _refusal(_write(tmp_path, text)).endswith("row 4: column 'q1_mm': expected a number, got 'x'")
+
+
+# ----------------------------------------------------------------------------- skipping bad rows
+
+
+def test_skip_mode_counts_and_reasons(tmp_path, platform):
+    rows = [
+        _row(0.0),
+        _row(0.1, s=400.0),  # out of range
+        _row(0.2).replace("1.0", "nan", 1),  # non-finite
+        "0.3,1,1",  # field count
+        _row(5.0),  # a glitch forward in time: kept, so what follows it...
+        _row(0.4),  # ... goes backwards and is skipped
+        _row(6.0),
+    ]
+    log = read_log(_write(tmp_path, "\n".join([HEADER, *rows]) + "\n"), platform, skip_bad_rows=True)
+    assert log.t_s.tolist() == [0.0, 5.0, 6.0]
+    assert [line for line, _ in log.skipped] == [3, 4, 5, 7]
+    reasons = [reason for _, reason in log.skipped]
+    assert reasons[0].startswith("column 's1_mm': expected a reading within")
+    assert reasons[1] == "column 'q1_mm': expected a finite number, got nan"
+    assert reasons[2] == "expected 13 fields as in the header, got 3"
+    assert reasons[3] == "column 't_s': expected time non-decreasing, got 0.4 after 5.0"
+
+
+def test_skip_mode_still_refuses_file_level_problems(tmp_path):
+    assert "missing required column(s) t_s" in _refusal(_write(tmp_path, HEADER[4:] + "\n1\n"), skip_bad_rows=True)
+    assert "no sample rows" in _refusal(_write(tmp_path, HEADER + "\n"), skip_bad_rows=True)
+    all_bad = "\n".join([HEADER, _row(0.0).replace("1.0", "nan"), "1,2"]) + "\n"
+    message = _refusal(_write(tmp_path, all_bad), skip_bad_rows=True)
+    assert message.endswith("all 2 sample rows are bad (first: row 2: column 'q1_mm': expected a finite number, got nan)")
+
+
+def test_reads_100k_rows_quickly(tmp_path, platform):
+    log = _random_log(100_000, np.random.default_rng(4))
+    log.stages = ["20kg"] * len(log)  # quoting sends the reader down its careful (slower) path
+    write_log(tmp_path / "big.csv", log)
+    start = time.perf_counter()
+    back = read_log(tmp_path / "big.csv", platform)
+    elapsed = time.perf_counter() - start
+    np.testing.assert_array_equal(back.readings, log.readings)
+    assert elapsed < 3.0  # ~0.6 s measured; the margin is for a loaded test machine
+
+
+# ----------------------------------------------------------------------------- results
+
+
+def _estimate(rng, covariance: bool = True) -> Estimate:
+    return Estimate(rng.normal(0, 1, 42), np.diag(rng.uniform(0.01, 1, 42)) if covariance else None, "ekf", 123)
+
+
+def test_result_round_trip(tmp_path, platform):
+    estimate = _estimate(np.random.default_rng(5))
+    result = result_dict(estimate, platform, samples_skipped=4, extra={"condition_number": 12.5})
+    write_result(tmp_path / "r.json", result)
+    back = read_result(tmp_path / "r.json")
+    assert back == result
+    assert back["format"] == "stewart-calib/result@1" and back["method"] == "ekf" and back["platform"] == "nim-stewart"
+    assert back["parameter_names"] == list(PARAMETER_NAMES)
+    np.testing.assert_array_equal(back["error"], estimate.error)
+    np.testing.assert_array_equal(back["estimate"], platform.drive.as_vector() + estimate.error)
+    np.testing.assert_array_equal(back["stddev"], np.sqrt(np.diag(estimate.covariance)))
+    assert (back["samples_used"], back["samples_skipped"], back["condition_number"]) == (123, 4, 12.5)
+    no_cov = result_dict(_estimate(np.random.default_rng(6), covariance=False), platform)
+    write_result(tmp_path / "r2.json", no_cov)
+    assert read_result(tmp_path / "r2.json")["stddev"] is None
+    with pytest.raises(ValueError, match="may not replace spec fields: method"):
+        result_dict(estimate, platform, extra={"method": "other"})
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        (lambda r: r.update(format="stewart-calib/result@2"), "key 'format': expected 'stewart-calib/result@1'"),
+        (lambda r: r.pop("error"), "key 'error': expected a value (missing)"),
+        (lambda r: r.update(nominal=r["nominal"][:41]), "key 'nominal': expected a list of 42 finite numbers"),
+        (lambda r: r["estimate"].__setitem__(3, float("nan")), "key 'estimate': expected a list of 42 finite numbers"),
+        (lambda r: r["stddev"].__setitem__(0, "1"), "key 'stddev': expected a list of 42 finite numbers or null"),
+        (lambda r: r["stddev"].__setitem__(0, -1.0), "key 'stddev': expected non-negative numbers"),
+        (lambda r: r.update(parameter_names=r["parameter_names"][::-1]), "key 'parameter_names': expected the 42"),
+        (lambda r: r.update(samples_used=-1), "key 'samples_used': expected a non-negative whole number, got -1"),
+        (lambda r: r.update(method=""), "key 'method': expected a non-empty string"),
+        (lambda r: r["estimate"].__setitem__(6, r["estimate"][6] + 0.01), "l1 differs by 0.01 mm"),
+    ],
+)
+def test_result_validation_names_the_key(tmp_path, platform, change, expected):
+    result = result_dict(_estimate(np.random.default_rng(7)), platform)
+    change(result)
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps(result))
+    with pytest.raises(CalibError, match=f"^{path}: ") as info:
+        read_result(path)
+    assert expected in str(info.value)
+    with pytest.raises(CalibError):
+        write_result(tmp_path / "out.json", result)
+    assert not (tmp_path / "out.json").exists()
+
+
+def test_read_result_refuses_non_json(tmp_path):
+    path = _write(tmp_path, "{not json", "r.json")
+    with pytest.raises(CalibError, match=r"r\.json: not valid JSON \(line 1, column 2"):
+        read_result(path)
+
+
+# ----------------------------------------------------------------------------- atomic writes
+
+
+def test_atomic_write_replaces_whole_file_and_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "out.txt"
+    atomic_write_text(target, "first")
+    atomic_write_text(target, "second")
+    assert target.read_text() == "second"
+    assert oct(target.stat().st_mode & 0o777) == oct(0o666 & ~_umask())
+    (tmp_path / "adir").mkdir()
+    with pytest.raises(CalibError, match="adir: cannot write"):
+        atomic_write_text(tmp_path / "adir", "x")  # os.replace onto a directory fails after the temp file exists
+    with pytest.raises(CalibError, match="cannot write"):
+        atomic_write_text(tmp_path / "missing" / "out.txt", "x")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "out.txt"]
+    assert list((tmp_path / "adir").iterdir()) == []
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
