@@ -1,0 +1,219 @@
+"""The closed loop: a controller commands IK with the model it holds; the true robot settles.
+
+Per sample k (paper Fig. 3 seen from the robot's side)::
+
+    P_d (desired pose)
+      → q = IK(controller.drive_model(), P_d)                   strokes, executed exactly
+      → true params = M_base + δM_load(actual pose, payload)     FK ↔ compliance fixed point
+      → actual pose = FK(true drive, q), warm-started at P_d
+      → s = tracker readings (true tracker geometry, noise, 50 nm, range)
+      → Sample(t, q + encoder noise, s, P_d, stage, load) → controller.observe(sample)
+
+A **controller** is any object with two methods::
+
+    controller.drive_model() -> LegGeometry   # model used for the IK of the next desired pose
+    controller.observe(sample: Sample) -> None # called after each sample
+
+:class:`NominalController` (uncalibrated) and :class:`FrozenController` (a frozen batch
+estimate, or the true no-load geometry for a perfect calibration) never change their model;
+they say so with ``adaptive = False``, and :func:`run_experiment` then settles all samples in
+one vectorised pass (identical results: all noise is drawn up front). Any other controller —
+an online estimator wrapper of the reproduce pipeline — is run sample by sample.
+
+Randomness: ``np.random.default_rng(experiment.seed)`` spawns independent streams for the
+robot's errors, the tracker residual, the pose sets and the measurement noise, so changing
+one part of an experiment does not reshuffle the others.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from tqdm import tqdm
+
+from .. import kinematics as kin
+from ..io import Truth
+from ..platform import LegGeometry, Platform
+from ..samples import Log, Sample
+from .experiment import Experiment, schedule
+from .load import LoadModel, loaded_params, settle
+from .robot import base_errors, encoder_readings
+from .tracker import Tracker
+
+
+class Controller(Protocol):
+    """What the closed loop needs of a controller (see the module docstring)."""
+
+    def drive_model(self) -> LegGeometry: ...
+
+    def observe(self, sample: Sample) -> None: ...
+
+
+class NominalController:
+    """Commands IK on the platform file's nominal drive: the uncalibrated robot."""
+
+    adaptive = False
+
+    def __init__(self, platform: Platform):
+        self._drive = platform.drive
+
+    def drive_model(self) -> LegGeometry:
+        return self._drive
+
+    def observe(self, sample: Sample) -> None:
+        """Nothing: the nominal model does not learn."""
+
+
+class FrozenController(NominalController):
+    """Commands IK on a fixed drive geometry (e.g. a batch estimate frozen after calibration)."""
+
+    def __init__(self, drive: LegGeometry):
+        self._drive = drive
+
+
+@dataclass(frozen=True)
+class TrueRobot:
+    """The simulated machine: unloaded drive parameters, load model, tracker, encoder noise.
+
+    Attributes:
+        base_params: ``(42,)`` nominal + δM_base [mm] (paper order).
+        load: the load model.
+        tracker: the simulated tracker (true geometry incl. residual).
+        encoder_noise_mm: σ of the logged strokes' noise [mm].
+    """
+
+    base_params: np.ndarray
+    load: LoadModel
+    tracker: Tracker
+    encoder_noise_mm: float
+
+    def drive_at(self, pose6: np.ndarray, payload_kg: float = 0.0) -> LegGeometry:
+        """True drive geometry in force at a pose ``[mm, rad]`` under a payload [kg].
+
+        ``drive_at(home, 0.0)`` is what a perfect no-load calibration would find.
+        """
+        R, t = kin.pose_to_rt(np.asarray(pose6, dtype=float)[None])
+        params, _ = loaded_params(self.load, self.base_params, R, t, payload_kg)
+        return LegGeometry.from_params(params[0])
+
+
+def build_robot(experiment: Experiment, robot_rng: np.random.Generator, tracker_rng: np.random.Generator) -> TrueRobot:
+    """The true robot of an experiment (errors from ``robot_rng``, tracker residual from ``tracker_rng``)."""
+    e = experiment
+    r = e.robot
+    delta = base_errors(r.errors, (r.scale_base_joints, r.scale_platform_joints, r.scale_lengths), r.random_spread_mm, robot_rng)
+    tracker = Tracker.with_residual(
+        e.platform.tracker,
+        e.tracker.geometry_residual_mm,
+        tracker_rng,
+        noise_mm=e.tracker.noise_mm,
+        quantum_mm=e.tracker.quantum_mm,
+        reading_range_mm=e.platform.reading_range,
+    )
+    return TrueRobot(e.platform.drive.as_vector() + delta, e.load, tracker, r.encoder_noise_mm)
+
+
+@dataclass
+class SimulationResult:
+    """Everything a simulated run produced, N samples.
+
+    Attributes:
+        log: what the machine logged (spec §3): strokes with encoder noise, tracker readings,
+            desired poses, stage labels, payload.
+        truth: true drive parameters in force ``(N, 42)`` [mm] and true poses ``(N, 6)`` [mm, rad].
+        desired_poses: ``(N, 6)`` [mm, rad]. actual_poses: ``(N, 6)`` [mm, rad] (= truth.true_poses).
+        stages: ``(N,)`` stage names. kinds: ``(N,)`` ``"calibration"``/``"validation"``/``"circle"``.
+        payload_kg: ``(N,)`` payload in force [kg]. pose_index: ``(N,)`` pose number within its segment.
+        robot: the true robot (base parameters, load model, tracker).
+    """
+
+    log: Log
+    truth: Truth
+    desired_poses: np.ndarray
+    actual_poses: np.ndarray
+    stages: np.ndarray
+    kinds: np.ndarray
+    payload_kg: np.ndarray
+    pose_index: np.ndarray
+    robot: TrueRobot
+
+    def pose_errors(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per sample ``(‖t_actual − t_desired‖ [mm], rotation angle of R_dᵀ R_a [deg])``."""
+        Rd, td = kin.pose_to_rt(self.desired_poses)
+        Ra, ta = kin.pose_to_rt(self.actual_poses)
+        return kin.pose_error(Rd, td, Ra, ta)
+
+    def mean_errors(self, kind: str, stage: str | None = None) -> tuple[float, float]:
+        """Mean position [mm] and orientation [deg] error over the samples of one segment kind
+        (and stage) — Table 5's metric for static poses, Table 6's position deviation for circles."""
+        mask = self.kinds == kind
+        if stage is not None:
+            mask &= self.stages == stage
+        if not np.any(mask):
+            raise ValueError(f"no samples of kind {kind!r}" + (f" in stage {stage!r}" if stage else ""))
+        position, orientation = self.pose_errors()
+        return float(position[mask].mean()), float(orientation[mask].mean())
+
+
+def run_experiment(experiment: Experiment, controller: Controller | None = None, progress: bool = False) -> SimulationResult:
+    """Simulate an experiment in closed loop (see the module docstring).
+
+    Args:
+        experiment: from :func:`~stewart_calib.simulation.experiment.load_experiment`.
+        controller: default :class:`NominalController` of the experiment's platform.
+        progress: show a tqdm bar on stderr.
+    Raises:
+        kinematics.FKError: the robot cannot reach a commanded stroke set.
+    """
+    controller = NominalController(experiment.platform) if controller is None else controller
+    robot_rng, tracker_rng, poses_rng, noise_rng = np.random.default_rng(experiment.seed).spawn(4)
+    robot = build_robot(experiment, robot_rng, tracker_rng)
+    plan = schedule(experiment, poses_rng)
+    n = len(plan.t_s)
+    stroke_noise = noise_rng.standard_normal((n, 6))
+    reading_noise = noise_rng.standard_normal((n, 6))
+    R_d, t_d = kin.pose_to_rt(plan.desired_poses)
+    bar = tqdm(total=n, desc=f"simulate {experiment.name}", unit="sample", disable=not progress, leave=False)
+
+    if getattr(controller, "adaptive", True):
+        strokes, params = np.empty((n, 6)), np.empty((n, 42))
+        R, t = np.empty((n, 3, 3)), np.empty((n, 3))
+        for k in range(n):
+            strokes[k] = kin.inverse_kinematics(controller.drive_model(), R_d[k], t_d[k])
+            sol, params[k : k + 1] = settle(robot.load, robot.base_params, strokes[k : k + 1], plan.payload_kg[k : k + 1], (R_d[k : k + 1], t_d[k : k + 1]))
+            R[k], t[k] = sol.R[0], sol.t[0]
+            controller.observe(_sample(robot, plan, k, strokes[k], stroke_noise[k], R[k], t[k], reading_noise[k]))
+            bar.update()
+    else:
+        strokes = kin.inverse_kinematics(controller.drive_model(), R_d, t_d)
+        sol, params = settle(robot.load, robot.base_params, strokes, plan.payload_kg, (R_d, t_d))
+        R, t = sol.R, sol.t
+        for k in range(n):  # the protocol promises observe() after every sample
+            controller.observe(_sample(robot, plan, k, strokes[k], stroke_noise[k], R[k], t[k], reading_noise[k]))
+            bar.update()
+    bar.close()
+
+    actual = kin.rt_to_pose(R, t)
+    log = Log(
+        t_s=plan.t_s.copy(),
+        strokes=encoder_readings(strokes, robot.encoder_noise_mm, stroke_noise),
+        readings=robot.tracker.read(R, t, reading_noise),
+        desired_poses=plan.desired_poses.copy(),
+        stages=list(plan.stages),
+        load_kg=plan.payload_kg.copy(),
+    )
+    truth = Truth(t_s=plan.t_s.copy(), params=params, true_poses=actual)
+    return SimulationResult(log, truth, plan.desired_poses, actual, plan.stages, plan.kinds, plan.payload_kg, plan.pose_index, robot)
+
+
+def _sample(robot: TrueRobot, plan, k: int, stroke, stroke_noise, R, t, reading_noise) -> Sample:
+    return Sample(
+        t_s=float(plan.t_s[k]),
+        strokes=encoder_readings(stroke, robot.encoder_noise_mm, stroke_noise),
+        readings=robot.tracker.read(R, t, reading_noise),
+        desired_pose=plan.desired_poses[k],
+        stage=str(plan.stages[k]),
+        load_kg=float(plan.payload_kg[k]),
+    )
