@@ -1,0 +1,53 @@
+"""Tracker pose prior (loose coupling): tracker FK turns six readings into one pose measurement.
+
+This is the paper's way (§3.2 step 1: Newton–Raphson FK of the grating readings gives P_v).
+The measurement ``T_m`` carries the covariance propagated from the ruler noise,
+``Σ_ξ = σ_s² (JᵀJ)⁻¹`` (:func:`stewart_calib.kinematics.pose_covariance_from_legs`), in the
+body tangent ``[ω, v]``. Residual, as GTSAM's ``PriorFactorPose3``::
+
+    e = Log(T_m⁻¹ T)    (6,) [rad, mm],    ∂e/∂ξ = J_r⁻¹(e)  (Pose3.Logmap's derivative)
+"""
+
+from __future__ import annotations
+
+from functools import partial
+
+import gtsam
+import numpy as np
+
+from .. import kinematics as kin
+from ..platform import LegGeometry
+
+
+def measurement(
+    tracker: LegGeometry, readings_mm: np.ndarray, reading_sigma_mm: float, guess: tuple[np.ndarray, np.ndarray] | None = None
+) -> tuple[gtsam.Pose3, np.ndarray]:
+    """Tracker FK pose and its ``(6, 6)`` covariance in ``[ω, v]`` [rad², rad·mm, mm²].
+
+    Raises:
+        FKError: the readings admit no pose.
+    """
+    fk = kin.forward_kinematics(tracker, readings_mm, guess=guess)
+    return gtsam.Pose3(gtsam.Rot3(fk.R), fk.t), kin.pose_covariance_from_legs(tracker, fk.R, fk.t, reading_sigma_mm)
+
+
+def residual(measured: gtsam.Pose3, pose: gtsam.Pose3, jacobians: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
+    """``Log(T_m⁻¹ T)`` ``(6,)`` and, if asked, its Jacobian ``(6, 6)`` on the body tangent of ``pose``."""
+    if not jacobians:
+        return gtsam.Pose3.Logmap(measured.between(pose)), None
+    # T Exp(δ) ⇒ T_m⁻¹ T Exp(δ): the between's own tangent, so only Logmap's derivative remains.
+    H = np.zeros((6, 6), order="F")
+    e = gtsam.Pose3.Logmap(measured.between(pose), H)
+    return e, H
+
+
+def _error(measured: gtsam.Pose3, this: gtsam.CustomFactor, values: gtsam.Values, H):
+    e, H_pose = residual(measured, values.atPose3(this.keys()[0]), H is not None)
+    if H is not None:
+        H[0] = H_pose
+    return e
+
+
+def factor(pose_key: int, measured: gtsam.Pose3, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
+    """A unary ``CustomFactor`` on ``Pose3 pose_key``: the pose prior ``T_m`` with ``noise``."""
+    return gtsam.CustomFactor(noise, [pose_key], partial(_error, measured))

@@ -1,0 +1,110 @@
+"""Factors: residuals against the kinematics' leg-length model and GTSAM's own factors;
+analytic Jacobians against central differences through ``Pose3.retract`` (relative ≤ 1e-6)."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from stewart_calib import kinematics as kin
+from stewart_calib.factors import drive_leg, random_walk, tracker_leg, tracker_pose
+from tests.numdiff import numerical_jacobian, numerical_pose3_jacobian, relative_error
+from tests.synthetic import nim_stewart, random_error, random_poses
+
+X, P = gtsam.symbol("x", 0), gtsam.symbol("p", 0)
+UNIT = gtsam.noiseModel.Unit.Create(1)  # whitened == unwhitened, so linearize() shows the raw H
+
+
+@pytest.fixture(scope="module")
+def platform():
+    return nim_stewart()
+
+
+@pytest.fixture(scope="module")
+def cases(platform):
+    """Five workspace poses (as Pose3) and a 1 mm parameter error."""
+    rng = np.random.default_rng(11)
+    poses = [gtsam.Pose3(gtsam.Rot3(R), t) for R, t in zip(*kin.pose_to_rt(random_poses(platform, 5, rng)))]
+    return poses, random_error(rng, 1.0)
+
+
+def _values(pose: gtsam.Pose3, delta: np.ndarray | None = None) -> gtsam.Values:
+    values = gtsam.Values()
+    values.insert(X, pose)
+    if delta is not None:
+        values.insert(P, delta)
+    return values
+
+
+def test_drive_leg_residual_is_the_leg_length_model(platform, cases):
+    poses, delta = cases
+    truth = platform.drive.perturbed(delta)
+    for pose in poses:
+        R, t = pose.rotation().matrix(), pose.translation()
+        strokes = kin.inverse_kinematics(truth, R, t) + 0.3  # 0.3 mm off: a nonzero residual
+        expected = kin.leg_residuals(truth, R, t, strokes)
+        got = [drive_leg.residual(R, t, platform.drive.params[i], delta.reshape(6, 7)[i], strokes[i])[0] for i in range(6)]
+        np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(expected, -0.3, atol=1e-9)
+
+
+def test_drive_leg_factor_jacobians_match_central_differences(platform, cases):
+    poses, delta = cases
+    for pose in poses:
+        for i in range(6):
+            f = drive_leg.factor(X, P, i, platform.drive.params[i], 10.0 * i - 20.0, UNIT)
+            A, b = f.linearize(_values(pose, delta)).jacobian()
+            np.testing.assert_allclose(-b, f.unwhitenedError(_values(pose, delta)), rtol=1e-12)
+            H_pose = numerical_pose3_jacobian(lambda p: f.unwhitenedError(_values(p, delta)), pose)
+            H_params = numerical_jacobian(lambda d: f.unwhitenedError(_values(pose, d)), delta)
+            assert relative_error(A[:, :6], H_pose) <= 1e-6
+            assert relative_error(A[:, 6:], H_params) <= 1e-6
+            # Leg i touches only its own seven columns of δM.
+            assert np.count_nonzero(A[0, 6:]) == 7 and np.all(A[0, 6 + 7 * i : 13 + 7 * i] != 0)
+
+
+def test_tracker_leg_residual_and_jacobian(platform, cases):
+    poses, _ = cases
+    for pose in poses:
+        R, t = pose.rotation().matrix(), pose.translation()
+        readings = kin.inverse_kinematics(platform.tracker, R, t)
+        for i in range(6):
+            f = tracker_leg.factor(X, platform.tracker.params[i], readings[i] - 0.05, UNIT)
+            np.testing.assert_allclose(f.unwhitenedError(_values(pose)), [0.05], atol=1e-9)
+            A, _ = f.linearize(_values(pose)).jacobian()
+            numeric = numerical_pose3_jacobian(lambda p: f.unwhitenedError(_values(p)), pose)
+            assert relative_error(A, numeric) <= 1e-6
+
+
+def test_tracker_pose_prior_equals_gtsam_prior_factor(platform, cases):
+    poses, _ = cases
+    for k, pose in enumerate(poses):
+        readings = kin.inverse_kinematics(platform.tracker, pose.rotation().matrix(), pose.translation())
+        measured, cov = tracker_pose.measurement(platform.tracker, readings, 0.002)
+        # The FK pose reproduces the pose the readings came from.
+        assert np.allclose(gtsam.Pose3.Logmap(measured.between(pose)), 0.0, atol=1e-9)
+        noise = gtsam.noiseModel.Gaussian.Covariance(cov)
+        ours, reference = tracker_pose.factor(X, measured, noise), gtsam.PriorFactorPose3(X, measured, noise)
+        # Far enough from the measurement that Logmap's derivative is not the identity.
+        values = _values(measured.retract(np.array([0.05, -0.1, 0.02 * k, 3.0, -4.0, 5.0])))
+        assert ours.error(values) == pytest.approx(reference.error(values), rel=1e-12)
+        assert relative_error(ours.whitenedError(values), reference.whitenedError(values)) <= 1e-12
+        (A, b), (A_ref, b_ref) = ours.linearize(values).jacobian(), reference.linearize(values).jacobian()
+        assert relative_error(A, A_ref) <= 1e-12
+        assert relative_error(b, b_ref) <= 1e-12
+        _, H = tracker_pose.residual(measured, values.atPose3(X), jacobians=True)
+        numeric = numerical_pose3_jacobian(lambda p: tracker_pose.residual(measured, p)[0], values.atPose3(X))
+        assert relative_error(H, numeric) <= 1e-6
+
+
+def test_random_walk_sigma_and_between_factor():
+    assert random_walk.sigma_mm(1e-3, 4.0, 1e-5) == pytest.approx(2e-3)
+    assert random_walk.sigma_mm(0.0, 4.0, 1e-5) == 1e-5  # the near-hard floor at walk 0
+    f = random_walk.factor(1, 2, 0.5)
+    values = gtsam.Values()
+    values.insert(1, np.ones(42))
+    values.insert(2, np.arange(42.0))
+    np.testing.assert_allclose(f.whitenedError(values), (np.arange(42.0) - 1.0) / 0.5)
+    prior = random_walk.prior(1, 5.0)
+    assert prior.error(values) == pytest.approx(0.5 * 42 / 25.0)
