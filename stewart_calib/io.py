@@ -15,8 +15,10 @@ import json
 import math
 import os
 import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -45,9 +47,11 @@ def _umask() -> int:
     return mask
 
 
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` via a temporary file in the same directory and
-    ``os.replace``: readers see the old file or the whole new one, never a partial one.
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary path in ``path``'s directory for the block to write; renamed onto ``path``
+    (``os.replace``) when the block succeeds and removed when it fails, so readers see the old
+    file or the whole new one, never a partial one.
 
     Raises:
         CalibError: the file cannot be written (nothing is left behind).
@@ -57,9 +61,9 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     except OSError as err:
         raise CalibError(f"{path}: cannot write ({err.strerror or err.__class__.__name__})") from None
+    os.close(fd)
     try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as handle:
-            handle.write(text)
+        yield Path(tmp)
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private; an output file should not be
         os.replace(tmp, path)
     except BaseException as err:
@@ -67,6 +71,12 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         if isinstance(err, OSError):
             raise CalibError(f"{path}: cannot write ({err.strerror or err.__class__.__name__})") from None
         raise
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8", newline="")
 
 
 def _csv_text(header: list[str], columns: list) -> str:
