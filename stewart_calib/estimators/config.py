@@ -40,7 +40,9 @@ class LSConfig:
     """The paper's batch least squares (Gauss–Newton on ``P_v − P_m = J_p δM``).
 
     Attributes:
-        tolerance_mm: stop when the largest step component is below this [mm].
+        tolerance_mm: stop when the largest step component is below this [mm]. FK solves
+            lengths to 1e-9 mm, which puts a ~1e-8 mm noise floor under the step (× the
+            conditioning), so much tighter values never converge on inconsistent data.
         max_iterations: Gauss–Newton iteration cap.
         rotation_weight_mm: the rotation rows of ``δE`` [rad] are multiplied by this length
             [mm] so that both halves of the residual are in mm and weigh alike (about the
@@ -48,7 +50,7 @@ class LSConfig:
             1.0 is the paper's unweighted form.
     """
 
-    tolerance_mm: float = 1e-9
+    tolerance_mm: float = 1e-7
     max_iterations: int = 20
     rotation_weight_mm: float = 300.0
 
