@@ -1,0 +1,355 @@
+"""Is a pose set good enough to identify the 42 drive parameters? (design.md: report conditioning)
+
+Two stacked identification Jacobians over the N poses:
+
+* **Leg-length form** (what ``ekf``, ``isam2`` and ``lm`` estimate with): per pose the six rows
+  ``∂r_i/∂M`` of ``r_i = ‖t + R d_i − j_i‖ − (l_i + q_i)``, whitened by the residual's noise
+  ``C = J_x Σ_x J_xᵀ + σ_q² I``, where ``Σ_x`` is the tracker FK pose covariance from the
+  reading noise σ_s and ``J_x = ∂r/∂ξ``. ``A = [C_k^{-1/2} ∂r/∂M]`` has units 1/mm; ``AᵀA`` is
+  the Fisher information, and ``(AᵀA)⁻¹`` the Cramér–Rao bound of any unbiased estimate.
+  All 42 parameters are in mm, so no column scaling is needed and the singular values and
+  condition number are unit-consistent.
+* **The paper's J_p form** (eq. 8–11, what ``ls`` and ``paper-ekf`` fit): ``δE = J_p δM`` per
+  pose, unweighted as in the paper, with the three rotation rows (rad) multiplied by a length
+  (:func:`rotation_row_scale_mm`, the platform joints' mean radius: a rotation δθ moves a
+  platform joint by about that radius × δθ) so that they weigh like the position rows (mm).
+
+The observability indices of Borm & Menq (1991) are of the whitened leg-length form, so
+``1/σ_i`` is the standard deviation [mm] of the estimate along the i-th singular direction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import kinematics as kin
+from .errors import CalibError
+from .estimators.config import NoiseConfig
+from .platform import N_PARAMS, PARAMETER_NAMES, Platform
+
+#: A singular value below this fraction of the largest counts as zero. Round-off in the
+#: whitened Jacobian sits near 1e-13 relative; a direction 1e-8 times weaker than the best
+#: would need 1e8 times the measurement noise's information to be seen at all.
+RANK_RTOL = 1e-8
+
+#: Above this condition number (leg-length form) the verdict is "poorly conditioned". Rich
+#: random pose sets on nim-stewart give about 400 at 20 poses and 250 at 200 poses (the best
+#: achievable spread of the 42 directions); above 1e3 the weakest direction is at least 3× less
+#: well determined than that, a sign that the poses do not move some joint along its leg.
+CONDITION_POOR = 1e3
+
+#: A named direction lists the components with at least this magnitude (unit vector).
+COMPONENT_MIN = 0.1
+
+#: How many of the weakest (non-null) directions a report spells out.
+N_WEAKEST = 3
+
+VERDICTS = ("identifiable", "poorly conditioned", "rank-deficient")
+
+
+def residual_covariance(platform: Platform, R: np.ndarray, t: np.ndarray, noise: NoiseConfig) -> np.ndarray:
+    """Noise of the six leg residuals at each pose, ``J_x Σ_x J_xᵀ + σ_q² I``, ``(N, 6, 6)`` [mm²].
+
+    The pose enters through tracker FK, so the reading noise σ_s reaches every leg residual
+    through the pose: leaving ``J_x Σ_x J_xᵀ`` out makes the weights wrong by orders of
+    magnitude (measured-facts: an EKF with ``σ² I`` alone diverged).
+    """
+    J_x = kin.leg_pose_jacobian(platform.drive, R, t)
+    sigma_x = kin.pose_covariance_from_legs(platform.tracker, R, t, noise.reading_sigma_mm)
+    return J_x @ sigma_x @ np.swapaxes(J_x, -1, -2) + noise.stroke_sigma_mm**2 * np.eye(6)
+
+
+def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseConfig) -> np.ndarray:
+    """Per-pose whitened rows ``C^{-1/2} ∂r/∂M`` of the leg-length form, ``(N, 6, 42)`` [1/mm].
+
+    Args:
+        poses: ``(N, 6)`` pose6 ``[mm, rad]``.
+    Raises:
+        CalibError: both noise sigmas zero (no noise model, no weights).
+    """
+    if noise.reading_sigma_mm <= 0 and noise.stroke_sigma_mm <= 0:
+        raise CalibError("noise: reading_sigma_mm and stroke_sigma_mm are both 0: expected a positive noise level")
+    R, t = kin.pose_to_rt(np.asarray(poses, dtype=float))
+    _, J_M = kin.leg_residual_jacobians(platform.drive, R, t)
+    chol = np.linalg.cholesky(residual_covariance(platform, R, t, noise))
+    return np.linalg.solve(chol, J_M)
+
+
+def rotation_row_scale_mm(platform: Platform) -> float:
+    """Length [mm] the paper-form rotation rows are multiplied by: mean radius of the ``d_i``."""
+    return float(np.mean(np.linalg.norm(platform.drive.platform_joints[:, :2], axis=1)))
+
+
+def scaled_paper_jacobian(platform: Platform, poses: np.ndarray) -> np.ndarray:
+    """The paper's ``J_p`` (eq. 8–11) per pose, rotation rows × :func:`rotation_row_scale_mm`, ``(N, 6, 42)``."""
+    R, t = kin.pose_to_rt(np.asarray(poses, dtype=float))
+    J_p = kin.error_jacobian(platform.drive, R, t)
+    J_p[..., 3:, :] *= rotation_row_scale_mm(platform)
+    return J_p
+
+
+def observability_indices(singular_values: np.ndarray, n_rows: int) -> dict[str, float]:
+    """Borm & Menq O1…O5 of a Jacobian with ``n_rows`` rows and these (descending) singular values.
+
+    O1 = (σ1⋯σn)^(1/n)/√m, O2 = σmin/σmax, O3 = σmin, O4 = σmin²/σmax, O5 = 1/Σ(1/σi);
+    all but O1 are 0 when σmin is 0 (O1 then is 0 too: the product vanishes).
+    """
+    s = np.asarray(singular_values, dtype=float)
+    s_min, s_max = float(s[-1]), float(s[0])
+    o1 = float(np.exp(np.mean(np.log(s)))) / np.sqrt(n_rows) if s_min > 0 else 0.0
+    return {
+        "O1": o1,
+        "O2": s_min / s_max,
+        "O3": s_min,
+        "O4": s_min**2 / s_max,
+        "O5": 1.0 / float(np.sum(1.0 / s)) if s_min > 0 else 0.0,
+    }
+
+
+def name_direction(vector: np.ndarray, min_component: float = COMPONENT_MIN) -> str:
+    """``"0.62·j3z − 0.68·l3"``: the components with ``|coef| ≥ min_component``, largest first."""
+    # Rounded magnitudes, then parameter order: equal-looking terms print in a fixed order.
+    order = np.lexsort((np.arange(len(vector)), -np.round(np.abs(vector), 2)))
+    terms = [(float(vector[k]), PARAMETER_NAMES[k]) for k in order if abs(vector[k]) >= min_component]
+    parts: list[str] = []
+    for coef, name in terms:
+        term = f"{abs(coef):.2f}·{name}"
+        parts.append(("− " if coef < 0 else "+ ") + term if parts else ("−" if coef < 0 else "") + term)
+    return " ".join(parts)
+
+
+def _sign_fixed(vectors: np.ndarray) -> np.ndarray:
+    """Columns with their largest-magnitude component positive (an SVD's sign is arbitrary)."""
+    big = np.argmax(np.abs(vectors), axis=0)
+    return vectors * np.sign(vectors[big, np.arange(vectors.shape[1])])
+
+
+def readable_basis(basis: np.ndarray) -> np.ndarray:
+    """Re-express an orthonormal basis ``(42, k)`` of a subspace with few parameters per vector.
+
+    An SVD returns an arbitrary rotation of the null space; reduced row-echelon form over
+    the k most independent parameters (QR with column pivoting) gives vectors that each
+    carry one pivot parameter, e.g. ``0.71·j1x + 0.71·d1x`` per leg and axis. Unit columns.
+    """
+    import scipy.linalg
+
+    k = basis.shape[1]
+    if k == 0:
+        return basis
+    _, _, pivots = scipy.linalg.qr(basis.T, pivoting=True, mode="economic")
+    pivots = np.sort(pivots[:k])  # parameter order, so leg 1's vectors come first
+    echelon = np.linalg.solve(basis.T[:, pivots], basis.T).T
+    return _sign_fixed(echelon / np.linalg.norm(echelon, axis=0))
+
+
+@dataclass(frozen=True)
+class IdentifiabilityReport:
+    """How well N poses identify the 42 drive parameters, under a noise model.
+
+    Attributes:
+        n_poses: number of poses N.
+        noise: the noise model the weights and predictions use.
+        singular_values: ``(42,)`` of the whitened leg-length Jacobian, descending [1/mm].
+        rank: number of singular values above ``RANK_RTOL`` × the largest.
+        condition_number: σmax/σmin of the leg-length form (inf when rank-deficient).
+        paper_singular_values: ``(42,)`` of the stacked ``J_p`` with scaled rotation rows.
+        paper_condition_number: σmax/σmin of that form.
+        rotation_row_scale_mm: the length the ``J_p`` rotation rows were multiplied by [mm].
+        predicted_stddev_mm: ``(42,)`` Cramér–Rao standard deviation per parameter [mm]; inf for
+            a parameter that moves along the null space (not identifiable from these poses).
+        observability: Borm & Menq O1…O5 of the leg-length form.
+        weakest: up to :data:`N_WEAKEST` ``(singular value, unit 42-vector)``, weakest first,
+            among the identified directions.
+        null_space: ``(42, 42 − rank)`` unit basis of the unidentified directions.
+        verdict: one of :data:`VERDICTS`.
+    """
+
+    n_poses: int
+    noise: NoiseConfig
+    singular_values: np.ndarray
+    rank: int
+    condition_number: float
+    paper_singular_values: np.ndarray
+    paper_condition_number: float
+    rotation_row_scale_mm: float
+    predicted_stddev_mm: np.ndarray
+    observability: dict[str, float]
+    weakest: list[tuple[float, np.ndarray]] = field(default_factory=list)
+    null_space: np.ndarray = field(default_factory=lambda: np.zeros((N_PARAMS, 0)))
+    verdict: str = "identifiable"
+
+    @property
+    def null_space_dimension(self) -> int:
+        return self.null_space.shape[1]
+
+    def weakest_names(self) -> list[str]:
+        return [name_direction(v) for _, v in self.weakest]
+
+    def null_space_names(self) -> list[str]:
+        return [name_direction(v) for v in self.null_space.T]
+
+    def to_dict(self) -> dict:
+        """JSON-ready: lists of floats, ``null`` for infinities."""
+
+        def num(x: float) -> float | None:
+            return float(x) if np.isfinite(x) else None
+
+        return {
+            "format": "stewart-calib/identifiability@1",
+            "n_poses": self.n_poses,
+            "noise": {"reading_sigma_mm": self.noise.reading_sigma_mm, "stroke_sigma_mm": self.noise.stroke_sigma_mm},
+            "parameter_names": list(PARAMETER_NAMES),
+            "leg_length_form": {
+                "singular_values": [float(s) for s in self.singular_values],
+                "condition_number": num(self.condition_number),
+                "rank": self.rank,
+                "rank_rtol": RANK_RTOL,
+                "observability": self.observability,
+            },
+            "paper_form": {
+                "singular_values": [float(s) for s in self.paper_singular_values],
+                "condition_number": num(self.paper_condition_number),
+                "rotation_row_scale_mm": self.rotation_row_scale_mm,
+            },
+            "predicted_stddev_mm": [num(s) for s in self.predicted_stddev_mm],
+            "weakest_directions": [
+                {"singular_value": float(s), "stddev_mm": 1.0 / float(s), "vector": [float(x) for x in v], "named": name_direction(v)}
+                for s, v in self.weakest
+            ],
+            "null_space": {
+                "dimension": self.null_space_dimension,
+                "basis": [[float(x) for x in v] for v in self.null_space.T],
+                "named": self.null_space_names(),
+            },
+            "verdict": self.verdict,
+            "thresholds": {"condition_poor": CONDITION_POOR, "rank_rtol": RANK_RTOL},
+        }
+
+    def format_text(self) -> str:
+        """The terminal report."""
+        s = self.singular_values
+        lines = [
+            f"Identifiability of the 42 drive parameters from {self.n_poses} poses "
+            f"(σ_s = {self.noise.reading_sigma_mm:g} mm, σ_q = {self.noise.stroke_sigma_mm:g} mm)",
+            f"verdict: {self.verdict}  (rank {self.rank}/42; condition number "
+            f"{self.condition_number:.4g}; poorly conditioned above {CONDITION_POOR:g}, "
+            f"rank counts σ > {RANK_RTOL:g}·σmax)",
+            "",
+            "leg-length form (rows ∂r_i/∂M whitened by J_x Σ_x J_xᵀ + σ_q² I) [1/mm]:",
+            f"  σmax {s[0]:.4g}  σmin {s[-1]:.4g}  condition number {self.condition_number:.4g}",
+            "  singular values: " + " ".join(f"{v:.3g}" for v in s),
+            "  observability (Borm & Menq, of this whitened form): "
+            + "  ".join(f"{k} {v:.4g}" for k, v in self.observability.items()),
+            f"paper J_p form (eq. 8–11, rotation rows × {self.rotation_row_scale_mm:.1f} mm, unweighted):",
+            f"  σmax {self.paper_singular_values[0]:.4g}  σmin {self.paper_singular_values[-1]:.4g}  "
+            f"condition number {self.paper_condition_number:.4g}",
+            "",
+            "weakest directions (σ, predicted std dev along it):",
+        ]
+        lines += [f"  {sv:.4g} /mm  ({1.0 / sv:.3g} mm)  {name_direction(v)}" for sv, v in self.weakest]
+        if self.null_space_dimension:
+            lines += ["", f"null space: dimension {self.null_space_dimension} (not identified by these poses):"]
+            lines += [f"  {name}" for name in self.null_space_names()]
+        lines += ["", "predicted standard deviation per parameter (Cramér–Rao) [mm]:"]
+        sd = self.predicted_stddev_mm
+        for leg in range(6):
+            cols = range(7 * leg, 7 * leg + 7)
+            lines.append("  " + "  ".join(f"{PARAMETER_NAMES[k]:>4} {_fmt_sd(sd[k])}" for k in cols))
+        return "\n".join(lines)
+
+
+def _fmt_sd(value: float) -> str:
+    return f"{value:9.3g}" if np.isfinite(value) else "   not id"
+
+
+def identifiability_report(platform: Platform, poses: np.ndarray, noise: NoiseConfig) -> IdentifiabilityReport:
+    """Singular values, Cramér–Rao bound, weakest directions and verdict for a pose set.
+
+    Args:
+        platform: nominal geometry (Jacobians are evaluated at the nominal drive).
+        poses: ``(N, 6)`` pose6 ``[mm, rad]``.
+        noise: reading and stroke sigmas.
+    Raises:
+        CalibError: no poses, or no noise.
+    """
+    poses = np.atleast_2d(np.asarray(poses, dtype=float))
+    if poses.shape[0] == 0 or poses.shape[1] != 6:
+        raise CalibError(f"poses: expected an (N, 6) array with N ≥ 1, got shape {poses.shape}")
+    A = whitened_leg_jacobian(platform, poses, noise).reshape(-1, N_PARAMS)
+    # Full SVD: with fewer than 7 poses A has fewer rows than columns and the null space
+    # is in the trailing rows of Vᵀ, which a reduced SVD omits.
+    _, s_all, Vt = np.linalg.svd(A, full_matrices=True)
+    s = np.zeros(N_PARAMS)
+    s[: len(s_all)] = s_all
+    rank = int(np.sum(s > RANK_RTOL * s[0]))
+    s[rank:] = 0.0  # round-off, not information
+    V_range, null = Vt[:rank].T, Vt[rank:].T
+
+    # Cramér–Rao: Σ_M = (AᵀA)⁻¹ on the identified subspace. A parameter with a component
+    # along the null space is not identified at all (its variance is unbounded).
+    variance = np.sum((V_range / s[:rank]) ** 2, axis=1)
+    touches_null = np.linalg.norm(null, axis=1) > 1e-6
+    stddev = np.where(touches_null, np.inf, np.sqrt(variance))
+
+    P = scaled_paper_jacobian(platform, poses).reshape(-1, N_PARAMS)
+    s_paper = np.zeros(N_PARAMS)
+    s_paper_all = np.linalg.svd(P, compute_uv=False)
+    s_paper[: len(s_paper_all)] = s_paper_all
+    s_paper[s_paper <= RANK_RTOL * s_paper[0]] = 0.0
+
+    condition = s[0] / s[-1] if rank == N_PARAMS else np.inf
+    if rank < N_PARAMS:
+        verdict = "rank-deficient"
+    elif condition > CONDITION_POOR:
+        verdict = "poorly conditioned"
+    else:
+        verdict = "identifiable"
+    weak_idx = range(rank - 1, max(rank - 1 - N_WEAKEST, -1), -1)
+    weak_vectors = _sign_fixed(V_range[:, list(weak_idx)]) if rank else np.zeros((N_PARAMS, 0))
+    return IdentifiabilityReport(
+        n_poses=len(poses),
+        noise=noise,
+        singular_values=s,
+        rank=rank,
+        condition_number=float(condition),
+        paper_singular_values=s_paper,
+        paper_condition_number=float(s_paper[0] / s_paper[-1]) if s_paper[-1] > 0 else float("inf"),
+        rotation_row_scale_mm=rotation_row_scale_mm(platform),
+        predicted_stddev_mm=stddev,
+        observability=observability_indices(s, A.shape[0]),
+        weakest=[(float(s[k]), weak_vectors[:, j]) for j, k in enumerate(weak_idx)],
+        null_space=readable_basis(null),
+        verdict=verdict,
+    )
+
+
+def conditioning_summary(report: IdentifiabilityReport) -> dict:
+    """The small "conditioning" section of a calibration result (JSON-ready)."""
+    return {
+        "rank": report.rank,
+        "condition_number": float(report.condition_number) if np.isfinite(report.condition_number) else None,
+        "null_space_dimension": report.null_space_dimension,
+        "weakest_directions": report.weakest_names(),
+        "null_space": report.null_space_names(),
+        "verdict": report.verdict,
+    }
+
+
+def warning_line(report: IdentifiabilityReport) -> str | None:
+    """One line naming the unidentified or weakest directions, or None when identifiable."""
+    if report.verdict == "rank-deficient":
+        names = report.null_space_names()
+        shown = "; ".join(names[:3]) + (f"; … ({len(names) - 3} more)" if len(names) > 3 else "")
+        return (
+            f"warning: the poses do not identify all 42 parameters (rank {report.rank}, "
+            f"{report.null_space_dimension} unidentified directions: {shown})"
+        )
+    if report.verdict == "poorly conditioned":
+        sv, v = report.weakest[0]
+        return (
+            f"warning: poorly conditioned (condition number {report.condition_number:.3g} > "
+            f"{CONDITION_POOR:g}); weakest direction {name_direction(v)} (σ {1.0 / sv:.3g} mm)"
+        )
+    return None

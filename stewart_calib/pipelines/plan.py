@@ -1,0 +1,91 @@
+"""``stewart-calib plan``: choose N calibration poses and write them as a pose list CSV.
+
+The pose list has the log's pose columns (``x_mm y_mm z_mm roll_deg pitch_deg yaw_deg``,
+spec §3) and a ``t_s`` column (one pose per ``--dwell-s``), so a user can drive the robot
+through it and ``stewart-calib identifiability --poses`` reads it back.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import io
+from ..estimators.config import load_estimator_config
+from ..platform import load_platform
+from ..planning import CRITERIA, DEFAULT_CRITERION, plan_poses
+
+
+def write_pose_list(path: str | Path, poses: np.ndarray, dwell_s: float = 1.0) -> None:
+    """Write ``t_s`` and the six pose columns [mm, deg] (atomically)."""
+    t_s = np.arange(len(poses)) * dwell_s
+    io.atomic_write_text(path, io._csv_text(["t_s", *io.POSE_COLUMNS], [t_s, *io._pose_columns_deg(poses)]))
+
+
+def read_pose_list(path: str | Path) -> np.ndarray:
+    """The six pose columns of a pose list or a measurement log, ``(N, 6)`` [mm, rad].
+
+    Raises:
+        CalibError: missing file or columns, no rows, or a non-finite pose value (naming the row).
+    """
+    path = Path(path)
+    text = io._read_text(path, "pose list")
+    header = io._header(path, text)
+    io._require_columns(path, header, io.POSE_COLUMNS)
+    table = io._parse(path, header, text, io.POSE_COLUMNS)
+    io._flag_non_finite(table, io.POSE_COLUMNS)
+    io._refuse_first(path, table)
+    poses = np.column_stack([table.numbers[name] for name in io.POSE_COLUMNS])
+    poses[:, 3:] = np.radians(poses[:, 3:])
+    return poses
+
+
+def add_platform_and_noise_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--platform``, and ``--config``/``--set``: the estimator config whose ``[noise]`` weights the Jacobian."""
+    parser.add_argument("--platform", required=True, metavar="P.toml")
+    parser.add_argument("--config", metavar="C.toml", help="estimator config; its [noise] section is used")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE", help="override, e.g. noise.reading_sigma_mm=0.005"
+    )
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "plan",
+        help="choose calibration poses (optimal design over random workspace poses)",
+        description="Pick N poses from random reachable workspace poses that best identify the 42 parameters.",
+    )
+    add_platform_and_noise_arguments(parser)
+    parser.add_argument("--n", required=True, type=int, metavar="N", help="number of poses to plan")
+    parser.add_argument("--out", required=True, metavar="poses.csv")
+    parser.add_argument(
+        "--criterion",
+        choices=CRITERIA,
+        default=DEFAULT_CRITERION,
+        help="A: smallest mean parameter variance (default); D: log det; O1: Borm–Menq O1 of the "
+        "paper's J_p form; E: weakest direction",
+    )
+    parser.add_argument("--candidates", type=int, default=2000, metavar="M", help="random candidate poses (2000)")
+    parser.add_argument("--seed", type=int, default=None, help="seed of the candidate draw")
+    parser.add_argument("--dwell-s", type=float, default=1.0, help="t_s step between poses in the file [s]")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    platform = load_platform(args.platform)
+    noise = load_estimator_config(args.config, args.set).noise
+    start = time.perf_counter()
+    poses = plan_poses(platform, args.n, args.criterion, np.random.default_rng(args.seed), args.candidates, noise)
+    elapsed_s = time.perf_counter() - start
+    write_pose_list(args.out, poses, args.dwell_s)
+    print(f"planned {len(poses)} poses ({args.criterion} from {args.candidates} candidates, {elapsed_s:.2f} s) -> {args.out}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from ..cli import main as cli_main
+
+    return cli_main(["plan", *(argv or [])])
