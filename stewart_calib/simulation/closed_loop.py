@@ -163,7 +163,7 @@ def run_experiment(experiment: Experiment, controller: Controller | None = None,
     Args:
         experiment: from :func:`~stewart_calib.simulation.experiment.load_experiment`.
         controller: default :class:`NominalController` of the experiment's platform.
-        progress: show a tqdm bar on stderr.
+        progress: show a tqdm bar on stderr (when it is a terminal).
     Raises:
         kinematics.FKError: the robot cannot reach a commanded stroke set.
     """
@@ -175,7 +175,8 @@ def run_experiment(experiment: Experiment, controller: Controller | None = None,
     stroke_noise = noise_rng.standard_normal((n, 6))
     reading_noise = noise_rng.standard_normal((n, 6))
     R_d, t_d = kin.pose_to_rt(plan.desired_poses)
-    bar = tqdm(total=n, desc=f"simulate {experiment.name}", unit="sample", disable=not progress, leave=False)
+    # disable=None: tqdm itself hides the bar when stderr is not a terminal.
+    bar = tqdm(total=n, desc=f"simulate {experiment.name}", unit="sample", disable=None if progress else True, leave=False)
 
     if getattr(controller, "adaptive", True):
         strokes, params = np.empty((n, 6)), np.empty((n, 42))
