@@ -1,0 +1,161 @@
+"""The factor graph: ``lm`` (batch gold standard) and ``isam2`` (fixed-lag, online).
+
+Data: :mod:`tests.synthetic` (true drive = nominal + δM, tracker readings from the known
+tracker). Noise as in ``[noise]``: σ_s = 2 µm, σ_q = 1 µm. Short logs and small lags keep
+the whole file near 20 s.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from stewart_calib.errors import SampleRejected
+from stewart_calib.estimators import make_estimator
+from stewart_calib.estimators.config import config_from_dict
+from stewart_calib.samples import Log, Sample
+from tests.synthetic import make_log, nim_stewart, random_error, random_poses
+
+NEES_BOUND = chi2.ppf(0.999, 42)  # 99.9 % of χ²(42) ≈ 77.7
+FACTORS_PER_SAMPLE = 12  # six drive legs + six tracker legs (tight coupling)
+
+
+@pytest.fixture(scope="module")
+def platform():
+    return nim_stewart()
+
+
+def _config(random_walk=0.0, prior_sigma_mm=5.0, **isam2):
+    isam2 = {"window_samples": 5, "lag_s": 1.0, **isam2}
+    return config_from_dict({"noise": {"random_walk_mm_per_sqrt_s": random_walk, "prior_sigma_mm": prior_sigma_mm}, "isam2": isam2})
+
+
+def _run(method, platform, config, log):
+    estimator = make_estimator(method, platform, config)
+    for sample in log:
+        estimator.update(sample)
+    return estimator
+
+
+def _nees(estimate, true_error):
+    d = estimate.error - true_error
+    return float(d @ np.linalg.solve(estimate.covariance, d))
+
+
+def _rms(x):
+    return float(np.sqrt(np.mean(np.square(x))))
+
+
+@pytest.fixture(scope="module")
+def noisy(platform):
+    """200 samples at 10 Hz, constant δM (σ 1 mm), σ_s = 2 µm, σ_q = 1 µm."""
+    rng = np.random.default_rng(2)
+    error = random_error(rng, 1.0)
+    log, _ = make_log(platform, error, random_poses(platform, 200, rng), rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
+    return log, error
+
+
+@pytest.mark.parametrize("coupling", ["tight", "loose"])
+def test_noise_free_lm_and_isam2_recover_the_true_parameters(platform, coupling):
+    rng = np.random.default_rng(1)
+    error = random_error(rng, 1.0)
+    log, _ = make_log(platform, error, random_poses(platform, 40, rng), rng)
+    # A wide prior: the 5 mm tolerance prior alone biases the exact answer by ~2e-5 mm.
+    config = _config(prior_sigma_mm=1e3, coupling=coupling)
+    lm = make_estimator("lm", platform, config).fit(log)
+    assert np.max(np.abs(lm.error - error)) <= 1e-6
+    isam2 = _run("isam2", platform, config, log.select(slice(0, 20)))
+    # After 20 samples (four windows, two marginalised) iSAM2 is already exact.
+    assert np.max(np.abs(isam2.estimate().error - error)) <= 1e-6
+
+
+def test_noisy_static_covariance_is_consistent_and_isam2_agrees_with_lm(platform, noisy):
+    log, error = noisy
+    lm = make_estimator("lm", platform, _config()).fit(log)
+    isam2 = _run("isam2", platform, _config(), log).estimate()
+    for estimate in (lm, isam2):
+        assert estimate.samples_used == 200
+        assert 0.0 < _nees(estimate, error) <= NEES_BOUND
+    # Same cost, so the same optimum up to iSAM2's approximations: factors marginalised at
+    # their linearisation point and steps below relinearize_threshold not relinearised.
+    # Both are second order (≈ δ²/L ≈ 1e-8 mm); we allow 1 µm and a tenth of each σ.
+    difference = np.abs(isam2.error - lm.error)
+    assert np.max(difference) <= 1e-3
+    assert np.all(difference <= 0.1 * lm.stddev)
+    np.testing.assert_allclose(isam2.stddev, lm.stddev, rtol=0.01)
+
+
+def test_loose_coupling_matches_tight(platform, noisy):
+    # Six readings fix six pose DOF exactly, so the FK pose prior with the propagated
+    # covariance carries the same information as the six reading factors (to first order).
+    log, error = noisy
+    tight = make_estimator("lm", platform, _config()).fit(log)
+    loose = make_estimator("lm", platform, _config(coupling="loose")).fit(log)
+    assert np.all(np.abs(loose.error - tight.error) <= 0.01 * tight.stddev)
+
+
+def test_isam2_tracks_a_parameter_step(platform):
+    rng = np.random.default_rng(3)
+    before = random_error(rng, 1.0)
+    after = before + rng.normal(0.0, 0.05, 42)
+    n = 300
+    truth = np.where(np.arange(n)[:, None] < n // 2, before, after)
+    log, _ = make_log(platform, truth, random_poses(platform, n, rng), rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
+    tracking = _run("isam2", platform, _config(random_walk=0.01, window_samples=0, window_s=1.0, lag_s=2.0), log).estimate()
+    assert _nees(tracking, after) <= NEES_BOUND
+    assert _rms(tracking.error - after) <= 0.3 * _rms(after - before)
+    # The same log without a random walk cannot follow the step: the check has teeth.
+    static = _run("isam2", platform, _config(lag_s=2.0), log).estimate()
+    assert _nees(static, after) > 100 * NEES_BOUND
+
+
+def test_isam2_graph_stays_bounded_over_a_long_log(platform):
+    rng = np.random.default_rng(5)
+    log, _ = make_log(platform, random_error(rng, 1.0), random_poses(platform, 2000, rng), rng, 0.002, 0.001)
+    estimator = make_estimator("isam2", platform, _config())
+    sizes = []
+    for sample in log:
+        estimator.update(sample)
+        sizes.append(estimator.graph_size())
+    factors, variables = np.array(sizes).T
+    # Lag 1 s at 10 Hz: ~10 poses, ~2-3 parameter variables, however long the log.
+    assert variables[-1] <= 20
+    assert np.max(factors[200:]) <= factors[199] + FACTORS_PER_SAMPLE
+    assert np.max(variables[200:]) <= variables[199] + 1
+
+
+@pytest.mark.parametrize("robust", ["huber", "cauchy"])
+def test_robust_kernel_rides_out_gross_tracker_outliers(platform, robust):
+    rng = np.random.default_rng(4)
+    error = random_error(rng, 1.0)
+    log, _ = make_log(platform, error, random_poses(platform, 150, rng), rng, 0.002, 0.001)
+    readings = log.readings.copy()
+    rows, legs = rng.choice(np.arange(20, 150), 5, replace=False), rng.integers(0, 6, 5)
+    readings[rows, legs] += 0.5 * rng.choice([-1.0, 1.0], 5)  # five 0.5 mm glitches = 250 σ_s
+    corrupted = Log(log.t_s, log.strokes, readings)
+    clean = _rms(_run("isam2", platform, _config(), log).estimate().error - error)
+    plain = _rms(_run("isam2", platform, _config(), corrupted).estimate().error - error)
+    kept = _rms(_run("isam2", platform, _config(robust=robust), corrupted).estimate().error - error)
+    assert plain > 5 * clean  # without a kernel the glitches ruin the estimate
+    assert kept <= 1.5 * clean
+
+
+@pytest.mark.parametrize("method", ["isam2", "lm"])
+def test_rejected_sample_leaves_the_estimator_untouched(platform, noisy, method):
+    log, _ = noisy
+    good = log.select(slice(0, 30))
+    reference = _run(method, platform, _config(), good).estimate()
+    estimator = _run(method, platform, _config(), good.select(slice(0, 15)))
+    last = good[14]
+    bad = [
+        Sample(last.t_s + 0.05, last.strokes, np.r_[last.readings[:5], np.nan]),
+        Sample(last.t_s - 1.0, last.strokes, last.readings),  # time going backwards
+        Sample(last.t_s + 0.05, last.strokes, last.readings + np.r_[3000.0, np.zeros(5)]),  # no pose fits
+    ]
+    for sample in bad:
+        with pytest.raises(SampleRejected):
+            estimator.update(sample)
+    for sample in good.select(slice(15, 30)):
+        estimator.update(sample)
+    np.testing.assert_allclose(estimator.estimate().error, reference.error, rtol=0, atol=1e-12)
