@@ -1,0 +1,66 @@
+"""``stewart-calib compensate``: strokes for desired poses from IK with the calibrated model.
+
+Reads a result JSON (spec §5) and a pose list with the log's pose columns (spec §3); writes
+the pose columns and ``q1_mm … q6_mm``: the strokes to command so that the calibrated
+drive ``nominal + error`` lands at each pose (paper Fig. 3 step 4).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from .. import io
+from ..compensation import compensate
+from ..errors import CalibError
+from ..platform import load_platform
+from .plan import read_pose_list
+
+#: |result nominal − platform nominal| above which the result belongs to another platform [mm].
+NOMINAL_TOLERANCE_MM = 1e-6
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "compensate",
+        help="strokes for desired poses with the calibrated model (IK of nominal + error)",
+        description="Compute drive strokes that put the calibrated robot at the desired poses.",
+    )
+    parser.add_argument("--platform", required=True, metavar="P.toml")
+    parser.add_argument("--result", required=True, metavar="R.json", help="calibration result (spec §5)")
+    parser.add_argument("--poses", required=True, metavar="poses.csv", help="x_mm y_mm z_mm roll_deg pitch_deg yaw_deg")
+    parser.add_argument("--out", required=True, metavar="strokes.csv")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    platform = load_platform(args.platform)
+    result = io.read_result(args.result)
+    gap = np.abs(np.array(result["nominal"]) - platform.drive.as_vector())
+    if gap.max() > NOMINAL_TOLERANCE_MM:
+        raise CalibError(
+            f"{args.result}: key 'nominal': expected the nominal drive of {args.platform}; "
+            f"it differs by {gap.max():.3g} mm (a result for another platform?)"
+        )
+    poses = read_pose_list(args.poses)
+    strokes = compensate(platform.drive.perturbed(np.array(result["error"])), poses)
+    if platform.stroke_range is not None:
+        lo, hi = platform.stroke_range
+        bad = np.argwhere((strokes < lo) | (strokes > hi))
+        if bad.size:
+            k, i = bad[0]
+            raise CalibError(
+                f"{args.poses}: pose {k + 1} needs q{i + 1} = {strokes[k, i]:.6g} mm, outside the "
+                f"stroke range [{lo}, {hi}] mm"
+            )
+    header = [*io.POSE_COLUMNS, *io.STROKE_COLUMNS]
+    io.atomic_write_text(args.out, io._csv_text(header, [*io._pose_columns_deg(poses), *strokes.T]))
+    print(f"wrote {len(strokes)} stroke rows to {args.out}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from ..cli import main as cli_main
+
+    return cli_main(["compensate", *(argv or [])])
