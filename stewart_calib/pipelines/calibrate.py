@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     if result.rejected:
         k, reason = result.rejected[0]
         print(_summary(f"{args.method} rejected samples:", len(result.rejected), len(log),
-                       f"t_s={log.t_s[k]!r}: {reason}"), file=sys.stderr)
+                       f"t_s={float(log.t_s[k])!r}: {reason}"), file=sys.stderr)
 
     # Render (and so validate) everything before writing anything.
     samples_skipped = len(log.skipped) + len(result.rejected)

@@ -1,0 +1,187 @@
+"""``stewart-calib calibrate`` (spec §6): exit status, one-line refusals, nothing partial written."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from stewart_calib import cli, estimators
+from stewart_calib.errors import SampleRejected
+from stewart_calib.estimators.base import Estimate
+from stewart_calib.io import read_result, write_log
+from stewart_calib.pipelines.calibrate import calibrate
+from stewart_calib.samples import Log
+from tests.synthetic import NIM_STEWART, make_log, nim_stewart, random_error, random_poses
+
+STEP_MM = 0.001
+
+
+class CountingEstimator:
+    """Online test double: δM = (accepted samples) × STEP_MM; refuses samples with s1 < 0."""
+
+    name = "counting"
+
+    def __init__(self, platform, config):
+        self.accepted = 0
+
+    def update(self, sample):
+        if sample.readings[0] < 0:
+            raise SampleRejected(f"s1 = {sample.readings[0]} is negative")
+        self.accepted += 1
+
+    def estimate(self) -> Estimate:
+        return Estimate(np.full(42, self.accepted * STEP_MM), np.eye(42) * 0.01, self.name, self.accepted)
+
+
+class BatchEstimator(CountingEstimator):
+    """Batch test double: ``fit`` gives δM = mean stroke of leg 1 [mm] on every parameter."""
+
+    name = "batch"
+
+    def fit(self, samples) -> Estimate:
+        samples = list(samples)
+        return Estimate(np.full(42, np.mean([s.strokes[0] for s in samples])), None, self.name, len(samples))
+
+
+@pytest.fixture
+def fakes(monkeypatch):
+    classes = {"counting": CountingEstimator, "batch": BatchEstimator}
+    real = estimators.make_estimator
+    for name in classes:
+        monkeypatch.setitem(estimators.METHODS, name, "tests:double")
+    monkeypatch.setattr(
+        estimators, "make_estimator", lambda method, platform, config=None: classes[method](platform, config)
+        if method in classes else real(method, platform, config)
+    )
+
+
+def _log() -> Log:
+    """Ten samples; s1 is negative in three of them (t_s = 2.5, 3.5, 4.5), which the counting double rejects."""
+    s1 = np.array([1.0, 1.0, 1.0, 1.0, 1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
+    return Log(np.arange(10) * 0.5, np.tile(np.arange(10.0)[:, None], (1, 6)), np.tile(s1[:, None], (1, 6)))
+
+
+@pytest.fixture
+def log_path(tmp_path):
+    path = tmp_path / "log.csv"
+    write_log(path, _log())
+    return path
+
+
+def _run(capsys, *argv) -> tuple[int, list[str]]:
+    code = cli.main(["calibrate", *map(str, argv)])
+    return code, capsys.readouterr().err.splitlines()
+
+
+def _args(log_path, out, method="counting", platform=NIM_STEWART):
+    return ["--platform", platform, "--log", log_path, "--method", method, "--out", out]
+
+
+def test_online_method_writes_result_and_trace(tmp_path, log_path, capsys, fakes):
+    out, trace = tmp_path / "r.json", tmp_path / "t.csv"
+    code, err = _run(capsys, *_args(log_path, out), "--trace", trace)
+    assert code == 0
+    result = read_result(out)
+    assert result["method"] == "counting" and result["platform"] == "nim-stewart"
+    assert (result["samples_used"], result["samples_skipped"]) == (7, 3)
+    np.testing.assert_allclose(result["error"], 7 * STEP_MM, rtol=1e-12)
+    np.testing.assert_allclose(result["stddev"], 0.1, rtol=1e-12)
+    rows = np.loadtxt(trace, delimiter=",", skiprows=1)
+    assert rows.shape == (10, 43)
+    np.testing.assert_array_equal(rows[:, 0], _log().t_s)
+    accepted_so_far = np.array([1, 2, 3, 4, 5, 5, 6, 6, 7, 7])  # a rejected sample leaves the estimate as it was
+    np.testing.assert_allclose(rows[:, 1:] - nim_stewart().drive.as_vector(), np.tile(accepted_so_far[:, None] * STEP_MM, (1, 42)), atol=1e-9)
+    assert err[0].startswith("stewart-calib calibrate: counting rejected samples: 3 of 10 (first: t_s=2.5: s1 = -1.0 is negative)")
+    assert err[-1].endswith("(counting: 7 samples used, 3 skipped)")
+
+
+def test_batch_method_fits_whole_log_and_traces_a_constant(tmp_path, log_path, capsys, fakes):
+    out, trace = tmp_path / "r.json", tmp_path / "t.csv"
+    assert _run(capsys, *_args(log_path, out, "batch"), "--trace", trace)[0] == 0
+    result = read_result(out)
+    assert result["stddev"] is None and result["samples_used"] == 10
+    np.testing.assert_array_equal(result["error"], [4.5] * 42)  # mean of strokes 0..9
+    rows = np.loadtxt(trace, delimiter=",", skiprows=1)
+    assert rows.shape == (10, 43)
+    np.testing.assert_array_equal(rows[:, 1:], np.tile(result["estimate"], (10, 1)))
+
+
+def test_skip_bad_rows_counts_in_samples_skipped(tmp_path, log_path, capsys, fakes):
+    lines = log_path.read_text().splitlines()
+    fields = lines[2].split(",")
+    lines[2] = ",".join([fields[0], "nan", *fields[2:]])  # second sample: q1 = nan
+    log_path.write_text("\n".join(lines) + "\n")
+    code, err = _run(capsys, *_args(log_path, tmp_path / "r.json"))
+    assert code == 2 and len(err) == 1 and "row 3" in err[0] and "'q1_mm'" in err[0]
+    code, err = _run(capsys, *_args(log_path, tmp_path / "r.json"), "--skip-bad-rows")
+    assert code == 0
+    assert err[0] == "stewart-calib calibrate: skipped bad log rows: 1 of 10 (first: row 3: column 'q1_mm': expected a finite number, got nan)"
+    assert read_result(tmp_path / "r.json")["samples_skipped"] == 1 + 3
+
+
+def test_calibrate_function_returns_estimate_trace_and_rejections(fakes):
+    estimate, trace, rejected = calibrate(nim_stewart(), _log(), "counting", trace=True)
+    assert (estimate.samples_used, rejected, trace.shape) == (7, 3, (10, 42))
+    assert calibrate(nim_stewart(), _log(), "batch")[1:] == (None, 0)
+
+
+@pytest.mark.parametrize(
+    ("change", "expected"),
+    [
+        ({"--platform": "missing.toml"}, "missing.toml: platform file not found"),
+        ({"--log": "missing.csv"}, "missing.csv: log file not found"),
+        ({"--method": "nope"}, "--method: unknown method 'nope'; expected one of ls, paper-ekf, ekf, isam2, lm, counting, batch"),
+        ({"--out": "no/such/dir/r.json"}, "--out no/such/dir/r.json: directory no/such/dir does not exist"),
+        ({"--set": "noise.bogus=1"}, "--set: unknown key 'noise.bogus'"),
+    ],
+)
+def test_refusals_are_one_line_exit_2_and_write_nothing(tmp_path, log_path, capsys, fakes, monkeypatch, change, expected):
+    monkeypatch.chdir(tmp_path)
+    args = dict(zip(["--platform", "--log", "--method", "--out"], [NIM_STEWART, log_path, "counting", "r.json"]))
+    code, err = _run(capsys, *[x for k, v in {**args, **change}.items() for x in (k, v)], "--trace", "t.csv")
+    assert code == 2
+    assert err == [f"stewart-calib calibrate: error: {err[0].split('error: ', 1)[1]}"] and expected in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["log.csv"]
+
+
+def test_all_samples_rejected_is_refused(tmp_path, capsys, fakes):
+    log = _log()
+    log.readings[:] = -1.0
+    write_log(tmp_path / "log.csv", log)
+    code, err = _run(capsys, *_args(tmp_path / "log.csv", tmp_path / "r.json"))
+    assert (code, len(err)) == (2, 1)
+    assert err[0].endswith("counting rejected all 10 samples (first: s1 = -1.0 is negative)")
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_subprocess_bad_log_exits_2_with_one_line(tmp_path):
+    bad = tmp_path / "log.csv"
+    bad.write_text("t_s,q1_mm\n0,1\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "stewart_calib", "calibrate", *map(str, _args(bad, tmp_path / "r.json", "ls"))],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.splitlines() == [
+        f"stewart-calib calibrate: error: {bad}: row 1: missing required column(s) "
+        "q2_mm, q3_mm, q4_mm, q5_mm, q6_mm, s1_mm, s2_mm, s3_mm, s4_mm, s5_mm, s6_mm"
+    ]
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_real_ls_recovers_synthetic_errors_end_to_end(tmp_path, capsys):
+    pytest.importorskip("stewart_calib.estimators.ls")
+    platform = nim_stewart()
+    rng = np.random.default_rng(11)
+    true_error = random_error(rng, 0.5)
+    log, _ = make_log(platform, true_error, random_poses(platform, 60, rng), rng)  # noise-free
+    write_log(tmp_path / "log.csv", log)
+    code, err = _run(capsys, *_args(tmp_path / "log.csv", tmp_path / "r.json", "ls"))
+    assert code == 0, err
+    result = read_result(tmp_path / "r.json")
+    assert (result["method"], result["samples_used"], result["samples_skipped"]) == ("ls", 60, 0)
+    # exact data: what is left is the log's repr rounding and Gauss–Newton's tolerance
+    np.testing.assert_allclose(result["error"], true_error, atol=1e-4)
