@@ -185,3 +185,13 @@ def test_real_ls_recovers_synthetic_errors_end_to_end(tmp_path, capsys):
     assert (result["method"], result["samples_used"], result["samples_skipped"]) == ("ls", 60, 0)
     # exact data: what is left is the log's repr rounding and Gauss–Newton's tolerance
     np.testing.assert_allclose(result["error"], true_error, atol=1e-4)
+
+
+def test_rerun_recording_holds_the_parameter_errors(tmp_path, log_path, capsys, fakes):
+    readback = pytest.importorskip("stewart_calib.viz.readback")
+    code, _ = _run(capsys, *_args(log_path, tmp_path / "r.json"), "--rerun", tmp_path / "r.rrd")
+    assert code == 0
+    samples, values = readback.read_scalars(tmp_path / "r.rrd", "params/leg6/l/counting")
+    np.testing.assert_array_equal(samples, np.arange(10))
+    np.testing.assert_allclose(values.ravel(), np.array([1, 2, 3, 4, 5, 5, 6, 6, 7, 7]) * STEP_MM, atol=1e-9)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["log.csv", "r.json", "r.rrd"]  # no temporary left
