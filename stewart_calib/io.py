@@ -338,6 +338,30 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
 # ----------------------------------------------------------------------------- truth
 
 
+def write_pose_list(path: str | Path, poses: np.ndarray, dwell_s: float = 1.0) -> None:
+    """Write ``t_s`` and the six pose columns [mm, deg] (atomically)."""
+    t_s = np.arange(len(poses)) * dwell_s
+    atomic_write_text(path, _csv_text(["t_s", *POSE_COLUMNS], [t_s, *_pose_columns_deg(poses)]))
+
+
+def read_pose_list(path: str | Path) -> np.ndarray:
+    """The six pose columns of a pose list or a measurement log, ``(N, 6)`` [mm, rad].
+
+    Raises:
+        CalibError: missing file or columns, no rows, or a non-finite pose value (naming the row).
+    """
+    path = Path(path)
+    text = _read_text(path, "pose list")
+    header = _header(path, text)
+    _require_columns(path, header, POSE_COLUMNS)
+    table = _parse(path, header, text, POSE_COLUMNS)
+    _flag_non_finite(table, POSE_COLUMNS)
+    _refuse_first(path, table)
+    poses = np.column_stack([table.numbers[name] for name in POSE_COLUMNS])
+    poses[:, 3:] = np.radians(poses[:, 3:])
+    return poses
+
+
 @dataclass(frozen=True)
 class Truth:
     """The simulator's truth for a log, row for row (spec §4).

@@ -36,7 +36,7 @@ def test_estimate_without_nominal_is_refused():
 def test_cli_writes_strokes_that_reach_the_poses(tmp_path):
     from stewart_calib import io
     from stewart_calib.cli import main
-    from stewart_calib.pipelines.plan import read_pose_list, write_pose_list
+    from stewart_calib.io import read_pose_list, write_pose_list
     from tests.synthetic import NIM_STEWART
 
     platform = nim_stewart()

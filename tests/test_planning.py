@@ -13,7 +13,7 @@ from stewart_calib.cli import main as cli_main
 from stewart_calib.errors import CalibError
 from stewart_calib.estimators.config import NoiseConfig
 from stewart_calib.identifiability import identifiability_report, whitened_leg_jacobian
-from stewart_calib.pipelines.plan import read_pose_list
+from stewart_calib.io import read_pose_list
 from tests.synthetic import nim_stewart, random_poses
 
 NOISE = NoiseConfig()

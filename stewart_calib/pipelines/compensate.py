@@ -15,7 +15,7 @@ from .. import io
 from ..compensation import compensate
 from ..errors import CalibError
 from ..platform import load_platform
-from .plan import read_pose_list
+from ..io import read_pose_list
 
 #: |result nominal − platform nominal| above which the result belongs to another platform [mm].
 NOMINAL_TOLERANCE_MM = 1e-6

@@ -15,7 +15,8 @@ from ..errors import CalibError
 from ..estimators.config import load_estimator_config
 from ..identifiability import identifiability_report, warning_line
 from ..platform import Platform, load_platform
-from .plan import add_platform_and_noise_arguments, read_pose_list
+from ..io import read_pose_list
+from .plan import add_platform_and_noise_arguments
 
 
 def log_poses(platform: Platform, path: str, source: str, skip_bad_rows: bool = False):

@@ -19,30 +19,6 @@ from ..platform import load_platform
 from ..planning import CRITERIA, DEFAULT_CRITERION, plan_poses
 
 
-def write_pose_list(path: str | Path, poses: np.ndarray, dwell_s: float = 1.0) -> None:
-    """Write ``t_s`` and the six pose columns [mm, deg] (atomically)."""
-    t_s = np.arange(len(poses)) * dwell_s
-    io.atomic_write_text(path, io._csv_text(["t_s", *io.POSE_COLUMNS], [t_s, *io._pose_columns_deg(poses)]))
-
-
-def read_pose_list(path: str | Path) -> np.ndarray:
-    """The six pose columns of a pose list or a measurement log, ``(N, 6)`` [mm, rad].
-
-    Raises:
-        CalibError: missing file or columns, no rows, or a non-finite pose value (naming the row).
-    """
-    path = Path(path)
-    text = io._read_text(path, "pose list")
-    header = io._header(path, text)
-    io._require_columns(path, header, io.POSE_COLUMNS)
-    table = io._parse(path, header, text, io.POSE_COLUMNS)
-    io._flag_non_finite(table, io.POSE_COLUMNS)
-    io._refuse_first(path, table)
-    poses = np.column_stack([table.numbers[name] for name in io.POSE_COLUMNS])
-    poses[:, 3:] = np.radians(poses[:, 3:])
-    return poses
-
-
 def add_platform_and_noise_arguments(parser: argparse.ArgumentParser) -> None:
     """``--platform``, and ``--config``/``--set``: the estimator config whose ``[noise]`` weights the Jacobian."""
     parser.add_argument("--platform", required=True, metavar="P.toml")
@@ -80,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     poses = plan_poses(platform, args.n, args.criterion, np.random.default_rng(args.seed), args.candidates, noise)
     elapsed_s = time.perf_counter() - start
-    write_pose_list(args.out, poses, args.dwell_s)
+    io.write_pose_list(args.out, poses, args.dwell_s)
     print(f"planned {len(poses)} poses ({args.criterion} from {args.candidates} candidates, {elapsed_s:.2f} s) -> {args.out}")
     return 0
 
