@@ -78,7 +78,7 @@ def test_noisy_static_covariance_is_consistent_and_isam2_agrees_with_lm(platform
         assert estimate.samples_used == 200
         assert 0.0 < _nees(estimate, error) <= NEES_BOUND
     # Same cost, so the same optimum up to iSAM2's approximations: factors marginalised at
-    # their linearisation point and steps below relinearize_threshold not relinearised.
+    # their linearisation point and steps below relinearize_threshold_mm not relinearised.
     # Both are second order (≈ δ²/L ≈ 1e-8 mm); we allow 1 µm and a tenth of each σ.
     difference = np.abs(isam2.error - lm.error)
     assert np.max(difference) <= 1e-3

@@ -202,7 +202,11 @@ class ISAM2Estimator:
         self._builder = _GraphBuilder(platform, config, chain=True)
         params = gtsam.ISAM2Params()
         params.setFactorization(config.isam2.factorization)
-        params.setRelinearizeThreshold(config.isam2.relinearize_threshold)
+        mm, rad = config.isam2.relinearize_threshold_mm, config.isam2.relinearize_threshold_rad
+        thresholds = gtsam.ISAM2ThresholdMap()  # per variable type: poses mix rad and mm
+        thresholds.insert(("x", np.r_[[rad] * 3, [mm] * 3]))
+        thresholds.insert(("p", np.full(N_PARAMS, mm)))
+        params.setRelinearizeThreshold(thresholds)
         params.relinearizeSkip = 1
         # Reuse the slots of removed factors so the factor index stays bounded too.
         params.findUnusedFactorSlots = True
