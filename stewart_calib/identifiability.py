@@ -325,6 +325,27 @@ def identifiability_report(platform: Platform, poses: np.ndarray, noise: NoiseCo
     )
 
 
+def measured_poses(platform: Platform, log, max_poses: int | None = None) -> np.ndarray:
+    """Tracker FK poses of a log's readings, ``(N, 6)`` [mm, rad]; samples whose FK fails are left out.
+
+    Args:
+        max_poses: keep at most this many, evenly spaced over the log. Conditioning (rank,
+            condition number, weakest directions) depends on which poses were visited, not on
+            how long each was held, so a long log can be thinned without changing the verdict.
+    Raises:
+        CalibError: no sample's readings give a pose.
+    """
+    pick = np.arange(len(log))
+    if max_poses is not None and len(pick) > max_poses:
+        pick = np.unique(np.linspace(0, len(log) - 1, max_poses).round().astype(int))
+    # The desired pose is within a few mm of the real one: a good Newton start when present.
+    guess = None if log.desired_poses is None else kin.pose_to_rt(log.desired_poses[pick])
+    fk = kin.forward_kinematics(platform.tracker, log.readings[pick], guess, strict=False)
+    if not np.any(fk.converged):
+        raise CalibError("tracker readings: forward kinematics converged for no sample; no pose to assess")
+    return fk.pose6[fk.converged]
+
+
 def conditioning_summary(report: IdentifiabilityReport) -> dict:
     """The small "conditioning" section of a calibration result (JSON-ready)."""
     return {

@@ -195,3 +195,32 @@ def test_rerun_recording_holds_the_parameter_errors(tmp_path, log_path, capsys, 
     np.testing.assert_array_equal(samples, np.arange(10))
     np.testing.assert_allclose(values.ravel(), np.array([1, 2, 3, 4, 5, 5, 6, 6, 7, 7]) * STEP_MM, atol=1e-9)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["log.csv", "r.json", "r.rrd"]  # no temporary left
+
+
+def test_result_carries_conditioning_and_rich_poses_raise_no_warning(tmp_path, capsys):
+    platform, rng = nim_stewart(), np.random.default_rng(11)
+    log, _ = make_log(platform, random_error(rng), random_poses(platform, 40, rng), rng)
+    write_log(tmp_path / "log.csv", log)
+    code, err = _run(capsys, *_args(tmp_path / "log.csv", tmp_path / "r.json", method="ls"))
+    assert code == 0
+    conditioning = read_result(tmp_path / "r.json")["conditioning"]
+    assert conditioning["rank"] == 42 and conditioning["verdict"] == "identifiable"
+    assert 100 < conditioning["condition_number"] < 1e3  # measured-facts: ~400 at N = 20, ~250 at N = 200
+    assert not any("warning" in line for line in err)
+
+
+def test_translation_only_log_warns_in_one_line_naming_the_unidentified_directions(tmp_path, capsys):
+    # Without rotations, moving d_i and j_i together along an axis changes no leg length:
+    # 18 directions (3 per leg) that no estimator can identify.
+    platform, rng = nim_stewart(), np.random.default_rng(12)
+    poses = random_poses(platform, 40, rng)
+    poses[:, 3:] = 0.0
+    log, _ = make_log(platform, random_error(rng), poses, rng)
+    write_log(tmp_path / "log.csv", log)
+    code, err = _run(capsys, *_args(tmp_path / "log.csv", tmp_path / "r.json", method="ekf"))
+    assert code == 0
+    warnings = [line for line in err if "warning" in line]
+    assert len(warnings) == 1 and "18 unidentified directions" in warnings[0] and "j1x" in warnings[0]
+    conditioning = read_result(tmp_path / "r.json")["conditioning"]
+    assert conditioning["rank"] == 24 and conditioning["null_space_dimension"] == 18
+    assert conditioning["verdict"] == "rank-deficient"

@@ -22,11 +22,14 @@ from tqdm import tqdm
 from .. import estimators, io
 from ..errors import CalibError, SampleRejected
 from ..estimators import Estimate, EstimatorConfig, load_estimator_config
+from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
 from ..platform import Platform, load_platform
 from ..samples import Log
 
 #: logs at least this long get a progress bar (when stderr is a terminal).
 PROGRESS_MIN_SAMPLES = 1000
+#: the result's conditioning section looks at most this many poses, evenly spaced over the log.
+CONDITIONING_MAX_POSES = 2000
 
 
 @dataclass(frozen=True)
@@ -125,9 +128,15 @@ def run(args: argparse.Namespace) -> int:
         print(_summary(f"{args.method} rejected samples:", len(result.rejected), len(log),
                        f"t_s={float(log.t_s[k])!r}: {reason}"), file=sys.stderr)
 
+    report = identifiability_report(platform, measured_poses(platform, log, CONDITIONING_MAX_POSES), config.noise)
+    warning = warning_line(report)
+    if warning:
+        print(f"stewart-calib calibrate: {warning}", file=sys.stderr)
+
     # Render (and so validate) everything before writing anything.
     samples_skipped = len(log.skipped) + len(result.rejected)
-    result_json = io.result_text(io.result_dict(result.estimate, platform, samples_skipped), str(out))
+    extra = {"conditioning": conditioning_summary(report)}
+    result_json = io.result_text(io.result_dict(result.estimate, platform, samples_skipped, extra), str(out))
     trace_csv = io.trace_text(log.t_s, result.trace) if trace_path else None
     if rerun_path:
         _write_rerun(rerun_path, platform, args.method, log, result.trace)

@@ -10,10 +10,9 @@ import argparse
 import json
 
 from .. import io
-from .. import kinematics as kin
 from ..errors import CalibError
 from ..estimators.config import load_estimator_config
-from ..identifiability import identifiability_report, warning_line
+from ..identifiability import identifiability_report, measured_poses, warning_line
 from ..platform import Platform, load_platform
 from ..io import read_pose_list
 from .plan import add_platform_and_noise_arguments
@@ -26,12 +25,7 @@ def log_poses(platform: Platform, path: str, source: str, skip_bad_rows: bool = 
         if log.desired_poses is None:
             raise CalibError(f"{path}: no pose columns; expected {', '.join(io.POSE_COLUMNS)} for --pose-source desired")
         return log.desired_poses
-    # The desired pose is within a few mm of the real one: a good Newton start when present.
-    guess = None if log.desired_poses is None else kin.pose_to_rt(log.desired_poses)
-    try:
-        return kin.forward_kinematics(platform.tracker, log.readings, guess).pose6
-    except kin.FKError as err:
-        raise CalibError(f"{path}: tracker readings: {err}") from None
+    return measured_poses(platform, log)
 
 
 def add_parser(subparsers) -> None:
