@@ -7,7 +7,8 @@ Residual of drive leg i (the leg-length model of design.md)::
 with q_i the executed stroke [mm] and δ_i = (δj_i, δd_i, δl_i) the leg's slice of δM
 (paper eq. 9). The factor's variables are the pose ``X_k`` (``gtsam.Pose3``) and the
 42-vector δM of the current parameter window; the leg touches only its own seven columns.
-(One 42-vector variable measured faster than six 7-vector variables; see ``isam2.py``.)
+(One 42-vector variable measured faster than six 7-vector variables; see
+:mod:`stewart_calib.estimators.isam2`.)
 
 Jacobians, body tangent ``ξ = [ω, v]`` (GTSAM order): with ``n`` the unit leg vector and
 ``n_b = Rᵀ n``, ``∂r/∂ξ = [(d × n_b)ᵀ, n_bᵀ]`` and ``∂r/∂(j, d, l) = [−nᵀ, n_bᵀ, −1]``

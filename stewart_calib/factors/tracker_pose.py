@@ -1,7 +1,8 @@
 """Tracker pose prior (loose coupling): tracker FK turns six readings into one pose measurement.
 
-This is the paper's way (§3.2 step 1: Newton–Raphson FK of the grating readings gives P_v).
-The measurement ``T_m`` carries the covariance propagated from the ruler noise,
+This is the paper's way (§3.2 step 1: Newton–Raphson FK of the grating readings gives P_v,
+:func:`stewart_calib.kinematics.forward_kinematics`). The measurement ``T_m`` carries the
+covariance propagated from the ruler noise,
 ``Σ_ξ = σ_s² (JᵀJ)⁻¹`` (:func:`stewart_calib.kinematics.pose_covariance_from_legs`), in the
 body tangent ``[ω, v]``. Residual, as GTSAM's ``PriorFactorPose3``::
 
@@ -15,20 +16,6 @@ from functools import partial
 import gtsam
 import numpy as np
 
-from .. import kinematics as kin
-from ..platform import LegGeometry
-
-
-def measurement(
-    tracker: LegGeometry, readings_mm: np.ndarray, reading_sigma_mm: float, guess: tuple[np.ndarray, np.ndarray] | None = None
-) -> tuple[gtsam.Pose3, np.ndarray]:
-    """Tracker FK pose and its ``(6, 6)`` covariance in ``[ω, v]`` [rad², rad·mm, mm²].
-
-    Raises:
-        FKError: the readings admit no pose.
-    """
-    fk = kin.forward_kinematics(tracker, readings_mm, guess=guess)
-    return gtsam.Pose3(gtsam.Rot3(fk.R), fk.t), kin.pose_covariance_from_legs(tracker, fk.R, fk.t, reading_sigma_mm)
 
 
 def residual(measured: gtsam.Pose3, pose: gtsam.Pose3, jacobians: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
