@@ -8,6 +8,8 @@ Public API (details in each module's docstring)::
                             payload_kg, pose_index, robot)
     NominalController(platform), FrozenController(drive)         # controllers:
         .drive_model() -> LegGeometry, .observe(sample) -> None
+    EstimatorController(estimator, platform)                     # online: update, then IK on M + δM
+        .trace() -> (N, 42) δM after each sample, .rejected
     TrueRobot.drive_at(pose6, payload_kg) -> LegGeometry          # e.g. the true no-load geometry
 
 Modules: :mod:`.robot` (δM_base, Table 4), :mod:`.load` (statics → forces → compliance),
@@ -15,11 +17,12 @@ Modules: :mod:`.robot` (δM_base, Table 4), :mod:`.load` (statics → forces →
 (static poses, circles), :mod:`.experiment`, :mod:`.closed_loop`.
 """
 
-from .closed_loop import Controller, FrozenController, NominalController, SimulationResult, TrueRobot, run_experiment
+from .closed_loop import Controller, EstimatorController, FrozenController, NominalController, SimulationResult, TrueRobot, run_experiment
 from .experiment import Experiment, load_experiment
 
 __all__ = [
     "Controller",
+    "EstimatorController",
     "Experiment",
     "FrozenController",
     "NominalController",
