@@ -1,0 +1,83 @@
+"""The numbers of Tables 4–6 from the runs: pose errors in two views, per stage and segment.
+
+Views of the pose error (``position`` [mm], rotation angle [deg], in local coordinates):
+
+* ``tracker`` — the tracker's FK pose (its readings on the platform file's tracker geometry)
+  against the desired pose: the paper's measure (§4.1, the in-situ tracker is the reference);
+* ``truth`` — the simulator's actual pose against the desired pose.
+
+They differ by the tracker's own error: its geometry residual (``[tracker]
+geometry_residual_mm``) is systematic, no drive model can compensate it, and it puts a floor
+of about the tracker's accuracy (~0.05 mm) under every method's truth view.
+
+One value per held pose: the **last sample** of each static pose (after settling: an online
+method has folded in the pose's earlier samples, as the paper's EKF corrects at each pose) and
+each circle point (one sample per point, so an online model there is one point old).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import kinematics as kin
+from ..platform import Platform
+from ..simulation import SimulationResult
+
+VIEWS = ("tracker", "truth")
+#: segment kinds evaluated: validation poses (Table 5) and the circle (Table 6).
+EVALUATED = ("validation", "circle")
+
+
+def held_pose_ends(result: SimulationResult) -> np.ndarray:
+    """``(N,)`` True at the last sample of each held pose (static pose or circle point)."""
+    keys = (result.stages, result.kinds, result.pose_index)
+    changes = np.zeros(len(result.kinds), dtype=bool)
+    for key in keys:
+        changes[:-1] |= key[1:] != key[:-1]
+    changes[-1] = True
+    return changes
+
+
+def view_errors(result: SimulationResult, platform: Platform) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per view, per sample ``(position error [mm], orientation error [deg])`` against the desired pose."""
+    R_d, t_d = kin.pose_to_rt(result.desired_poses)
+    R_a, t_a = kin.pose_to_rt(result.actual_poses)
+    seen = kin.forward_kinematics(platform.tracker, result.log.readings, guess=(R_d, t_d))
+    return {
+        "tracker": kin.pose_error(R_d, t_d, seen.R, seen.t),
+        "truth": kin.pose_error(R_d, t_d, R_a, t_a),
+    }
+
+
+def stage_metrics(result: SimulationResult, platform: Platform, errors=None) -> dict:
+    """``{stage: {segment: {view: {position_mm, orientation_deg, max_position_mm, poses}}}}``.
+
+    Means over the held poses of the segment (see the module docstring); ``poses`` counts them.
+    """
+    errors = errors or view_errors(result, platform)
+    ends = held_pose_ends(result)
+    metrics: dict = {}
+    for stage in dict.fromkeys(result.stages):
+        for segment in EVALUATED:
+            mask = ends & (result.stages == stage) & (result.kinds == segment)
+            if not mask.any():
+                continue
+            metrics.setdefault(stage, {})[segment] = {
+                view: {
+                    "position_mm": float(position[mask].mean()),
+                    "orientation_deg": float(orientation[mask].mean()),
+                    "max_position_mm": float(position[mask].max()),
+                    "poses": int(mask.sum()),
+                }
+                for view, (position, orientation) in errors.items()
+            }
+    return metrics
+
+
+def improvement_pct(value: float, reference: float) -> float:
+    """How much smaller ``value`` is than ``reference``, in % of ``reference``."""
+    return 100.0 * (1.0 - value / reference)
+
+
+def rms(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(values))))

@@ -1,0 +1,89 @@
+"""reproduce.rrd: the reproduction as one rerun recording (entity paths of :mod:`stewart_calib.viz.recording`).
+
+* 3D scene (``world/…``) of the :data:`SCENE_METHOD` run, decimated to keep the file small: one
+  row per held static pose (its last sample) and every :data:`SCENE_CIRCLE_STRIDE`-th circle
+  point; the drive legs drawn are the true unloaded ones (load drift is sub-mm, invisible here).
+* ``params/leg{i}/{field}/{method}`` — δM the controller used, per method, and the truth's δM in
+  force (pose- and load-dependent) of the scene run (Figs. 5–6), every :func:`parameter_stride`-th
+  sample: 42 × 5 full-rate series of the paper run alone would take ~15 MB.
+* ``errors/position_mm|orientation_deg/{method}`` — true pose error of every sample (Fig. 7);
+  ``nominal`` is left out: its ~3 mm would flatten the others' curves.
+* ``trajectories/{stage}/{method}`` and ``polar/{stage}/{method}`` — every circle point, desired
+  vs actual (truth view), per stage and method, plus ``nominal`` at the first stage (Figs. 8–9).
+* A blueprint with tabs: scene, parameters per method, pose errors, trajectories.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import math
+
+import numpy as np
+
+from .. import kinematics as kin
+from ..platform import LegGeometry
+from ..viz import recording as viz
+from .metrics import held_pose_ends
+from .runs import METHODS, NOMINAL, Reproduction
+
+SCENE_METHOD = "isam2"
+SCENE_CIRCLE_STRIDE = 5
+#: polar plot (Fig. 9): radius = base + gain · deviation [mm]; the base keeps 0 mm off the centre.
+POLAR_BASE_RADIUS_MM = 0.5
+POLAR_GAIN = 1.0
+#: at most this many rows per parameter series (the paper run: every 4th sample, 0.4 s).
+PARAMETER_ROWS_MAX = 1000
+
+
+def parameter_stride(n_samples: int) -> int:
+    """Every how many samples the parameter series are logged (1 for short runs)."""
+    return max(1, math.ceil(n_samples / PARAMETER_ROWS_MAX))
+
+
+def entity_name(method: str) -> str:
+    """The recording's name of a method (``paper-ekf`` → ``paper_ekf``, as viz's colours expect)."""
+    return method.replace("-", "_")
+
+
+def scene_rows(reproduction: Reproduction) -> np.ndarray:
+    """Sample indices of the decimated 3D scene (see the module docstring)."""
+    result = reproduction.runs[SCENE_METHOD].result
+    ends = held_pose_ends(result)
+    circle = result.kinds == "circle"
+    return np.flatnonzero((ends & ~circle) | (circle & (result.pose_index % SCENE_CIRCLE_STRIDE == 0)))
+
+
+def write_recording(path: str | Path, reproduction: Reproduction) -> None:
+    """Write the whole recording to ``path``."""
+    platform = reproduction.platform
+    nominal = platform.drive.as_vector()
+    scene = reproduction.runs[SCENE_METHOD].result
+    with viz.open_recording(path) as rec:
+        viz.log_platform_geometry(rec, platform)
+        rows = scene_rows(reproduction)
+        R, t = kin.pose_to_rt(scene.actual_poses[rows])
+        viz.log_platform_pose(
+            rec, platform, R, t, scene.log.t_s[rows], samples=rows,
+            drive_legs=LegGeometry.from_params(scene.robot.base_params),
+            desired=kin.pose_to_rt(scene.desired_poses[rows]),
+        )
+        kept = np.arange(0, len(scene.log), parameter_stride(len(scene.log)))
+        viz.log_parameters(rec, viz.TRUTH, scene.truth.params[kept] - nominal, scene.log.t_s[kept], samples=kept)
+        for method in METHODS:
+            run = reproduction.runs[method]
+            result = run.result
+            viz.log_parameters(rec, entity_name(method), run.trace[kept], result.log.t_s[kept], samples=kept)
+            R_d, t_d = kin.pose_to_rt(result.desired_poses)
+            R_a, t_a = kin.pose_to_rt(result.actual_poses)
+            viz.log_pose_errors(rec, entity_name(method), result.log.t_s, *kin.pose_error(R_d, t_d, R_a, t_a))
+        first_stage = reproduction.stage_names[0]
+        for method, stages in ((NOMINAL, [first_stage]), *((m, reproduction.stage_names) for m in METHODS)):
+            result = reproduction.runs[method].result
+            for stage in stages:
+                circle = (result.stages == stage) & (result.kinds == "circle")
+                viz.log_trajectory(
+                    rec, stage, entity_name(method), result.desired_poses[circle, :3], result.actual_poses[circle, :3],
+                    POLAR_BASE_RADIUS_MM, POLAR_GAIN,
+                )
+        viz.send_blueprint(rec, [entity_name(m) for m in METHODS], reproduction.stage_names)

@@ -1,0 +1,150 @@
+"""The paper's experiment (§4) in closed loop, once per method.
+
+* **before calibration** — :class:`NominalController` over the whole experiment (one vectorised
+  pass); the paper's "before" numbers are its first (no-load) stage.
+* **ls** — the paper's baseline: fitted once on the nominal run's no-load calibration segment
+  (every sample of every held pose), then frozen (:class:`FrozenController`) for all stages. The
+  calibration segments under load are not used by ``ls``, as in the paper (§4.2: "only the
+  initial calibration under no-load conditions was performed").
+* **online methods** — one :class:`EstimatorController` through the whole experiment: every
+  sample is folded in and the next IK uses nominal + the latest δM.
+
+Every run uses the same experiment and seed, so the desired poses, the robot and all noise
+draws are identical; only the controller differs.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from ..estimators import EstimatorConfig, make_estimator
+from ..platform import N_PARAMS, Platform
+from ..simulation import EstimatorController, FrozenController, NominalController, SimulationResult, run_experiment
+from ..simulation.experiment import Experiment
+
+BATCH_METHOD = "ls"
+ONLINE_METHODS = ("paper-ekf", "ekf", "isam2")
+METHODS = (BATCH_METHOD, *ONLINE_METHODS)
+#: the controller that is not calibrated at all (paper: "before calibration").
+NOMINAL = "nominal"
+
+
+@dataclass(frozen=True)
+class MethodRun:
+    """One closed-loop run of the experiment with one method's controller.
+
+    Attributes:
+        method: ``nominal``, ``ls`` or an online method.
+        result: the simulated run (log, truth, desired and actual poses, stages, kinds).
+        trace: ``(N, 42)`` δM the controller's IK used after each sample [mm] (paper Figs. 5–6).
+        no_load_error: ``(42,)`` δM identified at no load [mm] (Table 4): ``ls``'s fit, an online
+            method's estimate at the last sample of the first stage, zeros for ``nominal``.
+        rejected: samples the estimator refused.
+        run_time_s: wall time of the run, estimator included [s].
+    """
+
+    method: str
+    result: SimulationResult
+    trace: np.ndarray
+    no_load_error: np.ndarray
+    rejected: int
+    run_time_s: float
+
+
+@dataclass(frozen=True)
+class Reproduction:
+    """Every run of the experiment, keyed by method (``nominal`` first)."""
+
+    experiment: Experiment
+    config: EstimatorConfig
+    runs: dict[str, MethodRun]
+
+    @property
+    def platform(self) -> Platform:
+        return self.experiment.platform
+
+    @property
+    def stage_names(self) -> list[str]:
+        return [stage.name for stage in self.experiment.stages]
+
+    def true_no_load_error(self) -> np.ndarray:
+        """δM a perfect no-load calibration would find: true drive at home, no payload, minus nominal [mm]."""
+        robot = self.runs[NOMINAL].result.robot
+        drive = robot.drive_at(self.platform.workspace.home, 0.0)
+        return drive.as_vector() - self.platform.drive.as_vector()
+
+
+class _Counted:
+    """Passes a controller through, ticking the overall progress bar after each sample."""
+
+    def __init__(self, controller, bar: tqdm):
+        self.controller = controller
+        self.adaptive = getattr(controller, "adaptive", True)
+        self._bar = bar
+
+    def drive_model(self):
+        return self.controller.drive_model()
+
+    def observe(self, sample) -> None:
+        self.controller.observe(sample)
+        self._bar.update()
+
+
+def first_stage_calibration(result: SimulationResult) -> np.ndarray:
+    """Sample indices of the first stage's calibration segment (the paper's no-load calibration)."""
+    return np.flatnonzero((result.stages == result.stages[0]) & (result.kinds == "calibration"))
+
+
+def _timed_run(experiment: Experiment, controller, bar: tqdm) -> tuple[SimulationResult, float]:
+    start = time.perf_counter()
+    result = run_experiment(experiment, _Counted(controller, bar))
+    return result, time.perf_counter() - start
+
+
+def run_ls(experiment: Experiment, config: EstimatorConfig, nominal: SimulationResult, bar: tqdm) -> MethodRun:
+    """Fit ``ls`` on the nominal run's no-load calibration samples, then run frozen."""
+    start = time.perf_counter()
+    calibration = first_stage_calibration(nominal)
+    estimator = make_estimator(BATCH_METHOD, experiment.platform, config)
+    estimate = estimator.fit([nominal.log[k] for k in calibration])
+    fit_s = time.perf_counter() - start
+    result, run_s = _timed_run(experiment, FrozenController(estimate.drive(experiment.platform)), bar)
+    # What the IK used: nominal during the calibration segment, the frozen fit from then on.
+    trace = np.tile(estimate.error, (len(result.log), 1))
+    trace[: calibration[-1] + 1] = 0.0
+    return MethodRun(BATCH_METHOD, result, trace, estimate.error, len(estimator.rejected), fit_s + run_s)
+
+
+def run_online(experiment: Experiment, config: EstimatorConfig, method: str, bar: tqdm) -> MethodRun:
+    """One :class:`EstimatorController` with ``method`` through every stage."""
+    controller = EstimatorController(make_estimator(method, experiment.platform, config), experiment.platform)
+    result, run_s = _timed_run(experiment, controller, bar)
+    trace = controller.trace()
+    last_of_first_stage = int(np.flatnonzero(result.stages == result.stages[0])[-1])
+    return MethodRun(method, result, trace, trace[last_of_first_stage], len(controller.rejected), run_s)
+
+
+def reproduce(experiment: Experiment, config: EstimatorConfig, progress: bool = False) -> Reproduction:
+    """Run the experiment before calibration and with every method of :data:`METHODS`.
+
+    Args:
+        progress: one tqdm bar on stderr across all runs (when stderr is a terminal).
+    """
+    start = time.perf_counter()
+    nominal_result = run_experiment(experiment, NominalController(experiment.platform))
+    n = len(nominal_result.log)
+    nominal = MethodRun(NOMINAL, nominal_result, np.zeros((n, N_PARAMS)), np.zeros(N_PARAMS), 0, time.perf_counter() - start)
+    runs = {NOMINAL: nominal}
+    # disable=None: tqdm hides the bar itself when stderr is not a terminal.
+    with tqdm(total=n * len(METHODS), desc=f"reproduce {experiment.name}", unit="sample",
+              disable=None if progress else True) as bar:
+        for method in METHODS:
+            if method == BATCH_METHOD:
+                runs[method] = run_ls(experiment, config, nominal_result, bar)
+            else:
+                runs[method] = run_online(experiment, config, method, bar)
+    return Reproduction(experiment, config, runs)
