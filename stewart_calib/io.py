@@ -25,7 +25,7 @@ import numpy as np
 from .errors import CalibError
 from .estimators.base import Estimate
 from .platform import N_PARAMS, PARAMETER_NAMES, Platform
-from .samples import Log
+from .samples import Log, Sample
 
 STROKE_COLUMNS = tuple(f"q{i}_mm" for i in range(1, 7))
 READING_COLUMNS = tuple(f"s{i}_mm" for i in range(1, 7))
@@ -277,13 +277,33 @@ def _flag_time_backwards(table: _Table) -> None:
     good = np.ones(len(t), dtype=bool)
     good[list(table.issues)] = False
     latest = np.maximum.accumulate(np.r_[-np.inf, np.where(good, t, -np.inf)[:-1]])
-    table.flag(good & (t < latest), lambda k: f"column 't_s': expected time non-decreasing, got {float(t[k])!r} after {float(latest[k])!r}")
+    table.flag(good & (t < latest), lambda k: _time_backwards(float(t[k]), float(latest[k])))
+
+
+def _time_backwards(t_s: float, latest_s: float) -> str:
+    return f"column 't_s': expected time non-decreasing, got {t_s!r} after {latest_s!r}"
 
 
 def _refuse_first(path: Path, table: _Table) -> None:
     if table.issues:
         k = min(table.issues)
         raise CalibError(f"{path}: row {table.lines[k]}: {table.issues[k]}")
+
+
+def _log_columns(path: Path, header: list[str]) -> tuple[bool, list[str], list[str]]:
+    """``(has_pose, numeric columns, text columns)`` of a log header (spec §3)."""
+    _require_columns(path, header, LOG_REQUIRED)
+    has_pose = _optional_group(path, header, POSE_COLUMNS)
+    numeric = [*LOG_REQUIRED, *(POSE_COLUMNS if has_pose else ()), *(["load_kg"] if "load_kg" in header else [])]
+    return has_pose, numeric, ["stage"] if "stage" in header else []
+
+
+def _flag_log_values(table: _Table, platform: Platform | None, has_pose: bool) -> None:
+    """Non-finite required values and readings or strokes outside the platform's ranges."""
+    _flag_non_finite(table, [*LOG_REQUIRED, *(POSE_COLUMNS if has_pose else ())])
+    if platform is not None:
+        _flag_out_of_range(table, STROKE_COLUMNS, platform.stroke_range, "stroke", "drive.stroke_range_mm")
+        _flag_out_of_range(table, READING_COLUMNS, platform.reading_range, "reading", "tracker.reading_range_mm")
 
 
 def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: bool = False) -> Log:
@@ -302,15 +322,9 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
     path = Path(path)
     text = _read_text(path, "log file")
     header = _header(path, text)
-    _require_columns(path, header, LOG_REQUIRED)
-    has_pose = _optional_group(path, header, POSE_COLUMNS)
-    numeric = [*LOG_REQUIRED, *(POSE_COLUMNS if has_pose else ()), *(["load_kg"] if "load_kg" in header else [])]
-    textual = ["stage"] if "stage" in header else []
+    has_pose, numeric, textual = _log_columns(path, header)
     table = _parse(path, header, text, numeric, textual, blank_is_nan=("load_kg",))  # payload may be unknown
-    _flag_non_finite(table, [*LOG_REQUIRED, *(POSE_COLUMNS if has_pose else ())])
-    if platform is not None:
-        _flag_out_of_range(table, STROKE_COLUMNS, platform.stroke_range, "stroke", "drive.stroke_range_mm")
-        _flag_out_of_range(table, READING_COLUMNS, platform.reading_range, "reading", "tracker.reading_range_mm")
+    _flag_log_values(table, platform, has_pose)
     _flag_time_backwards(table)
     if not skip_bad_rows:
         _refuse_first(path, table)
@@ -333,6 +347,62 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
         load_kg=table.numbers["load_kg"][keep] if "load_kg" in header else None,
         skipped=skipped,
     )
+
+
+class LogRowParser:
+    """Spec §3 rows one at a time, for a log that is still being written (``track``).
+
+    Each row gets exactly :func:`read_log`'s checks and messages (it is parsed as a one-row
+    table by the same code); time must not go back from the last good row. A quoted field
+    holding a line break is not supported (a stream is split at line breaks).
+
+    Args:
+        source: names the input in messages (a path or ``<stdin>``).
+        header_line: the header row (a leading byte-order mark is dropped).
+        platform: gives the stroke and reading ranges, or None.
+    Raises:
+        CalibError: a bad header (as :func:`read_log`).
+    """
+
+    def __init__(self, source: str, header_line: str, platform: Platform | None = None):
+        self._path = Path(source)
+        self._header_line = header_line.lstrip("\ufeff").rstrip("\r\n")
+        self._header = _header(self._path, self._header_line)
+        self._has_pose, self._numeric, self._textual = _log_columns(self._path, self._header)
+        self._platform = platform
+        self._last_t_s = -math.inf
+
+    def parse(self, line: str, row: int) -> Sample | None:
+        """The sample of one row (``row``: its 1-based line number), or None for a blank line.
+
+        Raises:
+            CalibError: ``"<source>: row <row>: column '<name>': expected ..."`` for a bad row;
+                the parser's state is unchanged, so the caller may skip the row and go on.
+        """
+        line = line.rstrip("\r\n")
+        if not line.strip():
+            return None
+        table = _parse_careful(self._header, f"{self._header_line}\n{line}", self._numeric, self._textual, {"load_kg"})
+        table.lines = np.array([row])
+        _flag_log_values(table, self._platform, self._has_pose)
+        t_s = float(table.numbers["t_s"][0])
+        if not table.issues and t_s < self._last_t_s:
+            table.issues[0] = _time_backwards(t_s, self._last_t_s)
+        _refuse_first(self._path, table)
+        self._last_t_s = t_s
+        number = lambda name: float(table.numbers[name][0])  # noqa: E731
+        pose = None
+        if self._has_pose:
+            pose = np.array([number(name) for name in POSE_COLUMNS])
+            pose[3:] = np.radians(pose[3:])
+        return Sample(
+            t_s,
+            np.array([number(name) for name in STROKE_COLUMNS]),
+            np.array([number(name) for name in READING_COLUMNS]),
+            pose,
+            table.texts["stage"][0] if self._textual else "",
+            number("load_kg") if "load_kg" in self._numeric else None,
+        )
 
 
 # ----------------------------------------------------------------------------- truth

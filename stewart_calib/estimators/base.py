@@ -15,6 +15,7 @@ from typing import Iterable, Protocol, runtime_checkable
 
 import numpy as np
 
+from ..errors import CalibError
 from ..platform import LegGeometry, Platform
 from ..samples import Sample
 
@@ -67,3 +68,17 @@ def fit_all(estimator: Estimator, samples: Iterable[Sample]) -> Estimate:
     for sample in samples:
         estimator.update(sample)
     return estimator.estimate()
+
+
+def state_array(state: dict, key: str, shape: tuple[int, ...]) -> np.ndarray:
+    """``state[key]`` as a float array of ``shape`` (a copy), for ``import_state`` methods.
+
+    Raises:
+        CalibError: the key is missing or has another shape (a corrupt or foreign checkpoint).
+    """
+    if key not in state:
+        raise CalibError(f"estimator state: key '{key}' missing")
+    value = np.array(state[key], dtype=float)
+    if value.shape != shape:
+        raise CalibError(f"estimator state: key '{key}': expected shape {shape}, got {value.shape}")
+    return value

@@ -65,3 +65,12 @@ class LegEKF:
     def estimate(self) -> Estimate:
         """``δM`` and ``P`` after the last accepted sample."""
         return self.filter.estimate()
+
+    def export_state(self) -> dict:
+        """Filter and FK warm start as arrays (checkpoints; :meth:`import_state` restores)."""
+        return {"filter": self.filter.export_state(), "tracker_fk": self._tracker_fk.export_state()}
+
+    def import_state(self, state: dict) -> None:
+        """Restore :meth:`export_state` exactly. Raises ``CalibError`` on a bad key or shape."""
+        self.filter.import_state(state.get("filter", {}))
+        self._tracker_fk.import_state(state.get("tracker_fk", {}))

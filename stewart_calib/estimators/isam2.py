@@ -35,11 +35,11 @@ import gtsam
 import numpy as np
 
 from .. import kinematics as kin
-from ..errors import SampleRejected
+from ..errors import CalibError, SampleRejected
 from ..factors import drive_leg, random_walk, tracker_leg, tracker_pose
 from ..platform import N_LEGS, N_PARAMS, Platform
 from ..samples import Sample
-from .base import Estimate
+from .base import Estimate, state_array
 from .config import EstimatorConfig
 
 
@@ -306,3 +306,141 @@ class BatchLM:
                 self._values.atVector(p), covariance, self.name, self._state.samples, self._state.last_t_s
             )
         return self._solved
+
+
+@dataclass(frozen=True)
+class _Snapshot:
+    """The filtered marginal of parameter variable ``state.window`` just before the next window
+    opened: everything the samples up to then say about δM, as one Gaussian.
+
+    Attributes:
+        state: the chain state at that moment. mean: δM [mm]. covariance: [mm²].
+        offset: index in the replay buffer of the first sample of the next window.
+    """
+
+    state: _ChainState
+    mean: np.ndarray
+    covariance: np.ndarray
+    offset: int
+
+
+def _chain_to_dict(state: _ChainState) -> dict:
+    out = {
+        "samples": np.int64(state.samples), "window": np.int64(state.window),
+        "window_start_s": np.float64(state.window_start_s), "window_samples": np.int64(state.window_samples),
+        "last_t_s": np.float64(state.last_t_s),
+    }
+    if state.last_pose is not None:
+        out["last_R"], out["last_t"] = state.last_pose
+    return out
+
+
+def _chain_from_dict(d: dict) -> _ChainState:
+    integer = lambda key: int(state_array(d, key, ()))  # noqa: E731
+    pose = (state_array(d, "last_R", (3, 3)), state_array(d, "last_t", (3,))) if "last_R" in d else None
+    return _ChainState(
+        integer("samples"), integer("window"), float(state_array(d, "window_start_s", ())),
+        integer("window_samples"), float(state_array(d, "last_t_s", ())), pose,
+    )
+
+
+class ResumableISAM2(ISAM2Estimator):
+    """``isam2`` whose state can be exported and rebuilt (checkpoints, issue 7).
+
+    The smoother itself cannot be serialised (its factors are Python callbacks), so the state
+    is what rebuilds it. The parameter chain is Markov: given δM of window w, the samples
+    before window w+1 say nothing more about later ones. So each time a window opens, the
+    filtered marginal of the previous window's variable is kept (:class:`_Snapshot`) with the
+    samples since; a rebuild puts that Gaussian on the variable as a prior and replays the
+    samples through :meth:`update`, which re-creates the same keys, initial values, timestamps
+    and marginalisations. Only the newest snapshot at least ``lag_s`` old is kept, so the
+    replay covers every variable the smoother still holds and the buffer holds at most
+    (lag + one window) of samples. The rebuilt smoother differs from the original only in how
+    the information before the snapshot is linearised (one Gaussian instead of the marginal
+    factors the original made later), which tests/test_online.py measures.
+
+    Cost: one 42×42 marginal covariance per window opened.
+    """
+
+    def __init__(self, platform: Platform, config: EstimatorConfig | None = None):
+        config = config or EstimatorConfig()
+        super().__init__(platform, config)
+        self._lag_s = config.isam2.lag_s
+        self._snapshots: list[_Snapshot] = []  # oldest first
+        self._replay: list[Sample] = []  # accepted samples since the oldest snapshot (since the start if none)
+
+    def update(self, sample: Sample) -> None:
+        """As :meth:`ISAM2Estimator.update`, keeping what a rebuild needs."""
+        snapshot = None
+        if self._builder._new_window(self._state, sample.t_s):
+            p = params_key(self._state.window)
+            covariance = self._smoother.marginalCovariance(p)
+            snapshot = _Snapshot(
+                self._state, self._current_params(), 0.5 * (covariance + covariance.T), len(self._replay)
+            )
+        super().update(sample)  # SampleRejected: nothing recorded
+        if snapshot is not None:
+            self._snapshots.append(snapshot)
+        self._replay.append(sample)
+        self._trim(sample.t_s)
+
+    def _trim(self, t_s: float) -> None:
+        """Drop what the newest snapshot at least one lag old makes redundant."""
+        old = [i for i, s in enumerate(self._snapshots) if self._replay[s.offset].t_s <= t_s - self._lag_s]
+        if not old or self._snapshots[old[-1]].offset == 0:
+            return
+        cut = self._snapshots[old[-1]].offset
+        del self._replay[:cut]
+        self._snapshots = [replace(s, offset=s.offset - cut) for s in self._snapshots[old[-1]:]]
+
+    def export_state(self) -> dict:
+        """The chain state, the snapshot the buffer starts at (none before the first trim) and
+        the buffered samples, as arrays."""
+        samples = self._replay
+        state = {
+            "chain": _chain_to_dict(self._state),
+            "replay": {
+                "t_s": np.array([s.t_s for s in samples], dtype=float),
+                "strokes": np.array([s.strokes for s in samples], dtype=float).reshape(-1, N_LEGS),
+                "readings": np.array([s.readings for s in samples], dtype=float).reshape(-1, N_LEGS),
+            },
+        }
+        if self._snapshots and self._snapshots[0].offset == 0:  # else the buffer starts at sample 0
+            first = self._snapshots[0]
+            state["snapshot"] = {"chain": _chain_to_dict(first.state), "mean": first.mean, "covariance": first.covariance}
+        return state
+
+    def import_state(self, state: dict) -> None:
+        """Rebuild from :meth:`export_state` on a freshly built estimator.
+
+        Raises:
+            CalibError: a missing key, a wrong shape, a non-positive-definite prior or a replay
+                that does not end where the exported chain did (a corrupt state).
+        """
+        if self._state.samples:
+            raise ValueError("import_state needs a freshly built estimator")
+        replay = state.get("replay", {})
+        t_s = state_array(replay, "t_s", np.shape(replay.get("t_s", ())))
+        strokes = state_array(replay, "strokes", (len(t_s), N_LEGS))
+        readings = state_array(replay, "readings", (len(t_s), N_LEGS))
+        target = _chain_from_dict(state.get("chain", {}))
+        if "snapshot" in state:
+            snapshot = state["snapshot"]
+            chain = _chain_from_dict(snapshot.get("chain", {}))
+            mean = state_array(snapshot, "mean", (N_PARAMS,))
+            covariance = state_array(snapshot, "covariance", (N_PARAMS, N_PARAMS))
+            if not np.all(np.isfinite(covariance)) or np.any(np.linalg.eigvalsh(covariance) <= 0.0):
+                raise CalibError("estimator state: snapshot covariance is not positive definite")
+            p = params_key(chain.window)
+            factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+            factors.add(gtsam.PriorFactorVector(p, mean, gtsam.noiseModel.Gaussian.Covariance(covariance)))
+            values.insert(p, mean)
+            self._smoother.update(factors, values, {p: chain.last_t_s})
+            self._state = chain
+        try:
+            for k in range(len(t_s)):
+                self.update(Sample(float(t_s[k]), strokes[k], readings[k]))
+        except SampleRejected as err:
+            raise CalibError(f"estimator state: a replayed sample was rejected ({err})") from None
+        if (self._state.samples, self._state.window, self._state.last_t_s) != (target.samples, target.window, target.last_t_s):
+            raise CalibError("estimator state: the replay does not end where the saved chain did")

@@ -26,7 +26,7 @@ from scipy.stats import chi2
 
 from ..errors import CalibError, SampleRejected
 from ..platform import N_PARAMS
-from .base import Estimate
+from .base import Estimate, state_array
 
 _FAST = {"reassoc", "contract", "arcp", "nsz"}
 
@@ -153,6 +153,7 @@ class FilterState:
         #: NIS and innovation covariance ``S`` of the last accepted update.
         self.nis = math.nan
         self.S: np.ndarray | None = None
+        self._m = m
 
     def update(self, H: np.ndarray, residual: np.ndarray, R: np.ndarray, t_s: float) -> None:
         """:func:`kalman_update` with ``self.Q``; counts the sample or raises ``SampleRejected``."""
@@ -171,3 +172,28 @@ class FilterState:
 
     def estimate(self) -> Estimate:
         return Estimate(self.x.copy(), self.P.copy(), self.method, self.samples_used, self.t_s)
+
+    def export_state(self) -> dict:
+        """Everything :meth:`update` reads or writes, as arrays (checkpoints)."""
+        state = {
+            "x": self.x.copy(), "P": self.P.copy(), "Q": self.Q.copy(),
+            "samples_used": np.int64(self.samples_used), "t_s": np.float64(self.t_s), "nis": np.float64(self.nis),
+        }
+        if self.S is not None:
+            state["S"] = self.S.copy()
+        return state
+
+    def import_state(self, state: dict) -> None:
+        """Restore :meth:`export_state` (the gate comes from the config, not the state).
+
+        Raises:
+            CalibError: a missing key or a wrong shape.
+        """
+        n = len(self.x)
+        self.x = state_array(state, "x", (n,))
+        self.P = state_array(state, "P", (n, n))
+        self.Q = state_array(state, "Q", (n, n))
+        self.samples_used = int(state_array(state, "samples_used", ()))
+        self.t_s = float(state_array(state, "t_s", ()))
+        self.nis = float(state_array(state, "nis", ()))
+        self.S = state_array(state, "S", (self._m, self._m)) if "S" in state else None

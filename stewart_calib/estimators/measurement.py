@@ -16,6 +16,7 @@ from .. import kinematics as kin
 from ..errors import SampleRejected
 from ..platform import LegGeometry, Platform
 from ..samples import Sample
+from .base import state_array
 
 
 def check_sample(platform: Platform, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
@@ -77,6 +78,16 @@ class WarmFK:
             f"{what} forward kinematics did not converge (residual {float(sol.residual_mm):.3g} mm): "
             "the lengths may be unreachable"
         )
+
+
+    def export_state(self) -> dict:
+        """The warm start ``{"R", "t"}`` (empty before the first solve): a resumed stream must
+        start Newton from the same pose to reproduce the same solution bit for bit."""
+        return {} if self._guess is None else {"R": self._guess[0].copy(), "t": self._guess[1].copy()}
+
+    def import_state(self, state: dict) -> None:
+        """Restore :meth:`export_state`'s warm start. Raises ``CalibError`` on a bad shape."""
+        self._guess = (state_array(state, "R", (3, 3)), state_array(state, "t", (3,))) if state else None
 
 
 def pose_difference(R_v: np.ndarray, t_v: np.ndarray, R_m: np.ndarray, t_m: np.ndarray) -> np.ndarray:

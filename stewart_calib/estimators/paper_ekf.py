@@ -20,7 +20,7 @@ import numpy as np
 from .. import kinematics as kin
 from ..platform import N_PARAMS, Platform
 from ..samples import Sample
-from .base import Estimate
+from .base import Estimate, state_array
 from .config import EstimatorConfig
 from .kalman import FilterState
 from .measurement import WarmFK, check_sample, pose_difference
@@ -82,3 +82,27 @@ class PaperEKF:
     def estimate(self) -> Estimate:
         """``δM`` and ``P`` after the last accepted sample."""
         return self.filter.estimate()
+
+    def export_state(self) -> dict:
+        """Filter, R, adaptive window and FK warm starts as arrays (checkpoints)."""
+        return {
+            "filter": self.filter.export_state(),
+            "R": self.R.copy(),
+            "innovations": self._innovations.copy(),
+            "predicted": self._predicted.copy(),
+            "corrections": self._corrections.copy(),
+            "filled": np.int64(self._filled),
+            "tracker_fk": self._tracker_fk.export_state(),
+            "model_fk": self._model_fk.export_state(),
+        }
+
+    def import_state(self, state: dict) -> None:
+        """Restore :meth:`export_state` exactly. Raises ``CalibError`` on a bad key or shape."""
+        self.filter.import_state(state.get("filter", {}))
+        self.R = state_array(state, "R", (6, 6))
+        self._innovations = state_array(state, "innovations", self._innovations.shape)
+        self._predicted = state_array(state, "predicted", self._predicted.shape)
+        self._corrections = state_array(state, "corrections", self._corrections.shape)
+        self._filled = int(state_array(state, "filled", ()))
+        self._tracker_fk.import_state(state.get("tracker_fk", {}))
+        self._model_fk.import_state(state.get("model_fk", {}))

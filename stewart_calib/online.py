@@ -1,0 +1,244 @@
+"""Online calibration beside a running robot (issue 7): :class:`OnlineCalibrator` and checkpoints.
+
+For users who embed the estimator in their controller's processing unit::
+
+    calib = OnlineCalibrator(platform, "ekf")          # or OnlineCalibrator.load("ckpt.npz")
+    for sample in stream:
+        try:
+            calib.update(sample)                        # SampleRejected: counted, state untouched
+        except SampleRejected:
+            pass
+        strokes = calib.compensated_strokes(pose6)      # IK of the estimated model
+    calib.save("ckpt.npz")
+
+A sample that cannot be used (non-finite, outside the platform's ranges, FK not converging,
+gated as an outlier) raises :class:`~stewart_calib.errors.SampleRejected`, leaves the
+estimator as it was, and is counted by reason (:class:`Rejections`, the result's added
+``samples_rejected`` field).
+
+Checkpoint format (``.npz``, written atomically, read with ``allow_pickle=False``): arrays
+``format`` (``"stewart-calib/checkpoint"``), ``version`` (:data:`CHECKPOINT_VERSION`),
+``method``, ``platform_toml`` (the platform, spec §2, exact round trip), ``config_json``
+(the estimator config), the stream counters, and the estimator's ``export_state()`` flattened
+to ``state/<key>/<key>`` arrays. Floats are stored as float64 bits, so the EKFs resume
+exactly; ``isam2`` is rebuilt from its window prior and replay buffer
+(:class:`~stewart_calib.estimators.isam2.ResumableISAM2`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tomllib
+import zipfile
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from . import io
+from .compensation import compensate
+from .errors import CalibError, SampleRejected
+from .estimators import EstimatorConfig, make_estimator
+from .estimators.base import Estimate
+from .estimators.config import config_from_dict
+from .estimators.isam2 import ResumableISAM2
+from .estimators.measurement import check_sample
+from .platform import Platform, parse_platform, platform_to_toml
+from .samples import Sample
+
+CHECKPOINT_FORMAT = "stewart-calib/checkpoint"
+CHECKPOINT_VERSION = 1
+
+#: methods that update per sample and can be checkpointed.
+ONLINE_METHODS = ("paper-ekf", "ekf", "isam2")
+
+#: substrings of a rejection message → its reason in the summary (first match wins).
+_REASONS = (
+    ("gated", "gated outlier"),
+    ("not finite", "non-finite value"),
+    ("non-finite", "non-finite value"),
+    ("outside", "out of range"),
+    ("kinematics", "FK failed"),
+    ("older than", "time went back"),
+    ("not before", "time went back"),
+)
+
+
+class Rejections:
+    """Counts of rejected samples by reason, and the first message (bounded memory)."""
+
+    def __init__(self, count: int = 0, by_reason: dict | None = None, first: str = ""):
+        self.count = count
+        self.by_reason = Counter(by_reason or {})
+        self.first = first
+
+    def add(self, message: str) -> None:
+        reason = next((name for key, name in _REASONS if key in message), "other")
+        self.by_reason[reason] += 1
+        self.count += 1
+        self.first = self.first or message
+
+    def summary(self) -> dict:
+        """The result's ``samples_rejected`` field (added to spec §5)."""
+        return {"count": self.count, "by_reason": dict(sorted(self.by_reason.items())), "first": self.first or None}
+
+
+def _make(method: str, platform: Platform, config: EstimatorConfig):
+    if method not in ONLINE_METHODS:
+        raise CalibError(f"unknown online method '{method}': expected one of {', '.join(ONLINE_METHODS)}")
+    return ResumableISAM2(platform, config) if method == "isam2" else make_estimator(method, platform, config)
+
+
+class OnlineCalibrator:
+    """One online estimator with rejection bookkeeping and checkpoints.
+
+    Args:
+        platform: the nominal platform (spec §2).
+        method: ``paper-ekf``, ``ekf`` or ``isam2``.
+        config: estimator settings (default: the defaults).
+
+    Attributes:
+        rows_read, rows_skipped: the caller's stream position (data rows consumed, bad rows
+            skipped); saved and restored with the checkpoint so a resumed reader knows where
+            it stands (``track`` uses them).
+        rejections: samples the estimator refused, by reason.
+    """
+
+    def __init__(self, platform: Platform, method: str, config: EstimatorConfig | None = None):
+        self.platform = platform
+        self.method = method
+        self.config = config or EstimatorConfig()
+        self._estimator = _make(method, platform, self.config)
+        self.rows_read = 0
+        self.rows_skipped = 0
+        self.rejections = Rejections()
+
+    def update(self, sample: Sample) -> None:
+        """Fold in one sample.
+
+        Raises:
+            SampleRejected: with the reason; counted, and the estimator is untouched.
+        """
+        try:
+            check_sample(self.platform, sample)  # isam2 does not check the platform's ranges itself
+            self._estimator.update(sample)
+        except SampleRejected as err:
+            self.rejections.add(str(err))
+            raise
+
+    def estimate(self) -> Estimate:
+        """δM [mm] and covariance after the last accepted sample."""
+        return self._estimator.estimate()
+
+    def compensated_strokes(self, pose6: np.ndarray) -> np.ndarray:
+        """Strokes [mm] that put the estimated drive at ``pose6`` ``[x, y, z [mm], roll, pitch, yaw [rad]]``
+        (``(6,)`` or ``(N, 6)``; paper Fig. 3 step 4)."""
+        return compensate(self.estimate(), pose6, self.platform)
+
+    def result(self) -> dict:
+        """The current estimate as a spec §5 result, with the added ``samples_rejected`` field.
+
+        ``samples_skipped`` counts bad rows skipped and samples rejected, as ``calibrate`` does.
+        """
+        skipped = self.rows_skipped + self.rejections.count
+        return io.result_dict(self.estimate(), self.platform, skipped, {"samples_rejected": self.rejections.summary()})
+
+    def export_state(self) -> dict:
+        """The estimator's state (nested dict of arrays); equal states give equal futures."""
+        return self._estimator.export_state()
+
+    def save(self, path: str | Path) -> None:
+        """Write a checkpoint atomically (see the module docstring)."""
+        arrays = {
+            "format": np.array(CHECKPOINT_FORMAT),
+            "version": np.array(CHECKPOINT_VERSION),
+            "method": np.array(self.method),
+            "platform_toml": np.array(platform_to_toml(self.platform)),
+            "config_json": np.array(json.dumps(dataclasses.asdict(self.config))),
+            "rows_read": np.array(self.rows_read),
+            "rows_skipped": np.array(self.rows_skipped),
+            "rejections_json": np.array(json.dumps(self.rejections.summary())),
+            **_flatten(self.export_state(), "state"),
+        }
+        with io.atomic_path(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, **arrays)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "OnlineCalibrator":
+        """Rebuild from a checkpoint written by :meth:`save`.
+
+        Raises:
+            CalibError: one line naming the file: missing, not a checkpoint, another format
+                version, or corrupt (a missing or misshapen array, a bad platform or config).
+        """
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                arrays = {name: npz[name] for name in npz.files}
+        except FileNotFoundError:
+            raise CalibError(f"{path}: checkpoint not found") from None
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+            raise CalibError(f"{path}: not a readable checkpoint ({_one_line(err)})") from None
+        try:
+            return cls._from_arrays(arrays)
+        except CalibError as err:
+            raise CalibError(f"{path}: corrupt checkpoint: {_one_line(err)}") from None
+        except (KeyError, ValueError, TypeError, IndexError, tomllib.TOMLDecodeError) as err:
+            raise CalibError(f"{path}: corrupt checkpoint ({err.__class__.__name__}: {_one_line(err)})") from None
+
+    @classmethod
+    def _from_arrays(cls, arrays: dict[str, np.ndarray]) -> "OnlineCalibrator":
+        text = lambda key: str(arrays[key][()]) if arrays[key].dtype.kind == "U" else _wrong(key)  # noqa: E731
+        if "format" not in arrays or arrays["format"].dtype.kind != "U" or text("format") != CHECKPOINT_FORMAT:
+            raise CalibError(f"not a checkpoint: expected format {CHECKPOINT_FORMAT!r}")
+        version = arrays.get("version")
+        if version is None or version.shape != () or version.dtype.kind not in "iu" or int(version) != CHECKPOINT_VERSION:
+            raise CalibError(f"checkpoint version {version!r} is not supported: expected {CHECKPOINT_VERSION}")
+        platform = parse_platform(tomllib.loads(text("platform_toml")), "platform_toml")
+        config = config_from_dict(json.loads(text("config_json")), "config_json")
+        calib = cls(platform, text("method"), config)
+        calib._estimator.import_state(_unflatten(arrays, "state"))
+        calib.rows_read, calib.rows_skipped = _count(arrays, "rows_read"), _count(arrays, "rows_skipped")
+        summary = json.loads(text("rejections_json"))
+        calib.rejections = Rejections(int(summary["count"]), dict(summary["by_reason"]), summary["first"] or "")
+        if not np.all(np.isfinite(calib.estimate().error)):
+            raise CalibError("the restored estimate is not finite")
+        return calib
+
+
+def _wrong(key: str):
+    raise CalibError(f"array '{key}': expected text")
+
+
+def _count(arrays: dict, key: str) -> int:
+    value = arrays[key]
+    if value.shape != () or value.dtype.kind not in "iu" or int(value) < 0:
+        raise CalibError(f"array '{key}': expected a non-negative whole number")
+    return int(value)
+
+
+def _one_line(err: BaseException) -> str:
+    return " ".join(str(err).split()) or err.__class__.__name__
+
+
+def _flatten(tree: dict, prefix: str) -> dict[str, np.ndarray]:
+    """``{"a": {"b": x}}`` → ``{"<prefix>/a/b": array(x)}`` (npz holds flat names)."""
+    out = {}
+    for key, value in tree.items():
+        name = f"{prefix}/{key}"
+        out.update(_flatten(value, name) if isinstance(value, dict) else {name: np.asarray(value)})
+    return out
+
+
+def _unflatten(arrays: dict[str, np.ndarray], prefix: str) -> dict:
+    tree: dict = {}
+    for name, value in arrays.items():
+        if not name.startswith(prefix + "/"):
+            continue
+        *parents, leaf = name[len(prefix) + 1 :].split("/")
+        node = tree
+        for part in parents:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    return tree

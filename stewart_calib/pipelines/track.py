@@ -1,0 +1,252 @@
+"""``stewart-calib track``: calibrate online from a log as it is written (issue 7).
+
+    stewart-calib track --platform P.toml --method {paper-ekf,ekf,isam2} [--log FILE | -]
+                        [--follow] [--idle-timeout S] [--checkpoint C.npz] [--every N]
+                        --out R.json [--config C.toml] [--set section.key=value ...]
+                        [--skip-bad-rows]
+
+Reads the header, then one CSV row at a time (``--log -`` or no ``--log``: standard input),
+updates the estimator per row, and every ``--every`` rows and at the end replaces ``--out``
+(spec §5 result, plus ``samples_rejected``) and ``--checkpoint`` atomically.
+
+When it stops:
+  * at the end of the input (end of file; with ``--follow``, a file is polled for new rows
+    until ``--idle-timeout`` seconds pass without one — without it, until a signal);
+  * on Ctrl-C or SIGTERM: finishes the row in hand, writes the final estimate and
+    checkpoint, exits 0;
+  * at a bad row (spec §3) without ``--skip-bad-rows``: writes the estimate at the last good
+    row (so no state is lost), then exits 2 with the reader's message naming the row and
+    column. With ``--skip-bad-rows`` the row is counted, reported, and tracking goes on —
+    what a live tracker should use.
+
+A sample the estimator refuses (gated outlier, FK not converging) never stops tracking: it
+is counted by reason and reported on stderr and in the result.
+
+Resume: when ``--checkpoint`` names an existing checkpoint, tracking continues from it (its
+method, platform and config must match the command line's) and skips the first rows it had
+already read — feed the same log from its start (the growing file itself, or its replay on
+standard input).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import select
+import signal
+import stat
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Iterator
+
+from .. import io
+from ..errors import CalibError, SampleRejected
+from ..estimators import load_estimator_config
+from ..online import ONLINE_METHODS, OnlineCalibrator
+from ..platform import load_platform, platform_to_toml
+from .calibrate import _check_writable_dir
+
+#: how often an idle input is polled [s]: latency of noticing new rows and signals.
+POLL_S = 0.1
+READ_BYTES = 1 << 16
+
+
+def lines(fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable[[], bool]) -> Iterator[bytes]:
+    """Complete lines of ``fd`` as they arrive (the line break removed).
+
+    Ends at the end of the input (a pipe closed by its writer; a regular file's end unless
+    ``follow``), when ``stopped()``, or after ``idle_timeout_s`` without new data. A last line
+    without a line break is yielded at the end. Never blocks longer than :data:`POLL_S`, so a
+    signal is noticed within that.
+    """
+    wait_at_end = follow and stat.S_ISREG(os.fstat(fd).st_mode)  # a pipe's end is final
+    pending = b""
+    last_data_s = time.monotonic()
+    while not stopped():
+        if idle_timeout_s is not None and time.monotonic() - last_data_s >= idle_timeout_s:
+            break
+        ready, _, _ = select.select([fd], [], [], POLL_S)
+        if not ready:
+            continue
+        chunk = os.read(fd, READ_BYTES)
+        if chunk:
+            last_data_s = time.monotonic()
+            *complete, pending = (pending + chunk).split(b"\n")
+            yield from complete
+        elif wait_at_end:
+            time.sleep(POLL_S)  # select() always reports a regular file ready
+        else:
+            break
+    if pending:
+        yield pending
+
+
+class _StopRequest:
+    """Signal handler for SIGINT/SIGTERM: the loop finishes the row in hand, then the final write."""
+
+    def __init__(self):
+        self.requested = False
+
+    def __call__(self, signum, frame) -> None:
+        self.requested = True
+
+
+def _decode(raw: bytes, source: str, row: int) -> str:
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise CalibError(f"{source}: row {row}: not UTF-8 text (byte 0x{raw[err.start]:02x}); expected a UTF-8 CSV row") from None
+
+
+def _open_input(log: str | None) -> tuple[int, str]:
+    if log in (None, "-"):
+        return sys.stdin.fileno(), "<stdin>"
+    try:
+        return os.open(log, os.O_RDONLY), log
+    except FileNotFoundError:
+        raise CalibError(f"{log}: log file not found") from None
+    except OSError as err:
+        raise CalibError(f"{log}: cannot read log file ({err.strerror})") from None
+
+
+def _start(args: argparse.Namespace) -> OnlineCalibrator:
+    """A fresh calibrator, or the one in ``--checkpoint`` when that file exists (checked against the arguments)."""
+    platform = load_platform(args.platform)
+    config = load_estimator_config(args.config, args.set)
+    checkpoint = args.checkpoint and Path(args.checkpoint)
+    if not (checkpoint and checkpoint.exists()):
+        return OnlineCalibrator(platform, args.method, config)
+    calib = OnlineCalibrator.load(checkpoint)
+    if calib.method != args.method:
+        raise CalibError(f"--checkpoint {checkpoint}: written by method '{calib.method}', not '{args.method}'")
+    if platform_to_toml(calib.platform) != platform_to_toml(platform):
+        raise CalibError(f"--checkpoint {checkpoint}: written for another platform than {args.platform}")
+    if (args.config or args.set) and calib.config != config:
+        differ = [f.name for f in dataclasses.fields(config) if getattr(config, f.name) != getattr(calib.config, f.name)]
+        raise CalibError(f"--checkpoint {checkpoint}: its estimator config differs from --config/--set in [{', '.join(differ)}]")
+    return calib
+
+
+def _write(calib: OnlineCalibrator, out: Path, checkpoint: Path | None) -> None:
+    if calib.estimate().samples_used:  # before any, there is no estimate to report, only the prior
+        io.write_result(out, calib.result())
+    if checkpoint:
+        calib.save(checkpoint)
+
+
+def follow_log(calib: OnlineCalibrator, rows: Iterator[bytes], source: str, every: int, write: Callable[[], None],
+               skip_bad_rows: bool) -> str | None:
+    """Feed ``rows`` (header first) to ``calib``, calling ``write()`` every ``every`` data rows.
+
+    Rows the checkpoint had already read (``calib.rows_read``) are parsed (time order is still
+    checked across them) but not used again.
+
+    Returns:
+        The first bad row's message when rows were skipped, else None.
+    Raises:
+        CalibError: no header or a bad one; a bad row without ``skip_bad_rows``.
+    """
+    header = next(rows, None)
+    if header is None:
+        raise CalibError(f"{source}: no header row; expected a CSV header and sample rows (spec §3)")
+    parser = io.LogRowParser(source, _decode(header, source, 1), calib.platform)
+    already, data_rows, first_bad = calib.rows_read, 0, None
+    for line_number, raw in enumerate(rows, start=2):
+        try:
+            sample = parser.parse(_decode(raw, source, line_number), line_number)
+        except CalibError as err:
+            sample, bad = None, str(err)
+        else:
+            if sample is None:
+                continue  # a blank line is no row
+            bad = None
+        data_rows += 1
+        if data_rows <= already:
+            continue
+        calib.rows_read += 1
+        if bad is not None:
+            if not skip_bad_rows:
+                raise CalibError(bad)
+            calib.rows_skipped += 1
+            first_bad = first_bad or bad
+        else:
+            try:
+                calib.update(sample)
+            except SampleRejected:
+                pass  # counted by the calibrator, reported at the end
+        if calib.rows_read % every == 0:
+            write()
+    return first_bad
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.method not in ONLINE_METHODS:
+        raise CalibError(f"--method: '{args.method}' is not an online method; expected one of {', '.join(ONLINE_METHODS)}")
+    if args.every < 1:
+        raise CalibError(f"--every: expected a whole number ≥ 1, got {args.every}")
+    if args.idle_timeout is not None and not args.idle_timeout > 0:
+        raise CalibError(f"--idle-timeout: expected a positive number of seconds, got {args.idle_timeout}")
+    out, checkpoint = Path(args.out), args.checkpoint and Path(args.checkpoint)
+    for path, option in ((out, "--out"), (checkpoint, "--checkpoint")):
+        _check_writable_dir(path, option)
+    calib = _start(args)
+    fd, source = _open_input(args.log)
+    stop = _StopRequest()
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    write = lambda: _write(calib, out, checkpoint)  # noqa: E731
+    try:
+        rows = lines(fd, args.follow, args.idle_timeout, lambda: stop.requested)
+        first_bad = follow_log(calib, rows, source, args.every, write, args.skip_bad_rows)
+    except CalibError:
+        write()  # the state at the last good row is kept; then the refusal
+        raise
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        if source != "<stdin>":
+            os.close(fd)
+    if not calib.estimate().samples_used:
+        raise CalibError(f"{source}: no usable samples ({calib.rows_read} rows read, "
+                         f"{calib.rows_skipped} skipped, {calib.rejections.count} rejected)")
+    write()
+    report = lambda what, count, first: print(  # noqa: E731
+        f"stewart-calib track: {what} {count} of {calib.rows_read} (first: {first})", file=sys.stderr)
+    if calib.rows_skipped:
+        report("skipped bad log rows:", calib.rows_skipped, first_bad or "in an earlier run")
+    if calib.rejections.count:
+        report(f"{args.method} rejected samples:", calib.rejections.count, calib.rejections.first)
+    estimate = calib.estimate()
+    print(f"stewart-calib track: wrote {out} ({args.method}: {estimate.samples_used} samples used, "
+          f"{calib.rows_skipped + calib.rejections.count} skipped{', stopped by signal' if stop.requested else ''})",
+          file=sys.stderr)
+    return 0
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "track",
+        help="calibrate online from a log as it is written (a growing file or standard input)",
+        description=__doc__.split("\n\n")[0].split(": ", 1)[1] + " See the module docstring for stop and resume rules.",
+    )
+    parser.add_argument("--platform", required=True, metavar="P.toml", help="platform file (spec §2)")
+    parser.add_argument("--method", required=True, metavar="METHOD", help=f"one of {', '.join(ONLINE_METHODS)}")
+    parser.add_argument("--log", metavar="FILE", help="measurement log (spec §3); '-' or absent: standard input")
+    parser.add_argument("--follow", action="store_true", help="at the end of FILE, wait for more rows (stop with a signal or --idle-timeout)")
+    parser.add_argument("--idle-timeout", type=float, metavar="S", help="stop after S seconds without new data")
+    parser.add_argument("--checkpoint", metavar="C.npz", help="resume from this checkpoint if it exists; keep it current")
+    parser.add_argument("--every", type=int, default=100, metavar="N", help="write the result and checkpoint every N rows (default 100)")
+    parser.add_argument("--out", required=True, metavar="R.json", help="result file (spec §5), replaced atomically")
+    parser.add_argument("--skip-bad-rows", action="store_true", help="skip bad rows (counted, reported) instead of stopping")
+    parser.add_argument("--config", metavar="C.toml", help="estimator config (default: built-in defaults)")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="override a config value, e.g. ekf.gate_probability=0.9999"
+    )
+    parser.set_defaults(func=run)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from ..cli import main as cli_main  # cli imports the pipelines
+
+    return cli_main(["track", *(sys.argv[1:] if argv is None else argv)])
