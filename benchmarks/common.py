@@ -1,0 +1,148 @@
+"""What every benchmark section shares: timing, the two geometries, synthetic streams, rows.
+
+A section returns a :class:`Section`: a title, a note, and :class:`Row` s, each with the
+measured value, the target it is held against (or None) and whether it is met. Timing is
+always per call, reported as median and p99 over many calls; comparisons are ratios of
+medians measured side by side in the same run.
+"""
+
+from __future__ import annotations
+
+import os
+import platform as host
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from stewart_calib.platform import LegGeometry, Platform, load_platform
+
+ROOT = Path(__file__).resolve().parents[1]
+NIM_STEWART_FILE = ROOT / "configs" / "platforms" / "nim-stewart.toml"
+
+
+@dataclass
+class Row:
+    """One table row: ``value`` (a string as printed), the target, and whether it is met (None: no target)."""
+
+    name: str
+    value: str
+    target: str = ""
+    met: bool | None = None
+    raw: dict = field(default_factory=dict)
+
+
+@dataclass
+class Section:
+    title: str
+    note: str
+    rows: list[Row]
+    raw: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"title": self.title, "note": self.note, "rows": [asdict(r) for r in self.rows], "raw": self.raw}
+
+
+def per_call_us(calls) -> np.ndarray:
+    """Wall time of each zero-argument call, in order [µs]."""
+    times_ns = np.empty(len(calls))
+    for k, call in enumerate(calls):
+        start = time.perf_counter_ns()
+        call()
+        times_ns[k] = time.perf_counter_ns() - start
+    return times_ns / 1e3
+
+
+def stats_us(times_us: np.ndarray) -> dict:
+    """Median and p99 of per-call times [µs]."""
+    return {"median_us": float(np.median(times_us)), "p99_us": float(np.percentile(times_us, 99)), "calls": len(times_us)}
+
+
+def fmt_time_us(value_us: float) -> str:
+    """µs below 1 ms, ms above (three significant figures)."""
+    return f"{value_us:.3g} µs" if value_us < 1e3 else f"{value_us / 1e3:.3g} ms"
+
+
+def mark(met: bool | None) -> str:
+    return {True: "met", False: "**not met**", None: "—"}[met]
+
+
+def rss_mib() -> float:
+    """Resident set size of this process [MiB] (Linux ``/proc/self/statm``; includes C++ heaps)."""
+    with open("/proc/self/statm") as f:
+        resident_pages = int(f.read().split()[1])
+    return resident_pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def machine() -> dict:
+    """Machine, load and versions, for the report header."""
+    import filterpy
+    import gtsam
+    import numba
+    import scipy
+
+    import stewart_calib
+
+    with open("/proc/cpuinfo") as f:
+        cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), host.processor())
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "load_average_1_5_15": [round(x, 2) for x in os.getloadavg()],
+        "python": host.python_version(),
+        "numpy": np.__version__,
+        "scipy": scipy.__version__,
+        "numba": numba.__version__,
+        "gtsam": getattr(gtsam, "__version__", "4.3.0"),
+        "filterpy": filterpy.__version__,
+        "stewart_calib": getattr(stewart_calib, "__version__", "0.1.0"),
+    }
+
+
+def nim_stewart() -> Platform:
+    return load_platform(NIM_STEWART_FILE)
+
+
+def _ring(radius_mm: float, angles_deg, z_mm: float) -> np.ndarray:
+    angles = np.radians(angles_deg)
+    return np.column_stack([radius_mm * np.cos(angles), radius_mm * np.sin(angles), np.full(6, z_mm)])
+
+
+def compact_variant() -> Platform:
+    """nim-stewart with a second drive geometry: base radius 600 mm (pairs at 120k ± 20°),
+    platform radius 250 mm (pairs at 120k ± 40°), same joint heights and tracker.
+
+    A smaller, less splayed drive than nim-stewart's 750/300 mm with ±10°/±50° pairs: its legs
+    are more parallel, so the identification is worse conditioned — the interesting contrast.
+    Initial lengths are the leg lengths at home (every stroke 0 at home).
+    """
+    nominal = nim_stewart()
+    base = _ring(600.0, [-20, 20, 100, 140, 220, 260], nominal.drive.base_joints[0, 2])
+    plat = _ring(250.0, [-40, 40, 80, 160, 200, 280], nominal.drive.platform_joints[0, 2])
+    home_t = nominal.workspace.home[:3]
+    lengths = np.linalg.norm(home_t + plat - base, axis=1)
+    return nominal.with_drive(LegGeometry(base, plat, lengths))
+
+
+GEOMETRIES = {"nim-stewart": nim_stewart, "compact-600/250": compact_variant}
+
+
+def synthetic_stream(platform: Platform, n: int, rng: np.random.Generator, rate_hz: float, smooth: bool, noise=None):
+    """An exact synthetic log (``tests/synthetic.py``) of ``n`` samples at ``rate_hz`` and its true δM.
+
+    ``smooth``: the 1 kHz-style Lissajous path of ``benchmarks/fk_speed.py`` (warm-started FK
+    sees 1–2 Newton iterations, as online); otherwise random workspace poses (rich data for
+    identification). The true δM is drawn with σ = 1 mm; reading and stroke noise are those of
+    ``noise`` (an estimator ``NoiseConfig``), so the estimators' noise model is exact.
+    Returns ``(log, true_error (42,))``.
+    """
+    from benchmarks.fk_speed import trajectory
+    from stewart_calib.estimators.config import NoiseConfig
+    from tests.synthetic import make_log, random_error, random_poses
+
+    noise = noise or NoiseConfig()
+    true_error = random_error(rng)
+    poses = trajectory(platform.workspace.home, n, rate_hz) if smooth else random_poses(platform, n, rng, fraction=0.8)
+    log, _ = make_log(platform, true_error, poses, rng, noise.reading_sigma_mm, noise.stroke_sigma_mm, 1.0 / rate_hz)
+    return log, true_error
