@@ -53,6 +53,8 @@ HEADLINE = (("position", "table5", "position_mm"), ("orientation", "table5", "or
 PAPER_HEADLINE_PCT = {"position": 85.3, "orientation": 79.2, "circle": 81.4}
 #: Online methods that must meet the paper's headline improvements (the issue's bar).
 TARGET_METHODS = ("ekf", "isam2")
+#: names of the published rows (distinct from our method ``paper-ekf``).
+PAPER_ROWS = {"LS": "paper LS", "EKF": "paper EKF"}
 QUANTITY_LABELS = {"position_mm": "Position (mm)", "orientation_deg": "Orientation (°)"}
 DECIMALS = {"error": 4, "pct": 1, "table4": 3}
 
@@ -66,7 +68,7 @@ def _paper_rows(table: dict, loads_kg: list[float]) -> list[dict]:
             rows.append(
                 {
                     "quantity": quantity,
-                    "method": f"paper {source}",
+                    "method": PAPER_ROWS[source],
                     "before": columns["before"],
                     "stages": [published.get(load) for load in loads_kg],
                     "mean": float(np.mean(columns[source])),
@@ -78,7 +80,7 @@ def _paper_rows(table: dict, loads_kg: list[float]) -> list[dict]:
 def _with_improvements(rows: list[dict]) -> list[dict]:
     """Add ``vs_ls_pct`` (mean over stages) to every row but the LS rows, per quantity and source."""
     for row in rows:
-        reference_method = "paper LS" if row["method"].startswith("paper") else BATCH_METHOD
+        reference_method = PAPER_ROWS["LS"] if row["method"] in PAPER_ROWS.values() else BATCH_METHOD
         reference = next(r for r in rows if r["quantity"] == row["quantity"] and r["method"] == reference_method)
         row["vs_ls_pct"] = None if row is reference else improvement_pct(row["mean"], reference["mean"])
     return rows
@@ -103,7 +105,7 @@ def _error_table(details: dict, segment: str, quantities, paper: dict, stages: l
 def _table4(reproduction: Reproduction) -> dict:
     truth = reproduction.true_no_load_error()
     sources = {method: reproduction.runs[method].no_load_error for method in METHODS}
-    sources.update({"truth": truth, "paper LS": PAPER_TABLE4_LS_MM, "paper EKF": TABLE4_EKF_ERRORS_MM})
+    sources.update({"truth": truth, PAPER_ROWS["LS"]: PAPER_TABLE4_LS_MM, PAPER_ROWS["EKF"]: TABLE4_EKF_ERRORS_MM})
     rows = [
         {"leg": leg + 1, "source": source, "values": [float(v) for v in values.reshape(N_LEGS, N_PARAMS_PER_LEG)[leg]]}
         for leg in range(N_LEGS)
@@ -233,7 +235,7 @@ def tables_markdown(results: dict) -> str:
         "",
     ]
     headline = tables["headline"]
-    rows = [["paper EKF", "published", *(_cell(headline["paper"][name], "pct") for name, _, _ in HEADLINE), "—"]]
+    rows = [[PAPER_ROWS["EKF"], "published", *(_cell(headline["paper"][name], "pct") for name, _, _ in HEADLINE), "—"]]
     for view in VIEWS:
         for method, values in headline["ours"][view].items():
             rows.append([method, view, *(_cell(values[name], "pct") for name, _, _ in HEADLINE),
