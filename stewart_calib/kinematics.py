@@ -1,4 +1,4 @@
-"""Kinematics of a 6-6 Stewart platform: pure numpy, vectorised over poses, mm and rad.
+"""Kinematics of a 6-6 Stewart platform: pure functions, vectorised over poses, mm and rad.
 
 Conventions (spec §1, paper §3.1):
 
@@ -13,7 +13,9 @@ Conventions (spec §1, paper §3.1):
 * A leg between base joint ``b_i`` (in {J}) and platform joint ``p_i`` (in {D}) has length
   ``‖t + R p_i − b_i‖`` = ``initial_length_i + stroke_i`` (paper eq. 1, Table 2).
 
-No I/O and no estimator state live here.
+No I/O and no estimator state live here. The per-pose loops that numpy runs slowly (FK's
+Newton iteration, the error Jacobian, the leg EKF's fused observation) are numba kernels
+in :mod:`stewart_calib._kernels`; the functions here keep their numpy signatures.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import _kernels
 from .errors import CalibError
 from .platform import N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
 
@@ -249,7 +252,10 @@ def forward_kinematics(
 
     Solves ``‖t + R p_i − b_i‖ = initial_length_i + stroke_i`` for ``(R, t)``, stepping in the
     body tangent ``ξ = [ω, v]`` with the leg Jacobian of :func:`leg_pose_jacobian`. Each pose
-    of a batch iterates until its own residual is below ``tol_mm``.
+    of a batch iterates until its own residual is below ``tol_mm``; steps are capped at
+    0.2 rad / 100 mm so a poor guess stays in Newton's basin, and a singular Jacobian gets
+    the least-squares step. One compiled loop (:func:`stewart_calib._kernels.fk_newton`)
+    serves single poses and batches alike.
 
     Args:
         legs: drive or tracker geometry.
@@ -262,45 +268,27 @@ def forward_kinematics(
     Raises:
         FKError: lengths unreachable (no pose fits them) or no convergence within the cap.
     """
-    strokes = np.asarray(strokes, dtype=float)
+    strokes = np.ascontiguousarray(strokes, dtype=float)
     batch = strokes.shape[:-1]
-    target = strokes.reshape(-1, 6) + legs.initial_lengths
+    flat = strokes.reshape(-1, 6)
     if guess is None:
-        R, t = default_guess(legs, target - legs.initial_lengths)
-    else:
-        R = np.broadcast_to(np.asarray(guess[0], dtype=float), batch + (3, 3)).reshape(-1, 3, 3).copy()
-        t = np.broadcast_to(np.asarray(guess[1], dtype=float), batch + (3,)).reshape(-1, 3).copy()
-    iterations = np.zeros(len(target), dtype=int)
-    finite = np.all(np.isfinite(target), axis=-1)
-    active = finite.copy()
-    residual = np.full(len(target), np.inf)
-
-    for _ in range(max_iterations + 1):
-        idx = np.flatnonzero(active)
-        err = target[idx] - leg_lengths(legs, R[idx], t[idx])
-        residual[idx] = np.max(np.abs(err), axis=-1)
-        keep = (residual[idx] > tol_mm) & (iterations[idx] < max_iterations)
-        active[idx[~keep]] = False
-        idx, err = idx[keep], err[keep]
-        if idx.size == 0:
-            break
-        step = _solve_steps(leg_pose_jacobian(legs, R[idx], t[idx]), err)
-        # Cap wild steps from a poor guess so Newton stays in its basin: 0.2 rad, 100 mm.
-        scale = np.minimum(
-            1.0,
-            np.minimum(
-                0.2 / np.maximum(np.linalg.norm(step[:, :3], axis=-1), 1e-300),
-                100.0 / np.maximum(np.linalg.norm(step[:, 3:], axis=-1), 1e-300),
-            ),
-        )
-        R[idx], t[idx] = retract(R[idx], t[idx], step * scale[:, None])
-        iterations[idx] += 1
+        R, t = default_guess(legs, flat)
+    else:  # fresh C arrays: the kernel overwrites them
+        R, t = np.empty(batch + (3, 3)), np.empty(batch + (3,))
+        R[...], t[...] = guess
+        R, t = R.reshape(-1, 3, 3), t.reshape(-1, 3)
+    iterations = np.empty(len(flat), dtype=np.int64)
+    residual = np.empty(len(flat))
+    _kernels.fk_newton(
+        legs.base_joints, legs.platform_joints, legs.initial_lengths, flat, R, t,
+        float(tol_mm), int(max_iterations), iterations, residual,
+    )
 
     converged = residual <= tol_mm
-    if strict and not np.all(converged):
+    if strict and not converged.all():
         first = int(np.flatnonzero(~converged)[0])
         where = f" (pose {tuple(int(i) for i in np.unravel_index(first, batch))})" if batch else ""
-        reason = "non-finite lengths" if not finite[first] else f"residual {residual[first]:.3g} mm"
+        reason = "non-finite lengths" if not np.all(np.isfinite(flat[first])) else f"residual {residual[first]:.3g} mm"
         raise FKError(
             f"forward kinematics did not converge{where}: {reason} after {iterations[first]} "
             "Newton iterations; the leg lengths may be unreachable"
@@ -312,14 +300,6 @@ def forward_kinematics(
         converged.reshape(batch),
         residual.reshape(batch),
     )
-
-
-def _solve_steps(J: np.ndarray, err: np.ndarray) -> np.ndarray:
-    """Newton steps ``J ξ = err``; a singular Jacobian (degenerate pose) gets a least-squares step."""
-    try:
-        return np.linalg.solve(J, err[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        return np.stack([np.linalg.lstsq(Ji, ei, rcond=None)[0] for Ji, ei in zip(J, err)])
 
 
 # ----------------------------------------------------------------------------- error model
@@ -339,18 +319,20 @@ def error_jacobian(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarra
     ``J_r⁻¹`` has rows ``[n_iᵀ, (R d_i × n_i)ᵀ T]`` (eq. 10); ``J_s`` is block-diagonal with
     rows ``[n_iᵀ, −n_iᵀ R, 1]`` on ``[δj_i, δd_i, δl_i]`` (eq. 11).
     """
-    rpy = rotation_to_rpy(R)
-    n = leg_unit_vectors(legs, R, t)
-    Rd = np.einsum("...ij,kj->...ki", R, legs.platform_joints)
-    T = euler_rate_matrix(rpy)
-    J_r_inv = np.concatenate([n, np.einsum("...ki,...ij->...kj", np.cross(Rd, n), T)], axis=-1)
-    blocks = np.concatenate(
-        [n, -np.einsum("...ki,...ij->...kj", n, R), np.ones(n.shape[:-1] + (1,))], axis=-1
-    )  # (..., 6, 7): row i of J_s restricted to leg i's parameters
-    # J_p = J_r J_s and J_s is block diagonal: column block i of J_p is J_r[:, i] ⊗ blocks[i].
-    J_r = np.linalg.inv(J_r_inv)
-    J_p = J_r[..., :, :, None] * blocks[..., None, :, :]
-    return J_p.reshape(J_p.shape[:-2] + (N_PARAMS,))
+    R_flat, t_flat, batch = _flat_poses(R, t)
+    J_p = np.empty((len(R_flat), 6, N_PARAMS))
+    _kernels.error_jacobian(legs.base_joints, legs.platform_joints, R_flat, t_flat, J_p)
+    return J_p.reshape(batch + (6, N_PARAMS))
+
+
+def _flat_poses(R: np.ndarray, t: np.ndarray, batch: tuple[int, ...] | None = None):
+    """``(R, t)`` broadcast to ``batch`` (default: their own), as C-contiguous ``(n, 3, 3)``,
+    ``(n, 3)`` copies for the kernels, and the batch shape."""
+    if batch is None:
+        batch = np.broadcast_shapes(np.shape(R)[:-2], np.shape(t)[:-1])
+    R_flat, t_flat = np.empty(batch + (3, 3)), np.empty(batch + (3,))
+    R_flat[...], t_flat[...] = R, t
+    return R_flat.reshape(-1, 3, 3), t_flat.reshape(-1, 3), batch
 
 
 def leg_residuals(legs: LegGeometry, R: np.ndarray, t: np.ndarray, strokes: np.ndarray) -> np.ndarray:
@@ -397,3 +379,34 @@ def pose_covariance_from_legs(legs: LegGeometry, R: np.ndarray, t: np.ndarray, s
     J = leg_pose_jacobian(legs, R, t)
     J_inv = np.linalg.inv(J)
     return sigma_mm**2 * J_inv @ np.swapaxes(J_inv, -1, -2)
+
+
+def leg_ekf_observation(
+    drive: LegGeometry,
+    delta: np.ndarray,
+    tracker: LegGeometry,
+    R: np.ndarray,
+    t: np.ndarray,
+    strokes: np.ndarray,
+    reading_sigma_mm: float,
+    stroke_sigma_mm: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The leg-length EKF's whole observation at one tracker pose, in one compiled call.
+
+    For the drive ``M + δM`` (``drive`` and the 42-vector ``delta``) at the pose ``(R, t)``
+    measured by ``tracker``, equal to (up to rounding)::
+
+        r = leg_residuals(M + δM, R, t, strokes)
+        J_x, H = leg_residual_jacobians(M + δM, R, t)
+        R_meas = J_x @ pose_covariance_from_legs(tracker, R, t, σ_s) @ J_x.T + σ_q² I
+
+    Returns:
+        ``(r (6,) [mm], H (6, 42), R_meas (6, 6) [mm²])``; NaN in ``R_meas`` if the tracker's
+        Jacobian is singular.
+    """
+    c = np.ascontiguousarray  # one array layout, so one compiled signature
+    return _kernels.leg_observation(
+        drive.base_joints, drive.platform_joints, drive.initial_lengths, c(delta, dtype=float),
+        tracker.base_joints, tracker.platform_joints, c(R, dtype=float), c(t, dtype=float),
+        c(strokes, dtype=float), float(reading_sigma_mm) ** 2, float(stroke_sigma_mm) ** 2,
+    )

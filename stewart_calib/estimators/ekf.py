@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..errors import SampleRejected
-from ..platform import N_PARAMS, Platform
+from ..platform import Platform
 from ..samples import Sample
 from .base import Estimate
 from .config import EstimatorConfig
@@ -44,7 +44,6 @@ class LegEKF:
         self.noise = config.noise
         self.filter = FilterState(self.name, config.noise.prior_sigma_mm, config.ekf.gate_probability)
         self._tracker_fk = WarmFK()
-        self._stroke_variance = np.eye(6) * self.noise.stroke_sigma_mm**2
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample; ``SampleRejected`` leaves the state untouched."""
@@ -54,12 +53,12 @@ class LegEKF:
         if dt_s < 0.0:
             raise SampleRejected(f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)")
         R_v, t_v = self._tracker_fk.solve(self.platform.tracker, readings, "tracker")
-        drive = self.platform.drive.perturbed(self.filter.x)
-        residual = kin.leg_residuals(drive, R_v, t_v, strokes)
-        J_x, H = kin.leg_residual_jacobians(drive, R_v, t_v)
-        Sigma_x = kin.pose_covariance_from_legs(self.platform.tracker, R_v, t_v, self.noise.reading_sigma_mm)
-        R_meas = J_x @ Sigma_x @ J_x.T + self._stroke_variance
-        self.filter.Q[np.diag_indices(N_PARAMS)] = self.noise.random_walk_mm_per_sqrt_s**2 * dt_s
+        # r, H = ∂r/∂M and R_meas = J_x Σ_x J_xᵀ + σ_q² I at the model M + X, in one compiled call.
+        residual, H, R_meas = kin.leg_ekf_observation(
+            self.platform.drive, self.filter.x, self.platform.tracker, R_v, t_v, strokes,
+            self.noise.reading_sigma_mm, self.noise.stroke_sigma_mm,
+        )
+        np.fill_diagonal(self.filter.Q, self.noise.random_walk_mm_per_sqrt_s**2 * dt_s)
         self.filter.update(H, -residual, R_meas, sample.t_s)
 
     def estimate(self) -> Estimate:

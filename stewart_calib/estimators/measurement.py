@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import _kernels
 from .. import kinematics as kin
 from ..errors import SampleRejected
 from ..platform import LegGeometry, Platform
@@ -96,5 +97,10 @@ def pose_difference(R_v: np.ndarray, t_v: np.ndarray, R_m: np.ndarray, t_m: np.n
     ``δθ`` is the difference of roll-pitch-yaw, wrapped to (−π, π], the coordinates in
     which :func:`~stewart_calib.kinematics.error_jacobian` is written.
     """
-    d_rpy = kin.rotation_to_rpy(R_v) - kin.rotation_to_rpy(R_m)
-    return np.concatenate([t_v - t_m, np.angle(np.exp(1j * d_rpy))], axis=-1)
+    shape = np.shape
+    batch = np.broadcast_shapes(shape(R_v)[:-2], shape(t_v)[:-1], shape(R_m)[:-2], shape(t_m)[:-1])
+    R_v, t_v, _ = kin._flat_poses(R_v, t_v, batch)
+    R_m, t_m, _ = kin._flat_poses(R_m, t_m, batch)
+    Y = np.empty((len(R_v), 6))
+    _kernels.pose_difference(R_v, t_v, R_m, t_m, Y)  # per-pose loop: numpy's small-array overhead dominated
+    return Y.reshape(batch + (6,))

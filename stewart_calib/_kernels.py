@@ -1,0 +1,335 @@
+"""numba kernels behind :mod:`stewart_calib.kinematics` and the EKFs' per-sample path.
+
+Why numba: one 6-leg pose is ~100 flops, so numpy's 1–2 µs per small-array call dominates
+(a warm numpy Newton solve costs 100–200 µs, measured-facts.md); written as loops over the
+six legs and compiled, the same solve takes a few µs. The public, vectorised functions of
+:mod:`stewart_calib.kinematics` keep their numpy signatures and call these; nothing else
+should import this module (but :mod:`stewart_calib.estimators.measurement`, for
+``pose_difference``).
+
+Conventions (see :mod:`stewart_calib.kinematics`): mm and rad; a pose is ``(R, t)`` of the
+platform frame {D} in the base frame {J}; pose Jacobians are in the body tangent
+``ξ = [ω, v]`` (rotation first, GTSAM order), ``R ← R Exp(ω)``, ``t ← t + R v``.
+
+Every kernel is compiled lazily on first use and cached on disk (``cache=True``, as
+:mod:`stewart_calib.estimators.kalman`): a fresh checkout pays the compile once, later
+processes load the machine code. The wrappers pass C-contiguous float64 arrays and Python
+floats/ints only, so each kernel has one signature and one cache entry. No ``fastmath``:
+the Newton tolerance (1e-9 mm on ~1000 mm lengths) sits a few ulps above rounding, and
+the kernels must report NaN exactly as numpy would.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+# error_model="numpy": x / 0 gives inf/NaN as in numpy instead of raising ZeroDivisionError.
+_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+# Newton step cap (forward_kinematics): a poor guess can give wild steps that leave the basin.
+_MAX_STEP_RAD = 0.2
+_MAX_STEP_MM = 100.0
+
+
+# ----------------------------------------------------------------------------- small helpers
+
+
+@numba.njit(**_JIT)
+def _solve(A, B):
+    """``A X = B`` for ``A (6, 6)``, ``B (6, m)``, by Gaussian elimination with partial pivoting.
+
+    Overwrites both (``B`` becomes ``X``). Returns False on an exactly zero pivot, where
+    LAPACK's ``getrf`` (``np.linalg.solve``) would raise ``LinAlgError``.
+    """
+    m = B.shape[1]
+    for k in range(6):
+        p = k
+        for i in range(k + 1, 6):
+            if abs(A[i, k]) > abs(A[p, k]):
+                p = i
+        if A[p, k] == 0.0:
+            return False
+        if p != k:
+            for j in range(6):
+                A[k, j], A[p, j] = A[p, j], A[k, j]
+            for j in range(m):
+                B[k, j], B[p, j] = B[p, j], B[k, j]
+        for i in range(k + 1, 6):
+            f = A[i, k] / A[k, k]
+            for j in range(k + 1, 6):
+                A[i, j] -= f * A[k, j]
+            for j in range(m):
+                B[i, j] -= f * B[k, j]
+    for j in range(m):
+        for i in range(5, -1, -1):
+            s = B[i, j]
+            for c in range(i + 1, 6):
+                s -= A[i, c] * B[c, j]
+            B[i, j] = s / A[i, i]
+    return True
+
+
+@numba.njit(**_JIT)
+def _unit_legs(base, plat, R, t, n, length):
+    """``l_i n_i = t + R p_i − b_i`` (paper eq. 1): fills ``n (6, 3)`` and ``length (6,)``."""
+    for i in range(6):
+        norm2 = 0.0
+        for a in range(3):
+            v = t[a] + R[a, 0] * plat[i, 0] + R[a, 1] * plat[i, 1] + R[a, 2] * plat[i, 2] - base[i, a]
+            n[i, a] = v
+            norm2 += v * v
+        length[i] = math.sqrt(norm2)
+        for a in range(3):
+            n[i, a] /= length[i]
+
+
+@numba.njit(**_JIT)
+def _pose_jacobian(plat, R, n, J):
+    """``∂ length_i / ∂ξ`` row ``[(p_i × Rᵀn_i)ᵀ, (Rᵀn_i)ᵀ]`` into ``J (6, 6)`` (kinematics.leg_pose_jacobian)."""
+    for i in range(6):
+        nb0 = R[0, 0] * n[i, 0] + R[1, 0] * n[i, 1] + R[2, 0] * n[i, 2]  # Rᵀ n_i
+        nb1 = R[0, 1] * n[i, 0] + R[1, 1] * n[i, 1] + R[2, 1] * n[i, 2]
+        nb2 = R[0, 2] * n[i, 0] + R[1, 2] * n[i, 1] + R[2, 2] * n[i, 2]
+        J[i, 0] = plat[i, 1] * nb2 - plat[i, 2] * nb1
+        J[i, 1] = plat[i, 2] * nb0 - plat[i, 0] * nb2
+        J[i, 2] = plat[i, 0] * nb1 - plat[i, 1] * nb0
+        J[i, 3], J[i, 4], J[i, 5] = nb0, nb1, nb2
+
+
+@numba.njit(**_JIT)
+def _retract(R, t, w0, w1, w2, v0, v1, v2):
+    """In place ``t ← t + R v``, ``R ← R Exp(ω)`` (Rodrigues, series below 1e-6 rad; kinematics.retract)."""
+    for a in range(3):
+        t[a] += R[a, 0] * v0 + R[a, 1] * v1 + R[a, 2] * v2
+    theta2 = w0 * w0 + w1 * w1 + w2 * w2
+    if theta2 < 1e-12:
+        c1, c2 = 1.0 - theta2 / 6.0, 0.5 - theta2 / 24.0
+    else:
+        theta = math.sqrt(theta2)
+        c1, c2 = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta2
+    # Exp(ω) = I + c1 [ω]× + c2 [ω]×²,  [ω]×² = ω ωᵀ − θ² I
+    E = np.empty((3, 3))
+    w = (w0, w1, w2)
+    for a in range(3):
+        for b in range(3):
+            E[a, b] = c2 * w[a] * w[b]
+        E[a, a] += 1.0 - c2 * theta2
+    E[0, 1] -= c1 * w2
+    E[0, 2] += c1 * w1
+    E[1, 0] += c1 * w2
+    E[1, 2] -= c1 * w0
+    E[2, 0] -= c1 * w1
+    E[2, 1] += c1 * w0
+    for a in range(3):
+        r0, r1, r2 = R[a, 0], R[a, 1], R[a, 2]
+        for b in range(3):
+            R[a, b] = r0 * E[0, b] + r1 * E[1, b] + r2 * E[2, b]
+
+
+@numba.njit(**_JIT)
+def _rpy(R):
+    """Roll, pitch, yaw of ``R = Rz(γ) Ry(β) Rx(α)`` (kinematics.rotation_to_rpy, paper eq. 20–21)."""
+    return (
+        math.atan2(R[2, 1], R[2, 2]),
+        math.atan2(-R[2, 0], math.hypot(R[2, 1], R[2, 2])),
+        math.atan2(R[1, 0], R[0, 0]),
+    )
+
+
+# ----------------------------------------------------------------------------- forward kinematics
+
+
+@numba.njit(**_JIT)
+def _damped_step(J, target, length, A, step):
+    """Least-squares Newton step for a singular ``J``: ``(JᵀJ + λI) ξ = Jᵀ e`` into ``step (6, 1)``.
+
+    As λ → 0 this tends to the minimum-norm least-squares step (``np.linalg.lstsq``);
+    ``λ = 1e-12 · tr(JᵀJ)`` only has to keep the null space of ``J`` out of the step. Written
+    by hand because LAPACK's SVD in numba adds ~2.5 s to the kernel's first compile, for a
+    case (e.g. all platform joints at one point) regular platforms never reach.
+    """
+    trace = 0.0
+    for a in range(6):
+        s = 0.0
+        for i in range(6):
+            s += J[i, a] * (target[i] - length[i])
+        step[a, 0] = s
+        for b in range(6):
+            s = 0.0
+            for i in range(6):
+                s += J[i, a] * J[i, b]
+            A[a, b] = s
+        trace += A[a, a]
+    for a in range(6):
+        A[a, a] += 1e-12 * trace
+    if not _solve(A, step):  # J = 0: no direction to step in
+        step[:] = 0.0
+
+
+@numba.njit(**_JIT)
+def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations, iterations, residual):
+    """Newton–Raphson FK (paper §3.2 step 1) for ``n`` poses, in place.
+
+    Args:
+        base, plat, initial_lengths: ``(6, 3)`` joints b_i in {J} and p_i in {D}, ``(6,)``
+            lengths at zero stroke [mm].
+        strokes: ``(n, 6)`` strokes or readings [mm]; the target lengths are
+            ``initial_lengths + strokes``. A pose with a non-finite stroke is skipped
+            (residual ``inf``, 0 iterations, guess untouched).
+        R, t: ``(n, 3, 3)``, ``(n, 3)`` starting poses, overwritten with the solutions.
+        tol_mm, max_iterations: stop once max |length error| ≤ ``tol_mm`` (a NaN residual
+            also stops) or after ``max_iterations`` steps.
+        iterations, residual: ``(n,)`` outputs: steps taken, max |length error| [mm] at the
+            returned pose.
+    """
+    n_legs = np.empty((6, 3))
+    length = np.empty(6)
+    J = np.empty((6, 6))
+    A = np.empty((6, 6))
+    err = np.empty((6, 1))
+    target = np.empty(6)
+    for k in range(strokes.shape[0]):
+        iterations[k] = 0
+        if not np.all(np.isfinite(strokes[k])):
+            residual[k] = np.inf
+            continue
+        for i in range(6):
+            target[i] = initial_lengths[i] + strokes[k, i]
+        Rk, tk = R[k], t[k]
+        while True:
+            _unit_legs(base, plat, Rk, tk, n_legs, length)
+            worst = 0.0
+            for i in range(6):
+                err[i, 0] = target[i] - length[i]
+                e = abs(err[i, 0])
+                if e > worst or e != e:  # once NaN, stays NaN (e > NaN is False), as np.max reports it
+                    worst = e
+            residual[k] = worst
+            if not worst > tol_mm or iterations[k] >= max_iterations:
+                break
+            _pose_jacobian(plat, Rk, n_legs, J)
+            A[:] = J
+            if not _solve(A, err):  # singular Jacobian (degenerate pose): least-squares step
+                _damped_step(J, target, length, A, err)
+            xi = err[:, 0]
+            norm_w = math.sqrt(xi[0] * xi[0] + xi[1] * xi[1] + xi[2] * xi[2])
+            norm_v = math.sqrt(xi[3] * xi[3] + xi[4] * xi[4] + xi[5] * xi[5])
+            scale = min(1.0, _MAX_STEP_RAD / max(norm_w, 1e-300), _MAX_STEP_MM / max(norm_v, 1e-300))
+            _retract(Rk, tk, scale * xi[0], scale * xi[1], scale * xi[2], scale * xi[3], scale * xi[4], scale * xi[5])
+            iterations[k] += 1
+
+
+# ----------------------------------------------------------------------------- error models
+
+
+@numba.njit(**_JIT)
+def error_jacobian(base, plat, R, t, out):
+    """Paper eq. 8–11 ``J_p = J_r J_s`` for ``n`` poses into ``out (n, 6, 42)`` (see kinematics.error_jacobian).
+
+    ``J_r⁻¹`` row i is ``[n_iᵀ, (R d_i × n_i)ᵀ T]`` (eq. 10, ``T`` of eq. 4–5); ``J_s`` row i
+    is ``[n_iᵀ, −n_iᵀ R, 1]`` on leg i's ``[j_i, d_i, l_i]`` (eq. 11), so column block i of
+    ``J_p`` is column i of ``J_r`` times that row.
+    """
+    n_legs = np.empty((6, 3))
+    length = np.empty(6)
+    J_r = np.empty((6, 6))
+    A = np.empty((6, 6))
+    J_s = np.empty((6, 7))  # row i of J_s on leg i's seven parameters
+    for k in range(R.shape[0]):
+        Rk = R[k]
+        _unit_legs(base, plat, Rk, t[k], n_legs, length)
+        _, pitch, yaw = _rpy(Rk)
+        cb, sb, cg, sg = math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+        for i in range(6):
+            n0, n1, n2 = n_legs[i, 0], n_legs[i, 1], n_legs[i, 2]
+            rd0 = Rk[0, 0] * plat[i, 0] + Rk[0, 1] * plat[i, 1] + Rk[0, 2] * plat[i, 2]  # R d_i
+            rd1 = Rk[1, 0] * plat[i, 0] + Rk[1, 1] * plat[i, 1] + Rk[1, 2] * plat[i, 2]
+            rd2 = Rk[2, 0] * plat[i, 0] + Rk[2, 1] * plat[i, 1] + Rk[2, 2] * plat[i, 2]
+            c0, c1, c2 = rd1 * n2 - rd2 * n1, rd2 * n0 - rd0 * n2, rd0 * n1 - rd1 * n0  # (R d_i) × n_i
+            A[i, 0], A[i, 1], A[i, 2] = n0, n1, n2
+            # (R d_i × n_i)ᵀ T with T = [[cβcγ, −sγ, 0], [sγcβ, cγ, 0], [−sβ, 0, 1]] (eq. 5)
+            A[i, 3] = c0 * cb * cg + c1 * sg * cb - c2 * sb
+            A[i, 4] = -c0 * sg + c1 * cg
+            A[i, 5] = c2
+            for a in range(3):
+                J_s[i, a] = n_legs[i, a]
+                J_s[i, 3 + a] = -(n0 * Rk[0, a] + n1 * Rk[1, a] + n2 * Rk[2, a])
+            J_s[i, 6] = 1.0
+        J_r[:] = 0.0
+        for i in range(6):
+            J_r[i, i] = 1.0
+        if not _solve(A, J_r):  # J_r = (J_r⁻¹)⁻¹ does not exist: NaN, never a wrong number
+            J_r[:] = np.nan
+        for i in range(6):
+            for r in range(6):
+                for c in range(7):
+                    out[k, r, 7 * i + c] = J_r[r, i] * J_s[i, c]
+
+
+@numba.njit(**_JIT)
+def pose_difference(R_v, t_v, R_m, t_m, out):
+    """``P_v − P_m`` as ``[δh, δθ]`` (paper eq. 9) for ``n`` pose pairs into ``out (n, 6)``; δθ wrapped to (−π, π]."""
+    for k in range(R_v.shape[0]):
+        rpy_v = _rpy(R_v[k])
+        rpy_m = _rpy(R_m[k])
+        for a in range(3):
+            out[k, a] = t_v[k, a] - t_m[k, a]
+            d = rpy_v[a] - rpy_m[a]
+            out[k, 3 + a] = math.atan2(math.sin(d), math.cos(d))
+
+
+@numba.njit(**_JIT)
+def leg_observation(base, plat, initial_lengths, x, tracker_base, tracker_plat, R, t, strokes, reading_variance, stroke_variance):
+    """The leg-length EKF's observation at the tracker pose ``(R, t)``, fused in one call.
+
+    With drive parameters ``M + x``: ``M`` given as ``base (6, 3)``, ``plat (6, 3)``,
+    ``initial_lengths (6,)`` (j_i, d_i, l_i) and ``x`` a 42-vector in the paper's order:
+
+    * ``r_i = ‖t + R d_i − j_i‖ − (l_i + q_i)`` (kinematics.leg_residuals);
+    * ``H = ∂r/∂M``, row i ``[−n_iᵀ, n_iᵀ R, −1]`` in columns 7i…7i+6 (leg_residual_jacobians);
+    * ``R_meas = J_x Σ_x J_xᵀ + σ_q² I`` with ``J_x = ∂r/∂ξ`` and the tracker pose covariance
+      ``Σ_x = σ_s² (J_tᵀ J_t)⁻¹`` (pose_covariance_from_legs), formed as ``σ_s² A Aᵀ`` with
+      ``A = J_x J_t⁻¹`` (one solve of ``J_tᵀ Aᵀ = J_xᵀ``, no inverse).
+
+    Returns:
+        ``(r (6,), H (6, 42), R_meas (6, 6))``.
+    """
+    j = np.empty((6, 3))
+    d = np.empty((6, 3))
+    for i in range(6):
+        for a in range(3):
+            j[i, a] = base[i, a] + x[7 * i + a]
+            d[i, a] = plat[i, a] + x[7 * i + 3 + a]
+    n_legs = np.empty((6, 3))
+    length = np.empty(6)
+    _unit_legs(j, d, R, t, n_legs, length)
+    r = np.empty(6)
+    H = np.zeros((6, 42))
+    for i in range(6):
+        r[i] = length[i] - (initial_lengths[i] + x[7 * i + 6] + strokes[i])
+        for a in range(3):
+            H[i, 7 * i + a] = -n_legs[i, a]
+            H[i, 7 * i + 3 + a] = n_legs[i, 0] * R[0, a] + n_legs[i, 1] * R[1, a] + n_legs[i, 2] * R[2, a]
+        H[i, 7 * i + 6] = -1.0
+    J_x = np.empty((6, 6))
+    _pose_jacobian(d, R, n_legs, J_x)
+    _unit_legs(tracker_base, tracker_plat, R, t, n_legs, length)
+    J_t = np.empty((6, 6))
+    _pose_jacobian(tracker_plat, R, n_legs, J_t)
+    J_tT = J_t.T.copy()
+    A_T = J_x.T.copy()
+    if not _solve(J_tT, A_T):  # singular tracker Jacobian: NaN, which the filter rejects
+        A_T[:] = np.nan
+    R_meas = np.empty((6, 6))
+    for a in range(6):
+        for b in range(a, 6):
+            s = 0.0
+            for c in range(6):
+                s += A_T[c, a] * A_T[c, b]
+            R_meas[a, b] = reading_variance * s
+            R_meas[b, a] = R_meas[a, b]
+        R_meas[a, a] += stroke_variance
+    return r, H, R_meas

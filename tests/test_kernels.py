@@ -1,0 +1,68 @@
+"""The compiled paths against their numpy definitions: fused EKF observation, pose difference,
+FK on a degenerate geometry, FK with NaN and a zero-length leg."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stewart_calib import kinematics as kin
+from stewart_calib.estimators.measurement import pose_difference
+from stewart_calib.platform import LegGeometry
+
+from .synthetic import nim_stewart, random_poses
+
+PLATFORM = nim_stewart()
+POSES = random_poses(PLATFORM, 5, np.random.default_rng(21))
+
+
+@pytest.mark.parametrize("k", range(len(POSES)))
+def test_leg_ekf_observation_equals_its_numpy_definition(k):
+    rng = np.random.default_rng(k)
+    drive, tracker = PLATFORM.drive, PLATFORM.tracker
+    delta = rng.normal(0.0, 1.0, 42)
+    R, t = kin.pose_to_rt(POSES[k])
+    strokes = kin.inverse_kinematics(drive, R, t) + rng.normal(0.0, 0.5, 6)
+    sigma_s, sigma_q = 0.002, 0.001
+    r, H, R_meas = kin.leg_ekf_observation(drive, delta, tracker, R, t, strokes, sigma_s, sigma_q)
+
+    model = drive.perturbed(delta)
+    J_x, H_ref = kin.leg_residual_jacobians(model, R, t)
+    R_ref = J_x @ kin.pose_covariance_from_legs(tracker, R, t, sigma_s) @ J_x.T + sigma_q**2 * np.eye(6)
+    # Same formulas, different evaluation order: rounding only (lengths ~1e3 mm → 1e-12 mm).
+    np.testing.assert_allclose(r, kin.leg_residuals(model, R, t, strokes), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(H, H_ref, rtol=0, atol=1e-13)
+    # R_meas via a solve instead of an explicit inverse: relative rounding of cond(J_t) · 1e-16.
+    np.testing.assert_allclose(R_meas, R_ref, rtol=1e-10, atol=1e-12 * np.abs(R_ref).max())
+    np.testing.assert_array_equal(R_meas, R_meas.T)
+
+
+def test_pose_difference_is_wrapped_rpy_difference_and_broadcasts():
+    R, t = kin.pose_to_rt(POSES)
+    R_m, t_m = kin.pose_to_rt(POSES[::-1] + np.r_[0.0, 0.0, 0.0, 2 * np.pi, 0.0, -2 * np.pi])
+    Y = pose_difference(R, t, R_m, t_m)
+    d_rpy = kin.rotation_to_rpy(R) - kin.rotation_to_rpy(R_m)
+    expected = np.concatenate([t - t_m, np.angle(np.exp(1j * d_rpy))], axis=-1)
+    np.testing.assert_allclose(Y, expected, rtol=0, atol=1e-13)
+    # One measured pose against a batch of model poses broadcasts like numpy.
+    np.testing.assert_allclose(pose_difference(R[0], t[0], R_m, t_m), pose_difference(R[[0] * len(R)], t[[0] * len(R)], R_m, t_m))
+
+
+def test_fk_on_a_degenerate_geometry_takes_least_squares_steps():
+    # All platform joints at one point: the rotation columns of the leg Jacobian are exactly 0
+    # (singular J); the least-squares step still trilaterates the point from six lengths.
+    legs = LegGeometry(PLATFORM.tracker.base_joints, np.zeros((6, 3)), np.zeros(6))
+    point = np.array([30.0, -20.0, 900.0])
+    lengths = np.linalg.norm(point - legs.base_joints, axis=-1)
+    solution = kin.forward_kinematics(legs, lengths, tol_mm=1e-9)
+    assert np.linalg.norm(solution.t - point) <= 1e-9
+    np.testing.assert_array_equal(solution.R, np.eye(3))  # no information, no rotation step
+
+
+def test_fk_zero_length_leg_reports_nan_not_an_exception():
+    # A leg of zero length at the guess makes n_i = 0/0: numpy semantics (NaN, not ZeroDivisionError).
+    legs = LegGeometry(np.zeros((6, 3)), np.zeros((6, 3)), np.ones(6))
+    report = kin.forward_kinematics(legs, np.zeros(6), guess=(np.eye(3), np.zeros(3)), strict=False)
+    assert not report.converged
+    with pytest.raises(kin.FKError, match="did not converge"):
+        kin.forward_kinematics(legs, np.zeros(6), guess=(np.eye(3), np.zeros(3)))
