@@ -73,6 +73,14 @@ class Rejections:
         self.by_reason = Counter(by_reason or {})
         self.first = first
 
+    @classmethod
+    def of(cls, messages) -> "Rejections":
+        """Counts of the rejection ``messages``."""
+        rejections = cls()
+        for message in messages:
+            rejections.add(message)
+        return rejections
+
     def add(self, message: str) -> None:
         reason = next((name for key, name in _REASONS if key in message), "other")
         self.by_reason[reason] += 1

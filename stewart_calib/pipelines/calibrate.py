@@ -22,6 +22,7 @@ from tqdm import tqdm
 from .. import estimators, io
 from ..errors import CalibError, SampleRejected
 from ..estimators import Estimate, EstimatorConfig, load_estimator_config
+from ..online import Rejections
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
 from ..platform import Platform, load_platform
 from ..samples import Log
@@ -135,7 +136,10 @@ def run(args: argparse.Namespace) -> int:
 
     # Render (and so validate) everything before writing anything.
     samples_skipped = len(log.skipped) + len(result.rejected)
-    extra = {"conditioning": conditioning_summary(report)}
+    extra = {
+        "conditioning": conditioning_summary(report),
+        "samples_rejected": Rejections.of(reason for _, reason in result.rejected).summary(),
+    }
     result_json = io.result_text(io.result_dict(result.estimate, platform, samples_skipped, extra), str(out))
     trace_csv = io.trace_text(log.t_s, result.trace) if trace_path else None
     if rerun_path:

@@ -12,7 +12,7 @@ updates the estimator per row, and every ``--every`` rows and at the end replace
 When it stops:
   * at the end of the input (end of file; with ``--follow``, a file is polled for new rows
     until ``--idle-timeout`` seconds pass without one — without it, until a signal);
-  * on Ctrl-C or SIGTERM: finishes the row in hand, writes the final estimate and
+  * on Ctrl-C or SIGTERM: finishes the rows already read, writes the final estimate and
     checkpoint, exits 0;
   * at a bad row (spec §3) without ``--skip-bad-rows``: writes the estimate at the last good
     row (so no state is lost), then exits 2 with the reader's message naming the row and
@@ -84,7 +84,7 @@ def lines(fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable
 
 
 class _StopRequest:
-    """Signal handler for SIGINT/SIGTERM: the loop finishes the row in hand, then the final write."""
+    """Signal handler for SIGINT/SIGTERM: the loop finishes the rows already read, then the final write."""
 
     def __init__(self):
         self.requested = False

@@ -1,0 +1,165 @@
+"""``stewart-calib track``: the same estimate as calibrate, bad rows, resume, follow, signals, refusals."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from stewart_calib import cli
+from stewart_calib.io import read_result, write_log
+from stewart_calib.online import OnlineCalibrator
+from stewart_calib.pipelines.calibrate import calibrate
+from stewart_calib.pipelines.track import lines
+from tests.synthetic import NIM_STEWART, ROOT, make_log, nim_stewart, random_error, random_poses
+
+N = 40
+
+
+@pytest.fixture(scope="module")
+def log():
+    platform = nim_stewart()
+    rng = np.random.default_rng(11)
+    log, _ = make_log(platform, random_error(rng, 1.0), random_poses(platform, N, rng), rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
+    return log
+
+
+@pytest.fixture
+def log_path(tmp_path, log):
+    path = tmp_path / "log.csv"
+    write_log(path, log)
+    return path
+
+
+def _track(capsys, *argv):
+    code = cli.main(["track", "--platform", str(NIM_STEWART), *argv])
+    return code, capsys.readouterr().err.strip().splitlines()
+
+
+def _error(path):
+    return np.array(read_result(path)["error"])
+
+
+def test_track_gives_calibrates_estimate_and_keeps_a_checkpoint(tmp_path, log_path, log, capsys):
+    out, ckpt = tmp_path / "r.json", tmp_path / "c.npz"
+    code, err = _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt), "--every", "7")
+    assert code == 0 and err == [f"stewart-calib track: wrote {out} (ekf: {N} samples used, 0 skipped)"]
+    estimate, _, _ = calibrate(nim_stewart(), log, "ekf")
+    np.testing.assert_array_equal(_error(out), estimate.error)  # same samples, same filter: bit-identical
+    assert read_result(out)["samples_rejected"] == {"count": 0, "by_reason": {}, "first": None}
+    np.testing.assert_array_equal(OnlineCalibrator.load(ckpt).estimate().error, estimate.error)
+
+
+def test_resume_skips_the_rows_already_read(tmp_path, log_path, capsys):
+    whole, part, resumed, ckpt = (tmp_path / name for name in ("whole.json", "part.csv", "resumed.json", "c.npz"))
+    assert _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(whole))[0] == 0
+    part.write_text("".join(log_path.read_text().splitlines(keepends=True)[: 1 + 25]))  # the log as it was at row 26
+    assert _track(capsys, "--method", "ekf", "--log", str(part), "--out", str(resumed), "--checkpoint", str(ckpt))[0] == 0
+    assert read_result(resumed)["samples_used"] == 25
+    assert _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(resumed), "--checkpoint", str(ckpt))[0] == 0
+    assert read_result(resumed)["samples_used"] == N
+    np.testing.assert_array_equal(_error(resumed), _error(whole))
+
+
+def _with_bad_row(log_path, row):
+    text = log_path.read_text().splitlines(keepends=True)
+    fields = text[row - 1].split(",")
+    fields[3] = "nan"  # q3_mm
+    text[row - 1] = ",".join(fields)
+    log_path.write_text("".join(text))
+
+
+def test_a_bad_row_stops_track_after_writing_the_last_good_estimate(tmp_path, log_path, capsys):
+    _with_bad_row(log_path, 12)
+    out = tmp_path / "r.json"
+    code, err = _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--every", "1000")
+    assert code == 2
+    assert err == [f"stewart-calib track: error: {log_path}: row 12: column 'q3_mm': expected a finite number, got nan"]
+    assert read_result(out)["samples_used"] == 10  # rows 2..11
+
+
+def test_skip_bad_rows_counts_and_goes_on(tmp_path, log_path, capsys):
+    _with_bad_row(log_path, 12)
+    out = tmp_path / "r.json"
+    code, err = _track(capsys, "--method", "isam2", "--set", "isam2.window_samples=5", "--log", str(log_path),
+                       "--out", str(out), "--skip-bad-rows")
+    assert code == 0
+    assert err[0] == f"stewart-calib track: skipped bad log rows: 1 of {N} (first: {log_path}: row 12: column 'q3_mm': " \
+                     "expected a finite number, got nan)"
+    result = read_result(out)
+    assert (result["samples_used"], result["samples_skipped"]) == (N - 1, 1)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--method", "ls"], "--method: 'ls' is not an online method; expected one of paper-ekf, ekf, isam2"),
+        (["--method", "ekf", "--every", "0"], "--every: expected a whole number ≥ 1, got 0"),
+        (["--method", "ekf", "--log", "missing.csv"], "missing.csv: log file not found"),
+        (["--method", "ekf", "--set", "ekf.gate=1"], "--set: unknown key 'ekf.gate': expected one of gate_probability"),
+    ],
+)
+def test_refusals_are_one_line_and_write_nothing(tmp_path, log_path, capsys, argv, message):
+    out = tmp_path / "r.json"
+    argv = [a.replace("missing.csv", str(tmp_path / "missing.csv")) for a in argv]
+    code, err = _track(capsys, *(["--log", str(log_path)] if "--log" not in argv else []), *argv, "--out", str(out))
+    assert code == 2 and len(err) == 1 and err[0].endswith(message.replace("missing.csv", str(tmp_path / "missing.csv")))
+    assert list(tmp_path.iterdir()) == [log_path]
+
+
+def test_a_checkpoint_of_another_method_is_refused(tmp_path, log_path, capsys):
+    ckpt = tmp_path / "c.npz"
+    assert _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(tmp_path / "a.json"), "--checkpoint", str(ckpt))[0] == 0
+    code, err = _track(capsys, "--method", "paper-ekf", "--log", str(log_path), "--out", str(tmp_path / "b.json"), "--checkpoint", str(ckpt))
+    assert code == 2 and err == [f"stewart-calib track: error: --checkpoint {ckpt}: written by method 'ekf', not 'paper-ekf'"]
+    assert not (tmp_path / "b.json").exists()
+
+
+def test_lines_of_a_pipe_and_of_a_growing_file(tmp_path):
+    read_fd, write_fd = os.pipe()
+    os.write(write_fd, b"a,b\n1,2\n3,")
+    os.write(write_fd, b"4")
+    os.close(write_fd)
+    assert list(lines(read_fd, follow=False, idle_timeout_s=None, stopped=lambda: False)) == [b"a,b", b"1,2", b"3,4"]
+    os.close(read_fd)
+
+    path = tmp_path / "grow.csv"
+    path.write_bytes(b"h\n1\n")
+
+    def grow():
+        time.sleep(0.3)
+        with open(path, "ab") as f:
+            f.write(b"2\n")
+
+    writer = threading.Thread(target=grow)
+    writer.start()
+    fd = os.open(path, os.O_RDONLY)
+    started = time.monotonic()
+    assert list(lines(fd, follow=True, idle_timeout_s=0.6, stopped=lambda: False)) == [b"h", b"1", b"2"]
+    assert time.monotonic() - started >= 0.3 + 0.6  # it waited for the late row, then for the idle timeout
+    os.close(fd)
+    writer.join()
+
+
+def test_sigterm_finishes_with_a_final_estimate_and_checkpoint(tmp_path, log_path):
+    out, ckpt = tmp_path / "r.json", tmp_path / "c.npz"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "stewart_calib", "track", "--platform", str(NIM_STEWART), "--method", "ekf",
+         "--log", str(log_path), "--follow", "--every", "10", "--out", str(out), "--checkpoint", str(ckpt)],
+        cwd=ROOT, stderr=subprocess.PIPE, text=True,
+    )
+    deadline = time.monotonic() + 60
+    while not out.exists() and time.monotonic() < deadline:  # it has read the log and waits for more
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0
+    assert err.strip().splitlines()[-1].endswith(f"(ekf: {N} samples used, 0 skipped, stopped by signal)")
+    assert read_result(out)["samples_used"] == N
+    assert OnlineCalibrator.load(ckpt).rows_read == N
