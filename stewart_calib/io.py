@@ -152,7 +152,10 @@ def _header(path: Path, text: str) -> list[str]:
     if not text.strip():
         raise CalibError(f"{path}: empty file, no sample rows; expected a header row and at least one sample row")
     first = text.split("\n", 1)[0]
-    header = [name.strip() for name in next(csv.reader([first]), [])]
+    try:
+        header = [name.strip() for name in next(csv.reader([first]), [])]
+    except csv.Error as err:  # e.g. a lone carriage return
+        raise CalibError(f"{path}: row 1: expected a CSV header row ({err})") from None
     seen = set()
     for name in header:
         if name and name in seen:
@@ -230,7 +233,14 @@ def _parse_careful(header: list[str], text: str, numeric: list[str], textual: li
     next(reader, None)
     rows, lines, issues = [], [], {}
     width = len(header)
-    for row in reader:
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            break
+        except csv.Error as err:  # e.g. a lone carriage return inside a row; the reader goes on with the next line
+            issues[len(rows)] = f"expected a CSV row ({err})"
+            row = [""] * width
         if len(row) <= 1 and not (row and row[0].strip()):
             continue  # a blank line holds no sample
         if len(row) != width:

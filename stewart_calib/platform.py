@@ -14,6 +14,7 @@ and :func:`vector_to_params` convert between the two, and nothing else reorders 
 from __future__ import annotations
 
 import math
+import sys
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -141,7 +142,7 @@ def _array(table: dict, key: str, shape: tuple[int, ...], source: str, prefix: s
         raise _refuse(source, full, f"{_shape_words(shape)} (missing)")
     try:
         value = np.array(table[key], dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond float range
         raise _refuse(source, full, f"{_shape_words(shape)} of numbers") from None
     if value.shape != shape:
         raise _refuse(source, full, f"{_shape_words(shape)}, got shape {value.shape}")
@@ -207,7 +208,8 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
         limits = {}
         for key, default in (("translation_limit_mm", 200.0), ("rotation_limit_deg", 20.0)):
             value = ws.get(key, default)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+            finite = isinstance(value, (int, float)) and not isinstance(value, bool) and abs(value) <= sys.float_info.max
+            if not finite or math.isnan(value) or value < 0:
                 raise _refuse(source, f"workspace.{key}", "a finite non-negative number")
             limits[key] = float(value)
         workspace = Workspace(

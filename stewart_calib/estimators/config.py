@@ -8,6 +8,7 @@ EKFs and the factor graph use the same process and measurement noise (design.md)
 from __future__ import annotations
 
 import dataclasses
+import sys
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -150,7 +151,7 @@ def _coerce(source: str, key: str, value: Any, default: Any) -> Any:
             raise CalibError(f"{source}: key '{key}': expected a number, got {value!r}")
         if isinstance(default, int) and not isinstance(value, int):
             raise CalibError(f"{source}: key '{key}': expected a whole number, got {value!r}")
-        if not value == value or value in (float("inf"), float("-inf")) or value < 0:
+        if not value == value or not abs(value) <= sys.float_info.max or value < 0:  # NaN, ±inf, huge integers
             raise CalibError(f"{source}: key '{key}': expected a finite non-negative number, got {value!r}")
         return type(default)(value)
     if not isinstance(value, str):
