@@ -213,3 +213,18 @@ def test_adaptive_paper_ekf_fixes_wrong_r(static_data):
     # Measured: 0.02 fixed, 7.7 adaptive (6 is consistent).
     assert abs(nis_mean[True] - 6.0) < abs(nis_mean[False] - 6.0)
     assert 3.0 < nis_mean[True] < 12.0
+
+
+def test_paper_ekf_angle_unit_deg_is_r_rescaled_for_radians(static_data):
+    # Y and J_p in degrees with R = r is the same filter as radians with the orientation
+    # entries of R divided by (180/π)²: the gain and the state must agree to round-off.
+    log = list(static_data[2])[:40]
+    in_deg = run("paper-ekf", log, paper_ekf={"angle_unit": "deg"})
+    in_rad = make_estimator("paper-ekf", PLATFORM, config_from_dict({}))
+    in_rad.R = np.diag(np.r_[np.full(3, 0.04), np.full(3, 0.04 / math.degrees(1.0) ** 2)])
+    for sample in log:
+        in_rad.update(sample)
+    np.testing.assert_allclose(in_deg.estimate().error, in_rad.estimate().error, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(in_deg.estimate().covariance, in_rad.estimate().covariance, rtol=1e-9, atol=1e-12)
+    # and the unit matters: radians with the plain R = 0.04 I is a different filter
+    assert np.max(np.abs(in_deg.estimate().error - run("paper-ekf", log).estimate().error)) > 1e-2

@@ -68,6 +68,8 @@ class PaperEKFConfig:
         adaptive_min_variance: floor on the eigenvalues of the adapted R (keeps it positive
             definite when the windowed innovation covariance falls below ``H P Hᵀ``).
         gate_probability: χ² innovation gate (0 = off); samples beyond it are rejected.
+        angle_unit: ``rad`` or ``deg``, the unit of the orientation rows of Y = P_v − P_m that
+            ``measurement_noise`` applies to (the paper does not say).
     """
 
     process_noise: float = 1e-5
@@ -76,6 +78,7 @@ class PaperEKFConfig:
     adaptive_window: int = 50
     adaptive_min_variance: float = 1e-12
     gate_probability: float = 0.0
+    angle_unit: str = "rad"
 
 
 @dataclass(frozen=True)
@@ -135,6 +138,7 @@ class EstimatorConfig:
 
 
 _CHOICES = {
+    ("paper_ekf", "angle_unit"): ("rad", "deg"),
     ("isam2", "coupling"): ("tight", "loose"),
     ("isam2", "robust"): ("none", "huber", "cauchy"),
     ("isam2", "factorization"): ("QR", "CHOLESKY"),

@@ -7,6 +7,10 @@ the *current* model ``M + X`` predicts for the executed strokes, and ``J_p`` is 
 that model and pose: a true EKF, which at ``X = 0`` is exactly the paper's form and which
 stays right when the controller already compensates with an earlier estimate.
 
+The orientation rows of ``Y`` and ``J_p`` are in ``angle_unit`` (rad by default, or deg):
+the paper gives ``R = 4e-2 I`` without units and reports orientation in degrees, and which
+it meant decides how much the filter trusts the tracker's orientation.
+
 Optional adaptive Q/R (paper ref. [28]; innovation-based, Mohamed & Schwarz 1999): over
 the last ``adaptive_window`` updates, ``R = mean(ν νᵀ − H P⁻ Hᵀ)`` with its eigenvalues
 floored at ``adaptive_min_variance`` (positive definite), and ``Q = mean(Δx Δxᵀ)`` with
@@ -43,6 +47,8 @@ class PaperEKF:
         self.filter = FilterState(self.name, config.noise.prior_sigma_mm, c.gate_probability)
         self.filter.Q[np.diag_indices(N_PARAMS)] = c.process_noise
         self.R = np.eye(6) * c.measurement_noise
+        # Y's orientation rows in the unit R is meant for: the paper states R = 4e-2 I without units.
+        self._unit_scale = np.r_[np.ones(3), np.full(3, 1.0 if c.angle_unit == "rad" else np.degrees(1.0))]
         self._tracker_fk = WarmFK()
         self._model_fk = WarmFK()
         window = max(1, c.adaptive_window)
@@ -57,8 +63,8 @@ class PaperEKF:
         R_v, t_v = self._tracker_fk.solve(self.platform.tracker, readings, "tracker")
         drive = self.platform.drive.perturbed(self.filter.x)
         R_m, t_m = self._model_fk.solve(drive, strokes, "drive model")
-        Y = pose_difference(R_v, t_v, R_m, t_m)
-        J_k = kin.error_jacobian(drive, R_m, t_m)
+        Y = pose_difference(R_v, t_v, R_m, t_m) * self._unit_scale
+        J_k = kin.error_jacobian(drive, R_m, t_m) * self._unit_scale[:, None]
         x_before = self.filter.x.copy()
         self.filter.update(J_k, Y, self.R, sample.t_s)
         if self.config.adaptive:
