@@ -109,3 +109,15 @@ def test_refuses_non_toml_and_missing_file(tmp_path):
     missing = tmp_path / "missing.toml"
     with pytest.raises(CalibError, match=f"^{missing}: platform file not found$"):
         load_platform(missing)
+
+
+def test_shipped_configs_resolve_inside_the_package():
+    # configs/ ships as stewart_calib/configs (a link in the source tree), so installs that are
+    # not editable find the same files as the repository.
+    from stewart_calib.resources import CONFIGS
+
+    from tests.synthetic import NIM_STEWART
+
+    assert (CONFIGS / "platforms" / "nim-stewart.toml").read_bytes() == NIM_STEWART.read_bytes()
+    assert {p.name for p in (CONFIGS / "experiments").glob("*.toml")} >= {"paper.toml", "quick.toml"}
+    assert {p.name for p in (CONFIGS / "estimators").glob("*.toml")} >= {"default.toml", "paper.toml"}

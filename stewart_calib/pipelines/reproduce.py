@@ -22,10 +22,10 @@ from pathlib import Path
 from ..errors import CalibError
 from ..estimators import load_estimator_config
 from ..io import atomic_path, atomic_write_text
+from ..resources import CONFIGS
 from ..reproduction import reproduce, results_dict, tables_markdown, write_recording
 from ..simulation import load_experiment
 
-CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
 def add_parser(subparsers) -> None:

@@ -29,13 +29,13 @@ from __future__ import annotations
 import math
 import tomllib
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import CalibError
-from ..platform import Platform, load_platform, parse_platform
+from ..platform import Platform, load_platform
+from ..resources import CONFIGS
 from .load import LoadModel
 from .trajectories import CIRCLE_PLANES, circle_poses, random_static_poses
 
@@ -195,7 +195,7 @@ def load_experiment(path: str | Path) -> Experiment:
     """Read and validate an experiment TOML file.
 
     ``platform`` is a path relative to the experiment file, or the name of a packaged platform
-    (``stewart_calib/data/<name>.toml``, e.g. ``"nim-stewart"``).
+    (``configs/platforms/<name>.toml``, e.g. ``"nim-stewart"``).
 
     Raises:
         CalibError: one line naming the file and the key.
@@ -281,9 +281,9 @@ def _platform(value: str, experiment_path: Path, table: _Table) -> Platform:
     candidate = experiment_path.parent / value
     if candidate.is_file():
         return load_platform(candidate)
-    packaged = resources.files("stewart_calib") / "data" / f"{value}.toml"
+    packaged = CONFIGS / "platforms" / f"{value}.toml"
     if packaged.is_file():
-        return parse_platform(tomllib.loads(packaged.read_text(encoding="utf-8")), f"stewart_calib/data/{value}.toml")
+        return load_platform(packaged)
     raise table.refuse("platform", f"a platform file relative to the experiment or a packaged name, got {value!r}")
 
 
