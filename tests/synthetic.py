@@ -66,3 +66,17 @@ def make_log(
     readings = readings + rng.normal(0.0, reading_sigma_mm, readings.shape) if reading_sigma_mm else readings
     log = Log(t_s=np.arange(n) * dt_s, strokes=strokes, readings=readings, desired_poses=poses.copy())
     return log, platform.drive.as_vector() + errors
+
+
+def static_logs(platform: Platform, n_poses: int, seed: int) -> tuple[np.ndarray, Log, Log]:
+    """``(δM, noise-free log, noisy log)`` at the same ``n_poses`` rich poses, constant δM (σ 1 mm).
+
+    The noisy log has σ_s = 2 µm and σ_q = 1 µm: the defaults of ``configs/estimators/default.toml``,
+    so estimators whose noise model matches the data can be checked for consistency.
+    """
+    rng = np.random.default_rng(seed)
+    poses = random_poses(platform, n_poses, rng)
+    delta = random_error(rng)
+    clean, _ = make_log(platform, delta, poses, rng)
+    noisy, _ = make_log(platform, delta, poses, rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
+    return delta, clean, noisy

@@ -13,20 +13,14 @@ from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.config import config_from_dict
 from stewart_calib.estimators.kalman import kalman_update
 from stewart_calib.samples import Sample
-from tests.synthetic import make_log, nim_stewart, random_error, random_poses
+from tests.synthetic import static_logs, make_log, nim_stewart, random_error, random_poses
 
 PLATFORM = nim_stewart()
 
 
 @pytest.fixture(scope="module")
 def static_data():
-    """300 rich poses, constant δM (σ 1 mm): noise-free and noisy (σ_s 2 µm, σ_q 1 µm) logs."""
-    rng = np.random.default_rng(11)
-    poses = random_poses(PLATFORM, 300, rng)
-    delta = random_error(rng)
-    clean, _ = make_log(PLATFORM, delta, poses, rng)
-    noisy, _ = make_log(PLATFORM, delta, poses, rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
-    return delta, clean, noisy
+    return static_logs(PLATFORM, 300, seed=11)
 
 
 def run(method, log, **sections):

@@ -5,19 +5,14 @@ import pytest
 
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.config import config_from_dict
-from tests.synthetic import make_log, nim_stewart, random_error, random_poses
+from tests.synthetic import static_logs, nim_stewart
 
 PLATFORM = nim_stewart()
 
 
 @pytest.fixture(scope="module")
 def data():
-    rng = np.random.default_rng(21)
-    poses = random_poses(PLATFORM, 200, rng)
-    delta = random_error(rng)
-    clean, _ = make_log(PLATFORM, delta, poses, rng)
-    noisy, _ = make_log(PLATFORM, delta, poses, rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
-    return delta, clean, noisy
+    return static_logs(PLATFORM, 200, seed=21)
 
 
 def test_noise_free_recovers_truth(data):

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from . import add_config_arguments
 from .. import estimators, io
 from ..errors import CalibError, SampleRejected
 from ..estimators import Estimate, EstimatorConfig, load_estimator_config
@@ -169,10 +170,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--trace", metavar="T.csv", help="also write t_s + the 42 estimated parameters per sample")
     parser.add_argument("--rerun", metavar="R.rrd", help="also write a rerun recording of the parameter errors over time")
     parser.add_argument("--skip-bad-rows", action="store_true", help="skip bad log rows (reported) instead of refusing the log")
-    parser.add_argument("--config", metavar="C.toml", help="estimator config (default: built-in defaults)")
-    parser.add_argument(
-        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="override a config value, e.g. isam2.lag_s=5"
-    )
+    add_config_arguments(parser)
     parser.set_defaults(func=run)
 
 

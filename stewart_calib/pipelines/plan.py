@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import numpy as np
 
+from . import add_config_arguments
 from .. import io
 from ..estimators.config import load_estimator_config
 from ..platform import load_platform
@@ -22,10 +22,7 @@ from ..planning import CRITERIA, DEFAULT_CRITERION, plan_poses
 def add_platform_and_noise_arguments(parser: argparse.ArgumentParser) -> None:
     """``--platform``, and ``--config``/``--set``: the estimator config whose ``[noise]`` weights the Jacobian."""
     parser.add_argument("--platform", required=True, metavar="P.toml")
-    parser.add_argument("--config", metavar="C.toml", help="estimator config; its [noise] section is used")
-    parser.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE", help="override, e.g. noise.reading_sigma_mm=0.005"
-    )
+    add_config_arguments(parser, "noise.reading_sigma_mm=0.005")
 
 
 def add_parser(subparsers) -> None:

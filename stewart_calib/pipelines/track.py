@@ -41,6 +41,7 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator
 
+from . import add_config_arguments
 from .. import io
 from ..errors import CalibError, SampleRejected
 from ..estimators import load_estimator_config
@@ -239,10 +240,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--every", type=int, default=100, metavar="N", help="write the result and checkpoint every N rows (default 100)")
     parser.add_argument("--out", required=True, metavar="R.json", help="result file (spec §5), replaced atomically")
     parser.add_argument("--skip-bad-rows", action="store_true", help="skip bad rows (counted, reported) instead of stopping")
-    parser.add_argument("--config", metavar="C.toml", help="estimator config (default: built-in defaults)")
-    parser.add_argument(
-        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="override a config value, e.g. ekf.gate_probability=0.9999"
-    )
+    add_config_arguments(parser, "ekf.gate_probability=0.9999")
     parser.set_defaults(func=run)
 
 
