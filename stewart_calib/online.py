@@ -1,4 +1,4 @@
-"""Online calibration beside a running robot (issue 7): :class:`OnlineCalibrator` and checkpoints.
+"""Online calibration beside a running robot: :class:`OnlineCalibrator` and checkpoints.
 
 For users who embed the estimator in their controller's processing unit::
 

@@ -1,4 +1,4 @@
-"""The factor graph (issue 4): iSAM2 in a fixed-lag smoother (``isam2``) and batch LM (``lm``).
+"""The factor graph: iSAM2 in a fixed-lag smoother (``isam2``) and batch LM (``lm``).
 
 Variables: one ``Pose3`` ``x_k`` per sample (the platform {D} in {J}, mm and rad) and one
 42-vector ``p_w`` per parameter window holding δM (paper eq. 9, paper order, [mm]).
@@ -345,7 +345,7 @@ def _chain_from_dict(d: dict) -> _ChainState:
 
 
 class ResumableISAM2(ISAM2Estimator):
-    """``isam2`` whose state can be exported and rebuilt (checkpoints, issue 7).
+    """``isam2`` whose state can be exported and rebuilt (checkpoints).
 
     The smoother itself cannot be serialised (its factors are Python callbacks), so the state
     is what rebuilds it. The parameter chain is Markov: given δM of window w, the samples

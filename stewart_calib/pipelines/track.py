@@ -1,4 +1,4 @@
-"""``stewart-calib track``: calibrate online from a log as it is written (issue 7).
+"""``stewart-calib track``: calibrate online from a log as it is written.
 
     stewart-calib track --platform P.toml --method {paper-ekf,ekf,isam2} [--log FILE | -]
                         [--follow] [--idle-timeout S] [--checkpoint C.npz] [--every N]
@@ -229,7 +229,9 @@ def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "track",
         help="calibrate online from a log as it is written (a growing file or standard input)",
-        description=__doc__.split("\n\n")[0].split(": ", 1)[1] + " See the module docstring for stop and resume rules.",
+        description=__doc__.split("\n\n")[0].split(": ", 1)[1]
+        + " Stops at the end of input, after --idle-timeout with --follow, or on Ctrl-C/SIGTERM (final estimate"
+        " and checkpoint written); resumes from an existing --checkpoint when fed the same log from its start.",
     )
     parser.add_argument("--platform", required=True, metavar="P.toml", help="platform file (spec §2)")
     parser.add_argument("--method", required=True, metavar="METHOD", help=f"one of {', '.join(ONLINE_METHODS)}")
