@@ -13,7 +13,7 @@ from stewart_calib.errors import CalibError
 from stewart_calib.samples import Sample
 from stewart_calib.simulation.closed_loop import FrozenController, NominalController, run_experiment
 from stewart_calib.simulation.experiment import load_experiment
-from stewart_calib.simulation.load import G_N_PER_KG, gravity_wrench, leg_forces, loaded_params, settle, statics_matrix
+from stewart_calib.simulation.load import G_N_PER_KG, compliance_drift, gravity_wrench, leg_forces, loaded_params, settle, statics_matrix
 from stewart_calib.simulation.trajectories import random_static_poses
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -246,3 +246,216 @@ def test_missing_seed_is_refused(tmp_path):
 def test_platform_by_name_or_relative_path(quick, paper):
     assert quick.platform.name == paper.platform.name == "nim-stewart"
     np.testing.assert_array_equal(quick.platform.drive.as_vector(), paper.platform.drive.as_vector())
+
+
+# ----------------------------------------------------------------------------- plate bending
+#
+# The model (load.py, step 3): δd_iz += (Rᵀ n_i f_i)_z / k_bending. A leg in compression pushes
+# its joint up into the plate while the weight hangs at the plate's centre, so the plate sags
+# between its joints: each joint rises relative to the {D} origin (δd_iz > 0 at home) and, with
+# the strokes held, the platform origin sinks by that much.
+
+BENDING_N_PER_MM = 1000.0
+
+
+def test_bending_moves_the_platform_joints_by_force_over_stiffness(paper):
+    rng = np.random.default_rng(3)
+    poses = random_static_poses(paper.platform, 20, rng, 1.0, 0.0)
+    R, t = kin.pose_to_rt(poses)
+    payload = rng.uniform(0.0, 60.0, 20)
+    base = paper.platform.drive.as_vector()
+    bent = dataclasses.replace(paper.load, bending_N_per_mm=BENDING_N_PER_MM)
+    rigid_params, forces = loaded_params(paper.load, base, R, t, payload)
+    bent_params, bent_forces = loaded_params(bent, base, R, t, payload)
+    np.testing.assert_array_equal(bent_forces, forces)  # forces are taken on the base geometry
+    extra = (bent_params - rigid_params).reshape(-1, 6, 7)
+    # only the platform joints' z moves (column 5 of j_x j_y j_z d_x d_y d_z l) ...
+    assert np.all(np.delete(extra, 5, axis=-1) == 0.0)
+    # ... by the leg's push on the plate, in {D}, over the bending stiffness
+    n = kin.leg_unit_vectors(paper.platform.drive, R, t)
+    push_z_body = np.einsum("kj,kij->ki", R[:, :, 2], n * forces[..., None])  # (Rᵀ n_i f_i)_z
+    # (atol: a few ulps of the ~300 mm d_iz the difference is taken from)
+    np.testing.assert_allclose(extra[..., 5], push_z_body / BENDING_N_PER_MM, rtol=0, atol=1e-13)
+    # Equilibrium check independent of the individual forces: Σ_i f_i n_i = m g ẑ, so
+    # Σ_i δd_iz = m g R_zz / k (the plate carries the whole weight).
+    weight = (paper.load.platform_mass_kg + payload) * G_N_PER_KG
+    np.testing.assert_allclose(extra[..., 5].sum(-1), weight * R[:, 2, 2] / BENDING_N_PER_MM, rtol=1e-9)
+
+
+def test_bending_under_a_centred_load_sinks_the_platform_by_weight_over_six_stiffnesses(paper):
+    # Centred masses on the 3-fold symmetric platform at home: each leg carries W/6 vertically,
+    # every joint rises by W/(6 k) in {D}, and with the strokes held the origin sinks as much.
+    # The settled pose is ~0.2 mm lower, which turns the legs by ~1e-4 rad and changes their
+    # load shares at second order: measured 1e-4 relative for the sink, 2e-9 for the joints
+    # (symmetric up to the geometry's 1 µm rounding).
+    centred = dataclasses.replace(paper.load, platform_com_mm=np.array([0.0, 0.0, -40.0]), payload_com_mm=np.array([0.0, 0.0, 100.0]))
+    base = paper.platform.drive.as_vector()
+    R, t = kin.pose_to_rt(paper.platform.workspace.home[None])
+    strokes, payload = np.zeros((1, 6)), np.array([40.0])
+    rigid, _ = settle(centred, base, strokes, payload, (R, t))
+    bent, params = settle(dataclasses.replace(centred, bending_N_per_mm=BENDING_N_PER_MM), base, strokes, payload, (R, t))
+    sag = (centred.platform_mass_kg + 40.0) * G_N_PER_KG / (6 * BENDING_N_PER_MM)  # 0.180 mm
+    assert rigid.t[0, 2] - bent.t[0, 2] == pytest.approx(sag, rel=1e-3)
+    rigid_params, _ = loaded_params(centred, base, bent.R, bent.t, payload)  # same pose: only the bending term differs
+    np.testing.assert_allclose((params - rigid_params)[0, 5::7], sag, rtol=1e-6)
+
+
+def test_bending_grows_the_error_of_a_frozen_no_load_model_with_load(paper):
+    loads = np.array([0.0, 10.0, 20.0, 30.0, 40.0])
+    poses = random_static_poses(paper.platform, 30, np.random.default_rng(5), paper.poses.workspace_fraction, 0.0)
+    R_d, t_d = kin.pose_to_rt(poses)
+    base = paper.platform.drive.as_vector()
+
+    def mean_error(load):
+        # a perfect no-load calibration of this robot (bending of the plate under its own weight included)
+        frozen_params, _ = loaded_params(load, base, *kin.pose_to_rt(paper.platform.workspace.home[None]), 0.0)
+        strokes = kin.inverse_kinematics(type(paper.platform.drive).from_params(frozen_params[0]), R_d, t_d)
+        errors = []
+        for kg in loads:
+            sol, _ = settle(load, base, strokes, np.full(len(poses), kg), (R_d, t_d))
+            errors.append(kin.pose_error(R_d, t_d, sol.R, sol.t)[0].mean())
+        return np.array(errors)
+
+    rigid = mean_error(paper.load)
+    bent = mean_error(dataclasses.replace(paper.load, bending_N_per_mm=BENDING_N_PER_MM))
+    assert np.all(np.diff(bent) > 0), bent
+    # the softer plate adds error at every load, and more the heavier the load
+    assert np.all(bent[1:] > rigid[1:]) and np.all(np.diff(bent - rigid) > 0), (bent, rigid)
+    # The excess grows over 0 → 40 kg by the order of a centred 40 kg payload's sag,
+    # 40 kg·g/(6k) = 0.065 mm (measured 0.107: the off-centre payload and the tilts load some
+    # joints more); 1–3× of it.
+    sag_40kg = 40.0 * G_N_PER_KG / (6 * BENDING_N_PER_MM)
+    growth = (bent - rigid)[-1] - (bent - rigid)[0]
+    assert sag_40kg < growth < 3 * sag_40kg, (bent, rigid)
+
+
+def test_infinite_bending_stiffness_is_the_rigid_plate_exactly(quick):
+    # The rigid model written out without the bending term (load.py step 3) ...
+    R, t = kin.pose_to_rt(random_static_poses(quick.platform, 10, np.random.default_rng(2), 1.0, 0.0))
+    legs = quick.platform.drive
+    forces = leg_forces(legs, R, t, gravity_wrench(R, np.tile([quick.load.platform_mass_kg, 30.0], (10, 1)), np.stack([quick.load.platform_com_mm, quick.load.payload_com_mm])))
+    push = kin.leg_unit_vectors(legs, R, t) * forces[..., None]
+    ld = quick.load
+    rigid = np.concatenate(
+        [-push / ld.base_joint_N_per_mm, np.einsum("kji,klj->kli", R, push) / ld.platform_joint_N_per_mm, (-forces / ld.leg_N_per_mm)[..., None]], axis=-1
+    )
+    assert ld.bending_N_per_mm == np.inf
+    np.testing.assert_array_equal(compliance_drift(ld, legs, R, t, forces), rigid)
+    # ... and a whole run with bending = inf against one with a stiffness so high it is nm-rigid
+    exact = run_experiment(quick)
+    stiff = run_experiment(dataclasses.replace(quick, load=dataclasses.replace(quick.load, bending_N_per_mm=1e12)))
+    np.testing.assert_allclose(stiff.actual_poses, exact.actual_poses, rtol=0, atol=1e-9)
+    assert not np.array_equal(stiff.truth.params, exact.truth.params)  # the term is live, just tiny
+
+
+# ----------------------------------------------------------------------------- random errors
+
+
+def tiny(experiment, **robot):
+    """``experiment`` cut to one calibration pose (the robot is what is under test), robot config replaced."""
+    return dataclasses.replace(
+        experiment,
+        robot=dataclasses.replace(experiment.robot, **robot),
+        poses=dataclasses.replace(experiment.poses, calibration=1, validation=0, samples_per_pose=1),
+        stages=(dataclasses.replace(experiment.stages[0], segments=("calibration",)),),
+    )
+
+
+def chi2_band(dof: int, sigma: float, confidence: float = 0.999) -> tuple[float, float]:
+    """Two-sided band for the RMS about a known zero mean of ``dof`` N(0, σ²) draws."""
+    from scipy.stats import chi2
+
+    tail = (1.0 - confidence) / 2
+    return sigma * np.sqrt(chi2.ppf(tail, dof) / dof), sigma * np.sqrt(chi2.ppf(1.0 - tail, dof) / dof)
+
+
+def t_bound(values: np.ndarray, confidence: float = 0.999) -> float:
+    """|mean| bound of a zero-mean sample at ``confidence`` (Student t, n − 1 dof)."""
+    from scipy.stats import t as student
+
+    return student.ppf(1.0 - (1.0 - confidence) / 2, len(values) - 1) * values.std(ddof=1) / np.sqrt(len(values))
+
+
+def test_random_errors_are_reproducible_per_seed(quick, tmp_path):
+    path = tmp_path / "random.toml"
+    path.write_text(QUICK.read_text().replace("[poses]", '[robot]\nerrors = "random"\nrandom_spread_mm = 0.5\n\n[poses]'))
+    experiment = load_experiment(path)
+    assert experiment.robot.errors == "random" and experiment.robot.random_spread_mm == 0.5
+    a, b = run_experiment(experiment), run_experiment(experiment)
+    np.testing.assert_array_equal(a.robot.base_params, b.robot.base_params)
+    np.testing.assert_array_equal(a.truth.params, b.truth.params)
+    np.testing.assert_array_equal(a.log.strokes, b.log.strokes)
+    c = run_experiment(dataclasses.replace(experiment, seed=experiment.seed + 1))
+    # another seed, another robot: every one of the 42 draws differs
+    assert np.all(c.robot.base_params != a.robot.base_params)
+    # and the random robot is not the Table 4 one
+    assert np.all(a.robot.base_params != run_experiment(quick).robot.base_params)
+
+
+def test_random_errors_have_the_configured_spread_per_block(quick):
+    spread, scales = 0.5, (1.0, 0.3, 2.0)  # δj, δd, δl blocks
+    experiment = tiny(quick, errors="random", random_spread_mm=spread, scale_base_joints=scales[0], scale_platform_joints=scales[1], scale_lengths=scales[2])
+    nominal = quick.platform.drive.as_vector()
+    draws = np.array([run_experiment(dataclasses.replace(experiment, seed=seed)).robot.base_params - nominal for seed in range(150)])
+    draws = draws.reshape(-1, 6, 7)
+    for columns, scale in ((slice(0, 3), scales[0]), (slice(3, 6), scales[1]), (slice(6, 7), scales[2])):
+        block = draws[..., columns].ravel()  # 150 robots × 18 (or 6) values
+        lo, hi = chi2_band(block.size, spread * scale)  # e.g. 2700 dof: ±5 % at 99.9 %
+        rms = np.sqrt(np.mean(block**2))
+        assert lo < rms < hi, (scale, rms, lo, hi)
+        assert abs(block.mean()) < t_bound(block), (scale, block.mean())
+    # one robot: its 18 platform-joint errors alone already sit in their (wide) 18-dof band
+    lo, hi = chi2_band(18, spread * scales[1])
+    assert lo < np.sqrt(np.mean(draws[0, :, 3:6] ** 2)) < hi
+
+
+# ----------------------------------------------------------------------------- encoder noise
+
+
+def executed_strokes(params: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """``q_i = ‖t + R d_i − j_i‖ − l_i`` with each sample's own drive parameters, ``(N, 6)`` [mm]."""
+    from stewart_calib.platform import vector_to_params
+
+    p = vector_to_params(params)
+    R, t = kin.pose_to_rt(poses)
+    return np.linalg.norm(np.einsum("kij,klj->kli", R, p[..., 3:6]) + t[:, None, :] - p[..., 0:3], axis=-1) - p[..., 6]
+
+
+def test_encoder_noise_is_white_with_the_configured_sigma_and_does_not_move_the_robot(quick):
+    sigma = 0.01
+    bigger = dataclasses.replace(quick, poses=dataclasses.replace(quick.poses, samples_per_pose=20))  # 768 samples
+    clean = run_experiment(bigger)
+    noisy = run_experiment(dataclasses.replace(bigger, robot=dataclasses.replace(bigger.robot, encoder_noise_mm=sigma)))
+    # executed strokes: IK of the controller's (nominal) model; the noise only reaches the log
+    executed = kin.inverse_kinematics(quick.platform.drive, *kin.pose_to_rt(noisy.desired_poses))
+    np.testing.assert_array_equal(clean.log.strokes, executed)
+    np.testing.assert_array_equal(noisy.actual_poses, clean.actual_poses)
+    np.testing.assert_array_equal(noisy.truth.params, clean.truth.params)
+    # the robot moved by the executed strokes: FK of them on the true geometry is the true pose
+    np.testing.assert_allclose(executed_strokes(noisy.truth.params, noisy.actual_poses), executed, rtol=0, atol=1e-8)
+    noise = (noisy.log.strokes - executed).ravel()  # 4608 values
+    lo, hi = chi2_band(noise.size, sigma)  # ±5 % at 99.9 %
+    assert lo < np.sqrt(np.mean(noise**2)) < hi, np.sqrt(np.mean(noise**2))
+    assert abs(noise.mean()) < t_bound(noise), noise.mean()
+    # white: no correlation between successive samples of a leg (|r| < 3.3/√n at 99.9 %)
+    per_leg = (noisy.log.strokes - executed) / sigma
+    r = np.mean([np.corrcoef(per_leg[:-1, i], per_leg[1:, i])[0, 1] for i in range(6)])
+    assert abs(r) < 3.3 / np.sqrt(6 * (len(per_leg) - 1)), r
+
+
+def test_an_online_controller_sees_the_same_noisy_strokes_as_the_log(quick):
+    class Online(FrozenController):
+        adaptive = True  # the per-sample path
+
+        def __init__(self, drive):
+            super().__init__(drive)
+            self.strokes = []
+
+        def observe(self, sample):
+            self.strokes.append(sample.strokes)
+
+    noisy = dataclasses.replace(quick, robot=dataclasses.replace(quick.robot, encoder_noise_mm=0.01))
+    online = Online(quick.platform.drive)
+    looped, batched = run_experiment(noisy, online), run_experiment(noisy)
+    np.testing.assert_array_equal(np.array(online.strokes), looped.log.strokes)
+    np.testing.assert_allclose(looped.log.strokes, batched.log.strokes, rtol=0, atol=1e-12)

@@ -6,8 +6,11 @@ Writes into DIR (created if needed), each file atomically:
 * ``log.csv`` — the measurement log (spec §3) with desired poses, stages and payload;
 * ``truth.csv`` — the true drive parameters and true poses, row for row (spec §4).
 
-The robot is driven by its nominal model (uncalibrated, as in the paper before calibration).
-Same experiment file → identical files. A tqdm bar goes to stderr when it is a terminal.
+``--controller nominal`` (default) drives the robot with IK of its nominal model (uncalibrated, as
+in the paper before calibration); ``--controller frozen --result R.json`` drives it with IK of
+the calibrated model ``nominal + error`` of a result JSON (spec §5), i.e. a compensated robot
+whose model stays frozen while the load changes. Same experiment file (and result) → identical
+files. A tqdm bar goes to stderr when it is a terminal.
 """
 
 from __future__ import annotations
@@ -15,37 +18,67 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import CalibError
-from ..io import atomic_write_text, write_log, write_truth
-from ..platform import platform_to_toml
-from ..simulation.closed_loop import run_experiment
+from ..io import atomic_write_text, read_result, write_log, write_truth
+from ..platform import Platform, platform_to_toml
+from ..simulation.closed_loop import FrozenController, NominalController, run_experiment
 from ..simulation.experiment import load_experiment
+from .compensate import NOMINAL_TOLERANCE_MM
 
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "simulate",
         help="simulate an experiment (true robot, load, tracker) and write platform, log and truth",
-        description="Simulate the experiment of E.toml in closed loop with the nominal model; "
-        "write DIR/platform.toml, DIR/log.csv and DIR/truth.csv.",
+        description="Simulate the experiment of E.toml in closed loop with the nominal model, or "
+        "with a calibrated model frozen from a result JSON; write DIR/platform.toml, DIR/log.csv "
+        "and DIR/truth.csv.",
     )
     parser.add_argument("--experiment", required=True, metavar="E.toml")
     parser.add_argument("--out", required=True, metavar="DIR")
+    parser.add_argument(
+        "--controller",
+        choices=("nominal", "frozen"),
+        default="nominal",
+        help="drive with IK of the nominal model (default) or of the model in --result, frozen",
+    )
+    parser.add_argument("--result", metavar="R.json", help="calibration result (spec §5) for --controller frozen")
     parser.set_defaults(func=run)
+
+
+def controller_for(args: argparse.Namespace, platform: Platform):
+    """The controller ``--controller`` asks for (``--result`` read and checked against ``platform``)."""
+    if args.controller == "nominal":
+        if args.result is not None:
+            raise CalibError("--result is only used with --controller frozen")
+        return NominalController(platform)
+    if args.result is None:
+        raise CalibError("--controller frozen needs --result R.json (a calibration result)")
+    result = read_result(args.result)
+    gap = np.abs(np.array(result["nominal"]) - platform.drive.as_vector())
+    if gap.max() > NOMINAL_TOLERANCE_MM:
+        raise CalibError(
+            f"{args.result}: key 'nominal': expected the nominal drive of the experiment's platform "
+            f"'{platform.name}'; it differs by {gap.max():.3g} mm (a result for another platform?)"
+        )
+    return FrozenController(platform.drive.perturbed(np.array(result["error"])))
 
 
 def run(args: argparse.Namespace) -> int:
     experiment = load_experiment(args.experiment)
+    controller = controller_for(args, experiment.platform)
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise CalibError(f"{out}: cannot create output directory ({err.strerror or err.__class__.__name__})") from None
-    result = run_experiment(experiment, progress=True)
+    result = run_experiment(experiment, controller, progress=True)
     atomic_write_text(out / "platform.toml", platform_to_toml(experiment.platform))
     write_log(out / "log.csv", result.log)
     write_truth(out / "truth.csv", result.truth)
-    print(f"simulated {len(result.log)} samples of '{experiment.name}' into {out}")
+    print(f"simulated {len(result.log)} samples of '{experiment.name}' ({args.controller} controller) into {out}")
     return 0
 
 
