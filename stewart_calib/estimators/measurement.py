@@ -10,6 +10,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .. import _kernels
@@ -28,6 +30,13 @@ def check_sample(platform: Platform, sample: Sample) -> tuple[np.ndarray, np.nda
     """
     strokes = np.asarray(sample.strokes, dtype=float)
     readings = np.asarray(sample.readings, dtype=float)
+    # Fast path for the common, valid sample (~1 µs; the loop below costs ~8 µs): any doubt
+    # falls through to it, which finds the offending value and words the rejection.
+    if strokes.shape == (6,) and readings.shape == (6,) and math.isfinite(sample.t_s):
+        s_lo, s_hi = platform.stroke_range if platform.stroke_range is not None else (-math.inf, math.inf)
+        r_lo, r_hi = platform.reading_range if platform.reading_range is not None else (-math.inf, math.inf)
+        if _kernels.all_within(strokes, float(s_lo), float(s_hi)) and _kernels.all_within(readings, float(r_lo), float(r_hi)):
+            return strokes, readings
     if not np.isfinite(sample.t_s):
         raise SampleRejected(f"sample at t = {sample.t_s} s: non-finite time")
     for values, bounds, what in (
