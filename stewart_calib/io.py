@@ -24,7 +24,7 @@ import numpy as np
 
 from .errors import CalibError
 from .estimators.base import Estimate
-from .platform import N_PARAMS, PARAMETER_NAMES, Platform
+from .platform import N_PARAMS, PARAMETER_NAMES, LegGeometry, Platform
 from .samples import Log, Sample
 
 STROKE_COLUMNS = tuple(f"q{i}_mm" for i in range(1, 7))
@@ -604,3 +604,23 @@ def read_result(path: str | Path) -> dict:
         raise CalibError(f"{path}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
     validate_result(result, str(path))
     return result
+
+
+#: |result nominal − platform nominal| above which a result belongs to another platform [mm].
+NOMINAL_TOLERANCE_MM = 1e-6
+
+
+def read_calibrated_drive(path: str | Path, platform: Platform) -> LegGeometry:
+    """The drive ``nominal + error`` of a result JSON (spec §5) made for ``platform``.
+
+    Raises:
+        CalibError: an invalid result, or one whose ``nominal`` is not ``platform``'s drive.
+    """
+    result = read_result(path)
+    gap = float(np.max(np.abs(np.array(result["nominal"]) - platform.drive.as_vector())))
+    if gap > NOMINAL_TOLERANCE_MM:
+        raise CalibError(
+            f"{path}: key 'nominal': expected the nominal drive of platform '{platform.name}'; "
+            f"it differs by {gap:.3g} mm (a result for another platform?)"
+        )
+    return platform.drive.perturbed(np.array(result["error"]))

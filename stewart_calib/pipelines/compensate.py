@@ -17,10 +17,6 @@ from ..errors import CalibError
 from ..platform import load_platform
 from ..io import read_pose_list
 
-#: |result nominal − platform nominal| above which the result belongs to another platform [mm].
-NOMINAL_TOLERANCE_MM = 1e-6
-
-
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "compensate",
@@ -36,15 +32,9 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
-    result = io.read_result(args.result)
-    gap = np.abs(np.array(result["nominal"]) - platform.drive.as_vector())
-    if gap.max() > NOMINAL_TOLERANCE_MM:
-        raise CalibError(
-            f"{args.result}: key 'nominal': expected the nominal drive of {args.platform}; "
-            f"it differs by {gap.max():.3g} mm (a result for another platform?)"
-        )
+    drive = io.read_calibrated_drive(args.result, platform)
     poses = read_pose_list(args.poses)
-    strokes = compensate(platform.drive.perturbed(np.array(result["error"])), poses)
+    strokes = compensate(drive, poses)
     if platform.stroke_range is not None:
         lo, hi = platform.stroke_range
         bad = np.argwhere((strokes < lo) | (strokes > hi))

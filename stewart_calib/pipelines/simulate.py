@@ -18,14 +18,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
 
 from ..errors import CalibError
-from ..io import atomic_write_text, read_result, write_log, write_truth
+from ..io import atomic_write_text, read_calibrated_drive, write_log, write_truth
 from ..platform import Platform, platform_to_toml
 from ..simulation.closed_loop import FrozenController, NominalController, run_experiment
 from ..simulation.experiment import load_experiment
-from .compensate import NOMINAL_TOLERANCE_MM
 
 
 def add_parser(subparsers) -> None:
@@ -56,14 +54,7 @@ def controller_for(args: argparse.Namespace, platform: Platform):
         return NominalController(platform)
     if args.result is None:
         raise CalibError("--controller frozen needs --result R.json (a calibration result)")
-    result = read_result(args.result)
-    gap = np.abs(np.array(result["nominal"]) - platform.drive.as_vector())
-    if gap.max() > NOMINAL_TOLERANCE_MM:
-        raise CalibError(
-            f"{args.result}: key 'nominal': expected the nominal drive of the experiment's platform "
-            f"'{platform.name}'; it differs by {gap.max():.3g} mm (a result for another platform?)"
-        )
-    return FrozenController(platform.drive.perturbed(np.array(result["error"])))
+    return FrozenController(read_calibrated_drive(args.result, platform))
 
 
 def run(args: argparse.Namespace) -> int:
