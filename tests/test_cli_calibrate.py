@@ -224,3 +224,18 @@ def test_translation_only_log_warns_in_one_line_naming_the_unidentified_directio
     conditioning = read_result(tmp_path / "r.json")["conditioning"]
     assert conditioning["rank"] == 24 and conditioning["null_space_dimension"] == 18
     assert conditioning["verdict"] == "rank-deficient"
+
+
+@pytest.mark.parametrize("method", ["ls", "ekf"])
+def test_samples_a_method_cannot_use_are_counted_and_reported_for_batch_and_online(tmp_path, capsys, method):
+    # Readings in range that no pose fits (tracker FK fails): the log reader accepts them, the
+    # estimator refuses them — and batch methods must report that just as online ones do.
+    platform, rng = nim_stewart(), np.random.default_rng(13)
+    log, _ = make_log(platform, random_error(rng, 0.5), random_poses(platform, 40, rng), rng)
+    log.readings[[5, 17, 30]] = [318.0, -276.0, 318.0, -276.0, 318.0, -276.0]
+    write_log(tmp_path / "log.csv", log)
+    code, err = _run(capsys, *_args(tmp_path / "log.csv", tmp_path / "r.json", method=method))
+    assert code == 0, err
+    result = read_result(tmp_path / "r.json")
+    assert (result["samples_used"], result["samples_skipped"]) == (37, 3)
+    assert any(f"{method} rejected samples: 3 of 40" in line for line in err)

@@ -144,6 +144,20 @@ _CHOICES = {
     ("isam2", "factorization"): ("QR", "CHOLESKY"),
 }
 
+#: keys with a lower bound above 0, and why: a σ of 0 makes a noise model singular (gtsam
+#: cannot factor it); the adaptive R is the covariance of a 6-vector, of full rank only over
+#: at least 6 innovations; a window, lag or kernel of 0 is no window, lag or kernel.
+_AT_LEAST = {
+    ("noise", "reading_sigma_mm"): (0.0, "a positive σ"),
+    ("noise", "stroke_sigma_mm"): (0.0, "a positive σ"),
+    ("noise", "prior_sigma_mm"): (0.0, "a positive σ"),
+    ("paper_ekf", "measurement_noise"): (0.0, "a positive variance"),
+    ("paper_ekf", "adaptive_window"): (5, "at least 6 innovations (the covariance of a 6-vector)"),
+    ("isam2", "window_s"): (0.0, "a positive window"),
+    ("isam2", "lag_s"): (0.0, "a positive lag"),
+    ("isam2", "robust_k"): (0.0, "a positive kernel width"),
+}
+
 
 def _coerce(source: str, key: str, value: Any, default: Any) -> Any:
     if isinstance(default, bool):
@@ -185,6 +199,9 @@ def config_from_dict(doc: dict, source: str = "<config>", base: EstimatorConfig 
             if key not in known:
                 raise CalibError(f"{source}: unknown key '{full}': expected one of {', '.join(sorted(known))}")
             value = _coerce(source, full, value, getattr(current, key))
+            bound = _AT_LEAST.get((section, key))
+            if bound is not None and not value > bound[0]:
+                raise CalibError(f"{source}: key '{full}': expected {bound[1]}, got {value!r}")
             choices = _CHOICES.get((section, key))
             if choices and value not in choices:
                 raise CalibError(f"{source}: key '{full}': expected one of {', '.join(choices)}, got {value!r}")

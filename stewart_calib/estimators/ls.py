@@ -101,7 +101,7 @@ class LeastSquares:
 
     Attributes:
         singular_values: of the weighted stacked ``J_p`` at the last fit (None before).
-        rejected: ``(t_s, reason)`` of samples :meth:`fit` skipped.
+        rejected: ``(index in the fitted samples, reason)`` of samples :meth:`fit` skipped.
     """
 
     name = "ls"
@@ -115,7 +115,7 @@ class LeastSquares:
         self._t_v: list[np.ndarray] = []
         self._t_s = float("nan")
         self.singular_values: np.ndarray | None = None
-        self.rejected: list[tuple[float, str]] = []
+        self.rejected: list[tuple[int, str]] = []
 
     def update(self, sample: Sample) -> None:
         """Buffer one sample's strokes and measured pose ``P_v`` (paper Fig. 3 step 1)."""
@@ -128,11 +128,11 @@ class LeastSquares:
 
     def fit(self, samples) -> Estimate:
         """Fit the whole log, skipping (and recording in ``rejected``) unusable samples."""
-        for sample in samples:
+        for k, sample in enumerate(samples):
             try:
                 self.update(sample)
             except SampleRejected as err:
-                self.rejected.append((sample.t_s, str(err)))
+                self.rejected.append((k, str(err)))
         return self.estimate()
 
     def estimate(self) -> Estimate:

@@ -56,16 +56,18 @@ def run_calibration(
     """Run ``method`` over ``log``; see :class:`Calibration`.
 
     Raises:
-        CalibError: an unknown method, or an online method that rejected every sample.
+        CalibError: an unknown method, or a method that rejected every sample.
     """
     estimator = estimators.make_estimator(method, platform, config)
     nominal = platform.drive.as_vector()
     fit = getattr(estimator, "fit", None)
     if fit is not None:
         estimate = fit(list(log))
+        rejected = list(getattr(estimator, "rejected", []))  # batch methods list what fit skipped
         # a batch fit holds for the whole log: one constant row per sample time
         rows = np.tile(nominal + estimate.error, (len(log), 1)) if trace else None
-        return Calibration(estimate, rows, [])
+        _refuse_if_all_rejected(method, rejected, len(log))
+        return Calibration(estimate, rows, rejected)
     rows = np.empty((len(log), len(nominal))) if trace else None
     rejected = []
     bar = tqdm(log, desc=method, unit="sample", file=sys.stderr, disable=not progress, leave=False)
@@ -76,9 +78,13 @@ def run_calibration(
             rejected.append((k, str(err)))
         if rows is not None:
             rows[k] = nominal + estimator.estimate().error  # a rejected sample leaves the estimate in force
-    if len(rejected) == len(log):
-        raise CalibError(f"{method} rejected all {len(log)} samples (first: {rejected[0][1]})")
+    _refuse_if_all_rejected(method, rejected, len(log))
     return Calibration(estimator.estimate(), rows, rejected)
+
+
+def _refuse_if_all_rejected(method: str, rejected: list[tuple[int, str]], n_samples: int) -> None:
+    if rejected and len(rejected) == n_samples:
+        raise CalibError(f"{method} rejected all {n_samples} samples (first: {rejected[0][1]})")
 
 
 def calibrate(
