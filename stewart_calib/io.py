@@ -418,10 +418,23 @@ class LogRowParser:
 # ----------------------------------------------------------------------------- truth
 
 
-def write_pose_list(path: str | Path, poses: np.ndarray, dwell_s: float = 1.0) -> None:
-    """Write ``t_s`` and the six pose columns [mm, deg] (atomically)."""
-    t_s = np.arange(len(poses)) * dwell_s
-    atomic_write_text(path, _csv_text(["t_s", *POSE_COLUMNS], [t_s, *_pose_columns_deg(poses)]))
+def write_pose_list(
+    path: str | Path, poses: np.ndarray, dwell_s: float | None = 1.0, columns: dict[str, np.ndarray] | None = None
+) -> None:
+    """Write the six pose columns [mm, deg] (atomically), after ``t_s`` (one pose per ``dwell_s``
+    seconds) unless ``dwell_s`` is None, and before any extra ``columns`` (e.g. strokes).
+
+    Raises:
+        CalibError: a ``dwell_s`` that is not a finite positive number (times must increase).
+    """
+    if dwell_s is not None and not (math.isfinite(dwell_s) and dwell_s > 0):
+        raise CalibError(f"dwell time: expected a finite positive number of seconds, got {dwell_s!r}")
+    columns = columns or {}
+    head = [] if dwell_s is None else ["t_s"]
+    lead = [] if dwell_s is None else [np.arange(len(poses)) * dwell_s]
+    atomic_write_text(
+        path, _csv_text([*head, *POSE_COLUMNS, *columns], [*lead, *_pose_columns_deg(poses), *columns.values()])
+    )
 
 
 def read_pose_list(path: str | Path) -> np.ndarray:

@@ -14,7 +14,7 @@ from stewart_calib.errors import CalibError
 from stewart_calib.estimators.config import NoiseConfig
 from stewart_calib.identifiability import identifiability_report, whitened_leg_jacobian
 from stewart_calib.io import read_pose_list
-from tests.synthetic import nim_stewart, random_poses
+from tests.synthetic import NIM_STEWART, nim_stewart, random_poses
 
 NOISE = NoiseConfig()
 
@@ -103,3 +103,12 @@ def test_cli_writes_a_pose_list_that_reads_back(platform, tmp_path, capsys):
     expected = planning.plan_poses(platform, 10, "D", np.random.default_rng(7), 300, NOISE)
     np.testing.assert_allclose(read_pose_list(out), expected, rtol=1e-12, atol=1e-12)  # repr floats round-trip
     assert "planned 10 poses" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("dwell", ["nan", "-1", "0", "abc"])
+def test_plan_refuses_a_dwell_time_that_would_not_increase_t_s(tmp_path, capsys, dwell):
+    with pytest.raises(SystemExit) as stop:
+        cli_main(["plan", "--platform", str(NIM_STEWART), "--n", "5", "--out", str(tmp_path / "p.csv"), "--dwell-s", dwell])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert stop.value.code == 2 and len(err) == 1 and "--dwell-s: expected a finite positive number" in err[0]
+    assert not (tmp_path / "p.csv").exists()

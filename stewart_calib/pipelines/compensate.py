@@ -41,11 +41,10 @@ def run(args: argparse.Namespace) -> int:
         if bad.size:
             k, i = bad[0]
             raise CalibError(
-                f"{args.poses}: pose {k + 1} needs q{i + 1} = {strokes[k, i]:.6g} mm, outside the "
+                f"{args.poses}: row {k + 2}: the pose needs q{i + 1}_mm = {strokes[k, i]:.6g}, outside the "
                 f"stroke range [{lo}, {hi}] mm"
             )
-    header = [*io.POSE_COLUMNS, *io.STROKE_COLUMNS]
-    io.atomic_write_text(args.out, io._csv_text(header, [*io._pose_columns_deg(poses), *strokes.T]))
+    io.write_pose_list(args.out, poses, columns={name: q for name, q in zip(io.STROKE_COLUMNS, strokes.T)})
     print(f"wrote {len(strokes)} stroke rows to {args.out}")
     return 0
 

@@ -8,6 +8,7 @@ through it and ``stewart-calib identifiability --poses`` reads it back.
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 import numpy as np
@@ -23,6 +24,16 @@ def add_platform_and_noise_arguments(parser: argparse.ArgumentParser) -> None:
     """``--platform``, and ``--config``/``--set``: the estimator config whose ``[noise]`` weights the Jacobian."""
     parser.add_argument("--platform", required=True, metavar="P.toml")
     add_config_arguments(parser, "noise.reading_sigma_mm=0.005")
+
+
+def _positive_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite positive number of seconds, got {text!r}")
+    return value
 
 
 def add_parser(subparsers) -> None:
@@ -43,7 +54,7 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--candidates", type=int, default=2000, metavar="M", help="random candidate poses (2000)")
     parser.add_argument("--seed", type=int, default=None, help="seed of the candidate draw")
-    parser.add_argument("--dwell-s", type=float, default=1.0, help="t_s step between poses in the file [s]")
+    parser.add_argument("--dwell-s", type=_positive_seconds, default=1.0, help="t_s step between poses in the file [s], > 0")
     parser.set_defaults(func=run)
 
 

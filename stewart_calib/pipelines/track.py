@@ -166,10 +166,10 @@ def follow_log(calib: OnlineCalibrator, rows: Iterator[bytes], source: str, ever
         data_rows += 1
         if data_rows <= already:
             continue
+        if bad is not None and not skip_bad_rows:
+            raise CalibError(bad)  # not counted as read: a resume parses this row again
         calib.rows_read += 1
         if bad is not None:
-            if not skip_bad_rows:
-                raise CalibError(bad)
             calib.rows_skipped += 1
             first_bad = first_bad or bad
         else:
