@@ -1,6 +1,7 @@
 """What a user runs: one module per ``stewart-calib`` subcommand (``add_parser``, ``main``)."""
 
 import argparse
+import sys
 
 
 def add_config_arguments(parser: argparse.ArgumentParser, example: str = "isam2.lag_s=5") -> None:
@@ -9,3 +10,10 @@ def add_config_arguments(parser: argparse.ArgumentParser, example: str = "isam2.
     parser.add_argument(
         "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help=f"override a config value, e.g. {example}"
     )
+
+
+def run_command(name: str, argv: list[str] | None = None) -> int:
+    """Run ``stewart-calib NAME ARGV…`` (``argv`` None: this process's arguments): each pipeline's ``main``."""
+    from ..cli import main  # cli imports the pipelines
+
+    return main([name, *(sys.argv[1:] if argv is None else argv)])

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from . import add_config_arguments
+from . import add_config_arguments, run_command
 from .. import estimators, io
 from ..errors import CalibError, SampleRejected
 from ..estimators import Estimate, EstimatorConfig, load_estimator_config
@@ -181,6 +181,4 @@ def add_parser(subparsers) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..cli import main as cli_main  # cli imports the pipelines
-
-    return cli_main(["calibrate", *(sys.argv[1:] if argv is None else argv)])
+    return run_command("calibrate", argv)

@@ -11,6 +11,7 @@ import argparse
 
 import numpy as np
 
+from . import run_command
 from .. import io
 from ..compensation import compensate
 from ..errors import CalibError
@@ -50,6 +51,4 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..cli import main as cli_main
-
-    return cli_main(["compensate", *(argv or [])])
+    return run_command("compensate", argv)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from . import run_command
 from .. import io
 from ..errors import CalibError
 from ..estimators.config import load_estimator_config
@@ -67,6 +68,4 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..cli import main as cli_main
-
-    return cli_main(["identifiability", *(argv or [])])
+    return run_command("identifiability", argv)

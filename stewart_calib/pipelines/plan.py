@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from . import add_config_arguments
+from . import add_config_arguments, run_command
 from .. import io
 from ..estimators.config import load_estimator_config
 from ..platform import load_platform
@@ -70,6 +70,4 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..cli import main as cli_main
-
-    return cli_main(["plan", *(argv or [])])
+    return run_command("plan", argv)

@@ -19,6 +19,7 @@ import json
 import time
 from pathlib import Path
 
+from . import run_command
 from ..errors import CalibError
 from ..estimators import load_estimator_config
 from ..io import atomic_path, atomic_write_text
@@ -60,6 +61,4 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..cli import main as cli_main
-
-    return cli_main(["reproduce", *(argv or [])])
+    return run_command("reproduce", argv)

@@ -19,6 +19,7 @@ import argparse
 from pathlib import Path
 
 
+from . import run_command
 from ..errors import CalibError
 from ..io import atomic_write_text, read_calibrated_drive, write_log, write_truth
 from ..platform import Platform, platform_to_toml
@@ -74,6 +75,4 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..cli import main as cli_main
-
-    return cli_main(["simulate", *(argv or [])])
+    return run_command("simulate", argv)

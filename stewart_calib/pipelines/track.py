@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator
 
-from . import add_config_arguments
+from . import add_config_arguments, run_command
 from .. import io
 from ..errors import CalibError, SampleRejected
 from ..estimators import load_estimator_config
@@ -247,6 +247,4 @@ def add_parser(subparsers) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from ..cli import main as cli_main  # cli imports the pipelines
-
-    return cli_main(["track", *(sys.argv[1:] if argv is None else argv)])
+    return run_command("track", argv)
