@@ -54,7 +54,7 @@ def residual_covariance(platform: Platform, R: np.ndarray, t: np.ndarray, noise:
 
     The pose enters through tracker FK, so the reading noise σ_s reaches every leg residual
     through the pose: leaving ``J_x Σ_x J_xᵀ`` out makes the weights wrong by orders of
-    magnitude (measured-facts: an EKF with ``σ² I`` alone diverged).
+    magnitude (docs/measured-facts.md: an EKF with ``σ² I`` alone diverged).
     """
     J_x = kin.leg_pose_jacobian(platform.drive, R, t)
     sigma_x = kin.pose_covariance_from_legs(platform.tracker, R, t, noise.reading_sigma_mm)

@@ -205,7 +205,7 @@ def test_result_carries_conditioning_and_rich_poses_raise_no_warning(tmp_path, c
     assert code == 0
     conditioning = read_result(tmp_path / "r.json")["conditioning"]
     assert conditioning["rank"] == 42 and conditioning["verdict"] == "identifiable"
-    assert 100 < conditioning["condition_number"] < 1e3  # measured-facts: ~400 at N = 20, ~250 at N = 200
+    assert 100 < conditioning["condition_number"] < 1e3  # docs/measured-facts.md: ~400 at N = 20, ~250 at N = 200
     assert not any("warning" in line for line in err)
 
 

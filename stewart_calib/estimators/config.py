@@ -47,7 +47,7 @@ class LSConfig:
         max_iterations: Gauss–Newton iteration cap.
         rotation_weight_mm: the rotation rows of ``δE`` [rad] are multiplied by this length
             [mm] so that both halves of the residual are in mm and weigh alike (about the
-            platform radius; it also lowers the condition number ~4×, measured-facts.md).
+            platform radius; it also lowers the condition number ~4×, docs/measured-facts.md).
             1.0 is the paper's unweighted form.
     """
 

@@ -8,7 +8,7 @@ innovation is ``−r`` and ``H = ∂r/∂M``.
 Measurement covariance: ``J_x Σ_x J_xᵀ + σ_q² I`` (full 6×6), with ``Σ_x`` the tracker pose
 covariance from i.i.d. reading noise ``σ_s`` (``pose_covariance_from_legs``) and ``J_x`` the
 residuals' pose Jacobian — all six residuals share the one tracker pose, so their errors
-are correlated; with ``σ² I`` alone this filter diverges (measured-facts.md).
+are correlated; with ``σ² I`` alone this filter diverges (docs/measured-facts.md).
 
 Process noise: a random walk per parameter, ``Q = ρ² Δt I`` with ``ρ`` =
 ``noise.random_walk_mm_per_sqrt_s`` and ``Δt`` between samples (``t_s``), as in the graph.

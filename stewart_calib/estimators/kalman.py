@@ -10,7 +10,7 @@ and ~37 µs for filterpy's ``KalmanFilter.predict`` + ``update``.
 Covariance update: ``P ← P⁻ − W Wᵀ`` with ``W = P⁻Hᵀ L⁻ᵀ`` and ``S = L Lᵀ`` (Cholesky), which
 equals ``P⁻ − K S Kᵀ = (I − K H) P⁻`` (eq. 19). Only the upper triangle is computed and
 then mirrored, so ``P`` is exactly symmetric after every update (the expanded Joseph form
-drifts to ~1e-9 asymmetry, measured-facts.md).
+drifts to ~1e-9 asymmetry, docs/measured-facts.md).
 
 ``fastmath`` allows reassociation and fused multiply-add (so the inner loops vectorise) but
 not the no-NaN/no-Inf assumptions, so the positive-definiteness check of ``S`` still works.

@@ -49,7 +49,7 @@ def leg_residual(
         return r, None, None
     n = v / length
     nb = n @ R  # Rᵀ n
-    # d × n_b written out: np.cross costs ~20 µs on 3-vectors (measured-facts.md).
+    # d × n_b written out: np.cross costs ~20 µs on 3-vectors (docs/measured-facts.md).
     H_pose = np.array(
         [d[1] * nb[2] - d[2] * nb[1], d[2] * nb[0] - d[0] * nb[2], d[0] * nb[1] - d[1] * nb[0], nb[0], nb[1], nb[2]]
     )
