@@ -22,8 +22,11 @@ class NoiseConfig:
     """Noise model shared by ``ekf``, ``isam2`` and ``lm``.
 
     Attributes:
-        reading_sigma_mm: σ_s of one tracker grating reading [mm] (ruler noise plus the
-            tracker's residual geometry error, taken as white).
+        reading_sigma_mm: σ_s of one tracker grating reading [mm]: ruler noise plus the
+            tracker's residual geometry error, taken as white. The default 2 µm suits a tracker
+            whose geometry is known to a few µm; the simulated nim-stewart tracker (15 µm
+            geometry residual) needs ~0.02 mm (``configs/estimators/paper.toml``), or every
+            reported covariance is far too small.
         stroke_sigma_mm: σ_q of one executed drive stroke [mm] (encoder).
         random_walk_mm_per_sqrt_s: parameter random walk [mm/√s]: over Δt each parameter's
             variance grows by ``random_walk² Δt`` (paper eq. 15's Q; graph between-factors).
