@@ -12,9 +12,9 @@ For users who embed the estimator in their controller's processing unit::
     calib.save("ckpt.npz")
 
 A sample that cannot be used (non-finite, outside the platform's ranges, FK not converging,
-gated as an outlier) raises :class:`~stewart_calib.errors.SampleRejected`, leaves the
-estimator as it was, and is counted by reason (:class:`Rejections`, the result's added
-``samples_rejected`` field).
+gated as an outlier, gtsam failing in the ``isam2`` update) raises
+:class:`~stewart_calib.errors.SampleRejected`, leaves the estimator as it was, and is counted
+by reason (:class:`Rejections`, the result's added ``samples_rejected`` field).
 
 Checkpoint format (``.npz``, written atomically, read with ``allow_pickle=False``): arrays
 ``format`` (``"stewart-calib/checkpoint"``), ``version`` (:data:`CHECKPOINT_VERSION`),
@@ -55,6 +55,7 @@ ONLINE_METHODS = ("paper-ekf", "ekf", "isam2")
 
 #: substrings of a rejection message → its reason in the summary (first match wins).
 _REASONS = (
+    ("gtsam", "solver failed"),  # first: gtsam's own message may contain any of the words below
     ("gated", "gated outlier"),
     ("not finite", "non-finite value"),
     ("non-finite", "non-finite value"),

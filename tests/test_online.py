@@ -12,6 +12,7 @@ from stewart_calib.errors import CalibError, SampleRejected
 from stewart_calib.estimators.config import config_from_dict
 from stewart_calib.online import CHECKPOINT_VERSION, OnlineCalibrator, Rejections
 from stewart_calib.samples import Sample
+from tests.faults import INDETERMINANT, degenerate_sample
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
 
 METHODS = ("paper-ekf", "ekf", "isam2")
@@ -68,6 +69,28 @@ def test_resume_from_checkpoint_matches_an_uninterrupted_run(platform, config, l
         assert np.max(np.abs(estimate.error - full.error)) <= RESUME_TOLERANCE_MM[method]
         # covariance in mm²: the isam2 bound squared against the ~1e-4 mm stddev scale
         assert np.max(np.abs(estimate.covariance - full.covariance)) <= RESUME_TOLERANCE_MM[method] * 1e-2
+
+
+def test_a_gtsam_failure_rejects_the_sample_and_the_smoother_is_rebuilt_without_it(platform, config, log, monkeypatch, tmp_path):
+    bad = 97  # deep into the run: the replay buffer starts at a snapshot, so the rebuild is not a replay from the start
+    degenerate_sample(monkeypatch, float(log.t_s[bad]))
+    never = _feed(OnlineCalibrator(platform, "isam2", config), log.select(np.arange(len(log)) != bad)).estimate()
+    calib = _feed(OnlineCalibrator(platform, "isam2", config), log.select(slice(0, bad)))
+    calib.save(tmp_path / "c.npz")
+    with pytest.raises(SampleRejected, match=rf"^t={log.t_s[bad]} s: gtsam failed in the iSAM2 update \({INDETERMINANT} .*\)$"):
+        calib.update(log[bad])
+    assert calib.rejections.by_reason == {"solver failed": 1}
+    # The failed update rebuilt the smoother from the state a checkpoint holds, as a resume does: bit for bit.
+    resumed = OnlineCalibrator.load(tmp_path / "c.npz")
+    _assert_states_equal(calib.export_state(), resumed.export_state())
+    np.testing.assert_array_equal(calib.estimate().error, resumed.estimate().error)
+    np.testing.assert_array_equal(calib.estimate().covariance, resumed.estimate().covariance)
+    # So it goes on as a resumed run does, and ends where a run that never saw the sample ends
+    # to the resume tolerance (the snapshot linearises the older samples once, see above).
+    estimate = _feed(calib, log.select(slice(bad + 1, len(log)))).estimate()
+    assert estimate.samples_used == never.samples_used == len(log) - 1
+    assert np.max(np.abs(estimate.error - never.error)) <= RESUME_TOLERANCE_MM["isam2"]
+    assert np.max(np.abs(estimate.covariance - never.covariance)) <= RESUME_TOLERANCE_MM["isam2"] * 1e-2
 
 
 def _unusable(platform, t_s):

@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from stewart_calib import cli
-from stewart_calib.io import read_result, write_log
+from stewart_calib.io import read_log, read_result, write_log
 from stewart_calib.online import OnlineCalibrator
 from stewart_calib.pipelines.calibrate import calibrate
 from stewart_calib.pipelines.track import lines
+from tests.faults import INDETERMINANT, degenerate_sample
 from tests.synthetic import NIM_STEWART, ROOT, make_log, nim_stewart, random_error, random_poses
 
 N = 40
@@ -94,6 +95,20 @@ def test_skip_bad_rows_counts_and_goes_on(tmp_path, log_path, capsys):
                      "expected a finite number, got nan)"
     result = read_result(out)
     assert (result["samples_used"], result["samples_skipped"]) == (N - 1, 1)
+
+
+def test_a_sample_gtsam_fails_on_is_rejected_and_tracking_goes_on(tmp_path, log_path, capsys, monkeypatch):
+    t_bad = float(read_log(log_path).t_s[35])  # as track parses it
+    degenerate_sample(monkeypatch, t_bad)
+    out = tmp_path / "r.json"
+    code, err = _track(capsys, "--method", "isam2", "--set", "isam2.window_samples=5", "--log", str(log_path), "--out", str(out))
+    assert code == 0
+    first = f"t={t_bad} s: gtsam failed in the iSAM2 update ({INDETERMINANT}"
+    assert len(err) == 2 and err[0].startswith(f"stewart-calib track: isam2 rejected samples: 1 of {N} (first: {first}")
+    assert err[1] == f"stewart-calib track: wrote {out} (isam2: {N - 1} samples used, 1 skipped)"
+    result = read_result(out)
+    assert result["samples_rejected"]["by_reason"] == {"solver failed": 1}
+    assert result["samples_rejected"]["first"].startswith(first)
 
 
 @pytest.mark.parametrize(

@@ -92,6 +92,11 @@ def _robust(base: gtsam.noiseModel.Base, kind: str, k: float) -> gtsam.noiseMode
     return base
 
 
+def _first_paragraph(err: Exception) -> str:
+    """gtsam's messages run to a paragraph of advice; the first says what failed, on one line."""
+    return " ".join(str(err).strip().split("\n\n")[0].split()) or err.__class__.__name__
+
+
 class _GraphBuilder:
     """Turns one sample into its factors; shared by ``isam2`` and ``lm`` so both solve one graph.
 
@@ -194,6 +199,27 @@ class ISAM2Estimator:
     Each :meth:`update` hands the smoother only that sample's new factors and values; poses
     and parameter variables older than the lag are marginalised, so the graph (and the cost
     of an update) stays bounded however long the log.
+
+    Recovery: gtsam can throw inside an update (``IndeterminantLinearSystemException`` on a
+    degenerate sample, surfacing as ``RuntimeError``) after it has already changed the
+    smoother, which can be neither copied cheaply nor rolled back. So the estimator keeps
+    what rebuilds the smoother without that sample, and a failed update rebuilds it and
+    raises :class:`SampleRejected`. The parameter chain is Markov: given δM of window w, the
+    samples before window w+1 say nothing more about later ones. So each time a window
+    opens, the filtered marginal of the previous window's variable is kept
+    (:class:`_Snapshot`) with the samples since; a rebuild puts that Gaussian on the variable
+    as a prior and replays the samples, which re-creates the same keys, initial values,
+    timestamps and marginalisations. Only the newest snapshot at least ``lag_s`` old is kept,
+    so the replay covers every variable the smoother still holds and the buffer holds at most
+    (lag + one window) of samples. The rebuilt smoother differs from the original only in how
+    the information before the snapshot is linearised (one Gaussian at the estimate of then,
+    instead of the marginal factors the original made later): ~1e-7 mm once the estimate has
+    settled, which tests/test_online.py measures; while it still moves by ~1 mm (the first
+    couple of lags) up to ~1e-3 mm, a tenth of its σ. :class:`ResumableISAM2` exports the
+    same state for checkpoints.
+
+    Cost: one 42×42 marginal covariance per window opened; a rebuild costs one update per
+    buffered sample.
     """
 
     name = "isam2"
@@ -211,8 +237,9 @@ class ISAM2Estimator:
         params.relinearizeSkip = 1
         # Reuse the slots of removed factors so the factor index stays bounded too.
         params.findUnusedFactorSlots = True
-        self._smoother = gtsam.IncrementalFixedLagSmoother(config.isam2.lag_s, params)
-        self._state = _ChainState()
+        self._params = params
+        self._lag_s = config.isam2.lag_s
+        self._rebuild(None, [])
 
     def _current_params(self) -> np.ndarray:
         return self._smoother.calculateEstimateVector(params_key(self._state.window))
@@ -221,11 +248,59 @@ class ISAM2Estimator:
         """Add one epoch (pose variable and its factors) and run one iSAM2 update.
 
         Raises:
-            SampleRejected: see :meth:`_GraphBuilder.epoch`; the estimator is unchanged.
+            SampleRejected: see :meth:`_GraphBuilder.epoch`, or gtsam failed in the update
+                (the smoother is rebuilt without the sample); the estimator is unchanged.
         """
+        try:
+            self._add(sample)
+        except RuntimeError as err:  # gtsam's C++ exceptions; the smoother may be half-updated
+            self._rebuild(self._first_snapshot(), self._replay)
+            raise SampleRejected(f"t={sample.t_s} s: gtsam failed in the iSAM2 update ({_first_paragraph(err)})") from None
+
+    def _add(self, sample: Sample) -> None:
+        """The update itself; the Python-side state changes only once the smoother has succeeded."""
+        snapshot = None
+        if self._builder._new_window(self._state, sample.t_s):
+            p = params_key(self._state.window)
+            covariance = self._smoother.marginalCovariance(p)
+            snapshot = _Snapshot(
+                self._state, self._current_params(), 0.5 * (covariance + covariance.T), len(self._replay)
+            )
         epoch = self._builder.epoch(self._state, sample, self._current_params)
         self._smoother.update(epoch.factors, epoch.values, epoch.timestamps)
         self._state = epoch.state
+        if snapshot is not None:
+            self._snapshots.append(snapshot)
+        self._replay.append(sample)
+        self._trim(sample.t_s)
+
+    def _trim(self, t_s: float) -> None:
+        """Drop what the newest snapshot at least one lag old makes redundant."""
+        old = [i for i, s in enumerate(self._snapshots) if self._replay[s.offset].t_s <= t_s - self._lag_s]
+        if not old or self._snapshots[old[-1]].offset == 0:
+            return
+        cut = self._snapshots[old[-1]].offset
+        del self._replay[:cut]
+        self._snapshots = [replace(s, offset=s.offset - cut) for s in self._snapshots[old[-1]:]]
+
+    def _first_snapshot(self) -> _Snapshot | None:
+        """The snapshot the replay buffer starts at; None while it starts at the first sample."""
+        return self._snapshots[0] if self._snapshots and self._snapshots[0].offset == 0 else None
+
+    def _rebuild(self, first: _Snapshot | None, samples: list[Sample]) -> None:
+        """A fresh smoother holding ``first`` (the snapshot the samples follow; None: they start
+        the log) as a prior, then ``samples`` replayed; snapshots and buffer are re-created."""
+        self._smoother = gtsam.IncrementalFixedLagSmoother(self._lag_s, self._params)
+        self._state, self._snapshots, self._replay = _ChainState(), [], []
+        if first is not None:
+            p = params_key(first.state.window)
+            factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+            factors.add(gtsam.PriorFactorVector(p, first.mean, gtsam.noiseModel.Gaussian.Covariance(first.covariance)))
+            values.insert(p, first.mean)
+            self._smoother.update(factors, values, {p: first.state.last_t_s})
+            self._state = first.state
+        for sample in samples:  # may be the old buffer: the attribute was rebound above, not cleared
+            self._add(sample)
 
     def estimate(self) -> Estimate:
         """δM of the current parameter variable and its 42×42 marginal covariance [mm²]."""
@@ -348,50 +423,9 @@ class ResumableISAM2(ISAM2Estimator):
     """``isam2`` whose state can be exported and rebuilt (checkpoints).
 
     The smoother itself cannot be serialised (its factors are Python callbacks), so the state
-    is what rebuilds it. The parameter chain is Markov: given δM of window w, the samples
-    before window w+1 say nothing more about later ones. So each time a window opens, the
-    filtered marginal of the previous window's variable is kept (:class:`_Snapshot`) with the
-    samples since; a rebuild puts that Gaussian on the variable as a prior and replays the
-    samples through :meth:`update`, which re-creates the same keys, initial values, timestamps
-    and marginalisations. Only the newest snapshot at least ``lag_s`` old is kept, so the
-    replay covers every variable the smoother still holds and the buffer holds at most
-    (lag + one window) of samples. The rebuilt smoother differs from the original only in how
-    the information before the snapshot is linearised (one Gaussian instead of the marginal
-    factors the original made later), which tests/test_online.py measures.
-
-    Cost: one 42×42 marginal covariance per window opened.
+    exported is what :class:`ISAM2Estimator` keeps to rebuild it after a failed update: the
+    snapshot the replay buffer starts at and the buffered samples.
     """
-
-    def __init__(self, platform: Platform, config: EstimatorConfig | None = None):
-        config = config or EstimatorConfig()
-        super().__init__(platform, config)
-        self._lag_s = config.isam2.lag_s
-        self._snapshots: list[_Snapshot] = []  # oldest first
-        self._replay: list[Sample] = []  # accepted samples since the oldest snapshot (since the start if none)
-
-    def update(self, sample: Sample) -> None:
-        """As :meth:`ISAM2Estimator.update`, keeping what a rebuild needs."""
-        snapshot = None
-        if self._builder._new_window(self._state, sample.t_s):
-            p = params_key(self._state.window)
-            covariance = self._smoother.marginalCovariance(p)
-            snapshot = _Snapshot(
-                self._state, self._current_params(), 0.5 * (covariance + covariance.T), len(self._replay)
-            )
-        super().update(sample)  # SampleRejected: nothing recorded
-        if snapshot is not None:
-            self._snapshots.append(snapshot)
-        self._replay.append(sample)
-        self._trim(sample.t_s)
-
-    def _trim(self, t_s: float) -> None:
-        """Drop what the newest snapshot at least one lag old makes redundant."""
-        old = [i for i, s in enumerate(self._snapshots) if self._replay[s.offset].t_s <= t_s - self._lag_s]
-        if not old or self._snapshots[old[-1]].offset == 0:
-            return
-        cut = self._snapshots[old[-1]].offset
-        del self._replay[:cut]
-        self._snapshots = [replace(s, offset=s.offset - cut) for s in self._snapshots[old[-1]:]]
 
     def export_state(self) -> dict:
         """The chain state, the snapshot the buffer starts at (none before the first trim) and
@@ -405,8 +439,8 @@ class ResumableISAM2(ISAM2Estimator):
                 "readings": np.array([s.readings for s in samples], dtype=float).reshape(-1, N_LEGS),
             },
         }
-        if self._snapshots and self._snapshots[0].offset == 0:  # else the buffer starts at sample 0
-            first = self._snapshots[0]
+        first = self._first_snapshot()
+        if first is not None:
             state["snapshot"] = {"chain": _chain_to_dict(first.state), "mean": first.mean, "covariance": first.covariance}
         return state
 
@@ -424,22 +458,16 @@ class ResumableISAM2(ISAM2Estimator):
         strokes = state_array(replay, "strokes", (len(t_s), N_LEGS))
         readings = state_array(replay, "readings", (len(t_s), N_LEGS))
         target = _chain_from_dict(state.get("chain", {}))
+        first = None
         if "snapshot" in state:
             snapshot = state["snapshot"]
-            chain = _chain_from_dict(snapshot.get("chain", {}))
             mean = state_array(snapshot, "mean", (N_PARAMS,))
             covariance = state_array(snapshot, "covariance", (N_PARAMS, N_PARAMS))
             if not np.all(np.isfinite(covariance)) or np.any(np.linalg.eigvalsh(covariance) <= 0.0):
                 raise CalibError("estimator state: snapshot covariance is not positive definite")
-            p = params_key(chain.window)
-            factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
-            factors.add(gtsam.PriorFactorVector(p, mean, gtsam.noiseModel.Gaussian.Covariance(covariance)))
-            values.insert(p, mean)
-            self._smoother.update(factors, values, {p: chain.last_t_s})
-            self._state = chain
+            first = _Snapshot(_chain_from_dict(snapshot.get("chain", {})), mean, covariance, 0)
         try:
-            for k in range(len(t_s)):
-                self.update(Sample(float(t_s[k]), strokes[k], readings[k]))
+            self._rebuild(first, [Sample(float(t_s[k]), strokes[k], readings[k]) for k in range(len(t_s))])
         except SampleRejected as err:
             raise CalibError(f"estimator state: a replayed sample was rejected ({err})") from None
         if (self._state.samples, self._state.window, self._state.last_t_s) != (target.samples, target.window, target.last_t_s):
