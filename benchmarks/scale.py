@@ -32,7 +32,7 @@ RATE_HZ = 10.0
 
 
 class _FullHistory:
-    """The three calls ``ISAM2Estimator`` makes of its smoother, on a plain ``gtsam.ISAM2``."""
+    """The calls ``ISAM2Estimator`` makes of its smoother, on a plain ``gtsam.ISAM2`` (no marginalisation)."""
 
     def __init__(self, params):
         import gtsam
@@ -44,6 +44,9 @@ class _FullHistory:
 
     def calculateEstimateVector(self, key):
         return self.isam.calculateEstimateVector(key)
+
+    def marginalCovariance(self, key):
+        return self.isam.marginalCovariance(key)
 
 
 def _estimator(method: str):
