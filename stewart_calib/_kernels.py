@@ -174,8 +174,9 @@ def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations
     """Newton–Raphson FK (paper §3.2 step 1) for ``n`` poses, in place.
 
     Args:
-        base, plat, initial_lengths: ``(6, 3)`` joints b_i in {J} and p_i in {D}, ``(6,)``
-            lengths at zero stroke [mm].
+        base, plat, initial_lengths: ``(G, 6, 3)`` joints b_i in {J} and p_i in {D}, ``(G, 6)``
+            lengths at zero stroke [mm]: ``G = 1``, one geometry for every pose, or ``G = n``,
+            pose k solved with geometry k (e.g. the load-perturbed drive of the simulator).
         strokes: ``(n, 6)`` strokes or readings [mm]; the target lengths are
             ``initial_lengths + strokes``. A pose with a non-finite stroke is skipped
             (residual ``inf``, 0 iterations, guess untouched).
@@ -196,11 +197,13 @@ def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations
         if not np.all(np.isfinite(strokes[k])):
             residual[k] = np.inf
             continue
+        g = k if base.shape[0] > 1 else 0
+        base_k, plat_k = base[g], plat[g]
         for i in range(6):
-            target[i] = initial_lengths[i] + strokes[k, i]
+            target[i] = initial_lengths[g, i] + strokes[k, i]
         Rk, tk = R[k], t[k]
         while True:
-            _unit_legs(base, plat, Rk, tk, n_legs, length)
+            _unit_legs(base_k, plat_k, Rk, tk, n_legs, length)
             worst = 0.0
             for i in range(6):
                 err[i, 0] = target[i] - length[i]
@@ -210,7 +213,7 @@ def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations
             residual[k] = worst
             if not worst > tol_mm or iterations[k] >= max_iterations:
                 break
-            _pose_jacobian(plat, Rk, n_legs, J)
+            _pose_jacobian(plat_k, Rk, n_legs, J)
             A[:] = J
             if not _solve(A, err):  # singular Jacobian (degenerate pose): least-squares step
                 _damped_step(J, target, length, A, err)
@@ -340,7 +343,8 @@ def leg_observation(base, plat, initial_lengths, x, tracker_base, tracker_plat, 
 
 @numba.njit(**_JIT)
 def all_within(values, lower, upper):
-    """True when every value is finite and in ``[lower, upper]`` (NaN fails): check_sample's fast path."""
+    """True when every value is finite and in ``[lower, upper]`` (NaN fails): the fast path of
+    check_sample and of forward_kinematics' convergence check."""
     for v in values:
         if not (math.isfinite(v) and lower <= v <= upper):
             return False

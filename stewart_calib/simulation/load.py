@@ -139,42 +139,16 @@ def settle(
         guess: ``(R (N, 3, 3), t (N, 3))`` start (e.g. the desired or previous pose).
     Returns:
         ``(FK solution of the final iteration, (N, 42) true params in force [mm])``.
+    Raises:
+        kinematics.FKError: some pose did not converge (unreachable strokes).
     """
     R, t = guess
     for _ in range(load.iterations):
         # Forces at the latest pose estimate; the last FK lands within ~1e-6 of the drift's own
         # pose change of where those forces were taken, so two iterations reach the nm level.
         params, _ = loaded_params(load, base_params, R, t, payload_kg)
-        sol = _fk_each(params, strokes, (R, t))
+        p = vector_to_params(params)  # (N, 6, 7): every pose has its own drive geometry
+        sol = kin.forward_kinematics_per_pose(p[..., 0:3], p[..., 3:6], p[..., 6], strokes, (R, t))
         R, t = sol.R, sol.t
     return sol, params
 
-
-def _fk_each(params: np.ndarray, strokes: np.ndarray, guess, tol_mm: float = 1e-9, max_iterations: int = 30) -> kin.FKSolution:
-    """Batched Newton FK (paper §3.2 step 1) where every pose has its own drive geometry.
-
-    :func:`kinematics.forward_kinematics` takes one geometry for a whole batch; under load the
-    geometry differs per pose, so this solves ``‖t_k + R_k d_k,i − j_k,i‖ = l_k,i + q_k,i`` for
-    all k at once with the same body-tangent step as the kinematics module.
-
-    Raises:
-        kinematics.FKError: some pose did not converge (unreachable strokes).
-    """
-    p = vector_to_params(params)
-    base, plat, target = p[..., 0:3], p[..., 3:6], p[..., 6] + strokes
-    R, t = np.array(guess[0], dtype=float), np.array(guess[1], dtype=float)
-    for iteration in range(max_iterations + 1):
-        vec = np.einsum("kij,klj->kli", R, plat) + t[:, None, :] - base
-        length = np.linalg.norm(vec, axis=-1)
-        err = target - length
-        residual = np.max(np.abs(err), axis=-1)
-        if np.all(residual <= tol_mm) or iteration == max_iterations:
-            break
-        n_body = np.einsum("kji,klj->kli", R, vec / length[..., None])
-        J = np.concatenate([np.cross(plat, n_body), n_body], axis=-1)
-        R, t = kin.retract(R, t, np.linalg.solve(J, err[..., None])[..., 0])
-    converged = residual <= tol_mm
-    if not np.all(converged):
-        k = int(np.flatnonzero(~converged)[0])
-        raise kin.FKError(f"loaded forward kinematics did not converge at sample {k}: residual {residual[k]:.3g} mm")
-    return kin.FKSolution(R, t, np.full(len(t), iteration), converged, residual)
