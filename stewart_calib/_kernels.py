@@ -1,7 +1,7 @@
 """numba kernels behind :mod:`stewart_calib.kinematics` and the EKFs' per-sample path.
 
 Why numba: one 6-leg pose is ~100 flops, so numpy's 1–2 µs per small-array call dominates
-(a warm numpy Newton solve costs 100–200 µs, measured-facts.md); written as loops over the
+(a warm numpy Newton solve costs 100–200 µs, docs/measured-facts.md); written as loops over the
 six legs and compiled, the same solve takes a few µs. The public, vectorised functions of
 :mod:`stewart_calib.kinematics` keep their numpy signatures and call these; nothing else
 should import this module (but :mod:`stewart_calib.estimators.measurement`, for

@@ -13,5 +13,18 @@ class CalibError(ValueError):
 class SampleRejected(CalibError):
     """An estimator refused one sample (NaN, out of range, FK failure, gated outlier).
 
-    The estimator's state is untouched when this is raised; ``str(err)`` says why.
+    The estimator's state is untouched when this is raised; ``str(err)`` says why in words,
+    ``err.reason`` in one of the fixed categories below (the summaries count by it).
     """
+
+    NON_FINITE = "non-finite value"
+    OUT_OF_RANGE = "out of range"
+    FK_FAILED = "FK failed"
+    TIME_BACK = "time went back"
+    GATED = "gated outlier"
+    NOT_POSITIVE_DEFINITE = "innovation covariance not positive definite"
+    SOLVER = "solver failed"
+
+    def __init__(self, message: str, reason: str):
+        super().__init__(message)
+        self.reason = reason

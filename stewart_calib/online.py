@@ -43,7 +43,6 @@ from .estimators import EstimatorConfig, make_estimator
 from .estimators.base import Estimate
 from .estimators.config import config_from_dict
 from .estimators.isam2 import ResumableISAM2
-from .estimators.measurement import check_sample
 from .platform import Platform, parse_platform, platform_to_toml
 from .samples import Sample
 
@@ -52,19 +51,6 @@ CHECKPOINT_VERSION = 1
 
 #: methods that update per sample and can be checkpointed.
 ONLINE_METHODS = ("paper-ekf", "ekf", "isam2")
-
-#: substrings of a rejection message → its reason in the summary (first match wins).
-_REASONS = (
-    ("gtsam", "solver failed"),  # first: gtsam's own message may contain any of the words below
-    ("gated", "gated outlier"),
-    ("not finite", "non-finite value"),
-    ("non-finite", "non-finite value"),
-    ("outside", "out of range"),
-    ("kinematics", "FK failed"),
-    ("older than", "time went back"),
-    ("not before", "time went back"),
-)
-
 
 class Rejections:
     """Counts of rejected samples by reason, and the first message (bounded memory)."""
@@ -75,18 +61,17 @@ class Rejections:
         self.first = first
 
     @classmethod
-    def of(cls, messages) -> "Rejections":
-        """Counts of the rejection ``messages``."""
+    def of(cls, errors) -> "Rejections":
+        """Counts of the :class:`SampleRejected` ``errors`` by their ``reason``."""
         rejections = cls()
-        for message in messages:
-            rejections.add(message)
+        for err in errors:
+            rejections.add(err)
         return rejections
 
-    def add(self, message: str) -> None:
-        reason = next((name for key, name in _REASONS if key in message), "other")
-        self.by_reason[reason] += 1
+    def add(self, err: SampleRejected) -> None:
+        self.by_reason[err.reason] += 1
         self.count += 1
-        self.first = self.first or message
+        self.first = self.first or str(err)
 
     def summary(self) -> dict:
         """The result's ``samples_rejected`` field (added to spec §5)."""
@@ -130,10 +115,9 @@ class OnlineCalibrator:
             SampleRejected: with the reason; counted, and the estimator is untouched.
         """
         try:
-            check_sample(self.platform, sample)  # isam2 does not check the platform's ranges itself
             self._estimator.update(sample)
         except SampleRejected as err:
-            self.rejections.add(str(err))
+            self.rejections.add(err)
             raise
 
     def estimate(self) -> Estimate:

@@ -29,7 +29,7 @@ class CountingEstimator:
 
     def update(self, sample):
         if sample.readings[0] < 0:
-            raise SampleRejected(f"s1 = {sample.readings[0]} is negative")
+            raise SampleRejected(f"s1 = {sample.readings[0]} is negative", SampleRejected.OUT_OF_RANGE)
         self.accepted += 1
 
     def estimate(self) -> Estimate:

@@ -77,7 +77,7 @@ def test_a_gtsam_failure_rejects_the_sample_and_the_smoother_is_rebuilt_without_
     never = _feed(OnlineCalibrator(platform, "isam2", config), log.select(np.arange(len(log)) != bad)).estimate()
     calib = _feed(OnlineCalibrator(platform, "isam2", config), log.select(slice(0, bad)))
     calib.save(tmp_path / "c.npz")
-    with pytest.raises(SampleRejected, match=rf"^t={log.t_s[bad]} s: gtsam failed in the iSAM2 update \({INDETERMINANT} .*\)$"):
+    with pytest.raises(SampleRejected, match=rf"^sample at t = {log.t_s[bad]} s: gtsam failed in the iSAM2 update \({INDETERMINANT} .*\)$"):
         calib.update(log[bad])
     assert calib.rejections.by_reason == {"solver failed": 1}
     # The failed update rebuilt the smoother from the state a checkpoint holds, as a resume does: bit for bit.
@@ -123,10 +123,14 @@ def test_an_unusable_sample_is_rejected_and_leaves_the_state_untouched(platform,
 
 
 def test_rejections_are_summarised_by_reason():
-    rejections = Rejections.of(["ekf: sample at t = 1 s gated: NIS 9e4 > χ² bound 27.9", "tracker forward kinematics did not converge",
-                                "ekf: sample at t = 2 s gated: NIS 1e5 > χ² bound 27.9", "something new"])
+    rejections = Rejections.of([
+        SampleRejected("ekf: sample at t = 1 s gated: NIS 9e4 > χ² bound 27.9", SampleRejected.GATED),
+        SampleRejected("tracker forward kinematics did not converge", SampleRejected.FK_FAILED),
+        SampleRejected("ekf: sample at t = 2 s gated: NIS 1e5 > χ² bound 27.9", SampleRejected.GATED),
+        SampleRejected("sample at t = 3 s is older than the last one (4 s)", SampleRejected.TIME_BACK),
+    ])
     assert rejections.summary() == {
-        "count": 4, "by_reason": {"FK failed": 1, "gated outlier": 2, "other": 1},
+        "count": 4, "by_reason": {"FK failed": 1, "gated outlier": 2, "time went back": 1},
         "first": "ekf: sample at t = 1 s gated: NIS 9e4 > χ² bound 27.9",
     }
 

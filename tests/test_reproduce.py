@@ -220,7 +220,7 @@ class _Scripted:
 
     def update(self, sample):
         if int(sample.t_s) % 2:
-            raise SampleRejected("odd")
+            raise SampleRejected("odd", SampleRejected.OUT_OF_RANGE)
         self.t_s = sample.t_s
 
     def estimate(self):

@@ -103,7 +103,7 @@ def test_a_sample_gtsam_fails_on_is_rejected_and_tracking_goes_on(tmp_path, log_
     out = tmp_path / "r.json"
     code, err = _track(capsys, "--method", "isam2", "--set", "isam2.window_samples=5", "--log", str(log_path), "--out", str(out))
     assert code == 0
-    first = f"t={t_bad} s: gtsam failed in the iSAM2 update ({INDETERMINANT}"
+    first = f"sample at t = {t_bad} s: gtsam failed in the iSAM2 update ({INDETERMINANT}"
     assert len(err) == 2 and err[0].startswith(f"stewart-calib track: isam2 rejected samples: 1 of {N} (first: {first}")
     assert err[1] == f"stewart-calib track: wrote {out} (isam2: {N - 1} samples used, 1 skipped)"
     result = read_result(out)

@@ -51,7 +51,9 @@ class LegEKF:
         last_t_s = self.filter.t_s
         dt_s = 0.0 if math.isnan(last_t_s) else sample.t_s - last_t_s
         if dt_s < 0.0:
-            raise SampleRejected(f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)")
+            raise SampleRejected(
+                f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)", SampleRejected.TIME_BACK
+            )
         R_v, t_v = self._tracker_fk.solve(self.platform.tracker, readings, "tracker")
         # r, H = ∂r/∂M and R_meas = J_x Σ_x J_xᵀ + σ_q² I at the model M + X, in one compiled call.
         residual, H, R_meas = kin.leg_ekf_observation(

@@ -18,7 +18,7 @@ Parameter layout: one 42-vector per window, not six 7-vectors per leg. Smoother 
 (per leg) with relinearisation threshold 1e-2, and 1.8 against 7.7 ms with 1e-3, where the
 parameters are relinearised at almost every update; RMS errors vs truth agree to 1e-7 mm.
 
-Bounded cost (measured-facts.md): a single static parameter variable inside the fixed-lag
+Bounded cost (docs/measured-facts.md): a single static parameter variable inside the fixed-lag
 smoother keeps collecting marginal factors, so ``isam2`` always keeps a *chain* of parameter
 variables and lets old ones be marginalised with the poses; the current variable's timestamp
 is refreshed every update so it is never marginalised while in use. ``lm`` builds the same
@@ -41,6 +41,7 @@ from ..platform import N_LEGS, N_PARAMS, Platform
 from ..samples import Sample
 from .base import Estimate, state_array
 from .config import EstimatorConfig
+from .measurement import check_sample, solve_fk
 
 
 def pose_key(k: int) -> int:
@@ -122,13 +123,6 @@ class _GraphBuilder:
             return state.window_samples >= self.graph.window_samples
         return t_s - state.window_start_s >= self.graph.window_s
 
-    def _check(self, state: _ChainState, sample: Sample) -> None:
-        for name, value in (("strokes", sample.strokes), ("readings", sample.readings)):
-            value = np.asarray(value, dtype=float)
-            if value.shape != (N_LEGS,) or not np.all(np.isfinite(value)):
-                raise SampleRejected(f"t={sample.t_s} s: {name} must be 6 finite numbers in mm")
-        if not math.isfinite(sample.t_s) or sample.t_s < state.last_t_s:
-            raise SampleRejected(f"t={sample.t_s} s: time must be finite and not before {state.last_t_s} s")
 
     def epoch(self, state: _ChainState, sample: Sample, params_guess) -> _Epoch:
         """Factors, values and timestamps of ``sample`` and the state after it.
@@ -140,13 +134,13 @@ class _GraphBuilder:
             SampleRejected: non-finite data, time going backwards, or tracker FK failure;
                 nothing is changed (the caller keeps ``state``).
         """
-        self._check(state, sample)
-        readings = np.asarray(sample.readings, dtype=float)
-        try:
-            fk = kin.forward_kinematics(self.platform.tracker, readings, guess=state.last_pose)
-        except kin.FKError as err:
-            raise SampleRejected(f"t={sample.t_s} s: tracker {err}") from None
-        pose = gtsam.Pose3(gtsam.Rot3(fk.R), fk.t)
+        strokes, readings = check_sample(self.platform, sample)
+        if sample.t_s < state.last_t_s:
+            raise SampleRejected(
+                f"sample at t = {sample.t_s} s is older than the last one ({state.last_t_s} s)", SampleRejected.TIME_BACK
+            )
+        R, t = solve_fk(self.platform.tracker, readings, state.last_pose, "tracker")
+        pose = gtsam.Pose3(gtsam.Rot3(R), t)
 
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         k, x = state.samples, pose_key(state.samples)
@@ -169,22 +163,21 @@ class _GraphBuilder:
             for i in range(N_LEGS):
                 factors.add(tracker_leg.factor(x, self._tracker[i], readings[i], self._reading_noise))
         else:
-            cov = kin.pose_covariance_from_legs(self.platform.tracker, fk.R, fk.t, self.noise.reading_sigma_mm)
+            cov = kin.pose_covariance_from_legs(self.platform.tracker, R, t, self.noise.reading_sigma_mm)
             noise = _robust(gtsam.noiseModel.Gaussian.Covariance(cov), self.graph.robust, self.graph.robust_k)
             factors.add(tracker_pose.factor(x, pose, noise))
-        strokes = np.asarray(sample.strokes, dtype=float)
         for i in range(N_LEGS):
             factors.add(drive_leg.factor(x, p, i, self._nominal[i], strokes[i], self._stroke_noise))
 
         # The current parameter key is re-stamped every update so the smoother never
-        # marginalises the variable new factors are about to touch (measured-facts.md).
+        # marginalises the variable new factors are about to touch (docs/measured-facts.md).
         timestamps = {x: sample.t_s, p: sample.t_s}
         state = replace(
             state,
             samples=k + 1,
             window_samples=state.window_samples + 1,
             last_t_s=sample.t_s,
-            last_pose=(fk.R, fk.t),
+            last_pose=(R, t),
         )
         return _Epoch(factors, values, timestamps, state)
 
@@ -255,7 +248,10 @@ class ISAM2Estimator:
             self._add(sample)
         except RuntimeError as err:  # gtsam's C++ exceptions; the smoother may be half-updated
             self._rebuild(self._first_snapshot(), self._replay)
-            raise SampleRejected(f"t={sample.t_s} s: gtsam failed in the iSAM2 update ({_first_paragraph(err)})") from None
+            raise SampleRejected(
+                f"sample at t = {sample.t_s} s: gtsam failed in the iSAM2 update ({_first_paragraph(err)})",
+                SampleRejected.SOLVER,
+            ) from None
 
     def _add(self, sample: Sample) -> None:
         """The update itself; the Python-side state changes only once the smoother has succeeded."""
@@ -307,9 +303,13 @@ class ISAM2Estimator:
         if self._state.samples == 0:
             return self._builder.prior_estimate(self.name)
         p = params_key(self._state.window)
+        try:
+            covariance = self._smoother.marginalCovariance(p)
+        except RuntimeError as err:  # gtsam's C++ exceptions: a graph that does not determine δM
+            raise CalibError(f"isam2: the marginal covariance failed: {_first_paragraph(err)}") from None
         return Estimate(
             self._smoother.calculateEstimateVector(p),
-            self._smoother.marginalCovariance(p),
+            covariance,
             self.name,
             self._state.samples,
             self._state.last_t_s,
@@ -337,6 +337,8 @@ class BatchLM:
         self._values = gtsam.Values()
         self._state = _ChainState()
         self._solved: Estimate | None = None
+        #: ``(index in the fitted samples, SampleRejected)`` of samples :meth:`fit` skipped.
+        self.rejected: list[tuple[int, SampleRejected]] = []
 
     def _last_params(self) -> np.ndarray:
         return self._values.atVector(params_key(self._state.window))
@@ -354,12 +356,12 @@ class BatchLM:
         self._solved = None
 
     def fit(self, samples) -> Estimate:
-        """Append every usable sample (rejected ones are skipped) and solve."""
-        for sample in samples:
+        """Append every usable sample and solve; skipped ones are listed in ``rejected``."""
+        for k, sample in enumerate(samples):
             try:
                 self.update(sample)
-            except SampleRejected:
-                continue
+            except SampleRejected as err:
+                self.rejected.append((k, err))
         return self.estimate()
 
     def estimate(self) -> Estimate:
@@ -373,10 +375,13 @@ class BatchLM:
             params.setRelativeErrorTol(1e-12)
             params.setAbsoluteErrorTol(0.0)
             # LM may end on 'cost inf, giving up' at convergence with µm sigmas; the values are
-            # still the optimum (measured-facts.md), so the result is used as it stands.
-            self._values = gtsam.LevenbergMarquardtOptimizer(self._graph, self._values, params).optimize()
+            # still the optimum (docs/measured-facts.md), so the result is used as it stands.
             p = params_key(self._state.window)
-            covariance = gtsam.Marginals(self._graph, self._values).marginalCovariance(p)
+            try:
+                self._values = gtsam.LevenbergMarquardtOptimizer(self._graph, self._values, params).optimize()
+                covariance = gtsam.Marginals(self._graph, self._values).marginalCovariance(p)
+            except RuntimeError as err:  # gtsam's C++ exceptions: a graph that does not determine δM
+                raise CalibError(f"lm: the solve failed: {_first_paragraph(err)}") from None
             self._solved = Estimate(
                 self._values.atVector(p), covariance, self.name, self._state.samples, self._state.last_t_s
             )

@@ -101,7 +101,7 @@ class LeastSquares:
 
     Attributes:
         singular_values: of the weighted stacked ``J_p`` at the last fit (None before).
-        rejected: ``(index in the fitted samples, reason)`` of samples :meth:`fit` skipped.
+        rejected: ``(index in the fitted samples, SampleRejected)`` of samples :meth:`fit` skipped.
     """
 
     name = "ls"
@@ -115,7 +115,7 @@ class LeastSquares:
         self._t_v: list[np.ndarray] = []
         self._t_s = float("nan")
         self.singular_values: np.ndarray | None = None
-        self.rejected: list[tuple[int, str]] = []
+        self.rejected: list[tuple[int, SampleRejected]] = []
 
     def update(self, sample: Sample) -> None:
         """Buffer one sample's strokes and measured pose ``P_v`` (paper Fig. 3 step 1)."""
@@ -132,7 +132,7 @@ class LeastSquares:
             try:
                 self.update(sample)
             except SampleRejected as err:
-                self.rejected.append((k, str(err)))
+                self.rejected.append((k, err))
         return self.estimate()
 
     def estimate(self) -> Estimate:

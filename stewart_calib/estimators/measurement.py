@@ -38,25 +38,49 @@ def check_sample(platform: Platform, sample: Sample) -> tuple[np.ndarray, np.nda
         if _kernels.all_within(strokes, float(s_lo), float(s_hi)) and _kernels.all_within(readings, float(r_lo), float(r_hi)):
             return strokes, readings
     if not np.isfinite(sample.t_s):
-        raise SampleRejected(f"sample at t = {sample.t_s} s: non-finite time")
+        raise SampleRejected(f"sample at t = {sample.t_s} s: non-finite time", SampleRejected.NON_FINITE)
     for values, bounds, what in (
         (strokes, platform.stroke_range, "stroke q"),
         (readings, platform.reading_range, "reading s"),
     ):
         if values.shape != (6,):
-            raise SampleRejected(f"sample at t = {sample.t_s} s: expected 6 {what} values, got shape {values.shape}")
+            raise SampleRejected(
+                f"sample at t = {sample.t_s} s: expected 6 {what} values, got shape {values.shape}",
+                SampleRejected.NON_FINITE,
+            )
         bad = np.flatnonzero(~np.isfinite(values))
         if bad.size:
-            raise SampleRejected(f"sample at t = {sample.t_s} s: {what}{bad[0] + 1} is not finite")
+            raise SampleRejected(f"sample at t = {sample.t_s} s: {what}{bad[0] + 1} is not finite", SampleRejected.NON_FINITE)
         if bounds is not None:
             bad = np.flatnonzero((values < bounds[0]) | (values > bounds[1]))
             if bad.size:
                 i = int(bad[0])
                 raise SampleRejected(
                     f"sample at t = {sample.t_s} s: {what}{i + 1} = {values[i]:.6g} mm outside "
-                    f"[{bounds[0]}, {bounds[1]}] mm"
+                    f"[{bounds[0]}, {bounds[1]}] mm",
+                    SampleRejected.OUT_OF_RANGE,
                 )
     return strokes, readings
+
+
+def solve_fk(
+    legs: LegGeometry, lengths: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None, what: str, tol_mm: float = 1e-9
+) -> tuple[np.ndarray, np.ndarray]:
+    """FK from ``guess`` (the previous pose), then from the default cold guess: a jump between
+    samples can leave the old pose outside Newton's basin.
+
+    Raises:
+        SampleRejected: neither start converges; ``what`` names the leg set.
+    """
+    for start in (guess, None) if guess is not None else (None,):
+        sol = kin.forward_kinematics(legs, lengths, guess=start, tol_mm=tol_mm, strict=False)
+        if sol.converged:
+            return sol.R, sol.t
+    raise SampleRejected(
+        f"{what} forward kinematics did not converge (residual {float(sol.residual_mm):.3g} mm): "
+        "the lengths may be unreachable",
+        SampleRejected.FK_FAILED,
+    )
 
 
 class WarmFK:
@@ -73,21 +97,13 @@ class WarmFK:
     def solve(self, legs: LegGeometry, lengths: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
         """``(R, t)`` with ``‖t + R p_i − b_i‖ = initial_i + lengths_i`` (paper step 1).
 
-        Tries the previous pose first, then the default cold guess (a jump between
-        samples can leave the old pose outside Newton's basin).
+        Tries the previous pose first, then the default cold guess (:func:`solve_fk`).
 
         Raises:
             SampleRejected: neither start converges; ``what`` names the leg set.
         """
-        for guess in (self._guess, None) if self._guess is not None else (None,):
-            sol = kin.forward_kinematics(legs, lengths, guess=guess, tol_mm=self.tol_mm, strict=False)
-            if sol.converged:
-                self._guess = (sol.R, sol.t)
-                return sol.R, sol.t
-        raise SampleRejected(
-            f"{what} forward kinematics did not converge (residual {float(sol.residual_mm):.3g} mm): "
-            "the lengths may be unreachable"
-        )
+        self._guess = solve_fk(legs, lengths, self._guess, what, self.tol_mm)
+        return self._guess
 
 
     def export_state(self) -> dict:

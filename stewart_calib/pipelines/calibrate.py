@@ -41,12 +41,12 @@ class Calibration:
     Attributes:
         estimate: at the last sample (online) or the fit to the whole log (batch).
         trace: ``(N, 42)`` estimated absolute parameters [mm] after each sample, or None.
-        rejected: ``(sample index, reason)`` of samples the estimator refused.
+        rejected: ``(sample index, SampleRejected)`` of samples the estimator refused.
     """
 
     estimate: Estimate
     trace: np.ndarray | None
-    rejected: list[tuple[int, str]]
+    rejected: list[tuple[int, SampleRejected]]
 
 
 def run_calibration(
@@ -75,14 +75,14 @@ def run_calibration(
         try:
             estimator.update(sample)
         except SampleRejected as err:
-            rejected.append((k, str(err)))
+            rejected.append((k, err))
         if rows is not None:
             rows[k] = nominal + estimator.estimate().error  # a rejected sample leaves the estimate in force
     _refuse_if_all_rejected(method, rejected, len(log))
     return Calibration(estimator.estimate(), rows, rejected)
 
 
-def _refuse_if_all_rejected(method: str, rejected: list[tuple[int, str]], n_samples: int) -> None:
+def _refuse_if_all_rejected(method: str, rejected: list[tuple[int, SampleRejected]], n_samples: int) -> None:
     if rejected and len(rejected) == n_samples:
         raise CalibError(f"{method} rejected all {n_samples} samples (first: {rejected[0][1]})")
 
@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     samples_skipped = len(log.skipped) + len(result.rejected)
     extra = {
         "conditioning": conditioning_summary(report),
-        "samples_rejected": Rejections.of(reason for _, reason in result.rejected).summary(),
+        "samples_rejected": Rejections.of(err for _, err in result.rejected).summary(),
     }
     result_json = io.result_text(io.result_dict(result.estimate, platform, samples_skipped, extra), str(out))
     trace_csv = io.trace_text(log.t_s, result.trace) if trace_path else None
