@@ -85,6 +85,19 @@ def test_a_bad_row_stops_track_after_writing_the_last_good_estimate(tmp_path, lo
     assert read_result(out)["samples_used"] == 10  # rows 2..11
 
 
+def test_resume_after_a_bad_row_stop_reads_that_row_again(tmp_path, log_path, capsys):
+    # The user fixes (or chooses to skip) the row that stopped tracking and resumes: that row
+    # must be parsed again, not counted as read — otherwise a sample is silently lost.
+    _with_bad_row(log_path, 12)
+    out, ckpt = tmp_path / "r.json", tmp_path / "c.npz"
+    assert _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt))[0] == 2
+    code, err = _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt),
+                       "--skip-bad-rows")
+    assert code == 0, err
+    result = read_result(out)
+    assert (result["samples_used"], result["samples_skipped"]) == (N - 1, 1)
+
+
 def test_skip_bad_rows_counts_and_goes_on(tmp_path, log_path, capsys):
     _with_bad_row(log_path, 12)
     out = tmp_path / "r.json"
