@@ -95,9 +95,12 @@ def test_noisy_static_covariance_is_consistent_and_isam2_agrees_with_lm(platform
     difference = np.abs(isam2.error - lm.error)
     assert np.max(difference) <= 4.0 * sigma_c * np.sqrt(links)
     assert np.all(difference <= 0.1 * lm.stddev)
-    # The chain's extra freedom adds at most σ_c² K to each variance: σ grows by ≤ σ_c² K / (2σ²)
-    # relative (1.6e-3 for the smallest σ, 1.1 µm); measured at most 5.6e-4.
-    assert np.all(np.abs(isam2.stddev / lm.stddev - 1.0) <= sigma_c**2 * links / (2.0 * lm.stddev**2))
+    # The σ's differ through the same approximations (the chain, marginalisation linearised at
+    # older estimates; not one clean term: measured ≤ 5.6e-4 relative, with σ_c = 1e-6 of either
+    # sign). 1 % is what matters downstream: it moves any 4σ bound by 0.04σ.
+    np.testing.assert_allclose(isam2.stddev, lm.stddev, rtol=0.01)
+    # Scaling check of the derivation above (measured): the difference is 9.3e-4 / 6.8e-5 /
+    # 5.1e-6 mm for σ_c = 1e-4 / 1e-5 / 1e-6 — linear in σ_c until the other terms' ~5e-6 mm.
 
 
 def test_loose_coupling_matches_tight(platform, noisy):
