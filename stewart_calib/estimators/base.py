@@ -15,7 +15,7 @@ from typing import Iterable, Protocol, runtime_checkable
 
 import numpy as np
 
-from ..errors import CalibError
+from ..errors import CalibError, SampleRejected
 from ..platform import LegGeometry, Platform
 from ..samples import Sample
 
@@ -58,6 +58,17 @@ class Estimator(Protocol):
     def update(self, sample: Sample) -> None: ...
 
     def estimate(self) -> Estimate: ...
+
+
+def feed(estimator: Estimator, samples: Iterable[Sample]) -> list[tuple[int, SampleRejected]]:
+    """``update`` with every sample, skipping refused ones: their ``(index, SampleRejected)``."""
+    rejected = []
+    for k, sample in enumerate(samples):
+        try:
+            estimator.update(sample)
+        except SampleRejected as err:
+            rejected.append((k, err))
+    return rejected
 
 
 def fit_all(estimator: Estimator, samples: Iterable[Sample]) -> Estimate:

@@ -39,7 +39,7 @@ from ..errors import CalibError, SampleRejected
 from ..factors import drive_leg, random_walk, tracker_leg, tracker_pose
 from ..platform import N_LEGS, N_PARAMS, Platform
 from ..samples import Sample
-from .base import Estimate, state_array
+from .base import Estimate, feed, state_array
 from .config import EstimatorConfig
 from .measurement import check_sample, solve_fk
 
@@ -357,11 +357,7 @@ class BatchLM:
 
     def fit(self, samples) -> Estimate:
         """Append every usable sample and solve; skipped ones are listed in ``rejected``."""
-        for k, sample in enumerate(samples):
-            try:
-                self.update(sample)
-            except SampleRejected as err:
-                self.rejected.append((k, err))
+        self.rejected.extend(feed(self, samples))
         return self.estimate()
 
     def estimate(self) -> Estimate:

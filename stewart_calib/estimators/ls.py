@@ -22,7 +22,7 @@ from .. import kinematics as kin
 from ..errors import CalibError, SampleRejected
 from ..platform import N_PARAMS, LegGeometry, Platform
 from ..samples import Sample
-from .base import Estimate
+from .base import Estimate, feed
 from .config import EstimatorConfig, LSConfig
 from .measurement import WarmFK, check_sample, pose_difference
 
@@ -128,11 +128,7 @@ class LeastSquares:
 
     def fit(self, samples) -> Estimate:
         """Fit the whole log, skipping (and recording in ``rejected``) unusable samples."""
-        for k, sample in enumerate(samples):
-            try:
-                self.update(sample)
-            except SampleRejected as err:
-                self.rejected.append((k, err))
+        self.rejected.extend(feed(self, samples))
         return self.estimate()
 
     def estimate(self) -> Estimate:
