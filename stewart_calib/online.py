@@ -40,7 +40,7 @@ from . import io
 from .compensation import compensate
 from .errors import CalibError, SampleRejected
 from .estimators import EstimatorConfig, make_estimator
-from .estimators.base import Estimate
+from .estimators.base import Estimate, current_error
 from .estimators.config import config_from_dict
 from .estimators.isam2 import ResumableISAM2
 from .platform import Platform, parse_platform, platform_to_toml
@@ -127,7 +127,7 @@ class OnlineCalibrator:
     def compensated_strokes(self, pose6: np.ndarray) -> np.ndarray:
         """Strokes [mm] that put the estimated drive at ``pose6`` ``[x, y, z [mm], roll, pitch, yaw [rad]]``
         (``(6,)`` or ``(N, 6)``; paper Fig. 3 step 4)."""
-        return compensate(self.estimate(), pose6, self.platform)
+        return compensate(self.platform.drive.perturbed(current_error(self._estimator)), pose6)
 
     def result(self) -> dict:
         """The current estimate as a spec §5 result, with the added ``samples_rejected`` field.

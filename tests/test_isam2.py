@@ -178,3 +178,16 @@ def test_rejected_sample_leaves_the_estimator_untouched(platform, noisy, method)
     for sample in good.select(slice(15, 30)):
         estimator.update(sample)
     np.testing.assert_allclose(estimator.estimate().error, reference.error, rtol=0, atol=1e-12)
+
+
+def test_current_error_is_the_estimate_mean_without_the_covariance():
+    from stewart_calib.estimators.base import current_error
+
+    platform, rng = nim_stewart(), np.random.default_rng(5)
+    log, _ = make_log(platform, random_error(rng), random_poses(platform, 30, rng), rng, 0.002, 0.001)
+    for method in ("isam2", "ekf"):  # isam2 offers the shortcut; ekf goes through estimate()
+        est = make_estimator(method, platform)
+        np.testing.assert_array_equal(current_error(est), est.estimate().error)  # before any sample: the prior
+        for sample in log:
+            est.update(sample)
+            np.testing.assert_array_equal(current_error(est), est.estimate().error)

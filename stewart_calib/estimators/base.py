@@ -60,6 +60,14 @@ class Estimator(Protocol):
     def estimate(self) -> Estimate: ...
 
 
+def current_error(estimator: Estimator) -> np.ndarray:
+    """δM now [mm], without the covariance: an estimator whose covariance is costly (isam2's
+    marginal, ~0.3 ms) may offer ``current_error()``; any other gives ``estimate().error``.
+    For callers that need only the model, once per sample (traces, the controller's IK)."""
+    fast = getattr(estimator, "current_error", None)
+    return fast() if fast is not None else estimator.estimate().error
+
+
 def feed(estimator: Estimator, samples: Iterable[Sample]) -> list[tuple[int, SampleRejected]]:
     """``update`` with every sample, skipping refused ones: their ``(index, SampleRejected)``."""
     rejected = []

@@ -315,6 +315,12 @@ class ISAM2Estimator:
             self._state.last_t_s,
         )
 
+    def current_error(self) -> np.ndarray:
+        """δM of the current parameter variable [mm], without the marginal covariance."""
+        if self._state.samples == 0:
+            return self._builder.prior_estimate(self.name).error
+        return self._smoother.calculateEstimateVector(params_key(self._state.window))
+
     def graph_size(self) -> tuple[int, int]:
         """``(factors, variables)`` held by the smoother now."""
         return self._smoother.getFactors().nrFactors(), self._smoother.getLinearizationPoint().size()

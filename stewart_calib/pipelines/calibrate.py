@@ -23,6 +23,7 @@ from . import add_config_arguments, run_command
 from .. import estimators, io
 from ..errors import CalibError, SampleRejected
 from ..estimators import Estimate, EstimatorConfig, load_estimator_config
+from ..estimators.base import current_error
 from ..online import Rejections
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
 from ..platform import Platform, load_platform
@@ -77,7 +78,7 @@ def run_calibration(
         except SampleRejected as err:
             rejected.append((k, err))
         if rows is not None:
-            rows[k] = nominal + estimator.estimate().error  # a rejected sample leaves the estimate in force
+            rows[k] = nominal + current_error(estimator)  # a rejected sample leaves the estimate in force
     _refuse_if_all_rejected(method, rejected, len(log))
     return Calibration(estimator.estimate(), rows, rejected)
 
