@@ -16,7 +16,7 @@ from . import __version__
 from .errors import CalibError
 
 #: subcommands, each the module of the same name in stewart_calib.pipelines.
-SUBCOMMANDS = ("calibrate", "simulate", "reproduce", "track", "identifiability", "plan", "compensate")
+SUBCOMMANDS = ("calibrate", "simulate", "reproduce", "track", "identifiability", "plan", "compensate", "import_bag")
 
 
 class _Parser(argparse.ArgumentParser):

@@ -1,0 +1,291 @@
+"""``stewart-calib import-bag``: a ROS bag → a measurement log (spec §3, §7).
+
+    stewart-calib import-bag BAG --strokes TOPIC (--readings TOPIC | --pose TOPIC) --out L.csv
+                             [--stroke-joints N1,…,N6] [--reading-joints N1,…,N6]
+                             [--stroke-unit m|mm|um] [--reading-unit m|mm|um] [--pose-unit m|mm|um]
+                             [--clock header|bag] [--max-gap-s S]
+
+Reads ROS 2 bags (sqlite3 or MCAP directory) and ROS 1 ``.bag`` files with the ``rosbags``
+library — no ROS installation needed. Drive strokes come from a ``sensor_msgs/JointState``
+topic; the measurement either from a second ``JointState`` (the in-situ tracker's six readings,
+log columns ``s1_mm … s6_mm``) or from a ``geometry_msgs/PoseStamped`` (a motion-capture pose,
+columns ``mx_mm … myaw_deg`` of spec §7).
+
+Time alignment: one log row per measurement message. The strokes are interpolated linearly to
+the measurement's stamp between the two stroke messages around it; a measurement with no
+stroke message on one side, or whose two neighbours are more than ``--max-gap-s`` apart, gets
+no row (the count is reported). ``t_s`` is seconds since the first written row. ROS messages
+carry SI units (REP 103: metres), hence the default ``m``; the unit flags say otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io as text_io
+import math
+import sys
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from . import run_command
+from .. import io
+from ..errors import CalibError
+from ..kinematics import rotation_to_rpy
+
+JOINT_STATE = "sensor_msgs/msg/JointState"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+#: millimetres per unit of each ``--*-unit`` choice.
+MM_PER_UNIT = {"m": 1000.0, "mm": 1.0, "um": 1e-3}
+#: default largest time between the two stroke messages a row is interpolated from [s].
+DEFAULT_MAX_GAP_S = 0.1
+STROKE_COLUMNS = tuple(f"q{i}_mm" for i in range(1, 7))
+READING_COLUMNS = tuple(f"s{i}_mm" for i in range(1, 7))
+MEASURED_POSE_COLUMNS = ("mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg", "myaw_deg")
+
+
+@dataclass(frozen=True)
+class TopicSeries:
+    """The messages of one topic in time order.
+
+    Attributes:
+        t_s: ``(N,)`` stamps [s] (ROS time, seconds since the epoch).
+        values: ``(N, 6)`` six joint positions (in the bag's unit) or a pose
+            ``[x, y, z (bag unit), roll, pitch, yaw [rad]]``.
+    """
+
+    t_s: np.ndarray
+    values: np.ndarray
+
+
+def interpolate_to_stamps(source: TopicSeries, t_s: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Linear interpolation of ``source`` to the stamps ``t_s``.
+
+    Returns:
+        ``(values (M, 6) at the kept stamps, kept (len(t_s),) bool)``: a stamp is kept when
+        stroke messages lie at or before and at or after it, at most ``max_gap_s`` apart.
+    """
+    t_src = source.t_s
+    after = np.searchsorted(t_src, t_s, side="left")  # first source stamp >= t
+    exact = (after < len(t_src)) & (t_src[np.minimum(after, len(t_src) - 1)] == t_s)
+    before = np.where(exact, after, after - 1)
+    inside = (before >= 0) & (after < len(t_src))
+    lo, hi = np.clip(before, 0, len(t_src) - 1), np.clip(after, 0, len(t_src) - 1)
+    gap = t_src[hi] - t_src[lo]
+    kept = inside & (gap <= max_gap_s)
+    lo, hi, t = lo[kept], hi[kept], t_s[kept]
+    span = t_src[hi] - t_src[lo]
+    weight = np.divide(t - t_src[lo], span, out=np.zeros_like(t), where=span > 0)[:, None]
+    return source.values[lo] * (1.0 - weight) + source.values[hi] * weight, kept
+
+
+def quaternion_to_rpy(xyzw: np.ndarray) -> np.ndarray:
+    """``(N, 4)`` unit quaternions ``(x, y, z, w)`` (ROS order) → ``(N, 3)`` roll, pitch, yaw [rad]
+    with ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (spec §1)."""
+    q = xyzw / np.linalg.norm(xyzw, axis=1, keepdims=True)
+    x, y, z, w = q.T
+    R = np.empty((len(q), 3, 3))
+    R[:, 0] = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=1)
+    R[:, 1] = np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=1)
+    R[:, 2] = np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=1)
+    return rotation_to_rpy(R)
+
+
+# ----------------------------------------------------------------------------- reading a bag
+
+
+@contextmanager
+def open_bag(bag: Path):
+    """An open ``rosbags`` ``AnyReader`` on ``bag`` (closed on leaving the block).
+
+    Raises:
+        CalibError: the path is missing or is not a ROS 1 / ROS 2 bag.
+    """
+    from rosbags.highlevel import AnyReader, AnyReaderError  # only this command needs rosbags
+    from rosbags.typesys import Stores, get_typestore
+
+    if not bag.exists():
+        raise CalibError(f"{bag}: bag not found")
+    # A ROS 2 bag may carry no message definitions; the standard ones are then Humble's.
+    try:
+        reader = AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        reader.open()
+    except (AnyReaderError, OSError) as err:
+        detail = " ".join(str(err).split()) or err.__class__.__name__
+        raise CalibError(
+            f"{bag}: cannot read as a ROS bag ({detail}); expected a ROS 1 .bag file or a ROS 2 bag directory"
+        ) from None
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def _connections(reader, bag: Path, topic: str, option: str, expected: str):
+    topics = reader.topics
+    if topic not in topics:
+        listing = ", ".join(f"{name} ({info.msgtype})" for name, info in sorted(topics.items())) or "none"
+        raise CalibError(f"{bag}: {option} {topic}: no such topic; the bag has: {listing}")
+    found = topics[topic].msgtype
+    if found != expected:
+        raise CalibError(f"{bag}: {option} {topic}: the topic carries {found}; expected {expected}")
+    return topics[topic].connections
+
+
+def _stamp_s(msg, bag_time_ns: int, clock: str) -> float:
+    if clock == "bag":
+        return bag_time_ns * 1e-9
+    stamp = msg.header.stamp
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def _joint_positions(msg, joints: list[str] | None, where: str) -> list[float]:
+    positions = list(msg.position)
+    if joints is None:
+        if len(positions) != 6:
+            raise CalibError(
+                f"{where}: expected 6 joint positions, got {len(positions)} (names {list(msg.name)}); "
+                "name the six joints with --stroke-joints / --reading-joints"
+            )
+        return positions
+    names = list(msg.name)
+    if len(names) != len(positions):
+        raise CalibError(f"{where}: {len(names)} joint names but {len(positions)} positions")
+    missing = [name for name in joints if name not in names]
+    if missing:
+        raise CalibError(f"{where}: joint(s) {', '.join(missing)} not in the message; it has {', '.join(names)}")
+    return [positions[names.index(name)] for name in joints]
+
+
+def read_topic(reader, bag: Path, topic: str, option: str, kind: str, clock: str, joints: list[str] | None = None) -> TopicSeries:
+    """All messages of ``topic`` as a :class:`TopicSeries` in stamp order.
+
+    Args:
+        kind: ``JOINT_STATE`` (six positions) or ``POSE_STAMPED`` (position + roll, pitch, yaw).
+        clock: ``"header"`` (the message's ``header.stamp``) or ``"bag"`` (the recording time).
+    Raises:
+        CalibError: a missing topic (listing the bag's topics), another message type (naming
+            it), a message without six positions, a zero header stamp, non-finite values.
+    """
+    from rosbags.highlevel import AnyReaderError
+
+    connections = _connections(reader, bag, topic, option, kind)
+    stamps, values = [], []
+    for k, (connection, bag_time_ns, raw) in enumerate(reader.messages(connections=connections)):
+        where = f"{bag}: {option} {topic}: message {k + 1}"
+        try:
+            msg = reader.deserialize(raw, connection.msgtype)
+        except AnyReaderError as err:
+            raise CalibError(f"{where}: cannot decode the message ({' '.join(str(err).split())})") from None
+        t_s = _stamp_s(msg, bag_time_ns, clock)
+        if t_s == 0.0:
+            raise CalibError(f"{where}: header.stamp is zero; use --clock bag to take the recording time")
+        if kind == JOINT_STATE:
+            row = _joint_positions(msg, joints, where)
+        else:
+            p, q = msg.pose.position, msg.pose.orientation
+            row = [p.x, p.y, p.z, q.x, q.y, q.z, q.w]
+        if not all(math.isfinite(v) for v in row):
+            raise CalibError(f"{where}: expected finite values, got {row}")
+        stamps.append(t_s)
+        values.append(row)
+    if not stamps:
+        raise CalibError(f"{bag}: {option} {topic}: the topic has no messages")
+    t_s, values = np.array(stamps), np.array(values, dtype=float)
+    order = np.argsort(t_s, kind="stable")
+    t_s, values = t_s[order], values[order]
+    if kind == POSE_STAMPED:
+        if np.any(np.linalg.norm(values[:, 3:], axis=1) < 1e-9):
+            raise CalibError(f"{bag}: {option} {topic}: a pose has a zero quaternion; expected unit quaternions")
+        values = np.hstack([values[:, :3], quaternion_to_rpy(values[:, 3:])])
+    return TopicSeries(t_s, values)
+
+
+# ----------------------------------------------------------------------------- the log
+
+
+def log_text(t_s: np.ndarray, strokes_mm: np.ndarray, header: tuple[str, ...], measured: np.ndarray) -> str:
+    """The CSV text of a log: ``t_s``, ``q1_mm … q6_mm``, then the measurement columns ``header``."""
+    buffer = text_io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(["t_s", *STROKE_COLUMNS, *header])
+    writer.writerows(np.column_stack([t_s, strokes_mm, measured]).tolist())
+    return buffer.getvalue()
+
+
+def _joint_names(value: str | None, option: str) -> list[str] | None:
+    if value is None:
+        return None
+    names = [name.strip() for name in value.split(",")]
+    if len(names) != 6 or not all(names) or len(set(names)) != 6:
+        raise CalibError(f"{option}: expected six distinct joint names separated by commas, got {value!r}")
+    return names
+
+
+def run(args: argparse.Namespace) -> int:
+    bag, out = Path(args.bag), Path(args.out)
+    if not out.parent.is_dir():
+        raise CalibError(f"--out {out}: directory {out.parent} does not exist")
+    if not (math.isfinite(args.max_gap_s) and args.max_gap_s > 0):
+        raise CalibError(f"--max-gap-s: expected a finite positive number of seconds, got {args.max_gap_s!r}")
+    stroke_joints = _joint_names(args.stroke_joints, "--stroke-joints")
+    reading_joints = _joint_names(args.reading_joints, "--reading-joints")
+    with open_bag(bag) as reader:
+        strokes = read_topic(reader, bag, args.strokes, "--strokes", JOINT_STATE, args.clock, stroke_joints)
+        if args.readings is not None:
+            measured = read_topic(reader, bag, args.readings, "--readings", JOINT_STATE, args.clock, reading_joints)
+            header = READING_COLUMNS
+            values = measured.values * MM_PER_UNIT[args.reading_unit]
+        else:
+            measured = read_topic(reader, bag, args.pose, "--pose", POSE_STAMPED, args.clock)
+            header = MEASURED_POSE_COLUMNS
+            values = np.hstack([measured.values[:, :3] * MM_PER_UNIT[args.pose_unit], np.degrees(measured.values[:, 3:])])
+    q, kept = interpolate_to_stamps(strokes, measured.t_s, args.max_gap_s)
+    if not kept.any():
+        raise CalibError(
+            f"{bag}: no measurement of {args.readings or args.pose} lies between two {args.strokes} messages at most "
+            f"{args.max_gap_s!r} s apart (strokes {strokes.t_s[0]:.3f}–{strokes.t_s[-1]:.3f} s, measurements "
+            f"{measured.t_s[0]:.3f}–{measured.t_s[-1]:.3f} s); check --clock or raise --max-gap-s"
+        )
+    t_s = measured.t_s[kept]
+    io.atomic_write_text(out, log_text(t_s - t_s[0], q * MM_PER_UNIT[args.stroke_unit], header, values[kept]))
+    start = datetime.fromtimestamp(t_s[0], tz=timezone.utc).isoformat(timespec="milliseconds")
+    dropped = int((~kept).sum())
+    print(
+        f"stewart-calib import-bag: wrote {out} ({int(kept.sum())} rows from t = {start}; {dropped} measurement(s) "
+        f"without stroke messages within {args.max_gap_s!r} s dropped)",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "import-bag",
+        help="turn a ROS 1 / ROS 2 bag into a measurement log",
+        description="Read drive strokes (JointState) and tracker readings (JointState) or a measured pose "
+        "(PoseStamped) from a ROS bag, align them in time and write a measurement log (spec §3, §7).",
+    )
+    parser.add_argument("bag", metavar="BAG", help="ROS 1 .bag file or ROS 2 bag directory (sqlite3 or MCAP)")
+    parser.add_argument("--strokes", required=True, metavar="TOPIC", help="sensor_msgs/JointState topic of the six drive strokes")
+    measurement = parser.add_mutually_exclusive_group(required=True)
+    measurement.add_argument("--readings", metavar="TOPIC", help="sensor_msgs/JointState topic of the six tracker readings")
+    measurement.add_argument("--pose", metavar="TOPIC", help="geometry_msgs/PoseStamped topic of the measured pose (spec §7)")
+    parser.add_argument("--out", required=True, metavar="L.csv", help="measurement log to write")
+    parser.add_argument("--stroke-joints", metavar="N1,…,N6", help="joint names of legs 1..6 (default: the message's six, in order)")
+    parser.add_argument("--reading-joints", metavar="N1,…,N6", help="joint names of tracker legs 1..6 (default: in order)")
+    for what in ("stroke", "reading", "pose"):
+        parser.add_argument(f"--{what}-unit", choices=tuple(MM_PER_UNIT), default="m", help=f"unit of the {what} positions in the bag (default m, as ROS)")
+    parser.add_argument("--clock", choices=("header", "bag"), default="header",
+                        help="stamp of a message: its header.stamp (default) or the bag's recording time")
+    parser.add_argument("--max-gap-s", type=float, default=DEFAULT_MAX_GAP_S, metavar="S",
+                        help=f"largest gap between the stroke messages a row is interpolated across (default {DEFAULT_MAX_GAP_S} s)")
+    parser.set_defaults(func=run)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_command("import-bag", argv)

@@ -1,0 +1,216 @@
+"""``stewart-calib import-bag``: real bags written with rosbags' own writers (ROS 2 sqlite3 and
+MCAP, ROS 1), read back into a measurement log; bad bags refused in one line."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+pytest.importorskip("rosbags")
+from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
+from rosbags.rosbag2 import StoragePlugin, Writer as Writer2  # noqa: E402
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
+
+from stewart_calib.cli import main  # noqa: E402
+from stewart_calib.pipelines.import_bag import TopicSeries, interpolate_to_stamps  # noqa: E402
+
+T0_S = 1_700_000_000  # ROS stamps are seconds since the epoch
+STROKE_HZ, MEASUREMENT_HZ = 100.0, 30.0
+DURATION_S = 2.0
+AMPLITUDE_M, OMEGA_RAD_S = 0.05, 2 * np.pi * 0.7
+JOINTS = [f"leg{i}" for i in range(1, 7)]
+
+
+def strokes_m(t_s: np.ndarray) -> np.ndarray:
+    """Smooth test strokes [m]: a sine per leg with its own phase."""
+    return AMPLITUDE_M * np.sin(OMEGA_RAD_S * t_s[:, None] + np.arange(6) * 0.9)
+
+
+def interpolation_bound_mm() -> float:
+    """Linear interpolation error of a sine over one stroke period h: ≤ h²/8 · max|f''| (+ float noise)."""
+    h = 1.0 / STROKE_HZ
+    return h * h / 8 * AMPLITUDE_M * OMEGA_RAD_S**2 * 1000.0 + 1e-9
+
+
+def stamps(hz: float, offset_s: float = 0.0) -> np.ndarray:
+    return np.arange(0.0, DURATION_S, 1.0 / hz) + offset_s
+
+
+def poses(t_s: np.ndarray) -> np.ndarray:
+    """``(N, 6)`` [m, rad]: a pose moving in all six axes."""
+    s = np.sin(t_s)[:, None]
+    return np.array([0.01, -0.02, 0.7, 0.05, -0.1, 0.3]) * (1.0 + s)
+
+
+def _time(typestore, t_s: float):
+    sec = int(np.floor(t_s))
+    return typestore.types["builtin_interfaces/msg/Time"](sec=T0_S + sec, nanosec=int(round((t_s - sec) * 1e9)))
+
+
+def _header(typestore, t_s: float):
+    header = typestore.types["std_msgs/msg/Header"]
+    ros1 = "seq" in header.__dataclass_fields__  # ROS 1 headers carry a sequence number
+    return header(**({"seq": 0} if ros1 else {}), stamp=_time(typestore, t_s), frame_id="base")
+
+
+def joint_state(typestore, t_s: float, names: list[str], positions) -> object:
+    return typestore.types["sensor_msgs/msg/JointState"](
+        header=_header(typestore, t_s), name=names, position=np.asarray(positions, dtype=float),
+        velocity=np.zeros(0), effort=np.zeros(0),
+    )
+
+
+def pose_stamped(typestore, t_s: float, pose) -> object:
+    types = typestore.types
+    x, y, z, w = Rotation.from_euler("ZYX", pose[[5, 4, 3]]).as_quat()  # R = Rz Ry Rx; quat x, y, z, w
+    return types["geometry_msgs/msg/PoseStamped"](
+        header=_header(typestore, t_s),
+        pose=types["geometry_msgs/msg/Pose"](
+            position=types["geometry_msgs/msg/Point"](x=pose[0], y=pose[1], z=pose[2]),
+            orientation=types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w),
+        ),
+    )
+
+
+def write_bag(path: Path, kind: str, measurement: str = "readings", extra_topic: tuple[str, str] | None = None) -> None:
+    """A bag with ``/drive/joint_states`` (strokes, joints in a shuffled order) and the measurement
+    (``/tracker/joint_states`` readings or ``/mocap/pose``), in ``kind`` = ros2-sqlite3 | ros2-mcap | ros1."""
+    ros1 = kind == "ros1"
+    typestore = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    serialize = typestore.serialize_ros1 if ros1 else typestore.serialize_cdr
+    if ros1:
+        writer = Writer1(path)
+    else:
+        plugin = StoragePlugin.MCAP if kind == "ros2-mcap" else StoragePlugin.SQLITE3
+        writer = Writer2(path, version=9, storage_plugin=plugin)
+    joint_type = "sensor_msgs/msg/JointState"
+    with writer:
+        drive = writer.add_connection("/drive/joint_states", joint_type, typestore=typestore)
+        topic, msgtype = (
+            ("/tracker/joint_states", joint_type) if measurement == "readings" else ("/mocap/pose", "geometry_msgs/msg/PoseStamped")
+        )
+        meas = writer.add_connection(topic, msgtype, typestore=typestore)
+        messages = []
+        order = [3, 0, 5, 1, 4, 2]  # drivers need not publish the joints in leg order
+        for t, q in zip(stamps(STROKE_HZ), strokes_m(stamps(STROKE_HZ))):
+            messages.append((t, drive, joint_state(typestore, t, [JOINTS[i] for i in order], q[order])))
+        t_meas = stamps(MEASUREMENT_HZ, offset_s=0.0037)
+        for t, value in zip(t_meas, strokes_m(t_meas) * 2.0 if measurement == "readings" else poses(t_meas)):
+            msg = joint_state(typestore, t, JOINTS, value) if measurement == "readings" else pose_stamped(typestore, t, value)
+            messages.append((t, meas, msg))
+        if extra_topic is not None:
+            conn = writer.add_connection(extra_topic[0], extra_topic[1], typestore=typestore)
+            messages.append((0.5, conn, typestore.types[extra_topic[1]](data="hello")))
+        for t, connection, msg in sorted(messages, key=lambda m: m[0]):
+            writer.write(connection, int(round((T0_S + t) * 1e9)), serialize(msg, connection.msgtype))
+
+
+def read_csv(path: Path) -> tuple[list[str], np.ndarray]:
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    return rows[0], np.array(rows[1:], dtype=float)
+
+
+@pytest.mark.parametrize("kind", ["ros2-sqlite3", "ros2-mcap", "ros1"])
+def test_strokes_are_interpolated_to_the_reading_stamps(tmp_path, kind):
+    bag = tmp_path / ("run.bag" if kind == "ros1" else "run")
+    write_bag(bag, kind)
+    out = tmp_path / "log.csv"
+    code = main(["import-bag", str(bag), "--strokes", "/drive/joint_states", "--readings", "/tracker/joint_states",
+                 "--stroke-joints", ",".join(JOINTS), "--out", str(out)])
+    assert code == 0
+    header, rows = read_csv(out)
+    assert header == ["t_s", *(f"q{i}_mm" for i in range(1, 7)), *(f"s{i}_mm" for i in range(1, 7))]
+    t_meas = stamps(MEASUREMENT_HZ, offset_s=0.0037)
+    # the last reading comes after the last stroke message: no stroke on its right, no row
+    inside = t_meas <= stamps(STROKE_HZ)[-1]
+    assert len(rows) == inside.sum()
+    np.testing.assert_allclose(rows[:, 0], t_meas[inside] - t_meas[0], atol=1e-6)  # ns stamps → s
+    np.testing.assert_allclose(rows[:, 7:], 2000.0 * strokes_m(t_meas[inside]), atol=1e-9)  # m → mm
+    err = np.abs(rows[:, 1:7] - 1000.0 * strokes_m(t_meas[inside]))
+    assert err.max() <= interpolation_bound_mm()
+    assert err.max() > 0  # the strokes really were interpolated, not copied from a neighbour
+
+
+@pytest.mark.parametrize("kind", ["ros2-sqlite3", "ros1"])
+def test_pose_topic_writes_the_measured_pose_columns(tmp_path, kind):
+    bag = tmp_path / ("run.bag" if kind == "ros1" else "run")
+    write_bag(bag, kind, measurement="pose")
+    out = tmp_path / "log.csv"
+    assert main(["import-bag", str(bag), "--strokes", "/drive/joint_states", "--pose", "/mocap/pose",
+                 "--stroke-joints", ",".join(JOINTS), "--stroke-unit", "m", "--pose-unit", "m", "--out", str(out)]) == 0
+    header, rows = read_csv(out)
+    assert header[7:] == ["mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg", "myaw_deg"]
+    t_meas = stamps(MEASUREMENT_HZ, offset_s=0.0037)
+    expected = poses(t_meas[t_meas <= stamps(STROKE_HZ)[-1]])
+    np.testing.assert_allclose(rows[:, 7:10], 1000.0 * expected[:, :3], atol=1e-9)
+    np.testing.assert_allclose(rows[:, 10:], np.degrees(expected[:, 3:]), atol=1e-9)
+
+
+def test_units_by_flag(tmp_path):
+    bag = tmp_path / "run"
+    write_bag(bag, "ros2-sqlite3")
+    out_m, out_mm = tmp_path / "m.csv", tmp_path / "mm.csv"
+    base = ["import-bag", str(bag), "--strokes", "/drive/joint_states", "--readings", "/tracker/joint_states",
+            "--stroke-joints", ",".join(JOINTS)]
+    assert main([*base, "--out", str(out_m)]) == 0
+    assert main([*base, "--stroke-unit", "mm", "--reading-unit", "um", "--out", str(out_mm)]) == 0
+    _, m = read_csv(out_m)
+    _, mm = read_csv(out_mm)
+    np.testing.assert_allclose(mm[:, 1:7] * 1000.0, m[:, 1:7], rtol=1e-12)
+    np.testing.assert_allclose(mm[:, 7:] * 1e6, m[:, 7:], rtol=1e-12)
+
+
+def test_interpolation_respects_the_maximum_gap():
+    source = TopicSeries(np.array([0.0, 1.0, 1.1, 3.0]), np.arange(4.0)[:, None] * np.ones((1, 6)))
+    values, kept = interpolate_to_stamps(source, np.array([-0.5, 0.5, 1.05, 1.1, 2.0, 3.5]), max_gap_s=1.0)
+    # -0.5 and 3.5: outside; 2.0: its neighbours are 1.9 s apart; 1.1: an exact stamp needs no gap
+    np.testing.assert_array_equal(kept, [False, True, True, True, False, False])
+    np.testing.assert_allclose(values[:, 0], [0.5, 1.5, 2.0])
+
+
+def _refusal(capsys, argv) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    return err
+
+
+def test_missing_topic_lists_the_bags_topics(tmp_path, capsys):
+    bag = tmp_path / "run"
+    write_bag(bag, "ros2-mcap")
+    out = tmp_path / "log.csv"
+    err = _refusal(capsys, ["import-bag", str(bag), "--strokes", "/joint_states", "--readings", "/tracker/joint_states",
+                            "--out", str(out)])
+    assert "/joint_states: no such topic" in err
+    assert "/drive/joint_states (sensor_msgs/msg/JointState)" in err and "/tracker/joint_states" in err
+    assert not out.exists()
+
+
+def test_wrong_message_type_is_named(tmp_path, capsys):
+    bag = tmp_path / "run.bag"
+    write_bag(bag, "ros1", extra_topic=("/status", "std_msgs/msg/String"))
+    err = _refusal(capsys, ["import-bag", str(bag), "--strokes", "/drive/joint_states", "--pose", "/status",
+                            "--out", str(tmp_path / "log.csv")])
+    assert "--pose /status: the topic carries std_msgs/msg/String; expected geometry_msgs/msg/PoseStamped" in err
+
+
+def test_joint_names_not_in_the_message_are_refused(tmp_path, capsys):
+    bag = tmp_path / "run"
+    write_bag(bag, "ros2-sqlite3")
+    out = tmp_path / "log.csv"
+    err = _refusal(capsys, ["import-bag", str(bag), "--strokes", "/drive/joint_states", "--readings",
+                            "/tracker/joint_states", "--stroke-joints", "a,b,c,d,e,f", "--out", str(out)])
+    assert "message 1: joint(s) a, b, c, d, e, f not in the message; it has leg4, leg1" in err
+
+
+def test_a_file_that_is_not_a_bag(tmp_path, capsys):
+    not_a_bag = tmp_path / "log.bag"
+    not_a_bag.write_text("t_s,q1_mm\n")
+    err = _refusal(capsys, ["import-bag", str(not_a_bag), "--strokes", "/a", "--readings", "/b",
+                            "--out", str(tmp_path / "log.csv")])
+    assert "cannot read as a ROS bag" in err
