@@ -27,15 +27,15 @@ from scipy.stats import chi2
 
 from benchmarks.common import GEOMETRIES, ROOT, Row, Section, synthetic_stream
 from stewart_calib.errors import CalibError
-from stewart_calib.estimators import Estimate, EstimatorConfig, fit_all, make_estimator
-from stewart_calib.estimators.config import NoiseConfig, PaperEKFConfig
+from stewart_calib.estimate import Estimate
+from stewart_calib.config import EstimatorConfig, NoiseConfig, PaperEKFConfig
+from stewart_calib.estimators import METHODS, fit_all, make_estimator, method_names
 from stewart_calib.identifiability import identifiability_report
 from stewart_calib.platform import N_PARAMS, Platform
 from stewart_calib.simulation import EstimatorController, FrozenController, load_experiment, run_experiment
 from stewart_calib.simulation.experiment import Stage
 
-METHODS = ("ls", "paper-ekf", "ekf", "isam2", "lm")
-ONLINE = ("paper-ekf", "ekf", "isam2")
+ONLINE = method_names(online=True)
 CRB_TARGET = 1.2
 CRB_TARGET_METHODS = ("ekf", "isam2", "lm")
 NEES_TARGET_FRACTION = 0.90

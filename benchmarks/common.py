@@ -138,7 +138,7 @@ def synthetic_stream(platform: Platform, n: int, rng: np.random.Generator, rate_
     Returns ``(log, true_error (42,))``.
     """
     from benchmarks.fk_speed import trajectory
-    from stewart_calib.estimators.config import NoiseConfig
+    from stewart_calib.config import NoiseConfig
     from tests.synthetic import make_log, random_error, random_poses
 
     noise = noise or NoiseConfig()

@@ -111,7 +111,7 @@ def bench(name: str, legs: LegGeometry, home: np.ndarray, poses: np.ndarray, rep
 def bench_online(platform, poses: np.ndarray, samples: int) -> None:
     """Median µs per ``update`` of both EKFs on noisy samples of the 1 kHz trajectory."""
     from stewart_calib.estimators import make_estimator
-    from stewart_calib.estimators.config import config_from_dict
+    from stewart_calib.config import config_from_dict
     from stewart_calib.estimators.kalman import kalman_update
     from stewart_calib.samples import Sample
 

@@ -5,7 +5,7 @@
 * ``ekf``: 10⁶ updates of the leg-length EKF on a smooth 1 kHz trajectory; every checkpoint
   interval: the covariance's asymmetry ``max |P − Pᵀ|`` and least eigenvalue (must stay > 0),
   Python heap (tracemalloc) and process RSS, which must not grow after warm-up.
-* ``isam2``: the resumable fixed-lag smoother (:class:`ResumableISAM2`, as ``track`` runs it)
+* ``isam2``: the resumable fixed-lag smoother (:class:`~stewart_calib.estimators.isam2.ISAM2Estimator`, as ``track`` runs it)
   on a 10 Hz trajectory, as many samples as fit in ``--time-limit-s``: graph size, replay
   buffer, RSS and update time, all of which must stay flat.
 
@@ -22,8 +22,8 @@ import tracemalloc
 import numpy as np
 
 from stewart_calib import kinematics as kin
-from stewart_calib.estimators import EstimatorConfig, make_estimator
-from stewart_calib.estimators.isam2 import ResumableISAM2
+from stewart_calib.config import EstimatorConfig
+from stewart_calib.estimators import make_estimator
 from stewart_calib.platform import Platform, load_platform
 from stewart_calib.samples import Sample
 
@@ -77,7 +77,7 @@ def soak_ekf(platform: Platform, n: int, rng: np.random.Generator, report_every:
 
 def soak_isam2(platform: Platform, n: int, rng: np.random.Generator, report_every: int, time_limit_s: float) -> None:
     true_error = rng.normal(0.0, 1.0, 42)
-    isam2 = ResumableISAM2(platform, EstimatorConfig())
+    isam2 = make_estimator("isam2", platform, EstimatorConfig())
     start = time.perf_counter()
     worst_s, last = 0.0, start
     print("isam2: samples  rate[/s]  worst update[ms]  factors  variables  replay  rms err[mm]  RSS[MB]")

@@ -23,7 +23,7 @@ from benchmarks.common import Row, Section, fmt_time_us, nim_stewart, per_call_u
 from benchmarks.fk_speed import peer_fk, trajectory
 from stewart_calib import kinematics as kin
 from stewart_calib.estimators import make_estimator
-from stewart_calib.estimators.config import LSConfig
+from stewart_calib.config import LSConfig
 from stewart_calib.estimators.kalman import kalman_update
 from stewart_calib.estimators.ls import gauss_newton
 from stewart_calib.estimators.measurement import pose_difference

@@ -11,7 +11,7 @@ import numpy as np
 
 from . import kinematics as kin
 from .errors import CalibError
-from .estimators.base import Estimate
+from .estimate import Estimate
 from .platform import LegGeometry, Platform
 
 

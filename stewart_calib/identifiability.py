@@ -26,7 +26,7 @@ import numpy as np
 
 from . import kinematics as kin
 from .errors import CalibError
-from .estimators.config import NoiseConfig
+from .config import NoiseConfig
 from .platform import N_PARAMS, PARAMETER_NAMES, Platform
 
 #: A singular value below this fraction of the largest counts as zero. Round-off in the

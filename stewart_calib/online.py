@@ -22,7 +22,7 @@ Checkpoint format (``.npz``, written atomically, read with ``allow_pickle=False`
 (the estimator config), the stream counters, and the estimator's ``export_state()`` flattened
 to ``state/<key>/<key>`` arrays. Floats are stored as float64 bits, so the EKFs resume
 exactly; ``isam2`` is rebuilt from its window prior and replay buffer
-(:class:`~stewart_calib.estimators.isam2.ResumableISAM2`).
+(:meth:`~stewart_calib.estimators.isam2.ISAM2Estimator.export_state`).
 """
 
 from __future__ import annotations
@@ -38,19 +38,18 @@ import numpy as np
 
 from . import io
 from .compensation import compensate
+from .config import EstimatorConfig, config_from_dict
 from .errors import CalibError, SampleRejected
-from .estimators import EstimatorConfig, make_estimator
-from .estimators.base import Estimate, current_error
-from .estimators.config import config_from_dict
-from .estimators.isam2 import ResumableISAM2
+from .estimate import Estimate
+from .estimators import Estimator, method_names, method_spec
 from .platform import Platform, parse_platform, platform_to_toml
 from .samples import Sample
 
 CHECKPOINT_FORMAT = "stewart-calib/checkpoint"
 CHECKPOINT_VERSION = 1
 
-#: methods that update per sample and can be checkpointed.
-ONLINE_METHODS = ("paper-ekf", "ekf", "isam2")
+#: methods that update per sample and can be checkpointed (from the estimator registry).
+ONLINE_METHODS = method_names(online=True, checkpointable=True)
 
 class Rejections:
     """Counts of rejected samples by reason, and the first message (bounded memory)."""
@@ -78,10 +77,8 @@ class Rejections:
         return {"count": self.count, "by_reason": dict(sorted(self.by_reason.items())), "first": self.first or None}
 
 
-def _make(method: str, platform: Platform, config: EstimatorConfig):
-    if method not in ONLINE_METHODS:
-        raise CalibError(f"unknown online method '{method}': expected one of {', '.join(ONLINE_METHODS)}")
-    return ResumableISAM2(platform, config) if method == "isam2" else make_estimator(method, platform, config)
+def _make(method: str, platform: Platform, config: EstimatorConfig) -> Estimator:
+    return method_spec(method, ONLINE_METHODS, "online method").build(platform, config)
 
 
 class OnlineCalibrator:
@@ -127,7 +124,7 @@ class OnlineCalibrator:
     def compensated_strokes(self, pose6: np.ndarray) -> np.ndarray:
         """Strokes [mm] that put the estimated drive at ``pose6`` ``[x, y, z [mm], roll, pitch, yaw [rad]]``
         (``(6,)`` or ``(N, 6)``; paper Fig. 3 step 4)."""
-        return compensate(self.platform.drive.perturbed(current_error(self._estimator)), pose6)
+        return compensate(self.platform.drive.perturbed(self._estimator.current_error()), pose6)
 
     def result(self) -> dict:
         """The current estimate as a spec §5 result, with the added ``samples_rejected`` field.

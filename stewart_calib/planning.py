@@ -29,7 +29,7 @@ import numpy as np
 
 from . import kinematics as kin
 from .errors import CalibError
-from .estimators.config import NoiseConfig
+from .config import NoiseConfig
 from .identifiability import scaled_paper_jacobian, whitened_leg_jacobian
 from .platform import Platform
 

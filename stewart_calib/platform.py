@@ -23,14 +23,16 @@ import numpy as np
 
 from . import _kernels
 from .errors import CalibError
+from .rotations import pose_to_rt, transform_points
 
 N_LEGS = 6
 N_PARAMS_PER_LEG = 7
 N_PARAMS = N_LEGS * N_PARAMS_PER_LEG
+#: the seven parameters of one leg, in the paper's order (rerun entity paths use them as is).
+PARAMETER_FIELDS: tuple[str, ...] = ("j_x", "j_y", "j_z", "d_x", "d_y", "d_z", "l")
+#: the 42 parameter names ``j1x j1y j1z d1x d1y d1z l1 … l6`` (spec §4–§5 columns and keys).
 PARAMETER_NAMES: tuple[str, ...] = tuple(
-    f"{name[0]}{leg}{name[1:]}"
-    for leg in range(1, N_LEGS + 1)
-    for name in ("jx", "jy", "jz", "dx", "dy", "dz", "l")
+    f"{field[0]}{leg}{field[2:]}" for leg in range(1, N_LEGS + 1) for field in PARAMETER_FIELDS
 )
 
 
@@ -241,8 +243,6 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
 
 
 def _check_home_reachable(platform: Platform, source: str) -> None:
-    from .kinematics import leg_lengths, pose_to_rt  # kinematics imports platform
-
     R, t = pose_to_rt(platform.workspace.home)
     for legs, bounds, what in (
         (platform.drive, platform.stroke_range, "drive strokes"),
@@ -250,7 +250,8 @@ def _check_home_reachable(platform: Platform, source: str) -> None:
     ):
         if bounds is None:
             continue
-        strokes = leg_lengths(legs, R, t) - legs.initial_lengths
+        strokes = np.linalg.norm(transform_points(R, t, legs.platform_joints) - legs.base_joints, axis=-1)
+        strokes -= legs.initial_lengths
         bad = np.flatnonzero((strokes < bounds[0]) | (strokes > bounds[1]))
         if bad.size:
             i = int(bad[0])

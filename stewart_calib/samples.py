@@ -1,4 +1,5 @@
-"""Per-sample working data: what one row of the measurement log holds (spec §3).
+"""Per-sample working data: what one row of the measurement log holds (spec §3), and the
+simulator's truth for a log (spec §4).
 
 Kept apart from the fixed geometry in :mod:`stewart_calib.platform`. Code works in mm and
 rad; the log's degrees are converted at the file edge (:mod:`stewart_calib.io`).
@@ -75,3 +76,18 @@ class Log:
         pick = lambda a: None if a is None else a[mask_or_index]  # noqa: E731
         stages = None if self.stages is None else list(np.asarray(self.stages, dtype=object)[mask_or_index])
         return Log(pick(self.t_s), pick(self.strokes), pick(self.readings), pick(self.desired_poses), stages, pick(self.load_kg))
+
+
+@dataclass(frozen=True)
+class Truth:
+    """The simulator's truth for a log, row for row (spec §4).
+
+    Attributes:
+        t_s: ``(N,)`` [s].
+        params: ``(N, 42)`` true absolute drive parameters [mm], paper order.
+        true_poses: ``(N, 6)`` true pose ``[mm, rad]``, or None.
+    """
+
+    t_s: np.ndarray
+    params: np.ndarray
+    true_poses: np.ndarray | None = None

@@ -8,9 +8,10 @@ import sys
 import numpy as np
 import pytest
 
-from stewart_calib import cli, estimators
+from stewart_calib import cli
+from stewart_calib.estimators.registry import METHODS, MethodSpec
 from stewart_calib.errors import SampleRejected
-from stewart_calib.estimators.base import Estimate
+from stewart_calib.estimate import Estimate
 from stewart_calib.io import read_result, write_log
 from stewart_calib.pipelines.calibrate import calibrate
 from stewart_calib.samples import Log
@@ -35,11 +36,18 @@ class CountingEstimator:
     def estimate(self) -> Estimate:
         return Estimate(np.full(42, self.accepted * STEP_MM), np.eye(42) * 0.01, self.name, self.accepted)
 
+    def current_error(self) -> np.ndarray:
+        return self.estimate().error
+
 
 class BatchEstimator(CountingEstimator):
     """Batch test double: ``fit`` gives δM = mean stroke of leg 1 [mm] on every parameter."""
 
     name = "batch"
+
+    def __init__(self, platform, config):
+        super().__init__(platform, config)
+        self.rejected = []
 
     def fit(self, samples) -> Estimate:
         samples = list(samples)
@@ -48,14 +56,9 @@ class BatchEstimator(CountingEstimator):
 
 @pytest.fixture
 def fakes(monkeypatch):
-    classes = {"counting": CountingEstimator, "batch": BatchEstimator}
-    real = estimators.make_estimator
-    for name in classes:
-        monkeypatch.setitem(estimators.METHODS, name, "tests:double")
-    monkeypatch.setattr(
-        estimators, "make_estimator", lambda method, platform, config=None: classes[method](platform, config)
-        if method in classes else real(method, platform, config)
-    )
+    for cls, online in ((CountingEstimator, True), (BatchEstimator, False)):
+        spec = MethodSpec(cls.name, f"{__name__}:{cls.__name__}", online, False, ("tracker",), "test double")
+        monkeypatch.setitem(METHODS, cls.name, spec)
 
 
 def _log() -> Log:
@@ -188,7 +191,7 @@ def test_real_ls_recovers_synthetic_errors_end_to_end(tmp_path, capsys):
 
 
 def test_rerun_recording_holds_the_parameter_errors(tmp_path, log_path, capsys, fakes):
-    readback = pytest.importorskip("stewart_calib.viz.readback")
+    readback = pytest.importorskip("tests.readback")
     code, _ = _run(capsys, *_args(log_path, tmp_path / "r.json"), "--rerun", tmp_path / "r.rrd")
     assert code == 0
     samples, values = readback.read_scalars(tmp_path / "r.rrd", "params/leg6/l/counting")

@@ -6,7 +6,7 @@ import pytest
 from stewart_calib import kinematics as kin
 from stewart_calib.compensation import compensate
 from stewart_calib.errors import CalibError
-from stewart_calib.estimators.base import Estimate
+from stewart_calib.estimate import Estimate
 from tests.synthetic import nim_stewart, random_error, random_poses
 
 

@@ -3,7 +3,7 @@
 import pytest
 
 from stewart_calib.errors import CalibError
-from stewart_calib.estimators.config import EstimatorConfig, load_estimator_config
+from stewart_calib.config import EstimatorConfig, load_estimator_config
 from stewart_calib.resources import CONFIGS
 
 

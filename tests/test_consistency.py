@@ -34,7 +34,7 @@ import numpy as np
 import pytest
 
 from stewart_calib.estimators import make_estimator
-from stewart_calib.estimators.config import load_estimator_config
+from stewart_calib.config import load_estimator_config
 from stewart_calib.simulation import load_experiment, run_experiment
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from stewart_calib.errors import CalibError
-from stewart_calib.estimators.config import load_estimator_config
+from stewart_calib.config import load_estimator_config
 from stewart_calib.io import LOG_REQUIRED, POSE_COLUMNS, LogRowParser, read_log
 from stewart_calib.online import OnlineCalibrator
 from stewart_calib.platform import load_platform, parse_platform, platform_to_toml

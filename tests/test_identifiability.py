@@ -10,7 +10,7 @@ import pytest
 
 from stewart_calib import kinematics as kin
 from stewart_calib.cli import main as cli_main
-from stewart_calib.estimators.config import NoiseConfig
+from stewart_calib.config import NoiseConfig
 from stewart_calib.identifiability import (
     CONDITION_POOR,
     conditioning_summary,

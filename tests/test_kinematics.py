@@ -209,19 +209,6 @@ def test_rotation_to_rpy_round_trips_random_rotations():
     assert np.max(kin.rotation_angle(np.swapaxes(R, -1, -2) @ back)) <= 1e-12
 
 
-@settings(max_examples=50, deadline=None)
-@given(rpy=rpy_strategy)
-def test_euler_rate_matrix_maps_rpy_rates_to_base_angular_velocity(rpy):
-    # eq. 4–5: [ω]× = (∂R/∂θ_k) Rᵀ per unit δθ_k, so column k of T is vee((∂R/∂θ_k) Rᵀ).
-    R = kin.rpy_to_rotation(rpy)
-    dR = numerical_jacobian(kin.rpy_to_rotation, rpy, EPS_RAD)  # (3, 3, 3)
-    omega_hat = np.einsum("ijk,lj->kil", dR, R)  # per column k: (∂R/∂θ_k) Rᵀ
-    np.testing.assert_allclose(omega_hat, -np.swapaxes(omega_hat, -1, -2), atol=1e-9)  # skew
-    columns = np.stack([omega_hat[:, 2, 1], omega_hat[:, 0, 2], omega_hat[:, 1, 0]], axis=-1)
-    # entries O(1); central difference with 1e-5 rad: error ~1e-10.
-    np.testing.assert_allclose(columns.T, kin.euler_rate_matrix(rpy), rtol=0, atol=1e-9)
-
-
 def test_pose_error_known_cases():
     eye, t0 = np.eye(3), np.array([10.0, -20.0, 1100.0])
     position_mm, angle_deg = kin.pose_error(eye, t0, eye, t0 + [3.0, 4.0, 0.0])

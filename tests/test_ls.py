@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stewart_calib.estimators import make_estimator
-from stewart_calib.estimators.config import NoiseConfig, config_from_dict
+from stewart_calib.config import NoiseConfig, config_from_dict
 from stewart_calib.identifiability import identifiability_report
 from tests.synthetic import static_logs, nim_stewart
 

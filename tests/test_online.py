@@ -9,14 +9,14 @@ import pytest
 
 from stewart_calib.compensation import compensate
 from stewart_calib.errors import CalibError, SampleRejected
-from stewart_calib.estimators.config import config_from_dict
-from stewart_calib.online import CHECKPOINT_VERSION, OnlineCalibrator, Rejections
+from stewart_calib.config import config_from_dict
+from stewart_calib.online import CHECKPOINT_VERSION, ONLINE_METHODS, OnlineCalibrator, Rejections
 from stewart_calib.samples import Sample
 from tests.faults import INDETERMINANT, degenerate_sample
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
 
-METHODS = ("paper-ekf", "ekf", "isam2")
-#: isam2 is rebuilt from a Gaussian prior on the window variable plus a replay (ResumableISAM2),
+METHODS = ONLINE_METHODS  # every online method of the registry
+#: isam2 is rebuilt from a Gaussian prior on the window variable plus a replay (its export_state),
 #: so it agrees with the uninterrupted run to the linearisation error its relinearisation
 #: threshold (1e-2 mm) leaves, δ²/L ≈ 1e-7 mm; measured 2.2e-7 mm. The EKFs are bit-exact.
 RESUME_TOLERANCE_MM = {"paper-ekf": 1e-12, "ekf": 1e-12, "isam2": 1e-6}

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from stewart_calib.errors import SampleRejected
-from stewart_calib.estimators.config import config_from_dict
+from stewart_calib.config import config_from_dict
 from stewart_calib.online import OnlineCalibrator
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
 

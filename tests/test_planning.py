@@ -11,7 +11,7 @@ from stewart_calib import kinematics as kin
 from stewart_calib import planning
 from stewart_calib.cli import main as cli_main
 from stewart_calib.errors import CalibError
-from stewart_calib.estimators.config import NoiseConfig
+from stewart_calib.config import NoiseConfig
 from stewart_calib.identifiability import identifiability_report, whitened_leg_jacobian
 from stewart_calib.io import read_pose_list
 from tests.synthetic import NIM_STEWART, nim_stewart, random_poses

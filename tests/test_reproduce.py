@@ -12,14 +12,16 @@ import pytest
 
 from stewart_calib.cli import main as cli_main
 from stewart_calib.errors import SampleRejected
-from stewart_calib.estimators import Estimate, load_estimator_config
+from stewart_calib.config import load_estimator_config
+from stewart_calib.estimate import Estimate
 from stewart_calib.reproduction import reproduce, results_dict
 from stewart_calib.reproduction.metrics import VIEWS
 from stewart_calib.reproduction.record import SCENE_CIRCLE_STRIDE, parameter_stride
 from stewart_calib.simulation import EstimatorController, load_experiment
 from stewart_calib.simulation.experiment import Stage
-from stewart_calib.viz.readback import read_blueprint_names, read_entity_rows, read_static
-from stewart_calib.viz.recording import PARAMETER_FIELDS, SAMPLE_TIMELINE, TIME_TIMELINE
+from tests.readback import read_blueprint_names, read_entity_rows, read_static
+from stewart_calib.platform import PARAMETER_FIELDS
+from stewart_calib.viz.recording import SAMPLE_TIMELINE, TIME_TIMELINE
 from rerun.chunk import RrdReader
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -225,6 +227,9 @@ class _Scripted:
 
     def estimate(self):
         return Estimate(np.full(42, self.t_s), None, self.name)
+
+    def current_error(self):
+        return self.estimate().error
 
 
 def test_estimator_controller_uses_the_latest_estimate_and_counts_refusals():

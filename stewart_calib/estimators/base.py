@@ -1,71 +1,69 @@
-"""What every estimator shares: the :class:`Estimate` it returns and the small protocol.
+"""The protocols every estimator follows, checked with ``isinstance`` (never by probing names).
 
-The protocol is two methods (plus ``fit`` for batch methods)::
+:class:`Estimator` — every method::
 
-    est.update(sample)      # fold in one Sample; raises SampleRejected and stays untouched
-    est.estimate()          # -> Estimate (42 errors δM [mm], 42×42 covariance or None)
+    est = Class(platform, config)   # the one constructor signature (estimators/registry.py builds it)
+    est.update(sample)              # fold in one Sample; raises SampleRejected and stays untouched
+    est.estimate()                  # -> Estimate (δM [mm], covariance or None)
+    est.current_error()             # -> δM [mm] alone, for per-sample callers (traces, the controller)
+
+:class:`BatchEstimator` — a method that fits a whole log at once adds ``fit(samples)`` and lists
+the samples it skipped in ``rejected``. :class:`Checkpointable` — a method whose state can be
+saved and restored exactly adds ``export_state()`` / ``import_state(state)`` (nested dicts of
+arrays; ``stewart_calib.online`` writes them to checkpoints).
 
 Parameters are always the paper's δM (eq. 9) in the paper's order: ``estimate = nominal + error``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Iterable, Protocol, runtime_checkable
 
 import numpy as np
 
 from ..errors import CalibError, SampleRejected
-from ..platform import LegGeometry, Platform
+from ..estimate import Estimate
 from ..samples import Sample
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """Identified kinematic parameter errors δM (paper eq. 9, Table 4).
-
-    Attributes:
-        error: ``(42,)`` δM [mm], paper order.
-        covariance: ``(42, 42)`` [mm²] or None when the method gives none.
-        method: the method's name (``ls``, ``paper-ekf``, ``ekf``, ``isam2``, ``lm``).
-        samples_used: samples folded in.
-        t_s: time of the last sample folded in [s] (nan if none).
-    """
-
-    error: np.ndarray
-    covariance: np.ndarray | None
-    method: str
-    samples_used: int = 0
-    t_s: float = float("nan")
-
-    @property
-    def stddev(self) -> np.ndarray | None:
-        """``sqrt(diag(covariance))`` [mm], or None."""
-        return None if self.covariance is None else np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
-
-    def drive(self, nominal: LegGeometry | Platform) -> LegGeometry:
-        """The estimated drive geometry ``M + δM``."""
-        legs = nominal.drive if isinstance(nominal, Platform) else nominal
-        return legs.perturbed(self.error)
 
 
 @runtime_checkable
 class Estimator(Protocol):
-    """The one protocol all methods share (``fit`` is optional, for batch methods)."""
+    """What every method offers."""
 
     name: str
 
-    def update(self, sample: Sample) -> None: ...
+    def update(self, sample: Sample) -> None:
+        """Fold in one sample; :class:`SampleRejected` leaves the estimator untouched."""
 
-    def estimate(self) -> Estimate: ...
+    def estimate(self) -> Estimate:
+        """δM [mm] with its covariance after the samples folded in so far."""
+
+    def current_error(self) -> np.ndarray:
+        """δM [mm] alone: what ``estimate().error`` gives, without the covariance, which some
+        methods pay for (isam2's marginal, ~0.3 ms); callers that need only the model once
+        per sample use this."""
 
 
-def current_error(estimator: Estimator) -> np.ndarray:
-    """δM now [mm], without the covariance: an estimator whose covariance is costly (isam2's
-    marginal, ~0.3 ms) may offer ``current_error()``; any other gives ``estimate().error``.
-    For callers that need only the model, once per sample (traces, the controller's IK)."""
-    fast = getattr(estimator, "current_error", None)
-    return fast() if fast is not None else estimator.estimate().error
+@runtime_checkable
+class BatchEstimator(Estimator, Protocol):
+    """A method that fits the whole log at once."""
+
+    #: ``(index in the fitted samples, SampleRejected)`` of the samples :meth:`fit` skipped.
+    rejected: list[tuple[int, SampleRejected]]
+
+    def fit(self, samples: Iterable[Sample]) -> Estimate:
+        """Fold in every usable sample, listing the others in ``rejected``, and solve."""
+
+
+@runtime_checkable
+class Checkpointable(Protocol):
+    """A method whose state can be exported and restored exactly (equal states, equal futures)."""
+
+    def export_state(self) -> dict:
+        """The state as a nested dict of numpy arrays."""
+
+    def import_state(self, state: dict) -> None:
+        """Restore :meth:`export_state` on a freshly built estimator; ``CalibError`` on a bad state."""
 
 
 def feed(estimator: Estimator, samples: Iterable[Sample]) -> list[tuple[int, SampleRejected]]:
@@ -79,11 +77,26 @@ def feed(estimator: Estimator, samples: Iterable[Sample]) -> list[tuple[int, Sam
     return rejected
 
 
+class BufferedFit:
+    """``fit`` and ``current_error`` of a batch method whose ``update`` buffers a sample and
+    whose ``estimate`` solves everything buffered (``ls``, ``lm``); it keeps ``rejected``."""
+
+    rejected: list[tuple[int, SampleRejected]]
+
+    def current_error(self) -> np.ndarray:
+        """δM [mm] of a solve over every buffered sample (as ``estimate``)."""
+        return self.estimate().error
+
+    def fit(self, samples: Iterable[Sample]) -> Estimate:
+        """Buffer every usable sample, listing the others in ``rejected``, and solve."""
+        self.rejected.extend(feed(self, samples))
+        return self.estimate()
+
+
 def fit_all(estimator: Estimator, samples: Iterable[Sample]) -> Estimate:
-    """Feed every sample (batch methods use their own ``fit``) and return the estimate."""
-    fit = getattr(estimator, "fit", None)
-    if fit is not None:
-        return fit(samples)
+    """Feed every sample (a :class:`BatchEstimator` uses its own ``fit``) and return the estimate."""
+    if isinstance(estimator, BatchEstimator):
+        return estimator.fit(samples)
     for sample in samples:
         estimator.update(sample)
     return estimator.estimate()

@@ -24,8 +24,8 @@ from .. import kinematics as kin
 from ..errors import SampleRejected
 from ..platform import Platform
 from ..samples import Sample
-from .base import Estimate
-from .config import EstimatorConfig
+from ..estimate import Estimate
+from ..config import EstimatorConfig
 from .kalman import FilterState
 from .measurement import WarmFK, check_sample
 
@@ -66,6 +66,10 @@ class LegEKF:
     def estimate(self) -> Estimate:
         """``δM`` and ``P`` after the last accepted sample."""
         return self.filter.estimate()
+
+    def current_error(self) -> np.ndarray:
+        """δM [mm] after the last accepted sample."""
+        return self.filter.x.copy()
 
     def export_state(self) -> dict:
         """Filter and FK warm start as arrays (checkpoints; :meth:`import_state` restores)."""

@@ -26,7 +26,8 @@ from scipy.stats import chi2
 
 from ..errors import CalibError, SampleRejected
 from ..platform import N_PARAMS
-from .base import Estimate, state_array
+from ..estimate import Estimate
+from .base import state_array
 
 _FAST = {"reassoc", "contract", "arcp", "nsz"}
 

@@ -22,8 +22,9 @@ from .. import kinematics as kin
 from ..errors import CalibError, SampleRejected
 from ..platform import N_PARAMS, LegGeometry, Platform
 from ..samples import Sample
-from .base import Estimate, feed
-from .config import EstimatorConfig, LSConfig
+from ..estimate import Estimate
+from .base import BufferedFit
+from ..config import EstimatorConfig, LSConfig
 from .measurement import WarmFK, check_sample, pose_difference
 
 #: singular values below this fraction of the largest count as zero (rank deficiency).
@@ -96,7 +97,7 @@ def gauss_newton(
     return LSSolution(error, covariance, s, iteration, float(np.sqrt(np.mean(residual**2))))
 
 
-class LeastSquares:
+class LeastSquares(BufferedFit):
     """Batch LS: ``update`` buffers measured poses, ``estimate`` fits all of them.
 
     Attributes:
@@ -125,11 +126,6 @@ class LeastSquares:
         self._R_v.append(R_v)
         self._t_v.append(t_v)
         self._t_s = sample.t_s
-
-    def fit(self, samples) -> Estimate:
-        """Fit the whole log, skipping (and recording in ``rejected``) unusable samples."""
-        self.rejected.extend(feed(self, samples))
-        return self.estimate()
 
     def estimate(self) -> Estimate:
         """Fit every buffered sample; zeros and no covariance before the first sample."""

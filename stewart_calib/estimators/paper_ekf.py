@@ -24,8 +24,9 @@ import numpy as np
 from .. import kinematics as kin
 from ..platform import N_PARAMS, Platform
 from ..samples import Sample
-from .base import Estimate, state_array
-from .config import EstimatorConfig
+from ..estimate import Estimate
+from .base import state_array
+from ..config import EstimatorConfig
 from .kalman import FilterState
 from .measurement import WarmFK, check_sample, pose_difference
 
@@ -88,6 +89,10 @@ class PaperEKF:
     def estimate(self) -> Estimate:
         """``δM`` and ``P`` after the last accepted sample."""
         return self.filter.estimate()
+
+    def current_error(self) -> np.ndarray:
+        """δM [mm] after the last accepted sample."""
+        return self.filter.x.copy()
 
     def export_state(self) -> dict:
         """Filter, R, adaptive window and FK warm starts as arrays (checkpoints)."""

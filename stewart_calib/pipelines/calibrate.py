@@ -22,8 +22,9 @@ from tqdm import tqdm
 from . import add_config_arguments, run_command
 from .. import estimators, io
 from ..errors import CalibError, SampleRejected
-from ..estimators import Estimate, EstimatorConfig, load_estimator_config
-from ..estimators.base import current_error
+from ..config import EstimatorConfig, load_estimator_config
+from ..estimate import Estimate
+from ..estimators import BatchEstimator
 from ..online import Rejections
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
 from ..platform import Platform, load_platform
@@ -61,10 +62,9 @@ def run_calibration(
     """
     estimator = estimators.make_estimator(method, platform, config)
     nominal = platform.drive.as_vector()
-    fit = getattr(estimator, "fit", None)
-    if fit is not None:
-        estimate = fit(list(log))
-        rejected = list(getattr(estimator, "rejected", []))  # batch methods list what fit skipped
+    if isinstance(estimator, BatchEstimator):
+        estimate = estimator.fit(list(log))
+        rejected = list(estimator.rejected)
         # a batch fit holds for the whole log: one constant row per sample time
         rows = np.tile(nominal + estimate.error, (len(log), 1)) if trace else None
         _refuse_if_all_rejected(method, rejected, len(log))
@@ -78,7 +78,7 @@ def run_calibration(
         except SampleRejected as err:
             rejected.append((k, err))
         if rows is not None:
-            rows[k] = nominal + current_error(estimator)  # a rejected sample leaves the estimate in force
+            rows[k] = nominal + estimator.current_error()  # a rejected sample leaves the estimate in force
     _refuse_if_all_rejected(method, rejected, len(log))
     return Calibration(estimator.estimate(), rows, rejected)
 

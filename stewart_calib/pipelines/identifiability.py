@@ -12,7 +12,7 @@ import json
 from . import run_command
 from .. import io
 from ..errors import CalibError
-from ..estimators.config import load_estimator_config
+from ..config import load_estimator_config
 from ..identifiability import identifiability_report, measured_poses, warning_line
 from ..platform import Platform, load_platform
 from ..io import read_pose_list

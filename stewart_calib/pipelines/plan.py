@@ -15,7 +15,7 @@ import numpy as np
 
 from . import add_config_arguments, run_command
 from .. import io
-from ..estimators.config import load_estimator_config
+from ..config import load_estimator_config
 from ..platform import load_platform
 from ..planning import CRITERIA, DEFAULT_CRITERION, plan_poses
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from . import run_command
 from ..errors import CalibError
-from ..estimators import load_estimator_config
+from ..config import load_estimator_config
 from ..io import atomic_path, atomic_write_text
 from ..resources import CONFIGS
 from ..reproduction import reproduce, results_dict, tables_markdown, write_recording

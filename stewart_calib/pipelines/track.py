@@ -44,7 +44,7 @@ from typing import Callable, Iterator
 from . import add_config_arguments, run_command
 from .. import io
 from ..errors import CalibError, SampleRejected
-from ..estimators import load_estimator_config
+from ..config import load_estimator_config
 from ..online import ONLINE_METHODS, OnlineCalibrator
 from ..platform import load_platform, platform_to_toml
 from .calibrate import _check_writable_dir

@@ -18,9 +18,8 @@ from importlib import metadata
 import numpy as np
 
 from ..identifiability import conditioning_summary, identifiability_report
-from ..platform import N_LEGS, N_PARAMS_PER_LEG, PARAMETER_NAMES
+from ..platform import N_LEGS, N_PARAMS_PER_LEG, PARAMETER_FIELDS, PARAMETER_NAMES
 from ..simulation.robot import TABLE4_EKF_ERRORS_MM
-from ..viz.recording import PARAMETER_FIELDS
 from .metrics import VIEWS, improvement_pct, rms, stage_metrics, view_errors
 from .runs import BATCH_METHOD, METHODS, NOMINAL, ONLINE_METHODS, Reproduction, first_stage_calibration
 

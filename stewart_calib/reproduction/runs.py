@@ -21,13 +21,16 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from ..estimators import EstimatorConfig, make_estimator
+from ..config import EstimatorConfig
+from ..estimators import make_estimator, method_names
 from ..platform import N_PARAMS, Platform
 from ..simulation import EstimatorController, FrozenController, NominalController, SimulationResult, run_experiment
 from ..simulation.experiment import Experiment
 
+#: the paper's batch baseline, fitted once on the no-load calibration samples.
 BATCH_METHOD = "ls"
-ONLINE_METHODS = ("paper-ekf", "ekf", "isam2")
+#: every online method of the registry, each run in the loop through every stage.
+ONLINE_METHODS = method_names(online=True)
 METHODS = (BATCH_METHOD, *ONLINE_METHODS)
 #: the controller that is not calibrated at all (paper: "before calibration").
 NOMINAL = "nominal"

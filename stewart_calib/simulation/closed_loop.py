@@ -36,10 +36,8 @@ from tqdm import tqdm
 
 from .. import kinematics as kin
 from ..errors import SampleRejected
-from ..estimators.base import current_error
-from ..io import Truth
 from ..platform import LegGeometry, Platform
-from ..samples import Log, Sample
+from ..samples import Log, Sample, Truth
 from .experiment import Experiment, schedule
 from .load import LoadModel, loaded_params, settle
 from .robot import base_errors, encoder_readings
@@ -80,7 +78,7 @@ class EstimatorController:
     """Online calibration in the loop: each sample goes to ``estimator.update``, and the next
     IK uses the nominal drive plus the latest estimate δM (paper Fig. 3, step 4).
 
-    The model is refreshed after every sample, from the mean alone (``current_error``: isam2's
+    The model is refreshed after every sample, from the mean alone (``current_error()``: isam2's
     marginal covariance would add ~0.3 ms to a ~0.6 ms update): a stale model would cost
     accuracy on the circle, where each point is a single sample.
 
@@ -110,7 +108,7 @@ class EstimatorController:
         except SampleRejected as err:
             self.rejected.append((sample.t_s, str(err)))
         else:
-            self._error = current_error(self.estimator)
+            self._error = self.estimator.current_error()
             self._drive = self._nominal.perturbed(self._error)
         self._trace.append(self._error)
 

@@ -53,12 +53,11 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from ..kinematics import transform_points
-from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, Platform
+from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, PARAMETER_FIELDS, LegGeometry, Platform
 
 SAMPLE_TIMELINE = "sample"
 TIME_TIMELINE = "time"
 TRUTH = "truth"
-PARAMETER_FIELDS: tuple[str, ...] = ("j_x", "j_y", "j_z", "d_x", "d_y", "d_z", "l")
 
 CONVENTIONS_MARKDOWN = """\
 # stewart-calib conventions

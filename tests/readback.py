@@ -1,4 +1,4 @@
-"""Read an ``.rrd`` written by :mod:`stewart_calib.viz.recording` back, for tests and checks.
+"""Read an ``.rrd`` written by :mod:`stewart_calib.viz.recording` back, for the tests.
 
 Entity paths are returned and accepted as rerun stores them, with a leading ``/``
 (``/params/leg3/d_y/isam2``); a path given without it is normalised.
@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from rerun.chunk import RrdReader
 
-from .recording import SAMPLE_TIMELINE
+from stewart_calib.viz.recording import SAMPLE_TIMELINE
 
 
 def _entity(path: str) -> str:

@@ -1,0 +1,44 @@
+"""Files at the edge (spec §3–§6): measurement logs, pose lists and truth files (:mod:`.logs`),
+results and traces (:mod:`.results`), all written atomically (:mod:`.atomic`).
+
+Files hold mm and degrees; the arrays returned hold mm and rad. Every refusal is a
+:class:`~stewart_calib.errors.CalibError` with one line naming the file, the row or key, and
+what was expected; a failed write never leaves a partial file behind.
+"""
+
+from .atomic import atomic_path, atomic_write_text
+from .logs import (
+    LOG_REQUIRED,
+    POSE_COLUMNS,
+    READING_COLUMNS,
+    STROKE_COLUMNS,
+    TRUE_POSE_COLUMNS,
+    LogRowParser,
+    read_log,
+    read_pose_list,
+    read_truth,
+    write_log,
+    write_pose_list,
+    write_truth,
+)
+from .results import (
+    NOMINAL_TOLERANCE_MM,
+    RESULT_FORMAT,
+    RESULT_SUM_TOLERANCE_MM,
+    read_calibrated_drive,
+    read_result,
+    result_dict,
+    result_text,
+    trace_text,
+    validate_result,
+    write_result,
+    write_trace,
+)
+
+__all__ = [
+    "LOG_REQUIRED", "NOMINAL_TOLERANCE_MM", "POSE_COLUMNS", "READING_COLUMNS", "RESULT_FORMAT",
+    "RESULT_SUM_TOLERANCE_MM", "STROKE_COLUMNS", "TRUE_POSE_COLUMNS", "LogRowParser", "atomic_path",
+    "atomic_write_text", "read_calibrated_drive", "read_log", "read_pose_list", "read_result", "read_truth",
+    "result_dict", "result_text", "trace_text", "validate_result", "write_log", "write_pose_list",
+    "write_result", "write_trace", "write_truth",
+]

@@ -1,0 +1,269 @@
+"""Measurement logs, pose lists and truth files (spec §3–§4).
+
+Files hold mm and degrees; the arrays returned hold mm and rad. Every refusal is a
+:class:`~stewart_calib.errors.CalibError` with one line naming the file, the row (its
+1-based line number in the file; the header is line 1) and the column, and what was
+expected. Every writer goes through :func:`~.atomic.atomic_write_text`.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CalibError
+from ..platform import PARAMETER_NAMES, Platform
+from ..samples import Log, Sample, Truth
+from .atomic import atomic_write_text
+from .tables import (
+    csv_text,
+    flag_non_finite,
+    optional_group,
+    parse_careful,
+    parse_table,
+    pose_columns_deg,
+    read_header,
+    read_text,
+    refuse_first,
+    require_columns,
+    Table,
+)
+
+STROKE_COLUMNS = tuple(f"q{i}_mm" for i in range(1, 7))
+READING_COLUMNS = tuple(f"s{i}_mm" for i in range(1, 7))
+LOG_REQUIRED = ("t_s", *STROKE_COLUMNS, *READING_COLUMNS)
+POSE_COLUMNS = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
+TRUE_POSE_COLUMNS = tuple(f"true_{name}" for name in POSE_COLUMNS)
+
+
+def write_log(path: str | Path, log: Log) -> None:
+    """Write a measurement log (spec §3): ``t_s``, q, s, then pose [mm, deg], ``stage``, ``load_kg`` if present."""
+    header = list(LOG_REQUIRED)
+    columns = [log.t_s, *np.asarray(log.strokes).T, *np.asarray(log.readings).T]
+    if log.desired_poses is not None:
+        header += POSE_COLUMNS
+        columns += pose_columns_deg(log.desired_poses)
+    if log.stages is not None:
+        header.append("stage")
+        columns.append(list(log.stages))
+    if log.load_kg is not None:
+        header.append("load_kg")
+        columns.append(np.asarray(log.load_kg, dtype=float))
+    atomic_write_text(path, csv_text(header, columns))
+
+
+
+def _flag_out_of_range(table: Table, columns, bounds, what: str, key: str) -> None:
+    if bounds is None:
+        return
+    lo, hi = bounds
+    for name in columns:
+        values = table.numbers[name]
+        table.flag(
+            (values < lo) | (values > hi),
+            lambda k: f"column '{name}': expected a {what} within [{lo!r}, {hi!r}] mm ({key}), got {float(values[k])!r}",
+        )
+
+
+def _flag_time_backwards(table: Table) -> None:
+    """Flag rows whose t_s is below an earlier good row's (running max, so one glitch row is one skip)."""
+    t = table.numbers["t_s"]
+    good = np.ones(len(t), dtype=bool)
+    good[list(table.issues)] = False
+    latest = np.maximum.accumulate(np.r_[-np.inf, np.where(good, t, -np.inf)[:-1]])
+    table.flag(good & (t < latest), lambda k: _time_backwards(float(t[k]), float(latest[k])))
+
+
+def _time_backwards(t_s: float, latest_s: float) -> str:
+    return f"column 't_s': expected time non-decreasing, got {t_s!r} after {latest_s!r}"
+
+
+def _log_columns(path: Path, header: list[str]) -> tuple[bool, list[str], list[str]]:
+    """``(has_pose, numeric columns, text columns)`` of a log header (spec §3)."""
+    require_columns(path, header, LOG_REQUIRED)
+    has_pose = optional_group(path, header, POSE_COLUMNS)
+    numeric = [*LOG_REQUIRED, *(POSE_COLUMNS if has_pose else ()), *(["load_kg"] if "load_kg" in header else [])]
+    return has_pose, numeric, ["stage"] if "stage" in header else []
+
+
+def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) -> None:
+    """Non-finite required values and readings or strokes outside the platform's ranges."""
+    flag_non_finite(table, [*LOG_REQUIRED, *(POSE_COLUMNS if has_pose else ())])
+    if platform is not None:
+        _flag_out_of_range(table, STROKE_COLUMNS, platform.stroke_range, "stroke", "drive.stroke_range_mm")
+        _flag_out_of_range(table, READING_COLUMNS, platform.reading_range, "reading", "tracker.reading_range_mm")
+
+
+def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: bool = False) -> Log:
+    """Read a measurement log (spec §3) into a :class:`Log` [mm, rad].
+
+    A bad sample row — wrong number of fields, a missing, non-numeric or non-finite value,
+    a stroke outside ``platform.stroke_range`` or a reading outside ``platform.reading_range``
+    (inclusive, when the platform gives them), or ``t_s`` going backwards — refuses the file,
+    or with ``skip_bad_rows`` is dropped and recorded in ``Log.skipped`` as ``(row, reason)``.
+
+    Raises:
+        CalibError: the file is missing, unreadable or not UTF-8; a required column is
+            missing or the pose columns are partial; there are no sample rows; a bad row
+            (unless skipped); every row is bad.
+    """
+    path = Path(path)
+    text = read_text(path, "log file")
+    header = read_header(path, text)
+    has_pose, numeric, textual = _log_columns(path, header)
+    table = parse_table(path, header, text, numeric, textual, blank_is_nan=("load_kg",))  # payload may be unknown
+    _flag_log_values(table, platform, has_pose)
+    _flag_time_backwards(table)
+    if not skip_bad_rows:
+        refuse_first(path, table)
+    skipped = [(int(table.lines[k]), table.issues[k]) for k in sorted(table.issues)]
+    if len(skipped) == len(table):
+        raise CalibError(f"{path}: all {len(table)} sample rows are bad (first: row {skipped[0][0]}: {skipped[0][1]})")
+    keep = np.ones(len(table), dtype=bool)
+    keep[list(table.issues)] = False
+    col = lambda names: np.column_stack([table.numbers[name][keep] for name in names])  # noqa: E731
+    poses = None
+    if has_pose:
+        poses = col(POSE_COLUMNS)
+        poses[:, 3:] = np.radians(poses[:, 3:])
+    return Log(
+        t_s=table.numbers["t_s"][keep],
+        strokes=col(STROKE_COLUMNS),
+        readings=col(READING_COLUMNS),
+        desired_poses=poses,
+        stages=[s for s, k in zip(table.texts["stage"], keep) if k] if textual else None,
+        load_kg=table.numbers["load_kg"][keep] if "load_kg" in header else None,
+        skipped=skipped,
+    )
+
+
+class LogRowParser:
+    """Spec §3 rows one at a time, for a log that is still being written (``track``).
+
+    Each row gets exactly :func:`read_log`'s checks and messages (it is parsed as a one-row
+    table by the same code); time must not go back from the last good row. A quoted field
+    holding a line break is not supported (a stream is split at line breaks).
+
+    Args:
+        source: names the input in messages (a path or ``<stdin>``).
+        header_line: the header row (a leading byte-order mark is dropped).
+        platform: gives the stroke and reading ranges, or None.
+    Raises:
+        CalibError: a bad header (as :func:`read_log`).
+    """
+
+    def __init__(self, source: str, header_line: str, platform: Platform | None = None):
+        self._path = Path(source)
+        self._header_line = header_line.lstrip("\ufeff").rstrip("\r\n")
+        self._header = read_header(self._path, self._header_line)
+        self._has_pose, self._numeric, self._textual = _log_columns(self._path, self._header)
+        self._platform = platform
+        self._last_t_s = -math.inf
+
+    def parse(self, line: str, row: int) -> Sample | None:
+        """The sample of one row (``row``: its 1-based line number), or None for a blank line.
+
+        Raises:
+            CalibError: ``"<source>: row <row>: column '<name>': expected ..."`` for a bad row;
+                the parser's state is unchanged, so the caller may skip the row and go on.
+        """
+        line = line.rstrip("\r\n")
+        if not line.strip():
+            return None
+        table = parse_careful(self._header, f"{self._header_line}\n{line}", self._numeric, self._textual, {"load_kg"})
+        table.lines = np.array([row])
+        _flag_log_values(table, self._platform, self._has_pose)
+        t_s = float(table.numbers["t_s"][0])
+        if not table.issues and t_s < self._last_t_s:
+            table.issues[0] = _time_backwards(t_s, self._last_t_s)
+        refuse_first(self._path, table)
+        self._last_t_s = t_s
+        number = lambda name: float(table.numbers[name][0])  # noqa: E731
+        pose = None
+        if self._has_pose:
+            pose = np.array([number(name) for name in POSE_COLUMNS])
+            pose[3:] = np.radians(pose[3:])
+        return Sample(
+            t_s,
+            np.array([number(name) for name in STROKE_COLUMNS]),
+            np.array([number(name) for name in READING_COLUMNS]),
+            pose,
+            table.texts["stage"][0] if self._textual else "",
+            number("load_kg") if "load_kg" in self._numeric else None,
+        )
+
+
+# ----------------------------------------------------------------------------- truth
+
+
+def write_pose_list(
+    path: str | Path, poses: np.ndarray, dwell_s: float | None = 1.0, columns: dict[str, np.ndarray] | None = None
+) -> None:
+    """Write the six pose columns [mm, deg] (atomically), after ``t_s`` (one pose per ``dwell_s``
+    seconds) unless ``dwell_s`` is None, and before any extra ``columns`` (e.g. strokes).
+
+    Raises:
+        CalibError: a ``dwell_s`` that is not a finite positive number (times must increase).
+    """
+    if dwell_s is not None and not (math.isfinite(dwell_s) and dwell_s > 0):
+        raise CalibError(f"dwell time: expected a finite positive number of seconds, got {dwell_s!r}")
+    columns = columns or {}
+    head = [] if dwell_s is None else ["t_s"]
+    lead = [] if dwell_s is None else [np.arange(len(poses)) * dwell_s]
+    atomic_write_text(
+        path, csv_text([*head, *POSE_COLUMNS, *columns], [*lead, *pose_columns_deg(poses), *columns.values()])
+    )
+
+
+def read_pose_list(path: str | Path) -> np.ndarray:
+    """The six pose columns of a pose list or a measurement log, ``(N, 6)`` [mm, rad].
+
+    Raises:
+        CalibError: missing file or columns, no rows, or a non-finite pose value (naming the row).
+    """
+    path = Path(path)
+    text = read_text(path, "pose list")
+    header = read_header(path, text)
+    require_columns(path, header, POSE_COLUMNS)
+    table = parse_table(path, header, text, POSE_COLUMNS)
+    flag_non_finite(table, POSE_COLUMNS)
+    refuse_first(path, table)
+    poses = np.column_stack([table.numbers[name] for name in POSE_COLUMNS])
+    poses[:, 3:] = np.radians(poses[:, 3:])
+    return poses
+
+
+def write_truth(path: str | Path, truth: Truth) -> None:
+    """Write a truth file (spec §4): ``t_s``, the 42 parameters [mm], the true pose [mm, deg] if present."""
+    header = ["t_s", *PARAMETER_NAMES]
+    columns = [truth.t_s, *np.asarray(truth.params, dtype=float).T]
+    if truth.true_poses is not None:
+        header += TRUE_POSE_COLUMNS
+        columns += pose_columns_deg(truth.true_poses)
+    atomic_write_text(path, csv_text(header, columns))
+
+
+def read_truth(path: str | Path) -> Truth:
+    """Read a truth file (spec §4).
+
+    Raises:
+        CalibError: as for logs — missing file or column, no rows, a bad value (never skipped).
+    """
+    path = Path(path)
+    text = read_text(path, "truth file")
+    header = read_header(path, text)
+    required = ("t_s", *PARAMETER_NAMES)
+    require_columns(path, header, required)
+    has_pose = optional_group(path, header, TRUE_POSE_COLUMNS)
+    numeric = [*required, *(TRUE_POSE_COLUMNS if has_pose else ())]
+    table = parse_table(path, header, text, numeric)
+    flag_non_finite(table, numeric)
+    refuse_first(path, table)
+    poses = None
+    if has_pose:
+        poses = np.column_stack([table.numbers[name] for name in TRUE_POSE_COLUMNS])
+        poses[:, 3:] = np.radians(poses[:, 3:])
+    params = np.column_stack([table.numbers[name] for name in PARAMETER_NAMES])
+    return Truth(table.numbers["t_s"], params, poses)

@@ -1,0 +1,157 @@
+"""Calibration results (spec §5) and traces (spec §6).
+
+Every refusal is one :class:`~stewart_calib.errors.CalibError` line naming the file and the key;
+every writer goes through :func:`~.atomic.atomic_write_text`, so a bad result writes nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CalibError
+from ..estimate import Estimate
+from ..platform import N_PARAMS, PARAMETER_NAMES, LegGeometry, Platform
+from .atomic import atomic_write_text
+from .tables import csv_text, read_text
+
+RESULT_FORMAT = "stewart-calib/result@1"
+
+#: |estimate − (nominal + error)| a result file may show before it is refused [mm]: JSON
+#: writers that round to the nanometre still pass.
+RESULT_SUM_TOLERANCE_MM = 1e-6
+
+
+def trace_text(t_s: np.ndarray, params: np.ndarray) -> str:
+    """Trace CSV (spec §6): ``t_s`` plus the 42 estimated absolute parameters [mm] per sample."""
+    t_s = np.asarray(t_s, dtype=float)
+    params = np.asarray(params, dtype=float)
+    if t_s.ndim != 1 or params.shape != (len(t_s), N_PARAMS):
+        raise ValueError(f"trace needs t_s (N,) and params (N, {N_PARAMS}), got {t_s.shape} and {params.shape}")
+    return csv_text(["t_s", *PARAMETER_NAMES], [t_s, *params.T])
+
+
+def write_trace(path: str | Path, t_s: np.ndarray, params: np.ndarray) -> None:
+    """Write a trace CSV (spec §6); see :func:`trace_text`."""
+    atomic_write_text(path, trace_text(t_s, params))
+
+
+# ----------------------------------------------------------------------------- results
+
+
+def result_dict(estimate: Estimate, platform: Platform, samples_skipped: int = 0, extra: dict | None = None) -> dict:
+    """The spec §5 result of ``estimate`` on ``platform`` (``estimate = nominal + error`` [mm]).
+
+    ``extra`` adds optional fields; it may not replace the spec's.
+    """
+    nominal = platform.drive.as_vector()
+    error = np.asarray(estimate.error, dtype=float)
+    stddev = estimate.stddev
+    result = {
+        "format": RESULT_FORMAT,
+        "method": estimate.method,
+        "platform": platform.name,
+        "parameter_names": list(PARAMETER_NAMES),
+        "nominal": nominal.tolist(),
+        "estimate": (nominal + error).tolist(),
+        "error": error.tolist(),
+        "stddev": None if stddev is None else stddev.tolist(),
+        "samples_used": int(estimate.samples_used),
+        "samples_skipped": int(samples_skipped),
+    }
+    clash = set(extra or {}) & set(result)
+    if clash:
+        raise ValueError(f"extra result fields may not replace spec fields: {', '.join(sorted(clash))}")
+    return {**result, **(extra or {})}
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def validate_result(result, source: str) -> None:
+    """Check a result against spec §5.
+
+    Raises:
+        CalibError: ``source`` and the offending key, with what was expected.
+    """
+    refuse = lambda key, expected: CalibError(f"{source}: key '{key}': expected {expected}")  # noqa: E731
+    if not isinstance(result, dict):
+        raise CalibError(f"{source}: expected a JSON object (spec §5 result)")
+    missing = [key for key in ("format", "method", "platform", "parameter_names", "nominal", "estimate", "error",
+                               "stddev", "samples_used", "samples_skipped") if key not in result]
+    if missing:
+        raise refuse(missing[0], "a value (missing)")
+    if result["format"] != RESULT_FORMAT:
+        raise refuse("format", f"{RESULT_FORMAT!r}, got {result['format']!r}")
+    for key in ("method", "platform"):
+        if not isinstance(result[key], str) or not result[key]:
+            raise refuse(key, "a non-empty string")
+    if result["parameter_names"] != list(PARAMETER_NAMES):
+        raise refuse("parameter_names", f"the {N_PARAMS} names j1x ... l6 in the paper's order")
+    for key in ("nominal", "estimate", "error", "stddev"):
+        value = result[key]
+        if key == "stddev" and value is None:
+            continue
+        if not isinstance(value, list) or len(value) != N_PARAMS or not all(_is_number(v) for v in value):
+            raise refuse(key, f"a list of {N_PARAMS} finite numbers" + (" or null" if key == "stddev" else ""))
+    if result["stddev"] is not None and min(result["stddev"]) < 0:
+        raise refuse("stddev", "non-negative numbers")
+    for key in ("samples_used", "samples_skipped"):
+        value = result[key]
+        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+            raise refuse(key, f"a non-negative whole number, got {value!r}")
+    gap = np.abs(np.array(result["estimate"]) - np.array(result["nominal"]) - np.array(result["error"]))
+    if gap.max() > RESULT_SUM_TOLERANCE_MM:
+        i = int(gap.argmax())
+        raise refuse("estimate", f"nominal + error; {PARAMETER_NAMES[i]} differs by {gap[i]:.3g} mm")
+
+
+def result_text(result: dict, source: str) -> str:
+    """The JSON text of a validated result (see :func:`validate_result`)."""
+    validate_result(result, source)
+    return json.dumps(result, indent=2) + "\n"
+
+
+def write_result(path: str | Path, result: dict) -> None:
+    """Validate and write a result JSON (spec §5) atomically; a bad result writes nothing."""
+    atomic_write_text(path, result_text(result, str(path)))
+
+
+def read_result(path: str | Path) -> dict:
+    """Read and validate a result JSON (spec §5); returns the parsed object.
+
+    Raises:
+        CalibError: unreadable or not JSON; a wrong format, length or non-finite number, naming the key.
+    """
+    path = Path(path)
+    text = read_text(path, "result file")
+    try:
+        result = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise CalibError(f"{path}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
+    validate_result(result, str(path))
+    return result
+
+
+#: |result nominal − platform nominal| above which a result belongs to another platform [mm].
+NOMINAL_TOLERANCE_MM = 1e-6
+
+
+def read_calibrated_drive(path: str | Path, platform: Platform) -> LegGeometry:
+    """The drive ``nominal + error`` of a result JSON (spec §5) made for ``platform``.
+
+    Raises:
+        CalibError: an invalid result, or one whose ``nominal`` is not ``platform``'s drive.
+    """
+    result = read_result(path)
+    gap = float(np.max(np.abs(np.array(result["nominal"]) - platform.drive.as_vector())))
+    if gap > NOMINAL_TOLERANCE_MM:
+        raise CalibError(
+            f"{path}: key 'nominal': expected the nominal drive of platform '{platform.name}'; "
+            f"it differs by {gap:.3g} mm (a result for another platform?)"
+        )
+    return platform.drive.perturbed(np.array(result["error"]))

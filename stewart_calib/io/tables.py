@@ -1,0 +1,194 @@
+"""CSV text shared by the file readers and writers of :mod:`stewart_calib.io`.
+
+Parsing is columnar: a fast path (``np.loadtxt``) for the common well-formed file and a careful
+row-by-row path that finds and words the first problem of each bad row. Rows are numbered by
+their 1-based line in the file (the header is line 1).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CalibError
+
+
+def csv_text(header: list[str], columns: list) -> str:
+    """CSV text of equal-length columns; floats are written with ``repr`` (round-trip exact)."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(header)
+    writer.writerows(zip(*(c.tolist() if isinstance(c, np.ndarray) else c for c in columns)))
+    return buffer.getvalue()
+
+
+def pose_columns_deg(poses: np.ndarray) -> list[np.ndarray]:
+    """``(N, 6)`` poses [mm, rad] → six file columns [mm, deg]."""
+    poses = np.asarray(poses, dtype=float)
+    return [poses[:, 0], poses[:, 1], poses[:, 2], *np.degrees(poses[:, 3:]).T]
+
+
+def read_text(path: Path, what: str) -> str:
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise CalibError(f"{path}: {what} not found") from None
+    except OSError as err:
+        raise CalibError(f"{path}: cannot read {what} ({err.strerror or err.__class__.__name__})") from None
+    try:
+        text = data.decode("utf-8-sig")  # a byte-order mark is what spreadsheet exports add
+    except UnicodeDecodeError as err:
+        raise CalibError(
+            f"{path}: {what} is not UTF-8 text (byte 0x{data[err.start]:02x} at offset {err.start}); expected a UTF-8 CSV file"
+        ) from None
+    return text.replace("\r\n", "\n")
+
+
+@dataclass
+class Table:
+    """Parsed CSV body: numeric columns as float arrays (NaN where unparsable), text columns
+    as lists, the file line of each row, and the first problem found in each bad row."""
+
+    numbers: dict[str, np.ndarray]
+    texts: dict[str, list[str]]
+    lines: np.ndarray
+    issues: dict[int, str]
+
+    def __len__(self) -> int:
+        return len(self.lines)
+
+    def flag(self, bad: np.ndarray, describe) -> None:
+        """Record ``describe(k)`` for every row ``k`` in the mask that has no problem yet."""
+        for k in np.flatnonzero(bad):
+            self.issues.setdefault(int(k), describe(int(k)))
+
+
+def read_header(path: Path, text: str) -> list[str]:
+    if not text.strip():
+        raise CalibError(f"{path}: empty file, no sample rows; expected a header row and at least one sample row")
+    first = text.split("\n", 1)[0]
+    try:
+        header = [name.strip() for name in next(csv.reader([first]), [])]
+    except csv.Error as err:  # e.g. a lone carriage return
+        raise CalibError(f"{path}: row 1: expected a CSV header row ({err})") from None
+    seen = set()
+    for name in header:
+        if name and name in seen:
+            raise CalibError(f"{path}: row 1: column '{name}' appears twice; expected unique column names")
+        seen.add(name)
+    return header
+
+
+def require_columns(path: Path, header: list[str], required) -> None:
+    missing = [name for name in required if name not in header]
+    if missing:
+        raise CalibError(f"{path}: row 1: missing required column(s) {', '.join(missing)}")
+
+
+def optional_group(path: Path, header: list[str], group) -> bool:
+    """True when all of ``group`` is present, False when none; a partial set is refused."""
+    present = [name for name in group if name in header]
+    if present and len(present) < len(group):
+        missing = [name for name in group if name not in header]
+        raise CalibError(
+            f"{path}: row 1: columns {', '.join(group)} come all six or none; missing {', '.join(missing)}"
+        )
+    return bool(present)
+
+
+def _parse_fast(header: list[str], text: str, numeric: list[str], textual: list[str]) -> Table | None:
+    """The common case in C speed: no quoting, no blank lines, every field a number.
+
+    Returns None when the file needs the careful path (which also finds the bad row).
+    """
+    if '"' in text:
+        return None
+    rows = text.split("\n")[1:]
+    while rows and rows[-1] == "":
+        rows.pop()
+    commas = len(header) - 1
+    if not rows or any(row.count(",") != commas for row in rows):
+        return None
+    index = {name: i for i, name in enumerate(header)}
+    try:
+        values = np.loadtxt(
+            rows, delimiter=",", usecols=[index[name] for name in numeric], comments=None, ndmin=2, dtype=float
+        )
+    except ValueError:
+        return None
+    numbers = {name: values[:, j] for j, name in enumerate(numeric)}
+    texts = {
+        name: [v.strip() for v in np.loadtxt(rows, delimiter=",", usecols=[index[name]], comments=None, ndmin=1, dtype=str)]
+        for name in textual
+    }
+    return Table(numbers, texts, np.arange(2, len(rows) + 2), {})
+
+
+def _floats(texts: tuple[str, ...], column: str, issues: dict[int, str], blank_is_nan: bool) -> np.ndarray:
+    try:
+        return np.array(texts, dtype=float)
+    except ValueError:
+        pass  # find the offending rows one by one below
+    out = np.full(len(texts), np.nan)
+    for k, text in enumerate(texts):
+        try:
+            out[k] = float(text)
+        except ValueError:
+            if not text.strip():
+                if not blank_is_nan:
+                    issues.setdefault(k, f"column '{column}': expected a number, got an empty field")
+            else:
+                issues.setdefault(k, f"column '{column}': expected a number, got {text!r}")
+    return out
+
+
+def parse_careful(header: list[str], text: str, numeric: list[str], textual: list[str], blank_is_nan) -> Table:
+    """Row by row with the csv module: quoting, blank lines, wrong field counts, bad numbers."""
+    reader = csv.reader(io.StringIO(text))
+    next(reader, None)
+    rows, lines, issues = [], [], {}
+    width = len(header)
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            break
+        except csv.Error as err:  # e.g. a lone carriage return inside a row; the reader goes on with the next line
+            issues[len(rows)] = f"expected a CSV row ({err})"
+            row = [""] * width
+        if len(row) <= 1 and not (row and row[0].strip()):
+            continue  # a blank line holds no sample
+        if len(row) != width:
+            issues[len(rows)] = f"expected {width} fields as in the header, got {len(row)}"
+            row = [""] * width
+        rows.append(row)
+        lines.append(reader.line_num)
+    columns = list(zip(*rows)) if rows else [()] * width
+    index = {name: i for i, name in enumerate(header)}
+    numbers = {name: _floats(columns[index[name]], name, issues, name in blank_is_nan) for name in numeric}
+    texts = {name: [field.strip() for field in columns[index[name]]] for name in textual}
+    return Table(numbers, texts, np.array(lines, dtype=int), issues)
+
+
+def parse_table(path: Path, header: list[str], text: str, numeric, textual=(), blank_is_nan=()) -> Table:
+    numeric, textual = list(numeric), list(textual)
+    table = _parse_fast(header, text, numeric, textual) or parse_careful(header, text, numeric, textual, set(blank_is_nan))
+    if len(table) == 0:
+        raise CalibError(f"{path}: no sample rows; expected a header row and at least one sample row")
+    return table
+
+
+def flag_non_finite(table: Table, columns) -> None:
+    for name in columns:
+        values = table.numbers[name]
+        table.flag(~np.isfinite(values), lambda k: f"column '{name}': expected a finite number, got {float(values[k])!r}")
+
+
+def refuse_first(path: Path, table: Table) -> None:
+    if table.issues:
+        k = min(table.issues)
+        raise CalibError(f"{path}: row {table.lines[k]}: {table.issues[k]}")
