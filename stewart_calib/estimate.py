@@ -1,15 +1,17 @@
-"""What every estimator returns: :class:`Estimate`, the identified parameter errors δM.
+"""What every estimator returns: :class:`Estimate`, the identified parameter errors δM and,
+where the unknown vector has more blocks (stroke scale, instrument unknowns), theirs.
 
 Kept below :mod:`stewart_calib.io`, the estimators and the simulator, which all pass it around.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from .platform import LegGeometry, Platform
+from .platform import N_PARAMS, LegGeometry, Platform
+from .unknowns import UnknownLayout
 
 
 @dataclass(frozen=True)
@@ -22,6 +24,9 @@ class Estimate:
         method: the method's name (``ls``, ``paper-ekf``, ``ekf``, ``isam2``, ``lm``).
         samples_used: samples folded in.
         t_s: time of the last sample folded in [s] (nan if none).
+        layout: the blocks after δM in the unknown vector (none: the 42 drive parameters alone).
+        block_error: ``(layout.size − 42,)`` the blocks' errors from nominal [code units].
+        full_covariance: ``(layout.size, layout.size)`` over ``[δM | blocks]`` [code units], or None.
     """
 
     error: np.ndarray
@@ -29,6 +34,22 @@ class Estimate:
     method: str
     samples_used: int = 0
     t_s: float = float("nan")
+    layout: UnknownLayout = field(default_factory=UnknownLayout)
+    block_error: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    full_covariance: np.ndarray | None = None
+
+    @classmethod
+    def of_state(
+        cls, x: np.ndarray, P: np.ndarray | None, layout: UnknownLayout, method: str, samples_used: int = 0,
+        t_s: float = float("nan"),
+    ) -> "Estimate":
+        """The estimate of a whole unknown vector ``x = [δM | blocks]`` with covariance ``P`` (copied)."""
+        x = np.array(x, dtype=float)
+        P = None if P is None else np.array(P, dtype=float)
+        return cls(
+            x[:N_PARAMS], None if P is None else P[:N_PARAMS, :N_PARAMS], method, samples_used, t_s,
+            layout, x[N_PARAMS:], None if layout.blocks == () else P,
+        )
 
     @property
     def stddev(self) -> np.ndarray | None:
@@ -39,3 +60,15 @@ class Estimate:
         """The estimated drive geometry ``M + δM``."""
         legs = nominal.drive if isinstance(nominal, Platform) else nominal
         return legs.perturbed(self.error)
+
+    def block_results(self) -> dict[str, dict]:
+        """``{key: {"names", "estimate", "stddev"}}`` of every block, in file units (spec §7)."""
+        stddev = None
+        if self.full_covariance is not None:
+            stddev = np.sqrt(np.clip(np.diag(self.full_covariance)[N_PARAMS:], 0.0, None))
+        out, start = {}, 0
+        for block in self.layout.blocks:
+            cols = slice(start, start + block.size)
+            out[block.key] = block.to_file(self.block_error[cols], None if stddev is None else stddev[cols])
+            start += block.size
+        return out

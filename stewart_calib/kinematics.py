@@ -20,12 +20,13 @@ in :mod:`stewart_calib._kernels`; the functions here keep their numpy signatures
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from . import _kernels
-from .errors import CalibError
+from .errors import CalibError, SampleRejected
 from .platform import N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
 from .rotations import (  # noqa: F401 -- the pose algebra is part of the kinematics API
     pose_error,
@@ -330,4 +331,55 @@ def leg_ekf_observation(
         drive.base_joints, drive.platform_joints, drive.initial_lengths, c(delta, dtype=float),
         tracker.base_joints, tracker.platform_joints, c(R, dtype=float), c(t, dtype=float),
         c(strokes, dtype=float), float(reading_sigma_mm) ** 2, float(stroke_sigma_mm) ** 2,
+    )
+
+
+def leg_residual(
+    R: np.ndarray, t: np.ndarray, leg: np.ndarray, extension_mm: float, jacobians: bool = False
+) -> tuple[float, np.ndarray | None, np.ndarray | None]:
+    """``‖t + R d − j‖ − (l + extension)`` for one leg ``[j (3) | d (3) | l]`` [mm].
+
+    Shared by the drive legs (extension = stroke q_i) and the tracker's rulers (reading s_i).
+
+    Args:
+        R, t: platform pose ``(3, 3)``, ``(3,)`` [mm].
+        leg: ``(7,)`` geometry ``[j_x j_y j_z d_x d_y d_z l]`` [mm].
+        extension_mm: stroke or reading [mm].
+        jacobians: also return ``∂r/∂ξ (6,)`` and ``∂r/∂leg (7,)``.
+    Returns:
+        ``(r [mm], H_pose or None, H_leg or None)``.
+    """
+    d = leg[3:6]
+    v = t + R @ d - leg[0:3]
+    length = math.sqrt(v @ v)
+    r = length - leg[6] - extension_mm
+    if not jacobians:
+        return r, None, None
+    n = v / length
+    nb = n @ R  # Rᵀ n
+    # d × n_b written out: np.cross costs ~20 µs on 3-vectors (docs/measured-facts.md).
+    H_pose = np.array(
+        [d[1] * nb[2] - d[2] * nb[1], d[2] * nb[0] - d[0] * nb[2], d[0] * nb[1] - d[1] * nb[0], nb[0], nb[1], nb[2]]
+    )
+    H_leg = np.concatenate([-n, nb, [-1.0]])
+    return r, H_pose, H_leg
+
+
+def solve_fk(
+    legs: LegGeometry, lengths: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None, what: str, tol_mm: float = 1e-9
+) -> tuple[np.ndarray, np.ndarray]:
+    """FK from ``guess`` (the previous pose), then from the default cold guess: a jump between
+    samples can leave the old pose outside Newton's basin.
+
+    Raises:
+        SampleRejected: neither start converges; ``what`` names the leg set.
+    """
+    for start in (guess, None) if guess is not None else (None,):
+        sol = forward_kinematics(legs, lengths, guess=start, tol_mm=tol_mm, strict=False)
+        if sol.converged:
+            return sol.R, sol.t
+    raise SampleRejected(
+        f"{what} forward kinematics did not converge (residual {float(sol.residual_mm):.3g} mm): "
+        "the lengths may be unreachable",
+        SampleRejected.FK_FAILED,
     )

@@ -34,7 +34,7 @@ from ..estimate import Estimate
 from ..factors import drive_leg, random_walk, tracker_leg, tracker_pose
 from ..platform import N_LEGS, N_PARAMS, Platform
 from ..samples import Sample
-from .measurement import check_sample, solve_fk
+from .measurement import check_sample
 
 
 def pose_key(k: int) -> int:
@@ -132,7 +132,7 @@ class GraphBuilder:
             raise SampleRejected(
                 f"sample at t = {sample.t_s} s is older than the last one ({state.last_t_s} s)", SampleRejected.TIME_BACK
             )
-        R, t = solve_fk(self.platform.tracker, readings, state.last_pose, "tracker")
+        R, t = kin.solve_fk(self.platform.tracker, readings, state.last_pose, "tracker")
         pose = gtsam.Pose3(gtsam.Rot3(R), t)
 
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()

@@ -63,26 +63,6 @@ def check_sample(platform: Platform, sample: Sample) -> tuple[np.ndarray, np.nda
     return strokes, readings
 
 
-def solve_fk(
-    legs: LegGeometry, lengths: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None, what: str, tol_mm: float = 1e-9
-) -> tuple[np.ndarray, np.ndarray]:
-    """FK from ``guess`` (the previous pose), then from the default cold guess: a jump between
-    samples can leave the old pose outside Newton's basin.
-
-    Raises:
-        SampleRejected: neither start converges; ``what`` names the leg set.
-    """
-    for start in (guess, None) if guess is not None else (None,):
-        sol = kin.forward_kinematics(legs, lengths, guess=start, tol_mm=tol_mm, strict=False)
-        if sol.converged:
-            return sol.R, sol.t
-    raise SampleRejected(
-        f"{what} forward kinematics did not converge (residual {float(sol.residual_mm):.3g} mm): "
-        "the lengths may be unreachable",
-        SampleRejected.FK_FAILED,
-    )
-
-
 class WarmFK:
     """Forward kinematics for a stream of samples, warm-started from the last solution.
 
@@ -97,12 +77,12 @@ class WarmFK:
     def solve(self, legs: LegGeometry, lengths: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
         """``(R, t)`` with ``‖t + R p_i − b_i‖ = initial_i + lengths_i`` (paper step 1).
 
-        Tries the previous pose first, then the default cold guess (:func:`solve_fk`).
+        Tries the previous pose first, then the default cold guess (:func:`~stewart_calib.kinematics.solve_fk`).
 
         Raises:
             SampleRejected: neither start converges; ``what`` names the leg set.
         """
-        self._guess = solve_fk(legs, lengths, self._guess, what, self.tol_mm)
+        self._guess = kin.solve_fk(legs, lengths, self._guess, what, self.tol_mm)
         return self._guess
 
 

@@ -23,38 +23,8 @@ from functools import partial
 import gtsam
 import numpy as np
 
+from ..kinematics import leg_residual
 from ..platform import N_PARAMS, N_PARAMS_PER_LEG
-
-
-def leg_residual(
-    R: np.ndarray, t: np.ndarray, leg: np.ndarray, extension_mm: float, jacobians: bool = False
-) -> tuple[float, np.ndarray | None, np.ndarray | None]:
-    """``‖t + R d − j‖ − (l + extension)`` for one leg ``[j (3) | d (3) | l]`` [mm].
-
-    Shared by the drive leg (extension = stroke q_i) and the tracker leg (reading s_i).
-
-    Args:
-        R, t: platform pose ``(3, 3)``, ``(3,)`` [mm].
-        leg: ``(7,)`` geometry ``[j_x j_y j_z d_x d_y d_z l]`` [mm].
-        extension_mm: stroke or reading [mm].
-        jacobians: also return ``∂r/∂ξ (6,)`` and ``∂r/∂leg (7,)``.
-    Returns:
-        ``(r [mm], H_pose or None, H_leg or None)``.
-    """
-    d = leg[3:6]
-    v = t + R @ d - leg[0:3]
-    length = math.sqrt(v @ v)
-    r = length - leg[6] - extension_mm
-    if not jacobians:
-        return r, None, None
-    n = v / length
-    nb = n @ R  # Rᵀ n
-    # d × n_b written out: np.cross costs ~20 µs on 3-vectors (docs/measured-facts.md).
-    H_pose = np.array(
-        [d[1] * nb[2] - d[2] * nb[1], d[2] * nb[0] - d[0] * nb[2], d[0] * nb[1] - d[1] * nb[0], nb[0], nb[1], nb[2]]
-    )
-    H_leg = np.concatenate([-n, nb, [-1.0]])
-    return r, H_pose, H_leg
 
 
 def residual(

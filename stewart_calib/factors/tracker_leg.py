@@ -6,7 +6,7 @@ Residual of tracker leg i with known geometry (paper Table 2)::
 
 No forward kinematics: each reading is its own factor, so a robust kernel down-weights a
 single bad reading rather than the whole sample. Same geometry as the drive leg
-(:func:`stewart_calib.factors.drive_leg.leg_residual`) with nothing to estimate.
+(:func:`stewart_calib.kinematics.leg_residual`) with nothing to estimate.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from functools import partial
 import gtsam
 import numpy as np
 
-from .drive_leg import leg_residual
+from ..kinematics import leg_residual
 
 
 def residual(

@@ -62,6 +62,7 @@ def result_dict(estimate: Estimate, platform: Platform, samples_skipped: int = 0
         "samples_used": int(estimate.samples_used),
         "samples_skipped": int(samples_skipped),
     }
+    result.update(estimate.block_results())  # spec §7: "stroke_scale", "instrument" where identified
     clash = set(extra or {}) & set(result)
     if clash:
         raise ValueError(f"extra result fields may not replace spec fields: {', '.join(sorted(clash))}")

@@ -1,0 +1,107 @@
+"""The measurement-model protocol: what an instrument observes of the platform pose.
+
+Every estimator talks to the instrument only through a model of this protocol, so adding an
+instrument touches :mod:`stewart_calib.instruments`, :mod:`stewart_calib.factors` and one
+entry in :mod:`.registry` — never an estimator (docs/architecture.md, with the tracker as the
+worked example).
+
+A model is a description, not a state: it holds its geometry and noise and answers pure
+functions of the pose ``(R, t)`` of {D} in {J} (mm, rad), its own unknowns ``θ`` and one
+measurement ``z``:
+
+* ``kind`` — the ``[instrument] kind`` of the platform file (spec §7);
+* ``columns`` — the log columns it reads, in the order of ``z`` (``Sample.readings`` holds
+  ``z`` in code units: mm and rad; a channel not measured in a row, e.g. a hidden target, is NaN);
+* ``unknowns`` — its own :class:`~stewart_calib.unknowns.UnknownBlock` (names, nominal ``θ₀``
+  in code units, prior σ, which gauge directions the drive shares), or None when it is known
+  exactly. ``θ`` passed to the functions is always absolute: ``θ₀ + error``; ``()`` when None;
+* ``channel_sigma`` — ``(M,)`` σ of each channel of ``z`` [code units]: white, independent;
+* :meth:`~InstrumentModel.check` — refuse an unusable measurement before any state is touched;
+* :meth:`~InstrumentModel.groups` — the channels of ``z`` that go into one factor each (a
+  robust kernel weighs a group as a whole: one ruler, one pose, one target);
+* :meth:`~InstrumentModel.residual` — tight coupling: predicted minus measured for some
+  channels, with ``∂r/∂ξ`` on the body tangent ``ξ = [ω, v]`` of the pose (GTSAM's order:
+  rotation first; ``R ← R Exp(ω)``, ``t ← t + R v``) and ``∂r/∂θ``;
+* :meth:`~InstrumentModel.pose` — loose coupling where the measurement fixes a pose: that pose
+  with its covariance on the same tangent and ``∂ξ/∂θ``; None where it does not (a points
+  instrument seeing fewer than three targets).
+
+A residual is a *function of the pose*, which is what both estimator families need: the factor
+graph puts it on the pose variable (:mod:`stewart_calib.factors.instrument`), and an EKF can
+evaluate it at the pose the drive model predicts, chaining ``∂ξ/∂x`` of the drive's forward
+kinematics (implicit function theorem on the drive-leg residuals).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from ..unknowns import UnknownBlock
+
+
+@dataclass(frozen=True)
+class Residual:
+    """Tight coupling: ``r = h(pose, θ) − z`` for some channels of one measurement.
+
+    Attributes:
+        r: ``(m,)`` predicted minus measured [code units of the channels].
+        J_pose: ``(m, 6)`` ``∂r/∂ξ``, body tangent ``[ω, v]``.
+        J_instrument: ``(m, n)`` ``∂r/∂θ`` (n = 0 for a model without unknowns).
+        channels: ``(m,)`` indices into ``channel_sigma`` / ``z`` of the rows.
+    """
+
+    r: np.ndarray
+    J_pose: np.ndarray
+    J_instrument: np.ndarray
+    channels: np.ndarray
+
+
+@dataclass(frozen=True)
+class PoseObservation:
+    """Loose coupling: the pose of {D} in {J} one measurement implies.
+
+    Attributes:
+        R, t: ``(3, 3)``, ``(3,)`` [mm].
+        covariance: ``(6, 6)`` on the body tangent ``[ω, v]`` [rad², mm²], from ``channel_sigma``.
+        J_instrument: ``(6, n)`` ``∂ξ/∂θ``: how the implied pose moves with the model's unknowns.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    covariance: np.ndarray
+    J_instrument: np.ndarray
+
+
+@runtime_checkable
+class InstrumentModel(Protocol):
+    """A measurement model (see the module docstring)."""
+
+    kind: str
+    columns: tuple[str, ...]
+    unknowns: UnknownBlock | None
+    channel_sigma: np.ndarray
+
+    def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
+        """``z`` as a float array, or :class:`~stewart_calib.errors.SampleRejected` (wrong shape,
+        a non-finite required channel, a value outside the instrument's range)."""
+
+    def groups(self, z: np.ndarray) -> list[np.ndarray]:
+        """The channel groups of ``z`` that are measured, one factor each."""
+
+    def residual(self, R: np.ndarray, t: np.ndarray, theta: np.ndarray, z: np.ndarray, channels: np.ndarray) -> Residual:
+        """``h(pose, θ) − z`` on ``channels`` with its Jacobians."""
+
+    def pose(self, z: np.ndarray, theta: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None) -> PoseObservation | None:
+        """The pose ``z`` implies (``guess``: the previous one, a warm start), or None where ``z``
+        does not fix a pose. Raises :class:`~stewart_calib.errors.SampleRejected` when it should
+        but cannot (e.g. forward kinematics does not converge)."""
+
+
+def instrument_theta(model: InstrumentModel, block_error: np.ndarray | None) -> np.ndarray:
+    """Absolute ``θ = θ₀ + error`` of ``model`` (``()`` for a model without unknowns)."""
+    if model.unknowns is None:
+        return np.zeros(0)
+    return model.unknowns.nominal + (0.0 if block_error is None else np.asarray(block_error, dtype=float))

@@ -1,0 +1,38 @@
+"""The one list of instrument kinds: ``[instrument] kind`` (spec §7) → the model that reads it.
+
+Adding an instrument: its model module in this package, its factor module in
+:mod:`stewart_calib.factors` where the generic instrument factor does not fit, and one entry in
+:data:`MODELS` (docs/architecture.md). The estimators build whatever :func:`instrument_model`
+returns and never name a kind.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+from ..config import NoiseConfig
+from ..errors import CalibError
+from ..platform import Platform
+from . import tracker
+from .base import InstrumentModel
+
+
+def _tracker(platform: Platform, noise: NoiseConfig) -> InstrumentModel:
+    return tracker.TrackerModel(platform.tracker, noise.reading_sigma_mm, platform.reading_range)
+
+
+#: kind → builder ``(platform, noise) -> model``.
+MODELS: dict[str, Callable[[Platform, NoiseConfig], InstrumentModel]] = {
+    "tracker": _tracker,
+}
+
+
+def instrument_model(platform: Platform, noise: NoiseConfig, kind: str = "tracker") -> InstrumentModel:
+    """The measurement model of ``platform``'s instrument (the in-situ tracker unless it names another).
+
+    Raises:
+        CalibError: an unknown kind.
+    """
+    if kind not in MODELS:
+        raise CalibError(f"unknown instrument kind '{kind}': expected one of {', '.join(MODELS)}")
+    return MODELS[kind](platform, noise)

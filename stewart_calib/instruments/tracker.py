@@ -1,0 +1,123 @@
+"""The in-situ tracker (paper §2, Table 2): six grating rulers between base and platform.
+
+Ruler i reads ``s_i`` with ``‖t + R h_i − z_i‖ = ls_i + s_i`` — the drive's leg geometry
+(:func:`stewart_calib.kinematics.leg_residual`) with the tracker's joints ``z_i`` (in {J}),
+``h_i`` (in {D}) and zero-reading lengths ``ls_i``. Both couplings:
+
+* tight: one residual per ruler, ``r_i = ‖t + R h_i − z_i‖ − (ls_i + s_i)`` [mm], σ_s each;
+* loose: forward kinematics of the six readings (Newton, warm-started) with the covariance
+  ``Σ_ξ = σ_s² (JᵀJ)⁻¹`` propagated from the rulers (``J`` = ``∂ lengths/∂ξ``).
+
+Its unknowns: none when the geometry is known exactly (the paper's assumption; the default), or
+the 42 values ``[z_i | h_i | ls_i]`` per ruler under the prior N(nominal, σ²) with
+``[tracker] geometry_sigma_mm = σ`` (spec §7). Those move exactly as the drive's joints under
+a rigid motion of all base or all platform joints, so the block shares both gauges.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .. import _kernels
+from .. import kinematics as kin
+from ..errors import SampleRejected
+from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
+from ..unknowns import UnknownBlock
+from .base import PoseObservation, Residual
+
+#: the log columns of the six readings s_i [mm] (spec §3).
+TRACKER_COLUMNS = tuple(f"s{i}_mm" for i in range(1, N_LEGS + 1))
+#: names of the tracker's own 42 values when they are unknowns (paper Table 2 symbols, spec §7).
+TRACKER_PARAMETER_NAMES = tuple(
+    f"{field}{leg}{axis}" for leg in range(1, N_LEGS + 1) for field, axis in
+    (("z", "x"), ("z", "y"), ("z", "z"), ("h", "x"), ("h", "y"), ("h", "z"), ("ls", ""))
+)
+_RULERS = [np.array([i]) for i in range(N_LEGS)]
+
+
+class TrackerModel:
+    """The in-situ tracker as a measurement model (:class:`~.base.InstrumentModel`).
+
+    Args:
+        legs: the tracker geometry ``(z_i, h_i, ls_i)`` (platform file ``[tracker]``).
+        reading_sigma_mm: σ_s of one reading [mm] (``[noise] reading_sigma_mm``).
+        reading_range: ``(min, max)`` of a reading [mm] (``[tracker] reading_range_mm``), or None.
+        geometry_sigma_mm: prior σ of the geometry as an unknown [mm]; 0: known exactly.
+    """
+
+    kind = "tracker"
+    columns = TRACKER_COLUMNS
+
+    def __init__(
+        self, legs: LegGeometry, reading_sigma_mm: float, reading_range: tuple[float, float] | None = None,
+        geometry_sigma_mm: float = 0.0,
+    ):
+        self.legs = legs
+        self.reading_range = reading_range
+        self.channel_sigma = np.full(N_LEGS, float(reading_sigma_mm))
+        self.unknowns = None
+        if geometry_sigma_mm > 0.0:
+            self.unknowns = UnknownBlock(
+                "instrument", TRACKER_PARAMETER_NAMES, legs.as_vector(), np.full(N_PARAMS, geometry_sigma_mm),
+                gauge=("base", "platform"),
+            )
+
+    def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
+        """The six readings as floats, or :class:`SampleRejected` (shape, non-finite, out of range)."""
+        readings = np.asarray(z, dtype=float)
+        lo, hi = self.reading_range if self.reading_range is not None else (-math.inf, math.inf)
+        # Fast path for the common valid sample (~1 µs); any doubt goes to the wording below.
+        if readings.shape == (N_LEGS,) and _kernels.all_within(readings, float(lo), float(hi)):
+            return readings
+        if readings.shape != (N_LEGS,):
+            raise SampleRejected(
+                f"sample at t = {t_s} s: expected 6 reading s values, got shape {readings.shape}", SampleRejected.NON_FINITE
+            )
+        bad = np.flatnonzero(~np.isfinite(readings))
+        if bad.size:
+            raise SampleRejected(f"sample at t = {t_s} s: reading s{bad[0] + 1} is not finite", SampleRejected.NON_FINITE)
+        i = int(np.flatnonzero((readings < lo) | (readings > hi))[0])
+        raise SampleRejected(
+            f"sample at t = {t_s} s: reading s{i + 1} = {readings[i]:.6g} mm outside [{lo}, {hi}] mm",
+            SampleRejected.OUT_OF_RANGE,
+        )
+
+    def groups(self, z: np.ndarray) -> list[np.ndarray]:
+        """One group per ruler: a robust kernel down-weights one bad reading, not the sample."""
+        return _RULERS
+
+    def geometry(self, theta: np.ndarray) -> LegGeometry:
+        """The tracker legs for ``θ`` (the nominal ones when the geometry is known)."""
+        return self.legs if len(theta) == 0 else LegGeometry.from_params(theta)
+
+    def residual(self, R: np.ndarray, t: np.ndarray, theta: np.ndarray, z: np.ndarray, channels: np.ndarray) -> Residual:
+        """``‖t + R h_i − z_i‖ − (ls_i + s_i)`` for the rulers ``channels`` [mm]."""
+        params = self.geometry(theta).params
+        n_theta = 0 if self.unknowns is None else N_PARAMS
+        r = np.empty(len(channels))
+        J_pose = np.empty((len(channels), 6))
+        J_theta = np.zeros((len(channels), n_theta))
+        for row, i in enumerate(channels):
+            r[row], J_pose[row], H_leg = kin.leg_residual(R, t, params[i], float(z[i]), jacobians=True)
+            if n_theta:
+                J_theta[row, N_PARAMS_PER_LEG * i : N_PARAMS_PER_LEG * (i + 1)] = H_leg
+        return Residual(r, J_pose, J_theta, np.asarray(channels))
+
+    def pose(self, z: np.ndarray, theta: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None) -> PoseObservation:
+        """Forward kinematics of the readings (warm-started from ``guess``) and its covariance.
+
+        ``∂ξ/∂θ = −J⁻¹ ∂lengths/∂θ`` (implicit function theorem on the six ruler residuals).
+
+        Raises:
+            SampleRejected: forward kinematics converges from neither ``guess`` nor the cold start.
+        """
+        legs = self.geometry(theta)
+        R, t = kin.solve_fk(legs, z, guess, "tracker")
+        covariance = kin.pose_covariance_from_legs(legs, R, t, float(self.channel_sigma[0]))
+        J_theta = np.zeros((6, 0))
+        if self.unknowns is not None:
+            rulers = self.residual(R, t, theta, z, np.arange(N_LEGS))
+            J_theta = -np.linalg.solve(rulers.J_pose, rulers.J_instrument)
+        return PoseObservation(R, t, covariance, J_theta)

@@ -1,0 +1,161 @@
+"""The unknown vector: the 42 drive parameters first, then optional named blocks.
+
+Layout (spec §5 and §7)::
+
+    x = [ δM (42, paper order) | block 1 | block 2 | … ]
+
+Every entry is an *error from its nominal value* in code units (mm, rad, dimensionless), so
+``x = 0`` is the nominal model and each estimator's prior is ``N(0, diag(σ²))``. A block is an
+:class:`UnknownBlock`: the stroke scale ``k1…k6`` (:func:`stroke_scale_block`) or an
+instrument's own unknowns (frame, targets, the tracker's geometry; declared by its model in
+:mod:`stewart_calib.instruments`). The result keeps the 42 drive values of §5 and adds one
+``{"names", "estimate", "stddev"}`` entry per block under the block's ``key``, in file units.
+
+Gauge. An instrument frame {I} in {J} moves its predictions exactly as a rigid motion of all
+base joints ``j_i`` does, and a target in {D} exactly as a rigid motion of all platform joints
+``d_i``: 6 + 6 directions no data can tell apart. A block says which of the two it shares
+(``gauge``); :meth:`UnknownLayout.gauge_rows` then gives the linear constraints ``C x = 0``
+that hold the mean rigid motion of those joints at nominal (translation: the mean of ``δj_i``;
+rotation: ``Σ (j_i − j̄) × δj_i``), which defines {J} and {D} by the nominal joints, as the
+platform file does. Each estimator imposes ``C x = 0`` in its own way and says so
+(docs/architecture.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
+
+#: the two rigid motions a block may share with the drive (see the module docstring).
+GAUGES = ("base", "platform")
+
+
+@dataclass(frozen=True)
+class UnknownBlock:
+    """A named group of unknowns after the 42 drive parameters.
+
+    Attributes:
+        key: the result's key for the block (``"stroke_scale"``, ``"instrument"``).
+        names: one name per unknown, as the result lists them.
+        nominal: ``(n,)`` nominal values [code units: mm, rad or dimensionless].
+        prior_sigma: ``(n,)`` prior σ of the error from nominal [code units], all > 0.
+        file_scale: ``(n,)`` file value = code value × file_scale (``180/π`` for an angle).
+        gauge: which of :data:`GAUGES` the block shares with the drive.
+        random_walk: whether the block drifts with the drive's random walk (else constant).
+    """
+
+    key: str
+    names: tuple[str, ...]
+    nominal: np.ndarray
+    prior_sigma: np.ndarray
+    file_scale: np.ndarray = field(default=None)  # type: ignore[assignment]
+    gauge: tuple[str, ...] = ()
+    random_walk: bool = False
+
+    def __post_init__(self) -> None:
+        n = len(self.names)
+        scale = np.ones(n) if self.file_scale is None else self.file_scale
+        for name, value in (("nominal", self.nominal), ("prior_sigma", self.prior_sigma), ("file_scale", scale)):
+            array = np.array(value, dtype=float).reshape(-1)
+            if array.shape != (n,):
+                raise ValueError(f"block '{self.key}': {name} must have {n} values, got {array.shape}")
+            array.setflags(write=False)
+            object.__setattr__(self, name, array)
+        if not np.all(self.prior_sigma > 0):
+            raise ValueError(f"block '{self.key}': every prior σ must be positive")
+        unknown = set(self.gauge) - set(GAUGES)
+        if unknown:
+            raise ValueError(f"block '{self.key}': gauge {sorted(unknown)} not one of {GAUGES}")
+
+    @property
+    def size(self) -> int:
+        return len(self.names)
+
+    def to_file(self, error: np.ndarray, stddev: np.ndarray | None) -> dict:
+        """The result entry ``{"names", "estimate", "stddev"}`` in file units (spec §7)."""
+        estimate = (self.nominal + np.asarray(error, dtype=float)) * self.file_scale
+        return {
+            "names": list(self.names),
+            "estimate": estimate.tolist(),
+            "stddev": None if stddev is None else (np.asarray(stddev, dtype=float) * np.abs(self.file_scale)).tolist(),
+        }
+
+
+def stroke_scale_block(prior_sigma: float) -> UnknownBlock:
+    """``k1…k6`` of the drive-leg model ``l_i + (1 + k_i) q_i = ‖t + R d_i − j_i‖`` (spec §7), nominal 0."""
+    return UnknownBlock(
+        "stroke_scale", tuple(f"k{i}" for i in range(1, N_LEGS + 1)), np.zeros(N_LEGS), np.full(N_LEGS, prior_sigma)
+    )
+
+
+@dataclass(frozen=True)
+class UnknownLayout:
+    """Where each block sits in the unknown vector ``x = [δM | blocks…]``."""
+
+    blocks: tuple[UnknownBlock, ...] = ()
+
+    def __post_init__(self) -> None:
+        keys = [block.key for block in self.blocks]
+        if len(set(keys)) != len(keys):
+            raise ValueError(f"unknown blocks must have distinct keys, got {keys}")
+
+    @property
+    def size(self) -> int:
+        """``42 + Σ block sizes``."""
+        return N_PARAMS + sum(block.size for block in self.blocks)
+
+    def slice(self, key: str) -> slice | None:
+        """The columns of block ``key`` in ``x``, or None when the layout has no such block."""
+        start = N_PARAMS
+        for block in self.blocks:
+            if block.key == key:
+                return slice(start, start + block.size)
+            start += block.size
+        return None
+
+    def block(self, key: str) -> UnknownBlock | None:
+        return next((block for block in self.blocks if block.key == key), None)
+
+    def prior_sigma(self, drive_sigma_mm: float) -> np.ndarray:
+        """``(size,)`` prior σ: ``drive_sigma_mm`` on δM, then each block's own [code units]."""
+        return np.concatenate([np.full(N_PARAMS, drive_sigma_mm), *(block.prior_sigma for block in self.blocks)])
+
+    def walks(self) -> np.ndarray:
+        """``(size,)`` bool: which unknowns follow the parameter random walk (δM always)."""
+        return np.concatenate([np.ones(N_PARAMS, bool), *(np.full(b.size, b.random_walk) for b in self.blocks)])
+
+    def gauge_rows(self, drive: LegGeometry) -> np.ndarray:
+        """``(g, size)`` constraints ``C x = 0`` fixing the gauge the blocks share with the drive.
+
+        Three rows hold the mean translation and three the mean rotation of the base joints
+        (when a block's ``gauge`` has ``"base"``), and the same for the platform joints; g is 0,
+        6 or 12. Rows are scaled to unit norm so that a constraint weight means the same on each.
+        """
+        shared = {gauge for block in self.blocks for gauge in block.gauge}
+        rows = []
+        for gauge, joints, offset in (("base", drive.base_joints, 0), ("platform", drive.platform_joints, 3)):
+            if gauge in shared:
+                rows.append(_rigid_motion_rows(joints, offset, self.size))
+        return np.vstack(rows) if rows else np.zeros((0, self.size))
+
+    def split(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """``x`` → ``(δM (42,), {key: block error})``."""
+        x = np.asarray(x, dtype=float)
+        return x[:N_PARAMS], {block.key: x[self.slice(block.key)] for block in self.blocks}
+
+
+def _rigid_motion_rows(joints: np.ndarray, offset: int, size: int) -> np.ndarray:
+    """Rows whose span is the rigid motions ``δp_i = a + ω × (p_i − p̄)`` of six joints, whose
+    columns in ``x`` are ``7 i + offset + (0, 1, 2)``: translation ``Σ δp_i`` and rotation
+    ``Σ (p_i − p̄) × δp_i``, each row scaled to unit norm."""
+    C = np.zeros((6, size))
+    arms = joints - joints.mean(axis=0)
+    for i in range(N_LEGS):
+        cols = slice(N_PARAMS_PER_LEG * i + offset, N_PARAMS_PER_LEG * i + offset + 3)
+        C[0:3, cols] = np.eye(3)
+        r = arms[i]
+        C[3:6, cols] = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+    return C / np.linalg.norm(C, axis=1, keepdims=True)
