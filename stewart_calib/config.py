@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import CalibError
+from .resources import not_found_hint, resolve
 
 
 @dataclass(frozen=True)
@@ -221,11 +222,11 @@ def load_estimator_config(path: str | Path | None = None, overrides: list[str] |
     """
     config = EstimatorConfig()
     if path is not None:
-        path = Path(path)
+        path = resolve(path, "estimators")
         try:
             doc = tomllib.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
-            raise CalibError(f"{path}: estimator config not found") from None
+            raise CalibError(f"{path}: estimator config not found{not_found_hint('estimators')}") from None
         except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
             raise CalibError(f"{path}: cannot read estimator config ({err})") from None
         config = config_from_dict(doc, str(path), config)

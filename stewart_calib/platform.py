@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _kernels
+from . import _kernels, resources
 from .errors import CalibError
 from .rotations import pose_to_rt, transform_points
 
@@ -264,16 +264,17 @@ def _check_home_reachable(platform: Platform, source: str) -> None:
 
 
 def load_platform(path: str | Path) -> Platform:
-    """Read and validate a platform TOML file (spec §2).
+    """Read and validate a platform TOML file (spec §2), given by path or by the name of a shipped
+    platform (``"nim-stewart"``, spec §8).
 
     Raises:
         CalibError: one line naming the file, the key and what was expected.
     """
-    path = Path(path)
+    path = resources.resolve(path, "platforms")
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise CalibError(f"{path}: platform file not found") from None
+        raise CalibError(f"{path}: platform file not found{resources.not_found_hint('platforms')}") from None
     except (OSError, UnicodeDecodeError) as err:
         raise CalibError(f"{path}: cannot read platform file ({err.__class__.__name__})") from None
     try:

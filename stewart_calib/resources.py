@@ -1,8 +1,35 @@
 """Where the shipped configs live: ``configs/`` at the repository root, installed inside the
-package as ``stewart_calib/configs`` (a link in the source tree), so that a wheel finds them too."""
+package as ``stewart_calib/configs`` (a link in the source tree), so that a wheel finds them too.
+
+A command's ``--platform``, ``--experiment`` or ``--config`` (and :func:`~stewart_calib.platform.load_platform`
+and friends) take either a path or the name of a shipped file (spec §8): ``nim-stewart``,
+``quick``, ``paper``. A path that exists always wins.
+"""
 
 from importlib import resources
 from pathlib import Path
 
 #: ``platforms/``, ``experiments/`` and ``estimators/`` TOML files.
 CONFIGS = Path(str(resources.files("stewart_calib") / "configs"))
+
+
+def shipped_names(kind: str) -> list[str]:
+    """Names of the shipped files of ``kind`` (``"platforms"``, ``"experiments"``, ``"estimators"``)."""
+    return sorted(path.stem for path in (CONFIGS / kind).glob("*.toml"))
+
+
+def resolve(value: str | Path, kind: str) -> Path:
+    """``value`` as a path when it exists or names a directory; else the shipped file of that
+    name (with or without ``.toml``) in ``configs/<kind>/`` when there is one; else ``value``
+    unchanged, for the caller's "not found" message (see :func:`not_found_hint`)."""
+    path = Path(value)
+    if path.exists() or len(path.parts) != 1:
+        return path
+    packaged = CONFIGS / kind / f"{path.name.removesuffix('.toml')}.toml"
+    return packaged if packaged.is_file() else path
+
+
+def not_found_hint(kind: str) -> str:
+    """``" (nor a shipped name: a, b)"``: what else the user could have written."""
+    names = shipped_names(kind)
+    return f" (nor the name of a shipped file: {', '.join(names)})" if names else ""

@@ -35,7 +35,7 @@ import numpy as np
 
 from ..errors import CalibError
 from ..platform import Platform, load_platform
-from ..resources import CONFIGS
+from ..resources import CONFIGS, not_found_hint, resolve
 from .load import LoadModel
 from .trajectories import CIRCLE_PLANES, circle_poses, random_static_poses
 
@@ -192,7 +192,8 @@ class _Table:
 
 
 def load_experiment(path: str | Path) -> Experiment:
-    """Read and validate an experiment TOML file.
+    """Read and validate an experiment TOML file, given by path or by the name of a shipped
+    experiment (``"quick"``, ``"paper"``; spec §8).
 
     ``platform`` is a path relative to the experiment file, or the name of a packaged platform
     (``configs/platforms/<name>.toml``, e.g. ``"nim-stewart"``).
@@ -200,11 +201,11 @@ def load_experiment(path: str | Path) -> Experiment:
     Raises:
         CalibError: one line naming the file and the key.
     """
-    path = Path(path)
+    path = resolve(path, "experiments")
     try:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise CalibError(f"{path}: experiment file not found") from None
+        raise CalibError(f"{path}: experiment file not found{not_found_hint('experiments')}") from None
     except (OSError, UnicodeDecodeError) as err:
         raise CalibError(f"{path}: cannot read experiment file ({err.__class__.__name__})") from None
     except tomllib.TOMLDecodeError as err:
