@@ -226,7 +226,7 @@ def load_estimator_config(path: str | Path | None = None, overrides: list[str] |
         try:
             doc = tomllib.loads(path.read_text(encoding="utf-8"))
         except FileNotFoundError:
-            raise CalibError(f"{path}: estimator config not found{not_found_hint('estimators')}") from None
+            raise CalibError(f"{path}: estimator config not found{not_found_hint(path, 'estimators')}") from None
         except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
             raise CalibError(f"{path}: cannot read estimator config ({err})") from None
         config = config_from_dict(doc, str(path), config)

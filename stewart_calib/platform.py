@@ -274,7 +274,7 @@ def load_platform(path: str | Path) -> Platform:
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
-        raise CalibError(f"{path}: platform file not found{resources.not_found_hint('platforms')}") from None
+        raise CalibError(f"{path}: platform file not found{resources.not_found_hint(path, 'platforms')}") from None
     except (OSError, UnicodeDecodeError) as err:
         raise CalibError(f"{path}: cannot read platform file ({err.__class__.__name__})") from None
     try:

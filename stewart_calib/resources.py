@@ -29,7 +29,8 @@ def resolve(value: str | Path, kind: str) -> Path:
     return packaged if packaged.is_file() else path
 
 
-def not_found_hint(kind: str) -> str:
-    """``" (nor a shipped name: a, b)"``: what else the user could have written."""
+def not_found_hint(value: str | Path, kind: str) -> str:
+    """For a bare name that is neither a file nor shipped, ``" (nor the name of a shipped file: a, b)"``:
+    what the user may have meant; nothing for a path with a directory."""
     names = shipped_names(kind)
-    return f" (nor the name of a shipped file: {', '.join(names)})" if names else ""
+    return f" (nor the name of a shipped file: {', '.join(names)})" if names and len(Path(value).parts) == 1 else ""

@@ -205,7 +205,7 @@ def load_experiment(path: str | Path) -> Experiment:
     try:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise CalibError(f"{path}: experiment file not found{not_found_hint('experiments')}") from None
+        raise CalibError(f"{path}: experiment file not found{not_found_hint(path, 'experiments')}") from None
     except (OSError, UnicodeDecodeError) as err:
         raise CalibError(f"{path}: cannot read experiment file ({err.__class__.__name__})") from None
     except tomllib.TOMLDecodeError as err:
