@@ -14,7 +14,7 @@ import pytest
 
 from stewart_calib.cli import main
 from stewart_calib.errors import CalibError
-from stewart_calib.estimators import load_estimator_config
+from stewart_calib.config import load_estimator_config
 from stewart_calib.platform import load_platform
 from stewart_calib.resources import CONFIGS, resolve
 from stewart_calib.simulation.experiment import load_experiment
@@ -80,7 +80,7 @@ def test_names_work_from_an_installed_wheel(tmp_path):
 
     loaded = subprocess.run([str(python), "-c", """
 import stewart_calib
-from stewart_calib.estimators import load_estimator_config
+from stewart_calib.config import load_estimator_config
 from stewart_calib.simulation.experiment import load_experiment
 print(stewart_calib.__file__)
 print(load_experiment("quick").platform.source)
