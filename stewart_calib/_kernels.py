@@ -11,8 +11,8 @@ Conventions (see :mod:`stewart_calib.kinematics`): mm and rad; a pose is ``(R, t
 platform frame {D} in the base frame {J}; pose Jacobians are in the body tangent
 ``ξ = [ω, v]`` (rotation first, GTSAM order), ``R ← R Exp(ω)``, ``t ← t + R v``.
 
-Every kernel is compiled lazily on first use and cached on disk (``cache=True``, as
-:mod:`stewart_calib.estimators.kalman`): a fresh checkout pays the compile once, later
+Every kernel is compiled lazily on first use and cached on disk (:func:`stewart_calib._jit.njit`,
+as :mod:`stewart_calib.estimators.kalman`; no cache where none can be written): a fresh checkout pays the compile once, later
 processes load the machine code. The wrappers pass C-contiguous float64 arrays and Python
 floats/ints only, so each kernel has one signature and one cache entry. No ``fastmath``:
 the Newton tolerance (1e-9 mm on ~1000 mm lengths) sits a few ulps above rounding, and
@@ -23,11 +23,12 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from ._jit import njit
+
 # error_model="numpy": x / 0 gives inf/NaN as in numpy instead of raising ZeroDivisionError.
-_JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+_JIT = {"nogil": True, "error_model": "numpy"}
 
 # Newton step cap (forward_kinematics): a poor guess can give wild steps that leave the basin.
 _MAX_STEP_RAD = 0.2
@@ -37,7 +38,7 @@ _MAX_STEP_MM = 100.0
 # ----------------------------------------------------------------------------- small helpers
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def _solve(A, B):
     """``A X = B`` for ``A (6, 6)``, ``B (6, m)``, by Gaussian elimination with partial pivoting.
 
@@ -72,7 +73,7 @@ def _solve(A, B):
     return True
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def _unit_legs(base, plat, R, t, n, length):
     """``l_i n_i = t + R p_i − b_i`` (paper eq. 1): fills ``n (6, 3)`` and ``length (6,)``."""
     for i in range(6):
@@ -86,7 +87,7 @@ def _unit_legs(base, plat, R, t, n, length):
             n[i, a] /= length[i]
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def _pose_jacobian(plat, R, n, J):
     """``∂ length_i / ∂ξ`` row ``[(p_i × Rᵀn_i)ᵀ, (Rᵀn_i)ᵀ]`` into ``J (6, 6)`` (kinematics.leg_pose_jacobian)."""
     for i in range(6):
@@ -99,7 +100,7 @@ def _pose_jacobian(plat, R, n, J):
         J[i, 3], J[i, 4], J[i, 5] = nb0, nb1, nb2
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def _retract(R, t, w0, w1, w2, v0, v1, v2):
     """In place ``t ← t + R v``, ``R ← R Exp(ω)`` (Rodrigues, series below 1e-6 rad; kinematics.retract)."""
     for a in range(3):
@@ -129,7 +130,7 @@ def _retract(R, t, w0, w1, w2, v0, v1, v2):
             R[a, b] = r0 * E[0, b] + r1 * E[1, b] + r2 * E[2, b]
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def _rpy(R):
     """Roll, pitch, yaw of ``R = Rz(γ) Ry(β) Rx(α)`` (kinematics.rotation_to_rpy, paper eq. 20–21)."""
     return (
@@ -142,7 +143,7 @@ def _rpy(R):
 # ----------------------------------------------------------------------------- forward kinematics
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def _damped_step(J, target, length, A, step):
     """Least-squares Newton step for a singular ``J``: ``(JᵀJ + λI) ξ = Jᵀ e`` into ``step (6, 1)``.
 
@@ -169,7 +170,7 @@ def _damped_step(J, target, length, A, step):
         step[:] = 0.0
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations, iterations, residual):
     """Newton–Raphson FK (paper §3.2 step 1) for ``n`` poses, in place.
 
@@ -228,7 +229,7 @@ def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations
 # ----------------------------------------------------------------------------- error models
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def error_jacobian(base, plat, R, t, out):
     """Paper eq. 8–11 ``J_p = J_r J_s`` for ``n`` poses into ``out (n, 6, 42)`` (see kinematics.error_jacobian).
 
@@ -272,7 +273,7 @@ def error_jacobian(base, plat, R, t, out):
                     out[k, r, 7 * i + c] = J_r[r, i] * J_s[i, c]
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def pose_difference(R_v, t_v, R_m, t_m, out):
     """``P_v − P_m`` as ``[δh, δθ]`` (paper eq. 9) for ``n`` pose pairs into ``out (n, 6)``; δθ wrapped to (−π, π]."""
     for k in range(R_v.shape[0]):
@@ -284,7 +285,7 @@ def pose_difference(R_v, t_v, R_m, t_m, out):
             out[k, 3 + a] = math.atan2(math.sin(d), math.cos(d))
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def leg_observation(base, plat, initial_lengths, x, tracker_base, tracker_plat, R, t, strokes, reading_variance, stroke_variance):
     """The leg-length EKF's observation at the tracker pose ``(R, t)``, fused in one call.
 
@@ -341,7 +342,7 @@ def leg_observation(base, plat, initial_lengths, x, tracker_base, tracker_plat, 
 # ----------------------------------------------------------------------------- sample checks
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def all_within(values, lower, upper):
     """True when every value is finite and in ``[lower, upper]`` (NaN fails): the fast path of
     check_sample and of forward_kinematics' convergence check."""
@@ -351,7 +352,7 @@ def all_within(values, lower, upper):
     return True
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def perturbed_legs(base, plat, initial_lengths, delta):
     """``M + δM`` as new ``(6, 3)``, ``(6, 3)``, ``(6,)`` arrays, δM a 42-vector in the paper's
     order (platform.LegGeometry.perturbed: three strided numpy sums cost ~2.4 µs)."""

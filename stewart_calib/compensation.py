@@ -15,21 +15,75 @@ from .estimate import Estimate
 from .platform import LegGeometry, Platform
 
 
+class PoseOutOfRange(CalibError):
+    """A desired pose lies outside the platform's workspace box or needs a stroke outside its
+    stroke range; nothing is returned.
+
+    Attributes:
+        pose_index: 0-based index of the first such pose in the request.
+        reason: what is out of range, in words (callers prefix where: a file row, an API call).
+    """
+
+    def __init__(self, pose_index: int, reason: str):
+        self.pose_index, self.reason = pose_index, reason
+        super().__init__(f"pose {pose_index}: {reason}")
+
+
+_AXES = ("x", "y", "z", "roll", "pitch", "yaw")
+
+
+def check_reachable(poses_mm_rad: np.ndarray, strokes_mm: np.ndarray, platform: Platform) -> None:
+    """Refuse the first pose outside ``platform.workspace`` (± limits about home per axis) or
+    whose strokes leave ``platform.stroke_range`` (inclusive); limits the platform lacks are not checked.
+
+    Raises:
+        PoseOutOfRange: naming the pose, the axis or leg, the value and the limits.
+    """
+    poses = np.asarray(poses_mm_rad, dtype=float).reshape(-1, 6)
+    ws = platform.workspace
+    if ws is not None:
+        offset = poses - ws.home
+        offset[:, 3:] = (offset[:, 3:] + np.pi) % (2 * np.pi) - np.pi
+        limit = np.r_[[ws.translation_limit] * 3, [ws.rotation_limit] * 3]
+        bad = np.argwhere(np.abs(offset) > limit * (1 + 1e-12))
+        if bad.size:
+            k, axis = (int(v) for v in bad[0])
+            if axis < 3:
+                reason = (f"{_AXES[axis]} = {poses[k, axis]:.6g} mm is {offset[k, axis]:+.6g} mm from home, beyond the "
+                          f"workspace's ±{ws.translation_limit:g} mm")
+            else:
+                reason = (f"{_AXES[axis]} = {poses[k, axis]:.6g} rad ({np.degrees(poses[k, axis]):.4g}°) is beyond the "
+                          f"workspace's ±{np.degrees(ws.rotation_limit):.4g}° about home (angles in rad, not degrees?)")
+            raise PoseOutOfRange(k, reason)
+    if platform.stroke_range is not None:
+        lo, hi = platform.stroke_range
+        strokes = np.asarray(strokes_mm, dtype=float).reshape(-1, 6)
+        bad = np.argwhere((strokes < lo) | (strokes > hi))
+        if bad.size:
+            k, i = (int(v) for v in bad[0])
+            raise PoseOutOfRange(k, f"the pose needs q{i + 1}_mm = {strokes[k, i]:.6g}, outside the stroke range [{lo}, {hi}] mm")
+
+
 def compensate(
     estimate_or_drive: Estimate | LegGeometry,
-    desired_poses: np.ndarray,
+    desired_poses_mm_rad: np.ndarray,
     nominal: Platform | LegGeometry | None = None,
+    limits: Platform | None = None,
 ) -> np.ndarray:
-    """Strokes that put the estimated drive at ``desired_poses``.
+    """Strokes that put the estimated drive at ``desired_poses_mm_rad``.
 
     Args:
         estimate_or_drive: the drive geometry ``M + δM`` itself, or an :class:`Estimate`
             (then ``nominal`` supplies ``M``).
-        desired_poses: ``(N, 6)`` ``[x, y, z [mm], roll, pitch, yaw [rad]]`` (or ``(6,)``).
+        desired_poses_mm_rad: ``(N, 6)`` ``[x, y, z [mm], roll, pitch, yaw [rad]]`` (or ``(6,)``).
         nominal: the platform or nominal drive; required with an :class:`Estimate`.
+        limits: the platform whose workspace and stroke range the poses and strokes must
+            respect (:func:`check_reachable`), or None for no check.
     Returns:
-        ``(N, 6)`` strokes q_i [mm] (same leading shape as ``desired_poses``).
+        ``(N, 6)`` strokes q_i [mm] (same leading shape as ``desired_poses_mm_rad``).
     Raises:
+        PoseOutOfRange: see :func:`check_reachable` (a roll of 5 meant as degrees, given
+            to this radian argument, is refused here).
         CalibError: an Estimate without ``nominal``, or non-finite poses.
     """
     if isinstance(estimate_or_drive, Estimate):
@@ -38,7 +92,10 @@ def compensate(
         drive = estimate_or_drive.drive(nominal)
     else:
         drive = estimate_or_drive
-    poses = np.asarray(desired_poses, dtype=float)
+    poses = np.asarray(desired_poses_mm_rad, dtype=float)
     if poses.shape[-1:] != (6,) or not np.all(np.isfinite(poses)):
         raise CalibError(f"compensate: expected finite poses of shape (N, 6), got shape {poses.shape}")
-    return kin.inverse_kinematics(drive, *kin.pose_to_rt(poses))
+    strokes = kin.inverse_kinematics(drive, *kin.pose_to_rt(poses))
+    if limits is not None:
+        check_reachable(poses, strokes, limits)
+    return strokes

@@ -121,10 +121,18 @@ class OnlineCalibrator:
         """δM [mm] and covariance after the last accepted sample."""
         return self._estimator.estimate()
 
-    def compensated_strokes(self, pose6: np.ndarray) -> np.ndarray:
-        """Strokes [mm] that put the estimated drive at ``pose6`` ``[x, y, z [mm], roll, pitch, yaw [rad]]``
-        (``(6,)`` or ``(N, 6)``; paper Fig. 3 step 4)."""
-        return compensate(self.platform.drive.perturbed(self._estimator.current_error()), pose6)
+    def compensated_strokes(self, pose_mm_rad: np.ndarray) -> np.ndarray:
+        """Strokes [mm] that put the estimated drive at ``pose_mm_rad`` ``[x, y, z [mm], roll, pitch, yaw [rad]]``
+        (``(6,)`` or ``(N, 6)``; paper Fig. 3 step 4).
+
+        Raises:
+            PoseOutOfRange: a pose outside the platform's workspace, or needing a stroke outside
+                its stroke range — the same checks and error type as ``stewart-calib compensate``
+                (:func:`~stewart_calib.compensation.check_reachable`).
+            CalibError: non-finite poses or a wrong shape.
+        """
+        drive = self.platform.drive.perturbed(self._estimator.current_error())
+        return compensate(drive, pose_mm_rad, limits=self.platform)
 
     def result(self) -> dict:
         """The current estimate as a spec §5 result, with the added ``samples_rejected`` field.
@@ -163,6 +171,10 @@ class OnlineCalibrator:
                 version, or corrupt (a missing or misshapen array, a bad platform or config).
         """
         path = Path(path)
+        # np.load takes anything that is no archive for a pickle and then advises allow_pickle,
+        # the wrong advice for a file that is simply not a checkpoint.
+        if path.is_file() and not zipfile.is_zipfile(path):
+            raise CalibError(f"{path}: not a readable checkpoint (not an .npz archive written by track --checkpoint)")
         try:
             with np.load(path, allow_pickle=False) as npz:
                 arrays = {name: npz[name] for name in npz.files}

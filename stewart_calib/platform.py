@@ -13,6 +13,7 @@ and :func:`vector_to_params` convert between the two, and nothing else reorders 
 
 from __future__ import annotations
 
+import difflib
 import math
 import sys
 import tomllib
@@ -150,14 +151,59 @@ class Platform:
         return replace(self, drive=drive)
 
 
+#: the keys a platform file may hold, per table ("" = top level). A misspelt optional key
+#: would otherwise be ignored without a word (a stroke range silently not enforced).
+PLATFORM_KEYS: dict[str, set[str]] = {
+    "": {"name", "description", "drive", "tracker", "workspace"},
+    "drive": {"base_joints_mm", "platform_joints_mm", "initial_lengths_mm", "stroke_range_mm"},
+    "tracker": {"base_joints_mm", "platform_joints_mm", "initial_lengths_mm", "reading_range_mm"},
+    "workspace": {"home", "translation_limit_mm", "rotation_limit_deg"},
+}
+
+#: a leg set whose every coordinate and length is below this [mm] was written in metres: no
+#: hexapod a tracker of grating rulers measures is under a centimetre.
+METRES_SUSPECT_MM = 10.0
+
+#: joints whose second principal extent is below this fraction of the first lie on one line
+#: (or one point): the platform can then turn about that line with no leg changing length.
+COLLINEAR_RATIO = 1e-3
+
+
 def _refuse(source: str, key: str, expected: str) -> CalibError:
     return CalibError(f"{source}: key '{key}': expected {expected}")
+
+
+def _check_keys(doc: dict, source: str) -> None:
+    """Refuse a key :data:`PLATFORM_KEYS` does not know, suggesting the nearest known one."""
+    for table, known in PLATFORM_KEYS.items():
+        values = doc if not table else doc.get(table)
+        if not isinstance(values, dict):
+            continue
+        for key in values:
+            if key not in known:
+                full = f"{table}.{key}" if table else key
+                close = difflib.get_close_matches(key, sorted(known), n=1)
+                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                raise CalibError(f"{source}: unknown key '{full}'{hint}; expected one of {', '.join(sorted(known))}")
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _numbers_only(value) -> bool:
+    """True when ``value`` is a number or nested lists of numbers (never text such as ``"1048.5"``)."""
+    if isinstance(value, list):
+        return all(_numbers_only(v) for v in value)
+    return _is_number(value)
 
 
 def _array(table: dict, key: str, shape: tuple[int, ...], source: str, prefix: str) -> np.ndarray:
     full = f"{prefix}.{key}"
     if key not in table:
         raise _refuse(source, full, f"{_shape_words(shape)} (missing)")
+    if not _numbers_only(table[key]):  # numpy would read the text "1048.5" as a number
+        raise _refuse(source, full, f"{_shape_words(shape)} of numbers (not quoted text)")
     try:
         value = np.array(table[key], dtype=float)
     except (TypeError, ValueError, OverflowError):  # OverflowError: an integer beyond float range
@@ -197,7 +243,26 @@ def _legs(doc: dict, section: str, source: str) -> tuple[LegGeometry, dict]:
     )
     if np.any(legs.initial_lengths <= 0):
         raise _refuse(source, f"{section}.initial_lengths_mm", "6 positive lengths in mm")
+    largest = max(np.abs(legs.base_joints).max(), np.abs(legs.platform_joints).max(), legs.initial_lengths.max())
+    if largest < METRES_SUSPECT_MM:
+        raise CalibError(
+            f"{source}: [{section}]: the geometry looks like metres (largest coordinate or length {largest:.4g}); "
+            "expected millimetres (spec §2)"
+        )
+    for key, joints in (("base_joints_mm", legs.base_joints), ("platform_joints_mm", legs.platform_joints)):
+        _check_spread(joints, source, f"{section}.{key}")
     return legs, table
+
+
+def _check_spread(joints: np.ndarray, source: str, key: str) -> None:
+    """Refuse six joints that coincide or lie on one line: a rotation about that line (or any,
+    about a point) changes no leg length, so no pose could be solved or calibrated."""
+    centred = joints - joints.mean(axis=0)
+    extents = np.linalg.svd(centred, compute_uv=False)
+    if extents[0] <= 1e-9 * max(1.0, float(np.abs(joints).max())):
+        raise _refuse(source, key, f"6 joints spread in a plane; joints 1–6 all coincide at {joints[0].tolist()}")
+    if extents[1] < COLLINEAR_RATIO * extents[0]:
+        raise _refuse(source, key, "6 joints spread in a plane; joints 1–6 lie on one line")
 
 
 def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
@@ -206,6 +271,7 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
     Raises:
         CalibError: naming ``source``, the key and what was expected.
     """
+    _check_keys(doc, source)
     name = doc.get("name")
     if not isinstance(name, str) or not name.strip():
         raise _refuse(source, "name", "a non-empty string")

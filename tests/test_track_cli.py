@@ -76,13 +76,15 @@ def _with_bad_row(log_path, row):
     log_path.write_text("".join(text))
 
 
-def test_a_bad_row_stops_track_after_writing_the_last_good_estimate(tmp_path, log_path, capsys):
+def test_a_bad_row_stops_track_keeping_the_last_good_checkpoint_and_no_result(tmp_path, log_path, capsys):
     _with_bad_row(log_path, 12)
-    out = tmp_path / "r.json"
-    code, err = _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--every", "1000")
+    out, ckpt = tmp_path / "r.json", tmp_path / "c.npz"
+    code, err = _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt),
+                       "--every", "1000")
     assert code == 2
     assert err == [f"stewart-calib track: error: {log_path}: row 12: column 'q3_mm': expected a finite number, got nan"]
-    assert read_result(out)["samples_used"] == 10  # rows 2..11
+    assert not out.exists()  # nothing that looks like a final result
+    assert OnlineCalibrator.load(ckpt).estimate().samples_used == 10  # rows 2..11
 
 
 def test_resume_after_a_bad_row_stop_reads_that_row_again(tmp_path, log_path, capsys):

@@ -146,9 +146,15 @@ def read_calibrated_drive(path: str | Path, platform: Platform) -> LegGeometry:
     """The drive ``nominal + error`` of a result JSON (spec §5) made for ``platform``.
 
     Raises:
-        CalibError: an invalid result, or one whose ``nominal`` is not ``platform``'s drive.
+        CalibError: an invalid result, or one whose ``platform`` names another platform or whose
+            ``nominal`` is not ``platform``'s drive.
     """
     result = read_result(path)
+    if result["platform"] != platform.name:
+        raise CalibError(
+            f"{path}: key 'platform': expected '{platform.name}' (the platform given), got '{result['platform']}' "
+            "(a result for another platform?)"
+        )
     gap = float(np.max(np.abs(np.array(result["nominal"]) - platform.drive.as_vector())))
     if gap > NOMINAL_TOLERANCE_MM:
         raise CalibError(

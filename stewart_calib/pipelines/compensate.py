@@ -9,11 +9,9 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
-
 from . import run_command
 from .. import io
-from ..compensation import compensate
+from ..compensation import PoseOutOfRange, compensate
 from ..errors import CalibError
 from ..platform import load_platform
 from ..io import read_pose_list
@@ -35,16 +33,10 @@ def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
     drive = io.read_calibrated_drive(args.result, platform)
     poses = read_pose_list(args.poses)
-    strokes = compensate(drive, poses)
-    if platform.stroke_range is not None:
-        lo, hi = platform.stroke_range
-        bad = np.argwhere((strokes < lo) | (strokes > hi))
-        if bad.size:
-            k, i = bad[0]
-            raise CalibError(
-                f"{args.poses}: row {k + 2}: the pose needs q{i + 1}_mm = {strokes[k, i]:.6g}, outside the "
-                f"stroke range [{lo}, {hi}] mm"
-            )
+    try:
+        strokes = compensate(drive, poses, limits=platform)
+    except PoseOutOfRange as err:
+        raise CalibError(f"{args.poses}: row {err.pose_index + 2}: {err.reason}") from None
     io.write_pose_list(args.out, poses, columns={name: q for name, q in zip(io.STROKE_COLUMNS, strokes.T)})
     print(f"wrote {len(strokes)} stroke rows to {args.out}")
     return 0

@@ -14,10 +14,19 @@ When it stops:
     until ``--idle-timeout`` seconds pass without one — without it, until a signal);
   * on Ctrl-C or SIGTERM: finishes the rows already read, writes the final estimate and
     checkpoint, exits 0;
-  * at a bad row (spec §3) without ``--skip-bad-rows``: writes the estimate at the last good
+  * at a bad row (spec §3) without ``--skip-bad-rows``: writes the checkpoint at the last good
     row (so no state is lost), then exits 2 with the reader's message naming the row and
-    column. With ``--skip-bad-rows`` the row is counted, reported, and tracking goes on —
-    what a live tracker should use.
+    column. ``--out`` is NOT written on a refusal: what it holds is the last periodic result
+    of the run (``"final": false``) or what was there before. With ``--skip-bad-rows`` the row
+    is counted, reported, and tracking goes on — what a live tracker should use.
+
+Every result ``track`` writes carries the added field ``"final"``: false for the periodic
+writes while tracking, true for the one written when tracking ended normally (end of input,
+idle timeout, signal).
+
+A line is a row only once its line break has arrived (or the input has truly ended): the
+unfinished tail of the last read, when a signal or the idle timeout stops tracking, is left
+unread, so a resume reads it whole.
 
 A sample the estimator refuses (gated outlier, FK not converging) never stops tracking: it
 is counted by reason and reported on stderr and in the result.
@@ -32,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import glob
 import os
 import select
 import signal
@@ -59,15 +69,16 @@ def lines(fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable
 
     Ends at the end of the input (a pipe closed by its writer; a regular file's end unless
     ``follow``), when ``stopped()``, or after ``idle_timeout_s`` without new data. A last line
-    without a line break is yielded at the end. Never blocks longer than :data:`POLL_S`, so a
-    signal is noticed within that.
+    without a line break is yielded only at the end of the input: when stopped or timed out it
+    may be a row still being written (or cut by the read size), so it is not yielded. Never
+    blocks longer than :data:`POLL_S`, so a signal is noticed within that.
     """
     wait_at_end = follow and stat.S_ISREG(os.fstat(fd).st_mode)  # a pipe's end is final
     pending = b""
     last_data_s = time.monotonic()
     while not stopped():
         if idle_timeout_s is not None and time.monotonic() - last_data_s >= idle_timeout_s:
-            break
+            return
         ready, _, _ = select.select([fd], [], [], POLL_S)
         if not ready:
             continue
@@ -79,9 +90,9 @@ def lines(fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable
         elif wait_at_end:
             time.sleep(POLL_S)  # select() always reports a regular file ready
         else:
-            break
-    if pending:
-        yield pending
+            if pending and not stopped():  # a stop may come between the last read and this end
+                yield pending
+            return
 
 
 class _StopRequest:
@@ -105,11 +116,22 @@ def _open_input(log: str | None) -> tuple[int, str]:
     if log in (None, "-"):
         return sys.stdin.fileno(), "<stdin>"
     try:
-        return os.open(log, os.O_RDONLY), log
+        fd = os.open(log, os.O_RDONLY)
     except FileNotFoundError:
         raise CalibError(f"{log}: log file not found") from None
     except OSError as err:
         raise CalibError(f"{log}: cannot read log file ({err.strerror})") from None
+    if stat.S_ISDIR(os.fstat(fd).st_mode):  # Linux opens a directory read-only; reading it fails later
+        os.close(fd)
+        raise CalibError(f"{log}: is a directory; expected a log file (spec §3)")
+    return fd, log
+
+
+def _remove_debris(path: Path) -> None:
+    """Delete the temporaries of ``path`` that a killed writer left (``io.atomic_path`` names
+    them ``.<name>.<random>.tmp`` beside it); only a run that owns ``path`` may call this."""
+    for tmp in path.parent.glob(f".{glob.escape(path.name)}.*.tmp"):
+        tmp.unlink(missing_ok=True)
 
 
 def _start(args: argparse.Namespace) -> OnlineCalibrator:
@@ -130,9 +152,13 @@ def _start(args: argparse.Namespace) -> OnlineCalibrator:
     return calib
 
 
-def _write(calib: OnlineCalibrator, out: Path, checkpoint: Path | None) -> None:
-    if calib.estimate().samples_used:  # before any, there is no estimate to report, only the prior
-        io.write_result(out, calib.result())
+def _write(calib: OnlineCalibrator, out: Path | None, checkpoint: Path | None, final: bool = False) -> None:
+    """The result (unless ``out`` is None) and the checkpoint; ``final`` marks the result of a
+    run that ended normally (the added field ``"final"``)."""
+    if out is not None and calib.estimate().samples_used:  # before any, there is only the prior
+        result = calib.result()
+        result["final"] = final
+        io.write_result(out, result)
     if checkpoint:
         calib.save(checkpoint)
 
@@ -194,6 +220,9 @@ def run(args: argparse.Namespace) -> int:
         _check_writable_dir(path, option)
     calib = _start(args)
     fd, source = _open_input(args.log)
+    for path in (out, checkpoint):
+        if path:
+            _remove_debris(path)
     stop = _StopRequest()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     write = lambda: _write(calib, out, checkpoint)  # noqa: E731
@@ -201,7 +230,7 @@ def run(args: argparse.Namespace) -> int:
         rows = lines(fd, args.follow, args.idle_timeout, lambda: stop.requested)
         first_bad = follow_log(calib, rows, source, args.every, write, args.skip_bad_rows)
     except CalibError:
-        write()  # the state at the last good row is kept; then the refusal
+        _write(calib, None, checkpoint)  # the state at the last good row is kept, no result; then the refusal
         raise
     finally:
         for sig, handler in previous.items():
@@ -211,7 +240,7 @@ def run(args: argparse.Namespace) -> int:
     if not calib.estimate().samples_used:
         raise CalibError(f"{source}: no usable samples ({calib.rows_read} rows read, "
                          f"{calib.rows_skipped} skipped, {calib.rejections.count} rejected)")
-    write()
+    _write(calib, out, checkpoint, final=True)
     report = lambda what, count, first: print(  # noqa: E731
         f"stewart-calib track: {what} {count} of {calib.rows_read} (first: {first})", file=sys.stderr)
     if calib.rows_skipped:

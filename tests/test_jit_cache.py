@@ -1,0 +1,51 @@
+"""numba cannot write its cache (read-only site-packages and home): every command still works (issue 14).
+
+The test cannot make directories read-only for root, so it takes away numba's places instead:
+``NUMBA_CACHE_LOCATOR_CLASSES`` leaves out the ``__pycache__`` beside the source (a read-only
+site-packages) and the user-wide cache lives under a regular file (a home that cannot be
+written), which fails for root too.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from stewart_calib import __version__
+from tests.synthetic import ROOT
+
+#: a small kernel is enough: the cache location is decided when each function is decorated.
+CALL_A_KERNEL = "import numpy as np; from stewart_calib import _kernels; print(_kernels.all_within(np.zeros(6), -1.0, 1.0))"
+
+
+def _run(tmp_path, locators: str, *argv: str) -> subprocess.CompletedProcess:
+    not_a_dir = tmp_path / "home-file"
+    not_a_dir.write_text("")
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_LOCATOR_CLASSES": locators,
+           "XDG_CACHE_HOME": str(not_a_dir / "cache"), "HOME": str(not_a_dir), "TMPDIR": str(tmp_path / "tmp")}
+    env.pop("NUMBA_CACHE_DIR", None)
+    (tmp_path / "tmp").mkdir(exist_ok=True)
+    return subprocess.run([sys.executable, *argv], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+
+
+@pytest.mark.parametrize("locators", ["UserWideCacheLocator", "UserProvidedCacheLocator,UserWideCacheLocator"])
+def test_version_works_when_numba_cannot_write_its_cache(tmp_path, locators):
+    done = _run(tmp_path, locators, "-m", "stewart_calib", "--version")
+    assert (done.returncode, done.stdout.strip(), done.stderr) == (0, f"stewart-calib {__version__}", "")
+
+
+def test_the_cache_falls_back_to_a_private_temporary_directory(tmp_path):
+    done = _run(tmp_path, "UserProvidedCacheLocator,UserWideCacheLocator", "-c", CALL_A_KERNEL)
+    assert (done.returncode, done.stdout.strip()) == (0, "True"), done.stderr
+    cache = tmp_path / "tmp" / f"stewart-calib-numba-{os.getuid()}"
+    assert oct(cache.stat().st_mode & 0o777) == "0o700"
+    assert any(cache.rglob("*all_within*.nbi"))  # the compiled kernel was cached there
+
+
+def test_without_any_writable_place_kernels_run_uncached(tmp_path):
+    # only the user-wide locator, which cannot be written: not even the temporary directory helps
+    done = _run(tmp_path, "UserWideCacheLocator", "-c", CALL_A_KERNEL)
+    assert (done.returncode, done.stdout.strip()) == (0, "True"), done.stderr
