@@ -31,7 +31,7 @@ import dataclasses
 import json
 import tomllib
 import zipfile
-from collections import Counter
+from collections import Counter, deque
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +42,7 @@ from .config import EstimatorConfig, config_from_dict
 from .errors import CalibError, SampleRejected
 from .estimate import Estimate
 from .estimators import Estimator, method_names, method_spec
+from .plausibility import check_plausible
 from .platform import Platform, parse_platform, platform_to_toml
 from .samples import Sample
 
@@ -50,6 +51,11 @@ CHECKPOINT_VERSION = 1
 
 #: methods that update per sample and can be checkpointed (from the estimator registry).
 ONLINE_METHODS = method_names(online=True, checkpointable=True)
+
+#: accepted samples kept for the plausibility check of :meth:`OnlineCalibrator.result` (not
+#: checkpointed: after a resume the check sees the samples since).
+RECENT_SAMPLES = 100
+
 
 class Rejections:
     """Counts of rejected samples by reason, and the first message (bounded memory)."""
@@ -104,6 +110,7 @@ class OnlineCalibrator:
         self.rows_read = 0
         self.rows_skipped = 0
         self.rejections = Rejections()
+        self._recent = deque(maxlen=RECENT_SAMPLES)  # (strokes, readings) of accepted samples
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample.
@@ -116,6 +123,7 @@ class OnlineCalibrator:
         except SampleRejected as err:
             self.rejections.add(err)
             raise
+        self._recent.append((sample.strokes, sample.readings))
 
     def estimate(self) -> Estimate:
         """δM [mm] and covariance after the last accepted sample."""
@@ -138,9 +146,17 @@ class OnlineCalibrator:
         """The current estimate as a spec §5 result, with the added ``samples_rejected`` field.
 
         ``samples_skipped`` counts bad rows skipped and samples rejected, as ``calibrate`` does.
+
+        Raises:
+            CalibError: the estimate is not credible for this platform (a log of another
+                platform; :func:`~stewart_calib.plausibility.check_plausible` on the last
+                :data:`RECENT_SAMPLES` accepted samples).
         """
+        estimate = self.estimate()
+        recent = np.array(self._recent, dtype=float).reshape(-1, 2, 6)
+        check_plausible(self.platform, estimate.error, self.config.noise, recent[:, 0], recent[:, 1], self.method)
         skipped = self.rows_skipped + self.rejections.count
-        return io.result_dict(self.estimate(), self.platform, skipped, {"samples_rejected": self.rejections.summary()})
+        return io.result_dict(estimate, self.platform, skipped, {"samples_rejected": self.rejections.summary()})
 
     def export_state(self) -> dict:
         """The estimator's state (nested dict of arrays); equal states give equal futures."""

@@ -14,12 +14,12 @@ PACKAGE = Path(__file__).resolve().parents[1] / "stewart_calib"
 
 #: bottom first; a module may import from its own group and from groups of lower layers only.
 LAYERS = (
-    ("stewart_calib", "errors", "_kernels", "resources"),
+    ("stewart_calib", "errors", "_jit", "_kernels", "resources"),
     ("samples", "config", "rotations"),
     ("platform",),
     ("kinematics", "unknowns"),
     ("estimate", "instruments"),
-    ("factors", "io", "identifiability", "compensation", "simulation", "viz"),
+    ("factors", "io", "identifiability", "compensation", "plausibility", "simulation", "viz"),
     ("planning", "estimators"),
     ("online", "reproduction"),
     ("pipelines",),

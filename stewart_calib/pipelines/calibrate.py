@@ -27,6 +27,7 @@ from ..estimate import Estimate
 from ..estimators import BatchEstimator
 from ..online import Rejections
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
+from ..plausibility import check_plausible
 from ..platform import Platform, load_platform
 from ..samples import Log
 
@@ -132,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
 
     progress = sys.stderr.isatty() and len(log) >= PROGRESS_MIN_SAMPLES
     result = run_calibration(platform, log, args.method, config, bool(trace_path or rerun_path), progress)
+    check_plausible(platform, result.estimate.error, config.noise, log.strokes, log.readings, args.method)
     if result.rejected:
         k, reason = result.rejected[0]
         print(_summary(f"{args.method} rejected samples:", len(result.rejected), len(log),

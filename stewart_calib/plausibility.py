@@ -1,0 +1,78 @@
+"""Is an estimate credible for the platform it was made for? Refuse a log of another platform.
+
+Two symptoms, each far outside what a log of the right platform can produce:
+
+* **Parameters far beyond the prior.** The prior says each δM component is N(0, σ_p²)
+  (``noise.prior_sigma_mm``, the manufacturing tolerance). A component beyond
+  :data:`PRIOR_SIGMAS` σ_p has prior probability below 1e-20: the platform file does not
+  describe the robot. This catches the methods that fit any 6-6 drive exactly (``isam2``,
+  ``ls``: 42 parameters are the whole drive geometry), whose residuals stay small.
+* **Residuals orders of magnitude above the noise.** The RMS drive-leg residual
+  ``‖t + R d_i − j_i‖ − (l_i + q_i)`` at the estimate, with the tracker's pose from FK of the
+  readings, against the configured measurement σ (``noise.reading_sigma_mm`` and
+  ``stroke_sigma_mm``, the larger): beyond :data:`RESIDUAL_SIGMAS` × σ no noise model explains
+  it (a filter that diverged on foreign data).
+
+Both thresholds are in units of the user's own σ, so they follow the configuration, and both
+sit orders of magnitude past the largest values measured on logs of the right platform whose
+noise is mismatched 5× (tests/test_plausibility.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import kinematics as kin
+from .errors import CalibError
+from .config import NoiseConfig
+from .platform import PARAMETER_NAMES, Platform
+
+#: a parameter error beyond this many prior σ is refused (two-sided tail probability < 1e-20).
+PRIOR_SIGMAS = 10.0
+#: an RMS leg residual beyond this many measurement σ is refused (three orders of magnitude).
+RESIDUAL_SIGMAS = 1000.0
+
+
+def rms_leg_residual_mm(platform: Platform, error: np.ndarray, strokes: np.ndarray, readings: np.ndarray) -> float:
+    """RMS of the drive-leg residuals [mm] of the samples ``(N, 6)`` at the model ``M + error``.
+
+    Samples whose tracker FK does not converge are left out (nan when none converges).
+    """
+    strokes = np.asarray(strokes, dtype=float).reshape(-1, 6)
+    readings = np.asarray(readings, dtype=float).reshape(-1, 6)
+    if not len(strokes):
+        return float("nan")
+    solution = kin.forward_kinematics(platform.tracker, readings, strict=False)
+    ok = np.asarray(solution.converged).reshape(-1)
+    if not ok.any():
+        return float("nan")
+    residuals = kin.leg_residuals(platform.drive.perturbed(error), solution.R[ok], solution.t[ok], strokes[ok])
+    return float(np.sqrt(np.mean(np.square(residuals))))
+
+
+def check_plausible(platform: Platform, error: np.ndarray, noise: NoiseConfig, strokes: np.ndarray,
+                    readings: np.ndarray, method: str) -> None:
+    """Refuse an estimate that the log cannot have come from ``platform`` with (see the module).
+
+    Args:
+        error: δM [mm] of the estimate. strokes, readings: ``(N, 6)`` samples it was fitted to
+            (all of them, or the most recent ones for an online run) [mm]; with none, only
+            the parameters are checked.
+    Raises:
+        CalibError: one line with the RMS residual, the largest parameter error and both limits.
+    """
+    error = np.asarray(error, dtype=float)
+    sigma_mm = max(noise.reading_sigma_mm, noise.stroke_sigma_mm)
+    rms_mm = rms_leg_residual_mm(platform, error, strokes, readings)
+    worst = int(np.argmax(np.abs(error)))
+    beyond_prior = abs(error[worst]) > PRIOR_SIGMAS * noise.prior_sigma_mm
+    # nan (no pose could be solved) counts as beyond the noise
+    beyond_noise = np.size(strokes) > 0 and not rms_mm <= RESIDUAL_SIGMAS * sigma_mm
+    if beyond_prior or beyond_noise:
+        raise CalibError(
+            f"{method}: the log does not fit platform '{platform.name}': RMS leg residual {rms_mm:.3g} mm at the estimate "
+            f"({rms_mm / sigma_mm:.3g} × the noise σ {sigma_mm:g} mm; limit {RESIDUAL_SIGMAS:g} ×), largest parameter "
+            f"error {PARAMETER_NAMES[worst]} = {error[worst]:.4g} mm ({abs(error[worst]) / noise.prior_sigma_mm:.3g} × "
+            f"the prior σ {noise.prior_sigma_mm:g} mm; limit {PRIOR_SIGMAS:g} ×) — a log of another platform, or a "
+            "platform file that does not describe this robot?"
+        )

@@ -1,0 +1,100 @@
+"""A log of another platform ends in a refusal with the RMS residual, never a confident result (issue 14)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from stewart_calib import cli
+from stewart_calib import kinematics as kin
+from stewart_calib.errors import CalibError, SampleRejected
+from stewart_calib.estimators.config import NoiseConfig, config_from_dict
+from stewart_calib.io import write_log
+from stewart_calib.online import OnlineCalibrator
+from stewart_calib.platform import LegGeometry, platform_to_toml
+from stewart_calib.plausibility import PRIOR_SIGMAS, RESIDUAL_SIGMAS, check_plausible, rms_leg_residual_mm
+from tests.synthetic import make_log, nim_stewart, random_error, random_poses
+
+N = 60
+
+
+def _other_platform(platform):
+    """A different 6-6 drive (base joints on 0.8×, platform joints on 1.2× the radius), same tracker."""
+    base, top = platform.drive.base_joints.copy(), platform.drive.platform_joints.copy()
+    base[:, :2] *= 0.8
+    top[:, :2] *= 1.2
+    R, t = kin.pose_to_rt(platform.workspace.home)
+    lengths = kin.leg_lengths(LegGeometry(base, top, np.ones(6)), R, t)
+    return dataclasses.replace(platform, name="other", drive=LegGeometry(base, top, lengths))
+
+
+@pytest.fixture(scope="module")
+def logs():
+    platform = nim_stewart()
+    other = _other_platform(platform)
+    rng = np.random.default_rng(8)
+    poses = random_poses(platform, N, rng)
+    own, _ = make_log(platform, random_error(rng, 1.0), poses, rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
+    foreign, _ = make_log(other, random_error(rng, 1.0), poses, rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
+    return platform, other, own, foreign
+
+
+@pytest.mark.parametrize("method", ["ekf", "isam2"])
+def test_calibrate_refuses_a_log_of_another_platform_naming_the_residual(tmp_path, capsys, logs, method):
+    platform, other, own, foreign = logs
+    for name, plat in (("p.toml", platform), ("other.toml", other)):
+        (tmp_path / name).write_text(platform_to_toml(plat))
+    for platform_file, log, code in (("p.toml", own, 0), ("p.toml", foreign, 2), ("other.toml", own, 2)):
+        write_log(tmp_path / "log.csv", log)
+        out = tmp_path / f"{platform_file}-{code}.json"
+        argv = ["calibrate", "--platform", str(tmp_path / platform_file), "--log", str(tmp_path / "log.csv"),
+                "--method", method, "--out", str(out), "--set", "isam2.window_samples=10"]
+        assert cli.main(argv) == code
+        err = capsys.readouterr().err.strip().splitlines()
+        if code:
+            assert len(err) == 1 and "does not fit platform" in err[0] and "RMS leg residual" in err[0], err
+            assert not out.exists()
+
+
+def test_the_right_platform_passes_with_noise_five_times_mismatched(logs):
+    platform, _, own, _ = logs
+    for reading_sigma_mm in (0.0004, 0.01):  # the log's 2 µm, taken 5× too small and too large
+        noise = NoiseConfig(reading_sigma_mm=reading_sigma_mm)
+        calib = OnlineCalibrator(platform, "ekf", config_from_dict({"noise": {"reading_sigma_mm": reading_sigma_mm}}))
+        for sample in own:
+            calib.update(sample)
+        check_plausible(platform, calib.estimate().error, noise, own.strokes, own.readings, "ekf")
+        # far inside both limits: the residual within a few σ, the parameters within a few prior σ
+        assert rms_leg_residual_mm(platform, calib.estimate().error, own.strokes, own.readings) < 10 * 0.002
+        assert np.abs(calib.estimate().error).max() < PRIOR_SIGMAS / 2 * noise.prior_sigma_mm
+
+
+def test_the_online_result_is_refused_and_track_exits_2(tmp_path, capsys, logs):
+    platform, _, _, foreign = logs
+    calib = OnlineCalibrator(platform, "ekf")
+    for sample in foreign:
+        try:
+            calib.update(sample)
+        except SampleRejected:
+            pass
+    with pytest.raises(CalibError, match="does not fit platform 'nim-stewart': RMS leg residual"):
+        calib.result()
+    (tmp_path / "p.toml").write_text(platform_to_toml(platform))
+    write_log(tmp_path / "log.csv", foreign)
+    out = tmp_path / "r.json"
+    assert cli.main(["track", "--platform", str(tmp_path / "p.toml"), "--method", "ekf", "--log", str(tmp_path / "log.csv"),
+                     "--out", str(out), "--every", "20"]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_limits_are_in_units_of_the_configured_sigmas(logs):
+    platform, _, own, _ = logs
+    noise = NoiseConfig()
+    error = np.zeros(42)
+    error[6] = (PRIOR_SIGMAS + 0.1) * noise.prior_sigma_mm  # l1 just past the prior limit
+    with pytest.raises(CalibError, match=r"largest parameter error l1 = 50\.5 mm \(10\.1 × the prior σ 5 mm"):
+        check_plausible(platform, error, noise, own.strokes[:0], own.readings[:0], "ekf")  # no samples: parameters only
+    assert RESIDUAL_SIGMAS * max(noise.reading_sigma_mm, noise.stroke_sigma_mm) == pytest.approx(2.0)
