@@ -10,7 +10,7 @@ import pytest
 from stewart_calib import cli
 from stewart_calib import kinematics as kin
 from stewart_calib.errors import CalibError, SampleRejected
-from stewart_calib.estimators.config import NoiseConfig, config_from_dict
+from stewart_calib.config import NoiseConfig, config_from_dict
 from stewart_calib.io import write_log
 from stewart_calib.online import OnlineCalibrator
 from stewart_calib.platform import LegGeometry, platform_to_toml
