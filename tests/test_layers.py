@@ -14,7 +14,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "stewart_calib"
 
 #: bottom first; a module may import from its own group and from groups of lower layers only.
 LAYERS = (
-    ("stewart_calib", "errors", "_jit", "_kernels", "resources"),
+    ("_jit",),
+    ("stewart_calib", "errors", "_kernels", "resources"),
     ("samples", "config", "rotations"),
     ("platform",),
     ("kinematics", "unknowns"),
