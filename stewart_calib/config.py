@@ -53,11 +53,22 @@ class LSConfig:
             [mm] so that both halves of the residual are in mm and weigh alike (about the
             platform radius; it also lowers the condition number ~4×, docs/measured-facts.md).
             1.0 is the paper's unweighted form.
+        robust_k: instruments outside the robot (spec §7): Huber threshold on a reading's RMS
+            whitened residual [σ]; 0 = plain least squares. At 3 σ a Gaussian reading is almost
+            never down-weighted (RMS of 6 normals > 3: p ≈ 1e-11), a glitch is.
+        estimate_noise: instruments outside the robot: re-estimate the σ of position and
+            orientation from the residuals (the platform file's σ is only the start), so their
+            relative weight is the data's own and the reported covariance is honest.
+        stroke_scale: ``auto`` (identify k1..k6 where the strokes make them identifiable),
+            ``on`` or ``off`` (held at the platform file's ``[drive] stroke_scale``).
     """
 
     tolerance_mm: float = 1e-7
     max_iterations: int = 20
     rotation_weight_mm: float = 300.0
+    robust_k: float = 3.0
+    estimate_noise: bool = True
+    stroke_scale: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -142,6 +153,7 @@ class EstimatorConfig:
 
 
 _CHOICES = {
+    ("ls", "stroke_scale"): ("auto", "on", "off"),
     ("paper_ekf", "angle_unit"): ("rad", "deg"),
     ("isam2", "coupling"): ("tight", "loose"),
     ("isam2", "robust"): ("none", "huber", "cauchy"),

@@ -27,6 +27,8 @@ class Estimate:
         layout: the blocks after δM in the unknown vector (none: the 42 drive parameters alone).
         block_error: ``(layout.size − 42,)`` the blocks' errors from nominal [code units].
         full_covariance: ``(layout.size, layout.size)`` over ``[δM | blocks]`` [code units], or None.
+        details: optional JSON-ready result fields the method adds (e.g. how it fixed the gauge,
+            the noise it estimated); :func:`stewart_calib.io.result_dict` writes them.
     """
 
     error: np.ndarray
@@ -37,6 +39,7 @@ class Estimate:
     layout: UnknownLayout = field(default_factory=UnknownLayout)
     block_error: np.ndarray = field(default_factory=lambda: np.zeros(0))
     full_covariance: np.ndarray | None = None
+    details: dict | None = None
 
     @classmethod
     def of_state(

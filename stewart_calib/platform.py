@@ -124,28 +124,70 @@ class Workspace:
     rotation_limit: float = math.radians(20.0)
 
 
+INSTRUMENT_KINDS = ("tracker", "pose", "points")
+
+#: ``[instrument]`` defaults (spec §7): σ of one measured coordinate [mm] and of one measured
+#: angle [deg], the spec's example values (a good motion-capture system or laser tracker).
+DEFAULT_POSITION_SIGMA_MM = 0.1
+DEFAULT_ORIENTATION_SIGMA_DEG = 0.02
+
+
+@dataclass(frozen=True, eq=False)
+class Instrument:
+    """What measured the logs (spec §7): the in-situ tracker, a 6-DOF pose, or 3-D targets.
+
+    Attributes:
+        kind: ``"tracker"``, ``"pose"`` or ``"points"``.
+        frame: ``(6,)`` nominal pose of the instrument frame {I} in {J} ``[mm, rad]`` (pose6).
+        target: ``(6,)`` nominal pose of the measured body {T} in {D} ``[mm, rad]`` (pose only).
+        targets: ``(K, 3)`` nominal target positions in {D} [mm] (points only), else ``(0, 3)``.
+        position_sigma_mm: σ of one measured coordinate [mm].
+        orientation_sigma_rad: σ of one measured angle [rad] (pose only).
+    """
+
+    kind: str = "tracker"
+    frame: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    target: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    position_sigma_mm: float = DEFAULT_POSITION_SIGMA_MM
+    orientation_sigma_rad: float = math.radians(DEFAULT_ORIENTATION_SIGMA_DEG)
+
+    @property
+    def n_targets(self) -> int:
+        return len(self.targets)
+
+
 @dataclass(frozen=True)
 class Platform:
-    """A platform file: nominal drive geometry, known tracker geometry, ranges, workspace.
+    """A platform file: nominal drive geometry, tracker geometry, instrument, ranges, workspace.
 
     Attributes:
         name: free-text identifier.
         drive: nominal drive legs (j_i, d_i, l_i) — what the controller believes.
-        tracker: tracker legs (z_i, h_i, l_si) — taken as known (paper Table 2).
+        tracker: tracker legs (z_i, h_i, l_si) (paper Table 2), or None when the platform
+            file has no ``[tracker]`` (allowed when another instrument measured the logs).
         stroke_range: ``(min, max)`` drive stroke q_i [mm], or None.
         reading_range: ``(min, max)`` grating reading s_i [mm], or None.
         workspace: reachable box, or None.
         description: free text.
+        instrument: what measured the logs (spec §7); the tracker by default.
+        stroke_scale: ``(6,)`` nominal stroke scale k_i (dimensionless): a drive leg is
+            ``l_i + (1 + k_i) q_i`` long (spec §7; ``[drive] stroke_scale``, default 0).
+        tracker_geometry_sigma_mm: prior σ of the tracker's own 42 values [mm] (``[tracker]
+            geometry_sigma_mm``); 0: known exactly.
     """
 
     name: str
     drive: LegGeometry
-    tracker: LegGeometry
+    tracker: LegGeometry | None
     stroke_range: tuple[float, float] | None = None
     reading_range: tuple[float, float] | None = None
     workspace: Workspace | None = None
     description: str = ""
     source: str = field(default="<memory>", compare=False)
+    instrument: Instrument = field(default_factory=Instrument, compare=False)
+    stroke_scale: np.ndarray = field(default_factory=lambda: np.zeros(N_LEGS), compare=False)
+    tracker_geometry_sigma_mm: float = 0.0
 
     def with_drive(self, drive: LegGeometry) -> "Platform":
         return replace(self, drive=drive)
@@ -279,9 +321,16 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
     if not isinstance(description, str):
         raise _refuse(source, "description", "a string")
     drive, drive_table = _legs(doc, "drive", source)
-    tracker, tracker_table = _legs(doc, "tracker", source)
+    instrument = _instrument(doc, source)
+    tracker, reading_range, geometry_sigma = None, None, 0.0
+    if instrument.kind == "tracker" or "tracker" in doc:
+        tracker, tracker_table = _legs(doc, "tracker", source)
+        reading_range = _range(tracker_table, "reading_range_mm", source, "tracker")
+        geometry_sigma = _non_negative(tracker_table, "geometry_sigma_mm", 0.0, source, "tracker")
     stroke_range = _range(drive_table, "stroke_range_mm", source, "drive")
-    reading_range = _range(tracker_table, "reading_range_mm", source, "tracker")
+    stroke_scale = _array(drive_table, "stroke_scale", (N_LEGS,), source, "drive") if "stroke_scale" in drive_table else np.zeros(N_LEGS)
+    if np.any(stroke_scale <= -1.0):
+        raise _refuse(source, "drive.stroke_scale", "6 scale errors k_i > -1 (a leg moves (1 + k_i) mm per logged mm)")
 
     workspace = None
     if "workspace" in doc:
@@ -302,10 +351,97 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
             rotation_limit=math.radians(limits["rotation_limit_deg"]),
         )
 
-    platform = Platform(name, drive, tracker, stroke_range, reading_range, workspace, description, source)
+    platform = Platform(name, drive, tracker, stroke_range, reading_range, workspace, description, source,
+                        instrument, stroke_scale, geometry_sigma)
     if workspace is not None:
         _check_home_reachable(platform, source)
     return platform
+
+
+def _number(table: dict, key: str, default: float, source: str, prefix: str) -> float:
+    value = table.get(key, default)
+    finite = isinstance(value, (int, float)) and not isinstance(value, bool) and abs(value) <= sys.float_info.max
+    if not finite or math.isnan(value):
+        raise _refuse(source, f"{prefix}.{key}", "a finite number")
+    return float(value)
+
+
+def _non_negative(table: dict, key: str, default: float, source: str, prefix: str) -> float:
+    value = _number(table, key, default, source, prefix)
+    if value < 0:
+        raise _refuse(source, f"{prefix}.{key}", f"a σ ≥ 0 (0: known exactly), got {value!r}")
+    return value
+
+
+def _positive(table: dict, key: str, default: float, source: str, prefix: str) -> float:
+    value = _number(table, key, default, source, prefix)
+    if not value > 0:
+        raise _refuse(source, f"{prefix}.{key}", f"a positive σ, got {value!r}")
+    return value
+
+
+#: keys of ``[instrument]`` each kind reads (spec §7); any other key is refused by name.
+_INSTRUMENT_KEYS = {
+    "tracker": {"kind"},
+    "pose": {"kind", "frame", "target", "position_sigma_mm", "orientation_sigma_deg"},
+    "points": {"kind", "frame", "targets_mm", "position_sigma_mm"},
+}
+
+
+def _pose6(table: dict, key: str, source: str) -> np.ndarray:
+    """A ``[x, y, z mm, roll, pitch, yaw deg]`` key (default all zero) as pose6 ``[mm, rad]``."""
+    if key not in table:
+        return np.zeros(6)
+    value = _array(table, key, (6,), source, "instrument")
+    return np.concatenate([value[:3], np.radians(value[3:])])
+
+
+def _instrument(doc: dict, source: str) -> Instrument:
+    """The optional ``[instrument]`` table (spec §7); without it, the tracker."""
+    if "instrument" not in doc:
+        return Instrument()
+    return parse_instrument(doc["instrument"], source)
+
+
+def parse_instrument(table, source: str) -> Instrument:
+    """Validate an ``[instrument]`` table (spec §7).
+
+    Raises:
+        CalibError: an unknown kind, a key the kind does not use, a wrong shape or a σ ≤ 0,
+            naming ``source`` and the key.
+    """
+    if not isinstance(table, dict):
+        raise _refuse(source, "instrument", "an [instrument] table")
+    kind = table.get("kind", "tracker")
+    if kind not in INSTRUMENT_KINDS:
+        raise _refuse(source, "instrument.kind", f"one of {', '.join(map(repr, INSTRUMENT_KINDS))}, got {kind!r}")
+    unused = sorted(set(table) - _INSTRUMENT_KEYS[kind])
+    if unused:
+        known = set().union(*_INSTRUMENT_KEYS.values())
+        why = f"a key that kind = {kind!r} uses" if unused[0] in known else "a known key (spec §7)"
+        raise _refuse(source, f"instrument.{unused[0]}", why)
+    if kind == "tracker":
+        return Instrument()
+    targets = np.zeros((0, 3))
+    if kind == "points":
+        if "targets_mm" not in table:
+            raise _refuse(source, "instrument.targets_mm", "1..K rows of [x, y, z] in mm (missing)")
+        try:
+            targets = np.array(table["targets_mm"], dtype=float)
+        except (TypeError, ValueError, OverflowError):
+            targets = np.zeros((0,))
+        if targets.ndim != 2 or targets.shape[1:] != (3,) or len(targets) == 0 or not np.all(np.isfinite(targets)):
+            raise _refuse(source, "instrument.targets_mm", "1..K rows of [x, y, z] in mm (finite numbers)")
+    return Instrument(
+        kind=kind,
+        frame=_pose6(table, "frame", source),
+        target=_pose6(table, "target", source) if kind == "pose" else np.zeros(6),
+        targets=targets,
+        position_sigma_mm=_positive(table, "position_sigma_mm", DEFAULT_POSITION_SIGMA_MM, source, "instrument"),
+        orientation_sigma_rad=math.radians(
+            _positive(table, "orientation_sigma_deg", DEFAULT_ORIENTATION_SIGMA_DEG, source, "instrument")
+        ),
+    )
 
 
 def _check_home_reachable(platform: Platform, source: str) -> None:
@@ -314,7 +450,7 @@ def _check_home_reachable(platform: Platform, source: str) -> None:
         (platform.drive, platform.stroke_range, "drive strokes"),
         (platform.tracker, platform.reading_range, "tracker readings"),
     ):
-        if bounds is None:
+        if bounds is None or legs is None:
             continue
         strokes = np.linalg.norm(transform_points(R, t, legs.platform_joints) - legs.base_joints, axis=-1)
         strokes -= legs.initial_lengths
@@ -367,6 +503,8 @@ def platform_to_toml(platform: Platform) -> str:
         ("drive", platform.drive, "stroke_range_mm", platform.stroke_range),
         ("tracker", platform.tracker, "reading_range_mm", platform.reading_range),
     ):
+        if legs is None:
+            continue
         lines += [
             "",
             f"[{section}]",
@@ -376,6 +514,11 @@ def platform_to_toml(platform: Platform) -> str:
         ]
         if bounds is not None:
             lines.append(f"{key} = {_toml_list(bounds)}")
+        if section == "drive" and np.any(platform.stroke_scale != 0):
+            lines.append(f"stroke_scale = {_toml_list(platform.stroke_scale)}")
+        if section == "tracker" and platform.tracker_geometry_sigma_mm > 0:
+            lines.append(f"geometry_sigma_mm = {platform.tracker_geometry_sigma_mm!r}")
+    lines += _instrument_toml(platform.instrument)
     if platform.workspace is not None:
         ws = platform.workspace
         home = np.concatenate([ws.home[:3], np.degrees(ws.home[3:])])
@@ -387,6 +530,25 @@ def platform_to_toml(platform: Platform) -> str:
             f"rotation_limit_deg = {math.degrees(ws.rotation_limit)!r}",
         ]
     return "\n".join(lines) + "\n"
+
+
+def _pose6_toml(pose6: np.ndarray) -> str:
+    return _toml_list(np.concatenate([pose6[:3], np.degrees(pose6[3:])]))
+
+
+def _instrument_toml(instrument: Instrument) -> list[str]:
+    """The ``[instrument]`` lines (none for the tracker, the default)."""
+    if instrument.kind == "tracker":
+        return []
+    lines = ["", "[instrument]", f"kind = {_toml_str(instrument.kind)}", f"frame = {_pose6_toml(instrument.frame)}"]
+    if instrument.kind == "pose":
+        lines.append(f"target = {_pose6_toml(instrument.target)}")
+    else:
+        lines.append(f"targets_mm = {_toml_rows(instrument.targets)}")
+    lines.append(f"position_sigma_mm = {float(instrument.position_sigma_mm)!r}")
+    if instrument.kind == "pose":
+        lines.append(f"orientation_sigma_deg = {math.degrees(instrument.orientation_sigma_rad)!r}")
+    return lines
 
 
 def _toml_str(text: str) -> str:

@@ -86,8 +86,13 @@ class Truth:
         t_s: ``(N,)`` [s].
         params: ``(N, 42)`` true absolute drive parameters [mm], paper order.
         true_poses: ``(N, 6)`` true pose ``[mm, rad]``, or None.
+        stroke_scale: ``(6,)`` true stroke scale k_i (spec §7), or None.
+        instrument: ``(names, values)`` of the true outside instrument's unknowns in file units
+            (frame and target(s), spec §7), or None.
     """
 
     t_s: np.ndarray
     params: np.ndarray
     true_poses: np.ndarray | None = None
+    stroke_scale: np.ndarray | None = None
+    instrument: tuple[tuple[str, ...], np.ndarray] | None = None

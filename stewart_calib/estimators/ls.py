@@ -10,11 +10,15 @@ mm throughout. Covariance: the Gauss–Newton covariance ``σ̂² (AᵀA)⁻¹``
 stacked Jacobian ``A``, scaled by the residual variance ``σ̂² = ‖b − A δ‖² / (6N − 42)`` —
 the data's own noise level, since the paper's LS has no noise model. It is None when the
 system is rank deficient (too few or too poor poses); ``singular_values`` says which.
+
+With an instrument outside the robot (spec §7 ``pose``, ``points``) the same class runs the
+batch maximum-likelihood fit of :mod:`.batch` instead: drive, stroke scale and the instrument's
+frame and target(s) together, the 12 gauge directions fixed and stated in the result.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -26,6 +30,9 @@ from ..estimate import Estimate
 from .base import BufferedFit
 from ..config import EstimatorConfig, LSConfig
 from .measurement import WarmFK, check_sample, pose_difference
+
+#: prior σ the stroke-scale block declares (10 %); ls itself takes no prior
+STROKE_SCALE_PRIOR = 0.1
 
 #: singular values below this fraction of the largest count as zero (rank deficiency).
 RANK_TOLERANCE = 1e-10
@@ -110,6 +117,11 @@ class LeastSquares(BufferedFit):
     def __init__(self, platform: Platform, config: EstimatorConfig):
         self.platform = platform
         self.config = config.ls
+        self._external = None
+        if platform.instrument.kind != "tracker":
+            from ..instruments.external import model_for
+
+            self._external = model_for(platform)
         self._fk = WarmFK()
         self._strokes: list[np.ndarray] = []
         self._R_v: list[np.ndarray] = []
@@ -119,7 +131,15 @@ class LeastSquares(BufferedFit):
         self.rejected: list[tuple[int, SampleRejected]] = []
 
     def update(self, sample: Sample) -> None:
-        """Buffer one sample's strokes and measured pose ``P_v`` (paper Fig. 3 step 1)."""
+        """Buffer one sample's strokes and measured pose ``P_v`` (paper Fig. 3 step 1), or with an
+        outside instrument its strokes and readings."""
+        if self._external is not None:
+            strokes, readings = self._external.check(sample)
+            self._strokes.append(strokes)
+            self._R_v.append(readings)
+            self._t_v.append(sample.t_s)
+            self._t_s = sample.t_s
+            return
         strokes, readings = check_sample(self.platform, sample)
         R_v, t_v = self._fk.solve(self.platform.tracker, readings, "tracker")
         self._strokes.append(strokes)
@@ -131,8 +151,55 @@ class LeastSquares(BufferedFit):
         """Fit every buffered sample; zeros and no covariance before the first sample."""
         if not self._strokes:
             return Estimate(np.zeros(N_PARAMS), None, self.name)
+        if self._external is not None:
+            return self._estimate_external()
         solution = gauss_newton(
             self.platform.drive, np.array(self._strokes), np.array(self._R_v), np.array(self._t_v), self.config
         )
         self.singular_values = solution.singular_values
         return Estimate(solution.error, solution.covariance, self.name, len(self._strokes), self._t_s)
+
+    def _estimate_external(self) -> Estimate:
+        from ..instruments.gauge import GAUGE_STATEMENT
+        from .batch import BatchProblem, fit
+
+        model = self._external
+        problem = BatchProblem(
+            nominal=self.platform.drive,
+            nominal_stroke_scale=self.platform.stroke_scale,
+            strokes=np.array(self._strokes),
+            measured=np.array(self._R_v),
+            model=model.module,
+            register=model.register,
+            sigmas=model.sigmas,
+            channels=model.channels,
+            channel_names=model.channel_names,
+            t_s=np.array(self._t_v),
+        )
+        sol = fit(problem, self.config.robust_k, self.config.estimate_noise, self.config.stroke_scale, self.config.tolerance_mm)
+        self.rejected.extend(sol.rejected)
+        self.singular_values = sol.singular_values
+        return external_estimate(self.name, model, sol, int(sol.used.sum()), self._t_s, GAUGE_STATEMENT)
+
+
+def external_estimate(method: str, model, sol, samples_used: int, t_s: float, gauge: str) -> Estimate:
+    """An :class:`Estimate` over ``[δM | stroke scale | instrument]`` (spec §7 blocks) from a
+    :class:`~.batch.BatchSolution`; the instrument's tangent covariance carried into its θ."""
+    from ..unknowns import UnknownLayout, stroke_scale_block
+
+    layout = UnknownLayout((stroke_scale_block(STROKE_SCALE_PRIOR), model.block()))
+    x = np.concatenate([sol.error, sol.stroke_scale - model.platform.stroke_scale, model.theta(sol.unknowns) - model.block().nominal])
+    P = None
+    if sol.covariance is not None:
+        lift = np.eye(layout.size)
+        lift[N_PARAMS + 6 :, N_PARAMS + 6 :] = model.theta_jacobian(sol.unknowns)
+        P = lift @ sol.covariance @ lift.T
+    details = {
+        "gauge": gauge,
+        "stroke_scale_identified": sol.stroke_scale_fitted,
+        "noise_estimated": sol.noise_sigmas,
+        "residual_rms": sol.residual_rms,
+        "readings_downweighted": sol.downweighted,
+        "readings_rejected_as_gross_errors": sol.rejected_as_gross,
+    }
+    return replace(Estimate.of_state(x, P, layout, method, samples_used, t_s), details=details)

@@ -57,7 +57,7 @@ class MethodSpec:
 METHODS: dict[str, MethodSpec] = {
     spec.name: spec
     for spec in (
-        MethodSpec("ls", ".ls:LeastSquares", online=False, checkpointable=False, instruments=("tracker",),
+        MethodSpec("ls", ".ls:LeastSquares", online=False, checkpointable=False, instruments=("tracker", "pose", "points"),
                    summary="the paper's batch least squares on the pose error (eq. 9–11)"),
         MethodSpec("paper-ekf", ".paper_ekf:PaperEKF", online=True, checkpointable=True, instruments=("tracker",),
                    summary="the paper's EKF on the pose error (eq. 14–19)"),
@@ -101,6 +101,13 @@ def make_estimator(method: str, platform: Platform, config: EstimatorConfig | No
     """Build the estimator named ``method`` for ``platform``.
 
     Raises:
-        CalibError: an unknown method.
+        CalibError: an unknown method, or one that does not take the platform's instrument.
     """
-    return method_spec(method).build(platform, config)
+    spec = method_spec(method)
+    kind = platform.instrument.kind
+    if kind not in spec.instruments:
+        raise CalibError(
+            f"method '{method}' does not take the {kind} instrument of {platform.source}; "
+            f"expected one of {', '.join(method_names(instrument=kind))}"
+        )
+    return spec.build(platform, config)

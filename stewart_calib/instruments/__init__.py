@@ -1,5 +1,7 @@
 """Measurement models, one module per instrument, all following :mod:`.base`'s protocol;
-:mod:`.registry` lists them by ``[instrument] kind``."""
+:mod:`.registry` lists them by ``[instrument] kind``. The instruments outside the robot (spec §7
+``pose``, ``points``) start their fit in closed form (:mod:`.registration`) and leave 12
+directions to :mod:`.gauge`."""
 
 from .base import InstrumentModel, PoseObservation, Residual, instrument_theta
 from .registry import MODELS, instrument_model

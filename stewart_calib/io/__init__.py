@@ -7,13 +7,18 @@ what was expected; a failed write never leaves a partial file behind.
 """
 
 from .atomic import atomic_path, atomic_write_text
+from .tables import csv_text
 from .logs import (
     LOG_REQUIRED,
+    MEASURED_ANGLE_COLUMNS,
     POSE_COLUMNS,
     READING_COLUMNS,
     STROKE_COLUMNS,
+    STROKE_SCALE_NAMES,
     TRUE_POSE_COLUMNS,
     LogRowParser,
+    reading_columns,
+    readings_to_file,
     read_log,
     read_pose_list,
     read_truth,
@@ -36,7 +41,8 @@ from .results import (
 )
 
 __all__ = [
-    "LOG_REQUIRED", "NOMINAL_TOLERANCE_MM", "POSE_COLUMNS", "READING_COLUMNS", "RESULT_FORMAT",
+    "LOG_REQUIRED", "MEASURED_ANGLE_COLUMNS", "STROKE_SCALE_NAMES", "reading_columns", "readings_to_file", "csv_text",
+    "NOMINAL_TOLERANCE_MM", "POSE_COLUMNS", "READING_COLUMNS", "RESULT_FORMAT",
     "RESULT_SUM_TOLERANCE_MM", "STROKE_COLUMNS", "TRUE_POSE_COLUMNS", "LogRowParser", "atomic_path",
     "atomic_write_text", "read_calibrated_drive", "read_log", "read_pose_list", "read_result", "read_truth",
     "result_dict", "result_text", "trace_text", "validate_result", "write_log", "write_pose_list",

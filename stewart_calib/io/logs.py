@@ -36,12 +36,56 @@ READING_COLUMNS = tuple(f"s{i}_mm" for i in range(1, 7))
 LOG_REQUIRED = ("t_s", *STROKE_COLUMNS, *READING_COLUMNS)
 POSE_COLUMNS = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
 TRUE_POSE_COLUMNS = tuple(f"true_{name}" for name in POSE_COLUMNS)
+STROKE_SCALE_NAMES = tuple(f"k{i}" for i in range(1, 7))
+#: the instrument pose columns (spec §7) that hold degrees in the file and radians in code
+MEASURED_ANGLE_COLUMNS = ("mroll_deg", "mpitch_deg", "myaw_deg")
 
 
-def write_log(path: str | Path, log: Log) -> None:
-    """Write a measurement log (spec §3): ``t_s``, q, s, then pose [mm, deg], ``stage``, ``load_kg`` if present."""
-    header = list(LOG_REQUIRED)
-    columns = [log.t_s, *np.asarray(log.strokes).T, *np.asarray(log.readings).T]
+def reading_columns(platform: Platform | None) -> tuple[str, ...]:
+    """The log columns of the instrument that measured ``platform``'s logs (spec §7): the tracker's
+    ``s1_mm … s6_mm`` (also when ``platform`` is None), a pose's ``mx_mm … myaw_deg`` or the
+    targets' ``p1x_mm … pKz_mm``."""
+    from ..instruments import points, pose  # instruments import platform, not io
+
+    kind = _kind(platform)
+    if kind == "pose":
+        return pose.COLUMNS
+    if kind == "points":
+        return points.columns(platform.instrument.n_targets)
+    return READING_COLUMNS
+
+
+def _kind(platform: Platform | None) -> str:
+    return "tracker" if platform is None else platform.instrument.kind
+
+
+def readings_to_file(readings: np.ndarray, columns: tuple[str, ...]) -> list:
+    """Code-unit readings ``(N, m)`` → file columns: radians → degrees for the measured angles,
+    NaN (a point target not seen) → an empty field."""
+    out = []
+    for j, name in enumerate(columns):
+        values = np.asarray(readings[:, j], dtype=float)
+        if name in MEASURED_ANGLE_COLUMNS:
+            values = np.degrees(values)
+        out.append(["" if not np.isfinite(v) else v for v in values.tolist()] if name.startswith("p") else values)
+    return out
+
+
+def _readings_from_file(values: np.ndarray, columns: tuple[str, ...]) -> np.ndarray:
+    """File readings ``(N, m)`` → code units (the measured angles in radians)."""
+    values = np.array(values, dtype=float)
+    for j, name in enumerate(columns):
+        if name in MEASURED_ANGLE_COLUMNS:
+            values[:, j] = np.radians(values[:, j])
+    return values
+
+
+def write_log(path: str | Path, log: Log, platform: Platform | None = None) -> None:
+    """Write a measurement log (spec §3, §7): ``t_s``, q, the readings of ``platform``'s instrument
+    (the tracker's s when None), then pose [mm, deg], ``stage``, ``load_kg`` if present."""
+    readings = reading_columns(platform)
+    header = ["t_s", *STROKE_COLUMNS, *readings]
+    columns = [log.t_s, *np.asarray(log.strokes).T, *readings_to_file(np.asarray(log.readings, dtype=float), readings)]
     if log.desired_poses is not None:
         header += POSE_COLUMNS
         columns += pose_columns_deg(log.desired_poses)
@@ -80,20 +124,54 @@ def _time_backwards(t_s: float, latest_s: float) -> str:
     return f"column 't_s': expected time non-decreasing, got {t_s!r} after {latest_s!r}"
 
 
-def _log_columns(path: Path, header: list[str]) -> tuple[bool, list[str], list[str]]:
-    """``(has_pose, numeric columns, text columns)`` of a log header (spec §3)."""
-    require_columns(path, header, LOG_REQUIRED)
+def _log_columns(path: Path, header: list[str], platform: Platform | None = None) -> tuple[bool, list[str], list[str]]:
+    """``(has_pose, numeric columns, text columns)`` of a log header (spec §3, §7)."""
+    required = ("t_s", *STROKE_COLUMNS, *reading_columns(platform))
+    missing = [name for name in required if name not in header]
+    if missing and _kind(platform) != "tracker":
+        raise CalibError(
+            f"{path}: row 1: missing column(s) {', '.join(missing)} of the {_kind(platform)} instrument "
+            "that the platform's [instrument] names (spec §7)"
+        )
+    require_columns(path, header, required)
     has_pose = optional_group(path, header, POSE_COLUMNS)
-    numeric = [*LOG_REQUIRED, *(POSE_COLUMNS if has_pose else ()), *(["load_kg"] if "load_kg" in header else [])]
+    numeric = [*required, *(POSE_COLUMNS if has_pose else ()), *(["load_kg"] if "load_kg" in header else [])]
     return has_pose, numeric, ["stage"] if "stage" in header else []
+
+
+def _blank_columns(platform: Platform | None) -> tuple[str, ...]:
+    """Columns whose empty fields read as NaN: ``load_kg`` (payload may be unknown) and the
+    target coordinates of a points instrument (a target not seen)."""
+    return ("load_kg", *(reading_columns(platform) if _kind(platform) == "points" else ()))
+
+
+def _flag_partial_targets(table: Table, platform: Platform) -> None:
+    """A target with one or two of its three coordinates: refused naming the first empty one."""
+    names = reading_columns(platform)
+    for k in range(0, len(names), 3):
+        triple = names[k : k + 3]
+        finite = np.column_stack([np.isfinite(table.numbers[name]) for name in triple])
+        count = finite.sum(axis=1)
+        table.flag(
+            (count > 0) & (count < 3),
+            lambda row: f"column '{triple[int(np.argmin(finite[row]))]}': expected all three coordinates of target "
+            f"{k // 3 + 1} or none (a target not seen leaves all three empty)",
+        )
+        values = np.column_stack([table.numbers[name] for name in triple])
+        table.flag(np.any(np.isinf(values), axis=1), lambda row: f"column '{triple[0]}': expected finite coordinates")
 
 
 def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) -> None:
     """Non-finite required values and readings or strokes outside the platform's ranges."""
-    flag_non_finite(table, [*LOG_REQUIRED, *(POSE_COLUMNS if has_pose else ())])
+    readings = reading_columns(platform)
+    finite_required = ["t_s", *STROKE_COLUMNS, *(readings if _kind(platform) != "points" else ())]
+    flag_non_finite(table, [*finite_required, *(POSE_COLUMNS if has_pose else ())])
+    if _kind(platform) == "points":
+        _flag_partial_targets(table, platform)
     if platform is not None:
         _flag_out_of_range(table, STROKE_COLUMNS, platform.stroke_range, "stroke", "drive.stroke_range_mm")
-        _flag_out_of_range(table, READING_COLUMNS, platform.reading_range, "reading", "tracker.reading_range_mm")
+        if _kind(platform) == "tracker":
+            _flag_out_of_range(table, READING_COLUMNS, platform.reading_range, "reading", "tracker.reading_range_mm")
 
 
 def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: bool = False) -> Log:
@@ -104,6 +182,10 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
     (inclusive, when the platform gives them), or ``t_s`` going backwards — refuses the file,
     or with ``skip_bad_rows`` is dropped and recorded in ``Log.skipped`` as ``(row, reason)``.
 
+    The readings are those of ``platform``'s instrument (spec §7; the tracker when ``platform``
+    is None): ``Log.readings`` holds the tracker's s [mm], a pose's ``[x, y, z mm, roll, pitch,
+    yaw rad]`` or the targets' ``p1x … pKz`` [mm] with NaN for a target not seen.
+
     Raises:
         CalibError: the file is missing, unreadable or not UTF-8; a required column is
             missing or the pose columns are partial; there are no sample rows; a bad row
@@ -112,8 +194,8 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
     path = Path(path)
     text = read_text(path, "log file")
     header = read_header(path, text)
-    has_pose, numeric, textual = _log_columns(path, header)
-    table = parse_table(path, header, text, numeric, textual, blank_is_nan=("load_kg",))  # payload may be unknown
+    has_pose, numeric, textual = _log_columns(path, header, platform)
+    table = parse_table(path, header, text, numeric, textual, blank_is_nan=_blank_columns(platform))
     _flag_log_values(table, platform, has_pose)
     _flag_time_backwards(table)
     if not skip_bad_rows:
@@ -131,7 +213,7 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
     return Log(
         t_s=table.numbers["t_s"][keep],
         strokes=col(STROKE_COLUMNS),
-        readings=col(READING_COLUMNS),
+        readings=_readings_from_file(col(reading_columns(platform)), reading_columns(platform)),
         desired_poses=poses,
         stages=[s for s, k in zip(table.texts["stage"], keep) if k] if textual else None,
         load_kg=table.numbers["load_kg"][keep] if "load_kg" in header else None,
@@ -158,7 +240,7 @@ class LogRowParser:
         self._path = Path(source)
         self._header_line = header_line.lstrip("\ufeff").rstrip("\r\n")
         self._header = read_header(self._path, self._header_line)
-        self._has_pose, self._numeric, self._textual = _log_columns(self._path, self._header)
+        self._has_pose, self._numeric, self._textual = _log_columns(self._path, self._header, platform)
         self._platform = platform
         self._last_t_s = -math.inf
 
@@ -172,7 +254,8 @@ class LogRowParser:
         line = line.rstrip("\r\n")
         if not line.strip():
             return None
-        table = parse_careful(self._header, f"{self._header_line}\n{line}", self._numeric, self._textual, {"load_kg"})
+        table = parse_careful(self._header, f"{self._header_line}\n{line}", self._numeric, self._textual,
+                              set(_blank_columns(self._platform)))
         table.lines = np.array([row])
         _flag_log_values(table, self._platform, self._has_pose)
         t_s = float(table.numbers["t_s"][0])
@@ -188,7 +271,8 @@ class LogRowParser:
         return Sample(
             t_s,
             np.array([number(name) for name in STROKE_COLUMNS]),
-            np.array([number(name) for name in READING_COLUMNS]),
+            _readings_from_file(np.array([[number(name) for name in reading_columns(self._platform)]]),
+                                reading_columns(self._platform))[0],
             pose,
             table.texts["stage"][0] if self._textual else "",
             number("load_kg") if "load_kg" in self._numeric else None,
@@ -242,6 +326,15 @@ def write_truth(path: str | Path, truth: Truth) -> None:
     if truth.true_poses is not None:
         header += TRUE_POSE_COLUMNS
         columns += pose_columns_deg(truth.true_poses)
+    # spec §7 truth, constant over the log: one column per value, added beside §4's
+    constants = []
+    if truth.stroke_scale is not None:
+        constants += zip(STROKE_SCALE_NAMES, truth.stroke_scale)
+    if truth.instrument is not None:
+        constants += zip(*truth.instrument)
+    for name, value in constants:
+        header.append(name)
+        columns.append(np.full(len(truth.t_s), float(value)))
     atomic_write_text(path, csv_text(header, columns))
 
 
@@ -266,4 +359,17 @@ def read_truth(path: str | Path) -> Truth:
         poses = np.column_stack([table.numbers[name] for name in TRUE_POSE_COLUMNS])
         poses[:, 3:] = np.radians(poses[:, 3:])
     params = np.column_stack([table.numbers[name] for name in PARAMETER_NAMES])
-    return Truth(table.numbers["t_s"], params, poses)
+    scale = None
+    if all(name in header for name in STROKE_SCALE_NAMES):
+        scale = np.array([_first_number(path, header, text, name) for name in STROKE_SCALE_NAMES])
+    others = [name for name in header if name and name not in {*numeric, *STROKE_SCALE_NAMES}]
+    instrument = (tuple(others), np.array([_first_number(path, header, text, name) for name in others])) if others else None
+    return Truth(table.numbers["t_s"], params, poses, scale, instrument)
+
+
+def _first_number(path: Path, header: list[str], text: str, name: str) -> float:
+    """The value of a constant truth column (spec §7 blocks) in the first row."""
+    table = parse_table(path, header, text, [name])
+    flag_non_finite(table, [name])
+    refuse_first(path, table)
+    return float(table.numbers[name][0])

@@ -63,10 +63,11 @@ def result_dict(estimate: Estimate, platform: Platform, samples_skipped: int = 0
         "samples_skipped": int(samples_skipped),
     }
     result.update(estimate.block_results())  # spec §7: "stroke_scale", "instrument" where identified
-    clash = set(extra or {}) & set(result)
+    extra = {**(estimate.details or {}), **(extra or {})}
+    clash = set(extra) & set(result)
     if clash:
         raise ValueError(f"extra result fields may not replace spec fields: {', '.join(sorted(clash))}")
-    return {**result, **(extra or {})}
+    return {**result, **extra}
 
 
 def _is_number(value) -> bool:
@@ -105,10 +106,30 @@ def validate_result(result, source: str) -> None:
         value = result[key]
         if not isinstance(value, int) or isinstance(value, bool) or value < 0:
             raise refuse(key, f"a non-negative whole number, got {value!r}")
+    for key in ("stroke_scale", "instrument"):
+        if key in result:
+            _validate_block(result[key], key, refuse)
     gap = np.abs(np.array(result["estimate"]) - np.array(result["nominal"]) - np.array(result["error"]))
     if gap.max() > RESULT_SUM_TOLERANCE_MM:
         i = int(gap.argmax())
         raise refuse("estimate", f"nominal + error; {PARAMETER_NAMES[i]} differs by {gap[i]:.3g} mm")
+
+
+def _validate_block(block, key: str, refuse) -> None:
+    """A spec §7 block ``{"names": [...], "estimate": [...], "stddev": [...] or null}``."""
+    if not isinstance(block, dict) or not isinstance(block.get("names"), list) or not block["names"]:
+        raise refuse(key, '{"names": [...], "estimate": [...], "stddev": [...] or null}')
+    if not all(isinstance(name, str) for name in block["names"]):
+        raise refuse(f"{key}.names", "a list of strings")
+    n = len(block["names"])
+    if key == "stroke_scale" and block["names"] != [f"k{i}" for i in range(1, 7)]:
+        raise refuse(f"{key}.names", '["k1", ..., "k6"]')
+    for part in ("estimate", "stddev"):
+        value = block.get(part)
+        if part == "stddev" and value is None:
+            continue
+        if not isinstance(value, list) or len(value) != n or not all(_is_number(v) for v in value):
+            raise refuse(f"{key}.{part}", f"a list of {n} finite numbers" + (" or null" if part == "stddev" else ""))
 
 
 def result_text(result: dict, source: str) -> str:

@@ -139,17 +139,16 @@ def run(args: argparse.Namespace) -> int:
         print(_summary(f"{args.method} rejected samples:", len(result.rejected), len(log),
                        f"t_s={float(log.t_s[k])!r}: {reason}"), file=sys.stderr)
 
-    report = identifiability_report(platform, measured_poses(platform, log, CONDITIONING_MAX_POSES), config.noise)
-    warning = warning_line(report)
-    if warning:
-        print(f"stewart-calib calibrate: {warning}", file=sys.stderr)
+    extra = {"samples_rejected": Rejections.of(err for _, err in result.rejected).summary()}
+    if platform.instrument.kind == "tracker":  # the tracker's FK gives the poses to assess
+        report = identifiability_report(platform, measured_poses(platform, log, CONDITIONING_MAX_POSES), config.noise)
+        warning = warning_line(report)
+        if warning:
+            print(f"stewart-calib calibrate: {warning}", file=sys.stderr)
+        extra["conditioning"] = conditioning_summary(report)
 
     # Render (and so validate) everything before writing anything.
     samples_skipped = len(log.skipped) + len(result.rejected)
-    extra = {
-        "conditioning": conditioning_summary(report),
-        "samples_rejected": Rejections.of(err for _, err in result.rejected).summary(),
-    }
     result_json = io.result_text(io.result_dict(result.estimate, platform, samples_skipped, extra), str(out))
     trace_csv = io.trace_text(log.t_s, result.trace) if trace_path else None
     if rerun_path:

@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
         raise CalibError(f"{out}: cannot create output directory ({err.strerror or err.__class__.__name__})") from None
     result = run_experiment(experiment, controller, progress=True)
     atomic_write_text(out / "platform.toml", platform_to_toml(experiment.platform))
-    write_log(out / "log.csv", result.log)
+    write_log(out / "log.csv", result.log, experiment.platform)
     write_truth(out / "truth.csv", result.truth)
     print(f"simulated {len(result.log)} samples of '{experiment.name}' ({args.controller} controller) into {out}")
     return 0

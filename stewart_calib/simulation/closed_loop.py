@@ -22,13 +22,19 @@ one vectorised pass (identical results: all noise is drawn up front). Any other 
 sample by sample.
 
 Randomness: ``np.random.default_rng(experiment.seed)`` spawns independent streams for the
-robot's errors, the tracker residual, the pose sets and the measurement noise, so changing
-one part of an experiment does not reshuffle the others.
+robot's errors, the tracker residual, the pose sets, the measurement noise, the encoders'
+scale and zero errors and an outside instrument (spec §7), so changing one part of an
+experiment does not reshuffle the others.
+
+With an instrument outside the robot (``[instrument] kind = "pose" | "points"``) the log holds
+its readings instead of the tracker's; the encoders log ``(q − z_i) / (1 + k_i)`` for an
+executed stroke q (scale errors k_i, zero errors z_i, spec §7), and the truth's initial lengths
+are ``l_i + z_i``, what a model with the logged strokes must find.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
@@ -40,6 +46,7 @@ from ..platform import LegGeometry, Platform
 from ..samples import Log, Sample, Truth
 from .experiment import Experiment, schedule
 from .load import LoadModel, loaded_params, settle
+from .instrument import SimulatedInstrument
 from .robot import base_errors, encoder_readings
 from .tracker import Tracker
 
@@ -124,14 +131,30 @@ class TrueRobot:
     Attributes:
         base_params: ``(42,)`` nominal + δM_base [mm] (paper order).
         load: the load model.
-        tracker: the simulated tracker (true geometry incl. residual).
+        tracker: the simulated tracker (true geometry incl. residual), or None (no [tracker]).
         encoder_noise_mm: σ of the logged strokes' noise [mm].
+        stroke_scale: ``(6,)`` true k_i: the encoders log ``q / (1 + k_i)``.
+        encoder_zero_mm: ``(6,)`` true zero errors z_i [mm]: the encoders log ``q − z_i``.
+        instrument: the simulated outside instrument, or None (the tracker measures).
     """
 
     base_params: np.ndarray
     load: LoadModel
-    tracker: Tracker
+    tracker: Tracker | None
     encoder_noise_mm: float
+    stroke_scale: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    encoder_zero_mm: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    instrument: SimulatedInstrument | None = None
+
+    def logged_strokes(self, strokes: np.ndarray, unit_noise: np.ndarray) -> np.ndarray:
+        """What the encoders log for executed strokes [mm]: zero and scale errors, then noise."""
+        return encoder_readings((strokes - self.encoder_zero_mm) / (1.0 + self.stroke_scale), self.encoder_noise_mm, unit_noise)
+
+    def readings(self, R: np.ndarray, t: np.ndarray, reading_noise: np.ndarray, instrument_draws: np.ndarray) -> np.ndarray:
+        """What the measuring instrument logs at the true poses ``(R, t)``."""
+        if self.instrument is not None:
+            return self.instrument.read(R, t, instrument_draws)
+        return self.tracker.read(R, t, reading_noise)
 
     def drive_at(self, pose6: np.ndarray, payload_kg: float = 0.0) -> LegGeometry:
         """True drive geometry in force at a pose ``[mm, rad]`` under a payload [kg].
@@ -143,20 +166,36 @@ class TrueRobot:
         return LegGeometry.from_params(params[0])
 
 
-def build_robot(experiment: Experiment, robot_rng: np.random.Generator, tracker_rng: np.random.Generator) -> TrueRobot:
-    """The true robot of an experiment (errors from ``robot_rng``, tracker residual from ``tracker_rng``)."""
+def build_robot(
+    experiment: Experiment,
+    robot_rng: np.random.Generator,
+    tracker_rng: np.random.Generator,
+    encoder_rng: np.random.Generator | None = None,
+    instrument_rng: np.random.Generator | None = None,
+) -> TrueRobot:
+    """The true robot of an experiment (errors from ``robot_rng``, tracker residual from
+    ``tracker_rng``, encoder scale and zero errors from ``encoder_rng``, the outside instrument's
+    truth from ``instrument_rng``)."""
     e = experiment
     r = e.robot
     delta = base_errors(r.errors, (r.scale_base_joints, r.scale_platform_joints, r.scale_lengths), r.random_spread_mm, robot_rng)
-    tracker = Tracker.with_residual(
-        e.platform.tracker,
-        e.tracker.geometry_residual_mm,
-        tracker_rng,
-        noise_mm=e.tracker.noise_mm,
-        quantum_mm=e.tracker.quantum_mm,
-        reading_range_mm=e.platform.reading_range,
-    )
-    return TrueRobot(e.platform.drive.as_vector() + delta, e.load, tracker, r.encoder_noise_mm)
+    tracker = None
+    if e.platform.tracker is not None:
+        tracker = Tracker.with_residual(
+            e.platform.tracker,
+            e.tracker.geometry_residual_mm,
+            tracker_rng,
+            noise_mm=e.tracker.noise_mm,
+            quantum_mm=e.tracker.quantum_mm,
+            reading_range_mm=e.platform.reading_range,
+        )
+    encoder_rng = encoder_rng or np.random.default_rng(0)
+    scale = encoder_rng.normal(0.0, r.stroke_scale_spread, 6) if r.stroke_scale_spread > 0 else np.zeros(6)
+    zero = encoder_rng.normal(0.0, r.encoder_zero_spread_mm, 6) if r.encoder_zero_spread_mm > 0 else np.zeros(6)
+    instrument = None
+    if e.instrument is not None:
+        instrument = SimulatedInstrument.build(e.platform.instrument, e.instrument, instrument_rng or np.random.default_rng(0))
+    return TrueRobot(e.platform.drive.as_vector() + delta, e.load, tracker, r.encoder_noise_mm, scale, zero, instrument)
 
 
 @dataclass
@@ -212,12 +251,14 @@ def run_experiment(experiment: Experiment, controller: Controller | None = None,
         kinematics.FKError: the robot cannot reach a commanded stroke set.
     """
     controller = NominalController(experiment.platform) if controller is None else controller
-    robot_rng, tracker_rng, poses_rng, noise_rng = np.random.default_rng(experiment.seed).spawn(4)
-    robot = build_robot(experiment, robot_rng, tracker_rng)
+    # spawn(6)'s first four streams are spawn(4)'s: adding streams reshuffles no older experiment
+    robot_rng, tracker_rng, poses_rng, noise_rng, encoder_rng, instrument_rng = np.random.default_rng(experiment.seed).spawn(6)
+    robot = build_robot(experiment, robot_rng, tracker_rng, encoder_rng, instrument_rng)
     plan = schedule(experiment, poses_rng)
     n = len(plan.t_s)
     stroke_noise = noise_rng.standard_normal((n, 6))
     reading_noise = noise_rng.standard_normal((n, 6))
+    instrument_draws = robot.instrument.draw(n, instrument_rng) if robot.instrument is not None else np.zeros((n, 0))
     R_d, t_d = kin.pose_to_rt(plan.desired_poses)
     # disable=None: tqdm itself hides the bar when stderr is not a terminal.
     bar = tqdm(total=n, desc=f"simulate {experiment.name}", unit="sample", disable=None if progress else True, leave=False)
@@ -229,35 +270,40 @@ def run_experiment(experiment: Experiment, controller: Controller | None = None,
             strokes[k] = kin.inverse_kinematics(controller.drive_model(), R_d[k], t_d[k])
             sol, params[k : k + 1] = settle(robot.load, robot.base_params, strokes[k : k + 1], plan.payload_kg[k : k + 1], (R_d[k : k + 1], t_d[k : k + 1]))
             R[k], t[k] = sol.R[0], sol.t[0]
-            controller.observe(_sample(robot, plan, k, strokes[k], stroke_noise[k], R[k], t[k], reading_noise[k]))
+            controller.observe(_sample(robot, plan, k, strokes[k], stroke_noise[k], R[k], t[k], reading_noise[k], instrument_draws[k]))
             bar.update()
     else:
         strokes = kin.inverse_kinematics(controller.drive_model(), R_d, t_d)
         sol, params = settle(robot.load, robot.base_params, strokes, plan.payload_kg, (R_d, t_d))
         R, t = sol.R, sol.t
         for k in range(n):  # the protocol promises observe() after every sample
-            controller.observe(_sample(robot, plan, k, strokes[k], stroke_noise[k], R[k], t[k], reading_noise[k]))
+            controller.observe(_sample(robot, plan, k, strokes[k], stroke_noise[k], R[k], t[k], reading_noise[k], instrument_draws[k]))
             bar.update()
     bar.close()
 
     actual = kin.rt_to_pose(R, t)
     log = Log(
         t_s=plan.t_s.copy(),
-        strokes=encoder_readings(strokes, robot.encoder_noise_mm, stroke_noise),
-        readings=robot.tracker.read(R, t, reading_noise),
+        strokes=robot.logged_strokes(strokes, stroke_noise),
+        readings=robot.readings(R, t, reading_noise, instrument_draws),
         desired_poses=plan.desired_poses.copy(),
         stages=list(plan.stages),
         load_kg=plan.payload_kg.copy(),
     )
-    truth = Truth(t_s=plan.t_s.copy(), params=params, true_poses=actual)
+    params = params.copy()
+    params[:, 6::7] += robot.encoder_zero_mm  # the logged strokes' zero is the model's l_i
+    instrument = None
+    if robot.instrument is not None:
+        instrument = (robot.instrument.names(), robot.instrument.unknowns.file_values())
+    truth = Truth(t_s=plan.t_s.copy(), params=params, true_poses=actual, stroke_scale=robot.stroke_scale.copy(), instrument=instrument)
     return SimulationResult(log, truth, plan.desired_poses, actual, plan.stages, plan.kinds, plan.payload_kg, plan.pose_index, robot)
 
 
-def _sample(robot: TrueRobot, plan, k: int, stroke, stroke_noise, R, t, reading_noise) -> Sample:
+def _sample(robot: TrueRobot, plan, k: int, stroke, stroke_noise, R, t, reading_noise, instrument_draws) -> Sample:
     return Sample(
         t_s=float(plan.t_s[k]),
-        strokes=encoder_readings(stroke, robot.encoder_noise_mm, stroke_noise),
-        readings=robot.tracker.read(R, t, reading_noise),
+        strokes=robot.logged_strokes(stroke, stroke_noise),
+        readings=robot.readings(R, t, reading_noise, instrument_draws),
         desired_pose=plan.desired_poses[k],
         stage=str(plan.stages[k]),
         load_kg=float(plan.payload_kg[k]),

@@ -9,7 +9,12 @@ identical output. Layout (every key optional except ``seed`` and ``platform``; d
     sample_period_s = 0.1                        # t_s step between samples [s]
 
     [robot]     errors = "table4" | "random", scale_base_joints, scale_platform_joints,
-                scale_lengths, random_spread_mm, encoder_noise_mm
+                scale_lengths, random_spread_mm, encoder_noise_mm, stroke_scale_spread,
+                encoder_zero_spread_mm
+    [instrument] the nominal instrument of spec §7 (kind, frame, target, targets_mm,
+                position_sigma_mm, orientation_sigma_deg: written into the simulated platform and
+                used as the true noise) and its truth: frame_offset, target_offset,
+                target_spread_mm, dropout_probability (see simulation/instrument.py)
     [load]      platform_mass_kg, platform_com_mm, payload_com_mm, leg_N_per_mm,
                 base_joint_N_per_mm, platform_joint_N_per_mm, bending_N_per_mm, iterations
     [tracker]   noise_mm, quantum_mm, geometry_residual_mm
@@ -34,8 +39,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CalibError
-from ..platform import Platform, load_platform
+from ..platform import Platform, load_platform, parse_instrument
 from ..resources import CONFIGS, not_found_hint, resolve
+from .instrument import InstrumentTruth
 from .load import LoadModel
 from .trajectories import CIRCLE_PLANES, circle_poses, random_static_poses
 
@@ -54,6 +60,10 @@ class RobotConfig:
         scale_base_joints, scale_platform_joints, scale_lengths: factors on the δj, δd, δl blocks.
         random_spread_mm: σ of random draws [mm].
         encoder_noise_mm: σ of the logged strokes' white noise [mm].
+        stroke_scale_spread: σ of the true stroke scale errors k_i (dimensionless): the encoders
+            log ``q / (1 + k_i)`` for a true stroke q (spec §7).
+        encoder_zero_spread_mm: σ of the encoders' zero errors z_i [mm]: they log ``q − z_i``, which
+            the model sees as initial lengths ``l_i + z_i``.
     """
 
     errors: str = "table4"
@@ -62,6 +72,8 @@ class RobotConfig:
     scale_lengths: float = 1.0
     random_spread_mm: float = 1.0
     encoder_noise_mm: float = 0.0
+    stroke_scale_spread: float = 0.0
+    encoder_zero_spread_mm: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -121,6 +133,7 @@ class Experiment:
     circle: CircleConfig
     stages: tuple[Stage, ...]
     source: str = field(default="<memory>", compare=False)
+    instrument: InstrumentTruth | None = None
 
 
 #: [load] defaults — the tuned nim-stewart values; configs/experiments/paper.toml explains them.
@@ -174,14 +187,17 @@ class _Table:
         return value
 
     def vector3(self, key: str, default) -> tuple[float, float, float]:
+        return self.vector(key, default, 3)
+
+    def vector(self, key: str, default, n: int) -> tuple[float, ...]:
         self.used.add(key)
         value = self.doc.get(key, default)
         try:
             arr = np.array(value, dtype=float)
         except (TypeError, ValueError):
             arr = np.array([])
-        if arr.shape != (3,) or not np.all(np.isfinite(arr)):
-            raise self.refuse(key, "[x, y, z] in mm")
+        if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+            raise self.refuse(key, "[x, y, z] in mm" if n == 3 else "[x, y, z mm, roll, pitch, yaw deg]")
         return tuple(float(v) for v in arr)
 
     def done(self, subtables: tuple[str, ...] = ()) -> None:
@@ -226,6 +242,8 @@ def load_experiment(path: str | Path) -> Experiment:
         scale_lengths=r.number("scale_lengths", 1.0),
         random_spread_mm=r.number("random_spread_mm", 1.0, minimum=0.0),
         encoder_noise_mm=r.number("encoder_noise_mm", 0.0, minimum=0.0),
+        stroke_scale_spread=r.number("stroke_scale_spread", 0.0, minimum=0.0),
+        encoder_zero_spread_mm=r.number("encoder_zero_spread_mm", 0.0, minimum=0.0),
     )
     ld, dflt = sections["load"], LOAD_DEFAULTS
     load = LoadModel(
@@ -264,14 +282,47 @@ def load_experiment(path: str | Path) -> Experiment:
     )
     for table in sections.values():
         table.done()
+    platform, instrument = _instrument(doc, platform, source)
 
     top.used.add("stages")
     raw_stages = doc.get("stages")
     if not isinstance(raw_stages, list) or not raw_stages:
         raise top.refuse("stages", "one or more [[stages]] tables")
     stages = tuple(_stage(raw, f"stages[{k}]", source) for k, raw in enumerate(raw_stages))
-    top.done(subtables=tuple(sections))
-    return Experiment(name, seed, platform, period, robot, load, tracker, poses, circle, stages, source)
+    top.done(subtables=(*sections, "instrument"))
+    return Experiment(name, seed, platform, period, robot, load, tracker, poses, circle, stages, source, instrument)
+
+
+#: the experiment's [instrument] keys that describe the truth, not the nominal instrument
+_TRUTH_KEYS = ("frame_offset", "target_offset", "target_spread_mm", "dropout_probability")
+
+
+def _instrument(doc: dict, platform: Platform, source: str) -> tuple[Platform, InstrumentTruth | None]:
+    """The experiment's ``[instrument]``: the nominal instrument (replacing the platform file's)
+    and the truth offsets; none: the platform's own instrument, simulated without offsets."""
+    from dataclasses import replace
+
+    if "instrument" not in doc:
+        return platform, (None if platform.instrument.kind == "tracker" else InstrumentTruth(np.zeros(6), np.zeros(6)))
+    raw = doc["instrument"]
+    t = _Table(raw, "instrument", source)
+    nominal = {key: value for key, value in raw.items() if key not in _TRUTH_KEYS}
+    instrument = parse_instrument(nominal, source)
+    if instrument.kind == "tracker":
+        if set(raw) - {"kind"}:
+            raise t.refuse(sorted(set(raw) - {"kind"})[0], "no other key with kind = \"tracker\"")
+        return platform, None
+    t.used.update(nominal)
+    truth = InstrumentTruth(
+        frame_offset=np.array(t.vector("frame_offset", [0.0] * 6, 6)),
+        target_offset=np.array(t.vector("target_offset", [0.0] * 6, 6)),
+        target_spread_mm=t.number("target_spread_mm", 0.0, minimum=0.0),
+        dropout_probability=t.number("dropout_probability", 0.0, minimum=0.0),
+    )
+    if truth.dropout_probability >= 1.0:
+        raise t.refuse("dropout_probability", "a probability in [0, 1)")
+    t.done()
+    return replace(platform, instrument=instrument), truth
 
 
 def _missing(table: _Table, key: str, expected: str):

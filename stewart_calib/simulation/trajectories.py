@@ -22,7 +22,7 @@ def in_range(platform: Platform, poses: np.ndarray, margin_mm: float) -> np.ndar
     R, t = kin.pose_to_rt(poses)
     ok = np.ones(len(poses), dtype=bool)
     for legs, bounds in ((platform.drive, platform.stroke_range), (platform.tracker, platform.reading_range)):
-        if bounds is not None:
+        if bounds is not None and legs is not None:
             s = kin.inverse_kinematics(legs, R, t)
             ok &= np.all((s >= bounds[0] + margin_mm) & (s <= bounds[1] - margin_mm), axis=1)
     return ok

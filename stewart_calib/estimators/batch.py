@@ -1,0 +1,315 @@
+"""Batch maximum-likelihood fit of the drive, its stroke scale and an outside instrument's unknowns.
+
+What ``ls`` runs for the instruments of spec §7 other than the tracker (``pose``, ``points``).
+The unknowns are the 42 drive errors δM (paper order), the stroke scale ``k_1..k_6`` and the
+instrument's frame and target(s); the 12 directions no outside instrument can see are fixed by
+:mod:`stewart_calib.instruments.gauge` (30 free drive directions). For every logged sample the
+drive's forward kinematics of ``(1 + k) q`` gives the platform pose X, the instrument model
+predicts its reading, and the whitened residuals of all samples are minimised by
+Levenberg–Marquardt, with the pose's dependence on δM and k from the implicit function theorem
+(:mod:`stewart_calib.instruments.drive`).
+
+Robust by construction, with nothing for a user to tune:
+
+* **closed-form start** (:mod:`stewart_calib.instruments.registration`): the instrument's
+  unknowns that map the nominal FK poses onto the readings, so a frame 100 mm and any rotation
+  away from its nominal value starts the iteration near the answer;
+* **Levenberg–Marquardt** with Marquardt's column scaling (mm, rad and dimensionless unknowns
+  together), so 20 mm encoder-zero errors and 10 % scale errors converge from the nominal drive;
+* **noise from the data**: the σ of each channel (position, orientation) starts at the platform
+  file's value and is re-estimated from the residuals (variance components), so the weighting
+  of position against orientation is the data's own and the covariance is honest even when the
+  file's σ is a guess;
+* **Huber weights per reading** (``ls.robust_k`` σ, on the RMS of its whitened components) keep
+  a glitch of the instrument (a swapped marker, a lost reflector) from pulling the fit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import kinematics as kin
+from ..errors import CalibError, SampleRejected
+from ..instruments import drive as drive_model
+from ..instruments import gauge, registration
+from ..platform import N_LEGS, N_PARAMS, LegGeometry
+
+#: a singular value below this fraction of the largest counts as zero
+RANK_TOLERANCE = 1e-10
+#: outer rounds of (Levenberg–Marquardt, then noise and robust weights re-estimated)
+MAX_ROUNDS = 6
+#: the σ re-estimates have settled when no channel's moved more than this fraction
+NOISE_SETTLED = 1e-3
+#: LM evaluations (accepted and refused steps) per round
+MAX_EVALUATIONS = 200
+
+
+@dataclass(frozen=True)
+class BatchProblem:
+    """One instrument's log, ready to fit.
+
+    Attributes:
+        nominal: nominal drive M.
+        nominal_stroke_scale: ``(6,)`` the platform file's k.
+        strokes: ``(N, 6)`` logged strokes q [mm].
+        measured: ``(N, m)`` readings in code units (NaN: a point target not seen).
+        model: :mod:`~stewart_calib.instruments.pose` or :mod:`~stewart_calib.instruments.points`.
+        register: closed-form start, ``register(R_X, t_X, measured) -> unknowns``.
+        sigmas: ``(m,)`` σ of a reading's components from the platform file.
+        channels: ``(m,)`` which noise channel each component belongs to (0, 1, …).
+        channel_names: a name per channel (``"orientation_rad"``, ``"position_mm"``).
+        t_s: ``(N,)`` sample times [s].
+    """
+
+    nominal: LegGeometry
+    nominal_stroke_scale: np.ndarray
+    strokes: np.ndarray
+    measured: np.ndarray
+    model: object
+    register: object
+    sigmas: np.ndarray
+    channels: np.ndarray
+    channel_names: tuple[str, ...]
+    t_s: np.ndarray
+
+
+@dataclass(frozen=True)
+class BatchSolution:
+    """Result of :func:`fit`.
+
+    Attributes:
+        error: ``(42,)`` δM [mm] (in the gauge of :mod:`~stewart_calib.instruments.gauge`).
+        stroke_scale: ``(6,)`` k (absolute).
+        unknowns: the instrument's fitted unknowns.
+        covariance: full covariance over ``[δM (42), k (6), instrument tangent]``, or None when
+            the fit is rank deficient.
+        stroke_scale_fitted: False when k was held at its nominal value (not identifiable).
+        noise_sigmas: ``{channel: σ}`` estimated from the residuals.
+        residual_rms: ``{channel: RMS}`` of the residuals at the start (registered nominal
+            model) and at the solution, file units.
+        singular_values: of the whitened reduced Jacobian at the solution (descending).
+        used: ``(N,)`` mask of the samples in the fit.
+        rejected: ``(index, SampleRejected)`` of the samples left out.
+        downweighted: readings given less than full weight by the Huber kernel.
+        iterations: LM evaluations in all.
+    """
+
+    error: np.ndarray
+    stroke_scale: np.ndarray
+    unknowns: object
+    covariance: np.ndarray | None
+    stroke_scale_fitted: bool
+    noise_sigmas: dict
+    residual_rms: dict
+    singular_values: np.ndarray
+    used: np.ndarray
+    rejected: list = field(default_factory=list)
+    downweighted: int = 0
+    iterations: int = 0
+
+
+class _State:
+    """A point of the fit: δM, k, instrument unknowns, and the FK poses there."""
+
+    def __init__(self, error, scale, unknowns, R, t):
+        self.error, self.scale, self.unknowns, self.R, self.t = error, scale, unknowns, R, t
+
+
+def _fk(problem: BatchProblem, error: np.ndarray, scale: np.ndarray, guess) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    drive = problem.nominal.perturbed(error)
+    sol = kin.forward_kinematics(drive, drive_model.scaled_strokes(problem.strokes, scale), guess=guess, strict=False)
+    return sol.R, sol.t, sol.converged
+
+
+def fit(problem: BatchProblem, robust_k: float, estimate_noise: bool, stroke_scale: str, tolerance_mm: float) -> BatchSolution:
+    """Fit drive, stroke scale and instrument unknowns to the log (see the module docstring).
+
+    Args:
+        robust_k: Huber threshold on a reading's RMS whitened residual [σ]; 0 = plain least squares.
+        estimate_noise: re-estimate each channel's σ from the residuals.
+        stroke_scale: ``"auto"`` (fit k where identifiable), ``"on"`` or ``"off"``.
+        tolerance_mm: stop when no drive or instrument length moves more than this [mm].
+    Raises:
+        CalibError: the log cannot be registered, or the fit diverges.
+    """
+    n = len(problem.strokes)
+    R0, t0, ok = _fk(problem, np.zeros(N_PARAMS), problem.nominal_stroke_scale, None)
+    rejected = [
+        (int(k), SampleRejected(f"sample at t = {problem.t_s[k]} s: nominal forward kinematics did not converge", SampleRejected.FK_FAILED))
+        for k in np.flatnonzero(~ok)
+    ]
+    if not np.any(ok):
+        raise CalibError("ls: nominal forward kinematics failed for every sample; expected strokes the nominal drive can reach")
+    if rejected:
+        problem = _subset(problem, ok)
+        R0, t0 = R0[ok], t0[ok]
+    unknowns = problem.register(R0, t0, problem.measured)
+    state = _State(np.zeros(N_PARAMS), np.array(problem.nominal_stroke_scale, dtype=float), unknowns, R0, t0)
+
+    basis = gauge.free_basis(problem.nominal)
+    sigmas = np.array(problem.sigmas, dtype=float)
+    n_channels = len(problem.channel_names)
+    start_rms = _channel_rms(problem, problem.model.residual(unknowns, problem.measured, R0, t0)[0])
+    fit_scale = stroke_scale != "off"
+    if stroke_scale == "auto":
+        fit_scale = _scale_identifiable(problem, state, basis, sigmas)
+    weights = np.ones(len(problem.strokes))
+    evaluations = 0
+    for _ in range(MAX_ROUNDS):
+        state, used = _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_scale, tolerance_mm)
+        evaluations += used
+        e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0]
+        whitened = e / sigmas
+        new_weights = _huber_weights(whitened, robust_k)
+        new_sigmas = _channel_sigmas(problem, e, new_weights, sigmas, basis.shape[1] + 6 * fit_scale + state.unknowns.size) if estimate_noise else sigmas
+        settled = np.all(np.abs(new_sigmas / sigmas - 1.0) < NOISE_SETTLED) and np.array_equal(new_weights == 1, weights == 1)
+        sigmas, weights = new_sigmas, new_weights
+        if settled:
+            break
+    A, b = _system(problem, state, basis, sigmas, weights, fit_scale)
+    _, s, Vt = np.linalg.svd(A, full_matrices=False)
+    covariance = None
+    if s[-1] > RANK_TOLERANCE * s[0]:
+        reduced = (Vt.T / s**2) @ Vt
+        lift = _lift(basis, fit_scale, state.unknowns.size)
+        covariance = lift @ reduced @ lift.T
+    e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0]
+    used = np.ones(n, dtype=bool)
+    used[[k for k, _ in rejected]] = False
+    return BatchSolution(
+        error=state.error,
+        stroke_scale=state.scale,
+        unknowns=state.unknowns,
+        covariance=covariance,
+        stroke_scale_fitted=bool(fit_scale),
+        noise_sigmas={name: float(sigmas[problem.channels == c][0]) for c, name in enumerate(problem.channel_names)},
+        residual_rms={"before": start_rms, "after": _channel_rms(problem, e)},
+        singular_values=s,
+        used=used,
+        rejected=rejected,
+        downweighted=int(np.sum(weights < 1)),
+        iterations=evaluations,
+    )
+
+
+def _subset(problem: BatchProblem, keep: np.ndarray) -> BatchProblem:
+    from dataclasses import replace
+
+    return replace(problem, strokes=problem.strokes[keep], measured=problem.measured[keep], t_s=problem.t_s[keep])
+
+
+def _lift(basis: np.ndarray, fit_scale: bool, n_unknowns: int) -> np.ndarray:
+    """Reduced unknowns ``[z_M (30), k (6 or 0), u]`` → full ``[δM (42), k (6), u]``."""
+    n_free = basis.shape[1]
+    lift = np.zeros((N_PARAMS + N_LEGS + n_unknowns, n_free + N_LEGS * fit_scale + n_unknowns))
+    lift[:N_PARAMS, :n_free] = basis
+    if fit_scale:
+        lift[N_PARAMS : N_PARAMS + N_LEGS, n_free : n_free + N_LEGS] = np.eye(N_LEGS)
+    lift[N_PARAMS + N_LEGS :, n_free + N_LEGS * fit_scale :] = np.eye(n_unknowns)
+    return lift
+
+
+def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_scale: bool):
+    """Whitened, weighted Jacobian ``A`` (finite rows) and residual ``b`` at ``state``."""
+    e, H_X, H_u = problem.model.residual(state.unknowns, problem.measured, state.R, state.t, jacobians=True)
+    drive = problem.nominal.perturbed(state.error)
+    dxi_M, dxi_k = drive_model.pose_jacobian(drive, problem.strokes, state.R, state.t)
+    blocks = [H_X @ dxi_M @ basis]
+    if fit_scale:
+        blocks.append(H_X @ dxi_k)
+    blocks.append(H_u)
+    scale = np.sqrt(weights)[:, None] / sigmas[None, :]
+    A = np.concatenate(blocks, axis=-1) * scale[..., None]
+    b = e * scale
+    rows = np.isfinite(b)
+    return A[rows], b[rows]
+
+
+def _apply(problem: BatchProblem, state: _State, basis, step: np.ndarray, fit_scale: bool) -> _State | None:
+    n_free = basis.shape[1]
+    error = state.error + basis @ step[:n_free]
+    scale = state.scale + (step[n_free : n_free + N_LEGS] if fit_scale else 0.0)
+    unknowns = state.unknowns.retract(step[n_free + N_LEGS * fit_scale :])
+    R, t, ok = _fk(problem, error, scale, (state.R, state.t))
+    if not np.all(ok):
+        return None
+    return _State(error, scale, unknowns, R, t)
+
+
+def _cost(problem: BatchProblem, state: _State, sigmas, weights) -> float:
+    e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0] / sigmas
+    return float(np.nansum(weights[:, None] * e**2))
+
+
+def _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_scale, tolerance_mm) -> tuple[_State, int]:
+    cost = _cost(problem, state, sigmas, weights)
+    damping = 1e-3
+    evaluations = 0
+    while evaluations < MAX_EVALUATIONS:
+        A, b = _system(problem, state, basis, sigmas, weights, fit_scale)
+        normal = A.T @ A
+        gradient = A.T @ b
+        diag = np.maximum(np.diag(normal), 1e-12 * np.max(np.diag(normal)))
+        while evaluations < MAX_EVALUATIONS:
+            evaluations += 1
+            step = np.linalg.solve(normal + damping * np.diag(diag), -gradient)
+            trial = _apply(problem, state, basis, step, fit_scale)
+            trial_cost = np.inf if trial is None else _cost(problem, trial, sigmas, weights)
+            if trial_cost <= cost:
+                damping = max(damping / 10.0, 1e-12)
+                break
+            damping *= 10.0
+            if damping > 1e12:
+                return state, evaluations  # no step lowers the cost: at the minimum to round-off
+        else:
+            break
+        decrease = cost - trial_cost
+        state, cost = trial, trial_cost
+        moved_mm = max(np.max(np.abs(basis @ step[: basis.shape[1]])), np.max(np.abs(step)) if trial is not None else 0.0)
+        if moved_mm < tolerance_mm or decrease <= 1e-14 * max(cost, 1.0):
+            return state, evaluations
+    raise CalibError(f"ls: Levenberg–Marquardt did not converge in {MAX_EVALUATIONS} evaluations")
+
+
+def _scale_identifiable(problem: BatchProblem, state: _State, basis, sigmas) -> bool:
+    """True when adding k keeps the whitened Jacobian (at the start) of full rank."""
+    A, _ = _system(problem, state, basis, sigmas, np.ones(len(problem.strokes)), True)
+    s = np.linalg.svd(A, compute_uv=False)
+    return bool(s[-1] > 1e-8 * s[0])
+
+
+def _huber_weights(whitened: np.ndarray, k: float) -> np.ndarray:
+    """Per reading ``min(1, k / r)`` with ``r`` the RMS of its finite whitened components."""
+    if k <= 0:
+        return np.ones(len(whitened))
+    r = np.sqrt(np.nanmean(whitened**2, axis=1))
+    return np.where(r > k, k / np.maximum(r, 1e-300), 1.0)
+
+
+def _channel_sigmas(problem: BatchProblem, e: np.ndarray, weights: np.ndarray, sigmas: np.ndarray, n_unknowns: int) -> np.ndarray:
+    """Each channel's σ from its weighted residuals, with the degrees of freedom shared out
+    among channels by their number of residuals."""
+    out = sigmas.copy()
+    finite = np.isfinite(e)
+    total = finite.sum()
+    for c in range(len(problem.channel_names)):
+        cols = problem.channels == c
+        values = e[:, cols]
+        seen = np.isfinite(values)
+        count = seen.sum()
+        dof = count * (1.0 - n_unknowns / total)
+        if dof > 0:
+            out[cols] = np.sqrt(np.sum(np.where(seen, weights[:, None] * values**2, 0.0)) / dof)
+    return out
+
+
+def _channel_rms(problem: BatchProblem, e: np.ndarray) -> dict:
+    """``{channel: RMS}`` of a residual, in file units (degrees for rotation channels)."""
+    out = {}
+    for c, name in enumerate(problem.channel_names):
+        values = e[:, problem.channels == c]
+        rms = float(np.sqrt(np.nanmean(values**2)))
+        out[name.replace("_rad", "_deg")] = float(np.degrees(rms)) if name.endswith("_rad") else rms
+    return out

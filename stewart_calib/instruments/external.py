@@ -1,0 +1,145 @@
+"""The instruments outside the robot (spec §7 ``pose`` and ``points``) behind one interface.
+
+:func:`model_for` gives, for a platform whose ``[instrument]`` is not the tracker, what an
+estimator needs: the log columns, the residual and its Jacobians (the kind's module), the
+noise of a reading's components and the channels they belong to, the unknowns' names and
+nominal values, the closed-form registration and the per-sample checks.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import CalibError, SampleRejected
+from ..kinematics import pose_to_rt, rt_to_pose
+from ..platform import Platform
+from ..samples import Sample
+from ..unknowns import UnknownBlock
+from . import lie, points, pose, registration
+
+#: prior σ of the instrument's unknowns for the methods that take a prior: none worth the name
+#: (the frame may be anywhere; the fit starts from the closed-form registration, not the prior)
+PRIOR_SIGMA_MM = 1e3
+PRIOR_SIGMA_RAD = np.pi
+
+
+@dataclass(frozen=True)
+class ExternalModel:
+    """A ``pose`` or ``points`` instrument of a platform (see the module docstring).
+
+    Attributes:
+        platform: the platform whose ``[instrument]`` this is.
+        module: :mod:`.pose` or :mod:`.points` (``residual``, ``predict``, unknowns' class).
+        sigmas: ``(m,)`` σ of a reading's components (rad for angles, mm).
+        channels: ``(m,)`` noise channel of each component; ``channel_names`` name them.
+    """
+
+    platform: Platform
+    module: object
+    sigmas: np.ndarray
+    channels: np.ndarray
+    channel_names: tuple[str, ...]
+
+    @property
+    def kind(self) -> str:
+        return self.platform.instrument.kind
+
+    @property
+    def unknown_names(self) -> tuple[str, ...]:
+        return pose.UNKNOWN_NAMES if self.kind == "pose" else points.unknown_names(self.platform.instrument.n_targets)
+
+    def nominal_unknowns(self):
+        return self.module.nominal(self.platform.instrument)
+
+    def _angles(self) -> np.ndarray:
+        """``(n,)`` True where θ holds an angle [rad]: roll, pitch, yaw of the frame (and target)."""
+        angles = np.zeros(self.nominal_unknowns().size, dtype=bool)
+        angles[3:6] = True
+        if self.kind == "pose":
+            angles[9:12] = True
+        return angles
+
+    def theta(self, unknowns) -> np.ndarray:
+        """The unknowns as the vector θ of the unknown layout (code units): the frame's pose6
+        ``[x, y, z mm, roll, pitch, yaw rad]``, then the target's pose6 or the targets [mm]."""
+        parts = [rt_to_pose(unknowns.R_frame, unknowns.t_frame)]
+        parts.append(rt_to_pose(unknowns.R_target, unknowns.t_target) if self.kind == "pose" else unknowns.targets.reshape(-1))
+        return np.concatenate(parts)
+
+    def theta_jacobian(self, unknowns) -> np.ndarray:
+        """``∂θ/∂(tangent)`` of :meth:`theta` for the body perturbations of ``retract``."""
+        J = np.eye(unknowns.size)
+        J[:6, :6] = lie.pose6_tangent_jacobian(self.theta(unknowns)[:6])
+        if self.kind == "pose":
+            J[6:12, 6:12] = lie.pose6_tangent_jacobian(self.theta(unknowns)[6:12])
+        return J
+
+    def block(self) -> UnknownBlock:
+        """The instrument's :class:`~stewart_calib.unknowns.UnknownBlock` (spec §7 ``"instrument"``):
+        it shares both gauges with the drive (frame ↔ base joints, target(s) ↔ platform joints)."""
+        angles = self._angles()
+        return UnknownBlock(
+            "instrument",
+            self.unknown_names,
+            self.theta(self.nominal_unknowns()),
+            np.where(angles, PRIOR_SIGMA_RAD, PRIOR_SIGMA_MM),
+            np.where(angles, 180.0 / np.pi, 1.0),
+            gauge=("base", "platform"),
+        )
+
+    def register(self, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray):
+        """Closed-form frame and target(s) mapping platform poses X onto the readings."""
+        if self.kind == "pose":
+            return registration.register_pose(R_X, t_X, *pose_to_rt(measured), self.sigmas)
+        return registration.register_points(R_X, t_X, measured, self.platform.instrument.position_sigma_mm)
+
+    def refit_frame(self, unknowns, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray):
+        """The frame fitted again, target(s) held (``validate --register-instrument``)."""
+        return registration.refit_frame(self.module, unknowns, measured, R_X, t_X, self.sigmas)
+
+    def unknowns_from_file(self, values) -> object:
+        """Unknowns from their file values (a result's ``"instrument"`` block)."""
+        values = np.asarray(values, dtype=float)
+        frame = np.r_[values[:3], np.radians(values[3:6])]
+        if self.kind == "pose":
+            return pose.PoseUnknowns.from_pose6(frame, np.r_[values[6:9], np.radians(values[9:12])])
+        return points.PointsUnknowns(*pose_to_rt(frame), values[6:].reshape(-1, 3))
+
+    def check(self, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
+        """Strokes and readings of ``sample``, or :class:`SampleRejected` (non-finite, out of range,
+        a pose reading with a missing value, a points reading that saw no target)."""
+        strokes = np.asarray(sample.strokes, dtype=float)
+        readings = np.asarray(sample.readings, dtype=float)
+        where = f"sample at t = {sample.t_s} s"
+        if not math.isfinite(sample.t_s):
+            raise SampleRejected(f"{where}: non-finite time", SampleRejected.NON_FINITE)
+        if strokes.shape != (6,) or not np.all(np.isfinite(strokes)):
+            raise SampleRejected(f"{where}: expected 6 finite strokes q", SampleRejected.NON_FINITE)
+        bounds = self.platform.stroke_range
+        if bounds is not None and np.any((strokes < bounds[0]) | (strokes > bounds[1])):
+            i = int(np.flatnonzero((strokes < bounds[0]) | (strokes > bounds[1]))[0])
+            raise SampleRejected(f"{where}: stroke q{i + 1} = {strokes[i]:.6g} mm outside {list(bounds)} mm", SampleRejected.OUT_OF_RANGE)
+        if readings.shape != self.sigmas.shape:
+            raise SampleRejected(f"{where}: expected {self.sigmas.size} {self.kind} readings, got shape {readings.shape}", SampleRejected.NON_FINITE)
+        if self.kind == "pose" and not np.all(np.isfinite(readings)):
+            raise SampleRejected(f"{where}: the pose reading is not finite", SampleRejected.NON_FINITE)
+        if self.kind == "points" and not np.any(np.isfinite(readings)):
+            raise SampleRejected(f"{where}: no target seen", SampleRejected.NON_FINITE)
+        return strokes, readings
+
+
+def model_for(platform: Platform) -> ExternalModel:
+    """The outside instrument of ``platform``.
+
+    Raises:
+        CalibError: the platform's instrument is the tracker.
+    """
+    instrument = platform.instrument
+    if instrument.kind == "pose":
+        return ExternalModel(platform, pose, pose.sigmas(instrument), np.r_[0, 0, 0, 1, 1, 1], ("orientation_rad", "position_mm"))
+    if instrument.kind == "points":
+        return ExternalModel(platform, points, points.sigmas(instrument), np.zeros(3 * instrument.n_targets, dtype=int), ("position_mm",))
+    raise CalibError(f"{platform.source}: the instrument is the tracker, not an instrument outside the robot")

@@ -1,0 +1,85 @@
+"""The 12 directions an instrument outside the robot cannot see, and how they are fixed.
+
+Moving all six base joints ``j_i`` by one rigid motion changes the drive exactly as moving the
+instrument frame {I} the other way: no measurement tells them apart (6 directions). The same
+holds for the platform joints ``d_i`` and the measured target(s) in {D} (6 more). Spec §7 asks
+the estimator to fix those 12 directions and say how. We hold the **rigid part of the joint
+errors at zero**: ``δj`` carries no common translation and no common rotation about the joints'
+centroid,
+
+    Σ_i δj_i = 0,    Σ_i (j_i − c_j) × δj_i = 0        (and the same for δd_i about c_d),
+
+so {J} stays the frame in which the base joints best fit (Kabsch) their nominal positions, {D}
+likewise for the platform joints, and the instrument frame and target(s) take the rigid parts.
+:func:`free_basis` spans the 30 directions of δM left free; :func:`to_gauge` moves a truth
+given in any frame into this gauge (for comparisons with simulator truth).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import kinematics as kin
+from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
+from . import lie
+
+#: stated in every result that fixes the gauge this way
+GAUGE_STATEMENT = (
+    "12 gauge directions fixed: the base joints' and the platform joints' errors carry no common rigid "
+    "motion (sum of dj_i = 0 and sum of (j_i - centroid) x dj_i = 0; the same for d_i), so {J} and {D} "
+    "are the frames where the joints best fit their nominal positions; the instrument frame and "
+    "target(s) absorb the rigid parts"
+)
+
+BASE_COLUMNS = np.array([N_PARAMS_PER_LEG * i + a for i in range(N_LEGS) for a in range(3)])
+PLATFORM_COLUMNS = BASE_COLUMNS + 3
+
+
+def rigid_directions(points: np.ndarray) -> np.ndarray:
+    """``(18, 6)``: the change of six points ``(6, 3)`` under a small translation (3) and rotation
+    about their centroid (3), stacked point by point."""
+    centred = points - points.mean(axis=0)
+    G = np.zeros((N_LEGS, 3, 6))
+    G[:, :, :3] = np.eye(3)
+    G[:, :, 3:] = -kin.skew(centred)  # δp = ω × (p − c) = −[p − c]× ω
+    return G.reshape(3 * N_LEGS, 6)
+
+
+def free_basis(nominal: LegGeometry) -> np.ndarray:
+    """``(42, 30)`` orthonormal basis of the δM satisfying the gauge (see the module docstring)."""
+    B = np.eye(N_PARAMS)
+    keep = np.ones(N_PARAMS, dtype=bool)
+    blocks = []
+    for columns, points in ((BASE_COLUMNS, nominal.base_joints), (PLATFORM_COLUMNS, nominal.platform_joints)):
+        G = rigid_directions(points)
+        Q, _ = np.linalg.qr(G)
+        complement = np.linalg.svd(np.eye(18) - Q @ Q.T)[0][:, :12]  # the 12 directions ⟂ the rigid ones
+        block = np.zeros((N_PARAMS, 12))
+        block[columns] = complement
+        blocks.append(block)
+        keep[columns] = False
+    return np.hstack([B[:, keep], *blocks])
+
+
+def kabsch(source: np.ndarray, destination: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` minimising ``Σ ‖R s_i + t − d_i‖²`` over rigid motions (Kabsch / Horn)."""
+    cs, cd = source.mean(axis=0), destination.mean(axis=0)
+    H = (destination - cd).T @ (source - cs)
+    R = lie.project_to_rotation(H)
+    return R, cd - R @ cs
+
+
+def to_gauge(nominal: LegGeometry, params: np.ndarray) -> tuple[np.ndarray, tuple, tuple]:
+    """Move true absolute parameters ``(42,)`` into the gauge of :func:`free_basis`.
+
+    Returns:
+        ``(params', (R_J, t_J), (R_D, t_D))``: the parameters in the gauge, and the rigid motions
+        ``T_J'_J`` (new base frame from old) and ``T_D'_D``; a pose ``X = T_J_D`` becomes
+        ``T_J'_J X T_D'_D⁻¹``, a frame ``F = T_J_I`` becomes ``T_J'_J F``, a target ``G = T_D_T``
+        becomes ``T_D'_D G`` and target points ``p`` become ``R_D p + t_D``.
+    """
+    legs = LegGeometry.from_params(params)
+    R_J, t_J = kabsch(legs.base_joints, nominal.base_joints)
+    R_D, t_D = kabsch(legs.platform_joints, nominal.platform_joints)
+    moved = LegGeometry(legs.base_joints @ R_J.T + t_J, legs.platform_joints @ R_D.T + t_D, legs.initial_lengths)
+    return moved.as_vector(), (R_J, t_J), (R_D, t_D)

@@ -1,0 +1,116 @@
+"""3-D targets (laser-tracker reflectors, photogrammetry markers): spec §7 ``kind = "points"``.
+
+The instrument reports the position of K targets fixed on the platform, in its own frame {I}::
+
+    m_k = F⁻¹ (X p_k) = R_Fᵀ (R_X p_k + t_X − t_F)      F = T_J_I, X = T_J_D, p_k in {D}
+
+F (6 tangent directions) and the targets p_k (3K) are unknowns of the calibration. A target
+not seen in a reading is NaN (all three coordinates) and contributes nothing. Residual
+``e_k = m_k(pred) − m_k(meas)`` [mm], whitened by ``σ_pos``.
+
+Jacobians (body perturbations ``X Exp(ξ)``, ``F Exp(φ)``)::
+
+    ∂e_k/∂ξ = R_Fᵀ R_X [−[p_k]×, I],   ∂e_k/∂φ = [[m_k]×, −I],   ∂e_k/∂p_k = R_Fᵀ R_X
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import kinematics as kin
+from ..kinematics import skew
+from ..platform import Instrument
+from . import lie
+
+FRAME_NAMES: tuple[str, ...] = tuple(f"frame_{axis}" for axis in ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"))
+
+
+def unknown_names(n_targets: int) -> tuple[str, ...]:
+    """Frame then targets in file units: ``frame_x_mm … frame_yaw_deg, p1x_mm, p1y_mm, p1z_mm, …``."""
+    return FRAME_NAMES + tuple(f"p{k}{axis}_mm" for k in range(1, n_targets + 1) for axis in "xyz")
+
+
+def columns(n_targets: int) -> tuple[str, ...]:
+    """Log columns (spec §7): ``p1x_mm p1y_mm p1z_mm … pKx_mm pKy_mm pKz_mm``."""
+    return tuple(f"p{k}{axis}_mm" for k in range(1, n_targets + 1) for axis in "xyz")
+
+
+@dataclass(frozen=True)
+class PointsUnknowns:
+    """Current values: frame ``F = T_J_I`` and targets ``(K, 3)`` in {D} [mm]."""
+
+    R_frame: np.ndarray
+    t_frame: np.ndarray
+    targets: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return 6 + self.targets.size
+
+    def retract(self, delta: np.ndarray) -> "PointsUnknowns":
+        """``F Exp(φ)``, ``p + δp`` for ``delta = [φ (6), δp (3K)]``."""
+        return PointsUnknowns(*kin.retract(self.R_frame, self.t_frame, delta[:6]), self.targets + delta[6:].reshape(-1, 3))
+
+    def file_values(self) -> np.ndarray:
+        frame = kin.rt_to_pose(self.R_frame, self.t_frame)
+        return np.concatenate([frame[:3], np.degrees(frame[3:]), self.targets.reshape(-1)])
+
+    def file_jacobian(self) -> np.ndarray:
+        n = 6 + self.targets.size
+        J = np.eye(n)
+        J[:6, :6] = lie.pose6_tangent_jacobian(kin.rt_to_pose(self.R_frame, self.t_frame))
+        J[3:6] = np.degrees(J[3:6])
+        return J
+
+
+def nominal(instrument: Instrument) -> PointsUnknowns:
+    return PointsUnknowns(*kin.pose_to_rt(instrument.frame), np.array(instrument.targets, dtype=float))
+
+
+def predict(u: PointsUnknowns, R_X: np.ndarray, t_X: np.ndarray) -> np.ndarray:
+    """``(..., K, 3)`` target positions in {I} at platform pose X [mm]."""
+    in_base = kin.transform_points(R_X, t_X, u.targets)
+    return np.einsum("ji,...kj->...ki", u.R_frame, in_base - u.t_frame)
+
+
+def sigmas(instrument: Instrument) -> np.ndarray:
+    """``(3K,)`` σ of the residual's components [mm]."""
+    return np.full(3 * instrument.n_targets, instrument.position_sigma_mm)
+
+
+def residual(u: PointsUnknowns, measured: np.ndarray, R_X: np.ndarray, t_X: np.ndarray, jacobians: bool = False):
+    """``e = m(pred) − m(meas)`` ``(..., 3K)``, NaN where a target was not seen, and if asked
+    ``(∂e/∂ξ_X (..., 3K, 6), ∂e/∂[φ, p] (..., 3K, 6 + 3K))`` (rows of unseen targets are whatever
+    the formula gives; the caller drops them with the NaN mask of ``e``).
+
+    Args:
+        measured: ``(..., 3K)`` readings [mm] (NaN: not seen).
+    """
+    K = len(u.targets)
+    pred = predict(u, R_X, t_X)
+    e = (pred - np.asarray(measured, dtype=float).reshape(pred.shape)).reshape(pred.shape[:-2] + (3 * K,))
+    if not jacobians:
+        return e, None, None
+    RFt_RX = np.einsum("ji,...jk->...ik", u.R_frame, R_X)  # R_Fᵀ R_X, (..., 3, 3)
+    batch = pred.shape[:-2]
+    H_X = np.empty(batch + (K, 3, 6))
+    H_X[..., :3] = -RFt_RX[..., None, :, :] @ skew(u.targets)
+    H_X[..., 3:] = RFt_RX[..., None, :, :]
+    H_u = np.zeros(batch + (K, 3, 6 + 3 * K))
+    H_u[..., :3] = skew(pred)
+    H_u[..., 3:6] = -np.eye(3)
+    for k in range(K):
+        H_u[..., k, :, 6 + 3 * k : 9 + 3 * k] = RFt_RX
+    return e, H_X.reshape(batch + (3 * K, 6)), H_u.reshape(batch + (3 * K, 6 + 3 * K))
+
+
+def errors(measured: np.ndarray, pred: np.ndarray) -> np.ndarray:
+    """Per reading, the RMS over its seen targets of ``‖m(pred) − m(meas)‖`` [mm] (NaN if none seen)."""
+    K = pred.shape[-2]
+    distance = np.linalg.norm(pred - np.asarray(measured).reshape(pred.shape[:-2] + (K, 3)), axis=-1)
+    seen = np.isfinite(distance)
+    total = np.where(seen, distance**2, 0.0).sum(axis=-1)
+    count = seen.sum(axis=-1)
+    return np.where(count > 0, np.sqrt(total / np.maximum(count, 1)), np.nan)
