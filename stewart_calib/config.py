@@ -55,7 +55,8 @@ class LSConfig:
             1.0 is the paper's unweighted form.
         robust_k: instruments outside the robot (spec §7): Huber threshold on a reading's RMS
             whitened residual [σ]; 0 = plain least squares. At 3 σ a Gaussian reading is almost
-            never down-weighted (RMS of 6 normals > 3: p ≈ 1e-11), a glitch is.
+            never down-weighted (RMS of 6 normals > 3: p ≈ 1e-11), a glitch is; a reading 4× past
+            the threshold is a gross error and gets no weight.
         estimate_noise: instruments outside the robot: re-estimate the σ of position and
             orientation from the residuals (the platform file's σ is only the start), so their
             relative weight is the data's own and the reported covariance is honest.

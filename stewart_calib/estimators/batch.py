@@ -92,7 +92,8 @@ class BatchSolution:
         singular_values: of the whitened reduced Jacobian at the solution (descending).
         used: ``(N,)`` mask of the samples in the fit.
         rejected: ``(index, SampleRejected)`` of the samples left out.
-        downweighted: readings given less than full weight by the Huber kernel.
+        downweighted: readings given less than full weight by the Huber kernel (``rejected_as_gross``
+            of them none at all).
         iterations: LM evaluations in all.
     """
 
@@ -107,6 +108,7 @@ class BatchSolution:
     used: np.ndarray
     rejected: list = field(default_factory=list)
     downweighted: int = 0
+    rejected_as_gross: int = 0
     iterations: int = 0
 
 
@@ -161,10 +163,12 @@ def fit(problem: BatchProblem, robust_k: float, estimate_noise: bool, stroke_sca
         state, used = _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_scale, tolerance_mm)
         evaluations += used
         e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0]
-        whitened = e / sigmas
-        new_weights = _huber_weights(whitened, robust_k)
-        new_sigmas = _channel_sigmas(problem, e, new_weights, sigmas, basis.shape[1] + 6 * fit_scale + state.unknowns.size) if estimate_noise else sigmas
-        settled = np.all(np.abs(new_sigmas / sigmas - 1.0) < NOISE_SETTLED) and np.array_equal(new_weights == 1, weights == 1)
+        n_unknowns = basis.shape[1] + 6 * fit_scale + state.unknowns.size
+        new_sigmas = _channel_sigmas(problem, e, weights, sigmas, n_unknowns) if estimate_noise else sigmas
+        # weights from a robust scale (MAD): a gross error inflates the RMS that would judge it
+        scale = _robust_channel_scale(problem, e, n_unknowns) if estimate_noise else sigmas
+        new_weights = _robust_weights(e / scale, robust_k)
+        settled = np.all(np.abs(new_sigmas / sigmas - 1.0) < NOISE_SETTLED) and np.allclose(new_weights, weights, atol=1e-3)
         sigmas, weights = new_sigmas, new_weights
         if settled:
             break
@@ -190,8 +194,28 @@ def fit(problem: BatchProblem, robust_k: float, estimate_noise: bool, stroke_sca
         used=used,
         rejected=rejected,
         downweighted=int(np.sum(weights < 1)),
+        rejected_as_gross=int(np.sum(weights == 0)),
         iterations=evaluations,
     )
+
+
+def cramer_rao(problem: BatchProblem, error: np.ndarray, stroke_scale: np.ndarray, unknowns, fit_scale: bool = True) -> np.ndarray:
+    """Cramér–Rao bound at a point (e.g. the simulator's truth moved into the gauge): the inverse
+    Fisher information of the whitened residuals with the problem's σ, lifted to the full
+    ``[δM (42), k (6), instrument tangent]`` covariance (the 12 gauge directions carry none).
+
+    Raises:
+        CalibError: forward kinematics fails at that point.
+        numpy.linalg.LinAlgError: the information is singular (unknowns not identifiable).
+    """
+    R, t, ok = _fk(problem, error, stroke_scale, None)
+    if not np.all(ok):
+        raise CalibError("Cramér–Rao bound: forward kinematics failed at the given parameters")
+    state = _State(np.asarray(error, dtype=float), np.asarray(stroke_scale, dtype=float), unknowns, R, t)
+    basis = gauge.free_basis(problem.nominal)
+    A, _ = _system(problem, state, basis, np.asarray(problem.sigmas, dtype=float), np.ones(len(problem.strokes)), fit_scale)
+    lift = _lift(basis, fit_scale, unknowns.size)
+    return lift @ np.linalg.inv(A.T @ A) @ lift.T
 
 
 def _subset(problem: BatchProblem, keep: np.ndarray) -> BatchProblem:
@@ -280,12 +304,19 @@ def _scale_identifiable(problem: BatchProblem, state: _State, basis, sigmas) -> 
     return bool(s[-1] > 1e-8 * s[0])
 
 
-def _huber_weights(whitened: np.ndarray, k: float) -> np.ndarray:
-    """Per reading ``min(1, k / r)`` with ``r`` the RMS of its finite whitened components."""
+#: a reading whose RMS whitened residual exceeds this many times the Huber threshold is a gross
+#: error (a swapped marker, a reflector seen twice) and gets no weight: Huber's bounded pull still
+#: moves a fit of few readings by several of its σ, a gross error should move it by none
+GROSS_ERROR_FACTOR = 4.0
+
+
+def _robust_weights(whitened: np.ndarray, k: float) -> np.ndarray:
+    """Per reading, with ``r`` the RMS of its finite whitened components: 1 up to ``k``, Huber's
+    ``k / r`` beyond, 0 beyond ``GROSS_ERROR_FACTOR · k``."""
     if k <= 0:
         return np.ones(len(whitened))
     r = np.sqrt(np.nanmean(whitened**2, axis=1))
-    return np.where(r > k, k / np.maximum(r, 1e-300), 1.0)
+    return np.where(r > GROSS_ERROR_FACTOR * k, 0.0, np.where(r > k, k / np.maximum(r, 1e-300), 1.0))
 
 
 def _channel_sigmas(problem: BatchProblem, e: np.ndarray, weights: np.ndarray, sigmas: np.ndarray, n_unknowns: int) -> np.ndarray:
@@ -302,6 +333,18 @@ def _channel_sigmas(problem: BatchProblem, e: np.ndarray, weights: np.ndarray, s
         dof = count * (1.0 - n_unknowns / total)
         if dof > 0:
             out[cols] = np.sqrt(np.sum(np.where(seen, weights[:, None] * values**2, 0.0)) / dof)
+    return out
+
+
+def _robust_channel_scale(problem: BatchProblem, e: np.ndarray, n_unknowns: int) -> np.ndarray:
+    """Each channel's σ from the median absolute residual (1.4826 · MAD of a normal), corrected for
+    the share of the residuals' variance the fit absorbs (``1 − p/n``): blind to a few gross errors."""
+    out = np.empty(e.shape[1])
+    total = np.isfinite(e).sum()
+    for c in range(len(problem.channel_names)):
+        cols = problem.channels == c
+        values = e[:, cols]
+        out[cols] = 1.4826 * np.nanmedian(np.abs(values)) / np.sqrt(max(1.0 - n_unknowns / total, 1e-3))
     return out
 
 

@@ -1,0 +1,150 @@
+"""``stewart-calib validate``: how well a calibration predicts a held-out log (spec §7).
+
+    stewart-calib validate --platform P.toml --result R.json --log L.csv --out V.csv [--register-instrument]
+
+For every row: the platform pose from forward kinematics of the logged strokes with the
+calibrated drive (``nominal + error``, strokes scaled by ``1 + k_i`` where the result identified
+the stroke scale), then what the instrument should have read — through the result's instrument
+frame and target(s), or with ``--register-instrument`` through a frame fitted again on this log
+(the instrument was moved between sessions; the robot's model is not touched). For the in-situ
+tracker the prediction is its readings at that pose, and the measured pose its own forward
+kinematics of the logged readings.
+
+``V.csv``: ``t_s``, the log's measurement columns, the same columns predicted (prefix ``pred_``),
+``position_error_mm`` and, for pose and tracker, ``orientation_error_deg``. One line on stdout
+gives the RMS and maximum errors. Nothing is written unless the whole run succeeds.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from . import run_command
+from .. import io
+from .. import kinematics as kin
+from ..errors import CalibError
+from ..instruments import drive as drive_model
+from ..platform import Platform, load_platform
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "validate",
+        help="predict a held-out log with a calibration and report the errors (spec §7)",
+        description="Predict what the instrument should have read on a held-out log from the calibrated model; "
+        "write V.csv with the predictions and errors and print their RMS and maximum.",
+    )
+    parser.add_argument("--platform", required=True, metavar="P.toml", help="platform file (spec §2, §7)")
+    parser.add_argument("--result", required=True, metavar="R.json", help="calibration result (spec §5, §7)")
+    parser.add_argument("--log", required=True, metavar="L.csv", help="held-out measurement log (spec §3, §7)")
+    parser.add_argument("--out", required=True, metavar="V.csv", help="predictions and errors per row")
+    parser.add_argument(
+        "--register-instrument",
+        action="store_true",
+        help="fit the instrument frame again on this log (the instrument moved since the calibration)",
+    )
+    parser.set_defaults(func=run)
+
+
+def _block(result: dict, key: str, expected_names, source: str) -> np.ndarray | None:
+    block = result.get(key)
+    if block is None:
+        return None
+    if list(block["names"]) != list(expected_names):
+        raise CalibError(
+            f"{source}: key '{key}.names': expected {', '.join(expected_names)} for this platform's instrument, "
+            f"got {', '.join(block['names'])}"
+        )
+    return np.array(block["estimate"], dtype=float)
+
+
+def _model_poses(platform: Platform, result: dict, log, source: str):
+    """FK poses of the logged strokes with the calibrated drive (and stroke scale)."""
+    drive = platform.drive.perturbed(np.array(result["error"]))
+    scale = _block(result, "stroke_scale", io.STROKE_SCALE_NAMES, source)
+    scale = platform.stroke_scale if scale is None else scale
+    fk = kin.forward_kinematics(drive, drive_model.scaled_strokes(log.strokes, scale), strict=False)
+    if not np.all(fk.converged):
+        k = int(np.flatnonzero(~fk.converged)[0])
+        raise CalibError(
+            f"{source}: sample {k + 1} of the log (t_s = {log.t_s[k]!r}): forward kinematics of the calibrated "
+            "model did not converge for its strokes"
+        )
+    return fk.R, fk.t
+
+
+def validate(platform: Platform, result: dict, log, register: bool, result_source: str = "result"):
+    """Predictions and errors of a held-out log.
+
+    Returns:
+        ``(predicted (N, m) code units, position_error_mm (N,), orientation_error_deg (N,) or None)``.
+    Raises:
+        CalibError: a result for another platform or instrument, FK failure, a log that cannot be
+            registered (with ``register``).
+    """
+    gap = float(np.max(np.abs(np.array(result["nominal"]) - platform.drive.as_vector())))
+    if gap > io.NOMINAL_TOLERANCE_MM:
+        raise CalibError(
+            f"{result_source}: key 'nominal': expected the nominal drive of platform '{platform.name}'; it differs by {gap:.3g} mm"
+        )
+    R_X, t_X = _model_poses(platform, result, log, result_source)
+    if platform.instrument.kind == "tracker":
+        if register:
+            raise CalibError("--register-instrument: the in-situ tracker is part of the robot; it has no frame of its own to fit again")
+        seen = kin.forward_kinematics(platform.tracker, log.readings, guess=(R_X, t_X), strict=False)
+        if not np.all(seen.converged):
+            k = int(np.flatnonzero(~seen.converged)[0])
+            raise CalibError(f"sample {k + 1} (t_s = {log.t_s[k]!r}): tracker forward kinematics of its readings did not converge")
+        predicted = kin.inverse_kinematics(platform.tracker, R_X, t_X)
+        position, orientation = kin.pose_error(seen.R, seen.t, R_X, t_X)
+        return predicted, position, orientation
+
+    from ..instruments.external import model_for
+
+    model = model_for(platform)
+    values = _block(result, "instrument", model.unknown_names, result_source)
+    unknowns = model.nominal_unknowns() if values is None else model.unknowns_from_file(values)
+    if register:
+        unknowns = model.refit_frame(unknowns, R_X, t_X, log.readings)
+    if model.kind == "pose":
+        R_P, t_P = model.module.predict(unknowns, R_X, t_X)
+        R_m, t_m = kin.pose_to_rt(log.readings)
+        position, orientation = model.module.errors(R_m, t_m, R_P, t_P)
+        return kin.rt_to_pose(R_P, t_P), position, orientation
+    predicted = model.module.predict(unknowns, R_X, t_X)
+    seen = np.isfinite(log.readings.reshape(predicted.shape))
+    return np.where(seen, predicted, np.nan).reshape(len(R_X), -1), model.module.errors(log.readings, predicted), None
+
+
+def run(args: argparse.Namespace) -> int:
+    platform = load_platform(args.platform)
+    result = io.read_result(args.result)
+    log = io.read_log(args.log, platform)
+    predicted, position, orientation = validate(platform, result, log, args.register_instrument, str(args.result))
+    columns = io.reading_columns(platform)
+    header = ["t_s", *columns, *(f"pred_{name}" for name in columns), "position_error_mm"]
+    values = [log.t_s, *io.readings_to_file(log.readings, columns), *io.readings_to_file(predicted, columns), _blank_nan(position)]
+    if orientation is not None:
+        header.append("orientation_error_deg")
+        values.append(orientation)
+    io.atomic_write_text(args.out, io.csv_text(header, values))
+    print(f"stewart-calib validate: {_summary(position, orientation, len(log))}" + (" (instrument re-registered)" if args.register_instrument else ""))
+    return 0
+
+
+def _blank_nan(values: np.ndarray) -> list:
+    return ["" if not np.isfinite(v) else float(v) for v in values]
+
+
+def _summary(position: np.ndarray, orientation: np.ndarray | None, n: int) -> str:
+    rms = lambda v: float(np.sqrt(np.nanmean(np.asarray(v) ** 2)))  # noqa: E731
+    text = f"{n} rows: position RMS {rms(position):.4g} mm, max {np.nanmax(position):.4g} mm"
+    if orientation is not None:
+        text += f"; orientation RMS {rms(orientation):.4g}°, max {np.nanmax(orientation):.4g}°"
+    return text
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_command("validate", argv)

@@ -1,0 +1,91 @@
+"""``ls`` with an instrument outside the robot (spec §7) against the simulator's truth: errors of
+all unknowns at the Cramér–Rao bound, convergence from large offsets without any setting
+changed, glitches down-weighted."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from stewart_calib.estimators import EstimatorConfig, make_estimator
+from stewart_calib.estimators.batch import cramer_rao
+from stewart_calib.instruments import points
+from stewart_calib.platform import Instrument
+from stewart_calib.simulation.instrument import InstrumentTruth
+from tests.instrument_data import hobby, make_case, problem, truth_in_gauge
+
+#: Monte Carlo runs per instrument; with 48–54 unknowns each, the mean of z² over all of them has a
+#: relative standard deviation ≈ √(2 / (runs · p)) ≈ 0.1, so an RMS ratio of 1.2 (the issue's
+#: target) sits ≥ 3.5 standard deviations above the ideal 1.
+RUNS = 4
+
+POSE_TRUTH = InstrumentTruth(np.array([60.0, -40.0, 25.0, 20.0, -10.0, 150.0]), np.array([10.0, -5.0, 30.0, 0.0, 5.0, -90.0]))
+POINTS = Instrument("points", np.zeros(6), np.zeros(6), np.array([[60.0, 0.0, 25.0], [-30.0, 50.0, 25.0], [-30.0, -50.0, 40.0]]), 0.05)
+POINTS_TRUTH = InstrumentTruth(np.array([-80.0, 50.0, 30.0, -15.0, 10.0, 60.0]), np.zeros(6), target_spread_mm=2.0, dropout_probability=0.15)
+
+
+def _normalised_errors(case, estimate) -> np.ndarray:
+    """Errors of δM (42), k (6) and the instrument unknowns (file units), each over its CRB σ."""
+    delta, unknowns = truth_in_gauge(case)
+    bound = cramer_rao(problem(case), delta, case.true_scale, unknowns)
+    J = unknowns.file_jacobian()
+    sigma = np.sqrt(np.r_[np.diag(bound)[:48], np.diag(J @ bound[48:, 48:] @ J.T)])
+    truth = np.r_[delta, case.true_scale, unknowns.file_values()]
+    blocks = estimate.block_results()
+    found = np.r_[estimate.error, blocks['stroke_scale']['estimate'], blocks['instrument']['estimate']]
+    difference = found - truth
+    if case.platform.instrument.kind == "pose":  # angles: the nearest turn
+        for k in (51, 52, 53, 57, 58, 59):
+            difference[k] = (difference[k] + 180.0) % 360.0 - 180.0
+    return difference / sigma
+
+
+@pytest.mark.parametrize("kind", ["pose", "points"])
+def test_ls_reaches_the_cramer_rao_bound(kind):
+    platform, truth, n = (hobby(), POSE_TRUTH, 80) if kind == "pose" else (hobby(POINTS), POINTS_TRUTH, 100)
+    z = []
+    for run in range(RUNS):
+        case = make_case(platform, n, 100 + run, truth)
+        estimate = make_estimator("ls", platform, EstimatorConfig()).fit(list(case.log))
+        z.append(_normalised_errors(case, estimate))
+    ratio = math.sqrt(np.mean(np.square(z)))
+    assert ratio <= 1.2, f"RMS error / CRB = {ratio:.3f}"
+
+
+def test_ls_converges_from_large_offsets_without_any_setting_changed():
+    """Issue 13: a frame 100 mm and any rotation away, encoder zeros 20 mm off, scale 10 % off."""
+    from dataclasses import replace
+
+    platform = replace(hobby(), stroke_range=None)  # zeros 20 mm off push logged strokes past the hobby's range
+    rng = np.random.default_rng(5)
+    delta = rng.normal(0.0, 0.5, 42)
+    delta[6::7] = rng.choice([-20.0, 20.0], 6)
+    scale = rng.choice([-0.1, 0.1], 6)
+    truth = InstrumentTruth(np.array([100.0, -100.0, 100.0, 170.0, -60.0, -120.0]), np.array([30.0, 40.0, -20.0, 90.0, 45.0, 180.0]))
+    case = make_case(platform, 108, 6, truth, delta=delta, scale=scale)
+    estimate = make_estimator("ls", platform, EstimatorConfig()).fit(list(case.log))
+    z = _normalised_errors(case, estimate)
+    assert np.max(np.abs(z)) < 5.0  # Gaussian max of 60 z-scores: 5 is p ≈ 3e-5
+
+
+def test_ls_downweights_a_glitch_and_is_not_pulled_by_it():
+    platform = hobby()
+    case = make_case(platform, 80, 9, POSE_TRUTH)
+    clean = make_estimator("ls", platform, EstimatorConfig()).fit(list(case.log))
+    case.log.readings[7, :3] += 25.0  # a swapped marker: the body jumps 43 mm
+    fitted = make_estimator("ls", platform, EstimatorConfig()).fit(list(case.log))
+    assert fitted.details["readings_downweighted"] >= 1
+    sd = np.sqrt(np.diag(clean.covariance))
+    # the glitch costs the fit less than its own uncertainty
+    assert np.max(np.abs(fitted.error - clean.error) / np.maximum(sd, 1e-9)) < 1.0
+
+
+def test_points_with_one_target_per_row_missing():
+    case = make_case(hobby(POINTS), 60, 12, POINTS_TRUTH)
+    seen_rows = np.isfinite(case.log.readings).reshape(60, 3, 3).all(axis=2)
+    assert not seen_rows.all()
+    estimate = make_estimator("ls", case.platform, EstimatorConfig()).fit(list(case.log))
+    assert tuple(estimate.block_results()['instrument']['names']) == points.unknown_names(3)
+    assert estimate.samples_used == 60 - int(np.sum(~seen_rows.any(axis=1)))

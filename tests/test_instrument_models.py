@@ -1,0 +1,175 @@
+"""Instrument models (spec §7): analytic Jacobians against central differences, the closed-form
+registration against exact data and its refusals, the gauge basis, the drive's implicit Jacobian."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.numdiff import EPS_MM, EPS_RAD, numerical_jacobian, numerical_pose_jacobian, relative_error
+from stewart_calib import kinematics as kin
+from stewart_calib.errors import CalibError
+from stewart_calib.instruments import drive, gauge, lie, points, pose, registration
+from tests.synthetic import nim_stewart, random_poses
+
+#: central differences (steps of numdiff) agree to ~1e-10 relative; 1e-7 leaves room for FK's 1e-9 mm
+JACOBIAN_RTOL = 1e-7
+
+
+def _pose_unknowns(rng) -> pose.PoseUnknowns:
+    return pose.PoseUnknowns.from_pose6(np.r_[rng.normal(0, 80, 3), rng.uniform(-3, 3, 3)], np.r_[rng.normal(0, 40, 3), rng.uniform(-3, 3, 3)])
+
+
+def _tangent_steps(n_rot: int, n_mm: int) -> np.ndarray:
+    return np.r_[[EPS_RAD] * n_rot, [EPS_MM] * n_mm]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_pose_residual_jacobians_match_central_differences(seed):
+    rng = np.random.default_rng(seed)
+    u = _pose_unknowns(rng)
+    R_X, t_X = kin.pose_to_rt(np.r_[rng.normal(0, 100, 3), rng.normal(0, 0.4, 3)])
+    measured = kin.rt_to_pose(*kin.retract(*pose.predict(u, R_X, t_X), rng.normal(0, 0.05, 6)))
+    _, H_X, H_u = pose.residual(u, measured, R_X, t_X, jacobians=True)
+    numeric_X = numerical_pose_jacobian(lambda R, t: pose.residual(u, measured, R, t)[0], R_X, t_X)
+    steps = np.r_[_tangent_steps(3, 3), _tangent_steps(3, 3)]
+    numeric_u = numerical_jacobian(lambda d: pose.residual(u.retract(d), measured, R_X, t_X)[0], np.zeros(12), steps)
+    assert relative_error(H_X, numeric_X) < JACOBIAN_RTOL
+    assert relative_error(H_u, numeric_u) < JACOBIAN_RTOL
+
+
+@pytest.mark.parametrize("n_targets", [1, 3])
+def test_points_residual_jacobians_match_central_differences(n_targets):
+    rng = np.random.default_rng(n_targets)
+    frame = _pose_unknowns(rng)
+    u = points.PointsUnknowns(frame.R_frame, frame.t_frame, rng.normal(0, 80, (n_targets, 3)))
+    R_X, t_X = kin.pose_to_rt(np.r_[rng.normal(0, 100, 3), rng.normal(0, 0.4, 3)])
+    measured = points.predict(u, R_X, t_X).reshape(-1) + rng.normal(0, 0.1, 3 * n_targets)
+    _, H_X, H_u = points.residual(u, measured, R_X, t_X, jacobians=True)
+    numeric_X = numerical_pose_jacobian(lambda R, t: points.residual(u, measured, R, t)[0], R_X, t_X)
+    numeric_u = numerical_jacobian(lambda d: points.residual(u.retract(d), measured, R_X, t_X)[0], np.zeros(u.size),
+                                   _tangent_steps(3, 3 + 3 * n_targets))
+    assert relative_error(H_X, numeric_X) < JACOBIAN_RTOL
+    assert relative_error(H_u, numeric_u) < JACOBIAN_RTOL
+
+
+def test_pose_residual_jacobian_through_gtsam_retract():
+    """The pose tangent is GTSAM's: ∂e/∂ξ through ``Pose3.retract`` equals ours."""
+    gtsam = pytest.importorskip("gtsam")
+    from tests.numdiff import numerical_pose3_jacobian
+
+    rng = np.random.default_rng(7)
+    u = _pose_unknowns(rng)
+    R_X, t_X = kin.pose_to_rt(np.r_[rng.normal(0, 100, 3), rng.normal(0, 0.4, 3)])
+    measured = kin.rt_to_pose(*kin.retract(*pose.predict(u, R_X, t_X), rng.normal(0, 0.05, 6)))
+    _, H_X, _ = pose.residual(u, measured, R_X, t_X, jacobians=True)
+    X = gtsam.Pose3(gtsam.Rot3(R_X), t_X)
+    numeric = numerical_pose3_jacobian(lambda p: pose.residual(u, measured, p.rotation().matrix(), p.translation())[0], X)
+    assert relative_error(H_X, numeric) < JACOBIAN_RTOL
+
+
+def test_so3_log_inverts_exp_and_its_jacobian():
+    rng = np.random.default_rng(2)
+    phi = rng.normal(0, 1.0, (50, 3))
+    phi[0] = [0.0, 0.0, 1e-12]
+    phi[1] = [np.pi - 1e-9, 0.0, 0.0]
+    np.testing.assert_allclose(lie.so3_log(kin.so3_exp(phi)), phi, atol=1e-8)
+    p = rng.normal(0, 0.8, 3)
+    numeric = numerical_jacobian(lambda d: lie.so3_log(kin.so3_exp(p) @ kin.so3_exp(d)), np.zeros(3), EPS_RAD)
+    assert relative_error(lie.so3_right_jacobian_inverse(p), numeric) < JACOBIAN_RTOL
+
+
+def test_drive_pose_jacobian_matches_forward_kinematics():
+    """∂ξ/∂(δM, k) of FK(l + (1 + k) q) by the implicit function theorem, against FK itself."""
+    platform = nim_stewart()
+    rng = np.random.default_rng(3)
+    R, t = kin.pose_to_rt(random_poses(platform, 1, rng)[0])
+    strokes = kin.inverse_kinematics(platform.drive, R, t)
+    scale = np.full(6, 0.02)
+    fk = kin.forward_kinematics(platform.drive, drive.scaled_strokes(strokes, scale), guess=(R, t), tol_mm=1e-12)
+    dxi_M, dxi_k = drive.pose_jacobian(platform.drive, strokes, fk.R, fk.t)
+
+    def tangent(delta, k):
+        sol = kin.forward_kinematics(platform.drive.perturbed(delta), drive.scaled_strokes(strokes, k), guess=(fk.R, fk.t), tol_mm=1e-12)
+        return np.r_[lie.so3_log(fk.R.T @ sol.R), fk.R.T @ (sol.t - fk.t)]
+
+    assert relative_error(dxi_M, numerical_jacobian(lambda d: tangent(d, scale), np.zeros(42))) < 1e-6
+    assert relative_error(dxi_k, numerical_jacobian(lambda k: tangent(np.zeros(42), k), scale, 1e-6)) < 1e-6
+
+
+def test_gauge_basis_is_orthonormal_and_free_of_rigid_joint_motion():
+    platform = nim_stewart()
+    B = gauge.free_basis(platform.drive)
+    assert B.shape == (42, 30)
+    np.testing.assert_allclose(B.T @ B, np.eye(30), atol=1e-12)
+    for columns, points_ in ((gauge.BASE_COLUMNS, platform.drive.base_joints), (gauge.PLATFORM_COLUMNS, platform.drive.platform_joints)):
+        np.testing.assert_allclose(gauge.rigid_directions(points_).T @ B[columns], 0.0, atol=1e-10)
+
+
+def test_to_gauge_satisfies_the_gauge_and_keeps_leg_lengths():
+    platform = nim_stewart()
+    rng = np.random.default_rng(4)
+    true = platform.drive.as_vector() + rng.normal(0, 3.0, 42)
+    moved, (R_J, t_J), (R_D, t_D) = gauge.to_gauge(platform.drive, true)
+    delta = moved - platform.drive.as_vector()
+    B = gauge.free_basis(platform.drive)
+    np.testing.assert_allclose(delta - B @ (B.T @ delta), 0.0, atol=1e-9)
+    # a pose X becomes T_J'_J X T_D'_D⁻¹: every leg keeps its length
+    from stewart_calib.platform import LegGeometry
+
+    R, t = kin.pose_to_rt(random_poses(platform, 1, rng)[0])
+    R2, t2 = lie.compose(*lie.compose(R_J, t_J, R, t), *lie.inverse(R_D, t_D))
+    np.testing.assert_allclose(kin.leg_lengths(LegGeometry.from_params(moved), R2, t2),
+                               kin.leg_lengths(LegGeometry.from_params(true), R, t), atol=1e-9)
+
+
+def _poses(n: int, seed: int):
+    platform = nim_stewart()
+    return kin.pose_to_rt(random_poses(platform, n, np.random.default_rng(seed)))
+
+
+def test_register_pose_recovers_any_frame_and_target_exactly():
+    R_X, t_X = _poses(12, 5)
+    u = pose.PoseUnknowns.from_pose6(np.r_[100.0, -80.0, 40.0, 2.0, -1.0, 3.0], np.r_[10.0, 20.0, -30.0, 0.5, 1.2, -2.0])
+    R_M, t_M = pose.predict(u, R_X, t_X)
+    found = registration.register_pose(R_X, t_X, R_M, t_M, np.r_[[1e-4] * 3, [0.01] * 3])
+    np.testing.assert_allclose(found.file_values(), u.file_values(), atol=1e-9)
+
+
+def test_register_points_recovers_frame_and_targets_with_dropouts():
+    R_X, t_X = _poses(20, 6)
+    rng = np.random.default_rng(6)
+    u = points.PointsUnknowns(*kin.pose_to_rt(np.r_[-60.0, 30.0, 90.0, 0.3, -2.5, 1.0]), rng.normal(0, 100, (3, 3)))
+    measured = points.predict(u, R_X, t_X).reshape(20, -1)
+    measured[::2, 3:6] = np.nan
+    measured[1::3, 0:3] = np.nan
+    found = registration.register_points(R_X, t_X, measured, 0.01)
+    np.testing.assert_allclose(found.file_values(), u.file_values(), atol=1e-8)
+
+
+def test_refit_frame_recovers_a_moved_frame():
+    R_X, t_X = _poses(15, 8)
+    u = pose.PoseUnknowns.from_pose6(np.r_[30.0, 5.0, -20.0, 0.2, 0.1, 2.0], np.r_[1.0, 2.0, 3.0, 0.1, 0.0, 0.3])
+    measured = kin.rt_to_pose(*pose.predict(u, R_X, t_X))
+    start = pose.PoseUnknowns(np.eye(3), np.zeros(3), u.R_target, u.t_target)
+    found = registration.refit_frame(pose, start, measured, R_X, t_X, np.r_[[1e-3] * 3, [0.1] * 3])
+    np.testing.assert_allclose(found.file_values(), u.file_values(), atol=1e-9)
+
+
+def test_registration_refuses_identical_poses_with_the_reason():
+    R_X, t_X = _poses(1, 9)
+    R_X, t_X = np.repeat(R_X, 5, axis=0), np.repeat(t_X, 5, axis=0)
+    u = pose.PoseUnknowns.from_pose6(np.zeros(6), np.zeros(6))
+    with pytest.raises(CalibError, match="1 distinct pose"):
+        registration.register_pose(R_X, t_X, *pose.predict(u, R_X, t_X), np.r_[[1e-3] * 3, [0.1] * 3])
+    measured = points.predict(points.PointsUnknowns(np.eye(3), np.zeros(3), np.ones((1, 3))), R_X, t_X).reshape(5, 3)
+    with pytest.raises(CalibError, match="distinct pose"):
+        registration.register_points(R_X, t_X, measured, 0.1)
+
+
+def test_registration_refuses_poses_that_do_not_rotate():
+    R_X, t_X = _poses(6, 10)
+    R_X = np.repeat(R_X[:1], 6, axis=0)  # translations only
+    u = pose.PoseUnknowns.from_pose6(np.r_[0, 0, 0, 0.1, 0.2, 0.3], np.zeros(6))
+    with pytest.raises(CalibError, match="rotate about two different axes"):
+        registration.register_pose(R_X, t_X, *pose.predict(u, R_X, t_X), np.r_[[1e-3] * 3, [0.1] * 3])
