@@ -29,7 +29,8 @@ import numpy as np
 import scipy.optimize
 
 from stewart_calib import kinematics as kin
-from stewart_calib.estimators import EstimatorConfig, make_estimator
+from stewart_calib.config import EstimatorConfig
+from stewart_calib.estimators import make_estimator
 from stewart_calib.instruments import lie, pose
 from stewart_calib.instruments.external import model_for
 from stewart_calib.platform import LegGeometry, Platform, load_platform

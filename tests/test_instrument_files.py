@@ -14,6 +14,7 @@ import pytest
 from stewart_calib import io
 from stewart_calib.cli import main
 from stewart_calib.errors import CalibError
+from stewart_calib.samples import Truth
 from stewart_calib.platform import Instrument, parse_platform, platform_to_toml
 from tests.instrument_data import HOBBY, hobby, make_case
 from stewart_calib.simulation.instrument import InstrumentTruth
@@ -140,7 +141,7 @@ def test_columns_not_matching_the_instrument_are_named_in_one_line(tmp_path):
 
 
 def test_truth_file_carries_stroke_scale_and_instrument(tmp_path):
-    truth = io.Truth(np.arange(2.0), np.zeros((2, 42)), stroke_scale=np.arange(6) / 100, instrument=(("frame_x_mm", "frame_y_mm"), np.array([1.5, -2.0])))
+    truth = Truth(np.arange(2.0), np.zeros((2, 42)), stroke_scale=np.arange(6) / 100, instrument=(("frame_x_mm", "frame_y_mm"), np.array([1.5, -2.0])))
     io.write_truth(tmp_path / "truth.csv", truth)
     back = io.read_truth(tmp_path / "truth.csv")
     np.testing.assert_array_equal(back.stroke_scale, truth.stroke_scale)
@@ -230,7 +231,7 @@ def test_validate_refuses_register_instrument_for_the_tracker(tmp_path):
     platform = nim_stewart()
     log, _ = make_log(platform, np.zeros(42), random_poses(platform, 5, np.random.default_rng(1)), np.random.default_rng(2))
     io.write_log(tmp_path / "log.csv", log)
-    from stewart_calib.estimators.base import Estimate
+    from stewart_calib.estimate import Estimate
 
     io.write_result(tmp_path / "r.json", io.result_dict(Estimate(np.zeros(42), None, "ls", 5), platform))
     args = ["validate", "--platform", str(NIM_STEWART), "--result", str(tmp_path / "r.json"), "--log", str(tmp_path / "log.csv"),

@@ -9,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from stewart_calib.estimators import EstimatorConfig, make_estimator
+from stewart_calib.config import EstimatorConfig
+from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.batch import cramer_rao
 from stewart_calib.instruments import points
 from stewart_calib.platform import Instrument
