@@ -195,10 +195,11 @@ class Platform:
 
 #: the keys a platform file may hold, per table ("" = top level). A misspelt optional key
 #: would otherwise be ignored without a word (a stroke range silently not enforced).
+#: ``[instrument]``'s keys depend on its kind; :func:`parse_instrument` checks them.
 PLATFORM_KEYS: dict[str, set[str]] = {
-    "": {"name", "description", "drive", "tracker", "workspace"},
-    "drive": {"base_joints_mm", "platform_joints_mm", "initial_lengths_mm", "stroke_range_mm"},
-    "tracker": {"base_joints_mm", "platform_joints_mm", "initial_lengths_mm", "reading_range_mm"},
+    "": {"name", "description", "drive", "tracker", "workspace", "instrument"},
+    "drive": {"base_joints_mm", "platform_joints_mm", "initial_lengths_mm", "stroke_range_mm", "stroke_scale"},
+    "tracker": {"base_joints_mm", "platform_joints_mm", "initial_lengths_mm", "reading_range_mm", "geometry_sigma_mm"},
     "workspace": {"home", "translation_limit_mm", "rotation_limit_deg"},
 }
 
