@@ -173,3 +173,55 @@ def test_registration_refuses_poses_that_do_not_rotate():
     u = pose.PoseUnknowns.from_pose6(np.r_[0, 0, 0, 0.1, 0.2, 0.3], np.zeros(6))
     with pytest.raises(CalibError, match="rotate about two different axes"):
         registration.register_pose(R_X, t_X, *pose.predict(u, R_X, t_X), np.r_[[1e-3] * 3, [0.1] * 3])
+
+
+# ----------------------------------------------------------------------------- the InstrumentModel protocol
+
+
+def _models():
+    from dataclasses import replace
+
+    from stewart_calib.config import NoiseConfig
+    from stewart_calib.instruments import instrument_model
+    from stewart_calib.platform import Instrument
+    from tests.instrument_data import hobby
+
+    pose_platform = hobby()
+    pose_platform = replace(pose_platform, instrument=replace(pose_platform.instrument, frame=np.r_[40.0, -20.0, 10.0, 0.3, -0.2, 2.0],
+                                                              target=np.r_[5.0, 8.0, 30.0, 0.1, 0.2, -1.5]))
+    points_platform = hobby(Instrument("points", np.r_[40.0, -20.0, 10.0, 0.3, -0.2, 2.0], np.zeros(6),
+                                       np.array([[60.0, 0.0, 25.0], [-30.0, 50.0, 25.0], [-30.0, -50.0, 40.0]]), 0.05))
+    return [instrument_model(p, NoiseConfig(), p.instrument.kind) for p in (pose_platform, points_platform)]
+
+
+@pytest.mark.parametrize("which", [0, 1])
+def test_instrument_model_residual_and_pose_jacobians(which):
+    """The protocol's Jacobians (θ in pose6 coordinates) against central differences, and ``pose``
+    inverting the prediction."""
+    from stewart_calib.instruments.base import InstrumentModel
+
+    model = _models()[which]
+    assert isinstance(model, InstrumentModel)
+    rng = np.random.default_rng(which)
+    theta = model.unknowns.nominal + rng.normal(0, 0.01, model.unknowns.size)
+    R, t = kin.pose_to_rt(np.r_[5.0, -3.0, 200.0, 0.1, -0.05, 0.2])
+    exact = model.residual(R, t, theta, np.zeros(model.channel_sigma.size), np.arange(model.channel_sigma.size))
+    z = -exact.r if model.kind == "points" else kin.rt_to_pose(*pose.predict(pose.PoseUnknowns.from_pose6(theta[:6], theta[6:]), R, t))
+    z = z + rng.normal(0, 0.01, z.size)
+    channels = np.concatenate(model.groups(z))
+    res = model.residual(R, t, theta, z, channels)
+    steps = np.where(model.unknowns.file_scale > 1, EPS_RAD, EPS_MM)
+    numeric_theta = numerical_jacobian(lambda th: model.residual(R, t, th, z, channels).r, theta, steps)
+    numeric_pose = numerical_pose_jacobian(lambda R_, t_: model.residual(R_, t_, theta, z, channels).r, R, t)
+    assert relative_error(res.J_instrument, numeric_theta) < JACOBIAN_RTOL
+    assert relative_error(res.J_pose, numeric_pose) < JACOBIAN_RTOL
+
+    seen = model.pose(z, theta, None)
+    np.testing.assert_allclose(model.residual(seen.R, seen.t, theta, z, channels).r, 0.0, atol=0.05)
+
+    def tangent(th):
+        moved = model.pose(z, th, None)
+        return np.r_[lie.so3_log(seen.R.T @ moved.R), seen.R.T @ (moved.t - seen.t)]
+
+    assert relative_error(seen.J_instrument, numerical_jacobian(tangent, theta, steps)) < 1e-6
+    assert np.all(np.linalg.eigvalsh(seen.covariance) > 0)

@@ -131,6 +131,36 @@ class ExternalModel:
         return strokes, readings
 
 
+def registered_platform(platform: Platform, strokes: np.ndarray, readings: np.ndarray) -> Platform:
+    """``platform`` with its instrument's nominal frame and target(s) replaced by the closed-form
+    registration of the nominal forward-kinematics poses onto the readings
+    (:mod:`.registration`): every method then starts within the drive's errors of the answer, not
+    a frame 100 mm and any rotation away, and no prior needs widening.
+
+    Raises:
+        CalibError: the log cannot be registered (fewer than 3 distinct poses, no rotation), or
+            the nominal drive reaches none of its strokes.
+    """
+    from dataclasses import replace
+
+    from .. import kinematics as kin
+    from ..errors import CalibError
+    from .drive import scaled_strokes
+
+    model = model_for(platform)
+    fk = kin.forward_kinematics(platform.drive, scaled_strokes(strokes, platform.stroke_scale), strict=False)
+    usable = fk.converged & np.any(np.isfinite(readings), axis=1)
+    if not np.any(usable):
+        raise CalibError("cannot register the instrument: nominal forward kinematics converged for no sample")
+    unknowns = model.register(fk.R[usable], fk.t[usable], np.asarray(readings)[usable])
+    theta = model.theta(unknowns)
+    if model.kind == "pose":
+        instrument = replace(platform.instrument, frame=theta[:6], target=theta[6:12])
+    else:
+        instrument = replace(platform.instrument, frame=theta[:6], targets=theta[6:].reshape(-1, 3))
+    return replace(platform, instrument=instrument)
+
+
 def model_for(platform: Platform) -> ExternalModel:
     """The outside instrument of ``platform``.
 

@@ -21,8 +21,11 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..kinematics import skew
+from ..errors import SampleRejected
 from ..platform import Instrument
 from . import lie
+from .base import PoseObservation, Residual
+from .gauge import kabsch
 
 FRAME_NAMES: tuple[str, ...] = tuple(f"frame_{axis}" for axis in ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"))
 
@@ -114,3 +117,70 @@ def errors(measured: np.ndarray, pred: np.ndarray) -> np.ndarray:
     total = np.where(seen, distance**2, 0.0).sum(axis=-1)
     count = seen.sum(axis=-1)
     return np.where(count > 0, np.sqrt(total / np.maximum(count, 1)), np.nan)
+
+
+class PointsModel:
+    """The points instrument as a measurement model (:class:`~stewart_calib.instruments.base.InstrumentModel`).
+
+    Its unknowns θ are the frame's pose6 ``[x, y, z mm, roll, pitch, yaw rad]`` then the targets in
+    {D} [mm] (6 + 3K values, the block ``"instrument"``; both gauges shared with the drive). Each
+    seen target is one channel group.
+
+    Args:
+        instrument: the platform file's ``[instrument]`` (nominal frame, targets, σ).
+        block: the unknowns' block (:meth:`~stewart_calib.instruments.external.ExternalModel.block`).
+    """
+
+    kind = "points"
+
+    def __init__(self, instrument: Instrument, block):
+        self.instrument = instrument
+        self.unknowns = block
+        self.columns = columns(instrument.n_targets)
+        self.channel_sigma = sigmas(instrument)
+        self._triples = [np.arange(3 * k, 3 * k + 3) for k in range(instrument.n_targets)]
+
+    def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
+        reading = np.asarray(z, dtype=float)
+        if reading.shape != self.channel_sigma.shape:
+            raise SampleRejected(f"sample at t = {t_s} s: expected {self.channel_sigma.size} target coordinates", SampleRejected.NON_FINITE)
+        if not np.any(np.isfinite(reading)):
+            raise SampleRejected(f"sample at t = {t_s} s: no target seen", SampleRejected.NON_FINITE)
+        return reading
+
+    def groups(self, z: np.ndarray) -> list[np.ndarray]:
+        """One group per target seen in ``z``."""
+        return [triple for triple in self._triples if np.all(np.isfinite(z[triple]))]
+
+    def _unknowns(self, theta: np.ndarray) -> PointsUnknowns:
+        return PointsUnknowns(*kin.pose_to_rt(theta[:6]), np.reshape(theta[6:], (-1, 3)))
+
+    def _theta_jacobian_inverse(self, theta: np.ndarray) -> np.ndarray:
+        J = np.eye(len(theta))
+        J[:6, :6] = np.linalg.inv(lie.pose6_tangent_jacobian(theta[:6]))
+        return J
+
+    def residual(self, R: np.ndarray, t: np.ndarray, theta: np.ndarray, z: np.ndarray, channels: np.ndarray):
+        """Predicted minus measured target coordinates on ``channels`` [mm], ``∂/∂ξ``, ``∂/∂θ``."""
+        e, H_X, H_u = residual(self._unknowns(theta), z, R, t, jacobians=True)
+        J_theta = H_u @ self._theta_jacobian_inverse(theta)
+        return Residual(e[channels], H_X[channels], J_theta[channels], np.asarray(channels))
+
+    def pose(self, z: np.ndarray, theta: np.ndarray, guess):
+        """The platform pose that puts the seen targets where they were read (Kabsch of the targets
+        in {D} onto ``F m_k``), its covariance ``σ² (Σ J_kᵀ J_k)⁻¹`` and ``∂ξ/∂θ`` (implicit function
+        theorem on the fit's normal equations); None with fewer than 3 targets seen."""
+        u = self._unknowns(theta)
+        m = np.reshape(z, (-1, 3))
+        seen = np.all(np.isfinite(m), axis=1)
+        if seen.sum() < 3:
+            return None
+        in_base = kin.transform_points(u.R_frame, u.t_frame, m[seen])
+        R_X, t_X = kabsch(u.targets[seen], in_base)
+        rows = np.flatnonzero(np.repeat(seen, 3))
+        _, H_X, H_u = residual(u, z, R_X, t_X, jacobians=True)
+        A = H_X[rows]
+        information = A.T @ A
+        covariance = self.instrument.position_sigma_mm**2 * np.linalg.inv(information)
+        J_theta = -np.linalg.solve(information, A.T @ (H_u[rows] @ self._theta_jacobian_inverse(theta)))
+        return PoseObservation(R_X, t_X, covariance, J_theta)

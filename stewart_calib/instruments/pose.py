@@ -23,8 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import kinematics as kin
+from ..errors import SampleRejected
 from ..platform import Instrument
 from . import lie
+from .base import PoseObservation, Residual
 
 #: names of the 12 unknowns in file units (spec §7 result ``"instrument"`` block)
 UNKNOWN_NAMES: tuple[str, ...] = tuple(
@@ -109,3 +111,66 @@ def residual(u: PoseUnknowns, measured: np.ndarray, R_X: np.ndarray, t_X: np.nda
 def errors(R_m, t_m, R_P, t_P) -> tuple[np.ndarray, np.ndarray]:
     """Per reading ``(‖t_P − t_m‖ [mm], angle of R_mᵀ R_P [deg])`` (spec §7 validation columns)."""
     return kin.pose_error(R_m, t_m, R_P, t_P)
+
+
+class PoseModel:
+    """The pose instrument as a measurement model (:class:`~stewart_calib.instruments.base.InstrumentModel`).
+
+    Its unknowns θ are the frame's and the target's pose6 ``[x, y, z mm, roll, pitch, yaw rad]``
+    (12 values, the block ``"instrument"``; both gauges shared with the drive). One reading is one
+    channel group: a robust kernel weighs the whole pose.
+
+    Args:
+        instrument: the platform file's ``[instrument]`` (nominal frame, target, σ).
+        block: the unknowns' block (:meth:`~stewart_calib.instruments.external.ExternalModel.block`).
+    """
+
+    kind = "pose"
+    columns = COLUMNS
+
+    def __init__(self, instrument: Instrument, block):
+        self.instrument = instrument
+        self.unknowns = block
+        self.channel_sigma = sigmas(instrument)
+        self._group = [np.arange(6)]
+
+    def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
+        reading = np.asarray(z, dtype=float)
+        if reading.shape != (6,) or not np.all(np.isfinite(reading)):
+            raise SampleRejected(f"sample at t = {t_s} s: expected a finite pose reading (6 values)", SampleRejected.NON_FINITE)
+        return reading
+
+    def groups(self, z: np.ndarray) -> list[np.ndarray]:
+        return self._group
+
+    def residual(self, R: np.ndarray, t: np.ndarray, theta: np.ndarray, z: np.ndarray, channels: np.ndarray):
+        """``[Log(R_mᵀ R_P), t_P − t_m]`` on ``channels``, ``∂/∂ξ`` and ``∂/∂θ`` (θ in pose6 coordinates)."""
+        u = PoseUnknowns.from_pose6(theta[:6], theta[6:12])
+        e, H_X, H_u = residual(u, z, R, t, jacobians=True)
+        J_theta = H_u @ np.linalg.inv(theta_tangent_jacobian(theta))
+        return Residual(e[channels], H_X[channels], J_theta[channels], np.asarray(channels))
+
+    def pose(self, z: np.ndarray, theta: np.ndarray, guess):
+        """``X = F M G⁻¹`` with the reading's covariance carried to X's tangent, and ``∂ξ/∂θ``.
+
+        The reading's noise is ``R_m Exp(n_ω)``, ``t_m + n_v``: on M's body tangent
+        ``[n_ω, R_mᵀ n_v]``, and ``X Exp(Ad_G δ) = F M Exp(δ) G⁻¹``; a frame change ``F Exp(φ)`` moves
+        X by ``Ad_{G M⁻¹} φ``, a target change ``G Exp(γ)`` by ``−Ad_G γ``.
+        """
+        u = PoseUnknowns.from_pose6(theta[:6], theta[6:12])
+        R_m, t_m = kin.pose_to_rt(z)
+        R_X, t_X = lie.compose(*lie.compose(u.R_frame, u.t_frame, R_m, t_m), *lie.inverse(u.R_target, u.t_target))
+        Ad_G = lie.adjoint(u.R_target, u.t_target)
+        noise = np.diag(np.r_[np.full(3, self.instrument.orientation_sigma_rad**2), np.full(3, self.instrument.position_sigma_mm**2)])
+        covariance = Ad_G @ noise @ Ad_G.T  # R_mᵀ σ² I R_m = σ² I: isotropic position noise
+        R_GMi, t_GMi = lie.compose(u.R_target, u.t_target, *lie.inverse(R_m, t_m))
+        J_tangent = np.hstack([lie.adjoint(R_GMi, t_GMi), -Ad_G])
+        return PoseObservation(R_X, t_X, covariance, J_tangent @ np.linalg.inv(theta_tangent_jacobian(theta)))
+
+
+def theta_tangent_jacobian(theta: np.ndarray) -> np.ndarray:
+    """``∂θ/∂[φ, γ]`` ``(12, 12)``: pose6 coordinates of frame and target against their body tangents."""
+    J = np.zeros((12, 12))
+    J[:6, :6] = lie.pose6_tangent_jacobian(theta[:6])
+    J[6:, 6:] = lie.pose6_tangent_jacobian(theta[6:12])
+    return J

@@ -13,17 +13,28 @@ from typing import Callable
 from ..config import NoiseConfig
 from ..errors import CalibError
 from ..platform import Platform
-from . import tracker
+from . import points, pose, tracker
 from .base import InstrumentModel
+from .external import model_for
 
 
 def _tracker(platform: Platform, noise: NoiseConfig) -> InstrumentModel:
     return tracker.TrackerModel(platform.tracker, noise.reading_sigma_mm, platform.reading_range)
 
 
+def _pose(platform: Platform, noise: NoiseConfig) -> InstrumentModel:
+    return pose.PoseModel(platform.instrument, model_for(platform).block())
+
+
+def _points(platform: Platform, noise: NoiseConfig) -> InstrumentModel:
+    return points.PointsModel(platform.instrument, model_for(platform).block())
+
+
 #: kind → builder ``(platform, noise) -> model``.
 MODELS: dict[str, Callable[[Platform, NoiseConfig], InstrumentModel]] = {
     "tracker": _tracker,
+    "pose": _pose,
+    "points": _points,
 }
 
 

@@ -61,6 +61,10 @@ def run_calibration(
     Raises:
         CalibError: an unknown method, or a method that rejected every sample.
     """
+    if platform.instrument.kind != "tracker":  # an outside instrument's frame may be anywhere: start from its registration
+        from ..instruments.external import registered_platform
+
+        platform = registered_platform(platform, log.strokes, log.readings)
     estimator = estimators.make_estimator(method, platform, config)
     nominal = platform.drive.as_vector()
     if isinstance(estimator, BatchEstimator):
