@@ -268,3 +268,18 @@ def test_readme_motion_capture_example(tmp_path, monkeypatch, capsys):
     line = capsys.readouterr().out
     rms = float(line.split("position RMS ")[1].split(" mm")[0])
     assert rms <= 0.75  # issue 13's target for the re-registered held-out day
+
+
+def test_identifiability_of_a_pose_log_covers_stroke_scale_and_instrument(tmp_path, capsys):
+    """``identifiability`` on an outside instrument: the bound for all unknowns, equal to the ls
+    covariance at the same point (both are the inverse information of the same whitened rows)."""
+    platform = hobby()
+    case = make_case(platform, 60, 21, InstrumentTruth(np.array([30.0, 10.0, -5.0, 0.0, 0.0, 45.0]), np.zeros(6)))
+    io.write_log(tmp_path / "log.csv", case.log, platform)
+    assert main(["identifiability", "--platform", str(HOBBY), "--log", str(tmp_path / "log.csv"), "--json", str(tmp_path / "i.json")]) == 0
+    report = json.loads((tmp_path / "i.json").read_text())
+    assert report["rank"] == report["unknowns"] == 30 + 6 + 12
+    assert report["stroke_scale_identifiable"]
+    sd = report["predicted_stddev"]
+    assert all(sd[name] is not None and sd[name] > 0 for name in ("k1", "frame_yaw_deg", "target_z_mm", "l3"))
+    assert "rank 48/48" in capsys.readouterr().out

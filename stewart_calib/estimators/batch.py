@@ -218,6 +218,46 @@ def cramer_rao(problem: BatchProblem, error: np.ndarray, stroke_scale: np.ndarra
     return lift @ np.linalg.inv(A.T @ A) @ lift.T
 
 
+def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], file_jacobian: np.ndarray) -> dict:
+    """How well the problem's poses identify drive, stroke scale and instrument (at the nominal
+    drive, nominal k and the given instrument unknowns, with the problem's σ): rank and condition
+    number of the whitened gauge-reduced Jacobian and the Cramér–Rao σ of every unknown.
+
+    Args:
+        names: the instrument unknowns' names; file_jacobian: ``∂ file values / ∂ tangent``.
+    Returns:
+        JSON-ready ``{"unknowns", "rank", "condition_number", "stroke_scale_identifiable",
+        "predicted_stddev": {name: σ in file units (None: not identified)}}``.
+    """
+    R, t, ok = _fk(problem, np.zeros(N_PARAMS), problem.nominal_stroke_scale, None)
+    if not np.all(ok):
+        problem, R, t = _subset(problem, ok), R[ok], t[ok]
+    state = _State(np.zeros(N_PARAMS), np.asarray(problem.nominal_stroke_scale, dtype=float), unknowns, R, t)
+    basis = gauge.free_basis(problem.nominal)
+    sigmas = np.asarray(problem.sigmas, dtype=float)
+    A, _ = _system(problem, state, basis, sigmas, np.ones(len(problem.strokes)), True)
+    s = np.linalg.svd(A, compute_uv=False)
+    rank = int(np.sum(s > 1e-8 * s[0]))
+    from ..platform import PARAMETER_NAMES
+
+    all_names = [*PARAMETER_NAMES, *(f"k{i}" for i in range(1, 7)), *names]
+    stddev: list[float | None] = [None] * len(all_names)
+    if rank == A.shape[1]:
+        lift = _lift(basis, True, unknowns.size)
+        covariance = lift @ np.linalg.inv(A.T @ A) @ lift.T
+        n = N_PARAMS + N_LEGS
+        variance = np.r_[np.diag(covariance)[:n], np.diag(file_jacobian @ covariance[n:, n:] @ file_jacobian.T)]
+        stddev = [float(v) for v in np.sqrt(np.clip(variance, 0.0, None))]
+    return {
+        "unknowns": int(A.shape[1]),
+        "gauge": gauge.GAUGE_STATEMENT,
+        "rank": rank,
+        "condition_number": float(s[0] / s[-1]) if rank == A.shape[1] else None,
+        "stroke_scale_identifiable": _scale_identifiable(problem, state, basis, sigmas),
+        "predicted_stddev": dict(zip(all_names, stddev)),
+    }
+
+
 def _subset(problem: BatchProblem, keep: np.ndarray) -> BatchProblem:
     from dataclasses import replace
 

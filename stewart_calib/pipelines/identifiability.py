@@ -53,6 +53,8 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
     noise = load_estimator_config(args.config, args.set).noise
+    if platform.instrument.kind != "tracker":
+        return _run_outside_instrument(args, platform)
     if args.log is not None:
         poses = log_poses(platform, args.log, args.pose_source, args.skip_bad_rows)
     else:
@@ -64,6 +66,44 @@ def run(args: argparse.Namespace) -> int:
         print(warning)
     if args.json:
         io.atomic_write_text(args.json, json.dumps(report.to_dict(), indent=2) + "\n")
+    return 0
+
+
+def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int:
+    """An instrument outside the robot (spec §7): the Cramér–Rao σ of drive, stroke scale and
+    instrument unknowns together, at the nominal drive and the instrument registered on the log
+    (a pose list: the nominal instrument reading the nominal robot at those poses)."""
+    import numpy as np
+
+    from .. import kinematics as kin
+    from ..estimators.batch import BatchProblem, identifiability
+    from ..instruments.external import model_for, registered_platform
+
+    if args.log is not None:
+        log = io.read_log(args.log, platform, args.skip_bad_rows)
+        strokes, readings = log.strokes, log.readings
+        platform = registered_platform(platform, strokes, readings)
+        model = model_for(platform)
+    else:
+        model = model_for(platform)
+        R, t = kin.pose_to_rt(read_pose_list(args.poses))
+        strokes = kin.inverse_kinematics(platform.drive, R, t) / (1.0 + platform.stroke_scale)
+        predicted = model.module.predict(model.nominal_unknowns(), R, t)
+        readings = kin.rt_to_pose(*predicted) if model.kind == "pose" else predicted.reshape(len(R), -1)
+    unknowns = model.nominal_unknowns()
+    problem = BatchProblem(platform.drive, platform.stroke_scale, strokes, readings, model.module, model.register, model.sigmas,
+                           model.channels, model.channel_names, np.arange(len(strokes), dtype=float))
+    report = identifiability(problem, unknowns, model.unknown_names, unknowns.file_jacobian())
+    verdict = "identifiable" if report["condition_number"] is not None else "rank-deficient"
+    print(f"Identifiability of drive, stroke scale and {model.kind} instrument from {len(strokes)} poses: {verdict} "
+          f"(rank {report['rank']}/{report['unknowns']}; condition number {report['condition_number'] or float('inf'):.4g})")
+    print(report["gauge"])
+    print("predicted standard deviation per unknown (Cramér–Rao; mm, dimensionless k, degrees):")
+    items = list(report["predicted_stddev"].items())
+    for start in range(0, len(items), 7):
+        print("  " + "  ".join(f"{name} {'not id' if sd is None else f'{sd:.3g}'}" for name, sd in items[start : start + 7]))
+    if args.json:
+        io.atomic_write_text(args.json, json.dumps({"format": "stewart-calib/identifiability-instrument@1", **report}, indent=2) + "\n")
     return 0
 
 
