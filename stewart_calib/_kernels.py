@@ -286,20 +286,19 @@ def pose_difference(R_v, t_v, R_m, t_m, out):
 
 
 @njit(**_JIT)
-def leg_observation(base, plat, initial_lengths, x, tracker_base, tracker_plat, R, t, strokes, reading_variance, stroke_variance):
-    """The leg-length EKF's observation at the tracker pose ``(R, t)``, fused in one call.
+def leg_observation(base, plat, initial_lengths, x, R, t, strokes, pose_covariance, stroke_variance):
+    """The leg-length EKF's observation at a measured pose ``(R, t)``, fused in one call.
 
     With drive parameters ``M + x``: ``M`` given as ``base (6, 3)``, ``plat (6, 3)``,
     ``initial_lengths (6,)`` (j_i, d_i, l_i) and ``x`` a 42-vector in the paper's order:
 
     * ``r_i = ‖t + R d_i − j_i‖ − (l_i + q_i)`` (kinematics.leg_residuals);
     * ``H = ∂r/∂M``, row i ``[−n_iᵀ, n_iᵀ R, −1]`` in columns 7i…7i+6 (leg_residual_jacobians);
-    * ``R_meas = J_x Σ_x J_xᵀ + σ_q² I`` with ``J_x = ∂r/∂ξ`` and the tracker pose covariance
-      ``Σ_x = σ_s² (J_tᵀ J_t)⁻¹`` (pose_covariance_from_legs), formed as ``σ_s² A Aᵀ`` with
-      ``A = J_x J_t⁻¹`` (one solve of ``J_tᵀ Aᵀ = J_xᵀ``, no inverse).
+    * ``R_meas = J_x Σ_x J_xᵀ + σ_q² I`` with ``J_x = ∂r/∂ξ`` and ``Σ_x`` the measured pose's
+      covariance on the body tangent (the instrument model's loose pose).
 
     Returns:
-        ``(r (6,), H (6, 42), R_meas (6, 6))``.
+        ``(r (6,), H (6, 42), R_meas (6, 6), J_x (6, 6))``.
     """
     j = np.empty((6, 3))
     d = np.empty((6, 3))
@@ -320,23 +319,47 @@ def leg_observation(base, plat, initial_lengths, x, tracker_base, tracker_plat, 
         H[i, 7 * i + 6] = -1.0
     J_x = np.empty((6, 6))
     _pose_jacobian(d, R, n_legs, J_x)
-    _unit_legs(tracker_base, tracker_plat, R, t, n_legs, length)
-    J_t = np.empty((6, 6))
-    _pose_jacobian(tracker_plat, R, n_legs, J_t)
-    J_tT = J_t.T.copy()
-    A_T = J_x.T.copy()
-    if not _solve(J_tT, A_T):  # singular tracker Jacobian: NaN, which the filter rejects
-        A_T[:] = np.nan
-    R_meas = np.empty((6, 6))
+    B = np.zeros((6, 6))  # J_x Σ_x
+    for a in range(6):
+        for b in range(6):
+            s = 0.0
+            for c in range(6):
+                s += J_x[a, c] * pose_covariance[c, b]
+            B[a, b] = s
+    R_meas = _symmetric_product(B, J_x, 1.0)
+    for a in range(6):
+        R_meas[a, a] += stroke_variance
+    return r, H, R_meas, J_x
+
+
+@njit(**_JIT)
+def _symmetric_product(A, B, scale):
+    """``scale · A Bᵀ`` (6×6) for a product known to be symmetric: the upper triangle, mirrored,
+    so the result is exactly symmetric."""
+    out = np.empty((6, 6))
     for a in range(6):
         for b in range(a, 6):
             s = 0.0
             for c in range(6):
-                s += A_T[c, a] * A_T[c, b]
-            R_meas[a, b] = reading_variance * s
-            R_meas[b, a] = R_meas[a, b]
-        R_meas[a, a] += stroke_variance
-    return r, H, R_meas
+                s += A[a, c] * B[b, c]
+            out[a, b] = scale * s
+            out[b, a] = out[a, b]
+    return out
+
+
+@njit(**_JIT)
+def pose_covariance(base, plat, R, t, variance):
+    """``σ² (JᵀJ)⁻¹`` of one FK pose from i.i.d. length noise (kinematics.pose_covariance_from_legs),
+    formed as ``σ² A Aᵀ`` with ``A = J⁻¹`` (one solve of ``J A = I``); NaN when ``J`` is singular."""
+    n_legs = np.empty((6, 3))
+    length = np.empty(6)
+    _unit_legs(base, plat, R, t, n_legs, length)
+    J = np.empty((6, 6))
+    _pose_jacobian(plat, R, n_legs, J)
+    A = np.eye(6)
+    if not _solve(J, A):
+        A[:] = np.nan
+    return _symmetric_product(A, A, variance)
 
 
 # ----------------------------------------------------------------------------- sample checks

@@ -32,12 +32,16 @@ class NoiseConfig:
         random_walk_mm_per_sqrt_s: parameter random walk [mm/√s]: over Δt each parameter's
             variance grows by ``random_walk² Δt`` (paper eq. 15's Q; graph between-factors).
         prior_sigma_mm: prior σ of each δM component [mm] (manufacturing tolerance).
+        stroke_scale_sigma: prior σ of each stroke scale k_i (dimensionless; drive leg
+            ``l_i + (1 + k_i) q_i``, spec §7); 0 leaves the scale out of the unknowns (the
+            encoders' nominal scale is taken as exact).
     """
 
     reading_sigma_mm: float = 0.002
     stroke_sigma_mm: float = 0.001
     random_walk_mm_per_sqrt_s: float = 1e-3
     prior_sigma_mm: float = 5.0
+    stroke_scale_sigma: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,7 @@ class SampleRejected(CalibError):
     GATED = "gated outlier"
     NOT_POSITIVE_DEFINITE = "innovation covariance not positive definite"
     SOLVER = "solver failed"
+    NO_POSE = "measurement fixes no pose"
 
     def __init__(self, message: str, reason: str):
         super().__init__(message)

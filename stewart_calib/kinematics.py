@@ -296,8 +296,12 @@ def pose_covariance_from_legs(legs: LegGeometry, R: np.ndarray, t: np.ndarray, s
     """Covariance of an FK pose in the body tangent ``[ω, v]`` from i.i.d. length noise σ [mm].
 
     First-order propagation ``Σ_ξ = σ² (JᵀJ)⁻¹`` with ``J`` = :func:`leg_pose_jacobian`; this is
-    the *loose* tracker measurement's covariance. ``(..., 6, 6)`` [rad², rad·mm, mm²].
+    the *loose* tracker measurement's covariance. ``(..., 6, 6)`` [rad², rad·mm, mm²]. One pose
+    goes through a compiled kernel (it is computed once per sample online).
     """
+    if np.ndim(R) == 2:
+        c = np.ascontiguousarray
+        return _kernels.pose_covariance(legs.base_joints, legs.platform_joints, c(R, dtype=float), c(t, dtype=float), float(sigma_mm) ** 2)
     J = leg_pose_jacobian(legs, R, t)
     J_inv = np.linalg.inv(J)
     return sigma_mm**2 * J_inv @ np.swapaxes(J_inv, -1, -2)
@@ -306,31 +310,30 @@ def pose_covariance_from_legs(legs: LegGeometry, R: np.ndarray, t: np.ndarray, s
 def leg_ekf_observation(
     drive: LegGeometry,
     delta: np.ndarray,
-    tracker: LegGeometry,
     R: np.ndarray,
     t: np.ndarray,
     strokes: np.ndarray,
-    reading_sigma_mm: float,
+    pose_covariance: np.ndarray,
     stroke_sigma_mm: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The leg-length EKF's whole observation at one tracker pose, in one compiled call.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The leg-length EKF's whole observation at one measured pose, in one compiled call.
 
-    For the drive ``M + δM`` (``drive`` and the 42-vector ``delta``) at the pose ``(R, t)``
-    measured by ``tracker``, equal to (up to rounding)::
+    For the drive ``M + δM`` (``drive`` and the 42-vector ``delta``) at the pose ``(R, t)`` an
+    instrument measured with covariance ``Σ_x`` (body tangent), equal to (up to rounding)::
 
         r = leg_residuals(M + δM, R, t, strokes)
         J_x, H = leg_residual_jacobians(M + δM, R, t)
-        R_meas = J_x @ pose_covariance_from_legs(tracker, R, t, σ_s) @ J_x.T + σ_q² I
+        R_meas = J_x @ Σ_x @ J_x.T + σ_q² I
 
     Returns:
-        ``(r (6,) [mm], H (6, 42), R_meas (6, 6) [mm²])``; NaN in ``R_meas`` if the tracker's
-        Jacobian is singular.
+        ``(r (6,) [mm], H (6, 42), R_meas (6, 6) [mm²], J_x (6, 6))``; NaN in ``R_meas`` if
+        ``Σ_x`` holds NaN (a singular tracker Jacobian).
     """
     c = np.ascontiguousarray  # one array layout, so one compiled signature
     return _kernels.leg_observation(
         drive.base_joints, drive.platform_joints, drive.initial_lengths, c(delta, dtype=float),
-        tracker.base_joints, tracker.platform_joints, c(R, dtype=float), c(t, dtype=float),
-        c(strokes, dtype=float), float(reading_sigma_mm) ** 2, float(stroke_sigma_mm) ** 2,
+        c(R, dtype=float), c(t, dtype=float), c(strokes, dtype=float), c(pose_covariance, dtype=float),
+        float(stroke_sigma_mm) ** 2,
     )
 
 

@@ -159,3 +159,16 @@ def _rigid_motion_rows(joints: np.ndarray, offset: int, size: int) -> np.ndarray
         r = arms[i]
         C[3:6, cols] = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
     return C / np.linalg.norm(C, axis=1, keepdims=True)
+
+
+def gauge_conditioned(covariance: np.ndarray, C: np.ndarray) -> np.ndarray:
+    """``Σ − Σ Cᵀ (C Σ Cᵀ)⁻¹ C Σ``: the Gaussian ``N(0, Σ)`` conditioned on ``C x = 0``.
+
+    A filter started from it (and whose process noise is conditioned too) keeps ``C x = 0``
+    exactly: every gain ``K = P Hᵀ S⁻¹`` then satisfies ``C K = 0``. ``Σ`` itself when C has no rows.
+    """
+    if len(C) == 0:
+        return covariance
+    SC = covariance @ C.T
+    conditioned = covariance - SC @ np.linalg.solve(C @ SC, SC.T)
+    return 0.5 * (conditioned + conditioned.T)

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from stewart_calib import kinematics as kin
-from stewart_calib.factors import drive_leg, random_walk, tracker_leg, tracker_pose
+from stewart_calib.factors import drive_leg, gauge, instrument, instrument_pose, random_walk
+from stewart_calib.instruments.tracker import TrackerModel
+from stewart_calib.unknowns import UnknownLayout
 from tests.numdiff import numerical_jacobian, numerical_pose3_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_error, random_poses
 
@@ -64,25 +66,54 @@ def test_drive_leg_factor_jacobians_match_central_differences(platform, cases):
             assert np.count_nonzero(A[0, 6:]) == 7 and np.all(A[0, 6 + 7 * i : 13 + 7 * i] != 0)
 
 
-def test_tracker_leg_residual_and_jacobian(platform, cases):
+def test_instrument_factor_of_the_tracker_residual_and_jacobian(platform, cases):
     poses, _ = cases
+    model = TrackerModel(platform.tracker, 0.002)
     for pose in poses:
         R, t = pose.rotation().matrix(), pose.translation()
-        readings = kin.inverse_kinematics(platform.tracker, R, t)
-        for i in range(6):
-            f = tracker_leg.factor(X, platform.tracker.params[i], readings[i] - 0.05, UNIT)
+        readings = kin.inverse_kinematics(platform.tracker, R, t) - 0.05
+        for channels in model.groups(readings):
+            f = instrument.factor(model, X, readings, channels, UNIT)
             np.testing.assert_allclose(f.unwhitenedError(_values(pose)), [0.05], atol=1e-9)
             A, _ = f.linearize(_values(pose)).jacobian()
             numeric = numerical_pose3_jacobian(lambda p: f.unwhitenedError(_values(p)), pose)
             assert relative_error(A, numeric) <= 1e-6
 
 
-def test_tracker_pose_prior_equals_gtsam_prior_factor(platform, cases):
+def test_instrument_factor_on_the_unknown_vector_has_the_model_jacobian(platform, cases):
+    # The tracker's geometry as unknowns, placed after δM: ∂r/∂p is the model's ∂r/∂θ in those columns.
+    poses, delta = cases
+    model = TrackerModel(platform.tracker, 0.002, geometry_sigma_mm=0.05)
+    layout = UnknownLayout((model.unknowns,))
+    block = layout.slice("instrument")
+    unknowns = np.r_[delta, np.random.default_rng(1).normal(0.0, 0.05, 42)]
+    pose = poses[0]
+    readings = kin.inverse_kinematics(platform.tracker, pose.rotation().matrix(), pose.translation())
+    f = instrument.factor(model, X, readings, np.array([2]), UNIT, P, block, layout.size)
+    values = _values(pose, unknowns)
+    H_params = f.linearize(values).jacobian()[0][:, 6:]
+    numeric = numerical_jacobian(lambda u: f.unwhitenedError(_values(pose, u)), unknowns)
+    assert relative_error(H_params, numeric) <= 1e-6
+    assert np.all(H_params[:, :42] == 0.0)
+
+
+def test_gauge_factor_is_the_linear_constraint(platform):
+    C = UnknownLayout((TrackerModel(platform.tracker, 0.002, geometry_sigma_mm=0.05).unknowns,)).gauge_rows(platform.drive)
+    x = np.random.default_rng(2).normal(size=C.shape[1])
+    values = gtsam.Values()
+    values.insert(P, x)
+    f = gauge.factor(P, C)
+    np.testing.assert_allclose(f.unwhitenedError(values), C @ x)
+    A, _ = f.linearize(values).jacobian()
+    np.testing.assert_allclose(A * gauge.SIGMA, C)
+
+
+def test_instrument_pose_prior_equals_gtsam_prior_factor(platform, cases):
     poses, _ = cases
     for k, pose in enumerate(poses):
         measured, R, t = pose, pose.rotation().matrix(), pose.translation()
         noise = gtsam.noiseModel.Gaussian.Covariance(kin.pose_covariance_from_legs(platform.tracker, R, t, 0.002))
-        ours, reference = tracker_pose.factor(X, measured, noise), gtsam.PriorFactorPose3(X, measured, noise)
+        ours, reference = instrument_pose.factor(X, measured, noise), gtsam.PriorFactorPose3(X, measured, noise)
         # Far enough from the measurement that Logmap's derivative is not the identity.
         values = _values(measured.retract(np.array([0.05, -0.1, 0.02 * k, 3.0, -4.0, 5.0])))
         assert ours.error(values) == pytest.approx(reference.error(values), rel=1e-12)
@@ -90,18 +121,18 @@ def test_tracker_pose_prior_equals_gtsam_prior_factor(platform, cases):
         (A, b), (A_ref, b_ref) = ours.linearize(values).jacobian(), reference.linearize(values).jacobian()
         assert relative_error(A, A_ref) <= 1e-12
         assert relative_error(b, b_ref) <= 1e-12
-        _, H = tracker_pose.residual(measured, values.atPose3(X), jacobians=True)
-        numeric = numerical_pose3_jacobian(lambda p: tracker_pose.residual(measured, p)[0], values.atPose3(X))
+        _, H = instrument_pose.residual(measured, values.atPose3(X), jacobians=True)
+        numeric = numerical_pose3_jacobian(lambda p: instrument_pose.residual(measured, p)[0], values.atPose3(X))
         assert relative_error(H, numeric) <= 1e-6
 
 
 def test_random_walk_sigma_and_between_factor():
     assert random_walk.sigma_mm(1e-3, 4.0, 1e-5) == pytest.approx(2e-3)
     assert random_walk.sigma_mm(0.0, 4.0, 1e-5) == 1e-5  # the near-hard floor at walk 0
-    f = random_walk.factor(1, 2, 0.5)
+    f = random_walk.factor(1, 2, np.full(42, 0.5))
     values = gtsam.Values()
     values.insert(1, np.ones(42))
     values.insert(2, np.arange(42.0))
     np.testing.assert_allclose(f.whitenedError(values), (np.arange(42.0) - 1.0) / 0.5)
-    prior = random_walk.prior(1, 5.0)
+    prior = random_walk.prior(1, np.full(42, 5.0))
     assert prior.error(values) == pytest.approx(0.5 * 42 / 25.0)

@@ -24,15 +24,21 @@ def test_leg_ekf_observation_equals_its_numpy_definition(k):
     R, t = kin.pose_to_rt(POSES[k])
     strokes = kin.inverse_kinematics(drive, R, t) + rng.normal(0.0, 0.5, 6)
     sigma_s, sigma_q = 0.002, 0.001
-    r, H, R_meas = kin.leg_ekf_observation(drive, delta, tracker, R, t, strokes, sigma_s, sigma_q)
+    # One pose goes through the compiled covariance, a batch of one through numpy's inverse.
+    pose_cov = kin.pose_covariance_from_legs(tracker, R, t, sigma_s)
+    pose_cov_ref = kin.pose_covariance_from_legs(tracker, R[None], t[None], sigma_s)[0]
+    # a solve instead of an explicit inverse: relative rounding of cond(J_t) · 1e-16.
+    np.testing.assert_allclose(pose_cov, pose_cov_ref, rtol=1e-10, atol=1e-12 * np.abs(pose_cov_ref).max())
+    np.testing.assert_array_equal(pose_cov, pose_cov.T)
+    r, H, R_meas, J_x = kin.leg_ekf_observation(drive, delta, R, t, strokes, pose_cov, sigma_q)
 
     model = drive.perturbed(delta)
-    J_x, H_ref = kin.leg_residual_jacobians(model, R, t)
-    R_ref = J_x @ kin.pose_covariance_from_legs(tracker, R, t, sigma_s) @ J_x.T + sigma_q**2 * np.eye(6)
+    J_x_ref, H_ref = kin.leg_residual_jacobians(model, R, t)
+    R_ref = J_x_ref @ pose_cov @ J_x_ref.T + sigma_q**2 * np.eye(6)
     # Same formulas, different evaluation order: rounding only (lengths ~1e3 mm → 1e-12 mm).
     np.testing.assert_allclose(r, kin.leg_residuals(model, R, t, strokes), rtol=0, atol=1e-10)
     np.testing.assert_allclose(H, H_ref, rtol=0, atol=1e-13)
-    # R_meas via a solve instead of an explicit inverse: relative rounding of cond(J_t) · 1e-16.
+    np.testing.assert_allclose(J_x, J_x_ref, rtol=0, atol=1e-10)
     np.testing.assert_allclose(R_meas, R_ref, rtol=1e-10, atol=1e-12 * np.abs(R_ref).max())
     np.testing.assert_array_equal(R_meas, R_meas.T)
 

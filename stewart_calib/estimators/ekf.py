@@ -1,17 +1,24 @@
 """EKF on the leg-length model: the same model and noise as the factor graph.
 
-State ``X = δM`` (42, paper order). Observation per sample: the six drive-leg residuals
-``r_i = ‖t + R d_i − j_i‖ − (l_i + q_i)`` at the tracker's pose (FK of the readings), with
-``(j_i, d_i, l_i)`` of the current model ``M + X``; the expected value is 0, so the
-innovation is ``−r`` and ``H = ∂r/∂M``.
+State ``X`` = the unknown vector (:mod:`stewart_calib.unknowns`): δM (42, paper order), then the
+stroke scale ``k1…k6`` where configured and the instrument model's own unknowns ``θ``.
+Observation per sample: the six drive-leg residuals
+``r_i = ‖t + R d_i − j_i‖ − (l_i + (1 + k_i) q_i)`` at the pose the instrument measured (its
+model's loose pose: for the tracker, FK of the readings), with ``(j_i, d_i, l_i)`` of the
+current model ``M + δM``; the expected value is 0, so the innovation is ``−r`` and
+``H = ∂r/∂X``: ``∂r/∂M``, ``−q_i`` on ``k_i``, and ``J_x ∂ξ/∂θ`` on θ (the measured pose moves
+with the instrument's unknowns). The filter never names an instrument.
 
-Measurement covariance: ``J_x Σ_x J_xᵀ + σ_q² I`` (full 6×6), with ``Σ_x`` the tracker pose
-covariance from i.i.d. reading noise ``σ_s`` (``pose_covariance_from_legs``) and ``J_x`` the
-residuals' pose Jacobian — all six residuals share the one tracker pose, so their errors
-are correlated; with ``σ² I`` alone this filter diverges (docs/measured-facts.md).
+Measurement covariance: ``J_x Σ_x J_xᵀ + σ_q² I`` (full 6×6), with ``Σ_x`` the measured pose's
+covariance (for the tracker propagated from i.i.d. reading noise σ_s) and ``J_x`` the
+residuals' pose Jacobian — all six residuals share the one measured pose, so their errors are
+correlated; with ``σ² I`` alone this filter diverges (docs/measured-facts.md).
 
-Process noise: a random walk per parameter, ``Q = ρ² Δt I`` with ``ρ`` =
-``noise.random_walk_mm_per_sqrt_s`` and ``Δt`` between samples (``t_s``), as in the graph.
+Process noise: a random walk of δM, ``Q = ρ² Δt`` on its entries with ``ρ`` =
+``noise.random_walk_mm_per_sqrt_s`` and ``Δt`` between samples (``t_s``), as in the graph; the
+other blocks are constant. Gauge: where the instrument's unknowns share the drive's gauge, the
+prior and ``Q`` are conditioned on ``C X = 0`` (:func:`~stewart_calib.unknowns.gauge_conditioned`),
+so every state holds the base and platform joints' mean rigid motion at nominal exactly.
 """
 
 from __future__ import annotations
@@ -21,13 +28,15 @@ import math
 import numpy as np
 
 from .. import kinematics as kin
-from ..errors import SampleRejected
-from ..platform import Platform
-from ..samples import Sample
-from ..estimate import Estimate
 from ..config import EstimatorConfig
+from ..errors import SampleRejected
+from ..estimate import Estimate
+from ..instruments import instrument_model, instrument_theta
+from ..platform import N_PARAMS, Platform
+from ..samples import Sample
+from ..unknowns import gauge_conditioned
 from .kalman import FilterState
-from .measurement import WarmFK, check_sample
+from .measurement import WarmPose, check_sample, unknown_layout
 
 
 class LegEKF:
@@ -42,40 +51,70 @@ class LegEKF:
     def __init__(self, platform: Platform, config: EstimatorConfig):
         self.platform = platform
         self.noise = config.noise
-        self.filter = FilterState(self.name, config.noise.prior_sigma_mm, config.ekf.gate_probability)
-        self._tracker_fk = WarmFK()
+        self.model = instrument_model(platform, config.noise)
+        self.layout = unknown_layout(config.noise, self.model)
+        C = self.layout.gauge_rows(platform.drive)
+        self.filter = FilterState(
+            self.name, config.noise.prior_sigma_mm, config.ekf.gate_probability, layout=self.layout, C=C
+        )
+        # Q per unit ρ²Δt: the walking entries, conditioned on the gauge (None: the plain diagonal).
+        walks = self.layout.walks()
+        self._unit_Q = None if walks.all() and len(C) == 0 else gauge_conditioned(np.diag(walks.astype(float)), C)
+        self._scale = self.layout.slice("stroke_scale")
+        self._instrument = self.layout.slice("instrument")
+        self._pose = WarmPose(self.model)
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample; ``SampleRejected`` leaves the state untouched."""
-        strokes, readings = check_sample(self.platform, sample)
+        strokes, z = check_sample(self.platform, self.model, sample)
         last_t_s = self.filter.t_s
         dt_s = 0.0 if math.isnan(last_t_s) else sample.t_s - last_t_s
         if dt_s < 0.0:
             raise SampleRejected(
                 f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)", SampleRejected.TIME_BACK
             )
-        R_v, t_v = self._tracker_fk.solve(self.platform.tracker, readings, "tracker")
-        # r, H = ∂r/∂M and R_meas = J_x Σ_x J_xᵀ + σ_q² I at the model M + X, in one compiled call.
-        residual, H, R_meas = kin.leg_ekf_observation(
-            self.platform.drive, self.filter.x, self.platform.tracker, R_v, t_v, strokes,
-            self.noise.reading_sigma_mm, self.noise.stroke_sigma_mm,
+        x = self.filter.x
+        theta = instrument_theta(self.model, None if self._instrument is None else x[self._instrument])
+        observed = self._pose.solve(z, theta)
+        if observed is None:
+            raise SampleRejected(
+                f"ekf: sample at t = {sample.t_s} s: the measurement does not fix a pose", SampleRejected.NO_POSE
+            )
+        scale = 1.0 if self._scale is None else 1.0 + x[self._scale]
+        # r, H = ∂r/∂M and R_meas = J_x Σ_x J_xᵀ + σ_q² I at the model M + δM, in one compiled call.
+        residual, H_drive, R_meas, J_x = kin.leg_ekf_observation(
+            self.platform.drive, x[:N_PARAMS], observed.R, observed.t, strokes * scale, observed.covariance,
+            self.noise.stroke_sigma_mm,
         )
-        np.fill_diagonal(self.filter.Q, self.noise.random_walk_mm_per_sqrt_s**2 * dt_s)
+        H = H_drive
+        if self.layout.blocks:
+            H = np.zeros((6, self.layout.size))
+            H[:, :N_PARAMS] = H_drive
+            if self._scale is not None:
+                H[:, self._scale] = np.diag(-strokes)
+            if self._instrument is not None:
+                H[:, self._instrument] = J_x @ observed.J_instrument
+        step = self.noise.random_walk_mm_per_sqrt_s**2 * dt_s
+        if self._unit_Q is None:
+            np.fill_diagonal(self.filter.Q, step)
+        else:
+            np.multiply(self._unit_Q, step, out=self.filter.Q)
         self.filter.update(H, -residual, R_meas, sample.t_s)
 
     def estimate(self) -> Estimate:
-        """``δM`` and ``P`` after the last accepted sample."""
+        """The unknown vector and ``P`` after the last accepted sample."""
         return self.filter.estimate()
 
     def current_error(self) -> np.ndarray:
         """δM [mm] after the last accepted sample."""
-        return self.filter.x.copy()
+        return self.filter.x[:N_PARAMS].copy()
 
     def export_state(self) -> dict:
-        """Filter and FK warm start as arrays (checkpoints; :meth:`import_state` restores)."""
-        return {"filter": self.filter.export_state(), "tracker_fk": self._tracker_fk.export_state()}
+        """Filter and pose warm start as arrays (checkpoints; :meth:`import_state` restores).
+        The warm start keeps its first key, ``tracker_fk``, so earlier checkpoints still load."""
+        return {"filter": self.filter.export_state(), "tracker_fk": self._pose.export_state()}
 
     def import_state(self, state: dict) -> None:
         """Restore :meth:`export_state` exactly. Raises ``CalibError`` on a bad key or shape."""
         self.filter.import_state(state.get("filter", {}))
-        self._tracker_fk.import_state(state.get("tracker_fk", {}))
+        self._pose.import_state(state.get("tracker_fk", {}))

@@ -1,17 +1,25 @@
 """The factor graph that ``isam2`` (:mod:`.isam2`) and ``lm`` (:mod:`.lm`) both solve.
 
 Variables: one ``Pose3`` ``x_k`` per sample (the platform {D} in {J}, mm and rad) and one
-42-vector ``p_w`` per parameter window holding δM (paper eq. 9, paper order, [mm]).
+unknown vector ``p_w`` per parameter window: δM (paper eq. 9, paper order, [mm]) followed by
+the layout's blocks (:mod:`stewart_calib.unknowns`: stroke scale, the instrument's unknowns).
 Factors of sample k (all from :mod:`stewart_calib.factors`):
 
-* six drive-leg factors on ``(x_k, p_w)``: ``‖t + R d_i − j_i‖ − (l_i + q_i)``, σ_q;
-* tight coupling: six tracker-leg factors on ``x_k``: ``‖t + R h_i − z_i‖ − (ls_i + s_i)``, σ_s;
-  loose coupling: one pose prior on ``x_k`` from tracker FK, covariance propagated from σ_s;
-* per window: a random-walk between factor ``p_w → p_{w+1}``, σ = random_walk·√Δt (at least
-  ``chain_sigma_floor_mm``); on ``p_0`` the manufacturing prior N(0, prior_sigma² I).
+* six drive-leg factors on ``(x_k, p_w)``: ``‖t + R d_i − j_i‖ − (l_i + (1 + k_i) q_i)``, σ_q
+  (``k_i`` = 0 without the stroke-scale block);
+* tight coupling: the instrument's factors (:mod:`stewart_calib.factors.instrument`), one per
+  channel group of its model — for the tracker one per ruler, ``‖t + R h_i − z_i‖ − (ls_i + s_i)``, σ_s;
+  loose coupling: one pose prior on ``x_k`` from the model's loose pose and its covariance
+  (:mod:`stewart_calib.factors.instrument_pose`) where the measurement fixes a pose and the
+  instrument has no unknowns (a prior could not follow them); otherwise the tight factors;
+* per window: a random-walk between factor ``p_w → p_{w+1}``, σ = random_walk·√Δt on δM (at
+  least ``chain_sigma_floor_mm``, the floor alone on constant blocks); on ``p_0`` the prior
+  N(0, diag(σ²)) (``prior_sigma_mm`` on δM, each block's own); where a block shares the drive's
+  gauge, the constraint ``C p_w = 0`` on every ``p_w`` (:mod:`stewart_calib.factors.gauge`).
 
-Measurement factors may carry a Huber or Cauchy kernel (``[isam2] robust``). The initial
-value of ``x_k`` is tracker FK warm-started from the previous sample's pose.
+Measurement factors may carry a Huber or Cauchy kernel (``[isam2] robust``). The initial value
+of ``x_k`` is the instrument's loose pose (the tracker's FK) warm-started from the previous
+sample's pose, or the drive model's FK where the measurement does not fix a pose.
 
 Parameter layout: one 42-vector per window, not six 7-vectors per leg. Smoother update alone,
 1000 noisy samples, window 10 samples, lag 3 s, QR: median 0.48 ms (42-vector) against 0.56 ms
@@ -31,10 +39,12 @@ from .. import kinematics as kin
 from ..config import EstimatorConfig
 from ..errors import SampleRejected
 from ..estimate import Estimate
-from ..factors import drive_leg, random_walk, tracker_leg, tracker_pose
+from ..factors import diagonal_noise, drive_leg, gauge, instrument, instrument_pose, random_walk
+from ..instruments import instrument_model, instrument_theta
 from ..platform import N_LEGS, N_PARAMS, Platform
+from ..unknowns import UnknownLayout
 from ..samples import Sample
-from .measurement import check_sample
+from .measurement import check_sample, unknown_layout
 
 
 def pose_key(k: int) -> int:
@@ -103,11 +113,29 @@ class GraphBuilder:
         self.noise = config.noise
         self.graph = config.isam2
         self.chain = chain
+        self.model = instrument_model(platform, config.noise)
+        self.layout: UnknownLayout = unknown_layout(config.noise, self.model)
         self._nominal = platform.drive.params
-        self._tracker = platform.tracker.params
-        robust = (self.graph.robust, self.graph.robust_k)
-        self._stroke_noise = robust_noise(gtsam.noiseModel.Isotropic.Sigma(1, self.noise.stroke_sigma_mm), *robust)
-        self._reading_noise = robust_noise(gtsam.noiseModel.Isotropic.Sigma(1, self.noise.reading_sigma_mm), *robust)
+        self._robust = (self.graph.robust, self.graph.robust_k)
+        self._stroke_noise = robust_noise(gtsam.noiseModel.Isotropic.Sigma(1, self.noise.stroke_sigma_mm), *self._robust)
+        self._group_noise: dict[tuple[int, ...], gtsam.noiseModel.Base] = {}
+        self._scale = self.layout.slice("stroke_scale")
+        self._instrument = self.layout.slice("instrument")
+        self._prior_sigma = self.layout.prior_sigma(self.noise.prior_sigma_mm)
+        self._walks = self.layout.walks()
+        self._gauge = self.layout.gauge_rows(platform.drive)
+
+    def _noise(self, channels: np.ndarray) -> gtsam.noiseModel.Base:
+        """The (robust) noise model of one channel group, made once per distinct group."""
+        key = tuple(int(c) for c in channels)
+        if key not in self._group_noise:
+            self._group_noise[key] = robust_noise(diagonal_noise(self.model.channel_sigma[list(key)]), *self._robust)
+        return self._group_noise[key]
+
+    def _new_variable(self, factors: gtsam.NonlinearFactorGraph, key: int) -> None:
+        """What every parameter variable carries: the gauge constraint, where a block shares it."""
+        if len(self._gauge):
+            factors.add(gauge.factor(key, self._gauge))
 
     def new_window(self, state: ChainState, t_s: float) -> bool:
         """Whether ``sample`` at ``t_s`` opens a new parameter variable after ``state``."""
@@ -121,18 +149,29 @@ class GraphBuilder:
         """Factors, values and timestamps of ``sample`` and the state after it.
 
         Args:
-            params_guess: callable returning the current δM estimate [mm], the initial value
-                of a new parameter variable.
+            params_guess: callable returning the current unknown vector [code units], the
+                initial value of a new parameter variable.
         Raises:
-            SampleRejected: non-finite data, time going backwards, or tracker FK failure;
-                nothing is changed (the caller keeps ``state``).
+            SampleRejected: non-finite data, time going backwards, or FK failure; nothing is
+                changed (the caller keeps ``state``).
         """
-        strokes, readings = check_sample(self.platform, sample)
+        strokes, z = check_sample(self.platform, self.model, sample)
         if sample.t_s < state.last_t_s:
             raise SampleRejected(
                 f"sample at t = {sample.t_s} s is older than the last one ({state.last_t_s} s)", SampleRejected.TIME_BACK
             )
-        R, t = kin.solve_fk(self.platform.tracker, readings, state.last_pose, "tracker")
+        # The current estimate, asked for only where it is needed (isam2 pays a smoother query).
+        wanted = state.samples > 0 and (self._instrument is not None or self.new_window(state, sample.t_s))
+        guess = params_guess() if wanted else None
+        theta = instrument_theta(self.model, None if guess is None or self._instrument is None else guess[self._instrument])
+        observed = self.model.pose(z, theta, state.last_pose)
+        if observed is not None:
+            R, t = observed.R, observed.t
+        else:  # the measurement alone does not fix a pose: start from the drive model's
+            if guess is None and state.samples > 0:
+                guess = params_guess()
+            drive = self.platform.drive.perturbed(np.zeros(N_PARAMS) if guess is None else guess[:N_PARAMS])
+            R, t = kin.solve_fk(drive, self._scaled(strokes, guess), state.last_pose, "drive model")
         pose = gtsam.Pose3(gtsam.Rot3(R), t)
 
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -140,27 +179,33 @@ class GraphBuilder:
         values.insert(x, pose)
         if k == 0:
             state = replace(state, window_start_s=sample.t_s)
-            values.insert(params_key(0), np.zeros(N_PARAMS))
-            factors.add(random_walk.prior(params_key(0), self.noise.prior_sigma_mm))
+            values.insert(params_key(0), np.zeros(self.layout.size))
+            factors.add(random_walk.prior(params_key(0), self._prior_sigma))
+            self._new_variable(factors, params_key(0))
         elif self.new_window(state, sample.t_s):
             w = state.window
             sigma = random_walk.sigma_mm(
                 self.noise.random_walk_mm_per_sqrt_s, sample.t_s - state.window_start_s, self.graph.chain_sigma_floor_mm
             )
-            values.insert(params_key(w + 1), params_guess())
-            factors.add(random_walk.factor(params_key(w), params_key(w + 1), sigma))
+            values.insert(params_key(w + 1), guess)
+            sigmas = np.where(self._walks, sigma, self.graph.chain_sigma_floor_mm)
+            factors.add(random_walk.factor(params_key(w), params_key(w + 1), sigmas))
+            self._new_variable(factors, params_key(w + 1))
             state = replace(state, window=w + 1, window_start_s=sample.t_s, window_samples=0)
         p = params_key(state.window)
 
-        if self.graph.coupling == "tight":
-            for i in range(N_LEGS):
-                factors.add(tracker_leg.factor(x, self._tracker[i], readings[i], self._reading_noise))
+        if self.graph.coupling == "loose" and observed is not None and self._instrument is None:
+            noise = robust_noise(gtsam.noiseModel.Gaussian.Covariance(observed.covariance), *self._robust)
+            factors.add(instrument_pose.factor(x, pose, noise))
         else:
-            cov = kin.pose_covariance_from_legs(self.platform.tracker, R, t, self.noise.reading_sigma_mm)
-            noise = robust_noise(gtsam.noiseModel.Gaussian.Covariance(cov), self.graph.robust, self.graph.robust_k)
-            factors.add(tracker_pose.factor(x, pose, noise))
+            unknowns = () if self._instrument is None else (p, self._instrument, self.layout.size)
+            for channels in self.model.groups(z):
+                factors.add(instrument.factor(self.model, x, z, channels, self._noise(channels), *unknowns))
         for i in range(N_LEGS):
-            factors.add(drive_leg.factor(x, p, i, self._nominal[i], strokes[i], self._stroke_noise))
+            factors.add(drive_leg.factor(
+                x, p, i, self._nominal[i], strokes[i], self._stroke_noise, self.layout.size,
+                None if self._scale is None else self._scale.start + i,
+            ))
 
         # The current parameter key is re-stamped every update so the smoother never
         # marginalises the variable new factors are about to touch (docs/measured-facts.md).
@@ -174,6 +219,12 @@ class GraphBuilder:
         )
         return Epoch(factors, values, timestamps, state)
 
+    def _scaled(self, strokes: np.ndarray, guess: np.ndarray | None) -> np.ndarray:
+        """``(1 + k_i) q_i`` [mm] with the stroke scale of ``guess`` (the strokes as read without one)."""
+        if self._scale is None or guess is None:
+            return strokes
+        return strokes * (1.0 + guess[self._scale])
+
     def prior_estimate(self, method: str) -> Estimate:
-        """The estimate before any sample: δM = 0 with the manufacturing prior's covariance."""
-        return Estimate(np.zeros(N_PARAMS), self.noise.prior_sigma_mm**2 * np.eye(N_PARAMS), method)
+        """The estimate before any sample: every error 0 with the prior's covariance."""
+        return Estimate.of_state(np.zeros(self.layout.size), np.diag(self._prior_sigma**2), self.layout, method)

@@ -61,7 +61,7 @@ class ISAM2Estimator:
         mm, rad = config.isam2.relinearize_threshold_mm, config.isam2.relinearize_threshold_rad
         thresholds = gtsam.ISAM2ThresholdMap()  # per variable type: poses mix rad and mm
         thresholds.insert(("x", np.r_[[rad] * 3, [mm] * 3]))
-        thresholds.insert(("p", np.full(N_PARAMS, mm)))
+        thresholds.insert(("p", np.full(self._builder.layout.size, mm)))
         params.setRelinearizeThreshold(thresholds)
         params.relinearizeSkip = 1
         # Reuse the slots of removed factors so the factor index stays bounded too.
@@ -143,19 +143,16 @@ class ISAM2Estimator:
             covariance = self._smoother.marginalCovariance(p)
         except RuntimeError as err:  # gtsam's C++ exceptions: a graph that does not determine δM
             raise CalibError(f"isam2: the marginal covariance failed: {first_paragraph(err)}") from None
-        return Estimate(
-            self._smoother.calculateEstimateVector(p),
-            covariance,
-            self.name,
-            self._state.samples,
-            self._state.last_t_s,
+        return Estimate.of_state(
+            self._smoother.calculateEstimateVector(p), covariance, self._builder.layout, self.name,
+            self._state.samples, self._state.last_t_s,
         )
 
     def current_error(self) -> np.ndarray:
         """δM of the current parameter variable [mm], without the marginal covariance."""
         if self._state.samples == 0:
             return self._builder.prior_estimate(self.name).error
-        return self._smoother.calculateEstimateVector(params_key(self._state.window))
+        return self._current_params()[:N_PARAMS]
 
     def graph_size(self) -> tuple[int, int]:
         """``(factors, variables)`` held by the smoother now."""
@@ -170,7 +167,7 @@ class ISAM2Estimator:
             "replay": {
                 "t_s": np.array([s.t_s for s in samples], dtype=float),
                 "strokes": np.array([s.strokes for s in samples], dtype=float).reshape(-1, N_LEGS),
-                "readings": np.array([s.readings for s in samples], dtype=float).reshape(-1, N_LEGS),
+                "readings": np.array([s.readings for s in samples], dtype=float).reshape(len(samples), -1),
             },
         }
         first = self._first_snapshot()
@@ -190,13 +187,14 @@ class ISAM2Estimator:
         replay = state.get("replay", {})
         t_s = state_array(replay, "t_s", np.shape(replay.get("t_s", ())))
         strokes = state_array(replay, "strokes", (len(t_s), N_LEGS))
-        readings = state_array(replay, "readings", (len(t_s), N_LEGS))
+        readings = state_array(replay, "readings", (len(t_s), len(self._builder.model.columns)))
         target = _chain_from_dict(state.get("chain", {}))
         first = None
         if "snapshot" in state:
             snapshot = state["snapshot"]
-            mean = state_array(snapshot, "mean", (N_PARAMS,))
-            covariance = state_array(snapshot, "covariance", (N_PARAMS, N_PARAMS))
+            size = self._builder.layout.size
+            mean = state_array(snapshot, "mean", (size,))
+            covariance = state_array(snapshot, "covariance", (size, size))
             if not np.all(np.isfinite(covariance)) or np.any(np.linalg.eigvalsh(covariance) <= 0.0):
                 raise CalibError("estimator state: snapshot covariance is not positive definite")
             first = _Snapshot(_chain_from_dict(snapshot.get("chain", {})), mean, covariance, 0)

@@ -26,6 +26,7 @@ from scipy.stats import chi2
 from .._jit import njit
 from ..errors import CalibError, SampleRejected
 from ..platform import N_PARAMS
+from ..unknowns import UnknownLayout, gauge_conditioned
 from ..estimate import Estimate
 from .base import state_array
 
@@ -194,19 +195,29 @@ class FilterState:
 
     Args:
         method: the estimator's name, for the estimate and messages.
-        prior_sigma_mm: initial ``P = σ² I`` [mm²].
+        prior_sigma_mm: σ of δM's prior [mm]; initial ``P = σ² I`` on δM.
         gate_probability: χ² gate probability with ``m`` degrees of freedom, 0 = off.
-        n: state size; m: observation size.
+        m: observation size.
+        layout: the unknown vector (default: δM alone); its blocks start from their own prior
+            σ, and ``P`` is conditioned on the gauge constraints ``C`` (``C x = 0`` then holds
+            for every state; the caller conditions its process noise the same way).
+        C: the gauge rows (:meth:`~stewart_calib.unknowns.UnknownLayout.gauge_rows`), or None.
     """
 
-    def __init__(self, method: str, prior_sigma_mm: float, gate_probability: float, n: int = N_PARAMS, m: int = 6):
+    def __init__(
+        self, method: str, prior_sigma_mm: float, gate_probability: float, m: int = 6,
+        layout: UnknownLayout | None = None, C: np.ndarray | None = None,
+    ):
         if not 0.0 <= gate_probability < 1.0:
             raise CalibError(f"{method}: gate_probability must lie in [0, 1), got {gate_probability}")
         if not prior_sigma_mm > 0.0:
             raise CalibError(f"{method}: noise.prior_sigma_mm must be positive, got {prior_sigma_mm}")
         self.method = method
+        self.layout = layout or UnknownLayout()
+        n = self.layout.size
         self.x = np.zeros(n)
-        self.P = np.eye(n) * prior_sigma_mm**2
+        prior = np.diag(self.layout.prior_sigma(prior_sigma_mm) ** 2)
+        self.P = prior if C is None else gauge_conditioned(prior, C)
         self.Q = np.zeros((n, n))
         self.gate_nis = float(chi2.ppf(gate_probability, m)) if gate_probability > 0.0 else math.inf
         self.samples_used = 0
@@ -237,7 +248,7 @@ class FilterState:
         self.t_s = t_s
 
     def estimate(self) -> Estimate:
-        return Estimate(self.x.copy(), self.P.copy(), self.method, self.samples_used, self.t_s)
+        return Estimate.of_state(self.x, self.P, self.layout, self.method, self.samples_used, self.t_s)
 
     def export_state(self) -> dict:
         """Everything :meth:`update` reads or writes, as arrays (checkpoints)."""

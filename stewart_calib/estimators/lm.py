@@ -71,7 +71,8 @@ class BatchLM(BufferedFit):
                 covariance = gtsam.Marginals(self._graph, self._values).marginalCovariance(p)
             except RuntimeError as err:  # gtsam's C++ exceptions: a graph that does not determine δM
                 raise CalibError(f"lm: the solve failed: {first_paragraph(err)}") from None
-            self._solved = Estimate(
-                self._values.atVector(p), covariance, self.name, self._state.samples, self._state.last_t_s
+            self._solved = Estimate.of_state(
+                self._values.atVector(p), covariance, self._builder.layout, self.name, self._state.samples,
+                self._state.last_t_s,
             )
         return self._solved

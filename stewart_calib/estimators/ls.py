@@ -23,13 +23,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .. import kinematics as kin
+from ..config import EstimatorConfig, LSConfig
 from ..errors import CalibError, SampleRejected
+from ..estimate import Estimate
 from ..platform import N_PARAMS, LegGeometry, Platform
 from ..samples import Sample
-from ..estimate import Estimate
 from .base import BufferedFit
-from ..config import EstimatorConfig, LSConfig
-from .measurement import WarmFK, check_sample, pose_difference
+from .measurement import WarmPose, check_sample, drive_only_model, measured_pose, pose_difference
 
 #: prior σ the stroke-scale block declares (10 %); ls itself takes no prior
 STROKE_SCALE_PRIOR = 0.1
@@ -122,7 +122,9 @@ class LeastSquares(BufferedFit):
             from ..instruments.external import model_for
 
             self._external = model_for(platform)
-        self._fk = WarmFK()
+        else:
+            self.model = drive_only_model(self.name, platform, config)
+            self._pose = WarmPose(self.model)
         self._strokes: list[np.ndarray] = []
         self._R_v: list[np.ndarray] = []
         self._t_v: list[np.ndarray] = []
@@ -140,8 +142,8 @@ class LeastSquares(BufferedFit):
             self._t_v.append(sample.t_s)
             self._t_s = sample.t_s
             return
-        strokes, readings = check_sample(self.platform, sample)
-        R_v, t_v = self._fk.solve(self.platform.tracker, readings, "tracker")
+        strokes, z = check_sample(self.platform, self.model, sample)
+        R_v, t_v = measured_pose(self._pose, z, sample.t_s)
         self._strokes.append(strokes)
         self._R_v.append(R_v)
         self._t_v.append(t_v)

@@ -1,10 +1,14 @@
 """From one sample to what the estimators observe (paper Fig. 3, steps 1–2).
 
 * :func:`check_sample` — refuse an unusable sample (non-finite, outside the platform's
-  ranges) with :class:`~stewart_calib.errors.SampleRejected` before any state is touched.
+  stroke range, refused by the instrument model) with
+  :class:`~stewart_calib.errors.SampleRejected` before any state is touched.
+* :func:`unknown_layout` — the unknown vector an estimator identifies: δM, then the stroke
+  scale where configured, then the instrument model's own unknowns.
 * :class:`WarmFK` — forward kinematics of one leg set, warm-started from the previous
   solution (2 Newton iterations instead of 4–5 on a smooth trajectory), falling back to
   a cold start before giving up; FK failure becomes ``SampleRejected``.
+* :class:`WarmPose` — the same for an instrument model's loose pose.
 * :func:`pose_difference` — ``P_v − P_m`` as the paper's ``δE = [δh, δθ]`` (eq. 9).
 """
 
@@ -16,54 +20,69 @@ import numpy as np
 
 from .. import _kernels
 from .. import kinematics as kin
-from ..errors import SampleRejected
+from ..config import EstimatorConfig, NoiseConfig
+from ..errors import CalibError, SampleRejected
+from ..instruments import InstrumentModel, PoseObservation, instrument_model
 from ..platform import LegGeometry, Platform
 from ..samples import Sample
+from ..unknowns import UnknownLayout, stroke_scale_block
 from .base import state_array
 
 
-def check_sample(platform: Platform, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
-    """Strokes and readings of ``sample`` as float arrays, or :class:`SampleRejected`.
+def check_sample(platform: Platform, model: InstrumentModel, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
+    """Strokes and the instrument's measurement of ``sample`` as float arrays, or :class:`SampleRejected`.
 
-    Refuses non-finite values and values outside ``platform.stroke_range`` /
-    ``platform.reading_range`` (inclusive bounds, spec §3).
+    Refuses a non-finite time, non-finite strokes or strokes outside ``platform.stroke_range``
+    (inclusive bounds, spec §3), then whatever ``model.check`` refuses.
     """
     strokes = np.asarray(sample.strokes, dtype=float)
-    readings = np.asarray(sample.readings, dtype=float)
-    # Fast path for the common, valid sample (~1 µs; the loop below costs ~8 µs): any doubt
-    # falls through to it, which finds the offending value and words the rejection.
-    if strokes.shape == (6,) and readings.shape == (6,) and math.isfinite(sample.t_s):
-        s_lo, s_hi = platform.stroke_range if platform.stroke_range is not None else (-math.inf, math.inf)
-        r_lo, r_hi = platform.reading_range if platform.reading_range is not None else (-math.inf, math.inf)
-        if _kernels.all_within(strokes, float(s_lo), float(s_hi)) and _kernels.all_within(readings, float(r_lo), float(r_hi)):
-            return strokes, readings
-    if not np.isfinite(sample.t_s):
-        raise SampleRejected(f"sample at t = {sample.t_s} s: non-finite time", SampleRejected.NON_FINITE)
-    for values, bounds, what in (
-        (strokes, platform.stroke_range, "stroke q"),
-        (readings, platform.reading_range, "reading s"),
-    ):
-        if values.shape != (6,):
+    lo, hi = platform.stroke_range if platform.stroke_range is not None else (-math.inf, math.inf)
+    # Fast path for the common, valid sample (~1 µs; the wording below costs ~8 µs).
+    if not (strokes.shape == (6,) and math.isfinite(sample.t_s) and _kernels.all_within(strokes, float(lo), float(hi))):
+        if not np.isfinite(sample.t_s):
+            raise SampleRejected(f"sample at t = {sample.t_s} s: non-finite time", SampleRejected.NON_FINITE)
+        if strokes.shape != (6,):
             raise SampleRejected(
-                f"sample at t = {sample.t_s} s: expected 6 {what} values, got shape {values.shape}",
+                f"sample at t = {sample.t_s} s: expected 6 stroke q values, got shape {strokes.shape}",
                 SampleRejected.NON_FINITE,
             )
-        bad = np.flatnonzero(~np.isfinite(values))
+        bad = np.flatnonzero(~np.isfinite(strokes))
         if bad.size:
-            raise SampleRejected(f"sample at t = {sample.t_s} s: {what}{bad[0] + 1} is not finite", SampleRejected.NON_FINITE)
-        if bounds is not None:
-            bad = np.flatnonzero((values < bounds[0]) | (values > bounds[1]))
-            if bad.size:
-                i = int(bad[0])
-                raise SampleRejected(
-                    f"sample at t = {sample.t_s} s: {what}{i + 1} = {values[i]:.6g} mm outside "
-                    f"[{bounds[0]}, {bounds[1]}] mm",
-                    SampleRejected.OUT_OF_RANGE,
-                )
-    return strokes, readings
+            raise SampleRejected(f"sample at t = {sample.t_s} s: stroke q{bad[0] + 1} is not finite", SampleRejected.NON_FINITE)
+        i = int(np.flatnonzero((strokes < lo) | (strokes > hi))[0])
+        raise SampleRejected(
+            f"sample at t = {sample.t_s} s: stroke q{i + 1} = {strokes[i]:.6g} mm outside [{lo}, {hi}] mm",
+            SampleRejected.OUT_OF_RANGE,
+        )
+    return strokes, model.check(sample.readings, sample.t_s)
 
 
-class WarmFK:
+def unknown_layout(noise: NoiseConfig, model: InstrumentModel) -> UnknownLayout:
+    """δM, then the stroke scale (when ``noise.stroke_scale_sigma`` > 0), then ``model``'s unknowns."""
+    blocks = []
+    if noise.stroke_scale_sigma > 0.0:
+        blocks.append(stroke_scale_block(noise.stroke_scale_sigma))
+    if model.unknowns is not None:
+        blocks.append(model.unknowns)
+    return UnknownLayout(tuple(blocks))
+
+
+class _WarmStart:
+    """The last pose of a stream, the next solve's Newton start; exported for checkpoints, since a
+    resumed stream must start Newton from the same pose to reproduce the same solution bit for bit."""
+
+    _guess: tuple[np.ndarray, np.ndarray] | None = None
+
+    def export_state(self) -> dict:
+        """The warm start ``{"R", "t"}`` (empty before the first solve)."""
+        return {} if self._guess is None else {"R": self._guess[0].copy(), "t": self._guess[1].copy()}
+
+    def import_state(self, state: dict) -> None:
+        """Restore :meth:`export_state`'s warm start. Raises ``CalibError`` on a bad shape."""
+        self._guess = (state_array(state, "R", (3, 3)), state_array(state, "t", (3,))) if state else None
+
+
+class WarmFK(_WarmStart):
     """Forward kinematics for a stream of samples, warm-started from the last solution.
 
     Args:
@@ -72,7 +91,6 @@ class WarmFK:
 
     def __init__(self, tol_mm: float = 1e-9):
         self.tol_mm = tol_mm
-        self._guess: tuple[np.ndarray, np.ndarray] | None = None
 
     def solve(self, legs: LegGeometry, lengths: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
         """``(R, t)`` with ``‖t + R p_i − b_i‖ = initial_i + lengths_i`` (paper step 1).
@@ -86,14 +104,19 @@ class WarmFK:
         return self._guess
 
 
-    def export_state(self) -> dict:
-        """The warm start ``{"R", "t"}`` (empty before the first solve): a resumed stream must
-        start Newton from the same pose to reproduce the same solution bit for bit."""
-        return {} if self._guess is None else {"R": self._guess[0].copy(), "t": self._guess[1].copy()}
+class WarmPose(_WarmStart):
+    """An instrument model's loose pose for a stream of samples, warm-started from the last one."""
 
-    def import_state(self, state: dict) -> None:
-        """Restore :meth:`export_state`'s warm start. Raises ``CalibError`` on a bad shape."""
-        self._guess = (state_array(state, "R", (3, 3)), state_array(state, "t", (3,))) if state else None
+    def __init__(self, model: InstrumentModel):
+        self.model = model
+
+    def solve(self, z: np.ndarray, theta: np.ndarray) -> PoseObservation | None:
+        """The pose ``z`` implies (:meth:`~stewart_calib.instruments.base.InstrumentModel.pose`),
+        or None where it does not fix one. Raises ``SampleRejected`` as the model does."""
+        observed = self.model.pose(z, theta, self._guess)
+        if observed is not None:
+            self._guess = (observed.R, observed.t)
+        return observed
 
 
 def pose_difference(R_v: np.ndarray, t_v: np.ndarray, R_m: np.ndarray, t_m: np.ndarray) -> np.ndarray:
@@ -109,3 +132,25 @@ def pose_difference(R_v: np.ndarray, t_v: np.ndarray, R_m: np.ndarray, t_m: np.n
     Y = np.empty((len(R_v), 6))
     _kernels.pose_difference(R_v, t_v, R_m, t_m, Y)  # per-pose loop: numpy's small-array overhead dominated
     return Y.reshape(batch + (6,))
+
+
+def drive_only_model(method: str, platform: Platform, config: EstimatorConfig) -> InstrumentModel:
+    """The instrument model of a method that identifies the 42 drive parameters alone from the
+    measured pose ``P_v`` (``ls``, ``paper-ekf``).
+
+    Raises:
+        CalibError: the configuration asks for more unknowns (stroke scale, the instrument's own).
+    """
+    model = instrument_model(platform, config.noise)
+    extra = [block.key for block in unknown_layout(config.noise, model).blocks]
+    if extra:
+        raise CalibError(f"{method} identifies the 42 drive parameters only, not {', '.join(extra)}; use ekf, isam2 or lm")
+    return model
+
+
+def measured_pose(pose: WarmPose, z: np.ndarray, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """``P_v``: the pose the instrument measured (paper Fig. 3 step 1), or ``SampleRejected``."""
+    observed = pose.solve(z, np.zeros(0))
+    if observed is None:
+        raise SampleRejected(f"sample at t = {t_s} s: the measurement does not fix a pose", SampleRejected.NO_POSE)
+    return observed.R, observed.t

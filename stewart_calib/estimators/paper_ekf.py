@@ -22,13 +22,13 @@ from __future__ import annotations
 import numpy as np
 
 from .. import kinematics as kin
+from ..config import EstimatorConfig
+from ..estimate import Estimate
 from ..platform import N_PARAMS, Platform
 from ..samples import Sample
-from ..estimate import Estimate
 from .base import state_array
-from ..config import EstimatorConfig
 from .kalman import FilterState
-from .measurement import WarmFK, check_sample, pose_difference
+from .measurement import WarmFK, WarmPose, check_sample, drive_only_model, measured_pose, pose_difference
 
 
 class PaperEKF:
@@ -45,12 +45,13 @@ class PaperEKF:
         c = config.paper_ekf
         self.platform = platform
         self.config = c
+        self.model = drive_only_model(self.name, platform, config)
         self.filter = FilterState(self.name, config.noise.prior_sigma_mm, c.gate_probability)
         self.filter.Q[np.diag_indices(N_PARAMS)] = c.process_noise
         self.R = np.eye(6) * c.measurement_noise
         # Y's orientation rows in the unit R is meant for: the paper states R = 4e-2 I without units.
         self._unit_scale = np.r_[np.ones(3), np.full(3, 1.0 if c.angle_unit == "rad" else np.degrees(1.0))]
-        self._tracker_fk = WarmFK()
+        self._tracker_fk = WarmPose(self.model)
         self._model_fk = WarmFK()
         window = max(1, c.adaptive_window)
         self._innovations = np.zeros((window, 6))
@@ -60,8 +61,8 @@ class PaperEKF:
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample (Fig. 3 steps 1–3); ``SampleRejected`` leaves the state untouched."""
-        strokes, readings = check_sample(self.platform, sample)
-        R_v, t_v = self._tracker_fk.solve(self.platform.tracker, readings, "tracker")
+        strokes, z = check_sample(self.platform, self.model, sample)
+        R_v, t_v = measured_pose(self._tracker_fk, z, sample.t_s)
         drive = self.platform.drive.perturbed(self.filter.x)
         R_m, t_m = self._model_fk.solve(drive, strokes, "drive model")
         Y = pose_difference(R_v, t_v, R_m, t_m) * self._unit_scale

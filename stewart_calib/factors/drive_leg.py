@@ -2,11 +2,12 @@
 
 Residual of drive leg i (the leg-length model of design.md)::
 
-    r_i = ‖t + R d_i − j_i‖ − (l_i + q_i),    (j_i, d_i, l_i) = nominal_i + δ_i
+    r_i = ‖t + R d_i − j_i‖ − (l_i + (1 + k_i) q_i),    (j_i, d_i, l_i) = nominal_i + δ_i
 
-with q_i the executed stroke [mm] and δ_i = (δj_i, δd_i, δl_i) the leg's slice of δM
-(paper eq. 9). The factor's variables are the pose ``X_k`` (``gtsam.Pose3``) and the
-42-vector δM of the current parameter window; the leg touches only its own seven columns.
+with q_i the executed stroke [mm], δ_i = (δj_i, δd_i, δl_i) the leg's slice of δM (paper
+eq. 9) and k_i its stroke scale (spec §7; 0 when not identified, ``∂r/∂k_i = −q_i``). The
+factor's variables are the pose ``X_k`` (``gtsam.Pose3``) and the unknown vector of the current
+parameter window (δM first); the leg touches only its own seven columns and its k_i.
 (One 42-vector variable measured faster than six 7-vector variables; see
 :mod:`stewart_calib.estimators.isam2`.)
 
@@ -41,22 +42,35 @@ def residual(
     return leg_residual(R, t, nominal_leg + delta_leg, stroke_mm, jacobians)
 
 
-def _error(leg_index: int, nominal_leg: np.ndarray, stroke_mm: float, this: gtsam.CustomFactor, values: gtsam.Values, H):
+def _error(
+    leg_index: int, nominal_leg: np.ndarray, stroke_mm: float, size: int, scale_column: int | None,
+    this: gtsam.CustomFactor, values: gtsam.Values, H,
+):
     pose = values.atPose3(this.keys()[0])
     cols = slice(N_PARAMS_PER_LEG * leg_index, N_PARAMS_PER_LEG * (leg_index + 1))
-    delta_leg = values.atVector(this.keys()[1])[cols]
-    r, H_pose, H_leg = residual(pose.rotation().matrix(), pose.translation(), nominal_leg, delta_leg, stroke_mm, H is not None)
+    unknowns = values.atVector(this.keys()[1])
+    extension = stroke_mm if scale_column is None else (1.0 + unknowns[scale_column]) * stroke_mm
+    r, H_pose, H_leg = residual(pose.rotation().matrix(), pose.translation(), nominal_leg, unknowns[cols], extension, H is not None)
     if H is not None:
         H[0] = H_pose.reshape(1, 6)
-        H_params = np.zeros((1, N_PARAMS))
+        H_params = np.zeros((1, size))
         H_params[0, cols] = H_leg
+        if scale_column is not None:
+            H_params[0, scale_column] = -stroke_mm
         H[1] = H_params
     return np.array([r])
 
 
 def factor(
-    pose_key: int, params_key: int, leg_index: int, nominal_leg: np.ndarray, stroke_mm: float, noise: gtsam.noiseModel.Base
+    pose_key: int, params_key: int, leg_index: int, nominal_leg: np.ndarray, stroke_mm: float, noise: gtsam.noiseModel.Base,
+    size: int = N_PARAMS, scale_column: int | None = None,
 ) -> gtsam.CustomFactor:
-    """A ``CustomFactor`` on ``(Pose3 pose_key, 42-vector δM params_key)`` for leg ``leg_index`` (0-based)."""
+    """A ``CustomFactor`` on ``(Pose3 pose_key, unknown vector params_key)`` for leg ``leg_index`` (0-based).
+
+    Args:
+        size: length of the unknown vector (42 + its blocks).
+        scale_column: the column of this leg's k_i, or None without a stroke-scale block.
+    """
     nominal_leg = np.array(nominal_leg, dtype=float)
-    return gtsam.CustomFactor(noise, [pose_key, params_key], partial(_error, leg_index, nominal_leg, float(stroke_mm)))
+    error = partial(_error, leg_index, nominal_leg, float(stroke_mm), int(size), scale_column)
+    return gtsam.CustomFactor(noise, [pose_key, params_key], error)

@@ -2,7 +2,8 @@
 
 δM is modelled as a random walk (design.md; the paper's ``P + Q``, eq. 15): between the
 variables of two parameter windows spaced Δt apart, ``δM_{w+1} − δM_w ~ N(0, σ² I)`` with
-``σ = random_walk · √Δt`` [mm]. GTSAM's own ``BetweenFactorVector`` and
+``σ = random_walk · √Δt`` [mm]; constant blocks of the unknown vector (stroke scale, the
+instrument's unknowns) are tied by the chain's floor σ alone. GTSAM's own ``BetweenFactorVector`` and
 ``PriorFactorVector`` implement these residuals exactly (``(b − a) − 0`` and ``x − 0``), so no
 custom factor is needed: one between factor per window is far below the per-sample cost
 (linearisation measured 22 µs built-in vs 11 µs as a Python ``CustomFactor``, once a window).
@@ -15,7 +16,8 @@ import math
 import gtsam
 import numpy as np
 
-from ..platform import N_PARAMS
+from . import diagonal_noise
+
 
 
 def sigma_mm(random_walk_mm_per_sqrt_s: float, dt_s: float, floor_mm: float) -> float:
@@ -27,11 +29,12 @@ def sigma_mm(random_walk_mm_per_sqrt_s: float, dt_s: float, floor_mm: float) -> 
     return max(random_walk_mm_per_sqrt_s * math.sqrt(max(dt_s, 0.0)), floor_mm)
 
 
-def factor(key_from: int, key_to: int, sigma: float) -> gtsam.BetweenFactorVector:
-    """``δM_to − δM_from ~ N(0, σ² I)`` on two 42-vector variables; σ in [mm]."""
-    return gtsam.BetweenFactorVector(key_from, key_to, np.zeros(N_PARAMS), gtsam.noiseModel.Isotropic.Sigma(N_PARAMS, sigma))
+def factor(key_from: int, key_to: int, sigmas: np.ndarray) -> gtsam.BetweenFactorVector:
+    """``x_to − x_from ~ N(0, diag(σ²))`` on two unknown vectors; σ per entry [code units]."""
+    return gtsam.BetweenFactorVector(key_from, key_to, np.zeros(len(sigmas)), diagonal_noise(sigmas))
 
 
-def prior(key: int, sigma: float) -> gtsam.PriorFactorVector:
-    """``δM ~ N(0, σ² I)``: the manufacturing tolerance of every parameter; σ in [mm]."""
-    return gtsam.PriorFactorVector(key, np.zeros(N_PARAMS), gtsam.noiseModel.Isotropic.Sigma(N_PARAMS, sigma))
+def prior(key: int, sigmas: np.ndarray) -> gtsam.PriorFactorVector:
+    """``x ~ N(0, diag(σ²))``: the manufacturing tolerance of every parameter (and each block's
+    own prior); σ per entry [code units]."""
+    return gtsam.PriorFactorVector(key, np.zeros(len(sigmas)), diagonal_noise(sigmas))

@@ -1,10 +1,10 @@
-"""Tracker pose prior (loose coupling): tracker FK turns six readings into one pose measurement.
+"""Instrument pose prior (loose coupling): the pose one measurement implies, as a prior on ``x_k``.
 
-This is the paper's way (§3.2 step 1: Newton–Raphson FK of the grating readings gives P_v,
-:func:`stewart_calib.kinematics.forward_kinematics`). The measurement ``T_m`` carries the
-covariance propagated from the ruler noise,
-``Σ_ξ = σ_s² (JᵀJ)⁻¹`` (:func:`stewart_calib.kinematics.pose_covariance_from_legs`), in the
-body tangent ``[ω, v]``. Residual, as GTSAM's ``PriorFactorPose3``::
+For the tracker this is the paper's way (§3.2 step 1: Newton–Raphson FK of the grating readings
+gives P_v). The measurement ``T_m`` and its covariance in the body tangent ``[ω, v]`` come from
+the instrument model's loose pose (:meth:`~stewart_calib.instruments.base.InstrumentModel.pose`;
+for the tracker ``Σ_ξ = σ_s² (JᵀJ)⁻¹`` propagated from the ruler noise). Residual, as GTSAM's
+``PriorFactorPose3``::
 
     e = Log(T_m⁻¹ T)    (6,) [rad, mm],    ∂e/∂ξ = J_r⁻¹(e)  (Pose3.Logmap's derivative)
 """
