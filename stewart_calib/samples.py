@@ -14,12 +14,14 @@ import numpy as np
 
 @dataclass(frozen=True)
 class Sample:
-    """One measurement: executed drive strokes and tracker readings at time ``t_s``.
+    """One measurement: executed drive strokes and the instrument's reading at time ``t_s``.
 
     Attributes:
         t_s: time [s].
         strokes: ``(6,)`` drive strokes q_i as executed (encoders) [mm].
-        readings: ``(6,)`` tracker grating readings s_i [mm].
+        readings: ``(M,)`` the instrument's measurement z in the order of its model's ``columns``
+            (:mod:`stewart_calib.instruments`), code units: for the in-situ tracker the six
+            grating readings s_i [mm].
         desired_pose: ``(6,)`` pose the controller was asked for ``[mm, rad]``, or None.
         stage: free label of the experiment stage ("" when absent).
         load_kg: payload, for reports only — no estimator may read it.
@@ -40,7 +42,7 @@ class Log:
     Attributes:
         t_s: ``(N,)`` [s], non-decreasing.
         strokes: ``(N, 6)`` q_i [mm].
-        readings: ``(N, 6)`` s_i [mm].
+        readings: ``(N, M)`` the instrument's measurements (tracker: s_i [mm]).
         desired_poses: ``(N, 6)`` ``[mm, rad]`` or None when the log has no pose columns.
         stages: N labels or None.
         load_kg: ``(N,)`` or None.

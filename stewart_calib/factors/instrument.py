@@ -22,11 +22,13 @@ import numpy as np
 
 from ..instruments.base import InstrumentModel
 
+_KNOWN = np.zeros(0)  # θ of a model without unknowns
+
 
 def _error(model: InstrumentModel, z: np.ndarray, channels: np.ndarray, block: slice | None, size: int,
            this: gtsam.CustomFactor, values: gtsam.Values, H):
     pose = values.atPose3(this.keys()[0])
-    theta = np.zeros(0) if block is None else model.unknowns.nominal + values.atVector(this.keys()[1])[block]
+    theta = _KNOWN if block is None else model.unknowns.nominal + values.atVector(this.keys()[1])[block]
     res = model.residual(pose.rotation().matrix(), pose.translation(), theta, z, channels)
     if H is not None:
         H[0] = res.J_pose

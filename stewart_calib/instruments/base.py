@@ -34,17 +34,16 @@ kinematics (implicit function theorem on the drive-leg residuals).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
 from ..unknowns import UnknownBlock
 
 
-@dataclass(frozen=True)
-class Residual:
-    """Tight coupling: ``r = h(pose, θ) − z`` for some channels of one measurement.
+class Residual(NamedTuple):
+    """Tight coupling: ``r = h(pose, θ) − z`` for some channels of one measurement (a tuple:
+    it is made once per factor linearisation).
 
     Attributes:
         r: ``(m,)`` predicted minus measured [code units of the channels].
@@ -59,8 +58,7 @@ class Residual:
     channels: np.ndarray
 
 
-@dataclass(frozen=True)
-class PoseObservation:
+class PoseObservation(NamedTuple):
     """Loose coupling: the pose of {D} in {J} one measurement implies.
 
     Attributes:

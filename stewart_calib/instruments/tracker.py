@@ -55,6 +55,7 @@ class TrackerModel:
         geometry_sigma_mm: float = 0.0,
     ):
         self.legs = legs
+        self._params = legs.params  # (6, 7) [z_i | h_i | ls_i], read once per factor linearisation
         self.reading_range = reading_range
         self.channel_sigma = np.full(N_LEGS, float(reading_sigma_mm))
         self.unknowns = None
@@ -94,7 +95,7 @@ class TrackerModel:
 
     def residual(self, R: np.ndarray, t: np.ndarray, theta: np.ndarray, z: np.ndarray, channels: np.ndarray) -> Residual:
         """``‖t + R h_i − z_i‖ − (ls_i + s_i)`` for the rulers ``channels`` [mm]."""
-        params = self.geometry(theta).params
+        params = self._params if len(theta) == 0 else np.reshape(theta, (N_LEGS, N_PARAMS_PER_LEG))
         n_theta = 0 if self.unknowns is None else N_PARAMS
         r = np.empty(len(channels))
         J_pose = np.empty((len(channels), 6))
@@ -103,7 +104,7 @@ class TrackerModel:
             r[row], J_pose[row], H_leg = kin.leg_residual(R, t, params[i], float(z[i]), jacobians=True)
             if n_theta:
                 J_theta[row, N_PARAMS_PER_LEG * i : N_PARAMS_PER_LEG * (i + 1)] = H_leg
-        return Residual(r, J_pose, J_theta, np.asarray(channels))
+        return Residual(r, J_pose, J_theta, channels)
 
     def pose(self, z: np.ndarray, theta: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None) -> PoseObservation:
         """Forward kinematics of the readings (warm-started from ``guess``) and its covariance.
