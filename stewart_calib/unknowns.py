@@ -84,10 +84,12 @@ class UnknownBlock:
         }
 
 
-def stroke_scale_block(prior_sigma: float) -> UnknownBlock:
-    """``k1…k6`` of the drive-leg model ``l_i + (1 + k_i) q_i = ‖t + R d_i − j_i‖`` (spec §7), nominal 0."""
+def stroke_scale_block(prior_sigma: float, nominal: np.ndarray | None = None) -> UnknownBlock:
+    """``k1…k6`` of the drive-leg model ``l_i + (1 + k_i) q_i = ‖t + R d_i − j_i‖`` (spec §7)
+    about ``nominal`` (the platform's ``[drive] stroke_scale``; default 0)."""
     return UnknownBlock(
-        "stroke_scale", tuple(f"k{i}" for i in range(1, N_LEGS + 1)), np.zeros(N_LEGS), np.full(N_LEGS, prior_sigma)
+        "stroke_scale", tuple(f"k{i}" for i in range(1, N_LEGS + 1)),
+        np.zeros(N_LEGS) if nominal is None else nominal, np.full(N_LEGS, prior_sigma),
     )
 
 

@@ -11,8 +11,8 @@ from scipy.stats import chi2
 from stewart_calib.config import config_from_dict
 from stewart_calib.estimators import make_estimator
 from stewart_calib.factors import gauge
-from stewart_calib.instruments import registry
-from stewart_calib.instruments.tracker import TrackerModel
+from stewart_calib.errors import CalibError
+from stewart_calib.instruments import instrument_model
 from stewart_calib.io import result_dict
 from stewart_calib.platform import N_PARAMS
 from stewart_calib.unknowns import UnknownLayout
@@ -68,15 +68,12 @@ def test_without_stroke_scale_the_vector_is_the_42_drive_parameters(platform):
         assert estimate.full_covariance is None and "stroke_scale" not in result_dict(estimate, platform)
 
 
-def test_tracker_geometry_unknown_holds_the_gauge_and_improves_the_drive(platform, monkeypatch):
-    # The tracker's own geometry off by 20 µm, known to σ = 50 µm: identified with the drive, the
-    # 12 gauge directions held by the joints' mean rigid motion (C x = 0).
-    monkeypatch.setitem(
-        registry.MODELS, "tracker",
-        lambda p, noise: TrackerModel(p.tracker, noise.reading_sigma_mm, p.reading_range, geometry_sigma_mm=0.05),
-    )
+def test_tracker_geometry_unknown_holds_the_gauge_and_is_consistent(platform):
+    # The tracker's own geometry off by ~20 µm, known to σ = 50 µm ([tracker] geometry_sigma_mm):
+    # identified with the drive, the 12 gauge directions held by the joints' mean rigid motion.
+    platform = replace(platform, tracker_geometry_sigma_mm=0.05)
     rng = np.random.default_rng(10)
-    model = registry.instrument_model(platform, _constant({}).noise)
+    model = instrument_model(platform, _constant({}).noise)
     C = UnknownLayout((model.unknowns,)).gauge_rows(platform.drive)
     truth = np.r_[random_error(rng, 0.5), rng.normal(0.0, 0.02, N_PARAMS)]
     truth -= np.linalg.pinv(C) @ (C @ truth)  # the truth in the gauge the estimators fix
@@ -96,3 +93,9 @@ def _nees(gap: np.ndarray, covariance: np.ndarray, C: np.ndarray) -> tuple[float
     basis = np.eye(len(gap)) if len(C) == 0 else np.linalg.svd(C)[2][len(C):].T
     g, P = basis.T @ gap, basis.T @ covariance @ basis
     return float(g @ np.linalg.solve(P, g)), basis.shape[1]
+
+
+def test_a_method_refuses_an_instrument_it_does_not_support(platform):
+    pose_platform = replace(platform, instrument=replace(platform.instrument, kind="pose"))
+    with pytest.raises(CalibError, match="method 'ekf' does not take the pose instrument.*expected one of ls"):
+        make_estimator("ekf", pose_platform)

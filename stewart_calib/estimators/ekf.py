@@ -52,7 +52,7 @@ class LegEKF:
         self.platform = platform
         self.noise = config.noise
         self.model = instrument_model(platform, config.noise)
-        self.layout = unknown_layout(config.noise, self.model)
+        self.layout = unknown_layout(platform, config.noise, self.model)
         C = self.layout.gauge_rows(platform.drive)
         self.filter = FilterState(
             self.name, config.noise.prior_sigma_mm, config.ekf.gate_probability, layout=self.layout, C=C
@@ -61,6 +61,7 @@ class LegEKF:
         walks = self.layout.walks()
         self._unit_Q = None if walks.all() and len(C) == 0 else gauge_conditioned(np.diag(walks.astype(float)), C)
         self._scale = self.layout.slice("stroke_scale")
+        self._nominal_scale = platform.stroke_scale
         self._instrument = self.layout.slice("instrument")
         self._pose = WarmPose(self.model)
 
@@ -80,7 +81,7 @@ class LegEKF:
             raise SampleRejected(
                 f"ekf: sample at t = {sample.t_s} s: the measurement does not fix a pose", SampleRejected.NO_POSE
             )
-        scale = 1.0 if self._scale is None else 1.0 + x[self._scale]
+        scale = 1.0 + (self._nominal_scale if self._scale is None else self._nominal_scale + x[self._scale])
         # r, H = ∂r/∂M and R_meas = J_x Σ_x J_xᵀ + σ_q² I at the model M + δM, in one compiled call.
         residual, H_drive, R_meas, J_x = kin.leg_ekf_observation(
             self.platform.drive, x[:N_PARAMS], observed.R, observed.t, strokes * scale, observed.covariance,

@@ -114,7 +114,7 @@ class GraphBuilder:
         self.graph = config.isam2
         self.chain = chain
         self.model = instrument_model(platform, config.noise)
-        self.layout: UnknownLayout = unknown_layout(config.noise, self.model)
+        self.layout: UnknownLayout = unknown_layout(platform, config.noise, self.model)
         self._nominal = platform.drive.params
         self._robust = (self.graph.robust, self.graph.robust_k)
         self._stroke_noise = robust_noise(gtsam.noiseModel.Isotropic.Sigma(1, self.noise.stroke_sigma_mm), *self._robust)
@@ -204,7 +204,7 @@ class GraphBuilder:
         for i in range(N_LEGS):
             factors.add(drive_leg.factor(
                 x, p, i, self._nominal[i], strokes[i], self._stroke_noise, self.layout.size,
-                None if self._scale is None else self._scale.start + i,
+                None if self._scale is None else self._scale.start + i, float(self.platform.stroke_scale[i]),
             ))
 
         # The current parameter key is re-stamped every update so the smoother never
@@ -220,10 +220,11 @@ class GraphBuilder:
         return Epoch(factors, values, timestamps, state)
 
     def _scaled(self, strokes: np.ndarray, guess: np.ndarray | None) -> np.ndarray:
-        """``(1 + k_i) q_i`` [mm] with the stroke scale of ``guess`` (the strokes as read without one)."""
-        if self._scale is None or guess is None:
-            return strokes
-        return strokes * (1.0 + guess[self._scale])
+        """``(1 + k_i) q_i`` [mm]: the nominal stroke scale plus the error in ``guess``, if any."""
+        scale = self.platform.stroke_scale
+        if self._scale is not None and guess is not None:
+            scale = scale + guess[self._scale]
+        return strokes * (1.0 + scale)
 
     def prior_estimate(self, method: str) -> Estimate:
         """The estimate before any sample: every error 0 with the prior's covariance."""

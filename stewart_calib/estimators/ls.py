@@ -143,6 +143,7 @@ class LeastSquares(BufferedFit):
             self._t_s = sample.t_s
             return
         strokes, z = check_sample(self.platform, self.model, sample)
+        strokes = strokes * (1.0 + self.platform.stroke_scale)  # the encoders' nominal scale (spec §7)
         R_v, t_v = measured_pose(self._pose, z, sample.t_s)
         self._strokes.append(strokes)
         self._R_v.append(R_v)
@@ -189,7 +190,7 @@ def external_estimate(method: str, model, sol, samples_used: int, t_s: float, ga
     :class:`~.batch.BatchSolution`; the instrument's tangent covariance carried into its θ."""
     from ..unknowns import UnknownLayout, stroke_scale_block
 
-    layout = UnknownLayout((stroke_scale_block(STROKE_SCALE_PRIOR), model.block()))
+    layout = UnknownLayout((stroke_scale_block(STROKE_SCALE_PRIOR, model.platform.stroke_scale), model.block()))
     x = np.concatenate([sol.error, sol.stroke_scale - model.platform.stroke_scale, model.theta(sol.unknowns) - model.block().nominal])
     P = None
     if sol.covariance is not None:

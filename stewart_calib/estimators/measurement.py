@@ -57,11 +57,12 @@ def check_sample(platform: Platform, model: InstrumentModel, sample: Sample) -> 
     return strokes, model.check(sample.readings, sample.t_s)
 
 
-def unknown_layout(noise: NoiseConfig, model: InstrumentModel) -> UnknownLayout:
-    """δM, then the stroke scale (when ``noise.stroke_scale_sigma`` > 0), then ``model``'s unknowns."""
+def unknown_layout(platform: Platform, noise: NoiseConfig, model: InstrumentModel) -> UnknownLayout:
+    """δM, then the stroke scale about ``platform.stroke_scale`` (when ``noise.stroke_scale_sigma``
+    > 0), then ``model``'s unknowns."""
     blocks = []
     if noise.stroke_scale_sigma > 0.0:
-        blocks.append(stroke_scale_block(noise.stroke_scale_sigma))
+        blocks.append(stroke_scale_block(noise.stroke_scale_sigma, platform.stroke_scale))
     if model.unknowns is not None:
         blocks.append(model.unknowns)
     return UnknownLayout(tuple(blocks))
@@ -142,7 +143,7 @@ def drive_only_model(method: str, platform: Platform, config: EstimatorConfig) -
         CalibError: the configuration asks for more unknowns (stroke scale, the instrument's own).
     """
     model = instrument_model(platform, config.noise)
-    extra = [block.key for block in unknown_layout(config.noise, model).blocks]
+    extra = [block.key for block in unknown_layout(platform, config.noise, model).blocks]
     if extra:
         raise CalibError(f"{method} identifies the 42 drive parameters only, not {', '.join(extra)}; use ekf, isam2 or lm")
     return model

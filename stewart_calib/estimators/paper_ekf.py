@@ -62,6 +62,7 @@ class PaperEKF:
     def update(self, sample: Sample) -> None:
         """Fold in one sample (Fig. 3 steps 1–3); ``SampleRejected`` leaves the state untouched."""
         strokes, z = check_sample(self.platform, self.model, sample)
+        strokes = strokes * (1.0 + self.platform.stroke_scale)  # the encoders' nominal scale (spec §7)
         R_v, t_v = measured_pose(self._tracker_fk, z, sample.t_s)
         drive = self.platform.drive.perturbed(self.filter.x)
         R_m, t_m = self._model_fk.solve(drive, strokes, "drive model")

@@ -19,7 +19,9 @@ from .external import model_for
 
 
 def _tracker(platform: Platform, noise: NoiseConfig) -> InstrumentModel:
-    return tracker.TrackerModel(platform.tracker, noise.reading_sigma_mm, platform.reading_range)
+    return tracker.TrackerModel(
+        platform.tracker, noise.reading_sigma_mm, platform.reading_range, platform.tracker_geometry_sigma_mm
+    )
 
 
 def _pose(platform: Platform, noise: NoiseConfig) -> InstrumentModel:
@@ -38,12 +40,13 @@ MODELS: dict[str, Callable[[Platform, NoiseConfig], InstrumentModel]] = {
 }
 
 
-def instrument_model(platform: Platform, noise: NoiseConfig, kind: str = "tracker") -> InstrumentModel:
-    """The measurement model of ``platform``'s instrument (the in-situ tracker unless it names another).
+def instrument_model(platform: Platform, noise: NoiseConfig) -> InstrumentModel:
+    """The measurement model of ``platform``'s instrument (``[instrument] kind``; the tracker by default).
 
     Raises:
-        CalibError: an unknown kind.
+        CalibError: a kind without a model here.
     """
+    kind = platform.instrument.kind
     if kind not in MODELS:
-        raise CalibError(f"unknown instrument kind '{kind}': expected one of {', '.join(MODELS)}")
+        raise CalibError(f"instrument kind '{kind}' has no measurement model: expected one of {', '.join(MODELS)}")
     return MODELS[kind](platform, noise)
