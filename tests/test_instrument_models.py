@@ -191,7 +191,7 @@ def _models():
                                                               target=np.r_[5.0, 8.0, 30.0, 0.1, 0.2, -1.5]))
     points_platform = hobby(Instrument("points", np.r_[40.0, -20.0, 10.0, 0.3, -0.2, 2.0], np.zeros(6),
                                        np.array([[60.0, 0.0, 25.0], [-30.0, 50.0, 25.0], [-30.0, -50.0, 40.0]]), 0.05))
-    return [instrument_model(p, NoiseConfig(), p.instrument.kind) for p in (pose_platform, points_platform)]
+    return [instrument_model(p, NoiseConfig()) for p in (pose_platform, points_platform)]
 
 
 @pytest.mark.parametrize("which", [0, 1])
