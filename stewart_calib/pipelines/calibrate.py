@@ -1,12 +1,18 @@
 """``stewart-calib calibrate``: a measurement log → a calibration result (spec §6).
 
     stewart-calib calibrate --platform P.toml --log L.csv --method METHOD --out R.json
-                            [--trace T.csv] [--rerun R.rrd] [--skip-bad-rows]
+                            [--trace T.csv] [--rerun R.rrd] [--platform-out C.toml] [--report DIR]
+                            [--skip-bad-rows]
                             [--config C.toml] [--set section.key=value ...]
 
 Batch methods (those with ``fit``) see the whole log at once; online methods get
 ``update(sample)`` sample by sample, and the result holds their estimate at the last sample.
 Nothing is written unless the whole run succeeds.
+
+``--platform-out`` writes the calibrated platform (spec §8: the drive replaced by the estimate),
+which every command takes as a nominal platform; ``--report DIR`` a static HTML page
+``DIR/index.html`` (residuals per channel before and after, δM ± σ, correlations, conditioning,
+config, versions).
 """
 
 from __future__ import annotations
@@ -19,8 +25,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from . import add_config_arguments, run_command
-from .. import estimators, io
+from . import add_config_arguments, handover, run_command
+from .. import __version__, estimators, io
 from ..errors import CalibError, SampleRejected
 from ..config import EstimatorConfig, load_estimator_config
 from ..estimate import Estimate
@@ -125,8 +131,10 @@ def run(args: argparse.Namespace) -> int:
     if args.method not in estimators.METHODS:
         raise CalibError(f"--method: unknown method '{args.method}'; expected one of {', '.join(estimators.METHODS)}")
     out, trace_path, rerun_path = Path(args.out), args.trace and Path(args.trace), args.rerun and Path(args.rerun)
-    for path, option in ((out, "--out"), (trace_path, "--trace"), (rerun_path, "--rerun")):
+    platform_out, report_dir = args.platform_out and Path(args.platform_out), args.report and Path(args.report)
+    for path, option in ((out, "--out"), (trace_path, "--trace"), (rerun_path, "--rerun"), (platform_out, "--platform-out")):
         _check_writable_dir(path, option)
+    handover.check_report_dir(report_dir)
     platform = load_platform(args.platform)
     config = load_estimator_config(args.config, args.set)
     log = io.read_log(args.log, platform, skip_bad_rows=args.skip_bad_rows)
@@ -156,12 +164,36 @@ def run(args: argparse.Namespace) -> int:
 
     # Render (and so validate) everything before writing anything.
     samples_skipped = len(log.skipped) + len(result.rejected)
-    result_json = io.result_text(io.result_dict(result.estimate, platform, samples_skipped, extra), str(out))
+    created = handover.created_now()
+    extra.update({
+        "covariance": handover.covariance_field(result.estimate),
+        "config": handover.config_field(config),
+        "version": __version__,
+        "created": created,
+    })
+    result_data = io.result_dict(result.estimate, platform, samples_skipped, extra)
+    residuals = handover.measurement_residuals(platform, log, result_data)
+    result_data["residual_rms"] = handover.residual_rms_field(residuals)
+    result_json = io.result_text(result_data, str(out))
     trace_csv = io.trace_text(log.t_s, result.trace) if trace_path else None
+    platform_toml = (
+        handover.calibrated_platform_text(platform, result.estimate, args.method, Path(args.log).name, created)
+        if platform_out else None
+    )
+    page = None
+    if report_dir:
+        from ..viz.html_report import report_html
+
+        inputs = {"platform file": str(args.platform), "log": str(args.log)}
+        page = report_html(f"Calibration of {platform.name} with {args.method}", result_data, residuals, None, inputs)
     if rerun_path:
         _write_rerun(rerun_path, platform, args.method, log, result.trace)
     if trace_csv is not None:
         io.atomic_write_text(trace_path, trace_csv)
+    if platform_toml is not None:
+        io.atomic_write_text(platform_out, platform_toml)
+    if page is not None:
+        handover.write_report(report_dir, page)
     io.atomic_write_text(out, result_json)
     print(
         f"stewart-calib calibrate: wrote {out} ({args.method}: {result.estimate.samples_used} samples used, "
@@ -184,6 +216,8 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--out", required=True, metavar="R.json", help="result file (spec §5)")
     parser.add_argument("--trace", metavar="T.csv", help="also write t_s + the 42 estimated parameters per sample")
     parser.add_argument("--rerun", metavar="R.rrd", help="also write a rerun recording of the parameter errors over time")
+    parser.add_argument("--platform-out", metavar="C.toml", help="also write the calibrated platform (a nominal platform for every command)")
+    parser.add_argument("--report", metavar="DIR", help="also write a static HTML report DIR/index.html")
     parser.add_argument("--skip-bad-rows", action="store_true", help="skip bad log rows (reported) instead of refusing the log")
     add_config_arguments(parser)
     parser.set_defaults(func=run)

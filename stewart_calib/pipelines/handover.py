@@ -1,0 +1,135 @@
+"""What a calibration hands on (spec §8), shared by ``calibrate`` and ``validate``: the calibrated
+platform file, the result's optional fields, the residuals per measured channel and the HTML report.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__, io
+from ..config import EstimatorConfig
+from ..errors import CalibError
+from ..estimate import Estimate
+from ..platform import Platform, platform_to_toml
+from ..samples import Log
+
+REPORT_PAGE = "index.html"
+
+
+def created_now() -> str:
+    """The time now, ISO 8601 UTC to the second (``2026-11-23T02:40:00Z``)."""
+    return datetime.now(timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z")
+
+
+def check_report_dir(directory: Path | None, option: str = "--report") -> None:
+    """Refuse before any work a report directory that cannot be made, or a missing matplotlib."""
+    if directory is None:
+        return
+    if directory.exists() and not directory.is_dir():
+        raise CalibError(f"{option} {directory}: exists and is not a directory")
+    if not directory.parent.is_dir():
+        raise CalibError(f"{option} {directory}: directory {directory.parent} does not exist")
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        raise CalibError(f"{option}: the report needs matplotlib (pip install 'stewart-calib[report]')") from None
+
+
+def write_report(directory: Path, page: str) -> Path:
+    """``directory/index.html`` (the directory is made if missing); atomic like every output."""
+    directory.mkdir(exist_ok=True)
+    path = directory / REPORT_PAGE
+    io.atomic_write_text(path, page)
+    return path
+
+
+# ----------------------------------------------------------------------------- calibrated platform
+
+
+def _block_values(estimate: Estimate, key: str) -> np.ndarray | None:
+    """Nominal + error of block ``key`` [code units], or None when the estimate has no such block."""
+    block, columns = estimate.layout.block(key), estimate.layout.slice(key)
+    if block is None:
+        return None
+    start = columns.start - len(estimate.error)
+    return block.nominal + estimate.block_error[start : start + block.size]
+
+
+def calibrated_platform(platform: Platform, estimate: Estimate, method: str, log_name: str, created: str) -> Platform:
+    """``platform`` with the drive replaced by the estimate ``nominal + δM`` — and, where the
+    calibration identified them, the stroke scale and the instrument's frame and target(s) — and
+    a description saying where it came from (spec §8); every command takes it as a nominal platform."""
+    note = (
+        f"calibrated by stewart-calib {__version__} ({method}) from {log_name} on {created}; "
+        f"nominal platform: {platform.name} ({platform.source})"
+    )
+    changes = {"drive": estimate.drive(platform), "description": note}
+    stroke_scale = _block_values(estimate, "stroke_scale")
+    if stroke_scale is not None:
+        changes["stroke_scale"] = stroke_scale
+    theta = _block_values(estimate, "instrument")
+    if theta is not None and platform.instrument.kind in ("pose", "points"):
+        # θ = the frame's pose6, then the target's pose6 (pose) or the targets (points) [mm, rad]
+        part = {"target": theta[6:12]} if platform.instrument.kind == "pose" else {"targets": theta[6:].reshape(-1, 3)}
+        changes["instrument"] = dataclasses.replace(platform.instrument, frame=theta[:6], **part)
+    return dataclasses.replace(platform, **changes)
+
+
+def calibrated_platform_text(platform: Platform, estimate: Estimate, method: str, log_name: str, created: str) -> str:
+    return platform_to_toml(calibrated_platform(platform, estimate, method, log_name, created))
+
+
+# ----------------------------------------------------------------------------- residuals
+
+
+def measurement_residuals(platform: Platform, log: Log, result: dict):
+    """Measured minus predicted per measurement column of the log (file units), with the nominal
+    model and with the calibration ``result`` — the predictions of ``validate`` (spec §7): the
+    logged strokes through forward kinematics of the model, then what the instrument reads there
+    (see :class:`~stewart_calib.viz.html_report.Residuals`)."""
+    from ..viz.html_report import Residuals  # matplotlib-free module, but only reports need it
+    from .validate import validate
+
+    columns = io.reading_columns(platform)
+    to_file = np.where([name in io.MEASURED_ANGLE_COLUMNS for name in columns], 180.0 / np.pi, 1.0)
+    nominal = {"nominal": platform.drive.as_vector().tolist(), "error": [0.0] * len(platform.drive.as_vector())}
+    before = log.readings - validate(platform, nominal, log, False, "the nominal platform")[0]
+    after = log.readings - validate(platform, result, log, False, "the result")[0]
+    return Residuals(tuple(columns), np.asarray(log.t_s), before * to_file, after * to_file)
+
+
+def residual_rms_field(residuals) -> dict:
+    """The result's ``"residual_rms"`` (spec §8): ``{"channels", "before", "after"}`` in file units."""
+    from ..viz.html_report import rms
+
+    def numbers(values: np.ndarray) -> list:
+        return [float(v) if math.isfinite(v) else None for v in values]
+
+    return {"channels": list(residuals.channels), "before": numbers(rms(residuals.before)), "after": numbers(rms(residuals.after))}
+
+
+def config_field(config: EstimatorConfig) -> dict:
+    """The estimator settings as JSON (an infinite value, which JSON cannot hold, as ``null``)."""
+
+    def clean(value):
+        if isinstance(value, dict):
+            return {k: clean(v) for k, v in value.items()}
+        if isinstance(value, float) and not math.isfinite(value):
+            return None
+        return value
+
+    return clean(dataclasses.asdict(config))
+
+
+def covariance_field(estimate: Estimate) -> list | None:
+    """The covariance of every identified unknown in file units, in the order of ``parameter_names``
+    then the blocks' names (spec §8), or None when the method gives none."""
+    if estimate.full_covariance is None:
+        return None if estimate.covariance is None else np.asarray(estimate.covariance, dtype=float).tolist()
+    scale = np.concatenate([np.ones(len(estimate.error)), *(block.file_scale for block in estimate.layout.blocks)])
+    return (np.asarray(estimate.full_covariance, dtype=float) * np.outer(scale, scale)).tolist()

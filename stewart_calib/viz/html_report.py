@@ -1,0 +1,342 @@
+"""A calibration as one self-contained static HTML page (spec §8: ``calibrate --report DIR``,
+``validate --report DIR``): matplotlib figures inlined as PNG data, no script, no server, no network.
+
+The page shows what a user acts on: the residuals per measured channel before and after the
+calibration (RMS and over time), the parameter errors δM with ±σ, their correlation matrix, the
+conditioning with the weakest directions in named parameters, the held-out errors where the
+calibration was validated, and the config and versions that produced it. The input is the result
+dict (spec §5 with the optional fields of §8) plus the series to plot; the caller writes the text.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io as bytes_io
+import json
+from dataclasses import dataclass
+from importlib import metadata
+
+import numpy as np
+
+#: libraries whose versions the page lists (the calibration's own comes from the result).
+LIBRARIES = ("numpy", "scipy", "gtsam", "matplotlib")
+#: |correlation| above which a pair of parameters is listed as strongly correlated.
+STRONG_CORRELATION = 0.9
+#: at most this many samples per residual curve (evenly strided; the RMS uses every sample).
+MAX_PLOTTED_SAMPLES = 5000
+
+
+@dataclass(frozen=True)
+class Residuals:
+    """Measured minus predicted, per measured channel (file units: mm, deg).
+
+    Attributes:
+        channels: column names of the log, e.g. ``s1_mm`` … ``s6_mm`` or ``mx_mm`` … ``myaw_deg``.
+        t_s: ``(N,)`` sample times [s].
+        before: ``(N, m)`` with the nominal model.
+        after: ``(N, m)`` with the calibrated model.
+    """
+
+    channels: tuple[str, ...]
+    t_s: np.ndarray
+    before: np.ndarray
+    after: np.ndarray
+
+
+@dataclass(frozen=True)
+class HeldOut:
+    """Prediction errors of a held-out log (``validate``).
+
+    Attributes:
+        log: the held-out log's name.
+        t_s: ``(N,)`` [s].
+        position_error_mm: ``(N,)``.
+        orientation_error_deg: ``(N,)`` or None (points instruments).
+        registered: the instrument frame was fitted again on this log.
+    """
+
+    log: str
+    t_s: np.ndarray
+    position_error_mm: np.ndarray
+    orientation_error_deg: np.ndarray | None
+    registered: bool = False
+
+
+def rms(values: np.ndarray, axis=0) -> np.ndarray:
+    """Root mean square ignoring NaN (a target not seen in a row)."""
+    return np.sqrt(np.nanmean(np.square(values), axis=axis))
+
+
+def channel_unit(channel: str) -> str:
+    return "deg" if channel.endswith("_deg") else "mm"
+
+
+# ----------------------------------------------------------------------------- figures
+
+
+def _png(figure) -> str:
+    """The figure as an inline ``<img>``; rendered by the Agg canvas (no display, no pyplot state)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(figure)
+    buffer = bytes_io.BytesIO()
+    figure.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
+    data = base64.b64encode(buffer.getvalue()).decode("ascii")
+    return f'<img alt="" src="data:image/png;base64,{data}">'
+
+
+def _figure(width_in: float, height_in: float):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(width_in, height_in), layout="constrained")
+
+
+def residual_rms_figure(residuals: Residuals) -> str:
+    fig = _figure(8.0, 2.8)
+    units = sorted({channel_unit(c) for c in residuals.channels})
+    axes = fig.subplots(1, len(units), squeeze=False)[0]
+    for ax, unit in zip(axes, units):
+        idx = [k for k, c in enumerate(residuals.channels) if channel_unit(c) == unit]
+        x = np.arange(len(idx))
+        ax.bar(x - 0.2, rms(residuals.before[:, idx]), 0.4, label="before (nominal)", color="#c44e52")
+        ax.bar(x + 0.2, rms(residuals.after[:, idx]), 0.4, label="after (calibrated)", color="#4c72b0")
+        ax.set_xticks(x, [residuals.channels[k] for k in idx], rotation=45, ha="right", fontsize=8)
+        ax.set_yscale("log")
+        ax.set_ylabel(f"RMS residual [{unit}]")
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    return _png(fig)
+
+
+def residual_time_figure(residuals: Residuals) -> str:
+    m = len(residuals.channels)
+    cols = 3 if m > 4 else m
+    rows = -(-m // cols)
+    fig = _figure(9.0, 1.9 * rows + 0.4)
+    axes = np.atleast_1d(fig.subplots(rows, cols, sharex=True, squeeze=False)).ravel()
+    stride = max(1, len(residuals.t_s) // MAX_PLOTTED_SAMPLES)
+    t = residuals.t_s[::stride]
+    for k, channel in enumerate(residuals.channels):
+        ax = axes[k]
+        ax.plot(t, residuals.before[::stride, k], lw=0.7, color="#c44e52", alpha=0.6, label="before")
+        ax.plot(t, residuals.after[::stride, k], lw=0.7, color="#4c72b0", label="after")
+        ax.set_title(channel, fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+    for ax in axes[m:]:
+        ax.set_visible(False)
+    for ax in axes[-cols:]:
+        ax.set_xlabel("t [s]", fontsize=8)
+    axes[0].legend(fontsize=7)
+    return _png(fig)
+
+
+def parameter_figure(names: list[str], error: np.ndarray, stddev: np.ndarray | None) -> str:
+    fig = _figure(10.0, 3.0)
+    ax = fig.subplots()
+    x = np.arange(len(names))
+    ax.axhline(0.0, color="0.6", lw=0.8)
+    if stddev is not None:
+        ax.errorbar(x, error, yerr=stddev, fmt="o", ms=3, capsize=2, color="#4c72b0", ecolor="#8fa8d8", label="δM ± σ")
+    else:
+        ax.plot(x, error, "o", ms=3, color="#4c72b0", label="δM (no covariance)")
+    ax.set_xticks(x, names, rotation=90, fontsize=7)
+    ax.set_xlim(-0.7, len(names) - 0.3)
+    ax.set_ylabel("parameter error δM [mm]")
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=8)
+    return _png(fig)
+
+
+def correlation_matrix(covariance: np.ndarray) -> np.ndarray:
+    """``C_ij / (σ_i σ_j)``; a parameter with zero variance correlates with nothing (0)."""
+    sigma = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    scale = np.outer(sigma, sigma)
+    return np.divide(covariance, scale, out=np.zeros_like(covariance), where=scale > 0)
+
+
+def correlation_figure(names: list[str], correlation: np.ndarray) -> str:
+    fig = _figure(7.0, 6.2)
+    ax = fig.subplots()
+    image = ax.imshow(correlation, cmap="RdBu_r", vmin=-1.0, vmax=1.0)
+    ticks = np.arange(len(names))
+    ax.set_xticks(ticks, names, rotation=90, fontsize=6)
+    ax.set_yticks(ticks, names, fontsize=6)
+    fig.colorbar(image, ax=ax, shrink=0.8, label="correlation")
+    return _png(fig)
+
+
+def held_out_figure(held: HeldOut) -> str:
+    fig = _figure(9.0, 2.6)
+    panels = [("position error [mm]", held.position_error_mm)]
+    if held.orientation_error_deg is not None:
+        panels.append(("orientation error [deg]", held.orientation_error_deg))
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    for ax, (label, values) in zip(axes, panels):
+        ax.plot(held.t_s, values, lw=0.7, color="#55a868")
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    return _png(fig)
+
+
+# ----------------------------------------------------------------------------- page
+
+
+def _table(header: list[str] | None, rows: list[list], cls: str = "") -> str:
+    head = "" if header is None else "<thead><tr>" + "".join(f"<th>{html.escape(str(h))}</th>" for h in header) + "</tr></thead>"
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows)
+    return f'<table class="{cls}">{head}<tbody>{body}</tbody></table>'
+
+
+def _fmt(value: float | None, digits: int = 4) -> str:
+    return "—" if value is None or not np.isfinite(value) else f"{value:.{digits}g}"
+
+
+def library_versions() -> dict[str, str]:
+    versions = {}
+    for name in LIBRARIES:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = "not installed"
+    return versions
+
+
+def _residual_section(residuals: Residuals) -> str:
+    before, after = rms(residuals.before), rms(residuals.after)
+    rows = [
+        [c, channel_unit(c), _fmt(b), _fmt(a), _fmt(a / b if b > 0 else np.nan, 3)]
+        for c, b, a in zip(residuals.channels, before, after)
+    ]
+    return (
+        "<h2>Residuals per measured channel</h2>"
+        "<p>Measured minus predicted by the model, over the calibration log "
+        f"({len(residuals.t_s)} samples): before = nominal platform, after = calibrated.</p>"
+        + _table(["channel", "unit", "RMS before", "RMS after", "after / before"], rows, "num")
+        + residual_rms_figure(residuals)
+        + residual_time_figure(residuals)
+    )
+
+
+def _parameter_section(result: dict) -> str:
+    names = list(result["parameter_names"])
+    error = np.array(result["error"], dtype=float)
+    stddev = None if result.get("stddev") is None else np.array(result["stddev"], dtype=float)
+    rows = []
+    for k, name in enumerate(names):
+        sigma = None if stddev is None else stddev[k]
+        ratio = None if sigma is None or sigma <= 0 else abs(error[k]) / sigma
+        rows.append([name, _fmt(result["nominal"][k], 8), _fmt(result["estimate"][k], 8), _fmt(error[k]), _fmt(sigma), _fmt(ratio, 3)])
+    return (
+        "<h2>Parameter errors δM ± σ</h2>"
+        "<p>estimate = nominal + δM [mm] (paper eq. 9, Table 4); σ from the estimate's covariance.</p>"
+        + parameter_figure(names, error, stddev)
+        + "<details><summary>all 42 parameters</summary>"
+        + _table(["parameter", "nominal [mm]", "estimate [mm]", "δM [mm]", "σ [mm]", "|δM| / σ"], rows, "num")
+        + "</details>"
+    )
+
+
+def _correlation_section(result: dict) -> str:
+    covariance = result.get("covariance")
+    if covariance is None:
+        return "<h2>Correlations</h2><p>The method gave no covariance.</p>"
+    covariance = np.array(covariance, dtype=float)
+    names = list(result["parameter_names"])
+    for block in ("stroke_scale", "instrument"):
+        if isinstance(result.get(block), dict):
+            names += list(result[block]["names"])
+    names = names[: len(covariance)]
+    correlation = correlation_matrix(covariance)
+    i, j = np.triu_indices(len(names), k=1)
+    strong = np.abs(correlation[i, j]) >= STRONG_CORRELATION
+    pairs = sorted(zip(np.abs(correlation[i, j])[strong], i[strong], j[strong]), reverse=True)[:20]
+    listing = (
+        _table(["parameter", "parameter", "correlation"], [[names[a], names[b], f"{correlation[a, b]:+.3f}"] for _, a, b in pairs], "num")
+        if pairs
+        else f"<p>No pair correlates beyond ±{STRONG_CORRELATION}.</p>"
+    )
+    return "<h2>Correlation matrix</h2>" + correlation_figure(names, correlation) + \
+        f"<p>Pairs with |correlation| ≥ {STRONG_CORRELATION} (at most 20):</p>" + listing
+
+
+def _conditioning_section(result: dict) -> str:
+    cond = result.get("conditioning")
+    if not isinstance(cond, dict):
+        return ""
+    weakest = "".join(f"<li><code>{html.escape(d)}</code></li>" for d in cond.get("weakest_directions", []))
+    null = "".join(f"<li><code>{html.escape(d)}</code></li>" for d in cond.get("null_space", []))
+    return (
+        "<h2>Conditioning</h2>"
+        + _table(["verdict", "rank", "condition number", "unidentified directions"],
+                 [[cond.get("verdict"), cond.get("rank"), _fmt(cond.get("condition_number"), 4), cond.get("null_space_dimension")]])
+        + "<p>Weakest directions of the 42 parameters (unit vectors in named parameters; the "
+        "poses constrain these least):</p><ol>" + weakest + "</ol>"
+        + (f"<p>Unidentified directions:</p><ol>{null}</ol>" if null else "")
+    )
+
+
+def _held_out_section(held: HeldOut) -> str:
+    rows = [["position [mm]", _fmt(float(rms(held.position_error_mm))), _fmt(float(np.nanmax(held.position_error_mm)))]]
+    if held.orientation_error_deg is not None:
+        rows.append(["orientation [deg]", _fmt(float(rms(held.orientation_error_deg))), _fmt(float(np.nanmax(held.orientation_error_deg)))])
+    note = " The instrument frame was fitted again on this log." if held.registered else ""
+    return (
+        "<h2>Held-out errors</h2>"
+        f"<p>The calibrated model predicts what the instrument read on <code>{html.escape(held.log)}</code> "
+        f"({len(held.t_s)} samples not used for the calibration).{note}</p>"
+        + _table(["error", "RMS", "max"], rows, "num")
+        + held_out_figure(held)
+    )
+
+
+STYLE = """
+body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
+h1 { font-size: 1.5em; } h2 { font-size: 1.2em; border-bottom: 1px solid #ccc; padding-bottom: .2em; margin-top: 1.6em; }
+table { border-collapse: collapse; margin: .6em 0; font-size: .9em; }
+th, td { border: 1px solid #ddd; padding: .25em .6em; } th { background: #f3f3f3; }
+table.num td { text-align: right; font-variant-numeric: tabular-nums; }
+img { max-width: 100%; display: block; margin: .6em 0; }
+pre { background: #f7f7f7; padding: .8em; overflow-x: auto; font-size: .85em; }
+.summary td:first-child { font-weight: 600; }
+"""
+
+
+def report_html(title: str, result: dict, residuals: Residuals | None = None, held_out: HeldOut | None = None,
+                inputs: dict[str, str] | None = None) -> str:
+    """The whole page as text.
+
+    Args:
+        title: the page's heading.
+        result: a calibration result (spec §5, with the optional fields of §8 where present).
+        residuals: the calibration log's residuals, or None.
+        held_out: a validation's errors, or None.
+        inputs: named input files (``{"platform file": "P.toml", "log": "L.csv"}``).
+    """
+    summary = [
+        ["method", result["method"]],
+        ["platform", result["platform"]],
+        *([name, value] for name, value in (inputs or {}).items()),
+        ["samples used / skipped", f"{result['samples_used']} / {result['samples_skipped']}"],
+        ["created", result.get("created", "—")],
+        ["stewart-calib", result.get("version", "—")],
+    ]
+    sections = [
+        "<h2>Summary</h2>" + _table(None, summary, "summary"),
+        _held_out_section(held_out) if held_out is not None else "",
+        _residual_section(residuals) if residuals is not None else "",
+        _parameter_section(result),
+        _correlation_section(result),
+        _conditioning_section(result),
+        "<h2>Config</h2><p>The estimator settings used.</p><pre>"
+        + html.escape(json.dumps(result.get("config", {}), indent=2)) + "</pre>",
+        "<h2>Versions</h2>" + _table(["library", "version"], [[k, v] for k, v in
+                                     {"stewart-calib": result.get("version", "—"), **library_versions()}.items()]),
+    ]
+    return (
+        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+        f"<title>{html.escape(title)}</title><style>{STYLE}</style></head><body>"
+        f"<h1>{html.escape(title)}</h1>" + "".join(sections) + "</body></html>\n"
+    )

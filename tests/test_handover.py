@@ -1,0 +1,142 @@
+"""What a calibration hands on (spec §8): the calibrated platform, the result's optional fields,
+the HTML report — and their refusals before any work."""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import json
+import re
+import shutil
+import subprocess
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from stewart_calib import __version__
+from stewart_calib.cli import main
+from stewart_calib.config import load_estimator_config
+from stewart_calib.io import read_result
+from stewart_calib.pipelines import calibrate as calibrate_pipeline
+from stewart_calib.platform import load_platform
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("handover") / "sim"
+    assert main(["simulate", "--experiment", "quick", "--out", str(out)]) == 0
+    return out
+
+
+def _calibrate(sim: Path, out: Path, method: str, *extra: str, platform: Path | None = None) -> int:
+    return main(["calibrate", "--platform", str(platform or sim / "platform.toml"), "--log", str(sim / "log.csv"),
+                 "--method", method, "--config", "paper", "--out", str(out), *extra])
+
+
+@pytest.fixture(scope="module")
+def ekf_run(sim, tmp_path_factory):
+    work = tmp_path_factory.mktemp("ekf")
+    code = _calibrate(sim, work / "r.json", "ekf", "--platform-out", str(work / "C.toml"), "--report", str(work / "report"))
+    assert code == 0
+    return work
+
+
+def test_result_has_the_optional_fields(ekf_run):
+    result = read_result(ekf_run / "r.json")
+    covariance = np.array(result["covariance"])
+    assert covariance.shape == (42, 42)
+    np.testing.assert_allclose(covariance, covariance.T, atol=1e-12)
+    np.testing.assert_allclose(np.sqrt(np.diag(covariance)), result["stddev"], rtol=1e-12)
+    assert np.linalg.eigvalsh(covariance).min() > 0
+    rms = result["residual_rms"]
+    assert rms["channels"] == [f"s{i}_mm" for i in range(1, 7)]
+    # the simulated drive is millimetres off its nominal; the calibrated one predicts the readings
+    # far better on every channel
+    assert all(after < 0.5 * before for before, after in zip(rms["before"], rms["after"]))
+    assert result["config"] == dataclasses.asdict(load_estimator_config("paper"))
+    assert result["version"] == __version__
+    created = datetime.fromisoformat(result["created"].replace("Z", "+00:00"))
+    assert created.tzinfo == timezone.utc and abs(datetime.now(timezone.utc) - created) < timedelta(hours=1)
+
+
+def test_calibrated_platform_holds_the_estimate(ekf_run, sim):
+    result = read_result(ekf_run / "r.json")
+    calibrated, nominal = load_platform(ekf_run / "C.toml"), load_platform(sim / "platform.toml")
+    np.testing.assert_array_equal(calibrated.drive.as_vector(), result["estimate"])
+    np.testing.assert_array_equal(calibrated.tracker.as_vector(), nominal.tracker.as_vector())
+    assert calibrated.stroke_range == nominal.stroke_range and calibrated.name == nominal.name
+    assert "calibrated by stewart-calib" in calibrated.description and "(ekf) from log.csv" in calibrated.description
+
+
+@pytest.mark.parametrize("method", ["ls", "ekf"])
+def test_recalibrating_from_the_calibrated_platform_finds_errors_within_their_stddev(sim, tmp_path, method):
+    assert _calibrate(sim, tmp_path / "first.json", method, "--platform-out", str(tmp_path / "C.toml")) == 0
+    assert _calibrate(sim, tmp_path / "again.json", method, platform=tmp_path / "C.toml") == 0
+    again = read_result(tmp_path / "again.json")
+    error, stddev = np.array(again["error"]), np.array(again["stddev"])
+    assert np.all(np.abs(error) <= stddev), f"worst |δM|/σ = {np.max(np.abs(error) / stddev):.3g}"
+
+
+def test_every_command_takes_the_calibrated_platform(ekf_run, sim, tmp_path):
+    calibrated = str(ekf_run / "C.toml")
+    assert main(["plan", "--platform", calibrated, "--n", "3", "--out", str(tmp_path / "poses.csv")]) == 0
+    assert main(["identifiability", "--platform", calibrated, "--log", str(sim / "log.csv")]) == 0
+
+
+@pytest.mark.parametrize("option", ["--platform-out", "--report"])
+def test_outputs_into_a_missing_directory_are_refused_before_any_work(sim, tmp_path, capsys, monkeypatch, option):
+    def no_work(*args, **kwargs):
+        raise AssertionError("calibration ran although an output could not be placed")
+
+    monkeypatch.setattr(calibrate_pipeline, "run_calibration", no_work)
+    target = tmp_path / "missing" / ("C.toml" if option == "--platform-out" else "report")
+    assert _calibrate(sim, tmp_path / "r.json", "ekf", option, str(target)) == 2
+    err = capsys.readouterr().err
+    assert f"{option} {target}: directory {target.parent} does not exist" in err and err.count("\n") == 1
+    assert not (tmp_path / "r.json").exists()
+
+
+# ----------------------------------------------------------------------------- the report
+
+
+def test_report_is_one_static_self_contained_page(ekf_run):
+    page = (ekf_run / "report" / "index.html").read_text(encoding="utf-8")
+    assert "<script" not in page.lower()
+    assert not re.search(r"""(src|href)\s*=\s*["'](?!data:)""", page)  # nothing fetched: no server, no network
+    for heading in ("Residuals per measured channel", "Parameter errors δM ± σ", "Correlation matrix", "Conditioning",
+                    "Config", "Versions"):
+        assert f"<h2>{heading}</h2>" in page
+    images = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
+    assert len(images) == 4  # residual RMS, residuals over time, δM ± σ, correlations
+    assert all(base64.b64decode(data).startswith(PNG_MAGIC) for data in images)
+    result = read_result(ekf_run / "r.json")
+    # the page shows the result's numbers: every RMS before and after, to 4 significant digits
+    for before, after in zip(result["residual_rms"]["before"], result["residual_rms"]["after"]):
+        assert f"<td>{before:.4g}</td><td>{after:.4g}</td>" in page
+    assert result["conditioning"]["weakest_directions"][0] in page
+
+
+def _browser() -> str | None:
+    return next((path for name in ("chromium", "chromium-browser", "google-chrome") if (path := shutil.which(name))), None)
+
+
+@pytest.mark.skipif(_browser() is None, reason="no headless Chromium installed")
+def test_report_renders_in_a_headless_browser(ekf_run, tmp_path):
+    from PIL import Image
+
+    shot = tmp_path / "report.png"
+    subprocess.run(
+        [_browser(), "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--window-size=1200,3000",
+         f"--screenshot={shot}", (ekf_run / "report" / "index.html").as_uri()],
+        check=True, capture_output=True, timeout=120,
+    )
+    pixels = np.asarray(Image.open(shot).convert("RGB"), dtype=float)
+    assert pixels.shape[:2] == (3000, 1200)
+    # the figures rendered: the bars' red (before) and blue (after) are on the page
+    red = np.all(np.abs(pixels - (196, 78, 82)) < 8, axis=-1).sum()
+    blue = np.all(np.abs(pixels - (76, 114, 176)) < 8, axis=-1).sum()
+    assert red > 2000 and blue > 2000
