@@ -140,3 +140,41 @@ def test_report_renders_in_a_headless_browser(ekf_run, tmp_path):
     red = np.all(np.abs(pixels - (196, 78, 82)) < 8, axis=-1).sum()
     blue = np.all(np.abs(pixels - (76, 114, 176)) < 8, axis=-1).sum()
     assert red > 2000 and blue > 2000
+
+
+# ----------------------------------------------------------------------------- the rerun recording
+
+
+def test_rerun_recording_has_sigma_bands_and_diagnostics(sim, tmp_path):
+    readback = pytest.importorskip("tests.readback")
+    from stewart_calib import kinematics as kin
+    from stewart_calib.io import read_log
+
+    rrd = tmp_path / "r.rrd"
+    assert _calibrate(sim, tmp_path / "r.json", "ekf", "--rerun", str(rrd)) == 0
+    result, log = read_result(tmp_path / "r.json"), read_log(sim / "log.csv")
+    n = len(log)
+    # the band's edges at the last sample are δM ± σ of the result
+    _, upper = readback.read_scalars(rrd, "params/leg2/l/ekf/upper")
+    _, lower = readback.read_scalars(rrd, "params/leg2/l/ekf/lower")
+    k = 13  # l2
+    assert len(upper) == len(lower) == n
+    assert upper[-1] == pytest.approx(result["error"][k] + result["stddev"][k], abs=1e-9)
+    assert lower[-1] == pytest.approx(result["error"][k] - result["stddev"][k], abs=1e-9)
+    assert np.all(upper >= lower)
+    # residual after the last sample: the calibrated drive's leg residuals at the tracker's pose
+    # (kinematics' own function); innovation of the first sample: the nominal drive's
+    pose = kin.forward_kinematics(load_platform(sim / "platform.toml").tracker, log.readings[[0, -1]])
+    nominal = load_platform(sim / "platform.toml").drive
+    calibrated = nominal.perturbed(np.array(result["error"]))
+    last = kin.leg_residuals(calibrated, pose.R[1], pose.t[1], log.strokes[-1])
+    first = kin.leg_residuals(nominal, pose.R[0], pose.t[0], log.strokes[0])
+    for leg in range(6):
+        _, residual = readback.read_scalars(rrd, f"diagnostics/ekf/residual/leg{leg + 1}")
+        _, innovation = readback.read_scalars(rrd, f"diagnostics/ekf/innovation/leg{leg + 1}")
+        assert len(residual) == len(innovation) == n
+        assert residual[-1] == pytest.approx(last[leg], abs=1e-9)
+        assert innovation[0] == pytest.approx(first[leg], abs=1e-9)
+    _, nis = readback.read_scalars(rrd, "diagnostics/ekf/nis")
+    assert len(nis) == n and np.all(np.isfinite(nis)) and np.all(nis >= 0)
+    assert "diagnostics ekf" in readback.read_blueprint_names(rrd)

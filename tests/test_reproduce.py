@@ -144,15 +144,22 @@ def _same(cell: str, value) -> bool:
 def test_tables_md_numbers_equal_results_json(out, results):
     tables = _markdown_tables((out / "tables.md").read_text(encoding="utf-8"))
     json_tables = results["tables"]
-    headline, *error_tables, table4, rms = tables
+    verdict, tracker_headline, *error_tables, table4, rms = tables
     assert len(error_tables) == 4
 
-    expected_headline = [("paper EKF", "published", json_tables["headline"]["paper"])]
-    expected_headline += [(m, view, values) for view in VIEWS for m, values in json_tables["headline"]["ours"][view].items()]
-    assert len(headline) == len(expected_headline)
-    for cells, (method, view, values) in zip(headline, expected_headline):
-        assert cells[:2] == [method, view]
-        assert all(_same(cell, values[name]) for cell, name in zip(cells[2:5], ("position", "orientation", "circle")))
+    headline = json_tables["headline"]
+    assert headline["verdict_view"] == "truth"
+    expected_verdict = [("paper EKF", "published (tracker view)", headline["paper"])]
+    expected_verdict += [(m, "truth", values) for m, values in headline["ours"]["truth"].items()]
+    expected_tracker = [(m, "tracker", values) for m, values in headline["ours"]["tracker"].items()]
+    for table, expected in ((verdict, expected_verdict), (tracker_headline, expected_tracker)):
+        assert len(table) == len(expected)
+        for cells, (method, view, values) in zip(table, expected):
+            assert cells[:2] == [method, view]
+            assert all(_same(cell, values[name]) for cell, name in zip(cells[2:5], ("position", "orientation", "circle")))
+    for cells, (_, _, values) in zip(verdict[1:], expected_verdict[1:]):
+        assert cells[5].startswith("yes" if values["meets_paper"] else "no (")
+    assert all(len(cells) == 5 for cells in tracker_headline)  # no verdict from the flattering view
 
     for cells_rows, (number, view) in zip(error_tables, [(n, v) for n in ("table5", "table6") for v in VIEWS]):
         rows = json_tables[number][view]
@@ -162,6 +169,10 @@ def test_tables_md_numbers_equal_results_json(out, results):
             numbers = [row["before"], *row["stages"], row["mean"], row["vs_ls_pct"]]
             assert all(_same(cell, value) for cell, value in zip(cells[2:], numbers)), (cells, row)
 
+    # the paper's numbers are its tracker's: beside our tracker view only
+    for number in ("table5", "table6"):
+        assert {row["method"] for row in json_tables[number]["truth"]}.isdisjoint({"paper LS", "paper EKF"})
+        assert {"paper LS", "paper EKF"} <= {row["method"] for row in json_tables[number]["tracker"]}
     assert len(table4) == len(json_tables["table4"]["rows"]) == 6 * 7
     for cells, row in zip(table4, json_tables["table4"]["rows"]):
         assert [int(cells[0]), cells[1]] == [row["leg"], row["source"]]

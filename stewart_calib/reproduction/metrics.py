@@ -49,6 +49,16 @@ def view_errors(result: SimulationResult, platform: Platform) -> dict[str, tuple
     }
 
 
+def tracker_own_error(result: SimulationResult, platform: Platform) -> dict[str, float]:
+    """The tracker's own error at the held poses: its FK pose against the true pose, as means
+    ``{position_mm, orientation_deg}`` — invisible in the tracker view, a floor under the truth view."""
+    ends = held_pose_ends(result)
+    R_a, t_a = kin.pose_to_rt(result.actual_poses[ends])
+    seen = kin.forward_kinematics(platform.tracker, result.log.readings[ends], guess=(R_a, t_a))
+    position, orientation = kin.pose_error(R_a, t_a, seen.R, seen.t)
+    return {"position_mm": float(position.mean()), "orientation_deg": float(orientation.mean())}
+
+
 def stage_metrics(result: SimulationResult, platform: Platform, errors=None) -> dict:
     """``{stage: {segment: {view: {position_mm, orientation_deg, max_position_mm, poses}}}}``.
 

@@ -20,7 +20,7 @@ import numpy as np
 from ..identifiability import conditioning_summary, identifiability_report
 from ..platform import N_LEGS, N_PARAMS_PER_LEG, PARAMETER_FIELDS, PARAMETER_NAMES
 from ..simulation.robot import TABLE4_EKF_ERRORS_MM
-from .metrics import VIEWS, improvement_pct, rms, stage_metrics, view_errors
+from .metrics import VIEWS, improvement_pct, rms, stage_metrics, tracker_own_error, view_errors
 from .runs import BATCH_METHOD, METHODS, NOMINAL, ONLINE_METHODS, Reproduction, first_stage_calibration
 
 FORMAT = "stewart-calib/reproduce@1"
@@ -52,6 +52,10 @@ HEADLINE = (("position", "table5", "position_mm"), ("orientation", "table5", "or
 PAPER_HEADLINE_PCT = {"position": 85.3, "orientation": 79.2, "circle": 81.4}
 #: Online methods that must meet the paper's headline improvements (the issue's bar).
 TARGET_METHODS = ("ekf", "isam2")
+#: The view the verdict against the paper is given in: the tracker view flatters the online methods.
+VERDICT_VIEW = "truth"
+#: The paper's numbers are its tracker's: they appear beside our tracker view only.
+PAPER_VIEW = "tracker"
 #: names of the published rows (distinct from our method ``paper-ekf``).
 PAPER_ROWS = {"LS": "paper LS", "EKF": "paper EKF"}
 QUANTITY_LABELS = {"position_mm": "Position (mm)", "orientation_deg": "Orientation (°)"}
@@ -97,7 +101,8 @@ def _error_table(details: dict, segment: str, quantities, paper: dict, stages: l
                 values = [details[method]["stages"][stage][segment][view][quantity] for stage in stages]
                 rows.append({"quantity": quantity, "method": method, "before": before, "stages": values,
                              "mean": float(np.mean(values))})
-        table[view] = _with_improvements(rows + _paper_rows({q: paper[q] for q in quantities}, loads_kg))
+        published = _paper_rows({q: paper[q] for q in quantities}, loads_kg) if view == PAPER_VIEW else []
+        table[view] = _with_improvements(rows + published)
     return table
 
 
@@ -135,7 +140,7 @@ def _headline(tables: dict) -> dict:
         }
         for view in VIEWS
     }
-    return {"paper": paper, "ours": ours, "target_methods": list(TARGET_METHODS)}
+    return {"paper": paper, "ours": ours, "target_methods": list(TARGET_METHODS), "verdict_view": VERDICT_VIEW}
 
 
 def _versions() -> dict:
@@ -180,6 +185,7 @@ def results_dict(reproduction: Reproduction, run_time_s: float) -> dict:
         "parameter_names": list(PARAMETER_NAMES),
         "estimator_config": dataclasses.asdict(reproduction.config),
         "identifiability": {"calibration_poses": len(unique_poses), **conditioning_summary(report)},
+        "tracker_own_error": tracker_own_error(nominal, platform),
         "tables": tables,
         "details": details,
         "run_time_s": run_time_s,
@@ -209,6 +215,12 @@ def _error_markdown(rows: list[dict], stages: list[str], first_label: str) -> li
     return _markdown_table(header, body)
 
 
+def _verdict(values: dict, paper: dict) -> str:
+    """``yes``, or ``no`` naming each headline number below the paper's."""
+    short = [f"{name} {values[name]:.1f} < {paper[name]:.1f}" for name in paper if not values[name] >= paper[name]]
+    return "yes" if not short else "no (" + "; ".join(short) + ")"
+
+
 def tables_markdown(results: dict) -> str:
     """tables.md from ``results["tables"]`` (see the module docstring)."""
     tables, experiment = results["tables"], results["experiment"]
@@ -217,30 +229,45 @@ def tables_markdown(results: dict) -> str:
         "tracker": "as the tracker sees it (tracker FK vs desired pose — the paper's measure)",
         "truth": "as the simulator knows it (true pose vs desired pose)",
     }
-    ident = results["identifiability"]
+    ident, own = results["identifiability"], results["tracker_own_error"]
+    headline = tables["headline"]
     lines = [
         f"# Reproduction of Ren et al. §4 — experiment '{experiment['name']}' (seed {experiment['seed']}, "
         f"{experiment['samples']} samples, run time {results['run_time_s']:.1f} s)",
         "",
         "Static poses: the last sample of each held validation pose; circle: every point. `ls` is fitted once "
         "on the no-load calibration poses and frozen; `paper-ekf`, `ekf` and `isam2` run online through all "
-        "stages. The two views differ by the tracker's own error (its geometry residual), which no drive "
-        "model can remove: it is the floor of every truth-view number.",
+        "stages.",
         "",
         f"Identifiability of the calibration pose set ({ident['calibration_poses']} poses): rank {ident['rank']}, "
         f"condition number {ident['condition_number']:.3g}, verdict: {ident['verdict']}.",
         "",
-        "## Headline: online methods vs frozen LS, mean over the stages (improvement, %)",
+        "Two views of every error:",
+        "",
+        "- **Truth view** measures where the platform really is (the simulator's true pose) against the desired "
+        "pose: what a tool on the platform experiences. It includes the tracker's own error "
+        f"(here {own['position_mm']:.4f} mm, {own['orientation_deg']:.4f}° on average), a floor no drive model can "
+        "remove. The verdict against the paper is given in this view.",
+        "- **Tracker view** measures the pose the tracker computes from its own readings against the desired "
+        "pose — the paper's measure. It flatters the online methods: they have just updated on the very readings "
+        "they are scored on, so they fit the tracker's errors along with the robot's, and the tracker's own error "
+        "is invisible in it. The paper's published numbers are of this kind and appear only beside this view.",
+        "",
+        "## Verdict: online methods vs frozen LS in the truth view, mean over the stages (improvement, %)",
         "",
     ]
-    headline = tables["headline"]
-    rows = [[PAPER_ROWS["EKF"], "published", *(_cell(headline["paper"][name], "pct") for name, _, _ in HEADLINE), "—"]]
-    for view in VIEWS:
-        for method, values in headline["ours"][view].items():
-            rows.append([method, view, *(_cell(values[name], "pct") for name, _, _ in HEADLINE),
-                         "yes" if values["meets_paper"] else "no"])
+    rows = [[PAPER_ROWS["EKF"], "published (tracker view)", *(_cell(headline["paper"][name], "pct") for name, _, _ in HEADLINE), "—"]]
+    for method, values in headline["ours"][VERDICT_VIEW].items():
+        rows.append([method, VERDICT_VIEW, *(_cell(values[name], "pct") for name, _, _ in HEADLINE), _verdict(values, headline["paper"])])
     lines += _markdown_table(["Method", "View", "Position", "Orientation", "Circle", "Meets paper"], rows)
-    lines += ["", f"Bar: {', '.join(headline['target_methods'])} at least the paper's improvements.", ""]
+    lines += ["", f"Bar: {', '.join(headline['target_methods'])} at least the paper's improvements, in the truth view.", "",
+              "## The same in the tracker view (flatters the online methods; no verdict)", ""]
+    lines += _markdown_table(
+        ["Method", "View", "Position", "Orientation", "Circle"],
+        [[method, PAPER_VIEW, *(_cell(values[name], "pct") for name, _, _ in HEADLINE)]
+         for method, values in headline["ours"][PAPER_VIEW].items()],
+    )
+    lines.append("")
 
     for number, title, first_label in (
         ("table5", "Table 5 — pose errors at the static validation poses", "Pose errors"),

@@ -32,6 +32,11 @@ method and stage names must match ``[A-Za-z0-9_.-]+``::
     world/legs/drive                       series  LineStrips3D j_i → t + R d_i, 6 per row
     world/legs/tracker                     series  LineStrips3D z_i → t + R h_i, 6 per row
     params/leg{i}/{name}/{method}          series  Scalars [mm]   (Figs. 5–6)
+    params/leg{i}/{name}/{method}/upper    series  Scalars [mm]: the estimate + σ (the ±σ band's edges)
+    params/leg{i}/{name}/{method}/lower    series  Scalars [mm]: the estimate − σ
+    diagnostics/{method}/residual/leg{i}   series  Scalars [mm]: drive-leg residual after the sample
+    diagnostics/{method}/innovation/leg{i} series  Scalars [mm]: drive-leg residual before it
+    diagnostics/{method}/nis               series  Scalars: normalised innovation squared (Kalman methods)
     errors/position_mm/{method}            series  Scalars [mm]   (Fig. 7a)
     errors/orientation_deg/{method}        series  Scalars [deg]  (Fig. 7b)
     trajectories/{stage}/{method}/desired  static  LineStrips3D [mm] (Fig. 8)
@@ -56,6 +61,10 @@ from ..kinematics import transform_points
 from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, PARAMETER_FIELDS, LegGeometry, Platform
 
 SAMPLE_TIMELINE = "sample"
+#: per-method diagnostic series: leg residuals after and before each sample, and the NIS.
+DIAGNOSTICS = ("residual", "innovation", "nis")
+DIAGNOSTIC_LABELS = {"residual": "leg residual after the sample [mm]", "innovation": "leg residual before it [mm]",
+                     "nis": "NIS"}
 TIME_TIMELINE = "time"
 TRUTH = "truth"
 
@@ -92,6 +101,8 @@ _METHOD_COLORS = {
     "isam2": (77, 175, 74),
     TRUTH: (30, 30, 30),
 }
+#: one colour per leg 1…6 for per-leg diagnostic series.
+_LEG_COLORS = ((228, 26, 28), (55, 126, 184), (77, 175, 74), (152, 78, 163), (255, 127, 0), (166, 86, 40))
 _FALLBACK_COLORS = ((152, 78, 163), (166, 86, 40), (247, 129, 191), (0, 150, 150))
 
 _LEG_RADIUS_MM = 6.0
@@ -159,6 +170,20 @@ def parameter_path(leg: int, field: str, method: str) -> str:
     if not 1 <= leg <= N_LEGS or field not in PARAMETER_FIELDS:
         raise ValueError(f"no parameter leg {leg} / {field!r}")
     return f"params/leg{leg}/{field}/{_checked_name(method, 'method')}"
+
+
+def band_paths(leg: int, field: str, method: str) -> tuple[str, str]:
+    """``(upper, lower)`` edges of the ±σ band of one parameter."""
+    path = parameter_path(leg, field, method)
+    return f"{path}/upper", f"{path}/lower"
+
+
+def diagnostic_path(method: str, kind: str, leg: int | None = None) -> str:
+    """``diagnostics/{method}/{kind}[/leg{leg}]`` for ``kind`` in :data:`DIAGNOSTICS`."""
+    if kind not in DIAGNOSTICS:
+        raise ValueError(f"diagnostic kind must be one of {DIAGNOSTICS}, got {kind!r}")
+    path = f"diagnostics/{_checked_name(method, 'method')}/{kind}"
+    return path if leg is None else f"{path}/leg{leg}"
 
 
 def error_paths(method: str) -> tuple[str, str]:
@@ -320,6 +345,50 @@ def log_parameters(rec: Recording, method: str, params_mm, times_s, samples=None
             _send_scalars(rec, parameter_path(leg + 1, field, method), index, per_leg[:, leg, k], style)
 
 
+def log_parameter_band(rec: Recording, method: str, params_mm, stddev_mm, times_s, samples=None) -> None:
+    """The ±σ band of each of the 42 parameters: ``params ± stddev`` at ``…/{method}/upper|lower``,
+    drawn thin in the parameter's colour around :func:`log_parameters`' curve.
+
+    Args:
+        params_mm: ``(N, 42)`` as passed to :func:`log_parameters` [mm].
+        stddev_mm: ``(N, 42)`` σ of each parameter after each sample [mm] (NaN: none).
+    """
+    n, index = _time_columns(times_s, samples)
+    centre = _batch(params_mm, n, (N_PARAMS,), "params_mm").reshape(n, N_LEGS, N_PARAMS_PER_LEG)
+    sigma = _batch(stddev_mm, n, (N_PARAMS,), "stddev_mm").reshape(n, N_LEGS, N_PARAMS_PER_LEG)
+    for leg in range(N_LEGS):
+        for k, field in enumerate(PARAMETER_FIELDS):
+            style = rr.SeriesLines(colors=(*_PARAMETER_COLORS[k], 110), widths=0.75, names=f"{field} {method} ±σ")
+            upper, lower = band_paths(leg + 1, field, method)
+            _send_scalars(rec, upper, index, centre[:, leg, k] + sigma[:, leg, k], style)
+            _send_scalars(rec, lower, index, centre[:, leg, k] - sigma[:, leg, k], style)
+
+
+def log_diagnostics(rec: Recording, method: str, times_s, residual_mm=None, innovation_mm=None, nis=None, samples=None) -> None:
+    """How one method fits the data over time, at ``diagnostics/{method}/…``.
+
+    Args:
+        residual_mm: ``(N, 6)`` drive-leg residuals ``‖t + R d_i − j_i‖ − (l_i + q_i)`` with the
+            estimate after each sample, at the tracker's pose of that sample [mm], or None.
+        innovation_mm: ``(N, 6)`` the same with the estimate before the sample (for the leg-model
+            EKF exactly its innovation, sign aside), or None (a batch fit has no "before").
+        nis: ``(N,)`` normalised innovation squared ``νᵀ S⁻¹ ν`` (Kalman methods; NaN where the
+            sample was refused), or None.
+    """
+    n, index = _time_columns(times_s, samples)
+    series = [("residual", residual_mm), ("innovation", innovation_mm)]
+    for kind, values in series:
+        if values is None:
+            continue
+        values = _batch(values, n, (N_LEGS,), kind)
+        for leg in range(N_LEGS):
+            style = rr.SeriesLines(colors=_LEG_COLORS[leg], widths=1.0, names=f"leg {leg + 1}")
+            _send_scalars(rec, diagnostic_path(method, kind, leg + 1), index, values[:, leg], style)
+    if nis is not None:
+        style = rr.SeriesLines(colors=method_color(method), widths=1.0, names=f"NIS {method}")
+        _send_scalars(rec, diagnostic_path(method, "nis"), index, _batch(nis, n, (), "nis"), style)
+
+
 def log_pose_errors(
     rec: Recording, method: str, times_s, position_error_mm, orientation_error_deg, samples=None
 ) -> None:
@@ -417,11 +486,13 @@ def log_trajectory(
 # ----------------------------------------------------------------------------- layout
 
 
-def send_blueprint(rec: Recording, methods, stages) -> None:
-    """Lay the panels out in tabs: scene, one parameter tab per method, pose errors, trajectories.
+def send_blueprint(rec: Recording, methods, stages, diagnostics=None) -> None:
+    """Lay the panels out in tabs: scene, one parameter tab per method, pose errors, trajectories,
+    and one diagnostics tab per method in ``diagnostics``.
 
-    Each parameter tab holds one time-series view per leg with that method's seven curves and
-    the truth (Fig. 5); method comparison is in the pose-error tab (Fig. 7).
+    Each parameter tab holds one time-series view per leg with that method's seven curves, their
+    ±σ bands where logged, and the truth (Fig. 5); method comparison is in the pose-error tab
+    (Fig. 7). ``diagnostics`` maps a method to the kinds of :data:`DIAGNOSTICS` logged for it.
     """
     methods = [_checked_name(method, "method") for method in methods]
     stages = [_checked_name(stage, "stage") for stage in stages]
@@ -437,7 +508,12 @@ def send_blueprint(rec: Recording, methods, stages) -> None:
                 rrb.TimeSeriesView(
                     origin=f"params/leg{leg}",
                     # Entity queries know no inner wildcard, so list the 7 + 7 series.
-                    contents=[f"$origin/{field}/{name}" for field in PARAMETER_FIELDS for name in (method, TRUTH)],
+                    contents=[
+                        f"$origin/{field}/{name}{edge}"
+                        for field in PARAMETER_FIELDS
+                        for name in (method, TRUTH)
+                        for edge in ("", "/upper", "/lower")
+                    ],
                     name=f"leg {leg} [mm]",
                 )
                 for leg in range(1, N_LEGS + 1)
@@ -464,6 +540,19 @@ def send_blueprint(rec: Recording, methods, stages) -> None:
         grid_columns=1,
         name="trajectories",
     )
+    diagnostic_tabs = [
+        rrb.Vertical(
+            *(
+                rrb.TimeSeriesView(origin=diagnostic_path(method, kind), name=f"{method} {DIAGNOSTIC_LABELS[kind]}")
+                for kind in DIAGNOSTICS
+                if kind in kinds
+            ),
+            name=f"diagnostics {method}",
+        )
+        for method, kinds in (diagnostics or {}).items()
+    ]
     rec.stream.send_blueprint(
-        rrb.Blueprint(rrb.Tabs(scene, *parameter_tabs, errors, trajectories), rrb.TimePanel(timeline=TIME_TIMELINE))
+        rrb.Blueprint(
+            rrb.Tabs(scene, *parameter_tabs, errors, trajectories, *diagnostic_tabs), rrb.TimePanel(timeline=TIME_TIMELINE)
+        )
     )
