@@ -178,3 +178,63 @@ def test_rerun_recording_has_sigma_bands_and_diagnostics(sim, tmp_path):
     _, nis = readback.read_scalars(rrd, "diagnostics/ekf/nis")
     assert len(nis) == n and np.all(np.isfinite(nis)) and np.all(nis >= 0)
     assert "diagnostics ekf" in readback.read_blueprint_names(rrd)
+
+
+# ----------------------------------------------------------------------------- a motion-capture platform
+
+
+@pytest.fixture(scope="module")
+def pose_run(tmp_path_factory):
+    """The hobby hexapod with a motion-capture pose (spec §7): a fit log and a held-out log."""
+    from tests.instrument_data import HOBBY
+    from tests.test_instrument_files import EXPERIMENT
+
+    work = tmp_path_factory.mktemp("pose")
+    (work / "e.toml").write_text(EXPERIMENT.format(platform=HOBBY.as_posix()))
+    assert main(["simulate", "--experiment", str(work / "e.toml"), "--out", str(work / "sim")]) == 0
+    lines = (work / "sim" / "log.csv").read_text().splitlines()
+    stage = lines[0].split(",").index("stage")
+    for name, label in (("fit.csv", "fit"), ("held.csv", "held-out")):
+        (work / name).write_text("\n".join([lines[0], *(r for r in lines[1:] if r.split(",")[stage] == label)]) + "\n")
+    platform = work / "sim" / "platform.toml"
+    assert main(["calibrate", "--platform", str(platform), "--log", str(work / "fit.csv"), "--method", "ls",
+                 "--out", str(work / "r.json"), "--platform-out", str(work / "C.toml"), "--report", str(work / "report")]) == 0
+    return work
+
+
+def test_pose_instrument_hands_on_its_frame_target_and_stroke_scale(pose_run):
+    result, calibrated = read_result(pose_run / "r.json"), load_platform(pose_run / "C.toml")
+    np.testing.assert_allclose(calibrated.stroke_scale, result["stroke_scale"]["estimate"], rtol=0, atol=1e-15)
+    frame_target = np.r_[calibrated.instrument.frame, calibrated.instrument.target]
+    in_file_units = np.r_[frame_target[:3], np.degrees(frame_target[3:6]), frame_target[6:9], np.degrees(frame_target[9:])]
+    np.testing.assert_allclose(in_file_units, result["instrument"]["estimate"], atol=1e-9)
+    names = result["parameter_names"] + result["stroke_scale"]["names"] + result["instrument"]["names"]
+    covariance = np.array(result["covariance"])
+    assert covariance.shape == (len(names), len(names))
+    # file units: the diagonal's roots are the blocks' stddev as the result lists them
+    np.testing.assert_allclose(np.sqrt(np.diag(covariance))[42:48], result["stroke_scale"]["stddev"], rtol=1e-9)
+    np.testing.assert_allclose(np.sqrt(np.diag(covariance))[48:], result["instrument"]["stddev"], rtol=1e-9)
+    rms = result["residual_rms"]
+    assert rms["channels"] == ["mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg", "myaw_deg"]
+    assert all(after < before for before, after in zip(rms["before"], rms["after"]))
+
+
+def test_recalibrating_a_pose_platform_from_its_calibration(pose_run):
+    out = pose_run / "again.json"
+    assert main(["calibrate", "--platform", str(pose_run / "C.toml"), "--log", str(pose_run / "fit.csv"), "--method", "ls",
+                 "--out", str(out)]) == 0
+    again = read_result(out)
+    error, stddev = np.array(again["error"]), np.array(again["stddev"])
+    assert np.all(np.abs(error) <= stddev), f"worst |δM|/σ = {np.max(np.abs(error) / stddev):.3g}"
+
+
+def test_validate_report_shows_the_held_out_errors(pose_run):
+    assert main(["validate", "--platform", str(pose_run / "sim" / "platform.toml"), "--result", str(pose_run / "r.json"),
+                 "--log", str(pose_run / "held.csv"), "--out", str(pose_run / "V.csv"), "--report", str(pose_run / "vreport")]) == 0
+    page = (pose_run / "vreport" / "index.html").read_text(encoding="utf-8")
+    assert "<h2>Held-out errors</h2>" in page and "<script" not in page.lower()
+    rows = (pose_run / "V.csv").read_text().splitlines()
+    header = rows[0].split(",")
+    position = np.array([float(r.split(",")[header.index("position_error_mm")]) for r in rows[1:]])
+    assert f"<td>{np.sqrt(np.mean(position**2)):.4g}</td><td>{position.max():.4g}</td>" in page
+    assert len(re.findall(r'src="data:image/png;base64,', page)) == 5  # + the held-out errors over time

@@ -208,7 +208,9 @@ def run(args: argparse.Namespace) -> int:
         "created": created,
     })
     result_data = io.result_dict(result.estimate, platform, samples_skipped, extra)
-    residuals = handover.measurement_residuals(platform, log, result_data)
+    used = np.ones(len(log), dtype=bool)
+    used[[k for k, _ in result.rejected]] = False  # e.g. readings the tracker's FK cannot solve
+    residuals = handover.measurement_residuals(platform, log.select(used), result_data)
     result_data["residual_rms"] = handover.residual_rms_field(residuals)
     result_json = io.result_text(result_data, str(out))
     trace_csv = io.trace_text(log.t_s, result.trace) if trace_path else None

@@ -1,6 +1,7 @@
 """``stewart-calib validate``: how well a calibration predicts a held-out log (spec §7).
 
     stewart-calib validate --platform P.toml --result R.json --log L.csv --out V.csv [--register-instrument]
+                           [--report DIR]
 
 For every row: the platform pose from forward kinematics of the logged strokes with the
 calibrated drive (``nominal + error``, strokes scaled by ``1 + k_i`` where the result identified
@@ -12,16 +13,19 @@ kinematics of the logged readings.
 
 ``V.csv``: ``t_s``, the log's measurement columns, the same columns predicted (prefix ``pred_``),
 ``position_error_mm`` and, for pose and tracker, ``orientation_error_deg``. One line on stdout
-gives the RMS and maximum errors. Nothing is written unless the whole run succeeds.
+gives the RMS and maximum errors. ``--report DIR`` also writes ``DIR/index.html`` (spec §8): the
+held-out errors and residuals per channel beside the calibration's parameters, correlations and
+conditioning. Nothing is written unless the whole run succeeds.
 """
 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 
-from . import run_command
+from . import handover, run_command
 from .. import io
 from .. import kinematics as kin
 from ..errors import CalibError
@@ -45,6 +49,7 @@ def add_parser(subparsers) -> None:
         action="store_true",
         help="fit the instrument frame again on this log (the instrument moved since the calibration)",
     )
+    parser.add_argument("--report", metavar="DIR", help="also write a static HTML report DIR/index.html (spec §8)")
     parser.set_defaults(func=run)
 
 
@@ -119,10 +124,13 @@ def validate(platform: Platform, result: dict, log, register: bool, result_sourc
 
 
 def run(args: argparse.Namespace) -> int:
+    report_dir = args.report and Path(args.report)
+    handover.check_report_dir(report_dir)
     platform = load_platform(args.platform)
     result = io.read_result(args.result)
     log = io.read_log(args.log, platform)
     predicted, position, orientation = validate(platform, result, log, args.register_instrument, str(args.result))
+    page = _report_page(args, platform, result, log, predicted, position, orientation) if report_dir else None
     columns = io.reading_columns(platform)
     header = ["t_s", *columns, *(f"pred_{name}" for name in columns), "position_error_mm"]
     values = [log.t_s, *io.readings_to_file(log.readings, columns), *io.readings_to_file(predicted, columns), _blank_nan(position)]
@@ -130,8 +138,22 @@ def run(args: argparse.Namespace) -> int:
         header.append("orientation_error_deg")
         values.append(orientation)
     io.atomic_write_text(args.out, io.csv_text(header, values))
+    if page is not None:
+        handover.write_report(report_dir, page)
     print(f"stewart-calib validate: {_summary(position, orientation, len(log))}" + (" (instrument re-registered)" if args.register_instrument else ""))
     return 0
+
+
+def _report_page(args, platform: Platform, result: dict, log, predicted, position, orientation) -> str:
+    """The ``--report`` page: the held-out errors and residuals per channel, then the calibration's own
+    sections (parameters ± σ, correlations, conditioning, config, versions) from the result."""
+    from ..viz.html_report import HeldOut, report_html
+
+    held = HeldOut(str(args.log), np.asarray(log.t_s), position, orientation, args.register_instrument)
+    residuals = handover.measurement_residuals(platform, log, result, predicted, "the held-out log")
+    inputs = {"platform file": str(args.platform), "result": str(args.result), "held-out log": str(args.log)}
+    return report_html(f"Validation of {platform.name} ({result['method']}) on {Path(args.log).name}", result,
+                       residuals, held, inputs)
 
 
 def _blank_nan(values: np.ndarray) -> list:

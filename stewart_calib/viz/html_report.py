@@ -36,12 +36,14 @@ class Residuals:
         t_s: ``(N,)`` sample times [s].
         before: ``(N, m)`` with the nominal model.
         after: ``(N, m)`` with the calibrated model.
+        log: which log they are of, for the page's text.
     """
 
     channels: tuple[str, ...]
     t_s: np.ndarray
     before: np.ndarray
     after: np.ndarray
+    log: str = "the calibration log"
 
 
 @dataclass(frozen=True)
@@ -212,7 +214,7 @@ def _residual_section(residuals: Residuals) -> str:
     ]
     return (
         "<h2>Residuals per measured channel</h2>"
-        "<p>Measured minus predicted by the model, over the calibration log "
+        f"<p>Measured minus predicted by the model, over {html.escape(residuals.log)} "
         f"({len(residuals.t_s)} samples): before = nominal platform, after = calibrated.</p>"
         + _table(["channel", "unit", "RMS before", "RMS after", "after / before"], rows, "num")
         + residual_rms_figure(residuals)
