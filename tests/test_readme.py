@@ -1,7 +1,8 @@
 """Every fenced ``bash`` and ``python`` snippet of README.md runs as written.
 
-The snippets run in order in one empty directory (later ones use the files earlier ones write),
-outside the checkout, in this process (an interpreter start per command would double the time):
+The snippets run in order in one directory (later ones use the files earlier ones write), as in
+a fresh clone: it holds links to the checkout's ``configs/`` and ``examples/`` and nothing else. They
+run in this process (an interpreter start per command would double the time):
 
 * ``stewart-calib ARGS`` runs as ``stewart_calib.cli.main(ARGS)`` — ``.venv/bin/`` prefixes
   refer to the venv the set-up lines make, which is this one;
@@ -95,6 +96,9 @@ def _run(words: list[str], work: Path) -> None:
 def test_every_readme_snippet_runs_as_written(tmp_path, monkeypatch):
     found = snippets()
     assert any(language == "python" for language, _ in found) and any(language == "bash" for language, _ in found)
+    for shipped in ("configs", "examples"):
+        if (ROOT / shipped).is_dir():
+            (tmp_path / shipped).symlink_to(ROOT / shipped, target_is_directory=True)
     monkeypatch.chdir(tmp_path)
     for language, text in found:
         if language == "bash":

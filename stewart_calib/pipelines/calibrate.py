@@ -26,6 +26,7 @@ import numpy as np
 from tqdm import tqdm
 
 from . import add_config_arguments, handover, run_command
+from .validate import measurement_residuals
 from .. import __version__, estimators, io
 from ..errors import CalibError, SampleRejected
 from ..config import EstimatorConfig, load_estimator_config
@@ -210,7 +211,7 @@ def run(args: argparse.Namespace) -> int:
     result_data = io.result_dict(result.estimate, platform, samples_skipped, extra)
     used = np.ones(len(log), dtype=bool)
     used[[k for k, _ in result.rejected]] = False  # e.g. readings the tracker's FK cannot solve
-    residuals = handover.measurement_residuals(platform, log.select(used), result_data)
+    residuals = measurement_residuals(platform, log.select(used), result_data)
     result_data["residual_rms"] = handover.residual_rms_field(residuals)
     result_json = io.result_text(result_data, str(out))
     trace_csv = io.trace_text(log.t_s, result.trace) if trace_path else None

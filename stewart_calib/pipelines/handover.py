@@ -16,7 +16,6 @@ from ..config import EstimatorConfig
 from ..errors import CalibError
 from ..estimate import Estimate
 from ..platform import Platform, platform_to_toml, vector_to_params
-from ..samples import Log
 
 REPORT_PAGE = "index.html"
 
@@ -85,31 +84,6 @@ def calibrated_platform_text(platform: Platform, estimate: Estimate, method: str
 
 
 # ----------------------------------------------------------------------------- residuals
-
-
-def measurement_residuals(platform: Platform, log: Log, result: dict, predicted: np.ndarray | None = None,
-                          log_label: str = "the calibration log"):
-    """Measured minus predicted per measurement column of the log (file units), with the nominal
-    model and with the calibration ``result`` — the predictions of ``validate`` (spec §7): the
-    logged strokes through forward kinematics of the model, then what the instrument reads there
-    (see :class:`~stewart_calib.viz.html_report.Residuals`). ``predicted``: the calibrated
-    model's predictions [code units] when the caller has them (e.g. with a re-registered frame)."""
-    from ..viz.html_report import Residuals  # matplotlib-free module, but only reports need it
-    from .validate import validate
-
-    columns = io.reading_columns(platform)
-    angle = np.array([name in io.MEASURED_ANGLE_COLUMNS for name in columns])
-
-    def residual_file_units(predicted_code: np.ndarray) -> np.ndarray:
-        difference = log.readings - predicted_code
-        wrapped = np.where(angle, (difference + np.pi) % (2 * np.pi) - np.pi, difference)  # 359° off is 1° off
-        return wrapped * np.where(angle, 180.0 / np.pi, 1.0)
-
-    nominal = {"nominal": platform.drive.as_vector().tolist(), "error": [0.0] * len(platform.drive.as_vector())}
-    if predicted is None:
-        predicted = validate(platform, result, log, False, "the result")[0]
-    before = residual_file_units(validate(platform, nominal, log, False, "the nominal platform")[0])
-    return Residuals(tuple(columns), np.asarray(log.t_s), before, residual_file_units(predicted), log_label)
 
 
 def leg_residuals_per_sample(params_mm: np.ndarray, R: np.ndarray, t: np.ndarray, strokes_mm: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ from .. import kinematics as kin
 from ..errors import CalibError
 from ..instruments import drive as drive_model
 from ..platform import Platform, load_platform
+from ..samples import Log
 
 
 def add_parser(subparsers) -> None:
@@ -144,13 +145,40 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def measurement_residuals(platform: Platform, log: Log, result: dict, predicted: np.ndarray | None = None,
+                          log_label: str = "the calibration log"):
+    """Measured minus predicted per measurement column of the log (file units), with the nominal
+    model (an outside instrument's frame registered on the log) and with the calibration ``result`` — the predictions of ``validate`` (spec §7): the
+    logged strokes through forward kinematics of the model, then what the instrument reads there
+    (see :class:`~stewart_calib.viz.html_report.Residuals`). ``predicted``: the calibrated
+    model's predictions [code units] when the caller has them (e.g. with a re-registered frame)."""
+    from ..viz.html_report import Residuals  # matplotlib-free module, but only reports need it
+
+    columns = io.reading_columns(platform)
+    angle = np.array([name in io.MEASURED_ANGLE_COLUMNS for name in columns])
+
+    def residual_file_units(predicted_code: np.ndarray) -> np.ndarray:
+        difference = log.readings - predicted_code
+        wrapped = np.where(angle, (difference + np.pi) % (2 * np.pi) - np.pi, difference)  # 359° off is 1° off
+        return wrapped * np.where(angle, 180.0 / np.pi, 1.0)
+
+    nominal = {"nominal": platform.drive.as_vector().tolist(), "error": [0.0] * len(platform.drive.as_vector())}
+    if predicted is None:
+        predicted = validate(platform, result, log, False, "the result")[0]
+    # An outside instrument's frame is rarely known to centimetres (spec §7): "before" registers it
+    # on the log, so that it measures the nominal robot, not where the cameras happen to stand.
+    outside = platform.instrument.kind != "tracker"
+    before = residual_file_units(validate(platform, nominal, log, outside, "the nominal platform")[0])
+    return Residuals(tuple(columns), np.asarray(log.t_s), before, residual_file_units(predicted), log_label)
+
+
 def _report_page(args, platform: Platform, result: dict, log, predicted, position, orientation) -> str:
     """The ``--report`` page: the held-out errors and residuals per channel, then the calibration's own
     sections (parameters ± σ, correlations, conditioning, config, versions) from the result."""
     from ..viz.html_report import HeldOut, report_html
 
     held = HeldOut(str(args.log), np.asarray(log.t_s), position, orientation, args.register_instrument)
-    residuals = handover.measurement_residuals(platform, log, result, predicted, "the held-out log")
+    residuals = measurement_residuals(platform, log, result, predicted, "the held-out log")
     inputs = {"platform file": str(args.platform), "result": str(args.result), "held-out log": str(args.log)}
     return report_html(f"Validation of {platform.name} ({result['method']}) on {Path(args.log).name}", result,
                        residuals, held, inputs)
