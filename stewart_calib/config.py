@@ -34,7 +34,9 @@ class NoiseConfig:
         prior_sigma_mm: prior σ of each δM component [mm] (manufacturing tolerance).
         stroke_scale_sigma: prior σ of each stroke scale k_i (dimensionless; drive leg
             ``l_i + (1 + k_i) q_i``, spec §7); 0 leaves the scale out of the unknowns (the
-            encoders' nominal scale is taken as exact).
+            encoders' nominal scale is taken as exact) with the tracker, and means 0.05 with an
+            instrument outside the robot (whose encoders are rarely known better; ``ls`` has
+            its own ``stroke_scale`` switch).
     """
 
     reading_sigma_mm: float = 0.002

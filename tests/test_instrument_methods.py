@@ -12,10 +12,14 @@ import pytest
 from stewart_calib.config import load_estimator_config
 from stewart_calib.pipelines.calibrate import run_calibration
 from tests.instrument_data import hobby, make_case
-from tests.test_instrument_ls import POSE_TRUTH, RUNS, _normalised_errors
+from tests.test_instrument_ls import POSE_TRUTH, _normalised_errors
 
-#: the simulated encoders are exact; stroke scale identified (σ 5 %, as the motion-capture preset says)
-OVERRIDES = ["noise.stroke_scale_sigma=0.05", "noise.stroke_sigma_mm=0.0001"]
+#: Monte Carlo runs per method: 2 × 60 unknowns put the mean z² at 1 ± 0.13, so the issue's 1.2 on
+#: the RMS ratio (1.44 on z²) sits 3.4 standard deviations above an efficient estimator
+RUNS = 2
+
+#: the simulated encoders are exact (the stroke scale is identified by default with a pose instrument)
+OVERRIDES = ["noise.stroke_sigma_mm=0.001"]
 
 
 @pytest.mark.parametrize("method", ["ekf", "isam2", "lm"])

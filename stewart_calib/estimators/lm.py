@@ -68,11 +68,47 @@ class BatchLM(BufferedFit):
             p = params_key(self._state.window)
             try:
                 self._values = gtsam.LevenbergMarquardtOptimizer(self._graph, self._values, params).optimize()
-                covariance = gtsam.Marginals(self._graph, self._values).marginalCovariance(p)
             except RuntimeError as err:  # gtsam's C++ exceptions: a graph that does not determine δM
                 raise CalibError(f"lm: the solve failed: {first_paragraph(err)}") from None
+            covariance = _marginal_covariance(self._graph, self._values, p)
             self._solved = Estimate.of_state(
                 self._values.atVector(p), covariance, self._builder.layout, self.name, self._state.samples,
                 self._state.last_t_s,
             )
         return self._solved
+
+
+#: the dense QR fallback of :func:`_marginal_covariance` builds the whole Jacobian: up to this many columns
+DENSE_MARGINAL_MAX_COLUMNS = 20_000
+
+
+def _marginal_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, key: int) -> np.ndarray:
+    """``key``'s marginal covariance: gtsam's (Cholesky) ``Marginals``, or where its normal equations
+    are too ill-conditioned for Cholesky (whitened rows from 1e-4 mm gauge ties to 20 mm priors:
+    "indeterminate"), the dense QR of the whitened Jacobian with ``key`` ordered last, whose last
+    diagonal block ``R_pp`` gives ``Σ_p = (R_ppᵀ R_pp)⁻¹`` without squaring the condition number.
+
+    Raises:
+        CalibError: neither way determines the covariance.
+    """
+    try:
+        return gtsam.Marginals(graph, values).marginalCovariance(key)
+    except RuntimeError as err:
+        failure = first_paragraph(err)
+    linear = graph.linearize(values)
+    ordering = gtsam.Ordering()
+    for other in values.keys():
+        if other != key:
+            ordering.push_back(other)
+    ordering.push_back(key)
+    size = values.atVector(key).size
+    if values.dim() > DENSE_MARGINAL_MAX_COLUMNS:
+        raise CalibError(f"lm: the covariance failed: {failure}")
+    A, _ = linear.jacobian(ordering)
+    R = np.linalg.qr(A, mode="r")
+    R_pp = R[-size:, -size:]
+    try:
+        R_inv = np.linalg.inv(R_pp)
+    except np.linalg.LinAlgError:
+        raise CalibError(f"lm: the covariance failed: {failure}") from None
+    return R_inv @ R_inv.T

@@ -57,12 +57,22 @@ def check_sample(platform: Platform, model: InstrumentModel, sample: Sample) -> 
     return strokes, model.check(sample.readings, sample.t_s)
 
 
+#: prior σ of the stroke scale with an instrument outside the robot when ``noise.stroke_scale_sigma``
+#: is 0: such logs come from encoders whose mm per count is the builders' nominal, a few per cent
+#: off per leg (issue 13: one leg 6 %), and the frame-and-target fit identifies k alongside
+STROKE_SCALE_SIGMA_OUTSIDE = 0.05
+
+
 def unknown_layout(platform: Platform, noise: NoiseConfig, model: InstrumentModel) -> UnknownLayout:
     """δM, then the stroke scale about ``platform.stroke_scale`` (when ``noise.stroke_scale_sigma``
-    > 0), then ``model``'s unknowns."""
+    > 0, or always with an instrument outside the robot, :data:`STROKE_SCALE_SIGMA_OUTSIDE` by
+    default), then ``model``'s unknowns."""
     blocks = []
-    if noise.stroke_scale_sigma > 0.0:
-        blocks.append(stroke_scale_block(noise.stroke_scale_sigma, platform.stroke_scale))
+    scale_sigma = noise.stroke_scale_sigma
+    if scale_sigma <= 0.0 and model.kind != "tracker":
+        scale_sigma = STROKE_SCALE_SIGMA_OUTSIDE
+    if scale_sigma > 0.0:
+        blocks.append(stroke_scale_block(scale_sigma, platform.stroke_scale))
     if model.unknowns is not None:
         blocks.append(model.unknowns)
     return UnknownLayout(tuple(blocks))

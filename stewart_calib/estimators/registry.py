@@ -61,11 +61,11 @@ METHODS: dict[str, MethodSpec] = {
                    summary="the paper's batch least squares on the pose error (eq. 9–11)"),
         MethodSpec("paper-ekf", ".paper_ekf:PaperEKF", online=True, checkpointable=True, instruments=("tracker",),
                    summary="the paper's EKF on the pose error (eq. 14–19)"),
-        MethodSpec("ekf", ".ekf:LegEKF", online=True, checkpointable=True, instruments=("tracker",),
+        MethodSpec("ekf", ".ekf:LegEKF", online=True, checkpointable=True, instruments=("tracker", "pose", "points"),
                    summary="EKF on the leg-length model, the factor graph's noise model"),
-        MethodSpec("isam2", ".isam2:ISAM2Estimator", online=True, checkpointable=True, instruments=("tracker",),
+        MethodSpec("isam2", ".isam2:ISAM2Estimator", online=True, checkpointable=True, instruments=("tracker", "pose", "points"),
                    summary="factor graph solved online by iSAM2 in a fixed-lag smoother"),
-        MethodSpec("lm", ".lm:BatchLM", online=False, checkpointable=False, instruments=("tracker",),
+        MethodSpec("lm", ".lm:BatchLM", online=False, checkpointable=False, instruments=("tracker", "pose", "points"),
                    summary="the same factor graph solved in batch by Levenberg–Marquardt"),
     )
 }
