@@ -15,7 +15,7 @@ from . import __version__
 from .pipelines import Parser, add_subcommands, dispatch
 
 #: subcommands, each the module of the same name in stewart_calib.pipelines.
-SUBCOMMANDS = ("calibrate", "simulate", "reproduce", "track", "identifiability", "plan", "compensate", "import_bag", "validate")
+SUBCOMMANDS = ("calibrate", "simulate", "reproduce", "track", "identifiability", "plan", "compensate", "import_bag", "validate", "sweep")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,60 @@
+"""``stewart-calib sweep --spec S.toml --out DIR [--scheduler tcp://HOST:PORT] [--workers N]`` (spec §9).
+
+Runs every cell × seed of the grid in S.toml (:mod:`stewart_calib.sweep.spec`) as independent
+tasks on Dask distributed — an embedded local cluster of N worker processes (default: one per
+core), or the workers of the scheduler at ``--scheduler`` — and writes into DIR:
+
+* ``parts/`` — one Parquet file per finished task, written as it finishes;
+* ``results.parquet`` — one row per (cell, method, seed): the settings, ``rms_mm``,
+  ``rms_over_crb``, ``nees``, ``z2``, closed-loop errors, ``seconds`` (:mod:`stewart_calib.sweep.task`);
+* ``summary.csv``, ``summary.md``, ``plots/`` — quantiles per cell and method, and plots.
+
+Running the same command again skips the finished tasks (resume); so does a spec that only
+adds seeds or grid values. A tqdm bar goes to stderr when it is a terminal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from . import run_command
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "sweep",
+        help="run a Monte Carlo study of the estimators (grid × seeds) on Dask",
+        description="Run every cell × seed of the sweep spec S.toml on Dask distributed (a local cluster, or "
+        "--scheduler), writing DIR/results.parquet, DIR/summary.md and DIR/plots/; rerun to resume.",
+    )
+    parser.add_argument("--spec", required=True, metavar="S.toml", help="the grid (e.g. configs/sweeps/smoke.toml)")
+    parser.add_argument("--out", required=True, metavar="DIR")
+    parser.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="a running Dask scheduler (default: a local cluster)")
+    parser.add_argument("--workers", type=int, metavar="N", help="worker processes of the local cluster (default: one per core)")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    # Dask, pyarrow and matplotlib load only for this command.
+    from ..sweep import load_spec, run_sweep
+    from ..sweep.store import RESULTS
+    from ..sweep.summary import write_summary
+
+    spec = load_spec(args.spec)
+    out = Path(args.out)
+    report = run_sweep(spec, out, scheduler=args.scheduler, workers=args.workers, progress=True)
+    write_summary(spec, report.table, out)
+    print(
+        f"{report.ran} tasks run, {report.skipped} already done, {len(report.failed)} failed of {report.tasks}; "
+        f"{report.table.num_rows} rows in {out / RESULTS} ({report.seconds:.0f} s)"
+    )
+    if report.failed:
+        print(f"stewart-calib sweep: {len(report.failed)} tasks failed (first: {report.failed[0]}); run the command again to retry them", file=sys.stderr)
+        return 1
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_command("sweep", argv)

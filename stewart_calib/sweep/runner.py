@@ -1,0 +1,152 @@
+"""Run a sweep's tasks on Dask distributed: an embedded local cluster, or a scheduler's workers.
+
+The client keeps a bounded window of tasks in flight (a few per worker thread, so a study of
+tens of thousands of tasks never sits in the scheduler at once), writes each task's part the
+moment it finishes (:mod:`.store`) and refills the window. Dask does the rest: a task on a
+worker that dies is handed to another worker by the scheduler (``distributed.scheduler.
+allowed-failures`` times), and a scheduler address instead of the local cluster changes
+nothing else. Task keys are ``sweep-<cell id>-<seed>``: a client that reconnects after being
+killed attaches to a task still running under the same key instead of starting it again.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+import pyarrow as pa
+from tqdm import tqdm
+
+from ..errors import CalibError
+from . import store
+from .spec import SweepSpec
+from .task import run_task
+
+#: How long to wait for a named scheduler before giving up [s].
+CONNECT_TIMEOUT_S = 5
+
+#: Tasks in flight per worker thread: enough to keep every worker busy between refills.
+IN_FLIGHT_PER_THREAD = 4
+
+
+@dataclass
+class SweepReport:
+    """What a run did: tasks in the spec, already finished before, run now, failed; the
+    consolidated results (``table``, as in results.parquet); wall time [s]."""
+
+    tasks: int
+    skipped: int
+    ran: int
+    failed: list[str]
+    table: pa.Table
+    seconds: float
+
+
+def default_workers() -> int:
+    """Worker processes of the local cluster: the cores this process may use."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def connect(scheduler: str | None, workers: int | None):
+    """A Dask client: to ``scheduler``, or to a new local cluster of ``workers`` processes.
+
+    Raises:
+        CalibError: the scheduler is not reachable within :data:`CONNECT_TIMEOUT_S` (one line
+            with the address), or ``workers`` is given with a scheduler.
+    """
+    from distributed import Client, LocalCluster
+
+    if scheduler is not None:
+        if workers is not None:
+            raise CalibError("--workers sizes the local cluster only: the scheduler's workers are started on the cluster")
+        try:
+            return Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=False)
+        except (OSError, TimeoutError, ValueError) as err:
+            reason = str(err).splitlines()[0] if str(err) else err.__class__.__name__
+            raise CalibError(f"cannot reach the Dask scheduler at {scheduler} within {CONNECT_TIMEOUT_S} s ({reason})") from None
+    n = default_workers() if workers is None else workers
+    if n < 1:
+        raise CalibError(f"--workers: expected at least 1 worker, got {n}")
+    # One thread per process: the estimators are single-threaded numpy/numba/GTSAM, and
+    # processes keep tasks apart (GIL, GTSAM's own state).
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.ERROR)
+    return Client(cluster, set_as_default=False)
+
+
+def run_sweep(spec: SweepSpec, out: str | Path, scheduler: str | None = None, workers: int | None = None, progress: bool = True) -> SweepReport:
+    """Run every unfinished task of ``spec``, writing parts as they finish, then results.parquet.
+
+    Tasks that raise are reported (``failed``: the cell's settings, the seed and the error)
+    and left unfinished, so the next run retries them; the others still land.
+    """
+    out = Path(out)
+    start = time.perf_counter()
+    table_schema = store.schema(spec)
+    tasks = spec.tasks()
+    done = store.finished(spec, out)
+    todo = deque((cell, seed) for cell, seed in tasks if (cell.id, seed) not in done)
+    failed: list[str] = []
+    ran = 0
+    if todo:
+        client = connect(scheduler, workers)  # before DIR exists: an unreachable scheduler leaves nothing behind
+        try:
+            store.prepare(out)
+            ran = _drain(client, spec, out, todo, table_schema, failed, len(tasks), len(done), progress)
+        except KeyboardInterrupt:
+            store.consolidate(spec, out, table_schema)  # what finished is in results.parquet too
+            raise
+        finally:
+            _close(client)
+    else:
+        store.prepare(out)
+    table = store.consolidate(spec, out, table_schema)
+    return SweepReport(len(tasks), len(done), ran, failed, table, time.perf_counter() - start)
+
+
+def _drain(client, spec: SweepSpec, out: Path, todo: deque, table_schema, failed: list, total: int, done: int, progress: bool) -> int:
+    """Submit, collect and write until nothing is left; the number of tasks that finished."""
+    from distributed import as_completed
+
+    window = max(2, IN_FLIGHT_PER_THREAD * max(1, sum(client.nthreads().values())))
+    pending = as_completed(loop=client.loop)
+    names = {}
+
+    def submit_next() -> None:
+        cell, seed = todo.popleft()
+        future = client.submit(
+            run_task, cell, seed, spec.methods, spec.checkpoints, spec.refit_at_checkpoints, key=f"sweep-{cell.id}-{seed}"
+        )
+        names[future.key] = f"{', '.join(f'{k}={v}' for k, v in cell.settings.items())}, seed {seed}"
+        pending.add(future)
+
+    for _ in range(min(window, len(todo))):
+        submit_next()
+    ran = 0
+    # disable=None: tqdm hides the bar when stderr is not a terminal.
+    with tqdm(total=total, initial=done, unit="task", desc=f"sweep {spec.name}", disable=None if progress else True) as bar:
+        for future in pending:
+            if future.status == "finished":
+                store.write_part(out, future.result(), table_schema)
+                ran += 1
+            else:
+                error = future.exception()
+                failed.append(f"{names[future.key]}: {error.__class__.__name__}: {str(error).splitlines()[0] if str(error) else ''}")
+                bar.write(f"task failed ({failed[-1]})")
+            del names[future.key]
+            future.release()
+            bar.update()
+            if todo:
+                submit_next()
+    return ran
+
+
+def _close(client) -> None:
+    """Close the client, and the local cluster it started (a named scheduler stays up)."""
+    cluster = client.cluster
+    client.close()
+    if cluster is not None:
+        cluster.close()

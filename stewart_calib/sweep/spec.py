@@ -1,0 +1,402 @@
+"""The sweep specification (spec §9): a TOML grid of simulated studies, validated at load.
+
+Layout (``configs/sweeps/smoke.toml`` documents every key)::
+
+    name = "smoke"
+    methods = ["ls", "ekf", "isam2"]     # estimators run on every task's data
+    seeds = 4                            # seeds first_seed … first_seed + seeds − 1
+    first_seed = 0
+    checkpoints = [20, 40]               # optional: rms_over_crb_at_N after N samples
+    refit_at_checkpoints = ["ls"]        # batch methods refitted on each checkpoint's prefix
+
+    [grid]                               # every setting: one value, or a list of values (an axis)
+    platform = ["nim-stewart", "compact"]
+    reading_sigma_mm = [0.002, 0.02]
+    "ekf.gate_probability" = [0.0, 0.9999]   # estimator setting (section.key) as an axis
+
+    [families.compact]                   # a random family of drive geometry (see Family)
+    base_radius_mm = [550.0, 650.0]
+
+A **cell** is one combination of grid values; a **task** is one cell × one seed. The cell's
+id is a hash of everything that decides a task's rows except the seed (settings, resolved
+platform or family, methods, checkpoints, package version), so finished tasks are found again
+by content: extending ``seeds``, adding a noise level or rerunning after an interruption
+recomputes only what is missing, and a changed platform file never reuses stale rows.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import json
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..errors import CalibError
+from ..estimators import METHODS, EstimatorConfig
+from ..estimators.config import config_from_dict
+from ..platform import LegGeometry, Platform, load_platform, platform_to_toml
+from ..resources import CONFIGS
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One simulated setting of the grid: name, type, default, and what values it accepts."""
+
+    name: str
+    kind: type
+    default: object
+    minimum: float | None = None
+    maximum: float | None = None
+    positive: bool = False
+    doc: str = ""
+
+
+#: The simulated settings, in column order. Estimator settings (``section.key``) follow them.
+SETTINGS = (
+    Setting("platform", str, "nim-stewart", doc="shipped platform name, platform file (relative to the spec) or a [families] name"),
+    Setting("instrument", str, "tracker", doc="what measures the platform (spec §7); the simulator's instruments"),
+    Setting("samples", int, 200, minimum=1, doc="samples per run, one per random workspace pose"),
+    Setting("rate_hz", float, 10.0, positive=True, doc="sample rate [Hz] (sets Δt of the random walk)"),
+    Setting("workspace_fraction", float, 0.8, positive=True, maximum=1.0, doc="poses uniform in this fraction of the workspace box"),
+    Setting("error_sigma_mm", float, 1.0, minimum=0.0, doc="σ of the true δM's i.i.d. normal draw [mm]"),
+    Setting("reading_sigma_mm", float, 0.002, positive=True, doc="σ of the tracker readings' white noise [mm]"),
+    Setting("stroke_sigma_mm", float, 0.001, positive=True, doc="σ of the logged strokes' white noise [mm]"),
+    Setting("drift_mm_per_sqrt_s", float, 0.0, minimum=0.0, doc="random walk of the true δM [mm/√s]"),
+    Setting("glitch_rate", float, 0.0, minimum=0.0, maximum=1.0, doc="fraction of samples with one glitched reading"),
+    Setting("glitch_size_mm", float, 1.0, minimum=0.0, doc="size of a glitch [mm] (added with a random sign)"),
+    Setting("validation_poses", int, 50, minimum=1, doc="fresh poses of the closed-loop check"),
+)
+SETTINGS_BY_NAME = {s.name: s for s in SETTINGS}
+
+#: Instruments the sweep can simulate (spec §7); the others are refused by name until the
+#: simulator supports them.
+INSTRUMENTS = ("tracker",)
+
+#: Keys of a [families.NAME] table besides the four ring dimensions.
+FAMILY_DIMENSIONS = ("base_radius_mm", "platform_radius_mm", "base_half_angle_deg", "platform_half_angle_deg")
+
+
+@dataclass(frozen=True)
+class Family:
+    """A random family of drive geometry: three pairs of legs on two rings (the 6-6 layout of
+    nim-stewart and of most hexapods), each dimension fixed or drawn uniformly per run.
+
+    Leg ``2k + m`` (k = 0, 1, 2; m = 0, 1) runs from base angle ``120k ∓ a`` on a circle of
+    ``base_radius_mm`` to platform angle ``120k ∓ b`` on ``platform_radius_mm`` (``a``, ``b``:
+    the half angles [deg]). Joint heights, tracker, ranges and workspace are those of ``like``;
+    initial lengths are the leg lengths at home, so every stroke is 0 at home.
+
+    Attributes:
+        name: the family's name (the ``platform`` value that selects it).
+        like: the platform everything but the drive rings comes from.
+        ranges: ``(4, 2)`` ``[low, high]`` of :data:`FAMILY_DIMENSIONS` (low = high: fixed).
+    """
+
+    name: str
+    like: Platform
+    ranges: np.ndarray
+
+    def draw(self, rng: np.random.Generator) -> Platform:
+        """One platform of the family (draws only the dimensions that have a range)."""
+        low, high = self.ranges[:, 0], self.ranges[:, 1]
+        values = np.where(high > low, low + (high - low) * rng.random(len(low)), low)
+        return ring_platform(self.like, *values, name=self.name)
+
+
+def ring_platform(
+    like: Platform, base_radius_mm: float, platform_radius_mm: float, base_half_angle_deg: float, platform_half_angle_deg: float, name: str
+) -> Platform:
+    """``like`` with the drive rebuilt on two rings (see :class:`Family`)."""
+    centres = np.repeat([0.0, 120.0, 240.0], 2)
+    signs = np.tile([-1.0, 1.0], 3)
+    base_angles = np.radians(centres + signs * base_half_angle_deg)
+    platform_angles = np.radians(centres + signs * platform_half_angle_deg)
+    base = np.column_stack([base_radius_mm * np.cos(base_angles), base_radius_mm * np.sin(base_angles), like.drive.base_joints[:, 2]])
+    plat = np.column_stack(
+        [platform_radius_mm * np.cos(platform_angles), platform_radius_mm * np.sin(platform_angles), like.drive.platform_joints[:, 2]]
+    )
+    home_t = like.workspace.home[:3]
+    lengths = np.linalg.norm(home_t + plat - base, axis=1)  # home at level orientation: R = I
+    drive = LegGeometry(base, plat, lengths)
+    return Platform(
+        name=name,
+        drive=drive,
+        tracker=like.tracker,
+        stroke_range=like.stroke_range,
+        reading_range=like.reading_range,
+        workspace=like.workspace,
+        description=f"ring family '{name}' drawn from {like.name}",
+    )
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One combination of grid values.
+
+    Attributes:
+        id: 12 hex digits, the content hash (see the module docstring).
+        index: position in the spec's grid order (rows are sorted by it).
+        settings: setting name → value, simulated settings first (column order).
+        platform: the resolved platform, or the family each run draws from.
+        estimator_config: the estimators' settings: their noise model matched to the simulated
+            one (reading and stroke σ, random walk = drift), then the cell's ``section.key`` values.
+    """
+
+    id: str
+    index: int
+    settings: dict
+    platform: Platform | Family
+    estimator_config: EstimatorConfig
+
+
+@dataclass(frozen=True)
+class SweepSpec:
+    """A parsed sweep spec: the run-wide settings and the grid's cells (in grid order)."""
+
+    name: str
+    source: str
+    methods: tuple[str, ...]
+    seeds: tuple[int, ...]
+    checkpoints: tuple[int, ...]
+    refit_at_checkpoints: tuple[str, ...]
+    cells: tuple[Cell, ...]
+    axes: dict = field(default_factory=dict)
+
+    @property
+    def setting_names(self) -> list[str]:
+        return list(self.cells[0].settings)
+
+    @property
+    def swept(self) -> list[str]:
+        """Settings with more than one value (the study's axes), in column order."""
+        return [name for name, values in self.axes.items() if len(values) > 1]
+
+    def tasks(self) -> list[tuple[Cell, int]]:
+        """Every (cell, seed), cell-major."""
+        return [(cell, seed) for cell in self.cells for seed in self.seeds]
+
+
+TOP_KEYS = ("name", "description", "methods", "seeds", "first_seed", "checkpoints", "refit_at_checkpoints", "grid", "families")
+
+
+def load_spec(path: str | Path) -> SweepSpec:
+    """Read and validate a sweep spec.
+
+    Raises:
+        CalibError: one line naming the file and the key (an unknown key, an unknown method or
+            instrument, a wrong type or a value out of range).
+    """
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise CalibError(f"{path}: sweep spec not found") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise CalibError(f"{path}: cannot read sweep spec ({err.__class__.__name__})") from None
+    except tomllib.TOMLDecodeError as err:
+        raise CalibError(f"{path}: not valid TOML ({err})") from None
+    return parse_spec(doc, path)
+
+
+def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
+    """Validate a spec already read from TOML; ``path`` names it and anchors relative platform files."""
+    path = Path(path)
+    source = str(path)
+
+    def refuse(key: str, expected: str) -> CalibError:
+        return CalibError(f"{source}: key '{key}': {expected}")
+
+    for key in doc:
+        if key not in TOP_KEYS:
+            raise refuse(key, f"unknown key: expected one of {', '.join(TOP_KEYS)}")
+    name = doc.get("name", path.stem)
+    if not isinstance(name, str) or not name:
+        raise refuse("name", "expected a non-empty string")
+
+    methods = _string_list(doc.get("methods", list(METHODS)), "methods", refuse)
+    for method in methods:
+        if method not in METHODS:
+            raise refuse("methods", f"unknown method '{method}': expected one of {', '.join(METHODS)}")
+    seeds = _integer(doc.get("seeds"), "seeds", 1, refuse) if "seeds" in doc else _raise(refuse("seeds", "expected a number of seeds (missing)"))
+    first_seed = _integer(doc.get("first_seed", 0), "first_seed", 0, refuse)
+    checkpoints = doc.get("checkpoints", [])
+    if not isinstance(checkpoints, list):
+        raise refuse("checkpoints", "expected a list of sample counts")
+    checkpoints = tuple(sorted({_integer(n, "checkpoints", 1, refuse) for n in checkpoints}))
+    refit = _string_list(doc.get("refit_at_checkpoints", []), "refit_at_checkpoints", refuse)
+    for method in refit:
+        if method not in methods:
+            raise refuse("refit_at_checkpoints", f"method '{method}' is not in 'methods'")
+
+    families = _families(doc.get("families", {}), path, refuse)
+    axes = _axes(doc.get("grid", {}), source, refuse)
+    for value in axes["instrument"]:
+        if value not in INSTRUMENTS:
+            raise refuse("grid.instrument", f"unknown instrument '{value}': expected one of {', '.join(INSTRUMENTS)} (what the simulator supports)")
+    if checkpoints and max(checkpoints) > min(axes["samples"]):
+        raise refuse("checkpoints", f"expected sample counts ≤ the smallest 'samples' ({min(axes['samples'])}), got {max(checkpoints)}")
+    platforms = {value: _platform(value, families, path, refuse) for value in axes["platform"]}
+
+    run_wide = {"methods": list(methods), "checkpoints": list(checkpoints), "refit_at_checkpoints": list(refit), "version": __version__}
+    cells = []
+    names = list(axes)
+    for index, values in enumerate(itertools.product(*axes.values())):
+        settings = dict(zip(names, values))
+        platform = platforms[settings["platform"]]
+        config = _estimator_config(settings, source)
+        identity = {"settings": settings, "platform": _fingerprint(platform), **run_wide}
+        digest = hashlib.blake2b(json.dumps(identity, sort_keys=True).encode(), digest_size=6).hexdigest()
+        cells.append(Cell(digest, index, settings, platform, config))
+    seeds_range = tuple(range(first_seed, first_seed + seeds))
+    return SweepSpec(name, source, tuple(methods), seeds_range, checkpoints, tuple(refit), tuple(cells), axes)
+
+
+def _raise(err: CalibError):
+    raise err
+
+
+def _integer(value, key: str, minimum: int, refuse) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise refuse(key, f"expected an integer ≥ {minimum}, got {value!r}")
+    return value
+
+
+def _string_list(value, key: str, refuse) -> list[str]:
+    if not isinstance(value, list) or not value and key == "methods" or not all(isinstance(v, str) for v in value):
+        raise refuse(key, "expected a non-empty list of method names" if key == "methods" else "expected a list of method names")
+    if len(set(value)) != len(value):
+        raise refuse(key, "a method is listed twice")
+    return list(value)
+
+
+def _axes(grid, source: str, refuse) -> dict[str, list]:
+    """Grid values per setting (defaults for the absent ones), estimator settings last, sorted."""
+    if not isinstance(grid, dict):
+        raise refuse("grid", "expected a table")
+    flat = {}
+    for key, value in grid.items():
+        if isinstance(value, dict):  # [grid.ekf] gate_probability = … is "ekf.gate_probability"
+            for sub, sub_value in value.items():
+                flat[f"{key}.{sub}"] = sub_value
+        else:
+            flat[key] = value
+    axes = {}
+    for setting in SETTINGS:
+        values = flat.pop(setting.name, setting.default)
+        axes[setting.name] = [_value(setting, v, refuse) for v in _as_list(values, f"grid.{setting.name}", refuse)]
+    for key in sorted(flat):
+        if "." not in key:
+            raise refuse(f"grid.{key}", f"unknown key: expected one of {', '.join(SETTINGS_BY_NAME)} or an estimator setting 'section.key'")
+        section, _, name = key.partition(".")
+        values = _as_list(flat[key], f"grid.{key}", refuse)
+        for v in values:  # the estimators' own validation, naming the spec's key
+            config_from_dict({section: {name: v}}, f"{source}: grid")
+        kinds = {type(v) for v in values}
+        if kinds == {int, float}:
+            values = [float(v) for v in values]
+        elif len(kinds) > 1:
+            raise refuse(f"grid.{key}", "expected values of one type")
+        axes[key] = values
+    return axes
+
+
+def _as_list(values, key: str, refuse) -> list:
+    values = values if isinstance(values, list) else [values]
+    if not values:
+        raise refuse(key, "expected a value or a non-empty list of values")
+    if len(set(map(repr, values))) != len(values):
+        raise refuse(key, "a value is listed twice")
+    return values
+
+
+def _value(setting: Setting, value, refuse):
+    key = f"grid.{setting.name}"
+    if setting.kind is str:
+        if not isinstance(value, str) or not value:
+            raise refuse(key, f"expected a non-empty string, got {value!r}")
+        return value
+    numeric = (int,) if setting.kind is int else (int, float)
+    if isinstance(value, bool) or not isinstance(value, numeric) or not math.isfinite(value):
+        raise refuse(key, f"expected {'an integer' if setting.kind is int else 'a finite number'}, got {value!r}")
+    if setting.positive and value <= 0:
+        raise refuse(key, f"expected a number > 0, got {value!r}")
+    if setting.minimum is not None and value < setting.minimum:
+        raise refuse(key, f"expected a number ≥ {setting.minimum:g}, got {value!r}")
+    if setting.maximum is not None and value > setting.maximum:
+        raise refuse(key, f"expected a number ≤ {setting.maximum:g}, got {value!r}")
+    return setting.kind(value)
+
+
+def _families(doc, path: Path, refuse) -> dict[str, dict]:
+    if not isinstance(doc, dict):
+        raise refuse("families", "expected tables [families.NAME]")
+    families = {}
+    for name, table in doc.items():
+        prefix = f"families.{name}"
+        if not isinstance(table, dict):
+            raise refuse(prefix, "expected a table")
+        for key in table:
+            if key not in ("like", *FAMILY_DIMENSIONS):
+                raise refuse(f"{prefix}.{key}", f"unknown key: expected one of like, {', '.join(FAMILY_DIMENSIONS)}")
+        like_name = table.get("like", "nim-stewart")
+        like = _platform_file(like_name, path, lambda expected: refuse(f"{prefix}.like", expected))
+        if like.workspace is None:
+            raise refuse(f"{prefix}.like", f"expected a platform with a [workspace] (its home places the rings), got {like_name!r}")
+        ranges = []
+        for key in FAMILY_DIMENSIONS:
+            if key not in table:
+                raise refuse(f"{prefix}.{key}", "expected a number or [low, high] (missing)")
+            value = table[key]
+            pair = value if isinstance(value, list) else [value, value]
+            if len(pair) != 2 or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) for v in pair) or pair[0] > pair[1]:
+                raise refuse(f"{prefix}.{key}", f"expected a number or [low, high] with low ≤ high, got {value!r}")
+            if key.endswith("radius_mm") and pair[0] <= 0:
+                raise refuse(f"{prefix}.{key}", f"expected radii > 0, got {value!r}")
+            ranges.append([float(pair[0]), float(pair[1])])
+        families[name] = Family(name, like, np.array(ranges))
+    return families
+
+
+def _platform(value: str, families: dict, path: Path, refuse) -> Platform | Family:
+    if value in families:
+        return families[value]
+    return _platform_file(value, path, lambda expected: refuse("grid.platform", expected))
+
+
+def _platform_file(value: str, path: Path, refuse) -> Platform:
+    """A platform file relative to the spec, or a shipped platform's name."""
+    for candidate in (path.parent / value, CONFIGS / "platforms" / f"{value}.toml"):
+        if candidate.is_file():
+            return load_platform(candidate)
+    raise refuse(f"expected a shipped platform name, a platform file relative to the spec or a [families] name, got {value!r}")
+
+
+def _estimator_config(settings: dict, source: str) -> EstimatorConfig:
+    """The estimators' noise model matched to the simulation, then the cell's estimator settings."""
+    matched = {
+        "noise": {
+            "reading_sigma_mm": settings["reading_sigma_mm"],
+            "stroke_sigma_mm": settings["stroke_sigma_mm"],
+            "random_walk_mm_per_sqrt_s": settings["drift_mm_per_sqrt_s"],
+        }
+    }
+    config = config_from_dict(matched, source)
+    overrides: dict[str, dict] = {}
+    for key, value in settings.items():
+        if "." in key:
+            section, _, name = key.partition(".")
+            overrides.setdefault(section, {})[name] = value
+    return config_from_dict(overrides, f"{source}: grid", config)
+
+
+def _fingerprint(platform: Platform | Family) -> str:
+    """What a cell's rows depend on of its platform: the file's values, or the family's definition."""
+    if isinstance(platform, Family):
+        return json.dumps({"family": platform.name, "like": platform_to_toml(platform.like), "ranges": platform.ranges.tolist()})
+    return platform_to_toml(platform)

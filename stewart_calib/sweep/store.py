@@ -1,0 +1,82 @@
+"""Where a sweep's rows live: one Parquet part per finished task, consolidated into results.parquet.
+
+``DIR/parts/<cell id>-<seed>.parquet`` holds the rows of one task (one per method), written by
+the client the moment the task finishes, atomically (temporary file, then rename): a part
+either exists whole or not at all, so a sweep killed at any instant loses only the tasks in
+flight, and the next run skips every task whose part exists. ``DIR/results.parquet`` is the
+concatenation of the parts of the spec's tasks, sorted by (grid order, seed, method order), so
+it is the same file whichever worker ran what and in which order.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pyarrow as pa
+import pyarrow.dataset as pads
+import pyarrow.parquet as pq
+
+from ..errors import CalibError
+from ..io import atomic_path
+from .spec import SweepSpec
+from .task import METRICS
+
+RESULTS = "results.parquet"
+PARTS = "parts"
+
+
+def schema(spec: SweepSpec) -> pa.Schema:
+    """Columns of every row: keys, the settings (typed from the grid), scores, checkpoints, notes."""
+    first = spec.cells[0].settings
+    fields = [pa.field("cell", pa.string()), pa.field("seed", pa.int64()), pa.field("method", pa.string())]
+    kinds = {bool: pa.bool_(), int: pa.int64(), float: pa.float64(), str: pa.string()}
+    fields += [pa.field(name, kinds[type(value)]) for name, value in first.items()]
+    fields += [pa.field(name, pa.float64()) for name in METRICS]
+    fields += [pa.field("samples_rejected", pa.int64()), pa.field("glitches", pa.int64())]
+    fields += [pa.field(f"rms_over_crb_at_{n}", pa.float64()) for n in spec.checkpoints]
+    fields += [pa.field("failure", pa.string())]
+    return pa.schema(fields)
+
+
+def part_path(out: Path, cell_id: str, seed: int) -> Path:
+    return out / PARTS / f"{cell_id}-{seed}.parquet"
+
+
+def prepare(out: Path) -> None:
+    """Create ``DIR/parts``; drop temporary files a killed run left behind (never a finished part)."""
+    try:
+        (out / PARTS).mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise CalibError(f"{out}: cannot create output directory ({err.strerror or err.__class__.__name__})") from None
+    for leftover in (out / PARTS).glob(".*.tmp"):
+        leftover.unlink(missing_ok=True)
+
+
+def finished(spec: SweepSpec, out: Path) -> set[tuple[str, int]]:
+    """(cell id, seed) of the spec's tasks whose part exists."""
+    present = {p.name for p in (out / PARTS).glob("*.parquet")}  # none when DIR does not exist yet
+    return {(cell.id, seed) for cell, seed in spec.tasks() if part_path(out, cell.id, seed).name in present}
+
+
+def _atomic_write(table: pa.Table, path: Path) -> None:
+    with atomic_path(path) as tmp:
+        pq.write_table(table, tmp)
+
+
+def write_part(out: Path, rows: list[dict], table_schema: pa.Schema) -> None:
+    """The rows of one finished task, as its part file."""
+    _atomic_write(pa.Table.from_pylist(rows, schema=table_schema), part_path(out, rows[0]["cell"], rows[0]["seed"]))
+
+
+def consolidate(spec: SweepSpec, out: Path, table_schema: pa.Schema) -> pa.Table:
+    """Write ``DIR/results.parquet`` from the parts of the spec's finished tasks; returns the table."""
+    done = finished(spec, out)
+    paths = [str(part_path(out, cell.id, seed)) for cell, seed in spec.tasks() if (cell.id, seed) in done]
+    table = pads.dataset(paths, schema=table_schema, format="parquet").to_table() if paths else table_schema.empty_table()
+    order = {cell.id: cell.index for cell in spec.cells}
+    method_order = {m: k for k, m in enumerate(spec.methods)}
+    cells, seeds, methods = (table[name].to_pylist() for name in ("cell", "seed", "method"))
+    keys = sorted(range(table.num_rows), key=lambda r: (order[cells[r]], seeds[r], method_order[methods[r]]))
+    table = table.take(pa.array(keys, type=pa.int64()))
+    _atomic_write(table, out / RESULTS)
+    return table
