@@ -12,7 +12,9 @@ killed attaches to a task still running under the same key instead of starting i
 from __future__ import annotations
 
 import logging
+import asyncio
 import os
+import socket
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -63,18 +65,64 @@ def connect(scheduler: str | None, workers: int | None):
     if scheduler is not None:
         if workers is not None:
             raise CalibError("--workers sizes the local cluster only: the scheduler's workers are started on the cluster")
+        _probe(scheduler)
         try:
             return Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=False)
-        except (OSError, TimeoutError, ValueError) as err:
-            reason = str(err).splitlines()[0] if str(err) else err.__class__.__name__
-            raise CalibError(f"cannot reach the Dask scheduler at {scheduler} within {CONNECT_TIMEOUT_S} s ({reason})") from None
+        except (OSError, TimeoutError) as err:
+            raise _unreachable(scheduler, err) from None
     n = default_workers() if workers is None else workers
     if n < 1:
         raise CalibError(f"--workers: expected at least 1 worker, got {n}")
     # One thread per process: the estimators are single-threaded numpy/numba/GTSAM, and
     # processes keep tasks apart (GIL, GTSAM's own state).
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.ERROR)
+    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR)
     return Client(cluster, set_as_default=False)
+
+
+def _probe(scheduler: str) -> None:
+    """Ask the address who it is before building a client: a malformed address, nothing
+    listening, or something that is not a Dask scheduler is one line at once (a failed
+    ``Client`` would retry until its timeout and then spend another ten seconds closing).
+
+    Raises:
+        CalibError: one line with the address.
+    """
+    from distributed.comm import connect as dask_connect
+    from distributed.comm.addressing import parse_address, parse_host_port
+
+    try:
+        protocol, location = parse_address(scheduler, strict=True)
+        host, port = parse_host_port(location)
+    except ValueError as err:
+        raise CalibError(f"--scheduler {scheduler!r}: expected tcp://HOST:PORT ({err})") from None
+    if protocol == "tcp":  # Dask retries a refused connection until its timeout; the socket knows at once
+        try:
+            socket.create_connection((host, port), timeout=CONNECT_TIMEOUT_S).close()
+        except OSError as err:
+            raise _unreachable(scheduler, err) from None
+
+    async def identity() -> dict:
+        comm = await dask_connect(scheduler, timeout=CONNECT_TIMEOUT_S)
+        try:
+            await comm.write({"op": "identity"})
+            return await comm.read()
+        finally:
+            await comm.close()
+
+    try:
+        reply = asyncio.run(asyncio.wait_for(identity(), CONNECT_TIMEOUT_S))
+    except Exception as err:  # timed out, or not speaking Dask's protocol
+        raise CalibError(f"{scheduler} does not answer as a Dask scheduler within {CONNECT_TIMEOUT_S} s ({_reason(err)})") from None
+    if not isinstance(reply, dict) or reply.get("type") != "Scheduler":
+        raise CalibError(f"{scheduler} is not a Dask scheduler (it answered {str(reply)[:60]!r})")
+
+
+def _reason(err: BaseException) -> str:
+    return str(err).splitlines()[0][:120] if str(err) else err.__class__.__name__
+
+
+def _unreachable(scheduler: str, err: BaseException) -> CalibError:
+    return CalibError(f"cannot reach the Dask scheduler at {scheduler} within {CONNECT_TIMEOUT_S} s ({_reason(err)})")
 
 
 def run_sweep(spec: SweepSpec, out: str | Path, scheduler: str | None = None, workers: int | None = None, progress: bool = True) -> SweepReport:
