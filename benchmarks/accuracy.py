@@ -1,9 +1,11 @@
 """Accuracy: Monte Carlo against the Cramér–Rao bound, filter consistency, convergence, drift.
 
-**Monte Carlo** (per geometry, per seed): a true δM (σ = 1 mm), random workspace poses, one
-sample per pose at 10 Hz with exactly the estimators' noise model (reading σ_s, stroke σ_q),
-constant parameters (random walk 0: the problem the bound is for). Every method fits the same
-log. The bound is :func:`stewart_calib.identifiability.identifiability_report` on the same poses.
+**Monte Carlo** (per geometry, per seed), run as a sweep (``stewart-calib sweep``'s tasks on
+an embedded Dask local cluster, one worker per core): a true δM (σ = 1 mm), random workspace
+poses, one sample per pose at 10 Hz with exactly the estimators' noise model (reading σ_s,
+stroke σ_q), constant parameters (random walk 0: the problem the bound is for). Every method
+fits the same log. The bound is :func:`stewart_calib.identifiability.identifiability_report` on
+the same poses (:mod:`stewart_calib.sweep.task` computes every per-run score).
 
 * **RMS / CRB**: ``sqrt(mean over seeds and the 42 parameters of (error_p / crb_p)²)`` — 1 for
   an efficient estimator.
@@ -20,20 +22,19 @@ step until the position error (mean over a sliding window) is back below 2× its
 from __future__ import annotations
 
 import dataclasses
-import time
+import tempfile
 
 import numpy as np
 from scipy.stats import chi2
 
-from benchmarks.common import GEOMETRIES, ROOT, Row, Section, synthetic_stream
-from stewart_calib.errors import CalibError
-from stewart_calib.estimate import Estimate
+from benchmarks.common import COMPACT_RINGS, GEOMETRIES, ROOT, Row, Section
 from stewart_calib.config import EstimatorConfig, NoiseConfig, PaperEKFConfig
 from stewart_calib.estimators import METHODS, fit_all, make_estimator, method_names
-from stewart_calib.identifiability import identifiability_report
-from stewart_calib.platform import N_PARAMS, Platform
 from stewart_calib.simulation import EstimatorController, FrozenController, load_experiment, run_experiment
 from stewart_calib.simulation.experiment import Stage
+from stewart_calib.sweep import SweepSpec, run_sweep
+from stewart_calib.sweep.runner import default_workers
+from stewart_calib.sweep.spec import FAMILY_DIMENSIONS, parse_spec
 
 ONLINE = method_names(online=True)
 CRB_TARGET = 1.2
@@ -45,45 +46,27 @@ DRIFT_WINDOW_SAMPLES = 10
 DRIFT_LOAD_KG = 40.0
 
 
-def _batch_fit(estimator, samples) -> Estimate:
-    """``fit_all``; a fit that fails (e.g. ``ls`` not converging on a short prefix) is NaN, counted as missed."""
-    try:
-        return fit_all(estimator, samples)
-    except CalibError:
-        return Estimate(np.full(N_PARAMS, np.nan), None, estimator.name)
-
-
-def _monte_carlo_run(platform: Platform, n_samples: int, checkpoints: list[int], seed: int) -> dict:
-    """One seed: normalised errors (final and at checkpoints), NEES, per method."""
-    noise = NoiseConfig(random_walk_mm_per_sqrt_s=0.0)
-    config = EstimatorConfig(noise=noise)
-    log, true_error = synthetic_stream(platform, n_samples, np.random.default_rng(seed), rate_hz=10.0, smooth=False, noise=noise)
-    crb_mm = identifiability_report(platform, log.desired_poses, noise).predicted_stddev_mm
-    samples = list(log)
-    out = {}
-    for method in METHODS:
-        est = make_estimator(method, platform, config)
-        start = time.perf_counter()
-        curve = []
-        if method in ONLINE:
-            for k, sample in enumerate(samples, start=1):
-                est.update(sample)
-                if k in checkpoints:
-                    curve.append(((est.estimate().error - true_error) / crb_mm).tolist())
-            final = est.estimate()
-        else:
-            final = _batch_fit(est, samples)
-            if method == "ls":  # cheap to refit on each prefix; lm is not, and is not online
-                curve = [((_batch_fit(make_estimator("ls", platform, config), samples[:n]).error - true_error) / crb_mm).tolist() for n in checkpoints]
-        error = final.error - true_error
-        nees = float(error @ np.linalg.solve(final.covariance, error)) if final.covariance is not None else float("nan")
-        out[method] = {
-            "normalised_error": (error / crb_mm).tolist(),
-            "nees": nees,
-            "curve": curve,
-            "seconds": time.perf_counter() - start,
-        }
-    return out
+#: The Monte Carlo as a sweep (stewart_calib.sweep): the two geometries of benchmarks.common,
+#: compact-600/250 as a fixed ring family (every dimension a number, nothing drawn).
+def monte_carlo_spec(seeds: int, n_samples: int, checkpoints: list[int]) -> SweepSpec:
+    noise = NoiseConfig()
+    doc = {
+        "name": "benchmarks-accuracy",
+        "methods": list(METHODS),
+        "seeds": seeds,
+        "checkpoints": checkpoints,
+        "refit_at_checkpoints": ["ls"],  # cheap to refit on each prefix; lm is not, and is not online
+        "grid": {
+            "platform": list(GEOMETRIES),
+            "samples": n_samples,
+            "rate_hz": 10.0,
+            "reading_sigma_mm": noise.reading_sigma_mm,
+            "stroke_sigma_mm": noise.stroke_sigma_mm,
+            "drift_mm_per_sqrt_s": 0.0,
+        },
+        "families": {"compact-600/250": dict(zip(FAMILY_DIMENSIONS, COMPACT_RINGS))},
+    }
+    return parse_spec(doc, ROOT / "benchmarks" / "accuracy.toml")
 
 
 def _rms(z) -> float:
@@ -93,34 +76,40 @@ def _rms(z) -> float:
 def monte_carlo(seeds: int, n_samples: int) -> tuple[list[Row], dict]:
     checkpoints = sorted({n for n in (10, 20, 30, 40, 60, 80, 100, 150, 200, 300) if n < n_samples} | {n_samples})
     band = chi2.ppf([0.025, 0.975], 42)
-    rows, raw = [], {"seeds": seeds, "samples_per_run": n_samples, "checkpoints": checkpoints, "nees_band": band.tolist()}
-    for geometry, build in GEOMETRIES.items():
-        platform = build()
-        runs = [_monte_carlo_run(platform, n_samples, checkpoints, seed) for seed in range(seeds)]
+    spec = monte_carlo_spec(seeds, n_samples, checkpoints)
+    with tempfile.TemporaryDirectory() as out:
+        report = run_sweep(spec, out, progress=False)
+    columns = report.table.to_pydict()
+    raw = {
+        "seeds": seeds,
+        "samples_per_run": n_samples,
+        "checkpoints": checkpoints,
+        "nees_band": band.tolist(),
+        "sweep": {"tasks": report.tasks, "workers": default_workers(), "wall_seconds": report.seconds},
+    }
+    rows = []
+    for geometry in GEOMETRIES:
         raw[geometry] = {}
         for method in METHODS:
-            z = np.array([run[method]["normalised_error"] for run in runs])
-            nees = np.array([run[method]["nees"] for run in runs])
+            pick = [r for r, (g, m) in enumerate(zip(columns["platform"], columns["method"])) if g == geometry and m == method]
+            column = lambda name: np.array([columns[name][r] for r in pick], dtype=float)  # noqa: E731
+            nees = column("nees")
             inside = float(np.mean((nees >= band[0]) & (nees <= band[1])))
-            ratio = _rms(z)
-            curve = [run[method]["curve"] for run in runs]
-            converged_at = None
-            if all(curve):
-                per_checkpoint = [_rms(np.array(curve)[:, j]) for j in range(len(checkpoints))]
-                converged_at = next((n for n, r in zip(checkpoints, per_checkpoint) if r <= CONVERGENCE_FACTOR), None)
-            else:
-                per_checkpoint = []
-            seconds = float(np.median([run[method]["seconds"] for run in runs]))
+            ratio = _rms(column("rms_over_crb"))  # every row's RMS is over the same 42 parameters
+            per_checkpoint = [_rms(column(f"rms_over_crb_at_{n}")) for n in checkpoints]
+            streamed = not np.all(np.isnan(per_checkpoint))
+            converged_at = next((n for n, r in zip(checkpoints, per_checkpoint) if r <= CONVERGENCE_FACTOR), None)
+            seconds = float(np.median(column("seconds")))
             raw[geometry][method] = {
                 "rms_over_crb": ratio,
                 "nees_median": float(np.nanmedian(nees)) if np.any(np.isfinite(nees)) else None,
                 "nees_in_band_fraction": inside,
-                "rms_over_crb_at_checkpoints": per_checkpoint,
+                "rms_over_crb_at_checkpoints": per_checkpoint if streamed else [],
                 "samples_to_within_2x_crb": converged_at,
                 "median_seconds_per_run": seconds,
             }
             met = ratio <= CRB_TARGET if method in CRB_TARGET_METHODS else None
-            if not curve[0]:
+            if not streamed:
                 convergence = "batch only (not refitted per prefix)"
             elif converged_at is None:
                 convergence = f"not within 2× in {n_samples} samples (RMS/CRB {per_checkpoint[-1]:.2f} at the end)"

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart_calib.platform import LegGeometry, Platform, load_platform
+from stewart_calib.platform import Platform, load_platform
 
 ROOT = Path(__file__).resolve().parents[1]
 NIM_STEWART_FILE = ROOT / "configs" / "platforms" / "nim-stewart.toml"
@@ -104,9 +104,9 @@ def nim_stewart() -> Platform:
     return load_platform(NIM_STEWART_FILE)
 
 
-def _ring(radius_mm: float, angles_deg, z_mm: float) -> np.ndarray:
-    angles = np.radians(angles_deg)
-    return np.column_stack([radius_mm * np.cos(angles), radius_mm * np.sin(angles), np.full(6, z_mm)])
+#: compact-600/250's drive rings: base radius, platform radius [mm], base and platform pair half
+#: angles [deg] (:func:`stewart_calib.sweep.spec.ring_platform`).
+COMPACT_RINGS = (600.0, 250.0, 20.0, 40.0)
 
 
 def compact_variant() -> Platform:
@@ -117,12 +117,9 @@ def compact_variant() -> Platform:
     are more parallel, so the identification is worse conditioned — the interesting contrast.
     Initial lengths are the leg lengths at home (every stroke 0 at home).
     """
-    nominal = nim_stewart()
-    base = _ring(600.0, [-20, 20, 100, 140, 220, 260], nominal.drive.base_joints[0, 2])
-    plat = _ring(250.0, [-40, 40, 80, 160, 200, 280], nominal.drive.platform_joints[0, 2])
-    home_t = nominal.workspace.home[:3]
-    lengths = np.linalg.norm(home_t + plat - base, axis=1)
-    return nominal.with_drive(LegGeometry(base, plat, lengths))
+    from stewart_calib.sweep.spec import ring_platform
+
+    return ring_platform(nim_stewart(), *COMPACT_RINGS, name="compact-600/250")
 
 
 GEOMETRIES = {"nim-stewart": nim_stewart, "compact-600/250": compact_variant}

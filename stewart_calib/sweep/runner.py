@@ -11,8 +11,8 @@ killed attaches to a task still running under the same key instead of starting i
 
 from __future__ import annotations
 
-import logging
 import asyncio
+import logging
 import os
 import socket
 import time

@@ -38,8 +38,8 @@ import numpy as np
 
 from .. import __version__
 from ..errors import CalibError
-from ..estimators import METHODS, EstimatorConfig
-from ..estimators.config import config_from_dict
+from ..config import EstimatorConfig, config_from_dict
+from ..estimators import METHODS
 from ..platform import LegGeometry, Platform, load_platform, platform_to_toml
 from ..resources import CONFIGS
 

@@ -35,9 +35,8 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..errors import CalibError, SampleRejected
-from ..estimators import make_estimator
-from ..estimators.base import current_error
-from ..estimators.config import NoiseConfig
+from ..config import NoiseConfig
+from ..estimators import METHODS, make_estimator
 from ..identifiability import identifiability_report, whitened_leg_jacobian
 from ..platform import N_PARAMS, Platform, vector_to_params
 from ..samples import Log
@@ -189,12 +188,14 @@ def run_method(method: str, data: SweepData, cell: Cell, checkpoints: tuple[int,
     estimator = make_estimator(method, data.platform, cell.estimator_config)
     at_checkpoint = {}
     start = time.perf_counter()
-    if hasattr(estimator, "fit"):
+    if not METHODS[method].online:
         estimate = estimator.fit(samples)
         rejected = len(estimator.rejected)
         for n in checkpoints if refit else ():
-            prefix = make_estimator(method, data.platform, cell.estimator_config).fit(samples[:n])
-            at_checkpoint[n] = prefix.error
+            try:
+                at_checkpoint[n] = make_estimator(method, data.platform, cell.estimator_config).fit(samples[:n]).error
+            except CalibError:  # e.g. ls not converging on a short prefix: that checkpoint is NaN
+                at_checkpoint[n] = np.full(N_PARAMS, np.nan)
     else:
         rejected = 0
         for k, sample in enumerate(samples, start=1):
@@ -203,7 +204,7 @@ def run_method(method: str, data: SweepData, cell: Cell, checkpoints: tuple[int,
             except SampleRejected:
                 rejected += 1
             if k in checkpoints:
-                at_checkpoint[k] = current_error(estimator)
+                at_checkpoint[k] = estimator.current_error()
         estimate = estimator.estimate()
     seconds = time.perf_counter() - start
     row = score(data, estimate.error, estimate.covariance, crb_mm)
