@@ -10,7 +10,7 @@ core), or the workers of the scheduler at ``--scheduler`` — and writes into DI
 * ``summary.csv``, ``summary.md``, ``plots/`` — quantiles per cell and method, and plots.
 
 Running the same command again skips the finished tasks (resume); so does a spec that only
-adds seeds or grid values. A tqdm bar goes to stderr when it is a terminal.
+adds seeds or grid values, or the full command after a ``--seeds N`` pilot. A tqdm bar goes to stderr when it is a terminal.
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--out", required=True, metavar="DIR")
     parser.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="a running Dask scheduler (default: a local cluster)")
     parser.add_argument("--workers", type=int, metavar="N", help="worker processes of the local cluster (default: one per core)")
+    parser.add_argument("--seeds", type=int, metavar="N", help="a pilot: only the first N seeds of every cell (the full command resumes from it)")
     parser.set_defaults(func=run)
 
 
@@ -43,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
     from ..sweep.summary import write_summary
 
     spec = load_spec(args.spec)
+    if args.seeds is not None:
+        spec = spec.pilot(args.seeds)
     out = Path(args.out)
     report = run_sweep(spec, out, scheduler=args.scheduler, workers=args.workers, progress=True)
     write_summary(spec, report.table, out)

@@ -26,6 +26,7 @@ recomputes only what is missing, and a changed platform file never reuses stale 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import itertools
 import json
@@ -176,6 +177,13 @@ class SweepSpec:
     def swept(self) -> list[str]:
         """Settings with more than one value (the study's axes), in column order."""
         return [name for name, values in self.axes.items() if len(values) > 1]
+
+    def pilot(self, seeds: int) -> "SweepSpec":
+        """The same study on its first ``seeds`` seeds (its tasks are the full study's: a pilot
+        run's rows are kept when the full study runs into the same directory)."""
+        if seeds < 1:
+            raise CalibError(f"--seeds: expected at least 1 seed, got {seeds}")
+        return dataclasses.replace(self, seeds=self.seeds[:seeds])
 
     def tasks(self) -> list[tuple[Cell, int]]:
         """Every (cell, seed), cell-major."""
