@@ -22,7 +22,7 @@ LAYERS = (
     ("estimate", "instruments"),
     ("factors", "io", "identifiability", "compensation", "plausibility", "simulation", "viz"),
     ("planning", "estimators"),
-    ("online", "reproduction"),
+    ("online", "reproduction", "sweep"),
     ("pipelines",),
     ("cli",),
     ("__main__",),

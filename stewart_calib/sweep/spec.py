@@ -276,8 +276,11 @@ def _integer(value, key: str, minimum: int, refuse) -> int:
 
 
 def _string_list(value, key: str, refuse) -> list[str]:
-    if not isinstance(value, list) or not value and key == "methods" or not all(isinstance(v, str) for v in value):
-        raise refuse(key, "expected a non-empty list of method names" if key == "methods" else "expected a list of method names")
+    """A list of method names; ``methods`` may not be empty."""
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise refuse(key, "expected a list of method names")
+    if not value and key == "methods":
+        raise refuse(key, "expected at least one method")
     if len(set(value)) != len(value):
         raise refuse(key, "a method is listed twice")
     return list(value)

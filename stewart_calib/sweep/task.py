@@ -234,7 +234,7 @@ def run_task(cell: Cell, seed: int, methods: tuple[str, ...], checkpoints: tuple
             scores = run_method(method, data, cell, checkpoints, method in refit_at_checkpoints, crb_mm)
             failure = ""
         except (CalibError, np.linalg.LinAlgError) as err:
-            scores = {name: float("nan") for name in METRICS} | {"samples_rejected": len(data.log)}
+            scores = {name: float("nan") for name in METRICS} | {"samples_rejected": None}
             scores |= {f"rms_over_crb_at_{n}": float("nan") for n in checkpoints}
             failure = str(err).splitlines()[0] if str(err) else err.__class__.__name__
         scores["closed_loop_nominal_mm"] = nominal_mm
