@@ -42,7 +42,7 @@ from ..errors import CalibError
 from ..config import EstimatorConfig, config_from_dict
 from ..estimators import METHODS
 from ..platform import LegGeometry, Platform, load_platform, platform_to_toml
-from ..resources import CONFIGS
+from ..resources import CONFIGS, not_found_hint, resolve
 
 
 @dataclass(frozen=True)
@@ -194,17 +194,17 @@ TOP_KEYS = ("name", "description", "methods", "seeds", "first_seed", "checkpoint
 
 
 def load_spec(path: str | Path) -> SweepSpec:
-    """Read and validate a sweep spec.
+    """Read and validate a sweep spec: a path, or the name of a shipped one (``smoke``, ``study``).
 
     Raises:
         CalibError: one line naming the file and the key (an unknown key, an unknown method or
             instrument, a wrong type or a value out of range).
     """
-    path = Path(path)
+    path = resolve(path, "sweeps")
     try:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise CalibError(f"{path}: sweep spec not found") from None
+        raise CalibError(f"{path}: sweep spec not found{not_found_hint(path, 'sweeps')}") from None
     except (OSError, UnicodeDecodeError) as err:
         raise CalibError(f"{path}: cannot read sweep spec ({err.__class__.__name__})") from None
     except tomllib.TOMLDecodeError as err:
