@@ -10,7 +10,8 @@ run in this process (an interpreter start per command would double the time):
   but the extras they name must exist in pyproject.toml;
 * ``python -m pytest`` is not run (this is that run), but must name no missing path;
 * ``reproduce`` is parsed by the real parser, not run: tests/test_reproduce.py runs it (its
-  ``--quick`` form; the full one takes ~20 s alone);
+  ``--quick`` form; the full one takes ~20 s alone); so is ``sweep`` (the smoke study starts a
+  Dask cluster and takes about a minute; tests/test_sweep_dask.py runs small sweeps);
 * a ROS bag a snippet reads is written beforehand with rosbags' writer (tests/test_import_bag.py).
 
 A ``python`` block runs as a script (``runpy``-like ``exec``) in the same directory.
@@ -86,7 +87,7 @@ def _run(words: list[str], work: Path) -> None:
     if program == "python" and args[:1] == ["-m"] and args[1] == "benchmarks":
         return  # minutes long; tests/test_benchmarks_quick.py runs its --quick form
     assert program == "stewart-calib", f"README runs an unexpected program: {' '.join(words)}"
-    if args[:1] == ["reproduce"]:
+    if args[:1] in (["reproduce"], ["sweep"]):
         build_parser().parse_args(args)  # exits (SystemExit) on an option the command does not have
         return
     _prepare_inputs(work, args)

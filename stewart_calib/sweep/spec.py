@@ -247,6 +247,9 @@ def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
     for value in axes["instrument"]:
         if value not in INSTRUMENTS:
             raise refuse("grid.instrument", f"unknown instrument '{value}': expected one of {', '.join(INSTRUMENTS)} (what the simulator supports)")
+        unable = [m for m in methods if value not in METHODS[m].instruments]
+        if unable:
+            raise refuse("methods", f"method '{unable[0]}' cannot calibrate with instrument '{value}' (grid.instrument)")
     if checkpoints and max(checkpoints) > min(axes["samples"]):
         raise refuse("checkpoints", f"expected sample counts ≤ the smallest 'samples' ({min(axes['samples'])}), got {max(checkpoints)}")
     platforms = {value: _platform(value, families, path, refuse) for value in axes["platform"]}
