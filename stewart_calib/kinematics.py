@@ -27,7 +27,7 @@ import numpy as np
 
 from . import _kernels
 from .errors import CalibError, SampleRejected
-from .platform import N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
+from .platform import N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, vector_to_params
 from .rotations import (  # noqa: F401 -- the pose algebra is part of the kinematics API
     pose_error,
     pose_to_rt,
@@ -260,6 +260,14 @@ def _flat_poses(R: np.ndarray, t: np.ndarray, batch: tuple[int, ...] | None = No
 def leg_residuals(legs: LegGeometry, R: np.ndarray, t: np.ndarray, strokes: np.ndarray) -> np.ndarray:
     """Leg-length model ``r_i = ‖t + R d_i − j_i‖ − (l_i + q_i)``, ``(..., 6)`` [mm]."""
     return leg_lengths(legs, R, t) - legs.initial_lengths - np.asarray(strokes, dtype=float)
+
+
+def leg_residuals_per_sample(params_mm: np.ndarray, R: np.ndarray, t: np.ndarray, strokes_mm: np.ndarray) -> np.ndarray:
+    """``(N, 6)`` drive-leg residuals ``‖t + R d_i − j_i‖ − (l_i + q_i)`` [mm] where sample k has its
+    own parameters ``params_mm[k]`` (absolute 42-vector, paper order) and pose ``(R[k], t[k])``."""
+    p = vector_to_params(params_mm)
+    joints = t[:, None, :] + np.einsum("nij,nkj->nki", R, p[:, :, 3:6]) - p[:, :, 0:3]
+    return np.linalg.norm(joints, axis=-1) - (p[:, :, 6] + strokes_mm)
 
 
 def leg_residual_param_jacobian(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:

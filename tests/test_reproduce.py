@@ -19,7 +19,7 @@ from stewart_calib.reproduction.metrics import VIEWS
 from stewart_calib.reproduction.record import SCENE_CIRCLE_STRIDE, parameter_stride
 from stewart_calib.simulation import EstimatorController, load_experiment
 from stewart_calib.simulation.experiment import Stage
-from tests.readback import read_blueprint_names, read_entity_rows, read_static
+from tests.readback import read_blueprint_names, read_entity_rows, read_scalars, read_static
 from stewart_calib.platform import PARAMETER_FIELDS
 from stewart_calib.viz.recording import SAMPLE_TIMELINE, TIME_TIMELINE
 from rerun.chunk import RrdReader
@@ -218,6 +218,19 @@ def test_recording_paths_timelines_and_rows(out, results):
     assert "/trajectories/no-load/nominal/actual" in static and "/trajectories/40kg/nominal/actual" not in static
     names = read_blueprint_names(rrd)
     assert {"scene", "pose errors", "trajectories", *(f"parameters {m}" for m in RECORDED)} <= names
+    assert {f"diagnostics {m}" for m in RECORDED} <= names
+    for method in RECORDED:
+        for leg in range(1, 7):
+            assert rows[f"/params/leg{leg}/l/{method}/upper"] == rows[f"/params/leg{leg}/l/{method}/lower"] == kept
+            assert rows[f"/diagnostics/{method}/residual/leg{leg}"] == kept
+            assert (f"/diagnostics/{method}/innovation/leg{leg}" in rows) == (method != "ls")
+        assert (f"/diagnostics/{method}/nis" in rows) == (method in ("ekf", "paper_ekf"))
+    # the band is the estimate ± its σ: at the last logged row, the online filter's final σ
+    _, centre = read_scalars(rrd, "params/leg1/l/ekf")
+    _, upper = read_scalars(rrd, "params/leg1/l/ekf/upper")
+    _, lower = read_scalars(rrd, "params/leg1/l/ekf/lower")
+    np.testing.assert_allclose(upper - centre, centre - lower, atol=1e-9)
+    assert np.all(upper - lower > 0)
 
 
 # ----------------------------------------------------------------------------- the controller

@@ -150,10 +150,10 @@ def _write_rerun(path: Path, platform: Platform, method: str, log: Log, run: Cal
     residual = innovation = None
     if platform.instrument.kind == "tracker":  # the drive-leg residuals need the tracker's pose of each sample
         poses = kin.forward_kinematics(platform.tracker, log.readings, strict=False)
-        residual = handover.leg_residuals_per_sample(run.trace, poses.R, poses.t, log.strokes)
+        residual = kin.leg_residuals_per_sample(run.trace, poses.R, poses.t, log.strokes)
         if not batch:
             before = np.vstack([nominal, run.trace[:-1]])  # the model in force when each sample arrived
-            innovation = handover.leg_residuals_per_sample(before, poses.R, poses.t, log.strokes)
+            innovation = kin.leg_residuals_per_sample(before, poses.R, poses.t, log.strokes)
     series = {"residual": residual, "innovation": innovation, "nis": run.nis}
     kinds = {kind for kind, values in series.items() if values is not None}
     with io.atomic_path(path) as tmp, viz.open_recording(tmp) as rec:

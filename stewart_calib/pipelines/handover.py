@@ -15,7 +15,7 @@ from .. import __version__, io
 from ..config import EstimatorConfig
 from ..errors import CalibError
 from ..estimate import Estimate
-from ..platform import Platform, platform_to_toml, vector_to_params
+from ..platform import Platform, platform_to_toml
 
 REPORT_PAGE = "index.html"
 
@@ -84,14 +84,6 @@ def calibrated_platform_text(platform: Platform, estimate: Estimate, method: str
 
 
 # ----------------------------------------------------------------------------- residuals
-
-
-def leg_residuals_per_sample(params_mm: np.ndarray, R: np.ndarray, t: np.ndarray, strokes_mm: np.ndarray) -> np.ndarray:
-    """``(N, 6)`` drive-leg residuals ``‖t + R d_i − j_i‖ − (l_i + q_i)`` [mm] where sample k has its
-    own parameters ``params_mm[k]`` (absolute 42-vector, paper order) and pose ``(R[k], t[k])``."""
-    p = vector_to_params(params_mm)
-    joints = t[:, None, :] + np.einsum("nij,nkj->nki", R, p[:, :, 3:6]) - p[:, :, 0:3]
-    return np.linalg.norm(joints, axis=-1) - (p[:, :, 6] + strokes_mm)
 
 
 def residual_rms_field(residuals) -> dict:

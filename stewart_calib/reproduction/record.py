@@ -6,11 +6,14 @@
 * ``params/leg{i}/{field}/{method}`` — δM the controller used, per method, and the truth's δM in
   force (pose- and load-dependent) of the scene run (Figs. 5–6), every :func:`parameter_stride`-th
   sample: 42 × 5 full-rate series of the paper run alone would take ~15 MB.
+* ``params/leg{i}/{field}/{method}/upper|lower`` — the ±σ band of each method's δM, same rows;
+  ``diagnostics/{method}/…`` — drive-leg residuals at the tracker's pose with the δM after each
+  sample and (online methods) before it, and the NIS of the Kalman methods, same rows.
 * ``errors/position_mm|orientation_deg/{method}`` — true pose error of every sample (Fig. 7);
   ``nominal`` is left out: its ~3 mm would flatten the others' curves.
 * ``trajectories/{stage}/{method}`` and ``polar/{stage}/{method}`` — every circle point, desired
   vs actual (truth view), per stage and method, plus ``nominal`` at the first stage (Figs. 8–9).
-* A blueprint with tabs: scene, parameters per method, pose errors, trajectories.
+* A blueprint with tabs: scene, parameters per method, pose errors, trajectories, diagnostics per method.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from .. import kinematics as kin
 from ..platform import LegGeometry
 from ..viz import recording as viz
 from .metrics import held_pose_ends
-from .runs import METHODS, NOMINAL, Reproduction
+from .runs import BATCH_METHOD, METHODS, NOMINAL, Reproduction
 
 SCENE_METHOD = "isam2"
 SCENE_CIRCLE_STRIDE = 5
@@ -70,10 +73,16 @@ def write_recording(path: str | Path, reproduction: Reproduction) -> None:
         )
         kept = np.arange(0, len(scene.log), parameter_stride(len(scene.log)))
         viz.log_parameters(rec, viz.TRUTH, scene.truth.params[kept] - nominal, scene.log.t_s[kept], samples=kept)
+        diagnostics = {}
         for method in METHODS:
             run = reproduction.runs[method]
             result = run.result
-            viz.log_parameters(rec, entity_name(method), run.trace[kept], result.log.t_s[kept], samples=kept)
+            name, t_kept = entity_name(method), result.log.t_s[kept]
+            viz.log_parameters(rec, name, run.trace[kept], t_kept, samples=kept)
+            viz.log_parameter_band(rec, name, run.trace[kept], run.stddev[kept], t_kept, samples=kept)
+            series = _diagnostics(platform, run, kept, online=method != BATCH_METHOD)
+            viz.log_diagnostics(rec, name, t_kept, *series, samples=kept)
+            diagnostics[name] = {kind for kind, values in zip(viz.DIAGNOSTICS, series) if values is not None}
             R_d, t_d = kin.pose_to_rt(result.desired_poses)
             R_a, t_a = kin.pose_to_rt(result.actual_poses)
             viz.log_pose_errors(rec, entity_name(method), result.log.t_s, *kin.pose_error(R_d, t_d, R_a, t_a))
@@ -86,4 +95,18 @@ def write_recording(path: str | Path, reproduction: Reproduction) -> None:
                     rec, stage, entity_name(method), result.desired_poses[circle, :3], result.actual_poses[circle, :3],
                     POLAR_BASE_RADIUS_MM, POLAR_GAIN,
                 )
-        viz.send_blueprint(rec, [entity_name(m) for m in METHODS], reproduction.stage_names)
+        viz.send_blueprint(rec, [entity_name(m) for m in METHODS], reproduction.stage_names, diagnostics)
+
+
+def _diagnostics(platform, run, kept: np.ndarray, online: bool):
+    """``(residual, innovation or None, NIS or None)`` at the rows ``kept``: the drive-leg residuals
+    at the tracker's pose of each sample with the δM in force after it and (online) before it."""
+    log = run.result.log
+    poses = kin.forward_kinematics(platform.tracker, log.readings[kept], strict=False)
+    nominal = platform.drive.as_vector()
+    after = kin.leg_residuals_per_sample(nominal + run.trace[kept], poses.R, poses.t, log.strokes[kept])
+    innovation = None
+    if online:
+        before = np.vstack([np.zeros_like(run.trace[:1]), run.trace[:-1]])[kept]  # the model when the sample came
+        innovation = kin.leg_residuals_per_sample(nominal + before, poses.R, poses.t, log.strokes[kept])
+    return after, innovation, None if run.nis is None else run.nis[kept]

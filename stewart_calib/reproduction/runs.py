@@ -23,6 +23,8 @@ from tqdm import tqdm
 
 from ..config import EstimatorConfig
 from ..estimators import make_estimator, method_names
+from ..estimators.ekf import LegEKF
+from ..estimators.paper_ekf import PaperEKF
 from ..platform import N_PARAMS, Platform
 from ..simulation import EstimatorController, FrozenController, NominalController, SimulationResult, run_experiment
 from ..simulation.experiment import Experiment
@@ -48,6 +50,10 @@ class MethodRun:
             method's estimate at the last sample of the first stage, zeros for ``nominal``.
         rejected: samples the estimator refused.
         run_time_s: wall time of the run, estimator included [s].
+        stddev: ``(N, 42)`` σ of δM after each sample [mm] (NaN while the IK used no estimate),
+            or None (``nominal``).
+        nis: ``(N,)`` normalised innovation squared of each sample (Kalman methods; NaN where
+            refused), or None.
     """
 
     method: str
@@ -56,6 +62,8 @@ class MethodRun:
     no_load_error: np.ndarray
     rejected: int
     run_time_s: float
+    stddev: np.ndarray | None = None
+    nis: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -97,6 +105,30 @@ class _Counted:
         self._bar.update()
 
 
+class _Diagnosed:
+    """Passes an :class:`EstimatorController` through, keeping after each sample the estimator's
+    σ [mm] (``estimate()``: isam2 pays its ~0.3 ms marginal) and, for a Kalman filter, its NIS."""
+
+    adaptive = True
+
+    def __init__(self, controller: EstimatorController):
+        self.controller = controller
+        self.kalman = isinstance(controller.estimator, (LegEKF, PaperEKF))
+        self.stddev: list[np.ndarray] = []
+        self.nis: list[float] = []
+
+    def drive_model(self):
+        return self.controller.drive_model()
+
+    def observe(self, sample) -> None:
+        refused = len(self.controller.rejected)
+        self.controller.observe(sample)
+        estimator = self.controller.estimator
+        stddev = estimator.estimate().stddev
+        self.stddev.append(np.full(N_PARAMS, np.nan) if stddev is None else stddev)
+        self.nis.append(estimator.filter.nis if self.kalman and len(self.controller.rejected) == refused else np.nan)
+
+
 def first_stage_calibration(result: SimulationResult) -> np.ndarray:
     """Sample indices of the first stage's calibration segment (the paper's no-load calibration)."""
     return np.flatnonzero((result.stages == result.stages[0]) & (result.kinds == "calibration"))
@@ -119,16 +151,21 @@ def run_ls(experiment: Experiment, config: EstimatorConfig, nominal: SimulationR
     # What the IK used: nominal during the calibration segment, the frozen fit from then on.
     trace = np.tile(estimate.error, (len(result.log), 1))
     trace[: calibration[-1] + 1] = 0.0
-    return MethodRun(BATCH_METHOD, result, trace, estimate.error, len(estimator.rejected), fit_s + run_s)
+    stddev = np.tile(np.full(N_PARAMS, np.nan) if estimate.stddev is None else estimate.stddev, (len(result.log), 1))
+    stddev[: calibration[-1] + 1] = np.nan
+    return MethodRun(BATCH_METHOD, result, trace, estimate.error, len(estimator.rejected), fit_s + run_s, stddev)
 
 
 def run_online(experiment: Experiment, config: EstimatorConfig, method: str, bar: tqdm) -> MethodRun:
     """One :class:`EstimatorController` with ``method`` through every stage."""
     controller = EstimatorController(make_estimator(method, experiment.platform, config), experiment.platform)
-    result, run_s = _timed_run(experiment, controller, bar)
+    diagnosed = _Diagnosed(controller)
+    result, run_s = _timed_run(experiment, diagnosed, bar)
     trace = controller.trace()
     last_of_first_stage = int(np.flatnonzero(result.stages == result.stages[0])[-1])
-    return MethodRun(method, result, trace, trace[last_of_first_stage], len(controller.rejected), run_s)
+    nis = np.array(diagnosed.nis) if diagnosed.kalman else None
+    return MethodRun(method, result, trace, trace[last_of_first_stage], len(controller.rejected), run_s,
+                     np.array(diagnosed.stddev), nis)
 
 
 def reproduce(experiment: Experiment, config: EstimatorConfig, progress: bool = False) -> Reproduction:
