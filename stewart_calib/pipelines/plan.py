@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from ..errors import CalibError
 from . import add_config_arguments, run_command
 from .. import io
 from ..config import load_estimator_config
@@ -60,6 +61,13 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
+    if platform.instrument.kind != "tracker":
+        # the designs' information is the tracker's leg-length form; an outside instrument's (drive,
+        # stroke scale, frame and targets together) is estimators.batch.identifiability's, not planned yet
+        raise CalibError(
+            f"{args.platform}: plan designs poses for the in-situ tracker; this platform's instrument is "
+            f"'{platform.instrument.kind}' (use identifiability --poses to assess a pose list for it)"
+        )
     noise = load_estimator_config(args.config, args.set).noise
     start = time.perf_counter()
     poses = plan_poses(platform, args.n, args.criterion, np.random.default_rng(args.seed), args.candidates, noise)
