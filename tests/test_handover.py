@@ -233,8 +233,27 @@ def test_validate_report_shows_the_held_out_errors(pose_run):
                  "--log", str(pose_run / "held.csv"), "--out", str(pose_run / "V.csv"), "--report", str(pose_run / "vreport")]) == 0
     page = (pose_run / "vreport" / "index.html").read_text(encoding="utf-8")
     assert "<h2>Held-out errors</h2>" in page and "<script" not in page.lower()
+    assert "before = the nominal platform, its instrument frame fitted to this log" in page
     rows = (pose_run / "V.csv").read_text().splitlines()
     header = rows[0].split(",")
     position = np.array([float(r.split(",")[header.index("position_error_mm")]) for r in rows[1:]])
     assert f"<td>{np.sqrt(np.mean(position**2)):.4g}</td><td>{position.max():.4g}</td>" in page
     assert len(re.findall(r'src="data:image/png;base64,', page)) == 5  # + the held-out errors over time
+
+
+def test_report_without_matplotlib_is_refused_before_any_work(sim, tmp_path, capsys, monkeypatch):
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_matplotlib(name, *args, **kwargs):
+        if name.split(".")[0] == "matplotlib":
+            raise ImportError("No module named 'matplotlib'")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_matplotlib)
+    monkeypatch.setattr(calibrate_pipeline, "run_calibration", lambda *a, **k: pytest.fail("calibration ran"))
+    assert _calibrate(sim, tmp_path / "r.json", "ekf", "--report", str(tmp_path / "report")) == 2
+    err = capsys.readouterr().err
+    assert "--report: the report needs matplotlib (pip install 'stewart-calib[report]')" in err
+    assert not (tmp_path / "r.json").exists() and not (tmp_path / "report").exists()

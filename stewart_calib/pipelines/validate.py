@@ -169,7 +169,8 @@ def measurement_residuals(platform: Platform, log: Log, result: dict, predicted:
     # on the log, so that it measures the nominal robot, not where the cameras happen to stand.
     outside = platform.instrument.kind != "tracker"
     before = residual_file_units(validate(platform, nominal, log, outside, "the nominal platform")[0])
-    return Residuals(tuple(columns), np.asarray(log.t_s), before, residual_file_units(predicted), log_label)
+    before_model = "the nominal platform" + (", its instrument frame fitted to this log" if outside else "")
+    return Residuals(tuple(columns), np.asarray(log.t_s), before, residual_file_units(predicted), log_label, before_model)
 
 
 def _report_page(args, platform: Platform, result: dict, log, predicted, position, orientation) -> str:

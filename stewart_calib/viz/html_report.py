@@ -37,6 +37,7 @@ class Residuals:
         before: ``(N, m)`` with the nominal model.
         after: ``(N, m)`` with the calibrated model.
         log: which log they are of, for the page's text.
+        before_model: what "before" predicted with, for the page's text.
     """
 
     channels: tuple[str, ...]
@@ -44,6 +45,7 @@ class Residuals:
     before: np.ndarray
     after: np.ndarray
     log: str = "the calibration log"
+    before_model: str = "the nominal platform"
 
 
 @dataclass(frozen=True)
@@ -215,7 +217,7 @@ def _residual_section(residuals: Residuals) -> str:
     return (
         "<h2>Residuals per measured channel</h2>"
         f"<p>Measured minus predicted by the model, over {html.escape(residuals.log)} "
-        f"({len(residuals.t_s)} samples): before = nominal platform, after = calibrated.</p>"
+        f"({len(residuals.t_s)} samples): before = {html.escape(residuals.before_model)}, after = calibrated.</p>"
         + _table(["channel", "unit", "RMS before", "RMS after", "after / before"], rows, "num")
         + residual_rms_figure(residuals)
         + residual_time_figure(residuals)
