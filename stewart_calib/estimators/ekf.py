@@ -9,6 +9,11 @@ current model ``M + δM``; the expected value is 0, so the innovation is ``−r`
 ``H = ∂r/∂X``: ``∂r/∂M``, ``−q_i`` on ``k_i``, and ``J_x ∂ξ/∂θ`` on θ (the measured pose moves
 with the instrument's unknowns). The filter never names an instrument.
 
+Where the measurement does not fix a pose (a points instrument seeing fewer than three targets)
+the observation is the instrument's own residual ``h(ξ(X), θ) − z`` at the pose ``ξ(X)`` the drive
+model's forward kinematics gives, with ``∂ξ/∂X = −J_g⁻¹ ∂g/∂X`` by the implicit function theorem
+on the drive-leg residuals ``g`` and the strokes' noise carried through ``J_g⁻¹``.
+
 Measurement covariance: ``J_x Σ_x J_xᵀ + σ_q² I`` (full 6×6), with ``Σ_x`` the measured pose's
 covariance (for the tracker propagated from i.i.d. reading noise σ_s) and ``J_x`` the
 residuals' pose Jacobian — all six residuals share the one measured pose, so their errors are
@@ -19,6 +24,11 @@ Process noise: a random walk of δM, ``Q = ρ² Δt`` on its entries with ``ρ``
 other blocks are constant. Gauge: where the instrument's unknowns share the drive's gauge, the
 prior and ``Q`` are conditioned on ``C X = 0`` (:func:`~stewart_calib.unknowns.gauge_conditioned`),
 so every state holds the base and platform joints' mean rigid motion at nominal exactly.
+
+An instrument whose kind is registered on the data (a frame far from nominal) is handled by
+holding the first samples (:class:`~.measurement.HeldForRegistration`): once they register it,
+its block starts at the registration and the held samples are replayed; until then the estimate
+is the prior.
 """
 
 from __future__ import annotations
@@ -36,7 +46,7 @@ from ..platform import N_PARAMS, Platform
 from ..samples import Sample
 from ..unknowns import gauge_conditioned
 from .kalman import FilterState
-from .measurement import WarmPose, check_sample, unknown_layout
+from .measurement import HeldForRegistration, WarmFK, WarmPose, check_sample, unknown_layout
 
 
 class LegEKF:
@@ -64,23 +74,38 @@ class LegEKF:
         self._nominal_scale = platform.stroke_scale
         self._instrument = self.layout.slice("instrument")
         self._pose = WarmPose(self.model)
+        self._drive_fk = WarmFK()
+        self._held = HeldForRegistration(platform, config.noise, self.model, self.layout)
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample; ``SampleRejected`` leaves the state untouched."""
         strokes, z = check_sample(self.platform, self.model, sample)
-        last_t_s = self.filter.t_s
-        dt_s = 0.0 if math.isnan(last_t_s) else sample.t_s - last_t_s
-        if dt_s < 0.0:
+        last_t_s = self._held.samples[-1].t_s if self._held.active and self._held.samples else self.filter.t_s
+        if sample.t_s < last_t_s:
             raise SampleRejected(
                 f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)", SampleRejected.TIME_BACK
             )
+        if not self._held.active:
+            self._fold(sample, strokes, z)
+            return
+        start = self._held.hold(sample)
+        if start is not None:
+            self.filter.x[:] = start
+            for held in self._held.samples:  # a held sample the filter refuses is left out, as it would have been
+                try:
+                    self._fold(held, *check_sample(self.platform, self.model, held))
+                except SampleRejected:
+                    pass
+
+    def _fold(self, sample: Sample, strokes: np.ndarray, z: np.ndarray) -> None:
+        last_t_s = self.filter.t_s
+        dt_s = 0.0 if math.isnan(last_t_s) else sample.t_s - last_t_s
         x = self.filter.x
         theta = instrument_theta(self.model, None if self._instrument is None else x[self._instrument])
         observed = self._pose.solve(z, theta)
         if observed is None:
-            raise SampleRejected(
-                f"ekf: sample at t = {sample.t_s} s: the measurement does not fix a pose", SampleRejected.NO_POSE
-            )
+            self._fold_tight(sample, strokes, z, theta, dt_s)
+            return
         scale = 1.0 + (self._nominal_scale if self._scale is None else self._nominal_scale + x[self._scale])
         # r, H = ∂r/∂M and R_meas = J_x Σ_x J_xᵀ + σ_q² I at the model M + δM, in one compiled call.
         residual, H_drive, R_meas, J_x = kin.leg_ekf_observation(
@@ -95,12 +120,38 @@ class LegEKF:
                 H[:, self._scale] = np.diag(-strokes)
             if self._instrument is not None:
                 H[:, self._instrument] = J_x @ observed.J_instrument
+        self._predict(dt_s)
+        self.filter.update(H, -residual, R_meas, sample.t_s)
+
+    def _fold_tight(self, sample: Sample, strokes: np.ndarray, z: np.ndarray, theta: np.ndarray, dt_s: float) -> None:
+        """The instrument's residual at the drive model's pose (see the module docstring)."""
+        x = self.filter.x
+        scale = 1.0 + (self._nominal_scale if self._scale is None else self._nominal_scale + x[self._scale])
+        drive = self.platform.drive.perturbed(x[:N_PARAMS])
+        R, t = self._drive_fk.solve(drive, strokes * scale, "drive model")
+        J_g, H_drive = kin.leg_residual_jacobians(drive, R, t)
+        dg_dx = np.zeros((6, self.layout.size))
+        dg_dx[:, :N_PARAMS] = H_drive
+        if self._scale is not None:
+            dg_dx[:, self._scale] = np.diag(-strokes)
+        J_g_inv = np.linalg.inv(J_g)
+        channels = np.concatenate(self.model.groups(z))
+        res = self.model.residual(R, t, theta, z, channels)
+        H = -(res.J_pose @ J_g_inv) @ dg_dx
+        if self._instrument is not None:
+            H[:, self._instrument] += res.J_instrument
+        A = res.J_pose @ J_g_inv * scale  # ∂r/∂q: a stroke moves the drive model's pose
+        R_meas = np.diag(self.model.channel_sigma[channels] ** 2) + self.noise.stroke_sigma_mm**2 * (A @ A.T)
+        self._predict(dt_s)
+        self.filter.update(H, -res.r, 0.5 * (R_meas + R_meas.T), sample.t_s)
+
+    def _predict(self, dt_s: float) -> None:
+        """Q of the random walk over ``dt_s`` (added inside the next update)."""
         step = self.noise.random_walk_mm_per_sqrt_s**2 * dt_s
         if self._unit_Q is None:
             np.fill_diagonal(self.filter.Q, step)
         else:
             np.multiply(self._unit_Q, step, out=self.filter.Q)
-        self.filter.update(H, -residual, R_meas, sample.t_s)
 
     def estimate(self) -> Estimate:
         """The unknown vector and ``P`` after the last accepted sample."""
@@ -111,11 +162,20 @@ class LegEKF:
         return self.filter.x[:N_PARAMS].copy()
 
     def export_state(self) -> dict:
-        """Filter and pose warm start as arrays (checkpoints; :meth:`import_state` restores).
-        The warm start keeps its first key, ``tracker_fk``, so earlier checkpoints still load."""
-        return {"filter": self.filter.export_state(), "tracker_fk": self._pose.export_state()}
+        """Filter, pose warm start and samples held for registration as arrays (checkpoints;
+        :meth:`import_state` restores). The warm start keeps its first key, ``tracker_fk``, so
+        earlier checkpoints still load."""
+        state = {"filter": self.filter.export_state(), "tracker_fk": self._pose.export_state()}
+        drive_fk = self._drive_fk.export_state()
+        if drive_fk:
+            state["drive_fk"] = drive_fk
+        if self._held.active:
+            state["held"] = self._held.export_state()
+        return state
 
     def import_state(self, state: dict) -> None:
         """Restore :meth:`export_state` exactly. Raises ``CalibError`` on a bad key or shape."""
         self.filter.import_state(state.get("filter", {}))
         self._pose.import_state(state.get("tracker_fk", {}))
+        self._drive_fk.import_state(state.get("drive_fk", {}))
+        self._held.restore(state, self.update)

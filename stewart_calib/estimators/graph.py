@@ -124,6 +124,8 @@ class GraphBuilder:
         self._prior_sigma = self.layout.prior_sigma(self.noise.prior_sigma_mm)
         self._walks = self.layout.walks()
         self._gauge = self.layout.gauge_rows(platform.drive)
+        #: the unknown vector's first value (zeros, or the instrument block at its registration)
+        self.initial = np.zeros(self.layout.size)
 
     def _noise(self, channels: np.ndarray) -> gtsam.noiseModel.Base:
         """The (robust) noise model of one channel group, made once per distinct group."""
@@ -162,7 +164,7 @@ class GraphBuilder:
             )
         # The current estimate, asked for only where it is needed (isam2 pays a smoother query).
         wanted = state.samples > 0 and (self._instrument is not None or self.new_window(state, sample.t_s))
-        guess = params_guess() if wanted else None
+        guess = params_guess() if wanted else (self.initial if state.samples == 0 and self._instrument is not None else None)
         theta = instrument_theta(self.model, None if guess is None or self._instrument is None else guess[self._instrument])
         observed = self.model.pose(z, theta, state.last_pose)
         if observed is not None:
@@ -179,7 +181,7 @@ class GraphBuilder:
         values.insert(x, pose)
         if k == 0:
             state = replace(state, window_start_s=sample.t_s)
-            values.insert(params_key(0), np.zeros(self.layout.size))
+            values.insert(params_key(0), self.initial)
             factors.add(random_walk.prior(params_key(0), self._prior_sigma))
             self._new_variable(factors, params_key(0))
         elif self.new_window(state, sample.t_s):

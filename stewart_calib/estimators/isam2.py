@@ -20,6 +20,7 @@ from ..platform import N_LEGS, N_PARAMS, Platform
 from ..samples import Sample
 from .base import state_array
 from .graph import ChainState, GraphBuilder, first_paragraph, params_key
+from .measurement import HeldForRegistration, check_sample
 
 
 class ISAM2Estimator:
@@ -68,6 +69,8 @@ class ISAM2Estimator:
         params.findUnusedFactorSlots = True
         self._params = params
         self._lag_s = config.isam2.lag_s
+        builder = self._builder
+        self._held = HeldForRegistration(platform, config.noise, builder.model, builder.layout)
         self._rebuild(None, [])
 
     def _current_params(self) -> np.ndarray:
@@ -79,7 +82,14 @@ class ISAM2Estimator:
         Raises:
             SampleRejected: see :meth:`GraphBuilder.epoch`, or gtsam failed in the update
                 (the smoother is rebuilt without the sample); the estimator is unchanged.
+
+        An instrument registered on the data holds the first samples
+        (:class:`~.measurement.HeldForRegistration`): once they register it, the unknown vector
+        starts from the registration and they are replayed.
         """
+        if self._held.active:
+            self._hold(sample)
+            return
         try:
             self._add(sample)
         except RuntimeError as err:  # gtsam's C++ exceptions; the smoother may be half-updated
@@ -88,6 +98,23 @@ class ISAM2Estimator:
                 f"sample at t = {sample.t_s} s: gtsam failed in the iSAM2 update ({first_paragraph(err)})",
                 SampleRejected.SOLVER,
             ) from None
+
+    def _hold(self, sample: Sample) -> None:
+        check_sample(self._builder.platform, self._builder.model, sample)
+        if self._held.samples and sample.t_s < self._held.samples[-1].t_s:
+            raise SampleRejected(
+                f"sample at t = {sample.t_s} s is older than the last one ({self._held.samples[-1].t_s} s)",
+                SampleRejected.TIME_BACK,
+            )
+        start = self._held.hold(sample)
+        if start is None:
+            return
+        self._builder.initial = start
+        for held in self._held.samples:  # a held sample the smoother refuses is left out, as it would have been
+            try:
+                self.update(held)
+            except SampleRejected:
+                pass
 
     def _add(self, sample: Sample) -> None:
         """The update itself; the Python-side state changes only once the smoother has succeeded."""
@@ -173,6 +200,10 @@ class ISAM2Estimator:
         first = self._first_snapshot()
         if first is not None:
             state["snapshot"] = {"chain": _chain_to_dict(first.state), "mean": first.mean, "covariance": first.covariance}
+        if self._held.active:
+            state["held"] = self._held.export_state()
+        elif self._builder.layout.slice("instrument") is not None:
+            state["initial"] = self._builder.initial.copy()  # where the unknown vector started (a registration)
         return state
 
     def import_state(self, state: dict) -> None:
@@ -184,6 +215,11 @@ class ISAM2Estimator:
         """
         if self._state.samples:
             raise ValueError("import_state needs a freshly built estimator")
+        self._held.restore(state, self.update)
+        if self._held.active:  # still holding samples for the registration
+            return
+        if "initial" in state:
+            self._builder.initial = state_array(state, "initial", (self._builder.layout.size,))
         replay = state.get("replay", {})
         t_s = state_array(replay, "t_s", np.shape(replay.get("t_s", ())))
         strokes = state_array(replay, "strokes", (len(t_s), N_LEGS))

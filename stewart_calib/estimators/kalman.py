@@ -219,7 +219,8 @@ class FilterState:
         prior = np.diag(self.layout.prior_sigma(prior_sigma_mm) ** 2)
         self.P = prior if C is None else gauge_conditioned(prior, C)
         self.Q = np.zeros((n, n))
-        self.gate_nis = float(chi2.ppf(gate_probability, m)) if gate_probability > 0.0 else math.inf
+        self.gate_probability = gate_probability
+        self.gate_nis = self._gate(m)
         self.samples_used = 0
         self.t_s = math.nan
         #: NIS and innovation covariance ``S`` of the last accepted update.
@@ -228,19 +229,27 @@ class FilterState:
         self._m = m
         self._work = np.empty(workspace_size(n, m))  # kalman_update's scratch, reused every call
 
+    def _gate(self, m: int) -> float:
+        """The χ² bound on the NIS of an ``m``-observation (``inf`` with the gate off)."""
+        return float(chi2.ppf(self.gate_probability, m)) if self.gate_probability > 0.0 else math.inf
+
     def update(self, H: np.ndarray, residual: np.ndarray, R: np.ndarray, t_s: float) -> None:
         """:func:`kalman_update` with ``self.Q``; counts the sample or raises ``SampleRejected``."""
         if not all_finite(H, residual, R):  # compiled: three np.isfinite passes cost ~5 µs
             raise SampleRejected(f"{self.method}: sample at t = {t_s} s gives a non-finite observation", SampleRejected.NON_FINITE)
-        nis, S = kalman_update(self.x, self.P, H, residual, R, self.Q, self.gate_nis, self._work)
+        m = len(residual)
+        gate_nis = self.gate_nis if m == self._m else self._gate(m)  # an observation of another size
+        if self._work.size < workspace_size(len(self.x), m):
+            self._work = np.empty(workspace_size(len(self.x), m))
+        nis, S = kalman_update(self.x, self.P, H, residual, R, self.Q, gate_nis, self._work)
         if math.isnan(nis):
             raise SampleRejected(
                 f"{self.method}: sample at t = {t_s} s: innovation covariance not positive definite",
                 SampleRejected.NOT_POSITIVE_DEFINITE,
             )
-        if nis > self.gate_nis:
+        if nis > gate_nis:
             raise SampleRejected(
-                f"{self.method}: sample at t = {t_s} s gated: NIS {nis:.3g} > χ² bound {self.gate_nis:.3g}",
+                f"{self.method}: sample at t = {t_s} s gated: NIS {nis:.3g} > χ² bound {gate_nis:.3g}",
                 SampleRejected.GATED,
             )
         self.nis, self.S = nis, S
@@ -273,4 +282,5 @@ class FilterState:
         self.samples_used = int(state_array(state, "samples_used", ()))
         self.t_s = float(state_array(state, "t_s", ()))
         self.nis = float(state_array(state, "nis", ()))
-        self.S = state_array(state, "S", (self._m, self._m)) if "S" in state else None
+        m = len(state["S"]) if "S" in state else 0  # the last observation's size
+        self.S = state_array(state, "S", (m, m)) if "S" in state else None

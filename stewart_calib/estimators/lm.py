@@ -17,6 +17,7 @@ from ..platform import Platform
 from ..samples import Sample
 from .base import BufferedFit
 from .graph import ChainState, GraphBuilder, first_paragraph, params_key
+from .measurement import registered_start
 
 
 class BatchLM(BufferedFit):
@@ -30,6 +31,7 @@ class BatchLM(BufferedFit):
     name = "lm"
 
     def __init__(self, platform: Platform, config: EstimatorConfig):
+        self._config = config
         self._builder = GraphBuilder(platform, config, chain=config.noise.random_walk_mm_per_sqrt_s > 0)
         self._graph = gtsam.NonlinearFactorGraph()
         self._values = gtsam.Values()
@@ -37,6 +39,15 @@ class BatchLM(BufferedFit):
         self._solved: Estimate | None = None
         #: ``(index in the fitted samples, SampleRejected)`` of samples :meth:`fit` skipped.
         self.rejected: list[tuple[int, SampleRejected]] = []
+
+    def fit(self, samples) -> Estimate:
+        """Register the instrument on ``samples`` where its kind asks for it (its unknowns then start
+        from the closed-form registration, not a nominal frame far off), then fit them all."""
+        samples = list(samples)
+        if self._state.samples == 0:
+            builder = self._builder
+            builder.initial = registered_start(builder.platform, self._config.noise, builder.model, builder.layout, samples)
+        return super().fit(samples)
 
     def _last_params(self) -> np.ndarray:
         return self._values.atVector(params_key(self._state.window))

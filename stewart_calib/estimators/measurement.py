@@ -22,7 +22,7 @@ from .. import _kernels
 from .. import kinematics as kin
 from ..config import EstimatorConfig, NoiseConfig
 from ..errors import CalibError, SampleRejected
-from ..instruments import InstrumentModel, PoseObservation, instrument_model
+from ..instruments import InstrumentModel, PoseObservation, instrument_model, needs_registration, registered
 from ..platform import LegGeometry, Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout, stroke_scale_block
@@ -143,6 +143,83 @@ def pose_difference(R_v: np.ndarray, t_v: np.ndarray, R_m: np.ndarray, t_m: np.n
     Y = np.empty((len(R_v), 6))
     _kernels.pose_difference(R_v, t_v, R_m, t_m, Y)  # per-pose loop: numpy's small-array overhead dominated
     return Y.reshape(batch + (6,))
+
+
+def registered_start(
+    platform: Platform, noise: NoiseConfig, model: InstrumentModel, layout: UnknownLayout, samples: list[Sample]
+) -> np.ndarray:
+    """The unknown vector to start from: zeros, but for an instrument registered on the data
+    (:func:`~stewart_calib.instruments.registry.needs_registration`) its block at the closed-form
+    registration on ``samples`` — a frame 100 mm and any rotation from nominal is then within the
+    linearisation of every method, with no prior widened.
+
+    Raises:
+        CalibError: the samples cannot register the instrument (the reason says why).
+    """
+    start = np.zeros(layout.size)
+    columns = layout.slice("instrument")
+    if columns is None or not needs_registration(platform):
+        return start
+    width = len(model.columns)
+    usable = [s for s in samples if np.shape(s.strokes) == (6,) and np.shape(s.readings) == (width,)]
+    strokes = np.array([s.strokes for s in usable], dtype=float).reshape(-1, 6)
+    readings = np.array([s.readings for s in usable], dtype=float).reshape(-1, width)
+    theta = instrument_model(registered(platform, strokes, readings), noise).unknowns.nominal
+    start[columns] = theta - layout.block("instrument").nominal
+    return start
+
+
+#: samples an online method holds before it registers an instrument that asks for it: the
+#: closed-form registration wants several distinct poses (three at the very least).
+REGISTRATION_SAMPLES = 10
+
+
+class HeldForRegistration:
+    """The samples an online method holds until its instrument can be registered on them
+    (:func:`registered_start`); then it starts from the registration and replays them.
+
+    Attributes:
+        active: still holding (False from the start for an instrument without registration).
+    """
+
+    def __init__(self, platform: Platform, noise: NoiseConfig, model: InstrumentModel, layout: UnknownLayout):
+        self._args = (platform, noise, model, layout)
+        self.active = layout.slice("instrument") is not None and needs_registration(platform)
+        self.samples: list[Sample] = []
+
+    def hold(self, sample: Sample) -> np.ndarray | None:
+        """Hold ``sample``; once :data:`REGISTRATION_SAMPLES` are held and they register the
+        instrument, the start vector (and holding ends: the caller replays :attr:`samples`)."""
+        self.samples.append(sample)
+        if len(self.samples) < REGISTRATION_SAMPLES:
+            return None
+        try:
+            start = registered_start(*self._args, self.samples)
+        except CalibError:  # not yet: e.g. the poses held so far are not distinct enough
+            return None
+        self.active = False
+        return start
+
+    def export_state(self) -> dict:
+        """The held samples as arrays, while holding (a checkpoint without them has ended holding)."""
+        return {
+            "t_s": np.array([s.t_s for s in self.samples], dtype=float),
+            "strokes": np.array([s.strokes for s in self.samples], dtype=float).reshape(-1, 6),
+            "readings": np.array([s.readings for s in self.samples], dtype=float).reshape(len(self.samples), -1),
+        }
+
+    def restore(self, state: dict, update) -> None:
+        """Restore a checkpoint's ``state`` of the estimator: its ``"held"`` samples are held again
+        (through ``update``); without them, holding had ended. Raises ``CalibError`` on a bad shape."""
+        if "held" not in state:
+            self.active = False
+            return
+        held = state["held"]
+        t_s = state_array(held, "t_s", np.shape(held.get("t_s", ())))
+        strokes = state_array(held, "strokes", (len(t_s), 6))
+        readings = state_array(held, "readings", (len(t_s), len(self._args[2].columns)))
+        for k in range(len(t_s)):
+            update(Sample(float(t_s[k]), strokes[k], readings[k]))
 
 
 def drive_only_model(method: str, platform: Platform, config: EstimatorConfig) -> InstrumentModel:

@@ -4,6 +4,9 @@
 directions to :mod:`.gauge`."""
 
 from .base import InstrumentModel, PoseObservation, Residual, instrument_theta
-from .registry import MODELS, instrument_model
+from .registry import MODELS, instrument_model, needs_registration, registered
 
-__all__ = ["MODELS", "InstrumentModel", "PoseObservation", "Residual", "instrument_model", "instrument_theta"]
+__all__ = [
+    "MODELS", "InstrumentModel", "PoseObservation", "Residual", "instrument_model", "instrument_theta",
+    "needs_registration", "registered",
+]
