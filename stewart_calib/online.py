@@ -153,7 +153,9 @@ class OnlineCalibrator:
                 :data:`RECENT_SAMPLES` accepted samples).
         """
         estimate = self.estimate()
-        recent = np.array(self._recent, dtype=float).reshape(-1, 2, 6)
+        # the leg residual it checks is the tracker's; an outside instrument's estimate has its parameters checked
+        tracker = self.platform.instrument.kind == "tracker"
+        recent = np.array(self._recent, dtype=float).reshape(-1, 2, 6) if tracker else np.zeros((0, 2, 6))
         check_plausible(self.platform, estimate.error, self.config.noise, recent[:, 0], recent[:, 1], self.method)
         skipped = self.rows_skipped + self.rejections.count
         return io.result_dict(estimate, self.platform, skipped, {"samples_rejected": self.rejections.summary()})

@@ -283,3 +283,15 @@ def test_identifiability_of_a_pose_log_covers_stroke_scale_and_instrument(tmp_pa
     sd = report["predicted_stddev"]
     assert all(sd[name] is not None and sd[name] > 0 for name in ("k1", "frame_yaw_deg", "target_z_mm", "l3"))
     assert "rank 48/48" in capsys.readouterr().out
+
+
+def test_track_on_a_pose_log_writes_a_result_with_the_instrument(tmp_path):
+    """``track`` (online) on a motion-capture log: no tracker to check residuals with, the result
+    still carries the stroke scale and instrument blocks."""
+    platform = hobby()
+    case = make_case(platform, 40, 31, InstrumentTruth(np.array([30.0, 10.0, -5.0, 0.0, 0.0, 45.0]), np.zeros(6)))
+    io.write_log(tmp_path / "log.csv", case.log, platform)
+    assert main(["track", "--platform", str(HOBBY), "--method", "ekf", "--log", str(tmp_path / "log.csv"),
+                 "--out", str(tmp_path / "cur.json")]) == 0
+    result = json.loads((tmp_path / "cur.json").read_text())
+    assert result["instrument"]["names"][0] == "frame_x_mm" and result["stroke_scale"]["names"][0] == "k1"
