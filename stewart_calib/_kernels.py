@@ -5,7 +5,8 @@ Why numba: one 6-leg pose is ~100 flops, so numpy's 1–2 µs per small-array ca
 six legs and compiled, the same solve takes a few µs. The public, vectorised functions of
 :mod:`stewart_calib.kinematics` keep their numpy signatures and call these; nothing else
 should import this module (but :mod:`stewart_calib.estimators.measurement`, for
-``pose_difference`` and the sample check, and ``LegGeometry.perturbed``).
+``pose_difference`` and the sample check, ``LegGeometry.perturbed``, and
+:mod:`stewart_calib.identifiability` for the whitened rows).
 
 Conventions (see :mod:`stewart_calib.kinematics`): mm and rad; a pose is ``(R, t)`` of the
 platform frame {D} in the base frame {J}; pose Jacobians are in the body tangent
@@ -388,3 +389,39 @@ def perturbed_legs(base, plat, initial_lengths, delta):
             d[i, a] = plat[i, a] + delta[7 * i + 3 + a]
         lengths[i] = initial_lengths[i] + delta[7 * i + 6]
     return j, d, lengths
+
+
+# ----------------------------------------------------------------------------- identifiability
+
+
+@numba.njit(**_JIT)
+def whitened_leg_rows(base, plat, initial_lengths, tracker_base, tracker_plat, R, t, reading_variance, stroke_variance, out):
+    """``C⁻½ ∂r/∂M`` of the leg-length form at ``n`` poses into ``out (n, 6, 42)``, at the nominal drive
+    (identifiability.whitened_leg_jacobian): ``H`` and ``C = R_meas`` of :func:`leg_observation`,
+    ``C = L Lᵀ`` by Cholesky and ``L⁻¹ H`` by forward substitution. A pose whose ``C`` is not
+    positive definite gets NaN rows (where ``np.linalg.cholesky`` would raise)."""
+    zeros_42 = np.zeros(42)
+    zeros_6 = np.zeros(6)
+    L = np.empty((6, 6))
+    for k in range(R.shape[0]):
+        _, H, C = leg_observation(base, plat, initial_lengths, zeros_42, tracker_base, tracker_plat, R[k], t[k],
+                                  zeros_6, reading_variance, stroke_variance)
+        positive = True
+        for a in range(6):
+            for b in range(a + 1):
+                s = C[a, b]
+                for c in range(b):
+                    s -= L[a, c] * L[b, c]
+                if a == b:
+                    if not s > 0.0:
+                        positive = False
+                        s = 1.0
+                    L[a, a] = math.sqrt(s)
+                else:
+                    L[a, b] = s / L[b, b]
+        for col in range(42):
+            for a in range(6):
+                s = H[a, col]
+                for c in range(a):
+                    s -= L[a, c] * out[k, c, col]
+                out[k, a, col] = s / L[a, a] if positive else np.nan

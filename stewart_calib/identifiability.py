@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import kinematics as kin
+from . import _kernels, kinematics as kin
 from .errors import CalibError
 from .config import NoiseConfig
 from .platform import N_PARAMS, PARAMETER_NAMES, Platform
@@ -64,17 +64,35 @@ def residual_covariance(platform: Platform, R: np.ndarray, t: np.ndarray, noise:
 def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseConfig) -> np.ndarray:
     """Per-pose whitened rows ``C^{-1/2} ∂r/∂M`` of the leg-length form, ``(N, 6, 42)`` [1/mm].
 
+    ``C = L Lᵀ`` (:func:`residual_covariance`) by Cholesky and ``C^{-1/2} = L⁻¹``, one compiled
+    loop over the poses (:func:`stewart_calib._kernels.whitened_leg_rows`: numpy's batched
+    6 × 6 Cholesky and solve cost ~20 µs a pose, the loop ~1 µs).
+
     Args:
         poses: ``(N, 6)`` pose6 ``[mm, rad]``.
     Raises:
-        CalibError: both noise sigmas zero (no noise model, no weights).
+        CalibError: both noise sigmas zero (no noise model, no weights), or a pose where the
+            residual covariance is singular (the tracker cannot measure that pose).
     """
     if noise.reading_sigma_mm <= 0 and noise.stroke_sigma_mm <= 0:
         raise CalibError("noise: reading_sigma_mm and stroke_sigma_mm are both 0: expected a positive noise level")
-    R, t = kin.pose_to_rt(np.asarray(poses, dtype=float))
-    _, J_M = kin.leg_residual_jacobians(platform.drive, R, t)
-    chol = np.linalg.cholesky(residual_covariance(platform, R, t, noise))
-    return np.linalg.solve(chol, J_M)
+    poses = np.asarray(poses, dtype=float)
+    R, t = kin.pose_to_rt(poses.reshape(-1, 6))
+    drive, tracker = platform.drive, platform.tracker
+    rows = np.empty((len(R), 6, N_PARAMS))
+    _kernels.whitened_leg_rows(
+        drive.base_joints, drive.platform_joints, drive.initial_lengths, tracker.base_joints, tracker.platform_joints,
+        np.ascontiguousarray(R), np.ascontiguousarray(t), float(noise.reading_sigma_mm) ** 2,
+        float(noise.stroke_sigma_mm) ** 2, rows,
+    )
+    singular = ~np.isfinite(rows).all(axis=(1, 2))
+    if singular.any():
+        k = int(np.argmax(singular))
+        raise CalibError(
+            f"pose {k + 1} {np.round(poses.reshape(-1, 6)[k], 6).tolist()}: the leg residual covariance is singular there "
+            "(the tracker's Jacobian loses rank); expected a pose the tracker can measure"
+        )
+    return rows.reshape(poses.shape[:-1] + (6, N_PARAMS))
 
 
 def rotation_row_scale_mm(platform: Platform) -> float:
@@ -264,6 +282,119 @@ def _fmt_sd(value: float) -> str:
     return f"{value:9.3g}" if np.isfinite(value) else "   not id"
 
 
+#: Poses whose whitened rows are stacked under the running factor at a time: the only buffer
+#: that grows with a block (6 · 2048 × 42 floats, 4 MB), never with N.
+BLOCK_POSES = 2048
+
+
+def _stacked_factor(factor: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Upper-triangular ``R'`` with ``R'ᵀR' = RᵀR + rowsᵀrows``: QR of ``[R; rows]``, ``(≤ 42, 42)``.
+
+    Householder QR is an orthogonal transform, so ``R'`` has exactly the singular values and
+    right singular vectors of every row stacked so far (to round-off): the information
+    ``AᵀA = RᵀR`` is kept as its square root, which resolves singular values down to ~1e-16
+    of the largest — forming ``AᵀA`` itself would square the condition number and lose all
+    below ~1e-8 (√eps), exactly where :data:`RANK_RTOL` decides the rank. LAPACK's ``geqrf``
+    on a column-major stack: ``np.linalg.qr`` copies to that layout and is 4× slower.
+    """
+    from scipy.linalg import lapack
+
+    rows = rows.reshape(-1, N_PARAMS)
+    stack = np.empty((len(factor) + len(rows), N_PARAMS), order="F")
+    stack[: len(factor)], stack[len(factor) :] = factor, rows
+    qr, _, _, info = lapack.dgeqrf(stack, overwrite_a=True)
+    if info != 0:
+        raise ValueError(f"LAPACK dgeqrf: argument {-info} is invalid")
+    return np.triu(qr[: min(len(stack), N_PARAMS)])
+
+
+class InformationAccumulator:
+    """The 42 × 42 information of a pose stream, accumulated block by block (O(N) time, O(1) memory).
+
+    For the leg-length form ``AᵀA = Σ_k A_kᵀ A_k`` with ``A_k`` the whitened rows of pose k
+    (:func:`whitened_leg_jacobian`), and likewise for the paper's ``J_p`` form; each kept as
+    its square-root factor (:func:`_stacked_factor`). :meth:`report` decomposes only these
+    42 × 42 factors, never an N-sized matrix, and gives what an SVD of the stacked rows gives.
+
+    Args:
+        platform: nominal geometry (Jacobians at the nominal drive).
+        noise: reading and stroke sigmas (the whitening).
+    Raises:
+        CalibError: both noise sigmas zero (no noise model, no weights).
+    """
+
+    def __init__(self, platform: Platform, noise: NoiseConfig):
+        if noise.reading_sigma_mm <= 0 and noise.stroke_sigma_mm <= 0:
+            raise CalibError("noise: reading_sigma_mm and stroke_sigma_mm are both 0: expected a positive noise level")
+        self.platform = platform
+        self.noise = noise
+        self.n_poses = 0
+        self._leg_factor = np.zeros((0, N_PARAMS))
+        self._paper_factor = np.zeros((0, N_PARAMS))
+
+    def add(self, poses: np.ndarray) -> None:
+        """Add the information of ``(n, 6)`` pose6 ``[mm, rad]``, :data:`BLOCK_POSES` at a time."""
+        poses = np.asarray(poses, dtype=float).reshape(-1, 6)
+        for start in range(0, len(poses), BLOCK_POSES):
+            block = poses[start : start + BLOCK_POSES]
+            self._leg_factor = _stacked_factor(self._leg_factor, whitened_leg_jacobian(self.platform, block, self.noise))
+            self._paper_factor = _stacked_factor(self._paper_factor, scaled_paper_jacobian(self.platform, block))
+            self.n_poses += len(block)
+
+    def report(self) -> IdentifiabilityReport:
+        """Singular values, Cramér–Rao bound, weakest directions and verdict of the poses added.
+
+        Raises:
+            CalibError: no pose added.
+        """
+        if self.n_poses == 0:
+            raise CalibError("poses: expected at least one pose, got none")
+        # Full SVD of the (≤ 42) × 42 factor: with fewer than 7 poses it has fewer rows than
+        # columns and the null space is in the trailing rows of Vᵀ, which a reduced SVD omits.
+        _, s_all, Vt = np.linalg.svd(self._leg_factor, full_matrices=True)
+        s = np.zeros(N_PARAMS)
+        s[: len(s_all)] = s_all
+        rank = int(np.sum(s > RANK_RTOL * s[0]))
+        s[rank:] = 0.0  # round-off, not information
+        V_range, null = Vt[:rank].T, Vt[rank:].T
+
+        # Cramér–Rao: Σ_M = (AᵀA)⁻¹ on the identified subspace. A parameter with a component
+        # along the null space is not identified at all (its variance is unbounded).
+        variance = np.sum((V_range / s[:rank]) ** 2, axis=1)
+        touches_null = np.linalg.norm(null, axis=1) > 1e-6
+        stddev = np.where(touches_null, np.inf, np.sqrt(variance))
+
+        s_paper = np.zeros(N_PARAMS)
+        s_paper_all = np.linalg.svd(self._paper_factor, compute_uv=False)
+        s_paper[: len(s_paper_all)] = s_paper_all
+        s_paper[s_paper <= RANK_RTOL * s_paper[0]] = 0.0
+
+        condition = s[0] / s[-1] if rank == N_PARAMS else np.inf
+        if rank < N_PARAMS:
+            verdict = "rank-deficient"
+        elif condition > CONDITION_POOR:
+            verdict = "poorly conditioned"
+        else:
+            verdict = "identifiable"
+        weak_idx = range(rank - 1, max(rank - 1 - N_WEAKEST, -1), -1)
+        weak_vectors = _sign_fixed(V_range[:, list(weak_idx)]) if rank else np.zeros((N_PARAMS, 0))
+        return IdentifiabilityReport(
+            n_poses=self.n_poses,
+            noise=self.noise,
+            singular_values=s,
+            rank=rank,
+            condition_number=float(condition),
+            paper_singular_values=s_paper,
+            paper_condition_number=float(s_paper[0] / s_paper[-1]) if s_paper[-1] > 0 else float("inf"),
+            rotation_row_scale_mm=rotation_row_scale_mm(self.platform),
+            predicted_stddev_mm=stddev,
+            observability=observability_indices(s, 6 * self.n_poses),
+            weakest=[(float(s[k]), weak_vectors[:, j]) for j, k in enumerate(weak_idx)],
+            null_space=readable_basis(null),
+            verdict=verdict,
+        )
+
+
 def identifiability_report(platform: Platform, poses: np.ndarray, noise: NoiseConfig) -> IdentifiabilityReport:
     """Singular values, Cramér–Rao bound, weakest directions and verdict for a pose set.
 
@@ -277,52 +408,9 @@ def identifiability_report(platform: Platform, poses: np.ndarray, noise: NoiseCo
     poses = np.atleast_2d(np.asarray(poses, dtype=float))
     if poses.shape[0] == 0 or poses.shape[1] != 6:
         raise CalibError(f"poses: expected an (N, 6) array with N ≥ 1, got shape {poses.shape}")
-    A = whitened_leg_jacobian(platform, poses, noise).reshape(-1, N_PARAMS)
-    # Full SVD: with fewer than 7 poses A has fewer rows than columns and the null space
-    # is in the trailing rows of Vᵀ, which a reduced SVD omits.
-    _, s_all, Vt = np.linalg.svd(A, full_matrices=True)
-    s = np.zeros(N_PARAMS)
-    s[: len(s_all)] = s_all
-    rank = int(np.sum(s > RANK_RTOL * s[0]))
-    s[rank:] = 0.0  # round-off, not information
-    V_range, null = Vt[:rank].T, Vt[rank:].T
-
-    # Cramér–Rao: Σ_M = (AᵀA)⁻¹ on the identified subspace. A parameter with a component
-    # along the null space is not identified at all (its variance is unbounded).
-    variance = np.sum((V_range / s[:rank]) ** 2, axis=1)
-    touches_null = np.linalg.norm(null, axis=1) > 1e-6
-    stddev = np.where(touches_null, np.inf, np.sqrt(variance))
-
-    P = scaled_paper_jacobian(platform, poses).reshape(-1, N_PARAMS)
-    s_paper = np.zeros(N_PARAMS)
-    s_paper_all = np.linalg.svd(P, compute_uv=False)
-    s_paper[: len(s_paper_all)] = s_paper_all
-    s_paper[s_paper <= RANK_RTOL * s_paper[0]] = 0.0
-
-    condition = s[0] / s[-1] if rank == N_PARAMS else np.inf
-    if rank < N_PARAMS:
-        verdict = "rank-deficient"
-    elif condition > CONDITION_POOR:
-        verdict = "poorly conditioned"
-    else:
-        verdict = "identifiable"
-    weak_idx = range(rank - 1, max(rank - 1 - N_WEAKEST, -1), -1)
-    weak_vectors = _sign_fixed(V_range[:, list(weak_idx)]) if rank else np.zeros((N_PARAMS, 0))
-    return IdentifiabilityReport(
-        n_poses=len(poses),
-        noise=noise,
-        singular_values=s,
-        rank=rank,
-        condition_number=float(condition),
-        paper_singular_values=s_paper,
-        paper_condition_number=float(s_paper[0] / s_paper[-1]) if s_paper[-1] > 0 else float("inf"),
-        rotation_row_scale_mm=rotation_row_scale_mm(platform),
-        predicted_stddev_mm=stddev,
-        observability=observability_indices(s, A.shape[0]),
-        weakest=[(float(s[k]), weak_vectors[:, j]) for j, k in enumerate(weak_idx)],
-        null_space=readable_basis(null),
-        verdict=verdict,
-    )
+    information = InformationAccumulator(platform, noise)
+    information.add(poses)
+    return information.report()
 
 
 def measured_poses(platform: Platform, log, max_poses: int | None = None) -> np.ndarray:
