@@ -1,11 +1,11 @@
 """Comparative estimator benchmarks: ``python -m benchmarks [--quick] [--out-dir DIR]``.
 
 Runs the speed, accuracy and scale sections (:mod:`benchmarks.speed`, :mod:`benchmarks.accuracy`,
-:mod:`benchmarks.scale`) and writes
+:mod:`benchmarks.scale`: the estimators in-process, then every command through the CLI) and writes
 
 * a Markdown report — a table per section, each target marked met or not, machine, load and
   versions stated (full run: ``BENCHMARKS.md`` at the repository root);
-* the raw numbers as JSON and the scale plot as PNG (full run: ``benchmarks/results/``).
+* the raw numbers as JSON and the scale plots as PNG (full run: ``benchmarks/results/``).
 
 ``--quick`` runs every row on tiny inputs (a smoke test, seconds; its numbers mean nothing) and
 writes ``benchmarks/results/quick.md`` / ``quick.json`` unless ``--out-dir`` is given. Not
@@ -35,7 +35,7 @@ def _table(section: Section) -> str:
     return "\n".join(lines)
 
 
-def _markdown(sections: list[Section], info: dict, png_link: str) -> str:
+def _markdown(sections: list[Section], info: dict, plots: dict[str, str]) -> str:
     targets = [(s.title, r) for s in sections for r in s.rows if r.met is not None]
     met = sum(r.met for _, r in targets)
     load = info["load_before"][0], info["load_after"][0]
@@ -56,8 +56,8 @@ def _markdown(sections: list[Section], info: dict, png_link: str) -> str:
     ]
     for section in sections:
         lines += [_table(section), ""]
-        if section.title == "Scale":
-            lines += [f"![per-update cost and memory]({png_link})", ""]
+        if section.title in plots:
+            lines += [f"![{section.title.lower()}: time per sample and memory]({plots[section.title]})", ""]
     return "\n".join(lines)
 
 
@@ -77,6 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         markdown_path = ROOT / "BENCHMARKS.md" if not args.quick else results_dir / "quick.md"
     results_dir.mkdir(parents=True, exist_ok=True)
     png_path = results_dir / f"scale-{stem}.png"
+    cli_png_path = results_dir / f"scale-cli-{stem}.png"
 
     info = machine()
     info["load_before"] = list(os.getloadavg())
@@ -87,13 +88,16 @@ def main(argv: list[str] | None = None) -> int:
     scale_section, isam2_rows = scale.run(args.quick, args.seed, png_path)
     speed_section.rows += isam2_rows
     print(f"scale done ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
+    cli_section = scale.run_cli(args.quick, args.seed, cli_png_path)
+    print(f"scale through the CLI done ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
     accuracy_section = accuracy.run(args.quick)
     info["seconds"] = time.perf_counter() - start
     info["load_after"] = list(os.getloadavg())
-    sections = [speed_section, accuracy_section, scale_section]
+    sections = [speed_section, accuracy_section, scale_section, cli_section]
 
-    png_link = os.path.relpath(png_path, markdown_path.parent)
-    markdown_path.write_text(_markdown(sections, info, png_link), encoding="utf-8")
+    plots = {section.title: os.path.relpath(path, markdown_path.parent)
+             for section, path in ((scale_section, png_path), (cli_section, cli_png_path))}
+    markdown_path.write_text(_markdown(sections, info, plots), encoding="utf-8")
     json_path = results_dir / f"{stem}.json"
     json_path.write_text(json.dumps({"machine": info, "sections": [s.to_dict() for s in sections]}, indent=1, default=float), encoding="utf-8")
     print(f"wrote {markdown_path}, {json_path}, {png_path} in {info['seconds']:.0f} s", file=sys.stderr)

@@ -15,13 +15,18 @@ marginalisation.
 from __future__ import annotations
 
 import multiprocessing
+import os
+import subprocess
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
-from benchmarks.common import Row, Section, fmt_time_us, nim_stewart, rss_mib, stats_us, synthetic_stream
+from benchmarks.common import ROOT, Row, Section, fmt_time_us, nim_stewart, rss_mib, stats_us, synthetic_stream
 from stewart_calib.estimators import make_estimator
 from stewart_calib.samples import Log
 
@@ -175,3 +180,275 @@ def run(quick: bool, seed: int, png_path: Path) -> tuple[Section, list[Row]]:
         f"Wall-time caps per estimator [s]: {', '.join(f'{k} {v:g}' for k, v in cap_s.items())}."
     )
     return Section("Scale", note, rows, raw={"results": results, "caps_s": cap_s}), speed_rows
+
+
+# ----------------------------------------------------------------------------- through the CLI
+#
+# Every command as a user runs it: a fresh ``python -m stewart_calib …`` process on files,
+# timed by the wall clock and measured by the kernel's peak resident set (``wait4``'s
+# ``ru_maxrss``, which counts C++ and BLAS heaps and every import). Per-sample cost is the
+# marginal one, ``(wall(N) − wall(start)) / (N − n_start)`` against the same command on
+# :data:`CLI_START_SAMPLES` samples, so the interpreter's start-up and imports (reported
+# separately, with ``-X importtime``) do not hide or fake linearity.
+
+CLI_SIZES = (1_000, 10_000, 100_000, 1_000_000)
+CLI_START_SAMPLES = 100
+#: a run longer than this is stopped and reported as over the cap (larger sizes are skipped).
+CLI_CAP_S = 900.0
+#: modules a start-up must not import (issue 15): recording, reproduction, statistics, graph methods.
+HEAVY_MODULES = ("rerun", "gtsam", "scipy.stats", "stewart_calib.reproduction")
+
+CLI_TARGETS = {  # (command, size): (target text, value in µs/sample or MiB, key)
+    ("calibrate ekf", 100_000): 20.0,
+    ("calibrate isam2", 100_000): 1000.0,
+    ("track ekf", 100_000): 40.0,
+    ("identifiability", 100_000): 20.0,
+}
+CLI_RSS_TARGET_MIB = {("calibrate ekf", 1_000_000): 500.0}
+IMPORT_TARGET_S = 1.0
+QUICK_CASES = ("calibrate ekf", "identifiability")
+
+
+@dataclass(frozen=True)
+class CliCase:
+    """One command: its argument list for a size (file names from :class:`CliInputs`), the sizes it runs at."""
+
+    name: str
+    argv: Callable[["CliInputs", int], list[str]]
+    sizes: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class CliInputs:
+    """The files the commands read, written once per size into ``root``."""
+
+    root: Path
+
+    @property
+    def platform(self) -> str:
+        return str(self.root / "platform.toml")
+
+    def log(self, n: int) -> str:
+        return str(self.root / f"log-{n}.csv")
+
+    def poses(self, n: int) -> str:
+        return str(self.root / f"poses-{n}.csv")
+
+    def experiment(self, n: int) -> str:
+        return str(self.root / f"experiment-{n}.toml")
+
+    def out(self, name: str) -> str:
+        return str(self.root / "out" / name)
+
+    def write(self, sizes: list[int], seed: int) -> None:
+        """Platform, and per size a 10 Hz log (the Lissajous stream), a pose list and an experiment."""
+        from stewart_calib.io import atomic_write_text, write_log, write_pose_list
+        from stewart_calib.platform import platform_to_toml
+
+        platform = nim_stewart()
+        (self.root / "out").mkdir(parents=True, exist_ok=True)
+        atomic_write_text(self.platform, platform_to_toml(platform))
+        log, _ = synthetic_stream(platform, max(sizes), np.random.default_rng(seed), RATE_HZ, smooth=True)
+        for n in sizes:
+            write_log(self.log(n), log.select(slice(0, n)))
+            write_pose_list(self.poses(n), log.desired_poses[:n])
+            # one stage of static calibration poses, 10 samples held at each: n samples in all
+            atomic_write_text(
+                self.experiment(n),
+                f'name = "scale-{n}"\nseed = {seed}\nplatform = "nim-stewart"\nsample_period_s = 0.1\n\n'
+                f"[poses]\ncalibration = {max(1, n // 10)}\nvalidation = 0\nsamples_per_pose = 10\n\n"
+                '[[stages]]\nname = "no-load"\nload_kg = 0.0\nsegments = ["calibration"]\n',
+            )
+
+
+def _calibrate(method: str):
+    return lambda files, n: ["calibrate", "--platform", files.platform, "--log", files.log(n), "--method", method,
+                             "--out", files.out(f"calibrate-{method}-{n}.json")]
+
+
+def cli_cases(quick: bool) -> list[CliCase]:
+    """The commands and their sizes: 10⁶ samples for the online methods and the streaming commands.
+
+    ``quick``: two commands at 300 samples (a smoke test of the harness; a fresh process costs seconds).
+    """
+    every = (CLI_START_SAMPLES, *((300,) if quick else CLI_SIZES))
+    batch = tuple(n for n in every if n <= 100_000)
+    cases = [
+        CliCase("calibrate ekf", _calibrate("ekf"), every),
+        CliCase("calibrate paper-ekf", _calibrate("paper-ekf"), every),
+        CliCase("calibrate isam2", _calibrate("isam2"), batch),
+        CliCase("calibrate ls", _calibrate("ls"), batch),
+        CliCase("calibrate lm", _calibrate("lm"), batch),
+        CliCase("calibrate ekf --trace", lambda f, n: [*_calibrate("ekf")(f, n), "--trace", f.out(f"trace-{n}.csv")], every),
+        CliCase("track ekf", lambda f, n: ["track", "--platform", f.platform, "--method", "ekf", "--log", f.log(n),
+                                           "--out", f.out(f"track-{n}.json")], every),
+        CliCase("identifiability", lambda f, n: ["identifiability", "--platform", f.platform, "--log", f.log(n)], every),
+        CliCase("compensate", lambda f, n: ["compensate", "--platform", f.platform, "--result",
+                                            f.out(f"calibrate-ekf-{CLI_START_SAMPLES}.json"), "--poses", f.poses(n),
+                                            "--out", f.out(f"strokes-{n}.csv")], every),
+        CliCase("simulate", lambda f, n: ["simulate", "--experiment", f.experiment(n), "--out", f.out(f"sim-{n}")], batch),
+    ]
+    return [c for c in cases if c.name in QUICK_CASES] if quick else cases
+
+
+#: the checkout whose ``stewart_calib`` the CLI runs use (``python -m benchmarks.scale --package-root``).
+PACKAGE_ROOT = ROOT
+
+
+def _run_cli(argv: list[str], cap_s: float, stdout_path: Path, python_flags: tuple[str, ...] = ()) -> dict:
+    """Run ``python [flags] -m stewart_calib ARGV`` as a user would; wall time, peak RSS, exit status."""
+    env = {**os.environ, "PYTHONPATH": str(PACKAGE_ROOT)}
+    with open(stdout_path, "wb") as out, open(stdout_path.with_suffix(".err"), "wb") as err:
+        start = time.perf_counter()
+        proc = subprocess.Popen([sys.executable, *python_flags, "-m", "stewart_calib", *argv], stdout=out, stderr=err,
+                                stdin=subprocess.DEVNULL, cwd=ROOT, env=env)
+        deadline = start + cap_s
+        while True:
+            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+            if pid:
+                break
+            if time.perf_counter() > deadline:
+                proc.kill()
+                _, status, usage = os.wait4(proc.pid, 0)
+                proc.returncode = -9
+                return {"wall_s": time.perf_counter() - start, "capped": True, "peak_rss_mib": usage.ru_maxrss / 1024}
+            time.sleep(0.02)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+    return {"wall_s": time.perf_counter() - start, "capped": False, "exit": proc.returncode,
+            "peak_rss_mib": usage.ru_maxrss / 1024}
+
+
+def import_profile(argv: list[str], work: Path) -> dict:
+    """``python -X importtime -m stewart_calib ARGV``: total import time [s] and the heavy modules imported."""
+    path = work / "importtime.out"
+    run = _run_cli(argv, CLI_CAP_S, path, ("-X", "importtime"))
+    total_us, modules = 0, set()
+    for line in path.with_suffix(".err").read_text(encoding="utf-8", errors="replace").splitlines():
+        if not line.startswith("import time:") or "cumulative" in line:
+            continue
+        _, cumulative, name = line[len("import time:") :].split("|")
+        modules.add(name.strip())
+        if not name[1:].startswith(" "):  # a top-level import: its cumulative time holds its children's
+            total_us += int(cumulative)
+    heavy = [m for m in HEAVY_MODULES if m in modules]
+    return {"imports_s": total_us / 1e6, "heavy_imported": heavy, "wall_s": run["wall_s"], "peak_rss_mib": run["peak_rss_mib"]}
+
+
+def run_cli(quick: bool, seed: int, png_path: Path) -> Section:
+    """The CLI scale section: every command at every size, import time of start-up."""
+    import tempfile
+
+    cases = cli_cases(quick)
+    sizes = sorted({n for case in cases for n in case.sizes})
+    results: dict[str, dict[int, dict]] = {}
+    with tempfile.TemporaryDirectory(prefix="stewart-calib-scale-") as tmp:
+        files = CliInputs(Path(tmp))
+        files.write(sizes, seed)
+        _run_cli(_calibrate("ekf")(files, CLI_START_SAMPLES), CLI_CAP_S, files.root / "out" / "stdout")  # warm caches
+        imports = {
+            "stewart-calib --help": import_profile(["--help"], files.root),
+            f"calibrate ekf, {CLI_START_SAMPLES} samples": import_profile(_calibrate("ekf")(files, CLI_START_SAMPLES), files.root),
+        }
+        for case in cases:
+            results[case.name] = {}
+            # unmeasured: numba's on-disk cache of a fresh checkout is compiled by the first run
+            _run_cli(case.argv(files, CLI_START_SAMPLES), CLI_CAP_S, files.root / "out" / "stdout")
+            for n in case.sizes:
+                run = _run_cli(case.argv(files, n), CLI_CAP_S, files.root / "out" / "stdout")
+                results[case.name][n] = run
+                print(f"  {case.name} at {n:,}: {run['wall_s']:.1f} s, {run['peak_rss_mib']:.0f} MiB", file=sys.stderr)
+                if run["capped"] or run.get("exit"):
+                    break
+    for runs in results.values():
+        start = runs[CLI_START_SAMPLES]
+        for n, run in runs.items():
+            if n > CLI_START_SAMPLES and not run["capped"]:
+                run["marginal_us_per_sample"] = (run["wall_s"] - start["wall_s"]) / (n - CLI_START_SAMPLES) * 1e6
+    _plot_cli(results, png_path)
+
+    rows = []
+    for label, profile in imports.items():
+        rows.append(Row(
+            f"imports of `{label}`",
+            f"{profile['imports_s'] * 1e3:.0f} ms of imports ({profile['wall_s']:.2f} s wall, {profile['peak_rss_mib']:.0f} MiB); "
+            f"heavy modules imported: {', '.join(profile['heavy_imported']) or 'none'}",
+            f"≤ {IMPORT_TARGET_S:g} s, none of {', '.join(HEAVY_MODULES)}",
+            profile["imports_s"] <= IMPORT_TARGET_S and not profile["heavy_imported"],
+            profile,
+        ))
+    for name, runs in results.items():
+        for n, run in runs.items():
+            if n == CLI_START_SAMPLES:
+                continue
+            value = (f"over the {CLI_CAP_S:.0f} s cap" if run["capped"] else
+                     f"exit {run['exit']}" if run.get("exit") else
+                     f"{fmt_time_us(run['marginal_us_per_sample'])}/sample, {run['wall_s']:.2f} s")
+            value += f", peak RSS {run['peak_rss_mib']:.0f} MiB"
+            target, met = "", None
+            if (name, n) in CLI_TARGETS:
+                limit = CLI_TARGETS[name, n]
+                target = f"≤ {fmt_time_us(limit)}/sample"
+                met = "marginal_us_per_sample" in run and run["marginal_us_per_sample"] <= limit
+            if (name, n) in CLI_RSS_TARGET_MIB:
+                limit = CLI_RSS_TARGET_MIB[name, n]
+                target = ", ".join(filter(None, [target, f"peak RSS ≤ {limit:.0f} MiB"]))
+                met = (met is not False) and not run["capped"] and run["peak_rss_mib"] <= limit
+            rows.append(Row(f"{name} at {n:,} samples", value, target, met, run))
+    note = (
+        "Each command run as a user runs it (`python -m stewart_calib …` in a fresh process, on files written "
+        f"beforehand: a {RATE_HZ:g} Hz Lissajous log, its poses as a pose list, a one-stage experiment). Time per "
+        f"sample is marginal: (wall(N) − wall({CLI_START_SAMPLES})) / (N − {CLI_START_SAMPLES}) of the same command, "
+        "so start-up is not spread over the samples; peak RSS is the process's maximum resident set (wait4). "
+        "Imports measured with `python -X importtime` (sum of the top-level imports' cumulative times). "
+        f"Runs over {CLI_CAP_S:.0f} s are stopped."
+    )
+    return Section("Scale through the CLI", note, rows, raw={"runs": results, "imports": imports})
+
+
+def _plot_cli(results: dict[str, dict[int, dict]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax_time, ax_mem) = plt.subplots(1, 2, figsize=(12, 4.5))
+    for name, runs in results.items():
+        marginal = sorted((n, r["marginal_us_per_sample"]) for n, r in runs.items() if "marginal_us_per_sample" in r)
+        if marginal:
+            ax_time.plot(*zip(*marginal), "o-", label=name)
+        ax_mem.plot(sorted(runs), [runs[n]["peak_rss_mib"] for n in sorted(runs)], "o-", label=name)
+    ax_time.set(xscale="log", yscale="log", xlabel="samples N", ylabel="marginal time per sample [µs]",
+                title="Time per sample (flat = linear)")
+    ax_mem.set(xscale="log", yscale="log", xlabel="samples N", ylabel="peak RSS [MiB]", title="Peak memory")
+    for ax in (ax_time, ax_mem):
+        ax.grid(True, which="both", alpha=0.3)
+    ax_mem.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m benchmarks.scale [--quick] [--sizes N …] [--package-root DIR]``: the CLI section alone, as a table."""
+    import argparse
+    import json
+
+    global PACKAGE_ROOT, CLI_SIZES
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.scale", description=main.__doc__)
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--sizes", type=int, nargs="+", default=list(CLI_SIZES))
+    parser.add_argument("--package-root", type=Path, default=ROOT, help="checkout to measure (e.g. an older one)")
+    parser.add_argument("--json", type=Path, help="write the section's raw numbers here")
+    parser.add_argument("--seed", type=int, default=2024)
+    args = parser.parse_args(argv)
+    PACKAGE_ROOT, CLI_SIZES = args.package_root.resolve(), tuple(args.sizes)
+    section = run_cli(args.quick, args.seed, Path(args.json or "scale-cli").with_suffix(".png"))
+    for row in section.rows:
+        print(f"| {row.name} | {row.value} | {row.target or '—'} | {row.met} |")
+    if args.json:
+        args.json.write_text(json.dumps(section.to_dict(), indent=1, default=float), encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
