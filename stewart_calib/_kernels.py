@@ -394,7 +394,7 @@ def perturbed_legs(base, plat, initial_lengths, delta):
 # ----------------------------------------------------------------------------- identifiability
 
 
-@numba.njit(**_JIT)
+@njit(**_JIT)
 def whitened_leg_rows(base, plat, initial_lengths, tracker_base, tracker_plat, R, t, reading_variance, stroke_variance, out):
     """``C⁻½ ∂r/∂M`` of the leg-length form at ``n`` poses into ``out (n, 6, 42)``, at the nominal drive
     (identifiability.whitened_leg_jacobian): ``H`` and ``C = R_meas`` of :func:`leg_observation`,

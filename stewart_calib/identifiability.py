@@ -43,6 +43,9 @@ CONDITION_POOR = 1e3
 #: A named direction lists the components with at least this magnitude (unit vector).
 COMPONENT_MIN = 0.1
 
+#: The refusal of a log where no sample's readings give a pose.
+NO_POSE = "tracker readings: forward kinematics converged for no sample; no pose to assess"
+
 #: How many of the weakest (non-null) directions a report spells out.
 N_WEAKEST = 3
 
@@ -413,25 +416,24 @@ def identifiability_report(platform: Platform, poses: np.ndarray, noise: NoiseCo
     return information.report()
 
 
-def measured_poses(platform: Platform, log, max_poses: int | None = None) -> np.ndarray:
+def tracker_poses(platform: Platform, log) -> np.ndarray:
+    """Tracker FK poses of a log's readings, ``(n, 6)`` [mm, rad]; samples whose FK fails are left out."""
+    # The desired pose is within a few mm of the real one: a good Newton start when present.
+    guess = None if log.desired_poses is None else kin.pose_to_rt(log.desired_poses)
+    fk = kin.forward_kinematics(platform.tracker, log.readings, guess, strict=False)
+    return fk.pose6[fk.converged]
+
+
+def measured_poses(platform: Platform, log) -> np.ndarray:
     """Tracker FK poses of a log's readings, ``(N, 6)`` [mm, rad]; samples whose FK fails are left out.
 
-    Args:
-        max_poses: keep at most this many, evenly spaced over the log. Conditioning (rank,
-            condition number, weakest directions) depends on which poses were visited, not on
-            how long each was held, so a long log can be thinned without changing the verdict.
     Raises:
         CalibError: no sample's readings give a pose.
     """
-    pick = np.arange(len(log))
-    if max_poses is not None and len(pick) > max_poses:
-        pick = np.unique(np.linspace(0, len(log) - 1, max_poses).round().astype(int))
-    # The desired pose is within a few mm of the real one: a good Newton start when present.
-    guess = None if log.desired_poses is None else kin.pose_to_rt(log.desired_poses[pick])
-    fk = kin.forward_kinematics(platform.tracker, log.readings[pick], guess, strict=False)
-    if not np.any(fk.converged):
-        raise CalibError("tracker readings: forward kinematics converged for no sample; no pose to assess")
-    return fk.pose6[fk.converged]
+    poses = tracker_poses(platform, log)
+    if not len(poses):
+        raise CalibError(NO_POSE)
+    return poses
 
 
 def conditioning_summary(report: IdentifiabilityReport) -> dict:

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from stewart_calib import identifiability as ident
-from stewart_calib.estimators.config import NoiseConfig
+from stewart_calib.config import NoiseConfig
+from stewart_calib.errors import CalibError
 from tests.synthetic import nim_stewart, random_poses
 
 NOISE = NoiseConfig()
@@ -81,3 +82,117 @@ def test_information_streams_in_pieces(platform):
     np.testing.assert_allclose(pieces.singular_values, whole.singular_values, rtol=0, atol=2 * roundoff_bound(A, 6))
     P = ident.scaled_paper_jacobian(platform, poses).reshape(-1, 42)
     np.testing.assert_allclose(pieces.paper_singular_values, whole.paper_singular_values, rtol=0, atol=2 * roundoff_bound(P, 6))
+
+
+# ----------------------------------------------------------------------------- reading in blocks
+
+
+def _write_log_with_faults(path, n: int = 60) -> None:
+    """A log of ``n`` rows with a bad value, a backwards time step and a quoted stage holding a line break."""
+    from stewart_calib.io import write_log
+    from stewart_calib.samples import Log
+
+    platform = nim_stewart()
+    rng = np.random.default_rng(15)
+    poses = random_poses(platform, n, rng)
+    from stewart_calib import kinematics as kin
+
+    R, t = kin.pose_to_rt(poses)
+    log = Log(np.arange(n) * 0.1, kin.inverse_kinematics(platform.drive, R, t), kin.inverse_kinematics(platform.tracker, R, t),
+              poses, [f"stage {k // 20}" for k in range(n)])
+    write_log(path, log)
+    lines = path.read_text().splitlines()
+    lines[10] = lines[10].replace(lines[10].split(",")[3], "nan", 1)  # row 11: q3 not finite
+    fields = lines[30].split(",")
+    lines[30] = ",".join(["0.5", *fields[1:]])  # row 31: time goes back
+    lines[45] = lines[45].replace("stage 2", '"stage\n2"')  # a quoted field spanning two lines
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_blocks_give_the_whole_log(tmp_path):
+    from stewart_calib.io import read_log, read_log_blocks
+
+    path = tmp_path / "log.csv"
+    _write_log_with_faults(path)
+    whole = read_log(path, nim_stewart(), skip_bad_rows=True)
+    blocks = list(read_log_blocks(path, nim_stewart(), skip_bad_rows=True, block_bytes=700))  # ~2 rows a block
+    assert len(blocks) > 20
+    assert [row for b in blocks for row in b.skipped] == whole.skipped
+    assert [row for row, _ in whole.skipped] == [11, 31]  # file lines, counted across blocks
+    for field in ("t_s", "strokes", "readings", "desired_poses"):
+        np.testing.assert_array_equal(np.concatenate([getattr(b, field) for b in blocks]), getattr(whole, field))
+    assert [s for b in blocks for s in b.stages] == whole.stages and "stage\n2" in whole.stages
+    # without skipping, the refusal names the same row whatever the blocking
+    for block_bytes in (700, 1 << 22):
+        with pytest.raises(CalibError, match=r"row 11: column 'q3_mm'"):
+            list(read_log_blocks(path, nim_stewart(), block_bytes=block_bytes))
+
+
+def test_time_going_back_across_a_block_boundary_is_flagged(tmp_path):
+    from stewart_calib.io import read_log_blocks
+
+    path = tmp_path / "log.csv"
+    _write_log_with_faults(path)
+    lines = path.read_text().splitlines()
+    lines[31] = ",".join(["0.0", *lines[31].split(",")[1:]])  # row 32 back to t = 0 (row 31 already skipped)
+    path.write_text("\n".join(lines) + "\n")
+    for block_bytes in (1, 700, 1 << 22):  # one row a block, a few, all
+        skipped = [row for b in read_log_blocks(path, nim_stewart(), True, block_bytes) for row, _ in b.skipped]
+        assert skipped == [11, 31, 32]
+
+
+# ----------------------------------------------------------------------------- memory of a run
+
+LOG_BYTES_PER_ROW = 8 * (1 + 6 + 6 + 6)  # t_s, strokes, readings, desired pose as float64
+
+
+@pytest.fixture(scope="module")
+def long_logs(tmp_path_factory):
+    """A 10 Hz Lissajous log of N = 400 and of 4N samples (the benchmark's stream)."""
+    from benchmarks.common import synthetic_stream
+    from stewart_calib.io import write_log
+
+    root = tmp_path_factory.mktemp("logs")
+    log, _ = synthetic_stream(nim_stewart(), 1600, np.random.default_rng(16), 10.0, smooth=True, noise=NOISE)
+    paths = {}
+    for n in (400, 1600):
+        paths[n] = root / f"log-{n}.csv"
+        write_log(paths[n], log.select(slice(0, n)))
+    return paths
+
+
+def _peak_bytes(argv) -> int:
+    import tracemalloc
+
+    from stewart_calib import cli
+
+    tracemalloc.start()
+    try:
+        assert cli.main(argv) == 0
+        return tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+
+
+@pytest.mark.parametrize("command", ["calibrate", "identifiability"])
+def test_online_commands_hold_no_more_at_4n_samples(long_logs, tmp_path, monkeypatch, command):
+    # Blocks of ~12 rows, so both logs span many, and calibrate's conditioning sample of at most
+    # 200; the first run also loads caches and imports.
+    from stewart_calib.io import logs
+    from stewart_calib.pipelines import calibrate
+
+    monkeypatch.setattr(logs, "BLOCK_BYTES", 1 << 12)
+    monkeypatch.setattr(calibrate, "CHECKED_SAMPLES", 100)
+    platform = str(nim_stewart().source)
+
+    def argv(n):
+        args = ["--platform", platform, "--log", str(long_logs[n])]
+        return [command, *args, "--method", "ekf", "--out", str(tmp_path / "r.json")] if command == "calibrate" else [command, *args]
+
+    from stewart_calib import cli
+
+    assert cli.main(argv(400)) == 0
+    growth = _peak_bytes(argv(1600)) - _peak_bytes(argv(400))
+    # Holding the log would add 1200 rows of arrays (~180 kB); a streaming run holds one block
+    # and a fixed sample whatever N, so not even a tenth of that may appear.
+    assert growth < 0.1 * 1200 * LOG_BYTES_PER_ROW

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -20,8 +21,10 @@ from .atomic import atomic_write_text
 from .tables import (
     csv_text,
     flag_non_finite,
+    header_fields,
     optional_group,
     parse_careful,
+    parse_rows,
     parse_table,
     pose_columns_deg,
     read_header,
@@ -111,13 +114,19 @@ def _flag_out_of_range(table: Table, columns, bounds, what: str, key: str) -> No
         )
 
 
-def _flag_time_backwards(table: Table) -> None:
-    """Flag rows whose t_s is below an earlier good row's (running max, so one glitch row is one skip)."""
+def _flag_time_backwards(table: Table, latest_s: float = -math.inf) -> float:
+    """Flag rows whose t_s is below an earlier good row's (running max, so one glitch row is one skip).
+
+    ``latest_s``: the latest good time before this table (a log read in blocks). Returns the
+    latest good time after it.
+    """
     t = table.numbers["t_s"]
     good = np.ones(len(t), dtype=bool)
     good[list(table.issues)] = False
-    latest = np.maximum.accumulate(np.r_[-np.inf, np.where(good, t, -np.inf)[:-1]])
-    table.flag(good & (t < latest), lambda k: _time_backwards(float(t[k]), float(latest[k])))
+    latest = np.maximum.accumulate(np.r_[latest_s, np.where(good, t, -np.inf)])
+    table.flag(good & (t < latest[:-1]), lambda k: _time_backwards(float(t[k]), float(latest[k])))
+    good[list(table.issues)] = False
+    return float(max(latest_s, np.max(t[good], initial=-math.inf)))
 
 
 def _time_backwards(t_s: float, latest_s: float) -> str:
@@ -174,6 +183,11 @@ def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) ->
             _flag_out_of_range(table, READING_COLUMNS, platform.reading_range, "reading", "tracker.reading_range_mm")
 
 
+#: bytes of a log read and parsed at a time (a few ten thousand rows): what reading a log holds
+#: in memory besides the samples kept, whatever the log's length.
+BLOCK_BYTES = 1 << 22
+
+
 def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: bool = False) -> Log:
     """Read a measurement log (spec §3) into a :class:`Log` [mm, rad].
 
@@ -181,6 +195,7 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
     a stroke outside ``platform.stroke_range`` or a reading outside ``platform.reading_range``
     (inclusive, when the platform gives them), or ``t_s`` going backwards — refuses the file,
     or with ``skip_bad_rows`` is dropped and recorded in ``Log.skipped`` as ``(row, reason)``.
+    :func:`read_log_blocks` gives the same samples a block at a time.
 
     The readings are those of ``platform``'s instrument (spec §7; the tracker when ``platform``
     is None): ``Log.readings`` holds the tracker's s [mm], a pose's ``[x, y, z mm, roll, pitch,
@@ -191,21 +206,100 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
             missing or the pose columns are partial; there are no sample rows; a bad row
             (unless skipped); every row is bad.
     """
-    path = Path(path)
-    text = read_text(path, "log file")
-    header = read_header(path, text)
-    has_pose, numeric, textual = _log_columns(path, header, platform)
-    table = parse_table(path, header, text, numeric, textual, blank_is_nan=_blank_columns(platform))
-    _flag_log_values(table, platform, has_pose)
-    _flag_time_backwards(table)
-    if not skip_bad_rows:
-        refuse_first(path, table)
+    blocks = list(read_log_blocks(path, platform, skip_bad_rows))
+    joined = lambda field: np.concatenate([getattr(b, field) for b in blocks])  # noqa: E731
+    first = blocks[0]
+    return Log(
+        t_s=joined("t_s"),
+        strokes=joined("strokes"),
+        readings=joined("readings"),
+        desired_poses=None if first.desired_poses is None else joined("desired_poses"),
+        stages=None if first.stages is None else [s for b in blocks for s in b.stages],
+        load_kg=None if first.load_kg is None else joined("load_kg"),
+        skipped=[row for b in blocks for row in b.skipped],
+    )
+
+
+def _open_log(path: Path):
+    try:
+        return open(path, "rb")
+    except FileNotFoundError:
+        raise CalibError(f"{path}: log file not found") from None
+    except OSError as err:
+        raise CalibError(f"{path}: cannot read log file ({err.strerror or err.__class__.__name__})") from None
+
+
+def _decoded(data: bytes, path: Path, offset: int, encoding: str = "utf-8") -> str:
+    """``data`` (read at byte ``offset`` of the file) as text with ``\\r\\n`` line breaks made ``\\n``."""
+    try:
+        text = data.decode(encoding)
+    except UnicodeDecodeError as err:
+        raise CalibError(
+            f"{path}: log file is not UTF-8 text (byte 0x{data[err.start]:02x} at offset {offset + err.start}); "
+            "expected a UTF-8 CSV file"
+        ) from None
+    return text.replace("\r\n", "\n")
+
+
+def read_log_blocks(path: str | Path, platform: Platform | None = None, skip_bad_rows: bool = False,
+                    block_bytes: int | None = None) -> Iterator[Log]:
+    """:func:`read_log`'s samples, checks and messages, one :class:`Log` per block of rows.
+
+    Memory stays that of one block (about ``block_bytes`` of text, default :data:`BLOCK_BYTES`)
+    however long the log: what online methods and streaming commands read. Each block's
+    ``skipped`` lists its bad rows (when skipped); a block may hold no sample. A refusal is
+    raised when its block is reached, so a consumer must not act on earlier blocks before the
+    last one is read.
+
+    Raises:
+        CalibError: as :func:`read_log`.
+    """
+    path, block_bytes = Path(path), block_bytes or BLOCK_BYTES
+    with _open_log(path) as file:
+        first = file.readline()
+        header_line = _decoded(first, path, 0, "utf-8-sig").rstrip("\n")  # a byte-order mark: spreadsheet exports
+        if not header_line.strip() and not any(chunk.strip() for chunk in iter(lambda: file.read(1 << 16), b"")):
+            read_header(path, "")  # refuses the empty file
+        header = header_fields(path, header_line)
+        file.seek(len(first))
+        has_pose, numeric, textual = _log_columns(path, header, platform)
+        offset, line, latest_s, rows, good = len(first), 1, -math.inf, 0, 0
+        first_skipped: tuple[int, str] | None = None
+        while True:
+            lines = file.readlines(block_bytes)
+            # a quoted field may hold a line break: a block ends where the quotes pair up
+            while lines and sum(chunk.count(b'"') for chunk in lines) % 2:
+                more = file.readline()
+                if not more:
+                    break
+                lines.append(more)
+            if not lines:
+                break
+            data = b"".join(lines)
+            text = _decoded(data, path, offset)
+            table = parse_rows(header, f"{header_line}\n{text}", numeric, textual, blank_is_nan=_blank_columns(platform))
+            table.lines += line - 1
+            offset, line = offset + len(data), line + len(lines)
+            _flag_log_values(table, platform, has_pose)
+            latest_s = _flag_time_backwards(table, latest_s)
+            if not skip_bad_rows:
+                refuse_first(path, table)
+            block = _log_of(table, has_pose, textual, platform)
+            rows, good = rows + len(table), good + len(block)
+            first_skipped = first_skipped or (block.skipped[0] if block.skipped else None)
+            yield block
+        if rows == 0:
+            raise CalibError(f"{path}: no sample rows; expected a header row and at least one sample row")
+        if good == 0:
+            raise CalibError(f"{path}: all {rows} sample rows are bad (first: row {first_skipped[0]}: {first_skipped[1]})")
+
+
+def _log_of(table: Table, has_pose: bool, textual: list[str], platform: Platform | None) -> Log:
+    """The good rows of a checked table as a :class:`Log` [mm, rad]; its bad rows as ``skipped``."""
     skipped = [(int(table.lines[k]), table.issues[k]) for k in sorted(table.issues)]
-    if len(skipped) == len(table):
-        raise CalibError(f"{path}: all {len(table)} sample rows are bad (first: row {skipped[0][0]}: {skipped[0][1]})")
     keep = np.ones(len(table), dtype=bool)
     keep[list(table.issues)] = False
-    col = lambda names: np.column_stack([table.numbers[name][keep] for name in names])  # noqa: E731
+    col = lambda names: np.column_stack([table.numbers[name][keep] for name in names]).reshape(-1, len(names))  # noqa: E731
     poses = None
     if has_pose:
         poses = col(POSE_COLUMNS)
@@ -216,7 +310,7 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
         readings=_readings_from_file(col(reading_columns(platform)), reading_columns(platform)),
         desired_poses=poses,
         stages=[s for s, k in zip(table.texts["stage"], keep) if k] if textual else None,
-        load_kg=table.numbers["load_kg"][keep] if "load_kg" in header else None,
+        load_kg=table.numbers["load_kg"][keep] if "load_kg" in table.numbers else None,
         skipped=skipped,
     )
 

@@ -25,13 +25,17 @@ RESULT_FORMAT = "stewart-calib/result@1"
 RESULT_SUM_TOLERANCE_MM = 1e-6
 
 
-def trace_text(t_s: np.ndarray, params: np.ndarray) -> str:
-    """Trace CSV (spec §6): ``t_s`` plus the 42 estimated absolute parameters [mm] per sample."""
+def trace_text(t_s: np.ndarray, params: np.ndarray, header: bool = True) -> str:
+    """Trace CSV (spec §6): ``t_s`` plus the 42 estimated absolute parameters [mm] per sample.
+
+    ``header=False``: the rows only, to append to a trace written block by block.
+    """
     t_s = np.asarray(t_s, dtype=float)
     params = np.asarray(params, dtype=float)
     if t_s.ndim != 1 or params.shape != (len(t_s), N_PARAMS):
         raise ValueError(f"trace needs t_s (N,) and params (N, {N_PARAMS}), got {t_s.shape} and {params.shape}")
-    return csv_text(["t_s", *PARAMETER_NAMES], [t_s, *params.T])
+    text = csv_text(["t_s", *PARAMETER_NAMES], [t_s, *params.T])
+    return text if header else text.split("\n", 1)[1]
 
 
 def write_trace(path: str | Path, t_s: np.ndarray, params: np.ndarray) -> None:

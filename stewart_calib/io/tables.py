@@ -68,9 +68,18 @@ class Table:
 
 
 def read_header(path: Path, text: str) -> list[str]:
+    """The column names in the first line of a file's ``text``.
+
+    Raises:
+        CalibError: an empty file, a header that is no CSV row, a name given twice.
+    """
     if not text.strip():
         raise CalibError(f"{path}: empty file, no sample rows; expected a header row and at least one sample row")
-    first = text.split("\n", 1)[0]
+    return header_fields(path, text.split("\n", 1)[0])
+
+
+def header_fields(path: Path, first: str) -> list[str]:
+    """The column names of a header line (see :func:`read_header`)."""
     try:
         header = [name.strip() for name in next(csv.reader([first]), [])]
     except csv.Error as err:  # e.g. a lone carriage return
@@ -174,9 +183,14 @@ def parse_careful(header: list[str], text: str, numeric: list[str], textual: lis
     return Table(numbers, texts, np.array(lines, dtype=int), issues)
 
 
-def parse_table(path: Path, header: list[str], text: str, numeric, textual=(), blank_is_nan=()) -> Table:
+def parse_rows(header: list[str], text: str, numeric, textual=(), blank_is_nan=()) -> Table:
+    """The rows of ``text`` (its first line is the header, skipped): the fast path, else the careful one."""
     numeric, textual = list(numeric), list(textual)
-    table = _parse_fast(header, text, numeric, textual) or parse_careful(header, text, numeric, textual, set(blank_is_nan))
+    return _parse_fast(header, text, numeric, textual) or parse_careful(header, text, numeric, textual, set(blank_is_nan))
+
+
+def parse_table(path: Path, header: list[str], text: str, numeric, textual=(), blank_is_nan=()) -> Table:
+    table = parse_rows(header, text, numeric, textual, blank_is_nan)
     if len(table) == 0:
         raise CalibError(f"{path}: no sample rows; expected a header row and at least one sample row")
     return table

@@ -7,7 +7,9 @@
 
 Batch methods (those with ``fit``) see the whole log at once; online methods get
 ``update(sample)`` sample by sample, and the result holds their estimate at the last sample.
-Nothing is written unless the whole run succeeds.
+With an online method on the tracker and neither ``--rerun`` nor ``--report`` (which show every
+sample), the log is streamed: read a block at a time, the trace written as it grows, so memory
+does not grow with the log. Nothing is written unless the whole run succeeds.
 
 ``--platform-out`` writes the calibrated platform (spec §8: the drive replaced by the estimate),
 which every command takes as a nominal platform; ``--report DIR`` a static HTML page
@@ -18,12 +20,14 @@ config, versions).
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Iterable
 
 import numpy as np
-from tqdm import tqdm
 
 from . import add_config_arguments, handover, run_command
 from .validate import measurement_residuals
@@ -39,12 +43,14 @@ from ..online import Rejections
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
 from ..plausibility import check_plausible
 from ..platform import Platform, load_platform
+from ..progress import progress_bar
 from ..samples import Log
 
 #: logs at least this long get a progress bar (when stderr is a terminal).
 PROGRESS_MIN_SAMPLES = 1000
-#: the result's conditioning section looks at most this many poses, evenly spaced over the log.
-CONDITIONING_MAX_POSES = 2000
+#: the result's conditioning section (and a streamed run's plausibility check) look at between
+#: this many and twice this many samples, evenly spaced over the log (:class:`EvenlySpacedSamples`).
+CHECKED_SAMPLES = 1000
 
 
 @dataclass(frozen=True)
@@ -96,7 +102,7 @@ def run_calibration(
     kalman = isinstance(estimator, (LegEKF, PaperEKF))
     nis = np.full(len(log), np.nan) if diagnostics and kalman else None
     rejected = []
-    bar = tqdm(log, desc=method, unit="sample", file=sys.stderr, disable=not progress, leave=False)
+    bar = progress_bar(log, desc=f"calibrate {method}", show=progress)
     for k, sample in enumerate(bar):
         try:
             estimator.update(sample)
@@ -164,6 +170,177 @@ def _write_rerun(path: Path, platform: Platform, method: str, log: Log, run: Cal
         viz.send_blueprint(rec, [method], [], {method: kinds})
 
 
+class EvenlySpacedSamples:
+    """Every ``stride``-th sample of a stream, the stride doubling whenever more than
+    ``2 · capacity`` are kept: between ``capacity`` and ``2 · capacity`` samples evenly spread
+    over the whole stream (all of a short one), without knowing its length in advance.
+
+    Conditioning (rank, condition number, weakest directions) depends on which poses were
+    visited, not on how long each was held, so these stand for the whole log.
+    """
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self.stride = 1
+        self.seen = 0
+        self._index = np.zeros(0, dtype=np.int64)
+        self._log: Log | None = None
+
+    def add(self, block: Log) -> None:
+        index = self.seen + np.arange(len(block))
+        pick = index % self.stride == 0
+        kept = block.select(pick)
+        self._index = np.concatenate([self._index, index[pick]])
+        self._log = kept if self._log is None else _joined(self._log, kept)
+        self.seen += len(block)
+        while len(self._index) > 2 * self.capacity:
+            self.stride *= 2
+            pick = self._index % self.stride == 0
+            self._index, self._log = self._index[pick], self._log.select(pick)
+
+    @property
+    def log(self) -> Log:
+        """The samples kept, in order."""
+        return self._log if self._log is not None else Log(np.zeros(0), np.zeros((0, 6)), np.zeros((0, 6)))
+
+
+def _joined(first: Log, second: Log) -> Log:
+    stack = lambda a, b: None if a is None else np.concatenate([a, b])  # noqa: E731
+    return Log(stack(first.t_s, second.t_s), stack(first.strokes, second.strokes), stack(first.readings, second.readings),
+               stack(first.desired_poses, second.desired_poses))
+
+
+@dataclass
+class _Tally:
+    """How many items were seen, and the first."""
+
+    count: int = 0
+    first: object = None
+
+    def add(self, items) -> None:
+        if items and self.first is None:
+            self.first = items[0]
+        self.count += len(items)
+
+
+@dataclass
+class StreamedRun:
+    """What a streamed calibration keeps: the estimate, counts, and a bounded sample of the log.
+
+    Attributes:
+        samples: good samples read. skipped: bad rows ``(row, reason)`` (count, first).
+        rejected: indices (among the good samples) the estimator refused, with their reasons
+            in ``rejections`` and the first one's time in ``first_rejected_t_s``.
+        checked: :class:`EvenlySpacedSamples` of the log.
+    """
+
+    estimate: Estimate
+    samples: int
+    skipped: _Tally
+    rejected: list[int]
+    rejections: Rejections
+    first_rejected_t_s: float | None
+    checked: EvenlySpacedSamples
+
+
+def feed_online(estimator, blocks: Iterable[Log], on_rejected: Callable[[int, float, SampleRejected], None],
+                on_block: Callable[[Log, np.ndarray], None] | None = None, bar=None) -> int:
+    """Update an online ``estimator`` with every sample of ``blocks``; returns how many there were.
+
+    Args:
+        on_rejected: called with ``(sample index, t_s, error)`` for each sample refused.
+        on_block: called after each block with it and the ``(n, 42)`` estimated parameter
+            errors δM [mm] after each of its samples (a rejected sample leaves the estimate in
+            force); None: not kept.
+        bar: ticked per block (:func:`~stewart_calib.progress.progress_bar`), or None.
+    """
+    k = 0
+    for block in blocks:
+        rows = np.empty((len(block), 42)) if on_block is not None else None
+        for j, sample in enumerate(block):
+            try:
+                estimator.update(sample)
+            except SampleRejected as err:
+                on_rejected(k, sample.t_s, err)
+            if rows is not None:
+                rows[j] = estimator.current_error()
+            k += 1
+        if bar is not None:
+            bar.update(len(block))
+        if on_block is not None:
+            on_block(block, rows)
+    return k
+
+
+def _count_rows(path: str) -> int:
+    """Lines after the header (the bar's total; a blank line is counted too): one pass over the bytes."""
+    lines = 0
+    with open(path, "rb") as file:
+        for chunk in iter(lambda: file.read(1 << 22), b""):
+            lines += chunk.count(b"\n")
+    return max(lines - 1, 0)
+
+
+def stream_calibration(platform: Platform, path: str, method: str, config: EstimatorConfig, skip_bad_rows: bool,
+                       trace_file=None) -> StreamedRun:
+    """An online ``method`` over the log at ``path``, read a block at a time (memory independent
+    of its length); the trace rows (spec §6) are written to the open ``trace_file`` as they come.
+
+    Raises:
+        CalibError: a bad log (as :func:`stewart_calib.io.read_log`), a method that rejected every sample.
+    """
+    estimator = estimators.make_estimator(method, platform, config)
+    nominal = platform.drive.as_vector()
+    checked, skipped, rejected, rejections, first_t_s = EvenlySpacedSamples(CHECKED_SAMPLES), _Tally(), [], Rejections(), []
+
+    def read(block: Log) -> Log:
+        checked.add(block)
+        skipped.add(block.skipped)
+        return block
+
+    def refused(k: int, t_s: float, err: SampleRejected) -> None:
+        rejected.append(k)
+        rejections.add(err)
+        first_t_s[:] = first_t_s or [t_s]
+
+    def write_trace(block: Log, errors_mm: np.ndarray) -> None:
+        trace_file.write(io.trace_text(block.t_s, nominal + errors_mm, header=checked.seen == len(block)))
+
+    show = sys.stderr.isatty()
+    total = _count_rows(path) if show else None
+    blocks = (read(block) for block in io.read_log_blocks(path, platform, skip_bad_rows=skip_bad_rows))
+    with progress_bar(total=total, desc=f"calibrate {method}", show=show and (total or 0) >= PROGRESS_MIN_SAMPLES) as bar:
+        n = feed_online(estimator, blocks, refused, write_trace if trace_file is not None else None, bar)
+    if rejections.count == n:
+        raise CalibError(f"{method} rejected all {n} samples (first: {rejections.first})")
+    return StreamedRun(estimator.estimate(), n, skipped, rejected, rejections, first_t_s[0] if first_t_s else None, checked)
+
+
+def streamed_residual_rms(platform: Platform, path: str, skip_bad_rows: bool, result: dict, rejected: list[int]) -> dict:
+    """:func:`~.handover.residual_rms_field` of the log at ``path`` without the ``rejected`` samples,
+    read again a block at a time: the per-channel sums of squares add up over the blocks."""
+    sums, counts, channels, k = {}, {}, None, 0
+    rejected = np.asarray(rejected, dtype=np.int64)
+    for block in io.read_log_blocks(path, platform, skip_bad_rows=skip_bad_rows):
+        used = ~np.isin(k + np.arange(len(block)), rejected)
+        k += len(block)
+        if not used.any():
+            continue
+        residuals = measurement_residuals(platform, block.select(used), result)
+        channels = residuals.channels
+        for when in ("before", "after"):
+            values = getattr(residuals, when)
+            finite = np.isfinite(values)
+            sums[when] = sums.get(when, 0.0) + np.sum(np.where(finite, values, 0.0) ** 2, axis=0)
+            counts[when] = counts.get(when, 0) + finite.sum(axis=0)
+    field = {"channels": list(channels)}
+    for when in ("before", "after"):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rms = np.sqrt(sums[when] / counts[when])
+        field[when] = [float(v) if math.isfinite(v) else None for v in rms]
+    return field
+
+
 def run(args: argparse.Namespace) -> int:
     if args.method not in estimators.METHODS:
         raise CalibError(f"--method: unknown method '{args.method}'; expected one of {', '.join(estimators.METHODS)}")
@@ -174,59 +351,84 @@ def run(args: argparse.Namespace) -> int:
     handover.check_report_dir(report_dir)
     platform = load_platform(args.platform)
     config = load_estimator_config(args.config, args.set)
-    log = io.read_log(args.log, platform, skip_bad_rows=args.skip_bad_rows)
-    total = len(log) + len(log.skipped)
-    if log.skipped:
-        line, reason = log.skipped[0]
-        print(_summary("skipped bad log rows:", len(log.skipped), total, f"row {line}: {reason}"), file=sys.stderr)
-
-    progress = sys.stderr.isatty() and len(log) >= PROGRESS_MIN_SAMPLES
-    result = run_calibration(platform, log, args.method, config, bool(trace_path), progress, bool(rerun_path))
-    # the leg residual it checks is the tracker's; an outside instrument's fit reports its own residuals
     tracker = platform.instrument.kind == "tracker"
-    check_plausible(platform, result.estimate.error, config.noise, log.strokes if tracker else np.zeros((0, 6)),
-                    log.readings if tracker else np.zeros((0, 6)), args.method)
-    if result.rejected:
-        k, reason = result.rejected[0]
-        print(_summary(f"{args.method} rejected samples:", len(result.rejected), len(log),
-                       f"t_s={float(log.t_s[k])!r}: {reason}"), file=sys.stderr)
+    streamed = tracker and estimators.method_spec(args.method).online and not (rerun_path or report_dir)
 
-    extra = {"samples_rejected": Rejections.of(err for _, err in result.rejected).summary()}
-    if platform.instrument.kind == "tracker":  # the tracker's FK gives the poses to assess
-        report = identifiability_report(platform, measured_poses(platform, log, CONDITIONING_MAX_POSES), config.noise)
-        warning = warning_line(report)
-        if warning:
-            print(f"stewart-calib calibrate: {warning}", file=sys.stderr)
-        extra["conditioning"] = conditioning_summary(report)
+    # Everything is rendered (so validated) before anything is written; a streamed trace goes to
+    # a temporary that becomes the file only when the stack closes without error.
+    with ExitStack() as stack:
+        skipped = _Tally()
+        residuals = None
+        if streamed:
+            trace_file = None
+            if trace_path:
+                trace_file = stack.enter_context(open(stack.enter_context(io.atomic_path(trace_path)), "w",
+                                                      encoding="utf-8", newline=""))
+            streaming = stream_calibration(platform, args.log, args.method, config, args.skip_bad_rows, trace_file)
+            estimate, n_samples, skipped = streaming.estimate, streaming.samples, streaming.skipped
+            rejections, first_rejected_t_s = streaming.rejections, streaming.first_rejected_t_s
+            checked = streaming.checked.log
+        else:
+            log = io.read_log(args.log, platform, skip_bad_rows=args.skip_bad_rows)
+            skipped.add(log.skipped)
+            progress = sys.stderr.isatty() and len(log) >= PROGRESS_MIN_SAMPLES
+            result = run_calibration(platform, log, args.method, config, bool(trace_path), progress, bool(rerun_path))
+            estimate, n_samples = result.estimate, len(log)
+            rejections = Rejections.of(err for _, err in result.rejected)
+            first_rejected_t_s = float(log.t_s[result.rejected[0][0]]) if result.rejected else None
+            sample = EvenlySpacedSamples(CHECKED_SAMPLES)
+            sample.add(log)
+            checked = sample.log
+        if skipped.count:
+            line, reason = skipped.first
+            print(_summary("skipped bad log rows:", skipped.count, n_samples + skipped.count, f"row {line}: {reason}"),
+                  file=sys.stderr)
+        # the leg residual it checks is the tracker's; an outside instrument's fit reports its own residuals
+        check_plausible(platform, estimate.error, config.noise, checked.strokes if tracker else np.zeros((0, 6)),
+                        checked.readings if tracker else np.zeros((0, 6)), args.method)
+        if rejections.count:
+            print(_summary(f"{args.method} rejected samples:", rejections.count, n_samples,
+                           f"t_s={first_rejected_t_s!r}: {rejections.first}"), file=sys.stderr)
 
-    # Render (and so validate) everything before writing anything.
-    samples_skipped = len(log.skipped) + len(result.rejected)
-    created = handover.created_now()
-    extra.update({
-        "covariance": handover.covariance_field(result.estimate),
-        "config": handover.config_field(config),
-        "version": __version__,
-        "created": created,
-    })
-    result_data = io.result_dict(result.estimate, platform, samples_skipped, extra)
-    used = np.ones(len(log), dtype=bool)
-    used[[k for k, _ in result.rejected]] = False  # e.g. readings the tracker's FK cannot solve
-    residuals = measurement_residuals(platform, log.select(used), result_data)
-    result_data["residual_rms"] = handover.residual_rms_field(residuals)
-    result_json = io.result_text(result_data, str(out))
-    trace_csv = io.trace_text(log.t_s, result.trace) if trace_path else None
-    platform_toml = (
-        handover.calibrated_platform_text(platform, result.estimate, args.method, Path(args.log).name, created)
-        if platform_out else None
-    )
-    page = None
-    if report_dir:
-        from ..viz.html_report import report_html
+        extra = {"samples_rejected": rejections.summary()}
+        if tracker:  # the tracker's FK gives the poses to assess
+            report = identifiability_report(platform, measured_poses(platform, checked), config.noise)
+            warning = warning_line(report)
+            if warning:
+                print(f"stewart-calib calibrate: {warning}", file=sys.stderr)
+            extra["conditioning"] = conditioning_summary(report)
 
-        inputs = {"platform file": str(args.platform), "log": str(args.log)}
-        page = report_html(f"Calibration of {platform.name} with {args.method}", result_data, residuals, None, inputs)
-    if rerun_path:
-        _write_rerun(rerun_path, platform, args.method, log, result, not estimators.method_spec(args.method).online)
+        samples_skipped = skipped.count + rejections.count
+        created = handover.created_now()
+        extra.update({
+            "covariance": handover.covariance_field(estimate),
+            "config": handover.config_field(config),
+            "version": __version__,
+            "created": created,
+        })
+        result_data = io.result_dict(estimate, platform, samples_skipped, extra)
+        if streamed:
+            result_data["residual_rms"] = streamed_residual_rms(platform, args.log, args.skip_bad_rows, result_data,
+                                                                streaming.rejected)
+        else:
+            used = np.ones(len(log), dtype=bool)
+            used[[k for k, _ in result.rejected]] = False  # e.g. readings the tracker's FK cannot solve
+            residuals = measurement_residuals(platform, log.select(used), result_data)
+            result_data["residual_rms"] = handover.residual_rms_field(residuals)
+        result_json = io.result_text(result_data, str(out))
+        trace_csv = io.trace_text(log.t_s, result.trace) if trace_path and not streamed else None
+        platform_toml = (
+            handover.calibrated_platform_text(platform, estimate, args.method, Path(args.log).name, created)
+            if platform_out else None
+        )
+        page = None
+        if report_dir:
+            from ..viz.html_report import report_html
+
+            inputs = {"platform file": str(args.platform), "log": str(args.log)}
+            page = report_html(f"Calibration of {platform.name} with {args.method}", result_data, residuals, None, inputs)
+        if rerun_path:
+            _write_rerun(rerun_path, platform, args.method, log, result, not estimators.method_spec(args.method).online)
     if trace_csv is not None:
         io.atomic_write_text(trace_path, trace_csv)
     if platform_toml is not None:
@@ -235,7 +437,7 @@ def run(args: argparse.Namespace) -> int:
         handover.write_report(report_dir, page)
     io.atomic_write_text(out, result_json)
     print(
-        f"stewart-calib calibrate: wrote {out} ({args.method}: {result.estimate.samples_used} samples used, "
+        f"stewart-calib calibrate: wrote {out} ({args.method}: {estimate.samples_used} samples used, "
         f"{samples_skipped} skipped)",
         file=sys.stderr,
     )
@@ -245,7 +447,6 @@ def run(args: argparse.Namespace) -> int:
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "calibrate",
-        help="identify the 42 drive parameters from a measurement log",
         description="Read a platform file and a measurement log, run one estimator, write a result JSON (spec §5).",
     )
     parser.add_argument("--platform", required=True, metavar="P.toml", help="platform file (spec §2)")

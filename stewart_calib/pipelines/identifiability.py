@@ -13,20 +13,26 @@ from . import run_command
 from .. import io
 from ..errors import CalibError
 from ..config import load_estimator_config
-from ..identifiability import identifiability_report, measured_poses, warning_line
+from ..identifiability import NO_POSE, InformationAccumulator, identifiability_report, tracker_poses, warning_line
 from ..platform import Platform, load_platform
 from ..io import read_pose_list
 from .plan import add_platform_and_noise_arguments
 
 
-def log_poses(platform: Platform, path: str, source: str, skip_bad_rows: bool = False):
-    """Poses ``(N, 6)`` [mm, rad] of a log: tracker FK of the readings, or the desired pose columns."""
-    log = io.read_log(path, platform, skip_bad_rows)
-    if source == "desired":
-        if log.desired_poses is None:
-            raise CalibError(f"{path}: no pose columns; expected {', '.join(io.POSE_COLUMNS)} for --pose-source desired")
-        return log.desired_poses
-    return measured_poses(platform, log)
+def log_information(platform: Platform, path: str, source: str, noise, skip_bad_rows: bool = False):
+    """The :class:`InformationAccumulator` of a log's poses — tracker FK of the readings, or the
+    desired pose columns — read a block at a time (memory independent of the log's length)."""
+    information = InformationAccumulator(platform, noise)
+    for block in io.read_log_blocks(path, platform, skip_bad_rows):
+        if source == "desired":
+            if block.desired_poses is None:
+                raise CalibError(f"{path}: no pose columns; expected {', '.join(io.POSE_COLUMNS)} for --pose-source desired")
+            information.add(block.desired_poses)
+        else:
+            information.add(tracker_poses(platform, block))
+    if information.n_poses == 0:
+        raise CalibError(NO_POSE)
+    return information
 
 
 def add_parser(subparsers) -> None:
@@ -56,10 +62,9 @@ def run(args: argparse.Namespace) -> int:
     if platform.instrument.kind != "tracker":
         return _run_outside_instrument(args, platform)
     if args.log is not None:
-        poses = log_poses(platform, args.log, args.pose_source, args.skip_bad_rows)
+        report = log_information(platform, args.log, args.pose_source, noise, args.skip_bad_rows).report()
     else:
-        poses = read_pose_list(args.poses)
-    report = identifiability_report(platform, poses, noise)
+        report = identifiability_report(platform, read_pose_list(args.poses), noise)
     print(report.format_text())
     warning = warning_line(report)
     if warning:
