@@ -206,7 +206,7 @@ CLI_TARGETS = {  # (command, size): (target text, value in µs/sample or MiB, ke
 }
 CLI_RSS_TARGET_MIB = {("calibrate ekf", 1_000_000): 500.0}
 IMPORT_TARGET_S = 1.0
-QUICK_CASES = ("calibrate ekf", "identifiability")
+QUICK_CASES = ("calibrate ekf",)
 
 
 @dataclass(frozen=True)
@@ -269,7 +269,7 @@ def _calibrate(method: str):
 def cli_cases(quick: bool) -> list[CliCase]:
     """The commands and their sizes: 10⁶ samples for the online methods and the streaming commands.
 
-    ``quick``: two commands at 300 samples (a smoke test of the harness; a fresh process costs seconds).
+    ``quick``: ``calibrate ekf`` at 300 samples (a smoke test of the harness; a fresh process costs seconds).
     """
     every = (CLI_START_SAMPLES, *((300,) if quick else CLI_SIZES))
     batch = tuple(n for n in every if n <= 100_000)
@@ -300,8 +300,9 @@ def _run_cli(argv: list[str], cap_s: float, stdout_path: Path, python_flags: tup
     env = {**os.environ, "PYTHONPATH": str(PACKAGE_ROOT)}
     with open(stdout_path, "wb") as out, open(stdout_path.with_suffix(".err"), "wb") as err:
         start = time.perf_counter()
+        # cwd too: ``python -m`` puts it ahead of PYTHONPATH on sys.path
         proc = subprocess.Popen([sys.executable, *python_flags, "-m", "stewart_calib", *argv], stdout=out, stderr=err,
-                                stdin=subprocess.DEVNULL, cwd=ROOT, env=env)
+                                stdin=subprocess.DEVNULL, cwd=PACKAGE_ROOT, env=env)
         deadline = start + cap_s
         while True:
             pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
@@ -334,11 +335,11 @@ def import_profile(argv: list[str], work: Path) -> dict:
     return {"imports_s": total_us / 1e6, "heavy_imported": heavy, "wall_s": run["wall_s"], "peak_rss_mib": run["peak_rss_mib"]}
 
 
-def run_cli(quick: bool, seed: int, png_path: Path) -> Section:
-    """The CLI scale section: every command at every size, import time of start-up."""
+def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = None) -> Section:
+    """The CLI scale section: every command (or those named in ``only``) at every size, import time of start-up."""
     import tempfile
 
-    cases = cli_cases(quick)
+    cases = [case for case in cli_cases(quick) if only is None or case.name in only]
     sizes = sorted({n for case in cases for n in case.sizes})
     results: dict[str, dict[int, dict]] = {}
     with tempfile.TemporaryDirectory(prefix="stewart-calib-scale-") as tmp:
@@ -351,8 +352,8 @@ def run_cli(quick: bool, seed: int, png_path: Path) -> Section:
         }
         for case in cases:
             results[case.name] = {}
-            # unmeasured: numba's on-disk cache of a fresh checkout is compiled by the first run
-            _run_cli(case.argv(files, CLI_START_SAMPLES), CLI_CAP_S, files.root / "out" / "stdout")
+            if not quick:  # unmeasured: numba's on-disk cache of a fresh checkout is compiled by a first run
+                _run_cli(case.argv(files, CLI_START_SAMPLES), CLI_CAP_S, files.root / "out" / "stdout")
             for n in case.sizes:
                 run = _run_cli(case.argv(files, n), CLI_CAP_S, files.root / "out" / "stdout")
                 results[case.name][n] = run
@@ -439,10 +440,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", type=int, nargs="+", default=list(CLI_SIZES))
     parser.add_argument("--package-root", type=Path, default=ROOT, help="checkout to measure (e.g. an older one)")
     parser.add_argument("--json", type=Path, help="write the section's raw numbers here")
+    parser.add_argument("--cases", nargs="+", metavar="NAME", help="only these commands (e.g. 'calibrate ekf')")
     parser.add_argument("--seed", type=int, default=2024)
     args = parser.parse_args(argv)
     PACKAGE_ROOT, CLI_SIZES = args.package_root.resolve(), tuple(args.sizes)
-    section = run_cli(args.quick, args.seed, Path(args.json or "scale-cli").with_suffix(".png"))
+    section = run_cli(args.quick, args.seed, Path(args.json or "scale-cli").with_suffix(".png"), args.cases)
     for row in section.rows:
         print(f"| {row.name} | {row.value} | {row.target or '—'} | {row.met} |")
     if args.json:

@@ -1,8 +1,9 @@
 """The ``stewart-calib`` command (also ``python -m stewart_calib``).
 
-Each subcommand lives in its own module under :mod:`stewart_calib.pipelines` and exposes
-``add_parser(subparsers)`` (registering its arguments and ``func``) and a ``main(argv)``
-for scripts. A :class:`~stewart_calib.errors.CalibError` becomes one line on stderr and
+Each subcommand lives in its own module under :mod:`stewart_calib.pipelines` (listed in
+:data:`~stewart_calib.pipelines.COMMANDS`) and exposes ``add_parser(subparsers)`` (registering
+its arguments and ``func``) and a ``main(argv)`` for scripts; only the module of the command
+run is imported. A :class:`~stewart_calib.errors.CalibError` becomes one line on stderr and
 exit status 2 — never a traceback.
 """
 
@@ -12,24 +13,27 @@ import argparse
 import sys
 
 from . import __version__
-from .pipelines import Parser, add_subcommands, dispatch
-
-#: subcommands, each the module of the same name in stewart_calib.pipelines.
-SUBCOMMANDS = ("calibrate", "simulate", "reproduce", "track", "identifiability", "plan", "compensate", "import_bag", "validate", "sweep")
+from .pipelines import COMMANDS, Parser, add_subcommands, dispatch
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(load=None) -> argparse.ArgumentParser:
+    """The command line; ``load``: the commands whose arguments it knows (default all; see
+    :func:`~stewart_calib.pipelines.add_subcommands`)."""
     parser = Parser(
         prog="stewart-calib",
         description="Online kinematic calibration of a Stewart platform from an in-situ tracker.",
     )
     parser.add_argument("--version", action="version", version=f"stewart-calib {__version__}")
-    add_subcommands(parser, SUBCOMMANDS)
+    add_subcommands(parser, load)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    return dispatch(build_parser().parse_args(argv))
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # The top level takes no option with a value, so the first word is the command: only its
+    # module is imported (start-up: stewart-calib --help imports no pipeline at all).
+    command = next((word for word in argv if not word.startswith("-")), None)
+    return dispatch(build_parser(load=[command] if command in COMMANDS else []).parse_args(argv))
 
 
 if __name__ == "__main__":

@@ -21,10 +21,34 @@ def progress_bar(iterable: Iterable | None = None, *, total: int | None = None, 
         unit: what is counted (the rate reads "… unit/s").
         show: False keeps it silent whatever stderr is (e.g. short runs).
     Returns:
-        A ``tqdm`` object (a context manager; iterate it, or call ``update``/``close``). It
-        is disabled — no output at all — unless ``show`` and stderr is a terminal.
+        A ``tqdm`` object (a context manager; iterate it, or call ``update``/``close``) when
+        ``show`` and stderr is a terminal; otherwise a silent stand-in with the same calls.
     """
-    from tqdm import tqdm  # ~40 ms of imports a short run does not need
+    if not (show and sys.stderr.isatty()):
+        return _Silent(iterable)
+    from tqdm import tqdm  # tens of ms of imports that a piped or short run does not need
 
     return tqdm(iterable, total=total, desc=desc, unit=unit, unit_scale=True, file=sys.stderr, leave=False,
-                dynamic_ncols=True, mininterval=0.2, disable=not (show and sys.stderr.isatty()))
+                dynamic_ncols=True, mininterval=0.2)
+
+
+class _Silent:
+    """What :func:`progress_bar` gives when nothing is to be shown: the same calls, no output."""
+
+    def __init__(self, iterable):
+        self._iterable = iterable
+
+    def __iter__(self):
+        return iter(self._iterable)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def update(self, n: int = 1) -> None:
+        return None
+
+    def close(self) -> None:
+        return None

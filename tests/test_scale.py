@@ -1,8 +1,15 @@
 """Scale properties asserted without a clock: the identifiability report from the accumulated
 42 × 42 information equals the SVD of the stacked N-sized Jacobian (to a bound derived from
-the round-off of both), whatever the blocking."""
+the round-off of both), whatever the blocking; a log read in blocks is the log read whole;
+the memory of a streaming run does not grow with the log; start-up imports only what the
+command run needs."""
 
 from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -196,3 +203,35 @@ def test_online_commands_hold_no_more_at_4n_samples(long_logs, tmp_path, monkeyp
     # Holding the log would add 1200 rows of arrays (~180 kB); a streaming run holds one block
     # and a fixed sample whatever N, so not even a tenth of that may appear.
     assert growth < 0.1 * 1200 * LOG_BYTES_PER_ROW
+
+
+# ----------------------------------------------------------------------------- start-up
+
+#: never needed to start: recording (rerun), graph methods (gtsam), statistics, the reproduction.
+HEAVY = ("rerun", "gtsam", "scipy.stats", "stewart_calib.reproduction")
+
+
+def _modules_after(argv: list[str]) -> set[str]:
+    """The modules a fresh interpreter holds after ``stewart-calib ARGV`` (run in it)."""
+    root = Path(__file__).resolve().parents[1]
+    script = (
+        "import json, sys\nfrom stewart_calib import cli\n"
+        f"try:\n    cli.main({argv!r})\nexcept SystemExit:\n    pass\n"
+        "print(json.dumps(sorted(sys.modules)))"
+    )
+    out = subprocess.run([sys.executable, "-c", script], cwd=root, capture_output=True, text=True, check=True).stdout
+    return set(json.loads(out.splitlines()[-1]))
+
+
+def test_help_imports_no_pipeline_and_nothing_heavy():
+    modules = _modules_after(["--help"])
+    assert not {m for m in modules if m.startswith("stewart_calib.pipelines.")}
+    assert not set(HEAVY + ("numpy", "numba")) & modules
+
+
+def test_an_ekf_calibration_imports_only_its_own_command(long_logs, tmp_path):
+    modules = _modules_after(["calibrate", "--platform", str(nim_stewart().source), "--log", str(long_logs[400]),
+                              "--method", "ekf", "--out", str(tmp_path / "r.json")])
+    assert (tmp_path / "r.json").exists()
+    assert not set(HEAVY) & modules
+    assert {m for m in modules if m.startswith("stewart_calib.pipelines.")} == {"stewart_calib.pipelines.calibrate"}

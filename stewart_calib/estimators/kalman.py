@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.stats costs ~1 s of import
 
 from .._jit import njit
 from ..errors import CalibError, SampleRejected
@@ -231,7 +231,7 @@ class FilterState:
 
     def _gate(self, m: int) -> float:
         """The χ² bound on the NIS of an ``m``-observation (``inf`` with the gate off)."""
-        return float(chi2.ppf(self.gate_probability, m)) if self.gate_probability > 0.0 else math.inf
+        return float(chdtri(m, 1.0 - self.gate_probability)) if self.gate_probability > 0.0 else math.inf
 
     def update(self, H: np.ndarray, residual: np.ndarray, R: np.ndarray, t_s: float) -> None:
         """:func:`kalman_update` with ``self.Q``; counts the sample or raises ``SampleRejected``."""

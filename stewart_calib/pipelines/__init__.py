@@ -18,11 +18,43 @@ class Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-def add_subcommands(parser: argparse.ArgumentParser, names) -> None:
-    """Register the subcommands ``names``, each the module of that name in this package."""
+#: ``stewart-calib COMMAND``: the module of this package that implements it, and its line in
+#: ``stewart-calib --help``. Listing them needs no import; a run imports its own module only,
+#: so no command pays for another's dependencies (rerun, gtsam, the reproduction, …).
+COMMANDS = {
+    "calibrate": ("calibrate", "identify the 42 drive parameters from a measurement log"),
+    "simulate": ("simulate", "simulate an experiment (true robot, load, tracker) and write platform, log and truth"),
+    "reproduce": ("reproduce", "reproduce the paper's experiments (Tables 4-6, Figs. 5-9) on the simulated platform"),
+    "track": ("track", "calibrate online from a log as it is written (a growing file or standard input)"),
+    "identifiability": ("identifiability", "singular values, predicted parameter std devs and weak directions of a pose set"),
+    "plan": ("plan", "choose calibration poses (optimal design over random workspace poses)"),
+    "compensate": ("compensate", "strokes for desired poses with the calibrated model (IK of nominal + error)"),
+    "import-bag": ("import_bag", "turn a ROS 1 / ROS 2 bag into a measurement log"),
+    "validate": ("validate", "predict a held-out log with a calibration and report the errors (spec §7)"),
+    "sweep": ("sweep", "run a Monte Carlo study of the estimators (grid × seeds) on Dask"),
+}
+
+
+class _Subcommands:
+    """The ``add_subparsers`` action as a pipeline's ``add_parser`` sees it: the one-line help
+    comes from :data:`COMMANDS`, the arguments from the pipeline."""
+
+    def __init__(self, action):
+        self._action = action
+
+    def add_parser(self, name: str, **kwargs) -> argparse.ArgumentParser:
+        return self._action.add_parser(name, help=COMMANDS[name][1], **kwargs)
+
+
+def add_subcommands(parser: argparse.ArgumentParser, load=None) -> None:
+    """Register every command of :data:`COMMANDS`: those in ``load`` (default: all) with their
+    module's arguments, the others by name and help only (what ``--help`` lists)."""
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=Parser)
-    for name in names:
-        importlib.import_module(f".{name}", __name__).add_parser(sub)
+    for name, (module, help_line) in COMMANDS.items():
+        if load is None or name in load:
+            importlib.import_module(f".{module}", __name__).add_parser(_Subcommands(sub))
+        else:
+            sub.add_parser(name, help=help_line, add_help=False)
 
 
 def dispatch(args: argparse.Namespace) -> int:

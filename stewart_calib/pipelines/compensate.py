@@ -19,7 +19,6 @@ from ..io import read_pose_list
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "compensate",
-        help="strokes for desired poses with the calibrated model (IK of nominal + error)",
         description="Compute drive strokes that put the calibrated robot at the desired poses.",
     )
     parser.add_argument("--platform", required=True, metavar="P.toml")

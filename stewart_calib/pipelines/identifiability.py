@@ -38,7 +38,6 @@ def log_information(platform: Platform, path: str, source: str, noise, skip_bad_
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "identifiability",
-        help="singular values, predicted parameter std devs and weak directions of a pose set",
         description="Report how well the poses of a log or pose list identify the 42 drive parameters.",
     )
     add_platform_and_noise_arguments(parser)

@@ -266,7 +266,6 @@ def run(args: argparse.Namespace) -> int:
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "import-bag",
-        help="turn a ROS 1 / ROS 2 bag into a measurement log",
         description="Read drive strokes (JointState) and tracker readings (JointState) or a measured pose "
         "(PoseStamped) from a ROS bag, align them in time and write a measurement log (spec §3, §7).",
     )

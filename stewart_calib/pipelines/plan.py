@@ -40,7 +40,6 @@ def _positive_seconds(text: str) -> float:
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "plan",
-        help="choose calibration poses (optimal design over random workspace poses)",
         description="Pick N poses from random reachable workspace poses that best identify the 42 parameters.",
     )
     add_platform_and_noise_arguments(parser)

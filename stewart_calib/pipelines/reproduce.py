@@ -32,7 +32,6 @@ from ..simulation import load_experiment
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "reproduce",
-        help="reproduce the paper's experiments (Tables 4-6, Figs. 5-9) on the simulated platform",
         description="Simulate the paper's load stages in closed loop for ls (frozen at no load), paper-ekf, ekf "
         "and isam2 (online); write DIR/tables.md, DIR/results.json and DIR/reproduce.rrd.",
     )

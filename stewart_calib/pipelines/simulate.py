@@ -30,7 +30,6 @@ from ..simulation.experiment import load_experiment
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "simulate",
-        help="simulate an experiment (true robot, load, tracker) and write platform, log and truth",
         description="Simulate the experiment of E.toml in closed loop with the nominal model, or "
         "with a calibrated model frozen from a result JSON; write DIR/platform.toml, DIR/log.csv "
         "and DIR/truth.csv.",

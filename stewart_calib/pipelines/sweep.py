@@ -25,7 +25,6 @@ from . import run_command
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "sweep",
-        help="run a Monte Carlo study of the estimators (grid × seeds) on Dask",
         description="Run every cell × seed of the sweep spec S.toml on Dask distributed (a local cluster, or "
         "--scheduler), writing DIR/results.parquet, DIR/summary.md and DIR/plots/; rerun to resume.",
     )

@@ -257,7 +257,6 @@ def run(args: argparse.Namespace) -> int:
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "track",
-        help="calibrate online from a log as it is written (a growing file or standard input)",
         description=__doc__.split("\n\n")[0].split(": ", 1)[1]
         + " Stops at the end of input, after --idle-timeout with --follow, or on Ctrl-C/SIGTERM (final estimate"
         " and checkpoint written); resumes from an existing --checkpoint when fed the same log from its start.",

@@ -37,7 +37,6 @@ from ..samples import Log
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "validate",
-        help="predict a held-out log with a calibration and report the errors (spec §7)",
         description="Predict what the instrument should have read on a held-out log from the calibrated model; "
         "write V.csv with the predictions and errors and print their RMS and maximum.",
     )
