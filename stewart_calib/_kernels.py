@@ -397,16 +397,32 @@ def perturbed_legs(base, plat, initial_lengths, delta):
 @njit(**_JIT)
 def whitened_leg_rows(base, plat, initial_lengths, tracker_base, tracker_plat, R, t, reading_variance, stroke_variance, out):
     """``C⁻½ ∂r/∂M`` of the leg-length form at ``n`` poses into ``out (n, 6, 42)``, at the nominal drive
-    (identifiability.whitened_leg_jacobian): ``H`` and ``C = R_meas`` of :func:`leg_observation`,
+    (identifiability.whitened_leg_jacobian): ``H`` and ``C = R_meas`` of :func:`leg_observation`
+    with the tracker pose covariance ``σ_s² (J_tᵀ J_t)⁻¹`` (kinematics.pose_covariance_from_legs),
     ``C = L Lᵀ`` by Cholesky and ``L⁻¹ H`` by forward substitution. A pose whose ``C`` is not
     positive definite gets NaN rows (where ``np.linalg.cholesky`` would raise)."""
     zeros_42 = np.zeros(42)
     zeros_6 = np.zeros(6)
+    n_legs = np.empty((6, 3))
+    length = np.empty(6)
+    J_t = np.empty((6, 6))
     L = np.empty((6, 6))
     for k in range(R.shape[0]):
-        _, H, C = leg_observation(base, plat, initial_lengths, zeros_42, tracker_base, tracker_plat, R[k], t[k],
-                                  zeros_6, reading_variance, stroke_variance)
-        positive = True
+        # Σ_x = σ_s² J_t⁻¹ J_t⁻ᵀ: solve J_t X = I, then X Xᵀ
+        _unit_legs(tracker_base, tracker_plat, R[k], t[k], n_legs, length)
+        _pose_jacobian(tracker_plat, R[k], n_legs, J_t)
+        inverse = np.eye(6)
+        singular = not _solve(J_t, inverse)
+        pose_covariance = np.empty((6, 6))
+        for a in range(6):
+            for b in range(6):
+                s = 0.0
+                for c in range(6):
+                    s += inverse[a, c] * inverse[b, c]
+                pose_covariance[a, b] = reading_variance * s
+        _, H, C, _ = leg_observation(base, plat, initial_lengths, zeros_42, R[k], t[k], zeros_6, pose_covariance,
+                                     stroke_variance)
+        positive = not singular
         for a in range(6):
             for b in range(a + 1):
                 s = C[a, b]
