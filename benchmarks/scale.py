@@ -4,8 +4,8 @@ Each estimator runs in its own fresh (spawned) process (in-process under ``--qui
 benchmark's Lissajous path, default noise and random walk), so its resident memory can be
 read without the other estimators' allocations — RSS, because GTSAM's C++ heap is invisible
 to Python's tracemalloc. Every update is timed; at each checkpoint n the median and p99 are
-over the last ``max(50, n/10)`` updates up to n. Runs are capped by wall time; a checkpoint
-not reached within the cap is reported as such.
+over the last ``max(50, n/10)`` updates up to n. Runs are capped by wall time (past the first
+checkpoint); a checkpoint not reached within the cap is reported as such.
 
 The growth curve of **full-history iSAM2** is the same estimator with its fixed-lag smoother
 swapped for a plain ``gtsam.ISAM2`` with the same parameters: the same factors, no
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -80,7 +81,7 @@ def _run_stream(method: str, arrays: tuple, checkpoints: list[int], cap_s: float
         times_us[n - 1] = (time.perf_counter_ns() - t0) / 1e3
         if n in checkpoints:
             rss[n] = rss_mib() - baseline_mib
-        if time.perf_counter() - start > cap_s:
+        if n >= checkpoints[0] and time.perf_counter() - start > cap_s:  # the first checkpoint is always reached
             break
     reached = {}
     for c in checkpoints:
@@ -185,7 +186,7 @@ def run(quick: bool, seed: int, png_path: Path) -> tuple[Section, list[Row]]:
 # ----------------------------------------------------------------------------- through the CLI
 #
 # Every command as a user runs it: a fresh ``python -m stewart_calib …`` process on files,
-# timed by the wall clock and measured by the kernel's peak resident set (``wait4``'s
+# timed by the wall clock and measured by the kernel's peak resident set (GNU time's
 # ``ru_maxrss``, which counts C++ and BLAS heaps and every import). Per-sample cost is the
 # marginal one, ``(wall(N) − wall(start)) / (N − n_start)`` against the same command on
 # :data:`CLI_START_SAMPLES` samples, so the interpreter's start-up and imports (reported
@@ -293,30 +294,46 @@ def cli_cases(quick: bool) -> list[CliCase]:
 
 #: the checkout whose ``stewart_calib`` the CLI runs use (``python -m benchmarks.scale --package-root``).
 PACKAGE_ROOT = ROOT
+GNU_TIME = Path("/usr/bin/time")
 
 
 def _run_cli(argv: list[str], cap_s: float, stdout_path: Path, python_flags: tuple[str, ...] = ()) -> dict:
     """Run ``python [flags] -m stewart_calib ARGV`` as a user would; wall time, peak RSS, exit status."""
     env = {**os.environ, "PYTHONPATH": str(PACKAGE_ROOT)}
+    command = [sys.executable, *python_flags, "-m", "stewart_calib", *argv]
+    # A forked child's ru_maxrss counts the parent's pages until exec; GNU time measures the
+    # command from a small process of its own, so only the command's memory is counted.
+    rss_path = stdout_path.with_suffix(".rss")
+    rss_path.unlink(missing_ok=True)
+    if GNU_TIME.exists():
+        command = [str(GNU_TIME), "-f", "%M", "-o", str(rss_path), *command]
     with open(stdout_path, "wb") as out, open(stdout_path.with_suffix(".err"), "wb") as err:
         start = time.perf_counter()
         # cwd too: ``python -m`` puts it ahead of PYTHONPATH on sys.path
-        proc = subprocess.Popen([sys.executable, *python_flags, "-m", "stewart_calib", *argv], stdout=out, stderr=err,
-                                stdin=subprocess.DEVNULL, cwd=PACKAGE_ROOT, env=env)
+        proc = subprocess.Popen(command, stdout=out, stderr=err, stdin=subprocess.DEVNULL, cwd=PACKAGE_ROOT, env=env,
+                                start_new_session=True)  # its own process group: a capped run is stopped whole
         deadline = start + cap_s
         while True:
             pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
             if pid:
                 break
             if time.perf_counter() > deadline:
-                proc.kill()
+                os.killpg(proc.pid, signal.SIGKILL)
                 _, status, usage = os.wait4(proc.pid, 0)
                 proc.returncode = -9
-                return {"wall_s": time.perf_counter() - start, "capped": True, "peak_rss_mib": usage.ru_maxrss / 1024}
+                return {"wall_s": time.perf_counter() - start, "capped": True, "peak_rss_mib": _peak_kib(rss_path, usage) / 1024}
             time.sleep(0.02)
         proc.returncode = os.waitstatus_to_exitcode(status)
     return {"wall_s": time.perf_counter() - start, "capped": False, "exit": proc.returncode,
-            "peak_rss_mib": usage.ru_maxrss / 1024}
+            "peak_rss_mib": _peak_kib(rss_path, usage) / 1024}
+
+
+def _peak_kib(rss_path: Path, usage) -> float:
+    """GNU time's maximum resident set of the command [KiB], else ``wait4``'s (which includes the fork's)."""
+    try:
+        return float(rss_path.read_text().split()[-1])
+    except (OSError, ValueError, IndexError):
+        return float(usage.ru_maxrss)
 
 
 def import_profile(argv: list[str], work: Path) -> dict:
@@ -399,7 +416,7 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
         "Each command run as a user runs it (`python -m stewart_calib …` in a fresh process, on files written "
         f"beforehand: a {RATE_HZ:g} Hz Lissajous log, its poses as a pose list, a one-stage experiment). Time per "
         f"sample is marginal: (wall(N) − wall({CLI_START_SAMPLES})) / (N − {CLI_START_SAMPLES}) of the same command, "
-        "so start-up is not spread over the samples; peak RSS is the process's maximum resident set (wait4). "
+        "so start-up is not spread over the samples; peak RSS is the command's maximum resident set (GNU time %M). "
         "Imports measured with `python -X importtime` (sum of the top-level imports' cumulative times). "
         f"Runs over {CLI_CAP_S:.0f} s are stopped."
     )
@@ -429,26 +446,67 @@ def _plot_cli(results: dict[str, dict[int, dict]], path: Path) -> None:
     plt.close(fig)
 
 
+def _section_markdown(section: Section, png: str, info: str) -> str:
+    from benchmarks.common import mark
+
+    lines = [f"## {section.title}", "", section.note, "", info, "", "| Benchmark | Measured | Target | Status |", "|---|---|---|---|"]
+    lines += [f"| {row.name} | {row.value} | {row.target or '—'} | {mark(row.met)} |" for row in section.rows]
+    return "\n".join(lines + ["", f"![{section.title.lower()}: time per sample and memory]({png})", ""])
+
+
+def update_report(section: Section, report: Path, png: Path, info: str) -> None:
+    """Put ``section`` into ``report`` (BENCHMARKS.md) in place of its previous version, or at the end."""
+    text = report.read_text(encoding="utf-8") if report.exists() else "# Benchmarks\n"
+    block = _section_markdown(section, os.path.relpath(png, report.parent), info)
+    head = f"## {section.title}\n"
+    if head in text:
+        start = text.index(head)
+        following = text.find("\n## ", start + len(head))
+        text = text[:start] + block + (text[following + 1 :] if following >= 0 else "")
+    else:
+        text = text.rstrip("\n") + "\n\n" + block
+    report.write_text(text, encoding="utf-8")
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``python -m benchmarks.scale [--quick] [--sizes N …] [--package-root DIR]``: the CLI section alone, as a table."""
+    """``python -m benchmarks.scale [--quick] [--sizes N …] [--cases NAME …] [--package-root DIR] [--update-report]``:
+    the CLI section alone (``python -m benchmarks`` runs it with the others)."""
     import argparse
     import json
 
-    global PACKAGE_ROOT, CLI_SIZES
+    from benchmarks.common import machine
+
+    global PACKAGE_ROOT, CLI_SIZES, CLI_CAP_S
     parser = argparse.ArgumentParser(prog="python -m benchmarks.scale", description=main.__doc__)
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--sizes", type=int, nargs="+", default=list(CLI_SIZES))
+    parser.add_argument("--cap-s", type=float, default=CLI_CAP_S, help="stop a run after this many seconds")
     parser.add_argument("--package-root", type=Path, default=ROOT, help="checkout to measure (e.g. an older one)")
     parser.add_argument("--json", type=Path, help="write the section's raw numbers here")
     parser.add_argument("--cases", nargs="+", metavar="NAME", help="only these commands (e.g. 'calibrate ekf')")
+    parser.add_argument("--update-report", action="store_true",
+                        help="replace this section of BENCHMARKS.md (plot and JSON in benchmarks/results/)")
     parser.add_argument("--seed", type=int, default=2024)
     args = parser.parse_args(argv)
-    PACKAGE_ROOT, CLI_SIZES = args.package_root.resolve(), tuple(args.sizes)
-    section = run_cli(args.quick, args.seed, Path(args.json or "scale-cli").with_suffix(".png"), args.cases)
+    PACKAGE_ROOT, CLI_SIZES, CLI_CAP_S = args.package_root.resolve(), tuple(args.sizes), args.cap_s
+    results = ROOT / "benchmarks" / "results"
+    png = results / "scale-cli-full.png" if args.update_report else Path(args.json or "scale-cli").with_suffix(".png")
+    load_before = os.getloadavg()[0]
+    start = time.perf_counter()
+    section = run_cli(args.quick, args.seed, png, args.cases)
     for row in section.rows:
         print(f"| {row.name} | {row.value} | {row.target or '—'} | {row.met} |")
+    raw = json.dumps(section.to_dict(), indent=1, default=float)
     if args.json:
-        args.json.write_text(json.dumps(section.to_dict(), indent=1, default=float), encoding="utf-8")
+        args.json.write_text(raw, encoding="utf-8")
+    if args.update_report:
+        (results / "scale-cli-full.json").write_text(raw, encoding="utf-8")
+        host = machine()
+        info = (f"Measured by `python -m benchmarks.scale {' '.join(argv or sys.argv[1:])}` in "
+                f"{(time.perf_counter() - start) / 60:.1f} min on {host['cpu']}, {host['cores']} cores; 1-min load average "
+                f"{load_before:.1f} before, {os.getloadavg()[0]:.1f} after (other work shared the machine: absolute times "
+                "are pessimistic). Raw numbers: benchmarks/results/scale-cli-full.json.")
+        update_report(section, ROOT / "BENCHMARKS.md", png, info)
     return 0
 
 

@@ -19,7 +19,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from tqdm import tqdm
 
 from ..config import EstimatorConfig
 from ..estimators import make_estimator, method_names
@@ -28,6 +27,7 @@ from ..estimators.paper_ekf import PaperEKF
 from ..platform import N_PARAMS, Platform
 from ..simulation import EstimatorController, FrozenController, NominalController, SimulationResult, run_experiment
 from ..simulation.experiment import Experiment
+from ..progress import progress_bar
 
 #: the paper's batch baseline, fitted once on the no-load calibration samples.
 BATCH_METHOD = "ls"
@@ -92,7 +92,7 @@ class Reproduction:
 class _Counted:
     """Passes a controller through, ticking the overall progress bar after each sample."""
 
-    def __init__(self, controller, bar: tqdm):
+    def __init__(self, controller, bar):
         self.controller = controller
         self.adaptive = getattr(controller, "adaptive", True)
         self._bar = bar
@@ -134,13 +134,13 @@ def first_stage_calibration(result: SimulationResult) -> np.ndarray:
     return np.flatnonzero((result.stages == result.stages[0]) & (result.kinds == "calibration"))
 
 
-def _timed_run(experiment: Experiment, controller, bar: tqdm) -> tuple[SimulationResult, float]:
+def _timed_run(experiment: Experiment, controller, bar) -> tuple[SimulationResult, float]:
     start = time.perf_counter()
     result = run_experiment(experiment, _Counted(controller, bar))
     return result, time.perf_counter() - start
 
 
-def run_ls(experiment: Experiment, config: EstimatorConfig, nominal: SimulationResult, bar: tqdm) -> MethodRun:
+def run_ls(experiment: Experiment, config: EstimatorConfig, nominal: SimulationResult, bar) -> MethodRun:
     """Fit ``ls`` on the nominal run's no-load calibration samples, then run frozen."""
     start = time.perf_counter()
     calibration = first_stage_calibration(nominal)
@@ -156,7 +156,7 @@ def run_ls(experiment: Experiment, config: EstimatorConfig, nominal: SimulationR
     return MethodRun(BATCH_METHOD, result, trace, estimate.error, len(estimator.rejected), fit_s + run_s, stddev)
 
 
-def run_online(experiment: Experiment, config: EstimatorConfig, method: str, bar: tqdm) -> MethodRun:
+def run_online(experiment: Experiment, config: EstimatorConfig, method: str, bar) -> MethodRun:
     """One :class:`EstimatorController` with ``method`` through every stage."""
     controller = EstimatorController(make_estimator(method, experiment.platform, config), experiment.platform)
     diagnosed = _Diagnosed(controller)
@@ -172,16 +172,16 @@ def reproduce(experiment: Experiment, config: EstimatorConfig, progress: bool = 
     """Run the experiment before calibration and with every method of :data:`METHODS`.
 
     Args:
-        progress: one tqdm bar on stderr across all runs (when stderr is a terminal).
+        progress: bars on stderr when it is a terminal: the run before calibration, then one
+            across the methods' runs.
     """
     start = time.perf_counter()
-    nominal_result = run_experiment(experiment, NominalController(experiment.platform))
+    nominal_result = run_experiment(experiment, NominalController(experiment.platform), progress=progress)
     n = len(nominal_result.log)
     nominal = MethodRun(NOMINAL, nominal_result, np.zeros((n, N_PARAMS)), np.zeros(N_PARAMS), 0, time.perf_counter() - start)
     runs = {NOMINAL: nominal}
-    # disable=None: tqdm hides the bar itself when stderr is not a terminal.
-    with tqdm(total=n * len(METHODS), desc=f"reproduce {experiment.name}", unit="sample",
-              disable=None if progress else True) as bar:
+    with progress_bar(total=n * len(METHODS), desc=f"reproduce {experiment.name}: {', '.join(METHODS)}",
+                      show=progress) as bar:
         for method in METHODS:
             if method == BATCH_METHOD:
                 runs[method] = run_ls(experiment, config, nominal_result, bar)

@@ -38,12 +38,12 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
-from tqdm import tqdm
 
 from .. import kinematics as kin
 from ..errors import SampleRejected
 from ..platform import LegGeometry, Platform
 from ..samples import Log, Sample, Truth
+from ..progress import progress_bar
 from .experiment import Experiment, schedule
 from .load import LoadModel, loaded_params, settle
 from .instrument import SimulatedInstrument
@@ -260,8 +260,7 @@ def run_experiment(experiment: Experiment, controller: Controller | None = None,
     reading_noise = noise_rng.standard_normal((n, 6))
     instrument_draws = robot.instrument.draw(n, instrument_rng) if robot.instrument is not None else np.zeros((n, 0))
     R_d, t_d = kin.pose_to_rt(plan.desired_poses)
-    # disable=None: tqdm itself hides the bar when stderr is not a terminal.
-    bar = tqdm(total=n, desc=f"simulate {experiment.name}", unit="sample", disable=None if progress else True, leave=False)
+    bar = progress_bar(total=n, desc=f"simulate {experiment.name}", show=progress)
 
     if getattr(controller, "adaptive", True):
         strokes, params = np.empty((n, 6)), np.empty((n, 42))
