@@ -9,7 +9,7 @@ and ``isam2`` online through all load stages, using the estimator settings of
 * ``results.json`` — every number, per-stage per-method details, run time, versions, seed;
 * ``reproduce.rrd`` — the rerun recording (scene, parameters, pose errors, trajectories).
 
-A tqdm bar across all runs goes to stderr when it is a terminal.
+Progress bars (the run before calibration, then the methods' runs) go to stderr when it is a terminal.
 """
 
 from __future__ import annotations
