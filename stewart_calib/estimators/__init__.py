@@ -3,10 +3,10 @@
 
 from __future__ import annotations
 
-from .base import BatchEstimator, Checkpointable, Estimator, fit_all
+from .base import BatchEstimator, Checkpointable, Estimator, KalmanFiltered, fit_all
 from .registry import METHODS, MethodSpec, make_estimator, method_names, method_spec
 
 __all__ = [
-    "METHODS", "BatchEstimator", "Checkpointable", "Estimator", "MethodSpec", "fit_all", "make_estimator",
+    "METHODS", "BatchEstimator", "Checkpointable", "Estimator", "KalmanFiltered", "MethodSpec", "fit_all", "make_estimator",
     "method_names", "method_spec",
 ]

@@ -8,7 +8,8 @@
     est.current_error()             # -> δM [mm] alone, for per-sample callers (traces, the controller)
 
 :class:`BatchEstimator` — a method that fits a whole log at once adds ``fit(samples)`` and lists
-the samples it skipped in ``rejected``. :class:`Checkpointable` — a method whose state can be
+the samples it skipped in ``rejected``. :class:`KalmanFiltered` — a Kalman method shows its
+``filter`` (the NIS of the last update, for diagnostics). :class:`Checkpointable` — a method whose state can be
 saved and restored exactly adds ``export_state()`` / ``import_state(state)`` (nested dicts of
 arrays; ``stewart_calib.online`` writes them to checkpoints).
 
@@ -64,6 +65,15 @@ class Checkpointable(Protocol):
 
     def import_state(self, state: dict) -> None:
         """Restore :meth:`export_state` on a freshly built estimator; ``CalibError`` on a bad state."""
+
+
+@runtime_checkable
+class KalmanFiltered(Protocol):
+    """A method whose updates are Kalman updates (``ekf``, ``paper-ekf``): its ``filter`` (a
+    :class:`~stewart_calib.estimators.kalman.FilterState`) holds the last accepted sample's
+    normalised innovation squared, ``filter.nis``, for diagnostics."""
+
+    filter: object
 
 
 def feed(estimator: Estimator, samples: Iterable[Sample]) -> list[tuple[int, SampleRejected]]:

@@ -36,9 +36,7 @@ from ..errors import CalibError, SampleRejected
 from ..config import EstimatorConfig, load_estimator_config
 from ..estimate import Estimate
 from .. import kinematics as kin
-from ..estimators import BatchEstimator
-from ..estimators.ekf import LegEKF
-from ..estimators.paper_ekf import PaperEKF
+from ..estimators import BatchEstimator, KalmanFiltered
 from ..online import Rejections
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
 from ..plausibility import check_plausible
@@ -99,7 +97,7 @@ def run_calibration(
         return Calibration(estimate, rows, rejected, sigma)
     rows = np.empty((len(log), len(nominal))) if trace or diagnostics else None
     sigma = np.empty_like(rows) if diagnostics else None
-    kalman = isinstance(estimator, (LegEKF, PaperEKF))
+    kalman = isinstance(estimator, KalmanFiltered)
     nis = np.full(len(log), np.nan) if diagnostics and kalman else None
     rejected = []
     bar = progress_bar(log, desc=f"calibrate {method}", show=progress)

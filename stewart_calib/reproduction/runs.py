@@ -21,9 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import EstimatorConfig
-from ..estimators import make_estimator, method_names
-from ..estimators.ekf import LegEKF
-from ..estimators.paper_ekf import PaperEKF
+from ..estimators import KalmanFiltered, make_estimator, method_names
 from ..platform import N_PARAMS, Platform
 from ..simulation import EstimatorController, FrozenController, NominalController, SimulationResult, run_experiment
 from ..simulation.experiment import Experiment
@@ -113,7 +111,7 @@ class _Diagnosed:
 
     def __init__(self, controller: EstimatorController):
         self.controller = controller
-        self.kalman = isinstance(controller.estimator, (LegEKF, PaperEKF))
+        self.kalman = isinstance(controller.estimator, KalmanFiltered)
         self.stddev: list[np.ndarray] = []
         self.nis: list[float] = []
 
