@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks import accuracy, scale, speed
+from benchmarks import accuracy, robustness, scale, speed
 from benchmarks.common import ROOT, Section, machine, mark
 
 #: 1-minute load average per core above which the report says the machine was loaded.
@@ -88,9 +88,11 @@ def main(argv: list[str] | None = None) -> int:
     speed_section.rows += isam2_rows
     print(f"scale done ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
     accuracy_section = accuracy.run(args.quick)
+    robustness_section = robustness.run(args.quick)
+    print(f"robustness done ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
     info["seconds"] = time.perf_counter() - start
     info["load_after"] = list(os.getloadavg())
-    sections = [speed_section, accuracy_section, scale_section]
+    sections = [speed_section, accuracy_section, robustness_section, scale_section]
 
     png_link = os.path.relpath(png_path, markdown_path.parent)
     markdown_path.write_text(_markdown(sections, info, png_link), encoding="utf-8")

@@ -18,6 +18,7 @@ def test_quick_run_writes_every_row(tmp_path):
     results = json.loads((tmp_path / "quick.json").read_text(encoding="utf-8"))
     table_rows = [line for line in report.splitlines() if line.startswith("| ") and not line.startswith("| Benchmark")]
 
+    from benchmarks import robustness
     from benchmarks.accuracy import METHODS, PAPER_EKF_MATCHED
     from benchmarks.common import GEOMETRIES
 
@@ -33,6 +34,7 @@ def test_quick_run_writes_every_row(tmp_path):
         *(f"{geometry}: {method}" for geometry in GEOMETRIES for method in METHODS),
         *(f"drift: {method}" for method in ("ls", "paper-ekf", "ekf", "isam2", PAPER_EKF_MATCHED)),
         *(f"{method} at 100 samples" for method in ("ekf", "paper-ekf", "isam2", "isam2 full history")),
+        *robustness.row_names(),
     ]
     for name in expected:
         assert sum(row.startswith(f"| {name}") for row in table_rows) == 1, name

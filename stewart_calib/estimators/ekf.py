@@ -23,8 +23,6 @@ so every state holds the base and platform joints' mean rigid motion at nominal 
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from .. import kinematics as kin
@@ -35,15 +33,21 @@ from ..instruments import instrument_model, instrument_theta
 from ..platform import N_PARAMS, Platform
 from ..samples import Sample
 from ..unknowns import gauge_conditioned
-from .kalman import FilterState
+from .robust import RobustFilter
 from .measurement import WarmPose, check_sample, unknown_layout
 
 
 class LegEKF:
     """Leg-length EKF; ``update(sample)`` then ``estimate()``.
 
+    The recursion is a :class:`~stewart_calib.estimators.robust.RobustFilter`: robust start-up,
+    χ² gate with lock-out recovery, measurement and random-walk noise from the data
+    (``[robust]``). A prepared sample is its strokes and the instrument's measurement, so the
+    start-up batch can relinearise it at any state.
+
     Attributes:
         filter: the :class:`FilterState` (``x``, ``P``, ``Q``, last NIS).
+        robust: the :class:`RobustFilter` around it (noise scales, recoveries).
     """
 
     name = "ekf"
@@ -54,12 +58,13 @@ class LegEKF:
         self.model = instrument_model(platform, config.noise)
         self.layout = unknown_layout(platform, config.noise, self.model)
         C = self.layout.gauge_rows(platform.drive)
-        self.filter = FilterState(
-            self.name, config.noise.prior_sigma_mm, config.ekf.gate_probability, layout=self.layout, C=C
-        )
         # Q per unit ρ²Δt: the walking entries, conditioned on the gauge (None: the plain diagonal).
         walks = self.layout.walks()
-        self._unit_Q = None if walks.all() and len(C) == 0 else gauge_conditioned(np.diag(walks.astype(float)), C)
+        unit_Q = None if walks.all() and len(C) == 0 else gauge_conditioned(np.diag(walks.astype(float)), C)
+        self.robust = RobustFilter(self.name, config.noise.prior_sigma_mm, config.noise.random_walk_mm_per_sqrt_s,
+                                   config.ekf.gate_probability, self._observe, config.robust, layout=self.layout, C=C,
+                                   unit_Q=unit_Q)
+        self.filter = self.robust.filter
         self._scale = self.layout.slice("stroke_scale")
         self._nominal_scale = platform.stroke_scale
         self._instrument = self.layout.slice("instrument")
@@ -69,18 +74,20 @@ class LegEKF:
         """Fold in one sample; ``SampleRejected`` leaves the state untouched."""
         strokes, z = check_sample(self.platform, self.model, sample)
         last_t_s = self.filter.t_s
-        dt_s = 0.0 if math.isnan(last_t_s) else sample.t_s - last_t_s
-        if dt_s < 0.0:
+        if sample.t_s < last_t_s:
             raise SampleRejected(
                 f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)", SampleRejected.TIME_BACK
             )
-        x = self.filter.x
+        self.robust.update(sample.t_s, np.r_[strokes, np.ravel(z)])
+
+    def _observe(self, prepared: np.ndarray, x: np.ndarray):
+        """``(−r, H = ∂r/∂X, J_x Σ_x J_xᵀ + σ_q² I)`` of a prepared sample at the state ``x``, or
+        None when the measurement fixes no pose there."""
+        strokes, z = prepared[:6], prepared[6:]
         theta = instrument_theta(self.model, None if self._instrument is None else x[self._instrument])
         observed = self._pose.solve(z, theta)
         if observed is None:
-            raise SampleRejected(
-                f"ekf: sample at t = {sample.t_s} s: the measurement does not fix a pose", SampleRejected.NO_POSE
-            )
+            return None
         scale = 1.0 + (self._nominal_scale if self._scale is None else self._nominal_scale + x[self._scale])
         # r, H = ∂r/∂M and R_meas = J_x Σ_x J_xᵀ + σ_q² I at the model M + δM, in one compiled call.
         residual, H_drive, R_meas, J_x = kin.leg_ekf_observation(
@@ -95,12 +102,16 @@ class LegEKF:
                 H[:, self._scale] = np.diag(-strokes)
             if self._instrument is not None:
                 H[:, self._instrument] = J_x @ observed.J_instrument
-        step = self.noise.random_walk_mm_per_sqrt_s**2 * dt_s
-        if self._unit_Q is None:
-            np.fill_diagonal(self.filter.Q, step)
-        else:
-            np.multiply(self._unit_Q, step, out=self.filter.Q)
-        self.filter.update(H, -residual, R_meas, sample.t_s)
+        return -residual, H, R_meas
+
+    def take_late_rejections(self) -> list[SampleRejected]:
+        """Start-up samples the robust batch left out once decided (see :class:`RobustFilter`)."""
+        return self.robust.take_late_rejections()
+
+    def noise_scale(self) -> float | None:
+        """The measurement noise found in the data as a multiple of the configured σ (None
+        before the start-up batch has the redundancy to tell, or with fixed noise)."""
+        return float(np.sqrt(self.robust.noise_scale2)) if self.robust.measured_noise else None
 
     def estimate(self) -> Estimate:
         """The unknown vector and ``P`` after the last accepted sample."""
@@ -113,9 +124,9 @@ class LegEKF:
     def export_state(self) -> dict:
         """Filter and pose warm start as arrays (checkpoints; :meth:`import_state` restores).
         The warm start keeps its first key, ``tracker_fk``, so earlier checkpoints still load."""
-        return {"filter": self.filter.export_state(), "tracker_fk": self._pose.export_state()}
+        return {"robust": self.robust.export_state(), "tracker_fk": self._pose.export_state()}
 
     def import_state(self, state: dict) -> None:
         """Restore :meth:`export_state` exactly. Raises ``CalibError`` on a bad key or shape."""
-        self.filter.import_state(state.get("filter", {}))
+        self.robust.import_state(state.get("robust", {}))
         self._pose.import_state(state.get("tracker_fk", {}))

@@ -33,6 +33,7 @@ from ..config import EstimatorConfig, load_estimator_config
 from ..estimate import Estimate
 from .. import kinematics as kin
 from ..estimators import BatchEstimator
+from ..estimators.base import late_index, take_late_rejections
 from ..estimators.ekf import LegEKF
 from ..estimators.paper_ekf import PaperEKF
 from ..online import Rejections
@@ -58,6 +59,8 @@ class Calibration:
         stddev: ``(N, 42)`` σ of the parameters after each sample [mm] (NaN: no covariance), or None.
         nis: ``(N,)`` normalised innovation squared of each sample (Kalman methods; NaN where
             refused), or None.
+        noise_scale: the estimator's measurement noise estimated from the data, as a multiple
+            of the configured σ (None when it does not estimate it).
     """
 
     estimate: Estimate
@@ -65,6 +68,7 @@ class Calibration:
     rejected: list[tuple[int, SampleRejected]]
     stddev: np.ndarray | None = None
     nis: np.ndarray | None = None
+    noise_scale: float | None = None
 
 
 def run_calibration(
@@ -104,13 +108,15 @@ def run_calibration(
                 nis[k] = estimator.filter.nis
         except SampleRejected as err:
             rejected.append((k, err))
+        for err in take_late_rejections(estimator):  # a robust start-up batch left it out
+            rejected.append((late_index(log.t_s[: k + 1].tolist(), err.t_s), err))
         if sigma is not None:
             now = estimator.estimate()
             rows[k], sigma[k] = nominal + now.error, _stddev_or_nan(now)
         elif rows is not None:
             rows[k] = nominal + estimator.current_error()  # a rejected sample leaves the estimate in force
     _refuse_if_all_rejected(method, rejected, len(log))
-    return Calibration(estimator.estimate(), rows, rejected, sigma, nis)
+    return Calibration(estimator.estimate(), rows, rejected, sigma, nis, getattr(estimator, "noise_scale", lambda: None)())
 
 
 def _stddev_or_nan(estimate: Estimate) -> np.ndarray:
@@ -185,7 +191,7 @@ def run(args: argparse.Namespace) -> int:
     # the leg residual it checks is the tracker's; an outside instrument's fit reports its own residuals
     tracker = platform.instrument.kind == "tracker"
     check_plausible(platform, result.estimate.error, config.noise, log.strokes if tracker else np.zeros((0, 6)),
-                    log.readings if tracker else np.zeros((0, 6)), args.method)
+                    log.readings if tracker else np.zeros((0, 6)), args.method, result.noise_scale)
     if result.rejected:
         k, reason = result.rejected[0]
         print(_summary(f"{args.method} rejected samples:", len(result.rejected), len(log),
