@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks import accuracy, scale, speed
+from benchmarks import accuracy, robustness, scale, speed
 from benchmarks.common import ROOT, Section, machine, mark
 
 #: 1-minute load average per core above which the report says the machine was loaded.
@@ -91,9 +91,11 @@ def main(argv: list[str] | None = None) -> int:
     cli_section = scale.run_cli(args.quick, args.seed, cli_png_path)
     print(f"scale through the CLI done ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
     accuracy_section = accuracy.run(args.quick)
+    robustness_section = robustness.run(args.quick)
+    print(f"robustness done ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
     info["seconds"] = time.perf_counter() - start
     info["load_after"] = list(os.getloadavg())
-    sections = [speed_section, accuracy_section, scale_section, cli_section]
+    sections = [speed_section, accuracy_section, robustness_section, scale_section, cli_section]
 
     plots = {section.title: os.path.relpath(path, markdown_path.parent)
              for section, path in ((scale_section, png_path), (cli_section, cli_png_path))}

@@ -42,6 +42,7 @@ from .config import EstimatorConfig, config_from_dict
 from .errors import CalibError, SampleRejected
 from .estimate import Estimate
 from .estimators import Estimator, method_names, method_spec
+from .estimators.base import take_late_rejections
 from .plausibility import check_plausible
 from .platform import Platform, parse_platform, platform_to_toml
 from .samples import Sample
@@ -123,6 +124,9 @@ class OnlineCalibrator:
         except SampleRejected as err:
             self.rejections.add(err)
             raise
+        finally:
+            for late in take_late_rejections(self._estimator):  # left out by a robust start-up batch
+                self.rejections.add(late)
         self._recent.append((sample.strokes, sample.readings))
 
     def estimate(self) -> Estimate:
@@ -156,7 +160,9 @@ class OnlineCalibrator:
         # the leg residual it checks is the tracker's; an outside instrument's estimate has its parameters checked
         tracker = self.platform.instrument.kind == "tracker"
         recent = np.array(self._recent, dtype=float).reshape(-1, 2, 6) if tracker else np.zeros((0, 2, 6))
-        check_plausible(self.platform, estimate.error, self.config.noise, recent[:, 0], recent[:, 1], self.method)
+        noise_scale = getattr(self._estimator, "noise_scale", lambda: None)()
+        check_plausible(self.platform, estimate.error, self.config.noise, recent[:, 0], recent[:, 1], self.method,
+                        noise_scale)
         skipped = self.rows_skipped + self.rejections.count
         return io.result_dict(estimate, self.platform, skipped, {"samples_rejected": self.rejections.summary()})
 

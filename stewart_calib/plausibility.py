@@ -13,7 +13,11 @@ Two symptoms, each far outside what a log of the right platform can produce:
   ``stroke_sigma_mm``, the larger): beyond :data:`RESIDUAL_SIGMAS` × σ no noise model explains
   it (a filter that diverged on foreign data).
 
-Both thresholds are in units of the user's own σ, so they follow the configuration, and both
+A third symptom, when the estimator measures the noise (``ekf``, ``isam2``): a scatter two
+orders of magnitude beyond the configured σ (:data:`NOISE_SCALE_LIMIT`), what a stream in
+which every sample is a glitch looks like.
+
+The thresholds are in units of the user's own σ, so they follow the configuration, and both
 sit orders of magnitude past the largest values measured on logs of the right platform whose
 noise is mismatched 5× (tests/test_plausibility.py).
 """
@@ -31,6 +35,9 @@ from .platform import PARAMETER_NAMES, Platform
 PRIOR_SIGMAS = 10.0
 #: an RMS leg residual beyond this many measurement σ is refused (three orders of magnitude).
 RESIDUAL_SIGMAS = 1000.0
+#: a measurement noise the estimator finds beyond this multiple of the configured σ is refused
+#: (two orders of magnitude: σ wrong by 2–5× or a sagging platform's ~10× pass).
+NOISE_SCALE_LIMIT = 100.0
 
 
 def rms_leg_residual_mm(platform: Platform, error: np.ndarray, strokes: np.ndarray, readings: np.ndarray) -> float:
@@ -51,13 +58,16 @@ def rms_leg_residual_mm(platform: Platform, error: np.ndarray, strokes: np.ndarr
 
 
 def check_plausible(platform: Platform, error: np.ndarray, noise: NoiseConfig, strokes: np.ndarray,
-                    readings: np.ndarray, method: str) -> None:
+                    readings: np.ndarray, method: str, noise_scale: float | None = None) -> None:
     """Refuse an estimate that the log cannot have come from ``platform`` with (see the module).
 
     Args:
         error: δM [mm] of the estimate. strokes, readings: ``(N, 6)`` samples it was fitted to
             (all of them, or the most recent ones for an online run) [mm]; with none, only
             the parameters are checked.
+        noise_scale: the measurement noise the estimator found in the data, as a multiple of
+            the configured σ (``ekf``, ``isam2``; None: not checked). Beyond
+            :data:`NOISE_SCALE_LIMIT` no sample agrees with the others — a stream of glitches.
     Raises:
         CalibError: one line with the RMS residual, the largest parameter error and both limits.
     """
@@ -68,11 +78,14 @@ def check_plausible(platform: Platform, error: np.ndarray, noise: NoiseConfig, s
     beyond_prior = abs(error[worst]) > PRIOR_SIGMAS * noise.prior_sigma_mm
     # nan (no pose could be solved) counts as beyond the noise
     beyond_noise = np.size(strokes) > 0 and not rms_mm <= RESIDUAL_SIGMAS * sigma_mm
-    if beyond_prior or beyond_noise:
+    scattered = noise_scale is not None and noise_scale > NOISE_SCALE_LIMIT
+    if beyond_prior or beyond_noise or scattered:
+        scatter = (f"; the samples scatter {noise_scale:.3g} × the configured noise σ (limit {NOISE_SCALE_LIMIT:g} ×)"
+                   if noise_scale is not None else "")
         raise CalibError(
             f"{method}: the log does not fit platform '{platform.name}': RMS leg residual {rms_mm:.3g} mm at the estimate "
             f"({rms_mm / sigma_mm:.3g} × the noise σ {sigma_mm:g} mm; limit {RESIDUAL_SIGMAS:g} ×), largest parameter "
             f"error {PARAMETER_NAMES[worst]} = {error[worst]:.4g} mm ({abs(error[worst]) / noise.prior_sigma_mm:.3g} × "
-            f"the prior σ {noise.prior_sigma_mm:g} mm; limit {PRIOR_SIGMAS:g} ×) — a log of another platform, or a "
-            "platform file that does not describe this robot?"
+            f"the prior σ {noise.prior_sigma_mm:g} mm; limit {PRIOR_SIGMAS:g} ×){scatter} — a log of another platform, "
+            "glitches in every sample, or a platform file that does not describe this robot?"
         )

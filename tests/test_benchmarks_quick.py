@@ -18,6 +18,7 @@ def test_quick_run_writes_every_row(tmp_path):
     results = json.loads((tmp_path / "quick.json").read_text(encoding="utf-8"))
     table_rows = [line for line in report.splitlines() if line.startswith("| ") and not line.startswith("| Benchmark")]
 
+    from benchmarks import robustness
     from benchmarks.accuracy import METHODS, PAPER_EKF_MATCHED
     from benchmarks.common import GEOMETRIES
 
@@ -36,6 +37,7 @@ def test_quick_run_writes_every_row(tmp_path):
         "imports of `stewart-calib --help`",
         "imports of `calibrate ekf, 100 samples`",
         "calibrate ekf at 300 samples",
+        *robustness.row_names(),
     ]
     for name in expected:
         assert sum(row.startswith(f"| {name}") for row in table_rows) == 1, name

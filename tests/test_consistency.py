@@ -34,6 +34,7 @@ import numpy as np
 import pytest
 
 from stewart_calib.estimators import make_estimator
+from stewart_calib.estimators.base import feed
 from stewart_calib.config import load_estimator_config
 from stewart_calib.simulation import load_experiment, run_experiment
 
@@ -84,11 +85,11 @@ def _z(method, platform, config, data):
     estimator = make_estimator(method, platform, config)
     if method == "lm":
         estimate = estimator.fit(log)
+        rejected = estimator.rejected
     else:
-        for sample in log:
-            estimator.update(sample)
+        rejected = feed(estimator, log)  # the gate is on: a sample now and then is refused
         estimate = estimator.estimate()
-    assert estimate.samples_used == len(log)
+    assert estimate.samples_used + len(rejected) == len(log) and len(rejected) <= 0.05 * len(log)
     return (estimate.error - truth) / estimate.stddev
 
 
@@ -103,11 +104,13 @@ def test_paper_config_covariance_is_right_within_a_factor_two(quick, no_load, me
     assert RMS_Z_LOW <= _rms(z) <= RMS_Z_HIGH  # measured 0.78 (ekf), 1.30 (lm)
 
 
-def test_library_defaults_are_overconfident_on_the_simulator(quick, no_load):
-    # σ_s = 2 µm and a random walk of 0.001 mm/√s: σ's about 10 µm against errors of 0.28 mm.
-    # Why the simulated examples use paper.toml. Measured RMS(z) 23.5, max |z| 49.
+def test_library_defaults_measure_the_noise_but_not_the_sag(quick, no_load):
+    # The defaults (σ_s = 2 µm, walk 0.001 mm/√s) now measure the noise from the data (× 5.7)
+    # and the walk from window to window, which takes them from RMS(z) 23.5 (fixed noise) to 4.1:
+    # the rest is the pose-dependent sag, a model error no estimate of noise or drift sees —
+    # why the simulated examples use paper.toml, whose walk stands for it.
     z = _z("ekf", quick.platform, load_estimator_config(None), no_load)
-    assert _rms(z) > 10.0  # more than an order of magnitude, 5× past the factor-2 criterion
+    assert RMS_Z_HIGH < _rms(z) < 10.0  # measured 4.1 (was 23.5 before the noise was measured)
 
 
 def test_random_walk_is_what_covers_the_platforms_own_weight(quick, no_load):

@@ -10,6 +10,7 @@ from scipy.stats import chi2
 from stewart_calib import kinematics as kin
 from stewart_calib.errors import SampleRejected
 from stewart_calib.estimators import make_estimator
+from stewart_calib.estimators.base import feed
 from stewart_calib.config import config_from_dict
 from stewart_calib.estimators.kalman import kalman_update
 from stewart_calib.samples import Sample
@@ -24,9 +25,9 @@ def static_data():
 
 
 def run(method, log, **sections):
+    """Feed ``log``; gated samples (the gate is on by default) are skipped, as every caller does."""
     est = make_estimator(method, PLATFORM, config_from_dict(sections))
-    for sample in log:
-        est.update(sample)
+    feed(est, log)
     return est
 
 

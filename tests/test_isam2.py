@@ -30,8 +30,11 @@ def platform():
 
 
 def _config(random_walk=0.0, prior_sigma_mm=5.0, **isam2):
-    isam2 = {"window_samples": 5, "lag_s": 1.0, **isam2}
-    return config_from_dict({"noise": {"random_walk_mm_per_sqrt_s": random_walk, "prior_sigma_mm": prior_sigma_mm}, "isam2": isam2})
+    """The graph's own mathematics: no robust front end (no gate, no start-up batch, fixed noise;
+    tests/test_robust.py checks isam2 with it)."""
+    isam2 = {"window_samples": 5, "lag_s": 1.0, "gate_probability": 0.0, **isam2}
+    return config_from_dict({"noise": {"random_walk_mm_per_sqrt_s": random_walk, "prior_sigma_mm": prior_sigma_mm},
+                             "isam2": isam2, "robust": {"startup_samples": 0, "adapt_noise": False}})
 
 
 def _run(method, platform, config, log):

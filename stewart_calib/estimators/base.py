@@ -76,15 +76,31 @@ class KalmanFiltered(Protocol):
     filter: object
 
 
+def take_late_rejections(estimator: Estimator) -> list[SampleRejected]:
+    """Samples an estimator took provisionally and has since left out (a robust start-up batch,
+    :mod:`.robust`), each reported once; ``err.t_s`` is the sample's time. Empty for others."""
+    take = getattr(estimator, "take_late_rejections", None)
+    return take() if take is not None else []
+
+
 def feed(estimator: Estimator, samples: Iterable[Sample]) -> list[tuple[int, SampleRejected]]:
-    """``update`` with every sample, skipping refused ones: their ``(index, SampleRejected)``."""
-    rejected = []
+    """``update`` with every sample, skipping refused ones: their ``(index, SampleRejected)``,
+    including those refused late (:func:`take_late_rejections`), in the order they were refused."""
+    rejected, times = [], []
     for k, sample in enumerate(samples):
+        times.append(sample.t_s)
         try:
             estimator.update(sample)
         except SampleRejected as err:
             rejected.append((k, err))
+        for err in take_late_rejections(estimator):
+            rejected.append((late_index(times, err.t_s), err))
     return rejected
+
+
+def late_index(times: list[float], t_s: float) -> int:
+    """Index of the latest sample at ``t_s`` in ``times`` (the times fed so far)."""
+    return next(k for k in range(len(times) - 1, -1, -1) if times[k] == t_s)
 
 
 class BufferedFit:

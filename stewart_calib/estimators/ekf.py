@@ -29,11 +29,15 @@ An instrument whose kind is registered on the data (a frame far from nominal) is
 holding the first samples (:class:`~.measurement.HeldForRegistration`): once they register it,
 its block starts at the registration and the held samples are replayed; until then the estimate
 is the prior.
+
+The recursion is a :class:`~stewart_calib.estimators.robust.RobustFilter` (robust start-up,
+χ² gate with lock-out recovery, measurement and random-walk noise from the data, ``[robust]``);
+its observation at a state is the loose one above, or the tight one where the measurement fixes
+no pose there. A prepared sample is its strokes and the instrument's measurement, so the
+start-up batch can relinearise it at any state.
 """
 
 from __future__ import annotations
-
-import math
 
 import numpy as np
 
@@ -45,7 +49,7 @@ from ..instruments import instrument_model, instrument_theta
 from ..platform import N_PARAMS, Platform
 from ..samples import Sample
 from ..unknowns import gauge_conditioned
-from .kalman import FilterState
+from .robust import RobustFilter
 from .measurement import HeldForRegistration, WarmFK, WarmPose, check_sample, unknown_layout
 
 
@@ -54,6 +58,7 @@ class LegEKF:
 
     Attributes:
         filter: the :class:`FilterState` (``x``, ``P``, ``Q``, last NIS).
+        robust: the :class:`RobustFilter` around it (noise scales, recoveries).
     """
 
     name = "ekf"
@@ -64,12 +69,13 @@ class LegEKF:
         self.model = instrument_model(platform, config.noise)
         self.layout = unknown_layout(platform, config.noise, self.model)
         C = self.layout.gauge_rows(platform.drive)
-        self.filter = FilterState(
-            self.name, config.noise.prior_sigma_mm, config.ekf.gate_probability, layout=self.layout, C=C
-        )
         # Q per unit ρ²Δt: the walking entries, conditioned on the gauge (None: the plain diagonal).
         walks = self.layout.walks()
-        self._unit_Q = None if walks.all() and len(C) == 0 else gauge_conditioned(np.diag(walks.astype(float)), C)
+        unit_Q = None if walks.all() and len(C) == 0 else gauge_conditioned(np.diag(walks.astype(float)), C)
+        self.robust = RobustFilter(self.name, config.noise.prior_sigma_mm, config.noise.random_walk_mm_per_sqrt_s,
+                                   config.ekf.gate_probability, self._observe, config.robust, layout=self.layout, C=C,
+                                   unit_Q=unit_Q)
+        self.filter = self.robust.filter
         self._scale = self.layout.slice("stroke_scale")
         self._nominal_scale = platform.stroke_scale
         self._instrument = self.layout.slice("instrument")
@@ -86,26 +92,26 @@ class LegEKF:
                 f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)", SampleRejected.TIME_BACK
             )
         if not self._held.active:
-            self._fold(sample, strokes, z)
+            self.robust.update(sample.t_s, np.r_[strokes, np.ravel(z)])
             return
         start = self._held.hold(sample)
         if start is not None:
-            self.filter.x[:] = start
+            self.robust.start_at(start)
             for held in self._held.samples:  # a held sample the filter refuses is left out, as it would have been
+                held_strokes, held_z = check_sample(self.platform, self.model, held)
                 try:
-                    self._fold(held, *check_sample(self.platform, self.model, held))
+                    self.robust.update(held.t_s, np.r_[held_strokes, np.ravel(held_z)])
                 except SampleRejected:
                     pass
 
-    def _fold(self, sample: Sample, strokes: np.ndarray, z: np.ndarray) -> None:
-        last_t_s = self.filter.t_s
-        dt_s = 0.0 if math.isnan(last_t_s) else sample.t_s - last_t_s
-        x = self.filter.x
+    def _observe(self, prepared: np.ndarray, x: np.ndarray):
+        """``(−r, H = ∂r/∂X, R_meas)`` of a prepared sample at the state ``x``: the loose
+        observation, or the tight one where the measurement fixes no pose at ``x``."""
+        strokes, z = prepared[:6], prepared[6:]
         theta = instrument_theta(self.model, None if self._instrument is None else x[self._instrument])
         observed = self._pose.solve(z, theta)
         if observed is None:
-            self._fold_tight(sample, strokes, z, theta, dt_s)
-            return
+            return self._observe_tight(strokes, z, theta, x)
         scale = 1.0 + (self._nominal_scale if self._scale is None else self._nominal_scale + x[self._scale])
         # r, H = ∂r/∂M and R_meas = J_x Σ_x J_xᵀ + σ_q² I at the model M + δM, in one compiled call.
         residual, H_drive, R_meas, J_x = kin.leg_ekf_observation(
@@ -120,12 +126,11 @@ class LegEKF:
                 H[:, self._scale] = np.diag(-strokes)
             if self._instrument is not None:
                 H[:, self._instrument] = J_x @ observed.J_instrument
-        self._predict(dt_s)
-        self.filter.update(H, -residual, R_meas, sample.t_s)
+        return -residual, H, R_meas
 
-    def _fold_tight(self, sample: Sample, strokes: np.ndarray, z: np.ndarray, theta: np.ndarray, dt_s: float) -> None:
-        """The instrument's residual at the drive model's pose (see the module docstring)."""
-        x = self.filter.x
+    def _observe_tight(self, strokes: np.ndarray, z: np.ndarray, theta: np.ndarray, x: np.ndarray):
+        """The instrument's residual at the drive model's pose (see the module docstring);
+        ``SampleRejected`` when the drive model's FK fails."""
         scale = 1.0 + (self._nominal_scale if self._scale is None else self._nominal_scale + x[self._scale])
         drive = self.platform.drive.perturbed(x[:N_PARAMS])
         R, t = self._drive_fk.solve(drive, strokes * scale, "drive model")
@@ -142,16 +147,16 @@ class LegEKF:
             H[:, self._instrument] += res.J_instrument
         A = res.J_pose @ J_g_inv * scale  # ∂r/∂q: a stroke moves the drive model's pose
         R_meas = np.diag(self.model.channel_sigma[channels] ** 2) + self.noise.stroke_sigma_mm**2 * (A @ A.T)
-        self._predict(dt_s)
-        self.filter.update(H, -res.r, 0.5 * (R_meas + R_meas.T), sample.t_s)
+        return -res.r, H, 0.5 * (R_meas + R_meas.T)
 
-    def _predict(self, dt_s: float) -> None:
-        """Q of the random walk over ``dt_s`` (added inside the next update)."""
-        step = self.noise.random_walk_mm_per_sqrt_s**2 * dt_s
-        if self._unit_Q is None:
-            np.fill_diagonal(self.filter.Q, step)
-        else:
-            np.multiply(self._unit_Q, step, out=self.filter.Q)
+    def take_late_rejections(self) -> list[SampleRejected]:
+        """Start-up samples the robust batch left out once decided (see :class:`RobustFilter`)."""
+        return self.robust.take_late_rejections()
+
+    def noise_scale(self) -> float | None:
+        """The measurement noise found in the data as a multiple of the configured σ (None
+        before the start-up batch has the redundancy to tell, or with fixed noise)."""
+        return float(np.sqrt(self.robust.noise_scale2)) if self.robust.measured_noise else None
 
     def estimate(self) -> Estimate:
         """The unknown vector and ``P`` after the last accepted sample."""
@@ -165,7 +170,7 @@ class LegEKF:
         """Filter, pose warm start and samples held for registration as arrays (checkpoints;
         :meth:`import_state` restores). The warm start keeps its first key, ``tracker_fk``, so
         earlier checkpoints still load."""
-        state = {"filter": self.filter.export_state(), "tracker_fk": self._pose.export_state()}
+        state = {"robust": self.robust.export_state(), "tracker_fk": self._pose.export_state()}
         drive_fk = self._drive_fk.export_state()
         if drive_fk:
             state["drive_fk"] = drive_fk
@@ -175,7 +180,7 @@ class LegEKF:
 
     def import_state(self, state: dict) -> None:
         """Restore :meth:`export_state` exactly. Raises ``CalibError`` on a bad key or shape."""
-        self.filter.import_state(state.get("filter", {}))
+        self.robust.import_state(state.get("robust", {}))
         self._pose.import_state(state.get("tracker_fk", {}))
         self._drive_fk.import_state(state.get("drive_fk", {}))
         self._held.restore(state, self.update)

@@ -8,6 +8,7 @@ is refreshed every update so it is never marginalised while in use.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, replace
 
 import gtsam
@@ -19,6 +20,7 @@ from ..estimate import Estimate
 from ..platform import N_LEGS, N_PARAMS, Platform
 from ..samples import Sample
 from .base import state_array
+from .ekf import LegEKF
 from .graph import ChainState, GraphBuilder, first_paragraph, params_key
 from .measurement import HeldForRegistration, check_sample
 
@@ -51,12 +53,24 @@ class ISAM2Estimator:
 
     Cost: one 42×42 marginal covariance per window opened; a rebuild costs one update per
     buffered sample.
+
+    Robustness and noise levels: a leg-length EKF runs alongside as the front end
+    (:class:`~stewart_calib.estimators.ekf.LegEKF` with ``[isam2] gate_probability``, so the
+    shared :class:`~stewart_calib.estimators.robust.RobustFilter`). It decides which samples
+    enter the graph — its robust start-up batch first (the graph gets the start-up samples it
+    kept once that batch is decided), then its χ² gate. The graph keeps the configured noise;
+    its marginal covariance is scaled by the measurement-noise scale the front end measures
+    (the a-posteriori variance factor). When the front end recovers from a lock-out, the
+    smoother restarts from the front end's recovered Gaussian, as after a gtsam failure.
     """
 
     name = "isam2"
 
     def __init__(self, platform: Platform, config: EstimatorConfig):
         self._builder = GraphBuilder(platform, config, chain=True)
+        self._front = LegEKF(platform, dataclasses.replace(
+            config, ekf=dataclasses.replace(config.ekf, gate_probability=config.isam2.gate_probability)))
+        self._pending: list[Sample] = []  # start-up samples the front end has not yet decided on
         params = gtsam.ISAM2Params()
         params.setFactorization(config.isam2.factorization)
         mm, rad = config.isam2.relinearize_threshold_mm, config.isam2.relinearize_threshold_rad
@@ -90,8 +104,40 @@ class ISAM2Estimator:
         if self._held.active:
             self._hold(sample)
             return
+        front = self._front.robust
+        started, recoveries = front.started, front.recoveries
+        before = self._front.export_state()  # a gtsam failure below takes the sample back from the front end too
         try:
-            self._add(sample)
+            self._front.update(sample)
+        except SampleRejected:
+            self._follow_front(started, recoveries)
+            raise
+        if not started:
+            self._pending.append(sample)
+        if front.started:
+            try:
+                self._follow_front(started, recoveries, sample if started else None)
+            except SampleRejected:
+                self._front.import_state(before)
+                raise
+
+    def _follow_front(self, started: bool, recoveries: int, sample: Sample | None = None) -> None:
+        """Bring the graph where the front end now is: restart after its lock-out recovery,
+        take the start-up samples it kept once it decided, then ``sample`` (accepted by it)."""
+        front = self._front.robust
+        if front.recoveries != recoveries:
+            x, P = self._front.filter.x.copy(), self._front.filter.P.copy()
+            P = 0.5 * (P + P.T) + 1e-12 * np.eye(len(x))  # a gauge-held direction keeps a tiny σ
+            self._rebuild(_Snapshot(self._state, x, P, 0), [])
+        if not front.started:
+            return
+        batch = [] if sample is None else [sample]
+        if not started:  # the start-up batch is decided
+            batch = [s for s, outlier in zip(self._pending, front.startup_outliers) if not outlier]
+            self._pending = []
+        try:
+            for sample in batch:
+                self._add(sample)
         except RuntimeError as err:  # gtsam's C++ exceptions; the smoother may be half-updated
             self._rebuild(self._first_snapshot(), self._replay)
             raise SampleRejected(
@@ -162,7 +208,11 @@ class ISAM2Estimator:
             self._add(sample)
 
     def estimate(self) -> Estimate:
-        """δM of the current parameter variable and its 42×42 marginal covariance [mm²]."""
+        """δM of the current parameter variable and its 42×42 marginal covariance [mm²], scaled
+        by the measured noise (before the front end's start-up batch is decided: its estimate)."""
+        if self._pending:
+            front = self._front.estimate()
+            return dataclasses.replace(front, method=self.name)
         if self._state.samples == 0:
             return self._builder.prior_estimate(self.name)
         p = params_key(self._state.window)
@@ -170,13 +220,24 @@ class ISAM2Estimator:
             covariance = self._smoother.marginalCovariance(p)
         except RuntimeError as err:  # gtsam's C++ exceptions: a graph that does not determine δM
             raise CalibError(f"isam2: the marginal covariance failed: {first_paragraph(err)}") from None
+        covariance = covariance * self._front.robust.noise_scale2
         return Estimate.of_state(
             self._smoother.calculateEstimateVector(p), covariance, self._builder.layout, self.name,
             self._state.samples, self._state.last_t_s,
         )
 
+    def take_late_rejections(self) -> list[SampleRejected]:
+        """Start-up samples its front end left out once decided (they never entered the graph)."""
+        return self._front.take_late_rejections()
+
+    def noise_scale(self) -> float | None:
+        """The measurement noise its front end found in the data, as a multiple of the configured σ."""
+        return self._front.noise_scale()
+
     def current_error(self) -> np.ndarray:
         """δM of the current parameter variable [mm], without the marginal covariance."""
+        if self._pending:
+            return self._front.current_error()
         if self._state.samples == 0:
             return self._builder.prior_estimate(self.name).error
         return self._current_params()[:N_PARAMS]
@@ -194,7 +255,7 @@ class ISAM2Estimator:
             "replay": {
                 "t_s": np.array([s.t_s for s in samples], dtype=float),
                 "strokes": np.array([s.strokes for s in samples], dtype=float).reshape(-1, N_LEGS),
-                "readings": np.array([s.readings for s in samples], dtype=float).reshape(len(samples), -1),
+                "readings": np.array([s.readings for s in samples], dtype=float).reshape(len(samples), len(self._builder.model.columns)),
             },
         }
         first = self._first_snapshot()
@@ -204,6 +265,13 @@ class ISAM2Estimator:
             state["held"] = self._held.export_state()
         elif self._builder.layout.slice("instrument") is not None:
             state["initial"] = self._builder.initial.copy()  # where the unknown vector started (a registration)
+        state["front"] = self._front.export_state()
+        state["pending"] = {
+            "t_s": np.array([s.t_s for s in self._pending], dtype=float),
+            "strokes": np.array([s.strokes for s in self._pending], dtype=float).reshape(-1, N_LEGS),
+            "readings": np.array([s.readings for s in self._pending], dtype=float).reshape(
+                len(self._pending), len(self._builder.model.columns)),
+        }
         return state
 
     def import_state(self, state: dict) -> None:
@@ -225,6 +293,13 @@ class ISAM2Estimator:
         strokes = state_array(replay, "strokes", (len(t_s), N_LEGS))
         readings = state_array(replay, "readings", (len(t_s), len(self._builder.model.columns)))
         target = _chain_from_dict(state.get("chain", {}))
+        self._front.import_state(state.get("front", {}))
+        pending = state.get("pending", {})
+        pending_t_s = state_array(pending, "t_s", np.shape(pending.get("t_s", ())))
+        pending_strokes = state_array(pending, "strokes", (len(pending_t_s), N_LEGS))
+        pending_readings = state_array(pending, "readings", (len(pending_t_s), len(self._builder.model.columns)))
+        self._pending = [Sample(float(pending_t_s[k]), pending_strokes[k], pending_readings[k])
+                         for k in range(len(pending_t_s))]
         first = None
         if "snapshot" in state:
             snapshot = state["snapshot"]

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+from collections import deque
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +38,7 @@ from ..config import EstimatorConfig, load_estimator_config
 from ..estimate import Estimate
 from .. import kinematics as kin
 from ..estimators import BatchEstimator, KalmanFiltered
+from ..estimators.base import late_index, take_late_rejections
 from ..online import Rejections
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
 from ..plausibility import check_plausible
@@ -49,6 +51,9 @@ PROGRESS_MIN_SAMPLES = 1000
 #: the result's conditioning section (and a streamed run's plausibility check) look at between
 #: this many and twice this many samples, evenly spaced over the log (:class:`EvenlySpacedSamples`).
 CHECKED_SAMPLES = 1000
+#: sample times a streamed run remembers to place a late rejection (a robust start-up batch
+#: decides on its first samples, after an outside instrument's registration held some).
+LATE_LOOKBACK = 4096
 
 
 @dataclass(frozen=True)
@@ -62,6 +67,8 @@ class Calibration:
         stddev: ``(N, 42)`` σ of the parameters after each sample [mm] (NaN: no covariance), or None.
         nis: ``(N,)`` normalised innovation squared of each sample (Kalman methods; NaN where
             refused), or None.
+        noise_scale: the estimator's measurement noise estimated from the data, as a multiple
+            of the configured σ (None when it does not estimate it).
     """
 
     estimate: Estimate
@@ -69,6 +76,7 @@ class Calibration:
     rejected: list[tuple[int, SampleRejected]]
     stddev: np.ndarray | None = None
     nis: np.ndarray | None = None
+    noise_scale: float | None = None
 
 
 def run_calibration(
@@ -108,13 +116,15 @@ def run_calibration(
                 nis[k] = estimator.filter.nis
         except SampleRejected as err:
             rejected.append((k, err))
+        for err in take_late_rejections(estimator):  # a robust start-up batch left it out
+            rejected.append((late_index(log.t_s[: k + 1].tolist(), err.t_s), err))
         if sigma is not None:
             now = estimator.estimate()
             rows[k], sigma[k] = nominal + now.error, _stddev_or_nan(now)
         elif rows is not None:
             rows[k] = nominal + estimator.current_error()  # a rejected sample leaves the estimate in force
     _refuse_if_all_rejected(method, rejected, len(log))
-    return Calibration(estimator.estimate(), rows, rejected, sigma, nis)
+    return Calibration(estimator.estimate(), rows, rejected, sigma, nis, getattr(estimator, "noise_scale", lambda: None)())
 
 
 def _stddev_or_nan(estimate: Estimate) -> np.ndarray:
@@ -230,6 +240,7 @@ class StreamedRun:
         rejected: indices (among the good samples) the estimator refused, with their reasons
             in ``rejections`` and the first one's time in ``first_rejected_t_s``.
         checked: :class:`EvenlySpacedSamples` of the log.
+        noise_scale: as :attr:`Calibration.noise_scale`.
     """
 
     estimate: Estimate
@@ -239,6 +250,7 @@ class StreamedRun:
     rejections: Rejections
     first_rejected_t_s: float | None
     checked: EvenlySpacedSamples
+    noise_scale: float | None = None
 
 
 def feed_online(estimator, blocks: Iterable[Log], on_rejected: Callable[[int, float, SampleRejected], None],
@@ -246,20 +258,28 @@ def feed_online(estimator, blocks: Iterable[Log], on_rejected: Callable[[int, fl
     """Update an online ``estimator`` with every sample of ``blocks``; returns how many there were.
 
     Args:
-        on_rejected: called with ``(sample index, t_s, error)`` for each sample refused.
+        on_rejected: called with ``(sample index, t_s, error)`` for each sample refused, also
+            those refused late (a robust start-up batch: among the last :data:`LATE_LOOKBACK`).
         on_block: called after each block with it and the ``(n, 42)`` estimated parameter
             errors δM [mm] after each of its samples (a rejected sample leaves the estimate in
             force); None: not kept.
         bar: ticked per block (:func:`~stewart_calib.progress.progress_bar`), or None.
     """
     k = 0
+    recent_t_s: deque[float] = deque(maxlen=LATE_LOOKBACK)
     for block in blocks:
         rows = np.empty((len(block), 42)) if on_block is not None else None
         for j, sample in enumerate(block):
+            recent_t_s.append(sample.t_s)
             try:
                 estimator.update(sample)
             except SampleRejected as err:
                 on_rejected(k, sample.t_s, err)
+            late = take_late_rejections(estimator)
+            times = list(recent_t_s) if late else []
+            for err in late:  # one older than the lookback is counted at the current sample
+                back = late_index(times, err.t_s) if err.t_s in times else len(times) - 1
+                on_rejected(k + 1 - len(times) + back, err.t_s, err)
             if rows is not None:
                 rows[j] = estimator.current_error()
             k += 1
@@ -311,7 +331,8 @@ def stream_calibration(platform: Platform, path: str, method: str, config: Estim
         n = feed_online(estimator, blocks, refused, write_trace if trace_file is not None else None, bar)
     if rejections.count == n:
         raise CalibError(f"{method} rejected all {n} samples (first: {rejections.first})")
-    return StreamedRun(estimator.estimate(), n, skipped, rejected, rejections, first_t_s[0] if first_t_s else None, checked)
+    return StreamedRun(estimator.estimate(), n, skipped, rejected, rejections, first_t_s[0] if first_t_s else None, checked,
+                       getattr(estimator, "noise_scale", lambda: None)())
 
 
 def streamed_residual_rms(platform: Platform, path: str, skip_bad_rows: bool, result: dict, rejected: list[int]) -> dict:
@@ -365,13 +386,14 @@ def run(args: argparse.Namespace) -> int:
             streaming = stream_calibration(platform, args.log, args.method, config, args.skip_bad_rows, trace_file)
             estimate, n_samples, skipped = streaming.estimate, streaming.samples, streaming.skipped
             rejections, first_rejected_t_s = streaming.rejections, streaming.first_rejected_t_s
+            noise_scale = streaming.noise_scale
             checked = streaming.checked.log
         else:
             log = io.read_log(args.log, platform, skip_bad_rows=args.skip_bad_rows)
             skipped.add(log.skipped)
             progress = sys.stderr.isatty() and len(log) >= PROGRESS_MIN_SAMPLES
             result = run_calibration(platform, log, args.method, config, bool(trace_path), progress, bool(rerun_path))
-            estimate, n_samples = result.estimate, len(log)
+            estimate, n_samples, noise_scale = result.estimate, len(log), result.noise_scale
             rejections = Rejections.of(err for _, err in result.rejected)
             first_rejected_t_s = float(log.t_s[result.rejected[0][0]]) if result.rejected else None
             sample = EvenlySpacedSamples(CHECKED_SAMPLES)
@@ -383,7 +405,7 @@ def run(args: argparse.Namespace) -> int:
                   file=sys.stderr)
         # the leg residual it checks is the tracker's; an outside instrument's fit reports its own residuals
         check_plausible(platform, estimate.error, config.noise, checked.strokes if tracker else np.zeros((0, 6)),
-                        checked.readings if tracker else np.zeros((0, 6)), args.method)
+                        checked.readings if tracker else np.zeros((0, 6)), args.method, noise_scale)
         if rejections.count:
             print(_summary(f"{args.method} rejected samples:", rejections.count, n_samples,
                            f"t_s={first_rejected_t_s!r}: {rejections.first}"), file=sys.stderr)

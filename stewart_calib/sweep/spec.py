@@ -398,7 +398,8 @@ def _estimator_config(settings: dict, source: str) -> EstimatorConfig:
             "reading_sigma_mm": settings["reading_sigma_mm"],
             "stroke_sigma_mm": settings["stroke_sigma_mm"],
             "random_walk_mm_per_sqrt_s": settings["drift_mm_per_sqrt_s"],
-        }
+        },
+        "robust": {"adapt_noise": False},  # matched already: measuring it again only adds its scatter
     }
     config = config_from_dict(matched, source)
     overrides: dict[str, dict] = {}

@@ -1,0 +1,441 @@
+"""Robust, self-calibrating Kalman recursion that every estimator can share.
+
+:class:`RobustFilter` wraps :class:`~stewart_calib.estimators.kalman.FilterState` and gives a
+random-walk Kalman filter three things a new user should not have to tune:
+
+**A robust start-up.** While the parameters are still uncertain by millimetres, an innovation
+gate cannot tell a 1 mm glitch from the prior's own spread, and a glitch that gets in pins the
+filter to a wrong value — after which the gate locks out the good samples. So the first
+``startup_samples`` samples are solved as a batch, again after each new one, by consensus:
+filter passes over a few deterministic subsets of the buffer (overlapping blocks, and all of
+it) each propose an estimate; every buffered sample is tested at it with
+``d_k = νᵀ (s² R0 + H P Hᵀ)⁻¹ ν`` against the χ² gate, ``s²`` being the subset's own robust
+(median) scale of the configured measurement covariance ``R0``; the proposal most samples
+agree with wins and is refined over its agreeing samples until the set no longer changes.
+Nothing is refused while fewer than :data:`MIN_REDUNDANCY` residual degrees of freedom are
+left, or when no proposal has a majority.
+
+**Gated recursion that recovers from a lock-out.** After the start-up each sample is gated on
+its NIS (χ² with ``m`` degrees of freedom, ``gate_probability``). Clean data are gated once in
+``1/(1 − p)``; when ``lockout_gated_samples`` of the last ``lockout_window_samples`` are gated,
+the state no longer explains the data (a bad update got in, or the robot changed faster than
+the random walk allows) and the recent samples are solved afresh by the same consensus —
+adopted only when most of them agree with it, so a stream of glitches cannot take over.
+
+**Noise levels from the data** (``adapt_noise``). Every ``startup_samples`` accepted samples
+the window of recent samples is solved as a small batch from the prior. Its post-fit residuals
+give the measurement scale, ``s² = Σ νᵀ R0⁻¹ ν / redundancy`` (the random walk barely moves
+the parameters within one window). Consecutive windows give the random-walk rate: for a walk
+of rate ``q`` [mm²/s], the difference of two window estimates ``T`` apart has covariance
+``P_w + P_{w+1} + (2/3) q T I`` (window means of a random walk), so ``q`` is the root of
+``Σ_w Δxᵀ (P_w + P_{w+1} + (2/3) q T I)⁻¹ Δx = n × windows`` (χ² matching, 0 when the
+differences are already explained by the window covariances). Measurement noise and parameter
+motion are so told apart by their time scales, not by one innovation sequence that both shape.
+Both estimates forget over ``noise_memory_samples``. Fixed noise stays available.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import Callable
+
+import numpy as np
+from scipy.stats import chi2
+
+from ..errors import CalibError, SampleRejected
+from .base import state_array
+from .kalman import FilterState, kalman_update
+
+#: residual degrees of freedom a batch needs before it refuses any sample or estimates a scale.
+MIN_REDUNDANCY = 12.0
+#: at most this many refinements of the winning proposal (the set of good samples usually settles in 2).
+MAX_ITERATIONS = 6
+#: consecutive window differences pooled for the random-walk rate.
+WALK_WINDOWS = 8
+#: the walk rate never falls below this fraction of the configured rate [-].
+MIN_WALK_FRACTION = 1e-4
+#: the measured noise never falls below this fraction of the configured variance [-] (σ ≥ 0.1 × the
+#: configured one): noise-free data would otherwise drive R to 0, where the filter's own
+#: linearisation error gates every sample.
+MIN_NOISE_SCALE2 = 1e-2
+
+#: ``observe(prepared, x) -> (innovation ν (m,), H (m, n), R0 (m, m))`` at the state ``x``, or
+#: None when the sample fixes no pose there.
+Observe = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray] | None]
+
+
+class RobustFilter:
+    """A random-walk Kalman filter with robust start-up, lock-out recovery and noise scales.
+
+    Args:
+        method: names the estimator in messages.
+        prior_sigma_mm: initial ``P = σ² I`` [mm²].
+        walk_mm_per_sqrt_s: configured random walk ρ [mm/√s] (``Q = ρ² Δt I`` unless adapted).
+        gate_probability: χ² gate probability (0 = off: then also no start-up refusals).
+        observe: the linearised observation of a prepared sample at a state (see :data:`Observe`).
+        robust: the ``[robust]`` settings (:class:`~stewart_calib.config.RobustConfig`).
+        m: observation size.
+        layout, C: the unknown vector and its gauge rows (as :class:`FilterState`).
+        unit_Q: the process noise per unit ``ρ² Δt`` (None: the identity).
+
+    Attributes:
+        started: the start-up batch is decided (the gated recursion runs).
+        noise_scale2: ``s²``, the measurement covariance in use is ``s² R0``.
+        walk_rate_mm2_per_s: the random walk's variance rate in use [mm²/s].
+        recoveries: lock-outs recovered from.
+    """
+
+    def __init__(self, method: str, prior_sigma_mm: float, walk_mm_per_sqrt_s: float, gate_probability: float,
+                 observe: Observe, robust, m: int = 6, layout=None, C: np.ndarray | None = None,
+                 unit_Q: np.ndarray | None = None):
+        self.method = method
+        self.filter = FilterState(method, prior_sigma_mm, gate_probability, m, layout, C)
+        n = len(self.filter.x)
+        self._P0 = self.filter.P.copy()
+        self._x0 = np.zeros(n)  # the prior's mean: 0, or where a registration started the filter
+        self._P0_pinv = np.linalg.pinv(self._P0)
+        self._free = int(np.linalg.matrix_rank(self._P0))  # directions the gauge leaves free
+        self._unit_Q = unit_Q
+        self._configured_walk = walk_mm_per_sqrt_s**2
+        self._observe = observe
+        self._robust = robust
+        self._n, self._m = n, m
+        self._gate_on = gate_probability > 0.0
+        self.noise_scale2 = 1.0
+        self.walk_rate_mm2_per_s = self._configured_walk
+        self.recoveries = 0
+        self.started = robust.startup_samples <= 0
+        self._late: list[SampleRejected] = []
+        #: ``noise_scale2`` was measured from the data (a batch had the redundancy)
+        self.measured_noise = False
+        #: the start-up batch's verdict on its samples (in order), once it is decided
+        self.startup_outliers = np.zeros(0, dtype=bool)
+        self._window = max(robust.startup_samples, robust.lockout_window_samples, 1)
+        # the last samples (the start-up batch, then the window) as (t_s, prepared, gated)
+        self._t = np.zeros(0)
+        self._prepared = np.zeros((0, 0))
+        self._gated = np.zeros(0, dtype=bool)
+        self._since_window = 0
+        # noise statistics: [Σ νᵀR0⁻¹ν, Σ redundancy] over windows, the last window's estimate,
+        # and per window difference (eigenvalues of P_w + P_{w+1}, squared projections, T)
+        self._scale_sums = np.zeros(2)
+        self._last_window: tuple[np.ndarray, np.ndarray, float] | None = None
+        self._differences: deque = deque(maxlen=WALK_WINDOWS)
+
+    # ------------------------------------------------------------------ protocol
+
+    def update(self, t_s: float, prepared: np.ndarray) -> None:
+        """Fold in one prepared sample at time ``t_s`` [s] (not before the last one).
+
+        Raises:
+            SampleRejected: non-finite observation, gated, or a degenerate innovation
+                covariance; the state is as if the sample never came. Start-up samples are
+                never refused here: those the decided batch leaves out come from
+                :meth:`take_late_rejections`.
+        """
+        prepared = np.asarray(prepared, dtype=float)
+        if not self.started:
+            observation = self._observe(prepared, self.filter.x)  # SampleRejected from FK passes on
+            if observation is None:
+                raise SampleRejected(f"{self.method}: sample at t = {t_s} s: the measurement does not fix a pose",
+                                     SampleRejected.NO_POSE)
+            # its NIS against the state before it, as the recursion reports one per sample
+            nu, H, R0 = observation
+            S = H @ self.filter.P @ H.T + self.noise_scale2 * R0
+            nis = float(nu @ np.linalg.solve(S, nu))
+            # provisionally taken: the batch may still change its mind, so the samples it leaves
+            # out are reported once it is decided (take_late_rejections)
+            self._remember(t_s, prepared, gated=False)
+            outliers = self._solve(adopt=True)
+            self._gated = outliers.copy()
+            self.filter.nis, self.filter.S = nis, S
+            if len(self._t) >= self._robust.startup_samples:
+                self.started = True
+                self.startup_outliers = outliers.copy()
+                self._late = [self._late_rejection(float(t)) for t in self._t[outliers]]
+                self._window_statistics()
+            return
+        try:
+            self._step(t_s, prepared)
+        except SampleRejected as err:
+            if err.reason == SampleRejected.GATED:
+                self._remember(t_s, prepared, gated=True)
+                if self._locked_out():
+                    self._recover()
+            raise
+        self._remember(t_s, prepared, gated=False)
+        self._since_window += 1
+        if self._robust.adapt_noise and self._since_window >= self._window:
+            self._window_statistics()
+
+    def start_at(self, x0: np.ndarray) -> None:
+        """Centre the prior on ``x0`` (an instrument registered on the first samples) before any
+        sample: the filter and every batch from the prior start there."""
+        self._x0 = np.array(x0, dtype=float)
+        self.filter.x[:] = self._x0
+
+    def _late_rejection(self, t_s: float) -> SampleRejected:
+        err = SampleRejected(f"{self.method}: sample at t = {t_s} s is inconsistent with the start-up batch "
+                             "(χ² test at its robust noise scale)", SampleRejected.GATED)
+        err.t_s = t_s
+        return err
+
+    def take_late_rejections(self) -> list[SampleRejected]:
+        """The start-up samples the decided batch left out (each once), for the caller's count."""
+        late, self._late = self._late, []
+        return late
+
+    # ------------------------------------------------------------------ recursion
+
+    def _fill_Q(self, Q: np.ndarray, dt_s: float) -> None:
+        step = self.walk_rate_mm2_per_s * max(dt_s, 0.0)
+        if self._unit_Q is None:
+            np.fill_diagonal(Q, step)
+        else:
+            np.multiply(self._unit_Q, step, out=Q)
+
+    def _step(self, t_s: float, prepared: np.ndarray) -> None:
+        f = self.filter
+        observation = self._observe(prepared, f.x)
+        if observation is None:
+            raise SampleRejected(f"{self.method}: sample at t = {t_s} s: the measurement does not fix a pose",
+                                 SampleRejected.NO_POSE)
+        nu, H, R0 = observation
+        self._fill_Q(f.Q, 0.0 if math.isnan(f.t_s) else t_s - f.t_s)
+        f.update(H, nu, self.noise_scale2 * R0, t_s)  # raises SampleRejected, state untouched
+
+    # ------------------------------------------------------------------ batches
+
+    def _remember(self, t_s: float, prepared: np.ndarray, gated: bool) -> None:
+        if self._prepared.shape[1:] != prepared.shape:
+            self._prepared = np.zeros((0, *prepared.shape))
+        first = max(len(self._t) + 1 - self._window, 0)  # the buffer keeps the last `window` samples
+        self._t = np.r_[self._t[first:], t_s]
+        self._prepared = np.concatenate([self._prepared[first:], prepared[None]])
+        self._gated = np.r_[self._gated[first:], gated].astype(bool)
+
+    def _observe_or_none(self, prepared: np.ndarray, x: np.ndarray):
+        """:data:`Observe` in a batch: a sample that fixes no pose at ``x`` is skipped, not fatal."""
+        try:
+            return self._observe(prepared, x)
+        except SampleRejected:
+            return None
+
+    def _pass(self, use: np.ndarray, noise_scale2: float, centre: np.ndarray | None = None):
+        """A filter pass from the prior over the buffered samples ``use``; returns
+        ``(x, P, samples used, last t_s, residual degrees of freedom)``.
+
+        ``centre``: the prior's mean (default the filter's prior: 0, the manufacturing prior, or a
+        registration's start). The window batches
+        centre it on the running estimate, so their first samples are linearised near where
+        the parameters are rather than millimetres away; the prior's σ is the same.
+        """
+        x = (self._x0 if centre is None else centre).copy()
+        P = self._P0.copy()
+        Q = np.zeros((self._n, self._n))
+        last_t, used = math.nan, 0
+        self._pass_components = np.zeros(2)
+        for k in np.flatnonzero(use):
+            observation = self._observe_or_none(self._prepared[k], x)
+            if observation is None:
+                continue
+            nu, H, R0 = observation
+            self._fill_Q(Q, 0.0 if math.isnan(last_t) else self._t[k] - last_t)
+            nis, S = kalman_update(x, P, H, nu, noise_scale2 * R0, Q, math.inf)
+            if math.isnan(nis):
+                continue  # degenerate: the kernel left x and P untouched
+            # variance component of this update: e = R S⁻¹ ν has E[eᵀ R⁻¹ e] = tr(R S⁻¹),
+            # whatever the walk (the residual is taken at the state right after the update)
+            u = np.linalg.solve(S, nu)
+            self._pass_components += (noise_scale2 * (u @ R0 @ u), noise_scale2 * np.sum(np.linalg.inv(S) * R0))
+            last_t, used = self._t[k], used + 1
+        # the batch's hat-matrix trace, tr(P Σ Hᵀ R⁻¹ H) = n − tr(P P0⁻¹), is what the data
+        # determine; the rest of the residual degrees of freedom are redundancy
+        determined = self._free - float(np.sum(self._P0_pinv * P))  # tr(P0⁺ P), both symmetric
+        return x, P, used, last_t, used * self._m - determined
+
+    def _test(self, x: np.ndarray, P: np.ndarray, fitted: np.ndarray, redundancy: float, used: int):
+        """``(d_k of every buffered sample, robust scale²)`` at the estimate ``(x, P)`` fitted to ``fitted``."""
+        observations = [self._observe_or_none(self._prepared[k], x) for k in range(len(self._t))]
+        missing = np.array([o is None for o in observations])
+        observations = [o if o is not None else _no_observation(self._m, self._n) for o in observations]
+        unit = np.array([nu @ np.linalg.solve(R0, nu) for nu, _, R0 in observations])
+        # post-fit residuals of the fitted samples have ~redundancy/used degrees of freedom each
+        dof = max(redundancy / max(used, 1), 0.5)
+        scale2 = max(float(np.median(unit[fitted & ~missing]) / chi2.median(dof)), MIN_NOISE_SCALE2)
+        tested = np.array([nu @ np.linalg.solve(scale2 * R0 + H @ P @ H.T, nu) for nu, H, R0 in observations])
+        tested[missing] = math.inf  # no pose at this estimate: not one of the good samples
+        return tested, scale2
+
+    def _proposals(self) -> list[np.ndarray]:
+        """Deterministic subsets of the buffer: all of it, and overlapping blocks just large
+        enough for :data:`MIN_REDUNDANCY` (so some of them miss any few glitches)."""
+        count = len(self._t)
+        block = math.ceil((self._n + MIN_REDUNDANCY) / self._m) + 2
+        subsets = [np.ones(count, dtype=bool)]
+        if count >= 2 * block:
+            for start in range(0, count - block + 1, max(block // 2, 1)):
+                subset = np.zeros(count, dtype=bool)
+                subset[start:start + block] = True
+                subsets.append(subset)
+        return subsets
+
+    def _solve(self, adopt: bool) -> np.ndarray:
+        """Consensus batch over the buffered samples (see the module docstring); returns their
+        outlier flags and keeps ``(x, P, samples, last t_s, scale², redundancy)`` in
+        ``self._solved``; with ``adopt`` the filter takes that state."""
+        count = len(self._t)
+        gate = self.filter.gate_nis if self._gate_on else math.inf
+        best = None  # (agreeing samples, proposal outliers)
+        if math.isfinite(gate):
+            for subset in self._proposals():
+                x, P, used, _, redundancy = self._pass(subset, self.noise_scale2)
+                if redundancy < MIN_REDUNDANCY:
+                    continue
+                tested, _ = self._test(x, P, subset, redundancy, used)
+                outliers = tested > gate
+                if best is None or (~outliers).sum() > (~best).sum():
+                    best = outliers
+        outliers = np.zeros(count, dtype=bool) if best is None or best.sum() * 2 > count else best
+        scale2 = self.noise_scale2
+        solved = self._pass(~outliers, scale2)
+        for _ in range(MAX_ITERATIONS if best is not None else 0):
+            x, P, used, _, redundancy = solved
+            if redundancy < MIN_REDUNDANCY:
+                break
+            tested, scale2 = self._test(x, P, ~outliers, redundancy, used)
+            new = tested > gate
+            if new.sum() * 2 > count:
+                new[:] = False
+            if np.array_equal(new, outliers):
+                break
+            outliers = new
+            solved = self._pass(~outliers, scale2)
+        if not self._robust.adapt_noise:
+            scale2 = self.noise_scale2
+        if scale2 != self.noise_scale2:  # the state's P at the scale it will carry on with
+            solved = self._pass(~outliers, scale2)
+        x, P, used, last_t, redundancy = solved
+        self._solved = (x, P, used, last_t, scale2, redundancy)
+        if adopt:
+            self._adopt()
+        return outliers
+
+    def _adopt(self) -> None:
+        x, P, used, last_t, scale2, redundancy = self._solved
+        f = self.filter
+        f.x, f.P, f.samples_used, f.t_s = x, P, used, last_t
+        if self._robust.adapt_noise and redundancy >= MIN_REDUNDANCY:
+            self.noise_scale2 = max(scale2, MIN_NOISE_SCALE2)
+            self.measured_noise = True
+
+    # ------------------------------------------------------------------ noise from windows
+
+    def _window_statistics(self) -> None:
+        """Measurement scale and random-walk rate from the window of recent good samples."""
+        self._since_window = 0
+        if not self._robust.adapt_noise:
+            return
+        good = ~self._gated
+        x, P, used, last_t, redundancy = self._pass(good, self.noise_scale2, self.filter.x)
+        if redundancy < MIN_REDUNDANCY:
+            return
+        # (old scale × observed, expected): their ratio is the scale the window says
+        observed, expected = self._pass_components
+        forget = math.exp(-used / self._robust.noise_memory_samples)
+        self._scale_sums = forget * self._scale_sums + [self.noise_scale2 * observed, expected]
+        self.noise_scale2 = max(self._scale_sums[0] / self._scale_sums[1], MIN_NOISE_SCALE2)
+        self.measured_noise = True
+        if self._last_window is not None:
+            x_before, P_before, t_before = self._last_window
+            eigenvalues, vectors = np.linalg.eigh(P_before + P)
+            projection2 = (vectors.T @ (x - x_before)) ** 2
+            fixed = eigenvalues <= 1e-12 * eigenvalues.max()  # held by the gauge: no information either way
+            eigenvalues[fixed], projection2[fixed] = 1.0, 0.0
+            self._differences.append((eigenvalues, projection2, (2.0 / 3.0) * (last_t - t_before)))
+            self.walk_rate_mm2_per_s = max(self._pooled_walk_rate(), MIN_WALK_FRACTION * self._configured_walk)
+        self._last_window = (x, P, last_t)
+
+    def _pooled_walk_rate(self) -> float:
+        """The root ``q ≥ 0`` of ``Σ_w Σ_i p_wi / (λ_wi + q T_w) = n × windows`` [mm²/s]."""
+        target = self._free * len(self._differences)
+        excess = lambda q: sum(float(np.sum(p / (lam + q * T))) for lam, p, T in self._differences) - target  # noqa: E731
+        if excess(0.0) <= 0.0:
+            return 0.0
+        low, high = 0.0, 1e-12
+        while excess(high) > 0.0 and high < 1e12:
+            low, high = high, high * 10.0
+        for _ in range(60):  # bisection on a log scale: q spans many decades
+            middle = math.sqrt(low * high) if low > 0.0 else high / 10.0
+            low, high = (middle, high) if excess(middle) > 0.0 else (low, middle)
+            if high - low <= 1e-3 * high:
+                break
+        return high
+
+    # ------------------------------------------------------------------ lock-out
+
+    def _locked_out(self) -> bool:
+        window = self._gated[-self._robust.lockout_window_samples:]
+        return int(window.sum()) >= self._robust.lockout_gated_samples
+
+    def _recover(self) -> None:
+        """Solve the recent samples afresh; adopt when most of them agree (a consensus)."""
+        outliers = self._solve(adopt=False)
+        if self._solved[5] < MIN_REDUNDANCY or outliers.sum() * 2 > len(outliers):
+            return
+        self._adopt()
+        self._gated = outliers.copy()  # the batch's verdict replaces the lock-out's record
+        self._last_window = None  # the parameters moved: no window difference across the jump
+        self.recoveries += 1
+
+    # ------------------------------------------------------------------ checkpoints
+
+    def export_state(self) -> dict:
+        """Everything :meth:`update` reads or writes, as arrays."""
+        differences = list(self._differences)
+        state = {
+            "filter": self.filter.export_state(),
+            "prior_mean": self._x0.copy(),
+            "noise": np.array([self.noise_scale2, self.walk_rate_mm2_per_s]),
+            "scale_sums": self._scale_sums.copy(),
+            "counters": np.array([int(self.started), self.recoveries, self._since_window, int(self.measured_noise)],
+                                 dtype=np.int64),
+            "buffer_t": self._t.copy(),
+            "buffer_prepared": self._prepared.copy(),
+            "buffer_gated": self._gated.astype(np.int64),
+            "difference_eigenvalues": np.array([d[0] for d in differences]).reshape(-1, self._n),
+            "difference_projections": np.array([d[1] for d in differences]).reshape(-1, self._n),
+            "difference_spans": np.array([d[2] for d in differences], dtype=float),
+        }
+        if self._last_window is not None:
+            state["window"] = {"x": self._last_window[0], "P": self._last_window[1], "t_s": np.float64(self._last_window[2])}
+        return state
+
+    def import_state(self, state: dict) -> None:
+        """Restore :meth:`export_state`. Raises ``CalibError`` on a bad key or shape."""
+        self.filter.import_state(state.get("filter", {}))
+        self._x0 = state_array(state, "prior_mean", (self._n,))
+        self.noise_scale2, self.walk_rate_mm2_per_s = state_array(state, "noise", (2,))
+        self._scale_sums = state_array(state, "scale_sums", (2,))
+        started, self.recoveries, self._since_window, measured = (int(v) for v in state_array(state, "counters", (4,)))
+        self.started, self.measured_noise = bool(started), bool(measured)
+        t = state_array(state, "buffer_t", np.shape(state.get("buffer_t", ())))
+        prepared = np.array(state.get("buffer_prepared", np.zeros((0, 0))), dtype=float)
+        if t.ndim != 1 or prepared.ndim != 2 or len(prepared) != len(t):
+            raise CalibError("estimator state: keys 'buffer_t', 'buffer_prepared': expected one row per buffered sample")
+        self._t, self._prepared = t, prepared
+        self._gated = state_array(state, "buffer_gated", (len(t),)).astype(bool)
+        spans = state_array(state, "difference_spans", np.shape(state.get("difference_spans", ())))
+        eigenvalues = state_array(state, "difference_eigenvalues", (len(spans), self._n))
+        projections = state_array(state, "difference_projections", (len(spans), self._n))
+        self._differences = deque(zip(eigenvalues, projections, spans), maxlen=WALK_WINDOWS)
+        window = state.get("window")
+        self._last_window = None if window is None else (
+            state_array(window, "x", (self._n,)), state_array(window, "P", (self._n, self._n)),
+            float(state_array(window, "t_s", ())))
+
+
+def _no_observation(m: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A stand-in for a sample that fixes no pose (its test is set to ∞ after)."""
+    return np.zeros(m), np.zeros((m, n)), np.eye(m)
