@@ -183,4 +183,6 @@ class LegEKF:
         self.robust.import_state(state.get("robust", {}))
         self._pose.import_state(state.get("tracker_fk", {}))
         self._drive_fk.import_state(state.get("drive_fk", {}))
+        # afresh, so a roll-back (isam2's front end) holds exactly the state's samples again
+        self._held = HeldForRegistration(self.platform, self.noise, self.model, self.layout)
         self._held.restore(state, self.update)

@@ -205,7 +205,8 @@ class HeldForRegistration:
         return {
             "t_s": np.array([s.t_s for s in self.samples], dtype=float),
             "strokes": np.array([s.strokes for s in self.samples], dtype=float).reshape(-1, 6),
-            "readings": np.array([s.readings for s in self.samples], dtype=float).reshape(len(self.samples), -1),
+            "readings": np.array([s.readings for s in self.samples], dtype=float).reshape(
+                len(self.samples), len(self._args[2].columns)),
         }
 
     def restore(self, state: dict, update) -> None:
