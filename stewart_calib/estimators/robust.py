@@ -41,7 +41,7 @@ from collections import deque
 from typing import Callable
 
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.stats costs ~1 s of import
 
 from ..errors import CalibError, SampleRejected
 from .base import state_array
@@ -263,7 +263,7 @@ class RobustFilter:
         unit = np.array([nu @ np.linalg.solve(R0, nu) for nu, _, R0 in observations])
         # post-fit residuals of the fitted samples have ~redundancy/used degrees of freedom each
         dof = max(redundancy / max(used, 1), 0.5)
-        scale2 = max(float(np.median(unit[fitted & ~missing]) / chi2.median(dof)), MIN_NOISE_SCALE2)
+        scale2 = max(float(np.median(unit[fitted & ~missing]) / chdtri(dof, 0.5)), MIN_NOISE_SCALE2)
         tested = np.array([nu @ np.linalg.solve(scale2 * R0 + H @ P @ H.T, nu) for nu, H, R0 in observations])
         tested[missing] = math.inf  # no pose at this estimate: not one of the good samples
         return tested, scale2
