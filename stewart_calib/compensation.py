@@ -69,6 +69,7 @@ def compensate(
     desired_poses_mm_rad: np.ndarray,
     nominal: Platform | LegGeometry | None = None,
     limits: Platform | None = None,
+    stroke_scale: np.ndarray | None = None,
 ) -> np.ndarray:
     """Strokes that put the estimated drive at ``desired_poses_mm_rad``.
 
@@ -79,6 +80,10 @@ def compensate(
         nominal: the platform or nominal drive; required with an :class:`Estimate`.
         limits: the platform whose workspace and stroke range the poses and strokes must
             respect (:func:`check_reachable`), or None for no check.
+        stroke_scale: ``(6,)`` k_i of the drive's encoders (spec §7: a leg is ``l_i + (1 + k_i) q_i``
+            long), so the commanded stroke is the IK length change over ``1 + k_i``. None: for an
+            :class:`Estimate`, its identified scale, else ``nominal``'s ``[drive] stroke_scale``;
+            for a drive, 0.
     Returns:
         ``(N, 6)`` strokes q_i [mm] (same leading shape as ``desired_poses_mm_rad``).
     Raises:
@@ -90,12 +95,18 @@ def compensate(
         if nominal is None:
             raise CalibError("compensate: an Estimate needs the nominal platform to build M + δM")
         drive = estimate_or_drive.drive(nominal)
+        if stroke_scale is None:
+            stroke_scale = estimate_or_drive.block_values("stroke_scale")
+        if stroke_scale is None and isinstance(nominal, Platform):
+            stroke_scale = nominal.stroke_scale
     else:
         drive = estimate_or_drive
     poses = np.asarray(desired_poses_mm_rad, dtype=float)
     if poses.shape[-1:] != (6,) or not np.all(np.isfinite(poses)):
         raise CalibError(f"compensate: expected finite poses of shape (N, 6), got shape {poses.shape}")
     strokes = kin.inverse_kinematics(drive, *kin.pose_to_rt(poses))
+    if stroke_scale is not None:
+        strokes = strokes / (1.0 + np.asarray(stroke_scale, dtype=float))
     if limits is not None:
         check_reachable(poses, strokes, limits)
     return strokes

@@ -64,6 +64,14 @@ class Estimate:
         legs = nominal.drive if isinstance(nominal, Platform) else nominal
         return legs.perturbed(self.error)
 
+    def block_values(self, key: str) -> np.ndarray | None:
+        """Nominal + error of block ``key`` [code units], or None when the estimate has no such block."""
+        block, columns = self.layout.block(key), self.layout.slice(key)
+        if block is None:
+            return None
+        start = columns.start - N_PARAMS
+        return block.nominal + self.block_error[start : start + block.size]
+
     def block_results(self) -> dict[str, dict]:
         """``{key: {"names", "estimate", "stddev"}}`` of every block, in file units (spec §7)."""
         stddev = None

@@ -108,6 +108,8 @@ class OnlineCalibrator:
         self.method = method
         self.config = config or EstimatorConfig()
         self._estimator = _make(method, platform, self.config)
+        # the layout is fixed at construction: whether compensation needs the identified k_i
+        self._identifies_stroke_scale = self._estimator.estimate().layout.slice("stroke_scale") is not None
         self.rows_read = 0
         self.rows_skipped = 0
         self.rejections = Rejections()
@@ -144,7 +146,10 @@ class OnlineCalibrator:
             CalibError: non-finite poses or a wrong shape.
         """
         drive = self.platform.drive.perturbed(self._estimator.current_error())
-        return compensate(drive, pose_mm_rad, limits=self.platform)
+        stroke_scale = self.platform.stroke_scale
+        if self._identifies_stroke_scale:  # the full estimate only then: isam2's costs a marginal
+            stroke_scale = self._estimator.estimate().block_values("stroke_scale")
+        return compensate(drive, pose_mm_rad, limits=self.platform, stroke_scale=stroke_scale)
 
     def result(self) -> dict:
         """The current estimate as a spec §5 result, with the added ``samples_rejected`` field.

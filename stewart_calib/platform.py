@@ -224,7 +224,9 @@ def _check_keys(doc: dict, source: str) -> None:
             continue
         for key in values:
             if key not in known:
-                full = f"{table}.{key}" if table else key
+                # a key with a newline or other control character would break the one-line message
+                shown = key if key.isprintable() else key.encode("unicode_escape").decode("ascii")
+                full = f"{table}.{shown}" if table else shown
                 close = difflib.get_close_matches(key, sorted(known), n=1)
                 hint = f" (did you mean '{close[0]}'?)" if close else ""
                 raise CalibError(f"{source}: unknown key '{full}'{hint}; expected one of {', '.join(sorted(known))}")

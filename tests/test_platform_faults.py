@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 from stewart_calib import cli
+from stewart_calib.errors import CalibError
+from stewart_calib.platform import parse_platform
 from tests.test_platform import _doc, _refusal, _to_toml
 
 
@@ -39,6 +41,15 @@ def _set(section, key, value):
 )
 def test_bad_platforms_are_refused_at_load_naming_the_key(tmp_path, edit, expected):
     assert expected in _refusal(tmp_path, _edited(edit))
+
+
+def test_a_key_with_a_newline_is_named_on_one_line():
+    """A quoted TOML key may hold a newline (found by test_fuzz): the refusal stays one line."""
+    doc = _doc()
+    doc["drive"]["bad\nkey"] = 1.0
+    with pytest.raises(CalibError) as info:
+        parse_platform(doc, "p.toml")
+    assert str(info.value).startswith("p.toml: unknown key 'drive.bad\\nkey'") and "\n" not in str(info.value)
 
 
 def test_a_platform_in_metres_is_called_metres(tmp_path):

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 
+import numpy as np
+
 from . import run_command
 from .. import io
 from ..compensation import PoseOutOfRange, compensate
@@ -31,9 +33,11 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
     drive = io.read_calibrated_drive(args.result, platform)
+    identified = io.read_result(args.result).get("stroke_scale")  # spec §7, where the calibration identified it
+    stroke_scale = platform.stroke_scale if identified is None else np.array(identified["estimate"], dtype=float)
     poses = read_pose_list(args.poses)
     try:
-        strokes = compensate(drive, poses, limits=platform)
+        strokes = compensate(drive, poses, limits=platform, stroke_scale=stroke_scale)
     except PoseOutOfRange as err:
         raise CalibError(f"{args.poses}: row {err.pose_index + 2}: {err.reason}") from None
     io.write_pose_list(args.out, poses, columns={name: q for name, q in zip(io.STROKE_COLUMNS, strokes.T)})

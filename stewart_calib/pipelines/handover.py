@@ -50,15 +50,6 @@ def write_report(directory: Path, page: str) -> Path:
 # ----------------------------------------------------------------------------- calibrated platform
 
 
-def _block_values(estimate: Estimate, key: str) -> np.ndarray | None:
-    """Nominal + error of block ``key`` [code units], or None when the estimate has no such block."""
-    block, columns = estimate.layout.block(key), estimate.layout.slice(key)
-    if block is None:
-        return None
-    start = columns.start - len(estimate.error)
-    return block.nominal + estimate.block_error[start : start + block.size]
-
-
 def calibrated_platform(platform: Platform, estimate: Estimate, method: str, log_name: str, created: str) -> Platform:
     """``platform`` with the drive replaced by the estimate ``nominal + δM`` — and, where the
     calibration identified them, the stroke scale and the instrument's frame and target(s) — and
@@ -68,10 +59,10 @@ def calibrated_platform(platform: Platform, estimate: Estimate, method: str, log
         f"nominal platform: {platform.name} ({platform.source})"
     )
     changes = {"drive": estimate.drive(platform), "description": note}
-    stroke_scale = _block_values(estimate, "stroke_scale")
+    stroke_scale = estimate.block_values("stroke_scale")
     if stroke_scale is not None:
         changes["stroke_scale"] = stroke_scale
-    theta = _block_values(estimate, "instrument")
+    theta = estimate.block_values("instrument")
     if theta is not None and platform.instrument.kind in ("pose", "points"):
         # θ = the frame's pose6, then the target's pose6 (pose) or the targets (points) [mm, rad]
         part = {"target": theta[6:12]} if platform.instrument.kind == "pose" else {"targets": theta[6:].reshape(-1, 3)}
