@@ -475,17 +475,7 @@ def load_platform(path: str | Path) -> Platform:
     Raises:
         CalibError: one line naming the file, the key and what was expected.
     """
-    path = resources.resolve(path, "platforms")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CalibError(f"{path}: platform file not found{resources.not_found_hint(path, 'platforms')}") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise CalibError(f"{path}: cannot read platform file ({err.__class__.__name__})") from None
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise CalibError(f"{path}: not valid TOML ({err})") from None
+    path, doc = resources.read_toml(path, "platforms", "platform file")
     return parse_platform(doc, str(path))
 
 

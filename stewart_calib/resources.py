@@ -6,8 +6,11 @@ and friends) take either a path or the name of a shipped file (spec §8): ``nim-
 ``quick``, ``paper``. A path that exists always wins.
 """
 
+import tomllib
 from importlib import resources
 from pathlib import Path
+
+from .errors import CalibError
 
 #: ``platforms/``, ``experiments/`` and ``estimators/`` TOML files.
 CONFIGS = Path(str(resources.files("stewart_calib") / "configs"))
@@ -34,3 +37,23 @@ def not_found_hint(value: str | Path, kind: str) -> str:
     what the user may have meant; nothing for a path with a directory."""
     names = shipped_names(kind)
     return f" (nor the name of a shipped file: {', '.join(names)})" if names and len(Path(value).parts) == 1 else ""
+
+
+def read_toml(value: str | Path, kind: str, what: str) -> tuple[Path, dict]:
+    """The TOML document at ``value`` — a path or the name of a shipped file of ``kind`` — and its path.
+
+    Raises:
+        CalibError: one line naming the file: not found (with :func:`not_found_hint`), unreadable,
+            or not valid TOML; ``what`` names the file's role (``"platform file"``).
+    """
+    path = resolve(value, kind)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CalibError(f"{path}: {what} not found{not_found_hint(path, kind)}") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise CalibError(f"{path}: cannot read {what} ({err.__class__.__name__})") from None
+    try:
+        return path, tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise CalibError(f"{path}: not valid TOML ({err})") from None

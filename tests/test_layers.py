@@ -14,8 +14,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "stewart_calib"
 
 #: bottom first; a module may import from its own group and from groups of lower layers only.
 LAYERS = (
-    ("_jit",),
-    ("stewart_calib", "errors", "_kernels", "resources", "progress"),
+    ("_jit", "errors"),
+    ("stewart_calib", "_kernels", "resources", "progress"),
     ("samples", "config", "rotations"),
     ("platform",),
     ("kinematics", "unknowns"),

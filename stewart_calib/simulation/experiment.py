@@ -32,7 +32,6 @@ experiment's generator) and shared by all stages, so stages are comparable.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,7 +39,7 @@ import numpy as np
 
 from ..errors import CalibError
 from ..platform import Platform, load_platform, parse_instrument
-from ..resources import CONFIGS, not_found_hint, resolve
+from ..resources import CONFIGS, read_toml
 from .instrument import InstrumentTruth
 from .load import LoadModel
 from .trajectories import CIRCLE_PLANES, circle_poses, random_static_poses
@@ -217,15 +216,7 @@ def load_experiment(path: str | Path) -> Experiment:
     Raises:
         CalibError: one line naming the file and the key.
     """
-    path = resolve(path, "experiments")
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise CalibError(f"{path}: experiment file not found{not_found_hint(path, 'experiments')}") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise CalibError(f"{path}: cannot read experiment file ({err.__class__.__name__})") from None
-    except tomllib.TOMLDecodeError as err:
-        raise CalibError(f"{path}: not valid TOML ({err})") from None
+    path, doc = read_toml(path, "experiments", "experiment file")
     source = str(path)
     top = _Table(doc, "", source)
     name = top.string("name", path.stem)

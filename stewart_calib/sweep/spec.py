@@ -31,7 +31,6 @@ import hashlib
 import itertools
 import json
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,7 +41,7 @@ from ..errors import CalibError
 from ..config import EstimatorConfig, config_from_dict
 from ..estimators import METHODS
 from ..platform import LegGeometry, Platform, load_platform, platform_to_toml
-from ..resources import CONFIGS, not_found_hint, resolve
+from ..resources import CONFIGS, read_toml
 
 
 @dataclass(frozen=True)
@@ -200,15 +199,7 @@ def load_spec(path: str | Path) -> SweepSpec:
         CalibError: one line naming the file and the key (an unknown key, an unknown method or
             instrument, a wrong type or a value out of range).
     """
-    path = resolve(path, "sweeps")
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise CalibError(f"{path}: sweep spec not found{not_found_hint(path, 'sweeps')}") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise CalibError(f"{path}: cannot read sweep spec ({err.__class__.__name__})") from None
-    except tomllib.TOMLDecodeError as err:
-        raise CalibError(f"{path}: not valid TOML ({err})") from None
+    path, doc = read_toml(path, "sweeps", "sweep spec")
     return parse_spec(doc, path)
 
 
