@@ -227,6 +227,41 @@ def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations
             iterations[k] += 1
 
 
+@njit(**_JIT)
+def fk_single(base, plat, initial_lengths, lengths, R, t, warm, tol_mm, max_iterations):
+    """One pose's FK in one call (kinematics.solve_fk): Newton from ``(R, t)`` when ``warm``, then,
+    if that does not converge, from the level cold guess of ``kinematics.default_guess``.
+
+    Args:
+        base, plat: ``(6, 3)`` joints; initial_lengths, lengths: ``(6,)`` [mm].
+        R, t: ``(3, 3)``, ``(3,)`` the warm start, overwritten with the solution (C arrays).
+    Returns:
+        max |length error| [mm] at the returned pose (``> tol_mm``: neither start converged).
+    """
+    iterations = np.empty(1, dtype=np.int64)
+    residual = np.empty(1)
+    base1, plat1 = base.reshape((1, 6, 3)), plat.reshape((1, 6, 3))
+    initial1, lengths1 = initial_lengths.reshape((1, 6)), lengths.reshape((1, 6))
+    R1, t1 = R.reshape((1, 3, 3)), t.reshape((1, 3))
+    if warm:
+        fk_newton(base1, plat1, initial1, lengths1, R1, t1, tol_mm, max_iterations, iterations, residual)
+        if residual[0] <= tol_mm:
+            return residual[0]
+    z = 0.0
+    for i in range(6):  # default_guess: level, above the base centre, mean leg length matched
+        dx = base[i, 0] - plat[i, 0]
+        dy = base[i, 1] - plat[i, 1]
+        target = initial_lengths[i] + lengths[i]
+        z += math.sqrt(max(target * target - dx * dx - dy * dy, 1.0)) + base[i, 2] - plat[i, 2]
+    R[:, :] = 0.0
+    for i in range(3):
+        R[i, i] = 1.0
+        t[i] = 0.0
+    t[2] = z / 6.0
+    fk_newton(base1, plat1, initial1, lengths1, R1, t1, tol_mm, max_iterations, iterations, residual)
+    return residual[0]
+
+
 # ----------------------------------------------------------------------------- error models
 
 

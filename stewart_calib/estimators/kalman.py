@@ -166,6 +166,78 @@ def kalman_update(
     return nis, S
 
 
+@njit(fastmath=_FAST, nogil=True, error_model="numpy")
+def linearised_pass(
+    x: np.ndarray,
+    P: np.ndarray,
+    innovations: np.ndarray,
+    H: np.ndarray,
+    R0: np.ndarray,
+    x_linearised: np.ndarray,
+    t_s: np.ndarray,
+    use: np.ndarray,
+    unit_Q: np.ndarray,
+    walk_rate: float,
+    noise_scale2: float,
+    components: np.ndarray,
+) -> tuple[int, float]:
+    """A random-walk filter pass over stored linearisations, in place on ``(x, P)``, gate off.
+
+    Sample ``k`` was observed at ``x_linearised[k]`` as ``(ν_k, H_k, R0_k)``; at the pass's ``x``
+    its innovation is taken to first order, ``ν_k − H_k (x − x_linearised[k])`` — exact up to the
+    observation's curvature, which the caller keeps negligible by only passing samples
+    linearised close to where the pass runs (``RobustFilter``'s window statistics).
+
+    Args:
+        innovations, H, R0: ``(K, m)``, ``(K, m, n)``, ``(K, m, m)`` the stored observations.
+        x_linearised: ``(K, n)``; t_s: ``(K,)`` [s]; use: ``(K,)`` bool, the samples to fold in.
+        unit_Q: ``(n, n)`` process noise per unit ``ρ² Δt``, or ``(0, 0)`` for the identity.
+        walk_rate: ``ρ²`` [mm²/s]; noise_scale2: ``s²``, the update uses ``s² R0``.
+        components: ``(2,)`` out: ``Σ s² uᵀ R0 u`` with ``u = S⁻¹ ν``, and ``Σ s² tr(S⁻¹ R0)``.
+    Returns:
+        ``(samples used, t_s of the last one)`` (a degenerate ``S`` skips its sample).
+    """
+    n = x.shape[0]
+    m = innovations.shape[1]
+    Q = np.zeros((n, n))
+    R = np.empty((m, m))
+    nu = np.empty(m)
+    work = np.empty(m * n + m * m + m)
+    components[0] = 0.0
+    components[1] = 0.0
+    last_t = math.nan
+    used = 0
+    for k in range(t_s.shape[0]):
+        if not use[k]:
+            continue
+        for a in range(m):
+            s = innovations[k, a]
+            for j in range(n):
+                s -= H[k, a, j] * (x[j] - x_linearised[k, j])
+            nu[a] = s
+        step = 0.0 if math.isnan(last_t) else walk_rate * max(t_s[k] - last_t, 0.0)
+        if unit_Q.shape[0] == 0:
+            for i in range(n):
+                Q[i, i] = step
+        else:
+            for i in range(n):
+                for j in range(n):
+                    Q[i, j] = unit_Q[i, j] * step
+        for a in range(m):
+            for b in range(m):
+                R[a, b] = noise_scale2 * R0[k, a, b]
+        nis, S = kalman_update(x, P, H[k], nu, R, Q, math.inf, work)
+        if math.isnan(nis):
+            continue
+        S_inv = np.linalg.inv(S)
+        u = S_inv @ nu
+        components[0] += u @ R @ u
+        components[1] += np.sum(S_inv * R)
+        last_t = t_s[k]
+        used += 1
+    return used, last_t
+
+
 def workspace_size(n: int, m: int) -> int:
     """Floats of scratch :func:`kalman_update` needs for ``n`` states and ``m`` observations."""
     return m * n + m * m + m
