@@ -92,7 +92,7 @@ class LegEKF:
                 f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)", SampleRejected.TIME_BACK
             )
         if not self._held.active:
-            self.robust.update(sample.t_s, np.r_[strokes, np.ravel(z)])
+            self.robust.update(sample.t_s, np.concatenate((strokes, np.ravel(z))))
             return
         start = self._held.hold(sample)
         if start is not None:
@@ -100,7 +100,7 @@ class LegEKF:
             for held in self._held.samples:  # a held sample the filter refuses is left out, as it would have been
                 held_strokes, held_z = check_sample(self.platform, self.model, held)
                 try:
-                    self.robust.update(held.t_s, np.r_[held_strokes, np.ravel(held_z)])
+                    self.robust.update(held.t_s, np.concatenate((held_strokes, np.ravel(held_z))))
                 except SampleRejected:
                     pass
 

@@ -167,6 +167,15 @@ def kalman_update(
 
 
 @njit(fastmath=_FAST, nogil=True, error_model="numpy")
+def variance_components(S: np.ndarray, residual: np.ndarray, R: np.ndarray) -> tuple[float, float]:
+    """``(uᵀ R u, tr(S⁻¹ R))`` with ``u = S⁻¹ ν``: an update's post-fit residual ``e = R u`` and its
+    expectation ``E[eᵀ R⁻¹ e] = tr(R S⁻¹)`` (variance-component estimation; ``S`` positive definite)."""
+    S_inv = np.linalg.inv(S)
+    u = S_inv @ residual
+    return u @ R @ u, np.sum(S_inv * R)
+
+
+@njit(fastmath=_FAST, nogil=True, error_model="numpy")
 def linearised_pass(
     x: np.ndarray,
     P: np.ndarray,
@@ -229,10 +238,9 @@ def linearised_pass(
         nis, S = kalman_update(x, P, H[k], nu, R, Q, math.inf, work)
         if math.isnan(nis):
             continue
-        S_inv = np.linalg.inv(S)
-        u = S_inv @ nu
-        components[0] += u @ R @ u
-        components[1] += np.sum(S_inv * R)
+        observed, expected = variance_components(S, nu, R)
+        components[0] += observed
+        components[1] += expected
         last_t = t_s[k]
         used += 1
     return used, last_t
