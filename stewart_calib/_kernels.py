@@ -398,6 +398,31 @@ def pose_covariance(base, plat, R, t, variance):
     return _symmetric_product(A, A, variance)
 
 
+@njit(**_JIT)
+def leg_rows(legs, R, t, extensions, r, J_pose, J_leg):
+    """``r_i = ‖t + R d_i − j_i‖ − (l_i + e_i)`` of ``k`` legs ``legs (k, 7)`` = ``[j_i | d_i | l_i]``
+    with extensions ``e_i`` (strokes or readings), into ``r (k,)``, ``J_pose (k, 6)`` = ``∂r/∂ξ``
+    (row ``[(d_i × Rᵀn_i)ᵀ, (Rᵀn_i)ᵀ]``) and ``J_leg (k, 7)`` = ``[−n_iᵀ, (Rᵀn_i)ᵀ, −1]``
+    (kinematics.leg_residual: the factor graph's per-linearisation leg rows)."""
+    for i in range(legs.shape[0]):
+        v0 = t[0] - legs[i, 0] + R[0, 0] * legs[i, 3] + R[0, 1] * legs[i, 4] + R[0, 2] * legs[i, 5]
+        v1 = t[1] - legs[i, 1] + R[1, 0] * legs[i, 3] + R[1, 1] * legs[i, 4] + R[1, 2] * legs[i, 5]
+        v2 = t[2] - legs[i, 2] + R[2, 0] * legs[i, 3] + R[2, 1] * legs[i, 4] + R[2, 2] * legs[i, 5]
+        length = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        r[i] = length - (legs[i, 6] + extensions[i])
+        n0, n1, n2 = v0 / length, v1 / length, v2 / length
+        nb0 = R[0, 0] * n0 + R[1, 0] * n1 + R[2, 0] * n2  # Rᵀ n_i
+        nb1 = R[0, 1] * n0 + R[1, 1] * n1 + R[2, 1] * n2
+        nb2 = R[0, 2] * n0 + R[1, 2] * n1 + R[2, 2] * n2
+        J_pose[i, 0] = legs[i, 4] * nb2 - legs[i, 5] * nb1
+        J_pose[i, 1] = legs[i, 5] * nb0 - legs[i, 3] * nb2
+        J_pose[i, 2] = legs[i, 3] * nb1 - legs[i, 4] * nb0
+        J_pose[i, 3], J_pose[i, 4], J_pose[i, 5] = nb0, nb1, nb2
+        J_leg[i, 0], J_leg[i, 1], J_leg[i, 2] = -n0, -n1, -n2
+        J_leg[i, 3], J_leg[i, 4], J_leg[i, 5] = nb0, nb1, nb2
+        J_leg[i, 6] = -1.0
+
+
 # ----------------------------------------------------------------------------- sample checks
 
 

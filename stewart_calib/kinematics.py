@@ -346,34 +346,27 @@ def leg_ekf_observation(
 
 
 def leg_residual(
-    R: np.ndarray, t: np.ndarray, leg: np.ndarray, extension_mm: float, jacobians: bool = False
-) -> tuple[float, np.ndarray | None, np.ndarray | None]:
-    """``‖t + R d − j‖ − (l + extension)`` for one leg ``[j (3) | d (3) | l]`` [mm].
+    R: np.ndarray, t: np.ndarray, legs: np.ndarray, extensions_mm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``‖t + R d_i − j_i‖ − (l_i + e_i)`` of ``k`` legs ``[j_i | d_i | l_i]`` with their
+    Jacobians, in one compiled call (a factor linearises it thousands of times a second).
 
     Shared by the drive legs (extension = stroke q_i) and the tracker's rulers (reading s_i).
 
     Args:
         R, t: platform pose ``(3, 3)``, ``(3,)`` [mm].
-        leg: ``(7,)`` geometry ``[j_x j_y j_z d_x d_y d_z l]`` [mm].
-        extension_mm: stroke or reading [mm].
-        jacobians: also return ``∂r/∂ξ (6,)`` and ``∂r/∂leg (7,)``.
+        legs: ``(k, 7)`` geometry rows ``[j_x j_y j_z d_x d_y d_z l]`` [mm].
+        extensions_mm: ``(k,)`` strokes or readings [mm].
     Returns:
-        ``(r [mm], H_pose or None, H_leg or None)``.
+        ``(r (k,) [mm], ∂r/∂ξ (k, 6) on ξ = [ω, v], ∂r/∂leg (k, 7))``, row i
+        ``[(d_i × Rᵀn_i)ᵀ, (Rᵀn_i)ᵀ]`` and ``[−n_iᵀ, (Rᵀn_i)ᵀ, −1]``.
     """
-    d = leg[3:6]
-    v = t + R @ d - leg[0:3]
-    length = math.sqrt(v @ v)
-    r = length - leg[6] - extension_mm
-    if not jacobians:
-        return r, None, None
-    n = v / length
-    nb = n @ R  # Rᵀ n
-    # d × n_b written out: np.cross costs ~20 µs on 3-vectors (docs/measured-facts.md).
-    H_pose = np.array(
-        [d[1] * nb[2] - d[2] * nb[1], d[2] * nb[0] - d[0] * nb[2], d[0] * nb[1] - d[1] * nb[0], nb[0], nb[1], nb[2]]
-    )
-    H_leg = np.concatenate([-n, nb, [-1.0]])
-    return r, H_pose, H_leg
+    c = np.ascontiguousarray  # one array layout, so one compiled signature
+    legs, extensions = c(legs, dtype=float), c(extensions_mm, dtype=float)
+    k = len(extensions)
+    r, J_pose, J_leg = np.empty(k), np.empty((k, 6)), np.empty((k, N_PARAMS_PER_LEG))
+    _kernels.leg_rows(legs, c(R, dtype=float), c(t, dtype=float), extensions, r, J_pose, J_leg)
+    return r, J_pose, J_leg
 
 
 def solve_fk(

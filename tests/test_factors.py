@@ -46,24 +46,43 @@ def test_drive_leg_residual_is_the_leg_length_model(platform, cases):
         R, t = pose.rotation().matrix(), pose.translation()
         strokes = kin.inverse_kinematics(truth, R, t) + 0.3  # 0.3 mm off: a nonzero residual
         expected = kin.leg_residuals(truth, R, t, strokes)
-        got = [drive_leg.residual(R, t, platform.drive.params[i], delta.reshape(6, 7)[i], strokes[i])[0] for i in range(6)]
+        got, _, _ = drive_leg.residual(R, t, platform.drive.params, delta.reshape(6, 7), strokes)
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
         np.testing.assert_allclose(expected, -0.3, atol=1e-9)
 
 
-def test_drive_leg_factor_jacobians_match_central_differences(platform, cases):
+@pytest.mark.parametrize("legs", [np.arange(6), [2], [4, 1]])
+def test_drive_leg_factor_jacobians_match_central_differences(platform, cases, legs):
     poses, delta = cases
+    spec = drive_leg.DriveLegs.of(legs, platform.drive.params)
+    strokes = 10.0 * np.arange(6) - 20.0
+    noise = gtsam.noiseModel.Unit.Create(len(spec.legs))
     for pose in poses:
-        for i in range(6):
-            f = drive_leg.factor(X, P, i, platform.drive.params[i], 10.0 * i - 20.0, UNIT)
-            A, b = f.linearize(_values(pose, delta)).jacobian()
-            np.testing.assert_allclose(-b, f.unwhitenedError(_values(pose, delta)), rtol=1e-12)
-            H_pose = numerical_pose3_jacobian(lambda p: f.unwhitenedError(_values(p, delta)), pose)
-            H_params = numerical_jacobian(lambda d: f.unwhitenedError(_values(pose, d)), delta)
-            assert relative_error(A[:, :6], H_pose) <= 1e-6
-            assert relative_error(A[:, 6:], H_params) <= 1e-6
-            # Leg i touches only its own seven columns of δM.
-            assert np.count_nonzero(A[0, 6:]) == 7 and np.all(A[0, 6 + 7 * i : 13 + 7 * i] != 0)
+        f = drive_leg.factor(X, P, spec, strokes, noise)
+        A, b = f.linearize(_values(pose, delta)).jacobian()
+        np.testing.assert_allclose(-b, f.unwhitenedError(_values(pose, delta)), rtol=1e-12)
+        H_pose = numerical_pose3_jacobian(lambda p: f.unwhitenedError(_values(p, delta)), pose)
+        H_params = numerical_jacobian(lambda d: f.unwhitenedError(_values(pose, d)), delta)
+        assert relative_error(A[:, :6], H_pose) <= 1e-6
+        assert relative_error(A[:, 6:], H_params) <= 1e-6
+        for row, i in enumerate(spec.legs):  # leg i's row touches only its own seven columns of δM
+            assert np.count_nonzero(A[row, 6:]) == 7 and np.all(A[row, 6 + 7 * i : 13 + 7 * i] != 0)
+
+
+def test_drive_leg_factor_with_stroke_scale_matches_central_differences(platform, cases):
+    # the unknown vector [δM | k1..k6]: leg i's row has −q_i in column 42 + i, and (1 + k) scales the stroke
+    poses, delta = cases
+    spec = drive_leg.DriveLegs.of(np.arange(6), platform.drive.params, 48, 42, np.full(6, 0.01))
+    strokes = 10.0 * np.arange(6) - 20.0
+    unknowns = np.r_[delta, np.linspace(-0.02, 0.02, 6)]
+    f = drive_leg.factor(X, P, spec, strokes, gtsam.noiseModel.Unit.Create(6))
+    A, _ = f.linearize(_values(poses[0], unknowns)).jacobian()
+    numeric = numerical_jacobian(lambda u: f.unwhitenedError(_values(poses[0], u)), unknowns)
+    assert relative_error(A[:, 6:], numeric) <= 1e-6
+    np.testing.assert_allclose(A[:, 6 + 42:], -np.diag(strokes))
+    R, t = poses[0].rotation().matrix(), poses[0].translation()
+    expected = kin.leg_residuals(platform.drive.perturbed(delta), R, t, (1.0 + 0.01 + unknowns[42:]) * strokes)
+    np.testing.assert_allclose(f.unwhitenedError(_values(poses[0], unknowns)), expected, atol=1e-9)
 
 
 def test_instrument_factor_of_the_tracker_residual_and_jacobian(platform, cases):
@@ -72,9 +91,9 @@ def test_instrument_factor_of_the_tracker_residual_and_jacobian(platform, cases)
     for pose in poses:
         R, t = pose.rotation().matrix(), pose.translation()
         readings = kin.inverse_kinematics(platform.tracker, R, t) - 0.05
-        for channels in model.groups(readings):
-            f = instrument.factor(model, X, readings, channels, UNIT)
-            np.testing.assert_allclose(f.unwhitenedError(_values(pose)), [0.05], atol=1e-9)
+        for channels in [*model.groups(readings), np.arange(6)]:  # per ruler, and all six in one factor
+            f = instrument.factor(model, X, readings, channels, gtsam.noiseModel.Unit.Create(len(channels)))
+            np.testing.assert_allclose(f.unwhitenedError(_values(pose)), np.full(len(channels), 0.05), atol=1e-9)
             A, _ = f.linearize(_values(pose)).jacobian()
             numeric = numerical_pose3_jacobian(lambda p: f.unwhitenedError(_values(p)), pose)
             assert relative_error(A, numeric) <= 1e-6

@@ -115,11 +115,18 @@ class GraphBuilder:
         self.chain = chain
         self.model = instrument_model(platform, config.noise)
         self.layout: UnknownLayout = unknown_layout(platform, config.noise, self.model)
-        self._nominal = platform.drive.params
         self._robust = (self.graph.robust, self.graph.robust_k)
-        self._stroke_noise = robust_noise(gtsam.noiseModel.Isotropic.Sigma(1, self.noise.stroke_sigma_mm), *self._robust)
-        self._group_noise: dict[tuple[int, ...], gtsam.noiseModel.Base] = {}
+        # Gaussian rows: one factor of the six legs (or of all the instrument's channels) is their
+        # scalar factors exactly, at a sixth of the callbacks; a robust kernel weighs each alone.
+        self._gaussian = self.graph.robust == "none"
         self._scale = self.layout.slice("stroke_scale")
+        self._drive_legs = [
+            (drive_leg.DriveLegs.of(legs, platform.drive.params, self.layout.size,
+                                    None if self._scale is None else self._scale.start, platform.stroke_scale),
+             robust_noise(gtsam.noiseModel.Isotropic.Sigma(len(legs), self.noise.stroke_sigma_mm), *self._robust))
+            for legs in ([np.arange(N_LEGS)] if self._gaussian else [[i] for i in range(N_LEGS)])
+        ]
+        self._group_noise: dict[tuple[int, ...], gtsam.noiseModel.Base] = {}
         self._instrument = self.layout.slice("instrument")
         self._prior_sigma = self.layout.prior_sigma(self.noise.prior_sigma_mm)
         self._walks = self.layout.walks()
@@ -133,6 +140,10 @@ class GraphBuilder:
         if key not in self._group_noise:
             self._group_noise[key] = robust_noise(diagonal_noise(self.model.channel_sigma[list(key)]), *self._robust)
         return self._group_noise[key]
+
+    def _merged(self, groups: list[np.ndarray]) -> list[np.ndarray]:
+        """The model's channel groups, as one group where the noise is Gaussian."""
+        return [np.concatenate(groups)] if self._gaussian and len(groups) > 1 else groups
 
     def _new_variable(self, factors: gtsam.NonlinearFactorGraph, key: int) -> None:
         """What every parameter variable carries: the gauge constraint, where a block shares it."""
@@ -201,13 +212,10 @@ class GraphBuilder:
             factors.add(instrument_pose.factor(x, pose, noise))
         else:
             unknowns = () if self._instrument is None else (p, self._instrument, self.layout.size)
-            for channels in self.model.groups(z):
+            for channels in self._merged(self.model.groups(z)):
                 factors.add(instrument.factor(self.model, x, z, channels, self._noise(channels), *unknowns))
-        for i in range(N_LEGS):
-            factors.add(drive_leg.factor(
-                x, p, i, self._nominal[i], strokes[i], self._stroke_noise, self.layout.size,
-                None if self._scale is None else self._scale.start + i, float(self.platform.stroke_scale[i]),
-            ))
+        for legs, noise in self._drive_legs:
+            factors.add(drive_leg.factor(x, p, legs, strokes, noise))
 
         # The current parameter key is re-stamped every update so the smoother never
         # marginalises the variable new factors are about to touch (docs/measured-facts.md).

@@ -1,4 +1,4 @@
-"""Drive-leg factor: platform pose ↔ one leg's seven parameter errors (paper eq. 1).
+"""Drive-leg factor: platform pose ↔ the legs' seven parameter errors each (paper eq. 1).
 
 Residual of drive leg i (the leg-length model of design.md)::
 
@@ -8,9 +8,12 @@ with q_i the executed stroke [mm], δ_i = (δj_i, δd_i, δl_i) the leg's slice 
 eq. 9) and k_i its stroke scale (spec §7): the platform's nominal value plus, where identified,
 the unknown vector's error (``∂r/∂k_i = −q_i``). The
 factor's variables are the pose ``X_k`` (``gtsam.Pose3``) and the unknown vector of the current
-parameter window (δM first); the leg touches only its own seven columns and its k_i.
+parameter window (δM first); leg i's row touches only its own seven columns and its k_i.
 (One 42-vector variable measured faster than six 7-vector variables; see
-:mod:`stewart_calib.estimators.isam2`.)
+:mod:`stewart_calib.estimators.isam2`.) One factor holds the six legs of a sample (one Python
+callback per linearisation instead of six, and one Jacobian block for gtsam to eliminate):
+with Gaussian noise the six rows are the six scalar factors exactly; a robust kernel weighs a
+whole factor, so with one each leg gets a factor of its own.
 
 Jacobians, body tangent ``ξ = [ω, v]`` (GTSAM order): with ``n`` the unit leg vector and
 ``n_b = Rᵀ n``, ``∂r/∂ξ = [(d × n_b)ᵀ, n_bᵀ]`` and ``∂r/∂(j, d, l) = [−nᵀ, n_bᵀ, −1]``
@@ -19,61 +22,96 @@ Jacobians, body tangent ``ξ = [ω, v]`` (GTSAM order): with ``n`` the unit leg 
 
 from __future__ import annotations
 
-import math
+from dataclasses import dataclass
 from functools import partial
 
 import gtsam
 import numpy as np
 
 from ..kinematics import leg_residual
-from ..platform import N_PARAMS, N_PARAMS_PER_LEG
+from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG
 
 
 def residual(
-    R: np.ndarray, t: np.ndarray, nominal_leg: np.ndarray, delta_leg: np.ndarray, stroke_mm: float, jacobians: bool = False
-) -> tuple[float, np.ndarray | None, np.ndarray | None]:
-    """Drive-leg residual ``r_i`` [mm] and its Jacobians ``(6,)`` on ξ, ``(7,)`` on δ_i.
+    R: np.ndarray, t: np.ndarray, nominal_legs: np.ndarray, delta_legs: np.ndarray, strokes_mm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Drive-leg residuals ``r_i`` [mm] of ``k`` legs and their Jacobians ``(k, 6)`` on ξ, ``(k, 7)`` on δ_i.
 
     Args:
         R, t: platform pose.
-        nominal_leg: ``(7,)`` nominal ``[j_i | d_i | l_i]`` [mm].
-        delta_leg: ``(7,)`` errors δ_i, same layout [mm].
-        stroke_mm: executed stroke q_i [mm].
+        nominal_legs: ``(k, 7)`` nominal ``[j_i | d_i | l_i]`` [mm].
+        delta_legs: ``(k, 7)`` errors δ_i, same layout [mm].
+        strokes_mm: ``(k,)`` executed (scaled) strokes ``(1 + k_i) q_i`` [mm].
     """
-    return leg_residual(R, t, nominal_leg + delta_leg, stroke_mm, jacobians)
+    return leg_residual(R, t, nominal_legs + delta_legs, strokes_mm)
 
 
-def _error(
-    leg_index: int, nominal_leg: np.ndarray, stroke_mm: float, size: int, scale_column: int | None, nominal_scale: float,
-    this: gtsam.CustomFactor, values: gtsam.Values, H,
-):
+@dataclass(frozen=True)
+class DriveLegs:
+    """What the factors of a set of drive legs share across samples (built once, not per sample).
+
+    Attributes:
+        legs: ``(k,)`` leg indices (0-based).
+        nominal: ``(k, 7)`` their nominal ``[j_i | d_i | l_i]`` [mm].
+        columns: ``(k, 7)`` their δ_i's columns in the unknown vector.
+        size: length of the unknown vector (42 + its blocks).
+        scale_columns: ``(k,)`` columns of their k_i errors, or None without a stroke-scale block.
+        nominal_scale: ``(k,)`` the platform's nominal k_i.
+        flat_columns, flat_scale_columns: the same columns as flat indices into the factor's
+            ``(k, size)`` Jacobian (``np.put``), row i for leg ``legs[i]``.
+    """
+
+    legs: np.ndarray
+    nominal: np.ndarray
+    columns: np.ndarray
+    size: int
+    scale_columns: np.ndarray | None
+    nominal_scale: np.ndarray
+    flat_columns: np.ndarray
+    flat_scale_columns: np.ndarray | None
+
+    @classmethod
+    def of(cls, legs, drive_params: np.ndarray, size: int = N_PARAMS, scale_start: int | None = None,
+           stroke_scale: np.ndarray | float = 0.0) -> "DriveLegs":
+        """Legs ``legs`` of a drive with ``(6, 7)`` nominal ``drive_params``; ``scale_start``: the
+        column of leg 1's k_i error (leg i at ``scale_start + i``); ``stroke_scale``: nominal k_i."""
+        legs = np.asarray(legs, dtype=np.int64).reshape(-1)
+        columns = N_PARAMS_PER_LEG * legs[:, None] + np.arange(N_PARAMS_PER_LEG)
+        scale_columns = None if scale_start is None else scale_start + legs
+        row_start = size * np.arange(len(legs))
+        return cls(
+            legs, np.array(np.asarray(drive_params, dtype=float)[legs]), columns, int(size), scale_columns,
+            np.array(np.broadcast_to(np.asarray(stroke_scale, dtype=float), (N_LEGS,))[legs]),
+            columns + row_start[:, None], None if scale_columns is None else scale_columns + row_start,
+        )
+
+
+def _error(legs: DriveLegs, strokes_mm: np.ndarray, this: gtsam.CustomFactor, values: gtsam.Values, H):
     pose = values.atPose3(this.keys()[0])
-    cols = slice(N_PARAMS_PER_LEG * leg_index, N_PARAMS_PER_LEG * (leg_index + 1))
     unknowns = values.atVector(this.keys()[1])
-    scale = nominal_scale if scale_column is None else nominal_scale + unknowns[scale_column]
-    extension = stroke_mm if scale == 0.0 else (1.0 + scale) * stroke_mm
-    r, H_pose, H_leg = residual(pose.rotation().matrix(), pose.translation(), nominal_leg, unknowns[cols], extension, H is not None)
+    scale = legs.nominal_scale if legs.scale_columns is None else legs.nominal_scale + unknowns[legs.scale_columns]
+    r, H_pose, H_legs = residual(
+        pose.rotation().matrix(), pose.translation(), legs.nominal, unknowns[legs.columns], (1.0 + scale) * strokes_mm
+    )
     if H is not None:
-        H[0] = H_pose.reshape(1, 6)
-        H_params = np.zeros((1, size))
-        H_params[0, cols] = H_leg
-        if scale_column is not None:
-            H_params[0, scale_column] = -stroke_mm
+        H[0] = H_pose
+        H_params = np.zeros((len(r), legs.size))
+        np.put(H_params, legs.flat_columns, H_legs)
+        if legs.flat_scale_columns is not None:
+            np.put(H_params, legs.flat_scale_columns, -strokes_mm)
         H[1] = H_params
-    return np.array([r])
+    return r
 
 
 def factor(
-    pose_key: int, params_key: int, leg_index: int, nominal_leg: np.ndarray, stroke_mm: float, noise: gtsam.noiseModel.Base,
-    size: int = N_PARAMS, scale_column: int | None = None, nominal_scale: float = 0.0,
+    pose_key: int, params_key: int, legs: DriveLegs, strokes_mm: np.ndarray, noise: gtsam.noiseModel.Base
 ) -> gtsam.CustomFactor:
-    """A ``CustomFactor`` on ``(Pose3 pose_key, unknown vector params_key)`` for leg ``leg_index`` (0-based).
+    """A ``CustomFactor`` on ``(Pose3 pose_key, unknown vector params_key)``: one row per leg of
+    ``legs`` (all six in one factor unless a robust kernel weighs each alone).
 
     Args:
-        size: length of the unknown vector (42 + its blocks).
-        scale_column: the column of this leg's error of k_i, or None without a stroke-scale block.
-        nominal_scale: the platform's nominal k_i.
+        strokes_mm: ``(6,)`` the sample's executed strokes q_i [mm] (those of ``legs`` are used).
+        noise: of the ``k`` rows.
     """
-    nominal_leg = np.array(nominal_leg, dtype=float)
-    error = partial(_error, leg_index, nominal_leg, float(stroke_mm), int(size), scale_column, float(nominal_scale))
-    return gtsam.CustomFactor(noise, [pose_key, params_key], error)
+    strokes = np.array(np.asarray(strokes_mm, dtype=float)[legs.legs])
+    return gtsam.CustomFactor(noise, [pose_key, params_key], partial(_error, legs, strokes))

@@ -95,15 +95,12 @@ class TrackerModel:
 
     def residual(self, R: np.ndarray, t: np.ndarray, theta: np.ndarray, z: np.ndarray, channels: np.ndarray) -> Residual:
         """``‖t + R h_i − z_i‖ − (ls_i + s_i)`` for the rulers ``channels`` [mm]."""
+        channels = np.asarray(channels, dtype=np.int64)
         params = self._params if len(theta) == 0 else np.reshape(theta, (N_LEGS, N_PARAMS_PER_LEG))
-        n_theta = 0 if self.unknowns is None else N_PARAMS
-        r = np.empty(len(channels))
-        J_pose = np.empty((len(channels), 6))
-        J_theta = np.zeros((len(channels), n_theta))
-        for row, i in enumerate(channels):
-            r[row], J_pose[row], H_leg = kin.leg_residual(R, t, params[i], float(z[i]), jacobians=True)
-            if n_theta:
-                J_theta[row, N_PARAMS_PER_LEG * i : N_PARAMS_PER_LEG * (i + 1)] = H_leg
+        r, J_pose, H_legs = kin.leg_residual(R, t, params[channels], np.asarray(z, dtype=float)[channels])
+        J_theta = np.zeros((len(channels), 0 if self.unknowns is None else N_PARAMS))
+        if self.unknowns is not None:
+            J_theta[np.arange(len(channels))[:, None], N_PARAMS_PER_LEG * channels[:, None] + np.arange(N_PARAMS_PER_LEG)] = H_legs
         return Residual(r, J_pose, J_theta, channels)
 
     def pose(self, z: np.ndarray, theta: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None) -> PoseObservation:
