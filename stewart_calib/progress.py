@@ -32,6 +32,28 @@ def progress_bar(iterable: Iterable | None = None, *, total: int | None = None, 
                 dynamic_ncols=True, mininterval=0.2)
 
 
+#: logs at least this long get a bar (a shorter run is over before a bar would tell anything).
+MIN_LOG_ROWS = 1000
+
+
+def log_progress_bar(path: str, desc: str):
+    """A bar over the rows of the log file at ``path`` (ticked by hand, per block read), shown on
+    a terminal for a log of at least :data:`MIN_LOG_ROWS` rows; the rows are counted (one pass
+    over the bytes) only when it can be shown."""
+    show = sys.stderr.isatty()
+    total = count_rows(path) if show else None
+    return progress_bar(total=total, desc=desc, show=show and (total or 0) >= MIN_LOG_ROWS)
+
+
+def count_rows(path: str) -> int:
+    """Lines after the header (a bar's total; a blank line is counted too): one pass over the bytes."""
+    lines = 0
+    with open(path, "rb") as file:
+        for chunk in iter(lambda: file.read(1 << 22), b""):
+            lines += chunk.count(b"\n")
+    return max(lines - 1, 0)
+
+
 class _Silent:
     """What :func:`progress_bar` gives when nothing is to be shown: the same calls, no output."""
 

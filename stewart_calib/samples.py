@@ -73,6 +73,15 @@ class Log:
     def __iter__(self):
         return (self[k] for k in range(len(self)))
 
+    @classmethod
+    def concatenate(cls, logs: list["Log"]) -> "Log":
+        """The samples of ``logs`` (at least one, all with the same optional fields) one after the other."""
+        first = logs[0]
+        joined = lambda name: None if getattr(first, name) is None else np.concatenate([getattr(log, name) for log in logs])  # noqa: E731
+        return cls(joined("t_s"), joined("strokes"), joined("readings"), joined("desired_poses"),
+                   None if first.stages is None else [s for log in logs for s in log.stages], joined("load_kg"),
+                   [row for log in logs for row in log.skipped])
+
     def select(self, mask_or_index) -> "Log":
         """A sub-log of the rows picked by a boolean mask, slice or index array."""
         pick = lambda a: None if a is None else a[mask_or_index]  # noqa: E731

@@ -206,18 +206,7 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
             missing or the pose columns are partial; there are no sample rows; a bad row
             (unless skipped); every row is bad.
     """
-    blocks = list(read_log_blocks(path, platform, skip_bad_rows))
-    joined = lambda field: np.concatenate([getattr(b, field) for b in blocks])  # noqa: E731
-    first = blocks[0]
-    return Log(
-        t_s=joined("t_s"),
-        strokes=joined("strokes"),
-        readings=joined("readings"),
-        desired_poses=None if first.desired_poses is None else joined("desired_poses"),
-        stages=None if first.stages is None else [s for b in blocks for s in b.stages],
-        load_kg=None if first.load_kg is None else joined("load_kg"),
-        skipped=[row for b in blocks for row in b.skipped],
-    )
+    return Log.concatenate(list(read_log_blocks(path, platform, skip_bad_rows)))
 
 
 def _open_log(path: Path):
@@ -268,11 +257,13 @@ def read_log_blocks(path: str | Path, platform: Platform | None = None, skip_bad
         while True:
             lines = file.readlines(block_bytes)
             # a quoted field may hold a line break: a block ends where the quotes pair up
-            while lines and sum(chunk.count(b'"') for chunk in lines) % 2:
+            quotes = b"".join(lines).count(b'"') if lines else 0
+            while quotes % 2:
                 more = file.readline()
                 if not more:
                     break
                 lines.append(more)
+                quotes += more.count(b'"')
             if not lines:
                 break
             data = b"".join(lines)

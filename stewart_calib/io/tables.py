@@ -22,8 +22,24 @@ def csv_text(header: list[str], columns: list) -> str:
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(header)
+    fields = [_plain_fields(c) for c in columns] if len(columns) > 1 else [None]
+    if all(f is not None for f in fields):
+        # numbers and empty fields need no quoting: the rows the csv module would write, joined
+        # directly (~2× faster; a trace is 43 numbers a sample)
+        body = "\n".join(map(",".join, zip(*fields)))
+        return buffer.getvalue() + body + ("\n" if body else "")
     writer.writerows(zip(*(c.tolist() if isinstance(c, np.ndarray) else c for c in columns)))
     return buffer.getvalue()
+
+
+def _plain_fields(column) -> list[str] | None:
+    """A column of numbers (an array, or floats, ints and empty strings) as the csv module writes
+    its fields (``repr`` of a float, ``str`` of an int); None when a field may need quoting."""
+    if isinstance(column, np.ndarray):
+        return list(map(repr, column.tolist())) if column.dtype.kind in "fiu" else None
+    if all(type(v) in (float, int) or (type(v) is str and v == "") for v in column):
+        return [repr(v) if type(v) is not str else v for v in column]
+    return None
 
 
 def pose_columns_deg(poses: np.ndarray) -> list[np.ndarray]:
@@ -120,16 +136,22 @@ def _parse_fast(header: list[str], text: str, numeric: list[str], textual: list[
     while rows and rows[-1] == "":
         rows.pop()
     commas = len(header) - 1
-    if not rows or any(row.count(",") != commas for row in rows):
+    # With every column numeric, loadtxt itself refuses a row of another field count (with
+    # usecols it would take a longer row): the per-row count is only needed otherwise.
+    every = set(numeric) == set(header)
+    if not rows or (not every and any(row.count(",") != commas for row in rows)):
         return None
     index = {name: i for i, name in enumerate(header)}
     try:
         values = np.loadtxt(
-            rows, delimiter=",", usecols=[index[name] for name in numeric], comments=None, ndmin=2, dtype=float
+            rows, delimiter=",", usecols=None if every else [index[name] for name in numeric], comments=None, ndmin=2,
+            dtype=float,
         )
     except ValueError:
         return None
-    numbers = {name: values[:, j] for j, name in enumerate(numeric)}
+    if len(values) != len(rows):  # loadtxt skips a blank line; the careful path numbers rows around it
+        return None
+    numbers = {name: values[:, index[name] if every else j] for j, name in enumerate(numeric)}
     texts = {
         name: [v.strip() for v in np.loadtxt(rows, delimiter=",", usecols=[index[name]], comments=None, ndmin=1, dtype=str)]
         for name in textual

@@ -43,11 +43,9 @@ from ..online import Rejections
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
 from ..plausibility import check_plausible
 from ..platform import Platform, load_platform
-from ..progress import progress_bar
+from ..progress import MIN_LOG_ROWS, log_progress_bar, progress_bar
 from ..samples import Log
 
-#: logs at least this long get a progress bar (when stderr is a terminal).
-PROGRESS_MIN_SAMPLES = 1000
 #: the result's conditioning section (and a streamed run's plausibility check) look at between
 #: this many and twice this many samples, evenly spaced over the log (:class:`EvenlySpacedSamples`).
 CHECKED_SAMPLES = 1000
@@ -199,7 +197,7 @@ class EvenlySpacedSamples:
         pick = index % self.stride == 0
         kept = block.select(pick)
         self._index = np.concatenate([self._index, index[pick]])
-        self._log = kept if self._log is None else _joined(self._log, kept)
+        self._log = kept if self._log is None else Log.concatenate([self._log, kept])
         self.seen += len(block)
         while len(self._index) > 2 * self.capacity:
             self.stride *= 2
@@ -210,12 +208,6 @@ class EvenlySpacedSamples:
     def log(self) -> Log:
         """The samples kept, in order."""
         return self._log if self._log is not None else Log(np.zeros(0), np.zeros((0, 6)), np.zeros((0, 6)))
-
-
-def _joined(first: Log, second: Log) -> Log:
-    stack = lambda a, b: None if a is None else np.concatenate([a, b])  # noqa: E731
-    return Log(stack(first.t_s, second.t_s), stack(first.strokes, second.strokes), stack(first.readings, second.readings),
-               stack(first.desired_poses, second.desired_poses))
 
 
 @dataclass
@@ -290,15 +282,6 @@ def feed_online(estimator, blocks: Iterable[Log], on_rejected: Callable[[int, fl
     return k
 
 
-def _count_rows(path: str) -> int:
-    """Lines after the header (the bar's total; a blank line is counted too): one pass over the bytes."""
-    lines = 0
-    with open(path, "rb") as file:
-        for chunk in iter(lambda: file.read(1 << 22), b""):
-            lines += chunk.count(b"\n")
-    return max(lines - 1, 0)
-
-
 def stream_calibration(platform: Platform, path: str, method: str, config: EstimatorConfig, skip_bad_rows: bool,
                        trace_file=None) -> StreamedRun:
     """An online ``method`` over the log at ``path``, read a block at a time (memory independent
@@ -324,10 +307,8 @@ def stream_calibration(platform: Platform, path: str, method: str, config: Estim
     def write_trace(block: Log, errors_mm: np.ndarray) -> None:
         trace_file.write(io.trace_text(block.t_s, nominal + errors_mm, header=checked.seen == len(block)))
 
-    show = sys.stderr.isatty()
-    total = _count_rows(path) if show else None
     blocks = (read(block) for block in io.read_log_blocks(path, platform, skip_bad_rows=skip_bad_rows))
-    with progress_bar(total=total, desc=f"calibrate {method}", show=show and (total or 0) >= PROGRESS_MIN_SAMPLES) as bar:
+    with log_progress_bar(path, f"calibrate {method}") as bar:
         n = feed_online(estimator, blocks, refused, write_trace if trace_file is not None else None, bar)
     if rejections.count == n:
         raise CalibError(f"{method} rejected all {n} samples (first: {rejections.first})")
@@ -391,7 +372,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             log = io.read_log(args.log, platform, skip_bad_rows=args.skip_bad_rows)
             skipped.add(log.skipped)
-            progress = sys.stderr.isatty() and len(log) >= PROGRESS_MIN_SAMPLES
+            progress = sys.stderr.isatty() and len(log) >= MIN_LOG_ROWS
             result = run_calibration(platform, log, args.method, config, bool(trace_path), progress, bool(rerun_path))
             estimate, n_samples, noise_scale = result.estimate, len(log), result.noise_scale
             rejections = Rejections.of(err for _, err in result.rejected)

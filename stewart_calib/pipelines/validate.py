@@ -31,6 +31,7 @@ from .. import kinematics as kin
 from ..errors import CalibError
 from ..instruments import drive as drive_model
 from ..platform import Platform, load_platform
+from ..progress import log_progress_bar
 from ..samples import Log
 
 
@@ -128,8 +129,9 @@ def run(args: argparse.Namespace) -> int:
     handover.check_report_dir(report_dir)
     platform = load_platform(args.platform)
     result = io.read_result(args.result)
-    log = io.read_log(args.log, platform)
-    predicted, position, orientation = validate(platform, result, log, args.register_instrument, str(args.result))
+    with log_progress_bar(args.log, "validate") as bar:
+        log, (predicted, position, orientation) = _validated_log(platform, result, args.log, args.register_instrument,
+                                                                 str(args.result), bar)
     page = _report_page(args, platform, result, log, predicted, position, orientation) if report_dir else None
     columns = io.reading_columns(platform)
     header = ["t_s", *columns, *(f"pred_{name}" for name in columns), "position_error_mm"]
@@ -142,6 +144,23 @@ def run(args: argparse.Namespace) -> int:
         handover.write_report(report_dir, page)
     print(f"stewart-calib validate: {_summary(position, orientation, len(log))}" + (" (instrument re-registered)" if args.register_instrument else ""))
     return 0
+
+
+def _validated_log(platform: Platform, result: dict, path: str, register: bool, result_source: str, bar):
+    """The log at ``path`` and :func:`validate` of it, read and predicted a block at a time (each
+    row's prediction is its own), the ``bar`` ticked per block; re-registering the instrument
+    fits its frame to the whole log, so then the prediction follows the reading."""
+    blocks, parts = [], []
+    for block in io.read_log_blocks(path, platform):
+        blocks.append(block)
+        if not register and len(block):
+            parts.append(validate(platform, result, block, False, result_source))
+        bar.update(len(block))
+    log = Log.concatenate(blocks)
+    if register or not parts:
+        return log, validate(platform, result, log, register, result_source)
+    orientation = None if parts[0][2] is None else np.concatenate([p[2] for p in parts])
+    return log, (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), orientation)
 
 
 def measurement_residuals(platform: Platform, log: Log, result: dict, predicted: np.ndarray | None = None,
