@@ -9,6 +9,7 @@ expected. Every writer goes through :func:`~.atomic.atomic_write_text`.
 from __future__ import annotations
 
 import math
+import operator
 from pathlib import Path
 from typing import Iterator
 
@@ -344,6 +345,11 @@ class LogRowParser:
         self._reading_range = platform.reading_range if _kind(platform) == "tracker" and platform is not None else None
         # a points instrument's empty coordinates (a target not seen) take the careful path
         self._plain_rows = _kind(platform) != "points"
+        # _plain's fields in one pick: t_s, the strokes, the readings, the pose (if any)
+        columns = self._columns
+        self._pick = operator.itemgetter(columns["t_s"], *columns["strokes"], *columns["readings"], *columns["pose"])
+        self._stroke_slice = slice(1, 1 + len(columns["strokes"]))
+        self._reading_slice = slice(self._stroke_slice.stop, self._stroke_slice.stop + len(columns["readings"]))
 
     def _plain(self, line: str) -> Sample | None:
         """The common row in a few µs: no quoting, every field a finite number within range, time
@@ -352,30 +358,27 @@ class LogRowParser:
         fields = line.split(",")
         if '"' in line or len(fields) != len(self._header):
             return None
-        columns = self._columns
         try:
-            t_s = float(fields[columns["t_s"]])
-            strokes = [float(fields[k]) for k in columns["strokes"]]
-            readings = [float(fields[k]) for k in columns["readings"]]
-            pose = [float(fields[k]) for k in columns["pose"]]
+            values = list(map(float, self._pick(fields)))  # t_s, strokes, readings, pose
             load_kg = None if self._load is None else float(fields[self._load])
         except ValueError:
             return None
-        values = (t_s, *strokes, *readings, *pose)
-        if not all(map(math.isfinite, values)) or t_s < self._last_t_s:
+        if not all(map(math.isfinite, values)) or values[0] < self._last_t_s:
             return None
-        for bounds, group in ((self._stroke_range, strokes), (self._reading_range, readings)):
-            if bounds is not None and not all(bounds[0] <= v <= bounds[1] for v in group):
+        for bounds, group in ((self._stroke_range, self._stroke_slice), (self._reading_range, self._reading_slice)):
+            if bounds is not None and not bounds[0] <= min(values[group]) <= max(values[group]) <= bounds[1]:
                 return None
-        self._last_t_s = t_s
-        readings = np.array(readings)
-        readings[self._reading_angles] = np.radians(readings[self._reading_angles])
+        self._last_t_s = t_s = values[0]
+        row = np.array(values)  # one array a row; the sample's fields are views of it
+        readings = row[self._reading_slice]
+        if self._reading_angles:
+            readings[self._reading_angles] = np.radians(readings[self._reading_angles])
         desired = None
-        if pose:
-            desired = np.array(pose)
+        if self._has_pose:
+            desired = row[self._reading_slice.stop :]
             desired[3:] = np.radians(desired[3:])
         stage = fields[self._stage].strip() if self._stage is not None else ""
-        return Sample(t_s, np.array(strokes), readings, desired, stage, load_kg)
+        return Sample(t_s, row[self._stroke_slice], readings, desired, stage, load_kg)
 
     def parse(self, line: str, row: int) -> Sample | None:
         """The sample of one row (``row``: its 1-based line number), or None for a blank line.
