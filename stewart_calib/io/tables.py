@@ -149,7 +149,9 @@ def _parse_fast(header: list[str], text: str, numeric: list[str], textual: list[
         )
     except ValueError:
         return None
-    if len(values) != len(rows):  # loadtxt skips a blank line; the careful path numbers rows around it
+    # loadtxt skips a blank line (the careful path numbers rows around it) and takes rows that all
+    # hold another field count than the header
+    if values.shape != (len(rows), len(numeric)):
         return None
     numbers = {name: values[:, index[name] if every else j] for j, name in enumerate(numeric)}
     texts = {
