@@ -8,6 +8,7 @@ rad; the log's degrees are converted at the file edge (:mod:`stewart_calib.io`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import repeat
 
 import numpy as np
 
@@ -71,7 +72,14 @@ class Log:
         )
 
     def __iter__(self):
-        return (self[k] for k in range(len(self)))
+        """``self[0], self[1], …`` built column-wise (a streamed calibration makes one a sample)."""
+        n = len(self)
+        return map(
+            Sample, self.t_s.tolist(), self.strokes, self.readings,
+            repeat(None, n) if self.desired_poses is None else self.desired_poses,
+            repeat("", n) if self.stages is None else self.stages,
+            repeat(None, n) if self.load_kg is None else np.asarray(self.load_kg, dtype=float).tolist(),
+        )
 
     @classmethod
     def concatenate(cls, logs: list["Log"]) -> "Log":

@@ -263,3 +263,22 @@ def test_row_parser_gives_the_samples_of_read_log(tmp_path):
         assert (sample.t_s, sample.stage, sample.load_kg) == (expected.t_s, expected.stage, expected.load_kg)
         for field in ("strokes", "readings", "desired_pose"):
             np.testing.assert_array_equal(getattr(sample, field), getattr(expected, field))
+
+
+def test_a_spooled_log_reads_back_as_it_was_read(long_logs, tmp_path, monkeypatch):
+    # calibrate's second pass (the residual RMS at the final estimate) reads the samples back from
+    # its spool, in blocks of the reader's size, instead of parsing the CSV again
+    from stewart_calib.io import logs, read_log
+    from stewart_calib.pipelines.calibrate import SampleSpool
+
+    monkeypatch.setattr(logs, "BLOCK_BYTES", 1 << 12)
+    spool = SampleSpool(tmp_path)
+    for block in logs.read_log_blocks(long_logs[400], nim_stewart()):
+        spool.add(block)
+    back = list(spool.blocks())
+    spool.close()
+    assert len(back) > 1 and max(8 * 13 * len(b) for b in back) <= 1 << 12
+    whole = read_log(long_logs[400], nim_stewart())
+    for field in ("t_s", "strokes", "readings"):
+        np.testing.assert_array_equal(np.concatenate([getattr(b, field) for b in back]), getattr(whole, field))
+    assert not list(tmp_path.iterdir())  # an unnamed file: nothing left beside the output

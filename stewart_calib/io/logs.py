@@ -269,7 +269,9 @@ def read_log_blocks(path: str | Path, platform: Platform | None = None, skip_bad
                 break
             data = b"".join(lines)
             text = _decoded(data, path, offset)
-            table = parse_rows(header, f"{header_line}\n{text}", numeric, textual, blank_is_nan=_blank_columns(platform))
+            # pyarrow's reader once the log proves long (a whole block read): its import pays off there
+            table = parse_rows(header, f"{header_line}\n{text}", numeric, textual, blank_is_nan=_blank_columns(platform),
+                               arrow=offset >= block_bytes)
             table.lines += line - 1
             offset, line = offset + len(data), line + len(lines)
             _flag_log_values(table, platform, has_pose)

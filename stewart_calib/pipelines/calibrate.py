@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import tempfile
 from collections import deque
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -33,6 +34,7 @@ import numpy as np
 from . import add_config_arguments, handover, run_command
 from .validate import measurement_residuals
 from .. import __version__, estimators, io
+from ..io import logs
 from ..errors import CalibError, SampleRejected
 from ..config import EstimatorConfig, load_estimator_config
 from ..estimate import Estimate
@@ -42,7 +44,7 @@ from ..estimators.base import late_index, take_late_rejections
 from ..online import Rejections
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
 from ..plausibility import check_plausible
-from ..platform import Platform, load_platform
+from ..platform import N_LEGS, Platform, load_platform
 from ..progress import MIN_LOG_ROWS, log_progress_bar, progress_bar
 from ..samples import Log
 
@@ -259,15 +261,16 @@ def feed_online(estimator, blocks: Iterable[Log], on_rejected: Callable[[int, fl
     """
     k = 0
     recent_t_s: deque[float] = deque(maxlen=LATE_LOOKBACK)
+    update, take_late = estimator.update, getattr(estimator, "take_late_rejections", list)  # looked up once
     for block in blocks:
         rows = np.empty((len(block), 42)) if on_block is not None else None
         for j, sample in enumerate(block):
             recent_t_s.append(sample.t_s)
             try:
-                estimator.update(sample)
+                update(sample)
             except SampleRejected as err:
                 on_rejected(k, sample.t_s, err)
-            late = take_late_rejections(estimator)
+            late = take_late()
             times = list(recent_t_s) if late else []
             for err in late:  # one older than the lookback is counted at the current sample
                 back = late_index(times, err.t_s) if err.t_s in times else len(times) - 1
@@ -282,10 +285,43 @@ def feed_online(estimator, blocks: Iterable[Log], on_rejected: Callable[[int, fl
     return k
 
 
+class SampleSpool:
+    """The good samples of a streamed log (``t_s``, strokes, readings as float64 rows) in an
+    unnamed temporary file, read back a block at a time: the second pass over the log (the exact
+    residual RMS at the final estimate) without parsing the CSV again (~10 µs a sample) and
+    without holding the log in memory. The file is deleted when closed (or the process ends).
+
+    Args:
+        directory: where the file goes (the output's: a disk the user chose, not a RAM ``/tmp``).
+    """
+
+    def __init__(self, directory: Path):
+        self._file = tempfile.TemporaryFile(dir=directory)
+        self._width = 0
+
+    def add(self, block: Log) -> None:
+        rows = np.column_stack([block.t_s, block.strokes, block.readings])
+        self._width = rows.shape[1]
+        self._file.write(np.ascontiguousarray(rows, dtype=np.float64).tobytes())
+
+    def blocks(self) -> Iterable[Log]:
+        """The samples added, in order, as :class:`Log` blocks of at most the log reader's block
+        size in bytes (:data:`stewart_calib.io.logs.BLOCK_BYTES`)."""
+        self._file.seek(0)
+        row_bytes = 8 * self._width
+        while self._width and (data := self._file.read(max(logs.BLOCK_BYTES // row_bytes, 1) * row_bytes)):
+            rows = np.frombuffer(data).reshape(-1, self._width)
+            yield Log(rows[:, 0], rows[:, 1 : 1 + N_LEGS], rows[:, 1 + N_LEGS :])
+
+    def close(self) -> None:
+        self._file.close()
+
+
 def stream_calibration(platform: Platform, path: str, method: str, config: EstimatorConfig, skip_bad_rows: bool,
-                       trace_file=None) -> StreamedRun:
+                       trace_file=None, spool: SampleSpool | None = None) -> StreamedRun:
     """An online ``method`` over the log at ``path``, read a block at a time (memory independent
-    of its length); the trace rows (spec §6) are written to the open ``trace_file`` as they come.
+    of its length); the trace rows (spec §6) are written to the open ``trace_file`` as they come,
+    the good samples to ``spool`` (for a second pass).
 
     Raises:
         CalibError: a bad log (as :func:`stewart_calib.io.read_log`), a method that rejected every sample.
@@ -297,6 +333,8 @@ def stream_calibration(platform: Platform, path: str, method: str, config: Estim
     def read(block: Log) -> Log:
         checked.add(block)
         skipped.add(block.skipped)
+        if spool is not None:
+            spool.add(block)
         return block
 
     def refused(k: int, t_s: float, err: SampleRejected) -> None:
@@ -316,12 +354,12 @@ def stream_calibration(platform: Platform, path: str, method: str, config: Estim
                        getattr(estimator, "noise_scale", lambda: None)())
 
 
-def streamed_residual_rms(platform: Platform, path: str, skip_bad_rows: bool, result: dict, rejected: list[int]) -> dict:
-    """:func:`~.handover.residual_rms_field` of the log at ``path`` without the ``rejected`` samples,
-    read again a block at a time: the per-channel sums of squares add up over the blocks."""
+def streamed_residual_rms(platform: Platform, blocks: Iterable[Log], result: dict, rejected: list[int]) -> dict:
+    """:func:`~.handover.residual_rms_field` of the log's samples ``blocks`` (read again, e.g. from a
+    :class:`SampleSpool`) without the ``rejected`` ones: the per-channel sums of squares add up over the blocks."""
     sums, counts, channels, k = {}, {}, None, 0
     rejected = np.asarray(rejected, dtype=np.int64)
-    for block in io.read_log_blocks(path, platform, skip_bad_rows=skip_bad_rows):
+    for block in blocks:
         used = ~np.isin(k + np.arange(len(block)), rejected)
         k += len(block)
         if not used.any():
@@ -364,7 +402,9 @@ def run(args: argparse.Namespace) -> int:
             if trace_path:
                 trace_file = stack.enter_context(open(stack.enter_context(io.atomic_path(trace_path)), "w",
                                                       encoding="utf-8", newline=""))
-            streaming = stream_calibration(platform, args.log, args.method, config, args.skip_bad_rows, trace_file)
+            spool = SampleSpool(out.parent)
+            stack.callback(spool.close)
+            streaming = stream_calibration(platform, args.log, args.method, config, args.skip_bad_rows, trace_file, spool)
             estimate, n_samples, skipped = streaming.estimate, streaming.samples, streaming.skipped
             rejections, first_rejected_t_s = streaming.rejections, streaming.first_rejected_t_s
             noise_scale = streaming.noise_scale
@@ -409,8 +449,7 @@ def run(args: argparse.Namespace) -> int:
         })
         result_data = io.result_dict(estimate, platform, samples_skipped, extra)
         if streamed:
-            result_data["residual_rms"] = streamed_residual_rms(platform, args.log, args.skip_bad_rows, result_data,
-                                                                streaming.rejected)
+            result_data["residual_rms"] = streamed_residual_rms(platform, spool.blocks(), result_data, streaming.rejected)
         else:
             used = np.ones(len(log), dtype=bool)
             used[[k for k, _ in result.rejected]] = False  # e.g. readings the tracker's FK cannot solve

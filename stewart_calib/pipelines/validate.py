@@ -81,9 +81,12 @@ def _model_poses(platform: Platform, result: dict, log, source: str):
     return fk.R, fk.t
 
 
-def validate(platform: Platform, result: dict, log, register: bool, result_source: str = "result"):
+def validate(platform: Platform, result: dict, log, register: bool, result_source: str = "result", errors: bool = True):
     """Predictions and errors of a held-out log.
 
+    Args:
+        errors: False: the predictions alone (position and orientation errors None); for the
+            tracker that spares forward kinematics of the readings.
     Returns:
         ``(predicted (N, m) code units, position_error_mm (N,), orientation_error_deg (N,) or None)``.
     Raises:
@@ -99,11 +102,13 @@ def validate(platform: Platform, result: dict, log, register: bool, result_sourc
     if platform.instrument.kind == "tracker":
         if register:
             raise CalibError("--register-instrument: the in-situ tracker is part of the robot; it has no frame of its own to fit again")
+        predicted = kin.inverse_kinematics(platform.tracker, R_X, t_X)
+        if not errors:
+            return predicted, None, None
         seen = kin.forward_kinematics(platform.tracker, log.readings, guess=(R_X, t_X), strict=False)
         if not np.all(seen.converged):
             k = int(np.flatnonzero(~seen.converged)[0])
             raise CalibError(f"sample {k + 1} (t_s = {log.t_s[k]!r}): tracker forward kinematics of its readings did not converge")
-        predicted = kin.inverse_kinematics(platform.tracker, R_X, t_X)
         position, orientation = kin.pose_error(seen.R, seen.t, R_X, t_X)
         return predicted, position, orientation
 
@@ -182,11 +187,11 @@ def measurement_residuals(platform: Platform, log: Log, result: dict, predicted:
 
     nominal = {"nominal": platform.drive.as_vector().tolist(), "error": [0.0] * len(platform.drive.as_vector())}
     if predicted is None:
-        predicted = validate(platform, result, log, False, "the result")[0]
+        predicted = validate(platform, result, log, False, "the result", errors=False)[0]
     # An outside instrument's frame is rarely known to centimetres (spec §7): "before" registers it
     # on the log, so that it measures the nominal robot, not where the cameras happen to stand.
     outside = platform.instrument.kind != "tracker"
-    before = residual_file_units(validate(platform, nominal, log, outside, "the nominal platform")[0])
+    before = residual_file_units(validate(platform, nominal, log, outside, "the nominal platform", errors=False)[0])
     before_model = "the nominal platform" + (", its instrument frame fitted to this log" if outside else "")
     return Residuals(tuple(columns), np.asarray(log.t_s), before, residual_file_units(predicted), log_label, before_model)
 
