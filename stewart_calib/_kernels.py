@@ -369,6 +369,22 @@ def leg_observation(base, plat, initial_lengths, x, R, t, strokes, pose_covarian
 
 
 @njit(**_JIT)
+def tracker_leg_observation(base, plat, initial_lengths, x, tracker_base, tracker_plat, tracker_lengths, readings,
+                            R, t, warm, tol_mm, strokes, reading_variance, stroke_variance):
+    """:func:`fk_single` of the tracker readings (``R, t`` in/out), its pose covariance
+    (:func:`pose_covariance`) and :func:`leg_observation` there, in one call.
+
+    Returns:
+        ``(FK residual [mm], r, H, R_meas, J_x)``; the last four are meaningless when the residual
+        exceeds ``tol_mm`` (FK failed from both starts).
+    """
+    residual = fk_single(tracker_base, tracker_plat, tracker_lengths, readings, R, t, warm, tol_mm, 30)
+    covariance = pose_covariance(tracker_base, tracker_plat, R, t, reading_variance)
+    r, H, R_meas, J_x = leg_observation(base, plat, initial_lengths, x, R, t, strokes, covariance, stroke_variance)
+    return residual, r, H, R_meas, J_x
+
+
+@njit(**_JIT)
 def _symmetric_product(A, B, scale):
     """``scale · A Bᵀ`` (6×6) for a product known to be symmetric: the upper triangle, mirrored,
     so the result is exactly symmetric."""

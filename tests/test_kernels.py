@@ -43,6 +43,35 @@ def test_leg_ekf_observation_equals_its_numpy_definition(k):
     np.testing.assert_array_equal(R_meas, R_meas.T)
 
 
+@pytest.mark.parametrize("warm", [True, False])
+def test_tracker_leg_observation_is_fk_then_the_observation_bit_for_bit(warm):
+    """The ekf's fused per-sample call gives exactly what its three parts give (same kernels)."""
+    rng = np.random.default_rng(3)
+    drive, tracker = PLATFORM.drive, PLATFORM.tracker
+    delta = rng.normal(0.0, 1.0, 42)
+    R_true, t_true = kin.pose_to_rt(POSES[1])
+    readings = kin.inverse_kinematics(tracker, R_true, t_true)
+    strokes = kin.inverse_kinematics(drive, R_true, t_true) + rng.normal(0.0, 0.5, 6)
+    guess = kin.pose_to_rt(POSES[2]) if warm else None  # a warm start far away: Newton still converges
+    R, t, r, H, R_meas = kin.tracker_leg_observation(drive, delta, tracker, readings, guess, strokes, 0.002, 0.001)
+
+    R_ref, t_ref = kin.solve_fk(tracker, readings, guess, "tracker")
+    pose_cov = kin.pose_covariance_from_legs(tracker, R_ref, t_ref, 0.002)
+    r_ref, H_ref, R_meas_ref, _ = kin.leg_ekf_observation(drive, delta, R_ref, t_ref, strokes, pose_cov, 0.001)
+    for value, reference in ((R, R_ref), (t, t_ref), (r, r_ref), (H, H_ref), (R_meas, R_meas_ref)):
+        np.testing.assert_array_equal(value, reference)
+    np.testing.assert_allclose(t, t_true, atol=1e-6)
+
+
+def test_tracker_leg_observation_refuses_readings_without_a_pose_as_fk_failure():
+    from stewart_calib.errors import SampleRejected
+
+    drive, tracker = PLATFORM.drive, PLATFORM.tracker
+    with pytest.raises(SampleRejected, match="tracker forward kinematics did not converge") as err:
+        kin.tracker_leg_observation(drive, np.zeros(42), tracker, np.r_[np.nan, np.zeros(5)], None, np.zeros(6), 0.002, 0.001)
+    assert err.value.reason == SampleRejected.FK_FAILED
+
+
 def test_pose_difference_is_wrapped_rpy_difference_and_broadcasts():
     R, t = kin.pose_to_rt(POSES)
     R_m, t_m = kin.pose_to_rt(POSES[::-1] + np.r_[0.0, 0.0, 0.0, 2 * np.pi, 0.0, -2 * np.pi])

@@ -80,6 +80,7 @@ class LegEKF:
         self._nominal_scale = platform.stroke_scale
         self._instrument = self.layout.slice("instrument")
         self._pose = WarmPose(self.model)
+        self._tracker_known = self.model.kind == "tracker" and self.model.unknowns is None
         self._drive_fk = WarmFK()
         self._held = HeldForRegistration(platform, config.noise, self.model, self.layout)
 
@@ -108,25 +109,34 @@ class LegEKF:
         """``(−r, H = ∂r/∂X, R_meas)`` of a prepared sample at the state ``x``: the loose
         observation, or the tight one where the measurement fixes no pose at ``x``."""
         strokes, z = prepared[:6], prepared[6:]
+        scale = 1.0 + (self._nominal_scale if self._scale is None else self._nominal_scale + x[self._scale])
+        if self._tracker_known:  # the common case, in one compiled call from readings to (r, H, R_meas)
+            residual, H_drive, R_meas = self._pose.tracker_leg_observation(
+                self.platform.drive, x[:N_PARAMS], z, strokes * scale, self.noise.stroke_sigma_mm)
+            return -residual, self._with_blocks(H_drive, strokes, None), R_meas
         theta = instrument_theta(self.model, None if self._instrument is None else x[self._instrument])
         observed = self._pose.solve(z, theta)
         if observed is None:
             return self._observe_tight(strokes, z, theta, x)
-        scale = 1.0 + (self._nominal_scale if self._scale is None else self._nominal_scale + x[self._scale])
         # r, H = ∂r/∂M and R_meas = J_x Σ_x J_xᵀ + σ_q² I at the model M + δM, in one compiled call.
         residual, H_drive, R_meas, J_x = kin.leg_ekf_observation(
             self.platform.drive, x[:N_PARAMS], observed.R, observed.t, strokes * scale, observed.covariance,
             self.noise.stroke_sigma_mm,
         )
+        H_instrument = None if self._instrument is None else J_x @ observed.J_instrument
+        return -residual, self._with_blocks(H_drive, strokes, H_instrument), R_meas
+
+    def _with_blocks(self, H_drive: np.ndarray, strokes: np.ndarray, H_instrument: np.ndarray | None) -> np.ndarray:
+        """``H`` over the whole unknown vector: ``∂r/∂M``, ``−q_i`` on ``k_i``, ``H_instrument`` on θ."""
         H = H_drive
         if self.layout.blocks:
             H = np.zeros((6, self.layout.size))
             H[:, :N_PARAMS] = H_drive
             if self._scale is not None:
                 H[:, self._scale] = np.diag(-strokes)
-            if self._instrument is not None:
-                H[:, self._instrument] = J_x @ observed.J_instrument
-        return -residual, H, R_meas
+            if H_instrument is not None:
+                H[:, self._instrument] = H_instrument
+        return H
 
     def _observe_tight(self, strokes: np.ndarray, z: np.ndarray, theta: np.ndarray, x: np.ndarray):
         """The instrument's residual at the drive model's pose (see the module docstring);

@@ -129,6 +129,16 @@ class WarmPose(_WarmStart):
             self._guess = (observed.R, observed.t)
         return observed
 
+    def tracker_leg_observation(self, drive: LegGeometry, delta: np.ndarray, z: np.ndarray, strokes: np.ndarray,
+                                stroke_sigma_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For a tracker of known geometry: :meth:`solve` and
+        :func:`~stewart_calib.kinematics.leg_ekf_observation` at that pose in one compiled call,
+        ``(r, H = ∂r/∂M, R_meas)`` (:func:`~stewart_calib.kinematics.tracker_leg_observation`)."""
+        R, t, r, H, R_meas = kin.tracker_leg_observation(
+            drive, delta, self.model.legs, z, self._guess, strokes, float(self.model.channel_sigma[0]), stroke_sigma_mm)
+        self._guess = (R, t)
+        return r, H, R_meas
+
 
 def pose_difference(R_v: np.ndarray, t_v: np.ndarray, R_m: np.ndarray, t_m: np.ndarray) -> np.ndarray:
     """``Y = P_v − P_m`` as ``[δh [mm], δθ [rad]]`` (paper eq. 9 and Fig. 3 step 2).
