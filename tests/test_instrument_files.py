@@ -7,6 +7,7 @@ import json
 import math
 import tomllib
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -189,18 +190,24 @@ segments = ["validation"]
 """
 
 
-def test_simulate_calibrate_validate_end_to_end(tmp_path, capsys):
-    """The batch path of issue 13 through the command line: a simulated motion-capture log, ``ls``,
-    then ``validate`` on the held-out rows, with the error at the noise floor."""
-    (tmp_path / "e.toml").write_text(EXPERIMENT.format(platform=HOBBY.as_posix()))
+def _simulated_fit_and_held_out(tmp_path, experiment: str) -> Path:
+    """Simulate ``experiment`` into ``tmp_path/sim`` and split its log into ``fit.csv`` and
+    ``held.csv`` by stage; returns the simulated platform file."""
+    (tmp_path / "e.toml").write_text(experiment.format(platform=HOBBY.as_posix()))
     assert main(["simulate", "--experiment", str(tmp_path / "e.toml"), "--out", str(tmp_path / "sim")]) == 0
-    platform_path = tmp_path / "sim" / "platform.toml"
     text = (tmp_path / "sim" / "log.csv").read_text().splitlines()
     stage = text[0].split(",").index("stage")
     fit = [text[0]] + [row for row in text[1:] if row.split(",")[stage] == "fit"]
     held = [text[0]] + [row for row in text[1:] if row.split(",")[stage] == "held-out"]
     (tmp_path / "fit.csv").write_text("\n".join(fit) + "\n")
     (tmp_path / "held.csv").write_text("\n".join(held) + "\n")
+    return tmp_path / "sim" / "platform.toml"
+
+
+def test_simulate_calibrate_validate_end_to_end(tmp_path, capsys):
+    """The batch path of issue 13 through the command line: a simulated motion-capture log, ``ls``,
+    then ``validate`` on the held-out rows, with the error at the noise floor."""
+    platform_path = _simulated_fit_and_held_out(tmp_path, EXPERIMENT)
     out = tmp_path / "r.json"
     assert main(["calibrate", "--platform", str(platform_path), "--log", str(tmp_path / "fit.csv"), "--method", "ls", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
@@ -223,6 +230,36 @@ def test_simulate_calibrate_validate_end_to_end(tmp_path, capsys):
     # the held-out error of a noise-limited fit: the reading noise (√3 σ per pose) plus the fit's own
     # prediction error, which with 40 poses for 48 unknowns is of the same order: 2× the floor
     assert np.sqrt(np.mean(position**2)) < 2.0 * math.sqrt(3) * 0.2
+
+
+def test_paper_ekf_on_a_pose_log_predicts_held_out_poses_at_the_noise_floor(tmp_path, capsys):
+    """The paper's EKF with motion capture (issue 13): δM alone, the frame and target fixed at their
+    registration — their errors are rigid motions of all base or all platform joints, which δM
+    absorbs — so with exact encoder scales it predicts held-out poses as well as ``ls`` does."""
+    experiment = EXPERIMENT.replace("stroke_scale_spread = 0.03", "stroke_scale_spread = 0.0")
+    platform_path = _simulated_fit_and_held_out(tmp_path, experiment)
+    out = tmp_path / "r.json"
+    # R of the paper's form matched to the instrument: 0.04 mm² (σ 0.2 mm), orientation in degrees
+    assert main(["calibrate", "--platform", str(platform_path), "--log", str(tmp_path / "fit.csv"), "--method", "paper-ekf",
+                 "--set", "paper_ekf.angle_unit=deg", "--set", "paper_ekf.measurement_noise=0.04", "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["validate", "--platform", str(platform_path), "--result", str(out), "--log", str(tmp_path / "held.csv"),
+                 "--register-instrument", "--out", str(tmp_path / "V.csv")]) == 0
+    rows = (tmp_path / "V.csv").read_text().splitlines()
+    header = rows[0].split(",")
+    position = np.array([float(r.split(",")[header.index("position_error_mm")]) for r in rows[1:]])
+    assert np.sqrt(np.mean(position**2)) < 2.0 * math.sqrt(3) * 0.2  # as ls above
+
+
+def test_paper_ekf_refuses_points_and_a_stroke_scale_to_identify():
+    from stewart_calib.config import config_from_dict
+    from stewart_calib.estimators import make_estimator
+    from tests.test_instrument_ls import POINTS
+
+    with pytest.raises(CalibError, match="method 'paper-ekf' does not take the points instrument"):
+        make_estimator("paper-ekf", hobby(POINTS))
+    with pytest.raises(CalibError, match="paper-ekf identifies the 42 drive parameters only, not the stroke scale"):
+        make_estimator("paper-ekf", hobby(), config_from_dict({"noise": {"stroke_scale_sigma": 0.01}}))
 
 
 def test_validate_refuses_register_instrument_for_the_tracker(tmp_path):

@@ -247,9 +247,10 @@ def drive_only_model(method: str, platform: Platform, config: EstimatorConfig) -
     return model
 
 
-def measured_pose(pose: WarmPose, z: np.ndarray, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """``P_v``: the pose the instrument measured (paper Fig. 3 step 1), or ``SampleRejected``."""
-    observed = pose.solve(z, np.zeros(0))
+def measured_pose(pose: WarmPose, z: np.ndarray, t_s: float, theta: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``P_v``: the pose the instrument (its unknowns at ``θ``; default none) measured (paper Fig. 3
+    step 1), or ``SampleRejected``."""
+    observed = pose.solve(z, np.zeros(0) if theta is None else theta)
     if observed is None:
         raise SampleRejected(f"sample at t = {t_s} s: the measurement does not fix a pose", SampleRejected.NO_POSE)
     return observed.R, observed.t

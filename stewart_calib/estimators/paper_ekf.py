@@ -2,7 +2,8 @@
 
 State ``X = δM`` (42, paper order), random-walk prediction ``P ← P + Q`` per update
 (eq. 14–15), observation ``Y = P_v − P_m = J_k X + E`` (eq. 16) with ``J_k = J_p``
-(eq. 9–11). ``P_v`` is the tracker's pose (FK of the readings, step 1). ``P_m`` is the pose
+(eq. 9–11). ``P_v`` is the measured pose (the tracker's: FK of the readings, step 1; or a
+pose instrument's, through its frame and target). ``P_m`` is the pose
 the *current* model ``M + X`` predicts for the executed strokes, and ``J_p`` is taken at
 that model and pose: a true EKF, which at ``X = 0`` is exactly the paper's form and which
 stays right when the controller already compensates with an earlier estimate.
@@ -10,6 +11,11 @@ stays right when the controller already compensates with an earlier estimate.
 The orientation rows of ``Y`` and ``J_p`` are in ``angle_unit`` (rad by default, or deg):
 the paper gives ``R = 4e-2 I`` without units and reports orientation in degrees, and which
 it meant decides how much the filter trusts the tracker's orientation.
+
+With a ``pose`` instrument (motion capture) the state stays the paper's ``δM``: the instrument's
+frame and target are fixed at their closed-form registration on the first samples (held, then
+replayed, as in the leg-length EKF) and the strokes at the encoders' nominal scale — the paper's
+model has neither unknown; ``ekf``, ``isam2`` and ``lm`` identify them.
 
 Optional adaptive Q/R (paper ref. [28]; innovation-based, Mohamed & Schwarz 1999): over
 the last ``adaptive_window`` updates, ``R = mean(ν νᵀ − H P⁻ Hᵀ)`` with its eigenvalues
@@ -23,12 +29,16 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..config import EstimatorConfig
+from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
+from ..instruments import instrument_model, instrument_theta
 from ..platform import N_PARAMS, Platform
+from ..unknowns import UnknownLayout
 from ..samples import Sample
 from .base import state_array
 from .kalman import FilterState
-from .measurement import WarmFK, WarmPose, check_sample, drive_only_model, measured_pose, pose_difference
+from .measurement import (HeldForRegistration, WarmFK, WarmPose, check_sample, drive_only_model, measured_pose,
+                          pose_difference, unknown_layout)
 
 
 class PaperEKF:
@@ -45,8 +55,12 @@ class PaperEKF:
         c = config.paper_ekf
         self.platform = platform
         self.config = c
-        self.model = drive_only_model(self.name, platform, config)
+        self.model = _pose_error_model(platform, config)
+        self._layout = unknown_layout(platform, config.noise, self.model)
+        self._held = HeldForRegistration(platform, config.noise, self.model, self._layout)
+        self._theta = instrument_theta(self.model, None)  # the pose instrument's frame and target, once registered
         self.filter = FilterState(self.name, config.noise.prior_sigma_mm, c.gate_probability)
+        self._noise = config.noise
         self.filter.Q[np.diag_indices(N_PARAMS)] = c.process_noise
         self.R = np.eye(6) * c.measurement_noise
         # Y's orientation rows in the unit R is meant for: the paper states R = 4e-2 I without units.
@@ -60,16 +74,31 @@ class PaperEKF:
         self._filled = 0
 
     def update(self, sample: Sample) -> None:
-        """Fold in one sample (Fig. 3 steps 1–3); ``SampleRejected`` leaves the state untouched."""
+        """Fold in one sample (Fig. 3 steps 1–3); ``SampleRejected`` leaves the state untouched.
+        A pose instrument's first samples are held until they register it, then replayed."""
         strokes, z = check_sample(self.platform, self.model, sample)
+        if not self._held.active:
+            self._update(strokes, z, sample.t_s)
+            return
+        start = self._held.hold(sample)
+        if start is None:
+            return
+        self._theta = instrument_theta(self.model, start[self._layout.slice("instrument")])
+        for held in self._held.samples:  # a held sample the filter refuses is left out, as it would have been
+            try:
+                self._update(*check_sample(self.platform, self.model, held), held.t_s)
+            except SampleRejected:
+                pass
+
+    def _update(self, strokes: np.ndarray, z: np.ndarray, t_s: float) -> None:
         strokes = strokes * (1.0 + self.platform.stroke_scale)  # the encoders' nominal scale (spec §7)
-        R_v, t_v = measured_pose(self._tracker_fk, z, sample.t_s)
+        R_v, t_v = measured_pose(self._tracker_fk, z, t_s, self._theta)
         drive = self.platform.drive.perturbed(self.filter.x)
         R_m, t_m = self._model_fk.solve(drive, strokes, "drive model")
         Y = pose_difference(R_v, t_v, R_m, t_m) * self._unit_scale
         J_k = kin.error_jacobian(drive, R_m, t_m) * self._unit_scale[:, None]
         x_before = self.filter.x.copy()
-        self.filter.update(J_k, Y, self.R, sample.t_s)
+        self.filter.update(J_k, Y, self.R, t_s)
         if self.config.adaptive:
             self._adapt(Y, self.filter.S - self.R, self.filter.x - x_before)
 
@@ -89,16 +118,26 @@ class PaperEKF:
         self.filter.Q[:] = (dx.T @ dx) / len(dx)
 
     def estimate(self) -> Estimate:
-        """``δM`` and ``P`` after the last accepted sample."""
-        return self.filter.estimate()
+        """``δM`` and ``P`` after the last accepted sample; with a pose instrument also the frame and
+        target it was registered at (held fixed: their rows and columns of the covariance are 0),
+        which ``validate`` and ``compensate`` need to read the drive in the same frame."""
+        block = self._layout.block("instrument")
+        if block is None:
+            return self.filter.estimate()
+        f, n = self.filter, N_PARAMS + block.size
+        P = np.zeros((n, n))
+        P[:N_PARAMS, :N_PARAMS] = f.P
+        return Estimate.of_state(np.concatenate((f.x, self._theta - block.nominal)), P, UnknownLayout((block,)),
+                                 self.name, f.samples_used, f.t_s)
 
     def current_error(self) -> np.ndarray:
         """δM [mm] after the last accepted sample."""
         return self.filter.x.copy()
 
     def export_state(self) -> dict:
-        """Filter, R, adaptive window and FK warm starts as arrays (checkpoints)."""
-        return {
+        """Filter, R, adaptive window, FK warm starts and the instrument's registration (or the
+        samples held for it) as arrays (checkpoints)."""
+        state = {
             "filter": self.filter.export_state(),
             "R": self.R.copy(),
             "innovations": self._innovations.copy(),
@@ -107,7 +146,11 @@ class PaperEKF:
             "filled": np.int64(self._filled),
             "tracker_fk": self._tracker_fk.export_state(),
             "model_fk": self._model_fk.export_state(),
+            "instrument_theta": self._theta.copy(),
         }
+        if self._held.active:
+            state["held"] = self._held.export_state()
+        return state
 
     def import_state(self, state: dict) -> None:
         """Restore :meth:`export_state` exactly. Raises ``CalibError`` on a bad key or shape."""
@@ -119,3 +162,20 @@ class PaperEKF:
         self._filled = int(state_array(state, "filled", ()))
         self._tracker_fk.import_state(state.get("tracker_fk", {}))
         self._model_fk.import_state(state.get("model_fk", {}))
+        if "instrument_theta" in state:  # checkpoints from before pose instruments have none: the tracker's ()
+            self._theta = state_array(state, "instrument_theta", self._theta.shape)
+        self._held = HeldForRegistration(self.platform, self._noise, self.model, self._layout)
+        self._held.restore(state, self.update)
+
+
+def _pose_error_model(platform: Platform, config: EstimatorConfig):
+    """The instrument model whose pose is ``P_v``: the tracker (its geometry known), or a pose
+    instrument (the registry refuses the others). Raises ``CalibError`` for unknowns the
+    configuration asks to identify beyond δM."""
+    model = instrument_model(platform, config.noise)
+    if model.kind == "tracker":
+        return drive_only_model(PaperEKF.name, platform, config)
+    if config.noise.stroke_scale_sigma > 0.0:
+        raise CalibError("paper-ekf identifies the 42 drive parameters only, not the stroke scale "
+                         "(noise.stroke_scale_sigma); use ekf, isam2 or lm")
+    return model

@@ -59,7 +59,7 @@ METHODS: dict[str, MethodSpec] = {
     for spec in (
         MethodSpec("ls", ".ls:LeastSquares", online=False, checkpointable=False, instruments=("tracker", "pose", "points"),
                    summary="the paper's batch least squares on the pose error (eq. 9–11)"),
-        MethodSpec("paper-ekf", ".paper_ekf:PaperEKF", online=True, checkpointable=True, instruments=("tracker",),
+        MethodSpec("paper-ekf", ".paper_ekf:PaperEKF", online=True, checkpointable=True, instruments=("tracker", "pose"),
                    summary="the paper's EKF on the pose error (eq. 14–19)"),
         MethodSpec("ekf", ".ekf:LegEKF", online=True, checkpointable=True, instruments=("tracker", "pose", "points"),
                    summary="EKF on the leg-length model, the factor graph's noise model"),
