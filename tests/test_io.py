@@ -190,6 +190,14 @@ def test_refuses_bad_row_naming_row_and_column(tmp_path, bad_row, expected):
     assert message == f"{tmp_path / 'log.csv'}: {expected}"
 
 
+def test_refuses_rows_all_one_field_short_of_the_header(tmp_path):
+    """Every row alike but one field short (numpy's reader compares rows with each other only;
+    found by tests/test_fuzz.py)."""
+    short = lambda t: _row(t).rsplit(",", 1)[0]  # noqa: E731
+    message = _refusal(_write(tmp_path, "\n".join([HEADER, short(0.0), short(0.1)]) + "\n"))
+    assert message == f"{tmp_path / 'log.csv'}: row 2: expected 13 fields as in the header, got 12"
+
+
 def test_refuses_readings_and_strokes_out_of_range_inclusive(tmp_path, platform):
     lo_s, hi_s = platform.reading_range
     lo_q, hi_q = platform.stroke_range
