@@ -94,6 +94,26 @@ def test_the_default_config_measures_noise_five_times_off(platform, noise_factor
         assert ratio == pytest.approx(noise_factor**2, rel=tolerance)
 
 
+def test_clean_data_at_the_configured_noise_measure_scale_one_on_a_smooth_path(platform):
+    """The window batches' noise scale is unbiased on a smooth 10 Hz path (each window's pass from
+    the prior wanders by millimetres in weakly observed directions: it must linearise where it is)."""
+    from benchmarks.common import synthetic_stream
+
+    log, _ = synthetic_stream(platform, 3000, np.random.default_rng(8), 10.0, smooth=True)
+    estimator = make_estimator("ekf", platform)
+    scales, rejected = [], 0
+    for k, sample in enumerate(log):
+        try:
+            estimator.update(sample)
+        except SampleRejected:
+            rejected += 1
+        if k >= 600 and k % 100 == 0:
+            scales.append(estimator.robust.noise_scale2)
+    assert rejected <= 2  # 0.3 expected at the 0.9999 gate
+    # ~8 independent memories of 300 samples (6 readings each): the mean's σ is ~1.2 %; 4σ
+    assert np.mean(scales) == pytest.approx(1.0, abs=4 * np.sqrt(2 / (8 * 300 * 6)))
+
+
 def test_a_jump_the_random_walk_cannot_follow_is_recovered_from(platform):
     """0.2 mm on three leg lengths at once: the gate refuses the new samples until the lock-out
     is seen, then the recent samples are solved afresh and tracking goes on."""

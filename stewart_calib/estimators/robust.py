@@ -45,7 +45,7 @@ from scipy.special import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.st
 
 from ..errors import CalibError, SampleRejected
 from .base import state_array
-from .kalman import FilterState, kalman_update, linearised_pass, variance_components
+from .kalman import FilterState, kalman_update, variance_components
 
 #: residual degrees of freedom a batch needs before it refuses any sample or estimates a scale.
 MIN_REDUNDANCY = 12.0
@@ -59,11 +59,6 @@ MIN_WALK_FRACTION = 1e-4
 #: configured one): noise-free data would otherwise drive R to 0, where the filter's own
 #: linearisation error gates every sample.
 MIN_NOISE_SCALE2 = 1e-2
-#: a batch reuses the samples' stored linearisations (taken by the recursion at its state of the
-#: time) while every unknown of its start is within this fraction of its prior σ of each of them:
-#: 50 µm on δM at the default 5 mm, where a leg's curvature (~1/length) adds ~1e-5 mm to a
-#: residual. A batch from the prior's mean, or after a jump (a recovery), observes afresh.
-LINEARISATION_TOLERANCE = 1e-2
 
 #: ``observe(prepared, x) -> (innovation ν (m,), H (m, n), R0 (m, m))`` at the state ``x``, or
 #: None when the sample fixes no pose there.
@@ -117,10 +112,8 @@ class RobustFilter:
         #: the start-up batch's verdict on its samples (in order), once it is decided
         self.startup_outliers = np.zeros(0, dtype=bool)
         self._window = max(robust.startup_samples, robust.lockout_window_samples, 1)
-        # the last samples (the start-up batch, then the window), each with its last linearisation
-        self._buffer = _SampleWindow(self._window, m, n)
-        self._tolerance = LINEARISATION_TOLERANCE * self.filter.layout.prior_sigma(prior_sigma_mm)
-        self._unit_Q_or_empty = np.zeros((0, 0)) if unit_Q is None else np.ascontiguousarray(unit_Q, dtype=float)
+        # the last samples (the start-up batch, then the window)
+        self._buffer = _SampleWindow(self._window)
         self._since_window = 0
         # noise statistics: [Σ νᵀR0⁻¹ν, Σ redundancy] over windows, the last window's estimate,
         # and per window difference (eigenvalues of P_w + P_{w+1}, squared projections, T)
@@ -151,7 +144,7 @@ class RobustFilter:
             nis = float(nu @ np.linalg.solve(S, nu))
             # provisionally taken: the batch may still change its mind, so the samples it leaves
             # out are reported once it is decided (take_late_rejections)
-            self._buffer.append(t_s, prepared, False, observation, self.filter.x)
+            self._buffer.append(t_s, prepared, False)
             outliers = self._solve(adopt=True)
             self._buffer.gated[:] = outliers
             self.filter.nis, self.filter.S = nis, S
@@ -161,16 +154,15 @@ class RobustFilter:
                 self._late = [self._late_rejection(float(t)) for t in self._buffer.t[outliers]]
                 self._window_statistics()
             return
-        x_before = self.filter.x.copy()
         try:
-            observation = self._step(t_s, prepared)
+            self._step(t_s, prepared)
         except SampleRejected as err:
             if err.reason == SampleRejected.GATED:
-                self._buffer.append(t_s, prepared, True, err.observation, x_before)
+                self._buffer.append(t_s, prepared, True)
                 if self._locked_out():
                     self._recover()
             raise
-        self._buffer.append(t_s, prepared, False, observation, x_before)
+        self._buffer.append(t_s, prepared, False)
         self._since_window += 1
         if self._robust.adapt_noise and self._since_window >= self._window:
             self._window_statistics()
@@ -201,9 +193,7 @@ class RobustFilter:
         else:
             np.multiply(self._unit_Q, step, out=Q)
 
-    def _step(self, t_s: float, prepared: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One gated update; returns the observation, or raises ``SampleRejected`` (a gated one
-        carries it as ``err.observation``, for the buffer)."""
+    def _step(self, t_s: float, prepared: np.ndarray) -> None:
         f = self.filter
         observation = self._observe(prepared, f.x)
         if observation is None:
@@ -211,12 +201,7 @@ class RobustFilter:
                                  SampleRejected.NO_POSE)
         nu, H, R0 = observation
         self._fill_Q(f.Q, 0.0 if math.isnan(f.t_s) else t_s - f.t_s)
-        try:
-            f.update(H, nu, self.noise_scale2 * R0, t_s)  # raises SampleRejected, state untouched
-        except SampleRejected as err:
-            err.observation = observation
-            raise
-        return observation
+        f.update(H, nu, self.noise_scale2 * R0, t_s)  # raises SampleRejected, state untouched
 
     # ------------------------------------------------------------------ batches
 
@@ -235,32 +220,14 @@ class RobustFilter:
         registration's start). The window batches
         centre it on the running estimate, so their first samples are linearised near where
         the parameters are rather than millimetres away; the prior's σ is the same.
-        Where every sample was last linearised within :data:`LINEARISATION_TOLERANCE` of the
-        pass's start, the pass folds in the stored linearisations in one compiled loop
-        (:func:`~.kalman.linearised_pass`): the batch is then linearised along the recursion's
-        states, as the recursion itself was, instead of along its own.
         """
-        start = self._x0 if centre is None else centre
-        x, P = start.copy(), self._P0.copy()
+        x = (self._x0 if centre is None else centre).copy()
+        P = self._P0.copy()
+        Q = np.zeros((self._n, self._n))
+        last_t, used = math.nan, 0
         # variance components of the updates: e = R S⁻¹ ν has E[eᵀ R⁻¹ e] = tr(R S⁻¹), whatever
         # the walk (the residual is taken at the state right after the update)
         self._pass_components = np.zeros(2)
-        buffer = self._buffer
-        if buffer.linearised_near(start, use, self._tolerance):
-            used, last_t = linearised_pass(x, P, buffer.innovations, buffer.H, buffer.R0, buffer.x_linearised, buffer.t,
-                                           use, self._unit_Q_or_empty, self.walk_rate_mm2_per_s, noise_scale2,
-                                           self._pass_components)
-        else:
-            used, last_t = self._observed_pass(x, P, use, noise_scale2)
-        # the batch's hat-matrix trace, tr(P Σ Hᵀ R⁻¹ H) = n − tr(P P0⁻¹), is what the data
-        # determine; the rest of the residual degrees of freedom are redundancy
-        determined = self._free - float(np.sum(self._P0_pinv * P))  # tr(P0⁺ P), both symmetric
-        return x, P, used, last_t, used * self._m - determined
-
-    def _observed_pass(self, x: np.ndarray, P: np.ndarray, use: np.ndarray, noise_scale2: float) -> tuple[int, float]:
-        """:meth:`_pass`'s recursion observing every sample at the pass's own state (in place)."""
-        Q = np.zeros((self._n, self._n))
-        last_t, used = math.nan, 0
         buffer = self._buffer
         for k in np.flatnonzero(use):
             observation = self._observe_or_none(buffer.prepared[k], x)
@@ -273,7 +240,10 @@ class RobustFilter:
                 continue  # degenerate: the kernel left x and P untouched
             self._pass_components += variance_components(S, nu, noise_scale2 * R0)
             last_t, used = buffer.t[k], used + 1
-        return used, last_t
+        # the batch's hat-matrix trace, tr(P Σ Hᵀ R⁻¹ H) = n − tr(P P0⁻¹), is what the data
+        # determine; the rest of the residual degrees of freedom are redundancy
+        determined = self._free - float(np.sum(self._P0_pinv * P))  # tr(P0⁺ P), both symmetric
+        return x, P, used, last_t, used * self._m - determined
 
     def _test(self, x: np.ndarray, P: np.ndarray, fitted: np.ndarray, redundancy: float, used: int):
         """``(d_k of every buffered sample, robust scale²)`` at the estimate ``(x, P)`` fitted to ``fitted``."""
@@ -472,24 +442,20 @@ def _stacked(observations: list, m: int, n: int) -> tuple[np.ndarray, np.ndarray
 
 
 class _SampleWindow:
-    """The last ``capacity`` samples, oldest first, each with the observation it was last linearised
-    at (``ν``, ``H``, ``R0`` at ``x_linearised``; NaN there where none of the filter's size is kept).
+    """The last ``capacity`` samples, oldest first.
 
     The arrays are twice ``capacity`` long and the live rows a view into them: an append writes
     one row, and every ``capacity`` appends the rows slide back to the front (amortised O(1),
     where concatenating costs ~50 µs a sample).
     """
 
-    def __init__(self, capacity: int, m: int, n: int):
-        self.capacity, self._m, self._n = capacity, m, n
-        self._start = self._end = 0
+    def __init__(self, capacity: int):
+        self.capacity = capacity
         self._allocate(0)
 
     def _allocate(self, width: int) -> None:
-        size, m, n = 2 * self.capacity, self._m, self._n
+        size = 2 * self.capacity
         self._t, self._prepared, self._gated = np.zeros(size), np.zeros((size, width)), np.zeros(size, dtype=bool)
-        self._innovations, self._H, self._R0 = np.zeros((size, m)), np.zeros((size, m, n)), np.zeros((size, m, m))
-        self._x = np.full((size, n), np.nan)
         self._start = self._end = 0
 
     def __len__(self) -> int:
@@ -498,56 +464,32 @@ class _SampleWindow:
     t = property(lambda self: self._t[self._start:self._end], doc="(K,) sample times [s]")
     prepared = property(lambda self: self._prepared[self._start:self._end], doc="(K, width) prepared samples")
     gated = property(lambda self: self._gated[self._start:self._end], doc="(K,) bool, writable: left out")
-    innovations = property(lambda self: self._innovations[self._start:self._end], doc="(K, m) ν at x_linearised")
-    H = property(lambda self: self._H[self._start:self._end], doc="(K, m, n) ∂r/∂X at x_linearised")
-    R0 = property(lambda self: self._R0[self._start:self._end], doc="(K, m, m) configured measurement covariance")
-    x_linearised = property(lambda self: self._x[self._start:self._end], doc="(K, n) where each was linearised")
 
-    def append(self, t_s: float, prepared: np.ndarray, gated: bool, observation, x_linearised: np.ndarray) -> None:
-        """Keep one sample (dropping the oldest beyond ``capacity``) with its observation at ``x_linearised``."""
+    def append(self, t_s: float, prepared: np.ndarray, gated: bool) -> None:
+        """Keep one sample, dropping the oldest beyond ``capacity``."""
         if self._prepared.shape[1] != prepared.shape[0]:
             self._allocate(prepared.shape[0])  # the first sample fixes the width
         if self._end == len(self._t):
             live = slice(self._start, self._end)
-            for array in (self._t, self._prepared, self._gated, self._innovations, self._H, self._R0, self._x):
+            for array in (self._t, self._prepared, self._gated):
                 array[: len(self)] = array[live]
             self._start, self._end = 0, len(self)
-        k = self._end
-        self._t[k], self._prepared[k], self._gated[k] = t_s, prepared, gated
-        if observation is not None and len(observation[0]) == self._m:
-            self._innovations[k], self._H[k], self._R0[k] = observation
-            self._x[k] = x_linearised
-        else:
-            self._x[k] = np.nan
+        self._t[self._end], self._prepared[self._end], self._gated[self._end] = t_s, prepared, gated
         self._end += 1
         if len(self) > self.capacity:
             self._start += 1
 
-    def linearised_near(self, x: np.ndarray, use: np.ndarray, tolerance: np.ndarray) -> bool:
-        """Every sample in ``use`` was linearised within ``tolerance`` of ``x`` (entrywise)."""
-        return bool(np.all(np.abs(self.x_linearised[use] - x) <= tolerance))
-
     def export_state(self) -> dict:
-        return {
-            "buffer_t": self.t.copy(), "buffer_prepared": self.prepared.copy(),
-            "buffer_gated": self.gated.astype(np.int64), "buffer_innovations": self.innovations.copy(),
-            "buffer_H": self.H.copy(), "buffer_R0": self.R0.copy(), "buffer_x_linearised": self.x_linearised.copy(),
-        }
+        return {"buffer_t": self.t.copy(), "buffer_prepared": self.prepared.copy(),
+                "buffer_gated": self.gated.astype(np.int64)}
 
     def import_state(self, state: dict) -> None:
-        """Restore :meth:`export_state`; a checkpoint without the linearisations (written before they
-        were kept) restores the samples, to be observed afresh. Raises ``CalibError``."""
+        """Restore :meth:`export_state`. Raises ``CalibError`` on a bad key or shape."""
         t = state_array(state, "buffer_t", np.shape(state.get("buffer_t", ())))
         prepared = np.array(state.get("buffer_prepared", np.zeros((0, 0))), dtype=float)
         if t.ndim != 1 or prepared.ndim != 2 or len(prepared) != len(t) or len(t) > self.capacity:
             raise CalibError("estimator state: keys 'buffer_t', 'buffer_prepared': expected one row per buffered sample")
-        K, m, n = len(t), self._m, self._n
         self._allocate(prepared.shape[1])
-        self._end = K
-        self._t[:K], self._prepared[:K] = t, prepared
-        self._gated[:K] = state_array(state, "buffer_gated", (K,)).astype(bool)
-        if "buffer_x_linearised" in state:
-            self._innovations[:K] = state_array(state, "buffer_innovations", (K, m))
-            self._H[:K] = state_array(state, "buffer_H", (K, m, n))
-            self._R0[:K] = state_array(state, "buffer_R0", (K, m, m))
-            self._x[:K] = state_array(state, "buffer_x_linearised", (K, n))
+        self._end = len(t)
+        self._t[: len(t)], self._prepared[: len(t)] = t, prepared
+        self._gated[: len(t)] = state_array(state, "buffer_gated", (len(t),)).astype(bool)
