@@ -1,0 +1,231 @@
+"""The in-situ tracker's own geometry as an unknown (issue 13): true closed-loop accuracy.
+
+**Data.** The simulator's paper experiment (``configs/experiments/paper.toml``: nim-stewart, the
+paper's Table 4 drive errors, ruler noise 0.5 µm, 50 nm quantum, the tracker's own geometry off
+by i.i.d. 15 µm on its 42 values), reduced to one stage of static calibration poses with NO
+load and the platform's own mass set to 0: the true drive is then pure geometry, the same at
+every pose, so any error left is the estimators', not unmodelled sag. Each seed is the
+experiment's seed (tracker residual, poses, noise; the drive errors are Table 4's).
+
+**Fits.** ``ekf``, ``isam2`` and ``lm`` (``pipelines.calibrate.run_calibration``) on (a) the
+platform as is — the tracker taken as exactly its nominal Table 2 geometry — and (b) the platform
+with ``tracker_geometry_sigma_mm = 0.015`` — its 42 values identified with the drive under the
+prior N(nominal, 15 µm²); (b) with ``lm`` is the joint maximum-likelihood fit of drive and
+tracker that the target refers to. Noise model (``configs/estimators/in-situ-tracker.toml`` with
+what this cell is known to be): no random walk and ``adapt_noise = false`` (constant geometry,
+noise known), stroke σ 1 µm; reading σ 0.5 µm (the rulers) when the geometry is identified, and
+the preset's effective 0.02 mm when it is fixed — the unmodelled 15 µm geometry error is then
+part of every reading (the preset says so), and at 0.5 µm the χ² gate refuses clean samples.
+
+**Metric: true closed-loop error.** For random workspace poses P (80 % of the ±200 mm / ±20°
+box): strokes ``q = IK(identified drive, P)``, achieved pose ``FK(true drive, q)``; RMS of the
+position error [µm] and of the orientation error [arcsec] against P. A pose is only meaningful
+in a frame, and neither case observes where the frames {J} and {D} are:
+
+* (b) tracker identified: a rigid motion of all base joints of drive and tracker together (or of
+  all platform joints) changes no reading or stroke — 12 gauge directions. The estimators fix
+  them by holding the drive joints' common rigid motion at nominal (``instruments/gauge.py``), so
+  the truth is compared in that gauge: moved by ``gauge.to_gauge`` (the Kabsch fit of the true
+  joints onto the nominal ones), as ``tests/instrument_data.truth_in_gauge`` does.
+* (a) tracker fixed: the estimator takes the nominal tracker as exact, which makes {J} and {D}
+  the frames where the tracker has its nominal geometry. The true tracker has that geometry in
+  no frame; the closest are the frames where its joints best fit the nominal ones (Kabsch of
+  its base joints, and of its platform joints, onto nominal), and the truth is compared there.
+  The simulator's own frame differs from those by the rigid part of the 15 µm draws, which
+  nothing can observe: compared in it, (a) would also be charged for that convention.
+
+Each method's error is the mean over seeds of its per-seed RMS; the target ratio (issue 13:
+an online method with the geometry identified within 1.25× the joint ``lm`` fit) is the ratio
+of those means, with the per-seed range beside it.
+
+**What the gauge costs here.** Table 4's drive errors carry a common rigid motion of their
+joints: moving the true drive into the gauge shifts its joints by 0.2–1.8 mm. In that gauge
+the tracker must absorb the rigid part, millimetres away from its 15 µm prior: the prior and
+the data then disagree by many σ, and every method's fit with the geometry identified is a
+compromise between them (see the table). ``ekf`` and ``isam2`` (whose front end is the same leg
+EKF) fare worse: after their robust start-up batch (the first 30 samples) the χ² gate, at the
+rulers' 0.5 µm, refuses nearly all later samples, so they keep about the start-up's estimate. A
+drive error without a rigid part (the truth already in the gauge) meets no such conflict. The
+estimators are not tuned here to pass.
+
+``python -m benchmarks.tracker_geometry [--seeds N] [--quick]`` prints the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from benchmarks.common import Row, Section, mark
+from stewart_calib import kinematics as kin
+from stewart_calib.config import load_estimator_config
+from stewart_calib.instruments import gauge
+from stewart_calib.pipelines.calibrate import run_calibration
+from stewart_calib.platform import LegGeometry, Platform
+from stewart_calib.samples import Log
+from stewart_calib.simulation import load_experiment, run_experiment
+from stewart_calib.simulation.experiment import Stage
+from stewart_calib.simulation.trajectories import random_static_poses
+
+METHODS = ("ekf", "isam2", "lm")
+ONLINE_METHODS = ("ekf", "isam2")
+REFERENCE = "lm"
+RATIO_TARGET = 1.25
+#: the tracker's own geometry error: the experiment's residual and the prior σ it is identified under [mm]
+GEOMETRY_SIGMA_MM = 0.015
+RULER_SIGMA_MM = 0.0005  # paper.toml [tracker] noise_mm
+FIXED_READING_SIGMA_MM = 0.02  # in-situ-tracker.toml: a reading's effective error with the geometry fixed
+WORKSPACE_FRACTION = 0.8
+MARGIN_MM = 10.0
+ARCSEC_PER_DEG = 3600.0
+CASES = ("fixed", "identified")
+
+
+@dataclass(frozen=True)
+class Size:
+    """Calibration poses, samples held per pose, validation poses."""
+
+    calibration: int
+    samples_per_pose: int
+    validation: int
+
+
+#: the paper's 60 calibration poses, each held 2 samples (the paper holds 8; at 0.5 µm of ruler
+#: noise more samples of one pose add little); ~200 validation poses
+FULL = Size(60, 2, 200)
+QUICK = Size(24, 1, 40)
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One simulated calibration run and what the metric needs of its truth."""
+
+    platform: Platform
+    log: Log
+    true_drive: np.ndarray  # (42,) absolute [mm], simulator frame
+    true_tracker: LegGeometry
+    validation: np.ndarray  # (n, 6) [mm, rad]
+
+
+def simulate(seed: int, size: Size) -> Cell:
+    """The paper experiment reduced as the module docstring says, and validation poses of its workspace."""
+    paper = load_experiment("paper")
+    experiment = replace(
+        paper,
+        seed=seed,
+        load=replace(paper.load, platform_mass_kg=0.0),
+        tracker=replace(paper.tracker, geometry_residual_mm=GEOMETRY_SIGMA_MM),
+        poses=replace(paper.poses, calibration=size.calibration, validation=0, samples_per_pose=size.samples_per_pose),
+        stages=(Stage("no-load", 0.0, 0.0, ("calibration",)),),
+    )
+    run = run_experiment(experiment)
+    # a stream of its own: the experiment spawns its streams from the bare seed
+    validation = random_static_poses(experiment.platform, size.validation, np.random.default_rng((seed, 1)), WORKSPACE_FRACTION, MARGIN_MM)
+    return Cell(experiment.platform, run.log, run.robot.base_params, run.robot.tracker.geometry, validation)
+
+
+def _moved(params: np.ndarray, base_frame: tuple, platform_frame: tuple) -> np.ndarray:
+    """Drive parameters with the base joints moved by ``(R, t)`` of {J} and the platform joints by that of {D}."""
+    legs = LegGeometry.from_params(params)
+    (R_J, t_J), (R_D, t_D) = base_frame, platform_frame
+    return LegGeometry(legs.base_joints @ R_J.T + t_J, legs.platform_joints @ R_D.T + t_D, legs.initial_lengths).as_vector()
+
+
+def true_drive_in_frame(cell: Cell, case: str) -> np.ndarray:
+    """The true drive in the frames the ``case``'s estimate is written in (module docstring)."""
+    if case == "identified":
+        return gauge.to_gauge(cell.platform.drive, cell.true_drive)[0]
+    nominal = cell.platform.tracker
+    return _moved(cell.true_drive, gauge.kabsch(cell.true_tracker.base_joints, nominal.base_joints),
+                  gauge.kabsch(cell.true_tracker.platform_joints, nominal.platform_joints))
+
+
+def closed_loop_rms(model: LegGeometry, true_params: np.ndarray, poses: np.ndarray) -> tuple[float, float]:
+    """RMS position [µm] and orientation [arcsec] error of ``FK(true, IK(model, P))`` against P."""
+    R, t = kin.pose_to_rt(poses)
+    achieved = kin.forward_kinematics(LegGeometry.from_params(true_params), kin.inverse_kinematics(model, R, t), guess=(R, t))
+    position_mm, orientation_deg = kin.pose_error(R, t, achieved.R, achieved.t)
+    return float(np.sqrt(np.mean(position_mm**2)) * 1e3), float(np.sqrt(np.mean(orientation_deg**2)) * ARCSEC_PER_DEG)
+
+
+def _config(case: str):
+    reading_mm = RULER_SIGMA_MM if case == "identified" else FIXED_READING_SIGMA_MM
+    return load_estimator_config("in-situ-tracker", [
+        f"noise.reading_sigma_mm={reading_mm}", "noise.random_walk_mm_per_sqrt_s=0", "robust.adapt_noise=false",
+    ])
+
+
+def measure(seed: int, size: Size) -> dict:
+    """``{case: {method: (position µm, orientation arcsec)}}`` and ``"nominal"``: the uncalibrated model's."""
+    cell = simulate(seed, size)
+    out = {"nominal": closed_loop_rms(cell.platform.drive, true_drive_in_frame(cell, "fixed"), cell.validation)}
+    for case in CASES:
+        platform = replace(cell.platform, tracker_geometry_sigma_mm=GEOMETRY_SIGMA_MM if case == "identified" else 0.0)
+        truth, config = true_drive_in_frame(cell, case), _config(case)
+        out[case] = {}
+        for method in METHODS:
+            estimate = run_calibration(platform, cell.log, method, config).estimate
+            out[case][method] = closed_loop_rms(cell.platform.drive.perturbed(estimate.error), truth, cell.validation)
+    return out
+
+
+def _fmt(position_arcsec: np.ndarray) -> str:
+    return f"{position_arcsec[0]:.1f} µm / {position_arcsec[1]:.2f}″"
+
+
+def row_names() -> list[str]:
+    """The names of the rows :func:`run` writes, in order (the quick test checks them)."""
+    return (["uncalibrated (nominal drive)"] + [f"{method}: tracker fixed → identified" for method in METHODS]
+            + [f"{method} / {REFERENCE}-joint, tracker identified" for method in ONLINE_METHODS])
+
+
+def run(quick: bool = False, seeds: int | None = None) -> Section:
+    size = QUICK if quick else FULL
+    seeds = range(1 if quick else 5) if seeds is None else range(seeds)
+    runs = [measure(seed, size) for seed in seeds]
+    mean = {case: {m: np.mean([r[case][m] for r in runs], axis=0) for m in METHODS} for case in CASES}
+    nominal = np.mean([r["nominal"] for r in runs], axis=0)
+    rows = [Row("uncalibrated (nominal drive)", _fmt(nominal), raw={"per_seed": [r["nominal"] for r in runs]})]
+    for method in METHODS:
+        fixed, identified = mean["fixed"][method], mean["identified"][method]
+        rows.append(Row(
+            f"{method}: tracker fixed → identified",
+            f"fixed {_fmt(fixed)}; identified {_fmt(identified)}",
+            raw={case: [r[case][method] for r in runs] for case in CASES},
+        ))
+    reference = mean["identified"][REFERENCE][0]
+    for method in ONLINE_METHODS:
+        ratio = mean["identified"][method][0] / reference
+        per_seed = [r["identified"][method][0] / r["identified"][REFERENCE][0] for r in runs]
+        rows.append(Row(
+            f"{method} / {REFERENCE}-joint, tracker identified",
+            f"**{ratio:.2f}** ({mean['identified'][method][0]:.1f} vs {reference:.1f} µm; per seed {min(per_seed):.2f}–{max(per_seed):.2f})",
+            f"≤ {RATIO_TARGET}",
+            bool(ratio <= RATIO_TARGET),
+            {"ratio": ratio, "per_seed": per_seed},
+        ))
+    note = (f"{len(seeds)} seed(s); {size.calibration} calibration poses × {size.samples_per_pose} samples, "
+            f"{size.validation} validation poses; closed-loop RMS position / orientation error, mean over seeds "
+            "(`python -m benchmarks.tracker_geometry`, module docstring).")
+    return Section("Tracker geometry (issue 13)", note, rows, {"size": size.__dict__, "seeds": list(seeds)})
+
+
+def markdown(section: Section) -> str:
+    lines = [section.note, "", "| Benchmark | Measured | Target | Status |", "|---|---|---|---|"]
+    lines += [f"| {row.name} | {row.value} | {row.target or '—'} | {mark(row.met)} |" for row in section.rows]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.tracker_geometry", description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, help="seeds 0 … N−1 (default 5; --quick: 1)")
+    parser.add_argument("--quick", action="store_true", help="tiny inputs, every row (smoke test; the numbers mean little)")
+    args = parser.parse_args(argv)
+    print(markdown(run(args.quick, args.seeds)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
