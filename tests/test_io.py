@@ -341,3 +341,32 @@ def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
+
+
+@pytest.mark.parametrize("chunk_rows", [3, 4096])
+def test_csv_text_writes_what_the_csv_module_writes(monkeypatch, chunk_rows):
+    # Columns of numbers (and empty fields) are joined directly, a few rows at a time; anything
+    # else goes through the csv module. Both must give the csv module's text.
+    import csv
+    import io as text_io
+
+    from stewart_calib.io import tables
+
+    def reference(header, columns):
+        buffer = text_io.StringIO()
+        writer = csv.writer(buffer, lineterminator="\n")
+        writer.writerow(header)
+        writer.writerows(zip(*(c.tolist() if isinstance(c, np.ndarray) else c for c in columns)))
+        return buffer.getvalue()
+
+    monkeypatch.setattr(tables, "CSV_CHUNK_ROWS", chunk_rows)
+    rng = np.random.default_rng(3)
+    cases = [
+        (["t_s", "x", "y"], [rng.normal(size=10), np.arange(10), [*rng.normal(size=9).tolist(), ""]]),
+        (["a", "b"], [np.array([1.5, np.nan, np.inf, -0.0, 1e-300]), [1.0, "", 3, 2.5e300, -7]]),
+        (["a", "b"], [np.zeros(0), []]),
+        (["a", "stage"], [np.arange(3.0), ["x", "y,z", ""]]),  # text: the csv module quotes
+        (["a", "b"], [np.array([True, False]), np.ones(2)]),
+    ]
+    for header, columns in cases:
+        assert tables.csv_text(header, columns) == reference(header, columns)

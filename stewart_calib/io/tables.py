@@ -22,24 +22,34 @@ def csv_text(header: list[str], columns: list) -> str:
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
     writer.writerow(header)
-    fields = [_plain_fields(c) for c in columns] if len(columns) > 1 else [None]
-    if all(f is not None for f in fields):
+    if len(columns) > 1 and all(map(_plain, columns)):
         # numbers and empty fields need no quoting: the rows the csv module would write, joined
-        # directly (~2× faster; a trace is 43 numbers a sample)
-        body = "\n".join(map(",".join, zip(*fields)))
-        return buffer.getvalue() + body + ("\n" if body else "")
+        # directly (~2× faster; a trace is 43 numbers a sample), a few thousand rows at a time so
+        # that only the text is held whole, not a string object per field
+        n = len(columns[0])
+        for start in range(0, n, CSV_CHUNK_ROWS):
+            fields = [_field_texts(c[start : start + CSV_CHUNK_ROWS]) for c in columns]
+            buffer.write("\n".join(map(",".join, zip(*fields))) + "\n")
+        return buffer.getvalue()
     writer.writerows(zip(*(c.tolist() if isinstance(c, np.ndarray) else c for c in columns)))
     return buffer.getvalue()
 
 
-def _plain_fields(column) -> list[str] | None:
-    """A column of numbers (an array, or floats, ints and empty strings) as the csv module writes
-    its fields (``repr`` of a float, ``str`` of an int); None when a field may need quoting."""
+#: rows :func:`csv_text` renders at a time.
+CSV_CHUNK_ROWS = 4096
+
+
+def _plain(column) -> bool:
+    """Numbers only (an array, or floats, ints and empty strings): fields that need no quoting."""
     if isinstance(column, np.ndarray):
-        return list(map(repr, column.tolist())) if column.dtype.kind in "fiu" else None
-    if all(type(v) in (float, int) or (type(v) is str and v == "") for v in column):
-        return [repr(v) if type(v) is not str else v for v in column]
-    return None
+        return column.dtype.kind in "fiu"
+    return all(type(v) in (float, int) or (type(v) is str and v == "") for v in column)
+
+
+def _field_texts(column) -> list[str]:
+    """A :func:`_plain` column's fields as the csv module writes them (``repr`` of a float, ``str`` of an int)."""
+    values = column.tolist() if isinstance(column, np.ndarray) else column
+    return [v if type(v) is str else repr(v) for v in values]
 
 
 def pose_columns_deg(poses: np.ndarray) -> list[np.ndarray]:
