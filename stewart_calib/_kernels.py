@@ -5,8 +5,9 @@ Why numba: one 6-leg pose is ~100 flops, so numpy's 1–2 µs per small-array ca
 six legs and compiled, the same solve takes a few µs. The public, vectorised functions of
 :mod:`stewart_calib.kinematics` keep their numpy signatures and call these; nothing else
 should import this module (but :mod:`stewart_calib.estimators.measurement`, for
-``pose_difference`` and the sample check, ``LegGeometry.perturbed``, and
-:mod:`stewart_calib.identifiability` for the whitened rows).
+``pose_difference`` and the sample check, ``LegGeometry.perturbed``,
+:mod:`stewart_calib.identifiability` for the whitened rows, and
+:mod:`stewart_calib.estimators.kalman`, whose compiled filter pass observes through them).
 
 Conventions (see :mod:`stewart_calib.kinematics`): mm and rad; a pose is ``(R, t)`` of the
 platform frame {D} in the base frame {J}; pose Jacobians are in the body tangent

@@ -114,6 +114,41 @@ def test_clean_data_at_the_configured_noise_measure_scale_one_on_a_smooth_path(p
     assert np.mean(scales) == pytest.approx(1.0, abs=4 * np.sqrt(2 / (8 * 300 * 6)))
 
 
+def test_the_compiled_pass_equals_observing_sample_by_sample(platform):
+    """The ekf's batches run one compiled pass (tracker of known geometry, δM alone); observing each
+    buffered sample through the estimator's observation gives the same filter (rounding only)."""
+    from benchmarks.common import synthetic_stream
+
+    log, _ = synthetic_stream(platform, 400, np.random.default_rng(9), 10.0, smooth=True)
+    runs = []
+    for compiled in (True, False):
+        estimator = make_estimator("ekf", platform)
+        assert estimator.robust._compiled_pass is not None
+        if not compiled:
+            estimator.robust._compiled_pass = None
+        feed(estimator, log)
+        runs.append(estimator)
+    (a, b) = runs
+    np.testing.assert_allclose(a.filter.x, b.filter.x, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(a.filter.P, b.filter.P, rtol=0, atol=1e-9 * np.abs(b.filter.P).max())
+    assert a.robust.noise_scale2 == pytest.approx(b.robust.noise_scale2, rel=1e-9)
+    assert a.robust.walk_rate_mm2_per_s == pytest.approx(b.robust.walk_rate_mm2_per_s, rel=1e-6)
+
+
+@pytest.mark.parametrize("m", [3, 6, 9])
+def test_variance_components_are_the_post_fit_residual_and_its_expectation(m):
+    from stewart_calib.estimators.kalman import variance_components
+
+    rng = np.random.default_rng(m)
+    A, B = rng.normal(size=(m, m)), rng.normal(size=(m, m))
+    S, R = A @ A.T + m * np.eye(m), B @ B.T + np.eye(m)
+    nu = rng.normal(size=m)
+    u = np.linalg.solve(S, nu)
+    observed, expected = variance_components(S, nu, R)
+    assert observed == pytest.approx(u @ R @ u, rel=1e-12)
+    assert expected == pytest.approx(np.trace(np.linalg.solve(S, R)), rel=1e-12)
+
+
 def test_a_jump_the_random_walk_cannot_follow_is_recovered_from(platform):
     """0.2 mm on three leg lengths at once: the gate refuses the new samples until the lock-out
     is seen, then the recent samples are solved afresh and tracking goes on."""

@@ -72,15 +72,19 @@ class LegEKF:
         # Q per unit ρ²Δt: the walking entries, conditioned on the gauge (None: the plain diagonal).
         walks = self.layout.walks()
         unit_Q = None if walks.all() and len(C) == 0 else gauge_conditioned(np.diag(walks.astype(float)), C)
-        self.robust = RobustFilter(self.name, config.noise.prior_sigma_mm, config.noise.random_walk_mm_per_sqrt_s,
-                                   config.ekf.gate_probability, self._observe, config.robust, layout=self.layout, C=C,
-                                   unit_Q=unit_Q)
-        self.filter = self.robust.filter
         self._scale = self.layout.slice("stroke_scale")
         self._nominal_scale = platform.stroke_scale
         self._instrument = self.layout.slice("instrument")
         self._pose = WarmPose(self.model)
         self._tracker_known = self.model.kind == "tracker" and self.model.unknowns is None
+        # the batches' passes in one compiled call where the state is δM alone (~4× faster)
+        compiled_pass = self._pose.tracker_filter_pass(
+            platform.drive, 1.0 + np.broadcast_to(self._nominal_scale, 6), config.noise.stroke_sigma_mm,
+        ) if self._tracker_known and not self.layout.blocks else None
+        self.robust = RobustFilter(self.name, config.noise.prior_sigma_mm, config.noise.random_walk_mm_per_sqrt_s,
+                                   config.ekf.gate_probability, self._observe, config.robust, layout=self.layout, C=C,
+                                   unit_Q=unit_Q, compiled_pass=compiled_pass)
+        self.filter = self.robust.filter
         self._drive_fk = WarmFK()
         self._held = HeldForRegistration(platform, config.noise, self.model, self.layout)
 

@@ -23,6 +23,7 @@ import math
 import numpy as np
 from scipy.special import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.stats costs ~1 s of import
 
+from .. import _kernels
 from .._jit import njit
 from ..errors import CalibError, SampleRejected
 from ..platform import N_PARAMS
@@ -170,9 +171,108 @@ def kalman_update(
 def variance_components(S: np.ndarray, residual: np.ndarray, R: np.ndarray) -> tuple[float, float]:
     """``(uᵀ R u, tr(S⁻¹ R))`` with ``u = S⁻¹ ν``: an update's post-fit residual ``e = R u`` and its
     expectation ``E[eᵀ R⁻¹ e] = tr(R S⁻¹)`` (variance-component estimation; ``S`` positive definite)."""
-    S_inv = np.linalg.inv(S)
+    # S⁻¹ by hand through its Cholesky factor: LAPACK's inverse in numba makes every kernel that
+    # calls this one load ~0.5 s slower from the on-disk cache, for a matrix of at most ~9 × 9
+    m = S.shape[0]
+    L = np.zeros((m, m))
+    for a in range(m):
+        for b in range(a + 1):
+            s = S[a, b]
+            for c in range(b):
+                s -= L[a, c] * L[b, c]
+            L[a, b] = math.sqrt(s) if a == b else s / L[b, b]
+    S_inv = np.zeros((m, m))
+    for j in range(m):  # column j: L y = e_j, then Lᵀ x = y
+        for a in range(m):
+            s = 1.0 if a == j else 0.0
+            for c in range(a):
+                s -= L[a, c] * S_inv[c, j]
+            S_inv[a, j] = s / L[a, a]
+        for a in range(m - 1, -1, -1):
+            s = S_inv[a, j]
+            for c in range(a + 1, m):
+                s -= L[c, a] * S_inv[c, j]
+            S_inv[a, j] = s / L[a, a]
     u = S_inv @ residual
     return u @ R @ u, np.sum(S_inv * R)
+
+
+@njit(fastmath=_FAST, nogil=True, error_model="numpy")
+def tracker_filter_pass(
+    x: np.ndarray,
+    P: np.ndarray,
+    t_s: np.ndarray,
+    prepared: np.ndarray,
+    use: np.ndarray,
+    drive: tuple,
+    tracker: tuple,
+    stroke_factor: np.ndarray,
+    variances: tuple,
+    walk_rate: float,
+    noise_scale2: float,
+    R_guess: np.ndarray,
+    t_guess: np.ndarray,
+    warm: bool,
+    components: np.ndarray,
+) -> tuple[int, float, bool]:
+    """A random-walk filter pass, gate off, over leg-length observations of a tracker of known
+    geometry, in place on ``(x, P)``: what ``RobustFilter``'s pass does sample by sample through
+    the EKF's observation (``LegEKF._observe``), in one call.
+
+    For each sample ``k`` in ``use``: FK of the readings ``prepared[k, 6:]`` warm-started from
+    ``(R_guess, t_guess)`` (updated in place on success; a sample whose FK fails is skipped), the
+    observation at ``x`` with strokes ``prepared[k, :6] · stroke_factor``
+    (:func:`~stewart_calib._kernels.tracker_leg_observation`), ``Q = ρ² Δt I``, the update with
+    ``s² R_meas``, and the variance components (:func:`variance_components`) summed into
+    ``components``.
+
+    Args:
+        drive, tracker: ``(base_joints, platform_joints, initial_lengths)`` of each leg set.
+        variances: ``(σ_s², σ_q²)`` reading and stroke variance [mm²].
+    Returns:
+        ``(samples used, t_s of the last one, whether (R_guess, t_guess) holds a pose)``.
+    """
+    m = 6
+    n = x.shape[0]
+    Q = np.zeros((n, n))
+    R = np.empty((m, m))
+    nu = np.empty(m)
+    work = np.empty(m * n + m * m + m)
+    strokes = np.empty(6)
+    last_t = math.nan
+    used = 0
+    for k in range(t_s.shape[0]):
+        if not use[k]:
+            continue
+        R_try = R_guess.copy()
+        t_try = t_guess.copy()
+        for i in range(6):
+            strokes[i] = prepared[k, i] * stroke_factor[i]
+        residual, r, H, R_meas, _ = _kernels.tracker_leg_observation(
+            drive[0], drive[1], drive[2], x[:42], tracker[0], tracker[1], tracker[2], prepared[k, 6:12],
+            R_try, t_try, warm, 1e-9, strokes, variances[0], variances[1],
+        )
+        if not residual <= 1e-9:
+            continue
+        R_guess[:, :] = R_try
+        t_guess[:] = t_try
+        warm = True
+        step = 0.0 if math.isnan(last_t) else walk_rate * max(t_s[k] - last_t, 0.0)
+        for i in range(n):
+            Q[i, i] = step
+        for a in range(m):
+            nu[a] = -r[a]
+            for b in range(m):
+                R[a, b] = noise_scale2 * R_meas[a, b]
+        nis, S = kalman_update(x, P, H, nu, R, Q, math.inf, work)
+        if math.isnan(nis):
+            continue
+        observed, expected = variance_components(S, nu, R)
+        components[0] += observed
+        components[1] += expected
+        last_t = t_s[k]
+        used += 1
+    return used, last_t, warm
 
 
 def workspace_size(n: int, m: int) -> int:

@@ -139,6 +139,30 @@ class WarmPose(_WarmStart):
         self._guess = (R, t)
         return r, H, R_meas
 
+    def tracker_filter_pass(self, drive: LegGeometry, stroke_factor: np.ndarray, stroke_sigma_mm: float):
+        """A filter pass ``(x, P, t_s, prepared, use, walk_rate, noise_scale2, components) →
+        (used, last t_s)`` for :class:`~.robust.RobustFilter` that observes each sample as
+        :meth:`tracker_leg_observation` does (same warm starts), compiled whole
+        (:func:`~.kalman.tracker_filter_pass`); for a state of δM alone."""
+        from .kalman import tracker_filter_pass
+
+        legs = self.model.legs
+        geometry = (drive.base_joints, drive.platform_joints, drive.initial_lengths)
+        tracker = (legs.base_joints, legs.platform_joints, legs.initial_lengths)
+        variances = (float(self.model.channel_sigma[0]) ** 2, float(stroke_sigma_mm) ** 2)
+        factor = np.ascontiguousarray(stroke_factor, dtype=float)
+
+        def run(x, P, t_s, prepared, use, walk_rate, noise_scale2, components):
+            warm = self._guess is not None
+            R, t = (np.array(self._guess[0], dtype=float), np.array(self._guess[1], dtype=float)) if warm else (np.eye(3), np.zeros(3))
+            used, last_t, warm = tracker_filter_pass(x, P, t_s, np.ascontiguousarray(prepared), use, geometry, tracker, factor,
+                                                     variances, float(walk_rate), float(noise_scale2), R, t, warm, components)
+            if warm:
+                self._guess = (R, t)
+            return used, last_t
+
+        return run
+
 
 def pose_difference(R_v: np.ndarray, t_v: np.ndarray, R_m: np.ndarray, t_m: np.ndarray) -> np.ndarray:
     """``Y = P_v − P_m`` as ``[δh [mm], δθ [rad]]`` (paper eq. 9 and Fig. 3 step 2).

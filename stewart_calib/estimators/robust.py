@@ -78,6 +78,10 @@ class RobustFilter:
         m: observation size.
         layout, C: the unknown vector and its gauge rows (as :class:`FilterState`).
         unit_Q: the process noise per unit ``ρ² Δt`` (None: the identity).
+        compiled_pass: the batches' filter pass over buffered samples in one compiled call,
+            ``(x, P, t_s, prepared, use, walk_rate, noise_scale2, components) → (used, last t_s)``,
+            equal to observing each through ``observe`` (None: they are, one by one); only with
+            ``unit_Q`` None.
 
     Attributes:
         started: the start-up batch is decided (the gated recursion runs).
@@ -88,7 +92,7 @@ class RobustFilter:
 
     def __init__(self, method: str, prior_sigma_mm: float, walk_mm_per_sqrt_s: float, gate_probability: float,
                  observe: Observe, robust, m: int = 6, layout=None, C: np.ndarray | None = None,
-                 unit_Q: np.ndarray | None = None):
+                 unit_Q: np.ndarray | None = None, compiled_pass=None):
         self.method = method
         self.filter = FilterState(method, prior_sigma_mm, gate_probability, m, layout, C)
         n = len(self.filter.x)
@@ -97,6 +101,7 @@ class RobustFilter:
         self._P0_pinv = np.linalg.pinv(self._P0)
         self._free = int(np.linalg.matrix_rank(self._P0))  # directions the gauge leaves free
         self._unit_Q = unit_Q
+        self._compiled_pass = compiled_pass if unit_Q is None else None
         self._configured_walk = walk_mm_per_sqrt_s**2
         self._observe = observe
         self._robust = robust
@@ -223,11 +228,24 @@ class RobustFilter:
         """
         x = (self._x0 if centre is None else centre).copy()
         P = self._P0.copy()
-        Q = np.zeros((self._n, self._n))
-        last_t, used = math.nan, 0
         # variance components of the updates: e = R S⁻¹ ν has E[eᵀ R⁻¹ e] = tr(R S⁻¹), whatever
         # the walk (the residual is taken at the state right after the update)
         self._pass_components = np.zeros(2)
+        buffer = self._buffer
+        if self._compiled_pass is not None:
+            used, last_t = self._compiled_pass(x, P, buffer.t, buffer.prepared, use, self.walk_rate_mm2_per_s, noise_scale2,
+                                               self._pass_components)
+        else:
+            used, last_t = self._observed_pass(x, P, use, noise_scale2)
+        # the batch's hat-matrix trace, tr(P Σ Hᵀ R⁻¹ H) = n − tr(P P0⁻¹), is what the data
+        # determine; the rest of the residual degrees of freedom are redundancy
+        determined = self._free - float(np.sum(self._P0_pinv * P))  # tr(P0⁺ P), both symmetric
+        return x, P, used, last_t, used * self._m - determined
+
+    def _observed_pass(self, x: np.ndarray, P: np.ndarray, use: np.ndarray, noise_scale2: float) -> tuple[int, float]:
+        """:meth:`_pass`'s recursion, observing each sample through ``observe`` (in place)."""
+        Q = np.zeros((self._n, self._n))
+        last_t, used = math.nan, 0
         buffer = self._buffer
         for k in np.flatnonzero(use):
             observation = self._observe_or_none(buffer.prepared[k], x)
@@ -240,10 +258,7 @@ class RobustFilter:
                 continue  # degenerate: the kernel left x and P untouched
             self._pass_components += variance_components(S, nu, noise_scale2 * R0)
             last_t, used = buffer.t[k], used + 1
-        # the batch's hat-matrix trace, tr(P Σ Hᵀ R⁻¹ H) = n − tr(P P0⁻¹), is what the data
-        # determine; the rest of the residual degrees of freedom are redundancy
-        determined = self._free - float(np.sum(self._P0_pinv * P))  # tr(P0⁺ P), both symmetric
-        return x, P, used, last_t, used * self._m - determined
+        return used, last_t
 
     def _test(self, x: np.ndarray, P: np.ndarray, fitted: np.ndarray, redundancy: float, used: int):
         """``(d_k of every buffered sample, robust scale²)`` at the estimate ``(x, P)`` fitted to ``fitted``."""
