@@ -20,33 +20,28 @@ part of every reading (the preset says so), and at 0.5 µm the χ² gate refuses
 **Metric: true closed-loop error.** For random workspace poses P (80 % of the ±200 mm / ±20°
 box): strokes ``q = IK(identified drive, P)``, achieved pose ``FK(true drive, q)``; RMS of the
 position error [µm] and of the orientation error [arcsec] against P. A pose is only meaningful
-in a frame, and neither case observes where the frames {J} and {D} are:
+in a frame, and neither case observes where the frames {J} and {D} are; both define them by the
+tracker's joints:
 
-* (b) tracker identified: a rigid motion of all base joints of drive and tracker together (or of
-  all platform joints) changes no reading or stroke — 12 gauge directions. The estimators fix
-  them by holding the drive joints' common rigid motion at nominal (``instruments/gauge.py``), so
-  the truth is compared in that gauge: moved by ``gauge.to_gauge`` (the Kabsch fit of the true
-  joints onto the nominal ones), as ``tests/instrument_data.truth_in_gauge`` does.
 * (a) tracker fixed: the estimator takes the nominal tracker as exact, which makes {J} and {D}
   the frames where the tracker has its nominal geometry. The true tracker has that geometry in
   no frame; the closest are the frames where its joints best fit the nominal ones (Kabsch of
   its base joints, and of its platform joints, onto nominal), and the truth is compared there.
   The simulator's own frame differs from those by the rigid part of the 15 µm draws, which
   nothing can observe: compared in it, (a) would also be charged for that convention.
+* (b) tracker identified: a rigid motion of all base joints of drive and tracker together (or of
+  all platform joints) changes no reading or stroke — 12 gauge directions. The tracker holds
+  them (``UnknownBlock.holds_gauge``): its joints' common rigid motion stays at nominal — to first
+  order the same frames as (a)'s Kabsch fit, where the truth is compared.
 
 Each method's error is the mean over seeds of its per-seed RMS; the target ratio (issue 13:
 an online method with the geometry identified within 1.25× the joint ``lm`` fit) is the ratio
 of those means, with the per-seed range beside it.
 
-**What the gauge costs here.** Table 4's drive errors carry a common rigid motion of their
-joints: moving the true drive into the gauge shifts its joints by 0.2–1.8 mm. In that gauge
-the tracker must absorb the rigid part, millimetres away from its 15 µm prior: the prior and
-the data then disagree by many σ, and every method's fit with the geometry identified is a
-compromise between them (see the table). ``ekf`` and ``isam2`` (whose front end is the same leg
-EKF) fare worse: after their robust start-up batch (the first 30 samples) the χ² gate, at the
-rulers' 0.5 µm, refuses nearly all later samples, so they keep about the start-up's estimate. A
-drive error without a rigid part (the truth already in the gauge) meets no such conflict. The
-estimators are not tuned here to pass.
+**Why the tracker holds the gauge.** Table 4's drive errors carry a common rigid motion of
+their joints of 0.2–1.8 mm. Held by the drive's joints instead (as the first version of this
+feature did), the gauge pushed that rigid part into the tracker, millimetres away from its 15 µm
+prior, and every fit with the geometry identified ended at 0.8–1.6 mm closed-loop error.
 
 ``python -m benchmarks.tracker_geometry [--seeds N] [--quick]`` prints the table.
 """
@@ -133,10 +128,9 @@ def _moved(params: np.ndarray, base_frame: tuple, platform_frame: tuple) -> np.n
     return LegGeometry(legs.base_joints @ R_J.T + t_J, legs.platform_joints @ R_D.T + t_D, legs.initial_lengths).as_vector()
 
 
-def true_drive_in_frame(cell: Cell, case: str) -> np.ndarray:
-    """The true drive in the frames the ``case``'s estimate is written in (module docstring)."""
-    if case == "identified":
-        return gauge.to_gauge(cell.platform.drive, cell.true_drive)[0]
+def true_drive_in_frame(cell: Cell) -> np.ndarray:
+    """The true drive in the frames the estimates are written in: where the true tracker's joints
+    best fit its nominal ones (module docstring)."""
     nominal = cell.platform.tracker
     return _moved(cell.true_drive, gauge.kabsch(cell.true_tracker.base_joints, nominal.base_joints),
                   gauge.kabsch(cell.true_tracker.platform_joints, nominal.platform_joints))
@@ -160,10 +154,11 @@ def _config(case: str):
 def measure(seed: int, size: Size) -> dict:
     """``{case: {method: (position µm, orientation arcsec)}}`` and ``"nominal"``: the uncalibrated model's."""
     cell = simulate(seed, size)
-    out = {"nominal": closed_loop_rms(cell.platform.drive, true_drive_in_frame(cell, "fixed"), cell.validation)}
+    truth = true_drive_in_frame(cell)
+    out = {"nominal": closed_loop_rms(cell.platform.drive, truth, cell.validation)}
     for case in CASES:
         platform = replace(cell.platform, tracker_geometry_sigma_mm=GEOMETRY_SIGMA_MM if case == "identified" else 0.0)
-        truth, config = true_drive_in_frame(cell, case), _config(case)
+        config = _config(case)
         out[case] = {}
         for method in METHODS:
             estimate = run_calibration(platform, cell.log, method, config).estimate

@@ -45,6 +45,11 @@ class UnknownBlock:
         file_scale: ``(n,)`` file value = code value × file_scale (``180/π`` for an angle).
         gauge: which of :data:`GAUGES` the block shares with the drive.
         random_walk: whether the block drifts with the drive's random walk (else constant).
+        holds_gauge: the gauge rows hold this block's own joints (its values laid out as δM's,
+            seven per leg) at their nominal mean rigid motion instead of the drive's — for a block
+            known far better than the drive: the in-situ tracker's calibrated geometry then defines
+            {J} and {D}, and the drive's own rigid error (millimetres, Table 4) is identified
+            against it rather than pushed into the tracker, millimetres off its 15 µm prior.
     """
 
     key: str
@@ -54,6 +59,7 @@ class UnknownBlock:
     file_scale: np.ndarray = field(default=None)  # type: ignore[assignment]
     gauge: tuple[str, ...] = ()
     random_walk: bool = False
+    holds_gauge: bool = False
 
     def __post_init__(self) -> None:
         n = len(self.names)
@@ -134,13 +140,18 @@ class UnknownLayout:
 
         Three rows hold the mean translation and three the mean rotation of the base joints
         (when a block's ``gauge`` has ``"base"``), and the same for the platform joints; g is 0,
-        6 or 12. Rows are scaled to unit norm so that a constraint weight means the same on each.
+        6 or 12: the drive's joints, or those of a block that ``holds_gauge``. Rows are scaled to
+        unit norm so that a constraint weight means the same on each.
         """
         shared = {gauge for block in self.blocks for gauge in block.gauge}
+        holder = next((block for block in self.blocks if block.holds_gauge), None)
+        start, joints = 0, drive.as_vector().reshape(N_LEGS, N_PARAMS_PER_LEG)
+        if holder is not None:
+            start, joints = self.slice(holder.key).start, holder.nominal.reshape(N_LEGS, N_PARAMS_PER_LEG)
         rows = []
-        for gauge, joints, offset in (("base", drive.base_joints, 0), ("platform", drive.platform_joints, 3)):
+        for gauge, offset in (("base", 0), ("platform", 3)):
             if gauge in shared:
-                rows.append(_rigid_motion_rows(joints, offset, self.size))
+                rows.append(_rigid_motion_rows(joints[:, offset:offset + 3], start + offset, self.size))
         return np.vstack(rows) if rows else np.zeros((0, self.size))
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -164,13 +175,15 @@ def _rigid_motion_rows(joints: np.ndarray, offset: int, size: int) -> np.ndarray
 
 
 def gauge_conditioned(covariance: np.ndarray, C: np.ndarray) -> np.ndarray:
-    """``Σ − Σ Cᵀ (C Σ Cᵀ)⁻¹ C Σ``: the Gaussian ``N(0, Σ)`` conditioned on ``C x = 0``.
+    """``Σ − Σ Cᵀ (C Σ Cᵀ)⁺ C Σ``: the Gaussian ``N(0, Σ)`` conditioned on ``C x = 0``.
 
     A filter started from it (and whose process noise is conditioned too) keeps ``C x = 0``
     exactly: every gain ``K = P Hᵀ S⁻¹`` then satisfies ``C K = 0``. ``Σ`` itself when C has no rows.
+    The pseudo-inverse covers a ``Σ`` that already satisfies some rows (``C Σ = 0`` there: a
+    random walk of δM when a constant block holds the gauge), which it leaves as it is.
     """
     if len(C) == 0:
         return covariance
     SC = covariance @ C.T
-    conditioned = covariance - SC @ np.linalg.solve(C @ SC, SC.T)
+    conditioned = covariance - SC @ np.linalg.pinv(C @ SC, hermitian=True) @ SC.T
     return 0.5 * (conditioned + conditioned.T)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -105,17 +107,24 @@ def test_layout_places_blocks_after_the_drive_and_reports_file_units(platform):
     assert entry == {"names": ["k1", "k2", "k3", "k4", "k5", "k6"], "estimate": [0.01] * 6, "stddev": [0.002] * 6}
 
 
-def test_gauge_rows_span_exactly_the_rigid_motions_of_the_joints(platform):
-    layout = UnknownLayout((_tracker(platform, 0.05).unknowns,))
+@pytest.mark.parametrize("holder", ["tracker", "drive"])
+def test_gauge_rows_span_exactly_the_rigid_motions_of_the_joints(platform, holder):
+    """The tracker's geometry block holds the gauge on its own joints; a block that does not (an
+    outside instrument's) leaves it on the drive's."""
+    block = _tracker(platform, 0.05).unknowns
+    if holder == "drive":
+        block = replace(block, holds_gauge=False)
+    layout = UnknownLayout((block,))
     C = layout.gauge_rows(platform.drive)
     assert C.shape == (12, layout.size) and np.linalg.matrix_rank(C) == 12
     rng = np.random.default_rng(0)
-    joints = {"base": (platform.drive.base_joints, 0), "platform": (platform.drive.platform_joints, 3)}
+    legs, start = (platform.tracker, N_PARAMS) if holder == "tracker" else (platform.drive, 0)
+    joints = {"base": (legs.base_joints, 0), "platform": (legs.platform_joints, 3)}
     for name, (points, offset) in joints.items():
         a, omega = rng.normal(size=3), rng.normal(size=3) * 1e-3
         x = np.zeros(layout.size)
         for i, p in enumerate(points):  # δp_i = a + ω × (p_i − p̄): a rigid motion of these joints
-            x[7 * i + offset : 7 * i + offset + 3] = a + np.cross(omega, p - points.mean(axis=0))
+            x[start + 7 * i + offset : start + 7 * i + offset + 3] = a + np.cross(omega, p - points.mean(axis=0))
         # a rigid motion is seen by the rows; what is left after removing the rows' span is not one
         assert np.linalg.norm(C @ x) > 0.1 * np.linalg.norm(x)
         residue = x - np.linalg.pinv(C) @ (C @ x)

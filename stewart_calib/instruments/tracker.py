@@ -11,7 +11,9 @@ Ruler i reads ``s_i`` with ``‖t + R h_i − z_i‖ = ls_i + s_i`` — the driv
 Its unknowns: none when the geometry is known exactly (the paper's assumption; the default), or
 the 42 values ``[z_i | h_i | ls_i]`` per ruler under the prior N(nominal, σ²) with
 ``[tracker] geometry_sigma_mm = σ`` (spec §7). Those move exactly as the drive's joints under
-a rigid motion of all base or all platform joints, so the block shares both gauges.
+a rigid motion of all base or all platform joints, so the block shares both gauges; known to
+micrometres where the drive is known to millimetres, the tracker holds them
+(``UnknownBlock.holds_gauge``): {J} and {D} stay the frames its calibration defined.
 """
 
 from __future__ import annotations
@@ -62,7 +64,7 @@ class TrackerModel:
         if geometry_sigma_mm > 0.0:
             self.unknowns = UnknownBlock(
                 "instrument", TRACKER_PARAMETER_NAMES, legs.as_vector(), np.full(N_PARAMS, geometry_sigma_mm),
-                gauge=("base", "platform"),
+                gauge=("base", "platform"), holds_gauge=True,
             )
 
     def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
