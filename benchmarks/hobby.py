@@ -64,6 +64,20 @@ def random_poses(platform: Platform, n: int, rng: np.random.Generator) -> np.nda
     return ws.home + rng.uniform(-1.0, 1.0, (n, 6)) * half
 
 
+def reachable_poses(platform: Platform, legs: LegGeometry, scale: np.ndarray, n: int, rng: np.random.Generator):
+    """``(R, t, encoder strokes)`` of ``n`` random workspace poses whose strokes lie within the
+    platform's stroke range: a real log holds only poses the actuators reach (a pose drawn
+    regardless would be refused by every method of ours, spec §3, but not by the peer)."""
+    lo, hi = platform.stroke_range
+    R, t, strokes = np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 6))
+    while len(strokes) < n:
+        R_new, t_new = kin.pose_to_rt(random_poses(platform, n, rng))
+        q = kin.inverse_kinematics(legs, R_new, t_new) / (1.0 + scale)
+        reached = np.all((q >= lo) & (q <= hi), axis=1)
+        R, t, strokes = np.r_[R, R_new[reached]], np.r_[t, t_new[reached]], np.r_[strokes, q[reached]]
+    return R[:n], t[:n], strokes[:n]
+
+
 def simulate(seed: int, n_fit: int = N_FIT, n_held_out: int = N_HELD_OUT) -> HobbyData:
     """Fit log, a held-out log of the same session and one of another day (frame moved)."""
     rng = np.random.default_rng(seed)
@@ -75,9 +89,7 @@ def simulate(seed: int, n_fit: int = N_FIT, n_held_out: int = N_HELD_OUT) -> Hob
 
     def session(n: int, frame_offset: np.ndarray) -> Log:
         instrument = SimulatedInstrument.build(platform.instrument, InstrumentTruth(frame_offset, TARGET_OFFSET), rng)
-        poses = random_poses(platform, n, rng)
-        R, t = kin.pose_to_rt(poses)
-        strokes = kin.inverse_kinematics(true_drive, R, t) / (1.0 + scale)
+        R, t, strokes = reachable_poses(platform, true_drive, scale, n, rng)
         return Log(np.arange(n) * 1.0, strokes, instrument.read(R, t, instrument.draw(n, rng)))
 
     fit = session(n_fit, FRAME_OFFSET)

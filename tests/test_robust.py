@@ -76,18 +76,28 @@ def test_glitches_from_the_first_sample_on_do_not_poison_the_default_estimate(pl
     assert NEES_BAND[0] <= _nees(estimator.estimate(), error) <= NEES_BAND[1]
 
 
+#: samples of the noise-scale test: the default walk (1 µm/√s) exceeds what these data show, and
+#: until the windows have measured the walk it absorbs part of the noise; at 0.2× the noise the
+#: scale was still 0.68–1.01 of the truth after 120 samples (seeds 0–7), 0.88–1.02 after 300.
+SCALE_SAMPLES = 300
+
+
 @pytest.mark.parametrize("noise_factor", [0.2, 5.0])
 def test_the_default_config_measures_noise_five_times_off(platform, noise_factor):
-    log, error, _ = _log(platform, 4, noise_factor)
+    log, error, _ = _log(platform, 4, noise_factor, SCALE_SAMPLES)
     estimator, rejected = _run(platform, "ekf", log)
     assert len(rejected) <= 1  # the gate refuses a clean sample once in 10⁴ (and the start-up batch alike)
     # s² from ~N·6 − 42 residual degrees of freedom: 4 relative standard deviations
-    tolerance = 4 * np.sqrt(2 / (N * 6 - 42))
+    tolerance = 4 * np.sqrt(2 / (SCALE_SAMPLES * 6 - 42))
     assert estimator.noise_scale() ** 2 == pytest.approx(noise_factor**2, rel=tolerance)
     assert NEES_BAND[0] <= _nees(estimator.estimate(), error) <= NEES_BAND[1]
     # fixed noise stays available: the configured covariance, off by the factor (on quieter data,
-    # where the configured σ gates nothing; on noisier data it would gate the good samples)
+    # where the configured σ gates nothing; on noisier data it would gate the good samples). Over
+    # the first N samples, where the fixed config's walk has not yet widened its covariance apart.
     if noise_factor < 1.0:
+        log, _, _ = _log(platform, 4, noise_factor)
+        estimator, _ = _run(platform, "ekf", log)
+        tolerance = 4 * np.sqrt(2 / (N * 6 - 42))
         fixed, _ = _run(platform, "ekf", log, config_from_dict({"robust": {"adapt_noise": False}}))
         assert fixed.noise_scale() is None
         ratio = np.median(np.diag(estimator.estimate().covariance) / np.diag(fixed.estimate().covariance))

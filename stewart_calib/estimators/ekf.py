@@ -45,7 +45,7 @@ from .. import kinematics as kin
 from ..config import EstimatorConfig
 from ..errors import SampleRejected
 from ..estimate import Estimate
-from ..instruments import instrument_model, instrument_theta
+from ..instruments import instrument_model, instrument_theta, needs_registration
 from ..platform import N_PARAMS, Platform
 from ..samples import Sample
 from ..unknowns import gauge_conditioned
@@ -77,13 +77,16 @@ class LegEKF:
         self._instrument = self.layout.slice("instrument")
         self._pose = WarmPose(self.model)
         self._tracker_known = self.model.kind == "tracker" and self.model.unknowns is None
+        # an instrument registered on the data starts far from the answer (frame, encoder zeros, scale):
+        # its start-up batches are solved by Gauss–Newton, not one pass linearised at the prior
+        far_start = self._instrument is not None and needs_registration(platform)
         # the batches' passes in one compiled call where the state is δM alone (~4× faster)
         compiled_pass = self._pose.tracker_filter_pass(
             platform.drive, 1.0 + np.broadcast_to(self._nominal_scale, 6), config.noise.stroke_sigma_mm,
         ) if self._tracker_known and not self.layout.blocks else None
         self.robust = RobustFilter(self.name, config.noise.prior_sigma_mm, config.noise.random_walk_mm_per_sqrt_s,
                                    config.ekf.gate_probability, self._observe, config.robust, layout=self.layout, C=C,
-                                   unit_Q=unit_Q, compiled_pass=compiled_pass)
+                                   unit_Q=unit_Q, compiled_pass=compiled_pass, relinearise=far_start)
         self.filter = self.robust.filter
         self._drive_fk = WarmFK()
         self._held = HeldForRegistration(platform, config.noise, self.model, self.layout)
