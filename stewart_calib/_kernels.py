@@ -371,7 +371,7 @@ def leg_observation(base, plat, initial_lengths, x, R, t, strokes, pose_covarian
 
 @njit(**_JIT)
 def tracker_leg_observation(base, plat, initial_lengths, x, tracker_base, tracker_plat, tracker_lengths, readings,
-                            R, t, warm, tol_mm, strokes, reading_variance, stroke_variance):
+                            R, t, warm, tol_mm, max_iterations, strokes, reading_variance, stroke_variance):
     """:func:`fk_single` of the tracker readings (``R, t`` in/out), its pose covariance
     (:func:`pose_covariance`) and :func:`leg_observation` there, in one call.
 
@@ -379,7 +379,7 @@ def tracker_leg_observation(base, plat, initial_lengths, x, tracker_base, tracke
         ``(FK residual [mm], r, H, R_meas, J_x)``; the last four are meaningless when the residual
         exceeds ``tol_mm`` (FK failed from both starts).
     """
-    residual = fk_single(tracker_base, tracker_plat, tracker_lengths, readings, R, t, warm, tol_mm, 30)
+    residual = fk_single(tracker_base, tracker_plat, tracker_lengths, readings, R, t, warm, tol_mm, max_iterations)
     covariance = pose_covariance(tracker_base, tracker_plat, R, t, reading_variance)
     r, H, R_meas, J_x = leg_observation(base, plat, initial_lengths, x, R, t, strokes, covariance, stroke_variance)
     return residual, r, H, R_meas, J_x

@@ -102,6 +102,11 @@ class FKError(CalibError):
     """Forward kinematics did not converge or the leg lengths are unreachable."""
 
 
+#: Newton's tolerance on the leg lengths [mm] and its iteration cap, for every FK entry point.
+FK_TOLERANCE_MM = 1e-9
+FK_MAX_ITERATIONS = 30
+
+
 def default_guess(legs: LegGeometry, strokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A level pose above the base centre whose mean leg length matches the mean of ``strokes``."""
     target = np.asarray(strokes, dtype=float) + legs.initial_lengths
@@ -117,8 +122,8 @@ def forward_kinematics(
     legs: LegGeometry,
     strokes: np.ndarray,
     guess: tuple[np.ndarray, np.ndarray] | None = None,
-    tol_mm: float = 1e-9,
-    max_iterations: int = 30,
+    tol_mm: float = FK_TOLERANCE_MM,
+    max_iterations: int = FK_MAX_ITERATIONS,
     strict: bool = True,
 ) -> FKSolution:
     """Forward kinematics by Newton–Raphson on the leg lengths (paper §3.2, step 1).
@@ -157,8 +162,8 @@ def forward_kinematics_per_pose(
     initial_lengths: np.ndarray,
     strokes: np.ndarray,
     guess: tuple[np.ndarray, np.ndarray],
-    tol_mm: float = 1e-9,
-    max_iterations: int = 30,
+    tol_mm: float = FK_TOLERANCE_MM,
+    max_iterations: int = FK_MAX_ITERATIONS,
     strict: bool = True,
 ) -> FKSolution:
     """:func:`forward_kinematics` where pose k has its own geometry (e.g. a drive deformed by
@@ -364,14 +369,15 @@ def tracker_leg_observation(
     Raises:
         SampleRejected: the tracker's FK converges from neither start.
     """
-    R, t = (np.eye(3), np.zeros(3)) if guess is None else (np.array(guess[0], dtype=float), np.array(guess[1], dtype=float))
+    R, t = start_pose(guess)
     c = np.ascontiguousarray
     residual, r, H, R_meas, _ = _kernels.tracker_leg_observation(
         drive.base_joints, drive.platform_joints, drive.initial_lengths, c(delta, dtype=float),
         tracker.base_joints, tracker.platform_joints, tracker.initial_lengths, c(readings, dtype=float), R, t,
-        guess is not None, 1e-9, c(strokes, dtype=float), float(reading_sigma_mm) ** 2, float(stroke_sigma_mm) ** 2,
+        guess is not None, FK_TOLERANCE_MM, FK_MAX_ITERATIONS, c(strokes, dtype=float), float(reading_sigma_mm) ** 2,
+        float(stroke_sigma_mm) ** 2,
     )
-    if not residual <= 1e-9:
+    if not residual <= FK_TOLERANCE_MM:
         raise _fk_failed("tracker", residual)
     return R, t, r, H, R_meas
 
@@ -401,7 +407,8 @@ def leg_residual(
 
 
 def solve_fk(
-    legs: LegGeometry, lengths: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None, what: str, tol_mm: float = 1e-9
+    legs: LegGeometry, lengths: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None, what: str,
+    tol_mm: float = FK_TOLERANCE_MM
 ) -> tuple[np.ndarray, np.ndarray]:
     """FK from ``guess`` (the previous pose), then from the default cold guess: a jump between
     samples can leave the old pose outside Newton's basin.
@@ -409,13 +416,22 @@ def solve_fk(
     Raises:
         SampleRejected: neither start converges; ``what`` names the leg set.
     """
-    R, t = (np.eye(3), np.zeros(3)) if guess is None else (np.array(guess[0], dtype=float), np.array(guess[1], dtype=float))
+    R, t = start_pose(guess)
     # one compiled call for both starts: forward_kinematics' batch wrapper costs ~10 µs a pose
     residual = _kernels.fk_single(legs.base_joints, legs.platform_joints, legs.initial_lengths,
-                                  np.ascontiguousarray(lengths, dtype=float), R, t, guess is not None, float(tol_mm), 30)
+                                  np.ascontiguousarray(lengths, dtype=float), R, t, guess is not None, float(tol_mm),
+                                  FK_MAX_ITERATIONS)
     if residual <= tol_mm:
         return R, t
     raise _fk_failed(what, residual)
+
+
+def start_pose(guess: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+    """Fresh C arrays ``(R, t)`` for a compiled FK to overwrite: a copy of ``guess`` (the warm start),
+    or placeholders when there is none (the kernel then starts cold)."""
+    if guess is None:
+        return np.eye(3), np.zeros(3)
+    return np.array(guess[0], dtype=float), np.array(guess[1], dtype=float)
 
 
 def _fk_failed(what: str, residual_mm: float) -> SampleRejected:

@@ -102,15 +102,11 @@ class LegEKF:
         if not self._held.active:
             self.robust.update(sample.t_s, np.concatenate((strokes, np.ravel(z))))
             return
-        start = self._held.hold(sample)
-        if start is not None:
-            self.robust.start_at(start)
-            for held in self._held.samples:  # a held sample the filter refuses is left out, as it would have been
-                held_strokes, held_z = check_sample(self.platform, self.model, held)
-                try:
-                    self.robust.update(held.t_s, np.concatenate((held_strokes, np.ravel(held_z))))
-                except SampleRejected:
-                    pass
+        self._held.hold_then_replay(sample, self.robust.start_at, self._replay)
+
+    def _replay(self, held: Sample) -> None:
+        strokes, z = check_sample(self.platform, self.model, held)
+        self.robust.update(held.t_s, np.concatenate((strokes, np.ravel(z))))
 
     def _observe(self, prepared: np.ndarray, x: np.ndarray):
         """``(−r, H = ∂r/∂X, R_meas)`` of a prepared sample at the state ``x``: the loose

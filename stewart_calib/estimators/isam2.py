@@ -187,15 +187,10 @@ class ISAM2Estimator:
                 f"sample at t = {sample.t_s} s is older than the last one ({self._held.samples[-1].t_s} s)",
                 SampleRejected.TIME_BACK,
             )
-        start = self._held.hold(sample)
-        if start is None:
-            return
+        self._held.hold_then_replay(sample, self._registered, self.update)
+
+    def _registered(self, start: np.ndarray) -> None:
         self._builder.initial = start
-        for held in self._held.samples:  # a held sample the smoother refuses is left out, as it would have been
-            try:
-                self.update(held)
-            except SampleRejected:
-                pass
 
     def _add(self, sample: Sample) -> None:
         """The update itself; the Python-side state changes only once the smoother has succeeded."""

@@ -208,6 +208,7 @@ def tracker_filter_pass(
     tracker: tuple,
     stroke_factor: np.ndarray,
     variances: tuple,
+    newton: tuple,
     walk_rate: float,
     noise_scale2: float,
     R_guess: np.ndarray,
@@ -229,6 +230,7 @@ def tracker_filter_pass(
     Args:
         drive, tracker: ``(base_joints, platform_joints, initial_lengths)`` of each leg set.
         variances: ``(σ_s², σ_q²)`` reading and stroke variance [mm²].
+        newton: FK's ``(tolerance [mm], iteration cap)``.
     Returns:
         ``(samples used, t_s of the last one, whether (R_guess, t_guess) holds a pose)``.
     """
@@ -250,9 +252,9 @@ def tracker_filter_pass(
             strokes[i] = prepared[k, i] * stroke_factor[i]
         residual, r, H, R_meas, _ = _kernels.tracker_leg_observation(
             drive[0], drive[1], drive[2], x[:42], tracker[0], tracker[1], tracker[2], prepared[k, 6:12],
-            R_try, t_try, warm, 1e-9, strokes, variances[0], variances[1],
+            R_try, t_try, warm, newton[0], newton[1], strokes, variances[0], variances[1],
         )
-        if not residual <= 1e-9:
+        if not residual <= newton[0]:
             continue
         R_guess[:, :] = R_try
         t_guess[:] = t_try

@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import math
+from typing import Callable
 
 import numpy as np
 
@@ -100,7 +101,7 @@ class WarmFK(_WarmStart):
         tol_mm: Newton tolerance on the leg lengths [mm].
     """
 
-    def __init__(self, tol_mm: float = 1e-9):
+    def __init__(self, tol_mm: float = kin.FK_TOLERANCE_MM):
         self.tol_mm = tol_mm
 
     def solve(self, legs: LegGeometry, lengths: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -152,11 +153,14 @@ class WarmPose(_WarmStart):
         variances = (float(self.model.channel_sigma[0]) ** 2, float(stroke_sigma_mm) ** 2)
         factor = np.ascontiguousarray(stroke_factor, dtype=float)
 
+        newton = (kin.FK_TOLERANCE_MM, kin.FK_MAX_ITERATIONS)
+
         def run(x, P, t_s, prepared, use, walk_rate, noise_scale2, components):
             warm = self._guess is not None
-            R, t = (np.array(self._guess[0], dtype=float), np.array(self._guess[1], dtype=float)) if warm else (np.eye(3), np.zeros(3))
+            R, t = kin.start_pose(self._guess)
             used, last_t, warm = tracker_filter_pass(x, P, t_s, np.ascontiguousarray(prepared), use, geometry, tracker, factor,
-                                                     variances, float(walk_rate), float(noise_scale2), R, t, warm, components)
+                                                     variances, newton, float(walk_rate), float(noise_scale2), R, t, warm,
+                                                     components)
             if warm:
                 self._guess = (R, t)
             return used, last_t
@@ -233,6 +237,19 @@ class HeldForRegistration:
             return None
         self.active = False
         return start
+
+    def hold_then_replay(self, sample: Sample, start: Callable[[np.ndarray], None], replay: Callable[[Sample], None]) -> None:
+        """:meth:`hold` ``sample``; once the held samples register the instrument, ``start(vector)``
+        and ``replay`` each of them (one it refuses is left out, as it would have been)."""
+        vector = self.hold(sample)
+        if vector is None:
+            return
+        start(vector)
+        for held in self.samples:
+            try:
+                replay(held)
+            except SampleRejected:
+                pass
 
     def export_state(self) -> dict:
         """The held samples as arrays, while holding (a checkpoint without them has ended holding)."""

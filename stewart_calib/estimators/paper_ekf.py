@@ -29,7 +29,7 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..config import EstimatorConfig
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta
 from ..platform import N_PARAMS, Platform
@@ -80,15 +80,13 @@ class PaperEKF:
         if not self._held.active:
             self._update(strokes, z, sample.t_s)
             return
-        start = self._held.hold(sample)
-        if start is None:
-            return
+        self._held.hold_then_replay(sample, self._registered, self._replay)
+
+    def _registered(self, start: np.ndarray) -> None:
         self._theta = instrument_theta(self.model, start[self._layout.slice("instrument")])
-        for held in self._held.samples:  # a held sample the filter refuses is left out, as it would have been
-            try:
-                self._update(*check_sample(self.platform, self.model, held), held.t_s)
-            except SampleRejected:
-                pass
+
+    def _replay(self, held: Sample) -> None:
+        self._update(*check_sample(self.platform, self.model, held), held.t_s)
 
     def _update(self, strokes: np.ndarray, z: np.ndarray, t_s: float) -> None:
         strokes = strokes * (1.0 + self.platform.stroke_scale)  # the encoders' nominal scale (spec §7)
