@@ -148,6 +148,40 @@ def test_time_going_back_across_a_block_boundary_is_flagged(tmp_path):
         assert skipped == [11, 31, 32]
 
 
+
+def test_a_long_numeric_log_read_by_pyarrow_is_the_log_read_as_text(tmp_path, monkeypatch):
+    # Without a text column, a log longer than a block is parsed by pyarrow from the file's bytes;
+    # read as one block (the file shorter than it) it takes the text path. Both see the same
+    # samples and skip the same rows, numbered alike — with CRLF line breaks, a non-finite
+    # value, time going back and a lone carriage return (a line break to pyarrow alone).
+    from stewart_calib.io import logs, read_log_blocks, tables
+
+    by_arrow = []
+    monkeypatch.setattr(logs, "numbers_by_arrow", lambda *a: by_arrow.append(tables.numbers_by_arrow(*a)) or by_arrow[-1])
+    path = tmp_path / "log.csv"
+    _write_log_with_faults(path)
+    lines = [",".join(line.split(",")[:-1]) for line in path.read_text().splitlines()]  # no stage column
+    lines.remove("")  # what is left of the quoted stage's second line
+    lines[20] = lines[20].replace(",", "\r,", 1)  # row 21
+    path.write_bytes(("\r\n".join(lines) + "\r\n").encode())
+    size = path.stat().st_size
+
+    def read(block_bytes):
+        blocks = list(read_log_blocks(path, nim_stewart(), skip_bad_rows=True, block_bytes=block_bytes))
+        return blocks, [row for b in blocks for row, _ in b.skipped]
+
+    (whole,), skipped = read(size + 1)
+    assert [row for row, _ in whole.skipped] == [11, 21, 31] and not by_arrow
+    for block_bytes in (1, 700, size // 2):
+        by_arrow.clear()
+        blocks, skipped_by_blocks = read(block_bytes)
+        assert any(table is not None for table in by_arrow) and None in by_arrow  # the lone \r's block: the text path
+        assert skipped_by_blocks == [row for row, _ in whole.skipped]
+        assert [b.skipped for b in blocks if b.skipped] and sum(map(len, blocks)) == len(whole)
+        for field in ("t_s", "strokes", "readings", "desired_poses"):
+            np.testing.assert_array_equal(np.concatenate([getattr(b, field) for b in blocks]), getattr(whole, field))
+
+
 # ----------------------------------------------------------------------------- memory of a run
 
 LOG_BYTES_PER_ROW = 8 * (1 + 6 + 6 + 6)  # t_s, strokes, readings, desired pose as float64
