@@ -165,7 +165,13 @@ class RobustConfig:
             gated once in 10⁴ at the default gate; 8 of 20 with 5 % glitches has odds ~1e-6).
         adapt_noise: estimate the scale of the measurement noise and of the random walk from
             the innovations (variance components); false: the ``[noise]`` values as given.
-        noise_memory_samples: samples over which those estimates forget (exponential).
+        noise_memory_samples: samples over which those estimates forget (exponential), counted
+            in the windows they are taken from.
+        noise_every_samples: once the first windows have given the random walk (8 differences),
+            the noise estimates are taken every this many accepted samples (at least every window)
+            from the window of the last ``max(startup_samples, lockout_window_samples)`` samples:
+            a window's batch costs what the recursion does per sample, so taking one every window
+            would double the cost of every sample.
     """
 
     startup_samples: int = 30
@@ -173,6 +179,7 @@ class RobustConfig:
     lockout_gated_samples: int = 8
     adapt_noise: bool = True
     noise_memory_samples: int = 300
+    noise_every_samples: int = 120
 
 
 @dataclass(frozen=True)
@@ -210,6 +217,7 @@ _AT_LEAST = {
     ("robust", "lockout_window_samples"): (0, "a window of at least one sample"),
     ("robust", "lockout_gated_samples"): (0, "at least one gated sample"),
     ("robust", "noise_memory_samples"): (1, "a memory of at least two samples"),
+    ("robust", "noise_every_samples"): (0, "at least one sample"),
 }
 
 

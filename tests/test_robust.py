@@ -140,10 +140,11 @@ def test_the_compiled_pass_equals_observing_sample_by_sample(platform):
         runs.append(estimator)
     (a, b) = runs
     np.testing.assert_allclose(a.filter.x, b.filter.x, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(a.filter.P, b.filter.P, rtol=0, atol=1e-9 * np.abs(b.filter.P).max())
-    assert a.robust.noise_scale2 == pytest.approx(b.robust.noise_scale2, rel=1e-9)
-    # the walk rate's Newton root stops at a relative step of 1e-6: rounding can end it one step apart
+    # the walk rate's Newton root stops at a relative step of 1e-6: rounding can end it one step apart,
+    # and P carries that walk (Q = q Δt) at ~1e-9 of its size
     assert a.robust.walk_rate_mm2_per_s == pytest.approx(b.robust.walk_rate_mm2_per_s, rel=1e-6)
+    np.testing.assert_allclose(a.filter.P, b.filter.P, rtol=0, atol=1e-8 * np.abs(b.filter.P).max())
+    assert a.robust.noise_scale2 == pytest.approx(b.robust.noise_scale2, rel=1e-9)
 
 
 @pytest.mark.parametrize("m", [3, 6, 9])
@@ -207,3 +208,66 @@ def _assert_same_tree(a: dict, b: dict) -> None:
             _assert_same_tree(a[key], b[key])
         else:
             np.testing.assert_array_equal(a[key], b[key])
+
+
+def _state_arrays(state: dict, prefix: str = "") -> dict:
+    flat = {}
+    for key, value in state.items():
+        flat.update(_state_arrays(value, f"{prefix}{key}/") if isinstance(value, dict) else {prefix + key: np.asarray(value)})
+    return flat
+
+
+def test_a_block_of_samples_is_exactly_the_samples_one_by_one(platform):
+    """``update_block`` (the steady recursion compiled over runs of samples) leaves the estimator in
+    the state sample-by-sample updates leave it, with the same refusals, late rejections and
+    per-sample estimates, through a start-up glitch, gated glitches, a lock-out, a non-finite
+    stroke, a stroke out of range, a time going back and the noise windows. Equal to rounding: the
+    same kernels, but inlined into the compiled recursion fastmath may sum in another order (bit for
+    bit in one process, 1e-8 of δM apart in another); the walk rate's Newton root stops at a
+    relative step of 1e-6, so it may end one step apart."""
+    from benchmarks.common import synthetic_stream
+    from stewart_calib.estimators.base import update_block, update_each
+
+    log, _ = synthetic_stream(platform, 1500, np.random.default_rng(3), 10.0, smooth=True)
+    log.readings[10, 3] += 2.0  # left out late by the start-up batch
+    log.readings[500, 2] += 5.0
+    log.readings[700:712, 1] += 3.0  # a lock-out
+    log.strokes[900, 0] = np.nan
+    log.strokes[950, 4] = 1e4
+    log.t_s[1000] = log.t_s[999] - 1.0
+    runs = []
+    for by_block in (False, True):
+        estimator = make_estimator("ekf", platform)
+        errors, refused = np.empty((len(log), 42)), []
+        for start in range(0, len(log), 400):
+            block = log.select(slice(start, start + 400))
+            run = (update_block if by_block else update_each)(estimator, block, errors[start:start + len(block)])
+            refused.append([[(start + j, err.reason, str(err)) for j, err in part] for part in run])
+        runs.append((estimator, errors, refused))
+    (one, errors_one, refused_one), (block, errors_block, refused_block) = runs
+    assert refused_block == refused_one
+    assert sum(len(part[0]) + len(part[1]) for part in refused_one) >= 6  # the faults were met
+    assert one.robust.recoveries == block.robust.recoveries >= 1
+    np.testing.assert_allclose(errors_block, errors_one, rtol=0, atol=1e-6)  # [mm]; δM's σ here ~1e-3 mm
+    state_one, state_block = _state_arrays(one.export_state()), _state_arrays(block.export_state())
+    assert state_block.keys() == state_one.keys()
+    for key, expected in state_one.items():
+        if expected.dtype.kind == "f":
+            np.testing.assert_allclose(state_block[key], expected, rtol=1e-6, atol=1e-9 * np.abs(expected).max(initial=0),
+                                       err_msg=key)
+        else:
+            np.testing.assert_array_equal(state_block[key], expected, err_msg=key)
+
+
+def test_the_walk_between_windows_apart_is_the_difference_of_their_means():
+    """``T`` of two window means of a random walk: ``(a2 − b1) + (b1 − a1)/3 + (b2 − a2)/3``
+    (two thirds of the span when adjacent), checked by Monte Carlo on a discretised walk."""
+    rng = np.random.default_rng(0)
+    dt, q = 0.01, 2.0
+    steps = rng.normal(0.0, np.sqrt(q * dt), size=(20000, 1000))
+    walk = np.cumsum(steps, axis=1)
+    a1, b1, a2, b2 = 100, 300, 700, 1000  # sample indices
+    difference = walk[:, a2:b2 + 1].mean(axis=1) - walk[:, a1:b1 + 1].mean(axis=1)
+    T = (a2 - b1) * dt + ((b1 - a1) * dt + (b2 - a2) * dt) / 3.0
+    # the sample variance of 20000 draws has a relative σ of √(2/20000) = 1 %: 4σ
+    assert np.var(difference) == pytest.approx(q * T, rel=0.04)

@@ -11,7 +11,9 @@
 the samples it skipped in ``rejected``. :class:`KalmanFiltered` — a Kalman method shows its
 ``filter`` (the NIS of the last update, for diagnostics). :class:`Checkpointable` — a method whose state can be
 saved and restored exactly adds ``export_state()`` / ``import_state(state)`` (nested dicts of
-arrays; ``stewart_calib.online`` writes them to checkpoints).
+arrays; ``stewart_calib.online`` writes them to checkpoints). :class:`BlockUpdating` — a method
+that folds in a block of samples faster than one ``update`` at a time adds ``update_block``;
+callers go through :func:`update_block`, which falls back to :func:`update_each`.
 
 Parameters are always the paper's δM (eq. 9) in the paper's order: ``estimate = nominal + error``.
 """
@@ -24,7 +26,7 @@ import numpy as np
 
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
-from ..samples import Sample
+from ..samples import Log, Sample
 
 
 @runtime_checkable
@@ -81,6 +83,50 @@ def take_late_rejections(estimator: Estimator) -> list[SampleRejected]:
     :mod:`.robust`), each reported once; ``err.t_s`` is the sample's time. Empty for others."""
     take = getattr(estimator, "take_late_rejections", None)
     return take() if take is not None else []
+
+
+#: ``(index of the sample, SampleRejected)`` pairs.
+Refusals = list[tuple[int, SampleRejected]]
+
+
+@runtime_checkable
+class BlockUpdating(Protocol):
+    """A method that folds in a block of samples faster than :meth:`Estimator.update` one by one."""
+
+    def update_block(self, block: Log, errors_out: np.ndarray | None = None) -> tuple[Refusals, Refusals]:
+        """Exactly what :func:`update_each` does with ``block``."""
+
+
+def update_each(estimator: Estimator, samples: Iterable[Sample], errors_out: np.ndarray | None = None,
+                first: int = 0) -> tuple[Refusals, Refusals]:
+    """``update`` with each of ``samples`` in turn.
+
+    Args:
+        errors_out: ``(len(samples), 42)``: δM [mm] after each sample (the estimate in force
+            after a refused one), or None.
+        first: the index of the first sample (added to the indices returned).
+    Returns:
+        ``(refused, late)``: the samples ``update`` refused, and those refused late
+        (:func:`take_late_rejections`, ``err.t_s`` their time) each with the index of the sample
+        after which they were.
+    """
+    refused, late = [], []
+    for j, sample in enumerate(samples):
+        try:
+            estimator.update(sample)
+        except SampleRejected as err:
+            refused.append((first + j, err))
+        late.extend((first + j, err) for err in take_late_rejections(estimator))
+        if errors_out is not None:
+            errors_out[j] = estimator.current_error()
+    return refused, late
+
+
+def update_block(estimator: Estimator, block: Log, errors_out: np.ndarray | None = None) -> tuple[Refusals, Refusals]:
+    """:func:`update_each` over the samples of ``block``, by the estimator's own faster way where it has one."""
+    if isinstance(estimator, BlockUpdating):
+        return estimator.update_block(block, errors_out)
+    return update_each(estimator, block, errors_out)
 
 
 def feed(estimator: Estimator, samples: Iterable[Sample]) -> list[tuple[int, SampleRejected]]:

@@ -47,8 +47,9 @@ from ..errors import SampleRejected
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta, needs_registration
 from ..platform import N_PARAMS, Platform
-from ..samples import Sample
+from ..samples import Log, Sample
 from ..unknowns import gauge_conditioned
+from .base import Refusals, update_each
 from .robust import RobustFilter
 from .measurement import HeldForRegistration, WarmFK, WarmPose, check_sample, unknown_layout
 
@@ -81,12 +82,15 @@ class LegEKF:
         # its start-up batches are solved by Gauss–Newton, not one pass linearised at the prior
         far_start = self._instrument is not None and needs_registration(platform)
         # the batches' passes in one compiled call where the state is δM alone (~4× faster)
-        compiled_pass = self._pose.tracker_filter_pass(
-            platform.drive, 1.0 + np.broadcast_to(self._nominal_scale, 6), config.noise.stroke_sigma_mm,
-        ) if self._tracker_known and not self.layout.blocks else None
+        # and so its gated recursion over a block of samples (update_block)
+        self._compiled = compiled = self._tracker_known and not self.layout.blocks
+        kernel_arguments = (platform.drive, 1.0 + np.broadcast_to(self._nominal_scale, 6), config.noise.stroke_sigma_mm)
         self.robust = RobustFilter(self.name, config.noise.prior_sigma_mm, config.noise.random_walk_mm_per_sqrt_s,
                                    config.ekf.gate_probability, self._observe, config.robust, layout=self.layout, C=C,
-                                   unit_Q=unit_Q, compiled_pass=compiled_pass, relinearise=far_start)
+                                   unit_Q=unit_Q, relinearise=far_start,
+                                   compiled_pass=self._pose.tracker_filter_pass(*kernel_arguments) if compiled else None,
+                                   compiled_steps=self._pose.tracker_filter_steps(*kernel_arguments) if compiled else None)
+        self._stroke_bounds = platform.stroke_range if platform.stroke_range is not None else (-np.inf, np.inf)
         self.filter = self.robust.filter
         self._drive_fk = WarmFK()
         self._held = HeldForRegistration(platform, config.noise, self.model, self.layout)
@@ -103,6 +107,40 @@ class LegEKF:
             self.robust.update(sample.t_s, np.concatenate((strokes, np.ravel(z))))
             return
         self._held.hold_then_replay(sample, self.robust.start_at, self._replay)
+
+    def update_block(self, block: Log, errors_out: np.ndarray | None = None) -> tuple[Refusals, Refusals]:
+        """:func:`~.base.update_each` over ``block``: the steady recursion in compiled calls for the
+        runs of samples it accepts, any other sample (start-up, refused, window statistics due…)
+        through :meth:`update` — the same result."""
+        count = len(block)
+        errors = np.zeros((0, N_PARAMS)) if errors_out is None else errors_out
+        refused, late = [], []
+        prepared = plain = None
+        j = 0
+        while j < count:
+            if self._compiled and self.robust.started:
+                if prepared is None:
+                    prepared, plain = self._prepared_rows(block)
+                j += self.robust.update_block(block.t_s[j:], prepared[j:], plain[j:], errors[j:])
+                if j == count:
+                    break
+            one = update_each(self, [block[j]], None if errors_out is None else errors_out[j:j + 1], first=j)
+            refused += one[0]
+            late += one[1]
+            j += 1
+        return refused, late
+
+    def _prepared_rows(self, block: Log) -> tuple[np.ndarray, np.ndarray]:
+        """``(prepared rows [q | z], the rows check_sample surely passes)`` of a tracker's block; the
+        check is stricter than check_sample (any doubt: the row goes through :meth:`update`)."""
+        lo, hi = self._stroke_bounds
+        r_lo, r_hi = self.model.reading_range if self.model.reading_range is not None else (-np.inf, np.inf)
+        strokes, readings = np.asarray(block.strokes, dtype=float), np.asarray(block.readings, dtype=float)
+        with np.errstate(invalid="ignore"):
+            plain = (np.isfinite(block.t_s) & np.isfinite(strokes).all(axis=1) & ((strokes >= lo) & (strokes <= hi)).all(axis=1)
+                     & np.isfinite(readings).all(axis=1) & ((readings >= r_lo) & (readings <= r_hi)).all(axis=1))
+        prepared = np.ascontiguousarray(np.column_stack((strokes, readings)), dtype=float)
+        return prepared, plain
 
     def _replay(self, held: Sample) -> None:
         strokes, z = check_sample(self.platform, self.model, held)

@@ -198,6 +198,27 @@ def variance_components(S: np.ndarray, residual: np.ndarray, R: np.ndarray) -> t
 
 
 @njit(fastmath=_FAST, nogil=True, error_model="numpy")
+def _tracker_observation(x, row, drive, tracker, stroke_factor, variances, newton, noise_scale2, R_guess, t_guess, warm,
+                         strokes, nu, R):
+    """The EKF's observation of one prepared row ``[q (6) | s (6)]`` of a tracker of known geometry
+    at ``x`` (``LegEKF._observe``): FK of the readings from ``(R_guess, t_guess)`` into new arrays,
+    ``ν = −r`` and ``R = s² R_meas`` into ``nu`` and ``R``. Returns ``(FK converged, H, R_pose, t_pose)``."""
+    R_try = R_guess.copy()
+    t_try = t_guess.copy()
+    for i in range(6):
+        strokes[i] = row[i] * stroke_factor[i]
+    residual, r, H, R_meas, _ = _kernels.tracker_leg_observation(
+        drive[0], drive[1], drive[2], x[:42], tracker[0], tracker[1], tracker[2], row[6:12],
+        R_try, t_try, warm, newton[0], newton[1], strokes, variances[0], variances[1],
+    )
+    for a in range(6):
+        nu[a] = -r[a]
+        for b in range(6):
+            R[a, b] = noise_scale2 * R_meas[a, b]
+    return residual <= newton[0], H, R_try, t_try
+
+
+@njit(fastmath=_FAST, nogil=True, error_model="numpy")
 def tracker_filter_pass(
     x: np.ndarray,
     P: np.ndarray,
@@ -246,26 +267,16 @@ def tracker_filter_pass(
     for k in range(t_s.shape[0]):
         if not use[k]:
             continue
-        R_try = R_guess.copy()
-        t_try = t_guess.copy()
-        for i in range(6):
-            strokes[i] = prepared[k, i] * stroke_factor[i]
-        residual, r, H, R_meas, _ = _kernels.tracker_leg_observation(
-            drive[0], drive[1], drive[2], x[:42], tracker[0], tracker[1], tracker[2], prepared[k, 6:12],
-            R_try, t_try, warm, newton[0], newton[1], strokes, variances[0], variances[1],
-        )
-        if not residual <= newton[0]:
+        converged, H, R_pose, t_pose = _tracker_observation(x, prepared[k], drive, tracker, stroke_factor, variances,
+                                                            newton, noise_scale2, R_guess, t_guess, warm, strokes, nu, R)
+        if not converged:
             continue
-        R_guess[:, :] = R_try
-        t_guess[:] = t_try
+        R_guess[:, :] = R_pose
+        t_guess[:] = t_pose
         warm = True
         step = 0.0 if math.isnan(last_t) else walk_rate * max(t_s[k] - last_t, 0.0)
         for i in range(n):
             Q[i, i] = step
-        for a in range(m):
-            nu[a] = -r[a]
-            for b in range(m):
-                R[a, b] = noise_scale2 * R_meas[a, b]
         nis, S = kalman_update(x, P, H, nu, R, Q, math.inf, work)
         if math.isnan(nis):
             continue
@@ -275,6 +286,80 @@ def tracker_filter_pass(
         last_t = t_s[k]
         used += 1
     return used, last_t, warm
+
+
+#: why :func:`tracker_filter_steps` stopped: at the end of its rows; at a row the per-sample
+#: path must take (it did not touch the state for it); after a row that made the window statistics due.
+STEPS_DONE, STEPS_PER_SAMPLE, STEPS_WINDOW_DUE = 0, 1, 2
+
+
+@njit(fastmath=_FAST, nogil=True, error_model="numpy")
+def tracker_filter_steps(x, P, Q, S_last, t_s, prepared, plain, last_t, drive, tracker, stroke_factor, variances, newton,
+                         walk_rate, noise_scale2, gate_nis, R_guess, t_guess, warm, buffer_t, buffer_prepared, buffer_gated,
+                         span, since_window, window, errors_out) -> tuple[int, int, float, float, int, bool]:
+    """The gated recursion of ``RobustFilter`` after its start-up, over the EKF's observations of a
+    tracker of known geometry, for as long as every row is an accepted sample — what
+    ``RobustFilter.update`` does row by row, in one call (the same kernels, in the same order).
+
+    For each row ``k``: stop (:data:`STEPS_PER_SAMPLE`, nothing touched for it) unless ``plain[k]``
+    (the caller's checks passed), ``t_s[k] ≥ last_t``, FK converges, the observation is finite and the
+    update passes the gate ``gate_nis`` with ``S`` positive definite; otherwise ``Q = ρ² Δt I`` into
+    ``Q`` (the filter's, as ``_fill_Q``), the update in place on ``(x, P)``, its ``S`` into ``S_last``,
+    the warm start ``(R_guess, t_guess)`` moved to the row's pose, the row appended to the sample
+    window (``_SampleWindow``'s arrays and ``span = [start, end]``, in place) and δM into
+    ``errors_out[k]`` (when it has rows). After ``window`` accepted rows since the last window
+    statistics (``window`` > 0) it stops with :data:`STEPS_WINDOW_DUE`.
+
+    Returns:
+        ``(rows done, why it stopped, last accepted t_s, its NIS, since_window, warm)``.
+    """
+    m = 6
+    n = x.shape[0]
+    R = np.empty((m, m))
+    nu = np.empty(m)
+    work = np.empty(m * n + m * m + m)
+    strokes = np.empty(6)
+    capacity = buffer_t.shape[0] // 2
+    nis = math.nan
+    for k in range(t_s.shape[0]):
+        if not (plain[k] and t_s[k] >= last_t):
+            return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm
+        converged, H, R_pose, t_pose = _tracker_observation(x, prepared[k], drive, tracker, stroke_factor, variances,
+                                                            newton, noise_scale2, R_guess, t_guess, warm, strokes, nu, R)
+        if not (converged and all_finite(H, nu, R)):
+            return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm
+        step = walk_rate * max(t_s[k] - last_t, 0.0)
+        for i in range(n):
+            Q[i, i] = step
+        nis_k, S = kalman_update(x, P, H, nu, R, Q, gate_nis, work)
+        if not nis_k <= gate_nis:  # gated, or S not positive definite: x and P untouched
+            return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm
+        R_guess[:, :] = R_pose
+        t_guess[:] = t_pose
+        warm = True
+        S_last[:, :] = S
+        nis = nis_k
+        last_t = t_s[k]
+        start, end = span[0], span[1]
+        if end == buffer_t.shape[0]:  # slide the live rows to the front, as _SampleWindow.append
+            for i in range(end - start):
+                buffer_t[i] = buffer_t[start + i]
+                buffer_prepared[i, :] = buffer_prepared[start + i, :]
+                buffer_gated[i] = buffer_gated[start + i]
+            start, end = 0, end - start
+        buffer_t[end] = t_s[k]
+        buffer_prepared[end, :] = prepared[k, :]
+        buffer_gated[end] = False
+        end += 1
+        if end - start > capacity:
+            start += 1
+        span[0], span[1] = start, end
+        if errors_out.shape[0]:
+            errors_out[k, :] = x[:42]
+        since_window += 1
+        if window > 0 and since_window >= window:
+            return k + 1, STEPS_WINDOW_DUE, last_t, nis, since_window, warm
+    return t_s.shape[0], STEPS_DONE, last_t, nis, since_window, warm
 
 
 def workspace_size(n: int, m: int) -> int:

@@ -140,6 +140,15 @@ class WarmPose(_WarmStart):
         self._guess = (R, t)
         return r, H, R_meas
 
+    def _tracker_arguments(self, drive: LegGeometry, stroke_factor: np.ndarray, stroke_sigma_mm: float) -> tuple:
+        """The compiled passes' fixed arguments: both leg sets, the stroke factor, the variances, Newton's limits."""
+        legs = self.model.legs
+        return ((drive.base_joints, drive.platform_joints, drive.initial_lengths),
+                (legs.base_joints, legs.platform_joints, legs.initial_lengths),
+                np.ascontiguousarray(stroke_factor, dtype=float),
+                (float(self.model.channel_sigma[0]) ** 2, float(stroke_sigma_mm) ** 2),
+                (kin.FK_TOLERANCE_MM, kin.FK_MAX_ITERATIONS))
+
     def tracker_filter_pass(self, drive: LegGeometry, stroke_factor: np.ndarray, stroke_sigma_mm: float):
         """A filter pass ``(x, P, t_s, prepared, use, walk_rate, noise_scale2, components) →
         (used, last t_s)`` for :class:`~.robust.RobustFilter` that observes each sample as
@@ -147,23 +156,36 @@ class WarmPose(_WarmStart):
         (:func:`~.kalman.tracker_filter_pass`); for a state of δM alone."""
         from .kalman import tracker_filter_pass
 
-        legs = self.model.legs
-        geometry = (drive.base_joints, drive.platform_joints, drive.initial_lengths)
-        tracker = (legs.base_joints, legs.platform_joints, legs.initial_lengths)
-        variances = (float(self.model.channel_sigma[0]) ** 2, float(stroke_sigma_mm) ** 2)
-        factor = np.ascontiguousarray(stroke_factor, dtype=float)
-
-        newton = (kin.FK_TOLERANCE_MM, kin.FK_MAX_ITERATIONS)
+        fixed = self._tracker_arguments(drive, stroke_factor, stroke_sigma_mm)
 
         def run(x, P, t_s, prepared, use, walk_rate, noise_scale2, components):
-            warm = self._guess is not None
             R, t = kin.start_pose(self._guess)
-            used, last_t, warm = tracker_filter_pass(x, P, t_s, np.ascontiguousarray(prepared), use, geometry, tracker, factor,
-                                                     variances, newton, float(walk_rate), float(noise_scale2), R, t, warm,
+            used, last_t, warm = tracker_filter_pass(x, P, t_s, np.ascontiguousarray(prepared), use, *fixed,
+                                                     float(walk_rate), float(noise_scale2), R, t, self._guess is not None,
                                                      components)
             if warm:
                 self._guess = (R, t)
             return used, last_t
+
+        return run
+
+    def tracker_filter_steps(self, drive: LegGeometry, stroke_factor: np.ndarray, stroke_sigma_mm: float):
+        """The gated recursion over rows of prepared samples for :class:`~.robust.RobustFilter`,
+        observing each as :meth:`tracker_leg_observation` does, compiled whole
+        (:func:`~.kalman.tracker_filter_steps`, whose arguments it takes but the fixed ones and the
+        warm start, kept here); for a state of δM alone."""
+        from .kalman import tracker_filter_steps
+
+        fixed = self._tracker_arguments(drive, stroke_factor, stroke_sigma_mm)
+
+        def run(x, P, Q, S_last, t_s, prepared, plain, last_t, walk_rate, noise_scale2, gate_nis, *window):
+            R, t = kin.start_pose(self._guess)
+            done, why, last_t, nis, since_window, warm = tracker_filter_steps(
+                x, P, Q, S_last, t_s, prepared, plain, last_t, *fixed, walk_rate, noise_scale2, gate_nis, R, t,
+                self._guess is not None, *window)
+            if warm:
+                self._guess = (R, t)
+            return done, why, last_t, nis, since_window
 
         return run
 

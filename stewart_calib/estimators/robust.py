@@ -31,13 +31,15 @@ the state no longer explains the data (a bad update got in, or the robot changed
 the random walk allows) and the recent samples are solved afresh by the same consensus —
 adopted only when most of them agree with it, so a stream of glitches cannot take over.
 
-**Noise levels from the data** (``adapt_noise``). Every ``startup_samples`` accepted samples
-the window of recent samples is solved as a small batch from the prior. Its post-fit residuals
-give the measurement scale, ``s² = Σ νᵀ R0⁻¹ ν / redundancy`` (the random walk barely moves
-the parameters within one window). Consecutive windows give the random-walk rate: for a walk
-of rate ``q`` [mm²/s], the difference of two window estimates ``T`` apart has covariance
-``P_w + P_{w+1} + (2/3) q T I`` (window means of a random walk), so ``q`` is the root of
-``Σ_w Δxᵀ (P_w + P_{w+1} + (2/3) q T I)⁻¹ Δx = n × windows`` (χ² matching, 0 when the
+**Noise levels from the data** (``adapt_noise``). Every window of accepted samples
+(``max(startup_samples, lockout_window_samples)``) until :data:`WALK_WINDOWS` differences are pooled,
+then every ``noise_every_samples``, the window of the last samples is solved as a small batch from
+the prior — not every window for ever: a window's batch costs what the recursion does per sample. Its post-fit residuals give the measurement scale, ``s² = Σ νᵀ R0⁻¹ ν / redundancy`` (the
+random walk barely moves the parameters within one window). Successive windows give the random-walk
+rate: for a walk of rate ``q`` [mm²/s], the means over windows ``[a1, b1]`` and ``[a2, b2]`` differ
+by a covariance ``q T I`` with ``T = (a2 − b1) + (b1 − a1)/3 + (b2 − a2)/3`` (two thirds of the
+span for adjacent windows), so two window estimates differ by ``P_w + P_{w+1} + q T I`` and ``q``
+is the root of ``Σ_w Δxᵀ (P_w + P_{w+1} + q T_w I)⁻¹ Δx = n × windows`` (χ² matching, 0 when the
 differences are already explained by the window covariances). Measurement noise and parameter
 motion are so told apart by their time scales, not by one innovation sequence that both shape.
 Both estimates forget over ``noise_memory_samples``. Fixed noise stays available.
@@ -52,9 +54,10 @@ from typing import Callable
 import numpy as np
 from scipy.special import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.stats costs ~1 s of import
 
+from .._jit import njit
 from ..errors import CalibError, SampleRejected
 from .base import state_array
-from .kalman import FilterState, kalman_update, variance_components
+from .kalman import STEPS_WINDOW_DUE, FilterState, kalman_update, variance_components
 
 #: residual degrees of freedom a batch needs before it refuses any sample or estimates a scale.
 MIN_REDUNDANCY = 12.0
@@ -97,6 +100,10 @@ class RobustFilter:
             ``(x, P, t_s, prepared, use, walk_rate, noise_scale2, components) → (used, last t_s)``,
             equal to observing each through ``observe`` (None: they are, one by one); only with
             ``unit_Q`` None.
+        compiled_steps: the gated recursion over rows of prepared samples in one compiled call
+            (:meth:`WarmPose.tracker_filter_steps <.measurement.WarmPose.tracker_filter_steps>`), equal
+            to :meth:`update` row by row while each is accepted (None: :meth:`update_block` does
+            nothing); only with ``unit_Q`` None.
         relinearise: solve the start-up and recovery batches by Gauss–Newton (see the module
             docstring) rather than one pass linearised along its own way from the prior.
 
@@ -109,7 +116,7 @@ class RobustFilter:
 
     def __init__(self, method: str, prior_sigma_mm: float, walk_mm_per_sqrt_s: float, gate_probability: float,
                  observe: Observe, robust, m: int = 6, layout=None, C: np.ndarray | None = None,
-                 unit_Q: np.ndarray | None = None, compiled_pass=None, relinearise: bool = False):
+                 unit_Q: np.ndarray | None = None, compiled_pass=None, compiled_steps=None, relinearise: bool = False):
         self.method = method
         self.filter = FilterState(method, prior_sigma_mm, gate_probability, m, layout, C)
         n = len(self.filter.x)
@@ -122,6 +129,7 @@ class RobustFilter:
         self._relinearise = relinearise
         self._unit_Q = unit_Q
         self._compiled_pass = compiled_pass if unit_Q is None else None
+        self._compiled_steps = compiled_steps if unit_Q is None else None
         self._configured_walk = walk_mm_per_sqrt_s**2
         self._observe = observe
         self._robust = robust
@@ -137,13 +145,15 @@ class RobustFilter:
         #: the start-up batch's verdict on its samples (in order), once it is decided
         self.startup_outliers = np.zeros(0, dtype=bool)
         self._window = max(robust.startup_samples, robust.lockout_window_samples, 1)
+        # accepted samples between two noise estimates (never closer than a window: they must not overlap)
+        self._noise_every = max(robust.noise_every_samples, self._window)
         # the last samples (the start-up batch, then the window)
         self._buffer = _SampleWindow(self._window)
         self._since_window = 0
         # noise statistics: [Σ νᵀR0⁻¹ν, Σ redundancy] over windows, the last window's estimate,
         # and per window difference (eigenvalues of P_w + P_{w+1}, squared projections, T)
         self._scale_sums = np.zeros(2)
-        self._last_window: tuple[np.ndarray, np.ndarray, float] | None = None
+        self._last_window: tuple[np.ndarray, np.ndarray, float, float] | None = None  # x, P, first and last t_s
         self._differences: deque = deque(maxlen=WALK_WINDOWS)
 
     # ------------------------------------------------------------------ protocol
@@ -189,8 +199,40 @@ class RobustFilter:
             raise
         self._buffer.append(t_s, prepared, False)
         self._since_window += 1
-        if self._robust.adapt_noise and self._since_window >= self._window:
+        if self._since_window >= self._noise_due():
             self._window_statistics()
+
+    def update_block(self, t_s: np.ndarray, prepared: np.ndarray, plain: np.ndarray, errors_out: np.ndarray) -> int:
+        """Fold in rows of prepared samples from the first, in compiled calls, for as long as each is
+        one the gated recursion accepts; returns how many it took. The row it stops at is for
+        :meth:`update` (nothing of the state has moved for it). Takes none before the start-up is
+        decided or without ``compiled_steps``.
+
+        Args:
+            t_s: ``(K,)`` times [s]; prepared: ``(K, width)`` prepared samples.
+            plain: ``(K,)`` rows that pass every check of a sample (the others stop the block).
+            errors_out: ``(K, 42)``, δM [mm] after each row taken, or ``(0, 42)``: not kept.
+        """
+        if self._compiled_steps is None or not self.started or not self._buffer.holds(prepared.shape[1]):
+            return 0
+        f = self.filter
+        done = 0
+        while done < len(t_s):
+            window = self._noise_due()
+            S_last, span = np.empty((self._m, self._m)), self._buffer.span()
+            count, why, last_t, nis, self._since_window = self._compiled_steps(
+                f.x, f.P, f.Q, S_last, t_s[done:], prepared[done:], plain[done:], f.t_s, self.walk_rate_mm2_per_s,
+                self.noise_scale2, f.gate_nis, *self._buffer.arrays(), span, self._since_window,
+                window if window < math.inf else 0, errors_out[done:])
+            self._buffer.set_span(span)
+            if count:
+                f.t_s, f.nis, f.S = last_t, nis, S_last
+                f.samples_used += count
+            done += count
+            if why != STEPS_WINDOW_DUE:
+                break
+            self._window_statistics()
+        return done
 
     def start_at(self, x0: np.ndarray) -> None:
         """Centre the prior on ``x0`` (an instrument registered on the first samples) before any
@@ -397,6 +439,14 @@ class RobustFilter:
 
     # ------------------------------------------------------------------ noise from windows
 
+    def _noise_due(self) -> float:
+        """Accepted samples after which the next noise estimates are due (``inf``: never): every
+        window until :data:`WALK_WINDOWS` differences are pooled (a short log's estimates as soon as
+        they can be had), then every ``noise_every_samples``."""
+        if not self._robust.adapt_noise:
+            return math.inf
+        return self._window if len(self._differences) < WALK_WINDOWS else self._noise_every
+
     def _window_statistics(self) -> None:
         """Measurement scale and random-walk rate from the window of recent good samples."""
         self._since_window = 0
@@ -412,38 +462,26 @@ class RobustFilter:
         self._scale_sums = forget * self._scale_sums + [self.noise_scale2 * observed, expected]
         self.noise_scale2 = max(self._scale_sums[0] / self._scale_sums[1], MIN_NOISE_SCALE2)
         self.measured_noise = True
+        first_t = float(self._buffer.t[good][0])
         if self._last_window is not None:
-            x_before, P_before, t_before = self._last_window
+            x_before, P_before, first_before, t_before = self._last_window
             eigenvalues, vectors = np.linalg.eigh(P_before + P)
             projection2 = (vectors.T @ (x - x_before)) ** 2
             fixed = eigenvalues <= 1e-12 * eigenvalues.max()  # held by the gauge: no information either way
             eigenvalues[fixed], projection2[fixed] = 1.0, 0.0
-            self._differences.append((eigenvalues, projection2, (2.0 / 3.0) * (last_t - t_before)))
+            # the means of a walk over [a1, b1] and [a2, b2] differ by q ((a2 − b1) + (b1 − a1)/3 + (b2 − a2)/3)
+            span = max(first_t - t_before, 0.0) + ((t_before - first_before) + (last_t - first_t)) / 3.0
+            self._differences.append((eigenvalues, projection2, span))
             self.walk_rate_mm2_per_s = max(self._pooled_walk_rate(), MIN_WALK_FRACTION * self._configured_walk)
-        self._last_window = (x, P, last_t)
+        self._last_window = (x, P, first_t, last_t)
 
     def _pooled_walk_rate(self) -> float:
-        """The root ``q ≥ 0`` of ``f(q) = Σ_w Σ_i p_wi / (λ_wi + q T_w) − n × windows`` [mm²/s].
-
-        ``f`` is convex and decreasing in ``q``, so Newton's method from ``q = 0`` (where ``f > 0``)
-        approaches the root from below without overshooting, in a few vectorised steps.
-        """
+        """The root ``q ≥ 0`` of ``f(q) = Σ_w Σ_i p_wi / (λ_wi + q T_w) − n × windows`` [mm²/s]
+        (:func:`_walk_rate_root`)."""
         lam = np.array([d[0] for d in self._differences])
         p = np.array([d[1] for d in self._differences])
-        T = np.array([d[2] for d in self._differences])[:, None]
-        target = self._free * len(self._differences)
-        q = 0.0
-        for _ in range(200):
-            ratio = p / (lam + q * T)
-            excess = float(ratio.sum()) - target
-            if excess <= 0.0:
-                return q
-            slope = float(np.sum(ratio * T / (lam + q * T)))
-            step = excess / slope
-            q += step
-            if step <= 1e-6 * q:
-                break
-        return q
+        T = np.array([d[2] for d in self._differences], dtype=float)
+        return _walk_rate_root(lam, p, T, float(self._free * len(self._differences)))
 
     # ------------------------------------------------------------------ lock-out
 
@@ -479,7 +517,8 @@ class RobustFilter:
             "difference_spans": np.array([d[2] for d in differences], dtype=float),
         }
         if self._last_window is not None:
-            state["window"] = {"x": self._last_window[0], "P": self._last_window[1], "t_s": np.float64(self._last_window[2])}
+            x, P, first_t, last_t = self._last_window
+            state["window"] = {"x": x, "P": P, "first_t_s": np.float64(first_t), "t_s": np.float64(last_t)}
         return state
 
     def import_state(self, state: dict) -> None:
@@ -496,9 +535,13 @@ class RobustFilter:
         projections = state_array(state, "difference_projections", (len(spans), self._n))
         self._differences = deque(zip(eigenvalues, projections, spans), maxlen=WALK_WINDOWS)
         window = state.get("window")
-        self._last_window = None if window is None else (
-            state_array(window, "x", (self._n,)), state_array(window, "P", (self._n, self._n)),
-            float(state_array(window, "t_s", ())))
+        if window is None:
+            self._last_window = None
+        else:  # a checkpoint of before first_t_s: the window as an instant at its end
+            last_t = float(state_array(window, "t_s", ()))
+            first_t = float(state_array(window, "first_t_s", ())) if "first_t_s" in window else last_t
+            self._last_window = (state_array(window, "x", (self._n,)), state_array(window, "P", (self._n, self._n)),
+                                 first_t, last_t)
 
 
 def _mahalanobis2(step: np.ndarray, P: np.ndarray, gauge_projector: np.ndarray | None) -> float:
@@ -509,6 +552,30 @@ def _mahalanobis2(step: np.ndarray, P: np.ndarray, gauge_projector: np.ndarray |
     if gauge_projector is not None:
         P = P + np.trace(P) / len(P) * gauge_projector
     return float(step @ np.linalg.solve(P, step))
+
+
+@njit(nogil=True, error_model="numpy")
+def _walk_rate_root(lam: np.ndarray, p: np.ndarray, T: np.ndarray, target: float) -> float:
+    """The root ``q ≥ 0`` of ``f(q) = Σ_w Σ_i p_wi / (λ_wi + q T_w) − target``: ``f`` is convex and
+    decreasing in ``q``, so Newton's method from ``q = 0`` (where ``f > 0``) approaches the root from
+    below without overshooting, in a few steps (compiled: ~100× numpy's cost on these small arrays)."""
+    q = 0.0
+    for _ in range(200):
+        excess = -target
+        slope = 0.0
+        for w in range(lam.shape[0]):
+            for i in range(lam.shape[1]):
+                d = lam[w, i] + q * T[w]
+                ratio = p[w, i] / d
+                excess += ratio
+                slope += ratio * T[w] / d
+        if excess <= 0.0:
+            return q
+        step = excess / slope
+        q += step
+        if step <= 1e-6 * q:
+            break
+    return q
 
 
 def _stacked(observations: list, m: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -548,6 +615,21 @@ class _SampleWindow:
     t = property(lambda self: self._t[self._start:self._end], doc="(K,) sample times [s]")
     prepared = property(lambda self: self._prepared[self._start:self._end], doc="(K, width) prepared samples")
     gated = property(lambda self: self._gated[self._start:self._end], doc="(K,) bool, writable: left out")
+
+    def holds(self, width: int) -> bool:
+        """Its rows are ``width`` wide (fixed by the first sample)."""
+        return self._prepared.shape[1] == width
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The whole storage ``(t, prepared, gated)``, for a compiled append (with :meth:`span`)."""
+        return self._t, self._prepared, self._gated
+
+    def span(self) -> np.ndarray:
+        """``[start, end)`` of the live rows in :meth:`arrays`."""
+        return np.array([self._start, self._end], dtype=np.int64)
+
+    def set_span(self, span: np.ndarray) -> None:
+        self._start, self._end = int(span[0]), int(span[1])
 
     def append(self, t_s: float, prepared: np.ndarray, gated: bool) -> None:
         """Keep one sample, dropping the oldest beyond ``capacity``."""

@@ -40,7 +40,7 @@ from ..config import EstimatorConfig, load_estimator_config
 from ..estimate import Estimate
 from .. import kinematics as kin
 from ..estimators import BatchEstimator, KalmanFiltered
-from ..estimators.base import late_index, take_late_rejections
+from ..estimators.base import late_index, take_late_rejections, update_block
 from ..online import Rejections
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
 from ..plausibility import check_plausible
@@ -261,23 +261,17 @@ def feed_online(estimator, blocks: Iterable[Log], on_rejected: Callable[[int, fl
     """
     k = 0
     recent_t_s: deque[float] = deque(maxlen=LATE_LOOKBACK)
-    update, take_late = estimator.update, getattr(estimator, "take_late_rejections", list)  # looked up once
     for block in blocks:
         rows = np.empty((len(block), 42)) if on_block is not None else None
-        for j, sample in enumerate(block):
-            recent_t_s.append(sample.t_s)
-            try:
-                update(sample)
-            except SampleRejected as err:
-                on_rejected(k, sample.t_s, err)
-            late = take_late()
-            times = list(recent_t_s) if late else []
-            for err in late:  # one older than the lookback is counted at the current sample
-                back = late_index(times, err.t_s) if err.t_s in times else len(times) - 1
-                on_rejected(k + 1 - len(times) + back, err.t_s, err)
-            if rows is not None:
-                rows[j] = estimator.current_error()
-            k += 1
+        refused, late = update_block(estimator, block, rows)
+        for j, err in refused:
+            on_rejected(k + j, float(block.t_s[j]), err)
+        for j, err in late:  # one older than the lookback is counted at the sample it came after
+            times = (list(recent_t_s) + block.t_s[: j + 1].tolist())[-LATE_LOOKBACK:]
+            back = late_index(times, err.t_s) if err.t_s in times else len(times) - 1
+            on_rejected(k + j + 1 - len(times) + back, err.t_s, err)
+        recent_t_s.extend(block.t_s[-LATE_LOOKBACK:].tolist())
+        k += len(block)
         if bar is not None:
             bar.update(len(block))
         if on_block is not None:
