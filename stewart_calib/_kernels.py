@@ -113,23 +113,17 @@ def _retract(R, t, w0, w1, w2, v0, v1, v2):
     else:
         theta = math.sqrt(theta2)
         c1, c2 = math.sin(theta) / theta, (1.0 - math.cos(theta)) / theta2
-    # Exp(ω) = I + c1 [ω]× + c2 [ω]×²,  [ω]×² = ω ωᵀ − θ² I
-    E = np.empty((3, 3))
-    w = (w0, w1, w2)
-    for a in range(3):
-        for b in range(3):
-            E[a, b] = c2 * w[a] * w[b]
-        E[a, a] += 1.0 - c2 * theta2
-    E[0, 1] -= c1 * w2
-    E[0, 2] += c1 * w1
-    E[1, 0] += c1 * w2
-    E[1, 2] -= c1 * w0
-    E[2, 0] -= c1 * w1
-    E[2, 1] += c1 * w0
+    # Exp(ω) = I + c1 [ω]× + c2 [ω]×²,  [ω]×² = ω ωᵀ − θ² I; in scalars, as a Newton step's
+    # one allocation would cost a tenth of the step
+    diagonal = 1.0 - c2 * theta2
+    e00, e01, e02 = c2 * w0 * w0 + diagonal, c2 * w0 * w1 - c1 * w2, c2 * w0 * w2 + c1 * w1
+    e10, e11, e12 = c2 * w1 * w0 + c1 * w2, c2 * w1 * w1 + diagonal, c2 * w1 * w2 - c1 * w0
+    e20, e21, e22 = c2 * w2 * w0 - c1 * w1, c2 * w2 * w1 + c1 * w0, c2 * w2 * w2 + diagonal
     for a in range(3):
         r0, r1, r2 = R[a, 0], R[a, 1], R[a, 2]
-        for b in range(3):
-            R[a, b] = r0 * E[0, b] + r1 * E[1, b] + r2 * E[2, b]
+        R[a, 0] = r0 * e00 + r1 * e10 + r2 * e20
+        R[a, 1] = r0 * e01 + r1 * e11 + r2 * e21
+        R[a, 2] = r0 * e02 + r1 * e12 + r2 * e22
 
 
 @njit(**_JIT)
@@ -173,6 +167,52 @@ def _damped_step(J, target, length, A, step):
 
 
 @njit(**_JIT)
+def _fk_work():
+    """Scratch arrays of one pose's Newton solve (:func:`_newton`, :func:`_fk_single`): the unit
+    legs, their lengths, the Jacobian, its factored copy, the step, the target lengths. A pass
+    over many poses makes them once (an allocation costs about a Newton step's arithmetic)."""
+    return np.empty((6, 3)), np.empty(6), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 1)), np.empty(6)
+
+
+@njit(**_JIT)
+def _newton(base, plat, target, R, t, tol_mm, max_iterations, work):
+    """Newton–Raphson from ``(R, t)`` (overwritten) to the leg lengths ``target`` of one pose
+    (see :func:`fk_newton`); ``work`` from :func:`_fk_work`. Returns ``(iterations, residual)``."""
+    n_legs, length, J, A, err, _ = work
+    iterations = 0
+    while True:
+        _unit_legs(base, plat, R, t, n_legs, length)
+        worst = 0.0
+        for i in range(6):
+            err[i, 0] = target[i] - length[i]
+            e = abs(err[i, 0])
+            if e > worst or e != e:  # once NaN, stays NaN (e > NaN is False), as np.max reports it
+                worst = e
+        if not worst > tol_mm or iterations >= max_iterations:
+            return iterations, worst
+        _pose_jacobian(plat, R, n_legs, J)
+        A[:] = J
+        if not _solve(A, err):  # singular Jacobian (degenerate pose): least-squares step
+            _damped_step(J, target, length, A, err)
+        xi = err[:, 0]
+        norm_w = math.sqrt(xi[0] * xi[0] + xi[1] * xi[1] + xi[2] * xi[2])
+        norm_v = math.sqrt(xi[3] * xi[3] + xi[4] * xi[4] + xi[5] * xi[5])
+        scale = min(1.0, _MAX_STEP_RAD / max(norm_w, 1e-300), _MAX_STEP_MM / max(norm_v, 1e-300))
+        _retract(R, t, scale * xi[0], scale * xi[1], scale * xi[2], scale * xi[3], scale * xi[4], scale * xi[5])
+        iterations += 1
+
+
+@njit(**_JIT)
+def _finite_target(initial_lengths, strokes, target):
+    """``target = initial_lengths + strokes``; False when a stroke is not finite."""
+    finite = True
+    for i in range(6):
+        target[i] = initial_lengths[i] + strokes[i]
+        finite = finite and math.isfinite(strokes[i])
+    return finite
+
+
+@njit(**_JIT)
 def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations, iterations, residual):
     """Newton–Raphson FK (paper §3.2 step 1) for ``n`` poses, in place.
 
@@ -189,43 +229,13 @@ def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations
         iterations, residual: ``(n,)`` outputs: steps taken, max |length error| [mm] at the
             returned pose.
     """
-    n_legs = np.empty((6, 3))
-    length = np.empty(6)
-    J = np.empty((6, 6))
-    A = np.empty((6, 6))
-    err = np.empty((6, 1))
-    target = np.empty(6)
+    work = _fk_work()
     for k in range(strokes.shape[0]):
-        iterations[k] = 0
-        if not np.all(np.isfinite(strokes[k])):
-            residual[k] = np.inf
-            continue
         g = k if base.shape[0] > 1 else 0
-        base_k, plat_k = base[g], plat[g]
-        for i in range(6):
-            target[i] = initial_lengths[g, i] + strokes[k, i]
-        Rk, tk = R[k], t[k]
-        while True:
-            _unit_legs(base_k, plat_k, Rk, tk, n_legs, length)
-            worst = 0.0
-            for i in range(6):
-                err[i, 0] = target[i] - length[i]
-                e = abs(err[i, 0])
-                if e > worst or e != e:  # once NaN, stays NaN (e > NaN is False), as np.max reports it
-                    worst = e
-            residual[k] = worst
-            if not worst > tol_mm or iterations[k] >= max_iterations:
-                break
-            _pose_jacobian(plat_k, Rk, n_legs, J)
-            A[:] = J
-            if not _solve(A, err):  # singular Jacobian (degenerate pose): least-squares step
-                _damped_step(J, target, length, A, err)
-            xi = err[:, 0]
-            norm_w = math.sqrt(xi[0] * xi[0] + xi[1] * xi[1] + xi[2] * xi[2])
-            norm_v = math.sqrt(xi[3] * xi[3] + xi[4] * xi[4] + xi[5] * xi[5])
-            scale = min(1.0, _MAX_STEP_RAD / max(norm_w, 1e-300), _MAX_STEP_MM / max(norm_v, 1e-300))
-            _retract(Rk, tk, scale * xi[0], scale * xi[1], scale * xi[2], scale * xi[3], scale * xi[4], scale * xi[5])
-            iterations[k] += 1
+        if _finite_target(initial_lengths[g], strokes[k], work[5]):
+            iterations[k], residual[k] = _newton(base[g], plat[g], work[5], R[k], t[k], tol_mm, max_iterations, work)
+        else:
+            iterations[k], residual[k] = 0, np.inf
 
 
 @njit(**_JIT)
@@ -239,28 +249,127 @@ def fk_single(base, plat, initial_lengths, lengths, R, t, warm, tol_mm, max_iter
     Returns:
         max |length error| [mm] at the returned pose (``> tol_mm``: neither start converged).
     """
-    iterations = np.empty(1, dtype=np.int64)
-    residual = np.empty(1)
-    base1, plat1 = base.reshape((1, 6, 3)), plat.reshape((1, 6, 3))
-    initial1, lengths1 = initial_lengths.reshape((1, 6)), lengths.reshape((1, 6))
-    R1, t1 = R.reshape((1, 3, 3)), t.reshape((1, 3))
-    if warm:
-        fk_newton(base1, plat1, initial1, lengths1, R1, t1, tol_mm, max_iterations, iterations, residual)
-        if residual[0] <= tol_mm:
-            return residual[0]
+    return _fk_single(base, plat, initial_lengths, lengths, R, t, warm, tol_mm, max_iterations, _fk_work())
+
+
+@njit(**_JIT)
+def _fk_single(base, plat, initial_lengths, lengths, R, t, warm, tol_mm, max_iterations, work):
+    """:func:`fk_single` with the scratch arrays ``work`` of :func:`_fk_work`."""
+    target = work[5]
+    finite = _finite_target(initial_lengths, lengths, target)
+    if warm and finite:
+        residual = _newton(base, plat, target, R, t, tol_mm, max_iterations, work)[1]
+        if residual <= tol_mm:
+            return residual
     z = 0.0
     for i in range(6):  # default_guess: level, above the base centre, mean leg length matched
         dx = base[i, 0] - plat[i, 0]
         dy = base[i, 1] - plat[i, 1]
-        target = initial_lengths[i] + lengths[i]
-        z += math.sqrt(max(target * target - dx * dx - dy * dy, 1.0)) + base[i, 2] - plat[i, 2]
+        z += math.sqrt(max(target[i] * target[i] - dx * dx - dy * dy, 1.0)) + base[i, 2] - plat[i, 2]
     R[:, :] = 0.0
     for i in range(3):
         R[i, i] = 1.0
         t[i] = 0.0
     t[2] = z / 6.0
-    fk_newton(base1, plat1, initial1, lengths1, R1, t1, tol_mm, max_iterations, iterations, residual)
-    return residual[0]
+    return _newton(base, plat, target, R, t, tol_mm, max_iterations, work)[1] if finite else np.inf
+
+
+@njit(**_JIT)
+def _moved_pose(R_from, t_from, R_a, t_a, R_b, t_b, R, t):
+    """``(R, t)``: the pose ``(R_from, t_from)`` moved as another went from ``(R_a, t_a)`` to
+    ``(R_b, t_b)`` — ``R = R_from R_aᵀ R_b``, ``t = t_from − t_a + t_b`` (their offset held in the
+    base frame) — a Newton start. ``R`` is made orthonormal again by a step of
+    ``R ← R (3I − RᵀR) / 2``, so that rounding does not build up along a log."""
+    for a in range(3):
+        c0 = R_from[a, 0] * R_a[0, 0] + R_from[a, 1] * R_a[0, 1] + R_from[a, 2] * R_a[0, 2]  # row a of R_from R_aᵀ
+        c1 = R_from[a, 0] * R_a[1, 0] + R_from[a, 1] * R_a[1, 1] + R_from[a, 2] * R_a[1, 2]
+        c2 = R_from[a, 0] * R_a[2, 0] + R_from[a, 1] * R_a[2, 1] + R_from[a, 2] * R_a[2, 2]
+        for b in range(3):
+            R[a, b] = c0 * R_b[0, b] + c1 * R_b[1, b] + c2 * R_b[2, b]
+        t[a] = t_from[a] - t_a[a] + t_b[a]
+    s00 = R[0, 0] * R[0, 0] + R[1, 0] * R[1, 0] + R[2, 0] * R[2, 0]  # RᵀR
+    s01 = R[0, 0] * R[0, 1] + R[1, 0] * R[1, 1] + R[2, 0] * R[2, 1]
+    s02 = R[0, 0] * R[0, 2] + R[1, 0] * R[1, 2] + R[2, 0] * R[2, 2]
+    s11 = R[0, 1] * R[0, 1] + R[1, 1] * R[1, 1] + R[2, 1] * R[2, 1]
+    s12 = R[0, 1] * R[0, 2] + R[1, 1] * R[1, 2] + R[2, 1] * R[2, 2]
+    s22 = R[0, 2] * R[0, 2] + R[1, 2] * R[1, 2] + R[2, 2] * R[2, 2]
+    for a in range(3):
+        r0, r1, r2 = R[a, 0], R[a, 1], R[a, 2]
+        R[a, 0] = r0 * (1.5 - 0.5 * s00) - r1 * 0.5 * s01 - r2 * 0.5 * s02
+        R[a, 1] = -r0 * 0.5 * s01 + r1 * (1.5 - 0.5 * s11) - r2 * 0.5 * s12
+        R[a, 2] = -r0 * 0.5 * s02 - r1 * 0.5 * s12 + r2 * (1.5 - 0.5 * s22)
+
+
+@njit(**_JIT)
+def _within_a_step(R_a, t_a, R_b, t_b):
+    """Whether two poses are less than one uncapped Newton step apart (``_MAX_STEP_RAD``, ``_MAX_STEP_MM``)."""
+    d2, trace = 0.0, 0.0
+    for a in range(3):
+        d2 += (t_b[a] - t_a[a]) ** 2
+        for b in range(3):
+            trace += R_a[a, b] * R_b[a, b]  # tr(R_aᵀ R_b) = 1 + 2 cos(angle)
+    return d2 <= _MAX_STEP_MM**2 and (trace - 1.0) / 2.0 >= math.cos(_MAX_STEP_RAD)
+
+
+@njit(**_JIT)
+def tracker_reading_residuals(bases, plats, initial_lengths, strokes, tracker_base, tracker_plat, tracker_lengths,
+                              readings, tol_mm, max_iterations, residuals, fk_residual):
+    """The tracker's readings minus what it reads at the FK pose of each of ``m`` drives, for ``n``
+    consecutive samples (kinematics.tracker_reading_residuals), FK as :func:`fk_single`.
+
+    Each Newton starts from a prediction (:func:`_moved_pose`): drive 0's pose extrapolated from
+    its two samples before (a log moves smoothly; ~3 steps against ~5 from the level guess),
+    drive j > 0's pose of the sample before moved as drive j − 1's moved since (models that
+    differ by a calibration stay millimetres apart; ~2 steps). Its solution stands only within
+    one uncapped Newton step of the known pose it was predicted from (drive 0's of the sample
+    before, drive j − 1's of this sample), where no other FK solution lies; else, as when the
+    known pose did not converge, the level cold guess decides, as :func:`fk_newton`'s callers do.
+
+    Args:
+        bases, plats: ``(m, 6, 3)`` joints; initial_lengths: ``(m, 6)``; strokes: ``(m, n, 6)``
+            each drive's strokes [mm].
+        tracker_base, tracker_plat: ``(6, 3)``; tracker_lengths: ``(6,)``; readings: ``(n, 6)`` [mm].
+        residuals: ``(m, n, 6)`` out: ``s_i − (‖R p_i + t − b_i‖ − l_i)`` of the tracker [mm].
+        fk_residual: ``(m, n)`` out: max |length error| of each FK [mm] (``> tol_mm``: not converged).
+    """
+    m = bases.shape[0]
+    R, t = np.empty((m, 3, 3)), np.empty((m, 3))  # this sample's solutions
+    R_1, t_1 = np.empty((m, 3, 3)), np.empty((m, 3))  # the sample before's
+    R_2, t_2 = np.empty((3, 3)), np.empty(3)  # drive 0's two samples before
+    work = _fk_work()
+    for k in range(readings.shape[0]):
+        for j in range(m):
+            Rj, tj = R[j], t[j]
+            residual = np.inf
+            if j == 0:
+                R_known, t_known, known = R_1[0], t_1[0], k >= 1 and fk_residual[0, k - 1] <= tol_mm
+                if known and k >= 2 and fk_residual[0, k - 2] <= tol_mm:
+                    _moved_pose(R_1[0], t_1[0], R_2, t_2, R_1[0], t_1[0], Rj, tj)
+                elif known:
+                    Rj[:, :], tj[:] = R_1[0], t_1[0]
+            else:
+                R_known, t_known, known = R[j - 1], t[j - 1], fk_residual[j - 1, k] <= tol_mm
+                if known and k >= 1 and fk_residual[j, k - 1] <= tol_mm and fk_residual[j - 1, k - 1] <= tol_mm:
+                    _moved_pose(R_1[j], t_1[j], R_1[j - 1], t_1[j - 1], R[j - 1], t[j - 1], Rj, tj)
+                elif known:
+                    Rj[:, :], tj[:] = R[j - 1], t[j - 1]
+            if known and _finite_target(initial_lengths[j], strokes[j, k], work[5]):
+                residual = _newton(bases[j], plats[j], work[5], Rj, tj, tol_mm, max_iterations, work)[1]
+                if not _within_a_step(R_known, t_known, Rj, tj):
+                    residual = np.inf
+            if not residual <= tol_mm:
+                residual = _fk_single(bases[j], plats[j], initial_lengths[j], strokes[j, k], Rj, tj, False, tol_mm,
+                                      max_iterations, work)
+            fk_residual[j, k] = residual
+            for i in range(6):  # inverse_kinematics: R p_i + t − b_i, its norm, less l_i
+                norm2 = 0.0
+                for a in range(3):
+                    v = Rj[a, 0] * tracker_plat[i, 0] + Rj[a, 1] * tracker_plat[i, 1] + Rj[a, 2] * tracker_plat[i, 2]
+                    v = v + tj[a] - tracker_base[i, a]
+                    norm2 += v * v
+                residuals[j, k, i] = readings[k, i] - (math.sqrt(norm2) - tracker_lengths[i])
+        R_2[:, :], t_2[:] = R_1[0], t_1[0]
+        R_1[:, :, :], t_1[:, :] = R, t
 
 
 # ----------------------------------------------------------------------------- error models

@@ -426,6 +426,33 @@ def solve_fk(
     raise _fk_failed(what, residual)
 
 
+def tracker_reading_residuals(tracker: LegGeometry, readings: np.ndarray, drives: list[LegGeometry],
+                              strokes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The tracker's ``readings`` minus what it reads where each drive puts the platform, for a
+    log's samples in order, in one compiled pass: ``readings − inverse_kinematics(tracker,
+    forward_kinematics(drives[j], strokes[j]))``, within FK's tolerance of that batch solve
+    (each Newton starts from a neighbouring solution, see
+    :func:`stewart_calib._kernels.tracker_reading_residuals`, instead of the level guess).
+
+    Args:
+        readings: ``(N, 6)`` tracker readings s_i [mm].
+        drives: ``m`` drive geometries, e.g. the nominal and a calibrated one.
+        strokes: ``m`` arrays ``(N, 6)``, each drive's strokes [mm] (e.g. scaled by its stroke scale).
+    Returns:
+        ``(residuals (m, N, 6) [mm], converged (m, N))``: a sample's residuals are meaningless
+        where its FK did not converge.
+    """
+    c = np.ascontiguousarray
+    readings = c(readings, dtype=float)
+    residuals, fk_residual = np.empty((len(drives),) + readings.shape), np.empty((len(drives), len(readings)))
+    _kernels.tracker_reading_residuals(
+        c([d.base_joints for d in drives]), c([d.platform_joints for d in drives]), c([d.initial_lengths for d in drives]),
+        c(strokes, dtype=float).reshape(residuals.shape), tracker.base_joints, tracker.platform_joints,
+        tracker.initial_lengths, readings, FK_TOLERANCE_MM, FK_MAX_ITERATIONS, residuals, fk_residual,
+    )
+    return residuals, fk_residual <= FK_TOLERANCE_MM
+
+
 def start_pose(guess: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
     """Fresh C arrays ``(R, t)`` for a compiled FK to overwrite: a copy of ``guess`` (the warm start),
     or placeholders when there is none (the kernel then starts cold)."""

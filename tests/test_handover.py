@@ -100,6 +100,39 @@ def test_outputs_into_a_missing_directory_are_refused_before_any_work(sim, tmp_p
     assert not (tmp_path / "r.json").exists()
 
 
+
+def test_residual_rms_is_that_of_validate_predictions(sim, ekf_run):
+    # calibrate's residual pass (one compiled FK + IK pass per block, warm-started) gives what
+    # validate's predictions (a batch FK per model from the level guess) give, within what FK's
+    # tolerance leaves open; the streamed RMS over blocks without the rejected samples is the RMS
+    # of those samples' residuals
+    from stewart_calib import kinematics as kin
+    from stewart_calib.io import read_log
+    from stewart_calib.pipelines import handover
+    from stewart_calib.pipelines.validate import measurement_residuals, validate
+    from tests.test_kinematics import fk_tolerance_bound
+
+    platform = load_platform(sim / "platform.toml")
+    log = read_log(sim / "log.csv", platform)
+    result = read_result(ekf_run / "r.json")
+    nominal = {"nominal": result["nominal"], "error": [0.0] * 42}
+    residuals = measurement_residuals(platform, log, result)
+    rejected = [3, 4, len(log) // 2]
+    kept = log.select(np.delete(np.arange(len(log)), rejected))
+    blocks = [log.select(slice(start, start + 7)) for start in range(0, len(log), 7)]
+    streamed = calibrate_pipeline.streamed_residual_rms(platform, blocks, result, rejected)
+    expected_rms = handover.residual_rms_field(measurement_residuals(platform, kept, result))
+    for model, got, when in ((nominal, residuals.before, "before"), (result, residuals.after, "after")):
+        drive = platform.drive.perturbed(np.array(model["error"]))
+        fk = kin.forward_kinematics(drive, log.strokes)
+        bound = fk_tolerance_bound(platform.tracker, drive, fk.R, fk.t)
+        assert np.abs(got - (log.readings - validate(platform, model, log, False, errors=False)[0])).max() <= bound
+        # an RMS moves by no more than its largest element
+        np.testing.assert_allclose(streamed[when], expected_rms[when], rtol=0, atol=2 * bound)
+        kept_validate = kept.readings - validate(platform, model, kept, False, errors=False)[0]
+        assert np.abs(np.array(expected_rms[when]) - np.sqrt(np.mean(kept_validate**2, axis=0))).max() <= bound
+
+
 # ----------------------------------------------------------------------------- the report
 
 

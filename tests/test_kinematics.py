@@ -126,6 +126,36 @@ def test_warm_start_needs_no_more_iterations_than_cold(mechanism):
     assert warm.sum() < cold.sum()
 
 
+
+def fk_tolerance_bound(tracker, drive, R, t) -> float:
+    """How far two FK solves of the same strokes, each leaving its leg lengths within FK's tolerance,
+    can put the tracker's readings apart [mm]: the lengths differ by up to 2·tol, the pose by
+    ``J_d⁻¹`` of that, the readings by ``J_t J_d⁻¹`` of it (first order, ∞-norm), plus the rounding
+    of leg lengths near a metre (a few ulps)."""
+    gain = np.abs(kin.leg_pose_jacobian(tracker, R, t) @ np.linalg.inv(kin.leg_pose_jacobian(drive, R, t))).sum(axis=-1)
+    return float(2 * kin.FK_TOLERANCE_MM * gain.max() + 16 * np.finfo(float).eps * 2000.0)
+
+
+def test_tracker_reading_residuals_are_batch_fk_and_ik():
+    # one compiled pass whose Newton solves start from the sample before (or the other drive's
+    # solution): the batch FK from the level guess, then IK, to within what FK's tolerance leaves
+    # open — on poses far apart (poor warm starts), with a sample whose strokes no pose reaches
+    platform = nim_stewart()
+    rng = np.random.default_rng(3)
+    R, t = kin.pose_to_rt(random_poses(platform, 200, rng))
+    readings = kin.inverse_kinematics(platform.tracker, R, t) + rng.normal(0.0, 0.01, (200, 6))
+    strokes = kin.inverse_kinematics(platform.drive, R, t)
+    strokes[50, 0] += 3000.0  # one leg 3 m longer than the rest
+    drives = [platform.drive, platform.drive.perturbed(rng.normal(0.0, 1.0, 42))]
+    each_strokes = [strokes, strokes * 1.001]
+    residuals, converged = kin.tracker_reading_residuals(platform.tracker, readings, drives, each_strokes)
+    assert np.array_equal(converged, np.arange(200)[None, :].repeat(2, axis=0) != 50)
+    for drive, q, got in zip(drives, each_strokes, residuals):
+        fk = kin.forward_kinematics(drive, np.delete(q, 50, axis=0))
+        expected = np.delete(readings, 50, axis=0) - kin.inverse_kinematics(platform.tracker, fk.R, fk.t)
+        assert np.abs(np.delete(got, 50, axis=0) - expected).max() <= fk_tolerance_bound(platform.tracker, drive, fk.R, fk.t)
+
+
 def test_fk_refuses_inconsistent_lengths():
     legs = PLATFORM.drive
     strokes = kin.inverse_kinematics(legs, *kin.pose_to_rt(WS.home))

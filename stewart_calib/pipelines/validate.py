@@ -66,12 +66,17 @@ def _block(result: dict, key: str, expected_names, source: str) -> np.ndarray | 
     return np.array(block["estimate"], dtype=float)
 
 
-def _model_poses(platform: Platform, result: dict, log, source: str):
-    """FK poses of the logged strokes with the calibrated drive (and stroke scale)."""
+def _model_drive(platform: Platform, result: dict, log, source: str):
+    """``(drive, strokes)``: the calibrated drive and the logged strokes scaled by its stroke scale."""
     drive = platform.drive.perturbed(np.array(result["error"]))
     scale = _block(result, "stroke_scale", io.STROKE_SCALE_NAMES, source)
     scale = platform.stroke_scale if scale is None else scale
-    fk = kin.forward_kinematics(drive, drive_model.scaled_strokes(log.strokes, scale), strict=False)
+    return drive, drive_model.scaled_strokes(log.strokes, scale)
+
+
+def _model_poses(platform: Platform, result: dict, log, source: str):
+    """FK poses of the logged strokes with the calibrated drive (and stroke scale)."""
+    fk = kin.forward_kinematics(*_model_drive(platform, result, log, source), strict=False)
     if not np.all(fk.converged):
         k = int(np.flatnonzero(~fk.converged)[0])
         raise CalibError(
@@ -79,6 +84,14 @@ def _model_poses(platform: Platform, result: dict, log, source: str):
             "model did not converge for its strokes"
         )
     return fk.R, fk.t
+
+
+def _check_nominal(platform: Platform, result: dict, source: str) -> None:
+    gap = float(np.max(np.abs(np.array(result["nominal"]) - platform.drive.as_vector())))
+    if gap > io.NOMINAL_TOLERANCE_MM:
+        raise CalibError(
+            f"{source}: key 'nominal': expected the nominal drive of platform '{platform.name}'; it differs by {gap:.3g} mm"
+        )
 
 
 def validate(platform: Platform, result: dict, log, register: bool, result_source: str = "result", errors: bool = True):
@@ -93,11 +106,7 @@ def validate(platform: Platform, result: dict, log, register: bool, result_sourc
         CalibError: a result for another platform or instrument, FK failure, a log that cannot be
             registered (with ``register``).
     """
-    gap = float(np.max(np.abs(np.array(result["nominal"]) - platform.drive.as_vector())))
-    if gap > io.NOMINAL_TOLERANCE_MM:
-        raise CalibError(
-            f"{result_source}: key 'nominal': expected the nominal drive of platform '{platform.name}'; it differs by {gap:.3g} mm"
-        )
+    _check_nominal(platform, result, result_source)
     R_X, t_X = _model_poses(platform, result, log, result_source)
     if platform.instrument.kind == "tracker":
         if register:
@@ -186,6 +195,10 @@ def measurement_residuals(platform: Platform, log: Log, result: dict, predicted:
         return wrapped * np.where(angle, 180.0 / np.pi, 1.0)
 
     nominal = {"nominal": platform.drive.as_vector().tolist(), "error": [0.0] * len(platform.drive.as_vector())}
+    if predicted is None and platform.instrument.kind == "tracker":
+        residuals = _tracker_residuals(platform, log, [(nominal, "the nominal platform"), (result, "the result")])
+        if residuals is not None:  # else an FK failed: validate() below words it
+            return Residuals(tuple(columns), np.asarray(log.t_s), *residuals, log_label, "the nominal platform")
     if predicted is None:
         predicted = validate(platform, result, log, False, "the result", errors=False)[0]
     # An outside instrument's frame is rarely known to centimetres (spec §7): "before" registers it
@@ -194,6 +207,17 @@ def measurement_residuals(platform: Platform, log: Log, result: dict, predicted:
     before = residual_file_units(validate(platform, nominal, log, outside, "the nominal platform", errors=False)[0])
     before_model = "the nominal platform" + (", its instrument frame fitted to this log" if outside else "")
     return Residuals(tuple(columns), np.asarray(log.t_s), before, residual_file_units(predicted), log_label, before_model)
+
+
+def _tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str]]) -> np.ndarray | None:
+    """The tracker's readings minus its readings predicted by each ``(result, source)`` model, as
+    :func:`validate`'s predictions (within FK's tolerance) in one compiled pass over the log:
+    ``(len(models), N, 6)`` [mm], or None when a model's FK does not converge for a sample."""
+    for result, source in models:
+        _check_nominal(platform, result, source)
+    drives, strokes = zip(*(_model_drive(platform, result, log, source) for result, source in models))
+    residuals, converged = kin.tracker_reading_residuals(platform.tracker, log.readings, list(drives), list(strokes))
+    return residuals if converged.all() else None
 
 
 def _report_page(args, platform: Platform, result: dict, log, predicted, position, orientation) -> str:
