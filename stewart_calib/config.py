@@ -179,7 +179,7 @@ class RobustConfig:
     lockout_gated_samples: int = 8
     adapt_noise: bool = True
     noise_memory_samples: int = 300
-    noise_every_samples: int = 120
+    noise_every_samples: int = 240
 
 
 @dataclass(frozen=True)
