@@ -31,7 +31,7 @@ import dataclasses
 import json
 import tomllib
 import zipfile
-from collections import Counter, deque
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -84,6 +84,35 @@ class Rejections:
         return {"count": self.count, "by_reason": dict(sorted(self.by_reason.items())), "first": self.first or None}
 
 
+class RecentSamples:
+    """The last ``size`` (strokes, readings) rows in a ring of two arrays: written a block at a
+    time without a Python object per sample, read in order once per result."""
+
+    def __init__(self, size: int, width: int):
+        self._strokes, self._readings = np.empty((size, 6)), np.empty((size, width))
+        self._count = 0  # rows ever written; the next goes to _count % size
+
+    def append(self, strokes: np.ndarray, readings: np.ndarray) -> None:
+        """Append one row ``(6,)``, ``(width,)`` [mm]."""
+        at = self._count % len(self._strokes)
+        self._strokes[at], self._readings[at] = strokes, readings
+        self._count += 1
+
+    def extend(self, strokes: np.ndarray, readings: np.ndarray) -> None:
+        """Append rows ``(K, 6)`` and ``(K, width)`` [mm] (only the last ``size`` are kept)."""
+        count = len(strokes)
+        keep = min(count, len(self._strokes))
+        at = np.arange(self._count + count - keep, self._count + count) % len(self._strokes)
+        self._strokes[at], self._readings[at] = strokes[count - keep :], readings[count - keep :]
+        self._count += count
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rows kept, oldest first."""
+        size = len(self._strokes)
+        order = np.arange(self._count - min(self._count, size), self._count) % size
+        return self._strokes[order], self._readings[order]
+
+
 def _make(method: str, platform: Platform, config: EstimatorConfig) -> Estimator:
     return method_spec(method, ONLINE_METHODS, "online method").build(platform, config)
 
@@ -113,7 +142,9 @@ class OnlineCalibrator:
         self.rows_read = 0
         self.rows_skipped = 0
         self.rejections = Rejections()
-        self._recent = deque(maxlen=RECENT_SAMPLES)  # (strokes, readings) of accepted samples
+        # accepted samples for the plausibility check: the tracker's leg residual needs its readings
+        self._tracker = platform.instrument.kind == "tracker"
+        self._recent = RecentSamples(RECENT_SAMPLES if self._tracker else 0, 6)
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample.
@@ -129,7 +160,8 @@ class OnlineCalibrator:
         finally:
             for late in take_late_rejections(self._estimator):  # left out by a robust start-up batch
                 self.rejections.add(late)
-        self._recent.append((sample.strokes, sample.readings))
+        if self._tracker:
+            self._recent.append(sample.strokes, sample.readings)
 
     def estimate(self) -> Estimate:
         """δM [mm] and covariance after the last accepted sample."""
@@ -163,11 +195,9 @@ class OnlineCalibrator:
         """
         estimate = self.estimate()
         # the leg residual it checks is the tracker's; an outside instrument's estimate has its parameters checked
-        tracker = self.platform.instrument.kind == "tracker"
-        recent = np.array(self._recent, dtype=float).reshape(-1, 2, 6) if tracker else np.zeros((0, 2, 6))
+        strokes, readings = self._recent.arrays()
         noise_scale = getattr(self._estimator, "noise_scale", lambda: None)()
-        check_plausible(self.platform, estimate.error, self.config.noise, recent[:, 0], recent[:, 1], self.method,
-                        noise_scale)
+        check_plausible(self.platform, estimate.error, self.config.noise, strokes, readings, self.method, noise_scale)
         skipped = self.rows_skipped + self.rejections.count
         return io.result_dict(estimate, self.platform, skipped, {"samples_rejected": self.rejections.summary()})
 

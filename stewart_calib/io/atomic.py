@@ -27,23 +27,44 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         CalibError: the file cannot be written (nothing is left behind).
     """
     path = Path(path)
+    fd, tmp = _temporary(path)
+    os.close(fd)
+    with _replaced_on_success(path, tmp):
+        yield tmp
+
+
+def atomic_write_text(path: str | Path, text: str) -> None:
+    """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`), through the
+    temporary's own descriptor: ``track`` replaces its result every ``--every`` rows."""
+    path = Path(path)
+    fd, tmp = _temporary(path)
+    with _replaced_on_success(path, tmp):
+        try:
+            data = memoryview(text.encode("utf-8"))
+            while data:
+                data = data[os.write(fd, data) :]
+        finally:
+            os.close(fd)
+
+
+def _temporary(path: Path) -> tuple[int, Path]:
+    """A new private file beside ``path`` (``.<name>.<random>.tmp``), open for writing."""
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     except OSError as err:
         raise CalibError(f"{path}: cannot write ({err.strerror or err.__class__.__name__})") from None
-    os.close(fd)
+    return fd, Path(tmp)
+
+
+@contextmanager
+def _replaced_on_success(path: Path, tmp: Path) -> Iterator[None]:
+    """Rename ``tmp`` onto ``path`` when the block succeeds, remove it when it fails."""
     try:
-        yield Path(tmp)
+        yield
         os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private; an output file should not be
         os.replace(tmp, path)
     except BaseException as err:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         if isinstance(err, OSError):
             raise CalibError(f"{path}: cannot write ({err.strerror or err.__class__.__name__})") from None
         raise
-
-
-def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`)."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8", newline="")
