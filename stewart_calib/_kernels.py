@@ -136,6 +136,89 @@ def _rpy(R):
     )
 
 
+@njit(**_JIT)
+def _rotation(pose6, R):
+    """``R = Rz(γ) Ry(β) Rx(α)`` of ``pose6[3:6] = [α, β, γ]`` [rad] into ``R`` (rotations.rpy_to_rotation)."""
+    ca, cb, cg = math.cos(pose6[3]), math.cos(pose6[4]), math.cos(pose6[5])
+    sa, sb, sg = math.sin(pose6[3]), math.sin(pose6[4]), math.sin(pose6[5])
+    R[0, 0] = cb * cg
+    R[0, 1] = sa * sb * cg - sg * ca
+    R[0, 2] = sb * ca * cg + sa * sg
+    R[1, 0] = sg * cb
+    R[1, 1] = sa * sb * sg + ca * cg
+    R[1, 2] = sb * sg * ca - sa * cg
+    R[2, 0] = -sb
+    R[2, 1] = sa * cb
+    R[2, 2] = ca * cb
+
+
+@njit(**_JIT)
+def _adjoint(R, t):
+    """``Ad_T = [[R, 0], [t^ R, R]]`` (6, 6) in the ``[ω, v]`` order (instruments.lie.adjoint)."""
+    Ad = np.zeros((6, 6))
+    for a in range(3):
+        for b in range(3):
+            Ad[a, b] = R[a, b]
+            Ad[3 + a, 3 + b] = R[a, b]
+    for b in range(3):  # t^ R: column b is t × R[:, b]
+        Ad[3, b] = t[1] * R[2, b] - t[2] * R[1, b]
+        Ad[4, b] = t[2] * R[0, b] - t[0] * R[2, b]
+        Ad[5, b] = t[0] * R[1, b] - t[1] * R[0, b]
+    return Ad
+
+
+@njit(**_JIT)
+def _tangent_from_pose6(pose6, R):
+    """``(∂pose6/∂ξ)⁻¹ = [[0, Rᵀ T], [Rᵀ, 0]]`` (6, 6): the inverse of
+    instruments.lie.pose6_tangent_jacobian ``[[0, R], [T⁻¹ R, 0]]`` in closed form (``T`` of paper
+    eq. 4–5 at the pose's pitch β and yaw γ)."""
+    cb, sb = math.cos(pose6[4]), math.sin(pose6[4])
+    cg, sg = math.cos(pose6[5]), math.sin(pose6[5])
+    T = np.array([[cb * cg, -sg, 0.0], [cb * sg, cg, 0.0], [-sb, 0.0, 1.0]])
+    out = np.zeros((6, 6))
+    for a in range(3):
+        for b in range(3):
+            out[3 + a, b] = R[b, a]
+            out[a, 3 + b] = R[0, a] * T[0, b] + R[1, a] * T[1, b] + R[2, a] * T[2, b]
+    return out
+
+
+@njit(**_JIT)
+def pose_instrument_observation(z, theta, orientation_variance, position_variance):
+    """The pose instrument's loose pose in one call (instruments.pose.PoseModel.pose): ``X = F M G⁻¹``
+    of the reading ``M = z`` (pose6 [mm, rad]) with frame ``F = θ[:6]`` and target ``G = θ[6:12]``,
+    the reading's covariance carried to X's tangent ``Ad_G N Ad_Gᵀ`` (``N`` = the orientation and
+    position variances), and ``∂ξ/∂θ = [Ad_{G M⁻¹} (∂f/∂φ)⁻¹, −Ad_G (∂g/∂γ)⁻¹]`` (6, 12).
+
+    Returns:
+        ``(R_X, t_X, covariance, J_instrument)``.
+    """
+    R_F, R_M, R_G = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    _rotation(theta[0:6], R_F)
+    _rotation(z, R_M)
+    _rotation(theta[6:12], R_G)
+    t_F, t_M, t_G = theta[0:3], z[0:3], theta[6:9]
+    R_FM = R_F @ R_M
+    t_FM = t_F + R_F @ t_M
+    R_X = R_FM @ R_G.T
+    t_X = t_FM - R_X @ t_G  # t_FM + R_FM (−R_Gᵀ t_G)
+    Ad_G = _adjoint(R_G, t_G)
+    noise = np.array([orientation_variance] * 3 + [position_variance] * 3)
+    covariance = np.empty((6, 6))
+    for a in range(6):
+        for b in range(6):
+            s = 0.0
+            for c in range(6):
+                s += Ad_G[a, c] * noise[c] * Ad_G[b, c]
+            covariance[a, b] = s
+    R_GMi = R_G @ R_M.T
+    t_GMi = t_G - R_GMi @ t_M
+    J = np.empty((6, 12))
+    J[:, 0:6] = _adjoint(R_GMi, t_GMi) @ _tangent_from_pose6(theta[0:6], R_F)
+    J[:, 6:12] = -(Ad_G @ _tangent_from_pose6(theta[6:12], R_G))
+    return R_X, t_X, covariance, J
+
+
 # ----------------------------------------------------------------------------- forward kinematics
 
 

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import _kernels
 from .. import kinematics as kin
 from ..errors import SampleRejected
 from ..platform import Instrument
@@ -157,15 +158,10 @@ class PoseModel:
         ``[n_ω, R_mᵀ n_v]``, and ``X Exp(Ad_G δ) = F M Exp(δ) G⁻¹``; a frame change ``F Exp(φ)`` moves
         X by ``Ad_{G M⁻¹} φ``, a target change ``G Exp(γ)`` by ``−Ad_G γ``.
         """
-        u = PoseUnknowns.from_pose6(theta[:6], theta[6:12])
-        R_m, t_m = kin.pose_to_rt(z)
-        R_X, t_X = lie.compose(*lie.compose(u.R_frame, u.t_frame, R_m, t_m), *lie.inverse(u.R_target, u.t_target))
-        Ad_G = lie.adjoint(u.R_target, u.t_target)
-        noise = np.diag(np.r_[np.full(3, self.instrument.orientation_sigma_rad**2), np.full(3, self.instrument.position_sigma_mm**2)])
-        covariance = Ad_G @ noise @ Ad_G.T  # R_mᵀ σ² I R_m = σ² I: isotropic position noise
-        R_GMi, t_GMi = lie.compose(u.R_target, u.t_target, *lie.inverse(R_m, t_m))
-        J_tangent = np.hstack([lie.adjoint(R_GMi, t_GMi), -Ad_G])
-        return PoseObservation(R_X, t_X, covariance, J_tangent @ np.linalg.inv(theta_tangent_jacobian(theta)))
+        R_X, t_X, covariance, J_instrument = _kernels.pose_instrument_observation(
+            np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(theta[:12], dtype=float),
+            self.instrument.orientation_sigma_rad**2, self.instrument.position_sigma_mm**2)
+        return PoseObservation(R_X, t_X, covariance, J_instrument)
 
 
 def theta_tangent_jacobian(theta: np.ndarray) -> np.ndarray:
