@@ -16,7 +16,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "stewart_calib"
 LAYERS = (
     ("_jit", "errors"),
     ("stewart_calib", "_kernels", "resources", "progress"),
-    ("samples", "config", "rotations"),
+    ("samples", "config", "rotations", "chi_square"),
     ("platform",),
     ("kinematics", "unknowns"),
     ("estimate", "instruments"),

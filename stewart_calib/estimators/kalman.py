@@ -21,10 +21,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.special import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.stats costs ~1 s of import
 
 from .. import _kernels
 from .._jit import njit
+from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected
 from ..platform import N_PARAMS
 from ..unknowns import UnknownLayout, gauge_conditioned

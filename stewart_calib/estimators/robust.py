@@ -52,9 +52,9 @@ from collections import deque
 from typing import Callable
 
 import numpy as np
-from scipy.special import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.stats costs ~1 s of import
 
 from .._jit import njit
+from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected
 from .base import state_array
 from .kalman import STEPS_WINDOW_DUE, FilterState, kalman_update, variance_components
