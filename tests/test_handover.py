@@ -102,10 +102,10 @@ def test_outputs_into_a_missing_directory_are_refused_before_any_work(sim, tmp_p
 
 
 def test_residual_rms_is_that_of_validate_predictions(sim, ekf_run):
-    # calibrate's residual pass (one compiled FK + IK pass per block, warm-started) gives what
-    # validate's predictions (a batch FK per model from the level guess) give, within what FK's
-    # tolerance leaves open; the streamed RMS over blocks without the rejected samples is the RMS
-    # of those samples' residuals
+    # calibrate's residual pass (one compiled FK + IK pass per block, warm-started; the nominal
+    # model's on the first pass, spooled) gives what validate's predictions (a batch FK per model
+    # from the level guess) give, within what FK's tolerance leaves open; the streamed RMS over
+    # blocks without the rejected samples is the RMS of those samples' residuals
     from stewart_calib import kinematics as kin
     from stewart_calib.io import read_log
     from stewart_calib.pipelines import handover
@@ -120,7 +120,8 @@ def test_residual_rms_is_that_of_validate_predictions(sim, ekf_run):
     rejected = [3, 4, len(log) // 2]
     kept = log.select(np.delete(np.arange(len(log)), rejected))
     blocks = [log.select(slice(start, start + 7)) for start in range(0, len(log), 7)]
-    streamed = calibrate_pipeline.streamed_residual_rms(platform, blocks, result, rejected)
+    spooled = [(block, calibrate_pipeline.nominal_residuals(platform, block)) for block in blocks]
+    streamed = calibrate_pipeline.streamed_residual_rms(platform, spooled, result, rejected)
     expected_rms = handover.residual_rms_field(measurement_residuals(platform, kept, result))
     for model, got, when in ((nominal, residuals.before, "before"), (result, residuals.after, "after")):
         drive = platform.drive.perturbed(np.array(model["error"]))

@@ -182,6 +182,30 @@ def test_a_long_numeric_log_read_by_pyarrow_is_the_log_read_as_text(tmp_path, mo
             np.testing.assert_array_equal(np.concatenate([getattr(b, field) for b in blocks]), getattr(whole, field))
 
 
+
+def test_read_ahead_hands_on_items_and_errors_in_order():
+    # calibrate reads, checks and spools the next block on a second thread while the estimator
+    # works: the items come in order, a refusal where its block would have come, and leaving the
+    # loop stops the thread
+    import threading
+
+    from stewart_calib.pipelines.calibrate import read_ahead
+
+    def items():
+        yield from (1, 2)
+        raise CalibError("log.csv: row 9: bad")
+
+    got = []
+    with pytest.raises(CalibError, match="row 9"):
+        for item in read_ahead(items()):
+            got.append(item)
+    assert got == [1, 2]
+    endless = read_ahead(iter(range(10**9)))
+    assert [next(endless) for _ in range(3)] == [0, 1, 2]
+    endless.close()
+    assert not [thread for thread in threading.enumerate() if thread.name == "stewart-calib read-ahead"]
+
+
 # ----------------------------------------------------------------------------- memory of a run
 
 LOG_BYTES_PER_ROW = 8 * (1 + 6 + 6 + 6)  # t_s, strokes, readings, desired pose as float64
@@ -301,18 +325,20 @@ def test_row_parser_gives_the_samples_of_read_log(tmp_path):
 
 def test_a_spooled_log_reads_back_as_it_was_read(long_logs, tmp_path, monkeypatch):
     # calibrate's second pass (the residual RMS at the final estimate) reads the samples back from
-    # its spool, in blocks of the reader's size, instead of parsing the CSV again
+    # its spool, with values of each computed on the first pass, in blocks of the reader's size,
+    # instead of parsing the CSV again
     from stewart_calib.io import logs, read_log
     from stewart_calib.pipelines.calibrate import SampleSpool
 
     monkeypatch.setattr(logs, "BLOCK_BYTES", 1 << 12)
     spool = SampleSpool(tmp_path)
     for block in logs.read_log_blocks(long_logs[400], nim_stewart()):
-        spool.add(block)
-    back = list(spool.blocks())
+        spool.add(block, block.strokes[:, :2] - block.t_s[:, None])  # two extra columns
+    back, extra = zip(*spool.blocks())
     spool.close()
-    assert len(back) > 1 and max(8 * 13 * len(b) for b in back) <= 1 << 12
+    assert len(back) > 1 and max(8 * 15 * len(b) for b in back) <= 1 << 12
     whole = read_log(long_logs[400], nim_stewart())
     for field in ("t_s", "strokes", "readings"):
         np.testing.assert_array_equal(np.concatenate([getattr(b, field) for b in back]), getattr(whole, field))
+    np.testing.assert_array_equal(np.concatenate(extra), whole.strokes[:, :2] - whole.t_s[:, None])
     assert not list(tmp_path.iterdir())  # an unnamed file: nothing left beside the output

@@ -21,18 +21,20 @@ from __future__ import annotations
 
 import argparse
 import math
+import queue
 import sys
 import tempfile
+import threading
 from collections import deque
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator, TypeVar
 
 import numpy as np
 
 from . import add_config_arguments, handover, run_command
-from .validate import measurement_residuals
+from .validate import measurement_residuals, nominal_model, tracker_residuals
 from .. import __version__, estimators, io
 from ..io import logs
 from ..errors import CalibError, SampleRejected
@@ -280,10 +282,10 @@ def feed_online(estimator, blocks: Iterable[Log], on_rejected: Callable[[int, fl
 
 
 class SampleSpool:
-    """The good samples of a streamed log (``t_s``, strokes, readings as float64 rows) in an
-    unnamed temporary file, read back a block at a time: the second pass over the log (the exact
-    residual RMS at the final estimate) without parsing the CSV again (~10 µs a sample) and
-    without holding the log in memory. The file is deleted when closed (or the process ends).
+    """The good samples of a streamed log (``t_s``, strokes, readings and per-sample extra columns
+    as float64 rows) in an unnamed temporary file, read back a block at a time: the second pass
+    over the log (the exact residual RMS at the final estimate) without parsing the CSV again
+    and without holding the log in memory. The file is deleted when closed (or the process ends).
 
     Args:
         directory: where the file goes (the output's: a disk the user chose, not a RAM ``/tmp``).
@@ -291,24 +293,68 @@ class SampleSpool:
 
     def __init__(self, directory: Path):
         self._file = tempfile.TemporaryFile(dir=directory)
-        self._width = 0
+        self._widths = (0, 0)
 
-    def add(self, block: Log) -> None:
-        rows = np.column_stack([block.t_s, block.strokes, block.readings])
-        self._width = rows.shape[1]
+    def add(self, block: Log, extra: np.ndarray) -> None:
+        """The samples of ``block`` with ``extra``, ``(len(block), k)`` values of each."""
+        rows = np.column_stack([block.t_s, block.strokes, block.readings, extra])
+        self._widths = (block.readings.shape[1], extra.shape[1])
         self._file.write(np.ascontiguousarray(rows, dtype=np.float64).tobytes())
 
-    def blocks(self) -> Iterable[Log]:
-        """The samples added, in order, as :class:`Log` blocks of at most the log reader's block
-        size in bytes (:data:`stewart_calib.io.logs.BLOCK_BYTES`)."""
+    def blocks(self) -> Iterable[tuple[Log, np.ndarray]]:
+        """The samples added, in order, as ``(Log, extra)`` blocks of at most the log reader's
+        block size in bytes (:data:`stewart_calib.io.logs.BLOCK_BYTES`)."""
         self._file.seek(0)
-        row_bytes = 8 * self._width
-        while self._width and (data := self._file.read(max(logs.BLOCK_BYTES // row_bytes, 1) * row_bytes)):
-            rows = np.frombuffer(data).reshape(-1, self._width)
-            yield Log(rows[:, 0], rows[:, 1 : 1 + N_LEGS], rows[:, 1 + N_LEGS :])
+        readings, extra = self._widths
+        width = 1 + N_LEGS + readings + extra
+        row_bytes = 8 * width
+        while readings and (data := self._file.read(max(logs.BLOCK_BYTES // row_bytes, 1) * row_bytes)):
+            rows = np.frombuffer(data).reshape(-1, width)
+            yield Log(rows[:, 0], rows[:, 1 : 1 + N_LEGS], rows[:, 1 + N_LEGS : width - extra]), rows[:, width - extra :]
 
     def close(self) -> None:
         self._file.close()
+
+
+T = TypeVar("T")
+
+
+def read_ahead(items: Iterable[T]) -> Iterator[T]:
+    """The items of ``items``, each made in a background thread while the caller works on the one
+    before: a long log's parsing, checks and spooling overlap the estimator on a second core
+    (pyarrow and the compiled kernels let go of the GIL). An exception of ``items`` is raised
+    where its item would have come; leaving the loop early stops the thread after the item it is making."""
+    handed: queue.Queue = queue.Queue(maxsize=1)
+    stop, end = threading.Event(), object()
+
+    def hand(entry) -> bool:
+        while not stop.is_set():
+            try:
+                handed.put(entry, timeout=0.05)
+                return True
+            except queue.Full:
+                pass
+        return False
+
+    def make() -> None:
+        try:
+            for item in items:
+                if not hand((item, None)):
+                    return
+            hand((end, None))
+        except BaseException as err:  # noqa: BLE001 -- raised again in the caller's thread
+            hand((end, err))
+
+    thread = threading.Thread(target=make, name="stewart-calib read-ahead", daemon=True)
+    thread.start()
+    try:
+        while (entry := handed.get())[0] is not end:
+            yield entry[0]
+        if entry[1] is not None:
+            raise entry[1]
+    finally:
+        stop.set()
+        thread.join()
 
 
 def stream_calibration(platform: Platform, path: str, method: str, config: EstimatorConfig, skip_bad_rows: bool,
@@ -328,7 +374,7 @@ def stream_calibration(platform: Platform, path: str, method: str, config: Estim
         checked.add(block)
         skipped.add(block.skipped)
         if spool is not None:
-            spool.add(block)
+            spool.add(block, nominal_residuals(platform, block))
         return block
 
     def refused(k: int, t_s: float, err: SampleRejected) -> None:
@@ -336,10 +382,13 @@ def stream_calibration(platform: Platform, path: str, method: str, config: Estim
         rejections.add(err)
         first_t_s[:] = first_t_s or [t_s]
 
-    def write_trace(block: Log, errors_mm: np.ndarray) -> None:
-        trace_file.write(io.trace_text(block.t_s, nominal + errors_mm, header=checked.seen == len(block)))
+    written = []
 
-    blocks = (read(block) for block in io.read_log_blocks(path, platform, skip_bad_rows=skip_bad_rows))
+    def write_trace(block: Log, errors_mm: np.ndarray) -> None:
+        trace_file.write(io.trace_text(block.t_s, nominal + errors_mm, header=not written))
+        written.append(len(block))
+
+    blocks = read_ahead(read(block) for block in io.read_log_blocks(path, platform, skip_bad_rows=skip_bad_rows))
     with log_progress_bar(path, f"calibrate {method}") as bar:
         n = feed_online(estimator, blocks, refused, write_trace if trace_file is not None else None, bar)
     if rejections.count == n:
@@ -348,24 +397,39 @@ def stream_calibration(platform: Platform, path: str, method: str, config: Estim
                        getattr(estimator, "noise_scale", lambda: None)())
 
 
-def streamed_residual_rms(platform: Platform, blocks: Iterable[Log], result: dict, rejected: list[int]) -> dict:
-    """:func:`~.handover.residual_rms_field` of the log's samples ``blocks`` (read again, e.g. from a
-    :class:`SampleSpool`) without the ``rejected`` ones: the per-channel sums of squares add up over the blocks."""
-    sums, counts, channels, k = {}, {}, None, 0
+def nominal_residuals(platform: Platform, block: Log) -> np.ndarray:
+    """``(len(block), 6)`` the tracker's readings minus what the nominal model predicts [mm], NaN
+    where its FK fails: the residual RMS "before", which needs no estimate, so is spooled with the
+    samples on the first pass (on the read-ahead thread) and only the calibrated model's is left
+    for the second."""
+    before = tracker_residuals(platform, block, [(nominal_model(platform), "the nominal platform")])
+    return np.full((len(block), N_LEGS), np.nan) if before is None else before[0]
+
+
+def streamed_residual_rms(platform: Platform, spooled: Iterable[tuple[Log, np.ndarray]], result: dict,
+                          rejected: list[int]) -> dict:
+    """:func:`~.handover.residual_rms_field` of a streamed tracker log without its ``rejected``
+    samples, from the ``(block, before)`` pairs of its :class:`SampleSpool` (``before``: the
+    :func:`nominal_residuals` of each sample): the calibrated
+    model's residuals are computed here, and the per-channel sums of squares add up over the blocks.
+    """
+    sums, counts, k = {"before": 0.0, "after": 0.0}, {"before": 0, "after": 0}, 0
     rejected = np.asarray(rejected, dtype=np.int64)
-    for block in blocks:
+    for block, before in spooled:
         used = ~np.isin(k + np.arange(len(block)), rejected)
         k += len(block)
         if not used.any():
             continue
-        residuals = measurement_residuals(platform, block.select(used), result)
-        channels = residuals.channels
-        for when in ("before", "after"):
-            values = getattr(residuals, when)
+        block, before = block.select(used), before[used]
+        after = tracker_residuals(platform, block, [(result, "the result")])
+        if after is None or np.isnan(before).any():  # an FK failed: validate's path words it
+            residuals = measurement_residuals(platform, block, result)
+            before, after = residuals.before, residuals.after[None]
+        for when, values in (("before", before), ("after", after[0])):
             finite = np.isfinite(values)
-            sums[when] = sums.get(when, 0.0) + np.sum(np.where(finite, values, 0.0) ** 2, axis=0)
-            counts[when] = counts.get(when, 0) + finite.sum(axis=0)
-    field = {"channels": list(channels)}
+            sums[when] = sums[when] + np.sum(np.where(finite, values, 0.0) ** 2, axis=0)
+            counts[when] = counts[when] + finite.sum(axis=0)
+    field = {"channels": list(io.reading_columns(platform))}
     for when in ("before", "after"):
         with np.errstate(invalid="ignore", divide="ignore"):
             rms = np.sqrt(sums[when] / counts[when])

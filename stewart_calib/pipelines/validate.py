@@ -194,9 +194,9 @@ def measurement_residuals(platform: Platform, log: Log, result: dict, predicted:
         wrapped = np.where(angle, (difference + np.pi) % (2 * np.pi) - np.pi, difference)  # 359° off is 1° off
         return wrapped * np.where(angle, 180.0 / np.pi, 1.0)
 
-    nominal = {"nominal": platform.drive.as_vector().tolist(), "error": [0.0] * len(platform.drive.as_vector())}
+    nominal = nominal_model(platform)
     if predicted is None and platform.instrument.kind == "tracker":
-        residuals = _tracker_residuals(platform, log, [(nominal, "the nominal platform"), (result, "the result")])
+        residuals = tracker_residuals(platform, log, [(nominal, "the nominal platform"), (result, "the result")])
         if residuals is not None:  # else an FK failed: validate() below words it
             return Residuals(tuple(columns), np.asarray(log.t_s), *residuals, log_label, "the nominal platform")
     if predicted is None:
@@ -209,7 +209,12 @@ def measurement_residuals(platform: Platform, log: Log, result: dict, predicted:
     return Residuals(tuple(columns), np.asarray(log.t_s), before, residual_file_units(predicted), log_label, before_model)
 
 
-def _tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str]]) -> np.ndarray | None:
+def nominal_model(platform: Platform) -> dict:
+    """The nominal platform as a calibration result (no error): what "before" predicts with."""
+    return {"nominal": platform.drive.as_vector().tolist(), "error": [0.0] * len(platform.drive.as_vector())}
+
+
+def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str]]) -> np.ndarray | None:
     """The tracker's readings minus its readings predicted by each ``(result, source)`` model, as
     :func:`validate`'s predictions (within FK's tolerance) in one compiled pass over the log:
     ``(len(models), N, 6)`` [mm], or None when a model's FK does not converge for a sample."""
