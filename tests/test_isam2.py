@@ -192,3 +192,48 @@ def test_current_error_is_the_estimate_mean_without_the_covariance():
         for sample in log:
             est.update(sample)
             np.testing.assert_array_equal(est.current_error(), est.estimate().error)
+
+
+def test_a_block_of_samples_is_the_samples_one_by_one(platform, monkeypatch):
+    """``update_block`` (the front end over runs of samples in compiled calls, the graph following
+    it) refuses the same samples with the same messages and gives the same per-sample estimates
+    as ``update`` one by one, through a start-up glitch left out late, gated glitches, a lock-out
+    (a run taken back and redone sample by sample), a non-finite stroke, a stroke out of range, a
+    time going back and a sample gtsam fails on inside a run (the front end taken back). Equal
+    to the front end's own rounding (tests/test_robust.py: its compiled recursion may sum in
+    another order, 1e-8 of δM at most, against a σ of ~1e-3 mm here)."""
+    from benchmarks.common import synthetic_stream
+    from stewart_calib.estimators.base import update_block, update_each
+    from tests.faults import degenerate_sample
+
+    log, _ = synthetic_stream(platform, 1000, np.random.default_rng(3), 10.0, smooth=True)
+    # [mm]: one left out late by the start-up batch, one gated, twelve in a row lock the gate out
+    glitches = {(10, 3): 2.0, (200, 2): 5.0, **{(k, 1): 3.0 for k in range(300, 312)}}
+    for (k, ruler), mm in glitches.items():
+        log.readings[k, ruler] += mm
+    log.strokes[[400, 420], [0, 4]] = np.nan, 1e4  # non-finite, out of range
+    log.t_s[450] = log.t_s[449] - 1.0  # time going back
+    degenerate_sample(monkeypatch, float(log.t_s[640]))
+    config = config_from_dict({"isam2": {"window_samples": 5, "lag_s": 1.0}})
+    one, errors_one, refused_one = _fed_in_blocks(make_estimator("isam2", platform, config), log, update_each)
+    block, errors_block, refused_block = _fed_in_blocks(make_estimator("isam2", platform, config), log, update_block)
+    assert refused_block == refused_one
+    reasons = {reason for _, reason, _ in refused_one}
+    assert {SampleRejected.SOLVER, SampleRejected.GATED, SampleRejected.NON_FINITE, SampleRejected.TIME_BACK} <= reasons
+    assert one._front.robust.recoveries == block._front.robust.recoveries >= 1
+    np.testing.assert_allclose(errors_block, errors_one, rtol=0, atol=1e-8)  # [mm]
+    assert block.graph_size() == one.graph_size()
+    np.testing.assert_allclose(block.estimate().covariance, one.estimate().covariance, rtol=1e-6, atol=0)
+
+
+def _fed_in_blocks(estimator, log: Log, feed, size: int = 400):
+    """``feed(estimator, block, errors)`` over ``log`` in blocks of ``size``: the estimator, δM
+    after each sample and ``(index, reason, message)`` of every refusal, late ones included."""
+    errors = np.empty((len(log), 42))
+    refused = [
+        (start + j, err.reason, str(err))
+        for start in range(0, len(log), size)
+        for part in feed(estimator, log.select(slice(start, start + size)), errors[start:start + size])
+        for j, err in part
+    ]
+    return estimator, errors, refused

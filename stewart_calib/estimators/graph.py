@@ -127,6 +127,12 @@ class GraphBuilder:
             for legs in ([np.arange(N_LEGS)] if self._gaussian else [[i] for i in range(N_LEGS)])
         ]
         self._group_noise: dict[tuple[int, ...], gtsam.noiseModel.Base] = {}
+        # the channel groups of the last sample as factored (channels, noise): the tracker's groups
+        # are one constant list, so a sample's are most often the very list of the one before
+        self._groups: tuple[list[np.ndarray] | None, list[tuple[np.ndarray, gtsam.noiseModel.Base]]] = (None, [])
+        # tight coupling to a tracker of known geometry: the pose's initial value is the readings'
+        # FK alone (its covariance, which model.pose adds, is for loose coupling)
+        self._tracker_fk = self.model.kind == "tracker" and self.model.unknowns is None and self.graph.coupling == "tight"
         self._instrument = self.layout.slice("instrument")
         self._prior_sigma = self.layout.prior_sigma(self.noise.prior_sigma_mm)
         self._walks = self.layout.walks()
@@ -205,15 +211,18 @@ class GraphBuilder:
         # The current estimate, asked for only where it is needed (isam2 pays a smoother query).
         wanted = state.samples > 0 and (self._instrument is not None or self.new_window(state, sample.t_s))
         guess = params_guess() if wanted else (self.initial if state.samples == 0 and self._instrument is not None else None)
-        theta = instrument_theta(self.model, None if guess is None or self._instrument is None else guess[self._instrument])
-        observed = self.model.pose(z, theta, state.last_pose)
-        if observed is not None:
-            R, t = observed.R, observed.t
-        else:  # the measurement alone does not fix a pose: start from the drive model's
-            if guess is None and state.samples > 0:
-                guess = params_guess()
-            drive = self.platform.drive.perturbed(np.zeros(N_PARAMS) if guess is None else guess[:N_PARAMS])
-            R, t = kin.solve_fk(drive, self._scaled(strokes, guess), state.last_pose, "drive model")
+        if self._tracker_fk:
+            observed, (R, t) = None, kin.solve_fk(self.model.legs, z, state.last_pose, "tracker")
+        else:
+            theta = instrument_theta(self.model, None if guess is None or self._instrument is None else guess[self._instrument])
+            observed = self.model.pose(z, theta, state.last_pose)
+            if observed is not None:
+                R, t = observed.R, observed.t
+            else:  # the measurement alone does not fix a pose: start from the drive model's
+                if guess is None and state.samples > 0:
+                    guess = params_guess()
+                drive = self.platform.drive.perturbed(np.zeros(N_PARAMS) if guess is None else guess[:N_PARAMS])
+                R, t = kin.solve_fk(drive, self._scaled(strokes, guess), state.last_pose, "drive model")
         pose = gtsam.Pose3(gtsam.Rot3(R), t)
 
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -241,22 +250,23 @@ class GraphBuilder:
             factors.add(instrument_pose.factor(x, pose, noise))
         else:
             unknowns = () if self._instrument is None else (p, self._instrument, self.layout.size)
-            for channels in self._merged(self.model.groups(z)):
-                factors.add(instrument.factor(self.model, x, z, channels, self._noise(channels), *unknowns))
+            for channels, noise in self._factored_groups(z):
+                factors.add(instrument.factor(self.model, x, z, channels, noise, *unknowns))
         for legs, noise in self._drive_legs:
             factors.add(drive_leg.factor(x, p, legs, strokes, noise))
 
         # The current parameter key is re-stamped every update so the smoother never
         # marginalises the variable new factors are about to touch (docs/measured-facts.md).
         timestamps = {x: sample.t_s, p: sample.t_s}
-        state = replace(
-            state,
-            samples=k + 1,
-            window_samples=state.window_samples + 1,
-            last_t_s=sample.t_s,
-            last_pose=(R, t),
-        )
+        state = ChainState(k + 1, state.window, state.window_start_s, state.window_samples + 1, sample.t_s, (R, t))
         return Epoch(factors, values, timestamps, state)
+
+    def _factored_groups(self, z: np.ndarray) -> list[tuple[np.ndarray, gtsam.noiseModel.Base]]:
+        """The model's channel groups of ``z`` as factored (:meth:`_merged`), each with its noise."""
+        groups = self.model.groups(z)
+        if groups is not self._groups[0]:
+            self._groups = (groups, [(channels, self._noise(channels)) for channels in self._merged(groups)])
+        return self._groups[1]
 
     def _scaled(self, strokes: np.ndarray, guess: np.ndarray | None) -> np.ndarray:
         """``(1 + k_i) q_i`` [mm]: the nominal stroke scale plus the error in ``guess``, if any."""

@@ -30,6 +30,7 @@ import numpy as np
 
 from ..kinematics import leg_residual
 from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG
+from ._kernels import drive_leg_rows
 
 
 def residual(
@@ -55,20 +56,16 @@ class DriveLegs:
         nominal: ``(k, 7)`` their nominal ``[j_i | d_i | l_i]`` [mm].
         columns: ``(k, 7)`` their δ_i's columns in the unknown vector.
         size: length of the unknown vector (42 + its blocks).
-        scale_columns: ``(k,)`` columns of their k_i errors, or None without a stroke-scale block.
+        scale_columns: ``(k,)`` columns of their k_i errors, −1 without a stroke-scale block.
         nominal_scale: ``(k,)`` the platform's nominal k_i.
-        flat_columns, flat_scale_columns: the same columns as flat indices into the factor's
-            ``(k, size)`` Jacobian (``np.put``), row i for leg ``legs[i]``.
     """
 
     legs: np.ndarray
     nominal: np.ndarray
     columns: np.ndarray
     size: int
-    scale_columns: np.ndarray | None
+    scale_columns: np.ndarray
     nominal_scale: np.ndarray
-    flat_columns: np.ndarray
-    flat_scale_columns: np.ndarray | None
 
     @classmethod
     def of(cls, legs, drive_params: np.ndarray, size: int = N_PARAMS, scale_start: int | None = None,
@@ -77,28 +74,21 @@ class DriveLegs:
         column of leg 1's k_i error (leg i at ``scale_start + i``); ``stroke_scale``: nominal k_i."""
         legs = np.asarray(legs, dtype=np.int64).reshape(-1)
         columns = N_PARAMS_PER_LEG * legs[:, None] + np.arange(N_PARAMS_PER_LEG)
-        scale_columns = None if scale_start is None else scale_start + legs
-        row_start = size * np.arange(len(legs))
         return cls(
-            legs, np.array(np.asarray(drive_params, dtype=float)[legs]), columns, int(size), scale_columns,
+            legs, np.array(np.asarray(drive_params, dtype=float)[legs]), np.ascontiguousarray(columns), int(size),
+            np.full(len(legs), -1, dtype=np.int64) if scale_start is None else scale_start + legs,
             np.array(np.broadcast_to(np.asarray(stroke_scale, dtype=float), (N_LEGS,))[legs]),
-            columns + row_start[:, None], None if scale_columns is None else scale_columns + row_start,
         )
 
 
-def _error(legs: DriveLegs, strokes_mm: np.ndarray, this: gtsam.CustomFactor, values: gtsam.Values, H):
-    pose = values.atPose3(this.keys()[0])
-    unknowns = values.atVector(this.keys()[1])
-    scale = legs.nominal_scale if legs.scale_columns is None else legs.nominal_scale + unknowns[legs.scale_columns]
-    r, H_pose, H_legs = residual(
-        pose.rotation().matrix(), pose.translation(), legs.nominal, unknowns[legs.columns], (1.0 + scale) * strokes_mm
+def _error(legs: DriveLegs, strokes_mm: np.ndarray, pose_key: int, params_key: int,
+           this: gtsam.CustomFactor, values: gtsam.Values, H):
+    r, H_pose, H_params = drive_leg_rows(
+        values.atPose3(pose_key).matrix(), values.atVector(params_key), legs.nominal, legs.columns,
+        legs.scale_columns, legs.nominal_scale, strokes_mm,
     )
     if H is not None:
         H[0] = H_pose
-        H_params = np.zeros((len(r), legs.size))
-        np.put(H_params, legs.flat_columns, H_legs)
-        if legs.flat_scale_columns is not None:
-            np.put(H_params, legs.flat_scale_columns, -strokes_mm)
         H[1] = H_params
     return r
 
@@ -112,6 +102,9 @@ def factor(
     Args:
         strokes_mm: ``(6,)`` the sample's executed strokes q_i [mm] (those of ``legs`` are used).
         noise: of the ``k`` rows.
+
+    The residual and both Jacobians are one compiled call (:func:`._kernels.drive_leg_rows`,
+    the arithmetic of :func:`residual`).
     """
     strokes = np.array(np.asarray(strokes_mm, dtype=float)[legs.legs])
-    return gtsam.CustomFactor(noise, [pose_key, params_key], partial(_error, legs, strokes))
+    return gtsam.CustomFactor(noise, [pose_key, params_key], partial(_error, legs, strokes, pose_key, params_key))

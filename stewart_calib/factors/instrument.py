@@ -11,6 +11,11 @@ module only adapts them to ``gtsam.CustomFactor``:
 
 One factor per group (``model.groups``): for the tracker one per ruler, so a robust kernel
 down-weights a single bad reading rather than the whole sample.
+
+A tracker of known geometry (the default) is a set of legs with fixed rows ``[z_i | h_i | ls_i]``:
+its factors take those rows once and are linearised in one compiled call
+(:func:`._kernels.known_leg_rows`, the arithmetic of ``TrackerModel.residual``), a third of
+the model's per-call cost (fancy indexing and a residual tuple per linearisation).
 """
 
 from __future__ import annotations
@@ -21,15 +26,16 @@ import gtsam
 import numpy as np
 
 from ..instruments.base import InstrumentModel
+from ._kernels import known_leg_rows
 
 _KNOWN = np.zeros(0)  # θ of a model without unknowns
 
 
-def _error(model: InstrumentModel, z: np.ndarray, channels: np.ndarray, block: slice | None, size: int,
+def _error(model: InstrumentModel, z: np.ndarray, channels: np.ndarray, block: slice | None, size: int, keys: tuple,
            this: gtsam.CustomFactor, values: gtsam.Values, H):
-    pose = values.atPose3(this.keys()[0])
-    theta = _KNOWN if block is None else model.unknowns.nominal + values.atVector(this.keys()[1])[block]
-    res = model.residual(pose.rotation().matrix(), pose.translation(), theta, z, channels)
+    pose = values.atPose3(keys[0]).matrix()  # one conversion, not rotation() and translation()
+    theta = _KNOWN if block is None else model.unknowns.nominal + values.atVector(keys[1])[block]
+    res = model.residual(pose[:3, :3], pose[:3, 3], theta, z, channels)
     if H is not None:
         H[0] = res.J_pose
         if block is not None:
@@ -37,6 +43,14 @@ def _error(model: InstrumentModel, z: np.ndarray, channels: np.ndarray, block: s
             H_params[:, block] = res.J_instrument
             H[1] = H_params
     return res.r
+
+
+def _known_legs_error(legs: np.ndarray, readings: np.ndarray, pose_key: int,
+                      this: gtsam.CustomFactor, values: gtsam.Values, H):
+    r, H_pose = known_leg_rows(values.atPose3(pose_key).matrix(), legs, readings)
+    if H is not None:
+        H[0] = H_pose
+    return r
 
 
 def factor(
@@ -49,6 +63,10 @@ def factor(
         params_key, block, size: the unknown-vector variable, the model's columns in it and its
             length; all three when the model has unknowns, none otherwise.
     """
+    channels = np.asarray(channels, dtype=np.int64)
+    z = np.asarray(z, dtype=float)
+    if model.kind == "tracker" and model.unknowns is None:
+        legs = np.ascontiguousarray(model.legs.params[channels], dtype=float)
+        return gtsam.CustomFactor(noise, [pose_key], partial(_known_legs_error, legs, z[channels], pose_key))
     keys = [pose_key] if block is None else [pose_key, params_key]
-    error = partial(_error, model, np.asarray(z, dtype=float), np.asarray(channels), block, size)
-    return gtsam.CustomFactor(noise, keys, error)
+    return gtsam.CustomFactor(noise, keys, partial(_error, model, z, channels, block, size, tuple(keys)))

@@ -1,0 +1,70 @@
+"""numba kernels behind the factors' ``gtsam.CustomFactor`` callbacks.
+
+iSAM2 linearises every measurement factor about twice (when it enters and when its pose is
+relinearised), two factors a sample: tens of thousands of callbacks a log. Written with numpy,
+one drive-leg callback made ~10 small arrays (fancy indexing, ``np.put``, ``np.zeros``) around
+a compiled core: ~3× the cost of the core and of gtsam's own overhead. Here each callback is one
+compiled call from what gtsam hands over (the pose as ``Pose3.matrix()``, the unknown vector) to
+the arrays it takes back, with the arithmetic of :func:`stewart_calib.kinematics.leg_residual`
+(the same kernel, :func:`stewart_calib._kernels.leg_rows`), so the numbers are bit for bit the same.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._jit import njit
+from .._kernels import leg_rows
+
+# as stewart_calib._kernels: x / 0 gives inf/NaN as numpy does
+_JIT = {"nogil": True, "error_model": "numpy"}
+
+
+@njit(**_JIT)
+def drive_leg_rows(pose, unknowns, nominal, columns, scale_columns, nominal_scale, strokes):
+    """Drive-leg residuals of ``k`` legs and their Jacobians on the pose and the unknown vector.
+
+    Args:
+        pose: ``(4, 4)`` homogeneous pose of {D} in {J} [mm] (``Pose3.matrix()``).
+        unknowns: ``(size,)`` the unknown vector (δM first).
+        nominal: ``(k, 7)`` nominal ``[j_i | d_i | l_i]`` [mm]; columns: ``(k, 7)`` their δ_i's
+            columns in ``unknowns``.
+        scale_columns: ``(k,)`` columns of the legs' stroke-scale errors k_i, −1 where none.
+        nominal_scale: ``(k,)`` nominal k_i; strokes: ``(k,)`` executed strokes q_i [mm].
+    Returns:
+        ``(r (k,), ∂r/∂ξ (k, 6), ∂r/∂unknowns (k, size))``.
+    """
+    k = nominal.shape[0]
+    legs = np.empty((k, 7))
+    extensions = np.empty(k)
+    for i in range(k):
+        for j in range(7):
+            legs[i, j] = nominal[i, j] + unknowns[columns[i, j]]
+        scale = nominal_scale[i]
+        if scale_columns[i] >= 0:
+            scale = nominal_scale[i] + unknowns[scale_columns[i]]
+        extensions[i] = (1.0 + scale) * strokes[i]
+    R = np.ascontiguousarray(pose[:3, :3])
+    t = np.ascontiguousarray(pose[:3, 3])
+    r, J_pose, J_legs = np.empty(k), np.empty((k, 6)), np.empty((k, 7))
+    leg_rows(legs, R, t, extensions, r, J_pose, J_legs)
+    H = np.zeros((k, unknowns.shape[0]))
+    for i in range(k):
+        for j in range(7):
+            H[i, columns[i, j]] = J_legs[i, j]
+        if scale_columns[i] >= 0:
+            H[i, scale_columns[i]] = -strokes[i]
+    return r, J_pose, H
+
+
+@njit(**_JIT)
+def known_leg_rows(pose, legs, extensions):
+    """Residuals of ``k`` legs of known geometry ``legs (k, 7)`` = ``[j_i | d_i | l_i]`` with
+    extensions ``e_i`` (a tracker's rulers and their readings) at ``pose`` ``(4, 4)``, and their
+    Jacobian on the pose: ``(r (k,), ∂r/∂ξ (k, 6))``."""
+    k = legs.shape[0]
+    R = np.ascontiguousarray(pose[:3, :3])
+    t = np.ascontiguousarray(pose[:3, 3])
+    r, J_pose, J_legs = np.empty(k), np.empty((k, 6)), np.empty((k, 7))
+    leg_rows(legs, R, t, extensions, r, J_pose, J_legs)
+    return r, J_pose
