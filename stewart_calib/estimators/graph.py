@@ -129,7 +129,7 @@ class GraphBuilder:
         self._group_noise: dict[tuple[int, ...], gtsam.noiseModel.Base] = {}
         # the channel groups of the last sample as factored (channels, noise): the tracker's groups
         # are one constant list, so a sample's are most often the very list of the one before
-        self._groups: tuple[list[np.ndarray] | None, list[tuple[np.ndarray, gtsam.noiseModel.Base]]] = (None, [])
+        self._groups: tuple[list[np.ndarray] | None, list[tuple]] = (None, [])
         # tight coupling to a tracker of known geometry: the pose's initial value is the readings'
         # FK alone (its covariance, which model.pose adds, is for loose coupling)
         self._tracker_fk = self.model.kind == "tracker" and self.model.unknowns is None and self.graph.coupling == "tight"
@@ -250,8 +250,8 @@ class GraphBuilder:
             factors.add(instrument_pose.factor(x, pose, noise))
         else:
             unknowns = () if self._instrument is None else (p, self._instrument, self.layout.size)
-            for channels, noise in self._factored_groups(z):
-                factors.add(instrument.factor(self.model, x, z, channels, noise, *unknowns))
+            for channels, noise, legs in self._factored_groups(z):
+                factors.add(instrument.factor(self.model, x, z, channels, noise, *unknowns, legs=legs))
         for legs, noise in self._drive_legs:
             factors.add(drive_leg.factor(x, p, legs, strokes, noise))
 
@@ -261,11 +261,13 @@ class GraphBuilder:
         state = ChainState(k + 1, state.window, state.window_start_s, state.window_samples + 1, sample.t_s, (R, t))
         return Epoch(factors, values, timestamps, state)
 
-    def _factored_groups(self, z: np.ndarray) -> list[tuple[np.ndarray, gtsam.noiseModel.Base]]:
-        """The model's channel groups of ``z`` as factored (:meth:`_merged`), each with its noise."""
+    def _factored_groups(self, z: np.ndarray) -> list[tuple[np.ndarray, gtsam.noiseModel.Base, np.ndarray | None]]:
+        """The model's channel groups of ``z`` as factored (:meth:`_merged`), each with its noise
+        and :func:`~stewart_calib.factors.instrument.known_legs`."""
         groups = self.model.groups(z)
         if groups is not self._groups[0]:
-            self._groups = (groups, [(channels, self._noise(channels)) for channels in self._merged(groups)])
+            self._groups = (groups, [(channels, self._noise(channels), instrument.known_legs(self.model, channels))
+                                     for channels in self._merged(groups)])
         return self._groups[1]
 
     def _scaled(self, strokes: np.ndarray, guess: np.ndarray | None) -> np.ndarray:

@@ -282,12 +282,15 @@ class ISAM2Estimator:
 
     def _trim(self, t_s: float) -> None:
         """Drop what the newest snapshot at least one lag old makes redundant."""
-        old = [i for i, s in enumerate(self._snapshots) if self._replay[s.offset].t_s <= t_s - self._lag_s]
-        if not old or self._snapshots[old[-1]].offset == 0:
+        cutoff = t_s - self._lag_s
+        # the snapshots' samples are in time order: the newest old one is the first old one from the end
+        newest = next((i for i in range(len(self._snapshots) - 1, -1, -1)
+                       if self._replay[self._snapshots[i].offset].t_s <= cutoff), None)
+        if newest is None or self._snapshots[newest].offset == 0:
             return
-        cut = self._snapshots[old[-1]].offset
+        cut = self._snapshots[newest].offset
         del self._replay[:cut]
-        self._snapshots = [replace(s, offset=s.offset - cut) for s in self._snapshots[old[-1]:]]
+        self._snapshots = [replace(s, offset=s.offset - cut) for s in self._snapshots[newest:]]
 
     def _first_snapshot(self) -> _Snapshot | None:
         """The snapshot the replay buffer starts at; None while it starts at the first sample."""

@@ -53,20 +53,29 @@ def _known_legs_error(legs: np.ndarray, readings: np.ndarray, pose_key: int,
     return r
 
 
+def known_legs(model: InstrumentModel, channels: np.ndarray) -> np.ndarray | None:
+    """``(k, 7)`` rows ``[z_i | h_i | ls_i]`` of the rulers ``channels`` of a tracker of known
+    geometry, what its factors share across samples; None for any other model."""
+    if model.kind != "tracker" or model.unknowns is not None:
+        return None
+    return np.ascontiguousarray(model.legs.params[np.asarray(channels, dtype=np.int64)], dtype=float)
+
+
 def factor(
     model: InstrumentModel, pose_key: int, z: np.ndarray, channels: np.ndarray, noise: gtsam.noiseModel.Base,
-    params_key: int | None = None, block: slice | None = None, size: int = 0,
+    params_key: int | None = None, block: slice | None = None, size: int = 0, legs: np.ndarray | None = None,
 ) -> gtsam.CustomFactor:
     """A ``CustomFactor`` for ``channels`` of the measurement ``z``.
 
     Args:
         params_key, block, size: the unknown-vector variable, the model's columns in it and its
             length; all three when the model has unknowns, none otherwise.
+        legs: :func:`known_legs` of ``channels`` where the caller keeps them (else found here).
     """
     channels = np.asarray(channels, dtype=np.int64)
     z = np.asarray(z, dtype=float)
-    if model.kind == "tracker" and model.unknowns is None:
-        legs = np.ascontiguousarray(model.legs.params[channels], dtype=float)
+    legs = known_legs(model, channels) if legs is None else legs
+    if legs is not None:
         return gtsam.CustomFactor(noise, [pose_key], partial(_known_legs_error, legs, z[channels], pose_key))
     keys = [pose_key] if block is None else [pose_key, params_key]
     return gtsam.CustomFactor(noise, keys, partial(_error, model, z, channels, block, size, tuple(keys)))
