@@ -321,11 +321,14 @@ def _run_cli(argv: list[str], cap_s: float, stdout_path: Path, python_flags: tup
                 os.killpg(proc.pid, signal.SIGKILL)
                 _, status, usage = os.wait4(proc.pid, 0)
                 proc.returncode = -9
-                return {"wall_s": time.perf_counter() - start, "capped": True, "peak_rss_mib": _peak_kib(rss_path, usage) / 1024}
+                return {"wall_s": time.perf_counter() - start, "cpu_s": usage.ru_utime + usage.ru_stime, "capped": True,
+                        "peak_rss_mib": _peak_kib(rss_path, usage) / 1024}
             time.sleep(0.02)
         proc.returncode = os.waitstatus_to_exitcode(status)
-    return {"wall_s": time.perf_counter() - start, "capped": False, "exit": proc.returncode,
-            "peak_rss_mib": _peak_kib(rss_path, usage) / 1024}
+    # CPU time (user + system, of every thread; wait4 counts the reaped command under GNU time)
+    # stands a machine shared with other work better than wall time, which a second core can shorten
+    return {"wall_s": time.perf_counter() - start, "cpu_s": usage.ru_utime + usage.ru_stime, "capped": False,
+            "exit": proc.returncode, "peak_rss_mib": _peak_kib(rss_path, usage) / 1024}
 
 
 def _peak_kib(rss_path: Path, usage) -> float:
@@ -382,6 +385,7 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
         for n, run in runs.items():
             if n > CLI_START_SAMPLES and not run["capped"]:
                 run["marginal_us_per_sample"] = (run["wall_s"] - start["wall_s"]) / (n - CLI_START_SAMPLES) * 1e6
+                run["marginal_cpu_us_per_sample"] = (run["cpu_s"] - start["cpu_s"]) / (n - CLI_START_SAMPLES) * 1e6
     _plot_cli(results, png_path)
 
     rows = []
@@ -400,7 +404,8 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
                 continue
             value = (f"over the {CLI_CAP_S:.0f} s cap" if run["capped"] else
                      f"exit {run['exit']}" if run.get("exit") else
-                     f"{fmt_time_us(run['marginal_us_per_sample'])}/sample, {run['wall_s']:.2f} s")
+                     f"{fmt_time_us(run['marginal_us_per_sample'])}/sample, {run['wall_s']:.2f} s "
+                     f"(CPU {fmt_time_us(run['marginal_cpu_us_per_sample'])}/sample)")
             value += f", peak RSS {run['peak_rss_mib']:.0f} MiB"
             target, met = "", None
             if (name, n) in CLI_TARGETS:
@@ -416,7 +421,8 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
         "Each command run as a user runs it (`python -m stewart_calib …` in a fresh process, on files written "
         f"beforehand: a {RATE_HZ:g} Hz Lissajous log, its poses as a pose list, a one-stage experiment). Time per "
         f"sample is marginal: (wall(N) − wall({CLI_START_SAMPLES})) / (N − {CLI_START_SAMPLES}) of the same command, "
-        "so start-up is not spread over the samples; peak RSS is the command's maximum resident set (GNU time %M). "
+        "so start-up is not spread over the samples (CPU: the same of user + system time, all threads); "
+        "peak RSS is the command's maximum resident set (GNU time %M). "
         "Imports measured with `python -X importtime` (sum of the top-level imports' cumulative times). "
         f"Runs over {CLI_CAP_S:.0f} s are stopped."
     )
