@@ -29,9 +29,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import struct
 import tomllib
 import zipfile
+import zlib
 from collections import Counter
+from io import BytesIO
 from pathlib import Path
 
 import numpy as np
@@ -145,6 +148,7 @@ class OnlineCalibrator:
         # accepted samples for the plausibility check: the tracker's leg residual needs its readings
         self._tracker = platform.instrument.kind == "tracker"
         self._recent = RecentSamples(RECENT_SAMPLES if self._tracker else 0, 6)
+        self._fixed: tuple | None = None  # (what they were made of, the checkpoint's fixed arrays)
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample.
@@ -208,18 +212,26 @@ class OnlineCalibrator:
     def save(self, path: str | Path) -> None:
         """Write a checkpoint atomically (see the module docstring)."""
         arrays = {
-            "format": np.array(CHECKPOINT_FORMAT),
-            "version": np.array(CHECKPOINT_VERSION),
-            "method": np.array(self.method),
-            "platform_toml": np.array(platform_to_toml(self.platform)),
-            "config_json": np.array(json.dumps(dataclasses.asdict(self.config))),
+            **self._fixed_arrays(),
             "rows_read": np.array(self.rows_read),
             "rows_skipped": np.array(self.rows_skipped),
             "rejections_json": np.array(json.dumps(self.rejections.summary())),
             **_flatten(self.export_state(), "state"),
         }
-        with io.atomic_path(path) as tmp, open(tmp, "wb") as f:
-            np.savez(f, **arrays)
+        io.atomic_write_bytes(path, npz_bytes(arrays))
+
+    def _fixed_arrays(self) -> dict[str, np.ndarray]:
+        """The checkpoint's arrays that no sample changes (their text costs ~0.3 ms), made once."""
+        made_of = (self.method, self.platform, self.config)
+        if self._fixed is None or any(a is not b for a, b in zip(self._fixed[0], made_of)):
+            self._fixed = (made_of, {
+                "format": np.array(CHECKPOINT_FORMAT),
+                "version": np.array(CHECKPOINT_VERSION),
+                "method": np.array(self.method),
+                "platform_toml": np.array(platform_to_toml(self.platform)),
+                "config_json": np.array(json.dumps(dataclasses.asdict(self.config))),
+            })
+        return self._fixed[1]
 
     @classmethod
     def load(cls, path: str | Path) -> "OnlineCalibrator":
@@ -266,6 +278,24 @@ class OnlineCalibrator:
         if not np.all(np.isfinite(calib.estimate().error)):
             raise CalibError("the restored estimate is not finite")
         return calib
+
+
+def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    """What ``np.savez`` writes for ``arrays`` (an uncompressed ZIP of ``<name>.npy`` members),
+    built in memory: zipfile's per-member bookkeeping took ~60 µs of a member, ~1.3 ms of a
+    checkpoint that ``track`` writes every ``--every`` rows. Members are dated 1980-01-01 (ZIP's
+    epoch): a checkpoint's time is its file's."""
+    local, central = bytearray(), bytearray()
+    for name, array in arrays.items():
+        buffer = BytesIO()
+        np.lib.format.write_array(buffer, np.asanyarray(array), allow_pickle=False)
+        data, filename = buffer.getvalue(), f"{name}.npy".encode()
+        # version 2.0, no flags, stored, DOS time 00:00 date 1980-01-01, CRC-32, sizes, name length, no extra
+        header = struct.pack("<HHHHHIIIHH", 20, 0, 0, 0, 0x21, zlib.crc32(data), len(data), len(data), len(filename), 0)
+        central += struct.pack("<IH", 0x02014B50, 20) + header + struct.pack("<HHHII", 0, 0, 0, 0, len(local)) + filename
+        local += struct.pack("<I", 0x04034B50) + header + filename + data
+    end = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, len(arrays), len(arrays), len(central), len(local), 0)
+    return bytes(local + central + end)
 
 
 def _wrong(key: str):

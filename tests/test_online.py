@@ -10,7 +10,7 @@ import pytest
 from stewart_calib.compensation import compensate
 from stewart_calib.errors import CalibError, SampleRejected
 from stewart_calib.config import config_from_dict
-from stewart_calib.online import CHECKPOINT_VERSION, ONLINE_METHODS, OnlineCalibrator, Rejections
+from stewart_calib.online import CHECKPOINT_VERSION, ONLINE_METHODS, OnlineCalibrator, Rejections, npz_bytes
 from stewart_calib.samples import Sample
 from tests.faults import INDETERMINANT, degenerate_sample
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
@@ -189,3 +189,18 @@ def test_checkpoint_is_a_zip_of_plain_arrays_and_holds_no_pickle(platform, confi
     path, arrays = _saved(platform, config, log, tmp_path)
     assert zipfile.is_zipfile(path)
     assert all(a.dtype.kind in "fiuU" for a in arrays.values())  # nothing that needs allow_pickle
+
+
+def test_checkpoint_archive_is_what_np_load_and_zipfile_read(tmp_path):
+    rng = np.random.default_rng(5)
+    arrays = {"format": np.array("stewart-calib/checkpoint"), "version": np.array(1), "state/a/P": rng.random((42, 42)),
+              "flags": np.array([True, False]), "none": np.zeros((0, 6)), "ints": np.arange(-3, 3)}
+    path = tmp_path / "c.npz"
+    path.write_bytes(npz_bytes(arrays))
+    with zipfile.ZipFile(path) as archive:
+        assert archive.testzip() is None  # every member's CRC-32 checks
+        assert archive.namelist() == [f"{name}.npy" for name in arrays]
+    with np.load(path, allow_pickle=False) as npz:
+        for name, array in arrays.items():
+            assert npz[name].dtype == array.dtype and npz[name].shape == array.shape
+            np.testing.assert_array_equal(npz[name], array)

@@ -34,15 +34,20 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:
-    """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`), through the
-    temporary's own descriptor: ``track`` replaces its result every ``--every`` rows."""
+    """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`)."""
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically (see :func:`atomic_path`), through the temporary's own
+    descriptor: ``track`` replaces its result and checkpoint every ``--every`` rows."""
     path = Path(path)
     fd, tmp = _temporary(path)
     with _replaced_on_success(path, tmp):
         try:
-            data = memoryview(text.encode("utf-8"))
-            while data:
-                data = data[os.write(fd, data) :]
+            rest = memoryview(data)
+            while rest:
+                rest = rest[os.write(fd, rest) :]
         finally:
             os.close(fd)
 
