@@ -137,6 +137,10 @@ class GraphBuilder:
         self._prior_sigma = self.layout.prior_sigma(self.noise.prior_sigma_mm)
         self._walks = self.layout.walks()
         self._gauge = self.layout.gauge_rows(platform.drive)
+        #: whether :meth:`epoch` asks for the current estimate only when a sample opens a window (no
+        #: instrument unknowns, and the measurement always fixes the pose): then a window's samples
+        #: can be built before the smoother has any of them (``isam2``'s update a window)
+        self.guess_at_windows_only = self._instrument is None and self.model.kind == "tracker"
         #: the unknown vector's first value (zeros, or the instrument block at its registration)
         self.initial = np.zeros(self.layout.size)
 
