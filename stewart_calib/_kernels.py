@@ -571,7 +571,17 @@ def tracker_leg_observation(base, plat, initial_lengths, x, tracker_base, tracke
         ``(FK residual [mm], r, H, R_meas, J_x)``; the last four are meaningless when the residual
         exceeds ``tol_mm`` (FK failed from both starts).
     """
-    residual = fk_single(tracker_base, tracker_plat, tracker_lengths, readings, R, t, warm, tol_mm, max_iterations)
+    return tracker_leg_observation_in(base, plat, initial_lengths, x, tracker_base, tracker_plat, tracker_lengths, readings,
+                                      R, t, warm, tol_mm, max_iterations, strokes, reading_variance, stroke_variance,
+                                      _fk_work())
+
+
+@njit(**_JIT)
+def tracker_leg_observation_in(base, plat, initial_lengths, x, tracker_base, tracker_plat, tracker_lengths, readings,
+                               R, t, warm, tol_mm, max_iterations, strokes, reading_variance, stroke_variance, work):
+    """:func:`tracker_leg_observation` with FK's scratch arrays ``work`` (:func:`_fk_work`), which a
+    pass over many samples makes once."""
+    residual = _fk_single(tracker_base, tracker_plat, tracker_lengths, readings, R, t, warm, tol_mm, max_iterations, work)
     covariance = pose_covariance(tracker_base, tracker_plat, R, t, reading_variance)
     r, H, R_meas, J_x = leg_observation(base, plat, initial_lengths, x, R, t, strokes, covariance, stroke_variance)
     return residual, r, H, R_meas, J_x

@@ -199,23 +199,32 @@ def variance_components(S: np.ndarray, residual: np.ndarray, R: np.ndarray) -> t
 
 @njit(fastmath=_FAST, nogil=True, error_model="numpy")
 def _tracker_observation(x, row, drive, tracker, stroke_factor, variances, newton, noise_scale2, R_guess, t_guess, warm,
-                         strokes, nu, R):
+                         scratch):
     """The EKF's observation of one prepared row ``[q (6) | s (6)]`` of a tracker of known geometry
-    at ``x`` (``LegEKF._observe``): FK of the readings from ``(R_guess, t_guess)`` into new arrays,
-    ``ν = −r`` and ``R = s² R_meas`` into ``nu`` and ``R``. Returns ``(FK converged, H, R_pose, t_pose)``."""
-    R_try = R_guess.copy()
-    t_try = t_guess.copy()
+    at ``x`` (``LegEKF._observe``): FK of the readings from ``(R_guess, t_guess)`` into ``R_pose,
+    t_pose``, ``ν = −r`` and ``R = s² R_meas`` into ``nu`` and ``R``, with ``scratch = (R_pose,
+    t_pose, strokes, nu, R, FK's work)`` made once per pass (:func:`_observation_scratch`).
+    Returns ``(FK converged, H)``."""
+    R_pose, t_pose, strokes, nu, R, fk_work = scratch
+    R_pose[:, :] = R_guess
+    t_pose[:] = t_guess
     for i in range(6):
         strokes[i] = row[i] * stroke_factor[i]
-    residual, r, H, R_meas, _ = _kernels.tracker_leg_observation(
+    residual, r, H, R_meas, _ = _kernels.tracker_leg_observation_in(
         drive[0], drive[1], drive[2], x[:42], tracker[0], tracker[1], tracker[2], row[6:12],
-        R_try, t_try, warm, newton[0], newton[1], strokes, variances[0], variances[1],
+        R_pose, t_pose, warm, newton[0], newton[1], strokes, variances[0], variances[1], fk_work,
     )
     for a in range(6):
         nu[a] = -r[a]
         for b in range(6):
             R[a, b] = noise_scale2 * R_meas[a, b]
-    return residual <= newton[0], H, R_try, t_try
+    return residual <= newton[0], H
+
+
+@njit(nogil=True)
+def _observation_scratch():
+    """The arrays :func:`_tracker_observation` fills: pose, strokes, innovation, its covariance, FK's work."""
+    return np.empty((3, 3)), np.empty(3), np.empty(6), np.empty(6), np.empty((6, 6)), _kernels._fk_work()
 
 
 @njit(fastmath=_FAST, nogil=True, error_model="numpy")
@@ -258,17 +267,16 @@ def tracker_filter_pass(
     m = 6
     n = x.shape[0]
     Q = np.zeros((n, n))
-    R = np.empty((m, m))
-    nu = np.empty(m)
     work = np.empty(m * n + m * m + m)
-    strokes = np.empty(6)
+    scratch = _observation_scratch()
+    R_pose, t_pose, _, nu, R, _ = scratch
     last_t = math.nan
     used = 0
     for k in range(t_s.shape[0]):
         if not use[k]:
             continue
-        converged, H, R_pose, t_pose = _tracker_observation(x, prepared[k], drive, tracker, stroke_factor, variances,
-                                                            newton, noise_scale2, R_guess, t_guess, warm, strokes, nu, R)
+        converged, H = _tracker_observation(x, prepared[k], drive, tracker, stroke_factor, variances, newton, noise_scale2,
+                                            R_guess, t_guess, warm, scratch)
         if not converged:
             continue
         R_guess[:, :] = R_pose
@@ -315,17 +323,16 @@ def tracker_filter_steps(x, P, Q, S_last, t_s, prepared, plain, last_t, drive, t
     """
     m = 6
     n = x.shape[0]
-    R = np.empty((m, m))
-    nu = np.empty(m)
     work = np.empty(m * n + m * m + m)
-    strokes = np.empty(6)
+    scratch = _observation_scratch()
+    R_pose, t_pose, _, nu, R, _ = scratch
     capacity = buffer_t.shape[0] // 2
     nis = math.nan
     for k in range(t_s.shape[0]):
         if not (plain[k] and t_s[k] >= last_t):
             return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm
-        converged, H, R_pose, t_pose = _tracker_observation(x, prepared[k], drive, tracker, stroke_factor, variances,
-                                                            newton, noise_scale2, R_guess, t_guess, warm, strokes, nu, R)
+        converged, H = _tracker_observation(x, prepared[k], drive, tracker, stroke_factor, variances, newton, noise_scale2,
+                                            R_guess, t_guess, warm, scratch)
         if not (converged and all_finite(H, nu, R)):
             return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm
         step = walk_rate * max(t_s[k] - last_t, 0.0)
