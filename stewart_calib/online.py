@@ -45,10 +45,10 @@ from .config import EstimatorConfig, config_from_dict
 from .errors import CalibError, SampleRejected
 from .estimate import Estimate
 from .estimators import Estimator, method_names, method_spec
-from .estimators.base import take_late_rejections
+from .estimators.base import take_late_rejections, update_each
 from .plausibility import check_plausible
 from .platform import Platform, parse_platform, platform_to_toml
-from .samples import Sample
+from .samples import Log, Sample
 
 CHECKPOINT_FORMAT = "stewart-calib/checkpoint"
 CHECKPOINT_VERSION = 1
@@ -166,6 +166,30 @@ class OnlineCalibrator:
                 self.rejections.add(late)
         if self._tracker:
             self._recent.append(sample.strokes, sample.readings)
+
+    def update_block(self, block: Log) -> list[int]:
+        """Fold in every sample of ``block``: what :meth:`update` does with each in turn, the same
+        state and counts, with the bookkeeping done once a block.
+
+        The samples go through ``update`` (:func:`~.estimators.base.update_each`), not yet the
+        estimators' compiled block recursion (:func:`~.estimators.base.update_block`): with
+        ``fastmath`` reassociation in :mod:`~.estimators.kalman`, how that recursion rounds depends
+        on which kernels the process compiled or loaded first, and ``track`` promises the estimate
+        ``calibrate`` gives, bit for bit.
+
+        Returns:
+            The indices in ``block`` of the samples refused (counted, as :meth:`update` counts them).
+        """
+        refused, late = update_each(self._estimator, block)
+        # in update's order: a sample's own refusal, then those refused late after it
+        for _, _, err in sorted([(j, 0, err) for j, err in refused] + [(j, 1, err) for j, err in late],
+                                key=lambda event: event[:2]):
+            self.rejections.add(err)
+        if self._tracker:
+            accepted = np.ones(len(block), dtype=bool)
+            accepted[[j for j, _ in refused]] = False
+            self._recent.extend(np.asarray(block.strokes)[accepted], np.asarray(block.readings)[accepted])
+        return [j for j, _ in refused]
 
     def estimate(self) -> Estimate:
         """δM [mm] and covariance after the last accepted sample."""

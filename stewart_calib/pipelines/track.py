@@ -5,9 +5,13 @@
                         --out R.json [--config C.toml] [--set section.key=value ...]
                         [--skip-bad-rows]
 
-Reads the header, then one CSV row at a time (``--log -`` or no ``--log``: standard input),
-updates the estimator per row, and every ``--every`` rows and at the end replaces ``--out``
-(spec §5 result, plus ``samples_rejected``) and ``--checkpoint`` atomically.
+Reads the header, then the CSV rows as they arrive (``--log -`` or no ``--log``: standard input),
+updates the estimator with each row, and every ``--every`` rows and at the end replaces ``--out``
+(spec §5 result, plus ``samples_rejected``) and ``--checkpoint`` atomically. The rows of each
+read are parsed as one block when every one is a plain good row
+(:meth:`~stewart_calib.io.LogRowParser.parse_block`), one by one otherwise, and the good rows go to
+the estimator in blocks (:meth:`OnlineCalibrator.update_block`, split at the ``--every`` rows and at
+bad rows): the same estimates, writes and messages as row by row.
 
 When it stops:
   * at the end of the input (end of file; with ``--follow``, a file is polled for new rows
@@ -48,24 +52,35 @@ import signal
 import stat
 import sys
 import time
+from itertools import chain
 from pathlib import Path
 from typing import Callable, Iterator
 
+import numpy as np
+
 from . import add_config_arguments, run_command
 from .. import io
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError
 from ..config import load_estimator_config
 from ..online import ONLINE_METHODS, OnlineCalibrator
 from ..platform import load_platform, platform_to_toml
+from ..samples import Log, Sample
 from .calibrate import _check_writable_dir
 
 #: how often an idle input is polled [s]: latency of noticing new rows and signals.
 POLL_S = 0.1
-READ_BYTES = 1 << 16
+#: the most read at a time: a log read faster than it is written (a replay, a reader catching up)
+#: is parsed and folded in a few thousand rows a block.
+READ_BYTES = 1 << 20
 
 
 def lines(fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable[[], bool]) -> Iterator[bytes]:
-    """Complete lines of ``fd`` as they arrive (the line break removed).
+    """The lines of :func:`line_chunks` one at a time."""
+    return chain.from_iterable(line_chunks(fd, follow, idle_timeout_s, stopped))
+
+
+def line_chunks(fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable[[], bool]) -> Iterator[list[bytes]]:
+    """Complete lines of ``fd`` as they arrive (the line break removed), a list per read.
 
     Ends at the end of the input (a pipe closed by its writer; a regular file's end unless
     ``follow``), when ``stopped()``, or after ``idle_timeout_s`` without new data. A last line
@@ -86,12 +101,13 @@ def lines(fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable
         if chunk:
             last_data_s = time.monotonic()
             *complete, pending = (pending + chunk).split(b"\n")
-            yield from complete
+            if complete:
+                yield complete
         elif wait_at_end:
             time.sleep(POLL_S)  # select() always reports a regular file ready
         else:
             if pending and not stopped():  # a stop may come between the last read and this end
-                yield pending
+                yield [pending]
             return
 
 
@@ -163,9 +179,9 @@ def _write(calib: OnlineCalibrator, out: Path | None, checkpoint: Path | None, f
         calib.save(checkpoint)
 
 
-def follow_log(calib: OnlineCalibrator, rows: Iterator[bytes], source: str, every: int, write: Callable[[], None],
-               skip_bad_rows: bool) -> str | None:
-    """Feed ``rows`` (header first) to ``calib``, calling ``write()`` every ``every`` data rows.
+def follow_log(calib: OnlineCalibrator, chunks: Iterator[list[bytes]], source: str, every: int,
+               write: Callable[[], None], skip_bad_rows: bool) -> str | None:
+    """Feed the lines of ``chunks`` (header first) to ``calib``, calling ``write()`` every ``every`` data rows.
 
     Rows the checkpoint had already read (``calib.rows_read``) are parsed (time order is still
     checked across them) but not used again.
@@ -175,37 +191,86 @@ def follow_log(calib: OnlineCalibrator, rows: Iterator[bytes], source: str, ever
     Raises:
         CalibError: no header or a bad one; a bad row without ``skip_bad_rows``.
     """
-    header = next(rows, None)
-    if header is None:
+    chunks = iter(chunks)
+    first = next(chunks, None)
+    if first is None:
         raise CalibError(f"{source}: no header row; expected a CSV header and sample rows (spec §3)")
-    parser = io.LogRowParser(source, _decode(header, source, 1), calib.platform)
-    already, data_rows, first_bad = calib.rows_read, 0, None
-    for line_number, raw in enumerate(rows, start=2):
-        try:
-            sample = parser.parse(_decode(raw, source, line_number), line_number)
-        except CalibError as err:
-            sample, bad = None, str(err)
-        else:
-            if sample is None:
-                continue  # a blank line is no row
-            bad = None
-        data_rows += 1
-        if data_rows <= already:
-            continue
-        if bad is not None and not skip_bad_rows:
-            raise CalibError(bad)  # not counted as read: a resume parses this row again
-        calib.rows_read += 1
-        if bad is not None:
-            calib.rows_skipped += 1
-            first_bad = first_bad or bad
-        else:
-            try:
-                calib.update(sample)
-            except SampleRejected:
-                pass  # counted by the calibrator, reported at the end
-        if calib.rows_read % every == 0:
-            write()
-    return first_bad
+    parser = io.LogRowParser(source, _decode(first[0], source, 1), calib.platform)
+    feed = _Feed(calib, every, write, skip_bad_rows)
+    line_number = 2
+    for chunk in chain([first[1:]], chunks):
+        block = parser.parse_block(chunk)
+        if block is None:  # a row that is not plain: one by one, the good rows between bad ones in blocks
+            good: list[Sample] = []
+            for row, raw in enumerate(chunk, start=line_number):
+                try:
+                    sample = parser.parse(_decode(raw, source, row), row)
+                except CalibError as err:
+                    feed.block(_log_of(good))
+                    good = []
+                    feed.bad_row(str(err))
+                else:
+                    if sample is not None:  # a blank line is no row
+                        good.append(sample)
+            block = _log_of(good)
+        feed.block(block)
+        line_number += len(chunk)
+    return feed.first_bad
+
+
+def _log_of(samples: list[Sample]) -> Log:
+    """``samples`` (rows of one log, so with the same optional fields) as a :class:`Log`."""
+    first = samples[0] if samples else Sample(0.0, np.zeros(6), np.zeros(0))
+    stack = lambda values: np.array(values, dtype=float).reshape(len(samples), -1)  # noqa: E731
+    return Log(
+        np.array([sample.t_s for sample in samples], dtype=float),
+        stack([sample.strokes for sample in samples]),
+        stack([sample.readings for sample in samples]),
+        None if first.desired_pose is None else stack([sample.desired_pose for sample in samples]),
+        [sample.stage for sample in samples],
+        None if first.load_kg is None else np.array([sample.load_kg for sample in samples], dtype=float),
+    )
+
+
+class _Feed:
+    """The data rows of a log to a calibrator, in order: the rows a resumed checkpoint had read are
+    passed over, the others counted in ``rows_read`` and folded in, and ``write()`` called after
+    every ``every``-th — a block is split there, so the writes come at the same rows either way."""
+
+    def __init__(self, calib: OnlineCalibrator, every: int, write: Callable[[], None], skip_bad_rows: bool):
+        self.calib, self.every, self.write, self.skip_bad_rows = calib, every, write, skip_bad_rows
+        self.already, self.data_rows = calib.rows_read, 0
+        self.first_bad: str | None = None
+
+    def block(self, block: Log) -> None:
+        """The good rows ``block``, one after the other."""
+        start = min(len(block), max(self.already - self.data_rows, 0))
+        self.data_rows += len(block)
+        while start < len(block):
+            stop = min(len(block), start + self.every - self.calib.rows_read % self.every)
+            self.calib.update_block(block if (start, stop) == (0, len(block)) else block.select(slice(start, stop)))
+            self.calib.rows_read += stop - start
+            self._write_when_due()
+            start = stop
+
+    def bad_row(self, message: str) -> None:
+        """One bad row: skipped and counted with ``skip_bad_rows``, else the refusal."""
+        if self._passed_over():
+            return
+        if not self.skip_bad_rows:
+            raise CalibError(message)  # not counted as read: a resume parses this row again
+        self.calib.rows_read += 1
+        self.calib.rows_skipped += 1
+        self.first_bad = self.first_bad or message
+        self._write_when_due()
+
+    def _passed_over(self) -> bool:
+        self.data_rows += 1
+        return self.data_rows <= self.already
+
+    def _write_when_due(self) -> None:
+        if self.calib.rows_read % self.every == 0:
+            self.write()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -227,8 +292,8 @@ def run(args: argparse.Namespace) -> int:
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     write = lambda: _write(calib, out, checkpoint)  # noqa: E731
     try:
-        rows = lines(fd, args.follow, args.idle_timeout, lambda: stop.requested)
-        first_bad = follow_log(calib, rows, source, args.every, write, args.skip_bad_rows)
+        chunks = line_chunks(fd, args.follow, args.idle_timeout, lambda: stop.requested)
+        first_bad = follow_log(calib, chunks, source, args.every, write, args.skip_bad_rows)
     except CalibError:
         _write(calib, None, checkpoint)  # the state at the last good row is kept, no result; then the refusal
         raise
