@@ -45,7 +45,7 @@ from .config import EstimatorConfig, config_from_dict
 from .errors import CalibError, SampleRejected
 from .estimate import Estimate
 from .estimators import Estimator, method_names, method_spec
-from .estimators.base import take_late_rejections, update_each
+from .estimators.base import take_late_rejections, update_block
 from .plausibility import check_plausible
 from .platform import Platform, parse_platform, platform_to_toml
 from .samples import Log, Sample
@@ -171,16 +171,13 @@ class OnlineCalibrator:
         """Fold in every sample of ``block``: what :meth:`update` does with each in turn, the same
         state and counts, with the bookkeeping done once a block.
 
-        The samples go through ``update`` (:func:`~.estimators.base.update_each`), not yet the
-        estimators' compiled block recursion (:func:`~.estimators.base.update_block`): with
-        ``fastmath`` reassociation in :mod:`~.estimators.kalman`, how that recursion rounds depends
-        on which kernels the process compiled or loaded first, and ``track`` promises the estimate
-        ``calibrate`` gives, bit for bit.
+        The samples go through the estimator's own block path
+        (:func:`~.estimators.base.update_block`: ekf's compiled recursion), as ``calibrate``'s do.
 
         Returns:
             The indices in ``block`` of the samples refused (counted, as :meth:`update` counts them).
         """
-        refused, late = update_each(self._estimator, block)
+        refused, late = update_block(self._estimator, block)
         # in update's order: a sample's own refusal, then those refused late after it
         for _, _, err in sorted([(j, 0, err) for j, err in refused] + [(j, 1, err) for j, err in late],
                                 key=lambda event: event[:2]):

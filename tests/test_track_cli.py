@@ -30,6 +30,14 @@ from tests.synthetic import NIM_STEWART, ROOT, make_log, nim_stewart, random_err
 N = 40
 
 
+def assert_equal_to_rounding(actual, expected) -> None:
+    """Equal but for the last bits: track feeds ekf's compiled block recursion, ``calibrate`` in
+    memory (or another process) may take the per-sample path or another compilation of it, and with
+    fastmath reassociation those sum in different orders (measured ≤ 2e-12 mm on δM, whose σ here is
+    ~1e-3 mm)."""
+    np.testing.assert_allclose(actual, expected, rtol=1e-9, atol=1e-12)
+
+
 @pytest.fixture(scope="module")
 def log():
     platform = nim_stewart()
@@ -59,9 +67,9 @@ def test_track_gives_calibrates_estimate_and_keeps_a_checkpoint(tmp_path, log_pa
     code, err = _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt), "--every", "7")
     assert code == 0 and err == [f"stewart-calib track: wrote {out} (ekf: {N} samples used, 0 skipped)"]
     estimate, _, _ = calibrate(nim_stewart(), log, "ekf")
-    np.testing.assert_array_equal(_error(out), estimate.error)  # same samples, same filter: bit-identical
+    assert_equal_to_rounding(_error(out), estimate.error)  # same samples, same filter
     assert read_result(out)["samples_rejected"] == {"count": 0, "by_reason": {}, "first": None}
-    np.testing.assert_array_equal(OnlineCalibrator.load(ckpt).estimate().error, estimate.error)
+    assert_equal_to_rounding(OnlineCalibrator.load(ckpt).estimate().error, estimate.error)
 
 
 def test_resume_skips_the_rows_already_read(tmp_path, log_path, capsys):
@@ -205,7 +213,7 @@ def test_sigterm_finishes_with_a_final_estimate_and_checkpoint(tmp_path, log_pat
 def test_blocks_give_calibrates_estimate_whatever_the_writes_and_bad_rows(tmp_path, capsys):
     """Past the start-up (the noise windows), with a glitch the filter gates and a bad row skipped:
     track parses and feeds its rows in blocks, split at every --every row and at the bad row, and
-    gives calibrate's estimate of the same rows bit for bit, however split."""
+    gives calibrate's estimate of the same rows (to rounding), however split."""
     platform = nim_stewart()
     rng = np.random.default_rng(12)
     n = 400
@@ -223,13 +231,13 @@ def test_blocks_give_calibrates_estimate_whatever_the_writes_and_bad_rows(tmp_pa
                            "--every", every, "--skip-bad-rows")
         assert code == 0, err
         result = read_result(out)
-        np.testing.assert_array_equal(result["error"], estimate.error)
-        np.testing.assert_array_equal(result["stddev"], estimate.stddev)
+        assert_equal_to_rounding(result["error"], estimate.error)
+        assert_equal_to_rounding(result["stddev"], estimate.stddev)
         assert (result["samples_used"], result["samples_skipped"]) == (n - 1 - rejected, 1 + rejected)
         assert result["samples_rejected"]["count"] == rejected
         saved = OnlineCalibrator.load(ckpt)
         assert (saved.rows_read, saved.rows_skipped) == (n, 1)
-        np.testing.assert_array_equal(saved.estimate().error, estimate.error)
+        assert_equal_to_rounding(saved.estimate().error, estimate.error)
 
 
 def _log_lines() -> list[str]:

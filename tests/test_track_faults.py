@@ -17,6 +17,7 @@ from stewart_calib.io import read_result, write_log
 from stewart_calib.online import OnlineCalibrator
 from stewart_calib.pipelines.track import lines
 from tests.synthetic import NIM_STEWART, ROOT, make_log, nim_stewart, random_error, random_poses
+from tests.test_track_cli import assert_equal_to_rounding
 
 N = 30
 
@@ -91,7 +92,7 @@ def test_sigterm_mid_row_exits_0_and_the_resume_loses_no_row(tmp_path, log_path,
                      "--out", str(whole)]) == 0
     resumed = read_result(out)
     assert (resumed["samples_used"], resumed["samples_skipped"]) == (N, 0)
-    np.testing.assert_array_equal(resumed["error"], read_result(whole)["error"])
+    assert_equal_to_rounding(resumed["error"], read_result(whole)["error"])  # the first part ran in another process
 
 
 def test_periodic_results_are_marked_not_final(tmp_path, log_path, capsys):
