@@ -34,8 +34,9 @@ adopted only when most of them agree with it, so a stream of glitches cannot tak
 **Noise levels from the data** (``adapt_noise``). Every window of accepted samples
 (``max(startup_samples, lockout_window_samples)``) until :data:`WALK_WINDOWS` differences are pooled,
 then every ``noise_every_samples``, the window of the last samples is solved as a small batch from
-the prior — not every window for ever: a window's batch costs what the recursion does per sample. Its post-fit residuals give the measurement scale, ``s² = Σ νᵀ R0⁻¹ ν / redundancy`` (the
-random walk barely moves the parameters within one window). Successive windows give the random-walk
+the prior — not every window for ever: a window's batch costs what the recursion does per sample.
+Its post-fit residuals give the measurement scale, ``s² = Σ νᵀ R0⁻¹ ν / redundancy`` (the random
+walk barely moves the parameters within one window). Successive windows give the random-walk
 rate: for a walk of rate ``q`` [mm²/s], the means over windows ``[a1, b1]`` and ``[a2, b2]`` differ
 by a covariance ``q T I`` with ``T = (a2 − b1) + (b1 − a1)/3 + (b2 − a2)/3`` (two thirds of the
 span for adjacent windows), so two window estimates differ by ``P_w + P_{w+1} + q T I`` and ``q``
@@ -558,7 +559,8 @@ def _mahalanobis2(step: np.ndarray, P: np.ndarray, gauge_projector: np.ndarray |
 def _walk_rate_root(lam: np.ndarray, p: np.ndarray, T: np.ndarray, target: float) -> float:
     """The root ``q ≥ 0`` of ``f(q) = Σ_w Σ_i p_wi / (λ_wi + q T_w) − target``: ``f`` is convex and
     decreasing in ``q``, so Newton's method from ``q = 0`` (where ``f > 0``) approaches the root from
-    below without overshooting, in a few steps (compiled: ~100× numpy's cost on these small arrays)."""
+    below without overshooting, in a few steps (compiled: numpy's version on these 8 × 42 arrays took
+~0.23 ms a call, ~20× this)."""
     q = 0.0
     for _ in range(200):
         excess = -target
