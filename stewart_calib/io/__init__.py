@@ -22,9 +22,11 @@ from .logs import (
     read_log,
     read_log_blocks,
     read_pose_list,
+    read_pose_list_blocks,
     read_truth,
     write_log,
     write_pose_list,
+    write_pose_list_blocks,
     write_truth,
 )
 from .results import (
@@ -45,7 +47,7 @@ __all__ = [
     "LOG_REQUIRED", "MEASURED_ANGLE_COLUMNS", "STROKE_SCALE_NAMES", "reading_columns", "readings_to_file", "csv_text",
     "NOMINAL_TOLERANCE_MM", "POSE_COLUMNS", "READING_COLUMNS", "RESULT_FORMAT",
     "RESULT_SUM_TOLERANCE_MM", "STROKE_COLUMNS", "TRUE_POSE_COLUMNS", "LogRowParser", "atomic_path", "atomic_write_bytes",
-    "atomic_write_text", "read_calibrated_drive", "read_log", "read_log_blocks", "read_pose_list", "read_result", "read_truth",
-    "result_dict", "result_text", "trace_text", "validate_result", "write_log", "write_pose_list",
+    "atomic_write_text", "read_calibrated_drive", "read_log", "read_log_blocks", "read_pose_list", "read_pose_list_blocks", "read_result", "read_truth",
+    "result_dict", "result_text", "trace_text", "validate_result", "write_log", "write_pose_list", "write_pose_list_blocks",
     "write_result", "write_trace", "write_truth",
 ]

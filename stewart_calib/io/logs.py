@@ -13,17 +13,19 @@ import operator
 import os
 from itertools import chain
 from pathlib import Path
-from typing import Iterator
+from typing import Iterable, Iterator
 
 import numpy as np
 
 from ..errors import CalibError
 from ..platform import PARAMETER_NAMES, Platform
 from ..samples import Log, Sample, Truth
-from .atomic import atomic_write_text
+from .atomic import atomic_path, atomic_write_text
 from .tables import (
+    CSV_CHUNK_ROWS,
     csv_text,
     flag_non_finite,
+    float_rows_csv,
     header_fields,
     numbers_by_arrow,
     optional_group,
@@ -213,22 +215,26 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
     return Log.concatenate(list(read_log_blocks(path, platform, skip_bad_rows)))
 
 
-def _open_log(path: Path):
+def _open_log(path: Path, what: str = "log file"):
     try:
         return open(path, "rb")
     except FileNotFoundError:
-        raise CalibError(f"{path}: log file not found") from None
+        raise CalibError(f"{path}: {what} not found") from None
     except OSError as err:
-        raise CalibError(f"{path}: cannot read log file ({err.strerror or err.__class__.__name__})") from None
+        raise CalibError(f"{path}: cannot read {what} ({err.strerror or err.__class__.__name__})") from None
 
 
-def _decoded(data: bytes, path: Path, offset: int, encoding: str = "utf-8") -> str:
+class _NotUtf8(CalibError):
+    """A file's bytes that are not UTF-8 (the refusal a pose list puts before any other)."""
+
+
+def _decoded(data: bytes, path: Path, offset: int, encoding: str = "utf-8", what: str = "log file") -> str:
     """``data`` (read at byte ``offset`` of the file) as text with ``\\r\\n`` line breaks made ``\\n``."""
     try:
         text = data.decode(encoding)
     except UnicodeDecodeError as err:
-        raise CalibError(
-            f"{path}: log file is not UTF-8 text (byte 0x{data[err.start]:02x} at offset {offset + err.start}); "
+        raise _NotUtf8(
+            f"{path}: {what} is not UTF-8 text (byte 0x{data[err.start]:02x} at offset {offset + err.start}); "
             "expected a UTF-8 CSV file"
         ) from None
     return text.replace("\r\n", "\n")
@@ -256,21 +262,11 @@ def read_log_blocks(path: str | Path, platform: Platform | None = None, skip_bad
         header = header_fields(path, header_line)
         file.seek(len(first))
         has_pose, numeric, textual = _log_columns(path, header, platform)
-        offset, line, latest_s, rows, good = len(first), 1, -math.inf, 0, 0
+        latest_s, rows, good = -math.inf, 0, 0
         first_skipped: tuple[int, str] | None = None
-        # pyarrow reads a long log's blocks straight from the bytes (its import, ~0.1 s, pays off
-        # there) when every column is a number; anything it doubts goes the text path
-        by_arrow = set(numeric) == set(header) and os.fstat(file.fileno()).st_size > block_bytes
-        while data := _next_block(file, block_bytes):
-            table = numbers_by_arrow(header, data) if by_arrow else None
-            if table is not None:
-                lines = len(table)  # every line a row, or pyarrow would have refused the block
-            else:
-                text = _decoded(data, path, offset)
-                table = parse_rows(header, f"{header_line}\n{text}", numeric, textual, blank_is_nan=_blank_columns(platform))
-                lines = data.count(b"\n") + (not data.endswith(b"\n"))
-            table.lines += line - 1
-            offset, line = offset + len(data), line + lines
+        by_arrow = set(numeric) == set(header)
+        for table in _row_tables(file, path, header_line, header, numeric, textual, _blank_columns(platform), by_arrow,
+                                 block_bytes):
             _flag_log_values(table, platform, has_pose)
             latest_s = _flag_time_backwards(table, latest_s)
             if not skip_bad_rows:
@@ -283,6 +279,30 @@ def read_log_blocks(path: str | Path, platform: Platform | None = None, skip_bad
             raise CalibError(f"{path}: no sample rows; expected a header row and at least one sample row")
         if good == 0:
             raise CalibError(f"{path}: all {rows} sample rows are bad (first: row {first_skipped[0]}: {first_skipped[1]})")
+
+
+def _row_tables(file, path: Path, header_line: str, header: list[str], numeric, textual, blank_is_nan, by_arrow: bool,
+                block_bytes: int, what: str = "log file") -> Iterator[Table]:
+    """The rows from ``file``'s position (just after the header line) to its end, parsed a block of
+    about ``block_bytes`` at a time, each row numbered by its line in the file.
+
+    ``by_arrow``: every column of the header is meant to hold numbers; pyarrow then reads a long
+    file's blocks straight from the bytes (its import, ~0.1 s, pays off there), and anything it
+    doubts goes the text path, which words the problems.
+    """
+    offset, line = file.tell(), 1
+    by_arrow = by_arrow and os.fstat(file.fileno()).st_size > block_bytes
+    while data := _next_block(file, block_bytes):
+        table = numbers_by_arrow(header, data) if by_arrow else None
+        if table is not None:
+            lines = len(table)  # every line a row, or pyarrow would have refused the block
+        else:
+            text = _decoded(data, path, offset, what=what)
+            table = parse_rows(header, f"{header_line}\n{text}", numeric, textual, blank_is_nan)
+            lines = data.count(b"\n") + (not data.endswith(b"\n"))
+        table.lines += line - 1
+        offset, line = offset + len(data), line + lines
+        yield table
 
 
 def _next_block(file, block_bytes: int) -> bytes:
@@ -505,37 +525,116 @@ def write_pose_list(
     path: str | Path, poses: np.ndarray, dwell_s: float | None = 1.0, columns: dict[str, np.ndarray] | None = None
 ) -> None:
     """Write the six pose columns [mm, deg] (atomically), after ``t_s`` (one pose per ``dwell_s``
-    seconds) unless ``dwell_s`` is None, and before any extra ``columns`` (e.g. strokes).
+    seconds) unless ``dwell_s`` is None, and before any extra float ``columns`` (e.g. strokes).
 
     Raises:
         CalibError: a ``dwell_s`` that is not a finite positive number (times must increase).
     """
+    poses, columns = np.asarray(poses, dtype=float).reshape(-1, 6), columns or {}
+    extra = np.column_stack([np.asarray(c, dtype=float) for c in columns.values()]) if columns else np.empty((len(poses), 0))
+    write_pose_list_blocks(path, [(poses, extra)], tuple(columns), dwell_s)
+
+
+def write_pose_list_blocks(path: str | Path, blocks: Iterable[tuple[np.ndarray, np.ndarray]],
+                           column_names: tuple[str, ...] = (), dwell_s: float | None = 1.0) -> int:
+    """:func:`write_pose_list`'s file, byte for byte, from blocks ``(poses (n, 6) [mm, rad], columns
+    (n, k))`` of consecutive rows, ``column_names`` naming the k extra columns: the file is
+    written as the blocks come, so only a block is held however long the list.
+
+    Atomic: the rows go to a temporary file beside ``path``, renamed onto it after the last
+    block; an exception from ``blocks`` (a refused row) removes it and leaves ``path`` as it was.
+    Returns the number of rows written.
+
+    Raises:
+        CalibError: as :func:`write_pose_list`; the file cannot be written.
+    """
     if dwell_s is not None and not (math.isfinite(dwell_s) and dwell_s > 0):
         raise CalibError(f"dwell time: expected a finite positive number of seconds, got {dwell_s!r}")
-    columns = columns or {}
-    head = [] if dwell_s is None else ["t_s"]
-    lead = [] if dwell_s is None else [np.arange(len(poses)) * dwell_s]
-    atomic_write_text(
-        path, csv_text([*head, *POSE_COLUMNS, *columns], [*lead, *pose_columns_deg(poses), *columns.values()])
-    )
+    rows = 0
+    with atomic_path(path) as temporary, open(temporary, "wb") as file:
+        file.write(csv_text([*([] if dwell_s is None else ["t_s"]), *POSE_COLUMNS, *column_names], []).encode())
+        for poses, extra in blocks:
+            for start in range(0, len(poses), CSV_CHUNK_ROWS):
+                part = slice(start, start + CSV_CHUNK_ROWS)
+                lead = [] if dwell_s is None else [(rows + np.arange(len(poses[part]))) * dwell_s]
+                file.write(float_rows_csv([*lead, *pose_columns_deg(poses[part]), *np.asarray(extra[part]).T]))
+                rows += len(poses[part])
+    return rows
 
 
 def read_pose_list(path: str | Path) -> np.ndarray:
-    """The six pose columns of a pose list or a measurement log, ``(N, 6)`` [mm, rad].
+    """The six pose columns of a pose list or a measurement log, ``(N, 6)`` [mm, rad];
+    :func:`read_pose_list_blocks` gives them a block at a time.
 
     Raises:
         CalibError: missing file or columns, no rows, or a non-finite pose value (naming the row).
     """
-    path = Path(path)
-    text = read_text(path, "pose list")
-    header = read_header(path, text)
+    return np.concatenate(list(read_pose_list_blocks(path)))
+
+
+#: bytes of a pose list read at a time (~8000 poses): a quarter of a log's, as a pose's work (its
+#: IK, its written row) holds several times its text (compensate at 10⁶ poses peaks at 225 MB,
+#: 251 MB with 4 MB blocks, in the same time).
+POSE_BLOCK_BYTES = 1 << 20
+
+#: columns a pose list holds as numbers when written by this package (its own, a log's, strokes):
+#: a header of these only is read by pyarrow.
+_POSE_LIST_NUMBERS = frozenset(("t_s", *POSE_COLUMNS, *STROKE_COLUMNS, *READING_COLUMNS))
+
+
+def read_pose_list_blocks(path: str | Path, block_bytes: int | None = None) -> Iterator[np.ndarray]:
+    """:func:`read_pose_list`'s poses, checks and messages, ``(n, 6)`` [mm, rad] a block of rows at
+    a time (about ``block_bytes`` of text, default :data:`POSE_BLOCK_BYTES`): memory stays that of one
+    block however long the list. A block may hold no pose (blank lines).
+
+    A refusal is raised when its block is reached (no rows: after the last), so a consumer must
+    not act on earlier blocks before the last one is read. Bytes that are not UTF-8 anywhere in
+    the file are refused before any other problem, as when the file was read whole.
+
+    Raises:
+        CalibError: as :func:`read_pose_list`.
+    """
+    path, block_bytes = Path(path), block_bytes or POSE_BLOCK_BYTES
+    with _open_log(path, "pose list") as file:
+        first = file.readline()
+        header_line = _decoded(first, path, 0, "utf-8-sig", "pose list").rstrip("\n")  # a spreadsheet's byte-order mark
+        try:
+            yield from _pose_list_blocks(file, path, header_line, block_bytes)
+        except _NotUtf8:
+            raise
+        except CalibError:
+            _refuse_non_utf8(file, path, len(first), "pose list")
+            raise
+
+
+def _pose_list_blocks(file, path: Path, header_line: str, block_bytes: int) -> Iterator[np.ndarray]:
+    """:func:`read_pose_list_blocks` after the header line, ``file`` positioned just after it."""
+    start = file.tell()
+    if not header_line.strip() and not any(chunk.strip() for chunk in iter(lambda: file.read(1 << 16), b"")):
+        read_header(path, "")  # refuses the empty file
+    header = header_fields(path, header_line)
     require_columns(path, header, POSE_COLUMNS)
-    table = parse_table(path, header, text, POSE_COLUMNS)
-    flag_non_finite(table, POSE_COLUMNS)
-    refuse_first(path, table)
-    poses = np.column_stack([table.numbers[name] for name in POSE_COLUMNS])
-    poses[:, 3:] = np.radians(poses[:, 3:])
-    return poses
+    file.seek(start)
+    rows = 0
+    for table in _row_tables(file, path, header_line, header, POSE_COLUMNS, (), (), set(header) <= _POSE_LIST_NUMBERS,
+                             block_bytes, "pose list"):
+        flag_non_finite(table, POSE_COLUMNS)
+        refuse_first(path, table)
+        rows += len(table)
+        poses = np.column_stack([table.numbers[name] for name in POSE_COLUMNS]).reshape(-1, 6)
+        poses[:, 3:] = np.radians(poses[:, 3:])
+        yield poses
+    if rows == 0:
+        raise CalibError(f"{path}: no sample rows; expected a header row and at least one sample row")
+
+
+def _refuse_non_utf8(file, path: Path, offset: int, what: str) -> None:
+    """Refuse the first bytes from ``offset`` on that are not UTF-8 text, if any."""
+    file.seek(offset)
+    while data := _next_block(file, BLOCK_BYTES):
+        if not data.isascii():
+            _decoded(data, path, offset, what=what)
+        offset += len(data)
 
 
 def write_truth(path: str | Path, truth: Truth) -> None:

@@ -52,6 +52,46 @@ def _field_texts(column) -> list[str]:
     return [v if type(v) is str else repr(v) for v in values]
 
 
+def float_rows_csv(columns: list[np.ndarray]) -> bytes:
+    """The rows of equal-length float columns as :func:`csv_text` writes them (each float's
+    ``repr``, commas between, a line break after each row), without the header; by pyarrow from
+    :data:`CSV_CHUNK_ROWS` rows on: ~2 µs a 13-column row against ~11 for ``repr`` on each field,
+    its import (~0.1 s, ~40 MB) paying off."""
+    if len(columns[0]) < CSV_CHUNK_ROWS:
+        row = ",".join(["%r"] * len(columns)) + "\n"
+        return ((row * len(columns[0])) % tuple(np.column_stack(columns).ravel().tolist())).encode()
+    import pyarrow.compute as pc
+
+    rows = pc.binary_join_element_wise(*map(_repr_texts, columns), ",")
+    rows = pc.binary_join_element_wise(rows, "", "\n")
+    offsets = np.frombuffer(rows.buffers()[1], dtype=np.int32)[rows.offset : rows.offset + len(rows) + 1]
+    return bytes(memoryview(rows.buffers()[2])[offsets[0] : offsets[-1]]) if len(rows) else b""
+
+
+#: the magnitudes whose pyarrow text is ``repr``'s but for a whole number's ".0": both write the
+#: shortest digits that read back to the float, positionally; outside, repr writes an exponent
+#: from 1e-4 down and 1e16 up, pyarrow from ~1e-7 and wherever 17 digits pass 1e10 (e.g. 1.2e+10).
+_POSITIONAL_MAGNITUDES = (1e-4, 1e9)
+
+
+def _repr_texts(column: np.ndarray):
+    """A float column's ``repr`` texts as a pyarrow string array."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+
+    values = np.asarray(column, dtype=float)
+    texts = pc.cast(pa.array(values), pa.string())
+    magnitude = np.abs(values)
+    positional = (magnitude >= _POSITIONAL_MAGNITUDES[0]) & (magnitude < _POSITIONAL_MAGNITUDES[1])
+    whole = positional & (values == np.trunc(values))
+    if whole.any():
+        texts = pc.if_else(pa.array(whole), pc.binary_join_element_wise(texts, ".0", ""), texts)
+    if not positional.all():
+        others = [repr(v) for v in values[~positional].tolist()]
+        texts = pc.replace_with_mask(texts, pa.array(~positional), pa.array(others, pa.string()))
+    return texts
+
+
 def pose_columns_deg(poses: np.ndarray) -> list[np.ndarray]:
     """``(N, 6)`` poses [mm, rad] → six file columns [mm, deg]."""
     poses = np.asarray(poses, dtype=float)

@@ -8,6 +8,7 @@ drive ``nominal + error`` lands at each pose (paper Fig. 3 step 4).
 from __future__ import annotations
 
 import argparse
+from typing import Iterator
 
 import numpy as np
 
@@ -16,7 +17,7 @@ from .. import io
 from ..compensation import PoseOutOfRange, compensate
 from ..errors import CalibError
 from ..platform import load_platform
-from ..io import read_pose_list
+from ..io import read_pose_list_blocks
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -35,14 +36,27 @@ def run(args: argparse.Namespace) -> int:
     drive = io.read_calibrated_drive(args.result, platform)
     identified = io.read_result(args.result).get("stroke_scale")  # spec §7, where the calibration identified it
     stroke_scale = platform.stroke_scale if identified is None else np.array(identified["estimate"], dtype=float)
-    poses = read_pose_list(args.poses)
-    try:
-        strokes = compensate(drive, poses, limits=platform, stroke_scale=stroke_scale)
-    except PoseOutOfRange as err:
-        raise CalibError(f"{args.poses}: row {err.pose_index + 2}: {err.reason}") from None
-    io.write_pose_list(args.out, poses, columns={name: q for name, q in zip(io.STROKE_COLUMNS, strokes.T)})
-    print(f"wrote {len(strokes)} stroke rows to {args.out}")
+    strokes = _compensated_blocks(args.poses, drive, platform, stroke_scale)
+    rows = io.write_pose_list_blocks(args.out, strokes, io.STROKE_COLUMNS)
+    print(f"wrote {rows} stroke rows to {args.out}")
     return 0
+
+
+def _compensated_blocks(poses_path: str, drive, platform, stroke_scale) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """``(poses [mm, rad], strokes [mm])`` a block of the pose list at a time. A pose out of range
+    is refused once the rest of the list is read, so that a bad row anywhere in it is refused
+    first, as when the list was read whole."""
+    blocks = read_pose_list_blocks(poses_path)
+    done = 0
+    for poses in blocks:
+        try:
+            strokes = compensate(drive, poses, limits=platform, stroke_scale=stroke_scale)
+        except PoseOutOfRange as err:
+            for _ in blocks:
+                pass
+            raise CalibError(f"{poses_path}: row {done + err.pose_index + 2}: {err.reason}") from None
+        yield poses, strokes
+        done += len(poses)
 
 
 def main(argv: list[str] | None = None) -> int:
