@@ -212,11 +212,17 @@ QUICK_CASES = ("calibrate ekf",)
 
 @dataclass(frozen=True)
 class CliCase:
-    """One command: its argument list for a size (file names from :class:`CliInputs`), the sizes it runs at."""
+    """One command: its argument list for a size (file names from :class:`CliInputs`), the sizes it runs at.
+
+    ``unit``: what the size counts (samples, or ``plan``'s poses). ``fixed``: a command without
+    a size (``reproduce --quick``), run once and reported by its time and peak RSS alone.
+    """
 
     name: str
     argv: Callable[["CliInputs", int], list[str]]
     sizes: tuple[int, ...]
+    unit: str = "sample"
+    fixed: bool = False
 
 
 @dataclass(frozen=True)
@@ -267,8 +273,20 @@ def _calibrate(method: str):
                              "--out", files.out(f"calibrate-{method}-{n}.json")]
 
 
+#: ``plan``'s candidates for N poses: the command's default 2000 while N ≤ 1000 (the cost is then
+#: linear in N at a fixed pool), beyond it twice N so that the design still has a choice.
+def plan_candidates(n_poses: int) -> int:
+    return max(2000, 2 * n_poses)
+
+
+def _plan(files: CliInputs, n: int) -> list[str]:
+    return ["plan", "--platform", files.platform, "--n", str(n), "--candidates", str(plan_candidates(n)), "--seed", "1",
+            "--out", files.out(f"plan-{n}.csv")]
+
+
 def cli_cases(quick: bool) -> list[CliCase]:
-    """The commands and their sizes: 10⁶ samples for the online methods and the streaming commands.
+    """The commands and their sizes: 10⁶ samples for the online methods and the streaming commands,
+    10⁴ poses for ``plan`` (its greedy design costs O(N·M) for M candidates), ``reproduce --quick`` once.
 
     ``quick``: ``calibrate ekf`` at 300 samples (a smoke test of the harness; a fresh process costs seconds).
     """
@@ -287,7 +305,13 @@ def cli_cases(quick: bool) -> list[CliCase]:
         CliCase("compensate", lambda f, n: ["compensate", "--platform", f.platform, "--result",
                                             f.out(f"calibrate-ekf-{CLI_START_SAMPLES}.json"), "--poses", f.poses(n),
                                             "--out", f.out(f"strokes-{n}.csv")], every),
-        CliCase("simulate", lambda f, n: ["simulate", "--experiment", f.experiment(n), "--out", f.out(f"sim-{n}")], batch),
+        CliCase("simulate", lambda f, n: ["simulate", "--experiment", f.experiment(n), "--out", f.out(f"sim-{n}")], every),
+        CliCase("validate", lambda f, n: ["validate", "--platform", f.platform, "--result",
+                                          f.out(f"calibrate-ekf-{CLI_START_SAMPLES}.json"), "--log", f.log(n),
+                                          "--out", f.out(f"validate-{n}.csv")], every),
+        CliCase("plan", _plan, tuple(n for n in every if n <= 10_000), unit="pose"),
+        CliCase("reproduce --quick", lambda f, n: ["reproduce", "--quick", "--out", f.out("reproduce")],
+                (CLI_START_SAMPLES,), fixed=True),
     ]
     return [c for c in cases if c.name in QUICK_CASES] if quick else cases
 
@@ -382,6 +406,8 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
                     break
     for runs in results.values():
         start = runs[CLI_START_SAMPLES]
+        if start["capped"] or start.get("exit"):
+            continue
         for n, run in runs.items():
             if n > CLI_START_SAMPLES and not run["capped"]:
                 run["marginal_us_per_sample"] = (run["wall_s"] - start["wall_s"]) / (n - CLI_START_SAMPLES) * 1e6
@@ -398,14 +424,16 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
             profile["imports_s"] <= IMPORT_TARGET_S and not profile["heavy_imported"],
             profile,
         ))
-    for name, runs in results.items():
+    for case in cases:
+        name, runs = case.name, results[case.name]
         for n, run in runs.items():
-            if n == CLI_START_SAMPLES:
+            if n == CLI_START_SAMPLES and not case.fixed:
                 continue
             value = (f"over the {CLI_CAP_S:.0f} s cap" if run["capped"] else
                      f"exit {run['exit']}" if run.get("exit") else
-                     f"{fmt_time_us(run['marginal_us_per_sample'])}/sample, {run['wall_s']:.2f} s "
-                     f"(CPU {fmt_time_us(run['marginal_cpu_us_per_sample'])}/sample)")
+                     f"{run['wall_s']:.2f} s (CPU {run['cpu_s']:.2f} s)" if case.fixed else
+                     f"{fmt_time_us(run['marginal_us_per_sample'])}/{case.unit}, {run['wall_s']:.2f} s "
+                     f"(CPU {fmt_time_us(run['marginal_cpu_us_per_sample'])}/{case.unit})")
             value += f", peak RSS {run['peak_rss_mib']:.0f} MiB"
             target, met = "", None
             if (name, n) in CLI_TARGETS:
@@ -416,7 +444,7 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
                 limit = CLI_RSS_TARGET_MIB[name, n]
                 target = ", ".join(filter(None, [target, f"peak RSS ≤ {limit:.0f} MiB"]))
                 met = (met is not False) and not run["capped"] and run["peak_rss_mib"] <= limit
-            rows.append(Row(f"{name} at {n:,} samples", value, target, met, run))
+            rows.append(Row(name if case.fixed else f"{name} at {n:,} {case.unit}s", value, target, met, run))
     note = (
         "Each command run as a user runs it (`python -m stewart_calib …` in a fresh process, on files written "
         f"beforehand: a {RATE_HZ:g} Hz Lissajous log, its poses as a pose list, a one-stage experiment). Time per "

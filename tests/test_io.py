@@ -367,6 +367,13 @@ def test_csv_text_writes_what_the_csv_module_writes(monkeypatch, chunk_rows):
         (["a", "b"], [np.zeros(0), []]),
         (["a", "stage"], [np.arange(3.0), ["x", "y,z", ""]]),  # text: the csv module quotes
         (["a", "b"], [np.array([True, False]), np.ones(2)]),
+        # runs of floats between integers and text, one float column alone, float32, text quoted
+        # or not (quotes, line breaks, spaces, a lone empty field), repeated over the rows
+        (["t", "i", "x", "y", "stage", "z"], [rng.normal(size=8) * 1e5, np.arange(8), rng.normal(size=8),
+                                              rng.normal(size=8).astype(np.float32), ['a "b"', "c\nd", "e\rf", " g ", "",
+                                              "ü,v", "x", "x"], np.r_[np.nan, -np.inf, rng.normal(size=6)]]),
+        (["x", "stage"], [np.array([0.1, 2.0 / 3.0]), ["", ""]]),
     ]
     for header, columns in cases:
         assert tables.csv_text(header, columns) == reference(header, columns)
+        assert tables.csv_text(header, columns, with_header=False) == reference(header, columns).split("\n", 1)[1]

@@ -149,3 +149,104 @@ def test_controller_and_result_go_together(tmp_path, capsys, extra, message):
     assert main(["simulate", "--experiment", str(QUICK), "--out", str(out), *extra]) == 2
     assert message in one_line_error(capsys)
     assert not out.exists()
+
+
+# ----------------------------------------------------------------------------- blocks
+
+POINTS_EXPERIMENT = """
+name = "points"
+seed = 6
+platform = "hobby-hexapod"
+[robot]
+encoder_noise_mm = 0.01
+[poses]
+calibration = 11
+validation = 0
+workspace_fraction = 0.5
+[instrument]
+kind = "points"
+position_sigma_mm = 0.1
+targets_mm = [[10.0, 0.0, 5.0], [-10.0, 20.0, 5.0]]
+target_spread_mm = 2.0
+dropout_probability = 0.2
+[[stages]]
+name = "one"
+segments = ["calibration"]
+[[stages]]
+name = "two"
+load_kg = 3.0
+ramp_s = 0.5
+segments = ["calibration"]
+"""
+
+
+def whole_run_texts(experiment) -> tuple[str, str]:
+    """log.csv and truth.csv of the nominal controller's run in one vectorised pass over the whole
+    schedule — what simulate wrote before it worked in blocks — from the model's pure functions."""
+    from stewart_calib.io import log_text, truth_text
+    from stewart_calib.samples import Log, Truth
+    from stewart_calib.simulation.closed_loop import build_robot
+    from stewart_calib.simulation.experiment import schedule
+    from stewart_calib.simulation.load import settle
+
+    robot_rng, tracker_rng, poses_rng, noise_rng, encoder_rng, instrument_rng = np.random.default_rng(experiment.seed).spawn(6)
+    robot = build_robot(experiment, robot_rng, tracker_rng, encoder_rng, instrument_rng)
+    plan = schedule(experiment, poses_rng)
+    n = len(plan.t_s)
+    stroke_noise, reading_noise = noise_rng.standard_normal((n, 6)), noise_rng.standard_normal((n, 6))
+    instrument_draws = robot.instrument.draw(n, instrument_rng) if robot.instrument is not None else np.zeros((n, 0))
+    R_d, t_d = kin.pose_to_rt(plan.desired_poses)
+    strokes = kin.inverse_kinematics(experiment.platform.drive, R_d, t_d)
+    sol, params = settle(robot.load, robot.base_params, strokes, plan.payload_kg, (R_d, t_d))
+    log = Log(plan.t_s, robot.logged_strokes(strokes, stroke_noise), robot.readings(sol.R, sol.t, reading_noise, instrument_draws),
+              plan.desired_poses, list(plan.stages), plan.payload_kg)
+    params[:, 6::7] += robot.encoder_zero_mm
+    instrument = None if robot.instrument is None else (robot.instrument.names(), robot.instrument.unknowns.file_values())
+    truth = Truth(plan.t_s, params, kin.rt_to_pose(sol.R, sol.t), robot.stroke_scale, instrument)
+    return log_text(log, experiment.platform), truth_text(truth)
+
+
+@pytest.mark.parametrize("text", [None, "pose", POINTS_EXPERIMENT], ids=["quick", "pose", "points"])
+def test_files_written_in_blocks_are_the_whole_runs_bit_for_bit(tmp_path, monkeypatch, text):
+    # Blocks of 7 samples cut across poses, segments and stages; the noise is drawn whole
+    # first, so the same experiment file gives the same bytes whatever the block size.
+    from stewart_calib.simulation import closed_loop
+
+    from tests.instrument_data import HOBBY
+    from tests.test_instrument_files import EXPERIMENT as POSE_EXPERIMENT  # random errors, stroke scale and zero
+
+    path = QUICK
+    if text is not None:
+        path = tmp_path / "e.toml"
+        path.write_text(POSE_EXPERIMENT.format(platform=HOBBY.as_posix()) if text == "pose" else text)
+    experiment = load_experiment(path)
+    log_csv, truth_csv = whole_run_texts(experiment)
+    assert len(log_csv.splitlines()) > 3 * 7
+    monkeypatch.setattr(closed_loop, "BLOCK_SAMPLES", 7)
+    assert main(["simulate", "--experiment", str(path), "--out", str(tmp_path / "out")]) == 0
+    assert (tmp_path / "out" / "log.csv").read_text(encoding="utf-8") == log_csv
+    assert (tmp_path / "out" / "truth.csv").read_text(encoding="utf-8") == truth_csv
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["log.csv", "platform.toml", "truth.csv"]
+
+
+def test_a_model_that_learns_sees_the_same_run_in_blocks(monkeypatch):
+    # the per-sample path (a controller whose model may change) in blocks of 5 and in one block
+    from stewart_calib.simulation import closed_loop
+
+    experiment = load_experiment(QUICK)
+
+    class Learning(FrozenController):
+        adaptive = True
+
+        def observe(self, sample):  # a model that moves with every sample
+            self._drive = self._drive.perturbed(np.full(42, 1e-4))
+
+    runs = []
+    for block_samples in (5, 10_000):
+        monkeypatch.setattr(closed_loop, "BLOCK_SAMPLES", block_samples)
+        runs.append(run_experiment(experiment, Learning(experiment.platform.drive)))
+    for field in ("strokes", "readings", "desired_poses", "load_kg"):
+        np.testing.assert_array_equal(getattr(runs[0].log, field), getattr(runs[1].log, field))
+    np.testing.assert_array_equal(runs[0].truth.params, runs[1].truth.params)
+    np.testing.assert_array_equal(runs[0].actual_poses, runs[1].actual_poses)
+    assert runs[0].log.stages == runs[1].log.stages

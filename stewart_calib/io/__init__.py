@@ -17,6 +17,7 @@ from .logs import (
     STROKE_SCALE_NAMES,
     TRUE_POSE_COLUMNS,
     LogRowParser,
+    log_text,
     reading_columns,
     readings_to_file,
     read_log,
@@ -24,6 +25,7 @@ from .logs import (
     read_pose_list,
     read_pose_list_blocks,
     read_truth,
+    truth_text,
     write_log,
     write_pose_list,
     write_pose_list_blocks,
@@ -48,6 +50,6 @@ __all__ = [
     "NOMINAL_TOLERANCE_MM", "POSE_COLUMNS", "READING_COLUMNS", "RESULT_FORMAT",
     "RESULT_SUM_TOLERANCE_MM", "STROKE_COLUMNS", "TRUE_POSE_COLUMNS", "LogRowParser", "atomic_path", "atomic_write_bytes",
     "atomic_write_text", "read_calibrated_drive", "read_log", "read_log_blocks", "read_pose_list", "read_pose_list_blocks", "read_result", "read_truth",
-    "result_dict", "result_text", "trace_text", "validate_result", "write_log", "write_pose_list", "write_pose_list_blocks",
+    "log_text", "result_dict", "result_text", "trace_text", "truth_text", "validate_result", "write_log", "write_pose_list", "write_pose_list_blocks",
     "write_result", "write_trace", "write_truth",
 ]

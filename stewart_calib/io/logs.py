@@ -90,21 +90,29 @@ def _readings_from_file(values: np.ndarray, columns: tuple[str, ...]) -> np.ndar
 
 
 def write_log(path: str | Path, log: Log, platform: Platform | None = None) -> None:
-    """Write a measurement log (spec §3, §7): ``t_s``, q, the readings of ``platform``'s instrument
-    (the tracker's s when None), then pose [mm, deg], ``stage``, ``load_kg`` if present."""
+    """Write a measurement log (spec §3, §7) atomically; see :func:`log_text`."""
+    atomic_write_text(path, log_text(log, platform))
+
+
+def log_text(log: Log, platform: Platform | None = None, header: bool = True) -> str:
+    """A measurement log's CSV (spec §3, §7): ``t_s``, q, the readings of ``platform``'s instrument
+    (the tracker's s when None), then pose [mm, deg], ``stage``, ``load_kg`` if present.
+
+    ``header=False``: the rows only, to append to a log written block by block.
+    """
     readings = reading_columns(platform)
-    header = ["t_s", *STROKE_COLUMNS, *readings]
+    names = ["t_s", *STROKE_COLUMNS, *readings]
     columns = [log.t_s, *np.asarray(log.strokes).T, *readings_to_file(np.asarray(log.readings, dtype=float), readings)]
     if log.desired_poses is not None:
-        header += POSE_COLUMNS
+        names += POSE_COLUMNS
         columns += pose_columns_deg(log.desired_poses)
     if log.stages is not None:
-        header.append("stage")
+        names.append("stage")
         columns.append(list(log.stages))
     if log.load_kg is not None:
-        header.append("load_kg")
+        names.append("load_kg")
         columns.append(np.asarray(log.load_kg, dtype=float))
-    atomic_write_text(path, csv_text(header, columns))
+    return csv_text(names, columns, header)
 
 
 
@@ -638,11 +646,20 @@ def _refuse_non_utf8(file, path: Path, offset: int, what: str) -> None:
 
 
 def write_truth(path: str | Path, truth: Truth) -> None:
-    """Write a truth file (spec §4): ``t_s``, the 42 parameters [mm], the true pose [mm, deg] if present."""
-    header = ["t_s", *PARAMETER_NAMES]
+    """Write a truth file (spec §4) atomically; see :func:`truth_text`."""
+    atomic_write_text(path, truth_text(truth))
+
+
+def truth_text(truth: Truth, header: bool = True) -> str:
+    """A truth file's CSV (spec §4): ``t_s``, the 42 parameters [mm], the true pose [mm, deg] if
+    present, then the constant spec §7 truth columns.
+
+    ``header=False``: the rows only, to append to a truth file written block by block.
+    """
+    names = ["t_s", *PARAMETER_NAMES]
     columns = [truth.t_s, *np.asarray(truth.params, dtype=float).T]
     if truth.true_poses is not None:
-        header += TRUE_POSE_COLUMNS
+        names += TRUE_POSE_COLUMNS
         columns += pose_columns_deg(truth.true_poses)
     # spec §7 truth, constant over the log: one column per value, added beside §4's
     constants = []
@@ -651,9 +668,9 @@ def write_truth(path: str | Path, truth: Truth) -> None:
     if truth.instrument is not None:
         constants += zip(*truth.instrument)
     for name, value in constants:
-        header.append(name)
+        names.append(name)
         columns.append(np.full(len(truth.t_s), float(value)))
-    atomic_write_text(path, csv_text(header, columns))
+    return csv_text(names, columns, header)
 
 
 def read_truth(path: str | Path) -> Truth:

@@ -17,19 +17,22 @@ import numpy as np
 from ..errors import CalibError
 
 
-def csv_text(header: list[str], columns: list) -> str:
-    """CSV text of equal-length columns; floats are written with ``repr`` (round-trip exact)."""
+def csv_text(header: list[str], columns: list, with_header: bool = True) -> str:
+    """CSV text of equal-length columns; floats are written with ``repr`` (round-trip exact).
+
+    ``with_header=False``: the rows only (a block appended to a file written block by block).
+    """
     buffer = io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(header)
-    if len(columns) > 1 and all(map(_plain, columns)):
-        # numbers and empty fields need no quoting: the rows the csv module would write, joined
-        # directly (~2× faster; a trace is 43 numbers a sample), a few thousand rows at a time so
-        # that only the text is held whole, not a string object per field
+    if with_header:
+        writer.writerow(header)
+    if len(columns) > 1 and all(map(_renderable, columns)):
+        # the rows the csv module would write, rendered directly (a simulated truth file is 55
+        # numbers a sample), a few thousand rows at a time so that only the text is held whole,
+        # not a string object per field
         n = len(columns[0])
         for start in range(0, n, CSV_CHUNK_ROWS):
-            fields = [_field_texts(c[start : start + CSV_CHUNK_ROWS]) for c in columns]
-            buffer.write("\n".join(map(",".join, zip(*fields))) + "\n")
+            buffer.write(_rows_text([c[start : start + CSV_CHUNK_ROWS] for c in columns]))
         return buffer.getvalue()
     writer.writerows(zip(*(c.tolist() if isinstance(c, np.ndarray) else c for c in columns)))
     return buffer.getvalue()
@@ -39,16 +42,36 @@ def csv_text(header: list[str], columns: list) -> str:
 CSV_CHUNK_ROWS = 4096
 
 
-def _plain(column) -> bool:
-    """Numbers only (an array, or floats, ints and empty strings): fields that need no quoting."""
+def _renderable(column) -> bool:
+    """Numbers (an array, or floats, ints and empty strings), or text alone: columns :func:`_rows_text` renders."""
     if isinstance(column, np.ndarray):
         return column.dtype.kind in "fiu"
-    return all(type(v) in (float, int) or (type(v) is str and v == "") for v in column)
+    return all(type(v) in (float, int) or (type(v) is str and v == "") for v in column) or all(type(v) is str for v in column)
+
+
+def _rows_text(columns: list) -> str:
+    """The CSV rows of a few rows of :func:`_renderable` columns, each ending in a line break."""
+    parts, floats = [], []  # per row: the text of a run of float arrays, or one field
+    for column in [*columns, None]:
+        if isinstance(column, np.ndarray) and column.dtype.kind == "f":
+            floats.append(column)
+            continue
+        if floats:
+            parts.append(float_rows_csv(floats).decode().split("\n")[:-1])
+            floats = []
+        if column is not None:
+            parts.append(_field_texts(column))
+    rows = parts[0] if len(parts) == 1 else map(",".join, zip(*parts))
+    return "\n".join(rows) + "\n"
 
 
 def _field_texts(column) -> list[str]:
-    """A :func:`_plain` column's fields as the csv module writes them (``repr`` of a float, ``str`` of an int)."""
+    """A :func:`_renderable` column's fields as the csv module writes them in a row of several:
+    ``repr`` of a float, ``str`` of an int, text quoted where it must be."""
     values = column.tolist() if isinstance(column, np.ndarray) else column
+    if values and all(type(v) is str for v in values):
+        rendered = {value: _quoted(value) for value in set(values)}  # a few stage names over many rows
+        return [rendered[v] for v in values]
     return [v if type(v) is str else repr(v) for v in values]
 
 
@@ -90,6 +113,14 @@ def _repr_texts(column: np.ndarray):
         others = [repr(v) for v in values[~positional].tolist()]
         texts = pc.replace_with_mask(texts, pa.array(~positional), pa.array(others, pa.string()))
     return texts
+
+
+def _quoted(text: str) -> str:
+    """``text`` as a field of the csv module's rows: its writer's own quoting (of a row of two
+    fields: a lone empty field is written ``""``)."""
+    buffer = io.StringIO()
+    csv.writer(buffer, lineterminator="\n").writerow([text, ""])
+    return buffer.getvalue()[: -len(",\n")]
 
 
 def pose_columns_deg(poses: np.ndarray) -> list[np.ndarray]:

@@ -16,14 +16,14 @@ files. A tqdm bar goes to stderr when it is a terminal.
 from __future__ import annotations
 
 import argparse
+from contextlib import ExitStack
 from pathlib import Path
-
 
 from . import run_command
 from ..errors import CalibError
-from ..io import atomic_write_text, read_calibrated_drive, write_log, write_truth
+from ..io import atomic_path, atomic_write_text, log_text, read_calibrated_drive, truth_text
 from ..platform import Platform, platform_to_toml
-from ..simulation.closed_loop import FrozenController, NominalController, run_experiment
+from ..simulation.closed_loop import FrozenController, NominalController, simulate_blocks
 from ..simulation.experiment import load_experiment
 
 
@@ -65,11 +65,16 @@ def run(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise CalibError(f"{out}: cannot create output directory ({err.strerror or err.__class__.__name__})") from None
-    result = run_experiment(experiment, controller, progress=True)
+    run = simulate_blocks(experiment, controller, progress=True)
+    with ExitStack() as stack:
+        # written a block at a time as the blocks are simulated: a run holds its schedule and noise, not its text
+        log_file, truth_file = (stack.enter_context(open(stack.enter_context(atomic_path(out / name)), "w", encoding="utf-8"))
+                                for name in ("log.csv", "truth.csv"))
+        for k, (log, truth) in enumerate(run.blocks):
+            log_file.write(log_text(log, experiment.platform, header=k == 0))
+            truth_file.write(truth_text(truth, header=k == 0))
     atomic_write_text(out / "platform.toml", platform_to_toml(experiment.platform))
-    write_log(out / "log.csv", result.log, experiment.platform)
-    write_truth(out / "truth.csv", result.truth)
-    print(f"simulated {len(result.log)} samples of '{experiment.name}' ({args.controller} controller) into {out}")
+    print(f"simulated {len(run.plan.t_s)} samples of '{experiment.name}' ({args.controller} controller) into {out}")
     return 0
 
 

@@ -6,6 +6,8 @@ Public API (details in each module's docstring)::
     run_experiment(experiment, controller=None, progress=False)  # closed_loop.py
         -> SimulationResult(log, truth, desired_poses, actual_poses, stages, kinds,
                             payload_kg, pose_index, robot)
+    simulate_blocks(experiment, controller=None, progress=False)  # the same run, a block at a time
+        -> SimulationRun(robot, plan, blocks)                     # blocks: (Log, Truth) of ≤ 4096 samples
     NominalController(platform), FrozenController(drive)         # controllers:
         .drive_model() -> LegGeometry, .observe(sample) -> None
     EstimatorController(estimator, platform)                     # online: update, then IK on M + δM
@@ -17,7 +19,7 @@ Modules: :mod:`.robot` (δM_base, Table 4), :mod:`.load` (statics → forces →
 (static poses, circles), :mod:`.experiment`, :mod:`.closed_loop`.
 """
 
-from .closed_loop import Controller, EstimatorController, FrozenController, NominalController, SimulationResult, TrueRobot, run_experiment
+from .closed_loop import Controller, EstimatorController, FrozenController, NominalController, SimulationResult, SimulationRun, TrueRobot, run_experiment, simulate_blocks
 from .experiment import Experiment, load_experiment
 
 __all__ = [
@@ -27,7 +29,9 @@ __all__ = [
     "FrozenController",
     "NominalController",
     "SimulationResult",
+    "SimulationRun",
     "TrueRobot",
     "load_experiment",
     "run_experiment",
+    "simulate_blocks",
 ]

@@ -16,10 +16,12 @@ A **controller** is any object with two methods::
 
 :class:`NominalController` (uncalibrated) and :class:`FrozenController` (a frozen batch
 estimate, or the true no-load geometry for a perfect calibration) never change their model;
-they say so with ``adaptive = False``, and :func:`run_experiment` then settles all samples in
-one vectorised pass (identical results: all noise is drawn up front). Any other controller —
-:class:`EstimatorController`, an online estimator in the loop (paper Fig. 3, step 4) — is run
-sample by sample.
+they say so with ``adaptive = False``, and the samples are then settled in vectorised blocks
+of :data:`BLOCK_SAMPLES` (identical results whatever the block size: all noise is drawn up
+front). Any other controller — :class:`EstimatorController`, an online estimator in the loop
+(paper Fig. 3, step 4) — is run sample by sample. :func:`simulate_blocks` hands the log and
+truth on a block at a time (``simulate`` writes them so, holding none of them whole);
+:func:`run_experiment` joins them.
 
 Randomness: ``np.random.default_rng(experiment.seed)`` spawns independent streams for the
 robot's errors, the tracker residual, the pose sets, the measurement noise, the encoders'
@@ -35,7 +37,7 @@ are ``l_i + z_i``, what a model with the logged strokes must find.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Iterator, Protocol
 
 import numpy as np
 
@@ -44,7 +46,7 @@ from ..errors import SampleRejected
 from ..platform import LegGeometry, Platform
 from ..samples import Log, Sample, Truth
 from ..progress import progress_bar
-from .experiment import Experiment, schedule
+from .experiment import Experiment, Schedule, schedule
 from .load import LoadModel, loaded_params, settle
 from .instrument import SimulatedInstrument
 from .robot import base_errors, encoder_readings
@@ -240,8 +242,103 @@ class SimulationResult:
         return float(position[mask].mean()), float(orientation[mask].mean())
 
 
+#: samples settled, measured and handed on at a time: the working arrays of a block (settle's
+#: per-pose geometry and statics, the CSV text of its rows) stay a few MB whatever the run's length.
+BLOCK_SAMPLES = 4096
+
+
+@dataclass
+class SimulationRun:
+    """A run being simulated (:func:`simulate_blocks`): the true robot, the schedule, and the
+    samples as ``(log, truth)`` blocks of at most :data:`BLOCK_SAMPLES` rows, in order (one
+    pass; the blocks are simulated as they are taken)."""
+
+    robot: TrueRobot
+    plan: Schedule
+    blocks: Iterator[tuple[Log, Truth]]
+
+
+def simulate_blocks(experiment: Experiment, controller: Controller | None = None, progress: bool = False) -> SimulationRun:
+    """Simulate an experiment in closed loop a block at a time (see the module docstring); the
+    blocks joined are :func:`run_experiment`'s log and truth, bit for bit.
+
+    Args and raises: as :func:`run_experiment` (an unreachable stroke set raises when its block is taken).
+    """
+    controller = NominalController(experiment.platform) if controller is None else controller
+    # spawn(6)'s first four streams are spawn(4)'s: adding streams reshuffles no older experiment
+    robot_rng, tracker_rng, poses_rng, noise_rng, encoder_rng, instrument_rng = np.random.default_rng(experiment.seed).spawn(6)
+    robot = build_robot(experiment, robot_rng, tracker_rng, encoder_rng, instrument_rng)
+    plan = schedule(experiment, poses_rng)
+    n = len(plan.t_s)
+    # drawn whole, in this order, whatever the blocks: 12 numbers a sample (and the instrument's)
+    stroke_noise = noise_rng.standard_normal((n, 6))
+    reading_noise = noise_rng.standard_normal((n, 6))
+    instrument_draws = robot.instrument.draw(n, instrument_rng) if robot.instrument is not None else np.zeros((n, 0))
+    noise = (stroke_noise, reading_noise, instrument_draws)
+    step = _settle_each if getattr(controller, "adaptive", True) else _settle_block
+
+    def blocks() -> Iterator[tuple[Log, Truth]]:
+        bar = progress_bar(total=n, desc=f"simulate {experiment.name}", show=progress)
+        try:
+            for lo in range(0, max(n, 1), BLOCK_SAMPLES):  # one empty block for an empty schedule
+                rows = slice(lo, min(lo + BLOCK_SAMPLES, n))
+                yield step(robot, plan, rows, controller, noise)
+                bar.update(rows.stop - rows.start)
+        finally:
+            bar.close()
+
+    return SimulationRun(robot, plan, blocks())
+
+
+def _settle_block(robot: TrueRobot, plan: Schedule, rows: slice, controller: Controller, noise) -> tuple[Log, Truth]:
+    """A model that never changes: the block's IK, settling and measurements in one vectorised pass."""
+    R_d, t_d = kin.pose_to_rt(plan.desired_poses[rows])
+    strokes = kin.inverse_kinematics(controller.drive_model(), R_d, t_d)
+    sol, params = settle(robot.load, robot.base_params, strokes, plan.payload_kg[rows], (R_d, t_d))
+    log, truth = _measured(robot, plan, rows, strokes, sol.R, sol.t, params, noise)
+    for sample in log:  # the protocol promises observe() after every sample
+        controller.observe(sample)
+    return log, truth
+
+
+def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Controller, noise) -> tuple[Log, Truth]:
+    """A model that may change after every sample: IK and settling one sample at a time."""
+    stroke_noise, reading_noise, instrument_draws = noise
+    R_d, t_d = kin.pose_to_rt(plan.desired_poses[rows])
+    m = len(t_d)
+    strokes, params = np.empty((m, 6)), np.empty((m, 42))
+    R, t = np.empty((m, 3, 3)), np.empty((m, 3))
+    for i, k in enumerate(range(rows.start, rows.stop)):
+        strokes[i] = kin.inverse_kinematics(controller.drive_model(), R_d[i], t_d[i])
+        sol, params[i : i + 1] = settle(robot.load, robot.base_params, strokes[i : i + 1], plan.payload_kg[k : k + 1], (R_d[i : i + 1], t_d[i : i + 1]))
+        R[i], t[i] = sol.R[0], sol.t[0]
+        controller.observe(_sample(robot, plan, k, strokes[i], stroke_noise[k], R[i], t[i], reading_noise[k], instrument_draws[k]))
+    return _measured(robot, plan, rows, strokes, R, t, params, noise)
+
+
+def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, params, noise) -> tuple[Log, Truth]:
+    """What the machine logs for a block of settled samples, and its truth."""
+    stroke_noise, reading_noise, instrument_draws = (draws[rows] for draws in noise)
+    log = Log(
+        t_s=plan.t_s[rows].copy(),
+        strokes=robot.logged_strokes(strokes, stroke_noise),
+        readings=robot.readings(R, t, reading_noise, instrument_draws),
+        desired_poses=plan.desired_poses[rows].copy(),
+        stages=list(plan.stages[rows]),
+        load_kg=plan.payload_kg[rows].copy(),
+    )
+    params = params.copy()
+    params[:, 6::7] += robot.encoder_zero_mm  # the logged strokes' zero is the model's l_i
+    instrument = None
+    if robot.instrument is not None:
+        instrument = (robot.instrument.names(), robot.instrument.unknowns.file_values())
+    truth = Truth(t_s=plan.t_s[rows].copy(), params=params, true_poses=kin.rt_to_pose(R, t),
+                  stroke_scale=robot.stroke_scale.copy(), instrument=instrument)
+    return log, truth
+
+
 def run_experiment(experiment: Experiment, controller: Controller | None = None, progress: bool = False) -> SimulationResult:
-    """Simulate an experiment in closed loop (see the module docstring).
+    """Simulate an experiment in closed loop (see the module docstring), held whole.
 
     Args:
         experiment: from :func:`~stewart_calib.simulation.experiment.load_experiment`.
@@ -250,52 +347,15 @@ def run_experiment(experiment: Experiment, controller: Controller | None = None,
     Raises:
         kinematics.FKError: the robot cannot reach a commanded stroke set.
     """
-    controller = NominalController(experiment.platform) if controller is None else controller
-    # spawn(6)'s first four streams are spawn(4)'s: adding streams reshuffles no older experiment
-    robot_rng, tracker_rng, poses_rng, noise_rng, encoder_rng, instrument_rng = np.random.default_rng(experiment.seed).spawn(6)
-    robot = build_robot(experiment, robot_rng, tracker_rng, encoder_rng, instrument_rng)
-    plan = schedule(experiment, poses_rng)
-    n = len(plan.t_s)
-    stroke_noise = noise_rng.standard_normal((n, 6))
-    reading_noise = noise_rng.standard_normal((n, 6))
-    instrument_draws = robot.instrument.draw(n, instrument_rng) if robot.instrument is not None else np.zeros((n, 0))
-    R_d, t_d = kin.pose_to_rt(plan.desired_poses)
-    bar = progress_bar(total=n, desc=f"simulate {experiment.name}", show=progress)
-
-    if getattr(controller, "adaptive", True):
-        strokes, params = np.empty((n, 6)), np.empty((n, 42))
-        R, t = np.empty((n, 3, 3)), np.empty((n, 3))
-        for k in range(n):
-            strokes[k] = kin.inverse_kinematics(controller.drive_model(), R_d[k], t_d[k])
-            sol, params[k : k + 1] = settle(robot.load, robot.base_params, strokes[k : k + 1], plan.payload_kg[k : k + 1], (R_d[k : k + 1], t_d[k : k + 1]))
-            R[k], t[k] = sol.R[0], sol.t[0]
-            controller.observe(_sample(robot, plan, k, strokes[k], stroke_noise[k], R[k], t[k], reading_noise[k], instrument_draws[k]))
-            bar.update()
-    else:
-        strokes = kin.inverse_kinematics(controller.drive_model(), R_d, t_d)
-        sol, params = settle(robot.load, robot.base_params, strokes, plan.payload_kg, (R_d, t_d))
-        R, t = sol.R, sol.t
-        for k in range(n):  # the protocol promises observe() after every sample
-            controller.observe(_sample(robot, plan, k, strokes[k], stroke_noise[k], R[k], t[k], reading_noise[k], instrument_draws[k]))
-            bar.update()
-    bar.close()
-
-    actual = kin.rt_to_pose(R, t)
-    log = Log(
-        t_s=plan.t_s.copy(),
-        strokes=robot.logged_strokes(strokes, stroke_noise),
-        readings=robot.readings(R, t, reading_noise, instrument_draws),
-        desired_poses=plan.desired_poses.copy(),
-        stages=list(plan.stages),
-        load_kg=plan.payload_kg.copy(),
-    )
-    params = params.copy()
-    params[:, 6::7] += robot.encoder_zero_mm  # the logged strokes' zero is the model's l_i
-    instrument = None
-    if robot.instrument is not None:
-        instrument = (robot.instrument.names(), robot.instrument.unknowns.file_values())
-    truth = Truth(t_s=plan.t_s.copy(), params=params, true_poses=actual, stroke_scale=robot.stroke_scale.copy(), instrument=instrument)
-    return SimulationResult(log, truth, plan.desired_poses, actual, plan.stages, plan.kinds, plan.payload_kg, plan.pose_index, robot)
+    run = simulate_blocks(experiment, controller, progress)
+    logs, truths = zip(*run.blocks)
+    log = Log.concatenate(list(logs))
+    first = truths[0]
+    joined = lambda name: np.concatenate([getattr(truth, name) for truth in truths])  # noqa: E731
+    truth = Truth(joined("t_s"), joined("params"), joined("true_poses"), first.stroke_scale, first.instrument)
+    plan = run.plan
+    return SimulationResult(log, truth, plan.desired_poses, truth.true_poses, plan.stages, plan.kinds, plan.payload_kg,
+                            plan.pose_index, run.robot)
 
 
 def _sample(robot: TrueRobot, plan, k: int, stroke, stroke_noise, R, t, reading_noise, instrument_draws) -> Sample:
