@@ -7,7 +7,7 @@ what was expected; a failed write never leaves a partial file behind.
 """
 
 from .atomic import atomic_path, atomic_write_bytes, atomic_write_text
-from .tables import csv_text
+from .tables import csv_text, write_csv_blocks
 from .logs import (
     LOG_REQUIRED,
     MEASURED_ANGLE_COLUMNS,
@@ -19,6 +19,8 @@ from .logs import (
     LogRowParser,
     log_text,
     reading_columns,
+    blank_reading_columns,
+    readings_in_file_units,
     readings_to_file,
     read_log,
     read_log_blocks,
@@ -46,7 +48,7 @@ from .results import (
 )
 
 __all__ = [
-    "LOG_REQUIRED", "MEASURED_ANGLE_COLUMNS", "STROKE_SCALE_NAMES", "reading_columns", "readings_to_file", "csv_text",
+    "LOG_REQUIRED", "MEASURED_ANGLE_COLUMNS", "STROKE_SCALE_NAMES", "reading_columns", "readings_to_file", "readings_in_file_units", "blank_reading_columns", "csv_text", "write_csv_blocks",
     "NOMINAL_TOLERANCE_MM", "POSE_COLUMNS", "READING_COLUMNS", "RESULT_FORMAT",
     "RESULT_SUM_TOLERANCE_MM", "STROKE_COLUMNS", "TRUE_POSE_COLUMNS", "LogRowParser", "atomic_path", "atomic_write_bytes",
     "atomic_write_text", "read_calibrated_drive", "read_log", "read_log_blocks", "read_pose_list", "read_pose_list_blocks", "read_result", "read_truth",

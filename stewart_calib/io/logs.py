@@ -20,12 +20,10 @@ import numpy as np
 from ..errors import CalibError
 from ..platform import PARAMETER_NAMES, Platform
 from ..samples import Log, Sample, Truth
-from .atomic import atomic_path, atomic_write_text
+from .atomic import atomic_write_text
 from .tables import (
-    CSV_CHUNK_ROWS,
     csv_text,
     flag_non_finite,
-    float_rows_csv,
     header_fields,
     numbers_by_arrow,
     optional_group,
@@ -38,6 +36,7 @@ from .tables import (
     refuse_first,
     require_columns,
     Table,
+    write_csv_blocks,
 )
 
 STROKE_COLUMNS = tuple(f"q{i}_mm" for i in range(1, 7))
@@ -71,13 +70,21 @@ def _kind(platform: Platform | None) -> str:
 def readings_to_file(readings: np.ndarray, columns: tuple[str, ...]) -> list:
     """Code-unit readings ``(N, m)`` → file columns: radians → degrees for the measured angles,
     NaN (a point target not seen) → an empty field."""
-    out = []
-    for j, name in enumerate(columns):
-        values = np.asarray(readings[:, j], dtype=float)
-        if name in MEASURED_ANGLE_COLUMNS:
-            values = np.degrees(values)
-        out.append(["" if not np.isfinite(v) else v for v in values.tolist()] if name.startswith("p") else values)
-    return out
+    return [["" if not np.isfinite(v) else v for v in values.tolist()] if name.startswith("p") else values
+            for name, values in zip(columns, readings_in_file_units(readings, columns))]
+
+
+def readings_in_file_units(readings: np.ndarray, columns: tuple[str, ...]) -> list[np.ndarray]:
+    """Code-unit readings ``(N, m)`` → file-unit float columns (radians → degrees for the measured
+    angles); :func:`readings_to_file` with NaN kept, for :func:`~.tables.write_csv_blocks`, whose
+    ``blank`` columns are those of :func:`blank_reading_columns`."""
+    readings = np.asarray(readings, dtype=float)
+    return [np.degrees(readings[:, j]) if name in MEASURED_ANGLE_COLUMNS else readings[:, j] for j, name in enumerate(columns)]
+
+
+def blank_reading_columns(columns: tuple[str, ...]) -> tuple[int, ...]:
+    """The indices of the reading columns whose NaN (a point target not seen) is an empty field."""
+    return tuple(j for j, name in enumerate(columns) if name.startswith("p"))
 
 
 def _readings_from_file(values: np.ndarray, columns: tuple[str, ...]) -> np.ndarray:
@@ -546,28 +553,24 @@ def write_pose_list(
 def write_pose_list_blocks(path: str | Path, blocks: Iterable[tuple[np.ndarray, np.ndarray]],
                            column_names: tuple[str, ...] = (), dwell_s: float | None = 1.0) -> int:
     """:func:`write_pose_list`'s file, byte for byte, from blocks ``(poses (n, 6) [mm, rad], columns
-    (n, k))`` of consecutive rows, ``column_names`` naming the k extra columns: the file is
-    written as the blocks come, so only a block is held however long the list.
-
-    Atomic: the rows go to a temporary file beside ``path``, renamed onto it after the last
-    block; an exception from ``blocks`` (a refused row) removes it and leaves ``path`` as it was.
-    Returns the number of rows written.
+    (n, k))`` of consecutive rows, ``column_names`` naming the k extra columns, written as they
+    come and atomically (:func:`~.tables.write_csv_blocks`). Returns the number of rows.
 
     Raises:
         CalibError: as :func:`write_pose_list`; the file cannot be written.
     """
     if dwell_s is not None and not (math.isfinite(dwell_s) and dwell_s > 0):
         raise CalibError(f"dwell time: expected a finite positive number of seconds, got {dwell_s!r}")
-    rows = 0
-    with atomic_path(path) as temporary, open(temporary, "wb") as file:
-        file.write(csv_text([*([] if dwell_s is None else ["t_s"]), *POSE_COLUMNS, *column_names], []).encode())
+
+    def columns() -> Iterator[list[np.ndarray]]:
+        rows = 0
         for poses, extra in blocks:
-            for start in range(0, len(poses), CSV_CHUNK_ROWS):
-                part = slice(start, start + CSV_CHUNK_ROWS)
-                lead = [] if dwell_s is None else [(rows + np.arange(len(poses[part]))) * dwell_s]
-                file.write(float_rows_csv([*lead, *pose_columns_deg(poses[part]), *np.asarray(extra[part]).T]))
-                rows += len(poses[part])
-    return rows
+            lead = [] if dwell_s is None else [(rows + np.arange(len(poses))) * dwell_s]
+            yield [*lead, *pose_columns_deg(poses), *np.asarray(extra).T]
+            rows += len(poses)
+
+    header = [*([] if dwell_s is None else ["t_s"]), *POSE_COLUMNS, *column_names]
+    return write_csv_blocks(path, header, columns())
 
 
 def read_pose_list(path: str | Path) -> np.ndarray:

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import CalibError
+from .atomic import atomic_path
 
 
 def csv_text(header: list[str], columns: list, with_header: bool = True) -> str:
@@ -75,20 +77,48 @@ def _field_texts(column) -> list[str]:
     return [v if type(v) is str else repr(v) for v in values]
 
 
-def float_rows_csv(columns: list[np.ndarray]) -> bytes:
+def write_csv_blocks(path: str | Path, header: list[str], blocks, blank: tuple[int, ...] = ()) -> int:
+    """The file ``csv_text(header, columns)`` writes, byte for byte, from blocks of its float columns
+    (a list of equal-length arrays per block of consecutive rows), written as they come: only a
+    block is held however long the file. Columns whose index is in ``blank`` write a non-finite
+    value as an empty field (a point target not seen), as ``csv_text`` writes ``""``.
+
+    Atomic: the rows go to a temporary file beside ``path``, renamed onto it after the last block;
+    an exception from ``blocks`` (a refused row) removes it and leaves ``path`` as it was. Returns
+    the number of rows written.
+
+    Raises:
+        CalibError: the file cannot be written.
+    """
+    rows = 0
+    with atomic_path(path) as temporary, open(temporary, "wb") as file:
+        file.write(csv_text(header, []).encode())
+        for columns in blocks:
+            for start in range(0, len(columns[0]), CSV_CHUNK_ROWS):
+                file.write(float_rows_csv([c[start : start + CSV_CHUNK_ROWS] for c in columns], blank))
+            rows += len(columns[0])
+    return rows
+
+
+def float_rows_csv(columns: list[np.ndarray], blank: tuple[int, ...] = ()) -> bytes:
     """The rows of equal-length float columns as :func:`csv_text` writes them (each float's
-    ``repr``, commas between, a line break after each row), without the header; by pyarrow from
-    :data:`CSV_CHUNK_ROWS` rows on: ~2 µs a 13-column row against ~11 for ``repr`` on each field,
-    its import (~0.1 s, ~40 MB) paying off."""
+    ``repr``, commas between, a line break after each row; see :func:`write_csv_blocks` for
+    ``blank``), without the header; by pyarrow from :data:`CSV_CHUNK_ROWS` rows on: ~2 µs a
+    13-column row against ~11 for ``repr`` on each field, its import (~0.1 s, ~40 MB) paying off."""
     if len(columns[0]) < CSV_CHUNK_ROWS:
-        row = ",".join(["%r"] * len(columns)) + "\n"
-        return ((row * len(columns[0])) % tuple(np.column_stack(columns).ravel().tolist())).encode()
+        fields = [_repr_list(column, j in blank) for j, column in enumerate(columns)]
+        return "".join(",".join(row) + "\n" for row in zip(*fields)).encode()
     import pyarrow.compute as pc
 
-    rows = pc.binary_join_element_wise(*map(_repr_texts, columns), ",")
+    rows = pc.binary_join_element_wise(*(_repr_texts(column, j in blank) for j, column in enumerate(columns)), ",")
     rows = pc.binary_join_element_wise(rows, "", "\n")
     offsets = np.frombuffer(rows.buffers()[1], dtype=np.int32)[rows.offset : rows.offset + len(rows) + 1]
-    return bytes(memoryview(rows.buffers()[2])[offsets[0] : offsets[-1]]) if len(rows) else b""
+    return bytes(memoryview(rows.buffers()[2])[offsets[0] : offsets[-1]])
+
+
+def _repr_list(values, blank: bool) -> list[str]:
+    """Each float's ``repr``; with ``blank``, a non-finite one as ``""``."""
+    return ["" if blank and not math.isfinite(v) else repr(v) for v in np.asarray(values, dtype=float).tolist()]
 
 
 #: the magnitudes whose pyarrow text is ``repr``'s but for a whole number's ".0": both write the
@@ -97,8 +127,8 @@ def float_rows_csv(columns: list[np.ndarray]) -> bytes:
 _POSITIONAL_MAGNITUDES = (1e-4, 1e9)
 
 
-def _repr_texts(column: np.ndarray):
-    """A float column's ``repr`` texts as a pyarrow string array."""
+def _repr_texts(column: np.ndarray, blank: bool):
+    """A float column's :func:`_repr_list` texts as a pyarrow string array."""
     import pyarrow as pa
     import pyarrow.compute as pc
 
@@ -110,7 +140,7 @@ def _repr_texts(column: np.ndarray):
     if whole.any():
         texts = pc.if_else(pa.array(whole), pc.binary_join_element_wise(texts, ".0", ""), texts)
     if not positional.all():
-        others = [repr(v) for v in values[~positional].tolist()]
+        others = _repr_list(values[~positional], blank)
         texts = pc.replace_with_mask(texts, pa.array(~positional), pa.array(others, pa.string()))
     return texts
 

@@ -74,13 +74,14 @@ def _model_drive(platform: Platform, result: dict, log, source: str):
     return drive, drive_model.scaled_strokes(log.strokes, scale)
 
 
-def _model_poses(platform: Platform, result: dict, log, source: str):
-    """FK poses of the logged strokes with the calibrated drive (and stroke scale)."""
+def _model_poses(platform: Platform, result: dict, log, source: str, first_sample: int = 0):
+    """FK poses of the logged strokes with the calibrated drive (and stroke scale); ``log``'s
+    samples are numbered from ``first_sample`` (a block of a longer log)."""
     fk = kin.forward_kinematics(*_model_drive(platform, result, log, source), strict=False)
     if not np.all(fk.converged):
         k = int(np.flatnonzero(~fk.converged)[0])
         raise CalibError(
-            f"{source}: sample {k + 1} of the log (t_s = {log.t_s[k]!r}): forward kinematics of the calibrated "
+            f"{source}: sample {first_sample + k + 1} of the log (t_s = {log.t_s[k]!r}): forward kinematics of the calibrated "
             "model did not converge for its strokes"
         )
     return fk.R, fk.t
@@ -94,12 +95,15 @@ def _check_nominal(platform: Platform, result: dict, source: str) -> None:
         )
 
 
-def validate(platform: Platform, result: dict, log, register: bool, result_source: str = "result", errors: bool = True):
+def validate(platform: Platform, result: dict, log, register: bool, result_source: str = "result", errors: bool = True,
+             first_sample: int = 0):
     """Predictions and errors of a held-out log.
 
     Args:
         errors: False: the predictions alone (position and orientation errors None); for the
             tracker that spares forward kinematics of the readings.
+        first_sample: the number of samples before ``log``'s when it is a block of a longer log
+            (refusals name the sample in the whole log).
     Returns:
         ``(predicted (N, m) code units, position_error_mm (N,), orientation_error_deg (N,) or None)``.
     Raises:
@@ -107,7 +111,7 @@ def validate(platform: Platform, result: dict, log, register: bool, result_sourc
             registered (with ``register``).
     """
     _check_nominal(platform, result, result_source)
-    R_X, t_X = _model_poses(platform, result, log, result_source)
+    R_X, t_X = _model_poses(platform, result, log, result_source, first_sample)
     if platform.instrument.kind == "tracker":
         if register:
             raise CalibError("--register-instrument: the in-situ tracker is part of the robot; it has no frame of its own to fit again")
@@ -117,7 +121,7 @@ def validate(platform: Platform, result: dict, log, register: bool, result_sourc
         seen = kin.forward_kinematics(platform.tracker, log.readings, guess=(R_X, t_X), strict=False)
         if not np.all(seen.converged):
             k = int(np.flatnonzero(~seen.converged)[0])
-            raise CalibError(f"sample {k + 1} (t_s = {log.t_s[k]!r}): tracker forward kinematics of its readings did not converge")
+            raise CalibError(f"sample {first_sample + k + 1} (t_s = {log.t_s[k]!r}): tracker forward kinematics of its readings did not converge")
         position, orientation = kin.pose_error(seen.R, seen.t, R_X, t_X)
         return predicted, position, orientation
 
@@ -143,38 +147,69 @@ def run(args: argparse.Namespace) -> int:
     handover.check_report_dir(report_dir)
     platform = load_platform(args.platform)
     result = io.read_result(args.result)
-    with log_progress_bar(args.log, "validate") as bar:
-        log, (predicted, position, orientation) = _validated_log(platform, result, args.log, args.register_instrument,
-                                                                 str(args.result), bar)
-    page = _report_page(args, platform, result, log, predicted, position, orientation) if report_dir else None
     columns = io.reading_columns(platform)
     header = ["t_s", *columns, *(f"pred_{name}" for name in columns), "position_error_mm"]
-    values = [log.t_s, *io.readings_to_file(log.readings, columns), *io.readings_to_file(predicted, columns), _blank_nan(position)]
-    if orientation is not None:
+    if platform.instrument.kind != "points":
         header.append("orientation_error_deg")
-        values.append(orientation)
-    io.atomic_write_text(args.out, io.csv_text(header, values))
+    unseen = io.blank_reading_columns(columns)  # a target not seen: empty fields, read and predicted, and its error
+    blank = (*(1 + j for j in unseen), *(1 + len(columns) + j for j in unseen), 1 + 2 * len(columns))
+    page = None
+    with log_progress_bar(args.log, "validate") as bar:
+        if report_dir or args.register_instrument:
+            # the report plots, and the instrument frame is fitted to, the whole log
+            log = _whole_log(platform, args.log, bar)
+            predicted, position, orientation = validate(platform, result, log, args.register_instrument, str(args.result))
+            if report_dir:
+                page = _report_page(args, platform, result, log, predicted, position, orientation)
+            io.write_csv_blocks(args.out, header, [_file_columns(log, predicted, position, orientation, columns)], blank)
+        else:
+            errors: list[tuple] = []
+            blocks = _validated_blocks(platform, result, args.log, str(args.result), bar, errors)
+            io.write_csv_blocks(args.out, header, blocks, blank)
+            position = np.concatenate([e[0] for e in errors])
+            orientation = None if errors[0][1] is None else np.concatenate([e[1] for e in errors])
     if page is not None:
         handover.write_report(report_dir, page)
-    print(f"stewart-calib validate: {_summary(position, orientation, len(log))}" + (" (instrument re-registered)" if args.register_instrument else ""))
+    print(f"stewart-calib validate: {_summary(position, orientation, len(position))}" + (" (instrument re-registered)" if args.register_instrument else ""))
     return 0
 
 
-def _validated_log(platform: Platform, result: dict, path: str, register: bool, result_source: str, bar):
-    """The log at ``path`` and :func:`validate` of it, read and predicted a block at a time (each
-    row's prediction is its own), the ``bar`` ticked per block; re-registering the instrument
-    fits its frame to the whole log, so then the prediction follows the reading."""
-    blocks, parts = [], []
+def _file_columns(log: Log, predicted, position, orientation, columns) -> list[np.ndarray]:
+    """V.csv's columns [file units] for the rows of ``log``."""
+    return [log.t_s, *io.readings_in_file_units(log.readings, columns), *io.readings_in_file_units(predicted, columns),
+            position, *([] if orientation is None else [orientation])]
+
+
+def _whole_log(platform: Platform, path: str, bar) -> Log:
+    """The log's times, strokes and readings (all :func:`validate` and the report use), read a
+    block at a time, the ``bar`` ticked per block."""
+    blocks = []
     for block in io.read_log_blocks(path, platform):
-        blocks.append(block)
-        if not register and len(block):
-            parts.append(validate(platform, result, block, False, result_source))
+        blocks.append(Log(block.t_s, block.strokes, block.readings))
         bar.update(len(block))
-    log = Log.concatenate(blocks)
-    if register or not parts:
-        return log, validate(platform, result, log, register, result_source)
-    orientation = None if parts[0][2] is None else np.concatenate([p[2] for p in parts])
-    return log, (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), orientation)
+    return Log.concatenate(blocks)
+
+
+def _validated_blocks(platform: Platform, result: dict, path: str, result_source: str, bar, errors: list):
+    """V.csv's columns a block of the log at a time (each row's prediction is its own), the ``bar``
+    ticked per block; each block's ``(position, orientation)`` errors are appended to ``errors``
+    (the summary's). A prediction refused is raised once the rest of the log is read, so that a
+    bad row anywhere in it is refused first, as when the log was read whole."""
+    blocks = io.read_log_blocks(path, platform)
+    done = 0
+    for block in blocks:
+        bar.update(len(block))
+        if not len(block):
+            continue
+        try:
+            predicted, position, orientation = validate(platform, result, block, False, result_source, first_sample=done)
+        except CalibError:
+            for _ in blocks:
+                pass
+            raise
+        errors.append((position, orientation))
+        yield _file_columns(block, predicted, position, orientation, io.reading_columns(platform))
+        done += len(block)
 
 
 def measurement_residuals(platform: Platform, log: Log, result: dict, predicted: np.ndarray | None = None,
@@ -235,10 +270,6 @@ def _report_page(args, platform: Platform, result: dict, log, predicted, positio
     inputs = {"platform file": str(args.platform), "result": str(args.result), "held-out log": str(args.log)}
     return report_html(f"Validation of {platform.name} ({result['method']}) on {Path(args.log).name}", result,
                        residuals, held, inputs)
-
-
-def _blank_nan(values: np.ndarray) -> list:
-    return ["" if not np.isfinite(v) else float(v) for v in values]
 
 
 def _summary(position: np.ndarray, orientation: np.ndarray | None, n: int) -> str:
