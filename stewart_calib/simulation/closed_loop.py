@@ -17,11 +17,11 @@ A **controller** is any object with two methods::
 :class:`NominalController` (uncalibrated) and :class:`FrozenController` (a frozen batch
 estimate, or the true no-load geometry for a perfect calibration) never change their model;
 they say so with ``adaptive = False``, and the samples are then settled in vectorised blocks
-of :data:`BLOCK_SAMPLES` (identical results whatever the block size: all noise is drawn up
-front). Any other controller — :class:`EstimatorController`, an online estimator in the loop
-(paper Fig. 3, step 4) — is run sample by sample. :func:`simulate_blocks` hands the log and
-truth on a block at a time (``simulate`` writes them so, holding none of them whole);
-:func:`run_experiment` joins them.
+of :data:`BLOCK_SAMPLES` (identical results whatever the block size: each kind of noise is
+drawn as by one call for all samples). Any other controller — :class:`EstimatorController`,
+an online estimator in the loop (paper Fig. 3, step 4) — is run sample by sample.
+:func:`simulate_blocks` hands the log and truth on a block at a time (``simulate`` writes them
+so, holding none of them whole); :func:`run_experiment` joins them.
 
 Randomness: ``np.random.default_rng(experiment.seed)`` spawns independent streams for the
 robot's errors, the tracker residual, the pose sets, the measurement noise, the encoders'
@@ -36,6 +36,7 @@ are ``l_i + z_i``, what a model with the logged strokes must find.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 from typing import Iterator, Protocol
 
@@ -270,11 +271,9 @@ def simulate_blocks(experiment: Experiment, controller: Controller | None = None
     robot = build_robot(experiment, robot_rng, tracker_rng, encoder_rng, instrument_rng)
     plan = schedule(experiment, poses_rng)
     n = len(plan.t_s)
-    # drawn whole, in this order, whatever the blocks: 12 numbers a sample (and the instrument's)
-    stroke_noise = noise_rng.standard_normal((n, 6))
-    reading_noise = noise_rng.standard_normal((n, 6))
+    # the (n, 6) stroke noise, then the (n, 6) reading noise of one stream, drawn a block at a time
+    stroke_noise, reading_noise = _consecutive_draws(noise_rng, n, 6, 2)
     instrument_draws = robot.instrument.draw(n, instrument_rng) if robot.instrument is not None else np.zeros((n, 0))
-    noise = (stroke_noise, reading_noise, instrument_draws)
     step = _settle_each if getattr(controller, "adaptive", True) else _settle_block
 
     def blocks() -> Iterator[tuple[Log, Truth]]:
@@ -282,16 +281,31 @@ def simulate_blocks(experiment: Experiment, controller: Controller | None = None
         try:
             for lo in range(0, max(n, 1), BLOCK_SAMPLES):  # one empty block for an empty schedule
                 rows = slice(lo, min(lo + BLOCK_SAMPLES, n))
+                m = rows.stop - rows.start
+                noise = (stroke_noise.standard_normal((m, 6)), reading_noise.standard_normal((m, 6)), instrument_draws[rows])
                 yield step(robot, plan, rows, controller, noise)
-                bar.update(rows.stop - rows.start)
+                bar.update(m)
         finally:
             bar.close()
 
     return SimulationRun(robot, plan, blocks())
 
 
+def _consecutive_draws(rng: np.random.Generator, n: int, width: int, count: int) -> list[np.random.Generator]:
+    """Copies of ``rng`` at the starts of ``count`` consecutive ``rng.standard_normal((n, width))``
+    calls: drawing ``(m, width)`` blocks from the k-th copy gives the k-th call's rows in order
+    (a Generator fills its output value after value), without holding any of them whole."""
+    starts = []
+    for _ in range(count):
+        starts.append(copy.deepcopy(rng))
+        for lo in range(0, n, BLOCK_SAMPLES):  # past this call's draws
+            rng.standard_normal((min(BLOCK_SAMPLES, n - lo), width))
+    return starts
+
+
 def _settle_block(robot: TrueRobot, plan: Schedule, rows: slice, controller: Controller, noise) -> tuple[Log, Truth]:
-    """A model that never changes: the block's IK, settling and measurements in one vectorised pass."""
+    """A model that never changes: the block's IK, settling and measurements in one vectorised pass
+    (``noise``: the block's stroke and reading noise and instrument draws)."""
     R_d, t_d = kin.pose_to_rt(plan.desired_poses[rows])
     strokes = kin.inverse_kinematics(controller.drive_model(), R_d, t_d)
     sol, params = settle(robot.load, robot.base_params, strokes, plan.payload_kg[rows], (R_d, t_d))
@@ -312,13 +326,13 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
         strokes[i] = kin.inverse_kinematics(controller.drive_model(), R_d[i], t_d[i])
         sol, params[i : i + 1] = settle(robot.load, robot.base_params, strokes[i : i + 1], plan.payload_kg[k : k + 1], (R_d[i : i + 1], t_d[i : i + 1]))
         R[i], t[i] = sol.R[0], sol.t[0]
-        controller.observe(_sample(robot, plan, k, strokes[i], stroke_noise[k], R[i], t[i], reading_noise[k], instrument_draws[k]))
+        controller.observe(_sample(robot, plan, k, strokes[i], stroke_noise[i], R[i], t[i], reading_noise[i], instrument_draws[i]))
     return _measured(robot, plan, rows, strokes, R, t, params, noise)
 
 
 def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, params, noise) -> tuple[Log, Truth]:
     """What the machine logs for a block of settled samples, and its truth."""
-    stroke_noise, reading_noise, instrument_draws = (draws[rows] for draws in noise)
+    stroke_noise, reading_noise, instrument_draws = noise
     log = Log(
         t_s=plan.t_s[rows].copy(),
         strokes=robot.logged_strokes(strokes, stroke_noise),

@@ -374,17 +374,19 @@ def schedule(experiment: Experiment, rng: np.random.Generator) -> Schedule:
     sets["circle"] = circle_poses(e.platform.workspace.home, e.circle.radius_mm, e.circle.plane, e.circle.points, e.circle.centre_offset_mm)
     hold = {"calibration": e.poses.samples_per_pose, "validation": e.poses.samples_per_pose, "circle": e.circle.samples_per_point}
 
-    poses, stages, kinds, index, stage_start = [], [], [], [], []
+    # filled in place, segment by segment: a long schedule is held once, not also as its pieces
+    n = sum(len(sets[kind]) * hold[kind] for stage in e.stages for kind in stage.segments)
+    desired, index = np.empty((n, 6)), np.empty(n, dtype=int)
+    stages, kinds = np.empty(n, dtype=object), np.empty(n, dtype=object)
+    stage_start, lo = [], 0
     for stage in e.stages:
-        stage_start.append(len(kinds))
+        stage_start.append(lo)
         for kind in stage.segments:
-            repeated = np.repeat(np.arange(len(sets[kind])), hold[kind])
-            poses.append(sets[kind][repeated])
-            index.append(repeated)
-            stages += [stage.name] * len(repeated)
-            kinds += [kind] * len(repeated)
-    desired = np.concatenate(poses) if poses else np.empty((0, 6))
-    n = len(desired)
+            rows = slice(lo, lo + len(sets[kind]) * hold[kind])
+            index[rows] = np.repeat(np.arange(len(sets[kind])), hold[kind])
+            np.take(sets[kind], index[rows], axis=0, out=desired[rows])
+            stages[rows], kinds[rows] = stage.name, kind
+            lo = rows.stop
     t_s = np.arange(n) * e.sample_period_s
 
     # Payload: linear ramp from the previous stage's load over ramp_s from the stage's start.
@@ -396,4 +398,4 @@ def schedule(experiment: Experiment, rng: np.random.Generator) -> Schedule:
         ramp = np.ones_like(elapsed) if stage.ramp_s == 0 else np.clip(elapsed / stage.ramp_s, 0.0, 1.0)
         payload[lo:hi] = previous + (stage.load_kg - previous) * ramp
         previous = stage.load_kg
-    return Schedule(t_s, desired, payload, np.array(stages, dtype=object), np.array(kinds, dtype=object), np.concatenate(index) if index else np.empty(0, int))
+    return Schedule(t_s, desired, payload, stages, kinds, index)
