@@ -342,7 +342,7 @@ def _run_cli(argv: list[str], cap_s: float, stdout_path: Path, python_flags: tup
             if pid:
                 break
             if time.perf_counter() > deadline:
-                os.killpg(proc.pid, signal.SIGKILL)
+                _stop_command(proc.pid)
                 _, status, usage = os.wait4(proc.pid, 0)
                 proc.returncode = -9
                 return {"wall_s": time.perf_counter() - start, "cpu_s": usage.ru_utime + usage.ru_stime, "capped": True,
@@ -353,6 +353,23 @@ def _run_cli(argv: list[str], cap_s: float, stdout_path: Path, python_flags: tup
     # stands a machine shared with other work better than wall time, which a second core can shorten
     return {"wall_s": time.perf_counter() - start, "cpu_s": usage.ru_utime + usage.ru_stime, "capped": False,
             "exit": proc.returncode, "peak_rss_mib": _peak_kib(rss_path, usage) / 1024}
+
+
+def _stop_command(pid: int) -> None:
+    """Stop a capped run: the command first, so that GNU time (``pid``) still writes its peak RSS
+    (killed with it, it writes nothing, and ``wait4`` would count the harness's pages of the fork),
+    then the rest of its process group."""
+    try:
+        commands = Path(f"/proc/{pid}/task/{pid}/children").read_text().split() if GNU_TIME.exists() else []
+    except OSError:
+        commands = []
+    for command in commands:
+        os.kill(int(command), signal.SIGKILL)
+    for _ in range(250):  # GNU time writes and exits within milliseconds
+        if not commands or os.waitid(os.P_PID, pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is not None:
+            break
+        time.sleep(0.02)
+    os.killpg(pid, signal.SIGKILL)
 
 
 def _peak_kib(rss_path: Path, usage) -> float:
@@ -401,7 +418,8 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
             for n in case.sizes:
                 run = _run_cli(case.argv(files, n), CLI_CAP_S, files.root / "out" / "stdout")
                 results[case.name][n] = run
-                print(f"  {case.name} at {n:,}: {run['wall_s']:.1f} s, {run['peak_rss_mib']:.0f} MiB", file=sys.stderr)
+                print(f"  {case.name}{'' if case.fixed else f' at {n:,}'}: {run['wall_s']:.1f} s, {run['peak_rss_mib']:.0f} MiB",
+                      file=sys.stderr)
                 if run["capped"] or run.get("exit"):
                     break
     for runs in results.values():
