@@ -232,6 +232,10 @@ class OnlineCalibrator:
 
     def save(self, path: str | Path) -> None:
         """Write a checkpoint atomically (see the module docstring)."""
+        io.atomic_write_bytes(path, self.checkpoint_bytes())
+
+    def checkpoint_bytes(self) -> bytes:
+        """What :meth:`save` writes: the checkpoint of the state now, a file's bytes."""
         arrays = {
             **self._fixed_arrays(),
             "rows_read": np.array(self.rows_read),
@@ -239,7 +243,7 @@ class OnlineCalibrator:
             "rejections_json": np.array(json.dumps(self.rejections.summary())),
             **_flatten(self.export_state(), "state"),
         }
-        io.atomic_write_bytes(path, npz_bytes(arrays))
+        return npz_bytes(arrays)
 
     def _fixed_arrays(self) -> dict[str, np.ndarray]:
         """The checkpoint's arrays that no sample changes (their text costs ~0.3 ms), made once."""

@@ -11,6 +11,7 @@ import pytest
 from stewart_calib.errors import CalibError
 from stewart_calib.estimate import Estimate
 from stewart_calib.io import (
+    BackgroundWriter,
     atomic_write_text,
     read_log,
     read_result,
@@ -377,3 +378,30 @@ def test_csv_text_writes_what_the_csv_module_writes(monkeypatch, chunk_rows):
     for header, columns in cases:
         assert tables.csv_text(header, columns) == reference(header, columns)
         assert tables.csv_text(header, columns, with_header=False) == reference(header, columns).split("\n", 1)[1]
+
+
+def test_background_writer_writes_in_order_and_raises_a_failure_on_the_next_call(tmp_path):
+    target = tmp_path / "out.txt"
+    with BackgroundWriter() as writer:
+        for k in range(50):
+            writer.submit(target, lambda k=k: f"write {k}".encode())
+    assert target.read_text() == "write 49"
+    writer = BackgroundWriter()
+    writer.submit(tmp_path / "missing" / "out.txt", lambda: b"x")
+    writer.submit(target, lambda: b"after the failure")  # may be taken before the failure is known
+    with pytest.raises(CalibError, match="missing/out.txt: cannot write"):
+        writer.close()
+    assert target.read_text() == "write 49"  # nothing written after a failed write
+    with pytest.raises(CalibError, match="cannot write"):
+        writer.submit(target, lambda: b"x")  # the failure stays raised
+
+
+def test_background_writer_lets_the_callers_error_through_and_finishes_first(tmp_path):
+    target = tmp_path / "out.txt"
+    with pytest.raises(ValueError, match="the caller's"):
+        with BackgroundWriter() as writer:
+            writer.submit(tmp_path / "missing" / "out.txt", lambda: b"x")
+            writer.submit(target, lambda: b"y")
+            raise ValueError("the caller's")
+    assert not target.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []

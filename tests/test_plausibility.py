@@ -95,3 +95,26 @@ def test_limits_are_in_units_of_the_configured_sigmas(logs):
     with pytest.raises(CalibError, match=r"largest parameter error l1 = 50\.5 mm \(10\.1 × the prior σ 5 mm"):
         check_plausible(platform, error, noise, own.strokes[:0], own.readings[:0], "ekf")  # no samples: parameters only
     assert RESIDUAL_SIGMAS * max(noise.reading_sigma_mm, noise.stroke_sigma_mm) == pytest.approx(2.0)
+
+
+def test_the_rms_residual_is_the_drive_residual_at_the_tracker_fk_pose(logs):
+    """The compiled pass (tracker FK warm-started from the sample before) against its definition:
+    batch FK of the readings from the level guess, then the drive's leg residuals. The poses are
+    random, so most warm starts lie far away and the guard must fall back to the cold start."""
+    platform, other, own, foreign = logs
+    error = random_error(np.random.default_rng(3), 1.0)
+
+    def by_definition(strokes, readings):
+        solution = kin.forward_kinematics(platform.tracker, readings, strict=False)
+        ok = np.asarray(solution.converged)
+        residuals = kin.leg_residuals(platform.drive.perturbed(error), solution.R[ok], solution.t[ok], strokes[ok])
+        return np.sqrt(np.mean(np.square(residuals)))
+
+    unreachable = own.readings.copy()
+    unreachable[[5, 6, 30], 0] += 5000.0  # one leg 5 m longer than the others: out of reach, no FK, left out
+    assert not kin.forward_kinematics(platform.tracker, unreachable[[5, 6, 30]], strict=False).converged.any()
+    for strokes, readings in ((own.strokes, own.readings), (own.strokes, unreachable), (foreign.strokes, foreign.readings)):
+        assert rms_leg_residual_mm(platform, error, strokes, readings) == pytest.approx(by_definition(strokes, readings),
+                                                                                       rel=1e-9, abs=1e-9)
+    assert np.isnan(rms_leg_residual_mm(platform, error, own.strokes[5:7], unreachable[5:7]))
+    assert np.isnan(rms_leg_residual_mm(platform, error, np.zeros((0, 6)), np.zeros((0, 6))))

@@ -168,15 +168,21 @@ def _start(args: argparse.Namespace) -> OnlineCalibrator:
     return calib
 
 
-def _write(calib: OnlineCalibrator, out: Path | None, checkpoint: Path | None, final: bool = False) -> None:
-    """The result (unless ``out`` is None) and the checkpoint; ``final`` marks the result of a
-    run that ended normally (the added field ``"final"``)."""
+def _write(calib: OnlineCalibrator, writer: io.BackgroundWriter, out: Path | None, checkpoint: Path | None,
+           final: bool = False) -> None:
+    """The result (unless ``out`` is None) and the checkpoint, through ``writer``; ``final`` marks
+    the result of a run that ended normally (the added field ``"final"``).
+
+    The state is taken here (the result's plain lists, the checkpoint's bytes); only the result's
+    JSON text and the file writes are left to the writer's thread.
+    """
     if out is not None and calib.estimate().samples_used:  # before any, there is only the prior
         result = calib.result()
         result["final"] = final
-        io.write_result(out, result)
+        writer.submit(out, lambda: io.result_text(result, str(out)).encode("utf-8"))
     if checkpoint:
-        calib.save(checkpoint)
+        state = calib.checkpoint_bytes()
+        writer.submit(checkpoint, lambda: state)
 
 
 def follow_log(calib: OnlineCalibrator, chunks: Iterator[list[bytes]], source: str, every: int,
@@ -290,12 +296,19 @@ def run(args: argparse.Namespace) -> int:
             _remove_debris(path)
     stop = _StopRequest()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
-    write = lambda: _write(calib, out, checkpoint)  # noqa: E731
+    writer = io.BackgroundWriter()
     try:
-        chunks = line_chunks(fd, args.follow, args.idle_timeout, lambda: stop.requested)
-        first_bad = follow_log(calib, chunks, source, args.every, write, args.skip_bad_rows)
+        with writer:
+            chunks = line_chunks(fd, args.follow, args.idle_timeout, lambda: stop.requested)
+            first_bad = follow_log(calib, chunks, source, args.every, lambda: _write(calib, writer, out, checkpoint),
+                                   args.skip_bad_rows)
+            if calib.estimate().samples_used:
+                _write(calib, writer, out, checkpoint, final=True)
     except CalibError:
-        _write(calib, None, checkpoint)  # the state at the last good row is kept, no result; then the refusal
+        # the state at the last good row is kept, no result; then the refusal (the writer has
+        # finished: nothing it still held can land after this checkpoint)
+        if checkpoint:
+            calib.save(checkpoint)
         raise
     finally:
         for sig, handler in previous.items():
@@ -305,7 +318,6 @@ def run(args: argparse.Namespace) -> int:
     if not calib.estimate().samples_used:
         raise CalibError(f"{source}: no usable samples ({calib.rows_read} rows read, "
                          f"{calib.rows_skipped} skipped, {calib.rejections.count} rejected)")
-    _write(calib, out, checkpoint, final=True)
     report = lambda what, count, first: print(  # noqa: E731
         f"stewart-calib track: {what} {count} of {calib.rows_read} (first: {first})", file=sys.stderr)
     if calib.rows_skipped:
