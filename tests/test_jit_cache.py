@@ -49,3 +49,34 @@ def test_without_any_writable_place_kernels_run_uncached(tmp_path):
     # only the user-wide locator, which cannot be written: not even the temporary directory helps
     done = _run(tmp_path, "UserWideCacheLocator", "-c", CALL_A_KERNEL)
     assert (done.returncode, done.stdout.strip()) == (0, "True"), done.stderr
+
+
+class _Terminal:
+    """Standard error as a terminal (or a pipe) that keeps what is written."""
+
+    def __init__(self, tty: bool):
+        self.tty, self.text = tty, ""
+
+    def isatty(self) -> bool:
+        return self.tty
+
+    def write(self, text: str) -> None:
+        self.text += text
+
+    def flush(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("tty", [True, False])
+def test_compiling_says_so_once_on_a_terminal_and_nothing_when_piped(monkeypatch, tty):
+    import numba
+
+    from stewart_calib import _jit
+
+    monkeypatch.setattr(_jit.COMPILE_NOTICE, "told", False)
+    stderr = _Terminal(tty)
+    monkeypatch.setattr(sys, "stderr", stderr)
+    fresh = [numba.njit(lambda x, k=k: x + k) for k in range(2)]  # never cached: two compiles
+    for kernel in fresh:
+        kernel(1.0)
+    assert stderr.text.count("compiling the numeric kernels") == (1 if tty else 0)
