@@ -107,9 +107,7 @@ class BackgroundWriter:
 
     def close(self) -> None:
         """Wait for the submitted writes; raise the first failure."""
-        if self._thread.is_alive():
-            self._jobs.put(None)
-            self._thread.join()
+        self._finish()
         self._raise_failure()
 
     def __enter__(self) -> "BackgroundWriter":
@@ -118,7 +116,11 @@ class BackgroundWriter:
     def __exit__(self, kind, value, traceback) -> None:
         if kind is None:
             self.close()
-        elif self._thread.is_alive():  # the caller's error comes first; a write's failure would hide it
+        else:  # the caller's error comes first; a write's failure would hide it
+            self._finish()
+
+    def _finish(self) -> None:
+        if self._thread.is_alive():
             self._jobs.put(None)
             self._thread.join()
 
