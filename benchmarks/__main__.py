@@ -29,7 +29,14 @@ LOADED_PER_CORE = 0.5
 
 
 def _table(section: Section) -> str:
-    lines = [f"## {section.title}", "", section.note, "", "| Benchmark | Measured | Target | Status |", "|---|---|---|---|"]
+    lines = [
+        f"## {section.title}",
+        "",
+        section.note,
+        "",
+        "| Benchmark | Measured | Target | Status |",
+        "|---|---|---|---|",
+    ]
     for row in section.rows:
         lines.append(f"| {row.name} | {row.value} | {row.target or '—'} | {mark(row.met)} |")
     return "\n".join(lines)
@@ -48,10 +55,21 @@ def _markdown(sections: list[Section], info: dict, plots: dict[str, str]) -> str
         "ratios measured side by side in the same run.",
         "",
         f"- machine: {info['cpu']}, {info['cores']} cores; 1-min load average {load[0]:.2f} before, {load[1]:.2f} after"
-        + (" — **a loaded machine** (shared with other work during the run): absolute times are pessimistic, ratios less affected." if loaded else "."),
-        "- versions: " + ", ".join(f"{k} {info[k]}" for k in ("python", "numpy", "scipy", "numba", "gtsam", "filterpy", "stewart_calib")),
+        + (
+            " — **a loaded machine** (shared with other work during the run): absolute times are pessimistic, ratios less affected."
+            if loaded
+            else "."
+        ),
+        "- versions: "
+        + ", ".join(
+            f"{k} {info[k]}" for k in ("python", "numpy", "scipy", "numba", "gtsam", "filterpy", "stewart_calib")
+        ),
         f"- targets: **{met} of {len(targets)} met**"
-        + (": not met — " + "; ".join(f"{title}: {r.name}" for title, r in targets if not r.met) if met < len(targets) else ""),
+        + (
+            ": not met — " + "; ".join(f"{title}: {r.name}" for title, r in targets if not r.met)
+            if met < len(targets)
+            else ""
+        ),
         "",
     ]
     for section in sections:
@@ -97,11 +115,16 @@ def main(argv: list[str] | None = None) -> int:
     info["load_after"] = list(os.getloadavg())
     sections = [speed_section, accuracy_section, robustness_section, scale_section, cli_section]
 
-    plots = {section.title: os.path.relpath(path, markdown_path.parent)
-             for section, path in ((scale_section, png_path), (cli_section, cli_png_path))}
+    plots = {
+        section.title: os.path.relpath(path, markdown_path.parent)
+        for section, path in ((scale_section, png_path), (cli_section, cli_png_path))
+    }
     markdown_path.write_text(_markdown(sections, info, plots), encoding="utf-8")
     json_path = results_dir / f"{stem}.json"
-    json_path.write_text(json.dumps({"machine": info, "sections": [s.to_dict() for s in sections]}, indent=1, default=float), encoding="utf-8")
+    json_path.write_text(
+        json.dumps({"machine": info, "sections": [s.to_dict() for s in sections]}, indent=1, default=float),
+        encoding="utf-8",
+    )
     print(f"wrote {markdown_path}, {json_path}, {png_path} in {info['seconds']:.0f} s", file=sys.stderr)
     return 0
 

@@ -91,7 +91,11 @@ def monte_carlo(seeds: int, n_samples: int) -> tuple[list[Row], dict]:
     for geometry in GEOMETRIES:
         raw[geometry] = {}
         for method in METHODS:
-            pick = [r for r, (g, m) in enumerate(zip(columns["platform"], columns["method"])) if g == geometry and m == method]
+            pick = [
+                r
+                for r, (g, m) in enumerate(zip(columns["platform"], columns["method"]))
+                if g == geometry and m == method
+            ]
             column = lambda name: np.array([columns[name][r] for r in pick], dtype=float)  # noqa: E731
             nees = column("nees")
             inside = float(np.mean((nees >= band[0]) & (nees <= band[1])))
@@ -120,7 +124,9 @@ def monte_carlo(seeds: int, n_samples: int) -> tuple[list[Row], dict]:
                     f"{geometry}: {method}",
                     f"RMS/CRB **{ratio:.2f}**; NEES in band {inside:.0%} (median {raw[geometry][method]['nees_median'] or float('nan'):.3g}); "
                     f"within 2× CRB: {convergence}; {seconds:.2f} s per run",
-                    f"RMS/CRB ≤ {CRB_TARGET}; NEES in band ≥ {NEES_TARGET_FRACTION:.0%}" if method in CRB_TARGET_METHODS else "reported as is",
+                    f"RMS/CRB ≤ {CRB_TARGET}; NEES in band ≥ {NEES_TARGET_FRACTION:.0%}"
+                    if method in CRB_TARGET_METHODS
+                    else "reported as is",
                     None if met is None else bool(met and inside >= NEES_TARGET_FRACTION),
                     raw[geometry][method],
                 )
@@ -135,7 +141,9 @@ def _drift_experiment(seed: int, stage_samples: int):
     return dataclasses.replace(
         base,
         seed=seed,
-        poses=dataclasses.replace(base.poses, calibration=poses_per_stage, validation=poses_per_stage, samples_per_pose=2),
+        poses=dataclasses.replace(
+            base.poses, calibration=poses_per_stage, validation=poses_per_stage, samples_per_pose=2
+        ),
         stages=(
             Stage("no-load", 0.0, 0.0, ("calibration",)),
             Stage("40kg", DRIFT_LOAD_KG, 0.0, ("validation",)),
@@ -208,7 +216,12 @@ def drift(seeds: int, stage_samples: int) -> tuple[list[Row], dict]:
                 {"runs": runs},
             )
         )
-    raw = {"seeds": seeds, "stage_samples": stage_samples, "random_walk_mm_per_sqrt_s": DRIFT_RANDOM_WALK_MM_PER_SQRT_S, "methods": results}
+    raw = {
+        "seeds": seeds,
+        "stage_samples": stage_samples,
+        "random_walk_mm_per_sqrt_s": DRIFT_RANDOM_WALK_MM_PER_SQRT_S,
+        "methods": results,
+    }
     return rows, raw
 
 

@@ -56,7 +56,11 @@ def per_call_us(calls) -> np.ndarray:
 
 def stats_us(times_us: np.ndarray) -> dict:
     """Median and p99 of per-call times [µs]."""
-    return {"median_us": float(np.median(times_us)), "p99_us": float(np.percentile(times_us, 99)), "calls": len(times_us)}
+    return {
+        "median_us": float(np.median(times_us)),
+        "p99_us": float(np.percentile(times_us, 99)),
+        "calls": len(times_us),
+    }
 
 
 def fmt_time_us(value_us: float) -> str:

@@ -37,8 +37,13 @@ MAX_ITERATIONS = 30
 def trajectory(home: np.ndarray, n: int, rate_hz: float = 1000.0) -> np.ndarray:
     """``(n, 6)`` pose6 of a Lissajous path: ±150 mm in x, y, ±100 mm in z, ±15° per axis."""
     time_s = np.arange(n) / rate_hz
-    waves = np.stack([np.sin(2 * np.pi * f * time_s + phase) for f, phase in
-                      ((0.30, 0.0), (0.20, 1.0), (0.50, 2.0), (0.40, 0.5), (0.25, 1.5), (0.35, 2.5))], axis=-1)
+    waves = np.stack(
+        [
+            np.sin(2 * np.pi * f * time_s + phase)
+            for f, phase in ((0.30, 0.0), (0.20, 1.0), (0.50, 2.0), (0.40, 0.5), (0.25, 1.5), (0.35, 2.5))
+        ],
+        axis=-1,
+    )
     return home + waves * np.r_[150.0, 150.0, 100.0, [np.radians(15.0)] * 3]
 
 
@@ -99,19 +104,24 @@ def bench(name: str, legs: LegGeometry, home: np.ndarray, poses: np.ndarray, rep
     print(f"  iterations warm (prev.):  median {np.median(warm):.0f}, mean {warm.mean():.2f}, max {warm.max()}")
 
     ours = median_us([lambda k=k: kin.forward_kinematics(legs, strokes[k], guess=(R[k - 1], t[k - 1])) for k in idx])
-    peer = median_us([lambda k=k: peer_fk(legs.base_joints, legs.platform_joints, lengths[k], R[k - 1], t[k - 1]) for k in idx])
-    print(f"  single warm solve:        stewart_calib {ours:8.1f} µs | numpy peer {peer:8.1f} µs | ratio {ours / peer:.2f}")
+    peer = median_us(
+        [lambda k=k: peer_fk(legs.base_joints, legs.platform_joints, lengths[k], R[k - 1], t[k - 1]) for k in idx]
+    )
+    print(
+        f"  single warm solve:        stewart_calib {ours:8.1f} µs | numpy peer {peer:8.1f} µs | ratio {ours / peer:.2f}"
+    )
 
     for label, guess in (("cold", (home_R, home_t)), ("warm", (np.r_[R[:1], R[:-1]], np.r_[t[:1], t[:-1]]))):
         elapsed = best_seconds(lambda guess=guess: kin.forward_kinematics(legs, strokes, guess=guess, tol_mm=TOL_MM))
-        print(f"  batched {label}:             {len(poses) / elapsed:10.0f} poses/s ({elapsed * 1e3:.1f} ms for {len(poses)})")
-
+        print(
+            f"  batched {label}:             {len(poses) / elapsed:10.0f} poses/s ({elapsed * 1e3:.1f} ms for {len(poses)})"
+        )
 
 
 def bench_online(platform, poses: np.ndarray, samples: int) -> None:
     """Median µs per ``update`` of both EKFs on noisy samples of the 1 kHz trajectory."""
-    from stewart_calib.estimators import make_estimator
     from stewart_calib.config import config_from_dict
+    from stewart_calib.estimators import make_estimator
     from stewart_calib.estimators.kalman import kalman_update
     from stewart_calib.samples import Sample
 

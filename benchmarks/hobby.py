@@ -93,7 +93,14 @@ def simulate(seed: int, n_fit: int = N_FIT, n_held_out: int = N_HELD_OUT) -> Hob
         return Log(np.arange(n) * 1.0, strokes, instrument.read(R, t, instrument.draw(n, rng)))
 
     fit = session(n_fit, FRAME_OFFSET)
-    return HobbyData(platform, fit, session(n_held_out, FRAME_OFFSET), session(n_held_out, FRAME_OFFSET + FRAME_MOVE), true_drive, scale)
+    return HobbyData(
+        platform,
+        fit,
+        session(n_held_out, FRAME_OFFSET),
+        session(n_held_out, FRAME_OFFSET + FRAME_MOVE),
+        true_drive,
+        scale,
+    )
 
 
 # ----------------------------------------------------------------------------- the peer
@@ -124,13 +131,17 @@ def peer_fit(platform: Platform, log: Log) -> np.ndarray:
     start = model.register(fk.R, fk.t, log.readings)
     R_Fi, t_Fi = lie.inverse(start.R_frame, start.t_frame)
     R_Gi, t_Gi = lie.inverse(start.R_target, start.t_target)
-    theta0 = np.concatenate([
-        kin.transform_points(R_Fi, t_Fi, platform.drive.base_joints).reshape(-1),
-        kin.transform_points(R_Gi, t_Gi, platform.drive.platform_joints).reshape(-1),
-        platform.drive.initial_lengths,
-        np.ones(6),
-    ])
-    solution = scipy.optimize.least_squares(_peer_residual, theta0, args=(log.strokes, log.readings), method="lm", x_scale="jac")
+    theta0 = np.concatenate(
+        [
+            kin.transform_points(R_Fi, t_Fi, platform.drive.base_joints).reshape(-1),
+            kin.transform_points(R_Gi, t_Gi, platform.drive.platform_joints).reshape(-1),
+            platform.drive.initial_lengths,
+            np.ones(6),
+        ]
+    )
+    solution = scipy.optimize.least_squares(
+        _peer_residual, theta0, args=(log.strokes, log.readings), method="lm", x_scale="jac"
+    )
     return solution.x
 
 
@@ -179,11 +190,15 @@ def compare(seed: int, methods=METHODS) -> dict:
     out = {}
     for method in methods:
         estimate = ours_fit(data.platform, data.fit, method)
-        out[method] = {"same": ours_held_out(data.platform, estimate, data.same_session, register=False),
-                       "registered": ours_held_out(data.platform, estimate, data.other_day, register=True)}
+        out[method] = {
+            "same": ours_held_out(data.platform, estimate, data.same_session, register=False),
+            "registered": ours_held_out(data.platform, estimate, data.other_day, register=True),
+        }
     theta = peer_fit(data.platform, data.fit)
-    out["peer (48-parameter scipy)"] = {"same": peer_held_out(theta, data.same_session, register=False),
-                                       "registered": peer_held_out(theta, data.other_day, register=True)}
+    out["peer (48-parameter scipy)"] = {
+        "same": peer_held_out(theta, data.same_session, register=False),
+        "registered": peer_held_out(theta, data.other_day, register=True),
+    }
     return out
 
 

@@ -49,8 +49,15 @@ def _log(platform, n: int, seed: int, noise_factor: float = 1.0, walk: float = 0
         steps = rng.normal(0.0, walk * np.sqrt(dt_s), (n, 42))
         steps[0] = 0.0
         errors = start + np.cumsum(steps, axis=0)
-    log, _ = make_log(platform, errors, random_poses(platform, n, rng, fraction=0.8), rng,
-                      DEFAULT_READING_MM * noise_factor, DEFAULT_STROKE_MM * noise_factor, dt_s)
+    log, _ = make_log(
+        platform,
+        errors,
+        random_poses(platform, n, rng, fraction=0.8),
+        rng,
+        DEFAULT_READING_MM * noise_factor,
+        DEFAULT_STROKE_MM * noise_factor,
+        dt_s,
+    )
     return log, (errors[-1] if walk else start), rng
 
 
@@ -61,7 +68,9 @@ def _glitched(log, rng, rate: float, low: float, high: float, early: bool):
     rows = np.r_[0, 1, rows] if early else rows  # early: the first two samples always
     bad = log.select(slice(None))
     bad.readings = log.readings.copy()
-    bad.readings[rows, rng.integers(0, 6, len(rows))] += rng.uniform(low, high, len(rows)) * rng.choice([-1, 1], len(rows))
+    bad.readings[rows, rng.integers(0, 6, len(rows))] += rng.uniform(low, high, len(rows)) * rng.choice(
+        [-1, 1], len(rows)
+    )
     return bad
 
 
@@ -91,15 +100,19 @@ def _robustness_rows(platform, n: int, seeds) -> list[Row]:
                 bad = _glitched(log, np.random.default_rng(1000 + seed), rate, low, high, early)
                 ratios.append(_rms(_estimate(platform, method, bad), truth))
             ratio = float(np.nanmax(np.array(ratios) / clean_rms)) if np.all(np.isfinite(ratios)) else float("nan")
-            name = f"glitches {rate:.0%} of {low:g}–{high:g} mm, {'first samples included' if early else 'late'}: {method}"
+            name = (
+                f"glitches {rate:.0%} of {low:g}–{high:g} mm, {'first samples included' if early else 'late'}: {method}"
+            )
             target = method in TARGET_METHODS
-            rows.append(Row(
-                name,
-                f"RMS {np.nanmedian(ratios) * 1e3:.3g} µm, worst {ratio:.2f}× clean ({np.nanmedian(clean_rms) * 1e3:.3g} µm)",
-                f"≤ {RMS_RATIO_TARGET}× clean" if target else "",
-                (ratio <= RMS_RATIO_TARGET) if target else None,
-                {"rms_mm": ratios, "clean_rms_mm": clean_rms.tolist(), "worst_ratio": ratio},
-            ))
+            rows.append(
+                Row(
+                    name,
+                    f"RMS {np.nanmedian(ratios) * 1e3:.3g} µm, worst {ratio:.2f}× clean ({np.nanmedian(clean_rms) * 1e3:.3g} µm)",
+                    f"≤ {RMS_RATIO_TARGET}× clean" if target else "",
+                    (ratio <= RMS_RATIO_TARGET) if target else None,
+                    {"rms_mm": ratios, "clean_rms_mm": clean_rms.tolist(), "worst_ratio": ratio},
+                )
+            )
     return rows
 
 
@@ -121,22 +134,30 @@ def _honesty_rows(platform, n: int, seeds) -> list[Row]:
             mean_z2, fraction = float(np.mean(z2)), float(np.mean(in_band))
             target = method in TARGET_METHODS
             what = f"noise {factor:g}× the default" + (f", walk {walk:g} mm/√s" if walk else ", static")
-            rows.append(Row(
-                f"honesty, {what}: {method}",
-                f"mean z² {mean_z2:.2f}, NEES in band {fraction:.0%}",
-                f"z² in [{Z2_BAND[0]}, {Z2_BAND[1]}], NEES ≥ {NEES_FRACTION_TARGET:.0%}" if target else "",
-                (Z2_BAND[0] <= mean_z2 <= Z2_BAND[1] and fraction >= NEES_FRACTION_TARGET) if target else None,
-                {"z2": z2, "nees_in_band": in_band},
-            ))
+            rows.append(
+                Row(
+                    f"honesty, {what}: {method}",
+                    f"mean z² {mean_z2:.2f}, NEES in band {fraction:.0%}",
+                    f"z² in [{Z2_BAND[0]}, {Z2_BAND[1]}], NEES ≥ {NEES_FRACTION_TARGET:.0%}" if target else "",
+                    (Z2_BAND[0] <= mean_z2 <= Z2_BAND[1] and fraction >= NEES_FRACTION_TARGET) if target else None,
+                    {"z2": z2, "nees_in_band": in_band},
+                )
+            )
     return rows
 
 
 def row_names() -> list[str]:
     """The names of the rows :func:`run` writes, in order (the quick smoke test checks them)."""
-    glitches = [f"glitches {rate:.0%} of {low:g}–{high:g} mm, {'first samples included' if early else 'late'}: {method}"
-                for method in METHODS for rate, low, high, early in GLITCHES]
-    honesty = [f"honesty, noise {factor:g}× the default" + (f", walk {walk:g} mm/√s" if walk else ", static") + f": {method}"
-               for method in HONESTY_METHODS for factor, walk in HONESTY]
+    glitches = [
+        f"glitches {rate:.0%} of {low:g}–{high:g} mm, {'first samples included' if early else 'late'}: {method}"
+        for method in METHODS
+        for rate, low, high, early in GLITCHES
+    ]
+    honesty = [
+        f"honesty, noise {factor:g}× the default" + (f", walk {walk:g} mm/√s" if walk else ", static") + f": {method}"
+        for method in HONESTY_METHODS
+        for factor, walk in HONESTY
+    ]
     return glitches + honesty
 
 
@@ -156,4 +177,7 @@ if __name__ == "__main__":
 
     section = run("--quick" in sys.argv)
     for row in section.rows:
-        print(f"| {row.name} | {row.value} | {row.target} | {'' if row.met is None else ('yes' if row.met else 'NO')} |", flush=True)
+        print(
+            f"| {row.name} | {row.value} | {row.target} | {'' if row.met is None else ('yes' if row.met else 'NO')} |",
+            flush=True,
+        )

@@ -88,7 +88,13 @@ def _run_stream(method: str, arrays: tuple, checkpoints: list[int], cap_s: float
         if c <= n:
             window = times_us[max(1, c - max(50, c // 10)) : c]
             reached[c] = {**stats_us(window), "rss_growth_mib": rss[c]}
-    return {"method": method, "samples_done": n, "seconds": time.perf_counter() - start, "capped": n < len(samples), "checkpoints": reached}
+    return {
+        "method": method,
+        "samples_done": n,
+        "seconds": time.perf_counter() - start,
+        "capped": n < len(samples),
+        "checkpoints": reached,
+    }
 
 
 def _plot(results: list[dict], path: Path) -> None:
@@ -118,8 +124,11 @@ def run(quick: bool, seed: int, png_path: Path) -> tuple[Section, list[Row]]:
     checkpoints = [c for c in (100, 1_000, 10_000, 100_000) if c <= max_samples]
     full_history_samples = 200 if quick else 3_000
     full_checkpoints = [c for c in (100, 300, 1_000, 2_000, 3_000) if c <= full_history_samples]
-    cap_s = {"ekf": 5.0, "paper-ekf": 5.0, "isam2": 5.0, "isam2 full history": 5.0} if quick else {
-        "ekf": 120.0, "paper-ekf": 120.0, "isam2": 300.0, "isam2 full history": 120.0}
+    cap_s = (
+        {"ekf": 5.0, "paper-ekf": 5.0, "isam2": 5.0, "isam2 full history": 5.0}
+        if quick
+        else {"ekf": 120.0, "paper-ekf": 120.0, "isam2": 300.0, "isam2 full history": 120.0}
+    )
     log, _ = synthetic_stream(nim_stewart(), max_samples, np.random.default_rng(seed), RATE_HZ, smooth=True)
     arrays = (log.t_s, log.strokes, log.readings)
     results = []
@@ -269,8 +278,17 @@ class CliInputs:
 
 
 def _calibrate(method: str):
-    return lambda files, n: ["calibrate", "--platform", files.platform, "--log", files.log(n), "--method", method,
-                             "--out", files.out(f"calibrate-{method}-{n}.json")]
+    return lambda files, n: [
+        "calibrate",
+        "--platform",
+        files.platform,
+        "--log",
+        files.log(n),
+        "--method",
+        method,
+        "--out",
+        files.out(f"calibrate-{method}-{n}.json"),
+    ]
 
 
 #: ``plan``'s candidates for N poses: the command's default 2000 while N ≤ 1000 (the cost is then
@@ -280,8 +298,19 @@ def plan_candidates(n_poses: int) -> int:
 
 
 def _plan(files: CliInputs, n: int) -> list[str]:
-    return ["plan", "--platform", files.platform, "--n", str(n), "--candidates", str(plan_candidates(n)), "--seed", "1",
-            "--out", files.out(f"plan-{n}.csv")]
+    return [
+        "plan",
+        "--platform",
+        files.platform,
+        "--n",
+        str(n),
+        "--candidates",
+        str(plan_candidates(n)),
+        "--seed",
+        "1",
+        "--out",
+        files.out(f"plan-{n}.csv"),
+    ]
 
 
 def cli_cases(quick: bool) -> list[CliCase]:
@@ -299,20 +328,67 @@ def cli_cases(quick: bool) -> list[CliCase]:
         CliCase("calibrate isam2", _calibrate("isam2"), batch),
         CliCase("calibrate ls", _calibrate("ls"), batch),
         CliCase("calibrate lm", _calibrate("lm"), batch),
-        CliCase("calibrate ekf --trace", lambda f, n: [*_calibrate("ekf")(f, n), "--trace", f.out(f"trace-{n}.csv")], every),
-        CliCase("track ekf", lambda f, n: ["track", "--platform", f.platform, "--method", "ekf", "--log", f.log(n),
-                                           "--out", f.out(f"track-{n}.json")], every),
-        CliCase("identifiability", lambda f, n: ["identifiability", "--platform", f.platform, "--log", f.log(n)], every),
-        CliCase("compensate", lambda f, n: ["compensate", "--platform", f.platform, "--result",
-                                            f.out(f"calibrate-ekf-{CLI_START_SAMPLES}.json"), "--poses", f.poses(n),
-                                            "--out", f.out(f"strokes-{n}.csv")], every),
-        CliCase("simulate", lambda f, n: ["simulate", "--experiment", f.experiment(n), "--out", f.out(f"sim-{n}")], every),
-        CliCase("validate", lambda f, n: ["validate", "--platform", f.platform, "--result",
-                                          f.out(f"calibrate-ekf-{CLI_START_SAMPLES}.json"), "--log", f.log(n),
-                                          "--out", f.out(f"validate-{n}.csv")], every),
+        CliCase(
+            "calibrate ekf --trace", lambda f, n: [*_calibrate("ekf")(f, n), "--trace", f.out(f"trace-{n}.csv")], every
+        ),
+        CliCase(
+            "track ekf",
+            lambda f, n: [
+                "track",
+                "--platform",
+                f.platform,
+                "--method",
+                "ekf",
+                "--log",
+                f.log(n),
+                "--out",
+                f.out(f"track-{n}.json"),
+            ],
+            every,
+        ),
+        CliCase(
+            "identifiability", lambda f, n: ["identifiability", "--platform", f.platform, "--log", f.log(n)], every
+        ),
+        CliCase(
+            "compensate",
+            lambda f, n: [
+                "compensate",
+                "--platform",
+                f.platform,
+                "--result",
+                f.out(f"calibrate-ekf-{CLI_START_SAMPLES}.json"),
+                "--poses",
+                f.poses(n),
+                "--out",
+                f.out(f"strokes-{n}.csv"),
+            ],
+            every,
+        ),
+        CliCase(
+            "simulate", lambda f, n: ["simulate", "--experiment", f.experiment(n), "--out", f.out(f"sim-{n}")], every
+        ),
+        CliCase(
+            "validate",
+            lambda f, n: [
+                "validate",
+                "--platform",
+                f.platform,
+                "--result",
+                f.out(f"calibrate-ekf-{CLI_START_SAMPLES}.json"),
+                "--log",
+                f.log(n),
+                "--out",
+                f.out(f"validate-{n}.csv"),
+            ],
+            every,
+        ),
         CliCase("plan", _plan, tuple(n for n in every if n <= 1_000), unit="pose"),
-        CliCase("reproduce --quick", lambda f, n: ["reproduce", "--quick", "--out", f.out("reproduce")],
-                (CLI_START_SAMPLES,), fixed=True),
+        CliCase(
+            "reproduce --quick",
+            lambda f, n: ["reproduce", "--quick", "--out", f.out("reproduce")],
+            (CLI_START_SAMPLES,),
+            fixed=True,
+        ),
     ]
     return [c for c in cases if c.name in QUICK_CASES] if quick else cases
 
@@ -335,8 +411,9 @@ def _run_cli(argv: list[str], cap_s: float, stdout_path: Path, python_flags: tup
     with open(stdout_path, "wb") as out, open(stdout_path.with_suffix(".err"), "wb") as err:
         start = time.perf_counter()
         # cwd too: ``python -m`` puts it ahead of PYTHONPATH on sys.path
-        proc = subprocess.Popen(command, stdout=out, stderr=err, stdin=subprocess.DEVNULL, cwd=PACKAGE_ROOT, env=env,
-                                start_new_session=True)  # its own process group: a capped run is stopped whole
+        proc = subprocess.Popen(
+            command, stdout=out, stderr=err, stdin=subprocess.DEVNULL, cwd=PACKAGE_ROOT, env=env, start_new_session=True
+        )  # its own process group: a capped run is stopped whole
         deadline = start + cap_s
         while True:
             pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
@@ -346,14 +423,23 @@ def _run_cli(argv: list[str], cap_s: float, stdout_path: Path, python_flags: tup
                 _stop_command(proc.pid)
                 _, status, usage = os.wait4(proc.pid, 0)
                 proc.returncode = -9
-                return {"wall_s": time.perf_counter() - start, "cpu_s": usage.ru_utime + usage.ru_stime, "capped": True,
-                        "peak_rss_mib": _peak_kib(rss_path, usage) / 1024}
+                return {
+                    "wall_s": time.perf_counter() - start,
+                    "cpu_s": usage.ru_utime + usage.ru_stime,
+                    "capped": True,
+                    "peak_rss_mib": _peak_kib(rss_path, usage) / 1024,
+                }
             time.sleep(0.02)
         proc.returncode = os.waitstatus_to_exitcode(status)
     # CPU time (user + system, of every thread; wait4 counts the reaped command under GNU time)
     # stands a machine shared with other work better than wall time, which a second core can shorten
-    return {"wall_s": time.perf_counter() - start, "cpu_s": usage.ru_utime + usage.ru_stime, "capped": False,
-            "exit": proc.returncode, "peak_rss_mib": _peak_kib(rss_path, usage) / 1024}
+    return {
+        "wall_s": time.perf_counter() - start,
+        "cpu_s": usage.ru_utime + usage.ru_stime,
+        "capped": False,
+        "exit": proc.returncode,
+        "peak_rss_mib": _peak_kib(rss_path, usage) / 1024,
+    }
 
 
 def _stop_command(pid: int) -> None:
@@ -394,7 +480,12 @@ def import_profile(argv: list[str], work: Path) -> dict:
         if not name[1:].startswith(" "):  # a top-level import: its cumulative time holds its children's
             total_us += int(cumulative)
     heavy = [m for m in HEAVY_MODULES if m in modules]
-    return {"imports_s": total_us / 1e6, "heavy_imported": heavy, "wall_s": run["wall_s"], "peak_rss_mib": run["peak_rss_mib"]}
+    return {
+        "imports_s": total_us / 1e6,
+        "heavy_imported": heavy,
+        "wall_s": run["wall_s"],
+        "peak_rss_mib": run["peak_rss_mib"],
+    }
 
 
 def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = None) -> Section:
@@ -410,7 +501,9 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
         _run_cli(_calibrate("ekf")(files, CLI_START_SAMPLES), CLI_CAP_S, files.root / "out" / "stdout")  # warm caches
         imports = {
             "stewart-calib --help": import_profile(["--help"], files.root),
-            f"calibrate ekf, {CLI_START_SAMPLES} samples": import_profile(_calibrate("ekf")(files, CLI_START_SAMPLES), files.root),
+            f"calibrate ekf, {CLI_START_SAMPLES} samples": import_profile(
+                _calibrate("ekf")(files, CLI_START_SAMPLES), files.root
+            ),
         }
         for case in cases:
             results[case.name] = {}
@@ -419,8 +512,10 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
             for n in case.sizes:
                 run = _run_cli(case.argv(files, n), CLI_CAP_S, files.root / "out" / "stdout")
                 results[case.name][n] = run
-                print(f"  {case.name}{'' if case.fixed else f' at {n:,}'}: {run['wall_s']:.1f} s, {run['peak_rss_mib']:.0f} MiB",
-                      file=sys.stderr)
+                print(
+                    f"  {case.name}{'' if case.fixed else f' at {n:,}'}: {run['wall_s']:.1f} s, {run['peak_rss_mib']:.0f} MiB",
+                    file=sys.stderr,
+                )
                 if run["capped"] or run.get("exit"):
                     break
     for runs in results.values():
@@ -435,24 +530,31 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
 
     rows = []
     for label, profile in imports.items():
-        rows.append(Row(
-            f"imports of `{label}`",
-            f"{profile['imports_s'] * 1e3:.0f} ms of imports ({profile['wall_s']:.2f} s wall, {profile['peak_rss_mib']:.0f} MiB); "
-            f"heavy modules imported: {', '.join(profile['heavy_imported']) or 'none'}",
-            f"≤ {IMPORT_TARGET_S:g} s, none of {', '.join(HEAVY_MODULES)}",
-            profile["imports_s"] <= IMPORT_TARGET_S and not profile["heavy_imported"],
-            profile,
-        ))
+        rows.append(
+            Row(
+                f"imports of `{label}`",
+                f"{profile['imports_s'] * 1e3:.0f} ms of imports ({profile['wall_s']:.2f} s wall, {profile['peak_rss_mib']:.0f} MiB); "
+                f"heavy modules imported: {', '.join(profile['heavy_imported']) or 'none'}",
+                f"≤ {IMPORT_TARGET_S:g} s, none of {', '.join(HEAVY_MODULES)}",
+                profile["imports_s"] <= IMPORT_TARGET_S and not profile["heavy_imported"],
+                profile,
+            )
+        )
     for case in cases:
         name, runs = case.name, results[case.name]
         for n, run in runs.items():
             if n == CLI_START_SAMPLES and not case.fixed:
                 continue
-            value = (f"over the {CLI_CAP_S:.0f} s cap" if run["capped"] else
-                     f"exit {run['exit']}" if run.get("exit") else
-                     f"{run['wall_s']:.2f} s (CPU {run['cpu_s']:.2f} s)" if case.fixed else
-                     f"{fmt_time_us(run['marginal_us_per_sample'])}/{case.unit}, {run['wall_s']:.2f} s "
-                     f"(CPU {fmt_time_us(run['marginal_cpu_us_per_sample'])}/{case.unit})")
+            value = (
+                f"over the {CLI_CAP_S:.0f} s cap"
+                if run["capped"]
+                else f"exit {run['exit']}"
+                if run.get("exit")
+                else f"{run['wall_s']:.2f} s (CPU {run['cpu_s']:.2f} s)"
+                if case.fixed
+                else f"{fmt_time_us(run['marginal_us_per_sample'])}/{case.unit}, {run['wall_s']:.2f} s "
+                f"(CPU {fmt_time_us(run['marginal_cpu_us_per_sample'])}/{case.unit})"
+            )
             value += f", peak RSS {run['peak_rss_mib']:.0f} MiB"
             target, met = "", None
             if (name, n) in CLI_TARGETS:
@@ -488,8 +590,13 @@ def _plot_cli(results: dict[str, dict[int, dict]], path: Path) -> None:
         if marginal:
             ax_time.plot(*zip(*marginal), "o-", label=name)
         ax_mem.plot(sorted(runs), [runs[n]["peak_rss_mib"] for n in sorted(runs)], "o-", label=name)
-    ax_time.set(xscale="log", yscale="log", xlabel="samples N", ylabel="marginal time per sample [µs]",
-                title="Time per sample (flat = linear)")
+    ax_time.set(
+        xscale="log",
+        yscale="log",
+        xlabel="samples N",
+        ylabel="marginal time per sample [µs]",
+        title="Time per sample (flat = linear)",
+    )
     ax_mem.set(xscale="log", yscale="log", xlabel="samples N", ylabel="peak RSS [MiB]", title="Peak memory")
     for ax in (ax_time, ax_mem):
         ax.grid(True, which="both", alpha=0.3)
@@ -502,7 +609,16 @@ def _plot_cli(results: dict[str, dict[int, dict]], path: Path) -> None:
 def _section_markdown(section: Section, png: str, info: str) -> str:
     from benchmarks.common import mark
 
-    lines = [f"## {section.title}", "", section.note, "", info, "", "| Benchmark | Measured | Target | Status |", "|---|---|---|---|"]
+    lines = [
+        f"## {section.title}",
+        "",
+        section.note,
+        "",
+        info,
+        "",
+        "| Benchmark | Measured | Target | Status |",
+        "|---|---|---|---|",
+    ]
     lines += [f"| {row.name} | {row.value} | {row.target or '—'} | {mark(row.met)} |" for row in section.rows]
     return "\n".join(lines + ["", f"![{section.title.lower()}: time per sample and memory]({png})", ""])
 
@@ -537,8 +653,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--package-root", type=Path, default=ROOT, help="checkout to measure (e.g. an older one)")
     parser.add_argument("--json", type=Path, help="write the section's raw numbers here")
     parser.add_argument("--cases", nargs="+", metavar="NAME", help="only these commands (e.g. 'calibrate ekf')")
-    parser.add_argument("--update-report", action="store_true",
-                        help="replace this section of BENCHMARKS.md (plot and JSON in benchmarks/results/)")
+    parser.add_argument(
+        "--update-report",
+        action="store_true",
+        help="replace this section of BENCHMARKS.md (plot and JSON in benchmarks/results/)",
+    )
     parser.add_argument("--seed", type=int, default=2024)
     args = parser.parse_args(argv)
     PACKAGE_ROOT, CLI_SIZES, CLI_CAP_S = args.package_root.resolve(), tuple(args.sizes), args.cap_s
@@ -555,10 +674,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.update_report:
         (results / "scale-cli-full.json").write_text(raw, encoding="utf-8")
         host = machine()
-        info = (f"Measured by `python -m benchmarks.scale {' '.join(argv or sys.argv[1:])}` in "
-                f"{(time.perf_counter() - start) / 60:.1f} min on {host['cpu']}, {host['cores']} cores; 1-min load average "
-                f"{load_before:.1f} before, {os.getloadavg()[0]:.1f} after (other work shared the machine: absolute times "
-                "are pessimistic). Raw numbers: benchmarks/results/scale-cli-full.json.")
+        info = (
+            f"Measured by `python -m benchmarks.scale {' '.join(argv or sys.argv[1:])}` in "
+            f"{(time.perf_counter() - start) / 60:.1f} min on {host['cpu']}, {host['cores']} cores; 1-min load average "
+            f"{load_before:.1f} before, {os.getloadavg()[0]:.1f} after (other work shared the machine: absolute times "
+            "are pessimistic). Raw numbers: benchmarks/results/scale-cli-full.json."
+        )
         update_report(section, ROOT / "BENCHMARKS.md", png, info)
     return 0
 

@@ -70,8 +70,11 @@ def soak_ekf(platform: Platform, n: int, rng: np.random.Generator, report_every:
             P = ekf.filter.P
             heap = tracemalloc.get_traced_memory()[0] / 2**20
             rms = float(np.sqrt(np.mean((ekf.filter.x - true_error) ** 2)))
-            print(f"ekf: {k:8d}  {k / (time.perf_counter() - start):8.0f}  {np.max(np.abs(P - P.T)):.1e}  "
-                  f"{np.linalg.eigvalsh(P)[0]:.3e}  {rms:.2e}  {heap:7.2f}  {rss_mb():7.1f}", flush=True)
+            print(
+                f"ekf: {k:8d}  {k / (time.perf_counter() - start):8.0f}  {np.max(np.abs(P - P.T)):.1e}  "
+                f"{np.linalg.eigvalsh(P)[0]:.3e}  {rms:.2e}  {heap:7.2f}  {rss_mb():7.1f}",
+                flush=True,
+            )
     tracemalloc.stop()
 
 
@@ -90,8 +93,11 @@ def soak_isam2(platform: Platform, n: int, rng: np.random.Generator, report_ever
         if k % report_every == 0 or k == n or done:
             factors, variables = isam2.graph_size()
             rms = float(np.sqrt(np.mean((isam2.estimate().error - true_error) ** 2)))
-            print(f"isam2: {k:7d}  {k / (last - start):7.0f}  {1e3 * worst_s:8.1f}  {factors:7d}  {variables:7d}  "
-                  f"{len(isam2.export_state()['replay']['t_s']):6d}  {rms:.2e}  {rss_mb():7.1f}", flush=True)
+            print(
+                f"isam2: {k:7d}  {k / (last - start):7.0f}  {1e3 * worst_s:8.1f}  {factors:7d}  {variables:7d}  "
+                f"{len(isam2.export_state()['replay']['t_s']):6d}  {rms:.2e}  {rss_mb():7.1f}",
+                flush=True,
+            )
             worst_s = 0.0
         if done:
             print(f"isam2: stopped at the time limit ({time_limit_s:.0f} s) after {k} samples")

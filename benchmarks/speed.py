@@ -22,8 +22,8 @@ from scipy.optimize import least_squares
 from benchmarks.common import Row, Section, fmt_time_us, nim_stewart, per_call_us, stats_us, synthetic_stream
 from benchmarks.fk_speed import peer_fk, trajectory
 from stewart_calib import kinematics as kin
-from stewart_calib.estimators import make_estimator
 from stewart_calib.config import LSConfig
+from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.kalman import kalman_update
 from stewart_calib.estimators.ls import gauss_newton
 from stewart_calib.estimators.measurement import pose_difference
@@ -46,7 +46,9 @@ def _fk_rows(calls: int, batch_poses: int, repeats: int) -> list[Row]:
     lengths = readings + legs.initial_lengths
     ks = range(1, calls + 1)
     ours = per_call_us([lambda k=k: kin.forward_kinematics(legs, readings[k], guess=(R[k - 1], t[k - 1])) for k in ks])
-    peer = per_call_us([lambda k=k: peer_fk(legs.base_joints, legs.platform_joints, lengths[k], R[k - 1], t[k - 1]) for k in ks])
+    peer = per_call_us(
+        [lambda k=k: peer_fk(legs.base_joints, legs.platform_joints, lengths[k], R[k - 1], t[k - 1]) for k in ks]
+    )
     single = {"ours": stats_us(ours), "peer": stats_us(peer)}
     single["ratio_peer_over_ours"] = single["peer"]["median_us"] / single["ours"]["median_us"]
 
@@ -54,10 +56,18 @@ def _fk_rows(calls: int, batch_poses: int, repeats: int) -> list[Row]:
     guess = (R[:n], t[:n])  # each pose warm-started from its predecessor on the path
     batch_s = per_call_us([lambda: kin.forward_kinematics(legs, readings[1 : n + 1], guess=guess)] * repeats) / 1e6
     peer_n = min(n, 1000)  # pose by pose is slow; its rate does not depend on the count
-    peer_s = per_call_us(
-        [lambda: [peer_fk(legs.base_joints, legs.platform_joints, lengths[k], R[k - 1], t[k - 1]) for k in range(1, peer_n + 1)]]
-        * repeats
-    ) / 1e6
+    peer_s = (
+        per_call_us(
+            [
+                lambda: [
+                    peer_fk(legs.base_joints, legs.platform_joints, lengths[k], R[k - 1], t[k - 1])
+                    for k in range(1, peer_n + 1)
+                ]
+            ]
+            * repeats
+        )
+        / 1e6
+    )
     batch = {
         "poses": n,
         "ours_poses_per_s": n / float(np.median(batch_s)),

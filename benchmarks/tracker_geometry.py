@@ -117,7 +117,9 @@ def simulate(seed: int, size: Size) -> Cell:
     )
     run = run_experiment(experiment)
     # a stream of its own: the experiment spawns its streams from the bare seed
-    validation = random_static_poses(experiment.platform, size.validation, np.random.default_rng((seed, 1)), WORKSPACE_FRACTION, MARGIN_MM)
+    validation = random_static_poses(
+        experiment.platform, size.validation, np.random.default_rng((seed, 1)), WORKSPACE_FRACTION, MARGIN_MM
+    )
     return Cell(experiment.platform, run.log, run.robot.base_params, run.robot.tracker.geometry, validation)
 
 
@@ -125,30 +127,42 @@ def _moved(params: np.ndarray, base_frame: tuple, platform_frame: tuple) -> np.n
     """Drive parameters with the base joints moved by ``(R, t)`` of {J} and the platform joints by that of {D}."""
     legs = LegGeometry.from_params(params)
     (R_J, t_J), (R_D, t_D) = base_frame, platform_frame
-    return LegGeometry(legs.base_joints @ R_J.T + t_J, legs.platform_joints @ R_D.T + t_D, legs.initial_lengths).as_vector()
+    return LegGeometry(
+        legs.base_joints @ R_J.T + t_J, legs.platform_joints @ R_D.T + t_D, legs.initial_lengths
+    ).as_vector()
 
 
 def true_drive_in_frame(cell: Cell) -> np.ndarray:
     """The true drive in the frames the estimates are written in: where the true tracker's joints
     best fit its nominal ones (module docstring)."""
     nominal = cell.platform.tracker
-    return _moved(cell.true_drive, gauge.kabsch(cell.true_tracker.base_joints, nominal.base_joints),
-                  gauge.kabsch(cell.true_tracker.platform_joints, nominal.platform_joints))
+    return _moved(
+        cell.true_drive,
+        gauge.kabsch(cell.true_tracker.base_joints, nominal.base_joints),
+        gauge.kabsch(cell.true_tracker.platform_joints, nominal.platform_joints),
+    )
 
 
 def closed_loop_rms(model: LegGeometry, true_params: np.ndarray, poses: np.ndarray) -> tuple[float, float]:
     """RMS position [µm] and orientation [arcsec] error of ``FK(true, IK(model, P))`` against P."""
     R, t = kin.pose_to_rt(poses)
-    achieved = kin.forward_kinematics(LegGeometry.from_params(true_params), kin.inverse_kinematics(model, R, t), guess=(R, t))
+    achieved = kin.forward_kinematics(
+        LegGeometry.from_params(true_params), kin.inverse_kinematics(model, R, t), guess=(R, t)
+    )
     position_mm, orientation_deg = kin.pose_error(R, t, achieved.R, achieved.t)
     return float(np.sqrt(np.mean(position_mm**2)) * 1e3), float(np.sqrt(np.mean(orientation_deg**2)) * ARCSEC_PER_DEG)
 
 
 def _config(case: str):
     reading_mm = RULER_SIGMA_MM if case == "identified" else FIXED_READING_SIGMA_MM
-    return load_estimator_config("in-situ-tracker", [
-        f"noise.reading_sigma_mm={reading_mm}", "noise.random_walk_mm_per_sqrt_s=0", "robust.adapt_noise=false",
-    ])
+    return load_estimator_config(
+        "in-situ-tracker",
+        [
+            f"noise.reading_sigma_mm={reading_mm}",
+            "noise.random_walk_mm_per_sqrt_s=0",
+            "robust.adapt_noise=false",
+        ],
+    )
 
 
 def measure(seed: int, size: Size) -> dict:
@@ -172,8 +186,11 @@ def _fmt(position_arcsec: np.ndarray) -> str:
 
 def row_names() -> list[str]:
     """The names of the rows :func:`run` writes, in order (the quick test checks them)."""
-    return (["uncalibrated (nominal drive)"] + [f"{method}: tracker fixed → identified" for method in METHODS]
-            + [f"{method} / {REFERENCE}-joint, tracker identified" for method in ONLINE_METHODS])
+    return (
+        ["uncalibrated (nominal drive)"]
+        + [f"{method}: tracker fixed → identified" for method in METHODS]
+        + [f"{method} / {REFERENCE}-joint, tracker identified" for method in ONLINE_METHODS]
+    )
 
 
 def run(quick: bool = False, seeds: int | None = None) -> Section:
@@ -185,25 +202,31 @@ def run(quick: bool = False, seeds: int | None = None) -> Section:
     rows = [Row("uncalibrated (nominal drive)", _fmt(nominal), raw={"per_seed": [r["nominal"] for r in runs]})]
     for method in METHODS:
         fixed, identified = mean["fixed"][method], mean["identified"][method]
-        rows.append(Row(
-            f"{method}: tracker fixed → identified",
-            f"fixed {_fmt(fixed)}; identified {_fmt(identified)}",
-            raw={case: [r[case][method] for r in runs] for case in CASES},
-        ))
+        rows.append(
+            Row(
+                f"{method}: tracker fixed → identified",
+                f"fixed {_fmt(fixed)}; identified {_fmt(identified)}",
+                raw={case: [r[case][method] for r in runs] for case in CASES},
+            )
+        )
     reference = mean["identified"][REFERENCE][0]
     for method in ONLINE_METHODS:
         ratio = mean["identified"][method][0] / reference
         per_seed = [r["identified"][method][0] / r["identified"][REFERENCE][0] for r in runs]
-        rows.append(Row(
-            f"{method} / {REFERENCE}-joint, tracker identified",
-            f"**{ratio:.2f}** ({mean['identified'][method][0]:.1f} vs {reference:.1f} µm; per seed {min(per_seed):.2f}–{max(per_seed):.2f})",
-            f"≤ {RATIO_TARGET}",
-            bool(ratio <= RATIO_TARGET),
-            {"ratio": ratio, "per_seed": per_seed},
-        ))
-    note = (f"{len(seeds)} seed(s); {size.calibration} calibration poses × {size.samples_per_pose} samples, "
-            f"{size.validation} validation poses; closed-loop RMS position / orientation error, mean over seeds "
-            "(`python -m benchmarks.tracker_geometry`, module docstring).")
+        rows.append(
+            Row(
+                f"{method} / {REFERENCE}-joint, tracker identified",
+                f"**{ratio:.2f}** ({mean['identified'][method][0]:.1f} vs {reference:.1f} µm; per seed {min(per_seed):.2f}–{max(per_seed):.2f})",
+                f"≤ {RATIO_TARGET}",
+                bool(ratio <= RATIO_TARGET),
+                {"ratio": ratio, "per_seed": per_seed},
+            )
+        )
+    note = (
+        f"{len(seeds)} seed(s); {size.calibration} calibration poses × {size.samples_per_pose} samples, "
+        f"{size.validation} validation poses; closed-loop RMS position / orientation error, mean over seeds "
+        "(`python -m benchmarks.tracker_geometry`, module docstring)."
+    )
     return Section("Tracker geometry (issue 13)", note, rows, {"size": size.__dict__, "seeds": list(seeds)})
 
 
@@ -216,7 +239,9 @@ def markdown(section: Section) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.tracker_geometry", description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, help="seeds 0 … N−1 (default 5; --quick: 1)")
-    parser.add_argument("--quick", action="store_true", help="tiny inputs, every row (smoke test; the numbers mean little)")
+    parser.add_argument(
+        "--quick", action="store_true", help="tiny inputs, every row (smoke test; the numbers mean little)"
+    )
     args = parser.parse_args(argv)
     print(markdown(run(args.quick, args.seeds)))
     return 0

@@ -75,8 +75,12 @@ class CompileNotice(numba_event.Listener):
     def on_start(self, event) -> None:
         if not self.told and sys.stderr.isatty():
             self.told = True
-            print("stewart-calib: compiling the numeric kernels for this machine (once after an installation, "
-                  "up to ~30 s; later runs load them from the cache)", file=sys.stderr, flush=True)
+            print(
+                "stewart-calib: compiling the numeric kernels for this machine (once after an installation, "
+                "up to ~30 s; later runs load them from the cache)",
+                file=sys.stderr,
+                flush=True,
+            )
 
     def on_end(self, event) -> None:
         pass

@@ -395,8 +395,20 @@ def _within_a_step(R_a, t_a, R_b, t_b):
 
 
 @njit(**_JIT)
-def tracker_reading_residuals(bases, plats, initial_lengths, strokes, tracker_base, tracker_plat, tracker_lengths,
-                              readings, tol_mm, max_iterations, residuals, fk_residual):
+def tracker_reading_residuals(
+    bases,
+    plats,
+    initial_lengths,
+    strokes,
+    tracker_base,
+    tracker_plat,
+    tracker_lengths,
+    readings,
+    tol_mm,
+    max_iterations,
+    residuals,
+    fk_residual,
+):
     """The tracker's readings minus what it reads at the FK pose of each of ``m`` drives, for ``n``
     consecutive samples (kinematics.tracker_reading_residuals), FK as :func:`fk_single`.
 
@@ -441,8 +453,9 @@ def tracker_reading_residuals(bases, plats, initial_lengths, strokes, tracker_ba
                 if not _within_a_step(R_known, t_known, Rj, tj):
                     residual = np.inf
             if not residual <= tol_mm:
-                residual = _fk_single(bases[j], plats[j], initial_lengths[j], strokes[j, k], Rj, tj, False, tol_mm,
-                                      max_iterations, work)
+                residual = _fk_single(
+                    bases[j], plats[j], initial_lengths[j], strokes[j, k], Rj, tj, False, tol_mm, max_iterations, work
+                )
             fk_residual[j, k] = residual
             for i in range(6):  # inverse_kinematics: R p_i + t − b_i, its norm, less l_i
                 norm2 = 0.0
@@ -562,8 +575,24 @@ def leg_observation(base, plat, initial_lengths, x, R, t, strokes, pose_covarian
 
 
 @njit(**_JIT)
-def tracker_leg_observation(base, plat, initial_lengths, x, tracker_base, tracker_plat, tracker_lengths, readings,
-                            R, t, warm, tol_mm, max_iterations, strokes, reading_variance, stroke_variance):
+def tracker_leg_observation(
+    base,
+    plat,
+    initial_lengths,
+    x,
+    tracker_base,
+    tracker_plat,
+    tracker_lengths,
+    readings,
+    R,
+    t,
+    warm,
+    tol_mm,
+    max_iterations,
+    strokes,
+    reading_variance,
+    stroke_variance,
+):
     """:func:`fk_single` of the tracker readings (``R, t`` in/out), its pose covariance
     (:func:`pose_covariance`) and :func:`leg_observation` there, in one call.
 
@@ -571,17 +600,52 @@ def tracker_leg_observation(base, plat, initial_lengths, x, tracker_base, tracke
         ``(FK residual [mm], r, H, R_meas, J_x)``; the last four are meaningless when the residual
         exceeds ``tol_mm`` (FK failed from both starts).
     """
-    return tracker_leg_observation_in(base, plat, initial_lengths, x, tracker_base, tracker_plat, tracker_lengths, readings,
-                                      R, t, warm, tol_mm, max_iterations, strokes, reading_variance, stroke_variance,
-                                      _fk_work())
+    return tracker_leg_observation_in(
+        base,
+        plat,
+        initial_lengths,
+        x,
+        tracker_base,
+        tracker_plat,
+        tracker_lengths,
+        readings,
+        R,
+        t,
+        warm,
+        tol_mm,
+        max_iterations,
+        strokes,
+        reading_variance,
+        stroke_variance,
+        _fk_work(),
+    )
 
 
 @njit(**_JIT)
-def tracker_leg_observation_in(base, plat, initial_lengths, x, tracker_base, tracker_plat, tracker_lengths, readings,
-                               R, t, warm, tol_mm, max_iterations, strokes, reading_variance, stroke_variance, work):
+def tracker_leg_observation_in(
+    base,
+    plat,
+    initial_lengths,
+    x,
+    tracker_base,
+    tracker_plat,
+    tracker_lengths,
+    readings,
+    R,
+    t,
+    warm,
+    tol_mm,
+    max_iterations,
+    strokes,
+    reading_variance,
+    stroke_variance,
+    work,
+):
     """:func:`tracker_leg_observation` with FK's scratch arrays ``work`` (:func:`_fk_work`), which a
     pass over many samples makes once."""
-    residual = _fk_single(tracker_base, tracker_plat, tracker_lengths, readings, R, t, warm, tol_mm, max_iterations, work)
+    residual = _fk_single(
+        tracker_base, tracker_plat, tracker_lengths, readings, R, t, warm, tol_mm, max_iterations, work
+    )
     covariance = pose_covariance(tracker_base, tracker_plat, R, t, reading_variance)
     r, H, R_meas, J_x = leg_observation(base, plat, initial_lengths, x, R, t, strokes, covariance, stroke_variance)
     return residual, r, H, R_meas, J_x
@@ -674,7 +738,9 @@ def perturbed_legs(base, plat, initial_lengths, delta):
 
 
 @njit(**_JIT)
-def whitened_leg_rows(base, plat, initial_lengths, tracker_base, tracker_plat, R, t, reading_variance, stroke_variance, out):
+def whitened_leg_rows(
+    base, plat, initial_lengths, tracker_base, tracker_plat, R, t, reading_variance, stroke_variance, out
+):
     """``C⁻½ ∂r/∂M`` of the leg-length form at ``n`` poses into ``out (n, 6, 42)``, at the nominal drive
     (identifiability.whitened_leg_jacobian): ``H`` and ``C = R_meas`` of :func:`leg_observation`
     with the tracker pose covariance ``σ_s² (J_tᵀ J_t)⁻¹`` (kinematics.pose_covariance_from_legs),
@@ -699,8 +765,9 @@ def whitened_leg_rows(base, plat, initial_lengths, tracker_base, tracker_plat, R
                 for c in range(6):
                     s += inverse[a, c] * inverse[b, c]
                 pose_covariance[a, b] = reading_variance * s
-        _, H, C, _ = leg_observation(base, plat, initial_lengths, zeros_42, R[k], t[k], zeros_6, pose_covariance,
-                                     stroke_variance)
+        _, H, C, _ = leg_observation(
+            base, plat, initial_lengths, zeros_42, R[k], t[k], zeros_6, pose_covariance, stroke_variance
+        )
         positive = not singular
         for a in range(6):
             for b in range(a + 1):

@@ -49,11 +49,15 @@ def check_reachable(poses_mm_rad: np.ndarray, strokes_mm: np.ndarray, platform: 
         if bad.size:
             k, axis = (int(v) for v in bad[0])
             if axis < 3:
-                reason = (f"{_AXES[axis]} = {poses[k, axis]:.6g} mm is {offset[k, axis]:+.6g} mm from home, beyond the "
-                          f"workspace's ±{ws.translation_limit:g} mm")
+                reason = (
+                    f"{_AXES[axis]} = {poses[k, axis]:.6g} mm is {offset[k, axis]:+.6g} mm from home, beyond the "
+                    f"workspace's ±{ws.translation_limit:g} mm"
+                )
             else:
-                reason = (f"{_AXES[axis]} = {poses[k, axis]:.6g} rad ({np.degrees(poses[k, axis]):.4g}°) is beyond the "
-                          f"workspace's ±{np.degrees(ws.rotation_limit):.4g}° about home (angles in rad, not degrees?)")
+                reason = (
+                    f"{_AXES[axis]} = {poses[k, axis]:.6g} rad ({np.degrees(poses[k, axis]):.4g}°) is beyond the "
+                    f"workspace's ±{np.degrees(ws.rotation_limit):.4g}° about home (angles in rad, not degrees?)"
+                )
             raise PoseOutOfRange(k, reason)
     if platform.stroke_range is not None:
         lo, hi = platform.stroke_range
@@ -61,7 +65,9 @@ def check_reachable(poses_mm_rad: np.ndarray, strokes_mm: np.ndarray, platform: 
         bad = np.argwhere((strokes < lo) | (strokes > hi))
         if bad.size:
             k, i = (int(v) for v in bad[0])
-            raise PoseOutOfRange(k, f"the pose needs q{i + 1}_mm = {strokes[k, i]:.6g}, outside the stroke range [{lo}, {hi}] mm")
+            raise PoseOutOfRange(
+                k, f"the pose needs q{i + 1}_mm = {strokes[k, i]:.6g}, outside the stroke range [{lo}, {hi}] mm"
+            )
 
 
 def compensate(

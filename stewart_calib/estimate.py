@@ -43,15 +43,26 @@ class Estimate:
 
     @classmethod
     def of_state(
-        cls, x: np.ndarray, P: np.ndarray | None, layout: UnknownLayout, method: str, samples_used: int = 0,
+        cls,
+        x: np.ndarray,
+        P: np.ndarray | None,
+        layout: UnknownLayout,
+        method: str,
+        samples_used: int = 0,
         t_s: float = float("nan"),
     ) -> "Estimate":
         """The estimate of a whole unknown vector ``x = [δM | blocks]`` with covariance ``P`` (copied)."""
         x = np.array(x, dtype=float)
         P = None if P is None else np.array(P, dtype=float)
         return cls(
-            x[:N_PARAMS], None if P is None else P[:N_PARAMS, :N_PARAMS], method, samples_used, t_s,
-            layout, x[N_PARAMS:], None if layout.blocks == () else P,
+            x[:N_PARAMS],
+            None if P is None else P[:N_PARAMS, :N_PARAMS],
+            method,
+            samples_used,
+            t_s,
+            layout,
+            x[N_PARAMS:],
+            None if layout.blocks == () else P,
         )
 
     @property

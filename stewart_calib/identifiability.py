@@ -24,9 +24,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _kernels, kinematics as kin
-from .errors import CalibError
+from . import _kernels
+from . import kinematics as kin
 from .config import NoiseConfig
+from .errors import CalibError
 from .platform import N_PARAMS, PARAMETER_NAMES, Platform
 
 #: A singular value below this fraction of the largest counts as zero. Round-off in the
@@ -84,9 +85,16 @@ def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseCon
     drive, tracker = platform.drive, platform.tracker
     rows = np.empty((len(R), 6, N_PARAMS))
     _kernels.whitened_leg_rows(
-        drive.base_joints, drive.platform_joints, drive.initial_lengths, tracker.base_joints, tracker.platform_joints,
-        np.ascontiguousarray(R), np.ascontiguousarray(t), float(noise.reading_sigma_mm) ** 2,
-        float(noise.stroke_sigma_mm) ** 2, rows,
+        drive.base_joints,
+        drive.platform_joints,
+        drive.initial_lengths,
+        tracker.base_joints,
+        tracker.platform_joints,
+        np.ascontiguousarray(R),
+        np.ascontiguousarray(t),
+        float(noise.reading_sigma_mm) ** 2,
+        float(noise.stroke_sigma_mm) ** 2,
+        rows,
     )
     singular = ~np.isfinite(rows).all(axis=(1, 2))
     if singular.any():
@@ -236,7 +244,12 @@ class IdentifiabilityReport:
             },
             "predicted_stddev_mm": [num(s) for s in self.predicted_stddev_mm],
             "weakest_directions": [
-                {"singular_value": float(s), "stddev_mm": 1.0 / float(s), "vector": [float(x) for x in v], "named": name_direction(v)}
+                {
+                    "singular_value": float(s),
+                    "stddev_mm": 1.0 / float(s),
+                    "vector": [float(x) for x in v],
+                    "named": name_direction(v),
+                }
                 for s, v in self.weakest
             ],
             "null_space": {
@@ -342,7 +355,9 @@ class InformationAccumulator:
         poses = np.asarray(poses, dtype=float).reshape(-1, 6)
         for start in range(0, len(poses), BLOCK_POSES):
             block = poses[start : start + BLOCK_POSES]
-            self._leg_factor = _stacked_factor(self._leg_factor, whitened_leg_jacobian(self.platform, block, self.noise))
+            self._leg_factor = _stacked_factor(
+                self._leg_factor, whitened_leg_jacobian(self.platform, block, self.noise)
+            )
             self._paper_factor = _stacked_factor(self._paper_factor, scaled_paper_jacobian(self.platform, block))
             self.n_poses += len(block)
 

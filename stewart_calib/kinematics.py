@@ -152,8 +152,16 @@ def forward_kinematics(
         guess = default_guess(legs, strokes)
     # (1, 6, 3) / (1, 6) views: one geometry for the whole batch. LegGeometry's arrays are
     # read-only C arrays, so the kernel sees the same types as from the per-pose path.
-    return _newton_fk(legs.base_joints[None], legs.platform_joints[None], legs.initial_lengths[None],
-                      strokes, guess, tol_mm, max_iterations, strict)
+    return _newton_fk(
+        legs.base_joints[None],
+        legs.platform_joints[None],
+        legs.initial_lengths[None],
+        strokes,
+        guess,
+        tol_mm,
+        max_iterations,
+        strict,
+    )
 
 
 def forward_kinematics_per_pose(
@@ -183,18 +191,25 @@ def forward_kinematics_per_pose(
     strokes = np.ascontiguousarray(strokes, dtype=float)
     batch = strokes.shape[:-1]
     geometry = []
-    for name, value, shape in (("base_joints", base_joints, (6, 3)), ("platform_joints", platform_joints, (6, 3)),
-                               ("initial_lengths", initial_lengths, (6,))):
+    for name, value, shape in (
+        ("base_joints", base_joints, (6, 3)),
+        ("platform_joints", platform_joints, (6, 3)),
+        ("initial_lengths", initial_lengths, (6,)),
+    ):
         value = np.ascontiguousarray(value, dtype=float)
         if value.shape != batch + shape:
-            raise ValueError(f"{name} must have shape {batch + shape} to match strokes {strokes.shape}, got {value.shape}")
+            raise ValueError(
+                f"{name} must have shape {batch + shape} to match strokes {strokes.shape}, got {value.shape}"
+            )
         view = value.reshape((-1,) + shape)  # a new view: read-only like LegGeometry's, caller's array untouched
         view.setflags(write=False)
         geometry.append(view)
     return _newton_fk(*geometry, strokes, guess, tol_mm, max_iterations, strict)
 
 
-def _newton_fk(base, plat, lengths, strokes: np.ndarray, guess, tol_mm: float, max_iterations: int, strict: bool) -> FKSolution:
+def _newton_fk(
+    base, plat, lengths, strokes: np.ndarray, guess, tol_mm: float, max_iterations: int, strict: bool
+) -> FKSolution:
     """The FK entry points' one body: ``base, plat, lengths`` read-only C ``(G, 6, 3), (G, 6, 3),
     (G, 6)`` with ``G`` 1 or the flat batch size, ``strokes`` C ``(..., 6)``."""
     batch = strokes.shape[:-1]
@@ -214,7 +229,9 @@ def _newton_fk(base, plat, lengths, strokes: np.ndarray, guess, tol_mm: float, m
         if strict and not converged.all():
             first = int(np.flatnonzero(~converged)[0])
             where = f" (pose {tuple(int(i) for i in np.unravel_index(first, batch))})" if batch else ""
-            reason = "non-finite lengths" if not np.all(np.isfinite(flat[first])) else f"residual {residual[first]:.3g} mm"
+            reason = (
+                "non-finite lengths" if not np.all(np.isfinite(flat[first])) else f"residual {residual[first]:.3g} mm"
+            )
             raise FKError(
                 f"forward kinematics did not converge{where}: {reason} after {iterations[first]} "
                 "Newton iterations; the leg lengths may be unreachable"
@@ -282,9 +299,7 @@ def leg_residual_param_jacobian(legs: LegGeometry, R: np.ndarray, t: np.ndarray)
     spreads these rows into the full ``(..., 6, 42)`` Jacobian.
     """
     n = leg_unit_vectors(legs, R, t)
-    return np.concatenate(
-        [-n, np.einsum("...ki,...ij->...kj", n, R), -np.ones(n.shape[:-1] + (1,))], axis=-1
-    )
+    return np.concatenate([-n, np.einsum("...ki,...ij->...kj", n, R), -np.ones(n.shape[:-1] + (1,))], axis=-1)
 
 
 def block_diagonal_params(per_leg: np.ndarray) -> np.ndarray:
@@ -295,9 +310,7 @@ def block_diagonal_params(per_leg: np.ndarray) -> np.ndarray:
     return out
 
 
-def leg_residual_jacobians(
-    legs: LegGeometry, R: np.ndarray, t: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
+def leg_residual_jacobians(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Jacobians of :func:`leg_residuals`: ``(∂r/∂ξ (..., 6, 6), ∂r/∂M (..., 6, 42))``.
 
     The pose Jacobian is in the body tangent ``ξ = [ω, v]`` (see :func:`leg_pose_jacobian`).
@@ -314,7 +327,9 @@ def pose_covariance_from_legs(legs: LegGeometry, R: np.ndarray, t: np.ndarray, s
     """
     if np.ndim(R) == 2:
         c = np.ascontiguousarray
-        return _kernels.pose_covariance(legs.base_joints, legs.platform_joints, c(R, dtype=float), c(t, dtype=float), float(sigma_mm) ** 2)
+        return _kernels.pose_covariance(
+            legs.base_joints, legs.platform_joints, c(R, dtype=float), c(t, dtype=float), float(sigma_mm) ** 2
+        )
     J = leg_pose_jacobian(legs, R, t)
     J_inv = np.linalg.inv(J)
     return sigma_mm**2 * J_inv @ np.swapaxes(J_inv, -1, -2)
@@ -344,8 +359,14 @@ def leg_ekf_observation(
     """
     c = np.ascontiguousarray  # one array layout, so one compiled signature
     return _kernels.leg_observation(
-        drive.base_joints, drive.platform_joints, drive.initial_lengths, c(delta, dtype=float),
-        c(R, dtype=float), c(t, dtype=float), c(strokes, dtype=float), c(pose_covariance, dtype=float),
+        drive.base_joints,
+        drive.platform_joints,
+        drive.initial_lengths,
+        c(delta, dtype=float),
+        c(R, dtype=float),
+        c(t, dtype=float),
+        c(strokes, dtype=float),
+        c(pose_covariance, dtype=float),
         float(stroke_sigma_mm) ** 2,
     )
 
@@ -372,9 +393,21 @@ def tracker_leg_observation(
     R, t = start_pose(guess)
     c = np.ascontiguousarray
     residual, r, H, R_meas, _ = _kernels.tracker_leg_observation(
-        drive.base_joints, drive.platform_joints, drive.initial_lengths, c(delta, dtype=float),
-        tracker.base_joints, tracker.platform_joints, tracker.initial_lengths, c(readings, dtype=float), R, t,
-        guess is not None, FK_TOLERANCE_MM, FK_MAX_ITERATIONS, c(strokes, dtype=float), float(reading_sigma_mm) ** 2,
+        drive.base_joints,
+        drive.platform_joints,
+        drive.initial_lengths,
+        c(delta, dtype=float),
+        tracker.base_joints,
+        tracker.platform_joints,
+        tracker.initial_lengths,
+        c(readings, dtype=float),
+        R,
+        t,
+        guess is not None,
+        FK_TOLERANCE_MM,
+        FK_MAX_ITERATIONS,
+        c(strokes, dtype=float),
+        float(reading_sigma_mm) ** 2,
         float(stroke_sigma_mm) ** 2,
     )
     if not residual <= FK_TOLERANCE_MM:
@@ -407,8 +440,11 @@ def leg_residual(
 
 
 def solve_fk(
-    legs: LegGeometry, lengths: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None, what: str,
-    tol_mm: float = FK_TOLERANCE_MM
+    legs: LegGeometry,
+    lengths: np.ndarray,
+    guess: tuple[np.ndarray, np.ndarray] | None,
+    what: str,
+    tol_mm: float = FK_TOLERANCE_MM,
 ) -> tuple[np.ndarray, np.ndarray]:
     """FK from ``guess`` (the previous pose), then from the default cold guess: a jump between
     samples can leave the old pose outside Newton's basin.
@@ -418,16 +454,25 @@ def solve_fk(
     """
     R, t = start_pose(guess)
     # one compiled call for both starts: forward_kinematics' batch wrapper costs ~10 µs a pose
-    residual = _kernels.fk_single(legs.base_joints, legs.platform_joints, legs.initial_lengths,
-                                  np.ascontiguousarray(lengths, dtype=float), R, t, guess is not None, float(tol_mm),
-                                  FK_MAX_ITERATIONS)
+    residual = _kernels.fk_single(
+        legs.base_joints,
+        legs.platform_joints,
+        legs.initial_lengths,
+        np.ascontiguousarray(lengths, dtype=float),
+        R,
+        t,
+        guess is not None,
+        float(tol_mm),
+        FK_MAX_ITERATIONS,
+    )
     if residual <= tol_mm:
         return R, t
     raise _fk_failed(what, residual)
 
 
-def tracker_reading_residuals(tracker: LegGeometry, readings: np.ndarray, drives: list[LegGeometry],
-                              strokes: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def tracker_reading_residuals(
+    tracker: LegGeometry, readings: np.ndarray, drives: list[LegGeometry], strokes: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
     """The tracker's ``readings`` minus what it reads where each drive puts the platform, for a
     log's samples in order, in one compiled pass: ``readings − inverse_kinematics(tracker,
     forward_kinematics(drives[j], strokes[j]))``, within FK's tolerance of that batch solve
@@ -446,9 +491,18 @@ def tracker_reading_residuals(tracker: LegGeometry, readings: np.ndarray, drives
     readings = c(readings, dtype=float)
     residuals, fk_residual = np.empty((len(drives),) + readings.shape), np.empty((len(drives), len(readings)))
     _kernels.tracker_reading_residuals(
-        c([d.base_joints for d in drives]), c([d.platform_joints for d in drives]), c([d.initial_lengths for d in drives]),
-        c(strokes, dtype=float).reshape(residuals.shape), tracker.base_joints, tracker.platform_joints,
-        tracker.initial_lengths, readings, FK_TOLERANCE_MM, FK_MAX_ITERATIONS, residuals, fk_residual,
+        c([d.base_joints for d in drives]),
+        c([d.platform_joints for d in drives]),
+        c([d.initial_lengths for d in drives]),
+        c(strokes, dtype=float).reshape(residuals.shape),
+        tracker.base_joints,
+        tracker.platform_joints,
+        tracker.initial_lengths,
+        readings,
+        FK_TOLERANCE_MM,
+        FK_MAX_ITERATIONS,
+        residuals,
+        fk_residual,
     )
     return residuals, fk_residual <= FK_TOLERANCE_MM
 
@@ -463,7 +517,6 @@ def start_pose(guess: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray,
 
 def _fk_failed(what: str, residual_mm: float) -> SampleRejected:
     return SampleRejected(
-        f"{what} forward kinematics did not converge (residual {residual_mm:.3g} mm): "
-        "the lengths may be unreachable",
+        f"{what} forward kinematics did not converge (residual {residual_mm:.3g} mm): the lengths may be unreachable",
         SampleRejected.FK_FAILED,
     )

@@ -46,8 +46,8 @@ from .errors import CalibError, SampleRejected
 from .estimate import Estimate
 from .estimators import Estimator, method_names, method_spec
 from .estimators.base import take_late_rejections, update_block
-from .plausibility import check_plausible
 from .platform import Platform, parse_platform, platform_to_toml
+from .plausibility import check_plausible
 from .samples import Log, Sample
 
 CHECKPOINT_FORMAT = "stewart-calib/checkpoint"
@@ -179,8 +179,9 @@ class OnlineCalibrator:
         """
         refused, late = update_block(self._estimator, block)
         # in update's order: a sample's own refusal, then those refused late after it
-        for _, _, err in sorted([(j, 0, err) for j, err in refused] + [(j, 1, err) for j, err in late],
-                                key=lambda event: event[:2]):
+        for _, _, err in sorted(
+            [(j, 0, err) for j, err in refused] + [(j, 1, err) for j, err in late], key=lambda event: event[:2]
+        ):
             self.rejections.add(err)
         if self._tracker:
             accepted = np.ones(len(block), dtype=bool)
@@ -249,13 +250,16 @@ class OnlineCalibrator:
         """The checkpoint's arrays that no sample changes (their text costs ~0.3 ms), made once."""
         made_of = (self.method, self.platform, self.config)
         if self._fixed is None or any(a is not b for a, b in zip(self._fixed[0], made_of)):
-            self._fixed = (made_of, {
-                "format": np.array(CHECKPOINT_FORMAT),
-                "version": np.array(CHECKPOINT_VERSION),
-                "method": np.array(self.method),
-                "platform_toml": np.array(platform_to_toml(self.platform)),
-                "config_json": np.array(json.dumps(dataclasses.asdict(self.config))),
-            })
+            self._fixed = (
+                made_of,
+                {
+                    "format": np.array(CHECKPOINT_FORMAT),
+                    "version": np.array(CHECKPOINT_VERSION),
+                    "method": np.array(self.method),
+                    "platform_toml": np.array(platform_to_toml(self.platform)),
+                    "config_json": np.array(json.dumps(dataclasses.asdict(self.config))),
+                },
+            )
         return self._fixed[1]
 
     @classmethod
@@ -291,7 +295,12 @@ class OnlineCalibrator:
         if "format" not in arrays or arrays["format"].dtype.kind != "U" or text("format") != CHECKPOINT_FORMAT:
             raise CalibError(f"not a checkpoint: expected format {CHECKPOINT_FORMAT!r}")
         version = arrays.get("version")
-        if version is None or version.shape != () or version.dtype.kind not in "iu" or int(version) != CHECKPOINT_VERSION:
+        if (
+            version is None
+            or version.shape != ()
+            or version.dtype.kind not in "iu"
+            or int(version) != CHECKPOINT_VERSION
+        ):
             raise CalibError(f"checkpoint version {version!r} is not supported: expected {CHECKPOINT_VERSION}")
         platform = parse_platform(tomllib.loads(text("platform_toml")), "platform_toml")
         config = config_from_dict(json.loads(text("config_json")), "config_json")
@@ -317,7 +326,9 @@ def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
         data, filename = buffer.getvalue(), f"{name}.npy".encode()
         # version 2.0, no flags, stored, DOS time 00:00 date 1980-01-01, CRC-32, sizes, name length, no extra
         header = struct.pack("<HHHHHIIIHH", 20, 0, 0, 0, 0x21, zlib.crc32(data), len(data), len(data), len(filename), 0)
-        central += struct.pack("<IH", 0x02014B50, 20) + header + struct.pack("<HHHII", 0, 0, 0, 0, len(local)) + filename
+        central += (
+            struct.pack("<IH", 0x02014B50, 20) + header + struct.pack("<HHHII", 0, 0, 0, 0, len(local)) + filename
+        )
         local += struct.pack("<I", 0x04034B50) + header + filename + data
     end = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, len(arrays), len(arrays), len(central), len(local), 0)
     return bytes(local + central + end)

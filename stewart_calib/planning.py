@@ -34,8 +34,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import kinematics as kin
-from .errors import CalibError
 from .config import NoiseConfig
+from .errors import CalibError
 from .identifiability import scaled_paper_jacobian, whitened_leg_jacobian
 from .platform import Platform
 

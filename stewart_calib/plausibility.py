@@ -27,8 +27,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import kinematics as kin
-from .errors import CalibError
 from .config import NoiseConfig
+from .errors import CalibError
 from .platform import PARAMETER_NAMES, Platform
 
 #: a parameter error beyond this many prior σ is refused (two-sided tail probability < 1e-20).
@@ -53,15 +53,23 @@ def rms_leg_residual_mm(platform: Platform, error: np.ndarray, strokes: np.ndarr
     # leg sets' roles swapped (q − (‖t + R d_i − j_i‖ − l_i), the negated leg residual): one
     # compiled pass whose FK starts from the sample before (track checks every --every rows,
     # ~3.5x the cold batch FK measured).
-    residuals, converged = kin.tracker_reading_residuals(platform.drive.perturbed(error), strokes,
-                                                         [platform.tracker], [readings])
+    residuals, converged = kin.tracker_reading_residuals(
+        platform.drive.perturbed(error), strokes, [platform.tracker], [readings]
+    )
     if not converged.any():
         return float("nan")
     return float(np.sqrt(np.mean(np.square(residuals[converged]))))
 
 
-def check_plausible(platform: Platform, error: np.ndarray, noise: NoiseConfig, strokes: np.ndarray,
-                    readings: np.ndarray, method: str, noise_scale: float | None = None) -> None:
+def check_plausible(
+    platform: Platform,
+    error: np.ndarray,
+    noise: NoiseConfig,
+    strokes: np.ndarray,
+    readings: np.ndarray,
+    method: str,
+    noise_scale: float | None = None,
+) -> None:
     """Refuse an estimate that the log cannot have come from ``platform`` with (see the module).
 
     Args:
@@ -83,8 +91,11 @@ def check_plausible(platform: Platform, error: np.ndarray, noise: NoiseConfig, s
     beyond_noise = np.size(strokes) > 0 and not rms_mm <= RESIDUAL_SIGMAS * sigma_mm
     scattered = noise_scale is not None and noise_scale > NOISE_SCALE_LIMIT
     if beyond_prior or beyond_noise or scattered:
-        scatter = (f"; the samples scatter {noise_scale:.3g} × the configured noise σ (limit {NOISE_SCALE_LIMIT:g} ×)"
-                   if noise_scale is not None else "")
+        scatter = (
+            f"; the samples scatter {noise_scale:.3g} × the configured noise σ (limit {NOISE_SCALE_LIMIT:g} ×)"
+            if noise_scale is not None
+            else ""
+        )
         raise CalibError(
             f"{method}: the log does not fit platform '{platform.name}': RMS leg residual {rms_mm:.3g} mm at the estimate "
             f"({rms_mm / sigma_mm:.3g} × the noise σ {sigma_mm:g} mm; limit {RESIDUAL_SIGMAS:g} ×), largest parameter "

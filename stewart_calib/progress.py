@@ -10,8 +10,9 @@ import sys
 from typing import Iterable
 
 
-def progress_bar(iterable: Iterable | None = None, *, total: int | None = None, desc: str, unit: str = "sample",
-                 show: bool = True):
+def progress_bar(
+    iterable: Iterable | None = None, *, total: int | None = None, desc: str, unit: str = "sample", show: bool = True
+):
     """A tqdm bar on stderr (count, rate per second, time left), or a silent one.
 
     Args:
@@ -28,8 +29,17 @@ def progress_bar(iterable: Iterable | None = None, *, total: int | None = None, 
         return _Silent(iterable)
     from tqdm import tqdm  # tens of ms of imports that a piped or short run does not need
 
-    return tqdm(iterable, total=total, desc=desc, unit=unit, unit_scale=True, file=sys.stderr, leave=False,
-                dynamic_ncols=True, mininterval=0.2)
+    return tqdm(
+        iterable,
+        total=total,
+        desc=desc,
+        unit=unit,
+        unit_scale=True,
+        file=sys.stderr,
+        leave=False,
+        dynamic_ncols=True,
+        mininterval=0.2,
+    )
 
 
 #: logs at least this long get a bar (a shorter run is over before a bar would tell anything).

@@ -75,7 +75,10 @@ class Log:
         """``self[0], self[1], …`` built column-wise (a streamed calibration makes one a sample)."""
         n = len(self)
         return map(
-            Sample, self.t_s.tolist(), self.strokes, self.readings,
+            Sample,
+            self.t_s.tolist(),
+            self.strokes,
+            self.readings,
             repeat(None, n) if self.desired_poses is None else self.desired_poses,
             repeat("", n) if self.stages is None else self.stages,
             repeat(None, n) if self.load_kg is None else np.asarray(self.load_kg, dtype=float).tolist(),
@@ -85,16 +88,31 @@ class Log:
     def concatenate(cls, logs: list["Log"]) -> "Log":
         """The samples of ``logs`` (at least one, all with the same optional fields) one after the other."""
         first = logs[0]
-        joined = lambda name: None if getattr(first, name) is None else np.concatenate([getattr(log, name) for log in logs])  # noqa: E731
-        return cls(joined("t_s"), joined("strokes"), joined("readings"), joined("desired_poses"),
-                   None if first.stages is None else [s for log in logs for s in log.stages], joined("load_kg"),
-                   [row for log in logs for row in log.skipped])
+        joined = lambda name: (
+            None if getattr(first, name) is None else np.concatenate([getattr(log, name) for log in logs])
+        )  # noqa: E731
+        return cls(
+            joined("t_s"),
+            joined("strokes"),
+            joined("readings"),
+            joined("desired_poses"),
+            None if first.stages is None else [s for log in logs for s in log.stages],
+            joined("load_kg"),
+            [row for log in logs for row in log.skipped],
+        )
 
     def select(self, mask_or_index) -> "Log":
         """A sub-log of the rows picked by a boolean mask, slice or index array."""
         pick = lambda a: None if a is None else a[mask_or_index]  # noqa: E731
         stages = None if self.stages is None else list(np.asarray(self.stages, dtype=object)[mask_or_index])
-        return Log(pick(self.t_s), pick(self.strokes), pick(self.readings), pick(self.desired_poses), stages, pick(self.load_kg))
+        return Log(
+            pick(self.t_s),
+            pick(self.strokes),
+            pick(self.readings),
+            pick(self.desired_poses),
+            stages,
+            pick(self.load_kg),
+        )
 
 
 @dataclass(frozen=True)

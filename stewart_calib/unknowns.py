@@ -94,8 +94,10 @@ def stroke_scale_block(prior_sigma: float, nominal: np.ndarray | None = None) ->
     """``k1…k6`` of the drive-leg model ``l_i + (1 + k_i) q_i = ‖t + R d_i − j_i‖`` (spec §7)
     about ``nominal`` (the platform's ``[drive] stroke_scale``; default 0)."""
     return UnknownBlock(
-        "stroke_scale", tuple(f"k{i}" for i in range(1, N_LEGS + 1)),
-        np.zeros(N_LEGS) if nominal is None else nominal, np.full(N_LEGS, prior_sigma),
+        "stroke_scale",
+        tuple(f"k{i}" for i in range(1, N_LEGS + 1)),
+        np.zeros(N_LEGS) if nominal is None else nominal,
+        np.full(N_LEGS, prior_sigma),
     )
 
 
@@ -151,7 +153,7 @@ class UnknownLayout:
         rows = []
         for gauge, offset in (("base", 0), ("platform", 3)):
             if gauge in shared:
-                rows.append(_rigid_motion_rows(joints[:, offset:offset + 3], start + offset, self.size))
+                rows.append(_rigid_motion_rows(joints[:, offset : offset + 3], start + offset, self.size))
         return np.vstack(rows) if rows else np.zeros((0, self.size))
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:

@@ -87,5 +87,15 @@ def truth_in_gauge(case: InstrumentCase) -> tuple[np.ndarray, object]:
 
 def problem(case: InstrumentCase) -> BatchProblem:
     model = model_for(case.platform)
-    return BatchProblem(case.platform.drive, case.platform.stroke_scale, case.log.strokes, case.log.readings, model.module,
-                        model.register, model.sigmas, model.channels, model.channel_names, case.log.t_s)
+    return BatchProblem(
+        case.platform.drive,
+        case.platform.stroke_scale,
+        case.log.strokes,
+        case.log.readings,
+        model.module,
+        model.register,
+        model.sigmas,
+        model.channels,
+        model.channel_names,
+        case.log.t_s,
+    )

@@ -41,7 +41,9 @@ EPS_RAD = 1e-5
 """Central-difference step for arguments in rad (see module docstring) [rad]."""
 
 
-def numerical_jacobian(f: Callable[[np.ndarray], np.ndarray], x: np.ndarray, eps: float | np.ndarray = EPS_MM) -> np.ndarray:
+def numerical_jacobian(
+    f: Callable[[np.ndarray], np.ndarray], x: np.ndarray, eps: float | np.ndarray = EPS_MM
+) -> np.ndarray:
     """``∂f/∂x`` by central differences, shape ``f(x).shape + (n,)``.
 
     Args:

@@ -13,7 +13,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_quick_run_writes_every_row(tmp_path):
-    subprocess.run([sys.executable, "-m", "benchmarks", "--quick", "--out-dir", str(tmp_path)], cwd=ROOT, check=True, timeout=900)  # a hang guard, not a speed test; the accuracy section starts a Dask local cluster
+    subprocess.run(
+        [sys.executable, "-m", "benchmarks", "--quick", "--out-dir", str(tmp_path)], cwd=ROOT, check=True, timeout=900
+    )  # a hang guard, not a speed test; the accuracy section starts a Dask local cluster
     report = (tmp_path / "quick.md").read_text(encoding="utf-8")
     results = json.loads((tmp_path / "quick.json").read_text(encoding="utf-8"))
     table_rows = [line for line in report.splitlines() if line.startswith("| ") and not line.startswith("| Benchmark")]

@@ -27,7 +27,10 @@ def test_regularised_gamma_is_scipys():
             exponent = a * abs(np.log(x)) + x + abs(math.lgamma(a))
             rtol = 8 * np.finfo(float).eps * (exponent + 1.0)
             (computed, expected), (complement, expected_complement) = (
-                ((P, gammainc(a, x)), (Q, gammaincc(a, x))) if x < a + 1 else ((Q, gammaincc(a, x)), (P, gammainc(a, x))))
+                ((P, gammainc(a, x)), (Q, gammaincc(a, x)))
+                if x < a + 1
+                else ((Q, gammaincc(a, x)), (P, gammainc(a, x)))
+            )
             assert computed == pytest.approx(expected, rel=rtol)
             assert complement == pytest.approx(expected_complement, abs=rtol)
 

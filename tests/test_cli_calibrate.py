@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from stewart_calib import cli
-from stewart_calib.estimators.registry import METHODS, MethodSpec
 from stewart_calib.errors import SampleRejected
 from stewart_calib.estimate import Estimate
+from stewart_calib.estimators.registry import METHODS, MethodSpec
 from stewart_calib.io import read_result, write_log
 from stewart_calib.pipelines import calibrate as calibrate_pipeline
 from stewart_calib.pipelines.calibrate import calibrate
@@ -99,8 +99,12 @@ def test_online_method_writes_result_and_trace(tmp_path, log_path, capsys, fakes
     assert rows.shape == (10, 43)
     np.testing.assert_array_equal(rows[:, 0], _log().t_s)
     accepted_so_far = np.array([1, 2, 3, 4, 5, 5, 6, 6, 7, 7])  # a rejected sample leaves the estimate as it was
-    np.testing.assert_allclose(rows[:, 1:] - nim_stewart().drive.as_vector(), np.tile(accepted_so_far[:, None] * STEP_MM, (1, 42)), atol=1e-9)
-    assert err[0].startswith("stewart-calib calibrate: counting rejected samples: 3 of 10 (first: t_s=2.5: s1 = -1.0 is negative)")
+    np.testing.assert_allclose(
+        rows[:, 1:] - nim_stewart().drive.as_vector(), np.tile(accepted_so_far[:, None] * STEP_MM, (1, 42)), atol=1e-9
+    )
+    assert err[0].startswith(
+        "stewart-calib calibrate: counting rejected samples: 3 of 10 (first: t_s=2.5: s1 = -1.0 is negative)"
+    )
     assert err[-1].endswith("(counting: 7 samples used, 3 skipped)")
 
 
@@ -124,7 +128,10 @@ def test_skip_bad_rows_counts_in_samples_skipped(tmp_path, log_path, capsys, fak
     assert code == 2 and len(err) == 1 and "row 3" in err[0] and "'q1_mm'" in err[0]
     code, err = _run(capsys, *_args(log_path, tmp_path / "r.json"), "--skip-bad-rows")
     assert code == 0
-    assert err[0] == "stewart-calib calibrate: skipped bad log rows: 1 of 10 (first: row 3: column 'q1_mm': expected a finite number, got nan)"
+    assert (
+        err[0]
+        == "stewart-calib calibrate: skipped bad log rows: 1 of 10 (first: row 3: column 'q1_mm': expected a finite number, got nan)"
+    )
     assert read_result(tmp_path / "r.json")["samples_skipped"] == 1 + 3
 
 
@@ -139,12 +146,17 @@ def test_calibrate_function_returns_estimate_trace_and_rejections(fakes):
     [
         ({"--platform": "missing.toml"}, "missing.toml: platform file not found"),
         ({"--log": "missing.csv"}, "missing.csv: log file not found"),
-        ({"--method": "nope"}, "--method: unknown method 'nope'; expected one of ls, paper-ekf, ekf, isam2, lm, counting, batch"),
+        (
+            {"--method": "nope"},
+            "--method: unknown method 'nope'; expected one of ls, paper-ekf, ekf, isam2, lm, counting, batch",
+        ),
         ({"--out": "no/such/dir/r.json"}, "--out no/such/dir/r.json: directory no/such/dir does not exist"),
         ({"--set": "noise.bogus=1"}, "--set: unknown key 'noise.bogus'"),
     ],
 )
-def test_refusals_are_one_line_exit_2_and_write_nothing(tmp_path, log_path, capsys, fakes, monkeypatch, change, expected):
+def test_refusals_are_one_line_exit_2_and_write_nothing(
+    tmp_path, log_path, capsys, fakes, monkeypatch, change, expected
+):
     monkeypatch.chdir(tmp_path)
     args = dict(zip(["--platform", "--log", "--method", "--out"], [NIM_STEWART, log_path, "counting", "r.json"]))
     code, err = _run(capsys, *[x for k, v in {**args, **change}.items() for x in (k, v)], "--trace", "t.csv")
@@ -168,7 +180,9 @@ def test_subprocess_bad_log_exits_2_with_one_line(tmp_path):
     bad.write_text("t_s,q1_mm\n0,1\n")
     proc = subprocess.run(
         [sys.executable, "-m", "stewart_calib", "calibrate", *map(str, _args(bad, tmp_path / "r.json", "ls"))],
-        capture_output=True, text=True, timeout=60,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr.splitlines() == [

@@ -77,16 +77,35 @@ def test_online_and_cli_refuse_unreachable_poses_alike(tmp_path, capsys):
     with pytest.raises(PoseOutOfRange) as online:
         OnlineCalibrator(platform, "ekf").compensated_strokes(np.vstack([home, roll_in_degrees]))
     assert online.value.pose_index == 1
-    assert online.value.reason == "roll = 5 rad (286.5°) is beyond the workspace's ±20° about home (angles in rad, not degrees?)"
+    assert (
+        online.value.reason
+        == "roll = 5 rad (286.5°) is beyond the workspace's ±20° about home (angles in rad, not degrees?)"
+    )
     # inside the box but beyond a stroke: a platform whose stroke range is narrower than its box
     narrow = dataclasses.replace(platform, stroke_range=(-50.0, 50.0))
-    with pytest.raises(PoseOutOfRange, match=r"^pose 0: the pose needs q\d_mm = .*, outside the stroke range \[-50.0, 50.0\] mm$"):
+    with pytest.raises(
+        PoseOutOfRange, match=r"^pose 0: the pose needs q\d_mm = .*, outside the stroke range \[-50.0, 50.0\] mm$"
+    ):
         OnlineCalibrator(narrow, "ekf").compensated_strokes(home + [0, 0, 150.0, 0, 0, 0])
 
     io.write_result(tmp_path / "r.json", io.result_dict(Estimate(np.zeros(42), None, "ekf", 1), platform))
     io.write_pose_list(tmp_path / "poses.csv", roll_in_degrees[None])
-    assert main(["compensate", "--platform", str(NIM_STEWART), "--result", str(tmp_path / "r.json"),
-                 "--poses", str(tmp_path / "poses.csv"), "--out", str(tmp_path / "q.csv")]) == 2
+    assert (
+        main(
+            [
+                "compensate",
+                "--platform",
+                str(NIM_STEWART),
+                "--result",
+                str(tmp_path / "r.json"),
+                "--poses",
+                str(tmp_path / "poses.csv"),
+                "--out",
+                str(tmp_path / "q.csv"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert err == f"stewart-calib compensate: error: {tmp_path / 'poses.csv'}: row 2: {online.value.reason}"
     assert not (tmp_path / "q.csv").exists()
@@ -101,8 +120,27 @@ def test_a_result_naming_another_platform_is_refused(tmp_path, capsys):
     result = io.result_dict(Estimate(np.zeros(42), None, "ekf", 1), platform)
     io.write_result(tmp_path / "r.json", {**result, "platform": "other-hexapod"})
     io.write_pose_list(tmp_path / "poses.csv", platform.workspace.home[None])
-    assert main(["compensate", "--platform", str(NIM_STEWART), "--result", str(tmp_path / "r.json"),
-                 "--poses", str(tmp_path / "poses.csv"), "--out", str(tmp_path / "q.csv")]) == 2
-    assert capsys.readouterr().err.strip().endswith(
-        "key 'platform': expected 'nim-stewart' (the platform given), got 'other-hexapod' (a result for another platform?)")
+    assert (
+        main(
+            [
+                "compensate",
+                "--platform",
+                str(NIM_STEWART),
+                "--result",
+                str(tmp_path / "r.json"),
+                "--poses",
+                str(tmp_path / "poses.csv"),
+                "--out",
+                str(tmp_path / "q.csv"),
+            ]
+        )
+        == 2
+    )
+    assert (
+        capsys.readouterr()
+        .err.strip()
+        .endswith(
+            "key 'platform': expected 'nim-stewart' (the platform given), got 'other-hexapod' (a result for another platform?)"
+        )
+    )
     assert not (tmp_path / "q.csv").exists()

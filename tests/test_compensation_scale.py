@@ -40,16 +40,33 @@ def test_compensate_cli_applies_the_results_stroke_scale(tmp_path, capsys):
     platform = load_platform("hobby-hexapod")
     poses = _desired(platform)
     result = {
-        "format": "stewart-calib/result@1", "method": "ls", "platform": platform.name,
+        "format": "stewart-calib/result@1",
+        "method": "ls",
+        "platform": platform.name,
         "parameter_names": list(PARAMETER_NAMES),
-        "nominal": platform.drive.as_vector().tolist(), "estimate": platform.drive.as_vector().tolist(),
-        "error": [0.0] * 42, "stddev": None, "samples_used": 10, "samples_skipped": 0,
+        "nominal": platform.drive.as_vector().tolist(),
+        "estimate": platform.drive.as_vector().tolist(),
+        "error": [0.0] * 42,
+        "stddev": None,
+        "samples_used": 10,
+        "samples_skipped": 0,
         "stroke_scale": {"names": [f"k{i}" for i in range(1, 7)], "estimate": K.tolist(), "stddev": [0.001] * 6},
     }
     (tmp_path / "r.json").write_text(json.dumps(result))
     write_pose_list(tmp_path / "poses.csv", poses)
-    code = cli.main(["compensate", "--platform", "hobby-hexapod", "--result", str(tmp_path / "r.json"),
-                     "--poses", str(tmp_path / "poses.csv"), "--out", str(tmp_path / "q.csv")])
+    code = cli.main(
+        [
+            "compensate",
+            "--platform",
+            "hobby-hexapod",
+            "--result",
+            str(tmp_path / "r.json"),
+            "--poses",
+            str(tmp_path / "poses.csv"),
+            "--out",
+            str(tmp_path / "q.csv"),
+        ]
+    )
     assert code == 0
     written = np.genfromtxt(tmp_path / "q.csv", delimiter=",", names=True)
     strokes = np.column_stack([written[f"q{i}_mm"] for i in range(1, 7)])

@@ -2,8 +2,8 @@
 
 import pytest
 
-from stewart_calib.errors import CalibError
 from stewart_calib.config import EstimatorConfig, load_estimator_config
+from stewart_calib.errors import CalibError
 from stewart_calib.resources import CONFIGS
 
 

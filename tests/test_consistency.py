@@ -33,9 +33,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from stewart_calib.config import load_estimator_config
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.base import feed
-from stewart_calib.config import load_estimator_config
 from stewart_calib.simulation import load_experiment, run_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,7 +51,9 @@ def _no_load(experiment, **load):
     stage = dataclasses.replace(experiment.stages[0], segments=("calibration",))
     assert stage.load_kg == 0.0
     poses = dataclasses.replace(experiment.poses, calibration=N_POSES, samples_per_pose=1)
-    return dataclasses.replace(experiment, stages=(stage,), poses=poses, load=dataclasses.replace(experiment.load, **load))
+    return dataclasses.replace(
+        experiment, stages=(stage,), poses=poses, load=dataclasses.replace(experiment.load, **load)
+    )
 
 
 def _simulate(experiment):

@@ -79,7 +79,7 @@ def test_drive_leg_factor_with_stroke_scale_matches_central_differences(platform
     A, _ = f.linearize(_values(poses[0], unknowns)).jacobian()
     numeric = numerical_jacobian(lambda u: f.unwhitenedError(_values(poses[0], u)), unknowns)
     assert relative_error(A[:, 6:], numeric) <= 1e-6
-    np.testing.assert_allclose(A[:, 6 + 42:], -np.diag(strokes))
+    np.testing.assert_allclose(A[:, 6 + 42 :], -np.diag(strokes))
     R, t = poses[0].rotation().matrix(), poses[0].translation()
     expected = kin.leg_residuals(platform.drive.perturbed(delta), R, t, (1.0 + 0.01 + unknowns[42:]) * strokes)
     np.testing.assert_allclose(f.unwhitenedError(_values(poses[0], unknowns)), expected, atol=1e-9)
@@ -117,7 +117,9 @@ def test_instrument_factor_on_the_unknown_vector_has_the_model_jacobian(platform
 
 
 def test_gauge_factor_is_the_linear_constraint(platform):
-    C = UnknownLayout((TrackerModel(platform.tracker, 0.002, geometry_sigma_mm=0.05).unknowns,)).gauge_rows(platform.drive)
+    C = UnknownLayout((TrackerModel(platform.tracker, 0.002, geometry_sigma_mm=0.05).unknowns,)).gauge_rows(
+        platform.drive
+    )
     x = np.random.default_rng(2).normal(size=C.shape[1])
     values = gtsam.Values()
     values.insert(P, x)

@@ -14,8 +14,8 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from stewart_calib.errors import CalibError
 from stewart_calib.config import load_estimator_config
+from stewart_calib.errors import CalibError
 from stewart_calib.io import LOG_REQUIRED, POSE_COLUMNS, LogRowParser, read_log
 from stewart_calib.online import OnlineCalibrator
 from stewart_calib.platform import load_platform, parse_platform, platform_to_toml
@@ -30,7 +30,9 @@ numbers = st.one_of(
     st.sampled_from(["", " ", "nan", "-inf", "1e999", "0x10", "1_0", "١", "1,5", '"3"', "1e-400", "--1", "\x00", "\r"]),
     st.text(max_size=6),
 )
-columns = st.lists(st.sampled_from([*LOG_REQUIRED, *POSE_COLUMNS, "stage", "load_kg", "extra", ""]), min_size=1, max_size=24)
+columns = st.lists(
+    st.sampled_from([*LOG_REQUIRED, *POSE_COLUMNS, "stage", "load_kg", "extra", ""]), min_size=1, max_size=24
+)
 
 
 def _one_line_error(call):
@@ -102,23 +104,43 @@ def test_parse_platform_parses_or_refuses(doc):
 
 
 @SETTINGS
-@given(text=st.one_of(st.text(), st.builds(lambda t, s: t + s, st.just(platform_to_toml(PLATFORM)), st.text(max_size=40))))
+@given(
+    text=st.one_of(st.text(), st.builds(lambda t, s: t + s, st.just(platform_to_toml(PLATFORM)), st.text(max_size=40)))
+)
 def test_load_platform_parses_or_refuses(tmp_path, text):
     path = tmp_path / "p.toml"
     path.write_text(text, encoding="utf-8")
     _one_line_error(lambda: load_platform(path))
 
 
-config_keys = st.sampled_from([
-    "noise.reading_sigma_mm", "noise.prior_sigma_mm", "ekf.gate_probability", "paper_ekf.adaptive",
-    "paper_ekf.adaptive_window", "isam2.robust", "isam2.lag_s", "isam2.window_samples", "isam2", "x.y", "noise",
-])
+config_keys = st.sampled_from(
+    [
+        "noise.reading_sigma_mm",
+        "noise.prior_sigma_mm",
+        "ekf.gate_probability",
+        "paper_ekf.adaptive",
+        "paper_ekf.adaptive_window",
+        "isam2.robust",
+        "isam2.lag_s",
+        "isam2.window_samples",
+        "isam2",
+        "x.y",
+        "noise",
+    ]
+)
 
 
 @SETTINGS
 @given(
-    text=st.one_of(st.text(), st.builds("[{}]\n{} = {}\n".format, st.sampled_from(["noise", "isam2", "ekf", "paper_ekf", "zz"]),
-                                        st.text(string.ascii_lowercase + "_", max_size=20), numbers)),
+    text=st.one_of(
+        st.text(),
+        st.builds(
+            "[{}]\n{} = {}\n".format,
+            st.sampled_from(["noise", "isam2", "ekf", "paper_ekf", "zz"]),
+            st.text(string.ascii_lowercase + "_", max_size=20),
+            numbers,
+        ),
+    ),
     overrides=st.lists(st.builds("{}={}".format, config_keys, numbers), max_size=3),
 )
 def test_estimator_config_parses_or_refuses(tmp_path, text, overrides):
@@ -128,7 +150,10 @@ def test_estimator_config_parses_or_refuses(tmp_path, text, overrides):
 
 
 @SETTINGS
-@given(flips=st.lists(st.tuples(st.integers(0, 10**6), st.integers(1, 255)), min_size=1, max_size=4), cut=st.integers(0, 10**6))
+@given(
+    flips=st.lists(st.tuples(st.integers(0, 10**6), st.integers(1, 255)), min_size=1, max_size=4),
+    cut=st.integers(0, 10**6),
+)
 def test_checkpoint_loader_refuses_damaged_files(tmp_path, flips, cut):
     path = tmp_path / "c.npz"
     OnlineCalibrator(PLATFORM, "ekf").save(path)

@@ -33,14 +33,30 @@ def sim(tmp_path_factory) -> Path:
 
 
 def _calibrate(sim: Path, out: Path, method: str, *extra: str, platform: Path | None = None) -> int:
-    return main(["calibrate", "--platform", str(platform or sim / "platform.toml"), "--log", str(sim / "log.csv"),
-                 "--method", method, "--config", "paper", "--out", str(out), *extra])
+    return main(
+        [
+            "calibrate",
+            "--platform",
+            str(platform or sim / "platform.toml"),
+            "--log",
+            str(sim / "log.csv"),
+            "--method",
+            method,
+            "--config",
+            "paper",
+            "--out",
+            str(out),
+            *extra,
+        ]
+    )
 
 
 @pytest.fixture(scope="module")
 def ekf_run(sim, tmp_path_factory):
     work = tmp_path_factory.mktemp("ekf")
-    code = _calibrate(sim, work / "r.json", "ekf", "--platform-out", str(work / "C.toml"), "--report", str(work / "report"))
+    code = _calibrate(
+        sim, work / "r.json", "ekf", "--platform-out", str(work / "C.toml"), "--report", str(work / "report")
+    )
     assert code == 0
     return work
 
@@ -100,7 +116,6 @@ def test_outputs_into_a_missing_directory_are_refused_before_any_work(sim, tmp_p
     assert not (tmp_path / "r.json").exists()
 
 
-
 def test_residual_rms_is_that_of_validate_predictions(sim, ekf_run):
     # calibrate's residual pass (one compiled FK + IK pass per block, warm-started; the nominal
     # model's on the first pass, spooled) gives what validate's predictions (a batch FK per model
@@ -141,8 +156,14 @@ def test_report_is_one_static_self_contained_page(ekf_run):
     page = (ekf_run / "report" / "index.html").read_text(encoding="utf-8")
     assert "<script" not in page.lower()
     assert not re.search(r"""(src|href)\s*=\s*["'](?!data:)""", page)  # nothing fetched: no server, no network
-    for heading in ("Residuals per measured channel", "Parameter errors δM ± σ", "Correlation matrix", "Conditioning",
-                    "Config", "Versions"):
+    for heading in (
+        "Residuals per measured channel",
+        "Parameter errors δM ± σ",
+        "Correlation matrix",
+        "Conditioning",
+        "Config",
+        "Versions",
+    ):
         assert f"<h2>{heading}</h2>" in page
     images = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
     assert len(images) == 4  # residual RMS, residuals over time, δM ± σ, correlations
@@ -155,7 +176,9 @@ def test_report_is_one_static_self_contained_page(ekf_run):
 
 
 def _browser() -> str | None:
-    return next((path for name in ("chromium", "chromium-browser", "google-chrome") if (path := shutil.which(name))), None)
+    return next(
+        (path for name in ("chromium", "chromium-browser", "google-chrome") if (path := shutil.which(name))), None
+    )
 
 
 @pytest.mark.skipif(_browser() is None, reason="no headless Chromium installed")
@@ -164,9 +187,19 @@ def test_report_renders_in_a_headless_browser(ekf_run, tmp_path):
 
     shot = tmp_path / "report.png"
     subprocess.run(
-        [_browser(), "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--window-size=1200,3000",
-         f"--screenshot={shot}", (ekf_run / "report" / "index.html").as_uri()],
-        check=True, capture_output=True, timeout=120,
+        [
+            _browser(),
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--hide-scrollbars",
+            "--window-size=1200,3000",
+            f"--screenshot={shot}",
+            (ekf_run / "report" / "index.html").as_uri(),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=120,
     )
     pixels = np.asarray(Image.open(shot).convert("RGB"), dtype=float)
     assert pixels.shape[:2] == (3000, 1200)
@@ -231,8 +264,26 @@ def pose_run(tmp_path_factory):
     for name, label in (("fit.csv", "fit"), ("held.csv", "held-out")):
         (work / name).write_text("\n".join([lines[0], *(r for r in lines[1:] if r.split(",")[stage] == label)]) + "\n")
     platform = work / "sim" / "platform.toml"
-    assert main(["calibrate", "--platform", str(platform), "--log", str(work / "fit.csv"), "--method", "ls",
-                 "--out", str(work / "r.json"), "--platform-out", str(work / "C.toml"), "--report", str(work / "report")]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--platform",
+                str(platform),
+                "--log",
+                str(work / "fit.csv"),
+                "--method",
+                "ls",
+                "--out",
+                str(work / "r.json"),
+                "--platform-out",
+                str(work / "C.toml"),
+                "--report",
+                str(work / "report"),
+            ]
+        )
+        == 0
+    )
     return work
 
 
@@ -240,7 +291,9 @@ def test_pose_instrument_hands_on_its_frame_target_and_stroke_scale(pose_run):
     result, calibrated = read_result(pose_run / "r.json"), load_platform(pose_run / "C.toml")
     np.testing.assert_allclose(calibrated.stroke_scale, result["stroke_scale"]["estimate"], rtol=0, atol=1e-15)
     frame_target = np.r_[calibrated.instrument.frame, calibrated.instrument.target]
-    in_file_units = np.r_[frame_target[:3], np.degrees(frame_target[3:6]), frame_target[6:9], np.degrees(frame_target[9:])]
+    in_file_units = np.r_[
+        frame_target[:3], np.degrees(frame_target[3:6]), frame_target[6:9], np.degrees(frame_target[9:])
+    ]
     np.testing.assert_allclose(in_file_units, result["instrument"]["estimate"], atol=1e-9)
     names = result["parameter_names"] + result["stroke_scale"]["names"] + result["instrument"]["names"]
     covariance = np.array(result["covariance"])
@@ -255,16 +308,46 @@ def test_pose_instrument_hands_on_its_frame_target_and_stroke_scale(pose_run):
 
 def test_recalibrating_a_pose_platform_from_its_calibration(pose_run):
     out = pose_run / "again.json"
-    assert main(["calibrate", "--platform", str(pose_run / "C.toml"), "--log", str(pose_run / "fit.csv"), "--method", "ls",
-                 "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--platform",
+                str(pose_run / "C.toml"),
+                "--log",
+                str(pose_run / "fit.csv"),
+                "--method",
+                "ls",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     again = read_result(out)
     error, stddev = np.array(again["error"]), np.array(again["stddev"])
     assert np.all(np.abs(error) <= stddev), f"worst |δM|/σ = {np.max(np.abs(error) / stddev):.3g}"
 
 
 def test_validate_report_shows_the_held_out_errors(pose_run):
-    assert main(["validate", "--platform", str(pose_run / "sim" / "platform.toml"), "--result", str(pose_run / "r.json"),
-                 "--log", str(pose_run / "held.csv"), "--out", str(pose_run / "V.csv"), "--report", str(pose_run / "vreport")]) == 0
+    assert (
+        main(
+            [
+                "validate",
+                "--platform",
+                str(pose_run / "sim" / "platform.toml"),
+                "--result",
+                str(pose_run / "r.json"),
+                "--log",
+                str(pose_run / "held.csv"),
+                "--out",
+                str(pose_run / "V.csv"),
+                "--report",
+                str(pose_run / "vreport"),
+            ]
+        )
+        == 0
+    )
     page = (pose_run / "vreport" / "index.html").read_text(encoding="utf-8")
     assert "<h2>Held-out errors</h2>" in page and "<script" not in page.lower()
     assert "before = the nominal platform, its instrument frame fitted to this log" in page

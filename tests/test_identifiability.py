@@ -188,7 +188,9 @@ def test_cli_reads_a_log_and_writes_json(platform, tmp_path, capsys):
     log, _ = make_log(platform, random_error(rng, 0.5), poses, rng, NOISE.reading_sigma_mm, NOISE.stroke_sigma_mm)
     write_log(tmp_path / "log.csv", log)
     out = tmp_path / "id.json"
-    code = cli_main(["identifiability", "--platform", str(platform.source), "--log", str(tmp_path / "log.csv"), "--json", str(out)])
+    code = cli_main(
+        ["identifiability", "--platform", str(platform.source), "--log", str(tmp_path / "log.csv"), "--json", str(out)]
+    )
     assert code == 0
     assert "verdict: identifiable" in capsys.readouterr().out
     doc = json.loads(out.read_text())

@@ -12,7 +12,8 @@ from scipy.spatial.transform import Rotation
 
 pytest.importorskip("rosbags")
 from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
-from rosbags.rosbag2 import StoragePlugin, Writer as Writer2  # noqa: E402
+from rosbags.rosbag2 import StoragePlugin  # noqa: E402
+from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
 from stewart_calib.cli import main  # noqa: E402
@@ -59,8 +60,11 @@ def _header(typestore, t_s: float):
 
 def joint_state(typestore, t_s: float, names: list[str], positions) -> object:
     return typestore.types["sensor_msgs/msg/JointState"](
-        header=_header(typestore, t_s), name=names, position=np.asarray(positions, dtype=float),
-        velocity=np.zeros(0), effort=np.zeros(0),
+        header=_header(typestore, t_s),
+        name=names,
+        position=np.asarray(positions, dtype=float),
+        velocity=np.zeros(0),
+        effort=np.zeros(0),
     )
 
 
@@ -91,7 +95,9 @@ def write_bag(path: Path, kind: str, measurement: str = "readings", extra_topic:
     with writer:
         drive = writer.add_connection("/drive/joint_states", joint_type, typestore=typestore)
         topic, msgtype = (
-            ("/tracker/joint_states", joint_type) if measurement == "readings" else ("/mocap/pose", "geometry_msgs/msg/PoseStamped")
+            ("/tracker/joint_states", joint_type)
+            if measurement == "readings"
+            else ("/mocap/pose", "geometry_msgs/msg/PoseStamped")
         )
         meas = writer.add_connection(topic, msgtype, typestore=typestore)
         messages = []
@@ -100,7 +106,11 @@ def write_bag(path: Path, kind: str, measurement: str = "readings", extra_topic:
             messages.append((t, drive, joint_state(typestore, t, [JOINTS[i] for i in order], q[order])))
         t_meas = stamps(MEASUREMENT_HZ, offset_s=0.0037)
         for t, value in zip(t_meas, strokes_m(t_meas) * 2.0 if measurement == "readings" else poses(t_meas)):
-            msg = joint_state(typestore, t, JOINTS, value) if measurement == "readings" else pose_stamped(typestore, t, value)
+            msg = (
+                joint_state(typestore, t, JOINTS, value)
+                if measurement == "readings"
+                else pose_stamped(typestore, t, value)
+            )
             messages.append((t, meas, msg))
         if extra_topic is not None:
             conn = writer.add_connection(extra_topic[0], extra_topic[1], typestore=typestore)
@@ -120,8 +130,20 @@ def test_strokes_are_interpolated_to_the_reading_stamps(tmp_path, kind):
     bag = tmp_path / ("run.bag" if kind == "ros1" else "run")
     write_bag(bag, kind)
     out = tmp_path / "log.csv"
-    code = main(["import-bag", str(bag), "--strokes", "/drive/joint_states", "--readings", "/tracker/joint_states",
-                 "--stroke-joints", ",".join(JOINTS), "--out", str(out)])
+    code = main(
+        [
+            "import-bag",
+            str(bag),
+            "--strokes",
+            "/drive/joint_states",
+            "--readings",
+            "/tracker/joint_states",
+            "--stroke-joints",
+            ",".join(JOINTS),
+            "--out",
+            str(out),
+        ]
+    )
     assert code == 0
     header, rows = read_csv(out)
     assert header == ["t_s", *(f"q{i}_mm" for i in range(1, 7)), *(f"s{i}_mm" for i in range(1, 7))]
@@ -141,8 +163,27 @@ def test_pose_topic_writes_the_measured_pose_columns(tmp_path, kind):
     bag = tmp_path / ("run.bag" if kind == "ros1" else "run")
     write_bag(bag, kind, measurement="pose")
     out = tmp_path / "log.csv"
-    assert main(["import-bag", str(bag), "--strokes", "/drive/joint_states", "--pose", "/mocap/pose",
-                 "--stroke-joints", ",".join(JOINTS), "--stroke-unit", "m", "--pose-unit", "m", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "import-bag",
+                str(bag),
+                "--strokes",
+                "/drive/joint_states",
+                "--pose",
+                "/mocap/pose",
+                "--stroke-joints",
+                ",".join(JOINTS),
+                "--stroke-unit",
+                "m",
+                "--pose-unit",
+                "m",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     header, rows = read_csv(out)
     assert header[7:] == ["mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg", "myaw_deg"]
     t_meas = stamps(MEASUREMENT_HZ, offset_s=0.0037)
@@ -155,8 +196,16 @@ def test_units_by_flag(tmp_path):
     bag = tmp_path / "run"
     write_bag(bag, "ros2-sqlite3")
     out_m, out_mm = tmp_path / "m.csv", tmp_path / "mm.csv"
-    base = ["import-bag", str(bag), "--strokes", "/drive/joint_states", "--readings", "/tracker/joint_states",
-            "--stroke-joints", ",".join(JOINTS)]
+    base = [
+        "import-bag",
+        str(bag),
+        "--strokes",
+        "/drive/joint_states",
+        "--readings",
+        "/tracker/joint_states",
+        "--stroke-joints",
+        ",".join(JOINTS),
+    ]
     assert main([*base, "--out", str(out_m)]) == 0
     assert main([*base, "--stroke-unit", "mm", "--reading-unit", "um", "--out", str(out_mm)]) == 0
     _, m = read_csv(out_m)
@@ -184,8 +233,19 @@ def test_missing_topic_lists_the_bags_topics(tmp_path, capsys):
     bag = tmp_path / "run"
     write_bag(bag, "ros2-mcap")
     out = tmp_path / "log.csv"
-    err = _refusal(capsys, ["import-bag", str(bag), "--strokes", "/joint_states", "--readings", "/tracker/joint_states",
-                            "--out", str(out)])
+    err = _refusal(
+        capsys,
+        [
+            "import-bag",
+            str(bag),
+            "--strokes",
+            "/joint_states",
+            "--readings",
+            "/tracker/joint_states",
+            "--out",
+            str(out),
+        ],
+    )
     assert "/joint_states: no such topic" in err
     assert "/drive/joint_states (sensor_msgs/msg/JointState)" in err and "/tracker/joint_states" in err
     assert not out.exists()
@@ -194,8 +254,19 @@ def test_missing_topic_lists_the_bags_topics(tmp_path, capsys):
 def test_wrong_message_type_is_named(tmp_path, capsys):
     bag = tmp_path / "run.bag"
     write_bag(bag, "ros1", extra_topic=("/status", "std_msgs/msg/String"))
-    err = _refusal(capsys, ["import-bag", str(bag), "--strokes", "/drive/joint_states", "--pose", "/status",
-                            "--out", str(tmp_path / "log.csv")])
+    err = _refusal(
+        capsys,
+        [
+            "import-bag",
+            str(bag),
+            "--strokes",
+            "/drive/joint_states",
+            "--pose",
+            "/status",
+            "--out",
+            str(tmp_path / "log.csv"),
+        ],
+    )
     assert "--pose /status: the topic carries std_msgs/msg/String; expected geometry_msgs/msg/PoseStamped" in err
 
 
@@ -203,14 +274,29 @@ def test_joint_names_not_in_the_message_are_refused(tmp_path, capsys):
     bag = tmp_path / "run"
     write_bag(bag, "ros2-sqlite3")
     out = tmp_path / "log.csv"
-    err = _refusal(capsys, ["import-bag", str(bag), "--strokes", "/drive/joint_states", "--readings",
-                            "/tracker/joint_states", "--stroke-joints", "a,b,c,d,e,f", "--out", str(out)])
+    err = _refusal(
+        capsys,
+        [
+            "import-bag",
+            str(bag),
+            "--strokes",
+            "/drive/joint_states",
+            "--readings",
+            "/tracker/joint_states",
+            "--stroke-joints",
+            "a,b,c,d,e,f",
+            "--out",
+            str(out),
+        ],
+    )
     assert "message 1: joint(s) a, b, c, d, e, f not in the message; it has leg4, leg1" in err
 
 
 def test_a_file_that_is_not_a_bag(tmp_path, capsys):
     not_a_bag = tmp_path / "log.bag"
     not_a_bag.write_text("t_s,q1_mm\n")
-    err = _refusal(capsys, ["import-bag", str(not_a_bag), "--strokes", "/a", "--readings", "/b",
-                            "--out", str(tmp_path / "log.csv")])
+    err = _refusal(
+        capsys,
+        ["import-bag", str(not_a_bag), "--strokes", "/a", "--readings", "/b", "--out", str(tmp_path / "log.csv")],
+    )
     assert "cannot read as a ROS bag" in err

@@ -15,10 +15,10 @@ import pytest
 from stewart_calib import io
 from stewart_calib.cli import main
 from stewart_calib.errors import CalibError
-from stewart_calib.samples import Truth
 from stewart_calib.platform import Instrument, parse_platform, platform_to_toml
-from tests.instrument_data import HOBBY, hobby, make_case
+from stewart_calib.samples import Truth
 from stewart_calib.simulation.instrument import InstrumentTruth
+from tests.instrument_data import HOBBY, hobby, make_case
 
 
 def _doc() -> dict:
@@ -36,10 +36,19 @@ def test_hobby_platform_reads_the_pose_instrument_without_a_tracker():
 @pytest.mark.parametrize(
     "instrument",
     [
-        {"kind": "pose", "frame": [100.0, -20.0, 5.0, 10.0, -170.0, 45.0], "target": [1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
-         "position_sigma_mm": 0.3, "orientation_sigma_deg": 0.07},
-        {"kind": "points", "frame": [1.0, 2.0, 3.0, 0.0, 0.0, 90.0], "targets_mm": [[10.0, 0.0, 5.0], [-10.0, 3.0, 5.0]],
-         "position_sigma_mm": 0.02},
+        {
+            "kind": "pose",
+            "frame": [100.0, -20.0, 5.0, 10.0, -170.0, 45.0],
+            "target": [1.0, 2.0, 3.0, 4.0, 5.0, 6.0],
+            "position_sigma_mm": 0.3,
+            "orientation_sigma_deg": 0.07,
+        },
+        {
+            "kind": "points",
+            "frame": [1.0, 2.0, 3.0, 0.0, 0.0, 90.0],
+            "targets_mm": [[10.0, 0.0, 5.0], [-10.0, 3.0, 5.0]],
+            "position_sigma_mm": 0.02,
+        },
     ],
 )
 def test_instrument_round_trips_through_platform_to_toml(instrument):
@@ -49,10 +58,14 @@ def test_instrument_round_trips_through_platform_to_toml(instrument):
     platform = parse_platform(doc, "p.toml")
     again = parse_platform(tomllib.loads(platform_to_toml(platform)), "again.toml")
     for name in ("frame", "target", "targets"):
-        np.testing.assert_allclose(getattr(again.instrument, name), getattr(platform.instrument, name), rtol=1e-15, atol=1e-15)
+        np.testing.assert_allclose(
+            getattr(again.instrument, name), getattr(platform.instrument, name), rtol=1e-15, atol=1e-15
+        )
     assert again.instrument.kind == platform.instrument.kind
     assert again.instrument.position_sigma_mm == platform.instrument.position_sigma_mm
-    assert math.isclose(again.instrument.orientation_sigma_rad, platform.instrument.orientation_sigma_rad, rel_tol=1e-15)
+    assert math.isclose(
+        again.instrument.orientation_sigma_rad, platform.instrument.orientation_sigma_rad, rel_tol=1e-15
+    )
     np.testing.assert_array_equal(again.stroke_scale, platform.stroke_scale)
 
 
@@ -95,7 +108,11 @@ def test_tracker_is_required_only_for_the_tracker_instrument():
 
 
 def _points_platform(n_targets: int = 2):
-    return hobby(Instrument("points", np.zeros(6), np.zeros(6), np.array([[30.0, 0.0, 20.0], [-20.0, 25.0, 20.0]])[:n_targets], 0.05))
+    return hobby(
+        Instrument(
+            "points", np.zeros(6), np.zeros(6), np.array([[30.0, 0.0, 20.0], [-20.0, 25.0, 20.0]])[:n_targets], 0.05
+        )
+    )
 
 
 def test_points_log_round_trips_with_targets_not_seen(tmp_path):
@@ -107,7 +124,9 @@ def test_points_log_round_trips_with_targets_not_seen(tmp_path):
     assert text.splitlines()[0].startswith("t_s,q1_mm,q2_mm,q3_mm,q4_mm,q5_mm,q6_mm,p1x_mm,p1y_mm,p1z_mm,p2x_mm")
     back = io.read_log(tmp_path / "log.csv", platform)
     np.testing.assert_array_equal(np.isnan(back.readings), np.isnan(case.log.readings))
-    np.testing.assert_array_equal(back.readings[np.isfinite(back.readings)], case.log.readings[np.isfinite(case.log.readings)])
+    np.testing.assert_array_equal(
+        back.readings[np.isfinite(back.readings)], case.log.readings[np.isfinite(case.log.readings)]
+    )
 
 
 def test_pose_log_holds_degrees_in_the_file_and_radians_in_code(tmp_path):
@@ -125,15 +144,21 @@ def test_pose_log_holds_degrees_in_the_file_and_radians_in_code(tmp_path):
 def test_a_partial_target_is_refused_naming_row_and_column(tmp_path):
     platform = _points_platform(1)
     path = tmp_path / "log.csv"
-    path.write_text("t_s,q1_mm,q2_mm,q3_mm,q4_mm,q5_mm,q6_mm,p1x_mm,p1y_mm,p1z_mm\n"
-                    "0,40,40,40,40,40,40,1,2,3\n0.1,40,40,40,40,40,40,,,\n0.2,40,40,40,40,40,40,1,,3\n")
-    with pytest.raises(CalibError, match=r"log.csv: row 4: column 'p1y_mm': expected all three coordinates of target 1"):
+    path.write_text(
+        "t_s,q1_mm,q2_mm,q3_mm,q4_mm,q5_mm,q6_mm,p1x_mm,p1y_mm,p1z_mm\n"
+        "0,40,40,40,40,40,40,1,2,3\n0.1,40,40,40,40,40,40,,,\n0.2,40,40,40,40,40,40,1,,3\n"
+    )
+    with pytest.raises(
+        CalibError, match=r"log.csv: row 4: column 'p1y_mm': expected all three coordinates of target 1"
+    ):
         io.read_log(path, platform)
 
 
 def test_columns_not_matching_the_instrument_are_named_in_one_line(tmp_path):
     path = tmp_path / "log.csv"
-    path.write_text("t_s,q1_mm,q2_mm,q3_mm,q4_mm,q5_mm,q6_mm,s1_mm,s2_mm,s3_mm,s4_mm,s5_mm,s6_mm\n0,1,1,1,1,1,1,0,0,0,0,0,0\n")
+    path.write_text(
+        "t_s,q1_mm,q2_mm,q3_mm,q4_mm,q5_mm,q6_mm,s1_mm,s2_mm,s3_mm,s4_mm,s5_mm,s6_mm\n0,1,1,1,1,1,1,0,0,0,0,0,0\n"
+    )
     with pytest.raises(CalibError) as err:
         io.read_log(path, hobby())
     message = str(err.value)
@@ -142,7 +167,12 @@ def test_columns_not_matching_the_instrument_are_named_in_one_line(tmp_path):
 
 
 def test_truth_file_carries_stroke_scale_and_instrument(tmp_path):
-    truth = Truth(np.arange(2.0), np.zeros((2, 42)), stroke_scale=np.arange(6) / 100, instrument=(("frame_x_mm", "frame_y_mm"), np.array([1.5, -2.0])))
+    truth = Truth(
+        np.arange(2.0),
+        np.zeros((2, 42)),
+        stroke_scale=np.arange(6) / 100,
+        instrument=(("frame_x_mm", "frame_y_mm"), np.array([1.5, -2.0])),
+    )
     io.write_truth(tmp_path / "truth.csv", truth)
     back = io.read_truth(tmp_path / "truth.csv")
     np.testing.assert_array_equal(back.stroke_scale, truth.stroke_scale)
@@ -209,7 +239,22 @@ def test_simulate_calibrate_validate_end_to_end(tmp_path, capsys):
     then ``validate`` on the held-out rows, with the error at the noise floor."""
     platform_path = _simulated_fit_and_held_out(tmp_path, EXPERIMENT)
     out = tmp_path / "r.json"
-    assert main(["calibrate", "--platform", str(platform_path), "--log", str(tmp_path / "fit.csv"), "--method", "ls", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--platform",
+                str(platform_path),
+                "--log",
+                str(tmp_path / "fit.csv"),
+                "--method",
+                "ls",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     result = json.loads(out.read_text())
     assert result["stroke_scale"]["names"] == [f"k{i}" for i in range(1, 7)]
     assert result["instrument"]["names"][0] == "frame_x_mm"
@@ -218,8 +263,22 @@ def test_simulate_calibrate_validate_end_to_end(tmp_path, capsys):
     k_error = np.array(result["stroke_scale"]["estimate"]) - truth.stroke_scale
     assert np.all(np.abs(k_error) < 4.0 * np.array(result["stroke_scale"]["stddev"]))
     capsys.readouterr()
-    assert main(["validate", "--platform", str(platform_path), "--result", str(out), "--log", str(tmp_path / "held.csv"),
-                 "--out", str(tmp_path / "V.csv")]) == 0
+    assert (
+        main(
+            [
+                "validate",
+                "--platform",
+                str(platform_path),
+                "--result",
+                str(out),
+                "--log",
+                str(tmp_path / "held.csv"),
+                "--out",
+                str(tmp_path / "V.csv"),
+            ]
+        )
+        == 0
+    )
     line = capsys.readouterr().out.strip()
     assert line.startswith("stewart-calib validate: 20 rows: position RMS")
     rows = (tmp_path / "V.csv").read_text().splitlines()
@@ -240,11 +299,44 @@ def test_paper_ekf_on_a_pose_log_predicts_held_out_poses_at_the_noise_floor(tmp_
     platform_path = _simulated_fit_and_held_out(tmp_path, experiment)
     out = tmp_path / "r.json"
     # R of the paper's form matched to the instrument: 0.04 mm² (σ 0.2 mm), orientation in degrees
-    assert main(["calibrate", "--platform", str(platform_path), "--log", str(tmp_path / "fit.csv"), "--method", "paper-ekf",
-                 "--set", "paper_ekf.angle_unit=deg", "--set", "paper_ekf.measurement_noise=0.04", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--platform",
+                str(platform_path),
+                "--log",
+                str(tmp_path / "fit.csv"),
+                "--method",
+                "paper-ekf",
+                "--set",
+                "paper_ekf.angle_unit=deg",
+                "--set",
+                "paper_ekf.measurement_noise=0.04",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
-    assert main(["validate", "--platform", str(platform_path), "--result", str(out), "--log", str(tmp_path / "held.csv"),
-                 "--register-instrument", "--out", str(tmp_path / "V.csv")]) == 0
+    assert (
+        main(
+            [
+                "validate",
+                "--platform",
+                str(platform_path),
+                "--result",
+                str(out),
+                "--log",
+                str(tmp_path / "held.csv"),
+                "--register-instrument",
+                "--out",
+                str(tmp_path / "V.csv"),
+            ]
+        )
+        == 0
+    )
     rows = (tmp_path / "V.csv").read_text().splitlines()
     header = rows[0].split(",")
     position = np.array([float(r.split(",")[header.index("position_error_mm")]) for r in rows[1:]])
@@ -263,13 +355,24 @@ def test_validate_refuses_register_instrument_for_the_tracker(tmp_path):
     from tests.synthetic import NIM_STEWART, make_log, nim_stewart, random_poses
 
     platform = nim_stewart()
-    log, _ = make_log(platform, np.zeros(42), random_poses(platform, 5, np.random.default_rng(1)), np.random.default_rng(2))
+    log, _ = make_log(
+        platform, np.zeros(42), random_poses(platform, 5, np.random.default_rng(1)), np.random.default_rng(2)
+    )
     io.write_log(tmp_path / "log.csv", log)
     from stewart_calib.estimate import Estimate
 
     io.write_result(tmp_path / "r.json", io.result_dict(Estimate(np.zeros(42), None, "ls", 5), platform))
-    args = ["validate", "--platform", str(NIM_STEWART), "--result", str(tmp_path / "r.json"), "--log", str(tmp_path / "log.csv"),
-            "--out", str(tmp_path / "V.csv")]
+    args = [
+        "validate",
+        "--platform",
+        str(NIM_STEWART),
+        "--result",
+        str(tmp_path / "r.json"),
+        "--log",
+        str(tmp_path / "log.csv"),
+        "--out",
+        str(tmp_path / "V.csv"),
+    ]
     assert main(args) == 0
     assert main([*args, "--register-instrument"]) == 2
     assert not (tmp_path / "V.csv").with_name("V2.csv").exists()
@@ -294,11 +397,42 @@ def test_readme_motion_capture_example(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "examples").symlink_to(Path(__file__).resolve().parents[1] / "examples")
     exec(compile(code, "README.md", "exec"), {})
-    assert main(["calibrate", "--platform", "hobby-hexapod", "--log", "fit.csv", "--method", "ls", "--out", "result.json",
-                 "--config", "motion-capture"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--platform",
+                "hobby-hexapod",
+                "--log",
+                "fit.csv",
+                "--method",
+                "ls",
+                "--out",
+                "result.json",
+                "--config",
+                "motion-capture",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
-    assert main(["validate", "--platform", "hobby-hexapod", "--result", "result.json", "--log", "heldout.csv", "--out", "V.csv",
-                 "--register-instrument"]) == 0
+    assert (
+        main(
+            [
+                "validate",
+                "--platform",
+                "hobby-hexapod",
+                "--result",
+                "result.json",
+                "--log",
+                "heldout.csv",
+                "--out",
+                "V.csv",
+                "--register-instrument",
+            ]
+        )
+        == 0
+    )
     line = capsys.readouterr().out
     rms = float(line.split("position RMS ")[1].split(" mm")[0])
     assert rms <= 0.75  # issue 13's target for the re-registered held-out day
@@ -310,7 +444,20 @@ def test_identifiability_of_a_pose_log_covers_stroke_scale_and_instrument(tmp_pa
     platform = hobby()
     case = make_case(platform, 60, 21, InstrumentTruth(np.array([30.0, 10.0, -5.0, 0.0, 0.0, 45.0]), np.zeros(6)))
     io.write_log(tmp_path / "log.csv", case.log, platform)
-    assert main(["identifiability", "--platform", str(HOBBY), "--log", str(tmp_path / "log.csv"), "--json", str(tmp_path / "i.json")]) == 0
+    assert (
+        main(
+            [
+                "identifiability",
+                "--platform",
+                str(HOBBY),
+                "--log",
+                str(tmp_path / "log.csv"),
+                "--json",
+                str(tmp_path / "i.json"),
+            ]
+        )
+        == 0
+    )
     report = json.loads((tmp_path / "i.json").read_text())
     assert report["rank"] == report["unknowns"] == 30 + 6 + 12
     assert report["stroke_scale_identifiable"]
@@ -325,7 +472,21 @@ def test_track_on_a_pose_log_writes_a_result_with_the_instrument(tmp_path):
     platform = hobby()
     case = make_case(platform, 40, 31, InstrumentTruth(np.array([30.0, 10.0, -5.0, 0.0, 0.0, 45.0]), np.zeros(6)))
     io.write_log(tmp_path / "log.csv", case.log, platform)
-    assert main(["track", "--platform", str(HOBBY), "--method", "ekf", "--log", str(tmp_path / "log.csv"),
-                 "--out", str(tmp_path / "cur.json")]) == 0
+    assert (
+        main(
+            [
+                "track",
+                "--platform",
+                str(HOBBY),
+                "--method",
+                "ekf",
+                "--log",
+                str(tmp_path / "log.csv"),
+                "--out",
+                str(tmp_path / "cur.json"),
+            ]
+        )
+        == 0
+    )
     result = json.loads((tmp_path / "cur.json").read_text())
     assert result["instrument"]["names"][0] == "frame_x_mm" and result["stroke_scale"]["names"][0] == "k1"

@@ -22,9 +22,15 @@ from tests.instrument_data import hobby, make_case, problem, truth_in_gauge
 #: issue's target) sits ≥ 4 standard deviations above the ideal 1.
 RUNS = 3
 
-POSE_TRUTH = InstrumentTruth(np.array([60.0, -40.0, 25.0, 20.0, -10.0, 150.0]), np.array([10.0, -5.0, 30.0, 0.0, 5.0, -90.0]))
-POINTS = Instrument("points", np.zeros(6), np.zeros(6), np.array([[60.0, 0.0, 25.0], [-30.0, 50.0, 25.0], [-30.0, -50.0, 40.0]]), 0.05)
-POINTS_TRUTH = InstrumentTruth(np.array([-80.0, 50.0, 30.0, -15.0, 10.0, 60.0]), np.zeros(6), target_spread_mm=2.0, dropout_probability=0.15)
+POSE_TRUTH = InstrumentTruth(
+    np.array([60.0, -40.0, 25.0, 20.0, -10.0, 150.0]), np.array([10.0, -5.0, 30.0, 0.0, 5.0, -90.0])
+)
+POINTS = Instrument(
+    "points", np.zeros(6), np.zeros(6), np.array([[60.0, 0.0, 25.0], [-30.0, 50.0, 25.0], [-30.0, -50.0, 40.0]]), 0.05
+)
+POINTS_TRUTH = InstrumentTruth(
+    np.array([-80.0, 50.0, 30.0, -15.0, 10.0, 60.0]), np.zeros(6), target_spread_mm=2.0, dropout_probability=0.15
+)
 
 
 def _normalised_errors(case, estimate) -> np.ndarray:
@@ -35,7 +41,7 @@ def _normalised_errors(case, estimate) -> np.ndarray:
     sigma = np.sqrt(np.r_[np.diag(bound)[:48], np.diag(J @ bound[48:, 48:] @ J.T)])
     truth = np.r_[delta, case.true_scale, unknowns.file_values()]
     blocks = estimate.block_results()
-    found = np.r_[estimate.error, blocks['stroke_scale']['estimate'], blocks['instrument']['estimate']]
+    found = np.r_[estimate.error, blocks["stroke_scale"]["estimate"], blocks["instrument"]["estimate"]]
     difference = found - truth
     if case.platform.instrument.kind == "pose":  # angles: the nearest turn
         for k in (51, 52, 53, 57, 58, 59):
@@ -64,7 +70,9 @@ def test_ls_converges_from_large_offsets_without_any_setting_changed():
     delta = rng.normal(0.0, 0.5, 42)
     delta[6::7] = rng.choice([-20.0, 20.0], 6)
     scale = rng.choice([-0.1, 0.1], 6)
-    truth = InstrumentTruth(np.array([100.0, -100.0, 100.0, 170.0, -60.0, -120.0]), np.array([30.0, 40.0, -20.0, 90.0, 45.0, 180.0]))
+    truth = InstrumentTruth(
+        np.array([100.0, -100.0, 100.0, 170.0, -60.0, -120.0]), np.array([30.0, 40.0, -20.0, 90.0, 45.0, 180.0])
+    )
     case = make_case(platform, 108, 6, truth, delta=delta, scale=scale)
     estimate = make_estimator("ls", platform, EstimatorConfig()).fit(list(case.log))
     z = _normalised_errors(case, estimate)
@@ -88,5 +96,5 @@ def test_points_with_one_target_per_row_missing():
     seen_rows = np.isfinite(case.log.readings).reshape(60, 3, 3).all(axis=2)
     assert not seen_rows.all()
     estimate = make_estimator("ls", case.platform, EstimatorConfig()).fit(list(case.log))
-    assert tuple(estimate.block_results()['instrument']['names']) == points.unknown_names(3)
+    assert tuple(estimate.block_results()["instrument"]["names"]) == points.unknown_names(3)
     assert estimate.samples_used == 60 - int(np.sum(~seen_rows.any(axis=1)))

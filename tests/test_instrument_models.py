@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.numdiff import EPS_MM, EPS_RAD, numerical_jacobian, numerical_pose_jacobian, relative_error
 from stewart_calib import kinematics as kin
 from stewart_calib.errors import CalibError
 from stewart_calib.instruments import drive, gauge, lie, points, pose, registration
+from tests.numdiff import EPS_MM, EPS_RAD, numerical_jacobian, numerical_pose_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_poses
 
 #: central differences (steps of numdiff) agree to ~1e-10 relative; 1e-7 leaves room for FK's 1e-9 mm
@@ -17,7 +17,9 @@ JACOBIAN_RTOL = 1e-7
 
 
 def _pose_unknowns(rng) -> pose.PoseUnknowns:
-    return pose.PoseUnknowns.from_pose6(np.r_[rng.normal(0, 80, 3), rng.uniform(-3, 3, 3)], np.r_[rng.normal(0, 40, 3), rng.uniform(-3, 3, 3)])
+    return pose.PoseUnknowns.from_pose6(
+        np.r_[rng.normal(0, 80, 3), rng.uniform(-3, 3, 3)], np.r_[rng.normal(0, 40, 3), rng.uniform(-3, 3, 3)]
+    )
 
 
 def _tangent_steps(n_rot: int, n_mm: int) -> np.ndarray:
@@ -47,8 +49,11 @@ def test_points_residual_jacobians_match_central_differences(n_targets):
     measured = points.predict(u, R_X, t_X).reshape(-1) + rng.normal(0, 0.1, 3 * n_targets)
     _, H_X, H_u = points.residual(u, measured, R_X, t_X, jacobians=True)
     numeric_X = numerical_pose_jacobian(lambda R, t: points.residual(u, measured, R, t)[0], R_X, t_X)
-    numeric_u = numerical_jacobian(lambda d: points.residual(u.retract(d), measured, R_X, t_X)[0], np.zeros(u.size),
-                                   _tangent_steps(3, 3 + 3 * n_targets))
+    numeric_u = numerical_jacobian(
+        lambda d: points.residual(u.retract(d), measured, R_X, t_X)[0],
+        np.zeros(u.size),
+        _tangent_steps(3, 3 + 3 * n_targets),
+    )
     assert relative_error(H_X, numeric_X) < JACOBIAN_RTOL
     assert relative_error(H_u, numeric_u) < JACOBIAN_RTOL
 
@@ -64,7 +69,9 @@ def test_pose_residual_jacobian_through_gtsam_retract():
     measured = kin.rt_to_pose(*kin.retract(*pose.predict(u, R_X, t_X), rng.normal(0, 0.05, 6)))
     _, H_X, _ = pose.residual(u, measured, R_X, t_X, jacobians=True)
     X = gtsam.Pose3(gtsam.Rot3(R_X), t_X)
-    numeric = numerical_pose3_jacobian(lambda p: pose.residual(u, measured, p.rotation().matrix(), p.translation())[0], X)
+    numeric = numerical_pose3_jacobian(
+        lambda p: pose.residual(u, measured, p.rotation().matrix(), p.translation())[0], X
+    )
     assert relative_error(H_X, numeric) < JACOBIAN_RTOL
 
 
@@ -90,7 +97,9 @@ def test_drive_pose_jacobian_matches_forward_kinematics():
     dxi_M, dxi_k = drive.pose_jacobian(platform.drive, strokes, fk.R, fk.t)
 
     def tangent(delta, k):
-        sol = kin.forward_kinematics(platform.drive.perturbed(delta), drive.scaled_strokes(strokes, k), guess=(fk.R, fk.t), tol_mm=1e-12)
+        sol = kin.forward_kinematics(
+            platform.drive.perturbed(delta), drive.scaled_strokes(strokes, k), guess=(fk.R, fk.t), tol_mm=1e-12
+        )
         return np.r_[lie.so3_log(fk.R.T @ sol.R), fk.R.T @ (sol.t - fk.t)]
 
     assert relative_error(dxi_M, numerical_jacobian(lambda d: tangent(d, scale), np.zeros(42))) < 1e-6
@@ -102,7 +111,10 @@ def test_gauge_basis_is_orthonormal_and_free_of_rigid_joint_motion():
     B = gauge.free_basis(platform.drive)
     assert B.shape == (42, 30)
     np.testing.assert_allclose(B.T @ B, np.eye(30), atol=1e-12)
-    for columns, points_ in ((gauge.BASE_COLUMNS, platform.drive.base_joints), (gauge.PLATFORM_COLUMNS, platform.drive.platform_joints)):
+    for columns, points_ in (
+        (gauge.BASE_COLUMNS, platform.drive.base_joints),
+        (gauge.PLATFORM_COLUMNS, platform.drive.platform_joints),
+    ):
         np.testing.assert_allclose(gauge.rigid_directions(points_).T @ B[columns], 0.0, atol=1e-10)
 
 
@@ -119,8 +131,11 @@ def test_to_gauge_satisfies_the_gauge_and_keeps_leg_lengths():
 
     R, t = kin.pose_to_rt(random_poses(platform, 1, rng)[0])
     R2, t2 = lie.compose(*lie.compose(R_J, t_J, R, t), *lie.inverse(R_D, t_D))
-    np.testing.assert_allclose(kin.leg_lengths(LegGeometry.from_params(moved), R2, t2),
-                               kin.leg_lengths(LegGeometry.from_params(true), R, t), atol=1e-9)
+    np.testing.assert_allclose(
+        kin.leg_lengths(LegGeometry.from_params(moved), R2, t2),
+        kin.leg_lengths(LegGeometry.from_params(true), R, t),
+        atol=1e-9,
+    )
 
 
 def _poses(n: int, seed: int):
@@ -130,7 +145,9 @@ def _poses(n: int, seed: int):
 
 def test_register_pose_recovers_any_frame_and_target_exactly():
     R_X, t_X = _poses(12, 5)
-    u = pose.PoseUnknowns.from_pose6(np.r_[100.0, -80.0, 40.0, 2.0, -1.0, 3.0], np.r_[10.0, 20.0, -30.0, 0.5, 1.2, -2.0])
+    u = pose.PoseUnknowns.from_pose6(
+        np.r_[100.0, -80.0, 40.0, 2.0, -1.0, 3.0], np.r_[10.0, 20.0, -30.0, 0.5, 1.2, -2.0]
+    )
     R_M, t_M = pose.predict(u, R_X, t_X)
     found = registration.register_pose(R_X, t_X, R_M, t_M, np.r_[[1e-4] * 3, [0.01] * 3])
     np.testing.assert_allclose(found.file_values(), u.file_values(), atol=1e-9)
@@ -187,10 +204,23 @@ def _models():
     from tests.instrument_data import hobby
 
     pose_platform = hobby()
-    pose_platform = replace(pose_platform, instrument=replace(pose_platform.instrument, frame=np.r_[40.0, -20.0, 10.0, 0.3, -0.2, 2.0],
-                                                              target=np.r_[5.0, 8.0, 30.0, 0.1, 0.2, -1.5]))
-    points_platform = hobby(Instrument("points", np.r_[40.0, -20.0, 10.0, 0.3, -0.2, 2.0], np.zeros(6),
-                                       np.array([[60.0, 0.0, 25.0], [-30.0, 50.0, 25.0], [-30.0, -50.0, 40.0]]), 0.05))
+    pose_platform = replace(
+        pose_platform,
+        instrument=replace(
+            pose_platform.instrument,
+            frame=np.r_[40.0, -20.0, 10.0, 0.3, -0.2, 2.0],
+            target=np.r_[5.0, 8.0, 30.0, 0.1, 0.2, -1.5],
+        ),
+    )
+    points_platform = hobby(
+        Instrument(
+            "points",
+            np.r_[40.0, -20.0, 10.0, 0.3, -0.2, 2.0],
+            np.zeros(6),
+            np.array([[60.0, 0.0, 25.0], [-30.0, 50.0, 25.0], [-30.0, -50.0, 40.0]]),
+            0.05,
+        )
+    )
     return [instrument_model(p, NoiseConfig()) for p in (pose_platform, points_platform)]
 
 
@@ -206,7 +236,11 @@ def test_instrument_model_residual_and_pose_jacobians(which):
     theta = model.unknowns.nominal + rng.normal(0, 0.01, model.unknowns.size)
     R, t = kin.pose_to_rt(np.r_[5.0, -3.0, 200.0, 0.1, -0.05, 0.2])
     exact = model.residual(R, t, theta, np.zeros(model.channel_sigma.size), np.arange(model.channel_sigma.size))
-    z = -exact.r if model.kind == "points" else kin.rt_to_pose(*pose.predict(pose.PoseUnknowns.from_pose6(theta[:6], theta[6:]), R, t))
+    z = (
+        -exact.r
+        if model.kind == "points"
+        else kin.rt_to_pose(*pose.predict(pose.PoseUnknowns.from_pose6(theta[:6], theta[6:]), R, t))
+    )
     z = z + rng.normal(0, 0.01, z.size)
     channels = np.concatenate(model.groups(z))
     res = model.residual(R, t, theta, z, channels)

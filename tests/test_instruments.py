@@ -146,4 +146,6 @@ def test_estimate_of_a_generalised_state_adds_its_blocks_to_the_result(platform)
     validate_result(result, "<test>")  # spec §5 unchanged
     assert result["stroke_scale"]["estimate"] == [0.01] * 6
     np.testing.assert_allclose(result["stroke_scale"]["stddev"], 0.01)
-    assert "stroke_scale" not in result_dict(Estimate.of_state(x[:N_PARAMS], P[:N_PARAMS, :N_PARAMS], UnknownLayout(), "ekf"), platform)
+    assert "stroke_scale" not in result_dict(
+        Estimate.of_state(x[:N_PARAMS], P[:N_PARAMS, :N_PARAMS], UnknownLayout(), "ekf"), platform
+    )

@@ -109,7 +109,9 @@ def test_log_tolerates_bom_crlf_and_blank_lines(tmp_path):
 
 def test_truth_round_trip_is_exact(tmp_path):
     rng = np.random.default_rng(2)
-    truth = Truth(np.arange(5) * 0.1, rng.normal(0, 500, (5, 42)), np.c_[rng.normal(0, 100, (5, 3)), rng.normal(0, 0.2, (5, 3))])
+    truth = Truth(
+        np.arange(5) * 0.1, rng.normal(0, 500, (5, 42)), np.c_[rng.normal(0, 100, (5, 3)), rng.normal(0, 0.2, (5, 3))]
+    )
     write_truth(tmp_path / "truth.csv", truth)
     back = read_truth(tmp_path / "truth.csv")
     np.testing.assert_array_equal(back.t_s, truth.t_s)
@@ -125,7 +127,9 @@ def test_truth_refuses_missing_parameter_column_and_nan(tmp_path):
     path = _write(tmp_path, "t_s," + ",".join(PARAMETER_NAMES[:-1]) + "\n" + ",".join(["0"] * 42) + "\n", "truth.csv")
     with pytest.raises(CalibError, match=r"truth\.csv: row 1: missing required column\(s\) l6$"):
         read_truth(path)
-    path = _write(tmp_path, "t_s," + ",".join(PARAMETER_NAMES) + "\n" + ",".join(["0"] * 42 + ["nan"]) + "\n", "truth.csv")
+    path = _write(
+        tmp_path, "t_s," + ",".join(PARAMETER_NAMES) + "\n" + ",".join(["0"] * 42 + ["nan"]) + "\n", "truth.csv"
+    )
     with pytest.raises(CalibError, match=r"truth\.csv: row 2: column 'l6': expected a finite number, got nan"):
         read_truth(path)
 
@@ -248,7 +252,9 @@ def test_skip_mode_still_refuses_file_level_problems(tmp_path):
     assert "no sample rows" in _refusal(_write(tmp_path, HEADER + "\n"), skip_bad_rows=True)
     all_bad = "\n".join([HEADER, _row(0.0).replace("1.0", "nan"), "1,2"]) + "\n"
     message = _refusal(_write(tmp_path, all_bad), skip_bad_rows=True)
-    assert message.endswith("all 2 sample rows are bad (first: row 2: column 'q1_mm': expected a finite number, got nan)")
+    assert message.endswith(
+        "all 2 sample rows are bad (first: row 2: column 'q1_mm': expected a finite number, got nan)"
+    )
 
 
 def test_quoted_log_round_trips_through_the_careful_path(tmp_path, platform):
@@ -370,9 +376,17 @@ def test_csv_text_writes_what_the_csv_module_writes(monkeypatch, chunk_rows):
         (["a", "b"], [np.array([True, False]), np.ones(2)]),
         # runs of floats between integers and text, one float column alone, float32, text quoted
         # or not (quotes, line breaks, spaces, a lone empty field), repeated over the rows
-        (["t", "i", "x", "y", "stage", "z"], [rng.normal(size=8) * 1e5, np.arange(8), rng.normal(size=8),
-                                              rng.normal(size=8).astype(np.float32), ['a "b"', "c\nd", "e\rf", " g ", "",
-                                              "ü,v", "x", "x"], np.r_[np.nan, -np.inf, rng.normal(size=6)]]),
+        (
+            ["t", "i", "x", "y", "stage", "z"],
+            [
+                rng.normal(size=8) * 1e5,
+                np.arange(8),
+                rng.normal(size=8),
+                rng.normal(size=8).astype(np.float32),
+                ['a "b"', "c\nd", "e\rf", " g ", "", "ü,v", "x", "x"],
+                np.r_[np.nan, -np.inf, rng.normal(size=6)],
+            ],
+        ),
         (["x", "stage"], [np.array([0.1, 2.0 / 3.0]), ["", ""]]),
     ]
     for header, columns in cases:

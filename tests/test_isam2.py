@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from stewart_calib.config import config_from_dict
 from stewart_calib.errors import SampleRejected
 from stewart_calib.estimators import make_estimator
-from stewart_calib.config import config_from_dict
 from stewart_calib.samples import Log, Sample
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
 
@@ -33,8 +33,13 @@ def _config(random_walk=0.0, prior_sigma_mm=5.0, **isam2):
     """The graph's own mathematics: no robust front end (no gate, no start-up batch, fixed noise;
     tests/test_robust.py checks isam2 with it)."""
     isam2 = {"window_samples": 5, "lag_s": 1.0, "gate_probability": 0.0, **isam2}
-    return config_from_dict({"noise": {"random_walk_mm_per_sqrt_s": random_walk, "prior_sigma_mm": prior_sigma_mm},
-                             "isam2": isam2, "robust": {"startup_samples": 0, "adapt_noise": False}})
+    return config_from_dict(
+        {
+            "noise": {"random_walk_mm_per_sqrt_s": random_walk, "prior_sigma_mm": prior_sigma_mm},
+            "isam2": isam2,
+            "robust": {"startup_samples": 0, "adapt_noise": False},
+        }
+    )
 
 
 def _run(method, platform, config, log):
@@ -58,7 +63,9 @@ def noisy(platform):
     """200 samples at 10 Hz, constant δM (σ 1 mm), σ_s = 2 µm, σ_q = 1 µm."""
     rng = np.random.default_rng(2)
     error = random_error(rng, 1.0)
-    log, _ = make_log(platform, error, random_poses(platform, 200, rng), rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
+    log, _ = make_log(
+        platform, error, random_poses(platform, 200, rng), rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001
+    )
     return log, error
 
 
@@ -121,8 +128,12 @@ def test_isam2_tracks_a_parameter_step(platform):
     after = before + rng.normal(0.0, 0.05, 42)
     n = 300
     truth = np.where(np.arange(n)[:, None] < n // 2, before, after)
-    log, _ = make_log(platform, truth, random_poses(platform, n, rng), rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
-    tracking = _run("isam2", platform, _config(random_walk=0.01, window_samples=0, window_s=1.0, lag_s=2.0), log).estimate()
+    log, _ = make_log(
+        platform, truth, random_poses(platform, n, rng), rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001
+    )
+    tracking = _run(
+        "isam2", platform, _config(random_walk=0.01, window_samples=0, window_s=1.0, lag_s=2.0), log
+    ).estimate()
     # One-sided on purpose: the truth is a step, not the random walk the filter assumes; the
     # walk's covariance over-bounds a settled step, so only "not optimistic" is a claim.
     assert _nees(tracking, after) <= NEES_BOUND
@@ -223,8 +234,9 @@ def test_a_block_of_samples_is_the_samples_one_by_one(platform, monkeypatch, per
     degenerate_sample(monkeypatch, float(log.t_s[640]))
     config = config_from_dict({"isam2": {"window_samples": 5, "lag_s": 1.0}})
     one, errors_one, refused_one = _fed_in_blocks(make_estimator("isam2", platform, config), log, update_each, True)
-    block, errors_block, refused_block = _fed_in_blocks(make_estimator("isam2", platform, config), log, update_block,
-                                                        per_sample)
+    block, errors_block, refused_block = _fed_in_blocks(
+        make_estimator("isam2", platform, config), log, update_block, per_sample
+    )
     assert refused_block == refused_one
     reasons = {reason for _, reason, _ in refused_one}
     assert {SampleRejected.SOLVER, SampleRejected.GATED, SampleRejected.NON_FINITE, SampleRejected.TIME_BACK} <= reasons
@@ -253,7 +265,9 @@ def _fed_in_blocks(estimator, log: Log, feed, keep_errors: bool, size: int = 400
     refused = [
         (start + j, err.reason, str(err))
         for start in range(0, len(log), size)
-        for part in feed(estimator, log.select(slice(start, start + size)), None if errors is None else errors[start:start + size])
+        for part in feed(
+            estimator, log.select(slice(start, start + size)), None if errors is None else errors[start : start + size]
+        )
         for j, err in part
     ]
     return estimator, errors, refused

@@ -18,14 +18,22 @@ from stewart_calib import __version__
 from tests.synthetic import ROOT
 
 #: a small kernel is enough: the cache location is decided when each function is decorated.
-CALL_A_KERNEL = "import numpy as np; from stewart_calib import _kernels; print(_kernels.all_within(np.zeros(6), -1.0, 1.0))"
+CALL_A_KERNEL = (
+    "import numpy as np; from stewart_calib import _kernels; print(_kernels.all_within(np.zeros(6), -1.0, 1.0))"
+)
 
 
 def _run(tmp_path, locators: str, *argv: str) -> subprocess.CompletedProcess:
     not_a_dir = tmp_path / "home-file"
     not_a_dir.write_text("")
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_LOCATOR_CLASSES": locators,
-           "XDG_CACHE_HOME": str(not_a_dir / "cache"), "HOME": str(not_a_dir), "TMPDIR": str(tmp_path / "tmp")}
+    env = {
+        **os.environ,
+        "PYTHONPATH": str(ROOT),
+        "NUMBA_CACHE_LOCATOR_CLASSES": locators,
+        "XDG_CACHE_HOME": str(not_a_dir / "cache"),
+        "HOME": str(not_a_dir),
+        "TMPDIR": str(tmp_path / "tmp"),
+    }
     env.pop("NUMBA_CACHE_DIR", None)
     (tmp_path / "tmp").mkdir(exist_ok=True)
     return subprocess.run([sys.executable, *argv], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)

@@ -68,7 +68,9 @@ def test_tracker_leg_observation_refuses_readings_without_a_pose_as_fk_failure()
 
     drive, tracker = PLATFORM.drive, PLATFORM.tracker
     with pytest.raises(SampleRejected, match="tracker forward kinematics did not converge") as err:
-        kin.tracker_leg_observation(drive, np.zeros(42), tracker, np.r_[np.nan, np.zeros(5)], None, np.zeros(6), 0.002, 0.001)
+        kin.tracker_leg_observation(
+            drive, np.zeros(42), tracker, np.r_[np.nan, np.zeros(5)], None, np.zeros(6), 0.002, 0.001
+        )
     assert err.value.reason == SampleRejected.FK_FAILED
 
 
@@ -80,7 +82,9 @@ def test_pose_difference_is_wrapped_rpy_difference_and_broadcasts():
     expected = np.concatenate([t - t_m, np.angle(np.exp(1j * d_rpy))], axis=-1)
     np.testing.assert_allclose(Y, expected, rtol=0, atol=1e-13)
     # One measured pose against a batch of model poses broadcasts like numpy.
-    np.testing.assert_allclose(pose_difference(R[0], t[0], R_m, t_m), pose_difference(R[[0] * len(R)], t[[0] * len(R)], R_m, t_m))
+    np.testing.assert_allclose(
+        pose_difference(R[0], t[0], R_m, t_m), pose_difference(R[[0] * len(R)], t[[0] * len(R)], R_m, t_m)
+    )
 
 
 def test_fk_on_a_degenerate_geometry_takes_least_squares_steps():
@@ -113,8 +117,10 @@ def test_fk_per_pose_geometry_solves_each_pose_with_its_own_legs():
     R, t = kin.pose_to_rt(POSES)
     strokes = np.stack([kin.inverse_kinematics(g, R[k], t[k]) for k, g in enumerate(geometries)])
     home_R, home_t = kin.pose_to_rt(PLATFORM.workspace.home)
-    base, plat, lengths = (np.stack([getattr(g, name) for g in geometries])
-                           for name in ("base_joints", "platform_joints", "initial_lengths"))
+    base, plat, lengths = (
+        np.stack([getattr(g, name) for g in geometries])
+        for name in ("base_joints", "platform_joints", "initial_lengths")
+    )
 
     batched = kin.forward_kinematics_per_pose(base, plat, lengths, strokes, guess=(home_R, home_t))
     for k, g in enumerate(geometries):

@@ -91,7 +91,9 @@ def test_ik_of_fk_is_the_lengths(mechanism, fraction):
     strokes = kin.inverse_kinematics(legs, *kin.pose_to_rt(WS.home)) + STROKE_HALF_RANGE_MM * fraction
     solution = kin.forward_kinematics(legs, strokes, tol_mm=FK_TOL_MM)
     # IK(FK(q)) − q is the FK residual itself: ≤ tol_mm by construction, ≤ 1e-9 mm asked.
-    np.testing.assert_allclose(kin.inverse_kinematics(legs, solution.R, solution.t), strokes, rtol=0, atol=ROUND_TRIP_MM)
+    np.testing.assert_allclose(
+        kin.inverse_kinematics(legs, solution.R, solution.t), strokes, rtol=0, atol=ROUND_TRIP_MM
+    )
 
 
 @pytest.mark.parametrize("mechanism", MECHANISMS)
@@ -121,10 +123,11 @@ def test_warm_start_needs_no_more_iterations_than_cold(mechanism):
     R, t = kin.pose_to_rt(poses)
     strokes = kin.inverse_kinematics(legs, R, t)
     cold = kin.forward_kinematics(legs, strokes[1:]).iterations
-    warm = np.array([kin.forward_kinematics(legs, strokes[k], guess=(R[k - 1], t[k - 1])).iterations for k in range(1, len(poses))])
+    warm = np.array(
+        [kin.forward_kinematics(legs, strokes[k], guess=(R[k - 1], t[k - 1])).iterations for k in range(1, len(poses))]
+    )
     assert np.all(warm <= cold)
     assert warm.sum() < cold.sum()
-
 
 
 def fk_tolerance_bound(tracker, drive, R, t) -> float:
@@ -153,7 +156,9 @@ def test_tracker_reading_residuals_are_batch_fk_and_ik():
     for drive, q, got in zip(drives, each_strokes, residuals):
         fk = kin.forward_kinematics(drive, np.delete(q, 50, axis=0))
         expected = np.delete(readings, 50, axis=0) - kin.inverse_kinematics(platform.tracker, fk.R, fk.t)
-        assert np.abs(np.delete(got, 50, axis=0) - expected).max() <= fk_tolerance_bound(platform.tracker, drive, fk.R, fk.t)
+        assert np.abs(np.delete(got, 50, axis=0) - expected).max() <= fk_tolerance_bound(
+            platform.tracker, drive, fk.R, fk.t
+        )
 
 
 def test_fk_refuses_inconsistent_lengths():

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from stewart_calib.compensation import compensate
-from stewart_calib.errors import CalibError, SampleRejected
 from stewart_calib.config import config_from_dict
+from stewart_calib.errors import CalibError, SampleRejected
 from stewart_calib.online import CHECKPOINT_VERSION, ONLINE_METHODS, OnlineCalibrator, Rejections, npz_bytes
 from stewart_calib.samples import Sample
 from tests.faults import INDETERMINANT, degenerate_sample
@@ -36,7 +36,9 @@ def config():
 def log(platform):
     rng = np.random.default_rng(3)
     error = random_error(rng, 1.0)
-    log, _ = make_log(platform, error, random_poses(platform, 150, rng), rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
+    log, _ = make_log(
+        platform, error, random_poses(platform, 150, rng), rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001
+    )
     return log
 
 
@@ -71,13 +73,18 @@ def test_resume_from_checkpoint_matches_an_uninterrupted_run(platform, config, l
         assert np.max(np.abs(estimate.covariance - full.covariance)) <= RESUME_TOLERANCE_MM[method] * 1e-2
 
 
-def test_a_gtsam_failure_rejects_the_sample_and_the_smoother_is_rebuilt_without_it(platform, config, log, monkeypatch, tmp_path):
+def test_a_gtsam_failure_rejects_the_sample_and_the_smoother_is_rebuilt_without_it(
+    platform, config, log, monkeypatch, tmp_path
+):
     bad = 97  # deep into the run: the replay buffer starts at a snapshot, so the rebuild is not a replay from the start
     degenerate_sample(monkeypatch, float(log.t_s[bad]))
     never = _feed(OnlineCalibrator(platform, "isam2", config), log.select(np.arange(len(log)) != bad)).estimate()
     calib = _feed(OnlineCalibrator(platform, "isam2", config), log.select(slice(0, bad)))
     calib.save(tmp_path / "c.npz")
-    with pytest.raises(SampleRejected, match=rf"^sample at t = {log.t_s[bad]} s: gtsam failed in the iSAM2 update \({INDETERMINANT} .*\)$"):
+    with pytest.raises(
+        SampleRejected,
+        match=rf"^sample at t = {log.t_s[bad]} s: gtsam failed in the iSAM2 update \({INDETERMINANT} .*\)$",
+    ):
         calib.update(log[bad])
     assert calib.rejections.by_reason == {"solver failed": 1}
     # The failed update rebuilt the smoother from the state a checkpoint holds, as a resume does: bit for bit.
@@ -123,14 +130,17 @@ def test_an_unusable_sample_is_rejected_and_leaves_the_state_untouched(platform,
 
 
 def test_rejections_are_summarised_by_reason():
-    rejections = Rejections.of([
-        SampleRejected("ekf: sample at t = 1 s gated: NIS 9e4 > χ² bound 27.9", SampleRejected.GATED),
-        SampleRejected("tracker forward kinematics did not converge", SampleRejected.FK_FAILED),
-        SampleRejected("ekf: sample at t = 2 s gated: NIS 1e5 > χ² bound 27.9", SampleRejected.GATED),
-        SampleRejected("sample at t = 3 s is older than the last one (4 s)", SampleRejected.TIME_BACK),
-    ])
+    rejections = Rejections.of(
+        [
+            SampleRejected("ekf: sample at t = 1 s gated: NIS 9e4 > χ² bound 27.9", SampleRejected.GATED),
+            SampleRejected("tracker forward kinematics did not converge", SampleRejected.FK_FAILED),
+            SampleRejected("ekf: sample at t = 2 s gated: NIS 1e5 > χ² bound 27.9", SampleRejected.GATED),
+            SampleRejected("sample at t = 3 s is older than the last one (4 s)", SampleRejected.TIME_BACK),
+        ]
+    )
     assert rejections.summary() == {
-        "count": 4, "by_reason": {"FK failed": 1, "gated outlier": 2, "time went back": 1},
+        "count": 4,
+        "by_reason": {"FK failed": 1, "gated outlier": 2, "time went back": 1},
         "first": "ekf: sample at t = 1 s gated: NIS 9e4 > χ² bound 27.9",
     }
 
@@ -163,8 +173,14 @@ def _rewrite(path, arrays):
         (lambda p, a: p.unlink(), "checkpoint not found"),
         (lambda p, a: p.write_bytes(p.read_bytes()[:200]), "not a readable checkpoint"),
         (lambda p, a: p.write_bytes(b"\x80\x04garbage" * 10), "not a readable checkpoint (not an .npz archive"),
-        (lambda p, a: p.write_bytes(np.random.default_rng(0).bytes(4096)), "not a readable checkpoint (not an .npz archive"),
-        (lambda p, a: np.save(p.open("wb"), np.array([{"x": 1}], dtype=object), allow_pickle=True), "not a readable checkpoint"),
+        (
+            lambda p, a: p.write_bytes(np.random.default_rng(0).bytes(4096)),
+            "not a readable checkpoint (not an .npz archive",
+        ),
+        (
+            lambda p, a: np.save(p.open("wb"), np.array([{"x": 1}], dtype=object), allow_pickle=True),
+            "not a readable checkpoint",
+        ),
         (lambda p, a: _rewrite(p, {**a, "version": np.array(CHECKPOINT_VERSION + 1)}), "version"),
         (lambda p, a: _rewrite(p, {**a, "format": np.array("stewart-calib/result@1")}), "not a checkpoint"),
         (lambda p, a: _rewrite(p, {**a, "method": np.array("ls")}), "unknown online method"),
@@ -193,8 +209,14 @@ def test_checkpoint_is_a_zip_of_plain_arrays_and_holds_no_pickle(platform, confi
 
 def test_checkpoint_archive_is_what_np_load_and_zipfile_read(tmp_path):
     rng = np.random.default_rng(5)
-    arrays = {"format": np.array("stewart-calib/checkpoint"), "version": np.array(1), "state/a/P": rng.random((42, 42)),
-              "flags": np.array([True, False]), "none": np.zeros((0, 6)), "ints": np.arange(-3, 3)}
+    arrays = {
+        "format": np.array("stewart-calib/checkpoint"),
+        "version": np.array(1),
+        "state/a/P": rng.random((42, 42)),
+        "flags": np.array([True, False]),
+        "none": np.zeros((0, 6)),
+        "ints": np.arange(-3, 3),
+    }
     path = tmp_path / "c.npz"
     path.write_bytes(npz_bytes(arrays))
     with zipfile.ZipFile(path) as archive:

@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stewart_calib.errors import SampleRejected
 from stewart_calib.config import config_from_dict
+from stewart_calib.errors import SampleRejected
 from stewart_calib.online import OnlineCalibrator
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
 
@@ -30,11 +30,15 @@ def data():
     platform = nim_stewart()
     rng = np.random.default_rng(5)
     error = random_error(rng, 1.0)
-    clean, _ = make_log(platform, error, random_poses(platform, N, rng), rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
+    clean, _ = make_log(
+        platform, error, random_poses(platform, N, rng), rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001
+    )
     bad = clean.select(slice(None))
     bad.readings = clean.readings.copy()  # select() shares the arrays
     rows = rng.choice(N, int(OUTLIER_FRACTION * N), replace=False)
-    bad.readings[rows, rng.integers(0, 6, len(rows))] += rng.uniform(0.5, 2.0, len(rows)) * rng.choice([-1, 1], len(rows))
+    bad.readings[rows, rng.integers(0, 6, len(rows))] += rng.uniform(0.5, 2.0, len(rows)) * rng.choice(
+        [-1, 1], len(rows)
+    )
     return platform, error, clean, bad, rows
 
 

@@ -10,8 +10,8 @@ import pytest
 from stewart_calib import kinematics as kin
 from stewart_calib import planning
 from stewart_calib.cli import main as cli_main
-from stewart_calib.errors import CalibError
 from stewart_calib.config import NoiseConfig
+from stewart_calib.errors import CalibError
 from stewart_calib.identifiability import identifiability_report, whitened_leg_jacobian
 from stewart_calib.io import read_pose_list
 from tests.synthetic import NIM_STEWART, nim_stewart, random_poses
@@ -108,7 +108,9 @@ def test_cli_writes_a_pose_list_that_reads_back(platform, tmp_path, capsys):
 @pytest.mark.parametrize("dwell", ["nan", "-1", "0", "abc"])
 def test_plan_refuses_a_dwell_time_that_would_not_increase_t_s(tmp_path, capsys, dwell):
     with pytest.raises(SystemExit) as stop:
-        cli_main(["plan", "--platform", str(NIM_STEWART), "--n", "5", "--out", str(tmp_path / "p.csv"), "--dwell-s", dwell])
+        cli_main(
+            ["plan", "--platform", str(NIM_STEWART), "--n", "5", "--out", str(tmp_path / "p.csv"), "--dwell-s", dwell]
+        )
     err = capsys.readouterr().err.strip().splitlines()
     assert stop.value.code == 2 and len(err) == 1 and "--dwell-s: expected a finite positive number" in err[0]
     assert not (tmp_path / "p.csv").exists()

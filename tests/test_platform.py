@@ -38,11 +38,19 @@ def test_platform_to_toml_round_trips_exactly():
 
 def assert_same_platform(a, b) -> None:
     """Field by field, exactly (the dataclasses hold arrays, so ``==`` cannot compare them)."""
-    assert (a.name, a.description, a.stroke_range, a.reading_range) == (b.name, b.description, b.stroke_range, b.reading_range)
+    assert (a.name, a.description, a.stroke_range, a.reading_range) == (
+        b.name,
+        b.description,
+        b.stroke_range,
+        b.reading_range,
+    )
     for legs_a, legs_b in ((a.drive, b.drive), (a.tracker, b.tracker)):
         np.testing.assert_array_equal(legs_a.params, legs_b.params)
     np.testing.assert_array_equal(a.workspace.home, b.workspace.home)
-    assert (a.workspace.translation_limit, a.workspace.rotation_limit) == (b.workspace.translation_limit, b.workspace.rotation_limit)
+    assert (a.workspace.translation_limit, a.workspace.rotation_limit) == (
+        b.workspace.translation_limit,
+        b.workspace.rotation_limit,
+    )
 
 
 def _doc() -> dict:
@@ -67,28 +75,66 @@ def _to_toml(doc: dict) -> str:
             return f'"{v}"'
         if isinstance(v, list):
             return "[" + ", ".join(value(x) for x in v) + "]"
-        return repr(v) if not isinstance(v, float) or math.isfinite(v) else ("nan" if v != v else ("inf" if v > 0 else "-inf"))
+        return (
+            repr(v)
+            if not isinstance(v, float) or math.isfinite(v)
+            else ("nan" if v != v else ("inf" if v > 0 else "-inf"))
+        )
 
     top = [f"{k} = {value(v)}" for k, v in doc.items() if not isinstance(v, dict)]
-    tables = [f"[{k}]\n" + "\n".join(f"{kk} = {value(vv)}" for kk, vv in v.items()) for k, v in doc.items() if isinstance(v, dict)]
+    tables = [
+        f"[{k}]\n" + "\n".join(f"{kk} = {value(vv)}" for kk, vv in v.items())
+        for k, v in doc.items()
+        if isinstance(v, dict)
+    ]
     return "\n".join(top) + "\n\n" + "\n\n".join(tables) + "\n"
 
 
 @pytest.mark.parametrize(
     ("edit", "expected"),
     [
-        (lambda d: d["drive"]["base_joints_mm"].pop(), "key 'drive.base_joints_mm': expected 6 rows of [x, y, z] in mm, got shape (5, 3)"),
-        (lambda d: d["tracker"].pop("platform_joints_mm"), "key 'tracker.platform_joints_mm': expected 6 rows of [x, y, z] in mm (missing)"),
+        (
+            lambda d: d["drive"]["base_joints_mm"].pop(),
+            "key 'drive.base_joints_mm': expected 6 rows of [x, y, z] in mm, got shape (5, 3)",
+        ),
+        (
+            lambda d: d["tracker"].pop("platform_joints_mm"),
+            "key 'tracker.platform_joints_mm': expected 6 rows of [x, y, z] in mm (missing)",
+        ),
         (lambda d: d.pop("tracker"), "key 'tracker': expected a [tracker] table"),
         (lambda d: d.pop("name"), "key 'name': expected a non-empty string"),
-        (lambda d: d["drive"]["initial_lengths_mm"].__setitem__(2, float("nan")), "key 'drive.initial_lengths_mm': expected a list of 6 numbers of finite numbers"),
-        (lambda d: d["tracker"]["base_joints_mm"][1].__setitem__(0, float("inf")), "key 'tracker.base_joints_mm': expected 6 rows of [x, y, z] in mm of finite numbers"),
-        (lambda d: d["drive"]["initial_lengths_mm"].__setitem__(0, -1.0), "key 'drive.initial_lengths_mm': expected 6 positive lengths in mm"),
-        (lambda d: d["tracker"].__setitem__("reading_range_mm", [318.0, -276.0]), "key 'tracker.reading_range_mm': expected [min, max] with min < max, got [318.0, -276.0]"),
-        (lambda d: d["drive"].__setitem__("stroke_range_mm", [1.0]), "key 'drive.stroke_range_mm': expected a list of 2 numbers, got shape (1,)"),
-        (lambda d: d["workspace"].__setitem__("rotation_limit_deg", -5.0), "key 'workspace.rotation_limit_deg': expected a finite non-negative number"),
-        (lambda d: d["workspace"]["home"].__setitem__(2, 1800.0), "key 'workspace.home': expected a home pose whose drive strokes lie within [-420.0, 520.0] mm"),
-        (lambda d: d["workspace"]["home"].__setitem__(2, 1500.0), "key 'workspace.home': expected a home pose whose tracker readings lie within [-276.0, 318.0] mm; leg 1 needs 336.455 mm"),
+        (
+            lambda d: d["drive"]["initial_lengths_mm"].__setitem__(2, float("nan")),
+            "key 'drive.initial_lengths_mm': expected a list of 6 numbers of finite numbers",
+        ),
+        (
+            lambda d: d["tracker"]["base_joints_mm"][1].__setitem__(0, float("inf")),
+            "key 'tracker.base_joints_mm': expected 6 rows of [x, y, z] in mm of finite numbers",
+        ),
+        (
+            lambda d: d["drive"]["initial_lengths_mm"].__setitem__(0, -1.0),
+            "key 'drive.initial_lengths_mm': expected 6 positive lengths in mm",
+        ),
+        (
+            lambda d: d["tracker"].__setitem__("reading_range_mm", [318.0, -276.0]),
+            "key 'tracker.reading_range_mm': expected [min, max] with min < max, got [318.0, -276.0]",
+        ),
+        (
+            lambda d: d["drive"].__setitem__("stroke_range_mm", [1.0]),
+            "key 'drive.stroke_range_mm': expected a list of 2 numbers, got shape (1,)",
+        ),
+        (
+            lambda d: d["workspace"].__setitem__("rotation_limit_deg", -5.0),
+            "key 'workspace.rotation_limit_deg': expected a finite non-negative number",
+        ),
+        (
+            lambda d: d["workspace"]["home"].__setitem__(2, 1800.0),
+            "key 'workspace.home': expected a home pose whose drive strokes lie within [-420.0, 520.0] mm",
+        ),
+        (
+            lambda d: d["workspace"]["home"].__setitem__(2, 1500.0),
+            "key 'workspace.home': expected a home pose whose tracker readings lie within [-276.0, 318.0] mm; leg 1 needs 336.455 mm",
+        ),
     ],
 )
 def test_refusals_name_file_and_key(tmp_path, edit, expected):
@@ -115,7 +161,6 @@ def test_shipped_configs_resolve_inside_the_package():
     # configs/ ships as stewart_calib/configs (a link in the source tree), so installs that are
     # not editable find the same files as the repository.
     from stewart_calib.resources import CONFIGS
-
     from tests.synthetic import NIM_STEWART
 
     assert (CONFIGS / "platforms" / "nim-stewart.toml").read_bytes() == NIM_STEWART.read_bytes()

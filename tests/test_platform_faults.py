@@ -25,18 +25,28 @@ def _set(section, key, value):
 @pytest.mark.parametrize(
     ("edit", "expected"),
     [
-        (_set("drive", "base_joints_mm", [[100.0, 50.0, 10.0]] * 6),
-         "key 'drive.base_joints_mm': expected 6 joints spread in a plane; joints 1–6 all coincide at [100.0, 50.0, 10.0]"),
-        (_set("tracker", "platform_joints_mm", [[10.0 * k, 20.0 * k, -127.21] for k in range(6)]),
-         "key 'tracker.platform_joints_mm': expected 6 joints spread in a plane; joints 1–6 lie on one line"),
-        (_set("drive", "stroke_rnage_mm", [-420.0, 520.0]),
-         "unknown key 'drive.stroke_rnage_mm' (did you mean 'stroke_range_mm'?); expected one of base_joints_mm, "
-         "initial_lengths_mm, platform_joints_mm, stroke_range_mm"),
+        (
+            _set("drive", "base_joints_mm", [[100.0, 50.0, 10.0]] * 6),
+            "key 'drive.base_joints_mm': expected 6 joints spread in a plane; joints 1–6 all coincide at [100.0, 50.0, 10.0]",
+        ),
+        (
+            _set("tracker", "platform_joints_mm", [[10.0 * k, 20.0 * k, -127.21] for k in range(6)]),
+            "key 'tracker.platform_joints_mm': expected 6 joints spread in a plane; joints 1–6 lie on one line",
+        ),
+        (
+            _set("drive", "stroke_rnage_mm", [-420.0, 520.0]),
+            "unknown key 'drive.stroke_rnage_mm' (did you mean 'stroke_range_mm'?); expected one of base_joints_mm, "
+            "initial_lengths_mm, platform_joints_mm, stroke_range_mm",
+        ),
         (lambda d: d.__setitem__("nmae", "x"), "unknown key 'nmae' (did you mean 'name'?)"),
-        (lambda d: d["drive"]["initial_lengths_mm"].__setitem__(0, "1048.5"),
-         "key 'drive.initial_lengths_mm': expected a list of 6 numbers of numbers (not quoted text)"),
-        (lambda d: d["tracker"]["base_joints_mm"][2].__setitem__(1, "-651.41"),
-         "key 'tracker.base_joints_mm': expected 6 rows of [x, y, z] in mm of numbers (not quoted text)"),
+        (
+            lambda d: d["drive"]["initial_lengths_mm"].__setitem__(0, "1048.5"),
+            "key 'drive.initial_lengths_mm': expected a list of 6 numbers of numbers (not quoted text)",
+        ),
+        (
+            lambda d: d["tracker"]["base_joints_mm"][2].__setitem__(1, "-651.41"),
+            "key 'tracker.base_joints_mm': expected 6 rows of [x, y, z] in mm of numbers (not quoted text)",
+        ),
     ],
 )
 def test_bad_platforms_are_refused_at_load_naming_the_key(tmp_path, edit, expected):
@@ -63,8 +73,9 @@ def test_a_platform_in_metres_is_called_metres(tmp_path):
         doc.pop("workspace")
 
     message = _refusal(tmp_path, _edited(to_metres))
-    assert message.endswith("[drive]: the geometry looks like metres (largest coordinate or length 1.049); "
-                            "expected millimetres (spec §2)")
+    assert message.endswith(
+        "[drive]: the geometry looks like metres (largest coordinate or length 1.049); expected millimetres (spec §2)"
+    )
 
 
 def test_a_degenerate_platform_is_refused_by_every_command_in_one_line(tmp_path, capsys):
@@ -72,8 +83,10 @@ def test_a_degenerate_platform_is_refused_by_every_command_in_one_line(tmp_path,
     path.write_text(_edited(_set("drive", "platform_joints_mm", [[0.0, 0.0, -127.21]] * 6)))
     poses = tmp_path / "poses.csv"
     poses.write_text("x_mm,y_mm,z_mm,roll_deg,pitch_deg,yaw_deg\n0,0,1125.8,0,0,0\n")
-    for argv in (["identifiability", "--platform", str(path), "--poses", str(poses)],
-                 ["plan", "--platform", str(path), "--n", "20", "--out", str(tmp_path / "planned.csv")]):
+    for argv in (
+        ["identifiability", "--platform", str(path), "--poses", str(poses)],
+        ["plan", "--platform", str(path), "--n", "20", "--out", str(tmp_path / "planned.csv")],
+    ):
         assert cli.main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "drive.platform_joints_mm" in err[0] and "coincide" in err[0]

@@ -9,9 +9,9 @@ import pytest
 
 from stewart_calib import cli
 from stewart_calib import kinematics as kin
+from stewart_calib.config import NoiseConfig, config_from_dict
 from stewart_calib.errors import CalibError
 from stewart_calib.estimators.base import feed
-from stewart_calib.config import NoiseConfig, config_from_dict
 from stewart_calib.io import write_log
 from stewart_calib.online import OnlineCalibrator
 from stewart_calib.platform import LegGeometry, platform_to_toml
@@ -50,8 +50,19 @@ def test_calibrate_refuses_a_log_of_another_platform_naming_the_residual(tmp_pat
     for platform_file, log, code in (("p.toml", own, 0), ("p.toml", foreign, 2), ("other.toml", own, 2)):
         write_log(tmp_path / "log.csv", log)
         out = tmp_path / f"{platform_file}-{code}.json"
-        argv = ["calibrate", "--platform", str(tmp_path / platform_file), "--log", str(tmp_path / "log.csv"),
-                "--method", method, "--out", str(out), "--set", "isam2.window_samples=10"]
+        argv = [
+            "calibrate",
+            "--platform",
+            str(tmp_path / platform_file),
+            "--log",
+            str(tmp_path / "log.csv"),
+            "--method",
+            method,
+            "--out",
+            str(out),
+            "--set",
+            "isam2.window_samples=10",
+        ]
         assert cli.main(argv) == code
         err = capsys.readouterr().err.strip().splitlines()
         if code:
@@ -81,8 +92,24 @@ def test_the_online_result_is_refused_and_track_exits_2(tmp_path, capsys, logs):
     (tmp_path / "p.toml").write_text(platform_to_toml(platform))
     write_log(tmp_path / "log.csv", foreign)
     out = tmp_path / "r.json"
-    assert cli.main(["track", "--platform", str(tmp_path / "p.toml"), "--method", "ekf", "--log", str(tmp_path / "log.csv"),
-                     "--out", str(out), "--every", "20"]) == 2
+    assert (
+        cli.main(
+            [
+                "track",
+                "--platform",
+                str(tmp_path / "p.toml"),
+                "--method",
+                "ekf",
+                "--log",
+                str(tmp_path / "log.csv"),
+                "--out",
+                str(out),
+                "--every",
+                "20",
+            ]
+        )
+        == 2
+    )
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert not out.exists()
 
@@ -113,8 +140,13 @@ def test_the_rms_residual_is_the_drive_residual_at_the_tracker_fk_pose(logs):
     unreachable = own.readings.copy()
     unreachable[[5, 6, 30], 0] += 5000.0  # one leg 5 m longer than the others: out of reach, no FK, left out
     assert not kin.forward_kinematics(platform.tracker, unreachable[[5, 6, 30]], strict=False).converged.any()
-    for strokes, readings in ((own.strokes, own.readings), (own.strokes, unreachable), (foreign.strokes, foreign.readings)):
-        assert rms_leg_residual_mm(platform, error, strokes, readings) == pytest.approx(by_definition(strokes, readings),
-                                                                                       rel=1e-9, abs=1e-9)
+    for strokes, readings in (
+        (own.strokes, own.readings),
+        (own.strokes, unreachable),
+        (foreign.strokes, foreign.readings),
+    ):
+        assert rms_leg_residual_mm(platform, error, strokes, readings) == pytest.approx(
+            by_definition(strokes, readings), rel=1e-9, abs=1e-9
+        )
     assert np.isnan(rms_leg_residual_mm(platform, error, own.strokes[5:7], unreachable[5:7]))
     assert np.isnan(rms_leg_residual_mm(platform, error, np.zeros((0, 6)), np.zeros((0, 6))))

@@ -45,8 +45,19 @@ def calibrated(tmp_path_factory):
 
 
 def _compensate_cli(result, poses_path, out) -> int:
-    return main(["compensate", "--platform", str(NIM_STEWART), "--result", str(result), "--poses", str(poses_path),
-                 "--out", str(out)])
+    return main(
+        [
+            "compensate",
+            "--platform",
+            str(NIM_STEWART),
+            "--result",
+            str(result),
+            "--poses",
+            str(poses_path),
+            "--out",
+            str(out),
+        ]
+    )
 
 
 @pytest.mark.parametrize("newline, block_bytes", [("\n", 4096), ("\r\n", 4096), ("\n", 10**7)])
@@ -85,8 +96,9 @@ def test_a_refusal_in_a_late_block_leaves_no_output_and_names_its_row(calibrated
         compensate(drive, _file_poses(_pose_list_text(far)), limits=platform)
     assert whole.value.pose_index == 2950
     assert _compensate_cli(result, tmp_path / "far.csv", out) == 2
-    assert capsys.readouterr().err.strip() == (f"stewart-calib compensate: error: {tmp_path / 'far.csv'}: row 2952: "
-                                               f"{whole.value.reason}")
+    assert capsys.readouterr().err.strip() == (
+        f"stewart-calib compensate: error: {tmp_path / 'far.csv'}: row 2952: {whole.value.reason}"
+    )
     assert out.read_text() == "the previous output\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.csv", "far.csv", "q.csv"]  # no temporary left
 
@@ -122,7 +134,9 @@ def test_one_row_and_header_only_files(tmp_path):
     (tmp_path / "one.csv").write_text(f"{HEADER}\n0,1,2,3,4,5,6")  # no final line break
     np.testing.assert_array_equal(io.read_pose_list(tmp_path / "one.csv"), [[1, 2, 3, *np.radians([4, 5, 6])]])
     (tmp_path / "head.csv").write_text(f"{HEADER}\n\n")
-    with pytest.raises(CalibError, match=r"head.csv: no sample rows; expected a header row and at least one sample row$"):
+    with pytest.raises(
+        CalibError, match=r"head.csv: no sample rows; expected a header row and at least one sample row$"
+    ):
         io.read_pose_list(tmp_path / "head.csv")
     (tmp_path / "empty.csv").write_text(" \n\n")
     with pytest.raises(CalibError, match=r"empty.csv: empty file, no sample rows"):
@@ -137,8 +151,11 @@ def test_bytes_that_are_not_utf8_are_refused_before_any_other_problem(tmp_path):
     data = f"{HEADER}\nnot,a,number,row,at,row,two\n{body}".encode() + b"9,1,2,3,\xff,5,6\n"
     (tmp_path / "poses.csv").write_bytes(data)
     offset = data.index(b"\xff")
-    with pytest.raises(CalibError, match=rf"poses.csv: pose list is not UTF-8 text \(byte 0xff at offset {offset}\); "
-                                         "expected a UTF-8 CSV file$"):
+    with pytest.raises(
+        CalibError,
+        match=rf"poses.csv: pose list is not UTF-8 text \(byte 0xff at offset {offset}\); "
+        "expected a UTF-8 CSV file$",
+    ):
         list(io.read_pose_list_blocks(tmp_path / "poses.csv", 4096))
     (tmp_path / "columns.csv").write_bytes(b"x_mm,y_mm\n" + data[len(HEADER) + 1 :])  # a missing column, too
     with pytest.raises(CalibError, match=r"columns.csv: pose list is not UTF-8 text"):
@@ -148,12 +165,28 @@ def test_bytes_that_are_not_utf8_are_refused_before_any_other_problem(tmp_path):
 @pytest.mark.parametrize("rows", [10, 4100])  # by repr and by pyarrow
 def test_float_rows_are_repr_joined(rows):
     rng = np.random.default_rng(7)
-    edges = [0.0, -0.0, 1e-4, np.nextafter(1e-4, 0), 1e9, np.nextafter(1e9, 0), 1e16, 5e-324, np.inf, -np.inf, np.nan, 0.1, 2.0**53]
+    edges = [
+        0.0,
+        -0.0,
+        1e-4,
+        np.nextafter(1e-4, 0),
+        1e9,
+        np.nextafter(1e9, 0),
+        1e16,
+        5e-324,
+        np.inf,
+        -np.inf,
+        np.nan,
+        0.1,
+        2.0**53,
+    ]
     n = 3 * rows - 2 * len(edges)
     values = rng.choice([-1, 1], n) * 10.0 ** rng.uniform(-9, 20, n) * rng.uniform(1, 10, n)
     values[::7] = np.round(values[::7])
     columns = list(np.r_[edges, values, edges[::-1]].reshape(3, -1))
-    assert float_rows_csv(columns).decode() == "".join(",".join(map(repr, row)) + "\n" for row in zip(*(c.tolist() for c in columns)))
+    assert float_rows_csv(columns).decode() == "".join(
+        ",".join(map(repr, row)) + "\n" for row in zip(*(c.tolist() for c in columns))
+    )
     assert float_rows_csv([np.empty(0), np.empty(0)]) == b""
 
 
@@ -168,4 +201,6 @@ def test_a_failing_block_leaves_the_file_as_it_was(tmp_path):
         io.write_pose_list_blocks(tmp_path / "q.csv", blocks(), ("q1_mm",))
     assert (tmp_path / "q.csv").read_text() == "old\n" and len(list(tmp_path.iterdir())) == 1
     assert io.write_pose_list_blocks(tmp_path / "q.csv", iter([(np.zeros((2, 6)), np.ones((2, 1)))]), ("q1_mm",)) == 2
-    assert (tmp_path / "q.csv").read_text() == f"{HEADER},q1_mm\n" + "".join(f"{k}.0,{'0.0,' * 6}1.0\n" for k in range(2))
+    assert (tmp_path / "q.csv").read_text() == f"{HEADER},q1_mm\n" + "".join(
+        f"{k}.0,{'0.0,' * 6}1.0\n" for k in range(2)
+    )

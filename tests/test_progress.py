@@ -38,8 +38,17 @@ def held_out(tmp_path_factory):
 
 
 def _validate(path, out: str) -> list[str]:
-    return ["validate", "--platform", str(NIM_STEWART), "--result", str(path / "r.json"), "--log", str(path / "log.csv"),
-            "--out", str(path / out)]
+    return [
+        "validate",
+        "--platform",
+        str(NIM_STEWART),
+        "--result",
+        str(path / "r.json"),
+        "--log",
+        str(path / "log.csv"),
+        "--out",
+        str(path / out),
+    ]
 
 
 def test_validate_is_quiet_when_piped_and_shows_a_bar_on_a_terminal(held_out, monkeypatch, capsys):

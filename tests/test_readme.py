@@ -35,7 +35,11 @@ FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
 
 def snippets() -> list[tuple[str, str]]:
     """``(language, text)`` of every fenced bash / python block, in order."""
-    return [(m.group(1), m.group(2)) for m in FENCE.finditer(README.read_text(encoding="utf-8")) if m.group(1) in ("bash", "python")]
+    return [
+        (m.group(1), m.group(2))
+        for m in FENCE.finditer(README.read_text(encoding="utf-8"))
+        if m.group(1) in ("bash", "python")
+    ]
 
 
 def bash_commands(text: str) -> list[list[str]]:
@@ -47,7 +51,7 @@ def bash_commands(text: str) -> list[list[str]]:
         while words:
             cut = words.index("&&") if "&&" in words else len(words)
             commands.append(words[:cut])
-            words = words[cut + 1:]
+            words = words[cut + 1 :]
     return commands
 
 
@@ -109,9 +113,12 @@ def test_every_readme_snippet_runs_as_written(tmp_path, monkeypatch):
             exec(compile(text, "README.md python snippet", "exec"), {"__name__": "__main__"})
 
 
-@pytest.mark.parametrize("text, expected", [
-    ("a b \\\n    c  # note\nd && e f", [["a", "b", "c"], ["d"], ["e", "f"]]),
-    ("# only a comment\n", []),
-])
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("a b \\\n    c  # note\nd && e f", [["a", "b", "c"], ["d"], ["e", "f"]]),
+        ("# only a comment\n", []),
+    ],
+)
 def test_bash_commands_are_split_as_a_shell_would(text, expected):
     assert bash_commands(text) == expected

@@ -9,20 +9,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rerun.chunk import RrdReader
 
 from stewart_calib.cli import main as cli_main
-from stewart_calib.errors import SampleRejected
 from stewart_calib.config import load_estimator_config
+from stewart_calib.errors import SampleRejected
 from stewart_calib.estimate import Estimate
+from stewart_calib.platform import PARAMETER_FIELDS
 from stewart_calib.reproduction import reproduce, results_dict
 from stewart_calib.reproduction.metrics import VIEWS
 from stewart_calib.reproduction.record import SCENE_CIRCLE_STRIDE, parameter_stride
 from stewart_calib.simulation import EstimatorController, load_experiment
 from stewart_calib.simulation.experiment import Stage
-from tests.readback import read_blueprint_names, read_entity_rows, read_scalars, read_static
-from stewart_calib.platform import PARAMETER_FIELDS
 from stewart_calib.viz.recording import SAMPLE_TIMELINE, TIME_TIMELINE
-from rerun.chunk import RrdReader
+from tests.readback import read_blueprint_names, read_entity_rows, read_scalars, read_static
 
 ROOT = Path(__file__).resolve().parents[1]
 QUICK = ROOT / "configs" / "experiments" / "quick.toml"
@@ -60,10 +60,16 @@ def _assert_online_beats_frozen_ls(results: dict, stages: list[str]) -> None:
     tables.md shows).
     """
     details = results["details"]
-    claims = {"ekf": ("position", "orientation", "circle"), "isam2": ("position", "orientation", "circle"),
-              "paper-ekf": ("position", "circle")}
-    measure = {"position": ("validation", "position_mm"), "orientation": ("validation", "orientation_deg"),
-               "circle": ("circle", "position_mm")}
+    claims = {
+        "ekf": ("position", "orientation", "circle"),
+        "isam2": ("position", "orientation", "circle"),
+        "paper-ekf": ("position", "circle"),
+    }
+    measure = {
+        "position": ("validation", "position_mm"),
+        "orientation": ("validation", "orientation_deg"),
+        "circle": ("circle", "position_mm"),
+    }
     for view in VIEWS:
         for stage in stages:
             for method, quantities in claims.items():
@@ -83,8 +89,10 @@ def test_quick_run_online_methods_beat_frozen_ls_under_load(results):
 def test_online_methods_beat_frozen_ls_at_20_and_40_kg(three_stage_results):
     _assert_online_beats_frozen_ls(three_stage_results, ["20kg", "40kg"])
     # and the frozen model degrades with load while it stays put
-    ls = [three_stage_results["details"]["ls"]["stages"][s]["validation"]["truth"]["position_mm"]
-          for s in ("no-load", "20kg", "40kg")]
+    ls = [
+        three_stage_results["details"]["ls"]["stages"][s]["validation"]["truth"]["position_mm"]
+        for s in ("no-load", "20kg", "40kg")
+    ]
     assert ls[0] < ls[1] < ls[2]
 
 
@@ -106,13 +114,17 @@ def test_tables_are_computed_from_the_details(results):
                     row = rows[quantity, method]
                     expected = [details[method]["stages"][s][segment][view][quantity] for s in stages]
                     assert row["stages"] == pytest.approx(expected)
-                    assert row["before"] == pytest.approx(details["nominal"]["stages"][stages[0]][segment][view][quantity])
+                    assert row["before"] == pytest.approx(
+                        details["nominal"]["stages"][stages[0]][segment][view][quantity]
+                    )
                     ls = rows[quantity, "ls"]["mean"]
                     if method != "ls":
                         assert row["vs_ls_pct"] == pytest.approx(100 * (1 - np.mean(expected) / ls))
     headline = tables["headline"]
     isam2_rows = {(r["quantity"], r["method"]): r for r in tables["table6"]["tracker"]}
-    assert headline["ours"]["tracker"]["isam2"]["circle"] == pytest.approx(isam2_rows["position_mm", "isam2"]["vs_ls_pct"])
+    assert headline["ours"]["tracker"]["isam2"]["circle"] == pytest.approx(
+        isam2_rows["position_mm", "isam2"]["vs_ls_pct"]
+    )
     assert results["experiment"]["seed"] == 7 and results["run_time_s"] > 0 and "gtsam" in results["versions"]
     assert results["identifiability"]["rank"] == 42
 
@@ -156,7 +168,9 @@ def test_tables_md_numbers_equal_results_json(out, results):
         assert len(table) == len(expected)
         for cells, (method, view, values) in zip(table, expected):
             assert cells[:2] == [method, view]
-            assert all(_same(cell, values[name]) for cell, name in zip(cells[2:5], ("position", "orientation", "circle")))
+            assert all(
+                _same(cell, values[name]) for cell, name in zip(cells[2:5], ("position", "orientation", "circle"))
+            )
     for cells, (_, _, values) in zip(verdict[1:], expected_verdict[1:]):
         assert cells[5].startswith("yes" if values["meets_paper"] else "no (")
     assert all(len(cells) == 5 for cells in tracker_headline)  # no verdict from the flattering view
@@ -177,7 +191,9 @@ def test_tables_md_numbers_equal_results_json(out, results):
     for cells, row in zip(table4, json_tables["table4"]["rows"]):
         assert [int(cells[0]), cells[1]] == [row["leg"], row["source"]]
         assert all(_same(cell, value) for cell, value in zip(cells[2:], row["values"]))
-    assert {cells[0]: float(cells[1]) for cells in rms} == pytest.approx(json_tables["table4"]["rms_vs_truth_mm"], abs=5e-5)
+    assert {cells[0]: float(cells[1]) for cells in rms} == pytest.approx(
+        json_tables["table4"]["rms_vs_truth_mm"], abs=5e-5
+    )
 
 
 # ----------------------------------------------------------------------------- the recording

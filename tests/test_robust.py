@@ -34,15 +34,23 @@ def platform():
 def _log(platform, seed: int, noise_factor: float = 1.0, n: int = N):
     rng = np.random.default_rng(seed)
     error = random_error(rng, 1.0)
-    log, _ = make_log(platform, error, random_poses(platform, n, rng), rng,
-                      reading_sigma_mm=0.002 * noise_factor, stroke_sigma_mm=0.001 * noise_factor)
+    log, _ = make_log(
+        platform,
+        error,
+        random_poses(platform, n, rng),
+        rng,
+        reading_sigma_mm=0.002 * noise_factor,
+        stroke_sigma_mm=0.001 * noise_factor,
+    )
     return log, error, rng
 
 
 def _with_glitches(log, rng, rows, low_mm, high_mm):
     bad = log.select(slice(None))
     bad.readings = log.readings.copy()
-    bad.readings[rows, rng.integers(0, 6, len(rows))] += rng.uniform(low_mm, high_mm, len(rows)) * rng.choice([-1, 1], len(rows))
+    bad.readings[rows, rng.integers(0, 6, len(rows))] += rng.uniform(low_mm, high_mm, len(rows)) * rng.choice(
+        [-1, 1], len(rows)
+    )
     return bad
 
 
@@ -184,7 +192,9 @@ def test_a_stream_of_nothing_but_glitches_is_refused_in_one_line(platform):
     bad = _with_glitches(log, rng, np.arange(N), 0.5, 2.0)
     calibrator = OnlineCalibrator(platform, "ekf")
     feed(calibrator, bad)
-    with pytest.raises(CalibError, match=r"^ekf: the log does not fit .* the samples scatter .* × the configured noise σ") as err:
+    with pytest.raises(
+        CalibError, match=r"^ekf: the log does not fit .* the samples scatter .* × the configured noise σ"
+    ) as err:
         calibrator.result()
     assert "\n" not in str(err.value)
 
@@ -214,7 +224,9 @@ def _assert_same_tree(a: dict, b: dict) -> None:
 def _state_arrays(state: dict, prefix: str = "") -> dict:
     flat = {}
     for key, value in state.items():
-        flat.update(_state_arrays(value, f"{prefix}{key}/") if isinstance(value, dict) else {prefix + key: np.asarray(value)})
+        flat.update(
+            _state_arrays(value, f"{prefix}{key}/") if isinstance(value, dict) else {prefix + key: np.asarray(value)}
+        )
     return flat
 
 
@@ -242,7 +254,7 @@ def test_a_block_of_samples_is_exactly_the_samples_one_by_one(platform):
         errors, refused = np.empty((len(log), 42)), []
         for start in range(0, len(log), 400):
             block = log.select(slice(start, start + 400))
-            run = (update_block if by_block else update_each)(estimator, block, errors[start:start + len(block)])
+            run = (update_block if by_block else update_each)(estimator, block, errors[start : start + len(block)])
             refused.append([[(start + j, err.reason, str(err)) for j, err in part] for part in run])
         runs.append((estimator, errors, refused))
     (one, errors_one, refused_one), (block, errors_block, refused_block) = runs
@@ -254,8 +266,9 @@ def test_a_block_of_samples_is_exactly_the_samples_one_by_one(platform):
     assert state_block.keys() == state_one.keys()
     for key, expected in state_one.items():
         if expected.dtype.kind == "f":
-            np.testing.assert_allclose(state_block[key], expected, rtol=1e-6, atol=1e-9 * np.abs(expected).max(initial=0),
-                                       err_msg=key)
+            np.testing.assert_allclose(
+                state_block[key], expected, rtol=1e-6, atol=1e-9 * np.abs(expected).max(initial=0), err_msg=key
+            )
         else:
             np.testing.assert_array_equal(state_block[key], expected, err_msg=key)
 
@@ -268,7 +281,7 @@ def test_the_walk_between_windows_apart_is_the_difference_of_their_means():
     steps = rng.normal(0.0, np.sqrt(q * dt), size=(20000, 1000))
     walk = np.cumsum(steps, axis=1)
     a1, b1, a2, b2 = 100, 300, 700, 1000  # sample indices
-    difference = walk[:, a2:b2 + 1].mean(axis=1) - walk[:, a1:b1 + 1].mean(axis=1)
+    difference = walk[:, a2 : b2 + 1].mean(axis=1) - walk[:, a1 : b1 + 1].mean(axis=1)
     T = (a2 - b1) * dt + ((b1 - a1) * dt + (b2 - a2) * dt) / 3.0
     # the sample variance of 20000 draws has a relative σ of √(2/20000) = 1 %: 4σ
     assert np.var(difference) == pytest.approx(q * T, rel=0.04)

@@ -52,7 +52,9 @@ def test_accumulated_information_gives_the_stacked_svd(platform, monkeypatch, bl
     tol = 2 * roundoff_bound(A, n_blocks=-(-40 // block_poses))  # both paths' errors
     np.testing.assert_allclose(report.singular_values, s, rtol=0, atol=tol)
     # (AᵀA)⁻¹ moves by at most 2‖ΔA‖/σmin relative (first order); its square root by half that.
-    np.testing.assert_allclose(report.predicted_stddev_mm, np.sqrt(np.diag(np.linalg.inv(A.T @ A))), rtol=2 * tol / s[-1])
+    np.testing.assert_allclose(
+        report.predicted_stddev_mm, np.sqrt(np.diag(np.linalg.inv(A.T @ A))), rtol=2 * tol / s[-1]
+    )
     assert report.observability == ident.observability_indices(report.singular_values, A.shape[0])
 
 
@@ -88,7 +90,9 @@ def test_information_streams_in_pieces(platform):
     assert pieces.n_poses == 25
     np.testing.assert_allclose(pieces.singular_values, whole.singular_values, rtol=0, atol=2 * roundoff_bound(A, 6))
     P = ident.scaled_paper_jacobian(platform, poses).reshape(-1, 42)
-    np.testing.assert_allclose(pieces.paper_singular_values, whole.paper_singular_values, rtol=0, atol=2 * roundoff_bound(P, 6))
+    np.testing.assert_allclose(
+        pieces.paper_singular_values, whole.paper_singular_values, rtol=0, atol=2 * roundoff_bound(P, 6)
+    )
 
 
 # ----------------------------------------------------------------------------- reading in blocks
@@ -105,8 +109,13 @@ def _write_log_with_faults(path, n: int = 60) -> None:
     from stewart_calib import kinematics as kin
 
     R, t = kin.pose_to_rt(poses)
-    log = Log(np.arange(n) * 0.1, kin.inverse_kinematics(platform.drive, R, t), kin.inverse_kinematics(platform.tracker, R, t),
-              poses, [f"stage {k // 20}" for k in range(n)])
+    log = Log(
+        np.arange(n) * 0.1,
+        kin.inverse_kinematics(platform.drive, R, t),
+        kin.inverse_kinematics(platform.tracker, R, t),
+        poses,
+        [f"stage {k // 20}" for k in range(n)],
+    )
     write_log(path, log)
     lines = path.read_text().splitlines()
     lines[10] = lines[10].replace(lines[10].split(",")[3], "nan", 1)  # row 11: q3 not finite
@@ -148,7 +157,6 @@ def test_time_going_back_across_a_block_boundary_is_flagged(tmp_path):
         assert skipped == [11, 31, 32]
 
 
-
 def test_a_long_numeric_log_read_by_pyarrow_is_the_log_read_as_text(tmp_path, monkeypatch):
     # Without a text column, a log longer than a block is parsed by pyarrow from the file's bytes;
     # read as one block (the file shorter than it) it takes the text path. Both see the same
@@ -157,7 +165,9 @@ def test_a_long_numeric_log_read_by_pyarrow_is_the_log_read_as_text(tmp_path, mo
     from stewart_calib.io import logs, read_log_blocks, tables
 
     by_arrow = []
-    monkeypatch.setattr(logs, "numbers_by_arrow", lambda *a: by_arrow.append(tables.numbers_by_arrow(*a)) or by_arrow[-1])
+    monkeypatch.setattr(
+        logs, "numbers_by_arrow", lambda *a: by_arrow.append(tables.numbers_by_arrow(*a)) or by_arrow[-1]
+    )
     path = tmp_path / "log.csv"
     _write_log_with_faults(path)
     lines = [",".join(line.split(",")[:-1]) for line in path.read_text().splitlines()]  # no stage column
@@ -180,7 +190,6 @@ def test_a_long_numeric_log_read_by_pyarrow_is_the_log_read_as_text(tmp_path, mo
         assert [b.skipped for b in blocks if b.skipped] and sum(map(len, blocks)) == len(whole)
         for field in ("t_s", "strokes", "readings", "desired_poses"):
             np.testing.assert_array_equal(np.concatenate([getattr(b, field) for b in blocks]), getattr(whole, field))
-
 
 
 def test_read_ahead_hands_on_items_and_errors_in_order():
@@ -252,7 +261,11 @@ def test_online_commands_hold_no_more_at_4n_samples(long_logs, tmp_path, monkeyp
 
     def argv(n):
         args = ["--platform", platform, "--log", str(long_logs[n])]
-        return [command, *args, "--method", "ekf", "--out", str(tmp_path / "r.json")] if command == "calibrate" else [command, *args]
+        return (
+            [command, *args, "--method", "ekf", "--out", str(tmp_path / "r.json")]
+            if command == "calibrate"
+            else [command, *args]
+        )
 
     from stewart_calib import cli
 
@@ -289,8 +302,19 @@ def test_help_imports_no_pipeline_and_nothing_heavy():
 
 
 def test_an_ekf_calibration_imports_only_its_own_command(long_logs, tmp_path):
-    modules = _modules_after(["calibrate", "--platform", str(nim_stewart().source), "--log", str(long_logs[400]),
-                              "--method", "ekf", "--out", str(tmp_path / "r.json")])
+    modules = _modules_after(
+        [
+            "calibrate",
+            "--platform",
+            str(nim_stewart().source),
+            "--log",
+            str(long_logs[400]),
+            "--method",
+            "ekf",
+            "--out",
+            str(tmp_path / "r.json"),
+        ]
+    )
     assert (tmp_path / "r.json").exists()
     assert not set(HEAVY) & modules
     # calibrate shares validate's residuals; the commands it does not use are not loaded

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from stewart_calib.cli import main
-from stewart_calib.errors import CalibError
 from stewart_calib.config import load_estimator_config
+from stewart_calib.errors import CalibError
 from stewart_calib.platform import load_platform
 from stewart_calib.resources import CONFIGS, resolve
 from stewart_calib.simulation.experiment import load_experiment
@@ -39,7 +39,10 @@ def test_an_existing_path_wins_over_a_shipped_name(tmp_path, monkeypatch):
 
 
 def test_an_unknown_name_lists_the_shipped_ones():
-    with pytest.raises(CalibError, match=r"nim-stewrat: platform file not found \(nor the name of a shipped file: hobby-hexapod, nim-stewart\)"):
+    with pytest.raises(
+        CalibError,
+        match=r"nim-stewrat: platform file not found \(nor the name of a shipped file: hobby-hexapod, nim-stewart\)",
+    ):
         load_platform("nim-stewrat")
 
 
@@ -52,8 +55,11 @@ def _build_wheel(tmp_path: Path) -> Path:
     for name in ("stewart_calib", "configs"):
         shutil.copytree(ROOT / name, source / name, symlinks=True, ignore=shutil.ignore_patterns("__pycache__"))
     dest = tmp_path / "dist"
-    build = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--quiet", str(source), "-w", str(dest)],
-                           capture_output=True, text=True)
+    build = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--quiet", str(source), "-w", str(dest)],
+        capture_output=True,
+        text=True,
+    )
     if build.returncode != 0 and "No matching distribution" in build.stderr:
         pytest.skip("building a wheel needs setuptools from a package index, which is not reachable")
     assert build.returncode == 0, build.stderr
@@ -68,24 +74,50 @@ def test_names_work_from_an_installed_wheel(tmp_path):
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
     python = venv / "bin" / "python"
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}  # no checkout on the path
-    subprocess.run([sys.executable, "-m", "pip", "--python", str(python), "install", "--quiet", "--no-deps", str(wheel)],
-                   check=True, capture_output=True, env=env)
-    site = Path(subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
-                               check=True, capture_output=True, text=True).stdout.strip())
+    subprocess.run(
+        [sys.executable, "-m", "pip", "--python", str(python), "install", "--quiet", "--no-deps", str(wheel)],
+        check=True,
+        capture_output=True,
+        env=env,
+    )
+    site = Path(
+        subprocess.run(
+            [str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout.strip()
+    )
     (site / "shared-dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
     work = tmp_path / "elsewhere"
     work.mkdir()
-    run = lambda *argv: subprocess.run([str(venv / "bin" / "stewart-calib"), *argv], cwd=work, env=env,  # noqa: E731
-                                       capture_output=True, text=True)
+    run = lambda *argv: subprocess.run(
+        [str(venv / "bin" / "stewart-calib"), *argv],
+        cwd=work,
+        env=env,  # noqa: E731
+        capture_output=True,
+        text=True,
+    )
 
-    loaded = subprocess.run([str(python), "-c", """
+    loaded = subprocess.run(
+        [
+            str(python),
+            "-c",
+            """
 import stewart_calib
 from stewart_calib.config import load_estimator_config
 from stewart_calib.simulation.experiment import load_experiment
 print(stewart_calib.__file__)
 print(load_experiment("quick").platform.source)
 print(load_estimator_config("paper").noise)
-"""], cwd=work, env=env, check=True, capture_output=True, text=True).stdout.splitlines()
+""",
+        ],
+        cwd=work,
+        env=env,
+        check=True,
+        capture_output=True,
+        text=True,
+    ).stdout.splitlines()
     assert loaded[0].startswith(str(site)) and loaded[1].startswith(str(site))
     assert loaded[2] == str(load_estimator_config(CONFIGS / "estimators" / "paper.toml").noise)
     # the command line resolves names by the same function; one cheap command shows it

@@ -105,7 +105,12 @@ def validation_errors(out: Path) -> dict[str, float]:
 def test_frozen_true_model_drives_far_closer_than_nominal(simulated, true_result, tmp_path):
     path, drive = true_result
     out = tmp_path / "frozen"
-    assert main(["simulate", "--experiment", str(QUICK), "--out", str(out), "--controller", "frozen", "--result", str(path)]) == 0
+    assert (
+        main(
+            ["simulate", "--experiment", str(QUICK), "--out", str(out), "--controller", "frozen", "--result", str(path)]
+        )
+        == 0
+    )
     # the files are the in-memory run with the same frozen model
     expected = run_experiment(load_experiment(QUICK), FrozenController(drive))
     np.testing.assert_array_equal(read_truth(out / "truth.csv").params, expected.truth.params)
@@ -134,7 +139,12 @@ def test_frozen_refuses_a_result_for_another_platform(true_result, tmp_path, cap
     path = tmp_path / "other.json"
     write_result(path, result_dict(Estimate(np.zeros(42), None, "ls", 1), other))
     out = tmp_path / "out"
-    assert main(["simulate", "--experiment", str(QUICK), "--out", str(out), "--controller", "frozen", "--result", str(path)]) == 2
+    assert (
+        main(
+            ["simulate", "--experiment", str(QUICK), "--out", str(out), "--controller", "frozen", "--result", str(path)]
+        )
+        == 2
+    )
     err = one_line_error(capsys)
     assert str(path) in err and "'nominal'" in err and "0.01 mm" in err
     assert not out.exists()
@@ -189,7 +199,9 @@ def whole_run_texts(experiment) -> tuple[str, str]:
     from stewart_calib.simulation.experiment import schedule
     from stewart_calib.simulation.load import settle
 
-    robot_rng, tracker_rng, poses_rng, noise_rng, encoder_rng, instrument_rng = np.random.default_rng(experiment.seed).spawn(6)
+    robot_rng, tracker_rng, poses_rng, noise_rng, encoder_rng, instrument_rng = np.random.default_rng(
+        experiment.seed
+    ).spawn(6)
     robot = build_robot(experiment, robot_rng, tracker_rng, encoder_rng, instrument_rng)
     plan = schedule(experiment, poses_rng)
     n = len(plan.t_s)
@@ -198,10 +210,18 @@ def whole_run_texts(experiment) -> tuple[str, str]:
     R_d, t_d = kin.pose_to_rt(plan.desired_poses)
     strokes = kin.inverse_kinematics(experiment.platform.drive, R_d, t_d)
     sol, params = settle(robot.load, robot.base_params, strokes, plan.payload_kg, (R_d, t_d))
-    log = Log(plan.t_s, robot.logged_strokes(strokes, stroke_noise), robot.readings(sol.R, sol.t, reading_noise, instrument_draws),
-              plan.desired_poses, list(plan.stages), plan.payload_kg)
+    log = Log(
+        plan.t_s,
+        robot.logged_strokes(strokes, stroke_noise),
+        robot.readings(sol.R, sol.t, reading_noise, instrument_draws),
+        plan.desired_poses,
+        list(plan.stages),
+        plan.payload_kg,
+    )
     params[:, 6::7] += robot.encoder_zero_mm
-    instrument = None if robot.instrument is None else (robot.instrument.names(), robot.instrument.unknowns.file_values())
+    instrument = (
+        None if robot.instrument is None else (robot.instrument.names(), robot.instrument.unknowns.file_values())
+    )
     truth = Truth(plan.t_s, params, kin.rt_to_pose(sol.R, sol.t), robot.stroke_scale, instrument)
     return log_text(log, experiment.platform), truth_text(truth)
 
@@ -211,7 +231,6 @@ def test_files_written_in_blocks_are_the_whole_runs_bit_for_bit(tmp_path, monkey
     # Blocks of 7 samples cut across poses, segments and stages; the noise is drawn whole
     # first, so the same experiment file gives the same bytes whatever the block size.
     from stewart_calib.simulation import closed_loop
-
     from tests.instrument_data import HOBBY
     from tests.test_instrument_files import EXPERIMENT as POSE_EXPERIMENT  # random errors, stroke scale and zero
 

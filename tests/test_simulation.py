@@ -13,7 +13,15 @@ from stewart_calib.errors import CalibError
 from stewart_calib.samples import Sample
 from stewart_calib.simulation.closed_loop import FrozenController, run_experiment
 from stewart_calib.simulation.experiment import load_experiment
-from stewart_calib.simulation.load import G_N_PER_KG, compliance_drift, gravity_wrench, leg_forces, loaded_params, settle, statics_matrix
+from stewart_calib.simulation.load import (
+    G_N_PER_KG,
+    compliance_drift,
+    gravity_wrench,
+    leg_forces,
+    loaded_params,
+    settle,
+    statics_matrix,
+)
 from stewart_calib.simulation.trajectories import random_static_poses
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -87,7 +95,9 @@ def test_compression_shortens_the_legs_and_the_platform_sinks(paper):
 
 
 def test_tracker_readings_are_ik_of_the_true_pose_before_noise(quick):
-    exact = dataclasses.replace(quick, tracker=dataclasses.replace(quick.tracker, noise_mm=0.0, quantum_mm=0.0, geometry_residual_mm=0.0))
+    exact = dataclasses.replace(
+        quick, tracker=dataclasses.replace(quick.tracker, noise_mm=0.0, quantum_mm=0.0, geometry_residual_mm=0.0)
+    )
     result = run_experiment(exact)
     R, t = kin.pose_to_rt(result.actual_poses)
     np.testing.assert_allclose(result.log.readings, kin.inverse_kinematics(quick.platform.tracker, R, t), atol=1e-9)
@@ -129,7 +139,9 @@ def test_closed_loop_commands_ik_of_the_controller_model_and_observes_every_samp
     np.testing.assert_allclose(looped.truth.params, batched.truth.params, atol=1e-8)
     # the true pose solves the true drive for the executed strokes
     for k in (0, len(looped.log) - 1):
-        true = kin.inverse_kinematics(type(drive).from_params(looped.truth.params[k]), *kin.pose_to_rt(looped.actual_poses[k]))
+        true = kin.inverse_kinematics(
+            type(drive).from_params(looped.truth.params[k]), *kin.pose_to_rt(looped.actual_poses[k])
+        )
         np.testing.assert_allclose(true, looped.log.strokes[k], atol=1e-8)
 
 
@@ -191,7 +203,9 @@ def test_a_model_frozen_at_no_load_loses_accuracy_with_load(paper_runs):
 def test_tracker_pose_accuracy_is_of_the_papers_order(paper, paper_runs):
     nominal, _ = paper_runs
     m = nominal.kinds == "validation"
-    sol = kin.forward_kinematics(paper.platform.tracker, nominal.log.readings[m], guess=kin.pose_to_rt(nominal.desired_poses[m]))
+    sol = kin.forward_kinematics(
+        paper.platform.tracker, nominal.log.readings[m], guess=kin.pose_to_rt(nominal.desired_poses[m])
+    )
     position, orientation = kin.pose_error(*kin.pose_to_rt(nominal.actual_poses[m]), sol.R, sol.t)
     # paper §4.1: 0.036 mm / 0.022°; a 42-value random residual sets the split between the two,
     # so position is matched (1.5×) and orientation only in order (3×).
@@ -279,12 +293,16 @@ def test_bending_under_a_centred_load_sinks_the_platform_by_weight_over_six_stif
     # The settled pose is ~0.2 mm lower, which turns the legs by ~1e-4 rad and changes their
     # load shares at second order: measured 1e-4 relative for the sink, 2e-9 for the joints
     # (symmetric up to the geometry's 1 µm rounding).
-    centred = dataclasses.replace(paper.load, platform_com_mm=np.array([0.0, 0.0, -40.0]), payload_com_mm=np.array([0.0, 0.0, 100.0]))
+    centred = dataclasses.replace(
+        paper.load, platform_com_mm=np.array([0.0, 0.0, -40.0]), payload_com_mm=np.array([0.0, 0.0, 100.0])
+    )
     base = paper.platform.drive.as_vector()
     R, t = kin.pose_to_rt(paper.platform.workspace.home[None])
     strokes, payload = np.zeros((1, 6)), np.array([40.0])
     rigid, _ = settle(centred, base, strokes, payload, (R, t))
-    bent, params = settle(dataclasses.replace(centred, bending_N_per_mm=BENDING_N_PER_MM), base, strokes, payload, (R, t))
+    bent, params = settle(
+        dataclasses.replace(centred, bending_N_per_mm=BENDING_N_PER_MM), base, strokes, payload, (R, t)
+    )
     sag = (centred.platform_mass_kg + 40.0) * G_N_PER_KG / (6 * BENDING_N_PER_MM)  # 0.180 mm
     assert rigid.t[0, 2] - bent.t[0, 2] == pytest.approx(sag, rel=1e-3)
     rigid_params, _ = loaded_params(centred, base, bent.R, bent.t, payload)  # same pose: only the bending term differs
@@ -324,11 +342,25 @@ def test_infinite_bending_stiffness_is_the_rigid_plate_exactly(quick):
     # The rigid model written out without the bending term (load.py step 3) ...
     R, t = kin.pose_to_rt(random_static_poses(quick.platform, 10, np.random.default_rng(2), 1.0, 0.0))
     legs = quick.platform.drive
-    forces = leg_forces(legs, R, t, gravity_wrench(R, np.tile([quick.load.platform_mass_kg, 30.0], (10, 1)), np.stack([quick.load.platform_com_mm, quick.load.payload_com_mm])))
+    forces = leg_forces(
+        legs,
+        R,
+        t,
+        gravity_wrench(
+            R,
+            np.tile([quick.load.platform_mass_kg, 30.0], (10, 1)),
+            np.stack([quick.load.platform_com_mm, quick.load.payload_com_mm]),
+        ),
+    )
     push = kin.leg_unit_vectors(legs, R, t) * forces[..., None]
     ld = quick.load
     rigid = np.concatenate(
-        [-push / ld.base_joint_N_per_mm, np.einsum("kji,klj->kli", R, push) / ld.platform_joint_N_per_mm, (-forces / ld.leg_N_per_mm)[..., None]], axis=-1
+        [
+            -push / ld.base_joint_N_per_mm,
+            np.einsum("kji,klj->kli", R, push) / ld.platform_joint_N_per_mm,
+            (-forces / ld.leg_N_per_mm)[..., None],
+        ],
+        axis=-1,
     )
     assert ld.bending_N_per_mm == np.inf
     np.testing.assert_array_equal(compliance_drift(ld, legs, R, t, forces), rigid)
@@ -369,7 +401,9 @@ def t_bound(values: np.ndarray, confidence: float = 0.999) -> float:
 
 def test_random_errors_are_reproducible_per_seed(quick, tmp_path):
     path = tmp_path / "random.toml"
-    path.write_text(QUICK.read_text().replace("[poses]", '[robot]\nerrors = "random"\nrandom_spread_mm = 0.5\n\n[poses]'))
+    path.write_text(
+        QUICK.read_text().replace("[poses]", '[robot]\nerrors = "random"\nrandom_spread_mm = 0.5\n\n[poses]')
+    )
     experiment = load_experiment(path)
     assert experiment.robot.errors == "random" and experiment.robot.random_spread_mm == 0.5
     a, b = run_experiment(experiment), run_experiment(experiment)
@@ -385,9 +419,18 @@ def test_random_errors_are_reproducible_per_seed(quick, tmp_path):
 
 def test_random_errors_have_the_configured_spread_per_block(quick):
     spread, scales = 0.5, (1.0, 0.3, 2.0)  # δj, δd, δl blocks
-    experiment = tiny(quick, errors="random", random_spread_mm=spread, scale_base_joints=scales[0], scale_platform_joints=scales[1], scale_lengths=scales[2])
+    experiment = tiny(
+        quick,
+        errors="random",
+        random_spread_mm=spread,
+        scale_base_joints=scales[0],
+        scale_platform_joints=scales[1],
+        scale_lengths=scales[2],
+    )
     nominal = quick.platform.drive.as_vector()
-    draws = np.array([run_experiment(dataclasses.replace(experiment, seed=seed)).robot.base_params - nominal for seed in range(150)])
+    draws = np.array(
+        [run_experiment(dataclasses.replace(experiment, seed=seed)).robot.base_params - nominal for seed in range(150)]
+    )
     draws = draws.reshape(-1, 6, 7)
     for columns, scale in ((slice(0, 3), scales[0]), (slice(3, 6), scales[1]), (slice(6, 7), scales[2])):
         block = draws[..., columns].ravel()  # 150 robots × 18 (or 6) values

@@ -142,9 +142,19 @@ def test_efficient_filter_scores_at_its_bound(tmp_path, drift):
 
 
 def test_task_is_a_function_of_cell_and_seed(tmp_path):
-    doc = {"methods": ["ls", "ekf"], "seeds": 1, "grid": {"samples": 30, "platform": "f", "glitch_rate": 0.1},
-           "families": {"f": {"base_radius_mm": [600.0, 800.0], "platform_radius_mm": 280.0, "base_half_angle_deg": 12.0,
-                              "platform_half_angle_deg": [40.0, 50.0]}}}
+    doc = {
+        "methods": ["ls", "ekf"],
+        "seeds": 1,
+        "grid": {"samples": 30, "platform": "f", "glitch_rate": 0.1},
+        "families": {
+            "f": {
+                "base_radius_mm": [600.0, 800.0],
+                "platform_radius_mm": 280.0,
+                "base_half_angle_deg": 12.0,
+                "platform_half_angle_deg": [40.0, 50.0],
+            }
+        },
+    }
     cell = spec_of(doc, tmp_path).cells[0]
     first, again = run_task(cell, 4, ("ls", "ekf")), run_task(cell, 4, ("ls", "ekf"))
     other_seed = run_task(cell, 5, ("ls", "ekf"))
@@ -158,13 +168,17 @@ def test_task_is_a_function_of_cell_and_seed(tmp_path):
 
 
 def test_results_are_in_grid_order_whatever_the_finishing_order(tmp_path):
-    spec = spec_of({"methods": ["ekf", "ls"], "seeds": 3, "grid": {"samples": 20, "reading_sigma_mm": [0.002, 0.01]}}, tmp_path)
+    spec = spec_of(
+        {"methods": ["ekf", "ls"], "seeds": 3, "grid": {"samples": 20, "reading_sigma_mm": [0.002, 0.01]}}, tmp_path
+    )
     schema = store.schema(spec)
     store.prepare(tmp_path)
     tasks = spec.tasks()
     for k in np.random.default_rng(0).permutation(len(tasks)):
         cell, seed = tasks[k]
-        rows = [{"cell": cell.id, "seed": seed, "method": m, **cell.settings, "failure": ""} for m in reversed(spec.methods)]
+        rows = [
+            {"cell": cell.id, "seed": seed, "method": m, **cell.settings, "failure": ""} for m in reversed(spec.methods)
+        ]
         store.write_part(tmp_path, rows, schema)
     assert store.finished(spec, tmp_path) == {(c.id, s) for c, s in tasks}
     table = store.consolidate(spec, tmp_path, schema)

@@ -31,7 +31,13 @@ PATIENCE_S = 120
 
 #: Worker environment: the repository on the path, and one BLAS thread as a nanny sets it, so
 #: the workers compute exactly as the local cluster's do.
-WORKER_ENV = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+WORKER_ENV = {
+    **os.environ,
+    "PYTHONPATH": str(ROOT),
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+}
 
 TINY = """
 name = "tiny"
@@ -55,7 +61,12 @@ reading_sigma_mm = [0.002, 0.01]
 
 def _start(*args: str) -> subprocess.Popen:
     return subprocess.Popen(
-        [sys.executable, "-m", "dask", *args], env=WORKER_ENV, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+        [sys.executable, "-m", "dask", *args],
+        env=WORKER_ENV,
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
     )
 
 
@@ -82,11 +93,27 @@ class Cluster:
 
     def __init__(self, directory: Path):
         self.file = directory / "scheduler.json"
-        self.processes = [_start("scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file", str(self.file))]
-        self.address = _wait_for(lambda: self.file.exists() and json.loads(self.file.read_text() or "{}").get("address"), "the scheduler")
+        self.processes = [
+            _start(
+                "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard", "--scheduler-file", str(self.file)
+            )
+        ]
+        self.address = _wait_for(
+            lambda: self.file.exists() and json.loads(self.file.read_text() or "{}").get("address"), "the scheduler"
+        )
 
     def add_worker(self) -> subprocess.Popen:
-        worker = _start("worker", "--scheduler-file", str(self.file), "--nthreads", "1", "--no-nanny", "--no-dashboard", "--host", "127.0.0.1")
+        worker = _start(
+            "worker",
+            "--scheduler-file",
+            str(self.file),
+            "--nthreads",
+            "1",
+            "--no-nanny",
+            "--no-dashboard",
+            "--host",
+            "127.0.0.1",
+        )
         self.processes.append(worker)
         return worker
 
@@ -135,8 +162,13 @@ def test_scheduler_and_local_cluster_give_identical_rows(cluster, tmp_path):
 def test_resume_after_killing_the_client_loses_nothing_and_repeats_nothing(cluster, tmp_path):
     spec_path, out = _spec(tmp_path, LONGER), tmp_path / "out"
     total = len(load_spec(spec_path).tasks())
-    client = subprocess.Popen(_sweep_command(spec_path, out, "--scheduler", cluster.address), env=WORKER_ENV, cwd=ROOT,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    client = subprocess.Popen(
+        _sweep_command(spec_path, out, "--scheduler", cluster.address),
+        env=WORKER_ENV,
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         _wait_for(lambda: len(list((out / "parts").glob("*.parquet"))) >= 3, "three finished tasks")
         client.send_signal(signal.SIGKILL)
@@ -146,8 +178,14 @@ def test_resume_after_killing_the_client_loses_nothing_and_repeats_nothing(clust
     before = {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in (out / "parts").glob("*.parquet")}
     assert 3 <= len(before) < total, "the client finished before it could be killed: make LONGER longer"
 
-    again = subprocess.run(_sweep_command(spec_path, out, "--scheduler", cluster.address), env=WORKER_ENV, cwd=ROOT,
-                           capture_output=True, text=True, timeout=PATIENCE_S)
+    again = subprocess.run(
+        _sweep_command(spec_path, out, "--scheduler", cluster.address),
+        env=WORKER_ENV,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=PATIENCE_S,
+    )
     assert again.returncode == 0, again.stderr
     assert f"{total - len(before)} tasks run, {len(before)} already done" in again.stdout
     after = {p.name: (p.stat().st_ino, p.stat().st_mtime_ns) for p in (out / "parts").glob("*.parquet")}
@@ -162,8 +200,14 @@ def test_a_worker_killed_mid_task_is_replaced_and_the_sweep_finishes(cluster, tm
     with cluster.client() as watcher:
         watcher.wait_for_workers(3, timeout=PATIENCE_S)
         (victim_address,) = set(watcher.scheduler_info()["workers"]) - set(_worker_addresses_except(watcher, victim))
-        sweep = subprocess.Popen(_sweep_command(spec_path, out, "--scheduler", cluster.address), env=WORKER_ENV, cwd=ROOT,
-                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        sweep = subprocess.Popen(
+            _sweep_command(spec_path, out, "--scheduler", cluster.address),
+            env=WORKER_ENV,
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         try:
             _wait_for(lambda: watcher.processing(workers=[victim_address]).get(victim_address), "a task on the victim")
             os.kill(victim.pid, signal.SIGKILL)

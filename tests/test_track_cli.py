@@ -42,7 +42,14 @@ def assert_equal_to_rounding(actual, expected) -> None:
 def log():
     platform = nim_stewart()
     rng = np.random.default_rng(11)
-    log, _ = make_log(platform, random_error(rng, 1.0), random_poses(platform, N, rng), rng, reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
+    log, _ = make_log(
+        platform,
+        random_error(rng, 1.0),
+        random_poses(platform, N, rng),
+        rng,
+        reading_sigma_mm=0.002,
+        stroke_sigma_mm=0.001,
+    )
     return log
 
 
@@ -64,7 +71,9 @@ def _error(path):
 
 def test_track_gives_calibrates_estimate_and_keeps_a_checkpoint(tmp_path, log_path, log, capsys):
     out, ckpt = tmp_path / "r.json", tmp_path / "c.npz"
-    code, err = _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt), "--every", "7")
+    code, err = _track(
+        capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt), "--every", "7"
+    )
     assert code == 0 and err == [f"stewart-calib track: wrote {out} (ekf: {N} samples used, 0 skipped)"]
     estimate, _, _ = calibrate(nim_stewart(), log, "ekf")
     assert_equal_to_rounding(_error(out), estimate.error)  # same samples, same filter
@@ -76,9 +85,14 @@ def test_resume_skips_the_rows_already_read(tmp_path, log_path, capsys):
     whole, part, resumed, ckpt = (tmp_path / name for name in ("whole.json", "part.csv", "resumed.json", "c.npz"))
     assert _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(whole))[0] == 0
     part.write_text("".join(log_path.read_text().splitlines(keepends=True)[: 1 + 25]))  # the log as it was at row 26
-    assert _track(capsys, "--method", "ekf", "--log", str(part), "--out", str(resumed), "--checkpoint", str(ckpt))[0] == 0
+    assert (
+        _track(capsys, "--method", "ekf", "--log", str(part), "--out", str(resumed), "--checkpoint", str(ckpt))[0] == 0
+    )
     assert read_result(resumed)["samples_used"] == 25
-    assert _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(resumed), "--checkpoint", str(ckpt))[0] == 0
+    assert (
+        _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(resumed), "--checkpoint", str(ckpt))[0]
+        == 0
+    )
     assert read_result(resumed)["samples_used"] == N
     np.testing.assert_array_equal(_error(resumed), _error(whole))
 
@@ -94,8 +108,19 @@ def _with_bad_row(log_path, row):
 def test_a_bad_row_stops_track_keeping_the_last_good_checkpoint_and_no_result(tmp_path, log_path, capsys):
     _with_bad_row(log_path, 12)
     out, ckpt = tmp_path / "r.json", tmp_path / "c.npz"
-    code, err = _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt),
-                       "--every", "1000")
+    code, err = _track(
+        capsys,
+        "--method",
+        "ekf",
+        "--log",
+        str(log_path),
+        "--out",
+        str(out),
+        "--checkpoint",
+        str(ckpt),
+        "--every",
+        "1000",
+    )
     assert code == 2
     assert err == [f"stewart-calib track: error: {log_path}: row 12: column 'q3_mm': expected a finite number, got nan"]
     assert not out.exists()  # nothing that looks like a final result
@@ -107,9 +132,21 @@ def test_resume_after_a_bad_row_stop_reads_that_row_again(tmp_path, log_path, ca
     # must be parsed again, not counted as read — otherwise a sample is silently lost.
     _with_bad_row(log_path, 12)
     out, ckpt = tmp_path / "r.json", tmp_path / "c.npz"
-    assert _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt))[0] == 2
-    code, err = _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt),
-                       "--skip-bad-rows")
+    assert (
+        _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt))[0] == 2
+    )
+    code, err = _track(
+        capsys,
+        "--method",
+        "ekf",
+        "--log",
+        str(log_path),
+        "--out",
+        str(out),
+        "--checkpoint",
+        str(ckpt),
+        "--skip-bad-rows",
+    )
     assert code == 0, err
     result = read_result(out)
     assert (result["samples_used"], result["samples_skipped"]) == (N - 1, 1)
@@ -118,11 +155,23 @@ def test_resume_after_a_bad_row_stop_reads_that_row_again(tmp_path, log_path, ca
 def test_skip_bad_rows_counts_and_goes_on(tmp_path, log_path, capsys):
     _with_bad_row(log_path, 12)
     out = tmp_path / "r.json"
-    code, err = _track(capsys, "--method", "isam2", "--set", "isam2.window_samples=5", "--log", str(log_path),
-                       "--out", str(out), "--skip-bad-rows")
+    code, err = _track(
+        capsys,
+        "--method",
+        "isam2",
+        "--set",
+        "isam2.window_samples=5",
+        "--log",
+        str(log_path),
+        "--out",
+        str(out),
+        "--skip-bad-rows",
+    )
     assert code == 0
-    assert err[0] == f"stewart-calib track: skipped bad log rows: 1 of {N} (first: {log_path}: row 12: column 'q3_mm': " \
-                     "expected a finite number, got nan)"
+    assert (
+        err[0] == f"stewart-calib track: skipped bad log rows: 1 of {N} (first: {log_path}: row 12: column 'q3_mm': "
+        "expected a finite number, got nan)"
+    )
     result = read_result(out)
     assert (result["samples_used"], result["samples_skipped"]) == (N - 1, 1)
 
@@ -131,7 +180,9 @@ def test_a_sample_gtsam_fails_on_is_rejected_and_tracking_goes_on(tmp_path, log_
     t_bad = float(read_log(log_path).t_s[35])  # as track parses it
     degenerate_sample(monkeypatch, t_bad)
     out = tmp_path / "r.json"
-    code, err = _track(capsys, "--method", "isam2", "--set", "isam2.window_samples=5", "--log", str(log_path), "--out", str(out))
+    code, err = _track(
+        capsys, "--method", "isam2", "--set", "isam2.window_samples=5", "--log", str(log_path), "--out", str(out)
+    )
     assert code == 0
     first = f"sample at t = {t_bad} s: gtsam failed in the iSAM2 update ({INDETERMINANT}"
     assert len(err) == 2 and err[0].startswith(f"stewart-calib track: isam2 rejected samples: 1 of {N} (first: {first}")
@@ -154,15 +205,42 @@ def test_refusals_are_one_line_and_write_nothing(tmp_path, log_path, capsys, arg
     out = tmp_path / "r.json"
     argv = [a.replace("missing.csv", str(tmp_path / "missing.csv")) for a in argv]
     code, err = _track(capsys, *(["--log", str(log_path)] if "--log" not in argv else []), *argv, "--out", str(out))
-    assert code == 2 and len(err) == 1 and err[0].endswith(message.replace("missing.csv", str(tmp_path / "missing.csv")))
+    assert (
+        code == 2 and len(err) == 1 and err[0].endswith(message.replace("missing.csv", str(tmp_path / "missing.csv")))
+    )
     assert list(tmp_path.iterdir()) == [log_path]
 
 
 def test_a_checkpoint_of_another_method_is_refused(tmp_path, log_path, capsys):
     ckpt = tmp_path / "c.npz"
-    assert _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(tmp_path / "a.json"), "--checkpoint", str(ckpt))[0] == 0
-    code, err = _track(capsys, "--method", "paper-ekf", "--log", str(log_path), "--out", str(tmp_path / "b.json"), "--checkpoint", str(ckpt))
-    assert code == 2 and err == [f"stewart-calib track: error: --checkpoint {ckpt}: written by method 'ekf', not 'paper-ekf'"]
+    assert (
+        _track(
+            capsys,
+            "--method",
+            "ekf",
+            "--log",
+            str(log_path),
+            "--out",
+            str(tmp_path / "a.json"),
+            "--checkpoint",
+            str(ckpt),
+        )[0]
+        == 0
+    )
+    code, err = _track(
+        capsys,
+        "--method",
+        "paper-ekf",
+        "--log",
+        str(log_path),
+        "--out",
+        str(tmp_path / "b.json"),
+        "--checkpoint",
+        str(ckpt),
+    )
+    assert code == 2 and err == [
+        f"stewart-calib track: error: --checkpoint {ckpt}: written by method 'ekf', not 'paper-ekf'"
+    ]
     assert not (tmp_path / "b.json").exists()
 
 
@@ -195,9 +273,28 @@ def test_lines_of_a_pipe_and_of_a_growing_file(tmp_path):
 def test_sigterm_finishes_with_a_final_estimate_and_checkpoint(tmp_path, log_path):
     out, ckpt = tmp_path / "r.json", tmp_path / "c.npz"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "stewart_calib", "track", "--platform", str(NIM_STEWART), "--method", "ekf",
-         "--log", str(log_path), "--follow", "--every", "10", "--out", str(out), "--checkpoint", str(ckpt)],
-        cwd=ROOT, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "stewart_calib",
+            "track",
+            "--platform",
+            str(NIM_STEWART),
+            "--method",
+            "ekf",
+            "--log",
+            str(log_path),
+            "--follow",
+            "--every",
+            "10",
+            "--out",
+            str(out),
+            "--checkpoint",
+            str(ckpt),
+        ],
+        cwd=ROOT,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     deadline = time.monotonic() + 60
     while not out.exists() and time.monotonic() < deadline:  # it has read the log and waits for more
@@ -217,8 +314,14 @@ def test_blocks_give_calibrates_estimate_whatever_the_writes_and_bad_rows(tmp_pa
     platform = nim_stewart()
     rng = np.random.default_rng(12)
     n = 400
-    log, _ = make_log(platform, random_error(rng, 1.0), random_poses(platform, n, rng), rng, reading_sigma_mm=0.002,
-                      stroke_sigma_mm=0.001)
+    log, _ = make_log(
+        platform,
+        random_error(rng, 1.0),
+        random_poses(platform, n, rng),
+        rng,
+        reading_sigma_mm=0.002,
+        stroke_sigma_mm=0.001,
+    )
     log.readings[250, 2] += 5.0  # a glitch 2500 σ off: gated, counted in samples_rejected
     log_path = tmp_path / "log.csv"
     write_log(log_path, log)
@@ -227,8 +330,20 @@ def test_blocks_give_calibrates_estimate_whatever_the_writes_and_bad_rows(tmp_pa
     assert rejected >= 1
     for every in ("7", "1000"):
         out, ckpt = tmp_path / f"track-{every}.json", tmp_path / f"track-{every}.npz"
-        code, err = _track(capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt),
-                           "--every", every, "--skip-bad-rows")
+        code, err = _track(
+            capsys,
+            "--method",
+            "ekf",
+            "--log",
+            str(log_path),
+            "--out",
+            str(out),
+            "--checkpoint",
+            str(ckpt),
+            "--every",
+            every,
+            "--skip-bad-rows",
+        )
         assert code == 0, err
         result = read_result(out)
         assert_equal_to_rounding(result["error"], estimate.error)
@@ -242,8 +357,14 @@ def test_blocks_give_calibrates_estimate_whatever_the_writes_and_bad_rows(tmp_pa
 
 def _log_lines() -> list[str]:
     rng = np.random.default_rng(13)
-    log, _ = make_log(nim_stewart(), random_error(rng, 1.0), random_poses(nim_stewart(), ARROW_MIN_ROWS + 2, rng), rng,
-                      reading_sigma_mm=0.002, stroke_sigma_mm=0.001)
+    log, _ = make_log(
+        nim_stewart(),
+        random_error(rng, 1.0),
+        random_poses(nim_stewart(), ARROW_MIN_ROWS + 2, rng),
+        rng,
+        reading_sigma_mm=0.002,
+        stroke_sigma_mm=0.001,
+    )
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "log.csv"
         write_log(path, log)
@@ -261,10 +382,32 @@ def _row_blocks(draw):
     for _ in range(draw(st.integers(0, 2))):
         row, column = draw(st.integers(0, len(rows) - 1)), draw(st.integers(0, len(rows[0]) - 1))
         value = float(_PLAIN_ROWS[row].split(",")[column])
-        rows[row][column] = draw(st.one_of(
-            st.sampled_from([f"{value:.3e}", f" {value}", f"{value}\r", f"+{value}", f"{value:.20f}", str(value).upper(),
-                             "1_0", "nan", "inf", "", " ", "0x10", '"1"', "١", "1e999", "-1e3", "9e2"]),
-            st.text(max_size=4)))
+        rows[row][column] = draw(
+            st.one_of(
+                st.sampled_from(
+                    [
+                        f"{value:.3e}",
+                        f" {value}",
+                        f"{value}\r",
+                        f"+{value}",
+                        f"{value:.20f}",
+                        str(value).upper(),
+                        "1_0",
+                        "nan",
+                        "inf",
+                        "",
+                        " ",
+                        "0x10",
+                        '"1"',
+                        "١",
+                        "1e999",
+                        "-1e3",
+                        "9e2",
+                    ]
+                ),
+                st.text(max_size=4),
+            )
+        )
     lines = [",".join(row) for row in rows]
     if draw(st.booleans()):
         lines.insert(draw(st.integers(0, len(lines))), draw(st.sampled_from(["", " ", "\r", lines[0]])))

@@ -26,8 +26,14 @@ N = 30
 def log():
     platform = nim_stewart()
     rng = np.random.default_rng(21)
-    log, _ = make_log(platform, random_error(rng, 1.0), random_poses(platform, N, rng), rng, reading_sigma_mm=0.002,
-                      stroke_sigma_mm=0.001)
+    log, _ = make_log(
+        platform,
+        random_error(rng, 1.0),
+        random_poses(platform, N, rng),
+        rng,
+        reading_sigma_mm=0.002,
+        stroke_sigma_mm=0.001,
+    )
     return log
 
 
@@ -70,9 +76,26 @@ def test_sigterm_mid_row_exits_0_and_the_resume_loses_no_row(tmp_path, log_path,
     text = log_path.read_bytes()
     cut = text.rindex(b"\n", 0, len(text) - 1) + 10  # nine bytes into the last row
     proc = subprocess.Popen(
-        [sys.executable, "-m", "stewart_calib", "track", "--platform", str(NIM_STEWART), "--method", "ekf",
-         "--every", "1", "--out", str(out), "--checkpoint", str(ckpt), "--skip-bad-rows"],
-        cwd=ROOT, stdin=subprocess.PIPE, stderr=subprocess.PIPE,
+        [
+            sys.executable,
+            "-m",
+            "stewart_calib",
+            "track",
+            "--platform",
+            str(NIM_STEWART),
+            "--method",
+            "ekf",
+            "--every",
+            "1",
+            "--out",
+            str(out),
+            "--checkpoint",
+            str(ckpt),
+            "--skip-bad-rows",
+        ],
+        cwd=ROOT,
+        stdin=subprocess.PIPE,
+        stderr=subprocess.PIPE,
     )
     proc.stdin.write(text[:cut])
     proc.stdin.flush()
@@ -86,10 +109,31 @@ def test_sigterm_mid_row_exits_0_and_the_resume_loses_no_row(tmp_path, log_path,
     assert proc.returncode == 0, err
     result = read_result(out)
     assert (result["samples_used"], result["samples_skipped"], result["final"]) == (N - 1, 0, True)
-    assert cli.main(["track", "--platform", str(NIM_STEWART), "--method", "ekf", "--log", str(log_path),
-                     "--out", str(out), "--checkpoint", str(ckpt), "--skip-bad-rows"]) == 0
-    assert cli.main(["track", "--platform", str(NIM_STEWART), "--method", "ekf", "--log", str(log_path),
-                     "--out", str(whole)]) == 0
+    assert (
+        cli.main(
+            [
+                "track",
+                "--platform",
+                str(NIM_STEWART),
+                "--method",
+                "ekf",
+                "--log",
+                str(log_path),
+                "--out",
+                str(out),
+                "--checkpoint",
+                str(ckpt),
+                "--skip-bad-rows",
+            ]
+        )
+        == 0
+    )
+    assert (
+        cli.main(
+            ["track", "--platform", str(NIM_STEWART), "--method", "ekf", "--log", str(log_path), "--out", str(whole)]
+        )
+        == 0
+    )
     resumed = read_result(out)
     assert (resumed["samples_used"], resumed["samples_skipped"]) == (N, 0)
     assert_equal_to_rounding(resumed["error"], read_result(whole)["error"])  # the first part ran in another process
@@ -108,7 +152,10 @@ def test_periodic_results_are_marked_not_final(tmp_path, log_path, capsys):
 def test_a_directory_as_log_is_refused_in_one_line(tmp_path, capsys):
     out = tmp_path / "r.json"
     code, err = _track(capsys, "--log", str(tmp_path), "--out", str(out))
-    assert (code, err) == (2, [f"stewart-calib track: error: {tmp_path}: is a directory; expected a log file (spec §3)"])
+    assert (code, err) == (
+        2,
+        [f"stewart-calib track: error: {tmp_path}: is a directory; expected a log file (spec §3)"],
+    )
     assert not out.exists()
 
 

@@ -17,5 +17,7 @@ def test_quick_run_has_every_row_and_a_verdict_on_each_target():
         for case in tracker_geometry.CASES:
             assert np.all(np.isfinite(row.raw.get(case, []))), row.name
     targets = [row for row in section.rows if row.target]
-    assert [row.name for row in targets] == [f"{m} / lm-joint, tracker identified" for m in tracker_geometry.ONLINE_METHODS]
+    assert [row.name for row in targets] == [
+        f"{m} / lm-joint, tracker identified" for m in tracker_geometry.ONLINE_METHODS
+    ]
     assert all(isinstance(row.met, bool) and np.isfinite(row.raw["ratio"]) for row in targets)

@@ -9,9 +9,9 @@ import pytest
 from scipy.stats import chi2
 
 from stewart_calib.config import config_from_dict
+from stewart_calib.errors import CalibError
 from stewart_calib.estimators import make_estimator
 from stewart_calib.factors import gauge
-from stewart_calib.errors import CalibError
 from stewart_calib.instruments import instrument_model
 from stewart_calib.io import result_dict
 from stewart_calib.platform import N_PARAMS
@@ -53,7 +53,9 @@ def test_stroke_scale_is_identified_with_the_drive_within_its_covariance(platfor
     for method in METHODS:
         estimate = _fit(method, platform, config, log)
         assert estimate.block_error.shape == (6,)
-        nees, _ = _nees(np.r_[estimate.error, estimate.block_error] - truth, estimate.full_covariance, np.zeros((0, len(truth))))
+        nees, _ = _nees(
+            np.r_[estimate.error, estimate.block_error] - truth, estimate.full_covariance, np.zeros((0, len(truth)))
+        )
         assert nees <= bound, f"{method}: NEES {nees:.1f} > {bound:.1f}"
         result = result_dict(estimate, platform)
         assert result["stroke_scale"]["names"] == ["k1", "k2", "k3", "k4", "k5", "k6"]
@@ -98,8 +100,10 @@ def _rigid_generators(platform) -> np.ndarray:
             for frame, joints in ((0, legs.base_joints), (1, legs.platform_joints)):
                 p = joints[i]
                 rows = slice(block + 7 * i + 3 * frame, block + 7 * i + 3 * frame + 3)
-                G[rows, 6 * frame:6 * frame + 3] = np.eye(3)
-                G[rows, 6 * frame + 3:6 * frame + 6] = -np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
+                G[rows, 6 * frame : 6 * frame + 3] = np.eye(3)
+                G[rows, 6 * frame + 3 : 6 * frame + 6] = -np.array(
+                    [[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]]
+                )
     return G
 
 
@@ -130,12 +134,14 @@ def test_a_drive_with_a_millimetre_rigid_error_is_identified_against_the_tracker
 
 def _nees(gap: np.ndarray, covariance: np.ndarray, C: np.ndarray) -> tuple[float, int]:
     """``gapᵀ P⁻¹ gap`` in the directions the gauge leaves free (an orthonormal basis of C's null space)."""
-    basis = np.eye(len(gap)) if len(C) == 0 else np.linalg.svd(C)[2][len(C):].T
+    basis = np.eye(len(gap)) if len(C) == 0 else np.linalg.svd(C)[2][len(C) :].T
     g, P = basis.T @ gap, basis.T @ covariance @ basis
     return float(g @ np.linalg.solve(P, g)), basis.shape[1]
 
 
 def test_a_method_refuses_an_instrument_it_does_not_support(platform):
     points_platform = replace(platform, instrument=replace(platform.instrument, kind="points"))
-    with pytest.raises(CalibError, match="method 'paper-ekf' does not take the points instrument.*expected one of ls, ekf, isam2, lm"):
+    with pytest.raises(
+        CalibError, match="method 'paper-ekf' does not take the points instrument.*expected one of ls, ekf, isam2, lm"
+    ):
         make_estimator("paper-ekf", points_platform)

@@ -11,8 +11,8 @@ from stewart_calib.cli import main
 from stewart_calib.estimate import Estimate
 from stewart_calib.io import logs
 from stewart_calib.io.tables import csv_text
-from stewart_calib.platform import Instrument, platform_to_toml
 from stewart_calib.pipelines.validate import _summary, validate
+from stewart_calib.platform import Instrument, platform_to_toml
 from stewart_calib.simulation.instrument import InstrumentTruth
 from tests.instrument_data import hobby, make_case
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
@@ -20,21 +20,30 @@ from tests.synthetic import make_log, nim_stewart, random_error, random_poses
 
 def _tracker_case(n: int):
     platform = nim_stewart()
-    log, _ = make_log(platform, random_error(np.random.default_rng(4)), random_poses(platform, n, np.random.default_rng(5)),
-                      np.random.default_rng(6), reading_sigma_mm=0.01)
+    log, _ = make_log(
+        platform,
+        random_error(np.random.default_rng(4)),
+        random_poses(platform, n, np.random.default_rng(5)),
+        np.random.default_rng(6),
+        reading_sigma_mm=0.01,
+    )
     return platform, log
 
 
 def _points_case(n: int):
     targets = np.array([[30.0, 0.0, 20.0], [-20.0, 25.0, 20.0]])
     platform = hobby(Instrument("points", np.zeros(6), np.zeros(6), targets, 0.05))
-    case = make_case(platform, n, 8, InstrumentTruth(np.array([3.0, 1.0, -2.0, 0.0, 0.0, 5.0]), np.zeros(6), dropout_probability=0.3))
+    case = make_case(
+        platform, n, 8, InstrumentTruth(np.array([3.0, 1.0, -2.0, 0.0, 0.0, 5.0]), np.zeros(6), dropout_probability=0.3)
+    )
     return platform, case.log
 
 
 def _pose_case(n: int):
     platform = hobby()
-    return platform, make_case(platform, n, 9, InstrumentTruth(np.array([3.0, 1.0, -2.0, 0.0, 0.0, 5.0]), np.zeros(6))).log
+    return platform, make_case(
+        platform, n, 9, InstrumentTruth(np.array([3.0, 1.0, -2.0, 0.0, 0.0, 5.0]), np.zeros(6))
+    ).log
 
 
 def _files(tmp_path, platform, log):
@@ -42,8 +51,17 @@ def _files(tmp_path, platform, log):
     io.write_log(tmp_path / "log.csv", log, platform)
     result = io.result_dict(Estimate(random_error(np.random.default_rng(3), 0.2), None, "ls", 1), platform)
     io.write_result(tmp_path / "r.json", result)
-    argv = ["validate", "--platform", str(tmp_path / "p.toml"), "--result", str(tmp_path / "r.json"),
-            "--log", str(tmp_path / "log.csv"), "--out", str(tmp_path / "V.csv")]
+    argv = [
+        "validate",
+        "--platform",
+        str(tmp_path / "p.toml"),
+        "--result",
+        str(tmp_path / "r.json"),
+        "--log",
+        str(tmp_path / "log.csv"),
+        "--out",
+        str(tmp_path / "V.csv"),
+    ]
     return io.read_result(tmp_path / "r.json"), argv
 
 
@@ -54,8 +72,12 @@ def _whole_file(platform, result, path, register: bool = False) -> tuple[str, st
     predicted, position, orientation = validate(platform, result, log, register, "result")
     columns = io.reading_columns(platform)
     header = ["t_s", *columns, *(f"pred_{name}" for name in columns), "position_error_mm"]
-    values = [log.t_s, *io.readings_to_file(log.readings, columns), *io.readings_to_file(predicted, columns),
-              ["" if not np.isfinite(v) else float(v) for v in position]]
+    values = [
+        log.t_s,
+        *io.readings_to_file(log.readings, columns),
+        *io.readings_to_file(predicted, columns),
+        ["" if not np.isfinite(v) else float(v) for v in position],
+    ]
     if orientation is not None:
         header.append("orientation_error_deg")
         values.append(orientation)
@@ -63,8 +85,15 @@ def _whole_file(platform, result, path, register: bool = False) -> tuple[str, st
     return csv_text(header, values), _summary(position, orientation, len(log))
 
 
-@pytest.mark.parametrize("case, n, block_bytes", [(_tracker_case, 5000, 1_500_000), (_tracker_case, 300, 8192),
-                                                  (_points_case, 5000, 1_000_000), (_pose_case, 200, 4096)])
+@pytest.mark.parametrize(
+    "case, n, block_bytes",
+    [
+        (_tracker_case, 5000, 1_500_000),
+        (_tracker_case, 300, 8192),
+        (_points_case, 5000, 1_000_000),
+        (_pose_case, 200, 4096),
+    ],
+)
 def test_streamed_validate_writes_the_whole_logs_file(tmp_path, monkeypatch, capsys, case, n, block_bytes):
     platform, log = case(n)
     result, argv = _files(tmp_path, platform, log)
@@ -95,8 +124,10 @@ def test_a_bad_row_in_a_late_block_leaves_no_output(tmp_path, monkeypatch, capsy
     (tmp_path / "V.csv").write_text("the previous output\n")
     monkeypatch.setattr(logs, "BLOCK_BYTES", 4096)
     assert main(argv) == 2
-    assert capsys.readouterr().err.strip() == (f"stewart-calib validate: error: {tmp_path / 'log.csv'}: row 291: "
-                                               "column 'q1_mm': expected a finite number, got nan")
+    assert capsys.readouterr().err.strip() == (
+        f"stewart-calib validate: error: {tmp_path / 'log.csv'}: row 291: "
+        "column 'q1_mm': expected a finite number, got nan"
+    )
     assert (tmp_path / "V.csv").read_text() == "the previous output\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["V.csv", "log.csv", "p.toml", "r.json"]
 
@@ -114,5 +145,9 @@ def test_distinct_rows_are_counted_as_one_by_one_clustering_does():
         if not any(np.all((np.abs(row - rep) <= scale) | ~np.isfinite(row - rep)) for rep in distinct):
             distinct.append(row)
     assert 10 < len(distinct) < 64
-    assert [distinct_count(readings, scale, enough) for enough in (3, len(distinct), 1000)] == [3, len(distinct), len(distinct)]
+    assert [distinct_count(readings, scale, enough) for enough in (3, len(distinct), 1000)] == [
+        3,
+        len(distinct),
+        len(distinct),
+    ]
     assert distinct_count(np.empty((0, 3)), scale, 3) == 0

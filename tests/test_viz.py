@@ -80,8 +80,18 @@ def written(tmp_path_factory):
                 )
         send_blueprint(rec, METHODS, STAGES)
     return dict(
-        path=path, platform=platform, R=R, t=t, true_drive=true_drive, times_s=times_s, truth=truth,
-        params=params, errors=errors, angles_rad=angles_rad, desired_xyz=desired_xyz, actual_xyz=actual_xyz,
+        path=path,
+        platform=platform,
+        R=R,
+        t=t,
+        true_drive=true_drive,
+        times_s=times_s,
+        truth=truth,
+        params=params,
+        errors=errors,
+        angles_rad=angles_rad,
+        desired_xyz=desired_xyz,
+        actual_xyz=actual_xyz,
     )
 
 
@@ -104,8 +114,14 @@ def test_every_series_has_one_row_per_sample(written):
 def test_static_entities_present(written):
     static = read_entity_rows(written["path"], static=True)
     expected = [
-        "/conventions", "/world", "/world/base/outline", "/world/base/drive_joints", "/world/base/tracker_joints",
-        "/world/platform/outline", "/world/platform/drive_joints", "/world/platform/tracker_joints",
+        "/conventions",
+        "/world",
+        "/world/base/outline",
+        "/world/base/drive_joints",
+        "/world/base/tracker_joints",
+        "/world/platform/outline",
+        "/world/platform/drive_joints",
+        "/world/platform/tracker_joints",
         "/world/platform_desired/outline",
     ]
     for stage in STAGES:
@@ -231,7 +247,9 @@ def test_columnar_logging_sends_each_series_once(tmp_path, monkeypatch):
     times_s = np.arange(n) * 0.001
     sends = []
     send = recording._send_scalars
-    monkeypatch.setattr(recording, "_send_scalars", lambda rec, path, *rest: (sends.append(path), send(rec, path, *rest)))
+    monkeypatch.setattr(
+        recording, "_send_scalars", lambda rec, path, *rest: (sends.append(path), send(rec, path, *rest))
+    )
     with open_recording(tmp_path / "fast.rrd") as rec:
         for method, values in params.items():
             log_parameters(rec, method, values, times_s)

@@ -38,8 +38,10 @@ def main() -> None:
     true_drive = platform.drive.perturbed(delta)
     scale = rng.normal(0.0, 0.03, 6)  # real mm per count = nominal × (1 + k)
     target = np.array([12.0, -8.0, 35.0, 0.0, 0.0, 90.0])
-    sessions = {"fit": (108, np.array([40.0, -25.0, 15.0, 5.0, -3.0, 30.0])),
-                "heldout": (60, np.array([48.0, -30.0, 18.0, 6.0, -2.5, 28.0]))}
+    sessions = {
+        "fit": (108, np.array([40.0, -25.0, 15.0, 5.0, -3.0, 30.0])),
+        "heldout": (60, np.array([48.0, -30.0, 18.0, 6.0, -2.5, 28.0])),
+    }
     ws = platform.workspace
     half = 0.7 * np.r_[[ws.translation_limit] * 3, [ws.rotation_limit] * 3]
     for name, (n, frame) in sessions.items():
@@ -58,8 +60,14 @@ def main() -> None:
             writer = csv.writer(f)
             writer.writerow(["time_s", *(f"enc{i}" for i in range(1, 7)), "x_m", "y_m", "z_m", "qw", "qx", "qy", "qz"])
             for k in range(n):
-                writer.writerow([f"{0.5 * k:.2f}", *counts[k], *(f"{v / 1000.0:.7f}" for v in reading[k, :3]),
-                                 *(f"{v:.9f}" for v in quaternion[k, [3, 0, 1, 2]])])
+                writer.writerow(
+                    [
+                        f"{0.5 * k:.2f}",
+                        *counts[k],
+                        *(f"{v / 1000.0:.7f}" for v in reading[k, :3]),
+                        *(f"{v:.9f}" for v in quaternion[k, [3, 0, 1, 2]]),
+                    ]
+                )
     print("true stroke scale k:", np.round(scale, 4).tolist())
     print("true initial-length errors [mm]:", np.round(delta[6::7], 2).tolist())
 

@@ -7,6 +7,14 @@ from .base import BatchEstimator, Checkpointable, Estimator, KalmanFiltered, fit
 from .registry import METHODS, MethodSpec, make_estimator, method_names, method_spec
 
 __all__ = [
-    "METHODS", "BatchEstimator", "Checkpointable", "Estimator", "KalmanFiltered", "MethodSpec", "fit_all", "make_estimator",
-    "method_names", "method_spec",
+    "METHODS",
+    "BatchEstimator",
+    "Checkpointable",
+    "Estimator",
+    "KalmanFiltered",
+    "MethodSpec",
+    "fit_all",
+    "make_estimator",
+    "method_names",
+    "method_spec",
 ]

@@ -100,8 +100,9 @@ class BlockUpdating(Protocol):
         within its relinearisation threshold of one update a sample (~1e-6 mm)."""
 
 
-def update_each(estimator: Estimator, samples: Iterable[Sample], errors_out: np.ndarray | None = None,
-                first: int = 0) -> tuple[Refusals, Refusals]:
+def update_each(
+    estimator: Estimator, samples: Iterable[Sample], errors_out: np.ndarray | None = None, first: int = 0
+) -> tuple[Refusals, Refusals]:
     """``update`` with each of ``samples`` in turn.
 
     Args:

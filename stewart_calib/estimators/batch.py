@@ -119,13 +119,17 @@ class _State:
         self.error, self.scale, self.unknowns, self.R, self.t = error, scale, unknowns, R, t
 
 
-def _fk(problem: BatchProblem, error: np.ndarray, scale: np.ndarray, guess) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _fk(
+    problem: BatchProblem, error: np.ndarray, scale: np.ndarray, guess
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     drive = problem.nominal.perturbed(error)
     sol = kin.forward_kinematics(drive, drive_model.scaled_strokes(problem.strokes, scale), guess=guess, strict=False)
     return sol.R, sol.t, sol.converged
 
 
-def fit(problem: BatchProblem, robust_k: float, estimate_noise: bool, stroke_scale: str, tolerance_mm: float) -> BatchSolution:
+def fit(
+    problem: BatchProblem, robust_k: float, estimate_noise: bool, stroke_scale: str, tolerance_mm: float
+) -> BatchSolution:
     """Fit drive, stroke scale and instrument unknowns to the log (see the module docstring).
 
     Args:
@@ -139,11 +143,19 @@ def fit(problem: BatchProblem, robust_k: float, estimate_noise: bool, stroke_sca
     n = len(problem.strokes)
     R0, t0, ok = _fk(problem, np.zeros(N_PARAMS), problem.nominal_stroke_scale, None)
     rejected = [
-        (int(k), SampleRejected(f"sample at t = {problem.t_s[k]} s: nominal forward kinematics did not converge", SampleRejected.FK_FAILED))
+        (
+            int(k),
+            SampleRejected(
+                f"sample at t = {problem.t_s[k]} s: nominal forward kinematics did not converge",
+                SampleRejected.FK_FAILED,
+            ),
+        )
         for k in np.flatnonzero(~ok)
     ]
     if not np.any(ok):
-        raise CalibError("ls: nominal forward kinematics failed for every sample; expected strokes the nominal drive can reach")
+        raise CalibError(
+            "ls: nominal forward kinematics failed for every sample; expected strokes the nominal drive can reach"
+        )
     if rejected:
         problem = _subset(problem, ok)
         R0, t0 = R0[ok], t0[ok]
@@ -168,7 +180,9 @@ def fit(problem: BatchProblem, robust_k: float, estimate_noise: bool, stroke_sca
         # weights from a robust scale (MAD): a gross error inflates the RMS that would judge it
         scale = _robust_channel_scale(problem, e, n_unknowns) if estimate_noise else sigmas
         new_weights = _robust_weights(e / scale, robust_k)
-        settled = np.all(np.abs(new_sigmas / sigmas - 1.0) < NOISE_SETTLED) and np.allclose(new_weights, weights, atol=1e-3)
+        settled = np.all(np.abs(new_sigmas / sigmas - 1.0) < NOISE_SETTLED) and np.allclose(
+            new_weights, weights, atol=1e-3
+        )
         sigmas, weights = new_sigmas, new_weights
         if settled:
             break
@@ -199,7 +213,9 @@ def fit(problem: BatchProblem, robust_k: float, estimate_noise: bool, stroke_sca
     )
 
 
-def cramer_rao(problem: BatchProblem, error: np.ndarray, stroke_scale: np.ndarray, unknowns, fit_scale: bool = True) -> np.ndarray:
+def cramer_rao(
+    problem: BatchProblem, error: np.ndarray, stroke_scale: np.ndarray, unknowns, fit_scale: bool = True
+) -> np.ndarray:
     """Cramér–Rao bound at a point (e.g. the simulator's truth moved into the gauge): the inverse
     Fisher information of the whitened residuals with the problem's σ, lifted to the full
     ``[δM (42), k (6), instrument tangent]`` covariance (the 12 gauge directions carry none).
@@ -213,7 +229,9 @@ def cramer_rao(problem: BatchProblem, error: np.ndarray, stroke_scale: np.ndarra
         raise CalibError("Cramér–Rao bound: forward kinematics failed at the given parameters")
     state = _State(np.asarray(error, dtype=float), np.asarray(stroke_scale, dtype=float), unknowns, R, t)
     basis = gauge.free_basis(problem.nominal)
-    A, _ = _system(problem, state, basis, np.asarray(problem.sigmas, dtype=float), np.ones(len(problem.strokes)), fit_scale)
+    A, _ = _system(
+        problem, state, basis, np.asarray(problem.sigmas, dtype=float), np.ones(len(problem.strokes)), fit_scale
+    )
     lift = _lift(basis, fit_scale, unknowns.size)
     return lift @ np.linalg.inv(A.T @ A) @ lift.T
 
@@ -331,7 +349,9 @@ def _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_scale, tole
             break
         decrease = cost - trial_cost
         state, cost = trial, trial_cost
-        moved_mm = max(np.max(np.abs(basis @ step[: basis.shape[1]])), np.max(np.abs(step)) if trial is not None else 0.0)
+        moved_mm = max(
+            np.max(np.abs(basis @ step[: basis.shape[1]])), np.max(np.abs(step)) if trial is not None else 0.0
+        )
         if moved_mm < tolerance_mm or decrease <= 1e-14 * max(cost, 1.0):
             return state, evaluations
     raise CalibError(f"ls: Levenberg–Marquardt did not converge in {MAX_EVALUATIONS} evaluations")
@@ -359,7 +379,9 @@ def _robust_weights(whitened: np.ndarray, k: float) -> np.ndarray:
     return np.where(r > GROSS_ERROR_FACTOR * k, 0.0, np.where(r > k, k / np.maximum(r, 1e-300), 1.0))
 
 
-def _channel_sigmas(problem: BatchProblem, e: np.ndarray, weights: np.ndarray, sigmas: np.ndarray, n_unknowns: int) -> np.ndarray:
+def _channel_sigmas(
+    problem: BatchProblem, e: np.ndarray, weights: np.ndarray, sigmas: np.ndarray, n_unknowns: int
+) -> np.ndarray:
     """Each channel's σ from its weighted residuals, with the degrees of freedom shared out
     among channels by their number of residuals."""
     out = sigmas.copy()

@@ -50,8 +50,8 @@ from ..platform import N_PARAMS, Platform
 from ..samples import Log, Sample
 from ..unknowns import gauge_conditioned
 from .base import Refusals, update_each
-from .robust import RobustFilter
 from .measurement import HeldForRegistration, WarmFK, WarmPose, check_sample, unknown_layout
+from .robust import RobustFilter
 
 
 class LegEKF:
@@ -85,11 +85,20 @@ class LegEKF:
         # and so its gated recursion over a block of samples (update_block)
         self._compiled = compiled = self._tracker_known and not self.layout.blocks
         kernel_arguments = (platform.drive, 1.0 + np.broadcast_to(self._nominal_scale, 6), config.noise.stroke_sigma_mm)
-        self.robust = RobustFilter(self.name, config.noise.prior_sigma_mm, config.noise.random_walk_mm_per_sqrt_s,
-                                   config.ekf.gate_probability, self._observe, config.robust, layout=self.layout, C=C,
-                                   unit_Q=unit_Q, relinearise=far_start,
-                                   compiled_pass=self._pose.tracker_filter_pass(*kernel_arguments) if compiled else None,
-                                   compiled_steps=self._pose.tracker_filter_steps(*kernel_arguments) if compiled else None)
+        self.robust = RobustFilter(
+            self.name,
+            config.noise.prior_sigma_mm,
+            config.noise.random_walk_mm_per_sqrt_s,
+            config.ekf.gate_probability,
+            self._observe,
+            config.robust,
+            layout=self.layout,
+            C=C,
+            unit_Q=unit_Q,
+            relinearise=far_start,
+            compiled_pass=self._pose.tracker_filter_pass(*kernel_arguments) if compiled else None,
+            compiled_steps=self._pose.tracker_filter_steps(*kernel_arguments) if compiled else None,
+        )
         self._stroke_bounds = platform.stroke_range if platform.stroke_range is not None else (-np.inf, np.inf)
         self.filter = self.robust.filter
         self._drive_fk = WarmFK()
@@ -124,7 +133,7 @@ class LegEKF:
                 j += self.robust.update_block(block.t_s[j:], prepared[j:], plain[j:], errors[j:])
                 if j == count:
                     break
-            one = update_each(self, [block[j]], None if errors_out is None else errors_out[j:j + 1], first=j)
+            one = update_each(self, [block[j]], None if errors_out is None else errors_out[j : j + 1], first=j)
             refused += one[0]
             late += one[1]
             j += 1
@@ -137,8 +146,13 @@ class LegEKF:
         r_lo, r_hi = self.model.reading_range if self.model.reading_range is not None else (-np.inf, np.inf)
         strokes, readings = np.asarray(block.strokes, dtype=float), np.asarray(block.readings, dtype=float)
         with np.errstate(invalid="ignore"):
-            plain = (np.isfinite(block.t_s) & np.isfinite(strokes).all(axis=1) & ((strokes >= lo) & (strokes <= hi)).all(axis=1)
-                     & np.isfinite(readings).all(axis=1) & ((readings >= r_lo) & (readings <= r_hi)).all(axis=1))
+            plain = (
+                np.isfinite(block.t_s)
+                & np.isfinite(strokes).all(axis=1)
+                & ((strokes >= lo) & (strokes <= hi)).all(axis=1)
+                & np.isfinite(readings).all(axis=1)
+                & ((readings >= r_lo) & (readings <= r_hi)).all(axis=1)
+            )
         prepared = np.ascontiguousarray(np.column_stack((strokes, readings)), dtype=float)
         return prepared, plain
 
@@ -153,7 +167,8 @@ class LegEKF:
         scale = 1.0 + (self._nominal_scale if self._scale is None else self._nominal_scale + x[self._scale])
         if self._tracker_known:  # the common case, in one compiled call from readings to (r, H, R_meas)
             residual, H_drive, R_meas = self._pose.tracker_leg_observation(
-                self.platform.drive, x[:N_PARAMS], z, strokes * scale, self.noise.stroke_sigma_mm)
+                self.platform.drive, x[:N_PARAMS], z, strokes * scale, self.noise.stroke_sigma_mm
+            )
             return -residual, self._with_blocks(H_drive, strokes, None), R_meas
         theta = instrument_theta(self.model, None if self._instrument is None else x[self._instrument])
         observed = self._pose.solve(z, theta)
@@ -161,7 +176,12 @@ class LegEKF:
             return self._observe_tight(strokes, z, theta, x)
         # r, H = ∂r/∂M and R_meas = J_x Σ_x J_xᵀ + σ_q² I at the model M + δM, in one compiled call.
         residual, H_drive, R_meas, J_x = kin.leg_ekf_observation(
-            self.platform.drive, x[:N_PARAMS], observed.R, observed.t, strokes * scale, observed.covariance,
+            self.platform.drive,
+            x[:N_PARAMS],
+            observed.R,
+            observed.t,
+            strokes * scale,
+            observed.covariance,
             self.noise.stroke_sigma_mm,
         )
         H_instrument = None if self._instrument is None else J_x @ observed.J_instrument

@@ -42,8 +42,8 @@ from ..estimate import Estimate
 from ..factors import diagonal_noise, drive_leg, gauge, instrument, instrument_pose, random_walk
 from ..instruments import instrument_model, instrument_theta
 from ..platform import N_LEGS, N_PARAMS, Platform
-from ..unknowns import UnknownLayout
 from ..samples import Sample
+from ..unknowns import UnknownLayout
 from .measurement import check_sample, unknown_layout
 
 
@@ -121,9 +121,16 @@ class GraphBuilder:
         self._gaussian = self.graph.robust == "none"
         self._scale = self.layout.slice("stroke_scale")
         self._drive_legs = [
-            (drive_leg.DriveLegs.of(legs, platform.drive.params, self.layout.size,
-                                    None if self._scale is None else self._scale.start, platform.stroke_scale),
-             robust_noise(gtsam.noiseModel.Isotropic.Sigma(len(legs), self.noise.stroke_sigma_mm), *self._robust))
+            (
+                drive_leg.DriveLegs.of(
+                    legs,
+                    platform.drive.params,
+                    self.layout.size,
+                    None if self._scale is None else self._scale.start,
+                    platform.stroke_scale,
+                ),
+                robust_noise(gtsam.noiseModel.Isotropic.Sigma(len(legs), self.noise.stroke_sigma_mm), *self._robust),
+            )
             for legs in ([np.arange(N_LEGS)] if self._gaussian else [[i] for i in range(N_LEGS)])
         ]
         self._group_noise: dict[tuple[int, ...], gtsam.noiseModel.Base] = {}
@@ -132,7 +139,9 @@ class GraphBuilder:
         self._groups: tuple[list[np.ndarray] | None, list[tuple]] = (None, [])
         # tight coupling to a tracker of known geometry: the pose's initial value is the readings'
         # FK alone (its covariance, which model.pose adds, is for loose coupling)
-        self._tracker_fk = self.model.kind == "tracker" and self.model.unknowns is None and self.graph.coupling == "tight"
+        self._tracker_fk = (
+            self.model.kind == "tracker" and self.model.unknowns is None and self.graph.coupling == "tight"
+        )
         self._instrument = self.layout.slice("instrument")
         self._prior_sigma = self.layout.prior_sigma(self.noise.prior_sigma_mm)
         self._walks = self.layout.walks()
@@ -210,15 +219,22 @@ class GraphBuilder:
         strokes, z = check_sample(self.platform, self.model, sample)
         if sample.t_s < state.last_t_s:
             raise SampleRejected(
-                f"sample at t = {sample.t_s} s is older than the last one ({state.last_t_s} s)", SampleRejected.TIME_BACK
+                f"sample at t = {sample.t_s} s is older than the last one ({state.last_t_s} s)",
+                SampleRejected.TIME_BACK,
             )
         # The current estimate, asked for only where it is needed (isam2 pays a smoother query).
         wanted = state.samples > 0 and (self._instrument is not None or self.new_window(state, sample.t_s))
-        guess = params_guess() if wanted else (self.initial if state.samples == 0 and self._instrument is not None else None)
+        guess = (
+            params_guess()
+            if wanted
+            else (self.initial if state.samples == 0 and self._instrument is not None else None)
+        )
         if self._tracker_fk:
             observed, (R, t) = None, kin.solve_fk(self.model.legs, z, state.last_pose, "tracker")
         else:
-            theta = instrument_theta(self.model, None if guess is None or self._instrument is None else guess[self._instrument])
+            theta = instrument_theta(
+                self.model, None if guess is None or self._instrument is None else guess[self._instrument]
+            )
             observed = self.model.pose(z, theta, state.last_pose)
             if observed is not None:
                 R, t = observed.R, observed.t
@@ -270,8 +286,13 @@ class GraphBuilder:
         and :func:`~stewart_calib.factors.instrument.known_legs`."""
         groups = self.model.groups(z)
         if groups is not self._groups[0]:
-            self._groups = (groups, [(channels, self._noise(channels), instrument.known_legs(self.model, channels))
-                                     for channels in self._merged(groups)])
+            self._groups = (
+                groups,
+                [
+                    (channels, self._noise(channels), instrument.known_legs(self.model, channels))
+                    for channels in self._merged(groups)
+                ],
+            )
         return self._groups[1]
 
     def _scaled(self, strokes: np.ndarray, guess: np.ndarray | None) -> np.ndarray:

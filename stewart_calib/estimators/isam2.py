@@ -24,7 +24,6 @@ from .ekf import LegEKF
 from .graph import ChainState, GraphBuilder, first_paragraph, params_key
 from .measurement import HeldForRegistration, check_sample
 
-
 #: samples between the front end's anchor states (see :meth:`ISAM2Estimator.update`): a gtsam
 #: failure replays at most this many front-end updates.
 FRONT_ANCHOR_SAMPLES = 20
@@ -88,8 +87,12 @@ class ISAM2Estimator:
 
     def __init__(self, platform: Platform, config: EstimatorConfig):
         self._builder = GraphBuilder(platform, config, chain=True)
-        self._front = LegEKF(platform, dataclasses.replace(
-            config, ekf=dataclasses.replace(config.ekf, gate_probability=config.isam2.gate_probability)))
+        self._front = LegEKF(
+            platform,
+            dataclasses.replace(
+                config, ekf=dataclasses.replace(config.ekf, gate_probability=config.isam2.gate_probability)
+            ),
+        )
         self._pending: list[Sample] = []  # start-up samples the front end has not yet decided on
         self._front_anchor: dict | None = None  # the front end's state before the samples in _front_since
         self._front_since: list[Sample] = []
@@ -163,16 +166,20 @@ class ISAM2Estimator:
                 j = self._one_by_one(block, j, j + 1, refused, late, errors_out)
         return refused, late
 
-    def _one_by_one(self, block: Log, start: int, stop: int, refused: Refusals, late: Refusals,
-                    errors_out: np.ndarray | None) -> int:
+    def _one_by_one(
+        self, block: Log, start: int, stop: int, refused: Refusals, late: Refusals, errors_out: np.ndarray | None
+    ) -> int:
         """:meth:`update` with samples ``start:stop`` of ``block``; returns ``stop``."""
-        one = update_each(self, block.select(slice(start, stop)), None if errors_out is None else errors_out[start:stop],
-                          first=start)
+        one = update_each(
+            self, block.select(slice(start, stop)), None if errors_out is None else errors_out[start:stop], first=start
+        )
         refused += one[0]
         late += one[1]
         return stop
 
-    def _front_run(self, block: Log, first: int, refused: Refusals, late: Refusals, errors_out: np.ndarray | None) -> int:
+    def _front_run(
+        self, block: Log, first: int, refused: Refusals, late: Refusals, errors_out: np.ndarray | None
+    ) -> int:
         """Up to :data:`FRONT_RUN_SAMPLES` samples of ``block`` from ``first``: the front end takes
         them in one block, then the graph adds those it accepted, as :meth:`update` would one by one.
         Returns the index of the next sample to take.
@@ -300,8 +307,9 @@ class ISAM2Estimator:
             kept = [s for s, outlier in zip(self._pending, front.startup_outliers) if not outlier]
             self._pending = []
             x, P = front.startup_gaussian(1.0)  # the graph's factors carry the configured noise
-            state = ChainState(samples=len(kept), window_start_s=kept[-1].t_s, window_samples=len(kept),
-                               last_t_s=kept[-1].t_s)
+            state = ChainState(
+                samples=len(kept), window_start_s=kept[-1].t_s, window_samples=len(kept), last_t_s=kept[-1].t_s
+            )
             self._rebuild(_Snapshot(state, x, P, 0), [])
         for sample in batch:
             self._add_or_reject(sample)
@@ -352,8 +360,14 @@ class ISAM2Estimator:
         """Drop what the newest snapshot at least one lag old makes redundant."""
         cutoff = t_s - self._lag_s
         # the snapshots' samples are in time order: the newest old one is the first old one from the end
-        newest = next((i for i in range(len(self._snapshots) - 1, -1, -1)
-                       if self._replay[self._snapshots[i].offset].t_s <= cutoff), None)
+        newest = next(
+            (
+                i
+                for i in range(len(self._snapshots) - 1, -1, -1)
+                if self._replay[self._snapshots[i].offset].t_s <= cutoff
+            ),
+            None,
+        )
         if newest is None or self._snapshots[newest].offset == 0:
             return
         cut = self._snapshots[newest].offset
@@ -394,8 +408,12 @@ class ISAM2Estimator:
             raise CalibError(f"isam2: the marginal covariance failed: {first_paragraph(err)}") from None
         covariance = covariance * self._front.robust.noise_scale2
         return Estimate.of_state(
-            self._smoother.calculateEstimateVector(p), covariance, self._builder.layout, self.name,
-            self._state.samples, self._state.last_t_s,
+            self._smoother.calculateEstimateVector(p),
+            covariance,
+            self._builder.layout,
+            self.name,
+            self._state.samples,
+            self._state.last_t_s,
         )
 
     def take_late_rejections(self) -> list[SampleRejected]:
@@ -427,12 +445,18 @@ class ISAM2Estimator:
             "replay": {
                 "t_s": np.array([s.t_s for s in samples], dtype=float),
                 "strokes": np.array([s.strokes for s in samples], dtype=float).reshape(-1, N_LEGS),
-                "readings": np.array([s.readings for s in samples], dtype=float).reshape(len(samples), len(self._builder.model.columns)),
+                "readings": np.array([s.readings for s in samples], dtype=float).reshape(
+                    len(samples), len(self._builder.model.columns)
+                ),
             },
         }
         first = self._first_snapshot()
         if first is not None:
-            state["snapshot"] = {"chain": _chain_to_dict(first.state), "mean": first.mean, "covariance": first.covariance}
+            state["snapshot"] = {
+                "chain": _chain_to_dict(first.state),
+                "mean": first.mean,
+                "covariance": first.covariance,
+            }
         if self._held.active:
             state["held"] = self._held.export_state()
         else:
@@ -442,7 +466,8 @@ class ISAM2Estimator:
             "t_s": np.array([s.t_s for s in self._pending], dtype=float),
             "strokes": np.array([s.strokes for s in self._pending], dtype=float).reshape(-1, N_LEGS),
             "readings": np.array([s.readings for s in self._pending], dtype=float).reshape(
-                len(self._pending), len(self._builder.model.columns)),
+                len(self._pending), len(self._builder.model.columns)
+            ),
         }
         return state
 
@@ -470,22 +495,29 @@ class ISAM2Estimator:
         pending_t_s = state_array(pending, "t_s", np.shape(pending.get("t_s", ())))
         pending_strokes = state_array(pending, "strokes", (len(pending_t_s), N_LEGS))
         pending_readings = state_array(pending, "readings", (len(pending_t_s), len(self._builder.model.columns)))
-        self._pending = [Sample(float(pending_t_s[k]), pending_strokes[k], pending_readings[k])
-                         for k in range(len(pending_t_s))]
+        self._pending = [
+            Sample(float(pending_t_s[k]), pending_strokes[k], pending_readings[k]) for k in range(len(pending_t_s))
+        ]
         first = None
         if "snapshot" in state:
             snapshot = state["snapshot"]
             size = self._builder.layout.size
             mean = state_array(snapshot, "mean", (size,))
             covariance = state_array(snapshot, "covariance", (size, size))
-            if not np.all(np.isfinite(covariance)) or np.any(np.linalg.eigvalsh(self._builder.prior_covariance(covariance)) <= 0.0):
+            if not np.all(np.isfinite(covariance)) or np.any(
+                np.linalg.eigvalsh(self._builder.prior_covariance(covariance)) <= 0.0
+            ):
                 raise CalibError("estimator state: snapshot covariance is not positive definite")
             first = _Snapshot(_chain_from_dict(snapshot.get("chain", {})), mean, covariance, 0)
         try:
             self._rebuild(first, [Sample(float(t_s[k]), strokes[k], readings[k]) for k in range(len(t_s))])
         except SampleRejected as err:
             raise CalibError(f"estimator state: a replayed sample was rejected ({err})") from None
-        if (self._state.samples, self._state.window, self._state.last_t_s) != (target.samples, target.window, target.last_t_s):
+        if (self._state.samples, self._state.window, self._state.last_t_s) != (
+            target.samples,
+            target.window,
+            target.last_t_s,
+        ):
             raise CalibError("estimator state: the replay does not end where the saved chain did")
 
 
@@ -507,8 +539,10 @@ class _Snapshot:
 
 def _chain_to_dict(state: ChainState) -> dict:
     out = {
-        "samples": np.int64(state.samples), "window": np.int64(state.window),
-        "window_start_s": np.float64(state.window_start_s), "window_samples": np.int64(state.window_samples),
+        "samples": np.int64(state.samples),
+        "window": np.int64(state.window),
+        "window_start_s": np.float64(state.window_start_s),
+        "window_samples": np.int64(state.window_samples),
         "last_t_s": np.float64(state.last_t_s),
     }
     if state.last_pose is not None:
@@ -520,6 +554,10 @@ def _chain_from_dict(d: dict) -> ChainState:
     integer = lambda key: int(state_array(d, key, ()))  # noqa: E731
     pose = (state_array(d, "last_R", (3, 3)), state_array(d, "last_t", (3,))) if "last_R" in d else None
     return ChainState(
-        integer("samples"), integer("window"), float(state_array(d, "window_start_s", ())),
-        integer("window_samples"), float(state_array(d, "last_t_s", ())), pose,
+        integer("samples"),
+        integer("window"),
+        float(state_array(d, "window_start_s", ())),
+        integer("window_samples"),
+        float(state_array(d, "last_t_s", ())),
+        pose,
     )

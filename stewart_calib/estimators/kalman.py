@@ -26,9 +26,9 @@ from .. import _kernels
 from .._jit import njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected
+from ..estimate import Estimate
 from ..platform import N_PARAMS
 from ..unknowns import UnknownLayout, gauge_conditioned
-from ..estimate import Estimate
 from .base import state_array
 
 _FAST = {"reassoc", "contract", "arcp", "nsz"}
@@ -198,8 +198,9 @@ def variance_components(S: np.ndarray, residual: np.ndarray, R: np.ndarray) -> t
 
 
 @njit(fastmath=_FAST, nogil=True, error_model="numpy")
-def _tracker_observation(x, row, drive, tracker, stroke_factor, variances, newton, noise_scale2, R_guess, t_guess, warm,
-                         scratch):
+def _tracker_observation(
+    x, row, drive, tracker, stroke_factor, variances, newton, noise_scale2, R_guess, t_guess, warm, scratch
+):
     """The EKF's observation of one prepared row ``[q (6) | s (6)]`` of a tracker of known geometry
     at ``x`` (``LegEKF._observe``): FK of the readings from ``(R_guess, t_guess)`` into ``R_pose,
     t_pose``, ``ν = −r`` and ``R = s² R_meas`` into ``nu`` and ``R``, with ``scratch = (R_pose,
@@ -211,8 +212,23 @@ def _tracker_observation(x, row, drive, tracker, stroke_factor, variances, newto
     for i in range(6):
         strokes[i] = row[i] * stroke_factor[i]
     residual, r, H, R_meas, _ = _kernels.tracker_leg_observation_in(
-        drive[0], drive[1], drive[2], x[:42], tracker[0], tracker[1], tracker[2], row[6:12],
-        R_pose, t_pose, warm, newton[0], newton[1], strokes, variances[0], variances[1], fk_work,
+        drive[0],
+        drive[1],
+        drive[2],
+        x[:42],
+        tracker[0],
+        tracker[1],
+        tracker[2],
+        row[6:12],
+        R_pose,
+        t_pose,
+        warm,
+        newton[0],
+        newton[1],
+        strokes,
+        variances[0],
+        variances[1],
+        fk_work,
     )
     for a in range(6):
         nu[a] = -r[a]
@@ -275,8 +291,20 @@ def tracker_filter_pass(
     for k in range(t_s.shape[0]):
         if not use[k]:
             continue
-        converged, H = _tracker_observation(x, prepared[k], drive, tracker, stroke_factor, variances, newton, noise_scale2,
-                                            R_guess, t_guess, warm, scratch)
+        converged, H = _tracker_observation(
+            x,
+            prepared[k],
+            drive,
+            tracker,
+            stroke_factor,
+            variances,
+            newton,
+            noise_scale2,
+            R_guess,
+            t_guess,
+            warm,
+            scratch,
+        )
         if not converged:
             continue
         R_guess[:, :] = R_pose
@@ -302,9 +330,34 @@ STEPS_DONE, STEPS_PER_SAMPLE, STEPS_WINDOW_DUE = 0, 1, 2
 
 
 @njit(fastmath=_FAST, nogil=True, error_model="numpy")
-def tracker_filter_steps(x, P, Q, S_last, t_s, prepared, plain, last_t, drive, tracker, stroke_factor, variances, newton,
-                         walk_rate, noise_scale2, gate_nis, R_guess, t_guess, warm, buffer_t, buffer_prepared, buffer_gated,
-                         span, since_window, window, errors_out) -> tuple[int, int, float, float, int, bool]:
+def tracker_filter_steps(
+    x,
+    P,
+    Q,
+    S_last,
+    t_s,
+    prepared,
+    plain,
+    last_t,
+    drive,
+    tracker,
+    stroke_factor,
+    variances,
+    newton,
+    walk_rate,
+    noise_scale2,
+    gate_nis,
+    R_guess,
+    t_guess,
+    warm,
+    buffer_t,
+    buffer_prepared,
+    buffer_gated,
+    span,
+    since_window,
+    window,
+    errors_out,
+) -> tuple[int, int, float, float, int, bool]:
     """The gated recursion of ``RobustFilter`` after its start-up, over the EKF's observations of a
     tracker of known geometry, for as long as every row is an accepted sample — what
     ``RobustFilter.update`` does row by row, in one call (the same kernels, in the same order).
@@ -331,8 +384,20 @@ def tracker_filter_steps(x, P, Q, S_last, t_s, prepared, plain, last_t, drive, t
     for k in range(t_s.shape[0]):
         if not (plain[k] and t_s[k] >= last_t):
             return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm
-        converged, H = _tracker_observation(x, prepared[k], drive, tracker, stroke_factor, variances, newton, noise_scale2,
-                                            R_guess, t_guess, warm, scratch)
+        converged, H = _tracker_observation(
+            x,
+            prepared[k],
+            drive,
+            tracker,
+            stroke_factor,
+            variances,
+            newton,
+            noise_scale2,
+            R_guess,
+            t_guess,
+            warm,
+            scratch,
+        )
         if not (converged and all_finite(H, nu, R)):
             return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm
         step = walk_rate * max(t_s[k] - last_t, 0.0)
@@ -408,8 +473,13 @@ class FilterState:
     """
 
     def __init__(
-        self, method: str, prior_sigma_mm: float, gate_probability: float, m: int = 6,
-        layout: UnknownLayout | None = None, C: np.ndarray | None = None,
+        self,
+        method: str,
+        prior_sigma_mm: float,
+        gate_probability: float,
+        m: int = 6,
+        layout: UnknownLayout | None = None,
+        C: np.ndarray | None = None,
     ):
         if not 0.0 <= gate_probability < 1.0:
             raise CalibError(f"{method}: gate_probability must lie in [0, 1), got {gate_probability}")
@@ -439,7 +509,9 @@ class FilterState:
     def update(self, H: np.ndarray, residual: np.ndarray, R: np.ndarray, t_s: float) -> None:
         """:func:`kalman_update` with ``self.Q``; counts the sample or raises ``SampleRejected``."""
         if not all_finite(H, residual, R):  # compiled: three np.isfinite passes cost ~5 µs
-            raise SampleRejected(f"{self.method}: sample at t = {t_s} s gives a non-finite observation", SampleRejected.NON_FINITE)
+            raise SampleRejected(
+                f"{self.method}: sample at t = {t_s} s gives a non-finite observation", SampleRejected.NON_FINITE
+            )
         m = len(residual)
         gate_nis = self.gate_nis if m == self._m else self._gate(m)  # an observation of another size
         if self._work.size < workspace_size(len(self.x), m):
@@ -465,8 +537,12 @@ class FilterState:
     def export_state(self) -> dict:
         """Everything :meth:`update` reads or writes, as arrays (checkpoints)."""
         state = {
-            "x": self.x.copy(), "P": self.P.copy(), "Q": self.Q.copy(),
-            "samples_used": np.int64(self.samples_used), "t_s": np.float64(self.t_s), "nis": np.float64(self.nis),
+            "x": self.x.copy(),
+            "P": self.P.copy(),
+            "Q": self.Q.copy(),
+            "samples_used": np.int64(self.samples_used),
+            "t_s": np.float64(self.t_s),
+            "nis": np.float64(self.nis),
         }
         if self.S is not None:
             state["S"] = self.S.copy()

@@ -54,7 +54,9 @@ class BatchLM(BufferedFit):
         samples = list(samples)
         if self._state.samples == 0:
             builder = self._builder
-            builder.initial = registered_start(builder.platform, self._config.noise, builder.model, builder.layout, samples)
+            builder.initial = registered_start(
+                builder.platform, self._config.noise, builder.model, builder.layout, samples
+            )
         return super().fit(samples)
 
     def _last_params(self) -> np.ndarray:
@@ -81,7 +83,11 @@ class BatchLM(BufferedFit):
             self._values = _solve(self._graph, self._values)
             covariance = _marginal_covariance(self._graph, self._values, p)
             self._solved = Estimate.of_state(
-                self._values.atVector(p), covariance, self._builder.layout, self.name, self._state.samples,
+                self._values.atVector(p),
+                covariance,
+                self._builder.layout,
+                self.name,
+                self._state.samples,
                 self._state.last_t_s,
             )
         return self._solved

@@ -179,7 +179,13 @@ class LeastSquares(BufferedFit):
             channel_names=model.channel_names,
             t_s=np.array(self._t_v),
         )
-        sol = fit(problem, self.config.robust_k, self.config.estimate_noise, self.config.stroke_scale, self.config.tolerance_mm)
+        sol = fit(
+            problem,
+            self.config.robust_k,
+            self.config.estimate_noise,
+            self.config.stroke_scale,
+            self.config.tolerance_mm,
+        )
         self.rejected.extend(sol.rejected)
         self.singular_values = sol.singular_values
         return external_estimate(self.name, model, sol, int(sol.used.sum()), self._t_s, GAUGE_STATEMENT)
@@ -191,7 +197,9 @@ def external_estimate(method: str, model, sol, samples_used: int, t_s: float, ga
     from ..unknowns import UnknownLayout, stroke_scale_block
 
     layout = UnknownLayout((stroke_scale_block(STROKE_SCALE_PRIOR, model.platform.stroke_scale), model.block()))
-    x = np.concatenate([sol.error, sol.stroke_scale - model.platform.stroke_scale, model.theta(sol.unknowns) - model.block().nominal])
+    x = np.concatenate(
+        [sol.error, sol.stroke_scale - model.platform.stroke_scale, model.theta(sol.unknowns) - model.block().nominal]
+    )
     P = None
     if sol.covariance is not None:
         lift = np.eye(layout.size)

@@ -49,7 +49,9 @@ def check_sample(platform: Platform, model: InstrumentModel, sample: Sample) -> 
             )
         bad = np.flatnonzero(~np.isfinite(strokes))
         if bad.size:
-            raise SampleRejected(f"sample at t = {sample.t_s} s: stroke q{bad[0] + 1} is not finite", SampleRejected.NON_FINITE)
+            raise SampleRejected(
+                f"sample at t = {sample.t_s} s: stroke q{bad[0] + 1} is not finite", SampleRejected.NON_FINITE
+            )
         i = int(np.flatnonzero((strokes < lo) | (strokes > hi))[0])
         raise SampleRejected(
             f"sample at t = {sample.t_s} s: stroke q{i + 1} = {strokes[i]:.6g} mm outside [{lo}, {hi}] mm",
@@ -130,24 +132,28 @@ class WarmPose(_WarmStart):
             self._guess = (observed.R, observed.t)
         return observed
 
-    def tracker_leg_observation(self, drive: LegGeometry, delta: np.ndarray, z: np.ndarray, strokes: np.ndarray,
-                                stroke_sigma_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def tracker_leg_observation(
+        self, drive: LegGeometry, delta: np.ndarray, z: np.ndarray, strokes: np.ndarray, stroke_sigma_mm: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For a tracker of known geometry: :meth:`solve` and
         :func:`~stewart_calib.kinematics.leg_ekf_observation` at that pose in one compiled call,
         ``(r, H = ∂r/∂M, R_meas)`` (:func:`~stewart_calib.kinematics.tracker_leg_observation`)."""
         R, t, r, H, R_meas = kin.tracker_leg_observation(
-            drive, delta, self.model.legs, z, self._guess, strokes, float(self.model.channel_sigma[0]), stroke_sigma_mm)
+            drive, delta, self.model.legs, z, self._guess, strokes, float(self.model.channel_sigma[0]), stroke_sigma_mm
+        )
         self._guess = (R, t)
         return r, H, R_meas
 
     def _tracker_arguments(self, drive: LegGeometry, stroke_factor: np.ndarray, stroke_sigma_mm: float) -> tuple:
         """The compiled passes' fixed arguments: both leg sets, the stroke factor, the variances, Newton's limits."""
         legs = self.model.legs
-        return ((drive.base_joints, drive.platform_joints, drive.initial_lengths),
-                (legs.base_joints, legs.platform_joints, legs.initial_lengths),
-                np.ascontiguousarray(stroke_factor, dtype=float),
-                (float(self.model.channel_sigma[0]) ** 2, float(stroke_sigma_mm) ** 2),
-                (kin.FK_TOLERANCE_MM, kin.FK_MAX_ITERATIONS))
+        return (
+            (drive.base_joints, drive.platform_joints, drive.initial_lengths),
+            (legs.base_joints, legs.platform_joints, legs.initial_lengths),
+            np.ascontiguousarray(stroke_factor, dtype=float),
+            (float(self.model.channel_sigma[0]) ** 2, float(stroke_sigma_mm) ** 2),
+            (kin.FK_TOLERANCE_MM, kin.FK_MAX_ITERATIONS),
+        )
 
     def tracker_filter_pass(self, drive: LegGeometry, stroke_factor: np.ndarray, stroke_sigma_mm: float):
         """A filter pass ``(x, P, t_s, prepared, use, walk_rate, noise_scale2, components) →
@@ -160,9 +166,20 @@ class WarmPose(_WarmStart):
 
         def run(x, P, t_s, prepared, use, walk_rate, noise_scale2, components):
             R, t = kin.start_pose(self._guess)
-            used, last_t, warm = tracker_filter_pass(x, P, t_s, np.ascontiguousarray(prepared), use, *fixed,
-                                                     float(walk_rate), float(noise_scale2), R, t, self._guess is not None,
-                                                     components)
+            used, last_t, warm = tracker_filter_pass(
+                x,
+                P,
+                t_s,
+                np.ascontiguousarray(prepared),
+                use,
+                *fixed,
+                float(walk_rate),
+                float(noise_scale2),
+                R,
+                t,
+                self._guess is not None,
+                components,
+            )
             if warm:
                 self._guess = (R, t)
             return used, last_t
@@ -181,8 +198,23 @@ class WarmPose(_WarmStart):
         def run(x, P, Q, S_last, t_s, prepared, plain, last_t, walk_rate, noise_scale2, gate_nis, *window):
             R, t = kin.start_pose(self._guess)
             done, why, last_t, nis, since_window, warm = tracker_filter_steps(
-                x, P, Q, S_last, t_s, prepared, plain, last_t, *fixed, walk_rate, noise_scale2, gate_nis, R, t,
-                self._guess is not None, *window)
+                x,
+                P,
+                Q,
+                S_last,
+                t_s,
+                prepared,
+                plain,
+                last_t,
+                *fixed,
+                walk_rate,
+                noise_scale2,
+                gate_nis,
+                R,
+                t,
+                self._guess is not None,
+                *window,
+            )
             if warm:
                 self._guess = (R, t)
             return done, why, last_t, nis, since_window
@@ -260,7 +292,9 @@ class HeldForRegistration:
         self.active = False
         return start
 
-    def hold_then_replay(self, sample: Sample, start: Callable[[np.ndarray], None], replay: Callable[[Sample], None]) -> None:
+    def hold_then_replay(
+        self, sample: Sample, start: Callable[[np.ndarray], None], replay: Callable[[Sample], None]
+    ) -> None:
         """:meth:`hold` ``sample``; once the held samples register the instrument, ``start(vector)``
         and ``replay`` each of them (one it refuses is left out, as it would have been)."""
         vector = self.hold(sample)
@@ -279,7 +313,8 @@ class HeldForRegistration:
             "t_s": np.array([s.t_s for s in self.samples], dtype=float),
             "strokes": np.array([s.strokes for s in self.samples], dtype=float).reshape(-1, 6),
             "readings": np.array([s.readings for s in self.samples], dtype=float).reshape(
-                len(self.samples), len(self._args[2].columns)),
+                len(self.samples), len(self._args[2].columns)
+            ),
         }
 
     def restore(self, state: dict, update) -> None:
@@ -306,11 +341,15 @@ def drive_only_model(method: str, platform: Platform, config: EstimatorConfig) -
     model = instrument_model(platform, config.noise)
     extra = [block.key for block in unknown_layout(platform, config.noise, model).blocks]
     if extra:
-        raise CalibError(f"{method} identifies the 42 drive parameters only, not {', '.join(extra)}; use ekf, isam2 or lm")
+        raise CalibError(
+            f"{method} identifies the 42 drive parameters only, not {', '.join(extra)}; use ekf, isam2 or lm"
+        )
     return model
 
 
-def measured_pose(pose: WarmPose, z: np.ndarray, t_s: float, theta: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def measured_pose(
+    pose: WarmPose, z: np.ndarray, t_s: float, theta: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """``P_v``: the pose the instrument (its unknowns at ``θ``; default none) measured (paper Fig. 3
     step 1), or ``SampleRejected``."""
     observed = pose.solve(z, np.zeros(0) if theta is None else theta)

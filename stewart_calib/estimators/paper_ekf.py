@@ -33,12 +33,20 @@ from ..errors import CalibError
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta
 from ..platform import N_PARAMS, Platform
-from ..unknowns import UnknownLayout
 from ..samples import Sample
+from ..unknowns import UnknownLayout
 from .base import state_array
 from .kalman import FilterState
-from .measurement import (HeldForRegistration, WarmFK, WarmPose, check_sample, drive_only_model, measured_pose,
-                          pose_difference, unknown_layout)
+from .measurement import (
+    HeldForRegistration,
+    WarmFK,
+    WarmPose,
+    check_sample,
+    drive_only_model,
+    measured_pose,
+    pose_difference,
+    unknown_layout,
+)
 
 
 class PaperEKF:
@@ -125,8 +133,14 @@ class PaperEKF:
         f, n = self.filter, N_PARAMS + block.size
         P = np.zeros((n, n))
         P[:N_PARAMS, :N_PARAMS] = f.P
-        return Estimate.of_state(np.concatenate((f.x, self._theta - block.nominal)), P, UnknownLayout((block,)),
-                                 self.name, f.samples_used, f.t_s)
+        return Estimate.of_state(
+            np.concatenate((f.x, self._theta - block.nominal)),
+            P,
+            UnknownLayout((block,)),
+            self.name,
+            f.samples_used,
+            f.t_s,
+        )
 
     def current_error(self) -> np.ndarray:
         """δM [mm] after the last accepted sample."""
@@ -174,6 +188,8 @@ def _pose_error_model(platform: Platform, config: EstimatorConfig):
     if model.kind == "tracker":
         return drive_only_model(PaperEKF.name, platform, config)
     if config.noise.stroke_scale_sigma > 0.0:
-        raise CalibError("paper-ekf identifies the 42 drive parameters only, not the stroke scale "
-                         "(noise.stroke_scale_sigma); use ekf, isam2 or lm")
+        raise CalibError(
+            "paper-ekf identifies the 42 drive parameters only, not the stroke scale "
+            "(noise.stroke_scale_sigma); use ekf, isam2 or lm"
+        )
     return model

@@ -57,21 +57,53 @@ class MethodSpec:
 METHODS: dict[str, MethodSpec] = {
     spec.name: spec
     for spec in (
-        MethodSpec("ls", ".ls:LeastSquares", online=False, checkpointable=False, instruments=("tracker", "pose", "points"),
-                   summary="the paper's batch least squares on the pose error (eq. 9–11)"),
-        MethodSpec("paper-ekf", ".paper_ekf:PaperEKF", online=True, checkpointable=True, instruments=("tracker", "pose"),
-                   summary="the paper's EKF on the pose error (eq. 14–19)"),
-        MethodSpec("ekf", ".ekf:LegEKF", online=True, checkpointable=True, instruments=("tracker", "pose", "points"),
-                   summary="EKF on the leg-length model, the factor graph's noise model"),
-        MethodSpec("isam2", ".isam2:ISAM2Estimator", online=True, checkpointable=True, instruments=("tracker", "pose", "points"),
-                   summary="factor graph solved online by iSAM2 in a fixed-lag smoother"),
-        MethodSpec("lm", ".lm:BatchLM", online=False, checkpointable=False, instruments=("tracker", "pose", "points"),
-                   summary="the same factor graph solved in batch by Levenberg–Marquardt"),
+        MethodSpec(
+            "ls",
+            ".ls:LeastSquares",
+            online=False,
+            checkpointable=False,
+            instruments=("tracker", "pose", "points"),
+            summary="the paper's batch least squares on the pose error (eq. 9–11)",
+        ),
+        MethodSpec(
+            "paper-ekf",
+            ".paper_ekf:PaperEKF",
+            online=True,
+            checkpointable=True,
+            instruments=("tracker", "pose"),
+            summary="the paper's EKF on the pose error (eq. 14–19)",
+        ),
+        MethodSpec(
+            "ekf",
+            ".ekf:LegEKF",
+            online=True,
+            checkpointable=True,
+            instruments=("tracker", "pose", "points"),
+            summary="EKF on the leg-length model, the factor graph's noise model",
+        ),
+        MethodSpec(
+            "isam2",
+            ".isam2:ISAM2Estimator",
+            online=True,
+            checkpointable=True,
+            instruments=("tracker", "pose", "points"),
+            summary="factor graph solved online by iSAM2 in a fixed-lag smoother",
+        ),
+        MethodSpec(
+            "lm",
+            ".lm:BatchLM",
+            online=False,
+            checkpointable=False,
+            instruments=("tracker", "pose", "points"),
+            summary="the same factor graph solved in batch by Levenberg–Marquardt",
+        ),
     )
 }
 
 
-def method_names(online: bool | None = None, checkpointable: bool | None = None, instrument: str | None = None) -> tuple[str, ...]:
+def method_names(
+    online: bool | None = None, checkpointable: bool | None = None, instrument: str | None = None
+) -> tuple[str, ...]:
     """Names of the methods with the given properties (None: either), in :data:`METHODS` order."""
     return tuple(
         spec.name

@@ -115,9 +115,22 @@ class RobustFilter:
         recoveries: lock-outs recovered from.
     """
 
-    def __init__(self, method: str, prior_sigma_mm: float, walk_mm_per_sqrt_s: float, gate_probability: float,
-                 observe: Observe, robust, m: int = 6, layout=None, C: np.ndarray | None = None,
-                 unit_Q: np.ndarray | None = None, compiled_pass=None, compiled_steps=None, relinearise: bool = False):
+    def __init__(
+        self,
+        method: str,
+        prior_sigma_mm: float,
+        walk_mm_per_sqrt_s: float,
+        gate_probability: float,
+        observe: Observe,
+        robust,
+        m: int = 6,
+        layout=None,
+        C: np.ndarray | None = None,
+        unit_Q: np.ndarray | None = None,
+        compiled_pass=None,
+        compiled_steps=None,
+        relinearise: bool = False,
+    ):
         self.method = method
         self.filter = FilterState(method, prior_sigma_mm, gate_probability, m, layout, C)
         n = len(self.filter.x)
@@ -172,8 +185,9 @@ class RobustFilter:
         if not self.started:
             observation = self._observe(prepared, self.filter.x)  # SampleRejected from FK passes on
             if observation is None:
-                raise SampleRejected(f"{self.method}: sample at t = {t_s} s: the measurement does not fix a pose",
-                                     SampleRejected.NO_POSE)
+                raise SampleRejected(
+                    f"{self.method}: sample at t = {t_s} s: the measurement does not fix a pose", SampleRejected.NO_POSE
+                )
             # its NIS against the state before it, as the recursion reports one per sample
             nu, H, R0 = observation
             S = H @ self.filter.P @ H.T + self.noise_scale2 * R0
@@ -222,9 +236,23 @@ class RobustFilter:
             window = self._noise_due()
             S_last, span = np.empty((self._m, self._m)), self._buffer.span()
             count, why, last_t, nis, self._since_window = self._compiled_steps(
-                f.x, f.P, f.Q, S_last, t_s[done:], prepared[done:], plain[done:], f.t_s, self.walk_rate_mm2_per_s,
-                self.noise_scale2, f.gate_nis, *self._buffer.arrays(), span, self._since_window,
-                window if window < math.inf else 0, errors_out[done:])
+                f.x,
+                f.P,
+                f.Q,
+                S_last,
+                t_s[done:],
+                prepared[done:],
+                plain[done:],
+                f.t_s,
+                self.walk_rate_mm2_per_s,
+                self.noise_scale2,
+                f.gate_nis,
+                *self._buffer.arrays(),
+                span,
+                self._since_window,
+                window if window < math.inf else 0,
+                errors_out[done:],
+            )
             self._buffer.set_span(span)
             if count:
                 f.t_s, f.nis, f.S = last_t, nis, S_last
@@ -250,8 +278,11 @@ class RobustFilter:
         return x, P
 
     def _late_rejection(self, t_s: float) -> SampleRejected:
-        err = SampleRejected(f"{self.method}: sample at t = {t_s} s is inconsistent with the start-up batch "
-                             "(χ² test at its robust noise scale)", SampleRejected.GATED)
+        err = SampleRejected(
+            f"{self.method}: sample at t = {t_s} s is inconsistent with the start-up batch "
+            "(χ² test at its robust noise scale)",
+            SampleRejected.GATED,
+        )
         err.t_s = t_s
         return err
 
@@ -273,8 +304,9 @@ class RobustFilter:
         f = self.filter
         observation = self._observe(prepared, f.x)
         if observation is None:
-            raise SampleRejected(f"{self.method}: sample at t = {t_s} s: the measurement does not fix a pose",
-                                 SampleRejected.NO_POSE)
+            raise SampleRejected(
+                f"{self.method}: sample at t = {t_s} s: the measurement does not fix a pose", SampleRejected.NO_POSE
+            )
         nu, H, R0 = observation
         self._fill_Q(f.Q, 0.0 if math.isnan(f.t_s) else t_s - f.t_s)
         f.update(H, nu, self.noise_scale2 * R0, t_s)  # raises SampleRejected, state untouched
@@ -293,8 +325,13 @@ class RobustFilter:
         linearisation a Gauss–Newton pass (:meth:`_pass`) reuses."""
         return at, [self._observe_or_none(prepared, at) for prepared in self._buffer.prepared]
 
-    def _pass(self, use: np.ndarray, noise_scale2: float, centre: np.ndarray | None = None,
-              linearised: tuple[np.ndarray, list] | None = None):
+    def _pass(
+        self,
+        use: np.ndarray,
+        noise_scale2: float,
+        centre: np.ndarray | None = None,
+        linearised: tuple[np.ndarray, list] | None = None,
+    ):
         """A filter pass from the prior over the buffered samples ``use``; returns
         ``(x, P, samples used, last t_s, residual degrees of freedom)``.
 
@@ -315,8 +352,9 @@ class RobustFilter:
         if linearised is not None:
             used, last_t = self._observed_pass(x, P, use, noise_scale2, linearised)
         elif self._compiled_pass is not None:
-            used, last_t = self._compiled_pass(x, P, buffer.t, buffer.prepared, use, self.walk_rate_mm2_per_s, noise_scale2,
-                                               self._pass_components)
+            used, last_t = self._compiled_pass(
+                x, P, buffer.t, buffer.prepared, use, self.walk_rate_mm2_per_s, noise_scale2, self._pass_components
+            )
         else:
             used, last_t = self._observed_pass(x, P, use, noise_scale2)
         # the batch's hat-matrix trace, tr(P Σ Hᵀ R⁻¹ H) = n − tr(P P0⁻¹), is what the data
@@ -324,8 +362,14 @@ class RobustFilter:
         determined = self._free - float(np.sum(self._P0_pinv * P))  # tr(P0⁺ P), both symmetric
         return x, P, used, last_t, used * self._m - determined
 
-    def _observed_pass(self, x: np.ndarray, P: np.ndarray, use: np.ndarray, noise_scale2: float,
-                       linearised: tuple[np.ndarray, list] | None = None) -> tuple[int, float]:
+    def _observed_pass(
+        self,
+        x: np.ndarray,
+        P: np.ndarray,
+        use: np.ndarray,
+        noise_scale2: float,
+        linearised: tuple[np.ndarray, list] | None = None,
+    ) -> tuple[int, float]:
         """:meth:`_pass`'s recursion, observing each sample through ``observe`` (in place) at the
         pass's own state, or taking it from ``linearised``."""
         Q = np.zeros((self._n, self._n))
@@ -369,7 +413,7 @@ class RobustFilter:
         if count >= 2 * block:
             for start in range(0, count - block + 1, max(block // 2, 1)):
                 subset = np.zeros(count, dtype=bool)
-                subset[start:start + block] = True
+                subset[start : start + block] = True
                 subsets.append(subset)
         return subsets
 
@@ -487,7 +531,7 @@ class RobustFilter:
     # ------------------------------------------------------------------ lock-out
 
     def _locked_out(self) -> bool:
-        window = self._buffer.gated[-self._robust.lockout_window_samples:]
+        window = self._buffer.gated[-self._robust.lockout_window_samples :]
         return int(window.sum()) >= self._robust.lockout_gated_samples
 
     def _recover(self) -> None:
@@ -510,8 +554,9 @@ class RobustFilter:
             "prior_mean": self._x0.copy(),
             "noise": np.array([self.noise_scale2, self.walk_rate_mm2_per_s]),
             "scale_sums": self._scale_sums.copy(),
-            "counters": np.array([int(self.started), self.recoveries, self._since_window, int(self.measured_noise)],
-                                 dtype=np.int64),
+            "counters": np.array(
+                [int(self.started), self.recoveries, self._since_window, int(self.measured_noise)], dtype=np.int64
+            ),
             **self._buffer.export_state(),
             "difference_eigenvalues": np.array([d[0] for d in differences]).reshape(-1, self._n),
             "difference_projections": np.array([d[1] for d in differences]).reshape(-1, self._n),
@@ -541,8 +586,12 @@ class RobustFilter:
         else:  # a checkpoint of before first_t_s: the window as an instant at its end
             last_t = float(state_array(window, "t_s", ()))
             first_t = float(state_array(window, "first_t_s", ())) if "first_t_s" in window else last_t
-            self._last_window = (state_array(window, "x", (self._n,)), state_array(window, "P", (self._n, self._n)),
-                                 first_t, last_t)
+            self._last_window = (
+                state_array(window, "x", (self._n,)),
+                state_array(window, "P", (self._n, self._n)),
+                first_t,
+                last_t,
+            )
 
 
 def _mahalanobis2(step: np.ndarray, P: np.ndarray, gauge_projector: np.ndarray | None) -> float:
@@ -558,9 +607,9 @@ def _mahalanobis2(step: np.ndarray, P: np.ndarray, gauge_projector: np.ndarray |
 @njit(nogil=True, error_model="numpy")
 def _walk_rate_root(lam: np.ndarray, p: np.ndarray, T: np.ndarray, target: float) -> float:
     """The root ``q ≥ 0`` of ``f(q) = Σ_w Σ_i p_wi / (λ_wi + q T_w) − target``: ``f`` is convex and
-    decreasing in ``q``, so Newton's method from ``q = 0`` (where ``f > 0``) approaches the root from
-    below without overshooting, in a few steps (compiled: numpy's version on these 8 × 42 arrays took
-~0.23 ms a call, ~20× this)."""
+        decreasing in ``q``, so Newton's method from ``q = 0`` (where ``f > 0``) approaches the root from
+        below without overshooting, in a few steps (compiled: numpy's version on these 8 × 42 arrays took
+    ~0.23 ms a call, ~20× this)."""
     q = 0.0
     for _ in range(200):
         excess = -target
@@ -614,9 +663,9 @@ class _SampleWindow:
     def __len__(self) -> int:
         return self._end - self._start
 
-    t = property(lambda self: self._t[self._start:self._end], doc="(K,) sample times [s]")
-    prepared = property(lambda self: self._prepared[self._start:self._end], doc="(K, width) prepared samples")
-    gated = property(lambda self: self._gated[self._start:self._end], doc="(K,) bool, writable: left out")
+    t = property(lambda self: self._t[self._start : self._end], doc="(K,) sample times [s]")
+    prepared = property(lambda self: self._prepared[self._start : self._end], doc="(K, width) prepared samples")
+    gated = property(lambda self: self._gated[self._start : self._end], doc="(K,) bool, writable: left out")
 
     def holds(self, width: int) -> bool:
         """Its rows are ``width`` wide (fixed by the first sample)."""
@@ -648,15 +697,20 @@ class _SampleWindow:
             self._start += 1
 
     def export_state(self) -> dict:
-        return {"buffer_t": self.t.copy(), "buffer_prepared": self.prepared.copy(),
-                "buffer_gated": self.gated.astype(np.int64)}
+        return {
+            "buffer_t": self.t.copy(),
+            "buffer_prepared": self.prepared.copy(),
+            "buffer_gated": self.gated.astype(np.int64),
+        }
 
     def import_state(self, state: dict) -> None:
         """Restore :meth:`export_state`. Raises ``CalibError`` on a bad key or shape."""
         t = state_array(state, "buffer_t", np.shape(state.get("buffer_t", ())))
         prepared = np.array(state.get("buffer_prepared", np.zeros((0, 0))), dtype=float)
         if t.ndim != 1 or prepared.ndim != 2 or len(prepared) != len(t) or len(t) > self.capacity:
-            raise CalibError("estimator state: keys 'buffer_t', 'buffer_prepared': expected one row per buffered sample")
+            raise CalibError(
+                "estimator state: keys 'buffer_t', 'buffer_prepared': expected one row per buffered sample"
+            )
         self._allocate(prepared.shape[1])
         self._end = len(t)
         self._t[: len(t)], self._prepared[: len(t)] = t, prepared

@@ -68,24 +68,45 @@ class DriveLegs:
     nominal_scale: np.ndarray
 
     @classmethod
-    def of(cls, legs, drive_params: np.ndarray, size: int = N_PARAMS, scale_start: int | None = None,
-           stroke_scale: np.ndarray | float = 0.0) -> "DriveLegs":
+    def of(
+        cls,
+        legs,
+        drive_params: np.ndarray,
+        size: int = N_PARAMS,
+        scale_start: int | None = None,
+        stroke_scale: np.ndarray | float = 0.0,
+    ) -> "DriveLegs":
         """Legs ``legs`` of a drive with ``(6, 7)`` nominal ``drive_params``; ``scale_start``: the
         column of leg 1's k_i error (leg i at ``scale_start + i``); ``stroke_scale``: nominal k_i."""
         legs = np.asarray(legs, dtype=np.int64).reshape(-1)
         columns = N_PARAMS_PER_LEG * legs[:, None] + np.arange(N_PARAMS_PER_LEG)
         return cls(
-            legs, np.array(np.asarray(drive_params, dtype=float)[legs]), np.ascontiguousarray(columns), int(size),
+            legs,
+            np.array(np.asarray(drive_params, dtype=float)[legs]),
+            np.ascontiguousarray(columns),
+            int(size),
             np.full(len(legs), -1, dtype=np.int64) if scale_start is None else scale_start + legs,
             np.array(np.broadcast_to(np.asarray(stroke_scale, dtype=float), (N_LEGS,))[legs]),
         )
 
 
-def _error(legs: DriveLegs, strokes_mm: np.ndarray, pose_key: int, params_key: int,
-           this: gtsam.CustomFactor, values: gtsam.Values, H):
+def _error(
+    legs: DriveLegs,
+    strokes_mm: np.ndarray,
+    pose_key: int,
+    params_key: int,
+    this: gtsam.CustomFactor,
+    values: gtsam.Values,
+    H,
+):
     r, H_pose, H_params = drive_leg_rows(
-        values.atPose3(pose_key).matrix(), values.atVector(params_key), legs.nominal, legs.columns,
-        legs.scale_columns, legs.nominal_scale, strokes_mm,
+        values.atPose3(pose_key).matrix(),
+        values.atVector(params_key),
+        legs.nominal,
+        legs.columns,
+        legs.scale_columns,
+        legs.nominal_scale,
+        strokes_mm,
     )
     if H is not None:
         H[0] = H_pose

@@ -31,8 +31,17 @@ from ._kernels import known_leg_rows
 _KNOWN = np.zeros(0)  # θ of a model without unknowns
 
 
-def _error(model: InstrumentModel, z: np.ndarray, channels: np.ndarray, block: slice | None, size: int, keys: tuple,
-           this: gtsam.CustomFactor, values: gtsam.Values, H):
+def _error(
+    model: InstrumentModel,
+    z: np.ndarray,
+    channels: np.ndarray,
+    block: slice | None,
+    size: int,
+    keys: tuple,
+    this: gtsam.CustomFactor,
+    values: gtsam.Values,
+    H,
+):
     pose = values.atPose3(keys[0]).matrix()  # one conversion, not rotation() and translation()
     theta = _KNOWN if block is None else model.unknowns.nominal + values.atVector(keys[1])[block]
     res = model.residual(pose[:3, :3], pose[:3, 3], theta, z, channels)
@@ -45,8 +54,9 @@ def _error(model: InstrumentModel, z: np.ndarray, channels: np.ndarray, block: s
     return res.r
 
 
-def _known_legs_error(legs: np.ndarray, readings: np.ndarray, pose_key: int,
-                      this: gtsam.CustomFactor, values: gtsam.Values, H):
+def _known_legs_error(
+    legs: np.ndarray, readings: np.ndarray, pose_key: int, this: gtsam.CustomFactor, values: gtsam.Values, H
+):
     r, H_pose = known_leg_rows(values.atPose3(pose_key).matrix(), legs, readings)
     if H is not None:
         H[0] = H_pose
@@ -62,8 +72,15 @@ def known_legs(model: InstrumentModel, channels: np.ndarray) -> np.ndarray | Non
 
 
 def factor(
-    model: InstrumentModel, pose_key: int, z: np.ndarray, channels: np.ndarray, noise: gtsam.noiseModel.Base,
-    params_key: int | None = None, block: slice | None = None, size: int = 0, legs: np.ndarray | None = None,
+    model: InstrumentModel,
+    pose_key: int,
+    z: np.ndarray,
+    channels: np.ndarray,
+    noise: gtsam.noiseModel.Base,
+    params_key: int | None = None,
+    block: slice | None = None,
+    size: int = 0,
+    legs: np.ndarray | None = None,
 ) -> gtsam.CustomFactor:
     """A ``CustomFactor`` for ``channels`` of the measurement ``z``.
 

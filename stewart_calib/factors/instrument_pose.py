@@ -17,7 +17,6 @@ import gtsam
 import numpy as np
 
 
-
 def residual(measured: gtsam.Pose3, pose: gtsam.Pose3, jacobians: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
     """``Log(T_m⁻¹ T)`` ``(6,)`` and, if asked, its Jacobian ``(6, 6)`` on the body tangent of ``pose``."""
     if not jacobians:

@@ -19,7 +19,6 @@ import numpy as np
 from . import diagonal_noise
 
 
-
 def sigma_mm(random_walk_mm_per_sqrt_s: float, dt_s: float, floor_mm: float) -> float:
     """``max(random_walk · √Δt, floor)`` [mm].
 

@@ -7,6 +7,12 @@ from .base import InstrumentModel, PoseObservation, Residual, instrument_theta
 from .registry import MODELS, instrument_model, needs_registration, registered
 
 __all__ = [
-    "MODELS", "InstrumentModel", "PoseObservation", "Residual", "instrument_model", "instrument_theta",
-    "needs_registration", "registered",
+    "MODELS",
+    "InstrumentModel",
+    "PoseObservation",
+    "Residual",
+    "instrument_model",
+    "instrument_theta",
+    "needs_registration",
+    "registered",
 ]

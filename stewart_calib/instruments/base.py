@@ -89,10 +89,14 @@ class InstrumentModel(Protocol):
     def groups(self, z: np.ndarray) -> list[np.ndarray]:
         """The channel groups of ``z`` that are measured, one factor each."""
 
-    def residual(self, R: np.ndarray, t: np.ndarray, theta: np.ndarray, z: np.ndarray, channels: np.ndarray) -> Residual:
+    def residual(
+        self, R: np.ndarray, t: np.ndarray, theta: np.ndarray, z: np.ndarray, channels: np.ndarray
+    ) -> Residual:
         """``h(pose, θ) − z`` on ``channels`` with its Jacobians."""
 
-    def pose(self, z: np.ndarray, theta: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None) -> PoseObservation | None:
+    def pose(
+        self, z: np.ndarray, theta: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None
+    ) -> PoseObservation | None:
         """The pose ``z`` implies (``guess``: the previous one, a warm start), or None where ``z``
         does not fix a pose. Raises :class:`~stewart_calib.errors.SampleRejected` when it should
         but cannot (e.g. forward kinematics does not converge)."""

@@ -24,7 +24,9 @@ def scaled_strokes(strokes: np.ndarray, stroke_scale: np.ndarray) -> np.ndarray:
     return np.asarray(strokes, dtype=float) * (1.0 + np.asarray(stroke_scale, dtype=float))
 
 
-def pose_jacobian(drive: LegGeometry, strokes: np.ndarray, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def pose_jacobian(
+    drive: LegGeometry, strokes: np.ndarray, R: np.ndarray, t: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """``(∂ξ/∂M (N, 6, 42), ∂ξ/∂k (N, 6, 6))`` at FK poses ``(R, t)`` of ``drive``.
 
     Args:

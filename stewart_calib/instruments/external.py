@@ -69,7 +69,9 @@ class ExternalModel:
         """The unknowns as the vector θ of the unknown layout (code units): the frame's pose6
         ``[x, y, z mm, roll, pitch, yaw rad]``, then the target's pose6 or the targets [mm]."""
         parts = [rt_to_pose(unknowns.R_frame, unknowns.t_frame)]
-        parts.append(rt_to_pose(unknowns.R_target, unknowns.t_target) if self.kind == "pose" else unknowns.targets.reshape(-1))
+        parts.append(
+            rt_to_pose(unknowns.R_target, unknowns.t_target) if self.kind == "pose" else unknowns.targets.reshape(-1)
+        )
         return np.concatenate(parts)
 
     def theta_jacobian(self, unknowns) -> np.ndarray:
@@ -124,9 +126,14 @@ class ExternalModel:
         bounds = self.platform.stroke_range
         if bounds is not None and np.any((strokes < bounds[0]) | (strokes > bounds[1])):
             i = int(np.flatnonzero((strokes < bounds[0]) | (strokes > bounds[1]))[0])
-            raise SampleRejected(f"{where}: stroke q{i + 1} = {strokes[i]:.6g} mm outside {list(bounds)} mm", SampleRejected.OUT_OF_RANGE)
+            raise SampleRejected(
+                f"{where}: stroke q{i + 1} = {strokes[i]:.6g} mm outside {list(bounds)} mm", SampleRejected.OUT_OF_RANGE
+            )
         if readings.shape != self.sigmas.shape:
-            raise SampleRejected(f"{where}: expected {self.sigmas.size} {self.kind} readings, got shape {readings.shape}", SampleRejected.NON_FINITE)
+            raise SampleRejected(
+                f"{where}: expected {self.sigmas.size} {self.kind} readings, got shape {readings.shape}",
+                SampleRejected.NON_FINITE,
+            )
         if self.kind == "pose" and not np.all(np.isfinite(readings)):
             raise SampleRejected(f"{where}: the pose reading is not finite", SampleRejected.NON_FINITE)
         if self.kind == "points" and not np.any(np.isfinite(readings)):
@@ -172,7 +179,11 @@ def model_for(platform: Platform) -> ExternalModel:
     """
     instrument = platform.instrument
     if instrument.kind == "pose":
-        return ExternalModel(platform, pose, pose.sigmas(instrument), np.r_[0, 0, 0, 1, 1, 1], ("orientation_rad", "position_mm"))
+        return ExternalModel(
+            platform, pose, pose.sigmas(instrument), np.r_[0, 0, 0, 1, 1, 1], ("orientation_rad", "position_mm")
+        )
     if instrument.kind == "points":
-        return ExternalModel(platform, points, points.sigmas(instrument), np.zeros(3 * instrument.n_targets, dtype=int), ("position_mm",))
+        return ExternalModel(
+            platform, points, points.sigmas(instrument), np.zeros(3 * instrument.n_targets, dtype=int), ("position_mm",)
+        )
     raise CalibError(f"{platform.source}: the instrument is the tracker, not an instrument outside the robot")

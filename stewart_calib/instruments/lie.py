@@ -14,7 +14,9 @@ from ..rotations import pose_to_rt, skew
 def so3_log(R: np.ndarray) -> np.ndarray:
     """Rotation vector ``φ`` with ``Exp(φ) = R``, ``(..., 3)`` [rad], accurate near 0 (and up to π)."""
     R = np.asarray(R, dtype=float)
-    axis_sin = 0.5 * np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1)
+    axis_sin = 0.5 * np.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1
+    )
     sin_theta = np.linalg.norm(axis_sin, axis=-1)
     cos_theta = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
     theta = np.arctan2(sin_theta, cos_theta)
@@ -37,7 +39,9 @@ def so3_right_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
     theta = np.sqrt(theta2)
     small = theta2 < 1e-8
     safe = np.where(small, 1.0, theta)
-    coef = np.where(small, 1.0 / 12.0 + theta2 / 720.0, 1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe)))
+    coef = np.where(
+        small, 1.0 / 12.0 + theta2 / 720.0, 1.0 / safe**2 - (1.0 + np.cos(safe)) / (2.0 * safe * np.sin(safe))
+    )
     K = skew(phi)
     return np.eye(3) + 0.5 * K + coef * (K @ K)
 
@@ -58,7 +62,9 @@ def inverse(R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return Rt, -np.einsum("...ij,...j->...i", Rt, t)
 
 
-def compose(R_a_b: np.ndarray, t_a_b: np.ndarray, R_b_c: np.ndarray, t_b_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def compose(
+    R_a_b: np.ndarray, t_a_b: np.ndarray, R_b_c: np.ndarray, t_b_c: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """``T_a_c = T_a_b T_b_c`` (broadcasting)."""
     return R_a_b @ R_b_c, t_a_b + np.einsum("...ij,...j->...i", R_a_b, t_b_c)
 

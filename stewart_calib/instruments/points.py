@@ -20,14 +20,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import kinematics as kin
-from ..kinematics import skew
 from ..errors import SampleRejected
+from ..kinematics import skew
 from ..platform import Instrument
 from . import lie
 from .base import PoseObservation, Residual
 from .gauge import kabsch
 
-FRAME_NAMES: tuple[str, ...] = tuple(f"frame_{axis}" for axis in ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg"))
+FRAME_NAMES: tuple[str, ...] = tuple(
+    f"frame_{axis}" for axis in ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
+)
 
 
 def unknown_names(n_targets: int) -> tuple[str, ...]:
@@ -54,7 +56,9 @@ class PointsUnknowns:
 
     def retract(self, delta: np.ndarray) -> "PointsUnknowns":
         """``F Exp(φ)``, ``p + δp`` for ``delta = [φ (6), δp (3K)]``."""
-        return PointsUnknowns(*kin.retract(self.R_frame, self.t_frame, delta[:6]), self.targets + delta[6:].reshape(-1, 3))
+        return PointsUnknowns(
+            *kin.retract(self.R_frame, self.t_frame, delta[:6]), self.targets + delta[6:].reshape(-1, 3)
+        )
 
     def file_values(self) -> np.ndarray:
         frame = kin.rt_to_pose(self.R_frame, self.t_frame)
@@ -143,7 +147,10 @@ class PointsModel:
     def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
         reading = np.asarray(z, dtype=float)
         if reading.shape != self.channel_sigma.shape:
-            raise SampleRejected(f"sample at t = {t_s} s: expected {self.channel_sigma.size} target coordinates", SampleRejected.NON_FINITE)
+            raise SampleRejected(
+                f"sample at t = {t_s} s: expected {self.channel_sigma.size} target coordinates",
+                SampleRejected.NON_FINITE,
+            )
         if not np.any(np.isfinite(reading)):
             raise SampleRejected(f"sample at t = {t_s} s: no target seen", SampleRejected.NON_FINITE)
         return reading

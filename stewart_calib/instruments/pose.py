@@ -31,7 +31,9 @@ from .base import PoseObservation, Residual
 
 #: names of the 12 unknowns in file units (spec §7 result ``"instrument"`` block)
 UNKNOWN_NAMES: tuple[str, ...] = tuple(
-    f"{part}_{axis}" for part in ("frame", "target") for axis in ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
+    f"{part}_{axis}"
+    for part in ("frame", "target")
+    for axis in ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
 )
 #: log columns (spec §7): the measured pose of {T} in {I}
 COLUMNS: tuple[str, ...] = ("mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg", "myaw_deg")
@@ -54,11 +56,15 @@ class PoseUnknowns:
 
     def retract(self, delta: np.ndarray) -> "PoseUnknowns":
         """``F Exp(φ)``, ``G Exp(γ)`` for ``delta = [φ (6), γ (6)]`` (first-order chart)."""
-        return PoseUnknowns(*kin.retract(self.R_frame, self.t_frame, delta[:6]), *kin.retract(self.R_target, self.t_target, delta[6:12]))
+        return PoseUnknowns(
+            *kin.retract(self.R_frame, self.t_frame, delta[:6]), *kin.retract(self.R_target, self.t_target, delta[6:12])
+        )
 
     def file_values(self) -> np.ndarray:
         """``(12,)`` frame then target as ``[x, y, z mm, roll, pitch, yaw deg]``."""
-        pose = np.concatenate([kin.rt_to_pose(self.R_frame, self.t_frame), kin.rt_to_pose(self.R_target, self.t_target)])
+        pose = np.concatenate(
+            [kin.rt_to_pose(self.R_frame, self.t_frame), kin.rt_to_pose(self.R_target, self.t_target)]
+        )
         return np.concatenate([pose[:3], np.degrees(pose[3:6]), pose[6:9], np.degrees(pose[9:])])
 
     def file_jacobian(self) -> np.ndarray:
@@ -138,7 +144,9 @@ class PoseModel:
     def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
         reading = np.asarray(z, dtype=float)
         if reading.shape != (6,) or not np.all(np.isfinite(reading)):
-            raise SampleRejected(f"sample at t = {t_s} s: expected a finite pose reading (6 values)", SampleRejected.NON_FINITE)
+            raise SampleRejected(
+                f"sample at t = {t_s} s: expected a finite pose reading (6 values)", SampleRejected.NON_FINITE
+            )
         return reading
 
     def groups(self, z: np.ndarray) -> list[np.ndarray]:
@@ -159,8 +167,11 @@ class PoseModel:
         X by ``Ad_{G M⁻¹} φ``, a target change ``G Exp(γ)`` by ``−Ad_G γ``.
         """
         R_X, t_X, covariance, J_instrument = _kernels.pose_instrument_observation(
-            np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(theta[:12], dtype=float),
-            self.instrument.orientation_sigma_rad**2, self.instrument.position_sigma_mm**2)
+            np.ascontiguousarray(z, dtype=float),
+            np.ascontiguousarray(theta[:12], dtype=float),
+            self.instrument.orientation_sigma_rad**2,
+            self.instrument.position_sigma_mm**2,
+        )
         return PoseObservation(R_X, t_X, covariance, J_instrument)
 
 

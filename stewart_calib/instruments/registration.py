@@ -65,7 +65,9 @@ def _require_distinct(readings: np.ndarray, scale: np.ndarray, what: str) -> Non
         )
 
 
-def register_pose(R_X: np.ndarray, t_X: np.ndarray, R_M: np.ndarray, t_M: np.ndarray, sigmas: np.ndarray) -> PoseUnknowns:
+def register_pose(
+    R_X: np.ndarray, t_X: np.ndarray, R_M: np.ndarray, t_M: np.ndarray, sigmas: np.ndarray
+) -> PoseUnknowns:
     """Frame F and target G with ``X_k G ≈ F M_k`` (hand-eye AX = YB), in closed form.
 
     Args:
@@ -75,12 +77,15 @@ def register_pose(R_X: np.ndarray, t_X: np.ndarray, R_M: np.ndarray, t_M: np.nda
     Raises:
         CalibError: fewer than 3 distinct poses, or rotations about fewer than two axes.
     """
-    _require_distinct(np.concatenate([t_M, R_M.reshape(-1, 9)], axis=1), np.r_[sigmas[3:], np.full(9, sigmas[0])], "pose instrument")
+    _require_distinct(
+        np.concatenate([t_M, R_M.reshape(-1, 9)], axis=1), np.r_[sigmas[3:], np.full(9, sigmas[0])], "pose instrument"
+    )
     n = len(R_X)
     eye = np.eye(3)
     # column-major vec: vec(A X) = (I ⊗ A) vec X, vec(X B) = (Bᵀ ⊗ I) vec X
     rows = np.concatenate(
-        [np.stack([np.kron(eye, R_X[k]) for k in range(n)]), -np.stack([np.kron(R_M[k].T, eye) for k in range(n)])], axis=2
+        [np.stack([np.kron(eye, R_X[k]) for k in range(n)]), -np.stack([np.kron(R_M[k].T, eye) for k in range(n)])],
+        axis=2,
     ).reshape(9 * n, 18)
     _, s, Vt = np.linalg.svd(rows, full_matrices=False)
     if s[-2] <= max(3.0 * s[-1], RELATIVE_RANK_TOLERANCE * s[0]):
@@ -115,7 +120,9 @@ def register_points(R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray, sigm
     poses, targets = np.nonzero(seen)
     for k in range(K):
         if distinct_count(m[seen[:, k], k], np.full(3, DISTINCT_SIGMAS * sigma_mm), 2) < 2:
-            raise CalibError(f"cannot register the points instrument: target {k + 1} is seen at fewer than 2 distinct poses")
+            raise CalibError(
+                f"cannot register the points instrument: target {k + 1} is seen at fewer than 2 distinct poses"
+            )
     eqs = len(poses)
 
     def system(R_F: np.ndarray | None):

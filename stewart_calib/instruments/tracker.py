@@ -33,8 +33,9 @@ from .base import PoseObservation, Residual
 TRACKER_COLUMNS = tuple(f"s{i}_mm" for i in range(1, N_LEGS + 1))
 #: names of the tracker's own 42 values when they are unknowns (paper Table 2 symbols, spec §7).
 TRACKER_PARAMETER_NAMES = tuple(
-    f"{field}{leg}{axis}" for leg in range(1, N_LEGS + 1) for field, axis in
-    (("z", "x"), ("z", "y"), ("z", "z"), ("h", "x"), ("h", "y"), ("h", "z"), ("ls", ""))
+    f"{field}{leg}{axis}"
+    for leg in range(1, N_LEGS + 1)
+    for field, axis in (("z", "x"), ("z", "y"), ("z", "z"), ("h", "x"), ("h", "y"), ("h", "z"), ("ls", ""))
 )
 _RULERS = [np.array([i]) for i in range(N_LEGS)]
 
@@ -53,7 +54,10 @@ class TrackerModel:
     columns = TRACKER_COLUMNS
 
     def __init__(
-        self, legs: LegGeometry, reading_sigma_mm: float, reading_range: tuple[float, float] | None = None,
+        self,
+        legs: LegGeometry,
+        reading_sigma_mm: float,
+        reading_range: tuple[float, float] | None = None,
         geometry_sigma_mm: float = 0.0,
     ):
         self.legs = legs
@@ -63,8 +67,12 @@ class TrackerModel:
         self.unknowns = None
         if geometry_sigma_mm > 0.0:
             self.unknowns = UnknownBlock(
-                "instrument", TRACKER_PARAMETER_NAMES, legs.as_vector(), np.full(N_PARAMS, geometry_sigma_mm),
-                gauge=("base", "platform"), holds_gauge=True,
+                "instrument",
+                TRACKER_PARAMETER_NAMES,
+                legs.as_vector(),
+                np.full(N_PARAMS, geometry_sigma_mm),
+                gauge=("base", "platform"),
+                holds_gauge=True,
             )
 
     def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
@@ -76,11 +84,14 @@ class TrackerModel:
             return readings
         if readings.shape != (N_LEGS,):
             raise SampleRejected(
-                f"sample at t = {t_s} s: expected 6 reading s values, got shape {readings.shape}", SampleRejected.NON_FINITE
+                f"sample at t = {t_s} s: expected 6 reading s values, got shape {readings.shape}",
+                SampleRejected.NON_FINITE,
             )
         bad = np.flatnonzero(~np.isfinite(readings))
         if bad.size:
-            raise SampleRejected(f"sample at t = {t_s} s: reading s{bad[0] + 1} is not finite", SampleRejected.NON_FINITE)
+            raise SampleRejected(
+                f"sample at t = {t_s} s: reading s{bad[0] + 1} is not finite", SampleRejected.NON_FINITE
+            )
         i = int(np.flatnonzero((readings < lo) | (readings > hi))[0])
         raise SampleRejected(
             f"sample at t = {t_s} s: reading s{i + 1} = {readings[i]:.6g} mm outside [{lo}, {hi}] mm",
@@ -95,14 +106,18 @@ class TrackerModel:
         """The tracker legs for ``θ`` (the nominal ones when the geometry is known)."""
         return self.legs if len(theta) == 0 else LegGeometry.from_params(theta)
 
-    def residual(self, R: np.ndarray, t: np.ndarray, theta: np.ndarray, z: np.ndarray, channels: np.ndarray) -> Residual:
+    def residual(
+        self, R: np.ndarray, t: np.ndarray, theta: np.ndarray, z: np.ndarray, channels: np.ndarray
+    ) -> Residual:
         """``‖t + R h_i − z_i‖ − (ls_i + s_i)`` for the rulers ``channels`` [mm]."""
         channels = np.asarray(channels, dtype=np.int64)
         params = self._params if len(theta) == 0 else np.reshape(theta, (N_LEGS, N_PARAMS_PER_LEG))
         r, J_pose, H_legs = kin.leg_residual(R, t, params[channels], np.asarray(z, dtype=float)[channels])
         J_theta = np.zeros((len(channels), 0 if self.unknowns is None else N_PARAMS))
         if self.unknowns is not None:
-            J_theta[np.arange(len(channels))[:, None], N_PARAMS_PER_LEG * channels[:, None] + np.arange(N_PARAMS_PER_LEG)] = H_legs
+            J_theta[
+                np.arange(len(channels))[:, None], N_PARAMS_PER_LEG * channels[:, None] + np.arange(N_PARAMS_PER_LEG)
+            ] = H_legs
         return Residual(r, J_pose, J_theta, channels)
 
     def pose(self, z: np.ndarray, theta: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None) -> PoseObservation:

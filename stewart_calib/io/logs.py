@@ -22,6 +22,7 @@ from ..platform import PARAMETER_NAMES, Platform
 from ..samples import Log, Sample, Truth
 from .atomic import atomic_write_text
 from .tables import (
+    Table,
     csv_text,
     flag_non_finite,
     header_fields,
@@ -35,7 +36,6 @@ from .tables import (
     read_text,
     refuse_first,
     require_columns,
-    Table,
     write_csv_blocks,
 )
 
@@ -70,8 +70,10 @@ def _kind(platform: Platform | None) -> str:
 def readings_to_file(readings: np.ndarray, columns: tuple[str, ...]) -> list:
     """Code-unit readings ``(N, m)`` → file columns: radians → degrees for the measured angles,
     NaN (a point target not seen) → an empty field."""
-    return [["" if not np.isfinite(v) else v for v in values.tolist()] if name.startswith("p") else values
-            for name, values in zip(columns, readings_in_file_units(readings, columns))]
+    return [
+        ["" if not np.isfinite(v) else v for v in values.tolist()] if name.startswith("p") else values
+        for name, values in zip(columns, readings_in_file_units(readings, columns))
+    ]
 
 
 def readings_in_file_units(readings: np.ndarray, columns: tuple[str, ...]) -> list[np.ndarray]:
@@ -79,7 +81,10 @@ def readings_in_file_units(readings: np.ndarray, columns: tuple[str, ...]) -> li
     angles); :func:`readings_to_file` with NaN kept, for :func:`~.tables.write_csv_blocks`, whose
     ``blank`` columns are those of :func:`blank_reading_columns`."""
     readings = np.asarray(readings, dtype=float)
-    return [np.degrees(readings[:, j]) if name in MEASURED_ANGLE_COLUMNS else readings[:, j] for j, name in enumerate(columns)]
+    return [
+        np.degrees(readings[:, j]) if name in MEASURED_ANGLE_COLUMNS else readings[:, j]
+        for j, name in enumerate(columns)
+    ]
 
 
 def blank_reading_columns(columns: tuple[str, ...]) -> tuple[int, ...]:
@@ -122,7 +127,6 @@ def log_text(log: Log, platform: Platform | None = None, header: bool = True) ->
     return csv_text(names, columns, header)
 
 
-
 def _flag_out_of_range(table: Table, columns, bounds, what: str, key: str) -> None:
     if bounds is None:
         return
@@ -131,7 +135,9 @@ def _flag_out_of_range(table: Table, columns, bounds, what: str, key: str) -> No
         values = table.numbers[name]
         table.flag(
             (values < lo) | (values > hi),
-            lambda k: f"column '{name}': expected a {what} within [{lo!r}, {hi!r}] mm ({key}), got {float(values[k])!r}",
+            lambda k: (
+                f"column '{name}': expected a {what} within [{lo!r}, {hi!r}] mm ({key}), got {float(values[k])!r}"
+            ),
         )
 
 
@@ -184,8 +190,10 @@ def _flag_partial_targets(table: Table, platform: Platform) -> None:
         count = finite.sum(axis=1)
         table.flag(
             (count > 0) & (count < 3),
-            lambda row: f"column '{triple[int(np.argmin(finite[row]))]}': expected all three coordinates of target "
-            f"{k // 3 + 1} or none (a target not seen leaves all three empty)",
+            lambda row: (
+                f"column '{triple[int(np.argmin(finite[row]))]}': expected all three coordinates of target "
+                f"{k // 3 + 1} or none (a target not seen leaves all three empty)"
+            ),
         )
         values = np.column_stack([table.numbers[name] for name in triple])
         table.flag(np.any(np.isinf(values), axis=1), lambda row: f"column '{triple[0]}': expected finite coordinates")
@@ -255,8 +263,9 @@ def _decoded(data: bytes, path: Path, offset: int, encoding: str = "utf-8", what
     return text.replace("\r\n", "\n")
 
 
-def read_log_blocks(path: str | Path, platform: Platform | None = None, skip_bad_rows: bool = False,
-                    block_bytes: int | None = None) -> Iterator[Log]:
+def read_log_blocks(
+    path: str | Path, platform: Platform | None = None, skip_bad_rows: bool = False, block_bytes: int | None = None
+) -> Iterator[Log]:
     """:func:`read_log`'s samples, checks and messages, one :class:`Log` per block of rows.
 
     Memory stays that of one block (about ``block_bytes`` of text, default :data:`BLOCK_BYTES`)
@@ -280,8 +289,9 @@ def read_log_blocks(path: str | Path, platform: Platform | None = None, skip_bad
         latest_s, rows, good = -math.inf, 0, 0
         first_skipped: tuple[int, str] | None = None
         by_arrow = set(numeric) == set(header)
-        for table in _row_tables(file, path, header_line, header, numeric, textual, _blank_columns(platform), by_arrow,
-                                 block_bytes):
+        for table in _row_tables(
+            file, path, header_line, header, numeric, textual, _blank_columns(platform), by_arrow, block_bytes
+        ):
             _flag_log_values(table, platform, has_pose)
             latest_s = _flag_time_backwards(table, latest_s)
             if not skip_bad_rows:
@@ -293,11 +303,23 @@ def read_log_blocks(path: str | Path, platform: Platform | None = None, skip_bad
         if rows == 0:
             raise CalibError(f"{path}: no sample rows; expected a header row and at least one sample row")
         if good == 0:
-            raise CalibError(f"{path}: all {rows} sample rows are bad (first: row {first_skipped[0]}: {first_skipped[1]})")
+            raise CalibError(
+                f"{path}: all {rows} sample rows are bad (first: row {first_skipped[0]}: {first_skipped[1]})"
+            )
 
 
-def _row_tables(file, path: Path, header_line: str, header: list[str], numeric, textual, blank_is_nan, by_arrow: bool,
-                block_bytes: int, what: str = "log file") -> Iterator[Table]:
+def _row_tables(
+    file,
+    path: Path,
+    header_line: str,
+    header: list[str],
+    numeric,
+    textual,
+    blank_is_nan,
+    by_arrow: bool,
+    block_bytes: int,
+    what: str = "log file",
+) -> Iterator[Table]:
     """The rows from ``file``'s position (just after the header line) to its end, parsed a block of
     about ``block_bytes`` at a time, each row numbered by its line in the file.
 
@@ -508,8 +530,13 @@ class LogRowParser:
             sample = self._plain(line)
             if sample is not None:
                 return sample
-        table = parse_careful(self._header, f"{self._header_line}\n{line}", self._numeric, self._textual,
-                              set(_blank_columns(self._platform)))
+        table = parse_careful(
+            self._header,
+            f"{self._header_line}\n{line}",
+            self._numeric,
+            self._textual,
+            set(_blank_columns(self._platform)),
+        )
         table.lines = np.array([row])
         _flag_log_values(table, self._platform, self._has_pose)
         t_s = float(table.numbers["t_s"][0])
@@ -525,8 +552,9 @@ class LogRowParser:
         return Sample(
             t_s,
             np.array([number(name) for name in STROKE_COLUMNS]),
-            _readings_from_file(np.array([[number(name) for name in reading_columns(self._platform)]]),
-                                reading_columns(self._platform))[0],
+            _readings_from_file(
+                np.array([[number(name) for name in reading_columns(self._platform)]]), reading_columns(self._platform)
+            )[0],
             pose,
             table.texts["stage"][0] if self._textual else "",
             number("load_kg") if "load_kg" in self._numeric else None,
@@ -546,12 +574,20 @@ def write_pose_list(
         CalibError: a ``dwell_s`` that is not a finite positive number (times must increase).
     """
     poses, columns = np.asarray(poses, dtype=float).reshape(-1, 6), columns or {}
-    extra = np.column_stack([np.asarray(c, dtype=float) for c in columns.values()]) if columns else np.empty((len(poses), 0))
+    extra = (
+        np.column_stack([np.asarray(c, dtype=float) for c in columns.values()])
+        if columns
+        else np.empty((len(poses), 0))
+    )
     write_pose_list_blocks(path, [(poses, extra)], tuple(columns), dwell_s)
 
 
-def write_pose_list_blocks(path: str | Path, blocks: Iterable[tuple[np.ndarray, np.ndarray]],
-                           column_names: tuple[str, ...] = (), dwell_s: float | None = 1.0) -> int:
+def write_pose_list_blocks(
+    path: str | Path,
+    blocks: Iterable[tuple[np.ndarray, np.ndarray]],
+    column_names: tuple[str, ...] = (),
+    dwell_s: float | None = 1.0,
+) -> int:
     """:func:`write_pose_list`'s file, byte for byte, from blocks ``(poses (n, 6) [mm, rad], columns
     (n, k))`` of consecutive rows, ``column_names`` naming the k extra columns, written as they
     come and atomically (:func:`~.tables.write_csv_blocks`). Returns the number of rows.
@@ -627,8 +663,18 @@ def _pose_list_blocks(file, path: Path, header_line: str, block_bytes: int) -> I
     require_columns(path, header, POSE_COLUMNS)
     file.seek(start)
     rows = 0
-    for table in _row_tables(file, path, header_line, header, POSE_COLUMNS, (), (), set(header) <= _POSE_LIST_NUMBERS,
-                             block_bytes, "pose list"):
+    for table in _row_tables(
+        file,
+        path,
+        header_line,
+        header,
+        POSE_COLUMNS,
+        (),
+        (),
+        set(header) <= _POSE_LIST_NUMBERS,
+        block_bytes,
+        "pose list",
+    ):
         flag_non_finite(table, POSE_COLUMNS)
         refuse_first(path, table)
         rows += len(table)
@@ -701,7 +747,9 @@ def read_truth(path: str | Path) -> Truth:
     if all(name in header for name in STROKE_SCALE_NAMES):
         scale = np.array([_first_number(path, header, text, name) for name in STROKE_SCALE_NAMES])
     others = [name for name in header if name and name not in {*numeric, *STROKE_SCALE_NAMES}]
-    instrument = (tuple(others), np.array([_first_number(path, header, text, name) for name in others])) if others else None
+    instrument = (
+        (tuple(others), np.array([_first_number(path, header, text, name) for name in others])) if others else None
+    )
     return Truth(table.numbers["t_s"], params, poses, scale, instrument)
 
 

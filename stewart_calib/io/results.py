@@ -87,8 +87,22 @@ def validate_result(result, source: str) -> None:
     refuse = lambda key, expected: CalibError(f"{source}: key '{key}': expected {expected}")  # noqa: E731
     if not isinstance(result, dict):
         raise CalibError(f"{source}: expected a JSON object (spec §5 result)")
-    missing = [key for key in ("format", "method", "platform", "parameter_names", "nominal", "estimate", "error",
-                               "stddev", "samples_used", "samples_skipped") if key not in result]
+    missing = [
+        key
+        for key in (
+            "format",
+            "method",
+            "platform",
+            "parameter_names",
+            "nominal",
+            "estimate",
+            "error",
+            "stddev",
+            "samples_used",
+            "samples_skipped",
+        )
+        if key not in result
+    ]
     if missing:
         raise refuse(missing[0], "a value (missing)")
     if result["format"] != RESULT_FORMAT:

@@ -48,7 +48,9 @@ def _renderable(column) -> bool:
     """Numbers (an array, or floats, ints and empty strings), or text alone: columns :func:`_rows_text` renders."""
     if isinstance(column, np.ndarray):
         return column.dtype.kind in "fiu"
-    return all(type(v) in (float, int) or (type(v) is str and v == "") for v in column) or all(type(v) is str for v in column)
+    return all(type(v) in (float, int) or (type(v) is str and v == "") for v in column) or all(
+        type(v) is str for v in column
+    )
 
 
 def _rows_text(columns: list) -> str:
@@ -262,8 +264,9 @@ def numbers_by_arrow(header: list[str], data: bytes) -> Table | None:
             pa.py_buffer(data),
             read_options=pa_csv.ReadOptions(column_names=header, use_threads=False, block_size=ARROW_BLOCK_BYTES),
             parse_options=pa_csv.ParseOptions(quote_char=False, ignore_empty_lines=False),
-            convert_options=pa_csv.ConvertOptions(column_types={name: pa.float64() for name in header}, null_values=[],
-                                                  strings_can_be_null=False),
+            convert_options=pa_csv.ConvertOptions(
+                column_types={name: pa.float64() for name in header}, null_values=[], strings_can_be_null=False
+            ),
         )
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
         return None
@@ -292,7 +295,11 @@ def _parse_fast(header: list[str], text: str, numeric: list[str], textual: list[
     index = {name: i for i, name in enumerate(header)}
     try:
         values = np.loadtxt(
-            rows, delimiter=",", usecols=None if every else [index[name] for name in numeric], comments=None, ndmin=2,
+            rows,
+            delimiter=",",
+            usecols=None if every else [index[name] for name in numeric],
+            comments=None,
+            ndmin=2,
             dtype=float,
         )
     except ValueError:
@@ -303,7 +310,9 @@ def _parse_fast(header: list[str], text: str, numeric: list[str], textual: list[
         return None
     numbers = {name: values[:, index[name] if every else j] for j, name in enumerate(numeric)}
     texts = {
-        name: [v.strip() for v in np.loadtxt(rows, delimiter=",", usecols=[index[name]], comments=None, ndmin=1, dtype=str)]
+        name: [
+            v.strip() for v in np.loadtxt(rows, delimiter=",", usecols=[index[name]], comments=None, ndmin=1, dtype=str)
+        ]
         for name in textual
     }
     return Table(numbers, texts, np.arange(2, len(rows) + 2), {})
@@ -358,8 +367,9 @@ def parse_careful(header: list[str], text: str, numeric: list[str], textual: lis
 def parse_rows(header: list[str], text: str, numeric, textual=(), blank_is_nan=()) -> Table:
     """The rows of ``text`` (its first line is the header, skipped): the fast path, else the careful one."""
     numeric, textual = list(numeric), list(textual)
-    return (_parse_fast(header, text, numeric, textual)
-            or parse_careful(header, text, numeric, textual, set(blank_is_nan)))
+    return _parse_fast(header, text, numeric, textual) or parse_careful(
+        header, text, numeric, textual, set(blank_is_nan)
+    )
 
 
 def parse_table(path: Path, header: list[str], text: str, numeric, textual=(), blank_is_nan=()) -> Table:
@@ -372,7 +382,9 @@ def parse_table(path: Path, header: list[str], text: str, numeric, textual=(), b
 def flag_non_finite(table: Table, columns) -> None:
     for name in columns:
         values = table.numbers[name]
-        table.flag(~np.isfinite(values), lambda k: f"column '{name}': expected a finite number, got {float(values[k])!r}")
+        table.flag(
+            ~np.isfinite(values), lambda k: f"column '{name}': expected a finite number, got {float(values[k])!r}"
+        )
 
 
 def refuse_first(path: Path, table: Table) -> None:

@@ -26,7 +26,10 @@ COMMANDS = {
     "simulate": ("simulate", "simulate an experiment (true robot, load, tracker) and write platform, log and truth"),
     "reproduce": ("reproduce", "reproduce the paper's experiments (Tables 4-6, Figs. 5-9) on the simulated platform"),
     "track": ("track", "calibrate online from a log as it is written (a growing file or standard input)"),
-    "identifiability": ("identifiability", "singular values, predicted parameter std devs and weak directions of a pose set"),
+    "identifiability": (
+        "identifiability",
+        "singular values, predicted parameter std devs and weak directions of a pose set",
+    ),
     "plan": ("plan", "choose calibration poses (optimal design over random workspace poses)"),
     "compensate": ("compensate", "strokes for desired poses with the calibrated model (IK of nominal + error)"),
     "import-bag": ("import_bag", "turn a ROS 1 / ROS 2 bag into a measurement log"),
@@ -71,9 +74,17 @@ def dispatch(args: argparse.Namespace) -> int:
 
 def add_config_arguments(parser: argparse.ArgumentParser, example: str = "isam2.lag_s=5") -> None:
     """``--config C.toml`` and repeatable ``--set section.key=value`` (see ``load_estimator_config``)."""
-    parser.add_argument("--config", metavar="C.toml", help="estimator config: a file or a shipped name (default, paper); default: default.toml values")
     parser.add_argument(
-        "--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help=f"override a config value, e.g. {example}"
+        "--config",
+        metavar="C.toml",
+        help="estimator config: a file or a shipped name (default, paper); default: default.toml values",
+    )
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="SECTION.KEY=VALUE",
+        help=f"override a config value, e.g. {example}",
     )
 
 

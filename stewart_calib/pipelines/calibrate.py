@@ -33,22 +33,22 @@ from typing import Callable, Iterable, Iterator, TypeVar
 
 import numpy as np
 
-from . import add_config_arguments, handover, run_command
-from .validate import measurement_residuals, nominal_model, tracker_residuals
 from .. import __version__, estimators, io
-from ..io import logs
-from ..errors import CalibError, SampleRejected
-from ..config import EstimatorConfig, load_estimator_config
-from ..estimate import Estimate
 from .. import kinematics as kin
+from ..config import EstimatorConfig, load_estimator_config
+from ..errors import CalibError, SampleRejected
+from ..estimate import Estimate
 from ..estimators import BatchEstimator, KalmanFiltered
 from ..estimators.base import late_index, take_late_rejections, update_block
-from ..online import Rejections
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
-from ..plausibility import check_plausible
+from ..io import logs
+from ..online import Rejections
 from ..platform import N_LEGS, Platform, load_platform
+from ..plausibility import check_plausible
 from ..progress import MIN_LOG_ROWS, log_progress_bar, progress_bar
 from ..samples import Log
+from . import add_config_arguments, handover, run_command
+from .validate import measurement_residuals, nominal_model, tracker_residuals
 
 #: the result's conditioning section (and a streamed run's plausibility check) look at between
 #: this many and twice this many samples, evenly spaced over the log (:class:`EvenlySpacedSamples`).
@@ -82,8 +82,13 @@ class Calibration:
 
 
 def run_calibration(
-    platform: Platform, log: Log, method: str, config: EstimatorConfig | None = None, trace: bool = False,
-    progress: bool = False, diagnostics: bool = False,
+    platform: Platform,
+    log: Log,
+    method: str,
+    config: EstimatorConfig | None = None,
+    trace: bool = False,
+    progress: bool = False,
+    diagnostics: bool = False,
 ) -> Calibration:
     """Run ``method`` over ``log``; see :class:`Calibration`. ``diagnostics`` (implies ``trace``)
     also keeps σ and the NIS per sample — the covariance costs isam2 ~0.3 ms a sample.
@@ -91,7 +96,9 @@ def run_calibration(
     Raises:
         CalibError: an unknown method, or a method that rejected every sample.
     """
-    if platform.instrument.kind != "tracker":  # an outside instrument's frame may be anywhere: start from its registration
+    if (
+        platform.instrument.kind != "tracker"
+    ):  # an outside instrument's frame may be anywhere: start from its registration
         from ..instruments.external import registered_platform
 
         platform = registered_platform(platform, log.strokes, log.readings)
@@ -126,7 +133,9 @@ def run_calibration(
         elif rows is not None:
             rows[k] = nominal + estimator.current_error()  # a rejected sample leaves the estimate in force
     _refuse_if_all_rejected(method, rejected, len(log))
-    return Calibration(estimator.estimate(), rows, rejected, sigma, nis, getattr(estimator, "noise_scale", lambda: None)())
+    return Calibration(
+        estimator.estimate(), rows, rejected, sigma, nis, getattr(estimator, "noise_scale", lambda: None)()
+    )
 
 
 def _stddev_or_nan(estimate: Estimate) -> np.ndarray:
@@ -249,8 +258,13 @@ class StreamedRun:
     noise_scale: float | None = None
 
 
-def feed_online(estimator, blocks: Iterable[Log], on_rejected: Callable[[int, float, SampleRejected], None],
-                on_block: Callable[[Log, np.ndarray], None] | None = None, bar=None) -> int:
+def feed_online(
+    estimator,
+    blocks: Iterable[Log],
+    on_rejected: Callable[[int, float, SampleRejected], None],
+    on_block: Callable[[Log, np.ndarray], None] | None = None,
+    bar=None,
+) -> int:
     """Update an online ``estimator`` with every sample of ``blocks``; returns how many there were.
 
     Args:
@@ -310,7 +324,10 @@ class SampleSpool:
         row_bytes = 8 * width
         while readings and (data := self._file.read(max(logs.BLOCK_BYTES // row_bytes, 1) * row_bytes)):
             rows = np.frombuffer(data).reshape(-1, width)
-            yield Log(rows[:, 0], rows[:, 1 : 1 + N_LEGS], rows[:, 1 + N_LEGS : width - extra]), rows[:, width - extra :]
+            yield (
+                Log(rows[:, 0], rows[:, 1 : 1 + N_LEGS], rows[:, 1 + N_LEGS : width - extra]),
+                rows[:, width - extra :],
+            )
 
     def close(self) -> None:
         self._file.close()
@@ -357,8 +374,15 @@ def read_ahead(items: Iterable[T]) -> Iterator[T]:
         thread.join()
 
 
-def stream_calibration(platform: Platform, path: str, method: str, config: EstimatorConfig, skip_bad_rows: bool,
-                       trace_file=None, spool: SampleSpool | None = None) -> StreamedRun:
+def stream_calibration(
+    platform: Platform,
+    path: str,
+    method: str,
+    config: EstimatorConfig,
+    skip_bad_rows: bool,
+    trace_file=None,
+    spool: SampleSpool | None = None,
+) -> StreamedRun:
     """An online ``method`` over the log at ``path``, read a block at a time (memory independent
     of its length); the trace rows (spec §6) are written to the open ``trace_file`` as they come,
     the good samples to ``spool`` (for a second pass).
@@ -368,7 +392,13 @@ def stream_calibration(platform: Platform, path: str, method: str, config: Estim
     """
     estimator = estimators.make_estimator(method, platform, config)
     nominal = platform.drive.as_vector()
-    checked, skipped, rejected, rejections, first_t_s = EvenlySpacedSamples(CHECKED_SAMPLES), _Tally(), [], Rejections(), []
+    checked, skipped, rejected, rejections, first_t_s = (
+        EvenlySpacedSamples(CHECKED_SAMPLES),
+        _Tally(),
+        [],
+        Rejections(),
+        [],
+    )
 
     def read(block: Log) -> Log:
         checked.add(block)
@@ -393,8 +423,16 @@ def stream_calibration(platform: Platform, path: str, method: str, config: Estim
         n = feed_online(estimator, blocks, refused, write_trace if trace_file is not None else None, bar)
     if rejections.count == n:
         raise CalibError(f"{method} rejected all {n} samples (first: {rejections.first})")
-    return StreamedRun(estimator.estimate(), n, skipped, rejected, rejections, first_t_s[0] if first_t_s else None, checked,
-                       getattr(estimator, "noise_scale", lambda: None)())
+    return StreamedRun(
+        estimator.estimate(),
+        n,
+        skipped,
+        rejected,
+        rejections,
+        first_t_s[0] if first_t_s else None,
+        checked,
+        getattr(estimator, "noise_scale", lambda: None)(),
+    )
 
 
 def nominal_residuals(platform: Platform, block: Log) -> np.ndarray:
@@ -406,8 +444,9 @@ def nominal_residuals(platform: Platform, block: Log) -> np.ndarray:
     return np.full((len(block), N_LEGS), np.nan) if before is None else before[0]
 
 
-def streamed_residual_rms(platform: Platform, spooled: Iterable[tuple[Log, np.ndarray]], result: dict,
-                          rejected: list[int]) -> dict:
+def streamed_residual_rms(
+    platform: Platform, spooled: Iterable[tuple[Log, np.ndarray]], result: dict, rejected: list[int]
+) -> dict:
     """:func:`~.handover.residual_rms_field` of a streamed tracker log without its ``rejected``
     samples, from the ``(block, before)`` pairs of its :class:`SampleSpool` (``before``: the
     :func:`nominal_residuals` of each sample): the calibrated
@@ -442,7 +481,12 @@ def run(args: argparse.Namespace) -> int:
         raise CalibError(f"--method: unknown method '{args.method}'; expected one of {', '.join(estimators.METHODS)}")
     out, trace_path, rerun_path = Path(args.out), args.trace and Path(args.trace), args.rerun and Path(args.rerun)
     platform_out, report_dir = args.platform_out and Path(args.platform_out), args.report and Path(args.report)
-    for path, option in ((out, "--out"), (trace_path, "--trace"), (rerun_path, "--rerun"), (platform_out, "--platform-out")):
+    for path, option in (
+        (out, "--out"),
+        (trace_path, "--trace"),
+        (rerun_path, "--rerun"),
+        (platform_out, "--platform-out"),
+    ):
         _check_writable_dir(path, option)
     handover.check_report_dir(report_dir)
     platform = load_platform(args.platform)
@@ -458,11 +502,14 @@ def run(args: argparse.Namespace) -> int:
         if streamed:
             trace_file = None
             if trace_path:
-                trace_file = stack.enter_context(open(stack.enter_context(io.atomic_path(trace_path)), "w",
-                                                      encoding="utf-8", newline=""))
+                trace_file = stack.enter_context(
+                    open(stack.enter_context(io.atomic_path(trace_path)), "w", encoding="utf-8", newline="")
+                )
             spool = SampleSpool(out.parent)
             stack.callback(spool.close)
-            streaming = stream_calibration(platform, args.log, args.method, config, args.skip_bad_rows, trace_file, spool)
+            streaming = stream_calibration(
+                platform, args.log, args.method, config, args.skip_bad_rows, trace_file, spool
+            )
             estimate, n_samples, skipped = streaming.estimate, streaming.samples, streaming.skipped
             rejections, first_rejected_t_s = streaming.rejections, streaming.first_rejected_t_s
             noise_scale = streaming.noise_scale
@@ -480,14 +527,30 @@ def run(args: argparse.Namespace) -> int:
             checked = sample.log
         if skipped.count:
             line, reason = skipped.first
-            print(_summary("skipped bad log rows:", skipped.count, n_samples + skipped.count, f"row {line}: {reason}"),
-                  file=sys.stderr)
+            print(
+                _summary("skipped bad log rows:", skipped.count, n_samples + skipped.count, f"row {line}: {reason}"),
+                file=sys.stderr,
+            )
         # the leg residual it checks is the tracker's; an outside instrument's fit reports its own residuals
-        check_plausible(platform, estimate.error, config.noise, checked.strokes if tracker else np.zeros((0, 6)),
-                        checked.readings if tracker else np.zeros((0, 6)), args.method, noise_scale)
+        check_plausible(
+            platform,
+            estimate.error,
+            config.noise,
+            checked.strokes if tracker else np.zeros((0, 6)),
+            checked.readings if tracker else np.zeros((0, 6)),
+            args.method,
+            noise_scale,
+        )
         if rejections.count:
-            print(_summary(f"{args.method} rejected samples:", rejections.count, n_samples,
-                           f"t_s={first_rejected_t_s!r}: {rejections.first}"), file=sys.stderr)
+            print(
+                _summary(
+                    f"{args.method} rejected samples:",
+                    rejections.count,
+                    n_samples,
+                    f"t_s={first_rejected_t_s!r}: {rejections.first}",
+                ),
+                file=sys.stderr,
+            )
 
         extra = {"samples_rejected": rejections.summary()}
         if tracker:  # the tracker's FK gives the poses to assess
@@ -499,15 +562,19 @@ def run(args: argparse.Namespace) -> int:
 
         samples_skipped = skipped.count + rejections.count
         created = handover.created_now()
-        extra.update({
-            "covariance": handover.covariance_field(estimate),
-            "config": handover.config_field(config),
-            "version": __version__,
-            "created": created,
-        })
+        extra.update(
+            {
+                "covariance": handover.covariance_field(estimate),
+                "config": handover.config_field(config),
+                "version": __version__,
+                "created": created,
+            }
+        )
         result_data = io.result_dict(estimate, platform, samples_skipped, extra)
         if streamed:
-            result_data["residual_rms"] = streamed_residual_rms(platform, spool.blocks(), result_data, streaming.rejected)
+            result_data["residual_rms"] = streamed_residual_rms(
+                platform, spool.blocks(), result_data, streaming.rejected
+            )
         else:
             used = np.ones(len(log), dtype=bool)
             used[[k for k, _ in result.rejected]] = False  # e.g. readings the tracker's FK cannot solve
@@ -517,14 +584,17 @@ def run(args: argparse.Namespace) -> int:
         trace_csv = io.trace_text(log.t_s, result.trace) if trace_path and not streamed else None
         platform_toml = (
             handover.calibrated_platform_text(platform, estimate, args.method, Path(args.log).name, created)
-            if platform_out else None
+            if platform_out
+            else None
         )
         page = None
         if report_dir:
             from ..viz.html_report import report_html
 
             inputs = {"platform file": str(args.platform), "log": str(args.log)}
-            page = report_html(f"Calibration of {platform.name} with {args.method}", result_data, residuals, None, inputs)
+            page = report_html(
+                f"Calibration of {platform.name} with {args.method}", result_data, residuals, None, inputs
+            )
         if rerun_path:
             _write_rerun(rerun_path, platform, args.method, log, result, not estimators.method_spec(args.method).online)
     if trace_csv is not None:
@@ -553,10 +623,18 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--method", required=True, metavar="METHOD", help=f"one of {', '.join(estimators.METHODS)}")
     parser.add_argument("--out", required=True, metavar="R.json", help="result file (spec §5)")
     parser.add_argument("--trace", metavar="T.csv", help="also write t_s + the 42 estimated parameters per sample")
-    parser.add_argument("--rerun", metavar="R.rrd", help="also write a rerun recording of the parameter errors over time")
-    parser.add_argument("--platform-out", metavar="C.toml", help="also write the calibrated platform (a nominal platform for every command)")
+    parser.add_argument(
+        "--rerun", metavar="R.rrd", help="also write a rerun recording of the parameter errors over time"
+    )
+    parser.add_argument(
+        "--platform-out",
+        metavar="C.toml",
+        help="also write the calibrated platform (a nominal platform for every command)",
+    )
     parser.add_argument("--report", metavar="DIR", help="also write a static HTML report DIR/index.html")
-    parser.add_argument("--skip-bad-rows", action="store_true", help="skip bad log rows (reported) instead of refusing the log")
+    parser.add_argument(
+        "--skip-bad-rows", action="store_true", help="skip bad log rows (reported) instead of refusing the log"
+    )
     add_config_arguments(parser)
     parser.set_defaults(func=run)
 

@@ -12,12 +12,13 @@ from typing import Iterator
 
 import numpy as np
 
-from . import run_command
 from .. import io
 from ..compensation import PoseOutOfRange, compensate
 from ..errors import CalibError
-from ..platform import load_platform
 from ..io import read_pose_list_blocks
+from ..platform import load_platform
+from . import run_command
+
 
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(

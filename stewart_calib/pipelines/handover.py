@@ -84,7 +84,11 @@ def residual_rms_field(residuals) -> dict:
     def numbers(values: np.ndarray) -> list:
         return [float(v) if math.isfinite(v) else None for v in values]
 
-    return {"channels": list(residuals.channels), "before": numbers(rms(residuals.before)), "after": numbers(rms(residuals.after))}
+    return {
+        "channels": list(residuals.channels),
+        "before": numbers(rms(residuals.before)),
+        "after": numbers(rms(residuals.after)),
+    }
 
 
 def config_field(config: EstimatorConfig) -> dict:

@@ -9,13 +9,13 @@ from __future__ import annotations
 import argparse
 import json
 
-from . import run_command
 from .. import io
-from ..errors import CalibError
 from ..config import load_estimator_config
+from ..errors import CalibError
 from ..identifiability import NO_POSE, InformationAccumulator, identifiability_report, tracker_poses, warning_line
-from ..platform import Platform, load_platform
 from ..io import read_pose_list
+from ..platform import Platform, load_platform
+from . import run_command
 from .plan import add_platform_and_noise_arguments
 
 
@@ -26,7 +26,9 @@ def log_information(platform: Platform, path: str, source: str, noise, skip_bad_
     for block in io.read_log_blocks(path, platform, skip_bad_rows):
         if source == "desired":
             if block.desired_poses is None:
-                raise CalibError(f"{path}: no pose columns; expected {', '.join(io.POSE_COLUMNS)} for --pose-source desired")
+                raise CalibError(
+                    f"{path}: no pose columns; expected {', '.join(io.POSE_COLUMNS)} for --pose-source desired"
+                )
             information.add(block.desired_poses)
         else:
             information.add(tracker_poses(platform, block))
@@ -95,19 +97,36 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
         predicted = model.module.predict(model.nominal_unknowns(), R, t)
         readings = kin.rt_to_pose(*predicted) if model.kind == "pose" else predicted.reshape(len(R), -1)
     unknowns = model.nominal_unknowns()
-    problem = BatchProblem(platform.drive, platform.stroke_scale, strokes, readings, model.module, model.register, model.sigmas,
-                           model.channels, model.channel_names, np.arange(len(strokes), dtype=float))
+    problem = BatchProblem(
+        platform.drive,
+        platform.stroke_scale,
+        strokes,
+        readings,
+        model.module,
+        model.register,
+        model.sigmas,
+        model.channels,
+        model.channel_names,
+        np.arange(len(strokes), dtype=float),
+    )
     report = identifiability(problem, unknowns, model.unknown_names, unknowns.file_jacobian())
     verdict = "identifiable" if report["condition_number"] is not None else "rank-deficient"
-    print(f"Identifiability of drive, stroke scale and {model.kind} instrument from {len(strokes)} poses: {verdict} "
-          f"(rank {report['rank']}/{report['unknowns']}; condition number {report['condition_number'] or float('inf'):.4g})")
+    print(
+        f"Identifiability of drive, stroke scale and {model.kind} instrument from {len(strokes)} poses: {verdict} "
+        f"(rank {report['rank']}/{report['unknowns']}; condition number {report['condition_number'] or float('inf'):.4g})"
+    )
     print(report["gauge"])
     print("predicted standard deviation per unknown (Cramér–Rao; mm, dimensionless k, degrees):")
     items = list(report["predicted_stddev"].items())
     for start in range(0, len(items), 7):
-        print("  " + "  ".join(f"{name} {'not id' if sd is None else f'{sd:.3g}'}" for name, sd in items[start : start + 7]))
+        print(
+            "  "
+            + "  ".join(f"{name} {'not id' if sd is None else f'{sd:.3g}'}" for name, sd in items[start : start + 7])
+        )
     if args.json:
-        io.atomic_write_text(args.json, json.dumps({"format": "stewart-calib/identifiability-instrument@1", **report}, indent=2) + "\n")
+        io.atomic_write_text(
+            args.json, json.dumps({"format": "stewart-calib/identifiability-instrument@1", **report}, indent=2) + "\n"
+        )
     return 0
 
 

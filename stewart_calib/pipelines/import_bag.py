@@ -32,10 +32,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import run_command
 from .. import io
 from ..errors import CalibError
 from ..kinematics import rotation_to_rpy
+from . import run_command
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
@@ -161,7 +161,9 @@ def _joint_positions(msg, joints: list[str] | None, where: str) -> list[float]:
     return [positions[names.index(name)] for name in joints]
 
 
-def read_topic(reader, bag: Path, topic: str, option: str, kind: str, clock: str, joints: list[str] | None = None) -> TopicSeries:
+def read_topic(
+    reader, bag: Path, topic: str, option: str, kind: str, clock: str, joints: list[str] | None = None
+) -> TopicSeries:
     """All messages of ``topic`` as a :class:`TopicSeries` in stamp order.
 
     Args:
@@ -243,7 +245,9 @@ def run(args: argparse.Namespace) -> int:
         else:
             measured = read_topic(reader, bag, args.pose, "--pose", POSE_STAMPED, args.clock)
             header = MEASURED_POSE_COLUMNS
-            values = np.hstack([measured.values[:, :3] * MM_PER_UNIT[args.pose_unit], np.degrees(measured.values[:, 3:])])
+            values = np.hstack(
+                [measured.values[:, :3] * MM_PER_UNIT[args.pose_unit], np.degrees(measured.values[:, 3:])]
+            )
     q, kept = interpolate_to_stamps(strokes, measured.t_s, args.max_gap_s)
     if not kept.any():
         raise CalibError(
@@ -270,19 +274,43 @@ def add_parser(subparsers) -> None:
         "(PoseStamped) from a ROS bag, align them in time and write a measurement log (spec §3, §7).",
     )
     parser.add_argument("bag", metavar="BAG", help="ROS 1 .bag file or ROS 2 bag directory (sqlite3 or MCAP)")
-    parser.add_argument("--strokes", required=True, metavar="TOPIC", help="sensor_msgs/JointState topic of the six drive strokes")
+    parser.add_argument(
+        "--strokes", required=True, metavar="TOPIC", help="sensor_msgs/JointState topic of the six drive strokes"
+    )
     measurement = parser.add_mutually_exclusive_group(required=True)
-    measurement.add_argument("--readings", metavar="TOPIC", help="sensor_msgs/JointState topic of the six tracker readings")
-    measurement.add_argument("--pose", metavar="TOPIC", help="geometry_msgs/PoseStamped topic of the measured pose (spec §7)")
+    measurement.add_argument(
+        "--readings", metavar="TOPIC", help="sensor_msgs/JointState topic of the six tracker readings"
+    )
+    measurement.add_argument(
+        "--pose", metavar="TOPIC", help="geometry_msgs/PoseStamped topic of the measured pose (spec §7)"
+    )
     parser.add_argument("--out", required=True, metavar="L.csv", help="measurement log to write")
-    parser.add_argument("--stroke-joints", metavar="N1,…,N6", help="joint names of legs 1..6 (default: the message's six, in order)")
-    parser.add_argument("--reading-joints", metavar="N1,…,N6", help="joint names of tracker legs 1..6 (default: in order)")
+    parser.add_argument(
+        "--stroke-joints", metavar="N1,…,N6", help="joint names of legs 1..6 (default: the message's six, in order)"
+    )
+    parser.add_argument(
+        "--reading-joints", metavar="N1,…,N6", help="joint names of tracker legs 1..6 (default: in order)"
+    )
     for what in ("stroke", "reading", "pose"):
-        parser.add_argument(f"--{what}-unit", choices=tuple(MM_PER_UNIT), default="m", help=f"unit of the {what} positions in the bag (default m, as ROS)")
-    parser.add_argument("--clock", choices=("header", "bag"), default="header",
-                        help="stamp of a message: its header.stamp (default) or the bag's recording time")
-    parser.add_argument("--max-gap-s", type=float, default=DEFAULT_MAX_GAP_S, metavar="S",
-                        help=f"largest gap between the stroke messages a row is interpolated across (default {DEFAULT_MAX_GAP_S} s)")
+        parser.add_argument(
+            f"--{what}-unit",
+            choices=tuple(MM_PER_UNIT),
+            default="m",
+            help=f"unit of the {what} positions in the bag (default m, as ROS)",
+        )
+    parser.add_argument(
+        "--clock",
+        choices=("header", "bag"),
+        default="header",
+        help="stamp of a message: its header.stamp (default) or the bag's recording time",
+    )
+    parser.add_argument(
+        "--max-gap-s",
+        type=float,
+        default=DEFAULT_MAX_GAP_S,
+        metavar="S",
+        help=f"largest gap between the stroke messages a row is interpolated across (default {DEFAULT_MAX_GAP_S} s)",
+    )
     parser.set_defaults(func=run)
 
 

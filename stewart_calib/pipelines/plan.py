@@ -13,12 +13,12 @@ import time
 
 import numpy as np
 
-from ..errors import CalibError
-from . import add_config_arguments, run_command
 from .. import io
 from ..config import load_estimator_config
-from ..platform import load_platform
+from ..errors import CalibError
 from ..planning import CRITERIA, DEFAULT_CRITERION, plan_poses
+from ..platform import load_platform
+from . import add_config_arguments, run_command
 
 
 def add_platform_and_noise_arguments(parser: argparse.ArgumentParser) -> None:
@@ -54,7 +54,9 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--candidates", type=int, default=2000, metavar="M", help="random candidate poses (2000)")
     parser.add_argument("--seed", type=int, default=None, help="seed of the candidate draw")
-    parser.add_argument("--dwell-s", type=_positive_seconds, default=1.0, help="t_s step between poses in the file [s], > 0")
+    parser.add_argument(
+        "--dwell-s", type=_positive_seconds, default=1.0, help="t_s step between poses in the file [s], > 0"
+    )
     parser.set_defaults(func=run)
 
 
@@ -72,7 +74,9 @@ def run(args: argparse.Namespace) -> int:
     poses = plan_poses(platform, args.n, args.criterion, np.random.default_rng(args.seed), args.candidates, noise)
     elapsed_s = time.perf_counter() - start
     io.write_pose_list(args.out, poses, args.dwell_s)
-    print(f"planned {len(poses)} poses ({args.criterion} from {args.candidates} candidates, {elapsed_s:.2f} s) -> {args.out}")
+    print(
+        f"planned {len(poses)} poses ({args.criterion} from {args.candidates} candidates, {elapsed_s:.2f} s) -> {args.out}"
+    )
     return 0
 
 

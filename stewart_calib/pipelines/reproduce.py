@@ -19,14 +19,13 @@ import json
 import time
 from pathlib import Path
 
-from . import run_command
-from ..errors import CalibError
 from ..config import load_estimator_config
+from ..errors import CalibError
 from ..io import atomic_path, atomic_write_text
-from ..resources import CONFIGS
 from ..reproduction import reproduce, results_dict, tables_markdown, write_recording
+from ..resources import CONFIGS
 from ..simulation import load_experiment
-
+from . import run_command
 
 
 def add_parser(subparsers) -> None:

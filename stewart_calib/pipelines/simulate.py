@@ -19,12 +19,12 @@ import argparse
 from contextlib import ExitStack
 from pathlib import Path
 
-from . import run_command
 from ..errors import CalibError
 from ..io import atomic_path, atomic_write_text, log_text, read_calibrated_drive, truth_text
 from ..platform import Platform, platform_to_toml
 from ..simulation.closed_loop import FrozenController, NominalController, simulate_blocks
 from ..simulation.experiment import load_experiment
+from . import run_command
 
 
 def add_parser(subparsers) -> None:
@@ -68,8 +68,10 @@ def run(args: argparse.Namespace) -> int:
     run = simulate_blocks(experiment, controller, progress=True)
     with ExitStack() as stack:
         # written a block at a time as the blocks are simulated: a run holds its schedule and noise, not its text
-        log_file, truth_file = (stack.enter_context(open(stack.enter_context(atomic_path(out / name)), "w", encoding="utf-8"))
-                                for name in ("log.csv", "truth.csv"))
+        log_file, truth_file = (
+            stack.enter_context(open(stack.enter_context(atomic_path(out / name)), "w", encoding="utf-8"))
+            for name in ("log.csv", "truth.csv")
+        )
         for k, (log, truth) in enumerate(run.blocks):
             log_file.write(log_text(log, experiment.platform, header=k == 0))
             truth_file.write(truth_text(truth, header=k == 0))

@@ -30,9 +30,18 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--spec", required=True, metavar="S.toml", help="the grid (e.g. configs/sweeps/smoke.toml)")
     parser.add_argument("--out", required=True, metavar="DIR")
-    parser.add_argument("--scheduler", metavar="tcp://HOST:PORT", help="a running Dask scheduler (default: a local cluster)")
-    parser.add_argument("--workers", type=int, metavar="N", help="worker processes of the local cluster (default: one per core)")
-    parser.add_argument("--seeds", type=int, metavar="N", help="a pilot: only the first N seeds of every cell (the full command resumes from it)")
+    parser.add_argument(
+        "--scheduler", metavar="tcp://HOST:PORT", help="a running Dask scheduler (default: a local cluster)"
+    )
+    parser.add_argument(
+        "--workers", type=int, metavar="N", help="worker processes of the local cluster (default: one per core)"
+    )
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        metavar="N",
+        help="a pilot: only the first N seeds of every cell (the full command resumes from it)",
+    )
     parser.set_defaults(func=run)
 
 
@@ -53,7 +62,10 @@ def run(args: argparse.Namespace) -> int:
         f"{report.table.num_rows} rows in {out / RESULTS} ({report.seconds:.0f} s)"
     )
     if report.failed:
-        print(f"stewart-calib sweep: {len(report.failed)} tasks failed (first: {report.failed[0]}); run the command again to retry them", file=sys.stderr)
+        print(
+            f"stewart-calib sweep: {len(report.failed)} tasks failed (first: {report.failed[0]}); run the command again to retry them",
+            file=sys.stderr,
+        )
         return 1
     return 0
 

@@ -58,13 +58,13 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from . import add_config_arguments, run_command
 from .. import io
-from ..errors import CalibError
 from ..config import load_estimator_config
+from ..errors import CalibError
 from ..online import ONLINE_METHODS, OnlineCalibrator
 from ..platform import load_platform, platform_to_toml
 from ..samples import Log, Sample
+from . import add_config_arguments, run_command
 from .calibrate import _check_writable_dir
 
 #: how often an idle input is polled [s]: latency of noticing new rows and signals.
@@ -79,7 +79,9 @@ def lines(fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable
     return chain.from_iterable(line_chunks(fd, follow, idle_timeout_s, stopped))
 
 
-def line_chunks(fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable[[], bool]) -> Iterator[list[bytes]]:
+def line_chunks(
+    fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable[[], bool]
+) -> Iterator[list[bytes]]:
     """Complete lines of ``fd`` as they arrive (the line break removed), a list per read.
 
     Ends at the end of the input (a pipe closed by its writer; a regular file's end unless
@@ -125,7 +127,9 @@ def _decode(raw: bytes, source: str, row: int) -> str:
     try:
         return raw.decode("utf-8")
     except UnicodeDecodeError as err:
-        raise CalibError(f"{source}: row {row}: not UTF-8 text (byte 0x{raw[err.start]:02x}); expected a UTF-8 CSV row") from None
+        raise CalibError(
+            f"{source}: row {row}: not UTF-8 text (byte 0x{raw[err.start]:02x}); expected a UTF-8 CSV row"
+        ) from None
 
 
 def _open_input(log: str | None) -> tuple[int, str]:
@@ -163,13 +167,18 @@ def _start(args: argparse.Namespace) -> OnlineCalibrator:
     if platform_to_toml(calib.platform) != platform_to_toml(platform):
         raise CalibError(f"--checkpoint {checkpoint}: written for another platform than {args.platform}")
     if (args.config or args.set) and calib.config != config:
-        differ = [f.name for f in dataclasses.fields(config) if getattr(config, f.name) != getattr(calib.config, f.name)]
-        raise CalibError(f"--checkpoint {checkpoint}: its estimator config differs from --config/--set in [{', '.join(differ)}]")
+        differ = [
+            f.name for f in dataclasses.fields(config) if getattr(config, f.name) != getattr(calib.config, f.name)
+        ]
+        raise CalibError(
+            f"--checkpoint {checkpoint}: its estimator config differs from --config/--set in [{', '.join(differ)}]"
+        )
     return calib
 
 
-def _write(calib: OnlineCalibrator, writer: io.BackgroundWriter, out: Path | None, checkpoint: Path | None,
-           final: bool = False) -> None:
+def _write(
+    calib: OnlineCalibrator, writer: io.BackgroundWriter, out: Path | None, checkpoint: Path | None, final: bool = False
+) -> None:
     """The result (unless ``out`` is None) and the checkpoint, through ``writer``; ``final`` marks
     the result of a run that ended normally (the added field ``"final"``).
 
@@ -185,8 +194,14 @@ def _write(calib: OnlineCalibrator, writer: io.BackgroundWriter, out: Path | Non
         writer.submit(checkpoint, lambda: state)
 
 
-def follow_log(calib: OnlineCalibrator, chunks: Iterator[list[bytes]], source: str, every: int,
-               write: Callable[[], None], skip_bad_rows: bool) -> str | None:
+def follow_log(
+    calib: OnlineCalibrator,
+    chunks: Iterator[list[bytes]],
+    source: str,
+    every: int,
+    write: Callable[[], None],
+    skip_bad_rows: bool,
+) -> str | None:
     """Feed the lines of ``chunks`` (header first) to ``calib``, calling ``write()`` every ``every`` data rows.
 
     Rows the checkpoint had already read (``calib.rows_read``) are parsed (time order is still
@@ -281,7 +296,9 @@ class _Feed:
 
 def run(args: argparse.Namespace) -> int:
     if args.method not in ONLINE_METHODS:
-        raise CalibError(f"--method: '{args.method}' is not an online method; expected one of {', '.join(ONLINE_METHODS)}")
+        raise CalibError(
+            f"--method: '{args.method}' is not an online method; expected one of {', '.join(ONLINE_METHODS)}"
+        )
     if args.every < 1:
         raise CalibError(f"--every: expected a whole number ≥ 1, got {args.every}")
     if args.idle_timeout is not None and not args.idle_timeout > 0:
@@ -300,8 +317,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         with writer:
             chunks = line_chunks(fd, args.follow, args.idle_timeout, lambda: stop.requested)
-            first_bad = follow_log(calib, chunks, source, args.every, lambda: _write(calib, writer, out, checkpoint),
-                                   args.skip_bad_rows)
+            first_bad = follow_log(
+                calib, chunks, source, args.every, lambda: _write(calib, writer, out, checkpoint), args.skip_bad_rows
+            )
             if calib.estimate().samples_used:
                 _write(calib, writer, out, checkpoint, final=True)
     except CalibError:
@@ -316,18 +334,23 @@ def run(args: argparse.Namespace) -> int:
         if source != "<stdin>":
             os.close(fd)
     if not calib.estimate().samples_used:
-        raise CalibError(f"{source}: no usable samples ({calib.rows_read} rows read, "
-                         f"{calib.rows_skipped} skipped, {calib.rejections.count} rejected)")
+        raise CalibError(
+            f"{source}: no usable samples ({calib.rows_read} rows read, "
+            f"{calib.rows_skipped} skipped, {calib.rejections.count} rejected)"
+        )
     report = lambda what, count, first: print(  # noqa: E731
-        f"stewart-calib track: {what} {count} of {calib.rows_read} (first: {first})", file=sys.stderr)
+        f"stewart-calib track: {what} {count} of {calib.rows_read} (first: {first})", file=sys.stderr
+    )
     if calib.rows_skipped:
         report("skipped bad log rows:", calib.rows_skipped, first_bad or "in an earlier run")
     if calib.rejections.count:
         report(f"{args.method} rejected samples:", calib.rejections.count, calib.rejections.first)
     estimate = calib.estimate()
-    print(f"stewart-calib track: wrote {out} ({args.method}: {estimate.samples_used} samples used, "
-          f"{calib.rows_skipped + calib.rejections.count} skipped{', stopped by signal' if stop.requested else ''})",
-          file=sys.stderr)
+    print(
+        f"stewart-calib track: wrote {out} ({args.method}: {estimate.samples_used} samples used, "
+        f"{calib.rows_skipped + calib.rejections.count} skipped{', stopped by signal' if stop.requested else ''})",
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -341,12 +364,22 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--platform", required=True, metavar="P.toml", help="platform file (spec §2)")
     parser.add_argument("--method", required=True, metavar="METHOD", help=f"one of {', '.join(ONLINE_METHODS)}")
     parser.add_argument("--log", metavar="FILE", help="measurement log (spec §3); '-' or absent: standard input")
-    parser.add_argument("--follow", action="store_true", help="at the end of FILE, wait for more rows (stop with a signal or --idle-timeout)")
+    parser.add_argument(
+        "--follow",
+        action="store_true",
+        help="at the end of FILE, wait for more rows (stop with a signal or --idle-timeout)",
+    )
     parser.add_argument("--idle-timeout", type=float, metavar="S", help="stop after S seconds without new data")
-    parser.add_argument("--checkpoint", metavar="C.npz", help="resume from this checkpoint if it exists; keep it current")
-    parser.add_argument("--every", type=int, default=100, metavar="N", help="write the result and checkpoint every N rows (default 100)")
+    parser.add_argument(
+        "--checkpoint", metavar="C.npz", help="resume from this checkpoint if it exists; keep it current"
+    )
+    parser.add_argument(
+        "--every", type=int, default=100, metavar="N", help="write the result and checkpoint every N rows (default 100)"
+    )
     parser.add_argument("--out", required=True, metavar="R.json", help="result file (spec §5), replaced atomically")
-    parser.add_argument("--skip-bad-rows", action="store_true", help="skip bad rows (counted, reported) instead of stopping")
+    parser.add_argument(
+        "--skip-bad-rows", action="store_true", help="skip bad rows (counted, reported) instead of stopping"
+    )
     add_config_arguments(parser, "ekf.gate_probability=0.9999")
     parser.set_defaults(func=run)
 

@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 
-from . import handover, run_command
 from .. import io
 from .. import kinematics as kin
 from ..errors import CalibError
@@ -33,6 +32,7 @@ from ..instruments import drive as drive_model
 from ..platform import Platform, load_platform
 from ..progress import log_progress_bar
 from ..samples import Log
+from . import handover, run_command
 
 
 def add_parser(subparsers) -> None:
@@ -95,8 +95,15 @@ def _check_nominal(platform: Platform, result: dict, source: str) -> None:
         )
 
 
-def validate(platform: Platform, result: dict, log, register: bool, result_source: str = "result", errors: bool = True,
-             first_sample: int = 0):
+def validate(
+    platform: Platform,
+    result: dict,
+    log,
+    register: bool,
+    result_source: str = "result",
+    errors: bool = True,
+    first_sample: int = 0,
+):
     """Predictions and errors of a held-out log.
 
     Args:
@@ -114,14 +121,18 @@ def validate(platform: Platform, result: dict, log, register: bool, result_sourc
     R_X, t_X = _model_poses(platform, result, log, result_source, first_sample)
     if platform.instrument.kind == "tracker":
         if register:
-            raise CalibError("--register-instrument: the in-situ tracker is part of the robot; it has no frame of its own to fit again")
+            raise CalibError(
+                "--register-instrument: the in-situ tracker is part of the robot; it has no frame of its own to fit again"
+            )
         predicted = kin.inverse_kinematics(platform.tracker, R_X, t_X)
         if not errors:
             return predicted, None, None
         seen = kin.forward_kinematics(platform.tracker, log.readings, guess=(R_X, t_X), strict=False)
         if not np.all(seen.converged):
             k = int(np.flatnonzero(~seen.converged)[0])
-            raise CalibError(f"sample {first_sample + k + 1} (t_s = {log.t_s[k]!r}): tracker forward kinematics of its readings did not converge")
+            raise CalibError(
+                f"sample {first_sample + k + 1} (t_s = {log.t_s[k]!r}): tracker forward kinematics of its readings did not converge"
+            )
         position, orientation = kin.pose_error(seen.R, seen.t, R_X, t_X)
         return predicted, position, orientation
 
@@ -158,10 +169,14 @@ def run(args: argparse.Namespace) -> int:
         if report_dir or args.register_instrument:
             # the report plots, and the instrument frame is fitted to, the whole log
             log = _whole_log(platform, args.log, bar)
-            predicted, position, orientation = validate(platform, result, log, args.register_instrument, str(args.result))
+            predicted, position, orientation = validate(
+                platform, result, log, args.register_instrument, str(args.result)
+            )
             if report_dir:
                 page = _report_page(args, platform, result, log, predicted, position, orientation)
-            io.write_csv_blocks(args.out, header, [_file_columns(log, predicted, position, orientation, columns)], blank)
+            io.write_csv_blocks(
+                args.out, header, [_file_columns(log, predicted, position, orientation, columns)], blank
+            )
         else:
             errors: list[tuple] = []
             blocks = _validated_blocks(platform, result, args.log, str(args.result), bar, errors)
@@ -170,14 +185,22 @@ def run(args: argparse.Namespace) -> int:
             orientation = None if errors[0][1] is None else np.concatenate([e[1] for e in errors])
     if page is not None:
         handover.write_report(report_dir, page)
-    print(f"stewart-calib validate: {_summary(position, orientation, len(position))}" + (" (instrument re-registered)" if args.register_instrument else ""))
+    print(
+        f"stewart-calib validate: {_summary(position, orientation, len(position))}"
+        + (" (instrument re-registered)" if args.register_instrument else "")
+    )
     return 0
 
 
 def _file_columns(log: Log, predicted, position, orientation, columns) -> list[np.ndarray]:
     """V.csv's columns [file units] for the rows of ``log``."""
-    return [log.t_s, *io.readings_in_file_units(log.readings, columns), *io.readings_in_file_units(predicted, columns),
-            position, *([] if orientation is None else [orientation])]
+    return [
+        log.t_s,
+        *io.readings_in_file_units(log.readings, columns),
+        *io.readings_in_file_units(predicted, columns),
+        position,
+        *([] if orientation is None else [orientation]),
+    ]
 
 
 def _whole_log(platform: Platform, path: str, bar) -> Log:
@@ -202,7 +225,9 @@ def _validated_blocks(platform: Platform, result: dict, path: str, result_source
         if not len(block):
             continue
         try:
-            predicted, position, orientation = validate(platform, result, block, False, result_source, first_sample=done)
+            predicted, position, orientation = validate(
+                platform, result, block, False, result_source, first_sample=done
+            )
         except CalibError:
             for _ in blocks:
                 pass
@@ -212,8 +237,13 @@ def _validated_blocks(platform: Platform, result: dict, path: str, result_source
         done += len(block)
 
 
-def measurement_residuals(platform: Platform, log: Log, result: dict, predicted: np.ndarray | None = None,
-                          log_label: str = "the calibration log"):
+def measurement_residuals(
+    platform: Platform,
+    log: Log,
+    result: dict,
+    predicted: np.ndarray | None = None,
+    log_label: str = "the calibration log",
+):
     """Measured minus predicted per measurement column of the log (file units), with the nominal
     model (an outside instrument's frame registered on the log) and with the calibration ``result`` — the predictions of ``validate`` (spec §7): the
     logged strokes through forward kinematics of the model, then what the instrument reads there
@@ -241,7 +271,9 @@ def measurement_residuals(platform: Platform, log: Log, result: dict, predicted:
     outside = platform.instrument.kind != "tracker"
     before = residual_file_units(validate(platform, nominal, log, outside, "the nominal platform", errors=False)[0])
     before_model = "the nominal platform" + (", its instrument frame fitted to this log" if outside else "")
-    return Residuals(tuple(columns), np.asarray(log.t_s), before, residual_file_units(predicted), log_label, before_model)
+    return Residuals(
+        tuple(columns), np.asarray(log.t_s), before, residual_file_units(predicted), log_label, before_model
+    )
 
 
 def nominal_model(platform: Platform) -> dict:
@@ -268,8 +300,9 @@ def _report_page(args, platform: Platform, result: dict, log, predicted, positio
     held = HeldOut(str(args.log), np.asarray(log.t_s), position, orientation, args.register_instrument)
     residuals = measurement_residuals(platform, log, result, predicted, "the held-out log")
     inputs = {"platform file": str(args.platform), "result": str(args.result), "held-out log": str(args.log)}
-    return report_html(f"Validation of {platform.name} ({result['method']}) on {Path(args.log).name}", result,
-                       residuals, held, inputs)
+    return report_html(
+        f"Validation of {platform.name} ({result['method']}) on {Path(args.log).name}", result, residuals, held, inputs
+    )
 
 
 def _summary(position: np.ndarray, orientation: np.ndarray | None, n: int) -> str:

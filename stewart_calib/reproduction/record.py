@@ -18,9 +18,8 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -67,7 +66,12 @@ def write_recording(path: str | Path, reproduction: Reproduction) -> None:
         rows = scene_rows(reproduction)
         R, t = kin.pose_to_rt(scene.actual_poses[rows])
         viz.log_platform_pose(
-            rec, platform, R, t, scene.log.t_s[rows], samples=rows,
+            rec,
+            platform,
+            R,
+            t,
+            scene.log.t_s[rows],
+            samples=rows,
             drive_legs=LegGeometry.from_params(scene.robot.base_params),
             desired=kin.pose_to_rt(scene.desired_poses[rows]),
         )
@@ -92,8 +96,13 @@ def write_recording(path: str | Path, reproduction: Reproduction) -> None:
             for stage in stages:
                 circle = (result.stages == stage) & (result.kinds == "circle")
                 viz.log_trajectory(
-                    rec, stage, entity_name(method), result.desired_poses[circle, :3], result.actual_poses[circle, :3],
-                    POLAR_BASE_RADIUS_MM, POLAR_GAIN,
+                    rec,
+                    stage,
+                    entity_name(method),
+                    result.desired_poses[circle, :3],
+                    result.actual_poses[circle, :3],
+                    POLAR_BASE_RADIUS_MM,
+                    POLAR_GAIN,
                 )
         viz.send_blueprint(rec, [entity_name(m) for m in METHODS], reproduction.stage_names, diagnostics)
 

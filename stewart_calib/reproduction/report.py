@@ -45,7 +45,11 @@ PAPER_TABLE5 = {
 }
 PAPER_TABLE6 = {"position_mm": {"before": 2.5334, "LS": (0.0771, 0.2937, 0.6223), "EKF": (0.0515, 0.0769, 0.0564)}}
 #: The headline claims (online vs frozen LS, mean over the stages) and where they come from.
-HEADLINE = (("position", "table5", "position_mm"), ("orientation", "table5", "orientation_deg"), ("circle", "table6", "position_mm"))
+HEADLINE = (
+    ("position", "table5", "position_mm"),
+    ("orientation", "table5", "orientation_deg"),
+    ("circle", "table6", "position_mm"),
+)
 #: The paper's headline improvements [%] as published (§4.2–4.3, §5). Recomputed from its own
 #: rounded tables they come out 85.3 / 79.1 / 81.4 (it used a mean orientation of 0.0116°, the
 #: table's three values give 0.0117°); the bar is the published text.
@@ -89,7 +93,9 @@ def _with_improvements(rows: list[dict]) -> list[dict]:
     return rows
 
 
-def _error_table(details: dict, segment: str, quantities, paper: dict, stages: list[str], loads_kg: list[float]) -> dict:
+def _error_table(
+    details: dict, segment: str, quantities, paper: dict, stages: list[str], loads_kg: list[float]
+) -> dict:
     """Table 5 (``validation``) or Table 6 (``circle``) per view."""
     first = stages[0]
     table = {}
@@ -99,8 +105,15 @@ def _error_table(details: dict, segment: str, quantities, paper: dict, stages: l
             before = details[NOMINAL]["stages"][first][segment][view][quantity]
             for method in METHODS:
                 values = [details[method]["stages"][stage][segment][view][quantity] for stage in stages]
-                rows.append({"quantity": quantity, "method": method, "before": before, "stages": values,
-                             "mean": float(np.mean(values))})
+                rows.append(
+                    {
+                        "quantity": quantity,
+                        "method": method,
+                        "before": before,
+                        "stages": values,
+                        "mean": float(np.mean(values)),
+                    }
+                )
         published = _paper_rows({q: paper[q] for q in quantities}, loads_kg) if view == PAPER_VIEW else []
         table[view] = _with_improvements(rows + published)
     return table
@@ -162,7 +175,9 @@ def results_dict(reproduction: Reproduction, run_time_s: float) -> dict:
         }
     tables = {
         "table4": _table4(reproduction),
-        "table5": _error_table(details, "validation", ("position_mm", "orientation_deg"), PAPER_TABLE5, stages, loads_kg),
+        "table5": _error_table(
+            details, "validation", ("position_mm", "orientation_deg"), PAPER_TABLE5, stages, loads_kg
+        ),
         "table6": _error_table(details, "circle", ("position_mm",), PAPER_TABLE6, stages, loads_kg),
     }
     tables["headline"] = _headline(tables)
@@ -179,7 +194,9 @@ def results_dict(reproduction: Reproduction, run_time_s: float) -> dict:
             "seed": experiment.seed,
             "samples": len(nominal.log),
             "sample_period_s": experiment.sample_period_s,
-            "stages": [{"name": stage.name, "load_kg": stage.load_kg, "ramp_s": stage.ramp_s} for stage in experiment.stages],
+            "stages": [
+                {"name": stage.name, "load_kg": stage.load_kg, "ramp_s": stage.ramp_s} for stage in experiment.stages
+            ],
         },
         "methods": list(METHODS),
         "parameter_names": list(PARAMETER_NAMES),
@@ -205,11 +222,23 @@ def _markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
 
 
 def _error_markdown(rows: list[dict], stages: list[str], first_label: str) -> list[str]:
-    header = [first_label, "Method", "Before calibration", *(f"Data{i + 1} ({s})" for i, s in enumerate(stages)),
-              "Mean", "vs LS (%)"]
+    header = [
+        first_label,
+        "Method",
+        "Before calibration",
+        *(f"Data{i + 1} ({s})" for i, s in enumerate(stages)),
+        "Mean",
+        "vs LS (%)",
+    ]
     body = [
-        [QUANTITY_LABELS[row["quantity"]], row["method"], _cell(row["before"]), *(_cell(v) for v in row["stages"]),
-         _cell(row["mean"]), _cell(row["vs_ls_pct"], "pct")]
+        [
+            QUANTITY_LABELS[row["quantity"]],
+            row["method"],
+            _cell(row["before"]),
+            *(_cell(v) for v in row["stages"]),
+            _cell(row["mean"]),
+            _cell(row["vs_ls_pct"], "pct"),
+        ]
         for row in rows
     ]
     return _markdown_table(header, body)
@@ -256,16 +285,37 @@ def tables_markdown(results: dict) -> str:
         "## Verdict: online methods vs frozen LS in the truth view, mean over the stages (improvement, %)",
         "",
     ]
-    rows = [[PAPER_ROWS["EKF"], "published (tracker view)", *(_cell(headline["paper"][name], "pct") for name, _, _ in HEADLINE), "—"]]
+    rows = [
+        [
+            PAPER_ROWS["EKF"],
+            "published (tracker view)",
+            *(_cell(headline["paper"][name], "pct") for name, _, _ in HEADLINE),
+            "—",
+        ]
+    ]
     for method, values in headline["ours"][VERDICT_VIEW].items():
-        rows.append([method, VERDICT_VIEW, *(_cell(values[name], "pct") for name, _, _ in HEADLINE), _verdict(values, headline["paper"])])
+        rows.append(
+            [
+                method,
+                VERDICT_VIEW,
+                *(_cell(values[name], "pct") for name, _, _ in HEADLINE),
+                _verdict(values, headline["paper"]),
+            ]
+        )
     lines += _markdown_table(["Method", "View", "Position", "Orientation", "Circle", "Meets paper"], rows)
-    lines += ["", f"Bar: {', '.join(headline['target_methods'])} at least the paper's improvements, in the truth view.", "",
-              "## The same in the tracker view (flatters the online methods; no verdict)", ""]
+    lines += [
+        "",
+        f"Bar: {', '.join(headline['target_methods'])} at least the paper's improvements, in the truth view.",
+        "",
+        "## The same in the tracker view (flatters the online methods; no verdict)",
+        "",
+    ]
     lines += _markdown_table(
         ["Method", "View", "Position", "Orientation", "Circle"],
-        [[method, PAPER_VIEW, *(_cell(values[name], "pct") for name, _, _ in HEADLINE)]
-         for method, values in headline["ours"][PAPER_VIEW].items()],
+        [
+            [method, PAPER_VIEW, *(_cell(values[name], "pct") for name, _, _ in HEADLINE)]
+            for method, values in headline["ours"][PAPER_VIEW].items()
+        ],
     )
     lines.append("")
 
@@ -279,15 +329,19 @@ def tables_markdown(results: dict) -> str:
             lines.append("")
 
     table4 = tables["table4"]
-    lines += ["## Table 4 — identified kinematic parameter errors at no load (mm)", "",
-              "`truth`: the true no-load drive at home minus nominal. Our robot's δd is the paper's EKF column "
-              "× 0.3 (configs/experiments/paper.toml), so the paper's columns are shown for layout, not as a target.",
-              ""]
+    lines += [
+        "## Table 4 — identified kinematic parameter errors at no load (mm)",
+        "",
+        "`truth`: the true no-load drive at home minus nominal. Our robot's δd is the paper's EKF column "
+        "× 0.3 (configs/experiments/paper.toml), so the paper's columns are shown for layout, not as a target.",
+        "",
+    ]
     lines += _markdown_table(
         ["Leg", "Source", *table4["columns"]],
         [[str(row["leg"]), row["source"], *(_cell(v, "table4") for v in row["values"])] for row in table4["rows"]],
     )
     lines += ["", "RMS error vs truth (mm):", ""]
-    lines += _markdown_table(["Method", "RMS (mm)"],
-                             [[m, _cell(v, "error")] for m, v in table4["rms_vs_truth_mm"].items()])
+    lines += _markdown_table(
+        ["Method", "RMS (mm)"], [[m, _cell(v, "error")] for m, v in table4["rms_vs_truth_mm"].items()]
+    )
     return "\n".join(lines) + "\n"

@@ -23,9 +23,9 @@ import numpy as np
 from ..config import EstimatorConfig
 from ..estimators import KalmanFiltered, make_estimator, method_names
 from ..platform import N_PARAMS, Platform
+from ..progress import progress_bar
 from ..simulation import EstimatorController, FrozenController, NominalController, SimulationResult, run_experiment
 from ..simulation.experiment import Experiment
-from ..progress import progress_bar
 
 #: the paper's batch baseline, fitted once on the no-load calibration samples.
 BATCH_METHOD = "ls"
@@ -162,8 +162,16 @@ def run_online(experiment: Experiment, config: EstimatorConfig, method: str, bar
     trace = controller.trace()
     last_of_first_stage = int(np.flatnonzero(result.stages == result.stages[0])[-1])
     nis = np.array(diagnosed.nis) if diagnosed.kalman else None
-    return MethodRun(method, result, trace, trace[last_of_first_stage], len(controller.rejected), run_s,
-                     np.array(diagnosed.stddev), nis)
+    return MethodRun(
+        method,
+        result,
+        trace,
+        trace[last_of_first_stage],
+        len(controller.rejected),
+        run_s,
+        np.array(diagnosed.stddev),
+        nis,
+    )
 
 
 def reproduce(experiment: Experiment, config: EstimatorConfig, progress: bool = False) -> Reproduction:
@@ -176,10 +184,13 @@ def reproduce(experiment: Experiment, config: EstimatorConfig, progress: bool = 
     start = time.perf_counter()
     nominal_result = run_experiment(experiment, NominalController(experiment.platform), progress=progress)
     n = len(nominal_result.log)
-    nominal = MethodRun(NOMINAL, nominal_result, np.zeros((n, N_PARAMS)), np.zeros(N_PARAMS), 0, time.perf_counter() - start)
+    nominal = MethodRun(
+        NOMINAL, nominal_result, np.zeros((n, N_PARAMS)), np.zeros(N_PARAMS), 0, time.perf_counter() - start
+    )
     runs = {NOMINAL: nominal}
-    with progress_bar(total=n * len(METHODS), desc=f"reproduce {experiment.name}: {', '.join(METHODS)}",
-                      show=progress) as bar:
+    with progress_bar(
+        total=n * len(METHODS), desc=f"reproduce {experiment.name}: {', '.join(METHODS)}", show=progress
+    ) as bar:
         for method in METHODS:
             if method == BATCH_METHOD:
                 runs[method] = run_ls(experiment, config, nominal_result, bar)

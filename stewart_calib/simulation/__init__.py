@@ -19,7 +19,17 @@ Modules: :mod:`.robot` (δM_base, Table 4), :mod:`.load` (statics → forces →
 (static poses, circles), :mod:`.experiment`, :mod:`.closed_loop`.
 """
 
-from .closed_loop import Controller, EstimatorController, FrozenController, NominalController, SimulationResult, SimulationRun, TrueRobot, run_experiment, simulate_blocks
+from .closed_loop import (
+    Controller,
+    EstimatorController,
+    FrozenController,
+    NominalController,
+    SimulationResult,
+    SimulationRun,
+    TrueRobot,
+    run_experiment,
+    simulate_blocks,
+)
 from .experiment import Experiment, load_experiment
 
 __all__ = [

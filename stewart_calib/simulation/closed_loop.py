@@ -45,11 +45,11 @@ import numpy as np
 from .. import kinematics as kin
 from ..errors import SampleRejected
 from ..platform import LegGeometry, Platform
-from ..samples import Log, Sample, Truth
 from ..progress import progress_bar
+from ..samples import Log, Sample, Truth
 from .experiment import Experiment, Schedule, schedule
-from .load import LoadModel, loaded_params, settle
 from .instrument import SimulatedInstrument
+from .load import LoadModel, loaded_params, settle
 from .robot import base_errors, encoder_readings
 from .tracker import Tracker
 
@@ -151,9 +151,13 @@ class TrueRobot:
 
     def logged_strokes(self, strokes: np.ndarray, unit_noise: np.ndarray) -> np.ndarray:
         """What the encoders log for executed strokes [mm]: zero and scale errors, then noise."""
-        return encoder_readings((strokes - self.encoder_zero_mm) / (1.0 + self.stroke_scale), self.encoder_noise_mm, unit_noise)
+        return encoder_readings(
+            (strokes - self.encoder_zero_mm) / (1.0 + self.stroke_scale), self.encoder_noise_mm, unit_noise
+        )
 
-    def readings(self, R: np.ndarray, t: np.ndarray, reading_noise: np.ndarray, instrument_draws: np.ndarray) -> np.ndarray:
+    def readings(
+        self, R: np.ndarray, t: np.ndarray, reading_noise: np.ndarray, instrument_draws: np.ndarray
+    ) -> np.ndarray:
         """What the measuring instrument logs at the true poses ``(R, t)``."""
         if self.instrument is not None:
             return self.instrument.read(R, t, instrument_draws)
@@ -181,7 +185,9 @@ def build_robot(
     truth from ``instrument_rng``)."""
     e = experiment
     r = e.robot
-    delta = base_errors(r.errors, (r.scale_base_joints, r.scale_platform_joints, r.scale_lengths), r.random_spread_mm, robot_rng)
+    delta = base_errors(
+        r.errors, (r.scale_base_joints, r.scale_platform_joints, r.scale_lengths), r.random_spread_mm, robot_rng
+    )
     tracker = None
     if e.platform.tracker is not None:
         tracker = Tracker.with_residual(
@@ -197,7 +203,9 @@ def build_robot(
     zero = encoder_rng.normal(0.0, r.encoder_zero_spread_mm, 6) if r.encoder_zero_spread_mm > 0 else np.zeros(6)
     instrument = None
     if e.instrument is not None:
-        instrument = SimulatedInstrument.build(e.platform.instrument, e.instrument, instrument_rng or np.random.default_rng(0))
+        instrument = SimulatedInstrument.build(
+            e.platform.instrument, e.instrument, instrument_rng or np.random.default_rng(0)
+        )
     return TrueRobot(e.platform.drive.as_vector() + delta, e.load, tracker, r.encoder_noise_mm, scale, zero, instrument)
 
 
@@ -259,7 +267,9 @@ class SimulationRun:
     blocks: Iterator[tuple[Log, Truth]]
 
 
-def simulate_blocks(experiment: Experiment, controller: Controller | None = None, progress: bool = False) -> SimulationRun:
+def simulate_blocks(
+    experiment: Experiment, controller: Controller | None = None, progress: bool = False
+) -> SimulationRun:
     """Simulate an experiment in closed loop a block at a time (see the module docstring); the
     blocks joined are :func:`run_experiment`'s log and truth, bit for bit.
 
@@ -267,7 +277,9 @@ def simulate_blocks(experiment: Experiment, controller: Controller | None = None
     """
     controller = NominalController(experiment.platform) if controller is None else controller
     # spawn(6)'s first four streams are spawn(4)'s: adding streams reshuffles no older experiment
-    robot_rng, tracker_rng, poses_rng, noise_rng, encoder_rng, instrument_rng = np.random.default_rng(experiment.seed).spawn(6)
+    robot_rng, tracker_rng, poses_rng, noise_rng, encoder_rng, instrument_rng = np.random.default_rng(
+        experiment.seed
+    ).spawn(6)
     robot = build_robot(experiment, robot_rng, tracker_rng, encoder_rng, instrument_rng)
     plan = schedule(experiment, poses_rng)
     n = len(plan.t_s)
@@ -282,7 +294,11 @@ def simulate_blocks(experiment: Experiment, controller: Controller | None = None
             for lo in range(0, max(n, 1), BLOCK_SAMPLES):  # one empty block for an empty schedule
                 rows = slice(lo, min(lo + BLOCK_SAMPLES, n))
                 m = rows.stop - rows.start
-                noise = (stroke_noise.standard_normal((m, 6)), reading_noise.standard_normal((m, 6)), instrument_draws[rows])
+                noise = (
+                    stroke_noise.standard_normal((m, 6)),
+                    reading_noise.standard_normal((m, 6)),
+                    instrument_draws[rows],
+                )
                 yield step(robot, plan, rows, controller, noise)
                 bar.update(m)
         finally:
@@ -324,9 +340,17 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
     R, t = np.empty((m, 3, 3)), np.empty((m, 3))
     for i, k in enumerate(range(rows.start, rows.stop)):
         strokes[i] = kin.inverse_kinematics(controller.drive_model(), R_d[i], t_d[i])
-        sol, params[i : i + 1] = settle(robot.load, robot.base_params, strokes[i : i + 1], plan.payload_kg[k : k + 1], (R_d[i : i + 1], t_d[i : i + 1]))
+        sol, params[i : i + 1] = settle(
+            robot.load,
+            robot.base_params,
+            strokes[i : i + 1],
+            plan.payload_kg[k : k + 1],
+            (R_d[i : i + 1], t_d[i : i + 1]),
+        )
         R[i], t[i] = sol.R[0], sol.t[0]
-        controller.observe(_sample(robot, plan, k, strokes[i], stroke_noise[i], R[i], t[i], reading_noise[i], instrument_draws[i]))
+        controller.observe(
+            _sample(robot, plan, k, strokes[i], stroke_noise[i], R[i], t[i], reading_noise[i], instrument_draws[i])
+        )
     return _measured(robot, plan, rows, strokes, R, t, params, noise)
 
 
@@ -346,12 +370,19 @@ def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, para
     instrument = None
     if robot.instrument is not None:
         instrument = (robot.instrument.names(), robot.instrument.unknowns.file_values())
-    truth = Truth(t_s=plan.t_s[rows].copy(), params=params, true_poses=kin.rt_to_pose(R, t),
-                  stroke_scale=robot.stroke_scale.copy(), instrument=instrument)
+    truth = Truth(
+        t_s=plan.t_s[rows].copy(),
+        params=params,
+        true_poses=kin.rt_to_pose(R, t),
+        stroke_scale=robot.stroke_scale.copy(),
+        instrument=instrument,
+    )
     return log, truth
 
 
-def run_experiment(experiment: Experiment, controller: Controller | None = None, progress: bool = False) -> SimulationResult:
+def run_experiment(
+    experiment: Experiment, controller: Controller | None = None, progress: bool = False
+) -> SimulationResult:
     """Simulate an experiment in closed loop (see the module docstring), held whole.
 
     Args:
@@ -368,8 +399,17 @@ def run_experiment(experiment: Experiment, controller: Controller | None = None,
     joined = lambda name: np.concatenate([getattr(truth, name) for truth in truths])  # noqa: E731
     truth = Truth(joined("t_s"), joined("params"), joined("true_poses"), first.stroke_scale, first.instrument)
     plan = run.plan
-    return SimulationResult(log, truth, plan.desired_poses, truth.true_poses, plan.stages, plan.kinds, plan.payload_kg,
-                            plan.pose_index, run.robot)
+    return SimulationResult(
+        log,
+        truth,
+        plan.desired_poses,
+        truth.true_poses,
+        plan.stages,
+        plan.kinds,
+        plan.payload_kg,
+        plan.pose_index,
+        run.robot,
+    )
 
 
 def _sample(robot: TrueRobot, plan, k: int, stroke, stroke_noise, R, t, reading_noise, instrument_draws) -> Sample:

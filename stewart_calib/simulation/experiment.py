@@ -165,7 +165,12 @@ class _Table:
         self.used.add(key)
         value = self.doc.get(key, default)
         kinds = (int,) if integer else (int, float)
-        if isinstance(value, bool) or not isinstance(value, kinds) or math.isnan(value) or (math.isinf(value) and not allow_inf):
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, kinds)
+            or math.isnan(value)
+            or (math.isinf(value) and not allow_inf)
+        ):
             raise self.refuse(key, "an integer" if integer else "a finite number")
         if minimum is not None and value < minimum:
             raise self.refuse(key, f"a number ≥ {minimum}, got {value}")
@@ -220,8 +225,12 @@ def load_experiment(path: str | Path) -> Experiment:
     source = str(path)
     top = _Table(doc, "", source)
     name = top.string("name", path.stem)
-    seed = top.number("seed", None, minimum=0, integer=True) if "seed" in doc else _missing(top, "seed", "an integer seed")
-    platform = _platform(top.string("platform", None) if "platform" in doc else _missing(top, "platform", "a path or name"), path, top)
+    seed = (
+        top.number("seed", None, minimum=0, integer=True) if "seed" in doc else _missing(top, "seed", "an integer seed")
+    )
+    platform = _platform(
+        top.string("platform", None) if "platform" in doc else _missing(top, "platform", "a path or name"), path, top
+    )
     period = top.number("sample_period_s", 0.1, minimum=1e-9)
 
     sections = {key: _Table(doc.get(key, {}), key, source) for key in ("robot", "load", "tracker", "poses", "circle")}
@@ -301,7 +310,7 @@ def _instrument(doc: dict, platform: Platform, source: str) -> tuple[Platform, I
     instrument = parse_instrument(nominal, source)
     if instrument.kind == "tracker":
         if set(raw) - {"kind"}:
-            raise t.refuse(sorted(set(raw) - {"kind"})[0], "no other key with kind = \"tracker\"")
+            raise t.refuse(sorted(set(raw) - {"kind"})[0], 'no other key with kind = "tracker"')
         return platform, None
     t.used.update(nominal)
     truth = InstrumentTruth(
@@ -371,8 +380,14 @@ def schedule(experiment: Experiment, rng: np.random.Generator) -> Schedule:
         kind: random_static_poses(e.platform, count, rng, e.poses.workspace_fraction, e.poses.margin_mm)
         for kind, count in (("calibration", e.poses.calibration), ("validation", e.poses.validation))
     }
-    sets["circle"] = circle_poses(e.platform.workspace.home, e.circle.radius_mm, e.circle.plane, e.circle.points, e.circle.centre_offset_mm)
-    hold = {"calibration": e.poses.samples_per_pose, "validation": e.poses.samples_per_pose, "circle": e.circle.samples_per_point}
+    sets["circle"] = circle_poses(
+        e.platform.workspace.home, e.circle.radius_mm, e.circle.plane, e.circle.points, e.circle.centre_offset_mm
+    )
+    hold = {
+        "calibration": e.poses.samples_per_pose,
+        "validation": e.poses.samples_per_pose,
+        "circle": e.circle.samples_per_point,
+    }
 
     # filled in place, segment by segment: a long schedule is held once, not also as its pieces
     n = sum(len(sets[kind]) * hold[kind] for stage in e.stages for kind in stage.segments)

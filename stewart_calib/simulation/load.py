@@ -94,7 +94,9 @@ def leg_forces(legs: LegGeometry, R: np.ndarray, t: np.ndarray, wrench: np.ndarr
     return np.linalg.solve(statics_matrix(legs, R, t), -np.asarray(wrench)[..., None])[..., 0]
 
 
-def compliance_drift(load: LoadModel, legs: LegGeometry, R: np.ndarray, t: np.ndarray, forces_N: np.ndarray) -> np.ndarray:
+def compliance_drift(
+    load: LoadModel, legs: LegGeometry, R: np.ndarray, t: np.ndarray, forces_N: np.ndarray
+) -> np.ndarray:
     """Parameter change δM from axial forces (step 3 of the module docstring), ``(..., 6, 7)`` [mm]."""
     n = kin.leg_unit_vectors(legs, R, t)
     push = n * forces_N[..., None]  # force of leg i on the platform, in {J} [N]
@@ -106,7 +108,9 @@ def compliance_drift(load: LoadModel, legs: LegGeometry, R: np.ndarray, t: np.nd
     )
 
 
-def loaded_params(load: LoadModel, base_params: np.ndarray, R: np.ndarray, t: np.ndarray, payload_kg) -> tuple[np.ndarray, np.ndarray]:
+def loaded_params(
+    load: LoadModel, base_params: np.ndarray, R: np.ndarray, t: np.ndarray, payload_kg
+) -> tuple[np.ndarray, np.ndarray]:
     """True drive parameters under load at pose ``(R, t)``: ``M_base + δM_load``.
 
     The forces are computed on the base geometry (the drift changes the moment arms by ~1e-3
@@ -120,7 +124,9 @@ def loaded_params(load: LoadModel, base_params: np.ndarray, R: np.ndarray, t: np
     """
     legs = LegGeometry.from_params(base_params)
     batch = np.shape(t)[:-1]
-    masses = np.stack(np.broadcast_arrays(np.full(batch, load.platform_mass_kg), np.asarray(payload_kg, dtype=float)), axis=-1)
+    masses = np.stack(
+        np.broadcast_arrays(np.full(batch, load.platform_mass_kg), np.asarray(payload_kg, dtype=float)), axis=-1
+    )
     coms = np.stack([load.platform_com_mm, load.payload_com_mm])
     forces = leg_forces(legs, R, t, gravity_wrench(R, masses, coms))
     drift = compliance_drift(load, legs, R, t, forces)
@@ -151,4 +157,3 @@ def settle(
         sol = kin.forward_kinematics_per_pose(p[..., 0:3], p[..., 3:6], p[..., 6], strokes, (R, t))
         R, t = sol.R, sol.t
     return sol, params
-

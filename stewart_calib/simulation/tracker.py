@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import kinematics as kin
-from ..platform import LegGeometry, N_PARAMS
+from ..platform import N_PARAMS, LegGeometry
 
 
 @dataclass(frozen=True)

@@ -64,7 +64,9 @@ def connect(scheduler: str | None, workers: int | None):
 
     if scheduler is not None:
         if workers is not None:
-            raise CalibError("--workers sizes the local cluster only: the scheduler's workers are started on the cluster")
+            raise CalibError(
+                "--workers sizes the local cluster only: the scheduler's workers are started on the cluster"
+            )
         _probe(scheduler)
         try:
             return Client(scheduler, timeout=f"{CONNECT_TIMEOUT_S}s", set_as_default=False)
@@ -75,7 +77,9 @@ def connect(scheduler: str | None, workers: int | None):
         raise CalibError(f"--workers: expected at least 1 worker, got {n}")
     # One thread per process: the estimators are single-threaded numpy/numba/GTSAM, and
     # processes keep tasks apart (GIL, GTSAM's own state).
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR)
+    cluster = LocalCluster(
+        n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR
+    )
     return Client(cluster, set_as_default=False)
 
 
@@ -112,7 +116,9 @@ def _probe(scheduler: str) -> None:
     try:
         reply = asyncio.run(asyncio.wait_for(identity(), CONNECT_TIMEOUT_S))
     except Exception as err:  # timed out, or not speaking Dask's protocol
-        raise CalibError(f"{scheduler} does not answer as a Dask scheduler within {CONNECT_TIMEOUT_S} s ({_reason(err)})") from None
+        raise CalibError(
+            f"{scheduler} does not answer as a Dask scheduler within {CONNECT_TIMEOUT_S} s ({_reason(err)})"
+        ) from None
     if not isinstance(reply, dict) or reply.get("type") != "Scheduler":
         raise CalibError(f"{scheduler} is not a Dask scheduler (it answered {str(reply)[:60]!r})")
 
@@ -125,7 +131,9 @@ def _unreachable(scheduler: str, err: BaseException) -> CalibError:
     return CalibError(f"cannot reach the Dask scheduler at {scheduler} within {CONNECT_TIMEOUT_S} s ({_reason(err)})")
 
 
-def run_sweep(spec: SweepSpec, out: str | Path, scheduler: str | None = None, workers: int | None = None, progress: bool = True) -> SweepReport:
+def run_sweep(
+    spec: SweepSpec, out: str | Path, scheduler: str | None = None, workers: int | None = None, progress: bool = True
+) -> SweepReport:
     """Run every unfinished task of ``spec``, writing parts as they finish, then results.parquet.
 
     Tasks that raise are reported (``failed``: the cell's settings, the seed and the error)
@@ -155,7 +163,9 @@ def run_sweep(spec: SweepSpec, out: str | Path, scheduler: str | None = None, wo
     return SweepReport(len(tasks), len(done), ran, failed, table, time.perf_counter() - start)
 
 
-def _drain(client, spec: SweepSpec, out: Path, todo: deque, table_schema, failed: list, total: int, done: int, progress: bool) -> int:
+def _drain(
+    client, spec: SweepSpec, out: Path, todo: deque, table_schema, failed: list, total: int, done: int, progress: bool
+) -> int:
     """Submit, collect and write until nothing is left; the number of tasks that finished."""
     from distributed import as_completed
 
@@ -166,7 +176,13 @@ def _drain(client, spec: SweepSpec, out: Path, todo: deque, table_schema, failed
     def submit_next() -> None:
         cell, seed = todo.popleft()
         future = client.submit(
-            run_task, cell, seed, spec.methods, spec.checkpoints, spec.refit_at_checkpoints, key=f"sweep-{cell.id}-{seed}"
+            run_task,
+            cell,
+            seed,
+            spec.methods,
+            spec.checkpoints,
+            spec.refit_at_checkpoints,
+            key=f"sweep-{cell.id}-{seed}",
         )
         names[future.key] = f"{', '.join(f'{k}={v}' for k, v in cell.settings.items())}, seed {seed}"
         pending.add(future)
@@ -175,14 +191,18 @@ def _drain(client, spec: SweepSpec, out: Path, todo: deque, table_schema, failed
         submit_next()
     ran = 0
     # disable=None: tqdm hides the bar when stderr is not a terminal.
-    with tqdm(total=total, initial=done, unit="task", desc=f"sweep {spec.name}", disable=None if progress else True) as bar:
+    with tqdm(
+        total=total, initial=done, unit="task", desc=f"sweep {spec.name}", disable=None if progress else True
+    ) as bar:
         for future in pending:
             if future.status == "finished":
                 store.write_part(out, future.result(), table_schema)
                 ran += 1
             else:
                 error = future.exception()
-                failed.append(f"{names[future.key]}: {error.__class__.__name__}: {str(error).splitlines()[0] if str(error) else ''}")
+                failed.append(
+                    f"{names[future.key]}: {error.__class__.__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+                )
                 bar.write(f"task failed ({failed[-1]})")
             del names[future.key]
             future.release()

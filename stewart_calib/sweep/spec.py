@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..errors import CalibError
 from ..config import EstimatorConfig, config_from_dict
+from ..errors import CalibError
 from ..estimators import METHODS
 from ..platform import LegGeometry, Platform, load_platform, platform_to_toml
 from ..resources import CONFIGS, read_toml
@@ -59,11 +59,23 @@ class Setting:
 
 #: The simulated settings, in column order. Estimator settings (``section.key``) follow them.
 SETTINGS = (
-    Setting("platform", str, "nim-stewart", doc="shipped platform name, platform file (relative to the spec) or a [families] name"),
+    Setting(
+        "platform",
+        str,
+        "nim-stewart",
+        doc="shipped platform name, platform file (relative to the spec) or a [families] name",
+    ),
     Setting("instrument", str, "tracker", doc="what measures the platform (spec §7); the simulator's instruments"),
     Setting("samples", int, 200, minimum=1, doc="samples per run, one per random workspace pose"),
     Setting("rate_hz", float, 10.0, positive=True, doc="sample rate [Hz] (sets Δt of the random walk)"),
-    Setting("workspace_fraction", float, 0.8, positive=True, maximum=1.0, doc="poses uniform in this fraction of the workspace box"),
+    Setting(
+        "workspace_fraction",
+        float,
+        0.8,
+        positive=True,
+        maximum=1.0,
+        doc="poses uniform in this fraction of the workspace box",
+    ),
     Setting("error_sigma_mm", float, 1.0, minimum=0.0, doc="σ of the true δM's i.i.d. normal draw [mm]"),
     Setting("reading_sigma_mm", float, 0.002, positive=True, doc="σ of the tracker readings' white noise [mm]"),
     Setting("stroke_sigma_mm", float, 0.001, positive=True, doc="σ of the logged strokes' white noise [mm]"),
@@ -110,16 +122,27 @@ class Family:
 
 
 def ring_platform(
-    like: Platform, base_radius_mm: float, platform_radius_mm: float, base_half_angle_deg: float, platform_half_angle_deg: float, name: str
+    like: Platform,
+    base_radius_mm: float,
+    platform_radius_mm: float,
+    base_half_angle_deg: float,
+    platform_half_angle_deg: float,
+    name: str,
 ) -> Platform:
     """``like`` with the drive rebuilt on two rings (see :class:`Family`)."""
     centres = np.repeat([0.0, 120.0, 240.0], 2)
     signs = np.tile([-1.0, 1.0], 3)
     base_angles = np.radians(centres + signs * base_half_angle_deg)
     platform_angles = np.radians(centres + signs * platform_half_angle_deg)
-    base = np.column_stack([base_radius_mm * np.cos(base_angles), base_radius_mm * np.sin(base_angles), like.drive.base_joints[:, 2]])
+    base = np.column_stack(
+        [base_radius_mm * np.cos(base_angles), base_radius_mm * np.sin(base_angles), like.drive.base_joints[:, 2]]
+    )
     plat = np.column_stack(
-        [platform_radius_mm * np.cos(platform_angles), platform_radius_mm * np.sin(platform_angles), like.drive.platform_joints[:, 2]]
+        [
+            platform_radius_mm * np.cos(platform_angles),
+            platform_radius_mm * np.sin(platform_angles),
+            like.drive.platform_joints[:, 2],
+        ]
     )
     home_t = like.workspace.home[:3]
     lengths = np.linalg.norm(home_t + plat - base, axis=1)  # home at level orientation: R = I
@@ -189,7 +212,17 @@ class SweepSpec:
         return [(cell, seed) for cell in self.cells for seed in self.seeds]
 
 
-TOP_KEYS = ("name", "description", "methods", "seeds", "first_seed", "checkpoints", "refit_at_checkpoints", "grid", "families")
+TOP_KEYS = (
+    "name",
+    "description",
+    "methods",
+    "seeds",
+    "first_seed",
+    "checkpoints",
+    "refit_at_checkpoints",
+    "grid",
+    "families",
+)
 
 
 def load_spec(path: str | Path) -> SweepSpec:
@@ -222,7 +255,11 @@ def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
     for method in methods:
         if method not in METHODS:
             raise refuse("methods", f"unknown method '{method}': expected one of {', '.join(METHODS)}")
-    seeds = _integer(doc.get("seeds"), "seeds", 1, refuse) if "seeds" in doc else _raise(refuse("seeds", "expected a number of seeds (missing)"))
+    seeds = (
+        _integer(doc.get("seeds"), "seeds", 1, refuse)
+        if "seeds" in doc
+        else _raise(refuse("seeds", "expected a number of seeds (missing)"))
+    )
     first_seed = _integer(doc.get("first_seed", 0), "first_seed", 0, refuse)
     checkpoints = doc.get("checkpoints", [])
     if not isinstance(checkpoints, list):
@@ -237,15 +274,28 @@ def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
     axes = _axes(doc.get("grid", {}), source, refuse)
     for value in axes["instrument"]:
         if value not in INSTRUMENTS:
-            raise refuse("grid.instrument", f"unknown instrument '{value}': expected one of {', '.join(INSTRUMENTS)} (what the simulator supports)")
+            raise refuse(
+                "grid.instrument",
+                f"unknown instrument '{value}': expected one of {', '.join(INSTRUMENTS)} (what the simulator supports)",
+            )
         unable = [m for m in methods if value not in METHODS[m].instruments]
         if unable:
-            raise refuse("methods", f"method '{unable[0]}' cannot calibrate with instrument '{value}' (grid.instrument)")
+            raise refuse(
+                "methods", f"method '{unable[0]}' cannot calibrate with instrument '{value}' (grid.instrument)"
+            )
     if checkpoints and max(checkpoints) > min(axes["samples"]):
-        raise refuse("checkpoints", f"expected sample counts ≤ the smallest 'samples' ({min(axes['samples'])}), got {max(checkpoints)}")
+        raise refuse(
+            "checkpoints",
+            f"expected sample counts ≤ the smallest 'samples' ({min(axes['samples'])}), got {max(checkpoints)}",
+        )
     platforms = {value: _platform(value, families, path, refuse) for value in axes["platform"]}
 
-    run_wide = {"methods": list(methods), "checkpoints": list(checkpoints), "refit_at_checkpoints": list(refit), "version": __version__}
+    run_wide = {
+        "methods": list(methods),
+        "checkpoints": list(checkpoints),
+        "refit_at_checkpoints": list(refit),
+        "version": __version__,
+    }
     cells = []
     names = list(axes)
     for index, values in enumerate(itertools.product(*axes.values())):
@@ -297,7 +347,10 @@ def _axes(grid, source: str, refuse) -> dict[str, list]:
         axes[setting.name] = [_value(setting, v, refuse) for v in _as_list(values, f"grid.{setting.name}", refuse)]
     for key in sorted(flat):
         if "." not in key:
-            raise refuse(f"grid.{key}", f"unknown key: expected one of {', '.join(SETTINGS_BY_NAME)} or an estimator setting 'section.key'")
+            raise refuse(
+                f"grid.{key}",
+                f"unknown key: expected one of {', '.join(SETTINGS_BY_NAME)} or an estimator setting 'section.key'",
+            )
         section, _, name = key.partition(".")
         values = _as_list(flat[key], f"grid.{key}", refuse)
         for v in values:  # the estimators' own validation, naming the spec's key
@@ -352,14 +405,21 @@ def _families(doc, path: Path, refuse) -> dict[str, dict]:
         like_name = table.get("like", "nim-stewart")
         like = _platform_file(like_name, path, lambda expected: refuse(f"{prefix}.like", expected))
         if like.workspace is None:
-            raise refuse(f"{prefix}.like", f"expected a platform with a [workspace] (its home places the rings), got {like_name!r}")
+            raise refuse(
+                f"{prefix}.like",
+                f"expected a platform with a [workspace] (its home places the rings), got {like_name!r}",
+            )
         ranges = []
         for key in FAMILY_DIMENSIONS:
             if key not in table:
                 raise refuse(f"{prefix}.{key}", "expected a number or [low, high] (missing)")
             value = table[key]
             pair = value if isinstance(value, list) else [value, value]
-            if len(pair) != 2 or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) for v in pair) or pair[0] > pair[1]:
+            if (
+                len(pair) != 2
+                or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) for v in pair)
+                or pair[0] > pair[1]
+            ):
                 raise refuse(f"{prefix}.{key}", f"expected a number or [low, high] with low ≤ high, got {value!r}")
             if key.endswith("radius_mm") and pair[0] <= 0:
                 raise refuse(f"{prefix}.{key}", f"expected radii > 0, got {value!r}")
@@ -379,7 +439,9 @@ def _platform_file(value: str, path: Path, refuse) -> Platform:
     for candidate in (path.parent / value, CONFIGS / "platforms" / f"{value}.toml"):
         if candidate.is_file():
             return load_platform(candidate)
-    raise refuse(f"expected a shipped platform name, a platform file relative to the spec or a [families] name, got {value!r}")
+    raise refuse(
+        f"expected a shipped platform name, a platform file relative to the spec or a [families] name, got {value!r}"
+    )
 
 
 def _estimator_config(settings: dict, source: str) -> EstimatorConfig:
@@ -404,5 +466,7 @@ def _estimator_config(settings: dict, source: str) -> EstimatorConfig:
 def _fingerprint(platform: Platform | Family) -> str:
     """What a cell's rows depend on of its platform: the file's values, or the family's definition."""
     if isinstance(platform, Family):
-        return json.dumps({"family": platform.name, "like": platform_to_toml(platform.like), "ranges": platform.ranges.tolist()})
+        return json.dumps(
+            {"family": platform.name, "like": platform_to_toml(platform.like), "ranges": platform.ranges.tolist()}
+        )
     return platform_to_toml(platform)

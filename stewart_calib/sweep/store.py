@@ -72,7 +72,9 @@ def consolidate(spec: SweepSpec, out: Path, table_schema: pa.Schema) -> pa.Table
     """Write ``DIR/results.parquet`` from the parts of the spec's finished tasks; returns the table."""
     done = finished(spec, out)
     paths = [str(part_path(out, cell.id, seed)) for cell, seed in spec.tasks() if (cell.id, seed) in done]
-    table = pads.dataset(paths, schema=table_schema, format="parquet").to_table() if paths else table_schema.empty_table()
+    table = (
+        pads.dataset(paths, schema=table_schema, format="parquet").to_table() if paths else table_schema.empty_table()
+    )
     order = {cell.id: cell.index for cell in spec.cells}
     method_order = {m: k for k, m in enumerate(spec.methods)}
     cells, seeds, methods = (table[name].to_pylist() for name in ("cell", "seed", "method"))

@@ -40,7 +40,12 @@ def summarise(spec: SweepSpec, table: pa.Table) -> list[dict]:
             rows = groups.get((cell.id, method))
             if not rows:
                 continue
-            entry = {"cell": cell.id, **{name: cell.settings[name] for name in spec.swept}, "method": method, "runs": len(rows)}
+            entry = {
+                "cell": cell.id,
+                **{name: cell.settings[name] for name in spec.swept},
+                "method": method,
+                "runs": len(rows),
+            }
             entry["failed"] = sum(1 for r in rows if columns["failure"][r])
             nees = np.array([columns["nees"][r] for r in rows], dtype=float)
             entry["nees_in_band"] = float(np.mean((nees >= NEES_BAND[0]) & (nees <= NEES_BAND[1])))
@@ -48,7 +53,9 @@ def summarise(spec: SweepSpec, table: pa.Table) -> list[dict]:
                 values = np.array([columns[name][r] for r in rows], dtype=float)
                 values = values[np.isfinite(values)]
                 for q in QUANTILES:
-                    entry[f"{name}_q{round(100 * q):02d}"] = float(np.quantile(values, q)) if values.size else float("nan")
+                    entry[f"{name}_q{round(100 * q):02d}"] = (
+                        float(np.quantile(values, q)) if values.size else float("nan")
+                    )
             summary.append(entry)
     return summary
 
@@ -68,8 +75,18 @@ def write_summary(spec: SweepSpec, table: pa.Table, out: Path) -> list[Path]:
 
 
 def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
-    head = [*spec.swept, "method", "runs", "RMS [mm]", "RMS/CRB median [IQR]", "NEES median", "NEES in 95 % band", "z² median",
-            "closed loop [mm]", "s per run"]
+    head = [
+        *spec.swept,
+        "method",
+        "runs",
+        "RMS [mm]",
+        "RMS/CRB median [IQR]",
+        "NEES median",
+        "NEES in 95 % band",
+        "z² median",
+        "closed loop [mm]",
+        "s per run",
+    ]
     lines = [
         f"# Sweep '{spec.name}'",
         "",
@@ -80,7 +97,10 @@ def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
         "|" + "---|" * len(head),
     ]
     for e in summary:
-        cells = [str(e[name]) for name in spec.swept] + [e["method"], f"{e['runs']}" + (f" ({e['failed']} failed)" if e["failed"] else "")]
+        cells = [str(e[name]) for name in spec.swept] + [
+            e["method"],
+            f"{e['runs']}" + (f" ({e['failed']} failed)" if e["failed"] else ""),
+        ]
         cells += [
             f"{e['rms_mm_q50']:.3g}",
             f"{e['rms_over_crb_q50']:.3g} [{e['rms_over_crb_q25']:.3g}–{e['rms_over_crb_q75']:.3g}]",
@@ -123,7 +143,9 @@ def _plots(spec: SweepSpec, table: pa.Table, directory: Path) -> list[Path]:
                 x = np.arange(len(ticks)) + (m - (len(spec.methods) - 1) / 2) * 0.8 / max(1, len(spec.methods))
                 if axis == "method":
                     x = np.array([m])
-                panel.errorbar(x, medians, yerr=[lows, highs], fmt="o-" if len(ticks) > 1 else "o", capsize=3, label=method)
+                panel.errorbar(
+                    x, medians, yerr=[lows, highs], fmt="o-" if len(ticks) > 1 else "o", capsize=3, label=method
+                )
             if axis == "method":
                 panel.set_xticks(range(len(spec.methods)), spec.methods)
             else:

@@ -36,8 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import kinematics as kin
-from ..errors import CalibError, SampleRejected
 from ..config import NoiseConfig
+from ..errors import CalibError, SampleRejected
 from ..estimators import METHODS, make_estimator
 from ..identifiability import identifiability_report, whitened_leg_jacobian
 from ..platform import N_PARAMS, Platform, vector_to_params
@@ -109,7 +109,9 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
     legs = rng.integers(0, 6, n)
     signs = rng.choice([-1.0, 1.0], n)
     readings[glitched, legs[glitched]] += signs[glitched] * settings["glitch_size_mm"]
-    validation = random_static_poses(nominal, settings["validation_poses"], rng, settings["workspace_fraction"], POSE_MARGIN_MM)
+    validation = random_static_poses(
+        nominal, settings["validation_poses"], rng, settings["workspace_fraction"], POSE_MARGIN_MM
+    )
     log = Log(t_s=np.arange(n) * dt_s, strokes=strokes, readings=readings, desired_poses=poses)
     return SweepData(nominal, log, true_params, glitched, validation)
 
@@ -176,7 +178,9 @@ def score(data: SweepData, error: np.ndarray, covariance: np.ndarray | None, crb
     position_mm, orientation_deg = closed_loop_errors(data, error)
     return {
         "rms_mm": float(np.sqrt(np.mean(e**2))),
-        "rms_over_crb": float(np.sqrt(np.mean((e[identified] / crb_mm[identified]) ** 2))) if identified.any() else float("nan"),
+        "rms_over_crb": float(np.sqrt(np.mean((e[identified] / crb_mm[identified]) ** 2)))
+        if identified.any()
+        else float("nan"),
         "nees": nees,
         "z2": z2,
         "closed_loop_mm": position_mm,
@@ -184,7 +188,9 @@ def score(data: SweepData, error: np.ndarray, covariance: np.ndarray | None, crb
     }
 
 
-def run_method(method: str, data: SweepData, cell: Cell, checkpoints: tuple[int, ...], refit: bool, crb_mm: np.ndarray) -> dict:
+def run_method(
+    method: str, data: SweepData, cell: Cell, checkpoints: tuple[int, ...], refit: bool, crb_mm: np.ndarray
+) -> dict:
     """Run one method on the task's log; its scores, rejections and checkpoint ratios."""
     samples = list(data.log)
     nominal = data.platform.drive.as_vector()
@@ -220,7 +226,13 @@ def run_method(method: str, data: SweepData, cell: Cell, checkpoints: tuple[int,
     return row
 
 
-def run_task(cell: Cell, seed: int, methods: tuple[str, ...], checkpoints: tuple[int, ...] = (), refit_at_checkpoints: tuple[str, ...] = ()) -> list[dict]:
+def run_task(
+    cell: Cell,
+    seed: int,
+    methods: tuple[str, ...],
+    checkpoints: tuple[int, ...] = (),
+    refit_at_checkpoints: tuple[str, ...] = (),
+) -> list[dict]:
     """Every method on one (cell, seed): one row per method (settings, scores, ``failure``).
 
     A method that refuses the data (a :class:`CalibError`, e.g. least squares not converging,
@@ -241,5 +253,15 @@ def run_task(cell: Cell, seed: int, methods: tuple[str, ...], checkpoints: tuple
             scores |= {f"rms_over_crb_at_{n}": float("nan") for n in checkpoints}
             failure = str(err).splitlines()[0] if str(err) else err.__class__.__name__
         scores["closed_loop_nominal_mm"] = nominal_mm
-        rows.append({"cell": cell.id, "seed": seed, "method": method, **cell.settings, **scores, "glitches": int(data.glitched.sum()), "failure": failure})
+        rows.append(
+            {
+                "cell": cell.id,
+                "seed": seed,
+                "method": method,
+                **cell.settings,
+                **scores,
+                "glitches": int(data.glitched.sum()),
+                "failure": failure,
+            }
+        )
     return rows

@@ -189,7 +189,11 @@ def held_out_figure(held: HeldOut) -> str:
 
 
 def _table(header: list[str] | None, rows: list[list], cls: str = "") -> str:
-    head = "" if header is None else "<thead><tr>" + "".join(f"<th>{html.escape(str(h))}</th>" for h in header) + "</tr></thead>"
+    head = (
+        ""
+        if header is None
+        else "<thead><tr>" + "".join(f"<th>{html.escape(str(h))}</th>" for h in header) + "</tr></thead>"
+    )
     body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in row) + "</tr>" for row in rows)
     return f'<table class="{cls}">{head}<tbody>{body}</tbody></table>'
 
@@ -232,7 +236,16 @@ def _parameter_section(result: dict) -> str:
     for k, name in enumerate(names):
         sigma = None if stddev is None else stddev[k]
         ratio = None if sigma is None or sigma <= 0 else abs(error[k]) / sigma
-        rows.append([name, _fmt(result["nominal"][k], 8), _fmt(result["estimate"][k], 8), _fmt(error[k]), _fmt(sigma), _fmt(ratio, 3)])
+        rows.append(
+            [
+                name,
+                _fmt(result["nominal"][k], 8),
+                _fmt(result["estimate"][k], 8),
+                _fmt(error[k]),
+                _fmt(sigma),
+                _fmt(ratio, 3),
+            ]
+        )
     return (
         "<h2>Parameter errors δM ± σ</h2>"
         "<p>estimate = nominal + δM [mm] (paper eq. 9, Table 4); σ from the estimate's covariance.</p>"
@@ -258,12 +271,20 @@ def _correlation_section(result: dict) -> str:
     strong = np.abs(correlation[i, j]) >= STRONG_CORRELATION
     pairs = sorted(zip(np.abs(correlation[i, j])[strong], i[strong], j[strong]), reverse=True)[:20]
     listing = (
-        _table(["parameter", "parameter", "correlation"], [[names[a], names[b], f"{correlation[a, b]:+.3f}"] for _, a, b in pairs], "num")
+        _table(
+            ["parameter", "parameter", "correlation"],
+            [[names[a], names[b], f"{correlation[a, b]:+.3f}"] for _, a, b in pairs],
+            "num",
+        )
         if pairs
         else f"<p>No pair correlates beyond ±{STRONG_CORRELATION}.</p>"
     )
-    return "<h2>Correlation matrix</h2>" + correlation_figure(names, correlation) + \
-        f"<p>Pairs with |correlation| ≥ {STRONG_CORRELATION} (at most 20):</p>" + listing
+    return (
+        "<h2>Correlation matrix</h2>"
+        + correlation_figure(names, correlation)
+        + f"<p>Pairs with |correlation| ≥ {STRONG_CORRELATION} (at most 20):</p>"
+        + listing
+    )
 
 
 def _conditioning_section(result: dict) -> str:
@@ -274,10 +295,21 @@ def _conditioning_section(result: dict) -> str:
     null = "".join(f"<li><code>{html.escape(d)}</code></li>" for d in cond.get("null_space", []))
     return (
         "<h2>Conditioning</h2>"
-        + _table(["verdict", "rank", "condition number", "unidentified directions"],
-                 [[cond.get("verdict"), cond.get("rank"), _fmt(cond.get("condition_number"), 4), cond.get("null_space_dimension")]])
+        + _table(
+            ["verdict", "rank", "condition number", "unidentified directions"],
+            [
+                [
+                    cond.get("verdict"),
+                    cond.get("rank"),
+                    _fmt(cond.get("condition_number"), 4),
+                    cond.get("null_space_dimension"),
+                ]
+            ],
+        )
         + "<p>Weakest directions of the 42 parameters (unit vectors in named parameters; the "
-        "poses constrain these least):</p><ol>" + weakest + "</ol>"
+        "poses constrain these least):</p><ol>"
+        + weakest
+        + "</ol>"
         + (f"<p>Unidentified directions:</p><ol>{null}</ol>" if null else "")
     )
 
@@ -285,7 +317,13 @@ def _conditioning_section(result: dict) -> str:
 def _held_out_section(held: HeldOut) -> str:
     rows = [["position [mm]", _fmt(float(rms(held.position_error_mm))), _fmt(float(np.nanmax(held.position_error_mm)))]]
     if held.orientation_error_deg is not None:
-        rows.append(["orientation [deg]", _fmt(float(rms(held.orientation_error_deg))), _fmt(float(np.nanmax(held.orientation_error_deg)))])
+        rows.append(
+            [
+                "orientation [deg]",
+                _fmt(float(rms(held.orientation_error_deg))),
+                _fmt(float(np.nanmax(held.orientation_error_deg))),
+            ]
+        )
     note = " The instrument frame was fitted again on this log." if held.registered else ""
     return (
         "<h2>Held-out errors</h2>"
@@ -308,8 +346,13 @@ pre { background: #f7f7f7; padding: .8em; overflow-x: auto; font-size: .85em; }
 """
 
 
-def report_html(title: str, result: dict, residuals: Residuals | None = None, held_out: HeldOut | None = None,
-                inputs: dict[str, str] | None = None) -> str:
+def report_html(
+    title: str,
+    result: dict,
+    residuals: Residuals | None = None,
+    held_out: HeldOut | None = None,
+    inputs: dict[str, str] | None = None,
+) -> str:
     """The whole page as text.
 
     Args:
@@ -335,12 +378,16 @@ def report_html(title: str, result: dict, residuals: Residuals | None = None, he
         _correlation_section(result),
         _conditioning_section(result),
         "<h2>Config</h2><p>The estimator settings used.</p><pre>"
-        + html.escape(json.dumps(result.get("config", {}), indent=2)) + "</pre>",
-        "<h2>Versions</h2>" + _table(["library", "version"], [[k, v] for k, v in
-                                     {"stewart-calib": result.get("version", "—"), **library_versions()}.items()]),
+        + html.escape(json.dumps(result.get("config", {}), indent=2))
+        + "</pre>",
+        "<h2>Versions</h2>"
+        + _table(
+            ["library", "version"],
+            [[k, v] for k, v in {"stewart-calib": result.get("version", "—"), **library_versions()}.items()],
+        ),
     ]
     return (
-        "<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+        '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         f"<title>{html.escape(title)}</title><style>{STYLE}</style></head><body>"
         f"<h1>{html.escape(title)}</h1>" + "".join(sections) + "</body></html>\n"
     )

@@ -63,8 +63,11 @@ from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, PARAMETER_FIELDS, Leg
 SAMPLE_TIMELINE = "sample"
 #: per-method diagnostic series: leg residuals after and before each sample, and the NIS.
 DIAGNOSTICS = ("residual", "innovation", "nis")
-DIAGNOSTIC_LABELS = {"residual": "leg residual after the sample [mm]", "innovation": "leg residual before it [mm]",
-                     "nis": "NIS"}
+DIAGNOSTIC_LABELS = {
+    "residual": "leg residual after the sample [mm]",
+    "innovation": "leg residual before it [mm]",
+    "nis": "NIS",
+}
 TIME_TIMELINE = "time"
 TRUTH = "truth"
 
@@ -92,7 +95,13 @@ _GHOST_COLOR = (200, 200, 200, 90)
 _DESIRED_TRAJECTORY_COLOR = (120, 120, 120)
 # One hue per parameter of a leg so that a leg's seven curves (one view, as in Fig. 5) stay apart.
 _PARAMETER_COLORS = (
-    (228, 26, 28), (55, 126, 184), (77, 175, 74), (152, 78, 163), (255, 127, 0), (166, 86, 40), (30, 30, 30)
+    (228, 26, 28),
+    (55, 126, 184),
+    (77, 175, 74),
+    (152, 78, 163),
+    (255, 127, 0),
+    (166, 86, 40),
+    (30, 30, 30),
 )
 _METHOD_COLORS = {
     "ls": (228, 26, 28),
@@ -364,7 +373,9 @@ def log_parameter_band(rec: Recording, method: str, params_mm, stddev_mm, times_
             _send_scalars(rec, lower, index, centre[:, leg, k] - sigma[:, leg, k], style)
 
 
-def log_diagnostics(rec: Recording, method: str, times_s, residual_mm=None, innovation_mm=None, nis=None, samples=None) -> None:
+def log_diagnostics(
+    rec: Recording, method: str, times_s, residual_mm=None, innovation_mm=None, nis=None, samples=None
+) -> None:
     """How one method fits the data over time, at ``diagnostics/{method}/…``.
 
     Args:
@@ -553,6 +564,7 @@ def send_blueprint(rec: Recording, methods, stages, diagnostics=None) -> None:
     ]
     rec.stream.send_blueprint(
         rrb.Blueprint(
-            rrb.Tabs(scene, *parameter_tabs, errors, trajectories, *diagnostic_tabs), rrb.TimePanel(timeline=TIME_TIMELINE)
+            rrb.Tabs(scene, *parameter_tabs, errors, trajectories, *diagnostic_tabs),
+            rrb.TimePanel(timeline=TIME_TIMELINE),
         )
     )
