@@ -64,7 +64,7 @@ def monte_carlo_spec(seeds: int, n_samples: int, checkpoints: list[int]) -> Swee
             "stroke_sigma_mm": noise.stroke_sigma_mm,
             "drift_mm_per_sqrt_s": 0.0,
         },
-        "families": {"compact-600/250": dict(zip(FAMILY_DIMENSIONS, COMPACT_RINGS))},
+        "families": {"compact-600/250": dict(zip(FAMILY_DIMENSIONS, COMPACT_RINGS, strict=True))},
     }
     return parse_spec(doc, ROOT / "benchmarks" / "accuracy.toml")
 
@@ -93,16 +93,18 @@ def monte_carlo(seeds: int, n_samples: int) -> tuple[list[Row], dict]:
         for method in METHODS:
             pick = [
                 r
-                for r, (g, m) in enumerate(zip(columns["platform"], columns["method"]))
+                for r, (g, m) in enumerate(zip(columns["platform"], columns["method"], strict=True))
                 if g == geometry and m == method
             ]
-            column = lambda name: np.array([columns[name][r] for r in pick], dtype=float)  # noqa: E731
+            column = lambda name, pick=pick: np.array([columns[name][r] for r in pick], dtype=float)  # noqa: E731
             nees = column("nees")
             inside = float(np.mean((nees >= band[0]) & (nees <= band[1])))
             ratio = _rms(column("rms_over_crb"))  # every row's RMS is over the same 42 parameters
             per_checkpoint = [_rms(column(f"rms_over_crb_at_{n}")) for n in checkpoints]
             streamed = not np.all(np.isnan(per_checkpoint))
-            converged_at = next((n for n, r in zip(checkpoints, per_checkpoint) if r <= CONVERGENCE_FACTOR), None)
+            converged_at = next(
+                (n for n, r in zip(checkpoints, per_checkpoint, strict=True) if r <= CONVERGENCE_FACTOR), None
+            )
             seconds = float(np.median(column("seconds")))
             raw[geometry][method] = {
                 "rms_over_crb": ratio,
@@ -122,8 +124,9 @@ def monte_carlo(seeds: int, n_samples: int) -> tuple[list[Row], dict]:
             rows.append(
                 Row(
                     f"{geometry}: {method}",
-                    f"RMS/CRB **{ratio:.2f}**; NEES in band {inside:.0%} (median {raw[geometry][method]['nees_median'] or float('nan'):.3g}); "
-                    f"within 2× CRB: {convergence}; {seconds:.2f} s per run",
+                    f"RMS/CRB **{ratio:.2f}**; NEES in band {inside:.0%} (median "
+                    f"{raw[geometry][method]['nees_median'] or float('nan'):.3g}); within 2× CRB: {convergence}; "
+                    f"{seconds:.2f} s per run",
                     f"RMS/CRB ≤ {CRB_TARGET}; NEES in band ≥ {NEES_TARGET_FRACTION:.0%}"
                     if method in CRB_TARGET_METHODS
                     else "reported as is",
@@ -199,7 +202,7 @@ def drift(seeds: int, stage_samples: int) -> tuple[list[Row], dict]:
     for method, runs in results.items():
         counts = [r["samples_to_recover"] for r in runs]
         recovered = [c for c in counts if c is not None]
-        med = lambda key: float(np.median([r[key] for r in runs]))  # noqa: E731
+        med = lambda key, runs=runs: float(np.median([r[key] for r in runs]))  # noqa: E731
         if len(recovered) == len(counts):
             value = f"median **{np.median(recovered):.0f}** samples (range {min(recovered)}–{max(recovered)})"
         elif recovered:
@@ -209,8 +212,8 @@ def drift(seeds: int, stage_samples: int) -> tuple[list[Row], dict]:
         rows.append(
             Row(
                 f"drift: {method}" + (" (batch, frozen after the no-load stage)" if method == "ls" else ""),
-                f"{value}; error no-load {med('no_load_mm'):.3f} mm, right after the step {med('right_after_step_mm'):.3f} mm, "
-                f"at the end {med('end_mm'):.3f} mm",
+                f"{value}; error no-load {med('no_load_mm'):.3f} mm, right after the step "
+                f"{med('right_after_step_mm'):.3f} mm, at the end {med('end_mm'):.3f} mm",
                 "recovers" if method != "ls" else "— (batch: never, by design)",
                 (len(recovered) == len(counts)) if method != "ls" else None,
                 {"runs": runs},
@@ -232,13 +235,14 @@ def run(quick: bool) -> Section:
     drift_rows, drift_raw = drift(drift_seeds, stage_samples)
     band = mc_raw["nees_band"]
     note = (
-        f"Monte Carlo: {seeds} seeds per geometry, {n_samples} random workspace poses per run (one sample each, "
-        f"10 Hz), true δM ~ N(0, 1 mm²), reading σ {NoiseConfig.reading_sigma_mm} mm, stroke σ {NoiseConfig.stroke_sigma_mm} mm, "
-        f"constant parameters (random walk 0). NEES band for χ²(42): [{band[0]:.1f}, {band[1]:.1f}]. "
-        f"Drift: {drift_seeds} seeds, closed loop on nim-stewart (configs/experiments/quick.toml's robot and load), "
-        f"{stage_samples} samples no-load then a {DRIFT_LOAD_KG:g} kg step held for {stage_samples} samples; "
-        f"random walk {DRIFT_RANDOM_WALK_MM_PER_SQRT_S} mm/√s for ekf and isam2, the paper's Q and R for paper-ekf, "
-        f"and paper-ekf again with Q and R matched to this simulation ({PAPER_EKF_MATCHED}); "
-        f"recovery = {DRIFT_WINDOW_SAMPLES}-sample mean position error below {DRIFT_FACTOR:g}× its no-load value."
+        f"Monte Carlo: {seeds} seeds per geometry, {n_samples} random workspace poses per run (one sample each, 10 "
+        f"Hz), true δM ~ N(0, 1 mm²), reading σ {NoiseConfig.reading_sigma_mm} mm, stroke σ "
+        f"{NoiseConfig.stroke_sigma_mm} mm, constant parameters (random walk 0). NEES band for χ²(42): "
+        f"[{band[0]:.1f}, {band[1]:.1f}]. Drift: {drift_seeds} seeds, closed loop on nim-stewart "
+        f"(configs/experiments/quick.toml's robot and load), {stage_samples} samples no-load then a {DRIFT_LOAD_KG:g} "
+        f"kg step held for {stage_samples} samples; random walk {DRIFT_RANDOM_WALK_MM_PER_SQRT_S} mm/√s for ekf and "
+        "isam2, the paper's Q and R for paper-ekf, and paper-ekf again with Q and R matched to this simulation "
+        f"({PAPER_EKF_MATCHED}); recovery = {DRIFT_WINDOW_SAMPLES}-sample mean position error below {DRIFT_FACTOR:g}× "
+        "its no-load value."
     )
     return Section("Accuracy", note, mc_rows + drift_rows, raw={"monte_carlo": mc_raw, "drift": drift_raw})

@@ -1,4 +1,6 @@
-"""Forward-kinematics and online per-sample speed: ``python -m benchmarks.fk_speed [--poses N] [--repeats K] [--samples S]``.
+"""Forward-kinematics and online per-sample speed.
+
+``python -m benchmarks.fk_speed [--poses N] [--repeats K] [--samples S]``
 
 Prints, for the drive and the tracker of configs/platforms/nim-stewart.toml, along a 1 kHz
 Lissajous trajectory inside the ±200 mm / ±20° workspace (FK tolerance 1e-9 mm):
@@ -108,13 +110,15 @@ def bench(name: str, legs: LegGeometry, home: np.ndarray, poses: np.ndarray, rep
         [lambda k=k: peer_fk(legs.base_joints, legs.platform_joints, lengths[k], R[k - 1], t[k - 1]) for k in idx]
     )
     print(
-        f"  single warm solve:        stewart_calib {ours:8.1f} µs | numpy peer {peer:8.1f} µs | ratio {ours / peer:.2f}"
+        f"  single warm solve:        stewart_calib {ours:8.1f} µs | numpy peer {peer:8.1f} µs | ratio "
+        f"{ours / peer:.2f}"
     )
 
     for label, guess in (("cold", (home_R, home_t)), ("warm", (np.r_[R[:1], R[:-1]], np.r_[t[:1], t[:-1]]))):
         elapsed = best_seconds(lambda guess=guess: kin.forward_kinematics(legs, strokes, guess=guess, tol_mm=TOL_MM))
         print(
-            f"  batched {label}:             {len(poses) / elapsed:10.0f} poses/s ({elapsed * 1e3:.1f} ms for {len(poses)})"
+            f"  batched {label}:             {len(poses) / elapsed:10.0f} poses/s ({elapsed * 1e3:.1f} ms for "
+            f"{len(poses)})"
         )
 
 
@@ -133,7 +137,7 @@ def bench_online(platform, poses: np.ndarray, samples: int) -> None:
     print(f"\n[online] {len(stream)} samples at 1 kHz, median µs per update (first 100 skipped)")
     for method in ("ekf", "paper-ekf"):
         estimator = make_estimator(method, platform, config_from_dict({}))
-        times = np.array([median_us([lambda s=s: estimator.update(s)]) for s in stream])
+        times = np.array([median_us([lambda s=s, estimator=estimator: estimator.update(s)]) for s in stream])
         print(f"  {method:10s} update:      {np.median(times[100:]):8.1f} µs (first sample {times[0] / 1e3:.1f} ms)")
     x, P, Q = np.zeros(42), np.eye(42), np.eye(42) * 1e-9
     H, R_meas, nu = rng.normal(size=(6, 42)), np.eye(6), rng.normal(size=6)

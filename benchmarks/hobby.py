@@ -22,7 +22,6 @@ session (frame not moved), and re-registered on the other day's log.
 from __future__ import annotations
 
 import argparse
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,7 +29,6 @@ import scipy.optimize
 
 from stewart_calib import kinematics as kin
 from stewart_calib.config import EstimatorConfig
-from stewart_calib.estimators import make_estimator
 from stewart_calib.instruments import lie, pose
 from stewart_calib.instruments.external import model_for
 from stewart_calib.platform import LegGeometry, Platform, load_platform

@@ -63,7 +63,7 @@ def _log(platform, n: int, seed: int, noise_factor: float = 1.0, walk: float = 0
 
 def _glitched(log, rng, rate: float, low: float, high: float, early: bool):
     n = len(log)
-    count = max(2, int(round(rate * n)))
+    count = max(2, round(rate * n))
     rows = rng.choice(np.arange(2, n) if early else np.arange(n // 2, n), count - 2 if early else count, replace=False)
     rows = np.r_[0, 1, rows] if early else rows  # early: the first two samples always
     bad = log.select(slice(None))
@@ -107,7 +107,8 @@ def _robustness_rows(platform, n: int, seeds) -> list[Row]:
             rows.append(
                 Row(
                     name,
-                    f"RMS {np.nanmedian(ratios) * 1e3:.3g} µm, worst {ratio:.2f}× clean ({np.nanmedian(clean_rms) * 1e3:.3g} µm)",
+                    f"RMS {np.nanmedian(ratios) * 1e3:.3g} µm, worst {ratio:.2f}× clean "
+                    f"({np.nanmedian(clean_rms) * 1e3:.3g} µm)",
                     f"≤ {RMS_RATIO_TARGET}× clean" if target else "",
                     (ratio <= RMS_RATIO_TARGET) if target else None,
                     {"rms_mm": ratios, "clean_rms_mm": clean_rms.tolist(), "worst_ratio": ratio},

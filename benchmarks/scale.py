@@ -20,10 +20,10 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -152,7 +152,8 @@ def run(quick: bool, seed: int, png_path: Path) -> tuple[Section, list[Row]]:
         for c in full_checkpoints if r["method"] == "isam2 full history" else checkpoints:
             point = r["checkpoints"].get(c)
             value = (
-                f"median {fmt_time_us(point['median_us'])}, p99 {fmt_time_us(point['p99_us'])}, RSS +{point['rss_growth_mib']:.1f} MiB"
+                f"median {fmt_time_us(point['median_us'])}, p99 {fmt_time_us(point['p99_us'])}, RSS "
+                f"+{point['rss_growth_mib']:.1f} MiB"
                 if point
                 else f"not reached: capped at {cap_s[r['method']]:.0f} s after {r['samples_done']:,} samples"
             )
@@ -186,8 +187,9 @@ def run(quick: bool, seed: int, png_path: Path) -> tuple[Section, list[Row]]:
     ]
     note = (
         f"One {RATE_HZ:g} Hz stream (Lissajous path, default noise and random walk), each estimator in a fresh "
-        f"process{' (in-process under --quick: RSS meaningless)' if quick else ''}; median / p99 over the last max(50, n/10) updates before n; RSS growth since the first update. "
-        f"Wall-time caps per estimator [s]: {', '.join(f'{k} {v:g}' for k, v in cap_s.items())}."
+        f"process{' (in-process under --quick: RSS meaningless)' if quick else ''}; median / p99 over the last "
+        "max(50, n/10) updates before n; RSS growth since the first update. Wall-time caps per estimator [s]: "
+        f"{', '.join(f'{k} {v:g}' for k, v in cap_s.items())}."
     )
     return Section("Scale", note, rows, raw={"results": results, "caps_s": cap_s}), speed_rows
 
@@ -228,7 +230,7 @@ class CliCase:
     """
 
     name: str
-    argv: Callable[["CliInputs", int], list[str]]
+    argv: Callable[[CliInputs, int], list[str]]
     sizes: tuple[int, ...]
     unit: str = "sample"
     fixed: bool = False
@@ -513,7 +515,8 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
                 run = _run_cli(case.argv(files, n), CLI_CAP_S, files.root / "out" / "stdout")
                 results[case.name][n] = run
                 print(
-                    f"  {case.name}{'' if case.fixed else f' at {n:,}'}: {run['wall_s']:.1f} s, {run['peak_rss_mib']:.0f} MiB",
+                    f"  {case.name}{'' if case.fixed else f' at {n:,}'}: {run['wall_s']:.1f} s, "
+                    f"{run['peak_rss_mib']:.0f} MiB",
                     file=sys.stderr,
                 )
                 if run["capped"] or run.get("exit"):
@@ -533,8 +536,9 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
         rows.append(
             Row(
                 f"imports of `{label}`",
-                f"{profile['imports_s'] * 1e3:.0f} ms of imports ({profile['wall_s']:.2f} s wall, {profile['peak_rss_mib']:.0f} MiB); "
-                f"heavy modules imported: {', '.join(profile['heavy_imported']) or 'none'}",
+                f"{profile['imports_s'] * 1e3:.0f} ms of imports ({profile['wall_s']:.2f} s wall, "
+                f"{profile['peak_rss_mib']:.0f} MiB); heavy modules imported: "
+                f"{', '.join(profile['heavy_imported']) or 'none'}",
                 f"≤ {IMPORT_TARGET_S:g} s, none of {', '.join(HEAVY_MODULES)}",
                 profile["imports_s"] <= IMPORT_TARGET_S and not profile["heavy_imported"],
                 profile,
@@ -588,7 +592,7 @@ def _plot_cli(results: dict[str, dict[int, dict]], path: Path) -> None:
     for name, runs in results.items():
         marginal = sorted((n, r["marginal_us_per_sample"]) for n, r in runs.items() if "marginal_us_per_sample" in r)
         if marginal:
-            ax_time.plot(*zip(*marginal), "o-", label=name)
+            ax_time.plot(*zip(*marginal, strict=True), "o-", label=name)
         ax_mem.plot(sorted(runs), [runs[n]["peak_rss_mib"] for n in sorted(runs)], "o-", label=name)
     ax_time.set(
         xscale="log",

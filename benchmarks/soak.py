@@ -5,8 +5,9 @@
 * ``ekf``: 10⁶ updates of the leg-length EKF on a smooth 1 kHz trajectory; every checkpoint
   interval: the covariance's asymmetry ``max |P − Pᵀ|`` and least eigenvalue (must stay > 0),
   Python heap (tracemalloc) and process RSS, which must not grow after warm-up.
-* ``isam2``: the resumable fixed-lag smoother (:class:`~stewart_calib.estimators.isam2.ISAM2Estimator`, as ``track`` runs it)
-  on a 10 Hz trajectory, as many samples as fit in ``--time-limit-s``: graph size, replay
+* ``isam2``: the resumable fixed-lag smoother
+  (:class:`~stewart_calib.estimators.isam2.ISAM2Estimator`, as ``track`` runs it) on a 10 Hz trajectory,
+  as many samples as fit in ``--time-limit-s``: graph size, replay
   buffer, RSS and update time, all of which must stay flat.
 
 Data come from the kinematics directly (true drive = nominal + δM, tracker readings with

@@ -85,8 +85,8 @@ def _fk_rows(calls: int, batch_poses: int, repeats: int) -> list[Row]:
         ),
         Row(
             f"FK batched ({n} poses, warm)",
-            f"{batch['ours_poses_per_s']:,.0f} poses/s; numpy peer pose by pose {batch['peer_poses_per_s']:,.0f} poses/s "
-            f"({batch['ratio_ours_over_peer']:.1f}× faster)",
+            f"{batch['ours_poses_per_s']:,.0f} poses/s; numpy peer pose by pose {batch['peer_poses_per_s']:,.0f} "
+            f"poses/s ({batch['ratio_ours_over_peer']:.1f}× faster)",
             f"≥ {FK_BATCH_TARGET_POSES_PER_S:,} poses/s",
             batch["ours_poses_per_s"] >= FK_BATCH_TARGET_POSES_PER_S,
             batch,
@@ -143,7 +143,7 @@ def _online_rows(calls: int, rng: np.random.Generator) -> list[Row]:
         est = make_estimator(method, platform)
         for sample in samples[:warmup]:  # first calls compile / load numba caches
             est.update(sample)
-        times = per_call_us([lambda s=s: est.update(s) for s in samples[warmup:]])
+        times = per_call_us([lambda s=s, est=est: est.update(s) for s in samples[warmup:]])
         raw = stats_us(times)
         rows.append(
             Row(

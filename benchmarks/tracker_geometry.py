@@ -216,7 +216,8 @@ def run(quick: bool = False, seeds: int | None = None) -> Section:
         rows.append(
             Row(
                 f"{method} / {REFERENCE}-joint, tracker identified",
-                f"**{ratio:.2f}** ({mean['identified'][method][0]:.1f} vs {reference:.1f} µm; per seed {min(per_seed):.2f}–{max(per_seed):.2f})",
+                f"**{ratio:.2f}** ({mean['identified'][method][0]:.1f} vs {reference:.1f} µm; per seed "
+                f"{min(per_seed):.2f}–{max(per_seed):.2f})",
                 f"≤ {RATIO_TARGET}",
                 bool(ratio <= RATIO_TARGET),
                 {"ratio": ratio, "per_seed": per_seed},

@@ -14,8 +14,8 @@ platform frame {D} in the base frame {J}; pose Jacobians are in the body tangent
 ``ξ = [ω, v]`` (rotation first, GTSAM order), ``R ← R Exp(ω)``, ``t ← t + R v``.
 
 Every kernel is compiled lazily on first use and cached on disk (:func:`stewart_calib._jit.njit`,
-as :mod:`stewart_calib.estimators.kalman`; no cache where none can be written): a fresh checkout pays the compile once, later
-processes load the machine code. The wrappers pass C-contiguous float64 arrays and Python
+as :mod:`stewart_calib.estimators.kalman`; no cache where none can be written): a fresh checkout pays
+the compile once, later processes load the machine code. The wrappers pass C-contiguous float64 arrays and Python
 floats/ints only, so each kernel has one signature and one cache entry. No ``fastmath``:
 the Newton tolerance (1e-9 mm on ~1000 mm lengths) sits a few ulps above rounding, and
 the kernels must report NaN exactly as numpy would.

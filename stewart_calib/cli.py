@@ -18,8 +18,8 @@ import sys
 # numpy's eigh of 48 × 48 took 5–8 ms with two threads against 0.3 ms with one.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from . import __version__  # noqa: E402
-from .pipelines import COMMANDS, Parser, add_subcommands, dispatch  # noqa: E402
+from . import __version__
+from .pipelines import COMMANDS, Parser, add_subcommands, dispatch
 
 
 def build_parser(load=None) -> argparse.ArgumentParser:

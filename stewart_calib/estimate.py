@@ -50,7 +50,7 @@ class Estimate:
         method: str,
         samples_used: int = 0,
         t_s: float = float("nan"),
-    ) -> "Estimate":
+    ) -> Estimate:
         """The estimate of a whole unknown vector ``x = [δM | blocks]`` with covariance ``P`` (copied)."""
         x = np.array(x, dtype=float)
         P = None if P is None else np.array(P, dtype=float)

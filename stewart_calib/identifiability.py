@@ -100,8 +100,8 @@ def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseCon
     if singular.any():
         k = int(np.argmax(singular))
         raise CalibError(
-            f"pose {k + 1} {np.round(poses.reshape(-1, 6)[k], 6).tolist()}: the leg residual covariance is singular there "
-            "(the tracker's Jacobian loses rank); expected a pose the tracker can measure"
+            f"pose {k + 1} {np.round(poses.reshape(-1, 6)[k], 6).tolist()}: the leg residual covariance is singular "
+            "there (the tracker's Jacobian loses rank); expected a pose the tracker can measure"
         )
     return rows.reshape(poses.shape[:-1] + (6, N_PARAMS))
 

@@ -20,7 +20,6 @@ in :mod:`stewart_calib._kernels`; the functions here keep their numpy signatures
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np

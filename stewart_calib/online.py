@@ -70,7 +70,7 @@ class Rejections:
         self.first = first
 
     @classmethod
-    def of(cls, errors) -> "Rejections":
+    def of(cls, errors) -> Rejections:
         """Counts of the :class:`SampleRejected` ``errors`` by their ``reason``."""
         rejections = cls()
         for err in errors:
@@ -249,7 +249,7 @@ class OnlineCalibrator:
     def _fixed_arrays(self) -> dict[str, np.ndarray]:
         """The checkpoint's arrays that no sample changes (their text costs ~0.3 ms), made once."""
         made_of = (self.method, self.platform, self.config)
-        if self._fixed is None or any(a is not b for a, b in zip(self._fixed[0], made_of)):
+        if self._fixed is None or any(a is not b for a, b in zip(self._fixed[0], made_of, strict=True)):
             self._fixed = (
                 made_of,
                 {
@@ -263,7 +263,7 @@ class OnlineCalibrator:
         return self._fixed[1]
 
     @classmethod
-    def load(cls, path: str | Path) -> "OnlineCalibrator":
+    def load(cls, path: str | Path) -> OnlineCalibrator:
         """Rebuild from a checkpoint written by :meth:`save`.
 
         Raises:
@@ -290,7 +290,7 @@ class OnlineCalibrator:
             raise CalibError(f"{path}: corrupt checkpoint ({err.__class__.__name__}: {_one_line(err)})") from None
 
     @classmethod
-    def _from_arrays(cls, arrays: dict[str, np.ndarray]) -> "OnlineCalibrator":
+    def _from_arrays(cls, arrays: dict[str, np.ndarray]) -> OnlineCalibrator:
         text = lambda key: str(arrays[key][()]) if arrays[key].dtype.kind == "U" else _wrong(key)  # noqa: E731
         if "format" not in arrays or arrays["format"].dtype.kind != "U" or text("format") != CHECKPOINT_FORMAT:
             raise CalibError(f"not a checkpoint: expected format {CHECKPOINT_FORMAT!r}")

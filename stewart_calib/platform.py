@@ -16,7 +16,6 @@ from __future__ import annotations
 import difflib
 import math
 import sys
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -68,7 +67,7 @@ class LegGeometry:
         return np.hstack([self.base_joints, self.platform_joints, self.initial_lengths[:, None]])
 
     @classmethod
-    def from_params(cls, params: np.ndarray) -> "LegGeometry":
+    def from_params(cls, params: np.ndarray) -> LegGeometry:
         """Build from a ``(6, 7)`` array or a 42-vector in the paper's order [mm]."""
         p = np.asarray(params, dtype=float).reshape(N_LEGS, N_PARAMS_PER_LEG)
         return cls(p[:, 0:3], p[:, 3:6], p[:, 6])
@@ -77,7 +76,7 @@ class LegGeometry:
         """The 42-vector M in the paper's order [mm]."""
         return params_to_vector(self.params)
 
-    def perturbed(self, delta: np.ndarray) -> "LegGeometry":
+    def perturbed(self, delta: np.ndarray) -> LegGeometry:
         """Geometry ``M + δM`` for a 42-vector (or ``(6, 7)``) error δM [mm].
 
         Called once per sample by the EKFs: the sums (one compiled call) are new C-contiguous float
@@ -90,9 +89,7 @@ class LegGeometry:
         )
 
     @classmethod
-    def _trusted(
-        cls, base_joints: np.ndarray, platform_joints: np.ndarray, initial_lengths: np.ndarray
-    ) -> "LegGeometry":
+    def _trusted(cls, base_joints: np.ndarray, platform_joints: np.ndarray, initial_lengths: np.ndarray) -> LegGeometry:
         """Build from fresh, C-contiguous float arrays of the right shapes, without validation."""
         legs = object.__new__(cls)
         for name, value in (
@@ -197,7 +194,7 @@ class Platform:
     stroke_scale: np.ndarray = field(default_factory=lambda: np.zeros(N_LEGS), compare=False)
     tracker_geometry_sigma_mm: float = 0.0
 
-    def with_drive(self, drive: LegGeometry) -> "Platform":
+    def with_drive(self, drive: LegGeometry) -> Platform:
         return replace(self, drive=drive)
 
 

@@ -97,9 +97,10 @@ def check_plausible(
             else ""
         )
         raise CalibError(
-            f"{method}: the log does not fit platform '{platform.name}': RMS leg residual {rms_mm:.3g} mm at the estimate "
-            f"({rms_mm / sigma_mm:.3g} × the noise σ {sigma_mm:g} mm; limit {RESIDUAL_SIGMAS:g} ×), largest parameter "
-            f"error {PARAMETER_NAMES[worst]} = {error[worst]:.4g} mm ({abs(error[worst]) / noise.prior_sigma_mm:.3g} × "
-            f"the prior σ {noise.prior_sigma_mm:g} mm; limit {PRIOR_SIGMAS:g} ×){scatter} — a log of another platform, "
-            "glitches in every sample, or a platform file that does not describe this robot?"
+            f"{method}: the log does not fit platform '{platform.name}': RMS leg residual {rms_mm:.3g} mm at the "
+            f"estimate ({rms_mm / sigma_mm:.3g} × the noise σ {sigma_mm:g} mm; limit {RESIDUAL_SIGMAS:g} ×), largest "
+            f"parameter error {PARAMETER_NAMES[worst]} = {error[worst]:.4g} mm "
+            f"({abs(error[worst]) / noise.prior_sigma_mm:.3g} × the prior σ {noise.prior_sigma_mm:g} mm; limit "
+            f"{PRIOR_SIGMAS:g} ×){scatter} — a log of another platform, glitches in every sample, or a platform file "
+            "that does not describe this robot?"
         )

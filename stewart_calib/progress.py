@@ -7,7 +7,7 @@ they look alike and all stay silent in scripts, logs and CI, where stderr is not
 from __future__ import annotations
 
 import sys
-from typing import Iterable
+from collections.abc import Iterable
 
 
 def progress_bar(

@@ -85,12 +85,13 @@ class Log:
         )
 
     @classmethod
-    def concatenate(cls, logs: list["Log"]) -> "Log":
+    def concatenate(cls, logs: list[Log]) -> Log:
         """The samples of ``logs`` (at least one, all with the same optional fields) one after the other."""
         first = logs[0]
-        joined = lambda name: (
-            None if getattr(first, name) is None else np.concatenate([getattr(log, name) for log in logs])
-        )  # noqa: E731
+
+        def joined(name):
+            return None if getattr(first, name) is None else np.concatenate([getattr(log, name) for log in logs])
+
         return cls(
             joined("t_s"),
             joined("strokes"),
@@ -101,7 +102,7 @@ class Log:
             [row for log in logs for row in log.skipped],
         )
 
-    def select(self, mask_or_index) -> "Log":
+    def select(self, mask_or_index) -> Log:
         """A sub-log of the rows picked by a boolean mask, slice or index array."""
         pick = lambda a: None if a is None else a[mask_or_index]  # noqa: E731
         stages = None if self.stages is None else list(np.asarray(self.stages, dtype=object)[mask_or_index])

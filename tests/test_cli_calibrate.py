@@ -130,7 +130,8 @@ def test_skip_bad_rows_counts_in_samples_skipped(tmp_path, log_path, capsys, fak
     assert code == 0
     assert (
         err[0]
-        == "stewart-calib calibrate: skipped bad log rows: 1 of 10 (first: row 3: column 'q1_mm': expected a finite number, got nan)"
+        == "stewart-calib calibrate: skipped bad log rows: 1 of 10 (first: row 3: column 'q1_mm': expected a finite "
+        "number, got nan)"
     )
     assert read_result(tmp_path / "r.json")["samples_skipped"] == 1 + 3
 
@@ -158,7 +159,9 @@ def test_refusals_are_one_line_exit_2_and_write_nothing(
     tmp_path, log_path, capsys, fakes, monkeypatch, change, expected
 ):
     monkeypatch.chdir(tmp_path)
-    args = dict(zip(["--platform", "--log", "--method", "--out"], [NIM_STEWART, log_path, "counting", "r.json"]))
+    args = dict(
+        zip(["--platform", "--log", "--method", "--out"], [NIM_STEWART, log_path, "counting", "r.json"], strict=True)
+    )
     code, err = _run(capsys, *[x for k, v in {**args, **change}.items() for x in (k, v)], "--trace", "t.csv")
     assert code == 2
     assert err == [f"stewart-calib calibrate: error: {err[0].split('error: ', 1)[1]}"] and expected in err[0]

@@ -140,7 +140,8 @@ def test_a_result_naming_another_platform_is_refused(tmp_path, capsys):
         capsys.readouterr()
         .err.strip()
         .endswith(
-            "key 'platform': expected 'nim-stewart' (the platform given), got 'other-hexapod' (a result for another platform?)"
+            "key 'platform': expected 'nim-stewart' (the platform given), got 'other-hexapod' (a result for another "
+            "platform?)"
         )
     )
     assert not (tmp_path / "q.csv").exists()

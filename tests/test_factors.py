@@ -27,7 +27,9 @@ def platform():
 def cases(platform):
     """Five workspace poses (as Pose3) and a 1 mm parameter error."""
     rng = np.random.default_rng(11)
-    poses = [gtsam.Pose3(gtsam.Rot3(R), t) for R, t in zip(*kin.pose_to_rt(random_poses(platform, 5, rng)))]
+    poses = [
+        gtsam.Pose3(gtsam.Rot3(R), t) for R, t in zip(*kin.pose_to_rt(random_poses(platform, 5, rng)), strict=True)
+    ]
     return poses, random_error(rng, 1.0)
 
 
@@ -61,8 +63,8 @@ def test_drive_leg_factor_jacobians_match_central_differences(platform, cases, l
         f = drive_leg.factor(X, P, spec, strokes, noise)
         A, b = f.linearize(_values(pose, delta)).jacobian()
         np.testing.assert_allclose(-b, f.unwhitenedError(_values(pose, delta)), rtol=1e-12)
-        H_pose = numerical_pose3_jacobian(lambda p: f.unwhitenedError(_values(p, delta)), pose)
-        H_params = numerical_jacobian(lambda d: f.unwhitenedError(_values(pose, d)), delta)
+        H_pose = numerical_pose3_jacobian(lambda p, f=f: f.unwhitenedError(_values(p, delta)), pose)
+        H_params = numerical_jacobian(lambda d, f=f, pose=pose: f.unwhitenedError(_values(pose, d)), delta)
         assert relative_error(A[:, :6], H_pose) <= 1e-6
         assert relative_error(A[:, 6:], H_params) <= 1e-6
         for row, i in enumerate(spec.legs):  # leg i's row touches only its own seven columns of δM
@@ -95,7 +97,7 @@ def test_instrument_factor_of_the_tracker_residual_and_jacobian(platform, cases)
             f = instrument.factor(model, X, readings, channels, gtsam.noiseModel.Unit.Create(len(channels)))
             np.testing.assert_allclose(f.unwhitenedError(_values(pose)), np.full(len(channels), 0.05), atol=1e-9)
             A, _ = f.linearize(_values(pose)).jacobian()
-            numeric = numerical_pose3_jacobian(lambda p: f.unwhitenedError(_values(p)), pose)
+            numeric = numerical_pose3_jacobian(lambda p, f=f: f.unwhitenedError(_values(p)), pose)
             assert relative_error(A, numeric) <= 1e-6
 
 
@@ -143,7 +145,9 @@ def test_instrument_pose_prior_equals_gtsam_prior_factor(platform, cases):
         assert relative_error(A, A_ref) <= 1e-12
         assert relative_error(b, b_ref) <= 1e-12
         _, H = instrument_pose.residual(measured, values.atPose3(X), jacobians=True)
-        numeric = numerical_pose3_jacobian(lambda p: instrument_pose.residual(measured, p)[0], values.atPose3(X))
+        numeric = numerical_pose3_jacobian(
+            lambda p, measured=measured: instrument_pose.residual(measured, p)[0], values.atPose3(X)
+        )
         assert relative_error(H, numeric) <= 1e-6
 
 

@@ -57,7 +57,7 @@ def test_read_log_parses_or_refuses(tmp_path, text):
     path = tmp_path / "log.csv"
     path.write_text(text, encoding="utf-8", newline="")
     for skip in (False, True):
-        log = _one_line_error(lambda: read_log(path, PLATFORM, skip_bad_rows=skip))
+        log = _one_line_error(lambda skip=skip: read_log(path, PLATFORM, skip_bad_rows=skip))
         if log is not None:
             assert len(log) > 0 and np.all(np.isfinite(log.strokes)) and np.all(np.isfinite(log.readings))
 
@@ -70,7 +70,7 @@ def test_log_row_parser_parses_or_refuses(text):
     if parser is None:
         return
     for row, line in enumerate(rows, start=2):
-        sample = _one_line_error(lambda: parser.parse(line, row))
+        sample = _one_line_error(lambda line=line, row=row: parser.parse(line, row))
         if sample is not None:
             assert np.all(np.isfinite(sample.strokes)) and np.all(np.isfinite(sample.readings))
 

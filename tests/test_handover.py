@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import base64
 import dataclasses
-import json
 import re
 import shutil
 import subprocess
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import numpy as np
@@ -72,11 +71,11 @@ def test_result_has_the_optional_fields(ekf_run):
     assert rms["channels"] == [f"s{i}_mm" for i in range(1, 7)]
     # the simulated drive is millimetres off its nominal; the calibrated one predicts the readings
     # far better on every channel
-    assert all(after < 0.5 * before for before, after in zip(rms["before"], rms["after"]))
+    assert all(after < 0.5 * before for before, after in zip(rms["before"], rms["after"], strict=True))
     assert result["config"] == dataclasses.asdict(load_estimator_config("paper"))
     assert result["version"] == __version__
     created = datetime.fromisoformat(result["created"].replace("Z", "+00:00"))
-    assert created.tzinfo == timezone.utc and abs(datetime.now(timezone.utc) - created) < timedelta(hours=1)
+    assert created.tzinfo == UTC and abs(datetime.now(UTC) - created) < timedelta(hours=1)
 
 
 def test_calibrated_platform_holds_the_estimate(ekf_run, sim):
@@ -170,7 +169,7 @@ def test_report_is_one_static_self_contained_page(ekf_run):
     assert all(base64.b64decode(data).startswith(PNG_MAGIC) for data in images)
     result = read_result(ekf_run / "r.json")
     # the page shows the result's numbers: every RMS before and after, to 4 significant digits
-    for before, after in zip(result["residual_rms"]["before"], result["residual_rms"]["after"]):
+    for before, after in zip(result["residual_rms"]["before"], result["residual_rms"]["after"], strict=True):
         assert f"<td>{before:.4g}</td><td>{after:.4g}</td>" in page
     assert result["conditioning"]["weakest_directions"][0] in page
 
@@ -303,7 +302,7 @@ def test_pose_instrument_hands_on_its_frame_target_and_stroke_scale(pose_run):
     np.testing.assert_allclose(np.sqrt(np.diag(covariance))[48:], result["instrument"]["stddev"], rtol=1e-9)
     rms = result["residual_rms"]
     assert rms["channels"] == ["mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg", "myaw_deg"]
-    assert all(after < before for before, after in zip(rms["before"], rms["after"]))
+    assert all(after < before for before, after in zip(rms["before"], rms["after"], strict=True))
 
 
 def test_recalibrating_a_pose_platform_from_its_calibration(pose_run):

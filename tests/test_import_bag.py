@@ -11,13 +11,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 pytest.importorskip("rosbags")
-from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
-from rosbags.rosbag2 import StoragePlugin  # noqa: E402
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
+from rosbags.typesys import Stores, get_typestore
 
-from stewart_calib.cli import main  # noqa: E402
-from stewart_calib.pipelines.import_bag import TopicSeries, interpolate_to_stamps  # noqa: E402
+from stewart_calib.cli import main
+from stewart_calib.pipelines.import_bag import TopicSeries, interpolate_to_stamps
 
 T0_S = 1_700_000_000  # ROS stamps are seconds since the epoch
 STROKE_HZ, MEASUREMENT_HZ = 100.0, 30.0
@@ -49,7 +49,7 @@ def poses(t_s: np.ndarray) -> np.ndarray:
 
 def _time(typestore, t_s: float):
     sec = int(np.floor(t_s))
-    return typestore.types["builtin_interfaces/msg/Time"](sec=T0_S + sec, nanosec=int(round((t_s - sec) * 1e9)))
+    return typestore.types["builtin_interfaces/msg/Time"](sec=T0_S + sec, nanosec=round((t_s - sec) * 1e9))
 
 
 def _header(typestore, t_s: float):
@@ -102,10 +102,12 @@ def write_bag(path: Path, kind: str, measurement: str = "readings", extra_topic:
         meas = writer.add_connection(topic, msgtype, typestore=typestore)
         messages = []
         order = [3, 0, 5, 1, 4, 2]  # drivers need not publish the joints in leg order
-        for t, q in zip(stamps(STROKE_HZ), strokes_m(stamps(STROKE_HZ))):
+        for t, q in zip(stamps(STROKE_HZ), strokes_m(stamps(STROKE_HZ)), strict=True):
             messages.append((t, drive, joint_state(typestore, t, [JOINTS[i] for i in order], q[order])))
         t_meas = stamps(MEASUREMENT_HZ, offset_s=0.0037)
-        for t, value in zip(t_meas, strokes_m(t_meas) * 2.0 if measurement == "readings" else poses(t_meas)):
+        for t, value in zip(
+            t_meas, strokes_m(t_meas) * 2.0 if measurement == "readings" else poses(t_meas), strict=True
+        ):
             msg = (
                 joint_state(typestore, t, JOINTS, value)
                 if measurement == "readings"
@@ -116,7 +118,7 @@ def write_bag(path: Path, kind: str, measurement: str = "readings", extra_topic:
             conn = writer.add_connection(extra_topic[0], extra_topic[1], typestore=typestore)
             messages.append((0.5, conn, typestore.types[extra_topic[1]](data="hello")))
         for t, connection, msg in sorted(messages, key=lambda m: m[0]):
-            writer.write(connection, int(round((T0_S + t) * 1e9)), serialize(msg, connection.msgtype))
+            writer.write(connection, round((T0_S + t) * 1e9), serialize(msg, connection.msgtype))
 
 
 def read_csv(path: Path) -> tuple[list[str], np.ndarray]:

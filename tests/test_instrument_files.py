@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import math
 import tomllib
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -103,7 +102,7 @@ def test_tracker_is_required_only_for_the_tracker_instrument():
     with pytest.raises(CalibError, match="key 'tracker'"):
         parse_platform(doc, "p.toml")
     doc["instrument"] = {"kind": "points"}
-    with pytest.raises(CalibError, match="key 'instrument.targets_mm'"):
+    with pytest.raises(CalibError, match=r"key 'instrument\.targets_mm'"):
         parse_platform(doc, "p.toml")
 
 
@@ -186,7 +185,7 @@ def test_result_with_a_bad_block_is_refused(tmp_path):
 
     result = io.result_dict(Estimate(np.zeros(42), None, "ls", 3), platform)
     result["stroke_scale"] = {"names": ["k1"], "estimate": [0.0], "stddev": None}
-    with pytest.raises(CalibError, match="key 'stroke_scale.names'"):
+    with pytest.raises(CalibError, match=r"key 'stroke_scale\.names'"):
         io.result_text(result, "r.json")
 
 

@@ -47,14 +47,16 @@ def test_tracker_residual_and_jacobians_match_central_differences(platform, pose
     model = _tracker(platform, geometry_sigma_mm)
     theta = instrument_theta(model, None)
     channels = np.arange(6)
-    for R, t in zip(*poses):
+    for R, t in zip(*poses, strict=True):
         z = kin.inverse_kinematics(platform.tracker, R, t) - 0.05  # every ruler reads 50 µm short
         res = model.residual(R, t, theta, z, channels)
         np.testing.assert_allclose(res.r, 0.05, atol=1e-9)
-        numeric = numerical_pose_jacobian(lambda R_, t_: model.residual(R_, t_, theta, z, channels).r, R, t)
+        numeric = numerical_pose_jacobian(lambda R_, t_, z=z: model.residual(R_, t_, theta, z, channels).r, R, t)
         assert relative_error(res.J_pose, numeric) < JACOBIAN_RTOL
         if geometry_sigma_mm:
-            numeric = numerical_jacobian(lambda th: model.residual(R, t, th, z, channels).r, theta, EPS_MM)
+            numeric = numerical_jacobian(
+                lambda th, R=R, t=t, z=z: model.residual(R, t, th, z, channels).r, theta, EPS_MM
+            )
             assert relative_error(res.J_instrument, numeric) < JACOBIAN_RTOL
         else:
             assert res.J_instrument.shape == (6, 0)
@@ -120,7 +122,7 @@ def test_gauge_rows_span_exactly_the_rigid_motions_of_the_joints(platform, holde
     rng = np.random.default_rng(0)
     legs, start = (platform.tracker, N_PARAMS) if holder == "tracker" else (platform.drive, 0)
     joints = {"base": (legs.base_joints, 0), "platform": (legs.platform_joints, 3)}
-    for name, (points, offset) in joints.items():
+    for points, offset in joints.values():
         a, omega = rng.normal(size=3), rng.normal(size=3) * 1e-3
         x = np.zeros(layout.size)
         for i, p in enumerate(points):  # δp_i = a + ω × (p_i − p̄): a rigid motion of these joints

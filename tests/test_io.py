@@ -363,7 +363,7 @@ def test_csv_text_writes_what_the_csv_module_writes(monkeypatch, chunk_rows):
         buffer = text_io.StringIO()
         writer = csv.writer(buffer, lineterminator="\n")
         writer.writerow(header)
-        writer.writerows(zip(*(c.tolist() if isinstance(c, np.ndarray) else c for c in columns)))
+        writer.writerows(zip(*(c.tolist() if isinstance(c, np.ndarray) else c for c in columns), strict=True))
         return buffer.getvalue()
 
     monkeypatch.setattr(tables, "CSV_CHUNK_ROWS", chunk_rows)
@@ -403,7 +403,7 @@ def test_background_writer_writes_in_order_and_raises_a_failure_on_the_next_call
     writer = BackgroundWriter()
     writer.submit(tmp_path / "missing" / "out.txt", lambda: b"x")
     writer.submit(target, lambda: b"after the failure")  # may be taken before the failure is known
-    with pytest.raises(CalibError, match="missing/out.txt: cannot write"):
+    with pytest.raises(CalibError, match=r"missing/out\.txt: cannot write"):
         writer.close()
     assert target.read_text() == "write 49"  # nothing written after a failed write
     with pytest.raises(CalibError, match="cannot write"):

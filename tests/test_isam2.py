@@ -116,7 +116,7 @@ def test_noisy_static_covariance_is_consistent_and_isam2_agrees_with_lm(platform
 def test_loose_coupling_matches_tight(platform, noisy):
     # Six readings fix six pose DOF exactly, so the FK pose prior with the propagated
     # covariance carries the same information as the six reading factors (to first order).
-    log, error = noisy
+    log, _error = noisy
     tight = make_estimator("lm", platform, _config()).fit(log)
     loose = make_estimator("lm", platform, _config(coupling="loose")).fit(log)
     assert np.all(np.abs(loose.error - tight.error) <= 0.01 * tight.stddev)

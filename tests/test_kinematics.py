@@ -21,7 +21,6 @@ from stewart_calib.platform import LegGeometry
 
 from .numdiff import (
     EPS_MM,
-    EPS_RAD,
     numerical_jacobian,
     numerical_pose3_jacobian,
     numerical_pose_jacobian,
@@ -153,7 +152,7 @@ def test_tracker_reading_residuals_are_batch_fk_and_ik():
     each_strokes = [strokes, strokes * 1.001]
     residuals, converged = kin.tracker_reading_residuals(platform.tracker, readings, drives, each_strokes)
     assert np.array_equal(converged, np.arange(200)[None, :].repeat(2, axis=0) != 50)
-    for drive, q, got in zip(drives, each_strokes, residuals):
+    for drive, q, got in zip(drives, each_strokes, residuals, strict=True):
         fk = kin.forward_kinematics(drive, np.delete(q, 50, axis=0))
         expected = np.delete(readings, 50, axis=0) - kin.inverse_kinematics(platform.tracker, fk.R, fk.t)
         assert np.abs(np.delete(got, 50, axis=0) - expected).max() <= fk_tolerance_bound(
@@ -165,7 +164,7 @@ def test_fk_refuses_inconsistent_lengths():
     legs = PLATFORM.drive
     strokes = kin.inverse_kinematics(legs, *kin.pose_to_rt(WS.home))
     strokes[2] = 10_000.0 - legs.initial_lengths[2]  # one leg 10 m, the others at home
-    with pytest.raises(kin.FKError, match="did not converge.*unreachable"):
+    with pytest.raises(kin.FKError, match=r"did not converge.*unreachable"):
         kin.forward_kinematics(legs, strokes)
     report = kin.forward_kinematics(legs, strokes, strict=False)
     assert not report.converged

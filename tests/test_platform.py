@@ -133,7 +133,8 @@ def _to_toml(doc: dict) -> str:
         ),
         (
             lambda d: d["workspace"]["home"].__setitem__(2, 1500.0),
-            "key 'workspace.home': expected a home pose whose tracker readings lie within [-276.0, 318.0] mm; leg 1 needs 336.455 mm",
+            "key 'workspace.home': expected a home pose whose tracker readings lie within [-276.0, 318.0] mm; leg 1 "
+            "needs 336.455 mm",
         ),
     ],
 )

@@ -27,7 +27,8 @@ def _set(section, key, value):
     [
         (
             _set("drive", "base_joints_mm", [[100.0, 50.0, 10.0]] * 6),
-            "key 'drive.base_joints_mm': expected 6 joints spread in a plane; joints 1–6 all coincide at [100.0, 50.0, 10.0]",
+            "key 'drive.base_joints_mm': expected 6 joints spread in a plane; joints 1–6 all coincide at [100.0, "
+            "50.0, 10.0]",
         ),
         (
             _set("tracker", "platform_joints_mm", [[10.0 * k, 20.0 * k, -127.21] for k in range(6)]),

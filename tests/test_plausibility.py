@@ -128,7 +128,7 @@ def test_the_rms_residual_is_the_drive_residual_at_the_tracker_fk_pose(logs):
     """The compiled pass (tracker FK warm-started from the sample before) against its definition:
     batch FK of the readings from the level guess, then the drive's leg residuals. The poses are
     random, so most warm starts lie far away and the guard must fall back to the cold start."""
-    platform, other, own, foreign = logs
+    platform, _other, own, foreign = logs
     error = random_error(np.random.default_rng(3), 1.0)
 
     def by_definition(strokes, readings):

@@ -105,7 +105,7 @@ def test_a_refusal_in_a_late_block_leaves_no_output_and_names_its_row(calibrated
 
 def test_a_bad_row_after_an_unreachable_pose_is_refused_first(calibrated, tmp_path, monkeypatch, capsys):
     """The whole list was read before any pose was compensated: a bad row anywhere came first."""
-    platform, result, drive, poses = calibrated
+    _platform, result, _drive, poses = calibrated
     monkeypatch.setattr(logs, "POSE_BLOCK_BYTES", 4096)
     lines = _pose_list_text(poses).splitlines(keepends=True)
     lines[10] = lines[10].replace(",", ",1e9,", 1).rsplit(",", 1)[0] + "\n"  # unreachable, in the first block
@@ -185,7 +185,7 @@ def test_float_rows_are_repr_joined(rows):
     values[::7] = np.round(values[::7])
     columns = list(np.r_[edges, values, edges[::-1]].reshape(3, -1))
     assert float_rows_csv(columns).decode() == "".join(
-        ",".join(map(repr, row)) + "\n" for row in zip(*(c.tolist() for c in columns))
+        ",".join(map(repr, row)) + "\n" for row in zip(*(c.tolist() for c in columns), strict=True)
     )
     assert float_rows_csv([np.empty(0), np.empty(0)]) == b""
 
@@ -197,7 +197,7 @@ def test_a_failing_block_leaves_the_file_as_it_was(tmp_path):
         yield np.zeros((2, 6)), np.ones((2, 1))
         raise CalibError("refused")
 
-    with pytest.raises(CalibError, match="^refused$"):
+    with pytest.raises(CalibError, match=r"^refused$"):
         io.write_pose_list_blocks(tmp_path / "q.csv", blocks(), ("q1_mm",))
     assert (tmp_path / "q.csv").read_text() == "old\n" and len(list(tmp_path.iterdir())) == 1
     assert io.write_pose_list_blocks(tmp_path / "q.csv", iter([(np.zeros((2, 6)), np.ones((2, 1)))]), ("q1_mm",)) == 2

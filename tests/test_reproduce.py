@@ -166,31 +166,34 @@ def test_tables_md_numbers_equal_results_json(out, results):
     expected_tracker = [(m, "tracker", values) for m, values in headline["ours"]["tracker"].items()]
     for table, expected in ((verdict, expected_verdict), (tracker_headline, expected_tracker)):
         assert len(table) == len(expected)
-        for cells, (method, view, values) in zip(table, expected):
+        for cells, (method, view, values) in zip(table, expected, strict=True):
             assert cells[:2] == [method, view]
             assert all(
-                _same(cell, values[name]) for cell, name in zip(cells[2:5], ("position", "orientation", "circle"))
+                _same(cell, values[name])
+                for cell, name in zip(cells[2:5], ("position", "orientation", "circle"), strict=True)
             )
-    for cells, (_, _, values) in zip(verdict[1:], expected_verdict[1:]):
+    for cells, (_, _, values) in zip(verdict[1:], expected_verdict[1:], strict=True):
         assert cells[5].startswith("yes" if values["meets_paper"] else "no (")
     assert all(len(cells) == 5 for cells in tracker_headline)  # no verdict from the flattering view
 
-    for cells_rows, (number, view) in zip(error_tables, [(n, v) for n in ("table5", "table6") for v in VIEWS]):
+    for cells_rows, (number, view) in zip(
+        error_tables, [(n, v) for n in ("table5", "table6") for v in VIEWS], strict=True
+    ):
         rows = json_tables[number][view]
         assert len(cells_rows) == len(rows)
-        for cells, row in zip(cells_rows, rows):
+        for cells, row in zip(cells_rows, rows, strict=True):
             assert cells[1] == row["method"]
             numbers = [row["before"], *row["stages"], row["mean"], row["vs_ls_pct"]]
-            assert all(_same(cell, value) for cell, value in zip(cells[2:], numbers)), (cells, row)
+            assert all(_same(cell, value) for cell, value in zip(cells[2:], numbers, strict=True)), (cells, row)
 
     # the paper's numbers are its tracker's: beside our tracker view only
     for number in ("table5", "table6"):
         assert {row["method"] for row in json_tables[number]["truth"]}.isdisjoint({"paper LS", "paper EKF"})
         assert {"paper LS", "paper EKF"} <= {row["method"] for row in json_tables[number]["tracker"]}
     assert len(table4) == len(json_tables["table4"]["rows"]) == 6 * 7
-    for cells, row in zip(table4, json_tables["table4"]["rows"]):
+    for cells, row in zip(table4, json_tables["table4"]["rows"], strict=True):
         assert [int(cells[0]), cells[1]] == [row["leg"], row["source"]]
-        assert all(_same(cell, value) for cell, value in zip(cells[2:], row["values"]))
+        assert all(_same(cell, value) for cell, value in zip(cells[2:], row["values"], strict=True))
     assert {cells[0]: float(cells[1]) for cells in rms} == pytest.approx(
         json_tables["table4"]["rms_vs_truth_mm"], abs=5e-5
     )
@@ -227,7 +230,7 @@ def test_recording_paths_timelines_and_rows(out, results):
         for method in RECORDED:
             assert f"/trajectories/{stage}/{method}/actual" in static
             raw = read_static(rrd, f"polar/{stage}/{method}/raw")
-            deviation = [v for k, v in raw.items() if "deviation_mm" in k][0]
+            deviation = next(v for k, v in raw.items() if "deviation_mm" in k)
             assert len(deviation) == quick.circle.points
             expected = results["details"][method.replace("_", "-")]["stages"][stage]["circle"]["truth"]["position_mm"]
             assert np.mean(deviation) == pytest.approx(expected)

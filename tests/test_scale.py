@@ -64,7 +64,7 @@ def test_a_rank_deficient_stream_keeps_rank_and_null_space(platform, monkeypatch
     monkeypatch.setattr(ident, "BLOCK_POSES", 4)
     rng = np.random.default_rng(12)
     poses = platform.workspace.home + np.c_[rng.uniform(-200, 200, (30, 3)), np.zeros((30, 3))]
-    A, s, Vt = svd_of_stacked_rows(platform, poses)
+    _A, s, Vt = svd_of_stacked_rows(platform, poses)
     report = ident.identifiability_report(platform, poses, NOISE)
     assert report.rank == int(np.sum(s > ident.RANK_RTOL * s[0])) == 24
     projector = Vt[24:].T @ Vt[24:]
@@ -180,7 +180,7 @@ def test_a_long_numeric_log_read_by_pyarrow_is_the_log_read_as_text(tmp_path, mo
         blocks = list(read_log_blocks(path, nim_stewart(), skip_bad_rows=True, block_bytes=block_bytes))
         return blocks, [row for b in blocks for row, _ in b.skipped]
 
-    (whole,), skipped = read(size + 1)
+    (whole,), _skipped = read(size + 1)
     assert [row for row, _ in whole.skipped] == [11, 21, 31] and not by_arrow
     for block_bytes in (1, 700, size // 2):
         by_arrow.clear()
@@ -341,7 +341,7 @@ def test_row_parser_gives_the_samples_of_read_log(tmp_path):
             refused.append(str(err))
     assert refused == [f"{path}: row {row}: {reason}" for row, reason in whole.skipped]
     assert len(samples) == len(whole)
-    for sample, expected in zip(samples, whole):
+    for sample, expected in zip(samples, whole, strict=True):
         assert (sample.t_s, sample.stage, sample.load_kg) == (expected.t_s, expected.stage, expected.load_kg)
         for field in ("strokes", "readings", "desired_pose"):
             np.testing.assert_array_equal(getattr(sample, field), getattr(expected, field))
@@ -358,7 +358,7 @@ def test_a_spooled_log_reads_back_as_it_was_read(long_logs, tmp_path, monkeypatc
     spool = SampleSpool(tmp_path)
     for block in logs.read_log_blocks(long_logs[400], nim_stewart()):
         spool.add(block, block.strokes[:, :2] - block.t_s[:, None])  # two extra columns
-    back, extra = zip(*spool.blocks())
+    back, extra = zip(*spool.blocks(), strict=True)
     spool.close()
     assert len(back) > 1 and max(8 * 15 * len(b) for b in back) <= 1 << 12
     whole = read_log(long_logs[400], nim_stewart())

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import pytest
 
-from stewart_calib.cli import main
 from stewart_calib.config import load_estimator_config
 from stewart_calib.errors import CalibError
 from stewart_calib.platform import load_platform
@@ -91,13 +90,15 @@ def test_names_work_from_an_installed_wheel(tmp_path):
     (site / "shared-dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
     work = tmp_path / "elsewhere"
     work.mkdir()
-    run = lambda *argv: subprocess.run(
-        [str(venv / "bin" / "stewart-calib"), *argv],
-        cwd=work,
-        env=env,  # noqa: E731
-        capture_output=True,
-        text=True,
-    )
+
+    def run(*argv):
+        return subprocess.run(
+            [str(venv / "bin" / "stewart-calib"), *argv],
+            cwd=work,
+            env=env,
+            capture_output=True,
+            text=True,
+        )
 
     loaded = subprocess.run(
         [

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import itertools
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +57,7 @@ def test_output_reads_back_with_a_plain_csv_reader(simulated):
     assert {"t_s", *PARAMETER_NAMES, "true_x_mm", "true_yaw_deg"} <= set(truth_rows[0])
     assert len(rows) == len(truth_rows)
     t = [float(r["t_s"]) for r in rows]
-    assert t == [float(r["t_s"]) for r in truth_rows] and all(b >= a for a, b in zip(t, t[1:]))
+    assert t == [float(r["t_s"]) for r in truth_rows] and all(b >= a for a, b in itertools.pairwise(t))
     assert {r["stage"] for r in rows} == {"no-load", "40kg"}
     # a pose in degrees: within the ±20° workspace
     assert max(abs(float(r["roll_deg"])) for r in rows) <= 20.0

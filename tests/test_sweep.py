@@ -183,4 +183,4 @@ def test_results_are_in_grid_order_whatever_the_finishing_order(tmp_path):
     assert store.finished(spec, tmp_path) == {(c.id, s) for c, s in tasks}
     table = store.consolidate(spec, tmp_path, schema)
     expected = [(c.id, s, m) for c, s in tasks for m in spec.methods]
-    assert list(zip(*(table[n].to_pylist() for n in ("cell", "seed", "method")))) == expected
+    assert list(zip(*(table[n].to_pylist() for n in ("cell", "seed", "method")), strict=True)) == expected

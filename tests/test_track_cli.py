@@ -432,7 +432,7 @@ def test_a_block_parses_as_its_rows_one_by_one(lines):
         return
     assert all(isinstance(sample, Sample) for sample in samples)  # no blank line, no bad row
     assert len(block) == len(samples)
-    for mine, theirs in zip(block, samples):
+    for mine, theirs in zip(block, samples, strict=True):
         assert mine.t_s == theirs.t_s
         for name in ("strokes", "readings", "desired_pose"):
             np.testing.assert_array_equal(getattr(mine, name), getattr(theirs, name))

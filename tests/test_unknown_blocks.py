@@ -142,6 +142,6 @@ def _nees(gap: np.ndarray, covariance: np.ndarray, C: np.ndarray) -> tuple[float
 def test_a_method_refuses_an_instrument_it_does_not_support(platform):
     points_platform = replace(platform, instrument=replace(platform.instrument, kind="points"))
     with pytest.raises(
-        CalibError, match="method 'paper-ekf' does not take the points instrument.*expected one of ls, ekf, isam2, lm"
+        CalibError, match=r"method 'paper-ekf' does not take the points instrument.*expected one of ls, ekf, isam2, lm"
     ):
         make_estimator("paper-ekf", points_platform)

@@ -20,7 +20,8 @@ Parameters are always the paper's δM (eq. 9) in the paper's order: ``estimate =
 
 from __future__ import annotations
 
-from typing import Iterable, Protocol, runtime_checkable
+from collections.abc import Iterable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 

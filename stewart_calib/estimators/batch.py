@@ -33,7 +33,7 @@ import numpy as np
 from .. import kinematics as kin
 from ..errors import CalibError, SampleRejected
 from ..instruments import drive as drive_model
-from ..instruments import gauge, registration
+from ..instruments import gauge
 from ..platform import N_LEGS, N_PARAMS, LegGeometry
 
 #: a singular value below this fraction of the largest counts as zero
@@ -164,7 +164,6 @@ def fit(
 
     basis = gauge.free_basis(problem.nominal)
     sigmas = np.array(problem.sigmas, dtype=float)
-    n_channels = len(problem.channel_names)
     start_rms = _channel_rms(problem, problem.model.residual(unknowns, problem.measured, R0, t0)[0])
     fit_scale = stroke_scale != "off"
     if stroke_scale == "auto":
@@ -186,7 +185,7 @@ def fit(
         sigmas, weights = new_sigmas, new_weights
         if settled:
             break
-    A, b = _system(problem, state, basis, sigmas, weights, fit_scale)
+    A, _ = _system(problem, state, basis, sigmas, weights, fit_scale)
     _, s, Vt = np.linalg.svd(A, full_matrices=False)
     covariance = None
     if s[-1] > RANK_TOLERANCE * s[0]:
@@ -272,7 +271,7 @@ def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], fil
         "rank": rank,
         "condition_number": float(s[0] / s[-1]) if rank == A.shape[1] else None,
         "stroke_scale_identifiable": _scale_identifiable(problem, state, basis, sigmas),
-        "predicted_stddev": dict(zip(all_names, stddev)),
+        "predicted_stddev": dict(zip(all_names, stddev, strict=True)),
     }
 
 

@@ -304,7 +304,7 @@ class ISAM2Estimator:
             return
         batch = [] if sample is None else [sample]
         if not started:  # the start-up batch is decided: its kept samples enter as one Gaussian
-            kept = [s for s, outlier in zip(self._pending, front.startup_outliers) if not outlier]
+            kept = [s for s, outlier in zip(self._pending, front.startup_outliers, strict=True) if not outlier]
             self._pending = []
             x, P = front.startup_gaussian(1.0)  # the graph's factors carry the configured noise
             state = ChainState(

@@ -3,8 +3,8 @@
 Random-walk prediction (paper eq. 14–15: ``X`` unchanged, ``P ← P + Q``) and the update
 (eq. 17–19) are fused into :func:`kalman_update`, because the prediction is only an
 addition and fusing it saves a pass over the 42×42 covariance. The kernel is compiled
-with numba (on-disk cache, :func:`stewart_calib._jit.njit`). Measured at 42 states / 6 observations on 2 cores: ~3.6 µs per
-call, against ~33 µs for the same algorithm in numpy (per-call overhead on small arrays)
+with numba (on-disk cache, :func:`stewart_calib._jit.njit`). Measured at 42 states / 6 observations
+on 2 cores: ~3.6 µs per call, against ~33 µs for the same algorithm in numpy (per-call overhead on small arrays)
 and ~37 µs for filterpy's ``KalmanFilter.predict`` + ``update``.
 
 Covariance update: ``P ← P⁻ − W Wᵀ`` with ``W = P⁻Hᵀ L⁻ᵀ`` and ``S = L Lᵀ`` (Cholesky), which
@@ -27,7 +27,6 @@ from .._jit import njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
-from ..platform import N_PARAMS
 from ..unknowns import UnknownLayout, gauge_conditioned
 from .base import state_array
 

@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -579,7 +579,7 @@ class RobustFilter:
         spans = state_array(state, "difference_spans", np.shape(state.get("difference_spans", ())))
         eigenvalues = state_array(state, "difference_eigenvalues", (len(spans), self._n))
         projections = state_array(state, "difference_projections", (len(spans), self._n))
-        self._differences = deque(zip(eigenvalues, projections, spans), maxlen=WALK_WINDOWS)
+        self._differences = deque(zip(eigenvalues, projections, spans, strict=True), maxlen=WALK_WINDOWS)
         window = state.get("window")
         if window is None:
             self._last_window = None

@@ -75,7 +75,7 @@ class DriveLegs:
         size: int = N_PARAMS,
         scale_start: int | None = None,
         stroke_scale: np.ndarray | float = 0.0,
-    ) -> "DriveLegs":
+    ) -> DriveLegs:
         """Legs ``legs`` of a drive with ``(6, 7)`` nominal ``drive_params``; ``scale_start``: the
         column of leg 1's k_i error (leg i at ``scale_start + i``); ``stroke_scale``: nominal k_i."""
         legs = np.asarray(legs, dtype=np.int64).reshape(-1)

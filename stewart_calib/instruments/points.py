@@ -54,7 +54,7 @@ class PointsUnknowns:
     def size(self) -> int:
         return 6 + self.targets.size
 
-    def retract(self, delta: np.ndarray) -> "PointsUnknowns":
+    def retract(self, delta: np.ndarray) -> PointsUnknowns:
         """``F Exp(φ)``, ``p + δp`` for ``delta = [φ (6), δp (3K)]``."""
         return PointsUnknowns(
             *kin.retract(self.R_frame, self.t_frame, delta[:6]), self.targets + delta[6:].reshape(-1, 3)

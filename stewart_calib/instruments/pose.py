@@ -51,10 +51,10 @@ class PoseUnknowns:
     size = 12
 
     @classmethod
-    def from_pose6(cls, frame: np.ndarray, target: np.ndarray) -> "PoseUnknowns":
+    def from_pose6(cls, frame: np.ndarray, target: np.ndarray) -> PoseUnknowns:
         return cls(*kin.pose_to_rt(frame), *kin.pose_to_rt(target))
 
-    def retract(self, delta: np.ndarray) -> "PoseUnknowns":
+    def retract(self, delta: np.ndarray) -> PoseUnknowns:
         """``F Exp(φ)``, ``G Exp(γ)`` for ``delta = [φ (6), γ (6)]`` (first-order chart)."""
         return PoseUnknowns(
             *kin.retract(self.R_frame, self.t_frame, delta[:6]), *kin.retract(self.R_target, self.t_target, delta[6:12])

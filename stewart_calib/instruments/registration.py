@@ -60,8 +60,8 @@ def _require_distinct(readings: np.ndarray, scale: np.ndarray, what: str) -> Non
     n = distinct_count(readings, DISTINCT_SIGMAS * scale, MIN_DISTINCT_POSES)
     if n < MIN_DISTINCT_POSES:
         raise CalibError(
-            f"cannot register the {what}: the log has {n} distinct pose(s) (readings closer than "
-            f"{DISTINCT_SIGMAS:g} σ count as one); expected at least {MIN_DISTINCT_POSES} that also rotate about two axes"
+            f"cannot register the {what}: the log has {n} distinct pose(s) (readings closer than {DISTINCT_SIGMAS:g} "
+            f"σ count as one); expected at least {MIN_DISTINCT_POSES} that also rotate about two axes"
         )
 
 

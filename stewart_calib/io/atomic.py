@@ -6,9 +6,9 @@ import os
 import queue
 import tempfile
 import threading
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Iterator
 
 from ..errors import CalibError
 
@@ -110,7 +110,7 @@ class BackgroundWriter:
         self._finish()
         self._raise_failure()
 
-    def __enter__(self) -> "BackgroundWriter":
+    def __enter__(self) -> BackgroundWriter:
         return self
 
     def __exit__(self, kind, value, traceback) -> None:

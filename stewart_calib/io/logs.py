@@ -11,9 +11,9 @@ from __future__ import annotations
 import math
 import operator
 import os
+from collections.abc import Iterable, Iterator
 from itertools import chain
 from pathlib import Path
-from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -72,7 +72,7 @@ def readings_to_file(readings: np.ndarray, columns: tuple[str, ...]) -> list:
     NaN (a point target not seen) → an empty field."""
     return [
         ["" if not np.isfinite(v) else v for v in values.tolist()] if name.startswith("p") else values
-        for name, values in zip(columns, readings_in_file_units(readings, columns))
+        for name, values in zip(columns, readings_in_file_units(readings, columns), strict=True)
     ]
 
 
@@ -135,7 +135,7 @@ def _flag_out_of_range(table: Table, columns, bounds, what: str, key: str) -> No
         values = table.numbers[name]
         table.flag(
             (values < lo) | (values > hi),
-            lambda k: (
+            lambda k, name=name, values=values: (
                 f"column '{name}': expected a {what} within [{lo!r}, {hi!r}] mm ({key}), got {float(values[k])!r}"
             ),
         )
@@ -190,13 +190,16 @@ def _flag_partial_targets(table: Table, platform: Platform) -> None:
         count = finite.sum(axis=1)
         table.flag(
             (count > 0) & (count < 3),
-            lambda row: (
+            lambda row, triple=triple, finite=finite, k=k: (
                 f"column '{triple[int(np.argmin(finite[row]))]}': expected all three coordinates of target "
                 f"{k // 3 + 1} or none (a target not seen leaves all three empty)"
             ),
         )
         values = np.column_stack([table.numbers[name] for name in triple])
-        table.flag(np.any(np.isinf(values), axis=1), lambda row: f"column '{triple[0]}': expected finite coordinates")
+        table.flag(
+            np.any(np.isinf(values), axis=1),
+            lambda row, triple=triple: f"column '{triple[0]}': expected finite coordinates",
+        )
 
 
 def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) -> None:
@@ -371,7 +374,7 @@ def _log_of(table: Table, has_pose: bool, textual: list[str], platform: Platform
         strokes=col(STROKE_COLUMNS),
         readings=_readings_from_file(col(reading_columns(platform)), reading_columns(platform)),
         desired_poses=poses,
-        stages=[s for s, k in zip(table.texts["stage"], keep) if k] if textual else None,
+        stages=[s for s, k in zip(table.texts["stage"], keep, strict=True) if k] if textual else None,
         load_kg=table.numbers["load_kg"][keep] if "load_kg" in table.numbers else None,
         skipped=skipped,
     )
@@ -713,9 +716,9 @@ def truth_text(truth: Truth, header: bool = True) -> str:
     # spec §7 truth, constant over the log: one column per value, added beside §4's
     constants = []
     if truth.stroke_scale is not None:
-        constants += zip(STROKE_SCALE_NAMES, truth.stroke_scale)
+        constants += zip(STROKE_SCALE_NAMES, truth.stroke_scale, strict=True)
     if truth.instrument is not None:
-        constants += zip(*truth.instrument)
+        constants += zip(*truth.instrument, strict=True)
     for name, value in constants:
         names.append(name)
         columns.append(np.full(len(truth.t_s), float(value)))

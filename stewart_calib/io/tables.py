@@ -36,7 +36,7 @@ def csv_text(header: list[str], columns: list, with_header: bool = True) -> str:
         for start in range(0, n, CSV_CHUNK_ROWS):
             buffer.write(_rows_text([c[start : start + CSV_CHUNK_ROWS] for c in columns]))
         return buffer.getvalue()
-    writer.writerows(zip(*(c.tolist() if isinstance(c, np.ndarray) else c for c in columns)))
+    writer.writerows(zip(*(c.tolist() if isinstance(c, np.ndarray) else c for c in columns), strict=True))
     return buffer.getvalue()
 
 
@@ -65,7 +65,7 @@ def _rows_text(columns: list) -> str:
             floats = []
         if column is not None:
             parts.append(_field_texts(column))
-    rows = parts[0] if len(parts) == 1 else map(",".join, zip(*parts))
+    rows = parts[0] if len(parts) == 1 else map(",".join, zip(*parts, strict=True))
     return "\n".join(rows) + "\n"
 
 
@@ -109,7 +109,7 @@ def float_rows_csv(columns: list[np.ndarray], blank: tuple[int, ...] = ()) -> by
     13-column row against ~11 for ``repr`` on each field, its import (~0.1 s, ~40 MB) paying off."""
     if len(columns[0]) < CSV_CHUNK_ROWS:
         fields = [_repr_list(column, j in blank) for j, column in enumerate(columns)]
-        return "".join(",".join(row) + "\n" for row in zip(*fields)).encode()
+        return "".join(",".join(row) + "\n" for row in zip(*fields, strict=True)).encode()
     import pyarrow.compute as pc
 
     rows = pc.binary_join_element_wise(*(_repr_texts(column, j in blank) for j, column in enumerate(columns)), ",")
@@ -172,7 +172,8 @@ def read_text(path: Path, what: str) -> str:
         text = data.decode("utf-8-sig")  # a byte-order mark is what spreadsheet exports add
     except UnicodeDecodeError as err:
         raise CalibError(
-            f"{path}: {what} is not UTF-8 text (byte 0x{data[err.start]:02x} at offset {err.start}); expected a UTF-8 CSV file"
+            f"{path}: {what} is not UTF-8 text (byte 0x{data[err.start]:02x} at offset {err.start}); expected a UTF-8 "
+            "CSV file"
         ) from None
     return text.replace("\r\n", "\n")
 
@@ -272,7 +273,7 @@ def numbers_by_arrow(header: list[str], data: bytes) -> Table | None:
         return None
     if any(column.null_count for column in table.columns):
         return None
-    numbers = {name: column.to_numpy() for name, column in zip(header, table.columns)}
+    numbers = {name: column.to_numpy() for name, column in zip(header, table.columns, strict=True)}
     return Table(numbers, {}, np.arange(2, table.num_rows + 2), {})
 
 
@@ -357,7 +358,7 @@ def parse_careful(header: list[str], text: str, numeric: list[str], textual: lis
             row = [""] * width
         rows.append(row)
         lines.append(reader.line_num)
-    columns = list(zip(*rows)) if rows else [()] * width
+    columns = list(zip(*rows, strict=True)) if rows else [()] * width
     index = {name: i for i, name in enumerate(header)}
     numbers = {name: _floats(columns[index[name]], name, issues, name in blank_is_nan) for name in numeric}
     texts = {name: [field.strip() for field in columns[index[name]]] for name in textual}
@@ -383,7 +384,8 @@ def flag_non_finite(table: Table, columns) -> None:
     for name in columns:
         values = table.numbers[name]
         table.flag(
-            ~np.isfinite(values), lambda k: f"column '{name}': expected a finite number, got {float(values[k])!r}"
+            ~np.isfinite(values),
+            lambda k, name=name, values=values: f"column '{name}': expected a finite number, got {float(values[k])!r}",
         )
 
 

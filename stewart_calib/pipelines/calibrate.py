@@ -26,10 +26,11 @@ import sys
 import tempfile
 import threading
 from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Iterator, TypeVar
+from typing import TypeVar
 
 import numpy as np
 
@@ -359,7 +360,7 @@ def read_ahead(items: Iterable[T]) -> Iterator[T]:
                 if not hand((item, None)):
                     return
             hand((end, None))
-        except BaseException as err:  # noqa: BLE001 -- raised again in the caller's thread
+        except BaseException as err:
             hand((end, err))
 
     thread = threading.Thread(target=make, name="stewart-calib read-ahead", daemon=True)

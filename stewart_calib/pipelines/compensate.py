@@ -8,7 +8,7 @@ drive ``nominal + error`` lands at each pose (paper Fig. 3 step 4).
 from __future__ import annotations
 
 import argparse
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +22,7 @@ REPORT_PAGE = "index.html"
 
 def created_now() -> str:
     """The time now, ISO 8601 UTC to the second (``2026-11-23T02:40:00Z``)."""
-    return datetime.now(timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z")
+    return datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
 
 
 def check_report_dir(directory: Path | None, option: str = "--report") -> None:

@@ -113,7 +113,8 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
     verdict = "identifiable" if report["condition_number"] is not None else "rank-deficient"
     print(
         f"Identifiability of drive, stroke scale and {model.kind} instrument from {len(strokes)} poses: {verdict} "
-        f"(rank {report['rank']}/{report['unknowns']}; condition number {report['condition_number'] or float('inf'):.4g})"
+        f"(rank {report['rank']}/{report['unknowns']}; condition number "
+        f"{report['condition_number'] or float('inf'):.4g})"
     )
     print(report["gauge"])
     print("predicted standard deviation per unknown (Cramér–Rao; mm, dimensionless k, degrees):")

@@ -27,7 +27,7 @@ import math
 import sys
 from contextlib import contextmanager
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -257,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
         )
     t_s = measured.t_s[kept]
     io.atomic_write_text(out, log_text(t_s - t_s[0], q * MM_PER_UNIT[args.stroke_unit], header, values[kept]))
-    start = datetime.fromtimestamp(t_s[0], tz=timezone.utc).isoformat(timespec="milliseconds")
+    start = datetime.fromtimestamp(t_s[0], tz=UTC).isoformat(timespec="milliseconds")
     dropped = int((~kept).sum())
     print(
         f"stewart-calib import-bag: wrote {out} ({int(kept.sum())} rows from t = {start}; {dropped} measurement(s) "

@@ -75,7 +75,8 @@ def run(args: argparse.Namespace) -> int:
     elapsed_s = time.perf_counter() - start
     io.write_pose_list(args.out, poses, args.dwell_s)
     print(
-        f"planned {len(poses)} poses ({args.criterion} from {args.candidates} candidates, {elapsed_s:.2f} s) -> {args.out}"
+        f"planned {len(poses)} poses ({args.criterion} from {args.candidates} candidates, {elapsed_s:.2f} s) -> "
+        f"{args.out}"
     )
     return 0
 

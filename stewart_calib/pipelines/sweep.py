@@ -10,7 +10,8 @@ core), or the workers of the scheduler at ``--scheduler`` — and writes into DI
 * ``summary.csv``, ``summary.md``, ``plots/`` — quantiles per cell and method, and plots.
 
 Running the same command again skips the finished tasks (resume); so does a spec that only
-adds seeds or grid values, or the full command after a ``--seeds N`` pilot. A tqdm bar goes to stderr when it is a terminal.
+adds seeds or grid values, or the full command after a ``--seeds N`` pilot. A tqdm bar goes to stderr
+when it is a terminal.
 """
 
 from __future__ import annotations
@@ -63,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if report.failed:
         print(
-            f"stewart-calib sweep: {len(report.failed)} tasks failed (first: {report.failed[0]}); run the command again to retry them",
+            f"stewart-calib sweep: {len(report.failed)} tasks failed (first: {report.failed[0]}); run the command "
+            "again to retry them",
             file=sys.stderr,
         )
         return 1

@@ -52,9 +52,9 @@ import signal
 import stat
 import sys
 import time
+from collections.abc import Callable, Iterator
 from itertools import chain
 from pathlib import Path
-from typing import Callable, Iterator
 
 import numpy as np
 

@@ -81,8 +81,8 @@ def _model_poses(platform: Platform, result: dict, log, source: str, first_sampl
     if not np.all(fk.converged):
         k = int(np.flatnonzero(~fk.converged)[0])
         raise CalibError(
-            f"{source}: sample {first_sample + k + 1} of the log (t_s = {log.t_s[k]!r}): forward kinematics of the calibrated "
-            "model did not converge for its strokes"
+            f"{source}: sample {first_sample + k + 1} of the log (t_s = {log.t_s[k]!r}): forward kinematics of the "
+            "calibrated model did not converge for its strokes"
         )
     return fk.R, fk.t
 
@@ -91,7 +91,8 @@ def _check_nominal(platform: Platform, result: dict, source: str) -> None:
     gap = float(np.max(np.abs(np.array(result["nominal"]) - platform.drive.as_vector())))
     if gap > io.NOMINAL_TOLERANCE_MM:
         raise CalibError(
-            f"{source}: key 'nominal': expected the nominal drive of platform '{platform.name}'; it differs by {gap:.3g} mm"
+            f"{source}: key 'nominal': expected the nominal drive of platform '{platform.name}'; it differs by "
+            f"{gap:.3g} mm"
         )
 
 
@@ -122,7 +123,8 @@ def validate(
     if platform.instrument.kind == "tracker":
         if register:
             raise CalibError(
-                "--register-instrument: the in-situ tracker is part of the robot; it has no frame of its own to fit again"
+                "--register-instrument: the in-situ tracker is part of the robot; "
+                "it has no frame of its own to fit again"
             )
         predicted = kin.inverse_kinematics(platform.tracker, R_X, t_X)
         if not errors:
@@ -131,7 +133,8 @@ def validate(
         if not np.all(seen.converged):
             k = int(np.flatnonzero(~seen.converged)[0])
             raise CalibError(
-                f"sample {first_sample + k + 1} (t_s = {log.t_s[k]!r}): tracker forward kinematics of its readings did not converge"
+                f"sample {first_sample + k + 1} (t_s = {log.t_s[k]!r}): tracker forward kinematics of its readings "
+                "did not converge"
             )
         position, orientation = kin.pose_error(seen.R, seen.t, R_X, t_X)
         return predicted, position, orientation
@@ -245,8 +248,9 @@ def measurement_residuals(
     log_label: str = "the calibration log",
 ):
     """Measured minus predicted per measurement column of the log (file units), with the nominal
-    model (an outside instrument's frame registered on the log) and with the calibration ``result`` — the predictions of ``validate`` (spec §7): the
-    logged strokes through forward kinematics of the model, then what the instrument reads there
+    model (an outside instrument's frame registered on the log) and with the calibration ``result``
+    — the predictions of ``validate`` (spec §7): the logged strokes through forward kinematics of the
+    model, then what the instrument reads there
     (see :class:`~stewart_calib.viz.html_report.Residuals`). ``predicted``: the calibrated
     model's predictions [code units] when the caller has them (e.g. with a re-registered frame)."""
     from ..viz.html_report import Residuals  # matplotlib-free module, but only reports need it
@@ -287,7 +291,7 @@ def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str
     ``(len(models), N, 6)`` [mm], or None when a model's FK does not converge for a sample."""
     for result, source in models:
         _check_nominal(platform, result, source)
-    drives, strokes = zip(*(_model_drive(platform, result, log, source) for result, source in models))
+    drives, strokes = zip(*(_model_drive(platform, result, log, source) for result, source in models), strict=True)
     residuals, converged = kin.tracker_reading_residuals(platform.tracker, log.readings, list(drives), list(strokes))
     return residuals if converged.all() else None
 

@@ -86,7 +86,9 @@ def write_recording(path: str | Path, reproduction: Reproduction) -> None:
             viz.log_parameter_band(rec, name, run.trace[kept], run.stddev[kept], t_kept, samples=kept)
             series = _diagnostics(platform, run, kept, online=method != BATCH_METHOD)
             viz.log_diagnostics(rec, name, t_kept, *series, samples=kept)
-            diagnostics[name] = {kind for kind, values in zip(viz.DIAGNOSTICS, series) if values is not None}
+            diagnostics[name] = {
+                kind for kind, values in zip(viz.DIAGNOSTICS, series, strict=True) if values is not None
+            }
             R_d, t_d = kin.pose_to_rt(result.desired_poses)
             R_a, t_a = kin.pose_to_rt(result.actual_poses)
             viz.log_pose_errors(rec, entity_name(method), result.log.t_s, *kin.pose_error(R_d, t_d, R_a, t_a))

@@ -71,7 +71,7 @@ def _paper_rows(table: dict, loads_kg: list[float]) -> list[dict]:
     rows = []
     for quantity, columns in table.items():
         for source in ("LS", "EKF"):
-            published = dict(zip(PAPER_LOADS_KG, columns[source]))
+            published = dict(zip(PAPER_LOADS_KG, columns[source], strict=True))
             rows.append(
                 {
                     "quantity": quantity,

@@ -37,8 +37,9 @@ are ``l_i + z_i``, what a model with the logged strokes must find.
 from __future__ import annotations
 
 import copy
+from collections.abc import Iterator
 from dataclasses import dataclass, field
-from typing import Iterator, Protocol
+from typing import Protocol
 
 import numpy as np
 
@@ -393,7 +394,7 @@ def run_experiment(
         kinematics.FKError: the robot cannot reach a commanded stroke set.
     """
     run = simulate_blocks(experiment, controller, progress)
-    logs, truths = zip(*run.blocks)
+    logs, truths = zip(*run.blocks, strict=True)
     log = Log.concatenate(list(logs))
     first = truths[0]
     joined = lambda name: np.concatenate([getattr(truth, name) for truth in truths])  # noqa: E731

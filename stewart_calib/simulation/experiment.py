@@ -408,7 +408,7 @@ def schedule(experiment: Experiment, rng: np.random.Generator) -> Schedule:
     payload = np.empty(n)
     bounds = stage_start + [n]
     previous = 0.0
-    for stage, lo, hi in zip(e.stages, bounds[:-1], bounds[1:]):
+    for stage, lo, hi in zip(e.stages, bounds[:-1], bounds[1:], strict=True):
         elapsed = t_s[lo:hi] - (t_s[lo] if hi > lo else 0.0)
         ramp = np.ones_like(elapsed) if stage.ramp_s == 0 else np.clip(elapsed / stage.ramp_s, 0.0, 1.0)
         payload[lo:hi] = previous + (stage.load_kg - previous) * ramp

@@ -50,7 +50,7 @@ class SimulatedInstrument:
     dropout_probability: float
 
     @classmethod
-    def build(cls, instrument: Instrument, truth: InstrumentTruth, rng: np.random.Generator) -> "SimulatedInstrument":
+    def build(cls, instrument: Instrument, truth: InstrumentTruth, rng: np.random.Generator) -> SimulatedInstrument:
         offset = lambda values: np.r_[values[:3], np.radians(values[3:])]  # noqa: E731  (file → code units)
         frame = instrument.frame + offset(truth.frame_offset)
         if instrument.kind == "pose":

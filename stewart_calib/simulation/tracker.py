@@ -35,7 +35,7 @@ class Tracker:
     reading_range_mm: tuple[float, float] | None
 
     @classmethod
-    def with_residual(cls, nominal: LegGeometry, residual_mm: float, rng: np.random.Generator, **kw) -> "Tracker":
+    def with_residual(cls, nominal: LegGeometry, residual_mm: float, rng: np.random.Generator, **kw) -> Tracker:
         """True geometry = nominal + i.i.d. normal residual σ = ``residual_mm`` on all 42 values."""
         delta = rng.normal(0.0, residual_mm, N_PARAMS) if residual_mm > 0 else np.zeros(N_PARAMS)
         return cls(nominal.perturbed(delta), **kw)

@@ -201,7 +201,8 @@ def _drain(
             else:
                 error = future.exception()
                 failed.append(
-                    f"{names[future.key]}: {error.__class__.__name__}: {str(error).splitlines()[0] if str(error) else ''}"
+                    f"{names[future.key]}: {error.__class__.__name__}: "
+                    f"{str(error).splitlines()[0] if str(error) else ''}"
                 )
                 bar.write(f"task failed ({failed[-1]})")
             del names[future.key]

@@ -200,7 +200,7 @@ class SweepSpec:
         """Settings with more than one value (the study's axes), in column order."""
         return [name for name, values in self.axes.items() if len(values) > 1]
 
-    def pilot(self, seeds: int) -> "SweepSpec":
+    def pilot(self, seeds: int) -> SweepSpec:
         """The same study on its first ``seeds`` seeds (its tasks are the full study's: a pilot
         run's rows are kept when the full study runs into the same directory)."""
         if seeds < 1:
@@ -299,7 +299,7 @@ def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
     cells = []
     names = list(axes)
     for index, values in enumerate(itertools.product(*axes.values())):
-        settings = dict(zip(names, values))
+        settings = dict(zip(names, values, strict=True))
         platform = platforms[settings["platform"]]
         config = _estimator_config(settings, source)
         identity = {"settings": settings, "platform": _fingerprint(platform), **run_wide}
@@ -403,7 +403,7 @@ def _families(doc, path: Path, refuse) -> dict[str, dict]:
             if key not in ("like", *FAMILY_DIMENSIONS):
                 raise refuse(f"{prefix}.{key}", f"unknown key: expected one of like, {', '.join(FAMILY_DIMENSIONS)}")
         like_name = table.get("like", "nim-stewart")
-        like = _platform_file(like_name, path, lambda expected: refuse(f"{prefix}.like", expected))
+        like = _platform_file(like_name, path, lambda expected, prefix=prefix: refuse(f"{prefix}.like", expected))
         if like.workspace is None:
             raise refuse(
                 f"{prefix}.like",

@@ -32,7 +32,7 @@ def summarise(spec: SweepSpec, table: pa.Table) -> list[dict]:
     """One dict per (cell, method) that has rows, in grid and method order."""
     columns = table.to_pydict()
     groups: dict[tuple[str, str], list[int]] = {}
-    for r, key in enumerate(zip(columns["cell"], columns["method"])):
+    for r, key in enumerate(zip(columns["cell"], columns["method"], strict=True)):
         groups.setdefault(key, []).append(r)
     summary = []
     for cell in spec.cells:
@@ -91,7 +91,8 @@ def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
         f"# Sweep '{spec.name}'",
         "",
         f"{len(spec.cells)} cells × {len(spec.seeds)} seeds × {len(spec.methods)} methods; medians over the seeds "
-        f"(IQR: 25–75 % quantiles; NEES band [{NEES_BAND[0]:.1f}, {NEES_BAND[1]:.1f}]). Quantiles of every score: summary.csv.",
+        f"(IQR: 25–75 % quantiles; NEES band [{NEES_BAND[0]:.1f}, {NEES_BAND[1]:.1f}]). Quantiles of every score: "
+        "summary.csv.",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),
@@ -128,7 +129,7 @@ def _plots(spec: SweepSpec, table: pa.Table, directory: Path) -> list[Path]:
     for score in PLOTTED:
         fig, panels = plt.subplots(1, len(axes_names), figsize=(4.5 * len(axes_names), 3.6), squeeze=False)
         values = np.array(columns[score], dtype=float)
-        for panel, axis in zip(panels[0], axes_names):
+        for panel, axis in zip(panels[0], axes_names, strict=True):
             ticks = spec.axes[axis] if axis != "method" else [None]
             setting = np.array(columns[axis], dtype=object) if axis != "method" else None
             for m, method in enumerate(spec.methods):

@@ -100,7 +100,7 @@ def residual_rms_figure(residuals: Residuals) -> str:
     fig = _figure(8.0, 2.8)
     units = sorted({channel_unit(c) for c in residuals.channels})
     axes = fig.subplots(1, len(units), squeeze=False)[0]
-    for ax, unit in zip(axes, units):
+    for ax, unit in zip(axes, units, strict=True):
         idx = [k for k, c in enumerate(residuals.channels) if channel_unit(c) == unit]
         x = np.arange(len(idx))
         ax.bar(x - 0.2, rms(residuals.before[:, idx]), 0.4, label="before (nominal)", color="#c44e52")
@@ -177,7 +177,7 @@ def held_out_figure(held: HeldOut) -> str:
     if held.orientation_error_deg is not None:
         panels.append(("orientation error [deg]", held.orientation_error_deg))
     axes = fig.subplots(1, len(panels), squeeze=False)[0]
-    for ax, (label, values) in zip(axes, panels):
+    for ax, (label, values) in zip(axes, panels, strict=True):
         ax.plot(held.t_s, values, lw=0.7, color="#55a868")
         ax.set_xlabel("t [s]")
         ax.set_ylabel(label)
@@ -216,7 +216,7 @@ def _residual_section(residuals: Residuals) -> str:
     before, after = rms(residuals.before), rms(residuals.after)
     rows = [
         [c, channel_unit(c), _fmt(b), _fmt(a), _fmt(a / b if b > 0 else np.nan, 3)]
-        for c, b, a in zip(residuals.channels, before, after)
+        for c, b, a in zip(residuals.channels, before, after, strict=True)
     ]
     return (
         "<h2>Residuals per measured channel</h2>"
@@ -269,7 +269,7 @@ def _correlation_section(result: dict) -> str:
     correlation = correlation_matrix(covariance)
     i, j = np.triu_indices(len(names), k=1)
     strong = np.abs(correlation[i, j]) >= STRONG_CORRELATION
-    pairs = sorted(zip(np.abs(correlation[i, j])[strong], i[strong], j[strong]), reverse=True)[:20]
+    pairs = sorted(zip(np.abs(correlation[i, j])[strong], i[strong], j[strong], strict=True), reverse=True)[:20]
     listing = (
         _table(
             ["parameter", "parameter", "correlation"],
@@ -336,7 +336,8 @@ def _held_out_section(held: HeldOut) -> str:
 
 STYLE = """
 body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
-h1 { font-size: 1.5em; } h2 { font-size: 1.2em; border-bottom: 1px solid #ccc; padding-bottom: .2em; margin-top: 1.6em; }
+h1 { font-size: 1.5em; }
+h2 { font-size: 1.2em; border-bottom: 1px solid #ccc; padding-bottom: .2em; margin-top: 1.6em; }
 table { border-collapse: collapse; margin: .6em 0; font-size: .9em; }
 th, td { border: 1px solid #ddd; padding: .25em .6em; } th { background: #f3f3f3; }
 table.num td { text-align: right; font-variant-numeric: tabular-nums; }

@@ -143,7 +143,7 @@ class Recording:
         self.stream.flush()
         self.stream.disconnect()
 
-    def __enter__(self) -> "Recording":
+    def __enter__(self) -> Recording:
         return self
 
     def __exit__(self, *exc_info) -> None:
@@ -272,7 +272,7 @@ def log_platform_geometry(rec: Recording, platform: Platform) -> None:
         outline = _closed_outline(np.vstack(list(joints.values())))
         outline_strip = rr.LineStrips3D([outline], colors=_OUTLINE_COLOR, radii=_OUTLINE_RADIUS_MM)
         log(f"world/{frame}/outline", outline_strip, static=True)
-        for (kind, points), letter, color in zip(joints.items(), letters, (_DRIVE_COLOR, _TRACKER_COLOR)):
+        for (kind, points), letter, color in zip(joints.items(), letters, (_DRIVE_COLOR, _TRACKER_COLOR), strict=True):
             labels = [f"{letter}{i}" for i in range(1, N_LEGS + 1)]
             log(
                 f"world/{frame}/{kind}_joints",
@@ -413,7 +413,7 @@ def log_pose_errors(
     """
     n, index = _time_columns(times_s, samples)
     style = rr.SeriesLines(colors=method_color(method), widths=2.0, names=method)
-    for path, values in zip(error_paths(method), (position_error_mm, orientation_error_deg)):
+    for path, values in zip(error_paths(method), (position_error_mm, orientation_error_deg), strict=True):
         _send_scalars(rec, path, index, _batch(values, n, (), path), style)
 
 
