@@ -162,6 +162,34 @@ class Instrument:
         return len(self.targets)
 
 
+#: a centre of mass farther than this many platform radii (the largest ``‖d_i‖``) from {D}'s origin
+#: is refused: a value typed in the wrong unit, not a payload the legs could hold.
+COM_RADII_LIMIT = 10.0
+
+
+@dataclass(frozen=True, eq=False)
+class Elastic:
+    """The robot under its own weight and a payload (spec §10, ``[elastic]``).
+
+    Attributes:
+        platform_mass_kg: the moving platform and all that is fixed to it [kg], > 0.
+        platform_com_mm: ``(3,)`` its centre of mass in {D} [mm].
+        payload_com_mm: ``(3,)`` the payload's centre of mass in {D} [mm].
+        compliance_mm_per_kN: ``(6,)`` nominal axial compliance c_i of each drive leg [mm/kN = µm/N]:
+            ``l_i + (1 + k_i) q_i − c_i f_i / 1000 = ‖t + R d_i − j_i‖``, f_i [N] compression > 0.
+        compliance_sigma_mm_per_kN: prior σ of c_i about the nominal; 0: held at nominal.
+        true_compliance_mm_per_kN: ``(6,)`` the truth a simulated platform carries for reports and
+            checks (``simulate``), never read by an estimator; None on a real robot.
+    """
+
+    platform_mass_kg: float
+    platform_com_mm: np.ndarray
+    payload_com_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    compliance_mm_per_kN: np.ndarray = field(default_factory=lambda: np.zeros(N_LEGS))
+    compliance_sigma_mm_per_kN: float = 1.0
+    true_compliance_mm_per_kN: np.ndarray | None = None
+
+
 @dataclass(frozen=True)
 class Platform:
     """A platform file: nominal drive geometry, tracker geometry, instrument, ranges, workspace.
@@ -180,6 +208,7 @@ class Platform:
             ``l_i + (1 + k_i) q_i`` long (spec §7; ``[drive] stroke_scale``, default 0).
         tracker_geometry_sigma_mm: prior σ of the tracker's own 42 values [mm] (``[tracker]
             geometry_sigma_mm``); 0: known exactly.
+        elastic: masses and leg compliances (spec §10, ``[elastic]``), or None: a rigid robot.
     """
 
     name: str
@@ -193,6 +222,7 @@ class Platform:
     instrument: Instrument = field(default_factory=Instrument, compare=False)
     stroke_scale: np.ndarray = field(default_factory=lambda: np.zeros(N_LEGS), compare=False)
     tracker_geometry_sigma_mm: float = 0.0
+    elastic: Elastic | None = field(default=None, compare=False)
 
     def with_drive(self, drive: LegGeometry) -> Platform:
         return replace(self, drive=drive)
@@ -202,10 +232,18 @@ class Platform:
 #: would otherwise be ignored without a word (a stroke range silently not enforced).
 #: ``[instrument]``'s keys depend on its kind; :func:`parse_instrument` checks them.
 PLATFORM_KEYS: dict[str, set[str]] = {
-    "": {"name", "description", "drive", "tracker", "workspace", "instrument"},
+    "": {"name", "description", "drive", "tracker", "workspace", "instrument", "elastic"},
     "drive": {"base_joints_mm", "platform_joints_mm", "initial_lengths_mm", "stroke_range_mm", "stroke_scale"},
     "tracker": {"base_joints_mm", "platform_joints_mm", "initial_lengths_mm", "reading_range_mm", "geometry_sigma_mm"},
     "workspace": {"home", "translation_limit_mm", "rotation_limit_deg"},
+    "elastic": {
+        "platform_mass_kg",
+        "platform_com_mm",
+        "payload_com_mm",
+        "compliance_mm_per_kN",
+        "compliance_sigma_mm_per_kN",
+        "true_compliance_mm_per_kN",
+    },
 }
 
 #: a leg set whose every coordinate and length is below this [mm] was written in metres: no
@@ -365,6 +403,7 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
             rotation_limit=math.radians(limits["rotation_limit_deg"]),
         )
 
+    elastic = _elastic(doc, drive, source)
     platform = Platform(
         name,
         drive,
@@ -377,6 +416,7 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
         instrument,
         stroke_scale,
         geometry_sigma,
+        elastic,
     )
     if workspace is not None:
         _check_home_reachable(platform, source)
@@ -403,6 +443,53 @@ def _positive(table: dict, key: str, default: float, source: str, prefix: str) -
     if not value > 0:
         raise _refuse(source, f"{prefix}.{key}", f"a positive σ, got {value!r}")
     return value
+
+
+def _elastic(doc: dict, drive: LegGeometry, source: str) -> Elastic | None:
+    """The optional ``[elastic]`` table (spec §10); None without it."""
+    if "elastic" not in doc:
+        return None
+    table = doc["elastic"]
+    if not isinstance(table, dict):
+        raise _refuse(source, "elastic", "an [elastic] table")
+    if "platform_mass_kg" not in table:
+        raise _refuse(source, "elastic.platform_mass_kg", "the platform's mass in kg (missing)")
+    mass = _number(table, "platform_mass_kg", 0.0, source, "elastic")
+    if not mass > 0:
+        raise _refuse(source, "elastic.platform_mass_kg", f"a positive mass in kg, got {mass!r}")
+    radius = float(np.max(np.linalg.norm(drive.platform_joints, axis=-1)))
+    centres = {}
+    for key in ("platform_com_mm", "payload_com_mm"):
+        centre = (
+            _array(table, key, (3,), source, "elastic") if key in table or key == "platform_com_mm" else np.zeros(3)
+        )
+        distance = float(np.linalg.norm(centre))
+        if distance > COM_RADII_LIMIT * radius:
+            raise _refuse(
+                source,
+                f"elastic.{key}",
+                f"[x, y, z] in mm within {COM_RADII_LIMIT:g} platform radii ({COM_RADII_LIMIT * radius:.6g} mm) of "
+                f"{{D}}'s origin, got one {distance:.6g} mm away (a length in the wrong unit?)",
+            )
+        centres[key] = centre
+    compliance = (
+        _array(table, "compliance_mm_per_kN", (N_LEGS,), source, "elastic")
+        if "compliance_mm_per_kN" in table
+        else np.zeros(N_LEGS)
+    )
+    truth = (
+        _array(table, "true_compliance_mm_per_kN", (N_LEGS,), source, "elastic")
+        if "true_compliance_mm_per_kN" in table
+        else None
+    )
+    return Elastic(
+        mass,
+        centres["platform_com_mm"],
+        centres["payload_com_mm"],
+        compliance,
+        _non_negative(table, "compliance_sigma_mm_per_kN", 1.0, source, "elastic"),
+        truth,
+    )
 
 
 #: keys of ``[instrument]`` each kind reads (spec §7); any other key is refused by name.
@@ -534,6 +621,7 @@ def platform_to_toml(platform: Platform) -> str:
         if section == "tracker" and platform.tracker_geometry_sigma_mm > 0:
             lines.append(f"geometry_sigma_mm = {platform.tracker_geometry_sigma_mm!r}")
     lines += _instrument_toml(platform.instrument)
+    lines += _elastic_toml(platform.elastic)
     if platform.workspace is not None:
         ws = platform.workspace
         home = np.concatenate([ws.home[:3], np.degrees(ws.home[3:])])
@@ -563,6 +651,24 @@ def _instrument_toml(instrument: Instrument) -> list[str]:
     lines.append(f"position_sigma_mm = {float(instrument.position_sigma_mm)!r}")
     if instrument.kind == "pose":
         lines.append(f"orientation_sigma_deg = {math.degrees(instrument.orientation_sigma_rad)!r}")
+    return lines
+
+
+def _elastic_toml(elastic: Elastic | None) -> list[str]:
+    """The ``[elastic]`` lines (none for a rigid robot)."""
+    if elastic is None:
+        return []
+    lines = [
+        "",
+        "[elastic]",
+        f"platform_mass_kg = {float(elastic.platform_mass_kg)!r}",
+        f"platform_com_mm = {_toml_list(elastic.platform_com_mm)}",
+        f"payload_com_mm = {_toml_list(elastic.payload_com_mm)}",
+        f"compliance_mm_per_kN = {_toml_list(elastic.compliance_mm_per_kN)}",
+        f"compliance_sigma_mm_per_kN = {float(elastic.compliance_sigma_mm_per_kN)!r}",
+    ]
+    if elastic.true_compliance_mm_per_kN is not None:
+        lines.append(f"true_compliance_mm_per_kN = {_toml_list(elastic.true_compliance_mm_per_kN)}")
     return lines
 
 

@@ -25,7 +25,8 @@ class Sample:
             grating readings s_i [mm].
         desired_pose: ``(6,)`` pose the controller was asked for ``[mm, rad]``, or None.
         stage: free label of the experiment stage ("" when absent).
-        load_kg: payload, for reports only — no estimator may read it.
+        load_kg: payload [kg]: an input of the estimators where the platform has ``[elastic]`` (spec §10),
+            else for reports only.
     """
 
     t_s: float
@@ -46,7 +47,7 @@ class Log:
         readings: ``(N, M)`` the instrument's measurements (tracker: s_i [mm]).
         desired_poses: ``(N, 6)`` ``[mm, rad]`` or None when the log has no pose columns.
         stages: N labels or None.
-        load_kg: ``(N,)`` or None.
+        load_kg: ``(N,)`` payload [kg] or None (see :class:`Sample`).
         skipped: ``(row, reason)`` of rows skipped on reading (1-based file line numbers).
     """
 

@@ -19,6 +19,7 @@ LAYERS = (
     ("samples", "config", "rotations", "chi_square"),
     ("platform",),
     ("kinematics", "unknowns"),
+    ("statics",),
     ("estimate", "instruments"),
     ("factors", "io", "identifiability", "compensation", "plausibility", "simulation", "viz"),
     ("planning", "estimators"),

@@ -13,16 +13,9 @@ from stewart_calib.errors import CalibError
 from stewart_calib.samples import Sample
 from stewart_calib.simulation.closed_loop import FrozenController, run_experiment
 from stewart_calib.simulation.experiment import load_experiment
-from stewart_calib.simulation.load import (
-    G_N_PER_KG,
-    compliance_drift,
-    gravity_wrench,
-    leg_forces,
-    loaded_params,
-    settle,
-    statics_matrix,
-)
+from stewart_calib.simulation.load import compliance_drift, loaded_params, settle
 from stewart_calib.simulation.trajectories import random_static_poses
+from stewart_calib.statics import G_N_PER_KG, gravity_wrench, leg_forces
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "configs" / "experiments" / "paper.toml"
@@ -48,22 +41,6 @@ def paper_runs(paper):
 
 
 # ----------------------------------------------------------------------------- statics
-
-
-def test_leg_forces_balance_the_gravity_wrench(paper):
-    rng = np.random.default_rng(0)
-    poses = random_static_poses(paper.platform, 50, rng, 1.0, 0.0)
-    R, t = kin.pose_to_rt(poses)
-    masses = np.stack([np.full(50, 15.0), rng.uniform(0.0, 60.0, 50)], axis=-1)
-    coms = np.array([[0.0, 0.0, -40.0], [80.0, -50.0, 120.0]])
-    wrench = gravity_wrench(R, masses, coms)
-    forces = leg_forces(paper.platform.drive, R, t, wrench)
-    residual = np.einsum("kij,kj->ki", statics_matrix(paper.platform.drive, R, t), forces) + wrench
-    # Relative to the largest wrench component (~1e5 N·mm): a 6×6 solve is good to ~1e-13.
-    assert np.max(np.abs(residual) / np.max(np.abs(wrench), axis=-1, keepdims=True)) < 1e-9
-    # and the forces' vertical components carry the whole weight
-    n = kin.leg_unit_vectors(paper.platform.drive, R, t)
-    np.testing.assert_allclose(np.sum(forces * n[..., 2], axis=-1), masses.sum(axis=-1) * G_N_PER_KG, rtol=1e-9)
 
 
 def test_centred_load_on_the_threefold_symmetric_platform_shares_equally(paper):

@@ -213,6 +213,15 @@ def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) ->
         _flag_out_of_range(table, STROKE_COLUMNS, platform.stroke_range, "stroke", "drive.stroke_range_mm")
         if _kind(platform) == "tracker":
             _flag_out_of_range(table, READING_COLUMNS, platform.reading_range, "reading", "tracker.reading_range_mm")
+        if platform.elastic is not None and "load_kg" in table.numbers:
+            load = table.numbers["load_kg"]
+            table.flag(
+                ~(np.isfinite(load) & (load >= 0)),
+                lambda k: (
+                    f"column 'load_kg': expected a finite payload ≥ 0 kg (an input where the platform has "
+                    f"[elastic], spec §10), got {float(load[k])!r}"
+                ),
+            )
 
 
 #: bytes of a log read and parsed at a time (a few ten thousand rows): what reading a log holds
@@ -417,6 +426,8 @@ class LogRowParser:
             "pose": [index[name] for name in POSE_COLUMNS] if self._has_pose else [],
         }
         self._load = index.get("load_kg")
+        # with [elastic] the payload is an input (spec §10): a row without a usable one takes the careful path
+        self._load_is_input = self._load is not None and platform is not None and platform.elastic is not None
         self._stage = index.get("stage")
         self._reading_angles = [j for j, name in enumerate(readings) if name in MEASURED_ANGLE_COLUMNS]
         self._stroke_range = platform.stroke_range if platform is not None else None
@@ -444,6 +455,8 @@ class LogRowParser:
         except ValueError:
             return None
         if not all(map(math.isfinite, values)) or values[0] < self._last_t_s:
+            return None
+        if self._load_is_input and not 0.0 <= load_kg < math.inf:
             return None
         for bounds, group in ((self._stroke_range, self._stroke_slice), (self._reading_range, self._reading_slice)):
             if bounds is not None and not bounds[0] <= min(values[group]) <= max(values[group]) <= bounds[1]:
@@ -476,6 +489,8 @@ class LogRowParser:
         values, load_kg, stages = parsed  # values: t_s, strokes, readings, pose
         t_s = values[:, 0]
         if not np.isfinite(values).all() or t_s[0] < self._last_t_s or np.any(t_s[1:] < t_s[:-1]):
+            return None
+        if self._load_is_input and not np.all((load_kg >= 0) & (load_kg < np.inf)):
             return None
         for bounds, group in ((self._stroke_range, self._stroke_slice), (self._reading_range, self._reading_slice)):
             if bounds is not None and not bounds[0] <= values[:, group].min() <= values[:, group].max() <= bounds[1]:

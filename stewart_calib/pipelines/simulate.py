@@ -2,7 +2,9 @@
 
 Writes into DIR (created if needed), each file atomically:
 
-* ``platform.toml`` — the nominal platform (spec §2), what estimators are given;
+* ``platform.toml`` — the nominal platform (spec §2), what estimators are given, with the
+  experiment's masses and centres of mass and the truth of the legs' compliance as ``[elastic]``
+  (spec §10; :func:`stewart_calib.simulation.load.elastic_of`);
 * ``log.csv`` — the measurement log (spec §3) with desired poses, stages and payload;
 * ``truth.csv`` — the true drive parameters and true poses, row for row (spec §4).
 
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 from contextlib import ExitStack
+from dataclasses import replace
 from pathlib import Path
 
 from ..errors import CalibError
@@ -24,6 +27,7 @@ from ..io import atomic_path, atomic_write_text, log_text, read_calibrated_drive
 from ..platform import Platform, platform_to_toml
 from ..simulation.closed_loop import FrozenController, NominalController, simulate_blocks
 from ..simulation.experiment import load_experiment
+from ..simulation.load import elastic_of
 from . import run_command
 
 
@@ -75,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
         for k, (log, truth) in enumerate(run.blocks):
             log_file.write(log_text(log, experiment.platform, header=k == 0))
             truth_file.write(truth_text(truth, header=k == 0))
-    atomic_write_text(out / "platform.toml", platform_to_toml(experiment.platform))
+    platform = replace(experiment.platform, elastic=elastic_of(experiment.load))
+    atomic_write_text(out / "platform.toml", platform_to_toml(platform))
     print(f"simulated {len(run.plan.t_s)} samples of '{experiment.name}' ({args.controller} controller) into {out}")
     return 0
 

@@ -6,7 +6,8 @@ Pure, vectorised numpy (batch axes ``...`` over poses). The chain, for a pose ``
 1. **Gravity wrench** on the platform about its origin ``t`` (in {J}): each mass ``m_k`` [kg] at
    ``c_k`` in {D} contributes ``F = m_k g`` and ``M = (R c_k) × m_k g`` with
    ``g = [0, 0, −9.80665]`` N/kg — [N] and [N·mm].
-2. **Statics** (the transposed Jacobian): the six legs are two-force members, leg i pushes the
+2. **Statics** (the transposed Jacobian; :mod:`stewart_calib.statics`, shared with the elastic
+   drive model of the estimators): the six legs are two-force members, leg i pushes the
    platform with ``f_i n_i`` (``n_i`` the unit vector of paper eq. 1, base → platform, so
    ``f_i > 0`` is *compression*). Equilibrium ``Σ f_i n_i + F = 0``,
    ``Σ (R d_i) × f_i n_i + M = 0``, i.e. ``Aᵀ f = −w`` with ``Aᵀ`` the 6×6 matrix whose
@@ -35,10 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import kinematics as kin
-from ..platform import LegGeometry, vector_to_params
-
-#: standard gravity [m/s² = N/kg]
-G_N_PER_KG = 9.80665
+from ..platform import Elastic, LegGeometry, vector_to_params
+from ..statics import gravity_leg_forces, masses_and_centres
 
 
 @dataclass(frozen=True)
@@ -66,32 +65,25 @@ class LoadModel:
     iterations: int = 2
 
 
-def gravity_wrench(R: np.ndarray, masses_kg: np.ndarray, coms_mm: np.ndarray) -> np.ndarray:
-    """Gravity wrench ``w = [F [N], M [N·mm]]`` on the platform about its origin, in {J}.
+def elastic_of(load: LoadModel) -> Elastic | None:
+    """The ``[elastic]`` table (spec §10) of a platform this load model acts on: its masses and
+    centres of mass, the nominal compliance 0 (what a controller believes before calibration) and,
+    as ``true_compliance_mm_per_kN``, the truth: the series axial compliance of leg and joints.
 
-    Args:
-        R: ``(..., 3, 3)`` platform orientation.
-        masses_kg: ``(..., K)`` masses [kg] (broadcast against the batch).
-        coms_mm: ``(K, 3)`` their centres of mass in {D} [mm].
-    Returns:
-        ``(..., 6)``.
+    Each joint's drift of step 3 lies along its leg, so it changes the leg length by ``−f_i / k``
+    exactly as the leg's own compliance does: ``c_i = 1000 (1/k_leg + 1/k_base + 1/k_platform)``
+    [mm/kN]. A finite plate bending moves the platform joints along z of {D}, not along the legs,
+    and is not part of c. None for a massless platform (spec §10 needs a positive mass).
     """
-    masses_kg = np.asarray(masses_kg, dtype=float)
-    weights = masses_kg[..., None] * np.array([0.0, 0.0, -G_N_PER_KG])  # (..., K, 3)
-    arms = np.einsum("...ij,kj->...ki", R, np.asarray(coms_mm, dtype=float))  # (..., K, 3)
-    return np.concatenate([weights.sum(axis=-2), np.cross(arms, weights).sum(axis=-2)], axis=-1)
-
-
-def statics_matrix(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``Aᵀ`` with column i ``[n_i; R d_i × n_i]`` — leg forces → wrench about ``t``, ``(..., 6, 6)``."""
-    n = kin.leg_unit_vectors(legs, R, t)
-    arms = np.einsum("...ij,kj->...ki", R, legs.platform_joints)
-    return np.swapaxes(np.concatenate([n, np.cross(arms, n)], axis=-1), -1, -2)
-
-
-def leg_forces(legs: LegGeometry, R: np.ndarray, t: np.ndarray, wrench: np.ndarray) -> np.ndarray:
-    """Axial leg forces balancing an external wrench: ``Aᵀ f = −w``; ``(..., 6)`` [N], compression > 0."""
-    return np.linalg.solve(statics_matrix(legs, R, t), -np.asarray(wrench)[..., None])[..., 0]
+    if not load.platform_mass_kg > 0:
+        return None
+    series = 1.0 / load.leg_N_per_mm + 1.0 / load.base_joint_N_per_mm + 1.0 / load.platform_joint_N_per_mm
+    return Elastic(
+        float(load.platform_mass_kg),
+        np.array(load.platform_com_mm, dtype=float),
+        np.array(load.payload_com_mm, dtype=float),
+        true_compliance_mm_per_kN=np.full(6, 1000.0 * series),
+    )
 
 
 def compliance_drift(
@@ -124,11 +116,10 @@ def loaded_params(
     """
     legs = LegGeometry.from_params(base_params)
     batch = np.shape(t)[:-1]
-    masses = np.stack(
-        np.broadcast_arrays(np.full(batch, load.platform_mass_kg), np.asarray(payload_kg, dtype=float)), axis=-1
+    masses, coms = masses_and_centres(
+        load.platform_mass_kg, load.platform_com_mm, payload_kg, load.payload_com_mm, batch
     )
-    coms = np.stack([load.platform_com_mm, load.payload_com_mm])
-    forces = leg_forces(legs, R, t, gravity_wrench(R, masses, coms))
+    forces = gravity_leg_forces(legs, R, t, masses, coms)
     drift = compliance_drift(load, legs, R, t, forces)
     return np.asarray(base_params) + drift.reshape(batch + (42,)), forces
 

@@ -1,0 +1,189 @@
+"""Statics of the platform under gravity: masses → gravity wrench → axial leg forces, and their Jacobians.
+
+One implementation for the simulator's load model (:mod:`stewart_calib.simulation.load`) and the
+elastic drive model of the estimators (spec §10). Pure numpy, vectorised over the batch axes
+``...`` of the poses.
+
+Equilibrium (spec §10). The six legs are two-force members: leg i pushes the platform with
+``f_i n_i`` (``n_i`` the unit vector of paper eq. 1, base → platform, so ``f_i > 0`` is
+*compression*). Gravity (``g = 9.80665`` m/s² along −z of {J}) acts on each mass ``m_k`` at its
+centre of mass ``c_k`` in {D}. The forces balance it::
+
+    Aᵀ f = −w,    column i of Aᵀ = [n_i; R d_i × n_i],    w = [Σ m_k g; Σ (R c_k) × m_k g]
+
+in {J} about the platform origin ([N] and [N·mm]). Rotated into {D} and written rotation first,
+the same equations read ``Jᵀ f = −w_D`` with ``J`` the leg-length pose Jacobian of
+:func:`stewart_calib.kinematics.leg_pose_jacobian` (rows ``[d_i × u_i, u_i]``, ``u_i = Rᵀ n_i``)
+and ``w_D = [Σ c_k × m_k g_D; Σ m_k g_D]``, ``g_D = Rᵀ g``: the virtual-work statement that leg
+forces and platform wrench are dual through the leg-rate Jacobian. The Jacobians below are
+derived in that form.
+
+Derivatives. Perturbing ``J`` or ``w_D`` by ``δ``: ``δf = −J⁻ᵀ (δw_D + δJᵀ f)``. For the body
+tangent ``ξ = [ω, v]`` (``R ← R Exp(ω)``, ``t ← t + R v``, as everywhere in the package):
+``δg_D = [g_D]× ω``; the body-frame leg vector ``e_i = Rᵀ(t − j_i) + d_i`` moves by
+``[e_i − d_i]× ω + v`` and ``u_i = e_i/‖e_i‖`` by ``(I − u_i u_iᵀ)/‖e_i‖`` times that. For leg i's
+joints: ``δe_i = −Rᵀ δj_i + δd_i``, and the arm of ``J``'s row changes by ``δd_i × u_i``. The
+initial length ``l_i`` does not enter the statics.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import CalibError
+from .kinematics import leg_pose_jacobian, leg_unit_vectors, skew
+from .platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
+
+#: standard gravity [m/s² = N/kg]
+G_N_PER_KG = 9.80665
+
+#: gravity [N/kg] in {J}: along −z.
+GRAVITY_N_PER_KG = np.array([0.0, 0.0, -G_N_PER_KG])
+
+#: the statics matrix is refused as singular where ``|det|`` over the product of its column norms
+#: (Hadamard's ratio, 1 for orthogonal columns, 0 at a singularity; the moment rows divided by the
+#: platform's joint radius so that the ratio does not depend on the unit of length) falls below
+#: this. The leg forces grow as the inverse of the smallest singular value: at 1e-6 they are of the
+#: order of a million times the weight, no longer anything a leg carries.
+SINGULAR_RATIO = 1e-6
+
+
+class SingularStatics(CalibError):
+    """The statics matrix is singular at some pose: no leg forces balance the weight there.
+
+    ``index`` is the flat index of the first such pose in the batch (0 for a single pose).
+    """
+
+    def __init__(self, message: str, index: int):
+        super().__init__(message)
+        self.index = index
+
+
+def gravity_wrench(R: np.ndarray, masses_kg: np.ndarray, coms_mm: np.ndarray) -> np.ndarray:
+    """Gravity wrench ``w = [F [N], M [N·mm]]`` on the platform about its origin, in {J}.
+
+    Args:
+        R: ``(..., 3, 3)`` platform orientation.
+        masses_kg: ``(..., K)`` masses [kg] (broadcast against the batch).
+        coms_mm: ``(K, 3)`` their centres of mass in {D} [mm].
+    Returns:
+        ``(..., 6)``.
+    """
+    masses_kg = np.asarray(masses_kg, dtype=float)
+    masses_kg = np.broadcast_to(
+        masses_kg, np.broadcast_shapes(np.shape(R)[:-2], masses_kg.shape[:-1]) + masses_kg.shape[-1:]
+    )
+    weights = masses_kg[..., None] * GRAVITY_N_PER_KG  # (..., K, 3)
+    arms = np.einsum("...ij,kj->...ki", R, np.asarray(coms_mm, dtype=float))  # (..., K, 3)
+    return np.concatenate([weights.sum(axis=-2), np.cross(arms, weights).sum(axis=-2)], axis=-1)
+
+
+def statics_matrix(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``Aᵀ`` with column i ``[n_i; R d_i × n_i]`` — leg forces → wrench about ``t``, ``(..., 6, 6)``."""
+    n = leg_unit_vectors(legs, R, t)
+    arms = np.einsum("...ij,kj->...ki", R, legs.platform_joints)
+    return np.swapaxes(np.concatenate([n, np.cross(arms, n)], axis=-1), -1, -2)
+
+
+def check_not_singular(legs: LegGeometry, statics: np.ndarray) -> None:
+    """Refuse (:class:`SingularStatics`, one line) a batch of statics matrices ``(..., 6, 6)`` with
+    a singular one (:data:`SINGULAR_RATIO`)."""
+    radius = float(np.sqrt(np.mean(np.sum(legs.platform_joints**2, axis=-1)))) or 1.0
+    scaled = np.array(statics, dtype=float)
+    scaled[..., 3:, :] /= radius
+    ratio = np.abs(np.linalg.det(scaled)) / np.prod(np.linalg.norm(scaled, axis=-2), axis=-1)
+    bad = np.flatnonzero(~(np.reshape(ratio, -1) >= SINGULAR_RATIO))
+    if bad.size:
+        index = int(bad[0])
+        raise SingularStatics(
+            f"pose {index + 1}: the statics matrix Aᵀ is singular (Hadamard ratio "
+            f"{float(np.reshape(ratio, -1)[index]):.2g} < {SINGULAR_RATIO:g}): no leg forces balance the weight there",
+            index,
+        )
+
+
+def leg_forces(legs: LegGeometry, R: np.ndarray, t: np.ndarray, wrench: np.ndarray) -> np.ndarray:
+    """Axial leg forces balancing an external wrench: ``Aᵀ f = −w``; ``(..., 6)`` [N], compression > 0.
+
+    Raises:
+        SingularStatics: at a pose where ``Aᵀ`` is singular.
+    """
+    A_T = statics_matrix(legs, R, t)
+    check_not_singular(legs, A_T)
+    return np.linalg.solve(A_T, -np.asarray(wrench)[..., None])[..., 0]
+
+
+def masses_and_centres(
+    platform_mass_kg: float, platform_com_mm: np.ndarray, payload_kg, payload_com_mm: np.ndarray, batch: tuple
+) -> tuple[np.ndarray, np.ndarray]:
+    """The platform's and the payload's masses ``(batch + (2,))`` [kg] and centres ``(2, 3)`` [mm]."""
+    masses = np.stack(
+        np.broadcast_arrays(np.full(batch, float(platform_mass_kg)), np.asarray(payload_kg, dtype=float)), axis=-1
+    )
+    return masses, np.stack([np.asarray(platform_com_mm, dtype=float), np.asarray(payload_com_mm, dtype=float)])
+
+
+def gravity_leg_forces(
+    legs: LegGeometry, R: np.ndarray, t: np.ndarray, masses_kg: np.ndarray, coms_mm: np.ndarray
+) -> np.ndarray:
+    """Leg forces [N] holding masses ``(..., K)`` [kg] at centres ``(K, 3)`` in {D} [mm] at ``(R, t)``."""
+    return leg_forces(legs, R, t, gravity_wrench(R, masses_kg, coms_mm))
+
+
+def leg_force_jacobians(
+    legs: LegGeometry, R: np.ndarray, t: np.ndarray, forces_N: np.ndarray, masses_kg: np.ndarray, coms_mm: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Jacobians of :func:`gravity_leg_forces` at its solution ``forces_N``: ``(∂f/∂ξ, ∂f/∂M)``.
+
+    Args:
+        forces_N: ``(..., 6)`` the forces at ``(R, t)`` [N].
+        masses_kg, coms_mm: as :func:`gravity_leg_forces`.
+    Returns:
+        ``(..., 6, 6)`` [N per rad, N/mm] for the body tangent ``ξ = [ω, v]``, and ``(..., 6, 42)``
+        [N/mm] on the drive parameters in the paper's order (zero on every ``l_i``).
+    """
+    J = leg_pose_jacobian(legs, R, t)  # rows [d_i × u_i, u_i]
+    u = J[..., 3:]  # (..., 6, 3) Rᵀ n_i
+    vec = np.einsum("...ji,...kj->...ki", R, (t[..., None, :] - legs.base_joints)) + legs.platform_joints
+    length = np.linalg.norm(vec, axis=-1)[..., None, None]
+    # ∂u_i/∂e_i = (I − u uᵀ)/‖e‖
+    du_de = (np.eye(3) - u[..., :, None] * u[..., None, :]) / length  # (..., 6, 3, 3)
+    arms = skew(legs.platform_joints)  # (6, 3, 3): [d_i]×
+
+    # the gravity wrench's change with the orientation: δg_D = [g_D]× ω
+    g_D = np.einsum("...ji,j->...i", R, GRAVITY_N_PER_KG)
+    dg = skew(g_D)  # (..., 3, 3)
+    masses_kg = np.broadcast_to(
+        np.asarray(masses_kg, dtype=float),
+        (
+            *np.shape(forces_N)[:-1],
+            len(coms_mm),
+        ),
+    )
+    total = masses_kg.sum(axis=-1)[..., None, None]
+    first_moment = np.einsum("...k,kj->...j", masses_kg, np.asarray(coms_mm, dtype=float))
+    dw = np.zeros((*np.shape(forces_N)[:-1], 6, 6))
+    dw[..., 0:3, 0:3] = skew(first_moment) @ dg
+    dw[..., 3:6, 0:3] = total * dg
+
+    # δJᵀ f = Σ_i f_i [d_i × δu_i; δu_i], δu_i = du_de_i ([e_i − d_i]× ω + v)
+    de_dxi = np.concatenate([skew(vec - legs.platform_joints), _eye_legs(vec)], axis=-1)
+    du_dxi = du_de @ de_dxi  # (..., 6, 3, 6)
+    weighted = forces_N[..., None, None] * du_dxi
+    dJf = np.concatenate([np.einsum("iab,...ibc->...ac", arms, weighted), weighted.sum(axis=-3)], axis=-2)
+    J_inv_T = np.linalg.inv(np.swapaxes(J, -1, -2))
+    df_dxi = -J_inv_T @ (dw + dJf)
+
+    # leg i's joints: δe_i = −Rᵀ δj_i + δd_i; row i of J gains [δd_i × u_i + d_i × δu_i, δu_i]
+    de_dparams = np.concatenate([-np.swapaxes(R, -1, -2)[..., None, :, :].repeat(N_LEGS, axis=-3), _eye_legs(vec)], -1)
+    du_dparams = du_de @ de_dparams  # (..., 6, 3, 6) on (j_i, d_i)
+    arm_change = np.concatenate([np.zeros((*vec.shape, 3)), -skew(u)], axis=-1)  # δd_i × u_i = −[u_i]× δd_i
+    row_change = np.concatenate([arm_change + arms @ du_dparams, du_dparams], axis=-2)  # (..., 6, 6, 6)
+    df_djd = -np.einsum("...ab,...ibc->...aic", J_inv_T, forces_N[..., :, None, None] * row_change)
+    df_dM = np.zeros((*np.shape(forces_N)[:-1], N_LEGS, N_LEGS, N_PARAMS_PER_LEG))
+    df_dM[..., :6] = df_djd
+    return df_dxi, df_dM.reshape((*np.shape(forces_N)[:-1], N_LEGS, N_PARAMS))
+
+
+def _eye_legs(vec: np.ndarray) -> np.ndarray:
+    return np.broadcast_to(np.eye(3), (*vec.shape, 3))
