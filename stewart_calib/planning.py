@@ -33,14 +33,28 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kinematics as kin
+from .accuracy import N_DRIVE_UNKNOWNS, error_weight, reachable_poses, within_ranges
 from .config import NoiseConfig
 from .errors import CalibError
-from .identifiability import scaled_paper_jacobian, whitened_leg_jacobian
-from .platform import Platform
+from .identifiability import RANK_RTOL, scaled_paper_jacobian, whitened_leg_jacobian
+from .instruments.external import information_rows
+from .platform import N_PARAMS, Platform
 
-CRITERIA = ("A", "D", "O1", "E")
+CRITERIA = ("A", "D", "O1", "E", "I")
+#: the tracker's default (its designs and tests predate ``I``); outside instruments default to ``I``
 DEFAULT_CRITERION = "A"
+#: the criteria ``−tr(W F⁻¹)``, linear in the covariance
+LINEAR = ("A", "I")
+
+#: Bisection steps that pull an extreme pose of the box back along its ray from home until its
+#: strokes are in range: 2⁻²⁰ of the offset, below a micrometre on any hexapod.
+EXTREME_BISECTIONS = 20
+
+#: Fedorov passes over the design at most (each costs a best-addition search per design point); a
+#: swap counts when it improves the criterion by more than SWAP_GAIN_REL (round-off ties otherwise
+#: could cycle). Measured on 60 poses of the shipped and test geometries: 2–4 passes to settle.
+FEDOROV_PASSES = 5
+SWAP_GAIN_REL = 1e-9
 
 #: Ridge added to the information, relative to the mean per-pose information: it makes the
 #: first greedy picks (fewer than 7 poses, singular F) well posed; at 1e-6 of one pose's
@@ -53,50 +67,69 @@ RIDGE_REL = 1e-6
 #: 0.0139 mm with uniform candidates (exponent 1), 0.0123 with 1/2, 0.0116 with 0.3.
 FACE_BIAS_EXPONENT = 0.3
 
-#: Candidate draws allowed per requested candidate before giving up on a workspace whose box
-#: is mostly outside the stroke or reading ranges.
-MAX_DRAWS_PER_CANDIDATE = 50
-
 
 def candidate_poses(platform: Platform, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``(n, 6)`` random poses in the workspace box with strokes and readings within range.
-
-    Each coordinate is ``home + limit · sign(w)|w|^FACE_BIAS_EXPONENT``, w uniform in [−1, 1].
+    """``(n, 6)`` random reachable poses in the workspace box, denser near its faces
+    (:data:`FACE_BIAS_EXPONENT`; :func:`stewart_calib.accuracy.reachable_poses`).
 
     Raises:
         CalibError: the platform has no ``[workspace]``, or almost no pose of the box is reachable.
     """
+    return reachable_poses(platform, n, rng, FACE_BIAS_EXPONENT)
+
+
+def extreme_poses(platform: Platform) -> np.ndarray:
+    """The workspace box's extremes, translation and orientation combined: every pose
+    ``home + (a · translation_limit, b · rotation_limit)`` with each of the six ``a, b`` in
+    {−1, 0, 1} (3⁶ = 729, home included), each pulled back along its ray from home to the
+    farthest point whose strokes (and tracker readings) are in range. Optimal designs for the
+    unknowns an outside instrument shares with the drive sit there: the leg lengths trade against
+    the instrument frame's height, a direction only poses that tilt and reach far see.
+
+    Raises:
+        CalibError: the platform has no ``[workspace]``.
+    """
     ws = platform.workspace
     if ws is None:
         raise CalibError(f"{platform.source}: key 'workspace': expected a [workspace] table to draw poses from")
-    half = np.r_[[ws.translation_limit] * 3, [ws.rotation_limit] * 3]
-    accepted: list[np.ndarray] = []
-    count = draws = 0
-    while count < n:
-        if draws > MAX_DRAWS_PER_CANDIDATE * n:
-            raise CalibError(
-                f"{platform.source}: key 'workspace': expected a box whose poses mostly lie within the "
-                f"stroke and reading ranges; only {count} of {draws} random poses do"
-            )
-        w = rng.uniform(-1.0, 1.0, (n, 6))
-        batch = ws.home + np.sign(w) * np.abs(w) ** FACE_BIAS_EXPONENT * half
-        draws += n
-        R, t = kin.pose_to_rt(batch)
-        ok = np.ones(n, dtype=bool)
-        for legs, bounds in ((platform.drive, platform.stroke_range), (platform.tracker, platform.reading_range)):
-            if bounds is not None:
-                lengths = kin.inverse_kinematics(legs, R, t)
-                ok &= np.all((lengths >= bounds[0]) & (lengths <= bounds[1]), axis=1)
-        accepted.append(batch[ok])
-        count += int(ok.sum())
-    return np.concatenate(accepted)[:n]
+    levels = np.array(np.meshgrid(*[[-1.0, 0.0, 1.0]] * 6, indexing="ij")).reshape(6, -1).T
+    offsets = levels * np.r_[[ws.translation_limit] * 3, [ws.rotation_limit] * 3]
+    reach = np.where(within_ranges(platform, ws.home + offsets), 1.0, 0.0)  # home itself is in range
+    lo, hi = reach.copy(), np.ones(len(offsets))
+    for _ in range(EXTREME_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        ok = within_ranges(platform, ws.home + mid[:, None] * offsets)
+        lo, hi = np.where(ok, mid, lo), np.where(ok, hi, mid)
+    return ws.home + lo[:, None] * offsets
 
 
-def _blocks(platform: Platform, poses: np.ndarray, criterion: str, noise: NoiseConfig) -> np.ndarray:
-    """Six-row information blocks ``U_k`` ``(M, 6, 42)`` for the criterion's Jacobian form."""
+def _design(platform: Platform, poses: np.ndarray, criterion: str, noise: NoiseConfig):
+    """Six-row (tracker) or m-row (outside instrument) information blocks ``U_k`` ``(M, m, p)``
+    and the weight of a linear criterion (``A``, ``I``; None: the identity of the tracker's ``A``).
+
+    The tracker's blocks are the 42 drive parameters' (whitened leg-length form, or the paper's
+    ``J_p`` form for ``O1``); an outside instrument's are every unknown of the batch fit
+    (:func:`stewart_calib.instruments.external.information_rows`). ``A`` weighs the 42 drive
+    parameters alike, ``I`` by the closed-loop error they cause (:func:`accuracy.error_weight`).
+    """
+    if platform.instrument.kind == "tracker":
+        if criterion == "O1":
+            return scaled_paper_jacobian(platform, poses), None
+        blocks = whitened_leg_jacobian(platform, poses, noise)
+        return blocks, error_weight(platform)[:N_PARAMS, :N_PARAMS] if criterion == "I" else None
     if criterion == "O1":
-        return scaled_paper_jacobian(platform, poses)
-    return whitened_leg_jacobian(platform, poses, noise)
+        raise CalibError(
+            f"criterion: O1 is of the paper's J_p form, the in-situ tracker's; expected one of "
+            f"{', '.join(c for c in CRITERIA if c != 'O1')} for a '{platform.instrument.kind}' instrument"
+        )
+    blocks, lift = information_rows(platform, poses)
+    drive = lift[:N_DRIVE_UNKNOWNS]
+    weight = drive.T @ error_weight(platform) @ drive if criterion == "I" else drive[:N_PARAMS].T @ drive[:N_PARAMS]
+    # mm, rad and dimensionless columns: equilibrated, so that the ridge weighs them alike
+    # (−tr(W F⁻¹) and log det rank designs as before, with W and F scaled alike)
+    scale = np.sqrt(np.mean(np.sum(blocks**2, axis=1), axis=0))
+    scale = np.where(scale > 0, scale, 1.0)
+    return blocks / scale, weight / np.outer(scale, scale)
 
 
 def _logdet_change(cov: np.ndarray, U: np.ndarray, sign: float) -> np.ndarray:
@@ -109,11 +142,13 @@ def _logdet_change(cov: np.ndarray, U: np.ndarray, sign: float) -> np.ndarray:
     return np.where(sign_det > 0, logdet, -np.inf)
 
 
-def _trace_change(cov: np.ndarray, U: np.ndarray, sign: float) -> np.ndarray:
-    """``tr (F ± UᵀU)⁻¹ − tr F⁻¹ = ∓ tr(S⁻¹ U F⁻² Uᵀ)`` with ``S = I₆ ± U F⁻¹ Uᵀ``, per block."""
+def _trace_change(cov: np.ndarray, U: np.ndarray, sign: float, weight: np.ndarray | None = None) -> np.ndarray:
+    """``tr W(F ± UᵀU)⁻¹ − tr W F⁻¹ = ∓ tr(S⁻¹ U F⁻¹ W F⁻¹ Uᵀ)`` with ``S = I ± U F⁻¹ Uᵀ``, per
+    block (``W``: ``weight``, the identity when None)."""
     UC = U @ cov
     S = np.eye(U.shape[1]) + sign * UC @ np.swapaxes(U, -1, -2)
-    change = -sign * np.trace(np.linalg.solve(S, UC @ np.swapaxes(UC, -1, -2)), axis1=-2, axis2=-1)
+    UCW = UC if weight is None else UC @ weight
+    change = -sign * np.trace(np.linalg.solve(S, UCW @ np.swapaxes(UC, -1, -2)), axis1=-2, axis2=-1)
     if sign > 0:
         return change
     sign_det, _ = np.linalg.slogdet(S)
@@ -150,82 +185,155 @@ def _best_lambda_min(info: np.ndarray, U: np.ndarray, allowed: np.ndarray, chunk
     return best
 
 
-def _best_addition(criterion: str, info: np.ndarray, cov: np.ndarray, U: np.ndarray, free: np.ndarray) -> int:
+def _best_addition(
+    criterion: str, info: np.ndarray, cov: np.ndarray, U: np.ndarray, free: np.ndarray, weight=None
+) -> int:
     """The free candidate whose block improves the criterion most."""
     if criterion == "E":
         return _best_lambda_min(info, U, free)
-    gain = -_trace_change(cov, U, +1.0) if criterion == "A" else _logdet_change(cov, U, +1.0)
+    gain = -_trace_change(cov, U, +1.0, weight) if criterion in LINEAR else _logdet_change(cov, U, +1.0)
     return int(np.argmax(np.where(free, gain, -np.inf)))
 
 
-def _cheapest_removal(criterion: str, info: np.ndarray, cov: np.ndarray, U: np.ndarray) -> int:
+def _cheapest_removal(criterion: str, info: np.ndarray, cov: np.ndarray, U: np.ndarray, weight=None) -> int:
     """Position (in ``U``) of the design block whose removal costs the criterion least."""
     if criterion == "E":
         kept = np.linalg.eigvalsh(info - np.swapaxes(U, -1, -2) @ U)[:, 0]
-    elif criterion == "A":
-        kept = -_trace_change(cov, U, -1.0)
+    elif criterion in LINEAR:
+        kept = -_trace_change(cov, U, -1.0, weight)
     else:
         kept = _logdet_change(cov, U, -1.0)
     return int(np.argmax(kept))
 
 
 def select_poses(
-    blocks: np.ndarray, n: int, criterion: str = DEFAULT_CRITERION, max_exchanges: int | None = None
+    blocks: np.ndarray,
+    n: int,
+    criterion: str = DEFAULT_CRITERION,
+    max_exchanges: int | None = None,
+    weight: np.ndarray | None = None,
+    criterion_greedy: bool = False,
 ) -> np.ndarray:
     """Indices of ``n`` distinct candidates maximising the criterion (greedy, then exchanges).
 
     Args:
-        blocks: ``(M, 6, 42)`` each candidate's rows of the stacked identification Jacobian.
+        blocks: ``(M, m, p)`` each candidate's rows of the stacked identification Jacobian.
         n: poses to pick (≤ M).
-        criterion: ``A`` (−trace of its inverse), ``D``/``O1`` (log det of the blocks'
-            information) or ``E`` (its λmin).
+        criterion: ``A``/``I`` (−trace of the weighted inverse), ``D``/``O1`` (log det of the
+            blocks' information) or ``E`` (its λmin).
         max_exchanges: cap on accepted exchanges (default ``10 n``); each strictly improves
             the criterion, so the cap only guards against cycling on exact ties.
+        weight: ``(p, p)`` ``W`` of the linear criteria ``−tr(W F⁻¹)`` (None: the identity).
+        criterion_greedy: the greedy phase follows the criterion once the design has as many rows
+            as unknowns, and Fedorov's swaps follow DETMAX's exchanges (the tracker's designs
+            predate both: False).
     Returns:
         ``(n,)`` candidate indices in the order of the final design.
     """
-    M, _, n_params = blocks.shape
+    M, n_rows, n_params = blocks.shape
     gram = np.einsum("kri,krj->ij", blocks, blocks) / M
     info = RIDGE_REL * np.trace(gram) / n_params * np.eye(n_params)
     cov = np.linalg.inv(info)
     chosen: list[int] = []
     free = np.ones(M, dtype=bool)
-    for _ in range(n):
-        k = _best_addition("D", info, cov, blocks, free)
+    for step in range(n):
+        # log det picks the first poses (A, I and E are flat until F has full rank); with
+        # criterion_greedy the criterion takes over once the design could have it
+        by = criterion if criterion_greedy and step * n_rows >= n_params else "D"
+        k = _best_addition(by, info, cov, blocks, free, weight)
         chosen.append(k)
         free[k] = False
         info += blocks[k].T @ blocks[k]
         cov = _woodbury(cov, blocks[k], +1.0)
 
     for _ in range(10 * n if max_exchanges is None else max_exchanges):
-        k = _best_addition(criterion, info, cov, blocks, free)
+        k = _best_addition(criterion, info, cov, blocks, free, weight)
         info_plus = info + blocks[k].T @ blocks[k]
         cov_plus = _woodbury(cov, blocks[k], +1.0)
         members = np.array(chosen + [k])
-        drop = int(members[_cheapest_removal(criterion, info_plus, cov_plus, blocks[members])])
+        drop = int(members[_cheapest_removal(criterion, info_plus, cov_plus, blocks[members], weight)])
         if drop == k:
             break
         chosen[chosen.index(drop)] = k
         free[k], free[drop] = False, True
         info = info_plus - blocks[drop].T @ blocks[drop]
         cov = _woodbury(cov_plus, blocks[drop], -1.0)
+    if criterion_greedy:
+        _fedorov_swaps(criterion, chosen, free, info, cov, blocks, weight)
     return np.array(chosen)
+
+
+def _fedorov_swaps(criterion, chosen, free, info, cov, blocks, weight) -> None:
+    """Fedorov's exchange after DETMAX's (which stops when the best addition is the cheapest
+    removal, though another pair may still improve): for each design point in turn, its best
+    replacement among the free candidates, taken when it improves the criterion; until a pass over
+    the design changes nothing (at most :data:`FEDOROV_PASSES`). ``chosen``/``free`` in place."""
+    value = _value(criterion, info, weight)
+    for _ in range(FEDOROV_PASSES):
+        improved = False
+        for position in range(len(chosen)):
+            drop = chosen[position]
+            info_minus = info - blocks[drop].T @ blocks[drop]
+            if np.linalg.eigvalsh(info_minus)[0] <= 0:
+                continue  # the design point carries all the information in some direction
+            cov_minus = _woodbury(cov, blocks[drop], -1.0)
+            k = _best_addition(criterion, info_minus, cov_minus, blocks, free, weight)
+            info_swapped = info_minus + blocks[k].T @ blocks[k]
+            swapped = _value(criterion, info_swapped, weight)
+            if swapped > value + SWAP_GAIN_REL * abs(value):
+                chosen[position], free[k], free[drop] = k, False, True
+                info, cov, value = info_swapped, _woodbury(cov_minus, blocks[k], +1.0), swapped
+                improved = True
+        if not improved:
+            return
+
+
+def _value(criterion: str, info: np.ndarray, weight: np.ndarray | None) -> float:
+    """The criterion of an information matrix (bigger is better)."""
+    if criterion == "E":
+        return float(np.linalg.eigvalsh(info)[0])
+    if criterion in LINEAR:
+        cov = np.linalg.inv(info)
+        return -float(np.trace(cov if weight is None else weight @ cov))
+    return float(np.linalg.slogdet(info)[1])
+
+
+def design_covariance(platform: Platform, poses: np.ndarray, noise: NoiseConfig | None = None) -> np.ndarray | None:
+    """Cramér–Rao covariance of the unknowns from a pose list, at the nominal model: over the 42
+    drive parameters for the tracker (whitened leg-length form), over ``[δM (42), k (6),
+    instrument]`` for an outside instrument (its batch fit's unknowns, gauge held). None when the
+    poses do not identify every unknown (singular values below ``RANK_RTOL`` of the largest)."""
+    poses = np.asarray(poses, dtype=float).reshape(-1, 6)
+    if platform.instrument.kind == "tracker":
+        rows, lift = whitened_leg_jacobian(platform, poses, noise or NoiseConfig()), np.eye(N_PARAMS)
+    else:
+        rows, lift = information_rows(platform, poses)
+    _, s, Vt = np.linalg.svd(rows.reshape(-1, rows.shape[-1]), full_matrices=False)
+    if s[-1] <= RANK_RTOL * s[0]:
+        return None
+    return lift @ ((Vt.T / s**2) @ Vt) @ lift.T
+
+
+def default_criterion(platform: Platform) -> str:
+    """``I`` (the predicted closed-loop error) for an outside instrument, ``A`` for the tracker."""
+    return DEFAULT_CRITERION if platform.instrument.kind == "tracker" else "I"
 
 
 def plan_poses(
     platform: Platform,
     n: int,
-    criterion: str = DEFAULT_CRITERION,
+    criterion: str | None = None,
     rng: np.random.Generator | None = None,
     n_candidates: int = 2000,
     noise: NoiseConfig | None = None,
 ) -> np.ndarray:
-    """Pick ``n`` calibration poses from ``n_candidates`` random reachable workspace poses.
+    """Pick ``n`` calibration poses from ``n_candidates`` random reachable workspace poses (and,
+    for an outside instrument, the box's :func:`extreme_poses`).
 
     Args:
         platform: nominal geometry with a ``[workspace]``.
         n: poses to plan (≥ 1, ≤ ``n_candidates``).
-        criterion: one of :data:`CRITERIA`.
+        criterion: one of :data:`CRITERIA` (default :func:`default_criterion`).
         rng: randomness of the candidates (default ``np.random.default_rng()``).
         n_candidates: random candidate poses to choose from.
         noise: weights of the leg-length form (default :class:`NoiseConfig`).
@@ -234,11 +342,15 @@ def plan_poses(
     Raises:
         CalibError: a bad ``n``, criterion or candidate count, or no workspace.
     """
+    criterion = default_criterion(platform) if criterion is None else criterion
     if criterion not in CRITERIA:
         raise CalibError(f"criterion: expected one of {', '.join(CRITERIA)}, got {criterion!r}")
     if n < 1 or n_candidates < n:
         raise CalibError(f"n = {n}, candidates = {n_candidates}: expected 1 ≤ n ≤ candidates")
     rng = np.random.default_rng() if rng is None else rng
     candidates = candidate_poses(platform, n_candidates, rng)
-    blocks = _blocks(platform, candidates, criterion, noise or NoiseConfig())
-    return candidates[np.sort(select_poses(blocks, n, criterion))]
+    if platform.instrument.kind != "tracker":
+        candidates = np.concatenate([extreme_poses(platform), candidates])
+    blocks, weight = _design(platform, candidates, criterion, noise or NoiseConfig())
+    outside = platform.instrument.kind != "tracker"
+    return candidates[np.sort(select_poses(blocks, n, criterion, weight=weight, criterion_greedy=outside))]

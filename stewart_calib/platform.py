@@ -148,6 +148,10 @@ class Instrument:
         targets: ``(K, 3)`` nominal target positions in {D} [mm] (points only), else ``(0, 3)``.
         position_sigma_mm: σ of one measured coordinate [mm].
         orientation_sigma_rad: σ of one measured angle [rad] (pose only).
+        visibility_cone_deg: points only: half-angle [deg] about each target's axis within which
+            the instrument at the nominal frame's origin sees it (an SMR's acceptance angle), or
+            None (always seen). Used by ``plan`` and ``identifiability --poses``.
+        target_axes: ``(K, 3)`` each target's axis in {D} (points; default {D}'s z), unnormalised.
     """
 
     kind: str = "tracker"
@@ -156,6 +160,8 @@ class Instrument:
     targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     position_sigma_mm: float = DEFAULT_POSITION_SIGMA_MM
     orientation_sigma_rad: float = math.radians(DEFAULT_ORIENTATION_SIGMA_DEG)
+    visibility_cone_deg: float | None = None
+    target_axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def n_targets(self) -> int:
@@ -496,7 +502,7 @@ def _elastic(doc: dict, drive: LegGeometry, source: str) -> Elastic | None:
 _INSTRUMENT_KEYS = {
     "tracker": {"kind"},
     "pose": {"kind", "frame", "target", "position_sigma_mm", "orientation_sigma_deg"},
-    "points": {"kind", "frame", "targets_mm", "position_sigma_mm"},
+    "points": {"kind", "frame", "targets_mm", "position_sigma_mm", "visibility_cone_deg", "target_axes"},
 }
 
 
@@ -544,6 +550,7 @@ def parse_instrument(table, source: str) -> Instrument:
             targets = np.zeros((0,))
         if targets.ndim != 2 or targets.shape[1:] != (3,) or len(targets) == 0 or not np.all(np.isfinite(targets)):
             raise _refuse(source, "instrument.targets_mm", "1..K rows of [x, y, z] in mm (finite numbers)")
+    cone, axes = _visibility(table, len(targets), source)
     return Instrument(
         kind=kind,
         frame=_pose6(table, "frame", source),
@@ -553,7 +560,27 @@ def parse_instrument(table, source: str) -> Instrument:
         orientation_sigma_rad=math.radians(
             _positive(table, "orientation_sigma_deg", DEFAULT_ORIENTATION_SIGMA_DEG, source, "instrument")
         ),
+        visibility_cone_deg=cone,
+        target_axes=axes,
     )
+
+
+def _visibility(table: dict, n_targets: int, source: str) -> tuple[float | None, np.ndarray]:
+    """``[instrument] visibility_cone_deg`` (in (0, 180]) and ``target_axes`` (K nonzero rows,
+    default {D}'s z for every target; only with the cone)."""
+    axes = np.tile([0.0, 0.0, 1.0], (n_targets, 1))
+    if "visibility_cone_deg" not in table:
+        if "target_axes" in table:
+            raise _refuse(source, "instrument.target_axes", "visibility_cone_deg beside it (the axes are of the cone)")
+        return None, axes
+    cone = _number(table, "visibility_cone_deg", 0.0, source, "instrument")
+    if not 0.0 < cone <= 180.0:
+        raise _refuse(source, "instrument.visibility_cone_deg", f"a half-angle in (0, 180] degrees, got {cone!r}")
+    if "target_axes" in table:
+        axes = _array(table, "target_axes", (n_targets, 3), source, "instrument")
+        if np.any(np.linalg.norm(axes, axis=1) == 0.0):
+            raise _refuse(source, "instrument.target_axes", f"{n_targets} nonzero [x, y, z] directions in {{D}}")
+    return float(cone), axes
 
 
 def _check_home_reachable(platform: Platform, source: str) -> None:
@@ -649,6 +676,9 @@ def _instrument_toml(instrument: Instrument) -> list[str]:
     else:
         lines.append(f"targets_mm = {_toml_rows(instrument.targets)}")
     lines.append(f"position_sigma_mm = {float(instrument.position_sigma_mm)!r}")
+    if instrument.visibility_cone_deg is not None:
+        lines.append(f"visibility_cone_deg = {float(instrument.visibility_cone_deg)!r}")
+        lines.append(f"target_axes = {_toml_rows(instrument.target_axes)}")
     if instrument.kind == "pose":
         lines.append(f"orientation_sigma_deg = {math.degrees(instrument.orientation_sigma_rad)!r}")
     return lines

@@ -21,7 +21,7 @@ LAYERS = (
     ("kinematics", "unknowns"),
     ("statics",),
     ("estimate", "instruments"),
-    ("factors", "io", "identifiability", "compensation", "plausibility", "simulation", "viz"),
+    ("factors", "io", "identifiability", "accuracy", "compensation", "plausibility", "simulation", "viz"),
     ("planning", "estimators"),
     ("online", "reproduction", "sweep"),
     ("pipelines",),

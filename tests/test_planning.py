@@ -73,7 +73,7 @@ def test_e_branch_and_bound_finds_the_exhaustive_best(platform):
 @pytest.mark.parametrize("criterion", planning.CRITERIA)
 def test_exchanges_improve_on_the_greedy_design(platform, criterion):
     poses = planning.candidate_poses(platform, 400, np.random.default_rng(4))
-    blocks = planning._blocks(platform, poses, criterion, NOISE)
+    blocks = planning._design(platform, poses, criterion, NOISE)[0]
 
     def value(index):
         F = np.einsum("kri,krj->ij", blocks[index], blocks[index])

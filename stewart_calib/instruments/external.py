@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import CalibError, SampleRejected
 from ..kinematics import pose_to_rt, rt_to_pose
-from ..platform import Platform
+from ..platform import N_LEGS, N_PARAMS, Platform
 from ..samples import Sample
 from ..unknowns import UnknownBlock
 from . import lie, points, pose, registration
@@ -187,3 +187,63 @@ def model_for(platform: Platform) -> ExternalModel:
             platform, points, points.sigmas(instrument), np.zeros(3 * instrument.n_targets, dtype=int), ("position_mm",)
         )
     raise CalibError(f"{platform.source}: the instrument is the tracker, not an instrument outside the robot")
+
+
+def information_rows(platform: Platform, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each pose's whitened rows of the identification Jacobian of an outside instrument, at the
+    nominal drive and the platform file's instrument: what the batch fit (``ls``) would see, the
+    Fisher information of a pose set being ``Σ_k A_kᵀ A_k``.
+
+    The unknowns are reduced as the batch fit reduces them: the 30 drive directions the gauge
+    leaves free (:func:`~stewart_calib.instruments.gauge.free_basis`), the stroke scale ``k1…k6``
+    and the instrument's tangent; ``lift`` maps them to ``[δM (42), k (6), instrument]``.
+    A new unknown of the drive (e.g. a leg's compliance) adds its columns to ``columns`` below
+    and its rows to ``lift``.
+
+    Args:
+        poses: ``(N, 6)`` pose6 ``[mm, rad]`` the robot is driven to.
+    Returns:
+        ``(rows (N, m, p), lift (48 + n_instrument, p))``; a target the instrument cannot see at a
+        pose (:func:`visible_targets`) has zero rows there.
+    """
+    from .. import kinematics as kin
+    from . import drive, gauge
+
+    model = model_for(platform)
+    R, t = pose_to_rt(np.asarray(poses, dtype=float).reshape(-1, 6))
+    unknowns = model.nominal_unknowns()
+    predicted = model.module.predict(unknowns, R, t)
+    readings = rt_to_pose(*predicted) if model.kind == "pose" else predicted.reshape(len(R), -1)
+    _, H_X, H_u = model.module.residual(unknowns, readings, R, t, jacobians=True)
+    strokes = kin.inverse_kinematics(platform.drive, R, t) / (1.0 + platform.stroke_scale)
+    dxi_M, dxi_k = drive.pose_jacobian(platform.drive, strokes, R, t)
+    basis = gauge.free_basis(platform.drive)
+    columns = [H_X @ dxi_M @ basis, H_X @ dxi_k, H_u]
+    rows = np.concatenate(columns, axis=-1) / model.sigmas[:, None]
+    if model.kind == "points":
+        seen = np.repeat(visible_targets(platform, R, t), 3, axis=-1)
+        rows = np.where(seen[..., None], rows, 0.0)
+    n_free, n_instrument = basis.shape[1], unknowns.size
+    lift = np.zeros((N_PARAMS + N_LEGS + n_instrument, n_free + N_LEGS + n_instrument))
+    lift[:N_PARAMS, :n_free] = basis
+    lift[N_PARAMS:, n_free:] = np.eye(N_LEGS + n_instrument)
+    return rows, lift
+
+
+def visible_targets(platform: Platform, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(N, K)`` True where a points instrument sees target k at platform pose ``(R, t)``: always
+    without ``[instrument] visibility_cone_deg``; with it, where the line from the target to the
+    instrument's nominal origin lies within that half-angle of the target's axis
+    (``target_axes``, in {D}; default {D}'s z)."""
+    instrument = platform.instrument
+    n = len(np.reshape(t, (-1, 3)))
+    if instrument.visibility_cone_deg is None:
+        return np.ones((n, instrument.n_targets), dtype=bool)
+    R, t = np.reshape(R, (-1, 3, 3)), np.reshape(t, (-1, 3))
+    in_base = np.einsum("nij,kj->nki", R, instrument.targets) + t[:, None, :]
+    sight = instrument.frame[:3] - in_base
+    axes = np.einsum("nij,kj->nki", R, instrument.target_axes)
+    cosine = np.sum(sight * axes, axis=-1) / (
+        np.linalg.norm(sight, axis=-1) * np.linalg.norm(axes, axis=-1) + np.finfo(float).tiny
+    )
+    return cosine >= np.cos(np.radians(instrument.visibility_cone_deg))

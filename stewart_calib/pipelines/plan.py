@@ -14,9 +14,9 @@ import time
 import numpy as np
 
 from .. import io
+from ..accuracy import predicted_error
 from ..config import load_estimator_config
-from ..errors import CalibError
-from ..planning import CRITERIA, DEFAULT_CRITERION, plan_poses
+from ..planning import CRITERIA, default_criterion, design_covariance, extreme_poses, plan_poses
 from ..platform import load_platform
 from . import add_config_arguments, run_command
 
@@ -40,7 +40,8 @@ def _positive_seconds(text: str) -> float:
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "plan",
-        description="Pick N poses from random reachable workspace poses that best identify the 42 parameters.",
+        description="Pick N poses from reachable workspace poses that best identify the drive (and, for an "
+        "outside instrument, the stroke scale and the instrument's frame and targets).",
     )
     add_platform_and_noise_arguments(parser)
     parser.add_argument("--n", required=True, type=int, metavar="N", help="number of poses to plan")
@@ -48,9 +49,10 @@ def add_parser(subparsers) -> None:
     parser.add_argument(
         "--criterion",
         choices=CRITERIA,
-        default=DEFAULT_CRITERION,
-        help="A: smallest mean parameter variance (default); D: log det; O1: Borm–Menq O1 of the "
-        "paper's J_p form; E: weakest direction",
+        default=None,
+        help="I: smallest predicted closed-loop pose error over the workspace (default for pose and points "
+        "instruments); A: smallest mean parameter variance (default for the tracker); D: log det; O1: "
+        "Borm–Menq O1 of the paper's J_p form (tracker only); E: weakest direction",
     )
     parser.add_argument("--candidates", type=int, default=2000, metavar="M", help="random candidate poses (2000)")
     parser.add_argument("--seed", type=int, default=None, help="seed of the candidate draw")
@@ -62,22 +64,21 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
-    if platform.instrument.kind != "tracker":
-        # the designs' information is the tracker's leg-length form; an outside instrument's (drive,
-        # stroke scale, frame and targets together) is estimators.batch.identifiability's, not planned yet
-        raise CalibError(
-            f"{args.platform}: plan designs poses for the in-situ tracker; this platform's instrument is "
-            f"'{platform.instrument.kind}' (use identifiability --poses to assess a pose list for it)"
-        )
+    criterion = args.criterion or default_criterion(platform)
     noise = load_estimator_config(args.config, args.set).noise
     start = time.perf_counter()
-    poses = plan_poses(platform, args.n, args.criterion, np.random.default_rng(args.seed), args.candidates, noise)
+    poses = plan_poses(platform, args.n, criterion, np.random.default_rng(args.seed), args.candidates, noise)
     elapsed_s = time.perf_counter() - start
     io.write_pose_list(args.out, poses, args.dwell_s)
+    extremes = "" if platform.instrument.kind == "tracker" else f" and {len(extreme_poses(platform))} box extremes"
     print(
-        f"planned {len(poses)} poses ({args.criterion} from {args.candidates} candidates, {elapsed_s:.2f} s) -> "
-        f"{args.out}"
+        f"planned {len(poses)} poses ({criterion} from {args.candidates} candidates{extremes}, {elapsed_s:.2f} s) "
+        f"-> {args.out}"
     )
+    covariance = design_covariance(platform, poses, noise)
+    if covariance is not None:
+        prediction = predicted_error(platform, covariance)
+        print(f"predicted closed-loop (absolute) pose error after calibration: {prediction.describe()}")
     return 0
 
 

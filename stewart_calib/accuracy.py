@@ -1,0 +1,247 @@
+"""What a calibration leaves where the robot works: the predicted closed-loop (absolute) pose error.
+
+After a calibration the controller commands the strokes that the **estimate** says reach a desired
+pose X (inverse kinematics of ``M̂``, ``k̂``); the **true** robot moves them to
+``FK(M, k; q)``. With the estimate's error ``e = θ̂ − θ`` over ``θ = [δM (42), k (6)]`` the
+achieved pose misses X by, to first order (the drive's FK Jacobian,
+:func:`stewart_calib.instruments.drive.pose_jacobian`, at the nominal drive),
+
+    δξ(X) = −∂ξ/∂θ (X) · e        (body tangent ``[ω, v]``: rotation, then position in {D})
+
+so a covariance Σ of the estimate (the Cramér–Rao bound of a pose set, or a fit's own) predicts
+at every workspace pose a Gaussian error ``N(0, D Σ Dᵀ)``. The instrument's own unknowns (frame,
+targets) do not enter: the robot is driven without the instrument. Where the frame is unknown
+its height trades against the leg lengths; that direction, poorly seen by poses that neither
+tilt nor reach far, is a constant offset of every pose the robot reaches — invisible through the
+calibrated frame (``validate``), obvious to anything the robot touches.
+
+* :func:`predicted_error`: the **expected mean** position [mm] and orientation [deg] error over
+  the workspace poses ``mean_X E‖δξ(X)‖`` — the quantity a simulated check measures as "mean
+  closed-loop error" — from fixed standard normal draws (deterministic);
+* :func:`error_weight`: ``W = mean_X Dᵀ diag(L² I₃, I₃) D`` (rotation rows weighed by a length L,
+  the platform joints' mean radius), so that ``tr(W Σ)`` is the mean squared displacement of a
+  point at that radius — the linear (I-optimal) criterion that ``plan`` minimises.
+
+The frame of the error: {J} and {D} are the frames of the estimate's gauge (the in-situ tracker's,
+or for an outside instrument where the joints best fit their nominal positions,
+:mod:`stewart_calib.instruments.gauge`), the only frames in which any instrument sees the robot.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import kinematics as kin
+from .errors import CalibError
+from .instruments import drive as drive_model
+from .platform import N_LEGS, N_PARAMS, Platform
+
+#: ``θ = [δM (42), k (6)]``: the drive's unknowns that move the closed-loop pose
+N_DRIVE_UNKNOWNS = N_PARAMS + N_LEGS
+
+#: Workspace poses the prediction averages over, drawn uniformly in the ``[workspace]`` box
+#: (reachable within the stroke ranges) with a fixed seed, so that the same covariance always
+#: gives the same prediction. The mean over 200 poses of a smooth error field is within ~2 % of
+#: the box's mean (its pose-to-pose spread is < 30 % of the mean for every covariance tried).
+EVALUATION_POSES = 200
+EVALUATION_SEED = 20261125
+
+#: Standard normal draws of the expectation ``E‖δξ‖`` (fixed): 1/√(2·512) ≈ 3 % relative error.
+NORM_DRAWS = 512
+
+#: Predicted error above this many times the instrument's noise σ warns: the expected error left
+#: by N ≥ 20 well spread poses is below one σ of a reading (42–51 unknowns from 6–9 readings a
+#: pose: the estimate's σ along a direction is ~σ·√(p/(m N)) × the geometry's amplification,
+#: measured 1–4 on planned designs of the shipped and test geometries); ten σ means some
+#: direction is seen an order of magnitude worse than the instrument allows.
+NOISE_FLOOR_FACTOR = 10.0
+
+#: Candidate draws allowed per requested pose before giving up on a workspace whose box is
+#: mostly outside the stroke or reading ranges.
+MAX_DRAWS_PER_POSE = 50
+
+
+def reachable_poses(
+    platform: Platform, n: int, rng: np.random.Generator, face_bias_exponent: float = 1.0
+) -> np.ndarray:
+    """``(n, 6)`` random poses in the workspace box with strokes and readings within range.
+
+    Each coordinate is ``home + limit · sign(w)|w|^face_bias_exponent``, w uniform in [−1, 1]
+    (1: uniform in the box; below 1: denser near its faces).
+
+    Raises:
+        CalibError: the platform has no ``[workspace]``, or almost no pose of the box is reachable.
+    """
+    ws = platform.workspace
+    if ws is None:
+        raise CalibError(f"{platform.source}: key 'workspace': expected a [workspace] table to draw poses from")
+    half = np.r_[[ws.translation_limit] * 3, [ws.rotation_limit] * 3]
+    accepted: list[np.ndarray] = []
+    count = draws = 0
+    while count < n:
+        if draws > MAX_DRAWS_PER_POSE * n:
+            raise CalibError(
+                f"{platform.source}: key 'workspace': expected a box whose poses mostly lie within the "
+                f"stroke and reading ranges; only {count} of {draws} random poses do"
+            )
+        w = rng.uniform(-1.0, 1.0, (n, 6))
+        batch = ws.home + np.sign(w) * np.abs(w) ** face_bias_exponent * half
+        draws += n
+        accepted.append(batch[within_ranges(platform, batch)])
+        count += len(accepted[-1])
+    return np.concatenate(accepted)[:n]
+
+
+def within_ranges(platform: Platform, poses: np.ndarray) -> np.ndarray:
+    """``(N,)`` True where the nominal strokes (and tracker readings, where the platform has a
+    tracker with a reading range) of ``poses`` lie within the platform's ranges."""
+    R, t = kin.pose_to_rt(np.asarray(poses, dtype=float))
+    ok = np.ones(len(R), dtype=bool)
+    legs_and_bounds = ((platform.drive, platform.stroke_range, platform.stroke_scale),)
+    if platform.tracker is not None:
+        legs_and_bounds += ((platform.tracker, platform.reading_range, np.zeros(N_LEGS)),)
+    for legs, bounds, scale in legs_and_bounds:
+        if bounds is not None:
+            strokes = kin.inverse_kinematics(legs, R, t) / (1.0 + scale)
+            ok &= np.all((strokes >= bounds[0]) & (strokes <= bounds[1]), axis=1)
+    return ok
+
+
+def evaluation_poses(platform: Platform) -> np.ndarray:
+    """The fixed workspace poses of the prediction (:data:`EVALUATION_POSES`, uniform, reachable)."""
+    return reachable_poses(platform, EVALUATION_POSES, np.random.default_rng(EVALUATION_SEED))
+
+
+def closed_loop_jacobian(platform: Platform, poses: np.ndarray) -> np.ndarray:
+    """``D = ∂ξ/∂θ`` ``(V, 6, 48)`` at the nominal drive: how the pose the robot reaches for the
+    commanded strokes of a desired pose moves with ``θ = [δM, k]`` (body tangent ``[ω, v]``)."""
+    R, t = kin.pose_to_rt(np.asarray(poses, dtype=float).reshape(-1, 6))
+    strokes = kin.inverse_kinematics(platform.drive, R, t) / (1.0 + platform.stroke_scale)
+    dxi_M, dxi_k = drive_model.pose_jacobian(platform.drive, strokes, R, t)
+    return np.concatenate([dxi_M, dxi_k], axis=-1)
+
+
+def rotation_length_mm(platform: Platform) -> float:
+    """The length L [mm] a rotation error is weighed by in :func:`error_weight`: the platform
+    joints' mean distance from {D}'s z axis (a rotation δφ moves them by about L·δφ)."""
+    return float(np.mean(np.linalg.norm(platform.drive.platform_joints[:, :2], axis=1)))
+
+
+def error_weight(platform: Platform, poses: np.ndarray | None = None) -> np.ndarray:
+    """``W = mean_X Dᵀ diag(L² I₃, I₃) D`` ``(48, 48)`` [mm²]: ``tr(W Σ)`` is the predicted mean
+    squared closed-loop error (position, plus rotation × L) over ``poses`` (default
+    :func:`evaluation_poses`)."""
+    D = closed_loop_jacobian(platform, evaluation_poses(platform) if poses is None else poses)
+    D = D * np.r_[[rotation_length_mm(platform)] * 3, [1.0] * 3][:, None]
+    return np.einsum("vri,vrj->ij", D, D) / len(D)
+
+
+@dataclass(frozen=True)
+class PredictedError:
+    """The predicted closed-loop error over workspace poses (see the module docstring).
+
+    Attributes:
+        position_mm: expected mean position error ``mean_X E‖δt(X)‖`` [mm].
+        orientation_deg: expected mean orientation error [deg].
+        n_poses: the workspace poses averaged over.
+        workspace: True when they are the ``[workspace]`` box's, False when the platform has none
+            and they are the measured poses themselves.
+    """
+
+    position_mm: float
+    orientation_deg: float
+    n_poses: int
+    workspace: bool = True
+
+    def to_dict(self) -> dict:
+        return {
+            "position_mm": self.position_mm,
+            "orientation_deg": self.orientation_deg,
+            "poses": self.n_poses,
+            "over": "workspace" if self.workspace else "measured poses",
+        }
+
+    def describe(self) -> str:
+        """``"0.0213 mm / 0.00141° (mean over 200 workspace poses)"``."""
+        where = "workspace poses" if self.workspace else "measured poses (no [workspace] in the platform file)"
+        return f"{self.position_mm:.3g} mm / {self.orientation_deg:.3g}° (expected mean over {self.n_poses} {where})"
+
+
+def _expected_norms(covariance: np.ndarray) -> np.ndarray:
+    """``E‖x‖`` for ``x ~ N(0, C)``, one per ``(..., 3, 3)`` covariance, from fixed draws."""
+    eigenvalues = np.clip(np.linalg.eigvalsh(covariance), 0.0, None)
+    draws = np.random.default_rng(EVALUATION_SEED).standard_normal((NORM_DRAWS, 3))
+    return np.mean(np.sqrt((draws**2) @ eigenvalues.T), axis=0)
+
+
+def predicted_error(platform: Platform, covariance: np.ndarray, poses: np.ndarray | None = None) -> PredictedError:
+    """The expected mean closed-loop error left by an estimate of covariance ``covariance``.
+
+    Args:
+        covariance: ``(42, 42)`` over δM [mm²] (the stroke scale then exact) or ``(≥ 48, ≥ 48)``
+            whose first 48 rows are ``[δM, k]``; further rows (instrument unknowns) do not enter.
+        poses: ``(V, 6)`` the poses to average over (default :func:`evaluation_poses`).
+    """
+    covariance = np.asarray(covariance, dtype=float)
+    n = min(len(covariance), N_DRIVE_UNKNOWNS)
+    workspace = poses is None
+    D = closed_loop_jacobian(platform, evaluation_poses(platform) if workspace else poses)[..., :n]
+    pose_covariance = D @ covariance[:n, :n] @ np.swapaxes(D, -1, -2)
+    position = _expected_norms(pose_covariance[:, 3:, 3:])
+    orientation = _expected_norms(pose_covariance[:, :3, :3])
+    return PredictedError(
+        float(np.mean(position)), float(np.degrees(np.mean(orientation))), len(D), workspace=workspace
+    )
+
+
+def correction_size(platform: Platform, error: np.ndarray, stroke_scale: np.ndarray | None = None) -> float:
+    """Mean position change [mm] over the workspace poses that the estimate makes to where the
+    robot goes: ``‖FK(estimate, IK(nominal, X)) − X‖`` — the uncalibrated robot's closed-loop
+    error if the estimate were the truth."""
+    poses = evaluation_poses(platform)
+    R, t = kin.pose_to_rt(poses)
+    strokes = kin.inverse_kinematics(platform.drive, R, t) / (1.0 + platform.stroke_scale)
+    scale = platform.stroke_scale if stroke_scale is None else np.asarray(stroke_scale, dtype=float)
+    reached = kin.forward_kinematics(
+        platform.drive.perturbed(error), drive_model.scaled_strokes(strokes, scale), guess=(R, t), strict=False
+    )
+    position_mm, _ = kin.pose_error(R, t, reached.R, reached.t)
+    return float(np.mean(position_mm[reached.converged])) if reached.converged.any() else float("inf")
+
+
+def noise_floor_mm(platform: Platform, reading_sigma_mm: float) -> float:
+    """σ of one position coordinate of the instrument [mm]: the outside instrument's
+    ``position_sigma_mm``, the in-situ tracker's reading σ."""
+    if platform.instrument.kind == "tracker":
+        return float(reading_sigma_mm)
+    return float(platform.instrument.position_sigma_mm)
+
+
+def summary_line(
+    prediction: PredictedError, noise_floor: float, correction_mm: float | None = None
+) -> tuple[str, bool]:
+    """The one line ``calibrate`` and ``identifiability`` print, and whether it is a warning.
+
+    A warning when the predicted position error exceeds :data:`NOISE_FLOOR_FACTOR` × the
+    instrument's σ, or (with an estimate) the correction the calibration makes: the estimate's
+    change to where the robot goes is then within its own uncertainty, and the calibrated robot
+    may be further from its poses than the uncalibrated one.
+    """
+    head = f"predicted closed-loop (absolute) pose error after calibration: {prediction.describe()}"
+    reasons = []
+    if prediction.position_mm > NOISE_FLOOR_FACTOR * noise_floor:
+        reasons.append(
+            f"{prediction.position_mm / noise_floor:.3g}× the instrument's σ {noise_floor:g} mm "
+            f"(warned above {NOISE_FLOOR_FACTOR:g}×): the poses leave some direction poorly seen — "
+            "poses that tilt and reach to the workspace's edges (stewart-calib plan) see it"
+        )
+    if correction_mm is not None and prediction.position_mm > correction_mm:
+        reasons.append(
+            f"more than the {correction_mm:.3g} mm the calibration changes where the robot goes: "
+            "the calibrated robot may be worse than the uncalibrated one"
+        )
+    if reasons:
+        return "warning: " + head + "; " + "; ".join(reasons), True
+    return head, False
