@@ -35,6 +35,7 @@ import numpy as np
 
 from . import kinematics as kin
 from .errors import CalibError
+from .estimate import Estimate
 from .instruments import drive as drive_model
 from .platform import N_LEGS, N_PARAMS, Platform
 
@@ -196,11 +197,13 @@ def predicted_error(platform: Platform, covariance: np.ndarray, poses: np.ndarra
     )
 
 
-def correction_size(platform: Platform, error: np.ndarray, stroke_scale: np.ndarray | None = None) -> float:
-    """Mean position change [mm] over the workspace poses that the estimate makes to where the
-    robot goes: ``‖FK(estimate, IK(nominal, X)) − X‖`` — the uncalibrated robot's closed-loop
-    error if the estimate were the truth."""
-    poses = evaluation_poses(platform)
+def correction_size(
+    platform: Platform, error: np.ndarray, stroke_scale: np.ndarray | None = None, poses: np.ndarray | None = None
+) -> float:
+    """Mean position change [mm] over the workspace poses (or ``poses``) that the estimate makes to
+    where the robot goes: ``‖FK(estimate, IK(nominal, X)) − X‖`` — the uncalibrated robot's
+    closed-loop error if the estimate were the truth."""
+    poses = evaluation_poses(platform) if poses is None else np.asarray(poses, dtype=float).reshape(-1, 6)
     R, t = kin.pose_to_rt(poses)
     strokes = kin.inverse_kinematics(platform.drive, R, t) / (1.0 + platform.stroke_scale)
     scale = platform.stroke_scale if stroke_scale is None else np.asarray(stroke_scale, dtype=float)
@@ -245,3 +248,37 @@ def summary_line(
     if reasons:
         return "warning: " + head + "; " + "; ".join(reasons), True
     return head, False
+
+
+def estimate_drive_covariance(estimate: Estimate) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(covariance over [δM] or [δM, k], the estimated stroke scale k or None)`` of an estimate:
+    what :func:`predicted_error` and :func:`correction_size` take. The covariance is None when the
+    estimate has none (a rank-deficient fit)."""
+    columns = estimate.layout.slice("stroke_scale")
+    scale = estimate.block_values("stroke_scale")
+    if columns is None or estimate.full_covariance is None:
+        return estimate.covariance, scale
+    index = np.r_[np.arange(N_PARAMS), np.arange(columns.start, columns.stop)]
+    return estimate.full_covariance[np.ix_(index, index)], scale
+
+
+def estimate_summary(
+    platform: Platform, estimate: Estimate, reading_sigma_mm: float, measured_poses: np.ndarray
+) -> tuple[dict, str, bool]:
+    """The prediction of a calibration result: ``(result field, one line, is a warning)``.
+
+    Over the workspace box, or where the platform has no ``[workspace]`` over ``measured_poses``
+    (the log's). The field is :meth:`PredictedError.to_dict` with the correction's size and the
+    warning (``"warning": line or null``); without a covariance, ``{"available": false}`` and a
+    line saying why.
+    """
+    covariance, scale = estimate_drive_covariance(estimate)
+    if covariance is None or not np.all(np.isfinite(covariance)):
+        line = "warning: no predicted closed-loop pose error: the estimate has no covariance (rank-deficient fit)"
+        return {"available": False, "warning": line}, line, True
+    poses = None if platform.workspace is not None else measured_poses
+    prediction = predicted_error(platform, covariance, poses)
+    correction = correction_size(platform, estimate.error, scale, poses)
+    line, warn = summary_line(prediction, noise_floor_mm(platform, reading_sigma_mm), correction)
+    field = {**prediction.to_dict(), "correction_mm": correction, "warning": line if warn else None}
+    return field, line, warn

@@ -361,6 +361,17 @@ class InformationAccumulator:
             self._paper_factor = _stacked_factor(self._paper_factor, scaled_paper_jacobian(self.platform, block))
             self.n_poses += len(block)
 
+    def covariance(self) -> np.ndarray | None:
+        """Cramér–Rao covariance ``(AᵀA)⁻¹`` ``(42, 42)`` [mm²] of the leg-length form, from its
+        square-root factor (``R⁻¹R⁻ᵀ``); None when the poses leave it rank-deficient."""
+        if len(self._leg_factor) < N_PARAMS:
+            return None
+        s = np.linalg.svd(self._leg_factor, compute_uv=False)
+        if s[-1] <= RANK_RTOL * s[0]:
+            return None
+        inverse = np.linalg.solve(self._leg_factor, np.eye(N_PARAMS))
+        return inverse @ inverse.T
+
     def report(self) -> IdentifiabilityReport:
         """Singular values, Cramér–Rao bound, weakest directions and verdict of the poses added.
 

@@ -298,16 +298,19 @@ def _value(criterion: str, info: np.ndarray, weight: np.ndarray | None) -> float
     return float(np.linalg.slogdet(info)[1])
 
 
-def design_covariance(platform: Platform, poses: np.ndarray, noise: NoiseConfig | None = None) -> np.ndarray | None:
+def design_covariance(
+    platform: Platform, poses: np.ndarray, noise: NoiseConfig | None = None, seen: np.ndarray | None = None
+) -> np.ndarray | None:
     """Cramér–Rao covariance of the unknowns from a pose list, at the nominal model: over the 42
     drive parameters for the tracker (whitened leg-length form), over ``[δM (42), k (6),
     instrument]`` for an outside instrument (its batch fit's unknowns, gauge held). None when the
-    poses do not identify every unknown (singular values below ``RANK_RTOL`` of the largest)."""
+    poses do not identify every unknown (singular values below ``RANK_RTOL`` of the largest).
+    ``seen``: a points instrument's targets seen at each pose (:func:`information_rows`)."""
     poses = np.asarray(poses, dtype=float).reshape(-1, 6)
     if platform.instrument.kind == "tracker":
         rows, lift = whitened_leg_jacobian(platform, poses, noise or NoiseConfig()), np.eye(N_PARAMS)
     else:
-        rows, lift = information_rows(platform, poses)
+        rows, lift = information_rows(platform, poses, seen)
     _, s, Vt = np.linalg.svd(rows.reshape(-1, rows.shape[-1]), full_matrices=False)
     if s[-1] <= RANK_RTOL * s[0]:
         return None

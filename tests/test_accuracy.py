@@ -4,12 +4,13 @@ brute force and the batch fit's own Jacobian, on geometries other than the shipp
 from __future__ import annotations
 
 import itertools
+import json
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from stewart_calib import accuracy, planning
+from stewart_calib import accuracy, io, planning
 from stewart_calib import kinematics as kin
 from stewart_calib.cli import main as cli_main
 from stewart_calib.errors import CalibError
@@ -235,3 +236,85 @@ def test_cli_plans_for_a_motion_capture_platform(tmp_path, capsys, wide_pose):
     assert "planned 20 poses (I from 200 candidates and 729 box extremes" in printed
     assert "predicted closed-loop (absolute) pose error after calibration:" in printed
     assert read_pose_list(out).shape == (20, 6)
+
+
+def small_workspace_experiment() -> str:
+    """tests/test_instrument_files.py's motion-capture experiment with 60 calibration poses within
+    ±20 mm / ±8° of the hobby hexapod's home (issue 27's case)."""
+    from tests.test_instrument_files import EXPERIMENT
+
+    return EXPERIMENT.replace("calibration = 40", "calibration = 60").replace(
+        "workspace_fraction = 0.5", "workspace_fraction = 0.67"
+    )
+
+
+def test_a_small_workspace_calibration_warns_in_one_line_and_validate_says_what_it_cannot_see(tmp_path, capsys):
+    """Issue 27's case: 60 motion-capture poses within ±20 mm / ±8° of the hobby hexapod. The frame's
+    height trades against the leg lengths: calibrate warns in one line with the predicted error,
+    the result and the report hold it, identifiability calls the poses poorly conditioned, and
+    validate (through the refitted frame, near the noise floor) says it cannot see that error."""
+    from tests.test_instrument_files import _simulated_fit_and_held_out
+
+    platform_path = _simulated_fit_and_held_out(tmp_path, small_workspace_experiment())
+    out, report = tmp_path / "r.json", tmp_path / "report"
+    capsys.readouterr()
+    args = ["--platform", str(platform_path), "--log", str(tmp_path / "fit.csv")]
+    assert cli_main(["calibrate", *args, "--method", "ls", "--out", str(out), "--report", str(report)]) == 0
+    err = capsys.readouterr().err.splitlines()
+    warnings = [line for line in err if "predicted closed-loop" in line]
+    assert len(warnings) == 1 and warnings[0].startswith("stewart-calib calibrate: warning: predicted closed-loop")
+    predicted = json.loads(out.read_text())["predicted_closed_loop"]
+    assert predicted["position_mm"] > accuracy.NOISE_FLOOR_FACTOR * 0.2
+    assert predicted["warning"] in warnings[0] and f"{predicted['position_mm']:.3g} mm" in warnings[0]
+    assert "Predicted closed-loop error" in (report / "index.html").read_text()
+
+    assert cli_main(["identifiability", *args]) == 0
+    assert "poorly conditioned" in capsys.readouterr().out.splitlines()[0]
+
+    held = ["--log", str(tmp_path / "held.csv"), "--out", str(tmp_path / "V.csv")]
+    assert cli_main(["validate", "--platform", str(platform_path), "--result", str(out), *held]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 2 and "cannot see the robot's closed-loop (absolute) pose error" in lines[1]
+    assert f"the result predicts {predicted['position_mm']:.3g} mm" in lines[1]
+
+
+def test_identifiability_reports_the_prediction_of_a_pose_list(tmp_path, capsys, wide_pose):
+    platform_file = tmp_path / "wide.toml"
+    platform_file.write_text(platform_to_toml(wide_pose))
+    poses = planning.plan_poses(wide_pose, 30, None, np.random.default_rng(0), 300)
+    io.write_pose_list(tmp_path / "p.csv", poses, 1.0)
+    argv = ["identifiability", "--platform", str(platform_file), "--poses", str(tmp_path / "p.csv")]
+    assert cli_main([*argv, "--json", str(tmp_path / "i.json")]) == 0
+    printed = capsys.readouterr().out
+    document = json.loads((tmp_path / "i.json").read_text())
+    expected = accuracy.predicted_error(
+        wide_pose, planning.design_covariance(wide_pose, read_pose_list(tmp_path / "p.csv"))
+    )
+    assert document["predicted_closed_loop"]["position_mm"] == pytest.approx(expected.position_mm, rel=1e-9)
+    assert f"after calibration: {expected.describe()}" in printed
+    assert document["verdict"] in ("identifiable", "poorly conditioned")
+
+
+def test_equilibrated_condition_number_does_not_depend_on_units_and_sets_the_verdict():
+    rng = np.random.default_rng(5)
+    A = rng.normal(0.0, 1.0, (40, 6))
+    scaled = A * np.array([1.0, 1e3, 1e-3, 57.3, 1.0, 1e2])
+    assert batch.equilibrated_condition_number(scaled) == pytest.approx(batch.equilibrated_condition_number(A))
+    assert np.linalg.cond(scaled) > 1e4 * np.linalg.cond(A)
+    assert batch._verdict(999.0) == "identifiable" and batch._verdict(1001.0) == "poorly conditioned"
+
+
+def test_information_accumulator_covariance_is_the_inverse_information():
+    from stewart_calib.config import NoiseConfig
+    from stewart_calib.identifiability import InformationAccumulator, whitened_leg_jacobian
+    from tests.synthetic import nim_stewart, random_poses
+
+    platform, noise = nim_stewart(), NoiseConfig()
+    poses = random_poses(platform, 30, np.random.default_rng(6))
+    information = InformationAccumulator(platform, noise)
+    information.add(poses)
+    A = whitened_leg_jacobian(platform, poses, noise).reshape(-1, 42)
+    np.testing.assert_allclose(information.covariance(), np.linalg.inv(A.T @ A), rtol=1e-6)
+    few = InformationAccumulator(platform, noise)
+    few.add(poses[:5])
+    assert few.covariance() is None

@@ -102,7 +102,10 @@ def test_streamed_validate_writes_the_whole_logs_file(tmp_path, monkeypatch, cap
     assert main(argv) == 0
     text, summary = _whole_file(platform, result, tmp_path / "log.csv")
     assert (tmp_path / "V.csv").read_text() == text
-    assert capsys.readouterr().out == f"stewart-calib validate: {summary}\n"
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"stewart-calib validate: {summary}"
+    # an outside instrument's check adds the line on what it cannot see (tests/test_accuracy.py)
+    assert len(lines) == (1 if platform.instrument.kind == "tracker" else 2)
 
 
 def test_register_instrument_writes_the_whole_logs_file(tmp_path, monkeypatch, capsys):
@@ -112,7 +115,8 @@ def test_register_instrument_writes_the_whole_logs_file(tmp_path, monkeypatch, c
     assert main([*argv, "--register-instrument"]) == 0
     text, summary = _whole_file(platform, result, tmp_path / "log.csv", register=True)
     assert (tmp_path / "V.csv").read_text() == text
-    assert capsys.readouterr().out == f"stewart-calib validate: {summary} (instrument re-registered)\n"
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"stewart-calib validate: {summary} (instrument re-registered)" and len(lines) == 2
 
 
 def test_a_bad_row_in_a_late_block_leaves_no_output(tmp_path, monkeypatch, capsys):

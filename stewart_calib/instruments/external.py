@@ -189,7 +189,9 @@ def model_for(platform: Platform) -> ExternalModel:
     raise CalibError(f"{platform.source}: the instrument is the tracker, not an instrument outside the robot")
 
 
-def information_rows(platform: Platform, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def information_rows(
+    platform: Platform, poses: np.ndarray, seen: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Each pose's whitened rows of the identification Jacobian of an outside instrument, at the
     nominal drive and the platform file's instrument: what the batch fit (``ls``) would see, the
     Fisher information of a pose set being ``Σ_k A_kᵀ A_k``.
@@ -202,6 +204,8 @@ def information_rows(platform: Platform, poses: np.ndarray) -> tuple[np.ndarray,
 
     Args:
         poses: ``(N, 6)`` pose6 ``[mm, rad]`` the robot is driven to.
+        seen: points only, ``(N, K)`` which targets the instrument saw (a log's finite readings);
+            default :func:`visible_targets`.
     Returns:
         ``(rows (N, m, p), lift (48 + n_instrument, p))``; a target the instrument cannot see at a
         pose (:func:`visible_targets`) has zero rows there.
@@ -221,8 +225,8 @@ def information_rows(platform: Platform, poses: np.ndarray) -> tuple[np.ndarray,
     columns = [H_X @ dxi_M @ basis, H_X @ dxi_k, H_u]
     rows = np.concatenate(columns, axis=-1) / model.sigmas[:, None]
     if model.kind == "points":
-        seen = np.repeat(visible_targets(platform, R, t), 3, axis=-1)
-        rows = np.where(seen[..., None], rows, 0.0)
+        seen = visible_targets(platform, R, t) if seen is None else np.asarray(seen, dtype=bool)
+        rows = np.where(np.repeat(seen, 3, axis=-1)[..., None], rows, 0.0)
     n_free, n_instrument = basis.shape[1], unknowns.size
     lift = np.zeros((N_PARAMS + N_LEGS + n_instrument, n_free + N_LEGS + n_instrument))
     lift[:N_PARAMS, :n_free] = basis

@@ -36,12 +36,14 @@ import numpy as np
 
 from .. import __version__, estimators, io
 from .. import kinematics as kin
+from ..accuracy import estimate_summary
 from ..config import EstimatorConfig, load_estimator_config
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..estimators import BatchEstimator, KalmanFiltered
 from ..estimators.base import late_index, take_late_rejections, update_block
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
+from ..instruments.drive import scaled_strokes
 from ..io import logs
 from ..online import Rejections
 from ..platform import N_LEGS, Platform, load_platform
@@ -436,6 +438,13 @@ def stream_calibration(
     )
 
 
+def nominal_poses(platform: Platform, log: Log) -> np.ndarray:
+    """``(n, 6)`` the nominal drive's FK poses of a log's strokes (those that converge): where an
+    outside instrument's log put the robot, for a platform without ``[workspace]``."""
+    fk = kin.forward_kinematics(platform.drive, scaled_strokes(log.strokes, platform.stroke_scale), strict=False)
+    return fk.pose6[fk.converged]
+
+
 def nominal_residuals(platform: Platform, block: Log) -> np.ndarray:
     """``(len(block), 6)`` the tracker's readings minus what the nominal model predicts [mm], NaN
     where its FK fails: the residual RMS "before", which needs no estimate, so is spooled with the
@@ -554,12 +563,22 @@ def run(args: argparse.Namespace) -> int:
             )
 
         extra = {"samples_rejected": rejections.summary()}
+        warning = None
         if tracker:  # the tracker's FK gives the poses to assess
-            report = identifiability_report(platform, measured_poses(platform, checked), config.noise)
+            poses = measured_poses(platform, checked)
+            report = identifiability_report(platform, poses, config.noise)
             warning = warning_line(report)
-            if warning:
-                print(f"stewart-calib calibrate: {warning}", file=sys.stderr)
             extra["conditioning"] = conditioning_summary(report)
+        else:
+            poses = nominal_poses(platform, checked)
+        predicted, line, warns = estimate_summary(platform, estimate, config.noise.reading_sigma_mm, poses)
+        extra["predicted_closed_loop"] = predicted
+        if warning and warns:  # one warning line: the poses' conditioning, then what it leaves
+            print(f"stewart-calib calibrate: {warning}; {line.removeprefix('warning: ')}", file=sys.stderr)
+        else:
+            for text in (warning, line):
+                if text:
+                    print(f"stewart-calib calibrate: {text}", file=sys.stderr)
 
         samples_skipped = skipped.count + rejections.count
         created = handover.created_now()

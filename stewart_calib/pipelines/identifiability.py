@@ -12,7 +12,7 @@ import json
 from .. import io
 from ..config import load_estimator_config
 from ..errors import CalibError
-from ..identifiability import NO_POSE, InformationAccumulator, identifiability_report, tracker_poses, warning_line
+from ..identifiability import CONDITION_POOR, NO_POSE, InformationAccumulator, tracker_poses, warning_line
 from ..io import read_pose_list
 from ..platform import Platform, load_platform
 from . import run_command
@@ -63,16 +63,40 @@ def run(args: argparse.Namespace) -> int:
     if platform.instrument.kind != "tracker":
         return _run_outside_instrument(args, platform)
     if args.log is not None:
-        report = log_information(platform, args.log, args.pose_source, noise, args.skip_bad_rows).report()
+        information = log_information(platform, args.log, args.pose_source, noise, args.skip_bad_rows)
+        covariance, poses = information.covariance(), None
     else:
-        report = identifiability_report(platform, read_pose_list(args.poses), noise)
+        poses = read_pose_list(args.poses)
+        information = InformationAccumulator(platform, noise)
+        information.add(poses)
+        covariance = information.covariance()
+    report = information.report()
     print(report.format_text())
     warning = warning_line(report)
     if warning:
         print(warning)
+    prediction = _prediction(platform, covariance, poses, noise.reading_sigma_mm)
     if args.json:
-        io.atomic_write_text(args.json, json.dumps(report.to_dict(), indent=2) + "\n")
+        io.atomic_write_text(args.json, json.dumps({**report.to_dict(), **prediction}, indent=2) + "\n")
     return 0
+
+
+def _prediction(platform: Platform, covariance, poses, noise_floor_mm: float) -> dict:
+    """Print the predicted closed-loop error line of a pose set's Cramér–Rao covariance (over the
+    workspace, or the poses themselves where the platform has none); its JSON field."""
+    from ..accuracy import predicted_error, summary_line
+
+    head = "predicted closed-loop (absolute) pose error after calibration: none"
+    if covariance is None:
+        print(f"{head} (the poses do not identify every unknown)")
+        return {"predicted_closed_loop": None}
+    if platform.workspace is None and poses is None:
+        print(f"{head} (no [workspace] to predict over)")
+        return {"predicted_closed_loop": None}
+    prediction = predicted_error(platform, covariance, None if platform.workspace is not None else poses)
+    line, warn = summary_line(prediction, noise_floor_mm)
+    print(line)
+    return {"predicted_closed_loop": {**prediction.to_dict(), "warning": line if warn else None}}
 
 
 def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int:
@@ -83,19 +107,29 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
 
     from .. import kinematics as kin
     from ..estimators.batch import BatchProblem, identifiability
-    from ..instruments.external import model_for, registered_platform
+    from ..instruments.drive import scaled_strokes
+    from ..instruments.external import model_for, registered_platform, visible_targets
+    from ..planning import design_covariance
 
     if args.log is not None:
         log = io.read_log(args.log, platform, args.skip_bad_rows)
         strokes, readings = log.strokes, log.readings
         platform = registered_platform(platform, strokes, readings)
         model = model_for(platform)
+        fk = kin.forward_kinematics(platform.drive, scaled_strokes(strokes, platform.stroke_scale), strict=False)
+        poses = fk.pose6[fk.converged]
+        seen = np.isfinite(readings[fk.converged]).reshape(len(poses), -1, 3).all(axis=-1)
     else:
         model = model_for(platform)
-        R, t = kin.pose_to_rt(read_pose_list(args.poses))
+        poses = read_pose_list(args.poses)
+        R, t = kin.pose_to_rt(poses)
         strokes = kin.inverse_kinematics(platform.drive, R, t) / (1.0 + platform.stroke_scale)
         predicted = model.module.predict(model.nominal_unknowns(), R, t)
         readings = kin.rt_to_pose(*predicted) if model.kind == "pose" else predicted.reshape(len(R), -1)
+        seen = None
+        if model.kind == "points":  # a target out of its cone of visibility is not read
+            seen = visible_targets(platform, R, t)
+            readings = np.where(np.repeat(seen, 3, axis=-1), readings, np.nan)
     unknowns = model.nominal_unknowns()
     problem = BatchProblem(
         platform.drive,
@@ -110,11 +144,12 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
         np.arange(len(strokes), dtype=float),
     )
     report = identifiability(problem, unknowns, model.unknown_names, unknowns.file_jacobian())
-    verdict = "identifiable" if report["condition_number"] is not None else "rank-deficient"
+    equilibrated = report["condition_number_equilibrated"]
     print(
-        f"Identifiability of drive, stroke scale and {model.kind} instrument from {len(strokes)} poses: {verdict} "
-        f"(rank {report['rank']}/{report['unknowns']}; condition number "
-        f"{report['condition_number'] or float('inf'):.4g})"
+        f"Identifiability of drive, stroke scale and {model.kind} instrument from {len(strokes)} poses: "
+        f"{report['verdict']} (rank {report['rank']}/{report['unknowns']}; condition number "
+        f"{equilibrated or float('inf'):.4g} with unit columns, poorly conditioned above {CONDITION_POOR:g}; "
+        f"{report['condition_number'] or float('inf'):.4g} in mm, rad and k)"
     )
     print(report["gauge"])
     print("predicted standard deviation per unknown (Cramér–Rao; mm, dimensionless k, degrees):")
@@ -124,10 +159,11 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
             "  "
             + "  ".join(f"{name} {'not id' if sd is None else f'{sd:.3g}'}" for name, sd in items[start : start + 7])
         )
+    noise_floor = platform.instrument.position_sigma_mm
+    prediction = _prediction(platform, design_covariance(platform, poses, seen=seen), poses, noise_floor)
     if args.json:
-        io.atomic_write_text(
-            args.json, json.dumps({"format": "stewart-calib/identifiability-instrument@1", **report}, indent=2) + "\n"
-        )
+        document = {"format": "stewart-calib/identifiability-instrument@1", **report, **prediction}
+        io.atomic_write_text(args.json, json.dumps(document, indent=2) + "\n")
     return 0
 
 

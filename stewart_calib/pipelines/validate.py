@@ -192,7 +192,34 @@ def run(args: argparse.Namespace) -> int:
         f"stewart-calib validate: {_summary(position, orientation, len(position))}"
         + (" (instrument re-registered)" if args.register_instrument else "")
     )
+    if platform.instrument.kind != "tracker":
+        print(f"stewart-calib validate: {_unseen_error_line(platform, result, position)}")
     return 0
+
+
+def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray) -> str:
+    """What a check through an outside instrument's frame cannot see, beside what it saw: the
+    frame (fitted with the drive, or again here) absorbs a constant pose error of the robot, so
+    the robot's closed-loop (absolute) error is the result's prediction, not this RMS."""
+    from ..accuracy import predicted_error
+
+    seen_rms_mm = float(np.sqrt(np.nanmean(np.asarray(position_mm) ** 2)))
+    head = (
+        "a check through the instrument's calibrated frame cannot see the robot's closed-loop (absolute) "
+        f"pose error (the frame absorbs a constant offset); position RMS here {seen_rms_mm:.4g} mm, "
+    )
+    predicted = result.get("predicted_closed_loop")
+    if isinstance(predicted, dict) and predicted.get("available", True):
+        return (
+            head + f"the result predicts {predicted['position_mm']:.3g} mm / {predicted['orientation_deg']:.3g}° "
+            f"where the robot works (expected mean over {predicted['poses']} {predicted['over']} poses)"
+        )
+    covariance = result.get("covariance")
+    if covariance is None or platform.workspace is None:
+        return head + "and the result holds no covariance to predict that error from"
+    n = 48 if "stroke_scale" in result else 42
+    prediction = predicted_error(platform, np.asarray(covariance, dtype=float)[:n, :n])
+    return head + f"the result's covariance predicts {prediction.describe()}"
 
 
 def _file_columns(log: Log, predicted, position, orientation, columns) -> list[np.ndarray]:

@@ -314,6 +314,34 @@ def _conditioning_section(result: dict) -> str:
     )
 
 
+def _prediction_section(result: dict) -> str:
+    """The predicted closed-loop (absolute) pose error of the result's covariance, with its warning."""
+    predicted = result.get("predicted_closed_loop")
+    if not isinstance(predicted, dict):
+        return ""
+    if predicted.get("available") is False:
+        return f"<h2>Predicted closed-loop error</h2><p>{html.escape(str(predicted.get('warning')))}</p>"
+    warning = predicted.get("warning")
+    return (
+        "<h2>Predicted closed-loop error</h2>"
+        "<p>Where the robot goes when the controller commands the calibrated model: the expected mean "
+        f"error over {predicted.get('poses')} {html.escape(str(predicted.get('over')))} poses, from the "
+        "estimate's covariance. A check through the instrument's calibrated frame cannot see it.</p>"
+        + _table(
+            ["position [mm]", "orientation [deg]", "the calibration's correction [mm]"],
+            [
+                [
+                    _fmt(predicted.get("position_mm"), 3),
+                    _fmt(predicted.get("orientation_deg"), 3),
+                    _fmt(predicted.get("correction_mm"), 3),
+                ]
+            ],
+            "num",
+        )
+        + (f"<p><strong>{html.escape(warning)}</strong></p>" if warning else "")
+    )
+
+
 def _held_out_section(held: HeldOut) -> str:
     rows = [["position [mm]", _fmt(float(rms(held.position_error_mm))), _fmt(float(np.nanmax(held.position_error_mm)))]]
     if held.orientation_error_deg is not None:
@@ -378,6 +406,7 @@ def report_html(
         _parameter_section(result),
         _correlation_section(result),
         _conditioning_section(result),
+        _prediction_section(result),
         "<h2>Config</h2><p>The estimator settings used.</p><pre>"
         + html.escape(json.dumps(result.get("config", {}), indent=2))
         + "</pre>",
