@@ -60,8 +60,10 @@ def fakes(monkeypatch):
     for cls, online in ((CountingEstimator, True), (BatchEstimator, False)):
         spec = MethodSpec(cls.name, f"{__name__}:{cls.__name__}", online, False, ("tracker",), "test double")
         monkeypatch.setitem(METHODS, cls.name, spec)
-    # the doubles' samples are no robot's: the plausibility check (tests/test_plausibility.py) would refuse them
+    # the doubles' samples are no robot's: the plausibility check (tests/test_plausibility.py) and the
+    # diagnosis of a log's mistakes (tests/test_diagnosis.py) would refuse them
     monkeypatch.setattr(calibrate_pipeline, "check_plausible", lambda *args: None)
+    monkeypatch.setattr(calibrate_pipeline, "diagnose_log", lambda *args: None)
 
 
 def _log() -> Log:

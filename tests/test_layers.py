@@ -22,7 +22,7 @@ LAYERS = (
     ("statics",),
     ("estimate", "instruments"),
     ("factors", "io", "identifiability", "accuracy", "compensation", "plausibility", "simulation", "viz"),
-    ("planning", "estimators"),
+    ("planning", "estimators", "diagnosis"),
     ("online", "reproduction", "sweep"),
     ("pipelines",),
     ("cli",),

@@ -26,6 +26,7 @@ Robust by construction, with nothing for a user to tune:
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -381,7 +382,57 @@ def _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_scale, tole
         )
         if moved_mm < tolerance_mm or decrease <= 1e-14 * max(cost, 1.0):
             return state, evaluations
-    raise CalibError(f"ls: Levenberg–Marquardt did not converge in {MAX_EVALUATIONS} evaluations")
+    raise CalibError(_not_converged(problem, state, basis, sigmas, weights, fit_scale))
+
+
+#: a whitened RMS residual beyond this many σ at the last iterate: the model cannot explain the readings
+UNEXPLAINED_SIGMAS = 30.0
+#: a stroke scale beyond this is no encoder's error (a few per cent) but the fit bending to a unit mistake
+IMPLAUSIBLE_SCALE = 0.3
+#: a condition number beyond this: the poses leave some direction of the fit nearly free
+WEAK_CONDITION = 1e8
+
+
+def _not_converged(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_scale: bool) -> str:
+    """What a non-converging fit was fitting and its most likely cause, from its last iterate:
+    residuals far beyond the noise (the model cannot explain the readings) or a nearly singular
+    system (the poses leave directions free)."""
+    fitted = (
+        f"{basis.shape[1]} drive directions (the 42 parameters less the gauge), "
+        f"{'6 stroke scales, ' if fit_scale else ''}the {state.unknowns.size} instrument unknowns"
+    )
+    head = (
+        f"ls: Levenberg–Marquardt did not converge in {MAX_EVALUATIONS} evaluations fitting {fitted} to "
+        f"{len(problem.strokes)} samples"
+    )
+    # against the platform file's σ: the re-estimated ones grow with whatever the model cannot explain
+    e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0] / problem.sigmas
+    whitened = float(np.sqrt(np.nanmean(e**2)))
+    if whitened > UNEXPLAINED_SIGMAS:
+        return (
+            f"{head}; most likely the readings do not belong to this model: they stay {whitened:.3g} σ (RMS) from it "
+            "(readings in another unit or frame convention, columns mixed up, or a log of another platform)"
+        )
+    scale = np.asarray(state.scale, dtype=float)
+    if fit_scale and np.max(np.abs(scale)) > IMPLAUSIBLE_SCALE:
+        leg = int(np.argmax(np.abs(scale)))
+        return (
+            f"{head}; most likely the readings move the platform by another amount than the strokes say: the "
+            f"fit took the stroke scale k{leg + 1} to {scale[leg]:+.3g} (a leg moving {1 + scale[leg]:.3g} mm per "
+            "logged mm; readings or strokes in another unit?)"
+        )
+    A, _ = _system(problem, state, basis, sigmas, weights, fit_scale)
+    s = np.linalg.svd(A, compute_uv=False)
+    condition = s[0] / s[-1] if s[-1] > 0 else math.inf
+    if condition > WEAK_CONDITION:
+        return (
+            f"{head}; most likely the poses leave some directions nearly free (condition number {condition:.3g}): "
+            "expected poses that vary all six pose coordinates over the workspace, or --set ls.stroke_scale=off"
+        )
+    return (
+        f"{head}; the residuals ({whitened:.3g} σ RMS) and the conditioning ({condition:.3g}) look sound: "
+        "most likely a few gross outliers pull it; try --set ls.robust_k=1.5"
+    )
 
 
 def _scale_identifiable(problem: BatchProblem, state: _State, basis, sigmas) -> bool:

@@ -38,6 +38,7 @@ from .. import __version__, estimators, io
 from .. import kinematics as kin
 from ..accuracy import estimate_summary
 from ..config import EstimatorConfig, load_estimator_config
+from ..diagnosis import diagnose_log
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..estimators import BatchEstimator, KalmanFiltered
@@ -404,6 +405,8 @@ def stream_calibration(
     )
 
     def read(block: Log) -> Log:
+        if not checked.seen:  # the first block (the whole of a short log) stands for the log
+            diagnose_log(platform, block.strokes, block.readings, path)
         checked.add(block)
         skipped.add(block.skipped)
         if spool is not None:
@@ -527,6 +530,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             log = io.read_log(args.log, platform, skip_bad_rows=args.skip_bad_rows)
             skipped.add(log.skipped)
+            diagnose_log(platform, log.strokes, log.readings, args.log)
             progress = sys.stderr.isatty() and len(log) >= MIN_LOG_ROWS
             result = run_calibration(platform, log, args.method, config, bool(trace_path), progress, bool(rerun_path))
             estimate, n_samples, noise_scale = result.estimate, len(log), result.noise_scale

@@ -21,12 +21,14 @@ conditioning. Nothing is written unless the whole run succeeds.
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from .. import io
 from .. import kinematics as kin
+from ..diagnosis import diagnose_log
 from ..errors import CalibError
 from ..instruments import drive as drive_model
 from ..platform import Platform, load_platform
@@ -167,11 +169,12 @@ def run(args: argparse.Namespace) -> int:
         header.append("orientation_error_deg")
     unseen = io.blank_reading_columns(columns)  # a target not seen: empty fields, read and predicted, and its error
     blank = (*(1 + j for j in unseen), *(1 + len(columns) + j for j in unseen), 1 + 2 * len(columns))
-    page = None
+    page = moved = None
     with log_progress_bar(args.log, "validate") as bar:
         if report_dir or args.register_instrument:
             # the report plots, and the instrument frame is fitted to, the whole log
             log = _whole_log(platform, args.log, bar)
+            diagnose_log(platform, log.strokes, log.readings, args.log, count=False)
             predicted, position, orientation = validate(
                 platform, result, log, args.register_instrument, str(args.result)
             )
@@ -182,10 +185,12 @@ def run(args: argparse.Namespace) -> int:
             )
         else:
             errors: list[tuple] = []
-            blocks = _validated_blocks(platform, result, args.log, str(args.result), bar, errors)
+            first: list[Log] = []
+            blocks = _validated_blocks(platform, result, args.log, str(args.result), bar, errors, first)
             io.write_csv_blocks(args.out, header, blocks, blank)
             position = np.concatenate([e[0] for e in errors])
             orientation = None if errors[0][1] is None else np.concatenate([e[1] for e in errors])
+            moved = _moved_frame_hint(platform, result, first[0], errors[0][0], str(args.result))
     if page is not None:
         handover.write_report(report_dir, page)
     print(
@@ -194,6 +199,8 @@ def run(args: argparse.Namespace) -> int:
     )
     if platform.instrument.kind != "tracker":
         print(f"stewart-calib validate: {_unseen_error_line(platform, result, position)}")
+    if moved:
+        print(f"stewart-calib validate: {moved}", file=sys.stderr)
     return 0
 
 
@@ -222,6 +229,34 @@ def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray
     return head + f"the result's covariance predicts {prediction.describe()}"
 
 
+#: the held-out errors must exceed this many position σ of the instrument before a moved frame is suspected
+MOVED_SIGMAS = 10.0
+#: and fitting the frame again must cut them by this factor
+MOVED_GAIN = 5.0
+
+
+def _moved_frame_hint(platform: Platform, result: dict, block: Log, position: np.ndarray, source: str) -> str | None:
+    """One line when an outside instrument's errors on the log's first block are far beyond its
+    noise and a frame fitted again to that block explains them: the instrument moved since the
+    calibration (cameras bumped, a tracker set up anew), not the robot."""
+    if platform.instrument.kind == "tracker" or not len(block):
+        return None
+    rms = float(np.sqrt(np.nanmean(position**2)))
+    if rms < MOVED_SIGMAS * platform.instrument.position_sigma_mm:
+        return None
+    try:
+        refit = validate(platform, result, block, True, source)[1]
+    except CalibError:
+        return None
+    refit_rms = float(np.sqrt(np.nanmean(refit**2)))
+    if refit_rms * MOVED_GAIN > rms:
+        return None
+    return (
+        f"the instrument frame looks moved since the calibration: position RMS {rms:.4g} mm through the "
+        f"result's frame, {refit_rms:.4g} mm with the frame fitted to this log; add --register-instrument"
+    )
+
+
 def _file_columns(log: Log, predicted, position, orientation, columns) -> list[np.ndarray]:
     """V.csv's columns [file units] for the rows of ``log``."""
     return [
@@ -243,10 +278,11 @@ def _whole_log(platform: Platform, path: str, bar) -> Log:
     return Log.concatenate(blocks)
 
 
-def _validated_blocks(platform: Platform, result: dict, path: str, result_source: str, bar, errors: list):
+def _validated_blocks(platform: Platform, result: dict, path: str, result_source: str, bar, errors: list, first: list):
     """V.csv's columns a block of the log at a time (each row's prediction is its own), the ``bar``
     ticked per block; each block's ``(position, orientation)`` errors are appended to ``errors``
-    (the summary's). A prediction refused is raised once the rest of the log is read, so that a
+    (the summary's) and the first block, diagnosed (:func:`~stewart_calib.diagnosis.diagnose_log`),
+    to ``first``. A prediction refused is raised once the rest of the log is read, so that a
     bad row anywhere in it is refused first, as when the log was read whole."""
     blocks = io.read_log_blocks(path, platform)
     done = 0
@@ -254,6 +290,9 @@ def _validated_blocks(platform: Platform, result: dict, path: str, result_source
         bar.update(len(block))
         if not len(block):
             continue
+        if not first:
+            diagnose_log(platform, block.strokes, block.readings, path, count=False)
+            first.append(Log(block.t_s, block.strokes, block.readings))
         try:
             predicted, position, orientation = validate(
                 platform, result, block, False, result_source, first_sample=done

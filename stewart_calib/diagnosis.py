@@ -1,0 +1,373 @@
+"""Mistakes in a log named by their cause, before any solver runs (issue 28).
+
+A log converted by hand goes wrong in a few typical ways, and each makes a solver fail far from
+the cause (a non-converging Levenberg–Marquardt for positions left in metres, a registration
+that "does not rotate about two axes" for angles left in radians or two stroke columns swapped).
+:func:`diagnose_log` looks at the log the way an engineer would, in this order, and refuses it
+with one line naming the cause and its evidence:
+
+1. **too few samples** — fewer distinct samples than the unknowns need (how many are needed);
+2. **strokes in another unit** — the strokes barely move the platform while the instrument saw
+   it move (or the strokes fill a sliver of the stroke range);
+3. **too few directions** — an outside instrument's frame and target orientations are told
+   apart only by poses that rotate about two axes; the missing ones are named;
+4. **readings in another unit** — the spread of the measured positions (or angles, or tracker
+   readings) against the spread the logged strokes give the nominal model: a rigid change of
+   frame keeps distances between positions and angles between orientations, so the two spreads
+   agree within the drive's errors whatever the frame; a ratio near 1/1000 is metres, near
+   π/180 radians;
+5. **stroke columns swapped or a leg's sign reversed** — each leg's length, from the measured
+   poses (the tracker's forward kinematics, or the registration of an outside instrument),
+   should follow its own stroke column with slope ≈ 1; a leg that follows another column, or
+   follows its own backwards, is named with the residuals of both wirings;
+Every test uses at most :data:`DIAGNOSED_SAMPLES` samples evenly spread over the log, so its
+cost does not grow with the log. Thresholds are ratios far from 1 (a factor
+:data:`UNIT_TOLERANCE` about a unit's factor, :data:`WIRING_GAIN` between two wirings), not
+tuned to one robot: the spreads compared are those of the same motions.
+"""
+
+from __future__ import annotations
+
+import math
+from itertools import combinations
+
+import numpy as np
+
+from . import kinematics as kin
+from .errors import CalibError
+from .instruments import lie
+from .platform import N_LEGS, Platform
+
+#: samples the diagnosis looks at, evenly spread over the log
+DIAGNOSED_SAMPLES = 400
+#: a spread ratio within this factor of a unit's conversion factor names that unit
+UNIT_TOLERANCE = 2.0
+#: a spread ratio beyond this factor from 1 (either way) matching no unit is refused as such
+SPREAD_LIMIT = 5.0
+#: samples the wiring test registers (22 wirings: every pair of columns swapped, every leg reversed)
+WIRING_SAMPLES = 120
+#: another wiring must explain the leg lengths this many times better to be named
+WIRING_GAIN = 5.0
+#: a rotation whose spread is below this fraction of the log's largest (or of a third of the
+#: workspace's rotation limit, if larger) counts as not excited
+EXCITED_FRACTION = 0.2
+
+#: what a position (or stroke) ratio measured / expected points to: the unit the values look like
+LENGTH_UNITS = {1e-3: "metres", 0.1: "centimetres", 1 / 25.4: "inches", 1e3: "micrometres"}
+#: the same for angles written as degrees
+ANGLE_UNITS = {math.pi / 180.0: "radians"}
+POSE_DIRECTIONS = ("x", "y", "z", "roll", "pitch", "yaw")
+
+
+def _evenly(n: int, most: int = DIAGNOSED_SAMPLES) -> np.ndarray:
+    return np.unique(np.linspace(0, n - 1, min(n, most)).round().astype(int)) if n else np.zeros(0, dtype=int)
+
+
+def _named_unit(ratio: float, units: dict[float, str]) -> str | None:
+    for factor, name in units.items():
+        if math.isfinite(ratio) and abs(math.log(ratio / factor)) < math.log(UNIT_TOLERANCE):
+            return name
+    return None
+
+
+def position_spread_mm(points: np.ndarray) -> float:
+    """RMS distance of ``(N, 3)`` points from their centroid [mm] (NaN rows left out)."""
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if not len(points):
+        return float("nan")
+    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+
+
+def rotation_spread_rad(R: np.ndarray) -> float:
+    """RMS angle [rad] of ``(N, 3, 3)`` rotations from their chordal mean: the same for
+    ``F R_k G`` as for ``R_k`` (the mean moves with them), so it needs no frame."""
+    mean = lie.project_to_rotation(np.mean(R, axis=0))
+    return float(np.sqrt(np.mean(np.sum(lie.so3_log(np.einsum("ji,kjl->kil", mean, R)) ** 2, axis=-1))))
+
+
+def _columns(names: list[str]) -> str:
+    return names[0] if len(names) == 1 else f"{names[0]}…{names[-1]}"
+
+
+def _refuse(where: str, message: str) -> None:
+    raise CalibError(f"{where}: {message}")
+
+
+def required_samples(platform: Platform) -> tuple[int, int, str]:
+    """``(samples needed, unknowns, what they are)`` for a calibration of ``platform``'s drive
+    with its instrument: the unknowns the data must fix (gauge directions excluded) over the
+    values one sample measures."""
+    instrument = platform.instrument
+    if instrument.kind == "tracker":
+        return math.ceil(42 / N_LEGS), 42, "42 drive parameters"
+    own = 12 if instrument.kind == "pose" else 6 + 3 * instrument.n_targets
+    per_sample = 6 if instrument.kind == "pose" else 3 * instrument.n_targets
+    unknowns = 42 + N_LEGS + own - 12
+    what = f"42 drive parameters, 6 stroke scales and {own} of the instrument, less 12 gauge directions"
+    return math.ceil(unknowns / per_sample), unknowns, what
+
+
+def _check_count(platform: Platform, readings: np.ndarray, where: str) -> None:
+    from .instruments.registration import distinct_count
+
+    needed, unknowns, what = required_samples(platform)
+    finite = readings[np.any(np.isfinite(readings), axis=1)]
+    scale = np.full(readings.shape[1], 1e-9)
+    n = distinct_count(finite[_evenly(len(finite), 4 * needed)], scale, needed)
+    if n < needed:
+        _refuse(
+            where,
+            f"too few samples: {n} distinct sample(s) for {unknowns} unknowns ({what}); "
+            f"expected at least {needed} distinct poses, better several times that",
+        )
+
+
+def _fk(platform: Platform, strokes: np.ndarray):
+    from .instruments.drive import scaled_strokes
+
+    return kin.forward_kinematics(platform.drive, scaled_strokes(strokes, platform.stroke_scale), strict=False)
+
+
+def _check_strokes_unit(platform: Platform, strokes: np.ndarray, where: str, stroke_columns: list[str]) -> None:
+    """Strokes in metres fill a thousandth of the stroke range (without a range: of the legs'
+    initial length); a log that really moves so little identifies nothing anyway."""
+    span = float(np.nanmax(strokes) - np.nanmin(strokes)) if strokes.size else 0.0
+    if platform.stroke_range is not None:
+        reference, what = platform.stroke_range[1] - platform.stroke_range[0], "the stroke range"
+    else:
+        reference, what = float(np.mean(platform.drive.initial_lengths)), "the legs' initial length"
+    if 0 < span < 1e-3 * UNIT_TOLERANCE * reference:
+        _refuse(
+            where,
+            f"the strokes {_columns(stroke_columns)} look like metres, not mm: they span {span:.4g} against "
+            f"{reference:.4g} mm of {what} (×1000: {1000 * span:.4g} mm)",
+        )
+
+
+def _check_directions(platform: Platform, R: np.ndarray, t: np.ndarray, where: str) -> None:
+    """Why an outside instrument does not register: its frame and target orientations are told
+    apart only by poses that rotate about two axes. Called once the registration failed."""
+    spread_deg = np.degrees(np.std(kin.rt_to_pose(R, t)[:, 3:], axis=0))
+    reference = float(np.max(spread_deg))
+    if platform.workspace is not None:
+        reference = max(reference, math.degrees(platform.workspace.rotation_limit) / 3.0)
+    missing = [k for k in range(3) if spread_deg[k] < EXCITED_FRACTION * reference]
+    if len(missing) >= 2:
+        names = [POSE_DIRECTIONS[3 + k] for k in missing]
+        spreads = ", ".join(f"{POSE_DIRECTIONS[3 + k]} {spread_deg[k]:.3g}°" for k in missing)
+        _refuse(
+            where,
+            f"the poses excite too few directions: no rotation about {' or '.join(names)} (σ {spreads}, from "
+            "the strokes); the instrument's frame and target orientations are told apart only by poses that rotate "
+            "about two axes: expected poses with roll, pitch and yaw varied",
+        )
+
+
+def _check_ratio(where: str, what: str, columns: str, measured: float, expected: float, units, unit_word: str) -> None:
+    if not (math.isfinite(measured) and math.isfinite(expected)) or expected <= 0:
+        return
+    ratio = measured / expected
+    unit = _named_unit(ratio, units)
+    evidence = (
+        f"they spread {measured:.4g} {unit_word} where the logged strokes through the nominal model give "
+        f"{expected:.4g} {unit_word}"
+    )
+    if unit is not None:
+        _refuse(where, f"the {what} {columns} look like {unit}, not {unit_word}: {evidence}")
+    if ratio > SPREAD_LIMIT or ratio < 1 / SPREAD_LIMIT:
+        _refuse(
+            where,
+            f"the {what} {columns} do not match the strokes: {evidence} ({ratio:.3g}×); expected the same "
+            f"spread in {unit_word} (another unit, other columns, or a log of another platform)",
+        )
+
+
+def _check_reading_units(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray, where: str, columns):
+    kind = platform.instrument.kind
+    if kind == "tracker":
+        expected = kin.inverse_kinematics(platform.tracker, R, t)
+        measured_spread = float(np.sqrt(np.nanmean(np.nansum((readings - np.nanmean(readings, axis=0)) ** 2, axis=1))))
+        expected_spread = float(np.sqrt(np.mean(np.sum((expected - expected.mean(axis=0)) ** 2, axis=1))))
+        _check_ratio(where, "tracker readings", _columns(columns), measured_spread, expected_spread, LENGTH_UNITS, "mm")
+        return
+    instrument = platform.instrument
+    if kind == "pose":
+        _, t_G = kin.pose_to_rt(instrument.target)
+        t_T = t + np.einsum("kij,j->ki", R, t_G)
+        _check_ratio(
+            where,
+            "positions",
+            _columns(columns[:3]),
+            position_spread_mm(readings[:, :3]),
+            position_spread_mm(t_T),
+            LENGTH_UNITS,
+            "mm",
+        )
+        R_M = kin.rpy_to_rotation(readings[:, 3:])
+        _check_ratio(
+            where,
+            "orientations",
+            _columns(columns[3:]),
+            math.degrees(rotation_spread_rad(R_M)),
+            math.degrees(rotation_spread_rad(R)),
+            ANGLE_UNITS,
+            "degrees",
+        )
+        return
+    measured = readings.reshape(len(readings), -1, 3)
+    expected = kin.transform_points(R, t, instrument.targets)
+    for k in range(measured.shape[1]):
+        _check_ratio(
+            where,
+            f"target {k + 1} positions",
+            _columns(columns[3 * k : 3 * k + 3]),
+            position_spread_mm(measured[:, k]),
+            position_spread_mm(expected[:, k]),
+            LENGTH_UNITS,
+            "mm",
+        )
+
+
+def _leg_residuals_mm(lengths: np.ndarray, strokes: np.ndarray) -> np.ndarray:
+    """``(6,)`` RMS [mm] of each leg's length less its stroke about their mean difference: the
+    offset absorbs ``l_i``; a stroke scale a few per cent off leaves a few per cent of the
+    stroke's spread, a reversed or another leg's stroke the whole of it."""
+    difference = lengths - strokes
+    return np.sqrt(np.mean((difference - difference.mean(axis=0)) ** 2, axis=0))
+
+
+def _wirings() -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """``(description, column order, sign)`` of every single mistake: two columns swapped, one
+    leg's sign reversed."""
+    out = []
+    for i, j in combinations(range(N_LEGS), 2):
+        order = np.arange(N_LEGS)
+        order[[i, j]] = order[[j, i]]
+        out.append((f"swap {i} {j}", order, np.ones(N_LEGS)))
+    for i in range(N_LEGS):
+        sign = np.ones(N_LEGS)
+        sign[i] = -1.0
+        out.append((f"sign {i}", np.arange(N_LEGS), sign))
+    return out
+
+
+def _rewired(strokes: np.ndarray, order: np.ndarray, sign: np.ndarray, platform: Platform) -> np.ndarray:
+    """The strokes with columns reordered and reversed legs mirrored within the stroke range (or
+    their own span): a reversed encoder counts down from where a correct one counts up."""
+    q = strokes[:, order].copy()
+    for i in np.flatnonzero(sign < 0):
+        low, high = platform.stroke_range if platform.stroke_range is not None else (np.min(q[:, i]), np.max(q[:, i]))
+        q[:, i] = low + high - q[:, i]
+    return q
+
+
+def _wiring_message(order, sign, columns, as_logged: float, rewired: float) -> str:
+    swapped = [i for i in range(N_LEGS) if order[i] != i]
+    if swapped:
+        a, b = (columns[i] for i in swapped)
+        cause, change = f"stroke columns {a} and {b} look swapped", f"with {a} and {b} exchanged"
+    else:
+        leg = int(np.flatnonzero(sign < 0)[0])
+        cause = f"leg {leg + 1}'s stroke looks reversed ({columns[leg]} counts the wrong way)"
+        change = f"with {columns[leg]} reversed"
+    logged = (
+        "the readings do not register onto the poses of the strokes as logged"
+        if math.isinf(as_logged)
+        else f"the leg lengths of the measured poses follow the strokes as logged to {as_logged:.3g} mm RMS"
+    )
+    return f"{cause}: {logged}; {change} they follow them to {rewired:.3g} mm"
+
+
+def _pose_lengths(platform: Platform, strokes: np.ndarray, readings: np.ndarray):
+    """Leg lengths of the nominal drive at the platform poses the readings give ``(N, 6)`` [mm]
+    (NaN rows where no pose), and the whitened RMS of the registration that mapped them."""
+    from .instruments.external import model_for
+
+    if platform.instrument.kind == "tracker":
+        fk = kin.forward_kinematics(platform.tracker, readings, strict=False)
+        lengths = kin.leg_lengths(platform.drive, fk.R, fk.t)
+        lengths[~fk.converged] = np.nan
+        return lengths, None
+    model = model_for(platform)
+    fk = _fk(platform, strokes)
+    usable = fk.converged & np.any(np.isfinite(readings), axis=1)
+    if usable.sum() < 3:
+        return None, None
+    try:
+        unknowns = model.register(fk.R[usable], fk.t[usable], readings[usable])
+    except CalibError:
+        return None, None
+    e = model.module.residual(unknowns, readings[usable], fk.R[usable], fk.t[usable])[0] / model.sigmas
+    whitened = float(np.sqrt(np.nanmean(e**2)))
+    if platform.instrument.kind != "pose":
+        return None, whitened  # points fix no orientation per sample: only the registration's fit tells
+    R_M, t_M = kin.pose_to_rt(readings[usable])
+    R_P, t_P = lie.compose(
+        *lie.compose(unknowns.R_frame, unknowns.t_frame, R_M, t_M), *lie.inverse(unknowns.R_target, unknowns.t_target)
+    )
+    lengths = np.full((len(strokes), N_LEGS), np.nan)
+    lengths[usable] = kin.leg_lengths(platform.drive, R_P, t_P)
+    return lengths, whitened
+
+
+def _wiring_score(platform: Platform, strokes: np.ndarray, readings: np.ndarray) -> float:
+    """How well the strokes explain the measured poses: the worst leg's straight-line residual
+    [mm] (pose, tracker) or the registration's whitened RMS (points); inf where nothing registers."""
+    lengths, whitened = _pose_lengths(platform, strokes, readings)
+    if lengths is None:
+        return math.inf if whitened is None else whitened
+    rows = np.all(np.isfinite(lengths), axis=1)
+    if rows.sum() < 3:
+        return math.inf
+    return float(np.max(_leg_residuals_mm(lengths[rows], strokes[rows])))
+
+
+def _check_wiring(platform: Platform, strokes: np.ndarray, readings: np.ndarray, where: str, stroke_columns) -> bool:
+    """Refuse a log that one rewiring (two columns swapped, a leg reversed) explains far better
+    than every other; returns whether the log as written registers."""
+    pick = _evenly(len(strokes), WIRING_SAMPLES)
+    strokes, readings = strokes[pick], readings[pick]
+    as_logged = _wiring_score(platform, strokes, readings)
+    scores = sorted(
+        (_wiring_score(platform, _rewired(strokes, order, sign, platform), readings), k)
+        for k, (_, order, sign) in enumerate(_wirings())
+    )
+    (best, k), (second, _) = scores[0], scores[1]
+    if best * WIRING_GAIN < min(as_logged, second):  # one rewiring alone explains the log
+        _, order, sign = _wirings()[k]
+        _refuse(where, _wiring_message(order, sign, stroke_columns, as_logged, best))
+    return math.isfinite(as_logged)
+
+
+def diagnose_log(
+    platform: Platform, strokes: np.ndarray, readings: np.ndarray, where: str, reading_columns=None, count: bool = True
+) -> None:
+    """Refuse a log whose mistake has a nameable cause (see the module), before any solver runs.
+
+    Args:
+        strokes: ``(N, 6)`` logged strokes [mm]; readings: ``(N, m)`` the instrument's readings in
+            code units (mm, rad; NaN where a point target was not seen).
+        where: names the log in the message (its path).
+        reading_columns: the log's reading column names (default: the platform's).
+        count: whether to check that the samples are enough to calibrate (not for a held-out log).
+    Raises:
+        CalibError: one line naming the cause and its evidence.
+    """
+    from .io.logs import reading_columns as columns_of
+
+    strokes = np.asarray(strokes, dtype=float)
+    readings = np.asarray(readings, dtype=float)
+    columns = list(reading_columns or columns_of(platform))
+    stroke_columns = [f"q{i}_mm" for i in range(1, N_LEGS + 1)]
+    if count:
+        _check_count(platform, readings, where)
+    pick = _evenly(len(strokes))
+    strokes, readings = strokes[pick], readings[pick]
+    _check_strokes_unit(platform, strokes, where, stroke_columns)
+    fk = _fk(platform, strokes)
+    ok = fk.converged
+    if ok.sum() >= 3:
+        _check_reading_units(platform, fk.R[ok], fk.t[ok], readings[ok], where, columns)
+    registers = _check_wiring(platform, strokes, readings, where, stroke_columns)
+    if not registers and platform.instrument.kind != "tracker" and ok.sum() >= 3:
+        _check_directions(platform, fk.R[ok], fk.t[ok], where)
