@@ -37,6 +37,10 @@ class NoiseConfig:
             encoders' nominal scale is taken as exact) with the tracker, and means 0.05 with an
             instrument outside the robot (whose encoders are rarely known better; ``ls`` has
             its own ``stroke_scale`` switch).
+        tracker_geometry_sigma_mm: prior σ of the in-situ tracker's own 42 values [mm]: with it
+            positive they are identified with the drive under N(nominal, σ²) (spec §7), as the
+            platform file's ``[tracker] geometry_sigma_mm`` asks, which wins where it is given;
+            0 takes the tracker's geometry as exact.
     """
 
     reading_sigma_mm: float = 0.002
@@ -44,6 +48,7 @@ class NoiseConfig:
     random_walk_mm_per_sqrt_s: float = 1e-3
     prior_sigma_mm: float = 5.0
     stroke_scale_sigma: float = 0.0
+    tracker_geometry_sigma_mm: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -6,8 +6,6 @@ from __future__ import annotations
 import base64
 import dataclasses
 import re
-import shutil
-import subprocess
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -20,6 +18,7 @@ from stewart_calib.config import load_estimator_config
 from stewart_calib.io import read_result
 from stewart_calib.pipelines import calibrate as calibrate_pipeline
 from stewart_calib.platform import load_platform
+from tests.browser import browser, screenshot
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -174,33 +173,9 @@ def test_report_is_one_static_self_contained_page(ekf_run):
     assert result["conditioning"]["weakest_directions"][0] in page
 
 
-def _browser() -> str | None:
-    return next(
-        (path for name in ("chromium", "chromium-browser", "google-chrome") if (path := shutil.which(name))), None
-    )
-
-
-@pytest.mark.skipif(_browser() is None, reason="no headless Chromium installed")
+@pytest.mark.skipif(browser() is None, reason="no headless Chromium installed")
 def test_report_renders_in_a_headless_browser(ekf_run, tmp_path):
-    from PIL import Image
-
-    shot = tmp_path / "report.png"
-    subprocess.run(
-        [
-            _browser(),
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--hide-scrollbars",
-            "--window-size=1200,3000",
-            f"--screenshot={shot}",
-            (ekf_run / "report" / "index.html").as_uri(),
-        ],
-        check=True,
-        capture_output=True,
-        timeout=120,
-    )
-    pixels = np.asarray(Image.open(shot).convert("RGB"), dtype=float)
+    pixels = screenshot(ekf_run / "report" / "index.html", tmp_path / "report.png", 1200, 3000)
     assert pixels.shape[:2] == (3000, 1200)
     # the figures rendered: the bars' red (before) and blue (after) are on the page
     red = np.all(np.abs(pixels - (196, 78, 82)) < 8, axis=-1).sum()

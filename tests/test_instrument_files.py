@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -76,6 +77,24 @@ def test_tracker_geometry_sigma_round_trips():
     platform = parse_platform(doc, "p.toml")
     assert platform.tracker_geometry_sigma_mm == 0.015
     assert parse_platform(tomllib.loads(platform_to_toml(platform))).tracker_geometry_sigma_mm == 0.015
+
+
+def test_tracker_geometry_sigma_from_the_estimator_config_where_the_platform_gives_none():
+    from stewart_calib.config import NoiseConfig, load_estimator_config
+    from stewart_calib.estimators.measurement import drive_only_model
+    from stewart_calib.instruments import instrument_model
+    from tests.synthetic import NIM_STEWART
+
+    platform = parse_platform(tomllib.loads(NIM_STEWART.read_text()), "p.toml")
+    assert instrument_model(platform, NoiseConfig()).unknowns is None
+    from_config = instrument_model(platform, NoiseConfig(tracker_geometry_sigma_mm=0.015)).unknowns
+    np.testing.assert_array_equal(from_config.prior_sigma, np.full(42, 0.015))
+    stated = replace(platform, tracker_geometry_sigma_mm=0.004)  # the platform file's own statement wins
+    from_platform = instrument_model(stated, NoiseConfig(tracker_geometry_sigma_mm=0.015)).unknowns
+    np.testing.assert_array_equal(from_platform.prior_sigma, np.full(42, 0.004))
+    config = load_estimator_config(None, ["noise.tracker_geometry_sigma_mm=0.015"])
+    with pytest.raises(CalibError, match="ls identifies the 42 drive parameters only, not instrument"):
+        drive_only_model("ls", platform, config)
 
 
 @pytest.mark.parametrize(

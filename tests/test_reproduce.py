@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -18,16 +19,17 @@ from stewart_calib.estimate import Estimate
 from stewart_calib.platform import PARAMETER_FIELDS
 from stewart_calib.reproduction import reproduce, results_dict
 from stewart_calib.reproduction.metrics import VIEWS
-from stewart_calib.reproduction.record import SCENE_CIRCLE_STRIDE, parameter_stride
+from stewart_calib.reproduction.record import SCENE_CIRCLE_STRIDE, entity_name, parameter_stride
 from stewart_calib.simulation import EstimatorController, load_experiment
 from stewart_calib.simulation.experiment import Stage
 from stewart_calib.viz.recording import SAMPLE_TIMELINE, TIME_TIMELINE
+from tests.browser import browser, screenshot
 from tests.readback import read_blueprint_names, read_entity_rows, read_scalars, read_static
 
 ROOT = Path(__file__).resolve().parents[1]
 QUICK = ROOT / "configs" / "experiments" / "quick.toml"
 ESTIMATORS = ROOT / "configs" / "estimators" / "paper.toml"
-RECORDED = ("ls", "paper_ekf", "ekf", "isam2")
+RECORDED = ("ls", "paper_ekf", "ekf", "ekf_tracker", "isam2", "isam2_tracker")
 
 
 @pytest.fixture(scope="module")
@@ -60,9 +62,9 @@ def _assert_online_beats_frozen_ls(results: dict, stages: list[str]) -> None:
     tables.md shows).
     """
     details = results["details"]
+    everything = ("position", "orientation", "circle")
     claims = {
-        "ekf": ("position", "orientation", "circle"),
-        "isam2": ("position", "orientation", "circle"),
+        **{run: everything for run in results["methods"] if run.split("+")[0] in ("ekf", "isam2")},
         "paper-ekf": ("position", "circle"),
     }
     measure = {
@@ -156,7 +158,7 @@ def _same(cell: str, value) -> bool:
 def test_tables_md_numbers_equal_results_json(out, results):
     tables = _markdown_tables((out / "tables.md").read_text(encoding="utf-8"))
     json_tables = results["tables"]
-    verdict, tracker_headline, *error_tables, table4, rms = tables
+    verdict, parts, tracker_headline, *error_tables, table4, rms = tables
     assert len(error_tables) == 4
 
     headline = json_tables["headline"]
@@ -176,6 +178,23 @@ def test_tables_md_numbers_equal_results_json(out, results):
         assert cells[5].startswith("yes" if values["meets_paper"] else "no (")
     assert all(len(cells) == 5 for cells in tracker_headline)  # no verdict from the flattering view
 
+    # what each part contributes: ls, then each method of the bar part by part, in the truth view
+    json_parts = json_tables["parts"]
+    assert json_parts["view"] == "truth"
+    assert [cells[0] for cells in parts] == ["ls", "ekf", "ekf+tracker", "isam2", "isam2+tracker"]
+    assert parts[0][2] == "`configs/estimators/paper.toml`" and parts[2][2] == "`configs/estimators/paper-tracker.toml`"
+    names = ("position", "orientation", "circle")
+    assert all(_same(cell, json_parts["ls"][name]) for cell, name in zip(parts[0][3:6], names, strict=True))
+    for cells, row in zip(parts[1:], json_parts["rows"], strict=True):
+        assert cells[0] == row["run"]
+        assert all(_same(cell, row[name]) for cell, name in zip(cells[3:6], names, strict=True))
+        percent = cells[6].split(" / ")
+        assert all(
+            _same(cell, headline["ours"]["truth"][row["run"]][name]) for cell, name in zip(percent, names, strict=True)
+        )
+        assert all(_same(cell, row["vs_ls_pct"][name]) for cell, name in zip(percent, names, strict=True))
+    assert headline["target_methods"] == ["ekf+tracker", "isam2+tracker"]
+
     for cells_rows, (number, view) in zip(
         error_tables, [(n, v) for n in ("table5", "table6") for v in VIEWS], strict=True
     ):
@@ -190,7 +209,8 @@ def test_tables_md_numbers_equal_results_json(out, results):
     for number in ("table5", "table6"):
         assert {row["method"] for row in json_tables[number]["truth"]}.isdisjoint({"paper LS", "paper EKF"})
         assert {"paper LS", "paper EKF"} <= {row["method"] for row in json_tables[number]["tracker"]}
-    assert len(table4) == len(json_tables["table4"]["rows"]) == 6 * 7
+    sources = len(results["methods"]) + 3  # the runs, the truth and the paper's two columns
+    assert len(table4) == len(json_tables["table4"]["rows"]) == 6 * sources
     for cells, row in zip(table4, json_tables["table4"]["rows"], strict=True):
         assert [int(cells[0]), cells[1]] == [row["leg"], row["source"]]
         assert all(_same(cell, value) for cell, value in zip(cells[2:], row["values"], strict=True))
@@ -232,7 +252,8 @@ def test_recording_paths_timelines_and_rows(out, results):
             raw = read_static(rrd, f"polar/{stage}/{method}/raw")
             deviation = next(v for k, v in raw.items() if "deviation_mm" in k)
             assert len(deviation) == quick.circle.points
-            expected = results["details"][method.replace("_", "-")]["stages"][stage]["circle"]["truth"]["position_mm"]
+            run = {entity_name(name): name for name in results["methods"]}[method]
+            expected = results["details"][run]["stages"][stage]["circle"]["truth"]["position_mm"]
             assert np.mean(deviation) == pytest.approx(expected)
     assert "/trajectories/no-load/nominal/actual" in static and "/trajectories/40kg/nominal/actual" not in static
     names = read_blueprint_names(rrd)
@@ -243,7 +264,7 @@ def test_recording_paths_timelines_and_rows(out, results):
             assert rows[f"/params/leg{leg}/l/{method}/upper"] == rows[f"/params/leg{leg}/l/{method}/lower"] == kept
             assert rows[f"/diagnostics/{method}/residual/leg{leg}"] == kept
             assert (f"/diagnostics/{method}/innovation/leg{leg}" in rows) == (method != "ls")
-        assert (f"/diagnostics/{method}/nis" in rows) == (method in ("ekf", "paper_ekf"))
+        assert (f"/diagnostics/{method}/nis" in rows) == (method in ("ekf", "ekf_tracker", "paper_ekf"))
     # the band is the estimate ± its σ: at the last logged row, the online filter's final σ
     _, centre = read_scalars(rrd, "params/leg1/l/ekf")
     _, upper = read_scalars(rrd, "params/leg1/l/ekf/upper")
@@ -286,3 +307,85 @@ def test_estimator_controller_uses_the_latest_estimate_and_counts_refusals():
     assert [t for t, _ in controller.rejected] == [3.0, 5.0]
     np.testing.assert_array_equal(controller.trace()[:, 0], [2.0, 2.0, 4.0, 4.0])
     np.testing.assert_allclose(controller.drive_model().as_vector(), platform.drive.as_vector() + 4.0)
+
+
+# ----------------------------------------------------------------------------- figures and index.html
+
+
+def test_figures_and_index_page(out, results):
+    from PIL import Image
+
+    page = (out / "index.html").read_text(encoding="utf-8")
+    figures = re.findall(r'<img alt="[^"]*" src="([^"]+)"', page)
+    online = [run for run in results["methods"] if run != "ls"]
+    assert figures == [
+        *(f"fig5_{run}.png" for run in ("paper-ekf", "ekf+tracker", "isam2+tracker")),
+        *(f"fig6_{run}.png" for run in ("paper-ekf", "ekf+tracker", "isam2+tracker")),
+        "fig7_pose_errors.png",
+        "fig8_circle.png",
+        "fig9_polar.png",
+    ]
+    assert set(online) >= {"paper-ekf", "ekf+tracker", "isam2+tracker"}
+    for name in figures:
+        with Image.open(out / name) as image:
+            assert image.format == "PNG" and image.width > 800 and image.height > 300, name
+    # the page is tables.md: every table with every row, and nothing fetched from anywhere
+    markdown_rows = [
+        line for line in (out / "tables.md").read_text(encoding="utf-8").splitlines() if line.startswith("|")
+    ]
+    separators = sum(1 for line in markdown_rows if set(line) <= set("|-"))
+    assert page.count("<table") == separators
+    assert page.count("<tr>") == len(markdown_rows) - separators
+    assert "<script" not in page and "http" not in page
+
+
+def test_markdown_subset_to_html():
+    from stewart_calib.reproduction.page import markdown_html
+
+    title, body = markdown_html(
+        "# Title <1>\n\nA **bold** `a<b` line\nwrapped.\n\n- one\n- `two`\n\n"
+        "## Part\n\n| a | b |\n|---|---|\n| `x` | 1 < 2 |\n"
+    )
+    assert title == "Title <1>"
+    assert body == (
+        "<p>A <strong>bold</strong> <code>a&lt;b</code> line wrapped.</p><ul><li>one</li><li><code>two</code></li></ul>"
+        '<h2>Part</h2><table class="num"><thead><tr><th>a</th><th>b</th></tr></thead>'
+        "<tbody><tr><td><code>x</code></td><td>1 &lt; 2</td></tr></tbody></table>"
+    )
+
+
+@pytest.mark.skipif(browser() is None, reason="no headless Chromium installed")
+def test_index_page_renders_its_figures_in_a_headless_browser(out, tmp_path):
+    height = 5000  # the tables, then the first figure
+    pixels = screenshot(out / "index.html", tmp_path / "index.png", 1200, height)
+    assert pixels.shape[:2] == (height, 1200)
+    # the tables are black on white and grey: coloured pixels are the figures' (the PNGs loaded from file://)
+    coloured = (pixels.max(axis=-1) - pixels.min(axis=-1)) > 60
+    assert coloured.sum() > 10_000  # 24 000 measured: the first figure, Fig. 5, in the window
+
+
+def test_gauge_error_is_the_rigid_part_of_the_tracker_error():
+    """A tracker whose base joints are all off by one translation and whose platform joints are
+    exact is exact in frames {J} moved by that translation: the truth view charges it in full."""
+    from types import SimpleNamespace
+
+    from stewart_calib.platform import LegGeometry
+    from stewart_calib.reproduction.metrics import tracker_gauge_error
+
+    platform = load_experiment(QUICK).platform
+    nominal = platform.tracker
+    shift = np.array([0.010, -0.004, 0.002])
+    moved = LegGeometry(nominal.base_joints + shift, nominal.platform_joints, nominal.initial_lengths)
+    poses = np.array([[0.0, 0.0, 1125.8, 0.0, 0.0, 0.0], [50.0, -20.0, 1100.0, 0.1, -0.05, 0.2]])
+    result = SimpleNamespace(
+        robot=SimpleNamespace(tracker=SimpleNamespace(geometry=moved)),
+        actual_poses=poses,
+        stages=np.array(["s", "s"]),
+        kinds=np.array(["validation", "validation"]),
+        pose_index=np.array([0, 1]),
+    )
+    error = tracker_gauge_error(result, platform)
+    assert error["position_mm"] == pytest.approx(np.linalg.norm(shift), rel=1e-9)
+    assert error["orientation_deg"] == pytest.approx(0.0, abs=1e-9)
+    exact = SimpleNamespace(**{**vars(result), "robot": SimpleNamespace(tracker=SimpleNamespace(geometry=nominal))})
+    assert tracker_gauge_error(exact, platform) == pytest.approx({"position_mm": 0.0, "orientation_deg": 0.0})

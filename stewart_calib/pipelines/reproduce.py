@@ -3,13 +3,17 @@
 Runs ``configs/experiments/paper.toml`` (``--quick``: ``quick.toml``, a few seconds) before
 calibration, with ``ls`` calibrated once at no load and frozen, and with ``paper-ekf``, ``ekf``
 and ``isam2`` online through all load stages, using the estimator settings of
-``configs/estimators/paper.toml``. Writes into DIR (default ``out``), each file atomically:
+``configs/estimators/paper.toml``; then ``ekf`` and ``isam2`` again with each part of the model of
+:data:`PARTS` added (the tracker's own geometry identified: ``paper-tracker.toml``). Writes into DIR
+(default ``out``), each file atomically:
 
 * ``tables.md`` — Tables 4, 5, 6 and the headline improvements, ours beside the paper's;
 * ``results.json`` — every number, per-stage per-method details, run time, versions, seed;
-* ``reproduce.rrd`` — the rerun recording (scene, parameters, pose errors, trajectories).
+* ``reproduce.rrd`` — the rerun recording (scene, parameters, pose errors, trajectories);
+* ``fig5_<run>.png`` … ``fig9_polar.png`` — the paper's Figs. 5–9 (:mod:`stewart_calib.reproduction.figures`);
+* ``index.html`` — tables.md and the figures on one static page (no server, no network).
 
-Progress bars (the run before calibration, then the methods' runs) go to stderr when it is a terminal.
+Progress bars (the run before calibration, the methods' runs, the figures) go to stderr when it is a terminal.
 """
 
 from __future__ import annotations
@@ -22,10 +26,17 @@ from pathlib import Path
 from ..config import load_estimator_config
 from ..errors import CalibError
 from ..io import atomic_path, atomic_write_text
-from ..reproduction import reproduce, results_dict, tables_markdown, write_recording
+from ..progress import progress_bar
+from ..reproduction import Part, index_html, reproduce, results_dict, tables_markdown, write_figures, write_recording
+from ..reproduction.figures import figures
 from ..resources import CONFIGS
 from ..simulation import load_experiment
 from . import run_command
+
+#: the estimator settings of ls, paper-ekf and the online methods' rigid runs
+CONFIG = "paper.toml"
+#: the parts of the model added one by one to ekf and isam2: (name, what it adds, settings)
+PARTS = (("tracker", "the tracker's own geometry identified", "paper-tracker.toml"),)
 
 
 def add_parser(subparsers) -> None:
@@ -47,13 +58,21 @@ def run(args: argparse.Namespace) -> int:
     except OSError as err:
         raise CalibError(f"{out}: cannot create output directory ({err.strerror or err.__class__.__name__})") from None
     experiment = load_experiment(CONFIGS / "experiments" / ("quick.toml" if args.quick else "paper.toml"))
-    config = load_estimator_config(CONFIGS / "estimators" / "paper.toml")
-    reproduction = reproduce(experiment, config, progress=True)
+    config = load_estimator_config(CONFIGS / "estimators" / CONFIG)
+    parts = tuple(
+        Part(name, description, load_estimator_config(CONFIGS / "estimators" / file), f"configs/estimators/{file}")
+        for name, description, file in PARTS
+    )
+    reproduction = reproduce(experiment, config, progress=True, parts=parts)
     with atomic_path(out / "reproduce.rrd") as tmp:
         write_recording(tmp, reproduction)
-    results = results_dict(reproduction, time.perf_counter() - start)
+    with progress_bar(total=len(figures(reproduction)), desc="reproduce: figures", unit="figure") as bar:
+        written = write_figures(out, reproduction, bar)
+    results = results_dict(reproduction, time.perf_counter() - start, f"configs/estimators/{CONFIG}")
     atomic_write_text(out / "results.json", json.dumps(results, indent=1, ensure_ascii=False) + "\n")
-    atomic_write_text(out / "tables.md", tables_markdown(results))
+    tables = tables_markdown(results)
+    atomic_write_text(out / "tables.md", tables)
+    atomic_write_text(out / "index.html", index_html(tables, written, "reproduce.rrd"))
     print(f"reproduced '{experiment.name}' in {results['run_time_s']:.1f} s into {out}")
     return 0
 

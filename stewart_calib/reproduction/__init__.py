@@ -6,13 +6,28 @@ Pure functions under a thin pipeline (:mod:`stewart_calib.pipelines.reproduce`):
     results_dict(reproduction, run_time_s) -> dict              # report.py: every number (results.json)
     tables_markdown(results) -> str                             # report.py: tables.md from results["tables"]
     write_recording(path, reproduction)                         # record.py: reproduce.rrd
+    write_figures(directory, reproduction) -> [(file, caption)] # figures.py: Figs. 5–9 as PNG
+    index_html(tables_md, figures, recording) -> str            # page.py: index.html
 
 :mod:`.metrics` holds the measures: pose errors as the tracker sees them and as the simulator
 knows them, one value per held pose.
 """
 
+from .figures import write_figures
+from .page import index_html
 from .record import write_recording
 from .report import results_dict, tables_markdown
-from .runs import METHODS, MethodRun, Reproduction, reproduce
+from .runs import METHODS, MethodRun, Part, Reproduction, reproduce
 
-__all__ = ["METHODS", "MethodRun", "Reproduction", "reproduce", "results_dict", "tables_markdown", "write_recording"]
+__all__ = [
+    "METHODS",
+    "MethodRun",
+    "Part",
+    "Reproduction",
+    "index_html",
+    "reproduce",
+    "results_dict",
+    "tables_markdown",
+    "write_figures",
+    "write_recording",
+]

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import kinematics as kin
+from ..instruments import gauge
 from ..platform import Platform
 from ..simulation import SimulationResult
 
@@ -56,6 +57,29 @@ def tracker_own_error(result: SimulationResult, platform: Platform) -> dict[str,
     R_a, t_a = kin.pose_to_rt(result.actual_poses[ends])
     seen = kin.forward_kinematics(platform.tracker, result.log.readings[ends], guess=(R_a, t_a))
     position, orientation = kin.pose_error(R_a, t_a, seen.R, seen.t)
+    return {"position_mm": float(position.mean()), "orientation_deg": float(orientation.mean())}
+
+
+def tracker_gauge_error(result: SimulationResult, platform: Platform) -> dict[str, float]:
+    """What the truth view charges a perfect identification of drive and tracker, as means
+    ``{position_mm, orientation_deg}`` over the held poses.
+
+    A rigid motion of all base joints (drive and tracker together), or of all platform joints,
+    changes no stroke and no reading: no data can tell where {J} and {D} are. With the tracker's
+    geometry identified its joints hold that gauge (docs/architecture.md "Gauge"): {J} and {D} are
+    the frames where its joints' mean rigid motion is nominal, to first order where the true
+    joints best fit the nominal ones (Kabsch, ``T_J``, ``T_D``). The simulator's frames differ
+    from those by the rigid part of the tracker's residual, so a pose ``X`` that is exact in them
+    is ``T_J⁻¹ X T_D`` in the simulator's frames: this error is part of every truth-view number.
+    """
+    true_tracker = result.robot.tracker.geometry
+    R_J, t_J = gauge.kabsch(true_tracker.base_joints, platform.tracker.base_joints)
+    R_D, t_D = gauge.kabsch(true_tracker.platform_joints, platform.tracker.platform_joints)
+    R, t = kin.pose_to_rt(result.actual_poses[held_pose_ends(result)])
+    # X' = T_J X T_D⁻¹: the true pose written in the frames the tracker's joints define
+    R_gauge = R_J @ R @ R_D.T
+    t_gauge = (R_J @ t[..., None])[..., 0] + t_J - (R_gauge @ t_D[:, None])[..., 0]
+    position, orientation = kin.pose_error(R, t, R_gauge, t_gauge)
     return {"position_mm": float(position.mean()), "orientation_deg": float(orientation.mean())}
 
 

@@ -27,7 +27,7 @@ from .. import kinematics as kin
 from ..platform import LegGeometry
 from ..viz import recording as viz
 from .metrics import held_pose_ends
-from .runs import BATCH_METHOD, METHODS, NOMINAL, Reproduction
+from .runs import BATCH_METHOD, NOMINAL, Reproduction
 
 SCENE_METHOD = "isam2"
 SCENE_CIRCLE_STRIDE = 5
@@ -43,9 +43,10 @@ def parameter_stride(n_samples: int) -> int:
     return max(1, math.ceil(n_samples / PARAMETER_ROWS_MAX))
 
 
-def entity_name(method: str) -> str:
-    """The recording's name of a method (``paper-ekf`` → ``paper_ekf``, as viz's colours expect)."""
-    return method.replace("-", "_")
+def entity_name(run: str) -> str:
+    """The recording's name of a run (``paper-ekf`` → ``paper_ekf``, as viz's colours expect;
+    ``ekf+tracker`` → ``ekf_tracker``)."""
+    return run.replace("-", "_").replace("+", "_")
 
 
 def scene_rows(reproduction: Reproduction) -> np.ndarray:
@@ -78,7 +79,7 @@ def write_recording(path: str | Path, reproduction: Reproduction) -> None:
         kept = np.arange(0, len(scene.log), parameter_stride(len(scene.log)))
         viz.log_parameters(rec, viz.TRUTH, scene.truth.params[kept] - nominal, scene.log.t_s[kept], samples=kept)
         diagnostics = {}
-        for method in METHODS:
+        for method in reproduction.calibrated:
             run = reproduction.runs[method]
             result = run.result
             name, t_kept = entity_name(method), result.log.t_s[kept]
@@ -93,7 +94,8 @@ def write_recording(path: str | Path, reproduction: Reproduction) -> None:
             R_a, t_a = kin.pose_to_rt(result.actual_poses)
             viz.log_pose_errors(rec, entity_name(method), result.log.t_s, *kin.pose_error(R_d, t_d, R_a, t_a))
         first_stage = reproduction.stage_names[0]
-        for method, stages in ((NOMINAL, [first_stage]), *((m, reproduction.stage_names) for m in METHODS)):
+        runs = ((NOMINAL, [first_stage]), *((m, reproduction.stage_names) for m in reproduction.calibrated))
+        for method, stages in runs:
             result = reproduction.runs[method].result
             for stage in stages:
                 circle = (result.stages == stage) & (result.kinds == "circle")
@@ -106,7 +108,9 @@ def write_recording(path: str | Path, reproduction: Reproduction) -> None:
                     POLAR_BASE_RADIUS_MM,
                     POLAR_GAIN,
                 )
-        viz.send_blueprint(rec, [entity_name(m) for m in METHODS], reproduction.stage_names, diagnostics)
+        viz.send_blueprint(
+            rec, [entity_name(m) for m in reproduction.calibrated], reproduction.stage_names, diagnostics
+        )
 
 
 def _diagnostics(platform, run, kept: np.ndarray, online: bool):

@@ -8,6 +8,9 @@
   initial calibration under no-load conditions was performed").
 * **online methods** — one :class:`EstimatorController` through the whole experiment: every
   sample is folded in and the next IK uses nominal + the latest δM.
+* **online methods part by part** — :data:`LAYERED_METHODS` again, once per part of the model
+  added on top of the rigid drive with the nominal tracker (``ekf+tracker``: the tracker's own
+  geometry identified), each part with its own estimator settings (:class:`Part`).
 
 Every run uses the same experiment and seed, so the desired poses, the robot and all noise
 draws are identical; only the controller differs.
@@ -34,6 +37,42 @@ ONLINE_METHODS = method_names(online=True)
 METHODS = (BATCH_METHOD, *ONLINE_METHODS)
 #: the controller that is not calibrated at all (paper: "before calibration").
 NOMINAL = "nominal"
+#: online methods run again with each part of the model added (the issue's bar applies to them).
+LAYERED_METHODS = ("ekf", "isam2")
+
+
+@dataclass(frozen=True)
+class Part:
+    """A part of the model added on top of the rigid drive with the nominal tracker.
+
+    Attributes:
+        name: the runs' suffix (``tracker`` → the run ``ekf+tracker``).
+        description: what it adds, for the tables (``the tracker's geometry``).
+        config: the estimator settings of the runs with this part (and those before it).
+        source: where ``config`` came from, for the tables.
+    """
+
+    name: str
+    description: str
+    config: EstimatorConfig
+    source: str
+
+
+def run_name(method: str, parts: tuple[Part, ...] = ()) -> str:
+    """``ekf``, ``ekf+tracker``, …: a method with the parts of its model after the rigid drive."""
+    return "+".join((method, *(part.name for part in parts)))
+
+
+def online_runs(parts: tuple[Part, ...]) -> list[tuple[str, str, EstimatorConfig | None]]:
+    """``(run, method, config or None for the base config)`` of every online run, in order: each
+    online method on the rigid model, followed for :data:`LAYERED_METHODS` by its runs with the
+    parts added one by one (the last has them all)."""
+    runs: list[tuple[str, str, EstimatorConfig | None]] = []
+    for method in ONLINE_METHODS:
+        runs.append((method, method, None))
+        if method in LAYERED_METHODS:
+            runs += [(run_name(method, parts[: k + 1]), method, part.config) for k, part in enumerate(parts)]
+    return runs
 
 
 @dataclass(frozen=True)
@@ -41,7 +80,8 @@ class MethodRun:
     """One closed-loop run of the experiment with one method's controller.
 
     Attributes:
-        method: ``nominal``, ``ls`` or an online method.
+        method: ``nominal``, ``ls`` or an online method (the estimator; the run's own name is its
+            key in :attr:`Reproduction.runs`).
         result: the simulated run (log, truth, desired and actual poses, stages, kinds).
         trace: ``(N, 42)`` δM the controller's IK used after each sample [mm] (paper Figs. 5–6).
         no_load_error: ``(42,)`` δM identified at no load [mm] (Table 4): ``ls``'s fit, an online
@@ -66,11 +106,27 @@ class MethodRun:
 
 @dataclass(frozen=True)
 class Reproduction:
-    """Every run of the experiment, keyed by method (``nominal`` first)."""
+    """Every run of the experiment, keyed by run name (``nominal`` first, then :data:`METHODS`,
+    then the online methods part by part: :func:`online_runs`)."""
 
     experiment: Experiment
     config: EstimatorConfig
     runs: dict[str, MethodRun]
+    parts: tuple[Part, ...] = ()
+
+    @property
+    def calibrated(self) -> list[str]:
+        """Every run but ``nominal``, in order."""
+        return [name for name in self.runs if name != NOMINAL]
+
+    @property
+    def online(self) -> list[str]:
+        """The online runs, in order."""
+        return [name for name in self.calibrated if name != BATCH_METHOD]
+
+    def fullest(self, method: str) -> str:
+        """The run of ``method`` with every part of the model."""
+        return run_name(method, self.parts if method in LAYERED_METHODS else ())
 
     @property
     def platform(self) -> Platform:
@@ -174,8 +230,11 @@ def run_online(experiment: Experiment, config: EstimatorConfig, method: str, bar
     )
 
 
-def reproduce(experiment: Experiment, config: EstimatorConfig, progress: bool = False) -> Reproduction:
-    """Run the experiment before calibration and with every method of :data:`METHODS`.
+def reproduce(
+    experiment: Experiment, config: EstimatorConfig, progress: bool = False, parts: tuple[Part, ...] = ()
+) -> Reproduction:
+    """Run the experiment before calibration, with every method of :data:`METHODS` on ``config``,
+    and with :data:`LAYERED_METHODS` once more per part of ``parts`` (:func:`online_runs`).
 
     Args:
         progress: bars on stderr when it is a terminal: the run before calibration, then one
@@ -188,12 +247,12 @@ def reproduce(experiment: Experiment, config: EstimatorConfig, progress: bool = 
         NOMINAL, nominal_result, np.zeros((n, N_PARAMS)), np.zeros(N_PARAMS), 0, time.perf_counter() - start
     )
     runs = {NOMINAL: nominal}
+    online = online_runs(parts)
+    names = [BATCH_METHOD, *(name for name, _, _ in online)]
     with progress_bar(
-        total=n * len(METHODS), desc=f"reproduce {experiment.name}: {', '.join(METHODS)}", show=progress
+        total=n * len(names), desc=f"reproduce {experiment.name}: {', '.join(names)}", show=progress
     ) as bar:
-        for method in METHODS:
-            if method == BATCH_METHOD:
-                runs[method] = run_ls(experiment, config, nominal_result, bar)
-            else:
-                runs[method] = run_online(experiment, config, method, bar)
-    return Reproduction(experiment, config, runs)
+        runs[BATCH_METHOD] = run_ls(experiment, config, nominal_result, bar)
+        for name, method, run_config in online:
+            runs[name] = run_online(experiment, run_config or config, method, bar)
+    return Reproduction(experiment, config, runs, parts)

@@ -79,25 +79,31 @@ def channel_unit(channel: str) -> str:
 # ----------------------------------------------------------------------------- figures
 
 
-def _png(figure) -> str:
-    """The figure as an inline ``<img>``; rendered by the Agg canvas (no display, no pyplot state)."""
+def png_bytes(figure, dpi: int = 110) -> bytes:
+    """The figure as PNG, rendered by the Agg canvas (no display, no pyplot state)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
     FigureCanvasAgg(figure)
     buffer = bytes_io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
-    data = base64.b64encode(buffer.getvalue()).decode("ascii")
+    figure.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
+    return buffer.getvalue()
+
+
+def _png(figure) -> str:
+    """The figure as an inline ``<img>``."""
+    data = base64.b64encode(png_bytes(figure)).decode("ascii")
     return f'<img alt="" src="data:image/png;base64,{data}">'
 
 
-def _figure(width_in: float, height_in: float):
+def new_figure(width_in: float, height_in: float):
+    """A matplotlib figure with constrained layout, outside pyplot (nothing global, no display)."""
     from matplotlib.figure import Figure
 
     return Figure(figsize=(width_in, height_in), layout="constrained")
 
 
 def residual_rms_figure(residuals: Residuals) -> str:
-    fig = _figure(8.0, 2.8)
+    fig = new_figure(8.0, 2.8)
     units = sorted({channel_unit(c) for c in residuals.channels})
     axes = fig.subplots(1, len(units), squeeze=False)[0]
     for ax, unit in zip(axes, units, strict=True):
@@ -117,7 +123,7 @@ def residual_time_figure(residuals: Residuals) -> str:
     m = len(residuals.channels)
     cols = 3 if m > 4 else m
     rows = -(-m // cols)
-    fig = _figure(9.0, 1.9 * rows + 0.4)
+    fig = new_figure(9.0, 1.9 * rows + 0.4)
     axes = np.atleast_1d(fig.subplots(rows, cols, sharex=True, squeeze=False)).ravel()
     stride = max(1, len(residuals.t_s) // MAX_PLOTTED_SAMPLES)
     t = residuals.t_s[::stride]
@@ -137,7 +143,7 @@ def residual_time_figure(residuals: Residuals) -> str:
 
 
 def parameter_figure(names: list[str], error: np.ndarray, stddev: np.ndarray | None) -> str:
-    fig = _figure(10.0, 3.0)
+    fig = new_figure(10.0, 3.0)
     ax = fig.subplots()
     x = np.arange(len(names))
     ax.axhline(0.0, color="0.6", lw=0.8)
@@ -161,7 +167,7 @@ def correlation_matrix(covariance: np.ndarray) -> np.ndarray:
 
 
 def correlation_figure(names: list[str], correlation: np.ndarray) -> str:
-    fig = _figure(7.0, 6.2)
+    fig = new_figure(7.0, 6.2)
     ax = fig.subplots()
     image = ax.imshow(correlation, cmap="RdBu_r", vmin=-1.0, vmax=1.0)
     ticks = np.arange(len(names))
@@ -172,7 +178,7 @@ def correlation_figure(names: list[str], correlation: np.ndarray) -> str:
 
 
 def held_out_figure(held: HeldOut) -> str:
-    fig = _figure(9.0, 2.6)
+    fig = new_figure(9.0, 2.6)
     panels = [("position error [mm]", held.position_error_mm)]
     if held.orientation_error_deg is not None:
         panels.append(("orientation error [deg]", held.orientation_error_deg))
@@ -188,7 +194,8 @@ def held_out_figure(held: HeldOut) -> str:
 # ----------------------------------------------------------------------------- page
 
 
-def _table(header: list[str] | None, rows: list[list], cls: str = "") -> str:
+def html_table(header: list[str] | None, rows: list[list], cls: str = "") -> str:
+    """A ``<table>`` of escaped cells; ``header`` None for none, ``cls`` its class (``num``: numbers right-aligned)."""
     head = (
         ""
         if header is None
@@ -222,7 +229,7 @@ def _residual_section(residuals: Residuals) -> str:
         "<h2>Residuals per measured channel</h2>"
         f"<p>Measured minus predicted by the model, over {html.escape(residuals.log)} "
         f"({len(residuals.t_s)} samples): before = {html.escape(residuals.before_model)}, after = calibrated.</p>"
-        + _table(["channel", "unit", "RMS before", "RMS after", "after / before"], rows, "num")
+        + html_table(["channel", "unit", "RMS before", "RMS after", "after / before"], rows, "num")
         + residual_rms_figure(residuals)
         + residual_time_figure(residuals)
     )
@@ -251,7 +258,7 @@ def _parameter_section(result: dict) -> str:
         "<p>estimate = nominal + δM [mm] (paper eq. 9, Table 4); σ from the estimate's covariance.</p>"
         + parameter_figure(names, error, stddev)
         + "<details><summary>all 42 parameters</summary>"
-        + _table(["parameter", "nominal [mm]", "estimate [mm]", "δM [mm]", "σ [mm]", "|δM| / σ"], rows, "num")
+        + html_table(["parameter", "nominal [mm]", "estimate [mm]", "δM [mm]", "σ [mm]", "|δM| / σ"], rows, "num")
         + "</details>"
     )
 
@@ -271,7 +278,7 @@ def _correlation_section(result: dict) -> str:
     strong = np.abs(correlation[i, j]) >= STRONG_CORRELATION
     pairs = sorted(zip(np.abs(correlation[i, j])[strong], i[strong], j[strong], strict=True), reverse=True)[:20]
     listing = (
-        _table(
+        html_table(
             ["parameter", "parameter", "correlation"],
             [[names[a], names[b], f"{correlation[a, b]:+.3f}"] for _, a, b in pairs],
             "num",
@@ -295,7 +302,7 @@ def _conditioning_section(result: dict) -> str:
     null = "".join(f"<li><code>{html.escape(d)}</code></li>" for d in cond.get("null_space", []))
     return (
         "<h2>Conditioning</h2>"
-        + _table(
+        + html_table(
             ["verdict", "rank", "condition number", "unidentified directions"],
             [
                 [
@@ -327,7 +334,7 @@ def _prediction_section(result: dict) -> str:
         "<p>Where the robot goes when the controller commands the calibrated model: the expected mean "
         f"error over {predicted.get('poses')} {html.escape(str(predicted.get('over')))} poses, from the "
         "estimate's covariance. A check through the instrument's calibrated frame cannot see it.</p>"
-        + _table(
+        + html_table(
             ["position [mm]", "orientation [deg]", "the calibration's correction [mm]"],
             [
                 [
@@ -357,7 +364,7 @@ def _held_out_section(held: HeldOut) -> str:
         "<h2>Held-out errors</h2>"
         f"<p>The calibrated model predicts what the instrument read on <code>{html.escape(held.log)}</code> "
         f"({len(held.t_s)} samples not used for the calibration).{note}</p>"
-        + _table(["error", "RMS", "max"], rows, "num")
+        + html_table(["error", "RMS", "max"], rows, "num")
         + held_out_figure(held)
     )
 
@@ -400,7 +407,7 @@ def report_html(
         ["stewart-calib", result.get("version", "—")],
     ]
     sections = [
-        "<h2>Summary</h2>" + _table(None, summary, "summary"),
+        "<h2>Summary</h2>" + html_table(None, summary, "summary"),
         _held_out_section(held_out) if held_out is not None else "",
         _residual_section(residuals) if residuals is not None else "",
         _parameter_section(result),
@@ -411,13 +418,18 @@ def report_html(
         + html.escape(json.dumps(result.get("config", {}), indent=2))
         + "</pre>",
         "<h2>Versions</h2>"
-        + _table(
+        + html_table(
             ["library", "version"],
             [[k, v] for k, v in {"stewart-calib": result.get("version", "—"), **library_versions()}.items()],
         ),
     ]
+    return html_page(title, "".join(sections))
+
+
+def html_page(title: str, body: str) -> str:
+    """A whole static page: ``title`` as its heading, then ``body`` (HTML), in :data:`STYLE`."""
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         f"<title>{html.escape(title)}</title><style>{STYLE}</style></head><body>"
-        f"<h1>{html.escape(title)}</h1>" + "".join(sections) + "</body></html>\n"
+        f"<h1>{html.escape(title)}</h1>{body}</body></html>\n"
     )

@@ -1,0 +1,269 @@
+"""The paper's figures (Ren et al. Figs. 5–9) as PNG files beside tables.md.
+
+* ``fig5_<run>.png`` — δM of one online run through the no-load stage, one panel per leg with its
+  seven parameters, each with its ±σ band and the truth in force (dashed): the convergence of Fig. 5;
+* ``fig6_<run>.png`` — the same through every load stage, the stages' starts marked (Fig. 6);
+* ``fig7_pose_errors.png`` — the true pose error at each validation pose, before calibration and
+  with every run, per stage (Fig. 7);
+* ``fig8_circle.png`` — the circle as run, its deviation from the desired circle magnified (Fig. 8);
+* ``fig9_polar.png`` — the deviation around the circle in polar form, per stage (Fig. 9).
+
+Figs. 5–6 are drawn for ``paper-ekf`` (the paper's method) and for each method of the bar with
+every part of its model. Pose errors are of the truth view (the verdict's); one value per held
+pose as in the tables (:mod:`.metrics`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..io import atomic_write_bytes
+from ..platform import N_PARAMS_PER_LEG, PARAMETER_FIELDS
+from ..viz.html_report import new_figure, png_bytes
+from .metrics import held_pose_ends, view_errors
+from .report import TARGET_METHODS, VERDICT_VIEW
+from .runs import NOMINAL, Reproduction
+
+#: one colour per estimator; a run with more parts of the model is drawn solid, fewer dashed.
+METHOD_COLORS = {NOMINAL: "0.45", "ls": "#d62728", "paper-ekf": "#ff7f0e", "ekf": "#1f77b4", "isam2": "#2ca02c"}
+#: one colour per parameter of a leg (δj_x … δl), as the recording's parameter tabs.
+PARAMETER_COLORS = ("#e41a1c", "#377eb8", "#4daf4a", "#984ea3", "#ff7f00", "#a65628", "#1e1e1e")
+#: the method of the paper, drawn in Figs. 5–6 beside the methods of the bar.
+PAPER_METHOD = "paper-ekf"
+#: Fig. 8 magnifies the calibrated runs' deviation so that the largest is this fraction of the radius.
+CIRCLE_DEVIATION_SHARE = 0.25
+
+
+def parameter_runs(reproduction: Reproduction) -> list[str]:
+    """The runs of Figs. 5–6."""
+    return [PAPER_METHOD, *(reproduction.fullest(method) for method in TARGET_METHODS)]
+
+
+def _style(reproduction: Reproduction, run: str) -> dict:
+    method = reproduction.runs[run].method
+    fullest = (
+        run in (NOMINAL, method, PAPER_METHOD) if method not in TARGET_METHODS else run == reproduction.fullest(method)
+    )
+    return {"color": METHOD_COLORS.get(method, "0.3"), "linestyle": "-" if fullest else "--", "label": run}
+
+
+def _parameter_figure(reproduction: Reproduction, run: str, rows: np.ndarray, title: str):
+    """One panel per leg: δM of ``run`` at ``rows`` ± σ, and the truth in force (dashed)."""
+    result = reproduction.runs[run].result
+    method_run = reproduction.runs[run]
+    nominal = reproduction.platform.drive.as_vector()
+    t = result.log.t_s[rows]
+    truth = result.truth.params[rows] - nominal
+    fig = new_figure(13.0, 7.0)
+    axes = fig.subplots(2, 3, sharex=True).ravel()
+    for leg, ax in enumerate(axes):
+        for k, field in enumerate(PARAMETER_FIELDS):
+            col = N_PARAMS_PER_LEG * leg + k
+            estimate = method_run.trace[rows, col]
+            color = PARAMETER_COLORS[k]
+            ax.plot(t, estimate, color=color, lw=1.1, label=f"δ{field}")
+            if method_run.stddev is not None:
+                sigma = method_run.stddev[rows, col]
+                ax.fill_between(t, estimate - sigma, estimate + sigma, color=color, alpha=0.18, lw=0)
+            ax.plot(t, truth[:, col], color=color, lw=0.7, ls="--", alpha=0.8)
+        ax.set_title(f"leg {leg + 1}", fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=7)
+    for ax in axes[3:]:
+        ax.set_xlabel("t [s]", fontsize=8)
+    for ax in axes[::3]:
+        ax.set_ylabel("δM [mm]", fontsize=8)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside right center", fontsize=8, title="solid: estimate ± σ\ndashed: truth")
+    fig.suptitle(title, fontsize=10)
+    return fig
+
+
+def _stage_starts(result) -> list[tuple[float, str]]:
+    names = list(dict.fromkeys(result.stages))
+    return [(float(result.log.t_s[np.flatnonzero(result.stages == name)[0]]), name) for name in names]
+
+
+def fig5(reproduction: Reproduction, run: str):
+    result = reproduction.runs[run].result
+    rows = np.flatnonzero(result.stages == result.stages[0])
+    return _parameter_figure(
+        reproduction,
+        run,
+        rows,
+        f"Fig. 5 — {run}: parameter errors through the {result.stages[0]} stage (calibration, validation, circle)",
+    )
+
+
+def fig6(reproduction: Reproduction, run: str):
+    result = reproduction.runs[run].result
+    fig = _parameter_figure(
+        reproduction, run, np.arange(len(result.log)), f"Fig. 6 — {run}: parameter errors through the load stages"
+    )
+    for ax in fig.axes:
+        for start, name in _stage_starts(result)[1:]:
+            ax.axvline(start, color="0.3", lw=0.8, ls=":")
+            ax.text(start, 1.0, f" {name}", transform=ax.get_xaxis_transform(), fontsize=7, va="top", color="0.3")
+    return fig
+
+
+def fig7(reproduction: Reproduction):
+    """True pose error at each validation pose, per stage: before calibration and every run."""
+    stages = reproduction.stage_names
+    fig = new_figure(4.2 * len(stages) + 1.6, 6.0)
+    axes = fig.subplots(2, len(stages), sharey="row", squeeze=False)
+    for run in (NOMINAL, *reproduction.calibrated):
+        result = reproduction.runs[run].result
+        position, orientation = view_errors(result, reproduction.platform)[VERDICT_VIEW]
+        ends = held_pose_ends(result) & (result.kinds == "validation")
+        style = _style(reproduction, run)
+        if run == NOMINAL:
+            style["label"] = "before calibration"
+        for column, stage in enumerate(stages):
+            mask = ends & (result.stages == stage)
+            for row, values in enumerate((position, orientation)):
+                axes[row, column].plot(values[mask], marker="o", ms=2.5, lw=0.9, **style)
+    for column, stage in enumerate(stages):
+        axes[0, column].set_title(stage, fontsize=9)
+        axes[1, column].set_xlabel("validation pose", fontsize=8)
+    axes[0, 0].set_ylabel("position error [mm]", fontsize=8)
+    axes[1, 0].set_ylabel("orientation error [°]", fontsize=8)
+    for ax in axes.ravel():
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3, which="both")
+        ax.tick_params(labelsize=7)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside right center", fontsize=8)
+    fig.suptitle("Fig. 7 — pose error at the validation poses before and after calibration (truth view)", fontsize=10)
+    return fig
+
+
+def _circle_points(reproduction: Reproduction, run: str, stage: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(desired, actual)`` circle positions ``(n, 3)`` [mm] of ``run`` in ``stage``."""
+    result = reproduction.runs[run].result
+    circle = (result.stages == stage) & (result.kinds == "circle")
+    return result.desired_poses[circle, :3], result.actual_poses[circle, :3]
+
+
+def _magnified(desired: np.ndarray, actual: np.ndarray, centre: np.ndarray, gain: float) -> np.ndarray:
+    return desired[:, :2] - centre[:2] + gain * (actual[:, :2] - desired[:, :2])
+
+
+def fig8(reproduction: Reproduction):
+    """The circle in its plane (x, y about its centre) as run, deviations magnified: first
+    before calibration at the first stage, then every calibrated run per stage."""
+    stages, first = reproduction.stage_names, reproduction.stage_names[0]
+    runs = reproduction.calibrated
+    deviations = [
+        np.linalg.norm(np.subtract(*_circle_points(reproduction, run, stage)), axis=1).max()
+        for run in runs
+        for stage in stages
+    ]
+    desired0, actual0 = _circle_points(reproduction, NOMINAL, first)
+    centre = desired0.mean(axis=0)
+    radius = float(np.linalg.norm(desired0[:, :2] - centre[:2], axis=1).mean())
+    gain = CIRCLE_DEVIATION_SHARE * radius / max(deviations)
+    nominal_gain = CIRCLE_DEVIATION_SHARE * radius / np.linalg.norm(actual0 - desired0, axis=1).max()
+    fig = new_figure(4.0 * (len(stages) + 1) + 1.6, 4.4)
+    axes = fig.subplots(1, len(stages) + 1, sharey=True)
+    panels = [(axes[0], first, [NOMINAL], nominal_gain, f"before calibration, {first}")]
+    panels += [(ax, stage, runs, gain, stage) for ax, stage in zip(axes[1:], stages, strict=True)]
+    for ax, stage, panel_runs, panel_gain, title in panels:
+        desired, _ = _circle_points(reproduction, NOMINAL, stage)
+        ring = desired[:, :2] - centre[:2]
+        ax.plot(*np.vstack([ring, ring[:1]]).T, color="0.75", lw=3.0, label="desired")
+        for run in panel_runs:
+            d, a = _circle_points(reproduction, run, stage)
+            xy = _magnified(d, a, centre, panel_gain)
+            style = _style(reproduction, run)
+            if run == NOMINAL:
+                style["label"] = "before calibration"
+            ax.plot(*np.vstack([xy, xy[:1]]).T, lw=1.0, **style)
+        ax.set_title(f"{title} (deviation ×{panel_gain:.0f})", fontsize=9)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x − centre [mm]", fontsize=8)
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=7)
+    axes[0].set_ylabel("y − centre [mm]", fontsize=8)
+    handles, labels = [], []
+    for ax in axes[:2]:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            if label not in labels:
+                handles.append(handle)
+                labels.append(label)
+    fig.legend(handles, labels, loc="outside right center", fontsize=8)
+    fig.suptitle(
+        "Fig. 8 — the circle trajectory as run (truth view), deviation from the desired circle magnified", fontsize=10
+    )
+    return fig
+
+
+def fig9(reproduction: Reproduction):
+    """Position deviation around the circle, polar (angle: where on the circle), log radius."""
+    stages = reproduction.stage_names
+    fig = new_figure(4.2 * len(stages) + 1.6, 4.6)
+    axes = fig.subplots(1, len(stages), subplot_kw={"projection": "polar"})
+    axes = np.atleast_1d(axes)
+    lowest, highest = np.inf, 0.0
+    for ax, stage in zip(axes, stages, strict=True):
+        for run in (NOMINAL, *reproduction.calibrated) if stage == stages[0] else reproduction.calibrated:
+            desired, actual = _circle_points(reproduction, run, stage)
+            centre = desired.mean(axis=0)
+            angle = np.unwrap(np.arctan2(desired[:, 1] - centre[1], desired[:, 0] - centre[0]))
+            deviation = np.linalg.norm(actual - desired, axis=1)
+            lowest, highest = min(lowest, deviation.min()), max(highest, deviation.max())
+            style = _style(reproduction, run)
+            if run == NOMINAL:
+                style["label"] = "before calibration"
+            ax.plot(np.append(angle, angle[0]), np.append(deviation, deviation[0]), lw=1.0, **style)
+        ax.set_title(stage, fontsize=9)
+        ax.tick_params(labelsize=7)
+    for ax in axes:
+        ax.set_rscale("log")
+        ax.set_rlim(10 ** np.floor(np.log10(lowest)), 10 ** np.ceil(np.log10(highest)))
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside right center", fontsize=8)
+    fig.suptitle("Fig. 9 — position deviation around the circle [mm, log radius] (truth view)", fontsize=10)
+    return fig
+
+
+def figures(reproduction: Reproduction) -> list[tuple[str, str, object]]:
+    """``(file name, caption, how to draw it)`` of every figure, in the order of the page."""
+    out = []
+    for run in parameter_runs(reproduction):
+        out.append(
+            (
+                f"fig5_{run}.png",
+                f"Fig. 5 — {run}: parameter convergence at no load",
+                lambda r=run: fig5(reproduction, r),
+            )
+        )
+    for run in parameter_runs(reproduction):
+        out.append(
+            (
+                f"fig6_{run}.png",
+                f"Fig. 6 — {run}: parameters through the load stages",
+                lambda r=run: fig6(reproduction, r),
+            )
+        )
+    out.append(
+        ("fig7_pose_errors.png", "Fig. 7 — pose errors before and after calibration", lambda: fig7(reproduction))
+    )
+    out.append(("fig8_circle.png", "Fig. 8 — the circle trajectory", lambda: fig8(reproduction)))
+    out.append(("fig9_polar.png", "Fig. 9 — the circle's deviation, polar", lambda: fig9(reproduction)))
+    return out
+
+
+def write_figures(directory: str | Path, reproduction: Reproduction, bar=None) -> list[tuple[str, str]]:
+    """Draw every figure into ``directory`` (each file atomically); ``(file name, caption)`` in order.
+    ``bar``, if given, is ticked once per figure."""
+    directory = Path(directory)
+    written = []
+    for name, caption, draw in figures(reproduction):
+        atomic_write_bytes(directory / name, png_bytes(draw(), dpi=100))
+        written.append((name, caption))
+        if bar is not None:
+            bar.update()
+    return written
