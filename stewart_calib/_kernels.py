@@ -15,8 +15,9 @@ platform frame {D} in the base frame {J}; pose Jacobians are in the body tangent
 
 Every kernel is compiled lazily on first use and cached on disk (:func:`stewart_calib._jit.njit`,
 as :mod:`stewart_calib.estimators.kalman`; no cache where none can be written): a fresh checkout pays
-the compile once, later processes load the machine code. The wrappers pass C-contiguous float64 arrays and Python
-floats/ints only, so each kernel has one signature and one cache entry. No ``fastmath``:
+the compile once, later processes load the machine code. The wrappers pass C-contiguous float64 arrays, Python
+floats/ints and geometry read-only, so each kernel has one signature and one cache entry (the rules that keep
+the compile small: :mod:`stewart_calib._jit`). No ``fastmath``:
 the Newton tolerance (1e-9 mm on ~1000 mm lengths) sits a few ulps above rounding, and
 the kernels must report NaN exactly as numpy would.
 """
@@ -274,7 +275,9 @@ def _newton(base, plat, target, R, t, tol_mm, max_iterations, work):
         if not worst > tol_mm or iterations >= max_iterations:
             return iterations, worst
         _pose_jacobian(plat, R, n_legs, J)
-        A[:] = J
+        for i in range(6):
+            for j in range(6):
+                A[i, j] = J[i, j]
         if not _solve(A, err):  # singular Jacobian (degenerate pose): least-squares step
             _damped_step(J, target, length, A, err)
         xi = err[:, 0]
@@ -384,6 +387,16 @@ def _moved_pose(R_from, t_from, R_a, t_a, R_b, t_b, R, t):
 
 
 @njit(**_JIT)
+def copy_pose(R_from, t_from, R, t):
+    """``R[:, :] = R_from``, ``t[:] = t_from``, element by element: numba compiles an array-to-array slice
+    assignment with its shape-mismatch error message, string formatting that costs a first compile seconds."""
+    for a in range(3):
+        t[a] = t_from[a]
+        for b in range(3):
+            R[a, b] = R_from[a, b]
+
+
+@njit(**_JIT)
 def _within_a_step(R_a, t_a, R_b, t_b):
     """Whether two poses are less than one uncapped Newton step apart (``_MAX_STEP_RAD``, ``_MAX_STEP_MM``)."""
     d2, trace = 0.0, 0.0
@@ -441,20 +454,21 @@ def tracker_reading_residuals(
                 if known and k >= 2 and fk_residual[0, k - 2] <= tol_mm:
                     _moved_pose(R_1[0], t_1[0], R_2, t_2, R_1[0], t_1[0], Rj, tj)
                 elif known:
-                    Rj[:, :], tj[:] = R_1[0], t_1[0]
+                    copy_pose(R_1[0], t_1[0], Rj, tj)
             else:
                 R_known, t_known, known = R[j - 1], t[j - 1], fk_residual[j - 1, k] <= tol_mm
                 if known and k >= 1 and fk_residual[j, k - 1] <= tol_mm and fk_residual[j - 1, k - 1] <= tol_mm:
                     _moved_pose(R_1[j], t_1[j], R_1[j - 1], t_1[j - 1], R[j - 1], t[j - 1], Rj, tj)
                 elif known:
-                    Rj[:, :], tj[:] = R[j - 1], t[j - 1]
+                    copy_pose(R[j - 1], t[j - 1], Rj, tj)
             if known and _finite_target(initial_lengths[j], strokes[j, k], work[5]):
                 residual = _newton(bases[j], plats[j], work[5], Rj, tj, tol_mm, max_iterations, work)[1]
                 if not _within_a_step(R_known, t_known, Rj, tj):
                     residual = np.inf
             if not residual <= tol_mm:
+                cold = np.bool_(False)  # a literal False would compile _fk_single a second time, for Literal[bool]
                 residual = _fk_single(
-                    bases[j], plats[j], initial_lengths[j], strokes[j, k], Rj, tj, False, tol_mm, max_iterations, work
+                    bases[j], plats[j], initial_lengths[j], strokes[j, k], Rj, tj, cold, tol_mm, max_iterations, work
                 )
             fk_residual[j, k] = residual
             for i in range(6):  # inverse_kinematics: R p_i + t − b_i, its norm, less l_i
@@ -464,8 +478,9 @@ def tracker_reading_residuals(
                     v = v + tj[a] - tracker_base[i, a]
                     norm2 += v * v
                 residuals[j, k, i] = readings[k, i] - (math.sqrt(norm2) - tracker_lengths[i])
-        R_2[:, :], t_2[:] = R_1[0], t_1[0]
-        R_1[:, :, :], t_1[:, :] = R, t
+        copy_pose(R_1[0], t_1[0], R_2, t_2)
+        for j in range(m):
+            copy_pose(R[j], t[j], R_1[j], t_1[j])
 
 
 # ----------------------------------------------------------------------------- error models

@@ -490,9 +490,9 @@ def tracker_reading_residuals(
     readings = c(readings, dtype=float)
     residuals, fk_residual = np.empty((len(drives),) + readings.shape), np.empty((len(drives), len(readings)))
     _kernels.tracker_reading_residuals(
-        c([d.base_joints for d in drives]),
-        c([d.platform_joints for d in drives]),
-        c([d.initial_lengths for d in drives]),
+        _readonly(c([d.base_joints for d in drives])),  # as LegGeometry's: the FK kernels compile once
+        _readonly(c([d.platform_joints for d in drives])),
+        _readonly(c([d.initial_lengths for d in drives])),
         c(strokes, dtype=float).reshape(residuals.shape),
         tracker.base_joints,
         tracker.platform_joints,
@@ -504,6 +504,14 @@ def tracker_reading_residuals(
         fk_residual,
     )
     return residuals, fk_residual <= FK_TOLERANCE_MM
+
+
+def _readonly(array: np.ndarray) -> np.ndarray:
+    """A read-only view of ``array``. The kernels take geometry read-only (as :class:`LegGeometry` holds it):
+    numba compiles a kernel once per array mutability, so a writable copy would compile the FK twice."""
+    view = array.view()
+    view.setflags(write=False)
+    return view
 
 
 def start_pose(guess: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:

@@ -88,3 +88,71 @@ def test_compiling_says_so_once_on_a_terminal_and_nothing_when_piped(monkeypatch
     for kernel in fresh:
         kernel(1.0)
     assert stderr.text.count("compiling the numeric kernels") == (1 if tty else 0)
+
+
+#: compiles a kernel at level 0 (an empty cache: numba's compile event fires) and prints the level
+#: numba's passes read as its compile starts (a listener registered after stewart_calib's) and after it
+COMPILE_AT_LEVEL_0 = """
+import numpy as np
+from numba.core import config, event
+from stewart_calib._jit import njit
+
+seen = []
+
+
+class Watch(event.Listener):
+    def on_start(self, e):
+        seen.append(int(config.OPT))
+
+    def on_end(self, e):
+        pass
+
+
+event.register("numba:compile", Watch())
+
+
+@njit(opt=0)
+def total(values):
+    return values.sum()
+
+
+total(np.ones(3))
+print(seen[0], int(config.OPT))
+"""
+
+
+@pytest.mark.parametrize(("numba_opt", "expected"), [(None, "0 3"), ("2", "2 2")])
+def test_a_kernel_compiles_at_its_own_optimisation_level(tmp_path, numba_opt, expected):
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    env.pop("NUMBA_OPT", None)
+    if numba_opt is not None:  # the user's explicit level wins
+        env["NUMBA_OPT"] = numba_opt
+    done = subprocess.run(
+        [sys.executable, "-c", COMPILE_AT_LEVEL_0], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300
+    )
+    assert (done.returncode, done.stdout.strip()) == (0, expected), done.stderr
+
+
+def test_the_fk_kernels_compile_once_for_every_caller(tmp_path):
+    """The tracker's FK runs inside the EKF's observation and inside the residual check of a log; the
+    drives' geometry reaches both read-only and the cold start is no literal, so numba compiles the
+    Newton solve and the single-pose FK once, not once per caller (issue 31: each costs seconds)."""
+    script = (
+        "import numpy as np\n"
+        "from stewart_calib import _kernels, kinematics as kin\n"
+        "from tests.synthetic import ROOT\n"
+        "from stewart_calib.platform import load_platform\n"
+        "p = load_platform(ROOT / 'configs' / 'platforms' / 'nim-stewart.toml')\n"
+        "R, t = np.eye(3)[None], np.array([[0.0, 0.0, p.workspace.home[2]]])\n"
+        "readings = kin.inverse_kinematics(p.tracker, R, t)\n"
+        "strokes = kin.inverse_kinematics(p.drive, R, t)\n"
+        "kin.tracker_reading_residuals(p.tracker, readings, [p.drive], [strokes])\n"
+        "kin.tracker_leg_observation(p.drive, np.zeros(42), p.tracker, readings[0], None, strokes[0], 1e-6, 1e-6)\n"
+        "print(len(_kernels._newton.signatures), len(_kernels._fk_single.signatures))\n"
+    )
+    # an empty cache: a kernel loaded from the cache holds its callees' code, which then never compile
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    done = subprocess.run(
+        [sys.executable, "-c", script], env=env, cwd=ROOT, capture_output=True, text=True, timeout=600
+    )
+    assert (done.returncode, done.stdout.strip()) == (0, "1 1"), done.stderr

@@ -192,8 +192,17 @@ def variance_components(S: np.ndarray, residual: np.ndarray, R: np.ndarray) -> t
             for c in range(a + 1, m):
                 s -= L[c, a] * S_inv[c, j]
             S_inv[a, j] = s / L[a, a]
-    u = S_inv @ residual
-    return u @ R @ u, np.sum(S_inv * R)
+    # the products as loops: numba's @ and np.sum on these small arrays compile ~3 s of BLAS glue
+    u = np.zeros(m)
+    for a in range(m):
+        for b in range(m):
+            u[a] += S_inv[a, b] * residual[b]
+    observed, expected = 0.0, 0.0
+    for a in range(m):
+        for b in range(m):
+            observed += u[a] * R[a, b] * u[b]
+            expected += S_inv[a, b] * R[a, b]
+    return observed, expected
 
 
 @njit(fastmath=_FAST, nogil=True, error_model="numpy")
@@ -206,8 +215,7 @@ def _tracker_observation(
     t_pose, strokes, nu, R, FK's work)`` made once per pass (:func:`_observation_scratch`).
     Returns ``(FK converged, H)``."""
     R_pose, t_pose, strokes, nu, R, fk_work = scratch
-    R_pose[:, :] = R_guess
-    t_pose[:] = t_guess
+    _kernels.copy_pose(R_guess, t_guess, R_pose, t_pose)
     for i in range(6):
         strokes[i] = row[i] * stroke_factor[i]
     residual, r, H, R_meas, _ = _kernels.tracker_leg_observation_in(
@@ -306,8 +314,7 @@ def tracker_filter_pass(
         )
         if not converged:
             continue
-        R_guess[:, :] = R_pose
-        t_guess[:] = t_pose
+        _kernels.copy_pose(R_pose, t_pose, R_guess, t_guess)
         warm = True
         step = 0.0 if math.isnan(last_t) else walk_rate * max(t_s[k] - last_t, 0.0)
         for i in range(n):
@@ -405,28 +412,32 @@ def tracker_filter_steps(
         nis_k, S = kalman_update(x, P, H, nu, R, Q, gate_nis, work)
         if not nis_k <= gate_nis:  # gated, or S not positive definite: x and P untouched
             return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm
-        R_guess[:, :] = R_pose
-        t_guess[:] = t_pose
+        _kernels.copy_pose(R_pose, t_pose, R_guess, t_guess)
         warm = True
-        S_last[:, :] = S
+        for a in range(m):
+            for b in range(m):
+                S_last[a, b] = S[a, b]
         nis = nis_k
         last_t = t_s[k]
         start, end = span[0], span[1]
         if end == buffer_t.shape[0]:  # slide the live rows to the front, as _SampleWindow.append
             for i in range(end - start):
                 buffer_t[i] = buffer_t[start + i]
-                buffer_prepared[i, :] = buffer_prepared[start + i, :]
+                for c in range(buffer_prepared.shape[1]):
+                    buffer_prepared[i, c] = buffer_prepared[start + i, c]
                 buffer_gated[i] = buffer_gated[start + i]
             start, end = 0, end - start
         buffer_t[end] = t_s[k]
-        buffer_prepared[end, :] = prepared[k, :]
+        for c in range(buffer_prepared.shape[1]):
+            buffer_prepared[end, c] = prepared[k, c]
         buffer_gated[end] = False
         end += 1
         if end - start > capacity:
             start += 1
         span[0], span[1] = start, end
         if errors_out.shape[0]:
-            errors_out[k, :] = x[:42]
+            for i in range(42):
+                errors_out[k, i] = x[i]
         since_window += 1
         if window > 0 and since_window >= window:
             return k + 1, STEPS_WINDOW_DUE, last_t, nis, since_window, warm
