@@ -72,6 +72,28 @@ def mark(met: bool | None) -> str:
     return {True: "met", False: "**not met**", None: "—"}[met]
 
 
+def seeded_main(module: str, doc: str, run, default_seeds: int, argv: list[str] | None) -> int:
+    """``python -m benchmarks.<module> [--seeds N] [--quick]``: prints :func:`markdown` of
+    ``run(quick, seeds)``."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog=f"python -m benchmarks.{module}", description=doc.splitlines()[0])
+    parser.add_argument("--seeds", type=int, help=f"seeds 0 … N−1 (default {default_seeds}; --quick: 1)")
+    parser.add_argument(
+        "--quick", action="store_true", help="tiny inputs, every row (smoke test; the numbers mean little)"
+    )
+    args = parser.parse_args(argv)
+    print(markdown(run(args.quick, args.seeds)))
+    return 0
+
+
+def markdown(section: Section) -> str:
+    """A stand-alone section's note and table (the benchmarks run on their own, not by ``python -m benchmarks``)."""
+    lines = [section.note, "", "| Benchmark | Measured | Target | Status |", "|---|---|---|---|"]
+    lines += [f"| {row.name} | {row.value} | {row.target or '—'} | {mark(row.met)} |" for row in section.rows]
+    return "\n".join(lines)
+
+
 def rss_mib() -> float:
     """Resident set size of this process [MiB] (Linux ``/proc/self/statm``; includes C++ heaps)."""
     with open("/proc/self/statm") as f:

@@ -48,12 +48,11 @@ prior, and every fit with the geometry identified ended at 0.8–1.6 mm closed-l
 
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass, replace
 
 import numpy as np
 
-from benchmarks.common import Row, Section, mark
+from benchmarks.common import Row, Section, seeded_main
 from stewart_calib import kinematics as kin
 from stewart_calib.config import load_estimator_config
 from stewart_calib.instruments import gauge
@@ -231,21 +230,8 @@ def run(quick: bool = False, seeds: int | None = None) -> Section:
     return Section("Tracker geometry (issue 13)", note, rows, {"size": size.__dict__, "seeds": list(seeds)})
 
 
-def markdown(section: Section) -> str:
-    lines = [section.note, "", "| Benchmark | Measured | Target | Status |", "|---|---|---|---|"]
-    lines += [f"| {row.name} | {row.value} | {row.target or '—'} | {mark(row.met)} |" for row in section.rows]
-    return "\n".join(lines)
-
-
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.tracker_geometry", description=__doc__.splitlines()[0])
-    parser.add_argument("--seeds", type=int, help="seeds 0 … N−1 (default 5; --quick: 1)")
-    parser.add_argument(
-        "--quick", action="store_true", help="tiny inputs, every row (smoke test; the numbers mean little)"
-    )
-    args = parser.parse_args(argv)
-    print(markdown(run(args.quick, args.seeds)))
-    return 0
+    return seeded_main("tracker_geometry", __doc__, run, 5, argv)
 
 
 if __name__ == "__main__":

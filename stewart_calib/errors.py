@@ -29,3 +29,10 @@ class SampleRejected(CalibError):
     def __init__(self, message: str, reason: str):
         super().__init__(message)
         self.reason = reason
+
+
+def shown(name: object) -> str:
+    """``name`` (taken from a file or the command line) safe to put in a one-line message:
+    line breaks, control characters (ESC, OSC, BEL, …) and other unprintable characters as
+    Python escapes, so no name can forge a line or reach the terminal as a command."""
+    return "".join(ch if ch.isprintable() else ascii(ch)[1:-1] for ch in str(name))

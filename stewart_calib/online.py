@@ -45,7 +45,7 @@ from .config import EstimatorConfig, config_from_dict
 from .errors import CalibError, SampleRejected
 from .estimate import Estimate
 from .estimators import Estimator, method_names, method_spec
-from .estimators.base import take_late_rejections, update_block
+from .estimators.base import accounted_estimate, skipped_count, take_late_rejections, update_block
 from .platform import Platform, parse_platform, platform_to_toml
 from .plausibility import check_plausible
 from .samples import Log, Sample
@@ -133,6 +133,9 @@ class OnlineCalibrator:
             skipped); saved and restored with the checkpoint so a resumed reader knows where
             it stands (``track`` uses them).
         rejections: samples the estimator refused, by reason.
+        source: what identifies the log file being read (``track``: its path, device, inode and
+            size, the SHA-256 of its header and first lines, the rows read of it), saved with the
+            checkpoint so a resume can tell the same log from another; None when not known.
     """
 
     def __init__(self, platform: Platform, method: str, config: EstimatorConfig | None = None):
@@ -144,6 +147,7 @@ class OnlineCalibrator:
         self._identifies_stroke_scale = self._estimator.estimate().layout.slice("stroke_scale") is not None
         self.rows_read = 0
         self.rows_skipped = 0
+        self.source: dict | None = None
         self.rejections = Rejections()
         # accepted samples for the plausibility check: the tracker's leg residual needs its readings
         self._tracker = platform.instrument.kind == "tracker"
@@ -190,8 +194,9 @@ class OnlineCalibrator:
         return [j for j, _ in refused]
 
     def estimate(self) -> Estimate:
-        """δM [mm] and covariance after the last accepted sample."""
-        return self._estimator.estimate()
+        """δM [mm] and covariance after the last accepted sample (its details account for the
+        samples it does not count as used: :func:`~.estimators.base.row_accounting`)."""
+        return accounted_estimate(self._estimator)
 
     def compensated_strokes(self, pose_mm_rad: np.ndarray) -> np.ndarray:
         """Strokes [mm] that put the estimated drive at ``pose_mm_rad`` ``[x, y, z [mm], roll, pitch, yaw [rad]]``
@@ -224,7 +229,7 @@ class OnlineCalibrator:
         strokes, readings = self._recent.arrays()
         noise_scale = getattr(self._estimator, "noise_scale", lambda: None)()
         check_plausible(self.platform, estimate.error, self.config.noise, strokes, readings, self.method, noise_scale)
-        skipped = self.rows_skipped + self.rejections.count
+        skipped = skipped_count(self.rows_skipped, self.rejections.count, estimate)
         return io.result_dict(estimate, self.platform, skipped, {"samples_rejected": self.rejections.summary()})
 
     def export_state(self) -> dict:
@@ -242,6 +247,7 @@ class OnlineCalibrator:
             "rows_read": np.array(self.rows_read),
             "rows_skipped": np.array(self.rows_skipped),
             "rejections_json": np.array(json.dumps(self.rejections.summary())),
+            **({} if self.source is None else {"source_json": np.array(json.dumps(self.source))}),
             **_flatten(self.export_state(), "state"),
         }
         return npz_bytes(arrays)
@@ -307,6 +313,8 @@ class OnlineCalibrator:
         calib = cls(platform, text("method"), config)
         calib._estimator.import_state(_unflatten(arrays, "state"))
         calib.rows_read, calib.rows_skipped = _count(arrays, "rows_read"), _count(arrays, "rows_skipped")
+        if "source_json" in arrays:
+            calib.source = _source_record(json.loads(text("source_json")))
         summary = json.loads(text("rejections_json"))
         calib.rejections = Rejections(int(summary["count"]), dict(summary["by_reason"]), summary["first"] or "")
         if not np.all(np.isfinite(calib.estimate().error)):
@@ -332,6 +340,18 @@ def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
         local += struct.pack("<I", 0x04034B50) + header + filename + data
     end = struct.pack("<IHHHHIIH", 0x06054B50, 0, 0, len(arrays), len(arrays), len(central), len(local), 0)
     return bytes(local + central + end)
+
+
+def _source_record(record) -> dict:
+    """The checkpoint's record of the log read, checked: what a resume compares."""
+    ok = isinstance(record, dict) and isinstance(record.get("path"), str) and isinstance(record.get("head_sha256"), str)
+    for key in ("head_lines", "rows"):
+        ok = ok and type(record.get(key)) is int and 0 <= record[key] < 2**63
+    if not ok:
+        raise CalibError(
+            "array 'source_json': expected the record of the log read (path, head_lines, head_sha256, rows)"
+        )
+    return record
 
 
 def _wrong(key: str):

@@ -71,6 +71,22 @@ def make_log(
     return log, platform.drive.as_vector() + errors
 
 
+def tracked_log(seed: int, n: int) -> Log:
+    """``n`` samples of nim-stewart at random poses with δM of σ 1 mm, reading and stroke noise of
+    2 and 1 µm: the small log the command-line tests feed."""
+    platform = nim_stewart()
+    rng = np.random.default_rng(seed)
+    log, _ = make_log(
+        platform,
+        random_error(rng, 1.0),
+        random_poses(platform, n, rng),
+        rng,
+        reading_sigma_mm=0.002,
+        stroke_sigma_mm=0.001,
+    )
+    return log
+
+
 def static_logs(platform: Platform, n_poses: int, seed: int) -> tuple[np.ndarray, Log, Log]:
     """``(δM, noise-free log, noisy log)`` at the same ``n_poses`` rich poses, constant δM (σ 1 mm).
 

@@ -10,6 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from benchmarks.plan_poses import wide_hexapod
 from stewart_calib import accuracy, io, planning
 from stewart_calib import kinematics as kin
 from stewart_calib.cli import main as cli_main
@@ -18,31 +19,7 @@ from stewart_calib.estimators import batch
 from stewart_calib.instruments import lie
 from stewart_calib.instruments.external import information_rows, model_for, visible_targets
 from stewart_calib.io import read_pose_list
-from stewart_calib.platform import Instrument, LegGeometry, Workspace, parse_platform, platform_to_toml
-from tests.instrument_data import hobby
-
-
-def ring(radius_mm: float, half_gap_deg: float, z_mm: float, turn_deg: float = 0.0) -> np.ndarray:
-    """Six joints on a circle in pairs at ``120k + turn ± half_gap`` degrees."""
-    angles = np.radians([120 * k + turn_deg + s * half_gap_deg for k in range(3) for s in (-1, 1)])
-    return np.c_[radius_mm * np.cos(angles), radius_mm * np.sin(angles), np.full(6, z_mm)]
-
-
-def wide_hexapod(instrument: Instrument) -> object:
-    """A geometry unlike the shipped ones: wide base (400 mm), small platform (120 mm), pairs
-    on the other side of each pair (the legs lean both ways), home 450 mm up, ±60 mm / ±10°."""
-    base, top = ring(400.0, 15.0, 0.0), ring(120.0, 15.0, 0.0, 60.0)
-    top = np.roll(top, 1, axis=0)
-    home = np.r_[0.0, 0.0, 450.0, 0.0, 0.0, 0.0]
-    lengths = np.linalg.norm(top + home[:3] - base, axis=1) - 100.0
-    platform = replace(
-        hobby(instrument),
-        name="wide-hexapod",
-        drive=LegGeometry(base, top, lengths),
-        stroke_range=(0.0, 200.0),
-        workspace=Workspace(home, 60.0, np.radians(10.0)),
-    )
-    return parse_platform(_toml_doc(platform), "wide-hexapod.toml")  # through the file's checks
+from stewart_calib.platform import Instrument, parse_platform, platform_to_toml
 
 
 def _toml_doc(platform):

@@ -25,7 +25,7 @@ from stewart_calib.pipelines.calibrate import calibrate
 from stewart_calib.pipelines.track import lines
 from stewart_calib.samples import Sample
 from tests.faults import INDETERMINANT, degenerate_sample
-from tests.synthetic import NIM_STEWART, ROOT, make_log, nim_stewart, random_error, random_poses
+from tests.synthetic import NIM_STEWART, ROOT, make_log, nim_stewart, random_error, random_poses, tracked_log
 
 N = 40
 
@@ -40,17 +40,7 @@ def assert_equal_to_rounding(actual, expected) -> None:
 
 @pytest.fixture(scope="module")
 def log():
-    platform = nim_stewart()
-    rng = np.random.default_rng(11)
-    log, _ = make_log(
-        platform,
-        random_error(rng, 1.0),
-        random_poses(platform, N, rng),
-        rng,
-        reading_sigma_mm=0.002,
-        stroke_sigma_mm=0.001,
-    )
-    return log
+    return tracked_log(11, N)
 
 
 @pytest.fixture
@@ -74,7 +64,7 @@ def test_track_gives_calibrates_estimate_and_keeps_a_checkpoint(tmp_path, log_pa
     code, err = _track(
         capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt), "--every", "7"
     )
-    assert code == 0 and err == [f"stewart-calib track: wrote {out} (ekf: {N} samples used, 0 skipped)"]
+    assert code == 0 and err == [f"stewart-calib track: wrote {out} (ekf: {N} samples used, 0 skipped, of {N} rows)"]
     estimate, _, _ = calibrate(nim_stewart(), log, "ekf")
     assert_equal_to_rounding(_error(out), estimate.error)  # same samples, same filter
     assert read_result(out)["samples_rejected"] == {"count": 0, "by_reason": {}, "first": None}
@@ -186,7 +176,7 @@ def test_a_sample_gtsam_fails_on_is_rejected_and_tracking_goes_on(tmp_path, log_
     assert code == 0
     first = f"sample at t = {t_bad} s: gtsam failed in the iSAM2 update ({INDETERMINANT}"
     assert len(err) == 2 and err[0].startswith(f"stewart-calib track: isam2 rejected samples: 1 of {N} (first: {first}")
-    assert err[1] == f"stewart-calib track: wrote {out} (isam2: {N - 1} samples used, 1 skipped)"
+    assert err[1] == f"stewart-calib track: wrote {out} (isam2: {N - 1} samples used, 1 skipped, of {N} rows)"
     result = read_result(out)
     assert result["samples_rejected"]["by_reason"] == {"solver failed": 1}
     assert result["samples_rejected"]["first"].startswith(first)
@@ -302,7 +292,7 @@ def test_sigterm_finishes_with_a_final_estimate_and_checkpoint(tmp_path, log_pat
     proc.send_signal(signal.SIGTERM)
     _, err = proc.communicate(timeout=30)
     assert proc.returncode == 0
-    assert err.strip().splitlines()[-1].endswith(f"(ekf: {N} samples used, 0 skipped, stopped by signal)")
+    assert err.strip().splitlines()[-1].endswith(f"(ekf: {N} samples used, 0 skipped, of {N} rows, stopped by signal)")
     assert read_result(out)["samples_used"] == N
     assert OnlineCalibrator.load(ckpt).rows_read == N
 
@@ -311,17 +301,8 @@ def test_blocks_give_calibrates_estimate_whatever_the_writes_and_bad_rows(tmp_pa
     """Past the start-up (the noise windows), with a glitch the filter gates and a bad row skipped:
     track parses and feeds its rows in blocks, split at every --every row and at the bad row, and
     gives calibrate's estimate of the same rows (to rounding), however split."""
-    platform = nim_stewart()
-    rng = np.random.default_rng(12)
-    n = 400
-    log, _ = make_log(
-        platform,
-        random_error(rng, 1.0),
-        random_poses(platform, n, rng),
-        rng,
-        reading_sigma_mm=0.002,
-        stroke_sigma_mm=0.001,
-    )
+    platform, n = nim_stewart(), 400
+    log = tracked_log(12, n)
     log.readings[250, 2] += 5.0  # a glitch 2500 σ off: gated, counted in samples_rejected
     log_path = tmp_path / "log.csv"
     write_log(log_path, log)

@@ -9,14 +9,13 @@ import subprocess
 import sys
 import time
 
-import numpy as np
 import pytest
 
 from stewart_calib import cli
 from stewart_calib.io import read_result, write_log
 from stewart_calib.online import OnlineCalibrator
 from stewart_calib.pipelines.track import lines
-from tests.synthetic import NIM_STEWART, ROOT, make_log, nim_stewart, random_error, random_poses
+from tests.synthetic import NIM_STEWART, ROOT, tracked_log
 from tests.test_track_cli import assert_equal_to_rounding
 
 N = 30
@@ -24,17 +23,7 @@ N = 30
 
 @pytest.fixture(scope="module")
 def log():
-    platform = nim_stewart()
-    rng = np.random.default_rng(21)
-    log, _ = make_log(
-        platform,
-        random_error(rng, 1.0),
-        random_poses(platform, N, rng),
-        rng,
-        reading_sigma_mm=0.002,
-        stroke_sigma_mm=0.001,
-    )
-    return log
+    return tracked_log(21, N)
 
 
 @pytest.fixture

@@ -6,12 +6,13 @@ The quick numbers mean little (one seed, 24 poses); the benchmark itself reports
 import numpy as np
 
 from benchmarks import tracker_geometry
+from benchmarks.common import markdown
 
 
 def test_quick_run_has_every_row_and_a_verdict_on_each_target():
     section = tracker_geometry.run(quick=True)
     assert [row.name for row in section.rows] == tracker_geometry.row_names()
-    table = tracker_geometry.markdown(section).splitlines()
+    table = markdown(section).splitlines()
     assert sum(line.startswith("| ") and not line.startswith("| Benchmark") for line in table) == len(section.rows)
     for row in section.rows:
         for case in tracker_geometry.CASES:

@@ -20,6 +20,7 @@ Parameters are always the paper's δM (eq. 9) in the paper's order: ``estimate =
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from typing import Protocol, runtime_checkable
 
@@ -84,6 +85,50 @@ def take_late_rejections(estimator: Estimator) -> list[SampleRejected]:
     :mod:`.robust`), each reported once; ``err.t_s`` is the sample's time. Empty for others."""
     take = getattr(estimator, "take_late_rejections", None)
     return take() if take is not None else []
+
+
+def row_accounting(estimator: Estimator) -> dict:
+    """The result fields that account for the samples an estimator took but its estimate's
+    ``samples_used`` does not count: ``"samples_held"`` (waiting to register the instrument) and
+    ``"recovery"`` (lock-out recoveries: samples dropped from the estimate, and readmitted after a
+    refusal), each only when not empty. With them, rows = used + skipped + dropped + held, where
+    skipped counts the bad rows and the refused samples not readmitted (:func:`skipped_count`)."""
+    fields: dict = {}
+    held = getattr(estimator, "samples_held", lambda: 0)()
+    if held:
+        fields["samples_held"] = held
+    recovery = getattr(estimator, "recovery_summary", lambda: None)()
+    if recovery:
+        fields["recovery"] = recovery
+    return fields
+
+
+def skipped_count(bad_rows: int, refused: int, estimate: Estimate) -> int:
+    """The result's ``samples_skipped``: bad rows and refused samples, less those a lock-out
+    recovery readmitted (``estimate``'s details, :func:`row_accounting`): they are among the used."""
+    recovery = (estimate.details or {}).get("recovery") or {}
+    return bad_rows + refused - int(recovery.get("samples_readmitted", 0))
+
+
+def accounted_estimate(estimator: Estimator) -> Estimate:
+    """``estimator.estimate()`` with :func:`row_accounting`'s fields among its result details."""
+    estimate = estimator.estimate()
+    fields = row_accounting(estimator)
+    return dataclasses.replace(estimate, details={**(estimate.details or {}), **fields}) if fields else estimate
+
+
+def accounting_words(fields: dict) -> str:
+    """:func:`row_accounting`'s fields for a summary line: ``", 34 dropped by 1 lock-out recovery"``…"""
+    words = ""
+    recovery = fields.get("recovery")
+    if recovery:
+        plural = "y" if recovery["count"] == 1 else "ies"
+        words += f", {recovery['samples_dropped']} dropped by {recovery['count']} lock-out recover{plural}"
+        if recovery["samples_readmitted"]:
+            words += f" (which took back {recovery['samples_readmitted']} it had refused)"
+    if fields.get("samples_held"):
+        words += f", {fields['samples_held']} held to register the instrument (too few distinct poses)"
+    return words
 
 
 #: ``(index of the sample, SampleRejected)`` pairs.

@@ -220,9 +220,17 @@ class LegEKF:
         R_meas = np.diag(self.model.channel_sigma[channels] ** 2) + self.noise.stroke_sigma_mm**2 * (A @ A.T)
         return -res.r, H, 0.5 * (R_meas + R_meas.T)
 
+    def samples_held(self) -> int:
+        """Samples held to register the instrument, not yet used (:class:`HeldForRegistration`)."""
+        return self._held.waiting()
+
+    def recovery_summary(self) -> dict | None:
+        """Lock-out recoveries and the samples they dropped and readmitted (see :class:`RobustFilter`)."""
+        return self.robust.recovery_summary()
+
     def take_late_rejections(self) -> list[SampleRejected]:
         """Start-up samples the robust batch left out once decided (see :class:`RobustFilter`)."""
-        return self.robust.take_late_rejections()
+        return self._held.take_late() + self.robust.take_late_rejections()
 
     def noise_scale(self) -> float | None:
         """The measurement noise found in the data as a multiple of the configured σ (None

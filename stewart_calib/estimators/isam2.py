@@ -299,7 +299,9 @@ class ISAM2Estimator:
         front = self._front.robust
         if front.recoveries != recoveries:
             x, P = self._front.filter.x.copy(), self._front.filter.P.copy()
-            self._rebuild(_Snapshot(self._state, x, P, 0), [])
+            # the restart holds the samples of the front end's recovered Gaussian, no others
+            state = dataclasses.replace(self._state, samples=self._front.filter.samples_used)
+            self._rebuild(_Snapshot(state, x, P, 0), [])
         if not front.started:
             return
         batch = [] if sample is None else [sample]
@@ -416,9 +418,17 @@ class ISAM2Estimator:
             self._state.last_t_s,
         )
 
+    def samples_held(self) -> int:
+        """Samples held to register the instrument, not yet used (:class:`HeldForRegistration`)."""
+        return self._held.waiting()
+
+    def recovery_summary(self) -> dict | None:
+        """Lock-out recoveries of its front end and the samples they dropped and readmitted."""
+        return self._front.recovery_summary()
+
     def take_late_rejections(self) -> list[SampleRejected]:
         """Start-up samples its front end left out once decided (they never entered the graph)."""
-        return self._front.take_late_rejections()
+        return self._held.take_late() + self._front.take_late_rejections()
 
     def noise_scale(self) -> float | None:
         """The measurement noise its front end found in the data, as a multiple of the configured σ."""

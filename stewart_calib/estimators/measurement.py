@@ -278,6 +278,18 @@ class HeldForRegistration:
         self._args = (platform, noise, model, layout)
         self.active = layout.slice("instrument") is not None and needs_registration(platform)
         self.samples: list[Sample] = []
+        #: held samples the replay refused, not yet reported (``err.t_s``: the sample's time)
+        self.late: list[SampleRejected] = []
+
+    def waiting(self) -> int:
+        """Samples held, not yet registered and replayed."""
+        return len(self.samples) if self.active else 0
+
+    def take_late(self) -> list[SampleRejected]:
+        """The held samples the replay refused (each once): they were taken when held, so their
+        refusal comes late, for the caller's count (see :func:`~.base.take_late_rejections`)."""
+        late, self.late = self.late, []
+        return late
 
     def hold(self, sample: Sample) -> np.ndarray | None:
         """Hold ``sample``; once :data:`REGISTRATION_SAMPLES` are held and they register the
@@ -296,7 +308,8 @@ class HeldForRegistration:
         self, sample: Sample, start: Callable[[np.ndarray], None], replay: Callable[[Sample], None]
     ) -> None:
         """:meth:`hold` ``sample``; once the held samples register the instrument, ``start(vector)``
-        and ``replay`` each of them (one it refuses is left out, as it would have been)."""
+        and ``replay`` each of them (one it refuses is left out, as it would have been, and reported
+        by :meth:`take_late`)."""
         vector = self.hold(sample)
         if vector is None:
             return
@@ -304,8 +317,9 @@ class HeldForRegistration:
         for held in self.samples:
             try:
                 replay(held)
-            except SampleRejected:
-                pass
+            except SampleRejected as err:
+                err.t_s = held.t_s
+                self.late.append(err)
 
     def export_state(self) -> dict:
         """The held samples as arrays, while holding (a checkpoint without them has ended holding)."""

@@ -29,7 +29,7 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..config import EstimatorConfig
-from ..errors import CalibError
+from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta
 from ..platform import N_PARAMS, Platform
@@ -89,6 +89,14 @@ class PaperEKF:
             self._update(strokes, z, sample.t_s)
             return
         self._held.hold_then_replay(sample, self._registered, self._replay)
+
+    def samples_held(self) -> int:
+        """Samples held to register the instrument, not yet used (:class:`HeldForRegistration`)."""
+        return self._held.waiting()
+
+    def take_late_rejections(self) -> list[SampleRejected]:
+        """Held samples the replay after the registration refused (see :class:`HeldForRegistration`)."""
+        return self._held.take_late()
 
     def _registered(self, start: np.ndarray) -> None:
         self._theta = instrument_theta(self.model, start[self._layout.slice("instrument")])

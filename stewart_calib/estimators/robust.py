@@ -152,6 +152,9 @@ class RobustFilter:
         self.noise_scale2 = 1.0
         self.walk_rate_mm2_per_s = self._configured_walk
         self.recoveries = 0
+        #: samples the recoveries took out of the estimate (used before, not in the re-solved state)
+        #: and those they took back in after the gate had refused them
+        self.recovery_dropped, self.recovery_readmitted = 0, 0
         self.started = robust.startup_samples <= 0
         self._late: list[SampleRejected] = []
         #: ``noise_scale2`` was measured from the data (a batch had the redundancy)
@@ -285,6 +288,17 @@ class RobustFilter:
         )
         err.t_s = t_s
         return err
+
+    def recovery_summary(self) -> dict | None:
+        """The result's ``"recovery"`` field (None before any recovery): lock-outs recovered from,
+        the samples they dropped from the estimate and those they readmitted after a refusal."""
+        if not self.recoveries:
+            return None
+        return {
+            "count": self.recoveries,
+            "samples_dropped": self.recovery_dropped,
+            "samples_readmitted": self.recovery_readmitted,
+        }
 
     def take_late_rejections(self) -> list[SampleRejected]:
         """The start-up samples the decided batch left out (each once), for the caller's count."""
@@ -535,11 +549,16 @@ class RobustFilter:
         return int(window.sum()) >= self._robust.lockout_gated_samples
 
     def _recover(self) -> None:
-        """Solve the recent samples afresh; adopt when most of them agree (a consensus)."""
+        """Solve the recent samples afresh; adopt when most of them agree (a consensus). The samples
+        used before that the new state leaves out are counted as dropped, the gated ones it takes
+        back as readmitted: every sample stays accounted for."""
+        used_before, gated_before = self.filter.samples_used, self._buffer.gated.copy()
         outliers = self._solve(adopt=False)
         if self._solved[5] < MIN_REDUNDANCY or outliers.sum() * 2 > len(outliers):
             return
         self._adopt()
+        self.recovery_dropped += used_before - int(np.sum(~gated_before & ~outliers))
+        self.recovery_readmitted += int(np.sum(gated_before & ~outliers))
         self._buffer.gated[:] = outliers  # the batch's verdict replaces the lock-out's record
         self._last_window = None  # the parameters moved: no window difference across the jump
         self.recoveries += 1
@@ -558,6 +577,7 @@ class RobustFilter:
                 [int(self.started), self.recoveries, self._since_window, int(self.measured_noise)], dtype=np.int64
             ),
             **self._buffer.export_state(),
+            "recovery_counts": np.array([self.recovery_dropped, self.recovery_readmitted], dtype=np.int64),
             "difference_eigenvalues": np.array([d[0] for d in differences]).reshape(-1, self._n),
             "difference_projections": np.array([d[1] for d in differences]).reshape(-1, self._n),
             "difference_spans": np.array([d[2] for d in differences], dtype=float),
@@ -575,6 +595,10 @@ class RobustFilter:
         self._scale_sums = state_array(state, "scale_sums", (2,))
         started, self.recoveries, self._since_window, measured = (int(v) for v in state_array(state, "counters", (4,)))
         self.started, self.measured_noise = bool(started), bool(measured)
+        if "recovery_counts" in state:  # a checkpoint of before it counted none
+            self.recovery_dropped, self.recovery_readmitted = (
+                int(v) for v in state_array(state, "recovery_counts", (2,))
+            )
         self._buffer.import_state(state)
         spans = state_array(state, "difference_spans", np.shape(state.get("difference_spans", ())))
         eigenvalues = state_array(state, "difference_eigenvalues", (len(spans), self._n))

@@ -6,7 +6,16 @@ Files hold mm and degrees; the arrays returned hold mm and rad. Every refusal is
 what was expected; a failed write never leaves a partial file behind.
 """
 
-from .atomic import BackgroundWriter, atomic_path, atomic_write_bytes, atomic_write_text
+from .atomic import (
+    BackgroundWriter,
+    atomic_path,
+    atomic_paths,
+    atomic_write_bytes,
+    atomic_write_text,
+    check_writable_directory,
+    exclusive_lock,
+    output_directory,
+)
 from .logs import (
     LOG_REQUIRED,
     MEASURED_ANGLE_COLUMNS,
@@ -61,11 +70,15 @@ __all__ = [
     "BackgroundWriter",
     "LogRowParser",
     "atomic_path",
+    "atomic_paths",
     "atomic_write_bytes",
     "atomic_write_text",
     "blank_reading_columns",
+    "check_writable_directory",
     "csv_text",
+    "exclusive_lock",
     "log_text",
+    "output_directory",
     "read_calibrated_drive",
     "read_log",
     "read_log_blocks",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
 import queue
 import tempfile
@@ -10,7 +11,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from ..errors import CalibError
+from ..errors import CalibError, shown
 
 
 def _umask() -> int:
@@ -35,6 +36,75 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         yield tmp
 
 
+@contextmanager
+def atomic_paths(paths: list[str | Path]) -> Iterator[list[Path]]:
+    """Temporaries (as :func:`atomic_path`) for files written together: every one is renamed onto
+    its path once the block succeeds (its files closed), every one removed when it fails — the
+    files appear all or none (a disk that fills mid-run leaves none).
+
+    Raises:
+        CalibError: a file cannot be written (nothing is left behind).
+    """
+    paths = [Path(path) for path in paths]
+    temporaries: list[Path] = []
+    try:
+        for path in paths:
+            fd, tmp = _temporary(path)
+            os.close(fd)
+            temporaries.append(tmp)
+        yield temporaries
+        for tmp, path in zip(temporaries, paths, strict=True):
+            os.chmod(tmp, 0o666 & ~_umask())
+            os.replace(tmp, path)
+    except BaseException as err:
+        for tmp in temporaries:
+            tmp.unlink(missing_ok=True)
+        if isinstance(err, OSError):
+            where = err.filename or (paths[0].parent if paths else "")
+            raise CalibError(f"{shown(where)}: cannot write ({err.strerror or err.__class__.__name__})") from None
+        raise
+
+
+@contextmanager
+def output_directory(path: str | Path, option: str = "--out") -> Iterator[Path]:
+    """``path`` as the directory of the block's outputs: made (with missing parents) if it does not
+    exist, and those made removed again when the block fails (empty then: its writes are atomic).
+
+    Raises:
+        CalibError: it cannot be made or written into (checked before the block's work).
+    """
+    path = Path(path)
+    made, parent = [], path
+    while not parent.exists() and parent != parent.parent:
+        made.append(parent)
+        parent = parent.parent
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise CalibError(
+            f"{option} {shown(path)}: cannot create the output directory ({err.strerror or err.__class__.__name__})"
+        ) from None
+    try:
+        check_writable_directory(path, option)
+        yield path
+    except BaseException:
+        for directory in made:
+            try:
+                directory.rmdir()
+            except OSError:
+                break
+        raise
+
+
+def check_writable_directory(directory: str | Path, option: str) -> None:
+    """Refuse, before the work, a directory that is missing, not a directory, or not writable."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise CalibError(f"{option}: directory {shown(directory)} does not exist")
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise CalibError(f"{option}: directory {shown(directory)} is not writable (read-only or no permission)")
+
+
 def atomic_write_text(path: str | Path, text: str) -> None:
     """Write ``text`` (UTF-8) to ``path`` atomically (see :func:`atomic_path`)."""
     atomic_write_bytes(path, text.encode("utf-8"))
@@ -52,6 +122,44 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> None:
                 rest = rest[os.write(fd, rest) :]
         finally:
             os.close(fd)
+
+
+@contextmanager
+def exclusive_lock(path: str | Path, option: str, holder: str) -> Iterator[None]:
+    """Hold an exclusive lock on ``path`` for the block: a hidden ``.<name>.lock`` beside it
+    (``flock``; ``path`` itself is replaced by each atomic write, so it cannot carry the lock),
+    removed when the block ends.
+
+    Raises:
+        CalibError: another process holds it (``holder`` says who, ``option`` names the argument),
+            or the lock cannot be made.
+    """
+    path = Path(path)
+    lock = path.parent / f".{path.name}.lock"
+    while True:
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as err:
+            raise CalibError(
+                f"{option} {shown(path)}: cannot lock ({err.strerror or err.__class__.__name__})"
+            ) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise CalibError(f"{option} {shown(path)}: in use ({holder}; its lock {shown(lock)} is held)") from None
+        try:  # the holder before may have removed the file between our open and lock: lock the one there now
+            same = os.path.samestat(os.fstat(fd), os.stat(lock))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        yield
+    finally:
+        lock.unlink(missing_ok=True)  # while still held: a waiting run then locks a new file
+        os.close(fd)
 
 
 def _temporary(path: Path) -> tuple[int, Path]:

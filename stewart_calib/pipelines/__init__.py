@@ -6,9 +6,10 @@ pieces it shares with each pipeline's ``main(argv)`` live here, so nothing point
 
 import argparse
 import importlib
+import os
 import sys
 
-from ..errors import CalibError
+from ..errors import CalibError, shown
 
 
 class Parser(argparse.ArgumentParser):
@@ -60,12 +61,80 @@ def add_subcommands(parser: argparse.ArgumentParser, load=None) -> None:
             sub.add_parser(name, help=help_line, add_help=False)
 
 
+#: the arguments (``argparse`` dests) that name files a command reads, and those it writes; ``track``'s
+#: ``--checkpoint`` is both (it resumes from and replaces the same file).
+INPUT_ARGUMENTS = ("platform", "log", "result", "poses", "experiment", "spec", "config", "bag", "checkpoint")
+OUTPUT_ARGUMENTS = ("out", "trace", "rerun", "platform_out", "json", "checkpoint")
+#: outputs that are directories, with the files a command writes in them
+OUTPUT_DIRECTORIES = {("simulate", "out"): ("platform.toml", "log.csv", "truth.csv"), ("*", "report"): ("index.html",)}
+
+
+def _option(dest: str) -> str:
+    return "BAG" if dest == "bag" else "--" + dest.replace("_", "-")
+
+
+def _written_files(args: argparse.Namespace) -> list[tuple[str, str]]:
+    """``(option, path)`` of every file the command will write (within output directories too)."""
+    written = []
+    for dest in OUTPUT_ARGUMENTS:
+        value = getattr(args, dest, None)
+        if not value or value == "-":
+            continue
+        files = OUTPUT_DIRECTORIES.get((args.command, dest)) or OUTPUT_DIRECTORIES.get(("*", dest))
+        written += [(_option(dest), os.path.join(value, name)) for name in files] if files else [(_option(dest), value)]
+    for dest, files in OUTPUT_DIRECTORIES.items():
+        value = getattr(args, dest[1], None)
+        if dest[0] in (args.command, "*") and dest[1] not in OUTPUT_ARGUMENTS and value:
+            written += [(_option(dest[1]), os.path.join(value, name)) for name in files]
+    return written
+
+
+def check_no_output_over_input(args: argparse.Namespace) -> None:
+    """Refuse, before any work, an output path that names an input file of the same command
+    (the same file, by any path or link) or another of its outputs: the write would destroy it.
+
+    Raises:
+        CalibError: naming both arguments and the path.
+    """
+    written = _written_files(args)
+    seen: dict[str, str] = {}
+    for option, path in written:
+        key = os.path.realpath(path)
+        if key in seen and seen[key] != option:
+            raise CalibError(f"{option} {shown(path)}: is also the {seen[key]} output; expected another path")
+        seen.setdefault(key, option)
+    for dest in INPUT_ARGUMENTS:
+        value = getattr(args, dest, None)
+        if not isinstance(value, str) or value == "-" or not os.path.isfile(value):
+            continue
+        for option, path in written:
+            if option == _option(dest):  # track's checkpoint: read, then replaced on purpose
+                continue
+            try:
+                same = os.path.samefile(path, value)
+            except OSError:  # not there yet
+                same = False
+            if same:
+                raise CalibError(
+                    f"{option} {shown(path)}: is the {_option(dest)} input; writing it would destroy it — "
+                    "expected another path"
+                )
+
+
 def dispatch(args: argparse.Namespace) -> int:
     """Run the parsed subcommand: a :class:`CalibError` becomes one line on stderr and exit 2."""
     try:
+        check_no_output_over_input(args)
         return int(args.func(args) or 0)
     except CalibError as err:
         print(f"stewart-calib {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:  # the file system's refusals no check could foresee: full, read-only, I/O
+        where = f"{shown(err.filename)}: " if err.filename else ""
+        print(f"stewart-calib {args.command}: error: {where}{err.strerror or err}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        print(f"stewart-calib {args.command}: error: out of memory", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"stewart-calib {args.command}: interrupted", file=sys.stderr)

@@ -39,10 +39,17 @@ from .. import kinematics as kin
 from ..accuracy import estimate_summary
 from ..config import EstimatorConfig, load_estimator_config
 from ..diagnosis import diagnose_log
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, shown
 from ..estimate import Estimate
 from ..estimators import BatchEstimator, KalmanFiltered
-from ..estimators.base import late_index, take_late_rejections, update_block
+from ..estimators.base import (
+    accounted_estimate,
+    accounting_words,
+    late_index,
+    skipped_count,
+    take_late_rejections,
+    update_block,
+)
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
 from ..instruments.drive import scaled_strokes
 from ..io import logs
@@ -138,7 +145,7 @@ def run_calibration(
             rows[k] = nominal + estimator.current_error()  # a rejected sample leaves the estimate in force
     _refuse_if_all_rejected(method, rejected, len(log))
     return Calibration(
-        estimator.estimate(), rows, rejected, sigma, nis, getattr(estimator, "noise_scale", lambda: None)()
+        accounted_estimate(estimator), rows, rejected, sigma, nis, getattr(estimator, "noise_scale", lambda: None)()
     )
 
 
@@ -161,8 +168,8 @@ def calibrate(
 
 def _check_writable_dir(path: Path | None, option: str) -> None:
     """Fail before a long run, not after it, when an output cannot be placed."""
-    if path is not None and not path.parent.is_dir():
-        raise CalibError(f"{option} {path}: directory {path.parent} does not exist")
+    if path is not None:
+        io.check_writable_directory(path.parent, f"{option} {shown(path)}")
 
 
 def _summary(what: str, count: int, total: int, first: str) -> str:
@@ -305,19 +312,37 @@ class SampleSpool:
     over the log (the exact residual RMS at the final estimate) without parsing the CSV again
     and without holding the log in memory. The file is deleted when closed (or the process ends).
 
+    Its size: 8 bytes × (1 + 6 + the readings + 6) a good sample — 152 bytes for the tracker,
+    ~150 MB for a log of 10⁶ rows; the README says so under ``calibrate``.
+
     Args:
         directory: where the file goes (the output's: a disk the user chose, not a RAM ``/tmp``).
+    Raises:
+        CalibError: the file cannot be made or written (a full disk): one line naming the directory.
     """
 
     def __init__(self, directory: Path):
-        self._file = tempfile.TemporaryFile(dir=directory)
+        self._directory = directory
+        try:
+            self._file = tempfile.TemporaryFile(dir=directory)
+        except OSError as err:
+            raise self._refusal(err) from None
         self._widths = (0, 0)
+
+    def _refusal(self, err: OSError) -> CalibError:
+        return CalibError(
+            f"--out: cannot hold the temporary copy of the log's samples (152 bytes a row) in "
+            f"{shown(self._directory)} ({err.strerror or err.__class__.__name__})"
+        )
 
     def add(self, block: Log, extra: np.ndarray) -> None:
         """The samples of ``block`` with ``extra``, ``(len(block), k)`` values of each."""
         rows = np.column_stack([block.t_s, block.strokes, block.readings, extra])
         self._widths = (block.readings.shape[1], extra.shape[1])
-        self._file.write(np.ascontiguousarray(rows, dtype=np.float64).tobytes())
+        try:
+            self._file.write(np.ascontiguousarray(rows, dtype=np.float64).tobytes())
+        except OSError as err:
+            raise self._refusal(err) from None
 
     def blocks(self) -> Iterable[tuple[Log, np.ndarray]]:
         """The samples added, in order, as ``(Log, extra)`` blocks of at most the log reader's
@@ -430,7 +455,7 @@ def stream_calibration(
     if rejections.count == n:
         raise CalibError(f"{method} rejected all {n} samples (first: {rejections.first})")
     return StreamedRun(
-        estimator.estimate(),
+        accounted_estimate(estimator),
         n,
         skipped,
         rejected,
@@ -584,7 +609,7 @@ def run(args: argparse.Namespace) -> int:
                 if text:
                     print(f"stewart-calib calibrate: {text}", file=sys.stderr)
 
-        samples_skipped = skipped.count + rejections.count
+        samples_skipped = skipped_count(skipped.count, rejections.count, estimate)
         created = handover.created_now()
         extra.update(
             {
@@ -630,7 +655,7 @@ def run(args: argparse.Namespace) -> int:
     io.atomic_write_text(out, result_json)
     print(
         f"stewart-calib calibrate: wrote {out} ({args.method}: {estimate.samples_used} samples used, "
-        f"{samples_skipped} skipped)",
+        f"{samples_skipped} skipped{accounting_words(estimate.details or {})}, of {n_samples + skipped.count} rows)",
         file=sys.stderr,
     )
     return 0

@@ -31,8 +31,7 @@ def check_report_dir(directory: Path | None, option: str = "--report") -> None:
         return
     if directory.exists() and not directory.is_dir():
         raise CalibError(f"{option} {directory}: exists and is not a directory")
-    if not directory.parent.is_dir():
-        raise CalibError(f"{option} {directory}: directory {directory.parent} does not exist")
+    io.check_writable_directory(directory if directory.exists() else directory.parent, f"{option} {directory}")
     try:
         import matplotlib  # noqa: F401
     except ImportError:
@@ -41,10 +40,9 @@ def check_report_dir(directory: Path | None, option: str = "--report") -> None:
 
 def write_report(directory: Path, page: str) -> Path:
     """``directory/index.html`` (the directory is made if missing); atomic like every output."""
-    directory.mkdir(exist_ok=True)
-    path = directory / REPORT_PAGE
-    io.atomic_write_text(path, page)
-    return path
+    with io.output_directory(directory, "--report") as made:
+        io.atomic_write_text(made / REPORT_PAGE, page)
+    return made / REPORT_PAGE
 
 
 # ----------------------------------------------------------------------------- calibrated platform

@@ -18,12 +18,10 @@ files. A tqdm bar goes to stderr when it is a terminal.
 from __future__ import annotations
 
 import argparse
-from contextlib import ExitStack
 from dataclasses import replace
-from pathlib import Path
 
 from ..errors import CalibError
-from ..io import atomic_path, atomic_write_text, log_text, read_calibrated_drive, truth_text
+from ..io import atomic_paths, log_text, output_directory, read_calibrated_drive, truth_text
 from ..platform import Platform, platform_to_toml
 from ..simulation.closed_loop import FrozenController, NominalController, simulate_blocks
 from ..simulation.experiment import load_experiment
@@ -64,23 +62,24 @@ def controller_for(args: argparse.Namespace, platform: Platform):
 def run(args: argparse.Namespace) -> int:
     experiment = load_experiment(args.experiment)
     controller = controller_for(args, experiment.platform)
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise CalibError(f"{out}: cannot create output directory ({err.strerror or err.__class__.__name__})") from None
-    run = simulate_blocks(experiment, controller, progress=True)
-    with ExitStack() as stack:
-        # written a block at a time as the blocks are simulated: a run holds its schedule and noise, not its text
-        log_file, truth_file = (
-            stack.enter_context(open(stack.enter_context(atomic_path(out / name)), "w", encoding="utf-8"))
-            for name in ("log.csv", "truth.csv")
-        )
-        for k, (log, truth) in enumerate(run.blocks):
-            log_file.write(log_text(log, experiment.platform, header=k == 0))
-            truth_file.write(truth_text(truth, header=k == 0))
-    platform = replace(experiment.platform, elastic=elastic_of(experiment.load))
-    atomic_write_text(out / "platform.toml", platform_to_toml(platform))
+    # the three files appear together or not at all, and a directory made for them goes again
+    # on a failure (a full disk, a signal): no partial output
+    with (
+        output_directory(args.out) as out,
+        atomic_paths([out / "log.csv", out / "truth.csv", out / "platform.toml"]) as (
+            log_path,
+            truth_path,
+            platform_path,
+        ),
+    ):
+        run = simulate_blocks(experiment, controller, progress=True)
+        with open(log_path, "w", encoding="utf-8") as log_file, open(truth_path, "w", encoding="utf-8") as truth_file:
+            # written a block at a time as the blocks are simulated: a run holds its schedule and noise, not its text
+            for k, (log, truth) in enumerate(run.blocks):
+                log_file.write(log_text(log, experiment.platform, header=k == 0))
+                truth_file.write(truth_text(truth, header=k == 0))
+        platform = replace(experiment.platform, elastic=elastic_of(experiment.load))
+        platform_path.write_text(platform_to_toml(platform), encoding="utf-8")
     print(f"simulated {len(run.plan.t_s)} samples of '{experiment.name}' ({args.controller} controller) into {out}")
     return 0
 

@@ -44,8 +44,11 @@ standard input).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import glob
+import hashlib
+import math
 import os
 import select
 import signal
@@ -60,7 +63,8 @@ import numpy as np
 
 from .. import io
 from ..config import load_estimator_config
-from ..errors import CalibError
+from ..errors import CalibError, shown
+from ..estimators.base import accounting_words, skipped_count
 from ..online import ONLINE_METHODS, OnlineCalibrator
 from ..platform import load_platform, platform_to_toml
 from ..samples import Log, Sample
@@ -74,43 +78,119 @@ POLL_S = 0.1
 READ_BYTES = 1 << 20
 
 
-def lines(fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable[[], bool]) -> Iterator[bytes]:
-    """The lines of :func:`line_chunks` one at a time."""
-    return chain.from_iterable(line_chunks(fd, follow, idle_timeout_s, stopped))
+def lines(
+    fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable[[], bool], path: str | None = None
+) -> Iterator[bytes]:
+    """The lines of :func:`line_chunks` one at a time (a rotation's marker left out)."""
+    return chain.from_iterable(chunk for chunk in line_chunks(fd, follow, idle_timeout_s, stopped, path) if chunk)
+
+
+class Rotated(list):
+    """What :func:`line_chunks` yields (an empty chunk) when the followed file was replaced or
+    truncated: the lines after it are the new file's, from its start. ``why`` says what happened."""
+
+    def __init__(self, why: str):
+        super().__init__()
+        self.why = why
 
 
 def line_chunks(
-    fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable[[], bool]
+    fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable[[], bool], path: str | None = None
 ) -> Iterator[list[bytes]]:
     """Complete lines of ``fd`` as they arrive (the line break removed), a list per read.
 
     Ends at the end of the input (a pipe closed by its writer; a regular file's end unless
-    ``follow``), when ``stopped()``, or after ``idle_timeout_s`` without new data. A last line
-    without a line break is yielded only at the end of the input: when stopped or timed out it
-    may be a row still being written (or cut by the read size), so it is not yielded. Never
-    blocks longer than :data:`POLL_S`, so a signal is noticed within that.
+    ``follow``), when ``stopped()``, or after ``idle_timeout_s`` without new data: the idle time
+    is counted only from a read that found nothing (rows waiting in the file, the time the caller
+    spends on them, or a SIGSTOP never count). A last line without a line break is yielded only at
+    the end of the input: when stopped or timed out it may be a row still being written (or cut
+    by the read size), so it is not yielded. Never blocks longer than :data:`POLL_S`, so a signal
+    is noticed within that.
+
+    With ``follow`` on the regular file at ``path``: when the file there is replaced (renamed,
+    deleted and created again), truncated, or rewritten from its start, the old file's last line
+    is yielded, then a :class:`Rotated` marker, then the new content's lines from its start.
     """
-    wait_at_end = follow and stat.S_ISREG(os.fstat(fd).st_mode)  # a pipe's end is final
-    pending = b""
-    last_data_s = time.monotonic()
-    while not stopped():
-        if idle_timeout_s is not None and time.monotonic() - last_data_s >= idle_timeout_s:
-            return
-        ready, _, _ = select.select([fd], [], [], POLL_S)
-        if not ready:
-            continue
-        chunk = os.read(fd, READ_BYTES)
-        if chunk:
-            last_data_s = time.monotonic()
-            *complete, pending = (pending + chunk).split(b"\n")
-            if complete:
-                yield complete
-        elif wait_at_end:
-            time.sleep(POLL_S)  # select() always reports a regular file ready
-        else:
-            if pending and not stopped():  # a stop may come between the last read and this end
-                yield [pending]
-            return
+    regular = stat.S_ISREG(os.fstat(fd).st_mode)
+    wait_at_end = follow and regular  # a pipe's end is final
+    own_fd = None  # a replacement opened here (the caller closes the first)
+    pending, head = b"", b""  # the unfinished line; the first bytes of the file (what a rewrite changes)
+    idle_since: float | None = None
+    try:
+        while not stopped():
+            chunk = _read_ready(fd, regular)
+            if chunk:
+                idle_since = None
+                head += chunk[: max(HEAD_BYTES - len(head), 0)]
+                *complete, pending = (pending + chunk).split(b"\n")
+                if complete:
+                    yield complete
+                continue
+            if chunk == b"" and not wait_at_end:
+                if pending and not stopped():  # a stop may come between the last read and this end
+                    yield [pending]
+                return
+            if wait_at_end and path is not None:
+                replaced = _replacement(fd, path, head)
+                if replaced is not None:
+                    new_fd, why = replaced
+                    if pending:  # the old file's last line, ended by the rotation
+                        yield [pending]
+                    pending, head, idle_since = b"", b"", None
+                    if new_fd != fd:
+                        if own_fd is not None:
+                            os.close(own_fd)
+                        fd = own_fd = new_fd
+                    yield Rotated(why)
+                    continue
+            now = time.monotonic()
+            if idle_since is None:
+                idle_since = now
+            elif idle_timeout_s is not None and now - idle_since >= idle_timeout_s:
+                return
+            if regular:
+                time.sleep(POLL_S)  # select() always reports a regular file ready
+    finally:
+        if own_fd is not None:
+            os.close(own_fd)
+
+
+#: bytes at the start of a followed file compared at its end: a file rewritten from its start
+#: (truncated and written again faster than it is polled) differs there.
+HEAD_BYTES = 4096
+
+
+def _read_ready(fd: int, regular: bool) -> bytes | None:
+    """The next bytes of ``fd``: ``b""`` at its end, None when a pipe has none within :data:`POLL_S`."""
+    if not regular and not select.select([fd], [], [], POLL_S)[0]:
+        return None
+    try:
+        return os.read(fd, READ_BYTES)
+    except BlockingIOError:  # a FIFO opened without blocking, its writer gone quiet
+        return None
+
+
+def _replacement(fd: int, path: str, head: bytes) -> tuple[int, str] | None:
+    """``(descriptor, what happened)`` when the file at ``path`` is no longer what ``fd`` has read:
+    another file there (its own new descriptor), or this one truncated or rewritten (``fd`` back at
+    its start); None when it is (or no file is there yet: a rotation between its rename and create)."""
+    try:
+        now = os.stat(path)
+    except OSError:
+        return None
+    read = os.fstat(fd)
+    if (now.st_dev, now.st_ino) != (read.st_dev, read.st_ino):
+        try:
+            return os.open(path, os.O_RDONLY | os.O_NONBLOCK), "replaced"
+        except OSError:
+            return None
+    if now.st_size < os.lseek(fd, 0, os.SEEK_CUR):
+        os.lseek(fd, 0, os.SEEK_SET)
+        return fd, "truncated"
+    if head and os.pread(fd, len(head), 0) != head:
+        os.lseek(fd, 0, os.SEEK_SET)
+        return fd, "rewritten"
+    return None
 
 
 class _StopRequest:
@@ -132,18 +212,27 @@ def _decode(raw: bytes, source: str, row: int) -> str:
         ) from None
 
 
+def _identity(path: str) -> dict:
+    """Device, inode and size of the file at ``path`` now (the checkpoint's record; {} when gone)."""
+    try:
+        now = os.stat(path)
+    except OSError:
+        return {}
+    return {"device": now.st_dev, "inode": now.st_ino, "size": now.st_size}
+
+
 def _open_input(log: str | None) -> tuple[int, str]:
     if log in (None, "-"):
         return sys.stdin.fileno(), "<stdin>"
     try:
-        fd = os.open(log, os.O_RDONLY)
+        fd = os.open(log, os.O_RDONLY | os.O_NONBLOCK)  # a FIFO without a writer yet: no wait here
     except FileNotFoundError:
-        raise CalibError(f"{log}: log file not found") from None
+        raise CalibError(f"{shown(log)}: log file not found") from None
     except OSError as err:
-        raise CalibError(f"{log}: cannot read log file ({err.strerror})") from None
+        raise CalibError(f"{shown(log)}: cannot read log file ({err.strerror})") from None
     if stat.S_ISDIR(os.fstat(fd).st_mode):  # Linux opens a directory read-only; reading it fails later
         os.close(fd)
-        raise CalibError(f"{log}: is a directory; expected a log file (spec §3)")
+        raise CalibError(f"{shown(log)}: is a directory; expected a log file (spec §3)")
     return fd, log
 
 
@@ -194,6 +283,82 @@ def _write(
         writer.submit(checkpoint, lambda: state)
 
 
+#: data lines after the header that identify a log in a checkpoint (their SHA-256 with the header's)
+HEAD_LINES = 16
+
+
+class NotTheLog(CalibError):
+    """The log given is not the one a checkpoint read (refused before any row is used)."""
+
+
+class _Head:
+    """The header and first :data:`HEAD_LINES` lines of one file, as read: its identity."""
+
+    def __init__(self, header: bytes):
+        self.lines = [header]
+
+    def add(self, lines: list[bytes]) -> None:
+        self.lines += lines[: max(HEAD_LINES + 1 - len(self.lines), 0)]
+
+    def digest(self, count: int | None = None) -> str:
+        """SHA-256 of the header and the first ``count`` lines (default: all held)."""
+        lines = self.lines if count is None else self.lines[: count + 1]
+        return hashlib.sha256(b"\n".join(lines)).hexdigest()
+
+
+class _Reader:
+    """The lines of one or more files (a rotation starts another) fed to a calibrator.
+
+    Rows a resumed checkpoint had read of the same file are passed over; a file whose first
+    lines differ from the checkpoint's is refused (:class:`NotTheLog`) or, with ``new_log``, read
+    from its start.
+    """
+
+    def __init__(self, calib: OnlineCalibrator, source: str, identity: Callable[[], dict], new_log: bool):
+        self.calib, self.source, self.identity, self.new_log = calib, source, identity, new_log
+        self.head: _Head | None = None
+        self.header_line = b""
+        self.feed: _Feed | None = None
+
+    def source_record(self) -> dict:
+        """The checkpoint's record of the file being read (:attr:`OnlineCalibrator.source`)."""
+        assert self.head is not None and self.feed is not None
+        return {
+            **self.identity(),
+            "path": self.source,
+            "head_lines": len(self.head.lines) - 1,
+            "head_sha256": self.head.digest(),
+            "rows": self.feed.data_rows,
+        }
+
+    def already_read(self, head: _Head, ended: bool) -> int:
+        """Rows of this file the checkpoint had read (0 for a new file), once ``head`` holds as many
+        lines as the checkpoint's record (or the input ``ended``).
+
+        Raises:
+            NotTheLog: the checkpoint read another file, and no ``new_log``.
+        """
+        record = self.calib.source
+        if record is None:  # a checkpoint of an earlier version, or made through the API: the same log assumed
+            return self.calib.rows_read
+        count = int(record["head_lines"])
+        if len(head.lines) - 1 >= count and head.digest(count) == record["head_sha256"]:
+            return int(record["rows"])
+        old = f"{shown(str(record['path']))}, {record['rows']} rows"
+        if not self.new_log:
+            why = "it ends sooner" if ended and len(head.lines) - 1 < count else "its first rows differ"
+            raise NotTheLog(
+                f"{shown(self.source)}: not the log the checkpoint read ({old}; {why}); feed that log from its "
+                f"start, or give --new-log to read {shown(self.source)} from its start"
+            )
+        print(
+            f"stewart-calib track: {shown(self.source)} is not the log the checkpoint read ({old}); "
+            "reading it from its start (--new-log)",
+            file=sys.stderr,
+        )
+        return 0
+
+
 def follow_log(
     calib: OnlineCalibrator,
     chunks: Iterator[list[bytes]],
@@ -201,47 +366,101 @@ def follow_log(
     every: int,
     write: Callable[[], None],
     skip_bad_rows: bool,
-) -> str | None:
+    identity: Callable[[], dict] = dict,
+    new_log: bool = False,
+) -> _Feed:
     """Feed the lines of ``chunks`` (header first) to ``calib``, calling ``write()`` every ``every`` data rows.
 
-    Rows the checkpoint had already read (``calib.rows_read``) are parsed (time order is still
-    checked across them) but not used again.
+    Rows the checkpoint had already read of this file are parsed (time order is still checked
+    across them) but not used again. A :class:`Rotated` marker starts a new file: its first line
+    is skipped when it repeats the header, and no rows of it count as read before.
 
     Returns:
-        The first bad row's message when rows were skipped, else None.
+        The feed: its counts and the first bad row's message (when rows were skipped).
     Raises:
         CalibError: no header or a bad one; a bad row without ``skip_bad_rows``.
+        NotTheLog: the checkpoint read another file (see :class:`_Reader`).
     """
+    reader = _Reader(calib, source, identity, new_log)
     chunks = iter(chunks)
-    first = next(chunks, None)
+    first = next((chunk for chunk in chunks if chunk), None)
     if first is None:
-        raise CalibError(f"{source}: no header row; expected a CSV header and sample rows (spec §3)")
+        raise CalibError(f"{shown(source)}: no header row; expected a CSV header and sample rows (spec §3)")
+    reader.header_line = first[0]
     parser = io.LogRowParser(source, _decode(first[0], source, 1), calib.platform)
-    feed = _Feed(calib, every, write, skip_bad_rows)
+    reader.head = _Head(first[0])
+    reader.head.add(first[1:])
+    held = [first[1:]]
+    wanted = 0 if calib.source is None else int(calib.source["head_lines"])
+    while len(reader.head.lines) <= wanted:  # the checkpoint's head of the file first: nothing is used before
+        chunk = next(chunks, None)
+        if chunk is None or isinstance(chunk, Rotated):
+            chunks = chain([] if chunk is None else [chunk], chunks)
+            break
+        reader.head.add(chunk)
+        held.append(chunk)
+    feed = reader.feed = _Feed(calib, every, lambda: _recorded(reader, write), skip_bad_rows)
+    feed.already = reader.already_read(reader.head, ended=len(reader.head.lines) <= wanted)
     line_number = 2
-    for chunk in chain([first[1:]], chunks):
-        block = parser.parse_block(chunk)
-        if block is None:  # a row that is not plain: one by one, the good rows between bad ones in blocks
-            good: list[Sample] = []
-            for row, raw in enumerate(chunk, start=line_number):
-                try:
-                    sample = parser.parse(_decode(raw, source, row), row)
-                except CalibError as err:
-                    feed.block(_log_of(good))
-                    good = []
-                    feed.bad_row(str(err))
-                else:
-                    if sample is not None:  # a blank line is no row
-                        good.append(sample)
-            block = _log_of(good)
-        feed.block(block)
+    for chunk in held:
+        _feed_chunk(parser, feed, chunk, source, line_number)
         line_number += len(chunk)
-    return feed.first_bad
+    for chunk in chunks:
+        if isinstance(chunk, Rotated):
+            print(
+                f"stewart-calib track: {shown(source)} was {chunk.why} after {feed.data_rows} rows; "
+                "reading the new file from its start",
+                file=sys.stderr,
+            )
+            feed.rotated()
+            reader.head, line_number = None, 1
+            continue
+        if reader.head is None and chunk:  # a new file's first line: its header when it repeats ours
+            repeats = chunk[0] == reader.header_line
+            reader.head = _Head(chunk[0] if repeats else b"")
+            if repeats:
+                chunk, line_number = chunk[1:], 2
+        if reader.head is not None:
+            reader.head.add(chunk)
+        _feed_chunk(parser, feed, chunk, source, line_number)
+        line_number += len(chunk)
+    if reader.head is not None:
+        calib.source = reader.source_record()
+    return feed
 
 
-def _log_of(samples: list[Sample]) -> Log:
-    """``samples`` (rows of one log, so with the same optional fields) as a :class:`Log`."""
-    first = samples[0] if samples else Sample(0.0, np.zeros(6), np.zeros(0))
+def _recorded(reader: _Reader, write: Callable[[], None]) -> None:
+    """``write()`` with the checkpoint's record of the file read brought up to date."""
+    if reader.head is not None:
+        reader.calib.source = reader.source_record()
+    write()
+
+
+def _feed_chunk(parser: io.LogRowParser, feed: _Feed, chunk: list[bytes], source: str, line_number: int) -> None:
+    """The lines ``chunk`` (the first is line ``line_number`` of the file) to ``feed``: as one
+    block when every row is plain, else one by one with the good rows between bad ones in blocks."""
+    block = parser.parse_block(chunk)
+    if block is None:
+        good: list[Sample] = []
+        for row, raw in enumerate(chunk, start=line_number):
+            try:
+                sample = parser.parse(_decode(raw, source, row), row)
+            except CalibError as err:
+                feed.block(_log_of(good))
+                good = []
+                feed.bad_row(str(err))
+            else:
+                if sample is not None:  # a blank line is no row
+                    good.append(sample)
+        block = _log_of(good)
+    feed.block(block)
+
+
+def _log_of(samples: list[Sample]) -> Log | None:
+    """``samples`` (rows of one log, so with the same optional fields) as a :class:`Log`; None for none."""
+    if not samples:
+        return None
+    first = samples[0]
     stack = lambda values: np.array(values, dtype=float).reshape(len(samples), -1)  # noqa: E731
     return Log(
         np.array([sample.t_s for sample in samples], dtype=float),
@@ -254,17 +473,24 @@ def _log_of(samples: list[Sample]) -> Log:
 
 
 class _Feed:
-    """The data rows of a log to a calibrator, in order: the rows a resumed checkpoint had read are
-    passed over, the others counted in ``rows_read`` and folded in, and ``write()`` called after
-    every ``every``-th — a block is split there, so the writes come at the same rows either way."""
+    """The data rows of a log to a calibrator, in order: the first ``already`` rows of the file (read
+    by the checkpoint resumed) are passed over, the others counted in ``rows_read`` and folded in,
+    and ``write()`` called after every ``every``-th — a block is split there, so the writes come at
+    the same rows either way."""
 
     def __init__(self, calib: OnlineCalibrator, every: int, write: Callable[[], None], skip_bad_rows: bool):
         self.calib, self.every, self.write, self.skip_bad_rows = calib, every, write, skip_bad_rows
-        self.already, self.data_rows = calib.rows_read, 0
+        self.already, self.data_rows = 0, 0  # of the file being read
         self.first_bad: str | None = None
 
-    def block(self, block: Log) -> None:
+    def rotated(self) -> None:
+        """The next rows are a new file's, none of them read before."""
+        self.already, self.data_rows = 0, 0
+
+    def block(self, block: Log | None) -> None:
         """The good rows ``block``, one after the other."""
+        if block is None or not len(block):
+            return
         start = min(len(block), max(self.already - self.data_rows, 0))
         self.data_rows += len(block)
         while start < len(block):
@@ -276,18 +502,16 @@ class _Feed:
 
     def bad_row(self, message: str) -> None:
         """One bad row: skipped and counted with ``skip_bad_rows``, else the refusal."""
-        if self._passed_over():
+        self.data_rows += 1
+        if self.data_rows <= self.already:
             return
         if not self.skip_bad_rows:
-            raise CalibError(message)  # not counted as read: a resume parses this row again
+            self.data_rows -= 1  # not counted as read: a resume parses this row again
+            raise CalibError(message)
         self.calib.rows_read += 1
         self.calib.rows_skipped += 1
         self.first_bad = self.first_bad or message
         self._write_when_due()
-
-    def _passed_over(self) -> bool:
-        self.data_rows += 1
-        return self.data_rows <= self.already
 
     def _write_when_due(self) -> None:
         if self.calib.rows_read % self.every == 0:
@@ -301,11 +525,22 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.every < 1:
         raise CalibError(f"--every: expected a whole number ≥ 1, got {args.every}")
-    if args.idle_timeout is not None and not args.idle_timeout > 0:
-        raise CalibError(f"--idle-timeout: expected a positive number of seconds, got {args.idle_timeout}")
+    if args.idle_timeout is not None and not 0 < args.idle_timeout < math.inf:
+        raise CalibError(
+            f"--idle-timeout: expected a finite positive number of seconds, got {args.idle_timeout} "
+            "(without it, --follow waits until a signal)"
+        )
     out, checkpoint = Path(args.out), args.checkpoint and Path(args.checkpoint)
     for path, option in ((out, "--out"), (checkpoint, "--checkpoint")):
         _check_writable_dir(path, option)
+    with contextlib.ExitStack() as locks:
+        for path, option in ((checkpoint, "--checkpoint"), (out, "--out")):
+            if path:  # two runs writing one file: the last writer would win
+                locks.enter_context(io.exclusive_lock(path, option, "another track run is writing it"))
+        return _track(args, out, checkpoint)
+
+
+def _track(args: argparse.Namespace, out: Path, checkpoint: Path | None) -> int:
     calib = _start(args)
     fd, source = _open_input(args.log)
     for path in (out, checkpoint):
@@ -314,14 +549,31 @@ def run(args: argparse.Namespace) -> int:
     stop = _StopRequest()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     writer = io.BackgroundWriter()
+    identity = (lambda: {}) if source == "<stdin>" else (lambda: _identity(source))
     try:
         with writer:
-            chunks = line_chunks(fd, args.follow, args.idle_timeout, lambda: stop.requested)
-            first_bad = follow_log(
-                calib, chunks, source, args.every, lambda: _write(calib, writer, out, checkpoint), args.skip_bad_rows
+            chunks = line_chunks(
+                fd, args.follow, args.idle_timeout, lambda: stop.requested, None if source == "<stdin>" else source
             )
+            feed = follow_log(
+                calib,
+                chunks,
+                source,
+                args.every,
+                lambda: _write(calib, writer, out, checkpoint),
+                args.skip_bad_rows,
+                identity,
+                args.new_log,
+            )
+            if feed.data_rows < feed.already and not stop.requested:
+                raise NotTheLog(
+                    f"{shown(source)}: ended after {feed.data_rows} rows, before the {feed.already} rows the "
+                    "checkpoint had read of it; feed that log from its start"
+                )
             if calib.estimate().samples_used:
                 _write(calib, writer, out, checkpoint, final=True)
+    except NotTheLog:
+        raise  # nothing was used: the checkpoint stays as it was
     except CalibError:
         # the state at the last good row is kept, no result; then the refusal (the writer has
         # finished: nothing it still held can land after this checkpoint)
@@ -333,9 +585,10 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
         if source != "<stdin>":
             os.close(fd)
+    first_bad = feed.first_bad
     if not calib.estimate().samples_used:
         raise CalibError(
-            f"{source}: no usable samples ({calib.rows_read} rows read, "
+            f"{shown(source)}: no usable samples ({calib.rows_read} rows read, "
             f"{calib.rows_skipped} skipped, {calib.rejections.count} rejected)"
         )
     report = lambda what, count, first: print(  # noqa: E731
@@ -346,9 +599,11 @@ def run(args: argparse.Namespace) -> int:
     if calib.rejections.count:
         report(f"{args.method} rejected samples:", calib.rejections.count, calib.rejections.first)
     estimate = calib.estimate()
+    skipped = skipped_count(calib.rows_skipped, calib.rejections.count, estimate)
+    stopped = ", stopped by signal" if stop.requested else ""
     print(
         f"stewart-calib track: wrote {out} ({args.method}: {estimate.samples_used} samples used, "
-        f"{calib.rows_skipped + calib.rejections.count} skipped{', stopped by signal' if stop.requested else ''})",
+        f"{skipped} skipped{accounting_words(estimate.details or {})}, of {calib.rows_read} rows{stopped})",
         file=sys.stderr,
     )
     return 0
@@ -369,7 +624,15 @@ def add_parser(subparsers) -> None:
         action="store_true",
         help="at the end of FILE, wait for more rows (stop with a signal or --idle-timeout)",
     )
-    parser.add_argument("--idle-timeout", type=float, metavar="S", help="stop after S seconds without new data")
+    parser.add_argument(
+        "--idle-timeout", type=float, metavar="S", help="stop after S seconds in which the log had no new data"
+    )
+    parser.add_argument(
+        "--new-log",
+        action="store_true",
+        help="resuming on a log whose first rows differ from the one the checkpoint read: read it from its start"
+        " (default: refuse it)",
+    )
     parser.add_argument(
         "--checkpoint", metavar="C.npz", help="resume from this checkpoint if it exists; keep it current"
     )

@@ -383,6 +383,16 @@ def tables_markdown(results: dict) -> str:
         "",
         "## The same in the tracker view (flatters the online methods; no verdict)",
         "",
+        *(
+            [
+                "The tracker view computes the pose on the tracker's nominal geometry: a run that identifies "
+                "that geometry no longer follows its errors, so this view charges it the tracker's own error "
+                "that the truth view shows it has removed.",
+                "",
+            ]
+            if results["parts"]
+            else []
+        ),
     ]
     lines += _markdown_table(
         ["Method", "View", "Position", "Orientation", "Circle"],
