@@ -168,6 +168,21 @@ class Instrument:
         return len(self.targets)
 
 
+#: standard gravity [m/s² = N/kg] (spec §10)
+G_N_PER_KG = 9.80665
+
+#: the default prior σ of the compliance is the one at which the platform's own weight, shared by six
+#: legs, would shorten a leg by this much [mm]: no hexapod that positions to a millimetre gives
+#: more, and it spans the industrial machine's µm/kN and the hobby build's hundreds of mm/kN alike.
+DEFAULT_WEIGHT_DEFLECTION_MM = 2.0
+
+
+def default_compliance_sigma(platform_mass_kg: float) -> float:
+    """The default prior σ of c_i [mm/kN] (:data:`DEFAULT_WEIGHT_DEFLECTION_MM`): 2 mm over a
+    sixth of the platform's weight [kN]."""
+    return DEFAULT_WEIGHT_DEFLECTION_MM / (platform_mass_kg * G_N_PER_KG / N_LEGS / 1000.0)
+
+
 #: a centre of mass farther than this many platform radii (the largest ``‖d_i‖``) from {D}'s origin
 #: is refused: a value typed in the wrong unit, not a payload the legs could hold.
 COM_RADII_LIMIT = 10.0
@@ -183,7 +198,8 @@ class Elastic:
         payload_com_mm: ``(3,)`` the payload's centre of mass in {D} [mm].
         compliance_mm_per_kN: ``(6,)`` nominal axial compliance c_i of each drive leg [mm/kN = µm/N]:
             ``l_i + (1 + k_i) q_i − c_i f_i / 1000 = ‖t + R d_i − j_i‖``, f_i [N] compression > 0.
-        compliance_sigma_mm_per_kN: prior σ of c_i about the nominal; 0: held at nominal.
+        compliance_sigma_mm_per_kN: prior σ of c_i about the nominal; 0: held at nominal (default:
+            :func:`default_compliance_sigma` of the platform's mass).
         true_compliance_mm_per_kN: ``(6,)`` the truth a simulated platform carries for reports and
             checks (``simulate``), never read by an estimator; None on a real robot.
     """
@@ -192,8 +208,12 @@ class Elastic:
     platform_com_mm: np.ndarray
     payload_com_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
     compliance_mm_per_kN: np.ndarray = field(default_factory=lambda: np.zeros(N_LEGS))
-    compliance_sigma_mm_per_kN: float = 1.0
+    compliance_sigma_mm_per_kN: float | None = None
     true_compliance_mm_per_kN: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.compliance_sigma_mm_per_kN is None:
+            object.__setattr__(self, "compliance_sigma_mm_per_kN", default_compliance_sigma(self.platform_mass_kg))
 
 
 @dataclass(frozen=True)
@@ -493,7 +513,7 @@ def _elastic(doc: dict, drive: LegGeometry, source: str) -> Elastic | None:
         centres["platform_com_mm"],
         centres["payload_com_mm"],
         compliance,
-        _non_negative(table, "compliance_sigma_mm_per_kN", 1.0, source, "elastic"),
+        _non_negative(table, "compliance_sigma_mm_per_kN", default_compliance_sigma(mass), source, "elastic"),
         truth,
     )
 

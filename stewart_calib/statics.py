@@ -30,12 +30,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._jit import njit
+from ._kernels import _solve
 from .errors import CalibError
 from .kinematics import leg_pose_jacobian, leg_unit_vectors, skew
-from .platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
-
-#: standard gravity [m/s² = N/kg]
-G_N_PER_KG = 9.80665
+from .platform import G_N_PER_KG, N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
 
 #: gravity [N/kg] in {J}: along −z.
 GRAVITY_N_PER_KG = np.array([0.0, 0.0, -G_N_PER_KG])
@@ -95,11 +94,14 @@ def check_not_singular(legs: LegGeometry, statics: np.ndarray) -> None:
     bad = np.flatnonzero(~(np.reshape(ratio, -1) >= SINGULAR_RATIO))
     if bad.size:
         index = int(bad[0])
-        raise SingularStatics(
-            f"pose {index + 1}: the statics matrix Aᵀ is singular (Hadamard ratio "
-            f"{float(np.reshape(ratio, -1)[index]):.2g} < {SINGULAR_RATIO:g}): no leg forces balance the weight there",
-            index,
-        )
+        raise SingularStatics(_singular_message(index, float(np.reshape(ratio, -1)[index])), index)
+
+
+def _singular_message(index: int, ratio: float) -> str:
+    return (
+        f"pose {index + 1}: the statics matrix Aᵀ is singular (Hadamard ratio {ratio:.2g} < {SINGULAR_RATIO:g}): "
+        "no leg forces balance the weight there"
+    )
 
 
 def leg_forces(legs: LegGeometry, R: np.ndarray, t: np.ndarray, wrench: np.ndarray) -> np.ndarray:
@@ -113,6 +115,73 @@ def leg_forces(legs: LegGeometry, R: np.ndarray, t: np.ndarray, wrench: np.ndarr
     return np.linalg.solve(A_T, -np.asarray(wrench)[..., None])[..., 0]
 
 
+def gravity_leg_forces(
+    legs: LegGeometry, R: np.ndarray, t: np.ndarray, masses_kg: np.ndarray, coms_mm: np.ndarray
+) -> np.ndarray:
+    """Leg forces [N] holding masses ``(..., K)`` [kg] at centres ``(K, 3)`` in {D} [mm] at poses
+    ``(R, t)``, ``(..., 6)``: :func:`leg_forces` of :func:`gravity_wrench` in one compiled pass
+    (~0.6 µs a pose against ~12 for the vectorised numpy, equal to it to rounding).
+
+    Raises:
+        SingularStatics: as :func:`leg_forces` (the same ratio).
+    """
+    c = np.ascontiguousarray
+    coms_mm = np.asarray(coms_mm, dtype=float)
+    batch = np.broadcast_shapes(np.shape(R)[:-2], np.shape(t)[:-1], np.shape(masses_kg)[:-1])
+    R = c(np.broadcast_to(R, (*batch, 3, 3)), dtype=float).reshape(-1, 3, 3)
+    t = c(np.broadcast_to(t, (*batch, 3)), dtype=float).reshape(-1, 3)
+    masses = c(np.broadcast_to(np.asarray(masses_kg, dtype=float), (*batch, len(coms_mm)))).reshape(len(R), -1)
+    forces, ratios = np.empty((len(R), 6)), np.empty(len(R))
+    radius = float(np.sqrt(np.mean(np.sum(legs.platform_joints**2, axis=-1)))) or 1.0
+    _gravity_forces(legs.base_joints, legs.platform_joints, R, t, masses, c(coms_mm), radius, forces, ratios)
+    bad = np.flatnonzero(~(ratios >= SINGULAR_RATIO))
+    if bad.size:
+        index = int(bad[0])
+        raise SingularStatics(_singular_message(index, float(ratios[index])), index)
+    return forces.reshape(*batch, 6)
+
+
+@njit(nogil=True, error_model="numpy")
+def _gravity_forces(base, plat, R, t, masses, coms, radius, forces, ratios):
+    """Per pose: ``Aᵀ`` (column i ``[n_i; R d_i × n_i]``), Hadamard's ratio of it with the moment rows
+    over ``radius``, and ``f`` solving ``Aᵀ f = −w`` for the masses at their centres (forces left
+    unset where the ratio is below :data:`SINGULAR_RATIO` or a pivot is zero)."""
+    A = np.empty((6, 6))
+    w = np.empty((6, 1))
+    for k in range(R.shape[0]):
+        for i in range(6):
+            p0 = R[k, 0, 0] * plat[i, 0] + R[k, 0, 1] * plat[i, 1] + R[k, 0, 2] * plat[i, 2]
+            p1 = R[k, 1, 0] * plat[i, 0] + R[k, 1, 1] * plat[i, 1] + R[k, 1, 2] * plat[i, 2]
+            p2 = R[k, 2, 0] * plat[i, 0] + R[k, 2, 1] * plat[i, 1] + R[k, 2, 2] * plat[i, 2]
+            v0, v1, v2 = t[k, 0] + p0 - base[i, 0], t[k, 1] + p1 - base[i, 1], t[k, 2] + p2 - base[i, 2]
+            norm = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+            n0, n1, n2 = v0 / norm, v1 / norm, v2 / norm
+            A[0, i], A[1, i], A[2, i] = n0, n1, n2
+            A[3, i], A[4, i], A[5, i] = p1 * n2 - p2 * n1, p2 * n0 - p0 * n2, p0 * n1 - p1 * n0
+        # gravity (0, 0, −m g) at R c: force and moment about the platform origin, negated
+        w[0, 0], w[1, 0], w[2, 0], w[3, 0], w[4, 0], w[5, 0] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        for j in range(coms.shape[0]):
+            weight = masses[k, j] * G_N_PER_KG
+            c0 = R[k, 0, 0] * coms[j, 0] + R[k, 0, 1] * coms[j, 1] + R[k, 0, 2] * coms[j, 2]
+            c1 = R[k, 1, 0] * coms[j, 0] + R[k, 1, 1] * coms[j, 1] + R[k, 1, 2] * coms[j, 2]
+            w[2, 0] += weight
+            w[3, 0] += c1 * weight
+            w[4, 0] -= c0 * weight
+        product = 1.0  # of the column norms, moment rows over radius
+        for i in range(6):
+            column = A[0, i] * A[0, i] + A[1, i] * A[1, i] + A[2, i] * A[2, i]
+            column += (A[3, i] * A[3, i] + A[4, i] * A[4, i] + A[5, i] * A[5, i]) / (radius * radius)
+            product *= np.sqrt(column)
+        ratios[k] = 0.0
+        if _solve(A, w):  # A becomes U of its LU: |det| is the product of U's diagonal
+            determinant = 1.0
+            for i in range(6):
+                determinant *= A[i, i]
+            ratios[k] = abs(determinant) / radius**3 / product
+            for i in range(6):
+                forces[k, i] = w[i, 0]
+
+
 def masses_and_centres(
     platform_mass_kg: float, platform_com_mm: np.ndarray, payload_kg, payload_com_mm: np.ndarray, batch: tuple
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -121,13 +190,6 @@ def masses_and_centres(
         np.broadcast_arrays(np.full(batch, float(platform_mass_kg)), np.asarray(payload_kg, dtype=float)), axis=-1
     )
     return masses, np.stack([np.asarray(platform_com_mm, dtype=float), np.asarray(payload_com_mm, dtype=float)])
-
-
-def gravity_leg_forces(
-    legs: LegGeometry, R: np.ndarray, t: np.ndarray, masses_kg: np.ndarray, coms_mm: np.ndarray
-) -> np.ndarray:
-    """Leg forces [N] holding masses ``(..., K)`` [kg] at centres ``(K, 3)`` in {D} [mm] at ``(R, t)``."""
-    return leg_forces(legs, R, t, gravity_wrench(R, masses_kg, coms_mm))
 
 
 def leg_force_jacobians(

@@ -34,7 +34,9 @@ def test_elastic_reads_with_its_defaults_and_round_trips():
     np.testing.assert_array_equal(elastic.platform_com_mm, [0.0, 0.0, -50.0])
     np.testing.assert_array_equal(elastic.payload_com_mm, np.zeros(3))
     np.testing.assert_array_equal(elastic.compliance_mm_per_kN, np.zeros(6))
-    assert elastic.compliance_sigma_mm_per_kN == 1.0 and elastic.true_compliance_mm_per_kN is None
+    # the default σ: the compliance at which a sixth of the platform's weight shortens a leg by 2 mm
+    assert elastic.compliance_sigma_mm_per_kN == pytest.approx(2.0 / (60.0 * 9.80665 / 6 / 1000.0), rel=1e-12)
+    assert elastic.true_compliance_mm_per_kN is None
     text = platform_to_toml(platform)
     again = parse_platform(tomllib.loads(text), "again.toml")
     assert platform_to_toml(again) == text

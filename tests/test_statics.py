@@ -36,7 +36,8 @@ def _poses(rng, n=5):
 def test_forces_balance_the_weight_in_both_frames(drive):
     R, t = _poses(np.random.default_rng(1), 20)
     wrench = gravity_wrench(R, MASSES, COMS)
-    forces = gravity_leg_forces(drive, R, t, MASSES, COMS)
+    forces = gravity_leg_forces(drive, R, t, MASSES, COMS)  # compiled
+    np.testing.assert_allclose(forces, leg_forces(drive, R, t, wrench), rtol=0, atol=1e-9)  # numpy
     residual = np.einsum("kij,kj->ki", statics_matrix(drive, R, t), forces) + wrench
     assert np.max(np.abs(residual) / np.max(np.abs(wrench), axis=-1, keepdims=True)) < 1e-12
     # the body-frame form Jᵀ f = −w_D (J the leg-length pose Jacobian, rotation first) gives the same f
@@ -83,3 +84,6 @@ def test_a_singular_pose_is_refused_in_one_line():
     with pytest.raises(SingularStatics, match=r"^pose 2: the statics matrix .* singular[^\n]*$") as caught:
         leg_forces(legs, R, t, gravity_wrench(R, np.array([10.0]), np.zeros((1, 3))))
     assert caught.value.index == 1
+    with pytest.raises(SingularStatics) as compiled:
+        gravity_leg_forces(legs, R, t, np.array([10.0]), np.zeros((1, 3)))
+    assert compiled.value.index == 1 and str(compiled.value).split(" (")[0] == str(caught.value).split(" (")[0]
