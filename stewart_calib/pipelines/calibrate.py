@@ -556,7 +556,9 @@ def run(args: argparse.Namespace) -> int:
             log = io.read_log(args.log, platform, skip_bad_rows=args.skip_bad_rows)
             skipped.add(log.skipped)
             diagnose_log(platform, log.strokes, log.readings, args.log)
-            progress = sys.stderr.isatty() and len(log) >= MIN_LOG_ROWS
+            # isam2 costs milliseconds a sample (a pose instrument's whole session in the smoother: ~15 ms),
+            # so a few hundred samples take seconds: its bar shows whatever the log's length
+            progress = sys.stderr.isatty() and (len(log) >= MIN_LOG_ROWS or args.method == "isam2")
             result = run_calibration(platform, log, args.method, config, bool(trace_path), progress, bool(rerun_path))
             estimate, n_samples, noise_scale = result.estimate, len(log), result.noise_scale
             rejections = Rejections.of(err for _, err in result.rejected)
