@@ -26,6 +26,9 @@ class SampleRejected(CalibError):
     SOLVER = "solver failed"
     NO_POSE = "measurement fixes no pose"
 
+    #: the refused sample's time [s], set on a late rejection (estimators.base.take_late_rejections)
+    t_s: float
+
     def __init__(self, message: str, reason: str):
         super().__init__(message)
         self.reason = reason

@@ -78,7 +78,7 @@ class Estimate:
     def block_values(self, key: str) -> np.ndarray | None:
         """Nominal + error of block ``key`` [code units], or None when the estimate has no such block."""
         block, columns = self.layout.block(key), self.layout.slice(key)
-        if block is None:
+        if block is None or columns is None:  # both or neither
             return None
         start = columns.start - N_PARAMS
         return block.nominal + self.block_error[start : start + block.size]

@@ -61,7 +61,9 @@ def residual_covariance(platform: Platform, R: np.ndarray, t: np.ndarray, noise:
     magnitude (docs/measured-facts.md: an EKF with ``σ² I`` alone diverged).
     """
     J_x = kin.leg_pose_jacobian(platform.drive, R, t)
-    sigma_x = kin.pose_covariance_from_legs(platform.tracker, R, t, noise.reading_sigma_mm)
+    sigma_x = kin.pose_covariance_from_legs(
+        platform.required_tracker("the leg covariance"), R, t, noise.reading_sigma_mm
+    )
     return J_x @ sigma_x @ np.swapaxes(J_x, -1, -2) + noise.stroke_sigma_mm**2 * np.eye(6)
 
 
@@ -82,7 +84,7 @@ def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseCon
         raise CalibError("noise: reading_sigma_mm and stroke_sigma_mm are both 0: expected a positive noise level")
     poses = np.asarray(poses, dtype=float)
     R, t = kin.pose_to_rt(poses.reshape(-1, 6))
-    drive, tracker = platform.drive, platform.tracker
+    drive, tracker = platform.drive, platform.required_tracker("the whitened leg Jacobian")
     rows = np.empty((len(R), 6, N_PARAMS))
     _kernels.whitened_leg_rows(
         drive.base_joints,
@@ -448,7 +450,7 @@ def tracker_poses(platform: Platform, log) -> np.ndarray:
     """Tracker FK poses of a log's readings, ``(n, 6)`` [mm, rad]; samples whose FK fails are left out."""
     # The desired pose is within a few mm of the real one: a good Newton start when present.
     guess = None if log.desired_poses is None else kin.pose_to_rt(log.desired_poses)
-    fk = kin.forward_kinematics(platform.tracker, log.readings, guess, strict=False)
+    fk = kin.forward_kinematics(platform.required_tracker("tracker poses"), log.readings, guess, strict=False)
     return fk.pose6[fk.converged]
 
 

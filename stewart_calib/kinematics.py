@@ -189,7 +189,7 @@ def forward_kinematics_per_pose(
     """
     strokes = np.ascontiguousarray(strokes, dtype=float)
     batch = strokes.shape[:-1]
-    geometry = []
+    geometry: list[np.ndarray] = []
     for name, value, shape in (
         ("base_joints", base_joints, (6, 3)),
         ("platform_joints", platform_joints, (6, 3)),
@@ -203,7 +203,8 @@ def forward_kinematics_per_pose(
         view = value.reshape((-1,) + shape)  # a new view: read-only like LegGeometry's, caller's array untouched
         view.setflags(write=False)
         geometry.append(view)
-    return _newton_fk(*geometry, strokes, guess, tol_mm, max_iterations, strict)
+    base, plat, lengths = geometry
+    return _newton_fk(base, plat, lengths, strokes, guess, tol_mm, max_iterations, strict)
 
 
 def _newton_fk(
@@ -213,9 +214,9 @@ def _newton_fk(
     (G, 6)`` with ``G`` 1 or the flat batch size, ``strokes`` C ``(..., 6)``."""
     batch = strokes.shape[:-1]
     flat = strokes.reshape(-1, 6)
-    R, t = np.empty(batch + (3, 3)), np.empty(batch + (3,))  # fresh C arrays: the kernel overwrites them
-    R[...], t[...] = guess
-    R, t = R.reshape(-1, 3, 3), t.reshape(-1, 3)
+    R_start, t_start = np.empty(batch + (3, 3)), np.empty(batch + (3,))  # fresh C arrays: the kernel overwrites them
+    R_start[...], t_start[...] = guess
+    R, t = R_start.reshape(-1, 3, 3), t_start.reshape(-1, 3)
     iterations = np.empty(len(flat), dtype=np.int64)
     residual = np.empty(len(flat))
     _kernels.fk_newton(base, plat, lengths, flat, R, t, float(tol_mm), int(max_iterations), iterations, residual)

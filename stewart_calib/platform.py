@@ -253,6 +253,28 @@ class Platform:
     def with_drive(self, drive: LegGeometry) -> Platform:
         return replace(self, drive=drive)
 
+    def required_tracker(self, what: str) -> LegGeometry:
+        """:attr:`tracker` for ``what``, which needs the in-situ tracker's legs.
+
+        Raises:
+            CalibError: the platform file has no ``[tracker]``.
+        """
+        if self.tracker is None:
+            raise CalibError(
+                f"{self.source}: key 'tracker': expected a [tracker] table; {what} needs the tracker's legs"
+            )
+        return self.tracker
+
+    def required_workspace(self, what: str) -> Workspace:
+        """:attr:`workspace` for ``what``, which draws or places poses in it.
+
+        Raises:
+            CalibError: the platform file has no ``[workspace]``.
+        """
+        if self.workspace is None:
+            raise CalibError(f"{self.source}: key 'workspace': expected a [workspace] table; {what} places poses in it")
+        return self.workspace
+
 
 #: the keys a platform file may hold, per table ("" = top level). A misspelt optional key
 #: would otherwise be ignored without a word (a stroke range silently not enforced).
@@ -445,7 +467,7 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
         elastic,
     )
     if workspace is not None:
-        _check_home_reachable(platform, source)
+        _check_home_reachable(platform, workspace, source)
     return platform
 
 
@@ -603,8 +625,8 @@ def _visibility(table: dict, n_targets: int, source: str) -> tuple[float | None,
     return float(cone), axes
 
 
-def _check_home_reachable(platform: Platform, source: str) -> None:
-    R, t = pose_to_rt(platform.workspace.home)
+def _check_home_reachable(platform: Platform, workspace: Workspace, source: str) -> None:
+    R, t = pose_to_rt(workspace.home)
     for legs, bounds, what in (
         (platform.drive, platform.stroke_range, "drive strokes"),
         (platform.tracker, platform.reading_range, "tracker readings"),

@@ -54,7 +54,7 @@ def rms_leg_residual_mm(platform: Platform, error: np.ndarray, strokes: np.ndarr
     # compiled pass whose FK starts from the sample before (track checks every --every rows,
     # ~3.5x the cold batch FK measured).
     residuals, converged = kin.tracker_reading_residuals(
-        platform.drive.perturbed(error), strokes, [platform.tracker], [readings]
+        platform.drive.perturbed(error), strokes, [platform.required_tracker("the plausibility check")], [readings]
     )
     if not converged.any():
         return float("nan")

@@ -90,16 +90,19 @@ class Log:
         """The samples of ``logs`` (at least one, all with the same optional fields) one after the other."""
         first = logs[0]
 
-        def joined(name):
-            return None if getattr(first, name) is None else np.concatenate([getattr(log, name) for log in logs])
+        def joined(name: str) -> np.ndarray:
+            return np.concatenate([getattr(log, name) for log in logs])
+
+        def joined_optional(name: str) -> np.ndarray | None:
+            return None if getattr(first, name) is None else joined(name)
 
         return cls(
             joined("t_s"),
             joined("strokes"),
             joined("readings"),
-            joined("desired_poses"),
-            None if first.stages is None else [s for log in logs for s in log.stages],
-            joined("load_kg"),
+            joined_optional("desired_poses"),
+            None if first.stages is None else [s for log in logs for s in log.stages or ()],
+            joined_optional("load_kg"),
             [row for log in logs for row in log.skipped],
         )
 
@@ -108,9 +111,9 @@ class Log:
         pick = lambda a: None if a is None else a[mask_or_index]  # noqa: E731
         stages = None if self.stages is None else list(np.asarray(self.stages, dtype=object)[mask_or_index])
         return Log(
-            pick(self.t_s),
-            pick(self.strokes),
-            pick(self.readings),
+            self.t_s[mask_or_index],
+            self.strokes[mask_or_index],
+            self.readings[mask_or_index],
             pick(self.desired_poses),
             stages,
             pick(self.load_kg),

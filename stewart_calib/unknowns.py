@@ -56,7 +56,7 @@ class UnknownBlock:
     names: tuple[str, ...]
     nominal: np.ndarray
     prior_sigma: np.ndarray
-    file_scale: np.ndarray = field(default=None)  # type: ignore[assignment]
+    file_scale: np.ndarray = field(default=None)  # type: ignore[arg-type]  # None: ones, set in __post_init__
     gauge: tuple[str, ...] = ()
     random_walk: bool = False
     holds_gauge: bool = False
@@ -148,8 +148,8 @@ class UnknownLayout:
         shared = {gauge for block in self.blocks for gauge in block.gauge}
         holder = next((block for block in self.blocks if block.holds_gauge), None)
         start, joints = 0, drive.as_vector().reshape(N_LEGS, N_PARAMS_PER_LEG)
-        if holder is not None:
-            start, joints = self.slice(holder.key).start, holder.nominal.reshape(N_LEGS, N_PARAMS_PER_LEG)
+        if holder is not None and (columns := self.slice(holder.key)) is not None:
+            start, joints = columns.start, holder.nominal.reshape(N_LEGS, N_PARAMS_PER_LEG)
         rows = []
         for gauge, offset in (("base", 0), ("platform", 3)):
             if gauge in shared:

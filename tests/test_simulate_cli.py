@@ -79,6 +79,19 @@ def test_bad_key_exits_with_one_line_naming_file_and_key(tmp_path, capsys):
     assert not (tmp_path / "out" / "log.csv").exists()
 
 
+def test_a_platform_without_a_workspace_is_refused_in_one_line(tmp_path, capsys):
+    """The simulated poses are drawn in the platform's [workspace]: without one, simulate ended
+    in an AttributeError traceback."""
+    nominal = (QUICK.parents[1] / "platforms" / "nim-stewart.toml").read_text()
+    (tmp_path / "bare.toml").write_text(nominal[: nominal.index("[workspace]")])
+    experiment = tmp_path / "experiment.toml"
+    experiment.write_text(QUICK.read_text().replace('platform = "nim-stewart"', 'platform = "bare.toml"'))
+    assert main(["simulate", "--experiment", str(experiment), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "bare.toml: key 'workspace': expected a [workspace] table" in err
+    assert not (tmp_path / "out").exists()
+
+
 # ----------------------------------------------------------------------------- --controller frozen
 
 

@@ -29,6 +29,7 @@ from stewart_calib.viz.recording import (
     parameter_path,
     send_blueprint,
 )
+from tests.instrument_data import hobby
 from tests.readback import read_blueprint_names, read_entity_rows, read_scalars, read_static
 from tests.synthetic import nim_stewart, random_error, random_poses
 
@@ -222,6 +223,22 @@ def test_names_and_shapes_are_checked(tmp_path):
             log_parameters(rec, "ekf", np.zeros((3, 42)), [0.0, 0.1])
         with pytest.raises(ValueError, match="samples"):
             log_parameters(rec, "ekf", np.zeros((2, 42)), [0.0, 0.1], samples=[0])
+
+
+def test_a_platform_without_a_tracker_draws_the_drive_alone(tmp_path):
+    """calibrate --rerun on a platform measured by another instrument (no [tracker], like the
+    hobby hexapod's) drew tracker legs from None: an AttributeError and no recording."""
+    platform = hobby()
+    assert platform.tracker is None
+    R, t = kin.pose_to_rt(np.tile(platform.workspace.home, (3, 1)))
+    path = tmp_path / "no-tracker.rrd"
+    with open_recording(path) as rec:
+        log_platform_geometry(rec, platform)
+        log_platform_pose(rec, platform, R, t, np.arange(3) * DT_S, desired=(R, t))
+    static, rows = read_entity_rows(path, static=True), read_entity_rows(path)
+    assert "/world/base/drive_joints" in static and "/world/platform_desired/outline" in static
+    assert not [p for p in (*static, *rows) if "tracker" in p]
+    assert rows["/world/legs/drive"] == 3
 
 
 def test_batches_append_and_the_global_stream_is_untouched(tmp_path):

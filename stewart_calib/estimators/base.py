@@ -160,7 +160,8 @@ def update_each(
         (:func:`take_late_rejections`, ``err.t_s`` their time) each with the index of the sample
         after which they were.
     """
-    refused, late = [], []
+    refused: Refusals = []
+    late: Refusals = []
     for j, sample in enumerate(samples):
         try:
             estimator.update(sample)
@@ -189,8 +190,8 @@ def feed(estimator: Estimator, samples: Iterable[Sample]) -> list[tuple[int, Sam
             estimator.update(sample)
         except SampleRejected as err:
             rejected.append((k, err))
-        for err in take_late_rejections(estimator):
-            rejected.append((late_index(times, err.t_s), err))
+        for late in take_late_rejections(estimator):
+            rejected.append((late_index(times, late.t_s), late))
     return rejected
 
 
@@ -205,11 +206,11 @@ class BufferedFit:
 
     rejected: list[tuple[int, SampleRejected]]
 
-    def current_error(self) -> np.ndarray:
+    def current_error(self: BatchEstimator) -> np.ndarray:
         """δM [mm] of a solve over every buffered sample (as ``estimate``)."""
         return self.estimate().error
 
-    def fit(self, samples: Iterable[Sample]) -> Estimate:
+    def fit(self: BatchEstimator, samples: Iterable[Sample]) -> Estimate:
         """Buffer every usable sample, listing the others in ``rejected``, and solve."""
         self.rejected.extend(feed(self, samples))
         return self.estimate()

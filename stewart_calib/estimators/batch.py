@@ -27,7 +27,9 @@ Robust by construction, with nothing for a user to tune:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from types import ModuleType
 
 import numpy as np
 
@@ -68,8 +70,8 @@ class BatchProblem:
     nominal_stroke_scale: np.ndarray
     strokes: np.ndarray
     measured: np.ndarray
-    model: object
-    register: object
+    model: ModuleType
+    register: Callable
     sigmas: np.ndarray
     channels: np.ndarray
     channel_names: tuple[str, ...]
@@ -172,8 +174,8 @@ def fit(
     weights = np.ones(len(problem.strokes))
     evaluations = 0
     for _ in range(MAX_ROUNDS):
-        state, used = _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_scale, tolerance_mm)
-        evaluations += used
+        state, evaluated = _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_scale, tolerance_mm)
+        evaluations += evaluated
         e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0]
         n_unknowns = basis.shape[1] + 6 * fit_scale + state.unknowns.size
         new_sigmas = _channel_sigmas(problem, e, weights, sigmas, n_unknowns) if estimate_noise else sigmas

@@ -46,6 +46,7 @@ from ..config import EstimatorConfig
 from ..errors import SampleRejected
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta, needs_registration
+from ..instruments.tracker import as_tracker
 from ..platform import N_PARAMS, Platform
 from ..samples import Log, Sample
 from ..unknowns import gauge_conditioned
@@ -124,12 +125,13 @@ class LegEKF:
         count = len(block)
         errors = np.zeros((0, N_PARAMS)) if errors_out is None else errors_out
         refused, late = [], []
-        prepared = plain = None
+        rows: tuple[np.ndarray, np.ndarray] | None = None
         j = 0
         while j < count:
             if self._compiled and self.robust.started:
-                if prepared is None:
-                    prepared, plain = self._prepared_rows(block)
+                if rows is None:
+                    rows = self._prepared_rows(block)
+                prepared, plain = rows
                 j += self.robust.update_block(block.t_s[j:], prepared[j:], plain[j:], errors[j:])
                 if j == count:
                     break
@@ -143,7 +145,8 @@ class LegEKF:
         """``(prepared rows [q | z], the rows check_sample surely passes)`` of a tracker's block; the
         check is stricter than check_sample (any doubt: the row goes through :meth:`update`)."""
         lo, hi = self._stroke_bounds
-        r_lo, r_hi = self.model.reading_range if self.model.reading_range is not None else (-np.inf, np.inf)
+        reading_range = as_tracker(self.model).reading_range
+        r_lo, r_hi = reading_range if reading_range is not None else (-np.inf, np.inf)
         strokes, readings = np.asarray(block.strokes, dtype=float), np.asarray(block.readings, dtype=float)
         with np.errstate(invalid="ignore"):
             plain = (

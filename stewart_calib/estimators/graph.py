@@ -41,6 +41,7 @@ from ..errors import SampleRejected
 from ..estimate import Estimate
 from ..factors import diagonal_noise, drive_leg, gauge, instrument, instrument_pose, random_walk
 from ..instruments import instrument_model, instrument_theta
+from ..instruments.tracker import as_tracker
 from ..platform import N_LEGS, N_PARAMS, Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout
@@ -230,7 +231,7 @@ class GraphBuilder:
             else (self.initial if state.samples == 0 and self._instrument is not None else None)
         )
         if self._tracker_fk:
-            observed, (R, t) = None, kin.solve_fk(self.model.legs, z, state.last_pose, "tracker")
+            observed, (R, t) = None, kin.solve_fk(as_tracker(self.model).legs, z, state.last_pose, "tracker")
         else:
             theta = instrument_theta(
                 self.model, None if guess is None or self._instrument is None else guess[self._instrument]
@@ -258,7 +259,7 @@ class GraphBuilder:
             sigma = random_walk.sigma_mm(
                 self.noise.random_walk_mm_per_sqrt_s, sample.t_s - state.window_start_s, self.graph.chain_sigma_floor_mm
             )
-            values.insert(params_key(w + 1), guess)
+            values.insert(params_key(w + 1), guess)  # type: ignore[arg-type]  # set: a new window is `wanted`
             sigmas = np.where(self._walks, sigma, self.graph.chain_sigma_floor_mm)
             factors.add(random_walk.factor(params_key(w), params_key(w + 1), sigmas))
             self._new_variable(factors, params_key(w + 1))
@@ -269,11 +270,11 @@ class GraphBuilder:
             noise = robust_noise(gtsam.noiseModel.Gaussian.Covariance(observed.covariance), *self._robust)
             factors.add(instrument_pose.factor(x, pose, noise))
         else:
-            unknowns = () if self._instrument is None else (p, self._instrument, self.layout.size)
+            block, size = (None, 0) if self._instrument is None else (self._instrument, self.layout.size)
             for channels, noise, legs in self._factored_groups(z):
-                factors.add(instrument.factor(self.model, x, z, channels, noise, *unknowns, legs=legs))
-        for legs, noise in self._drive_legs:
-            factors.add(drive_leg.factor(x, p, legs, strokes, noise))
+                factors.add(instrument.factor(self.model, x, z, channels, noise, p, block, size, legs=legs))
+        for drive_legs, noise in self._drive_legs:
+            factors.add(drive_leg.factor(x, p, drive_legs, strokes, noise))
 
         # The current parameter key is re-stamped every update so the smoother never
         # marginalises the variable new factors are about to touch (docs/measured-facts.md).

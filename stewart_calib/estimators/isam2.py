@@ -84,6 +84,10 @@ class ISAM2Estimator:
     """
 
     name = "isam2"
+    # made anew by _rebuild
+    _state: ChainState
+    _snapshots: list[_Snapshot]
+    _replay: list[Sample]
 
     def __init__(self, platform: Platform, config: EstimatorConfig):
         self._builder = GraphBuilder(platform, config, chain=True)
@@ -157,7 +161,8 @@ class ISAM2Estimator:
         start-up, it takes runs of samples in compiled calls (:meth:`LegEKF.update_block
         <stewart_calib.estimators.ekf.LegEKF.update_block>`) and the graph follows it sample by
         sample (:meth:`_front_run`); anything else goes through :meth:`update`."""
-        refused, late = [], []
+        refused: Refusals = []
+        late: Refusals = []
         j = 0
         while j < len(block):
             if not self._held.active and not self._pending and self._front.robust.started:
@@ -264,7 +269,7 @@ class ISAM2Estimator:
         if not taken:
             return 0, refused
         try:
-            self._smoother.update(factors, values, timestamps)
+            self._smoother.update(factors, values, timestamps)  # type: ignore[arg-type]  # gtsam stubs: Mapping[SupportsInt, …] is invariant in its key
         except RuntimeError:  # half-updated: rebuilt, then sample by sample to find the one
             self._rebuild(self._first_snapshot(), self._replay)
             for k, sample in enumerate(samples[:taken]):
@@ -283,8 +288,10 @@ class ISAM2Estimator:
     def _take_back_from_front(self) -> None:
         """The front end as if the last sample fed to it never came: its anchor state, then the
         samples fed since but that one (the front end is deterministic: the same state)."""
-        replay = self._front_since[:-1]
-        self._front.import_state(self._front_anchor)
+        replay, anchor = self._front_since[:-1], self._front_anchor
+        if anchor is None:  # dropped by update_block, nothing fed since
+            return
+        self._front.import_state(anchor)
         self._front_since = []
         for sample in replay:
             self._front_since.append(sample)
@@ -344,7 +351,7 @@ class ISAM2Estimator:
         """The update itself; the Python-side state changes only once the smoother has succeeded."""
         snapshot = self._window_snapshot(sample.t_s)
         epoch = self._builder.epoch(self._state, sample, self._current_params)
-        self._smoother.update(epoch.factors, epoch.values, epoch.timestamps)
+        self._smoother.update(epoch.factors, epoch.values, epoch.timestamps)  # type: ignore[arg-type]  # gtsam stubs: Mapping[SupportsInt, …] is invariant in its key
         self._state = epoch.state
         if snapshot is not None:
             self._snapshots.append(snapshot)
@@ -450,7 +457,7 @@ class ISAM2Estimator:
         """The chain state, the snapshot the buffer starts at (none before the first trim) and
         the buffered samples, as arrays."""
         samples = self._replay
-        state = {
+        state: dict[str, object] = {
             "chain": _chain_to_dict(self._state),
             "replay": {
                 "t_s": np.array([s.t_s for s in samples], dtype=float),
@@ -548,7 +555,7 @@ class _Snapshot:
 
 
 def _chain_to_dict(state: ChainState) -> dict:
-    out = {
+    out: dict[str, np.ndarray | np.number] = {
         "samples": np.int64(state.samples),
         "window": np.int64(state.window),
         "window_start_s": np.float64(state.window_start_s),

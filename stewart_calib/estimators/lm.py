@@ -158,7 +158,7 @@ def _marginal_covariance(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values
     if values.dim() > DENSE_MARGINAL_MAX_COLUMNS:
         raise CalibError(f"lm: the covariance failed: {failure}")
     A, _ = linear.jacobian(ordering)
-    R = np.linalg.qr(A, mode="r")
+    R: np.ndarray = np.linalg.qr(A, mode="r")  # type: ignore[assignment]  # numpy's stubs: QRResult; "r" gives R alone
     R_pp = R[-size:, -size:]
     try:
         R_inv = np.linalg.inv(R_pp)

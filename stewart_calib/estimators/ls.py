@@ -19,6 +19,7 @@ frame and target(s) together, the 12 gauge directions fixed and stated in the re
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -30,6 +31,9 @@ from ..platform import N_PARAMS, LegGeometry, Platform
 from ..samples import Sample
 from .base import BufferedFit
 from .measurement import WarmPose, check_sample, drive_only_model, measured_pose, pose_difference
+
+if TYPE_CHECKING:
+    from ..instruments.external import ExternalModel
 
 #: prior σ the stroke-scale block declares (10 %); ls itself takes no prior
 STROKE_SCALE_PRIOR = 0.1
@@ -117,7 +121,7 @@ class LeastSquares(BufferedFit):
     def __init__(self, platform: Platform, config: EstimatorConfig):
         self.platform = platform
         self.config = config.ls
-        self._external = None
+        self._external: ExternalModel | None = None
         if platform.instrument.kind != "tracker":
             from ..instruments.external import model_for
 
@@ -127,7 +131,7 @@ class LeastSquares(BufferedFit):
             self._pose = WarmPose(self.model)
         self._strokes: list[np.ndarray] = []
         self._R_v: list[np.ndarray] = []
-        self._t_v: list[np.ndarray] = []
+        self._t_v: list[np.ndarray | float] = []  # t_v, or with an outside instrument the sample times
         self._t_s = float("nan")
         self.singular_values: np.ndarray | None = None
         self.rejected: list[tuple[int, SampleRejected]] = []
@@ -155,18 +159,17 @@ class LeastSquares(BufferedFit):
         if not self._strokes:
             return Estimate(np.zeros(N_PARAMS), None, self.name)
         if self._external is not None:
-            return self._estimate_external()
+            return self._estimate_external(self._external)
         solution = gauss_newton(
             self.platform.drive, np.array(self._strokes), np.array(self._R_v), np.array(self._t_v), self.config
         )
         self.singular_values = solution.singular_values
         return Estimate(solution.error, solution.covariance, self.name, len(self._strokes), self._t_s)
 
-    def _estimate_external(self) -> Estimate:
+    def _estimate_external(self, model: ExternalModel) -> Estimate:
         from ..instruments.gauge import GAUGE_STATEMENT
         from .batch import BatchProblem, fit
 
-        model = self._external
         problem = BatchProblem(
             nominal=self.platform.drive,
             nominal_stroke_scale=self.platform.stroke_scale,

@@ -23,7 +23,15 @@ from .. import _kernels
 from .. import kinematics as kin
 from ..config import EstimatorConfig, NoiseConfig
 from ..errors import CalibError, SampleRejected
-from ..instruments import InstrumentModel, PoseObservation, instrument_model, needs_registration, registered
+from ..instruments import (
+    InstrumentModel,
+    PoseObservation,
+    instrument_model,
+    instrument_theta,
+    needs_registration,
+    registered,
+)
+from ..instruments.tracker import as_tracker
 from ..platform import LegGeometry, Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout, stroke_scale_block
@@ -139,14 +147,21 @@ class WarmPose(_WarmStart):
         :func:`~stewart_calib.kinematics.leg_ekf_observation` at that pose in one compiled call,
         ``(r, H = ∂r/∂M, R_meas)`` (:func:`~stewart_calib.kinematics.tracker_leg_observation`)."""
         R, t, r, H, R_meas = kin.tracker_leg_observation(
-            drive, delta, self.model.legs, z, self._guess, strokes, float(self.model.channel_sigma[0]), stroke_sigma_mm
+            drive,
+            delta,
+            as_tracker(self.model).legs,
+            z,
+            self._guess,
+            strokes,
+            float(self.model.channel_sigma[0]),
+            stroke_sigma_mm,
         )
         self._guess = (R, t)
         return r, H, R_meas
 
     def _tracker_arguments(self, drive: LegGeometry, stroke_factor: np.ndarray, stroke_sigma_mm: float) -> tuple:
         """The compiled passes' fixed arguments: both leg sets, the stroke factor, the variances, Newton's limits."""
-        legs = self.model.legs
+        legs = as_tracker(self.model).legs
         return (
             (drive.base_joints, drive.platform_joints, drive.initial_lengths),
             (legs.base_joints, legs.platform_joints, legs.initial_lengths),
@@ -249,15 +264,15 @@ def registered_start(
         CalibError: the samples cannot register the instrument (the reason says why).
     """
     start = np.zeros(layout.size)
-    columns = layout.slice("instrument")
-    if columns is None or not needs_registration(platform):
+    columns, block = layout.slice("instrument"), layout.block("instrument")
+    if columns is None or block is None or not needs_registration(platform):
         return start
     width = len(model.columns)
     usable = [s for s in samples if np.shape(s.strokes) == (6,) and np.shape(s.readings) == (width,)]
     strokes = np.array([s.strokes for s in usable], dtype=float).reshape(-1, 6)
     readings = np.array([s.readings for s in usable], dtype=float).reshape(-1, width)
-    theta = instrument_model(registered(platform, strokes, readings), noise).unknowns.nominal
-    start[columns] = theta - layout.block("instrument").nominal
+    theta = instrument_theta(instrument_model(registered(platform, strokes, readings), noise), None)
+    start[columns] = theta - block.nominal
     return start
 
 

@@ -113,7 +113,7 @@ class PaperEKF:
         J_k = kin.error_jacobian(drive, R_m, t_m) * self._unit_scale[:, None]
         x_before = self.filter.x.copy()
         self.filter.update(J_k, Y, self.R, t_s)
-        if self.config.adaptive:
+        if self.config.adaptive and self.filter.S is not None:  # S: set by every update
             self._adapt(Y, self.filter.S - self.R, self.filter.x - x_before)
 
     def _adapt(self, innovation: np.ndarray, HPHt: np.ndarray, correction: np.ndarray) -> None:

@@ -466,7 +466,7 @@ class RobustFilter:
             solved = self._pass(~outliers, scale2, linearised=linearised)
         if not self._robust.adapt_noise:
             scale2 = self.noise_scale2
-        if self._relinearise:  # at the scale it will carry on with
+        if linearised is not None:  # relinearising (self._relinearise), at the scale it will carry on with
             solved = self._gauss_newton(~outliers, scale2, linearised)
         elif scale2 != self.noise_scale2:  # the state's P at the scale it will carry on with
             solved = self._pass(~outliers, scale2)

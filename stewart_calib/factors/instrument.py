@@ -26,6 +26,7 @@ import gtsam
 import numpy as np
 
 from ..instruments.base import InstrumentModel
+from ..instruments.tracker import TrackerModel
 from ._kernels import known_leg_rows
 
 _KNOWN = np.zeros(0)  # θ of a model without unknowns
@@ -43,7 +44,8 @@ def _error(
     H,
 ):
     pose = values.atPose3(keys[0]).matrix()  # one conversion, not rotation() and translation()
-    theta = _KNOWN if block is None else model.unknowns.nominal + values.atVector(keys[1])[block]
+    unknowns = model.unknowns
+    theta = _KNOWN if block is None or unknowns is None else unknowns.nominal + values.atVector(keys[1])[block]
     res = model.residual(pose[:3, :3], pose[:3, 3], theta, z, channels)
     if H is not None:
         H[0] = res.J_pose
@@ -66,7 +68,7 @@ def _known_legs_error(
 def known_legs(model: InstrumentModel, channels: np.ndarray) -> np.ndarray | None:
     """``(k, 7)`` rows ``[z_i | h_i | ls_i]`` of the rulers ``channels`` of a tracker of known
     geometry, what its factors share across samples; None for any other model."""
-    if model.kind != "tracker" or model.unknowns is not None:
+    if not isinstance(model, TrackerModel) or model.unknowns is not None:
         return None
     return np.ascontiguousarray(model.legs.params[np.asarray(channels, dtype=np.int64)], dtype=float)
 
@@ -94,5 +96,5 @@ def factor(
     legs = known_legs(model, channels) if legs is None else legs
     if legs is not None:
         return gtsam.CustomFactor(noise, [pose_key], partial(_known_legs_error, legs, z[channels], pose_key))
-    keys = [pose_key] if block is None else [pose_key, params_key]
+    keys = [pose_key] if block is None or params_key is None else [pose_key, params_key]
     return gtsam.CustomFactor(noise, keys, partial(_error, model, z, channels, block, size, tuple(keys)))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from types import ModuleType
 
 import numpy as np
 
@@ -41,7 +42,7 @@ class ExternalModel:
     """
 
     platform: Platform
-    module: object
+    module: ModuleType
     sigmas: np.ndarray
     channels: np.ndarray
     channel_names: tuple[str, ...]

@@ -176,7 +176,7 @@ def refit_frame(model, unknowns, measured: np.ndarray, R_X: np.ndarray, t_X: np.
         R_P, t_P = lie.compose(R_X, t_X, unknowns.R_target, unknowns.t_target)  # X G = F M
         R_F = lie.project_to_rotation(np.einsum("kij,klj->il", R_P, R_M))
         t_F = np.mean(t_P - np.einsum("ij,kj->ki", R_F, t_M), axis=0)
-        current = PoseUnknowns(R_F, t_F, unknowns.R_target, unknowns.t_target)
+        current: PoseUnknowns | PointsUnknowns = PoseUnknowns(R_F, t_F, unknowns.R_target, unknowns.t_target)
     else:
         m = np.asarray(measured, dtype=float).reshape(n, -1, 3)
         _require_distinct(m.reshape(n, -1), np.full(m.shape[1] * 3, sigmas[0]), "points instrument")

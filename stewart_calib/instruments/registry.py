@@ -23,7 +23,12 @@ from .external import model_for, registered_platform
 
 def _tracker(platform: Platform, noise: NoiseConfig) -> InstrumentModel:
     geometry_sigma_mm = platform.tracker_geometry_sigma_mm or noise.tracker_geometry_sigma_mm
-    return tracker.TrackerModel(platform.tracker, noise.reading_sigma_mm, platform.reading_range, geometry_sigma_mm)
+    return tracker.TrackerModel(
+        platform.required_tracker("the tracker instrument"),
+        noise.reading_sigma_mm,
+        platform.reading_range,
+        geometry_sigma_mm,
+    )
 
 
 def _pose(platform: Platform, noise: NoiseConfig) -> InstrumentModel:

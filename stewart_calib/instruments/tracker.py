@@ -27,7 +27,7 @@ from .. import kinematics as kin
 from ..errors import SampleRejected
 from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
 from ..unknowns import UnknownBlock
-from .base import PoseObservation, Residual
+from .base import InstrumentModel, PoseObservation, Residual
 
 #: the log columns of the six readings s_i [mm] (spec §3).
 TRACKER_COLUMNS = tuple(f"s{i}_mm" for i in range(1, N_LEGS + 1))
@@ -136,3 +136,14 @@ class TrackerModel:
             rulers = self.residual(R, t, theta, z, np.arange(N_LEGS))
             J_theta = -np.linalg.solve(rulers.J_pose, rulers.J_instrument)
         return PoseObservation(R, t, covariance, J_theta)
+
+
+def as_tracker(model: InstrumentModel) -> TrackerModel:
+    """``model``, for the code that runs only for the in-situ tracker (its legs, its reading range).
+
+    Raises:
+        TypeError: ``model`` is another instrument's.
+    """
+    if not isinstance(model, TrackerModel):
+        raise TypeError(f"expected the tracker's model, got the {model.kind} instrument's")
+    return model

@@ -43,7 +43,7 @@ def view_errors(result: SimulationResult, platform: Platform) -> dict[str, tuple
     """Per view, per sample ``(position error [mm], orientation error [deg])`` against the desired pose."""
     R_d, t_d = kin.pose_to_rt(result.desired_poses)
     R_a, t_a = kin.pose_to_rt(result.actual_poses)
-    seen = kin.forward_kinematics(platform.tracker, result.log.readings, guess=(R_d, t_d))
+    seen = kin.forward_kinematics(platform.required_tracker("the tracker view"), result.log.readings, guess=(R_d, t_d))
     return {
         "tracker": kin.pose_error(R_d, t_d, seen.R, seen.t),
         "truth": kin.pose_error(R_d, t_d, R_a, t_a),
@@ -55,7 +55,9 @@ def tracker_own_error(result: SimulationResult, platform: Platform) -> dict[str,
     ``{position_mm, orientation_deg}`` — invisible in the tracker view, a floor under the truth view."""
     ends = held_pose_ends(result)
     R_a, t_a = kin.pose_to_rt(result.actual_poses[ends])
-    seen = kin.forward_kinematics(platform.tracker, result.log.readings[ends], guess=(R_a, t_a))
+    seen = kin.forward_kinematics(
+        platform.required_tracker("the tracker's own error"), result.log.readings[ends], guess=(R_a, t_a)
+    )
     position, orientation = kin.pose_error(R_a, t_a, seen.R, seen.t)
     return {"position_mm": float(position.mean()), "orientation_deg": float(orientation.mean())}
 

@@ -139,7 +139,7 @@ class Reproduction:
     def true_no_load_error(self) -> np.ndarray:
         """δM a perfect no-load calibration would find: true drive at home, no payload, minus nominal [mm]."""
         robot = self.runs[NOMINAL].result.robot
-        drive = robot.drive_at(self.platform.workspace.home, 0.0)
+        drive = robot.drive_at(self.platform.required_workspace("the no-load calibration").home, 0.0)
         return drive.as_vector() - self.platform.drive.as_vector()
 
 

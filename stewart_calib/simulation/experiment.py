@@ -330,12 +330,11 @@ def _missing(table: _Table, key: str, expected: str):
 
 
 def _platform(value: str, experiment_path: Path, table: _Table) -> Platform:
-    candidate = experiment_path.parent / value
-    if candidate.is_file():
-        return load_platform(candidate)
-    packaged = CONFIGS / "platforms" / f"{value}.toml"
-    if packaged.is_file():
-        return load_platform(packaged)
+    for candidate in (experiment_path.parent / value, CONFIGS / "platforms" / f"{value}.toml"):
+        if candidate.is_file():
+            platform = load_platform(candidate)
+            platform.required_workspace("the simulation")  # refused here, before any output
+            return platform
     raise table.refuse("platform", f"a platform file relative to the experiment or a packaged name, got {value!r}")
 
 
@@ -381,7 +380,11 @@ def schedule(experiment: Experiment, rng: np.random.Generator) -> Schedule:
         for kind, count in (("calibration", e.poses.calibration), ("validation", e.poses.validation))
     }
     sets["circle"] = circle_poses(
-        e.platform.workspace.home, e.circle.radius_mm, e.circle.plane, e.circle.points, e.circle.centre_offset_mm
+        e.platform.required_workspace("the circle").home,
+        e.circle.radius_mm,
+        e.circle.plane,
+        e.circle.points,
+        e.circle.centre_offset_mm,
     )
     hold = {
         "calibration": e.poses.samples_per_pose,

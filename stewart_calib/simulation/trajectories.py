@@ -33,7 +33,7 @@ def random_static_poses(
 ) -> np.ndarray:
     """``(n, 6)`` poses uniform in ``fraction`` of the workspace box about home (paper §4.1:
     ±200 mm, ±20°), keeping only poses that :func:`in_range` accepts (rejection sampling)."""
-    ws = platform.workspace
+    ws = platform.required_workspace("random static poses")
     half = fraction * np.r_[[ws.translation_limit] * 3, [ws.rotation_limit] * 3]
     poses = np.empty((0, 6))
     while len(poses) < n:

@@ -144,7 +144,7 @@ def ring_platform(
             like.drive.platform_joints[:, 2],
         ]
     )
-    home_t = like.workspace.home[:3]
+    home_t = like.required_workspace("a ring platform").home[:3]
     lengths = np.linalg.norm(home_t + plat - base, axis=1)  # home at level orientation: R = I
     drive = LegGeometry(base, plat, lengths)
     return Platform(

@@ -104,7 +104,9 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
     R, t = kin.pose_to_rt(poses)
     strokes = _leg_lengths(true_params, R, t) - vector_to_params(true_params)[..., 6]
     strokes += rng.normal(0.0, settings["stroke_sigma_mm"], strokes.shape)
-    readings = kin.inverse_kinematics(nominal.tracker, R, t) + rng.normal(0.0, settings["reading_sigma_mm"], (n, 6))
+    readings = kin.inverse_kinematics(nominal.required_tracker("the sweep"), R, t) + rng.normal(
+        0.0, settings["reading_sigma_mm"], (n, 6)
+    )
     glitched = rng.random(n) < settings["glitch_rate"]
     legs = rng.integers(0, 6, n)
     signs = rng.choice([-1.0, 1.0], n)

@@ -266,13 +266,16 @@ def log_platform_geometry(rec: Recording, platform: Platform) -> None:
     log = rec.stream.log
     log("conventions", rr.TextDocument(CONVENTIONS_MARKDOWN, media_type=rr.MediaType.MARKDOWN), static=True)
     log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-    # Joint letters as in the paper: drive j_i / d_i, tracker z_i / h_i.
+    # Joint letters as in the paper: drive j_i / d_i, tracker z_i / h_i (a platform measured by
+    # another instrument may have no tracker).
+    legs = {"drive": platform.drive} | ({} if platform.tracker is None else {"tracker": platform.tracker})
     for frame, attribute, letters in (("base", "base_joints", "JZ"), ("platform", "platform_joints", "DH")):
-        joints = {kind: getattr(getattr(platform, kind), attribute) for kind in ("drive", "tracker")}
+        joints = {kind: getattr(leg_set, attribute) for kind, leg_set in legs.items()}
         outline = _closed_outline(np.vstack(list(joints.values())))
         outline_strip = rr.LineStrips3D([outline], colors=_OUTLINE_COLOR, radii=_OUTLINE_RADIUS_MM)
         log(f"world/{frame}/outline", outline_strip, static=True)
-        for (kind, points), letter, color in zip(joints.items(), letters, (_DRIVE_COLOR, _TRACKER_COLOR), strict=True):
+        # the tracker's letter and colour go unused without a tracker
+        for (kind, points), letter, color in zip(joints.items(), letters, (_DRIVE_COLOR, _TRACKER_COLOR), strict=False):
             labels = [f"{letter}{i}" for i in range(1, N_LEGS + 1)]
             log(
                 f"world/{frame}/{kind}_joints",
@@ -307,16 +310,18 @@ def log_platform_pose(
     R, t = _batch(R, n, (3, 3), "R"), _batch(t, n, (3,), "t")
     send = rec.stream.send_columns
     send("world/platform", indexes=index, columns=rr.Transform3D.columns(translation=t, mat3x3=R))
-    for name, legs, color in (
-        ("drive", drive_legs or platform.drive, _DRIVE_COLOR),
-        ("tracker", platform.tracker, _TRACKER_COLOR),
-    ):
+    drawn = [("drive", drive_legs or platform.drive, _DRIVE_COLOR)]
+    if platform.tracker is not None:  # a platform measured by another instrument may have none
+        drawn.append(("tracker", platform.tracker, _TRACKER_COLOR))
+    for name, legs, color in drawn:
         rec.static_once(f"world/legs/{name}", rr.LineStrips3D.from_fields(colors=color, radii=_LEG_RADIUS_MM))
         strips = rr.LineStrips3D.columns(strips=_leg_strips(legs, R, t)).partition(np.full(n, N_LEGS))
         send(f"world/legs/{name}", indexes=index, columns=strips)
     if desired is not None:
         R_d, t_d = _batch(desired[0], n, (3, 3), "R_desired"), _batch(desired[1], n, (3,), "t_desired")
-        ghost = _closed_outline(np.vstack([platform.drive.platform_joints, platform.tracker.platform_joints]))
+        ghost = _closed_outline(
+            np.vstack([platform.drive.platform_joints, *(legs.platform_joints for _, legs, _ in drawn[1:])])
+        )
         rec.static_once(
             "world/platform_desired/outline", rr.LineStrips3D([ghost], colors=_GHOST_COLOR, radii=_OUTLINE_RADIUS_MM)
         )
