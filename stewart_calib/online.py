@@ -44,8 +44,14 @@ from .compensation import compensate
 from .config import EstimatorConfig, config_from_dict
 from .errors import CalibError, SampleRejected
 from .estimate import Estimate
-from .estimators import Estimator, method_names, method_spec
-from .estimators.base import accounted_estimate, skipped_count, take_late_rejections, update_block
+from .estimators import method_names, method_spec
+from .estimators.base import (
+    CheckpointableEstimator,
+    accounted_estimate,
+    skipped_count,
+    take_late_rejections,
+    update_block,
+)
 from .platform import Platform, parse_platform, platform_to_toml
 from .plausibility import check_plausible
 from .samples import Log, Sample
@@ -116,8 +122,11 @@ class RecentSamples:
         return self._strokes[order], self._readings[order]
 
 
-def _make(method: str, platform: Platform, config: EstimatorConfig) -> Estimator:
-    return method_spec(method, ONLINE_METHODS, "online method").build(platform, config)
+def _make(method: str, platform: Platform, config: EstimatorConfig) -> CheckpointableEstimator:
+    estimator = method_spec(method, ONLINE_METHODS, "online method").build(platform, config)
+    if not isinstance(estimator, CheckpointableEstimator):
+        raise TypeError(f"online method '{method}' exports no state: it cannot be checkpointed")
+    return estimator
 
 
 class OnlineCalibrator:
@@ -211,7 +220,8 @@ class OnlineCalibrator:
         drive = self.platform.drive.perturbed(self._estimator.current_error())
         stroke_scale = self.platform.stroke_scale
         if self._identifies_stroke_scale:  # the full estimate only then: isam2's costs a marginal
-            stroke_scale = self._estimator.estimate().block_values("stroke_scale")
+            identified = self._estimator.estimate().block_values("stroke_scale")
+            stroke_scale = stroke_scale if identified is None else identified
         return compensate(drive, pose_mm_rad, limits=self.platform, stroke_scale=stroke_scale)
 
     def result(self) -> dict:

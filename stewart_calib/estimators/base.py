@@ -72,12 +72,23 @@ class Checkpointable(Protocol):
 
 
 @runtime_checkable
+class CheckpointableEstimator(Estimator, Checkpointable, Protocol):
+    """An estimator whose state can be checkpointed: every online method (``track`` resumes them)."""
+
+
+class _NIS(Protocol):
+    """What diagnostics read of a :class:`~stewart_calib.estimators.kalman.FilterState`."""
+
+    nis: float
+
+
+@runtime_checkable
 class KalmanFiltered(Protocol):
     """A method whose updates are Kalman updates (``ekf``, ``paper-ekf``): its ``filter`` (a
     :class:`~stewart_calib.estimators.kalman.FilterState`) holds the last accepted sample's
     normalised innovation squared, ``filter.nis``, for diagnostics."""
 
-    filter: object
+    filter: _NIS
 
 
 def take_late_rejections(estimator: Estimator) -> list[SampleRejected]:

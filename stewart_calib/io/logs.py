@@ -58,7 +58,7 @@ def reading_columns(platform: Platform | None) -> tuple[str, ...]:
     kind = _kind(platform)
     if kind == "pose":
         return pose.COLUMNS
-    if kind == "points":
+    if kind == "points" and platform is not None:
         return points.columns(platform.instrument.n_targets)
     return READING_COLUMNS
 
@@ -207,7 +207,7 @@ def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) ->
     readings = reading_columns(platform)
     finite_required = ["t_s", *STROKE_COLUMNS, *(readings if _kind(platform) != "points" else ())]
     flag_non_finite(table, [*finite_required, *(POSE_COLUMNS if has_pose else ())])
-    if _kind(platform) == "points":
+    if _kind(platform) == "points" and platform is not None:
         _flag_partial_targets(table, platform)
     if platform is not None:
         _flag_out_of_range(table, STROKE_COLUMNS, platform.stroke_range, "stroke", "drive.stroke_range_mm")
@@ -315,9 +315,8 @@ def read_log_blocks(
         if rows == 0:
             raise CalibError(f"{path}: no sample rows; expected a header row and at least one sample row")
         if good == 0:
-            raise CalibError(
-                f"{path}: all {rows} sample rows are bad (first: row {first_skipped[0]}: {first_skipped[1]})"
-            )
+            first = "" if first_skipped is None else f" (first: row {first_skipped[0]}: {first_skipped[1]})"
+            raise CalibError(f"{path}: all {rows} sample rows are bad{first}")
 
 
 def _row_tables(
@@ -419,12 +418,9 @@ class LogRowParser:
         self._last_t_s = -math.inf
         index = {name: k for k, name in enumerate(self._header)}
         readings = reading_columns(platform)
-        self._columns = {
-            "t_s": index["t_s"],
-            "strokes": [index[name] for name in STROKE_COLUMNS],
-            "readings": [index[name] for name in readings],
-            "pose": [index[name] for name in POSE_COLUMNS] if self._has_pose else [],
-        }
+        stroke_indices = [index[name] for name in STROKE_COLUMNS]
+        reading_indices = [index[name] for name in readings]
+        pose_indices = [index[name] for name in POSE_COLUMNS] if self._has_pose else []
         self._load = index.get("load_kg")
         # with [elastic] the payload is an input (spec §10): a row without a usable one takes the careful path
         self._load_is_input = self._load is not None and platform is not None and platform.elastic is not None
@@ -435,12 +431,11 @@ class LogRowParser:
         # a points instrument's empty coordinates (a target not seen) take the careful path
         self._plain_rows = _kind(platform) != "points"
         # _plain's fields in one pick: t_s, the strokes, the readings, the pose (if any)
-        columns = self._columns
-        self._pick_indices = (columns["t_s"], *columns["strokes"], *columns["readings"], *columns["pose"])
+        self._pick_indices = (index["t_s"], *stroke_indices, *reading_indices, *pose_indices)
         self._pick = operator.itemgetter(*self._pick_indices)
         self._all_numeric = set(self._numeric) == set(self._header)  # what pyarrow's block reader takes
-        self._stroke_slice = slice(1, 1 + len(columns["strokes"]))
-        self._reading_slice = slice(self._stroke_slice.stop, self._stroke_slice.stop + len(columns["readings"]))
+        self._stroke_slice = slice(1, 1 + len(stroke_indices))
+        self._reading_slice = slice(self._stroke_slice.stop, self._stroke_slice.stop + len(reading_indices))
 
     def _plain(self, line: str) -> Sample | None:
         """The common row in a few µs: no quoting, every field a finite number within range, time
@@ -729,7 +724,7 @@ def truth_text(truth: Truth, header: bool = True) -> str:
         names += TRUE_POSE_COLUMNS
         columns += pose_columns_deg(truth.true_poses)
     # spec §7 truth, constant over the log: one column per value, added beside §4's
-    constants = []
+    constants: list[tuple[str, float]] = []
     if truth.stroke_scale is not None:
         constants += zip(STROKE_SCALE_NAMES, truth.stroke_scale, strict=True)
     if truth.instrument is not None:

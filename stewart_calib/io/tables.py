@@ -262,7 +262,7 @@ def numbers_by_arrow(header: list[str], data: bytes) -> Table | None:
         return None
     try:
         table = pa_csv.read_csv(
-            pa.py_buffer(data),
+            pa.py_buffer(data),  # type: ignore[arg-type]  # it reads a Buffer too; the stubs list paths and files
             read_options=pa_csv.ReadOptions(column_names=header, use_threads=False, block_size=ARROW_BLOCK_BYTES),
             parse_options=pa_csv.ParseOptions(quote_char=False, ignore_empty_lines=False),
             convert_options=pa_csv.ConvertOptions(
@@ -341,7 +341,9 @@ def parse_careful(header: list[str], text: str, numeric: list[str], textual: lis
     """Row by row with the csv module: quoting, blank lines, wrong field counts, bad numbers."""
     reader = csv.reader(io.StringIO(text))
     next(reader, None)
-    rows, lines, issues = [], [], {}
+    rows: list[list[str]] = []
+    lines: list[int] = []
+    issues: dict[int, str] = {}
     width = len(header)
     while True:
         try:

@@ -30,7 +30,7 @@ from collections.abc import Callable, Iterable, Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -125,20 +125,20 @@ def run_calibration(
         return Calibration(estimate, rows, rejected, sigma)
     rows = np.empty((len(log), len(nominal))) if trace or diagnostics else None
     sigma = np.empty_like(rows) if diagnostics else None
-    kalman = isinstance(estimator, KalmanFiltered)
-    nis = np.full(len(log), np.nan) if diagnostics and kalman else None
+    kalman = estimator if diagnostics and isinstance(estimator, KalmanFiltered) else None
+    nis = np.full(len(log), np.nan) if kalman is not None else None
     rejected = []
     bar = progress_bar(log, desc=f"calibrate {method}", show=progress)
     for k, sample in enumerate(bar):
         try:
             estimator.update(sample)
-            if nis is not None:
-                nis[k] = estimator.filter.nis
+            if nis is not None and kalman is not None:
+                nis[k] = kalman.filter.nis
         except SampleRejected as err:
             rejected.append((k, err))
-        for err in take_late_rejections(estimator):  # a robust start-up batch left it out
-            rejected.append((late_index(log.t_s[: k + 1].tolist(), err.t_s), err))
-        if sigma is not None:
+        for late in take_late_rejections(estimator):  # a robust start-up batch left it out
+            rejected.append((late_index(log.t_s[: k + 1].tolist(), late.t_s), late))
+        if sigma is not None and rows is not None:  # rows: kept whenever sigma is
             now = estimator.estimate()
             rows[k], sigma[k] = nominal + now.error, _stddev_or_nan(now)
         elif rows is not None:
@@ -182,20 +182,22 @@ def _write_rerun(path: Path, platform: Platform, method: str, log: Log, run: Cal
     online method, before it (the innovation), and the NIS of a Kalman method."""
     from ..viz import recording as viz  # rerun is slow to import; only --rerun needs it
 
-    nominal = platform.drive.as_vector()
+    nominal, trace = platform.drive.as_vector(), run.trace
+    if trace is None:
+        raise ValueError("--rerun draws the trace: run_calibration(..., diagnostics=True) keeps it")
     residual = innovation = None
     if platform.instrument.kind == "tracker":  # the drive-leg residuals need the tracker's pose of each sample
-        poses = kin.forward_kinematics(platform.tracker, log.readings, strict=False)
-        residual = kin.leg_residuals_per_sample(run.trace, poses.R, poses.t, log.strokes)
+        poses = kin.forward_kinematics(platform.required_tracker("--rerun"), log.readings, strict=False)
+        residual = kin.leg_residuals_per_sample(trace, poses.R, poses.t, log.strokes)
         if not batch:
-            before = np.vstack([nominal, run.trace[:-1]])  # the model in force when each sample arrived
+            before = np.vstack([nominal, trace[:-1]])  # the model in force when each sample arrived
             innovation = kin.leg_residuals_per_sample(before, poses.R, poses.t, log.strokes)
     series = {"residual": residual, "innovation": innovation, "nis": run.nis}
     kinds = {kind for kind, values in series.items() if values is not None}
     with io.atomic_path(path) as tmp, viz.open_recording(tmp) as rec:
         viz.log_platform_geometry(rec, platform)
-        viz.log_parameters(rec, method, run.trace - nominal, log.t_s)
-        viz.log_parameter_band(rec, method, run.trace - nominal, run.stddev, log.t_s)
+        viz.log_parameters(rec, method, trace - nominal, log.t_s)
+        viz.log_parameter_band(rec, method, trace - nominal, run.stddev, log.t_s)
         viz.log_diagnostics(rec, method, log.t_s, residual, innovation, run.nis)
         viz.send_blueprint(rec, [method], [], {method: kinds})
 
@@ -239,7 +241,7 @@ class _Tally:
     """How many items were seen, and the first."""
 
     count: int = 0
-    first: object = None
+    first: Any = None  # whatever is counted: a (row, reason) of a skipped row
 
     def add(self, items) -> None:
         if items and self.first is None:
@@ -301,7 +303,7 @@ def feed_online(
         k += len(block)
         if bar is not None:
             bar.update(len(block))
-        if on_block is not None:
+        if on_block is not None and rows is not None:  # rows: kept for on_block
             on_block(block, rows)
     return k
 
@@ -421,13 +423,9 @@ def stream_calibration(
     """
     estimator = estimators.make_estimator(method, platform, config)
     nominal = platform.drive.as_vector()
-    checked, skipped, rejected, rejections, first_t_s = (
-        EvenlySpacedSamples(CHECKED_SAMPLES),
-        _Tally(),
-        [],
-        Rejections(),
-        [],
-    )
+    checked, skipped, rejections = EvenlySpacedSamples(CHECKED_SAMPLES), _Tally(), Rejections()
+    rejected: list[int] = []
+    first_t_s: list[float] = []
 
     def read(block: Log) -> Log:
         if not checked.seen:  # the first block (the whole of a short log) stands for the log
@@ -443,7 +441,7 @@ def stream_calibration(
         rejections.add(err)
         first_t_s[:] = first_t_s or [t_s]
 
-    written = []
+    written: list[int] = []
 
     def write_trace(block: Log, errors_mm: np.ndarray) -> None:
         trace_file.write(io.trace_text(block.t_s, nominal + errors_mm, header=not written))
@@ -491,9 +489,9 @@ def streamed_residual_rms(
     model's residuals are computed here, and the per-channel sums of squares add up over the blocks.
     """
     sums, counts, k = {"before": 0.0, "after": 0.0}, {"before": 0, "after": 0}, 0
-    rejected = np.asarray(rejected, dtype=np.int64)
+    left_out = np.asarray(rejected, dtype=np.int64)
     for block, before in spooled:
-        used = ~np.isin(k + np.arange(len(block)), rejected)
+        used = ~np.isin(k + np.arange(len(block)), left_out)
         k += len(block)
         if not used.any():
             continue
@@ -506,7 +504,7 @@ def streamed_residual_rms(
             finite = np.isfinite(values)
             sums[when] = sums[when] + np.sum(np.where(finite, values, 0.0) ** 2, axis=0)
             counts[when] = counts[when] + finite.sum(axis=0)
-    field = {"channels": list(io.reading_columns(platform))}
+    field: dict[str, list] = {"channels": list(io.reading_columns(platform))}
     for when in ("before", "after"):
         with np.errstate(invalid="ignore", divide="ignore"):
             rms = np.sqrt(sums[when] / counts[when])
@@ -593,7 +591,7 @@ def run(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
 
-        extra = {"samples_rejected": rejections.summary()}
+        extra: dict[str, object] = {"samples_rejected": rejections.summary()}
         warning = None
         if tracker:  # the tracker's FK gives the poses to assess
             poses = measured_poses(platform, checked)
@@ -632,7 +630,9 @@ def run(args: argparse.Namespace) -> int:
             residuals = measurement_residuals(platform, log.select(used), result_data)
             result_data["residual_rms"] = handover.residual_rms_field(residuals)
         result_json = io.result_text(result_data, str(out))
-        trace_csv = io.trace_text(log.t_s, result.trace) if trace_path and not streamed else None
+        trace_csv = (
+            io.trace_text(log.t_s, result.trace) if trace_path and not streamed and result.trace is not None else None
+        )
         platform_toml = (
             handover.calibrated_platform_text(platform, estimate, args.method, Path(args.log).name, created)
             if platform_out

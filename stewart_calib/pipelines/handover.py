@@ -8,6 +8,7 @@ import dataclasses
 import math
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -56,7 +57,7 @@ def calibrated_platform(platform: Platform, estimate: Estimate, method: str, log
         f"calibrated by stewart-calib {__version__} ({method}) from {log_name} on {created}; "
         f"nominal platform: {platform.name} ({platform.source})"
     )
-    changes = {"drive": estimate.drive(platform), "description": note}
+    changes: dict[str, Any] = {"drive": estimate.drive(platform), "description": note}
     stroke_scale = estimate.block_values("stroke_scale")
     if stroke_scale is not None:
         changes["stroke_scale"] = stroke_scale

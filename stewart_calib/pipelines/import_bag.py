@@ -197,14 +197,13 @@ def read_topic(
         values.append(row)
     if not stamps:
         raise CalibError(f"{bag}: {option} {topic}: the topic has no messages")
-    t_s, values = np.array(stamps), np.array(values, dtype=float)
-    order = np.argsort(t_s, kind="stable")
-    t_s, values = t_s[order], values[order]
+    order = np.argsort(stamps, kind="stable")
+    times, rows = np.array(stamps)[order], np.array(values, dtype=float)[order]
     if kind == POSE_STAMPED:
-        if np.any(np.linalg.norm(values[:, 3:], axis=1) < 1e-9):
+        if np.any(np.linalg.norm(rows[:, 3:], axis=1) < 1e-9):
             raise CalibError(f"{bag}: {option} {topic}: a pose has a zero quaternion; expected unit quaternions")
-        values = np.hstack([values[:, :3], quaternion_to_rpy(values[:, 3:])])
-    return TopicSeries(t_s, values)
+        rows = np.hstack([rows[:, :3], quaternion_to_rpy(rows[:, 3:])])
+    return TopicSeries(times, rows)
 
 
 # ----------------------------------------------------------------------------- the log

@@ -31,7 +31,7 @@ from .. import kinematics as kin
 from ..diagnosis import diagnose_log
 from ..errors import CalibError
 from ..instruments import drive as drive_model
-from ..platform import Platform, load_platform
+from ..platform import LegGeometry, Platform, load_platform
 from ..progress import log_progress_bar
 from ..samples import Log
 from . import handover, run_command
@@ -68,7 +68,7 @@ def _block(result: dict, key: str, expected_names, source: str) -> np.ndarray | 
     return np.array(block["estimate"], dtype=float)
 
 
-def _model_drive(platform: Platform, result: dict, log, source: str):
+def _model_drive(platform: Platform, result: dict, log, source: str) -> tuple[LegGeometry, np.ndarray]:
     """``(drive, strokes)``: the calibrated drive and the logged strokes scaled by its stroke scale."""
     drive = platform.drive.perturbed(np.array(result["error"]))
     scale = _block(result, "stroke_scale", io.STROKE_SCALE_NAMES, source)
@@ -128,10 +128,12 @@ def validate(
                 "--register-instrument: the in-situ tracker is part of the robot; "
                 "it has no frame of its own to fit again"
             )
-        predicted = kin.inverse_kinematics(platform.tracker, R_X, t_X)
+        predicted = kin.inverse_kinematics(platform.required_tracker("validate"), R_X, t_X)
         if not errors:
             return predicted, None, None
-        seen = kin.forward_kinematics(platform.tracker, log.readings, guess=(R_X, t_X), strict=False)
+        seen = kin.forward_kinematics(
+            platform.required_tracker("validate"), log.readings, guess=(R_X, t_X), strict=False
+        )
         if not np.all(seen.converged):
             k = int(np.flatnonzero(~seen.converged)[0])
             raise CalibError(
@@ -333,7 +335,8 @@ def measurement_residuals(
     if predicted is None and platform.instrument.kind == "tracker":
         residuals = tracker_residuals(platform, log, [(nominal, "the nominal platform"), (result, "the result")])
         if residuals is not None:  # else an FK failed: validate() below words it
-            return Residuals(tuple(columns), np.asarray(log.t_s), *residuals, log_label, "the nominal platform")
+            before, after = residuals
+            return Residuals(tuple(columns), np.asarray(log.t_s), before, after, log_label, "the nominal platform")
     if predicted is None:
         predicted = validate(platform, result, log, False, "the result", errors=False)[0]
     # An outside instrument's frame is rarely known to centimetres (spec §7): "before" registers it
@@ -358,7 +361,9 @@ def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str
     for result, source in models:
         _check_nominal(platform, result, source)
     drives, strokes = zip(*(_model_drive(platform, result, log, source) for result, source in models), strict=True)
-    residuals, converged = kin.tracker_reading_residuals(platform.tracker, log.readings, list(drives), list(strokes))
+    residuals, converged = kin.tracker_reading_residuals(
+        platform.required_tracker("the tracker residuals"), log.readings, list(drives), list(strokes)
+    )
     return residuals if converged.all() else None
 
 

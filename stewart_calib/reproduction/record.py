@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from .. import kinematics as kin
-from ..platform import LegGeometry
+from ..platform import LegGeometry, Platform
 from ..viz import recording as viz
 from .metrics import held_pose_ends
-from .runs import BATCH_METHOD, NOMINAL, Reproduction
+from .runs import BATCH_METHOD, NOMINAL, MethodRun, Reproduction
 
 SCENE_METHOD = "isam2"
 SCENE_CIRCLE_STRIDE = 5
@@ -84,7 +84,8 @@ def write_recording(path: str | Path, reproduction: Reproduction) -> None:
             result = run.result
             name, t_kept = entity_name(method), result.log.t_s[kept]
             viz.log_parameters(rec, name, run.trace[kept], t_kept, samples=kept)
-            viz.log_parameter_band(rec, name, run.trace[kept], run.stddev[kept], t_kept, samples=kept)
+            if run.stddev is not None:  # every method's run has σ (the nominal run has none)
+                viz.log_parameter_band(rec, name, run.trace[kept], run.stddev[kept], t_kept, samples=kept)
             series = _diagnostics(platform, run, kept, online=method != BATCH_METHOD)
             viz.log_diagnostics(rec, name, t_kept, *series, samples=kept)
             diagnostics[name] = {
@@ -113,11 +114,13 @@ def write_recording(path: str | Path, reproduction: Reproduction) -> None:
         )
 
 
-def _diagnostics(platform, run, kept: np.ndarray, online: bool):
+def _diagnostics(
+    platform: Platform, run: MethodRun, kept: np.ndarray, online: bool
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """``(residual, innovation or None, NIS or None)`` at the rows ``kept``: the drive-leg residuals
     at the tracker's pose of each sample with the δM in force after it and (online) before it."""
     log = run.result.log
-    poses = kin.forward_kinematics(platform.tracker, log.readings[kept], strict=False)
+    poses = kin.forward_kinematics(platform.required_tracker("the diagnostics"), log.readings[kept], strict=False)
     nominal = platform.drive.as_vector()
     after = kin.leg_residuals_per_sample(nominal + run.trace[kept], poses.R, poses.t, log.strokes[kept])
     innovation = None

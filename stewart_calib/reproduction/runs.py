@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
 from ..config import EstimatorConfig
-from ..estimators import KalmanFiltered, make_estimator, method_names
+from ..estimators import BatchEstimator, KalmanFiltered, make_estimator, method_names
 from ..platform import N_PARAMS, Platform
 from ..progress import progress_bar
 from ..simulation import EstimatorController, FrozenController, NominalController, SimulationResult, run_experiment
@@ -198,7 +199,7 @@ def run_ls(experiment: Experiment, config: EstimatorConfig, nominal: SimulationR
     """Fit ``ls`` on the nominal run's no-load calibration samples, then run frozen."""
     start = time.perf_counter()
     calibration = first_stage_calibration(nominal)
-    estimator = make_estimator(BATCH_METHOD, experiment.platform, config)
+    estimator = cast(BatchEstimator, make_estimator(BATCH_METHOD, experiment.platform, config))  # ls: batch
     estimate = estimator.fit([nominal.log[k] for k in calibration])
     fit_s = time.perf_counter() - start
     result, run_s = _timed_run(experiment, FrozenController(estimate.drive(experiment.platform)), bar)

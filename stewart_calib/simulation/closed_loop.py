@@ -162,6 +162,8 @@ class TrueRobot:
         """What the measuring instrument logs at the true poses ``(R, t)``."""
         if self.instrument is not None:
             return self.instrument.read(R, t, instrument_draws)
+        if self.tracker is None:
+            raise ValueError("a robot without an outside instrument is measured by its tracker: it needs one")
         return self.tracker.read(R, t, reading_noise)
 
     def drive_at(self, pose6: np.ndarray, payload_kg: float = 0.0) -> LegGeometry:
@@ -398,13 +400,14 @@ def run_experiment(
     log = Log.concatenate(list(logs))
     first = truths[0]
     joined = lambda name: np.concatenate([getattr(truth, name) for truth in truths])  # noqa: E731
-    truth = Truth(joined("t_s"), joined("params"), joined("true_poses"), first.stroke_scale, first.instrument)
+    actual_poses = joined("true_poses")
+    truth = Truth(joined("t_s"), joined("params"), actual_poses, first.stroke_scale, first.instrument)
     plan = run.plan
     return SimulationResult(
         log,
         truth,
         plan.desired_poses,
-        truth.true_poses,
+        actual_poses,
         plan.stages,
         plan.kinds,
         plan.payload_kg,

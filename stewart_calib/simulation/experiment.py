@@ -155,7 +155,7 @@ class _Table:
         self.source, self.prefix = source, prefix
         if not isinstance(doc, dict):
             raise self.refuse("", "a table")
-        self.doc, self.used = doc, set()
+        self.doc, self.used = doc, set[str]()
 
     def refuse(self, key: str, expected: str) -> CalibError:
         full = ".".join(k for k in (self.prefix, key) if k)
@@ -191,7 +191,8 @@ class _Table:
         return value
 
     def vector3(self, key: str, default) -> tuple[float, float, float]:
-        return self.vector(key, default, 3)
+        x, y, z = self.vector(key, default, 3)
+        return x, y, z
 
     def vector(self, key: str, default, n: int) -> tuple[float, ...]:
         self.used.add(key)

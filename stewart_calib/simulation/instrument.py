@@ -46,13 +46,14 @@ class SimulatedInstrument:
     """
 
     instrument: Instrument
-    unknowns: object
+    unknowns: pose.PoseUnknowns | points.PointsUnknowns
     dropout_probability: float
 
     @classmethod
     def build(cls, instrument: Instrument, truth: InstrumentTruth, rng: np.random.Generator) -> SimulatedInstrument:
         offset = lambda values: np.r_[values[:3], np.radians(values[3:])]  # noqa: E731  (file → code units)
         frame = instrument.frame + offset(truth.frame_offset)
+        unknowns: pose.PoseUnknowns | points.PointsUnknowns
         if instrument.kind == "pose":
             unknowns = pose.PoseUnknowns.from_pose6(frame, instrument.target + offset(truth.target_offset))
         else:
@@ -76,7 +77,7 @@ class SimulatedInstrument:
         """Readings ``(..., m)`` at true platform poses with :meth:`draw`'s draws, code units
         (NaN: a target not seen)."""
         sigma_pos = self.instrument.position_sigma_mm
-        if self.instrument.kind == "pose":
+        if isinstance(self.unknowns, pose.PoseUnknowns):  # kind "pose"
             R_P, t_P = pose.predict(self.unknowns, R, t)
             R_m = R_P @ kin.so3_exp(self.instrument.orientation_sigma_rad * draws[..., :3])
             return kin.rt_to_pose(R_m, t_P + sigma_pos * draws[..., 3:])

@@ -118,7 +118,8 @@ class Family:
         """One platform of the family (draws only the dimensions that have a range)."""
         low, high = self.ranges[:, 0], self.ranges[:, 1]
         values = np.where(high > low, low + (high - low) * rng.random(len(low)), low)
-        return ring_platform(self.like, *values, name=self.name)
+        base_radius, platform_radius, base_half_angle, platform_half_angle = values
+        return ring_platform(self.like, base_radius, platform_radius, base_half_angle, platform_half_angle, self.name)
 
 
 def ring_platform(
@@ -391,7 +392,7 @@ def _value(setting: Setting, value, refuse):
     return setting.kind(value)
 
 
-def _families(doc, path: Path, refuse) -> dict[str, dict]:
+def _families(doc, path: Path, refuse) -> dict[str, Family]:
     if not isinstance(doc, dict):
         raise refuse("families", "expected tables [families.NAME]")
     families = {}

@@ -28,8 +28,12 @@ PARTS = "parts"
 def schema(spec: SweepSpec) -> pa.Schema:
     """Columns of every row: keys, the settings (typed from the grid), scores, checkpoints, notes."""
     first = spec.cells[0].settings
-    fields = [pa.field("cell", pa.string()), pa.field("seed", pa.int64()), pa.field("method", pa.string())]
-    kinds = {bool: pa.bool_(), int: pa.int64(), float: pa.float64(), str: pa.string()}
+    fields: list[pa.Field] = [
+        pa.field("cell", pa.string()),
+        pa.field("seed", pa.int64()),
+        pa.field("method", pa.string()),
+    ]
+    kinds: dict[type, pa.DataType] = {bool: pa.bool_(), int: pa.int64(), float: pa.float64(), str: pa.string()}
     fields += [pa.field(name, kinds[type(value)]) for name, value in first.items()]
     fields += [pa.field(name, pa.float64()) for name in METRICS]
     fields += [pa.field("samples_rejected", pa.int64()), pa.field("glitches", pa.int64())]
@@ -77,7 +81,8 @@ def consolidate(spec: SweepSpec, out: Path, table_schema: pa.Schema) -> pa.Table
     )
     order = {cell.id: cell.index for cell in spec.cells}
     method_order = {m: k for k, m in enumerate(spec.methods)}
-    cells, seeds, methods = (table[name].to_pylist() for name in ("cell", "seed", "method"))
+    columns: list[list] = [table[name].to_pylist() for name in ("cell", "seed", "method")]
+    cells, seeds, methods = columns
     keys = sorted(range(table.num_rows), key=lambda r: (order[cells[r]], seeds[r], method_order[methods[r]]))
     table = table.take(pa.array(keys, type=pa.int64()))
     _atomic_write(table, out / RESULTS)

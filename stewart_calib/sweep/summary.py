@@ -25,7 +25,7 @@ from .spec import SweepSpec
 QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
 SCORES = ("rms_mm", "rms_over_crb", "nees", "z2", "closed_loop_mm", "seconds", "cpu_seconds")
 PLOTTED = ("rms_over_crb", "nees", "closed_loop_mm", "seconds")
-NEES_BAND = tuple(chi2.ppf([0.025, 0.975], N_PARAMS))
+NEES_BAND = (float(chi2.ppf(0.025, N_PARAMS)), float(chi2.ppf(0.975, N_PARAMS)))
 
 
 def summarise(spec: SweepSpec, table: pa.Table) -> list[dict]:

@@ -38,7 +38,8 @@ import numpy as np
 from .. import kinematics as kin
 from ..config import NoiseConfig
 from ..errors import CalibError, SampleRejected
-from ..estimators import METHODS, make_estimator
+from ..estimators import BatchEstimator, make_estimator
+from ..estimators.base import fit_all
 from ..identifiability import identifiability_report, whitened_leg_jacobian
 from ..platform import N_PARAMS, Platform, vector_to_params
 from ..samples import Log
@@ -136,10 +137,12 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
     ``J_0 = I / prior_sigma²`` (Tichavský et al. 1998): with a random walk no estimator can
     beat the optimal filter of the linearised model.
     """
-    noise = _true_noise(settings)
+    noise, poses = _true_noise(settings), data.log.desired_poses
+    if poses is None:
+        raise ValueError("a sweep's simulated log holds its poses")
     if settings["drift_mm_per_sqrt_s"] == 0:
-        return identifiability_report(data.platform, data.log.desired_poses, noise).predicted_stddev_mm
-    rows = whitened_leg_jacobian(data.platform, data.log.desired_poses, noise)
+        return identifiability_report(data.platform, poses, noise).predicted_stddev_mm
+    rows = whitened_leg_jacobian(data.platform, poses, noise)
     walk = settings["drift_mm_per_sqrt_s"] ** 2 / settings["rate_hz"] * np.eye(N_PARAMS)
     covariance = prior_sigma_mm**2 * np.eye(N_PARAMS)
     for k, A in enumerate(rows):
@@ -199,12 +202,14 @@ def run_method(
     estimator = make_estimator(method, data.platform, cell.estimator_config)
     at_checkpoint = {}
     start, cpu_start = time.perf_counter(), time.process_time()
-    if not METHODS[method].online:
+    if isinstance(estimator, BatchEstimator):  # the methods that are not online
         estimate = estimator.fit(samples)
         rejected = len(estimator.rejected)
         for n in checkpoints if refit else ():
             try:
-                at_checkpoint[n] = make_estimator(method, data.platform, cell.estimator_config).fit(samples[:n]).error
+                at_checkpoint[n] = fit_all(
+                    make_estimator(method, data.platform, cell.estimator_config), samples[:n]
+                ).error
             except CalibError:  # e.g. ls not converging on a short prefix: that checkpoint is NaN
                 at_checkpoint[n] = np.full(N_PARAMS, np.nan)
     else:
