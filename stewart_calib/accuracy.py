@@ -100,9 +100,9 @@ def within_ranges(platform: Platform, poses: np.ndarray) -> np.ndarray:
     tracker with a reading range) of ``poses`` lie within the platform's ranges."""
     R, t = kin.pose_to_rt(np.asarray(poses, dtype=float))
     ok = np.ones(len(R), dtype=bool)
-    legs_and_bounds = ((platform.drive, platform.stroke_range, platform.stroke_scale),)
+    legs_and_bounds = [(platform.drive, platform.stroke_range, platform.stroke_scale)]
     if platform.tracker is not None:
-        legs_and_bounds += ((platform.tracker, platform.reading_range, np.zeros(N_LEGS)),)
+        legs_and_bounds.append((platform.tracker, platform.reading_range, np.zeros(N_LEGS)))
     for legs, bounds, scale in legs_and_bounds:
         if bounds is not None:
             strokes = kin.inverse_kinematics(legs, R, t) / (1.0 + scale)
@@ -188,7 +188,7 @@ def predicted_error(platform: Platform, covariance: np.ndarray, poses: np.ndarra
     covariance = np.asarray(covariance, dtype=float)
     n = min(len(covariance), N_DRIVE_UNKNOWNS)
     workspace = poses is None
-    D = closed_loop_jacobian(platform, evaluation_poses(platform) if workspace else poses)[..., :n]
+    D = closed_loop_jacobian(platform, evaluation_poses(platform) if poses is None else poses)[..., :n]
     pose_covariance = D @ covariance[:n, :n] @ np.swapaxes(D, -1, -2)
     position = _expected_norms(pose_covariance[:, 3:, 3:])
     orientation = _expected_norms(pose_covariance[:, :3, :3])

@@ -451,7 +451,7 @@ class LogRowParser:
             return None
         if not all(map(math.isfinite, values)) or values[0] < self._last_t_s:
             return None
-        if self._load_is_input and not 0.0 <= load_kg < math.inf:
+        if self._load_is_input and (load_kg is None or not 0.0 <= load_kg < math.inf):
             return None
         for bounds, group in ((self._stroke_range, self._stroke_slice), (self._reading_range, self._reading_slice)):
             if bounds is not None and not bounds[0] <= min(values[group]) <= max(values[group]) <= bounds[1]:
