@@ -185,7 +185,7 @@ def _check_ratio(where: str, what: str, columns: str, measured: float, expected:
 def _check_reading_units(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray, where: str, columns):
     kind = platform.instrument.kind
     if kind == "tracker":
-        expected = kin.inverse_kinematics(platform.tracker, R, t)
+        expected = kin.inverse_kinematics(platform.required_tracker("the diagnosis"), R, t)
         measured_spread = float(np.sqrt(np.nanmean(np.nansum((readings - np.nanmean(readings, axis=0)) ** 2, axis=1))))
         expected_spread = float(np.sqrt(np.mean(np.sum((expected - expected.mean(axis=0)) ** 2, axis=1))))
         _check_ratio(where, "tracker readings", _columns(columns), measured_spread, expected_spread, LENGTH_UNITS, "mm")
@@ -284,7 +284,7 @@ def _pose_lengths(platform: Platform, strokes: np.ndarray, readings: np.ndarray)
     from .instruments.external import model_for
 
     if platform.instrument.kind == "tracker":
-        fk = kin.forward_kinematics(platform.tracker, readings, strict=False)
+        fk = kin.forward_kinematics(platform.required_tracker("the diagnosis"), readings, strict=False)
         lengths = kin.leg_lengths(platform.drive, fk.R, fk.t)
         lengths[~fk.converged] = np.nan
         return lengths, None

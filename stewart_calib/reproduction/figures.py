@@ -15,7 +15,10 @@ pose as in the tables (:mod:`.metrics`).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,6 +28,9 @@ from ..viz.html_report import new_figure, png_bytes
 from .metrics import held_pose_ends, view_errors
 from .report import TARGET_METHODS, VERDICT_VIEW
 from .runs import NOMINAL, Reproduction
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 #: one colour per estimator; a run with more parts of the model is drawn solid, fewer dashed.
 METHOD_COLORS = {NOMINAL: "0.45", "ls": "#d62728", "paper-ekf": "#ff7f0e", "ekf": "#1f77b4", "isam2": "#2ca02c"}
@@ -229,15 +235,15 @@ def fig9(reproduction: Reproduction):
     return fig
 
 
-def figures(reproduction: Reproduction) -> list[tuple[str, str, object]]:
+def figures(reproduction: Reproduction) -> list[tuple[str, str, Callable[[], Figure]]]:
     """``(file name, caption, how to draw it)`` of every figure, in the order of the page."""
-    out = []
+    out: list[tuple[str, str, Callable[[], Figure]]] = []
     for run in parameter_runs(reproduction):
         out.append(
             (
                 f"fig5_{run}.png",
                 f"Fig. 5 — {run}: parameter convergence at no load",
-                lambda r=run: fig5(reproduction, r),
+                partial(fig5, reproduction, run),
             )
         )
     for run in parameter_runs(reproduction):
@@ -245,7 +251,7 @@ def figures(reproduction: Reproduction) -> list[tuple[str, str, object]]:
             (
                 f"fig6_{run}.png",
                 f"Fig. 6 — {run}: parameters through the load stages",
-                lambda r=run: fig6(reproduction, r),
+                partial(fig6, reproduction, run),
             )
         )
     out.append(

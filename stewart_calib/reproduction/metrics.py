@@ -74,9 +74,12 @@ def tracker_gauge_error(result: SimulationResult, platform: Platform) -> dict[st
     from those by the rigid part of the tracker's residual, so a pose ``X`` that is exact in them
     is ``T_J⁻¹ X T_D`` in the simulator's frames: this error is part of every truth-view number.
     """
-    true_tracker = result.robot.tracker.geometry
-    R_J, t_J = gauge.kabsch(true_tracker.base_joints, platform.tracker.base_joints)
-    R_D, t_D = gauge.kabsch(true_tracker.platform_joints, platform.tracker.platform_joints)
+    simulated, nominal = result.robot.tracker, platform.required_tracker("the tracker's gauge error")
+    if simulated is None:
+        raise ValueError("the simulated robot has no tracker: its platform has none")
+    true_tracker = simulated.geometry
+    R_J, t_J = gauge.kabsch(true_tracker.base_joints, nominal.base_joints)
+    R_D, t_D = gauge.kabsch(true_tracker.platform_joints, nominal.platform_joints)
     R, t = kin.pose_to_rt(result.actual_poses[held_pose_ends(result)])
     # X' = T_J X T_D⁻¹: the true pose written in the frames the tracker's joints define
     R_gauge = R_J @ R @ R_D.T

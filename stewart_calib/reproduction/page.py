@@ -44,7 +44,8 @@ def _table_html(lines: list[str]) -> str:
 
 def markdown_html(text: str) -> tuple[str, str]:
     """``(title, body HTML)`` of the markdown subset tables.md uses (see the module docstring)."""
-    title, parts, block = "", [], []
+    title, parts = "", []
+    block: list[str] = []
     kind = None
 
     def flush() -> None:
