@@ -45,22 +45,22 @@ def atomic_paths(paths: list[str | Path]) -> Iterator[list[Path]]:
     Raises:
         CalibError: a file cannot be written (nothing is left behind).
     """
-    paths = [Path(path) for path in paths]
+    targets = [Path(path) for path in paths]
     temporaries: list[Path] = []
     try:
-        for path in paths:
+        for path in targets:
             fd, tmp = _temporary(path)
             os.close(fd)
             temporaries.append(tmp)
         yield temporaries
-        for tmp, path in zip(temporaries, paths, strict=True):
+        for tmp, path in zip(temporaries, targets, strict=True):
             os.chmod(tmp, 0o666 & ~_umask())
             os.replace(tmp, path)
     except BaseException as err:
         for tmp in temporaries:
             tmp.unlink(missing_ok=True)
         if isinstance(err, OSError):
-            where = err.filename or (paths[0].parent if paths else "")
+            where = err.filename or (targets[0].parent if targets else "")
             raise CalibError(f"{shown(where)}: cannot write ({err.strerror or err.__class__.__name__})") from None
         raise
 

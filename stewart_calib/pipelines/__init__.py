@@ -75,17 +75,17 @@ def _option(dest: str) -> str:
 
 def _written_files(args: argparse.Namespace) -> list[tuple[str, str]]:
     """``(option, path)`` of every file the command will write (within output directories too)."""
-    written = []
+    written: list[tuple[str, str]] = []
     for dest in OUTPUT_ARGUMENTS:
         value = getattr(args, dest, None)
         if not value or value == "-":
             continue
         files = OUTPUT_DIRECTORIES.get((args.command, dest)) or OUTPUT_DIRECTORIES.get(("*", dest))
         written += [(_option(dest), os.path.join(value, name)) for name in files] if files else [(_option(dest), value)]
-    for dest, files in OUTPUT_DIRECTORIES.items():
-        value = getattr(args, dest[1], None)
-        if dest[0] in (args.command, "*") and dest[1] not in OUTPUT_ARGUMENTS and value:
-            written += [(_option(dest[1]), os.path.join(value, name)) for name in files]
+    for (command, dest_name), files in OUTPUT_DIRECTORIES.items():
+        value = getattr(args, dest_name, None)
+        if command in (args.command, "*") and dest_name not in OUTPUT_ARGUMENTS and value:
+            written += [(_option(dest_name), os.path.join(value, name)) for name in files]
     return written
 
 
