@@ -42,10 +42,14 @@ import sys
 import tempfile
 import weakref
 from pathlib import Path
+from typing import Any
 
 import numba
-from numba.core import config as numba_config
+from numba.core import config as _numba_config
 from numba.core import event as numba_event
+
+#: numba's options (CACHE_DIR, OPT) are set from the environment when it loads: its stubs list none
+numba_config: Any = _numba_config
 
 #: LLVM optimisation level of the kernels (:class:`OptimisationLevel`): level 1 instead of numba's 3
 #: compiles in ~3/4 of the time, and the kernels ran as fast (measured: the module docstring).

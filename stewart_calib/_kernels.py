@@ -25,13 +25,14 @@ the kernels must report NaN exactly as numpy would.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
 from ._jit import njit
 
 # error_model="numpy": x / 0 gives inf/NaN as in numpy instead of raising ZeroDivisionError.
-_JIT = {"nogil": True, "error_model": "numpy"}
+_JIT: dict[str, Any] = {"nogil": True, "error_model": "numpy"}
 
 # Newton step cap (forward_kinematics): a poor guess can give wild steps that leave the basin.
 _MAX_STEP_RAD = 0.2

@@ -12,13 +12,15 @@ part included. The arithmetic is :func:`stewart_calib.kinematics.leg_residual`'s
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from .._jit import njit
 from .._kernels import leg_rows
 
 # as stewart_calib._kernels: x / 0 gives inf/NaN as numpy does
-_JIT = {"nogil": True, "error_model": "numpy"}
+_JIT: dict[str, Any] = {"nogil": True, "error_model": "numpy"}
 
 
 @njit(**_JIT)
