@@ -208,7 +208,7 @@ class Elastic:
     platform_com_mm: np.ndarray
     payload_com_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
     compliance_mm_per_kN: np.ndarray = field(default_factory=lambda: np.zeros(N_LEGS))
-    compliance_sigma_mm_per_kN: float | None = None
+    compliance_sigma_mm_per_kN: float = None  # type: ignore[assignment]  # None: the default, set in __post_init__
     true_compliance_mm_per_kN: np.ndarray | None = None
 
     def __post_init__(self) -> None:
