@@ -42,6 +42,7 @@ from benchmarks.common import NIM_STEWART_FILE, ROOT, Row, Section, seeded_main
 from stewart_calib import accuracy, planning
 from stewart_calib import kinematics as kin
 from stewart_calib.config import load_estimator_config
+from stewart_calib.drive import drive_model
 from stewart_calib.instruments import gauge
 from stewart_calib.pipelines.calibrate import run_calibration
 from stewart_calib.platform import (
@@ -140,9 +141,7 @@ def true_closed_loop(platform: Platform, robot: Robot, estimate) -> tuple[float,
     params, _, _ = gauge.to_gauge(platform.drive, robot.params)
     poses = accuracy.evaluation_poses(platform)
     R, t = kin.pose_to_rt(poses)
-    scale = estimate.block_values("stroke_scale")
-    scale = platform.stroke_scale if scale is None else scale
-    strokes = kin.inverse_kinematics(platform.drive.perturbed(estimate.error), R, t) / (1.0 + scale)
+    strokes = drive_model(platform).calibrated_by(estimate).inverse_kinematics(R, t)
     reached = kin.forward_kinematics(LegGeometry.from_params(params), strokes * (1.0 + robot.scale), guess=(R, t))
     position_mm, orientation_deg = kin.pose_error(R, t, reached.R, reached.t)
     return float(np.mean(position_mm)), float(np.mean(orientation_deg))
@@ -165,7 +164,7 @@ def compare(platform: Platform, seed: int, size: Size) -> dict:
     for name, poses in (("planned", planned), ("random", random)):
         estimate = _fit(platform, measure(platform, robot, poses, rng))
         out[name] = true_closed_loop(platform, robot, estimate)
-        covariance, _ = accuracy.estimate_drive_covariance(estimate)
+        covariance = accuracy.estimate_drive_covariance(estimate, drive_model(platform))
         out[f"{name}_predicted"] = accuracy.predicted_error(platform, covariance).position_mm
     return out
 

@@ -221,6 +221,20 @@ def pose_instrument_observation(z, theta, orientation_variance, position_varianc
     return R_X, t_X, covariance, J
 
 
+# ----------------------------------------------------------------------------- the drive's extensions
+
+
+@njit(**_JIT)
+def leg_extensions(starts, gains, factors, inputs, out):
+    """``e_i = Σ_b factors[b, i] · gains[b] · inputs[starts[b] + i]`` into ``out (6,)``: a drive's leg
+    extensions (drive.DriveModel.extensions, ``factors = o_b + v_b``) from one sample's inputs."""
+    for i in range(6):
+        e = factors[0, i] * (inputs[starts[0] + i] if gains[0] == 1.0 else gains[0] * inputs[starts[0] + i])
+        for b in range(1, starts.shape[0]):
+            e += factors[b, i] * (inputs[starts[b] + i] if gains[b] == 1.0 else gains[b] * inputs[starts[b] + i])
+        out[i] = e
+
+
 # ----------------------------------------------------------------------------- forward kinematics
 
 

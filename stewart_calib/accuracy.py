@@ -2,9 +2,9 @@
 
 After a calibration the controller commands the strokes that the **estimate** says reach a desired
 pose X (inverse kinematics of ``M̂``, ``k̂``); the **true** robot moves them to
-``FK(M, k; q)``. With the estimate's error ``e = θ̂ − θ`` over ``θ = [δM (42), k (6)]`` the
-achieved pose misses X by, to first order (the drive's FK Jacobian,
-:func:`stewart_calib.instruments.drive.pose_jacobian`, at the nominal drive),
+``FK(M, k; q)``. With the estimate's error ``e = θ̂ − θ`` over ``θ = x_drive = [δM (42), k (6)]``
+(the drive model's unknowns, every term identified) the achieved pose misses X by, to first order
+(the drive's FK Jacobian, :meth:`stewart_calib.drive.DriveModel.pose_jacobian`, at the nominal drive),
 
     δξ(X) = −∂ξ/∂θ (X) · e        (body tangent ``[ω, v]``: rotation, then position in {D})
 
@@ -34,13 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import kinematics as kin
+from .drive import DriveModel, drive_model
 from .errors import CalibError
 from .estimate import Estimate
-from .instruments import drive as drive_model
 from .platform import N_LEGS, N_PARAMS, Platform
-
-#: ``θ = [δM (42), k (6)]``: the drive's unknowns that move the closed-loop pose
-N_DRIVE_UNKNOWNS = N_PARAMS + N_LEGS
 
 #: Workspace poses the prediction averages over, drawn uniformly in the ``[workspace]`` box
 #: (reachable within the stroke ranges) with a fixed seed, so that the same covariance always
@@ -100,14 +97,15 @@ def within_ranges(platform: Platform, poses: np.ndarray) -> np.ndarray:
     tracker with a reading range) of ``poses`` lie within the platform's ranges."""
     R, t = kin.pose_to_rt(np.asarray(poses, dtype=float))
     ok = np.ones(len(R), dtype=bool)
-    legs_and_bounds = [(platform.drive, platform.stroke_range, platform.stroke_scale)]
-    if platform.tracker is not None:
-        legs_and_bounds.append((platform.tracker, platform.reading_range, np.zeros(N_LEGS)))
-    for legs, bounds, scale in legs_and_bounds:
-        if bounds is not None:
-            strokes = kin.inverse_kinematics(legs, R, t) / (1.0 + scale)
-            ok &= np.all((strokes >= bounds[0]) & (strokes <= bounds[1]), axis=1)
+    if platform.stroke_range is not None:
+        ok &= _within(drive_model(platform).inverse_kinematics(R, t), platform.stroke_range)
+    if platform.tracker is not None and platform.reading_range is not None:
+        ok &= _within(kin.inverse_kinematics(platform.tracker, R, t), platform.reading_range)
     return ok
+
+
+def _within(values: np.ndarray, bounds: tuple[float, float]) -> np.ndarray:
+    return np.all((values >= bounds[0]) & (values <= bounds[1]), axis=1)
 
 
 def evaluation_poses(platform: Platform) -> np.ndarray:
@@ -117,11 +115,11 @@ def evaluation_poses(platform: Platform) -> np.ndarray:
 
 def closed_loop_jacobian(platform: Platform, poses: np.ndarray) -> np.ndarray:
     """``D = ∂ξ/∂θ`` ``(V, 6, 48)`` at the nominal drive: how the pose the robot reaches for the
-    commanded strokes of a desired pose moves with ``θ = [δM, k]`` (body tangent ``[ω, v]``)."""
+    commanded strokes of a desired pose moves with ``θ = x_drive`` (δM, then every term of the
+    drive model: ``k``; body tangent ``[ω, v]``)."""
     R, t = kin.pose_to_rt(np.asarray(poses, dtype=float).reshape(-1, 6))
-    strokes = kin.inverse_kinematics(platform.drive, R, t) / (1.0 + platform.stroke_scale)
-    dxi_M, dxi_k = drive_model.pose_jacobian(platform.drive, strokes, R, t)
-    return np.concatenate([dxi_M, dxi_k], axis=-1)
+    drive = drive_model(platform).identifying()
+    return drive.pose_jacobian(None, R, t, drive.inputs(drive.inverse_kinematics(R, t)))
 
 
 def rotation_length_mm(platform: Platform) -> float:
@@ -186,9 +184,10 @@ def predicted_error(platform: Platform, covariance: np.ndarray, poses: np.ndarra
         poses: ``(V, 6)`` the poses to average over (default :func:`evaluation_poses`).
     """
     covariance = np.asarray(covariance, dtype=float)
-    n = min(len(covariance), N_DRIVE_UNKNOWNS)
     workspace = poses is None
-    D = closed_loop_jacobian(platform, evaluation_poses(platform) if poses is None else poses)[..., :n]
+    D = closed_loop_jacobian(platform, evaluation_poses(platform) if poses is None else poses)
+    n = min(len(covariance), D.shape[-1])
+    D = D[..., :n]
     pose_covariance = D @ covariance[:n, :n] @ np.swapaxes(D, -1, -2)
     position = _expected_norms(pose_covariance[:, 3:, 3:])
     orientation = _expected_norms(pose_covariance[:, :3, :3])
@@ -197,19 +196,15 @@ def predicted_error(platform: Platform, covariance: np.ndarray, poses: np.ndarra
     )
 
 
-def correction_size(
-    platform: Platform, error: np.ndarray, stroke_scale: np.ndarray | None = None, poses: np.ndarray | None = None
-) -> float:
-    """Mean position change [mm] over the workspace poses (or ``poses``) that the estimate makes to
-    where the robot goes: ``‖FK(estimate, IK(nominal, X)) − X‖`` — the uncalibrated robot's
-    closed-loop error if the estimate were the truth."""
+def correction_size(platform: Platform, estimate: DriveModel, poses: np.ndarray | None = None) -> float:
+    """Mean position change [mm] over the workspace poses (or ``poses``) that the estimated drive
+    (:meth:`~stewart_calib.drive.DriveModel.calibrated`) makes to where the robot goes:
+    ``‖FK(estimate, IK(nominal, X)) − X‖`` — the uncalibrated robot's closed-loop error if the
+    estimate were the truth."""
     poses = evaluation_poses(platform) if poses is None else np.asarray(poses, dtype=float).reshape(-1, 6)
     R, t = kin.pose_to_rt(poses)
-    strokes = kin.inverse_kinematics(platform.drive, R, t) / (1.0 + platform.stroke_scale)
-    scale = platform.stroke_scale if stroke_scale is None else np.asarray(stroke_scale, dtype=float)
-    reached = kin.forward_kinematics(
-        platform.drive.perturbed(error), drive_model.scaled_strokes(strokes, scale), guess=(R, t), strict=False
-    )
+    drive = drive_model(platform)
+    reached = estimate.forward_kinematics(drive.inputs(drive.inverse_kinematics(R, t)), guess=(R, t), strict=False)
     position_mm, _ = kin.pose_error(R, t, reached.R, reached.t)
     return float(np.mean(position_mm[reached.converged])) if reached.converged.any() else float("inf")
 
@@ -250,16 +245,23 @@ def summary_line(
     return head, False
 
 
-def estimate_drive_covariance(estimate: Estimate) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """``(covariance over [δM] or [δM, k], the estimated stroke scale k or None)`` of an estimate:
-    what :func:`predicted_error` and :func:`correction_size` take. The covariance is None when the
-    estimate has none (a rank-deficient fit)."""
-    columns = estimate.layout.slice("stroke_scale")
-    scale = estimate.block_values("stroke_scale")
-    if columns is None or estimate.full_covariance is None:
-        return estimate.covariance, scale
-    index = np.r_[np.arange(N_PARAMS), np.arange(columns.start, columns.stop)]
-    return estimate.full_covariance[np.ix_(index, index)], scale
+def estimate_drive_covariance(estimate: Estimate, drive: DriveModel) -> np.ndarray | None:
+    """The covariance of an estimate over ``drive``'s unknowns as :func:`predicted_error` takes
+    them: δM, then each term of the drive up to the last the estimate identified (a term it did
+    not identify before that one: zero rows, known exactly). None when the estimate has none (a
+    rank-deficient fit)."""
+    spans = [estimate.layout.slice(term.key) for term in drive.terms]
+    identified = [k for k, span in enumerate(spans) if span is not None]
+    if not identified or estimate.full_covariance is None:
+        return estimate.covariance
+    index = np.concatenate(
+        [np.arange(N_PARAMS)]
+        + [np.arange(s.start, s.stop) if s is not None else np.full(N_LEGS, -1) for s in spans[: identified[-1] + 1]]
+    )
+    covariance = estimate.full_covariance[np.ix_(index, index)]
+    missing = index < 0
+    covariance[missing, :] = covariance[:, missing] = 0.0
+    return covariance
 
 
 def estimate_summary(
@@ -272,13 +274,14 @@ def estimate_summary(
     warning (``"warning": line or null``); without a covariance, ``{"available": false}`` and a
     line saying why.
     """
-    covariance, scale = estimate_drive_covariance(estimate)
+    drive = drive_model(platform)
+    covariance = estimate_drive_covariance(estimate, drive)
     if covariance is None or not np.all(np.isfinite(covariance)):
         line = "warning: no predicted closed-loop pose error: the estimate has no covariance (rank-deficient fit)"
         return {"available": False, "warning": line}, line, True
     poses = None if platform.workspace is not None else measured_poses
     prediction = predicted_error(platform, covariance, poses)
-    correction = correction_size(platform, estimate.error, scale, poses)
+    correction = correction_size(platform, drive.calibrated_by(estimate), poses)
     line, warn = summary_line(prediction, noise_floor_mm(platform, reading_sigma_mm), correction)
     field = {**prediction.to_dict(), "correction_mm": correction, "warning": line if warn else None}
     return field, line, warn

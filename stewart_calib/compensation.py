@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import kinematics as kin
+from .drive import DriveModel, drive_model, plain_drive
 from .errors import CalibError
 from .estimate import Estimate
 from .platform import LegGeometry, Platform
@@ -71,25 +72,22 @@ def check_reachable(poses_mm_rad: np.ndarray, strokes_mm: np.ndarray, platform: 
 
 
 def compensate(
-    estimate_or_drive: Estimate | LegGeometry,
+    drive: DriveModel | Estimate | LegGeometry,
     desired_poses_mm_rad: np.ndarray,
     nominal: Platform | LegGeometry | None = None,
     limits: Platform | None = None,
-    stroke_scale: np.ndarray | None = None,
 ) -> np.ndarray:
     """Strokes that put the estimated drive at ``desired_poses_mm_rad``.
 
     Args:
-        estimate_or_drive: the drive geometry ``M + δM`` itself, or an :class:`Estimate`
-            (then ``nominal`` supplies ``M``).
+        drive: the calibrated drive model (:meth:`~stewart_calib.drive.DriveModel.calibrated`),
+            an :class:`Estimate` (then ``nominal`` supplies ``M`` and the drive's nominal terms,
+            which the estimate's identified blocks replace), or legs ``M + δM`` alone (their
+            strokes are their length changes).
         desired_poses_mm_rad: ``(N, 6)`` ``[x, y, z [mm], roll, pitch, yaw [rad]]`` (or ``(6,)``).
         nominal: the platform or nominal drive; required with an :class:`Estimate`.
         limits: the platform whose workspace and stroke range the poses and strokes must
             respect (:func:`check_reachable`), or None for no check.
-        stroke_scale: ``(6,)`` k_i of the drive's encoders (spec §7: a leg is ``l_i + (1 + k_i) q_i``
-            long), so the commanded stroke is the IK length change over ``1 + k_i``. None: for an
-            :class:`Estimate`, its identified scale, else ``nominal``'s ``[drive] stroke_scale``;
-            for a drive, 0.
     Returns:
         ``(N, 6)`` strokes q_i [mm] (same leading shape as ``desired_poses_mm_rad``).
     Raises:
@@ -97,22 +95,16 @@ def compensate(
             to this radian argument, is refused here).
         CalibError: an Estimate without ``nominal``, or non-finite poses.
     """
-    if isinstance(estimate_or_drive, Estimate):
+    if isinstance(drive, Estimate):
         if nominal is None:
             raise CalibError("compensate: an Estimate needs the nominal platform to build M + δM")
-        drive = estimate_or_drive.drive(nominal)
-        if stroke_scale is None:
-            stroke_scale = estimate_or_drive.block_values("stroke_scale")
-        if stroke_scale is None and isinstance(nominal, Platform):
-            stroke_scale = nominal.stroke_scale
-    else:
-        drive = estimate_or_drive
+        drive = (drive_model(nominal) if isinstance(nominal, Platform) else plain_drive(nominal)).calibrated_by(drive)
+    elif isinstance(drive, LegGeometry):
+        drive = plain_drive(drive)
     poses = np.asarray(desired_poses_mm_rad, dtype=float)
     if poses.shape[-1:] != (6,) or not np.all(np.isfinite(poses)):
         raise CalibError(f"compensate: expected finite poses of shape (N, 6), got shape {poses.shape}")
-    strokes = kin.inverse_kinematics(drive, *kin.pose_to_rt(poses))
-    if stroke_scale is not None:
-        strokes = strokes / (1.0 + np.asarray(stroke_scale, dtype=float))
+    strokes = drive.inverse_kinematics(*kin.pose_to_rt(poses))
     if limits is not None:
         check_reachable(poses, strokes, limits)
     return strokes

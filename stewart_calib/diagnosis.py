@@ -34,6 +34,7 @@ from itertools import combinations
 import numpy as np
 
 from . import kinematics as kin
+from .drive import drive_model
 from .errors import CalibError
 from .instruments import lie
 from .platform import N_LEGS, Platform
@@ -123,9 +124,8 @@ def _check_count(platform: Platform, readings: np.ndarray, where: str) -> None:
 
 
 def _fk(platform: Platform, strokes: np.ndarray):
-    from .instruments.drive import scaled_strokes
-
-    return kin.forward_kinematics(platform.drive, scaled_strokes(strokes, platform.stroke_scale), strict=False)
+    drive = drive_model(platform)
+    return drive.forward_kinematics(drive.inputs(strokes), strict=False)
 
 
 def _check_strokes_unit(platform: Platform, strokes: np.ndarray, where: str, stroke_columns: list[str]) -> None:

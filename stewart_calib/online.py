@@ -42,6 +42,7 @@ import numpy as np
 from . import io
 from .compensation import compensate
 from .config import EstimatorConfig, config_from_dict
+from .drive import drive_model
 from .errors import CalibError, SampleRejected
 from .estimate import Estimate
 from .estimators import method_names, method_spec
@@ -152,8 +153,11 @@ class OnlineCalibrator:
         self.method = method
         self.config = config or EstimatorConfig()
         self._estimator = _make(method, platform, self.config)
-        # the layout is fixed at construction: whether compensation needs the identified k_i
-        self._identifies_stroke_scale = self._estimator.estimate().layout.slice("stroke_scale") is not None
+        # the layout is fixed at construction: whether compensation needs the drive's identified blocks
+        self._drive = drive_model(platform)
+        self._identifies_drive_blocks = any(
+            self._estimator.estimate().layout.slice(term.key) is not None for term in self._drive.terms
+        )
         self.rows_read = 0
         self.rows_skipped = 0
         self.source: dict | None = None
@@ -217,12 +221,12 @@ class OnlineCalibrator:
                 (:func:`~stewart_calib.compensation.check_reachable`).
             CalibError: non-finite poses or a wrong shape.
         """
-        drive = self.platform.drive.perturbed(self._estimator.current_error())
-        stroke_scale = self.platform.stroke_scale
-        if self._identifies_stroke_scale:  # the full estimate only then: isam2's costs a marginal
-            identified = self._estimator.estimate().block_values("stroke_scale")
-            stroke_scale = stroke_scale if identified is None else identified
-        return compensate(drive, pose_mm_rad, limits=self.platform, stroke_scale=stroke_scale)
+        values = {}
+        if self._identifies_drive_blocks:  # the full estimate only then: isam2's costs a marginal
+            estimate = self._estimator.estimate()
+            values = {term.key: estimate.block_values(term.key) for term in self._drive.terms}
+        drive = self._drive.calibrated(self._estimator.current_error(), values)
+        return compensate(drive, pose_mm_rad, limits=self.platform)
 
     def result(self) -> dict:
         """The current estimate as a spec §5 result, with the added ``samples_rejected`` field.

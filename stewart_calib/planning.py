@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .accuracy import N_DRIVE_UNKNOWNS, error_weight, reachable_poses, within_ranges
+from .accuracy import error_weight, reachable_poses, within_ranges
 from .config import NoiseConfig
 from .errors import CalibError
 from .identifiability import RANK_RTOL, scaled_paper_jacobian, whitened_leg_jacobian
@@ -123,8 +123,11 @@ def _design(platform: Platform, poses: np.ndarray, criterion: str, noise: NoiseC
             f"{', '.join(c for c in CRITERIA if c != 'O1')} for a '{platform.instrument.kind}' instrument"
         )
     blocks, lift = information_rows(platform, poses)
-    drive = lift[:N_DRIVE_UNKNOWNS]
-    weight = drive.T @ error_weight(platform) @ drive if criterion == "I" else drive[:N_PARAMS].T @ drive[:N_PARAMS]
+    if criterion == "I":
+        W = error_weight(platform)
+        weight = lift[: len(W)].T @ W @ lift[: len(W)]
+    else:
+        weight = lift[:N_PARAMS].T @ lift[:N_PARAMS]
     # mm, rad and dimensionless columns: equilibrated, so that the ridge weighs them alike
     # (−tr(W F⁻¹) and log det rank designs as before, with W and F scaled alike)
     scale = np.sqrt(np.mean(np.sum(blocks**2, axis=1), axis=0))

@@ -6,8 +6,8 @@ Layout (spec §5 and §7)::
 
 Every entry is an *error from its nominal value* in code units (mm, rad, dimensionless), so
 ``x = 0`` is the nominal model and each estimator's prior is ``N(0, diag(σ²))``. A block is an
-:class:`UnknownBlock`: the stroke scale ``k1…k6`` (:func:`stroke_scale_block`) or an
-instrument's own unknowns (frame, targets, the tracker's geometry; declared by its model in
+:class:`UnknownBlock`: a drive model's (:mod:`stewart_calib.drive`: the stroke scale ``k1…k6``) or
+an instrument's own unknowns (frame, targets, the tracker's geometry; declared by its model in
 :mod:`stewart_calib.instruments`). The result keeps the 42 drive values of §5 and adds one
 ``{"names", "estimate", "stddev"}`` entry per block under the block's ``key``, in file units.
 
@@ -88,17 +88,6 @@ class UnknownBlock:
             "estimate": estimate.tolist(),
             "stddev": None if stddev is None else (np.asarray(stddev, dtype=float) * np.abs(self.file_scale)).tolist(),
         }
-
-
-def stroke_scale_block(prior_sigma: float, nominal: np.ndarray | None = None) -> UnknownBlock:
-    """``k1…k6`` of the drive-leg model ``l_i + (1 + k_i) q_i = ‖t + R d_i − j_i‖`` (spec §7)
-    about ``nominal`` (the platform's ``[drive] stroke_scale``; default 0)."""
-    return UnknownBlock(
-        "stroke_scale",
-        tuple(f"k{i}" for i in range(1, N_LEGS + 1)),
-        np.zeros(N_LEGS) if nominal is None else nominal,
-        np.full(N_LEGS, prior_sigma),
-    )
 
 
 @dataclass(frozen=True)

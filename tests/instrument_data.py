@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from stewart_calib import kinematics as kin
+from stewart_calib.drive import drive_model
 from stewart_calib.estimators.batch import BatchProblem
 from stewart_calib.instruments import gauge
 from stewart_calib.instruments.external import model_for
@@ -87,10 +88,10 @@ def truth_in_gauge(case: InstrumentCase) -> tuple[np.ndarray, object]:
 
 def problem(case: InstrumentCase) -> BatchProblem:
     model = model_for(case.platform)
+    drive = drive_model(case.platform).identifying()
     return BatchProblem(
-        case.platform.drive,
-        case.platform.stroke_scale,
-        case.log.strokes,
+        drive,
+        drive.inputs(case.log.strokes),
         case.log.readings,
         model.module,
         model.register,

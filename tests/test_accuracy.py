@@ -14,6 +14,7 @@ from benchmarks.plan_poses import wide_hexapod
 from stewart_calib import accuracy, io, planning
 from stewart_calib import kinematics as kin
 from stewart_calib.cli import main as cli_main
+from stewart_calib.drive import drive_model
 from stewart_calib.errors import CalibError
 from stewart_calib.estimators import batch
 from stewart_calib.instruments import lie
@@ -92,13 +93,13 @@ def test_information_rows_are_the_batch_fits_jacobian(kind, wide_points, wide_po
     R, t = kin.pose_to_rt(poses)
     predicted = model.module.predict(model.nominal_unknowns(), R, t)
     readings = kin.rt_to_pose(*predicted) if kind == "pose" else predicted.reshape(len(R), -1)
-    strokes = kin.inverse_kinematics(platform.drive, R, t) / (1.0 + platform.stroke_scale)
+    drive = drive_model(platform).identifying()
     problem = batch.BatchProblem(
-        platform.drive, platform.stroke_scale, strokes, readings, model.module, model.register,
+        drive, drive.inputs(drive.inverse_kinematics(R, t)), readings, model.module, model.register,
         model.sigmas, model.channels, model.channel_names, np.arange(len(R), dtype=float),
     )  # fmt: skip
     unknowns = model.nominal_unknowns()
-    covariance = batch.cramer_rao(problem, np.zeros(42), platform.stroke_scale, unknowns)
+    covariance = batch.cramer_rao(problem, np.zeros(drive.size), unknowns)
     A = rows.reshape(-1, rows.shape[-1])
     tolerance = 1e-7 * np.abs(covariance).max()  # the inverse's round-off at its condition number
     np.testing.assert_allclose(lift @ np.linalg.inv(A.T @ A) @ lift.T, covariance, rtol=1e-6, atol=tolerance)

@@ -11,6 +11,7 @@ import numpy as np
 from stewart_calib import cli
 from stewart_calib import kinematics as kin
 from stewart_calib.compensation import compensate
+from stewart_calib.drive import DriveModel, stroke_term
 from stewart_calib.io import write_pose_list
 from stewart_calib.platform import PARAMETER_NAMES, load_platform
 
@@ -25,7 +26,7 @@ def _desired(platform) -> np.ndarray:
 def test_commanded_strokes_land_the_scaled_drive_on_the_pose():
     platform = load_platform("hobby-hexapod")
     poses = _desired(platform)
-    strokes = compensate(platform.drive, poses, stroke_scale=K)
+    strokes = compensate(DriveModel(platform.drive, (stroke_term(K),)), poses)
     # the real legs move (1 + k_i) q_i: forward kinematics of those lengths must give the desired pose
     solution = kin.forward_kinematics(platform.drive, strokes * (1.0 + K))
     R, t = kin.pose_to_rt(poses)
@@ -70,4 +71,4 @@ def test_compensate_cli_applies_the_results_stroke_scale(tmp_path, capsys):
     assert code == 0
     written = np.genfromtxt(tmp_path / "q.csv", delimiter=",", names=True)
     strokes = np.column_stack([written[f"q{i}_mm"] for i in range(1, 7)])
-    np.testing.assert_allclose(strokes, compensate(platform.drive, poses, stroke_scale=K), atol=1e-6)
+    np.testing.assert_allclose(strokes, compensate(DriveModel(platform.drive, (stroke_term(K),)), poses), atol=1e-6)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from stewart_calib import kinematics as kin
+from stewart_calib.drive import DriveModel, drive_model, stroke_term
 from stewart_calib.factors import drive_leg, gauge, instrument, instrument_pose, random_walk
 from stewart_calib.instruments.tracker import TrackerModel
 from stewart_calib.unknowns import UnknownLayout
@@ -41,14 +42,17 @@ def _values(pose: gtsam.Pose3, delta: np.ndarray | None = None) -> gtsam.Values:
     return values
 
 
-def test_drive_leg_residual_is_the_leg_length_model(platform, cases):
+def test_drive_leg_factor_residual_is_the_leg_length_model(platform, cases):
     poses, delta = cases
     truth = platform.drive.perturbed(delta)
+    spec = drive_leg.DriveLegs.of(np.arange(6), drive_model(platform))
     for pose in poses:
         R, t = pose.rotation().matrix(), pose.translation()
         strokes = kin.inverse_kinematics(truth, R, t) + 0.3  # 0.3 mm off: a nonzero residual
         expected = kin.leg_residuals(truth, R, t, strokes)
-        got, _, _ = drive_leg.residual(R, t, platform.drive.params, delta.reshape(6, 7), strokes)
+        got = drive_leg.factor(X, P, spec, strokes, gtsam.noiseModel.Unit.Create(6)).unwhitenedError(
+            _values(pose, delta)
+        )
         np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9)
         np.testing.assert_allclose(expected, -0.3, atol=1e-9)
 
@@ -56,7 +60,7 @@ def test_drive_leg_residual_is_the_leg_length_model(platform, cases):
 @pytest.mark.parametrize("legs", [np.arange(6), [2], [4, 1]])
 def test_drive_leg_factor_jacobians_match_central_differences(platform, cases, legs):
     poses, delta = cases
-    spec = drive_leg.DriveLegs.of(legs, platform.drive.params)
+    spec = drive_leg.DriveLegs.of(legs, drive_model(platform))
     strokes = 10.0 * np.arange(6) - 20.0
     noise = gtsam.noiseModel.Unit.Create(len(spec.legs))
     for pose in poses:
@@ -74,7 +78,8 @@ def test_drive_leg_factor_jacobians_match_central_differences(platform, cases, l
 def test_drive_leg_factor_with_stroke_scale_matches_central_differences(platform, cases):
     # the unknown vector [δM | k1..k6]: leg i's row has −q_i in column 42 + i, and (1 + k) scales the stroke
     poses, delta = cases
-    spec = drive_leg.DriveLegs.of(np.arange(6), platform.drive.params, 48, 42, np.full(6, 0.01))
+    drive = DriveModel(platform.drive, (stroke_term(np.full(6, 0.01), 0.05),))
+    spec = drive_leg.DriveLegs.of(np.arange(6), drive)
     strokes = 10.0 * np.arange(6) - 20.0
     unknowns = np.r_[delta, np.linspace(-0.02, 0.02, 6)]
     f = drive_leg.factor(X, P, spec, strokes, gtsam.noiseModel.Unit.Create(6))

@@ -36,7 +36,7 @@ POINTS_TRUTH = InstrumentTruth(
 def _normalised_errors(case, estimate) -> np.ndarray:
     """Errors of δM (42), k (6) and the instrument unknowns (file units), each over its CRB σ."""
     delta, unknowns = truth_in_gauge(case)
-    bound = cramer_rao(problem(case), delta, case.true_scale, unknowns)
+    bound = cramer_rao(problem(case), np.r_[delta, case.true_scale - case.platform.stroke_scale], unknowns)
     J = unknowns.file_jacobian()
     sigma = np.sqrt(np.r_[np.diag(bound)[:48], np.diag(J @ bound[48:, 48:] @ J.T)])
     truth = np.r_[delta, case.true_scale, unknowns.file_values()]

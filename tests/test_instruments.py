@@ -9,11 +9,12 @@ import pytest
 
 from stewart_calib import kinematics as kin
 from stewart_calib.config import NoiseConfig
+from stewart_calib.drive import stroke_term
 from stewart_calib.errors import SampleRejected
 from stewart_calib.instruments import InstrumentModel, instrument_model, instrument_theta
 from stewart_calib.instruments.tracker import TrackerModel
 from stewart_calib.platform import N_PARAMS
-from stewart_calib.unknowns import UnknownLayout, stroke_scale_block
+from stewart_calib.unknowns import UnknownLayout
 from tests.numdiff import EPS_MM, numerical_jacobian, numerical_pose_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_poses
 
@@ -101,7 +102,7 @@ def test_tracker_check_refuses_with_the_reason(platform):
 
 def test_layout_places_blocks_after_the_drive_and_reports_file_units(platform):
     tracker = _tracker(platform, 0.05)
-    layout = UnknownLayout((stroke_scale_block(0.02), tracker.unknowns))
+    layout = UnknownLayout((stroke_term(np.zeros(6), 0.02).block(), tracker.unknowns))
     assert layout.size == N_PARAMS + 6 + N_PARAMS
     assert layout.slice("stroke_scale") == slice(42, 48) and layout.slice("instrument") == slice(48, 90)
     np.testing.assert_array_equal(layout.prior_sigma(5.0)[[0, 41, 42, 48]], [5.0, 5.0, 0.02, 0.05])
@@ -131,14 +132,14 @@ def test_gauge_rows_span_exactly_the_rigid_motions_of_the_joints(platform, holde
         assert np.linalg.norm(C @ x) > 0.1 * np.linalg.norm(x)
         residue = x - np.linalg.pinv(C) @ (C @ x)
         assert np.linalg.norm(residue) < 1e-9 * np.linalg.norm(x)
-    assert UnknownLayout((stroke_scale_block(0.02),)).gauge_rows(platform.drive).shape == (0, 48)
+    assert UnknownLayout((stroke_term(np.zeros(6), 0.02).block(),)).gauge_rows(platform.drive).shape == (0, 48)
 
 
 def test_estimate_of_a_generalised_state_adds_its_blocks_to_the_result(platform):
     from stewart_calib.estimate import Estimate
     from stewart_calib.io import result_dict, validate_result
 
-    layout = UnknownLayout((stroke_scale_block(0.02),))
+    layout = UnknownLayout((stroke_term(np.zeros(6), 0.02).block(),))
     x = np.r_[np.full(N_PARAMS, 0.1), np.full(6, 0.01)]
     P = np.diag(np.r_[np.full(N_PARAMS, 0.04), np.full(6, 1e-4)])
     estimate = Estimate.of_state(x, P, layout, "ekf", 10, 1.0)

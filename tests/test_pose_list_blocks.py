@@ -69,7 +69,7 @@ def test_streamed_compensate_writes_the_whole_file_texts_bytes(calibrated, tmp_p
     assert _compensate_cli(result, tmp_path / "poses.csv", tmp_path / "q.csv") == 0
     # the former command: the whole list, its IK at once, csv_text of every column
     expected = _file_poses(text)
-    strokes = compensate(drive, expected, limits=platform, stroke_scale=platform.stroke_scale)
+    strokes = compensate(drive, expected, limits=platform)
     header = ["t_s", *io.POSE_COLUMNS, *io.STROKE_COLUMNS]
     columns = [np.arange(len(expected)) * 1.0, *expected[:, :3].T, *np.degrees(expected[:, 3:]).T, *strokes.T]
     assert (tmp_path / "q.csv").read_text() == csv_text(header, [c.tolist() for c in columns])  # the csv module's repr

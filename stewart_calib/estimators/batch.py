@@ -1,13 +1,14 @@
-"""Batch maximum-likelihood fit of the drive, its stroke scale and an outside instrument's unknowns.
+"""Batch maximum-likelihood fit of the drive model and an outside instrument's unknowns.
 
 What ``ls`` runs for the instruments of spec §7 other than the tracker (``pose``, ``points``).
-The unknowns are the 42 drive errors δM (paper order), the stroke scale ``k_1..k_6`` and the
-instrument's frame and target(s); the 12 directions no outside instrument can see are fixed by
+The unknowns are the drive model's ``x_drive`` (the 42 errors δM in paper order, then its unknown
+blocks, :mod:`stewart_calib.drive`: the stroke scale ``k_1..k_6``) and the instrument's frame and
+target(s); the 12 directions no outside instrument can see are fixed by
 :mod:`stewart_calib.instruments.gauge` (30 free drive directions). For every logged sample the
-drive's forward kinematics of ``(1 + k) q`` gives the platform pose X, the instrument model
-predicts its reading, and the whitened residuals of all samples are minimised by
-Levenberg–Marquardt, with the pose's dependence on δM and k from the implicit function theorem
-(:mod:`stewart_calib.instruments.drive`).
+drive model's forward kinematics gives the platform pose X, the instrument model predicts its
+reading, and the whitened residuals of all samples are minimised by Levenberg–Marquardt, with the
+pose's dependence on ``x_drive`` from the implicit function theorem
+(:meth:`~stewart_calib.drive.DriveModel.pose_jacobian`).
 
 Robust by construction, with nothing for a user to tune:
 
@@ -33,11 +34,10 @@ from types import ModuleType
 
 import numpy as np
 
-from .. import kinematics as kin
+from ..drive import DriveModel
 from ..errors import CalibError, SampleRejected
-from ..instruments import drive as drive_model
 from ..instruments import gauge
-from ..platform import N_LEGS, N_PARAMS, LegGeometry
+from ..platform import N_PARAMS
 
 #: a singular value below this fraction of the largest counts as zero
 RANK_TOLERANCE = 1e-10
@@ -54,9 +54,8 @@ class BatchProblem:
     """One instrument's log, ready to fit.
 
     Attributes:
-        nominal: nominal drive M.
-        nominal_stroke_scale: ``(6,)`` the platform file's k.
-        strokes: ``(N, 6)`` logged strokes q [mm].
+        drive: the drive model (its unknown blocks are fitted where identifiable).
+        inputs: ``(N, width)`` the samples' drive inputs (the logged strokes q [mm]).
         measured: ``(N, m)`` readings in code units (NaN: a point target not seen).
         model: :mod:`~stewart_calib.instruments.pose` or :mod:`~stewart_calib.instruments.points`.
         register: closed-form start, ``register(R_X, t_X, measured) -> unknowns``.
@@ -66,9 +65,8 @@ class BatchProblem:
         t_s: ``(N,)`` sample times [s].
     """
 
-    nominal: LegGeometry
-    nominal_stroke_scale: np.ndarray
-    strokes: np.ndarray
+    drive: DriveModel
+    inputs: np.ndarray
     measured: np.ndarray
     model: ModuleType
     register: Callable
@@ -83,12 +81,13 @@ class BatchSolution:
     """Result of :func:`fit`.
 
     Attributes:
-        error: ``(42,)`` δM [mm] (in the gauge of :mod:`~stewart_calib.instruments.gauge`).
-        stroke_scale: ``(6,)`` k (absolute).
+        x_drive: the drive's errors: δM [mm] (in the gauge of :mod:`~stewart_calib.instruments.gauge`)
+            and its blocks'.
         unknowns: the instrument's fitted unknowns.
-        covariance: full covariance over ``[δM (42), k (6), instrument tangent]``, or None when
-            the fit is rank deficient.
-        stroke_scale_fitted: False when k was held at its nominal value (not identifiable).
+        covariance: full covariance over ``[x_drive, instrument tangent]``, or None when the fit is
+            rank deficient.
+        drive_blocks_fitted: False when the drive's blocks were held at their nominal values (not
+            identifiable).
         noise_sigmas: ``{channel: σ}`` estimated from the residuals.
         residual_rms: ``{channel: RMS}`` of the residuals at the start (registered nominal
             model) and at the solution, file units.
@@ -100,11 +99,10 @@ class BatchSolution:
         iterations: LM evaluations in all.
     """
 
-    error: np.ndarray
-    stroke_scale: np.ndarray
+    x_drive: np.ndarray
     unknowns: object
     covariance: np.ndarray | None
-    stroke_scale_fitted: bool
+    drive_blocks_fitted: bool
     noise_sigmas: dict
     residual_rms: dict
     singular_values: np.ndarray
@@ -116,35 +114,33 @@ class BatchSolution:
 
 
 class _State:
-    """A point of the fit: δM, k, instrument unknowns, and the FK poses there."""
+    """A point of the fit: the drive's errors, the instrument's unknowns, and the FK poses there."""
 
-    def __init__(self, error, scale, unknowns, R, t):
-        self.error, self.scale, self.unknowns, self.R, self.t = error, scale, unknowns, R, t
+    def __init__(self, x_drive, unknowns, R, t):
+        self.x_drive, self.unknowns, self.R, self.t = x_drive, unknowns, R, t
 
 
-def _fk(
-    problem: BatchProblem, error: np.ndarray, scale: np.ndarray, guess
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    drive = problem.nominal.perturbed(error)
-    sol = kin.forward_kinematics(drive, drive_model.scaled_strokes(problem.strokes, scale), guess=guess, strict=False)
+def _fk(problem: BatchProblem, x_drive: np.ndarray, guess) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    sol = problem.drive.forward_kinematics(problem.inputs, x_drive, guess=guess, strict=False)
     return sol.R, sol.t, sol.converged
 
 
 def fit(
-    problem: BatchProblem, robust_k: float, estimate_noise: bool, stroke_scale: str, tolerance_mm: float
+    problem: BatchProblem, robust_k: float, estimate_noise: bool, drive_blocks: str, tolerance_mm: float
 ) -> BatchSolution:
-    """Fit drive, stroke scale and instrument unknowns to the log (see the module docstring).
+    """Fit the drive model and the instrument unknowns to the log (see the module docstring).
 
     Args:
         robust_k: Huber threshold on a reading's RMS whitened residual [σ]; 0 = plain least squares.
         estimate_noise: re-estimate each channel's σ from the residuals.
-        stroke_scale: ``"auto"`` (fit k where identifiable), ``"on"`` or ``"off"``.
+        drive_blocks: fit the drive's blocks ``"auto"`` (where identifiable), ``"on"`` or ``"off"``.
         tolerance_mm: stop when no drive or instrument length moves more than this [mm].
     Raises:
         CalibError: the log cannot be registered, or the fit diverges.
     """
-    n = len(problem.strokes)
-    R0, t0, ok = _fk(problem, np.zeros(N_PARAMS), problem.nominal_stroke_scale, None)
+    n = len(problem.inputs)
+    start = np.zeros(problem.drive.size)
+    R0, t0, ok = _fk(problem, start, None)
     rejected = [
         (
             int(k),
@@ -163,21 +159,21 @@ def fit(
         problem = _subset(problem, ok)
         R0, t0 = R0[ok], t0[ok]
     unknowns = problem.register(R0, t0, problem.measured)
-    state = _State(np.zeros(N_PARAMS), np.array(problem.nominal_stroke_scale, dtype=float), unknowns, R0, t0)
+    state = _State(start, unknowns, R0, t0)
 
-    basis = gauge.free_basis(problem.nominal)
+    basis = gauge.free_basis(problem.drive.legs)
     sigmas = np.array(problem.sigmas, dtype=float)
     start_rms = _channel_rms(problem, problem.model.residual(unknowns, problem.measured, R0, t0)[0])
-    fit_scale = stroke_scale != "off"
-    if stroke_scale == "auto":
-        fit_scale = _scale_identifiable(problem, state, basis, sigmas)
-    weights = np.ones(len(problem.strokes))
+    fit_blocks = drive_blocks != "off"
+    if drive_blocks == "auto":
+        fit_blocks = all(_blocks_identifiable(problem, state, basis, sigmas).values())
+    weights = np.ones(len(problem.inputs))
     evaluations = 0
     for _ in range(MAX_ROUNDS):
-        state, evaluated = _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_scale, tolerance_mm)
+        state, evaluated = _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_blocks, tolerance_mm)
         evaluations += evaluated
         e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0]
-        n_unknowns = basis.shape[1] + 6 * fit_scale + state.unknowns.size
+        n_unknowns = _reduced_size(problem, basis, fit_blocks, state.unknowns.size)
         new_sigmas = _channel_sigmas(problem, e, weights, sigmas, n_unknowns) if estimate_noise else sigmas
         # weights from a robust scale (MAD): a gross error inflates the RMS that would judge it
         scale = _robust_channel_scale(problem, e, n_unknowns) if estimate_noise else sigmas
@@ -188,22 +184,21 @@ def fit(
         sigmas, weights = new_sigmas, new_weights
         if settled:
             break
-    A, _ = _system(problem, state, basis, sigmas, weights, fit_scale)
+    A, _ = _system(problem, state, basis, sigmas, weights, fit_blocks)
     _, s, Vt = np.linalg.svd(A, full_matrices=False)
     covariance = None
     if s[-1] > RANK_TOLERANCE * s[0]:
         reduced = (Vt.T / s**2) @ Vt
-        lift = _lift(basis, fit_scale, state.unknowns.size)
+        lift = _lift(problem, basis, fit_blocks, state.unknowns.size)
         covariance = lift @ reduced @ lift.T
     e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0]
     used = np.ones(n, dtype=bool)
     used[[k for k, _ in rejected]] = False
     return BatchSolution(
-        error=state.error,
-        stroke_scale=state.scale,
+        x_drive=state.x_drive,
         unknowns=state.unknowns,
         covariance=covariance,
-        stroke_scale_fitted=bool(fit_scale),
+        drive_blocks_fitted=bool(fit_blocks),
         noise_sigmas={name: float(sigmas[problem.channels == c][0]) for c, name in enumerate(problem.channel_names)},
         residual_rms={"before": start_rms, "after": _channel_rms(problem, e)},
         singular_values=s,
@@ -215,60 +210,58 @@ def fit(
     )
 
 
-def cramer_rao(
-    problem: BatchProblem, error: np.ndarray, stroke_scale: np.ndarray, unknowns, fit_scale: bool = True
-) -> np.ndarray:
+def cramer_rao(problem: BatchProblem, x_drive: np.ndarray, unknowns, fit_blocks: bool = True) -> np.ndarray:
     """Cramér–Rao bound at a point (e.g. the simulator's truth moved into the gauge): the inverse
     Fisher information of the whitened residuals with the problem's σ, lifted to the full
-    ``[δM (42), k (6), instrument tangent]`` covariance (the 12 gauge directions carry none).
+    ``[x_drive, instrument tangent]`` covariance (the 12 gauge directions carry none).
 
     Raises:
         CalibError: forward kinematics fails at that point.
         numpy.linalg.LinAlgError: the information is singular (unknowns not identifiable).
     """
-    R, t, ok = _fk(problem, error, stroke_scale, None)
+    x_drive = np.asarray(x_drive, dtype=float)
+    R, t, ok = _fk(problem, x_drive, None)
     if not np.all(ok):
         raise CalibError("Cramér–Rao bound: forward kinematics failed at the given parameters")
-    state = _State(np.asarray(error, dtype=float), np.asarray(stroke_scale, dtype=float), unknowns, R, t)
-    basis = gauge.free_basis(problem.nominal)
+    state = _State(x_drive, unknowns, R, t)
+    basis = gauge.free_basis(problem.drive.legs)
     A, _ = _system(
-        problem, state, basis, np.asarray(problem.sigmas, dtype=float), np.ones(len(problem.strokes)), fit_scale
+        problem, state, basis, np.asarray(problem.sigmas, dtype=float), np.ones(len(problem.inputs)), fit_blocks
     )
-    lift = _lift(basis, fit_scale, unknowns.size)
+    lift = _lift(problem, basis, fit_blocks, unknowns.size)
     return lift @ np.linalg.inv(A.T @ A) @ lift.T
 
 
 def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], file_jacobian: np.ndarray) -> dict:
-    """How well the problem's poses identify drive, stroke scale and instrument (at the nominal
-    drive, nominal k and the given instrument unknowns, with the problem's σ): rank and condition
-    number of the whitened gauge-reduced Jacobian and the Cramér–Rao σ of every unknown.
+    """How well the problem's poses identify the drive model and the instrument (at the nominal
+    drive and the given instrument unknowns, with the problem's σ): rank and condition number of
+    the whitened gauge-reduced Jacobian and the Cramér–Rao σ of every unknown.
 
     Args:
         names: the instrument unknowns' names; file_jacobian: ``∂ file values / ∂ tangent``.
     Returns:
         JSON-ready ``{"unknowns", "rank", "condition_number", "condition_number_equilibrated"
         (:func:`equilibrated_condition_number`), "verdict" (of the equilibrated number, with the
-        thresholds of :mod:`stewart_calib.identifiability`), "stroke_scale_identifiable",
+        thresholds of :mod:`stewart_calib.identifiability`), "<block>_identifiable" per drive block,
         "predicted_stddev": {name: σ in file units (None: not identified)}}``.
     """
-    R, t, ok = _fk(problem, np.zeros(N_PARAMS), problem.nominal_stroke_scale, None)
+    drive = problem.drive
+    R, t, ok = _fk(problem, np.zeros(drive.size), None)
     if not np.all(ok):
         problem, R, t = _subset(problem, ok), R[ok], t[ok]
-    state = _State(np.zeros(N_PARAMS), np.asarray(problem.nominal_stroke_scale, dtype=float), unknowns, R, t)
-    basis = gauge.free_basis(problem.nominal)
+    state = _State(np.zeros(drive.size), unknowns, R, t)
+    basis = gauge.free_basis(drive.legs)
     sigmas = np.asarray(problem.sigmas, dtype=float)
-    A, _ = _system(problem, state, basis, sigmas, np.ones(len(problem.strokes)), True)
+    A, _ = _system(problem, state, basis, sigmas, np.ones(len(problem.inputs)), True)
     s = np.linalg.svd(A, compute_uv=False)
     rank = int(np.sum(s > 1e-8 * s[0]))
     equilibrated = equilibrated_condition_number(A) if rank == A.shape[1] else None
-    from ..platform import PARAMETER_NAMES
-
-    all_names = [*PARAMETER_NAMES, *(f"k{i}" for i in range(1, 7)), *names]
+    all_names = [*drive.parameter_names, *(name for block in drive.blocks for name in block.names), *names]
     stddev: list[float | None] = [None] * len(all_names)
     if rank == A.shape[1]:
-        lift = _lift(basis, True, unknowns.size)
+        lift = _lift(problem, basis, True, unknowns.size)
         covariance = lift @ np.linalg.inv(A.T @ A) @ lift.T
-        n = N_PARAMS + N_LEGS
+        n = drive.size
         variance = np.r_[np.diag(covariance)[:n], np.diag(file_jacobian @ covariance[n:, n:] @ file_jacobian.T)]
         stddev = [float(v) for v in np.sqrt(np.clip(variance, 0.0, None))]
     return {
@@ -278,7 +271,7 @@ def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], fil
         "condition_number": float(s[0] / s[-1]) if rank == A.shape[1] else None,
         "condition_number_equilibrated": equilibrated,
         "verdict": "rank-deficient" if equilibrated is None else _verdict(equilibrated),
-        "stroke_scale_identifiable": _scale_identifiable(problem, state, basis, sigmas),
+        **{f"{key}_identifiable": value for key, value in _blocks_identifiable(problem, state, basis, sigmas).items()},
         "predicted_stddev": dict(zip(all_names, stddev, strict=True)),
     }
 
@@ -309,28 +302,32 @@ def _verdict(condition_number: float) -> str:
 def _subset(problem: BatchProblem, keep: np.ndarray) -> BatchProblem:
     from dataclasses import replace
 
-    return replace(problem, strokes=problem.strokes[keep], measured=problem.measured[keep], t_s=problem.t_s[keep])
+    return replace(problem, inputs=problem.inputs[keep], measured=problem.measured[keep], t_s=problem.t_s[keep])
 
 
-def _lift(basis: np.ndarray, fit_scale: bool, n_unknowns: int) -> np.ndarray:
-    """Reduced unknowns ``[z_M (30), k (6 or 0), u]`` → full ``[δM (42), k (6), u]``."""
-    n_free = basis.shape[1]
-    lift = np.zeros((N_PARAMS + N_LEGS + n_unknowns, n_free + N_LEGS * fit_scale + n_unknowns))
+def _reduced_size(problem: BatchProblem, basis: np.ndarray, fit_blocks: bool, n_unknowns: int) -> int:
+    """Unknowns of the reduced fit ``[z_M, the drive's blocks (if fitted), u]``."""
+    return basis.shape[1] + (problem.drive.size - N_PARAMS) * fit_blocks + n_unknowns
+
+
+def _lift(problem: BatchProblem, basis: np.ndarray, fit_blocks: bool, n_unknowns: int) -> np.ndarray:
+    """Reduced unknowns ``[z_M (30), the drive's blocks (or none), u]`` → full ``[x_drive, u]``."""
+    n_free, n_drive = basis.shape[1], problem.drive.size
+    n_blocks = (n_drive - N_PARAMS) * fit_blocks
+    lift = np.zeros((n_drive + n_unknowns, n_free + n_blocks + n_unknowns))
     lift[:N_PARAMS, :n_free] = basis
-    if fit_scale:
-        lift[N_PARAMS : N_PARAMS + N_LEGS, n_free : n_free + N_LEGS] = np.eye(N_LEGS)
-    lift[N_PARAMS + N_LEGS :, n_free + N_LEGS * fit_scale :] = np.eye(n_unknowns)
+    lift[N_PARAMS : N_PARAMS + n_blocks, n_free : n_free + n_blocks] = np.eye(n_blocks)
+    lift[n_drive:, n_free + n_blocks :] = np.eye(n_unknowns)
     return lift
 
 
-def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_scale: bool):
+def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_blocks: bool):
     """Whitened, weighted Jacobian ``A`` (finite rows) and residual ``b`` at ``state``."""
     e, H_X, H_u = problem.model.residual(state.unknowns, problem.measured, state.R, state.t, jacobians=True)
-    drive = problem.nominal.perturbed(state.error)
-    dxi_M, dxi_k = drive_model.pose_jacobian(drive, problem.strokes, state.R, state.t)
-    blocks = [H_X @ dxi_M @ basis]
-    if fit_scale:
-        blocks.append(H_X @ dxi_k)
+    dxi = problem.drive.pose_jacobian(state.x_drive, state.R, state.t, problem.inputs)
+    blocks = [H_X @ dxi[..., :N_PARAMS] @ basis]
+    if fit_blocks and dxi.shape[-1] > N_PARAMS:
+        blocks.append(H_X @ dxi[..., N_PARAMS:])
     blocks.append(H_u)
     scale = np.sqrt(weights)[:, None] / sigmas[None, :]
     A = np.concatenate(blocks, axis=-1) * scale[..., None]
@@ -339,15 +336,17 @@ def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_sc
     return A[rows], b[rows]
 
 
-def _apply(problem: BatchProblem, state: _State, basis, step: np.ndarray, fit_scale: bool) -> _State | None:
+def _apply(problem: BatchProblem, state: _State, basis, step: np.ndarray, fit_blocks: bool) -> _State | None:
     n_free = basis.shape[1]
-    error = state.error + basis @ step[:n_free]
-    scale = state.scale + (step[n_free : n_free + N_LEGS] if fit_scale else 0.0)
-    unknowns = state.unknowns.retract(step[n_free + N_LEGS * fit_scale :])
-    R, t, ok = _fk(problem, error, scale, (state.R, state.t))
+    n_blocks = (problem.drive.size - N_PARAMS) * fit_blocks
+    x_drive = state.x_drive.copy()
+    x_drive[:N_PARAMS] += basis @ step[:n_free]
+    x_drive[N_PARAMS : N_PARAMS + n_blocks] += step[n_free : n_free + n_blocks]
+    unknowns = state.unknowns.retract(step[n_free + n_blocks :])
+    R, t, ok = _fk(problem, x_drive, (state.R, state.t))
     if not np.all(ok):
         return None
-    return _State(error, scale, unknowns, R, t)
+    return _State(x_drive, unknowns, R, t)
 
 
 def _cost(problem: BatchProblem, state: _State, sigmas, weights) -> float:
@@ -355,19 +354,19 @@ def _cost(problem: BatchProblem, state: _State, sigmas, weights) -> float:
     return float(np.nansum(weights[:, None] * e**2))
 
 
-def _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_scale, tolerance_mm) -> tuple[_State, int]:
+def _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_blocks, tolerance_mm) -> tuple[_State, int]:
     cost = _cost(problem, state, sigmas, weights)
     damping = 1e-3
     evaluations = 0
     while evaluations < MAX_EVALUATIONS:
-        A, b = _system(problem, state, basis, sigmas, weights, fit_scale)
+        A, b = _system(problem, state, basis, sigmas, weights, fit_blocks)
         normal = A.T @ A
         gradient = A.T @ b
         diag = np.maximum(np.diag(normal), 1e-12 * np.max(np.diag(normal)))
         while evaluations < MAX_EVALUATIONS:
             evaluations += 1
             step = np.linalg.solve(normal + damping * np.diag(diag), -gradient)
-            trial = _apply(problem, state, basis, step, fit_scale)
+            trial = _apply(problem, state, basis, step, fit_blocks)
             trial_cost = np.inf if trial is None else _cost(problem, trial, sigmas, weights)
             if trial_cost <= cost:
                 damping = max(damping / 10.0, 1e-12)
@@ -384,7 +383,7 @@ def _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_scale, tole
         )
         if moved_mm < tolerance_mm or decrease <= 1e-14 * max(cost, 1.0):
             return state, evaluations
-    raise CalibError(_not_converged(problem, state, basis, sigmas, weights, fit_scale))
+    raise CalibError(_not_converged(problem, state, basis, sigmas, weights, fit_blocks))
 
 
 #: a whitened RMS residual beyond this many σ at the last iterate: the model cannot explain the readings
@@ -395,17 +394,18 @@ IMPLAUSIBLE_SCALE = 0.3
 WEAK_CONDITION = 1e8
 
 
-def _not_converged(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_scale: bool) -> str:
+def _not_converged(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_blocks: bool) -> str:
     """What a non-converging fit was fitting and its most likely cause, from its last iterate:
     residuals far beyond the noise (the model cannot explain the readings) or a nearly singular
     system (the poses leave directions free)."""
+    blocks = "".join(f"{b.size} {b.key.replace('_', ' ')}s, " for b in problem.drive.blocks) if fit_blocks else ""
     fitted = (
         f"{basis.shape[1]} drive directions (the 42 parameters less the gauge), "
-        f"{'6 stroke scales, ' if fit_scale else ''}the {state.unknowns.size} instrument unknowns"
+        f"{blocks}the {state.unknowns.size} instrument unknowns"
     )
     head = (
         f"ls: Levenberg–Marquardt did not converge in {MAX_EVALUATIONS} evaluations fitting {fitted} to "
-        f"{len(problem.strokes)} samples"
+        f"{len(problem.inputs)} samples"
     )
     # against the platform file's σ: the re-estimated ones grow with whatever the model cannot explain
     e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0] / problem.sigmas
@@ -415,15 +415,15 @@ def _not_converged(problem: BatchProblem, state: _State, basis, sigmas, weights,
             f"{head}; most likely the readings do not belong to this model: they stay {whitened:.3g} σ (RMS) from it "
             "(readings in another unit or frame convention, columns mixed up, or a log of another platform)"
         )
-    scale = np.asarray(state.scale, dtype=float)
-    if fit_scale and np.max(np.abs(scale)) > IMPLAUSIBLE_SCALE:
+    scale = problem.drive.extension_per_stroke(state.x_drive) - 1.0  # the stroke scale k of each leg
+    if fit_blocks and np.max(np.abs(scale)) > IMPLAUSIBLE_SCALE:
         leg = int(np.argmax(np.abs(scale)))
         return (
             f"{head}; most likely the readings move the platform by another amount than the strokes say: the "
             f"fit took the stroke scale k{leg + 1} to {scale[leg]:+.3g} (a leg moving {1 + scale[leg]:.3g} mm per "
             "logged mm; readings or strokes in another unit?)"
         )
-    A, _ = _system(problem, state, basis, sigmas, weights, fit_scale)
+    A, _ = _system(problem, state, basis, sigmas, weights, fit_blocks)
     s = np.linalg.svd(A, compute_uv=False)
     condition = s[0] / s[-1] if s[-1] > 0 else math.inf
     if condition > WEAK_CONDITION:
@@ -437,11 +437,19 @@ def _not_converged(problem: BatchProblem, state: _State, basis, sigmas, weights,
     )
 
 
-def _scale_identifiable(problem: BatchProblem, state: _State, basis, sigmas) -> bool:
-    """True when adding k keeps the whitened Jacobian (at the start) of full rank."""
-    A, _ = _system(problem, state, basis, sigmas, np.ones(len(problem.strokes)), True)
-    s = np.linalg.svd(A, compute_uv=False)
-    return bool(s[-1] > 1e-8 * s[0])
+def _blocks_identifiable(problem: BatchProblem, state: _State, basis, sigmas) -> dict[str, bool]:
+    """For each of the drive's blocks: whether adding its columns to δM's and the instrument's keeps
+    the whitened Jacobian at ``state`` of full rank (true/false, by the block's key)."""
+    A, _ = _system(problem, state, basis, sigmas, np.ones(len(problem.inputs)), True)
+    n_free, out = basis.shape[1], {}
+    start = n_free
+    for block in problem.drive.blocks:
+        others = np.r_[np.arange(n_free), np.arange(n_free + problem.drive.size - N_PARAMS, A.shape[1])]
+        columns = np.sort(np.r_[others, np.arange(start, start + block.size)])
+        s = np.linalg.svd(A[:, columns], compute_uv=False)
+        out[block.key] = bool(s[-1] > 1e-8 * s[0])
+        start += block.size
+    return out
 
 
 #: a reading whose RMS whitened residual exceeds this many times the Huber threshold is a gross

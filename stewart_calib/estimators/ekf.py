@@ -1,13 +1,13 @@
 """EKF on the leg-length model: the same model and noise as the factor graph.
 
-State ``X`` = the unknown vector (:mod:`stewart_calib.unknowns`): δM (42, paper order), then the
-stroke scale ``k1…k6`` where configured and the instrument model's own unknowns ``θ``.
-Observation per sample: the six drive-leg residuals
-``r_i = ‖t + R d_i − j_i‖ − (l_i + (1 + k_i) q_i)`` at the pose the instrument measured (its
-model's loose pose: for the tracker, FK of the readings), with ``(j_i, d_i, l_i)`` of the
-current model ``M + δM``; the expected value is 0, so the innovation is ``−r`` and
-``H = ∂r/∂X``: ``∂r/∂M``, ``−q_i`` on ``k_i``, and ``J_x ∂ξ/∂θ`` on θ (the measured pose moves
-with the instrument's unknowns). The filter never names an instrument.
+State ``X`` = the unknown vector (:mod:`stewart_calib.unknowns`): the drive's ``x_drive`` (δM, 42,
+paper order, then its unknown blocks where configured, :mod:`stewart_calib.drive`) and the
+instrument model's own unknowns ``θ``. Observation per sample: the six drive-leg residuals
+``r_i = ‖t + R d_i − j_i‖ − (l_i + e_i)`` of the drive model at the pose the instrument measured
+(its model's loose pose: for the tracker, FK of the readings); the expected value is 0, so the
+innovation is ``−r`` and ``H = ∂r/∂X``: the drive model's ``∂r/∂x_drive``, and ``J_x ∂ξ/∂θ`` on θ
+(the measured pose moves with the instrument's unknowns). The filter names neither an instrument
+nor a block of the drive.
 
 Where the measurement does not fix a pose (a points instrument seeing fewer than three targets)
 the observation is the instrument's own residual ``h(ξ(X), θ) − z`` at the pose ``ξ(X)`` the drive
@@ -33,7 +33,7 @@ is the prior.
 The recursion is a :class:`~stewart_calib.estimators.robust.RobustFilter` (robust start-up,
 χ² gate with lock-out recovery, measurement and random-walk noise from the data, ``[robust]``);
 its observation at a state is the loose one above, or the tight one where the measurement fixes
-no pose there. A prepared sample is its strokes and the instrument's measurement, so the
+no pose there. A prepared sample is its drive inputs and the instrument's measurement, so the
 start-up batch can relinearise it at any state.
 """
 
@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import kinematics as kin
 from ..config import EstimatorConfig
 from ..errors import SampleRejected
 from ..estimate import Estimate
@@ -51,7 +50,7 @@ from ..platform import N_PARAMS, Platform
 from ..samples import Log, Sample
 from ..unknowns import gauge_conditioned
 from .base import Refusals, update_each
-from .measurement import HeldForRegistration, WarmFK, WarmPose, check_sample, unknown_layout
+from .measurement import HeldForRegistration, WarmFK, WarmPose, check_sample, estimator_drive, unknown_layout
 from .robust import RobustFilter
 
 
@@ -69,13 +68,12 @@ class LegEKF:
         self.platform = platform
         self.noise = config.noise
         self.model = instrument_model(platform, config.noise)
+        self.drive = estimator_drive(platform, config.noise, self.model)
         self.layout = unknown_layout(platform, config.noise, self.model)
         C = self.layout.gauge_rows(platform.drive)
         # Q per unit ρ²Δt: the walking entries, conditioned on the gauge (None: the plain diagonal).
         walks = self.layout.walks()
         unit_Q = None if walks.all() and len(C) == 0 else gauge_conditioned(np.diag(walks.astype(float)), C)
-        self._scale = self.layout.slice("stroke_scale")
-        self._nominal_scale = platform.stroke_scale
         self._instrument = self.layout.slice("instrument")
         self._pose = WarmPose(self.model)
         self._tracker_known = self.model.kind == "tracker" and self.model.unknowns is None
@@ -85,7 +83,7 @@ class LegEKF:
         # the batches' passes in one compiled call where the state is δM alone (~4× faster)
         # and so its gated recursion over a block of samples (update_block)
         self._compiled = compiled = self._tracker_known and not self.layout.blocks
-        kernel_arguments = (platform.drive, 1.0 + np.broadcast_to(self._nominal_scale, 6), config.noise.stroke_sigma_mm)
+        kernel_arguments = (self.drive, config.noise.stroke_sigma_mm)
         self.robust = RobustFilter(
             self.name,
             config.noise.prior_sigma_mm,
@@ -114,7 +112,7 @@ class LegEKF:
                 f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)", SampleRejected.TIME_BACK
             )
         if not self._held.active:
-            self.robust.update(sample.t_s, np.concatenate((strokes, np.ravel(z))))
+            self.robust.update(sample.t_s, np.concatenate((self.drive.inputs(strokes), np.ravel(z))))
             return
         self._held.hold_then_replay(sample, self.robust.start_at, self._replay)
 
@@ -156,70 +154,58 @@ class LegEKF:
                 & np.isfinite(readings).all(axis=1)
                 & ((readings >= r_lo) & (readings <= r_hi)).all(axis=1)
             )
-        prepared = np.ascontiguousarray(np.column_stack((strokes, readings)), dtype=float)
+        prepared = np.ascontiguousarray(np.column_stack((self.drive.inputs(strokes), readings)), dtype=float)
         return prepared, plain
 
     def _replay(self, held: Sample) -> None:
         strokes, z = check_sample(self.platform, self.model, held)
-        self.robust.update(held.t_s, np.concatenate((strokes, np.ravel(z))))
+        self.robust.update(held.t_s, np.concatenate((self.drive.inputs(strokes), np.ravel(z))))
 
     def _observe(self, prepared: np.ndarray, x: np.ndarray):
-        """``(−r, H = ∂r/∂X, R_meas)`` of a prepared sample at the state ``x``: the loose
+        """``(−r, H = ∂r/∂X, R_meas)`` of a prepared sample ``[u | z]`` at the state ``x``: the loose
         observation, or the tight one where the measurement fixes no pose at ``x``."""
-        strokes, z = prepared[:6], prepared[6:]
-        scale = 1.0 + (self._nominal_scale if self._scale is None else self._nominal_scale + x[self._scale])
+        drive = self.drive
+        inputs, z = prepared[: drive.input_width], prepared[drive.input_width :]
+        x_drive = x[: drive.size]
         if self._tracker_known:  # the common case, in one compiled call from readings to (r, H, R_meas)
             residual, H_drive, R_meas = self._pose.tracker_leg_observation(
-                self.platform.drive, x[:N_PARAMS], z, strokes * scale, self.noise.stroke_sigma_mm
+                drive, x_drive, z, inputs, self.noise.stroke_sigma_mm
             )
-            return -residual, self._with_blocks(H_drive, strokes, None), R_meas
+            return -residual, self._with_blocks(H_drive, None), R_meas
         theta = instrument_theta(self.model, None if self._instrument is None else x[self._instrument])
         observed = self._pose.solve(z, theta)
         if observed is None:
-            return self._observe_tight(strokes, z, theta, x)
-        # r, H = ∂r/∂M and R_meas = J_x Σ_x J_xᵀ + σ_q² I at the model M + δM, in one compiled call.
-        residual, H_drive, R_meas, J_x = kin.leg_ekf_observation(
-            self.platform.drive,
-            x[:N_PARAMS],
-            observed.R,
-            observed.t,
-            strokes * scale,
-            observed.covariance,
-            self.noise.stroke_sigma_mm,
+            return self._observe_tight(inputs, z, theta, x)
+        residual, H_drive, R_meas, J_x = drive.observation(
+            x_drive, observed.R, observed.t, inputs, observed.covariance, self.noise.stroke_sigma_mm
         )
         H_instrument = None if self._instrument is None else J_x @ observed.J_instrument
-        return -residual, self._with_blocks(H_drive, strokes, H_instrument), R_meas
+        return -residual, self._with_blocks(H_drive, H_instrument), R_meas
 
-    def _with_blocks(self, H_drive: np.ndarray, strokes: np.ndarray, H_instrument: np.ndarray | None) -> np.ndarray:
-        """``H`` over the whole unknown vector: ``∂r/∂M``, ``−q_i`` on ``k_i``, ``H_instrument`` on θ."""
-        H = H_drive
-        if self.layout.blocks:
-            H = np.zeros((6, self.layout.size))
-            H[:, :N_PARAMS] = H_drive
-            if self._scale is not None:
-                H[:, self._scale] = np.diag(-strokes)
-            if H_instrument is not None:
-                H[:, self._instrument] = H_instrument
+    def _with_blocks(self, H_drive: np.ndarray, H_instrument: np.ndarray | None) -> np.ndarray:
+        """``H`` over the whole unknown vector: the drive's ``∂r/∂x_drive``, ``H_instrument`` on θ."""
+        if H_instrument is None and H_drive.shape[1] == self.layout.size:
+            return H_drive
+        H = np.zeros((len(H_drive), self.layout.size))
+        H[:, : self.drive.size] = H_drive
+        if H_instrument is not None:
+            H[:, self._instrument] = H_instrument
         return H
 
-    def _observe_tight(self, strokes: np.ndarray, z: np.ndarray, theta: np.ndarray, x: np.ndarray):
+    def _observe_tight(self, inputs: np.ndarray, z: np.ndarray, theta: np.ndarray, x: np.ndarray):
         """The instrument's residual at the drive model's pose (see the module docstring);
         ``SampleRejected`` when the drive model's FK fails."""
-        scale = 1.0 + (self._nominal_scale if self._scale is None else self._nominal_scale + x[self._scale])
-        drive = self.platform.drive.perturbed(x[:N_PARAMS])
-        R, t = self._drive_fk.solve(drive, strokes * scale, "drive model")
-        J_g, H_drive = kin.leg_residual_jacobians(drive, R, t)
-        dg_dx = np.zeros((6, self.layout.size))
-        dg_dx[:, :N_PARAMS] = H_drive
-        if self._scale is not None:
-            dg_dx[:, self._scale] = np.diag(-strokes)
+        drive = self.drive
+        x_drive = x[: drive.size]
+        R, t = self._drive_fk.solve(drive.geometry(x_drive), drive.extensions(inputs, x_drive), "drive model")
+        J_g, dg_dx = drive.jacobians(x_drive, R, t, inputs)
         J_g_inv = np.linalg.inv(J_g)
         channels = np.concatenate(self.model.groups(z))
         res = self.model.residual(R, t, theta, z, channels)
-        H = -(res.J_pose @ J_g_inv) @ dg_dx
+        H = -self._with_blocks((res.J_pose @ J_g_inv) @ dg_dx, None)
         if self._instrument is not None:
             H[:, self._instrument] += res.J_instrument
-        A = res.J_pose @ J_g_inv * scale  # ∂r/∂q: a stroke moves the drive model's pose
+        A = res.J_pose @ J_g_inv * drive.extension_per_stroke(x_drive)  # ∂r/∂q: a stroke moves the drive model's pose
         R_meas = np.diag(self.model.channel_sigma[channels] ** 2) + self.noise.stroke_sigma_mm**2 * (A @ A.T)
         return -res.r, H, 0.5 * (R_meas + R_meas.T)
 

@@ -1,12 +1,12 @@
 """The factor graph that ``isam2`` (:mod:`.isam2`) and ``lm`` (:mod:`.lm`) both solve.
 
 Variables: one ``Pose3`` ``x_k`` per sample (the platform {D} in {J}, mm and rad) and one
-unknown vector ``p_w`` per parameter window: δM (paper eq. 9, paper order, [mm]) followed by
-the layout's blocks (:mod:`stewart_calib.unknowns`: stroke scale, the instrument's unknowns).
+unknown vector ``p_w`` per parameter window: the drive's ``x_drive`` (δM, paper eq. 9, paper order,
+[mm], and its unknown blocks) followed by the instrument's unknowns (:mod:`stewart_calib.unknowns`).
 Factors of sample k (all from :mod:`stewart_calib.factors`):
 
-* six drive-leg factors on ``(x_k, p_w)``: ``‖t + R d_i − j_i‖ − (l_i + (1 + k_i) q_i)``, σ_q
-  (``k_i`` = 0 without the stroke-scale block);
+* six drive-leg factors on ``(x_k, p_w)``: the drive model's ``‖t + R d_i − j_i‖ − (l_i + e_i)``,
+  σ_q (:mod:`stewart_calib.factors.drive_leg`, :mod:`stewart_calib.drive`);
 * tight coupling: the instrument's factors (:mod:`stewart_calib.factors.instrument`), one per
   channel group of its model — for the tracker one per ruler, ``‖t + R h_i − z_i‖ − (ls_i + s_i)``, σ_s;
   loose coupling: one pose prior on ``x_k`` from the model's loose pose and its covariance
@@ -42,10 +42,10 @@ from ..estimate import Estimate
 from ..factors import diagonal_noise, drive_leg, gauge, instrument, instrument_pose, random_walk
 from ..instruments import instrument_model, instrument_theta
 from ..instruments.tracker import as_tracker
-from ..platform import N_LEGS, N_PARAMS, Platform
+from ..platform import N_LEGS, Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout
-from .measurement import check_sample, unknown_layout
+from .measurement import check_sample, estimator_drive, unknown_layout
 
 
 def pose_key(k: int) -> int:
@@ -115,21 +115,15 @@ class GraphBuilder:
         self.graph = config.isam2
         self.chain = chain
         self.model = instrument_model(platform, config.noise)
+        self.drive = estimator_drive(platform, config.noise, self.model)
         self.layout: UnknownLayout = unknown_layout(platform, config.noise, self.model)
         self._robust = (self.graph.robust, self.graph.robust_k)
         # Gaussian rows: one factor of the six legs (or of all the instrument's channels) is their
         # scalar factors exactly, at a sixth of the callbacks; a robust kernel weighs each alone.
         self._gaussian = self.graph.robust == "none"
-        self._scale = self.layout.slice("stroke_scale")
         self._drive_legs = [
             (
-                drive_leg.DriveLegs.of(
-                    legs,
-                    platform.drive.params,
-                    self.layout.size,
-                    None if self._scale is None else self._scale.start,
-                    platform.stroke_scale,
-                ),
+                drive_leg.DriveLegs.of(legs, self.drive),
                 robust_noise(gtsam.noiseModel.Isotropic.Sigma(len(legs), self.noise.stroke_sigma_mm), *self._robust),
             )
             for legs in ([np.arange(N_LEGS)] if self._gaussian else [[i] for i in range(N_LEGS)])
@@ -242,8 +236,8 @@ class GraphBuilder:
             else:  # the measurement alone does not fix a pose: start from the drive model's
                 if guess is None and state.samples > 0:
                     guess = params_guess()
-                drive = self.platform.drive.perturbed(np.zeros(N_PARAMS) if guess is None else guess[:N_PARAMS])
-                R, t = kin.solve_fk(drive, self._scaled(strokes, guess), state.last_pose, "drive model")
+                x_drive = None if guess is None else guess[: self.drive.size]
+                R, t = self.drive.solve_fk(self.drive.inputs(strokes), x_drive, state.last_pose)
         pose = gtsam.Pose3(gtsam.Rot3(R), t)
 
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -274,7 +268,7 @@ class GraphBuilder:
             for channels, noise, legs in self._factored_groups(z):
                 factors.add(instrument.factor(self.model, x, z, channels, noise, p, block, size, legs=legs))
         for drive_legs, noise in self._drive_legs:
-            factors.add(drive_leg.factor(x, p, drive_legs, strokes, noise))
+            factors.add(drive_leg.factor(x, p, drive_legs, self.drive.inputs(strokes), noise))
 
         # The current parameter key is re-stamped every update so the smoother never
         # marginalises the variable new factors are about to touch (docs/measured-facts.md).
@@ -295,13 +289,6 @@ class GraphBuilder:
                 ],
             )
         return self._groups[1]
-
-    def _scaled(self, strokes: np.ndarray, guess: np.ndarray | None) -> np.ndarray:
-        """``(1 + k_i) q_i`` [mm]: the nominal stroke scale plus the error in ``guess``, if any."""
-        scale = self.platform.stroke_scale
-        if self._scale is not None and guess is not None:
-            scale = scale + guess[self._scale]
-        return strokes * (1.0 + scale)
 
     def prior_estimate(self, method: str) -> Estimate:
         """The estimate before any sample: every error 0 with the prior's covariance."""

@@ -207,17 +207,17 @@ def variance_components(S: np.ndarray, residual: np.ndarray, R: np.ndarray) -> t
 
 @njit(fastmath=_FAST, nogil=True, error_model="numpy")
 def _tracker_observation(
-    x, row, drive, tracker, stroke_factor, variances, newton, noise_scale2, R_guess, t_guess, warm, scratch
+    x, row, drive, tracker, extension_terms, variances, newton, noise_scale2, R_guess, t_guess, warm, scratch
 ):
-    """The EKF's observation of one prepared row ``[q (6) | s (6)]`` of a tracker of known geometry
+    """The EKF's observation of one prepared row ``[u | s (6)]`` (the drive's inputs, then the tracker's
+    readings) of a tracker of known geometry
     at ``x`` (``LegEKF._observe``): FK of the readings from ``(R_guess, t_guess)`` into ``R_pose,
     t_pose``, ``ν = −r`` and ``R = s² R_meas`` into ``nu`` and ``R``, with ``scratch = (R_pose,
-    t_pose, strokes, nu, R, FK's work)`` made once per pass (:func:`_observation_scratch`).
+    t_pose, extensions, nu, R, FK's work)`` made once per pass (:func:`_observation_scratch`).
     Returns ``(FK converged, H)``."""
-    R_pose, t_pose, strokes, nu, R, fk_work = scratch
+    R_pose, t_pose, extensions, nu, R, fk_work = scratch
     _kernels.copy_pose(R_guess, t_guess, R_pose, t_pose)
-    for i in range(6):
-        strokes[i] = row[i] * stroke_factor[i]
+    _kernels.leg_extensions(extension_terms[0], extension_terms[1], extension_terms[2], row, extensions)
     residual, r, H, R_meas, _ = _kernels.tracker_leg_observation_in(
         drive[0],
         drive[1],
@@ -226,13 +226,13 @@ def _tracker_observation(
         tracker[0],
         tracker[1],
         tracker[2],
-        row[6:12],
+        row[row.shape[0] - 6 :],
         R_pose,
         t_pose,
         warm,
         newton[0],
         newton[1],
-        strokes,
+        extensions,
         variances[0],
         variances[1],
         fk_work,
@@ -246,7 +246,8 @@ def _tracker_observation(
 
 @njit(nogil=True)
 def _observation_scratch():
-    """The arrays :func:`_tracker_observation` fills: pose, strokes, innovation, its covariance, FK's work."""
+    """The arrays :func:`_tracker_observation` fills: pose, the legs' extensions, innovation, its
+    covariance, FK's work."""
     return np.empty((3, 3)), np.empty(3), np.empty(6), np.empty(6), np.empty((6, 6)), _kernels._fk_work()
 
 
@@ -259,7 +260,7 @@ def tracker_filter_pass(
     use: np.ndarray,
     drive: tuple,
     tracker: tuple,
-    stroke_factor: np.ndarray,
+    extension_terms: tuple,
     variances: tuple,
     newton: tuple,
     walk_rate: float,
@@ -273,15 +274,17 @@ def tracker_filter_pass(
     geometry, in place on ``(x, P)``: what ``RobustFilter``'s pass does sample by sample through
     the EKF's observation (``LegEKF._observe``), in one call.
 
-    For each sample ``k`` in ``use``: FK of the readings ``prepared[k, 6:]`` warm-started from
-    ``(R_guess, t_guess)`` (updated in place on success; a sample whose FK fails is skipped), the
-    observation at ``x`` with strokes ``prepared[k, :6] · stroke_factor``
+    For each sample ``k`` in ``use``: FK of the readings (the last six of ``prepared[k]``)
+    warm-started from ``(R_guess, t_guess)`` (updated in place on success; a sample whose FK fails
+    is skipped), the observation at ``x`` with the drive's extensions of the inputs before them
     (:func:`~stewart_calib._kernels.tracker_leg_observation`), ``Q = ρ² Δt I``, the update with
     ``s² R_meas``, and the variance components (:func:`variance_components`) summed into
     ``components``.
 
     Args:
         drive, tracker: ``(base_joints, platform_joints, initial_lengths)`` of each leg set.
+        extension_terms: the drive's ``(starts, gains, factors o_b + v_b)`` of its known terms
+            (:meth:`stewart_calib.drive.DriveModel.kernel_terms`, :func:`~stewart_calib._kernels.leg_extensions`).
         variances: ``(σ_s², σ_q²)`` reading and stroke variance [mm²].
         newton: FK's ``(tolerance [mm], iteration cap)``.
     Returns:
@@ -303,7 +306,7 @@ def tracker_filter_pass(
             prepared[k],
             drive,
             tracker,
-            stroke_factor,
+            extension_terms,
             variances,
             newton,
             noise_scale2,
@@ -347,7 +350,7 @@ def tracker_filter_steps(
     last_t,
     drive,
     tracker,
-    stroke_factor,
+    extension_terms,
     variances,
     newton,
     walk_rate,
@@ -395,7 +398,7 @@ def tracker_filter_steps(
             prepared[k],
             drive,
             tracker,
-            stroke_factor,
+            extension_terms,
             variances,
             newton,
             noise_scale2,

@@ -25,6 +25,7 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..config import EstimatorConfig, LSConfig
+from ..drive import drive_model
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..platform import N_PARAMS, LegGeometry, Platform
@@ -34,9 +35,6 @@ from .measurement import WarmPose, check_sample, drive_only_model, measured_pose
 
 if TYPE_CHECKING:
     from ..instruments.external import ExternalModel
-
-#: prior σ the stroke-scale block declares (10 %); ls itself takes no prior
-STROKE_SCALE_PRIOR = 0.1
 
 #: singular values below this fraction of the largest count as zero (rank deficiency).
 RANK_TOLERANCE = 1e-10
@@ -122,6 +120,7 @@ class LeastSquares(BufferedFit):
         self.platform = platform
         self.config = config.ls
         self._external: ExternalModel | None = None
+        self.drive = drive_model(platform)
         if platform.instrument.kind != "tracker":
             from ..instruments.external import model_for
 
@@ -147,7 +146,7 @@ class LeastSquares(BufferedFit):
             self._t_s = sample.t_s
             return
         strokes, z = check_sample(self.platform, self.model, sample)
-        strokes = strokes * (1.0 + self.platform.stroke_scale)  # the encoders' nominal scale (spec §7)
+        strokes = self.drive.extensions(self.drive.inputs(strokes))  # the drive's nominal terms (spec §7)
         R_v, t_v = measured_pose(self._pose, z, sample.t_s)
         self._strokes.append(strokes)
         self._R_v.append(R_v)
@@ -171,9 +170,8 @@ class LeastSquares(BufferedFit):
         from .batch import BatchProblem, fit
 
         problem = BatchProblem(
-            nominal=self.platform.drive,
-            nominal_stroke_scale=self.platform.stroke_scale,
-            strokes=np.array(self._strokes),
+            drive=self.drive.identifying(),
+            inputs=self.drive.inputs(np.array(self._strokes)),
             measured=np.array(self._R_v),
             model=model.module,
             register=model.register,
@@ -191,26 +189,24 @@ class LeastSquares(BufferedFit):
         )
         self.rejected.extend(sol.rejected)
         self.singular_values = sol.singular_values
-        return external_estimate(self.name, model, sol, int(sol.used.sum()), self._t_s, GAUGE_STATEMENT)
+        return external_estimate(self.name, problem.drive, model, sol, int(sol.used.sum()), self._t_s, GAUGE_STATEMENT)
 
 
-def external_estimate(method: str, model, sol, samples_used: int, t_s: float, gauge: str) -> Estimate:
-    """An :class:`Estimate` over ``[δM | stroke scale | instrument]`` (spec §7 blocks) from a
-    :class:`~.batch.BatchSolution`; the instrument's tangent covariance carried into its θ."""
-    from ..unknowns import UnknownLayout, stroke_scale_block
+def external_estimate(method: str, drive, model, sol, samples_used: int, t_s: float, gauge: str) -> Estimate:
+    """An :class:`Estimate` over ``[x_drive | instrument]`` (spec §7 blocks) from a
+    :class:`~.batch.BatchSolution` of ``drive``; the instrument's tangent covariance carried into its θ."""
+    from ..unknowns import UnknownLayout
 
-    layout = UnknownLayout((stroke_scale_block(STROKE_SCALE_PRIOR, model.platform.stroke_scale), model.block()))
-    x = np.concatenate(
-        [sol.error, sol.stroke_scale - model.platform.stroke_scale, model.theta(sol.unknowns) - model.block().nominal]
-    )
+    layout = UnknownLayout((*drive.blocks, model.block()))
+    x = np.concatenate([sol.x_drive, model.theta(sol.unknowns) - model.block().nominal])
     P = None
     if sol.covariance is not None:
         lift = np.eye(layout.size)
-        lift[N_PARAMS + 6 :, N_PARAMS + 6 :] = model.theta_jacobian(sol.unknowns)
+        lift[drive.size :, drive.size :] = model.theta_jacobian(sol.unknowns)
         P = lift @ sol.covariance @ lift.T
     details = {
         "gauge": gauge,
-        "stroke_scale_identified": sol.stroke_scale_fitted,
+        **{f"{block.key}_identified": sol.drive_blocks_fitted for block in drive.blocks},
         "noise_estimated": sol.noise_sigmas,
         "residual_rms": sol.residual_rms,
         "readings_downweighted": sol.downweighted,

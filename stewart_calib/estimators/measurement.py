@@ -3,8 +3,8 @@
 * :func:`check_sample` — refuse an unusable sample (non-finite, outside the platform's
   stroke range, refused by the instrument model) with
   :class:`~stewart_calib.errors.SampleRejected` before any state is touched.
-* :func:`unknown_layout` — the unknown vector an estimator identifies: δM, then the stroke
-  scale where configured, then the instrument model's own unknowns.
+* :func:`estimator_drive`, :func:`unknown_layout` — the drive model an estimator identifies and
+  its unknown vector: δM, then the drive's unknown blocks, then the instrument model's own unknowns.
 * :class:`WarmFK` — forward kinematics of one leg set, warm-started from the previous
   solution (2 Newton iterations instead of 4–5 on a smooth trajectory), falling back to
   a cold start before giving up; FK failure becomes ``SampleRejected``.
@@ -22,6 +22,7 @@ import numpy as np
 from .. import _kernels
 from .. import kinematics as kin
 from ..config import EstimatorConfig, NoiseConfig
+from ..drive import DriveModel, drive_model
 from ..errors import CalibError, SampleRejected
 from ..instruments import (
     InstrumentModel,
@@ -34,7 +35,7 @@ from ..instruments import (
 from ..instruments.tracker import as_tracker
 from ..platform import LegGeometry, Platform
 from ..samples import Sample
-from ..unknowns import UnknownLayout, stroke_scale_block
+from ..unknowns import UnknownLayout
 from .base import state_array
 
 
@@ -68,25 +69,16 @@ def check_sample(platform: Platform, model: InstrumentModel, sample: Sample) -> 
     return strokes, model.check(sample.readings, sample.t_s)
 
 
-#: prior σ of the stroke scale with an instrument outside the robot when ``noise.stroke_scale_sigma``
-#: is 0: such logs come from encoders whose mm per count is the builders' nominal, a few per cent
-#: off per leg (issue 13: one leg 6 %), and the frame-and-target fit identifies k alongside
-STROKE_SCALE_SIGMA_OUTSIDE = 0.05
+def estimator_drive(platform: Platform, noise: NoiseConfig, model: InstrumentModel) -> DriveModel:
+    """The drive an estimator identifies with ``model``: its unknown terms as ``noise`` asks, and
+    the encoders' scale always with an instrument outside the robot (:func:`~stewart_calib.drive.drive_model`)."""
+    return drive_model(platform, noise, outside_instrument=model.kind != "tracker")
 
 
 def unknown_layout(platform: Platform, noise: NoiseConfig, model: InstrumentModel) -> UnknownLayout:
-    """δM, then the stroke scale about ``platform.stroke_scale`` (when ``noise.stroke_scale_sigma``
-    > 0, or always with an instrument outside the robot, :data:`STROKE_SCALE_SIGMA_OUTSIDE` by
-    default), then ``model``'s unknowns."""
-    blocks = []
-    scale_sigma = noise.stroke_scale_sigma
-    if scale_sigma <= 0.0 and model.kind != "tracker":
-        scale_sigma = STROKE_SCALE_SIGMA_OUTSIDE
-    if scale_sigma > 0.0:
-        blocks.append(stroke_scale_block(scale_sigma, platform.stroke_scale))
-    if model.unknowns is not None:
-        blocks.append(model.unknowns)
-    return UnknownLayout(tuple(blocks))
+    """δM, then the drive's unknown blocks (:func:`estimator_drive`), then ``model``'s unknowns."""
+    blocks = estimator_drive(platform, noise, model).blocks
+    return UnknownLayout(blocks if model.unknowns is None else (*blocks, model.unknowns))
 
 
 class _WarmStart:
@@ -141,43 +133,45 @@ class WarmPose(_WarmStart):
         return observed
 
     def tracker_leg_observation(
-        self, drive: LegGeometry, delta: np.ndarray, z: np.ndarray, strokes: np.ndarray, stroke_sigma_mm: float
+        self, drive: DriveModel, x_drive: np.ndarray, z: np.ndarray, inputs: np.ndarray, stroke_sigma_mm: float
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For a tracker of known geometry: :meth:`solve` and
-        :func:`~stewart_calib.kinematics.leg_ekf_observation` at that pose in one compiled call,
-        ``(r, H = ∂r/∂M, R_meas)`` (:func:`~stewart_calib.kinematics.tracker_leg_observation`)."""
+        """For a tracker of known geometry: :meth:`solve` and ``drive``'s observation at that pose
+        (:meth:`~stewart_calib.drive.DriveModel.observation`) in one compiled call,
+        ``(r, H = ∂r/∂x_drive, R_meas)`` (:func:`~stewart_calib.kinematics.tracker_leg_observation`)."""
         R, t, r, H, R_meas = kin.tracker_leg_observation(
-            drive,
-            delta,
+            drive.legs,
+            drive.parameter_error(x_drive),
             as_tracker(self.model).legs,
             z,
             self._guess,
-            strokes,
+            drive.extensions(inputs, x_drive),
             float(self.model.channel_sigma[0]),
             stroke_sigma_mm,
         )
         self._guess = (R, t)
-        return r, H, R_meas
+        return r, drive.with_terms(H, inputs), R_meas
 
-    def _tracker_arguments(self, drive: LegGeometry, stroke_factor: np.ndarray, stroke_sigma_mm: float) -> tuple:
-        """The compiled passes' fixed arguments: both leg sets, the stroke factor, the variances, Newton's limits."""
-        legs = as_tracker(self.model).legs
+    def _tracker_arguments(self, drive: DriveModel, stroke_sigma_mm: float) -> tuple:
+        """The compiled passes' fixed arguments: both leg sets, the drive's extension terms (all
+        known: the passes run on a state of δM alone), the variances, Newton's limits."""
+        legs, nominal = as_tracker(self.model).legs, drive.legs
+        starts, gains, offsets, values, _ = drive.kernel_terms()
         return (
-            (drive.base_joints, drive.platform_joints, drive.initial_lengths),
+            (nominal.base_joints, nominal.platform_joints, nominal.initial_lengths),
             (legs.base_joints, legs.platform_joints, legs.initial_lengths),
-            np.ascontiguousarray(stroke_factor, dtype=float),
+            (starts, gains, np.ascontiguousarray(offsets[:, None] + values)),
             (float(self.model.channel_sigma[0]) ** 2, float(stroke_sigma_mm) ** 2),
             (kin.FK_TOLERANCE_MM, kin.FK_MAX_ITERATIONS),
         )
 
-    def tracker_filter_pass(self, drive: LegGeometry, stroke_factor: np.ndarray, stroke_sigma_mm: float):
+    def tracker_filter_pass(self, drive: DriveModel, stroke_sigma_mm: float):
         """A filter pass ``(x, P, t_s, prepared, use, walk_rate, noise_scale2, components) →
         (used, last t_s)`` for :class:`~.robust.RobustFilter` that observes each sample as
         :meth:`tracker_leg_observation` does (same warm starts), compiled whole
         (:func:`~.kalman.tracker_filter_pass`); for a state of δM alone."""
         from .kalman import tracker_filter_pass
 
-        fixed = self._tracker_arguments(drive, stroke_factor, stroke_sigma_mm)
+        fixed = self._tracker_arguments(drive, stroke_sigma_mm)
 
         def run(x, P, t_s, prepared, use, walk_rate, noise_scale2, components):
             R, t = kin.start_pose(self._guess)
@@ -201,14 +195,14 @@ class WarmPose(_WarmStart):
 
         return run
 
-    def tracker_filter_steps(self, drive: LegGeometry, stroke_factor: np.ndarray, stroke_sigma_mm: float):
+    def tracker_filter_steps(self, drive: DriveModel, stroke_sigma_mm: float):
         """The gated recursion over rows of prepared samples for :class:`~.robust.RobustFilter`,
         observing each as :meth:`tracker_leg_observation` does, compiled whole
         (:func:`~.kalman.tracker_filter_steps`, whose arguments it takes but the fixed ones and the
         warm start, kept here); for a state of δM alone."""
         from .kalman import tracker_filter_steps
 
-        fixed = self._tracker_arguments(drive, stroke_factor, stroke_sigma_mm)
+        fixed = self._tracker_arguments(drive, stroke_sigma_mm)
 
         def run(x, P, Q, S_last, t_s, prepared, plain, last_t, walk_rate, noise_scale2, gate_nis, *window):
             R, t = kin.start_pose(self._guess)

@@ -29,6 +29,7 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..config import EstimatorConfig
+from ..drive import drive_model
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta
@@ -64,6 +65,7 @@ class PaperEKF:
         self.platform = platform
         self.config = c
         self.model = _pose_error_model(platform, config)
+        self._drive = drive_model(platform)
         self._layout = unknown_layout(platform, config.noise, self.model)
         self._held = HeldForRegistration(platform, config.noise, self.model, self._layout)
         self._theta = instrument_theta(self.model, None)  # the pose instrument's frame and target, once registered
@@ -105,7 +107,7 @@ class PaperEKF:
         self._update(*check_sample(self.platform, self.model, held), held.t_s)
 
     def _update(self, strokes: np.ndarray, z: np.ndarray, t_s: float) -> None:
-        strokes = strokes * (1.0 + self.platform.stroke_scale)  # the encoders' nominal scale (spec §7)
+        strokes = self._drive.extensions(self._drive.inputs(strokes))  # the drive's nominal terms (spec §7)
         R_v, t_v = measured_pose(self._tracker_fk, z, t_s, self._theta)
         drive = self.platform.drive.perturbed(self.filter.x)
         R_m, t_m = self._model_fk.solve(drive, strokes, "drive model")
@@ -195,9 +197,10 @@ def _pose_error_model(platform: Platform, config: EstimatorConfig):
     model = instrument_model(platform, config.noise)
     if model.kind == "tracker":
         return drive_only_model(PaperEKF.name, platform, config)
-    if config.noise.stroke_scale_sigma > 0.0:
+    extra = [block.key.replace("_", " ") for block in drive_model(platform, config.noise).blocks]
+    if extra:
         raise CalibError(
-            "paper-ekf identifies the 42 drive parameters only, not the stroke scale "
-            "(noise.stroke_scale_sigma); use ekf, isam2 or lm"
+            f"paper-ekf identifies the 42 drive parameters only, not the {', '.join(extra)} "
+            "(the [noise] settings ask for it); use ekf, isam2 or lm"
         )
     return model

@@ -24,29 +24,40 @@ _JIT: dict[str, Any] = {"nogil": True, "error_model": "numpy"}
 
 
 @njit(**_JIT)
-def drive_leg_rows(pose, unknowns, nominal, columns, scale_columns, nominal_scale, strokes):
+def drive_leg_rows(pose, unknowns, legs_of, nominal, columns, terms, inputs):
     """Drive-leg residuals of ``k`` legs and their Jacobians on the pose and the unknown vector.
 
     Args:
         pose: ``(4, 4)`` homogeneous pose of {D} in {J} [mm] (``Pose3.matrix()``).
-        unknowns: ``(size,)`` the unknown vector (δM first).
+        unknowns: ``(size,)`` the unknown vector (the drive's ``x_drive`` first).
+        legs_of: ``(k,)`` the rows' leg indices (0…5).
         nominal: ``(k, 7)`` nominal ``[j_i | d_i | l_i]`` [mm]; columns: ``(k, 7)`` their δ_i's
             columns in ``unknowns``.
-        scale_columns: ``(k,)`` columns of the legs' stroke-scale errors k_i, −1 where none.
-        nominal_scale: ``(k,)`` nominal k_i; strokes: ``(k,)`` executed strokes q_i [mm].
+        terms: the drive's extension terms ``(starts, gains, offsets, values (b, 6), columns (b, 6))``
+            (:meth:`stewart_calib.drive.DriveModel.kernel_terms`; a column −1: the value is known).
+        inputs: the sample's drive inputs ``u``.
     Returns:
         ``(r (k,), ∂r/∂ξ (k, 6), ∂r/∂unknowns (k, size))``.
     """
+    starts, gains, offsets, values, term_columns = terms
     k = nominal.shape[0]
     legs = np.empty((k, 7))
     extensions = np.empty(k)
+    gain = np.empty((starts.shape[0], k))  # ∂e_i/∂v_{b,i} = g_b u_{b,i}
     for i in range(k):
+        leg = legs_of[i]
         for j in range(7):
             legs[i, j] = nominal[i, j] + unknowns[columns[i, j]]
-        scale = nominal_scale[i]
-        if scale_columns[i] >= 0:
-            scale = nominal_scale[i] + unknowns[scale_columns[i]]
-        extensions[i] = (1.0 + scale) * strokes[i]
+        e = 0.0
+        for b in range(starts.shape[0]):
+            value = values[b, leg]
+            if term_columns[b, leg] >= 0:
+                value = values[b, leg] + unknowns[term_columns[b, leg]]
+            u = inputs[starts[b] + leg]
+            gain[b, i] = u if gains[b] == 1.0 else gains[b] * u
+            part = (offsets[b] + value) * gain[b, i]
+            e = part if b == 0 else e + part
+        extensions[i] = e
     R = np.ascontiguousarray(pose[:3, :3])
     t = np.ascontiguousarray(pose[:3, 3])
     r, J_pose, J_legs = np.empty(k), np.empty((k, 6)), np.empty((k, 7))
@@ -55,8 +66,9 @@ def drive_leg_rows(pose, unknowns, nominal, columns, scale_columns, nominal_scal
     for i in range(k):
         for j in range(7):
             H[i, columns[i, j]] = J_legs[i, j]
-        if scale_columns[i] >= 0:
-            H[i, scale_columns[i]] = -strokes[i]
+        for b in range(starts.shape[0]):
+            if term_columns[b, legs_of[i]] >= 0:
+                H[i, term_columns[b, legs_of[i]]] = -gain[b, i]
     return r, J_pose, H
 
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..errors import CalibError, SampleRejected
 from ..kinematics import pose_to_rt, rt_to_pose
-from ..platform import N_LEGS, N_PARAMS, Platform
+from ..platform import N_PARAMS, Platform
 from ..samples import Sample
 from ..unknowns import UnknownBlock
 from . import lie, points, pose, registration
@@ -154,12 +154,12 @@ def registered_platform(platform: Platform, strokes: np.ndarray, readings: np.nd
     """
     from dataclasses import replace
 
-    from .. import kinematics as kin
+    from ..drive import drive_model
     from ..errors import CalibError
-    from .drive import scaled_strokes
 
     model = model_for(platform)
-    fk = kin.forward_kinematics(platform.drive, scaled_strokes(strokes, platform.stroke_scale), strict=False)
+    drive = drive_model(platform)
+    fk = drive.forward_kinematics(drive.inputs(strokes), strict=False)
     usable = fk.converged & np.any(np.isfinite(readings), axis=1)
     if not np.any(usable):
         raise CalibError("cannot register the instrument: nominal forward kinematics converged for no sample")
@@ -199,39 +199,38 @@ def information_rows(
 
     The unknowns are reduced as the batch fit reduces them: the 30 drive directions the gauge
     leaves free (:func:`~stewart_calib.instruments.gauge.free_basis`), the stroke scale ``k1…k6``
-    and the instrument's tangent; ``lift`` maps them to ``[δM (42), k (6), instrument]``.
-    A new unknown of the drive (e.g. a leg's compliance) adds its columns to ``columns`` below
-    and its rows to ``lift``.
+    and the instrument's tangent; ``lift`` maps them to ``[x_drive, instrument]`` (``x_drive`` of the
+    drive model with every term unknown: δM, then the stroke scale and any other term).
 
     Args:
         poses: ``(N, 6)`` pose6 ``[mm, rad]`` the robot is driven to.
         seen: points only, ``(N, K)`` which targets the instrument saw (a log's finite readings);
             default :func:`visible_targets`.
     Returns:
-        ``(rows (N, m, p), lift (48 + n_instrument, p))``; a target the instrument cannot see at a
+        ``(rows (N, m, p), lift (drive size + n_instrument, p))``; a target the instrument cannot see at a
         pose (:func:`visible_targets`) has zero rows there.
     """
-    from .. import kinematics as kin
-    from . import drive, gauge
+    from ..drive import drive_model
+    from . import gauge
 
     model = model_for(platform)
+    drive = drive_model(platform).identifying()
     R, t = pose_to_rt(np.asarray(poses, dtype=float).reshape(-1, 6))
     unknowns = model.nominal_unknowns()
     predicted = model.module.predict(unknowns, R, t)
     readings = rt_to_pose(*predicted) if model.kind == "pose" else predicted.reshape(len(R), -1)
     _, H_X, H_u = model.module.residual(unknowns, readings, R, t, jacobians=True)
-    strokes = kin.inverse_kinematics(platform.drive, R, t) / (1.0 + platform.stroke_scale)
-    dxi_M, dxi_k = drive.pose_jacobian(platform.drive, strokes, R, t)
+    dxi = drive.pose_jacobian(None, R, t, drive.inputs(drive.inverse_kinematics(R, t)))
     basis = gauge.free_basis(platform.drive)
-    columns = [H_X @ dxi_M @ basis, H_X @ dxi_k, H_u]
+    columns = [H_X @ dxi[..., :N_PARAMS] @ basis, H_X @ dxi[..., N_PARAMS:], H_u]
     rows = np.concatenate(columns, axis=-1) / model.sigmas[:, None]
     if model.kind == "points":
         seen = visible_targets(platform, R, t) if seen is None else np.asarray(seen, dtype=bool)
         rows = np.where(np.repeat(seen, 3, axis=-1)[..., None], rows, 0.0)
-    n_free, n_instrument = basis.shape[1], unknowns.size
-    lift = np.zeros((N_PARAMS + N_LEGS + n_instrument, n_free + N_LEGS + n_instrument))
+    n_free, n_rest = basis.shape[1], drive.size - N_PARAMS + unknowns.size
+    lift = np.zeros((N_PARAMS + n_rest, n_free + n_rest))
     lift[:N_PARAMS, :n_free] = basis
-    lift[N_PARAMS:, n_free:] = np.eye(N_LEGS + n_instrument)
+    lift[N_PARAMS:, n_free:] = np.eye(n_rest)
     return rows, lift
 
 

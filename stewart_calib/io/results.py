@@ -12,9 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..drive import DriveModel, drive_model
 from ..errors import CalibError
 from ..estimate import Estimate
-from ..platform import N_PARAMS, PARAMETER_NAMES, LegGeometry, Platform
+from ..platform import N_PARAMS, PARAMETER_NAMES, Platform
 from .atomic import atomic_write_text
 from .tables import csv_text, read_text
 
@@ -181,8 +182,29 @@ def read_result(path: str | Path) -> dict:
 NOMINAL_TOLERANCE_MM = 1e-6
 
 
-def read_calibrated_drive(path: str | Path, platform: Platform) -> LegGeometry:
-    """The drive ``nominal + error`` of a result JSON (spec §5) made for ``platform``.
+def calibrated_drive(platform: Platform, result: dict, source: str) -> DriveModel:
+    """The drive model a result (spec §5, §7) identified: ``nominal + error``, and the values of each
+    of the drive's terms where the result has their block (else the platform file's nominal).
+
+    Raises:
+        CalibError: a block whose names are not the drive term's (``source`` names the file).
+    """
+    drive = drive_model(platform)
+    values = {}
+    for term in drive.terms:
+        block = result.get(term.key)
+        if block is None:
+            continue
+        if list(block["names"]) != list(term.names):
+            raise CalibError(
+                f"{source}: key '{term.key}.names': expected {', '.join(term.names)}, got {', '.join(block['names'])}"
+            )
+        values[term.key] = np.array(block["estimate"], dtype=float)
+    return drive.calibrated(np.array(result["error"], dtype=float), values)
+
+
+def read_calibrated_drive(path: str | Path, platform: Platform) -> DriveModel:
+    """The drive model of a result JSON (spec §5, §7) made for ``platform`` (:func:`calibrated_drive`).
 
     Raises:
         CalibError: an invalid result, or one whose ``platform`` names another platform or whose
@@ -200,4 +222,4 @@ def read_calibrated_drive(path: str | Path, platform: Platform) -> LegGeometry:
             f"{path}: key 'nominal': expected the nominal drive of platform '{platform.name}'; "
             f"it differs by {gap:.3g} mm (a result for another platform?)"
         )
-    return platform.drive.perturbed(np.array(result["error"]))
+    return calibrated_drive(platform, result, str(path))

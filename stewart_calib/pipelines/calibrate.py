@@ -39,6 +39,7 @@ from .. import kinematics as kin
 from ..accuracy import estimate_summary
 from ..config import EstimatorConfig, load_estimator_config
 from ..diagnosis import diagnose_log
+from ..drive import drive_model
 from ..errors import CalibError, SampleRejected, shown
 from ..estimate import Estimate
 from ..estimators import BatchEstimator, KalmanFiltered
@@ -51,7 +52,6 @@ from ..estimators.base import (
     update_block,
 )
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
-from ..instruments.drive import scaled_strokes
 from ..io import logs
 from ..online import Rejections
 from ..platform import N_LEGS, Platform, load_platform
@@ -467,7 +467,8 @@ def stream_calibration(
 def nominal_poses(platform: Platform, log: Log) -> np.ndarray:
     """``(n, 6)`` the nominal drive's FK poses of a log's strokes (those that converge): where an
     outside instrument's log put the robot, for a platform without ``[workspace]``."""
-    fk = kin.forward_kinematics(platform.drive, scaled_strokes(log.strokes, platform.stroke_scale), strict=False)
+    drive = drive_model(platform)
+    fk = drive.forward_kinematics(drive.inputs(log.strokes), strict=False)
     return fk.pose6[fk.converged]
 
 

@@ -34,16 +34,14 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
-    drive = io.read_calibrated_drive(args.result, platform)
-    identified = io.read_result(args.result).get("stroke_scale")  # spec §7, where the calibration identified it
-    stroke_scale = platform.stroke_scale if identified is None else np.array(identified["estimate"], dtype=float)
-    strokes = _compensated_blocks(args.poses, drive, platform, stroke_scale)
+    drive = io.read_calibrated_drive(args.result, platform)  # with its blocks, where the calibration identified them
+    strokes = _compensated_blocks(args.poses, drive, platform)
     rows = io.write_pose_list_blocks(args.out, strokes, io.STROKE_COLUMNS)
     print(f"wrote {rows} stroke rows to {args.out}")
     return 0
 
 
-def _compensated_blocks(poses_path: str, drive, platform, stroke_scale) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def _compensated_blocks(poses_path: str, drive, platform) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """``(poses [mm, rad], strokes [mm])`` a block of the pose list at a time. A pose out of range
     is refused once the rest of the list is read, so that a bad row anywhere in it is refused
     first, as when the list was read whole."""
@@ -51,7 +49,7 @@ def _compensated_blocks(poses_path: str, drive, platform, stroke_scale) -> Itera
     done = 0
     for poses in blocks:
         try:
-            strokes = compensate(drive, poses, limits=platform, stroke_scale=stroke_scale)
+            strokes = compensate(drive, poses, limits=platform)
         except PoseOutOfRange as err:
             for _ in blocks:
                 pass

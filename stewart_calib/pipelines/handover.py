@@ -14,6 +14,7 @@ import numpy as np
 
 from .. import __version__, io
 from ..config import EstimatorConfig
+from ..drive import drive_model
 from ..errors import CalibError
 from ..estimate import Estimate
 from ..platform import Platform, platform_to_toml
@@ -57,10 +58,8 @@ def calibrated_platform(platform: Platform, estimate: Estimate, method: str, log
         f"calibrated by stewart-calib {__version__} ({method}) from {log_name} on {created}; "
         f"nominal platform: {platform.name} ({platform.source})"
     )
-    changes: dict[str, Any] = {"drive": estimate.drive(platform), "description": note}
-    stroke_scale = estimate.block_values("stroke_scale")
-    if stroke_scale is not None:
-        changes["stroke_scale"] = stroke_scale
+    platform = drive_model(platform).calibrated_by(estimate).onto(platform)
+    changes: dict[str, Any] = {"description": note}
     theta = estimate.block_values("instrument")
     if theta is not None and platform.instrument.kind in ("pose", "points"):
         # θ = the frame's pose6, then the target's pose6 (pose) or the targets (points) [mm, rad]

@@ -106,24 +106,25 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
     import numpy as np
 
     from .. import kinematics as kin
+    from ..drive import drive_model
     from ..estimators.batch import BatchProblem, identifiability
-    from ..instruments.drive import scaled_strokes
     from ..instruments.external import model_for, registered_platform, visible_targets
     from ..planning import design_covariance
 
+    drive = drive_model(platform).identifying()
     if args.log is not None:
         log = io.read_log(args.log, platform, args.skip_bad_rows)
         strokes, readings = log.strokes, log.readings
         platform = registered_platform(platform, strokes, readings)
         model = model_for(platform)
-        fk = kin.forward_kinematics(platform.drive, scaled_strokes(strokes, platform.stroke_scale), strict=False)
+        fk = drive.forward_kinematics(drive.inputs(strokes), strict=False)
         poses = fk.pose6[fk.converged]
         seen = np.isfinite(readings[fk.converged]).reshape(len(poses), -1, 3).all(axis=-1)
     else:
         model = model_for(platform)
         poses = read_pose_list(args.poses)
         R, t = kin.pose_to_rt(poses)
-        strokes = kin.inverse_kinematics(platform.drive, R, t) / (1.0 + platform.stroke_scale)
+        strokes = drive.inverse_kinematics(R, t)
         predicted = model.module.predict(model.nominal_unknowns(), R, t)
         readings = kin.rt_to_pose(*predicted) if model.kind == "pose" else predicted.reshape(len(R), -1)
         seen = None
@@ -132,9 +133,8 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
             readings = np.where(np.repeat(seen, 3, axis=-1), readings, np.nan)
     unknowns = model.nominal_unknowns()
     problem = BatchProblem(
-        platform.drive,
-        platform.stroke_scale,
-        strokes,
+        drive,
+        drive.inputs(strokes),
         readings,
         model.module,
         model.register,

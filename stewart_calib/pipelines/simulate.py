@@ -56,7 +56,7 @@ def controller_for(args: argparse.Namespace, platform: Platform):
         return NominalController(platform)
     if args.result is None:
         raise CalibError("--controller frozen needs --result R.json (a calibration result)")
-    return FrozenController(read_calibrated_drive(args.result, platform))
+    return FrozenController(read_calibrated_drive(args.result, platform).legs)
 
 
 def run(args: argparse.Namespace) -> int:

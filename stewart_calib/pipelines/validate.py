@@ -29,9 +29,9 @@ import numpy as np
 from .. import io
 from .. import kinematics as kin
 from ..diagnosis import diagnose_log
+from ..drive import drive_model
 from ..errors import CalibError
-from ..instruments import drive as drive_model
-from ..platform import LegGeometry, Platform, load_platform
+from ..platform import Platform, load_platform
 from ..progress import log_progress_bar
 from ..samples import Log
 from . import handover, run_command
@@ -68,18 +68,11 @@ def _block(result: dict, key: str, expected_names, source: str) -> np.ndarray | 
     return np.array(block["estimate"], dtype=float)
 
 
-def _model_drive(platform: Platform, result: dict, log, source: str) -> tuple[LegGeometry, np.ndarray]:
-    """``(drive, strokes)``: the calibrated drive and the logged strokes scaled by its stroke scale."""
-    drive = platform.drive.perturbed(np.array(result["error"]))
-    scale = _block(result, "stroke_scale", io.STROKE_SCALE_NAMES, source)
-    scale = platform.stroke_scale if scale is None else scale
-    return drive, drive_model.scaled_strokes(log.strokes, scale)
-
-
 def _model_poses(platform: Platform, result: dict, log, source: str, first_sample: int = 0):
-    """FK poses of the logged strokes with the calibrated drive (and stroke scale); ``log``'s
-    samples are numbered from ``first_sample`` (a block of a longer log)."""
-    fk = kin.forward_kinematics(*_model_drive(platform, result, log, source), strict=False)
+    """FK poses of the logged strokes with the calibrated drive model; ``log``'s samples are
+    numbered from ``first_sample`` (a block of a longer log)."""
+    drive = io.calibrated_drive(platform, result, source)
+    fk = drive.forward_kinematics(drive.inputs(log.strokes), strict=False)
     if not np.all(fk.converged):
         k = int(np.flatnonzero(~fk.converged)[0])
         raise CalibError(
@@ -226,7 +219,10 @@ def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray
     covariance = result.get("covariance")
     if covariance is None or platform.workspace is None:
         return head + "and the result holds no covariance to predict that error from"
-    n = 48 if "stroke_scale" in result else 42
+    # the covariance's first rows: δM, then the drive's blocks the result has (spec §7, in the drive's order)
+    n = len(result["error"]) + sum(
+        len(result[term.key]["names"]) for term in drive_model(platform).terms if term.key in result
+    )
     prediction = predicted_error(platform, np.asarray(covariance, dtype=float)[:n, :n])
     return head + f"the result's covariance predicts {prediction.describe()}"
 
@@ -360,9 +356,10 @@ def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str
     ``(len(models), N, 6)`` [mm], or None when a model's FK does not converge for a sample."""
     for result, source in models:
         _check_nominal(platform, result, source)
-    drives, strokes = zip(*(_model_drive(platform, result, log, source) for result, source in models), strict=True)
+    drives = [io.calibrated_drive(platform, result, source) for result, source in models]
+    extensions = [drive.extensions(drive.inputs(log.strokes)) for drive in drives]
     residuals, converged = kin.tracker_reading_residuals(
-        platform.required_tracker("the tracker residuals"), log.readings, list(drives), list(strokes)
+        platform.required_tracker("the tracker residuals"), log.readings, [drive.legs for drive in drives], extensions
     )
     return residuals if converged.all() else None
 
