@@ -389,3 +389,22 @@ def test_gauge_error_is_the_rigid_part_of_the_tracker_error():
     assert error["orientation_deg"] == pytest.approx(0.0, abs=1e-9)
     exact = SimpleNamespace(**{**vars(result), "robot": SimpleNamespace(tracker=SimpleNamespace(geometry=nominal))})
     assert tracker_gauge_error(exact, platform) == pytest.approx({"position_mm": 0.0, "orientation_deg": 0.0})
+
+
+def test_the_reproductions_wrappers_hide_nothing_of_the_controller():
+    """The simulator asks a controller for ``adaptive`` and for any command hook it offers: the
+    progress and diagnostics wrappers must show it what the wrapped controller has."""
+    from stewart_calib.reproduction.runs import _Counted, _Diagnosed
+    from stewart_calib.simulation import NominalController
+
+    class Hooked(NominalController):
+        def strokes(self, R_d, t_d, payload_kg):
+            return np.full(6, payload_kg)
+
+    platform = load_experiment(QUICK).platform
+    counted = _Counted(Hooked(platform), bar=None)
+    assert counted.adaptive is False and counted.drive_model() is platform.drive
+    np.testing.assert_array_equal(counted.strokes(None, None, 20.0), np.full(6, 20.0))
+    assert getattr(_Counted(NominalController(platform), bar=None), "strokes", None) is None
+    online = _Counted(_Diagnosed(EstimatorController(_Scripted(), platform)), bar=None)
+    assert online.adaptive is True and online.drive_model() is platform.drive

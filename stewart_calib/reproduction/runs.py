@@ -144,36 +144,40 @@ class Reproduction:
         return drive.as_vector() - self.platform.drive.as_vector()
 
 
-class _Counted:
+class _PassedThrough:
+    """A controller wrapper the simulator sees through: what the wrapper does not define (the
+    drive model, ``adaptive``, any command hook the controller offers) is the wrapped one's."""
+
+    def __init__(self, controller):
+        self.controller = controller
+
+    def __getattr__(self, name: str):
+        if name == "controller":  # not set yet (copy, pickle): no wrapped controller to ask
+            raise AttributeError(name)
+        return getattr(self.controller, name)
+
+
+class _Counted(_PassedThrough):
     """Passes a controller through, ticking the overall progress bar after each sample."""
 
     def __init__(self, controller, bar):
-        self.controller = controller
-        self.adaptive = getattr(controller, "adaptive", True)
+        super().__init__(controller)
         self._bar = bar
-
-    def drive_model(self):
-        return self.controller.drive_model()
 
     def observe(self, sample) -> None:
         self.controller.observe(sample)
         self._bar.update()
 
 
-class _Diagnosed:
+class _Diagnosed(_PassedThrough):
     """Passes an :class:`EstimatorController` through, keeping after each sample the estimator's
     σ [mm] (``estimate()``: isam2 pays its ~0.3 ms marginal) and, for a Kalman filter, its NIS."""
 
-    adaptive = True
-
     def __init__(self, controller: EstimatorController):
-        self.controller = controller
+        super().__init__(controller)
         self.kalman = isinstance(controller.estimator, KalmanFiltered)
         self.stddev: list[np.ndarray] = []
         self.nis: list[float] = []
-
-    def drive_model(self):
-        return self.controller.drive_model()
 
     def observe(self, sample) -> None:
         refused = len(self.controller.rejected)
