@@ -135,7 +135,7 @@ class CompileNotice(numba_event.Listener):
             self.told = True
             print(
                 "stewart-calib: compiling the numeric kernels for this machine (once after an installation, "
-                "up to ~30 s; later runs load them from the cache)",
+                "10–30 s; later runs load them from the cache)",
                 file=sys.stderr,
                 flush=True,
             )

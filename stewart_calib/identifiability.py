@@ -185,7 +185,7 @@ class IdentifiabilityReport:
         singular_values: ``(42,)`` of the whitened leg-length Jacobian, descending [1/mm].
         rank: number of singular values above ``RANK_RTOL`` × the largest.
         condition_number: σmax/σmin of the leg-length form (inf when rank-deficient).
-        paper_singular_values: ``(42,)`` of the stacked ``J_p`` with scaled rotation rows.
+        paper_singular_values: ``(42,)`` of the stacked ``J_p`` with scaled rotation rows (NaN: left out).
         paper_condition_number: σmax/σmin of that form.
         rotation_row_scale_mm: the length the ``J_p`` rotation rows were multiplied by [mm].
         predicted_stddev_mm: ``(42,)`` Cramér–Rao standard deviation per parameter [mm]; inf for
@@ -339,18 +339,21 @@ class InformationAccumulator:
     Args:
         platform: nominal geometry (Jacobians at the nominal drive).
         noise: reading and stroke sigmas (the whitening).
+        paper_form: also the paper's form; False leaves it out (the report's paper fields NaN), for
+            callers that read the leg form only (``calibrate``'s conditioning: its compile, ~2 s on a
+            first run, and its time a pose).
     Raises:
         CalibError: both noise sigmas zero (no noise model, no weights).
     """
 
-    def __init__(self, platform: Platform, noise: NoiseConfig):
+    def __init__(self, platform: Platform, noise: NoiseConfig, paper_form: bool = True):
         if noise.reading_sigma_mm <= 0 and noise.stroke_sigma_mm <= 0:
             raise CalibError("noise: reading_sigma_mm and stroke_sigma_mm are both 0: expected a positive noise level")
         self.platform = platform
         self.noise = noise
         self.n_poses = 0
         self._leg_factor = np.zeros((0, N_PARAMS))
-        self._paper_factor = np.zeros((0, N_PARAMS))
+        self._paper_factor = np.zeros((0, N_PARAMS)) if paper_form else None
 
     def add(self, poses: np.ndarray) -> None:
         """Add the information of ``(n, 6)`` pose6 ``[mm, rad]``, :data:`BLOCK_POSES` at a time."""
@@ -360,7 +363,8 @@ class InformationAccumulator:
             self._leg_factor = _stacked_factor(
                 self._leg_factor, whitened_leg_jacobian(self.platform, block, self.noise)
             )
-            self._paper_factor = _stacked_factor(self._paper_factor, scaled_paper_jacobian(self.platform, block))
+            if self._paper_factor is not None:
+                self._paper_factor = _stacked_factor(self._paper_factor, scaled_paper_jacobian(self.platform, block))
             self.n_poses += len(block)
 
     def covariance(self) -> np.ndarray | None:
@@ -397,10 +401,12 @@ class InformationAccumulator:
         touches_null = np.linalg.norm(null, axis=1) > 1e-6
         stddev = np.where(touches_null, np.inf, np.sqrt(variance))
 
-        s_paper = np.zeros(N_PARAMS)
-        s_paper_all = np.linalg.svd(self._paper_factor, compute_uv=False)
-        s_paper[: len(s_paper_all)] = s_paper_all
-        s_paper[s_paper <= RANK_RTOL * s_paper[0]] = 0.0
+        s_paper = np.full(N_PARAMS, np.nan)
+        if self._paper_factor is not None:
+            s_paper[:] = 0.0
+            s_paper_all = np.linalg.svd(self._paper_factor, compute_uv=False)
+            s_paper[: len(s_paper_all)] = s_paper_all
+            s_paper[s_paper <= RANK_RTOL * s_paper[0]] = 0.0
 
         condition = s[0] / s[-1] if rank == N_PARAMS else np.inf
         if rank < N_PARAMS:
@@ -418,7 +424,7 @@ class InformationAccumulator:
             rank=rank,
             condition_number=float(condition),
             paper_singular_values=s_paper,
-            paper_condition_number=float(s_paper[0] / s_paper[-1]) if s_paper[-1] > 0 else float("inf"),
+            paper_condition_number=float(s_paper[0] / s_paper[-1]) if not s_paper[-1] <= 0 else float("inf"),
             rotation_row_scale_mm=rotation_row_scale_mm(self.platform),
             predicted_stddev_mm=stddev,
             observability=observability_indices(s, 6 * self.n_poses),
@@ -428,20 +434,23 @@ class InformationAccumulator:
         )
 
 
-def identifiability_report(platform: Platform, poses: np.ndarray, noise: NoiseConfig) -> IdentifiabilityReport:
+def identifiability_report(
+    platform: Platform, poses: np.ndarray, noise: NoiseConfig, paper_form: bool = True
+) -> IdentifiabilityReport:
     """Singular values, Cramér–Rao bound, weakest directions and verdict for a pose set.
 
     Args:
         platform: nominal geometry (Jacobians are evaluated at the nominal drive).
         poses: ``(N, 6)`` pose6 ``[mm, rad]``.
         noise: reading and stroke sigmas.
+        paper_form: also the paper's ``J_p`` form (:class:`InformationAccumulator`).
     Raises:
         CalibError: no poses, or no noise.
     """
     poses = np.atleast_2d(np.asarray(poses, dtype=float))
     if poses.shape[0] == 0 or poses.shape[1] != 6:
         raise CalibError(f"poses: expected an (N, 6) array with N ≥ 1, got shape {poses.shape}")
-    information = InformationAccumulator(platform, noise)
+    information = InformationAccumulator(platform, noise, paper_form)
     information.add(poses)
     return information.report()
 

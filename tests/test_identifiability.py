@@ -128,6 +128,17 @@ def test_random_rich_poses_are_identifiable_and_the_report_serialises(platform):
     assert "Cramér–Rao" in report.format_text()
 
 
+def test_leaving_out_the_paper_form_leaves_the_leg_form_as_it_was(platform):
+    poses = random_poses(platform, 12, np.random.default_rng(5))
+    both = identifiability_report(platform, poses, NOISE)
+    leg_only = identifiability_report(platform, poses, NOISE, paper_form=False)
+    assert conditioning_summary(leg_only) == conditioning_summary(both)
+    np.testing.assert_array_equal(leg_only.singular_values, both.singular_values)
+    np.testing.assert_array_equal(leg_only.predicted_stddev_mm, both.predicted_stddev_mm)
+    assert np.all(np.isnan(leg_only.paper_singular_values)) and np.isnan(leg_only.paper_condition_number)
+    assert np.all(np.isfinite(both.paper_singular_values))
+
+
 def test_observability_indices_on_known_singular_values():
     indices = observability_indices(np.array([4.0, 2.0, 1.0]), n_rows=4)
     assert indices["O1"] == pytest.approx(2.0 / 2.0)

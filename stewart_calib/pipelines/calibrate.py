@@ -596,7 +596,7 @@ def run(args: argparse.Namespace) -> int:
         warning = None
         if tracker:  # the tracker's FK gives the poses to assess
             poses = measured_poses(platform, checked)
-            report = identifiability_report(platform, poses, config.noise)
+            report = identifiability_report(platform, poses, config.noise, paper_form=False)
             warning = warning_line(report)
             extra["conditioning"] = conditioning_summary(report)
         else:

@@ -220,7 +220,7 @@ def results_dict(reproduction: Reproduction, run_time_s: float, config_source: s
     nominal = reproduction.runs[NOMINAL].result
     calibration_poses = nominal.desired_poses[first_stage_calibration(nominal)]
     unique_poses = calibration_poses[np.r_[True, np.any(np.diff(calibration_poses, axis=0) != 0, axis=1)]]
-    report = identifiability_report(platform, unique_poses, reproduction.config.noise)
+    report = identifiability_report(platform, unique_poses, reproduction.config.noise, paper_form=False)
     return {
         "format": FORMAT,
         "experiment": {

@@ -141,7 +141,7 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
     if poses is None:
         raise ValueError("a sweep's simulated log holds its poses")
     if settings["drift_mm_per_sqrt_s"] == 0:
-        return identifiability_report(data.platform, poses, noise).predicted_stddev_mm
+        return identifiability_report(data.platform, poses, noise, paper_form=False).predicted_stddev_mm
     rows = whitened_leg_jacobian(data.platform, poses, noise)
     walk = settings["drift_mm_per_sqrt_s"] ** 2 / settings["rate_hz"] * np.eye(N_PARAMS)
     covariance = prior_sigma_mm**2 * np.eye(N_PARAMS)
