@@ -178,7 +178,8 @@ def small_workspace(seed: int) -> dict:
     poses = platform.workspace.home + rng.uniform(-1.0, 1.0, (4 * FULL.planned, 6)) * half
     poses = poses[accuracy.within_ranges(platform, poses)][: FULL.planned]
     estimate = _fit(platform, measure(platform, robot, poses, rng))
-    field, line, warns = accuracy.estimate_summary(platform, estimate, 0.0, poses)
+    floor = planning.noise_floor(platform, len(poses))
+    field, line, warns = accuracy.estimate_summary(platform, estimate, floor, poses)
     true = true_closed_loop(platform, robot, estimate)
     return {"true_mm": true[0], "predicted_mm": field.get("position_mm", float("nan")), "warned": warns, "line": line}
 

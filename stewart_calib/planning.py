@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .accuracy import error_weight, reachable_poses, within_ranges
+from .accuracy import PredictedError, error_weight, predicted_error, reachable_poses, within_ranges
 from .config import NoiseConfig
 from .errors import CalibError
 from .identifiability import RANK_RTOL, scaled_paper_jacobian, whitened_leg_jacobian
@@ -318,6 +318,20 @@ def design_covariance(
     if s[-1] <= RANK_RTOL * s[0]:
         return None
     return lift @ ((Vt.T / s**2) @ Vt) @ lift.T
+
+
+def noise_floor(platform: Platform, n_poses: int, noise: NoiseConfig | None = None) -> PredictedError | None:
+    """What the instrument's noise leaves with ``n_poses`` poses spread over the workspace box's
+    :func:`extreme_poses` (their Cramér–Rao covariance × 729 / n): the closed-loop error a
+    calibration of that size can expect, the yardstick of :func:`stewart_calib.accuracy.summary_line`.
+    None without ``[workspace]``, or where the extremes do not identify every unknown."""
+    if platform.workspace is None or n_poses < 1:
+        return None
+    extremes = extreme_poses(platform)
+    covariance = design_covariance(platform, extremes, noise)
+    if covariance is None:
+        return None
+    return predicted_error(platform, covariance * (len(extremes) / n_poses))
 
 
 def default_criterion(platform: Platform) -> str:

@@ -54,6 +54,7 @@ from ..estimators.base import (
 from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
 from ..io import logs
 from ..online import Rejections
+from ..planning import noise_floor
 from ..platform import N_LEGS, Platform, load_platform
 from ..plausibility import check_plausible
 from ..progress import MIN_LOG_ROWS, log_progress_bar, progress_bar
@@ -601,7 +602,10 @@ def run(args: argparse.Namespace) -> int:
             extra["conditioning"] = conditioning_summary(report)
         else:
             poses = nominal_poses(platform, checked)
-        predicted, line, warns = estimate_summary(platform, estimate, config.noise.reading_sigma_mm, poses)
+        # the tracker's methods carry a random walk and the paper's forms: their covariances are not the
+        # static Cramér–Rao bound the noise floor is, so only an outside instrument's is compared with it
+        floor = None if tracker else noise_floor(platform, estimate.samples_used, config.noise)
+        predicted, line, warns = estimate_summary(platform, estimate, floor, poses)
         extra["predicted_closed_loop"] = predicted
         if warning and warns:  # one warning line: the poses' conditioning, then what it leaves
             print(f"stewart-calib calibrate: {warning}; {line.removeprefix('warning: ')}", file=sys.stderr)

@@ -75,16 +75,18 @@ def run(args: argparse.Namespace) -> int:
     warning = warning_line(report)
     if warning:
         print(warning)
-    prediction = _prediction(platform, covariance, poses, noise.reading_sigma_mm)
+    prediction = _prediction(platform, covariance, poses, information.n_poses, noise)
     if args.json:
         io.atomic_write_text(args.json, json.dumps({**report.to_dict(), **prediction}, indent=2) + "\n")
     return 0
 
 
-def _prediction(platform: Platform, covariance, poses, noise_floor_mm: float) -> dict:
+def _prediction(platform: Platform, covariance, poses, n_poses: int, noise) -> dict:
     """Print the predicted closed-loop error line of a pose set's Cramér–Rao covariance (over the
-    workspace, or the poses themselves where the platform has none); its JSON field."""
+    workspace, or the poses themselves where the platform has none), warned against the noise
+    floor of as many poses; its JSON field."""
     from ..accuracy import predicted_error, summary_line
+    from ..planning import noise_floor
 
     head = "predicted closed-loop (absolute) pose error after calibration: none"
     if covariance is None:
@@ -94,9 +96,11 @@ def _prediction(platform: Platform, covariance, poses, noise_floor_mm: float) ->
         print(f"{head} (no [workspace] to predict over)")
         return {"predicted_closed_loop": None}
     prediction = predicted_error(platform, covariance, None if platform.workspace is not None else poses)
-    line, warn = summary_line(prediction, noise_floor_mm)
+    floor = noise_floor(platform, n_poses, noise)
+    line, warn = summary_line(prediction, floor)
     print(line)
-    return {"predicted_closed_loop": {**prediction.to_dict(), "warning": line if warn else None}}
+    field = {"noise_floor_mm": None if floor is None else floor.position_mm, "warning": line if warn else None}
+    return {"predicted_closed_loop": {**prediction.to_dict(), **field}}
 
 
 def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int:
@@ -159,8 +163,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
             "  "
             + "  ".join(f"{name} {'not id' if sd is None else f'{sd:.3g}'}" for name, sd in items[start : start + 7])
         )
-    noise_floor = platform.instrument.position_sigma_mm
-    prediction = _prediction(platform, design_covariance(platform, poses, seen=seen), poses, noise_floor)
+    prediction = _prediction(platform, design_covariance(platform, poses, seen=seen), poses, len(poses), None)
     if args.json:
         document = {"format": "stewart-calib/identifiability-instrument@1", **report, **prediction}
         io.atomic_write_text(args.json, json.dumps(document, indent=2) + "\n")
