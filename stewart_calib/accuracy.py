@@ -121,7 +121,7 @@ def closed_loop_jacobian(platform: Platform, poses: np.ndarray) -> np.ndarray:
     drive model: ``k``; body tangent ``[ω, v]``)."""
     R, t = kin.pose_to_rt(np.asarray(poses, dtype=float).reshape(-1, 6))
     drive = drive_model(platform).identifying()
-    return drive.pose_jacobian(None, R, t, drive.inputs(drive.inverse_kinematics(R, t)))
+    return drive.pose_jacobian(None, R, t, drive.inputs_near(drive.inverse_kinematics(R, t), None, (R, t)))
 
 
 def rotation_length_mm(platform: Platform) -> float:
@@ -206,7 +206,7 @@ def correction_size(platform: Platform, estimate: DriveModel, poses: np.ndarray 
     poses = evaluation_poses(platform) if poses is None else np.asarray(poses, dtype=float).reshape(-1, 6)
     R, t = kin.pose_to_rt(poses)
     drive = drive_model(platform)
-    reached = estimate.forward_kinematics(drive.inputs(drive.inverse_kinematics(R, t)), guess=(R, t), strict=False)
+    reached, _ = estimate.settled_kinematics(drive.inverse_kinematics(R, t), guess=(R, t), strict=False)
     position_mm, _ = kin.pose_error(R, t, reached.R, reached.t)
     return float(np.mean(position_mm[reached.converged])) if reached.converged.any() else float("inf")
 

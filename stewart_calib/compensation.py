@@ -76,8 +76,10 @@ def compensate(
     desired_poses_mm_rad: np.ndarray,
     nominal: Platform | LegGeometry | None = None,
     limits: Platform | None = None,
+    payload_kg=0.0,
 ) -> np.ndarray:
-    """Strokes that put the estimated drive at ``desired_poses_mm_rad``.
+    """Strokes that put the estimated drive at ``desired_poses_mm_rad`` (an elastic drive: under its
+    platform's weight and a payload of ``payload_kg``, spec §10).
 
     Args:
         drive: the calibrated drive model (:meth:`~stewart_calib.drive.DriveModel.calibrated`),
@@ -88,6 +90,9 @@ def compensate(
         nominal: the platform or nominal drive; required with an :class:`Estimate`.
         limits: the platform whose workspace and stroke range the poses and strokes must
             respect (:func:`check_reachable`), or None for no check.
+        payload_kg: the payload [kg] (scalar or ``(N,)``) an elastic drive carries at the poses: its
+            legs are ``c_i f_i / 1000`` shorter under the forces ``f`` they hold there, so the
+            strokes are longer by that over ``1 + k_i``. Ignored by a rigid drive.
     Returns:
         ``(N, 6)`` strokes q_i [mm] (same leading shape as ``desired_poses_mm_rad``).
     Raises:
@@ -104,7 +109,7 @@ def compensate(
     poses = np.asarray(desired_poses_mm_rad, dtype=float)
     if poses.shape[-1:] != (6,) or not np.all(np.isfinite(poses)):
         raise CalibError(f"compensate: expected finite poses of shape (N, 6), got shape {poses.shape}")
-    strokes = drive.inverse_kinematics(*kin.pose_to_rt(poses))
+    strokes = drive.inverse_kinematics(*kin.pose_to_rt(poses), payload_kg=payload_kg)
     if limits is not None:
         check_reachable(poses, strokes, limits)
     return strokes

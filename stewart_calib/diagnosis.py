@@ -125,7 +125,7 @@ def _check_count(platform: Platform, readings: np.ndarray, where: str) -> None:
 
 def _fk(platform: Platform, strokes: np.ndarray):
     drive = drive_model(platform)
-    return drive.forward_kinematics(drive.inputs(strokes), strict=False)
+    return drive.settled_kinematics(strokes, strict=False)[0]
 
 
 def _check_strokes_unit(platform: Platform, strokes: np.ndarray, where: str, stroke_columns: list[str]) -> None:

@@ -33,7 +33,8 @@ import numpy as np
 
 from . import kinematics as kin
 from .config import NoiseConfig
-from .platform import N_LEGS, N_PARAMS, PARAMETER_NAMES, LegGeometry, Platform
+from .platform import N_LEGS, N_PARAMS, PARAMETER_NAMES, Elastic, LegGeometry, Platform
+from .statics import gravity_leg_forces, masses_and_centres
 from .unknowns import UnknownBlock
 
 #: the stroke term's key: the result's ``"stroke_scale"`` block (spec §7)
@@ -76,6 +77,29 @@ class LegTerm:
         return UnknownBlock(self.key, self.names, self.nominal, np.full(N_LEGS, self.prior_sigma))
 
 
+#: forward-kinematics passes before the last one in :meth:`DriveModel.settled_kinematics`
+SETTLING_PASSES = 2
+
+#: the compliance term's key: the result's ``"compliance"`` block (spec §10)
+COMPLIANCE = "compliance"
+
+
+def compliance_term(elastic: Elastic) -> LegTerm:
+    """``−c_i f_i / 1000``: the leg forces ``f`` [N] (inputs 6…11, compression > 0) with each leg's
+    compliance ``c`` [mm/kN] about ``[elastic] compliance_mm_per_kN``, an unknown block where its σ
+    is positive (spec §10)."""
+    sigma = float(elastic.compliance_sigma_mm_per_kN)
+    return LegTerm(
+        COMPLIANCE,
+        tuple(f"c{i}" for i in range(1, N_LEGS + 1)),
+        0.0,
+        np.array(elastic.compliance_mm_per_kN, dtype=float),
+        N_LEGS,
+        -1e-3,
+        sigma if sigma > 0.0 else None,
+    )
+
+
 def stroke_term(nominal_scale: np.ndarray, prior_sigma: float | None = None) -> LegTerm:
     """``(1 + k_i) q_i``: the logged strokes ``q`` (inputs 0…5) with the encoders' scale ``k``."""
     return LegTerm(
@@ -96,10 +120,13 @@ class DriveModel:
     Attributes:
         legs: the nominal geometry ``M``.
         terms: the extension's terms; those with a ``prior_sigma`` are unknown blocks.
+        elastic: the masses whose weight the legs carry where a term takes the leg forces as inputs
+            (the compliance, spec §10), else None.
     """
 
     legs: LegGeometry
     terms: tuple[LegTerm, ...]
+    elastic: Elastic | None = None
     # derived once (a filter asks for them at every sample): see __post_init__
     _unknown: tuple[tuple[int, slice], ...] = field(init=False, repr=False, compare=False)
     _nominal: np.ndarray = field(init=False, repr=False, compare=False)
@@ -143,13 +170,73 @@ class DriveModel:
         return N_PARAMS + N_LEGS * len(self._unknown)
 
     @property
+    def stroke_scale_known(self) -> bool:
+        """Whether the stroke term's values are known (its ``1 + k_i`` then scales no noise that moves)."""
+        return self.terms[self._stroke].prior_sigma is None
+
+    @property
     def input_width(self) -> int:
         """Columns of a sample's drive inputs ``u``."""
         return max(term.input_start + N_LEGS for term in self.terms)
 
-    def inputs(self, strokes: np.ndarray) -> np.ndarray:
-        """The drive inputs ``u`` of samples with logged ``strokes`` ``(..., 6)`` [mm]."""
-        return np.asarray(strokes, dtype=float)
+    def inputs(
+        self, strokes: np.ndarray, payload_kg=None, R: np.ndarray | None = None, t=None, x_drive=None
+    ) -> np.ndarray:
+        """The drive inputs ``u`` of samples with logged ``strokes`` ``(..., 6)`` [mm]: the strokes, then
+        (an elastic drive) the leg forces [N] at poses ``(R, t)`` under the platform's weight and a
+        payload of ``payload_kg`` (None: 0), :meth:`leg_forces`.
+
+        The forces are taken at the pose given — the measured one where the instrument fixes a pose,
+        else the drive's own forward kinematics (:meth:`settled_kinematics`) — on the nominal legs:
+        both are off the truth by what the calibration corrects, some 1e-3 of the arms, so the
+        forces by ~1e-3 relative, ~0.1 µm of ``c·f`` at 1 mm/kN and 100 N (tests/test_elastic.py).
+        """
+        strokes = np.asarray(strokes, dtype=float)
+        if self.elastic is None:
+            return strokes
+        if R is None or t is None:
+            raise ValueError("an elastic drive's inputs need the poses its leg forces are taken at")
+        return np.concatenate([strokes, self.leg_forces(R, t, payload_kg, x_drive)], axis=-1)
+
+    def inputs_near(self, strokes: np.ndarray, payload_kg=None, pose=None, x_drive=None) -> np.ndarray:
+        """:meth:`inputs` at ``pose = (R, t)`` where one is known near the samples' (a warm start),
+        else with no force: a first guess for forward kinematics, whose pose then gives the inputs."""
+        strokes = np.asarray(strokes, dtype=float)
+        if self.elastic is None:
+            return self.inputs(strokes)
+        if pose is not None:
+            return self.inputs(strokes, payload_kg, pose[0], pose[1], x_drive)
+        return np.concatenate([strokes, np.zeros_like(strokes)], axis=-1)
+
+    def leg_forces(self, R: np.ndarray, t: np.ndarray, payload_kg=None, x_drive=None) -> np.ndarray:
+        """``(..., 6)`` axial forces [N] of the nominal legs holding the platform and a payload
+        ``payload_kg`` (scalar or ``(...)``; None: 0) at poses ``(R, t)`` (spec §10)."""
+        e = self.elastic
+        if e is None:
+            raise ValueError("a rigid drive carries no leg forces")
+        batch = np.shape(t)[:-1]
+        masses, coms = masses_and_centres(
+            e.platform_mass_kg, e.platform_com_mm, 0.0 if payload_kg is None else payload_kg, e.payload_com_mm, batch
+        )
+        return gravity_leg_forces(self.geometry(x_drive), R, t, masses, coms)
+
+    def settled_kinematics(
+        self, strokes: np.ndarray, payload_kg=None, x_drive: np.ndarray | None = None, guess=None, strict: bool = True
+    ) -> tuple[kin.FKSolution, np.ndarray]:
+        """``(forward kinematics, the inputs at its poses)`` of logged ``strokes (N, 6)``: for an
+        elastic drive the fixed point of forces ↔ pose, as the loaded robot settles. The forces
+        change with the pose by ~1e-3 of themselves per mm, so each pass gains three orders: the
+        first from no force at all, two more reach the nanometre."""
+        strokes = np.asarray(strokes, dtype=float)
+        if self.elastic is None:
+            inputs = self.inputs(strokes)
+            return self.forward_kinematics(inputs, x_drive, guess=guess, strict=strict), inputs
+        inputs = self.inputs_near(strokes, payload_kg, guess, x_drive)
+        for _ in range(SETTLING_PASSES):
+            sol = self.forward_kinematics(inputs, x_drive, guess=guess, strict=strict)
+            guess = (sol.R, sol.t)
+            inputs = self.inputs(strokes, payload_kg, sol.R, sol.t, x_drive)
+        return self.forward_kinematics(inputs, x_drive, guess=guess, strict=strict), inputs
 
     # ------------------------------------------------------------------ values
 
@@ -193,14 +280,27 @@ class DriveModel:
         return self._term_factors(x_drive)[self._stroke]
 
     def identifying(self, prior_sigma: float = BLOCK_PRIOR_SIGMA) -> DriveModel:
-        """The same drive with every term an unknown block of prior σ ``prior_sigma``."""
-        return replace(self, terms=tuple(replace(term, prior_sigma=prior_sigma) for term in self.terms))
+        """The same drive with every term an unknown block of prior σ ``prior_sigma`` — the compliance
+        with ``[elastic]``'s own σ (mm/kN, not a fraction; held where that is 0)."""
+        terms = tuple(
+            compliance_term(self.elastic)
+            if term.key == COMPLIANCE and self.elastic is not None
+            else replace(term, prior_sigma=prior_sigma)
+            for term in self.terms
+        )
+        return replace(self, terms=terms)
 
     def onto(self, platform: Platform) -> Platform:
         """``platform`` with this drive's legs and its terms' values (a term's key names the
-        platform's field of its nominal values, as the platform file's ``[drive]`` table does)."""
-        values: dict[str, Any] = {term.key: term.nominal.copy() for term in self.terms}
-        return replace(platform, drive=self.legs, **values)
+        platform's field of its nominal values, as the platform file's ``[drive]`` table does; the
+        compliance goes to ``[elastic] compliance_mm_per_kN``)."""
+        fields: dict[str, Any] = {term.key: term.nominal.copy() for term in self.terms if term.key != COMPLIANCE}
+        platform = replace(platform, drive=self.legs, **fields)
+        for term in self.terms:
+            if term.key == COMPLIANCE and platform.elastic is not None:
+                elastic = replace(platform.elastic, compliance_mm_per_kN=term.nominal.copy())
+                platform = replace(platform, elastic=elastic)
+        return platform
 
     def calibrated_by(self, estimate) -> DriveModel:
         """:meth:`calibrated` with an :class:`~stewart_calib.estimate.Estimate`'s δM and the values of
@@ -216,7 +316,7 @@ class DriveModel:
             else replace(term, prior_sigma=None)
             for term in self.terms
         )
-        return DriveModel(self.legs.perturbed(np.asarray(error, dtype=float)), terms)
+        return DriveModel(self.legs.perturbed(np.asarray(error, dtype=float)), terms, self.elastic)
 
     # ------------------------------------------------------------------ residual and Jacobians
 
@@ -246,6 +346,12 @@ class DriveModel:
             u = inputs[..., term.input_start : term.input_start + N_LEGS]
             J[..., legs, columns.start + legs] = -(u if term.gain == 1.0 else term.gain * u)
         return J
+
+    def extension_jacobian(self, inputs: np.ndarray) -> np.ndarray:
+        """``∂e/∂(the unknown terms' errors)`` ``(..., 6, size − 42)``: ``g_b u_{b,i}`` on leg i's own
+        value of each unknown term (the extension enters a leg as its initial length does)."""
+        inputs = np.asarray(inputs, dtype=float)
+        return -self.with_terms(np.zeros((*inputs.shape[:-1], N_LEGS, N_PARAMS)), inputs)[..., N_PARAMS:]
 
     def pose_jacobian(self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray) -> np.ndarray:
         """``∂ξ/∂x_drive (..., 6, size)`` of forward-kinematics poses ``(R, t)``: by the implicit
@@ -303,15 +409,23 @@ class DriveModel:
         return kin.solve_fk(self.geometry(x_drive), self.extensions(inputs, x_drive), guess, what)
 
     def inverse_kinematics(
-        self, R: np.ndarray, t: np.ndarray, x_drive: np.ndarray | None = None, inputs: np.ndarray | None = None
+        self,
+        R: np.ndarray,
+        t: np.ndarray,
+        x_drive: np.ndarray | None = None,
+        inputs: np.ndarray | None = None,
+        payload_kg=None,
     ) -> np.ndarray:
         """The strokes ``q (..., 6)`` [mm] that put the platform at ``(R, t)``: the legs' length
         change less the other terms' part, over the stroke term's ``1 + k_i``.
 
         Args:
             inputs: ``(..., width)`` the samples' other drive inputs (their stroke columns are
-                ignored); needed only where the drive has terms besides the stroke.
+                ignored); needed only where the drive has terms besides the stroke. An elastic
+                drive's default: its leg forces at ``(R, t)`` under ``payload_kg`` (None: 0).
         """
+        if inputs is None and self.elastic is not None:
+            inputs = self.inputs(np.zeros(np.shape(t)[:-1] + (N_LEGS,)), payload_kg, R, t, x_drive)
         lengths = kin.inverse_kinematics(self.geometry(x_drive), R, t)
         factors = self._term_factors(x_drive)
         for row, (term, factor) in enumerate(zip(self.terms, factors, strict=True)):
@@ -348,8 +462,13 @@ def plain_drive(legs: LegGeometry) -> DriveModel:
 def drive_model(platform: Platform, noise: NoiseConfig | None = None, outside_instrument: bool = False) -> DriveModel:
     """The drive of ``platform``: its legs, the stroke term about ``[drive] stroke_scale``, unknown
     when ``noise.stroke_scale_sigma`` > 0 or, with an instrument outside the robot, always
-    (:data:`STROKE_SCALE_SIGMA_OUTSIDE` by default); all terms known without ``noise``."""
+    (:data:`STROKE_SCALE_SIGMA_OUTSIDE` by default), and with ``[elastic]`` the legs' compliance
+    (:func:`compliance_term`, its σ from ``[elastic]``); all terms known without ``noise``."""
     sigma = 0.0 if noise is None else noise.stroke_scale_sigma
     if sigma <= 0.0 and outside_instrument:
         sigma = STROKE_SCALE_SIGMA_OUTSIDE
-    return DriveModel(platform.drive, (stroke_term(platform.stroke_scale, sigma if sigma > 0.0 else None),))
+    terms: tuple[LegTerm, ...] = (stroke_term(platform.stroke_scale, sigma if sigma > 0.0 else None),)
+    if platform.elastic is not None:
+        compliance = compliance_term(platform.elastic)
+        terms += (compliance if noise is not None else replace(compliance, prior_sigma=None),)
+    return DriveModel(platform.drive, terms, platform.elastic)

@@ -211,9 +211,10 @@ class OnlineCalibrator:
         samples it does not count as used: :func:`~.estimators.base.row_accounting`)."""
         return accounted_estimate(self._estimator)
 
-    def compensated_strokes(self, pose_mm_rad: np.ndarray) -> np.ndarray:
+    def compensated_strokes(self, pose_mm_rad: np.ndarray, payload_kg=0.0) -> np.ndarray:
         """Strokes [mm] that put the estimated drive at ``pose_mm_rad`` ``[x, y, z [mm], roll, pitch, yaw [rad]]``
-        (``(6,)`` or ``(N, 6)``; paper Fig. 3 step 4).
+        (``(6,)`` or ``(N, 6)``; paper Fig. 3 step 4), under a payload of ``payload_kg`` (scalar or
+        ``(N,)``) where the platform has ``[elastic]`` (spec §10; a rigid drive ignores it).
 
         Raises:
             PoseOutOfRange: a pose outside the platform's workspace, or needing a stroke outside
@@ -226,7 +227,7 @@ class OnlineCalibrator:
             estimate = self._estimator.estimate()
             values = {term.key: estimate.block_values(term.key) for term in self._drive.terms}
         drive = self._drive.calibrated(self._estimator.current_error(), values)
-        return compensate(drive, pose_mm_rad, limits=self.platform)
+        return compensate(drive, pose_mm_rad, limits=self.platform, payload_kg=payload_kg)
 
     def result(self) -> dict:
         """The current estimate as a spec §5 result, with the added ``samples_rejected`` field.

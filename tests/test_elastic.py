@@ -4,17 +4,21 @@
 from __future__ import annotations
 
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from stewart_calib import kinematics as kin
 from stewart_calib.cli import main
 from stewart_calib.errors import CalibError
-from stewart_calib.io import read_log
+from stewart_calib.io import read_log, result_dict
 from stewart_calib.io.logs import LogRowParser
-from stewart_calib.platform import load_platform, parse_platform, platform_to_toml
+from stewart_calib.platform import LegGeometry, load_platform, parse_platform, platform_to_toml
 from stewart_calib.simulation.experiment import load_experiment
+from stewart_calib.simulation.load import settle
+from stewart_calib.statics import gravity_leg_forces
 from tests.test_platform import _doc, _refusal, _to_toml
 
 QUICK = Path(__file__).resolve().parents[1] / "configs" / "experiments" / "quick.toml"
@@ -112,3 +116,149 @@ def test_load_kg_is_an_input_with_elastic_refused_naming_the_row(simulated, tmp_
     # a rigid platform reads the payload for reports only: a blank or negative one is not its business
     rigid = load_platform("nim-stewart")
     assert len(read_log(path, rigid)) == len(lines) - 1
+
+
+# ----------------------------------------------------------------------------- the elastic drive model
+
+
+@pytest.fixture(scope="module")
+def check(tmp_path_factory):
+    """benchmarks.elastic's check, small: 40 poses a stage at 0 / 20 / 40 kg, 20 validation poses."""
+    from benchmarks.elastic import check_run
+
+    experiment, run, platform = check_run(tmp_path_factory.mktemp("check"), 40, validation=20)
+    calibration = np.asarray(run.kinds) == "calibration"
+    return experiment, run, platform, calibration
+
+
+def test_the_drive_model_settles_where_compensation_sends_it(check):
+    """IK under a payload (compensate) and the settled FK of those strokes are each other's inverse,
+    and the truth's own compliance puts the simulated robot where the model says."""
+    from stewart_calib.compensation import compensate
+    from stewart_calib.drive import drive_model
+
+    _, run, platform, _ = check
+    truth = replace(platform.elastic, compliance_mm_per_kN=platform.elastic.true_compliance_mm_per_kN)
+    true_platform = replace(platform.with_drive(LegGeometry.from_params(run.robot.base_params)), elastic=truth)
+    drive = drive_model(true_platform)
+    poses = run.desired_poses[:20]
+    for payload in (0.0, 40.0):
+        strokes = compensate(drive, poses, payload_kg=payload)
+        fk, inputs = drive.settled_kinematics(strokes, np.full(len(poses), payload))
+        np.testing.assert_allclose(kin.rt_to_pose(fk.R, fk.t), poses, atol=1e-5)  # the fixed point: nm
+        R, t = kin.pose_to_rt(poses)
+        sol, _ = settle(run.robot.load, run.robot.base_params, strokes, np.full(len(poses), payload), (R, t))
+        assert np.max(np.linalg.norm(sol.t - t, axis=-1)) < 1e-6  # the true robot lands there too [mm]
+        assert np.all(inputs[:, 6:] > 0)  # every leg in compression
+
+
+def test_neglected_force_derivatives_are_small_against_the_rows_they_would_join(check):
+    """The factors and the EKF take the leg forces at the pose and geometry they evaluate, but leave
+    ``c ∂f/∂ξ / 1000`` and ``c ∂f/∂M / 1000`` out of the Jacobians. Here (1 mm/kN, 60 + 40 kg) they
+    are ~1.2e-3 of ``∂r/∂ξ`` and ``∂r/∂M`` (the relative error of a Newton step that leaves them
+    out); a hobby robot's 150 mm/kN at 2 kg gives the same order (c·f is what matters: 0.2 mm
+    here, 0.5 mm there, against legs of 200–700 mm)."""
+    from stewart_calib.statics import leg_force_jacobians
+
+    _, run, platform, _ = check
+    drive, elastic = platform.drive, platform.elastic
+    R, t = kin.pose_to_rt(run.desired_poses[:30])
+    masses = np.stack([np.full(30, elastic.platform_mass_kg), np.full(30, 40.0)], axis=-1)
+    coms = np.stack([elastic.platform_com_mm, elastic.payload_com_mm])
+    forces = gravity_leg_forces(drive, R, t, masses, coms)
+    df_dxi, df_dM = leg_force_jacobians(drive, R, t, forces, masses, coms)
+    c = elastic.true_compliance_mm_per_kN[:, None] / 1000.0
+    J_pose, J_M = kin.leg_residual_jacobians(drive, R, t)
+    pose_ratio = np.abs(c * df_dxi).max() / np.abs(J_pose).max()
+    params_ratio = np.abs(c * df_dM).max() / np.abs(J_M).max()
+    assert pose_ratio < 3e-3 and params_ratio < 3e-3, (pose_ratio, params_ratio)
+
+
+@pytest.mark.parametrize("method", ["ls", "lm", "ekf", "isam2"])
+def test_every_method_identifies_the_compliance_and_compensates_any_payload(check, method):
+    from benchmarks.elastic import _subset, closed_loop_um
+    from stewart_calib.pipelines.calibrate import run_calibration
+
+    _, run, platform, calibration = check
+    validation = run.desired_poses[np.asarray(run.kinds) == "validation"][:20]
+    estimate = run_calibration(platform, _subset(run.log, calibration), method).estimate
+    compliance = estimate.block_values("compliance")
+    np.testing.assert_allclose(compliance, platform.elastic.true_compliance_mm_per_kN, rtol=0.05)
+    for payload in (0.0, 40.0):
+        assert closed_loop_um(run, platform, estimate, validation, payload) < 5.0  # rigid: ~60-100 µm
+    result = result_dict(estimate, platform)
+    assert result["compliance"]["names"] == [f"c{i}" for i in range(1, 7)]
+    assert np.all(np.asarray(result["compliance"]["stddev"]) > 0)
+
+
+def test_the_command_line_under_load(check, tmp_path, capsys):
+    """calibrate writes the compliance block (its covariance last, spec §10) and --platform-out its
+    estimate; validate predicts every row at its own payload; compensate --payload-kg gives the
+    strokes of that load; paper-ekf holds the compliance at its nominal."""
+    import json
+
+    from stewart_calib.io import log_text
+
+    _, run, platform, _ = check
+    (tmp_path / "platform.toml").write_text(platform_to_toml(platform))
+    (tmp_path / "log.csv").write_text(log_text(run.log, platform))
+    files = {name: str(tmp_path / name) for name in ("platform.toml", "log.csv", "r.json", "c.toml", "V.csv")}
+    argv = ["calibrate", "--platform", files["platform.toml"], "--log", files["log.csv"], "--method", "ekf"]
+    report = tmp_path / "report"
+    assert main([*argv, "--out", files["r.json"], "--platform-out", files["c.toml"], "--report", str(report)]) == 0
+    assert "Leg compliance c ± σ" in (report / "index.html").read_text()
+    rrd = tmp_path / "run.rrd"
+    assert main([*argv, "--out", str(tmp_path / "r2.json"), "--rerun", str(rrd)]) == 0
+    from tests.readback import read_scalars
+
+    _, forces = read_scalars(rrd, "forces/leg1/ekf")
+    assert len(forces) == len(run.log) and np.all(forces > 0)  # compression at every sample [N]
+    _, c1 = read_scalars(rrd, "compliance/leg1/ekf")
+    second = json.loads((tmp_path / "r2.json").read_text())
+    assert c1[-1] == pytest.approx(second["compliance"]["estimate"][0], rel=1e-6)
+    result = json.loads(Path(files["r.json"]).read_text())
+    covariance = np.array(result["covariance"])
+    np.testing.assert_allclose(np.sqrt(np.diag(covariance))[-6:], result["compliance"]["stddev"], rtol=1e-12)
+    written = load_platform(files["c.toml"]).elastic.compliance_mm_per_kN
+    np.testing.assert_array_equal(written, result["compliance"]["estimate"])
+    validate = ["validate", "--platform", files["platform.toml"], "--result", files["r.json"], "--log"]
+    assert main([*validate, files["log.csv"], "--out", files["V.csv"]]) == 0
+    assert "position RMS 0.00" in capsys.readouterr().out  # µm: every row at its payload
+    poses = tmp_path / "poses.csv"
+    poses.write_text("x_mm,y_mm,z_mm,roll_deg,pitch_deg,yaw_deg\n0,0,760,0,0,0\n")
+    strokes = {}
+    for payload in ("0", "40"):
+        out = tmp_path / f"q{payload}.csv"
+        compensate = ["compensate", "--platform", files["platform.toml"], "--result", files["r.json"]]
+        assert main([*compensate, "--poses", str(poses), "--out", str(out), "--payload-kg", payload]) == 0
+        strokes[payload] = np.genfromtxt(out, delimiter=",", names=True)
+    assert 0.02 < strokes["40"]["q1_mm"] - strokes["0"]["q1_mm"] < 0.2  # 40 kg: ~65 N more a leg, 1 mm/kN
+    for bad in ("-1", "nan"):
+        assert main([*compensate, "--poses", str(poses), "--out", str(out), "--payload-kg", bad]) != 0
+        assert "--payload-kg: expected a finite payload ≥ 0 kg" in capsys.readouterr().err
+    # paper-ekf is the paper's model: δM alone, the compliance held at [elastic]'s nominal
+    assert main([*argv[:-1], "paper-ekf", "--out", str(tmp_path / "p.json")]) == 0
+    assert "compliance" not in json.loads((tmp_path / "p.json").read_text())
+
+
+def test_ekf_blocks_and_checkpoints_take_the_same_forces_as_one_sample_at_a_time(check):
+    """The compiled block path prepares a block's inputs ahead, update() one sample at a time: both
+    take the forces at the start-up's geometry, so they agree to rounding; a checkpoint keeps it."""
+    from stewart_calib.estimators import make_estimator
+    from stewart_calib.estimators.base import update_block, update_each
+
+    _, run, platform, _ = check
+    samples = list(run.log)
+    one, block = make_estimator("ekf", platform), make_estimator("ekf", platform)
+    update_each(one, samples)
+    update_block(block, run.log)
+    assert block._compiled  # the compiled recursion runs on the drive's blocks too
+    np.testing.assert_allclose(block.estimate().error, one.estimate().error, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        block.estimate().block_values("compliance"), one.estimate().block_values("compliance"), rtol=0, atol=1e-9
+    )
+    half, resumed = make_estimator("ekf", platform), make_estimator("ekf", platform)
+    update_each(half, samples[:200])
+    resumed.import_state(half.export_state())
+    update_each(resumed, samples[200:])
+    np.testing.assert_array_equal(resumed.estimate().error, one.estimate().error)

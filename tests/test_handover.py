@@ -62,9 +62,10 @@ def ekf_run(sim, tmp_path_factory):
 def test_result_has_the_optional_fields(ekf_run):
     result = read_result(ekf_run / "r.json")
     covariance = np.array(result["covariance"])
-    assert covariance.shape == (42, 42)
+    assert covariance.shape == (48, 48)  # δM, then the compliance of simulate's [elastic] (spec §10)
     np.testing.assert_allclose(covariance, covariance.T, atol=1e-12)
-    np.testing.assert_allclose(np.sqrt(np.diag(covariance)), result["stddev"], rtol=1e-12)
+    np.testing.assert_allclose(np.sqrt(np.diag(covariance))[:42], result["stddev"], rtol=1e-12)
+    np.testing.assert_allclose(np.sqrt(np.diag(covariance))[42:], result["compliance"]["stddev"], rtol=1e-12)
     assert np.linalg.eigvalsh(covariance).min() > 0
     rms = result["residual_rms"]
     assert rms["channels"] == [f"s{i}_mm" for i in range(1, 7)]

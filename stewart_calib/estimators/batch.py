@@ -37,7 +37,7 @@ import numpy as np
 from ..drive import DriveModel
 from ..errors import CalibError, SampleRejected
 from ..instruments import gauge
-from ..platform import N_PARAMS
+from ..platform import N_LEGS, N_PARAMS
 
 #: a singular value below this fraction of the largest counts as zero
 RANK_TOLERANCE = 1e-10
@@ -63,6 +63,8 @@ class BatchProblem:
         channels: ``(m,)`` which noise channel each component belongs to (0, 1, …).
         channel_names: a name per channel (``"orientation_rad"``, ``"position_mm"``).
         t_s: ``(N,)`` sample times [s].
+        payload_kg: ``(N,)`` the samples' payload [kg] where the drive is elastic (None: 0); its leg
+            forces are then taken at the drive's forward-kinematics poses of each step of the fit.
     """
 
     drive: DriveModel
@@ -74,6 +76,7 @@ class BatchProblem:
     channels: np.ndarray
     channel_names: tuple[str, ...]
     t_s: np.ndarray
+    payload_kg: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -114,15 +117,23 @@ class BatchSolution:
 
 
 class _State:
-    """A point of the fit: the drive's errors, the instrument's unknowns, and the FK poses there."""
+    """A point of the fit: the drive's errors, the instrument's unknowns, the FK poses there and the
+    drive inputs at them (an elastic drive's forces change with the pose)."""
 
-    def __init__(self, x_drive, unknowns, R, t):
-        self.x_drive, self.unknowns, self.R, self.t = x_drive, unknowns, R, t
+    def __init__(self, x_drive, unknowns, R, t, inputs):
+        self.x_drive, self.unknowns, self.R, self.t, self.inputs = x_drive, unknowns, R, t, inputs
 
 
-def _fk(problem: BatchProblem, x_drive: np.ndarray, guess) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    sol = problem.drive.forward_kinematics(problem.inputs, x_drive, guess=guess, strict=False)
-    return sol.R, sol.t, sol.converged
+def _fk(problem: BatchProblem, x_drive: np.ndarray, guess) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    if problem.drive.elastic is None:
+        sol, inputs = (
+            problem.drive.forward_kinematics(problem.inputs, x_drive, guess=guess, strict=False),
+            problem.inputs,
+        )
+    else:
+        strokes = problem.inputs[:, :N_LEGS]  # the stroke term reads the first six inputs
+        sol, inputs = problem.drive.settled_kinematics(strokes, problem.payload_kg, x_drive, guess, strict=False)
+    return sol.R, sol.t, sol.converged, inputs
 
 
 def fit(
@@ -140,7 +151,7 @@ def fit(
     """
     n = len(problem.inputs)
     start = np.zeros(problem.drive.size)
-    R0, t0, ok = _fk(problem, start, None)
+    R0, t0, ok, inputs0 = _fk(problem, start, None)
     rejected = [
         (
             int(k),
@@ -157,9 +168,9 @@ def fit(
         )
     if rejected:
         problem = _subset(problem, ok)
-        R0, t0 = R0[ok], t0[ok]
+        R0, t0, inputs0 = R0[ok], t0[ok], inputs0[ok]
     unknowns = problem.register(R0, t0, problem.measured)
-    state = _State(start, unknowns, R0, t0)
+    state = _State(start, unknowns, R0, t0, inputs0)
 
     basis = gauge.free_basis(problem.drive.legs)
     sigmas = np.array(problem.sigmas, dtype=float)
@@ -220,10 +231,10 @@ def cramer_rao(problem: BatchProblem, x_drive: np.ndarray, unknowns, fit_blocks:
         numpy.linalg.LinAlgError: the information is singular (unknowns not identifiable).
     """
     x_drive = np.asarray(x_drive, dtype=float)
-    R, t, ok = _fk(problem, x_drive, None)
+    R, t, ok, inputs = _fk(problem, x_drive, None)
     if not np.all(ok):
         raise CalibError("Cramér–Rao bound: forward kinematics failed at the given parameters")
-    state = _State(x_drive, unknowns, R, t)
+    state = _State(x_drive, unknowns, R, t, inputs)
     basis = gauge.free_basis(problem.drive.legs)
     A, _ = _system(
         problem, state, basis, np.asarray(problem.sigmas, dtype=float), np.ones(len(problem.inputs)), fit_blocks
@@ -246,10 +257,10 @@ def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], fil
         "predicted_stddev": {name: σ in file units (None: not identified)}}``.
     """
     drive = problem.drive
-    R, t, ok = _fk(problem, np.zeros(drive.size), None)
+    R, t, ok, inputs = _fk(problem, np.zeros(drive.size), None)
     if not np.all(ok):
-        problem, R, t = _subset(problem, ok), R[ok], t[ok]
-    state = _State(np.zeros(drive.size), unknowns, R, t)
+        problem, R, t, inputs = _subset(problem, ok), R[ok], t[ok], inputs[ok]
+    state = _State(np.zeros(drive.size), unknowns, R, t, inputs)
     basis = gauge.free_basis(drive.legs)
     sigmas = np.asarray(problem.sigmas, dtype=float)
     A, _ = _system(problem, state, basis, sigmas, np.ones(len(problem.inputs)), True)
@@ -302,7 +313,10 @@ def _verdict(condition_number: float) -> str:
 def _subset(problem: BatchProblem, keep: np.ndarray) -> BatchProblem:
     from dataclasses import replace
 
-    return replace(problem, inputs=problem.inputs[keep], measured=problem.measured[keep], t_s=problem.t_s[keep])
+    payload = None if problem.payload_kg is None else problem.payload_kg[keep]
+    return replace(
+        problem, inputs=problem.inputs[keep], measured=problem.measured[keep], t_s=problem.t_s[keep], payload_kg=payload
+    )
 
 
 def _reduced_size(problem: BatchProblem, basis: np.ndarray, fit_blocks: bool, n_unknowns: int) -> int:
@@ -324,7 +338,7 @@ def _lift(problem: BatchProblem, basis: np.ndarray, fit_blocks: bool, n_unknowns
 def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_blocks: bool):
     """Whitened, weighted Jacobian ``A`` (finite rows) and residual ``b`` at ``state``."""
     e, H_X, H_u = problem.model.residual(state.unknowns, problem.measured, state.R, state.t, jacobians=True)
-    dxi = problem.drive.pose_jacobian(state.x_drive, state.R, state.t, problem.inputs)
+    dxi = problem.drive.pose_jacobian(state.x_drive, state.R, state.t, state.inputs)
     blocks = [H_X @ dxi[..., :N_PARAMS] @ basis]
     if fit_blocks and dxi.shape[-1] > N_PARAMS:
         blocks.append(H_X @ dxi[..., N_PARAMS:])
@@ -343,10 +357,10 @@ def _apply(problem: BatchProblem, state: _State, basis, step: np.ndarray, fit_bl
     x_drive[:N_PARAMS] += basis @ step[:n_free]
     x_drive[N_PARAMS : N_PARAMS + n_blocks] += step[n_free : n_free + n_blocks]
     unknowns = state.unknowns.retract(step[n_free + n_blocks :])
-    R, t, ok = _fk(problem, x_drive, (state.R, state.t))
+    R, t, ok, inputs = _fk(problem, x_drive, (state.R, state.t))
     if not np.all(ok):
         return None
-    return _State(x_drive, unknowns, R, t)
+    return _State(x_drive, unknowns, R, t, inputs)
 
 
 def _cost(problem: BatchProblem, state: _State, sigmas, weights) -> float:

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import kinematics as kin
 from ..config import EstimatorConfig
 from ..errors import SampleRejected
 from ..estimate import Estimate
@@ -49,8 +50,16 @@ from ..instruments.tracker import as_tracker
 from ..platform import N_PARAMS, Platform
 from ..samples import Log, Sample
 from ..unknowns import gauge_conditioned
-from .base import Refusals, update_each
-from .measurement import HeldForRegistration, WarmFK, WarmPose, check_sample, estimator_drive, unknown_layout
+from .base import Refusals, state_array, update_each
+from .measurement import (
+    HeldForRegistration,
+    WarmFK,
+    WarmPose,
+    check_sample,
+    drive_inputs,
+    estimator_drive,
+    unknown_layout,
+)
 from .robust import RobustFilter
 
 
@@ -80,9 +89,9 @@ class LegEKF:
         # an instrument registered on the data starts far from the answer (frame, encoder zeros, scale):
         # its start-up batches are solved by Gauss–Newton, not one pass linearised at the prior
         far_start = self._instrument is not None and needs_registration(platform)
-        # the batches' passes in one compiled call where the state is δM alone (~4× faster)
-        # and so its gated recursion over a block of samples (update_block)
-        self._compiled = compiled = self._tracker_known and not self.layout.blocks
+        # the batches' passes in one compiled call where the state is the drive's alone and the strokes'
+        # scale known (~4× faster), and so its gated recursion over a block of samples (update_block)
+        self._compiled = compiled = self._tracker_known and self.drive.stroke_scale_known
         kernel_arguments = (self.drive, config.noise.stroke_sigma_mm)
         self.robust = RobustFilter(
             self.name,
@@ -102,6 +111,7 @@ class LegEKF:
         self.filter = self.robust.filter
         self._drive_fk = WarmFK()
         self._held = HeldForRegistration(platform, config.noise, self.model, self.layout)
+        self._forces_geometry: np.ndarray | None = None
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample; ``SampleRejected`` leaves the state untouched."""
@@ -112,7 +122,7 @@ class LegEKF:
                 f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)", SampleRejected.TIME_BACK
             )
         if not self._held.active:
-            self.robust.update(sample.t_s, np.concatenate((self.drive.inputs(strokes), np.ravel(z))))
+            self.robust.update(sample.t_s, np.concatenate((self._inputs(strokes, z, sample), np.ravel(z))))
             return
         self._held.hold_then_replay(sample, self.robust.start_at, self._replay)
 
@@ -154,12 +164,36 @@ class LegEKF:
                 & np.isfinite(readings).all(axis=1)
                 & ((readings >= r_lo) & (readings <= r_hi)).all(axis=1)
             )
-        prepared = np.ascontiguousarray(np.column_stack((self.drive.inputs(strokes), readings)), dtype=float)
+        if self.drive.elastic is None:
+            inputs = self.drive.inputs(strokes)
+        else:  # the forces at the tracker's poses and the state's geometry, as update() takes them
+            tracker = as_tracker(self.model).legs
+            fk = kin.forward_kinematics(tracker, np.where(plain[:, None], readings, 0.0), strict=False)
+            plain &= fk.converged
+            R, t = fk.R[plain], fk.t[plain]
+            payload = None if block.load_kg is None else np.asarray(block.load_kg, dtype=float)[plain]
+            inputs = np.zeros((len(strokes), self.drive.input_width))
+            inputs[:, : strokes.shape[1]] = strokes
+            inputs[plain] = self.drive.inputs(strokes[plain], payload, R, t, self._forces_at())
+        prepared = np.ascontiguousarray(np.column_stack((inputs, readings)), dtype=float)
         return prepared, plain
 
     def _replay(self, held: Sample) -> None:
         strokes, z = check_sample(self.platform, self.model, held)
-        self.robust.update(held.t_s, np.concatenate((self.drive.inputs(strokes), np.ravel(z))))
+        self.robust.update(held.t_s, np.concatenate((self._inputs(strokes, z, held), np.ravel(z))))
+
+    def _inputs(self, strokes: np.ndarray, z: np.ndarray, sample: Sample) -> np.ndarray:
+        return drive_inputs(self.drive, self.model, strokes, z, sample.load_kg, self._pose.guess, self._forces_at())
+
+    def _forces_at(self) -> np.ndarray | None:
+        """The drive state whose geometry an elastic drive's leg forces are taken at: the one the
+        robust start-up decided, fixed from then on (so that the compiled block path, whose rows are
+        prepared ahead, and :meth:`update` take the same inputs); the nominal (None) before. The
+        start-up's geometry is within micrometres of the final one, the nominal within millimetres:
+        1e-3 of the moment arms, ~1 µm of a 60 kg platform's c·f at 1 mm/kN (benchmarks.elastic)."""
+        if self._forces_geometry is None and self.drive.elastic is not None and self.robust.started:
+            self._forces_geometry = self.filter.x[: self.drive.size].copy()
+        return self._forces_geometry
 
     def _observe(self, prepared: np.ndarray, x: np.ndarray):
         """``(−r, H = ∂r/∂X, R_meas)`` of a prepared sample ``[u | z]`` at the state ``x``: the loose
@@ -238,12 +272,14 @@ class LegEKF:
         """Filter, pose warm start and samples held for registration as arrays (checkpoints;
         :meth:`import_state` restores). The warm start keeps its first key, ``tracker_fk``, so
         earlier checkpoints still load."""
-        state = {"robust": self.robust.export_state(), "tracker_fk": self._pose.export_state()}
+        state: dict = {"robust": self.robust.export_state(), "tracker_fk": self._pose.export_state()}
         drive_fk = self._drive_fk.export_state()
         if drive_fk:
             state["drive_fk"] = drive_fk
         if self._held.active:
             state["held"] = self._held.export_state()
+        if self._forces_geometry is not None:
+            state["forces_at"] = self._forces_geometry.copy()
         return state
 
     def import_state(self, state: dict) -> None:
@@ -251,6 +287,8 @@ class LegEKF:
         self.robust.import_state(state.get("robust", {}))
         self._pose.import_state(state.get("tracker_fk", {}))
         self._drive_fk.import_state(state.get("drive_fk", {}))
+        forces_at = state.get("forces_at")
+        self._forces_geometry = None if forces_at is None else state_array(state, "forces_at", (self.drive.size,))
         # afresh, so a roll-back (isam2's front end) holds exactly the state's samples again
         self._held = HeldForRegistration(self.platform, self.noise, self.model, self.layout)
         self._held.restore(state, self.update)

@@ -213,11 +213,18 @@ def _tracker_observation(
     readings) of a tracker of known geometry
     at ``x`` (``LegEKF._observe``): FK of the readings from ``(R_guess, t_guess)`` into ``R_pose,
     t_pose``, ``ν = −r`` and ``R = s² R_meas`` into ``nu`` and ``R``, with ``scratch = (R_pose,
-    t_pose, extensions, nu, R, FK's work)`` made once per pass (:func:`_observation_scratch`).
-    Returns ``(FK converged, H)``."""
-    R_pose, t_pose, extensions, nu, R, fk_work = scratch
+    t_pose, extensions, nu, R, FK's work, the terms' factors, H over the whole state)`` made once per
+    pass (:func:`_observation_scratch`). The drive's terms whose ``columns`` are ≥ 0 are unknowns of
+    ``x``: their factors ``o_b + v_b`` take the state's value and their rows of ``H`` are
+    ``∂r_i/∂v_b,i = −g_b u_b,i`` (as ``DriveModel.with_terms``). Returns ``(FK converged, H)``."""
+    R_pose, t_pose, extensions, nu, R, fk_work, factors, H_full = scratch
+    starts, gains, base_factors, columns = extension_terms
+    for b in range(starts.shape[0]):
+        for i in range(6):
+            c = columns[b, i]
+            factors[b, i] = base_factors[b, i] + (x[c] if c >= 0 else 0.0)
     _kernels.copy_pose(R_guess, t_guess, R_pose, t_pose)
-    _kernels.leg_extensions(extension_terms[0], extension_terms[1], extension_terms[2], row, extensions)
+    _kernels.leg_extensions(starts, gains, factors, row, extensions)
     residual, r, H, R_meas, _ = _kernels.tracker_leg_observation_in(
         drive[0],
         drive[1],
@@ -241,14 +248,34 @@ def _tracker_observation(
         nu[a] = -r[a]
         for b in range(6):
             R[a, b] = noise_scale2 * R_meas[a, b]
-    return residual <= newton[0], H
+    if x.shape[0] == 42:
+        return residual <= newton[0], H
+    for a in range(6):
+        for j in range(42):
+            H_full[a, j] = H[a, j]
+        for j in range(42, x.shape[0]):
+            H_full[a, j] = 0.0
+    for b in range(starts.shape[0]):
+        for i in range(6):
+            if columns[b, i] >= 0:
+                H_full[i, columns[b, i]] = -gains[b] * row[starts[b] + i]
+    return residual <= newton[0], H_full
 
 
 @njit(nogil=True)
-def _observation_scratch():
-    """The arrays :func:`_tracker_observation` fills: pose, the legs' extensions, innovation, its
-    covariance, FK's work."""
-    return np.empty((3, 3)), np.empty(3), np.empty(6), np.empty(6), np.empty((6, 6)), _kernels._fk_work()
+def _observation_scratch(n, terms):
+    """The arrays :func:`_tracker_observation` fills for ``n`` states and ``terms`` extension terms:
+    pose, the legs' extensions, innovation, its covariance, FK's work, the terms' factors, ``H``."""
+    return (
+        np.empty((3, 3)),
+        np.empty(3),
+        np.empty(6),
+        np.empty(6),
+        np.empty((6, 6)),
+        _kernels._fk_work(),
+        np.empty((terms, 6)),
+        np.empty((6, n)),
+    )
 
 
 @njit(fastmath=_FAST, nogil=True, error_model="numpy")
@@ -283,8 +310,9 @@ def tracker_filter_pass(
 
     Args:
         drive, tracker: ``(base_joints, platform_joints, initial_lengths)`` of each leg set.
-        extension_terms: the drive's ``(starts, gains, factors o_b + v_b)`` of its known terms
-            (:meth:`stewart_calib.drive.DriveModel.kernel_terms`, :func:`~stewart_calib._kernels.leg_extensions`).
+        extension_terms: the drive's ``(starts, gains, factors o_b + v_b at nominal, columns of the
+            unknown ones in x (−1: known))`` (:meth:`stewart_calib.drive.DriveModel.kernel_terms`,
+            :func:`~stewart_calib._kernels.leg_extensions`).
         variances: ``(σ_s², σ_q²)`` reading and stroke variance [mm²].
         newton: FK's ``(tolerance [mm], iteration cap)``.
     Returns:
@@ -294,8 +322,8 @@ def tracker_filter_pass(
     n = x.shape[0]
     Q = np.zeros((n, n))
     work = np.empty(m * n + m * m + m)
-    scratch = _observation_scratch()
-    R_pose, t_pose, _, nu, R, _ = scratch
+    scratch = _observation_scratch(n, extension_terms[0].shape[0])
+    R_pose, t_pose, _, nu, R, _, _, _ = scratch
     last_t = math.nan
     used = 0
     for k in range(t_s.shape[0]):
@@ -321,7 +349,7 @@ def tracker_filter_pass(
         warm = True
         step = 0.0 if math.isnan(last_t) else walk_rate * max(t_s[k] - last_t, 0.0)
         for i in range(n):
-            Q[i, i] = step
+            Q[i, i] = step if i < 42 else 0.0  # δM walks; the drive's blocks are constant
         nis, S = kalman_update(x, P, H, nu, R, Q, math.inf, work)
         if math.isnan(nis):
             continue
@@ -386,8 +414,8 @@ def tracker_filter_steps(
     m = 6
     n = x.shape[0]
     work = np.empty(m * n + m * m + m)
-    scratch = _observation_scratch()
-    R_pose, t_pose, _, nu, R, _ = scratch
+    scratch = _observation_scratch(n, extension_terms[0].shape[0])
+    R_pose, t_pose, _, nu, R, _, _, _ = scratch
     capacity = buffer_t.shape[0] // 2
     nis = math.nan
     for k in range(t_s.shape[0]):
@@ -411,7 +439,7 @@ def tracker_filter_steps(
             return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm
         step = walk_rate * max(t_s[k] - last_t, 0.0)
         for i in range(n):
-            Q[i, i] = step
+            Q[i, i] = step if i < 42 else 0.0  # δM walks; the drive's blocks are constant
         nis_k, S = kalman_update(x, P, H, nu, R, Q, gate_nis, work)
         if not nis_k <= gate_nis:  # gated, or S not positive definite: x and P untouched
             return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm

@@ -25,11 +25,12 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..config import EstimatorConfig, LSConfig
-from ..drive import drive_model
+from ..drive import DriveModel, drive_model
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
-from ..platform import N_PARAMS, LegGeometry, Platform
+from ..platform import N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, Platform
 from ..samples import Sample
+from ..unknowns import UnknownLayout
 from .base import BufferedFit
 from .measurement import WarmPose, check_sample, drive_only_model, measured_pose, pose_difference
 
@@ -45,8 +46,8 @@ class LSSolution:
     """Result of :func:`gauss_newton`.
 
     Attributes:
-        error: ``(42,)`` δM [mm].
-        covariance: ``(42, 42)`` [mm²], or None when rank deficient.
+        error: ``(size,)`` the drive's unknowns ``[δM [mm] | its unknown terms]`` (42 without a drive model).
+        covariance: ``(size, size)``, or None when rank deficient.
         singular_values: ``(min(6N, 42),)`` of the weighted stacked ``J_p`` at the solution,
             descending [mm / mm]; their ratio is the conditioning of the identification.
         iterations: Gauss–Newton iterations taken.
@@ -66,29 +67,46 @@ def gauss_newton(
     R_v: np.ndarray,
     t_v: np.ndarray,
     config: LSConfig,
+    drive: DriveModel | None = None,
+    payload_kg: np.ndarray | None = None,
 ) -> LSSolution:
-    """Iterated least squares ``min Σ_k ‖W (P_v,k − P_m,k(δM))‖²`` (paper eq. 9–11).
+    """Iterated least squares ``min Σ_k ‖W (P_v,k − P_m,k(x))‖²`` (paper eq. 9–11).
 
     Args:
         nominal: nominal drive geometry M.
-        strokes: ``(N, 6)`` executed strokes [mm].
+        strokes: ``(N, 6)`` executed strokes [mm] (with ``drive``: as logged).
         R_v, t_v: ``(N, 3, 3)``, ``(N, 3)`` measured poses P_v.
         config: tolerance, iteration cap, rotation weight.
+        drive: the drive model whose extensions the strokes go through, its unknown terms fitted
+            with δM (an extension enters ``P_m`` as the leg's initial length does, so their columns
+            are ``J_p``'s ``l_i`` columns times ``∂e_i/∂v``); an elastic drive's leg forces are taken
+            at ``P_v`` under ``payload_kg`` ``(N,)`` with the geometry of each iteration. None: the
+            strokes are the legs' length changes and the unknowns δM alone.
     Raises:
         CalibError: the model's FK fails (the iteration diverged) or no convergence.
     """
     n = len(strokes)
     weight = np.r_[np.ones(3), np.full(3, config.rotation_weight_mm)]
-    error = np.zeros(N_PARAMS)
+    size = N_PARAMS if drive is None else drive.size
+    error = np.zeros(size)
     R_m, t_m = R_v, t_v  # the measured pose is the best warm start for the model's FK
     for iteration in range(1, config.max_iterations + 1):
-        drive = nominal.perturbed(error)
-        sol = kin.forward_kinematics(drive, strokes, guess=(R_m, t_m), strict=False)
+        legs = nominal.perturbed(error[:N_PARAMS])
+        lengths, inputs = strokes, None
+        if drive is not None:
+            inputs = drive.inputs(strokes, payload_kg, R_v, t_v, error)  # an elastic drive's forces at P_v
+            lengths = drive.extensions(inputs, error)
+        sol = kin.forward_kinematics(legs, lengths, guess=(R_m, t_m), strict=False)
         if not np.all(sol.converged):
             raise CalibError(f"ls: model forward kinematics failed at iteration {iteration}; the fit diverged")
         R_m, t_m = sol.R, sol.t
         b = (pose_difference(R_v, t_v, R_m, t_m) * weight).reshape(-1)
-        A = (kin.error_jacobian(drive, R_m, t_m) * weight[:, None]).reshape(-1, N_PARAMS)
+        J_p = kin.error_jacobian(legs, R_m, t_m)
+        if drive is not None and inputs is not None and size > N_PARAMS:
+            J_p = np.concatenate(
+                [J_p, J_p[..., N_PARAMS_PER_LEG - 1 :: N_PARAMS_PER_LEG] @ drive.extension_jacobian(inputs)], -1
+            )
+        A = (J_p * weight[:, None]).reshape(-1, size)
         U, s, Vt = np.linalg.svd(A, full_matrices=False)
         keep = s > RANK_TOLERANCE * s[0]
         step = Vt[keep].T @ ((U[:, keep].T @ b) / s[keep])
@@ -98,7 +116,7 @@ def gauss_newton(
     else:
         raise CalibError(f"ls: Gauss–Newton did not converge in {config.max_iterations} iterations")
     residual = b - A @ step
-    dof = 6 * n - N_PARAMS
+    dof = 6 * n - size
     covariance = None
     if np.all(keep) and dof > 0:
         sigma2 = float(residual @ residual) / dof
@@ -126,9 +144,13 @@ class LeastSquares(BufferedFit):
 
             self._external = model_for(platform)
         else:
-            self.model = drive_only_model(self.name, platform, config)
+            self.model = drive_only_model(self.name, platform, config, drive_blocks=True)
             self._pose = WarmPose(self.model)
+            fitted = drive_model(platform, config.noise)
+            # the paper's LS on δM alone where the drive has no unknown term and no leg forces
+            self._fitted = fitted if fitted.blocks or fitted.elastic is not None else None
         self._strokes: list[np.ndarray] = []
+        self._payload: list[float] = []
         self._R_v: list[np.ndarray] = []
         self._t_v: list[np.ndarray | float] = []  # t_v, or with an outside instrument the sample times
         self._t_s = float("nan")
@@ -141,14 +163,17 @@ class LeastSquares(BufferedFit):
         if self._external is not None:
             strokes, readings = self._external.check(sample)
             self._strokes.append(strokes)
+            self._payload.append(0.0 if sample.load_kg is None else sample.load_kg)
             self._R_v.append(readings)
             self._t_v.append(sample.t_s)
             self._t_s = sample.t_s
             return
         strokes, z = check_sample(self.platform, self.model, sample)
-        strokes = self.drive.extensions(self.drive.inputs(strokes))  # the drive's nominal terms (spec §7)
+        if self._fitted is None:
+            strokes = self.drive.extensions(self.drive.inputs(strokes))  # the drive's nominal terms (spec §7)
         R_v, t_v = measured_pose(self._pose, z, sample.t_s)
         self._strokes.append(strokes)
+        self._payload.append(0.0 if sample.load_kg is None else sample.load_kg)
         self._R_v.append(R_v)
         self._t_v.append(t_v)
         self._t_s = sample.t_s
@@ -160,10 +185,19 @@ class LeastSquares(BufferedFit):
         if self._external is not None:
             return self._estimate_external(self._external)
         solution = gauss_newton(
-            self.platform.drive, np.array(self._strokes), np.array(self._R_v), np.array(self._t_v), self.config
+            self.platform.drive,
+            np.array(self._strokes),
+            np.array(self._R_v),
+            np.array(self._t_v),
+            self.config,
+            self._fitted,
+            np.array(self._payload),
         )
         self.singular_values = solution.singular_values
-        return Estimate(solution.error, solution.covariance, self.name, len(self._strokes), self._t_s)
+        if self._fitted is None or not self._fitted.blocks:
+            return Estimate(solution.error, solution.covariance, self.name, len(self._strokes), self._t_s)
+        layout = UnknownLayout(self._fitted.blocks)
+        return Estimate.of_state(solution.error, solution.covariance, layout, self.name, len(self._strokes), self._t_s)
 
     def _estimate_external(self, model: ExternalModel) -> Estimate:
         from ..instruments.gauge import GAUGE_STATEMENT
@@ -171,7 +205,8 @@ class LeastSquares(BufferedFit):
 
         problem = BatchProblem(
             drive=self.drive.identifying(),
-            inputs=self.drive.inputs(np.array(self._strokes)),
+            inputs=self.drive.inputs_near(np.array(self._strokes)),
+            payload_kg=np.array(self._payload),
             measured=np.array(self._R_v),
             model=model.module,
             register=model.register,

@@ -81,11 +81,31 @@ def unknown_layout(platform: Platform, noise: NoiseConfig, model: InstrumentMode
     return UnknownLayout(blocks if model.unknowns is None else (*blocks, model.unknowns))
 
 
+def drive_inputs(
+    drive: DriveModel, model: InstrumentModel, strokes: np.ndarray, z: np.ndarray, payload_kg, guess=None, x_drive=None
+) -> np.ndarray:
+    """One sample's drive inputs (:meth:`~stewart_calib.drive.DriveModel.inputs`): its strokes and, for
+    an elastic drive, the leg forces under ``payload_kg`` (the log's ``load_kg``; None: 0) at the pose
+    the measurement fixes with the instrument at its nominal (:meth:`InstrumentModel.pose`, from
+    ``guess``), or where it fixes none at the drive's own forward kinematics."""
+    if drive.elastic is None:
+        return drive.inputs(strokes)
+    observed = model.pose(z, instrument_theta(model, None), guess)
+    if observed is None:
+        return drive.settled_kinematics(np.asarray(strokes)[None], payload_kg, strict=False)[1][0]
+    return drive.inputs(strokes, payload_kg, observed.R, observed.t, x_drive)
+
+
 class _WarmStart:
     """The last pose of a stream, the next solve's Newton start; exported for checkpoints, since a
     resumed stream must start Newton from the same pose to reproduce the same solution bit for bit."""
 
     _guess: tuple[np.ndarray, np.ndarray] | None = None
+
+    @property
+    def guess(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The next solve's start: the last pose (None before the first)."""
+        return self._guess
 
     def export_state(self) -> dict:
         """The warm start ``{"R", "t"}`` (empty before the first solve)."""
@@ -152,14 +172,14 @@ class WarmPose(_WarmStart):
         return r, drive.with_terms(H, inputs), R_meas
 
     def _tracker_arguments(self, drive: DriveModel, stroke_sigma_mm: float) -> tuple:
-        """The compiled passes' fixed arguments: both leg sets, the drive's extension terms (all
-        known: the passes run on a state of δM alone), the variances, Newton's limits."""
+        """The compiled passes' fixed arguments: both leg sets, the drive's extension terms (with the
+        columns in the state of those it identifies), the variances, Newton's limits."""
         legs, nominal = as_tracker(self.model).legs, drive.legs
-        starts, gains, offsets, values, _ = drive.kernel_terms()
+        starts, gains, offsets, values, columns = drive.kernel_terms()
         return (
             (nominal.base_joints, nominal.platform_joints, nominal.initial_lengths),
             (legs.base_joints, legs.platform_joints, legs.initial_lengths),
-            (starts, gains, np.ascontiguousarray(offsets[:, None] + values)),
+            (starts, gains, np.ascontiguousarray(offsets[:, None] + values), columns),
             (float(self.model.channel_sigma[0]) ** 2, float(stroke_sigma_mm) ** 2),
             (kin.FK_TOLERANCE_MM, kin.FK_MAX_ITERATIONS),
         )
@@ -168,7 +188,7 @@ class WarmPose(_WarmStart):
         """A filter pass ``(x, P, t_s, prepared, use, walk_rate, noise_scale2, components) →
         (used, last t_s)`` for :class:`~.robust.RobustFilter` that observes each sample as
         :meth:`tracker_leg_observation` does (same warm starts), compiled whole
-        (:func:`~.kalman.tracker_filter_pass`); for a state of δM alone."""
+        (:func:`~.kalman.tracker_filter_pass`); for a state of the drive's unknowns alone."""
         from .kalman import tracker_filter_pass
 
         fixed = self._tracker_arguments(drive, stroke_sigma_mm)
@@ -199,7 +219,7 @@ class WarmPose(_WarmStart):
         """The gated recursion over rows of prepared samples for :class:`~.robust.RobustFilter`,
         observing each as :meth:`tracker_leg_observation` does, compiled whole
         (:func:`~.kalman.tracker_filter_steps`, whose arguments it takes but the fixed ones and the
-        warm start, kept here); for a state of δM alone."""
+        warm start, kept here); for a state of the drive's unknowns alone."""
         from .kalman import tracker_filter_steps
 
         fixed = self._tracker_arguments(drive, stroke_sigma_mm)
@@ -354,19 +374,24 @@ class HeldForRegistration:
             update(Sample(float(t_s[k]), strokes[k], readings[k]))
 
 
-def drive_only_model(method: str, platform: Platform, config: EstimatorConfig) -> InstrumentModel:
-    """The instrument model of a method that identifies the 42 drive parameters alone from the
-    measured pose ``P_v`` (``ls``, ``paper-ekf``).
+def drive_only_model(
+    method: str, platform: Platform, config: EstimatorConfig, drive_blocks: bool = False
+) -> InstrumentModel:
+    """The instrument model of a method that identifies the drive from the measured pose ``P_v``
+    alone (``ls``, ``paper-ekf``): the 42 parameters and, where ``drive_blocks``, the drive's own
+    unknown terms (stroke scale, compliance).
 
     Raises:
-        CalibError: the configuration asks for more unknowns (stroke scale, the instrument's own).
+        CalibError: the configuration asks for more unknowns (the instrument's own; the drive's
+            blocks unless ``drive_blocks``).
     """
     model = instrument_model(platform, config.noise)
-    extra = [block.key for block in unknown_layout(platform, config.noise, model).blocks]
+    layout = unknown_layout(platform, config.noise, model)
+    drive = {block.key for block in estimator_drive(platform, config.noise, model).blocks}
+    extra = [block.key for block in layout.blocks if not (drive_blocks and block.key in drive)]
     if extra:
-        raise CalibError(
-            f"{method} identifies the 42 drive parameters only, not {', '.join(extra)}; use ekf, isam2 or lm"
-        )
+        allowed = "the 42 drive parameters and the drive's own blocks" if drive_blocks else "the 42 drive parameters"
+        raise CalibError(f"{method} identifies {allowed} only, not {', '.join(extra)}; use ekf, isam2 or lm")
     return model
 
 

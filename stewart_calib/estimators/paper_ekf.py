@@ -15,7 +15,9 @@ it meant decides how much the filter trusts the tracker's orientation.
 With a ``pose`` instrument (motion capture) the state stays the paper's ``δM``: the instrument's
 frame and target are fixed at their closed-form registration on the first samples (held, then
 replayed, as in the leg-length EKF) and the strokes at the encoders' nominal scale — the paper's
-model has neither unknown; ``ekf``, ``isam2`` and ``lm`` identify them.
+model has neither unknown; ``ekf``, ``isam2`` and ``lm`` identify them. A platform with
+``[elastic]`` (spec §10) keeps the paper's state too: each leg's compliance is held at its nominal
+value, the leg forces taken at ``P_v`` under the sample's ``load_kg``.
 
 Optional adaptive Q/R (paper ref. [28]; innovation-based, Mohamed & Schwarz 1999): over
 the last ``adaptive_window`` updates, ``R = mean(ν νᵀ − H P⁻ Hᵀ)`` with its eigenvalues
@@ -24,6 +26,8 @@ floored at ``adaptive_min_variance`` (positive definite), and ``Q = mean(Δx Δx
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -62,6 +66,8 @@ class PaperEKF:
 
     def __init__(self, platform: Platform, config: EstimatorConfig):
         c = config.paper_ekf
+        if platform.elastic is not None:  # the paper's model identifies δM alone: c held at [elastic]'s nominal
+            platform = replace(platform, elastic=replace(platform.elastic, compliance_sigma_mm_per_kN=0.0))
         self.platform = platform
         self.config = c
         self.model = _pose_error_model(platform, config)
@@ -88,7 +94,7 @@ class PaperEKF:
         A pose instrument's first samples are held until they register it, then replayed."""
         strokes, z = check_sample(self.platform, self.model, sample)
         if not self._held.active:
-            self._update(strokes, z, sample.t_s)
+            self._update(strokes, z, sample.t_s, sample.load_kg)
             return
         self._held.hold_then_replay(sample, self._registered, self._replay)
 
@@ -104,11 +110,12 @@ class PaperEKF:
         self._theta = instrument_theta(self.model, start[self._layout.slice("instrument")])
 
     def _replay(self, held: Sample) -> None:
-        self._update(*check_sample(self.platform, self.model, held), held.t_s)
+        self._update(*check_sample(self.platform, self.model, held), held.t_s, held.load_kg)
 
-    def _update(self, strokes: np.ndarray, z: np.ndarray, t_s: float) -> None:
-        strokes = self._drive.extensions(self._drive.inputs(strokes))  # the drive's nominal terms (spec §7)
+    def _update(self, strokes: np.ndarray, z: np.ndarray, t_s: float, payload_kg=None) -> None:
         R_v, t_v = measured_pose(self._tracker_fk, z, t_s, self._theta)
+        # the drive's nominal terms (spec §7; an elastic drive's forces at P_v, spec §10)
+        strokes = self._drive.extensions(self._drive.inputs(strokes, payload_kg, R_v, t_v))
         drive = self.platform.drive.perturbed(self.filter.x)
         R_m, t_m = self._model_fk.solve(drive, strokes, "drive model")
         Y = pose_difference(R_v, t_v, R_m, t_m) * self._unit_scale

@@ -57,6 +57,7 @@ import numpy as np
 from .._jit import njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected
+from ..platform import N_PARAMS
 from .base import state_array
 from .kalman import STEPS_WINDOW_DUE, FilterState, kalman_update, variance_components
 
@@ -142,8 +143,11 @@ class RobustFilter:
         self._gauge_projector = None if C is None or not len(C) else C.T @ np.linalg.solve(C @ C.T, C)
         self._relinearise = relinearise
         self._unit_Q = unit_Q
-        self._compiled_pass = compiled_pass if unit_Q is None else None
-        self._compiled_steps = compiled_steps if unit_Q is None else None
+        # the compiled passes walk δM alone (kalman.tracker_filter_pass): a unit_Q that is anything else
+        # (the gauge conditioned in) keeps the per-sample path
+        walks_delta_only = unit_Q is None or np.array_equal(unit_Q, np.diag((np.arange(n) < N_PARAMS).astype(float)))
+        self._compiled_pass = compiled_pass if walks_delta_only else None
+        self._compiled_steps = compiled_steps if walks_delta_only else None
         self._configured_walk = walk_mm_per_sqrt_s**2
         self._observe = observe
         self._robust = robust

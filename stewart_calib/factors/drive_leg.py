@@ -42,33 +42,45 @@ class DriveLegs:
         nominal: ``(k, 7)`` their nominal ``[j_i | d_i | l_i]`` [mm].
         columns: ``(k, 7)`` their δ_i's columns in the unknown vector.
         terms: the drive's extension terms (:meth:`~stewart_calib.drive.DriveModel.kernel_terms`).
+        elastic: the drive where its inputs hold leg forces (spec §10), else None: each evaluation
+            then takes the forces at the pose and the geometry being evaluated, so the residual is
+            exact wherever the solver goes; the Jacobians leave out the forces' own derivatives
+            (``c·∂f/∂ξ`` and ``c·∂f/∂M`` are ~1e-3 of the rows they would join, see
+            tests/test_elastic.py), which slows no convergence measurably.
     """
 
     legs: np.ndarray
     nominal: np.ndarray
     columns: np.ndarray
     terms: tuple
+    elastic: DriveModel | None = None
 
     @classmethod
     def of(cls, legs, drive: DriveModel) -> DriveLegs:
         """Legs ``legs`` of ``drive``, whose ``x_drive`` opens the unknown vector."""
         legs = np.asarray(legs, dtype=np.int64).reshape(-1)
         columns = N_PARAMS_PER_LEG * legs[:, None] + np.arange(N_PARAMS_PER_LEG)
-        return cls(legs, np.array(drive.legs.params[legs]), np.ascontiguousarray(columns), drive.kernel_terms())
+        elastic = drive if drive.elastic is not None else None
+        nominal = np.array(drive.legs.params[legs])
+        return cls(legs, nominal, np.ascontiguousarray(columns), drive.kernel_terms(), elastic)
 
 
 def _error(
     legs: DriveLegs,
     inputs: np.ndarray,
+    payload_kg: float | None,
     pose_key: int,
     params_key: int,
     this: gtsam.CustomFactor,
     values: gtsam.Values,
     H,
 ):
+    pose, params = values.atPose3(pose_key).matrix(), values.atVector(params_key)
+    if legs.elastic is not None:  # the forces where this evaluation puts the platform and its legs
+        inputs = legs.elastic.inputs(inputs[:6], payload_kg, pose[:3, :3], pose[:3, 3], params)
     r, H_pose, H_params = drive_leg_rows(
-        values.atPose3(pose_key).matrix(),
-        values.atVector(params_key),
+        pose,
+        params,
         legs.legs,
         legs.nominal,
         legs.columns,
@@ -82,17 +94,23 @@ def _error(
 
 
 def factor(
-    pose_key: int, params_key: int, legs: DriveLegs, inputs: np.ndarray, noise: gtsam.noiseModel.Base
+    pose_key: int,
+    params_key: int,
+    legs: DriveLegs,
+    inputs: np.ndarray,
+    noise: gtsam.noiseModel.Base,
+    payload_kg: float | None = None,
 ) -> gtsam.CustomFactor:
     """A ``CustomFactor`` on ``(Pose3 pose_key, unknown vector params_key)``: one row per leg of
     ``legs`` (all six in one factor unless a robust kernel weighs each alone).
 
     Args:
         inputs: the sample's drive inputs ``u`` (:meth:`~stewart_calib.drive.DriveModel.inputs`).
+        payload_kg: the sample's payload where the drive is elastic (spec §10; None: 0).
         noise: of the ``k`` rows.
 
     The residual and both Jacobians are one compiled call (:func:`._kernels.drive_leg_rows`, on
     :func:`stewart_calib.kinematics.leg_residual`'s kernel).
     """
     u = np.array(inputs, dtype=float)
-    return gtsam.CustomFactor(noise, [pose_key, params_key], partial(_error, legs, u, pose_key, params_key))
+    return gtsam.CustomFactor(noise, [pose_key, params_key], partial(_error, legs, u, payload_kg, pose_key, params_key))

@@ -159,7 +159,9 @@ def registered_platform(platform: Platform, strokes: np.ndarray, readings: np.nd
 
     model = model_for(platform)
     drive = drive_model(platform)
-    fk = drive.forward_kinematics(drive.inputs(strokes), strict=False)
+    # an elastic drive settles under the platform's weight alone here: a payload moves the legs by
+    # micrometres to a millimetre, within what registration is for (the fit starts from it)
+    fk, _ = drive.settled_kinematics(strokes, strict=False)
     usable = fk.converged & np.any(np.isfinite(readings), axis=1)
     if not np.any(usable):
         raise CalibError("cannot register the instrument: nominal forward kinematics converged for no sample")
@@ -220,7 +222,7 @@ def information_rows(
     predicted = model.module.predict(unknowns, R, t)
     readings = rt_to_pose(*predicted) if model.kind == "pose" else predicted.reshape(len(R), -1)
     _, H_X, H_u = model.module.residual(unknowns, readings, R, t, jacobians=True)
-    dxi = drive.pose_jacobian(None, R, t, drive.inputs(drive.inverse_kinematics(R, t)))
+    dxi = drive.pose_jacobian(None, R, t, drive.inputs_near(drive.inverse_kinematics(R, t), None, (R, t)))
     basis = gauge.free_basis(platform.drive)
     columns = [H_X @ dxi[..., :N_PARAMS] @ basis, H_X @ dxi[..., N_PARAMS:], H_u]
     rows = np.concatenate(columns, axis=-1) / model.sigmas[:, None]

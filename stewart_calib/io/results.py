@@ -125,7 +125,7 @@ def validate_result(result, source: str) -> None:
         value = result[key]
         if not isinstance(value, int) or isinstance(value, bool) or value < 0:
             raise refuse(key, f"a non-negative whole number, got {value!r}")
-    for key in ("stroke_scale", "instrument"):
+    for key in ("stroke_scale", "compliance", "instrument"):
         if key in result:
             _validate_block(result[key], key, refuse)
     gap = np.abs(np.array(result["estimate"]) - np.array(result["nominal"]) - np.array(result["error"]))
@@ -141,8 +141,9 @@ def _validate_block(block, key: str, refuse) -> None:
     if not all(isinstance(name, str) for name in block["names"]):
         raise refuse(f"{key}.names", "a list of strings")
     n = len(block["names"])
-    if key == "stroke_scale" and block["names"] != [f"k{i}" for i in range(1, 7)]:
-        raise refuse(f"{key}.names", '["k1", ..., "k6"]')
+    for prefix, named in (("k", "stroke_scale"), ("c", "compliance")):
+        if key == named and block["names"] != [f"{prefix}{i}" for i in range(1, 7)]:
+            raise refuse(f"{key}.names", f'["{prefix}1", ..., "{prefix}6"]')
     for part in ("estimate", "stddev"):
         value = block.get(part)
         if part == "stddev" and value is None:

@@ -200,6 +200,13 @@ def _write_rerun(path: Path, platform: Platform, method: str, log: Log, run: Cal
         viz.log_parameters(rec, method, trace - nominal, log.t_s)
         viz.log_parameter_band(rec, method, trace - nominal, run.stddev, log.t_s)
         viz.log_diagnostics(rec, method, log.t_s, residual, innovation, run.nis)
+        if platform.elastic is not None:  # the legs' forces at the calibrated model's poses, and c ± σ
+            drive = drive_model(platform).calibrated_by(run.estimate)
+            _, inputs = drive.settled_kinematics(log.strokes, log.load_kg, strict=False)
+            block = run.estimate.block_results().get("compliance", {})
+            sigma = None if block.get("stddev") is None else np.asarray(block["stddev"])
+            c = drive.term_values()[-1]  # the compliance term comes last: identified, or [elastic]'s held value
+            viz.log_elastic(rec, method, inputs[:, drive.input_width - 6 :], c, sigma, log.t_s)
         viz.send_blueprint(rec, [method], [], {method: kinds})
 
 
@@ -469,7 +476,7 @@ def nominal_poses(platform: Platform, log: Log) -> np.ndarray:
     """``(n, 6)`` the nominal drive's FK poses of a log's strokes (those that converge): where an
     outside instrument's log put the robot, for a platform without ``[workspace]``."""
     drive = drive_model(platform)
-    fk = drive.forward_kinematics(drive.inputs(log.strokes), strict=False)
+    fk, _ = drive.settled_kinematics(log.strokes, log.load_kg, strict=False)
     return fk.pose6[fk.converged]
 
 

@@ -104,8 +104,14 @@ def config_field(config: EstimatorConfig) -> dict:
 
 def covariance_field(estimate: Estimate) -> list | None:
     """The covariance of every identified unknown in file units, in the order of ``parameter_names``
-    then the blocks' names (spec §8), or None when the method gives none."""
+    then the blocks' names (spec §8; the compliance last, §10), or None when the method gives none."""
     if estimate.full_covariance is None:
         return None if estimate.covariance is None else np.asarray(estimate.covariance, dtype=float).tolist()
     scale = np.concatenate([np.ones(len(estimate.error)), *(block.file_scale for block in estimate.layout.blocks)])
-    return (np.asarray(estimate.full_covariance, dtype=float) * np.outer(scale, scale)).tolist()
+    covariance = np.asarray(estimate.full_covariance, dtype=float) * np.outer(scale, scale)
+    # spec §10: the compliance after the other blocks (the unknown vector keeps the drive's blocks together)
+    compliance = estimate.layout.slice("compliance")
+    if compliance is not None:
+        order = np.r_[np.delete(np.arange(len(covariance)), np.r_[compliance]), np.r_[compliance]]
+        covariance = covariance[np.ix_(order, order)]
+    return covariance.tolist()

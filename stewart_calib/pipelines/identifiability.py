@@ -118,16 +118,17 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
     drive = drive_model(platform).identifying()
     if args.log is not None:
         log = io.read_log(args.log, platform, args.skip_bad_rows)
-        strokes, readings = log.strokes, log.readings
+        strokes, readings, payload = log.strokes, log.readings, log.load_kg
         platform = registered_platform(platform, strokes, readings)
         model = model_for(platform)
-        fk = drive.forward_kinematics(drive.inputs(strokes), strict=False)
+        fk, _ = drive.settled_kinematics(strokes, payload, strict=False)
         poses = fk.pose6[fk.converged]
         seen = np.isfinite(readings[fk.converged]).reshape(len(poses), -1, 3).all(axis=-1)
     else:
         model = model_for(platform)
         poses = read_pose_list(args.poses)
         R, t = kin.pose_to_rt(poses)
+        payload = None  # a pose list has none: the platform's own weight
         strokes = drive.inverse_kinematics(R, t)
         predicted = model.module.predict(model.nominal_unknowns(), R, t)
         readings = kin.rt_to_pose(*predicted) if model.kind == "pose" else predicted.reshape(len(R), -1)
@@ -138,7 +139,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
     unknowns = model.nominal_unknowns()
     problem = BatchProblem(
         drive,
-        drive.inputs(strokes),
+        drive.inputs_near(strokes),
         readings,
         model.module,
         model.register,
@@ -146,6 +147,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
         model.channels,
         model.channel_names,
         np.arange(len(strokes), dtype=float),
+        payload,
     )
     report = identifiability(problem, unknowns, model.unknown_names, unknowns.file_jacobian())
     equilibrated = report["condition_number_equilibrated"]

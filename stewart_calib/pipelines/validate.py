@@ -72,7 +72,7 @@ def _model_poses(platform: Platform, result: dict, log, source: str, first_sampl
     """FK poses of the logged strokes with the calibrated drive model; ``log``'s samples are
     numbered from ``first_sample`` (a block of a longer log)."""
     drive = io.calibrated_drive(platform, result, source)
-    fk = drive.forward_kinematics(drive.inputs(log.strokes), strict=False)
+    fk, _ = drive.settled_kinematics(log.strokes, log.load_kg, strict=False)  # each row at its own payload
     if not np.all(fk.converged):
         k = int(np.flatnonzero(~fk.converged)[0])
         raise CalibError(
@@ -353,10 +353,13 @@ def nominal_model(platform: Platform) -> dict:
 def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str]]) -> np.ndarray | None:
     """The tracker's readings minus its readings predicted by each ``(result, source)`` model, as
     :func:`validate`'s predictions (within FK's tolerance) in one compiled pass over the log:
-    ``(len(models), N, 6)`` [mm], or None when a model's FK does not converge for a sample."""
+    ``(len(models), N, 6)`` [mm], or None when a model's FK does not converge for a sample or the
+    drive is elastic."""
     for result, source in models:
         _check_nominal(platform, result, source)
     drives = [io.calibrated_drive(platform, result, source) for result, source in models]
+    if any(drive.elastic is not None for drive in drives):
+        return None  # the forces need the pose first: validate()'s settled kinematics
     extensions = [drive.extensions(drive.inputs(log.strokes)) for drive in drives]
     residuals, converged = kin.tracker_reading_residuals(
         platform.required_tracker("the tracker residuals"), log.readings, [drive.legs for drive in drives], extensions

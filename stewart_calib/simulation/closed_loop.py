@@ -14,6 +14,9 @@ A **controller** is any object with two methods::
     controller.drive_model() -> LegGeometry   # model used for the IK of the next desired pose
     controller.observe(sample: Sample) -> None # called after each sample
 
+and optionally ``controller.strokes(R_d, t_d, payload_kg) -> q``: its own IK where the model is
+more than a leg geometry (an elastic drive under the payload, spec §10).
+
 :class:`NominalController` (uncalibrated) and :class:`FrozenController` (a frozen batch
 estimate, or the true no-load geometry for a perfect calibration) never change their model;
 they say so with ``adaptive = False``, and the samples are then settled in vectorised blocks
@@ -44,6 +47,7 @@ from typing import Protocol
 import numpy as np
 
 from .. import kinematics as kin
+from ..drive import drive_model
 from ..errors import SampleRejected
 from ..platform import LegGeometry, Platform
 from ..progress import progress_bar
@@ -108,6 +112,8 @@ class EstimatorController:
         self._drive = platform.drive
         self._error = np.zeros(platform.drive.as_vector().shape)
         self._trace: list[np.ndarray] = []
+        self._elastic = drive_model(platform) if platform.elastic is not None else None
+        self.payload_known = True
 
     def drive_model(self) -> LegGeometry:
         return self._drive
@@ -122,6 +128,16 @@ class EstimatorController:
             self._error = self.estimator.current_error()
             self._drive = self._nominal.perturbed(self._error)
         self._trace.append(self._error)
+
+    def strokes(self, R_d: np.ndarray, t_d: np.ndarray, payload_kg) -> np.ndarray:
+        """IK of the model in force; an elastic one with its identified blocks, under ``payload_kg``
+        (taken as 0 unless :attr:`payload_known`)."""
+        if self._elastic is None:
+            return kin.inverse_kinematics(self._drive, R_d, t_d)
+        estimate = self.estimator.estimate()
+        values = {term.key: estimate.block_values(term.key) for term in self._elastic.terms}
+        drive = self._elastic.calibrated(self._error, values)
+        return drive.inverse_kinematics(R_d, t_d, payload_kg=payload_kg if self.payload_known else 0.0)
 
     def trace(self) -> np.ndarray:
         """``(N, 42)`` δM in force after each observed sample [mm] (paper Figs. 5–6)."""
@@ -326,7 +342,7 @@ def _settle_block(robot: TrueRobot, plan: Schedule, rows: slice, controller: Con
     """A model that never changes: the block's IK, settling and measurements in one vectorised pass
     (``noise``: the block's stroke and reading noise and instrument draws)."""
     R_d, t_d = kin.pose_to_rt(plan.desired_poses[rows])
-    strokes = kin.inverse_kinematics(controller.drive_model(), R_d, t_d)
+    strokes = _commanded(controller, R_d, t_d, plan.payload_kg[rows])
     sol, params = settle(robot.load, robot.base_params, strokes, plan.payload_kg[rows], (R_d, t_d))
     log, truth = _measured(robot, plan, rows, strokes, sol.R, sol.t, params, noise)
     for sample in log:  # the protocol promises observe() after every sample
@@ -342,7 +358,7 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
     strokes, params = np.empty((m, 6)), np.empty((m, 42))
     R, t = np.empty((m, 3, 3)), np.empty((m, 3))
     for i, k in enumerate(range(rows.start, rows.stop)):
-        strokes[i] = kin.inverse_kinematics(controller.drive_model(), R_d[i], t_d[i])
+        strokes[i] = _commanded(controller, R_d[i], t_d[i], plan.payload_kg[k])
         sol, params[i : i + 1] = settle(
             robot.load,
             robot.base_params,
@@ -355,6 +371,15 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
             _sample(robot, plan, k, strokes[i], stroke_noise[i], R[i], t[i], reading_noise[i], instrument_draws[i])
         )
     return _measured(robot, plan, rows, strokes, R, t, params, noise)
+
+
+def _commanded(controller: Controller, R_d: np.ndarray, t_d: np.ndarray, payload_kg) -> np.ndarray:
+    """The strokes ``controller`` commands for desired poses: its own ``strokes`` where it has one,
+    else IK of its drive model."""
+    command = getattr(controller, "strokes", None)
+    if command is None:
+        return kin.inverse_kinematics(controller.drive_model(), R_d, t_d)
+    return command(R_d, t_d, payload_kg)
 
 
 def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, params, noise) -> tuple[Log, Truth]:

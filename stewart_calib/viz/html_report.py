@@ -263,13 +263,30 @@ def _parameter_section(result: dict) -> str:
     )
 
 
+def _compliance_section(result: dict) -> str:
+    """The legs' compliance c_i ± σ (spec §10), where the result identified it."""
+    block = result.get("compliance")
+    if not isinstance(block, dict):
+        return ""
+    stddev = block.get("stddev") or [None] * len(block["names"])
+    rows = [
+        [name, _fmt(value), _fmt(sigma)]
+        for name, value, sigma in zip(block["names"], block["estimate"], stddev, strict=True)
+    ]
+    return (
+        "<h2>Leg compliance c ± σ</h2><p>Each drive leg is c_i f_i / 1000 mm shorter under an axial force "
+        "f_i [N] (compression), the forces from the statics of the platform's weight and the payload "
+        "(spec §10).</p>" + html_table(["leg", "c [mm/kN]", "σ [mm/kN]"], rows, "num")
+    )
+
+
 def _correlation_section(result: dict) -> str:
     covariance = result.get("covariance")
     if covariance is None:
         return "<h2>Correlations</h2><p>The method gave no covariance.</p>"
     covariance = np.array(covariance, dtype=float)
     names = list(result["parameter_names"])
-    for block in ("stroke_scale", "instrument"):
+    for block in ("stroke_scale", "instrument", "compliance"):  # the covariance's order (spec §8, §10)
         if isinstance(result.get(block), dict):
             names += list(result[block]["names"])
     names = names[: len(covariance)]
@@ -411,6 +428,7 @@ def report_html(
         _held_out_section(held_out) if held_out is not None else "",
         _residual_section(residuals) if residuals is not None else "",
         _parameter_section(result),
+        _compliance_section(result),
         _correlation_section(result),
         _conditioning_section(result),
         _prediction_section(result),

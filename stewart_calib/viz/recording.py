@@ -378,6 +378,32 @@ def log_parameter_band(rec: Recording, method: str, params_mm, stddev_mm, times_
             _send_scalars(rec, lower, index, centre[:, leg, k] - sigma[:, leg, k], style)
 
 
+def log_elastic(rec: Recording, method: str, forces_N, compliance, compliance_sigma, times_s) -> None:
+    """An elastic drive (spec §10): each leg's axial force [N] at every sample at
+    ``forces/leg{i}/{method}`` and the identified compliance ``c_i`` [mm/kN] with its ±σ (constant
+    over the run: the result's) at ``compliance/leg{i}/{method}[/upper|/lower]``.
+
+    Args:
+        forces_N: ``(N, 6)`` compression > 0; compliance, compliance_sigma: ``(6,)`` (σ None: no band).
+    """
+    n, index = _time_columns(times_s, None)
+    forces = _batch(forces_N, n, (N_LEGS,), "forces_N")
+    for leg in range(N_LEGS):
+        colour = _PARAMETER_COLORS[leg % len(_PARAMETER_COLORS)]
+        style = rr.SeriesLines(colors=(*colour, 255), widths=1.5, names=f"f{leg + 1} {method} [N]")
+        _send_scalars(rec, f"forces/leg{leg + 1}/{_checked_name(method, 'method')}", index, forces[:, leg], style)
+        base = f"compliance/leg{leg + 1}/{_checked_name(method, 'method')}"
+        lines = {"": np.full(n, compliance[leg])}
+        if compliance_sigma is not None:
+            lines |= {"/upper": lines[""] + compliance_sigma[leg], "/lower": lines[""] - compliance_sigma[leg]}
+        for suffix, values in lines.items():
+            width = 2.0 if not suffix else 0.75
+            style = rr.SeriesLines(
+                colors=(*colour, 255 if not suffix else 110), widths=width, names=f"c{leg + 1} {method}"
+            )
+            _send_scalars(rec, base + suffix, index, values, style)
+
+
 def log_diagnostics(
     rec: Recording, method: str, times_s, residual_mm=None, innovation_mm=None, nis=None, samples=None
 ) -> None:
