@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from stewart_calib import kinematics as kin
+from stewart_calib.calibration import run_calibration
 from stewart_calib.compensation import compensate
 from stewart_calib.config import load_estimator_config
-from stewart_calib.pipelines.calibrate import run_calibration
 from stewart_calib.platform import Platform
 from stewart_calib.samples import Log
 from stewart_calib.simulation import run_experiment

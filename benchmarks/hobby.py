@@ -161,7 +161,7 @@ def peer_held_out(theta: np.ndarray, log: Log, register: bool) -> tuple[float, f
 
 def ours_fit(platform: Platform, log: Log, method: str = "ls", config: EstimatorConfig | None = None):
     """``calibrate``'s run of ``method`` (closed-form registration first), its estimate."""
-    from stewart_calib.pipelines.calibrate import run_calibration
+    from stewart_calib.calibration import run_calibration
 
     return run_calibration(platform, log, method, config).estimate
 

@@ -9,7 +9,7 @@ laser tracker on three reflectors (15 µm), a wide test hexapod unlike the shipp
 400 mm, platform 120 mm, ±60 mm / ±10°) with the same tracker, and the shipped hobby hexapod with
 its motion capture (0.2 mm / 0.05°).
 
-**Fits.** ``ls`` through ``pipelines.calibrate.run_calibration`` (the command's path: the frame
+**Fits.** ``ls`` through ``calibration.run_calibration`` (the command's path: the frame
 registered in closed form, then the batch fit of drive, stroke scale and instrument) on (a)
 ``plan``'s 60 poses (default criterion ``I``, seed = the run's) and (b) 400 poses uniform in the
 reachable workspace box; both measured with the same truth.
@@ -42,10 +42,10 @@ import numpy as np
 from benchmarks.common import NIM_STEWART_FILE, ROOT, Row, Section, seeded_main
 from stewart_calib import accuracy, planning
 from stewart_calib import kinematics as kin
+from stewart_calib.calibration import run_calibration
 from stewart_calib.config import load_estimator_config
 from stewart_calib.drive import drive_model
 from stewart_calib.instruments import gauge
-from stewart_calib.pipelines.calibrate import run_calibration
 from stewart_calib.platform import (
     Instrument,
     LegGeometry,

@@ -7,7 +7,7 @@ load and the platform's own mass set to 0: the true drive is then pure geometry,
 every pose, so any error left is the estimators', not unmodelled sag. Each seed is the
 experiment's seed (tracker residual, poses, noise; the drive errors are Table 4's).
 
-**Fits.** ``ekf``, ``isam2`` and ``lm`` (``pipelines.calibrate.run_calibration``) on (a) the
+**Fits.** ``ekf``, ``isam2`` and ``lm`` (``calibration.run_calibration``) on (a) the
 platform as is — the tracker taken as exactly its nominal Table 2 geometry — and (b) the platform
 with ``tracker_geometry_sigma_mm = 0.015`` — its 42 values identified with the drive under the
 prior N(nominal, 15 µm²); (b) with ``lm`` is the joint maximum-likelihood fit of drive and
@@ -54,9 +54,9 @@ import numpy as np
 
 from benchmarks.common import Row, Section, seeded_main
 from stewart_calib import kinematics as kin
+from stewart_calib.calibration import run_calibration
 from stewart_calib.config import load_estimator_config
 from stewart_calib.instruments import gauge
-from stewart_calib.pipelines.calibrate import run_calibration
 from stewart_calib.platform import LegGeometry, Platform
 from stewart_calib.samples import Log
 from stewart_calib.simulation import load_experiment, run_experiment

@@ -8,13 +8,13 @@ import sys
 import numpy as np
 import pytest
 
-from stewart_calib import cli
+from stewart_calib import calibration, cli
+from stewart_calib.calibration import run_calibration
 from stewart_calib.errors import SampleRejected
 from stewart_calib.estimate import Estimate
 from stewart_calib.estimators.registry import METHODS, MethodSpec
 from stewart_calib.io import read_result, write_log
 from stewart_calib.pipelines import calibrate as calibrate_pipeline
-from stewart_calib.pipelines.calibrate import calibrate
 from stewart_calib.samples import Log
 from tests.synthetic import NIM_STEWART, make_log, nim_stewart, random_error, random_poses
 
@@ -64,6 +64,7 @@ def fakes(monkeypatch):
     # diagnosis of a log's mistakes (tests/test_diagnosis.py) would refuse them
     monkeypatch.setattr(calibrate_pipeline, "check_plausible", lambda *args: None)
     monkeypatch.setattr(calibrate_pipeline, "diagnose_log", lambda *args: None)
+    monkeypatch.setattr(calibration, "diagnose_log", lambda *args: None)
 
 
 def _log() -> Log:
@@ -138,10 +139,11 @@ def test_skip_bad_rows_counts_in_samples_skipped(tmp_path, log_path, capsys, fak
     assert read_result(tmp_path / "r.json")["samples_skipped"] == 1 + 3
 
 
-def test_calibrate_function_returns_estimate_trace_and_rejections(fakes):
-    estimate, trace, rejected = calibrate(nim_stewart(), _log(), "counting", trace=True)
-    assert (estimate.samples_used, rejected, trace.shape) == (7, 3, (10, 42))
-    assert calibrate(nim_stewart(), _log(), "batch")[1:] == (None, 0)
+def test_run_calibration_returns_estimate_trace_and_rejections(fakes):
+    run = run_calibration(nim_stewart(), _log(), "counting", trace=True)
+    assert (run.estimate.samples_used, len(run.rejected), run.trace.shape) == (7, 3, (10, 42))
+    batch = run_calibration(nim_stewart(), _log(), "batch")
+    assert (batch.trace, batch.rejected) == (None, [])
 
 
 @pytest.mark.parametrize(

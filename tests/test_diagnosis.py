@@ -234,7 +234,7 @@ def test_calibrate_refuses_before_the_solver_in_one_line(tmp_path, capsys):
 
 def test_a_fit_that_does_not_converge_names_what_it_fitted_and_why():
     """Past the diagnosis (the API, or a mistake it does not know), ls still names the cause."""
-    from stewart_calib.pipelines.calibrate import run_calibration
+    from stewart_calib.calibration import run_calibration
 
     platform, log = _pose()
     with pytest.raises(CalibError) as refused:

@@ -139,7 +139,7 @@ def test_the_drive_model_settles_where_compensation_sends_it(check):
 
     _, run, platform, _ = check
     truth = replace(platform.elastic, compliance_mm_per_kN=platform.elastic.true_compliance_mm_per_kN)
-    true_platform = replace(platform.with_drive(LegGeometry.from_params(run.robot.base_params)), elastic=truth)
+    true_platform = replace(platform, drive=LegGeometry.from_params(run.robot.base_params), elastic=truth)
     drive = drive_model(true_platform)
     poses = run.desired_poses[:20]
     for payload in (0.0, 40.0):
@@ -177,7 +177,7 @@ def test_neglected_force_derivatives_are_small_against_the_rows_they_would_join(
 @pytest.mark.parametrize("method", ["ls", "lm", "ekf", "isam2"])
 def test_every_method_identifies_the_compliance_and_compensates_any_payload(check, method):
     from benchmarks.elastic import _subset, closed_loop_um
-    from stewart_calib.pipelines.calibrate import run_calibration
+    from stewart_calib.calibration import run_calibration
 
     _, run, platform, calibration = check
     validation = run.desired_poses[np.asarray(run.kinds) == "validation"][:20]

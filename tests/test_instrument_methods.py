@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
+from stewart_calib.calibration import run_calibration
 from stewart_calib.config import load_estimator_config
-from stewart_calib.pipelines.calibrate import run_calibration
 from tests.instrument_data import hobby, make_case
 from tests.test_instrument_ls import POINTS, POINTS_TRUTH, POSE_TRUTH, _normalised_errors
 

@@ -25,6 +25,7 @@ LAYERS = (
     ("factors", "io", "identifiability", "accuracy", "compensation", "plausibility", "simulation", "viz"),
     ("planning", "estimators", "diagnosis"),
     ("online", "reproduction", "sweep"),
+    ("calibration",),
     ("pipelines",),
     ("cli",),
     ("__main__",),

@@ -17,11 +17,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from stewart_calib import cli
+from stewart_calib.calibration import run_calibration
 from stewart_calib.errors import CalibError
 from stewart_calib.io import LogRowParser, read_log, read_result, write_log
 from stewart_calib.io.logs import ARROW_MIN_ROWS
 from stewart_calib.online import OnlineCalibrator
-from stewart_calib.pipelines.calibrate import calibrate
 from stewart_calib.pipelines.track import lines
 from stewart_calib.samples import Sample
 from tests.faults import INDETERMINANT, degenerate_sample
@@ -65,7 +65,7 @@ def test_track_gives_calibrates_estimate_and_keeps_a_checkpoint(tmp_path, log_pa
         capsys, "--method", "ekf", "--log", str(log_path), "--out", str(out), "--checkpoint", str(ckpt), "--every", "7"
     )
     assert code == 0 and err == [f"stewart-calib track: wrote {out} (ekf: {N} samples used, 0 skipped, of {N} rows)"]
-    estimate, _, _ = calibrate(nim_stewart(), log, "ekf")
+    estimate = run_calibration(nim_stewart(), log, "ekf").estimate
     assert_equal_to_rounding(_error(out), estimate.error)  # same samples, same filter
     assert read_result(out)["samples_rejected"] == {"count": 0, "by_reason": {}, "first": None}
     assert_equal_to_rounding(OnlineCalibrator.load(ckpt).estimate().error, estimate.error)
@@ -307,7 +307,8 @@ def test_blocks_give_calibrates_estimate_whatever_the_writes_and_bad_rows(tmp_pa
     log_path = tmp_path / "log.csv"
     write_log(log_path, log)
     _with_bad_row(log_path, 300)  # skipped: its chunk is parsed row by row
-    estimate, _, rejected = calibrate(platform, read_log(log_path, platform, skip_bad_rows=True), "ekf")
+    run = run_calibration(platform, read_log(log_path, platform, skip_bad_rows=True), "ekf")
+    estimate, rejected = run.estimate, len(run.rejected)
     assert rejected >= 1
     for every in ("7", "1000"):
         out, ckpt = tmp_path / f"track-{every}.json", tmp_path / f"track-{every}.npz"

@@ -141,6 +141,15 @@ def dispatch(args: argparse.Namespace) -> int:
         return 130
 
 
+def check_output_path(path, option: str) -> None:
+    """Fail before a long run, not after it, when an output cannot be placed (``path`` None: no
+    such output asked for)."""
+    if path is not None:
+        from .. import io
+
+        io.check_writable_directory(path.parent, f"{option} {shown(path)}")
+
+
 def add_config_arguments(parser: argparse.ArgumentParser, example: str = "isam2.lag_s=5") -> None:
     """``--config C.toml`` and repeatable ``--set section.key=value`` (see ``load_estimator_config``)."""
     parser.add_argument(

@@ -68,8 +68,7 @@ from ..estimators.base import accounting_words, skipped_count
 from ..online import ONLINE_METHODS, OnlineCalibrator
 from ..platform import load_platform, platform_to_toml
 from ..samples import Log, Sample
-from . import add_config_arguments, run_command
-from .calibrate import _check_writable_dir
+from . import add_config_arguments, check_output_path, run_command
 
 #: how often an idle input is polled [s]: latency of noticing new rows and signals.
 POLL_S = 0.1
@@ -532,7 +531,7 @@ def run(args: argparse.Namespace) -> int:
         )
     out, checkpoint = Path(args.out), args.checkpoint and Path(args.checkpoint)
     for path, option in ((out, "--out"), (checkpoint, "--checkpoint")):
-        _check_writable_dir(path, option)
+        check_output_path(path, option)
     with contextlib.ExitStack() as locks:
         for path, option in ((checkpoint, "--checkpoint"), (out, "--out")):
             if path:  # two runs writing one file: the last writer would win
