@@ -2,7 +2,7 @@
 
 ``configs/estimators/default.toml`` mirrors these defaults with comments. Every estimator
 takes the whole :class:`EstimatorConfig`; the ``[noise]`` section is shared so that the
-EKFs and the factor graph use the same process and measurement noise (design.md).
+EKFs and the factor graph use the same process and measurement noise.
 """
 
 from __future__ import annotations

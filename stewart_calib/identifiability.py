@@ -1,4 +1,4 @@
-"""Is a pose set good enough to identify the 42 drive parameters? (design.md: report conditioning)
+"""Is a pose set good enough to identify the 42 drive parameters? (the conditioning a result reports)
 
 Two stacked identification Jacobians over the N poses:
 

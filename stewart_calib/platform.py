@@ -16,7 +16,7 @@ from __future__ import annotations
 import difflib
 import math
 import sys
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -249,9 +249,6 @@ class Platform:
     stroke_scale: np.ndarray = field(default_factory=lambda: np.zeros(N_LEGS), compare=False)
     tracker_geometry_sigma_mm: float = 0.0
     elastic: Elastic | None = field(default=None, compare=False)
-
-    def with_drive(self, drive: LegGeometry) -> Platform:
-        return replace(self, drive=drive)
 
     def required_tracker(self, what: str) -> LegGeometry:
         """:attr:`tracker` for ``what``, which needs the in-situ tracker's legs.

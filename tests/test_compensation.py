@@ -57,7 +57,9 @@ def test_cli_writes_strokes_that_reach_the_poses(tmp_path):
     assert kin.pose_error(*kin.pose_to_rt(poses), sol.R, sol.t)[0].max() < 1e-9  # FK tolerance
 
     # A result for another platform (different nominal) is refused, and nothing is written.
-    other = io.result_dict(Estimate(delta, None, "ls", 1), platform.with_drive(platform.drive.perturbed(np.ones(42))))
+    other = io.result_dict(
+        Estimate(delta, None, "ls", 1), dataclasses.replace(platform, drive=platform.drive.perturbed(np.ones(42)))
+    )
     io.write_result(tmp_path / "other.json", other)
     argv = ["compensate", "--platform", str(NIM_STEWART), "--result", str(tmp_path / "other.json")]
     assert main([*argv, "--poses", str(tmp_path / "poses.csv"), "--out", str(tmp_path / "q2.csv")]) == 2

@@ -4,6 +4,7 @@ and the Cramér–Rao prediction against the Monte-Carlo spread of least-squares
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -160,7 +161,7 @@ def gauss_newton_leg_model(platform, log, noise, iterations: int = 4) -> np.ndar
     for _ in range(iterations):
         drive = platform.drive.from_params(params)
         _, J_M = kin.leg_residual_jacobians(drive, fk.R, fk.t)
-        chol = np.linalg.cholesky(residual_covariance(platform.with_drive(drive), fk.R, fk.t, noise))
+        chol = np.linalg.cholesky(residual_covariance(replace(platform, drive=drive), fk.R, fk.t, noise))
         A = np.linalg.solve(chol, J_M).reshape(-1, 42)
         b = np.linalg.solve(chol, kin.leg_residuals(drive, fk.R, fk.t, log.strokes)[..., None]).reshape(-1)
         params = params - np.linalg.lstsq(A, b, rcond=None)[0]

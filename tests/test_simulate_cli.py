@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import itertools
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -149,7 +150,7 @@ def one_line_error(capsys) -> str:
 
 def test_frozen_refuses_a_result_for_another_platform(true_result, tmp_path, capsys):
     experiment = load_experiment(QUICK)
-    other = experiment.platform.with_drive(experiment.platform.drive.perturbed(np.full(42, 0.01)))
+    other = replace(experiment.platform, drive=experiment.platform.drive.perturbed(np.full(42, 0.01)))
     path = tmp_path / "other.json"
     write_result(path, result_dict(Estimate(np.zeros(42), None, "ls", 1), other))
     out = tmp_path / "out"

@@ -1,6 +1,6 @@
 """Parameter random walk between consecutive parameter variables, and the manufacturing prior.
 
-δM is modelled as a random walk (design.md; the paper's ``P + Q``, eq. 15): between the
+δM is modelled as a random walk (the paper's ``P + Q``, eq. 15; docs/architecture.md): between the
 variables of two parameter windows spaced Δt apart, ``δM_{w+1} − δM_w ~ N(0, σ² I)`` with
 ``σ = random_walk · √Δt`` [mm]; constant blocks of the unknown vector (stroke scale, the
 instrument's unknowns) are tied by the chain's floor σ alone. GTSAM's own ``BetweenFactorVector`` and

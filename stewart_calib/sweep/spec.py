@@ -193,10 +193,6 @@ class SweepSpec:
     axes: dict = field(default_factory=dict)
 
     @property
-    def setting_names(self) -> list[str]:
-        return list(self.cells[0].settings)
-
-    @property
     def swept(self) -> list[str]:
         """Settings with more than one value (the study's axes), in column order."""
         return [name for name, values in self.axes.items() if len(values) > 1]
