@@ -78,6 +78,11 @@ def reachable_poses(
     if ws is None:
         raise CalibError(f"{platform.source}: key 'workspace': expected a [workspace] table to draw poses from")
     half = np.r_[[ws.translation_limit] * 3, [ws.rotation_limit] * 3]
+    if not half.any():
+        raise CalibError(
+            f"{platform.source}: key 'workspace': a box of zero size holds one pose only; expected "
+            "translation_limit_mm or rotation_limit_deg > 0"
+        )
     accepted: list[np.ndarray] = []
     count = draws = 0
     while count < n:

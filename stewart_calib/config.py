@@ -14,8 +14,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .errors import CalibError
-from .resources import not_found_hint, resolve
+from .errors import CalibError, shown
+from .inputs import check_document, implausible_sigma_mm
+from .resources import read_toml
 
 
 @dataclass(frozen=True)
@@ -269,6 +270,8 @@ def config_from_dict(doc: dict, source: str = "<config>", base: EstimatorConfig 
             bound = _AT_LEAST.get((section, key))
             if bound is not None and not value > bound[0]:
                 raise CalibError(f"{source}: key '{full}': expected {bound[1]}, got {value!r}")
+            if key.endswith(("_sigma_mm", "_mm_per_sqrt_s")) and value != 0 and implausible_sigma_mm(value):
+                raise CalibError(f"{source}: key '{full}': expected {implausible_sigma_mm(value)}")
             choices = _CHOICES.get((section, key))
             if choices and value not in choices:
                 raise CalibError(f"{source}: key '{full}': expected one of {', '.join(choices)}, got {value!r}")
@@ -285,14 +288,8 @@ def load_estimator_config(path: str | Path | None = None, overrides: list[str] |
     """
     config = EstimatorConfig()
     if path is not None:
-        path = resolve(path, "estimators")
-        try:
-            doc = tomllib.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise CalibError(f"{path}: estimator config not found{not_found_hint(path, 'estimators')}") from None
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
-            raise CalibError(f"{path}: cannot read estimator config ({err})") from None
-        config = config_from_dict(doc, str(path), config)
+        path, doc = read_toml(path, "estimators", "estimator config")
+        config = config_from_dict(doc, shown(path), config)
     for item in overrides or []:
         key, sep, text = item.partition("=")
         section, dot, name = key.strip().partition(".")
@@ -302,5 +299,8 @@ def load_estimator_config(path: str | Path | None = None, overrides: list[str] |
             value = tomllib.loads(f"v = {text.strip()}")["v"]
         except tomllib.TOMLDecodeError:
             value = text.strip()
+        except (ValueError, RecursionError):  # tomllib's own limits (an integer of 5000 digits)
+            raise CalibError(f"--set {shown(item)!r}: not a readable value") from None
+        check_document({key.strip(): value}, "--set")
         config = config_from_dict({section: {name: value}}, "--set", config)
     return config

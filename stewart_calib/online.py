@@ -2,7 +2,7 @@
 
 For users who embed the estimator in their controller's processing unit::
 
-    calib = OnlineCalibrator(platform, "ekf")          # or OnlineCalibrator.load("ckpt.npz")
+    calib = OnlineCalibrator(platform, "ekf")          # or OnlineCalibrator.load("ckpt.npz", platform)
     for sample in stream:
         try:
             calib.update(sample)                        # SampleRejected: counted, state untouched
@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import struct
 import tomllib
 import zipfile
@@ -41,9 +42,9 @@ import numpy as np
 
 from . import io
 from .compensation import compensate
-from .config import EstimatorConfig, config_from_dict
+from .config import EstimatorConfig, config_from_dict, load_estimator_config
 from .drive import drive_model
-from .errors import CalibError, SampleRejected
+from .errors import CalibError, SampleRejected, shown
 from .estimate import Estimate
 from .estimators import method_names, method_spec
 from .estimators.base import (
@@ -53,7 +54,8 @@ from .estimators.base import (
     take_late_rejections,
     update_block,
 )
-from .platform import Platform, parse_platform, platform_to_toml
+from .inputs import read_input_bytes
+from .platform import Platform, load_platform, parse_platform, platform_to_toml
 from .plausibility import check_plausible
 from .samples import Log, Sample
 
@@ -134,9 +136,13 @@ class OnlineCalibrator:
     """One online estimator with rejection bookkeeping and checkpoints.
 
     Args:
-        platform: the nominal platform (spec §2).
+        platform: the nominal platform (spec §2), or its file's path or shipped name.
         method: ``paper-ekf``, ``ekf`` or ``isam2``.
-        config: estimator settings (default: the defaults).
+        config: estimator settings (default: the defaults), or a config file's path or shipped
+            name (``"paper"``).
+
+    Not thread-safe: one thread at a time may call its methods (two threads calling
+    :meth:`update` at once corrupt the state); give each thread its own, or lock around it.
 
     Attributes:
         rows_read, rows_skipped: the caller's stream position (data rows consumed, bad rows
@@ -148,11 +154,24 @@ class OnlineCalibrator:
             checkpoint so a resume can tell the same log from another; None when not known.
     """
 
-    def __init__(self, platform: Platform, method: str, config: EstimatorConfig | None = None):
+    def __init__(
+        self, platform: Platform | str | Path, method: str, config: EstimatorConfig | str | Path | None = None
+    ):
+        if isinstance(platform, (str, Path)):
+            platform = load_platform(platform)
+        if not isinstance(platform, Platform):
+            raise CalibError(f"platform: expected a Platform or a platform file's path, got {type(platform).__name__}")
+        if isinstance(config, (str, Path)):
+            config = load_estimator_config(config)
+        if config is not None and not isinstance(config, EstimatorConfig):
+            raise CalibError(
+                f"config: expected an EstimatorConfig or a config file's path, got {type(config).__name__}"
+            )
         self.platform = platform
         self.method = method
         self.config = config or EstimatorConfig()
         self._estimator = _make(method, platform, self.config)
+        self._width = len(io.reading_columns(platform))  # the instrument's values in a row
         # the layout is fixed at construction: whether compensation needs the drive's identified blocks
         self._drive = drive_model(platform)
         self._identifies_drive_blocks = any(
@@ -172,7 +191,14 @@ class OnlineCalibrator:
 
         Raises:
             SampleRejected: with the reason; counted, and the estimator is untouched.
+            CalibError: ``sample`` is no sample of this platform's log (a wrong shape or type,
+                complex numbers); nothing is counted.
         """
+        try:
+            single = Log(np.array([sample.t_s]), np.array([sample.strokes]), np.array([sample.readings]))
+        except (AttributeError, TypeError, ValueError) as err:
+            raise CalibError(f"sample: not a Sample of arrays ({_one_line(err)})") from None
+        _check_block_shapes(single, self._width)
         try:
             self._estimator.update(sample)
         except SampleRejected as err:
@@ -193,7 +219,10 @@ class OnlineCalibrator:
 
         Returns:
             The indices in ``block`` of the samples refused (counted, as :meth:`update` counts them).
+        Raises:
+            CalibError: ``block`` is no log of this platform (shapes, types); nothing is counted.
         """
+        _check_block_shapes(block, self._width)
         refused, late = update_block(self._estimator, block)
         # in update's order: a sample's own refusal, then those refused late after it
         for _, _, err in sorted(
@@ -284,31 +313,50 @@ class OnlineCalibrator:
         return self._fixed[1]
 
     @classmethod
-    def load(cls, path: str | Path) -> OnlineCalibrator:
-        """Rebuild from a checkpoint written by :meth:`save`.
+    def load(cls, path: str | Path, platform: Platform | str | Path | None) -> OnlineCalibrator:
+        """Rebuild from a checkpoint written by :meth:`save`, for ``platform``.
+
+        ``platform`` (a :class:`Platform`, or its file's path or shipped name) must be the one
+        the checkpoint was written for: a checkpoint of another robot is refused, never resumed
+        with its model. None takes the checkpoint's own platform (to inspect a checkpoint).
 
         Raises:
             CalibError: one line naming the file: missing, not a checkpoint, another format
-                version, or corrupt (a missing or misshapen array, a bad platform or config).
+                version, corrupt (a missing, misshapen or implausible array — a covariance
+                that is not symmetric positive semi-definite, non-finite noise, an impossible
+                time —, a bad platform or config), or written for another platform.
         """
-        path = Path(path)
+        shown_path = shown(path)
+        data = read_input_bytes(path, "checkpoint", MAX_CHECKPOINT_BYTES, lines=False)
         # np.load takes anything that is no archive for a pickle and then advises allow_pickle,
         # the wrong advice for a file that is simply not a checkpoint.
-        if path.is_file() and not zipfile.is_zipfile(path):
-            raise CalibError(f"{path}: not a readable checkpoint (not an .npz archive written by track --checkpoint)")
+        if not zipfile.is_zipfile(BytesIO(data)):
+            raise CalibError(
+                f"{shown_path}: not a readable checkpoint (not an .npz archive written by track --checkpoint)"
+            )
         try:
-            with np.load(path, allow_pickle=False) as npz:
+            _check_members(data)
+            with np.load(BytesIO(data), allow_pickle=False) as npz:
                 arrays = {name: npz[name] for name in npz.files}
-        except FileNotFoundError:
-            raise CalibError(f"{path}: checkpoint not found") from None
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-            raise CalibError(f"{path}: not a readable checkpoint ({_one_line(err)})") from None
-        try:
-            return cls._from_arrays(arrays)
         except CalibError as err:
-            raise CalibError(f"{path}: corrupt checkpoint: {_one_line(err)}") from None
-        except (KeyError, ValueError, TypeError, IndexError, tomllib.TOMLDecodeError) as err:
-            raise CalibError(f"{path}: corrupt checkpoint ({err.__class__.__name__}: {_one_line(err)})") from None
+            raise CalibError(f"{shown_path}: not a readable checkpoint ({err})") from None
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, RecursionError, MemoryError) as err:
+            raise CalibError(f"{shown_path}: not a readable checkpoint ({_one_line(err)})") from None
+        try:
+            calib = cls._from_arrays(arrays)
+        except CalibError as err:
+            raise CalibError(f"{shown_path}: corrupt checkpoint: {_one_line(err)}") from None
+        except (KeyError, ValueError, TypeError, IndexError, RecursionError, tomllib.TOMLDecodeError) as err:
+            raise CalibError(f"{shown_path}: corrupt checkpoint ({err.__class__.__name__}: {_one_line(err)})") from None
+        if platform is not None:
+            wanted = platform if isinstance(platform, Platform) else load_platform(platform)
+            if platform_to_toml(wanted) != platform_to_toml(calib.platform):
+                raise CalibError(
+                    f"{shown_path}: written for platform '{shown(calib.platform.name)}', not for "
+                    f"'{shown(wanted.name)}'{'' if isinstance(platform, Platform) else f' ({shown(platform)})'}"
+                    " (or its nominal values differ)"
+                )
+        return calib
 
     @classmethod
     def _from_arrays(cls, arrays: dict[str, np.ndarray]) -> OnlineCalibrator:
@@ -335,6 +383,55 @@ class OnlineCalibrator:
         if not np.all(np.isfinite(calib.estimate().error)):
             raise CalibError("the restored estimate is not finite")
         return calib
+
+
+#: the largest checkpoint read [bytes] (a tracker's is ~0.3 MB; isam2's replay buffer a few MB).
+MAX_CHECKPOINT_BYTES = 256 << 20
+#: the most members a checkpoint may hold (its arrays: a few dozen).
+MAX_CHECKPOINT_MEMBERS = 4096
+
+
+def _check_members(data: bytes) -> None:
+    """Refuse, before anything is decompressed or allocated, a checkpoint archive whose members
+    would unpack to more than :data:`MAX_CHECKPOINT_BYTES` (a small deflated member can declare
+    gigabytes), or whose arrays declare shapes larger than their member holds, or of objects."""
+    with zipfile.ZipFile(BytesIO(data)) as archive:
+        members = archive.infolist()
+        if len(members) > MAX_CHECKPOINT_MEMBERS:
+            raise CalibError(f"{len(members)} members; expected at most {MAX_CHECKPOINT_MEMBERS}")
+        if sum(member.file_size for member in members) > MAX_CHECKPOINT_BYTES:
+            largest = max(members, key=lambda member: member.file_size)
+            raise CalibError(f"member '{shown(largest.filename)}' unpacks to {largest.file_size} bytes; too large")
+        for member in members:
+            with archive.open(member) as file:
+                version = np.lib.format.read_magic(file)
+                read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+                if version not in read_header:
+                    raise CalibError(f"member '{shown(member.filename)}': npy format version {version} not supported")
+                shape, _, dtype = read_header[version](file, max_header_size=1 << 16)
+            if dtype.hasobject or math.prod(shape) * dtype.itemsize > member.file_size:
+                raise CalibError(
+                    f"member '{shown(member.filename)}': declares a {dtype} array of shape {shape}, more than it holds"
+                )
+
+
+def _check_block_shapes(block: Log, width: int) -> None:
+    """Refuse a block that is no log of a platform whose instrument reads ``width`` values: not
+    real numbers, or columns other than ``t_s (N,)``, strokes ``(N, 6)``, readings ``(N, width)``."""
+    try:
+        arrays = [np.asarray(values) for values in (block.t_s, block.strokes, block.readings)]
+    except (TypeError, ValueError, AttributeError) as err:
+        raise CalibError(f"samples: not a log of arrays ({_one_line(err)})") from None
+    for name, values in zip(("t_s", "strokes", "readings"), arrays, strict=True):
+        if values.dtype.kind not in "iuf":
+            raise CalibError(f"samples: {name} of {values.dtype} values; expected real numbers")
+    t_s, strokes, readings = arrays
+    n = len(t_s) if t_s.ndim == 1 else -1
+    if n < 0 or strokes.shape != (n, 6) or readings.shape != (n, width):
+        raise CalibError(
+            f"samples: t_s {t_s.shape}, strokes {strokes.shape}, readings {readings.shape}; "
+            f"expected (N,), (N, 6), (N, {width})"
+        )
 
 
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:

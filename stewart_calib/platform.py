@@ -23,6 +23,7 @@ import numpy as np
 
 from . import _kernels, resources
 from .errors import CalibError
+from .inputs import implausible_sigma_mm
 from .rotations import pose_to_rt, transform_points
 
 N_LEGS = 6
@@ -424,8 +425,12 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
         if "stroke_scale" in drive_table
         else np.zeros(N_LEGS)
     )
-    if np.any(stroke_scale <= -1.0):
-        raise _refuse(source, "drive.stroke_scale", "6 scale errors k_i > -1 (a leg moves (1 + k_i) mm per logged mm)")
+    if np.any(np.abs(stroke_scale) > 0.5):
+        raise _refuse(
+            source,
+            "drive.stroke_scale",
+            f"6 scale errors k_i within ±0.5 (a leg moves (1 + k_i) mm per logged mm), got {stroke_scale.tolist()}",
+        )
 
     workspace = None
     if "workspace" in doc:
@@ -487,6 +492,11 @@ def _positive(table: dict, key: str, default: float, source: str, prefix: str) -
     value = _number(table, key, default, source, prefix)
     if not value > 0:
         raise _refuse(source, f"{prefix}.{key}", f"a positive σ, got {value!r}")
+    implausible = implausible_sigma_mm(value) if key.endswith("_mm") else None
+    if implausible:
+        raise _refuse(source, f"{prefix}.{key}", implausible)
+    if key.endswith("_deg") and not 1e-9 <= value <= 180.0:
+        raise _refuse(source, f"{prefix}.{key}", f"a σ within [1e-9, 180] deg, got {value!r}")
     return value
 
 
@@ -742,5 +752,10 @@ def _elastic_toml(elastic: Elastic | None) -> list[str]:
 
 
 def _toml_str(text: str) -> str:
-    escaped = text.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
+    """``text`` as a TOML basic string that reads back as ``text`` whatever it holds: a backslash,
+    a quote and every control character (which TOML forbids raw in a string) escaped."""
+    escaped = "".join(
+        "\\\\" if ch == "\\" else '\\"' if ch == '"' else f"\\u{ord(ch):04x}" if ch < " " or ch == "\x7f" else ch
+        for ch in text
+    )
     return f'"{escaped}"'

@@ -6,11 +6,12 @@ and friends) take either a path or the name of a shipped file (spec §8): ``nim-
 ``quick``, ``paper``. A path that exists always wins.
 """
 
-import tomllib
+import os
 from importlib import resources
 from pathlib import Path
 
-from .errors import CalibError
+from .errors import CalibError, shown
+from .inputs import parse_toml, read_input_text
 
 #: ``platforms/``, ``experiments/`` and ``estimators/`` TOML files.
 CONFIGS = Path(str(resources.files("stewart_calib") / "configs"))
@@ -47,13 +48,6 @@ def read_toml(value: str | Path, kind: str, what: str) -> tuple[Path, dict]:
             or not valid TOML; ``what`` names the file's role (``"platform file"``).
     """
     path = resolve(value, kind)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise CalibError(f"{path}: {what} not found{not_found_hint(path, kind)}") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise CalibError(f"{path}: cannot read {what} ({err.__class__.__name__})") from None
-    try:
-        return path, tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise CalibError(f"{path}: not valid TOML ({err})") from None
+    if not os.path.lexists(path):
+        raise CalibError(f"{shown(path)}: {what} not found{not_found_hint(path, kind)}")
+    return path, parse_toml(read_input_text(path, what), path)

@@ -8,22 +8,31 @@ that must succeed (rotation, resume, row accounting, disk full) have their own t
 
 from __future__ import annotations
 
+import io as io_module
+import json
 import os
+import re
 import resource
 import signal
 import subprocess
 import sys
 import threading
 import time
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from stewart_calib import cli
+from stewart_calib.errors import CalibError
 from stewart_calib.io import read_result, write_log
-from stewart_calib.pipelines.track import line_chunks
-from tests.synthetic import NIM_STEWART, ROOT, tracked_log
+from stewart_calib.online import OnlineCalibrator, npz_bytes
+from stewart_calib.pipelines.track import follow_log, line_chunks
+from stewart_calib.samples import Log, Sample
+from tests.synthetic import NIM_STEWART, ROOT, nim_stewart, tracked_log
 
 N = 40
 
@@ -70,7 +79,10 @@ def _refused(capsys, directory: Path, argv: list[str], message: str) -> None:
     """``stewart-calib ARGV`` exits 2 with one line holding ``message``; ``directory`` is as it was."""
     capsys.readouterr()
     before = _snapshot(directory)
-    code = cli.main(argv)
+    try:
+        code = cli.main(argv)
+    except SystemExit as exit:  # argparse's usage errors: one line, exit 2 too
+        code = exit.code
     err = capsys.readouterr().err.splitlines()
     assert code == 2, err
     assert len(err) == 1 and message in err[0], err
@@ -201,17 +213,242 @@ REFUSALS = [
         "exists and is not a directory",
     ),
     ("write", "simulate --experiment quick --out {d}/log.csv", "--out {d}/log.csv: cannot create the output directory"),
+    # bounded reads: /dev/zero and a FIFO nobody writes to, as any path argument
+    (
+        "read",
+        "calibrate --platform /dev/zero --log {d}/log.csv --method ekf --out {d}/r.json",
+        "/dev/zero: a line longer than",
+    ),
+    (
+        "read",
+        "calibrate --platform {d}/P.toml --log /dev/zero --method ekf --out {d}/r.json",
+        "/dev/zero: a line longer than",
+    ),
+    (
+        "read",
+        "calibrate --platform {d}/P.toml --log {d}/log.csv --method ekf --out {d}/r.json --config /dev/zero",
+        "/dev/zero: a line longer than",
+    ),
+    (
+        "read",
+        "compensate --platform {d}/P.toml --result /dev/zero --poses {d}/log.csv --out {d}/s.csv",
+        "/dev/zero: a line longer than",
+    ),
+    (
+        "read",
+        "compensate --platform {d}/P.toml --result {d}/R.json --poses /dev/zero --out {d}/s.csv",
+        "/dev/zero: a line longer than",
+    ),
+    ("read", "identifiability --platform {d}/P.toml --poses /dev/zero", "/dev/zero: a line longer than"),
+    (
+        "read",
+        "track --platform {d}/P.toml --log /dev/zero --method ekf --out {d}/r.json",
+        "/dev/zero: a line longer than",
+    ),
+    (
+        "read",
+        "track --platform {d}/P.toml --log {d}/log.csv --method ekf --out {d}/r.json --checkpoint /dev/zero",
+        "/dev/zero: checkpoint larger than",
+    ),
+    ("read", "simulate --experiment /dev/zero --out {d}/sim", "/dev/zero: a line longer than"),
+    ("read", "sweep --spec /dev/zero --out {d}/sw", "/dev/zero: a line longer than"),
+    (
+        "read",
+        "calibrate --platform {d}/fifo --log {d}/log.csv --method ekf --out {d}/r.json",
+        "{d}/fifo: no data for 0.3 s from this FIFO (no writer?)",
+    ),
+    (
+        "read",
+        "calibrate --platform {d}/P.toml --log {d}/fifo --method ekf --out {d}/r.json",
+        "{d}/fifo: no data for 0.3 s",
+    ),
+    (
+        "read",
+        "validate --platform {d}/P.toml --result {d}/fifo --log {d}/log.csv --out {d}/v.csv",
+        "{d}/fifo: no data for 0.3 s",
+    ),
+    (
+        "read",
+        "track --platform {d}/P.toml --log {d}/log.csv --method ekf --out {d}/r.json --checkpoint {d}/fifo",
+        "{d}/fifo: no data for 0.3 s",
+    ),
+    (
+        "read",
+        "calibrate --platform {d}/deep.toml --log {d}/log.csv --method ekf --out {d}/r.json",
+        "nested deeper than 32 levels",
+    ),
+    (
+        "read",
+        "compensate --platform {d}/P.toml --result {d}/deep.json --poses {d}/log.csv --out {d}/s.csv",
+        "nested deeper than 32 levels",
+    ),
+    (
+        "read",
+        "compensate --platform {d}/P.toml --result {d}/big_int.json --poses {d}/log.csv --out {d}/s.csv",
+        "integer",
+    ),
+    (
+        "read",
+        "calibrate --platform {d}/P.toml --log {d}/log.csv --method ekf --out {d}/r.json --config {d}/big_int.toml",
+        "integer",
+    ),
+    (
+        "read",
+        "{calibrate} --set ekf.gate_probability=1{zeros}",
+        "--set",
+    ),
+    ("read", "simulate --experiment {d}/big_int.toml --out {d}/sim", "an integer of more than 4300 digits"),
+    (
+        "read",
+        "calibrate --platform {d}/P.toml --log {d}/long_header.csv --method ekf --out {d}/r.json",
+        "a line longer than 1048576 bytes",
+    ),
+    (
+        "read",
+        "track --platform {d}/P.toml --log {d}/long_header.csv --method ekf --out {d}/r.json",
+        "a line longer than 1048576 bytes",
+    ),
+    # sweeps: absurd sizes refused by the plan (the studies issue plans them)
+    ("sweep", "sweep --spec {d}/seeds.toml --out {d}/sw", "key 'seeds': expected at most 1000000 tasks"),
+    ("sweep", "sweep --spec {d}/samples.toml --out {d}/sw", "grid.samples"),
+    ("sweep", "sweep --spec {d}/grid.toml --out {d}/sw", "key 'grid': expected at most 100000 cells"),
+    ("sweep", "sweep --spec {d}/first_seed.toml --out {d}/sw", "key 'first_seed'"),
+    # nonsense accepted before (issue), and ours beside
+    (
+        "nonsense",
+        "compensate --platform {d}/P.toml --result {d}/k_minus_2.json --poses {d}/log.csv --out {d}/s.csv",
+        "key 'stroke_scale.estimate': expected scale errors k_i within ±0.5",
+    ),
+    (
+        "nonsense",
+        "calibrate --platform {d}/P.toml --log {d}/t_1e308.csv --method ekf --out {d}/r.json",
+        "row 6: column 't_s': expected a time within ±1e12 s, got 1e+308",
+    ),
+    (
+        "nonsense",
+        "calibrate --platform {d}/P.toml --log {d}/underscore.csv --method ekf --out {d}/r.json",
+        "row 4: column 'q1_mm': expected a number, got '2_12.97'",
+    ),
+    (
+        "nonsense",
+        "track --platform {d}/P.toml --log {d}/underscore.csv --method ekf --out {d}/r.json",
+        "row 4: column 'q1_mm': expected a number, got '2_12.97'",
+    ),
+    (
+        "nonsense",
+        "identifiability --platform {d}/P.toml --poses {d}/one_zero.csv",
+        "column 'x_mm': expected a number, got '1_0'",
+    ),
+    (
+        "nonsense",
+        "identifiability --platform {d}/P.toml --poses {d}/nan_poses.csv",
+        "column 'x_mm': expected a finite number, got nan",
+    ),
+    (
+        "nonsense",
+        "{calibrate} --set noise.reading_sigma_mm=1e-300",
+        "key 'noise.reading_sigma_mm': expected a σ within [1e-09, 1000] mm",
+    ),
+    (
+        "nonsense",
+        "{calibrate} --set noise.stroke_sigma_mm=1e300",
+        "key 'noise.stroke_sigma_mm': expected a σ within",
+    ),
+    (
+        "nonsense",
+        "calibrate --platform {d}/sigma.toml --log {d}/log.csv --method ekf --out {d}/r.json",
+        "key 'instrument.position_sigma_mm': expected a σ within",
+    ),
+    (
+        "nonsense",
+        "plan --platform {d}/zero_workspace.toml --n 5 --out {d}/p.csv",
+        "key 'workspace': a box of zero size holds one pose only",
+    ),
+    (
+        "nonsense",
+        "plan --platform {d}/P.toml --n 5 --out {d}/p.csv --seed -1",
+        "argument --seed: expected a whole number ≥ 0",
+    ),
+    (
+        "nonsense",
+        "simulate --experiment {d}/reach.toml --out {d}/sim",
+        "samples need strokes outside the platform's drive.stroke_range_mm [0, 90]",
+    ),
+    (
+        "nonsense",
+        "calibrate --platform {d}/k_platform.toml --log {d}/log.csv --method ekf --out {d}/r.json",
+        "key 'drive.stroke_scale': expected 6 scale errors k_i within ±0.5",
+    ),
+    (
+        "nonsense",
+        "import-bag {d}/none.bag --strokes /joints --readings /joints --out {d}/l.csv",
+        "--readings /joints: the same topic as --strokes",
+    ),
 ]
+
+#: the files :data:`REFUSALS` name beside the log, platform and result
+CRAFTED = {
+    "header.csv": lambda d: (d / "log.csv").read_text().splitlines()[0] + "\n",
+    "empty.csv": lambda d: "",
+    "deep.toml": lambda d: "a = " + "[" * 100 + "]" * 100 + "\n",
+    "deep.json": lambda d: "[" * 50000 + "]" * 50000,
+    "big_int.json": lambda d: '{"format": 1' + "0" * 5000 + "}",
+    "big_int.toml": lambda d: "seed = 1" + "0" * 5000 + "\n",
+    "long_header.csv": lambda d: "t_s" + ",x" * (1 << 20) + "\n1\n",
+    "seeds.toml": lambda d: 'name = "s"\nmethods = ["ekf"]\nseeds = 1000000000\n',
+    "samples.toml": lambda d: 'name = "s"\nmethods = ["ekf"]\nseeds = 1\n[grid]\nsamples = 100000000000\n',
+    "grid.toml": lambda d: (
+        'name = "s"\nmethods = ["ekf"]\nseeds = 1\n[grid]\nsamples = ['
+        + ", ".join(str(k) for k in range(1, 1001))
+        + "]\nrate_hz = ["
+        + ", ".join(str(k) for k in range(1, 1001))
+        + "]\n"
+    ),
+    "first_seed.toml": lambda d: f'name = "s"\nmethods = ["ekf"]\nseeds = 2\nfirst_seed = {2**63 - 1}\n',
+    "k_minus_2.json": lambda d: json.dumps(
+        {
+            **json.loads((d / "R.json").read_text()),
+            "stroke_scale": {"names": [f"k{i}" for i in range(1, 7)], "estimate": [-2.0] + [0.0] * 5, "stddev": None},
+        }
+    ),
+    "t_1e308.csv": lambda d: _with_field(d, 4, 0, "1e308"),
+    "underscore.csv": lambda d: _with_field(d, 2, 1, "2_12.97"),
+    "one_zero.csv": lambda d: "x_mm,y_mm,z_mm,roll_deg,pitch_deg,yaw_deg\n1_0,0,1000,0,0,0\n",
+    "nan_poses.csv": lambda d: "x_mm,y_mm,z_mm,roll_deg,pitch_deg,yaw_deg\nnan,0,1000,0,0,0\n",
+    "sigma.toml": lambda d: (d / "P.toml").read_text() + '\n[instrument]\nkind = "pose"\nposition_sigma_mm = 1e-300\n',
+    "zero_workspace.toml": lambda d: re.sub(
+        r"(translation_limit_mm|rotation_limit_deg) = [^#\n]*", r"\1 = 0.0 ", (d / "P.toml").read_text()
+    ),
+    "reach.toml": lambda d: (
+        (ROOT / "configs" / "experiments" / "quick.toml").read_text().replace('"nim-stewart"', '"hobby-hexapod"')
+    ),
+    "k_platform.toml": lambda d: (
+        (d / "P.toml").read_text().replace("\n[drive]\n", "\n[drive]\nstroke_scale = [-2.0, 0, 0, 0, 0, 0]\n")
+    ),
+}
+
+
+def _with_field(directory: Path, row: int, column: int, value: str) -> str:
+    """The log of ``directory`` with field ``column`` of data row ``row`` (0-based) set to ``value``."""
+    lines = (directory / "log.csv").read_text().splitlines()
+    fields = lines[1 + row].split(",")
+    fields[column] = value
+    lines[1 + row] = ",".join(fields)
+    return "\n".join(lines) + "\n"
 
 
 @pytest.mark.parametrize(
     "family, argv, message", REFUSALS, ids=[f"{family}-{k}" for k, (family, *_) in enumerate(REFUSALS)]
 )
-def test_refused_in_one_line_with_nothing_written(work, capsys, family, argv, message):
-    (work / "header.csv").write_text((work / "log.csv").read_text().splitlines()[0] + "\n")
-    (work / "empty.csv").write_text("")
+def test_refused_in_one_line_with_nothing_written(work, capsys, monkeypatch, family, argv, message):
+    for name, text in CRAFTED.items():
+        if name in argv:
+            (work / name).write_text(text(work))
     os.link(work / "log.csv", work / "link.csv")
-    _refused(capsys, work, argv.format(d=work).split(), message.format(d=work))
+    os.mkfifo(work / "fifo")
+    monkeypatch.setattr("stewart_calib.inputs.FIRST_DATA_S", 0.3)
+    calibrate = f"calibrate --platform {work}/P.toml --log {work}/log.csv --method ekf --out {work}/r.json"
+    _refused(capsys, work, argv.format(d=work, zeros="0" * 5000, calibrate=calibrate).split(), message.format(d=work))
 
 
 # ------------------------------------------------------------------------------- track loses nothing
@@ -513,3 +750,252 @@ def test_calibrate_on_a_full_disk_writes_nothing(tmp_path, log):
     )
     assert proc.returncode == 2 and len(proc.stderr.splitlines()) == 1 and "File too large" in proc.stderr
     assert _snapshot(tmp_path) == before
+
+
+# ------------------------------------------------------------------------------- streams and parsing
+
+
+@pytest.mark.parametrize("command", ["calibrate", "identifiability"])
+def test_a_log_from_a_fifo_is_read_once_without_seeking(tmp_path, log, capsys, command):
+    path, fifo, out = tmp_path / "log.csv", tmp_path / "log.fifo", tmp_path / "r.json"
+    write_log(path, log)
+    os.mkfifo(fifo)
+    writer = threading.Thread(target=lambda: fifo.write_bytes(path.read_bytes()))
+    writer.start()
+    argv = ["--platform", str(NIM_STEWART), "--log", str(fifo)]
+    argv += ["--method", "ekf", "--out", str(out)] if command == "calibrate" else ["--json", str(out)]
+    assert cli.main([command, *argv]) == 0
+    writer.join()
+    assert out.exists()
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    faults=st.lists(
+        st.tuples(st.integers(0, 11), st.sampled_from(["nan", "", "cut", "text", "blank"])), min_size=1, max_size=5
+    )
+)
+def test_the_stream_parser_takes_bad_rows_anywhere(log, faults):
+    """NaN, empty, truncated or text rows at any position (the first included), alone or in runs:
+    with --skip-bad-rows every row is used or counted as skipped; nothing raises."""
+    text = log.select(slice(0, 12))
+    lines = [line.encode() for line in _log_lines(text)]
+    header, rows = lines[0], lines[1:]
+    bad = 0
+    for where, kind in sorted(faults, reverse=True):
+        fields = rows[where].split(b",")
+        broken = {
+            "nan": b",".join([fields[0], b"nan", *fields[2:]]),
+            "": b",".join([fields[0], b"", *fields[2:]]),
+            "cut": rows[where][: len(rows[where]) // 2],
+            "text": b",".join([fields[0], b"abc", *fields[2:]]),
+            "blank": b"",
+        }[kind]
+        rows.insert(where, broken)
+        bad += kind != "blank"
+    calib = OnlineCalibrator(nim_stewart(), "ekf")
+    chunks = iter([[header, *rows[:5]], rows[5:9], rows[9:]])
+    feed = follow_log(calib, chunks, "<test>", 4, lambda: None, skip_bad_rows=True)
+    assert (calib.rows_read, calib.rows_skipped) == (12 + bad, bad)
+    assert feed.data_rows == 12 + bad
+
+
+def _log_lines(log) -> list[str]:
+    from stewart_calib.io import log_text
+
+    return log_text(log).splitlines()
+
+
+def test_header_only_stdin_is_refused_in_one_line(tmp_path, log, capsys, monkeypatch):
+    read, write = os.pipe()
+    os.write(write, _log_lines(log)[0].encode() + b"\n")
+    os.close(write)
+    monkeypatch.setattr(sys, "stdin", os.fdopen(read))
+    code, err = _track(capsys, "--out", str(tmp_path / "r.json"))
+    assert code == 2 and err == [
+        "stewart-calib track: error: <stdin>: no usable samples (0 rows read, 0 skipped, 0 rejected)"
+    ]
+    assert list(tmp_path.iterdir()) == []
+
+
+# ------------------------------------------------------------------------------------- checkpoints
+
+
+@pytest.fixture(scope="module")
+def checkpoint_arrays(log, tmp_path_factory):
+    calib = OnlineCalibrator(nim_stewart(), "ekf")
+    calib.update_block(log)
+    path = tmp_path_factory.mktemp("ckpt") / "c.npz"
+    calib.save(path)
+    with np.load(path) as npz:
+        return {name: npz[name] for name in npz.files}
+
+
+def _negative(arrays):
+    arrays["state/robust/filter/P"] = -arrays["state/robust/filter/P"]
+
+
+def _asymmetric(arrays):
+    arrays["state/robust/filter/P"] = arrays["state/robust/filter/P"] + np.triu(np.ones((42, 42)), 1)
+
+
+def _nan_noise(arrays):
+    arrays["state/robust/noise"] = np.array([np.nan, 1.0])
+
+
+def _far_time(arrays):
+    arrays["state/robust/filter/t_s"] = np.float64(1e18)
+
+
+def _nan_walk(arrays):
+    arrays["state/robust/filter/Q"] = np.full((42, 42), np.nan)
+
+
+@pytest.mark.parametrize(
+    "corrupt, message",
+    [
+        (_negative, "key 'P': expected a positive semi-definite covariance"),
+        (_asymmetric, "key 'P': expected a symmetric covariance"),
+        (_nan_noise, "key 'noise': expected a finite positive noise scale"),
+        (_far_time, "key 't_s': 1e+18 s is no time of a log"),
+        (_nan_walk, "key 'Q': expected a finite covariance"),
+    ],
+)
+def test_a_well_formed_but_corrupt_checkpoint_state_is_refused(tmp_path, capsys, checkpoint_arrays, corrupt, message):
+    arrays = dict(checkpoint_arrays)
+    corrupt(arrays)
+    path = tmp_path / "c.npz"
+    path.write_bytes(npz_bytes(arrays))
+    log_path = tmp_path / "log.csv"
+    log_path.write_text("t_s\n")
+    argv = f"track --platform {NIM_STEWART} --method ekf --log {log_path} --out {tmp_path}/r.json --checkpoint {path}"
+    _refused(capsys, tmp_path, argv.split(), f"{path}: corrupt checkpoint: estimator state: {message}")
+
+
+def _member(name: str, header_shape: tuple, data: bytes) -> bytes:
+    header = np.lib.format.header_data_from_array_1_0(np.zeros(1))
+    header["shape"] = header_shape
+    buffer = io_module.BytesIO()
+    np.lib.format.write_array_header_1_0(buffer, header)
+    return buffer.getvalue() + data
+
+
+@pytest.mark.parametrize(
+    "member, message",
+    [
+        (lambda: _member("x", (10**6, 10**6), b"\0" * 8), "declares a float64 array of shape (1000000, 1000000)"),
+        (lambda: None, "unpacks to 314572800 bytes; too large"),
+    ],
+)
+def test_a_checkpoint_member_is_bounded_before_anything_is_allocated(
+    tmp_path, capsys, checkpoint_arrays, member, message
+):
+    path = tmp_path / "c.npz"
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        for name, array in checkpoint_arrays.items():
+            buffer = io_module.BytesIO()
+            np.lib.format.write_array(buffer, array)
+            archive.writestr(f"{name}.npy", buffer.getvalue())
+        data = member()
+        if data is None:  # 300 MB of zeros deflate to 300 kB
+            with archive.open("big.npy", "w", force_zip64=True) as file:
+                for _ in range(300):
+                    file.write(bytes(1 << 20))
+        else:
+            archive.writestr("huge.npy", data)
+    with pytest.raises(CalibError, match=re.escape(f"{path}: not a readable checkpoint (") + ".*" + re.escape(message)):
+        OnlineCalibrator.load(path, None)
+
+
+def test_load_takes_the_platform_and_refuses_another_robots_checkpoint(tmp_path, log):
+    path = tmp_path / "c.npz"
+    calib = OnlineCalibrator(NIM_STEWART, "ekf", "paper")  # a path and a shipped config name
+    calib.update_block(log)
+    calib.save(path)
+    assert OnlineCalibrator.load(path, "nim-stewart").rows_read == 0
+    with pytest.raises(
+        CalibError, match=f"^{re.escape(str(path))}: written for platform 'nim-stewart', not for 'hobby-hexapod'"
+    ):
+        OnlineCalibrator.load(path, "hobby-hexapod")
+    with pytest.raises(TypeError):
+        OnlineCalibrator.load(path)  # the platform is not optional: the README's pattern passes it
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        lambda log: Sample(0.0, log.strokes[0] + 1j, log.readings[0]),
+        lambda log: Sample(0.0, log.strokes[0][:5], log.readings[0]),
+        lambda log: Sample(0.0, "strokes", log.readings[0]),
+        lambda log: Log(log.t_s[:3], log.strokes[:3], log.readings[:2]),
+        lambda log: Log(log.t_s[:3], log.strokes[:3], log.readings[:3].astype(complex)),
+        lambda log: Log(log.t_s[:3], log.strokes[:3, :5], log.readings[:3]),
+    ],
+)
+def test_the_api_refuses_malformed_samples_before_counting_anything(log, bad):
+    calib = OnlineCalibrator(nim_stewart(), "ekf")
+    sample = bad(log)
+    with pytest.raises(CalibError, match=r"^samples: "):
+        (calib.update_block if isinstance(sample, Log) else calib.update)(sample)
+    assert (calib.rejections.count, calib.estimate().samples_used) == (0, 0)
+
+
+# ----------------------------------------------------------------------------------------- security
+
+
+def test_the_local_dask_cluster_listens_on_the_loopback_only(monkeypatch):
+    """Scheduler, workers and dashboard take no authentication: never on all interfaces."""
+    import distributed
+
+    from stewart_calib.sweep.runner import connect
+
+    made = {}
+    monkeypatch.setattr(distributed, "LocalCluster", lambda **kwargs: made.update(kwargs) or "cluster")
+    monkeypatch.setattr(distributed, "Client", lambda cluster, **kwargs: cluster)
+    assert connect(None, 1) == "cluster"
+    assert made["host"] == "127.0.0.1" and made["dashboard_address"].startswith("127.0.0.1:")
+
+
+NAMES = [
+    "bell\u0007",
+    "two\nFAKE: all good",
+    "esc\u001b[31mred",
+    "osc\u001b]0;title\u0007",
+    'quote"back\\slash',
+    "del\u007f",
+]
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_a_platform_name_reads_back_and_is_escaped_in_messages(tmp_path, log, capsys, name):
+    """--platform-out writes TOML that reads back for any name; messages show it escaped, one line."""
+    from stewart_calib.platform import load_platform, platform_to_toml
+
+    platform = nim_stewart()
+    path = tmp_path / "P.toml"
+    path.write_text(platform_to_toml(type(platform)(**{**platform.__dict__, "name": name})))
+    assert load_platform(path).name == name
+    log_path, out, ckpt = tmp_path / "log.csv", tmp_path / "r.json", tmp_path / "c.npz"
+    write_log(log_path, log)
+    argv = ["--platform", str(path), "--log", str(log_path), "--method", "ekf", "--out", str(out)]
+    assert cli.main(["calibrate", *argv, "--platform-out", str(tmp_path / "C.toml")]) == 0
+    assert load_platform(tmp_path / "C.toml").name == name
+    assert cli.main(["track", *argv, "--checkpoint", str(ckpt)]) == 0
+    assert OnlineCalibrator.load(ckpt, path).platform.name == name  # the checkpoint reads back too
+    capsys.readouterr()
+    # its result given for another platform: the message names both, escaped
+    code = cli.main(
+        [
+            "compensate",
+            "--platform",
+            str(NIM_STEWART),
+            "--result",
+            str(out),
+            "--poses",
+            str(log_path),
+            "--out",
+            str(tmp_path / "s.csv"),
+        ]
+    )
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "\u001b" not in err and "\u0007" not in err

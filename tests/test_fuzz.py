@@ -161,7 +161,7 @@ def test_checkpoint_loader_refuses_damaged_files(tmp_path, flips, cut):
     for offset, mask in flips:
         data[offset % len(data)] ^= mask
     path.write_bytes(bytes(data[: max(1, cut % (len(data) + 1))]))
-    _one_line_error(lambda: OnlineCalibrator.load(path))
+    _one_line_error(lambda: OnlineCalibrator.load(path, None))
 
 
 number_fields = st.one_of(

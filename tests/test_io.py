@@ -149,7 +149,7 @@ def test_trace_has_t_and_42_parameters(tmp_path):
 
 def test_refuses_missing_and_unreadable_files(tmp_path):
     assert _refusal(tmp_path / "nope.csv") == f"{tmp_path / 'nope.csv'}: log file not found"
-    assert "cannot read log file" in _refusal(tmp_path)  # a directory
+    assert "is a directory; expected a log file" in _refusal(tmp_path)
     path = tmp_path / "latin1.csv"
     path.write_bytes((HEADER + ",stage\n" + _row(0.0) + ",caf\xe9\n").encode("latin-1"))
     assert "not UTF-8 text (byte 0xe9 at offset" in _refusal(path)

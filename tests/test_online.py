@@ -63,7 +63,7 @@ def test_resume_from_checkpoint_matches_an_uninterrupted_run(platform, config, l
     for cut in (3, 97):  # before the first window closes, and deep into the run (isam2 trimmed its buffer)
         first = _feed(OnlineCalibrator(platform, method, config), log.select(slice(0, cut)))
         first.save(tmp_path / "c.npz")
-        resumed = OnlineCalibrator.load(tmp_path / "c.npz")
+        resumed = OnlineCalibrator.load(tmp_path / "c.npz", None)
         if method != "isam2":  # the EKF state is restored bit for bit
             _assert_states_equal(first.export_state(), resumed.export_state())
         estimate = _feed(resumed, log.select(slice(cut, len(log)))).estimate()
@@ -88,7 +88,7 @@ def test_a_gtsam_failure_rejects_the_sample_and_the_smoother_is_rebuilt_without_
         calib.update(log[bad])
     assert calib.rejections.by_reason == {"solver failed": 1}
     # The failed update rebuilt the smoother from the state a checkpoint holds, as a resume does: bit for bit.
-    resumed = OnlineCalibrator.load(tmp_path / "c.npz")
+    resumed = OnlineCalibrator.load(tmp_path / "c.npz", None)
     _assert_states_equal(calib.export_state(), resumed.export_state())
     np.testing.assert_array_equal(calib.estimate().error, resumed.estimate().error)
     np.testing.assert_array_equal(calib.estimate().covariance, resumed.estimate().covariance)
@@ -196,7 +196,7 @@ def test_bad_checkpoints_are_refused_in_one_line(platform, config, log, tmp_path
     path, arrays = _saved(platform, config, log, tmp_path)
     damage(path, arrays)
     with pytest.raises(CalibError) as err:
-        OnlineCalibrator.load(path)
+        OnlineCalibrator.load(path, None)
     assert message in str(err.value) and "\n" not in str(err.value)
     assert str(path) in str(err.value) and "allow_pickle" not in str(err.value)  # never advise loading unsafely
 

@@ -68,7 +68,7 @@ def test_track_gives_calibrates_estimate_and_keeps_a_checkpoint(tmp_path, log_pa
     estimate = run_calibration(nim_stewart(), log, "ekf").estimate
     assert_equal_to_rounding(_error(out), estimate.error)  # same samples, same filter
     assert read_result(out)["samples_rejected"] == {"count": 0, "by_reason": {}, "first": None}
-    assert_equal_to_rounding(OnlineCalibrator.load(ckpt).estimate().error, estimate.error)
+    assert_equal_to_rounding(OnlineCalibrator.load(ckpt, None).estimate().error, estimate.error)
 
 
 def test_resume_skips_the_rows_already_read(tmp_path, log_path, capsys):
@@ -114,7 +114,7 @@ def test_a_bad_row_stops_track_keeping_the_last_good_checkpoint_and_no_result(tm
     assert code == 2
     assert err == [f"stewart-calib track: error: {log_path}: row 12: column 'q3_mm': expected a finite number, got nan"]
     assert not out.exists()  # nothing that looks like a final result
-    assert OnlineCalibrator.load(ckpt).estimate().samples_used == 10  # rows 2..11
+    assert OnlineCalibrator.load(ckpt, None).estimate().samples_used == 10  # rows 2..11
 
 
 def test_resume_after_a_bad_row_stop_reads_that_row_again(tmp_path, log_path, capsys):
@@ -294,7 +294,7 @@ def test_sigterm_finishes_with_a_final_estimate_and_checkpoint(tmp_path, log_pat
     assert proc.returncode == 0
     assert err.strip().splitlines()[-1].endswith(f"(ekf: {N} samples used, 0 skipped, of {N} rows, stopped by signal)")
     assert read_result(out)["samples_used"] == N
-    assert OnlineCalibrator.load(ckpt).rows_read == N
+    assert OnlineCalibrator.load(ckpt, None).rows_read == N
 
 
 def test_blocks_give_calibrates_estimate_whatever_the_writes_and_bad_rows(tmp_path, capsys):
@@ -332,7 +332,7 @@ def test_blocks_give_calibrates_estimate_whatever_the_writes_and_bad_rows(tmp_pa
         assert_equal_to_rounding(result["stddev"], estimate.stddev)
         assert (result["samples_used"], result["samples_skipped"]) == (n - 1 - rejected, 1 + rejected)
         assert result["samples_rejected"]["count"] == rejected
-        saved = OnlineCalibrator.load(ckpt)
+        saved = OnlineCalibrator.load(ckpt, None)
         assert (saved.rows_read, saved.rows_skipped) == (n, 1)
         assert_equal_to_rounding(saved.estimate().error, estimate.error)
 

@@ -90,7 +90,7 @@ def test_sigterm_mid_row_exits_0_and_the_resume_loses_no_row(tmp_path, log_path,
     proc.stdin.flush()
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:  # wait until every complete row is read
-        if ckpt.exists() and OnlineCalibrator.load(ckpt).rows_read == N - 1:
+        if ckpt.exists() and OnlineCalibrator.load(ckpt, None).rows_read == N - 1:
             break
         time.sleep(0.1)
     proc.send_signal(signal.SIGTERM)

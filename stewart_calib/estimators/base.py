@@ -21,6 +21,7 @@ Parameters are always the paper's δM (eq. 9) in the paper's order: ``estimate =
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Iterable
 from typing import Protocol, runtime_checkable
 
@@ -28,6 +29,7 @@ import numpy as np
 
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
+from ..inputs import MAX_TIME_S
 from ..samples import Log, Sample
 
 
@@ -234,6 +236,30 @@ def fit_all(estimator: Estimator, samples: Iterable[Sample]) -> Estimate:
     for sample in samples:
         estimator.update(sample)
     return estimator.estimate()
+
+
+def checked_covariance(matrix: np.ndarray, key: str) -> np.ndarray:
+    """``matrix`` when it is a covariance — finite, symmetric and positive semi-definite (a gauge
+    leaves some directions at 0), to rounding; else refused naming ``key``.
+
+    Raises:
+        CalibError: a corrupt checkpoint's state.
+    """
+    scale = float(np.max(np.abs(matrix), initial=0.0)) if np.all(np.isfinite(matrix)) else math.nan
+    if not math.isfinite(scale):
+        raise CalibError(f"estimator state: key '{key}': expected a finite covariance")
+    if not np.allclose(matrix, matrix.T, rtol=1e-9, atol=1e-12 * scale):
+        raise CalibError(f"estimator state: key '{key}': expected a symmetric covariance")
+    if len(matrix) and float(np.linalg.eigvalsh(0.5 * (matrix + matrix.T))[0]) < -1e-9 * scale:
+        raise CalibError(f"estimator state: key '{key}': expected a positive semi-definite covariance")
+    return matrix
+
+
+def checked_time(t_s: float, key: str) -> float:
+    """``t_s`` [s] when NaN (no sample yet) or a plausible time (within ±:data:`~stewart_calib.inputs.MAX_TIME_S`)."""
+    if not (math.isnan(t_s) or abs(t_s) <= MAX_TIME_S):
+        raise CalibError(f"estimator state: key '{key}': {t_s} s is no time of a log (expected within ±1e12 s)")
+    return t_s
 
 
 def state_array(state: dict, key: str, shape: tuple[int, ...]) -> np.ndarray:

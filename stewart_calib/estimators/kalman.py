@@ -28,7 +28,7 @@ from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.spe
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..unknowns import UnknownLayout, gauge_conditioned
-from .base import state_array
+from .base import checked_covariance, checked_time, state_array
 
 _FAST = {"reassoc", "contract", "arcp", "nsz"}
 
@@ -597,10 +597,14 @@ class FilterState:
         """
         n = len(self.x)
         self.x = state_array(state, "x", (n,))
-        self.P = state_array(state, "P", (n, n))
-        self.Q = state_array(state, "Q", (n, n))
+        if not np.all(np.isfinite(self.x)):
+            raise CalibError("estimator state: key 'x': values not finite")
+        self.P = checked_covariance(state_array(state, "P", (n, n)), "P")
+        self.Q = checked_covariance(state_array(state, "Q", (n, n)), "Q")
         self.samples_used = int(state_array(state, "samples_used", ()))
-        self.t_s = float(state_array(state, "t_s", ()))
+        if self.samples_used < 0:
+            raise CalibError("estimator state: key 'samples_used': expected a count ≥ 0")
+        self.t_s = checked_time(float(state_array(state, "t_s", ())), "t_s")
         self.nis = float(state_array(state, "nis", ()))
         m = len(state["S"]) if "S" in state else 0  # the last observation's size
         self.S = state_array(state, "S", (m, m)) if "S" in state else None

@@ -40,7 +40,7 @@ from ..instruments import instrument_model, instrument_theta
 from ..platform import N_PARAMS, Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout
-from .base import state_array
+from .base import checked_covariance, state_array
 from .kalman import FilterState
 from .measurement import (
     HeldForRegistration,
@@ -184,7 +184,7 @@ class PaperEKF:
     def import_state(self, state: dict) -> None:
         """Restore :meth:`export_state` exactly. Raises ``CalibError`` on a bad key or shape."""
         self.filter.import_state(state.get("filter", {}))
-        self.R = state_array(state, "R", (6, 6))
+        self.R = checked_covariance(state_array(state, "R", (6, 6)), "R")
         self._innovations = state_array(state, "innovations", self._innovations.shape)
         self._predicted = state_array(state, "predicted", self._predicted.shape)
         self._corrections = state_array(state, "corrections", self._corrections.shape)

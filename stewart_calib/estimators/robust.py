@@ -596,6 +596,10 @@ class RobustFilter:
         self.filter.import_state(state.get("filter", {}))
         self._x0 = state_array(state, "prior_mean", (self._n,))
         self.noise_scale2, self.walk_rate_mm2_per_s = state_array(state, "noise", (2,))
+        if not (0.0 < self.noise_scale2 < math.inf and 0.0 <= self.walk_rate_mm2_per_s < math.inf):
+            raise CalibError(
+                "estimator state: key 'noise': expected a finite positive noise scale and a finite walk rate ≥ 0"
+            )
         self._scale_sums = state_array(state, "scale_sums", (2,))
         started, self.recoveries, self._since_window, measured = (int(v) for v in state_array(state, "counters", (4,)))
         self.started, self.measured_noise = bool(started), bool(measured)

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CalibError
+from ..errors import CalibError, shown
+from ..inputs import MAX_LINE_BYTES, MAX_TIME_S, open_input
 from ..platform import PARAMETER_NAMES, Platform
 from ..samples import Log, Sample, Truth
 from .atomic import atomic_write_text
@@ -207,6 +208,10 @@ def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) ->
     readings = reading_columns(platform)
     finite_required = ["t_s", *STROKE_COLUMNS, *(readings if _kind(platform) != "points" else ())]
     flag_non_finite(table, [*finite_required, *(POSE_COLUMNS if has_pose else ())])
+    t_s = table.numbers["t_s"]
+    table.flag(
+        np.abs(t_s) > MAX_TIME_S, lambda k: f"column 't_s': expected a time within ±1e12 s, got {float(t_s[k])!r}"
+    )
     if _kind(platform) == "points" and platform is not None:
         _flag_partial_targets(table, platform)
     if platform is not None:
@@ -251,12 +256,9 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
 
 
 def _open_log(path: Path, what: str = "log file"):
-    try:
-        return open(path, "rb")
-    except FileNotFoundError:
-        raise CalibError(f"{path}: {what} not found") from None
-    except OSError as err:
-        raise CalibError(f"{path}: cannot read {what} ({err.strerror or err.__class__.__name__})") from None
+    """``path`` open for reading, seekable (a pipe or FIFO read once into a temporary file:
+    :func:`~stewart_calib.inputs.open_input`)."""
+    return open_input(path, what)
 
 
 class _NotUtf8(CalibError):
@@ -291,12 +293,14 @@ def read_log_blocks(
     """
     path, block_bytes = Path(path), block_bytes or BLOCK_BYTES
     with _open_log(path) as file:
-        first = file.readline()
-        header_line = _decoded(first, path, 0, "utf-8-sig").rstrip("\n")  # a byte-order mark: spreadsheet exports
+        header_bytes = _line(file, path)
+        header_line = _decoded(header_bytes, path, 0, "utf-8-sig").rstrip(
+            "\n"
+        )  # a byte-order mark: spreadsheet exports
         if not header_line.strip() and not any(chunk.strip() for chunk in iter(lambda: file.read(1 << 16), b"")):
             read_header(path, "")  # refuses the empty file
         header = header_fields(path, header_line)
-        file.seek(len(first))
+        file.seek(len(header_bytes))
         has_pose, numeric, textual = _log_columns(path, header, platform)
         latest_s, rows, good = -math.inf, 0, 0
         first_skipped: tuple[int, str] | None = None
@@ -340,7 +344,7 @@ def _row_tables(
     """
     offset, line = file.tell(), 1
     by_arrow = by_arrow and os.fstat(file.fileno()).st_size > block_bytes
-    while data := _next_block(file, block_bytes):
+    while data := _next_block(file, block_bytes, path):
         table = numbers_by_arrow(header, data) if by_arrow else None
         if table is not None:
             lines = len(table)  # every line a row, or pyarrow would have refused the block
@@ -353,15 +357,23 @@ def _row_tables(
         yield table
 
 
-def _next_block(file, block_bytes: int) -> bytes:
+def _line(file, path) -> bytes:
+    """The rest of ``file``'s line (with its line break), refused past :data:`~stewart_calib.inputs.MAX_LINE_BYTES`."""
+    line = file.readline(MAX_LINE_BYTES + 1)
+    if len(line) > MAX_LINE_BYTES:
+        raise CalibError(f"{shown(path)}: a line longer than {MAX_LINE_BYTES} bytes (no line break); expected CSV rows")
+    return line
+
+
+def _next_block(file, block_bytes: int, path: Path) -> bytes:
     """The next whole lines of ``file``, about ``block_bytes`` of them (empty at the end); a quoted
     field may hold a line break, so a block ends where the quotes pair up."""
     parts = [file.read(block_bytes)]
     if parts[0] and not parts[0].endswith(b"\n"):
-        parts.append(file.readline())
+        parts.append(_line(file, path))
     if b'"' in parts[0] or b'"' in parts[-1]:
         quotes = sum(part.count(b'"') for part in parts)
-        while quotes % 2 and (more := file.readline()):
+        while quotes % 2 and (more := _line(file, path)):
             parts.append(more)
             quotes += more.count(b'"')
     return b"".join(parts)
@@ -442,14 +454,14 @@ class LogRowParser:
         not going back. Anything else gives None, and the careful path words the problem
         (the same fields, the same ``float`` parsing as numpy's, so the same samples)."""
         fields = line.split(",")
-        if '"' in line or len(fields) != len(self._header):
+        if '"' in line or "_" in line or len(fields) != len(self._header):  # "_": float("1_0") is 10.0
             return None
         try:
             values = list(map(float, self._pick(fields)))  # t_s, strokes, readings, pose
             load_kg = None if self._load is None else float(fields[self._load])
         except ValueError:
             return None
-        if not all(map(math.isfinite, values)) or values[0] < self._last_t_s:
+        if not all(map(math.isfinite, values)) or values[0] < self._last_t_s or abs(values[0]) > MAX_TIME_S:
             return None
         if self._load_is_input and (load_kg is None or not 0.0 <= load_kg < math.inf):
             return None
@@ -485,6 +497,8 @@ class LogRowParser:
         t_s = values[:, 0]
         if not np.isfinite(values).all() or t_s[0] < self._last_t_s or np.any(t_s[1:] < t_s[:-1]):
             return None
+        if t_s[0] < -MAX_TIME_S or t_s[-1] > MAX_TIME_S:
+            return None
         if self._load_is_input and not np.all((load_kg >= 0) & (load_kg < np.inf)):
             return None
         for bounds, group in ((self._stroke_range, self._stroke_slice), (self._reading_range, self._reading_slice)):
@@ -516,7 +530,7 @@ class LogRowParser:
             text = b"\n".join(lines).decode("utf-8")
         except UnicodeDecodeError:
             return None
-        if '"' in text:
+        if '"' in text or "_" in text:  # "_": float("1_0") is 10.0; the careful path refuses it
             return None
         rows = [line.rstrip("\r").split(",") for line in text.split("\n")]  # parse strips a row's line-break characters
         if any(len(fields) != len(self._header) for fields in rows):  # a blank line too
@@ -656,7 +670,7 @@ def read_pose_list_blocks(path: str | Path, block_bytes: int | None = None) -> I
     """
     path, block_bytes = Path(path), block_bytes or POSE_BLOCK_BYTES
     with _open_log(path, "pose list") as file:
-        first = file.readline()
+        first = _line(file, path)
         header_line = _decoded(first, path, 0, "utf-8-sig", "pose list").rstrip("\n")  # a spreadsheet's byte-order mark
         try:
             yield from _pose_list_blocks(file, path, header_line, block_bytes)
@@ -701,7 +715,7 @@ def _pose_list_blocks(file, path: Path, header_line: str, block_bytes: int) -> I
 def _refuse_non_utf8(file, path: Path, offset: int, what: str) -> None:
     """Refuse the first bytes from ``offset`` on that are not UTF-8 text, if any."""
     file.seek(offset)
-    while data := _next_block(file, BLOCK_BYTES):
+    while data := _next_block(file, BLOCK_BYTES, path):
         if not data.isascii():
             _decoded(data, path, offset, what=what)
         offset += len(data)

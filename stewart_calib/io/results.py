@@ -13,11 +13,12 @@ from pathlib import Path
 import numpy as np
 
 from ..drive import DriveModel, drive_model
-from ..errors import CalibError
+from ..errors import CalibError, shown
 from ..estimate import Estimate
+from ..inputs import parse_json, read_input_text
 from ..platform import N_PARAMS, PARAMETER_NAMES, Platform
 from .atomic import atomic_write_text
-from .tables import csv_text, read_text
+from .tables import csv_text
 
 RESULT_FORMAT = "stewart-calib/result@1"
 
@@ -134,6 +135,11 @@ def validate_result(result, source: str) -> None:
         raise refuse("estimate", f"nominal + error; {PARAMETER_NAMES[i]} differs by {gap[i]:.3g} mm")
 
 
+#: the largest |k_i| a result's stroke scale may hold: an encoder off by half its scale is a wrong
+#: unit or a broken calibration, not a scale error (real ones are a few per cent).
+MAX_STROKE_SCALE = 0.5
+
+
 def _validate_block(block, key: str, refuse) -> None:
     """A spec §7 block ``{"names": [...], "estimate": [...], "stddev": [...] or null}``."""
     if not isinstance(block, dict) or not isinstance(block.get("names"), list) or not block["names"]:
@@ -150,6 +156,12 @@ def _validate_block(block, key: str, refuse) -> None:
             continue
         if not isinstance(value, list) or len(value) != n or not all(_is_number(v) for v in value):
             raise refuse(f"{key}.{part}", f"a list of {n} finite numbers" + (" or null" if part == "stddev" else ""))
+    if key == "stroke_scale" and max(abs(k) for k in block["estimate"]) > MAX_STROKE_SCALE:
+        raise refuse(
+            f"{key}.estimate",
+            f"scale errors k_i within ±{MAX_STROKE_SCALE:g} (a leg moving (1 + k_i) mm per logged mm), "
+            f"got {block['estimate']}",
+        )
 
 
 def result_text(result: dict, source: str) -> str:
@@ -170,12 +182,8 @@ def read_result(path: str | Path) -> dict:
         CalibError: unreadable or not JSON; a wrong format, length or non-finite number, naming the key.
     """
     path = Path(path)
-    text = read_text(path, "result file")
-    try:
-        result = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise CalibError(f"{path}: not valid JSON (line {err.lineno}, column {err.colno}: {err.msg})") from None
-    validate_result(result, str(path))
+    result = parse_json(read_input_text(path, "result file"), path)
+    validate_result(result, shown(path))
     return result
 
 

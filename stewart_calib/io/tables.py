@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CalibError
+from ..inputs import MAX_STREAM_BYTES, read_input_bytes
 from .atomic import atomic_path
 
 
@@ -162,12 +163,7 @@ def pose_columns_deg(poses: np.ndarray) -> list[np.ndarray]:
 
 
 def read_text(path: Path, what: str) -> str:
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise CalibError(f"{path}: {what} not found") from None
-    except OSError as err:
-        raise CalibError(f"{path}: cannot read {what} ({err.strerror or err.__class__.__name__})") from None
+    data = read_input_bytes(path, what, MAX_STREAM_BYTES)
     try:
         text = data.decode("utf-8-sig")  # a byte-order mark is what spreadsheet exports add
     except UnicodeDecodeError as err:
@@ -320,13 +316,18 @@ def _parse_fast(header: list[str], text: str, numeric: list[str], textual: list[
 
 
 def _floats(texts: tuple[str, ...], column: str, issues: dict[int, str], blank_is_nan: bool) -> np.ndarray:
-    try:
-        return np.array(texts, dtype=float)
-    except ValueError:
-        pass  # find the offending rows one by one below
+    # Python's float reads "2_12.97" as 212.97: a digit separator is no CSV number (a typo, or a
+    # locale's grouping), so such a field goes the careful way and is refused
+    if not any("_" in text for text in texts):
+        try:
+            return np.array(texts, dtype=float)
+        except ValueError:
+            pass  # find the offending rows one by one below
     out = np.full(len(texts), np.nan)
     for k, text in enumerate(texts):
         try:
+            if "_" in text:
+                raise ValueError(text)
             out[k] = float(text)
         except ValueError:
             if not text.strip():

@@ -126,8 +126,8 @@ def dispatch(args: argparse.Namespace) -> int:
     try:
         check_no_output_over_input(args)
         return int(args.func(args) or 0)
-    except CalibError as err:
-        print(f"stewart-calib {args.command}: error: {err}", file=sys.stderr)
+    except CalibError as err:  # names from files may hold line breaks or terminal escapes: shown escaped
+        print(f"stewart-calib {args.command}: error: {shown(err)}", file=sys.stderr)
         return 2
     except OSError as err:  # the file system's refusals no check could foresee: full, read-only, I/O
         where = f"{shown(err.filename)}: " if err.filename else ""

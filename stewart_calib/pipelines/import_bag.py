@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import io
-from ..errors import CalibError
+from ..errors import CalibError, shown
 from ..kinematics import rotation_to_rpy
 from . import run_command
 
@@ -187,6 +187,10 @@ def read_topic(
         if t_s == 0.0:
             raise CalibError(f"{where}: header.stamp is zero; use --clock bag to take the recording time")
         if kind == JOINT_STATE:
+            if joints is None and len(set(msg.name)) == len(msg.position) == 6 and all(msg.name):
+                # the first message's names fix the legs' order: a later message listing them in
+                # another order is matched by name, never taken in its own order
+                joints = list(msg.name)
             row = _joint_positions(msg, joints, where)
         else:
             p, q = msg.pose.position, msg.pose.orientation
@@ -233,6 +237,8 @@ def run(args: argparse.Namespace) -> int:
         raise CalibError(f"--out {out}: directory {out.parent} does not exist")
     if not (math.isfinite(args.max_gap_s) and args.max_gap_s > 0):
         raise CalibError(f"--max-gap-s: expected a finite positive number of seconds, got {args.max_gap_s!r}")
+    if args.readings is not None and args.readings == args.strokes:
+        raise CalibError(f"--readings {shown(args.readings)}: the same topic as --strokes; expected the tracker's own")
     stroke_joints = _joint_names(args.stroke_joints, "--stroke-joints")
     reading_joints = _joint_names(args.reading_joints, "--reading-joints")
     with open_bag(bag) as reader:
@@ -255,7 +261,11 @@ def run(args: argparse.Namespace) -> int:
             f"{measured.t_s[0]:.3f}–{measured.t_s[-1]:.3f} s); check --clock or raise --max-gap-s"
         )
     t_s = measured.t_s[kept]
-    io.atomic_write_text(out, log_text(t_s - t_s[0], q * MM_PER_UNIT[args.stroke_unit], header, values[kept]))
+    strokes_mm, measured_values = q * MM_PER_UNIT[args.stroke_unit], values[kept]
+    for option, array in (("--strokes", strokes_mm), ((args.readings and "--readings") or "--pose", measured_values)):
+        if not np.all(np.isfinite(array)):  # finite in the bag, overflowed by the unit's scale
+            raise CalibError(f"{bag}: {option}: values that are not finite in mm (overflow of the unit conversion)")
+    io.atomic_write_text(out, log_text(t_s - t_s[0], strokes_mm, header, measured_values))
     start = datetime.fromtimestamp(t_s[0], tz=UTC).isoformat(timespec="milliseconds")
     dropped = int((~kept).sum())
     print(

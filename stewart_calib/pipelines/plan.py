@@ -37,6 +37,16 @@ def _positive_seconds(text: str) -> float:
     return value
 
 
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value < 2**128:  # what numpy's SeedSequence takes
+        raise argparse.ArgumentTypeError(f"expected a whole number ≥ 0, got {text!r}")
+    return value
+
+
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "plan",
@@ -55,7 +65,7 @@ def add_parser(subparsers) -> None:
         "Borm–Menq O1 of the paper's J_p form (tracker only); E: weakest direction",
     )
     parser.add_argument("--candidates", type=int, default=2000, metavar="M", help="random candidate poses (2000)")
-    parser.add_argument("--seed", type=int, default=None, help="seed of the candidate draw")
+    parser.add_argument("--seed", type=_seed, default=None, help="seed of the candidate draw (a whole number ≥ 0)")
     parser.add_argument(
         "--dwell-s", type=_positive_seconds, default=1.0, help="t_s step between poses in the file [s], > 0"
     )

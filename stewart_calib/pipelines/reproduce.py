@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 
 from ..config import load_estimator_config
-from ..errors import CalibError
+from ..errors import CalibError, shown
 from ..io import atomic_path, atomic_write_text
 from ..progress import progress_bar
 from ..reproduction import Part, index_html, reproduce, results_dict, tables_markdown, write_figures, write_recording
@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     tables = tables_markdown(results)
     atomic_write_text(out / "tables.md", tables)
     atomic_write_text(out / "index.html", index_html(tables, written, "reproduce.rrd"))
-    print(f"reproduced '{experiment.name}' in {results['run_time_s']:.1f} s into {out}")
+    print(f"reproduced '{shown(experiment.name)}' in {results['run_time_s']:.1f} s into {shown(out)}")
     return 0
 
 

@@ -20,7 +20,9 @@ from __future__ import annotations
 import argparse
 from dataclasses import replace
 
-from ..errors import CalibError
+import numpy as np
+
+from ..errors import CalibError, shown
 from ..io import atomic_paths, log_text, output_directory, read_calibrated_drive, truth_text
 from ..platform import Platform, platform_to_toml
 from ..simulation.closed_loop import FrozenController, NominalController, simulate_blocks
@@ -59,6 +61,39 @@ def controller_for(args: argparse.Namespace, platform: Platform):
     return FrozenController(read_calibrated_drive(args.result, platform).legs)
 
 
+class _OutOfRange:
+    """Samples whose strokes (or tracker readings) leave the platform's ranges: a log its own
+    platform would refuse row by row, so the experiment is refused instead (no file written)."""
+
+    def __init__(self, platform):
+        self._ranges = [("strokes", "drive.stroke_range_mm", platform.stroke_range)]
+        if platform.instrument.kind == "tracker":
+            self._ranges.append(("readings", "tracker.reading_range_mm", platform.reading_range))
+        self.count, self._excess_mm, self._worst = 0, 0.0, ("", "", (0.0, 0.0), 0.0)
+
+    def add(self, log) -> None:
+        bad = np.zeros(len(log), dtype=bool)
+        for column, key, bounds in self._ranges:
+            if bounds is None or not len(log):
+                continue
+            values = np.asarray(getattr(log, column))
+            excess = np.maximum(bounds[0] - values, values - bounds[1])  # > 0 outside [mm]
+            bad |= (excess > 0).any(axis=1)
+            k = np.unravel_index(np.argmax(excess), excess.shape)
+            if excess[k] > self._excess_mm:
+                self._excess_mm, self._worst = float(excess[k]), (column, key, bounds, float(values[k]))
+        self.count += int(bad.sum())
+
+    def refuse(self, source, total: int) -> None:
+        if self.count:
+            column, key, (low, high), value = self._worst
+            raise CalibError(
+                f"{shown(source)}: {self.count} of {total} samples need {column} outside the platform's {key} "
+                f"[{low:g}, {high:g}] (up to {value:.4g} mm); expected poses within reach (a smaller workspace or "
+                "trajectory)"
+            )
+
+
 def run(args: argparse.Namespace) -> int:
     experiment = load_experiment(args.experiment)
     controller = controller_for(args, experiment.platform)
@@ -73,14 +108,20 @@ def run(args: argparse.Namespace) -> int:
         ),
     ):
         run = simulate_blocks(experiment, controller, progress=True)
+        outside = _OutOfRange(experiment.platform)
         with open(log_path, "w", encoding="utf-8") as log_file, open(truth_path, "w", encoding="utf-8") as truth_file:
             # written a block at a time as the blocks are simulated: a run holds its schedule and noise, not its text
             for k, (log, truth) in enumerate(run.blocks):
+                outside.add(log)
                 log_file.write(log_text(log, experiment.platform, header=k == 0))
                 truth_file.write(truth_text(truth, header=k == 0))
+        outside.refuse(experiment.source, len(run.plan.t_s))
         platform = replace(experiment.platform, elastic=elastic_of(experiment.load))
         platform_path.write_text(platform_to_toml(platform), encoding="utf-8")
-    print(f"simulated {len(run.plan.t_s)} samples of '{experiment.name}' ({args.controller} controller) into {out}")
+    print(
+        f"simulated {len(run.plan.t_s)} samples of '{shown(experiment.name)}' ({args.controller} controller) into "
+        f"{shown(out)}"
+    )
     return 0
 
 

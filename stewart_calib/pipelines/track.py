@@ -65,8 +65,9 @@ from .. import io
 from ..config import load_estimator_config
 from ..errors import CalibError, shown
 from ..estimators.base import accounting_words, skipped_count
+from ..inputs import MAX_LINE_BYTES
 from ..online import ONLINE_METHODS, OnlineCalibrator
-from ..platform import load_platform, platform_to_toml
+from ..platform import load_platform
 from ..samples import Log, Sample
 from . import add_config_arguments, check_output_path, run_command
 
@@ -122,6 +123,11 @@ def line_chunks(
                 idle_since = None
                 head += chunk[: max(HEAD_BYTES - len(head), 0)]
                 *complete, pending = (pending + chunk).split(b"\n")
+                if len(pending) > MAX_LINE_BYTES:  # /dev/zero, or no CSV at all: not held for ever
+                    raise CalibError(
+                        f"{shown(path or '<stdin>')}: a line longer than {MAX_LINE_BYTES} bytes (no line break); "
+                        "expected CSV rows"
+                    )
                 if complete:
                     yield complete
                 continue
@@ -249,11 +255,9 @@ def _start(args: argparse.Namespace) -> OnlineCalibrator:
     checkpoint = args.checkpoint and Path(args.checkpoint)
     if not (checkpoint and checkpoint.exists()):
         return OnlineCalibrator(platform, args.method, config)
-    calib = OnlineCalibrator.load(checkpoint)
+    calib = OnlineCalibrator.load(checkpoint, platform)
     if calib.method != args.method:
-        raise CalibError(f"--checkpoint {checkpoint}: written by method '{calib.method}', not '{args.method}'")
-    if platform_to_toml(calib.platform) != platform_to_toml(platform):
-        raise CalibError(f"--checkpoint {checkpoint}: written for another platform than {args.platform}")
+        raise CalibError(f"--checkpoint {shown(checkpoint)}: written by method '{calib.method}', not '{args.method}'")
     if (args.config or args.set) and calib.config != config:
         differ = [
             f.name for f in dataclasses.fields(config) if getattr(config, f.name) != getattr(calib.config, f.name)

@@ -76,9 +76,16 @@ def connect(scheduler: str | None, workers: int | None):
     if n < 1:
         raise CalibError(f"--workers: expected at least 1 worker, got {n}")
     # One thread per process: the estimators are single-threaded numpy/numba/GTSAM, and
-    # processes keep tasks apart (GIL, GTSAM's own state).
+    # processes keep tasks apart (GIL, GTSAM's own state). Scheduler, workers and the dashboard
+    # listen on the loopback only: they take no authentication, so on all interfaces anyone on
+    # the network could watch and drive them (a study on other hosts uses --scheduler).
     cluster = LocalCluster(
-        n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0", silence_logs=logging.ERROR
+        n_workers=n,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
+        silence_logs=logging.ERROR,
     )
     return Client(cluster, set_as_default=False)
 

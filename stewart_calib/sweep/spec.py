@@ -66,7 +66,7 @@ SETTINGS = (
         doc="shipped platform name, platform file (relative to the spec) or a [families] name",
     ),
     Setting("instrument", str, "tracker", doc="what measures the platform (spec §7); the simulator's instruments"),
-    Setting("samples", int, 200, minimum=1, doc="samples per run, one per random workspace pose"),
+    Setting("samples", int, 200, minimum=1, maximum=10**7, doc="samples per run, one per random workspace pose"),
     Setting("rate_hz", float, 10.0, positive=True, doc="sample rate [Hz] (sets Δt of the random walk)"),
     Setting(
         "workspace_fraction",
@@ -293,6 +293,7 @@ def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
         "refit_at_checkpoints": list(refit),
         "version": __version__,
     }
+    _refuse_absurd_size(axes, seeds, first_seed, refuse)
     cells = []
     names = list(axes)
     for index, values in enumerate(itertools.product(*axes.values())):
@@ -304,6 +305,25 @@ def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
         cells.append(Cell(digest, index, settings, platform, config))
     seeds_range = tuple(range(first_seed, first_seed + seeds))
     return SweepSpec(name, source, tuple(methods), seeds_range, checkpoints, tuple(refit), tuple(cells), axes)
+
+
+#: the most cells a grid may hold, and tasks (cells × seeds) a study: more is no study this tool can run
+#: (each task simulates a log and runs every method: ~1 s and up), and only building the plan would
+#: take minutes. A larger study is split into specs.
+MAX_CELLS = 10**5
+MAX_TASKS = 10**6
+
+
+def _refuse_absurd_size(axes: dict[str, list], seeds: int, first_seed: int, refuse) -> None:
+    """Refuse, before any cell is built, a grid or study beyond :data:`MAX_CELLS` / :data:`MAX_TASKS`,
+    or seeds past the int64 that the results' ``seed`` column holds."""
+    cells = math.prod(len(values) for values in axes.values())
+    if cells > MAX_CELLS:
+        raise refuse("grid", f"expected at most {MAX_CELLS} cells, got {cells} (split the study into specs)")
+    if cells * seeds > MAX_TASKS:
+        raise refuse("seeds", f"expected at most {MAX_TASKS} tasks (cells × seeds), got {cells} × {seeds}")
+    if first_seed + seeds > 2**63:
+        raise refuse("first_seed", f"expected first_seed + seeds ≤ 2^63 (the results' int64 seed), got {first_seed}")
 
 
 def _raise(err: CalibError):
