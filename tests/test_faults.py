@@ -999,3 +999,28 @@ def test_a_platform_name_reads_back_and_is_escaped_in_messages(tmp_path, log, ca
     )
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "\u001b" not in err and "\u0007" not in err
+
+
+# --------------------------------------------------------------------------- track against calibrate
+
+
+@pytest.mark.parametrize("every", ["7", "50"])
+def test_track_isam2_is_calibrate_to_its_documented_bound(tmp_path, capsys, every):
+    """The bound track.py states: ≤ 1e-4 σ on a clean log (a resume mid-way included), ≤ 0.05 σ
+    where a lock-out recovery restarts the graph (the quick experiment's log)."""
+    clean, quick = tmp_path / "clean.csv", tmp_path / "quick"
+    write_log(clean, tracked_log(5, 150))
+    assert cli.main(["simulate", "--experiment", "quick", "--out", str(quick)]) == 0
+    for path, platform, bound in ((clean, NIM_STEWART, 1e-4), (quick / "log.csv", quick / "platform.toml", 0.05)):
+        common = ["--platform", str(platform), "--method", "isam2"]
+        assert cli.main(["calibrate", *common, "--log", str(path), "--out", str(tmp_path / "c.json")]) == 0
+        calibrated = read_result(tmp_path / "c.json")
+        half = tmp_path / "half.csv"
+        half.write_text("".join(path.read_text().splitlines(keepends=True)[:61]))
+        ckpt, out = tmp_path / "ck.npz", tmp_path / "t.json"
+        ckpt.unlink(missing_ok=True)
+        for log in (half, path):  # a resume at row 60
+            argv = [*common, "--log", str(log), "--out", str(out), "--checkpoint", str(ckpt), "--every", every]
+            assert cli.main(["track", *argv]) == 0
+        gap = np.abs(np.array(read_result(out)["error"]) - np.array(calibrated["error"]))
+        assert np.max(gap / np.array(calibrated["stddev"])) <= bound
