@@ -217,8 +217,9 @@ CLI_TARGETS = {  # (command, size): (target text, value in µs/sample or MiB, ke
     ("calibrate isam2", 100_000): 1000.0,
     ("track ekf", 100_000): 40.0,
     ("identifiability", 100_000): 20.0,
+    ("import", 1_000_000): 10.0,  # issue 28: 10⁶ rows in ≤ 10 s
 }
-CLI_RSS_TARGET_MIB = {("calibrate ekf", 1_000_000): 500.0}
+CLI_RSS_TARGET_MIB = {("calibrate ekf", 1_000_000): 500.0, ("import", 1_000_000): 300.0}
 IMPORT_TARGET_S = 1.0
 QUICK_CASES = ("calibrate ekf",)
 
@@ -262,11 +263,22 @@ class CliInputs:
     def experiment(self, n: int) -> str:
         return str(self.root / f"experiment-{n}.toml")
 
+    def motive(self, n: int) -> str:
+        return str(self.root / f"motive-{n}.csv")
+
+    def counts(self, n: int) -> str:
+        return str(self.root / f"counts-{n}.csv")
+
+    @property
+    def import_mapping(self) -> str:
+        return str(self.root / "controller.toml")
+
     def out(self, name: str) -> str:
         return str(self.root / "out" / name)
 
-    def write(self, sizes: list[int], seed: int) -> None:
-        """Platform, and per size a 10 Hz log (the Lissajous stream), a pose list and an experiment."""
+    def write(self, sizes: list[int], seed: int, exports: bool = True) -> None:
+        """Platform, and per size a 10 Hz log (the Lissajous stream), a pose list and an experiment;
+        with ``exports`` also ``import``'s Motive export and count log."""
         from stewart_calib.io import atomic_write_text, write_log, write_pose_list
         from stewart_calib.platform import Elastic, platform_to_toml
 
@@ -276,6 +288,8 @@ class CliInputs:
         elastic = Elastic(60.0, np.array([0.0, 0.0, -50.0]), np.array([50.0, 0.0, 100.0]))
         atomic_write_text(self.elastic_platform, platform_to_toml(dataclasses.replace(platform, elastic=elastic)))
         log, _ = synthetic_stream(platform, max(sizes), np.random.default_rng(seed), RATE_HZ, smooth=True)
+        if exports:
+            self._write_exports(log, sizes)
         for n in sizes:
             write_log(self.log(n), log.select(slice(0, n)))
             write_pose_list(self.poses(n), log.desired_poses[:n])
@@ -286,6 +300,27 @@ class CliInputs:
                 f"[poses]\ncalibration = {max(1, n // 10)}\nvalidation = 0\nsamples_per_pose = 10\n\n"
                 '[[stages]]\nname = "no-load"\nload_kg = 0.0\nsegments = ["calibration"]\n',
             )
+
+    def _write_exports(self, log, sizes: list[int]) -> None:
+        """``import``'s inputs: the desired poses as a Motive export (metres, quaternions, Z-up as
+        written) and the strokes as the controller's count log (100 counts/mm, its own clock 5 s ahead)."""
+        from scipy.spatial.transform import Rotation
+
+        from stewart_calib.io import atomic_write_text
+        from tests.vendor_files import motive_csv
+
+        poses = log.desired_poses
+        quaternion = Rotation.from_euler("ZYX", poses[:, [5, 4, 3]]).as_quat()
+        atomic_write_text(
+            self.import_mapping,
+            '[strokes]\ntime = "t_ms"\ntime_unit = "ms"\ncolumns = ["c1", "c2", "c3", "c4", "c5", "c6"]\n'
+            'unit = "counts"\ncounts_per_mm = 100.0\nclock_offset_s = 5.0\nmax_gap_s = 0.2\n',
+        )
+        for n in sizes:
+            motive_csv(Path(self.motive(n)), log.t_s[:n], quaternion[:n], poses[:n, :3] / 1000.0)
+            header = "t_ms,c1,c2,c3,c4,c5,c6"
+            rows = np.column_stack([(log.t_s[:n] + 5.0) * 1000.0, np.round(log.strokes[:n] * 100.0)])
+            np.savetxt(self.counts(n), rows, delimiter=",", header=header, comments="", fmt="%.17g")
 
 
 def _calibrate(method: str):
@@ -398,6 +433,25 @@ def cli_cases(quick: bool) -> list[CliCase]:
                 f.log(n),
                 "--out",
                 f.out(f"validate-{n}.csv"),
+            ],
+            every,
+        ),
+        CliCase(
+            "import",
+            lambda f, n: [
+                "import",
+                "--motive",
+                f.motive(n),
+                "--rigid-body",
+                "platform",
+                "--up",
+                "z",
+                "--strokes",
+                f.counts(n),
+                "--mapping",
+                f.import_mapping,
+                "--out",
+                f.out(f"import-{n}.csv"),
             ],
             every,
         ),
@@ -519,7 +573,7 @@ def run_cli(quick: bool, seed: int, png_path: Path, only: list[str] | None = Non
     results: dict[str, dict[int, dict]] = {}
     with tempfile.TemporaryDirectory(prefix="stewart-calib-scale-") as tmp:
         files = CliInputs(Path(tmp))
-        files.write(sizes, seed)
+        files.write(sizes, seed, exports=any(case.name == "import" for case in cases))
         _run_cli(_calibrate("ekf")(files, CLI_START_SAMPLES), CLI_CAP_S, files.root / "out" / "stdout")  # warm caches
         imports = {
             "stewart-calib --help": import_profile(["--help"], files.root),

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _kernels, resources
+from . import resources
 from .errors import CalibError
 from .inputs import implausible_sigma_mm
 from .rotations import pose_to_rt, transform_points
@@ -82,8 +82,12 @@ class LegGeometry:
 
         Called once per sample by the EKFs: the sums (one compiled call) are new C-contiguous float
         arrays of the right shapes by construction, so they skip ``__post_init__``'s
-        copies and checks (~5.5 µs → ~2 µs; same values bit for bit).
+        copies and checks (~5.5 µs → ~2 µs; same values bit for bit). The kernels are imported
+        here, not with the module: a platform file is read by commands that never compute
+        (``import``'s check of the instrument kind), and numba alone is ~130 MB of RSS.
         """
+        from . import _kernels
+
         d = np.ascontiguousarray(delta, dtype=float).reshape(N_PARAMS)
         return LegGeometry._trusted(
             *_kernels.perturbed_legs(self.base_joints, self.platform_joints, self.initial_lengths, d)

@@ -33,6 +33,10 @@ COMMANDS = {
     ),
     "plan": ("plan", "choose calibration poses (optimal design over random workspace poses)"),
     "compensate": ("compensate", "strokes for desired poses with the calibrated model (IK of nominal + error)"),
+    "import": (
+        "import_files",
+        "turn a Motive/Vicon/laser-tracker/CSV export and a controller log into a measurement log",
+    ),
     "import-bag": ("import_bag", "turn a ROS 1 / ROS 2 bag into a measurement log"),
     "validate": ("validate", "predict a held-out log with a calibration and report the errors (spec §7)"),
     "sweep": ("sweep", "run a Monte Carlo study of the estimators (grid × seeds) on Dask"),
@@ -64,6 +68,7 @@ def add_subcommands(parser: argparse.ArgumentParser, load=None) -> None:
 #: the arguments (``argparse`` dests) that name files a command reads, and those it writes; ``track``'s
 #: ``--checkpoint`` is both (it resumes from and replaces the same file).
 INPUT_ARGUMENTS = ("platform", "log", "result", "poses", "experiment", "spec", "config", "bag", "checkpoint")
+INPUT_ARGUMENTS += ("motive", "vicon", "csv", "point_list", "strokes", "mapping", "truth")  # import, score
 OUTPUT_ARGUMENTS = ("out", "trace", "rerun", "platform_out", "json", "checkpoint")
 #: outputs that are directories, with the files a command writes in them
 OUTPUT_DIRECTORIES = {("simulate", "out"): ("platform.toml", "log.csv", "truth.csv"), ("*", "report"): ("index.html",)}
@@ -121,8 +126,13 @@ def check_no_output_over_input(args: argparse.Namespace) -> None:
                 )
 
 
+#: optional dependencies (top-level module → the extra of pyproject.toml that installs it)
+OPTIONAL_EXTRAS = {"rosbags": "ros"}
+
+
 def dispatch(args: argparse.Namespace) -> int:
-    """Run the parsed subcommand: a :class:`CalibError` becomes one line on stderr and exit 2."""
+    """Run the parsed subcommand: a :class:`CalibError` becomes one line on stderr and exit 2, and
+    so does a missing optional dependency (naming the extra that installs it)."""
     try:
         check_no_output_over_input(args)
         return int(args.func(args) or 0)
@@ -135,6 +145,16 @@ def dispatch(args: argparse.Namespace) -> int:
         return 2
     except MemoryError:
         print(f"stewart-calib {args.command}: error: out of memory", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as err:
+        extra = OPTIONAL_EXTRAS.get((err.name or "").split(".")[0])
+        if extra is None:
+            raise
+        print(
+            f"stewart-calib {args.command}: error: needs the optional package '{err.name}': "
+            f"pip install 'stewart-calib[{extra}]'",
+            file=sys.stderr,
+        )
         return 2
     except KeyboardInterrupt:
         print(f"stewart-calib {args.command}: interrupted", file=sys.stderr)

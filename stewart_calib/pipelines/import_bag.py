@@ -34,7 +34,7 @@ import numpy as np
 
 from .. import io
 from ..errors import CalibError, shown
-from ..kinematics import rotation_to_rpy
+from ..rotations import rotation_to_rpy
 from . import run_command
 
 JOINT_STATE = "sensor_msgs/msg/JointState"

@@ -1,0 +1,659 @@
+"""What instruments and controllers export, read a block at a time (``stewart-calib import``).
+
+Each reader yields :class:`Block`\\ s — times [s] on the file's own clock and values in the
+log's units (mm, degrees) — from files of any length, holding one block of rows:
+
+* :func:`motive_blocks` — an OptiTrack Motive CSV export (format 1.2x): a first line of
+  ``key,value`` pairs (``Length Units``, ``Rotation Type``, …), a blank line, then five header rows
+  (type, name, ID, property, axis; the first two columns ``Frame`` and ``Time (Seconds)``) and one
+  row per frame; a rigid body is chosen by name, its ``Rotation`` ``X Y Z W`` (quaternion) and
+  ``Position`` ``X Y Z`` columns read; a frame where it was not tracked has empty cells;
+* :func:`vicon_blocks` — a Vicon Nexus CSV export: a section title (``Segments`` or
+  ``Trajectories``), the capture rate, a row of ``Subject:Name`` labels, the axis row (``Frame,Sub
+  Frame,RX,RY,RZ,TX,TY,TZ`` for a segment, ``X,Y,Z`` per marker) and a units row, then frames; a
+  segment's ``RX RY RZ`` is its orientation as a rotation vector (helical angle) in degrees;
+* :func:`table_blocks` — a plain CSV with one header row, any columns (a generic instrument export
+  described by a mapping file, or a controller's log of strokes);
+* :func:`point_list_blocks` — a laser tracker's point list in long form (one row per measured
+  target: time, target name, X, Y, Z; SpatialAnalyzer and the vendors' software export this),
+  grouped by time into one row of up to K targets, a target not measured left empty.
+
+The conversions: positions to mm by the file's unit; orientation to roll-pitch-yaw [deg] with
+``R = Rz(yaw) Ry(pitch) Rx(roll)`` (spec §1) from a quaternion (either order) or Euler angles
+(scipy's convention strings: upper case intrinsic, lower case extrinsic); a Y-up system turned
+to Z-up (``x' = x, y' = −z, z' = y``, a proper rotation); encoder counts to mm per leg.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import tomllib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import CalibError
+from ..rotations import rotation_to_rpy
+
+#: millimetres per length unit, by the names a mapping file or an export uses
+MM_PER = {
+    "m": 1000.0,
+    "meters": 1000.0,
+    "metres": 1000.0,
+    "cm": 10.0,
+    "centimeters": 10.0,
+    "mm": 1.0,
+    "millimeters": 1.0,
+    "um": 1e-3,
+    "in": 25.4,
+    "inches": 25.4,
+}
+#: seconds per time unit
+S_PER = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+#: Z-up from Y-up: x' = x, y' = −z, z' = y
+Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+#: bytes of text a block holds (pyarrow's reader peaks near 40× a block: 4 MiB blocks held ~270 MB, 1 MiB ~150 MB)
+BLOCK_BYTES = 1 << 20
+
+
+@dataclass
+class Block:
+    """Rows of an export: ``t_s (n,)`` on its clock [s], ``values (n, k)``, and the 1-based file
+    line of each row (``lines (n,)``) for messages."""
+
+    t_s: np.ndarray
+    values: np.ndarray
+    lines: np.ndarray
+
+
+def _refuse(path, message: str):
+    raise CalibError(f"{path}: {message}")
+
+
+def _open_text(path: Path):
+    try:
+        return open(path, encoding="utf-8-sig", newline="")
+    except FileNotFoundError:
+        _refuse(path, "file not found")
+    except OSError as err:
+        _refuse(path, f"cannot read ({err.strerror})")
+
+
+def _split(line: str) -> list[str]:
+    return [field.strip().strip('"') for field in line.rstrip("\r\n").split(",")]
+
+
+def numeric_blocks(path: Path, first_line: int, names: list[str], wanted: list[int]) -> Iterator[Block]:
+    """The columns ``wanted`` (indices into the file's columns ``names``) of the data rows from
+    line ``first_line`` (1-based) on, as float arrays (an empty cell: NaN), a block of about
+    :data:`BLOCK_BYTES` at a time. ``Block.t_s`` is the first wanted column, ``values`` the rest.
+
+    Raises:
+        CalibError: a cell that is not a number, named by line and column.
+    """
+    import pyarrow as pa
+    from pyarrow import csv as pacsv
+
+    read = pacsv.ReadOptions(
+        skip_rows=first_line - 1,
+        column_names=[f"c{j}" for j in range(len(names))],
+        block_size=BLOCK_BYTES,
+        use_threads=False,
+    )
+    include = [f"c{j}" for j in wanted]
+    convert = pacsv.ConvertOptions(
+        include_columns=include, column_types={c: pa.float64() for c in include}, strings_can_be_null=True
+    )
+    parse = pacsv.ParseOptions(invalid_row_handler=None)
+    line = first_line
+    try:
+        reader = pacsv.open_csv(path, read_options=read, parse_options=parse, convert_options=convert)
+        for batch in reader:
+            columns = [batch.column(c).to_numpy(zero_copy_only=False).astype(float) for c in include]
+            n = batch.num_rows
+            yield Block(
+                columns[0], np.column_stack(columns[1:]) if len(columns) > 1 else np.zeros((n, 0)), line + np.arange(n)
+            )
+            line += n
+    except pa.ArrowInvalid as err:
+        _refuse(path, _first_bad_cell(path, first_line, names, wanted) or " ".join(str(err).split()))
+
+
+def _first_bad_cell(path: Path, first_line: int, names: list[str], wanted: list[int]) -> str | None:
+    """Where pyarrow stopped, in our words: the first row with too few fields or a wanted cell that
+    is no number (the slow path, read only after a refusal)."""
+    with _open_text(path) as file:
+        for number, text in enumerate(file, start=1):
+            if number < first_line or not text.strip():
+                continue
+            fields = _split(text)
+            if len(fields) < len(names):
+                return f"row {number}: expected {len(names)} fields, got {len(fields)}"
+            for j in wanted:
+                try:
+                    float(fields[j]) if fields[j] else None
+                except ValueError:
+                    return f"row {number}: column '{names[j]}': expected a number, got {fields[j]!r}"
+    return None
+
+
+# ----------------------------------------------------------------------------- orientations
+
+
+def quaternion_rotations(q: np.ndarray, order: str) -> np.ndarray:
+    """``(n, 4)`` quaternions in ``order`` (``wxyz`` or ``xyzw``) → ``(n, 3, 3)`` rotations."""
+    w, x, y, z = (q[:, order.index(axis)] for axis in "wxyz")
+    norm = np.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / norm, x / norm, y / norm, z / norm
+    R = np.empty((len(q), 3, 3))
+    R[:, 0] = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=1)
+    R[:, 1] = np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=1)
+    R[:, 2] = np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=1)
+    return R
+
+
+def euler_rotations(angles_rad: np.ndarray, convention: str) -> np.ndarray:
+    """``(n, 3)`` Euler angles [rad] in scipy's ``convention`` (e.g. ``ZYX`` intrinsic, ``xyz``
+    extrinsic) → ``(n, 3, 3)`` rotations."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler(convention, angles_rad).as_matrix()
+
+
+def rotation_vector_rotations(rotvec_rad: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(rotvec_rad).as_matrix()
+
+
+def pose_columns(positions_mm: np.ndarray, R: np.ndarray, up: str) -> np.ndarray:
+    """``(n, 6)`` ``mx_mm … myaw_deg`` of positions [mm] and rotations, turned to Z-up if ``up == "y"``."""
+    if up == "y":
+        positions_mm = positions_mm @ Y_UP_TO_Z_UP.T
+        R = Y_UP_TO_Z_UP @ R
+    return np.column_stack([positions_mm, np.degrees(rotation_to_rpy(R))])
+
+
+def points_columns(points_mm: np.ndarray, up: str) -> np.ndarray:
+    """``(n, 3K)`` ``p1x_mm …`` turned to Z-up if ``up == "y"``."""
+    if up != "y":
+        return points_mm
+    n = len(points_mm)
+    return (points_mm.reshape(n, -1, 3) @ Y_UP_TO_Z_UP.T).reshape(n, -1)
+
+
+# ----------------------------------------------------------------------------- Motive
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where a reader finds its columns: the file's column names, the first data line, the
+    indices of time and the value columns, and what the header says (units, rotation type)."""
+
+    names: list[str]
+    first_line: int
+    columns: list[int]
+    mm_per_unit: float
+    note: str
+
+
+def motive_layout(path: Path, body: str) -> Layout:
+    """The columns of rigid body ``body`` in a Motive CSV export (time, qx, qy, qz, qw, x, y, z).
+
+    Raises:
+        CalibError: not a Motive export, a rotation type other than quaternion, an unknown length
+            unit, or no rigid body of that name (the ones present are listed).
+    """
+    with _open_text(path) as file:
+        header = [file.readline() for _ in range(7)]
+    info_fields = _split(header[0])
+    if not info_fields or info_fields[0] != "Format Version":
+        _refuse(path, "row 1: expected a Motive CSV export starting with 'Format Version'")
+    info = dict(zip(info_fields[0::2], info_fields[1::2], strict=False))
+    rotation = info.get("Rotation Type", "Quaternion")
+    if rotation != "Quaternion":
+        _refuse(path, f"row 1: 'Rotation Type' is {rotation!r}; export again with Rotation Type = Quaternion")
+    unit = info.get("Length Units", "Meters").lower()
+    if unit not in MM_PER:
+        _refuse(
+            path, f"row 1: 'Length Units' {info.get('Length Units')!r}; expected Meters, Centimeters or Millimeters"
+        )
+    types, labels, _, properties, axes = (_split(line) for line in header[2:7])
+    if axes[:2] != ["Frame", "Time (Seconds)"]:
+        _refuse(path, "row 7: expected the columns 'Frame' and 'Time (Seconds)' first (Motive's header of 7 rows)")
+    found = {}
+    bodies = []
+    for j, (kind, label, prop, axis) in enumerate(zip(types, labels, properties, axes, strict=False)):
+        if kind != "Rigid Body":
+            continue
+        if label not in bodies:
+            bodies.append(label)
+        if label == body and prop in ("Rotation", "Position"):
+            found[(prop, axis)] = j
+    keys = [("Rotation", "X"), ("Rotation", "Y"), ("Rotation", "Z"), ("Rotation", "W")]
+    keys += [("Position", "X"), ("Position", "Y"), ("Position", "Z")]
+    if body not in bodies:
+        _refuse(path, f"row 4: no rigid body named {body!r}; the file has {', '.join(map(repr, bodies)) or 'none'}")
+    missing = [f"{p} {a}" for p, a in keys if (p, a) not in found]
+    if missing:
+        _refuse(path, f"rigid body {body!r}: no column {', '.join(missing)}")
+    return Layout(axes, 8, [1, *(found[k] for k in keys)], MM_PER[unit], f"lengths in {info.get('Length Units')}")
+
+
+def motive_blocks(path: Path, body: str, up: str = "y") -> tuple[Iterator[Block], str]:
+    """Rigid body ``body``'s poses (``mx_mm … myaw_deg``) from a Motive CSV export; frames where
+    it was not tracked (empty cells) come as NaN rows."""
+    layout = motive_layout(path, body)
+
+    def blocks():
+        for block in numeric_blocks(path, layout.first_line, layout.names, layout.columns):
+            q, p = block.values[:, :4], block.values[:, 4:] * layout.mm_per_unit
+            yield Block(block.t_s, _poses_or_nan(p, q, "xyzw", up), block.lines)
+
+    return blocks(), f"Motive rigid body {body!r}, quaternion x y z w, {layout.note}, {up.upper()}-up"
+
+
+def _poses_or_nan(positions_mm: np.ndarray, q: np.ndarray, order: str, up: str) -> np.ndarray:
+    out = np.full((len(q), 6), np.nan)
+    seen = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(positions_mm), axis=1)
+    seen &= np.linalg.norm(np.where(np.isfinite(q), q, 0.0), axis=1) > 1e-9
+    if seen.any():
+        out[seen] = pose_columns(positions_mm[seen], quaternion_rotations(q[seen], order), up)
+    return out
+
+
+# ----------------------------------------------------------------------------- Vicon
+
+
+def vicon_blocks(path: Path, names: list[str], up: str = "z") -> tuple[Iterator[Block], str, str]:
+    """A segment's poses (``Segments`` section, one name) or markers' positions (``Trajectories``,
+    1..3 names, in the order of ``p1 …``) from a Vicon Nexus CSV export; returns ``(blocks, what was
+    read, kind)`` with kind ``pose`` or ``points``. The time is ``(Frame − 1) / rate``."""
+    with _open_text(path) as file:
+        header = [file.readline() for _ in range(5)]
+    section = _split(header[0])[0]
+    if section not in ("Segments", "Trajectories"):
+        _refuse(path, f"row 1: expected a Vicon Nexus export section 'Segments' or 'Trajectories', got {section!r}")
+    try:
+        rate = float(_split(header[1])[0])
+    except ValueError:
+        _refuse(path, f"row 2: expected the capture rate [Hz], got {_split(header[1])[0]!r}")
+    labels, axes, units = _split(header[2]), _split(header[3]), _split(header[4])
+    if axes[:2] != ["Frame", "Sub Frame"]:
+        _refuse(path, "row 4: expected the columns 'Frame' and 'Sub Frame' first (Vicon Nexus's header)")
+    present = [label for label in labels if label]
+    width = 6 if section == "Segments" else 3
+    expected = ["RX", "RY", "RZ", "TX", "TY", "TZ"] if section == "Segments" else ["X", "Y", "Z"]
+    if section == "Segments" and len(names) != 1:
+        _refuse(path, f"a Segments export gives one pose: expected one segment name, got {len(names)}")
+    columns, length_units = [0], set()
+    for name in names:
+        matches = [j for j, label in enumerate(labels) if label and name in (label, label.split(":")[-1])]
+        if not matches:
+            what = section[:-1].lower().replace("trajectorie", "marker")
+            _refuse(path, f"row 3: no {what} named {name!r}; the file has {', '.join(map(repr, present))}")
+        j = matches[0]
+        if axes[j : j + width] != expected:
+            _refuse(
+                path, f"row 4: {labels[j]!r}: expected the columns {', '.join(expected)}, got {axes[j : j + width]}"
+            )
+        columns += list(range(j, j + width))
+        length_units.add(units[j + width - 1].lower() if j + width - 1 < len(units) else "")
+    if len(length_units) != 1 or next(iter(length_units)) not in MM_PER:
+        _refuse(path, f"row 5: expected one length unit (mm or m) for {', '.join(names)}, got {sorted(length_units)}")
+    mm = MM_PER[length_units.pop()]
+    in_radians = section == "Segments" and units[columns[1]].lower() == "rad"
+
+    def blocks():
+        for block in numeric_blocks(path, 6, axes, columns):
+            t_s, v = (block.t_s - 1.0) / rate, block.values
+            if section == "Trajectories":
+                yield Block(t_s, points_columns(v * mm, up), block.lines)
+                continue
+            out = np.full((len(v), 6), np.nan)
+            seen = np.all(np.isfinite(v), axis=1)
+            if seen.any():
+                angles = v[seen, :3] if in_radians else np.radians(v[seen, :3])
+                out[seen] = pose_columns(v[seen, 3:] * mm, rotation_vector_rotations(angles), up)
+            yield Block(t_s, out, block.lines)
+
+    what = f"Vicon {section.lower()} {', '.join(map(repr, names))} at {rate:g} Hz, {up.upper()}-up"
+    return blocks(), what, "pose" if section == "Segments" else "points"
+
+
+# ----------------------------------------------------------------------------- mapping files
+
+
+MAPPING_KEYS = {
+    "instrument": {
+        "time",
+        "time_unit",
+        "position",
+        "position_unit",
+        "quaternion",
+        "quaternion_order",
+        "euler",
+        "euler_convention",
+        "angle_unit",
+        "points",
+        "up",
+        "target",
+        "targets",
+    },
+    "strokes": {
+        "time",
+        "time_unit",
+        "columns",
+        "unit",
+        "counts_per_mm",
+        "mm_per_rev",
+        "counts_per_rev",
+        "sign",
+        "zero",
+        "clock_offset_s",
+        "max_gap_s",
+    },
+}
+
+
+def load_mapping(path: Path) -> dict:
+    """A mapping file (TOML, docs/formats.md §11): ``[instrument]`` and/or ``[strokes]``.
+
+    Raises:
+        CalibError: not TOML, or an unknown table or key (with the nearest known one).
+    """
+    try:
+        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        _refuse(path, "mapping file not found")
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as err:
+        _refuse(path, f"not a TOML mapping file ({err})")
+    for table, value in data.items():
+        if table not in MAPPING_KEYS:
+            _refuse(
+                path, f"unknown table [{table}]{_did_you_mean(table, MAPPING_KEYS)}; expected [instrument] or [strokes]"
+            )
+        if not isinstance(value, dict):
+            _refuse(path, f"{table}: expected a table [{table}]")
+        for key in value:
+            if key not in MAPPING_KEYS[table]:
+                _refuse(path, f"unknown key '{table}.{key}'{_did_you_mean(key, MAPPING_KEYS[table])}")
+    return data
+
+
+def _did_you_mean(word: str, known) -> str:
+    close = difflib.get_close_matches(word, sorted(known), n=1, cutoff=0.5)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def mapping_value(path, table: dict, section: str, key: str, default=None, kind=None, choices=None):
+    """``table[key]`` checked against ``kind`` (a type or tuple) and ``choices``; refusals name the key."""
+    value = table.get(key, default)
+    if value is None:
+        return None
+    if (kind is not None and not isinstance(value, kind)) or (isinstance(value, bool) and kind is not bool):
+        _refuse(path, f"'{section}.{key}': expected {_kind_words(kind)}, got {value!r}")
+    if choices is not None and value not in choices:
+        _refuse(path, f"'{section}.{key}': expected one of {', '.join(map(str, choices))}, got {value!r}")
+    return value
+
+
+def _kind_words(kind) -> str:
+    if kind is list:
+        return "a list"
+    if kind is str:
+        return "a string"
+    return "a number"
+
+
+def header_of(path: Path) -> list[str]:
+    with _open_text(path) as file:
+        line = file.readline()
+    if not line.strip():
+        _refuse(path, "row 1: expected a header row of column names")
+    return _split(line)
+
+
+def column_indices(path: Path, header: list[str], names: list, key: str) -> list[int]:
+    """The indices of ``names`` in ``header``; an unknown name is refused with the nearest present."""
+    out = []
+    for name in names:
+        if not isinstance(name, str):
+            _refuse(path, f"'{key}': expected column names, got {name!r}")
+        if name not in header:
+            _refuse(path, f"'{key}': no column {name!r} in the file{_did_you_mean(name, header)}")
+        out.append(header.index(name))
+    return out
+
+
+def generic_instrument_blocks(
+    path: Path, mapping_path: Path, table: dict, up_default: str = "z", extra: list[str] | None = None
+):
+    """A plain CSV described by ``[instrument]``: ``(blocks, what, kind)``; the columns ``extra``
+    (e.g. the strokes logged in the same rows) follow the measurement's in each block, as read."""
+    extra = extra or []
+    header = header_of(path)
+    section = "instrument"
+    time = mapping_value(mapping_path, table, section, "time", None, str)
+    if time is None:
+        _refuse(mapping_path, "'instrument.time': expected the name of the time column")
+    time_scale = S_PER[mapping_value(mapping_path, table, section, "time_unit", "s", str, tuple(S_PER))]
+    unit = mapping_value(mapping_path, table, section, "position_unit", "mm", str, tuple(MM_PER))
+    up = mapping_value(mapping_path, table, section, "up", up_default, str, ("y", "z"))
+    points = mapping_value(mapping_path, table, section, "points", None, list)
+    if points is not None:
+        if not points or not all(isinstance(p, list) and len(p) == 3 for p in points):
+            _refuse(mapping_path, "'instrument.points': expected a list of [x, y, z] column names per target")
+        columns = column_indices(path, header, [time, *(c for p in points for c in p)], "instrument.points")
+        columns += column_indices(path, header, extra, "strokes.columns")
+        width = 3 * len(points)
+
+        def point_blocks():
+            for block in numeric_blocks(path, 2, header, columns):
+                measured = points_columns(block.values[:, :width] * MM_PER[unit], up)
+                yield Block(block.t_s * time_scale, np.hstack([measured, block.values[:, width:]]), block.lines)
+
+        return point_blocks(), f"{len(points)} target(s) in {unit}, {up.upper()}-up", "points"
+    position = mapping_value(mapping_path, table, section, "position", None, list)
+    if position is None or len(position) != 3:
+        _refuse(mapping_path, "'instrument.position': expected the three position columns [x, y, z]")
+    quaternion = mapping_value(mapping_path, table, section, "quaternion", None, list)
+    euler = mapping_value(mapping_path, table, section, "euler", None, list)
+    if (quaternion is None) == (euler is None):
+        _refuse(mapping_path, "[instrument]: expected either 'quaternion' (4 columns) or 'euler' (3 columns)")
+    if quaternion is not None:
+        order = mapping_value(mapping_path, table, section, "quaternion_order", None, str, ("wxyz", "xyzw"))
+        if order is None or len(quaternion) != 4:
+            _refuse(mapping_path, "'instrument.quaternion': expected 4 columns and quaternion_order = wxyz or xyzw")
+        angles, what = quaternion, f"quaternion {' '.join(order)}"
+    else:
+        convention = mapping_value(mapping_path, table, section, "euler_convention", "ZYX", str)
+        try:
+            euler_rotations(np.zeros((1, 3)), convention)
+        except ValueError:
+            _refuse(
+                mapping_path, f"'instrument.euler_convention': expected e.g. ZYX (intrinsic) or xyz, got {convention!r}"
+            )
+        if len(euler) != 3:
+            _refuse(mapping_path, "'instrument.euler': expected the three angle columns")
+        angle_unit = mapping_value(mapping_path, table, section, "angle_unit", "deg", str, ("deg", "rad"))
+        angles, what = euler, f"Euler {convention} in {angle_unit}"
+    columns = column_indices(path, header, [time, *position, *angles], "instrument")
+    columns += column_indices(path, header, extra, "strokes.columns")
+
+    def pose_blocks():
+        for block in numeric_blocks(path, 2, header, columns):
+            p, a = block.values[:, :3] * MM_PER[unit], block.values[:, 3 : 3 + len(angles)]
+            if quaternion is not None:
+                out = _poses_or_nan(p, a, order, up)
+            else:
+                out = np.full((len(a), 6), np.nan)
+                seen = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(p), axis=1)
+                if seen.any():
+                    rad = a[seen] if angle_unit == "rad" else np.radians(a[seen])
+                    out[seen] = pose_columns(p[seen], euler_rotations(rad, convention), up)
+            yield Block(block.t_s * time_scale, np.hstack([out, block.values[:, 3 + len(angles) :]]), block.lines)
+
+    return pose_blocks(), f"pose in {unit}, {what}, {up.upper()}-up", "pose"
+
+
+def point_list_blocks(path: Path, mapping_path: Path, table: dict, up_default: str = "z"):
+    """A laser tracker's point list (one row per measured target) grouped by time into rows of
+    the ``targets`` named in order (``p1 …``), a target not measured at that time left empty."""
+    header = header_of(path)
+    section = "instrument"
+    time = mapping_value(mapping_path, table, section, "time", None, str)
+    target = mapping_value(mapping_path, table, section, "target", None, str)
+    targets = mapping_value(mapping_path, table, section, "targets", None, list)
+    position = mapping_value(mapping_path, table, section, "position", None, list)
+    if None in (time, target, targets, position) or len(position) != 3 or not 1 <= len(targets) <= 3:
+        _refuse(
+            mapping_path,
+            "[instrument] of a point list: expected 'time', 'target' (the column naming the target), "
+            "'targets' (1 to 3 names, in the order of p1, p2, p3) and 'position' (3 columns)",
+        )
+    time_scale = S_PER[mapping_value(mapping_path, table, section, "time_unit", "s", str, tuple(S_PER))]
+    unit = mapping_value(mapping_path, table, section, "position_unit", "mm", str, tuple(MM_PER))
+    up = mapping_value(mapping_path, table, section, "up", up_default, str, ("y", "z"))
+    time_j, target_j, *xyz = column_indices(path, header, [time, target, *position], "instrument")
+    K = len(targets)
+
+    def blocks():
+        import csv
+
+        with _open_text(path) as file:
+            reader = csv.reader(file)
+            next(reader)
+            rows_t, rows_v, rows_line = [], [], []
+            current_t, current, current_line = None, None, 0
+            for number, fields in enumerate(reader, start=2):
+                if not fields:
+                    continue
+                try:
+                    t = float(fields[time_j]) * time_scale
+                    p = [float(fields[j]) * MM_PER[unit] for j in xyz]
+                except (ValueError, IndexError):
+                    _refuse(path, f"row {number}: expected numbers in columns {time!r}, {', '.join(position)}")
+                name = fields[target_j].strip()
+                if name not in targets:
+                    continue  # another target of the job (a reference nest): not on the platform
+                if t != current_t:
+                    if current is not None:
+                        rows_t.append(current_t), rows_v.append(current), rows_line.append(current_line)
+                    if current_t is not None and t < current_t:
+                        _refuse(path, f"row {number}: column {time!r}: time goes back ({t} after {current_t})")
+                    current_t, current, current_line = t, np.full(3 * K, np.nan), number
+                k = targets.index(name)
+                if np.isfinite(current[3 * k]):
+                    _refuse(path, f"row {number}: target {name!r} measured twice at {time} = {fields[time_j]}")
+                current[3 * k : 3 * k + 3] = p
+                if len(rows_t) >= 65536:
+                    yield Block(np.array(rows_t), points_columns(np.array(rows_v), up), np.array(rows_line))
+                    rows_t, rows_v, rows_line = [], [], []
+            if current is not None:
+                rows_t.append(current_t), rows_v.append(current), rows_line.append(current_line)
+            if rows_t:
+                yield Block(np.array(rows_t), points_columns(np.array(rows_v), up), np.array(rows_line))
+
+    return blocks(), f"point list of {K} target(s) ({', '.join(targets)}) in {unit}, {up.upper()}-up", "points"
+
+
+# ----------------------------------------------------------------------------- strokes
+
+
+@dataclass(frozen=True)
+class StrokeColumns:
+    """How a file's stroke columns become ``q1_mm … q6_mm``: ``q = sign (raw − zero) mm_per_raw``."""
+
+    time: str | None
+    time_scale: float
+    columns: list[str]
+    mm_per_raw: np.ndarray
+    sign: np.ndarray
+    zero: np.ndarray
+    what: str
+
+    def convert(self, raw: np.ndarray) -> np.ndarray:
+        return self.sign * (raw - self.zero) * self.mm_per_raw
+
+
+def stroke_columns(mapping_path: Path, table: dict) -> StrokeColumns:
+    """The ``[strokes]`` table of a mapping file."""
+    section = "strokes"
+    columns = mapping_value(mapping_path, table, section, "columns", None, list)
+    if columns is None or len(columns) != 6 or not all(isinstance(c, str) for c in columns):
+        _refuse(mapping_path, "'strokes.columns': expected the six stroke column names of legs 1..6")
+    unit = mapping_value(mapping_path, table, section, "unit", "mm", str, ("counts", *MM_PER))
+    if unit == "counts":
+        per_mm = table.get("counts_per_mm")
+        if per_mm is None:
+            lead, per_rev = table.get("mm_per_rev"), table.get("counts_per_rev")
+            if lead is None or per_rev is None:
+                _refuse(
+                    mapping_path,
+                    "[strokes] unit = counts: expected 'counts_per_mm', or 'mm_per_rev' with 'counts_per_rev'",
+                )
+            lead, per_rev = (
+                _six(mapping_path, "strokes.mm_per_rev", lead),
+                _six(mapping_path, "strokes.counts_per_rev", per_rev),
+            )
+            mm_per_raw, what = lead / per_rev, "encoder counts × mm_per_rev / counts_per_rev"
+        else:
+            mm_per_raw, what = (
+                1.0 / _six(mapping_path, "strokes.counts_per_mm", per_mm),
+                "encoder counts / counts_per_mm",
+            )
+    else:
+        mm_per_raw, what = np.full(6, MM_PER[unit]), f"strokes in {unit}"
+    sign = _six(mapping_path, "strokes.sign", table.get("sign", 1.0))
+    if not np.all(np.isin(sign, (-1.0, 1.0))):
+        _refuse(mapping_path, "'strokes.sign': expected 1 or -1 per leg")
+    zero = _six(mapping_path, "strokes.zero", table.get("zero", 0.0))
+    time = mapping_value(mapping_path, table, section, "time", None, str)
+    time_scale = S_PER[mapping_value(mapping_path, table, section, "time_unit", "s", str, tuple(S_PER))]
+    return StrokeColumns(time, time_scale, columns, mm_per_raw, sign, zero, what)
+
+
+def _six(path, key: str, value) -> np.ndarray:
+    array = np.broadcast_to(np.asarray(value, dtype=float) if _numbers(value) else np.array(np.nan), (6,))
+    if (
+        array.shape != (6,)
+        or not np.all(np.isfinite(array))
+        or (key.endswith(("per_mm", "per_rev")) and np.any(array <= 0))
+    ):
+        _refuse(path, f"'{key}': expected a positive number or six, got {value!r}")
+    return np.array(array, dtype=float)
+
+
+def _numbers(value) -> bool:
+    if isinstance(value, bool):
+        return False
+    if isinstance(value, (int, float)):
+        return True
+    return (
+        isinstance(value, list)
+        and len(value) == 6
+        and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+    )
+
+
+def check_time_order(path, block: Block, latest: float, what: str = "time") -> float:
+    """Refuse a block whose times go back or repeat (a duplicate frame) after ``latest``."""
+    t = np.concatenate([[latest], block.t_s])
+    finite = np.isfinite(block.t_s)
+    if not finite.all():
+        k = int(np.flatnonzero(~finite)[0])
+        _refuse(path, f"row {block.lines[k]}: {what}: expected a number, got an empty or non-finite value")
+    step = np.diff(t)
+    if np.any(step <= 0):
+        k = int(np.flatnonzero(step <= 0)[0])
+        problem = "repeats the row before (a duplicate frame)" if step[k] == 0 else "goes back"
+        _refuse(path, f"row {block.lines[k]}: {what} {float(block.t_s[k])!r} {problem}; expected increasing times")
+    return float(block.t_s[-1]) if len(block.t_s) else latest
+
+
+def is_finite_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)

@@ -1,0 +1,423 @@
+"""``stewart-calib import``: an instrument's export and a controller's log → a measurement log.
+
+    stewart-calib import (--motive F.csv --rigid-body NAME | --vicon F.csv (--segment NAME | --markers A,B,C)
+                          | --csv F.csv | --point-list F.csv) [--mapping M.toml] [--strokes C.csv]
+                         [--clock-offset-s S | --estimate-clock-offset] [--max-gap-s S] [--up y|z]
+                         [--platform P.toml] --out L.csv
+
+The instrument's export gives the measurement columns of spec §7 (``mx_mm … myaw_deg`` for a
+pose, ``p1x_mm …`` for points) on its own clock; the strokes come from the same file (a generic
+CSV whose mapping file's ``[strokes]`` names its columns) or from the controller's log
+(``--strokes``, described by ``[strokes]``), on another clock: ``t_controller = t_instrument +
+offset``, the offset given or estimated (the lag that best lines up the speed of the strokes with
+the speed of the measured positions). Strokes are interpolated linearly to each measurement's
+time between the two controller rows around it, at most ``--max-gap-s`` apart; a measurement with
+no such pair, or where the instrument lost the body, gets no row — and is counted. Both files
+are read a block at a time and the log written as it goes (atomically: nothing partial is left).
+
+One line on stderr says what was done: rows read, rows written, rows dropped and why, the units
+and conventions assumed. With ``--platform`` the log is also checked for the mistakes of
+:mod:`stewart_calib.diagnosis` before it is written. The formats and the mapping file:
+docs/formats.md §11.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from .. import io
+from ..errors import CalibError
+from ..io import exports
+from ..io.exports import Block
+from . import run_command
+
+MEASURED_POSE_COLUMNS = ("mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg", "myaw_deg")
+#: default largest time between the two controller rows a measurement is interpolated across [s]
+DEFAULT_MAX_GAP_S = 0.1
+#: rows of each file the clock offset is estimated from
+ESTIMATE_ROWS = 200_000
+#: the speeds must correlate at least this well at the estimated offset
+MIN_CORRELATION = 0.5
+#: a row's position more than this factor from the log's typical size looks like another unit
+MIXED_UNITS_FACTOR = 100.0
+#: the rows whose median size is the log's typical one
+TYPICAL_ROWS = 20
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "import",
+        description="Turn an instrument's export (OptiTrack Motive CSV, Vicon Nexus CSV, a laser tracker's point "
+        "list, or any CSV described by a mapping file) and the controller's stroke log into a measurement log "
+        "(spec §3, §7); formats in docs/formats.md §11.",
+    )
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--motive", metavar="F.csv", help="OptiTrack Motive CSV export (quaternions)")
+    source.add_argument("--vicon", metavar="F.csv", help="Vicon Nexus CSV export (Segments or Trajectories)")
+    source.add_argument("--csv", metavar="F.csv", help="a CSV described by the mapping file's [instrument]")
+    source.add_argument("--point-list", metavar="F.csv", help="a laser tracker's point list (one row per target)")
+    parser.add_argument("--rigid-body", metavar="NAME", help="--motive: the rigid body on the platform")
+    parser.add_argument("--segment", metavar="NAME", help="--vicon: the segment on the platform (a pose)")
+    parser.add_argument("--markers", metavar="A,B,C", help="--vicon: 1-3 markers on the platform (points)")
+    parser.add_argument("--mapping", metavar="M.toml", help="mapping file: [instrument] and/or [strokes]")
+    parser.add_argument("--strokes", metavar="C.csv", help="the controller's log of the strokes ([strokes])")
+    offset = parser.add_mutually_exclusive_group()
+    offset.add_argument("--clock-offset-s", type=float, metavar="S", help="controller clock minus instrument clock [s]")
+    offset.add_argument(
+        "--estimate-clock-offset", action="store_true", help="estimate the offset from the two files' motion"
+    )
+    parser.add_argument(
+        "--max-gap-s",
+        type=float,
+        metavar="S",
+        help=f"largest gap between controller rows interpolated across (default {DEFAULT_MAX_GAP_S} s)",
+    )
+    parser.add_argument(
+        "--up", choices=("y", "z"), help="the instrument's up axis (default: y for Motive, z otherwise)"
+    )
+    parser.add_argument("--platform", metavar="P.toml", help="check the log against this platform (spec §2, §7)")
+    parser.add_argument("--out", required=True, metavar="L.csv", help="measurement log to write (spec §3, §7)")
+    parser.set_defaults(func=run)
+
+
+def _instrument(args, mapping: dict, mapping_path) -> tuple:
+    """``(blocks factory, what, kind, path)`` of the instrument's export."""
+    if args.motive:
+        if not args.rigid_body:
+            raise CalibError("--motive: expected --rigid-body NAME (the rigid body on the platform)")
+        path, up = Path(args.motive), args.up or "y"
+        _, what = exports.motive_blocks(path, args.rigid_body, up)  # reads (and checks) the header now
+        return (lambda: exports.motive_blocks(path, args.rigid_body, up)[0]), what, "pose", path
+    if args.vicon:
+        if bool(args.segment) == bool(args.markers):
+            raise CalibError("--vicon: expected --segment NAME (a pose) or --markers A,B,C (points)")
+        names = [args.segment] if args.segment else [name.strip() for name in args.markers.split(",")]
+        path, up = Path(args.vicon), args.up or "z"
+        _, what, kind = exports.vicon_blocks(path, names, up)
+        return (lambda: exports.vicon_blocks(path, names, up)[0]), what, kind, path
+    if "instrument" not in mapping:
+        option = "--csv" if args.csv else "--point-list"
+        raise CalibError(f"{option}: expected --mapping M.toml with an [instrument] table describing its columns")
+    table = mapping["instrument"]
+    path = Path(args.csv or args.point_list)
+    if args.csv:
+        _, what, kind = exports.generic_instrument_blocks(path, mapping_path, table, args.up or "z")
+        return (
+            (
+                lambda extra=(): exports.generic_instrument_blocks(
+                    path, mapping_path, table, args.up or "z", list(extra)
+                )[0]
+            ),
+            what,
+            kind,
+            path,
+        )
+    _, what, kind = exports.point_list_blocks(path, mapping_path, table, args.up or "z")
+    return (lambda: exports.point_list_blocks(path, mapping_path, table, args.up or "z")[0]), what, kind, path
+
+
+def _measurement_columns(kind: str, width: int) -> tuple[str, ...]:
+    if kind == "pose":
+        return MEASURED_POSE_COLUMNS
+    return tuple(f"p{k + 1}{axis}_mm" for k in range(width // 3) for axis in "xyz")
+
+
+class ControllerLog:
+    """The controller's strokes [mm] on its clock, read a block at a time and kept only as far
+    back as the next measurement needs (the measurements come in time order)."""
+
+    def __init__(self, path: Path, columns: exports.StrokeColumns):
+        if columns.time is None:
+            raise CalibError(f"{path}: the mapping's [strokes] names no 'time' column of the controller's log")
+        header = exports.header_of(path)
+        indices = exports.column_indices(path, header, [columns.time, *columns.columns], "strokes")
+        self.path, self.columns = path, columns
+        self._blocks = exports.numeric_blocks(path, 2, header, indices)
+        self.t_s, self.q_mm = np.zeros(0), np.zeros((0, 6))
+        self.rows, self.first_s, self._latest, self._done = 0, math.nan, -math.inf, False
+
+    def _read(self) -> bool:
+        block = next(self._blocks, None)
+        if block is None:
+            self._done = True
+            return False
+        block.t_s = block.t_s * self.columns.time_scale
+        self._latest = exports.check_time_order(self.path, block, self._latest, f"column {self.columns.time!r}")
+        if not np.all(np.isfinite(block.values)):
+            k, j = np.argwhere(~np.isfinite(block.values))[0]
+            raise CalibError(
+                f"{self.path}: row {block.lines[k]}: column {self.columns.columns[j]!r}: expected a number, got none"
+            )
+        if not self.rows:
+            self.first_s = float(block.t_s[0])
+        self.rows += len(block.t_s)
+        self.t_s = np.concatenate([self.t_s, block.t_s])
+        self.q_mm = np.concatenate([self.q_mm, self.columns.convert(block.values)])
+        return True
+
+    def strokes_at(self, t_s: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(strokes (M, 6) [mm], kept (len(t_s),))`` at the controller times ``t_s`` (increasing)."""
+        from .import_bag import TopicSeries, interpolate_to_stamps
+
+        while not self._done and (not len(self.t_s) or self.t_s[-1] < t_s[-1]):
+            self._read()
+        q, kept = interpolate_to_stamps(TopicSeries(self.t_s, self.q_mm), t_s, max_gap_s)
+        keep_from = max(int(np.searchsorted(self.t_s, t_s[-1], side="right")) - 1, 0)
+        self.t_s, self.q_mm = self.t_s[keep_from:], self.q_mm[keep_from:]
+        return q, kept
+
+    def drain(self) -> float:
+        """Read the rest (every row is checked and counted); returns the last time."""
+        while self._read():
+            self.t_s, self.q_mm = self.t_s[-1:], self.q_mm[-1:]
+        return float(self.t_s[-1]) if len(self.t_s) else math.nan
+
+
+def estimate_clock_offset(instrument: Iterator[Block], controller: Iterator[Block], stroke_columns, where: str):
+    """The offset ``t_controller − t_instrument`` [s] at which the speed of the strokes best
+    matches the speed of the measured positions (normalised cross-correlation on a common time
+    grid, refined by a parabola through the peak), from the first :data:`ESTIMATE_ROWS` of each.
+
+    Returns ``(offset_s, correlation)``. Raises CalibError when the speeds do not correlate."""
+
+    def gather(blocks, convert):
+        t, v, n = [], [], 0
+        for block in blocks:
+            t.append(block.t_s), v.append(convert(block.values))
+            n += len(block.t_s)
+            if n >= ESTIMATE_ROWS:
+                break
+        return np.concatenate(t), np.concatenate(v)
+
+    t_i, p = gather(instrument, lambda values: values[:, :3])
+    t_c, q = gather(controller, lambda values: stroke_columns.convert(values))
+    t_c = t_c * stroke_columns.time_scale
+    seen = np.all(np.isfinite(p), axis=1)
+    t_i, p = t_i[seen], p[seen]
+    if len(t_i) < 10 or len(t_c) < 10:
+        raise CalibError(f"{where}: too few rows to estimate the clock offset; give --clock-offset-s")
+    speed_i = np.linalg.norm(np.diff(p, axis=0), axis=1) / np.diff(t_i)
+    speed_c = np.linalg.norm(np.diff(q, axis=0), axis=1) / np.diff(t_c)
+    mid_i, mid_c = (t_i[1:] + t_i[:-1]) / 2, (t_c[1:] + t_c[:-1]) / 2
+    dt = max(np.median(np.diff(t_i)), np.median(np.diff(t_c)))
+    grid_i = np.arange(mid_i[0], mid_i[-1], dt)
+    grid_c = np.arange(mid_c[0], mid_c[-1], dt)
+    a = np.interp(grid_i, mid_i, speed_i)
+    b = np.interp(grid_c, mid_c, speed_c)
+    a, b = (a - a.mean()) / (a.std() or 1.0), (b - b.mean()) / (b.std() or 1.0)
+    full, overlap = _correlate(b, a), _correlate(np.ones_like(b), np.ones_like(a))
+    enough = overlap >= 0.5 * min(len(a), len(b))
+    score = np.where(enough, full / np.maximum(overlap, 1.0), -np.inf)
+    k = int(np.argmax(score))
+    correlation = float(score[k])
+    if not correlation >= MIN_CORRELATION:
+        raise CalibError(
+            f"{where}: cannot estimate the clock offset: the speeds of the strokes and of the measured positions "
+            f"correlate at best {correlation:.2f} (expected ≥ {MIN_CORRELATION}); give --clock-offset-s"
+        )
+    shift = 0.0
+    if 0 < k < len(score) - 1 and np.isfinite(score[k - 1]) and np.isfinite(score[k + 1]):
+        denominator = score[k - 1] - 2 * score[k] + score[k + 1]
+        shift = 0.5 * (score[k - 1] - score[k + 1]) / denominator if denominator < 0 else 0.0
+    lag = (k - (len(a) - 1) + shift) * dt
+    return float(grid_c[0] - grid_i[0] + lag), correlation
+
+
+def _correlate(b: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """``Σ_n b[n + k] a[n]`` for ``k = −(len(a) − 1) … len(b) − 1`` by FFT (scipy.signal's
+    ``correlate(b, a, "full")``, whose import alone takes ~2 s)."""
+    size = 1 << int(np.ceil(np.log2(len(a) + len(b) - 1)))
+    circular = np.fft.irfft(np.fft.rfft(b, size) * np.conj(np.fft.rfft(a, size)), size)
+    return np.concatenate([circular[size - (len(a) - 1) :], circular[: len(b)]])
+
+
+def _check_mixed_units(path, block: Block, typical: list) -> None:
+    """Refuse a row whose position is orders of magnitude off the log's typical size (a file
+    pasted together from exports in metres and in millimetres)."""
+    size = np.linalg.norm(block.values[:, :3], axis=1)
+    finite = np.isfinite(size) & (size > 0)
+    if not finite.any():
+        return
+    if not typical:  # the file's first rows set the scale: a later row in another unit stands out
+        typical.append(float(np.median(size[finite][:TYPICAL_ROWS])))
+    ratio = size[finite] / typical[0]
+    odd = (ratio > MIXED_UNITS_FACTOR) | (ratio < 1.0 / MIXED_UNITS_FACTOR)
+    if odd.any():
+        k = int(np.flatnonzero(finite)[np.argmax(odd)])
+        raise CalibError(
+            f"{path}: row {block.lines[k]}: a position {size[k]:.4g} mm from the origin where the rows before are "
+            f"about {typical[0]:.4g} mm: mixed units? expected one length unit in the whole file"
+        )
+
+
+def run(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    if not out.parent.is_dir():
+        raise CalibError(f"--out {out}: directory {out.parent} does not exist")
+    mapping_path = Path(args.mapping) if args.mapping else None
+    mapping = exports.load_mapping(mapping_path) if mapping_path else {}
+    make_blocks, what, kind, source = _instrument(args, mapping, mapping_path)
+    stroke_table = mapping.get("strokes")
+    if stroke_table is None:
+        raise CalibError("expected --mapping M.toml with a [strokes] table: the stroke columns, their unit and clock")
+    strokes = exports.stroke_columns(mapping_path, stroke_table)
+    max_gap_s = args.max_gap_s if args.max_gap_s is not None else stroke_table.get("max_gap_s", DEFAULT_MAX_GAP_S)
+    if not (exports.is_finite_number(max_gap_s) and max_gap_s > 0):
+        raise CalibError(f"--max-gap-s: expected a finite positive number of seconds, got {max_gap_s!r}")
+    platform = None
+    if args.platform:
+        from ..platform import load_platform
+
+        platform = load_platform(args.platform)
+        if platform.instrument.kind != kind:
+            raise CalibError(
+                f"--platform {args.platform}: its [instrument] is '{platform.instrument.kind}'; the import gives "
+                f"a {kind} log"
+            )
+    notes = [what, strokes.what]
+    if args.strokes is None:
+        blocks = _same_file_rows(make_blocks, source, strokes, args.csv, notes)
+    else:
+        offset = _clock_offset(args, stroke_table, make_blocks, strokes, mapping_path, notes)
+        blocks = _joined_rows(make_blocks(), ControllerLog(Path(args.strokes), strokes), offset, max_gap_s, notes)
+    counts = {"read": 0, "lost": 0, "unjoined": 0, "written": 0}
+    checked: list = []
+    columns: list[str] = []
+
+    def rows():
+        typical: list = []
+        latest = -math.inf
+        for block, q, kept, lost in blocks:
+            counts["read"] += len(block.t_s)
+            latest = exports.check_time_order(source, block, latest)
+            _check_mixed_units(source, block, typical)
+            counts["lost"] += int(lost.sum())
+            counts["unjoined"] += int((~kept & ~lost).sum())
+            use = kept & ~lost
+            strokes_mm = np.full((len(block.t_s), 6), np.nan)
+            strokes_mm[kept] = q
+            if not columns:
+                columns.extend(_measurement_columns(kind, block.values.shape[1]))
+            if platform is not None and not checked and use.any():
+                from ..diagnosis import diagnose_log
+
+                readings = _code_units(block.values[use], kind)
+                diagnose_log(platform, strokes_mm[use], readings, str(out), count=False)
+                checked.append(True)
+            counts["written"] += int(use.sum())
+            yield [block.t_s[use], *strokes_mm[use].T, *block.values[use].T]
+        if not counts["written"]:  # raised inside the write: its temporary file is removed
+            raise CalibError(
+                f"{source}: no row could be written ({counts['read']} read, {counts['lost']} without the body, "
+                f"{counts['unjoined']} without strokes within {max_gap_s:g} s); nothing written"
+            )
+
+    _write(out, rows, columns, kind)
+    print(
+        f"stewart-calib import: wrote {out}: {counts['written']} of {counts['read']} rows ({counts['lost']} where the "
+        f"instrument lost the body, {counts['unjoined']} without strokes within {max_gap_s:g} s dropped); "
+        + "; ".join(notes),
+        file=sys.stderr,
+    )
+    return 0
+
+
+def _write(out: Path, rows, columns: list[str], kind: str) -> int:
+    """Write the rows (blocks of float columns) as a log; the header is known once the first
+    block is, so the first block is looked at before the file is opened."""
+    blocks = iter(rows())
+    first = next(blocks)
+    header = ["t_s", *io.STROKE_COLUMNS, *columns]
+    blank = tuple(range(7, len(header))) if kind == "points" else ()
+
+    def all_blocks():
+        yield first
+        yield from blocks
+
+    return io.write_csv_blocks(out, header, all_blocks(), blank)
+
+
+def _code_units(values: np.ndarray, kind: str) -> np.ndarray:
+    """Readings in code units (rad for the angles) for the diagnosis."""
+    if kind != "pose":
+        return values
+    return np.column_stack([values[:, :3], np.radians(values[:, 3:])])
+
+
+def _same_file_rows(make_blocks, source, strokes, is_csv, notes):
+    """The strokes from the instrument's own file (a generic CSV, its stroke columns read with the
+    measurement's, after them): every row joins itself."""
+    if not is_csv:
+        raise CalibError("expected --strokes C.csv: the controller's log of the strokes (this export has none)")
+    notes.append("strokes from the same rows")
+    for block in make_blocks(strokes.columns):
+        raw = block.values[:, -6:]
+        finite = np.isfinite(raw)
+        if not finite.all():
+            k, j = np.argwhere(~finite)[0]
+            raise CalibError(f"{source}: row {block.lines[k]}: column {strokes.columns[j]!r}: expected a number")
+        measured = Block(block.t_s * 1.0, block.values[:, :-6], block.lines)
+        lost = ~np.any(np.isfinite(measured.values), axis=1)
+        yield measured, strokes.convert(raw), np.ones(len(raw), dtype=bool), lost
+
+
+def _clock_offset(args, table: dict, make_blocks, strokes, mapping_path, notes) -> float:
+    offset = args.clock_offset_s
+    from_file = table.get("clock_offset_s", 0.0)
+    if offset is None and not args.estimate_clock_offset and from_file != "estimate":
+        if not exports.is_finite_number(from_file):
+            raise CalibError(
+                f"{mapping_path}: 'strokes.clock_offset_s': expected seconds or \"estimate\", got {from_file!r}"
+            )
+        offset = float(from_file)
+    if offset is None:
+        path = Path(args.strokes)
+        header = exports.header_of(path)
+        indices = exports.column_indices(path, header, [strokes.time, *strokes.columns], "strokes")
+        offset, correlation = estimate_clock_offset(
+            make_blocks(), exports.numeric_blocks(path, 2, header, indices), strokes, str(path)
+        )
+        notes.append(f"clock offset estimated {offset:.6g} s (speeds correlate {correlation:.2f})")
+    elif not math.isfinite(offset):
+        raise CalibError(f"--clock-offset-s: expected a finite number of seconds, got {offset!r}")
+    else:
+        notes.append(f"clock offset {offset:g} s")
+    return offset
+
+
+def _joined_rows(instrument: Iterator[Block], controller: ControllerLog, offset_s: float, max_gap_s: float, notes):
+    """``(block, strokes of the kept rows, kept, lost)`` per instrument block, the strokes from the
+    controller's log at ``t + offset``; refuses a join with no overlap at all."""
+    any_kept = False
+    first_t = last_t = math.nan
+    for block in instrument:
+        lost = ~np.any(np.isfinite(block.values), axis=1)
+        if not len(block.t_s):
+            continue
+        first_t = block.t_s[0] if math.isnan(first_t) else first_t
+        last_t = block.t_s[-1]
+        if np.any(np.diff(block.t_s) <= 0):
+            yield block, np.zeros((0, 6)), np.zeros(len(block.t_s), dtype=bool), lost  # refused by check_time_order
+            return
+        q, kept = controller.strokes_at(block.t_s + offset_s, max_gap_s)
+        any_kept = any_kept or bool((kept & ~lost).any())
+        yield block, q, kept, lost
+    controller_last = controller.drain()
+    if not any_kept:
+        raise CalibError(
+            f"{controller.path}: no measurement falls between two controller rows at most {max_gap_s:g} s apart: "
+            f"instrument {first_t:.6g}–{last_t:.6g} s + offset {offset_s:g} s against controller "
+            f"{controller.first_s:.6g}–{controller_last:.6g} s; give the clock offset (--clock-offset-s or "
+            "--estimate-clock-offset)"
+        )
+    notes.append(f"{controller.rows} controller rows")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_command("import", argv)
