@@ -360,7 +360,7 @@ MAPPING_KEYS = {
 
 
 def load_mapping(path: Path) -> dict:
-    """A mapping file (TOML, docs/formats.md §11): ``[instrument]`` and/or ``[strokes]``.
+    """A mapping file (TOML, docs/formats.md §12): ``[instrument]`` and/or ``[strokes]``.
 
     Raises:
         CalibError: not TOML, or an unknown table or key (with the nearest known one).

@@ -37,6 +37,7 @@ COMMANDS = {
         "import_files",
         "turn a Motive/Vicon/laser-tracker/CSV export and a controller log into a measurement log",
     ),
+    "export": ("export", "write the calibrated drive for a controller (LinuxCNC genhexkins, plain JSON)"),
     "import-bag": ("import_bag", "turn a ROS 1 / ROS 2 bag into a measurement log"),
     "validate": ("validate", "predict a held-out log with a calibration and report the errors (spec §7)"),
     "sweep": ("sweep", "run a Monte Carlo study of the estimators (grid × seeds) on Dask"),

@@ -1,7 +1,8 @@
 """``stewart-calib compensate``: strokes for desired poses from IK with the calibrated model.
 
-Reads a result JSON (spec §5) and a pose list with the log's pose columns (spec §3); writes
-the pose columns and ``q1_mm … q6_mm``: the strokes to command so that the calibrated
+Reads a result JSON (spec §5) on its nominal platform — or the calibrated platform file alone
+(``calibrate --platform-out``, spec §8) — and a pose list with the log's pose columns (spec §3);
+writes the pose columns and ``q1_mm … q6_mm``: the strokes to command so that the calibrated
 drive ``nominal + error`` lands at each pose (paper Fig. 3 step 4). A platform with ``[elastic]``
 carries its weight and ``--payload-kg M`` (default 0) there: the strokes are those that reach the
 poses under that load (spec §10).
@@ -20,6 +21,7 @@ from ..errors import CalibError
 from ..io import read_pose_list_blocks
 from ..platform import load_platform
 from . import run_command
+from .handover import calibrated_model
 
 
 def add_parser(subparsers) -> None:
@@ -27,8 +29,12 @@ def add_parser(subparsers) -> None:
         "compensate",
         description="Compute drive strokes that put the calibrated robot at the desired poses.",
     )
-    parser.add_argument("--platform", required=True, metavar="P.toml")
-    parser.add_argument("--result", required=True, metavar="R.json", help="calibration result (spec §5)")
+    parser.add_argument(
+        "--platform", required=True, metavar="P.toml", help="nominal platform, or the calibrated one alone (spec §8)"
+    )
+    parser.add_argument(
+        "--result", metavar="R.json", help="calibration result (spec §5); omit it with a calibrated platform"
+    )
     parser.add_argument("--poses", required=True, metavar="poses.csv", help="x_mm y_mm z_mm roll_deg pitch_deg yaw_deg")
     parser.add_argument("--out", required=True, metavar="strokes.csv")
     parser.add_argument(
@@ -49,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
         raise CalibError(
             f"--payload-kg: {args.platform} has no [elastic] (spec §10): a rigid model has no payload to compensate"
         )
-    drive = io.read_calibrated_drive(args.result, platform)  # with its blocks, where the calibration identified them
+    drive = calibrated_model(platform, args.result)  # with its blocks, where the calibration identified them
     strokes = _compensated_blocks(args.poses, drive, platform, args.payload_kg)
     rows = io.write_pose_list_blocks(args.out, strokes, io.STROKE_COLUMNS)
     print(f"wrote {rows} stroke rows to {args.out}")

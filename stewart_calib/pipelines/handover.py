@@ -1,5 +1,6 @@
-"""What a calibration hands on (spec §8), shared by ``calibrate`` and ``validate``: the calibrated
-platform file, the result's optional fields, the residuals per measured channel and the HTML report.
+"""What a calibration hands on (spec §8), shared by ``calibrate``, ``validate``, ``compensate`` and
+``export``: the calibrated platform file and model, the result's optional fields, the residuals per
+measured channel and the HTML report.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import numpy as np
 
 from .. import __version__, io
 from ..config import EstimatorConfig
-from ..drive import drive_model
+from ..drive import DriveModel, drive_model
 from ..errors import CalibError
 from ..estimate import Estimate
 from ..platform import Platform, platform_to_toml
@@ -66,6 +67,24 @@ def calibrated_platform(platform: Platform, estimate: Estimate, method: str, log
         part = {"target": theta[6:12]} if platform.instrument.kind == "pose" else {"targets": theta[6:].reshape(-1, 3)}
         changes["instrument"] = dataclasses.replace(platform.instrument, frame=theta[:6], **part)
     return dataclasses.replace(platform, **changes)
+
+
+def calibrated_model(platform: Platform, result_path: str | None) -> DriveModel:
+    """The calibrated robot's drive: the result's (``nominal + error``, the values of the blocks it
+    identified) on its nominal platform; the platform's own without a result (a calibrated
+    platform file, spec §8) — and also when the platform given is the calibrated one the result
+    wrote (its legs are the result's estimate; the result's blocks are taken as they are).
+
+    Raises:
+        CalibError: a result made for another platform.
+    """
+    if result_path is None:
+        return drive_model(platform)
+    result = io.read_result(result_path)
+    gap = np.max(np.abs(np.array(result["estimate"], dtype=float) - platform.drive.as_vector()))
+    if gap <= io.NOMINAL_TOLERANCE_MM and result["platform"] == platform.name:
+        return io.calibrated_drive(platform, {**result, "error": [0.0] * len(result["error"])}, str(result_path))
+    return io.read_calibrated_drive(result_path, platform)
 
 
 def calibrated_platform_text(platform: Platform, estimate: Estimate, method: str, log_name: str, created: str) -> str:

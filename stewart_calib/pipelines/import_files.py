@@ -18,7 +18,7 @@ are read a block at a time and the log written as it goes (atomically: nothing p
 One line on stderr says what was done: rows read, rows written, rows dropped and why, the units
 and conventions assumed. With ``--platform`` the log is also checked for the mistakes of
 :mod:`stewart_calib.diagnosis` before it is written. The formats and the mapping file:
-docs/formats.md §11.
+docs/formats.md §12.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def add_parser(subparsers) -> None:
         "import",
         description="Turn an instrument's export (OptiTrack Motive CSV, Vicon Nexus CSV, a laser tracker's point "
         "list, or any CSV described by a mapping file) and the controller's stroke log into a measurement log "
-        "(spec §3, §7); formats in docs/formats.md §11.",
+        "(spec §3, §7); formats in docs/formats.md §12.",
     )
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--motive", metavar="F.csv", help="OptiTrack Motive CSV export (quaternions)")

@@ -1,0 +1,83 @@
+"""``stewart-calib export``: the calibrated drive in what a hexapod controller reads (docs/formats.md §13).
+
+    stewart-calib export --platform P.toml [--result R.json] --format linuxcnc|json --out F
+                         [--units mm|inch] [--home-stroke-mm Q]
+
+The calibrated model is the result's on its nominal platform, or the calibrated platform file's
+alone (``calibrate --platform-out``). ``linuxcnc`` writes ``F`` (``kinematics.hal``: genhexkins's
+``setp`` lines) and ``F`` with the suffix ``.ini`` (``[JOINT_N] HOME``/``HOME_OFFSET`` and each
+joint's ``SCALE`` factor); ``json`` writes the plain JSON of joints and leg lengths. Both are
+rendered before either is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+from .. import io
+from ..errors import CalibError
+from ..io import controllers
+from ..platform import load_platform
+from . import run_command
+from .handover import calibrated_model
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "export",
+        description="Write the calibrated drive for a controller: LinuxCNC genhexkins HAL setp lines and INI joint "
+        "settings, or a plain JSON of joint coordinates and leg lengths (docs/formats.md §13).",
+    )
+    parser.add_argument(
+        "--platform", required=True, metavar="P.toml", help="nominal platform, or the calibrated one alone (spec §8)"
+    )
+    parser.add_argument(
+        "--result", metavar="R.json", help="calibration result (spec §5); omit with a calibrated platform"
+    )
+    parser.add_argument("--format", required=True, choices=("linuxcnc", "json"), help="what the controller reads")
+    parser.add_argument("--out", required=True, metavar="F", help="file to write (linuxcnc: also F with suffix .ini)")
+    parser.add_argument(
+        "--units", choices=tuple(controllers.MM_PER_UNIT), default="mm", help="controller's length unit"
+    )
+    parser.add_argument(
+        "--home-stroke-mm",
+        type=float,
+        default=0.0,
+        metavar="Q",
+        help="linuxcnc: the logged stroke at which the joints home (default 0: the encoders' zero)",
+    )
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    if not out.parent.is_dir():
+        raise CalibError(f"--out {out}: directory {out.parent} does not exist")
+    if not math.isfinite(args.home_stroke_mm):
+        raise CalibError(f"--home-stroke-mm: expected a finite stroke [mm], got {args.home_stroke_mm!r}")
+    platform = load_platform(args.platform)
+    model = calibrated_model(platform, args.result)
+    drive, stroke_scale = model.legs, model.extension_per_stroke() - 1.0  # a leg moves 1 + k mm a logged mm
+    source = f"{args.platform}" + (f" + {args.result}" if args.result else "")
+    if args.format == "linuxcnc":
+        ini = out.with_suffix(".ini")
+        if ini == out:
+            raise CalibError(f"--out {out}: expected a name whose .ini sibling is another file (e.g. kinematics.hal)")
+        files = {
+            out: controllers.linuxcnc_hal_text(drive, args.units, source),
+            ini: controllers.linuxcnc_ini_text(drive, stroke_scale, args.units, args.home_stroke_mm),
+        }
+    else:
+        extra = {"source": source, "platform": platform.name}
+        files = {out: controllers.controller_json_text(drive, stroke_scale, args.units, extra)}
+    for path, text in files.items():
+        io.atomic_write_text(path, text)
+    print(f"stewart-calib export: wrote {', '.join(map(str, files))} ({args.format}, {args.units})", file=sys.stderr)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_command("export", argv)
