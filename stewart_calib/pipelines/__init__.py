@@ -40,6 +40,7 @@ COMMANDS = {
     "export": ("export", "write the calibrated drive for a controller (LinuxCNC genhexkins, plain JSON)"),
     "import-bag": ("import_bag", "turn a ROS 1 / ROS 2 bag into a measurement log"),
     "validate": ("validate", "predict a held-out log with a calibration and report the errors (spec §7)"),
+    "score": ("score", "score a calibration result against a simulation's truth.csv (parameters, z², closed loop)"),
     "sweep": ("sweep", "run a Monte Carlo study of the estimators (grid × seeds) on Dask"),
 }
 

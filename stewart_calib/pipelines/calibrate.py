@@ -48,7 +48,7 @@ from ..plausibility import check_plausible
 from ..progress import MIN_LOG_ROWS
 from ..samples import Log
 from . import add_config_arguments, check_output_path, handover, run_command
-from .validate import measurement_residuals, nominal_model, tracker_residuals
+from .validate import measurement_residuals, nominal_model, pose_error_summary, tracker_residuals
 
 
 def _summary(what: str, count: int, total: int, first: str) -> str:
@@ -264,6 +264,7 @@ def run(args: argparse.Namespace) -> int:
             residuals = measurement_residuals(platform, log.select(used), result_data)
             result_data["residual_rms"] = handover.residual_rms_field(residuals)
         result_json = io.result_text(result_data, str(out))
+        pose_line = _pose_error_line(platform, result_data, checked, n_samples)
         trace_csv = (
             io.trace_text(log.t_s, result.trace) if trace_path and not streamed and result.trace is not None else None
         )
@@ -289,12 +290,22 @@ def run(args: argparse.Namespace) -> int:
     if page is not None:
         handover.write_report(report_dir, page)
     io.atomic_write_text(out, result_json)
+    if pose_line:
+        print(f"stewart-calib calibrate: {pose_line}", file=sys.stderr)
     print(
         f"stewart-calib calibrate: wrote {out} ({args.method}: {estimate.samples_used} samples used, "
         f"{samples_skipped} skipped{accounting_words(estimate.details or {})}, of {n_samples + skipped.count} rows)",
         file=sys.stderr,
     )
     return 0
+
+
+def _pose_error_line(platform: Platform, result: dict, checked: Log, n_samples: int) -> str | None:
+    """What an engineer looks for first: the pose error before (nominal model; an outside
+    instrument's frame registered on the log) and after (the calibration), per axis and rotation,
+    over the evenly spaced samples the conditioning uses."""
+    line = pose_error_summary(platform, result, checked, False, n_samples, "the result")
+    return line and line.replace(f"(first {len(checked)} rows)", f"({len(checked)} evenly spaced samples)")
 
 
 def add_parser(subparsers) -> None:

@@ -22,6 +22,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from .. import kinematics as kin
 from ..errors import CalibError, shown
 from ..io import atomic_paths, log_text, output_directory, read_calibrated_drive, truth_text
 from ..platform import Platform, platform_to_toml
@@ -111,10 +112,16 @@ def run(args: argparse.Namespace) -> int:
         outside = _OutOfRange(experiment.platform)
         with open(log_path, "w", encoding="utf-8") as log_file, open(truth_path, "w", encoding="utf-8") as truth_file:
             # written a block at a time as the blocks are simulated: a run holds its schedule and noise, not its text
+            squares = {"controller": np.zeros(4), "nominal": np.zeros(4)}
+            counts = {"controller": np.zeros(4), "nominal": np.zeros(4)}
             for k, (log, truth) in enumerate(run.blocks):
                 outside.add(log)
                 log_file.write(log_text(log, experiment.platform, header=k == 0))
                 truth_file.write(truth_text(truth, header=k == 0))
+                errors = _pose_errors(experiment.platform, log, truth, args.controller != "nominal")
+                for name, values in errors.items():
+                    squares[name] += np.nansum(values**2, axis=0)
+                    counts[name] += np.sum(np.isfinite(values), axis=0)
         outside.refuse(experiment.source, len(run.plan.t_s))
         platform = replace(experiment.platform, elastic=elastic_of(experiment.load))
         platform_path.write_text(platform_to_toml(platform), encoding="utf-8")
@@ -122,7 +129,47 @@ def run(args: argparse.Namespace) -> int:
         f"simulated {len(run.plan.t_s)} samples of '{shown(experiment.name)}' ({args.controller} controller) into "
         f"{shown(out)}"
     )
+    print(_pose_error_line(squares, counts, args.controller))
     return 0
+
+
+def _pose_errors(platform: Platform, log, truth, compare: bool) -> dict[str, np.ndarray]:
+    """``(n, 4)`` true minus desired position ``x, y, z`` [mm] and rotation angle [deg] of a
+    block: the controller's (the simulated robot's true poses) and, with ``compare``, what the
+    nominal controller would have reached there: IK of the nominal model, executed by the true
+    robot of each sample (its parameters and stroke scale from the truth; the settling of the
+    closed loop left out)."""
+    R_d, t_d = kin.pose_to_rt(log.desired_poses)
+    R_true, t_true = kin.pose_to_rt(truth.true_poses)
+    out = {"controller": np.column_stack([t_true - t_d, kin.pose_error(R_d, t_d, R_true, t_true)[1]])}
+    if compare:
+        scale = np.zeros(6) if truth.stroke_scale is None else truth.stroke_scale
+        logged = kin.inverse_kinematics(platform.drive, R_d, t_d) / (1.0 + platform.stroke_scale)
+        legs = truth.params.reshape(-1, 6, 7)
+        reached = kin.forward_kinematics_per_pose(
+            legs[:, :, :3], legs[:, :, 3:6], legs[:, :, 6], logged * (1.0 + scale), (R_d, t_d), strict=False
+        )
+        ok = reached.converged
+        error = np.full((len(R_d), 4), np.nan)
+        error[ok] = np.column_stack(
+            [reached.t[ok] - t_d[ok], kin.pose_error(R_d[ok], t_d[ok], reached.R[ok], reached.t[ok])[1]]
+        )
+        out["nominal"] = error  # NaN where the true robot cannot reach the nominal strokes
+    return out
+
+
+def _pose_error_line(squares: dict[str, np.ndarray], counts: dict[str, np.ndarray], controller: str) -> str:
+    """The true pose's error from the desired one, RMS per axis and of the rotation: with the
+    nominal model → with the controller's (``frozen``), or the nominal controller's alone."""
+    rms = {name: np.sqrt(values / np.maximum(counts[name], 1)) for name, values in squares.items()}
+
+    names, units = ("x", "y", "z", "rotation"), ("mm", "mm", "mm", "°")
+    if controller == "nominal":
+        parts = [f"{names[k]} {rms['controller'][k]:.4g} {units[k]}" for k in range(4)]
+        return f"pose error RMS (true − desired), nominal controller: {', '.join(parts)}".replace(" °", "°")
+    pairs = [f"{names[k]} {rms['nominal'][k]:.4g} → {rms['controller'][k]:.4g} {units[k]}" for k in range(4)]
+    pairs = [pair.replace(" °", "°") for pair in pairs]
+    return f"pose error RMS (true − desired), nominal → {controller} controller: {', '.join(pairs)}"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -185,7 +185,8 @@ def run(args: argparse.Namespace) -> int:
             io.write_csv_blocks(args.out, header, blocks, blank)
             position = np.concatenate([e[0] for e in errors])
             orientation = None if errors[0][1] is None else np.concatenate([e[1] for e in errors])
-            moved = _moved_frame_hint(platform, result, first[0], errors[0][0], str(args.result))
+            sample_errors = np.concatenate([e[0] for e in errors])[: len(first[0])]
+            moved = _moved_frame_hint(platform, result, first[0], sample_errors, str(args.result))
     if page is not None:
         handover.write_report(report_dir, page)
     print(
@@ -194,6 +195,10 @@ def run(args: argparse.Namespace) -> int:
     )
     if platform.instrument.kind != "tracker":
         print(f"stewart-calib validate: {_unseen_error_line(platform, result, position)}")
+    sample = log if (report_dir or args.register_instrument) else first[0]
+    pose_line = pose_error_summary(platform, result, sample, args.register_instrument, len(position), args.result)
+    if pose_line:
+        print(f"stewart-calib validate: {pose_line}", file=sys.stderr)
     if moved:
         print(f"stewart-calib validate: {moved}", file=sys.stderr)
     return 0
@@ -255,6 +260,47 @@ def _moved_frame_hint(platform: Platform, result: dict, block: Log, position: np
     )
 
 
+def pose_errors(platform: Platform, result: dict, log, register: bool, source: str = "result") -> np.ndarray:
+    """``(n, 4)``: each sample's measured minus predicted position ``x, y, z`` [mm] and the angle
+    between the measured and predicted orientation [deg] (NaN for points, which give none); for
+    the tracker in {J} (its forward kinematics of the readings against the model's of the
+    strokes), for a pose in the instrument's axes, for points one row per target seen."""
+    if platform.instrument.kind == "tracker":
+        R_X, t_X = _model_poses(platform, result, log, source)
+        seen = kin.forward_kinematics(platform.tracker, log.readings, guess=(R_X, t_X), strict=False)
+        keep = seen.converged
+        _, orientation = kin.pose_error(seen.R[keep], seen.t[keep], R_X[keep], t_X[keep])
+        return np.column_stack([seen.t[keep] - t_X[keep], orientation])
+    predicted, _, orientation = validate(platform, result, log, register, source)
+    if platform.instrument.kind == "pose":
+        return np.column_stack([log.readings[:, :3] - predicted[:, :3], orientation])
+    difference = (log.readings - predicted).reshape(-1, 3)
+    difference = difference[np.all(np.isfinite(difference), axis=1)]
+    return np.column_stack([difference, np.full(len(difference), np.nan)])
+
+
+def pose_error_summary(platform: Platform, result: dict, sample, register: bool, n_rows: int, source) -> str | None:
+    """:func:`pose_error_line` of the nominal and the calibrated model on ``sample`` (the log, or
+    its first rows); None where a model cannot predict them (e.g. too few poses to fit a frame)."""
+    try:
+        outside = platform.instrument.kind != "tracker"
+        before = pose_errors(platform, nominal_model(platform), sample, outside, "the nominal platform")
+        after = pose_errors(platform, result, sample, register, str(source))
+    except CalibError:
+        return None
+    rows = f" (first {len(sample)} rows)" if len(sample) < n_rows else ""
+    return pose_error_line(before, after, f"nominal → calibrated model{rows}")
+
+
+def pose_error_line(before: np.ndarray, after: np.ndarray, models: str) -> str:
+    """One line: the RMS of :func:`pose_errors` per axis and of the rotation, before → after."""
+    rms = lambda v: float(np.sqrt(np.nanmean(v**2)))  # noqa: E731
+    parts = [f"{axis} {rms(before[:, k]):.4g} → {rms(after[:, k]):.4g} mm" for k, axis in enumerate("xyz")]
+    if np.isfinite(before[:, 3]).any():
+        parts.append(f"rotation {rms(before[:, 3]):.4g} → {rms(after[:, 3]):.4g}°")
+    return f"pose error RMS, {models}: {', '.join(parts)}"
+
+
 def _file_columns(log: Log, predicted, position, orientation, columns) -> list[np.ndarray]:
     """V.csv's columns [file units] for the rows of ``log``."""
     return [
@@ -279,18 +325,19 @@ def _whole_log(platform: Platform, path: str, bar) -> Log:
 def _validated_blocks(platform: Platform, result: dict, path: str, result_source: str, bar, errors: list, first: list):
     """V.csv's columns a block of the log at a time (each row's prediction is its own), the ``bar``
     ticked per block; each block's ``(position, orientation)`` errors are appended to ``errors``
-    (the summary's) and the first block, diagnosed (:func:`~stewart_calib.diagnosis.diagnose_log`),
-    to ``first``. A prediction refused is raised once the rest of the log is read, so that a
-    bad row anywhere in it is refused first, as when the log was read whole."""
+    and the blocks up to :data:`SAMPLE_ROWS` rows to ``first`` (then joined into one and diagnosed:
+    :func:`~stewart_calib.diagnosis.diagnose_log`). A prediction refused is raised once the rest of
+    the log is read, so that a bad row anywhere in it is refused first, as when the log was read whole."""
     blocks = io.read_log_blocks(path, platform)
     done = 0
     for block in blocks:
         bar.update(len(block))
         if not len(block):
             continue
-        if not first:
-            diagnose_log(platform, block.strokes, block.readings, path, count=False)
+        if done < SAMPLE_ROWS:
             first.append(Log(block.t_s, block.strokes, block.readings))
+            if done + len(block) >= SAMPLE_ROWS:
+                _diagnose_sample(platform, first, path)
         try:
             predicted, position, orientation = validate(
                 platform, result, block, False, result_source, first_sample=done
@@ -302,6 +349,19 @@ def _validated_blocks(platform: Platform, result: dict, path: str, result_source
         errors.append((position, orientation))
         yield _file_columns(block, predicted, position, orientation, io.reading_columns(platform))
         done += len(block)
+    if done < SAMPLE_ROWS:
+        _diagnose_sample(platform, first, path)
+
+
+#: the rows of a streamed log's start that the diagnosis, the moved-frame hint and the pose error
+#: line look at (a log's start stands for it: the file written holds every row)
+SAMPLE_ROWS = 2000
+
+
+def _diagnose_sample(platform: Platform, first: list, path: str) -> None:
+    sample = Log.concatenate(first)
+    first[:] = [sample]
+    diagnose_log(platform, sample.strokes, sample.readings, path, count=False)
 
 
 def measurement_residuals(
