@@ -122,3 +122,81 @@ def test_every_readme_snippet_runs_as_written(tmp_path, monkeypatch):
 )
 def test_bash_commands_are_split_as_a_shell_would(text, expected):
     assert bash_commands(text) == expected
+
+
+def _api_snippet() -> str:
+    (text,) = [text for language, text in snippets() if language == "python" and "OnlineCalibrator" in text]
+    return text
+
+
+@pytest.mark.parametrize("instrument", ["tracker", "pose"])
+def test_the_api_example_runs_for_the_tracker_and_a_pose_instrument(tmp_path, monkeypatch, instrument):
+    """The README's Python API example on an in-situ tracker's log and, with the platform and log
+    names changed, on a motion-capture log: it runs, and the checkpoint it saves resumes to the
+    same compensated strokes."""
+    import numpy as np
+
+    from stewart_calib.io import write_log
+    from stewart_calib.online import OnlineCalibrator
+    from tests import synthetic
+
+    text = _api_snippet()
+    (tmp_path / "sim").mkdir()
+    if instrument == "tracker":
+        rng = np.random.default_rng(5)
+        platform = synthetic.nim_stewart()
+        log, _ = synthetic.make_log(
+            platform, synthetic.random_error(rng), synthetic.random_poses(platform, 40, rng), rng, 0.002, 0.001
+        )
+    else:
+        from stewart_calib.simulation.instrument import InstrumentTruth
+        from tests import instrument_data
+
+        case = instrument_data.make_case(
+            instrument_data.hobby(), 60, 2, InstrumentTruth(np.r_[40.0, -25, 15, 5, -3, 30], np.zeros(6))
+        )
+        platform, log = case.platform, case.log
+        assert 'load_platform("nim-stewart")' in text
+        text = text.replace('load_platform("nim-stewart")', 'load_platform("hobby-hexapod")')
+    write_log(tmp_path / "sim" / "log.csv", log, platform)
+    monkeypatch.chdir(tmp_path)
+    namespace = {"__name__": "__main__"}
+    exec(compile(text, "README.md API snippet", "exec"), namespace)
+    strokes = namespace["strokes_mm"]
+    assert strokes.shape == (6,) and np.all(np.isfinite(strokes))
+    resumed = OnlineCalibrator.load("state.npz")
+    np.testing.assert_array_equal(resumed.compensated_strokes(namespace["next_pose"]), strokes)
+
+
+SECTION = re.compile(r"(?<![Pp]aper )(?<!paper's )§\s?(\d+)")
+
+
+def _help_texts() -> str:
+    """Every description and option help of ``stewart-calib`` and its commands."""
+    import argparse
+
+    parser = build_parser()
+    texts = [parser.description or ""]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                texts.append(sub.description or "")
+                texts += [a.help or "" for a in sub._actions]
+            texts += [choice.help or "" for choice in action._choices_actions]
+    return "\n".join(texts)
+
+
+def test_every_section_reference_resolves():
+    """§ references of the README, the commands' help and docs/formats.md itself name a section of
+    docs/formats.md (the paper's sections, 'paper §4.1', are the paper's)."""
+    formats = (ROOT / "docs" / "formats.md").read_text(encoding="utf-8")
+    sections = {int(n) for n in re.findall(r"^## (\d+)\.", formats, re.M)}
+    assert sections == set(range(1, max(sections) + 1))
+    for name, text in {
+        "README.md": README.read_text(encoding="utf-8"),
+        "--help": _help_texts(),
+        "formats": formats,
+    }.items():
+        cited = {int(n) for n in SECTION.findall(text)}
+        assert cited, name
+        assert cited <= sections, f"{name} cites § {sorted(cited - sections)}, which docs/formats.md does not have"
