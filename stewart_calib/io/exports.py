@@ -53,6 +53,8 @@ MM_PER = {
 }
 #: seconds per time unit
 S_PER = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+#: groups of a point list held before they are handed on as a block
+POINT_LIST_ROWS = 65536
 #: Z-up from Y-up: x' = x, y' = −z, z' = y
 Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
 #: bytes of text a block holds (pyarrow's reader peaks near 40× a block: 4 MiB blocks held ~270 MB, 1 MiB ~150 MB)
@@ -521,14 +523,17 @@ def point_list_blocks(path: Path, mapping_path: Path, table: dict, up_default: s
     time_j, target_j, *xyz = column_indices(path, header, [time, target, *position], "instrument")
     K = len(targets)
 
+    def block_of(rows: list[tuple[float, np.ndarray, int]]) -> Block:
+        t, values, lines = zip(*rows, strict=True)
+        return Block(np.array(t), points_columns(np.array(values), up), np.array(lines))
+
     def blocks():
         import csv
 
         with _open_text(path) as file:
             reader = csv.reader(file)
             next(reader)
-            rows_t, rows_v, rows_line = [], [], []
-            current_t, current, current_line = None, None, 0
+            rows: list[tuple[float, np.ndarray, int]] = []  # (time, p1x … pKz, first line) of each group
             for number, fields in enumerate(reader, start=2):
                 if not fields:
                     continue
@@ -540,23 +545,19 @@ def point_list_blocks(path: Path, mapping_path: Path, table: dict, up_default: s
                 name = fields[target_j].strip()
                 if name not in targets:
                     continue  # another target of the job (a reference nest): not on the platform
-                if t != current_t:
-                    if current is not None:
-                        rows_t.append(current_t), rows_v.append(current), rows_line.append(current_line)
-                    if current_t is not None and t < current_t:
-                        _refuse(path, f"row {number}: column {time!r}: time goes back ({t} after {current_t})")
-                    current_t, current, current_line = t, np.full(3 * K, np.nan), number
-                k = targets.index(name)
+                if not rows or t != rows[-1][0]:
+                    if rows and t < rows[-1][0]:
+                        _refuse(path, f"row {number}: column {time!r}: time goes back ({t} after {rows[-1][0]})")
+                    if len(rows) >= POINT_LIST_ROWS:
+                        yield block_of(rows)
+                        rows = []
+                    rows.append((t, np.full(3 * K, np.nan), number))
+                k, current = targets.index(name), rows[-1][1]
                 if np.isfinite(current[3 * k]):
                     _refuse(path, f"row {number}: target {name!r} measured twice at {time} = {fields[time_j]}")
                 current[3 * k : 3 * k + 3] = p
-                if len(rows_t) >= 65536:
-                    yield Block(np.array(rows_t), points_columns(np.array(rows_v), up), np.array(rows_line))
-                    rows_t, rows_v, rows_line = [], [], []
-            if current is not None:
-                rows_t.append(current_t), rows_v.append(current), rows_line.append(current_line)
-            if rows_t:
-                yield Block(np.array(rows_t), points_columns(np.array(rows_v), up), np.array(rows_line))
+            if rows:
+                yield block_of(rows)
 
     return blocks(), f"point list of {K} target(s) ({', '.join(targets)}) in {unit}, {up.upper()}-up", "points"
 

@@ -69,8 +69,10 @@ def add_subcommands(parser: argparse.ArgumentParser, load=None) -> None:
 
 #: the arguments (``argparse`` dests) that name files a command reads, and those it writes; ``track``'s
 #: ``--checkpoint`` is both (it resumes from and replaces the same file).
-INPUT_ARGUMENTS = ("platform", "log", "result", "poses", "experiment", "spec", "config", "bag", "checkpoint")
-INPUT_ARGUMENTS += ("motive", "vicon", "csv", "point_list", "strokes", "mapping", "truth")  # import, score
+INPUT_ARGUMENTS = (
+    *("platform", "log", "result", "poses", "experiment", "spec", "config", "bag", "checkpoint"),
+    *("motive", "vicon", "csv", "point_list", "strokes", "mapping", "truth"),  # import, score
+)
 OUTPUT_ARGUMENTS = ("out", "trace", "rerun", "platform_out", "json", "checkpoint")
 #: outputs that are directories, with the files a command writes in them
 OUTPUT_DIRECTORIES = {("simulate", "out"): ("platform.toml", "log.csv", "truth.csv"), ("*", "report"): ("index.html",)}

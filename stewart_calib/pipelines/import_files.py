@@ -189,7 +189,8 @@ def estimate_clock_offset(instrument: Iterator[Block], controller: Iterator[Bloc
     def gather(blocks, convert):
         t, v, n = [], [], 0
         for block in blocks:
-            t.append(block.t_s), v.append(convert(block.values))
+            t.append(block.t_s)
+            v.append(convert(block.values))
             n += len(block.t_s)
             if n >= ESTIMATE_ROWS:
                 break
@@ -264,7 +265,7 @@ def run(args: argparse.Namespace) -> int:
     mapping = exports.load_mapping(mapping_path) if mapping_path else {}
     make_blocks, what, kind, source = _instrument(args, mapping, mapping_path)
     stroke_table = mapping.get("strokes")
-    if stroke_table is None:
+    if stroke_table is None or mapping_path is None:
         raise CalibError("expected --mapping M.toml with a [strokes] table: the stroke columns, their unit and clock")
     strokes = exports.stroke_columns(mapping_path, stroke_table)
     max_gap_s = args.max_gap_s if args.max_gap_s is not None else stroke_table.get("max_gap_s", DEFAULT_MAX_GAP_S)

@@ -267,7 +267,8 @@ def pose_errors(platform: Platform, result: dict, log, register: bool, source: s
     strokes), for a pose in the instrument's axes, for points one row per target seen."""
     if platform.instrument.kind == "tracker":
         R_X, t_X = _model_poses(platform, result, log, source)
-        seen = kin.forward_kinematics(platform.tracker, log.readings, guess=(R_X, t_X), strict=False)
+        tracker = platform.required_tracker("the pose error of a tracker log")
+        seen = kin.forward_kinematics(tracker, log.readings, guess=(R_X, t_X), strict=False)
         keep = seen.converged
         _, orientation = kin.pose_error(seen.R[keep], seen.t[keep], R_X[keep], t_X[keep])
         return np.column_stack([seen.t[keep] - t_X[keep], orientation])
