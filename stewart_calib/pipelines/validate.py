@@ -336,7 +336,7 @@ def _validated_blocks(platform: Platform, result: dict, path: str, result_source
         if not len(block):
             continue
         if done < SAMPLE_ROWS:
-            first.append(Log(block.t_s, block.strokes, block.readings))
+            first.append(block)  # with its payloads: an elastic model predicts each row under its own load
             if done + len(block) >= SAMPLE_ROWS:
                 _diagnose_sample(platform, first, path)
         try:
