@@ -12,15 +12,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from stewart_calib import kinematics as kin
-from stewart_calib.drive import drive_model
 from stewart_calib.estimators.batch import BatchProblem
-from stewart_calib.instruments import gauge
-from stewart_calib.instruments.external import model_for
-from stewart_calib.instruments.points import PointsUnknowns
-from stewart_calib.instruments.pose import PoseUnknowns
 from stewart_calib.platform import Instrument, Platform, load_platform
 from stewart_calib.resources import CONFIGS
 from stewart_calib.samples import Log
+from stewart_calib.simulation import instrument as simulated
 from stewart_calib.simulation.instrument import InstrumentTruth, SimulatedInstrument
 
 HOBBY = CONFIGS / "platforms" / "hobby-hexapod.toml"
@@ -77,26 +73,8 @@ def make_case(
 
 def truth_in_gauge(case: InstrumentCase) -> tuple[np.ndarray, object]:
     """``(δM (42) in the gauge of instruments.gauge, instrument unknowns moved alike)``."""
-    params, (R_J, t_J), (R_D, t_D) = gauge.to_gauge(case.platform.drive, case.true_params)
-    u = case.true_instrument.unknowns
-    if isinstance(u, PoseUnknowns):
-        moved = PoseUnknowns(R_J @ u.R_frame, R_J @ u.t_frame + t_J, R_D @ u.R_target, R_D @ u.t_target + t_D)
-    else:
-        moved = PointsUnknowns(R_J @ u.R_frame, R_J @ u.t_frame + t_J, u.targets @ R_D.T + t_D)
-    return params - case.platform.drive.as_vector(), moved
+    return simulated.truth_in_gauge(case.platform.drive, case.true_params, case.true_instrument.unknowns)
 
 
 def problem(case: InstrumentCase) -> BatchProblem:
-    model = model_for(case.platform)
-    drive = drive_model(case.platform).identifying()
-    return BatchProblem(
-        drive,
-        drive.inputs(case.log.strokes),
-        case.log.readings,
-        model.module,
-        model.register,
-        model.sigmas,
-        model.channels,
-        model.channel_names,
-        case.log.t_s,
-    )
+    return BatchProblem.of_log(case.platform, case.log.strokes, case.log.readings, case.log.t_s)

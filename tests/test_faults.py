@@ -309,9 +309,9 @@ REFUSALS = [
         "a line longer than 1048576 bytes",
     ),
     # sweeps: absurd sizes refused by the plan (the studies issue plans them)
-    ("sweep", "sweep --spec {d}/seeds.toml --out {d}/sw", "key 'seeds': expected at most 1000000 tasks"),
+    ("sweep", "sweep --spec {d}/seeds.toml --out {d}/sw", "is more than the limit of 100,000; shrink the grid"),
     ("sweep", "sweep --spec {d}/samples.toml --out {d}/sw", "grid.samples"),
-    ("sweep", "sweep --spec {d}/grid.toml --out {d}/sw", "key 'grid': expected at most 100000 cells"),
+    ("sweep", "sweep --spec {d}/grid.toml --out {d}/sw", "is more than the limit of 100,000; shrink the grid"),
     ("sweep", "sweep --spec {d}/first_seed.toml --out {d}/sw", "key 'first_seed'"),
     # nonsense accepted before (issue), and ours beside
     (

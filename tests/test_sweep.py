@@ -13,9 +13,10 @@ import pytest
 from scipy.stats import chi2
 
 from stewart_calib.cli import main
+from stewart_calib.errors import CalibError
 from stewart_calib.sweep import store
-from stewart_calib.sweep.spec import load_spec, parse_spec
-from stewart_calib.sweep.task import run_task, simulate, task_rng
+from stewart_calib.sweep.spec import INSTRUMENTS, load_spec, parse_spec
+from stewart_calib.sweep.task import bound_stddev_mm, run_task, simulate, task_rng
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "sweeps" / "smoke.toml"
@@ -68,7 +69,8 @@ def test_estimator_setting_axis_reaches_the_config(tmp_path):
         ({"seeds": 1, "colour": "red"}, "'colour'"),
         ({"seeds": 1, "methods": ["ekf", "kalman"]}, "'kalman'"),
         ({"seeds": 1, "grid": {"noise_level": [1, 2]}}, "'grid.noise_level'"),
-        ({"seeds": 1, "grid": {"instrument": ["tracker", "pose"]}}, "'pose'"),
+        ({"seeds": 1, "grid": {"instrument": ["tracker", "laser"]}}, "'laser'"),
+        ({"seeds": 1, "methods": ["paper-ekf"], "grid": {"instrument": "points"}}, "'paper-ekf'"),
         ({"seeds": 1, "grid": {"ekf": {"gate": 0.9}}}, "'ekf.gate'"),
         ({"seeds": 1, "grid": {"platform": "nowhere"}}, "'nowhere'"),
         ({"seeds": 1, "families": {"f": {"base_radius_mm": 1.0}}}, "'families.f.platform_radius_mm'"),
@@ -184,3 +186,111 @@ def test_results_are_in_grid_order_whatever_the_finishing_order(tmp_path):
     table = store.consolidate(spec, tmp_path, schema)
     expected = [(c.id, s, m) for c, s in tasks for m in spec.methods]
     assert list(zip(*(table[n].to_pylist() for n in ("cell", "seed", "method")), strict=True)) == expected
+
+
+def _grid_spec(tmp_path: Path, text: str) -> Path:
+    spec_path = tmp_path / "grid.toml"
+    spec_path.write_text(text, encoding="utf-8")
+    return spec_path
+
+
+def test_a_billion_task_grid_is_refused_at_once_naming_the_count(tmp_path, capsys):
+    noise = ", ".join(f"{0.001 * (k + 1):.3f}" for k in range(1000))
+    glitches = ", ".join(f"{1e-5 * k:.5f}" for k in range(1000))
+    spec_path = _grid_spec(
+        tmp_path,
+        f'methods = ["ekf"]\nseeds = 1000\n[grid]\nreading_sigma_mm = [{noise}]\nglitch_rate = [{glitches}]\n',
+    )
+    out = tmp_path / "out"
+    assert main(["sweep", "--spec", str(spec_path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "1,000,000,000 tasks" in err and "--yes" in err and str(spec_path) in err
+    assert not out.exists()
+    spec = load_spec(spec_path)  # the count comes from the axes: no cell was built
+    assert spec.n_tasks == 10**9 and "cells" not in vars(spec)
+
+
+@pytest.mark.parametrize(
+    "text, named",
+    [
+        ('seeds = 1\nfirst_seed = 18446744073709551615\nmethods = ["ls"]\n', "'first_seed'"),
+        ('seeds = 1\nmethods = ["ls"]\n[grid]\nsamples = 100000000000\n', "'grid.samples'"),
+        ('seeds = 1\nmethods = ["ls"]\n[grid]\nvalidation_poses = 100000000000\n', "'grid.validation_poses'"),
+        ('seeds = 1\nmethods = ["ls"]\n[grid]\nreading_sigma_mm = ' + "9" * 400 + "\n", "'grid.reading_sigma_mm'"),
+        ("seeds = " + "7" * 4000 + '\nmethods = ["ls"]\n', "'seeds'"),
+    ],
+)
+def test_absurd_sizes_are_one_short_line(tmp_path, capsys, text, named):
+    out = tmp_path / "out"
+    assert main(["sweep", "--spec", str(_grid_spec(tmp_path, text)), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and named in err and len(err) < 400
+    assert not out.exists()
+
+
+def test_the_plan_estimates_from_a_pilot_then_from_past_rows_and_the_pilot_is_not_run_twice(tmp_path):
+    from stewart_calib.sweep.runner import plan_sweep, run_sweep
+
+    spec = spec_of({"methods": ["ls", "ekf"], "seeds": 2, "grid": {"samples": 20}}, tmp_path)
+    out = tmp_path / "out"
+    with pytest.raises(CalibError, match=r"2 tasks would take .* more than the limit of 1e-09 CPU-hours"):
+        plan_sweep(spec, out, max_cpu_hours=1e-9)
+    assert not out.exists()
+    plan = plan_sweep(spec, out)
+    assert plan.tasks == 2 and plan.done == 0 and "a tracker pilot task" in plan.basis
+    assert plan.cpu_seconds > 0 and [[r["method"] for r in rows] for rows in plan.pilots] == [["ls", "ekf"]]
+    assert "1 cells × 2 seeds = 2 tasks (0 already done)" in plan.describe(spec, 2)
+    report = run_sweep(spec, out, workers=1, progress=False, plan=plan)
+    assert report.ran == 2 and report.skipped == 0 and not report.failed and report.table.num_rows == 4
+    cell, seed = spec.tasks()[0]  # the pilot's rows are the task's rows
+    strip = lambda rows: [{k: v for k, v in r.items() if k not in TIMES} for r in rows]  # noqa: E731
+    written = report.table.slice(0, 2).to_pylist()
+    assert strip(written) == strip(run_task(cell, seed, spec.methods))
+    more_seeds = spec_of({"methods": ["ls", "ekf"], "seeds": 3, "grid": {"samples": 20}}, tmp_path)
+    again = plan_sweep(more_seeds, out)
+    assert again.done == 2 and again.pilots == [] and again.basis == "2 finished tracker tasks"
+
+
+def test_every_method_gives_finite_scores_on_every_instrument(tmp_path):
+    """Issue 26: the grid's instrument axis — the outside instruments scored in the gauge, over
+    δM and the stroke scales, against their own Cramér–Rao bound."""
+    methods = ("ls", "ekf", "isam2", "lm")
+    spec = spec_of(
+        {"methods": list(methods), "seeds": 1, "grid": {"instrument": list(INSTRUMENTS), "samples": 40}}, tmp_path
+    )
+    assert [c.settings["instrument"] for c in spec.cells] == list(INSTRUMENTS)
+    for cell in spec.cells:
+        rows = run_task(cell, 0, methods)
+        dof = 42 if cell.settings["instrument"] == "tracker" else 36  # 30 gauge-free δM + 6 stroke scales
+        for row in rows:
+            assert row["failure"] == "" and row["nees_dof"] == dof, row
+            for name in ("rms_over_crb", "nees", "z2", "closed_loop_mm"):
+                assert np.isfinite(row[name]), (cell.settings["instrument"], row["method"], name)
+            # a consistent method at its bound: an order of magnitude is a bug, not noise
+            assert 0.2 < row["rms_over_crb"] < 5 and 0.1 * dof < row["nees"] < 5 * dof, row
+            if cell.settings["instrument"] == "tracker":  # an outside instrument on 40 random poses need not
+                assert row["closed_loop_mm"] < row["closed_loop_nominal_mm"]  # (issue 27: the frame trades off)
+
+
+def test_the_tracker_data_do_not_depend_on_the_outside_instruments_settings(tmp_path):
+    grid = {"samples": 20, "glitch_rate": 0.2}
+    plain = spec_of({"methods": ["ls"], "seeds": 1, "grid": grid}, tmp_path).cells[0]
+    other = spec_of(
+        {"methods": ["ls"], "seeds": 1, "grid": {**grid, "instrument_sigma_mm": 0.3, "frame_offset_mm": 5.0}}, tmp_path
+    ).cells[0]
+    a = simulate(plain.settings, plain.platform, task_rng(plain.id, 1))
+    b = simulate(other.settings, other.platform, task_rng(plain.id, 1))
+    for name in ("strokes", "readings"):
+        assert np.array_equal(getattr(a.log, name), getattr(b.log, name))
+
+
+def test_an_unknown_stroke_scale_on_the_tracker_is_estimated_and_bounded(tmp_path):
+    spec = spec_of({"methods": ["ekf"], "seeds": 1, "grid": {"samples": 60, "stroke_scale_error": 0.01}}, tmp_path)
+    cell = spec.cells[0]
+    assert cell.estimator_config.noise.stroke_scale_sigma == 0.01
+    data = simulate(cell.settings, cell.platform, task_rng(cell.id, 3))
+    assert np.all(data.true_scale != 0)
+    crb = bound_stddev_mm(data, cell.settings, cell.estimator_config.noise.prior_sigma_mm)
+    assert crb.shape == (48,) and np.all(np.isfinite(crb))
+    (row,) = run_task(cell, 3, ("ekf",))
+    assert row["nees_dof"] == 48 and 0.2 < row["rms_over_crb"] < 5

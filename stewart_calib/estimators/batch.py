@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from types import ModuleType
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..drive import DriveModel
 from ..errors import CalibError, SampleRejected
@@ -77,6 +78,27 @@ class BatchProblem:
     channel_names: tuple[str, ...]
     t_s: np.ndarray
     payload_kg: np.ndarray | None = None
+
+    @classmethod
+    def of_log(cls, platform, strokes: ArrayLike, measured: ArrayLike, t_s: ArrayLike) -> BatchProblem:
+        """The problem of a log of ``platform``'s outside instrument, with the platform file's σ
+        and the drive model's unknowns."""
+        from ..drive import drive_model
+        from ..instruments.external import model_for
+
+        model = model_for(platform)
+        drive = drive_model(platform).identifying()
+        return cls(
+            drive,
+            drive.inputs(np.asarray(strokes, dtype=float)),
+            np.asarray(measured, dtype=float),
+            model.module,
+            model.register,
+            model.sigmas,
+            model.channels,
+            model.channel_names,
+            np.asarray(t_s, dtype=float),
+        )
 
 
 @dataclass(frozen=True)

@@ -73,6 +73,9 @@ RELINEARISE_TOLERANCE = 0.1
 MAX_RELINEARISATIONS = 10
 #: consecutive window differences pooled for the random-walk rate.
 WALK_WINDOWS = 8
+#: a walk rate is rejected where the window differences are smaller than χ² at it allows with this
+#: probability (the lower tail's quantile): see ``RobustFilter._pooled_walk_rate``.
+WALK_REJECTION = 0.2
 #: the walk rate never falls below this fraction of the configured rate [-].
 MIN_WALK_FRACTION = 1e-4
 #: the measured noise never falls below this fraction of the configured variance [-] (σ ≥ 0.1 × the
@@ -540,11 +543,23 @@ class RobustFilter:
 
     def _pooled_walk_rate(self) -> float:
         """The root ``q ≥ 0`` of ``f(q) = Σ_w Σ_i p_wi / (λ_wi + q T_w) − n × windows`` [mm²/s]
-        (:func:`_walk_rate_root`)."""
+        (:func:`_walk_rate_root`), but not below the configured rate ``q₀`` unless the differences
+        reject it, and then not below the largest rate they do not reject: ``f(q) + n × windows`` is
+        χ² with ``n × windows`` degrees of freedom at the true rate, and a rate is rejected where it
+        falls below its :data:`WALK_REJECTION` quantile. Over a few windows most directions move
+        less than their own σ, and the root is 0 about half the time whatever the walk: a filter
+        told its parameters stood still while they walked at the configured rate reported σ too
+        small (NEES 2–6× its degrees of freedom, sweep configs/sweeps/honesty.toml). The bound
+        moves continuously with the data, so blocks and single samples still agree."""
         lam = np.array([d[0] for d in self._differences])
         p = np.array([d[1] for d in self._differences])
         T = np.array([d[2] for d in self._differences], dtype=float)
-        return _walk_rate_root(lam, p, T, float(self._free * len(self._differences)))
+        dof = float(self._free * len(self._differences))
+        rate = _walk_rate_root(lam, p, T, dof)
+        if rate >= self._configured_walk:
+            return rate
+        not_rejected = _walk_rate_root(lam, p, T, chdtri(dof, 1.0 - WALK_REJECTION))
+        return max(rate, min(self._configured_walk, not_rejected))
 
     # ------------------------------------------------------------------ lock-out
 

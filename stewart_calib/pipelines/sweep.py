@@ -43,12 +43,19 @@ def add_parser(subparsers) -> None:
         metavar="N",
         help="a pilot: only the first N seeds of every cell (the full command resumes from it)",
     )
+    parser.add_argument(
+        "--yes",
+        action="store_true",
+        help="start a study over the limits of 100 000 tasks or 24 CPU-hours (refused otherwise; docs/sweeps.md)",
+    )
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     # Dask, pyarrow and matplotlib load only for this command.
     from ..sweep import load_spec, run_sweep
+    from ..sweep.limits import MAX_CPU_HOURS, MAX_TASKS
+    from ..sweep.runner import default_workers, plan_sweep
     from ..sweep.store import RESULTS
     from ..sweep.summary import write_summary
 
@@ -56,7 +63,10 @@ def run(args: argparse.Namespace) -> int:
     if args.seeds is not None:
         spec = spec.pilot(args.seeds)
     out = Path(args.out)
-    report = run_sweep(spec, out, scheduler=args.scheduler, workers=args.workers, progress=True)
+    plan = plan_sweep(spec, out, None if args.yes else MAX_TASKS, None if args.yes else MAX_CPU_HOURS)
+    workers = args.workers if args.workers is not None else (None if args.scheduler else default_workers())
+    print(plan.describe(spec, workers), flush=True)
+    report = run_sweep(spec, out, scheduler=args.scheduler, workers=args.workers, progress=True, plan=plan)
     write_summary(spec, report.table, out)
     print(
         f"{report.ran} tasks run, {report.skipped} already done, {len(report.failed)} failed of {report.tasks}; "

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import kinematics as kin
-from ..instruments import points, pose
-from ..platform import Instrument
+from ..instruments import gauge, points, pose
+from ..platform import Instrument, LegGeometry
 
 
 @dataclass(frozen=True)
@@ -85,3 +85,17 @@ class SimulatedInstrument:
         m = points.predict(self.unknowns, R, t) + sigma_pos * draws[..., : 3 * K].reshape(draws.shape[:-1] + (K, 3))
         m[draws[..., 3 * K :] < self.dropout_probability] = np.nan
         return m.reshape(draws.shape[:-1] + (3 * K,))
+
+
+def truth_in_gauge(nominal: LegGeometry, true_params: np.ndarray, unknowns) -> tuple[np.ndarray, object]:
+    """A simulator's truth in the gauge of :func:`stewart_calib.instruments.gauge.free_basis`:
+    ``(δM (42), the instrument's unknowns moved alike)`` for true absolute parameters ``(42,)``
+    and true instrument unknowns (``PoseUnknowns`` or ``PointsUnknowns``)."""
+    params, (R_J, t_J), (R_D, t_D) = gauge.to_gauge(nominal, true_params)
+    u = unknowns
+    moved: pose.PoseUnknowns | points.PointsUnknowns
+    if isinstance(u, pose.PoseUnknowns):
+        moved = pose.PoseUnknowns(R_J @ u.R_frame, R_J @ u.t_frame + t_J, R_D @ u.R_target, R_D @ u.t_target + t_D)
+    else:
+        moved = points.PointsUnknowns(R_J @ u.R_frame, R_J @ u.t_frame + t_J, u.targets @ R_D.T + t_D)
+    return params - nominal.as_vector(), moved

@@ -17,7 +17,7 @@ import os
 import socket
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pyarrow as pa
@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from ..errors import CalibError
 from . import store
+from .limits import MAX_CPU_HOURS, MAX_TASKS
 from .spec import SweepSpec
 from .task import run_task
 
@@ -33,6 +34,101 @@ CONNECT_TIMEOUT_S = 5
 
 #: Tasks in flight per worker thread: enough to keep every worker busy between refills.
 IN_FLIGHT_PER_THREAD = 4
+
+#: Finished parts read for the cost of past rows (enough for a mean, few enough to be quick).
+COST_PARTS = 64
+
+
+@dataclass
+class SweepPlan:
+    """What a run will do, known before any work (:func:`plan_sweep`).
+
+    Attributes:
+        tasks: the spec's tasks (cells × seeds).
+        done: those whose part exists already.
+        cpu_seconds: estimated CPU time of the methods on the unfinished tasks [s]: the
+            methods' CPU per sample for the task's instrument (``cpu_seconds`` of past rows, or
+            of a pilot task run here) times the samples of every unfinished task.
+        basis: where the per-sample costs come from, for the plan line.
+        pilots: the pilot tasks' rows (each written as its part when the run goes ahead).
+    """
+
+    tasks: int
+    done: int
+    cpu_seconds: float
+    basis: str
+    pilots: list[list[dict]] = field(default_factory=list)
+
+    def describe(self, spec: SweepSpec, workers: int | None) -> str:
+        """The plan line: cells, seeds, tasks, the estimated CPU and, for a known number of workers, wall time."""
+        line = (
+            f"sweep {spec.name}: {spec.n_cells:,} cells × {len(spec.seeds):,} seeds = {self.tasks:,} tasks "
+            f"({self.done:,} already done); the methods' CPU ≈ {_duration(self.cpu_seconds)} ({self.basis})"
+        )
+        if workers and self.cpu_seconds > 0:
+            line += f", ≈ {_duration(self.cpu_seconds / workers)} on {workers} workers"
+        return line
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 2 * 3600:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 2 * 86400:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.1f} days"
+
+
+def plan_sweep(
+    spec: SweepSpec,
+    out: str | Path,
+    max_tasks: int | None = MAX_TASKS,
+    max_cpu_hours: float | None = MAX_CPU_HOURS,
+) -> SweepPlan:
+    """Count the tasks and estimate their CPU before any work; refuse a study over the limits.
+
+    The count comes from the grid's axes, before a cell is built. The cost per sample of each
+    instrument comes from the finished parts in ``out`` (their methods' ``cpu_seconds``), or
+    else from one pilot task run in this process (the first unfinished task of that instrument;
+    its rows are kept, see :attr:`SweepPlan.pilots`). A limit of None switches that check off
+    (``--yes``).
+
+    Raises:
+        CalibError: one line naming the spec, the number of tasks or the CPU hours, and the limit.
+    """
+    out = Path(out)
+    if max_tasks is not None and spec.n_tasks > max_tasks:
+        raise CalibError(
+            f"{spec.source}: {spec.n_tasks:,} tasks ({spec.n_cells:,} cells × {len(spec.seeds):,} seeds) is more "
+            f"than the limit of {max_tasks:,}; shrink the grid, run a pilot with --seeds N, or pass --yes"
+        )
+    done = store.finished(spec, out)
+    todo = [(cell, seed) for cell, seed in spec.tasks() if (cell.id, seed) not in done]
+    # an instrument sets a task's cost more than any other setting (motion capture and laser
+    # trackers run the methods' general paths): one cost per sample for each
+    past = store.past_cost(out, COST_PARTS)
+    per_sample = {kind: cost for kind, (cost, _) in past.items()}
+    said = [f"{count} finished {kind} tasks" for kind, (_, count) in past.items()]
+    pilots = []
+    for kind in dict.fromkeys(cell.settings["instrument"] for cell, _ in todo):
+        if kind in per_sample:
+            continue
+        cell, seed = next(task for task in todo if task[0].settings["instrument"] == kind)
+        rows = run_task(cell, seed, spec.methods, spec.checkpoints, spec.refit_at_checkpoints)
+        cpu = sum(row["cpu_seconds"] for row in rows if row["cpu_seconds"] == row["cpu_seconds"])
+        per_sample[kind] = cpu / cell.settings["samples"]
+        pilots.append(rows)
+        said.append(f"a {kind} pilot task: {cpu:.2g} CPU-s for {cell.settings['samples']} samples")
+    basis = "; ".join(said) or "nothing left to run"
+    cpu_seconds = sum(per_sample[cell.settings["instrument"]] * cell.settings["samples"] for cell, _ in todo)
+    if max_cpu_hours is not None and cpu_seconds > max_cpu_hours * 3600:
+        raise CalibError(
+            f"{spec.source}: {len(todo):,} tasks would take ≈ {cpu_seconds / 3600:,.0f} CPU-hours ({basis}), more "
+            f"than the limit of {max_cpu_hours:g} CPU-hours; shrink the grid, run a pilot with --seeds N, or pass "
+            f"--yes (docs/sweeps.md: on a cluster)"
+        )
+    return SweepPlan(len(spec.seeds) * spec.n_cells, len(done), cpu_seconds, basis, pilots)
 
 
 @dataclass
@@ -139,26 +235,35 @@ def _unreachable(scheduler: str, err: BaseException) -> CalibError:
 
 
 def run_sweep(
-    spec: SweepSpec, out: str | Path, scheduler: str | None = None, workers: int | None = None, progress: bool = True
+    spec: SweepSpec,
+    out: str | Path,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+    plan: SweepPlan | None = None,
 ) -> SweepReport:
     """Run every unfinished task of ``spec``, writing parts as they finish, then results.parquet.
 
     Tasks that raise are reported (``failed``: the cell's settings, the seed and the error)
-    and left unfinished, so the next run retries them; the others still land.
+    and left unfinished, so the next run retries them; the others still land. A ``plan``'s
+    pilot tasks are written first and not run again.
     """
     out = Path(out)
     start = time.perf_counter()
     table_schema = store.schema(spec)
     tasks = spec.tasks()
     done = store.finished(spec, out)
-    todo = deque((cell, seed) for cell, seed in tasks if (cell.id, seed) not in done)
+    pilots = plan.pilots if plan is not None else []
+    piloted = {(rows[0]["cell"], rows[0]["seed"]) for rows in pilots}
+    todo = deque((cell, seed) for cell, seed in tasks if (cell.id, seed) not in done | piloted)
     failed: list[str] = []
     ran = 0
     if todo:
         client = connect(scheduler, workers)  # before DIR exists: an unreachable scheduler leaves nothing behind
         try:
             store.prepare(out)
-            ran = _drain(client, spec, out, todo, table_schema, failed, len(tasks), len(done), progress)
+            ran += _write_pilots(out, pilots, table_schema)
+            ran += _drain(client, spec, out, todo, table_schema, failed, len(tasks), len(done) + ran, progress)
         except KeyboardInterrupt:
             store.consolidate(spec, out, table_schema)  # what finished is in results.parquet too
             raise
@@ -166,8 +271,15 @@ def run_sweep(
             _close(client)
     else:
         store.prepare(out)
+        ran += _write_pilots(out, pilots, table_schema)
     table = store.consolidate(spec, out, table_schema)
     return SweepReport(len(tasks), len(done), ran, failed, table, time.perf_counter() - start)
+
+
+def _write_pilots(out: Path, pilots: list[list[dict]], table_schema) -> int:
+    for rows in pilots:
+        store.write_part(out, rows, table_schema)
+    return len(pilots)
 
 
 def _drain(

@@ -27,11 +27,12 @@ recomputes only what is missing, and a changed platform file never reuses stale 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import itertools
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,13 @@ from ..errors import CalibError
 from ..estimators import METHODS
 from ..platform import LegGeometry, Platform, load_platform, platform_to_toml
 from ..resources import CONFIGS, read_toml
+
+#: Samples (and validation poses) of one task at most: a task holds its log in memory, and a
+#: study wants many short runs, not one endless one (``stewart-calib calibrate`` streams those).
+MAX_SAMPLES = 1_000_000
+
+#: Seeds are stored as Parquet int64.
+MAX_SEED = 2**63 - 1
 
 
 @dataclass(frozen=True)
@@ -65,8 +73,15 @@ SETTINGS = (
         "nim-stewart",
         doc="shipped platform name, platform file (relative to the spec) or a [families] name",
     ),
-    Setting("instrument", str, "tracker", doc="what measures the platform (spec §7); the simulator's instruments"),
-    Setting("samples", int, 200, minimum=1, maximum=10**7, doc="samples per run, one per random workspace pose"),
+    Setting("instrument", str, "tracker", doc="what measures the platform (spec §7): tracker, pose or points"),
+    Setting("instrument_sigma_mm", float, 0.05, positive=True, doc="pose / points: σ of one measured coordinate [mm]"),
+    Setting("instrument_sigma_deg", float, 0.05, positive=True, doc="pose: σ of one measured angle [deg]"),
+    Setting("targets", int, 3, minimum=1, maximum=3, doc="points: targets on the platform (1 to 3)"),
+    Setting("dropout_rate", float, 0.0, minimum=0.0, maximum=0.9, doc="points: chance a target is not seen"),
+    Setting("frame_offset_mm", float, 50.0, minimum=0.0, doc="pose / points: true frame's offset from nominal [mm]"),
+    Setting("frame_offset_deg", float, 10.0, minimum=0.0, maximum=90.0, doc="pose / points: its rotation [deg]"),
+    Setting("stroke_scale_error", float, 0.0, minimum=0.0, maximum=0.2, doc="σ of the true stroke scales k_i"),
+    Setting("samples", int, 200, minimum=1, maximum=MAX_SAMPLES, doc="samples per run, one per random workspace pose"),
     Setting("rate_hz", float, 10.0, positive=True, doc="sample rate [Hz] (sets Δt of the random walk)"),
     Setting(
         "workspace_fraction",
@@ -79,16 +94,23 @@ SETTINGS = (
     Setting("error_sigma_mm", float, 1.0, minimum=0.0, doc="σ of the true δM's i.i.d. normal draw [mm]"),
     Setting("reading_sigma_mm", float, 0.002, positive=True, doc="σ of the tracker readings' white noise [mm]"),
     Setting("stroke_sigma_mm", float, 0.001, positive=True, doc="σ of the logged strokes' white noise [mm]"),
+    Setting(
+        "noise_scale",
+        float,
+        1.0,
+        positive=True,
+        doc="the simulated reading noise (tracker or outside instrument) is this multiple of what the "
+        "estimators are told",
+    ),
     Setting("drift_mm_per_sqrt_s", float, 0.0, minimum=0.0, doc="random walk of the true δM [mm/√s]"),
     Setting("glitch_rate", float, 0.0, minimum=0.0, maximum=1.0, doc="fraction of samples with one glitched reading"),
     Setting("glitch_size_mm", float, 1.0, minimum=0.0, doc="size of a glitch [mm] (added with a random sign)"),
-    Setting("validation_poses", int, 50, minimum=1, doc="fresh poses of the closed-loop check"),
+    Setting("validation_poses", int, 50, minimum=1, maximum=MAX_SAMPLES, doc="fresh poses of the closed-loop check"),
 )
 SETTINGS_BY_NAME = {s.name: s for s in SETTINGS}
 
-#: Instruments the sweep can simulate (spec §7); the others are refused by name until the
-#: simulator supports them.
-INSTRUMENTS = ("tracker",)
+#: Instruments the sweep simulates (spec §7).
+INSTRUMENTS = ("tracker", "pose", "points")
 
 #: Keys of a [families.NAME] table besides the four ring dimensions.
 FAMILY_DIMENSIONS = ("base_radius_mm", "platform_radius_mm", "base_half_angle_deg", "platform_half_angle_deg")
@@ -181,16 +203,44 @@ class Cell:
 
 @dataclass(frozen=True)
 class SweepSpec:
-    """A parsed sweep spec: the run-wide settings and the grid's cells (in grid order)."""
+    """A parsed sweep spec: the run-wide settings and the grid (its cells in grid order).
+
+    The grid is held as its axes: :attr:`n_tasks` counts it without building a cell, so a spec
+    of a billion tasks is refused at once (:func:`stewart_calib.sweep.runner.plan_sweep`); the
+    cells are built on first use of :attr:`cells`.
+    """
 
     name: str
     source: str
     methods: tuple[str, ...]
-    seeds: tuple[int, ...]
+    seeds: range
     checkpoints: tuple[int, ...]
     refit_at_checkpoints: tuple[str, ...]
-    cells: tuple[Cell, ...]
-    axes: dict = field(default_factory=dict)
+    axes: dict
+    platforms: dict
+    run_wide: dict
+
+    @property
+    def n_cells(self) -> int:
+        return math.prod(len(values) for values in self.axes.values())
+
+    @property
+    def n_tasks(self) -> int:
+        return self.n_cells * len(self.seeds)
+
+    @functools.cached_property
+    def cells(self) -> tuple[Cell, ...]:
+        """Every combination of the grid's values, in grid order (see :class:`Cell`)."""
+        names = list(self.axes)
+        cells = []
+        for index, values in enumerate(itertools.product(*self.axes.values())):
+            settings = dict(zip(names, values, strict=True))
+            platform = self.platforms[settings["platform"]]
+            config = _estimator_config(settings, self.source)
+            identity = {"settings": settings, "platform": _fingerprint(platform), **self.run_wide}
+            digest = hashlib.blake2b(json.dumps(identity, sort_keys=True).encode(), digest_size=6).hexdigest()
+            cells.append(Cell(digest, index, settings, platform, config))
+        return tuple(cells)
 
     @property
     def swept(self) -> list[str]:
@@ -258,6 +308,8 @@ def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
         else _raise(refuse("seeds", "expected a number of seeds (missing)"))
     )
     first_seed = _integer(doc.get("first_seed", 0), "first_seed", 0, refuse)
+    if first_seed + seeds - 1 > MAX_SEED:
+        raise refuse("first_seed", f"expected first_seed + seeds − 1 ≤ 2⁶³ − 1, got {first_seed + seeds - 1}")
     checkpoints = doc.get("checkpoints", [])
     if not isinstance(checkpoints, list):
         raise refuse("checkpoints", "expected a list of sample counts")
@@ -293,47 +345,33 @@ def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
         "refit_at_checkpoints": list(refit),
         "version": __version__,
     }
-    _refuse_absurd_size(axes, seeds, first_seed, refuse)
-    cells = []
-    names = list(axes)
-    for index, values in enumerate(itertools.product(*axes.values())):
-        settings = dict(zip(names, values, strict=True))
-        platform = platforms[settings["platform"]]
-        config = _estimator_config(settings, source)
-        identity = {"settings": settings, "platform": _fingerprint(platform), **run_wide}
-        digest = hashlib.blake2b(json.dumps(identity, sort_keys=True).encode(), digest_size=6).hexdigest()
-        cells.append(Cell(digest, index, settings, platform, config))
-    seeds_range = tuple(range(first_seed, first_seed + seeds))
-    return SweepSpec(name, source, tuple(methods), seeds_range, checkpoints, tuple(refit), tuple(cells), axes)
-
-
-#: the most cells a grid may hold, and tasks (cells × seeds) a study: more is no study this tool can run
-#: (each task simulates a log and runs every method: ~1 s and up), and only building the plan would
-#: take minutes. A larger study is split into specs.
-MAX_CELLS = 10**5
-MAX_TASKS = 10**6
-
-
-def _refuse_absurd_size(axes: dict[str, list], seeds: int, first_seed: int, refuse) -> None:
-    """Refuse, before any cell is built, a grid or study beyond :data:`MAX_CELLS` / :data:`MAX_TASKS`,
-    or seeds past the int64 that the results' ``seed`` column holds."""
-    cells = math.prod(len(values) for values in axes.values())
-    if cells > MAX_CELLS:
-        raise refuse("grid", f"expected at most {MAX_CELLS} cells, got {cells} (split the study into specs)")
-    if cells * seeds > MAX_TASKS:
-        raise refuse("seeds", f"expected at most {MAX_TASKS} tasks (cells × seeds), got {cells} × {seeds}")
-    if first_seed + seeds > 2**63:
-        raise refuse("first_seed", f"expected first_seed + seeds ≤ 2^63 (the results' int64 seed), got {first_seed}")
+    return SweepSpec(
+        name,
+        source,
+        tuple(methods),
+        range(first_seed, first_seed + seeds),
+        checkpoints,
+        tuple(refit),
+        axes,
+        platforms,
+        run_wide,
+    )
 
 
 def _raise(err: CalibError):
     raise err
 
 
-def _integer(value, key: str, minimum: int, refuse) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise refuse(key, f"expected an integer ≥ {minimum}, got {value!r}")
+def _integer(value, key: str, minimum: int, refuse, maximum: int = MAX_SEED) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not minimum <= value <= maximum:
+        raise refuse(key, f"expected an integer from {minimum} to {maximum}, got {_shown(value)}")
     return value
+
+
+def _shown(value, limit: int = 40) -> str:
+    """``repr`` of a value from the spec, cut short (a 5000-digit integer stays one line)."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[: limit - 1]}…"
 
 
 def _string_list(value, key: str, refuse) -> list[str]:
@@ -394,17 +432,21 @@ def _value(setting: Setting, value, refuse):
     key = f"grid.{setting.name}"
     if setting.kind is str:
         if not isinstance(value, str) or not value:
-            raise refuse(key, f"expected a non-empty string, got {value!r}")
+            raise refuse(key, f"expected a non-empty string, got {_shown(value)}")
         return value
     numeric = (int,) if setting.kind is int else (int, float)
-    if isinstance(value, bool) or not isinstance(value, numeric) or not math.isfinite(value):
-        raise refuse(key, f"expected {'an integer' if setting.kind is int else 'a finite number'}, got {value!r}")
+    # An integer is finite, but may be too large for a float (math.isfinite would overflow).
+    finite = (isinstance(value, int) and (setting.kind is int or abs(value) <= 1e300)) or (
+        isinstance(value, float) and math.isfinite(value)
+    )
+    if isinstance(value, bool) or not isinstance(value, numeric) or not finite:
+        raise refuse(key, f"expected {'an integer' if setting.kind is int else 'a finite number'}, got {_shown(value)}")
     if setting.positive and value <= 0:
-        raise refuse(key, f"expected a number > 0, got {value!r}")
+        raise refuse(key, f"expected a number > 0, got {_shown(value)}")
     if setting.minimum is not None and value < setting.minimum:
-        raise refuse(key, f"expected a number ≥ {setting.minimum:g}, got {value!r}")
+        raise refuse(key, f"expected a number ≥ {setting.minimum:g}, got {_shown(value)}")
     if setting.maximum is not None and value > setting.maximum:
-        raise refuse(key, f"expected a number ≤ {setting.maximum:g}, got {value!r}")
+        raise refuse(key, f"expected a number ≤ {setting.maximum:g}, got {_shown(value)}")
     return setting.kind(value)
 
 
@@ -437,9 +479,11 @@ def _families(doc, path: Path, refuse) -> dict[str, Family]:
                 or any(isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) for v in pair)
                 or pair[0] > pair[1]
             ):
-                raise refuse(f"{prefix}.{key}", f"expected a number or [low, high] with low ≤ high, got {value!r}")
+                raise refuse(
+                    f"{prefix}.{key}", f"expected a number or [low, high] with low ≤ high, got {_shown(value)}"
+                )
             if key.endswith("radius_mm") and pair[0] <= 0:
-                raise refuse(f"{prefix}.{key}", f"expected radii > 0, got {value!r}")
+                raise refuse(f"{prefix}.{key}", f"expected radii > 0, got {_shown(value)}")
             ranges.append([float(pair[0]), float(pair[1])])
         families[name] = Family(name, like, np.array(ranges))
     return families
@@ -457,7 +501,8 @@ def _platform_file(value: str, path: Path, refuse) -> Platform:
         if candidate.is_file():
             return load_platform(candidate)
     raise refuse(
-        f"expected a shipped platform name, a platform file relative to the spec or a [families] name, got {value!r}"
+        "expected a shipped platform name, a platform file relative to the spec or a [families] name, "
+        f"got {_shown(value)}"
     )
 
 
@@ -471,6 +516,8 @@ def _estimator_config(settings: dict, source: str) -> EstimatorConfig:
         },
         "robust": {"adapt_noise": False},  # matched already: measuring it again only adds its scatter
     }
+    if settings["stroke_scale_error"] > 0:  # the scales are unknowns, with the simulated spread as prior
+        matched["noise"]["stroke_scale_sigma"] = settings["stroke_scale_error"]
     config = config_from_dict(matched, source)
     overrides: dict[str, dict] = {}
     for key, value in settings.items():

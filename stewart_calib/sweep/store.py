@@ -36,6 +36,7 @@ def schema(spec: SweepSpec) -> pa.Schema:
     kinds: dict[type, pa.DataType] = {bool: pa.bool_(), int: pa.int64(), float: pa.float64(), str: pa.string()}
     fields += [pa.field(name, kinds[type(value)]) for name, value in first.items()]
     fields += [pa.field(name, pa.float64()) for name in METRICS]
+    fields += [pa.field("nees_dof", pa.int64())]
     fields += [pa.field("samples_rejected", pa.int64()), pa.field("glitches", pa.int64())]
     fields += [pa.field(f"rms_over_crb_at_{n}", pa.float64()) for n in spec.checkpoints]
     fields += [pa.field("failure", pa.string())]
@@ -60,6 +61,25 @@ def finished(spec: SweepSpec, out: Path) -> set[tuple[str, int]]:
     """(cell id, seed) of the spec's tasks whose part exists."""
     present = {p.name for p in (out / PARTS).glob("*.parquet")}  # none when DIR does not exist yet
     return {(cell.id, seed) for cell, seed in spec.tasks() if part_path(out, cell.id, seed).name in present}
+
+
+def past_cost(out: Path, limit: int) -> dict[str, tuple[float, int]]:
+    """Per instrument, the methods' CPU time per sample over up to ``limit`` finished parts in
+    ``out`` [s] and how many parts gave it (none where there are none, or none readable)."""
+    totals: dict[str, list[float]] = {}
+    for path in sorted((out / PARTS).glob("*.parquet"))[:limit]:
+        try:
+            table = pq.read_table(path, columns=["cpu_seconds", "samples", "instrument"])
+        except (OSError, ValueError, KeyError, pa.ArrowException):  # a part the run will recompute or refuse
+            continue
+        if not table.num_rows:
+            continue
+        values = [v for v in table["cpu_seconds"].to_pylist() if v is not None and v == v]
+        total = totals.setdefault(table["instrument"][0].as_py(), [0.0, 0.0, 0])
+        total[0] += sum(values)
+        total[1] += table["samples"][0].as_py()
+        total[2] += 1
+    return {kind: (cpu / samples, int(parts)) for kind, (cpu, samples, parts) in totals.items() if samples > 0}
 
 
 def _atomic_write(table: pa.Table, path: Path) -> None:

@@ -28,6 +28,16 @@ PLOTTED = ("rms_over_crb", "nees", "closed_loop_mm", "seconds")
 NEES_BAND = (float(chi2.ppf(0.025, N_PARAMS)), float(chi2.ppf(0.975, N_PARAMS)))
 
 
+def nees_in_band(nees: np.ndarray, dof: np.ndarray) -> np.ndarray:
+    """Whether each NEES lies in the two-sided 95 % band of χ² with its own degrees of freedom
+    (42 for the tracker's δM, 48 with the stroke scales, 36 for an outside instrument's gauge-free
+    δM and scales); False where there is none."""
+    dof = np.where(np.isfinite(dof) & (dof > 0), dof, np.nan)
+    low, high = chi2.ppf(0.025, dof), chi2.ppf(0.975, dof)
+    with np.errstate(invalid="ignore"):
+        return (nees >= low) & (nees <= high)
+
+
 def summarise(spec: SweepSpec, table: pa.Table) -> list[dict]:
     """One dict per (cell, method) that has rows, in grid and method order."""
     columns = table.to_pydict()
@@ -48,7 +58,10 @@ def summarise(spec: SweepSpec, table: pa.Table) -> list[dict]:
             }
             entry["failed"] = sum(1 for r in rows if columns["failure"][r])
             nees = np.array([columns["nees"][r] for r in rows], dtype=float)
-            entry["nees_in_band"] = float(np.mean((nees >= NEES_BAND[0]) & (nees <= NEES_BAND[1])))
+            dof = np.array([columns["nees_dof"][r] for r in rows], dtype=float)
+            entry["nees_in_band"] = float(np.mean(nees_in_band(nees, dof)))
+            z2 = np.array([columns["z2"][r] for r in rows], dtype=float)
+            entry["z2_mean"] = float(np.mean(z2[np.isfinite(z2)])) if np.isfinite(z2).any() else float("nan")
             for name in SCORES:
                 values = np.array([columns[name][r] for r in rows], dtype=float)
                 values = values[np.isfinite(values)]
@@ -84,6 +97,7 @@ def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
         "NEES median",
         "NEES in 95 % band",
         "z² median",
+        "z² mean",
         "closed loop [mm]",
         "s per run",
     ]
@@ -91,7 +105,8 @@ def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
         f"# Sweep '{spec.name}'",
         "",
         f"{len(spec.cells)} cells × {len(spec.seeds)} seeds × {len(spec.methods)} methods; medians over the seeds "
-        f"(IQR: 25–75 % quantiles; NEES band [{NEES_BAND[0]:.1f}, {NEES_BAND[1]:.1f}]). Quantiles of every score: "
+        "(IQR: 25–75 % quantiles; NEES band: the two-sided 95 % band of χ² with the row's degrees of freedom, "
+        f"[{NEES_BAND[0]:.1f}, {NEES_BAND[1]:.1f}] for the tracker's 42). Quantiles of every score: "
         "summary.csv.",
         "",
         "| " + " | ".join(head) + " |",
@@ -108,6 +123,7 @@ def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
             f"{e['nees_q50']:.3g}",
             f"{e['nees_in_band']:.0%}",
             f"{e['z2_q50']:.3g}",
+            f"{e['z2_mean']:.3g}",
             f"{e['closed_loop_mm_q50']:.3g}",
             f"{e['seconds_q50']:.2g}",
         ]
