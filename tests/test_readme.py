@@ -164,7 +164,7 @@ def test_the_api_example_runs_for_the_tracker_and_a_pose_instrument(tmp_path, mo
     exec(compile(text, "README.md API snippet", "exec"), namespace)
     strokes = namespace["strokes_mm"]
     assert strokes.shape == (6,) and np.all(np.isfinite(strokes))
-    resumed = OnlineCalibrator.load("state.npz")
+    resumed = OnlineCalibrator.load("state.npz", platform)
     np.testing.assert_array_equal(resumed.compensated_strokes(namespace["next_pose"]), strokes)
 
 
