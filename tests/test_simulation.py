@@ -460,13 +460,13 @@ def test_an_online_controller_sees_the_same_noisy_strokes_as_the_log(quick):
 
         def __init__(self, drive):
             super().__init__(drive)
-            self.strokes = []
+            self.seen_strokes = []  # not `strokes`: that names a controller's own command (closed_loop)
 
         def observe(self, sample):
-            self.strokes.append(sample.strokes)
+            self.seen_strokes.append(sample.strokes)
 
     noisy = dataclasses.replace(quick, robot=dataclasses.replace(quick.robot, encoder_noise_mm=0.01))
     online = Online(quick.platform.drive)
     looped, batched = run_experiment(noisy, online), run_experiment(noisy)
-    np.testing.assert_array_equal(np.array(online.strokes), looped.log.strokes)
+    np.testing.assert_array_equal(np.array(online.seen_strokes), looped.log.strokes)
     np.testing.assert_allclose(looped.log.strokes, batched.log.strokes, rtol=0, atol=1e-12)
