@@ -395,11 +395,7 @@ class InformationAccumulator:
         s[rank:] = 0.0  # round-off, not information
         V_range, null = Vt[:rank].T, Vt[rank:].T
 
-        # Cramér–Rao: Σ_M = (AᵀA)⁻¹ on the identified subspace. A parameter with a component
-        # along the null space is not identified at all (its variance is unbounded).
-        variance = np.sum((V_range / s[:rank]) ** 2, axis=1)
-        touches_null = np.linalg.norm(null, axis=1) > 1e-6
-        stddev = np.where(touches_null, np.inf, np.sqrt(variance))
+        stddev = _bounded_stddev(s, rank, Vt)
 
         s_paper = np.full(N_PARAMS, np.nan)
         if self._paper_factor is not None:
@@ -432,6 +428,24 @@ class InformationAccumulator:
             null_space=readable_basis(null),
             verdict=verdict,
         )
+
+
+def _bounded_stddev(s: np.ndarray, rank: int, Vt: np.ndarray) -> np.ndarray:
+    """Cramér–Rao σ per column from the SVD ``(s, Vᵀ)`` of a whitened factor: ``Σ = (AᵀA)⁻¹`` on the
+    identified subspace; a column with a component along the null space is not identified at
+    all (inf: its variance is unbounded)."""
+    variance = np.sum((Vt[:rank].T / s[:rank]) ** 2, axis=1)
+    touches_null = np.linalg.norm(Vt[rank:].T, axis=1) > 1e-6
+    return np.where(touches_null, np.inf, np.sqrt(variance))
+
+
+def stddev_from_factor(factor: np.ndarray) -> np.ndarray:
+    """Cramér–Rao σ of each of the ``n`` columns of a whitened factor ``A`` ``(rows, n)``, with the
+    rank rule of :class:`InformationAccumulator` (inf where the rows do not identify a column)."""
+    _, s_all, Vt = np.linalg.svd(factor, full_matrices=True)
+    s = np.zeros(factor.shape[1])
+    s[: len(s_all)] = s_all
+    return _bounded_stddev(s, int(np.sum(s > RANK_RTOL * s[0])), Vt)
 
 
 def identifiability_report(

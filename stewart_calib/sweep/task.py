@@ -43,7 +43,7 @@ from ..estimate import Estimate
 from ..estimators import BatchEstimator, make_estimator
 from ..estimators.base import fit_all
 from ..estimators.batch import BatchProblem, cramer_rao
-from ..identifiability import identifiability_report, residual_covariance, whitened_leg_jacobian
+from ..identifiability import identifiability_report, residual_covariance, stddev_from_factor, whitened_leg_jacobian
 from ..instruments import gauge
 from ..instruments.external import registered_platform
 from ..platform import N_LEGS, N_PARAMS, Instrument, Platform, vector_to_params
@@ -221,7 +221,7 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
     if settings["drift_mm_per_sqrt_s"] == 0 and n == N_PARAMS:
         return identifiability_report(data.platform, poses, noise, paper_form=False).predicted_stddev_mm
     if settings["drift_mm_per_sqrt_s"] == 0:
-        return _stddev_or_inf(np.einsum("kri,krj->ij", rows, rows))
+        return stddev_from_factor(rows.reshape(-1, n))
     walk = np.zeros((n, n))
     walk[:N_PARAMS, :N_PARAMS] = settings["drift_mm_per_sqrt_s"] ** 2 / settings["rate_hz"] * np.eye(N_PARAMS)
     prior = np.full(n, prior_sigma_mm**2)
@@ -239,17 +239,6 @@ def _whitened_scale_rows(data: SweepData, poses: np.ndarray, noise: NoiseConfig)
     R, t = kin.pose_to_rt(poses)
     L = np.linalg.cholesky(residual_covariance(data.platform, R, t, noise))
     return np.linalg.solve(L, -data.log.strokes[:, :, None] * np.eye(N_LEGS))
-
-
-def _stddev_or_inf(information: np.ndarray) -> np.ndarray:
-    """σ of each unknown from an information matrix; inf where the poses do not identify it."""
-    s, V = np.linalg.eigh(information)
-    keep = s > 1e-10 * s[-1]
-    variance = (V[:, keep] / s[keep]) @ V[:, keep].T
-    stddev = np.sqrt(np.clip(np.diag(variance), 0.0, None))
-    null = V[:, ~keep]
-    stddev[np.linalg.norm(null, axis=1) > 1e-6] = np.inf
-    return stddev
 
 
 def _true_noise(settings: dict) -> NoiseConfig:
