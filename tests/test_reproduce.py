@@ -14,7 +14,7 @@ from rerun.chunk import RrdReader
 
 from stewart_calib.cli import main as cli_main
 from stewart_calib.config import load_estimator_config
-from stewart_calib.errors import SampleRejected
+from stewart_calib.errors import CalibError, SampleRejected
 from stewart_calib.estimate import Estimate
 from stewart_calib.platform import PARAMETER_FIELDS
 from stewart_calib.reproduction import reproduce, results_dict
@@ -29,7 +29,16 @@ from tests.readback import read_blueprint_names, read_entity_rows, read_scalars,
 ROOT = Path(__file__).resolve().parents[1]
 QUICK = ROOT / "configs" / "experiments" / "quick.toml"
 ESTIMATORS = ROOT / "configs" / "estimators" / "paper.toml"
-RECORDED = ("ls", "paper_ekf", "ekf", "ekf_tracker", "isam2", "isam2_tracker")
+RECORDED = (
+    "ls",
+    "paper_ekf",
+    "ekf",
+    "ekf_tracker",
+    "ekf_tracker_elastic",
+    "isam2",
+    "isam2_tracker",
+    "isam2_tracker_elastic",
+)
 
 
 @pytest.fixture(scope="module")
@@ -158,7 +167,22 @@ def _same(cell: str, value) -> bool:
 def test_tables_md_numbers_equal_results_json(out, results):
     tables = _markdown_tables((out / "tables.md").read_text(encoding="utf-8"))
     json_tables = results["tables"]
-    verdict, parts, tracker_headline, *error_tables, table4, rms = tables
+    verdict, parts, compliance, tracker_headline, *error_tables, table4, rms = tables
+    json_compliance = results["compliance_mm_per_kN"]
+    assert (
+        [cells[0] for cells in compliance]
+        == list(json_compliance["runs"])
+        == [
+            "ekf+tracker+elastic",
+            "isam2+tracker+elastic",
+        ]
+    )
+    for cells, identified in zip(compliance, json_compliance["runs"].values(), strict=True):
+        pairs = [cell.split(" ± ") for cell in cells[1:]]
+        assert all(_same(c, v) for (c, _), v in zip(pairs, identified["estimate"], strict=True))
+        assert all(_same(s, v) for (_, s), v in zip(pairs, identified["stddev"], strict=True))
+        # issue 24's bar for an elastic fit: each c_i within 5 % of the simulated robot's truth
+        np.testing.assert_allclose(identified["estimate"], json_compliance["truth"], rtol=0.05)
     assert len(error_tables) == 4
 
     headline = json_tables["headline"]
@@ -181,8 +205,13 @@ def test_tables_md_numbers_equal_results_json(out, results):
     # what each part contributes: ls, then each method of the bar part by part, in the truth view
     json_parts = json_tables["parts"]
     assert json_parts["view"] == "truth"
-    assert [cells[0] for cells in parts] == ["ls", "ekf", "ekf+tracker", "isam2", "isam2+tracker"]
-    assert parts[0][2] == "`configs/estimators/paper.toml`" and parts[2][2] == "`configs/estimators/paper-tracker.toml`"
+    assert [cells[0] for cells in parts] == [
+        "ls",
+        *(f"{m}{parts}" for m in ("ekf", "isam2") for parts in ("", "+tracker", "+tracker+elastic")),
+    ]
+    assert [cells[2] for cells in parts[:4]] == [
+        f"`configs/estimators/{file}.toml`" for file in ("paper", "paper", "paper-tracker", "paper-elastic")
+    ]
     names = ("position", "orientation", "circle")
     assert all(_same(cell, json_parts["ls"][name]) for cell, name in zip(parts[0][3:6], names, strict=True))
     for cells, row in zip(parts[1:], json_parts["rows"], strict=True):
@@ -193,7 +222,7 @@ def test_tables_md_numbers_equal_results_json(out, results):
             _same(cell, headline["ours"]["truth"][row["run"]][name]) for cell, name in zip(percent, names, strict=True)
         )
         assert all(_same(cell, row["vs_ls_pct"][name]) for cell, name in zip(percent, names, strict=True))
-    assert headline["target_methods"] == ["ekf+tracker", "isam2+tracker"]
+    assert headline["target_methods"] == ["ekf+tracker+elastic", "isam2+tracker+elastic"]
 
     for cells_rows, (number, view) in zip(
         error_tables, [(n, v) for n in ("table5", "table6") for v in VIEWS], strict=True
@@ -209,7 +238,7 @@ def test_tables_md_numbers_equal_results_json(out, results):
     for number in ("table5", "table6"):
         assert {row["method"] for row in json_tables[number]["truth"]}.isdisjoint({"paper LS", "paper EKF"})
         assert {"paper LS", "paper EKF"} <= {row["method"] for row in json_tables[number]["tracker"]}
-    sources = len(results["methods"]) + 3  # the runs, the truth and the paper's two columns
+    sources = len(results["methods"]) + 4  # the runs, both truths and the paper's two columns
     assert len(table4) == len(json_tables["table4"]["rows"]) == 6 * sources
     for cells, row in zip(table4, json_tables["table4"]["rows"], strict=True):
         assert [int(cells[0]), cells[1]] == [row["leg"], row["source"]]
@@ -264,7 +293,9 @@ def test_recording_paths_timelines_and_rows(out, results):
             assert rows[f"/params/leg{leg}/l/{method}/upper"] == rows[f"/params/leg{leg}/l/{method}/lower"] == kept
             assert rows[f"/diagnostics/{method}/residual/leg{leg}"] == kept
             assert (f"/diagnostics/{method}/innovation/leg{leg}" in rows) == (method != "ls")
-        assert (f"/diagnostics/{method}/nis" in rows) == (method in ("ekf", "ekf_tracker", "paper_ekf"))
+        assert (f"/diagnostics/{method}/nis" in rows) == (
+            method in ("ekf", "ekf_tracker", "ekf_tracker_elastic", "paper_ekf")
+        )
     # the band is the estimate ± its σ: at the last logged row, the online filter's final σ
     _, centre = read_scalars(rrd, "params/leg1/l/ekf")
     _, upper = read_scalars(rrd, "params/leg1/l/ekf/upper")
@@ -319,13 +350,13 @@ def test_figures_and_index_page(out, results):
     figures = re.findall(r'<img alt="[^"]*" src="([^"]+)"', page)
     online = [run for run in results["methods"] if run != "ls"]
     assert figures == [
-        *(f"fig5_{run}.png" for run in ("paper-ekf", "ekf+tracker", "isam2+tracker")),
-        *(f"fig6_{run}.png" for run in ("paper-ekf", "ekf+tracker", "isam2+tracker")),
+        *(f"fig5_{run}.png" for run in ("paper-ekf", "ekf+tracker+elastic", "isam2+tracker+elastic")),
+        *(f"fig6_{run}.png" for run in ("paper-ekf", "ekf+tracker+elastic", "isam2+tracker+elastic")),
         "fig7_pose_errors.png",
         "fig8_circle.png",
         "fig9_polar.png",
     ]
-    assert set(online) >= {"paper-ekf", "ekf+tracker", "isam2+tracker"}
+    assert set(online) >= {"paper-ekf", "ekf+tracker+elastic", "isam2+tracker+elastic"}
     for name in figures:
         with Image.open(out / name) as image:
             assert image.format == "PNG" and image.width > 800 and image.height > 300, name
@@ -356,7 +387,7 @@ def test_markdown_subset_to_html():
 
 @pytest.mark.skipif(browser() is None, reason="no headless Chromium installed")
 def test_index_page_renders_its_figures_in_a_headless_browser(out, tmp_path):
-    height = 5000  # the tables, then the first figure
+    height = 9000  # the tables (Table 4: 13 sources × 6 legs), then the first figure
     pixels = screenshot(out / "index.html", tmp_path / "index.png", 1200, height)
     assert pixels.shape[:2] == (height, 1200)
     # the tables are black on white and grey: coloured pixels are the figures' (the PNGs loaded from file://)
@@ -408,3 +439,39 @@ def test_the_reproductions_wrappers_hide_nothing_of_the_controller():
     assert getattr(_Counted(NominalController(platform), bar=None), "strokes", None) is None
     online = _Counted(_Diagnosed(EstimatorController(_Scripted(), platform)), bar=None)
     assert online.adaptive is True and online.drive_model() is platform.drive
+
+
+def test_elastic_runs_are_scored_against_the_unloaded_drive(results):
+    """An elastic model carries the sag in its compliance, so its δM is the drive without any
+    force: Table 4 scores it against the robot's unloaded drive, the rigid runs against the drive
+    in force at home (sag included), and both truths differ by that sag."""
+    table4 = results["tables"]["table4"]
+    by_source = {}
+    for row in table4["rows"]:
+        by_source.setdefault(row["source"], []).append(row["values"])
+    in_force, unloaded = np.array(by_source["truth"]), np.array(by_source["truth without load"])
+    assert 1e-3 < np.sqrt(np.mean((in_force - unloaded) ** 2)) < 1.0  # the platform's own weight, not noise
+    for run, rms in table4["rms_vs_truth_mm"].items():
+        truth = unloaded if run.endswith("+elastic") else in_force
+        assert rms == pytest.approx(np.sqrt(np.mean((np.array(by_source[run]) - truth) ** 2)), rel=1e-9), run
+
+
+def test_the_elastic_part_gives_the_estimator_what_a_builder_knows():
+    from stewart_calib.pipelines.reproduce import PARTS, elastic_platform
+    from stewart_calib.reproduction.runs import Part, estimator_platform
+
+    quick = load_experiment(QUICK)
+    platform = elastic_platform(quick)
+    elastic = platform.elastic
+    assert elastic is not None and elastic.true_compliance_mm_per_kN is None  # the simulator's truth stays hidden
+    assert elastic.platform_mass_kg == quick.load.platform_mass_kg
+    np.testing.assert_array_equal(elastic.compliance_mm_per_kN, 0.0)
+    assert platform.drive is quick.platform.drive and platform.tracker is quick.platform.tracker
+    config = load_estimator_config(ESTIMATORS)
+    tracker, elastic_part = (Part(name, name, config, file, make) for name, _, file, make in PARTS)
+    assert estimator_platform(quick, ()) is quick.platform
+    assert estimator_platform(quick, (tracker,)) is quick.platform
+    assert estimator_platform(quick, (tracker, elastic_part)).elastic is not None
+    massless = dataclasses.replace(quick, load=dataclasses.replace(quick.load, platform_mass_kg=0.0))
+    with pytest.raises(CalibError, match="platform_mass_kg > 0"):
+        elastic_platform(massless)

@@ -56,12 +56,18 @@ def _style(reproduction: Reproduction, run: str) -> dict:
 
 
 def _parameter_figure(reproduction: Reproduction, run: str, rows: np.ndarray, title: str):
-    """One panel per leg: δM of ``run`` at ``rows`` ± σ, and the truth in force (dashed)."""
+    """One panel per leg: δM of ``run`` at ``rows`` ± σ, and its truth (dashed): in force, or
+    unloaded for a run whose model carries the sag."""
     result = reproduction.runs[run].result
     method_run = reproduction.runs[run]
     nominal = reproduction.platform.drive.as_vector()
     t = result.log.t_s[rows]
-    truth = result.truth.params[rows] - nominal
+    # an elastic model's δM is the unloaded drive: its truth is the robot's, not the one in force
+    truth = (
+        np.broadcast_to(result.robot.base_params, (len(rows), nominal.size)) - nominal
+        if method_run.unloaded
+        else result.truth.params[rows] - nominal
+    )
     fig = new_figure(13.0, 7.0)
     axes = fig.subplots(2, 3, sharex=True).ravel()
     for leg, ax in enumerate(axes):

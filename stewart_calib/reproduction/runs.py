@@ -19,7 +19,8 @@ draws are identical; only the controller differs.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import cast
 
 import numpy as np
@@ -51,12 +52,16 @@ class Part:
         description: what it adds, for the tables (``the tracker's geometry``).
         config: the estimator settings of the runs with this part (and those before it).
         source: where ``config`` came from, for the tables.
+        platform: the platform the estimator and the controller of this part's runs (and of the
+            parts after it) are given, from the experiment's; None: the experiment's own. The
+            simulated robot is the experiment's in every run.
     """
 
     name: str
     description: str
     config: EstimatorConfig
     source: str
+    platform: Callable[[Experiment], Platform] | None = None
 
 
 def run_name(method: str, parts: tuple[Part, ...] = ()) -> str:
@@ -64,16 +69,22 @@ def run_name(method: str, parts: tuple[Part, ...] = ()) -> str:
     return "+".join((method, *(part.name for part in parts)))
 
 
-def online_runs(parts: tuple[Part, ...]) -> list[tuple[str, str, EstimatorConfig | None]]:
-    """``(run, method, config or None for the base config)`` of every online run, in order: each
-    online method on the rigid model, followed for :data:`LAYERED_METHODS` by its runs with the
-    parts added one by one (the last has them all)."""
-    runs: list[tuple[str, str, EstimatorConfig | None]] = []
+def online_runs(parts: tuple[Part, ...]) -> list[tuple[str, str, tuple[Part, ...]]]:
+    """``(run, method, parts of its model)`` of every online run, in order: each online method on
+    the rigid model, followed for :data:`LAYERED_METHODS` by its runs with the parts added one by
+    one (the last has them all)."""
+    runs: list[tuple[str, str, tuple[Part, ...]]] = []
     for method in ONLINE_METHODS:
-        runs.append((method, method, None))
+        runs.append((method, method, ()))
         if method in LAYERED_METHODS:
-            runs += [(run_name(method, parts[: k + 1]), method, part.config) for k, part in enumerate(parts)]
+            runs += [(run_name(method, parts[: k + 1]), method, parts[: k + 1]) for k in range(len(parts))]
     return runs
+
+
+def estimator_platform(experiment: Experiment, parts: tuple[Part, ...]) -> Platform:
+    """The platform a run with ``parts`` gives its estimator: that of the last part that sets one."""
+    chosen = [part.platform for part in parts if part.platform is not None]
+    return chosen[-1](experiment) if chosen else experiment.platform
 
 
 @dataclass(frozen=True)
@@ -93,6 +104,10 @@ class MethodRun:
             or None (``nominal``).
         nis: ``(N,)`` normalised innovation squared of each sample (Kalman methods; NaN where
             refused), or None.
+        unloaded: δM is the drive without any load, the sag being the elastic model's (its truth
+            is the robot's unloaded drive); False: δM is the drive in force, sag included.
+        blocks: the estimator's other unknowns at the end of the run, ``{key: {"names",
+            "estimate", "stddev"}}`` in file units (spec §7: ``tracker_geometry``, ``compliance``).
     """
 
     method: str
@@ -103,6 +118,8 @@ class MethodRun:
     run_time_s: float
     stddev: np.ndarray | None = None
     nis: np.ndarray | None = None
+    unloaded: bool = False
+    blocks: dict[str, dict] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -137,9 +154,13 @@ class Reproduction:
     def stage_names(self) -> list[str]:
         return [stage.name for stage in self.experiment.stages]
 
-    def true_no_load_error(self) -> np.ndarray:
-        """δM a perfect no-load calibration would find: true drive at home, no payload, minus nominal [mm]."""
+    def true_no_load_error(self, run: str = NOMINAL) -> np.ndarray:
+        """δM a perfect no-load calibration of ``run``'s model would find [mm]: the true drive at
+        home under the platform's own weight, minus nominal; for a run whose model carries the sag
+        (:attr:`MethodRun.unloaded`), the robot's unloaded drive minus nominal."""
         robot = self.runs[NOMINAL].result.robot
+        if self.runs[run].unloaded:
+            return robot.base_params - self.platform.drive.as_vector()
         drive = robot.drive_at(self.platform.required_workspace("the no-load calibration").home, 0.0)
         return drive.as_vector() - self.platform.drive.as_vector()
 
@@ -215,9 +236,13 @@ def run_ls(experiment: Experiment, config: EstimatorConfig, nominal: SimulationR
     return MethodRun(BATCH_METHOD, result, trace, estimate.error, len(estimator.rejected), fit_s + run_s, stddev)
 
 
-def run_online(experiment: Experiment, config: EstimatorConfig, method: str, bar) -> MethodRun:
-    """One :class:`EstimatorController` with ``method`` through every stage."""
-    controller = EstimatorController(make_estimator(method, experiment.platform, config), experiment.platform)
+def run_online(
+    experiment: Experiment, config: EstimatorConfig, method: str, bar, platform: Platform | None = None
+) -> MethodRun:
+    """One :class:`EstimatorController` with ``method`` through every stage, its estimator and
+    IK on ``platform`` (default: the experiment's; the simulated robot is the experiment's)."""
+    platform = experiment.platform if platform is None else platform
+    controller = EstimatorController(make_estimator(method, platform, config), platform)
     diagnosed = _Diagnosed(controller)
     result, run_s = _timed_run(experiment, diagnosed, bar)
     trace = controller.trace()
@@ -232,6 +257,8 @@ def run_online(experiment: Experiment, config: EstimatorConfig, method: str, bar
         run_s,
         np.array(diagnosed.stddev),
         nis,
+        platform.elastic is not None,
+        controller.estimator.estimate().block_results(),
     )
 
 
@@ -258,6 +285,7 @@ def reproduce(
         total=n * len(names), desc=f"reproduce {experiment.name}: {', '.join(names)}", show=progress
     ) as bar:
         runs[BATCH_METHOD] = run_ls(experiment, config, nominal_result, bar)
-        for name, method, run_config in online:
-            runs[name] = run_online(experiment, run_config or config, method, bar)
+        for name, method, run_parts in online:
+            run_config = run_parts[-1].config if run_parts else config
+            runs[name] = run_online(experiment, run_config, method, bar, estimator_platform(experiment, run_parts))
     return Reproduction(experiment, config, runs, parts)
