@@ -15,13 +15,16 @@ platform with ``[elastic]``). Writes into DIR
 * ``fig5_<run>.png`` … ``fig9_polar.png`` — the paper's Figs. 5–9 (:mod:`stewart_calib.reproduction.figures`);
 * ``index.html`` — tables.md and the figures on one static page (no server, no network).
 
-Progress bars (the run before calibration, the methods' runs, the figures) go to stderr when it is a terminal.
+The methods' runs share ``--jobs`` worker processes (default: the CPUs this process may use, at
+most :data:`MAX_JOBS`; ``--quick``: one). Progress bars (the run before calibration, the methods'
+runs, the figures) go to stderr when it is a terminal.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -70,11 +73,37 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--out", default="out", metavar="DIR", help="output directory (default: out)")
     parser.add_argument("--quick", action="store_true", help="the small quick.toml experiment (a few seconds)")
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="processes for the methods' runs (default: the CPUs this process may use, at most "
+        f"{MAX_JOBS}; --quick: 1)",
+    )
     parser.set_defaults(func=run)
+
+
+#: more processes than this gain nothing: the longest run (isam2 with every part) is about a third
+#: of the methods' total, so from 3 processes on it alone sets the wall time.
+MAX_JOBS = 3
+
+
+def _jobs(args: argparse.Namespace) -> int:
+    if args.jobs is not None:
+        if args.jobs < 1:
+            raise CalibError(f"--jobs: expected a positive number of processes, got {args.jobs}")
+        return args.jobs
+    if args.quick:  # a few seconds of runs: starting processes would cost more than it saves
+        return 1
+    return max(
+        1, min(MAX_JOBS, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
+    workers = _jobs(args)
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -92,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
         )
         for name, description, file, platform in PARTS
     )
-    reproduction = reproduce(experiment, config, progress=True, parts=parts)
+    reproduction = reproduce(experiment, config, progress=True, parts=parts, workers=workers)
     with atomic_path(out / "reproduce.rrd") as tmp:
         write_recording(tmp, reproduction)
     with progress_bar(total=len(figures(reproduction)), desc="reproduce: figures", unit="figure") as bar:

@@ -18,6 +18,8 @@ draws are identical; only the controller differs.
 
 from __future__ import annotations
 
+import concurrent.futures
+import multiprocessing
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -204,7 +206,7 @@ class _Diagnosed(_PassedThrough):
         refused = len(self.controller.rejected)
         self.controller.observe(sample)
         estimator = self.controller.estimator
-        stddev = estimator.estimate().stddev
+        stddev = self.controller.estimate().stddev
         self.stddev.append(np.full(N_PARAMS, np.nan) if stddev is None else stddev)
         self.nis.append(estimator.filter.nis if self.kalman and len(self.controller.rejected) == refused else np.nan)
 
@@ -262,8 +264,76 @@ def run_online(
     )
 
 
+#: ticks a worker process batches before it sends them to the parent's bar (a few a second)
+TICKS_PER_MESSAGE = 100
+
+
+class _QueueBar:
+    """A worker's stand-in for the progress bar: counts ticks and sends them to the parent in batches."""
+
+    def __init__(self, queue) -> None:
+        self._queue, self._pending = queue, 0
+
+    def update(self, n: int = 1) -> None:
+        self._pending += n
+        if self._pending >= TICKS_PER_MESSAGE:
+            self.flush()
+
+    def flush(self) -> None:
+        if self._pending:
+            self._queue.put(self._pending)
+            self._pending = 0
+
+
+_worker_queue = None
+
+
+def _init_worker(queue) -> None:
+    global _worker_queue
+    _worker_queue = queue
+
+
+def _run(task: tuple, bar) -> MethodRun:
+    """One run of :func:`reproduce`'s list: ``(ls, experiment, config, nominal result)`` or
+    ``(online method, experiment, config, its estimator's platform)``."""
+    method, experiment, config, extra = task
+    if method == BATCH_METHOD:
+        return run_ls(experiment, config, extra, bar)
+    return run_online(experiment, config, method, bar, extra)
+
+
+def _run_in_worker(task: tuple) -> MethodRun:
+    bar = _QueueBar(_worker_queue)
+    try:
+        return _run(task, bar)
+    finally:
+        bar.flush()
+
+
+def _in_processes(tasks: dict[str, tuple], workers: int, bar) -> dict[str, MethodRun]:
+    """The runs of ``tasks`` in ``workers`` fresh processes, the longest first (isam2's: online
+    methods' runs cost from ~0.1 s to tens of seconds), ticking ``bar`` as they go."""
+    ctx = multiprocessing.get_context("spawn")  # no fork: gtsam's and numba's threads do not survive one
+    queue = ctx.SimpleQueue()
+    order = sorted(tasks, key=lambda name: (name.split("+")[0] != "isam2", -name.count("+")))
+    with concurrent.futures.ProcessPoolExecutor(workers, ctx, initializer=_init_worker, initargs=(queue,)) as pool:
+        futures = {pool.submit(_run_in_worker, tasks[name]): name for name in order}
+        pending = set(futures)
+        while pending:
+            _, pending = concurrent.futures.wait(pending, timeout=0.2)
+            while not queue.empty():
+                bar.update(queue.get())
+        while not queue.empty():
+            bar.update(queue.get())
+        return {futures[future]: future.result() for future in futures}
+
+
 def reproduce(
-    experiment: Experiment, config: EstimatorConfig, progress: bool = False, parts: tuple[Part, ...] = ()
+    experiment: Experiment,
+    config: EstimatorConfig,
+    progress: bool = False,
+    parts: tuple[Part, ...] = (),
+    workers: int = 1,
 ) -> Reproduction:
     """Run the experiment before calibration, with every method of :data:`METHODS` on ``config``,
     and with :data:`LAYERED_METHODS` once more per part of ``parts`` (:func:`online_runs`).
@@ -271,6 +341,11 @@ def reproduce(
     Args:
         progress: bars on stderr when it is a terminal: the run before calibration, then one
             across the methods' runs.
+        workers: processes the runs after the one before calibration share (each run is
+            independent: same experiment, seed and noise draws; only the controller differs). 1
+            runs them in this process; more cost each process its imports and kernel loads
+            (~2 s), so they pay off on the full experiment. The processes are spawned: a script
+            that calls this with ``workers > 1`` needs the ``if __name__ == "__main__":`` guard.
     """
     start = time.perf_counter()
     nominal_result = run_experiment(experiment, NominalController(experiment.platform), progress=progress)
@@ -278,14 +353,15 @@ def reproduce(
     nominal = MethodRun(
         NOMINAL, nominal_result, np.zeros((n, N_PARAMS)), np.zeros(N_PARAMS), 0, time.perf_counter() - start
     )
-    runs = {NOMINAL: nominal}
-    online = online_runs(parts)
-    names = [BATCH_METHOD, *(name for name, _, _ in online)]
+    tasks: dict[str, tuple] = {BATCH_METHOD: (BATCH_METHOD, experiment, config, nominal_result)}
+    for name, method, run_parts in online_runs(parts):
+        run_config = run_parts[-1].config if run_parts else config
+        tasks[name] = (method, experiment, run_config, estimator_platform(experiment, run_parts))
     with progress_bar(
-        total=n * len(names), desc=f"reproduce {experiment.name}: {', '.join(names)}", show=progress
+        total=n * len(tasks), desc=f"reproduce {experiment.name}: {', '.join(tasks)}", show=progress
     ) as bar:
-        runs[BATCH_METHOD] = run_ls(experiment, config, nominal_result, bar)
-        for name, method, run_parts in online:
-            run_config = run_parts[-1].config if run_parts else config
-            runs[name] = run_online(experiment, run_config, method, bar, estimator_platform(experiment, run_parts))
-    return Reproduction(experiment, config, runs, parts)
+        if workers > 1:
+            done = _in_processes(tasks, workers, bar)
+        else:
+            done = {name: _run(task, bar) for name, task in tasks.items()}
+    return Reproduction(experiment, config, {NOMINAL: nominal, **{name: done[name] for name in tasks}}, parts)

@@ -85,7 +85,9 @@ def png_bytes(figure, dpi: int = 110) -> bytes:
 
     FigureCanvasAgg(figure)
     buffer = bytes_io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=dpi, bbox_inches="tight")
+    # a constrained layout already fits everything inside the figure; a tight box on top would draw it twice
+    tight = None if figure.get_layout_engine() is not None else "tight"
+    figure.savefig(buffer, format="png", dpi=dpi, bbox_inches=tight)
     return buffer.getvalue()
 
 
