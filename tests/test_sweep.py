@@ -6,17 +6,20 @@ Dask itself (a real scheduler and workers, resume, a dying worker) is tests/test
 from __future__ import annotations
 
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from stewart_calib import kinematics as kin
 from stewart_calib.cli import main
+from stewart_calib.drive import drive_model
 from stewart_calib.errors import CalibError
 from stewart_calib.sweep import store
 from stewart_calib.sweep.spec import INSTRUMENTS, load_spec, parse_spec
-from stewart_calib.sweep.task import bound_stddev_mm, run_task, simulate, task_rng
+from stewart_calib.sweep.task import bound_stddev_mm, payload_schedule, run_task, simulate, task_rng
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "sweeps" / "smoke.toml"
@@ -75,6 +78,8 @@ def test_estimator_setting_axis_reaches_the_config(tmp_path):
         ({"seeds": 1, "grid": {"platform": "nowhere"}}, "'nowhere'"),
         ({"seeds": 1, "families": {"f": {"base_radius_mm": 1.0}}}, "'families.f.platform_radius_mm'"),
         ({"methods": ["ekf"]}, "'seeds'"),
+        ({"seeds": 1, "grid": {"payload_schedule": "ramp"}}, "'ramp'"),
+        ({"seeds": 1, "grid": {"payload_known": "yes"}}, "'grid.payload_known'"),
     ],
 )
 def test_bad_spec_is_one_line_naming_it(tmp_path, capsys, doc, named):
@@ -294,3 +299,54 @@ def test_an_unknown_stroke_scale_on_the_tracker_is_estimated_and_bounded(tmp_pat
     assert crb.shape == (48,) and np.all(np.isfinite(crb))
     (row,) = run_task(cell, 3, ("ekf",))
     assert row["nees_dof"] == 48 and 0.2 < row["rms_over_crb"] < 5
+
+
+ELASTIC = {"samples": 40, "platform_mass_kg": 60.0, "compliance_mm_per_kN": 2.0, "compliance_spread": 0.2}
+
+
+def test_an_elastic_robot_is_the_rigid_one_with_its_legs_giving_under_the_weight(tmp_path):
+    """Spec §10: the strokes that reach a pose grow by ``c_i f_i / 1000 / (1 + k_i)``; the
+    readings, the poses and every other draw stay those of the rigid robot."""
+    _, rigid = _cell(tmp_path, samples=40)
+    _, elastic = _cell(tmp_path, **ELASTIC, payload_kg=30.0, payload_schedule="step", payload_known=False)
+    a = simulate(rigid.settings, rigid.platform, task_rng(rigid.id, 2))
+    b = simulate(elastic.settings, elastic.platform, task_rng(rigid.id, 2))
+    np.testing.assert_array_equal(a.log.readings, b.log.readings)
+    compliance = b.true_elastic.true_compliance_mm_per_kN
+    assert np.all(compliance != 2.0) and np.all(np.abs(compliance / 2.0 - 1.0) < 1.0)
+    np.testing.assert_array_equal(b.payload_kg, payload_schedule(elastic.settings))
+    assert b.log.load_kg is None and a.log.load_kg is None  # payload_known = false: the log does not say
+    drive = drive_model(replace(b.platform, elastic=b.true_elastic))
+    R, t = kin.pose_to_rt(b.log.desired_poses)
+    forces = drive.leg_forces(R, t, b.payload_kg, b.true_params[0] - b.platform.drive.as_vector())
+    assert forces.mean() > 0.5 * (60.0 + 15.0) * 9.8 / 6  # the legs hold the platform up: compression
+    np.testing.assert_allclose(b.log.strokes - a.log.strokes, compliance * forces / 1000.0, rtol=1e-9, atol=1e-12)
+    assert b.platform.elastic is not None and np.all(b.platform.elastic.compliance_mm_per_kN == 0)  # nominal 0
+
+
+def test_payload_schedules():
+    settings = {"samples": 6, "payload_kg": 40.0}
+    for schedule, expected in [
+        ("constant", [40] * 6),
+        ("step", [0, 0, 0, 40, 40, 40]),
+        ("stages", [0, 0, 20, 20, 40, 40]),
+    ]:
+        np.testing.assert_array_equal(payload_schedule(settings | {"payload_schedule": schedule}), expected)
+
+
+@pytest.mark.parametrize("instrument", INSTRUMENTS)
+def test_the_compliance_is_scored_against_its_bound_on_every_instrument(tmp_path, instrument):
+    """Issue 26's [elastic] axes: with the elastic model the six compliances join the scored
+    unknowns (the NEES's degrees of freedom, RMS/CRB); calibrated as rigid, the elastic robot's δM
+    is scored against the bound of the right model, and its error bars are far too narrow."""
+    grid = ELASTIC | {"instrument": instrument, "payload_kg": 30.0, "payload_schedule": "stages"}
+    spec = spec_of({"methods": ["lm"], "seeds": 1, "grid": grid | {"elastic_model": [True, False]}}, tmp_path)
+    modelled, rigid = spec.cells
+    (row,) = run_task(modelled, 0, ("lm",))
+    dof = 48 if instrument == "tracker" else 42  # 42 δM or its 30 gauge-free directions, (6 k), 6 c
+    assert row["failure"] == "" and row["nees_dof"] == dof, row
+    assert 0.2 < row["rms_over_crb"] < 5 and 0.1 * dof < row["nees"] < 5 * dof, row
+    if instrument == "tracker":  # an outside instrument's frame trades off against δM (issue 27)
+        assert row["closed_loop_mm"] < 0.1 * row["closed_loop_nominal_mm"], row
+    (row,) = run_task(rigid, 0, ("lm",))
+    assert row["nees_dof"] == dof - 6 and row["nees"] > 5 * row["nees_dof"] and row["rms_over_crb"] > 1, row

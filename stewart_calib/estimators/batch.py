@@ -80,9 +80,11 @@ class BatchProblem:
     payload_kg: np.ndarray | None = None
 
     @classmethod
-    def of_log(cls, platform, strokes: ArrayLike, measured: ArrayLike, t_s: ArrayLike) -> BatchProblem:
+    def of_log(
+        cls, platform, strokes: ArrayLike, measured: ArrayLike, t_s: ArrayLike, payload_kg: ArrayLike | None = None
+    ) -> BatchProblem:
         """The problem of a log of ``platform``'s outside instrument, with the platform file's σ
-        and the drive model's unknowns."""
+        and the drive model's unknowns (an elastic drive's under the samples' ``payload_kg``)."""
         from ..drive import drive_model
         from ..instruments.external import model_for
 
@@ -90,7 +92,7 @@ class BatchProblem:
         drive = drive_model(platform).identifying()
         return cls(
             drive,
-            drive.inputs(np.asarray(strokes, dtype=float)),
+            drive.inputs_near(np.asarray(strokes, dtype=float)),
             np.asarray(measured, dtype=float),
             model.module,
             model.register,
@@ -98,6 +100,7 @@ class BatchProblem:
             model.channels,
             model.channel_names,
             np.asarray(t_s, dtype=float),
+            None if payload_kg is None else np.asarray(payload_kg, dtype=float),
         )
 
 

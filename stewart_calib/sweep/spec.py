@@ -65,6 +65,14 @@ class Setting:
     doc: str = ""
 
 
+#: How the payload changes over a log (``payload_schedule``), and what each means.
+SCHEDULES_DOC = (
+    "constant (payload_kg on every sample)",
+    "step (0 kg, then payload_kg from the middle sample on)",
+    "stages (0, ½ and 1 × payload_kg, a third of the log each)",
+)
+SCHEDULES = tuple(doc.split()[0] for doc in SCHEDULES_DOC)
+
 #: The simulated settings, in column order. Estimator settings (``section.key``) follow them.
 SETTINGS = (
     Setting(
@@ -106,6 +114,26 @@ SETTINGS = (
     Setting("glitch_rate", float, 0.0, minimum=0.0, maximum=1.0, doc="fraction of samples with one glitched reading"),
     Setting("glitch_size_mm", float, 1.0, minimum=0.0, doc="size of a glitch [mm] (added with a random sign)"),
     Setting("validation_poses", int, 50, minimum=1, maximum=MAX_SAMPLES, doc="fresh poses of the closed-loop check"),
+    Setting(
+        "platform_mass_kg",
+        float,
+        0.0,
+        minimum=0.0,
+        doc="the moving platform's mass [kg], its centre at {D}'s origin (spec §10); 0: a rigid robot, the "
+        "other elastic settings ignored",
+    ),
+    Setting("compliance_mm_per_kN", float, 1.0, minimum=0.0, doc="the legs' true axial compliance, their mean [mm/kN]"),
+    Setting("compliance_spread", float, 0.0, minimum=0.0, maximum=1.0, doc="relative σ of each leg's true compliance"),
+    Setting("payload_kg", float, 0.0, minimum=0.0, doc="the payload at its heaviest [kg], its centre at {D}'s origin"),
+    Setting("payload_schedule", str, "constant", doc="the payload over the log: " + ", ".join(SCHEDULES_DOC)),
+    Setting("payload_known", bool, True, doc="the log carries each sample's load_kg (else the estimators take 0 kg)"),
+    Setting(
+        "elastic_model",
+        bool,
+        True,
+        doc="the estimators model the compliance (the platform's [elastic]: nominal 0, default prior σ), "
+        "else they calibrate the elastic robot as a rigid one",
+    ),
 )
 SETTINGS_BY_NAME = {s.name: s for s in SETTINGS}
 
@@ -332,6 +360,9 @@ def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
             raise refuse(
                 "methods", f"method '{unable[0]}' cannot calibrate with instrument '{value}' (grid.instrument)"
             )
+    for value in axes["payload_schedule"]:
+        if value not in SCHEDULES:
+            raise refuse("grid.payload_schedule", f"unknown schedule '{value}': expected one of {', '.join(SCHEDULES)}")
     if checkpoints and max(checkpoints) > min(axes["samples"]):
         raise refuse(
             "checkpoints",
@@ -433,6 +464,10 @@ def _value(setting: Setting, value, refuse):
     if setting.kind is str:
         if not isinstance(value, str) or not value:
             raise refuse(key, f"expected a non-empty string, got {_shown(value)}")
+        return value
+    if setting.kind is bool:
+        if not isinstance(value, bool):
+            raise refuse(key, f"expected true or false, got {_shown(value)}")
         return value
     numeric = (int,) if setting.kind is int else (int, float)
     # An integer is finite, but may be too large for a float (math.isfinite would overflow).

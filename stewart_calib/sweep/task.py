@@ -38,6 +38,7 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..config import NoiseConfig
+from ..drive import COMPLIANCE, STROKE_SCALE, DriveModel, compliance_term, drive_model, stroke_term
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..estimators import BatchEstimator, make_estimator
@@ -46,7 +47,16 @@ from ..estimators.batch import BatchProblem, cramer_rao
 from ..identifiability import identifiability_report, residual_covariance, stddev_from_factor, whitened_leg_jacobian
 from ..instruments import gauge
 from ..instruments.external import registered_platform
-from ..platform import N_LEGS, N_PARAMS, Instrument, Platform, vector_to_params
+from ..platform import (
+    N_LEGS,
+    N_PARAMS,
+    Elastic,
+    Instrument,
+    LegGeometry,
+    Platform,
+    default_compliance_sigma,
+    vector_to_params,
+)
 from ..samples import Log
 from ..simulation.instrument import InstrumentTruth, SimulatedInstrument, truth_in_gauge
 from ..simulation.trajectories import random_static_poses
@@ -82,6 +92,10 @@ class SweepData:
         validation_poses: ``(V, 6)`` fresh poses of the closed-loop check [mm, rad].
         true_scale: ``(6,)`` the true stroke scales k_i (logged strokes are ``q / (1 + k)``).
         true_instrument: the true outside instrument (None for the tracker).
+        true_elastic: the robot's masses and, as ``true_compliance_mm_per_kN``, its legs' true
+            compliance (None: a rigid robot).
+        payload_kg: ``(N,)`` the true payload of every sample [kg] (None: a rigid robot).
+        scored: the drive's blocks scored after δM (:func:`scored_blocks`).
     """
 
     platform: Platform
@@ -91,11 +105,31 @@ class SweepData:
     validation_poses: np.ndarray
     true_scale: np.ndarray
     true_instrument: SimulatedInstrument | None = None
+    true_elastic: Elastic | None = None
+    payload_kg: np.ndarray | None = None
+    scored: tuple[str, ...] = ()
 
     @property
     def true_error(self) -> np.ndarray:
         """δM in force at the last sample [mm]."""
         return self.true_params[-1] - self.platform.drive.as_vector()
+
+    @property
+    def true_blocks(self) -> dict[str, np.ndarray]:
+        """The true values of the drive's blocks the bound covers: the stroke scales where they are
+        unknowns (an outside instrument, or ``stroke_scale_error`` > 0), the compliance where the
+        robot is elastic — whether or not the estimators model it."""
+        blocks = {}
+        if STROKE_SCALE in self.scored:
+            blocks[STROKE_SCALE] = self.true_scale
+        if self.true_elastic is not None:
+            blocks[COMPLIANCE] = np.asarray(self.true_elastic.true_compliance_mm_per_kN)
+        return blocks
+
+    @property
+    def final_payload_kg(self) -> float:
+        """The payload at the last sample [kg] (0 on a rigid robot): the closed loop's."""
+        return 0.0 if self.payload_kg is None else float(self.payload_kg[-1])
 
 
 def task_rng(cell_id: str, seed: int) -> np.random.Generator:
@@ -140,8 +174,65 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
         # a glitch moves one measured position coordinate (pose: x, y or z; points: one of the
         # first target's), as a reflection or a swapped marker does
         readings[glitched, legs[glitched] % 3] += signs[glitched] * settings["glitch_size_mm"]
-    log = Log(t_s=np.arange(n) * dt_s, strokes=strokes, readings=readings, desired_poses=poses)
-    return SweepData(nominal, log, true_params, glitched, validation, true_scale, instrument)
+    true_elastic = payload = load_kg = None
+    if settings["platform_mass_kg"] > 0:  # the legs give under the weight: longer strokes reach the same pose
+        spread = rng.normal(0.0, settings["compliance_spread"], N_LEGS)
+        true_elastic = replace(
+            elastic_table(settings), true_compliance_mm_per_kN=settings["compliance_mm_per_kN"] * (1.0 + spread)
+        )
+        payload = payload_schedule(settings)
+        forces = _elastic_drive(true_params[0], true_scale, true_elastic).leg_forces(R, t, payload)
+        strokes += true_elastic.true_compliance_mm_per_kN * forces / 1000.0 / (1.0 + true_scale)
+        load_kg = payload if settings["payload_known"] else None
+        if settings["elastic_model"]:
+            nominal = replace(nominal, elastic=elastic_table(settings))
+    log = Log(t_s=np.arange(n) * dt_s, strokes=strokes, readings=readings, desired_poses=poses, load_kg=load_kg)
+    return SweepData(
+        nominal,
+        log,
+        true_params,
+        glitched,
+        validation,
+        true_scale,
+        instrument,
+        true_elastic,
+        payload,
+        scored_blocks(settings),
+    )
+
+
+def elastic_table(settings: dict) -> Elastic:
+    """The ``[elastic]`` table of the cell's robot as a user writes it (spec §10): its platform
+    mass, both centres of mass at {D}'s origin, the nominal compliance 0 and the default prior σ."""
+    return Elastic(settings["platform_mass_kg"], np.zeros(3), np.zeros(3))
+
+
+def payload_schedule(settings: dict) -> np.ndarray:
+    """``(N,)`` the payload of every sample [kg] (spec ``payload_schedule``)."""
+    n, heaviest = settings["samples"], settings["payload_kg"]
+    k = np.arange(n)
+    steps = {"constant": np.ones(n), "step": (k >= n // 2).astype(float), "stages": np.floor(3 * k / n) / 2}
+    return heaviest * steps[settings["payload_schedule"]]
+
+
+def scored_blocks(settings: dict) -> tuple[str, ...]:
+    """The drive's blocks scored after δM: the stroke scales where they are unknowns (an outside
+    instrument, or ``stroke_scale_error`` > 0), the compliance where the robot is elastic and the
+    estimators model it."""
+    blocks: tuple[str, ...] = ()
+    if settings["instrument"] != "tracker" or settings["stroke_scale_error"] > 0:
+        blocks += (STROKE_SCALE,)
+    if settings["platform_mass_kg"] > 0 and settings["elastic_model"]:
+        blocks += (COMPLIANCE,)
+    return blocks
+
+
+def _elastic_drive(params: np.ndarray, scale: np.ndarray, elastic: Elastic) -> DriveModel:
+    """A robot's drive, all known: its legs ``params`` (42), stroke scales ``scale`` and legs'
+    compliance (``elastic.true_compliance_mm_per_kN``) under ``elastic``'s masses."""
+    truth = np.asarray(elastic.true_compliance_mm_per_kN, dtype=float)
+    compliance = replace(compliance_term(elastic), nominal=truth, prior_sigma=None)
+    return DriveModel(LegGeometry.from_params(params), (stroke_term(scale), compliance), elastic)
 
 
 def with_instrument(platform: Platform, settings: dict) -> Platform:
@@ -191,54 +282,82 @@ def _leg_lengths(params: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray
 
 
 def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> np.ndarray:
-    """Lower bound on the standard deviation of each scored unknown (:func:`truth`) [mm, 1].
+    """Lower bound on the standard deviation of each scored unknown (:func:`truth`) [mm, 1, mm/kN].
+
+    The bound is that of the simulated robot: over δM and :attr:`SweepData.true_blocks` — the
+    compliance of an elastic robot too where the estimators calibrate it as a rigid one (their δM
+    is then scored against the bound of the right model) — with the simulated noise and the true
+    payloads; the scored unknowns' entries are returned.
 
     Tracker: the 42 parameters of the final δM (and the six stroke scales when they are
-    unknown). Constant parameters: the Cramér–Rao bound ``(AᵀA)⁻¹`` of the information matrix
-    of these poses under the simulated noise (inf for a parameter the poses do not identify).
-    Drifting parameters: the posterior (Bayesian) bound of the final value — the information
-    recursion ``J_k = (J_{k−1}⁻¹ + q²Δt I)⁻¹ + A_kᵀA_k`` over the same whitened rows ``A_k``, from
-    the estimators' prior ``J_0 = I / prior_sigma²`` (Tichavský et al. 1998): with a random walk
-    no estimator can beat the optimal filter of the linearised model.
+    unknown, the six compliances of an elastic robot). Constant parameters: the Cramér–Rao bound
+    ``(AᵀA)⁻¹`` of the information matrix of these poses under the simulated noise (inf for a
+    parameter the poses do not identify). Drifting parameters: the posterior (Bayesian) bound of
+    the final value — the information recursion ``J_k = (J_{k−1}⁻¹ + q²Δt I)⁻¹ + A_kᵀA_k`` over
+    the same whitened rows ``A_k``, from the estimators' prior ``J_0 = I / prior_sigma²``
+    (Tichavský et al. 1998): with a random walk no estimator can beat the optimal filter of the
+    linearised model.
 
-    Outside instrument: the Cramér–Rao bound of δM in the gauge and the stroke scales, with the
+    Outside instrument: the Cramér–Rao bound of δM in the gauge and the drive's blocks, with the
     frame and targets unknown too (:func:`stewart_calib.estimators.batch.cramer_rao`, at the
     truth, with the simulated σ) — of constant parameters: with drift it is optimistic.
     """
+    blocks = data.true_blocks
     if data.true_instrument is not None:
         delta, unknowns = truth_in_gauge(data.platform.drive, data.true_params[-1], data.true_instrument.unknowns)
-        simulated = replace(data.platform, instrument=true_noise(data.platform, settings))
-        problem = BatchProblem.of_log(simulated, data.log.strokes, data.log.readings, data.log.t_s)
-        bound = cramer_rao(problem, np.r_[delta, data.true_scale - data.platform.stroke_scale], unknowns)
-        return np.sqrt(np.clip(np.diag(bound)[: N_PARAMS + N_LEGS], 0.0, None))
+        simulated = replace(
+            data.platform,
+            instrument=true_noise(data.platform, settings),
+            elastic=None if data.true_elastic is None else elastic_table(settings),
+        )
+        problem = BatchProblem.of_log(simulated, data.log.strokes, data.log.readings, data.log.t_s, data.payload_kg)
+        errors = {key: value - _nominal(data.platform, key) for key, value in blocks.items()}
+        bound = cramer_rao(problem, np.concatenate([delta, *errors.values()]), unknowns)
+        stddev = np.sqrt(np.clip(np.diag(bound)[: N_PARAMS + N_LEGS * len(blocks)], 0.0, None))
+        return _scored_part(stddev, blocks, data.scored)
     noise, poses = _true_noise(settings), data.log.desired_poses
     if poses is None:
         raise ValueError("a sweep's simulated log holds its poses")
     rows = whitened_leg_jacobian(data.platform, poses, noise)
-    if settings["stroke_scale_error"] > 0:
-        rows = np.concatenate([rows, _whitened_scale_rows(data, poses, noise)], axis=2)
-    n = rows.shape[2]
-    if settings["drift_mm_per_sqrt_s"] == 0 and n == N_PARAMS:
+    if not blocks and settings["drift_mm_per_sqrt_s"] == 0:
         return identifiability_report(data.platform, poses, noise, paper_form=False).predicted_stddev_mm
+    R, t = kin.pose_to_rt(poses)
+    L = np.linalg.cholesky(residual_covariance(data.platform, R, t, noise))
+    prior = [np.full(N_PARAMS, prior_sigma_mm**2)]
+    for key in blocks:  # ∂r_i/∂v_i = −g u_i of the term's own input, whitened as the rows of δM
+        if key == STROKE_SCALE:
+            gain_input, sigma = -data.log.strokes, settings["stroke_scale_error"]
+        else:
+            elastic = drive_model(replace(data.platform, elastic=elastic_table(settings)))
+            forces = elastic.leg_forces(R, t, data.payload_kg)
+            gain_input, sigma = forces / 1000.0, default_compliance_sigma(settings["platform_mass_kg"])
+        rows = np.concatenate([rows, np.linalg.solve(L, gain_input[:, :, None] * np.eye(N_LEGS))], axis=2)
+        prior.append(np.full(N_LEGS, sigma**2))
+    n = rows.shape[2]
     if settings["drift_mm_per_sqrt_s"] == 0:
-        return stddev_from_factor(rows.reshape(-1, n))
+        return _scored_part(stddev_from_factor(rows.reshape(-1, n)), blocks, data.scored)
     walk = np.zeros((n, n))
     walk[:N_PARAMS, :N_PARAMS] = settings["drift_mm_per_sqrt_s"] ** 2 / settings["rate_hz"] * np.eye(N_PARAMS)
-    prior = np.full(n, prior_sigma_mm**2)
-    prior[N_PARAMS:] = settings["stroke_scale_error"] ** 2
-    covariance = np.diag(prior)
+    covariance = np.diag(np.concatenate(prior))
     for k, A in enumerate(rows):
         predicted = covariance + walk if k else covariance
         covariance = np.linalg.inv(np.linalg.inv(predicted) + A.T @ A)
-    return np.sqrt(np.diag(covariance))
+    return _scored_part(np.sqrt(np.diag(covariance)), blocks, data.scored)
 
 
-def _whitened_scale_rows(data: SweepData, poses: np.ndarray, noise: NoiseConfig) -> np.ndarray:
-    """``C^{-1/2} ∂r/∂k`` ``(N, 6, 6)``: the leg residual ``‖…‖ − (l_i + (1 + k_i) q_i)`` moves by
-    ``−q_i`` per unit of k_i, whitened as :func:`whitened_leg_jacobian` whitens ``∂r/∂M``."""
-    R, t = kin.pose_to_rt(poses)
-    L = np.linalg.cholesky(residual_covariance(data.platform, R, t, noise))
-    return np.linalg.solve(L, -data.log.strokes[:, :, None] * np.eye(N_LEGS))
+def _scored_part(stddev: np.ndarray, blocks: dict, scored: tuple[str, ...]) -> np.ndarray:
+    """The entries of ``stddev`` over ``[δM, blocks…]`` that belong to δM and the ``scored`` blocks."""
+    keep = [np.arange(N_PARAMS)]
+    for k, key in enumerate(blocks):
+        if key in scored:
+            keep.append(N_PARAMS + N_LEGS * k + np.arange(N_LEGS))
+    return stddev[np.concatenate(keep)]
+
+
+def _nominal(platform: Platform, key: str) -> np.ndarray:
+    """The nominal values the estimators start block ``key`` from: the platform file's stroke
+    scales, the compliance 0 of :func:`elastic_table`."""
+    return np.broadcast_to(platform.stroke_scale, (N_LEGS,)) if key == STROKE_SCALE else np.zeros(N_LEGS)
 
 
 def _true_noise(settings: dict) -> NoiseConfig:
@@ -252,16 +371,19 @@ def _true_noise(settings: dict) -> NoiseConfig:
 
 def truth(data: SweepData) -> np.ndarray:
     """The scored unknowns' true values: δM at the last sample (in the gauge of
-    :mod:`stewart_calib.instruments.gauge` for an outside instrument) then the stroke scales."""
+    :mod:`stewart_calib.instruments.gauge` for an outside instrument), then the scored blocks'
+    (:attr:`SweepData.scored`: the stroke scales, the legs' compliance [mm/kN])."""
     if data.true_instrument is not None:
         delta, _ = truth_in_gauge(data.platform.drive, data.true_params[-1], data.true_instrument.unknowns)
-        return np.r_[delta, data.true_scale]
-    return np.r_[data.true_error, data.true_scale]
+    else:
+        delta = data.true_error
+    blocks = data.true_blocks
+    return np.concatenate([delta, *(blocks[key] for key in data.scored)])
 
 
 def nees_basis(data: SweepData, n: int) -> np.ndarray:
     """``(n, r)``: the directions the NEES is taken over — all of them for the tracker, and for
-    an outside instrument the 30 of δM its gauge leaves free, then the stroke scales."""
+    an outside instrument the 30 of δM its gauge leaves free, then the drive's blocks."""
     if data.true_instrument is None:
         return np.eye(n)
     basis = np.zeros((n, n - 12))
@@ -270,18 +392,28 @@ def nees_basis(data: SweepData, n: int) -> np.ndarray:
     return basis
 
 
-def closed_loop_errors(
-    data: SweepData, error: np.ndarray, stroke_scale: np.ndarray | None = None
-) -> tuple[float, float]:
+def closed_loop_errors(data: SweepData, estimate: Estimate | None = None) -> tuple[float, float]:
     """Mean position [mm] and orientation [deg] error at the validation poses when the
-    controller commands encoder strokes by IK with ``nominal + error`` and its stroke scales
-    (``q = (L − l) / (1 + k)``), and the true robot (parameters of the last sample, true
-    scales) executes them."""
-    scale = np.zeros(N_LEGS) if stroke_scale is None else stroke_scale
+    controller commands encoder strokes by IK with the estimated drive (None: the nominal one) —
+    its δM, stroke scales (``q = (L − l) / (1 + k)``) and, on an elastic robot, its compliance
+    under the payload it knows of (0 where the log does not say) — and the true robot
+    (parameters of the last sample, true scales, settling under its weight and the last
+    sample's payload) executes them."""
+    error = np.zeros(N_PARAMS) if estimate is None else estimate.error
+    scale = None if estimate is None else estimate.block_values(STROKE_SCALE)
+    scale = np.zeros(N_LEGS) if scale is None else scale
     R_d, t_d = kin.pose_to_rt(data.validation_poses)
-    strokes = kin.inverse_kinematics(data.platform.drive.perturbed(error), R_d, t_d) / (1.0 + scale)
-    true_drive = data.platform.drive.perturbed(data.true_error)
-    actual = kin.forward_kinematics(true_drive, strokes * (1.0 + data.true_scale), (R_d, t_d))
+    if data.true_elastic is None:
+        strokes = kin.inverse_kinematics(data.platform.drive.perturbed(error), R_d, t_d) / (1.0 + scale)
+        true_drive = data.platform.drive.perturbed(data.true_error)
+        actual = kin.forward_kinematics(true_drive, strokes * (1.0 + data.true_scale), (R_d, t_d))
+    else:
+        known = data.final_payload_kg if data.log.load_kg is not None else 0.0
+        drive = drive_model(data.platform)
+        commanded = drive.calibrated_by(estimate) if estimate is not None else drive
+        strokes = commanded.inverse_kinematics(R_d, t_d, payload_kg=known)
+        robot = _elastic_drive(data.true_params[-1], data.true_scale, data.true_elastic)
+        actual, _ = robot.settled_kinematics(strokes, data.final_payload_kg, guess=(R_d, t_d))
     position_mm, orientation_deg = kin.pose_error(R_d, t_d, actual.R, actual.t)
     return float(position_mm.mean()), float(orientation_deg.mean())
 
@@ -289,23 +421,27 @@ def closed_loop_errors(
 def score(data: SweepData, estimate: Estimate, crb: np.ndarray) -> dict:
     """Scores of one estimate (see the module docstring), ``seconds`` left to the caller.
 
-    The scored unknowns are :func:`truth`'s; where the estimate holds the stroke scale fixed
-    (no such block), its value is the nominal 0 with no variance, and the NEES and z² are taken
-    over the unknowns it estimated.
+    The scored unknowns are :func:`truth`'s; where the estimate holds a scored block fixed (no
+    such block), its value is the nominal with no variance, and the NEES and z² are taken over
+    the unknowns it estimated.
     """
-    scale = estimate.block_values("stroke_scale")
-    found = np.r_[estimate.error, np.zeros(N_LEGS) if scale is None else scale]
-    n = N_PARAMS + N_LEGS if data.true_instrument is not None or len(crb) > N_PARAMS else N_PARAMS
-    e = (found - truth(data))[:n]
-    identified = np.isfinite(crb[:n])
+    found, columns = [estimate.error], [np.arange(N_PARAMS)]
+    for key in data.scored:
+        values, span = estimate.block_values(key), estimate.layout.slice(key)
+        found.append(_nominal(data.platform, key) if values is None else values)
+        columns.append(np.full(N_LEGS, -1) if span is None else np.arange(span.start, span.stop))
+    e = np.concatenate(found) - truth(data)
+    column = np.concatenate(columns)
+    n = len(e)
+    identified = np.isfinite(crb)
     nees = z2 = float("nan")
     dof = 0
     covariance = estimate.full_covariance if estimate.full_covariance is not None else estimate.covariance
     if covariance is not None:
-        estimated = np.arange(n) < min(n, len(covariance))
+        estimated = (column >= 0) & (column < len(covariance))
         basis = nees_basis(data, n)[estimated]
         basis = basis[:, np.linalg.norm(basis, axis=0) > 0]
-        C = covariance[:n, :n][np.ix_(estimated, estimated)]
+        C = covariance[np.ix_(column[estimated], column[estimated])]
         reduced = basis.T @ e[estimated]
         dof = basis.shape[1]
         try:
@@ -315,10 +451,10 @@ def score(data: SweepData, estimate: Estimate, crb: np.ndarray) -> dict:
         variance = np.diag(C)
         if np.all(variance > 0):
             z2 = float(np.mean(e[estimated] ** 2 / variance))
-    position_mm, orientation_deg = closed_loop_errors(data, estimate.error, scale)
+    position_mm, orientation_deg = closed_loop_errors(data, estimate)
     return {
         "rms_mm": float(np.sqrt(np.mean(e[:N_PARAMS] ** 2))),
-        "rms_over_crb": float(np.sqrt(np.mean((e[identified] / crb[:n][identified]) ** 2)))
+        "rms_over_crb": float(np.sqrt(np.mean((e[identified] / crb[identified]) ** 2)))
         if identified.any()
         else float("nan"),
         "nees": nees,
@@ -397,7 +533,7 @@ def run_task(
     rng = task_rng(cell.id, seed)
     data = simulate(cell.settings, cell.platform, rng)
     crb = bound_stddev_mm(data, cell.settings, cell.estimator_config.noise.prior_sigma_mm)
-    nominal_mm, _ = closed_loop_errors(data, np.zeros(N_PARAMS))
+    nominal_mm, _ = closed_loop_errors(data)
     rows = []
     for method in methods:
         try:
