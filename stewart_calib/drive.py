@@ -100,6 +100,18 @@ def compliance_term(elastic: Elastic) -> LegTerm:
     )
 
 
+#: the unannounced payload's key: the result's ``"payload"`` block (``[elastic] payload_sigma_kg``)
+PAYLOAD = "payload"
+
+
+def payload_block(elastic: Elastic | None) -> UnknownBlock | None:
+    """The payload mass [kg] the log does not announce, about 0 with ``[elastic] payload_sigma_kg``
+    (None: the payload is the log's ``load_kg``): an online method's own unknown, which steps."""
+    if elastic is None or not elastic.payload_sigma_kg > 0.0:
+        return None
+    return UnknownBlock(PAYLOAD, ("payload_kg",), np.zeros(1), np.array([elastic.payload_sigma_kg]))
+
+
 def stroke_term(nominal_scale: np.ndarray, prior_sigma: float | None = None) -> LegTerm:
     """``(1 + k_i) q_i``: the logged strokes ``q`` (inputs 0…5) with the encoders' scale ``k``."""
     return LegTerm(
@@ -219,6 +231,30 @@ class DriveModel:
             e.platform_mass_kg, e.platform_com_mm, 0.0 if payload_kg is None else payload_kg, e.payload_com_mm, batch
         )
         return gravity_leg_forces(self.geometry(x_drive), R, t, masses, coms)
+
+    def payload_leg_forces(self, R: np.ndarray, t: np.ndarray, x_drive=None) -> np.ndarray:
+        """``(..., 6)`` leg forces [N] per kg of payload at ``[elastic] payload_com_mm``: the forces are
+        linear in the masses, so a payload ``m`` adds ``m`` times these to :meth:`leg_forces`."""
+        e = self.elastic
+        if e is None:
+            raise ValueError("a rigid drive carries no leg forces")
+        batch = np.shape(t)[:-1]
+        return gravity_leg_forces(self.geometry(x_drive), R, t, np.ones(batch + (1,)), e.payload_com_mm[None])
+
+    def loaded_inputs(self, inputs: np.ndarray, per_kg: np.ndarray, payload_kg: float) -> np.ndarray:
+        """``inputs`` with ``payload_kg`` more payload: its leg forces (:meth:`payload_leg_forces`,
+        ``per_kg``) added to the force columns."""
+        loaded = np.array(inputs, dtype=float)
+        loaded[..., N_LEGS : 2 * N_LEGS] += payload_kg * np.asarray(per_kg)
+        return loaded
+
+    def force_gains(self, x_drive: np.ndarray | None = None) -> np.ndarray:
+        """``(6,)`` ``∂e_i/∂f_i`` [mm/N] of the leg forces (inputs 6…11) at ``x_drive``: ``−c_i / 1000``."""
+        gains = np.zeros(N_LEGS)
+        for term, factor in zip(self.terms, self._term_factors(x_drive), strict=True):
+            if term.input_start == N_LEGS:
+                gains = gains + factor * term.gain
+        return gains
 
     def settled_kinematics(
         self, strokes: np.ndarray, payload_kg=None, x_drive: np.ndarray | None = None, guess=None, strict: bool = True

@@ -207,6 +207,11 @@ class Elastic:
             :func:`default_compliance_sigma` of the platform's mass).
         true_compliance_mm_per_kN: ``(6,)`` the truth a simulated platform carries for reports and
             checks (``simulate``), never read by an estimator; None on a real robot.
+        payload_sigma_kg: > 0: ``ekf`` estimates the payload that the log does not announce, a mass
+            [kg] at ``payload_com_mm`` on top of each sample's ``load_kg`` (0 where the log has none),
+            with this prior σ, and takes a step of it where a sample gated at the estimate passes
+            with this σ added (:mod:`stewart_calib.estimators.ekf`); 0 (default): the payload is
+            the log's ``load_kg``.
     """
 
     platform_mass_kg: float
@@ -215,6 +220,7 @@ class Elastic:
     compliance_mm_per_kN: np.ndarray = field(default_factory=lambda: np.zeros(N_LEGS))
     compliance_sigma_mm_per_kN: float = None  # type: ignore[assignment]  # None: the default, set in __post_init__
     true_compliance_mm_per_kN: np.ndarray | None = None
+    payload_sigma_kg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.compliance_sigma_mm_per_kN is None:
@@ -293,6 +299,7 @@ PLATFORM_KEYS: dict[str, set[str]] = {
         "compliance_mm_per_kN",
         "compliance_sigma_mm_per_kN",
         "true_compliance_mm_per_kN",
+        "payload_sigma_kg",
     },
 }
 
@@ -548,6 +555,7 @@ def _elastic(doc: dict, drive: LegGeometry, source: str) -> Elastic | None:
         compliance,
         _non_negative(table, "compliance_sigma_mm_per_kN", default_compliance_sigma(mass), source, "elastic"),
         truth,
+        _non_negative(table, "payload_sigma_kg", 0.0, source, "elastic"),
     )
 
 
@@ -752,6 +760,8 @@ def _elastic_toml(elastic: Elastic | None) -> list[str]:
     ]
     if elastic.true_compliance_mm_per_kN is not None:
         lines.append(f"true_compliance_mm_per_kN = {_toml_list(elastic.true_compliance_mm_per_kN)}")
+    if elastic.payload_sigma_kg > 0.0:
+        lines.append(f"payload_sigma_kg = {float(elastic.payload_sigma_kg)!r}")
     return lines
 
 

@@ -12,7 +12,7 @@ import pytest
 
 from stewart_calib import kinematics as kin
 from stewart_calib.cli import main
-from stewart_calib.errors import CalibError
+from stewart_calib.errors import CalibError, SampleRejected
 from stewart_calib.io import read_log, result_dict
 from stewart_calib.io.logs import LogRowParser
 from stewart_calib.platform import LegGeometry, load_platform, parse_platform, platform_to_toml
@@ -262,3 +262,145 @@ def test_ekf_blocks_and_checkpoints_take_the_same_forces_as_one_sample_at_a_time
     resumed.import_state(half.export_state())
     update_each(resumed, samples[200:])
     np.testing.assert_array_equal(resumed.estimate().error, one.estimate().error)
+
+
+# ----------------------------------------------------------------------------- the unannounced payload
+
+
+def _payload_platform(platform, sigma_kg: float = 50.0):
+    return replace(platform, elastic=replace(platform.elastic, payload_sigma_kg=sigma_kg))
+
+
+def test_payload_sigma_reads_round_trips_and_refuses_a_negative_one(tmp_path):
+    platform = parse_platform(_with_elastic(payload_sigma_kg=30.0), "p.toml")
+    assert platform.elastic.payload_sigma_kg == 30.0
+    assert parse_platform(tomllib.loads(platform_to_toml(platform)), "a.toml").elastic.payload_sigma_kg == 30.0
+    assert parse_platform(_with_elastic(), "p.toml").elastic.payload_sigma_kg == 0.0
+    assert "key 'elastic.payload_sigma_kg': expected a σ ≥ 0" in _refusal(
+        tmp_path, _to_toml(_with_elastic(payload_sigma_kg=-1.0))
+    )
+
+
+def test_a_payload_adds_its_mass_times_the_forces_per_kg(check):
+    """The leg forces are linear in the masses: those under a payload m are the platform's alone plus
+    m times :meth:`DriveModel.payload_leg_forces` (closed form of the statics, to rounding)."""
+    from stewart_calib.drive import drive_model
+
+    _, run, platform, _ = check
+    drive = drive_model(platform)
+    R, t = kin.pose_to_rt(run.desired_poses[:25])
+    per_kg = drive.payload_leg_forces(R, t)
+    for mass in (7.5, 40.0):
+        np.testing.assert_allclose(
+            drive.leg_forces(R, t, mass), drive.leg_forces(R, t) + mass * per_kg, rtol=1e-12, atol=1e-9
+        )
+        inputs = drive.inputs(run.log.strokes[:25], None, R, t)
+        np.testing.assert_allclose(drive.loaded_inputs(inputs, per_kg, mass)[:, 6:], drive.leg_forces(R, t, mass))
+
+
+def test_the_ekf_payload_column_is_the_numerical_derivative(check):
+    """``∂r/∂m = c_i f_{m,i} / 1000`` against central differences of the observation, at a state with
+    the compliance and the payload away from zero (the residual is bilinear in c and m)."""
+    from stewart_calib.estimators import make_estimator
+    from stewart_calib.estimators.measurement import check_sample
+
+    _, run, platform, _ = check
+    ekf = make_estimator("ekf", _payload_platform(platform))
+    layout = ekf.layout
+    x = np.zeros(layout.size)
+    x[layout.slice("compliance")] = platform.elastic.true_compliance_mm_per_kN
+    x[layout.slice("payload")] = 25.0
+    column = layout.slice("payload").start
+    for k in (0, 50, 100):
+        sample = replace(run.log[k], load_kg=None)
+        strokes, z = check_sample(ekf.platform, ekf.model, sample)
+        prepared = np.concatenate([ekf._inputs(strokes, z, sample), z])
+        _, H, _ = ekf._observe(prepared, x)
+        step = 1.0
+        shifted = [ekf._observe(prepared, x + sign * step * np.eye(layout.size)[column])[0] for sign in (1, -1)]
+        numeric = -(shifted[0] - shifted[1]) / (2 * step)  # ν = −r
+        np.testing.assert_allclose(H[:, column], numeric, rtol=1e-7, atol=1e-12)
+        assert np.abs(H[:, column]).max() > 1e-4  # mm per kg: the column is there to be checked
+
+
+def test_a_payload_step_is_one_sample_of_the_payload_in_closed_form():
+    """A linear toy of the step rule: six residuals on δM (known to 1 µm) and a payload column h.
+    The sample where m steps by 20 kg is gated at the state before it; with σ_m² added it passes and m
+    lands on the one-sample least squares ``(hᵀR⁻¹h)⁻¹ hᵀR⁻¹ ν`` (the prior's σ_m is 50 kg, the
+    data's 0.03); a misfit the payload does not explain is refused, not taken for a step."""
+    from stewart_calib.config import RobustConfig
+    from stewart_calib.drive import PAYLOAD
+    from stewart_calib.estimators.robust import RobustFilter
+    from stewart_calib.unknowns import UnknownBlock, UnknownLayout
+
+    rng = np.random.default_rng(5)
+    layout = UnknownLayout((UnknownBlock(PAYLOAD, ("payload_kg",), np.zeros(1), np.array([50.0])),))
+    A = rng.normal(size=(6, 42))
+    h = np.array([1.0, 2.0, 0.5, 1.5, 1.0, 0.8]) * 1e-3  # mm per kg
+    sigma = 1e-4  # mm: the payload is known from one sample to σ / ‖h‖ ≈ 0.03 kg
+    H = np.column_stack([A, h])
+
+    def observe(prepared, x):
+        return prepared - H @ x, H, sigma**2 * np.eye(6)
+
+    robust = RobustConfig(startup_samples=0, adapt_noise=False)
+    f = RobustFilter("toy", 1e-3, 0.0, 0.9999, observe, robust, layout=layout, step=(42, 50.0**2))
+    f.filter.P[42, 42] = 1e-4  # m known at 0 before the step
+    truth = np.zeros(43)
+    truth[:42] = rng.normal(0.0, 1e-3, 42)
+    f.filter.x[:42] = truth[:42]
+    for k in range(5):
+        f.update(float(k), H @ truth + rng.normal(0.0, sigma, 6))
+    assert f.steps == 0
+    truth[42] = 20.0
+    z = H @ truth + rng.normal(0.0, sigma, 6)
+    innovation = z - H @ f.filter.x
+    f.update(5.0, z)  # gated at m = 0 (NIS ~10⁷), taken as a step
+    assert f.steps == 1
+    least_squares = (h @ innovation) / (h @ h)  # R ∝ I; δM's 1 µm prior moves it by 1e-3 of σ_m
+    assert abs(f.filter.x[42] - least_squares) < 0.05 * sigma / np.linalg.norm(h) + 1e-3 * abs(least_squares)
+    assert abs(f.filter.x[42] - 20.0) < 4 * np.sqrt(f.filter.P[42, 42])
+    # a residual beyond the gate in directions the payload does not explain: refused, no step
+    orthogonal = rng.normal(size=6)
+    orthogonal -= h * (h @ orthogonal) / (h @ h)
+    glitch = H @ truth + 6.0 * sigma * orthogonal / np.linalg.norm(orthogonal) * np.sqrt(6)
+    with pytest.raises(SampleRejected):
+        f.update(6.0, glitch)
+    assert f.steps == 1
+
+
+def test_ekf_finds_an_unannounced_payload_and_its_steps(check):
+    """The check's 0 / 20 / 40 kg stages logged without ``load_kg``: with ``[elastic]
+    payload_sigma_kg`` ekf takes each step as one (two), ends at 40 kg within 3σ of its own σ, keeps
+    each c_i within 5 % and compensates at 40 kg as with the payload known (rigid-like without it);
+    a checkpoint keeps the payload and its steps."""
+    from benchmarks.elastic import _subset, closed_loop_um
+    from stewart_calib.calibration import run_calibration
+    from stewart_calib.estimators import make_estimator
+    from stewart_calib.estimators.base import update_each
+
+    _, run, platform, calibration = check
+    log = replace(_subset(run.log, calibration), load_kg=None)
+    estimating = _payload_platform(platform)
+    estimate = run_calibration(estimating, log, "ekf").estimate
+    column = estimate.layout.slice("payload").start
+    payload, sigma = estimate.block_values("payload")[0], np.sqrt(estimate.full_covariance[column, column])
+    assert estimate.details["payload_steps"] == 2
+    assert abs(payload - 40.0) < 3 * sigma and sigma < 2.0, (payload, sigma)
+    np.testing.assert_allclose(
+        estimate.block_values("compliance"), platform.elastic.true_compliance_mm_per_kN, rtol=0.05
+    )
+    validation = run.desired_poses[np.asarray(run.kinds) == "validation"][:20]
+    # the closed loop commands under the payload found: logged 0 plus the estimate's
+    assert closed_loop_um(run, platform, estimate, validation, 40.0) < 5.0  # ignoring it: ~200 µm
+    result = result_dict(estimate, estimating)
+    assert result["payload"]["names"] == ["payload_kg"] and result["payload_steps"] == 2
+    samples = list(log)
+    one, resumed = make_estimator("ekf", estimating), make_estimator("ekf", estimating)
+    update_each(one, samples)
+    half = make_estimator("ekf", estimating)
+    update_each(half, samples[:60])
+    resumed.import_state(half.export_state())
+    update_each(resumed, samples[60:])
+    np.testing.assert_array_equal(resumed.estimate().block_values("payload"), one.estimate().block_values("payload"))
+    assert resumed.robust.steps == one.robust.steps == 2

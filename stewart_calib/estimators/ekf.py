@@ -35,21 +35,37 @@ The recursion is a :class:`~stewart_calib.estimators.robust.RobustFilter` (robus
 its observation at a state is the loose one above, or the tight one where the measurement fixes
 no pose there. A prepared sample is its drive inputs and the instrument's measurement, so the
 start-up batch can relinearise it at any state.
+
+An unannounced payload (``[elastic] payload_sigma_kg`` > 0, spec §10): the payload mass ``m``
+[kg] at ``[elastic] payload_com_mm`` on top of each sample's ``load_kg`` (0 where the log has
+none) is the state's last entry, prior ``N(0, σ_m²)``. The leg forces are linear in the masses,
+so the drive inputs are the forces at ``load_kg`` plus ``m`` times the forces per kg ``f_m``
+(prepared with the sample) and ``∂r_i/∂m = −(∂e_i/∂f_i) f_{m,i} = c_i f_{m,i} / 1000``. Between
+steps ``m`` is constant, so it averages over the samples, and a step shows as a sample the gate
+refuses: one that passes with ``σ_m²`` added to ``m``'s process noise is taken as the step (the
+filter's ``step``, :class:`~.robust.RobustFilter`), so the step moves ``m`` at the sample it
+happens rather than 42 parameters over tens of samples. A random walk cannot do that: one slow
+enough to let ``m`` average leaves a 20 kg step tens of σ outside the gate; one fast enough to
+pass it makes ``m`` a per-sample nuisance that takes from every sample the information on the
+compliance it carries. Not in the compiled block path (samples go one at a time).
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 
 from .. import kinematics as kin
 from ..config import EstimatorConfig
+from ..drive import PAYLOAD, payload_block
 from ..errors import SampleRejected
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta, needs_registration
 from ..instruments.tracker import as_tracker
-from ..platform import N_PARAMS, Platform
+from ..platform import N_LEGS, N_PARAMS, Platform
 from ..samples import Log, Sample
-from ..unknowns import gauge_conditioned
+from ..unknowns import UnknownLayout, gauge_conditioned
 from .base import Refusals, state_array, update_each
 from .measurement import (
     HeldForRegistration,
@@ -78,7 +94,13 @@ class LegEKF:
         self.noise = config.noise
         self.model = instrument_model(platform, config.noise)
         self.drive = estimator_drive(platform, config.noise, self.model)
-        self.layout = unknown_layout(platform, config.noise, self.model)
+        layout = unknown_layout(platform, config.noise, self.model)
+        payload = payload_block(platform.elastic)
+        self.layout = layout if payload is None else UnknownLayout((*layout.blocks, payload))
+        # an unannounced payload (see the module docstring): its column, and the per-kg leg forces in
+        # each prepared sample after the drive inputs
+        self._payload = self.layout.slice(PAYLOAD)
+        self._per_kg = 0 if payload is None else N_LEGS
         C = self.layout.gauge_rows(platform.drive)
         # Q per unit ρ²Δt: the walking entries, conditioned on the gauge (None: the plain diagonal).
         walks = self.layout.walks()
@@ -91,7 +113,7 @@ class LegEKF:
         far_start = self._instrument is not None and needs_registration(platform)
         # the batches' passes in one compiled call where the state is the drive's alone and the strokes'
         # scale known (~4× faster), and so its gated recursion over a block of samples (update_block)
-        self._compiled = compiled = self._tracker_known and self.drive.stroke_scale_known
+        self._compiled = compiled = self._tracker_known and self.drive.stroke_scale_known and payload is None
         kernel_arguments = (self.drive, config.noise.stroke_sigma_mm)
         self.robust = RobustFilter(
             self.name,
@@ -104,6 +126,9 @@ class LegEKF:
             C=C,
             unit_Q=unit_Q,
             relinearise=far_start,
+            step=None
+            if payload is None or self._payload is None
+            else (self._payload.start, payload.prior_sigma[0] ** 2),
             compiled_pass=self._pose.tracker_filter_pass(*kernel_arguments) if compiled else None,
             compiled_steps=self._pose.tracker_filter_steps(*kernel_arguments) if compiled else None,
         )
@@ -183,7 +208,9 @@ class LegEKF:
         self.robust.update(held.t_s, np.concatenate((self._inputs(strokes, z, held), np.ravel(z))))
 
     def _inputs(self, strokes: np.ndarray, z: np.ndarray, sample: Sample) -> np.ndarray:
-        return drive_inputs(self.drive, self.model, strokes, z, sample.load_kg, self._pose.guess, self._forces_at())
+        return drive_inputs(
+            self.drive, self.model, strokes, z, sample.load_kg, self._pose.guess, self._forces_at(), self._per_kg > 0
+        )
 
     def _forces_at(self) -> np.ndarray | None:
         """The drive state whose geometry an elastic drive's leg forces are taken at: the one the
@@ -199,34 +226,47 @@ class LegEKF:
         """``(−r, H = ∂r/∂X, R_meas)`` of a prepared sample ``[u | z]`` at the state ``x``: the loose
         observation, or the tight one where the measurement fixes no pose at ``x``."""
         drive = self.drive
-        inputs, z = prepared[: drive.input_width], prepared[drive.input_width :]
+        width = drive.input_width
+        inputs, z = prepared[:width], prepared[width + self._per_kg :]
         x_drive = x[: drive.size]
+        dg_dm = None  # ∂r/∂m of the drive-leg residuals r on the unannounced payload m
+        if self._payload is not None:
+            per_kg = prepared[width : width + self._per_kg]
+            inputs = drive.loaded_inputs(inputs, per_kg, float(x[self._payload][0]))
+            dg_dm = -drive.force_gains(x_drive) * per_kg
         if self._tracker_known:  # the common case, in one compiled call from readings to (r, H, R_meas)
             residual, H_drive, R_meas = self._pose.tracker_leg_observation(
                 drive, x_drive, z, inputs, self.noise.stroke_sigma_mm
             )
-            return -residual, self._with_blocks(H_drive, None), R_meas
+            return -residual, self._with_blocks(H_drive, None, dg_dm), R_meas
         theta = instrument_theta(self.model, None if self._instrument is None else x[self._instrument])
         observed = self._pose.solve(z, theta)
         if observed is None:
-            return self._observe_tight(inputs, z, theta, x)
+            return self._observe_tight(inputs, z, theta, x, dg_dm)
         residual, H_drive, R_meas, J_x = drive.observation(
             x_drive, observed.R, observed.t, inputs, observed.covariance, self.noise.stroke_sigma_mm
         )
         H_instrument = None if self._instrument is None else J_x @ observed.J_instrument
-        return -residual, self._with_blocks(H_drive, H_instrument), R_meas
+        return -residual, self._with_blocks(H_drive, H_instrument, dg_dm), R_meas
 
-    def _with_blocks(self, H_drive: np.ndarray, H_instrument: np.ndarray | None) -> np.ndarray:
-        """``H`` over the whole unknown vector: the drive's ``∂r/∂x_drive``, ``H_instrument`` on θ."""
-        if H_instrument is None and H_drive.shape[1] == self.layout.size:
+    def _with_blocks(
+        self, H_drive: np.ndarray, H_instrument: np.ndarray | None, H_payload: np.ndarray | None = None
+    ) -> np.ndarray:
+        """``H`` over the whole unknown vector: the drive's ``∂r/∂x_drive``, ``H_instrument`` on θ,
+        ``H_payload`` on the unannounced payload."""
+        if H_instrument is None and H_payload is None and H_drive.shape[1] == self.layout.size:
             return H_drive
         H = np.zeros((len(H_drive), self.layout.size))
         H[:, : self.drive.size] = H_drive
         if H_instrument is not None:
             H[:, self._instrument] = H_instrument
+        if H_payload is not None:
+            H[:, self._payload] = H_payload[:, None]
         return H
 
-    def _observe_tight(self, inputs: np.ndarray, z: np.ndarray, theta: np.ndarray, x: np.ndarray):
+    def _observe_tight(
+        self, inputs: np.ndarray, z: np.ndarray, theta: np.ndarray, x: np.ndarray, dg_dm: np.ndarray | None
+    ):
         """The instrument's residual at the drive model's pose (see the module docstring);
         ``SampleRejected`` when the drive model's FK fails."""
         drive = self.drive
@@ -236,7 +276,8 @@ class LegEKF:
         J_g_inv = np.linalg.inv(J_g)
         channels = np.concatenate(self.model.groups(z))
         res = self.model.residual(R, t, theta, z, channels)
-        H = -self._with_blocks((res.J_pose @ J_g_inv) @ dg_dx, None)
+        moves = res.J_pose @ J_g_inv  # the drive model's pose moves with the drive's residuals
+        H = -self._with_blocks(moves @ dg_dx, None, None if dg_dm is None else moves @ dg_dm)
         if self._instrument is not None:
             H[:, self._instrument] += res.J_instrument
         A = res.J_pose @ J_g_inv * drive.extension_per_stroke(x_drive)  # ∂r/∂q: a stroke moves the drive model's pose
@@ -261,8 +302,12 @@ class LegEKF:
         return float(np.sqrt(self.robust.noise_scale2)) if self.robust.measured_noise else None
 
     def estimate(self) -> Estimate:
-        """The unknown vector and ``P`` after the last accepted sample."""
-        return self.filter.estimate()
+        """The unknown vector and ``P`` after the last accepted sample (with an unannounced payload,
+        the steps of it taken as the result's ``"payload_steps"``)."""
+        estimate = self.filter.estimate()
+        if self._payload is None:
+            return estimate
+        return dataclasses.replace(estimate, details={**(estimate.details or {}), "payload_steps": self.robust.steps})
 
     def current_error(self) -> np.ndarray:
         """δM [mm] after the last accepted sample."""

@@ -91,8 +91,15 @@ class ISAM2Estimator:
 
     def __init__(self, platform: Platform, config: EstimatorConfig):
         self._builder = GraphBuilder(platform, config, chain=True)
+        # the graph has no payload node: the front end takes the payload as the log's load_kg too
+        elastic = platform.elastic
+        front_platform = (
+            platform
+            if elastic is None
+            else dataclasses.replace(platform, elastic=dataclasses.replace(elastic, payload_sigma_kg=0.0))
+        )
         self._front = LegEKF(
-            platform,
+            front_platform,
             dataclasses.replace(
                 config, ekf=dataclasses.replace(config.ekf, gate_probability=config.isam2.gate_probability)
             ),

@@ -547,14 +547,15 @@ class FilterState:
         """The χ² bound on the NIS of an ``m``-observation (``inf`` with the gate off)."""
         return float(chdtri(m, 1.0 - self.gate_probability)) if self.gate_probability > 0.0 else math.inf
 
-    def update(self, H: np.ndarray, residual: np.ndarray, R: np.ndarray, t_s: float) -> None:
-        """:func:`kalman_update` with ``self.Q``; counts the sample or raises ``SampleRejected``."""
+    def update(self, H: np.ndarray, residual: np.ndarray, R: np.ndarray, t_s: float, gated: bool = True) -> None:
+        """:func:`kalman_update` with ``self.Q``; counts the sample or raises ``SampleRejected``
+        (``gated`` false: whatever its NIS, a sample a test of its own has taken)."""
         if not all_finite(H, residual, R):  # compiled: three np.isfinite passes cost ~5 µs
             raise SampleRejected(
                 f"{self.method}: sample at t = {t_s} s gives a non-finite observation", SampleRejected.NON_FINITE
             )
         m = len(residual)
-        gate_nis = self.gate_nis if m == self._m else self._gate(m)  # an observation of another size
+        gate_nis = math.inf if not gated else self.gate_nis if m == self._m else self._gate(m)  # another size
         if self._work.size < workspace_size(len(self.x), m):
             self._work = np.empty(workspace_size(len(self.x), m))
         nis, S = kalman_update(self.x, self.P, H, residual, R, self.Q, gate_nis, self._work)

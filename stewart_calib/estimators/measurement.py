@@ -82,18 +82,31 @@ def unknown_layout(platform: Platform, noise: NoiseConfig, model: InstrumentMode
 
 
 def drive_inputs(
-    drive: DriveModel, model: InstrumentModel, strokes: np.ndarray, z: np.ndarray, payload_kg, guess=None, x_drive=None
+    drive: DriveModel,
+    model: InstrumentModel,
+    strokes: np.ndarray,
+    z: np.ndarray,
+    payload_kg,
+    guess=None,
+    x_drive=None,
+    per_kg: bool = False,
 ) -> np.ndarray:
     """One sample's drive inputs (:meth:`~stewart_calib.drive.DriveModel.inputs`): its strokes and, for
     an elastic drive, the leg forces under ``payload_kg`` (the log's ``load_kg``; None: 0) at the pose
     the measurement fixes with the instrument at its nominal (:meth:`InstrumentModel.pose`, from
-    ``guess``), or where it fixes none at the drive's own forward kinematics."""
+    ``guess``), or where it fixes none at the drive's own forward kinematics; with ``per_kg``,
+    followed by the leg forces per kg of payload at that pose
+    (:meth:`~stewart_calib.drive.DriveModel.payload_leg_forces`, for an estimated payload)."""
     if drive.elastic is None:
         return drive.inputs(strokes)
     observed = model.pose(z, instrument_theta(model, None), guess)
     if observed is None:
-        return drive.settled_kinematics(np.asarray(strokes)[None], payload_kg, strict=False)[1][0]
-    return drive.inputs(strokes, payload_kg, observed.R, observed.t, x_drive)
+        solution, settled = drive.settled_kinematics(np.asarray(strokes)[None], payload_kg, strict=False)
+        R, t, inputs = solution.R[0], solution.t[0], settled[0]
+    else:
+        R, t = observed.R, observed.t
+        inputs = drive.inputs(strokes, payload_kg, R, t, x_drive)
+    return np.concatenate([inputs, drive.payload_leg_forces(R, t, x_drive)]) if per_kg else inputs
 
 
 class _WarmStart:

@@ -111,12 +111,19 @@ class RobustFilter:
             nothing); only with ``unit_Q`` None.
         relinearise: solve the start-up and recovery batches by Gauss–Newton (see the module
             docstring) rather than one pass linearised along its own way from the prior.
+        step: ``(index, variance)`` of an unknown that may step (an unannounced payload): where a
+            step of it explains a significant part of a sample's innovation (it lowers the NIS by
+            more than the gate's χ² bound at one degree of freedom), the sample is taken with
+            ``variance`` added to that unknown's process noise — the step, recognised in the sample
+            it happens at, whether or not the gate would have refused it. The samples buffered
+            before it are let go (a window across the step fits neither side).
 
     Attributes:
         started: the start-up batch is decided (the gated recursion runs).
         noise_scale2: ``s²``, the measurement covariance in use is ``s² R0``.
         walk_rate_mm2_per_s: the random walk's variance rate in use [mm²/s].
         recoveries: lock-outs recovered from.
+        steps: steps of the ``step`` unknown taken.
     """
 
     def __init__(
@@ -134,8 +141,13 @@ class RobustFilter:
         compiled_pass=None,
         compiled_steps=None,
         relinearise: bool = False,
+        step: tuple[int, float] | None = None,
     ):
         self.method = method
+        self._step_unknown = step
+        # a step is taken where it lowers the NIS beyond the gate's bound at one degree of freedom
+        self._step_bound = float(chdtri(1, 1.0 - gate_probability)) if gate_probability > 0.0 else math.inf
+        self.steps = 0
         self.filter = FilterState(method, prior_sigma_mm, gate_probability, m, layout, C)
         n = len(self.filter.x)
         self._P0 = self.filter.P.copy()
@@ -330,7 +342,28 @@ class RobustFilter:
             )
         nu, H, R0 = observation
         self._fill_Q(f.Q, 0.0 if math.isnan(f.t_s) else t_s - f.t_s)
-        f.update(H, nu, self.noise_scale2 * R0, t_s)  # raises SampleRejected, state untouched
+        R = self.noise_scale2 * R0
+        step = self._step_unknown
+        stepped = step is not None and self._is_step(step, nu, H, R)
+        if step is not None and stepped:
+            f.Q[step[0], step[0]] += step[1]
+        # a step's sample passes on the step's test: the rest of its misfit is what the step's own
+        # pattern (the compliance times the payload's forces) still has wrong, which the next samples mend
+        f.update(H, nu, R, t_s, gated=not stepped)  # raises SampleRejected, state untouched
+        if stepped:
+            self.steps += 1
+            self._buffer.clear()
+            self._since_window, self._last_window = 0, None
+
+    def _is_step(self, step: tuple[int, float], nu: np.ndarray, H: np.ndarray, R: np.ndarray) -> bool:
+        """Whether a ``step`` (``(index, variance)``) explains a significant part of the innovation: it
+        lowers the NIS by more than the gate's χ² bound at one degree of freedom (a likelihood-ratio
+        test, so a step that the random walk's spread would let through the gate is still one)."""
+        f = self.filter
+        index, variance = step
+        S = H @ (f.P + f.Q) @ H.T + R
+        stepped = S + variance * np.outer(H[:, index], H[:, index])
+        return float(nu @ np.linalg.solve(S, nu) - nu @ np.linalg.solve(stepped, nu)) > self._step_bound
 
     # ------------------------------------------------------------------ batches
 
@@ -366,6 +399,14 @@ class RobustFilter:
         """
         x = (self._x0 if centre is None else centre).copy()
         P = self._P0.copy()
+        if self._step_unknown is not None and self.started:
+            # after the start-up, an unknown that steps is as the filter knows it in every batch (the
+            # windows, a recovery): re-solved from its prior over a few samples it would trade against
+            # its correlates (a payload against the compliance's scale), which a window would take
+            # for parameter motion and a recovery adopt
+            index = self._step_unknown[0]
+            x[index] = self.filter.x[index]
+            P[index, :], P[:, index], P[index, index] = 0.0, 0.0, self.filter.P[index, index]
         # variance components of the updates: e = R S⁻¹ ν has E[eᵀ R⁻¹ e] = tr(R S⁻¹), whatever
         # the walk (the residual is taken at the state right after the update)
         self._pass_components = np.zeros(2)
@@ -531,8 +572,12 @@ class RobustFilter:
         first_t = float(self._buffer.t[good][0])
         if self._last_window is not None:
             x_before, P_before, first_before, t_before = self._last_window
-            eigenvalues, vectors = np.linalg.eigh(P_before + P)
-            projection2 = (vectors.T @ (x - x_before)) ** 2
+            spread, difference = P_before + P, x - x_before
+            if self._step_unknown is not None:  # it steps, it does not walk: its marginal left out
+                index = self._step_unknown[0]
+                spread[index, :], spread[:, index], spread[index, index], difference[index] = 0.0, 0.0, 1.0, 0.0
+            eigenvalues, vectors = np.linalg.eigh(spread)
+            projection2 = (vectors.T @ difference) ** 2
             fixed = eigenvalues <= 1e-12 * eigenvalues.max()  # held by the gauge: no information either way
             eigenvalues[fixed], projection2[fixed] = 1.0, 0.0
             # the means of a walk over [a1, b1] and [a2, b2] differ by q ((a2 − b1) + (b1 − a1)/3 + (b2 − a2)/3)
@@ -554,7 +599,7 @@ class RobustFilter:
         lam = np.array([d[0] for d in self._differences])
         p = np.array([d[1] for d in self._differences])
         T = np.array([d[2] for d in self._differences], dtype=float)
-        dof = float(self._free * len(self._differences))
+        dof = float((self._free - (self._step_unknown is not None)) * len(self._differences))
         rate = _walk_rate_root(lam, p, T, dof)
         if rate >= self._configured_walk:
             return rate
@@ -597,6 +642,7 @@ class RobustFilter:
             ),
             **self._buffer.export_state(),
             "recovery_counts": np.array([self.recovery_dropped, self.recovery_readmitted], dtype=np.int64),
+            "steps": np.int64(self.steps),
             "difference_eigenvalues": np.array([d[0] for d in differences]).reshape(-1, self._n),
             "difference_projections": np.array([d[1] for d in differences]).reshape(-1, self._n),
             "difference_spans": np.array([d[2] for d in differences], dtype=float),
@@ -622,6 +668,7 @@ class RobustFilter:
             self.recovery_dropped, self.recovery_readmitted = (
                 int(v) for v in state_array(state, "recovery_counts", (2,))
             )
+        self.steps = int(state_array(state, "steps", ())) if "steps" in state else 0  # none before steps counted
         self._buffer.import_state(state)
         spans = state_array(state, "difference_spans", np.shape(state.get("difference_spans", ())))
         eigenvalues = state_array(state, "difference_eigenvalues", (len(spans), self._n))
@@ -725,6 +772,10 @@ class _SampleWindow:
     def span(self) -> np.ndarray:
         """``[start, end)`` of the live rows in :meth:`arrays`."""
         return np.array([self._start, self._end], dtype=np.int64)
+
+    def clear(self) -> None:
+        """Let every sample go (the width stays)."""
+        self._start = self._end
 
     def set_span(self, span: np.ndarray) -> None:
         self._start, self._end = int(span[0]), int(span[1])

@@ -126,7 +126,7 @@ def validate_result(result, source: str) -> None:
         value = result[key]
         if not isinstance(value, int) or isinstance(value, bool) or value < 0:
             raise refuse(key, f"a non-negative whole number, got {value!r}")
-    for key in ("stroke_scale", "compliance", "instrument"):
+    for key in ("stroke_scale", "compliance", "instrument", "payload"):
         if key in result:
             _validate_block(result[key], key, refuse)
     gap = np.abs(np.array(result["estimate"]) - np.array(result["nominal"]) - np.array(result["error"]))

@@ -47,7 +47,7 @@ from typing import Protocol
 import numpy as np
 
 from .. import kinematics as kin
-from ..drive import drive_model
+from ..drive import PAYLOAD, drive_model
 from ..errors import SampleRejected
 from ..estimate import Estimate
 from ..platform import LegGeometry, Platform
@@ -141,13 +141,15 @@ class EstimatorController:
 
     def strokes(self, R_d: np.ndarray, t_d: np.ndarray, payload_kg) -> np.ndarray:
         """IK of the model in force; an elastic one with its identified blocks, under ``payload_kg``
-        (taken as 0 unless :attr:`payload_known`)."""
+        (taken as 0 unless :attr:`payload_known`) and the payload the estimator found unannounced."""
         if self._elastic is None:
             return kin.inverse_kinematics(self._drive, R_d, t_d)
         estimate = self.estimate()
         values = {term.key: estimate.block_values(term.key) for term in self._elastic.terms}
         drive = self._elastic.calibrated(self._error, values)
-        return drive.inverse_kinematics(R_d, t_d, payload_kg=payload_kg if self.payload_known else 0.0)
+        unannounced = estimate.block_values(PAYLOAD)  # what the estimator found on top of what it was told
+        payload = (payload_kg if self.payload_known else 0.0) + (0.0 if unannounced is None else unannounced[0])
+        return drive.inverse_kinematics(R_d, t_d, payload_kg=payload)
 
     def trace(self) -> np.ndarray:
         """``(N, 42)`` δM in force after each observed sample [mm] (paper Figs. 5–6)."""
