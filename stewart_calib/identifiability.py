@@ -27,6 +27,7 @@ import numpy as np
 from . import _kernels
 from . import kinematics as kin
 from .config import NoiseConfig
+from .drive import DriveModel
 from .errors import CalibError
 from .platform import N_PARAMS, PARAMETER_NAMES, Platform
 
@@ -139,11 +140,13 @@ def observability_indices(singular_values: np.ndarray, n_rows: int) -> dict[str,
     }
 
 
-def name_direction(vector: np.ndarray, min_component: float = COMPONENT_MIN) -> str:
+def name_direction(
+    vector: np.ndarray, min_component: float = COMPONENT_MIN, names: tuple[str, ...] = PARAMETER_NAMES
+) -> str:
     """``"0.62·j3z − 0.68·l3"``: the components with ``|coef| ≥ min_component``, largest first."""
     # Rounded magnitudes, then parameter order: equal-looking terms print in a fixed order.
     order = np.lexsort((np.arange(len(vector)), -np.round(np.abs(vector), 2)))
-    terms = [(float(vector[k]), PARAMETER_NAMES[k]) for k in order if abs(vector[k]) >= min_component]
+    terms = [(float(vector[k]), names[k]) for k in order if abs(vector[k]) >= min_component]
     parts: list[str] = []
     for coef, name in terms:
         term = f"{abs(coef):.2f}·{name}"
@@ -195,6 +198,13 @@ class IdentifiabilityReport:
             among the identified directions.
         null_space: ``(42, 42 − rank)`` unit basis of the unidentified directions.
         verdict: one of :data:`VERDICTS`.
+        names: the unknowns' names: the 42, then the drive's unknown blocks where the report covers
+            them (:class:`InformationAccumulator`'s ``drive``); the singular values, the weakest
+            directions and the null space are then over all ``n`` of them, each block's column in
+            :attr:`block_scale` units (the RMS leg-length change [mm] a unit of it makes), and
+            :attr:`block_stddev` holds their Cramér–Rao σ in their own units.
+        block_stddev: ``{key: (names, σ)}`` of the drive's unknown blocks (mm/kN, dimensionless k).
+        block_scale: ``(n − 42,)`` [mm per unit] the blocks' columns were scaled by.
     """
 
     n_poses: int
@@ -210,16 +220,24 @@ class IdentifiabilityReport:
     weakest: list[tuple[float, np.ndarray]] = field(default_factory=list)
     null_space: np.ndarray = field(default_factory=lambda: np.zeros((N_PARAMS, 0)))
     verdict: str = "identifiable"
+    names: tuple[str, ...] = PARAMETER_NAMES
+    block_stddev: dict[str, tuple[tuple[str, ...], np.ndarray]] = field(default_factory=dict)
+    block_scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def null_space_dimension(self) -> int:
         return self.null_space.shape[1]
 
+    @property
+    def size(self) -> int:
+        """Unknowns the report covers: 42, and the drive's unknown blocks."""
+        return len(self.names)
+
     def weakest_names(self) -> list[str]:
-        return [name_direction(v) for _, v in self.weakest]
+        return [name_direction(v, names=self.names) for _, v in self.weakest]
 
     def null_space_names(self) -> list[str]:
-        return [name_direction(v) for v in self.null_space.T]
+        return [name_direction(v, names=self.names) for v in self.null_space.T]
 
     def to_dict(self) -> dict:
         """JSON-ready: lists of floats, ``null`` for infinities."""
@@ -250,7 +268,7 @@ class IdentifiabilityReport:
                     "singular_value": float(s),
                     "stddev_mm": 1.0 / float(s),
                     "vector": [float(x) for x in v],
-                    "named": name_direction(v),
+                    "named": name_direction(v, names=self.names),
                 }
                 for s, v in self.weakest
             ],
@@ -261,15 +279,32 @@ class IdentifiabilityReport:
             },
             "verdict": self.verdict,
             "thresholds": {"condition_poor": CONDITION_POOR, "rank_rtol": RANK_RTOL},
+            **self._blocks_dict(num),
         }
+
+    def _blocks_dict(self, num) -> dict:
+        """With the drive's unknown blocks: ``"unknown_names"`` (the order of every vector above) and
+        ``"blocks"`` ``{key: {"names", "predicted_stddev", "column_scale_mm"}}``."""
+        if not self.block_stddev:
+            return {}
+        blocks, start = {}, 0
+        for key, (names, stddev) in self.block_stddev.items():
+            blocks[key] = {
+                "names": list(names),
+                "predicted_stddev": [num(v) for v in stddev],
+                "column_scale_mm": [float(v) for v in self.block_scale[start : start + len(names)]],
+            }
+            start += len(names)
+        return {"unknown_names": list(self.names), "blocks": blocks}
 
     def format_text(self) -> str:
         """The terminal report."""
         s = self.singular_values
+        covered = "".join(f" and {names[0]}…{names[-1]}" for names, _ in self.block_stddev.values())
         lines = [
-            f"Identifiability of the 42 drive parameters from {self.n_poses} poses "
+            f"Identifiability of the 42 drive parameters{covered} from {self.n_poses} poses "
             f"(σ_s = {self.noise.reading_sigma_mm:g} mm, σ_q = {self.noise.stroke_sigma_mm:g} mm)",
-            f"verdict: {self.verdict}  (rank {self.rank}/42; condition number "
+            f"verdict: {self.verdict}  (rank {self.rank}/{self.size}; condition number "
             f"{self.condition_number:.4g}; poorly conditioned above {CONDITION_POOR:g}, "
             f"rank counts σ > {RANK_RTOL:g}·σmax)",
             "",
@@ -284,7 +319,11 @@ class IdentifiabilityReport:
             "",
             "weakest directions (σ, predicted std dev along it):",
         ]
-        lines += [f"  {sv:.4g} /mm  ({1.0 / sv:.3g} mm)  {name_direction(v)}" for sv, v in self.weakest]
+        if self.block_stddev:
+            lines.insert(4, "  (the blocks' columns in mm: the RMS leg-length change a unit of each makes)")
+        lines += [
+            f"  {sv:.4g} /mm  ({1.0 / sv:.3g} mm)  {name_direction(v, names=self.names)}" for sv, v in self.weakest
+        ]
         if self.null_space_dimension:
             lines += ["", f"null space: dimension {self.null_space_dimension} (not identified by these poses):"]
             lines += [f"  {name}" for name in self.null_space_names()]
@@ -293,7 +332,16 @@ class IdentifiabilityReport:
         for leg in range(6):
             cols = range(7 * leg, 7 * leg + 7)
             lines.append("  " + "  ".join(f"{PARAMETER_NAMES[k]:>4} {_fmt_sd(sd[k])}" for k in cols))
+        for key, (names, stddev) in self.block_stddev.items():
+            unit = BLOCK_UNITS.get(key, "")
+            lines.append(
+                f"  {key}{unit}: " + "  ".join(f"{n} {_fmt_sd(v)}" for n, v in zip(names, stddev, strict=True))
+            )
         return "\n".join(lines)
+
+
+#: the units the text report names a drive block's σ in
+BLOCK_UNITS = {"compliance": " [mm/kN]", "stroke_scale": " [-]"}
 
 
 def _fmt_sd(value: float) -> str:
@@ -319,13 +367,14 @@ def _stacked_factor(factor: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """
     from scipy.linalg import lapack
 
-    rows = rows.reshape(-1, N_PARAMS)
-    stack = np.empty((len(factor) + len(rows), N_PARAMS), order="F")
+    n = factor.shape[1]
+    rows = rows.reshape(-1, n)
+    stack = np.empty((len(factor) + len(rows), n), order="F")
     stack[: len(factor)], stack[len(factor) :] = factor, rows
     qr, _, _, info = lapack.dgeqrf(stack, overwrite_a=True)
     if info != 0:
         raise ValueError(f"LAPACK dgeqrf: argument {-info} is invalid")
-    return np.triu(qr[: min(len(stack), N_PARAMS)])
+    return np.triu(qr[: min(len(stack), n)])
 
 
 class InformationAccumulator:
@@ -342,41 +391,90 @@ class InformationAccumulator:
         paper_form: also the paper's form; False leaves it out (the report's paper fields NaN), for
             callers that read the leg form only (``calibrate``'s conditioning: its compile, ~2 s on a
             first run, and its time a pose).
+        drive: the drive model the estimators identify (:func:`~stewart_calib.drive.drive_model`
+            with the config's noise): where it has unknown blocks (the compliance c1…c6 with
+            ``[elastic]``, the stroke scale where configured) the leg-length form covers them too,
+            ``∂r_i/∂v_{b,i} = −g_b u_{b,i}`` whitened as the rows (then :meth:`add` needs the
+            samples' strokes and, for an elastic drive, payloads). None: the 42 alone.
     Raises:
         CalibError: both noise sigmas zero (no noise model, no weights).
     """
 
-    def __init__(self, platform: Platform, noise: NoiseConfig, paper_form: bool = True):
+    def __init__(
+        self, platform: Platform, noise: NoiseConfig, paper_form: bool = True, drive: DriveModel | None = None
+    ):
         if noise.reading_sigma_mm <= 0 and noise.stroke_sigma_mm <= 0:
             raise CalibError("noise: reading_sigma_mm and stroke_sigma_mm are both 0: expected a positive noise level")
         self.platform = platform
         self.noise = noise
         self.n_poses = 0
-        self._leg_factor = np.zeros((0, N_PARAMS))
+        self.drive = drive if drive is not None and drive.size > N_PARAMS else None
+        size = N_PARAMS if self.drive is None else self.drive.size
+        self._leg_factor = np.zeros((0, size))
         self._paper_factor = np.zeros((0, N_PARAMS)) if paper_form else None
+        self._block_squares = np.zeros(size - N_PARAMS)  # Σ over rows of each block column², unwhitened
+        self._block_rows = 0
 
-    def add(self, poses: np.ndarray) -> None:
-        """Add the information of ``(n, 6)`` pose6 ``[mm, rad]``, :data:`BLOCK_POSES` at a time."""
+    def add(self, poses: np.ndarray, strokes: np.ndarray | None = None, payload_kg=None) -> None:
+        """Add the information of ``(n, 6)`` pose6 ``[mm, rad]``, :data:`BLOCK_POSES` at a time; with
+        the drive's blocks, their ``(n, 6)`` logged strokes [mm] (None: the drive's inverse
+        kinematics) and payloads (``(n,)`` or a scalar [kg]; None: 0)."""
         poses = np.asarray(poses, dtype=float).reshape(-1, 6)
+        if self.drive is not None and strokes is None:
+            strokes = self.drive.inverse_kinematics(*kin.pose_to_rt(poses), payload_kg=payload_kg)
+        payload = None if payload_kg is None else np.broadcast_to(np.asarray(payload_kg, dtype=float), len(poses))
         for start in range(0, len(poses), BLOCK_POSES):
             block = poses[start : start + BLOCK_POSES]
-            self._leg_factor = _stacked_factor(
-                self._leg_factor, whitened_leg_jacobian(self.platform, block, self.noise)
-            )
+            rows = whitened_leg_jacobian(self.platform, block, self.noise)
+            if self.drive is not None and strokes is not None:
+                span = slice(start, start + len(block))
+                rows = np.concatenate(
+                    [rows, self._block_columns(block, strokes[span], None if payload is None else payload[span])],
+                    axis=-1,
+                )
+            self._leg_factor = _stacked_factor(self._leg_factor, rows)
             if self._paper_factor is not None:
                 self._paper_factor = _stacked_factor(self._paper_factor, scaled_paper_jacobian(self.platform, block))
             self.n_poses += len(block)
 
+    def _block_columns(self, poses: np.ndarray, strokes: np.ndarray, payload_kg) -> np.ndarray:
+        """``C^{-1/2} ∂r/∂v`` of the drive's unknown blocks at the poses, ``(n, 6, size − 42)`` [1/unit]:
+        the same whitening ``C = L Lᵀ`` (:func:`residual_covariance`) as the 42 rows'."""
+        drive = self.drive
+        assert drive is not None
+        R, t = kin.pose_to_rt(poses)
+        inputs = drive.inputs(strokes, payload_kg, R, t) if drive.elastic is not None else drive.inputs(strokes)
+        columns = drive.with_terms(np.zeros((len(R), 6, N_PARAMS)), inputs)[..., N_PARAMS:]
+        self._block_squares += np.sum(columns**2, axis=(0, 1))
+        self._block_rows += len(R)
+        L = np.linalg.cholesky(residual_covariance(self.platform, R, t, self.noise))
+        return np.linalg.solve(L, columns)
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The unknowns' names: the 42, then the drive's blocks'."""
+        blocks = () if self.drive is None else self.drive.blocks
+        return PARAMETER_NAMES + tuple(name for block in blocks for name in block.names)
+
+    def _column_scale(self) -> np.ndarray:
+        """``(size,)`` 1 on the 42; on a block's column the RMS leg-length change [mm] a unit of it makes
+        (over the poses, on its own leg): the SVD is of the unknowns ``v · scale``, each then in mm
+        (their columns over the scale)."""
+        rms = np.sqrt(self._block_squares / max(self._block_rows, 1))
+        return np.concatenate([np.ones(N_PARAMS), np.where(rms > 0.0, rms, 1.0)])
+
     def covariance(self) -> np.ndarray | None:
-        """Cramér–Rao covariance ``(AᵀA)⁻¹`` ``(42, 42)`` [mm²] of the leg-length form, from its
-        square-root factor (``R⁻¹R⁻ᵀ``); None when the poses leave it rank-deficient."""
-        if len(self._leg_factor) < N_PARAMS:
+        """Cramér–Rao covariance ``(AᵀA)⁻¹`` of δM ``(42, 42)`` [mm²] of the leg-length form (the
+        drive's blocks, where covered, marginalised), from its square-root factor (``R⁻¹R⁻ᵀ``); None
+        when the poses leave it rank-deficient."""
+        size = self._leg_factor.shape[1]
+        if len(self._leg_factor) < size:
             return None
-        s = np.linalg.svd(self._leg_factor, compute_uv=False)
+        s = np.linalg.svd(self._leg_factor / self._column_scale(), compute_uv=False)
         if s[-1] <= RANK_RTOL * s[0]:
             return None
-        inverse = np.linalg.solve(self._leg_factor, np.eye(N_PARAMS))
-        return inverse @ inverse.T
+        inverse = np.linalg.solve(self._leg_factor, np.eye(size))
+        return (inverse @ inverse.T)[:N_PARAMS, :N_PARAMS]
 
     def report(self) -> IdentifiabilityReport:
         """Singular values, Cramér–Rao bound, weakest directions and verdict of the poses added.
@@ -386,16 +484,21 @@ class InformationAccumulator:
         """
         if self.n_poses == 0:
             raise CalibError("poses: expected at least one pose, got none")
-        # Full SVD of the (≤ 42) × 42 factor: with fewer than 7 poses it has fewer rows than
+        # Full SVD of the (≤ n) × n factor: with fewer than 7 poses it has fewer rows than
         # columns and the null space is in the trailing rows of Vᵀ, which a reduced SVD omits.
-        _, s_all, Vt = np.linalg.svd(self._leg_factor, full_matrices=True)
-        s = np.zeros(N_PARAMS)
+        size, scale = self._leg_factor.shape[1], self._column_scale()
+        _, s_all, Vt = np.linalg.svd(self._leg_factor / scale, full_matrices=True)
+        s = np.zeros(size)
         s[: len(s_all)] = s_all
         rank = int(np.sum(s > RANK_RTOL * s[0]))
         s[rank:] = 0.0  # round-off, not information
         V_range, null = Vt[:rank].T, Vt[rank:].T
 
-        stddev = _bounded_stddev(s, rank, Vt)
+        stddev = _bounded_stddev(s, rank, Vt) / scale
+        block_stddev, start = {}, N_PARAMS
+        for block in () if self.drive is None else self.drive.blocks:
+            block_stddev[block.key] = (block.names, stddev[start : start + block.size] * block.file_scale)
+            start += block.size
 
         s_paper = np.full(N_PARAMS, np.nan)
         if self._paper_factor is not None:
@@ -404,15 +507,15 @@ class InformationAccumulator:
             s_paper[: len(s_paper_all)] = s_paper_all
             s_paper[s_paper <= RANK_RTOL * s_paper[0]] = 0.0
 
-        condition = s[0] / s[-1] if rank == N_PARAMS else np.inf
-        if rank < N_PARAMS:
+        condition = s[0] / s[-1] if rank == size else np.inf
+        if rank < size:
             verdict = "rank-deficient"
         elif condition > CONDITION_POOR:
             verdict = "poorly conditioned"
         else:
             verdict = "identifiable"
         weak_idx = range(rank - 1, max(rank - 1 - N_WEAKEST, -1), -1)
-        weak_vectors = _sign_fixed(V_range[:, list(weak_idx)]) if rank else np.zeros((N_PARAMS, 0))
+        weak_vectors = _sign_fixed(V_range[:, list(weak_idx)]) if rank else np.zeros((size, 0))
         return IdentifiabilityReport(
             n_poses=self.n_poses,
             noise=self.noise,
@@ -422,11 +525,14 @@ class InformationAccumulator:
             paper_singular_values=s_paper,
             paper_condition_number=float(s_paper[0] / s_paper[-1]) if not s_paper[-1] <= 0 else float("inf"),
             rotation_row_scale_mm=rotation_row_scale_mm(self.platform),
-            predicted_stddev_mm=stddev,
+            predicted_stddev_mm=stddev[:N_PARAMS],
             observability=observability_indices(s, 6 * self.n_poses),
             weakest=[(float(s[k]), weak_vectors[:, j]) for j, k in enumerate(weak_idx)],
             null_space=readable_basis(null),
             verdict=verdict,
+            names=self.names,
+            block_stddev=block_stddev,
+            block_scale=scale[N_PARAMS:],
         )
 
 
@@ -449,7 +555,13 @@ def stddev_from_factor(factor: np.ndarray) -> np.ndarray:
 
 
 def identifiability_report(
-    platform: Platform, poses: np.ndarray, noise: NoiseConfig, paper_form: bool = True
+    platform: Platform,
+    poses: np.ndarray,
+    noise: NoiseConfig,
+    paper_form: bool = True,
+    drive: DriveModel | None = None,
+    strokes: np.ndarray | None = None,
+    payload_kg=None,
 ) -> IdentifiabilityReport:
     """Singular values, Cramér–Rao bound, weakest directions and verdict for a pose set.
 
@@ -458,35 +570,43 @@ def identifiability_report(
         poses: ``(N, 6)`` pose6 ``[mm, rad]``.
         noise: reading and stroke sigmas.
         paper_form: also the paper's ``J_p`` form (:class:`InformationAccumulator`).
+        drive, strokes, payload_kg: the drive's unknown blocks too (:class:`InformationAccumulator`).
     Raises:
         CalibError: no poses, or no noise.
     """
     poses = np.atleast_2d(np.asarray(poses, dtype=float))
     if poses.shape[0] == 0 or poses.shape[1] != 6:
         raise CalibError(f"poses: expected an (N, 6) array with N ≥ 1, got shape {poses.shape}")
-    information = InformationAccumulator(platform, noise, paper_form)
-    information.add(poses)
+    information = InformationAccumulator(platform, noise, paper_form, drive)
+    information.add(poses, strokes, payload_kg)
     return information.report()
 
 
 def tracker_poses(platform: Platform, log) -> np.ndarray:
     """Tracker FK poses of a log's readings, ``(n, 6)`` [mm, rad]; samples whose FK fails are left out."""
+    return tracker_samples(platform, log)[0]
+
+
+def tracker_samples(platform: Platform, log) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(poses (n, 6) [mm, rad], strokes (n, 6), payloads (n,) or None)`` of a log's samples whose
+    tracker FK converges (the others left out)."""
     # The desired pose is within a few mm of the real one: a good Newton start when present.
     guess = None if log.desired_poses is None else kin.pose_to_rt(log.desired_poses)
     fk = kin.forward_kinematics(platform.required_tracker("tracker poses"), log.readings, guess, strict=False)
-    return fk.pose6[fk.converged]
+    payload = None if log.load_kg is None else np.asarray(log.load_kg, dtype=float)[fk.converged]
+    return fk.pose6[fk.converged], np.asarray(log.strokes, dtype=float)[fk.converged], payload
 
 
-def measured_poses(platform: Platform, log) -> np.ndarray:
-    """Tracker FK poses of a log's readings, ``(N, 6)`` [mm, rad]; samples whose FK fails are left out.
+def measured_samples(platform: Platform, log) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """:func:`tracker_samples`, refusing a log where none converges.
 
     Raises:
         CalibError: no sample's readings give a pose.
     """
-    poses = tracker_poses(platform, log)
-    if not len(poses):
+    samples = tracker_samples(platform, log)
+    if not len(samples[0]):
         raise CalibError(NO_POSE)
-    return poses
+    return samples
 
 
 def conditioning_summary(report: IdentifiabilityReport) -> dict:

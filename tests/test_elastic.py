@@ -404,3 +404,66 @@ def test_ekf_finds_an_unannounced_payload_and_its_steps(check):
     update_each(resumed, samples[60:])
     np.testing.assert_array_equal(resumed.estimate().block_values("payload"), one.estimate().block_values("payload"))
     assert resumed.robust.steps == one.robust.steps == 2
+
+
+# ----------------------------------------------------------------------------- identifiability of c
+
+
+def _tracker_report(platform, log, noise):
+    from stewart_calib.drive import drive_model
+    from stewart_calib.identifiability import identifiability_report, tracker_samples
+
+    poses, strokes, payload = tracker_samples(platform, log)
+    report = identifiability_report(platform, poses, noise, False, drive_model(platform, noise), strokes, payload)
+    return report, poses, strokes, payload
+
+
+def test_the_tracker_bound_covers_the_compliance_as_the_stacked_drive_jacobian(check):
+    """The report's Cramér–Rao σ of δM and c1…c6 are those of the drive model's own ∂r/∂x_drive
+    (drive.jacobians at the tracker's poses and the samples' forces) whitened by the residual's
+    covariance and stacked densely; the blocks' scaling changes the SVD's units, not the bound."""
+    from benchmarks.elastic import _subset
+    from stewart_calib.config import load_estimator_config
+    from stewart_calib.drive import drive_model
+    from stewart_calib.identifiability import residual_covariance
+
+    _, run, platform, calibration = check
+    noise = load_estimator_config().noise
+    report, poses, strokes, payload = _tracker_report(platform, _subset(run.log, calibration), noise)
+    assert report.names[42:] == tuple(f"c{i}" for i in range(1, 7)) and report.rank == 48
+    drive = drive_model(platform, noise)
+    R, t = kin.pose_to_rt(poses)
+    _, J = drive.jacobians(None, R, t, drive.inputs(strokes, payload, R, t))
+    A = np.linalg.solve(np.linalg.cholesky(residual_covariance(platform, R, t, noise)), J).reshape(-1, 48)
+    stddev = np.sqrt(np.diag(np.linalg.inv(A.T @ A)))
+    np.testing.assert_allclose(report.predicted_stddev_mm, stddev[:42], rtol=1e-6)
+    np.testing.assert_allclose(report.block_stddev["compliance"][1], stddev[42:], rtol=1e-6)
+    assert report.to_dict()["blocks"]["compliance"]["names"] == [f"c{i}" for i in range(1, 7)]
+    assert "compliance [mm/kN]: c1" in report.format_text()
+    rigid = _tracker_report(replace(platform, elastic=None), _subset(run.log, calibration), noise)[0]
+    assert rigid.names == rigid.names[:42] and "blocks" not in rigid.to_dict()  # without [elastic]: the 42
+
+
+def test_the_tracker_bound_of_c_is_the_batch_fits_covariance(check):
+    """``lm`` solves the same leg-length problem in batch: with its noise as configured (no scale from
+    the data, no random walk) its covariance of c is the bound, to its priors' share (5 mm on δM,
+    20 mm/kN on c: under 1 %)."""
+    import dataclasses
+
+    from benchmarks.elastic import _subset
+    from stewart_calib.calibration import run_calibration
+    from stewart_calib.config import load_estimator_config
+
+    _, run, platform, calibration = check
+    config = load_estimator_config()
+    config = dataclasses.replace(
+        config,
+        noise=dataclasses.replace(config.noise, random_walk_mm_per_sqrt_s=0.0),
+        robust=dataclasses.replace(config.robust, adapt_noise=False),
+    )
+    log = _subset(run.log, calibration)
+    report = _tracker_report(platform, log, config.noise)[0]
+    estimate = run_calibration(platform, log, "lm", config).estimate
+    columns = estimate.layout.slice("compliance")
+    fitted = np.sqrt(np.diag(estimate.full_covariance)[columns])
+    np.testing.assert_allclose(fitted, report.block_stddev["compliance"][1], rtol=0.02)

@@ -40,7 +40,7 @@ from ..estimators.base import (
     accounting_words,
     skipped_count,
 )
-from ..identifiability import conditioning_summary, identifiability_report, measured_poses, warning_line
+from ..identifiability import conditioning_summary, identifiability_report, measured_samples, warning_line
 from ..online import Rejections
 from ..planning import noise_floor
 from ..platform import N_LEGS, Platform, load_platform
@@ -225,8 +225,9 @@ def run(args: argparse.Namespace) -> int:
         extra: dict[str, object] = {"samples_rejected": rejections.summary()}
         warning = None
         if tracker:  # the tracker's FK gives the poses to assess
-            poses = measured_poses(platform, checked)
-            report = identifiability_report(platform, poses, config.noise, paper_form=False)
+            poses, strokes, payload = measured_samples(platform, checked)
+            drive = drive_model(platform, config.noise)  # its unknown blocks too, as the estimators identify them
+            report = identifiability_report(platform, poses, config.noise, False, drive, strokes, payload)
             warning = warning_line(report)
             extra["conditioning"] = conditioning_summary(report)
         else:

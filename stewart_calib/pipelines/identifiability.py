@@ -11,8 +11,9 @@ import json
 
 from .. import io
 from ..config import load_estimator_config
+from ..drive import drive_model
 from ..errors import CalibError
-from ..identifiability import CONDITION_POOR, NO_POSE, InformationAccumulator, tracker_poses, warning_line
+from ..identifiability import CONDITION_POOR, NO_POSE, InformationAccumulator, tracker_samples, warning_line
 from ..io import read_pose_list
 from ..platform import Platform, load_platform
 from . import run_command
@@ -21,17 +22,19 @@ from .plan import add_platform_and_noise_arguments
 
 def log_information(platform: Platform, path: str, source: str, noise, skip_bad_rows: bool = False):
     """The :class:`InformationAccumulator` of a log's poses — tracker FK of the readings, or the
-    desired pose columns — read a block at a time (memory independent of the log's length)."""
-    information = InformationAccumulator(platform, noise)
+    desired pose columns — read a block at a time (memory independent of the log's length), over the
+    drive's unknowns as the estimators identify them (the compliance with ``[elastic]``, the stroke
+    scale where configured: at the samples' strokes and payloads)."""
+    information = InformationAccumulator(platform, noise, drive=drive_model(platform, noise))
     for block in io.read_log_blocks(path, platform, skip_bad_rows):
         if source == "desired":
             if block.desired_poses is None:
                 raise CalibError(
                     f"{path}: no pose columns; expected {', '.join(io.POSE_COLUMNS)} for --pose-source desired"
                 )
-            information.add(block.desired_poses)
+            information.add(block.desired_poses, block.strokes, block.load_kg)
         else:
-            information.add(tracker_poses(platform, block))
+            information.add(*tracker_samples(platform, block))
     if information.n_poses == 0:
         raise CalibError(NO_POSE)
     return information
@@ -67,8 +70,8 @@ def run(args: argparse.Namespace) -> int:
         covariance, poses = information.covariance(), None
     else:
         poses = read_pose_list(args.poses)
-        information = InformationAccumulator(platform, noise)
-        information.add(poses)
+        information = InformationAccumulator(platform, noise, drive=drive_model(platform, noise))
+        information.add(poses)  # the strokes of the drive's inverse kinematics, no payload
         covariance = information.covariance()
     report = information.report()
     print(report.format_text())
