@@ -80,9 +80,17 @@ def pose_stamped(typestore, t_s: float, pose) -> object:
     )
 
 
-def write_bag(path: Path, kind: str, measurement: str = "readings", extra_topic: tuple[str, str] | None = None) -> None:
+def write_bag(
+    path: Path,
+    kind: str,
+    measurement: str = "readings",
+    extra_topic: tuple[str, str] | None = None,
+    without_a_joint: tuple[set[int], set[int]] = (set(), set()),
+) -> None:
     """A bag with ``/drive/joint_states`` (strokes, joints in a shuffled order) and the measurement
-    (``/tracker/joint_states`` readings or ``/mocap/pose``), in ``kind`` = ros2-sqlite3 | ros2-mcap | ros1."""
+    (``/tracker/joint_states`` readings or ``/mocap/pose``), in ``kind`` = ros2-sqlite3 | ros2-mcap | ros1.
+    ``without_a_joint``: the indices of the stroke and of the reading messages that lack one joint
+    (and carry a seventh, unrelated one)."""
     ros1 = kind == "ros1"
     typestore = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
     serialize = typestore.serialize_ros1 if ros1 else typestore.serialize_cdr
@@ -102,14 +110,18 @@ def write_bag(path: Path, kind: str, measurement: str = "readings", extra_topic:
         meas = writer.add_connection(topic, msgtype, typestore=typestore)
         messages = []
         order = [3, 0, 5, 1, 4, 2]  # drivers need not publish the joints in leg order
-        for t, q in zip(stamps(STROKE_HZ), strokes_m(stamps(STROKE_HZ)), strict=True):
-            messages.append((t, drive, joint_state(typestore, t, [JOINTS[i] for i in order], q[order])))
+        for k, (t, q) in enumerate(zip(stamps(STROKE_HZ), strokes_m(stamps(STROKE_HZ)), strict=True)):
+            names = [JOINTS[i] for i in order]
+            if k in without_a_joint[0]:
+                names[2] = "gripper"
+            messages.append((t, drive, joint_state(typestore, t, names, q[order])))
         t_meas = stamps(MEASUREMENT_HZ, offset_s=0.0037)
-        for t, value in zip(
-            t_meas, strokes_m(t_meas) * 2.0 if measurement == "readings" else poses(t_meas), strict=True
+        for k, (t, value) in enumerate(
+            zip(t_meas, strokes_m(t_meas) * 2.0 if measurement == "readings" else poses(t_meas), strict=True)
         ):
+            names = [("spare" if i == 1 and k in without_a_joint[1] else name) for i, name in enumerate(JOINTS)]
             msg = (
-                joint_state(typestore, t, JOINTS, value)
+                joint_state(typestore, t, names, value)
                 if measurement == "readings"
                 else pose_stamped(typestore, t, value)
             )
@@ -272,7 +284,7 @@ def test_wrong_message_type_is_named(tmp_path, capsys):
     assert "--pose /status: the topic carries std_msgs/msg/String; expected geometry_msgs/msg/PoseStamped" in err
 
 
-def test_joint_names_not_in_the_message_are_refused(tmp_path, capsys):
+def test_joint_names_in_no_message_are_refused(tmp_path, capsys):
     bag = tmp_path / "run"
     write_bag(bag, "ros2-sqlite3")
     out = tmp_path / "log.csv"
@@ -292,6 +304,8 @@ def test_joint_names_not_in_the_message_are_refused(tmp_path, capsys):
         ],
     )
     assert "message 1: joint(s) a, b, c, d, e, f not in the message; it has leg4, leg1" in err
+    assert f"(every one of its {len(stamps(STROKE_HZ))} messages refused)" in err  # not a row's fault: the topic's
+    assert not out.exists()
 
 
 def test_a_file_that_is_not_a_bag(tmp_path, capsys):
@@ -302,3 +316,30 @@ def test_a_file_that_is_not_a_bag(tmp_path, capsys):
         ["import-bag", str(not_a_bag), "--strokes", "/a", "--readings", "/b", "--out", str(tmp_path / "log.csv")],
     )
     assert "cannot read as a ROS bag" in err
+
+
+def test_a_message_without_one_of_the_joints_refuses_only_its_row(tmp_path, capsys):
+    """The legs are matched by name in every message; one that lacks a leg's joint gives no row
+    (a reading) or no stroke sample (the strokes are interpolated across it), and is counted."""
+    bag = tmp_path / "run"
+    refused_strokes, refused_readings = {10, 11}, {5}
+    write_bag(bag, "ros2-sqlite3", without_a_joint=(refused_strokes, refused_readings))
+    out = tmp_path / "log.csv"
+    argv = ["import-bag", str(bag), "--strokes", "/drive/joint_states", "--readings", "/tracker/joint_states"]
+    # the readings' legs named by their first message, the strokes' (in another order) by the option
+    assert main([*argv, "--stroke-joints", ",".join(JOINTS), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    t_meas = stamps(MEASUREMENT_HZ, offset_s=0.0037)
+    inside = t_meas <= stamps(STROKE_HZ)[-1]
+    kept = inside & ~np.isin(np.arange(len(t_meas)), list(refused_readings))
+    assert f"wrote {out} ({kept.sum()} rows" in err and f"of {len(t_meas)} --readings message(s)" in err
+    assert f"{(~inside).sum()} without stroke messages" in err
+    assert "1 --readings /tracker/joint_states message(s) refused (first: message 6: joint(s) leg2 not in" in err
+    assert "2 --strokes /drive/joint_states message(s) refused (first: message 11: joint(s) leg6 not in" in err
+    _, rows = read_csv(out)
+    assert len(rows) == kept.sum()
+    np.testing.assert_allclose(rows[:, 0], t_meas[kept] - t_meas[0], atol=1e-6)
+    np.testing.assert_allclose(rows[:, 7:], 2000.0 * strokes_m(t_meas[kept]), atol=1e-9)
+    # across the two refused stroke messages the interpolation spans 30 ms: h²/8 · max|f''| with h 3×
+    err_mm = np.abs(rows[:, 1:7] - 1000.0 * strokes_m(t_meas[kept]))
+    assert err_mm.max() <= 9 * interpolation_bound_mm()

@@ -14,8 +14,11 @@ columns ``mx_mm … myaw_deg`` of spec §7).
 Time alignment: one log row per measurement message. The strokes are interpolated linearly to
 the measurement's stamp between the two stroke messages around it; a measurement with no
 stroke message on one side, or whose two neighbours are more than ``--max-gap-s`` apart, gets
-no row (the count is reported). ``t_s`` is seconds since the first written row. ROS messages
-carry SI units (REP 103: metres), hence the default ``m``; the unit flags say otherwise.
+no row (the count is reported). The legs are matched by joint name in every message; a message
+without one of them is refused alone and counted (a reading gets no row; the strokes are
+interpolated across a refused stroke message, within ``--max-gap-s``). ``t_s`` is seconds since
+the first written row. ROS messages carry SI units (REP 103: metres), hence the default ``m``;
+the unit flags say otherwise.
 """
 
 from __future__ import annotations
@@ -56,10 +59,20 @@ class TopicSeries:
         t_s: ``(N,)`` stamps [s] (ROS time, seconds since the epoch).
         values: ``(N, 6)`` six joint positions (in the bag's unit) or a pose
             ``[x, y, z (bag unit), roll, pitch, yaw [rad]]``.
+        refused: messages left out, each ``(message number from 1, cause)``: a JointState without
+            one of the legs' joints, or whose names and positions do not pair up.
     """
 
     t_s: np.ndarray
     values: np.ndarray
+    refused: tuple[tuple[int, str], ...] = ()
+
+    def refused_words(self, option: str, topic: str) -> str:
+        """``"; 2 --strokes /t message(s) refused (first: message 7: …)"`` or ``""``."""
+        if not self.refused:
+            return ""
+        number, cause = self.refused[0]
+        return f"; {len(self.refused)} {option} {topic} message(s) refused (first: message {number}: {cause})"
 
 
 def interpolate_to_stamps(source: TopicSeries, t_s: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -143,21 +156,22 @@ def _stamp_s(msg, bag_time_ns: int, clock: str) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
 
 
-def _joint_positions(msg, joints: list[str] | None, where: str) -> list[float]:
+def _joint_positions(msg, joints: list[str] | None) -> list[float] | str:
+    """The six legs' positions of a JointState, or why this message has none (its row is refused)."""
     positions = list(msg.position)
     if joints is None:
         if len(positions) != 6:
-            raise CalibError(
-                f"{where}: expected 6 joint positions, got {len(positions)} (names {list(msg.name)}); "
+            return (
+                f"expected 6 joint positions, got {len(positions)} (names {shown(', '.join(msg.name))}); "
                 "name the six joints with --stroke-joints / --reading-joints"
             )
         return positions
     names = list(msg.name)
     if len(names) != len(positions):
-        raise CalibError(f"{where}: {len(names)} joint names but {len(positions)} positions")
+        return f"{len(names)} joint names but {len(positions)} positions"
     missing = [name for name in joints if name not in names]
     if missing:
-        raise CalibError(f"{where}: joint(s) {', '.join(missing)} not in the message; it has {', '.join(names)}")
+        return f"joint(s) {shown(', '.join(missing))} not in the message; it has {shown(', '.join(names))}"
     return [positions[names.index(name)] for name in joints]
 
 
@@ -171,12 +185,13 @@ def read_topic(
         clock: ``"header"`` (the message's ``header.stamp``) or ``"bag"`` (the recording time).
     Raises:
         CalibError: a missing topic (listing the bag's topics), another message type (naming
-            it), a message without six positions, a zero header stamp, non-finite values.
+            it), a zero header stamp, non-finite values, no message with the six legs' positions
+            (a message without one of them is refused alone and counted in ``refused``).
     """
     from rosbags.highlevel import AnyReaderError
 
     connections = _connections(reader, bag, topic, option, kind)
-    stamps, values = [], []
+    stamps, values, refused = [], [], []
     for k, (connection, bag_time_ns, raw) in enumerate(reader.messages(connections=connections)):
         where = f"{bag}: {option} {topic}: message {k + 1}"
         try:
@@ -191,7 +206,11 @@ def read_topic(
                 # the first message's names fix the legs' order: a later message listing them in
                 # another order is matched by name, never taken in its own order
                 joints = list(msg.name)
-            row = _joint_positions(msg, joints, where)
+            positions = _joint_positions(msg, joints)
+            if isinstance(positions, str):
+                refused.append((k + 1, positions))
+                continue
+            row = positions
         else:
             p, q = msg.pose.position, msg.pose.orientation
             row = [p.x, p.y, p.z, q.x, q.y, q.z, q.w]
@@ -200,6 +219,11 @@ def read_topic(
         stamps.append(t_s)
         values.append(row)
     if not stamps:
+        if refused:
+            number, cause = refused[0]
+            raise CalibError(
+                f"{bag}: {option} {topic}: message {number}: {cause} (every one of its {len(refused)} messages refused)"
+            )
         raise CalibError(f"{bag}: {option} {topic}: the topic has no messages")
     order = np.argsort(stamps, kind="stable")
     times, rows = np.array(stamps)[order], np.array(values, dtype=float)[order]
@@ -207,7 +231,7 @@ def read_topic(
         if np.any(np.linalg.norm(rows[:, 3:], axis=1) < 1e-9):
             raise CalibError(f"{bag}: {option} {topic}: a pose has a zero quaternion; expected unit quaternions")
         rows = np.hstack([rows[:, :3], quaternion_to_rpy(rows[:, 3:])])
-    return TopicSeries(times, rows)
+    return TopicSeries(times, rows, tuple(refused))
 
 
 # ----------------------------------------------------------------------------- the log
@@ -268,9 +292,12 @@ def run(args: argparse.Namespace) -> int:
     io.atomic_write_text(out, log_text(t_s - t_s[0], strokes_mm, header, measured_values))
     start = datetime.fromtimestamp(t_s[0], tz=UTC).isoformat(timespec="milliseconds")
     dropped = int((~kept).sum())
+    option, topic = ("--readings", args.readings) if args.readings is not None else ("--pose", args.pose)
+    messages = len(measured.t_s) + len(measured.refused)
     print(
-        f"stewart-calib import-bag: wrote {out} ({int(kept.sum())} rows from t = {start}; {dropped} measurement(s) "
-        f"without stroke messages within {args.max_gap_s!r} s dropped)",
+        f"stewart-calib import-bag: wrote {out} ({int(kept.sum())} rows from t = {start}, of {messages} {option} "
+        f"message(s); {dropped} without stroke messages within {args.max_gap_s!r} s dropped"
+        f"{measured.refused_words(option, shown(topic))}{strokes.refused_words('--strokes', shown(args.strokes))})",
         file=sys.stderr,
     )
     return 0
