@@ -141,9 +141,10 @@ def observability_indices(singular_values: np.ndarray, n_rows: int) -> dict[str,
 
 
 def name_direction(
-    vector: np.ndarray, min_component: float = COMPONENT_MIN, names: tuple[str, ...] = PARAMETER_NAMES
+    vector: np.ndarray, min_component: float = COMPONENT_MIN, names: tuple[str, ...] | list[str] = PARAMETER_NAMES
 ) -> str:
-    """``"0.62·j3z − 0.68·l3"``: the components with ``|coef| ≥ min_component``, largest first."""
+    """``"0.62·j3z − 0.68·l3"``: the components with ``|coef| ≥ min_component``, largest first
+    (``names``: the components' names, the 42 drive parameters by default)."""
     # Rounded magnitudes, then parameter order: equal-looking terms print in a fixed order.
     order = np.lexsort((np.arange(len(vector)), -np.round(np.abs(vector), 2)))
     terms = [(float(vector[k]), names[k]) for k in order if abs(vector[k]) >= min_component]
@@ -607,6 +608,24 @@ def measured_samples(platform: Platform, log) -> tuple[np.ndarray, np.ndarray, n
     if not len(samples[0]):
         raise CalibError(NO_POSE)
     return samples
+
+
+def instrument_conditioning(report: dict) -> dict:
+    """The "conditioning" section of an outside instrument's calibration result (JSON-ready): the
+    keys of :func:`conditioning_summary` from :func:`~stewart_calib.estimators.batch.identifiability`'s
+    report, whose verdict and weakest directions are of its Jacobian with unit columns, and both
+    condition numbers (``"condition_number"`` in mm, rad and k as for ``identifiability --log``)."""
+    keys = (
+        "unknowns",
+        "rank",
+        "condition_number",
+        "condition_number_equilibrated",
+        "null_space_dimension",
+        "weakest_directions",
+        "null_space",
+        "verdict",
+    )
+    return {key: report[key] for key in keys}
 
 
 def conditioning_summary(report: IdentifiabilityReport) -> dict:

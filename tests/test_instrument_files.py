@@ -508,3 +508,51 @@ def test_track_on_a_pose_log_writes_a_result_with_the_instrument(tmp_path):
     )
     result = json.loads((tmp_path / "cur.json").read_text())
     assert result["instrument"]["names"][0] == "frame_x_mm" and result["stroke_scale"]["names"][0] == "k1"
+
+
+@pytest.mark.parametrize("kind", ["pose", "points"])
+def test_an_outside_instruments_result_carries_the_conditioning_identifiability_reports(tmp_path, kind):
+    """calibrate's "conditioning" of a pose or points log is what ``identifiability --log`` reports of
+    the same samples (48 unknowns: 30 drive directions, 6 stroke scales, the instrument's 12)."""
+    platform = hobby() if kind == "pose" else _points_platform()
+    truth = InstrumentTruth(np.array([30.0, 10.0, -5.0, 0.0, 0.0, 45.0]), np.zeros(6 if kind == "pose" else 3))
+    case = make_case(platform, 60, 22, truth)
+    (tmp_path / "p.toml").write_text(platform_to_toml(platform))
+    io.write_log(tmp_path / "log.csv", case.log, platform)
+    given = ["--platform", str(tmp_path / "p.toml"), "--log", str(tmp_path / "log.csv")]
+    assert main(["calibrate", *given, "--method", "ls", "--out", str(tmp_path / "r.json")]) == 0
+    assert main(["identifiability", *given, "--json", str(tmp_path / "i.json")]) == 0
+    conditioning = json.loads((tmp_path / "r.json").read_text())["conditioning"]
+    report = json.loads((tmp_path / "i.json").read_text())
+    assert conditioning == {key: report[key] for key in conditioning}
+    assert conditioning["unknowns"] == conditioning["rank"] == 48
+    assert conditioning["null_space"] == [] and conditioning["null_space_dimension"] == 0
+    assert (conditioning["condition_number_equilibrated"] > 1e3) == (conditioning["verdict"] == "poorly conditioned")
+    assert len(conditioning["weakest_directions"]) == 3 and all("·" in d for d in conditioning["weakest_directions"])
+
+
+def test_poses_that_do_not_rotate_leave_named_directions_unidentified(tmp_path, capsys):
+    """A pose list that only translates: rank-deficient, the null space's directions named."""
+    platform = hobby()
+    ws = platform.workspace
+    rng = np.random.default_rng(4)
+    poses = ws.home + np.c_[rng.uniform(-10.0, 10.0, (40, 3)), np.zeros((40, 3))]
+    io.write_pose_list(tmp_path / "poses.csv", poses)
+    assert (
+        main(
+            [
+                "identifiability",
+                "--platform",
+                str(HOBBY),
+                "--poses",
+                str(tmp_path / "poses.csv"),
+                "--json",
+                str(tmp_path / "i.json"),
+            ]
+        )
+        == 0
+    )
+    report = json.loads((tmp_path / "i.json").read_text())
+    assert report["verdict"] == "rank-deficient"
+    assert report["null_space_dimension"] == report["unknowns"] - report["rank"] == len(report["null_space"]) > 0
+    assert "not identified: " in capsys.readouterr().out

@@ -278,8 +278,9 @@ def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], fil
     Returns:
         JSON-ready ``{"unknowns", "rank", "condition_number", "condition_number_equilibrated"
         (:func:`equilibrated_condition_number`), "verdict" (of the equilibrated number, with the
-        thresholds of :mod:`stewart_calib.identifiability`), "<block>_identifiable" per drive block,
-        "predicted_stddev": {name: σ in file units (None: not identified)}}``.
+        thresholds of :mod:`stewart_calib.identifiability`), "null_space_dimension",
+        "weakest_directions" and "null_space" (named, :func:`_named_directions`), "<block>_identifiable"
+        per drive block, "predicted_stddev": {name: σ in file units (None: not identified)}}``.
     """
     drive = problem.drive
     R, t, ok, inputs = _fk(problem, np.zeros(drive.size), None)
@@ -289,10 +290,14 @@ def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], fil
     basis = gauge.free_basis(drive.legs)
     sigmas = np.asarray(problem.sigmas, dtype=float)
     A, _ = _system(problem, state, basis, sigmas, np.ones(len(problem.inputs)), True)
+    # A's square triangular factor (rows padded to the columns): the same singular values, right
+    # singular vectors and column norms as the (6N × 48) A at a fraction of the cost
+    A = np.asarray(np.linalg.qr(np.vstack([A, np.zeros((max(0, A.shape[1] - A.shape[0]), A.shape[1]))]), mode="r"))
     s = np.linalg.svd(A, compute_uv=False)
     rank = int(np.sum(s > 1e-8 * s[0]))
     equilibrated = equilibrated_condition_number(A) if rank == A.shape[1] else None
     all_names = [*drive.parameter_names, *(name for block in drive.blocks for name in block.names), *names]
+    weakest, null_space = _named_directions(problem, state, basis, sigmas, A, rank, all_names)
     stddev: list[float | None] = [None] * len(all_names)
     if rank == A.shape[1]:
         lift = _lift(problem, basis, True, unknowns.size)
@@ -307,9 +312,70 @@ def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], fil
         "condition_number": float(s[0] / s[-1]) if rank == A.shape[1] else None,
         "condition_number_equilibrated": equilibrated,
         "verdict": "rank-deficient" if equilibrated is None else _verdict(equilibrated),
+        "null_space_dimension": len(null_space),
+        "weakest_directions": weakest,
+        "null_space": null_space,
         **{f"{key}_identifiable": value for key, value in _blocks_identifiable(problem, state, basis, sigmas).items()},
         "predicted_stddev": dict(zip(all_names, stddev, strict=True)),
     }
+
+
+def instrument_identifiability(platform, strokes: np.ndarray, readings: np.ndarray, payload_kg) -> dict:
+    """:func:`identifiability` of an outside instrument's samples (``strokes`` [mm], ``readings`` in
+    file units, NaN: a target not seen; ``payload_kg`` or None) at the nominal drive and the
+    platform's instrument as it stands — register it on a log first
+    (:func:`~stewart_calib.instruments.external.registered_platform`)."""
+    from ..drive import drive_model
+    from ..instruments.external import model_for
+
+    model = model_for(platform)
+    drive = drive_model(platform).identifying()
+    unknowns = model.nominal_unknowns()
+    problem = BatchProblem(
+        drive,
+        drive.inputs_near(strokes),
+        readings,
+        model.module,
+        model.register,
+        model.sigmas,
+        model.channels,
+        model.channel_names,
+        np.arange(len(strokes), dtype=float),
+        payload_kg,
+    )
+    return identifiability(problem, unknowns, model.unknown_names, unknowns.file_jacobian())
+
+
+def _named_directions(
+    problem: BatchProblem, state: _State, basis, sigmas, A: np.ndarray, rank: int, names: list[str]
+) -> tuple[list[str], list[str]]:
+    """The weakest identified directions (up to :data:`~stewart_calib.identifiability.N_WEAKEST`,
+    weakest first) and the ``A.shape[1] − rank`` unidentified ones of the gauge-reduced Jacobian
+    (``A``: its square triangular factor) with unit columns, each named in the unknowns
+    (:func:`~stewart_calib.identifiability.name_direction`).
+
+    A direction of the reduced unknowns is lifted to all of them (δM through the gauge's basis) and
+    each component weighed by its unknown's own whitened column norm: the share, in σ of the
+    readings, each unknown takes in it — mm, rad and k made comparable as the verdict's unit
+    columns make them.
+    """
+    from ..identifiability import N_WEAKEST, name_direction
+
+    norms = np.linalg.norm(A, axis=0)
+    if np.any(norms == 0):
+        norms = np.where(norms == 0, 1.0, norms)
+    _, _, Vt = np.linalg.svd(A / norms)  # A square: Vᵀ holds the null space's rows too
+    full = np.eye(N_PARAMS)  # every δM column, the gauge's directions too
+    own = np.linalg.norm(_system(problem, state, full, sigmas, np.ones(len(problem.inputs)), True)[0], axis=0)
+    lift = _lift(problem, basis, True, state.unknowns.size)
+
+    def named(v: np.ndarray) -> str:
+        share = own * (lift @ (v / norms))
+        share /= np.linalg.norm(share)
+        return name_direction(share * np.sign(share[np.argmax(np.abs(share))]), names=names)
+
+    weakest = [named(Vt[k]) for k in range(rank - 1, max(rank - 1 - N_WEAKEST, -1), -1)]
+    return weakest, [named(v) for v in Vt[rank:]]
 
 
 def equilibrated_condition_number(A: np.ndarray) -> float | None:

@@ -40,7 +40,13 @@ from ..estimators.base import (
     accounting_words,
     skipped_count,
 )
-from ..identifiability import conditioning_summary, identifiability_report, measured_samples, warning_line
+from ..identifiability import (
+    conditioning_summary,
+    identifiability_report,
+    instrument_conditioning,
+    measured_samples,
+    warning_line,
+)
 from ..online import Rejections
 from ..planning import noise_floor
 from ..platform import N_LEGS, Platform, load_platform
@@ -94,6 +100,16 @@ def nominal_poses(platform: Platform, log: Log) -> np.ndarray:
     drive = drive_model(platform)
     fk, _ = drive.settled_kinematics(log.strokes, log.load_kg, strict=False)
     return fk.pose6[fk.converged]
+
+
+def outside_conditioning(platform: Platform, log: Log) -> dict:
+    """The "conditioning" section of a pose or points instrument's result: what ``identifiability
+    --log`` reports of these samples (the nominal drive, the instrument registered on them)."""
+    from ..estimators.batch import instrument_identifiability
+    from ..instruments.external import registered_platform
+
+    registered = registered_platform(platform, log.strokes, log.readings)
+    return instrument_conditioning(instrument_identifiability(registered, log.strokes, log.readings, log.load_kg))
 
 
 def nominal_residuals(platform: Platform, block: Log) -> np.ndarray:
@@ -232,6 +248,7 @@ def run(args: argparse.Namespace) -> int:
             extra["conditioning"] = conditioning_summary(report)
         else:
             poses = nominal_poses(platform, checked)
+            extra["conditioning"] = outside_conditioning(platform, checked)
         # the tracker's methods carry a random walk and the paper's forms: their covariances are not the
         # static Cramér–Rao bound the noise floor is, so only an outside instrument's is compared with it
         floor = None if tracker else noise_floor(platform, estimate.samples_used, config.noise)

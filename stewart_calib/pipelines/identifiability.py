@@ -114,7 +114,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
 
     from .. import kinematics as kin
     from ..drive import drive_model
-    from ..estimators.batch import BatchProblem, identifiability
+    from ..estimators.batch import instrument_identifiability
     from ..instruments.external import model_for, registered_platform, visible_targets
     from ..planning import design_covariance
 
@@ -139,20 +139,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
         if model.kind == "points":  # a target out of its cone of visibility is not read
             seen = visible_targets(platform, R, t)
             readings = np.where(np.repeat(seen, 3, axis=-1), readings, np.nan)
-    unknowns = model.nominal_unknowns()
-    problem = BatchProblem(
-        drive,
-        drive.inputs_near(strokes),
-        readings,
-        model.module,
-        model.register,
-        model.sigmas,
-        model.channels,
-        model.channel_names,
-        np.arange(len(strokes), dtype=float),
-        payload,
-    )
-    report = identifiability(problem, unknowns, model.unknown_names, unknowns.file_jacobian())
+    report = instrument_identifiability(platform, strokes, readings, payload)
     equilibrated = report["condition_number_equilibrated"]
     print(
         f"Identifiability of drive, stroke scale and {model.kind} instrument from {len(strokes)} poses: "
@@ -161,6 +148,9 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
         f"{report['condition_number'] or float('inf'):.4g} in mm, rad and k)"
     )
     print(report["gauge"])
+    for what, names in (("weakest directions (unit columns)", "weakest_directions"), ("not identified", "null_space")):
+        if report[names]:
+            print(f"{what}: " + "; ".join(report[names]))
     print("predicted standard deviation per unknown (Cramér–Rao; mm, dimensionless k, degrees):")
     items = list(report["predicted_stddev"].items())
     for start in range(0, len(items), 7):

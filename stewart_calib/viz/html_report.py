@@ -319,21 +319,27 @@ def _conditioning_section(result: dict) -> str:
         return ""
     weakest = "".join(f"<li><code>{html.escape(d)}</code></li>" for d in cond.get("weakest_directions", []))
     null = "".join(f"<li><code>{html.escape(d)}</code></li>" for d in cond.get("null_space", []))
+    outside = "condition_number_equilibrated" in cond  # a pose or points instrument's: drive and instrument
     return (
         "<h2>Conditioning</h2>"
         + html_table(
-            ["verdict", "rank", "condition number", "unidentified directions"],
+            ["verdict", "rank", "condition number" + (" (unit columns)" if outside else ""), "unidentified directions"],
             [
                 [
                     cond.get("verdict"),
                     cond.get("rank"),
-                    _fmt(cond.get("condition_number"), 4),
+                    _fmt(cond.get("condition_number_equilibrated" if outside else "condition_number"), 4),
                     cond.get("null_space_dimension"),
                 ]
             ],
         )
-        + "<p>Weakest directions of the 42 parameters (unit vectors in named parameters; the "
-        "poses constrain these least):</p><ol>"
+        + (
+            "<p>Weakest directions of the drive's and the instrument's unknowns (each unknown's share in σ "
+            "of the readings; the poses constrain these least):</p><ol>"
+            if outside
+            else "<p>Weakest directions of the 42 parameters (unit vectors in named parameters; the "
+            "poses constrain these least):</p><ol>"
+        )
         + weakest
         + "</ol>"
         + (f"<p>Unidentified directions:</p><ol>{null}</ol>" if null else "")
