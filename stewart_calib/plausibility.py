@@ -96,9 +96,15 @@ def check_plausible(
             if noise_scale is not None
             else ""
         )
+        # an outside instrument's samples are not checked here (no tracker legs): no residual to name
+        residual = (
+            f"RMS leg residual {rms_mm:.3g} mm at the estimate ({rms_mm / sigma_mm:.3g} × the noise σ {sigma_mm:g} mm; "
+            f"limit {RESIDUAL_SIGMAS:g} ×), "
+            if np.size(strokes)
+            else ""
+        )
         raise CalibError(
-            f"{method}: the log does not fit platform '{platform.name}': RMS leg residual {rms_mm:.3g} mm at the "
-            f"estimate ({rms_mm / sigma_mm:.3g} × the noise σ {sigma_mm:g} mm; limit {RESIDUAL_SIGMAS:g} ×), largest "
+            f"{method}: the log does not fit platform '{platform.name}': {residual}largest "
             f"parameter error {PARAMETER_NAMES[worst]} = {error[worst]:.4g} mm "
             f"({abs(error[worst]) / noise.prior_sigma_mm:.3g} × the prior σ {noise.prior_sigma_mm:g} mm; limit "
             f"{PRIOR_SIGMAS:g} ×){scatter} — a log of another platform, glitches in every sample, or a platform file "

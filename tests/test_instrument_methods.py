@@ -5,6 +5,7 @@ closed-form registration, with the noise model of the data (spec §7, issue 13).
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -46,3 +47,44 @@ def test_ekf_reaches_the_cramer_rao_bound_on_a_points_log_with_the_default_confi
         z.append(_normalised_errors(case, run_calibration(platform, case.log, "ekf", config).estimate))
     ratio = math.sqrt(np.mean(np.square(z)))
     assert ratio <= 1.2, f"ekf: RMS error / CRB = {ratio:.3f}"
+
+
+#: three targets on one line, the first and last 60 mm either side of the middle
+ON_A_LINE = np.array([[60.0, 0.0, 25.0], [0.0, 0.0, 25.0], [-60.0, 0.0, 25.0]])
+
+
+@pytest.mark.parametrize("method", ["ekf", "isam2", "lm"])
+def test_targets_on_a_line_give_every_method_a_finite_estimate_near_the_bound(method):
+    """Targets on one line fix no pose by themselves (the rotation about the line is free): the
+    methods take the pose from the drive's kinematics then, as with one or two targets. Before,
+    their singular loose pose sent ekf, lm and isam2 to NaN and a refusal naming 'RMS leg residual nan'."""
+    platform = hobby(replace(POINTS, targets=ON_A_LINE))
+    truth = replace(POINTS_TRUTH, target_offset=np.zeros(ON_A_LINE.size), target_spread_mm=0.0)
+    case = make_case(platform, 40, 7, truth)
+    estimate = run_calibration(platform, case.log, method, load_estimator_config(None, OVERRIDES)).estimate
+    z = _normalised_errors(case, estimate)
+    assert np.all(np.isfinite(z))
+    assert math.sqrt(np.mean(np.square(z))) <= 2.0, (
+        f"{method}: RMS error / CRB = {math.sqrt(np.mean(np.square(z))):.3f}"
+    )
+
+
+def test_targets_fix_a_pose_only_off_a_line():
+    """The loose pose of a reading: none where the three targets lie within σ/0.01 rad (5 mm here)
+    of one line; a pose whose covariance bounds the rotation about it where they lie 10 mm off."""
+    from stewart_calib import kinematics as kin
+    from stewart_calib.instruments import instrument_model, instrument_theta
+    from stewart_calib.instruments.points import LOOSE_ROTATION_SIGMA_RAD
+
+    R_X, t_X = kin.pose_to_rt(np.array([[2.0, -3.0, 250.0, 0.05, -0.02, 0.1]]))
+    for off_mm, fixed in ((0.0, False), (4.0, False), (10.0, True)):
+        targets = np.array([[60.0, 0.0, 25.0], [0.0, off_mm, 25.0], [-60.0, 0.0, 25.0]])
+        platform = hobby(replace(POINTS, targets=targets))
+        model = instrument_model(platform, load_estimator_config(None, OVERRIDES).noise)
+        theta = instrument_theta(model, None)
+        z = kin.transform_points(R_X[0], t_X[0], targets).reshape(-1)  # the frame at the origin of {J}
+        pose = model.pose(z, theta, None)
+        assert (pose is not None) == fixed, off_mm
+        if fixed:
+            np.testing.assert_allclose(pose.t, t_X[0], atol=1e-9)
+            assert np.sqrt(np.max(np.linalg.eigvalsh(pose.covariance[:3, :3]))) <= LOOSE_ROTATION_SIGMA_RAD

@@ -150,3 +150,15 @@ def test_the_rms_residual_is_the_drive_residual_at_the_tracker_fk_pose(logs):
         )
     assert np.isnan(rms_leg_residual_mm(platform, error, own.strokes[5:7], unreachable[5:7]))
     assert np.isnan(rms_leg_residual_mm(platform, error, np.zeros((0, 6)), np.zeros((0, 6))))
+
+
+def test_without_tracker_samples_the_refusal_names_no_leg_residual():
+    """An outside instrument's estimate is checked on its parameters alone: the refusal names the
+    parameter, not a leg residual it never computed (was 'RMS leg residual nan mm')."""
+    platform = nim_stewart()
+    noise = NoiseConfig()
+    error = np.zeros(42)
+    error[9] = 20 * PRIOR_SIGMAS * noise.prior_sigma_mm
+    with pytest.raises(CalibError) as refused:
+        check_plausible(platform, error, noise, np.zeros((0, 6)), np.zeros((0, 6)), "lm")
+    assert "largest parameter error j2z = 1000 mm" in str(refused.value) and "residual" not in str(refused.value)

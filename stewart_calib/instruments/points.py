@@ -32,6 +32,13 @@ FRAME_NAMES: tuple[str, ...] = tuple(
 )
 
 
+#: the seen targets fix a pose (loose coupling) only where they leave the rotation about their best
+#: line at most this σ [rad]: σ_pos / √(their squared distances off it). Collinear or coincident
+#: targets leave it free (an exact line: a singular fit whose "pose" sent ekf, lm and isam2 off
+#: to NaN); at 0.01 rad the linearised rotation errs by ~σ²/2 = 5e-5 of itself.
+LOOSE_ROTATION_SIGMA_RAD = 0.01
+
+
 def unknown_names(n_targets: int) -> tuple[str, ...]:
     """Frame then targets in file units: ``frame_x_mm … frame_yaw_deg, p1x_mm, p1y_mm, p1z_mm, …``."""
     return FRAME_NAMES + tuple(f"p{k}{axis}_mm" for k in range(1, n_targets + 1) for axis in "xyz")
@@ -176,11 +183,17 @@ class PointsModel:
     def pose(self, z: np.ndarray, theta: np.ndarray, guess):
         """The platform pose that puts the seen targets where they were read (Kabsch of the targets
         in {D} onto ``F m_k``), its covariance ``σ² (Σ J_kᵀ J_k)⁻¹`` and ``∂ξ/∂θ`` (implicit function
-        theorem on the fit's normal equations); None with fewer than 3 targets seen."""
+        theorem on the fit's normal equations); None with fewer than 3 targets seen, or targets
+        (nearly) on one line (:data:`LOOSE_ROTATION_SIGMA_RAD`): the drive's kinematics then carry
+        the pose, as with one or two targets."""
         u = self._unknowns(theta)
         m = np.reshape(z, (-1, 3))
         seen = np.all(np.isfinite(m), axis=1)
         if seen.sum() < 3:
+            return None
+        targets = u.targets[seen]
+        off_line = np.linalg.svd(targets - targets.mean(axis=0), compute_uv=False)[1:]
+        if self.instrument.position_sigma_mm > LOOSE_ROTATION_SIGMA_RAD * np.sqrt(np.sum(off_line**2)):
             return None
         in_base = kin.transform_points(u.R_frame, u.t_frame, m[seen])
         R_X, t_X = kabsch(u.targets[seen], in_base)
