@@ -213,6 +213,29 @@ REFUSALS = [
         "exists and is not a directory",
     ),
     ("write", "simulate --experiment quick --out {d}/log.csv", "--out {d}/log.csv: cannot create the output directory"),
+    # an output folder no file can be made in, whoever runs it: procfs takes no file, and says yes to
+    # root's os.access — every command refuses before its work, not only when it writes at the end
+    *(
+        ("write", argv, f"{option} /proc/{name}: directory /proc is not writable")
+        for argv, option, name in (
+            ("calibrate --platform {d}/P.toml --log {d}/log.csv --method ekf --out /proc/r.json", "--out", "r.json"),
+            ("{calibrate} --platform-out /proc/c.toml", "--platform-out", "c.toml"),
+            ("{calibrate} --report /proc/report", "--report", "report/index.html"),
+            ("track --platform {d}/P.toml --log {d}/log.csv --method ekf --out /proc/r.json", "--out", "r.json"),
+            (
+                "validate --platform {d}/P.toml --result {d}/R.json --log {d}/log.csv --out /proc/v.csv",
+                "--out",
+                "v.csv",
+            ),
+            ("identifiability --platform {d}/P.toml --log {d}/log.csv --json /proc/i.json", "--json", "i.json"),
+            ("plan --platform {d}/P.toml --n 5 --out /proc/p.csv", "--out", "p.csv"),
+            ("export --platform {d}/P.toml --format json --out /proc/e.json", "--out", "e.json"),
+            ("simulate --experiment quick --out /proc/sim", "--out", "sim/platform.toml"),
+            ("sweep --spec {d}/seeds.toml --out /proc/sweep", "--out", "sweep"),
+            ("reproduce --quick --out /proc/out", "--out", "out"),
+            ("import-bag {d}/none.bag --strokes /a --readings /b --out /proc/l.csv", "--out", "l.csv"),
+        )
+    ),
     # bounded reads: /dev/zero and a FIFO nobody writes to, as any path argument
     (
         "read",

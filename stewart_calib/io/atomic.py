@@ -97,12 +97,22 @@ def output_directory(path: str | Path, option: str = "--out") -> Iterator[Path]:
 
 
 def check_writable_directory(directory: str | Path, option: str) -> None:
-    """Refuse, before the work, a directory that is missing, not a directory, or not writable."""
+    """Refuse, before the work, a directory that is missing, not a directory, or not writable.
+
+    Writable means a file can be made there: a private empty one is made and removed again. The
+    permission bits (``os.access``) say yes to root wherever the file system, a mount, a network
+    share's root squash or a security module would still refuse the write at the end.
+    """
     directory = Path(directory)
     if not directory.is_dir():
         raise CalibError(f"{option}: directory {shown(directory)} does not exist")
-    if not os.access(directory, os.W_OK | os.X_OK):
-        raise CalibError(f"{option}: directory {shown(directory)} is not writable (read-only or no permission)")
+    try:
+        fd, probe = tempfile.mkstemp(dir=directory, prefix=".stewart-calib-probe.", suffix=".tmp")
+    except OSError as err:
+        reason = err.strerror or err.__class__.__name__
+        raise CalibError(f"{option}: directory {shown(directory)} is not writable ({reason})") from None
+    os.close(fd)
+    os.unlink(probe)
 
 
 def atomic_write_text(path: str | Path, text: str) -> None:

@@ -130,6 +130,25 @@ def check_no_output_over_input(args: argparse.Namespace) -> None:
                 )
 
 
+def check_outputs_writable(args: argparse.Namespace) -> None:
+    """Refuse, before any work, an output whose directory cannot be written into — the one it is
+    in, or for one still to be made the nearest that exists (:func:`~stewart_calib.io.check_writable_directory`):
+    every command, so none finds out only when it writes its result.
+
+    Raises:
+        CalibError: naming the argument, the directory and the file system's reason.
+    """
+    from .. import io
+
+    for option, path in _written_files(args):
+        directory = os.path.abspath(path)
+        if not os.path.isdir(directory):  # an output directory (sweep, reproduce) that exists: itself
+            directory = os.path.dirname(directory)
+            while not os.path.isdir(directory) and directory != os.path.dirname(directory):
+                directory = os.path.dirname(directory)
+        io.check_writable_directory(directory, f"{option} {shown(path)}")
+
+
 #: optional dependencies (top-level module → the extra of pyproject.toml that installs it)
 OPTIONAL_EXTRAS = {"rosbags": "ros"}
 
@@ -139,6 +158,7 @@ def dispatch(args: argparse.Namespace) -> int:
     so does a missing optional dependency (naming the extra that installs it)."""
     try:
         check_no_output_over_input(args)
+        check_outputs_writable(args)
         return int(args.func(args) or 0)
     except CalibError as err:  # names from files may hold line breaks or terminal escapes: shown escaped
         print(f"stewart-calib {args.command}: error: {shown(err)}", file=sys.stderr)
