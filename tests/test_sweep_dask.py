@@ -22,7 +22,8 @@ import pyarrow.parquet as pq
 import pytest
 
 from stewart_calib.cli import main
-from stewart_calib.sweep import load_spec, run_sweep
+from stewart_calib.sweep import load_spec, run_sweep, store
+from stewart_calib.sweep.task import run_task
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -235,3 +236,34 @@ def test_unreachable_scheduler_is_one_line_with_the_address(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and address in err
     assert not out.exists()
+
+
+def test_a_part_cut_short_is_computed_again_on_resume_and_said(tmp_path, capsys):
+    """Issues 26/30: a part cut short (zero bytes, half its bytes) is no finished task: the next run
+    says so, computes it again and replaces it — the same rows; a part damaged inside with its ends
+    whole is named in one line when the parts are read, never a traceback."""
+    spec_path = _spec(tmp_path, 'name = "cut"\nmethods = ["ls"]\nseeds = 3\n[grid]\nsamples = 20\n')
+    out, spec = tmp_path / "out", load_spec(spec_path)
+    command = ["sweep", "--spec", str(spec_path), "--out", str(out), "--workers", "1"]
+    store.prepare(out)  # the finished sweep, without a cluster: every task's part, then the results
+    for cell, seed in spec.tasks():
+        store.write_part(out, run_task(cell, seed, spec.methods), store.schema(spec))
+    store.consolidate(spec, out, store.schema(spec))
+    rows = _rows(out)
+    parts = sorted((out / "parts").glob("*.parquet"))
+    assert len(parts) == 3
+    whole = parts[2].read_bytes()
+    parts[0].write_bytes(b"")
+    parts[1].write_bytes(parts[1].read_bytes()[: len(whole) // 2])
+    capsys.readouterr()
+    assert main(command) == 0
+    said = capsys.readouterr().out
+    assert "(1 already done; 2 damaged parts computed again, first " in said and "shorter than any Parquet" in said
+    assert "2 tasks run, 1 already done, 0 failed of 3" in said
+    assert _rows(out) == rows
+    middle = len(whole) // 2
+    parts[2].write_bytes(whole[:8] + bytes(b ^ 0xFF for b in whole[8:middle]) + whole[middle:])
+    capsys.readouterr()
+    assert main(command) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{parts[2]}: a damaged sweep part" in err and "run the sweep again" in err

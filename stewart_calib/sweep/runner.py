@@ -51,6 +51,7 @@ class SweepPlan:
             of a pilot task run here) times the samples of every unfinished task.
         basis: where the per-sample costs come from, for the plan line.
         pilots: the pilot tasks' rows (each written as its part when the run goes ahead).
+        damaged: ``"<part>: <why>"`` of the parts found damaged (cut short): their tasks run again.
     """
 
     tasks: int
@@ -58,12 +59,15 @@ class SweepPlan:
     cpu_seconds: float
     basis: str
     pilots: list[list[dict]] = field(default_factory=list)
+    damaged: list[str] = field(default_factory=list)
 
     def describe(self, spec: SweepSpec, workers: int | None) -> str:
         """The plan line: cells, seeds, tasks, the estimated CPU and, for a known number of workers, wall time."""
         line = (
             f"sweep {spec.name}: {spec.n_cells:,} cells × {len(spec.seeds):,} seeds = {self.tasks:,} tasks "
-            f"({self.done:,} already done); the methods' CPU ≈ {_duration(self.cpu_seconds)} ({self.basis})"
+            f"({self.done:,} already done"
+            + (f"; {len(self.damaged):,} damaged parts computed again, first {self.damaged[0]}" if self.damaged else "")
+            + f"); the methods' CPU ≈ {_duration(self.cpu_seconds)} ({self.basis})"
         )
         if workers and self.cpu_seconds > 0:
             line += f", ≈ {_duration(self.cpu_seconds / workers)} on {workers} workers"
@@ -103,7 +107,7 @@ def plan_sweep(
             f"{spec.source}: {spec.n_tasks:,} tasks ({spec.n_cells:,} cells × {len(spec.seeds):,} seeds) is more "
             f"than the limit of {max_tasks:,}; shrink the grid, run a pilot with --seeds N, or pass --yes"
         )
-    done = store.finished(spec, out)
+    done, damaged = store.part_states(spec, out)
     todo = [(cell, seed) for cell, seed in spec.tasks() if (cell.id, seed) not in done]
     # an instrument sets a task's cost more than any other setting (motion capture and laser
     # trackers run the methods' general paths): one cost per sample for each
@@ -128,7 +132,7 @@ def plan_sweep(
             f"than the limit of {max_cpu_hours:g} CPU-hours; shrink the grid, run a pilot with --seeds N, or pass "
             f"--yes (docs/sweeps.md: on a cluster)"
         )
-    return SweepPlan(len(spec.seeds) * spec.n_cells, len(done), cpu_seconds, basis, pilots)
+    return SweepPlan(len(spec.seeds) * spec.n_cells, len(done), cpu_seconds, basis, pilots, damaged)
 
 
 @dataclass

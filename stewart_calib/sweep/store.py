@@ -3,20 +3,24 @@
 ``DIR/parts/<cell id>-<seed>.parquet`` holds the rows of one task (one per method), written by
 the client the moment the task finishes, atomically (temporary file, then rename): a part
 either exists whole or not at all, so a sweep killed at any instant loses only the tasks in
-flight, and the next run skips every task whose part exists. ``DIR/results.parquet`` is the
+flight, and the next run skips every task whose part exists whole. A part cut short all the same
+(a rename that reached the disk before the data did, a crash of the machine, a copy stopped half
+way) lacks Parquet's closing magic bytes: the next run counts it as damaged, says so and computes
+its task again, replacing it. ``DIR/results.parquet`` is the
 concatenation of the parts of the spec's tasks, sorted by (grid order, seed, method order), so
 it is the same file whichever worker ran what and in which order.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pyarrow as pa
 import pyarrow.dataset as pads
 import pyarrow.parquet as pq
 
-from ..errors import CalibError
+from ..errors import CalibError, shown
 from ..io import atomic_path
 from .spec import SweepSpec
 from .task import METRICS
@@ -57,10 +61,50 @@ def prepare(out: Path) -> None:
         leftover.unlink(missing_ok=True)
 
 
-def finished(spec: SweepSpec, out: Path) -> set[tuple[str, int]]:
-    """(cell id, seed) of the spec's tasks whose part exists."""
+#: a Parquet file opens and closes with these bytes; its footer's length comes just before the last
+MAGIC = b"PAR1"
+
+
+def _damage(path: Path) -> str | None:
+    """Why ``path`` is no whole Parquet file (too short, no opening or closing magic bytes, a footer
+    longer than the file), or None: a truncated part fails here, reading only its ends (~20 µs)."""
+    try:
+        with path.open("rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            head = f.read(4)
+            if size < 12:
+                return f"{size} bytes, shorter than any Parquet file"
+            f.seek(size - 8)
+            tail = f.read(8)
+    except OSError as err:
+        return err.strerror or err.__class__.__name__
+    if head != MAGIC or tail[4:] != MAGIC:
+        return "cut short (no Parquet magic bytes at its end)" if head == MAGIC else "not a Parquet file"
+    if int.from_bytes(tail[:4], "little") > size - 12:
+        return "cut short (its footer is longer than the file)"
+    return None
+
+
+def part_states(spec: SweepSpec, out: Path) -> tuple[set[tuple[str, int]], list[str]]:
+    """``(finished, damaged)``: (cell id, seed) of the spec's tasks whose part exists whole, and
+    ``"<part path>: <why>"`` of those whose part exists damaged (their tasks are run again)."""
     present = {p.name for p in (out / PARTS).glob("*.parquet")}  # none when DIR does not exist yet
-    return {(cell.id, seed) for cell, seed in spec.tasks() if part_path(out, cell.id, seed).name in present}
+    done: set[tuple[str, int]] = set()
+    damaged: list[str] = []
+    for cell, seed in spec.tasks():
+        path = part_path(out, cell.id, seed)
+        if path.name in present:
+            why = _damage(path)
+            if why is None:
+                done.add((cell.id, seed))
+            else:
+                damaged.append(f"{shown(path)}: {why}")
+    return done, damaged
+
+
+def finished(spec: SweepSpec, out: Path) -> set[tuple[str, int]]:
+    """(cell id, seed) of the spec's tasks whose part exists whole (:func:`part_states`)."""
+    return part_states(spec, out)[0]
 
 
 def past_cost(out: Path, limit: int) -> dict[str, tuple[float, int]]:
@@ -92,13 +136,29 @@ def write_part(out: Path, rows: list[dict], table_schema: pa.Schema) -> None:
     _atomic_write(pa.Table.from_pylist(rows, schema=table_schema), part_path(out, rows[0]["cell"], rows[0]["seed"]))
 
 
+def _unreadable(paths: list[str], table_schema: pa.Schema) -> str | None:
+    """The refusal naming the first of ``paths`` that does not read as a part, or None."""
+    for path in paths:
+        try:
+            pq.read_table(path, schema=table_schema)
+        except (OSError, pa.ArrowException) as err:
+            detail = " ".join(str(err).split())
+            return f"{shown(path)}: a damaged sweep part ({detail}); remove it and run the sweep again to recompute it"
+    return None
+
+
 def consolidate(spec: SweepSpec, out: Path, table_schema: pa.Schema) -> pa.Table:
     """Write ``DIR/results.parquet`` from the parts of the spec's finished tasks; returns the table."""
     done = finished(spec, out)
     paths = [str(part_path(out, cell.id, seed)) for cell, seed in spec.tasks() if (cell.id, seed) in done]
-    table = (
-        pads.dataset(paths, schema=table_schema, format="parquet").to_table() if paths else table_schema.empty_table()
-    )
+    try:
+        table = (
+            pads.dataset(paths, schema=table_schema, format="parquet").to_table()
+            if paths
+            else table_schema.empty_table()
+        )
+    except (OSError, pa.ArrowException) as err:  # damaged inside, its ends whole: name the part
+        raise CalibError(_unreadable(paths, table_schema) or f"{out / PARTS}: cannot read the parts ({err})") from None
     order = {cell.id: cell.index for cell in spec.cells}
     method_order = {m: k for k, m in enumerate(spec.methods)}
     columns: list[list] = [table[name].to_pylist() for name in ("cell", "seed", "method")]
