@@ -166,3 +166,31 @@ def test_random_walk_sigma_and_between_factor():
     np.testing.assert_allclose(f.whitenedError(values), (np.arange(42.0) - 1.0) / 0.5)
     prior = random_walk.prior(1, np.full(42, 5.0))
     assert prior.error(values) == pytest.approx(0.5 * 42 / 25.0)
+
+
+def test_pose_instrument_factor_is_the_models_residual_in_one_compiled_call():
+    # factors/_kernels.pose_reading_rows against PoseModel.residual through the factor: a reading near the
+    # prediction, one on it (e ≈ 0) and one turned by π about an axis (Log's branch near π).
+    from stewart_calib.instruments import pose as pose_model
+    from stewart_calib.rotations import rotation_to_rpy, so3_exp
+    from tests.test_instrument_models import _models
+
+    model = _models()[0]
+    rng = np.random.default_rng(5)
+    size, block = model.unknowns.size + 3, slice(3, 3 + model.unknowns.size)  # the model's columns after others'
+    for case in range(6):
+        unknowns = rng.normal(0.0, 0.02, size)
+        theta = model.unknowns.nominal + unknowns[block]
+        R, t = kin.pose_to_rt(np.r_[rng.normal(0, 20, 3) + [0, 0, 200], rng.normal(0, 0.1, 3)])
+        R_P, t_P = pose_model.predict(pose_model.PoseUnknowns.from_pose6(theta[:6], theta[6:]), R, t)
+        axis = rng.normal(size=3)
+        turn = [np.zeros(3), np.pi * axis / np.linalg.norm(axis), rng.normal(0, 0.01, 3)][case % 3]
+        z = np.r_[t_P + rng.normal(0, 0.1, 3), rotation_to_rpy(R_P @ so3_exp(turn))]
+        reference = model.residual(R, t, theta, z, np.arange(6))
+        f = instrument.factor(model, X, z, np.arange(6), gtsam.noiseModel.Unit.Create(6), P, block, size)
+        values = _values(gtsam.Pose3(gtsam.Rot3(R), t), unknowns)
+        A_pose, A_params = (f.linearize(values).jacobian()[0][:, cols] for cols in (slice(0, 6), slice(6, None)))
+        np.testing.assert_allclose(f.unwhitenedError(values), reference.r, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(A_pose, reference.J_pose, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(A_params[:, block], reference.J_instrument, rtol=1e-12, atol=1e-12)
+        assert np.all(A_params[:, :3] == 0.0)

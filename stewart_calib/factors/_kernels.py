@@ -12,12 +12,13 @@ part included. The arithmetic is :func:`stewart_calib.kinematics.leg_residual`'s
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
 from .._jit import njit
-from .._kernels import leg_rows
+from .._kernels import _adjoint, _rotation, _tangent_from_pose6, leg_rows
 
 # as stewart_calib._kernels: x / 0 gives inf/NaN as numpy does
 _JIT: dict[str, Any] = {"nogil": True, "error_model": "numpy"}
@@ -83,3 +84,129 @@ def known_leg_rows(pose, legs, extensions):
     r, J_pose, J_legs = np.empty(k), np.empty((k, 6)), np.empty((k, 7))
     leg_rows(legs, R, t, extensions, r, J_pose, J_legs)
     return r, J_pose
+
+
+@njit(**_JIT)
+def _so3_log(R, phi):
+    """``Log(R)`` into ``phi (3,)`` [rad] (instruments.lie.so3_log: the series below sin θ = 1e-9, the
+    axis from ``(R + Rᵀ)/2 + I`` near π)."""
+    phi[0] = 0.5 * (R[2, 1] - R[1, 2])
+    phi[1] = 0.5 * (R[0, 2] - R[2, 0])
+    phi[2] = 0.5 * (R[1, 0] - R[0, 1])
+    sin_theta = math.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+    cos_theta = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    theta = math.atan2(sin_theta, cos_theta)
+    if sin_theta >= 1e-9:
+        scale = theta / sin_theta
+    elif cos_theta >= 0.0:
+        scale = 1.0 + theta**2 / 6.0
+    else:
+        column, largest = 0, -np.inf
+        for c in range(3):
+            if R[c, c] + 1.0 > largest:
+                column, largest = c, R[c, c] + 1.0
+        norm = 0.0
+        for a in range(3):
+            phi[a] = 0.5 * (R[a, column] + R[column, a]) + (1.0 if a == column else 0.0)
+            norm += phi[a] * phi[a]
+        scale = np.pi / math.sqrt(norm)
+    for a in range(3):
+        phi[a] *= scale
+
+
+@njit(**_JIT)
+def _right_jacobian_inverse(phi, J):
+    """``J_r⁻¹(φ) = I + [φ]×/2 + c [φ]×²`` into ``J (3, 3)`` (instruments.lie.so3_right_jacobian_inverse;
+    ``[φ]×² = φ φᵀ − θ² I``)."""
+    theta2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
+    if theta2 < 1e-8:
+        c = 1.0 / 12.0 + theta2 / 720.0
+    else:
+        theta = math.sqrt(theta2)
+        c = 1.0 / theta**2 - (1.0 + math.cos(theta)) / (2.0 * theta * math.sin(theta))
+    for a in range(3):
+        for b in range(3):
+            J[a, b] = c * phi[a] * phi[b]
+        J[a, a] += 1.0 - c * theta2
+    J[0, 1] -= 0.5 * phi[2]
+    J[0, 2] += 0.5 * phi[1]
+    J[1, 0] += 0.5 * phi[2]
+    J[1, 2] -= 0.5 * phi[0]
+    J[2, 0] -= 0.5 * phi[1]
+    J[2, 1] += 0.5 * phi[0]
+
+
+@njit(**_JIT)
+def _product(A, B, sign, out):
+    """``out ← sign · A B`` for ``(6, 6)`` matrices, in loops."""
+    for a in range(6):
+        for b in range(6):
+            s = 0.0
+            for c in range(6):
+                s += A[a, c] * B[c, b]
+            out[a, b] = sign * s
+
+
+@njit(**_JIT)
+def pose_reading_rows(pose, theta, z):
+    """The pose instrument's residual of one reading and its Jacobians, in one call
+    (instruments.pose.PoseModel.residual on all six channels): with frame ``F = θ[:6]`` and target
+    ``G = θ[6:12]`` (pose6 [mm, rad]), the predicted reading ``P = F⁻¹ X G`` at the platform pose
+    ``X`` and the reading ``M = z``, ``e = [Log(R_Mᵀ R_P), t_P − t_M]``.
+
+    Args:
+        pose: ``(4, 4)`` homogeneous pose X of {D} in {J} [mm] (``Pose3.matrix()``).
+    Returns:
+        ``(e (6,), ∂e/∂ξ_X (6, 6), ∂e/∂θ (6, 12))``: ``∂e/∂ξ_X = H Ad_{G⁻¹}``, on the tangents of F and G
+        ``[−H Ad_{P⁻¹}, H]`` with ``H = diag(J_r⁻¹(e_rot), R_P)``, carried to θ by ``(∂θ/∂[φ, γ])⁻¹``.
+    """
+    R_X, t_X = pose[:3, :3], pose[:3, 3]
+    R_F, R_G, R_M = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    _rotation(theta[0:6], R_F)
+    _rotation(theta[6:12], R_G)
+    _rotation(z, R_M)
+    R_P, t_P, R_MP = np.empty((3, 3)), np.empty(3), np.empty((3, 3))
+    R_XG, t_XG = np.empty((3, 3)), np.empty(3)
+    for a in range(3):  # X G: R_X R_G, R_X t_G + t_X − t_F
+        t_XG[a] = R_X[a, 0] * theta[6] + R_X[a, 1] * theta[7] + R_X[a, 2] * theta[8] + t_X[a] - theta[a]
+        for b in range(3):
+            R_XG[a, b] = R_X[a, 0] * R_G[0, b] + R_X[a, 1] * R_G[1, b] + R_X[a, 2] * R_G[2, b]
+    for a in range(3):  # P = F⁻¹ X G: R_Fᵀ R_XG, R_Fᵀ t_XG
+        t_P[a] = R_F[0, a] * t_XG[0] + R_F[1, a] * t_XG[1] + R_F[2, a] * t_XG[2]
+        for b in range(3):
+            R_P[a, b] = R_F[0, a] * R_XG[0, b] + R_F[1, a] * R_XG[1, b] + R_F[2, a] * R_XG[2, b]
+    for a in range(3):
+        for b in range(3):
+            R_MP[a, b] = R_M[0, a] * R_P[0, b] + R_M[1, a] * R_P[1, b] + R_M[2, a] * R_P[2, b]
+    e = np.empty(6)
+    e_rot, J_r = np.empty(3), np.empty((3, 3))
+    _so3_log(R_MP, e_rot)
+    _right_jacobian_inverse(e_rot, J_r)
+    H = np.zeros((6, 6))
+    for a in range(3):
+        e[a], e[3 + a] = e_rot[a], t_P[a] - z[a]
+        for b in range(3):
+            H[a, b], H[3 + a, 3 + b] = J_r[a, b], R_P[a, b]
+    R_inv, t_inv = np.empty((3, 3)), np.empty(3)
+    for a in range(3):  # G⁻¹
+        t_inv[a] = -(R_G[0, a] * theta[6] + R_G[1, a] * theta[7] + R_G[2, a] * theta[8])
+        for b in range(3):
+            R_inv[a, b] = R_G[b, a]
+    J_pose = np.empty((6, 6))
+    _product(H, _adjoint(R_inv, t_inv), 1.0, J_pose)
+    for a in range(3):  # P⁻¹
+        t_inv[a] = -(R_P[0, a] * t_P[0] + R_P[1, a] * t_P[1] + R_P[2, a] * t_P[2])
+        for b in range(3):
+            R_inv[a, b] = R_P[b, a]
+    H_frame, J_block = np.empty((6, 6)), np.empty((6, 6))
+    _product(H, _adjoint(R_inv, t_inv), -1.0, H_frame)
+    J_theta = np.empty((6, 12))
+    for block in range(2):
+        if block == 0:
+            _product(H_frame, _tangent_from_pose6(theta[0:6], R_F), 1.0, J_block)
+        else:
+            _product(H, _tangent_from_pose6(theta[6:12], R_G), 1.0, J_block)
+        for a in range(6):
+            for b in range(6):
+                J_theta[a, 6 * block + b] = J_block[a, b]
+    return e, J_pose, J_theta
