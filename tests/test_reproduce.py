@@ -500,3 +500,27 @@ def test_a_bad_number_of_jobs_is_refused_in_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "--jobs" in err and "positive" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_sigma_is_kept_at_the_recorded_stride_and_the_elastic_ik_asks_no_covariance():
+    """σ after every k-th sample (what the recording and the figures keep) equals σ asked after
+    every sample at those rows; the runs are otherwise the same."""
+    from stewart_calib.pipelines.reproduce import elastic_platform
+    from stewart_calib.reproduction.runs import run_online
+
+    quick = load_experiment(QUICK)
+    one_stage = dataclasses.replace(quick, stages=quick.stages[:1])
+    config = load_estimator_config(ROOT / "configs" / "estimators" / "paper-elastic.toml")
+
+    class Bar:
+        def update(self, n=1):
+            pass
+
+    platform = elastic_platform(one_stage)
+    every = run_online(one_stage, config, "isam2", Bar(), platform)
+    strided = run_online(one_stage, config, "isam2", Bar(), platform, sigma_every=3)
+    np.testing.assert_array_equal(strided.trace, every.trace)
+    rows = np.arange(len(every.trace))
+    np.testing.assert_array_equal(strided.stddev[rows % 3 == 0], every.stddev[rows % 3 == 0])
+    assert np.all(np.isnan(strided.stddev[rows % 3 != 0]))
+    assert np.all(np.isfinite(every.stddev[len(rows) // 2 :]))

@@ -309,6 +309,10 @@ class LegEKF:
             return estimate
         return dataclasses.replace(estimate, details={**(estimate.details or {}), "payload_steps": self.robust.steps})
 
+    def current_estimate(self) -> Estimate:
+        """``estimate()``: the filter carries its covariance anyway."""
+        return self.estimate()
+
     def current_error(self) -> np.ndarray:
         """δM [mm] after the last accepted sample."""
         return self.filter.x[:N_PARAMS].copy()

@@ -448,6 +448,16 @@ class ISAM2Estimator:
         """The measurement noise its front end found in the data, as a multiple of the configured σ."""
         return self._front.noise_scale()
 
+    def current_estimate(self) -> Estimate:
+        """:meth:`estimate` without the marginal covariance (~2 ms a call at the paper's graph)."""
+        if self._pending:
+            return dataclasses.replace(self._front.current_estimate(), method=self.name)
+        if self._state.samples == 0:
+            return self._builder.prior_estimate(self.name)
+        return Estimate.of_state(
+            self._current_params(), None, self._builder.layout, self.name, self._state.samples, self._state.last_t_s
+        )
+
     def current_error(self) -> np.ndarray:
         """δM of the current parameter variable [mm], without the marginal covariance."""
         if self._pending:

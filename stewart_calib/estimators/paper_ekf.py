@@ -159,6 +159,10 @@ class PaperEKF:
             f.t_s,
         )
 
+    def current_estimate(self) -> Estimate:
+        """``estimate()``: the filter carries its covariance anyway."""
+        return self.estimate()
+
     def current_error(self) -> np.ndarray:
         """δM [mm] after the last accepted sample."""
         return self.filter.x.copy()

@@ -76,9 +76,10 @@ def _parameter_figure(reproduction: Reproduction, run: str, rows: np.ndarray, ti
             estimate = method_run.trace[rows, col]
             color = PARAMETER_COLORS[k]
             ax.plot(t, estimate, color=color, lw=1.1, label=f"δ{field}")
-            if method_run.stddev is not None:
-                sigma = method_run.stddev[rows, col]
-                ax.fill_between(t, estimate - sigma, estimate + sigma, color=color, alpha=0.18, lw=0)
+            if method_run.stddev is not None:  # σ is kept at every parameter_stride-th sample
+                kept = np.isfinite(method_run.stddev[rows, col])
+                sigma = method_run.stddev[rows, col][kept]
+                ax.fill_between(t[kept], estimate[kept] - sigma, estimate[kept] + sigma, color=color, alpha=0.18, lw=0)
             ax.plot(t, truth[:, col], color=color, lw=0.7, ls="--", alpha=0.8)
         ax.set_title(f"leg {leg + 1}", fontsize=9)
         ax.grid(alpha=0.3)

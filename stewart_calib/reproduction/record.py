@@ -18,7 +18,6 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
@@ -27,20 +26,13 @@ from .. import kinematics as kin
 from ..platform import LegGeometry, Platform
 from ..viz import recording as viz
 from .metrics import held_pose_ends
-from .runs import BATCH_METHOD, NOMINAL, MethodRun, Reproduction
+from .runs import BATCH_METHOD, NOMINAL, MethodRun, Reproduction, parameter_stride
 
 SCENE_METHOD = "isam2"
 SCENE_CIRCLE_STRIDE = 5
 #: polar plot (Fig. 9): radius = base + gain · deviation [mm]; the base keeps 0 mm off the centre.
 POLAR_BASE_RADIUS_MM = 0.5
 POLAR_GAIN = 1.0
-#: at most this many rows per parameter series (the paper run: every 4th sample, 0.4 s).
-PARAMETER_ROWS_MAX = 1000
-
-
-def parameter_stride(n_samples: int) -> int:
-    """Every how many samples the parameter series are logged (1 for short runs)."""
-    return max(1, math.ceil(n_samples / PARAMETER_ROWS_MAX))
 
 
 def entity_name(run: str) -> str:

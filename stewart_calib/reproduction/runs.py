@@ -19,6 +19,7 @@ draws are identical; only the controller differs.
 from __future__ import annotations
 
 import concurrent.futures
+import math
 import multiprocessing
 import time
 from collections.abc import Callable
@@ -102,8 +103,9 @@ class MethodRun:
             method's estimate at the last sample of the first stage, zeros for ``nominal``.
         rejected: samples the estimator refused.
         run_time_s: wall time of the run, estimator included [s].
-        stddev: ``(N, 42)`` σ of δM after each sample [mm] (NaN while the IK used no estimate),
-            or None (``nominal``).
+        stddev: ``(N, 42)`` σ of δM after each sample [mm] (NaN while the IK used no estimate,
+            and between the rows :func:`parameter_stride` keeps of an online run), or None
+            (``nominal``).
         nis: ``(N,)`` normalised innovation squared of each sample (Kalman methods; NaN where
             refused), or None.
         unloaded: δM is the drive without any load, the sag being the elastic model's (its truth
@@ -192,13 +194,25 @@ class _Counted(_PassedThrough):
         self._bar.update()
 
 
-class _Diagnosed(_PassedThrough):
-    """Passes an :class:`EstimatorController` through, keeping after each sample the estimator's
-    σ [mm] (``estimate()``: isam2 pays its ~0.3 ms marginal) and, for a Kalman filter, its NIS."""
+#: at most this many rows per parameter series kept with σ, recorded and drawn (the paper run:
+#: every 4th sample, 0.4 s).
+PARAMETER_ROWS_MAX = 1000
 
-    def __init__(self, controller: EstimatorController):
+
+def parameter_stride(n_samples: int) -> int:
+    """Every how many samples the parameter series keep their σ and are logged (1 for short runs)."""
+    return max(1, math.ceil(n_samples / PARAMETER_ROWS_MAX))
+
+
+class _Diagnosed(_PassedThrough):
+    """Passes an :class:`EstimatorController` through, keeping the estimator's σ [mm] after every
+    ``every``-th sample (``estimate()``: isam2 pays ~2 ms of marginal for it, the series is drawn
+    and recorded at that stride anyway) and, for a Kalman filter, its NIS after each."""
+
+    def __init__(self, controller: EstimatorController, every: int = 1):
         super().__init__(controller)
         self.kalman = isinstance(controller.estimator, KalmanFiltered)
+        self.every = every
         self.stddev: list[np.ndarray] = []
         self.nis: list[float] = []
 
@@ -206,7 +220,7 @@ class _Diagnosed(_PassedThrough):
         refused = len(self.controller.rejected)
         self.controller.observe(sample)
         estimator = self.controller.estimator
-        stddev = self.controller.estimate().stddev
+        stddev = estimator.estimate().stddev if len(self.stddev) % self.every == 0 else None
         self.stddev.append(np.full(N_PARAMS, np.nan) if stddev is None else stddev)
         self.nis.append(estimator.filter.nis if self.kalman and len(self.controller.rejected) == refused else np.nan)
 
@@ -239,13 +253,19 @@ def run_ls(experiment: Experiment, config: EstimatorConfig, nominal: SimulationR
 
 
 def run_online(
-    experiment: Experiment, config: EstimatorConfig, method: str, bar, platform: Platform | None = None
+    experiment: Experiment,
+    config: EstimatorConfig,
+    method: str,
+    bar,
+    platform: Platform | None = None,
+    sigma_every: int = 1,
 ) -> MethodRun:
     """One :class:`EstimatorController` with ``method`` through every stage, its estimator and
-    IK on ``platform`` (default: the experiment's; the simulated robot is the experiment's)."""
+    IK on ``platform`` (default: the experiment's; the simulated robot is the experiment's), its
+    σ kept after every ``sigma_every``-th sample."""
     platform = experiment.platform if platform is None else platform
     controller = EstimatorController(make_estimator(method, platform, config), platform)
-    diagnosed = _Diagnosed(controller)
+    diagnosed = _Diagnosed(controller, sigma_every)
     result, run_s = _timed_run(experiment, diagnosed, bar)
     trace = controller.trace()
     last_of_first_stage = int(np.flatnonzero(result.stages == result.stages[0])[-1])
@@ -295,11 +315,12 @@ def _init_worker(queue) -> None:
 
 def _run(task: tuple, bar) -> MethodRun:
     """One run of :func:`reproduce`'s list: ``(ls, experiment, config, nominal result)`` or
-    ``(online method, experiment, config, its estimator's platform)``."""
+    ``(online method, experiment, config, (its estimator's platform, every how many samples its σ is kept))``."""
     method, experiment, config, extra = task
     if method == BATCH_METHOD:
         return run_ls(experiment, config, extra, bar)
-    return run_online(experiment, config, method, bar, extra)
+    platform, sigma_every = extra
+    return run_online(experiment, config, method, bar, platform, sigma_every)
 
 
 def _run_in_worker(task: tuple) -> MethodRun:
@@ -356,7 +377,7 @@ def reproduce(
     tasks: dict[str, tuple] = {BATCH_METHOD: (BATCH_METHOD, experiment, config, nominal_result)}
     for name, method, run_parts in online_runs(parts):
         run_config = run_parts[-1].config if run_parts else config
-        tasks[name] = (method, experiment, run_config, estimator_platform(experiment, run_parts))
+        tasks[name] = (method, experiment, run_config, (estimator_platform(experiment, run_parts), parameter_stride(n)))
     with progress_bar(
         total=n * len(tasks), desc=f"reproduce {experiment.name}: {', '.join(tasks)}", show=progress
     ) as bar:

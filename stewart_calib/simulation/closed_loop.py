@@ -49,7 +49,7 @@ import numpy as np
 from .. import kinematics as kin
 from ..drive import PAYLOAD, drive_model
 from ..errors import SampleRejected
-from ..estimate import Estimate
+from ..estimators.base import MeanEstimator
 from ..platform import LegGeometry, Platform
 from ..progress import progress_bar
 from ..samples import Log, Sample, Truth
@@ -115,7 +115,6 @@ class EstimatorController:
         self._trace: list[np.ndarray] = []
         self._elastic = drive_model(platform) if platform.elastic is not None else None
         self.payload_known = True
-        self._estimate: Estimate | None = None
 
     def drive_model(self) -> LegGeometry:
         return self._drive
@@ -129,22 +128,15 @@ class EstimatorController:
         else:
             self._error = self.estimator.current_error()
             self._drive = self._nominal.perturbed(self._error)
-            self._estimate = None
         self._trace.append(self._error)
-
-    def estimate(self) -> Estimate:
-        """The estimator's estimate after the last accepted sample, asked once per sample (isam2's
-        marginal costs ~2 ms): the elastic IK and a caller's diagnostics share it."""
-        if self._estimate is None:
-            self._estimate = self.estimator.estimate()
-        return self._estimate
 
     def strokes(self, R_d: np.ndarray, t_d: np.ndarray, payload_kg) -> np.ndarray:
         """IK of the model in force; an elastic one with its identified blocks, under ``payload_kg``
         (taken as 0 unless :attr:`payload_known`) and the payload the estimator found unannounced."""
         if self._elastic is None:
             return kin.inverse_kinematics(self._drive, R_d, t_d)
-        estimate = self.estimate()
+        mean_only = isinstance(self.estimator, MeanEstimator)
+        estimate = self.estimator.current_estimate() if mean_only else self.estimator.estimate()
         values = {term.key: estimate.block_values(term.key) for term in self._elastic.terms}
         drive = self._elastic.calibrated(self._error, values)
         unannounced = estimate.block_values(PAYLOAD)  # what the estimator found on top of what it was told
