@@ -467,3 +467,44 @@ def test_the_tracker_bound_of_c_is_the_batch_fits_covariance(check):
     columns = estimate.layout.slice("compliance")
     fitted = np.sqrt(np.diag(estimate.full_covariance)[columns])
     np.testing.assert_allclose(fitted, report.block_stddev["compliance"][1], rtol=0.02)
+
+
+@pytest.mark.parametrize("kind", ["pose", "points"])
+def test_the_ekf_payload_column_with_an_outside_instrument_is_the_numerical_derivative(kind):
+    """The same column where the instrument fixes the pose (a pose instrument: the drive's residuals
+    there) and where it does not (two targets seen: the instrument's residual at the drive's forward
+    kinematics, ``∂ξ/∂m = −J_g⁻¹ ∂g/∂m``), on the hobby hexapod with soft legs (150 mm/kN)."""
+    from stewart_calib.estimators import make_estimator
+    from stewart_calib.estimators.measurement import check_sample
+    from stewart_calib.platform import Elastic
+    from tests.instrument_data import hobby, make_case
+    from tests.test_instrument_ls import POINTS, POINTS_TRUTH, POSE_TRUTH
+
+    platform, truth = (hobby(), POSE_TRUTH) if kind == "pose" else (hobby(POINTS), POINTS_TRUTH)
+    soft = Elastic(2.0, np.array([5.0, -3.0, 20.0]), np.array([0.0, 0.0, 30.0]), np.full(6, 150.0))
+    platform = replace(platform, elastic=replace(soft, payload_sigma_kg=2.0))
+    case = make_case(platform, 8, 24, truth)
+    ekf = make_estimator("ekf", platform)
+    layout = ekf.layout
+    x = np.zeros(layout.size)
+    x[layout.slice("payload")] = 0.5
+    column = layout.slice("payload").start
+    checked = 0
+    for sample in case.log:
+        readings = np.array(sample.readings, dtype=float).reshape(-1, 3)
+        if kind == "points":  # two of the targets seen: no pose from the instrument alone
+            seen = np.flatnonzero(np.isfinite(readings).all(axis=1))
+            if len(seen) < 2:
+                continue
+            readings[seen[2:]] = np.nan
+        sample = replace(sample, readings=readings.reshape(-1))
+        checked += 1
+        strokes, z = check_sample(ekf.platform, ekf.model, sample)
+        prepared = np.concatenate([ekf._inputs(strokes, z, sample), np.ravel(z)])
+        _, H, _ = ekf._observe(prepared, x)
+        step = 0.05
+        shifted = [ekf._observe(prepared, x + sign * step * np.eye(layout.size)[column])[0] for sign in (1, -1)]
+        numeric = -(shifted[0] - shifted[1]) / (2 * step)
+        np.testing.assert_allclose(H[:, column], numeric, rtol=1e-5, atol=1e-9)
+        assert np.abs(H[:, column]).max() > 1e-3
+    assert checked >= 4
