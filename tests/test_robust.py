@@ -153,7 +153,9 @@ def test_the_compiled_pass_equals_observing_sample_by_sample(platform):
     # and P carries that walk (Q = q Δt) at ~1e-9 of its size
     assert a.robust.walk_rate_mm2_per_s == pytest.approx(b.robust.walk_rate_mm2_per_s, rel=1e-6)
     np.testing.assert_allclose(a.filter.P, b.filter.P, rtol=0, atol=1e-8 * np.abs(b.filter.P).max())
-    assert a.robust.noise_scale2 == pytest.approx(b.robust.noise_scale2, rel=1e-9)
+    # the windows' passes run at that walk rate, each window's covariance at the scale it updates,
+    # and the next scale from passes at both: the scale moves by at most the walk's relative 1e-6
+    assert a.robust.noise_scale2 == pytest.approx(b.robust.noise_scale2, rel=1e-6)
 
 
 @pytest.mark.parametrize("m", [3, 6, 9])

@@ -212,12 +212,16 @@ class GraphBuilder:
             return state.window_samples >= self.graph.window_samples
         return t_s - state.window_start_s >= self.graph.window_s
 
-    def epoch(self, state: ChainState, sample: Sample, params_guess) -> Epoch:
+    def epoch(self, state: ChainState, sample: Sample, params_guess, noise_scale2: float = 1.0) -> Epoch:
         """Factors, values and timestamps of ``sample`` and the state after it.
 
         Args:
             params_guess: callable returning the current unknown vector [code units], the
                 initial value of a new parameter variable.
+            noise_scale2: the measurement noise's scale ``s²`` (``R = s² R0``) where a graph keeps
+                the configured ``R0`` and takes ``s²`` times its covariance: a new window's walk
+                factor then carries ``Q / s²``, so that the graph is the problem of ``R`` and ``Q``
+                divided by ``s²`` (the same optimum, covariance ``/ s²``).
         Raises:
             SampleRejected: non-finite data, time going backwards, or FK failure; nothing is
                 changed (the caller keeps ``state``).
@@ -264,7 +268,9 @@ class GraphBuilder:
         elif self.new_window(state, sample.t_s):
             w = state.window
             sigma = random_walk.sigma_mm(
-                self.noise.random_walk_mm_per_sqrt_s, sample.t_s - state.window_start_s, self.graph.chain_sigma_floor_mm
+                self.noise.random_walk_mm_per_sqrt_s / math.sqrt(noise_scale2),
+                sample.t_s - state.window_start_s,
+                self.graph.chain_sigma_floor_mm,
             )
             values.insert(params_key(w + 1), guess)  # type: ignore[arg-type]  # set: a new window is `wanted`
             sigmas = np.where(self._walks, sigma, self.graph.chain_sigma_floor_mm)

@@ -76,6 +76,9 @@ WALK_WINDOWS = 8
 #: a walk rate is rejected where the window differences are smaller than χ² at it allows with this
 #: probability (the lower tail's quantile): see ``RobustFilter._pooled_walk_rate``.
 WALK_REJECTION = 0.2
+#: changes of the noise scale kept for :meth:`RobustFilter.noise_scale2_at`: more than the samples a
+#: caller runs the filter ahead of where it asks (isam2's front-end runs: 256 samples)
+SCALE_HISTORY = 512
 #: the walk rate never falls below this fraction of the configured rate [-].
 MIN_WALK_FRACTION = 1e-4
 #: the measured noise never falls below this fraction of the configured variance [-] (σ ≥ 0.1 × the
@@ -169,6 +172,8 @@ class RobustFilter:
         self._n, self._m = n, m
         self._gate_on = gate_probability > 0.0
         self.noise_scale2 = 1.0
+        # (time of the sample after which it held, s²): see noise_scale2_at
+        self._scale_history: deque = deque([(-math.inf, 1.0)], maxlen=SCALE_HISTORY)
         self.walk_rate_mm2_per_s = self._configured_walk
         self.recoveries = 0
         #: samples the recoveries took out of the estimate (used before, not in the re-solved state)
@@ -543,6 +548,7 @@ class RobustFilter:
         if self._robust.adapt_noise and redundancy >= MIN_REDUNDANCY:
             self.noise_scale2 = max(scale2, MIN_NOISE_SCALE2)
             self.measured_noise = True
+            self._record_scale()
 
     # ------------------------------------------------------------------ noise from windows
 
@@ -567,8 +573,14 @@ class RobustFilter:
         observed, expected = self._pass_components
         forget = math.exp(-used / self._robust.noise_memory_samples)
         self._scale_sums = forget * self._scale_sums + [self.noise_scale2 * observed, expected]
-        self.noise_scale2 = max(self._scale_sums[0] / self._scale_sums[1], MIN_NOISE_SCALE2)
+        scale2, self.noise_scale2 = self.noise_scale2, max(self._scale_sums[0] / self._scale_sums[1], MIN_NOISE_SCALE2)
         self.measured_noise = True
+        self._record_scale()
+        if self.noise_scale2 != scale2:
+            # the window's covariance at the scale now in use, which the next window's is taken at: the
+            # walk test compares their difference with both (at the start-up's scale, 10× too high on
+            # a drifting robot, it rejected any walk: NEES 2–30× its degrees of freedom)
+            x, P, *_ = self._pass(good, self.noise_scale2, self.filter.x)
         first_t = float(self._buffer.t[good][0])
         if self._last_window is not None:
             x_before, P_before, first_before, t_before = self._last_window
@@ -585,6 +597,22 @@ class RobustFilter:
             self._differences.append((eigenvalues, projection2, span))
             self.walk_rate_mm2_per_s = max(self._pooled_walk_rate(), MIN_WALK_FRACTION * self._configured_walk)
         self._last_window = (x, P, first_t, last_t)
+
+    def _record_scale(self) -> None:
+        """Note a new noise scale as holding from the last buffered sample on."""
+        if self.noise_scale2 != self._scale_history[-1][1]:
+            self._scale_history.append((float(self._buffer.t[-1]), self.noise_scale2))
+
+    def noise_scale2_at(self, t_s: float) -> float:
+        """The noise scale ``s²`` in use right after the sample at ``t_s`` [s] was folded in (the
+        current one for the last sample): what a caller that ran the filter ahead of a sample — on
+        a block of samples — sees as one that asks after every sample does."""
+        held = self._scale_history[0][1]
+        for t_from, scale2 in self._scale_history:
+            if t_from > t_s:
+                break
+            held = scale2
+        return held
 
     def _pooled_walk_rate(self) -> float:
         """The root ``q ≥ 0`` of ``f(q) = Σ_w Σ_i p_wi / (λ_wi + q T_w) − n × windows`` [mm²/s]
@@ -657,6 +685,7 @@ class RobustFilter:
         self.filter.import_state(state.get("filter", {}))
         self._x0 = state_array(state, "prior_mean", (self._n,))
         self.noise_scale2, self.walk_rate_mm2_per_s = state_array(state, "noise", (2,))
+        self._scale_history = deque([(-math.inf, self.noise_scale2)], maxlen=SCALE_HISTORY)
         if not (0.0 < self.noise_scale2 < math.inf and 0.0 <= self.walk_rate_mm2_per_s < math.inf):
             raise CalibError(
                 "estimator state: key 'noise': expected a finite positive noise scale and a finite walk rate ≥ 0"
