@@ -77,10 +77,11 @@ class ISAM2Estimator:
     handful of samples, millimetres off in the directions they do not yet determine — and
     marginalised seconds later with that linearisation (after large initial errors, an outside
     instrument's log at 1 Hz: 3–5 % worse on held-out data than the batch optimum,
-    benchmarks/hobby.py). The graph keeps the configured noise;
-    its marginal covariance is scaled by the measurement-noise scale the front end measures
-    (the a-posteriori variance factor). When the front end recovers from a lock-out, the
-    smoother restarts from the front end's recovered Gaussian, as after a gtsam failure.
+    benchmarks/hobby.py). The graph keeps the configured measurement noise ``R0`` and takes
+    the walk in units of the scale ``s²`` the front end measures (``Q / s²``, :meth:`_walk_scale2`);
+    its marginal covariance times ``s²`` is so that of noise ``s² R0`` and walk ``Q``. When the
+    front end recovers from a lock-out, the smoother restarts from the front end's recovered
+    Gaussian, as after a gtsam failure.
     """
 
     name = "isam2"

@@ -41,7 +41,8 @@ rate: for a walk of rate ``q`` [mm²/s], the means over windows ``[a1, b1]`` and
 by a covariance ``q T I`` with ``T = (a2 − b1) + (b1 − a1)/3 + (b2 − a2)/3`` (two thirds of the
 span for adjacent windows), so two window estimates differ by ``P_w + P_{w+1} + q T I`` and ``q``
 is the root of ``Σ_w Δxᵀ (P_w + P_{w+1} + q T_w I)⁻¹ Δx = n × windows`` (χ² matching, 0 when the
-differences are already explained by the window covariances). Measurement noise and parameter
+differences are already explained by the window covariances); each window's ``P_w`` is taken at
+the scale its own residuals have just updated. Measurement noise and parameter
 motion are so told apart by their time scales, not by one innovation sequence that both shape.
 Both estimates forget over ``noise_memory_samples``. Fixed noise stays available.
 """
