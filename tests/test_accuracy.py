@@ -82,6 +82,9 @@ def test_prediction_matches_the_spread_of_simulated_estimates(wide_points):
         errors.append(kin.pose_error(R, t, reached.R, reached.t)[0].mean())
     assert predicted.position_mm == pytest.approx(np.mean(errors), rel=0.1)
     assert not predicted.workspace and predicted.n_poses == 40
+    # one calibration is one draw: 90 % of them within the band (300 draws: ±1.7 %, here ±4σ)
+    low, high = predicted.position_band_mm
+    assert 0.83 <= np.mean((low <= np.array(errors)) & (np.array(errors) <= high)) <= 0.97
 
 
 @pytest.mark.parametrize("kind", ["points", "pose"])
@@ -254,6 +257,8 @@ def test_a_small_workspace_calibration_warns_in_one_line_and_validate_says_what_
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 2 and "cannot see the robot's closed-loop (absolute) pose error" in lines[1]
     assert f"the result predicts {predicted['position_mm']:.3g} mm" in lines[1]
+    low, high = predicted["position_band_mm"]
+    assert low < predicted["position_mm"] < high and f"{low:.3g}–{high:.3g} mm" in lines[1]
 
 
 def test_identifiability_reports_the_prediction_of_a_pose_list(tmp_path, capsys, wide_pose):

@@ -208,7 +208,7 @@ def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray
     """What a check through an outside instrument's frame cannot see, beside what it saw: the
     frame (fitted with the drive, or again here) absorbs a constant pose error of the robot, so
     the robot's closed-loop (absolute) error is the result's prediction, not this RMS."""
-    from ..accuracy import predicted_error
+    from ..accuracy import BAND_PROBABILITY, predicted_error
 
     seen_rms_mm = float(np.sqrt(np.nanmean(np.asarray(position_mm) ** 2)))
     head = (
@@ -217,9 +217,11 @@ def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray
     )
     predicted = result.get("predicted_closed_loop")
     if isinstance(predicted, dict) and predicted.get("available", True):
+        band = predicted.get("position_band_mm")  # results written before the band have none
         return (
             head + f"the result predicts {predicted['position_mm']:.3g} mm / {predicted['orientation_deg']:.3g}° "
-            f"where the robot works (expected mean over {predicted['poses']} {predicted['over']} poses)"
+            f"where the robot works (expected mean over {predicted['poses']} {predicted['over']} poses"
+            + (f"; {BAND_PROBABILITY:.0%} of such calibrations {band[0]:.3g}–{band[1]:.3g} mm)" if band else ")")
         )
     covariance = result.get("covariance")
     if covariance is None or platform.workspace is None:

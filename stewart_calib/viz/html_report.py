@@ -360,10 +360,16 @@ def _prediction_section(result: dict) -> str:
         f"error over {predicted.get('poses')} {html.escape(str(predicted.get('over')))} poses, from the "
         "estimate's covariance. A check through the instrument's calibrated frame cannot see it.</p>"
         + html_table(
-            ["position [mm]", "orientation [deg]", "the calibration's correction [mm]"],
+            [
+                "position [mm]",
+                "90 % of such calibrations [mm]",
+                "orientation [deg]",
+                "the calibration's correction [mm]",
+            ],
             [
                 [
                     _fmt(predicted.get("position_mm"), 3),
+                    "–".join(_fmt(v, 3) for v in predicted.get("position_band_mm") or ()),
                     _fmt(predicted.get("orientation_deg"), 3),
                     _fmt(predicted.get("correction_mm"), 3),
                 ]
