@@ -4,15 +4,34 @@
 i.i.d. 0.5 mm, initial lengths 3 mm), true stroke scale ``k`` (i.i.d. 2 %), the instrument's true
 frame 30 mm / 2° off its nominal (and a pose target 5 mm / 1°; points targets i.i.d. 0.5 mm);
 strokes are the true drive's IK divided by ``1 + k``, readings the simulated instrument's with
-its σ (:mod:`stewart_calib.simulation.instrument`). Geometries: the shipped nim-stewart with a
-laser tracker on three reflectors (15 µm), a wide test hexapod unlike the shipped ones (base
-400 mm, platform 120 mm, ±60 mm / ±10°) with the same tracker, and the shipped hobby hexapod with
-its motion capture (0.2 mm / 0.05°).
+its σ (:mod:`stewart_calib.simulation.instrument`). Geometries: **issue 27's own robot** — the
+shipped hobby hexapod with a laser tracker on three reflectors (15 µm) at the tests' positions
+(``tests/test_instrument_ls.py``), whose numbers the issue quotes (400 random poses within 60 %
+of the box, the tests' draw: Cramér–Rao 301 µm, the issue: 225 µm; 400 at the full box's
+corners, strokes ignored: 48.5 µm, the issue: 47–67 µm) — the shipped nim-stewart with a laser
+tracker on three reflectors (15 µm), a wide test hexapod unlike the shipped ones (base 400 mm,
+platform 120 mm, ±60 mm / ±10°) with the same tracker, and the shipped hobby hexapod with its
+motion capture (0.2 mm / 0.05°).
 
 **Fits.** ``ls`` through ``calibration.run_calibration`` (the command's path: the frame
 registered in closed form, then the batch fit of drive, stroke scale and instrument) on (a)
-``plan``'s 60 poses (default criterion ``I``, seed = the run's) and (b) 400 poses uniform in the
-reachable workspace box; both measured with the same truth.
+``plan``'s 60 poses (default criterion ``I``, seed = the run's), (b) 400 poses uniform in the
+reachable workspace box and (c) 400 poses uniform within 60 % of the box (issue 27's draw, where
+the hobby's strokes stay in range); all measured with the same truth.
+
+**Why (b) cannot be halved.** The evaluation poses are drawn as (b) is, so (b) already spreads
+its information where the error is averaged; a design gains over it only in directions that the
+workspace's interior hides (the leg lengths against the frame's height). The continuous I-optimal
+design over plan's candidates (multiplicative algorithm, converged: its equivalence-theorem lower
+bound equals its value) bounds any 60 of them: on issue 27's robot it predicts 1.03× the error of
+(b) (Cramér–Rao), plan's 60 poses 1.09× (before the stroke margin); candidates pushed out to the
+reachable boundary and a position-only criterion change plan's prediction by < 0.5 %. Against
+(c), whose poses do not reach the box's faces, a plan does gain.
+
+**Poses the true robot reaches.** ``plan`` keeps its poses 2 prior σ (10 mm) inside the stroke
+range (``planning.STROKE_MARGIN_SIGMAS``): planned at the nominal limits, 21–23 of 60 poses of the
+hobby needed strokes beyond the range on the true robot, calibrate dropped them, and the fit
+ended at 1.3–1.6× the plan's prediction.
 
 **Metric: true closed-loop error.** For the 200 fixed evaluation poses X of
 :func:`stewart_calib.accuracy.evaluation_poses`: strokes ``IK(estimate, X) / (1 + k̂)``, reached
@@ -24,7 +43,9 @@ per-seed range beside it.
 
 **The small-workspace case** (issue 27): the hobby hexapod, 60 poses uniform within ±20 mm / ±8°,
 ``ls``: the one-line warning's predicted error (expected mean over the workspace, from the fit's
-covariance) against the true closed-loop error of that fit, per seed (target: within 2×).
+covariance) against the true closed-loop error of that fit, per seed (target: within 2×), and
+whether the truth lies in the line's 90 % band; 10 seeds (the truth is one draw of the estimate's
+error: within 2× of any one number ~85 % of the time, :mod:`stewart_calib.accuracy`).
 
 ``python -m benchmarks.plan_poses [--seeds N] [--quick]`` prints the table.
 """
@@ -67,6 +88,12 @@ TARGET_OFFSET = np.array([5.0, 3.0, -5.0, 1.0, 0.5, -1.0])
 TARGET_SPREAD_MM = 0.5
 SMALL_TRANSLATION_MM, SMALL_ROTATION_DEG = 20.0, 8.0
 THREE_SMRS = np.array([[250.0, 0.0, 30.0], [-125.0, 216.0, 30.0], [-125.0, -216.0, 60.0]])
+#: issue 27's robot: the reflectors of tests/test_instrument_ls.py on the hobby's platform
+HOBBY_SMRS = np.array([[60.0, 0.0, 25.0], [-30.0, 50.0, 25.0], [-30.0, -50.0, 40.0]])
+#: issue 27's random draw: uniform within this fraction of the workspace box (tests/instrument_data.py)
+ISSUE_BOX_FRACTION = 0.6
+#: seeds of the small-workspace case (each fit is a second or two)
+SMALL_WORKSPACE_SEEDS = 10
 
 
 #: poses planned, random poses fitted, random candidates of the plan
@@ -103,10 +130,14 @@ def geometries() -> dict[str, Platform]:
     nim = load_platform(NIM_STEWART_FILE)
     laser = Instrument("points", np.r_[1500.0, 800.0, 1600.0, 0.0, 0.0, 0.0], np.zeros(6), THREE_SMRS, 0.015)
     near = replace(laser, targets=THREE_SMRS * 0.4, frame=np.r_[900.0, 400.0, 1200.0, 0.0, 0.0, 0.0])
+    hobby = load_platform(ROOT / "configs" / "platforms" / "hobby-hexapod.toml")
     return {
+        "issue 27's robot (hobby, laser tracker)": replace(
+            hobby, instrument=replace(laser, frame=np.zeros(6), targets=HOBBY_SMRS)
+        ),
         "nim-stewart, laser tracker": replace(nim, instrument=laser, tracker=None),
         "wide hexapod, laser tracker": wide_hexapod(near),
-        "hobby, motion capture": load_platform(ROOT / "configs" / "platforms" / "hobby-hexapod.toml"),
+        "hobby, motion capture": hobby,
     }
 
 
@@ -161,13 +192,26 @@ def compare(platform: Platform, seed: int, size: Size) -> dict:
     planned = planning.plan_poses(platform, size.planned, None, np.random.default_rng(seed), size.candidates)
     seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu_start
     random = accuracy.reachable_poses(platform, size.random, rng)
+    inner = inner_poses(platform, size.random, rng)
     out = {"plan_s": seconds, "plan_cpu_s": cpu_seconds}
-    for name, poses in (("planned", planned), ("random", random)):
+    for name, poses in (("planned", planned), ("random", random), ("inner", inner)):
         estimate = _fit(platform, measure(platform, robot, poses, rng))
         out[name] = true_closed_loop(platform, robot, estimate)
         covariance = accuracy.estimate_drive_covariance(estimate, drive_model(platform))
         out[f"{name}_predicted"] = accuracy.predicted_error(platform, covariance).position_mm
     return out
+
+
+def inner_poses(platform: Platform, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Issue 27's random draw: ``n`` poses uniform within :data:`ISSUE_BOX_FRACTION` of the workspace
+    box, within the stroke ranges."""
+    ws = platform.workspace
+    half = ISSUE_BOX_FRACTION * np.r_[[ws.translation_limit] * 3, [ws.rotation_limit] * 3]
+    accepted = np.zeros((0, 6))
+    while len(accepted) < n:
+        poses = ws.home + rng.uniform(-1.0, 1.0, (n, 6)) * half
+        accepted = np.concatenate([accepted, poses[accuracy.within_ranges(platform, poses)]])
+    return accepted[:n]
 
 
 def small_workspace(seed: int) -> dict:
@@ -182,7 +226,14 @@ def small_workspace(seed: int) -> dict:
     floor = planning.noise_floor(platform, len(poses))
     field, line, warns = accuracy.estimate_summary(platform, estimate, floor, poses)
     true = true_closed_loop(platform, robot, estimate)
-    return {"true_mm": true[0], "predicted_mm": field.get("position_mm", float("nan")), "warned": warns, "line": line}
+    low, high = field.get("position_band_mm", (float("nan"), float("nan")))
+    return {
+        "true_mm": true[0],
+        "predicted_mm": field.get("position_mm", float("nan")),
+        "in_band": bool(low <= true[0] <= high),
+        "warned": warns,
+        "line": line,
+    }
 
 
 def _um(value_mm: float) -> str:
@@ -193,7 +244,7 @@ def row_names() -> list[str]:
     """The names of the rows :func:`run` writes, in order (the quick test checks them)."""
     names = []
     for name in geometries():
-        names += [f"{name}: planned / random", f"{name}: plan time"]
+        names += [f"{name}: planned / random", f"{name}: planned / random within 60 % of the box", f"{name}: plan time"]
     return [*names, "small workspace: predicted / true"]
 
 
@@ -205,20 +256,25 @@ def run(quick: bool = False, seeds: int | None = None) -> Section:
     for name, platform in geometries().items():
         runs = [compare(platform, seed, size) for seed in seeds]
         planned = np.mean([r["planned"][0] for r in runs])
-        random = np.mean([r["random"][0] for r in runs])
-        per_seed = [r["planned"][0] / r["random"][0] for r in runs]
-        ratio = planned / random
-        predicted = (np.mean([r["planned_predicted"] for r in runs]), np.mean([r["random_predicted"] for r in runs]))
-        rows.append(
-            Row(
-                f"{name}: planned / random",
-                f"**{ratio:.2f}** ({size.planned} planned {_um(planned)}, {size.random} random {_um(random)}; per seed "
-                f"{min(per_seed):.2f}–{max(per_seed):.2f}; predicted {_um(predicted[0])} vs {_um(predicted[1])})",
-                f"≤ {RATIO_TARGET}",
-                bool(ratio <= RATIO_TARGET),
-                {"runs": runs},
+        for reference, label in (("random", "random"), ("inner", "random within 60 % of the box")):
+            random = np.mean([r[reference][0] for r in runs])
+            per_seed = [r["planned"][0] / r[reference][0] for r in runs]
+            ratio = planned / random
+            predicted = (
+                np.mean([r["planned_predicted"] for r in runs]),
+                np.mean([r[f"{reference}_predicted"] for r in runs]),
             )
-        )
+            rows.append(
+                Row(
+                    f"{name}: planned / {label}",
+                    f"**{ratio:.2f}** ({size.planned} planned {_um(planned)}, {size.random} random {_um(random)}; "
+                    f"per seed {min(per_seed):.2f}–{max(per_seed):.2f}; predicted {_um(predicted[0])} vs "
+                    f"{_um(predicted[1])})",
+                    f"≤ {RATIO_TARGET}",
+                    bool(ratio <= RATIO_TARGET),
+                    {"runs": runs} if reference == "random" else {},
+                )
+            )
         # CPU time of every thread: the wall time of an idle machine's run, whatever else the machine runs
         longest = max(r["plan_cpu_s"] for r in runs)
         rows.append(
@@ -231,14 +287,16 @@ def run(quick: bool = False, seeds: int | None = None) -> Section:
                 bool(longest <= PLAN_SECONDS_TARGET),
             )
         )
-    cases = [small_workspace(seed) for seed in seeds]
+    cases = [small_workspace(seed) for seed in (seeds if quick else range(max(len(seeds), SMALL_WORKSPACE_SEEDS)))]
     factors = [max(c["predicted_mm"] / c["true_mm"], c["true_mm"] / c["predicted_mm"]) for c in cases]
     within = sum(f <= PREDICTION_FACTOR_TARGET for f in factors)
     rows.append(
         Row(
             "small workspace: predicted / true",
             "; ".join(f"{c['predicted_mm']:.2f} / {c['true_mm']:.2f} mm" for c in cases)
-            + f" ({within} of {len(cases)} within 2×; warned {sum(c['warned'] for c in cases)} of {len(cases)})",
+            + f" ({within} of {len(cases)} within 2×; the truth in the line's 90 % band "
+            f"{sum(c['in_band'] for c in cases)} of {len(cases)}; warned {sum(c['warned'] for c in cases)} of "
+            f"{len(cases)})",
             f"within {PREDICTION_FACTOR_TARGET:g}×, warned",
             bool(within == len(cases) and all(c["warned"] for c in cases)),
             {"cases": cases},

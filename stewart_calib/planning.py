@@ -31,6 +31,8 @@ candidates (~5 ms a pose); quadratic when M grows with N (N = 2000 from 4000: 24
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from .accuracy import PredictedError, error_weight, predicted_error, reachable_poses, within_ranges
@@ -60,6 +62,15 @@ SWAP_GAIN_REL = 1e-9
 #: first greedy picks (fewer than 7 poses, singular F) well posed; at 1e-6 of one pose's
 #: information it changes a 7-pose design's log det by < 1e-4.
 RIDGE_REL = 1e-6
+
+#: An outside instrument's plan keeps each nominal stroke this many prior σ (``noise.prior_sigma_mm``,
+#: the zeros' and joints' uncertainty before calibration) inside the stroke range: the true robot
+#: needs other strokes for the same pose, and a pose planned at the nominal limit is beyond the
+#: real one about half the time — calibrate refuses it as out of range, the robot's end stop stops
+#: it. Measured (benchmarks.plan_poses, hobby hexapod, zeros off by σ 3 mm, joints 0.5 mm, scale
+#: 2 %): 21–23 of 60 poses planned at the nominal limits out of range, the fit then at 1.3–1.6×
+#: the plan's prediction.
+STROKE_MARGIN_SIGMAS = 2.0
 
 #: Candidates are drawn denser near the faces of the workspace box, where optimal designs put
 #: their poses (the legs' directions spread most there); every candidate stays inside the box.
@@ -334,6 +345,16 @@ def noise_floor(platform: Platform, n_poses: int, noise: NoiseConfig | None = No
     return predicted_error(platform, covariance * (len(extremes) / n_poses))
 
 
+def with_stroke_margin(platform: Platform, noise: NoiseConfig) -> Platform:
+    """The platform whose stroke range is :data:`STROKE_MARGIN_SIGMAS` prior σ narrower at each end
+    (at most a quarter of the range): where plan puts an outside instrument's poses."""
+    if platform.stroke_range is None:
+        return platform
+    low, high = platform.stroke_range
+    margin = min(STROKE_MARGIN_SIGMAS * noise.prior_sigma_mm, 0.25 * (high - low))
+    return replace(platform, stroke_range=(low + margin, high - margin))
+
+
 def default_criterion(platform: Platform) -> str:
     """``I`` (the predicted closed-loop error) for an outside instrument, ``A`` for the tracker."""
     return DEFAULT_CRITERION if platform.instrument.kind == "tracker" else "I"
@@ -348,7 +369,8 @@ def plan_poses(
     noise: NoiseConfig | None = None,
 ) -> np.ndarray:
     """Pick ``n`` calibration poses from ``n_candidates`` random reachable workspace poses (and,
-    for an outside instrument, the box's :func:`extreme_poses`).
+    for an outside instrument, the box's :func:`extreme_poses`; its poses keep a margin from the
+    stroke limits, :func:`with_stroke_margin`).
 
     Args:
         platform: nominal geometry with a ``[workspace]``.
@@ -356,7 +378,8 @@ def plan_poses(
         criterion: one of :data:`CRITERIA` (default :func:`default_criterion`).
         rng: randomness of the candidates (default ``np.random.default_rng()``).
         n_candidates: random candidate poses to choose from.
-        noise: weights of the leg-length form (default :class:`NoiseConfig`).
+        noise: weights of the leg-length form, and the prior σ of the stroke margin (default
+            :class:`NoiseConfig`).
     Returns:
         ``(n, 6)`` desired poses ``[mm, rad]``, in the order drawn (a usable driving order).
     Raises:
@@ -368,9 +391,11 @@ def plan_poses(
     if n < 1 or n_candidates < n:
         raise CalibError(f"n = {n}, candidates = {n_candidates}: expected 1 ≤ n ≤ candidates")
     rng = np.random.default_rng() if rng is None else rng
-    candidates = candidate_poses(platform, n_candidates, rng)
-    if platform.instrument.kind != "tracker":
-        candidates = np.concatenate([extreme_poses(platform), candidates])
-    blocks, weight = _design(platform, candidates, criterion, noise or NoiseConfig())
+    noise = noise or NoiseConfig()
     outside = platform.instrument.kind != "tracker"
+    reach = with_stroke_margin(platform, noise) if outside else platform
+    candidates = candidate_poses(reach, n_candidates, rng)
+    if outside:
+        candidates = np.concatenate([extreme_poses(reach), candidates])
+    blocks, weight = _design(platform, candidates, criterion, noise)
     return candidates[np.sort(select_poses(blocks, n, criterion, weight=weight, criterion_greedy=outside))]

@@ -201,6 +201,18 @@ def test_the_visibility_keys_read_back_and_are_checked(wide_points, tmp_path):
         parse_platform(axes_alone, "p.toml")
 
 
+def test_planned_poses_keep_a_margin_from_the_stroke_limits(wide_points):
+    """The true robot needs other strokes for the same pose: plan stays 2 prior σ inside the range."""
+    noise = planning.NoiseConfig(prior_sigma_mm=4.0)
+    poses = planning.plan_poses(wide_points, 20, None, np.random.default_rng(4), 300, noise)
+    R, t = kin.pose_to_rt(poses)
+    strokes = drive_model(wide_points).inverse_kinematics(R, t)
+    low, high = wide_points.stroke_range
+    assert strokes.min() >= low + 8.0 - 1e-6 and strokes.max() <= high - 8.0 + 1e-6
+    # the extremes it picks sit at the narrowed limits, not inside them
+    assert min(strokes.min() - low, high - strokes.max()) < 8.5
+
+
 def test_o1_is_refused_for_an_outside_instrument(wide_pose):
     with pytest.raises(CalibError, match="O1 is of the paper's J_p form"):
         planning.plan_poses(wide_pose, 10, "O1", np.random.default_rng(0), 100)

@@ -16,7 +16,14 @@ import numpy as np
 from .. import io
 from ..accuracy import predicted_error
 from ..config import load_estimator_config
-from ..planning import CRITERIA, default_criterion, design_covariance, extreme_poses, plan_poses
+from ..planning import (
+    CRITERIA,
+    default_criterion,
+    design_covariance,
+    extreme_poses,
+    plan_poses,
+    with_stroke_margin,
+)
 from ..platform import load_platform
 from . import add_config_arguments, run_command
 
@@ -80,7 +87,13 @@ def run(args: argparse.Namespace) -> int:
     poses = plan_poses(platform, args.n, criterion, np.random.default_rng(args.seed), args.candidates, noise)
     elapsed_s = time.perf_counter() - start
     io.write_pose_list(args.out, poses, args.dwell_s)
-    extremes = "" if platform.instrument.kind == "tracker" else f" and {len(extreme_poses(platform))} box extremes"
+    extremes = ""
+    if platform.instrument.kind != "tracker":
+        extremes = f" and {len(extreme_poses(platform))} box extremes"
+        narrowed = with_stroke_margin(platform, noise).stroke_range
+        if platform.stroke_range is not None and narrowed is not None:
+            margin_mm = narrowed[0] - platform.stroke_range[0]
+            extremes += f"; strokes {margin_mm:.3g} mm inside the range, for the true robot's offsets"
     print(
         f"planned {len(poses)} poses ({criterion} from {args.candidates} candidates{extremes}, {elapsed_s:.2f} s) "
         f"-> {args.out}"
