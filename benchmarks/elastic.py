@@ -13,8 +13,9 @@
    validation poses (``compensation.compensate`` with the payload), executed by the simulated robot,
    which settles under its weight (``simulation.load.settle``); error = ‖t_reached − t_desired‖ RMS.
 2. **Hobby, motion capture**: ``benchmarks.hobby``'s hexapod (108 fit and 60 held-out poses of
-   another day, the mocap frame moved) with soft legs (~150 mm/kN ± 20 %, a 2 kg platform: c·f of
-   0.3–0.6 mm, varying by 0.15–0.25 mm over the workspace): held-out position / orientation RMS,
+   another day, the mocap frame moved) with soft legs (its ``soft-legs`` build: ~150 mm/kN ± 20 %, a
+   2 kg platform, c·f of 0.3–0.6 mm varying by 0.15–0.25 mm over the workspace; the platform file's
+   guess 2.5 kg, the centre on the axis): held-out position / orientation RMS,
    instrument re-registered, rigid against elastic.
 3. **Load steps** (the paper's experiment, nim-stewart with the tracker): ``ekf`` in the loop, a
    40 kg step after the no-load stage; samples until the closed-loop position error is back within
@@ -182,57 +183,17 @@ def check_table(poses: int, methods=METHODS) -> list[dict]:
     return rows
 
 
-HOBBY_COMPLIANCE_MM_PER_KN = 150.0
-HOBBY_COMPLIANCE_SPREAD = 0.2
-HOBBY_MASS_KG, HOBBY_COM_MM = 2.0, np.array([5.0, -3.0, 20.0])
-#: the platform file's "rough guess": a quarter more mass, the centre of mass on the axis
-HOBBY_GUESS_KG, HOBBY_GUESS_COM_MM = 2.5, np.array([0.0, 0.0, 20.0])
-
-
-def hobby_elastic(seed: int) -> tuple:
-    """``benchmarks.hobby``'s hexapod with soft legs: ``(rigid platform, elastic platform (a rough guess
-    of the mass), fit log, held-out log of another day)``; the strokes are the elastic IK of the true
-    poses (the true robot settles exactly there)."""
-    from benchmarks import hobby
-    from stewart_calib.platform import Elastic
-    from stewart_calib.simulation.instrument import InstrumentTruth, SimulatedInstrument
-    from stewart_calib.statics import gravity_leg_forces
-
-    rng = np.random.default_rng(seed)
-    platform = hobby.load_platform(hobby.HOBBY)
-    delta = rng.normal(0.0, hobby.JOINT_SPREAD_MM, 42)
-    delta[6::7] = rng.normal(0.0, hobby.LENGTH_SPREAD_MM, 6)
-    true_drive = platform.drive.perturbed(delta)
-    scale = rng.normal(0.0, hobby.SCALE_SPREAD, 6)
-    compliance = HOBBY_COMPLIANCE_MM_PER_KN * (1.0 + HOBBY_COMPLIANCE_SPREAD * rng.normal(size=6))
-    lo, hi = platform.stroke_range
-
-    def session(n: int, frame: np.ndarray) -> Log:
-        instrument = SimulatedInstrument.build(platform.instrument, InstrumentTruth(frame, hobby.TARGET_OFFSET), rng)
-        R, t = kin.pose_to_rt(hobby.random_poses(platform, 4 * n, rng))
-        forces = gravity_leg_forces(true_drive, R, t, np.array([HOBBY_MASS_KG]), HOBBY_COM_MM[None])
-        lengths = kin.inverse_kinematics(true_drive, R, t) + compliance * forces / 1000.0
-        q = lengths / (1.0 + scale)
-        keep = np.flatnonzero(np.all((q >= lo) & (q <= hi), axis=1))[:n]
-        return Log(np.arange(n) * 1.0, q[keep], instrument.read(R[keep], t[keep], instrument.draw(n, rng)))
-
-    fit = session(hobby.N_FIT, hobby.FRAME_OFFSET)
-    held_out = session(hobby.N_HELD_OUT, hobby.FRAME_OFFSET + hobby.FRAME_MOVE)
-    elastic = dataclasses.replace(platform, elastic=Elastic(HOBBY_GUESS_KG, HOBBY_GUESS_COM_MM))
-    return platform, elastic, fit, held_out
-
-
 def hobby_table(seeds: int, methods=METHODS) -> list[dict]:
     """Rows of table 2: held-out position / orientation RMS, instrument re-registered, per method and model."""
-    from benchmarks.hobby import ours_fit, ours_held_out
+    from benchmarks.hobby import SOFT_LEGS, ours_fit, ours_held_out, simulate
 
     rows = {(method, label): [] for method in methods for label in ("rigid", "elastic")}
     for seed in range(seeds):
-        rigid, elastic, fit, held_out = hobby_elastic(seed)
+        data = simulate(seed, build=SOFT_LEGS)
         for (method, label), runs in rows.items():
-            platform = rigid if label == "rigid" else elastic
-            estimate = ours_fit(platform, fit, method)
-            runs.append(ours_held_out(platform, estimate, held_out, register=True))
+            platform = data.platform if label == "rigid" else data.elastic
+            estimate = ours_fit(platform, data.fit, method)
+            runs.append(ours_held_out(platform, estimate, data.other_day, register=True))
     return [
         {
             "method": m,

@@ -77,8 +77,10 @@ class LegTerm:
         return UnknownBlock(self.key, self.names, self.nominal, np.full(N_LEGS, self.prior_sigma))
 
 
-#: forward-kinematics passes before the last one in :meth:`DriveModel.settled_kinematics`
-SETTLING_PASSES = 2
+#: at most this many forward-kinematics passes before the last one in :meth:`DriveModel.settled_kinematics`
+SETTLING_PASSES = 30
+#: the settling stops once no leg's extension moved more than this between passes [mm]
+SETTLED_MM = 1e-7
 
 #: the compliance term's key: the result's ``"compliance"`` block (spec §10)
 COMPLIANCE = "compliance"
@@ -260,18 +262,25 @@ class DriveModel:
         self, strokes: np.ndarray, payload_kg=None, x_drive: np.ndarray | None = None, guess=None, strict: bool = True
     ) -> tuple[kin.FKSolution, np.ndarray]:
         """``(forward kinematics, the inputs at its poses)`` of logged ``strokes (N, 6)``: for an
-        elastic drive the fixed point of forces ↔ pose, as the loaded robot settles. The forces
-        change with the pose by ~1e-3 of themselves per mm, so each pass gains three orders: the
-        first from no force at all, two more reach the nanometre."""
+        elastic drive the fixed point of forces ↔ pose, as the loaded robot settles, passes until no
+        extension moves by :data:`SETTLED_MM`. An industrial robot's forces change with the pose by
+        ~1e-3 of themselves per mm, so each pass gains three orders (2–3 passes); a hobby robot's
+        legs of 150 mm/kN under a payload of twice the platform's weight gain one order a pass (two
+        passes left 0.13 mm there, benchmarks/hobby.py's soft legs with 5 kg)."""
         strokes = np.asarray(strokes, dtype=float)
         if self.elastic is None:
             inputs = self.inputs(strokes)
             return self.forward_kinematics(inputs, x_drive, guess=guess, strict=strict), inputs
         inputs = self.inputs_near(strokes, payload_kg, guess, x_drive)
+        extension = self.extensions(inputs, x_drive)
         for _ in range(SETTLING_PASSES):
             sol = self.forward_kinematics(inputs, x_drive, guess=guess, strict=strict)
             guess = (sol.R, sol.t)
             inputs = self.inputs(strokes, payload_kg, sol.R, sol.t, x_drive)
+            previous, extension = extension, self.extensions(inputs, x_drive)
+            moved = np.abs(extension - previous)
+            if not np.any(moved > SETTLED_MM):  # NaN (a pose FK did not reach, strict=False): nothing to settle
+                break
         return self.forward_kinematics(inputs, x_drive, guess=guess, strict=strict), inputs
 
     # ------------------------------------------------------------------ values
@@ -397,6 +406,39 @@ class DriveModel:
             numpy.linalg.LinAlgError: a pose at a singularity of the drive (``∂r/∂ξ`` singular).
         """
         J_pose, J_x = self.jacobians(x_drive, R, t, inputs)
+        return -np.linalg.solve(J_pose, J_x)
+
+    def settled_pose_jacobian(
+        self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray, payload_kg=None
+    ) -> np.ndarray:
+        """:meth:`pose_jacobian` of :meth:`settled_kinematics`' poses, whose leg forces move with the
+        pose and the joints: ``r(ξ; x, f(ξ, M)) = 0``, so ``∂r/∂ξ`` and ``∂r/∂M`` gain
+        ``(∂r/∂f) ∂f/∂ξ`` and ``(∂r/∂f) ∂f/∂M`` (:func:`~stewart_calib.statics.leg_force_jacobians`).
+        They are ~1e-3 of the rows they join, but a batch fit's weakest directions (compliance against
+        the leg offsets, condition ~1e6) are where that shows: without them ``ls`` crept along that
+        valley and stopped at its 200 evaluations on a simulated hobby hexapod (benchmarks/hobby.py,
+        soft-legs seed 0). A rigid drive: :meth:`pose_jacobian`."""
+        if self.elastic is None:
+            return self.pose_jacobian(x_drive, R, t, inputs)
+        from .statics import leg_force_jacobians
+
+        J_pose, J_x = self.jacobians(x_drive, R, t, inputs)
+        row = next(row for row, term in enumerate(self.terms) if term.key == COMPLIANCE)
+        term = self.terms[row]
+        forces = np.asarray(inputs, dtype=float)[..., term.input_start : term.input_start + N_LEGS]
+        e = self.elastic
+        masses, coms = masses_and_centres(
+            e.platform_mass_kg,
+            e.platform_com_mm,
+            0.0 if payload_kg is None else payload_kg,
+            e.payload_com_mm,
+            np.shape(t)[:-1],
+        )
+        df_dxi, df_dM = leg_force_jacobians(self.geometry(x_drive), R, t, forces, masses, coms)
+        dr_df = (-term.gain * self._term_factors(x_drive)[row])[:, None]  # r = ‖…‖ − (l + e): ∂r_i/∂f_i = −(o + c_i) g
+        J_pose = J_pose + dr_df * df_dxi
+        J_x = J_x.copy()
+        J_x[..., :N_PARAMS] += dr_df * df_dM
         return -np.linalg.solve(J_pose, J_x)
 
     def observation(

@@ -314,7 +314,7 @@ def test_the_ekf_payload_column_is_the_numerical_derivative(check):
     for k in (0, 50, 100):
         sample = replace(run.log[k], load_kg=None)
         strokes, z = check_sample(ekf.platform, ekf.model, sample)
-        prepared = np.concatenate([ekf._inputs(strokes, z, sample), z])
+        prepared = ekf._prepared(strokes, z, sample)
         _, H, _ = ekf._observe(prepared, x)
         step = 1.0
         shifted = [ekf._observe(prepared, x + sign * step * np.eye(layout.size)[column])[0] for sign in (1, -1)]
@@ -500,7 +500,7 @@ def test_the_ekf_payload_column_with_an_outside_instrument_is_the_numerical_deri
         sample = replace(sample, readings=readings.reshape(-1))
         checked += 1
         strokes, z = check_sample(ekf.platform, ekf.model, sample)
-        prepared = np.concatenate([ekf._inputs(strokes, z, sample), np.ravel(z)])
+        prepared = ekf._prepared(strokes, z, sample)
         _, H, _ = ekf._observe(prepared, x)
         step = 0.05
         shifted = [ekf._observe(prepared, x + sign * step * np.eye(layout.size)[column])[0] for sign in (1, -1)]
@@ -508,3 +508,36 @@ def test_the_ekf_payload_column_with_an_outside_instrument_is_the_numerical_deri
         np.testing.assert_allclose(H[:, column], numeric, rtol=1e-5, atol=1e-9)
         assert np.abs(H[:, column]).max() > 1e-3
     assert checked >= 4
+
+
+def test_the_settled_pose_jacobian_matches_numerical_differences():
+    """∂ξ/∂x_drive of settled_kinematics' poses, the forces' own change with the pose and the joints
+    included (what the batch fit steps with), against central differences through the body tangent
+    ``ξ = [ω, v]``; a hobby robot's soft legs (150 mm/kN, 2 kg, 5 kg payload) make that change show."""
+    from benchmarks.hobby import SOFT_LEGS, simulate
+    from stewart_calib.config import NoiseConfig
+    from stewart_calib.drive import drive_model
+    from stewart_calib.instruments import lie
+
+    platform = simulate(0, n_fit=4, n_held_out=1, build=SOFT_LEGS).elastic
+    platform = replace(platform, elastic=replace(platform.elastic, compliance_mm_per_kN=np.full(6, 150.0)))
+    drive = drive_model(platform, NoiseConfig(stroke_scale_sigma=0.05))
+    data = simulate(0, n_fit=4, n_held_out=1, build=SOFT_LEGS)
+    strokes, payload = data.fit.strokes, np.full(4, 5.0)
+    x = np.random.default_rng(3).normal(0.0, 0.3, drive.size)
+    fk, inputs = drive.settled_kinematics(strokes, payload, x)
+    analytic = drive.settled_pose_jacobian(x, fk.R, fk.t, inputs, payload)
+    numeric = np.zeros_like(analytic)
+    step = 1e-4
+    for j in range(drive.size):
+        dx = np.zeros(drive.size)
+        dx[j] = step
+        plus, _ = drive.settled_kinematics(strokes, payload, x + dx, (fk.R, fk.t))
+        minus, _ = drive.settled_kinematics(strokes, payload, x - dx, (fk.R, fk.t))
+        omega = lie.so3_log(np.swapaxes(minus.R, -1, -2) @ plus.R)
+        v = np.einsum("...ji,...j->...i", fk.R, plus.t - minus.t)
+        numeric[..., j] = np.concatenate([omega, v], axis=-1) / (2 * step)
+    np.testing.assert_allclose(analytic, numeric, atol=1e-5 * np.abs(numeric).max())  # settled to SETTLED_MM
+    # and the forces' part is what the difference sees: without it the Jacobian is off by more
+    rigid_part = drive.pose_jacobian(x, fk.R, fk.t, inputs)
+    assert np.abs(rigid_part - numeric).max() > 100 * np.abs(analytic - numeric).max()

@@ -78,3 +78,31 @@ def test_online_method_ends_at_the_batch_optimum_after_large_initial_errors(meth
     optimum = run_calibration(data.platform, data.fit, "lm").estimate
     distance2, free = _distance2(run_calibration(data.platform, data.fit, method).estimate, optimum, data.platform)
     assert distance2 <= free, f"{method}: Δᵀ P⁺ Δ = {distance2:.1f} from the batch optimum over {free} free directions"
+
+
+def test_elastic_ekf_ends_at_the_batch_optimum_after_large_initial_errors():
+    """The same with soft legs and the platform file's rough guess of the mass (benchmarks/hobby.py's
+    soft-legs build, spec §10). The ekf takes each sample's leg forces at the pose the measurement
+    fixes through the state's instrument frame: through the registered nominal frame (6° off in roll
+    here) it ended at Δᵀ P⁺ Δ = 1015 over 54 free directions (12 now), and 0.43 mm held out against
+    lm's 0.36."""
+    from benchmarks.hobby import SOFT_LEGS
+
+    data = simulate(1, n_held_out=1, build=SOFT_LEGS)
+    optimum = run_calibration(data.elastic, data.fit, "lm").estimate
+    distance2, free = _distance2(run_calibration(data.elastic, data.fit, "ekf").estimate, optimum, data.elastic)
+    assert distance2 <= free, f"ekf: Δᵀ P⁺ Δ = {distance2:.1f} from the batch optimum over {free} free directions"
+
+
+def test_elastic_ls_converges_along_the_compliance_valley():
+    """ls with soft legs: the compliance against the leg offsets is its weakest direction (condition
+    ~1e6); stepping without the forces' change with the pose it crept along it and stopped at its 200
+    evaluations on this log ("did not converge"). It ends at lm's held-out error within 2 %."""
+    from benchmarks.hobby import SOFT_LEGS, ours_held_out
+
+    data = simulate(0, n_held_out=30, build=SOFT_LEGS)
+    held = {
+        m: ours_held_out(data.elastic, run_calibration(data.elastic, data.fit, m).estimate, data.other_day, True)[0]
+        for m in ("ls", "lm")
+    }
+    assert held["ls"] <= 1.02 * held["lm"], held

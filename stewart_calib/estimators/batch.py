@@ -429,7 +429,7 @@ def _lift(problem: BatchProblem, basis: np.ndarray, fit_blocks: bool, n_unknowns
 def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_blocks: bool):
     """Whitened, weighted Jacobian ``A`` (finite rows) and residual ``b`` at ``state``."""
     e, H_X, H_u = problem.model.residual(state.unknowns, problem.measured, state.R, state.t, jacobians=True)
-    dxi = problem.drive.pose_jacobian(state.x_drive, state.R, state.t, state.inputs)
+    dxi = problem.drive.settled_pose_jacobian(state.x_drive, state.R, state.t, state.inputs, problem.payload_kg)
     blocks = [H_X @ dxi[..., :N_PARAMS] @ basis]
     if fit_blocks and dxi.shape[-1] > N_PARAMS:
         blocks.append(H_X @ dxi[..., N_PARAMS:])

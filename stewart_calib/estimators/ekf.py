@@ -137,6 +137,13 @@ class LegEKF:
         self._drive_fk = WarmFK()
         self._held = HeldForRegistration(platform, config.noise, self.model, self.layout)
         self._forces_geometry: np.ndarray | None = None
+        # An elastic drive measured from outside: the leg forces are taken at the pose the measurement
+        # fixes through the STATE's instrument unknowns, at every linearisation (the log's payload rides
+        # at the end of the prepared sample's inputs for that). The registered nominal frame is no place
+        # for them: it maps nominal FK of strokes whose encoder zeros are 15 mm off, so its rotation is
+        # degrees off (simulated hobby hexapod: 6° in roll) and gravity seen tilted as much — a fit whose
+        # c·f is not validate's (benchmarks/hobby.py: plain held-out 0.50 mm against lm's 0.35).
+        self._forces_at_state = self.drive.elastic is not None and self._instrument is not None
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample; ``SampleRejected`` leaves the state untouched."""
@@ -147,7 +154,7 @@ class LegEKF:
                 f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)", SampleRejected.TIME_BACK
             )
         if not self._held.active:
-            self.robust.update(sample.t_s, np.concatenate((self._inputs(strokes, z, sample), np.ravel(z))))
+            self.robust.update(sample.t_s, self._prepared(strokes, z, sample))
             return
         self._held.hold_then_replay(sample, self.robust.start_at, self._replay)
 
@@ -205,12 +212,16 @@ class LegEKF:
 
     def _replay(self, held: Sample) -> None:
         strokes, z = check_sample(self.platform, self.model, held)
-        self.robust.update(held.t_s, np.concatenate((self._inputs(strokes, z, held), np.ravel(z))))
+        self.robust.update(held.t_s, self._prepared(strokes, z, held))
 
-    def _inputs(self, strokes: np.ndarray, z: np.ndarray, sample: Sample) -> np.ndarray:
-        return drive_inputs(
+    def _prepared(self, strokes: np.ndarray, z: np.ndarray, sample: Sample) -> np.ndarray:
+        """A prepared sample ``[u | forces per kg (an unannounced payload) | load_kg (forces taken at the
+        state) | z]``."""
+        inputs = drive_inputs(
             self.drive, self.model, strokes, z, sample.load_kg, self._pose.guess, self._forces_at(), self._per_kg > 0
         )
+        load = [0.0 if sample.load_kg is None else float(sample.load_kg)] if self._forces_at_state else []
+        return np.concatenate((inputs, load, np.ravel(z)))
 
     def _forces_at(self) -> np.ndarray | None:
         """The drive state whose geometry an elastic drive's leg forces are taken at: the one the
@@ -227,11 +238,20 @@ class LegEKF:
         observation, or the tight one where the measurement fixes no pose at ``x``."""
         drive = self.drive
         width = drive.input_width
-        inputs, z = prepared[:width], prepared[width + self._per_kg :]
+        inputs, per_kg = prepared[:width], prepared[width : width + self._per_kg]
+        z = prepared[width + self._per_kg + int(self._forces_at_state) :]
         x_drive = x[: drive.size]
+        theta = instrument_theta(self.model, None if self._instrument is None else x[self._instrument])
+        observed = None
+        if not self._tracker_known:
+            observed = self._pose.solve(z, theta)
+            if observed is not None and self._forces_at_state:
+                load_kg = prepared[width + self._per_kg]
+                inputs = drive.inputs(inputs[:N_LEGS], load_kg, observed.R, observed.t, self._forces_at())
+                if self._per_kg:
+                    per_kg = drive.payload_leg_forces(observed.R, observed.t, self._forces_at())
         dg_dm = None  # ∂r/∂m of the drive-leg residuals r on the unannounced payload m
         if self._payload is not None:
-            per_kg = prepared[width : width + self._per_kg]
             inputs = drive.loaded_inputs(inputs, per_kg, float(x[self._payload][0]))
             dg_dm = -drive.force_gains(x_drive) * per_kg
         if self._tracker_known:  # the common case, in one compiled call from readings to (r, H, R_meas)
@@ -239,8 +259,6 @@ class LegEKF:
                 drive, x_drive, z, inputs, self.noise.stroke_sigma_mm
             )
             return -residual, self._with_blocks(H_drive, None, dg_dm), R_meas
-        theta = instrument_theta(self.model, None if self._instrument is None else x[self._instrument])
-        observed = self._pose.solve(z, theta)
         if observed is None:
             return self._observe_tight(inputs, z, theta, x, dg_dm)
         residual, H_drive, R_meas, J_x = drive.observation(
