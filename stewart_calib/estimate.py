@@ -7,6 +7,7 @@ Kept below :mod:`stewart_calib.io`, the estimators and the simulator, which all 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -94,3 +95,15 @@ class Estimate:
             out[block.key] = block.to_file(self.block_error[cols], None if stddev is None else stddev[cols])
             start += block.size
         return out
+
+
+@runtime_checkable
+class MeanEstimator(Protocol):
+    """What an estimator may offer beside :class:`~stewart_calib.estimators.Estimator` (every
+    built-in one does; a plugin need not: callers fall back to ``estimate()``). Here, below the
+    estimators, so that the closed-loop simulator can ask for it."""
+
+    def current_estimate(self) -> Estimate:
+        """What ``estimate()`` gives, its covariance left out where that costs extra (isam2):
+        the whole unknown vector (δM and the blocks: an elastic drive's compliance) for a caller
+        that needs the model, not its error bars, once per sample."""

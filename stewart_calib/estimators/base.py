@@ -52,17 +52,6 @@ class Estimator(Protocol):
 
 
 @runtime_checkable
-class MeanEstimator(Protocol):
-    """What a method may offer beside :class:`Estimator` (every built-in one does; a plugin need
-    not: callers fall back to ``estimate()``)."""
-
-    def current_estimate(self) -> Estimate:
-        """What ``estimate()`` gives, its covariance left out where that costs extra (isam2):
-        the whole unknown vector (δM and the blocks: an elastic drive's compliance) for a caller
-        that needs the model, not its error bars, once per sample."""
-
-
-@runtime_checkable
 class BatchEstimator(Estimator, Protocol):
     """A method that fits the whole log at once."""
 

@@ -49,7 +49,7 @@ import numpy as np
 from .. import kinematics as kin
 from ..drive import PAYLOAD, drive_model
 from ..errors import SampleRejected
-from ..estimators.base import MeanEstimator
+from ..estimate import MeanEstimator
 from ..platform import LegGeometry, Platform
 from ..progress import progress_bar
 from ..samples import Log, Sample, Truth
