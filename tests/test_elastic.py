@@ -262,6 +262,11 @@ def test_ekf_blocks_and_checkpoints_take_the_same_forces_as_one_sample_at_a_time
     resumed.import_state(half.export_state())
     update_each(resumed, samples[200:])
     np.testing.assert_array_equal(resumed.estimate().error, one.estimate().error)
+    # buffered rows of another layout (a checkpoint of another version of the model) are refused, not misread
+    state = half.export_state()
+    state["robust"]["buffer_prepared"] = state["robust"]["buffer_prepared"][:, :-1]
+    with pytest.raises(CalibError, match=r"buffered samples of \d+ columns, expected \d+"):
+        make_estimator("ekf", platform).import_state(state)
 
 
 # ----------------------------------------------------------------------------- the unannounced payload

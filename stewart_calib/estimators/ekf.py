@@ -59,7 +59,7 @@ import numpy as np
 from .. import kinematics as kin
 from ..config import EstimatorConfig
 from ..drive import PAYLOAD, payload_block
-from ..errors import SampleRejected
+from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta, needs_registration
 from ..instruments.tracker import as_tracker
@@ -352,6 +352,14 @@ class LegEKF:
     def import_state(self, state: dict) -> None:
         """Restore :meth:`export_state` exactly. Raises ``CalibError`` on a bad key or shape."""
         self.robust.import_state(state.get("robust", {}))
+        # a prepared row's layout follows the model (13fac42 added the load column of an elastic drive
+        # seen through an instrument with unknowns): rows of another layout would be misread, not refused
+        width = self.drive.input_width + self._per_kg + int(self._forces_at_state) + len(self.model.columns)
+        if self.robust.buffered_width() not in (None, width):
+            raise CalibError(
+                f"estimator state: buffered samples of {self.robust.buffered_width()} columns, expected {width} "
+                "for this platform and settings (a checkpoint of another version of the model)"
+            )
         self._pose.import_state(state.get("tracker_fk", {}))
         self._drive_fk.import_state(state.get("drive_fk", {}))
         forces_at = state.get("forces_at")

@@ -681,6 +681,10 @@ class RobustFilter:
             state["window"] = {"x": x, "P": P, "first_t_s": np.float64(first_t), "t_s": np.float64(last_t)}
         return state
 
+    def buffered_width(self) -> int | None:
+        """Columns of the prepared samples it holds, or None while it holds none."""
+        return self._buffer.prepared.shape[1] if len(self._buffer) else None
+
     def import_state(self, state: dict) -> None:
         """Restore :meth:`export_state`. Raises ``CalibError`` on a bad key or shape."""
         self.filter.import_state(state.get("filter", {}))
