@@ -213,6 +213,9 @@ REFUSALS = [
         "exists and is not a directory",
     ),
     ("write", "simulate --experiment quick --out {d}/log.csv", "--out {d}/log.csv: cannot create the output directory"),
+    # an output that is a FIFO (a device alike: as root, --out /dev/null swapped the null device for a file)
+    ("write", "export --platform {d}/P.toml --format json --out {d}/fifo", "--out {d}/fifo: is a FIFO, not a regular"),
+    ("write", "{calibrate} --trace {d}/fifo", "--trace {d}/fifo: is a FIFO, not a regular file"),
     # an output folder no file can be made in, whoever runs it: procfs takes no file, and says yes to
     # root's os.access — every command refuses before its work, not only when it writes at the end
     *(
@@ -268,10 +271,10 @@ REFUSALS = [
         "track --platform {d}/P.toml --log /dev/zero --method ekf --out {d}/r.json",
         "/dev/zero: a line longer than",
     ),
-    (
+    (  # read and replaced: refused as an output that is a device (it was read bounded, then would be replaced)
         "read",
         "track --platform {d}/P.toml --log {d}/log.csv --method ekf --out {d}/r.json --checkpoint /dev/zero",
-        "/dev/zero: checkpoint larger than",
+        "--checkpoint /dev/zero: is a device, not a regular file",
     ),
     ("read", "simulate --experiment /dev/zero --out {d}/sim", "/dev/zero: a line longer than"),
     ("read", "sweep --spec /dev/zero --out {d}/sw", "/dev/zero: a line longer than"),
@@ -293,7 +296,7 @@ REFUSALS = [
     (
         "read",
         "track --platform {d}/P.toml --log {d}/log.csv --method ekf --out {d}/r.json --checkpoint {d}/fifo",
-        "{d}/fifo: no data for 0.3 s",
+        "--checkpoint {d}/fifo: is a FIFO, not a regular file",
     ),
     (
         "read",

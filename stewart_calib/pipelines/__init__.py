@@ -130,10 +130,28 @@ def check_no_output_over_input(args: argparse.Namespace) -> None:
                 )
 
 
+def _refuse_special_file(option: str, path: str) -> None:
+    """An output that is a device, FIFO or socket would be replaced by a regular file (every write
+    is a rename onto the path): as root ``--out /dev/null`` swapped the system's null device for one."""
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:  # not there yet (or unreachable: the directory's check says why)
+        return
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        kind = "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
+        raise CalibError(
+            f"{option} {shown(path)}: is {kind}, not a regular file; outputs are written to a temporary and renamed "
+            "onto their path, which would replace it — expected a file path"
+        )
+
+
 def check_outputs_writable(args: argparse.Namespace) -> None:
     """Refuse, before any work, an output whose directory cannot be written into — the one it is
     in, or for one still to be made the nearest that exists (:func:`~stewart_calib.io.check_writable_directory`):
-    every command, so none finds out only when it writes its result.
+    every command, so none finds out only when it writes its result — and an output path that is a
+    device, FIFO or socket.
 
     Raises:
         CalibError: naming the argument, the directory and the file system's reason.
@@ -141,6 +159,7 @@ def check_outputs_writable(args: argparse.Namespace) -> None:
     from .. import io
 
     for option, path in _written_files(args):
+        _refuse_special_file(option, path)
         directory = os.path.abspath(path)
         if not os.path.isdir(directory):  # an output directory (sweep, reproduce) that exists: itself
             directory = os.path.dirname(directory)
