@@ -326,6 +326,26 @@ def test_a_bad_export_is_refused_in_one_line_and_nothing_written(capsys, tmp_pat
     assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    "option, text, row",
+    [
+        (["--motive", "{f}", "--rigid-body", "platform"], b"Format Version,1.23\n\xe9\xff,2\n", 2),
+        (["--vicon", "{f}", "--segment", "platform"], b"Segments\n100\n\xe9t\xe9\n", 3),
+        (["--csv", "{f}", "--mapping", "{m}"], b"t_\xe9,x\n1,2\n", 1),
+    ],
+)
+def test_an_export_that_is_not_utf8_is_refused_naming_the_row(capsys, tmp_path, option, text, row):
+    """Found fuzzing: Vicon's header read as text raised UnicodeDecodeError (a traceback)."""
+    export, mapping = tmp_path / "export.csv", tmp_path / "m.toml"
+    export.write_bytes(text)
+    mapping.write_text('[instrument]\ntime = "t"\nposition = ["x", "y", "z"]\nquaternion = ["a", "b", "c", "d"]\n')
+    argv = [a.format(f=export, m=mapping) for a in option]
+    code, err = _run(capsys, "import", *argv, "--out", tmp_path / "l.csv")
+    assert code == 2 and err.count("\n") == 0, err
+    assert f"{export}: row {row}: not UTF-8 text" in err
+    assert not (tmp_path / "l.csv").exists()
+
+
 def test_a_mapping_file_with_a_typo_is_refused_with_the_nearest_key(capsys, tmp_path):
     argv = _motive_case(tmp_path)
     (tmp_path / "c.toml").write_text(COUNTS_MAPPING.replace("counts_per_mm", "count_per_mm"))

@@ -75,13 +75,48 @@ def _refuse(path, message: str):
     raise CalibError(f"{path}: {message}")
 
 
-def _open_text(path: Path):
-    try:
-        return open(path, encoding="utf-8-sig", newline="")
-    except FileNotFoundError:
-        _refuse(path, "file not found")
-    except OSError as err:
-        _refuse(path, f"cannot read ({err.strerror})")
+class _TextFile:
+    """An export's text, read a line at a time (``readline``, iteration, a context manager); a line
+    that is not UTF-8 is refused naming the file and row, not raised as a decoding traceback."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        try:
+            self.file = open(path, encoding="utf-8-sig", newline="")
+        except FileNotFoundError:
+            _refuse(path, "file not found")
+        except OSError as err:
+            _refuse(path, f"cannot read ({err.strerror})")
+
+    def readline(self) -> str:
+        try:
+            line = self.file.readline()
+        except UnicodeDecodeError as err:  # decoded a chunk ahead: the row from the bytes (the slow path)
+            _refuse(self.path, f"row {self._undecodable_row()}: not UTF-8 text ({err.reason}); expected UTF-8 CSV")
+        return line
+
+    def _undecodable_row(self) -> int:
+        with open(self.path, "rb") as raw:
+            for row, line in enumerate(raw, start=1):
+                try:
+                    line.decode("utf-8-sig" if row == 1 else "utf-8")
+                except UnicodeDecodeError:
+                    return row
+        return 1
+
+    def __iter__(self) -> Iterator[str]:
+        while line := self.readline():
+            yield line
+
+    def __enter__(self) -> _TextFile:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.file.close()
+
+
+def _open_text(path: Path) -> _TextFile:
+    return _TextFile(path)
 
 
 def _split(line: str) -> list[str]:
