@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 
@@ -392,6 +393,26 @@ def test_csv_text_writes_what_the_csv_module_writes(monkeypatch, chunk_rows):
     for header, columns in cases:
         assert tables.csv_text(header, columns) == reference(header, columns)
         assert tables.csv_text(header, columns, with_header=False) == reference(header, columns).split("\n", 1)[1]
+
+
+def test_blocks_write_csv_texts_file_whatever_their_sizes(monkeypatch, tmp_path):
+    """write_csv_blocks gives csv_text's bytes with blocks of any size: a large file's remainders
+    (rows after the last whole chunk of a block) are written by pyarrow too, small files by repr."""
+    from stewart_calib.io import tables
+
+    monkeypatch.setattr(tables, "CSV_CHUNK_ROWS", 4)
+    rng = np.random.default_rng(5)
+    columns = [
+        np.r_[rng.normal(size=20) * 10.0 ** rng.integers(-8, 17, 20), 0.0, -0.0, 1e9, 123.0],
+        rng.normal(size=24),
+    ]
+    columns[1][[3, 17]] = np.nan
+    expected = tables.csv_text(["a", "b"], [columns[0], ["" if np.isnan(v) else v for v in columns[1]]])
+    for sizes in ([2, 1, 21], [7, 5, 1, 11], [24]):
+        edges = np.cumsum([0, *sizes])
+        blocks = [[c[lo:hi] for c in columns] for lo, hi in itertools.pairwise(edges)]
+        assert tables.write_csv_blocks(tmp_path / "t.csv", ["a", "b"], blocks, blank=(1,)) == 24
+        assert (tmp_path / "t.csv").read_text() == expected, sizes
 
 
 def test_background_writer_writes_in_order_and_raises_a_failure_on_the_next_call(tmp_path):

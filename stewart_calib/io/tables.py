@@ -94,21 +94,25 @@ def write_csv_blocks(path: str | Path, header: list[str], blocks, blank: tuple[i
         CalibError: the file cannot be written.
     """
     rows = 0
+    large = False  # once a block holds a chunk, pyarrow writes every row after it, blocks' remainders too
     with atomic_path(path) as temporary, open(temporary, "wb") as file:
         file.write(csv_text(header, []).encode())
         for columns in blocks:
+            large = large or len(columns[0]) >= CSV_CHUNK_ROWS
             for start in range(0, len(columns[0]), CSV_CHUNK_ROWS):
-                file.write(float_rows_csv([c[start : start + CSV_CHUNK_ROWS] for c in columns], blank))
+                file.write(float_rows_csv([c[start : start + CSV_CHUNK_ROWS] for c in columns], blank, large))
             rows += len(columns[0])
     return rows
 
 
-def float_rows_csv(columns: list[np.ndarray], blank: tuple[int, ...] = ()) -> bytes:
+def float_rows_csv(columns: list[np.ndarray], blank: tuple[int, ...] = (), large: bool = False) -> bytes:
     """The rows of equal-length float columns as :func:`csv_text` writes them (each float's
     ``repr``, commas between, a line break after each row; see :func:`write_csv_blocks` for
-    ``blank``), without the header; by pyarrow from :data:`CSV_CHUNK_ROWS` rows on: ~2 µs a
-    13-column row against ~11 for ``repr`` on each field, its import (~0.1 s, ~40 MB) paying off."""
-    if len(columns[0]) < CSV_CHUNK_ROWS:
+    ``blank``), without the header; by pyarrow from :data:`CSV_CHUNK_ROWS` rows on, or for any
+    rows of a ``large`` file: ~2 µs a 13-column row against ~11 for ``repr`` on each field, its
+    import (~0.1 s, ~40 MB) paying off. (An import of 10⁶ rows in blocks of ~5400 wrote each
+    block's last ~1300 rows by ``repr``: 5 of its 18 s.)"""
+    if len(columns[0]) < CSV_CHUNK_ROWS and not large:
         fields = [_repr_list(column, j in blank) for j, column in enumerate(columns)]
         return "".join(",".join(row) + "\n" for row in zip(*fields, strict=True)).encode()
     import pyarrow.compute as pc
