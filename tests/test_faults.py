@@ -213,6 +213,15 @@ REFUSALS = [
         "exists and is not a directory",
     ),
     ("write", "simulate --experiment quick --out {d}/log.csv", "--out {d}/log.csv: cannot create the output directory"),
+    # sizes that exhaust the machine (found fuzzing the numeric options)
+    (
+        "nonsense",
+        "plan --platform {d}/P.toml --n 5 --candidates 1{zeros} --out {d}/p.csv",
+        "argument --candidates: expected",
+    ),
+    ("nonsense", "plan --platform {d}/P.toml --n 5 --candidates 100000000000 --out {d}/p.csv", "from 1 to 100000"),
+    ("nonsense", "sweep --spec {d}/seeds.toml --out {d}/sweep --workers 1{zeros}", "argument --workers: expected"),
+    ("nonsense", "sweep --spec {d}/seeds.toml --out {d}/sweep --workers 0", "worker processes from 1 to"),
     # an output that is a FIFO (a device alike: as root, --out /dev/null swapped the null device for a file)
     ("write", "export --platform {d}/P.toml --format json --out {d}/fifo", "--out {d}/fifo: is a FIFO, not a regular"),
     ("write", "{calibrate} --trace {d}/fifo", "--trace {d}/fifo: is a FIFO, not a regular file"),

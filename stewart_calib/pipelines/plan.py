@@ -54,6 +54,21 @@ def _seed(text: str) -> int:
     return value
 
 
+#: most candidate poses a plan draws: each holds its information matrix (an outside instrument's
+#: 48 × 48: 18 KB, so 10⁵ are 1.8 GB); 10¹¹ were an out-of-memory, 10⁴⁰⁰ a traceback
+MAX_CANDIDATES = 100_000
+
+
+def _candidates(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if not 1 <= value <= MAX_CANDIDATES:
+        raise argparse.ArgumentTypeError(f"expected a whole number of poses from 1 to {MAX_CANDIDATES}, got {text!r}")
+    return value
+
+
 def add_parser(subparsers) -> None:
     parser = subparsers.add_parser(
         "plan",
@@ -71,7 +86,13 @@ def add_parser(subparsers) -> None:
         "instruments); A: smallest mean parameter variance (default for the tracker); D: log det; O1: "
         "Borm–Menq O1 of the paper's J_p form (tracker only); E: weakest direction",
     )
-    parser.add_argument("--candidates", type=int, default=2000, metavar="M", help="random candidate poses (2000)")
+    parser.add_argument(
+        "--candidates",
+        type=_candidates,
+        default=2000,
+        metavar="M",
+        help=f"random candidate poses (2000; ≤ {MAX_CANDIDATES})",
+    )
     parser.add_argument("--seed", type=_seed, default=None, help="seed of the candidate draw (a whole number ≥ 0)")
     parser.add_argument(
         "--dwell-s", type=_positive_seconds, default=1.0, help="t_s step between poses in the file [s], > 0"

@@ -17,10 +17,28 @@ when it is a terminal.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
 from . import run_command
+
+#: a local cluster's worker processes per core at most: they share this machine's cores and memory
+#: (~200 MB each); a thousand on two cores was an endless start, 10⁴⁰⁰ a traceback
+WORKERS_PER_CORE = 4
+
+
+def _workers(text: str) -> int:
+    limit = WORKERS_PER_CORE * (os.cpu_count() or 1)
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if not 1 <= value <= limit:
+        raise argparse.ArgumentTypeError(
+            f"expected a whole number of worker processes from 1 to {limit} ({WORKERS_PER_CORE} per core), got {text!r}"
+        )
+    return value
 
 
 def add_parser(subparsers) -> None:
@@ -35,7 +53,10 @@ def add_parser(subparsers) -> None:
         "--scheduler", metavar="tcp://HOST:PORT", help="a running Dask scheduler (default: a local cluster)"
     )
     parser.add_argument(
-        "--workers", type=int, metavar="N", help="worker processes of the local cluster (default: one per core)"
+        "--workers",
+        type=_workers,
+        metavar="N",
+        help=f"worker processes of the local cluster (default: one per core; at most {WORKERS_PER_CORE} per core)",
     )
     parser.add_argument(
         "--seeds",
