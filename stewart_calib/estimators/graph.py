@@ -193,6 +193,16 @@ class GraphBuilder:
         self._new_variable(factors, key)
         return factors
 
+    def walk_factor(self, window: int, dt_s: float, noise_scale2: float = 1.0) -> gtsam.BetweenFactorVector:
+        """The walk from parameter variable ``window`` to the next over ``dt_s`` [s], in units of the
+        measurement scale ``noise_scale2`` (see :meth:`epoch`); the first factor of the epoch that
+        opens the window."""
+        sigma = random_walk.sigma_mm(
+            self.noise.random_walk_mm_per_sqrt_s / math.sqrt(noise_scale2), dt_s, self.graph.chain_sigma_floor_mm
+        )
+        sigmas = np.where(self._walks, sigma, self.graph.chain_sigma_floor_mm)
+        return random_walk.factor(params_key(window), params_key(window + 1), sigmas)
+
     def window_walk_covariance(self, state: ChainState) -> np.ndarray:
         """What the walk adds between the current parameter variable and the parameters at the
         last sample [code units²]: every sample of a window observes one variable, which so
@@ -267,14 +277,8 @@ class GraphBuilder:
             self._new_variable(factors, params_key(0))
         elif self.new_window(state, sample.t_s):
             w = state.window
-            sigma = random_walk.sigma_mm(
-                self.noise.random_walk_mm_per_sqrt_s / math.sqrt(noise_scale2),
-                sample.t_s - state.window_start_s,
-                self.graph.chain_sigma_floor_mm,
-            )
             values.insert(params_key(w + 1), guess)  # type: ignore[arg-type]  # set: a new window is `wanted`
-            sigmas = np.where(self._walks, sigma, self.graph.chain_sigma_floor_mm)
-            factors.add(random_walk.factor(params_key(w), params_key(w + 1), sigmas))
+            factors.add(self.walk_factor(w, sample.t_s - state.window_start_s, noise_scale2))
             self._new_variable(factors, params_key(w + 1))
             state = replace(state, window=w + 1, window_start_s=sample.t_s, window_samples=0)
         p = params_key(state.window)
