@@ -269,6 +269,28 @@ def test_ekf_blocks_and_checkpoints_take_the_same_forces_as_one_sample_at_a_time
         make_estimator("ekf", platform).import_state(state)
 
 
+def test_an_isam2_checkpoint_keeps_each_samples_payload(check):
+    """isam2 replays its buffered samples on resume: with their payloads, the forces they carry are
+    the ones the uninterrupted run took (a checkpoint without them resumed at 0 kg)."""
+    from stewart_calib.estimators import make_estimator
+    from stewart_calib.estimators.base import update_each
+
+    _, run, platform, _ = check
+    loaded = [sample for sample in run.log if sample.load_kg]
+    samples = loaded[:80]
+    one, half = make_estimator("isam2", platform), make_estimator("isam2", platform)
+    update_each(one, samples)
+    update_each(half, samples[:40])
+    state = half.export_state()
+    assert np.all(state["replay"]["load_kg"] > 0)
+    resumed = make_estimator("isam2", platform)
+    resumed.import_state(state)
+    update_each(resumed, samples[40:])
+    np.testing.assert_allclose(resumed.estimate().error, one.estimate().error, rtol=0, atol=1e-9)
+    older = {**state, "replay": {k: v for k, v in state["replay"].items() if k != "load_kg"}}
+    make_estimator("isam2", platform).import_state(older)  # a checkpoint of before: loads, at 0 kg
+
+
 # ----------------------------------------------------------------------------- the unannounced payload
 
 

@@ -497,13 +497,7 @@ class ISAM2Estimator:
         samples = self._replay
         state: dict[str, object] = {
             "chain": _chain_to_dict(self._state),
-            "replay": {
-                "t_s": np.array([s.t_s for s in samples], dtype=float),
-                "strokes": np.array([s.strokes for s in samples], dtype=float).reshape(-1, N_LEGS),
-                "readings": np.array([s.readings for s in samples], dtype=float).reshape(
-                    len(samples), len(self._builder.model.columns)
-                ),
-            },
+            "replay": _samples_to_dict(samples, len(self._builder.model.columns)),
         }
         state["window_scales"] = {
             "t_s": np.array(list(self._window_scales), dtype=float),
@@ -521,13 +515,7 @@ class ISAM2Estimator:
         else:
             state["initial"] = self._builder.initial.copy()  # where the unknown vector started
         state["front"] = self._front.export_state()
-        state["pending"] = {
-            "t_s": np.array([s.t_s for s in self._pending], dtype=float),
-            "strokes": np.array([s.strokes for s in self._pending], dtype=float).reshape(-1, N_LEGS),
-            "readings": np.array([s.readings for s in self._pending], dtype=float).reshape(
-                len(self._pending), len(self._builder.model.columns)
-            ),
-        }
+        state["pending"] = _samples_to_dict(self._pending, len(self._builder.model.columns))
         return state
 
     def import_state(self, state: dict) -> None:
@@ -544,19 +532,10 @@ class ISAM2Estimator:
             return
         if "initial" in state:
             self._builder.initial = state_array(state, "initial", (self._builder.layout.size,))
-        replay = state.get("replay", {})
-        t_s = state_array(replay, "t_s", np.shape(replay.get("t_s", ())))
-        strokes = state_array(replay, "strokes", (len(t_s), N_LEGS))
-        readings = state_array(replay, "readings", (len(t_s), len(self._builder.model.columns)))
+        replayed = _samples_from_dict(state.get("replay", {}), len(self._builder.model.columns))
         target = _chain_from_dict(state.get("chain", {}))
         self._front.import_state(state.get("front", {}))
-        pending = state.get("pending", {})
-        pending_t_s = state_array(pending, "t_s", np.shape(pending.get("t_s", ())))
-        pending_strokes = state_array(pending, "strokes", (len(pending_t_s), N_LEGS))
-        pending_readings = state_array(pending, "readings", (len(pending_t_s), len(self._builder.model.columns)))
-        self._pending = [
-            Sample(float(pending_t_s[k]), pending_strokes[k], pending_readings[k]) for k in range(len(pending_t_s))
-        ]
+        self._pending = _samples_from_dict(state.get("pending", {}), len(self._builder.model.columns))
         first = None
         if "snapshot" in state:
             snapshot = state["snapshot"]
@@ -575,7 +554,7 @@ class ISAM2Estimator:
             raise CalibError("estimator state: key 'window_scales.noise_scale2': expected finite scales > 0")
         self._window_scales = dict(zip(scale_t_s.tolist(), scale2.tolist(), strict=True))
         try:
-            self._rebuild(first, [Sample(float(t_s[k]), strokes[k], readings[k]) for k in range(len(t_s))])
+            self._rebuild(first, replayed)
         except SampleRejected as err:
             raise CalibError(f"estimator state: a replayed sample was rejected ({err})") from None
         if (self._state.samples, self._state.window, self._state.last_t_s) != (
@@ -584,6 +563,28 @@ class ISAM2Estimator:
             target.last_t_s,
         ):
             raise CalibError("estimator state: the replay does not end where the saved chain did")
+
+
+def _samples_to_dict(samples: list[Sample], n_columns: int) -> dict[str, np.ndarray]:
+    """Samples as arrays for a checkpoint; ``load_kg`` NaN where a sample has no payload."""
+    return {
+        "t_s": np.array([s.t_s for s in samples], dtype=float),
+        "strokes": np.array([s.strokes for s in samples], dtype=float).reshape(-1, N_LEGS),
+        "readings": np.array([s.readings for s in samples], dtype=float).reshape(len(samples), n_columns),
+        "load_kg": np.array([np.nan if s.load_kg is None else s.load_kg for s in samples], dtype=float),
+    }
+
+
+def _samples_from_dict(arrays: dict, n_columns: int) -> list[Sample]:
+    """:func:`_samples_to_dict` back; a checkpoint of before ``load_kg`` was kept has no payloads."""
+    t_s = state_array(arrays, "t_s", np.shape(arrays.get("t_s", ())))
+    strokes = state_array(arrays, "strokes", (len(t_s), N_LEGS))
+    readings = state_array(arrays, "readings", (len(t_s), n_columns))
+    load_kg = state_array(arrays, "load_kg", (len(t_s),)) if "load_kg" in arrays else np.full(len(t_s), np.nan)
+    return [
+        Sample(float(t_s[k]), strokes[k], readings[k], load_kg=None if np.isnan(load_kg[k]) else float(load_kg[k]))
+        for k in range(len(t_s))
+    ]
 
 
 @dataclass(frozen=True)
