@@ -43,9 +43,9 @@ import numpy as np
 from . import io
 from .compensation import compensate
 from .config import EstimatorConfig, config_from_dict, load_estimator_config
-from .drive import drive_model
+from .drive import PAYLOAD, drive_model
 from .errors import CalibError, SampleRejected, shown
-from .estimate import Estimate
+from .estimate import Estimate, MeanEstimator
 from .estimators import method_names, method_spec
 from .estimators.base import (
     CheckpointableEstimator,
@@ -174,8 +174,9 @@ class OnlineCalibrator:
         self._width = len(io.reading_columns(platform))  # the instrument's values in a row
         # the layout is fixed at construction: whether compensation needs the drive's identified blocks
         self._drive = drive_model(platform)
+        layout = self._estimator.estimate().layout
         self._identifies_drive_blocks = any(
-            self._estimator.estimate().layout.slice(term.key) is not None for term in self._drive.terms
+            layout.slice(key) is not None for key in (*(term.key for term in self._drive.terms), PAYLOAD)
         )
         self.rows_read = 0
         self.rows_skipped = 0
@@ -243,7 +244,8 @@ class OnlineCalibrator:
     def compensated_strokes(self, pose_mm_rad: np.ndarray, payload_kg=0.0) -> np.ndarray:
         """Strokes [mm] that put the estimated drive at ``pose_mm_rad`` ``[x, y, z [mm], roll, pitch, yaw [rad]]``
         (``(6,)`` or ``(N, 6)``; paper Fig. 3 step 4), under a payload of ``payload_kg`` (scalar or
-        ``(N,)``) where the platform has ``[elastic]`` (spec §10; a rigid drive ignores it).
+        ``(N,)``) where the platform has ``[elastic]`` (spec §10; a rigid drive ignores it), plus the
+        payload the estimator found beyond the announced one (``[elastic] payload_sigma_kg``).
 
         Raises:
             PoseOutOfRange: a pose outside the platform's workspace, or needing a stroke outside
@@ -251,12 +253,15 @@ class OnlineCalibrator:
                 (:func:`~stewart_calib.compensation.check_reachable`).
             CalibError: non-finite poses or a wrong shape.
         """
-        values = {}
-        if self._identifies_drive_blocks:  # the full estimate only then: isam2's costs a marginal
-            estimate = self._estimator.estimate()
-            values = {term.key: estimate.block_values(term.key) for term in self._drive.terms}
-        drive = self._drive.calibrated(self._estimator.current_error(), values)
-        return compensate(drive, pose_mm_rad, limits=self.platform, payload_kg=payload_kg)
+        if not self._identifies_drive_blocks:
+            drive = self._drive.calibrated(self._estimator.current_error(), {})
+            return compensate(drive, pose_mm_rad, limits=self.platform, payload_kg=payload_kg)
+        estimator = self._estimator  # isam2's estimate() costs a marginal: its mean alone
+        estimate = estimator.current_estimate() if isinstance(estimator, MeanEstimator) else estimator.estimate()
+        unannounced = estimate.block_values(PAYLOAD)
+        if unannounced is not None:
+            payload_kg = np.asarray(payload_kg, dtype=float) + unannounced[0]
+        return compensate(self._drive.calibrated_by(estimate), pose_mm_rad, limits=self.platform, payload_kg=payload_kg)
 
     def result(self) -> dict:
         """The current estimate as a spec §5 result, with the added ``samples_rejected`` field.

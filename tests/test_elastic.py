@@ -431,6 +431,22 @@ def test_ekf_finds_an_unannounced_payload_and_its_steps(check):
     update_each(resumed, samples[60:])
     np.testing.assert_array_equal(resumed.estimate().block_values("payload"), one.estimate().block_values("payload"))
     assert resumed.robust.steps == one.robust.steps == 2
+    # a controller asking the library for strokes gets them under the payload found, as the loop above
+    from stewart_calib.compensation import compensate
+    from stewart_calib.drive import drive_model
+    from stewart_calib.online import OnlineCalibrator
+
+    online = OnlineCalibrator(estimating, "ekf")
+    for sample in samples:
+        online.update(sample)
+    found = online.estimate()
+    strokes = online.compensated_strokes(validation[:5], payload_kg=0.0)
+    expected = compensate(
+        drive_model(estimating).calibrated_by(found), validation[:5], payload_kg=found.block_values("payload")[0]
+    )
+    np.testing.assert_allclose(strokes, expected, rtol=0, atol=1e-9)
+    ignored = compensate(drive_model(estimating).calibrated_by(found), validation[:5], payload_kg=0.0)
+    assert np.abs(strokes - ignored).max() > 0.05  # ~40 kg: tens of µm a leg at 2.3 mm/kN
 
 
 # ----------------------------------------------------------------------------- identifiability of c
