@@ -11,6 +11,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from .drive import PAYLOAD
 from .platform import N_PARAMS, LegGeometry, Platform
 from .unknowns import UnknownLayout
 
@@ -84,6 +85,12 @@ class Estimate:
         start = columns.start - N_PARAMS
         return block.nominal + self.block_error[start : start + block.size]
 
+    def unannounced_payload_kg(self) -> float:
+        """The payload [kg] the estimator found beyond the one the log announced (an elastic drive's
+        ``payload`` block, ``[elastic] payload_sigma_kg``); 0 without that block."""
+        values = self.block_values(PAYLOAD)
+        return 0.0 if values is None else float(values[0])
+
     def block_results(self) -> dict[str, dict]:
         """``{key: {"names", "estimate", "stddev"}}`` of every block, in file units (spec §7)."""
         stddev = None
@@ -107,3 +114,10 @@ class MeanEstimator(Protocol):
         """What ``estimate()`` gives, its covariance left out where that costs extra (isam2):
         the whole unknown vector (δM and the blocks: an elastic drive's compliance) for a caller
         that needs the model, not its error bars, once per sample."""
+
+
+def model_estimate(estimator) -> Estimate:
+    """``estimator``'s estimate for a caller that needs the model, not its error bars, once per sample:
+    ``current_estimate()`` where it offers one (:class:`MeanEstimator`; isam2's ``estimate()`` costs a
+    marginal), else ``estimate()``."""
+    return estimator.current_estimate() if isinstance(estimator, MeanEstimator) else estimator.estimate()

@@ -45,7 +45,7 @@ from .compensation import compensate
 from .config import EstimatorConfig, config_from_dict, load_estimator_config
 from .drive import PAYLOAD, drive_model
 from .errors import CalibError, SampleRejected, shown
-from .estimate import Estimate, MeanEstimator
+from .estimate import Estimate, model_estimate
 from .estimators import method_names, method_spec
 from .estimators.base import (
     CheckpointableEstimator,
@@ -256,11 +256,8 @@ class OnlineCalibrator:
         if not self._identifies_drive_blocks:
             drive = self._drive.calibrated(self._estimator.current_error(), {})
             return compensate(drive, pose_mm_rad, limits=self.platform, payload_kg=payload_kg)
-        estimator = self._estimator  # isam2's estimate() costs a marginal: its mean alone
-        estimate = estimator.current_estimate() if isinstance(estimator, MeanEstimator) else estimator.estimate()
-        unannounced = estimate.block_values(PAYLOAD)
-        if unannounced is not None:
-            payload_kg = np.asarray(payload_kg, dtype=float) + unannounced[0]
+        estimate = model_estimate(self._estimator)
+        payload_kg = np.asarray(payload_kg, dtype=float) + estimate.unannounced_payload_kg()
         return compensate(self._drive.calibrated_by(estimate), pose_mm_rad, limits=self.platform, payload_kg=payload_kg)
 
     def result(self) -> dict:

@@ -24,6 +24,7 @@ import multiprocessing
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from typing import cast
 
 import numpy as np
@@ -313,25 +314,15 @@ def _init_worker(queue) -> None:
     _worker_queue = queue
 
 
-def _run(task: tuple, bar) -> MethodRun:
-    """One run of :func:`reproduce`'s list: ``(ls, experiment, config, nominal result)`` or
-    ``(online method, experiment, config, (its estimator's platform, every how many samples its σ is kept))``."""
-    method, experiment, config, extra = task
-    if method == BATCH_METHOD:
-        return run_ls(experiment, config, extra, bar)
-    platform, sigma_every = extra
-    return run_online(experiment, config, method, bar, platform, sigma_every)
-
-
-def _run_in_worker(task: tuple) -> MethodRun:
+def _run_in_worker(task: Callable[..., MethodRun]) -> MethodRun:
     bar = _QueueBar(_worker_queue)
     try:
-        return _run(task, bar)
+        return task(bar=bar)
     finally:
         bar.flush()
 
 
-def _in_processes(tasks: dict[str, tuple], workers: int, bar) -> dict[str, MethodRun]:
+def _in_processes(tasks: dict[str, Callable[..., MethodRun]], workers: int, bar) -> dict[str, MethodRun]:
     """The runs of ``tasks`` in ``workers`` fresh processes, the longest first (isam2's: online
     methods' runs cost from ~0.1 s to tens of seconds), ticking ``bar`` as they go."""
     ctx = multiprocessing.get_context("spawn")  # no fork: gtsam's and numba's threads do not survive one
@@ -374,15 +365,19 @@ def reproduce(
     nominal = MethodRun(
         NOMINAL, nominal_result, np.zeros((n, N_PARAMS)), np.zeros(N_PARAMS), 0, time.perf_counter() - start
     )
-    tasks: dict[str, tuple] = {BATCH_METHOD: (BATCH_METHOD, experiment, config, nominal_result)}
+    # each run a call short of its progress bar (picklable: module-level functions and data)
+    tasks: dict[str, Callable[..., MethodRun]] = {BATCH_METHOD: partial(run_ls, experiment, config, nominal_result)}
     for name, method, run_parts in online_runs(parts):
+        platform = estimator_platform(experiment, run_parts)
         run_config = run_parts[-1].config if run_parts else config
-        tasks[name] = (method, experiment, run_config, (estimator_platform(experiment, run_parts), parameter_stride(n)))
+        tasks[name] = partial(
+            run_online, experiment, run_config, method, platform=platform, sigma_every=parameter_stride(n)
+        )
     with progress_bar(
         total=n * len(tasks), desc=f"reproduce {experiment.name}: {', '.join(tasks)}", show=progress
     ) as bar:
         if workers > 1:
             done = _in_processes(tasks, workers, bar)
         else:
-            done = {name: _run(task, bar) for name, task in tasks.items()}
+            done = {name: task(bar=bar) for name, task in tasks.items()}
     return Reproduction(experiment, config, {NOMINAL: nominal, **{name: done[name] for name in tasks}}, parts)

@@ -47,9 +47,9 @@ from typing import Protocol
 import numpy as np
 
 from .. import kinematics as kin
-from ..drive import PAYLOAD, drive_model
+from ..drive import drive_model
 from ..errors import SampleRejected
-from ..estimate import MeanEstimator
+from ..estimate import model_estimate
 from ..platform import LegGeometry, Platform
 from ..progress import progress_bar
 from ..samples import Log, Sample, Truth
@@ -135,12 +135,10 @@ class EstimatorController:
         (taken as 0 unless :attr:`payload_known`) and the payload the estimator found unannounced."""
         if self._elastic is None:
             return kin.inverse_kinematics(self._drive, R_d, t_d)
-        mean_only = isinstance(self.estimator, MeanEstimator)
-        estimate = self.estimator.current_estimate() if mean_only else self.estimator.estimate()
+        estimate = model_estimate(self.estimator)
         values = {term.key: estimate.block_values(term.key) for term in self._elastic.terms}
         drive = self._elastic.calibrated(self._error, values)
-        unannounced = estimate.block_values(PAYLOAD)  # what the estimator found on top of what it was told
-        payload = (payload_kg if self.payload_known else 0.0) + (0.0 if unannounced is None else unannounced[0])
+        payload = (payload_kg if self.payload_known else 0.0) + estimate.unannounced_payload_kg()
         return drive.inverse_kinematics(R_d, t_d, payload_kg=payload)
 
     def trace(self) -> np.ndarray:
