@@ -622,57 +622,16 @@ def tracker_leg_observation(
     strokes,
     reading_variance,
     stroke_variance,
+    work,
 ):
-    """:func:`fk_single` of the tracker readings (``R, t`` in/out), its pose covariance
+    """:func:`fk_single` of the tracker readings (``R, t`` in/out; FK's scratch arrays ``work`` from
+    :func:`_fk_work`, which a pass over many samples makes once), its pose covariance
     (:func:`pose_covariance`) and :func:`leg_observation` there, in one call.
 
     Returns:
         ``(FK residual [mm], r, H, R_meas, J_x)``; the last four are meaningless when the residual
         exceeds ``tol_mm`` (FK failed from both starts).
     """
-    return tracker_leg_observation_in(
-        base,
-        plat,
-        initial_lengths,
-        x,
-        tracker_base,
-        tracker_plat,
-        tracker_lengths,
-        readings,
-        R,
-        t,
-        warm,
-        tol_mm,
-        max_iterations,
-        strokes,
-        reading_variance,
-        stroke_variance,
-        _fk_work(),
-    )
-
-
-@njit(**_JIT)
-def tracker_leg_observation_in(
-    base,
-    plat,
-    initial_lengths,
-    x,
-    tracker_base,
-    tracker_plat,
-    tracker_lengths,
-    readings,
-    R,
-    t,
-    warm,
-    tol_mm,
-    max_iterations,
-    strokes,
-    reading_variance,
-    stroke_variance,
-    work,
-):
-    """:func:`tracker_leg_observation` with FK's scratch arrays ``work`` (:func:`_fk_work`), which a
-    pass over many samples makes once."""
     residual = _fk_single(
         tracker_base, tracker_plat, tracker_lengths, readings, R, t, warm, tol_mm, max_iterations, work
     )

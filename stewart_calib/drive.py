@@ -184,11 +184,6 @@ class DriveModel:
         return N_PARAMS + N_LEGS * len(self._unknown)
 
     @property
-    def stroke_scale_known(self) -> bool:
-        """Whether the stroke term's values are known (its ``1 + k_i`` then scales no noise that moves)."""
-        return self.terms[self._stroke].prior_sigma is None
-
-    @property
     def input_width(self) -> int:
         """Columns of a sample's drive inputs ``u``."""
         return max(term.input_start + N_LEGS for term in self.terms)

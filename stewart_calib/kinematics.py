@@ -371,50 +371,6 @@ def leg_ekf_observation(
     )
 
 
-def tracker_leg_observation(
-    drive: LegGeometry,
-    delta: np.ndarray,
-    tracker: LegGeometry,
-    readings: np.ndarray,
-    guess: tuple[np.ndarray, np.ndarray] | None,
-    strokes: np.ndarray,
-    reading_sigma_mm: float,
-    stroke_sigma_mm: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`solve_fk` of the tracker ``readings`` from ``guess``, then :func:`leg_ekf_observation`
-    at that pose with its covariance (:func:`pose_covariance_from_legs`), in one compiled call —
-    the same numbers as the three calls, at a third of their cost (the EKF's per-sample path).
-
-    Returns:
-        ``(R, t, r, H, R_meas)``.
-    Raises:
-        SampleRejected: the tracker's FK converges from neither start.
-    """
-    R, t = start_pose(guess)
-    c = np.ascontiguousarray
-    residual, r, H, R_meas, _ = _kernels.tracker_leg_observation(
-        drive.base_joints,
-        drive.platform_joints,
-        drive.initial_lengths,
-        c(delta, dtype=float),
-        tracker.base_joints,
-        tracker.platform_joints,
-        tracker.initial_lengths,
-        c(readings, dtype=float),
-        R,
-        t,
-        guess is not None,
-        FK_TOLERANCE_MM,
-        FK_MAX_ITERATIONS,
-        c(strokes, dtype=float),
-        float(reading_sigma_mm) ** 2,
-        float(stroke_sigma_mm) ** 2,
-    )
-    if not residual <= FK_TOLERANCE_MM:
-        raise _fk_failed("tracker", residual)
-    return R, t, r, H, R_meas
-
-
 def leg_residual(
     R: np.ndarray, t: np.ndarray, legs: np.ndarray, extensions_mm: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -467,7 +423,7 @@ def solve_fk(
     )
     if residual <= tol_mm:
         return R, t
-    raise _fk_failed(what, residual)
+    raise fk_failed(what, residual)
 
 
 def tracker_reading_residuals(
@@ -523,7 +479,8 @@ def start_pose(guess: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray,
     return np.array(guess[0], dtype=float), np.array(guess[1], dtype=float)
 
 
-def _fk_failed(what: str, residual_mm: float) -> SampleRejected:
+def fk_failed(what: str, residual_mm: float) -> SampleRejected:
+    """The refusal of a sample whose ``what`` leg set's FK converged from no start."""
     return SampleRejected(
         f"{what} forward kinematics did not converge (residual {residual_mm:.3g} mm): the lengths may be unreachable",
         SampleRejected.FK_FAILED,

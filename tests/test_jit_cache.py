@@ -147,7 +147,11 @@ def test_the_fk_kernels_compile_once_for_every_caller(tmp_path):
         "readings = kin.inverse_kinematics(p.tracker, R, t)\n"
         "strokes = kin.inverse_kinematics(p.drive, R, t)\n"
         "kin.tracker_reading_residuals(p.tracker, readings, [p.drive], [strokes])\n"
-        "kin.tracker_leg_observation(p.drive, np.zeros(42), p.tracker, readings[0], None, strokes[0], 1e-6, 1e-6)\n"
+        "from stewart_calib.drive import drive_model\n"
+        "from stewart_calib.estimators.measurement import LegSetPose\n"
+        "from stewart_calib.instruments.tracker import TrackerModel\n"
+        "pose = LegSetPose(TrackerModel(p.tracker, 1e-3), drive_model(p), 1e-3)\n"
+        "pose.observe(np.zeros(42), np.concatenate((strokes[0], readings[0])))\n"
         "print(len(_kernels._newton.signatures), len(_kernels._fk_single.signatures))\n"
     )
     # an empty cache: a kernel loaded from the cache holds its callees' code, which then never compile

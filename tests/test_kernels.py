@@ -43,9 +43,20 @@ def test_leg_ekf_observation_equals_its_numpy_definition(k):
     np.testing.assert_array_equal(R_meas, R_meas.T)
 
 
+def _leg_set_pose(guess=None):
+    """The EKF's compiled observation through the tracker (known geometry) of ``PLATFORM``'s drive."""
+    from stewart_calib.drive import drive_model
+    from stewart_calib.estimators.measurement import LegSetPose
+    from stewart_calib.instruments.tracker import TrackerModel
+
+    pose = LegSetPose(TrackerModel(PLATFORM.tracker, 0.002), drive_model(PLATFORM), 0.001)
+    pose.import_state({} if guess is None else {"R": guess[0], "t": guess[1]})
+    return pose
+
+
 @pytest.mark.parametrize("warm", [True, False])
-def test_tracker_leg_observation_is_fk_then_the_observation_bit_for_bit(warm):
-    """The ekf's fused per-sample call gives exactly what its three parts give (same kernels)."""
+def test_the_leg_set_observation_is_fk_then_the_observation_bit_for_bit(warm):
+    """The ekf's compiled per-sample observation gives exactly what its three parts give (same kernels)."""
     rng = np.random.default_rng(3)
     drive, tracker = PLATFORM.drive, PLATFORM.tracker
     delta = rng.normal(0.0, 1.0, 42)
@@ -53,24 +64,49 @@ def test_tracker_leg_observation_is_fk_then_the_observation_bit_for_bit(warm):
     readings = kin.inverse_kinematics(tracker, R_true, t_true)
     strokes = kin.inverse_kinematics(drive, R_true, t_true) + rng.normal(0.0, 0.5, 6)
     guess = kin.pose_to_rt(POSES[2]) if warm else None  # a warm start far away: Newton still converges
-    R, t, r, H, R_meas = kin.tracker_leg_observation(drive, delta, tracker, readings, guess, strokes, 0.002, 0.001)
+    pose = _leg_set_pose(guess)
+    nu, H, R_meas = pose.observe(delta, np.concatenate((strokes, readings)))
+    R, t = pose.guess
 
     R_ref, t_ref = kin.solve_fk(tracker, readings, guess, "tracker")
     pose_cov = kin.pose_covariance_from_legs(tracker, R_ref, t_ref, 0.002)
     r_ref, H_ref, R_meas_ref, _ = kin.leg_ekf_observation(drive, delta, R_ref, t_ref, strokes, pose_cov, 0.001)
-    for value, reference in ((R, R_ref), (t, t_ref), (r, r_ref), (H, H_ref), (R_meas, R_meas_ref)):
+    for value, reference in ((R, R_ref), (t, t_ref), (-nu, r_ref), (H, H_ref), (R_meas, R_meas_ref)):
         np.testing.assert_array_equal(value, reference)
     np.testing.assert_allclose(t, t_true, atol=1e-6)
 
 
-def test_tracker_leg_observation_refuses_readings_without_a_pose_as_fk_failure():
+def test_the_leg_set_observation_with_an_unknown_drive_term_is_the_drive_models():
+    """With the stroke scale unknown (columns 42…47 of the state) and an unknown after them, the compiled
+    observation is the drive model's (its extensions and ``∂r/∂x_drive`` with the terms) at the
+    tracker's FK pose, 0 on the other unknown's column."""
+    from stewart_calib.drive import drive_model
+    from stewart_calib.estimators.measurement import LegSetPose
+    from stewart_calib.instruments.tracker import TrackerModel
+
+    rng = np.random.default_rng(4)
+    drive = drive_model(PLATFORM, outside_instrument=True)
+    assert drive.size == 48
+    x = np.r_[rng.normal(0.0, 1.0, 42), rng.normal(0.0, 0.01, 6), 3.0]
+    R_true, t_true = kin.pose_to_rt(POSES[3])
+    readings = kin.inverse_kinematics(PLATFORM.tracker, R_true, t_true)
+    strokes = kin.inverse_kinematics(PLATFORM.drive, R_true, t_true) + rng.normal(0.0, 0.5, 6)
+    pose = LegSetPose(TrackerModel(PLATFORM.tracker, 0.002), drive, 0.001)
+    nu, H, R_meas = pose.observe(x, np.concatenate((strokes, readings)))
+    R, t = pose.guess
+    pose_cov = kin.pose_covariance_from_legs(PLATFORM.tracker, R, t, 0.002)
+    r_ref, H_ref, R_meas_ref, _ = drive.observation(x[:48], R, t, drive.inputs(strokes), pose_cov, 0.001)
+    np.testing.assert_allclose(-nu, r_ref, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(H[:, :48], H_ref, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(H[:, 48], 0.0)
+    np.testing.assert_allclose(R_meas, R_meas_ref, rtol=1e-12, atol=0)
+
+
+def test_the_leg_set_observation_refuses_readings_without_a_pose_as_fk_failure():
     from stewart_calib.errors import SampleRejected
 
-    drive, tracker = PLATFORM.drive, PLATFORM.tracker
     with pytest.raises(SampleRejected, match="tracker forward kinematics did not converge") as err:
-        kin.tracker_leg_observation(
-            drive, np.zeros(42), tracker, np.r_[np.nan, np.zeros(5)], None, np.zeros(6), 0.002, 0.001
-        )
+        _leg_set_pose().observe(np.zeros(42), np.r_[np.zeros(6), np.nan, np.zeros(5)])
     assert err.value.reason == SampleRejected.FK_FAILED
 
 

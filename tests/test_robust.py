@@ -142,9 +142,9 @@ def test_the_compiled_pass_equals_observing_sample_by_sample(platform):
     runs = []
     for compiled in (True, False):
         estimator = make_estimator("ekf", platform)
-        assert estimator.robust._compiled_pass is not None
+        assert estimator.robust._compiled_rows is not None
         if not compiled:
-            estimator.robust._compiled_pass = None
+            estimator.robust._compiled_rows = None
         feed(estimator, log)
         runs.append(estimator)
     (a, b) = runs

@@ -69,6 +69,7 @@ from ..unknowns import UnknownLayout, gauge_conditioned
 from .base import Refusals, state_array, update_each
 from .measurement import (
     HeldForRegistration,
+    LegSetPose,
     WarmFK,
     WarmPose,
     check_sample,
@@ -106,15 +107,19 @@ class LegEKF:
         walks = self.layout.walks()
         unit_Q = None if walks.all() and len(C) == 0 else gauge_conditioned(np.diag(walks.astype(float)), C)
         self._instrument = self.layout.slice("instrument")
-        self._pose = WarmPose(self.model)
-        self._tracker_known = self.model.kind == "tracker" and self.model.unknowns is None
+        # an instrument that offers compiled kernels (a leg set of known geometry) is observed in compiled
+        # code, and the robust filter's batch passes and its gated recursion over a block of samples
+        # (update_block) run in one compiled call each — but for an unannounced payload, whose step test
+        # the per-sample path alone makes
+        self._leg_set = None
+        if self.model.compiled_legs is not None:
+            self._leg_set = LegSetPose(self.model, self.drive, self.noise.stroke_sigma_mm)
+        self._pose = self._leg_set or WarmPose(self.model)
+        compiled_rows = self._leg_set.rows if self._leg_set is not None and payload is None else None
+        self._compiled = compiled_rows is not None
         # an instrument registered on the data starts far from the answer (frame, encoder zeros, scale):
         # its start-up batches are solved by Gauss–Newton, not one pass linearised at the prior
         far_start = self._instrument is not None and needs_registration(platform)
-        # the batches' passes in one compiled call where the state is the drive's alone and the strokes'
-        # scale known (~4× faster), and so its gated recursion over a block of samples (update_block)
-        self._compiled = compiled = self._tracker_known and self.drive.stroke_scale_known and payload is None
-        kernel_arguments = (self.drive, config.noise.stroke_sigma_mm)
         self.robust = RobustFilter(
             self.name,
             config.noise.prior_sigma_mm,
@@ -129,8 +134,7 @@ class LegEKF:
             step=None
             if payload is None or self._payload is None
             else (self._payload.start, payload.prior_sigma[0] ** 2),
-            compiled_pass=self._pose.tracker_filter_pass(*kernel_arguments) if compiled else None,
-            compiled_steps=self._pose.tracker_filter_steps(*kernel_arguments) if compiled else None,
+            compiled_rows=compiled_rows,
         )
         self._stroke_bounds = platform.stroke_range if platform.stroke_range is not None else (-np.inf, np.inf)
         self.filter = self.robust.filter
@@ -168,9 +172,9 @@ class LegEKF:
         rows: tuple[np.ndarray, np.ndarray] | None = None
         j = 0
         while j < count:
-            if self._compiled and self.robust.started:
+            if self._leg_set is not None and self._compiled and self.robust.started:
                 if rows is None:
-                    rows = self._prepared_rows(block)
+                    rows = self._prepared_rows(block, self._leg_set)
                 prepared, plain = rows
                 j += self.robust.update_block(block.t_s[j:], prepared[j:], plain[j:], errors[j:])
                 if j == count:
@@ -181,9 +185,9 @@ class LegEKF:
             j += 1
         return refused, late
 
-    def _prepared_rows(self, block: Log) -> tuple[np.ndarray, np.ndarray]:
-        """``(prepared rows [q | z], the rows check_sample surely passes)`` of a tracker's block; the
-        check is stricter than check_sample (any doubt: the row goes through :meth:`update`)."""
+    def _prepared_rows(self, block: Log, leg_set: LegSetPose) -> tuple[np.ndarray, np.ndarray]:
+        """``(prepared rows [u | z], the rows check_sample surely passes)`` of a block of the leg set's
+        readings; the check is stricter than check_sample (any doubt: the row goes through :meth:`update`)."""
         lo, hi = self._stroke_bounds
         reading_range = as_tracker(self.model).reading_range
         r_lo, r_hi = reading_range if reading_range is not None else (-np.inf, np.inf)
@@ -199,8 +203,7 @@ class LegEKF:
         if self.drive.elastic is None:
             inputs = self.drive.inputs(strokes)
         else:  # the forces at the tracker's poses and the state's geometry, as update() takes them
-            tracker = as_tracker(self.model).legs
-            fk = kin.forward_kinematics(tracker, np.where(plain[:, None], readings, 0.0), strict=False)
+            fk = kin.forward_kinematics(leg_set.legs, np.where(plain[:, None], readings, 0.0), strict=False)
             plain &= fk.converged
             R, t = fk.R[plain], fk.t[plain]
             payload = None if block.load_kg is None else np.asarray(block.load_kg, dtype=float)[plain]
@@ -243,7 +246,7 @@ class LegEKF:
         x_drive = x[: drive.size]
         theta = instrument_theta(self.model, None if self._instrument is None else x[self._instrument])
         observed = None
-        if not self._tracker_known:
+        if self._leg_set is None:
             observed = self._pose.solve(z, theta)
             if observed is not None and self._forces_at_state:
                 load_kg = prepared[width + self._per_kg]
@@ -254,11 +257,11 @@ class LegEKF:
         if self._payload is not None:
             inputs = drive.loaded_inputs(inputs, per_kg, float(x[self._payload][0]))
             dg_dm = -drive.force_gains(x_drive) * per_kg
-        if self._tracker_known:  # the common case, in one compiled call from readings to (r, H, R_meas)
-            residual, H_drive, R_meas = self._pose.tracker_leg_observation(
-                drive, x_drive, z, inputs, self.noise.stroke_sigma_mm
-            )
-            return -residual, self._with_blocks(H_drive, None, dg_dm), R_meas
+        if self._leg_set is not None:  # the common case, in one compiled call from readings to (ν, H, R0)
+            nu, H, R0 = self._leg_set.observe(x, prepared if dg_dm is None else np.concatenate((inputs, z)))
+            if dg_dm is not None:
+                H[:, self._payload] = dg_dm[:, None]
+            return nu, H, R0
         if observed is None:
             return self._observe_tight(inputs, z, theta, x, dg_dm)
         residual, H_drive, R_meas, J_x = drive.observation(

@@ -1,11 +1,19 @@
-"""The Kalman measurement update both EKFs share: one pure function, written for speed.
+"""The Kalman recursion both EKFs share, written for speed.
 
 Random-walk prediction (paper eq. 14–15: ``X`` unchanged, ``P ← P + Q``) and the update
 (eq. 17–19) are fused into :func:`kalman_update`, because the prediction is only an
-addition and fusing it saves a pass over the 42×42 covariance. The kernel is compiled
-with numba (on-disk cache, :func:`stewart_calib._jit.njit`). Measured at 42 states / 6 observations
-on 2 cores: ~3.6 µs per call, against ~33 µs for the same algorithm in numpy (per-call overhead on small arrays)
-and ~37 µs for filterpy's ``KalmanFilter.predict`` + ``update``.
+addition and fusing it saves a pass over the 42×42 covariance. The kernels are compiled
+with numba (on-disk cache, :func:`stewart_calib._jit.njit`): on arrays this small numpy's per-call
+overhead costs ~10× the arithmetic (benchmarks/speed.py against numpy and filterpy; BENCHMARKS.md).
+
+One step of the recursion is defined once: :func:`fill_walk` (``Q = ρ²Δt · unit_Q``) and
+:func:`filter_step` (``R = s² R0``, the finite check, the gated update, the variance components).
+:class:`FilterState` takes every sample of both EKFs through it, and the robust filter
+(:mod:`.robust`) its per-sample updates and batch passes. Where the instrument offers compiled
+kernels (a leg set of known geometry: ``InstrumentModel.compiled_legs``), its observation is
+compiled too (:func:`leg_set_observation`), and :func:`leg_set_filter_rows` runs the recursion over
+rows of samples in one call: the same observation and step kernels; only its loop and bookkeeping
+repeat the filter's Python, because a Python loop costs several µs a sample, more than the step.
 
 Covariance update: ``P ← P⁻ − W Wᵀ`` with ``W = P⁻Hᵀ L⁻ᵀ`` and ``S = L Lᵀ`` (Cholesky), which
 equals ``P⁻ − K S Kᵀ = (I − K H) P⁻`` (eq. 19). Only the upper triangle is computed and
@@ -205,35 +213,94 @@ def variance_components(S: np.ndarray, residual: np.ndarray, R: np.ndarray) -> t
     return observed, expected
 
 
+#: how :func:`filter_step` ended: the update taken, or refused with ``x`` and ``P`` untouched (a non-finite
+#: observation, an innovation covariance not positive definite, the NIS above the gate).
+STEP_TAKEN, STEP_NON_FINITE, STEP_NOT_POSITIVE_DEFINITE, STEP_GATED = 0, 1, 2, 3
+
+
+@njit(nogil=True)
+def fill_walk(Q: np.ndarray, unit_Q: np.ndarray, walk_step: float) -> None:
+    """``Q = ρ²Δt · unit_Q`` in place (``walk_step = ρ²Δt``): the random walk's process noise over one step."""
+    for i in range(Q.shape[0]):
+        for j in range(Q.shape[1]):
+            Q[i, j] = unit_Q[i, j] * walk_step
+
+
 @njit(fastmath=_FAST, nogil=True, error_model="numpy")
-def _tracker_observation(
-    x, row, drive, tracker, extension_terms, variances, newton, noise_scale2, R_guess, t_guess, warm, scratch
-):
-    """The EKF's observation of one prepared row ``[u | s (6)]`` (the drive's inputs, then the tracker's
-    readings) of a tracker of known geometry
-    at ``x`` (``LegEKF._observe``): FK of the readings from ``(R_guess, t_guess)`` into ``R_pose,
-    t_pose``, ``ν = −r`` and ``R = s² R_meas`` into ``nu`` and ``R``, with ``scratch = (R_pose,
-    t_pose, extensions, nu, R, FK's work, the terms' factors, H over the whole state)`` made once per
-    pass (:func:`_observation_scratch`). The drive's terms whose ``columns`` are ≥ 0 are unknowns of
-    ``x``: their factors ``o_b + v_b`` take the state's value and their rows of ``H`` are
-    ``∂r_i/∂v_b,i = −g_b u_b,i`` (as ``DriveModel.with_terms``). Returns ``(FK converged, H)``."""
-    R_pose, t_pose, extensions, nu, R, fk_work, factors, H_full = scratch
+def filter_step(
+    x: np.ndarray,
+    P: np.ndarray,
+    Q: np.ndarray,
+    H: np.ndarray,
+    nu: np.ndarray,
+    R0: np.ndarray,
+    noise_scale2: float,
+    gate_nis: float,
+    work: np.ndarray,
+    components: np.ndarray,
+) -> tuple[int, float, np.ndarray]:
+    """One step of the filters' recursion, in place on ``(x, P)``: with ``R = s² R0``, refused when the
+    observation is not finite, else :func:`kalman_update` with ``Q`` and the gate ``gate_nis``; a step
+    taken adds its variance components (:func:`variance_components`) to ``components`` where that has
+    two entries. The one definition of a step: :meth:`FilterState.update` (every sample of both EKFs),
+    the robust filter's batch passes and its compiled recursion (:func:`leg_set_filter_rows`) take it.
+
+    Returns:
+        ``(status, NIS, S)``: :data:`STEP_TAKEN` or why nothing changed, the NIS (NaN where not
+        computed) and the innovation covariance.
+    """
+    m = nu.shape[0]
+    R = np.empty((m, m))
+    for a in range(m):
+        for b in range(m):
+            R[a, b] = noise_scale2 * R0[a, b]
+    if not all_finite(H, nu, R):
+        return STEP_NON_FINITE, math.nan, R
+    nis, S = kalman_update(x, P, H, nu, R, Q, gate_nis, work)
+    if math.isnan(nis):
+        return STEP_NOT_POSITIVE_DEFINITE, nis, S
+    if not nis <= gate_nis:
+        return STEP_GATED, nis, S
+    if components.shape[0]:
+        observed, expected = variance_components(S, nu, R)
+        components[0] += observed
+        components[1] += expected
+    return STEP_TAKEN, nis, S
+
+
+@njit(fastmath=_FAST, nogil=True, error_model="numpy")
+def _leg_set_observation(x, row, observation, R_guess, t_guess, warm, scratch):
+    """The EKF's observation of one prepared row ``[u | s]`` (the drive's inputs, then the readings ``s`` of
+    an instrument that is a leg set of known geometry) at ``x``: FK of the readings from ``(R_guess,
+    t_guess)`` into ``R_pose, t_pose`` and the drive's leg residuals there, ``ν = −r``, ``H = ∂r/∂x`` and
+    ``R0 = R_meas``. ``observation = (drive legs, instrument legs, extension terms, variances, Newton's
+    limits)`` as :func:`leg_set_filter_rows` takes them; ``scratch = (R_pose, t_pose, extensions, ν, FK's
+    work, the terms' factors, H over the whole state)`` from :func:`_observation_scratch`. The drive's
+    terms whose ``columns`` are ≥ 0 are unknowns of ``x``: their factors ``o_b + v_b`` take the state's
+    value and their rows of ``H`` are ``∂r_i/∂v_b,i = −g_b u_b,i`` (as ``DriveModel.with_terms``).
+
+    Returns:
+        ``(FK's residual [mm] (above the tolerance: no pose, the rest meaningless), ν, H, R0)``.
+    """
+    drive, legs, extension_terms, variances, newton = observation
+    R_pose, t_pose, extensions, nu, fk_work, factors, H_full = scratch
     starts, gains, base_factors, columns = extension_terms
+    n_drive = 7 * drive[0].shape[0]  # δM: seven parameters a leg
     for b in range(starts.shape[0]):
-        for i in range(6):
+        for i in range(columns.shape[1]):
             c = columns[b, i]
             factors[b, i] = base_factors[b, i] + (x[c] if c >= 0 else 0.0)
     _kernels.copy_pose(R_guess, t_guess, R_pose, t_pose)
     _kernels.leg_extensions(starts, gains, factors, row, extensions)
-    residual, r, H, R_meas, _ = _kernels.tracker_leg_observation_in(
+    residual, r, H, R_meas, _ = _kernels.tracker_leg_observation(
         drive[0],
         drive[1],
         drive[2],
-        x[:42],
-        tracker[0],
-        tracker[1],
-        tracker[2],
-        row[row.shape[0] - 6 :],
+        x[:n_drive],
+        legs[0],
+        legs[1],
+        legs[2],
+        row[row.shape[0] - legs[2].shape[0] :],
         R_pose,
         t_pose,
         warm,
@@ -244,146 +311,68 @@ def _tracker_observation(
         variances[1],
         fk_work,
     )
-    for a in range(6):
+    for a in range(r.shape[0]):
         nu[a] = -r[a]
-        for b in range(6):
-            R[a, b] = noise_scale2 * R_meas[a, b]
-    if x.shape[0] == 42:
-        return residual <= newton[0], H
-    for a in range(6):
-        for j in range(42):
+    if x.shape[0] == n_drive:
+        return residual, nu, H, R_meas
+    for a in range(H.shape[0]):
+        for j in range(n_drive):
             H_full[a, j] = H[a, j]
-        for j in range(42, x.shape[0]):
+        for j in range(n_drive, x.shape[0]):
             H_full[a, j] = 0.0
     for b in range(starts.shape[0]):
-        for i in range(6):
+        for i in range(columns.shape[1]):
             if columns[b, i] >= 0:
                 H_full[i, columns[b, i]] = -gains[b] * row[starts[b] + i]
-    return residual <= newton[0], H_full
+    return residual, nu, H_full, R_meas
 
 
 @njit(nogil=True)
-def _observation_scratch(n, terms):
-    """The arrays :func:`_tracker_observation` fills for ``n`` states and ``terms`` extension terms:
-    pose, the legs' extensions, innovation, its covariance, FK's work, the terms' factors, ``H``."""
+def _observation_scratch(n, terms, legs):
+    """The arrays :func:`_leg_set_observation` fills for ``n`` states, ``terms`` extension terms and
+    ``legs`` legs: pose, the legs' extensions, innovation, FK's work, the terms' factors, ``H``."""
     return (
         np.empty((3, 3)),
         np.empty(3),
-        np.empty(6),
-        np.empty(6),
-        np.empty((6, 6)),
+        np.empty(legs),
+        np.empty(legs),
         _kernels._fk_work(),
-        np.empty((terms, 6)),
-        np.empty((6, n)),
+        np.empty((terms, legs)),
+        np.empty((legs, n)),
     )
 
 
-@njit(fastmath=_FAST, nogil=True, error_model="numpy")
-def tracker_filter_pass(
-    x: np.ndarray,
-    P: np.ndarray,
-    t_s: np.ndarray,
-    prepared: np.ndarray,
-    use: np.ndarray,
-    drive: tuple,
-    tracker: tuple,
-    extension_terms: tuple,
-    variances: tuple,
-    newton: tuple,
-    walk_rate: float,
-    noise_scale2: float,
-    R_guess: np.ndarray,
-    t_guess: np.ndarray,
-    warm: bool,
-    components: np.ndarray,
-) -> tuple[int, float, bool]:
-    """A random-walk filter pass, gate off, over leg-length observations of a tracker of known
-    geometry, in place on ``(x, P)``: what ``RobustFilter``'s pass does sample by sample through
-    the EKF's observation (``LegEKF._observe``), in one call.
-
-    For each sample ``k`` in ``use``: FK of the readings (the last six of ``prepared[k]``)
-    warm-started from ``(R_guess, t_guess)`` (updated in place on success; a sample whose FK fails
-    is skipped), the observation at ``x`` with the drive's extensions of the inputs before them
-    (:func:`~stewart_calib._kernels.tracker_leg_observation`), ``Q = ρ² Δt I``, the update with
-    ``s² R_meas``, and the variance components (:func:`variance_components`) summed into
-    ``components``.
-
-    Args:
-        drive, tracker: ``(base_joints, platform_joints, initial_lengths)`` of each leg set.
-        extension_terms: the drive's ``(starts, gains, factors o_b + v_b at nominal, columns of the
-            unknown ones in x (−1: known))`` (:meth:`stewart_calib.drive.DriveModel.kernel_terms`,
-            :func:`~stewart_calib._kernels.leg_extensions`).
-        variances: ``(σ_s², σ_q²)`` reading and stroke variance [mm²].
-        newton: FK's ``(tolerance [mm], iteration cap)``.
-    Returns:
-        ``(samples used, t_s of the last one, whether (R_guess, t_guess) holds a pose)``.
-    """
-    m = 6
-    n = x.shape[0]
-    Q = np.zeros((n, n))
-    work = np.empty(m * n + m * m + m)
-    scratch = _observation_scratch(n, extension_terms[0].shape[0])
-    R_pose, t_pose, _, nu, R, _, _, _ = scratch
-    last_t = math.nan
-    used = 0
-    for k in range(t_s.shape[0]):
-        if not use[k]:
-            continue
-        converged, H = _tracker_observation(
-            x,
-            prepared[k],
-            drive,
-            tracker,
-            extension_terms,
-            variances,
-            newton,
-            noise_scale2,
-            R_guess,
-            t_guess,
-            warm,
-            scratch,
-        )
-        if not converged:
-            continue
-        _kernels.copy_pose(R_pose, t_pose, R_guess, t_guess)
-        warm = True
-        step = 0.0 if math.isnan(last_t) else walk_rate * max(t_s[k] - last_t, 0.0)
-        for i in range(n):
-            Q[i, i] = step if i < 42 else 0.0  # δM walks; the drive's blocks are constant
-        nis, S = kalman_update(x, P, H, nu, R, Q, math.inf, work)
-        if math.isnan(nis):
-            continue
-        observed, expected = variance_components(S, nu, R)
-        components[0] += observed
-        components[1] += expected
-        last_t = t_s[k]
-        used += 1
-    return used, last_t, warm
+@njit(nogil=True)
+def leg_set_observation(x, row, observation, R, t, warm):
+    """:func:`_leg_set_observation` in fresh arrays, ``(R, t)`` the warm start, overwritten with the pose
+    (the per-sample path: ``RobustFilter`` keeps a batch's observations). Returns its ``(FK residual, ν, H, R0)``."""
+    scratch = _observation_scratch(x.shape[0], observation[2][0].shape[0], observation[0][2].shape[0])
+    residual, nu, H, R0 = _leg_set_observation(x, row, observation, R, t, warm, scratch)
+    _kernels.copy_pose(scratch[0], scratch[1], R, t)
+    return residual, nu, H, R0
 
 
-#: why :func:`tracker_filter_steps` stopped: at the end of its rows; at a row the per-sample
-#: path must take (it did not touch the state for it); after a row that made the window statistics due.
-STEPS_DONE, STEPS_PER_SAMPLE, STEPS_WINDOW_DUE = 0, 1, 2
+#: why :func:`leg_set_filter_rows` stopped: at the end of its rows; at a row the per-sample path must
+#: take (it did not touch the state for it); after a row that made the window statistics due.
+ROWS_DONE, ROWS_PER_SAMPLE, ROWS_WINDOW_DUE = 0, 1, 2
 
 
 @njit(fastmath=_FAST, nogil=True, error_model="numpy")
-def tracker_filter_steps(
+def leg_set_filter_rows(
     x,
     P,
     Q,
+    unit_Q,
     S_last,
     t_s,
     prepared,
-    plain,
+    use,
     last_t,
-    drive,
-    tracker,
-    extension_terms,
-    variances,
-    newton,
+    observation,
     walk_rate,
     noise_scale2,
     gate_nis,
+    skip,
     R_guess,
     t_guess,
     warm,
@@ -394,85 +383,95 @@ def tracker_filter_steps(
     since_window,
     window,
     errors_out,
-) -> tuple[int, int, float, float, int, bool]:
-    """The gated recursion of ``RobustFilter`` after its start-up, over the EKF's observations of a
-    tracker of known geometry, for as long as every row is an accepted sample — what
-    ``RobustFilter.update`` does row by row, in one call (the same kernels, in the same order).
+    components,
+) -> tuple[int, int, int, float, float, int, bool]:
+    """``RobustFilter``'s recursion over rows of prepared samples of an instrument that is a leg set of
+    known geometry, in one call: per row, the observation (:func:`_leg_set_observation`), ``Q = ρ²Δt ·
+    unit_Q`` (:func:`fill_walk`) and :func:`filter_step` — what the filter does row by row in Python
+    (``RobustFilter._step``, ``_observed_pass``), with the same kernels in the same order. This loop
+    holds only the control flow: a Python loop over samples costs several µs a row, more than the step.
 
-    For each row ``k``: stop (:data:`STEPS_PER_SAMPLE`, nothing touched for it) unless ``plain[k]``
-    (the caller's checks passed), ``t_s[k] ≥ last_t``, FK converges, the observation is finite and the
-    update passes the gate ``gate_nis`` with ``S`` positive definite; otherwise ``Q = ρ² Δt I`` into
-    ``Q`` (the filter's, as ``_fill_Q``), the update in place on ``(x, P)``, its ``S`` into ``S_last``,
-    the warm start ``(R_guess, t_guess)`` moved to the row's pose, the row appended to the sample
-    window (``_SampleWindow``'s arrays and ``span = [start, end]``, in place) and δM into
-    ``errors_out[k]`` (when it has rows). After ``window`` accepted rows since the last window
-    statistics (``window`` > 0) it stops with :data:`STEPS_WINDOW_DUE`.
+    Two uses:
+
+    * the gated recursion (``skip`` false, ``RobustFilter.update_block``): stop at the first row that
+      is not ``use``d (the caller's checks failed), goes back in time, has no pose or is refused by the
+      step (:data:`ROWS_PER_SAMPLE`, nothing touched for it); each row taken moves the warm start to
+      its pose, its ``S`` into ``S_last``, the row into the sample window (``_SampleWindow``'s arrays
+      and ``span``, :func:`window_append`) and δM into ``errors_out[k]`` (when it has rows); after
+      ``window`` rows since the last window statistics (``window`` > 0) stop with
+      :data:`ROWS_WINDOW_DUE`;
+    * a batch's pass (``skip`` true, gate ``inf``, ``RobustFilter._pass``): skip those rows instead,
+      summing the variance components into ``components``; every pose found moves the warm start (as
+      the per-sample observation does); empty window arrays.
 
     Returns:
-        ``(rows done, why it stopped, last accepted t_s, its NIS, since_window, warm)``.
+        ``(rows done, why it stopped, rows taken, last taken t_s, its NIS, since_window, warm)``.
     """
-    m = 6
     n = x.shape[0]
-    work = np.empty(m * n + m * m + m)
-    scratch = _observation_scratch(n, extension_terms[0].shape[0])
-    R_pose, t_pose, _, nu, R, _, _, _ = scratch
-    capacity = buffer_t.shape[0] // 2
-    nis = math.nan
+    legs = observation[0][2].shape[0]
+    work = np.empty(legs * n + legs * legs + legs)  # workspace_size
+    scratch = _observation_scratch(n, observation[2][0].shape[0], legs)
+    R_pose, t_pose = scratch[0], scratch[1]
+    nis, nis_k, S = math.nan, math.nan, S_last
+    filled = math.nan  # the walk step Q holds (none yet: the caller's Q may hold anything)
+    taken = 0
+    tolerance = observation[4][0]
     for k in range(t_s.shape[0]):
-        if not (plain[k] and t_s[k] >= last_t):
-            return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm
-        converged, H = _tracker_observation(
-            x,
-            prepared[k],
-            drive,
-            tracker,
-            extension_terms,
-            variances,
-            newton,
-            noise_scale2,
-            R_guess,
-            t_guess,
-            warm,
-            scratch,
-        )
-        if not (converged and all_finite(H, nu, R)):
-            return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm
-        step = walk_rate * max(t_s[k] - last_t, 0.0)
-        for i in range(n):
-            Q[i, i] = step if i < 42 else 0.0  # δM walks; the drive's blocks are constant
-        nis_k, S = kalman_update(x, P, H, nu, R, Q, gate_nis, work)
-        if not nis_k <= gate_nis:  # gated, or S not positive definite: x and P untouched
-            return k, STEPS_PER_SAMPLE, last_t, nis, since_window, warm
-        _kernels.copy_pose(R_pose, t_pose, R_guess, t_guess)
-        warm = True
-        for a in range(m):
-            for b in range(m):
+        status = STEP_NON_FINITE
+        fk_residual = math.inf
+        if use[k] and (skip or math.isnan(last_t) or t_s[k] >= last_t):
+            fk_residual, nu, H, R0 = _leg_set_observation(x, prepared[k], observation, R_guess, t_guess, warm, scratch)
+            if fk_residual <= tolerance:
+                walk_step = 0.0 if math.isnan(last_t) else walk_rate * max(t_s[k] - last_t, 0.0)
+                if walk_step != filled:  # at a steady rate Δt repeats: Q is already this one
+                    fill_walk(Q, unit_Q, walk_step)
+                    filled = walk_step
+                status, nis_k, S = filter_step(x, P, Q, H, nu, R0, noise_scale2, gate_nis, work, components)
+        # a row handed back is observed again by the caller, from the warm start before it
+        if fk_residual <= tolerance and (skip or status == STEP_TAKEN):
+            _kernels.copy_pose(R_pose, t_pose, R_guess, t_guess)
+            warm = True
+        if status != STEP_TAKEN:
+            if skip:
+                continue
+            return k, ROWS_PER_SAMPLE, taken, last_t, nis, since_window, warm
+        for a in range(S.shape[0]):
+            for b in range(S.shape[1]):
                 S_last[a, b] = S[a, b]
         nis = nis_k
         last_t = t_s[k]
-        start, end = span[0], span[1]
-        if end == buffer_t.shape[0]:  # slide the live rows to the front, as _SampleWindow.append
-            for i in range(end - start):
-                buffer_t[i] = buffer_t[start + i]
-                for c in range(buffer_prepared.shape[1]):
-                    buffer_prepared[i, c] = buffer_prepared[start + i, c]
-                buffer_gated[i] = buffer_gated[start + i]
-            start, end = 0, end - start
-        buffer_t[end] = t_s[k]
-        for c in range(buffer_prepared.shape[1]):
-            buffer_prepared[end, c] = prepared[k, c]
-        buffer_gated[end] = False
-        end += 1
-        if end - start > capacity:
-            start += 1
-        span[0], span[1] = start, end
-        if errors_out.shape[0]:
-            for i in range(42):
-                errors_out[k, i] = x[i]
+        taken += 1
+        if buffer_t.shape[0]:
+            window_append(buffer_t, buffer_prepared, buffer_gated, span, t_s[k], prepared[k], np.bool_(False))
+        for i in range(errors_out.shape[1] if errors_out.shape[0] else 0):
+            errors_out[k, i] = x[i]
         since_window += 1
         if window > 0 and since_window >= window:
-            return k + 1, STEPS_WINDOW_DUE, last_t, nis, since_window, warm
-    return t_s.shape[0], STEPS_DONE, last_t, nis, since_window, warm
+            return k + 1, ROWS_WINDOW_DUE, taken, last_t, nis, since_window, warm
+    return t_s.shape[0], ROWS_DONE, taken, last_t, nis, since_window, warm
+
+
+@njit(nogil=True)
+def window_append(t, prepared, gated, span, t_s, row, gated_row) -> None:
+    """Append one sample to a window of the last ``len(t) // 2`` samples, in place: the live rows are
+    ``[span[0], span[1])`` of the arrays, slid back to the front when the end is reached (amortised
+    O(1)); the oldest is dropped beyond the capacity (``_SampleWindow``, and the compiled recursion)."""
+    start, end = span[0], span[1]
+    if end == t.shape[0]:
+        for i in range(end - start):
+            t[i] = t[start + i]
+            for c in range(prepared.shape[1]):
+                prepared[i, c] = prepared[start + i, c]
+            gated[i] = gated[start + i]
+        start, end = 0, end - start
+    t[end] = t_s
+    for c in range(prepared.shape[1]):
+        prepared[end, c] = row[c]
+    gated[end] = gated_row
+    end += 1
+    if end - start > t.shape[0] // 2:
+        start += 1
+    span[0], span[1] = start, end
 
 
 def workspace_size(n: int, m: int) -> int:
@@ -495,10 +494,14 @@ def all_finite(H: np.ndarray, residual: np.ndarray, R: np.ndarray) -> bool:
     return True
 
 
+#: :func:`filter_step`'s ``components`` where none are summed.
+NO_COMPONENTS = np.zeros(0)
+
+
 class FilterState:
     """The state both EKFs carry: ``X = δM``, ``P``, the gate, and the bookkeeping.
 
-    A thin wrapper over :func:`kalman_update` that turns a gated or degenerate update into
+    A thin wrapper over :func:`filter_step` that turns a gated or degenerate update into
     :class:`~stewart_calib.errors.SampleRejected` (state untouched) and builds the
     :class:`~stewart_calib.estimators.base.Estimate` (``covariance = P``).
 
@@ -547,24 +550,32 @@ class FilterState:
         """The χ² bound on the NIS of an ``m``-observation (``inf`` with the gate off)."""
         return float(chdtri(m, 1.0 - self.gate_probability)) if self.gate_probability > 0.0 else math.inf
 
-    def update(self, H: np.ndarray, residual: np.ndarray, R: np.ndarray, t_s: float, gated: bool = True) -> None:
-        """:func:`kalman_update` with ``self.Q``; counts the sample or raises ``SampleRejected``
-        (``gated`` false: whatever its NIS, a sample a test of its own has taken)."""
-        if not all_finite(H, residual, R):  # compiled: three np.isfinite passes cost ~5 µs
+    def workspace(self, m: int) -> np.ndarray:
+        """:func:`kalman_update`'s scratch for ``m`` observations, reused from call to call."""
+        if self._work.size < workspace_size(len(self.x), m):
+            self._work = np.empty(workspace_size(len(self.x), m))
+        return self._work
+
+    def update(
+        self, H: np.ndarray, residual: np.ndarray, R0: np.ndarray, t_s: float, gated: bool = True, noise_scale2=1.0
+    ) -> None:
+        """:func:`filter_step` with ``self.Q`` and ``R = noise_scale2 · R0``; counts the sample or raises
+        ``SampleRejected`` (``gated`` false: whatever its NIS, a sample a test of its own has taken)."""
+        m = len(residual)
+        gate_nis = math.inf if not gated else self.gate_nis if m == self._m else self._gate(m)  # another size
+        status, nis, S = filter_step(
+            self.x, self.P, self.Q, H, residual, R0, noise_scale2, gate_nis, self.workspace(m), NO_COMPONENTS
+        )
+        if status == STEP_NON_FINITE:
             raise SampleRejected(
                 f"{self.method}: sample at t = {t_s} s gives a non-finite observation", SampleRejected.NON_FINITE
             )
-        m = len(residual)
-        gate_nis = math.inf if not gated else self.gate_nis if m == self._m else self._gate(m)  # another size
-        if self._work.size < workspace_size(len(self.x), m):
-            self._work = np.empty(workspace_size(len(self.x), m))
-        nis, S = kalman_update(self.x, self.P, H, residual, R, self.Q, gate_nis, self._work)
-        if math.isnan(nis):
+        if status == STEP_NOT_POSITIVE_DEFINITE:
             raise SampleRejected(
                 f"{self.method}: sample at t = {t_s} s: innovation covariance not positive definite",
                 SampleRejected.NOT_POSITIVE_DEFINITE,
             )
-        if nis > gate_nis:
+        if status == STEP_GATED:
             raise SampleRejected(
                 f"{self.method}: sample at t = {t_s} s gated: NIS {nis:.3g} > χ² bound {gate_nis:.3g}",
                 SampleRejected.GATED,

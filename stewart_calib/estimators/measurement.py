@@ -8,7 +8,8 @@
 * :class:`WarmFK` — forward kinematics of one leg set, warm-started from the previous
   solution (2 Newton iterations instead of 4–5 on a smooth trajectory), falling back to
   a cold start before giving up; FK failure becomes ``SampleRejected``.
-* :class:`WarmPose` — the same for an instrument model's loose pose.
+* :class:`WarmPose` — the same for an instrument model's loose pose; :class:`LegSetPose` — and the
+  EKF's observation through it, compiled, for an instrument that offers compiled kernels.
 * :func:`pose_difference` — ``P_v − P_m`` as the paper's ``δE = [δh, δθ]`` (eq. 9).
 """
 
@@ -32,11 +33,11 @@ from ..instruments import (
     needs_registration,
     registered,
 )
-from ..instruments.tracker import as_tracker
 from ..platform import LegGeometry, Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout
 from .base import state_array
+from .kalman import leg_set_filter_rows, leg_set_observation
 
 
 def check_sample(platform: Platform, model: InstrumentModel, sample: Sample) -> tuple[np.ndarray, np.ndarray]:
@@ -165,103 +166,77 @@ class WarmPose(_WarmStart):
             self._guess = (observed.R, observed.t)
         return observed
 
-    def tracker_leg_observation(
-        self, drive: DriveModel, x_drive: np.ndarray, z: np.ndarray, inputs: np.ndarray, stroke_sigma_mm: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For a tracker of known geometry: :meth:`solve` and ``drive``'s observation at that pose
-        (:meth:`~stewart_calib.drive.DriveModel.observation`) in one compiled call,
-        ``(r, H = ∂r/∂x_drive, R_meas)`` (:func:`~stewart_calib.kinematics.tracker_leg_observation`)."""
-        R, t, r, H, R_meas = kin.tracker_leg_observation(
-            drive.legs,
-            drive.parameter_error(x_drive),
-            as_tracker(self.model).legs,
-            z,
-            self._guess,
-            drive.extensions(inputs, x_drive),
-            float(self.model.channel_sigma[0]),
-            stroke_sigma_mm,
-        )
-        self._guess = (R, t)
-        return r, drive.with_terms(H, inputs), R_meas
 
-    def _tracker_arguments(self, drive: DriveModel, stroke_sigma_mm: float) -> tuple:
-        """The compiled passes' fixed arguments: both leg sets, the drive's extension terms (with the
-        columns in the state of those it identifies), the variances, Newton's limits."""
-        legs, nominal = as_tracker(self.model).legs, drive.legs
+class LegSetPose(WarmPose):
+    """:class:`WarmPose` of an instrument that offers compiled kernels: its readings are those of a
+    prismatic leg set of known geometry (``model.compiled_legs``), so the EKF's observation of a prepared
+    sample ``[u | z]`` through the pose they fix is one compiled call
+    (:func:`~.kalman.leg_set_observation`), and so is the robust filter's recursion over rows of them
+    (:meth:`rows`, :func:`~.kalman.leg_set_filter_rows`: the same observation). Both move the one warm start.
+
+    Args:
+        model: the instrument model (``compiled_legs`` not None).
+        drive: the drive model the EKF identifies (its unknown terms: columns of the state after δM).
+        stroke_sigma_mm: σ_q of a stroke [mm].
+    """
+
+    def __init__(self, model: InstrumentModel, drive: DriveModel, stroke_sigma_mm: float):
+        super().__init__(model)
+        legs, nominal = model.compiled_legs, drive.legs
+        if legs is None:
+            raise TypeError(f"the {model.kind} instrument's model offers no compiled kernels")
+        self.legs = legs
         starts, gains, offsets, values, columns = drive.kernel_terms()
-        return (
+        self._observation = (
             (nominal.base_joints, nominal.platform_joints, nominal.initial_lengths),
             (legs.base_joints, legs.platform_joints, legs.initial_lengths),
             (starts, gains, np.ascontiguousarray(offsets[:, None] + values), columns),
-            (float(self.model.channel_sigma[0]) ** 2, float(stroke_sigma_mm) ** 2),
+            (float(model.channel_sigma[0]) ** 2, float(stroke_sigma_mm) ** 2),
             (kin.FK_TOLERANCE_MM, kin.FK_MAX_ITERATIONS),
         )
 
-    def tracker_filter_pass(self, drive: DriveModel, stroke_sigma_mm: float):
-        """A filter pass ``(x, P, t_s, prepared, use, walk_rate, noise_scale2, components) →
-        (used, last t_s)`` for :class:`~.robust.RobustFilter` that observes each sample as
-        :meth:`tracker_leg_observation` does (same warm starts), compiled whole
-        (:func:`~.kalman.tracker_filter_pass`); for a state of the drive's unknowns alone."""
-        from .kalman import tracker_filter_pass
+    def observe(self, x: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(ν = −r, H = ∂r/∂x, R0 = R_meas)`` of the drive's leg residuals at the pose the readings of
+        ``row = [u | z]`` fix, at the state ``x`` (δM, then the drive's unknown terms, then any other
+        unknowns, whose columns of ``H`` are 0). Raises ``SampleRejected`` where FK fails."""
+        R, t = kin.start_pose(self._guess)
+        residual, nu, H, R0 = leg_set_observation(x, row, self._observation, R, t, self._guess is not None)
+        if not residual <= kin.FK_TOLERANCE_MM:
+            raise kin.fk_failed(self.model.kind, residual)
+        self._guess = (R, t)
+        return nu, H, R0
 
-        fixed = self._tracker_arguments(drive, stroke_sigma_mm)
-
-        def run(x, P, t_s, prepared, use, walk_rate, noise_scale2, components):
-            R, t = kin.start_pose(self._guess)
-            used, last_t, warm = tracker_filter_pass(
-                x,
-                P,
-                t_s,
-                np.ascontiguousarray(prepared),
-                use,
-                *fixed,
-                float(walk_rate),
-                float(noise_scale2),
-                R,
-                t,
-                self._guess is not None,
-                components,
-            )
-            if warm:
-                self._guess = (R, t)
-            return used, last_t
-
-        return run
-
-    def tracker_filter_steps(self, drive: DriveModel, stroke_sigma_mm: float):
-        """The gated recursion over rows of prepared samples for :class:`~.robust.RobustFilter`,
-        observing each as :meth:`tracker_leg_observation` does, compiled whole
-        (:func:`~.kalman.tracker_filter_steps`, whose arguments it takes but the fixed ones and the
-        warm start, kept here); for a state of the drive's unknowns alone."""
-        from .kalman import tracker_filter_steps
-
-        fixed = self._tracker_arguments(drive, stroke_sigma_mm)
-
-        def run(x, P, Q, S_last, t_s, prepared, plain, last_t, walk_rate, noise_scale2, gate_nis, *window):
-            R, t = kin.start_pose(self._guess)
-            done, why, last_t, nis, since_window, warm = tracker_filter_steps(
-                x,
-                P,
-                Q,
-                S_last,
-                t_s,
-                prepared,
-                plain,
-                last_t,
-                *fixed,
-                walk_rate,
-                noise_scale2,
-                gate_nis,
-                R,
-                t,
-                self._guess is not None,
-                *window,
-            )
-            if warm:
-                self._guess = (R, t)
-            return done, why, last_t, nis, since_window
-
-        return run
+    def rows(
+        self, x, P, Q, unit_Q, S_last, t_s, prepared, use, last_t, walk_rate, noise_scale2, gate_nis, skip, *window
+    ):
+        """:func:`~.kalman.leg_set_filter_rows` from this warm start (moved to the last pose it found),
+        with the observation's fixed arguments; ``window`` = the sample window's arrays and span,
+        ``since_window``, ``window``, ``errors_out``, ``components``. Returns ``(rows done, why it stopped,
+        rows taken, last taken t_s, its NIS, since_window)``."""
+        R, t = kin.start_pose(self._guess)
+        done, why, taken, last_t, nis, since_window, warm = leg_set_filter_rows(
+            x,
+            P,
+            Q,
+            unit_Q,
+            S_last,
+            t_s,
+            np.ascontiguousarray(prepared),
+            use,
+            float(last_t),
+            self._observation,
+            float(walk_rate),
+            float(noise_scale2),
+            float(gate_nis),
+            skip,
+            R,
+            t,
+            self._guess is not None,
+            *window,
+        )
+        if warm:
+            self._guess = (R, t)
+        return done, why, taken, last_t, nis, since_window
 
 
 def pose_difference(R_v: np.ndarray, t_v: np.ndarray, R_m: np.ndarray, t_m: np.ndarray) -> np.ndarray:

@@ -58,9 +58,8 @@ import numpy as np
 from .._jit import njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected
-from ..platform import N_PARAMS
 from .base import state_array
-from .kalman import STEPS_WINDOW_DUE, FilterState, kalman_update, variance_components
+from .kalman import NO_COMPONENTS, ROWS_WINDOW_DUE, STEP_TAKEN, FilterState, fill_walk, filter_step, window_append
 
 #: residual degrees of freedom a batch needs before it refuses any sample or estimates a scale.
 MIN_REDUNDANCY = 12.0
@@ -87,6 +86,9 @@ MIN_WALK_FRACTION = 1e-4
 #: linearisation error gates every sample.
 MIN_NOISE_SCALE2 = 1e-2
 
+#: a batch pass's sample window in the compiled recursion: none (``_SampleWindow.arrays``, ``span``)
+_NO_WINDOW = (np.zeros(0), np.zeros((0, 0)), np.zeros(0, dtype=bool), np.zeros(2, dtype=np.int64))
+
 #: ``observe(prepared, x) -> (innovation ν (m,), H (m, n), R0 (m, m))`` at the state ``x``, or
 #: None when the sample fixes no pose there.
 Observe = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray] | None]
@@ -105,14 +107,10 @@ class RobustFilter:
         m: observation size.
         layout, C: the unknown vector and its gauge rows (as :class:`FilterState`).
         unit_Q: the process noise per unit ``ρ² Δt`` (None: the identity).
-        compiled_pass: the batches' filter pass over buffered samples in one compiled call,
-            ``(x, P, t_s, prepared, use, walk_rate, noise_scale2, components) → (used, last t_s)``,
-            equal to observing each through ``observe`` (None: they are, one by one); only with
-            ``unit_Q`` None.
-        compiled_steps: the gated recursion over rows of prepared samples in one compiled call
-            (:meth:`WarmPose.tracker_filter_steps <.measurement.WarmPose.tracker_filter_steps>`), equal
-            to :meth:`update` row by row while each is accepted (None: :meth:`update_block` does
-            nothing); only with ``unit_Q`` None.
+        compiled_rows: the recursion over rows of prepared samples in one compiled call, observing
+            each as ``observe`` does (:meth:`LegSetPose.rows <.measurement.LegSetPose.rows>`,
+            :func:`~.kalman.leg_set_filter_rows`): the batches' passes and :meth:`update_block` run
+            through it (None: the passes observe sample by sample, :meth:`update_block` does nothing).
         relinearise: solve the start-up and recovery batches by Gauss–Newton (see the module
             docstring) rather than one pass linearised along its own way from the prior.
         step: ``(index, variance)`` of an unknown that may step (an unannounced payload): where a
@@ -142,8 +140,7 @@ class RobustFilter:
         layout=None,
         C: np.ndarray | None = None,
         unit_Q: np.ndarray | None = None,
-        compiled_pass=None,
-        compiled_steps=None,
+        compiled_rows=None,
         relinearise: bool = False,
         step: tuple[int, float] | None = None,
     ):
@@ -161,12 +158,8 @@ class RobustFilter:
         # onto the gauge rows' directions Cᵀ, where P is singular (see _mahalanobis2)
         self._gauge_projector = None if C is None or not len(C) else C.T @ np.linalg.solve(C @ C.T, C)
         self._relinearise = relinearise
-        self._unit_Q = unit_Q
-        # the compiled passes walk δM alone (kalman.tracker_filter_pass): a unit_Q that is anything else
-        # (the gauge conditioned in) keeps the per-sample path
-        walks_delta_only = unit_Q is None or np.array_equal(unit_Q, np.diag((np.arange(n) < N_PARAMS).astype(float)))
-        self._compiled_pass = compiled_pass if walks_delta_only else None
-        self._compiled_steps = compiled_steps if walks_delta_only else None
+        self._unit_Q = np.eye(n) if unit_Q is None else np.ascontiguousarray(unit_Q, dtype=float)
+        self._compiled_rows = compiled_rows
         self._configured_walk = walk_mm_per_sqrt_s**2
         self._observe = observe
         self._robust = robust
@@ -249,24 +242,25 @@ class RobustFilter:
         """Fold in rows of prepared samples from the first, in compiled calls, for as long as each is
         one the gated recursion accepts; returns how many it took. The row it stops at is for
         :meth:`update` (nothing of the state has moved for it). Takes none before the start-up is
-        decided or without ``compiled_steps``.
+        decided or without ``compiled_rows``.
 
         Args:
             t_s: ``(K,)`` times [s]; prepared: ``(K, width)`` prepared samples.
             plain: ``(K,)`` rows that pass every check of a sample (the others stop the block).
             errors_out: ``(K, 42)``, δM [mm] after each row taken, or ``(0, 42)``: not kept.
         """
-        if self._compiled_steps is None or not self.started or not self._buffer.holds(prepared.shape[1]):
+        if self._compiled_rows is None or not self.started or not self._buffer.holds(prepared.shape[1]):
             return 0
         f = self.filter
         done = 0
         while done < len(t_s):
             window = self._noise_due()
             S_last, span = np.empty((self._m, self._m)), self._buffer.span()
-            count, why, last_t, nis, self._since_window = self._compiled_steps(
+            count, why, _, last_t, nis, self._since_window = self._compiled_rows(
                 f.x,
                 f.P,
                 f.Q,
+                self._unit_Q,
                 S_last,
                 t_s[done:],
                 prepared[done:],
@@ -275,18 +269,20 @@ class RobustFilter:
                 self.walk_rate_mm2_per_s,
                 self.noise_scale2,
                 f.gate_nis,
+                False,
                 *self._buffer.arrays(),
                 span,
                 self._since_window,
                 window if window < math.inf else 0,
                 errors_out[done:],
+                NO_COMPONENTS,
             )
             self._buffer.set_span(span)
             if count:
                 f.t_s, f.nis, f.S = last_t, nis, S_last
                 f.samples_used += count
             done += count
-            if why != STEPS_WINDOW_DUE:
+            if why != ROWS_WINDOW_DUE:
                 break
             self._window_statistics()
         return done
@@ -333,11 +329,7 @@ class RobustFilter:
     # ------------------------------------------------------------------ recursion
 
     def _fill_Q(self, Q: np.ndarray, dt_s: float) -> None:
-        step = self.walk_rate_mm2_per_s * max(dt_s, 0.0)
-        if self._unit_Q is None:
-            Q.reshape(-1)[:: len(Q) + 1] = step  # the diagonal as a view: np.fill_diagonal costs ~3 µs
-        else:
-            np.multiply(self._unit_Q, step, out=Q)
+        fill_walk(Q, self._unit_Q, self.walk_rate_mm2_per_s * max(dt_s, 0.0))
 
     def _step(self, t_s: float, prepared: np.ndarray) -> None:
         f = self.filter
@@ -348,14 +340,13 @@ class RobustFilter:
             )
         nu, H, R0 = observation
         self._fill_Q(f.Q, 0.0 if math.isnan(f.t_s) else t_s - f.t_s)
-        R = self.noise_scale2 * R0
         step = self._step_unknown
-        stepped = step is not None and self._is_step(step, nu, H, R)
+        stepped = step is not None and self._is_step(step, nu, H, self.noise_scale2 * R0)
         if step is not None and stepped:
             f.Q[step[0], step[0]] += step[1]
         # a step's sample passes on the step's test: the rest of its misfit is what the step's own
         # pattern (the compliance times the payload's forces) still has wrong, which the next samples mend
-        f.update(H, nu, R, t_s, gated=not stepped)  # raises SampleRejected, state untouched
+        f.update(H, nu, R0, t_s, gated=not stepped, noise_scale2=self.noise_scale2)  # SampleRejected: untouched
         if stepped:
             self.steps += 1
             self._buffer.clear()
@@ -419,9 +410,26 @@ class RobustFilter:
         buffer = self._buffer
         if linearised is not None:
             used, last_t = self._observed_pass(x, P, use, noise_scale2, linearised)
-        elif self._compiled_pass is not None:
-            used, last_t = self._compiled_pass(
-                x, P, buffer.t, buffer.prepared, use, self.walk_rate_mm2_per_s, noise_scale2, self._pass_components
+        elif self._compiled_rows is not None:
+            _, _, used, last_t, *_ = self._compiled_rows(
+                x,
+                P,
+                np.empty((self._n, self._n)),
+                self._unit_Q,
+                np.empty((self._m, self._m)),
+                buffer.t,
+                buffer.prepared,
+                use,
+                math.nan,
+                self.walk_rate_mm2_per_s,
+                noise_scale2,
+                math.inf,
+                True,
+                *_NO_WINDOW,
+                0,
+                0,
+                np.empty((0, self._n)),
+                self._pass_components,
             )
         else:
             used, last_t = self._observed_pass(x, P, use, noise_scale2)
@@ -451,10 +459,10 @@ class RobustFilter:
             if linearised is not None:
                 nu = nu - H @ (x - linearised[0])
             self._fill_Q(Q, 0.0 if math.isnan(last_t) else buffer.t[k] - last_t)
-            nis, S = kalman_update(x, P, H, nu, noise_scale2 * R0, Q, math.inf)
-            if math.isnan(nis):
-                continue  # degenerate: the kernel left x and P untouched
-            self._pass_components += variance_components(S, nu, noise_scale2 * R0)
+            work = self.filter.workspace(len(nu))
+            status, _, _ = filter_step(x, P, Q, H, nu, R0, noise_scale2, math.inf, work, self._pass_components)
+            if status != STEP_TAKEN:
+                continue  # degenerate: the step left x and P untouched
             last_t, used = buffer.t[k], used + 1
         return used, last_t
 
@@ -774,9 +782,10 @@ def _stacked(observations: list, m: int, n: int) -> tuple[np.ndarray, np.ndarray
 class _SampleWindow:
     """The last ``capacity`` samples, oldest first.
 
-    The arrays are twice ``capacity`` long and the live rows a view into them: an append writes
-    one row, and every ``capacity`` appends the rows slide back to the front (amortised O(1),
-    where concatenating costs ~50 µs a sample).
+    The arrays are twice ``capacity`` long and the live rows ``[span[0], span[1])`` a view into them:
+    an append writes one row, and every ``capacity`` appends the rows slide back to the front
+    (amortised O(1), where concatenating costs ~50 µs a sample); :func:`~.kalman.window_append`, which
+    the compiled recursion runs too.
     """
 
     def __init__(self, capacity: int):
@@ -786,14 +795,14 @@ class _SampleWindow:
     def _allocate(self, width: int) -> None:
         size = 2 * self.capacity
         self._t, self._prepared, self._gated = np.zeros(size), np.zeros((size, width)), np.zeros(size, dtype=bool)
-        self._start = self._end = 0
+        self._span = np.zeros(2, dtype=np.int64)
 
     def __len__(self) -> int:
-        return self._end - self._start
+        return int(self._span[1] - self._span[0])
 
-    t = property(lambda self: self._t[self._start : self._end], doc="(K,) sample times [s]")
-    prepared = property(lambda self: self._prepared[self._start : self._end], doc="(K, width) prepared samples")
-    gated = property(lambda self: self._gated[self._start : self._end], doc="(K,) bool, writable: left out")
+    t = property(lambda self: self._t[self._span[0] : self._span[1]], doc="(K,) sample times [s]")
+    prepared = property(lambda self: self._prepared[self._span[0] : self._span[1]], doc="(K, width) prepared samples")
+    gated = property(lambda self: self._gated[self._span[0] : self._span[1]], doc="(K,) bool, writable: left out")
 
     def holds(self, width: int) -> bool:
         """Its rows are ``width`` wide (fixed by the first sample)."""
@@ -804,29 +813,21 @@ class _SampleWindow:
         return self._t, self._prepared, self._gated
 
     def span(self) -> np.ndarray:
-        """``[start, end)`` of the live rows in :meth:`arrays`."""
-        return np.array([self._start, self._end], dtype=np.int64)
+        """A copy of ``[start, end)`` of the live rows in :meth:`arrays`."""
+        return self._span.copy()
 
     def clear(self) -> None:
         """Let every sample go (the width stays)."""
-        self._start = self._end
+        self._span[0] = self._span[1]
 
     def set_span(self, span: np.ndarray) -> None:
-        self._start, self._end = int(span[0]), int(span[1])
+        self._span[:] = span
 
     def append(self, t_s: float, prepared: np.ndarray, gated: bool) -> None:
         """Keep one sample, dropping the oldest beyond ``capacity``."""
         if self._prepared.shape[1] != prepared.shape[0]:
             self._allocate(prepared.shape[0])  # the first sample fixes the width
-        if self._end == len(self._t):
-            live = slice(self._start, self._end)
-            for array in (self._t, self._prepared, self._gated):
-                array[: len(self)] = array[live]
-            self._start, self._end = 0, len(self)
-        self._t[self._end], self._prepared[self._end], self._gated[self._end] = t_s, prepared, gated
-        self._end += 1
-        if len(self) > self.capacity:
-            self._start += 1
+        window_append(self._t, self._prepared, self._gated, self._span, float(t_s), prepared, bool(gated))
 
     def export_state(self) -> dict:
         return {
@@ -844,6 +845,6 @@ class _SampleWindow:
                 "estimator state: keys 'buffer_t', 'buffer_prepared': expected one row per buffered sample"
             )
         self._allocate(prepared.shape[1])
-        self._end = len(t)
+        self._span[1] = len(t)
         self._t[: len(t)], self._prepared[: len(t)] = t, prepared
         self._gated[: len(t)] = state_array(state, "buffer_gated", (len(t),)).astype(bool)

@@ -16,6 +16,10 @@ measurement ``z``:
   in code units, prior σ, which gauge directions the drive shares), or None when it is known
   exactly. ``θ`` passed to the functions is always absolute: ``θ₀ + error``; ``()`` when None;
 * ``channel_sigma`` — ``(M,)`` σ of each channel of ``z`` [code units]: white, independent;
+* ``compiled_legs`` — where the model offers compiled kernels: the :class:`~stewart_calib.platform.LegGeometry`
+  of known geometry whose extensions the readings are (σ ``channel_sigma[0]`` each), so that the EKF
+  solves the pose and observes through it in compiled code (:class:`~stewart_calib.estimators.measurement.LegSetPose`);
+  None otherwise;
 * :meth:`~InstrumentModel.check` — refuse an unusable measurement before any state is touched;
 * :meth:`~InstrumentModel.groups` — the channels of ``z`` that go into one factor each (a
   robust kernel weighs a group as a whole: one ruler, one pose, one target);
@@ -38,6 +42,7 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
+from ..platform import LegGeometry
 from ..unknowns import UnknownBlock
 
 
@@ -81,6 +86,11 @@ class InstrumentModel(Protocol):
     columns: tuple[str, ...]
     unknowns: UnknownBlock | None
     channel_sigma: np.ndarray
+
+    @property
+    def compiled_legs(self) -> LegGeometry | None:
+        """The leg set whose readings the measurement is, where the model offers compiled kernels
+        (see the module docstring), else None."""
 
     def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
         """``z`` as a float array, or :class:`~stewart_calib.errors.SampleRejected` (wrong shape,

@@ -143,6 +143,7 @@ class PointsModel:
     """
 
     kind = "points"
+    compiled_legs = None  # no compiled kernels (base.InstrumentModel.compiled_legs)
 
     def __init__(self, instrument: Instrument, block):
         self.instrument = instrument

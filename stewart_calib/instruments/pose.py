@@ -133,6 +133,7 @@ class PoseModel:
     """
 
     kind = "pose"
+    compiled_legs = None  # no compiled kernels (base.InstrumentModel.compiled_legs)
     columns = COLUMNS
 
     def __init__(self, instrument: Instrument, block):

@@ -65,6 +65,8 @@ class TrackerModel:
         self.reading_range = reading_range
         self.channel_sigma = np.full(N_LEGS, float(reading_sigma_mm))
         self.unknowns = None
+        #: its readings are a leg set's of known geometry: estimators observe through it in compiled code
+        self.compiled_legs: LegGeometry | None = legs if geometry_sigma_mm <= 0.0 else None
         if geometry_sigma_mm > 0.0:
             self.unknowns = UnknownBlock(
                 "instrument",
