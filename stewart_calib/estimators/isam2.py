@@ -443,7 +443,8 @@ class ISAM2Estimator:
             covariance = self._smoother.marginalCovariance(p)
         except RuntimeError as err:  # gtsam's C++ exceptions: a graph that does not determine δM
             raise CalibError(f"isam2: the marginal covariance failed: {first_paragraph(err)}") from None
-        covariance = covariance * self._front.robust.noise_scale2
+        # the walk from the window's variable to the last sample, as lm adds it (GraphBuilder.window_walk_covariance)
+        covariance = covariance * self._front.robust.noise_scale2 + self._builder.window_walk_covariance(self._state)
         return Estimate.of_state(
             self._smoother.calculateEstimateVector(p),
             covariance,
