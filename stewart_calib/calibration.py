@@ -21,7 +21,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from . import estimators, io
+from . import estimators, instruments, io
 from .config import EstimatorConfig
 from .diagnosis import diagnose_log
 from .errors import CalibError, SampleRejected, shown
@@ -80,12 +80,8 @@ def run_calibration(
     Raises:
         CalibError: an unknown method, or a method that rejected every sample.
     """
-    if (
-        platform.instrument.kind != "tracker"
-    ):  # an outside instrument's frame may be anywhere: start from its registration
-        from .instruments.external import registered_platform
-
-        platform = registered_platform(platform, log.strokes, log.readings)
+    # an outside instrument's frame may be anywhere: start from its registration
+    platform = instruments.registered(platform, log.strokes, log.readings)
     estimator = estimators.make_estimator(method, platform, config)
     nominal = platform.drive.as_vector()
     if isinstance(estimator, BatchEstimator):

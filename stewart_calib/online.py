@@ -55,6 +55,7 @@ from .estimators.base import (
     update_block,
 )
 from .inputs import read_input_bytes
+from .instruments import instrument_kind
 from .platform import Platform, load_platform, parse_platform, platform_to_toml
 from .plausibility import check_plausible
 from .samples import Log, Sample
@@ -182,9 +183,9 @@ class OnlineCalibrator:
         self.rows_skipped = 0
         self.source: dict | None = None
         self.rejections = Rejections()
-        # accepted samples for the plausibility check: the tracker's leg residual needs its readings
-        self._tracker = platform.instrument.kind == "tracker"
-        self._recent = RecentSamples(RECENT_SAMPLES if self._tracker else 0, 6)
+        # accepted samples for the plausibility check: the leg residual needs a leg set's readings
+        self._legs = not instrument_kind(platform).outside
+        self._recent = RecentSamples(RECENT_SAMPLES if self._legs else 0, 6)
         self._fixed: tuple | None = None  # (what they were made of, the checkpoint's fixed arrays)
 
     def update(self, sample: Sample) -> None:
@@ -208,7 +209,7 @@ class OnlineCalibrator:
         finally:
             for late in take_late_rejections(self._estimator):  # left out by a robust start-up batch
                 self.rejections.add(late)
-        if self._tracker:
+        if self._legs:
             self._recent.append(sample.strokes, sample.readings)
 
     def update_block(self, block: Log) -> list[int]:
@@ -230,7 +231,7 @@ class OnlineCalibrator:
             [(j, 0, err) for j, err in refused] + [(j, 1, err) for j, err in late], key=lambda event: event[:2]
         ):
             self.rejections.add(err)
-        if self._tracker:
+        if self._legs:
             accepted = np.ones(len(block), dtype=bool)
             accepted[[j for j, _ in refused]] = False
             self._recent.extend(np.asarray(block.strokes)[accepted], np.asarray(block.readings)[accepted])

@@ -39,6 +39,7 @@ from .accuracy import PredictedError, error_weight, predicted_error, reachable_p
 from .config import NoiseConfig
 from .errors import CalibError
 from .identifiability import RANK_RTOL, scaled_paper_jacobian, whitened_leg_jacobian
+from .instruments import instrument_kind
 from .instruments.external import information_rows
 from .platform import N_PARAMS, Platform
 
@@ -123,7 +124,7 @@ def _design(platform: Platform, poses: np.ndarray, criterion: str, noise: NoiseC
     (:func:`stewart_calib.instruments.external.information_rows`). ``A`` weighs the 42 drive
     parameters alike, ``I`` by the closed-loop error they cause (:func:`accuracy.error_weight`).
     """
-    if platform.instrument.kind == "tracker":
+    if not instrument_kind(platform).outside:
         if criterion == "O1":
             return scaled_paper_jacobian(platform, poses), None
         blocks = whitened_leg_jacobian(platform, poses, noise)
@@ -321,7 +322,7 @@ def design_covariance(
     poses do not identify every unknown (singular values below ``RANK_RTOL`` of the largest).
     ``seen``: a points instrument's targets seen at each pose (:func:`information_rows`)."""
     poses = np.asarray(poses, dtype=float).reshape(-1, 6)
-    if platform.instrument.kind == "tracker":
+    if not instrument_kind(platform).outside:
         rows, lift = whitened_leg_jacobian(platform, poses, noise or NoiseConfig()), np.eye(N_PARAMS)
     else:
         rows, lift = information_rows(platform, poses, seen)
@@ -357,7 +358,7 @@ def with_stroke_margin(platform: Platform, noise: NoiseConfig) -> Platform:
 
 def default_criterion(platform: Platform) -> str:
     """``I`` (the predicted closed-loop error) for an outside instrument, ``A`` for the tracker."""
-    return DEFAULT_CRITERION if platform.instrument.kind == "tracker" else "I"
+    return "I" if instrument_kind(platform).outside else DEFAULT_CRITERION
 
 
 def plan_poses(
@@ -392,7 +393,7 @@ def plan_poses(
         raise CalibError(f"n = {n}, candidates = {n_candidates}: expected 1 ≤ n ≤ candidates")
     rng = np.random.default_rng() if rng is None else rng
     noise = noise or NoiseConfig()
-    outside = platform.instrument.kind != "tracker"
+    outside = instrument_kind(platform).outside
     reach = with_stroke_margin(platform, noise) if outside else platform
     candidates = candidate_poses(reach, n_candidates, rng)
     if outside:

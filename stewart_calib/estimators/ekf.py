@@ -94,7 +94,7 @@ class LegEKF:
         self.platform = platform
         self.noise = config.noise
         self.model = instrument_model(platform, config.noise)
-        self.drive = estimator_drive(platform, config.noise, self.model)
+        self.drive = estimator_drive(platform, config.noise)
         layout = unknown_layout(platform, config.noise, self.model)
         payload = payload_block(platform.elastic)
         self.layout = layout if payload is None else UnknownLayout((*layout.blocks, payload))

@@ -41,7 +41,6 @@ from ..errors import SampleRejected
 from ..estimate import Estimate
 from ..factors import diagonal_noise, drive_leg, gauge, instrument, instrument_pose, random_walk
 from ..instruments import instrument_model, instrument_theta
-from ..instruments.tracker import as_tracker
 from ..platform import N_LEGS, Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout
@@ -115,7 +114,7 @@ class GraphBuilder:
         self.graph = config.isam2
         self.chain = chain
         self.model = instrument_model(platform, config.noise)
-        self.drive = estimator_drive(platform, config.noise, self.model)
+        self.drive = estimator_drive(platform, config.noise)
         self.layout: UnknownLayout = unknown_layout(platform, config.noise, self.model)
         self._robust = (self.graph.robust, self.graph.robust_k)
         # Gaussian rows: one factor of the six legs (or of all the instrument's channels) is their
@@ -132,11 +131,9 @@ class GraphBuilder:
         # the channel groups of the last sample as factored (channels, noise): the tracker's groups
         # are one constant list, so a sample's are most often the very list of the one before
         self._groups: tuple[list[np.ndarray] | None, list[tuple]] = (None, [])
-        # tight coupling to a tracker of known geometry: the pose's initial value is the readings'
+        # tight coupling to a leg set of known geometry: the pose's initial value is the readings'
         # FK alone (its covariance, which model.pose adds, is for loose coupling)
-        self._tracker_fk = (
-            self.model.kind == "tracker" and self.model.unknowns is None and self.graph.coupling == "tight"
-        )
+        self._fk_legs = self.model.compiled_legs if self.graph.coupling == "tight" else None
         self._instrument = self.layout.slice("instrument")
         self._prior_sigma = self.layout.prior_sigma(self.noise.prior_sigma_mm)
         self._walks = self.layout.walks()
@@ -144,7 +141,7 @@ class GraphBuilder:
         #: whether :meth:`epoch` asks for the current estimate only when a sample opens a window (no
         #: instrument unknowns, and the measurement always fixes the pose): then a window's samples
         #: can be built before the smoother has any of them (``isam2``'s update a window)
-        self.guess_at_windows_only = self._instrument is None and self.model.kind == "tracker"
+        self.guess_at_windows_only = self._instrument is None and self.model.compiled_legs is not None
         #: the unknown vector's first value (zeros, or the instrument block at its registration)
         self.initial = np.zeros(self.layout.size)
 
@@ -249,8 +246,8 @@ class GraphBuilder:
             if wanted
             else (self.initial if state.samples == 0 and self._instrument is not None else None)
         )
-        if self._tracker_fk:
-            observed, (R, t) = None, kin.solve_fk(as_tracker(self.model).legs, z, state.last_pose, "tracker")
+        if self._fk_legs is not None:
+            observed, (R, t) = None, kin.solve_fk(self._fk_legs, z, state.last_pose, "tracker")
         else:
             theta = instrument_theta(
                 self.model, None if guess is None or self._instrument is None else guess[self._instrument]

@@ -28,6 +28,7 @@ from ..config import EstimatorConfig, LSConfig
 from ..drive import DriveModel, drive_model
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
+from ..instruments import instrument_kind
 from ..platform import N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout
@@ -139,7 +140,7 @@ class LeastSquares(BufferedFit):
         self.config = config.ls
         self._external: ExternalModel | None = None
         self.drive = drive_model(platform)
-        if platform.instrument.kind != "tracker":
+        if instrument_kind(platform).outside:
             from ..instruments.external import model_for
 
             self._external = model_for(platform)

@@ -28,6 +28,7 @@ from ..errors import CalibError, SampleRejected
 from ..instruments import (
     InstrumentModel,
     PoseObservation,
+    instrument_kind,
     instrument_model,
     instrument_theta,
     needs_registration,
@@ -70,15 +71,15 @@ def check_sample(platform: Platform, model: InstrumentModel, sample: Sample) -> 
     return strokes, model.check(sample.readings, sample.t_s)
 
 
-def estimator_drive(platform: Platform, noise: NoiseConfig, model: InstrumentModel) -> DriveModel:
-    """The drive an estimator identifies with ``model``: its unknown terms as ``noise`` asks, and
+def estimator_drive(platform: Platform, noise: NoiseConfig) -> DriveModel:
+    """The drive an estimator identifies: its unknown terms as ``noise`` asks, and
     the encoders' scale always with an instrument outside the robot (:func:`~stewart_calib.drive.drive_model`)."""
-    return drive_model(platform, noise, outside_instrument=model.kind != "tracker")
+    return drive_model(platform, noise, outside_instrument=instrument_kind(platform).outside)
 
 
 def unknown_layout(platform: Platform, noise: NoiseConfig, model: InstrumentModel) -> UnknownLayout:
     """δM, then the drive's unknown blocks (:func:`estimator_drive`), then ``model``'s unknowns."""
-    blocks = estimator_drive(platform, noise, model).blocks
+    blocks = estimator_drive(platform, noise).blocks
     return UnknownLayout(blocks if model.unknowns is None else (*blocks, model.unknowns))
 
 
@@ -375,7 +376,7 @@ def drive_only_model(
     """
     model = instrument_model(platform, config.noise)
     layout = unknown_layout(platform, config.noise, model)
-    drive = {block.key for block in estimator_drive(platform, config.noise, model).blocks}
+    drive = {block.key for block in estimator_drive(platform, config.noise).blocks}
     extra = [block.key for block in layout.blocks if not (drive_blocks and block.key in drive)]
     if extra:
         allowed = "the 42 drive parameters and the drive's own blocks" if drive_blocks else "the 42 drive parameters"

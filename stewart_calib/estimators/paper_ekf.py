@@ -36,7 +36,7 @@ from ..config import EstimatorConfig
 from ..drive import drive_model
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
-from ..instruments import instrument_model, instrument_theta
+from ..instruments import instrument_kind, instrument_model, instrument_theta
 from ..platform import N_PARAMS, Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout
@@ -206,7 +206,7 @@ def _pose_error_model(platform: Platform, config: EstimatorConfig):
     instrument (the registry refuses the others). Raises ``CalibError`` for unknowns the
     configuration asks to identify beyond δM."""
     model = instrument_model(platform, config.noise)
-    if model.kind == "tracker":
+    if not instrument_kind(platform).outside:
         return drive_only_model(PaperEKF.name, platform, config)
     extra = [block.key.replace("_", " ") for block in drive_model(platform, config.noise).blocks]
     if extra:

@@ -4,13 +4,15 @@
 directions to :mod:`.gauge`."""
 
 from .base import InstrumentModel, PoseObservation, Residual, instrument_theta
-from .registry import MODELS, instrument_model, needs_registration, registered
+from .registry import MODELS, InstrumentKind, instrument_kind, instrument_model, needs_registration, registered
 
 __all__ = [
     "MODELS",
+    "InstrumentKind",
     "InstrumentModel",
     "PoseObservation",
     "Residual",
+    "instrument_kind",
     "instrument_model",
     "instrument_theta",
     "needs_registration",

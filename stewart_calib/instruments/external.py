@@ -9,14 +9,14 @@ nominal values, the closed-form registration and the per-sample checks.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from types import ModuleType
 
 import numpy as np
 
 from ..errors import CalibError, SampleRejected
 from ..kinematics import pose_to_rt, rt_to_pose
-from ..platform import N_PARAMS, Platform
+from ..platform import N_PARAMS, Instrument, Platform
 from ..samples import Sample
 from ..unknowns import UnknownBlock
 from . import lie, points, pose, registration
@@ -96,6 +96,12 @@ class ExternalModel:
             gauge=("base", "platform"),
         )
 
+    def instrument_at(self, theta: np.ndarray) -> Instrument:
+        """The platform file's ``[instrument]`` with its frame and target(s) at ``θ`` (:meth:`theta`'s layout)."""
+        if self.kind == "pose":
+            return replace(self.platform.instrument, frame=theta[:6], target=theta[6:12])
+        return replace(self.platform.instrument, frame=theta[:6], targets=theta[6:].reshape(-1, 3))
+
     def register(self, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray):
         """Closed-form frame and target(s) mapping platform poses X onto the readings."""
         if self.kind == "pose":
@@ -152,10 +158,7 @@ def registered_platform(platform: Platform, strokes: np.ndarray, readings: np.nd
         CalibError: the log cannot be registered (fewer than 3 distinct poses, no rotation), or
             the nominal drive reaches none of its strokes.
     """
-    from dataclasses import replace
-
     from ..drive import drive_model
-    from ..errors import CalibError
 
     model = model_for(platform)
     drive = drive_model(platform)
@@ -166,12 +169,7 @@ def registered_platform(platform: Platform, strokes: np.ndarray, readings: np.nd
     if not np.any(usable):
         raise CalibError("cannot register the instrument: nominal forward kinematics converged for no sample")
     unknowns = model.register(fk.R[usable], fk.t[usable], np.asarray(readings)[usable])
-    theta = model.theta(unknowns)
-    if model.kind == "pose":
-        instrument = replace(platform.instrument, frame=theta[:6], target=theta[6:12])
-    else:
-        instrument = replace(platform.instrument, frame=theta[:6], targets=theta[6:].reshape(-1, 3))
-    return replace(platform, instrument=instrument)
+    return replace(platform, instrument=model.instrument_at(model.theta(unknowns)))
 
 
 def model_for(platform: Platform) -> ExternalModel:

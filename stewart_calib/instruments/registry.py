@@ -15,7 +15,7 @@ import numpy as np
 
 from ..config import NoiseConfig
 from ..errors import CalibError
-from ..platform import Platform
+from ..platform import LegGeometry, Platform
 from . import points, pose, tracker
 from .base import InstrumentModel
 from .external import model_for, registered_platform
@@ -39,8 +39,13 @@ def _points(platform: Platform, noise: NoiseConfig) -> InstrumentModel:
     return points.PointsModel(platform.instrument, model_for(platform).block())
 
 
+def _tracker_legs(platform: Platform) -> LegGeometry:
+    return platform.required_tracker("the tracker instrument")
+
+
 class InstrumentKind(NamedTuple):
-    """One instrument kind.
+    """One instrument kind: what the code above this package asks of an instrument without
+    naming it.
 
     Attributes:
         build: ``(platform, noise) -> model``.
@@ -48,15 +53,27 @@ class InstrumentKind(NamedTuple):
             nominal unknowns replaced by a closed-form registration on those samples, for a kind
             whose unknowns may start far from the truth (a frame 100 mm and any rotation away);
             None where the nominal values are good starting points.
+        reading_legs: ``platform -> legs`` where a reading is the extensions of a leg set of known
+            nominal geometry (its forward kinematics gives the pose of each sample, its inverse
+            kinematics the reading of a pose; ``[tracker] reading_range_mm`` bounds them); None for
+            an instrument outside the robot.
     """
 
     build: Callable[[Platform, NoiseConfig], InstrumentModel]
     register: Callable[[Platform, np.ndarray, np.ndarray], Platform] | None = None
+    reading_legs: Callable[[Platform], LegGeometry] | None = None
+
+    @property
+    def outside(self) -> bool:
+        """Whether the instrument stands outside the robot, in a frame of its own: the drive's
+        gauge directions are then unobserved (fixed by :mod:`.gauge`), the encoders' scale is an
+        unknown, and the fit starts from a registration of its frame and target(s)."""
+        return self.reading_legs is None
 
 
-#: kind → its builder and registration.
+#: kind → what it is made of (the one list of kinds; ``[instrument] kind``, spec §7).
 MODELS: dict[str, InstrumentKind] = {
-    "tracker": InstrumentKind(_tracker),
+    "tracker": InstrumentKind(_tracker, reading_legs=_tracker_legs),
     "pose": InstrumentKind(_pose, registered_platform),
     "points": InstrumentKind(_points, registered_platform),
 }
@@ -68,12 +85,12 @@ def instrument_model(platform: Platform, noise: NoiseConfig) -> InstrumentModel:
     Raises:
         CalibError: a kind without a model here.
     """
-    return _kind(platform).build(platform, noise)
+    return instrument_kind(platform).build(platform, noise)
 
 
 def needs_registration(platform: Platform) -> bool:
     """Whether ``platform``'s instrument is registered on the data before estimation starts."""
-    return _kind(platform).register is not None
+    return instrument_kind(platform).register is not None
 
 
 def registered(platform: Platform, strokes: np.ndarray, readings: np.ndarray) -> Platform:
@@ -83,11 +100,16 @@ def registered(platform: Platform, strokes: np.ndarray, readings: np.ndarray) ->
     Raises:
         CalibError: the samples cannot register the instrument (e.g. fewer than 3 distinct poses).
     """
-    register = _kind(platform).register
+    register = instrument_kind(platform).register
     return platform if register is None else register(platform, np.asarray(strokes, float), np.asarray(readings, float))
 
 
-def _kind(platform: Platform) -> InstrumentKind:
+def instrument_kind(platform: Platform) -> InstrumentKind:
+    """What ``platform``'s instrument is (see :class:`InstrumentKind`).
+
+    Raises:
+        CalibError: a kind without a model here.
+    """
     kind = platform.instrument.kind
     if kind not in MODELS:
         raise CalibError(f"instrument kind '{kind}' has no measurement model: expected one of {', '.join(MODELS)}")

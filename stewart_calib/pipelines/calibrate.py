@@ -47,6 +47,7 @@ from ..identifiability import (
     measured_samples,
     warning_line,
 )
+from ..instruments import instrument_kind, registered
 from ..online import Rejections
 from ..planning import noise_floor
 from ..platform import N_LEGS, Platform, load_platform
@@ -71,8 +72,9 @@ def _write_rerun(path: Path, platform: Platform, method: str, log: Log, run: Cal
     if trace is None:
         raise ValueError("--rerun draws the trace: run_calibration(..., diagnostics=True) keeps it")
     residual = innovation = None
-    if platform.instrument.kind == "tracker":  # the drive-leg residuals need the tracker's pose of each sample
-        poses = kin.forward_kinematics(platform.required_tracker("--rerun"), log.readings, strict=False)
+    reading_legs = instrument_kind(platform).reading_legs
+    if reading_legs is not None:  # the drive-leg residuals need the instrument's pose of each sample
+        poses = kin.forward_kinematics(reading_legs(platform), log.readings, strict=False)
         residual = kin.leg_residuals_per_sample(trace, poses.R, poses.t, log.strokes)
         if not batch:
             before = np.vstack([nominal, trace[:-1]])  # the model in force when each sample arrived
@@ -106,10 +108,9 @@ def outside_conditioning(platform: Platform, log: Log) -> dict:
     """The "conditioning" section of a pose or points instrument's result: what ``identifiability
     --log`` reports of these samples (the nominal drive, the instrument registered on them)."""
     from ..estimators.batch import instrument_identifiability
-    from ..instruments.external import registered_platform
 
-    registered = registered_platform(platform, log.strokes, log.readings)
-    return instrument_conditioning(instrument_identifiability(registered, log.strokes, log.readings, log.load_kg))
+    at_registration = registered(platform, log.strokes, log.readings)
+    return instrument_conditioning(instrument_identifiability(at_registration, log.strokes, log.readings, log.load_kg))
 
 
 def nominal_residuals(platform: Platform, block: Log) -> np.ndarray:
@@ -168,8 +169,9 @@ def run(args: argparse.Namespace) -> int:
     handover.check_report_dir(report_dir)
     platform = load_platform(args.platform)
     config = load_estimator_config(args.config, args.set)
-    tracker = platform.instrument.kind == "tracker"
-    streamed = tracker and estimators.method_spec(args.method).online and not (rerun_path or report_dir)
+    # a leg set's readings stream (no registration, residuals per leg); an outside instrument's log is read whole
+    outside = instrument_kind(platform).outside
+    streamed = not outside and estimators.method_spec(args.method).online and not (rerun_path or report_dir)
 
     # Everything is rendered (so validated) before anything is written; a streamed trace goes to
     # a temporary that becomes the file only when the stack closes without error.
@@ -217,13 +219,13 @@ def run(args: argparse.Namespace) -> int:
                 _summary("skipped bad log rows:", skipped.count, n_samples + skipped.count, f"row {line}: {reason}"),
                 file=sys.stderr,
             )
-        # the leg residual it checks is the tracker's; an outside instrument's fit reports its own residuals
+        # the leg residual it checks is the leg set's; an outside instrument's fit reports its own residuals
         check_plausible(
             platform,
             estimate.error,
             config.noise,
-            checked.strokes if tracker else np.zeros((0, 6)),
-            checked.readings if tracker else np.zeros((0, 6)),
+            np.zeros((0, 6)) if outside else checked.strokes,
+            np.zeros((0, 6)) if outside else checked.readings,
             args.method,
             noise_scale,
         )
@@ -240,7 +242,7 @@ def run(args: argparse.Namespace) -> int:
 
         extra: dict[str, object] = {"samples_rejected": rejections.summary()}
         warning = None
-        if tracker:  # the tracker's FK gives the poses to assess
+        if not outside:  # the leg set's FK gives the poses to assess
             poses, strokes, payload = measured_samples(platform, checked)
             drive = drive_model(platform, config.noise)  # its unknown blocks too, as the estimators identify them
             report = identifiability_report(platform, poses, config.noise, False, drive, strokes, payload)
@@ -251,7 +253,7 @@ def run(args: argparse.Namespace) -> int:
             extra["conditioning"] = outside_conditioning(platform, checked)
         # the tracker's methods carry a random walk and the paper's forms: their covariances are not the
         # static Cramér–Rao bound the noise floor is, so only an outside instrument's is compared with it
-        floor = None if tracker else noise_floor(platform, estimate.samples_used, config.noise)
+        floor = noise_floor(platform, estimate.samples_used, config.noise) if outside else None
         predicted, line, warns = estimate_summary(platform, estimate, floor, poses)
         extra["predicted_closed_loop"] = predicted
         if warning and warns:  # one warning line: the poses' conditioning, then what it leaves

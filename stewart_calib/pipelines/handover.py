@@ -18,6 +18,7 @@ from ..config import EstimatorConfig
 from ..drive import DriveModel, drive_model
 from ..errors import CalibError
 from ..estimate import Estimate
+from ..instruments import instrument_kind
 from ..platform import Platform, platform_to_toml
 
 REPORT_PAGE = "index.html"
@@ -62,10 +63,10 @@ def calibrated_platform(platform: Platform, estimate: Estimate, method: str, log
     platform = drive_model(platform).calibrated_by(estimate).onto(platform)
     changes: dict[str, Any] = {"description": note}
     theta = estimate.block_values("instrument")
-    if theta is not None and platform.instrument.kind in ("pose", "points"):
-        # θ = the frame's pose6, then the target's pose6 (pose) or the targets (points) [mm, rad]
-        part = {"target": theta[6:12]} if platform.instrument.kind == "pose" else {"targets": theta[6:].reshape(-1, 3)}
-        changes["instrument"] = dataclasses.replace(platform.instrument, frame=theta[:6], **part)
+    if theta is not None and instrument_kind(platform).outside:  # the file has no [tracker] unknowns to write
+        from ..instruments.external import model_for
+
+        changes["instrument"] = model_for(platform).instrument_at(theta)
     return dataclasses.replace(platform, **changes)
 
 

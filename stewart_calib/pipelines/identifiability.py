@@ -14,6 +14,7 @@ from ..config import load_estimator_config
 from ..drive import drive_model
 from ..errors import CalibError
 from ..identifiability import CONDITION_POOR, NO_POSE, InformationAccumulator, tracker_samples, warning_line
+from ..instruments import instrument_kind
 from ..io import read_pose_list
 from ..platform import Platform, load_platform
 from . import run_command
@@ -63,7 +64,7 @@ def add_parser(subparsers) -> None:
 def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
     noise = load_estimator_config(args.config, args.set).noise
-    if platform.instrument.kind != "tracker":
+    if instrument_kind(platform).outside:
         return _run_outside_instrument(args, platform)
     if args.log is not None:
         information = log_information(platform, args.log, args.pose_source, noise, args.skip_bad_rows)

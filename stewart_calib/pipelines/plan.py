@@ -16,6 +16,7 @@ import numpy as np
 from .. import io
 from ..accuracy import predicted_error
 from ..config import load_estimator_config
+from ..instruments import instrument_kind
 from ..planning import (
     CRITERIA,
     default_criterion,
@@ -109,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
     elapsed_s = time.perf_counter() - start
     io.write_pose_list(args.out, poses, args.dwell_s)
     extremes = ""
-    if platform.instrument.kind != "tracker":
+    if instrument_kind(platform).outside:
         extremes = f" and {len(extreme_poses(platform))} box extremes"
         narrowed = with_stroke_margin(platform, noise).stroke_range
         if platform.stroke_range is not None and narrowed is not None:

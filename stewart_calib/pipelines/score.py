@@ -63,10 +63,10 @@ def closed_loop_error(platform, drive, stroke_scale, true_drive, true_scale, pos
 def scores(platform, result: dict, truth) -> dict:
     """The scores of ``result`` against ``truth`` (see the module)."""
     from ..accuracy import evaluation_poses
-    from ..instruments import gauge
+    from ..instruments import gauge, instrument_kind
 
     true_params = truth.params[-1]
-    if platform.instrument.kind != "tracker":
+    if instrument_kind(platform).outside:  # its fit leaves the drive's gauge directions where the gauge puts them
         true_params, _, _ = gauge.to_gauge(platform.drive, true_params)
     estimate = np.asarray(result["estimate"], dtype=float)
     e = estimate - true_params

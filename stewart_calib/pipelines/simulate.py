@@ -24,6 +24,7 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..errors import CalibError, shown
+from ..instruments import instrument_kind
 from ..io import atomic_paths, log_text, output_directory, read_calibrated_drive, truth_text
 from ..platform import Platform, platform_to_toml
 from ..simulation.closed_loop import FrozenController, NominalController, simulate_blocks
@@ -68,7 +69,7 @@ class _OutOfRange:
 
     def __init__(self, platform):
         self._ranges = [("strokes", "drive.stroke_range_mm", platform.stroke_range)]
-        if platform.instrument.kind == "tracker":
+        if instrument_kind(platform).reading_legs is not None:  # a leg set's readings have a range
             self._ranges.append(("readings", "tracker.reading_range_mm", platform.reading_range))
         self.count, self._excess_mm, self._worst = 0, 0.0, ("", "", (0.0, 0.0), 0.0)
 
