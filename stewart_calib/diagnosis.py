@@ -36,7 +36,7 @@ import numpy as np
 from . import kinematics as kin
 from .drive import drive_model
 from .errors import CalibError
-from .instruments import lie
+from .instruments import instrument_kind
 from .platform import N_LEGS, Platform
 
 #: samples the diagnosis looks at, evenly spread over the log
@@ -71,21 +71,6 @@ def _named_unit(ratio: float, units: dict[float, str]) -> str | None:
     return None
 
 
-def position_spread_mm(points: np.ndarray) -> float:
-    """RMS distance of ``(N, 3)`` points from their centroid [mm] (NaN rows left out)."""
-    points = points[np.all(np.isfinite(points), axis=1)]
-    if not len(points):
-        return float("nan")
-    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
-
-
-def rotation_spread_rad(R: np.ndarray) -> float:
-    """RMS angle [rad] of ``(N, 3, 3)`` rotations from their chordal mean: the same for
-    ``F R_k G`` as for ``R_k`` (the mean moves with them), so it needs no frame."""
-    mean = lie.project_to_rotation(np.mean(R, axis=0))
-    return float(np.sqrt(np.mean(np.sum(lie.so3_log(np.einsum("ji,kjl->kil", mean, R)) ** 2, axis=-1))))
-
-
 def _columns(names: list[str]) -> str:
     return names[0] if len(names) == 1 else f"{names[0]}…{names[-1]}"
 
@@ -98,11 +83,12 @@ def required_samples(platform: Platform) -> tuple[int, int, str]:
     """``(samples needed, unknowns, what they are)`` for a calibration of ``platform``'s drive
     with its instrument: the unknowns the data must fix (gauge directions excluded) over the
     values one sample measures."""
-    instrument = platform.instrument
-    if instrument.kind == "tracker":
+    from .instruments.external import model_for
+
+    if not instrument_kind(platform).outside:
         return math.ceil(42 / N_LEGS), 42, "42 drive parameters"
-    own = 12 if instrument.kind == "pose" else 6 + 3 * instrument.n_targets
-    per_sample = 6 if instrument.kind == "pose" else 3 * instrument.n_targets
+    model = model_for(platform)
+    own, per_sample = model.nominal_unknowns().size, model.sigmas.size
     unknowns = 42 + N_LEGS + own - 12
     what = f"42 drive parameters, 6 stroke scales and {own} of the instrument, less 12 gauge directions"
     return math.ceil(unknowns / per_sample), unknowns, what
@@ -183,48 +169,10 @@ def _check_ratio(where: str, what: str, columns: str, measured: float, expected:
 
 
 def _check_reading_units(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray, where: str, columns):
-    kind = platform.instrument.kind
-    if kind == "tracker":
-        expected = kin.inverse_kinematics(platform.required_tracker("the diagnosis"), R, t)
-        measured_spread = float(np.sqrt(np.nanmean(np.nansum((readings - np.nanmean(readings, axis=0)) ** 2, axis=1))))
-        expected_spread = float(np.sqrt(np.mean(np.sum((expected - expected.mean(axis=0)) ** 2, axis=1))))
-        _check_ratio(where, "tracker readings", _columns(columns), measured_spread, expected_spread, LENGTH_UNITS, "mm")
-        return
-    instrument = platform.instrument
-    if kind == "pose":
-        _, t_G = kin.pose_to_rt(instrument.target)
-        t_T = t + np.einsum("kij,j->ki", R, t_G)
+    for spread in instrument_kind(platform).spreads(platform, R, t, readings):
+        units, unit_word = (ANGLE_UNITS, "degrees") if spread.angle else (LENGTH_UNITS, "mm")
         _check_ratio(
-            where,
-            "positions",
-            _columns(columns[:3]),
-            position_spread_mm(readings[:, :3]),
-            position_spread_mm(t_T),
-            LENGTH_UNITS,
-            "mm",
-        )
-        R_M = kin.rpy_to_rotation(readings[:, 3:])
-        _check_ratio(
-            where,
-            "orientations",
-            _columns(columns[3:]),
-            math.degrees(rotation_spread_rad(R_M)),
-            math.degrees(rotation_spread_rad(R)),
-            ANGLE_UNITS,
-            "degrees",
-        )
-        return
-    measured = readings.reshape(len(readings), -1, 3)
-    expected = kin.transform_points(R, t, instrument.targets)
-    for k in range(measured.shape[1]):
-        _check_ratio(
-            where,
-            f"target {k + 1} positions",
-            _columns(columns[3 * k : 3 * k + 3]),
-            position_spread_mm(measured[:, k]),
-            position_spread_mm(expected[:, k]),
-            LENGTH_UNITS,
-            "mm",
+            where, spread.what, _columns(columns[spread.channels]), spread.measured, spread.expected, units, unit_word
         )
 
 
@@ -283,8 +231,9 @@ def _pose_lengths(platform: Platform, strokes: np.ndarray, readings: np.ndarray)
     (NaN rows where no pose), and the whitened RMS of the registration that mapped them."""
     from .instruments.external import model_for
 
-    if platform.instrument.kind == "tracker":
-        fk = kin.forward_kinematics(platform.required_tracker("the diagnosis"), readings, strict=False)
+    reading_legs = instrument_kind(platform).reading_legs
+    if reading_legs is not None:
+        fk = kin.forward_kinematics(reading_legs(platform), readings, strict=False)
         lengths = kin.leg_lengths(platform.drive, fk.R, fk.t)
         lengths[~fk.converged] = np.nan
         return lengths, None
@@ -299,12 +248,10 @@ def _pose_lengths(platform: Platform, strokes: np.ndarray, readings: np.ndarray)
         return None, None
     e = model.module.residual(unknowns, readings[usable], fk.R[usable], fk.t[usable])[0] / model.sigmas
     whitened = float(np.sqrt(np.nanmean(e**2)))
-    if platform.instrument.kind != "pose":
-        return None, whitened  # points fix no orientation per sample: only the registration's fit tells
-    R_M, t_M = kin.pose_to_rt(readings[usable])
-    R_P, t_P = lie.compose(
-        *lie.compose(unknowns.R_frame, unknowns.t_frame, R_M, t_M), *lie.inverse(unknowns.R_target, unknowns.t_target)
-    )
+    poses = model.platform_poses(unknowns, readings[usable])
+    if poses is None:
+        return None, whitened  # the readings fix no pose each: only the registration's fit tells
+    R_P, t_P = poses
     lengths = np.full((len(strokes), N_LEGS), np.nan)
     lengths[usable] = kin.leg_lengths(platform.drive, R_P, t_P)
     return lengths, whitened
@@ -369,5 +316,5 @@ def diagnose_log(
     if ok.sum() >= 3:
         _check_reading_units(platform, fk.R[ok], fk.t[ok], readings[ok], where, columns)
     registers = _check_wiring(platform, strokes, readings, where, stroke_columns)
-    if not registers and platform.instrument.kind != "tracker" and ok.sum() >= 3:
+    if not registers and instrument_kind(platform).outside and ok.sum() >= 3:
         _check_directions(platform, fk.R[ok], fk.t[ok], where)

@@ -44,6 +44,7 @@ import numpy as np
 
 from ..platform import LegGeometry
 from ..unknowns import UnknownBlock
+from . import lie
 
 
 class Residual(NamedTuple):
@@ -110,6 +111,40 @@ class InstrumentModel(Protocol):
         """The pose ``z`` implies (``guess``: the previous one, a warm start), or None where ``z``
         does not fix a pose. Raises :class:`~stewart_calib.errors.SampleRejected` when it should
         but cannot (e.g. forward kinematics does not converge)."""
+
+
+class Spread(NamedTuple):
+    """How far some channels of a log's readings spread against what the nominal instrument would
+    read at the nominal drive's poses of its strokes: their ratio names a unit the columns were
+    written in (``diagnose_log``).
+
+    Attributes:
+        what: the channels in words ("positions", "target 2 positions").
+        channels: which columns of the readings.
+        measured, expected: the spreads [mm, or degrees where ``angle``].
+        angle: whether they are angles (else lengths).
+    """
+
+    what: str
+    channels: slice
+    measured: float
+    expected: float
+    angle: bool = False
+
+
+def position_spread_mm(points: np.ndarray) -> float:
+    """RMS distance of ``(N, 3)`` points from their centroid [mm] (NaN rows left out)."""
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if not len(points):
+        return float("nan")
+    return float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1))))
+
+
+def rotation_spread_rad(R: np.ndarray) -> float:
+    """RMS angle [rad] of ``(N, 3, 3)`` rotations from their chordal mean: the same for
+    ``F R_k G`` as for ``R_k`` (the mean moves with them), so it needs no frame."""
+    mean = lie.project_to_rotation(np.mean(R, axis=0))
+    return float(np.sqrt(np.mean(np.sum(lie.so3_log(np.einsum("ji,kjl->kil", mean, R)) ** 2, axis=-1))))
 
 
 def instrument_theta(model: InstrumentModel, block_error: np.ndarray | None) -> np.ndarray:

@@ -53,7 +53,7 @@ class ExternalModel:
 
     @property
     def unknown_names(self) -> tuple[str, ...]:
-        return pose.UNKNOWN_NAMES if self.kind == "pose" else points.unknown_names(self.platform.instrument.n_targets)
+        return self.module.names(self.platform.instrument)
 
     def nominal_unknowns(self):
         return self.module.nominal(self.platform.instrument)
@@ -94,6 +94,53 @@ class ExternalModel:
             np.where(angles, PRIOR_SIGMA_RAD, PRIOR_SIGMA_MM),
             np.where(angles, 180.0 / np.pi, 1.0),
             gauge=("base", "platform"),
+        )
+
+    def predicted_readings(self, unknowns, R_X: np.ndarray, t_X: np.ndarray) -> np.ndarray:
+        """``(N, m)`` the readings at platform poses X, code units (every target, seen or not)."""
+        predicted = self.module.predict(unknowns, R_X, t_X)
+        return rt_to_pose(*predicted) if self.kind == "pose" else predicted.reshape(len(R_X), -1)
+
+    def seen_channels(self, R_X: np.ndarray, t_X: np.ndarray) -> np.ndarray:
+        """``(N, m)`` True where the instrument reads the channel at platform pose X (a points
+        target out of its cone of visibility is not read: :func:`visible_targets`)."""
+        if self.kind == "pose":
+            return np.ones((len(R_X), self.sigmas.size), dtype=bool)
+        return np.repeat(visible_targets(self.platform, R_X, t_X), 3, axis=-1)
+
+    def prediction_errors(
+        self, unknowns, R_X: np.ndarray, t_X: np.ndarray, readings: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """The readings predicted at platform poses X and the log's errors against them (spec §7
+        validation columns): ``(predicted (N, m) code units, NaN where the log saw nothing;
+        position error (N,) [mm]; orientation error (N,) [deg], None for points, which give none)``."""
+        if self.kind == "pose":
+            R_P, t_P = self.module.predict(unknowns, R_X, t_X)
+            R_m, t_m = pose_to_rt(readings)
+            position, orientation = self.module.errors(R_m, t_m, R_P, t_P)
+            return rt_to_pose(R_P, t_P), position, orientation
+        predicted = self.module.predict(unknowns, R_X, t_X)
+        seen = np.isfinite(readings.reshape(predicted.shape))
+        return np.where(seen, predicted, np.nan).reshape(len(R_X), -1), self.module.errors(readings, predicted), None
+
+    def position_differences(self, readings: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` measured minus predicted positions [mm]: one row a sample for a pose (in the
+        instrument's axes), one a target seen for points."""
+        if self.kind == "pose":
+            return readings[:, :3] - predicted[:, :3]
+        difference = (readings - predicted).reshape(-1, 3)
+        return difference[np.all(np.isfinite(difference), axis=1)]
+
+    def platform_poses(self, unknowns, readings: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(R (N, 3, 3), t (N, 3))`` the platform poses ``X = F M G⁻¹`` the readings put the
+        platform at, frame and target at ``unknowns``; None for points, whose one reading fixes no
+        orientation (only a fit over the targets seen would)."""
+        if self.kind != "pose":
+            return None
+        R_M, t_M = pose_to_rt(readings)
+        return lie.compose(
+            *lie.compose(unknowns.R_frame, unknowns.t_frame, R_M, t_M),
+            *lie.inverse(unknowns.R_target, unknowns.t_target),
         )
 
     def instrument_at(self, theta: np.ndarray) -> Instrument:
@@ -217,8 +264,7 @@ def information_rows(
     drive = drive_model(platform).identifying()
     R, t = pose_to_rt(np.asarray(poses, dtype=float).reshape(-1, 6))
     unknowns = model.nominal_unknowns()
-    predicted = model.module.predict(unknowns, R, t)
-    readings = rt_to_pose(*predicted) if model.kind == "pose" else predicted.reshape(len(R), -1)
+    readings = model.predicted_readings(unknowns, R, t)
     _, H_X, H_u = model.module.residual(unknowns, readings, R, t, jacobians=True)
     dxi = drive.pose_jacobian(None, R, t, drive.inputs_near(drive.inverse_kinematics(R, t), None, (R, t)))
     basis = gauge.free_basis(platform.drive)

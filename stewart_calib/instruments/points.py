@@ -22,9 +22,9 @@ import numpy as np
 from .. import kinematics as kin
 from ..errors import SampleRejected
 from ..kinematics import skew
-from ..platform import Instrument
+from ..platform import Instrument, Platform
 from . import lie
-from .base import PoseObservation, Residual
+from .base import PoseObservation, Residual, Spread, position_spread_mm
 from .gauge import kabsch
 
 FRAME_NAMES: tuple[str, ...] = tuple(
@@ -42,6 +42,11 @@ LOOSE_ROTATION_SIGMA_RAD = 0.01
 def unknown_names(n_targets: int) -> tuple[str, ...]:
     """Frame then targets in file units: ``frame_x_mm … frame_yaw_deg, p1x_mm, p1y_mm, p1z_mm, …``."""
     return FRAME_NAMES + tuple(f"p{k}{axis}_mm" for k in range(1, n_targets + 1) for axis in "xyz")
+
+
+def names(instrument: Instrument) -> tuple[str, ...]:
+    """The names of the unknowns in file units (:func:`unknown_names`)."""
+    return unknown_names(instrument.n_targets)
 
 
 def columns(n_targets: int) -> tuple[str, ...]:
@@ -67,6 +72,10 @@ class PointsUnknowns:
             *kin.retract(self.R_frame, self.t_frame, delta[:6]), self.targets + delta[6:].reshape(-1, 3)
         )
 
+    def in_frames(self, R_J: np.ndarray, t_J: np.ndarray, R_D: np.ndarray, t_D: np.ndarray) -> PointsUnknowns:
+        """The frame and targets moved with a rigid motion ``(R_J, t_J)`` of {J} and ``(R_D, t_D)`` of {D}."""
+        return PointsUnknowns(R_J @ self.R_frame, R_J @ self.t_frame + t_J, self.targets @ R_D.T + t_D)
+
     def file_values(self) -> np.ndarray:
         frame = kin.rt_to_pose(self.R_frame, self.t_frame)
         return np.concatenate([frame[:3], np.degrees(frame[3:]), self.targets.reshape(-1)])
@@ -87,6 +96,43 @@ def predict(u: PointsUnknowns, R_X: np.ndarray, t_X: np.ndarray) -> np.ndarray:
     """``(..., K, 3)`` target positions in {I} at platform pose X [mm]."""
     in_base = kin.transform_points(R_X, t_X, u.targets)
     return np.einsum("ji,...kj->...ki", u.R_frame, in_base - u.t_frame)
+
+
+def placed_on(platform: Platform, position_sigma_mm: float, orientation_sigma_rad: float, n_targets: int) -> Instrument:
+    """A nominal points instrument for a simulated study: frame at {J}'s origin, ``n_targets`` (≤ 3)
+    targets halfway out towards platform joints 1, 3, 5 and 25 mm above them (a position
+    instrument has no orientation σ)."""
+    targets = 0.5 * platform.drive.platform_joints[0::2][:n_targets] + np.array([0.0, 0.0, 25.0])
+    return Instrument("points", targets=targets, position_sigma_mm=position_sigma_mm)
+
+
+def true_unknowns(
+    instrument: Instrument, frame: np.ndarray, target_offset: np.ndarray, target_spread_mm: float, rng
+) -> PointsUnknowns:
+    """A simulation's true frame (pose6 ``frame``) and targets: the nominal ones with i.i.d. normal
+    errors of σ ``target_spread_mm`` a coordinate; ``target_offset`` is the pose instrument's."""
+    targets = instrument.targets + rng.normal(0.0, target_spread_mm, instrument.targets.shape)
+    return PointsUnknowns(*kin.pose_to_rt(frame), targets)
+
+
+def noise_draws(instrument: Instrument, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``(n, 4K)``: standard normal draws of each target coordinate's noise, then a uniform draw
+    per target that loses it from view (:func:`simulated_readings`)."""
+    K = instrument.n_targets
+    draws = rng.standard_normal((n, 4 * K))
+    draws[:, 3 * K :] = rng.random((n, K))
+    return draws
+
+
+def simulated_readings(
+    instrument: Instrument, u: PointsUnknowns, R: np.ndarray, t: np.ndarray, draws: np.ndarray, dropout: float
+) -> np.ndarray:
+    """Readings ``(..., 3K)`` at true platform poses: ``m + σ_pos n``, a target NaN where its
+    uniform draw falls below ``dropout`` (its probability of being lost from view)."""
+    K = instrument.n_targets
+    m = predict(u, R, t) + instrument.position_sigma_mm * draws[..., : 3 * K].reshape(draws.shape[:-1] + (K, 3))
+    m[draws[..., 3 * K :] < dropout] = np.nan
+    return m.reshape(draws.shape[:-1] + (3 * K,))
 
 
 def sigmas(instrument: Instrument) -> np.ndarray:
@@ -128,6 +174,22 @@ def errors(measured: np.ndarray, pred: np.ndarray) -> np.ndarray:
     total = np.where(seen, distance**2, 0.0).sum(axis=-1)
     count = seen.sum(axis=-1)
     return np.where(count > 0, np.sqrt(total / np.maximum(count, 1)), np.nan)
+
+
+def reading_spreads(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray) -> list[Spread]:
+    """Each target's measured positions' spread against its nominal positions at the poses
+    (:class:`~.base.Spread`; independent of the instrument's frame)."""
+    measured = readings.reshape(len(readings), -1, 3)
+    expected = kin.transform_points(R, t, platform.instrument.targets)
+    return [
+        Spread(
+            f"target {k + 1} positions",
+            slice(3 * k, 3 * k + 3),
+            position_spread_mm(measured[:, k]),
+            position_spread_mm(expected[:, k]),
+        )
+        for k in range(measured.shape[1])
+    ]
 
 
 class PointsModel:

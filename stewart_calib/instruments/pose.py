@@ -18,6 +18,7 @@ the body tangent ``δ = Ad_{G⁻¹} ξ − Ad_{P⁻¹} φ + γ``, and ``∂e/∂
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,9 +26,9 @@ import numpy as np
 from .. import _kernels
 from .. import kinematics as kin
 from ..errors import SampleRejected
-from ..platform import Instrument
+from ..platform import Instrument, Platform
 from . import lie
-from .base import PoseObservation, Residual
+from .base import PoseObservation, Residual, Spread, position_spread_mm, rotation_spread_rad
 
 #: names of the 12 unknowns in file units (spec §7 result ``"instrument"`` block)
 UNKNOWN_NAMES: tuple[str, ...] = tuple(
@@ -60,6 +61,12 @@ class PoseUnknowns:
             *kin.retract(self.R_frame, self.t_frame, delta[:6]), *kin.retract(self.R_target, self.t_target, delta[6:12])
         )
 
+    def in_frames(self, R_J: np.ndarray, t_J: np.ndarray, R_D: np.ndarray, t_D: np.ndarray) -> PoseUnknowns:
+        """The frame and target moved with a rigid motion ``(R_J, t_J)`` of {J} and ``(R_D, t_D)`` of {D}."""
+        return PoseUnknowns(
+            R_J @ self.R_frame, R_J @ self.t_frame + t_J, R_D @ self.R_target, R_D @ self.t_target + t_D
+        )
+
     def file_values(self) -> np.ndarray:
         """``(12,)`` frame then target as ``[x, y, z mm, roll, pitch, yaw deg]``."""
         pose = np.concatenate(
@@ -80,6 +87,40 @@ class PoseUnknowns:
 def nominal(instrument: Instrument) -> PoseUnknowns:
     """The platform file's frame and target."""
     return PoseUnknowns.from_pose6(instrument.frame, instrument.target)
+
+
+def names(instrument: Instrument) -> tuple[str, ...]:
+    """The names of the unknowns in file units (:data:`UNKNOWN_NAMES`)."""
+    return UNKNOWN_NAMES
+
+
+def placed_on(platform: Platform, position_sigma_mm: float, orientation_sigma_rad: float, n_targets: int) -> Instrument:
+    """A nominal pose instrument for a simulated study: frame at {J}'s origin, target at {D}'s
+    (``n_targets`` is the points instrument's)."""
+    return Instrument("pose", position_sigma_mm=position_sigma_mm, orientation_sigma_rad=orientation_sigma_rad)
+
+
+def true_unknowns(
+    instrument: Instrument, frame: np.ndarray, target_offset: np.ndarray, target_spread_mm: float, rng
+) -> PoseUnknowns:
+    """A simulation's true frame (pose6 ``frame``) and target (the nominal one plus the pose6
+    ``target_offset``); ``target_spread_mm`` and ``rng`` are the points instrument's."""
+    return PoseUnknowns.from_pose6(frame, instrument.target + target_offset)
+
+
+def noise_draws(instrument: Instrument, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``(n, 6)`` standard normal draws of :func:`simulated_readings`' noise, rotation first."""
+    return rng.standard_normal((n, 6))
+
+
+def simulated_readings(
+    instrument: Instrument, u: PoseUnknowns, R: np.ndarray, t: np.ndarray, draws: np.ndarray, dropout: float
+) -> np.ndarray:
+    """Readings ``(..., 6)`` at true platform poses: ``(R_P Exp(σ_rot n_ω), t_P + σ_pos n_v)``
+    (a pose is never lost from view: ``dropout`` is the points instrument's)."""
+    R_P, t_P = predict(u, R, t)
+    R_m = R_P @ kin.so3_exp(instrument.orientation_sigma_rad * draws[..., :3])
+    return kin.rt_to_pose(R_m, t_P + instrument.position_sigma_mm * draws[..., 3:])
 
 
 def predict(u: PoseUnknowns, R_X: np.ndarray, t_X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -174,6 +215,24 @@ class PoseModel:
             self.instrument.position_sigma_mm**2,
         )
         return PoseObservation(R_X, t_X, covariance, J_instrument)
+
+
+def reading_spreads(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray) -> list[Spread]:
+    """The measured positions' and orientations' spreads against the target's at the poses
+    (:class:`~.base.Spread`; neither depends on the instrument's frame)."""
+    _, t_G = kin.pose_to_rt(platform.instrument.target)
+    t_T = t + np.einsum("kij,j->ki", R, t_G)
+    R_M = kin.rpy_to_rotation(readings[:, 3:])
+    return [
+        Spread("positions", slice(0, 3), position_spread_mm(readings[:, :3]), position_spread_mm(t_T)),
+        Spread(
+            "orientations",
+            slice(3, 6),
+            math.degrees(rotation_spread_rad(R_M)),
+            math.degrees(rotation_spread_rad(R)),
+            angle=True,
+        ),
+    ]
 
 
 def theta_tangent_jacobian(theta: np.ndarray) -> np.ndarray:

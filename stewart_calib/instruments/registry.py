@@ -9,15 +9,16 @@ returns and never name a kind.
 from __future__ import annotations
 
 from collections.abc import Callable
+from types import ModuleType
 from typing import NamedTuple
 
 import numpy as np
 
 from ..config import NoiseConfig
 from ..errors import CalibError
-from ..platform import LegGeometry, Platform
+from ..platform import Instrument, LegGeometry, Platform
 from . import points, pose, tracker
-from .base import InstrumentModel
+from .base import InstrumentModel, Spread
 from .external import model_for, registered_platform
 
 
@@ -57,11 +58,32 @@ class InstrumentKind(NamedTuple):
             nominal geometry (its forward kinematics gives the pose of each sample, its inverse
             kinematics the reading of a pose; ``[tracker] reading_range_mm`` bounds them); None for
             an instrument outside the robot.
+        columns: ``[instrument] -> names``: the log columns of a reading, in the order of ``z`` (spec §3, §7).
+        spreads: ``(platform, R, t, readings) -> [Spread]``: how the log's readings spread against
+            the nominal instrument's at the nominal poses ``(R, t)`` of its strokes (:class:`~.base.Spread`).
+        module: the kind's module for an instrument outside the robot (its unknowns, ``predict``,
+            ``residual``, ``sigmas``, ``names``, and a simulation's ``true_unknowns``,
+            ``noise_draws`` and ``simulated_readings``), else None.
+        placed_on: ``(platform, position σ [mm], orientation σ [rad], number of targets) ->
+            [instrument]``: a nominal instrument of the kind for a simulated study of ``platform``
+            (the sweep's cells): the tracker as the platform file has it; an outside instrument's
+            frame at {J}'s origin, a pose target at {D}'s origin, point targets halfway out
+            towards platform joints 1, 3, 5 and 25 mm above.
+        unseen_channels: whether a reading may leave channels empty (a points target not seen: all
+            three of its coordinates), read as NaN rather than refused.
+        measures_orientation: whether a reading tells the platform's orientation, so that
+            ``validate`` reports an orientation error (points, each a position, do not).
     """
 
     build: Callable[[Platform, NoiseConfig], InstrumentModel]
+    columns: Callable[[Instrument], tuple[str, ...]]
+    spreads: Callable[[Platform, np.ndarray, np.ndarray, np.ndarray], list[Spread]]
     register: Callable[[Platform, np.ndarray, np.ndarray], Platform] | None = None
     reading_legs: Callable[[Platform], LegGeometry] | None = None
+    module: ModuleType | None = None
+    placed_on: Callable[[Platform, float, float, int], Instrument] = lambda platform, *_: platform.instrument
+    unseen_channels: bool = False
+    measures_orientation: bool = True
 
     @property
     def outside(self) -> bool:
@@ -73,9 +95,22 @@ class InstrumentKind(NamedTuple):
 
 #: kind → what it is made of (the one list of kinds; ``[instrument] kind``, spec §7).
 MODELS: dict[str, InstrumentKind] = {
-    "tracker": InstrumentKind(_tracker, reading_legs=_tracker_legs),
-    "pose": InstrumentKind(_pose, registered_platform),
-    "points": InstrumentKind(_points, registered_platform),
+    "tracker": InstrumentKind(
+        _tracker, lambda _: tracker.TRACKER_COLUMNS, tracker.reading_spreads, reading_legs=_tracker_legs
+    ),
+    "pose": InstrumentKind(
+        _pose, lambda _: pose.COLUMNS, pose.reading_spreads, registered_platform, module=pose, placed_on=pose.placed_on
+    ),
+    "points": InstrumentKind(
+        _points,
+        lambda instrument: points.columns(instrument.n_targets),
+        points.reading_spreads,
+        registered_platform,
+        module=points,
+        placed_on=points.placed_on,
+        unseen_channels=True,
+        measures_orientation=False,
+    ),
 }
 
 
@@ -110,7 +145,16 @@ def instrument_kind(platform: Platform) -> InstrumentKind:
     Raises:
         CalibError: a kind without a model here.
     """
-    kind = platform.instrument.kind
+    return kind_of(platform.instrument)
+
+
+def kind_of(instrument: Instrument) -> InstrumentKind:
+    """What ``instrument`` (a platform file's ``[instrument]``) is (see :class:`InstrumentKind`).
+
+    Raises:
+        CalibError: a kind without a model here.
+    """
+    kind = instrument.kind
     if kind not in MODELS:
         raise CalibError(f"instrument kind '{kind}' has no measurement model: expected one of {', '.join(MODELS)}")
     return MODELS[kind]

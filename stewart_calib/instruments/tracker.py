@@ -25,9 +25,9 @@ import numpy as np
 from .. import _kernels
 from .. import kinematics as kin
 from ..errors import SampleRejected
-from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
+from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, Platform
 from ..unknowns import UnknownBlock
-from .base import InstrumentModel, PoseObservation, Residual
+from .base import InstrumentModel, PoseObservation, Residual, Spread
 
 #: the log columns of the six readings s_i [mm] (spec §3).
 TRACKER_COLUMNS = tuple(f"s{i}_mm" for i in range(1, N_LEGS + 1))
@@ -138,6 +138,14 @@ class TrackerModel:
             rulers = self.residual(R, t, theta, z, np.arange(N_LEGS))
             J_theta = -np.linalg.solve(rulers.J_pose, rulers.J_instrument)
         return PoseObservation(R, t, covariance, J_theta)
+
+
+def reading_spreads(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray) -> list[Spread]:
+    """The readings' spread against the tracker's inverse kinematics of the poses (:class:`~.base.Spread`)."""
+    expected = kin.inverse_kinematics(platform.required_tracker("the diagnosis"), R, t)
+    measured_spread = float(np.sqrt(np.nanmean(np.nansum((readings - np.nanmean(readings, axis=0)) ** 2, axis=1))))
+    expected_spread = float(np.sqrt(np.mean(np.sum((expected - expected.mean(axis=0)) ** 2, axis=1))))
+    return [Spread("tracker readings", slice(None), measured_spread, expected_spread)]
 
 
 def as_tracker(model: InstrumentModel) -> TrackerModel:

@@ -14,12 +14,13 @@ import os
 from collections.abc import Iterable, Iterator
 from itertools import chain
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import CalibError, shown
 from ..inputs import MAX_LINE_BYTES, MAX_TIME_S, open_input
-from ..platform import PARAMETER_NAMES, Platform
+from ..platform import PARAMETER_NAMES, Instrument, Platform
 from ..samples import Log, Sample, Truth
 from .atomic import atomic_write_text
 from .tables import (
@@ -40,6 +41,9 @@ from .tables import (
     write_csv_blocks,
 )
 
+if TYPE_CHECKING:
+    from ..instruments.registry import InstrumentKind
+
 STROKE_COLUMNS = tuple(f"q{i}_mm" for i in range(1, 7))
 READING_COLUMNS = tuple(f"s{i}_mm" for i in range(1, 7))
 LOG_REQUIRED = ("t_s", *STROKE_COLUMNS, *READING_COLUMNS)
@@ -54,18 +58,18 @@ def reading_columns(platform: Platform | None) -> tuple[str, ...]:
     """The log columns of the instrument that measured ``platform``'s logs (spec §7): the tracker's
     ``s1_mm … s6_mm`` (also when ``platform`` is None), a pose's ``mx_mm … myaw_deg`` or the
     targets' ``p1x_mm … pKz_mm``."""
-    from ..instruments import points, pose  # instruments import platform, not io
-
-    kind = _kind(platform)
-    if kind == "pose":
-        return pose.COLUMNS
-    if kind == "points" and platform is not None:
-        return points.columns(platform.instrument.n_targets)
-    return READING_COLUMNS
+    return _kind(platform).columns(_instrument(platform))
 
 
-def _kind(platform: Platform | None) -> str:
-    return "tracker" if platform is None else platform.instrument.kind
+def _instrument(platform: Platform | None) -> Instrument:
+    """``platform``'s ``[instrument]``; without a platform, the default one (spec §7)."""
+    return Instrument() if platform is None else platform.instrument
+
+
+def _kind(platform: Platform | None) -> InstrumentKind:
+    from ..instruments.registry import kind_of  # instruments import platform, not io
+
+    return kind_of(_instrument(platform))
 
 
 def readings_to_file(readings: np.ndarray, columns: tuple[str, ...]) -> list:
@@ -93,7 +97,7 @@ def blank_reading_columns(columns: tuple[str, ...]) -> tuple[int, ...]:
     return tuple(j for j, name in enumerate(columns) if name.startswith("p"))
 
 
-def _readings_from_file(values: np.ndarray, columns: tuple[str, ...]) -> np.ndarray:
+def readings_in_code_units(values: np.ndarray, columns: tuple[str, ...]) -> np.ndarray:
     """File readings ``(N, m)`` → code units (the measured angles in radians)."""
     values = np.array(values, dtype=float)
     for j, name in enumerate(columns):
@@ -165,9 +169,9 @@ def _log_columns(path: Path, header: list[str], platform: Platform | None = None
     """``(has_pose, numeric columns, text columns)`` of a log header (spec §3, §7)."""
     required = ("t_s", *STROKE_COLUMNS, *reading_columns(platform))
     missing = [name for name in required if name not in header]
-    if missing and _kind(platform) != "tracker":
+    if missing and _kind(platform).outside:
         raise CalibError(
-            f"{path}: row 1: missing column(s) {', '.join(missing)} of the {_kind(platform)} instrument "
+            f"{path}: row 1: missing column(s) {', '.join(missing)} of the {_instrument(platform).kind} instrument "
             "that the platform's [instrument] names (spec §7)"
         )
     require_columns(path, header, required)
@@ -179,7 +183,7 @@ def _log_columns(path: Path, header: list[str], platform: Platform | None = None
 def _blank_columns(platform: Platform | None) -> tuple[str, ...]:
     """Columns whose empty fields read as NaN: ``load_kg`` (payload may be unknown) and the
     target coordinates of a points instrument (a target not seen)."""
-    return ("load_kg", *(reading_columns(platform) if _kind(platform) == "points" else ()))
+    return ("load_kg", *(reading_columns(platform) if _kind(platform).unseen_channels else ()))
 
 
 def _flag_partial_targets(table: Table, platform: Platform) -> None:
@@ -206,17 +210,17 @@ def _flag_partial_targets(table: Table, platform: Platform) -> None:
 def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) -> None:
     """Non-finite required values and readings or strokes outside the platform's ranges."""
     readings = reading_columns(platform)
-    finite_required = ["t_s", *STROKE_COLUMNS, *(readings if _kind(platform) != "points" else ())]
+    finite_required = ["t_s", *STROKE_COLUMNS, *(() if _kind(platform).unseen_channels else readings)]
     flag_non_finite(table, [*finite_required, *(POSE_COLUMNS if has_pose else ())])
     t_s = table.numbers["t_s"]
     table.flag(
         np.abs(t_s) > MAX_TIME_S, lambda k: f"column 't_s': expected a time within ±1e12 s, got {float(t_s[k])!r}"
     )
-    if _kind(platform) == "points" and platform is not None:
+    if _kind(platform).unseen_channels and platform is not None:
         _flag_partial_targets(table, platform)
     if platform is not None:
         _flag_out_of_range(table, STROKE_COLUMNS, platform.stroke_range, "stroke", "drive.stroke_range_mm")
-        if _kind(platform) == "tracker":
+        if _kind(platform).reading_legs is not None:
             _flag_out_of_range(table, READING_COLUMNS, platform.reading_range, "reading", "tracker.reading_range_mm")
         if platform.elastic is not None and "load_kg" in table.numbers:
             load = table.numbers["load_kg"]
@@ -392,7 +396,7 @@ def _log_of(table: Table, has_pose: bool, textual: list[str], platform: Platform
     return Log(
         t_s=table.numbers["t_s"][keep],
         strokes=col(STROKE_COLUMNS),
-        readings=_readings_from_file(col(reading_columns(platform)), reading_columns(platform)),
+        readings=readings_in_code_units(col(reading_columns(platform)), reading_columns(platform)),
         desired_poses=poses,
         stages=[s for s, k in zip(table.texts["stage"], keep, strict=True) if k] if textual else None,
         load_kg=table.numbers["load_kg"][keep] if "load_kg" in table.numbers else None,
@@ -439,9 +443,10 @@ class LogRowParser:
         self._stage = index.get("stage")
         self._reading_angles = [j for j, name in enumerate(readings) if name in MEASURED_ANGLE_COLUMNS]
         self._stroke_range = platform.stroke_range if platform is not None else None
-        self._reading_range = platform.reading_range if _kind(platform) == "tracker" and platform is not None else None
+        legs = _kind(platform).reading_legs is not None
+        self._reading_range = platform.reading_range if legs and platform is not None else None
         # a points instrument's empty coordinates (a target not seen) take the careful path
-        self._plain_rows = _kind(platform) != "points"
+        self._plain_rows = not _kind(platform).unseen_channels
         # _plain's fields in one pick: t_s, the strokes, the readings, the pose (if any)
         self._pick_indices = (index["t_s"], *stroke_indices, *reading_indices, *pose_indices)
         self._pick = operator.itemgetter(*self._pick_indices)
@@ -579,7 +584,7 @@ class LogRowParser:
         return Sample(
             t_s,
             np.array([number(name) for name in STROKE_COLUMNS]),
-            _readings_from_file(
+            readings_in_code_units(
                 np.array([[number(name) for name in reading_columns(self._platform)]]), reading_columns(self._platform)
             )[0],
             pose,

@@ -116,7 +116,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
     from .. import kinematics as kin
     from ..drive import drive_model
     from ..estimators.batch import instrument_identifiability
-    from ..instruments.external import model_for, registered_platform, visible_targets
+    from ..instruments.external import model_for, registered_platform
     from ..planning import design_covariance
 
     drive = drive_model(platform).identifying()
@@ -134,12 +134,9 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
         R, t = kin.pose_to_rt(poses)
         payload = None  # a pose list has none: the platform's own weight
         strokes = drive.inverse_kinematics(R, t)
-        predicted = model.module.predict(model.nominal_unknowns(), R, t)
-        readings = kin.rt_to_pose(*predicted) if model.kind == "pose" else predicted.reshape(len(R), -1)
-        seen = None
-        if model.kind == "points":  # a target out of its cone of visibility is not read
-            seen = visible_targets(platform, R, t)
-            readings = np.where(np.repeat(seen, 3, axis=-1), readings, np.nan)
+        readings = model.predicted_readings(model.nominal_unknowns(), R, t)
+        readings = np.where(model.seen_channels(R, t), readings, np.nan)  # e.g. a target out of its cone
+        seen = None  # design_covariance finds the same targets in view
     report = instrument_identifiability(platform, strokes, readings, payload)
     equilibrated = report["condition_number_equilibrated"]
     print(

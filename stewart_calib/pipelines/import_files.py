@@ -308,7 +308,7 @@ def run(args: argparse.Namespace) -> int:
             if platform is not None and not checked and use.any():
                 from ..diagnosis import diagnose_log
 
-                readings = _code_units(block.values[use], kind)
+                readings = io.readings_in_code_units(block.values[use], tuple(columns))
                 diagnose_log(platform, strokes_mm[use], readings, str(out), count=False)
                 checked.append(True)
             counts["written"] += int(use.sum())
@@ -319,7 +319,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{counts['unjoined']} without strokes within {max_gap_s:g} s); nothing written"
             )
 
-    _write(out, rows, columns, kind)
+    _write(out, rows, columns)
     print(
         f"stewart-calib import: wrote {out}: {counts['written']} of {counts['read']} rows ({counts['lost']} where the "
         f"instrument lost the body, {counts['unjoined']} without strokes within {max_gap_s:g} s dropped); "
@@ -329,26 +329,19 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write(out: Path, rows, columns: list[str], kind: str) -> int:
+def _write(out: Path, rows, columns: list[str]) -> int:
     """Write the rows (blocks of float columns) as a log; the header is known once the first
     block is, so the first block is looked at before the file is opened."""
     blocks = iter(rows())
     first = next(blocks)
     header = ["t_s", *io.STROKE_COLUMNS, *columns]
-    blank = tuple(range(7, len(header))) if kind == "points" else ()
+    blank = tuple(1 + len(io.STROKE_COLUMNS) + j for j in io.blank_reading_columns(tuple(columns)))
 
     def all_blocks():
         yield first
         yield from blocks
 
     return io.write_csv_blocks(out, header, all_blocks(), blank)
-
-
-def _code_units(values: np.ndarray, kind: str) -> np.ndarray:
-    """Readings in code units (rad for the angles) for the diagnosis."""
-    if kind != "pose":
-        return values
-    return np.column_stack([values[:, :3], np.radians(values[:, 3:])])
 
 
 def _same_file_rows(make_blocks, source, strokes, is_csv, notes):

@@ -31,6 +31,7 @@ from .. import kinematics as kin
 from ..diagnosis import diagnose_log
 from ..drive import drive_model
 from ..errors import CalibError
+from ..instruments import instrument_kind
 from ..platform import Platform, load_platform
 from ..progress import log_progress_bar
 from ..samples import Log
@@ -115,18 +116,18 @@ def validate(
     """
     _check_nominal(platform, result, result_source)
     R_X, t_X = _model_poses(platform, result, log, result_source, first_sample)
-    if platform.instrument.kind == "tracker":
+    reading_legs = instrument_kind(platform).reading_legs
+    if reading_legs is not None:
         if register:
             raise CalibError(
                 "--register-instrument: the in-situ tracker is part of the robot; "
                 "it has no frame of its own to fit again"
             )
-        predicted = kin.inverse_kinematics(platform.required_tracker("validate"), R_X, t_X)
+        legs = reading_legs(platform)
+        predicted = kin.inverse_kinematics(legs, R_X, t_X)
         if not errors:
             return predicted, None, None
-        seen = kin.forward_kinematics(
-            platform.required_tracker("validate"), log.readings, guess=(R_X, t_X), strict=False
-        )
+        seen = kin.forward_kinematics(legs, log.readings, guess=(R_X, t_X), strict=False)
         if not np.all(seen.converged):
             k = int(np.flatnonzero(~seen.converged)[0])
             raise CalibError(
@@ -143,14 +144,7 @@ def validate(
     unknowns = model.nominal_unknowns() if values is None else model.unknowns_from_file(values)
     if register:
         unknowns = model.refit_frame(unknowns, R_X, t_X, log.readings)
-    if model.kind == "pose":
-        R_P, t_P = model.module.predict(unknowns, R_X, t_X)
-        R_m, t_m = kin.pose_to_rt(log.readings)
-        position, orientation = model.module.errors(R_m, t_m, R_P, t_P)
-        return kin.rt_to_pose(R_P, t_P), position, orientation
-    predicted = model.module.predict(unknowns, R_X, t_X)
-    seen = np.isfinite(log.readings.reshape(predicted.shape))
-    return np.where(seen, predicted, np.nan).reshape(len(R_X), -1), model.module.errors(log.readings, predicted), None
+    return model.prediction_errors(unknowns, R_X, t_X, log.readings)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -160,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
     result = io.read_result(args.result)
     columns = io.reading_columns(platform)
     header = ["t_s", *columns, *(f"pred_{name}" for name in columns), "position_error_mm"]
-    if platform.instrument.kind != "points":
+    if instrument_kind(platform).measures_orientation:
         header.append("orientation_error_deg")
     unseen = io.blank_reading_columns(columns)  # a target not seen: empty fields, read and predicted, and its error
     blank = (*(1 + j for j in unseen), *(1 + len(columns) + j for j in unseen), 1 + 2 * len(columns))
@@ -193,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
         f"stewart-calib validate: {_summary(position, orientation, len(position))}"
         + (" (instrument re-registered)" if args.register_instrument else "")
     )
-    if platform.instrument.kind != "tracker":
+    if instrument_kind(platform).outside:
         print(f"stewart-calib validate: {_unseen_error_line(platform, result, position)}")
     sample = log if (report_dir or args.register_instrument) else first[0]
     pose_line = pose_error_summary(platform, result, sample, args.register_instrument, len(position), args.result)
@@ -244,7 +238,7 @@ def _moved_frame_hint(platform: Platform, result: dict, block: Log, position: np
     """One line when an outside instrument's errors on the log's first block are far beyond its
     noise and a frame fitted again to that block explains them: the instrument moved since the
     calibration (cameras bumped, a tracker set up anew), not the robot."""
-    if platform.instrument.kind == "tracker" or not len(block):
+    if not instrument_kind(platform).outside or not len(block):
         return None
     rms = float(np.sqrt(np.nanmean(position**2)))
     if rms < MOVED_SIGMAS * platform.instrument.position_sigma_mm:
@@ -267,26 +261,25 @@ def pose_errors(platform: Platform, result: dict, log, register: bool, source: s
     between the measured and predicted orientation [deg] (NaN for points, which give none); for
     the tracker in {J} (its forward kinematics of the readings against the model's of the
     strokes), for a pose in the instrument's axes, for points one row per target seen."""
-    if platform.instrument.kind == "tracker":
+    reading_legs = instrument_kind(platform).reading_legs
+    if reading_legs is not None:
         R_X, t_X = _model_poses(platform, result, log, source)
-        tracker = platform.required_tracker("the pose error of a tracker log")
-        seen = kin.forward_kinematics(tracker, log.readings, guess=(R_X, t_X), strict=False)
+        seen = kin.forward_kinematics(reading_legs(platform), log.readings, guess=(R_X, t_X), strict=False)
         keep = seen.converged
         _, orientation = kin.pose_error(seen.R[keep], seen.t[keep], R_X[keep], t_X[keep])
         return np.column_stack([seen.t[keep] - t_X[keep], orientation])
+    from ..instruments.external import model_for
+
     predicted, _, orientation = validate(platform, result, log, register, source)
-    if platform.instrument.kind == "pose":
-        return np.column_stack([log.readings[:, :3] - predicted[:, :3], orientation])
-    difference = (log.readings - predicted).reshape(-1, 3)
-    difference = difference[np.all(np.isfinite(difference), axis=1)]
-    return np.column_stack([difference, np.full(len(difference), np.nan)])
+    difference = model_for(platform).position_differences(log.readings, predicted)
+    return np.column_stack([difference, np.full(len(difference), np.nan) if orientation is None else orientation])
 
 
 def pose_error_summary(platform: Platform, result: dict, sample, register: bool, n_rows: int, source) -> str | None:
     """:func:`pose_error_line` of the nominal and the calibrated model on ``sample`` (the log, or
     its first rows); None where a model cannot predict them (e.g. too few poses to fit a frame)."""
     try:
-        outside = platform.instrument.kind != "tracker"
+        outside = instrument_kind(platform).outside
         before = pose_errors(platform, nominal_model(platform), sample, outside, "the nominal platform")
         after = pose_errors(platform, result, sample, register, str(source))
     except CalibError:
@@ -391,7 +384,8 @@ def measurement_residuals(
         return wrapped * np.where(angle, 180.0 / np.pi, 1.0)
 
     nominal = nominal_model(platform)
-    if predicted is None and platform.instrument.kind == "tracker":
+    outside = instrument_kind(platform).outside
+    if predicted is None and not outside:
         residuals = tracker_residuals(platform, log, [(nominal, "the nominal platform"), (result, "the result")])
         if residuals is not None:  # else an FK failed: validate() below words it
             before, after = residuals
@@ -400,7 +394,6 @@ def measurement_residuals(
         predicted = validate(platform, result, log, False, "the result", errors=False)[0]
     # An outside instrument's frame is rarely known to centimetres (spec §7): "before" registers it
     # on the log, so that it measures the nominal robot, not where the cameras happen to stand.
-    outside = platform.instrument.kind != "tracker"
     before = residual_file_units(validate(platform, nominal, log, outside, "the nominal platform", errors=False)[0])
     before_model = "the nominal platform" + (", its instrument frame fitted to this log" if outside else "")
     return Residuals(

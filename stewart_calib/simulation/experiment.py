@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CalibError
+from ..instruments.registry import instrument_kind, kind_of
 from ..platform import Platform, load_platform, parse_instrument
 from ..resources import CONFIGS, read_toml
 from .instrument import InstrumentTruth
@@ -304,14 +305,15 @@ def _instrument(doc: dict, platform: Platform, source: str) -> tuple[Platform, I
     from dataclasses import replace
 
     if "instrument" not in doc:
-        return platform, (None if platform.instrument.kind == "tracker" else InstrumentTruth(np.zeros(6), np.zeros(6)))
+        outside = instrument_kind(platform).outside
+        return platform, (InstrumentTruth(np.zeros(6), np.zeros(6)) if outside else None)
     raw = doc["instrument"]
     t = _Table(raw, "instrument", source)
     nominal = {key: value for key, value in raw.items() if key not in _TRUTH_KEYS}
     instrument = parse_instrument(nominal, source)
-    if instrument.kind == "tracker":
+    if not kind_of(instrument).outside:  # part of the robot: no truth of its own to offset
         if set(raw) - {"kind"}:
-            raise t.refuse(sorted(set(raw) - {"kind"})[0], 'no other key with kind = "tracker"')
+            raise t.refuse(sorted(set(raw) - {"kind"})[0], f'no other key with kind = "{instrument.kind}"')
         return platform, None
     t.used.update(nominal)
     truth = InstrumentTruth(

@@ -16,11 +16,12 @@ reading is ``m + n``, ``n ~ N(0, σ_pos² I)``, lost (all three NaN) with ``drop
 from __future__ import annotations
 
 from dataclasses import dataclass
+from types import ModuleType
 
 import numpy as np
 
-from .. import kinematics as kin
 from ..instruments import gauge, points, pose
+from ..instruments.registry import kind_of
 from ..platform import Instrument, LegGeometry
 
 
@@ -53,38 +54,32 @@ class SimulatedInstrument:
     def build(cls, instrument: Instrument, truth: InstrumentTruth, rng: np.random.Generator) -> SimulatedInstrument:
         offset = lambda values: np.r_[values[:3], np.radians(values[3:])]  # noqa: E731  (file → code units)
         frame = instrument.frame + offset(truth.frame_offset)
-        unknowns: pose.PoseUnknowns | points.PointsUnknowns
-        if instrument.kind == "pose":
-            unknowns = pose.PoseUnknowns.from_pose6(frame, instrument.target + offset(truth.target_offset))
-        else:
-            targets = instrument.targets + rng.normal(0.0, truth.target_spread_mm, instrument.targets.shape)
-            unknowns = points.PointsUnknowns(*kin.pose_to_rt(frame), targets)
+        unknowns = _module(instrument).true_unknowns(
+            instrument, frame, offset(truth.target_offset), truth.target_spread_mm, rng
+        )
         return cls(instrument, unknowns, truth.dropout_probability)
 
     def names(self) -> tuple[str, ...]:
-        return pose.UNKNOWN_NAMES if self.instrument.kind == "pose" else points.unknown_names(self.instrument.n_targets)
+        return _module(self.instrument).names(self.instrument)
 
     def draw(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """Standard normal noise and uniform dropout draws for ``n`` readings, ``(n, m + K)``,
         drawn up front so that results do not depend on how the samples are batched."""
-        width = 6 if self.instrument.kind == "pose" else 4 * self.instrument.n_targets
-        draws = rng.standard_normal((n, width))
-        if self.instrument.kind == "points":
-            draws[:, 3 * self.instrument.n_targets :] = rng.random((n, self.instrument.n_targets))
-        return draws
+        return _module(self.instrument).noise_draws(self.instrument, n, rng)
 
     def read(self, R: np.ndarray, t: np.ndarray, draws: np.ndarray) -> np.ndarray:
         """Readings ``(..., m)`` at true platform poses with :meth:`draw`'s draws, code units
         (NaN: a target not seen)."""
-        sigma_pos = self.instrument.position_sigma_mm
-        if isinstance(self.unknowns, pose.PoseUnknowns):  # kind "pose"
-            R_P, t_P = pose.predict(self.unknowns, R, t)
-            R_m = R_P @ kin.so3_exp(self.instrument.orientation_sigma_rad * draws[..., :3])
-            return kin.rt_to_pose(R_m, t_P + sigma_pos * draws[..., 3:])
-        K = self.instrument.n_targets
-        m = points.predict(self.unknowns, R, t) + sigma_pos * draws[..., : 3 * K].reshape(draws.shape[:-1] + (K, 3))
-        m[draws[..., 3 * K :] < self.dropout_probability] = np.nan
-        return m.reshape(draws.shape[:-1] + (3 * K,))
+        module = _module(self.instrument)
+        return module.simulated_readings(self.instrument, self.unknowns, R, t, draws, self.dropout_probability)
+
+
+def _module(instrument: Instrument) -> ModuleType:
+    """The module of ``instrument``'s kind (:data:`~stewart_calib.instruments.registry.MODELS`)."""
+    module = kind_of(instrument).module
+    if module is None:
+        raise ValueError(f"the {instrument.kind} instrument is part of the robot: it has no simulated truth of its own")
+    return module
 
 
 def truth_in_gauge(nominal: LegGeometry, true_params: np.ndarray, unknowns) -> tuple[np.ndarray, object]:
@@ -92,10 +87,4 @@ def truth_in_gauge(nominal: LegGeometry, true_params: np.ndarray, unknowns) -> t
     ``(δM (42), the instrument's unknowns moved alike)`` for true absolute parameters ``(42,)``
     and true instrument unknowns (``PoseUnknowns`` or ``PointsUnknowns``)."""
     params, (R_J, t_J), (R_D, t_D) = gauge.to_gauge(nominal, true_params)
-    u = unknowns
-    moved: pose.PoseUnknowns | points.PointsUnknowns
-    if isinstance(u, pose.PoseUnknowns):
-        moved = pose.PoseUnknowns(R_J @ u.R_frame, R_J @ u.t_frame + t_J, R_D @ u.R_target, R_D @ u.t_target + t_D)
-    else:
-        moved = points.PointsUnknowns(R_J @ u.R_frame, R_J @ u.t_frame + t_J, u.targets @ R_D.T + t_D)
-    return params - nominal.as_vector(), moved
+    return params - nominal.as_vector(), unknowns.in_frames(R_J, t_J, R_D, t_D)

@@ -41,6 +41,7 @@ from .. import __version__
 from ..config import EstimatorConfig, config_from_dict
 from ..errors import CalibError
 from ..estimators import METHODS
+from ..instruments import MODELS
 from ..platform import LegGeometry, Platform, load_platform, platform_to_toml
 from ..resources import CONFIGS, read_toml
 
@@ -137,8 +138,8 @@ SETTINGS = (
 )
 SETTINGS_BY_NAME = {s.name: s for s in SETTINGS}
 
-#: Instruments the sweep simulates (spec §7).
-INSTRUMENTS = ("tracker", "pose", "points")
+#: Instruments the sweep simulates (spec §7): every kind.
+INSTRUMENTS = tuple(MODELS)
 
 #: Keys of a [families.NAME] table besides the four ring dimensions.
 FAMILY_DIMENSIONS = ("base_radius_mm", "platform_radius_mm", "base_half_angle_deg", "platform_half_angle_deg")

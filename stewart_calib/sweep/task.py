@@ -45,8 +45,7 @@ from ..estimators import BatchEstimator, make_estimator
 from ..estimators.base import fit_all
 from ..estimators.batch import BatchProblem, cramer_rao
 from ..identifiability import identifiability_report, residual_covariance, stddev_from_factor, whitened_leg_jacobian
-from ..instruments import gauge
-from ..instruments.external import registered_platform
+from ..instruments import MODELS, gauge, instrument_kind, registered
 from ..platform import (
     N_LEGS,
     N_PARAMS,
@@ -165,8 +164,9 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
     strokes = (_leg_lengths(true_params, R, t) - vector_to_params(true_params)[..., 6]) / (1.0 + true_scale)
     strokes += stroke_noise
     instrument = None
-    if nominal.instrument.kind == "tracker":
-        readings = kin.inverse_kinematics(nominal.required_tracker("the sweep"), R, t) + reading_noise
+    reading_legs = instrument_kind(nominal).reading_legs
+    if reading_legs is not None:
+        readings = kin.inverse_kinematics(reading_legs(nominal), R, t) + reading_noise
         readings[glitched, legs[glitched]] += signs[glitched] * settings["glitch_size_mm"]
     else:
         instrument = SimulatedInstrument.build(true_noise(nominal, settings), _instrument_truth(settings, rng), rng)
@@ -239,18 +239,9 @@ def with_instrument(platform: Platform, settings: dict) -> Platform:
     """``platform`` measured by the cell's instrument: the tracker as the platform file has it,
     or a nominal outside instrument of the cell's σ — its frame at {J}'s origin, a pose target at
     {D}'s origin, point targets halfway out towards platform joints 1, 3, 5 and 25 mm above."""
-    kind = settings["instrument"]
-    if kind == "tracker":
-        return platform
-    if kind == "pose":
-        instrument = Instrument(
-            "pose",
-            position_sigma_mm=settings["instrument_sigma_mm"],
-            orientation_sigma_rad=math.radians(settings["instrument_sigma_deg"]),
-        )
-    else:
-        targets = 0.5 * platform.drive.platform_joints[0::2][: settings["targets"]] + np.array([0.0, 0.0, 25.0])
-        instrument = Instrument("points", targets=targets, position_sigma_mm=settings["instrument_sigma_mm"])
+    instrument = MODELS[settings["instrument"]].placed_on(
+        platform, settings["instrument_sigma_mm"], math.radians(settings["instrument_sigma_deg"]), settings["targets"]
+    )
     return replace(platform, instrument=instrument)
 
 
@@ -475,8 +466,7 @@ def run_method(
     """
     samples = list(data.log)
     platform = data.platform
-    if data.true_instrument is not None:
-        platform = registered_platform(platform, data.log.strokes, data.log.readings)
+    platform = registered(platform, data.log.strokes, data.log.readings)
     estimator = make_estimator(method, platform, cell.estimator_config)
     at_checkpoint = {}
     start, cpu_start = time.perf_counter(), time.process_time()
