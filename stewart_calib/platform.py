@@ -134,7 +134,33 @@ class Workspace:
     rotation_limit: float = math.radians(20.0)
 
 
-INSTRUMENT_KINDS = ("tracker", "pose", "points")
+@dataclass(frozen=True)
+class InstrumentSection:
+    """What one kind of instrument reads of the platform file (spec §7): the file's reader and
+    writer learn a kind here alone; its model is :data:`stewart_calib.instruments.registry.MODELS`'
+    entry of the same name.
+
+    Attributes:
+        keys: the keys of ``[instrument]`` it reads besides ``kind``, in the order they are
+            written; a kind with none is the default, written as no ``[instrument]`` table.
+        required: those of ``keys`` without a default.
+        reads_tracker: whether it reads the ``[tracker]`` table (its legs are the instrument).
+    """
+
+    keys: tuple[str, ...]
+    required: tuple[str, ...] = ()
+    reads_tracker: bool = False
+
+
+#: ``[instrument] kind`` → what it reads of the file; the first is the default (no ``[instrument]``).
+INSTRUMENT_SECTIONS = {
+    "tracker": InstrumentSection((), reads_tracker=True),
+    "pose": InstrumentSection(("frame", "target", "position_sigma_mm", "orientation_sigma_deg")),
+    "points": InstrumentSection(
+        ("frame", "targets_mm", "position_sigma_mm", "visibility_cone_deg", "target_axes"), required=("targets_mm",)
+    ),
+}
+INSTRUMENT_KINDS = tuple(INSTRUMENT_SECTIONS)
 
 #: ``[instrument]`` defaults (spec §7): σ of one measured coordinate [mm] and of one measured
 #: angle [deg], the spec's example values (a good motion-capture system or laser tracker).
@@ -159,7 +185,7 @@ class Instrument:
         target_axes: ``(K, 3)`` each target's axis in {D} (points; default {D}'s z), unnormalised.
     """
 
-    kind: str = "tracker"
+    kind: str = INSTRUMENT_KINDS[0]
     frame: np.ndarray = field(default_factory=lambda: np.zeros(6))
     target: np.ndarray = field(default_factory=lambda: np.zeros(6))
     targets: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
@@ -426,7 +452,7 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
     drive, drive_table = _legs(doc, "drive", source)
     instrument = _instrument(doc, source)
     tracker, reading_range, geometry_sigma = None, None, 0.0
-    if instrument.kind == "tracker" or "tracker" in doc:
+    if INSTRUMENT_SECTIONS[instrument.kind].reads_tracker or "tracker" in doc:
         tracker, tracker_table = _legs(doc, "tracker", source)
         reading_range = _range(tracker_table, "reading_range_mm", source, "tracker")
         geometry_sigma = _non_negative(tracker_table, "geometry_sigma_mm", 0.0, source, "tracker")
@@ -559,14 +585,6 @@ def _elastic(doc: dict, drive: LegGeometry, source: str) -> Elastic | None:
     )
 
 
-#: keys of ``[instrument]`` each kind reads (spec §7); any other key is refused by name.
-_INSTRUMENT_KEYS = {
-    "tracker": {"kind"},
-    "pose": {"kind", "frame", "target", "position_sigma_mm", "orientation_sigma_deg"},
-    "points": {"kind", "frame", "targets_mm", "position_sigma_mm", "visibility_cone_deg", "target_axes"},
-}
-
-
 def _pose6(table: dict, key: str, source: str) -> np.ndarray:
     """A ``[x, y, z mm, roll, pitch, yaw deg]`` key (default all zero) as pose6 ``[mm, rad]``."""
     if key not in table:
@@ -591,20 +609,20 @@ def parse_instrument(table, source: str) -> Instrument:
     """
     if not isinstance(table, dict):
         raise _refuse(source, "instrument", "an [instrument] table")
-    kind = table.get("kind", "tracker")
+    kind = table.get("kind", INSTRUMENT_KINDS[0])
     if kind not in INSTRUMENT_KINDS:
         raise _refuse(source, "instrument.kind", f"one of {', '.join(map(repr, INSTRUMENT_KINDS))}, got {kind!r}")
-    unused = sorted(set(table) - _INSTRUMENT_KEYS[kind])
+    section = INSTRUMENT_SECTIONS[kind]
+    unused = sorted(set(table) - {"kind", *section.keys})
     if unused:
-        known = set().union(*_INSTRUMENT_KEYS.values())
+        known = {key for other in INSTRUMENT_SECTIONS.values() for key in other.keys}
         why = f"a key that kind = {kind!r} uses" if unused[0] in known else "a known key (spec §7)"
         raise _refuse(source, f"instrument.{unused[0]}", why)
-    if kind == "tracker":
-        return Instrument()
+    # a key the kind does not read was refused above: every other key takes its default when absent
     targets = np.zeros((0, 3))
-    if kind == "points":
-        if "targets_mm" not in table:
-            raise _refuse(source, "instrument.targets_mm", "1..K rows of [x, y, z] in mm (missing)")
+    if "targets_mm" in section.required and "targets_mm" not in table:
+        raise _refuse(source, "instrument.targets_mm", "1..K rows of [x, y, z] in mm (missing)")
+    if "targets_mm" in table:
         try:
             targets = np.array(table["targets_mm"], dtype=float)
         except (TypeError, ValueError, OverflowError):
@@ -615,7 +633,7 @@ def parse_instrument(table, source: str) -> Instrument:
     return Instrument(
         kind=kind,
         frame=_pose6(table, "frame", source),
-        target=_pose6(table, "target", source) if kind == "pose" else np.zeros(6),
+        target=_pose6(table, "target", source),
         targets=targets,
         position_sigma_mm=_positive(table, "position_sigma_mm", DEFAULT_POSITION_SIGMA_MM, source, "instrument"),
         orientation_sigma_rad=math.radians(
@@ -727,22 +745,30 @@ def _pose6_toml(pose6: np.ndarray) -> str:
     return _toml_list(np.concatenate([pose6[:3], np.degrees(pose6[3:])]))
 
 
+#: ``[instrument]`` key → its value in TOML, or None where it is left out (the cone's keys without a cone).
+_INSTRUMENT_TOML = {
+    "frame": lambda instrument: _pose6_toml(instrument.frame),
+    "target": lambda instrument: _pose6_toml(instrument.target),
+    "targets_mm": lambda instrument: _toml_rows(instrument.targets),
+    "position_sigma_mm": lambda instrument: repr(float(instrument.position_sigma_mm)),
+    "orientation_sigma_deg": lambda instrument: repr(math.degrees(instrument.orientation_sigma_rad)),
+    "visibility_cone_deg": lambda instrument: (
+        None if instrument.visibility_cone_deg is None else repr(float(instrument.visibility_cone_deg))
+    ),
+    "target_axes": lambda instrument: (
+        None if instrument.visibility_cone_deg is None else _toml_rows(instrument.target_axes)
+    ),
+}
+
+
 def _instrument_toml(instrument: Instrument) -> list[str]:
-    """The ``[instrument]`` lines (none for the tracker, the default)."""
-    if instrument.kind == "tracker":
+    """The ``[instrument]`` lines: the keys its kind reads (none for the default, the tracker)."""
+    keys = INSTRUMENT_SECTIONS[instrument.kind].keys
+    if not keys:
         return []
-    lines = ["", "[instrument]", f"kind = {_toml_str(instrument.kind)}", f"frame = {_pose6_toml(instrument.frame)}"]
-    if instrument.kind == "pose":
-        lines.append(f"target = {_pose6_toml(instrument.target)}")
-    else:
-        lines.append(f"targets_mm = {_toml_rows(instrument.targets)}")
-    lines.append(f"position_sigma_mm = {float(instrument.position_sigma_mm)!r}")
-    if instrument.visibility_cone_deg is not None:
-        lines.append(f"visibility_cone_deg = {float(instrument.visibility_cone_deg)!r}")
-        lines.append(f"target_axes = {_toml_rows(instrument.target_axes)}")
-    if instrument.kind == "pose":
-        lines.append(f"orientation_sigma_deg = {math.degrees(instrument.orientation_sigma_rad)!r}")
-    return lines
+    values = {key: _INSTRUMENT_TOML[key](instrument) for key in keys}
+    lines = ["", "[instrument]", f"kind = {_toml_str(instrument.kind)}"]
+    return lines + [f"{key} = {value}" for key, value in values.items() if value is not None]
 
 
 def _elastic_toml(elastic: Elastic | None) -> list[str]:

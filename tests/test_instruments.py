@@ -11,9 +11,9 @@ from stewart_calib import kinematics as kin
 from stewart_calib.config import NoiseConfig
 from stewart_calib.drive import stroke_term
 from stewart_calib.errors import SampleRejected
-from stewart_calib.instruments import InstrumentModel, instrument_model, instrument_theta
+from stewart_calib.instruments import MODELS, InstrumentModel, instrument_model, instrument_theta
 from stewart_calib.instruments.tracker import TrackerModel
-from stewart_calib.platform import N_PARAMS
+from stewart_calib.platform import INSTRUMENT_KINDS, N_PARAMS
 from stewart_calib.unknowns import UnknownLayout
 from tests.numdiff import EPS_MM, numerical_jacobian, numerical_pose_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_poses
@@ -152,3 +152,8 @@ def test_estimate_of_a_generalised_state_adds_its_blocks_to_the_result(platform)
     assert "stroke_scale" not in result_dict(
         Estimate.of_state(x[:N_PARAMS], P[:N_PARAMS, :N_PARAMS], UnknownLayout(), "ekf"), platform
     )
+
+
+def test_the_platform_file_reads_the_kinds_the_registry_models():
+    # the platform file's sections and the models are one list of kinds, in one order (the first the default)
+    assert tuple(MODELS) == INSTRUMENT_KINDS

@@ -30,7 +30,6 @@ import numpy as np
 
 from ..instruments.base import InstrumentModel
 from ..instruments.pose import PoseModel
-from ..instruments.tracker import TrackerModel
 from ._kernels import known_leg_rows, pose_reading_rows
 
 _KNOWN = np.zeros(0)  # θ of a model without unknowns
@@ -85,11 +84,13 @@ def _pose_reading_error(
 
 
 def known_legs(model: InstrumentModel, channels: np.ndarray) -> np.ndarray | None:
-    """``(k, 7)`` rows ``[z_i | h_i | ls_i]`` of the rulers ``channels`` of a tracker of known
-    geometry, what its factors share across samples; None for any other model."""
-    if not isinstance(model, TrackerModel) or model.unknowns is not None:
+    """``(k, 7)`` rows ``[z_i | h_i | ls_i]`` of the legs ``channels`` of a leg set of known
+    geometry (:attr:`~stewart_calib.instruments.base.InstrumentModel.compiled_legs`: the tracker's
+    rulers), what its factors share across samples; None for any other model."""
+    legs = model.compiled_legs
+    if legs is None:
         return None
-    return np.ascontiguousarray(model.legs.params[np.asarray(channels, dtype=np.int64)], dtype=float)
+    return np.ascontiguousarray(legs.params[np.asarray(channels, dtype=np.int64)], dtype=float)
 
 
 def factor(

@@ -25,7 +25,7 @@ from .external import model_for, registered_platform
 def _tracker(platform: Platform, noise: NoiseConfig) -> InstrumentModel:
     geometry_sigma_mm = platform.tracker_geometry_sigma_mm or noise.tracker_geometry_sigma_mm
     return tracker.TrackerModel(
-        platform.required_tracker("the tracker instrument"),
+        _tracker_legs(platform),
         noise.reading_sigma_mm,
         platform.reading_range,
         geometry_sigma_mm,

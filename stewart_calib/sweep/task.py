@@ -220,7 +220,7 @@ def scored_blocks(settings: dict) -> tuple[str, ...]:
     instrument, or ``stroke_scale_error`` > 0), the compliance where the robot is elastic and the
     estimators model it."""
     blocks: tuple[str, ...] = ()
-    if settings["instrument"] != "tracker" or settings["stroke_scale_error"] > 0:
+    if MODELS[settings["instrument"]].outside or settings["stroke_scale_error"] > 0:
         blocks += (STROKE_SCALE,)
     if settings["platform_mass_kg"] > 0 and settings["elastic_model"]:
         blocks += (COMPLIANCE,)
