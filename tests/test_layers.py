@@ -110,3 +110,33 @@ def test_the_checker_sees_arrows():
     graph = _graph()
     assert "stewart_calib.platform" in graph["stewart_calib.estimators.ekf"]
     assert "stewart_calib.kinematics" in graph["stewart_calib.estimators.graph"]
+
+
+def test_pipelines_import_nothing_private_from_each_other():
+    # A command's private helper is its own: one another command needs belongs below pipelines/
+    # (or is made public in its module), so that no command is the hidden library of another.
+    modules = _modules()
+    borrowed = []
+    for name, path in modules.items():
+        if not name.startswith("stewart_calib.pipelines."):
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        siblings = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.level == 1:
+                source = f"stewart_calib.pipelines.{node.module}" if node.module else "stewart_calib.pipelines"
+                for alias in node.names:
+                    target = f"{source}.{alias.name}"
+                    if target in modules:
+                        siblings.add(alias.asname or alias.name)  # a sibling module, its attributes read below
+                    elif source != "stewart_calib.pipelines" and alias.name.startswith("_"):
+                        borrowed.append(f"{name} imports {source}.{alias.name}")
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.Attribute)
+                and isinstance(node.value, ast.Name)
+                and node.value.id in siblings
+                and node.attr.startswith("_")
+            ):
+                borrowed.append(f"{name} uses {node.value.id}.{node.attr}")
+    assert borrowed == []
