@@ -83,6 +83,12 @@ class LSConfig:
     estimate_noise: bool = True
     stroke_scale: str = "auto"
 
+    @property
+    def drive_blocks(self) -> str:
+        """Whether the fit identifies the drive model's unknown blocks (``auto``, ``on``, ``off``):
+        the ``stroke_scale`` switch, named when the stroke scale was the drive's only block."""
+        return self.stroke_scale
+
 
 @dataclass(frozen=True)
 class PaperEKFConfig:

@@ -85,6 +85,9 @@ SETTLED_MM = 1e-7
 #: the compliance term's key: the result's ``"compliance"`` block (spec §10)
 COMPLIANCE = "compliance"
 
+#: the units a report gives a term's values (and σ) in, by the term's key
+TERM_UNITS = {STROKE_SCALE: "-", COMPLIANCE: "mm/kN"}
+
 
 def compliance_term(elastic: Elastic) -> LegTerm:
     """``−c_i f_i / 1000``: the leg forces ``f`` [N] (inputs 6…11, compression > 0) with each leg's

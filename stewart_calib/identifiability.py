@@ -27,7 +27,7 @@ import numpy as np
 from . import _kernels
 from . import kinematics as kin
 from .config import NoiseConfig
-from .drive import DriveModel
+from .drive import TERM_UNITS, DriveModel
 from .errors import CalibError
 from .platform import N_PARAMS, PARAMETER_NAMES, Platform
 
@@ -334,15 +334,11 @@ class IdentifiabilityReport:
             cols = range(7 * leg, 7 * leg + 7)
             lines.append("  " + "  ".join(f"{PARAMETER_NAMES[k]:>4} {_fmt_sd(sd[k])}" for k in cols))
         for key, (names, stddev) in self.block_stddev.items():
-            unit = BLOCK_UNITS.get(key, "")
+            unit = f" [{TERM_UNITS[key]}]" if key in TERM_UNITS else ""
             lines.append(
                 f"  {key}{unit}: " + "  ".join(f"{n} {_fmt_sd(v)}" for n, v in zip(names, stddev, strict=True))
             )
         return "\n".join(lines)
-
-
-#: the units the text report names a drive block's σ in
-BLOCK_UNITS = {"compliance": " [mm/kN]", "stroke_scale": " [-]"}
 
 
 def _fmt_sd(value: float) -> str:

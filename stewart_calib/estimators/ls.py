@@ -220,7 +220,7 @@ class LeastSquares(BufferedFit):
             problem,
             self.config.robust_k,
             self.config.estimate_noise,
-            self.config.stroke_scale,
+            self.config.drive_blocks,
             self.config.tolerance_mm,
         )
         self.rejected.extend(sol.rejected)

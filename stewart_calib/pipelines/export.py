@@ -60,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
         raise CalibError(f"--home-stroke-mm: expected a finite stroke [mm], got {args.home_stroke_mm!r}")
     platform = load_platform(args.platform)
     model = calibrated_model(platform, args.result)
-    drive, stroke_scale = model.legs, model.extension_per_stroke() - 1.0  # a leg moves 1 + k mm a logged mm
+    drive, k = model.legs, model.extension_per_stroke() - 1.0  # a leg moves 1 + k mm a logged mm
     source = f"{args.platform}" + (f" + {args.result}" if args.result else "")
     if args.format == "linuxcnc":
         ini = out.with_suffix(".ini")
@@ -68,11 +68,11 @@ def run(args: argparse.Namespace) -> int:
             raise CalibError(f"--out {out}: expected a name whose .ini sibling is another file (e.g. kinematics.hal)")
         files = {
             out: controllers.linuxcnc_hal_text(drive, args.units, source),
-            ini: controllers.linuxcnc_ini_text(drive, stroke_scale, args.units, args.home_stroke_mm),
+            ini: controllers.linuxcnc_ini_text(drive, k, args.units, args.home_stroke_mm),
         }
     else:
         extra = {"source": source, "platform": platform.name}
-        files = {out: controllers.controller_json_text(drive, stroke_scale, args.units, extra)}
+        files = {out: controllers.controller_json_text(drive, k, args.units, extra)}
     for path, text in files.items():
         io.atomic_write_text(path, text)
     print(f"stewart-calib export: wrote {', '.join(map(str, files))} ({args.format}, {args.units})", file=sys.stderr)

@@ -19,6 +19,8 @@ from importlib import metadata
 
 import numpy as np
 
+from ..drive import COMPLIANCE, STROKE_SCALE
+
 #: libraries whose versions the page lists (the calibration's own comes from the result).
 LIBRARIES = ("numpy", "scipy", "gtsam", "matplotlib")
 #: |correlation| above which a pair of parameters is listed as strongly correlated.
@@ -267,7 +269,7 @@ def _parameter_section(result: dict) -> str:
 
 def _compliance_section(result: dict) -> str:
     """The legs' compliance c_i ± σ (spec §10), where the result identified it."""
-    block = result.get("compliance")
+    block = result.get(COMPLIANCE)
     if not isinstance(block, dict):
         return ""
     stddev = block.get("stddev") or [None] * len(block["names"])
@@ -288,7 +290,7 @@ def _correlation_section(result: dict) -> str:
         return "<h2>Correlations</h2><p>The method gave no covariance.</p>"
     covariance = np.array(covariance, dtype=float)
     names = list(result["parameter_names"])
-    for block in ("stroke_scale", "instrument", "compliance"):  # the covariance's order (spec §8, §10)
+    for block in (STROKE_SCALE, "instrument", COMPLIANCE):  # the covariance's order (spec §8, §10)
         if isinstance(result.get(block), dict):
             names += list(result[block]["names"])
     names = names[: len(covariance)]
