@@ -1,9 +1,10 @@
 """The measurement-model protocol: what an instrument observes of the platform pose.
 
-Every estimator talks to the instrument only through a model of this protocol, so adding an
-instrument touches :mod:`stewart_calib.instruments`, :mod:`stewart_calib.factors` and one
-entry in :mod:`.registry` — never an estimator (docs/architecture.md, with the tracker as the
-worked example).
+Every estimator talks to the instrument only through a model of this protocol, and the rest of
+the package asks :mod:`.registry`'s entry of its kind, so adding an instrument touches
+:mod:`stewart_calib.instruments`, one entry in :mod:`.registry` and one in
+:data:`stewart_calib.platform.INSTRUMENT_SECTIONS` — never an estimator (docs/architecture.md,
+with the tracker as the worked example).
 
 A model is a description, not a state: it holds its geometry and noise and answers pure
 functions of the pose ``(R, t)`` of {D} in {J} (mm, rad), its own unknowns ``θ`` and one

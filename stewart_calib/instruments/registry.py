@@ -1,9 +1,12 @@
 """The one list of instrument kinds: ``[instrument] kind`` (spec §7) → the model that reads it.
 
 Adding an instrument: its model module in this package, its factor module in
-:mod:`stewart_calib.factors` where the generic instrument factor does not fit, and one entry in
-:data:`MODELS` (docs/architecture.md). The estimators build whatever :func:`instrument_model`
-returns and never name a kind.
+:mod:`stewart_calib.factors` where the generic instrument factor does not fit, one entry in
+:data:`MODELS` and one in :data:`stewart_calib.platform.INSTRUMENT_SECTIONS` (what it reads of the
+platform file: the file layer lies below this package) (docs/architecture.md). The estimators
+build whatever :func:`instrument_model` returns; every other question about an instrument is
+asked of its :class:`InstrumentKind` (:func:`instrument_kind`), so nothing outside this package
+compares a kind.
 """
 
 from __future__ import annotations
