@@ -247,7 +247,7 @@ def ours_fit(platform: Platform, log: Log, method: str = "ls", config: Estimator
 
 def ours_held_out(platform: Platform, estimate, log: Log, register: bool) -> tuple[float, float]:
     from stewart_calib.io import result_dict
-    from stewart_calib.pipelines.validate import validate
+    from stewart_calib.validation import validate
 
     _, position, orientation = validate(platform, result_dict(estimate, platform), log, register)
     return _rms(position), _rms(orientation)

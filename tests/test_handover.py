@@ -123,7 +123,7 @@ def test_residual_rms_is_that_of_validate_predictions(sim, ekf_run):
     from stewart_calib import kinematics as kin
     from stewart_calib.io import read_log
     from stewart_calib.pipelines import handover
-    from stewart_calib.pipelines.validate import measurement_residuals, validate
+    from stewart_calib.validation import measurement_residuals, validate
     from tests.test_kinematics import fk_tolerance_bound
 
     platform = load_platform(sim / "platform.toml")

@@ -26,7 +26,7 @@ LAYERS = (
     ("factors", "io", "identifiability", "accuracy", "compensation", "plausibility", "simulation", "viz"),
     ("planning", "estimators", "diagnosis"),
     ("online", "reproduction", "sweep"),
-    ("calibration",),
+    ("calibration", "validation"),
     ("pipelines",),
     ("cli",),
     ("__main__",),

@@ -54,8 +54,8 @@ from ..platform import N_LEGS, Platform, load_platform
 from ..plausibility import check_plausible
 from ..progress import MIN_LOG_ROWS
 from ..samples import Log
+from ..validation import measurement_residuals, nominal_model, pose_error_summary, tracker_residuals
 from . import add_config_arguments, check_output_path, handover, run_command
-from .validate import measurement_residuals, nominal_model, pose_error_summary, tracker_residuals
 
 
 def _summary(what: str, count: int, total: int, first: str) -> str:

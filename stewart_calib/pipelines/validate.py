@@ -27,7 +27,6 @@ from pathlib import Path
 import numpy as np
 
 from .. import io
-from .. import kinematics as kin
 from ..diagnosis import diagnose_log
 from ..drive import drive_model
 from ..errors import CalibError
@@ -35,6 +34,7 @@ from ..instruments import instrument_kind
 from ..platform import Platform, load_platform
 from ..progress import log_progress_bar
 from ..samples import Log
+from ..validation import measurement_residuals, pose_error_summary, validate
 from . import handover, run_command
 
 
@@ -55,96 +55,6 @@ def add_parser(subparsers) -> None:
     )
     parser.add_argument("--report", metavar="DIR", help="also write a static HTML report DIR/index.html (spec §8)")
     parser.set_defaults(func=run)
-
-
-def _block(result: dict, key: str, expected_names, source: str) -> np.ndarray | None:
-    block = result.get(key)
-    if block is None:
-        return None
-    if list(block["names"]) != list(expected_names):
-        raise CalibError(
-            f"{source}: key '{key}.names': expected {', '.join(expected_names)} for this platform's instrument, "
-            f"got {', '.join(block['names'])}"
-        )
-    return np.array(block["estimate"], dtype=float)
-
-
-def _model_poses(platform: Platform, result: dict, log, source: str, first_sample: int = 0):
-    """FK poses of the logged strokes with the calibrated drive model; ``log``'s samples are
-    numbered from ``first_sample`` (a block of a longer log)."""
-    drive = io.calibrated_drive(platform, result, source)
-    fk, _ = drive.settled_kinematics(log.strokes, log.load_kg, strict=False)  # each row at its own payload
-    if not np.all(fk.converged):
-        k = int(np.flatnonzero(~fk.converged)[0])
-        raise CalibError(
-            f"{source}: sample {first_sample + k + 1} of the log (t_s = {log.t_s[k]!r}): forward kinematics of the "
-            "calibrated model did not converge for its strokes"
-        )
-    return fk.R, fk.t
-
-
-def _check_nominal(platform: Platform, result: dict, source: str) -> None:
-    gap = float(np.max(np.abs(np.array(result["nominal"]) - platform.drive.as_vector())))
-    if gap > io.NOMINAL_TOLERANCE_MM:
-        raise CalibError(
-            f"{source}: key 'nominal': expected the nominal drive of platform '{platform.name}'; it differs by "
-            f"{gap:.3g} mm"
-        )
-
-
-def validate(
-    platform: Platform,
-    result: dict,
-    log,
-    register: bool,
-    result_source: str = "result",
-    errors: bool = True,
-    first_sample: int = 0,
-):
-    """Predictions and errors of a held-out log.
-
-    Args:
-        errors: False: the predictions alone (position and orientation errors None); for the
-            tracker that spares forward kinematics of the readings.
-        first_sample: the number of samples before ``log``'s when it is a block of a longer log
-            (refusals name the sample in the whole log).
-    Returns:
-        ``(predicted (N, m) code units, position_error_mm (N,), orientation_error_deg (N,) or None)``.
-    Raises:
-        CalibError: a result for another platform or instrument, FK failure, a log that cannot be
-            registered (with ``register``).
-    """
-    _check_nominal(platform, result, result_source)
-    R_X, t_X = _model_poses(platform, result, log, result_source, first_sample)
-    reading_legs = instrument_kind(platform).reading_legs
-    if reading_legs is not None:
-        if register:
-            raise CalibError(
-                "--register-instrument: the in-situ tracker is part of the robot; "
-                "it has no frame of its own to fit again"
-            )
-        legs = reading_legs(platform)
-        predicted = kin.inverse_kinematics(legs, R_X, t_X)
-        if not errors:
-            return predicted, None, None
-        seen = kin.forward_kinematics(legs, log.readings, guess=(R_X, t_X), strict=False)
-        if not np.all(seen.converged):
-            k = int(np.flatnonzero(~seen.converged)[0])
-            raise CalibError(
-                f"sample {first_sample + k + 1} (t_s = {log.t_s[k]!r}): tracker forward kinematics of its readings "
-                "did not converge"
-            )
-        position, orientation = kin.pose_error(seen.R, seen.t, R_X, t_X)
-        return predicted, position, orientation
-
-    from ..instruments.external import model_for
-
-    model = model_for(platform)
-    values = _block(result, "instrument", model.unknown_names, result_source)
-    unknowns = model.nominal_unknowns() if values is None else model.unknowns_from_file(values)
-    if register:
-        unknowns = model.refit_frame(unknowns, R_X, t_X, log.readings)
-    return model.prediction_errors(unknowns, R_X, t_X, log.readings)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -256,47 +166,6 @@ def _moved_frame_hint(platform: Platform, result: dict, block: Log, position: np
     )
 
 
-def pose_errors(platform: Platform, result: dict, log, register: bool, source: str = "result") -> np.ndarray:
-    """``(n, 4)``: each sample's measured minus predicted position ``x, y, z`` [mm] and the angle
-    between the measured and predicted orientation [deg] (NaN for points, which give none); for
-    the tracker in {J} (its forward kinematics of the readings against the model's of the
-    strokes), for a pose in the instrument's axes, for points one row per target seen."""
-    reading_legs = instrument_kind(platform).reading_legs
-    if reading_legs is not None:
-        R_X, t_X = _model_poses(platform, result, log, source)
-        seen = kin.forward_kinematics(reading_legs(platform), log.readings, guess=(R_X, t_X), strict=False)
-        keep = seen.converged
-        _, orientation = kin.pose_error(seen.R[keep], seen.t[keep], R_X[keep], t_X[keep])
-        return np.column_stack([seen.t[keep] - t_X[keep], orientation])
-    from ..instruments.external import model_for
-
-    predicted, _, orientation = validate(platform, result, log, register, source)
-    difference = model_for(platform).position_differences(log.readings, predicted)
-    return np.column_stack([difference, np.full(len(difference), np.nan) if orientation is None else orientation])
-
-
-def pose_error_summary(platform: Platform, result: dict, sample, register: bool, n_rows: int, source) -> str | None:
-    """:func:`pose_error_line` of the nominal and the calibrated model on ``sample`` (the log, or
-    its first rows); None where a model cannot predict them (e.g. too few poses to fit a frame)."""
-    try:
-        outside = instrument_kind(platform).outside
-        before = pose_errors(platform, nominal_model(platform), sample, outside, "the nominal platform")
-        after = pose_errors(platform, result, sample, register, str(source))
-    except CalibError:
-        return None
-    rows = f" (first {len(sample)} rows)" if len(sample) < n_rows else ""
-    return pose_error_line(before, after, f"nominal → calibrated model{rows}")
-
-
-def pose_error_line(before: np.ndarray, after: np.ndarray, models: str) -> str:
-    """One line: the RMS of :func:`pose_errors` per axis and of the rotation, before → after."""
-    rms = lambda v: float(np.sqrt(np.nanmean(v**2)))  # noqa: E731
-    parts = [f"{axis} {rms(before[:, k]):.4g} → {rms(after[:, k]):.4g} mm" for k, axis in enumerate("xyz")]
-    if np.isfinite(before[:, 3]).any():
-        parts.append(f"rotation {rms(before[:, 3]):.4g} → {rms(after[:, 3]):.4g}°")
-    return f"pose error RMS, {models}: {', '.join(parts)}"
-
-
 def _file_columns(log: Log, predicted, position, orientation, columns) -> list[np.ndarray]:
     """V.csv's columns [file units] for the rows of ``log``."""
     return [
@@ -358,69 +227,6 @@ def _diagnose_sample(platform: Platform, first: list, path: str) -> None:
     sample = Log.concatenate(first)
     first[:] = [sample]
     diagnose_log(platform, sample.strokes, sample.readings, path, count=False)
-
-
-def measurement_residuals(
-    platform: Platform,
-    log: Log,
-    result: dict,
-    predicted: np.ndarray | None = None,
-    log_label: str = "the calibration log",
-):
-    """Measured minus predicted per measurement column of the log (file units), with the nominal
-    model (an outside instrument's frame registered on the log) and with the calibration ``result``
-    — the predictions of ``validate`` (spec §7): the logged strokes through forward kinematics of the
-    model, then what the instrument reads there
-    (see :class:`~stewart_calib.viz.html_report.Residuals`). ``predicted``: the calibrated
-    model's predictions [code units] when the caller has them (e.g. with a re-registered frame)."""
-    from ..viz.html_report import Residuals  # matplotlib-free module, but only reports need it
-
-    columns = io.reading_columns(platform)
-    angle = np.array([name in io.MEASURED_ANGLE_COLUMNS for name in columns])
-
-    def residual_file_units(predicted_code: np.ndarray) -> np.ndarray:
-        difference = log.readings - predicted_code
-        wrapped = np.where(angle, (difference + np.pi) % (2 * np.pi) - np.pi, difference)  # 359° off is 1° off
-        return wrapped * np.where(angle, 180.0 / np.pi, 1.0)
-
-    nominal = nominal_model(platform)
-    outside = instrument_kind(platform).outside
-    if predicted is None and not outside:
-        residuals = tracker_residuals(platform, log, [(nominal, "the nominal platform"), (result, "the result")])
-        if residuals is not None:  # else an FK failed: validate() below words it
-            before, after = residuals
-            return Residuals(tuple(columns), np.asarray(log.t_s), before, after, log_label, "the nominal platform")
-    if predicted is None:
-        predicted = validate(platform, result, log, False, "the result", errors=False)[0]
-    # An outside instrument's frame is rarely known to centimetres (spec §7): "before" registers it
-    # on the log, so that it measures the nominal robot, not where the cameras happen to stand.
-    before = residual_file_units(validate(platform, nominal, log, outside, "the nominal platform", errors=False)[0])
-    before_model = "the nominal platform" + (", its instrument frame fitted to this log" if outside else "")
-    return Residuals(
-        tuple(columns), np.asarray(log.t_s), before, residual_file_units(predicted), log_label, before_model
-    )
-
-
-def nominal_model(platform: Platform) -> dict:
-    """The nominal platform as a calibration result (no error): what "before" predicts with."""
-    return {"nominal": platform.drive.as_vector().tolist(), "error": [0.0] * len(platform.drive.as_vector())}
-
-
-def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str]]) -> np.ndarray | None:
-    """The tracker's readings minus its readings predicted by each ``(result, source)`` model, as
-    :func:`validate`'s predictions (within FK's tolerance) in one compiled pass over the log:
-    ``(len(models), N, 6)`` [mm], or None when a model's FK does not converge for a sample or the
-    drive is elastic."""
-    for result, source in models:
-        _check_nominal(platform, result, source)
-    drives = [io.calibrated_drive(platform, result, source) for result, source in models]
-    if any(drive.elastic is not None for drive in drives):
-        return None  # the forces need the pose first: validate()'s settled kinematics
-    extensions = [drive.extensions(drive.inputs(log.strokes)) for drive in drives]
-    residuals, converged = kin.tracker_reading_residuals(
-        platform.required_tracker("the tracker residuals"), log.readings, [drive.legs for drive in drives], extensions
-    )
-    return residuals if converged.all() else None
 
 
 def _report_page(args, platform: Platform, result: dict, log, predicted, position, orientation) -> str:
