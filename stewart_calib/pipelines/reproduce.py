@@ -36,7 +36,7 @@ from ..io import atomic_path, atomic_write_text
 from ..platform import Platform
 from ..progress import progress_bar
 from ..reproduction import Part, index_html, reproduce, results_dict, tables_markdown, write_figures, write_recording
-from ..reproduction.figures import figures
+from ..reproduction.figures import RunFigures, figures
 from ..resources import CONFIGS
 from ..simulation import load_experiment
 from ..simulation.experiment import Experiment
@@ -121,7 +121,8 @@ def run(args: argparse.Namespace) -> int:
         )
         for name, description, file, platform in PARTS
     )
-    reproduction = reproduce(experiment, config, progress=True, parts=parts, workers=workers)
+    draw = RunFigures.of(experiment.platform.drive, parts)
+    reproduction = reproduce(experiment, config, progress=True, parts=parts, workers=workers, draw=draw)
     with atomic_path(out / "reproduce.rrd") as tmp:
         write_recording(tmp, reproduction)
     with progress_bar(total=len(figures(reproduction)), desc="reproduce: figures", unit="figure") as bar:

@@ -16,6 +16,7 @@ pose as in the tables (:mod:`.metrics`).
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -23,11 +24,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..io import atomic_write_bytes
-from ..platform import N_PARAMS_PER_LEG, PARAMETER_FIELDS
+from ..platform import N_PARAMS_PER_LEG, PARAMETER_FIELDS, LegGeometry
 from ..viz.html_report import new_figure, png_bytes
 from .metrics import held_pose_ends, view_errors
 from .report import TARGET_METHODS, VERDICT_VIEW
-from .runs import NOMINAL, Reproduction
+from .runs import NOMINAL, MethodRun, Part, Reproduction, fullest_run
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -42,9 +43,9 @@ PAPER_METHOD = "paper-ekf"
 CIRCLE_DEVIATION_SHARE = 0.25
 
 
-def parameter_runs(reproduction: Reproduction) -> list[str]:
-    """The runs of Figs. 5–6."""
-    return [PAPER_METHOD, *(reproduction.fullest(method) for method in TARGET_METHODS)]
+def parameter_runs(parts: tuple[Part, ...]) -> list[str]:
+    """The runs of Figs. 5–6 of a reproduction with ``parts``."""
+    return [PAPER_METHOD, *(fullest_run(method, parts) for method in TARGET_METHODS)]
 
 
 def _style(reproduction: Reproduction, run: str) -> dict:
@@ -55,12 +56,11 @@ def _style(reproduction: Reproduction, run: str) -> dict:
     return {"color": METHOD_COLORS.get(method, "0.3"), "linestyle": "-" if fullest else "--", "label": run}
 
 
-def _parameter_figure(reproduction: Reproduction, run: str, rows: np.ndarray, title: str):
-    """One panel per leg: δM of ``run`` at ``rows`` ± σ, and its truth (dashed): in force, or
-    unloaded for a run whose model carries the sag."""
-    result = reproduction.runs[run].result
-    method_run = reproduction.runs[run]
-    nominal = reproduction.platform.drive.as_vector()
+def _parameter_figure(drive: LegGeometry, method_run: MethodRun, rows: np.ndarray, title: str):
+    """One panel per leg: δM of ``method_run`` at ``rows`` ± σ about the nominal ``drive``, and its
+    truth (dashed): in force, or unloaded for a run whose model carries the sag."""
+    result = method_run.result
+    nominal = drive.as_vector()
     t = result.log.t_s[rows]
     # an elastic model's δM is the unloaded drive: its truth is the robot's, not the one in force
     truth = (
@@ -99,21 +99,21 @@ def _stage_starts(result) -> list[tuple[float, str]]:
     return [(float(result.log.t_s[np.flatnonzero(result.stages == name)[0]]), name) for name in names]
 
 
-def fig5(reproduction: Reproduction, run: str):
-    result = reproduction.runs[run].result
+def fig5(drive: LegGeometry, run: str, method_run: MethodRun):
+    result = method_run.result
     rows = np.flatnonzero(result.stages == result.stages[0])
     return _parameter_figure(
-        reproduction,
-        run,
+        drive,
+        method_run,
         rows,
         f"Fig. 5 — {run}: parameter errors through the {result.stages[0]} stage (calibration, validation, circle)",
     )
 
 
-def fig6(reproduction: Reproduction, run: str):
-    result = reproduction.runs[run].result
+def fig6(drive: LegGeometry, run: str, method_run: MethodRun):
+    result = method_run.result
     fig = _parameter_figure(
-        reproduction, run, np.arange(len(result.log)), f"Fig. 6 — {run}: parameter errors through the load stages"
+        drive, method_run, np.arange(len(result.log)), f"Fig. 6 — {run}: parameter errors through the load stages"
     )
     for ax in fig.axes:
         for start, name in _stage_starts(result)[1:]:
@@ -242,40 +242,67 @@ def fig9(reproduction: Reproduction):
     return fig
 
 
+def _fig5(drive: LegGeometry, run: str, method_run: MethodRun) -> tuple[str, str, Callable[[], Figure]]:
+    return f"fig5_{run}.png", f"Fig. 5 — {run}: parameter convergence at no load", partial(fig5, drive, run, method_run)
+
+
+def _fig6(drive: LegGeometry, run: str, method_run: MethodRun) -> tuple[str, str, Callable[[], Figure]]:
+    return (
+        f"fig6_{run}.png",
+        f"Fig. 6 — {run}: parameters through the load stages",
+        partial(fig6, drive, run, method_run),
+    )
+
+
 def figures(reproduction: Reproduction) -> list[tuple[str, str, Callable[[], Figure]]]:
     """``(file name, caption, how to draw it)`` of every figure, in the order of the page."""
-    out: list[tuple[str, str, Callable[[], Figure]]] = []
-    for run in parameter_runs(reproduction):
-        out.append(
-            (
-                f"fig5_{run}.png",
-                f"Fig. 5 — {run}: parameter convergence at no load",
-                partial(fig5, reproduction, run),
-            )
-        )
-    for run in parameter_runs(reproduction):
-        out.append(
-            (
-                f"fig6_{run}.png",
-                f"Fig. 6 — {run}: parameters through the load stages",
-                partial(fig6, reproduction, run),
-            )
-        )
-    out.append(
-        ("fig7_pose_errors.png", "Fig. 7 — pose errors before and after calibration", lambda: fig7(reproduction))
-    )
-    out.append(("fig8_circle.png", "Fig. 8 — the circle trajectory", lambda: fig8(reproduction)))
-    out.append(("fig9_polar.png", "Fig. 9 — the circle's deviation, polar", lambda: fig9(reproduction)))
-    return out
+    drive, runs = reproduction.platform.drive, reproduction.runs
+    named = parameter_runs(reproduction.parts)
+    return [
+        *(_fig5(drive, run, runs[run]) for run in named),
+        *(_fig6(drive, run, runs[run]) for run in named),
+        ("fig7_pose_errors.png", "Fig. 7 — pose errors before and after calibration", lambda: fig7(reproduction)),
+        ("fig8_circle.png", "Fig. 8 — the circle trajectory", lambda: fig8(reproduction)),
+        ("fig9_polar.png", "Fig. 9 — the circle's deviation, polar", lambda: fig9(reproduction)),
+    ]
+
+
+def _png(figure: Figure) -> bytes:
+    return png_bytes(figure, dpi=100)
+
+
+@dataclass(frozen=True)
+class RunFigures:
+    """Figs. 5–6 of a run, drawn as soon as it is done where it ran (:func:`~.runs.reproduce`'s
+    ``draw``: in its worker process, while the other runs go on). They need that run alone; drawn
+    one by one after every run, the nine figures took ~10 s of a ~40 s reproduction with a core
+    idle. Figs. 7–9 compare every run and are left for after them."""
+
+    drive: LegGeometry
+    runs: tuple[str, ...]
+
+    @classmethod
+    def of(cls, drive: LegGeometry, parts: tuple[Part, ...]) -> RunFigures:
+        return cls(drive, tuple(parameter_runs(parts)))
+
+    def __call__(self, run: str, method_run: MethodRun) -> dict[str, bytes]:
+        if run not in self.runs:
+            return {}
+        return {
+            name: _png(draw())
+            for name, _, draw in (_fig5(self.drive, run, method_run), _fig6(self.drive, run, method_run))
+        }
 
 
 def write_figures(directory: str | Path, reproduction: Reproduction, bar=None) -> list[tuple[str, str]]:
-    """Draw every figure into ``directory`` (each file atomically); ``(file name, caption)`` in order.
+    """Every figure into ``directory`` (each file atomically; those the runs drew,
+    :attr:`~.runs.Reproduction.drawn`, as they were drawn); ``(file name, caption)`` in order.
     ``bar``, if given, is ticked once per figure."""
     directory = Path(directory)
     written = []
     for name, caption, draw in figures(reproduction):
-        atomic_write_bytes(directory / name, png_bytes(draw(), dpi=100))
+        drawn = reproduction.drawn.get(name)
+        atomic_write_bytes(directory / name, _png(draw()) if drawn is None else drawn)
         written.append((name, caption))
         if bar is not None:
             bar.update()

@@ -73,6 +73,11 @@ def run_name(method: str, parts: tuple[Part, ...] = ()) -> str:
     return "+".join((method, *(part.name for part in parts)))
 
 
+def fullest_run(method: str, parts: tuple[Part, ...]) -> str:
+    """The run of ``method`` with every part of ``parts`` its model takes (:data:`LAYERED_METHODS`)."""
+    return run_name(method, parts if method in LAYERED_METHODS else ())
+
+
 def online_runs(parts: tuple[Part, ...]) -> list[tuple[str, str, tuple[Part, ...]]]:
     """``(run, method, parts of its model)`` of every online run, in order: each online method on
     the rigid model, followed for :data:`LAYERED_METHODS` by its runs with the parts added one by
@@ -136,6 +141,8 @@ class Reproduction:
     config: EstimatorConfig
     runs: dict[str, MethodRun]
     parts: tuple[Part, ...] = ()
+    #: figure files already drawn, PNG by file name: what :func:`reproduce`'s ``draw`` made of each run
+    drawn: dict[str, bytes] = field(default_factory=dict)
 
     @property
     def calibrated(self) -> list[str]:
@@ -149,7 +156,7 @@ class Reproduction:
 
     def fullest(self, method: str) -> str:
         """The run of ``method`` with every part of the model."""
-        return run_name(method, self.parts if method in LAYERED_METHODS else ())
+        return fullest_run(method, self.parts)
 
     @property
     def platform(self) -> Platform:
@@ -314,22 +321,34 @@ def _init_worker(queue) -> None:
     _worker_queue = queue
 
 
-def _run_in_worker(task: Callable[..., MethodRun]) -> MethodRun:
+#: what :func:`reproduce` may draw of a run where it ran: ``draw(run name, run)`` → PNG by file name
+DrawRun = Callable[[str, MethodRun], dict[str, bytes]]
+
+
+def _run_and_draw(name: str, task: Callable[..., MethodRun], draw: DrawRun | None, bar) -> tuple[MethodRun, dict]:
+    run = task(bar=bar)
+    return run, ({} if draw is None else draw(name, run))
+
+
+def _run_in_worker(name: str, task: Callable[..., MethodRun], draw: DrawRun | None) -> tuple[MethodRun, dict]:
     bar = _QueueBar(_worker_queue)
     try:
-        return task(bar=bar)
+        return _run_and_draw(name, task, draw, bar)
     finally:
         bar.flush()
 
 
-def _in_processes(tasks: dict[str, Callable[..., MethodRun]], workers: int, bar) -> dict[str, MethodRun]:
+def _in_processes(
+    tasks: dict[str, Callable[..., MethodRun]], workers: int, bar, draw: DrawRun | None
+) -> dict[str, tuple[MethodRun, dict]]:
     """The runs of ``tasks`` in ``workers`` fresh processes, the longest first (isam2's: online
-    methods' runs cost from ~0.1 s to tens of seconds), ticking ``bar`` as they go."""
+    methods' runs cost from ~0.1 s to tens of seconds), each drawn by ``draw`` where it ran,
+    ticking ``bar`` as they go."""
     ctx = multiprocessing.get_context("spawn")  # no fork: gtsam's and numba's threads do not survive one
     queue = ctx.SimpleQueue()
     order = sorted(tasks, key=lambda name: (name.split("+")[0] != "isam2", -name.count("+")))
     with concurrent.futures.ProcessPoolExecutor(workers, ctx, initializer=_init_worker, initargs=(queue,)) as pool:
-        futures = {pool.submit(_run_in_worker, tasks[name]): name for name in order}
+        futures = {pool.submit(_run_in_worker, name, tasks[name], draw): name for name in order}
         pending = set(futures)
         while pending:
             _, pending = concurrent.futures.wait(pending, timeout=0.2)
@@ -346,6 +365,7 @@ def reproduce(
     progress: bool = False,
     parts: tuple[Part, ...] = (),
     workers: int = 1,
+    draw: DrawRun | None = None,
 ) -> Reproduction:
     """Run the experiment before calibration, with every method of :data:`METHODS` on ``config``,
     and with :data:`LAYERED_METHODS` once more per part of ``parts`` (:func:`online_runs`).
@@ -358,6 +378,8 @@ def reproduce(
             runs them in this process; more cost each process its imports and kernel loads
             (~2 s), so they pay off on the full experiment. The processes are spawned: a script
             that calls this with ``workers > 1`` needs the ``if __name__ == "__main__":`` guard.
+        draw: what to draw of each run as soon as it is done, in the process that ran it (while
+            the other runs go on), kept in :attr:`Reproduction.drawn`; picklable where ``workers > 1``.
     """
     start = time.perf_counter()
     nominal_result = run_experiment(experiment, NominalController(experiment.platform), progress=progress)
@@ -377,7 +399,10 @@ def reproduce(
         total=n * len(tasks), desc=f"reproduce {experiment.name}: {', '.join(tasks)}", show=progress
     ) as bar:
         if workers > 1:
-            done = _in_processes(tasks, workers, bar)
+            done = _in_processes(tasks, workers, bar, draw)
         else:
-            done = {name: task(bar=bar) for name, task in tasks.items()}
-    return Reproduction(experiment, config, {NOMINAL: nominal, **{name: done[name] for name in tasks}}, parts)
+            done = {name: _run_and_draw(name, task, draw, bar) for name, task in tasks.items()}
+    runs = {NOMINAL: nominal, **{name: done[name][0] for name in tasks}}
+    return Reproduction(
+        experiment, config, runs, parts, {file: png for name in tasks for file, png in done[name][1].items()}
+    )
