@@ -190,25 +190,27 @@ class GraphBuilder:
         self._new_variable(factors, key)
         return factors
 
-    def walk_factor(self, window: int, dt_s: float, noise_scale2: float = 1.0) -> gtsam.BetweenFactorVector:
-        """The walk from parameter variable ``window`` to the next over ``dt_s`` [s], in units of the
-        measurement scale ``noise_scale2`` (see :meth:`epoch`); the first factor of the epoch that
-        opens the window."""
-        sigma = random_walk.sigma_mm(
-            self.noise.random_walk_mm_per_sqrt_s / math.sqrt(noise_scale2), dt_s, self.graph.chain_sigma_floor_mm
-        )
+    def walk_factor(
+        self, window: int, dt_s: float, noise_scale2: float = 1.0, walk_rate_mm2_per_s: float | None = None
+    ) -> gtsam.BetweenFactorVector:
+        """The walk from parameter variable ``window`` to the next over ``dt_s`` [s] at the rate
+        ``walk_rate_mm2_per_s`` (None: the configured one), in units of the measurement scale
+        ``noise_scale2`` (see :meth:`epoch`); the first factor of the epoch that opens the window."""
+        rate = self.noise.random_walk_mm_per_sqrt_s**2 if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
+        sigma = random_walk.sigma_mm(math.sqrt(rate / noise_scale2), dt_s, self.graph.chain_sigma_floor_mm)
         sigmas = np.where(self._walks, sigma, self.graph.chain_sigma_floor_mm)
         return random_walk.factor(params_key(window), params_key(window + 1), sigmas)
 
-    def window_walk_covariance(self, state: ChainState) -> np.ndarray:
+    def window_walk_covariance(self, state: ChainState, walk_rate_mm2_per_s: float | None = None) -> np.ndarray:
         """What the walk adds between the current parameter variable and the parameters at the
         last sample [code units²]: every sample of a window observes one variable, which so
         stands for the parameters over the window; the value at its last sample differs from
         that by a walk of variance ``q (t_last − t_start) / 3`` (the end of a walk less its mean
-        over the span). Small beside the parameters' σ, but not beside their best-determined
-        combinations: left out, lm's NEES on a drifting robot was 1.7× its degrees of freedom."""
+        over the span; ``q`` is ``walk_rate_mm2_per_s``, None: the configured rate). Small beside the
+        parameters' σ, but not beside their best-determined combinations: left out, lm's NEES on a
+        drifting robot was 1.7× its degrees of freedom."""
         span = max(state.last_t_s - state.window_start_s, 0.0) if self.chain else 0.0
-        rate = self.noise.random_walk_mm_per_sqrt_s**2
+        rate = self.noise.random_walk_mm_per_sqrt_s**2 if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
         return np.diag(np.where(self._walks, rate * span / 3.0, 0.0))
 
     def new_window(self, state: ChainState, t_s: float) -> bool:
@@ -219,7 +221,14 @@ class GraphBuilder:
             return state.window_samples >= self.graph.window_samples
         return t_s - state.window_start_s >= self.graph.window_s
 
-    def epoch(self, state: ChainState, sample: Sample, params_guess, noise_scale2: float = 1.0) -> Epoch:
+    def epoch(
+        self,
+        state: ChainState,
+        sample: Sample,
+        params_guess,
+        noise_scale2: float = 1.0,
+        walk_rate_mm2_per_s: float | None = None,
+    ) -> Epoch:
         """Factors, values and timestamps of ``sample`` and the state after it.
 
         Args:
@@ -229,6 +238,8 @@ class GraphBuilder:
                 the configured ``R0`` and takes ``s²`` times its covariance: a new window's walk
                 factor then carries ``Q / s²``, so that the graph is the problem of ``R`` and ``Q``
                 divided by ``s²`` (the same optimum, covariance ``/ s²``).
+            walk_rate_mm2_per_s: the walk's rate ``Q`` a new window's walk factor carries [mm²/s]
+                (None: the configured one).
         Raises:
             SampleRejected: non-finite data, time going backwards, or FK failure; nothing is
                 changed (the caller keeps ``state``).
@@ -275,7 +286,7 @@ class GraphBuilder:
         elif self.new_window(state, sample.t_s):
             w = state.window
             values.insert(params_key(w + 1), guess)  # type: ignore[arg-type]  # set: a new window is `wanted`
-            factors.add(self.walk_factor(w, sample.t_s - state.window_start_s, noise_scale2))
+            factors.add(self.walk_factor(w, sample.t_s - state.window_start_s, noise_scale2, walk_rate_mm2_per_s))
             self._new_variable(factors, params_key(w + 1))
             state = replace(state, window=w + 1, window_start_s=sample.t_s, window_samples=0)
         p = params_key(state.window)

@@ -166,9 +166,9 @@ class RobustFilter:
         self._n, self._m = n, m
         self._gate_on = gate_probability > 0.0
         self.noise_scale2 = 1.0
-        # (time of the sample after which it held, s²): see noise_scale2_at
-        self._scale_history: deque = deque([(-math.inf, 1.0)], maxlen=SCALE_HISTORY)
         self.walk_rate_mm2_per_s = self._configured_walk
+        # (time of the sample after which they held, s², walk rate): see noise_scale2_at, walk_rate_at
+        self._scale_history: deque = deque([(-math.inf, 1.0, self.walk_rate_mm2_per_s)], maxlen=SCALE_HISTORY)
         self.recoveries = 0
         #: samples the recoveries took out of the estimate (used before, not in the re-solved state)
         #: and those they took back in after the gate had refused them
@@ -584,7 +584,6 @@ class RobustFilter:
         self._scale_sums = forget * self._scale_sums + [self.noise_scale2 * observed, expected]
         scale2, self.noise_scale2 = self.noise_scale2, max(self._scale_sums[0] / self._scale_sums[1], MIN_NOISE_SCALE2)
         self.measured_noise = True
-        self._record_scale()
         if self.noise_scale2 != scale2:
             # the window's covariance at the scale now in use, which the next window's is taken at: the
             # walk test compares their difference with both (at the start-up's scale, 10× too high on
@@ -606,22 +605,32 @@ class RobustFilter:
             self._differences.append((eigenvalues, projection2, span))
             self.walk_rate_mm2_per_s = max(self._pooled_walk_rate(), MIN_WALK_FRACTION * self._configured_walk)
         self._last_window = (x, P, first_t, last_t)
+        self._record_scale()
 
     def _record_scale(self) -> None:
-        """Note a new noise scale as holding from the last buffered sample on."""
-        if self.noise_scale2 != self._scale_history[-1][1]:
-            self._scale_history.append((float(self._buffer.t[-1]), self.noise_scale2))
+        """Note a new noise scale or walk rate as holding from the last buffered sample on."""
+        if (self.noise_scale2, self.walk_rate_mm2_per_s) != self._scale_history[-1][1:]:
+            self._scale_history.append((float(self._buffer.t[-1]), self.noise_scale2, self.walk_rate_mm2_per_s))
+
+    def _held_at(self, t_s: float) -> tuple[float, float, float]:
+        """The entry of the scale history in force right after the sample at ``t_s`` [s]."""
+        held = self._scale_history[0]
+        for entry in self._scale_history:
+            if entry[0] > t_s:
+                break
+            held = entry
+        return held
 
     def noise_scale2_at(self, t_s: float) -> float:
         """The noise scale ``s²`` in use right after the sample at ``t_s`` [s] was folded in (the
         current one for the last sample): what a caller that ran the filter ahead of a sample — on
         a block of samples — sees as one that asks after every sample does."""
-        held = self._scale_history[0][1]
-        for t_from, scale2 in self._scale_history:
-            if t_from > t_s:
-                break
-            held = scale2
-        return held
+        return self._held_at(t_s)[1]
+
+    def walk_rate_at(self, t_s: float) -> float:
+        """The random walk's rate [mm²/s] in use right after the sample at ``t_s`` [s] was folded in,
+        as :meth:`noise_scale2_at`."""
+        return self._held_at(t_s)[2]
 
     def _pooled_walk_rate(self) -> float:
         """The root ``q ≥ 0`` of ``f(q) = Σ_w Σ_i p_wi / (λ_wi + q T_w) − n × windows`` [mm²/s]
@@ -698,7 +707,7 @@ class RobustFilter:
         self.filter.import_state(state.get("filter", {}))
         self._x0 = state_array(state, "prior_mean", (self._n,))
         self.noise_scale2, self.walk_rate_mm2_per_s = state_array(state, "noise", (2,))
-        self._scale_history = deque([(-math.inf, self.noise_scale2)], maxlen=SCALE_HISTORY)
+        self._scale_history = deque([(-math.inf, self.noise_scale2, self.walk_rate_mm2_per_s)], maxlen=SCALE_HISTORY)
         if not (0.0 < self.noise_scale2 < math.inf and 0.0 <= self.walk_rate_mm2_per_s < math.inf):
             raise CalibError(
                 "estimator state: key 'noise': expected a finite positive noise scale and a finite walk rate ≥ 0"
