@@ -132,7 +132,8 @@ class ISAM2Config:
 
     Attributes:
         gate_probability: χ² gate of the robust front end that decides which samples enter
-            the graph (0 = off; :mod:`stewart_calib.estimators.robust`).
+            the graph (0 = off; :mod:`stewart_calib.estimators.robust`), and of ``lm``'s test of
+            each sample's residuals at its solution, which leaves gross errors out (:mod:`.estimators.lm`).
         coupling: ``tight`` (one factor per tracker reading) or ``loose`` (tracker FK pose prior).
         window_s: a new parameter variable every ``window_s`` seconds [s].
         window_samples: if > 0, a new parameter variable every this many samples instead.
