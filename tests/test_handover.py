@@ -123,7 +123,7 @@ def test_residual_rms_is_that_of_validate_predictions(sim, ekf_run):
     from stewart_calib import kinematics as kin
     from stewart_calib.io import read_log
     from stewart_calib.pipelines import handover
-    from stewart_calib.validation import measurement_residuals, validate
+    from stewart_calib.validation import measurement_residuals, nominal_residuals, streamed_residual_rms, validate
     from tests.test_kinematics import fk_tolerance_bound
 
     platform = load_platform(sim / "platform.toml")
@@ -134,8 +134,8 @@ def test_residual_rms_is_that_of_validate_predictions(sim, ekf_run):
     rejected = [3, 4, len(log) // 2]
     kept = log.select(np.delete(np.arange(len(log)), rejected))
     blocks = [log.select(slice(start, start + 7)) for start in range(0, len(log), 7)]
-    spooled = [(block, calibrate_pipeline.nominal_residuals(platform, block)) for block in blocks]
-    streamed = calibrate_pipeline.streamed_residual_rms(platform, spooled, result, rejected)
+    spooled = [(block, nominal_residuals(platform, block)) for block in blocks]
+    streamed = streamed_residual_rms(platform, spooled, result, rejected)
     expected_rms = handover.residual_rms_field(measurement_residuals(platform, kept, result))
     for model, got, when in ((nominal, residuals.before, "before"), (result, residuals.after, "after")):
         drive = platform.drive.perturbed(np.array(model["error"]))

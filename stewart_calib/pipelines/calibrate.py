@@ -20,9 +20,7 @@ config, versions).
 from __future__ import annotations
 
 import argparse
-import math
 import sys
-from collections.abc import Iterable
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -50,11 +48,11 @@ from ..identifiability import (
 from ..instruments import instrument_kind, registered
 from ..online import Rejections
 from ..planning import noise_floor
-from ..platform import N_LEGS, Platform, load_platform
+from ..platform import Platform, load_platform
 from ..plausibility import check_plausible
 from ..progress import MIN_LOG_ROWS
 from ..samples import Log
-from ..validation import measurement_residuals, nominal_model, pose_error_summary, tracker_residuals
+from ..validation import measurement_residuals, nominal_residuals, pose_error_summary, streamed_residual_rms
 from . import add_config_arguments, check_output_path, handover, run_command
 
 
@@ -111,47 +109,6 @@ def outside_conditioning(platform: Platform, log: Log) -> dict:
 
     at_registration = registered(platform, log.strokes, log.readings)
     return instrument_conditioning(instrument_identifiability(at_registration, log.strokes, log.readings, log.load_kg))
-
-
-def nominal_residuals(platform: Platform, block: Log) -> np.ndarray:
-    """``(len(block), 6)`` the tracker's readings minus what the nominal model predicts [mm], NaN
-    where its FK fails: the residual RMS "before", which needs no estimate, so is spooled with the
-    samples on the first pass (on the read-ahead thread) and only the calibrated model's is left
-    for the second."""
-    before = tracker_residuals(platform, block, [(nominal_model(platform), "the nominal platform")])
-    return np.full((len(block), N_LEGS), np.nan) if before is None else before[0]
-
-
-def streamed_residual_rms(
-    platform: Platform, spooled: Iterable[tuple[Log, np.ndarray]], result: dict, rejected: list[int]
-) -> dict:
-    """:func:`~.handover.residual_rms_field` of a streamed tracker log without its ``rejected``
-    samples, from the ``(block, before)`` pairs of its :class:`SampleSpool` (``before``: the
-    :func:`nominal_residuals` of each sample): the calibrated
-    model's residuals are computed here, and the per-channel sums of squares add up over the blocks.
-    """
-    sums, counts, k = {"before": 0.0, "after": 0.0}, {"before": 0, "after": 0}, 0
-    left_out = np.asarray(rejected, dtype=np.int64)
-    for block, before in spooled:
-        used = ~np.isin(k + np.arange(len(block)), left_out)
-        k += len(block)
-        if not used.any():
-            continue
-        block, before = block.select(used), before[used]
-        after = tracker_residuals(platform, block, [(result, "the result")])
-        if after is None or np.isnan(before).any():  # an FK failed: validate's path words it
-            residuals = measurement_residuals(platform, block, result)
-            before, after = residuals.before, residuals.after[None]
-        for when, values in (("before", before), ("after", after[0])):
-            finite = np.isfinite(values)
-            sums[when] = sums[when] + np.sum(np.where(finite, values, 0.0) ** 2, axis=0)
-            counts[when] = counts[when] + finite.sum(axis=0)
-    field: dict[str, list] = {"channels": list(io.reading_columns(platform))}
-    for when in ("before", "after"):
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rms = np.sqrt(sums[when] / counts[when])
-        field[when] = [float(v) if math.isfinite(v) else None for v in rms]
-    return field
 
 
 def run(args: argparse.Namespace) -> int:
