@@ -25,13 +25,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 
 from .. import io
 from .. import kinematics as kin
+from ..drive import STROKE_SCALE, DriveModel, drive_model
 from ..errors import CalibError
-from ..platform import PARAMETER_NAMES, LegGeometry, load_platform
+from ..platform import N_LEGS, PARAMETER_NAMES, load_platform
 from . import run_command
 
 
@@ -48,12 +50,12 @@ def add_parser(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def closed_loop_error(platform, drive, stroke_scale, true_drive, true_scale, poses) -> tuple[float, float]:
-    """Mean position [mm] and orientation [deg] error at ``poses`` ``[mm, rad]`` when IK of
-    ``(drive, stroke_scale)`` gives the logged strokes and the true robot executes them."""
+def closed_loop_error(commanded: DriveModel, true: DriveModel, poses: np.ndarray) -> tuple[float, float]:
+    """Mean position [mm] and orientation [deg] error at ``poses`` ``[mm, rad]`` when IK of the
+    ``commanded`` drive gives the logged strokes and the ``true`` drive executes them."""
     R_d, t_d = kin.pose_to_rt(poses)
-    logged = kin.inverse_kinematics(drive, R_d, t_d) / (1.0 + stroke_scale)
-    reached = kin.forward_kinematics(true_drive, logged * (1.0 + true_scale), (R_d, t_d), strict=False)
+    logged = commanded.inverse_kinematics(R_d, t_d)
+    reached = true.forward_kinematics(true.inputs(logged), guess=(R_d, t_d), strict=False)
     if not reached.converged.all():
         raise CalibError("the true robot cannot reach the strokes the estimate commands at some workspace pose")
     position_mm, orientation_deg = kin.pose_error(R_d, t_d, reached.R, reached.t)
@@ -79,19 +81,20 @@ def scores(platform, result: dict, truth) -> dict:
     stddev = result.get("stddev")
     if stddev is not None and np.all(np.asarray(stddev, dtype=float) > 0):
         out["z2"] = float(np.mean((e / np.asarray(stddev, dtype=float)) ** 2))
-    scale_block = result.get("stroke_scale")
-    scale = np.array(scale_block["estimate"], dtype=float) if scale_block else platform.stroke_scale
-    true_scale = truth.stroke_scale if truth.stroke_scale is not None else np.zeros(6)
-    if scale_block is not None and truth.stroke_scale is not None:
+    # the rigid drive of spec §4's truth: δM and the stroke scale (the truth file's one term)
+    nominal = drive_model(replace(platform, elastic=None))
+    scale_block = result.get(STROKE_SCALE)
+    scale = None if scale_block is None else np.array(scale_block["estimate"], dtype=float)
+    if scale is not None and truth.stroke_scale is not None:
         out["stroke_scale_max_error"] = float(np.max(np.abs(scale - truth.stroke_scale)))
-    true_drive = LegGeometry.from_params(true_params)
+    nominal_params = platform.drive.as_vector()
+    true_scale = np.zeros(N_LEGS) if truth.stroke_scale is None else truth.stroke_scale
+    true = nominal.calibrated(true_params - nominal_params, {STROKE_SCALE: true_scale})
     poses = evaluation_poses(platform)
     out["closed_loop_mm"], out["closed_loop_deg"] = closed_loop_error(
-        platform, LegGeometry.from_params(estimate), scale, true_drive, true_scale, poses
+        nominal.calibrated(estimate - nominal_params, {STROKE_SCALE: scale}), true, poses
     )
-    out["closed_loop_nominal_mm"], out["closed_loop_nominal_deg"] = closed_loop_error(
-        platform, platform.drive, platform.stroke_scale, true_drive, true_scale, poses
-    )
+    out["closed_loop_nominal_mm"], out["closed_loop_nominal_deg"] = closed_loop_error(nominal, true, poses)
     out["poses"] = len(poses)
     return out
 
