@@ -23,10 +23,11 @@ from dataclasses import replace
 import numpy as np
 
 from .. import kinematics as kin
+from ..drive import STROKE_SCALE, drive_model
 from ..errors import CalibError, shown
 from ..instruments import instrument_kind
 from ..io import atomic_paths, log_text, output_directory, read_calibrated_drive, truth_text
-from ..platform import Platform, platform_to_toml
+from ..platform import N_LEGS, N_PARAMS, Platform, platform_to_toml
 from ..simulation.closed_loop import FrozenController, NominalController, simulate_blocks
 from ..simulation.experiment import load_experiment
 from ..simulation.load import elastic_of
@@ -144,11 +145,14 @@ def _pose_errors(platform: Platform, log, truth, compare: bool) -> dict[str, np.
     R_true, t_true = kin.pose_to_rt(truth.true_poses)
     out = {"controller": np.column_stack([t_true - t_d, kin.pose_error(R_d, t_d, R_true, t_true)[1]])}
     if compare:
-        scale = np.zeros(6) if truth.stroke_scale is None else truth.stroke_scale
-        logged = kin.inverse_kinematics(platform.drive, R_d, t_d) / (1.0 + platform.stroke_scale)
+        # rigid, as the truth's per-sample parameters already carry the sag (spec §4)
+        nominal = drive_model(replace(platform, elastic=None))
+        logged = nominal.inverse_kinematics(R_d, t_d)
+        true_scale = np.zeros(N_LEGS) if truth.stroke_scale is None else truth.stroke_scale
+        extensions = nominal.calibrated(np.zeros(N_PARAMS), {STROKE_SCALE: true_scale}).extensions(logged)
         legs = truth.params.reshape(-1, 6, 7)
         reached = kin.forward_kinematics_per_pose(
-            legs[:, :, :3], legs[:, :, 3:6], legs[:, :, 6], logged * (1.0 + scale), (R_d, t_d), strict=False
+            legs[:, :, :3], legs[:, :, 3:6], legs[:, :, 6], extensions, (R_d, t_d), strict=False
         )
         ok = reached.converged
         error = np.full((len(R_d), 4), np.nan)
