@@ -834,7 +834,8 @@ def run_startup(quick: bool) -> Section:
             rows.append(Row(case.name, value, target, met, raw[case.name]))
     note = (
         "A command as a new user meets it: its first run after an installation, with an empty numba cache "
-        "of its own (`NUMBA_CACHE_DIR`: every kernel it uses is compiled), then the minimum of "
+        "of its own (`NUMBA_CACHE_DIR`: the kernels the installation compiled ahead of time run from its module, "
+        "setup.py; any other kernel it uses is compiled), then the minimum of "
         f"{STARTUP_WARM_RUNS} runs with that cache (warm). Input: `simulate --experiment quick` (120 samples), "
         "`--config paper`; validate checks the ekf result on the same log. Wall time of "
         "`python -m stewart_calib …` in a fresh process; CPU: user + system, all threads."

@@ -13,11 +13,11 @@ Conventions (see :mod:`stewart_calib.kinematics`): mm and rad; a pose is ``(R, t
 platform frame {D} in the base frame {J}; pose Jacobians are in the body tangent
 ``ξ = [ω, v]`` (rotation first, GTSAM order), ``R ← R Exp(ω)``, ``t ← t + R v``.
 
-Every kernel is compiled lazily on first use and cached on disk (:func:`stewart_calib._jit.njit`,
-as :mod:`stewart_calib.estimators.kalman`; no cache where none can be written): a fresh checkout pays
-the compile once, later processes load the machine code. The wrappers pass C-contiguous float64 arrays, Python
-floats/ints and geometry read-only, so each kernel has one signature and one cache entry (the rules that keep
-the compile small: :mod:`stewart_calib._jit`). No ``fastmath``:
+The kernels Python calls are compiled ahead of time at installation, at the argument types their
+``entry`` declares (:func:`stewart_calib._jit.njit`, as :mod:`stewart_calib.estimators.kalman`); where
+that module is missing or stale, or a call passes other types, numba compiles on first use and caches on
+disk. The wrappers pass C-contiguous float64 arrays, Python floats/ints and geometry read-only, so each
+kernel has one signature (the rules that keep the compile small: :mod:`stewart_calib._jit`). No ``fastmath``:
 the Newton tolerance (1e-9 mm on ~1000 mm lengths) sits a few ulps above rounding, and
 the kernels must report NaN exactly as numpy would.
 """
@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from ._jit import njit
+from ._jit import BOOL, F8_1, F8_2, F8_3, FLOAT, I8_1, INT, RO_1, RO_2, RO_3, njit
 
 # error_model="numpy": x / 0 gives inf/NaN as in numpy instead of raising ZeroDivisionError.
 _JIT: dict[str, Any] = {"nogil": True, "error_model": "numpy"}
@@ -313,7 +313,7 @@ def _finite_target(initial_lengths, strokes, target):
     return finite
 
 
-@njit(**_JIT)
+@njit(entry=(RO_3, RO_3, RO_2, F8_2, F8_3, F8_2, FLOAT, INT, I8_1, F8_1), **_JIT)
 def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations, iterations, residual):
     """Newton–Raphson FK (paper §3.2 step 1) for ``n`` poses, in place.
 
@@ -339,7 +339,7 @@ def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations
             iterations[k], residual[k] = 0, np.inf
 
 
-@njit(**_JIT)
+@njit(entry=(RO_2, RO_2, RO_1, F8_1, F8_2, F8_1, BOOL, FLOAT, INT), **_JIT)
 def fk_single(base, plat, initial_lengths, lengths, R, t, warm, tol_mm, max_iterations):
     """One pose's FK in one call (kinematics.solve_fk): Newton from ``(R, t)`` when ``warm``, then,
     if that does not converge, from the level cold guess of ``kinematics.default_guess``.
@@ -422,7 +422,7 @@ def _within_a_step(R_a, t_a, R_b, t_b):
     return d2 <= _MAX_STEP_MM**2 and (trace - 1.0) / 2.0 >= math.cos(_MAX_STEP_RAD)
 
 
-@njit(**_JIT)
+@njit(entry=(RO_3, RO_3, RO_2, F8_3, RO_2, RO_2, RO_1, F8_2, FLOAT, INT, F8_3, F8_2), **_JIT)
 def tracker_reading_residuals(
     bases,
     plats,
@@ -501,7 +501,7 @@ def tracker_reading_residuals(
 # ----------------------------------------------------------------------------- error models
 
 
-@njit(**_JIT)
+@njit(entry=(RO_2, RO_2, F8_3, F8_2, F8_3), **_JIT)
 def error_jacobian(base, plat, R, t, out):
     """Paper eq. 8–11 ``J_p = J_r J_s`` for ``n`` poses into ``out (n, 6, 42)`` (see kinematics.error_jacobian).
 
@@ -545,7 +545,7 @@ def error_jacobian(base, plat, R, t, out):
                     out[k, r, 7 * i + c] = J_r[r, i] * J_s[i, c]
 
 
-@njit(**_JIT)
+@njit(entry=(F8_3, F8_2, F8_3, F8_2, F8_2), **_JIT)
 def pose_difference(R_v, t_v, R_m, t_m, out):
     """``P_v − P_m`` as ``[δh, δθ]`` (paper eq. 9) for ``n`` pose pairs into ``out (n, 6)``; δθ wrapped to (−π, π]."""
     for k in range(R_v.shape[0]):
@@ -557,7 +557,7 @@ def pose_difference(R_v, t_v, R_m, t_m, out):
             out[k, 3 + a] = math.atan2(math.sin(d), math.cos(d))
 
 
-@njit(**_JIT)
+@njit(entry=(RO_2, RO_2, RO_1, F8_1, F8_2, F8_1, F8_1, F8_2, FLOAT), **_JIT)
 def leg_observation(base, plat, initial_lengths, x, R, t, strokes, pose_covariance, stroke_variance):
     """The leg-length EKF's observation at a measured pose ``(R, t)``, fused in one call.
 
@@ -655,7 +655,7 @@ def _symmetric_product(A, B, scale):
     return out
 
 
-@njit(**_JIT)
+@njit(entry=(RO_2, RO_2, F8_2, F8_1, FLOAT), **_JIT)
 def pose_covariance(base, plat, R, t, variance):
     """``σ² (JᵀJ)⁻¹`` of one FK pose from i.i.d. length noise (kinematics.pose_covariance_from_legs),
     formed as ``σ² A Aᵀ`` with ``A = J⁻¹`` (one solve of ``J A = I``); NaN when ``J`` is singular."""
@@ -670,7 +670,7 @@ def pose_covariance(base, plat, R, t, variance):
     return _symmetric_product(A, A, variance)
 
 
-@njit(**_JIT)
+@njit(entry=(F8_2, F8_2, F8_1, F8_1, F8_1, F8_2, F8_2), **_JIT)
 def leg_rows(legs, R, t, extensions, r, J_pose, J_leg):
     """``r_i = ‖t + R d_i − j_i‖ − (l_i + e_i)`` of ``k`` legs ``legs (k, 7)`` = ``[j_i | d_i | l_i]``
     with extensions ``e_i`` (strokes or readings), into ``r (k,)``, ``J_pose (k, 6)`` = ``∂r/∂ξ``
@@ -698,7 +698,7 @@ def leg_rows(legs, R, t, extensions, r, J_pose, J_leg):
 # ----------------------------------------------------------------------------- sample checks
 
 
-@njit(**_JIT)
+@njit(entry=(F8_1, FLOAT, FLOAT), **_JIT)
 def all_within(values, lower, upper):
     """True when every value is finite and in ``[lower, upper]`` (NaN fails): the fast path of
     check_sample and of forward_kinematics' convergence check."""
@@ -708,7 +708,7 @@ def all_within(values, lower, upper):
     return True
 
 
-@njit(**_JIT)
+@njit(entry=(RO_2, RO_2, RO_1, F8_1), **_JIT)
 def perturbed_legs(base, plat, initial_lengths, delta):
     """``M + δM`` as new ``(6, 3)``, ``(6, 3)``, ``(6,)`` arrays, δM a 42-vector in the paper's
     order (platform.LegGeometry.perturbed: three strided numpy sums cost ~2.4 µs)."""
@@ -726,7 +726,7 @@ def perturbed_legs(base, plat, initial_lengths, delta):
 # ----------------------------------------------------------------------------- identifiability
 
 
-@njit(**_JIT)
+@njit(entry=(RO_2, RO_2, RO_1, RO_2, RO_2, F8_3, F8_2, FLOAT, FLOAT, F8_3), **_JIT)
 def whitened_leg_rows(
     base, plat, initial_lengths, tracker_base, tracker_plat, R, t, reading_variance, stroke_variance, out
 ):

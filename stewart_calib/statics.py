@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._jit import njit
+from ._jit import F8_1, F8_2, FLOAT, RO_2, RO_3, njit
 from ._kernels import _solve
 from .errors import CalibError
 from .kinematics import leg_pose_jacobian, leg_unit_vectors, skew
@@ -141,7 +141,7 @@ def gravity_leg_forces(
     return forces.reshape(*batch, 6)
 
 
-@njit(nogil=True, error_model="numpy")
+@njit(entry=(RO_2, RO_2, RO_3, RO_2, RO_2, F8_2, FLOAT, F8_2, F8_1), nogil=True, error_model="numpy")
 def _gravity_forces(base, plat, R, t, masses, coms, radius, forces, ratios):
     """Per pose: ``Aᵀ`` (column i ``[n_i; R d_i × n_i]``), Hadamard's ratio of it with the moment rows
     over ``radius``, and ``f`` solving ``Aᵀ f = −w`` for the masses at their centres (forces left

@@ -31,7 +31,7 @@ import math
 import numpy as np
 
 from .. import _kernels
-from .._jit import njit
+from .._jit import B_1, BOOL, F8_1, F8_2, FLOAT, I8_1, I8_2, INT, LEGS, Tuple, njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
@@ -39,6 +39,17 @@ from ..unknowns import UnknownLayout, gauge_conditioned
 from .base import checked_covariance, checked_time, state_array
 
 _FAST = {"reassoc", "contract", "arcp", "nsz"}
+
+#: the types of :func:`leg_set_observation`'s ``observation`` (:class:`~.measurement.LegSetPose` makes it):
+#: drive legs, instrument legs, extension terms ``(starts, gains, factors, columns)``, variances, Newton's limits
+OBSERVATION = Tuple((LEGS, LEGS, Tuple((I8_1, F8_1, F8_2, I8_2)), Tuple((FLOAT, FLOAT)), Tuple((FLOAT, INT))))
+#: the types of :func:`leg_set_filter_rows`' arguments, as :meth:`~.measurement.LegSetPose.rows` passes them
+_FILTER_ROWS_ENTRY = (
+    *(F8_1, F8_2, F8_2, F8_2, F8_2),  # x, P, Q, unit_Q, S_last
+    *(F8_1, F8_2, B_1, FLOAT, OBSERVATION),  # t_s, prepared, use, last_t, observation
+    *(FLOAT, FLOAT, FLOAT, BOOL, F8_2, F8_1, BOOL),  # walk_rate, noise_scale2, gate_nis, skip, R_guess, t_guess, warm
+    *(F8_1, F8_2, B_1, I8_1, INT, INT, F8_2, F8_1),  # the sample window, since_window, window, errors_out, components
+)
 
 
 @njit(fastmath=_FAST, nogil=True, error_model="numpy")
@@ -218,7 +229,7 @@ def variance_components(S: np.ndarray, residual: np.ndarray, R: np.ndarray) -> t
 STEP_TAKEN, STEP_NON_FINITE, STEP_NOT_POSITIVE_DEFINITE, STEP_GATED = 0, 1, 2, 3
 
 
-@njit(nogil=True)
+@njit(entry=(F8_2, F8_2, FLOAT), nogil=True)
 def fill_walk(Q: np.ndarray, unit_Q: np.ndarray, walk_step: float) -> None:
     """``Q = ρ²Δt · unit_Q`` in place (``walk_step = ρ²Δt``): the random walk's process noise over one step."""
     for i in range(Q.shape[0]):
@@ -226,7 +237,12 @@ def fill_walk(Q: np.ndarray, unit_Q: np.ndarray, walk_step: float) -> None:
             Q[i, j] = unit_Q[i, j] * walk_step
 
 
-@njit(fastmath=_FAST, nogil=True, error_model="numpy")
+@njit(
+    entry=(F8_1, F8_2, F8_2, F8_2, F8_1, F8_2, FLOAT, FLOAT, F8_1, F8_1),
+    fastmath=_FAST,
+    nogil=True,
+    error_model="numpy",
+)
 def filter_step(
     x: np.ndarray,
     P: np.ndarray,
@@ -342,7 +358,7 @@ def _observation_scratch(n, terms, legs):
     )
 
 
-@njit(nogil=True)
+@njit(entry=(F8_1, F8_1, OBSERVATION, F8_2, F8_1, BOOL), nogil=True)
 def leg_set_observation(x, row, observation, R, t, warm):
     """:func:`_leg_set_observation` in fresh arrays, ``(R, t)`` the warm start, overwritten with the pose
     (the per-sample path: ``RobustFilter`` keeps a batch's observations). Returns its ``(FK residual, ν, H, R0)``."""
@@ -357,7 +373,7 @@ def leg_set_observation(x, row, observation, R, t, warm):
 ROWS_DONE, ROWS_PER_SAMPLE, ROWS_WINDOW_DUE = 0, 1, 2
 
 
-@njit(fastmath=_FAST, nogil=True, error_model="numpy")
+@njit(entry=_FILTER_ROWS_ENTRY, fastmath=_FAST, nogil=True, error_model="numpy")
 def leg_set_filter_rows(
     x,
     P,
@@ -451,7 +467,7 @@ def leg_set_filter_rows(
     return t_s.shape[0], ROWS_DONE, taken, last_t, nis, since_window, warm
 
 
-@njit(nogil=True)
+@njit(entry=(F8_1, F8_2, B_1, I8_1, FLOAT, F8_1, BOOL), nogil=True)
 def window_append(t, prepared, gated, span, t_s, row, gated_row) -> None:
     """Append one sample to a window of the last ``len(t) // 2`` samples, in place: the live rows are
     ``[span[0], span[1])`` of the arrays, slid back to the front when the end is reached (amortised

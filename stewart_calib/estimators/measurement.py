@@ -221,7 +221,7 @@ class LegSetPose(WarmPose):
             Q,
             unit_Q,
             S_last,
-            t_s,
+            np.ascontiguousarray(t_s),  # a track's block may hand a strided view: one specialisation
             np.ascontiguousarray(prepared),
             use,
             float(last_t),

@@ -17,14 +17,14 @@ from typing import Any
 
 import numpy as np
 
-from .._jit import njit
+from .._jit import F8_1, F8_2, F8_2F, I8_1, I8_2, Tuple, njit
 from .._kernels import _adjoint, _rotation, _tangent_from_pose6, leg_rows
 
 # as stewart_calib._kernels: x / 0 gives inf/NaN as numpy does
 _JIT: dict[str, Any] = {"nogil": True, "error_model": "numpy"}
 
 
-@njit(**_JIT)
+@njit(entry=(F8_2F, F8_1, I8_1, F8_2, I8_2, Tuple((I8_1, F8_1, F8_1, F8_2, I8_2)), F8_1), **_JIT)
 def drive_leg_rows(pose, unknowns, legs_of, nominal, columns, terms, inputs):
     """Drive-leg residuals of ``k`` legs and their Jacobians on the pose and the unknown vector.
 
@@ -73,7 +73,7 @@ def drive_leg_rows(pose, unknowns, legs_of, nominal, columns, terms, inputs):
     return r, J_pose, H
 
 
-@njit(**_JIT)
+@njit(entry=(F8_2F, F8_2, F8_1), **_JIT)
 def known_leg_rows(pose, legs, extensions):
     """Residuals of ``k`` legs of known geometry ``legs (k, 7)`` = ``[j_i | d_i | l_i]`` with
     extensions ``e_i`` (a tracker's rulers and their readings) at ``pose`` ``(4, 4)``, and their
