@@ -16,6 +16,7 @@ from __future__ import annotations
 import difflib
 import math
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -145,19 +146,32 @@ class InstrumentSection:
             written; a kind with none is the default, written as no ``[instrument]`` table.
         required: those of ``keys`` without a default.
         reads_tracker: whether it reads the ``[tracker]`` table (its legs are the instrument).
+        log_columns: ``K → names``: the log's columns of one reading with ``K`` targets, in the
+            order of the measurement (spec §3, §7); read by the log reader, the model and the imports.
     """
 
     keys: tuple[str, ...]
+    log_columns: Callable[[int], tuple[str, ...]]
     required: tuple[str, ...] = ()
     reads_tracker: bool = False
 
 
+def _point_columns(n_targets: int) -> tuple[str, ...]:
+    """``p1x_mm p1y_mm p1z_mm … pKx_mm pKy_mm pKz_mm``: the targets' measured positions."""
+    return tuple(f"p{k}{axis}_mm" for k in range(1, n_targets + 1) for axis in "xyz")
+
+
 #: ``[instrument] kind`` → what it reads of the file; the first is the default (no ``[instrument]``).
 INSTRUMENT_SECTIONS = {
-    "tracker": InstrumentSection((), reads_tracker=True),
-    "pose": InstrumentSection(("frame", "target", "position_sigma_mm", "orientation_sigma_deg")),
+    "tracker": InstrumentSection((), lambda _: tuple(f"s{i}_mm" for i in range(1, N_LEGS + 1)), reads_tracker=True),
+    "pose": InstrumentSection(
+        ("frame", "target", "position_sigma_mm", "orientation_sigma_deg"),
+        lambda _: ("mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg", "myaw_deg"),
+    ),
     "points": InstrumentSection(
-        ("frame", "targets_mm", "position_sigma_mm", "visibility_cone_deg", "target_axes"), required=("targets_mm",)
+        ("frame", "targets_mm", "position_sigma_mm", "visibility_cone_deg", "target_axes"),
+        _point_columns,
+        required=("targets_mm",),
     ),
 }
 INSTRUMENT_KINDS = tuple(INSTRUMENT_SECTIONS)

@@ -22,7 +22,7 @@ import numpy as np
 from .. import kinematics as kin
 from ..errors import SampleRejected
 from ..kinematics import skew
-from ..platform import Instrument, Platform
+from ..platform import INSTRUMENT_SECTIONS, Instrument, Platform
 from . import lie
 from .base import PoseObservation, Residual, Spread, position_spread_mm
 from .gauge import kabsch
@@ -49,9 +49,8 @@ def names(instrument: Instrument) -> tuple[str, ...]:
     return unknown_names(instrument.n_targets)
 
 
-def columns(n_targets: int) -> tuple[str, ...]:
-    """Log columns (spec §7): ``p1x_mm p1y_mm p1z_mm … pKx_mm pKy_mm pKz_mm``."""
-    return tuple(f"p{k}{axis}_mm" for k in range(1, n_targets + 1) for axis in "xyz")
+#: log columns of ``K`` targets (spec §7): ``p1x_mm p1y_mm p1z_mm … pKx_mm pKy_mm pKz_mm``
+columns = INSTRUMENT_SECTIONS["points"].log_columns
 
 
 @dataclass(frozen=True)

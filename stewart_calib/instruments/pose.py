@@ -26,7 +26,7 @@ import numpy as np
 from .. import _kernels
 from .. import kinematics as kin
 from ..errors import SampleRejected
-from ..platform import Instrument, Platform
+from ..platform import INSTRUMENT_SECTIONS, Instrument, Platform
 from . import lie
 from .base import PoseObservation, Residual, Spread, position_spread_mm, rotation_spread_rad
 
@@ -37,7 +37,7 @@ UNKNOWN_NAMES: tuple[str, ...] = tuple(
     for axis in ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
 )
 #: log columns (spec §7): the measured pose of {T} in {I}
-COLUMNS: tuple[str, ...] = ("mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg", "myaw_deg")
+COLUMNS: tuple[str, ...] = INSTRUMENT_SECTIONS["pose"].log_columns(0)
 
 
 @dataclass(frozen=True)

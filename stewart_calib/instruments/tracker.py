@@ -25,12 +25,12 @@ import numpy as np
 from .. import _kernels
 from .. import kinematics as kin
 from ..errors import SampleRejected
-from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, Platform
+from ..platform import INSTRUMENT_SECTIONS, N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, Platform
 from ..unknowns import UnknownBlock
 from .base import InstrumentModel, PoseObservation, Residual, Spread
 
 #: the log columns of the six readings s_i [mm] (spec §3).
-TRACKER_COLUMNS = tuple(f"s{i}_mm" for i in range(1, N_LEGS + 1))
+TRACKER_COLUMNS = INSTRUMENT_SECTIONS["tracker"].log_columns(0)
 #: names of the tracker's own 42 values when they are unknowns (paper Table 2 symbols, spec §7).
 TRACKER_PARAMETER_NAMES = tuple(
     f"{field}{leg}{axis}"

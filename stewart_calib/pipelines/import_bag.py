@@ -37,6 +37,7 @@ import numpy as np
 
 from .. import io
 from ..errors import CalibError, shown
+from ..platform import INSTRUMENT_SECTIONS
 from ..rotations import rotation_to_rpy
 from . import run_command
 
@@ -47,8 +48,9 @@ MM_PER_UNIT = {"m": 1000.0, "mm": 1.0, "um": 1e-3}
 #: default largest time between the two stroke messages a row is interpolated from [s].
 DEFAULT_MAX_GAP_S = 0.1
 STROKE_COLUMNS = tuple(f"q{i}_mm" for i in range(1, 7))
-READING_COLUMNS = tuple(f"s{i}_mm" for i in range(1, 7))
-MEASURED_POSE_COLUMNS = ("mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg", "myaw_deg")
+#: the log's columns of the tracker's readings and of a measured pose (spec §3, §7)
+READING_COLUMNS = INSTRUMENT_SECTIONS["tracker"].log_columns(0)
+MEASURED_POSE_COLUMNS = INSTRUMENT_SECTIONS["pose"].log_columns(0)
 
 
 @dataclass(frozen=True)

@@ -35,9 +35,9 @@ from .. import io
 from ..errors import CalibError
 from ..io import exports
 from ..io.exports import Block
+from ..platform import INSTRUMENT_SECTIONS, load_platform
 from . import run_command
 
-MEASURED_POSE_COLUMNS = ("mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg", "myaw_deg")
 #: default largest time between the two controller rows a measurement is interpolated across [s]
 DEFAULT_MAX_GAP_S = 0.1
 #: rows of each file the clock offset is estimated from
@@ -120,12 +120,6 @@ def _instrument(args, mapping: dict, mapping_path) -> tuple:
         )
     _, what, kind = exports.point_list_blocks(path, mapping_path, table, args.up or "z")
     return (lambda: exports.point_list_blocks(path, mapping_path, table, args.up or "z")[0]), what, kind, path
-
-
-def _measurement_columns(kind: str, width: int) -> tuple[str, ...]:
-    if kind == "pose":
-        return MEASURED_POSE_COLUMNS
-    return tuple(f"p{k + 1}{axis}_mm" for k in range(width // 3) for axis in "xyz")
 
 
 class ControllerLog:
@@ -273,8 +267,6 @@ def run(args: argparse.Namespace) -> int:
         raise CalibError(f"--max-gap-s: expected a finite positive number of seconds, got {max_gap_s!r}")
     platform = None
     if args.platform:
-        from ..platform import load_platform
-
         platform = load_platform(args.platform)
         if platform.instrument.kind != kind:
             raise CalibError(
@@ -304,7 +296,7 @@ def run(args: argparse.Namespace) -> int:
             strokes_mm = np.full((len(block.t_s), 6), np.nan)
             strokes_mm[kept] = q
             if not columns:
-                columns.extend(_measurement_columns(kind, block.values.shape[1]))
+                columns.extend(INSTRUMENT_SECTIONS[kind].log_columns(block.values.shape[1] // 3))
             if platform is not None and not checked and use.any():
                 from ..diagnosis import diagnose_log
 
