@@ -9,6 +9,7 @@ Agrees with ``scipy.special.chdtri`` to ~1e-13 relative (tests/test_chi_square.p
 
 from __future__ import annotations
 
+import functools
 import math
 
 _EPS = 2.0**-53
@@ -47,6 +48,9 @@ def regularised_gamma(a: float, x: float) -> tuple[float, float]:
         i += 1
 
 
+# the robust filter's walk test asks for the same two quantiles at every noise window (~10⁴ Newton
+# steps of the series an hour of a 10 Hz log): kept once computed
+@functools.lru_cache(maxsize=64)
 def chdtri(dof: float, tail: float) -> float:
     """``x`` with ``P(χ²_dof > x) = tail`` (``scipy.special.chdtri``; ``chi2.ppf(p, dof)`` is
     ``chdtri(dof, 1 − p)``) for ``dof > 0``, ``0 < tail < 1``.

@@ -55,7 +55,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .._jit import njit
+from .._jit import F8_1, F8_2, FLOAT, njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected
 from .base import state_array
@@ -753,7 +753,7 @@ def _mahalanobis2(step: np.ndarray, P: np.ndarray, gauge_projector: np.ndarray |
     return float(step @ np.linalg.solve(P, step))
 
 
-@njit(nogil=True, error_model="numpy")
+@njit(entry=(F8_2, F8_2, F8_1, FLOAT), nogil=True, error_model="numpy")
 def _walk_rate_root(lam: np.ndarray, p: np.ndarray, T: np.ndarray, target: float) -> float:
     """The root ``q ≥ 0`` of ``f(q) = Σ_w Σ_i p_wi / (λ_wi + q T_w) − target``: ``f`` is convex and
         decreasing in ``q``, so Newton's method from ``q = 0`` (where ``f > 0``) approaches the root from
