@@ -9,6 +9,7 @@ that are not what an entry point declares, a missing module and a stale one all 
 from __future__ import annotations
 
 import copy
+import importlib
 import os
 import subprocess
 import sys
@@ -19,6 +20,11 @@ import pytest
 from stewart_calib import _jit, cli
 from stewart_calib.platform import load_platform
 from tests.synthetic import ROOT
+
+# every kernel module, so that ENTRY_POINTS (filled as they are imported) is whole when the tests below
+# are parametrised over it
+for _module in _jit.KERNEL_MODULES:
+    importlib.import_module(_module)
 
 pytestmark = pytest.mark.skipif(
     not _jit.aot_functions(),
@@ -68,9 +74,10 @@ def first_calls(quick) -> dict[str, tuple]:
 
 def _python_paths(platform) -> None:
     """What the quick commands leave to the Python paths that reproduce takes (the paper's EKF, an unknown
-    tracker geometry, a filter without a compiled recursion): one call each, at the home pose."""
+    tracker geometry, a filter without a compiled recursion): one call each, at the home pose; and the robust
+    filter's walk test, which needs two noise windows (the quick log has one)."""
     from stewart_calib import kinematics as kin
-    from stewart_calib.estimators import kalman
+    from stewart_calib.estimators import kalman, robust
 
     drive, R, t = platform.drive, np.eye(3), np.array([0.0, 0.0, platform.workspace.home[2]])
     strokes = kin.inverse_kinematics(drive, R[None], t[None])[0]
@@ -80,6 +87,8 @@ def _python_paths(platform) -> None:
     state = kalman.FilterState("ekf", 1.0, 0.0)
     kalman.fill_walk(state.Q, np.eye(42), 1e-4)
     state.update(H, -r, R_meas, 0.0)
+    eigenvalues = np.full((2, 42), 1e-3)
+    robust._walk_rate_root(eigenvalues, 2.0 * eigenvalues, np.array([10.0, 12.0]), 84.0)
 
 
 def test_a_calibration_imports_no_numba(quick, tmp_path):
