@@ -192,7 +192,7 @@ class BatchLM(BufferedFit):
         motion capture (0.70–0.78 on data of exactly the configured noise, 6 seeds: NEES 1.27× its
         degrees of freedom)."""
         graph, values = self._graph, self._values
-        rows = sum(graph.at(k).dim() for k in range(graph.size()) if graph.exists(k))
+        rows = _rows(graph)
         chi2 = 2.0 * graph.error(values)
         if self._prior_index is not None:
             prior = graph.at(self._prior_index)
@@ -221,7 +221,7 @@ class BatchLM(BufferedFit):
         removed and its pose variable with them; nothing is left out when more than half of the
         samples would be (no majority: the model, not the samples, is then wrong)."""
         graph, values = self._graph, self._values
-        rows_total = sum(graph.at(k).dim() for k in range(graph.size()) if graph.exists(k))
+        rows_total = _rows(graph)
         redundancy = rows_total - values.dim()
         if redundancy < MIN_REDUNDANCY or not self._measurements:
             return False
@@ -251,6 +251,11 @@ class BatchLM(BufferedFit):
             self._late.append(err)
         self._measurements = kept
         return True
+
+
+def _rows(graph: gtsam.NonlinearFactorGraph) -> int:
+    """The whitened residual rows of the factors left in ``graph`` (removed ones leave a hole)."""
+    return sum(graph.at(k).dim() for k in range(graph.size()) if graph.exists(k))
 
 
 #: at most this many rounds of :meth:`BatchLM._leave_out_gross_errors` and re-solves (glitches that
