@@ -482,21 +482,26 @@ def test_runs_in_worker_processes_equal_the_runs_in_this_one():
     they give the same runs in the same order and the same numbers to rounding — isam2's differ
     by ~1e-14 at its first update and a few nm at most after (gtsam sums in another order in
     another process), 1e-6 mm being 100× below what tables.md prints. Figs. 5–6 drawn by each run's
-    worker are the files the parent draws of the same runs, byte for byte."""
-    from stewart_calib.reproduction.figures import RunFigures, figures
+    worker, and Figs. 7–9 drawn by the pool the caller kept (draw_in), are the files the parent
+    draws of the same runs, byte for byte."""
+    from stewart_calib.reproduction.figures import RunFigures, draw_in, figures
+    from stewart_calib.reproduction.runs import WorkerPool
     from stewart_calib.viz.html_report import png_bytes
 
     quick = load_experiment(QUICK)
     one_stage = dataclasses.replace(quick, stages=quick.stages[:1])
     config = load_estimator_config(ESTIMATORS)
     here = reproduce(one_stage, config)
-    spread = reproduce(one_stage, config, workers=2, draw=RunFigures.of(quick.platform.drive, ()))
+    with WorkerPool(2) as pool:
+        spread = reproduce(one_stage, config, workers=pool, draw=RunFigures.of(quick.platform.drive, ()))
+        by_runs = sorted(spread.drawn)
+        spread.drawn.update({name: future.result() for name, future in draw_in(pool, spread).items()})
     assert here.drawn == {}
-    assert sorted(spread.drawn) == sorted(f"fig{k}_{run}.png" for k in (5, 6) for run in ("paper-ekf", "ekf", "isam2"))
+    assert by_runs == sorted(f"fig{k}_{run}.png" for k in (5, 6) for run in ("paper-ekf", "ekf", "isam2"))
     in_parent = dataclasses.replace(spread, drawn={})
+    assert sorted(spread.drawn) == sorted(name for name, _, _ in figures(in_parent))
     for name, _, draw in figures(in_parent):
-        if name in spread.drawn:
-            assert spread.drawn[name] == png_bytes(draw(), dpi=100), name
+        assert spread.drawn[name] == png_bytes(draw(), dpi=100), name
     assert list(spread.runs) == list(here.runs)
     for name, run in here.runs.items():
         np.testing.assert_allclose(spread.runs[name].trace, run.trace, rtol=0, atol=1e-6, err_msg=name)

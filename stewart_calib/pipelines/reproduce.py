@@ -23,6 +23,7 @@ runs, the figures) go to stderr when it is a terminal.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import time
@@ -36,7 +37,8 @@ from ..io import atomic_path, atomic_write_text
 from ..platform import Platform
 from ..progress import progress_bar
 from ..reproduction import Part, index_html, reproduce, results_dict, tables_markdown, write_figures, write_recording
-from ..reproduction.figures import RunFigures, figures
+from ..reproduction.figures import RunFigures, draw_in, figures
+from ..reproduction.runs import WorkerPool
 from ..resources import CONFIGS
 from ..simulation import load_experiment
 from ..simulation.experiment import Experiment
@@ -122,9 +124,12 @@ def run(args: argparse.Namespace) -> int:
         for name, description, file, platform in PARTS
     )
     draw = RunFigures.of(experiment.platform.drive, parts)
-    reproduction = reproduce(experiment, config, progress=True, parts=parts, workers=workers, draw=draw)
-    with atomic_path(out / "reproduce.rrd") as tmp:
-        write_recording(tmp, reproduction)
+    with WorkerPool(workers) if workers > 1 else contextlib.nullcontext() as pool:
+        reproduction = reproduce(experiment, config, progress=True, parts=parts, workers=pool or 1, draw=draw)
+        drawing = {} if pool is None else draw_in(pool, reproduction)
+        with atomic_path(out / "reproduce.rrd") as tmp:
+            write_recording(tmp, reproduction)
+        reproduction.drawn.update({name: future.result() for name, future in drawing.items()})
     with progress_bar(total=len(figures(reproduction)), desc="reproduce: figures", unit="figure") as bar:
         written = write_figures(out, reproduction, bar)
     results = results_dict(reproduction, time.perf_counter() - start, f"configs/estimators/{CONFIG}")

@@ -15,6 +15,7 @@ pose as in the tables (:mod:`.metrics`).
 
 from __future__ import annotations
 
+import concurrent.futures
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
@@ -28,7 +29,7 @@ from ..platform import N_PARAMS_PER_LEG, PARAMETER_FIELDS, LegGeometry
 from ..viz.html_report import new_figure, png_bytes
 from .metrics import held_pose_ends, view_errors
 from .report import TARGET_METHODS, VERDICT_VIEW
-from .runs import NOMINAL, MethodRun, Part, Reproduction, fullest_run
+from .runs import NOMINAL, MethodRun, Part, Reproduction, WorkerPool, fullest_run
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -276,7 +277,7 @@ class RunFigures:
     """Figs. 5–6 of a run, drawn as soon as it is done where it ran (:func:`~.runs.reproduce`'s
     ``draw``: in its worker process, while the other runs go on). They need that run alone; drawn
     one by one after every run, the nine figures took ~10 s of a ~40 s reproduction with a core
-    idle. Figs. 7–9 compare every run and are left for after them."""
+    idle. Figs. 7–9 compare every run: :func:`draw_in` draws them in the same processes after."""
 
     drive: LegGeometry
     runs: tuple[str, ...]
@@ -292,6 +293,19 @@ class RunFigures:
             name: _png(draw())
             for name, _, draw in (_fig5(self.drive, run, method_run), _fig6(self.drive, run, method_run))
         }
+
+
+def draw_figure(reproduction: Reproduction, name: str) -> bytes:
+    """The PNG of the figure file ``name`` of :func:`figures`."""
+    return _png(next(draw for file, _, draw in figures(reproduction) if file == name)())
+
+
+def draw_in(pool: WorkerPool, reproduction: Reproduction) -> dict[str, concurrent.futures.Future]:
+    """The figures the runs did not draw (Figs. 7–9: they compare every run) drawn in ``pool``'s
+    processes, a figure a process, while the caller goes on: PNG futures by file name. In the
+    parent they were ~5 s of CPU after every run, with the other core idle."""
+    undrawn = [name for name, _, _ in figures(reproduction) if name not in reproduction.drawn]
+    return {name: pool.executor.submit(draw_figure, reproduction, name) for name in undrawn}
 
 
 def write_figures(directory: str | Path, reproduction: Reproduction, bar=None) -> list[tuple[str, str]]:

@@ -338,25 +338,41 @@ def _run_in_worker(name: str, task: Callable[..., MethodRun], draw: DrawRun | No
         bar.flush()
 
 
+class WorkerPool:
+    """Fresh worker processes for :func:`reproduce`'s runs, which a caller that makes the pool may
+    hand the work that needs every run afterwards (the comparison figures), while the processes
+    are up: a process costs its imports and kernel loads (~2 s) to start."""
+
+    def __init__(self, workers: int) -> None:
+        ctx = multiprocessing.get_context("spawn")  # no fork: gtsam's and numba's threads do not survive one
+        self.queue = ctx.SimpleQueue()
+        self.executor = concurrent.futures.ProcessPoolExecutor(
+            workers, ctx, initializer=_init_worker, initargs=(self.queue,)
+        )
+
+    def __enter__(self) -> WorkerPool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.executor.shutdown(cancel_futures=True)
+
+
 def _in_processes(
-    tasks: dict[str, Callable[..., MethodRun]], workers: int, bar, draw: DrawRun | None
+    tasks: dict[str, Callable[..., MethodRun]], pool: WorkerPool, bar, draw: DrawRun | None
 ) -> dict[str, tuple[MethodRun, dict]]:
-    """The runs of ``tasks`` in ``workers`` fresh processes, the longest first (isam2's: online
-    methods' runs cost from ~0.1 s to tens of seconds), each drawn by ``draw`` where it ran,
-    ticking ``bar`` as they go."""
-    ctx = multiprocessing.get_context("spawn")  # no fork: gtsam's and numba's threads do not survive one
-    queue = ctx.SimpleQueue()
+    """The runs of ``tasks`` in ``pool``'s processes, the longest first (isam2's: online methods'
+    runs cost from ~0.1 s to tens of seconds), each drawn by ``draw`` where it ran, ticking
+    ``bar`` as they go."""
     order = sorted(tasks, key=lambda name: (name.split("+")[0] != "isam2", -name.count("+")))
-    with concurrent.futures.ProcessPoolExecutor(workers, ctx, initializer=_init_worker, initargs=(queue,)) as pool:
-        futures = {pool.submit(_run_in_worker, name, tasks[name], draw): name for name in order}
-        pending = set(futures)
-        while pending:
-            _, pending = concurrent.futures.wait(pending, timeout=0.2)
-            while not queue.empty():
-                bar.update(queue.get())
-        while not queue.empty():
-            bar.update(queue.get())
-        return {futures[future]: future.result() for future in futures}
+    futures = {pool.executor.submit(_run_in_worker, name, tasks[name], draw): name for name in order}
+    pending = set(futures)
+    while pending:
+        _, pending = concurrent.futures.wait(pending, timeout=0.2)
+        while not pool.queue.empty():
+            bar.update(pool.queue.get())
+    while not pool.queue.empty():
+        bar.update(pool.queue.get())
+    return {futures[future]: future.result() for future in futures}
 
 
 def reproduce(
@@ -364,7 +380,7 @@ def reproduce(
     config: EstimatorConfig,
     progress: bool = False,
     parts: tuple[Part, ...] = (),
-    workers: int = 1,
+    workers: int | WorkerPool = 1,
     draw: DrawRun | None = None,
 ) -> Reproduction:
     """Run the experiment before calibration, with every method of :data:`METHODS` on ``config``,
@@ -374,10 +390,11 @@ def reproduce(
         progress: bars on stderr when it is a terminal: the run before calibration, then one
             across the methods' runs.
         workers: processes the runs after the one before calibration share (each run is
-            independent: same experiment, seed and noise draws; only the controller differs). 1
-            runs them in this process; more cost each process its imports and kernel loads
-            (~2 s), so they pay off on the full experiment. The processes are spawned: a script
-            that calls this with ``workers > 1`` needs the ``if __name__ == "__main__":`` guard.
+            independent: same experiment, seed and noise draws; only the controller differs), or
+            a :class:`WorkerPool` of them that the caller keeps for more work. 1 runs them in this
+            process; more cost each process its imports and kernel loads (~2 s), so they pay off
+            on the full experiment. The processes are spawned: a script that calls this with
+            ``workers > 1`` needs the ``if __name__ == "__main__":`` guard.
         draw: what to draw of each run as soon as it is done, in the process that ran it (while
             the other runs go on), kept in :attr:`Reproduction.drawn`; picklable where ``workers > 1``.
     """
@@ -398,8 +415,11 @@ def reproduce(
     with progress_bar(
         total=n * len(tasks), desc=f"reproduce {experiment.name}: {', '.join(tasks)}", show=progress
     ) as bar:
-        if workers > 1:
+        if isinstance(workers, WorkerPool):
             done = _in_processes(tasks, workers, bar, draw)
+        elif workers > 1:
+            with WorkerPool(workers) as pool:
+                done = _in_processes(tasks, pool, bar, draw)
         else:
             done = {name: _run_and_draw(name, task, draw, bar) for name, task in tasks.items()}
     runs = {NOMINAL: nominal, **{name: done[name][0] for name in tasks}}
