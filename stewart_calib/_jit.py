@@ -76,6 +76,7 @@ KERNEL_MODULES = (
     "stewart_calib.factors._kernels",
     "stewart_calib.estimators.kalman",
     "stewart_calib.estimators.robust",
+    "stewart_calib.simulation.load",
 )
 #: the extension module the installation builds (setup.py), and its manifest beside it
 AOT_MODULE = "stewart_calib._aot_kernels"

@@ -40,6 +40,7 @@ are ``l_i + z_i``, what a model with the logged strokes must find.
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -55,7 +56,7 @@ from ..progress import progress_bar
 from ..samples import Log, Sample, Truth
 from .experiment import Experiment, Schedule, schedule
 from .instrument import SimulatedInstrument
-from .load import LoadModel, loaded_params, settle
+from .load import LoadModel, Settling
 from .robot import base_errors, encoder_readings
 from .tracker import Tracker
 
@@ -190,8 +191,13 @@ class TrueRobot:
         ``drive_at(home, 0.0)`` is what a perfect no-load calibration would find.
         """
         R, t = kin.pose_to_rt(np.asarray(pose6, dtype=float)[None])
-        params, _ = loaded_params(self.load, self.base_params, R, t, payload_kg)
+        params, _ = self.settling.loaded_params(R, t, payload_kg)
         return LegGeometry.from_params(params[0])
+
+    @functools.cached_property
+    def settling(self) -> Settling:
+        """The load model on this robot's drive, as :func:`~.load.settle` takes it (made once)."""
+        return Settling.of(self.load, self.base_params)
 
 
 def build_robot(
@@ -345,7 +351,7 @@ def _settle_block(robot: TrueRobot, plan: Schedule, rows: slice, controller: Con
     (``noise``: the block's stroke and reading noise and instrument draws)."""
     R_d, t_d = kin.pose_to_rt(plan.desired_poses[rows])
     strokes = _commanded(controller, R_d, t_d, plan.payload_kg[rows])
-    sol, params = settle(robot.load, robot.base_params, strokes, plan.payload_kg[rows], (R_d, t_d))
+    sol, params = robot.settling.settle(strokes, plan.payload_kg[rows], (R_d, t_d))
     log, truth = _measured(robot, plan, rows, strokes, sol.R, sol.t, params, noise)
     for sample in log:  # the protocol promises observe() after every sample
         controller.observe(sample)
@@ -361,12 +367,8 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
     R, t = np.empty((m, 3, 3)), np.empty((m, 3))
     for i, k in enumerate(range(rows.start, rows.stop)):
         strokes[i] = _commanded(controller, R_d[i], t_d[i], plan.payload_kg[k])
-        sol, params[i : i + 1] = settle(
-            robot.load,
-            robot.base_params,
-            strokes[i : i + 1],
-            plan.payload_kg[k : k + 1],
-            (R_d[i : i + 1], t_d[i : i + 1]),
+        sol, params[i : i + 1] = robot.settling.settle(
+            strokes[i : i + 1], plan.payload_kg[k : k + 1], (R_d[i : i + 1], t_d[i : i + 1])
         )
         R[i], t[i] = sol.R[0], sol.t[0]
         controller.observe(

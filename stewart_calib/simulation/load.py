@@ -1,7 +1,9 @@
 """Load model: payload + platform weight → static equilibrium → axial leg forces → compliance → δM.
 
-Pure, vectorised numpy (batch axes ``...`` over poses). The chain, for a pose ``(R, t)`` of
-{D} in {J} and the drive geometry in force:
+One compiled pass over the poses (batch axes ``...``; :func:`_settle_poses`): the closed loop
+settles an adaptive controller's samples one at a time, and the vectorised numpy of this chain cost
+~0.4 ms a sample there — a few seconds of every online run of ``reproduce``. The chain, for a pose
+``(R, t)`` of {D} in {J} and the drive geometry in force:
 
 1. **Gravity wrench** on the platform about its origin ``t`` (in {J}): each mass ``m_k`` [kg] at
    ``c_k`` in {D} contributes ``F = m_k g`` and ``M = (R c_k) × m_k g`` with
@@ -31,13 +33,23 @@ so each iteration gains ~3 orders of magnitude; two are plenty).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from .. import kinematics as kin
-from ..platform import Elastic, LegGeometry, vector_to_params
-from ..statics import gravity_leg_forces, masses_and_centres
+from .._jit import F8_1, F8_2, F8_3, FLOAT, I8_1, INT, RO_1, RO_2, njit
+from .._kernels import _finite_target, _fk_work, _newton
+from ..platform import Elastic, LegGeometry
+from ..statics import (
+    SINGULAR_RATIO,
+    SingularStatics,
+    _singular_message,
+    masses_and_centres,
+    moment_radius,
+    pose_gravity_forces,
+)
 
 
 @dataclass(frozen=True)
@@ -86,18 +98,193 @@ def elastic_of(load: LoadModel) -> Elastic | None:
     )
 
 
-def compliance_drift(
-    load: LoadModel, legs: LegGeometry, R: np.ndarray, t: np.ndarray, forces_N: np.ndarray
-) -> np.ndarray:
-    """Parameter change δM from axial forces (step 3 of the module docstring), ``(..., 6, 7)`` [mm]."""
-    n = kin.leg_unit_vectors(legs, R, t)
-    push = n * forces_N[..., None]  # force of leg i on the platform, in {J} [N]
-    push_body = np.einsum("...ji,...kj->...ki", R, push)  # the same in {D}
-    d_platform = push_body / load.platform_joint_N_per_mm
-    d_platform[..., 2] += push_body[..., 2] / load.bending_N_per_mm
-    return np.concatenate(
-        [-push / load.base_joint_N_per_mm, d_platform, (-forces_N / load.leg_N_per_mm)[..., None]], axis=-1
+def _stiffness(load: LoadModel) -> np.ndarray:
+    """``[k_leg, k_base_joint, k_platform_joint, k_bending]`` [N/mm] as the kernels take them."""
+    return np.array(
+        [load.leg_N_per_mm, load.base_joint_N_per_mm, load.platform_joint_N_per_mm, load.bending_N_per_mm], dtype=float
     )
+
+
+@njit(nogil=True, error_model="numpy")
+def _pose_drift(base_params, R, t, forces, stiffness, params):
+    """``params = M_base + δM`` (step 3 of the module docstring) of one pose from its leg forces [N]:
+    ``n_i`` on the base geometry ``base_params (42,)``; ``stiffness`` as :func:`_stiffness`."""
+    k_leg, k_base, k_platform, k_bending = stiffness[0], stiffness[1], stiffness[2], stiffness[3]
+    for i in range(6):
+        o = 7 * i
+        v = np.empty(3)
+        for a in range(3):
+            v[a] = (
+                t[a]
+                + R[a, 0] * base_params[o + 3]
+                + R[a, 1] * base_params[o + 4]
+                + R[a, 2] * base_params[o + 5]
+                - base_params[o + a]
+            )
+        norm = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        f = forces[i]
+        for a in range(3):
+            v[a] = v[a] / norm * f  # the push of leg i on the platform, in {J} [N]
+            params[o + a] = base_params[o + a] - v[a] / k_base
+        for a in range(3):  # the same push in {D}: Rᵀ (n_i f_i)
+            body = R[0, a] * v[0] + R[1, a] * v[1] + R[2, a] * v[2]
+            sink = body / k_platform + body / k_bending if a == 2 else body / k_platform
+            params[o + 3 + a] = base_params[o + 3 + a] + sink
+        params[o + 6] = base_params[o + 6] - f / k_leg
+
+
+_POSE_INPUTS = (RO_1, F8_3, F8_2, F8_2, RO_2, FLOAT, F8_1)  # base params, R, t, masses, centres, radius, stiffness
+
+
+@njit(entry=(*_POSE_INPUTS, F8_2, F8_2, F8_1), nogil=True, error_model="numpy")
+def _loaded_params(base_params, R, t, masses, coms, radius, stiffness, params, forces, ratios):
+    """:func:`loaded_params` of every pose ``k`` into ``params[k]``, ``forces[k]`` and the statics'
+    Hadamard ratio ``ratios[k]`` (params and forces unset below :data:`~stewart_calib.statics.SINGULAR_RATIO`)."""
+    base, plat = _joints(base_params)
+    A, w = np.empty((6, 6)), np.empty((6, 1))
+    for k in range(R.shape[0]):
+        ratios[k] = pose_gravity_forces(base, plat, R[k], t[k], masses[k], coms, radius, A, w, forces[k])
+        if ratios[k] >= SINGULAR_RATIO:
+            _pose_drift(base_params, R[k], t[k], forces[k], stiffness, params[k])
+
+
+@njit(entry=(*_POSE_INPUTS, F8_2, INT, FLOAT, INT, F8_2, F8_2, F8_1, F8_1, I8_1), nogil=True, error_model="numpy")
+def _settle_poses(
+    base_params,
+    R,
+    t,
+    masses,
+    coms,
+    radius,
+    stiffness,
+    strokes,
+    iterations,
+    tol_mm,
+    max_iterations,
+    params,
+    forces,
+    ratios,
+    residual,
+    newton_steps,
+):
+    """:func:`settle` of every pose ``k`` from its guess ``(R[k], t[k])`` (overwritten with where it
+    rests): ``iterations`` × (forces and ``params[k]`` at the pose, then FK of ``strokes[k]`` on
+    ``params[k]``); ``ratios[k]`` the statics' last Hadamard ratio (below the bound: stopped there),
+    ``residual[k]`` FK's last max |length error| [mm] (``inf`` for a non-finite stroke) after its
+    ``newton_steps[k]`` Newton steps."""
+    base, plat = _joints(base_params)
+    A, w = np.empty((6, 6)), np.empty((6, 1))
+    work = _fk_work()
+    drive_base, drive_plat, lengths = np.empty((6, 3)), np.empty((6, 3)), np.empty(6)
+    for k in range(R.shape[0]):
+        residual[k], newton_steps[k] = math.inf, 0
+        for _ in range(iterations):
+            ratios[k] = pose_gravity_forces(base, plat, R[k], t[k], masses[k], coms, radius, A, w, forces[k])
+            if not ratios[k] >= SINGULAR_RATIO:
+                break
+            _pose_drift(base_params, R[k], t[k], forces[k], stiffness, params[k])
+            for i in range(6):
+                for a in range(3):
+                    drive_base[i, a] = params[k, 7 * i + a]
+                    drive_plat[i, a] = params[k, 7 * i + 3 + a]
+                lengths[i] = params[k, 7 * i + 6]
+            if not _finite_target(lengths, strokes[k], work[5]):
+                residual[k] = math.inf
+                break
+            newton_steps[k], residual[k] = _newton(
+                drive_base, drive_plat, work[5], R[k], t[k], tol_mm, max_iterations, work
+            )
+
+
+@njit(nogil=True, error_model="numpy")
+def _joints(base_params):
+    """``(j_i (6, 3), d_i (6, 3))`` of a parameter vector ``(42,)``."""
+    base, plat = np.empty((6, 3)), np.empty((6, 3))
+    for i in range(6):
+        for a in range(3):
+            base[i, a] = base_params[7 * i + a]
+            plat[i, a] = base_params[7 * i + 3 + a]
+    return base, plat
+
+
+@dataclass(frozen=True)
+class Settling:
+    """A load model acting on one robot's unloaded drive, as the kernels take it: made once per robot,
+    since per sample of the closed loop these conversions cost more than the kernels themselves.
+
+    Attributes:
+        base_params: ``(42,)`` true unloaded drive parameters [mm], read-only.
+        centres: ``(2, 3)`` the platform's and the payload's centres of mass in {D} [mm], read-only.
+        platform_mass_kg: the platform's own mass [kg].
+        radius: the statics' moment radius (:func:`~stewart_calib.statics.moment_radius`) [mm].
+        stiffness: as :func:`_stiffness`.
+        iterations: FK ↔ compliance iterations of :meth:`settle`.
+    """
+
+    base_params: np.ndarray
+    centres: np.ndarray
+    platform_mass_kg: float
+    radius: float
+    stiffness: np.ndarray
+    iterations: int
+
+    @classmethod
+    def of(cls, load: LoadModel, base_params: np.ndarray) -> Settling:
+        base = np.array(base_params, dtype=float)
+        _, centres = masses_and_centres(load.platform_mass_kg, load.platform_com_mm, 0.0, load.payload_com_mm, ())
+        centres = np.ascontiguousarray(centres, dtype=float)
+        for array in (base, centres):
+            array.setflags(write=False)
+        radius = moment_radius(LegGeometry.from_params(base))
+        return cls(base, centres, float(load.platform_mass_kg), radius, _stiffness(load), int(load.iterations))
+
+    def _inputs(self, R: np.ndarray, t: np.ndarray, payload_kg) -> tuple[tuple, tuple]:
+        """``(batch, the kernels' pose inputs)`` of poses ``(R, t)`` (copied: the kernels overwrite them)."""
+        batch = np.broadcast_shapes(np.shape(R)[:-2], np.shape(t)[:-1], np.shape(payload_kg))
+        R_flat = np.array(np.broadcast_to(R, (*batch, 3, 3)), dtype=float).reshape(-1, 3, 3)
+        t_flat = np.array(np.broadcast_to(t, (*batch, 3)), dtype=float).reshape(-1, 3)
+        masses = np.empty((len(R_flat), 2))
+        masses[:, 0] = self.platform_mass_kg
+        masses[:, 1] = np.broadcast_to(payload_kg, batch).reshape(-1)
+        return batch, (self.base_params, R_flat, t_flat, masses, self.centres, self.radius, self.stiffness)
+
+    def loaded_params(self, R: np.ndarray, t: np.ndarray, payload_kg) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`loaded_params` on this robot."""
+        batch, inputs = self._inputs(R, t, payload_kg)
+        n = len(inputs[1])
+        params, forces, ratios = np.empty((n, 42)), np.empty((n, 6)), np.empty(n)
+        _loaded_params(*inputs, params, forces, ratios)
+        _refuse_singular(ratios)
+        return params.reshape(batch + (42,)), forces.reshape(batch + (6,))
+
+    def settle(
+        self, strokes: np.ndarray, payload_kg, guess: tuple[np.ndarray, np.ndarray]
+    ) -> tuple[kin.FKSolution, np.ndarray]:
+        """:func:`settle` on this robot."""
+        strokes = np.ascontiguousarray(strokes, dtype=float).reshape(-1, 6)
+        n = len(strokes)
+        _, inputs = self._inputs(*guess, np.broadcast_to(payload_kg, n))
+        params, forces, ratios, residual = np.empty((n, 42)), np.empty((n, 6)), np.empty(n), np.empty(n)
+        steps = np.empty(n, dtype=np.int64)
+        fk = (kin.FK_TOLERANCE_MM, kin.FK_MAX_ITERATIONS)
+        _settle_poses(*inputs, strokes, self.iterations, *fk, params, forces, ratios, residual, steps)
+        _refuse_singular(ratios)
+        converged = residual <= kin.FK_TOLERANCE_MM
+        if not converged.all():
+            first = int(np.flatnonzero(~converged)[0])
+            finite = np.all(np.isfinite(strokes[first]))
+            reason = f"residual {residual[first]:.3g} mm" if finite else "non-finite lengths"
+            raise kin.FKError(
+                f"forward kinematics did not converge (pose {first}): {reason}; the leg lengths may be unreachable"
+            )
+        return kin.FKSolution(inputs[1], inputs[2], steps, converged, residual), params
+
+
+def _refuse_singular(ratios: np.ndarray) -> None:
+    bad = np.flatnonzero(~(ratios >= SINGULAR_RATIO))
+    if bad.size:
+        index = int(bad[0])
+        raise SingularStatics(_singular_message(index, float(ratios[index])), index)
 
 
 def loaded_params(
@@ -113,21 +300,20 @@ def loaded_params(
         payload_kg: scalar or ``(...)`` payload mass [kg].
     Returns:
         ``((..., 42) params [mm], (..., 6) leg forces [N])``.
+    Raises:
+        SingularStatics: at a pose where the statics matrix is singular.
     """
-    legs = LegGeometry.from_params(base_params)
-    batch = np.shape(t)[:-1]
-    masses, coms = masses_and_centres(
-        load.platform_mass_kg, load.platform_com_mm, payload_kg, load.payload_com_mm, batch
-    )
-    forces = gravity_leg_forces(legs, R, t, masses, coms)
-    drift = compliance_drift(load, legs, R, t, forces)
-    return np.asarray(base_params) + drift.reshape(batch + (42,)), forces
+    return Settling.of(load, base_params).loaded_params(R, t, payload_kg)
 
 
 def settle(
     load: LoadModel, base_params: np.ndarray, strokes: np.ndarray, payload_kg, guess: tuple[np.ndarray, np.ndarray]
 ) -> tuple[kin.FKSolution, np.ndarray]:
     """Where the loaded robot comes to rest for executed strokes: FK ↔ compliance fixed point.
+
+    Forces at the latest pose estimate; the last FK lands within ~1e-6 of the drift's own pose
+    change of where those forces were taken, so two iterations (``load.iterations``) reach the
+    nm level.
 
     Args:
         base_params: ``(42,)`` true unloaded drive parameters [mm].
@@ -138,13 +324,6 @@ def settle(
         ``(FK solution of the final iteration, (N, 42) true params in force [mm])``.
     Raises:
         kinematics.FKError: some pose did not converge (unreachable strokes).
+        SingularStatics: the statics matrix is singular at a pose on the way.
     """
-    R, t = guess
-    for _ in range(load.iterations):
-        # Forces at the latest pose estimate; the last FK lands within ~1e-6 of the drift's own
-        # pose change of where those forces were taken, so two iterations reach the nm level.
-        params, _ = loaded_params(load, base_params, R, t, payload_kg)
-        p = vector_to_params(params)  # (N, 6, 7): every pose has its own drive geometry
-        sol = kin.forward_kinematics_per_pose(p[..., 0:3], p[..., 3:6], p[..., 6], strokes, (R, t))
-        R, t = sol.R, sol.t
-    return sol, params
+    return Settling.of(load, base_params).settle(strokes, payload_kg, guess)
