@@ -36,8 +36,7 @@ import scipy.optimize
 
 from stewart_calib import kinematics as kin
 from stewart_calib.config import EstimatorConfig
-from stewart_calib.instruments import lie, pose
-from stewart_calib.instruments.external import model_for
+from stewart_calib.instruments import lie, outside_model, pose
 from stewart_calib.platform import LegGeometry, Platform, load_platform
 from stewart_calib.resources import CONFIGS
 from stewart_calib.samples import Log
@@ -203,7 +202,7 @@ def _peer_residual(theta: np.ndarray, strokes: np.ndarray, measured: np.ndarray)
 
 def peer_fit(platform: Platform, log: Log) -> np.ndarray:
     """The 48-parameter plain least squares (see the module docstring), from our closed-form start."""
-    model = model_for(platform)
+    model = outside_model(platform)
     fk = kin.forward_kinematics(platform.drive, log.strokes, strict=False)
     start = model.register(fk.R, fk.t, log.readings)
     R_Fi, t_Fi = lie.inverse(start.R_frame, start.t_frame)
@@ -229,7 +228,7 @@ def peer_held_out(theta: np.ndarray, log: Log, register: bool) -> tuple[float, f
     if register:  # a rigid frame fitted to this log, as ours is: the same refit with X = the peer's pose
         identity = pose.PoseUnknowns(np.eye(3), np.zeros(3), np.eye(3), np.zeros(3))
         platform = load_platform(HOBBY)
-        frame = model_for(platform).refit_frame(identity, R, t, log.readings)
+        frame = outside_model(platform).refit_frame(identity, R, t, log.readings)
         R, t = pose.predict(frame, R, t)
     position, orientation = kin.pose_error(R_m, t_m, R, t)
     return _rms(position), _rms(orientation)

@@ -83,12 +83,12 @@ def required_samples(platform: Platform) -> tuple[int, int, str]:
     """``(samples needed, unknowns, what they are)`` for a calibration of ``platform``'s drive
     with its instrument: the unknowns the data must fix (gauge directions excluded) over the
     values one sample measures."""
-    from .instruments.external import model_for
+    from .instruments import outside_model
 
     if not instrument_kind(platform).outside:
         return math.ceil(42 / N_LEGS), 42, "42 drive parameters"
-    model = model_for(platform)
-    own, per_sample = model.nominal_unknowns().size, model.sigmas.size
+    model = outside_model(platform)
+    own, per_sample = model.nominal_unknowns().size, model.channel_sigma.size
     unknowns = 42 + N_LEGS + own - 12
     what = f"42 drive parameters, 6 stroke scales and {own} of the instrument, less 12 gauge directions"
     return math.ceil(unknowns / per_sample), unknowns, what
@@ -229,15 +229,15 @@ def _wiring_message(order, sign, columns, as_logged: float, rewired: float) -> s
 def _pose_lengths(platform: Platform, strokes: np.ndarray, readings: np.ndarray):
     """Leg lengths of the nominal drive at the platform poses the readings give ``(N, 6)`` [mm]
     (NaN rows where no pose), and the whitened RMS of the registration that mapped them."""
-    from .instruments.external import model_for
+    from .instruments import outside_model
 
-    reading_legs = instrument_kind(platform).reading_legs
+    reading_legs = instrument_kind(platform).reading_legs(platform)
     if reading_legs is not None:
-        fk = kin.forward_kinematics(reading_legs(platform), readings, strict=False)
+        fk = kin.forward_kinematics(reading_legs, readings, strict=False)
         lengths = kin.leg_lengths(platform.drive, fk.R, fk.t)
         lengths[~fk.converged] = np.nan
         return lengths, None
-    model = model_for(platform)
+    model = outside_model(platform)
     fk = _fk(platform, strokes)
     usable = fk.converged & np.any(np.isfinite(readings), axis=1)
     if usable.sum() < 3:
@@ -246,7 +246,7 @@ def _pose_lengths(platform: Platform, strokes: np.ndarray, readings: np.ndarray)
         unknowns = model.register(fk.R[usable], fk.t[usable], readings[usable])
     except CalibError:
         return None, None
-    e = model.module.residual(unknowns, readings[usable], fk.R[usable], fk.t[usable])[0] / model.sigmas
+    e = model.readings_residual(unknowns, readings[usable], fk.R[usable], fk.t[usable])[0] / model.channel_sigma
     whitened = float(np.sqrt(np.nanmean(e**2)))
     poses = model.platform_poses(unknowns, readings[usable])
     if poses is None:

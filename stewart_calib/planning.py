@@ -39,8 +39,7 @@ from .accuracy import PredictedError, error_weight, predicted_error, reachable_p
 from .config import NoiseConfig
 from .errors import CalibError
 from .identifiability import RANK_RTOL, scaled_paper_jacobian, whitened_leg_jacobian
-from .instruments import instrument_kind
-from .instruments.external import information_rows
+from .instruments import instrument_kind, outside_model
 from .platform import N_PARAMS, Platform
 
 CRITERIA = ("A", "D", "O1", "E", "I")
@@ -121,7 +120,7 @@ def _design(platform: Platform, poses: np.ndarray, criterion: str, noise: NoiseC
 
     The tracker's blocks are the 42 drive parameters' (whitened leg-length form, or the paper's
     ``J_p`` form for ``O1``); an outside instrument's are every unknown of the batch fit
-    (:func:`stewart_calib.instruments.external.information_rows`). ``A`` weighs the 42 drive
+    (:meth:`stewart_calib.instruments.external.OutsideModel.information_rows`). ``A`` weighs the 42 drive
     parameters alike, ``I`` by the closed-loop error they cause (:func:`accuracy.error_weight`).
     """
     if not instrument_kind(platform).outside:
@@ -134,7 +133,7 @@ def _design(platform: Platform, poses: np.ndarray, criterion: str, noise: NoiseC
             f"criterion: O1 is of the paper's J_p form, the in-situ tracker's; expected one of "
             f"{', '.join(c for c in CRITERIA if c != 'O1')} for a '{platform.instrument.kind}' instrument"
         )
-    blocks, lift = information_rows(platform, poses)
+    blocks, lift = outside_model(platform).information_rows(poses)
     if criterion == "I":
         W = error_weight(platform)
         weight = lift[: len(W)].T @ W @ lift[: len(W)]
@@ -320,12 +319,13 @@ def design_covariance(
     drive parameters for the tracker (whitened leg-length form), over ``[δM (42), k (6),
     instrument]`` for an outside instrument (its batch fit's unknowns, gauge held). None when the
     poses do not identify every unknown (singular values below ``RANK_RTOL`` of the largest).
-    ``seen``: a points instrument's targets seen at each pose (:func:`information_rows`)."""
+    ``seen``: ``(N, m)`` the instrument's channels read at each pose (a log's finite readings;
+    default: those in view, :meth:`~stewart_calib.instruments.external.OutsideModel.information_rows`)."""
     poses = np.asarray(poses, dtype=float).reshape(-1, 6)
     if not instrument_kind(platform).outside:
         rows, lift = whitened_leg_jacobian(platform, poses, noise or NoiseConfig()), np.eye(N_PARAMS)
     else:
-        rows, lift = information_rows(platform, poses, seen)
+        rows, lift = outside_model(platform).information_rows(poses, seen)
     _, s, Vt = np.linalg.svd(rows.reshape(-1, rows.shape[-1]), full_matrices=False)
     if s[-1] <= RANK_RTOL * s[0]:
         return None

@@ -83,14 +83,13 @@ def validate(
     """
     _check_nominal(platform, result, result_source)
     R_X, t_X = _model_poses(platform, result, log, result_source, first_sample)
-    reading_legs = instrument_kind(platform).reading_legs
-    if reading_legs is not None:
+    legs = instrument_kind(platform).reading_legs(platform)
+    if legs is not None:
         if register:
             raise CalibError(
                 "--register-instrument: the in-situ tracker is part of the robot; "
                 "it has no frame of its own to fit again"
             )
-        legs = reading_legs(platform)
         predicted = kin.inverse_kinematics(legs, R_X, t_X)
         if not errors:
             return predicted, None, None
@@ -104,9 +103,9 @@ def validate(
         position, orientation = kin.pose_error(seen.R, seen.t, R_X, t_X)
         return predicted, position, orientation
 
-    from .instruments.external import model_for
+    from .instruments import outside_model
 
-    model = model_for(platform)
+    model = outside_model(platform)
     values = _block(result, "instrument", model.unknown_names, result_source)
     unknowns = model.nominal_unknowns() if values is None else model.unknowns_from_file(values)
     if register:
@@ -119,17 +118,17 @@ def pose_errors(platform: Platform, result: dict, log, register: bool, source: s
     between the measured and predicted orientation [deg] (NaN for points, which give none); for
     the tracker in {J} (its forward kinematics of the readings against the model's of the
     strokes), for a pose in the instrument's axes, for points one row per target seen."""
-    reading_legs = instrument_kind(platform).reading_legs
+    reading_legs = instrument_kind(platform).reading_legs(platform)
     if reading_legs is not None:
         R_X, t_X = _model_poses(platform, result, log, source)
-        seen = kin.forward_kinematics(reading_legs(platform), log.readings, guess=(R_X, t_X), strict=False)
+        seen = kin.forward_kinematics(reading_legs, log.readings, guess=(R_X, t_X), strict=False)
         keep = seen.converged
         _, orientation = kin.pose_error(seen.R[keep], seen.t[keep], R_X[keep], t_X[keep])
         return np.column_stack([seen.t[keep] - t_X[keep], orientation])
-    from .instruments.external import model_for
+    from .instruments import outside_model
 
     predicted, _, orientation = validate(platform, result, log, register, source)
-    difference = model_for(platform).position_differences(log.readings, predicted)
+    difference = outside_model(platform).position_differences(log.readings, predicted)
     return np.column_stack([difference, np.full(len(difference), np.nan) if orientation is None else orientation])
 
 

@@ -17,8 +17,8 @@ from stewart_calib.cli import main as cli_main
 from stewart_calib.drive import drive_model
 from stewart_calib.errors import CalibError
 from stewart_calib.estimators import batch
-from stewart_calib.instruments import lie
-from stewart_calib.instruments.external import information_rows, model_for, visible_targets
+from stewart_calib.instruments import lie, outside_model
+from stewart_calib.instruments.points import visible_targets
 from stewart_calib.io import read_pose_list
 from stewart_calib.platform import Instrument, parse_platform, platform_to_toml
 
@@ -91,16 +91,14 @@ def test_prediction_matches_the_spread_of_simulated_estimates(wide_points):
 def test_information_rows_are_the_batch_fits_jacobian(kind, wide_points, wide_pose):
     platform = wide_points if kind == "points" else wide_pose
     poses = accuracy.reachable_poses(platform, 12, np.random.default_rng(3))
-    rows, lift = information_rows(platform, poses)
-    model = model_for(platform)
+    model = outside_model(platform)
+    rows, lift = model.information_rows(poses)
     R, t = kin.pose_to_rt(poses)
-    predicted = model.module.predict(model.nominal_unknowns(), R, t)
-    readings = kin.rt_to_pose(*predicted) if kind == "pose" else predicted.reshape(len(R), -1)
+    readings = model.predicted_readings(model.nominal_unknowns(), R, t)
     drive = drive_model(platform).identifying()
     problem = batch.BatchProblem(
-        drive, drive.inputs(drive.inverse_kinematics(R, t)), readings, model.module, model.register,
-        model.sigmas, model.channels, model.channel_names, np.arange(len(R), dtype=float),
-    )  # fmt: skip
+        drive, drive.inputs(drive.inverse_kinematics(R, t)), readings, model, np.arange(len(R), dtype=float)
+    )
     unknowns = model.nominal_unknowns()
     covariance = batch.cramer_rao(problem, np.zeros(drive.size), unknowns)
     A = rows.reshape(-1, rows.shape[-1])
@@ -171,14 +169,14 @@ def test_a_target_outside_its_cone_gives_no_information(wide_points):
     above = replace(below, frame=np.r_[0.0, 0.0, 2000.0, 0.0, 0.0, 0.0], target_axes=np.tile([0.0, 0.0, 1.0], (3, 1)))
     home = wide_points.workspace.home
     R, t = kin.pose_to_rt(home[None])
-    assert not visible_targets(replace(wide_points, instrument=below), R, t).any()
-    assert visible_targets(replace(wide_points, instrument=above), R, t).all()
-    rows, _ = information_rows(replace(wide_points, instrument=below), home[None])
+    assert not visible_targets(below, R, t).any()
+    assert visible_targets(above, R, t).all()
+    rows, _ = outside_model(replace(wide_points, instrument=below)).information_rows(home[None])
     assert not rows.any()
     # tilted 40° about x, a target whose axis leans 30° the other way leaves a 60° cone
     tilted = replace(above, target_axes=np.array([[0.0, 0.0, 1.0], [0.0, 0.5, 0.866], [0.0, -0.5, 0.866]]))
     R, t = kin.pose_to_rt(np.r_[home[:3], np.radians(40.0), 0.0, 0.0][None])
-    seen = visible_targets(replace(wide_points, instrument=tilted), R, t)[0]
+    seen = visible_targets(tilted, R, t)[0]
     assert seen.tolist() == [True, True, False]
 
 

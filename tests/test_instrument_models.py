@@ -8,7 +8,7 @@ import pytest
 
 from stewart_calib import kinematics as kin
 from stewart_calib.errors import CalibError
-from stewart_calib.instruments import gauge, lie, points, pose, registration
+from stewart_calib.instruments import gauge, lie, points, pose
 from tests.numdiff import EPS_MM, EPS_RAD, numerical_jacobian, numerical_pose_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_poses
 
@@ -129,7 +129,7 @@ def test_register_pose_recovers_any_frame_and_target_exactly():
         np.r_[100.0, -80.0, 40.0, 2.0, -1.0, 3.0], np.r_[10.0, 20.0, -30.0, 0.5, 1.2, -2.0]
     )
     R_M, t_M = pose.predict(u, R_X, t_X)
-    found = registration.register_pose(R_X, t_X, R_M, t_M, np.r_[[1e-4] * 3, [0.01] * 3])
+    found = pose.register_pose(R_X, t_X, R_M, t_M, np.r_[[1e-4] * 3, [0.01] * 3])
     np.testing.assert_allclose(found.file_values(), u.file_values(), atol=1e-9)
 
 
@@ -140,7 +140,7 @@ def test_register_points_recovers_frame_and_targets_with_dropouts():
     measured = points.predict(u, R_X, t_X).reshape(20, -1)
     measured[::2, 3:6] = np.nan
     measured[1::3, 0:3] = np.nan
-    found = registration.register_points(R_X, t_X, measured, 0.01)
+    found = points.register_points(R_X, t_X, measured, 0.01)
     np.testing.assert_allclose(found.file_values(), u.file_values(), atol=1e-8)
 
 
@@ -149,7 +149,12 @@ def test_refit_frame_recovers_a_moved_frame():
     u = pose.PoseUnknowns.from_pose6(np.r_[30.0, 5.0, -20.0, 0.2, 0.1, 2.0], np.r_[1.0, 2.0, 3.0, 0.1, 0.0, 0.3])
     measured = kin.rt_to_pose(*pose.predict(u, R_X, t_X))
     start = pose.PoseUnknowns(np.eye(3), np.zeros(3), u.R_target, u.t_target)
-    found = registration.refit_frame(pose, start, measured, R_X, t_X, np.r_[[1e-3] * 3, [0.1] * 3])
+    from dataclasses import replace
+
+    from stewart_calib.platform import Instrument
+
+    platform = replace(nim_stewart(), instrument=Instrument("pose", position_sigma_mm=0.1, orientation_sigma_rad=1e-3))
+    found = pose.PoseModel(platform).refit_frame(start, R_X, t_X, measured)
     np.testing.assert_allclose(found.file_values(), u.file_values(), atol=1e-9)
 
 
@@ -158,10 +163,10 @@ def test_registration_refuses_identical_poses_with_the_reason():
     R_X, t_X = np.repeat(R_X, 5, axis=0), np.repeat(t_X, 5, axis=0)
     u = pose.PoseUnknowns.from_pose6(np.zeros(6), np.zeros(6))
     with pytest.raises(CalibError, match="1 distinct pose"):
-        registration.register_pose(R_X, t_X, *pose.predict(u, R_X, t_X), np.r_[[1e-3] * 3, [0.1] * 3])
+        pose.register_pose(R_X, t_X, *pose.predict(u, R_X, t_X), np.r_[[1e-3] * 3, [0.1] * 3])
     measured = points.predict(points.PointsUnknowns(np.eye(3), np.zeros(3), np.ones((1, 3))), R_X, t_X).reshape(5, 3)
     with pytest.raises(CalibError, match="distinct pose"):
-        registration.register_points(R_X, t_X, measured, 0.1)
+        points.register_points(R_X, t_X, measured, 0.1)
 
 
 def test_registration_refuses_poses_that_do_not_rotate():
@@ -169,7 +174,7 @@ def test_registration_refuses_poses_that_do_not_rotate():
     R_X = np.repeat(R_X[:1], 6, axis=0)  # translations only
     u = pose.PoseUnknowns.from_pose6(np.r_[0, 0, 0, 0.1, 0.2, 0.3], np.zeros(6))
     with pytest.raises(CalibError, match="rotate about two different axes"):
-        registration.register_pose(R_X, t_X, *pose.predict(u, R_X, t_X), np.r_[[1e-3] * 3, [0.1] * 3])
+        pose.register_pose(R_X, t_X, *pose.predict(u, R_X, t_X), np.r_[[1e-3] * 3, [0.1] * 3])
 
 
 # ----------------------------------------------------------------------------- the InstrumentModel protocol

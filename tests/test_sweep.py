@@ -19,7 +19,7 @@ from stewart_calib.drive import drive_model
 from stewart_calib.errors import CalibError
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.base import feed
-from stewart_calib.instruments.external import registered_platform
+from stewart_calib.instruments import registered
 from stewart_calib.sweep import store
 from stewart_calib.sweep.spec import INSTRUMENTS, load_spec, parse_spec
 from stewart_calib.sweep.task import bound_stddev_mm, payload_schedule, run_task, simulate, task_rng
@@ -414,7 +414,7 @@ def test_lm_measures_the_noise_it_was_told_on_a_drifting_robot_measured_from_out
     grid = {"instrument": "pose", "samples": 1000, "drift_mm_per_sqrt_s": 0.002, "robust": {"adapt_noise": True}}
     cell = spec_of({"methods": ["lm"], "seeds": 1, "grid": grid}, tmp_path).cells[0]
     data = simulate(cell.settings, cell.platform, task_rng(cell.id, 0))
-    platform = registered_platform(data.platform, data.log.strokes, data.log.readings)
+    platform = registered(data.platform, data.log.strokes, data.log.readings)
     lm = make_estimator("lm", platform, cell.estimator_config)
     lm.fit(list(data.log))
     assert abs(lm.noise_scale() ** 2 - 1.0) < 4.0 * np.sqrt(2.0 / 2982), lm.noise_scale() ** 2

@@ -28,9 +28,7 @@ Robust by construction, with nothing for a user to tune:
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
-from types import ModuleType
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -38,7 +36,7 @@ from numpy.typing import ArrayLike
 from .. import kinematics as kin
 from ..drive import DriveModel
 from ..errors import CalibError, SampleRejected
-from ..instruments import gauge
+from ..instruments import OutsideModel, gauge, outside_model
 from ..platform import N_LEGS, N_PARAMS
 
 #: a singular value below this fraction of the largest counts as zero
@@ -61,11 +59,10 @@ class BatchProblem:
         drive: the drive model (its unknown blocks are fitted where identifiable).
         inputs: ``(N, width)`` the samples' drive inputs (the logged strokes q [mm]).
         measured: ``(N, m)`` readings in code units (NaN: a point target not seen).
-        model: :mod:`~stewart_calib.instruments.pose` or :mod:`~stewart_calib.instruments.points`.
-        register: closed-form start, ``register(R_X, t_X, measured) -> unknowns``.
-        sigmas: ``(m,)`` σ of a reading's components from the platform file.
-        channels: ``(m,)`` which noise channel each component belongs to (0, 1, …).
-        channel_names: a name per channel (``"orientation_rad"``, ``"position_mm"``).
+        model: the instrument's model (:class:`~stewart_calib.instruments.external.OutsideModel`):
+            its readings' residual, closed-form start (``register``), the σ of a reading's
+            components from the platform file (``channel_sigma``) and the noise channel each
+            belongs to (``noise_channels``, named by ``noise_channel_names``).
         t_s: ``(N,)`` sample times [s].
         payload_kg: ``(N,)`` the samples' payload [kg] where the drive is elastic (None: 0); its leg
             forces are then taken at the drive's forward-kinematics poses of each step of the fit.
@@ -74,11 +71,7 @@ class BatchProblem:
     drive: DriveModel
     inputs: np.ndarray
     measured: np.ndarray
-    model: ModuleType
-    register: Callable
-    sigmas: np.ndarray
-    channels: np.ndarray
-    channel_names: tuple[str, ...]
+    model: OutsideModel
     t_s: np.ndarray
     payload_kg: np.ndarray | None = None
 
@@ -89,19 +82,13 @@ class BatchProblem:
         """The problem of a log of ``platform``'s outside instrument, with the platform file's σ
         and the drive model's unknowns (an elastic drive's under the samples' ``payload_kg``)."""
         from ..drive import drive_model
-        from ..instruments.external import model_for
 
-        model = model_for(platform)
         drive = drive_model(platform).identifying()
         return cls(
             drive,
             drive.inputs_near(np.asarray(strokes, dtype=float)),
             np.asarray(measured, dtype=float),
-            model.module,
-            model.register,
-            model.sigmas,
-            model.channels,
-            model.channel_names,
+            outside_model(platform),
             np.asarray(t_s, dtype=float),
             None if payload_kg is None else np.asarray(payload_kg, dtype=float),
         )
@@ -197,12 +184,12 @@ def fit(
     if rejected:
         problem = _subset(problem, ok)
         R0, t0, inputs0 = R0[ok], t0[ok], inputs0[ok]
-    unknowns = problem.register(R0, t0, problem.measured)
+    unknowns = problem.model.register(R0, t0, problem.measured)
     state = _State(start, unknowns, R0, t0, inputs0)
 
     basis = gauge.free_basis(problem.drive.legs)
-    sigmas = np.array(problem.sigmas, dtype=float)
-    start_rms = _channel_rms(problem, problem.model.residual(unknowns, problem.measured, R0, t0)[0])
+    sigmas = np.array(problem.model.channel_sigma, dtype=float)
+    start_rms = _channel_rms(problem, problem.model.readings_residual(unknowns, problem.measured, R0, t0)[0])
     fit_blocks = drive_blocks != "off"
     if drive_blocks == "auto":
         fit_blocks = all(_blocks_identifiable(problem, state, basis, sigmas).values())
@@ -211,7 +198,7 @@ def fit(
     for _ in range(MAX_ROUNDS):
         state, evaluated = _levenberg_marquardt(problem, state, basis, sigmas, weights, fit_blocks, tolerance_mm)
         evaluations += evaluated
-        e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0]
+        e = problem.model.readings_residual(state.unknowns, problem.measured, state.R, state.t)[0]
         n_unknowns = _reduced_size(problem, basis, fit_blocks, state.unknowns.size)
         new_sigmas = _channel_sigmas(problem, e, weights, sigmas, n_unknowns) if estimate_noise else sigmas
         # weights from a robust scale (MAD): a gross error inflates the RMS that would judge it
@@ -230,7 +217,7 @@ def fit(
         reduced = (Vt.T / s**2) @ Vt
         lift = _lift(problem, basis, fit_blocks, state.unknowns.size)
         covariance = lift @ reduced @ lift.T
-    e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0]
+    e = problem.model.readings_residual(state.unknowns, problem.measured, state.R, state.t)[0]
     used = np.ones(n, dtype=bool)
     used[[k for k, _ in rejected]] = False
     return BatchSolution(
@@ -238,7 +225,10 @@ def fit(
         unknowns=state.unknowns,
         covariance=covariance,
         drive_blocks_fitted=bool(fit_blocks),
-        noise_sigmas={name: float(sigmas[problem.channels == c][0]) for c, name in enumerate(problem.channel_names)},
+        noise_sigmas={
+            name: float(sigmas[problem.model.noise_channels == c][0])
+            for c, name in enumerate(problem.model.noise_channel_names)
+        },
         residual_rms={"before": start_rms, "after": _channel_rms(problem, e)},
         singular_values=s,
         used=used,
@@ -265,7 +255,12 @@ def cramer_rao(problem: BatchProblem, x_drive: np.ndarray, unknowns, fit_blocks:
     state = _State(x_drive, unknowns, R, t, inputs)
     basis = gauge.free_basis(problem.drive.legs)
     A, _ = _system(
-        problem, state, basis, np.asarray(problem.sigmas, dtype=float), np.ones(len(problem.inputs)), fit_blocks
+        problem,
+        state,
+        basis,
+        np.asarray(problem.model.channel_sigma, dtype=float),
+        np.ones(len(problem.inputs)),
+        fit_blocks,
     )
     lift = _lift(problem, basis, fit_blocks, unknowns.size)
     return lift @ np.linalg.inv(A.T @ A) @ lift.T
@@ -291,7 +286,7 @@ def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], fil
         problem, R, t, inputs = _subset(problem, ok), R[ok], t[ok], inputs[ok]
     state = _State(np.zeros(drive.size), unknowns, R, t, inputs)
     basis = gauge.free_basis(drive.legs)
-    sigmas = np.asarray(problem.sigmas, dtype=float)
+    sigmas = np.asarray(problem.model.channel_sigma, dtype=float)
     A, _ = _system(problem, state, basis, sigmas, np.ones(len(problem.inputs)), True)
     # A's square triangular factor (rows padded to the columns): the same singular values, right
     # singular vectors and column norms as the (6N × 48) A at a fraction of the cost
@@ -327,22 +322,17 @@ def instrument_identifiability(platform, strokes: np.ndarray, readings: np.ndarr
     """:func:`identifiability` of an outside instrument's samples (``strokes`` [mm], ``readings`` in
     file units, NaN: a target not seen; ``payload_kg`` or None) at the nominal drive and the
     platform's instrument as it stands — register it on a log first
-    (:func:`~stewart_calib.instruments.external.registered_platform`)."""
+    (:func:`~stewart_calib.instruments.registered`)."""
     from ..drive import drive_model
-    from ..instruments.external import model_for
 
-    model = model_for(platform)
+    model = outside_model(platform)
     drive = drive_model(platform).identifying()
     unknowns = model.nominal_unknowns()
     problem = BatchProblem(
         drive,
         drive.inputs_near(strokes),
         readings,
-        model.module,
-        model.register,
-        model.sigmas,
-        model.channels,
-        model.channel_names,
+        model,
         np.arange(len(strokes), dtype=float),
         payload_kg,
     )
@@ -431,7 +421,7 @@ def _lift(problem: BatchProblem, basis: np.ndarray, fit_blocks: bool, n_unknowns
 
 def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_blocks: bool):
     """Whitened, weighted Jacobian ``A`` (finite rows) and residual ``b`` at ``state``."""
-    e, H_X, H_u = problem.model.residual(state.unknowns, problem.measured, state.R, state.t, jacobians=True)
+    e, H_X, H_u = problem.model.readings_residual(state.unknowns, problem.measured, state.R, state.t, jacobians=True)
     dxi = problem.drive.settled_pose_jacobian(state.x_drive, state.R, state.t, state.inputs, problem.payload_kg)
     blocks = [H_X @ dxi[..., :N_PARAMS] @ basis]
     if fit_blocks and dxi.shape[-1] > N_PARAMS:
@@ -458,7 +448,7 @@ def _apply(problem: BatchProblem, state: _State, basis, step: np.ndarray, fit_bl
 
 
 def _cost(problem: BatchProblem, state: _State, sigmas, weights) -> float:
-    e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0] / sigmas
+    e = problem.model.readings_residual(state.unknowns, problem.measured, state.R, state.t)[0] / sigmas
     return float(np.nansum(weights[:, None] * e**2))
 
 
@@ -549,7 +539,10 @@ def _not_converged(problem: BatchProblem, state: _State, basis, sigmas, weights,
         f"{len(problem.inputs)} samples"
     )
     # against the platform file's σ: the re-estimated ones grow with whatever the model cannot explain
-    e = problem.model.residual(state.unknowns, problem.measured, state.R, state.t)[0] / problem.sigmas
+    e = (
+        problem.model.readings_residual(state.unknowns, problem.measured, state.R, state.t)[0]
+        / problem.model.channel_sigma
+    )
     whitened = float(np.sqrt(np.nanmean(e**2)))
     if whitened > UNEXPLAINED_SIGMAS:
         return (
@@ -616,8 +609,8 @@ def _channel_sigmas(
     out = sigmas.copy()
     finite = np.isfinite(e)
     total = finite.sum()
-    for c in range(len(problem.channel_names)):
-        cols = problem.channels == c
+    for c in range(len(problem.model.noise_channel_names)):
+        cols = problem.model.noise_channels == c
         values = e[:, cols]
         seen = np.isfinite(values)
         count = seen.sum()
@@ -632,8 +625,8 @@ def _robust_channel_scale(problem: BatchProblem, e: np.ndarray, n_unknowns: int)
     the share of the residuals' variance the fit absorbs (``1 − p/n``): blind to a few gross errors."""
     out = np.empty(e.shape[1])
     total = np.isfinite(e).sum()
-    for c in range(len(problem.channel_names)):
-        cols = problem.channels == c
+    for c in range(len(problem.model.noise_channel_names)):
+        cols = problem.model.noise_channels == c
         values = e[:, cols]
         out[cols] = 1.4826 * np.nanmedian(np.abs(values)) / np.sqrt(max(1.0 - n_unknowns / total, 1e-3))
     return out
@@ -642,8 +635,8 @@ def _robust_channel_scale(problem: BatchProblem, e: np.ndarray, n_unknowns: int)
 def _channel_rms(problem: BatchProblem, e: np.ndarray) -> dict:
     """``{channel: RMS}`` of a residual, in file units (degrees for rotation channels)."""
     out = {}
-    for c, name in enumerate(problem.channel_names):
-        values = e[:, problem.channels == c]
+    for c, name in enumerate(problem.model.noise_channel_names):
+        values = e[:, problem.model.noise_channels == c]
         rms = float(np.sqrt(np.nanmean(values**2)))
         out[name.replace("_rad", "_deg")] = float(np.degrees(rms)) if name.endswith("_rad") else rms
     return out

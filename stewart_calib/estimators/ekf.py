@@ -62,7 +62,6 @@ from ..drive import PAYLOAD, payload_block
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta, needs_registration
-from ..instruments.tracker import as_tracker
 from ..platform import N_LEGS, N_PARAMS, Platform
 from ..samples import Log, Sample
 from ..unknowns import UnknownLayout, gauge_conditioned
@@ -189,16 +188,13 @@ class LegEKF:
         """``(prepared rows [u | z], the rows check_sample surely passes)`` of a block of the leg set's
         readings; the check is stricter than check_sample (any doubt: the row goes through :meth:`update`)."""
         lo, hi = self._stroke_bounds
-        reading_range = as_tracker(self.model).reading_range
-        r_lo, r_hi = reading_range if reading_range is not None else (-np.inf, np.inf)
         strokes, readings = np.asarray(block.strokes, dtype=float), np.asarray(block.readings, dtype=float)
         with np.errstate(invalid="ignore"):
             plain = (
                 np.isfinite(block.t_s)
                 & np.isfinite(strokes).all(axis=1)
                 & ((strokes >= lo) & (strokes <= hi)).all(axis=1)
-                & np.isfinite(readings).all(axis=1)
-                & ((readings >= r_lo) & (readings <= r_hi)).all(axis=1)
+                & self.model.surely_pass(readings)
             )
         if self.drive.elastic is None:
             inputs = self.drive.inputs(strokes)

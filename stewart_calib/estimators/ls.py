@@ -19,7 +19,6 @@ frame and target(s) together, the 12 gauge directions fixed and stated in the re
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -28,15 +27,12 @@ from ..config import EstimatorConfig, LSConfig
 from ..drive import DriveModel, drive_model
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
-from ..instruments import instrument_kind
+from ..instruments import OutsideModel, instrument_kind, outside_model
 from ..platform import N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout
 from .base import BufferedFit
 from .measurement import WarmPose, check_sample, drive_only_model, measured_pose, pose_difference
-
-if TYPE_CHECKING:
-    from ..instruments.external import ExternalModel
 
 #: singular values below this fraction of the largest count as zero (rank deficiency).
 RANK_TOLERANCE = 1e-10
@@ -138,13 +134,9 @@ class LeastSquares(BufferedFit):
     def __init__(self, platform: Platform, config: EstimatorConfig):
         self.platform = platform
         self.config = config.ls
-        self._external: ExternalModel | None = None
         self.drive = drive_model(platform)
-        if instrument_kind(platform).outside:
-            from ..instruments.external import model_for
-
-            self._external = model_for(platform)
-        else:
+        self._external = outside_model(platform) if instrument_kind(platform).outside else None
+        if self._external is None:
             self.model = drive_only_model(self.name, platform, config, drive_blocks=True)
             self._pose = WarmPose(self.model)
             fitted = drive_model(platform, config.noise)
@@ -162,7 +154,7 @@ class LeastSquares(BufferedFit):
         """Buffer one sample's strokes and measured pose ``P_v`` (paper Fig. 3 step 1), or with an
         outside instrument its strokes and readings."""
         if self._external is not None:
-            strokes, readings = self._external.check(sample)
+            strokes, readings = check_sample(self.platform, self._external, sample)
             self._strokes.append(strokes)
             self._payload.append(0.0 if sample.load_kg is None else sample.load_kg)
             self._R_v.append(readings)
@@ -200,7 +192,7 @@ class LeastSquares(BufferedFit):
         layout = UnknownLayout(self._fitted.blocks)
         return Estimate.of_state(solution.error, solution.covariance, layout, self.name, len(self._strokes), self._t_s)
 
-    def _estimate_external(self, model: ExternalModel) -> Estimate:
+    def _estimate_external(self, model: OutsideModel) -> Estimate:
         from ..instruments.gauge import GAUGE_STATEMENT
         from .batch import BatchProblem, fit
 
@@ -209,11 +201,7 @@ class LeastSquares(BufferedFit):
             inputs=self.drive.inputs_near(np.array(self._strokes)),
             payload_kg=np.array(self._payload),
             measured=np.array(self._R_v),
-            model=model.module,
-            register=model.register,
-            sigmas=model.sigmas,
-            channels=model.channels,
-            channel_names=model.channel_names,
+            model=model,
             t_s=np.array(self._t_v),
         )
         sol = fit(
@@ -233,8 +221,8 @@ def external_estimate(method: str, drive, model, sol, samples_used: int, t_s: fl
     :class:`~.batch.BatchSolution` of ``drive``; the instrument's tangent covariance carried into its θ."""
     from ..unknowns import UnknownLayout
 
-    layout = UnknownLayout((*drive.blocks, model.block()))
-    x = np.concatenate([sol.x_drive, model.theta(sol.unknowns) - model.block().nominal])
+    layout = UnknownLayout((*drive.blocks, model.unknowns))
+    x = np.concatenate([sol.x_drive, model.theta(sol.unknowns) - model.unknowns.nominal])
     P = None
     if sol.covariance is not None:
         lift = np.eye(layout.size)

@@ -15,10 +15,11 @@ down-weights a single bad reading rather than the whole sample.
 A tracker of known geometry (the default) is a set of legs with fixed rows ``[z_i | h_i | ls_i]``:
 its factors take those rows once and are linearised in one compiled call
 (:func:`._kernels.known_leg_rows`, the arithmetic of ``TrackerModel.residual``), a third of
-the model's per-call cost (fancy indexing and a residual tuple per linearisation). A pose
-instrument's reading, likewise, is one compiled call (:func:`._kernels.pose_reading_rows`, the
-arithmetic of ``PoseModel.residual``; ~30 small numpy calls a linearisation before, three quarters
-of iSAM2's time with the motion-capture preset).
+the model's per-call cost (fancy indexing and a residual tuple per linearisation). A model
+whose reading is a target's pose (``compiled_pose_reading``: the pose instrument), likewise, is one
+compiled call (:func:`._kernels.pose_reading_rows`, the arithmetic of ``PoseModel.residual``, where
+~30 small numpy calls a linearisation cost most of iSAM2's time with the motion-capture preset:
+BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -29,7 +30,6 @@ import gtsam
 import numpy as np
 
 from ..instruments.base import InstrumentModel
-from ..instruments.pose import PoseModel
 from ._kernels import known_leg_rows, pose_reading_rows
 
 _KNOWN = np.zeros(0)  # θ of a model without unknowns
@@ -117,8 +117,15 @@ def factor(
     if legs is not None:
         return gtsam.CustomFactor(noise, [pose_key], partial(_known_legs_error, legs, z[channels], pose_key))
     keys = [pose_key] if block is None or params_key is None else [pose_key, params_key]
-    if isinstance(model, PoseModel) and block is not None and len(keys) == 2 and len(channels) == 6:
-        nominal = np.ascontiguousarray(model.unknowns.nominal, dtype=float)
+    unknowns = model.unknowns
+    if (
+        model.compiled_pose_reading
+        and unknowns is not None
+        and block is not None
+        and len(keys) == 2
+        and len(channels) == 6
+    ):
+        nominal = np.ascontiguousarray(unknowns.nominal, dtype=float)
         return gtsam.CustomFactor(
             noise, keys, partial(_pose_reading_error, np.array(z), nominal, block, size, tuple(keys))
         )

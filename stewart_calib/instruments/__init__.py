@@ -4,17 +4,28 @@
 directions to :mod:`.gauge`."""
 
 from .base import InstrumentModel, PoseObservation, Residual, instrument_theta
-from .registry import MODELS, InstrumentKind, instrument_kind, instrument_model, needs_registration, registered
+from .external import OutsideModel
+from .registry import (
+    MODELS,
+    InstrumentKind,
+    instrument_kind,
+    instrument_model,
+    needs_registration,
+    outside_model,
+    registered,
+)
 
 __all__ = [
     "MODELS",
     "InstrumentKind",
     "InstrumentModel",
+    "OutsideModel",
     "PoseObservation",
     "Residual",
     "instrument_kind",
     "instrument_model",
     "instrument_theta",
     "needs_registration",
+    "outside_model",
     "registered",
 ]

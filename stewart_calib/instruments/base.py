@@ -1,10 +1,13 @@
-"""The measurement-model protocol: what an instrument observes of the platform pose.
+"""The one instrument interface, :class:`InstrumentModel`: what an instrument observes of the
+platform pose, and what its kind is.
 
-Every estimator talks to the instrument only through a model of this protocol, and the rest of
-the package asks :mod:`.registry`'s entry of its kind, so adding an instrument touches
-:mod:`stewart_calib.instruments`, one entry in :mod:`.registry` and one in
+Every estimator talks to the instrument only through an instance of a subclass, and the rest of
+the package asks the subclass itself (:mod:`.registry`: kind → class), so adding an instrument
+touches :mod:`stewart_calib.instruments`, one entry in :mod:`.registry` and one in
 :data:`stewart_calib.platform.INSTRUMENT_SECTIONS` — never an estimator (docs/architecture.md,
-with the tracker as the worked example).
+with the tracker as the worked example). An instrument outside the robot subclasses
+:class:`~.external.OutsideModel`, which adds what its registration, validation, diagnosis and
+simulation ask.
 
 A model is a description, not a state: it holds its geometry and noise and answers pure
 functions of the pose ``(R, t)`` of {D} in {J} (mm, rad), its own unknowns ``θ`` and one
@@ -39,11 +42,13 @@ kinematics (implicit function theorem on the drive-leg residuals).
 
 from __future__ import annotations
 
-from typing import NamedTuple, Protocol, runtime_checkable
+from abc import ABC, abstractmethod
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 
-from ..platform import LegGeometry
+from ..config import NoiseConfig
+from ..platform import Instrument, LegGeometry, Platform
 from ..unknowns import UnknownBlock
 from . import lie
 
@@ -80,32 +85,112 @@ class PoseObservation(NamedTuple):
     J_instrument: np.ndarray
 
 
-@runtime_checkable
-class InstrumentModel(Protocol):
-    """A measurement model (see the module docstring)."""
+class InstrumentModel(ABC):
+    """A measurement model (see the module docstring), one subclass per kind.
 
-    kind: str
+    The class is the kind: what the code above this package asks of an instrument without naming
+    it is answered by its class attributes and class methods (:func:`~.registry.instrument_kind`),
+    what an estimator observes through by an instance (:meth:`build`).
+
+    Class attributes:
+        kind: the ``[instrument] kind`` it reads (spec §7).
+        outside: whether the instrument stands outside the robot, in a frame of its own: the
+            drive's gauge directions are then unobserved (fixed by :mod:`.gauge`), the encoders'
+            scale is an unknown, and the fit starts from a registration (:meth:`registered_platform`).
+        registers: whether :meth:`registered_platform` moves the instrument's unknowns (a frame
+            that may start 100 mm and any rotation away); the nominal values are good starts otherwise.
+        unseen_channels: whether a reading may leave channels empty (a points target not seen: all
+            three of its coordinates), read as NaN rather than refused.
+        measures_orientation: whether a reading tells the platform's orientation, so that
+            ``validate`` reports an orientation error (points, each a position, do not).
+    """
+
+    kind: ClassVar[str]
+    outside: ClassVar[bool] = False
+    registers: ClassVar[bool] = False
+    unseen_channels: ClassVar[bool] = False
+    measures_orientation: ClassVar[bool] = True
+
     columns: tuple[str, ...]
     unknowns: UnknownBlock | None
     channel_sigma: np.ndarray
+    #: the leg set whose readings the measurement is, where the model offers compiled kernels
+    #: (see the module docstring), else None
+    compiled_legs: LegGeometry | None = None
+    #: whether a whole reading is the pose of a target on the platform seen from a frame of its
+    #: own, θ = [frame pose6 | target pose6]: the model then offers the compiled kernel of its
+    #: residual rows (:func:`stewart_calib.factors._kernels.pose_reading_rows`)
+    compiled_pose_reading: ClassVar[bool] = False
 
-    @property
-    def compiled_legs(self) -> LegGeometry | None:
-        """The leg set whose readings the measurement is, where the model offers compiled kernels
-        (see the module docstring), else None."""
+    # ------------------------------------------------------------------ the kind
 
+    @classmethod
+    @abstractmethod
+    def build(cls, platform: Platform, noise: NoiseConfig) -> InstrumentModel:
+        """The model of ``platform``'s instrument of this kind, with ``noise``'s σ where the
+        platform file has none."""
+
+    @staticmethod
+    @abstractmethod
+    def columns_of(instrument: Instrument) -> tuple[str, ...]:
+        """The log columns of a reading of ``instrument``, in the order of ``z`` (spec §3, §7)."""
+
+    @staticmethod
+    @abstractmethod
+    def spreads(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray) -> list[Spread]:
+        """How a log's readings spread against the nominal instrument's at the nominal poses
+        ``(R, t)`` of its strokes (:class:`Spread`)."""
+
+    @staticmethod
+    def reading_legs(platform: Platform) -> LegGeometry | None:
+        """The leg set of known nominal geometry whose extensions a reading is (its forward
+        kinematics gives the pose of each sample, its inverse kinematics the reading of a pose;
+        ``[tracker] reading_range_mm`` bounds them), or None."""
+        return None
+
+    @classmethod
+    def registered_platform(cls, platform: Platform, strokes: np.ndarray, readings: np.ndarray) -> Platform:
+        """``platform`` with the instrument's nominal unknowns replaced by a closed-form
+        registration on ``(strokes (N, 6), readings (N, M))`` where the kind :attr:`registers`
+        (unchanged otherwise).
+
+        Raises:
+            CalibError: the samples cannot register the instrument.
+        """
+        return platform
+
+    @staticmethod
+    def placed_on(
+        platform: Platform, position_sigma_mm: float, orientation_sigma_rad: float, n_targets: int
+    ) -> Instrument:
+        """A nominal instrument of the kind for a simulated study of ``platform`` (the sweep's
+        cells); the platform's own by default."""
+        return platform.instrument
+
+    # ------------------------------------------------------------------ one instrument
+
+    @abstractmethod
     def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
         """``z`` as a float array, or :class:`~stewart_calib.errors.SampleRejected` (wrong shape,
         a non-finite required channel, a value outside the instrument's range)."""
 
+    def surely_pass(self, readings: np.ndarray) -> np.ndarray:
+        """``(N,)`` True for the rows of ``readings (N, M)`` that :meth:`check` surely passes, in one
+        vectorised pass for a block of samples; a row in doubt is False and goes through
+        :meth:`check` one at a time (the default: every row)."""
+        return np.zeros(len(readings), dtype=bool)
+
+    @abstractmethod
     def groups(self, z: np.ndarray) -> list[np.ndarray]:
         """The channel groups of ``z`` that are measured, one factor each."""
 
+    @abstractmethod
     def residual(
         self, R: np.ndarray, t: np.ndarray, theta: np.ndarray, z: np.ndarray, channels: np.ndarray
     ) -> Residual:
         """``h(pose, θ) − z`` on ``channels`` with its Jacobians."""
 
+    @abstractmethod
     def pose(
         self, z: np.ndarray, theta: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None
     ) -> PoseObservation | None:

@@ -15,16 +15,17 @@ Jacobians (body perturbations ``X Exp(ξ)``, ``F Exp(φ)``)::
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from .. import kinematics as kin
-from ..errors import SampleRejected
+from ..errors import CalibError, SampleRejected
 from ..kinematics import skew
 from ..platform import INSTRUMENT_SECTIONS, Instrument, Platform
-from . import lie
+from . import lie, registration
 from .base import PoseObservation, Residual, Spread, position_spread_mm
+from .external import OutsideModel
 from .gauge import kabsch
 
 FRAME_NAMES: tuple[str, ...] = tuple(
@@ -42,11 +43,6 @@ LOOSE_ROTATION_SIGMA_RAD = 0.01
 def unknown_names(n_targets: int) -> tuple[str, ...]:
     """Frame then targets in file units: ``frame_x_mm … frame_yaw_deg, p1x_mm, p1y_mm, p1z_mm, …``."""
     return FRAME_NAMES + tuple(f"p{k}{axis}_mm" for k in range(1, n_targets + 1) for axis in "xyz")
-
-
-def names(instrument: Instrument) -> tuple[str, ...]:
-    """The names of the unknowns in file units (:func:`unknown_names`)."""
-    return unknown_names(instrument.n_targets)
 
 
 #: log columns of ``K`` targets (spec §7): ``p1x_mm p1y_mm p1z_mm … pKx_mm pKy_mm pKz_mm``
@@ -97,48 +93,6 @@ def predict(u: PointsUnknowns, R_X: np.ndarray, t_X: np.ndarray) -> np.ndarray:
     return np.einsum("ji,...kj->...ki", u.R_frame, in_base - u.t_frame)
 
 
-def placed_on(platform: Platform, position_sigma_mm: float, orientation_sigma_rad: float, n_targets: int) -> Instrument:
-    """A nominal points instrument for a simulated study: frame at {J}'s origin, ``n_targets`` (≤ 3)
-    targets halfway out towards platform joints 1, 3, 5 and 25 mm above them (a position
-    instrument has no orientation σ)."""
-    targets = 0.5 * platform.drive.platform_joints[0::2][:n_targets] + np.array([0.0, 0.0, 25.0])
-    return Instrument("points", targets=targets, position_sigma_mm=position_sigma_mm)
-
-
-def true_unknowns(
-    instrument: Instrument, frame: np.ndarray, target_offset: np.ndarray, target_spread_mm: float, rng
-) -> PointsUnknowns:
-    """A simulation's true frame (pose6 ``frame``) and targets: the nominal ones with i.i.d. normal
-    errors of σ ``target_spread_mm`` a coordinate; ``target_offset`` is the pose instrument's."""
-    targets = instrument.targets + rng.normal(0.0, target_spread_mm, instrument.targets.shape)
-    return PointsUnknowns(*kin.pose_to_rt(frame), targets)
-
-
-def noise_draws(instrument: Instrument, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``(n, 4K)``: standard normal draws of each target coordinate's noise, then a uniform draw
-    per target that loses it from view (:func:`simulated_readings`)."""
-    K = instrument.n_targets
-    draws = rng.standard_normal((n, 4 * K))
-    draws[:, 3 * K :] = rng.random((n, K))
-    return draws
-
-
-def simulated_readings(
-    instrument: Instrument, u: PointsUnknowns, R: np.ndarray, t: np.ndarray, draws: np.ndarray, dropout: float
-) -> np.ndarray:
-    """Readings ``(..., 3K)`` at true platform poses: ``m + σ_pos n``, a target NaN where its
-    uniform draw falls below ``dropout`` (its probability of being lost from view)."""
-    K = instrument.n_targets
-    m = predict(u, R, t) + instrument.position_sigma_mm * draws[..., : 3 * K].reshape(draws.shape[:-1] + (K, 3))
-    m[draws[..., 3 * K :] < dropout] = np.nan
-    return m.reshape(draws.shape[:-1] + (3 * K,))
-
-
-def sigmas(instrument: Instrument) -> np.ndarray:
-    """``(3K,)`` σ of the residual's components [mm]."""
-    return np.full(3 * instrument.n_targets, instrument.position_sigma_mm)
-
-
 def residual(u: PointsUnknowns, measured: np.ndarray, R_X: np.ndarray, t_X: np.ndarray, jacobians: bool = False):
     """``e = m(pred) − m(meas)`` ``(..., 3K)``, NaN where a target was not seen, and if asked
     ``(∂e/∂ξ_X (..., 3K, 6), ∂e/∂[φ, p] (..., 3K, 6 + 3K))`` (rows of unseen targets are whatever
@@ -175,43 +129,141 @@ def errors(measured: np.ndarray, pred: np.ndarray) -> np.ndarray:
     return np.where(count > 0, np.sqrt(total / np.maximum(count, 1)), np.nan)
 
 
-def reading_spreads(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray) -> list[Spread]:
-    """Each target's measured positions' spread against its nominal positions at the poses
-    (:class:`~.base.Spread`; independent of the instrument's frame)."""
-    measured = readings.reshape(len(readings), -1, 3)
-    expected = kin.transform_points(R, t, platform.instrument.targets)
-    return [
-        Spread(
-            f"target {k + 1} positions",
-            slice(3 * k, 3 * k + 3),
-            position_spread_mm(measured[:, k]),
-            position_spread_mm(expected[:, k]),
+def register_points(R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray, sigma_mm: float) -> PointsUnknowns:
+    """Frame F and targets ``p_j`` in {D} with ``F⁻¹ X_k p_j ≈ m_kj``, in closed form.
+
+    Args:
+        measured: ``(N, 3K)`` readings [mm], NaN where a target was not seen.
+    Raises:
+        CalibError: fewer than 3 distinct poses, or poses too poor to fix the frame and targets.
+    """
+    n = len(R_X)
+    m = np.asarray(measured, dtype=float).reshape(n, -1, 3)
+    K = m.shape[1]
+    registration.require_distinct(m.reshape(n, -1), np.full(3 * K, sigma_mm), "points instrument")
+    seen = np.all(np.isfinite(m), axis=2)
+    poses, targets = np.nonzero(seen)
+    for k in range(K):
+        if registration.distinct_count(m[seen[:, k], k], np.full(3, registration.DISTINCT_SIGMAS * sigma_mm), 2) < 2:
+            raise CalibError(
+                f"cannot register the points instrument: target {k + 1} is seen at fewer than 2 distinct poses"
+            )
+    eqs = len(poses)
+
+    def system(R_F: np.ndarray | None):
+        """Rows of ``R_F m + t_F − R_X p_j = t_X`` (3 per seen target); R_F unknown when None."""
+        width = (9 if R_F is None else 0) + 3 + 3 * K
+        A = np.zeros((eqs, 3, width))
+        col = 0
+        if R_F is None:
+            A[:, :, :9] = np.einsum("ea,ij->eija", m[poses, targets], np.eye(3)).reshape(eqs, 3, 9)
+            col = 9
+        A[:, :, col : col + 3] = np.eye(3)
+        for j in range(K):
+            mine = targets == j
+            A[mine, :, col + 3 + 3 * j : col + 6 + 3 * j] = -R_X[poses[mine]]
+        b = t_X[poses] if R_F is None else t_X[poses] - m[poses, targets] @ R_F.T
+        return A.reshape(3 * eqs, width), b.reshape(-1)
+
+    A, b = system(None)
+    solution, _, rank, _ = np.linalg.lstsq(A, b, rcond=None)
+    if rank < A.shape[1]:
+        raise CalibError(
+            f"cannot register the points instrument: its {A.shape[1]} linear unknowns have rank {rank} over these "
+            "poses; expected poses that translate and rotate the targets in three dimensions"
         )
-        for k in range(measured.shape[1])
-    ]
+    R_F = lie.project_to_rotation(solution[:9].reshape(3, 3))  # row-major: R_F[i, a] at 3i + a
+    A, b = system(R_F)
+    solution, *_ = np.linalg.lstsq(A, b, rcond=None)
+    return PointsUnknowns(R_F, solution[:3], solution[3:].reshape(K, 3))
 
 
-class PointsModel:
-    """The points instrument as a measurement model (:class:`~stewart_calib.instruments.base.InstrumentModel`).
+class PointsModel(OutsideModel):
+    """The points instrument as a measurement model (:class:`~.external.OutsideModel`).
 
     Its unknowns θ are the frame's pose6 ``[x, y, z mm, roll, pitch, yaw rad]`` then the targets in
     {D} [mm] (6 + 3K values, the block ``"instrument"``; both gauges shared with the drive). Each
-    seen target is one channel group.
-
-    Args:
-        instrument: the platform file's ``[instrument]`` (nominal frame, targets, σ).
-        block: the unknowns' block (:meth:`~stewart_calib.instruments.external.ExternalModel.block`).
+    seen target is one channel group; a target may go unseen (its three coordinates NaN).
     """
 
     kind = "points"
-    compiled_legs = None  # no compiled kernels (base.InstrumentModel.compiled_legs)
+    unseen_channels = True
+    measures_orientation = False
+    noise_channel_names = ("position_mm",)
 
-    def __init__(self, instrument: Instrument, block):
-        self.instrument = instrument
-        self.unknowns = block
-        self.columns = columns(instrument.n_targets)
-        self.channel_sigma = sigmas(instrument)
-        self._triples = [np.arange(3 * k, 3 * k + 3) for k in range(instrument.n_targets)]
+    def __init__(self, platform: Platform):
+        super().__init__(platform)
+        self.noise_channels = np.zeros(3 * self.instrument.n_targets, dtype=int)
+        self._triples = [np.arange(3 * k, 3 * k + 3) for k in range(self.instrument.n_targets)]
+
+    @staticmethod
+    def columns_of(instrument: Instrument) -> tuple[str, ...]:
+        return columns(instrument.n_targets)
+
+    @staticmethod
+    def sigmas_of(instrument: Instrument) -> np.ndarray:
+        """``(3K,)`` σ of the residual's components [mm]."""
+        return np.full(3 * instrument.n_targets, instrument.position_sigma_mm)
+
+    @staticmethod
+    def names_of(instrument: Instrument) -> tuple[str, ...]:
+        """The names of the unknowns in file units (:func:`unknown_names`)."""
+        return unknown_names(instrument.n_targets)
+
+    @staticmethod
+    def placed_on(
+        platform: Platform, position_sigma_mm: float, orientation_sigma_rad: float, n_targets: int
+    ) -> Instrument:
+        """A nominal points instrument for a simulated study: frame at {J}'s origin, ``n_targets`` (≤ 3)
+        targets halfway out towards platform joints 1, 3, 5 and 25 mm above them (a position
+        instrument has no orientation σ)."""
+        targets = 0.5 * platform.drive.platform_joints[0::2][:n_targets] + np.array([0.0, 0.0, 25.0])
+        return Instrument("points", targets=targets, position_sigma_mm=position_sigma_mm)
+
+    @staticmethod
+    def true_unknowns(
+        instrument: Instrument, frame: np.ndarray, target_offset: np.ndarray, target_spread_mm: float, rng
+    ) -> PointsUnknowns:
+        """A simulation's true frame (pose6 ``frame``) and targets: the nominal ones with i.i.d. normal
+        errors of σ ``target_spread_mm`` a coordinate; ``target_offset`` is the pose instrument's."""
+        targets = instrument.targets + rng.normal(0.0, target_spread_mm, instrument.targets.shape)
+        return PointsUnknowns(*kin.pose_to_rt(frame), targets)
+
+    @staticmethod
+    def noise_draws(instrument: Instrument, n: int, rng: np.random.Generator) -> np.ndarray:
+        """``(n, 4K)``: standard normal draws of each target coordinate's noise, then a uniform draw
+        per target that loses it from view (:meth:`simulated_readings`)."""
+        K = instrument.n_targets
+        draws = rng.standard_normal((n, 4 * K))
+        draws[:, 3 * K :] = rng.random((n, K))
+        return draws
+
+    @staticmethod
+    def simulated_readings(
+        instrument: Instrument, u: PointsUnknowns, R: np.ndarray, t: np.ndarray, draws: np.ndarray, dropout: float
+    ) -> np.ndarray:
+        """Readings ``(..., 3K)`` at true platform poses: ``m + σ_pos n``, a target NaN where its
+        uniform draw falls below ``dropout`` (its probability of being lost from view)."""
+        K = instrument.n_targets
+        m = predict(u, R, t) + instrument.position_sigma_mm * draws[..., : 3 * K].reshape(draws.shape[:-1] + (K, 3))
+        m[draws[..., 3 * K :] < dropout] = np.nan
+        return m.reshape(draws.shape[:-1] + (3 * K,))
+
+    @staticmethod
+    def spreads(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray) -> list[Spread]:
+        """Each target's measured positions' spread against its nominal positions at the poses
+        (:class:`~.base.Spread`; independent of the instrument's frame)."""
+        measured = readings.reshape(len(readings), -1, 3)
+        expected = kin.transform_points(R, t, platform.instrument.targets)
+        return [
+            Spread(
+                f"target {k + 1} positions",
+                slice(3 * k, 3 * k + 3),
+                position_spread_mm(measured[:, k]),
+                position_spread_mm(expected[:, k]),
+            )
+            for k in range(measured.shape[1])
+        ]
 
     def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
         reading = np.asarray(z, dtype=float)
@@ -266,3 +318,87 @@ class PointsModel:
         covariance = self.instrument.position_sigma_mm**2 * np.linalg.inv(information)
         J_theta = -np.linalg.solve(information, A.T @ (H_u[rows] @ self._theta_jacobian_inverse(theta)))
         return PoseObservation(R_X, t_X, covariance, J_theta)
+
+    # what the callers of an outside instrument ask (external.OutsideModel)
+
+    def nominal_unknowns(self) -> PointsUnknowns:
+        return nominal(self.instrument)
+
+    def _angles(self) -> np.ndarray:
+        angles = np.zeros(6 + 3 * self.instrument.n_targets, dtype=bool)
+        angles[3:6] = True
+        return angles
+
+    def theta(self, unknowns: PointsUnknowns) -> np.ndarray:
+        return np.concatenate([kin.rt_to_pose(unknowns.R_frame, unknowns.t_frame), unknowns.targets.reshape(-1)])
+
+    def theta_jacobian(self, unknowns: PointsUnknowns) -> np.ndarray:
+        J = np.eye(unknowns.size)
+        J[:6, :6] = lie.pose6_tangent_jacobian(kin.rt_to_pose(unknowns.R_frame, unknowns.t_frame))
+        return J
+
+    def readings_residual(self, unknowns, measured, R_X, t_X, jacobians=False):
+        return residual(unknowns, measured, R_X, t_X, jacobians)
+
+    def predicted_readings(self, unknowns, R_X: np.ndarray, t_X: np.ndarray) -> np.ndarray:
+        return predict(unknowns, R_X, t_X).reshape(len(R_X), -1)
+
+    def seen_channels(self, R_X: np.ndarray, t_X: np.ndarray) -> np.ndarray:
+        """A target out of its cone of visibility is not read (:func:`visible_targets`)."""
+        return np.repeat(visible_targets(self.instrument, R_X, t_X), 3, axis=-1)
+
+    def prediction_errors(self, unknowns, R_X: np.ndarray, t_X: np.ndarray, readings: np.ndarray):
+        """Points give no orientation error."""
+        predicted = predict(unknowns, R_X, t_X)
+        seen = np.isfinite(readings.reshape(predicted.shape))
+        return np.where(seen, predicted, np.nan).reshape(len(R_X), -1), errors(readings, predicted), None
+
+    def position_differences(self, readings: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+        """One row a target seen."""
+        difference = (readings - predicted).reshape(-1, 3)
+        return difference[np.all(np.isfinite(difference), axis=1)]
+
+    def instrument_at(self, theta: np.ndarray) -> Instrument:
+        return replace(self.instrument, frame=theta[:6], targets=theta[6:].reshape(-1, 3))
+
+    def register(self, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray) -> PointsUnknowns:
+        return register_points(R_X, t_X, measured, self.instrument.position_sigma_mm)
+
+    def refit_frame(self, unknowns, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray) -> PointsUnknowns:
+        """Kabsch of the targets seen onto their readings for F, then :func:`~.registration.refine_frame`.
+
+        Raises:
+            CalibError: fewer than 3 distinct poses.
+        """
+        n = len(R_X)
+        m = np.asarray(measured, dtype=float).reshape(n, -1, 3)
+        registration.require_distinct(
+            m.reshape(n, -1), np.full(m.shape[1] * 3, self.channel_sigma[0]), "points instrument"
+        )
+        in_base = kin.transform_points(R_X, t_X, unknowns.targets)
+        seen = np.all(np.isfinite(m), axis=2)
+        R_F, t_F = kabsch(m[seen], in_base[seen])  # y = R_F m + t_F
+        start = PointsUnknowns(R_F, t_F, unknowns.targets)
+        return registration.refine_frame(self, start, measured, R_X, t_X)
+
+    def unknowns_from_file(self, values) -> PointsUnknowns:
+        values = np.asarray(values, dtype=float)
+        return PointsUnknowns(*kin.pose_to_rt(np.r_[values[:3], np.radians(values[3:6])]), values[6:].reshape(-1, 3))
+
+
+def visible_targets(instrument: Instrument, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(N, K)`` True where a points instrument sees target k at platform pose ``(R, t)``: always
+    without ``[instrument] visibility_cone_deg``; with it, where the line from the target to the
+    instrument's nominal origin lies within that half-angle of the target's axis
+    (``target_axes``, in {D}; default {D}'s z)."""
+    n = len(np.reshape(t, (-1, 3)))
+    if instrument.visibility_cone_deg is None:
+        return np.ones((n, instrument.n_targets), dtype=bool)
+    R, t = np.reshape(R, (-1, 3, 3)), np.reshape(t, (-1, 3))
+    in_base = np.einsum("nij,kj->nki", R, instrument.targets) + t[:, None, :]
+    sight = instrument.frame[:3] - in_base
+    axes = np.einsum("nij,kj->nki", R, instrument.target_axes)
+    cosine = np.sum(sight * axes, axis=-1) / (
+        np.linalg.norm(sight, axis=-1) * np.linalg.norm(axes, axis=-1) + np.finfo(float).tiny
+    )
+    return cosine >= np.cos(np.radians(instrument.visibility_cone_deg))

@@ -19,16 +19,19 @@ the body tangent ``δ = Ad_{G⁻¹} ξ − Ad_{P⁻¹} φ + γ``, and ``∂e/∂
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 
 from .. import _kernels
 from .. import kinematics as kin
-from ..errors import SampleRejected
+from ..errors import CalibError, SampleRejected
+from ..kinematics import rt_to_pose
 from ..platform import INSTRUMENT_SECTIONS, Instrument, Platform
-from . import lie
+from . import lie, registration
 from .base import PoseObservation, Residual, Spread, position_spread_mm, rotation_spread_rad
+from .external import OutsideModel
 
 #: names of the 12 unknowns in file units (spec §7 result ``"instrument"`` block)
 UNKNOWN_NAMES: tuple[str, ...] = tuple(
@@ -89,49 +92,10 @@ def nominal(instrument: Instrument) -> PoseUnknowns:
     return PoseUnknowns.from_pose6(instrument.frame, instrument.target)
 
 
-def names(instrument: Instrument) -> tuple[str, ...]:
-    """The names of the unknowns in file units (:data:`UNKNOWN_NAMES`)."""
-    return UNKNOWN_NAMES
-
-
-def placed_on(platform: Platform, position_sigma_mm: float, orientation_sigma_rad: float, n_targets: int) -> Instrument:
-    """A nominal pose instrument for a simulated study: frame at {J}'s origin, target at {D}'s
-    (``n_targets`` is the points instrument's)."""
-    return Instrument("pose", position_sigma_mm=position_sigma_mm, orientation_sigma_rad=orientation_sigma_rad)
-
-
-def true_unknowns(
-    instrument: Instrument, frame: np.ndarray, target_offset: np.ndarray, target_spread_mm: float, rng
-) -> PoseUnknowns:
-    """A simulation's true frame (pose6 ``frame``) and target (the nominal one plus the pose6
-    ``target_offset``); ``target_spread_mm`` and ``rng`` are the points instrument's."""
-    return PoseUnknowns.from_pose6(frame, instrument.target + target_offset)
-
-
-def noise_draws(instrument: Instrument, n: int, rng: np.random.Generator) -> np.ndarray:
-    """``(n, 6)`` standard normal draws of :func:`simulated_readings`' noise, rotation first."""
-    return rng.standard_normal((n, 6))
-
-
-def simulated_readings(
-    instrument: Instrument, u: PoseUnknowns, R: np.ndarray, t: np.ndarray, draws: np.ndarray, dropout: float
-) -> np.ndarray:
-    """Readings ``(..., 6)`` at true platform poses: ``(R_P Exp(σ_rot n_ω), t_P + σ_pos n_v)``
-    (a pose is never lost from view: ``dropout`` is the points instrument's)."""
-    R_P, t_P = predict(u, R, t)
-    R_m = R_P @ kin.so3_exp(instrument.orientation_sigma_rad * draws[..., :3])
-    return kin.rt_to_pose(R_m, t_P + instrument.position_sigma_mm * draws[..., 3:])
-
-
 def predict(u: PoseUnknowns, R_X: np.ndarray, t_X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``P = F⁻¹ X G``: the pose of {T} in {I} the instrument should read at platform pose X."""
     R_Fi, t_Fi = lie.inverse(u.R_frame, u.t_frame)
     return lie.compose(*lie.compose(R_Fi, t_Fi, R_X, t_X), u.R_target, u.t_target)
-
-
-def sigmas(instrument: Instrument) -> np.ndarray:
-    """``(6,)`` σ of the residual's components ``[rad ×3, mm ×3]``."""
-    return np.r_[np.full(3, instrument.orientation_sigma_rad), np.full(3, instrument.position_sigma_mm)]
 
 
 def residual(u: PoseUnknowns, measured: np.ndarray, R_X: np.ndarray, t_X: np.ndarray, jacobians: bool = False):
@@ -161,27 +125,121 @@ def errors(R_m, t_m, R_P, t_P) -> tuple[np.ndarray, np.ndarray]:
     return kin.pose_error(R_m, t_m, R_P, t_P)
 
 
-class PoseModel:
-    """The pose instrument as a measurement model (:class:`~stewart_calib.instruments.base.InstrumentModel`).
+def register_pose(
+    R_X: np.ndarray, t_X: np.ndarray, R_M: np.ndarray, t_M: np.ndarray, sigmas: np.ndarray
+) -> PoseUnknowns:
+    """Frame F and target G with ``X_k G ≈ F M_k`` (hand-eye AX = YB), in closed form.
+
+    Args:
+        R_X, t_X: ``(N, 3, 3)``, ``(N, 3)`` platform poses (nominal FK of the strokes).
+        R_M, t_M: the instrument's readings of {T} in {I}.
+        sigmas: ``(6,)`` σ of a reading ``[rad ×3, mm ×3]`` (decides which poses are distinct).
+    Raises:
+        CalibError: fewer than 3 distinct poses, or rotations about fewer than two axes.
+    """
+    registration.require_distinct(
+        np.concatenate([t_M, R_M.reshape(-1, 9)], axis=1), np.r_[sigmas[3:], np.full(9, sigmas[0])], "pose instrument"
+    )
+    n = len(R_X)
+    eye = np.eye(3)
+    # column-major vec: vec(A X) = (I ⊗ A) vec X, vec(X B) = (Bᵀ ⊗ I) vec X
+    rows = np.concatenate(
+        [np.stack([np.kron(eye, R_X[k]) for k in range(n)]), -np.stack([np.kron(R_M[k].T, eye) for k in range(n)])],
+        axis=2,
+    ).reshape(9 * n, 18)
+    _, s, Vt = np.linalg.svd(rows, full_matrices=False)
+    if s[-2] <= max(3.0 * s[-1], registration.RELATIVE_RANK_TOLERANCE * s[0]):
+        raise CalibError(
+            "cannot register the pose instrument: the poses do not rotate about two different axes, so its "
+            "frame's and its target's orientations cannot be told apart; expected poses with varied rotations"
+        )
+    v = Vt[-1]
+    R_G, R_F = v[:9].reshape(3, 3).T, v[9:].reshape(3, 3).T
+    if np.linalg.det(R_F) < 0:
+        R_G, R_F = -R_G, -R_F
+    R_G, R_F = lie.project_to_rotation(R_G), lie.project_to_rotation(R_F)
+    A = np.concatenate([R_X, -np.broadcast_to(eye, (n, 3, 3))], axis=2).reshape(3 * n, 6)
+    b = (np.einsum("ij,kj->ki", R_F, t_M) - t_X).reshape(-1)
+    solution, *_ = np.linalg.lstsq(A, b, rcond=None)
+    return PoseUnknowns(R_F, solution[3:], R_G, solution[:3])
+
+
+class PoseModel(OutsideModel):
+    """The pose instrument as a measurement model (:class:`~.external.OutsideModel`).
 
     Its unknowns θ are the frame's and the target's pose6 ``[x, y, z mm, roll, pitch, yaw rad]``
     (12 values, the block ``"instrument"``; both gauges shared with the drive). One reading is one
     channel group: a robust kernel weighs the whole pose.
-
-    Args:
-        instrument: the platform file's ``[instrument]`` (nominal frame, target, σ).
-        block: the unknowns' block (:meth:`~stewart_calib.instruments.external.ExternalModel.block`).
     """
 
     kind = "pose"
-    compiled_legs = None  # no compiled kernels (base.InstrumentModel.compiled_legs)
-    columns = COLUMNS
+    compiled_pose_reading = True  # the factor graph's rows in one compiled call (base.InstrumentModel)
+    noise_channels = np.r_[0, 0, 0, 1, 1, 1]
+    noise_channel_names = ("orientation_rad", "position_mm")
+    _group: ClassVar[list[np.ndarray]] = [np.arange(6)]
 
-    def __init__(self, instrument: Instrument, block):
-        self.instrument = instrument
-        self.unknowns = block
-        self.channel_sigma = sigmas(instrument)
-        self._group = [np.arange(6)]
+    @staticmethod
+    def columns_of(instrument: Instrument) -> tuple[str, ...]:
+        return COLUMNS
+
+    @staticmethod
+    def sigmas_of(instrument: Instrument) -> np.ndarray:
+        """``(6,)`` σ of the residual's components ``[rad ×3, mm ×3]``."""
+        return np.r_[np.full(3, instrument.orientation_sigma_rad), np.full(3, instrument.position_sigma_mm)]
+
+    @staticmethod
+    def names_of(instrument: Instrument) -> tuple[str, ...]:
+        """The names of the unknowns in file units (:data:`UNKNOWN_NAMES`)."""
+        return UNKNOWN_NAMES
+
+    @staticmethod
+    def placed_on(
+        platform: Platform, position_sigma_mm: float, orientation_sigma_rad: float, n_targets: int
+    ) -> Instrument:
+        """A nominal pose instrument for a simulated study: frame at {J}'s origin, target at {D}'s
+        (``n_targets`` is the points instrument's)."""
+        return Instrument("pose", position_sigma_mm=position_sigma_mm, orientation_sigma_rad=orientation_sigma_rad)
+
+    @staticmethod
+    def true_unknowns(
+        instrument: Instrument, frame: np.ndarray, target_offset: np.ndarray, target_spread_mm: float, rng
+    ) -> PoseUnknowns:
+        """A simulation's true frame (pose6 ``frame``) and target (the nominal one plus the pose6
+        ``target_offset``); ``target_spread_mm`` and ``rng`` are the points instrument's."""
+        return PoseUnknowns.from_pose6(frame, instrument.target + target_offset)
+
+    @staticmethod
+    def noise_draws(instrument: Instrument, n: int, rng: np.random.Generator) -> np.ndarray:
+        """``(n, 6)`` standard normal draws of :meth:`simulated_readings`' noise, rotation first."""
+        return rng.standard_normal((n, 6))
+
+    @staticmethod
+    def simulated_readings(
+        instrument: Instrument, u: PoseUnknowns, R: np.ndarray, t: np.ndarray, draws: np.ndarray, dropout: float
+    ) -> np.ndarray:
+        """Readings ``(..., 6)`` at true platform poses: ``(R_P Exp(σ_rot n_ω), t_P + σ_pos n_v)``
+        (a pose is never lost from view: ``dropout`` is the points instrument's)."""
+        R_P, t_P = predict(u, R, t)
+        R_m = R_P @ kin.so3_exp(instrument.orientation_sigma_rad * draws[..., :3])
+        return kin.rt_to_pose(R_m, t_P + instrument.position_sigma_mm * draws[..., 3:])
+
+    @staticmethod
+    def spreads(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray) -> list[Spread]:
+        """The measured positions' and orientations' spreads against the target's at the poses
+        (:class:`~.base.Spread`; neither depends on the instrument's frame)."""
+        _, t_G = kin.pose_to_rt(platform.instrument.target)
+        t_T = t + np.einsum("kij,j->ki", R, t_G)
+        R_M = kin.rpy_to_rotation(readings[:, 3:])
+        return [
+            Spread("positions", slice(0, 3), position_spread_mm(readings[:, :3]), position_spread_mm(t_T)),
+            Spread(
+                "orientations",
+                slice(3, 6),
+                math.degrees(rotation_spread_rad(R_M)),
+                math.degrees(rotation_spread_rad(R)),
+                angle=True,
+            ),
+        ]
 
     def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
         reading = np.asarray(z, dtype=float)
@@ -216,23 +274,72 @@ class PoseModel:
         )
         return PoseObservation(R_X, t_X, covariance, J_instrument)
 
+    # what the callers of an outside instrument ask (external.OutsideModel)
 
-def reading_spreads(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray) -> list[Spread]:
-    """The measured positions' and orientations' spreads against the target's at the poses
-    (:class:`~.base.Spread`; neither depends on the instrument's frame)."""
-    _, t_G = kin.pose_to_rt(platform.instrument.target)
-    t_T = t + np.einsum("kij,j->ki", R, t_G)
-    R_M = kin.rpy_to_rotation(readings[:, 3:])
-    return [
-        Spread("positions", slice(0, 3), position_spread_mm(readings[:, :3]), position_spread_mm(t_T)),
-        Spread(
-            "orientations",
-            slice(3, 6),
-            math.degrees(rotation_spread_rad(R_M)),
-            math.degrees(rotation_spread_rad(R)),
-            angle=True,
-        ),
-    ]
+    def nominal_unknowns(self) -> PoseUnknowns:
+        return nominal(self.instrument)
+
+    def _angles(self) -> np.ndarray:
+        return np.r_[np.zeros(3, bool), np.ones(3, bool), np.zeros(3, bool), np.ones(3, bool)]
+
+    def theta(self, unknowns: PoseUnknowns) -> np.ndarray:
+        return np.concatenate(
+            [rt_to_pose(unknowns.R_frame, unknowns.t_frame), rt_to_pose(unknowns.R_target, unknowns.t_target)]
+        )
+
+    def theta_jacobian(self, unknowns: PoseUnknowns) -> np.ndarray:
+        return theta_tangent_jacobian(self.theta(unknowns))
+
+    def readings_residual(self, unknowns, measured, R_X, t_X, jacobians=False):
+        return residual(unknowns, measured, R_X, t_X, jacobians)
+
+    def predicted_readings(self, unknowns, R_X: np.ndarray, t_X: np.ndarray) -> np.ndarray:
+        return rt_to_pose(*predict(unknowns, R_X, t_X))
+
+    def prediction_errors(self, unknowns, R_X: np.ndarray, t_X: np.ndarray, readings: np.ndarray):
+        R_P, t_P = predict(unknowns, R_X, t_X)
+        R_m, t_m = kin.pose_to_rt(readings)
+        position, orientation = errors(R_m, t_m, R_P, t_P)
+        return rt_to_pose(R_P, t_P), position, orientation
+
+    def position_differences(self, readings: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+        """One row a sample, in the instrument's axes."""
+        return readings[:, :3] - predicted[:, :3]
+
+    def platform_poses(self, unknowns, readings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``X = F M G⁻¹`` of each reading."""
+        R_M, t_M = kin.pose_to_rt(readings)
+        return lie.compose(
+            *lie.compose(unknowns.R_frame, unknowns.t_frame, R_M, t_M),
+            *lie.inverse(unknowns.R_target, unknowns.t_target),
+        )
+
+    def instrument_at(self, theta: np.ndarray) -> Instrument:
+        return replace(self.instrument, frame=theta[:6], target=theta[6:12])
+
+    def register(self, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray) -> PoseUnknowns:
+        return register_pose(R_X, t_X, *kin.pose_to_rt(measured), self.channel_sigma)
+
+    def refit_frame(self, unknowns, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray) -> PoseUnknowns:
+        """Horn's closed form of ``X G = F M`` for F, then :func:`~.registration.refine_frame`.
+
+        Raises:
+            CalibError: fewer than 3 distinct poses.
+        """
+        sigmas = self.channel_sigma
+        R_M, t_M = kin.pose_to_rt(measured)
+        registration.require_distinct(measured, np.r_[np.full(3, sigmas[3]), np.full(3, sigmas[0])], "pose instrument")
+        R_P, t_P = lie.compose(R_X, t_X, unknowns.R_target, unknowns.t_target)  # X G = F M
+        R_F = lie.project_to_rotation(np.einsum("kij,klj->il", R_P, R_M))
+        t_F = np.mean(t_P - np.einsum("ij,kj->ki", R_F, t_M), axis=0)
+        start = PoseUnknowns(R_F, t_F, unknowns.R_target, unknowns.t_target)
+        return registration.refine_frame(self, start, measured, R_X, t_X)
+
+    def unknowns_from_file(self, values) -> PoseUnknowns:
+        values = np.asarray(values, dtype=float)
+        return PoseUnknowns.from_pose6(
+            np.r_[values[:3], np.radians(values[3:6])], np.r_[values[6:9], np.radians(values[9:12])]
+        )
 
 
 def theta_tangent_jacobian(theta: np.ndarray) -> np.ndarray:

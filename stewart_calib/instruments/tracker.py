@@ -24,8 +24,9 @@ import numpy as np
 
 from .. import _kernels
 from .. import kinematics as kin
+from ..config import NoiseConfig
 from ..errors import SampleRejected
-from ..platform import INSTRUMENT_SECTIONS, N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, Platform
+from ..platform import INSTRUMENT_SECTIONS, N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, Instrument, LegGeometry, Platform
 from ..unknowns import UnknownBlock
 from .base import InstrumentModel, PoseObservation, Residual, Spread
 
@@ -40,8 +41,10 @@ TRACKER_PARAMETER_NAMES = tuple(
 _RULERS = [np.array([i]) for i in range(N_LEGS)]
 
 
-class TrackerModel:
-    """The in-situ tracker as a measurement model (:class:`~.base.InstrumentModel`).
+class TrackerModel(InstrumentModel):
+    """The in-situ tracker as a measurement model (:class:`~.base.InstrumentModel`): part of the
+    robot, its readings a leg set's (:meth:`reading_legs`), which offers compiled kernels where the
+    geometry is known (``compiled_legs``).
 
     Args:
         legs: the tracker geometry ``(z_i, h_i, ls_i)`` (platform file ``[tracker]``).
@@ -52,6 +55,32 @@ class TrackerModel:
 
     kind = "tracker"
     columns = TRACKER_COLUMNS
+
+    @classmethod
+    def build(cls, platform: Platform, noise: NoiseConfig) -> TrackerModel:
+        """The platform's ``[tracker]`` legs, reading range and geometry σ (else ``noise``'s), σ_s of ``noise``."""
+        return cls(
+            platform.required_tracker("the tracker instrument"),
+            noise.reading_sigma_mm,
+            platform.reading_range,
+            platform.tracker_geometry_sigma_mm or noise.tracker_geometry_sigma_mm,
+        )
+
+    @staticmethod
+    def columns_of(instrument: Instrument) -> tuple[str, ...]:
+        return TRACKER_COLUMNS
+
+    @staticmethod
+    def reading_legs(platform: Platform) -> LegGeometry:
+        return platform.required_tracker("the tracker instrument")
+
+    @staticmethod
+    def spreads(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray) -> list[Spread]:
+        """The readings' spread against the tracker's inverse kinematics of the poses (:class:`~.base.Spread`)."""
+        expected = kin.inverse_kinematics(platform.required_tracker("the diagnosis"), R, t)
+        measured_spread = float(np.sqrt(np.nanmean(np.nansum((readings - np.nanmean(readings, axis=0)) ** 2, axis=1))))
+        expected_spread = float(np.sqrt(np.mean(np.sum((expected - expected.mean(axis=0)) ** 2, axis=1))))
+        return [Spread("tracker readings", slice(None), measured_spread, expected_spread)]
 
     def __init__(
         self,
@@ -100,6 +129,12 @@ class TrackerModel:
             SampleRejected.OUT_OF_RANGE,
         )
 
+    def surely_pass(self, readings: np.ndarray) -> np.ndarray:
+        """Rows finite and within ``reading_range``."""
+        lo, hi = self.reading_range if self.reading_range is not None else (-math.inf, math.inf)
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(readings).all(axis=1) & ((readings >= lo) & (readings <= hi)).all(axis=1)
+
     def groups(self, z: np.ndarray) -> list[np.ndarray]:
         """One group per ruler: a robust kernel down-weights one bad reading, not the sample."""
         return _RULERS
@@ -138,22 +173,3 @@ class TrackerModel:
             rulers = self.residual(R, t, theta, z, np.arange(N_LEGS))
             J_theta = -np.linalg.solve(rulers.J_pose, rulers.J_instrument)
         return PoseObservation(R, t, covariance, J_theta)
-
-
-def reading_spreads(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray) -> list[Spread]:
-    """The readings' spread against the tracker's inverse kinematics of the poses (:class:`~.base.Spread`)."""
-    expected = kin.inverse_kinematics(platform.required_tracker("the diagnosis"), R, t)
-    measured_spread = float(np.sqrt(np.nanmean(np.nansum((readings - np.nanmean(readings, axis=0)) ** 2, axis=1))))
-    expected_spread = float(np.sqrt(np.mean(np.sum((expected - expected.mean(axis=0)) ** 2, axis=1))))
-    return [Spread("tracker readings", slice(None), measured_spread, expected_spread)]
-
-
-def as_tracker(model: InstrumentModel) -> TrackerModel:
-    """``model``, for the code that runs only for the in-situ tracker (its legs, its reading range).
-
-    Raises:
-        TypeError: ``model`` is another instrument's.
-    """
-    if not isinstance(model, TrackerModel):
-        raise TypeError(f"expected the tracker's model, got the {model.kind} instrument's")
-    return model

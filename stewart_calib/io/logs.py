@@ -58,7 +58,7 @@ def reading_columns(platform: Platform | None) -> tuple[str, ...]:
     """The log columns of the instrument that measured ``platform``'s logs (spec §7): the tracker's
     ``s1_mm … s6_mm`` (also when ``platform`` is None), a pose's ``mx_mm … myaw_deg`` or the
     targets' ``p1x_mm … pKz_mm``."""
-    return _kind(platform).columns(_instrument(platform))
+    return _kind(platform).columns_of(_instrument(platform))
 
 
 def _instrument(platform: Platform | None) -> Instrument:
@@ -220,7 +220,7 @@ def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) ->
         _flag_partial_targets(table, platform)
     if platform is not None:
         _flag_out_of_range(table, STROKE_COLUMNS, platform.stroke_range, "stroke", "drive.stroke_range_mm")
-        if _kind(platform).reading_legs is not None:
+        if not _kind(platform).outside:
             _flag_out_of_range(table, READING_COLUMNS, platform.reading_range, "reading", "tracker.reading_range_mm")
         if platform.elastic is not None and "load_kg" in table.numbers:
             load = table.numbers["load_kg"]
@@ -443,7 +443,7 @@ class LogRowParser:
         self._stage = index.get("stage")
         self._reading_angles = [j for j, name in enumerate(readings) if name in MEASURED_ANGLE_COLUMNS]
         self._stroke_range = platform.stroke_range if platform is not None else None
-        legs = _kind(platform).reading_legs is not None
+        legs = not _kind(platform).outside
         self._reading_range = platform.reading_range if legs and platform is not None else None
         # a points instrument's empty coordinates (a target not seen) take the careful path
         self._plain_rows = not _kind(platform).unseen_channels

@@ -70,9 +70,9 @@ def _write_rerun(path: Path, platform: Platform, method: str, log: Log, run: Cal
     if trace is None:
         raise ValueError("--rerun draws the trace: run_calibration(..., diagnostics=True) keeps it")
     residual = innovation = None
-    reading_legs = instrument_kind(platform).reading_legs
+    reading_legs = instrument_kind(platform).reading_legs(platform)
     if reading_legs is not None:  # the drive-leg residuals need the instrument's pose of each sample
-        poses = kin.forward_kinematics(reading_legs(platform), log.readings, strict=False)
+        poses = kin.forward_kinematics(reading_legs, log.readings, strict=False)
         residual = kin.leg_residuals_per_sample(trace, poses.R, poses.t, log.strokes)
         if not batch:
             before = np.vstack([nominal, trace[:-1]])  # the model in force when each sample arrived

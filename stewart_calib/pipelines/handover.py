@@ -64,9 +64,9 @@ def calibrated_platform(platform: Platform, estimate: Estimate, method: str, log
     changes: dict[str, Any] = {"description": note}
     theta = estimate.block_values("instrument")
     if theta is not None and instrument_kind(platform).outside:  # the file has no [tracker] unknowns to write
-        from ..instruments.external import model_for
+        from ..instruments import outside_model
 
-        changes["instrument"] = model_for(platform).instrument_at(theta)
+        changes["instrument"] = outside_model(platform).instrument_at(theta)
     return dataclasses.replace(platform, **changes)
 
 

@@ -116,27 +116,27 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
     from .. import kinematics as kin
     from ..drive import drive_model
     from ..estimators.batch import instrument_identifiability
-    from ..instruments.external import model_for, registered_platform
+    from ..instruments import outside_model, registered
     from ..planning import design_covariance
 
     drive = drive_model(platform).identifying()
     if args.log is not None:
         log = io.read_log(args.log, platform, args.skip_bad_rows)
         strokes, readings, payload = log.strokes, log.readings, log.load_kg
-        platform = registered_platform(platform, strokes, readings)
-        model = model_for(platform)
+        platform = registered(platform, strokes, readings)
+        model = outside_model(platform)
         fk, _ = drive.settled_kinematics(strokes, payload, strict=False)
         poses = fk.pose6[fk.converged]
-        seen = np.isfinite(readings[fk.converged]).reshape(len(poses), -1, 3).all(axis=-1)
+        seen = np.isfinite(readings[fk.converged])
     else:
-        model = model_for(platform)
+        model = outside_model(platform)
         poses = read_pose_list(args.poses)
         R, t = kin.pose_to_rt(poses)
         payload = None  # a pose list has none: the platform's own weight
         strokes = drive.inverse_kinematics(R, t)
         readings = model.predicted_readings(model.nominal_unknowns(), R, t)
         readings = np.where(model.seen_channels(R, t), readings, np.nan)  # e.g. a target out of its cone
-        seen = None  # design_covariance finds the same targets in view
+        seen = None  # design_covariance finds the same channels in view
     report = instrument_identifiability(platform, strokes, readings, payload)
     equilibrated = report["condition_number_equilibrated"]
     print(

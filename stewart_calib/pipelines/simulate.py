@@ -70,7 +70,7 @@ class _OutOfRange:
 
     def __init__(self, platform):
         self._ranges = [("strokes", "drive.stroke_range_mm", platform.stroke_range)]
-        if instrument_kind(platform).reading_legs is not None:  # a leg set's readings have a range
+        if not instrument_kind(platform).outside:  # a leg set's readings have a range
             self._ranges.append(("readings", "tracker.reading_range_mm", platform.reading_range))
         self.count, self._excess_mm, self._worst = 0, 0.0, ("", "", (0.0, 0.0), 0.0)
 

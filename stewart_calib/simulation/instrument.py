@@ -16,11 +16,10 @@ reading is ``m + n``, ``n ~ N(0, σ_pos² I)``, lost (all three NaN) with ``drop
 from __future__ import annotations
 
 from dataclasses import dataclass
-from types import ModuleType
 
 import numpy as np
 
-from ..instruments import gauge, points, pose
+from ..instruments import OutsideModel, gauge, points, pose
 from ..instruments.registry import kind_of
 from ..platform import Instrument, LegGeometry
 
@@ -54,32 +53,32 @@ class SimulatedInstrument:
     def build(cls, instrument: Instrument, truth: InstrumentTruth, rng: np.random.Generator) -> SimulatedInstrument:
         offset = lambda values: np.r_[values[:3], np.radians(values[3:])]  # noqa: E731  (file → code units)
         frame = instrument.frame + offset(truth.frame_offset)
-        unknowns = _module(instrument).true_unknowns(
+        unknowns = _model(instrument).true_unknowns(
             instrument, frame, offset(truth.target_offset), truth.target_spread_mm, rng
         )
         return cls(instrument, unknowns, truth.dropout_probability)
 
     def names(self) -> tuple[str, ...]:
-        return _module(self.instrument).names(self.instrument)
+        return _model(self.instrument).names_of(self.instrument)
 
     def draw(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """Standard normal noise and uniform dropout draws for ``n`` readings, ``(n, m + K)``,
         drawn up front so that results do not depend on how the samples are batched."""
-        return _module(self.instrument).noise_draws(self.instrument, n, rng)
+        return _model(self.instrument).noise_draws(self.instrument, n, rng)
 
     def read(self, R: np.ndarray, t: np.ndarray, draws: np.ndarray) -> np.ndarray:
         """Readings ``(..., m)`` at true platform poses with :meth:`draw`'s draws, code units
         (NaN: a target not seen)."""
-        module = _module(self.instrument)
-        return module.simulated_readings(self.instrument, self.unknowns, R, t, draws, self.dropout_probability)
+        model = _model(self.instrument)
+        return model.simulated_readings(self.instrument, self.unknowns, R, t, draws, self.dropout_probability)
 
 
-def _module(instrument: Instrument) -> ModuleType:
-    """The module of ``instrument``'s kind (:data:`~stewart_calib.instruments.registry.MODELS`)."""
-    module = kind_of(instrument).module
-    if module is None:
+def _model(instrument: Instrument) -> type[OutsideModel]:
+    """The model class of ``instrument``'s kind (:data:`~stewart_calib.instruments.registry.MODELS`)."""
+    model = kind_of(instrument)
+    if not issubclass(model, OutsideModel):
         raise ValueError(f"the {instrument.kind} instrument is part of the robot: it has no simulated truth of its own")
-    return module
+    return model
 
 
 def truth_in_gauge(nominal: LegGeometry, true_params: np.ndarray, unknowns) -> tuple[np.ndarray, object]:

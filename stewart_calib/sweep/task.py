@@ -164,9 +164,9 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
     strokes = (_leg_lengths(true_params, R, t) - vector_to_params(true_params)[..., 6]) / (1.0 + true_scale)
     strokes += stroke_noise
     instrument = None
-    reading_legs = instrument_kind(nominal).reading_legs
+    reading_legs = instrument_kind(nominal).reading_legs(nominal)
     if reading_legs is not None:
-        readings = kin.inverse_kinematics(reading_legs(nominal), R, t) + reading_noise
+        readings = kin.inverse_kinematics(reading_legs, R, t) + reading_noise
         readings[glitched, legs[glitched]] += signs[glitched] * settings["glitch_size_mm"]
     else:
         instrument = SimulatedInstrument.build(true_noise(nominal, settings), _instrument_truth(settings, rng), rng)
