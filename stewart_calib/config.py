@@ -12,7 +12,7 @@ import sys
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 from .errors import CalibError, shown
 from .inputs import check_document, implausible_sigma_mm
@@ -82,6 +82,9 @@ class LSConfig:
     robust_k: float = 3.0
     estimate_noise: bool = True
     stroke_scale: str = "auto"
+
+    #: the ``[ls]`` key of :attr:`drive_blocks`, for the messages that suggest it
+    DRIVE_BLOCKS_KEY: ClassVar[str] = "stroke_scale"
 
     @property
     def drive_blocks(self) -> str:

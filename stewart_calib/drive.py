@@ -361,6 +361,11 @@ class DriveModel:
         )
         return DriveModel(self.legs.perturbed(np.asarray(error, dtype=float)), terms, self.elastic)
 
+    def true_drive(self, error: np.ndarray, values: Mapping[str, np.ndarray]) -> DriveModel:
+        """:meth:`calibrated` to a simulator's truth (spec §4, §7: its terms' ``values`` by block
+        key): a term the truth does not give is 0 there (a robot of exact scale)."""
+        return self.calibrated(error, {term.key: values.get(term.key, np.zeros(N_LEGS)) for term in self.terms})
+
     # ------------------------------------------------------------------ residual and Jacobians
 
     def residual(self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray) -> np.ndarray:

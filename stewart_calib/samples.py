@@ -128,7 +128,9 @@ class Truth:
         t_s: ``(N,)`` [s].
         params: ``(N, 42)`` true absolute drive parameters [mm], paper order.
         true_poses: ``(N, 6)`` true pose ``[mm, rad]``, or None.
-        stroke_scale: ``(6,)`` true stroke scale k_i (spec §7), or None.
+        drive_terms: the true values ``(6,)`` of the drive's terms by the drive model's block key
+            (:class:`~stewart_calib.drive.LegTerm`; spec §7: the stroke scale k_i); a term the truth
+            does not give is absent.
         instrument: ``(names, values)`` of the true outside instrument's unknowns in file units
             (frame and target(s), spec §7), or None.
     """
@@ -136,5 +138,5 @@ class Truth:
     t_s: np.ndarray
     params: np.ndarray
     true_poses: np.ndarray | None = None
-    stroke_scale: np.ndarray | None = None
+    drive_terms: dict[str, np.ndarray] = field(default_factory=dict)
     instrument: tuple[tuple[str, ...], np.ndarray] | None = None

@@ -188,12 +188,12 @@ def test_truth_file_carries_stroke_scale_and_instrument(tmp_path):
     truth = Truth(
         np.arange(2.0),
         np.zeros((2, 42)),
-        stroke_scale=np.arange(6) / 100,
+        drive_terms={"stroke_scale": np.arange(6) / 100},
         instrument=(("frame_x_mm", "frame_y_mm"), np.array([1.5, -2.0])),
     )
     io.write_truth(tmp_path / "truth.csv", truth)
     back = io.read_truth(tmp_path / "truth.csv")
-    np.testing.assert_array_equal(back.stroke_scale, truth.stroke_scale)
+    np.testing.assert_array_equal(back.drive_terms["stroke_scale"], truth.drive_terms["stroke_scale"])
     assert back.instrument[0] == ("frame_x_mm", "frame_y_mm")
     np.testing.assert_array_equal(back.instrument[1], [1.5, -2.0])
 
@@ -278,7 +278,7 @@ def test_simulate_calibrate_validate_end_to_end(tmp_path, capsys):
     assert result["instrument"]["names"][0] == "frame_x_mm"
     assert "gauge" in result
     truth = io.read_truth(tmp_path / "sim" / "truth.csv")
-    k_error = np.array(result["stroke_scale"]["estimate"]) - truth.stroke_scale
+    k_error = np.array(result["stroke_scale"]["estimate"]) - truth.drive_terms["stroke_scale"]
     assert np.all(np.abs(k_error) < 4.0 * np.array(result["stroke_scale"]["stddev"]))
     capsys.readouterr()
     assert (

@@ -237,7 +237,7 @@ def whole_run_texts(experiment) -> tuple[str, str]:
     instrument = (
         None if robot.instrument is None else (robot.instrument.names(), robot.instrument.unknowns.file_values())
     )
-    truth = Truth(plan.t_s, params, kin.rt_to_pose(sol.R, sol.t), robot.stroke_scale, instrument)
+    truth = Truth(plan.t_s, params, kin.rt_to_pose(sol.R, sol.t), {"stroke_scale": robot.stroke_scale}, instrument)
     return log_text(log, experiment.platform), truth_text(truth)
 
 

@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .. import kinematics as kin
+from ..config import LSConfig
 from ..drive import DriveModel
 from ..errors import CalibError, SampleRejected
 from ..instruments import OutsideModel, gauge, outside_model
@@ -563,7 +564,8 @@ def _not_converged(problem: BatchProblem, state: _State, basis, sigmas, weights,
     if condition > WEAK_CONDITION:
         return (
             f"{head}; most likely the poses leave some directions nearly free (condition number {condition:.3g}): "
-            "expected poses that vary all six pose coordinates over the workspace, or --set ls.stroke_scale=off"
+            f"expected poses that vary all six pose coordinates over the workspace, or --set "
+            f"ls.{LSConfig.DRIVE_BLOCKS_KEY}=off"
         )
     return (
         f"{head}; the residuals ({whitened:.3g} σ RMS) and the conditioning ({condition:.3g}) look sound: "

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..drive import STROKE_SCALE
 from ..errors import CalibError, shown
 from ..inputs import MAX_LINE_BYTES, MAX_TIME_S, open_input
 from ..platform import PARAMETER_NAMES, Instrument, Platform
@@ -744,8 +745,8 @@ def truth_text(truth: Truth, header: bool = True) -> str:
         columns += pose_columns_deg(truth.true_poses)
     # spec §7 truth, constant over the log: one column per value, added beside §4's
     constants: list[tuple[str, float]] = []
-    if truth.stroke_scale is not None:
-        constants += zip(STROKE_SCALE_NAMES, truth.stroke_scale, strict=True)
+    if STROKE_SCALE in truth.drive_terms:
+        constants += zip(STROKE_SCALE_NAMES, truth.drive_terms[STROKE_SCALE], strict=True)
     if truth.instrument is not None:
         constants += zip(*truth.instrument, strict=True)
     for name, value in constants:
@@ -782,7 +783,7 @@ def read_truth(path: str | Path) -> Truth:
     instrument = (
         (tuple(others), np.array([_first_number(path, header, text, name) for name in others])) if others else None
     )
-    return Truth(table.numbers["t_s"], params, poses, scale, instrument)
+    return Truth(table.numbers["t_s"], params, poses, {} if scale is None else {STROKE_SCALE: scale}, instrument)
 
 
 def _first_number(path: Path, header: list[str], text: str, name: str) -> float:

@@ -6,7 +6,7 @@ Prints, against the true parameters of the truth file's last row (the values an 
 reports are those at the last sample; a batch fit's hold for the whole log):
 
 * **parameter errors** — RMS and largest of ``estimate − truth`` over the 42 parameters [mm] (and
-  of the stroke scale where both identify it), the largest one named;
+  the largest of each drive term's, e.g. the stroke scale, where both give it), the largest one named;
 * **z²** — the mean of ``((estimate − truth) / σ)²`` with the result's own σ: 1 when the reported
   error bars are honest, far above 1 when they are too small;
 * **closed loop** — the mean position [mm] and orientation [deg] error over the fixed reachable
@@ -31,10 +31,13 @@ import numpy as np
 
 from .. import io
 from .. import kinematics as kin
-from ..drive import STROKE_SCALE, DriveModel, drive_model
+from ..drive import DriveModel, drive_model
 from ..errors import CalibError
-from ..platform import N_LEGS, PARAMETER_NAMES, load_platform
+from ..platform import PARAMETER_NAMES, load_platform
 from . import run_command
+
+#: the score of a drive term's values (its block key before it): the largest error of the six
+TERM_ERROR = "_max_error"
 
 
 def add_parser(subparsers) -> None:
@@ -81,18 +84,19 @@ def scores(platform, result: dict, truth) -> dict:
     stddev = result.get("stddev")
     if stddev is not None and np.all(np.asarray(stddev, dtype=float) > 0):
         out["z2"] = float(np.mean((e / np.asarray(stddev, dtype=float)) ** 2))
-    # the rigid drive of spec §4's truth: δM and the stroke scale (the truth file's one term)
+    # the rigid drive of spec §4's truth: δM and the terms the truth file gives
     nominal = drive_model(replace(platform, elastic=None))
-    scale_block = result.get(STROKE_SCALE)
-    scale = None if scale_block is None else np.array(scale_block["estimate"], dtype=float)
-    if scale is not None and truth.stroke_scale is not None:
-        out["stroke_scale_max_error"] = float(np.max(np.abs(scale - truth.stroke_scale)))
+    fitted = {
+        term.key: np.array(result[term.key]["estimate"], dtype=float) for term in nominal.terms if term.key in result
+    }
+    for key, values in fitted.items():
+        if key in truth.drive_terms:
+            out[f"{key}{TERM_ERROR}"] = float(np.max(np.abs(values - truth.drive_terms[key])))
     nominal_params = platform.drive.as_vector()
-    true_scale = np.zeros(N_LEGS) if truth.stroke_scale is None else truth.stroke_scale
-    true = nominal.calibrated(true_params - nominal_params, {STROKE_SCALE: true_scale})
+    true = nominal.true_drive(true_params - nominal_params, truth.drive_terms)
     poses = evaluation_poses(platform)
     out["closed_loop_mm"], out["closed_loop_deg"] = closed_loop_error(
-        nominal.calibrated(estimate - nominal_params, {STROKE_SCALE: scale}), true, poses
+        nominal.calibrated(estimate - nominal_params, fitted), true, poses
     )
     out["closed_loop_nominal_mm"], out["closed_loop_nominal_deg"] = closed_loop_error(nominal, true, poses)
     out["poses"] = len(poses)
@@ -110,10 +114,14 @@ def run(args: argparse.Namespace) -> int:
         )
     s = scores(platform, result, truth)
     z2 = f"z² {s['z2']:.3g}" if "z2" in s else "z² — (no σ in the result)"
-    scale = f", stroke scale within {s['stroke_scale_max_error']:.2g}" if "stroke_scale_max_error" in s else ""
+    terms = "".join(
+        f", {key.removesuffix(TERM_ERROR).replace('_', ' ')} within {value:.2g}"
+        for key, value in s.items()
+        if key.endswith(TERM_ERROR)
+    )
     print(
         f"stewart-calib score: parameters RMS {s['parameter_rms_mm']:.4g} mm, max {s['parameter_max_mm']:.4g} mm "
-        f"({s['parameter_max_name']}){scale}; {z2}; closed loop {s['closed_loop_mm']:.4g} mm / "
+        f"({s['parameter_max_name']}){terms}; {z2}; closed loop {s['closed_loop_mm']:.4g} mm / "
         f"{s['closed_loop_deg']:.4g}° (nominal model {s['closed_loop_nominal_mm']:.4g} mm / "
         f"{s['closed_loop_nominal_deg']:.4g}°, mean over {s['poses']} workspace poses)"
     )

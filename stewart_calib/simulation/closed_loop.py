@@ -48,7 +48,7 @@ from typing import Protocol
 import numpy as np
 
 from .. import kinematics as kin
-from ..drive import drive_model
+from ..drive import STROKE_SCALE, drive_model
 from ..errors import SampleRejected
 from ..estimate import model_estimate
 from ..platform import LegGeometry, Platform
@@ -406,7 +406,7 @@ def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, para
         t_s=plan.t_s[rows].copy(),
         params=params,
         true_poses=kin.rt_to_pose(R, t),
-        stroke_scale=robot.stroke_scale.copy(),
+        drive_terms={STROKE_SCALE: robot.stroke_scale.copy()},
         instrument=instrument,
     )
     return log, truth
@@ -430,7 +430,7 @@ def run_experiment(
     first = truths[0]
     joined = lambda name: np.concatenate([getattr(truth, name) for truth in truths])  # noqa: E731
     actual_poses = joined("true_poses")
-    truth = Truth(joined("t_s"), joined("params"), actual_poses, first.stroke_scale, first.instrument)
+    truth = Truth(joined("t_s"), joined("params"), actual_poses, first.drive_terms, first.instrument)
     plan = run.plan
     return SimulationResult(
         log,
