@@ -73,7 +73,7 @@ def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseCon
 
     ``C = L Lᵀ`` (:func:`residual_covariance`) by Cholesky and ``C^{-1/2} = L⁻¹``, one compiled
     loop over the poses (:func:`stewart_calib._kernels.whitened_leg_rows`: numpy's batched
-    6 × 6 Cholesky and solve cost ~20 µs a pose, the loop ~1 µs).
+    6 × 6 Cholesky and solve cost over an order of magnitude more a pose).
 
     Args:
         poses: ``(N, 6)`` pose6 ``[mm, rad]``.

@@ -221,7 +221,7 @@ def _newton_fk(
     residual = np.empty(len(flat))
     _kernels.fk_newton(base, plat, lengths, flat, R, t, float(tol_mm), int(max_iterations), iterations, residual)
 
-    # The compiled check first: `residual <= tol_mm` and `.all()` cost ~1 µs of a ~6 µs solve.
+    # The compiled check first: `residual <= tol_mm` and `.all()` cost a sizeable share of a solve.
     if _kernels.all_within(residual, -np.inf, float(tol_mm)):
         converged = np.ones(len(flat), dtype=bool)
     else:
@@ -409,7 +409,7 @@ def solve_fk(
         SampleRejected: neither start converges; ``what`` names the leg set.
     """
     R, t = start_pose(guess)
-    # one compiled call for both starts: forward_kinematics' batch wrapper costs ~10 µs a pose
+    # one compiled call for both starts: forward_kinematics' batch wrapper costs more a pose than the solve
     residual = _kernels.fk_single(
         legs.base_joints,
         legs.platform_joints,

@@ -439,8 +439,8 @@ def _check_block_shapes(block: Log, width: int) -> None:
 
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
     """What ``np.savez`` writes for ``arrays`` (an uncompressed ZIP of ``<name>.npy`` members),
-    built in memory: zipfile's per-member bookkeeping took ~60 µs of a member, ~1.3 ms of a
-    checkpoint that ``track`` writes every ``--every`` rows. Members are dated 1980-01-01 (ZIP's
+    built in memory: zipfile's per-member bookkeeping cost most of the time of a checkpoint,
+    which ``track`` writes every ``--every`` rows (BENCHMARKS.md). Members are dated 1980-01-01 (ZIP's
     epoch): a checkpoint's time is its file's."""
     local, central = bytearray(), bytearray()
     for name, array in arrays.items():

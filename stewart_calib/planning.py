@@ -23,10 +23,9 @@ step costs one batched 6×6 determinant (``A``: a 6×6 solve) over the candidate
 eigenvector's Rayleigh quotient) limits them to the few candidates that could win.
 
 Cost: O(N·M) for N poses from M candidates — about 1.25 N steps (N greedy, then the
-exchanges: 59 for N = 100, 253 for 1000, 515 for 2000), each ~2.3 µs of CPU a candidate
-(``A``, nim-stewart, one core of a loaded machine). Linear in N at the default 2000
-candidates (~5 ms a pose); quadratic when M grows with N (N = 2000 from 4000: 24 s; 10⁴ from
-2·10⁴: over 300 s). The blocks hold 2 kB a candidate.
+exchanges: 59 for N = 100, 253 for 1000, 515 for 2000), each a few µs of CPU a candidate.
+Linear in N at the default 2000 candidates; quadratic when M grows with N (BENCHMARKS.md,
+"Planned poses", for the times). The blocks hold 2 kB a candidate.
 """
 
 from __future__ import annotations

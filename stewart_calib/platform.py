@@ -83,7 +83,7 @@ class LegGeometry:
 
         Called once per sample by the EKFs: the sums (one compiled call) are new C-contiguous float
         arrays of the right shapes by construction, so they skip ``__post_init__``'s
-        copies and checks (~5.5 µs → ~2 µs; same values bit for bit). The kernels are imported
+        copies and checks (more than half its cost; same values bit for bit). The kernels are imported
         here, not with the module: a platform file is read by commands that never compute
         (``import``'s check of the instrument kind), and numba alone is ~130 MB of RSS.
         """

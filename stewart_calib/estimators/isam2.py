@@ -30,7 +30,7 @@ FRONT_ANCHOR_SAMPLES = 20
 
 #: samples of a block the front end takes in one compiled run (:meth:`ISAM2Estimator.update_block`):
 #: a run it must take back (a lock-out recovery, a gtsam failure) is replayed, so short enough that
-#: this stays cheap, long enough that the anchor state (~35 µs) is a fraction of a µs a sample.
+#: this stays cheap, long enough that exporting the anchor state costs a small fraction of a sample's time.
 FRONT_RUN_SAMPLES = 256
 
 
@@ -148,8 +148,9 @@ class ISAM2Estimator:
         started, recoveries = front.started, front.recoveries
         # A gtsam failure below takes the sample back from the front end too: from its state at
         # an anchor and the samples fed to it since (replayed but this one), exporting the state
-        # once every FRONT_ANCHOR_SAMPLES instead of every sample (~50 µs). Until its start-up
-        # batch is decided (a decision that a replay would make again) the anchor is every sample.
+        # once every FRONT_ANCHOR_SAMPLES instead of every sample (an export every sample was a
+        # sizeable share of the front end's time). Until its start-up batch is decided (a decision
+        # that a replay would make again) the anchor is every sample.
         if not started or self._front_anchor is None or len(self._front_since) >= FRONT_ANCHOR_SAMPLES:
             self._front_anchor, self._front_since = self._front.export_state(), []
         self._front_since.append(sample)

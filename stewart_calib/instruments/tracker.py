@@ -110,7 +110,7 @@ class TrackerModel(InstrumentModel):
         """The six readings as floats, or :class:`SampleRejected` (shape, non-finite, out of range)."""
         readings = np.asarray(z, dtype=float)
         lo, hi = self.reading_range if self.reading_range is not None else (-math.inf, math.inf)
-        # Fast path for the common valid sample (~1 µs); any doubt goes to the wording below.
+        # One compiled check for the common valid sample; any doubt goes to the wording below.
         if readings.shape == (N_LEGS,) and _kernels.all_within(readings, float(lo), float(hi)):
             return readings
         if readings.shape != (N_LEGS,):

@@ -456,7 +456,7 @@ class LogRowParser:
         self._reading_slice = slice(self._stroke_slice.stop, self._stroke_slice.stop + len(reading_indices))
 
     def _plain(self, line: str) -> Sample | None:
-        """The common row in a few µs: no quoting, every field a finite number within range, time
+        """The common row, fast: no quoting, every field a finite number within range, time
         not going back. Anything else gives None, and the careful path words the problem
         (the same fields, the same ``float`` parsing as numpy's, so the same samples)."""
         fields = line.split(",")
@@ -521,8 +521,8 @@ class LogRowParser:
         return Log(t_s, values[:, self._stroke_slice], readings, desired, stages, load_kg)
 
     def _block_by_arrow(self, lines: list[bytes]) -> tuple | None:
-        """``(values, load_kg, None)`` of an all-numeric log's rows by pyarrow (~1.5 µs a row against
-        ~10 for ``float`` on each field), or None where it has any doubt."""
+        """``(values, load_kg, None)`` of an all-numeric log's rows by pyarrow (several times faster
+        a row than ``float`` on each field; BENCHMARKS.md), or None where it has any doubt."""
         table = numbers_by_arrow(self._header, b"\n".join(lines) + b"\n")
         if table is None or len(table) != len(lines):
             return None

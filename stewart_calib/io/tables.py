@@ -109,9 +109,9 @@ def float_rows_csv(columns: list[np.ndarray], blank: tuple[int, ...] = (), large
     """The rows of equal-length float columns as :func:`csv_text` writes them (each float's
     ``repr``, commas between, a line break after each row; see :func:`write_csv_blocks` for
     ``blank``), without the header; by pyarrow from :data:`CSV_CHUNK_ROWS` rows on, or for any
-    rows of a ``large`` file: ~2 µs a 13-column row against ~11 for ``repr`` on each field, its
-    import (~0.1 s, ~40 MB) paying off. (An import of 10⁶ rows in blocks of ~5400 wrote each
-    block's last ~1300 rows by ``repr``: 5 of its 18 s.)"""
+    rows of a ``large`` file: several times faster a row than ``repr`` on each field, its import
+    (a tenth of a second, tens of MB) paying off (BENCHMARKS.md). (An import of 10⁶ rows in blocks
+    of ~5400 once wrote each block's last ~1300 rows by ``repr``: a quarter of its time.)"""
     if len(columns[0]) < CSV_CHUNK_ROWS and not large:
         fields = [_repr_list(column, j in blank) for j, column in enumerate(columns)]
         return "".join(",".join(row) + "\n" for row in zip(*fields, strict=True)).encode()
@@ -240,7 +240,7 @@ def optional_group(path: Path, header: list[str], group) -> bool:
 
 
 #: bytes pyarrow parses at a time in :func:`numbers_by_arrow`: a quarter MB stays in the CPU's
-#: cache (~1.5 µs a 19-column row, against ~2.5 µs parsing 4 MB in one go).
+#: cache (faster a row than parsing 4 MB in one go; BENCHMARKS.md).
 ARROW_BLOCK_BYTES = 1 << 18
 
 

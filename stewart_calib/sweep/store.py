@@ -67,7 +67,8 @@ MAGIC = b"PAR1"
 
 def _damage(path: Path) -> str | None:
     """Why ``path`` is no whole Parquet file (too short, no opening or closing magic bytes, a footer
-    longer than the file), or None: a truncated part fails here, reading only its ends (~20 µs)."""
+    longer than the file), or None: a truncated part fails here, reading only its ends (cheap
+    beside parsing it)."""
     try:
         with path.open("rb") as f:
             size = os.fstat(f.fileno()).st_size
