@@ -1,4 +1,5 @@
-"""Measurement models, one module per instrument, all following :mod:`.base`'s protocol;
+"""Measurement models, one module per instrument, each a subclass of :class:`.base.InstrumentModel`
+(the one instrument interface; :class:`.external.OutsideModel` for those outside the robot);
 :mod:`.registry` lists them by ``[instrument] kind``. The instruments outside the robot (spec §7
 ``pose``, ``points``) start their fit in closed form (:mod:`.registration`) and leave 12
 directions to :mod:`.gauge`."""
