@@ -33,6 +33,20 @@ def _trampoline(kernel):
     return call
 
 
+def _GilReleasing(flags_class):
+    """pycc's compile flags with the GIL released around each exported call, as every kernel's
+    ``nogil=True`` has it in the JIT: pycc's own flags hold it, and then the read-ahead thread's
+    kernels (the log's residuals before calibration) waited for the filter's instead of running
+    beside them (every entry point is nogil: tests/test_aot.py)."""
+
+    class Flags(flags_class):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.release_gil = True
+
+    return Flags
+
+
 def _constant(text: str):
     def constant():
         return text
@@ -65,6 +79,9 @@ class BuildKernels(build_ext):
         from numba import types
         from numba.core import config
         from numba.pycc import CC
+        from numba.pycc import compiler as pycc_compiler
+
+        pycc_compiler.Flags = _GilReleasing(pycc_compiler.Flags)
 
         from stewart_calib import _jit
 

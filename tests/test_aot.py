@@ -13,6 +13,7 @@ import importlib
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -103,6 +104,14 @@ def test_a_calibration_imports_no_numba(quick, tmp_path):
     script = f"import sys\nfrom stewart_calib import cli\ncli.main({argv!r})\nprint('numba' in sys.modules)"
     done = subprocess.run([sys.executable, "-c", script], cwd=ROOT, capture_output=True, text=True)
     assert (done.returncode, done.stdout.split()[-1:]) == (0, ["False"]), done.stderr
+
+
+def test_the_aot_calls_release_the_gil_as_the_kernels_declare():
+    """Every entry point is ``nogil`` (the read-ahead thread's kernels run beside the filter's): pycc's
+    wrappers release the GIL only when built so (setup.py), and then call ``PyEval_SaveThread``."""
+    assert all(kernel.options.get("nogil") for kernel in _jit.ENTRY_POINTS.values())
+    module = importlib.import_module(_jit.AOT_MODULE)
+    assert b"PyEval_SaveThread" in Path(module.__file__).read_bytes()
 
 
 def test_every_entry_point_is_reached(first_calls):
