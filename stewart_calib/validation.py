@@ -11,8 +11,11 @@ at that pose, and the measured pose its own forward kinematics of the logged rea
 
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
+from typing import TypeVar
 
 import numpy as np
 
@@ -226,6 +229,27 @@ def nominal_residuals(platform: Platform, block: Log) -> np.ndarray:
     return np.full((len(block), N_LEGS), np.nan) if before is None else before[0]
 
 
+#: blocks whose residuals :func:`streamed_residual_rms` computes at a time (on as many threads)
+RESIDUAL_THREADS = 2
+
+T = TypeVar("T")
+U = TypeVar("U")
+
+
+def in_order(
+    pool: concurrent.futures.Executor, function: Callable[[T], U], items: Iterable[T], ahead: int
+) -> Iterator[U]:
+    """``function`` of each item, in order, computed by ``pool`` with at most ``ahead`` items in flight
+    (``pool.map`` would take every item at once: a whole log's blocks in memory)."""
+    pending: collections.deque = collections.deque()
+    for item in items:
+        pending.append(pool.submit(function, item))
+        if len(pending) >= ahead:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()
+
+
 def streamed_residual_rms(
     platform: Platform, spooled: Iterable[tuple[Log, np.ndarray]], result: dict, rejected: list[int]
 ) -> dict:
@@ -235,22 +259,32 @@ def streamed_residual_rms(
     each sample): the calibrated model's residuals are computed here, and the per-channel sums of
     squares add up over the blocks.
     """
-    sums, counts, k = {"before": 0.0, "after": 0.0}, {"before": 0, "after": 0}, 0
+    sums, counts = {"before": 0.0, "after": 0.0}, {"before": 0, "after": 0}
     left_out = np.asarray(rejected, dtype=np.int64)
-    for block, before in spooled:
-        used = ~np.isin(k + np.arange(len(block)), left_out)
-        k += len(block)
-        if not used.any():
-            continue
-        block, before = block.select(used), before[used]
+
+    def used_rows() -> Iterator[tuple[Log, np.ndarray]]:
+        k = 0
+        for block, before in spooled:
+            used = ~np.isin(k + np.arange(len(block)), left_out)
+            k += len(block)
+            if used.any():
+                yield block.select(used), before[used]
+
+    def residuals(used: tuple[Log, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        block, before = used
         after = tracker_residuals(platform, block, [(result, "the result")])
         if after is None or np.isnan(before).any():  # an FK failed: validate's path words it
             residuals = measurement_residuals(platform, block, result)
-            before, after = residuals.before, residuals.after[None]
-        for when, values in (("before", before), ("after", after[0])):
-            finite = np.isfinite(values)
-            sums[when] = sums[when] + np.sum(np.where(finite, values, 0.0) ** 2, axis=0)
-            counts[when] = counts[when] + finite.sum(axis=0)
+            return residuals.before, residuals.after
+        return before, after[0]
+
+    # two blocks at a time: their FK is compiled code that lets go of the GIL, so a second core halves it
+    with concurrent.futures.ThreadPoolExecutor(RESIDUAL_THREADS) as pool:
+        for before, after in in_order(pool, residuals, used_rows(), RESIDUAL_THREADS):
+            for when, values in (("before", before), ("after", after)):
+                finite = np.isfinite(values)
+                sums[when] = sums[when] + np.sum(np.where(finite, values, 0.0) ** 2, axis=0)
+                counts[when] = counts[when] + finite.sum(axis=0)
     field: dict[str, list] = {"channels": list(io.reading_columns(platform))}
     for when in ("before", "after"):
         with np.errstate(invalid="ignore", divide="ignore"):
