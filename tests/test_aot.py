@@ -47,8 +47,9 @@ def _log(root) -> list[str]:
 
 @pytest.fixture(scope="module")
 def first_calls(quick) -> dict[str, tuple]:
-    """``{entry point: copies of its first call's arguments}`` over calibrate with ekf, isam2 and ls,
-    track, validate and simulate of the quick experiment, and :func:`_python_paths`."""
+    """``{entry point: copies of its first call's arguments}`` over calibrate with ekf, isam2 (also with the
+    tracker's geometry unknown) and ls, track, validate and simulate of the quick experiment, and
+    :func:`_python_paths`."""
     calls = {}
     call = _jit.Kernel.__call__
 
@@ -65,6 +66,8 @@ def first_calls(quick) -> dict[str, tuple]:
         ["track", *_log(quick), "--method", "ekf", "--config", "paper", "--out", str(quick / "track.json")],
         ["validate", *_log(quick), "--result", str(quick / "ekf.json"), "--out", str(quick / "V.csv")],
         ["simulate", "--experiment", "quick", "--out", str(quick / "again")],
+        # the tracker's geometry identified: its rulers' compiled rows in the graph
+        ["calibrate", *_log(quick), "--method", "isam2", "--config", "paper-tracker", "--out", str(quick / "t.json")],
     ]
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(_jit.Kernel, "__call__", record)

@@ -121,6 +121,18 @@ def test_instrument_factor_on_the_unknown_vector_has_the_model_jacobian(platform
     numeric = numerical_jacobian(lambda u: f.unwhitenedError(_values(pose, u)), unknowns)
     assert relative_error(H_params, numeric) <= 1e-6
     assert np.all(H_params[:, :42] == 0.0)
+    # the compiled rows (compiled_unknown_legs) are the model's residual, bit for bit
+    theta = model.unknowns.nominal + unknowns[block]
+    R, t = pose.rotation().matrix(), pose.translation()
+    for channels in (np.array([2]), np.arange(6)):
+        unit = gtsam.noiseModel.Unit.Create(len(channels))
+        f = instrument.factor(model, X, readings + 0.01, channels, unit, P, block, layout.size)
+        reference = model.residual(R, t, theta, readings + 0.01, channels)
+        np.testing.assert_array_equal(f.unwhitenedError(values), reference.r)
+        A = f.linearize(values).jacobian()[0]
+        np.testing.assert_array_equal(A[:, :6], reference.J_pose)
+        np.testing.assert_array_equal(A[:, 6:][:, block], reference.J_instrument)
+        assert np.all(A[:, 6 : 6 + block.start] == 0.0)
 
 
 def test_gauge_factor_is_the_linear_constraint(platform):

@@ -86,6 +86,28 @@ def known_leg_rows(pose, legs, extensions):
     return r, J_pose
 
 
+@njit(entry=(F8_2F, F8_1, I8_2, F8_1), **_JIT)
+def unknown_leg_rows(pose, params, columns, extensions):
+    """Residuals of ``k`` legs whose rows ``[j_i | d_i | l_i]`` are ``params[columns]`` (``columns (k, 7)``:
+    a leg set whose geometry is unknown, the tracker's θ₀ + p in the unknown vector ``params``) with
+    extensions ``e_i`` at ``pose`` ``(4, 4)``, and their Jacobians: ``(r (k,), ∂r/∂ξ (k, 6), ∂r/∂params
+    (k, len(params)))`` (TrackerModel.residual's arithmetic, its J_instrument put in the rows' columns)."""
+    k = columns.shape[0]
+    legs = np.empty((k, 7))
+    for i in range(k):
+        for j in range(7):
+            legs[i, j] = params[columns[i, j]]
+    R = np.ascontiguousarray(pose[:3, :3])
+    t = np.ascontiguousarray(pose[:3, 3])
+    r, J_pose, J_legs = np.empty(k), np.empty((k, 6)), np.empty((k, 7))
+    leg_rows(legs, R, t, extensions, r, J_pose, J_legs)
+    H = np.zeros((k, params.shape[0]))
+    for i in range(k):
+        for j in range(7):
+            H[i, columns[i, j]] = J_legs[i, j]
+    return r, J_pose, H
+
+
 @njit(**_JIT)
 def _so3_log(R, phi):
     """``Log(R)`` into ``phi (3,)`` [rad] (instruments.lie.so3_log: the series below sin θ = 1e-9, the

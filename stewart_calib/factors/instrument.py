@@ -19,7 +19,8 @@ the model's per-call cost (fancy indexing and a residual tuple per linearisation
 whose reading is a target's pose (``compiled_pose_reading``: the pose instrument), likewise, is one
 compiled call (:func:`._kernels.pose_reading_rows`, the arithmetic of ``PoseModel.residual``, where
 ~30 small numpy calls a linearisation cost most of iSAM2's time with the motion-capture preset:
-BENCHMARKS.md).
+BENCHMARKS.md), and so is a ruler whose geometry is unknown (``compiled_unknown_legs``: the tracker
+identified, :func:`._kernels.unknown_leg_rows`).
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ import gtsam
 import numpy as np
 
 from ..instruments.base import InstrumentModel
-from ._kernels import known_leg_rows, pose_reading_rows
+from ..platform import N_PARAMS_PER_LEG
+from ._kernels import known_leg_rows, pose_reading_rows, unknown_leg_rows
 
 _KNOWN = np.zeros(0)  # θ of a model without unknowns
 
@@ -65,6 +67,27 @@ def _known_legs_error(
     r, H_pose = known_leg_rows(values.atPose3(pose_key).matrix(), legs, readings)
     if H is not None:
         H[0] = H_pose
+    return r
+
+
+def _unknown_legs_error(
+    readings: np.ndarray,
+    nominal: np.ndarray,
+    block: slice,
+    columns: np.ndarray,
+    keys: tuple,
+    this: gtsam.CustomFactor,
+    values: gtsam.Values,
+    H,
+):
+    """:func:`_error` of rulers whose geometry is unknown (``compiled_unknown_legs``) in one compiled call
+    (:func:`._kernels.unknown_leg_rows`): the unknown vector with θ = θ₀ + p in the model's columns."""
+    params = values.atVector(keys[1])
+    params[block] += nominal
+    r, J_pose, H_params = unknown_leg_rows(values.atPose3(keys[0]).matrix(), params, columns, readings)
+    if H is not None:
+        H[0] = J_pose
+        H[1] = H_params
     return r
 
 
@@ -128,5 +151,12 @@ def factor(
         nominal = np.ascontiguousarray(unknowns.nominal, dtype=float)
         return gtsam.CustomFactor(
             noise, keys, partial(_pose_reading_error, np.array(z), nominal, block, size, tuple(keys))
+        )
+    if model.compiled_unknown_legs and unknowns is not None and block is not None and len(keys) == 2:
+        nominal = np.ascontiguousarray(unknowns.nominal, dtype=float)
+        columns = block.start + N_PARAMS_PER_LEG * channels[:, None] + np.arange(N_PARAMS_PER_LEG)
+        readings = np.ascontiguousarray(z[channels])
+        return gtsam.CustomFactor(
+            noise, keys, partial(_unknown_legs_error, readings, nominal, block, columns, tuple(keys))
         )
     return gtsam.CustomFactor(noise, keys, partial(_error, model, z, channels, block, size, tuple(keys)))

@@ -121,6 +121,10 @@ class InstrumentModel(ABC):
     #: own, θ = [frame pose6 | target pose6]: the model then offers the compiled kernel of its
     #: residual rows (:func:`stewart_calib.factors._kernels.pose_reading_rows`)
     compiled_pose_reading: ClassVar[bool] = False
+    #: whether the readings are the extensions of a leg set whose rows ``[j_i | d_i | l_i]`` are the unknowns
+    #: θ (seven a leg, in leg order) when it has unknowns: the model then offers the compiled kernel of its
+    #: residual rows (:func:`stewart_calib.factors._kernels.unknown_leg_rows`)
+    compiled_unknown_legs: ClassVar[bool] = False
 
     # ------------------------------------------------------------------ the kind
 

@@ -55,6 +55,7 @@ class TrackerModel(InstrumentModel):
 
     kind = "tracker"
     columns = TRACKER_COLUMNS
+    compiled_unknown_legs = True
 
     @classmethod
     def build(cls, platform: Platform, noise: NoiseConfig) -> TrackerModel:
