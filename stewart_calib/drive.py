@@ -507,7 +507,14 @@ class DriveModel:
         """
         if inputs is None and self.elastic is not None:
             inputs = self.inputs(np.zeros(np.shape(t)[:-1] + (N_LEGS,)), payload_kg, R, t, x_drive)
-        lengths = kin.inverse_kinematics(self.geometry(x_drive), R, t)
+        return self.strokes_for(kin.inverse_kinematics(self.geometry(x_drive), R, t), x_drive, inputs)
+
+    def strokes_for(
+        self, extensions: np.ndarray, x_drive: np.ndarray | None = None, inputs: np.ndarray | None = None
+    ) -> np.ndarray:
+        """The strokes ``q (..., 6)`` [mm] that extend the legs by ``extensions`` ``e (..., 6)`` [mm]:
+        ``e`` less the other terms' part, over the stroke term's ``1 + k_i`` (``inputs`` as
+        :meth:`inverse_kinematics` takes them)."""
         factors = self._term_factors(x_drive)
         for row, (term, factor) in enumerate(zip(self.terms, factors, strict=True)):
             if row == self._stroke:
@@ -515,8 +522,8 @@ class DriveModel:
             if inputs is None:
                 raise ValueError(f"inverse kinematics of this drive needs the inputs of its term '{term.key}'")
             u = np.asarray(inputs, dtype=float)[..., term.input_start : term.input_start + N_LEGS]
-            lengths = lengths - factor * term.gain * u
-        return lengths / factors[self._stroke]
+            extensions = extensions - factor * term.gain * u
+        return extensions / factors[self._stroke]
 
     # ------------------------------------------------------------------ compiled code
 

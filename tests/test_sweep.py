@@ -15,7 +15,7 @@ from scipy.stats import chi2
 
 from stewart_calib import kinematics as kin
 from stewart_calib.cli import main
-from stewart_calib.drive import drive_model
+from stewart_calib.drive import STROKE_SCALE, drive_model
 from stewart_calib.errors import CalibError
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.base import feed
@@ -297,7 +297,7 @@ def test_an_unknown_stroke_scale_on_the_tracker_is_estimated_and_bounded(tmp_pat
     cell = spec.cells[0]
     assert cell.estimator_config.noise.stroke_scale_sigma == 0.01
     data = simulate(cell.settings, cell.platform, task_rng(cell.id, 3))
-    assert np.all(data.true_scale != 0)
+    assert np.all(data.true_terms[STROKE_SCALE] != 0)
     crb = bound_stddev_mm(data, cell.settings, cell.estimator_config.noise.prior_sigma_mm)
     assert crb.shape == (48,) and np.all(np.isfinite(crb))
     (row,) = run_task(cell, 3, ("ekf",))

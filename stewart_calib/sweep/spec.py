@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..config import EstimatorConfig, config_from_dict
+from ..config import EstimatorConfig, NoiseConfig, config_from_dict
 from ..errors import CalibError
 from ..estimators import METHODS
 from ..instruments import MODELS
@@ -542,18 +542,32 @@ def _platform_file(value: str, path: Path, refuse) -> Platform:
     )
 
 
+def _noise_table(settings: dict, reading_scale: float = 1.0) -> dict:
+    """The ``[noise]`` table of what the cell simulates, its readings' σ × ``reading_scale``: where the
+    true stroke scales spread, that spread is their prior σ (the scales are then unknowns)."""
+    table = {
+        "reading_sigma_mm": settings["reading_sigma_mm"] * reading_scale,
+        "stroke_sigma_mm": settings["stroke_sigma_mm"],
+        "random_walk_mm_per_sqrt_s": settings["drift_mm_per_sqrt_s"],
+    }
+    if settings["stroke_scale_error"] > 0:
+        table["stroke_scale_sigma"] = settings["stroke_scale_error"]
+    return table
+
+
+def simulated_noise(settings: dict) -> NoiseConfig:
+    """The noise the cell simulates (what the bound is for, whatever the estimators are told): the
+    readings' σ × ``noise_scale``, and the drive's terms whose true values spread with that spread as
+    their prior σ — so :func:`~stewart_calib.drive.drive_model` with it draws and bounds them."""
+    return NoiseConfig(**_noise_table(settings, settings["noise_scale"]))
+
+
 def _estimator_config(settings: dict, source: str) -> EstimatorConfig:
     """The estimators' noise model matched to the simulation, then the cell's estimator settings."""
     matched = {
-        "noise": {
-            "reading_sigma_mm": settings["reading_sigma_mm"],
-            "stroke_sigma_mm": settings["stroke_sigma_mm"],
-            "random_walk_mm_per_sqrt_s": settings["drift_mm_per_sqrt_s"],
-        },
+        "noise": _noise_table(settings),
         "robust": {"adapt_noise": False},  # matched already: measuring it again only adds its scatter
     }
-    if settings["stroke_scale_error"] > 0:  # the scales are unknowns, with the simulated spread as prior
-        matched["noise"]["stroke_scale_sigma"] = settings["stroke_scale_error"]
     config = config_from_dict(matched, source)
     overrides: dict[str, dict] = {}
     for key, value in settings.items():

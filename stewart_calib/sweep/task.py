@@ -37,8 +37,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .. import kinematics as kin
-from ..config import NoiseConfig
-from ..drive import COMPLIANCE, STROKE_SCALE, DriveModel, compliance_term, drive_model, stroke_term
+from ..drive import COMPLIANCE, DriveModel, drive_model
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..estimators import BatchEstimator, make_estimator
@@ -46,20 +45,12 @@ from ..estimators.base import fit_all
 from ..estimators.batch import BatchProblem, cramer_rao
 from ..identifiability import identifiability_report, residual_covariance, stddev_from_factor, whitened_leg_jacobian
 from ..instruments import MODELS, gauge, instrument_kind, registered
-from ..platform import (
-    N_LEGS,
-    N_PARAMS,
-    Elastic,
-    Instrument,
-    LegGeometry,
-    Platform,
-    default_compliance_sigma,
-    vector_to_params,
-)
+from ..platform import N_LEGS, N_PARAMS, Elastic, Instrument, LegGeometry, Platform, vector_to_params
 from ..samples import Log
 from ..simulation.instrument import InstrumentTruth, SimulatedInstrument, truth_in_gauge
 from ..simulation.trajectories import random_static_poses
-from .spec import Cell, Family
+from ..unknowns import UnknownBlock
+from .spec import Cell, Family, simulated_noise
 
 #: Range margin of the random poses [mm]: the true robot stands up to a few mm from where the
 #: nominal model puts it, and glitch-free readings must stay inside the reading range.
@@ -89,7 +80,9 @@ class SweepData:
         true_params: ``(N, 42)`` true drive parameters in force at each sample [mm].
         glitched: ``(N,)`` True where one reading carries a glitch.
         validation_poses: ``(V, 6)`` fresh poses of the closed-loop check [mm, rad].
-        true_scale: ``(6,)`` the true stroke scales k_i (logged strokes are ``q / (1 + k)``).
+        true_terms: the true values ``(6,)`` of the drive's terms by block key
+            (:class:`~stewart_calib.drive.LegTerm`): the stroke scales k_i (logged strokes are
+            ``q / (1 + k)``) and, on an elastic robot, its legs' compliance [mm/kN].
         true_instrument: the true outside instrument (None for the tracker).
         true_elastic: the robot's masses and, as ``true_compliance_mm_per_kN``, its legs' true
             compliance (None: a rigid robot).
@@ -102,7 +95,7 @@ class SweepData:
     true_params: np.ndarray
     glitched: np.ndarray
     validation_poses: np.ndarray
-    true_scale: np.ndarray
+    true_terms: dict[str, np.ndarray]
     true_instrument: SimulatedInstrument | None = None
     true_elastic: Elastic | None = None
     payload_kg: np.ndarray | None = None
@@ -114,16 +107,11 @@ class SweepData:
         return self.true_params[-1] - self.platform.drive.as_vector()
 
     @property
-    def true_blocks(self) -> dict[str, np.ndarray]:
-        """The true values of the drive's blocks the bound covers: the stroke scales where they are
-        unknowns (an outside instrument, or ``stroke_scale_error`` > 0), the compliance where the
-        robot is elastic — whether or not the estimators model it."""
-        blocks = {}
-        if STROKE_SCALE in self.scored:
-            blocks[STROKE_SCALE] = self.true_scale
-        if self.true_elastic is not None:
-            blocks[COMPLIANCE] = np.asarray(self.true_elastic.true_compliance_mm_per_kN)
-        return blocks
+    def true_drive(self) -> DriveModel:
+        """The robot's drive at the last sample, all known: δM, its terms' true values and, on an
+        elastic robot, the masses its legs carry."""
+        robot = drive_model(replace(self.platform, elastic=self.true_elastic))
+        return robot.true_drive(self.true_error, self.true_terms)
 
     @property
     def final_payload_kg(self) -> float:
@@ -160,8 +148,12 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
     validation = random_static_poses(
         nominal, settings["validation_poses"], rng, settings["workspace_fraction"], POSE_MARGIN_MM
     )
-    true_scale = rng.normal(0.0, settings["stroke_scale_error"], 6)
-    strokes = (_leg_lengths(true_params, R, t) - vector_to_params(true_params)[..., 6]) / (1.0 + true_scale)
+    # the rigid drive's terms (the stroke scale), each drawn with its simulated spread (its prior σ there)
+    rigid = drive_model(replace(nominal, elastic=None), simulated_noise(settings))
+    true_terms = {term.key: rng.normal(0.0, term.prior_sigma or 0.0, N_LEGS) for term in rigid.terms}
+    true_rigid = rigid.true_drive(np.zeros(N_PARAMS), true_terms)
+    strokes = true_rigid.strokes_for(_leg_lengths(true_params, R, t) - vector_to_params(true_params)[..., 6])
+    per_stroke = true_rigid.extension_per_stroke()
     strokes += stroke_noise
     instrument = None
     reading_legs = instrument_kind(nominal).reading_legs(nominal)
@@ -181,8 +173,10 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
             elastic_table(settings), true_compliance_mm_per_kN=settings["compliance_mm_per_kN"] * (1.0 + spread)
         )
         payload = payload_schedule(settings)
-        forces = _elastic_drive(true_params[0], true_scale, true_elastic).leg_forces(R, t, payload)
-        strokes += true_elastic.true_compliance_mm_per_kN * forces / 1000.0 / (1.0 + true_scale)
+        loaded = replace(true_rigid, legs=LegGeometry.from_params(true_params[0]), elastic=true_elastic)
+        forces = loaded.leg_forces(R, t, payload)
+        strokes += true_elastic.true_compliance_mm_per_kN * forces / 1000.0 / per_stroke
+        true_terms[COMPLIANCE] = np.asarray(true_elastic.true_compliance_mm_per_kN)
         load_kg = payload if settings["payload_known"] else None
         if settings["elastic_model"]:
             nominal = replace(nominal, elastic=elastic_table(settings))
@@ -193,11 +187,11 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
         true_params,
         glitched,
         validation,
-        true_scale,
+        true_terms,
         instrument,
         true_elastic,
         payload,
-        scored_blocks(settings),
+        scored_blocks(nominal, settings),
     )
 
 
@@ -215,24 +209,20 @@ def payload_schedule(settings: dict) -> np.ndarray:
     return heaviest * steps[settings["payload_schedule"]]
 
 
-def scored_blocks(settings: dict) -> tuple[str, ...]:
-    """The drive's blocks scored after δM: the stroke scales where they are unknowns (an outside
-    instrument, or ``stroke_scale_error`` > 0), the compliance where the robot is elastic and the
-    estimators model it."""
-    blocks: tuple[str, ...] = ()
-    if MODELS[settings["instrument"]].outside or settings["stroke_scale_error"] > 0:
-        blocks += (STROKE_SCALE,)
-    if settings["platform_mass_kg"] > 0 and settings["elastic_model"]:
-        blocks += (COMPLIANCE,)
-    return blocks
+def simulated_drive(platform: Platform, settings: dict, elastic: bool = True) -> DriveModel:
+    """``platform``'s drive with the unknown blocks of the cell's simulation: the terms whose true
+    values spread (:func:`~stewart_calib.sweep.spec.simulated_noise`), the encoders' scale with an
+    instrument outside the robot as the estimators have it, and with ``elastic`` the compliance of an
+    elastic robot (:func:`elastic_table`)."""
+    table = elastic_table(settings) if elastic and settings["platform_mass_kg"] > 0 else None
+    outside = MODELS[settings["instrument"]].outside
+    return drive_model(replace(platform, elastic=table), simulated_noise(settings), outside_instrument=outside)
 
 
-def _elastic_drive(params: np.ndarray, scale: np.ndarray, elastic: Elastic) -> DriveModel:
-    """A robot's drive, all known: its legs ``params`` (42), stroke scales ``scale`` and legs'
-    compliance (``elastic.true_compliance_mm_per_kN``) under ``elastic``'s masses."""
-    truth = np.asarray(elastic.true_compliance_mm_per_kN, dtype=float)
-    compliance = replace(compliance_term(elastic), nominal=truth, prior_sigma=None)
-    return DriveModel(LegGeometry.from_params(params), (stroke_term(scale), compliance), elastic)
+def scored_blocks(platform: Platform, settings: dict) -> tuple[str, ...]:
+    """The drive's blocks scored after δM: :func:`simulated_drive`'s, the compliance where the
+    estimators model the robot's elasticity."""
+    return tuple(block.key for block in simulated_drive(platform, settings, settings["elastic_model"]).blocks)
 
 
 def with_instrument(platform: Platform, settings: dict) -> Platform:
@@ -293,7 +283,8 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
     frame and targets unknown too (:func:`stewart_calib.estimators.batch.cramer_rao`, at the
     truth, with the simulated σ) — of constant parameters: with drift it is optimistic.
     """
-    blocks = data.true_blocks
+    drive = simulated_drive(data.platform, settings)
+    blocks = drive.blocks
     if data.true_instrument is not None:
         delta, unknowns = truth_in_gauge(data.platform.drive, data.true_params[-1], data.true_instrument.unknowns)
         simulated = replace(
@@ -302,11 +293,11 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
             elastic=None if data.true_elastic is None else elastic_table(settings),
         )
         problem = BatchProblem.of_log(simulated, data.log.strokes, data.log.readings, data.log.t_s, data.payload_kg)
-        errors = {key: value - _nominal(data.platform, key) for key, value in blocks.items()}
-        bound = cramer_rao(problem, np.concatenate([delta, *errors.values()]), unknowns)
-        stddev = np.sqrt(np.clip(np.diag(bound)[: N_PARAMS + N_LEGS * len(blocks)], 0.0, None))
+        errors = [data.true_terms[block.key] - block.nominal for block in blocks]
+        bound = cramer_rao(problem, np.concatenate([delta, *errors]), unknowns)
+        stddev = np.sqrt(np.clip(np.diag(bound)[: drive.size], 0.0, None))
         return _scored_part(stddev, blocks, data.scored)
-    noise, poses = _true_noise(settings), data.log.desired_poses
+    noise, poses = simulated_noise(settings), data.log.desired_poses
     if poses is None:
         raise ValueError("a sweep's simulated log holds its poses")
     rows = whitened_leg_jacobian(data.platform, poses, noise)
@@ -314,21 +305,15 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
         return identifiability_report(data.platform, poses, noise, paper_form=False).predicted_stddev_mm
     R, t = kin.pose_to_rt(poses)
     L = np.linalg.cholesky(residual_covariance(data.platform, R, t, noise))
-    prior = [np.full(N_PARAMS, prior_sigma_mm**2)]
-    for key in blocks:  # ∂r_i/∂v_i = −g u_i of the term's own input, whitened as the rows of δM
-        if key == STROKE_SCALE:
-            gain_input, sigma = -data.log.strokes, settings["stroke_scale_error"]
-        else:
-            elastic = drive_model(replace(data.platform, elastic=elastic_table(settings)))
-            forces = elastic.leg_forces(R, t, data.payload_kg)
-            gain_input, sigma = forces / 1000.0, default_compliance_sigma(settings["platform_mass_kg"])
-        rows = np.concatenate([rows, np.linalg.solve(L, gain_input[:, :, None] * np.eye(N_LEGS))], axis=2)
-        prior.append(np.full(N_LEGS, sigma**2))
+    if blocks:  # ∂r_i/∂v_{b,i} = −g_b u_{b,i} of each term's own inputs, whitened as the rows of δM
+        inputs = drive.inputs(data.log.strokes, data.payload_kg, R, t)
+        rows = np.concatenate([rows, np.linalg.solve(L, -drive.extension_jacobian(inputs))], axis=2)
     n = rows.shape[2]
     if settings["drift_mm_per_sqrt_s"] == 0:
         return _scored_part(stddev_from_factor(rows.reshape(-1, n)), blocks, data.scored)
     walk = np.zeros((n, n))
     walk[:N_PARAMS, :N_PARAMS] = settings["drift_mm_per_sqrt_s"] ** 2 / settings["rate_hz"] * np.eye(N_PARAMS)
+    prior = [np.full(N_PARAMS, prior_sigma_mm**2), *(block.prior_sigma**2 for block in blocks)]
     covariance = np.diag(np.concatenate(prior))
     for k, A in enumerate(rows):
         predicted = covariance + walk if k else covariance
@@ -336,28 +321,13 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
     return _scored_part(np.sqrt(np.diag(covariance)), blocks, data.scored)
 
 
-def _scored_part(stddev: np.ndarray, blocks: dict, scored: tuple[str, ...]) -> np.ndarray:
+def _scored_part(stddev: np.ndarray, blocks: tuple[UnknownBlock, ...], scored: tuple[str, ...]) -> np.ndarray:
     """The entries of ``stddev`` over ``[δM, blocks…]`` that belong to δM and the ``scored`` blocks."""
     keep = [np.arange(N_PARAMS)]
-    for k, key in enumerate(blocks):
-        if key in scored:
+    for k, block in enumerate(blocks):
+        if block.key in scored:
             keep.append(N_PARAMS + N_LEGS * k + np.arange(N_LEGS))
     return stddev[np.concatenate(keep)]
-
-
-def _nominal(platform: Platform, key: str) -> np.ndarray:
-    """The nominal values the estimators start block ``key`` from: the platform file's stroke
-    scales, the compliance 0 of :func:`elastic_table`."""
-    return np.broadcast_to(platform.stroke_scale, (N_LEGS,)) if key == STROKE_SCALE else np.zeros(N_LEGS)
-
-
-def _true_noise(settings: dict) -> NoiseConfig:
-    """The simulated noise (what the bound is for, whatever the estimators are told)."""
-    return NoiseConfig(
-        settings["reading_sigma_mm"] * settings["noise_scale"],
-        settings["stroke_sigma_mm"],
-        settings["drift_mm_per_sqrt_s"],
-    )
 
 
 def truth(data: SweepData) -> np.ndarray:
@@ -368,8 +338,7 @@ def truth(data: SweepData) -> np.ndarray:
         delta, _ = truth_in_gauge(data.platform.drive, data.true_params[-1], data.true_instrument.unknowns)
     else:
         delta = data.true_error
-    blocks = data.true_blocks
-    return np.concatenate([delta, *(blocks[key] for key in data.scored)])
+    return np.concatenate([delta, *(data.true_terms[key] for key in data.scored)])
 
 
 def nees_basis(data: SweepData, n: int) -> np.ndarray:
@@ -387,24 +356,15 @@ def closed_loop_errors(data: SweepData, estimate: Estimate | None = None) -> tup
     """Mean position [mm] and orientation [deg] error at the validation poses when the
     controller commands encoder strokes by IK with the estimated drive (None: the nominal one) —
     its δM, stroke scales (``q = (L − l) / (1 + k)``) and, on an elastic robot, its compliance
-    under the payload it knows of (0 where the log does not say) — and the true robot
-    (parameters of the last sample, true scales, settling under its weight and the last
-    sample's payload) executes them."""
-    error = np.zeros(N_PARAMS) if estimate is None else estimate.error
-    scale = None if estimate is None else estimate.block_values(STROKE_SCALE)
-    scale = np.zeros(N_LEGS) if scale is None else scale
+    under the payload it knows of (0 where the log does not say); a block it did not identify at
+    its nominal — and the true robot (:attr:`SweepData.true_drive`: parameters of the last
+    sample, true scales, settling under its weight and the last sample's payload) executes them."""
     R_d, t_d = kin.pose_to_rt(data.validation_poses)
-    if data.true_elastic is None:
-        strokes = kin.inverse_kinematics(data.platform.drive.perturbed(error), R_d, t_d) / (1.0 + scale)
-        true_drive = data.platform.drive.perturbed(data.true_error)
-        actual = kin.forward_kinematics(true_drive, strokes * (1.0 + data.true_scale), (R_d, t_d))
-    else:
-        known = data.final_payload_kg if data.log.load_kg is not None else 0.0
-        drive = drive_model(data.platform)
-        commanded = drive.calibrated_by(estimate) if estimate is not None else drive
-        strokes = commanded.inverse_kinematics(R_d, t_d, payload_kg=known)
-        robot = _elastic_drive(data.true_params[-1], data.true_scale, data.true_elastic)
-        actual, _ = robot.settled_kinematics(strokes, data.final_payload_kg, guess=(R_d, t_d))
+    known = data.final_payload_kg if data.log.load_kg is not None else 0.0
+    drive = drive_model(data.platform)
+    commanded = drive.calibrated_by(estimate) if estimate is not None else drive
+    strokes = commanded.inverse_kinematics(R_d, t_d, payload_kg=known)
+    actual, _ = data.true_drive.settled_kinematics(strokes, data.final_payload_kg, guess=(R_d, t_d))
     position_mm, orientation_deg = kin.pose_error(R_d, t_d, actual.R, actual.t)
     return float(position_mm.mean()), float(orientation_deg.mean())
 
@@ -417,9 +377,10 @@ def score(data: SweepData, estimate: Estimate, crb: np.ndarray) -> dict:
     the unknowns it estimated.
     """
     found, columns = [estimate.error], [np.arange(N_PARAMS)]
+    nominal = {term.key: term.nominal for term in drive_model(data.platform).terms}
     for key in data.scored:
         values, span = estimate.block_values(key), estimate.layout.slice(key)
-        found.append(_nominal(data.platform, key) if values is None else values)
+        found.append(nominal[key] if values is None else values)
         columns.append(np.full(N_LEGS, -1) if span is None else np.arange(span.start, span.stop))
     e = np.concatenate(found) - truth(data)
     column = np.concatenate(columns)
