@@ -182,6 +182,11 @@ class DriveModel:
         return tuple(term.block() for term in self.unknown_terms)
 
     @property
+    def rows(self) -> int:
+        """Rows of its residual per sample: one per leg."""
+        return N_LEGS
+
+    @property
     def size(self) -> int:
         """Entries of ``x_drive``: 42 + six per unknown term."""
         return N_PARAMS + N_LEGS * len(self._unknown)

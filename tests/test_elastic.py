@@ -371,7 +371,7 @@ def test_a_payload_step_is_one_sample_of_the_payload_in_closed_form():
         return prepared - H @ x, H, sigma**2 * np.eye(6)
 
     robust = RobustConfig(startup_samples=0, adapt_noise=False)
-    f = RobustFilter("toy", 1e-3, 0.0, 0.9999, observe, robust, layout=layout, step=(42, 50.0**2))
+    f = RobustFilter("toy", 1e-3, 0.0, 0.9999, observe, robust, 6, layout=layout, step=(42, 50.0**2))
     f.filter.P[42, 42] = 1e-4  # m known at 0 before the step
     truth = np.zeros(43)
     truth[:42] = rng.normal(0.0, 1e-3, 42)

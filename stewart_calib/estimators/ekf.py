@@ -126,6 +126,7 @@ class LegEKF:
             config.ekf.gate_probability,
             self._observe,
             config.robust,
+            self.drive.rows,
             layout=self.layout,
             C=C,
             unit_Q=unit_Q,

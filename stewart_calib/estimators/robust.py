@@ -104,7 +104,9 @@ class RobustFilter:
         gate_probability: χ² gate probability (0 = off: then also no start-up refusals).
         observe: the linearised observation of a prepared sample at a state (see :data:`Observe`).
         robust: the ``[robust]`` settings (:class:`~stewart_calib.config.RobustConfig`).
-        m: observation size.
+        m: rows of an observation as the batch's redundancy and its proposals count a sample: the
+            drive's residuals (:attr:`~stewart_calib.drive.DriveModel.rows`; an outside instrument's
+            tight observation has as many as the channels it saw).
         layout, C: the unknown vector and its gauge rows (as :class:`FilterState`).
         unit_Q: the process noise per unit ``ρ² Δt`` (None: the identity).
         compiled_rows: the recursion over rows of prepared samples in one compiled call, observing
@@ -136,7 +138,7 @@ class RobustFilter:
         gate_probability: float,
         observe: Observe,
         robust,
-        m: int = 6,
+        m: int,
         layout=None,
         C: np.ndarray | None = None,
         unit_Q: np.ndarray | None = None,
