@@ -137,6 +137,8 @@ class RobustFilter:
         walk_rate_mm2_per_s: the random walk's variance rate in use [mm²/s].
         recoveries: lock-outs recovered from.
         steps: steps of the ``step`` unknown taken.
+        settle_scale: a window's noise scale is solved to its fixed point (see
+            :meth:`_measured_scale`); False: one pass from the scale in use (isam2's front end).
     """
 
     def __init__(
@@ -178,6 +180,7 @@ class RobustFilter:
         self._gate_on = gate_probability > 0.0
         self.noise_scale2 = 1.0
         self.walk_rate_mm2_per_s = self._configured_walk
+        self.settle_scale = True
         # (time of the sample after which they held, s², walk rate): see noise_scale2_at, walk_rate_at
         self._scale_history: deque = deque([(-math.inf, 1.0, self.walk_rate_mm2_per_s)], maxlen=SCALE_HISTORY)
         self.recoveries = 0
@@ -642,7 +645,7 @@ class RobustFilter:
         NEES in band 6 → 9 of 10). Returns the window's ``(x, P)`` at the scale in use, which the next
         window's is taken at: the walk test compares their difference with both."""
         scale2 = self.noise_scale2
-        for _ in range(SCALE_ITERATIONS):
+        for _ in range(SCALE_ITERATIONS if self.settle_scale else 1):
             # (scale of the pass × observed, expected): their ratio is the scale the window says
             observed, expected = self._pass_components
             self._scale_sums = remembered + [scale2 * observed, expected]
