@@ -59,18 +59,35 @@ def drive_leg_rows(pose, unknowns, legs_of, nominal, columns, terms, inputs):
             part = (offsets[b] + value) * gain[b, i]
             e = part if b == 0 else e + part
         extensions[i] = e
-    R = np.ascontiguousarray(pose[:3, :3])
-    t = np.ascontiguousarray(pose[:3, 3])
-    r, J_pose, J_legs = np.empty(k), np.empty((k, 6)), np.empty((k, 7))
-    leg_rows(legs, R, t, extensions, r, J_pose, J_legs)
-    H = np.zeros((k, unknowns.shape[0]))
+    r, J_pose, J_legs = _legs_at(pose, legs, extensions)
+    H = _in_columns(J_legs, columns, unknowns.shape[0])
     for i in range(k):
-        for j in range(7):
-            H[i, columns[i, j]] = J_legs[i, j]
         for b in range(starts.shape[0]):
             if term_columns[b, legs_of[i]] >= 0:
                 H[i, term_columns[b, legs_of[i]]] = -gain[b, i]
     return r, J_pose, H
+
+
+@njit(**_JIT)
+def _legs_at(pose, legs, extensions):
+    """:func:`~stewart_calib._kernels.leg_rows` of ``legs (k, 7)`` with ``extensions`` at the homogeneous
+    ``pose (4, 4)`` (``Pose3.matrix()``): ``(r (k,), ∂r/∂ξ (k, 6), ∂r/∂leg (k, 7))``."""
+    k = legs.shape[0]
+    R = np.ascontiguousarray(pose[:3, :3])
+    t = np.ascontiguousarray(pose[:3, 3])
+    r, J_pose, J_legs = np.empty(k), np.empty((k, 6)), np.empty((k, 7))
+    leg_rows(legs, R, t, extensions, r, J_pose, J_legs)
+    return r, J_pose, J_legs
+
+
+@njit(**_JIT)
+def _in_columns(J_legs, columns, size):
+    """``(k, size)`` zeros with row i's ``∂r_i/∂leg`` in the unknowns' ``columns[i]``."""
+    H = np.zeros((J_legs.shape[0], size))
+    for i in range(J_legs.shape[0]):
+        for j in range(7):
+            H[i, columns[i, j]] = J_legs[i, j]
+    return H
 
 
 @njit(entry=(F8_2F, F8_2, F8_1), **_JIT)
@@ -78,11 +95,7 @@ def known_leg_rows(pose, legs, extensions):
     """Residuals of ``k`` legs of known geometry ``legs (k, 7)`` = ``[j_i | d_i | l_i]`` with
     extensions ``e_i`` (a tracker's rulers and their readings) at ``pose`` ``(4, 4)``, and their
     Jacobian on the pose: ``(r (k,), ∂r/∂ξ (k, 6))``."""
-    k = legs.shape[0]
-    R = np.ascontiguousarray(pose[:3, :3])
-    t = np.ascontiguousarray(pose[:3, 3])
-    r, J_pose, J_legs = np.empty(k), np.empty((k, 6)), np.empty((k, 7))
-    leg_rows(legs, R, t, extensions, r, J_pose, J_legs)
+    r, J_pose, _ = _legs_at(pose, legs, extensions)
     return r, J_pose
 
 
@@ -97,15 +110,8 @@ def unknown_leg_rows(pose, params, columns, extensions):
     for i in range(k):
         for j in range(7):
             legs[i, j] = params[columns[i, j]]
-    R = np.ascontiguousarray(pose[:3, :3])
-    t = np.ascontiguousarray(pose[:3, 3])
-    r, J_pose, J_legs = np.empty(k), np.empty((k, 6)), np.empty((k, 7))
-    leg_rows(legs, R, t, extensions, r, J_pose, J_legs)
-    H = np.zeros((k, params.shape[0]))
-    for i in range(k):
-        for j in range(7):
-            H[i, columns[i, j]] = J_legs[i, j]
-    return r, J_pose, H
+    r, J_pose, J_legs = _legs_at(pose, legs, extensions)
+    return r, J_pose, _in_columns(J_legs, columns, params.shape[0])
 
 
 @njit(**_JIT)
