@@ -161,6 +161,22 @@ def _sign_fixed(vectors: np.ndarray) -> np.ndarray:
     return vectors * np.sign(vectors[big, np.arange(vectors.shape[1])])
 
 
+def _pivot_columns(A: np.ndarray, k: int) -> np.ndarray:
+    """The ``k`` columns QR with column pivoting picks first (Businger–Golub, as LAPACK's ``geqp3``): at each
+    step the column of the largest norm left, the first of equal ones, then projected out of the rest.
+    Written out for a matrix of a few rows, so that ``calibrate`` does not import ``scipy.linalg`` (~0.2 s)."""
+    residual = np.array(A, dtype=float)
+    chosen: list[int] = []
+    for _ in range(k):
+        norms = np.einsum("ij,ij->j", residual, residual)
+        norms[chosen] = -1.0
+        column = int(np.argmax(norms))
+        chosen.append(column)
+        q = residual[:, column] / np.sqrt(norms[column])
+        residual -= np.outer(q, q @ residual)
+    return np.array(chosen)
+
+
 def readable_basis(basis: np.ndarray) -> np.ndarray:
     """Re-express an orthonormal basis ``(42, k)`` of a subspace with few parameters per vector.
 
@@ -168,13 +184,10 @@ def readable_basis(basis: np.ndarray) -> np.ndarray:
     the k most independent parameters (QR with column pivoting) gives vectors that each
     carry one pivot parameter, e.g. ``0.71·j1x + 0.71·d1x`` per leg and axis. Unit columns.
     """
-    import scipy.linalg
-
     k = basis.shape[1]
     if k == 0:
         return basis
-    _, _, pivots = scipy.linalg.qr(basis.T, pivoting=True, mode="economic")
-    pivots = np.sort(pivots[:k])  # parameter order, so leg 1's vectors come first
+    pivots = np.sort(_pivot_columns(basis.T, k))  # parameter order, so leg 1's vectors come first
     echelon = np.linalg.solve(basis.T[:, pivots], basis.T).T
     return _sign_fixed(echelon / np.linalg.norm(echelon, axis=0))
 
@@ -360,18 +373,23 @@ def _stacked_factor(factor: np.ndarray, rows: np.ndarray) -> np.ndarray:
     ``AᵀA = RᵀR`` is kept as its square root, which resolves singular values down to ~1e-16
     of the largest — forming ``AᵀA`` itself would square the condition number and lose all
     below ~1e-8 (√eps), exactly where :data:`RANK_RTOL` decides the rank. LAPACK's ``geqrf``
-    on a column-major stack: ``np.linalg.qr`` copies to that layout and is 4× slower.
+    on a column-major stack, through numpy's own LAPACK (``np.linalg.qr`` copies to that layout
+    and is 4× slower; scipy's ``dgeqrf``, the same routine and the same ``R`` bit for bit, costs
+    ``calibrate`` the ~0.2 s of importing ``scipy.linalg``).
     """
-    from scipy.linalg import lapack
+    from numpy.linalg import lapack_lite
 
     n = factor.shape[1]
     rows = rows.reshape(-1, n)
-    stack = np.empty((len(factor) + len(rows), n), order="F")
-    stack[: len(factor)], stack[len(factor) :] = factor, rows
-    qr, _, _, info = lapack.dgeqrf(stack, overwrite_a=True)
-    if info != 0:
-        raise ValueError(f"LAPACK dgeqrf: argument {-info} is invalid")
-    return np.triu(qr[: min(len(stack), n)])
+    m = len(factor) + len(rows)
+    stack = np.empty((n, m))  # C order of the transpose: the (m, n) stack in LAPACK's column-major order
+    stack[:, : len(factor)], stack[:, len(factor) :] = factor.T, rows.T
+    tau, size = np.empty(min(m, n)), np.empty(1)
+    lapack_lite.dgeqrf(m, n, stack, m, tau, size, -1, 0)  # the workspace's optimal size
+    done = lapack_lite.dgeqrf(m, n, stack, m, tau, np.empty(max(int(size[0]), 1)), max(int(size[0]), 1), 0)
+    if done["info"] != 0:
+        raise ValueError(f"LAPACK dgeqrf: argument {-done['info']} is invalid")
+    return np.triu(stack.T[: min(m, n)])
 
 
 class InformationAccumulator:
