@@ -340,7 +340,9 @@ def test_infinite_bending_stiffness_is_the_rigid_plate_exactly(quick):
         axis=-1,
     )
     assert ld.bending_N_per_mm == np.inf
-    # the compiled chain: the same to rounding (the forces are solved by another elimination)
+    # the compiled chain: the same to rounding — the forces are solved by another elimination (rtol 1e-12, the
+    # 6×6 statics' conditioning times eps), and δM is the difference of two parameters near 10³ mm, whose ulp
+    # is ~1e-13 mm (atol 1e-12: a few of them)
     params, compiled_forces = loaded_params(ld, legs.as_vector(), R, t, 30.0)
     np.testing.assert_allclose(compiled_forces, forces, rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(params - legs.as_vector(), rigid.reshape(10, 42), rtol=1e-9, atol=1e-12)

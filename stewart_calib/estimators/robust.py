@@ -663,11 +663,11 @@ class RobustFilter:
             observed, expected = self._pass_components
             self._scale_sums = remembered + [scale2 * observed, expected]
             measured = max(self._scale_sums[0] / self._scale_sums[1], MIN_NOISE_SCALE2)
-            if measured == scale2 or (refresh and abs(measured - scale2) <= SCALE_TOLERANCE * scale2):
+            converged = abs(measured - scale2) <= SCALE_TOLERANCE * scale2
+            if measured == scale2 or (refresh and converged):
                 scale2 = measured
                 break
             x, P, *_ = self._pass(good, measured, self.filter.x)
-            converged = abs(measured - scale2) <= SCALE_TOLERANCE * scale2
             scale2 = measured
             if converged:
                 break

@@ -110,9 +110,9 @@ def _pose_drift(base_params, R, t, forces, stiffness, params):
     """``params = M_base + δM`` (step 3 of the module docstring) of one pose from its leg forces [N]:
     ``n_i`` on the base geometry ``base_params (42,)``; ``stiffness`` as :func:`_stiffness`."""
     k_leg, k_base, k_platform, k_bending = stiffness[0], stiffness[1], stiffness[2], stiffness[3]
+    v = np.empty(3)
     for i in range(6):
         o = 7 * i
-        v = np.empty(3)
         for a in range(3):
             v[a] = (
                 t[a]
@@ -140,7 +140,7 @@ _POSE_INPUTS = (RO_1, F8_3, F8_2, F8_2, RO_2, FLOAT, F8_1)  # base params, R, t,
 def _loaded_params(base_params, R, t, masses, coms, radius, stiffness, params, forces, ratios):
     """:func:`loaded_params` of every pose ``k`` into ``params[k]``, ``forces[k]`` and the statics'
     Hadamard ratio ``ratios[k]`` (params and forces unset below :data:`~stewart_calib.statics.SINGULAR_RATIO`)."""
-    base, plat = _joints(base_params)
+    base, plat, _ = _legs(base_params)
     A, w = np.empty((6, 6)), np.empty((6, 1))
     for k in range(R.shape[0]):
         ratios[k] = pose_gravity_forces(base, plat, R[k], t[k], masses[k], coms, radius, A, w, forces[k])
@@ -172,10 +172,9 @@ def _settle_poses(
     ``params[k]``); ``ratios[k]`` the statics' last Hadamard ratio (below the bound: stopped there),
     ``residual[k]`` FK's last max |length error| [mm] (``inf`` for a non-finite stroke) after its
     ``newton_steps[k]`` Newton steps."""
-    base, plat = _joints(base_params)
+    base, plat, _ = _legs(base_params)
     A, w = np.empty((6, 6)), np.empty((6, 1))
     work = _fk_work()
-    drive_base, drive_plat, lengths = np.empty((6, 3)), np.empty((6, 3)), np.empty(6)
     for k in range(R.shape[0]):
         residual[k], newton_steps[k] = math.inf, 0
         for _ in range(iterations):
@@ -183,11 +182,7 @@ def _settle_poses(
             if not ratios[k] >= SINGULAR_RATIO:
                 break
             _pose_drift(base_params, R[k], t[k], forces[k], stiffness, params[k])
-            for i in range(6):
-                for a in range(3):
-                    drive_base[i, a] = params[k, 7 * i + a]
-                    drive_plat[i, a] = params[k, 7 * i + 3 + a]
-                lengths[i] = params[k, 7 * i + 6]
+            drive_base, drive_plat, lengths = _legs(params[k])
             if not _finite_target(lengths, strokes[k], work[5]):
                 residual[k] = math.inf
                 break
@@ -197,14 +192,15 @@ def _settle_poses(
 
 
 @njit(nogil=True, error_model="numpy")
-def _joints(base_params):
-    """``(j_i (6, 3), d_i (6, 3))`` of a parameter vector ``(42,)``."""
-    base, plat = np.empty((6, 3)), np.empty((6, 3))
+def _legs(params):
+    """``(j_i (6, 3), d_i (6, 3), l_i (6,))`` of a parameter vector ``(42,)`` (platform.vector_to_params)."""
+    base, plat, lengths = np.empty((6, 3)), np.empty((6, 3)), np.empty(6)
     for i in range(6):
         for a in range(3):
-            base[i, a] = base_params[7 * i + a]
-            plat[i, a] = base_params[7 * i + 3 + a]
-    return base, plat
+            base[i, a] = params[7 * i + a]
+            plat[i, a] = params[7 * i + 3 + a]
+        lengths[i] = params[7 * i + 6]
+    return base, plat, lengths
 
 
 @dataclass(frozen=True)
