@@ -33,7 +33,7 @@ import numpy as np
 
 from . import kinematics as kin
 from .config import NoiseConfig
-from .platform import N_LEGS, N_PARAMS, PARAMETER_NAMES, Elastic, LegGeometry, Platform
+from .platform import N_LEGS, N_PARAMS, Elastic, LegGeometry, Platform
 from .statics import gravity_leg_forces, masses_and_centres
 from .unknowns import UnknownBlock
 
@@ -169,8 +169,13 @@ class DriveModel:
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
-        """The 42 names of δM (paper order)."""
-        return PARAMETER_NAMES
+        """The names of δM (paper order)."""
+        return self.legs.parameter_names
+
+    @property
+    def n_params(self) -> int:
+        """Entries of δM, the legs' geometry: the first entries of ``x_drive`` (42)."""
+        return self.legs.n_params
 
     @property
     def unknown_terms(self) -> tuple[LegTerm, ...]:

@@ -64,6 +64,21 @@ class LegGeometry:
             object.__setattr__(self, name, value)
 
     @property
+    def n_legs(self) -> int:
+        """Legs of the set (six for a 6-6 Gough platform and for the Table 2 tracker)."""
+        return len(self.initial_lengths)
+
+    @property
+    def n_params(self) -> int:
+        """Entries of the set's parameter vector: seven a leg (42 for six legs)."""
+        return self.n_legs * N_PARAMS_PER_LEG
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        """The names of the parameter vector's entries, paper order (``j1x … l6``)."""
+        return PARAMETER_NAMES
+
+    @property
     def params(self) -> np.ndarray:
         """``(6, 7)`` array ``[j_i | d_i | l_i]`` per leg [mm]."""
         return np.hstack([self.base_joints, self.platform_joints, self.initial_lengths[:, None]])
