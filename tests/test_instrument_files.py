@@ -15,6 +15,7 @@ import pytest
 from stewart_calib import io
 from stewart_calib.cli import main
 from stewart_calib.errors import CalibError
+from stewart_calib.instruments.pose import PoseModel
 from stewart_calib.platform import Instrument, parse_platform, platform_to_toml
 from stewart_calib.samples import Truth
 from stewart_calib.simulation.instrument import InstrumentTruth
@@ -157,6 +158,24 @@ def test_pose_log_holds_degrees_in_the_file_and_radians_in_code(tmp_path):
     header = rows[0].split(",")
     yaw_file = float(rows[1].split(",")[header.index("myaw_deg")])
     assert math.isclose(yaw_file, math.degrees(case.log.readings[0, 5]), rel_tol=1e-12)
+
+
+def test_the_log_columns_in_degrees_are_those_the_instrument_model_declares(tmp_path, monkeypatch):
+    """Which reading columns hold degrees in the file is the instrument model's to say
+    (``InstrumentModel.angle_columns``, issue 29): the log writer and reader ask it, and so follow
+    a model that declared other columns."""
+    platform = hobby()
+    assert io.angle_columns(platform) == ("mroll_deg", "mpitch_deg", "myaw_deg")
+    assert io.angle_columns(_points_platform(2)) == ()
+    assert io.angle_columns(None) == ()  # the tracker's s1_mm … s6_mm
+    case = make_case(platform, 5, 2, InstrumentTruth(np.zeros(6), np.zeros(6)))
+    monkeypatch.setattr(PoseModel, "angle_columns", frozenset({"myaw_deg"}))
+    io.write_log(tmp_path / "log.csv", case.log, platform)
+    rows = (tmp_path / "log.csv").read_text().splitlines()
+    header, first = rows[0].split(","), rows[1].split(",")
+    assert float(first[header.index("mroll_deg")]) == case.log.readings[0, 3]  # no longer converted
+    assert math.isclose(float(first[header.index("myaw_deg")]), math.degrees(case.log.readings[0, 5]), rel_tol=1e-12)
+    np.testing.assert_allclose(io.read_log(tmp_path / "log.csv", platform).readings, case.log.readings, rtol=1e-14)
 
 
 def test_a_partial_target_is_refused_naming_row_and_column(tmp_path):

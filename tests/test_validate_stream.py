@@ -75,8 +75,8 @@ def _whole_file(platform, result, path, register: bool = False) -> tuple[str, st
     header = ["t_s", *columns, *(f"pred_{name}" for name in columns), "position_error_mm"]
     values = [
         log.t_s,
-        *io.readings_to_file(log.readings, columns),
-        *io.readings_to_file(predicted, columns),
+        *io.readings_to_file(log.readings, platform),
+        *io.readings_to_file(predicted, platform),
         ["" if not np.isfinite(v) else float(v) for v in position],
     ]
     if orientation is not None:

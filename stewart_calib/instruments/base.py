@@ -16,6 +16,8 @@ measurement ``z``:
 * ``kind`` — the ``[instrument] kind`` of the platform file (spec §7);
 * ``columns`` — the log columns it reads, in the order of ``z`` (``Sample.readings`` holds
   ``z`` in code units: mm and rad; a channel not measured in a row, e.g. a hidden target, is NaN);
+  the kind's ``angle_columns`` name those that hold angles (degrees in the file, radians in ``z``:
+  the log reader and writers convert them), every other one a length (mm in both);
 * ``unknowns`` — its own :class:`~stewart_calib.unknowns.UnknownBlock` (names, nominal ``θ₀``
   in code units, prior σ, which gauge directions the drive shares), or None when it is known
   exactly. ``θ`` passed to the functions is always absolute: ``θ₀ + error``; ``()`` when None;
@@ -103,6 +105,8 @@ class InstrumentModel(ABC):
             three of its coordinates), read as NaN rather than refused.
         measures_orientation: whether a reading tells the platform's orientation, so that
             ``validate`` reports an orientation error (points, each a position, do not).
+        angle_columns: which of its log columns (:meth:`columns_of`) hold angles: degrees in the
+            file, radians in ``z`` (spec §1); every other column holds millimetres in both.
     """
 
     kind: ClassVar[str]
@@ -110,6 +114,7 @@ class InstrumentModel(ABC):
     registers: ClassVar[bool] = False
     unseen_channels: ClassVar[bool] = False
     measures_orientation: ClassVar[bool] = True
+    angle_columns: ClassVar[frozenset[str]] = frozenset()
 
     columns: tuple[str, ...]
     unknowns: UnknownBlock | None

@@ -173,6 +173,7 @@ class PoseModel(OutsideModel):
     """
 
     kind = "pose"
+    angle_columns = frozenset(COLUMNS[3:])  # mroll_deg mpitch_deg myaw_deg
     compiled_pose_reading = True  # the factor graph's rows in one compiled call (base.InstrumentModel)
     noise_channels = np.r_[0, 0, 0, 1, 1, 1]
     noise_channel_names = ("orientation_rad", "position_mm")

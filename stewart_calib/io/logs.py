@@ -51,7 +51,8 @@ LOG_REQUIRED = ("t_s", *STROKE_COLUMNS, *READING_COLUMNS)
 POSE_COLUMNS = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
 TRUE_POSE_COLUMNS = tuple(f"true_{name}" for name in POSE_COLUMNS)
 STROKE_SCALE_NAMES = tuple(f"k{i}" for i in range(1, 7))
-#: the instrument pose columns (spec §7) that hold degrees in the file and radians in code
+#: the pose instrument's angle columns, for :func:`stewart_calib.validation.measurement_residuals`
+#: until it asks :func:`angle_columns` (the instrument's model declares them; this package does not use it)
 MEASURED_ANGLE_COLUMNS = ("mroll_deg", "mpitch_deg", "myaw_deg")
 
 
@@ -60,6 +61,20 @@ def reading_columns(platform: Platform | None) -> tuple[str, ...]:
     ``s1_mm … s6_mm`` (also when ``platform`` is None), a pose's ``mx_mm … myaw_deg`` or the
     targets' ``p1x_mm … pKz_mm``."""
     return _kind(platform).columns_of(_instrument(platform))
+
+
+def angle_columns(platform: Platform | None) -> tuple[str, ...]:
+    """Those of :func:`reading_columns` that hold angles, degrees in the file and radians in code, as
+    the instrument's model declares them (:attr:`~stewart_calib.instruments.base.InstrumentModel.angle_columns`:
+    a pose's ``mroll_deg mpitch_deg myaw_deg``); the others hold millimetres in both."""
+    angles = _kind(platform).angle_columns
+    return tuple(name for name in reading_columns(platform) if name in angles)
+
+
+def _angle_indices(platform: Platform | None) -> list[int]:
+    """The indices of :func:`angle_columns` among :func:`reading_columns`."""
+    angles = angle_columns(platform)
+    return [j for j, name in enumerate(reading_columns(platform)) if name in angles]
 
 
 def _instrument(platform: Platform | None) -> Instrument:
@@ -73,37 +88,36 @@ def _kind(platform: Platform | None) -> InstrumentKind:
     return kind_of(_instrument(platform))
 
 
-def readings_to_file(readings: np.ndarray, columns: tuple[str, ...]) -> list:
-    """Code-unit readings ``(N, m)`` → file columns: radians → degrees for the measured angles,
-    NaN (a point target not seen) → an empty field."""
+def readings_to_file(readings: np.ndarray, platform: Platform | None) -> list:
+    """Code-unit readings ``(N, m)`` of ``platform``'s instrument → file columns: radians → degrees
+    for its angles, NaN (a channel not measured, e.g. a point target not seen) → an empty field."""
+    blank = blank_reading_columns(platform)
     return [
-        ["" if not np.isfinite(v) else v for v in values.tolist()] if name.startswith("p") else values
-        for name, values in zip(columns, readings_in_file_units(readings, columns), strict=True)
+        ["" if not np.isfinite(v) else v for v in values.tolist()] if j in blank else values
+        for j, values in enumerate(readings_in_file_units(readings, platform))
     ]
 
 
-def readings_in_file_units(readings: np.ndarray, columns: tuple[str, ...]) -> list[np.ndarray]:
-    """Code-unit readings ``(N, m)`` → file-unit float columns (radians → degrees for the measured
-    angles); :func:`readings_to_file` with NaN kept, for :func:`~.tables.write_csv_blocks`, whose
-    ``blank`` columns are those of :func:`blank_reading_columns`."""
+def readings_in_file_units(readings: np.ndarray, platform: Platform | None) -> list[np.ndarray]:
+    """Code-unit readings ``(N, m)`` of ``platform``'s instrument → file-unit float columns (radians →
+    degrees for its angles); :func:`readings_to_file` with NaN kept, for
+    :func:`~.tables.write_csv_blocks`, whose ``blank`` columns are those of :func:`blank_reading_columns`."""
     readings = np.asarray(readings, dtype=float)
-    return [
-        np.degrees(readings[:, j]) if name in MEASURED_ANGLE_COLUMNS else readings[:, j]
-        for j, name in enumerate(columns)
-    ]
+    angles = _angle_indices(platform)
+    return [np.degrees(readings[:, j]) if j in angles else readings[:, j] for j in range(readings.shape[1])]
 
 
-def blank_reading_columns(columns: tuple[str, ...]) -> tuple[int, ...]:
-    """The indices of the reading columns whose NaN (a point target not seen) is an empty field."""
-    return tuple(j for j, name in enumerate(columns) if name.startswith("p"))
+def blank_reading_columns(platform: Platform | None) -> tuple[int, ...]:
+    """The indices of the reading columns whose NaN is an empty field: every one where the
+    instrument's readings may leave channels unmeasured (a point target not seen), else none."""
+    return tuple(range(len(reading_columns(platform)))) if _kind(platform).unseen_channels else ()
 
 
-def readings_in_code_units(values: np.ndarray, columns: tuple[str, ...]) -> np.ndarray:
-    """File readings ``(N, m)`` → code units (the measured angles in radians)."""
+def readings_in_code_units(values: np.ndarray, platform: Platform | None) -> np.ndarray:
+    """File readings ``(N, m)`` of ``platform``'s instrument → code units (its angles in radians)."""
     values = np.array(values, dtype=float)
-    for j, name in enumerate(columns):
-        if name in MEASURED_ANGLE_COLUMNS:
-            values[:, j] = np.radians(values[:, j])
+    angles = _angle_indices(platform)
+    values[:, angles] = np.radians(values[:, angles])
     return values
 
 
@@ -120,7 +134,7 @@ def log_text(log: Log, platform: Platform | None = None, header: bool = True) ->
     """
     readings = reading_columns(platform)
     names = ["t_s", *STROKE_COLUMNS, *readings]
-    columns = [log.t_s, *np.asarray(log.strokes).T, *readings_to_file(np.asarray(log.readings, dtype=float), readings)]
+    columns = [log.t_s, *np.asarray(log.strokes).T, *readings_to_file(np.asarray(log.readings, dtype=float), platform)]
     if log.desired_poses is not None:
         names += POSE_COLUMNS
         columns += pose_columns_deg(log.desired_poses)
@@ -397,7 +411,7 @@ def _log_of(table: Table, has_pose: bool, textual: list[str], platform: Platform
     return Log(
         t_s=table.numbers["t_s"][keep],
         strokes=col(STROKE_COLUMNS),
-        readings=readings_in_code_units(col(reading_columns(platform)), reading_columns(platform)),
+        readings=readings_in_code_units(col(reading_columns(platform)), platform),
         desired_poses=poses,
         stages=[s for s, k in zip(table.texts["stage"], keep, strict=True) if k] if textual else None,
         load_kg=table.numbers["load_kg"][keep] if "load_kg" in table.numbers else None,
@@ -442,7 +456,7 @@ class LogRowParser:
         # with [elastic] the payload is an input (spec §10): a row without a usable one takes the careful path
         self._load_is_input = self._load is not None and platform is not None and platform.elastic is not None
         self._stage = index.get("stage")
-        self._reading_angles = [j for j, name in enumerate(readings) if name in MEASURED_ANGLE_COLUMNS]
+        self._reading_angles = _angle_indices(platform)
         self._stroke_range = platform.stroke_range if platform is not None else None
         legs = not _kind(platform).outside
         self._reading_range = platform.reading_range if legs and platform is not None else None
@@ -586,7 +600,7 @@ class LogRowParser:
             t_s,
             np.array([number(name) for name in STROKE_COLUMNS]),
             readings_in_code_units(
-                np.array([[number(name) for name in reading_columns(self._platform)]]), reading_columns(self._platform)
+                np.array([[number(name) for name in reading_columns(self._platform)]]), self._platform
             )[0],
             pose,
             table.texts["stage"][0] if self._textual else "",

@@ -33,6 +33,7 @@ import numpy as np
 
 from .. import io
 from ..errors import CalibError
+from ..instruments import MODELS
 from ..io import exports
 from ..io.exports import Block
 from ..platform import INSTRUMENT_SECTIONS, load_platform
@@ -293,14 +294,14 @@ def run(args: argparse.Namespace) -> int:
             counts["lost"] += int(lost.sum())
             counts["unjoined"] += int((~kept & ~lost).sum())
             use = kept & ~lost
-            strokes_mm = np.full((len(block.t_s), 6), np.nan)
+            strokes_mm = np.full((len(block.t_s), len(io.STROKE_COLUMNS)), np.nan)
             strokes_mm[kept] = q
             if not columns:
                 columns.extend(INSTRUMENT_SECTIONS[kind].log_columns(block.values.shape[1] // 3))
             if platform is not None and not checked and use.any():
                 from ..diagnosis import diagnose_log
 
-                readings = io.readings_in_code_units(block.values[use], tuple(columns))
+                readings = io.readings_in_code_units(block.values[use], platform)
                 diagnose_log(platform, strokes_mm[use], readings, str(out), count=False)
                 checked.append(True)
             counts["written"] += int(use.sum())
@@ -311,7 +312,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{counts['unjoined']} without strokes within {max_gap_s:g} s); nothing written"
             )
 
-    _write(out, rows, columns)
+    _write(out, rows, columns, MODELS[kind].unseen_channels)
     print(
         f"stewart-calib import: wrote {out}: {counts['written']} of {counts['read']} rows ({counts['lost']} where the "
         f"instrument lost the body, {counts['unjoined']} without strokes within {max_gap_s:g} s dropped); "
@@ -321,13 +322,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _write(out: Path, rows, columns: list[str]) -> int:
+def _write(out: Path, rows, columns: list[str], unseen: bool) -> int:
     """Write the rows (blocks of float columns) as a log; the header is known once the first
-    block is, so the first block is looked at before the file is opened."""
+    block is, so the first block is looked at before the file is opened. ``unseen``: the
+    instrument may leave a reading's channels unmeasured (NaN, written as empty fields)."""
     blocks = iter(rows())
     first = next(blocks)
     header = ["t_s", *io.STROKE_COLUMNS, *columns]
-    blank = tuple(1 + len(io.STROKE_COLUMNS) + j for j in io.blank_reading_columns(tuple(columns)))
+    blank = tuple(1 + len(io.STROKE_COLUMNS) + j for j in range(len(columns))) if unseen else ()
 
     def all_blocks():
         yield first

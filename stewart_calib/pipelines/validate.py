@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     header = ["t_s", *columns, *(f"pred_{name}" for name in columns), "position_error_mm"]
     if instrument_kind(platform).measures_orientation:
         header.append("orientation_error_deg")
-    unseen = io.blank_reading_columns(columns)  # a target not seen: empty fields, read and predicted, and its error
+    unseen = io.blank_reading_columns(platform)  # a target not seen: empty fields, read and predicted, and its error
     blank = (*(1 + j for j in unseen), *(1 + len(columns) + j for j in unseen), 1 + 2 * len(columns))
     page = moved = None
     with log_progress_bar(args.log, "validate") as bar:
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
             if report_dir:
                 page = _report_page(args, platform, result, log, predicted, position, orientation)
             io.write_csv_blocks(
-                args.out, header, [_file_columns(log, predicted, position, orientation, columns)], blank
+                args.out, header, [_file_columns(log, predicted, position, orientation, platform)], blank
             )
         else:
             errors: list[tuple] = []
@@ -166,12 +166,12 @@ def _moved_frame_hint(platform: Platform, result: dict, block: Log, position: np
     )
 
 
-def _file_columns(log: Log, predicted, position, orientation, columns) -> list[np.ndarray]:
+def _file_columns(log: Log, predicted, position, orientation, platform: Platform) -> list[np.ndarray]:
     """V.csv's columns [file units] for the rows of ``log``."""
     return [
         log.t_s,
-        *io.readings_in_file_units(log.readings, columns),
-        *io.readings_in_file_units(predicted, columns),
+        *io.readings_in_file_units(log.readings, platform),
+        *io.readings_in_file_units(predicted, platform),
         position,
         *([] if orientation is None else [orientation]),
     ]
@@ -212,7 +212,7 @@ def _validated_blocks(platform: Platform, result: dict, path: str, result_source
                 pass
             raise
         errors.append((position, orientation))
-        yield _file_columns(block, predicted, position, orientation, io.reading_columns(platform))
+        yield _file_columns(block, predicted, position, orientation, platform)
         done += len(block)
     if done < SAMPLE_ROWS:
         _diagnose_sample(platform, first, path)
