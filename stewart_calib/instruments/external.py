@@ -20,7 +20,7 @@ import numpy as np
 from ..config import NoiseConfig
 from ..errors import CalibError
 from ..kinematics import pose_to_rt
-from ..platform import N_PARAMS, Instrument, Platform
+from ..platform import Instrument, Platform
 from ..unknowns import UnknownBlock
 from . import gauge
 from .base import InstrumentModel
@@ -235,12 +235,13 @@ class OutsideModel(InstrumentModel):
         _, H_X, H_u = self.readings_residual(unknowns, readings, R, t, jacobians=True)
         dxi = drive.pose_jacobian(None, R, t, drive.inputs_near(drive.inverse_kinematics(R, t), None, (R, t)))
         basis = gauge.free_basis(self.platform.drive)
-        columns = [H_X @ dxi[..., :N_PARAMS] @ basis, H_X @ dxi[..., N_PARAMS:], H_u]
+        m = drive.n_params
+        columns = [H_X @ dxi[..., :m] @ basis, H_X @ dxi[..., m:], H_u]
         rows = np.concatenate(columns, axis=-1) / self.channel_sigma[:, None]
         seen = self.seen_channels(R, t) if seen is None else np.asarray(seen, dtype=bool)
         rows = np.where(seen[..., None], rows, 0.0)
-        n_free, n_rest = basis.shape[1], drive.size - N_PARAMS + unknowns.size
-        lift = np.zeros((N_PARAMS + n_rest, n_free + n_rest))
-        lift[:N_PARAMS, :n_free] = basis
-        lift[N_PARAMS:, n_free:] = np.eye(n_rest)
+        n_free, n_rest = basis.shape[1], drive.size - m + unknowns.size
+        lift = np.zeros((m + n_rest, n_free + n_rest))
+        lift[:m, :n_free] = basis
+        lift[m:, n_free:] = np.eye(n_rest)
         return rows, lift

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import kinematics as kin
-from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
+from ..platform import PARAMETER_FIELDS, LegGeometry
 from . import lie
 
 #: stated in every result that fixes the gauge this way
@@ -31,30 +31,37 @@ GAUGE_STATEMENT = (
     "target(s) absorb the rigid parts"
 )
 
-BASE_COLUMNS = np.array([N_PARAMS_PER_LEG * i + a for i in range(N_LEGS) for a in range(3)])
-PLATFORM_COLUMNS = BASE_COLUMNS + 3
+
+def joint_columns(legs: LegGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """``(base, platform)``: the entries of ``legs``' parameter vector that hold the base joints ``j_i``
+    and the platform joints ``d_i``, leg by leg, x y z."""
+    base = np.array([len(PARAMETER_FIELDS) * i + a for i in range(legs.n_legs) for a in range(3)])
+    return base, base + 3
 
 
 def rigid_directions(points: np.ndarray) -> np.ndarray:
-    """``(18, 6)``: the change of six points ``(6, 3)`` under a small translation (3) and rotation
-    about their centroid (3), stacked point by point."""
+    """``(3 L, 6)``: the change of L points ``(L, 3)`` under a small translation (3) and rotation
+    about their centroid (3), stacked point by point (``(18, 6)`` for six joints)."""
     centred = points - points.mean(axis=0)
-    G = np.zeros((N_LEGS, 3, 6))
+    G = np.zeros((len(points), 3, 6))
     G[:, :, :3] = np.eye(3)
     G[:, :, 3:] = -kin.skew(centred)  # δp = ω × (p − c) = −[p − c]× ω
-    return G.reshape(3 * N_LEGS, 6)
+    return G.reshape(3 * len(points), 6)
 
 
 def free_basis(nominal: LegGeometry) -> np.ndarray:
-    """``(42, 30)`` orthonormal basis of the δM satisfying the gauge (see the module docstring)."""
-    B = np.eye(N_PARAMS)
-    keep = np.ones(N_PARAMS, dtype=bool)
+    """``(42, 30)`` orthonormal basis of the δM satisfying the gauge (see the module docstring) for six
+    legs; ``(7 L, 7 L − 12)`` for L."""
+    B = np.eye(nominal.n_params)
+    keep = np.ones(nominal.n_params, dtype=bool)
     blocks = []
-    for columns, points in ((BASE_COLUMNS, nominal.base_joints), (PLATFORM_COLUMNS, nominal.platform_joints)):
+    base_columns, platform_columns = joint_columns(nominal)
+    for columns, points in ((base_columns, nominal.base_joints), (platform_columns, nominal.platform_joints)):
         G = rigid_directions(points)
         Q, _ = np.linalg.qr(G)
-        complement = np.linalg.svd(np.eye(18) - Q @ Q.T)[0][:, :12]  # the 12 directions ⟂ the rigid ones
-        block = np.zeros((N_PARAMS, 12))
+        free = len(G) - G.shape[1]  # the directions ⟂ the rigid ones: 12 of a leg set's 18 joint coordinates
+        complement = np.linalg.svd(np.eye(len(G)) - Q @ Q.T)[0][:, :free]
+        block = np.zeros((nominal.n_params, free))
         block[columns] = complement
         blocks.append(block)
         keep[columns] = False

@@ -26,19 +26,19 @@ from .. import _kernels
 from .. import kinematics as kin
 from ..config import NoiseConfig
 from ..errors import SampleRejected
-from ..platform import INSTRUMENT_SECTIONS, N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, Instrument, LegGeometry, Platform
+from ..platform import INSTRUMENT_SECTIONS, Instrument, LegGeometry, Platform
 from ..unknowns import UnknownBlock
 from .base import InstrumentModel, PoseObservation, Residual, Spread
 
 #: the log columns of the six readings s_i [mm] (spec §3).
 TRACKER_COLUMNS = INSTRUMENT_SECTIONS["tracker"].log_columns(0)
-#: names of the tracker's own 42 values when they are unknowns (paper Table 2 symbols, spec §7).
-TRACKER_PARAMETER_NAMES = tuple(
-    f"{field}{leg}{axis}"
-    for leg in range(1, N_LEGS + 1)
-    for field, axis in (("z", "x"), ("z", "y"), ("z", "z"), ("h", "x"), ("h", "y"), ("h", "z"), ("ls", ""))
-)
-_RULERS = [np.array([i]) for i in range(N_LEGS)]
+#: the seven values of one ruler ``[z_i | h_i | ls_i]`` as (paper Table 2 symbol, axis)
+_RULER_FIELDS = (("z", "x"), ("z", "y"), ("z", "z"), ("h", "x"), ("h", "y"), ("h", "z"), ("ls", ""))
+
+
+def tracker_parameter_names(legs: LegGeometry) -> tuple[str, ...]:
+    """The names of the tracker's own values when they are unknowns (spec §7): ``z1x … ls6`` for six rulers."""
+    return tuple(f"{field}{leg}{axis}" for leg in range(1, legs.n_legs + 1) for field, axis in _RULER_FIELDS)
 
 
 class TrackerModel(InstrumentModel):
@@ -92,17 +92,18 @@ class TrackerModel(InstrumentModel):
     ):
         self.legs = legs
         self._params = legs.params  # (6, 7) [z_i | h_i | ls_i], read once per factor linearisation
+        self._rulers = [np.array([i]) for i in range(legs.n_legs)]
         self.reading_range = reading_range
-        self.channel_sigma = np.full(N_LEGS, float(reading_sigma_mm))
+        self.channel_sigma = np.full(legs.n_legs, float(reading_sigma_mm))
         self.unknowns = None
         #: its readings are a leg set's of known geometry: estimators observe through it in compiled code
         self.compiled_legs: LegGeometry | None = legs if geometry_sigma_mm <= 0.0 else None
         if geometry_sigma_mm > 0.0:
             self.unknowns = UnknownBlock(
                 "instrument",
-                TRACKER_PARAMETER_NAMES,
+                tracker_parameter_names(legs),
                 legs.as_vector(),
-                np.full(N_PARAMS, geometry_sigma_mm),
+                np.full(legs.n_params, geometry_sigma_mm),
                 gauge=("base", "platform"),
                 holds_gauge=True,
             )
@@ -112,11 +113,12 @@ class TrackerModel(InstrumentModel):
         readings = np.asarray(z, dtype=float)
         lo, hi = self.reading_range if self.reading_range is not None else (-math.inf, math.inf)
         # One compiled check for the common valid sample; any doubt goes to the wording below.
-        if readings.shape == (N_LEGS,) and _kernels.all_within(readings, float(lo), float(hi)):
+        if readings.shape == self.channel_sigma.shape and _kernels.all_within(readings, float(lo), float(hi)):
             return readings
-        if readings.shape != (N_LEGS,):
+        if readings.shape != self.channel_sigma.shape:
+            expected = len(self.channel_sigma)
             raise SampleRejected(
-                f"sample at t = {t_s} s: expected 6 reading s values, got shape {readings.shape}",
+                f"sample at t = {t_s} s: expected {expected} reading s values, got shape {readings.shape}",
                 SampleRejected.NON_FINITE,
             )
         bad = np.flatnonzero(~np.isfinite(readings))
@@ -138,7 +140,7 @@ class TrackerModel(InstrumentModel):
 
     def groups(self, z: np.ndarray) -> list[np.ndarray]:
         """One group per ruler: a robust kernel down-weights one bad reading, not the sample."""
-        return _RULERS
+        return self._rulers
 
     def geometry(self, theta: np.ndarray) -> LegGeometry:
         """The tracker legs for ``θ`` (the nominal ones when the geometry is known)."""
@@ -149,13 +151,12 @@ class TrackerModel(InstrumentModel):
     ) -> Residual:
         """``‖t + R h_i − z_i‖ − (ls_i + s_i)`` for the rulers ``channels`` [mm]."""
         channels = np.asarray(channels, dtype=np.int64)
-        params = self._params if len(theta) == 0 else np.reshape(theta, (N_LEGS, N_PARAMS_PER_LEG))
+        params = self._params if len(theta) == 0 else np.reshape(theta, self._params.shape)
         r, J_pose, H_legs = kin.leg_residual(R, t, params[channels], np.asarray(z, dtype=float)[channels])
-        J_theta = np.zeros((len(channels), 0 if self.unknowns is None else N_PARAMS))
+        J_theta = np.zeros((len(channels), 0 if self.unknowns is None else self._params.size))
         if self.unknowns is not None:
-            J_theta[
-                np.arange(len(channels))[:, None], N_PARAMS_PER_LEG * channels[:, None] + np.arange(N_PARAMS_PER_LEG)
-            ] = H_legs
+            per_leg = self._params.shape[1]
+            J_theta[np.arange(len(channels))[:, None], per_leg * channels[:, None] + np.arange(per_leg)] = H_legs
         return Residual(r, J_pose, J_theta, channels)
 
     def pose(self, z: np.ndarray, theta: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None) -> PoseObservation:
@@ -171,6 +172,6 @@ class TrackerModel(InstrumentModel):
         covariance = kin.pose_covariance_from_legs(legs, R, t, float(self.channel_sigma[0]))
         J_theta = np.zeros((6, 0))
         if self.unknowns is not None:
-            rulers = self.residual(R, t, theta, z, np.arange(N_LEGS))
+            rulers = self.residual(R, t, theta, z, np.arange(len(self._params)))
             J_theta = -np.linalg.solve(rulers.J_pose, rulers.J_instrument)
         return PoseObservation(R, t, covariance, J_theta)
