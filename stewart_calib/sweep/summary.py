@@ -19,13 +19,11 @@ import pyarrow as pa
 from scipy.stats import chi2
 
 from ..io import atomic_path, atomic_write_text
-from ..platform import N_PARAMS
-from .spec import SweepSpec
+from .spec import Family, SweepSpec
 
 QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
 SCORES = ("rms_mm", "rms_over_crb", "nees", "z2", "closed_loop_mm", "seconds", "cpu_seconds")
 PLOTTED = ("rms_over_crb", "nees", "closed_loop_mm", "seconds")
-NEES_BAND = (float(chi2.ppf(0.025, N_PARAMS)), float(chi2.ppf(0.975, N_PARAMS)))
 
 
 def nees_in_band(nees: np.ndarray, dof: np.ndarray) -> np.ndarray:
@@ -87,7 +85,15 @@ def write_summary(spec: SweepSpec, table: pa.Table, out: Path) -> list[Path]:
     return [out / "summary.csv", out / "summary.md", *_plots(spec, table, out / "plots")]
 
 
+def _tracker_dof(spec: SweepSpec) -> int:
+    """The NEES's degrees of freedom with the tracker: δM of the first cell's drive (a family's
+    draws keep its legs)."""
+    platform = spec.cells[0].platform
+    return (platform.like if isinstance(platform, Family) else platform).drive.n_params
+
+
 def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
+    dof = _tracker_dof(spec)
     head = [
         *spec.swept,
         "method",
@@ -106,7 +112,7 @@ def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
         "",
         f"{len(spec.cells)} cells × {len(spec.seeds)} seeds × {len(spec.methods)} methods; medians over the seeds "
         "(IQR: 25–75 % quantiles; NEES band: the two-sided 95 % band of χ² with the row's degrees of freedom, "
-        f"[{NEES_BAND[0]:.1f}, {NEES_BAND[1]:.1f}] for the tracker's 42). Quantiles of every score: "
+        f"[{chi2.ppf(0.025, dof):.1f}, {chi2.ppf(0.975, dof):.1f}] for the tracker's {dof}). Quantiles of every score: "
         "summary.csv.",
         "",
         "| " + " | ".join(head) + " |",

@@ -14,7 +14,7 @@ at random) in a ``glitch_rate`` fraction of the samples — what a dirty grating
 **The scores** (:func:`score`), each of the final estimate against the true δM in force at the
 last sample:
 
-* ``rms_mm``: RMS of the 42 errors.
+* ``rms_mm``: RMS of the errors of δM (the 42 of a 6-6 drive).
 * ``rms_over_crb``: RMS of the errors in units of the bound (:func:`bound_stddev_mm`) over the
   identified parameters — 1 for an efficient estimator.
 * ``nees``: ``eᵀ Σ⁻¹ e`` with the estimate's own covariance (χ²(42) when consistent).
@@ -45,11 +45,10 @@ from ..estimators.base import fit_all
 from ..estimators.batch import BatchProblem, cramer_rao
 from ..identifiability import identifiability_report, residual_covariance, stddev_from_factor, whitened_leg_jacobian
 from ..instruments import MODELS, gauge, instrument_kind, registered
-from ..platform import N_LEGS, N_PARAMS, Elastic, Instrument, LegGeometry, Platform, vector_to_params
+from ..platform import Elastic, Instrument, LegGeometry, Platform, vector_to_params
 from ..samples import Log
 from ..simulation.instrument import InstrumentTruth, SimulatedInstrument, truth_in_gauge
 from ..simulation.trajectories import random_static_poses
-from ..unknowns import UnknownBlock
 from .spec import Cell, Family, simulated_noise
 
 #: Range margin of the random poses [mm]: the true robot stands up to a few mm from where the
@@ -134,29 +133,32 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
     nominal = with_instrument(platform.draw(rng) if isinstance(platform, Family) else platform, settings)
     n = settings["samples"]
     dt_s = 1.0 / settings["rate_hz"]
-    error0 = rng.normal(0.0, settings["error_sigma_mm"], N_PARAMS)
+    drive = nominal.drive
+    reading_legs = instrument_kind(nominal).reading_legs(nominal)
+    # an outside instrument draws the leg readings' noise and glitched legs all the same, to keep the order
+    read_legs = drive if reading_legs is None else reading_legs
+    error0 = rng.normal(0.0, settings["error_sigma_mm"], drive.n_params)
     poses = random_static_poses(nominal, n, rng, settings["workspace_fraction"], POSE_MARGIN_MM)
-    steps = rng.normal(0.0, settings["drift_mm_per_sqrt_s"] * np.sqrt(dt_s), (n, N_PARAMS))
+    steps = rng.normal(0.0, settings["drift_mm_per_sqrt_s"] * np.sqrt(dt_s), (n, drive.n_params))
     steps[0] = 0.0
-    true_params = nominal.drive.as_vector() + error0 + np.cumsum(steps, axis=0)
+    true_params = drive.as_vector() + error0 + np.cumsum(steps, axis=0)
     R, t = kin.pose_to_rt(poses)
-    stroke_noise = rng.normal(0.0, settings["stroke_sigma_mm"], (n, 6))
-    reading_noise = rng.normal(0.0, settings["reading_sigma_mm"] * settings["noise_scale"], (n, 6))
+    stroke_noise = rng.normal(0.0, settings["stroke_sigma_mm"], (n, drive.n_legs))
+    reading_noise = rng.normal(0.0, settings["reading_sigma_mm"] * settings["noise_scale"], (n, read_legs.n_legs))
     glitched = rng.random(n) < settings["glitch_rate"]
-    legs = rng.integers(0, 6, n)
+    legs = rng.integers(0, read_legs.n_legs, n)
     signs = rng.choice([-1.0, 1.0], n)
     validation = random_static_poses(
         nominal, settings["validation_poses"], rng, settings["workspace_fraction"], POSE_MARGIN_MM
     )
     # the rigid drive's terms (the stroke scale), each drawn with its simulated spread (its prior σ there)
     rigid = drive_model(replace(nominal, elastic=None), simulated_noise(settings))
-    true_terms = {term.key: rng.normal(0.0, term.prior_sigma or 0.0, N_LEGS) for term in rigid.terms}
-    true_rigid = rigid.true_drive(np.zeros(N_PARAMS), true_terms)
+    true_terms = {term.key: rng.normal(0.0, term.prior_sigma or 0.0, rigid.rows) for term in rigid.terms}
+    true_rigid = rigid.true_drive(np.zeros(rigid.n_params), true_terms)
     strokes = true_rigid.strokes_for(_leg_lengths(true_params, R, t) - vector_to_params(true_params)[..., 6])
     per_stroke = true_rigid.extension_per_stroke()
     strokes += stroke_noise
     instrument = None
-    reading_legs = instrument_kind(nominal).reading_legs(nominal)
     if reading_legs is not None:
         readings = kin.inverse_kinematics(reading_legs, R, t) + reading_noise
         readings[glitched, legs[glitched]] += signs[glitched] * settings["glitch_size_mm"]
@@ -168,7 +170,7 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
         readings[glitched, legs[glitched] % 3] += signs[glitched] * settings["glitch_size_mm"]
     true_elastic = payload = load_kg = None
     if settings["platform_mass_kg"] > 0:  # the legs give under the weight: longer strokes reach the same pose
-        spread = rng.normal(0.0, settings["compliance_spread"], N_LEGS)
+        spread = rng.normal(0.0, settings["compliance_spread"], drive.n_legs)
         true_elastic = replace(
             elastic_table(settings), true_compliance_mm_per_kN=settings["compliance_mm_per_kN"] * (1.0 + spread)
         )
@@ -296,7 +298,7 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
         errors = [data.true_terms[block.key] - block.nominal for block in blocks]
         bound = cramer_rao(problem, np.concatenate([delta, *errors]), unknowns)
         stddev = np.sqrt(np.clip(np.diag(bound)[: drive.size], 0.0, None))
-        return _scored_part(stddev, blocks, data.scored)
+        return _scored_part(stddev, drive, data.scored)
     noise, poses = simulated_noise(settings), data.log.desired_poses
     if poses is None:
         raise ValueError("a sweep's simulated log holds its poses")
@@ -310,23 +312,24 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
         rows = np.concatenate([rows, np.linalg.solve(L, -drive.extension_jacobian(inputs))], axis=2)
     n = rows.shape[2]
     if settings["drift_mm_per_sqrt_s"] == 0:
-        return _scored_part(stddev_from_factor(rows.reshape(-1, n)), blocks, data.scored)
+        return _scored_part(stddev_from_factor(rows.reshape(-1, n)), drive, data.scored)
+    m = drive.n_params
     walk = np.zeros((n, n))
-    walk[:N_PARAMS, :N_PARAMS] = settings["drift_mm_per_sqrt_s"] ** 2 / settings["rate_hz"] * np.eye(N_PARAMS)
-    prior = [np.full(N_PARAMS, prior_sigma_mm**2), *(block.prior_sigma**2 for block in blocks)]
+    walk[:m, :m] = settings["drift_mm_per_sqrt_s"] ** 2 / settings["rate_hz"] * np.eye(m)
+    prior = [np.full(m, prior_sigma_mm**2), *(block.prior_sigma**2 for block in blocks)]
     covariance = np.diag(np.concatenate(prior))
     for k, A in enumerate(rows):
         predicted = covariance + walk if k else covariance
         covariance = np.linalg.inv(np.linalg.inv(predicted) + A.T @ A)
-    return _scored_part(np.sqrt(np.diag(covariance)), blocks, data.scored)
+    return _scored_part(np.sqrt(np.diag(covariance)), drive, data.scored)
 
 
-def _scored_part(stddev: np.ndarray, blocks: tuple[UnknownBlock, ...], scored: tuple[str, ...]) -> np.ndarray:
-    """The entries of ``stddev`` over ``[δM, blocks…]`` that belong to δM and the ``scored`` blocks."""
-    keep = [np.arange(N_PARAMS)]
-    for k, block in enumerate(blocks):
+def _scored_part(stddev: np.ndarray, drive: DriveModel, scored: tuple[str, ...]) -> np.ndarray:
+    """The entries of ``stddev`` over ``drive``'s ``[δM, blocks…]`` that belong to δM and the ``scored`` blocks."""
+    keep = [np.arange(drive.n_params)]
+    for k, block in enumerate(drive.blocks):
         if block.key in scored:
-            keep.append(N_PARAMS + N_LEGS * k + np.arange(N_LEGS))
+            keep.append(drive.n_params + drive.rows * k + np.arange(drive.rows))
     return stddev[np.concatenate(keep)]
 
 
@@ -346,9 +349,11 @@ def nees_basis(data: SweepData, n: int) -> np.ndarray:
     an outside instrument the 30 of δM its gauge leaves free, then the drive's blocks."""
     if data.true_instrument is None:
         return np.eye(n)
-    basis = np.zeros((n, n - 12))
-    basis[:N_PARAMS, :30] = gauge.free_basis(data.platform.drive)
-    basis[N_PARAMS:, 30:] = np.eye(n - N_PARAMS)
+    free = gauge.free_basis(data.platform.drive)
+    (m, r), rest = free.shape, n - len(free)
+    basis = np.zeros((n, r + rest))
+    basis[:m, :r] = free
+    basis[m:, r:] = np.eye(rest)
     return basis
 
 
@@ -376,12 +381,12 @@ def score(data: SweepData, estimate: Estimate, crb: np.ndarray) -> dict:
     such block), its value is the nominal with no variance, and the NEES and z² are taken over
     the unknowns it estimated.
     """
-    found, columns = [estimate.error], [np.arange(N_PARAMS)]
+    found, columns = [estimate.error], [np.arange(len(estimate.error))]
     nominal = {term.key: term.nominal for term in drive_model(data.platform).terms}
     for key in data.scored:
         values, span = estimate.block_values(key), estimate.layout.slice(key)
         found.append(nominal[key] if values is None else values)
-        columns.append(np.full(N_LEGS, -1) if span is None else np.arange(span.start, span.stop))
+        columns.append(np.full(len(nominal[key]), -1) if span is None else np.arange(span.start, span.stop))
     e = np.concatenate(found) - truth(data)
     column = np.concatenate(columns)
     n = len(e)
@@ -405,7 +410,7 @@ def score(data: SweepData, estimate: Estimate, crb: np.ndarray) -> dict:
             z2 = float(np.mean(e[estimated] ** 2 / variance))
     position_mm, orientation_deg = closed_loop_errors(data, estimate)
     return {
-        "rms_mm": float(np.sqrt(np.mean(e[:N_PARAMS] ** 2))),
+        "rms_mm": float(np.sqrt(np.mean(e[: len(estimate.error)] ** 2))),
         "rms_over_crb": float(np.sqrt(np.mean((e[identified] / crb[identified]) ** 2)))
         if identified.any()
         else float("nan"),
@@ -438,7 +443,7 @@ def run_method(
             try:
                 at_checkpoint[n] = fit_all(make_estimator(method, platform, cell.estimator_config), samples[:n]).error
             except CalibError:  # e.g. ls not converging on a short prefix: that checkpoint is NaN
-                at_checkpoint[n] = np.full(N_PARAMS, np.nan)
+                at_checkpoint[n] = np.full(platform.drive.n_params, np.nan)
     else:
         rejected = 0
         for k, sample in enumerate(samples, start=1):
@@ -453,10 +458,10 @@ def run_method(
     row = score(data, estimate, crb)
     row["seconds"], row["cpu_seconds"] = seconds, cpu_seconds
     row["samples_rejected"] = rejected
-    crb_mm = crb[:N_PARAMS]
+    crb_mm = crb[: platform.drive.n_params]
     for n in checkpoints:  # δM against the bound of the whole log (the benchmarks' convergence measure)
         error = at_checkpoint.get(n)
-        z = (error - _truth_at(data, n)) / crb_mm if error is not None else np.full(N_PARAMS, np.nan)
+        z = (error - _truth_at(data, n)) / crb_mm if error is not None else np.full(len(crb_mm), np.nan)
         row[f"rms_over_crb_at_{n}"] = float(np.sqrt(np.mean(z[np.isfinite(crb_mm)] ** 2)))
     return row
 
