@@ -79,7 +79,7 @@ def written(tmp_path_factory):
                 log_trajectory(
                     rec, stage, method, desired_xyz, actual_xyz[stage, method], POLAR_BASE_RADIUS_MM, POLAR_GAIN
                 )
-        send_blueprint(rec, METHODS, STAGES)
+        send_blueprint(rec, platform.drive.n_legs, METHODS, STAGES)
     return dict(
         path=path,
         platform=platform,

@@ -90,8 +90,8 @@ def _write_rerun(path: Path, platform: Platform, method: str, log: Log, run: Cal
             block = run.estimate.block_results().get("compliance", {})
             sigma = None if block.get("stddev") is None else np.asarray(block["stddev"])
             c = drive.term_values()[-1]  # the compliance term comes last: identified, or [elastic]'s held value
-            viz.log_elastic(rec, method, inputs[:, drive.input_width - 6 :], c, sigma, log.t_s)
-        viz.send_blueprint(rec, [method], [], {method: kinds})
+            viz.log_elastic(rec, method, inputs[:, drive.input_width - drive.rows :], c, sigma, log.t_s)
+        viz.send_blueprint(rec, platform.drive.n_legs, [method], [], {method: kinds})
 
 
 def nominal_poses(platform: Platform, log: Log) -> np.ndarray:

@@ -102,7 +102,11 @@ def write_recording(path: str | Path, reproduction: Reproduction) -> None:
                     POLAR_GAIN,
                 )
         viz.send_blueprint(
-            rec, [entity_name(m) for m in reproduction.calibrated], reproduction.stage_names, diagnostics
+            rec,
+            platform.drive.n_legs,
+            [entity_name(m) for m in reproduction.calibrated],
+            reproduction.stage_names,
+            diagnostics,
         )
 
 

@@ -58,7 +58,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from ..kinematics import transform_points
-from ..platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, PARAMETER_FIELDS, LegGeometry, Platform
+from ..platform import PARAMETER_FIELDS, LegGeometry, Platform
 
 SAMPLE_TIMELINE = "sample"
 #: per-method diagnostic series: leg residuals after and before each sample, and the NIS.
@@ -175,8 +175,8 @@ def _checked_name(name: str, what: str) -> str:
 
 
 def parameter_path(leg: int, field: str, method: str) -> str:
-    """``params/leg{leg}/{field}/{method}`` for leg 1…6 and a field of :data:`PARAMETER_FIELDS`."""
-    if not 1 <= leg <= N_LEGS or field not in PARAMETER_FIELDS:
+    """``params/leg{leg}/{field}/{method}`` for a leg numbered from 1 and a field of :data:`PARAMETER_FIELDS`."""
+    if leg < 1 or field not in PARAMETER_FIELDS:
         raise ValueError(f"no parameter leg {leg} / {field!r}")
     return f"params/leg{leg}/{field}/{_checked_name(method, 'method')}"
 
@@ -241,6 +241,17 @@ def _batch(values, n: int, tail: tuple[int, ...], what: str) -> np.ndarray:
     return values
 
 
+def _per_leg(values, n: int, what: str) -> np.ndarray:
+    """``values`` ``(n, 7 L)`` in the paper's order (a single ``(7 L,)`` is one row) as ``(n, L, 7)``:
+    a leg set's parameters, its L legs read off the array's own width."""
+    values = np.asarray(values, dtype=float)
+    fields = len(PARAMETER_FIELDS)
+    width = values.shape[-1] if values.ndim else 0
+    if width == 0 or width % fields:
+        raise ValueError(f"{what} must hold {fields} parameters a leg, got shape {values.shape}")
+    return _batch(values, n, (width,), what).reshape(n, width // fields, fields)
+
+
 def _closed_outline(points: np.ndarray) -> np.ndarray:
     """Polygon through ``points`` in order of azimuth about the z axis, closed."""
     order = np.argsort(np.arctan2(points[:, 1], points[:, 0]))
@@ -276,7 +287,7 @@ def log_platform_geometry(rec: Recording, platform: Platform) -> None:
         log(f"world/{frame}/outline", outline_strip, static=True)
         # the tracker's letter and colour go unused without a tracker
         for (kind, points), letter, color in zip(joints.items(), letters, (_DRIVE_COLOR, _TRACKER_COLOR), strict=False):
-            labels = [f"{letter}{i}" for i in range(1, N_LEGS + 1)]
+            labels = [f"{letter}{i}" for i in range(1, len(points) + 1)]
             log(
                 f"world/{frame}/{kind}_joints",
                 rr.Points3D(points, colors=color, radii=_JOINT_RADIUS_MM, labels=labels),
@@ -315,7 +326,7 @@ def log_platform_pose(
         drawn.append(("tracker", platform.tracker, _TRACKER_COLOR))
     for name, legs, color in drawn:
         rec.static_once(f"world/legs/{name}", rr.LineStrips3D.from_fields(colors=color, radii=_LEG_RADIUS_MM))
-        strips = rr.LineStrips3D.columns(strips=_leg_strips(legs, R, t)).partition(np.full(n, N_LEGS))
+        strips = rr.LineStrips3D.columns(strips=_leg_strips(legs, R, t)).partition(np.full(n, legs.n_legs))
         send(f"world/legs/{name}", indexes=index, columns=strips)
     if desired is not None:
         R_d, t_d = _batch(desired[0], n, (3, 3), "R_desired"), _batch(desired[1], n, (3,), "t_desired")
@@ -350,10 +361,10 @@ def log_parameters(rec: Recording, method: str, params_mm, times_s, samples=None
         samples: ``(N,)`` sample indices; default ``0 … N−1``.
     """
     n, index = _time_columns(times_s, samples)
-    per_leg = _batch(params_mm, n, (N_PARAMS,), "params_mm").reshape(n, N_LEGS, N_PARAMS_PER_LEG)
+    per_leg = _per_leg(params_mm, n, "params_mm")
     # Truth: thin and pale, under the estimates drawn in the same hue.
     width, alpha = (1.0, 140) if method == TRUTH else (2.0, 255)
-    for leg in range(N_LEGS):
+    for leg in range(per_leg.shape[1]):
         for k, field in enumerate(PARAMETER_FIELDS):
             style = rr.SeriesLines(colors=(*_PARAMETER_COLORS[k], alpha), widths=width, names=f"{field} {method}")
             _send_scalars(rec, parameter_path(leg + 1, field, method), index, per_leg[:, leg, k], style)
@@ -368,9 +379,9 @@ def log_parameter_band(rec: Recording, method: str, params_mm, stddev_mm, times_
         stddev_mm: ``(N, 42)`` σ of each parameter after each sample [mm] (NaN: none).
     """
     n, index = _time_columns(times_s, samples)
-    centre = _batch(params_mm, n, (N_PARAMS,), "params_mm").reshape(n, N_LEGS, N_PARAMS_PER_LEG)
-    sigma = _batch(stddev_mm, n, (N_PARAMS,), "stddev_mm").reshape(n, N_LEGS, N_PARAMS_PER_LEG)
-    for leg in range(N_LEGS):
+    centre = _per_leg(params_mm, n, "params_mm")
+    sigma = _batch(stddev_mm, n, (centre[0].size,), "stddev_mm").reshape(centre.shape)
+    for leg in range(centre.shape[1]):
         for k, field in enumerate(PARAMETER_FIELDS):
             style = rr.SeriesLines(colors=(*_PARAMETER_COLORS[k], 110), widths=0.75, names=f"{field} {method} ±σ")
             upper, lower = band_paths(leg + 1, field, method)
@@ -387,8 +398,8 @@ def log_elastic(rec: Recording, method: str, forces_N, compliance, compliance_si
         forces_N: ``(N, 6)`` compression > 0; compliance, compliance_sigma: ``(6,)`` (σ None: no band).
     """
     n, index = _time_columns(times_s, None)
-    forces = _batch(forces_N, n, (N_LEGS,), "forces_N")
-    for leg in range(N_LEGS):
+    forces = _batch(forces_N, n, np.shape(compliance), "forces_N")
+    for leg in range(len(compliance)):
         colour = _PARAMETER_COLORS[leg % len(_PARAMETER_COLORS)]
         style = rr.SeriesLines(colors=(*colour, 255), widths=1.5, names=f"f{leg + 1} {method} [N]")
         _send_scalars(rec, f"forces/leg{leg + 1}/{_checked_name(method, 'method')}", index, forces[:, leg], style)
@@ -422,9 +433,9 @@ def log_diagnostics(
     for kind, values in series:
         if values is None:
             continue
-        values = _batch(values, n, (N_LEGS,), kind)
-        for leg in range(N_LEGS):
-            style = rr.SeriesLines(colors=_LEG_COLORS[leg], widths=1.0, names=f"leg {leg + 1}")
+        values = _batch(values, n, np.shape(values)[-1:], kind)  # one column a leg
+        for leg in range(values.shape[1]):
+            style = rr.SeriesLines(colors=_LEG_COLORS[leg % len(_LEG_COLORS)], widths=1.0, names=f"leg {leg + 1}")
             _send_scalars(rec, diagnostic_path(method, kind, leg + 1), index, values[:, leg], style)
     if nis is not None:
         style = rr.SeriesLines(colors=method_color(method), widths=1.0, names=f"NIS {method}")
@@ -528,13 +539,13 @@ def log_trajectory(
 # ----------------------------------------------------------------------------- layout
 
 
-def send_blueprint(rec: Recording, methods, stages, diagnostics=None) -> None:
+def send_blueprint(rec: Recording, n_legs: int, methods, stages, diagnostics=None) -> None:
     """Lay the panels out in tabs: scene, one parameter tab per method, pose errors, trajectories,
     and one diagnostics tab per method in ``diagnostics``.
 
-    Each parameter tab holds one time-series view per leg with that method's seven curves, their
-    ±σ bands where logged, and the truth (Fig. 5); method comparison is in the pose-error tab
-    (Fig. 7). ``diagnostics`` maps a method to the kinds of :data:`DIAGNOSTICS` logged for it.
+    Each parameter tab holds one time-series view per drive leg (``n_legs`` of them) with that
+    method's seven curves, their ±σ bands where logged, and the truth (Fig. 5); method comparison
+    is in the pose-error tab (Fig. 7). ``diagnostics`` maps a method to the kinds of :data:`DIAGNOSTICS` logged for it.
     """
     methods = [_checked_name(method, "method") for method in methods]
     stages = [_checked_name(stage, "stage") for stage in stages]
@@ -558,7 +569,7 @@ def send_blueprint(rec: Recording, methods, stages, diagnostics=None) -> None:
                     ],
                     name=f"leg {leg} [mm]",
                 )
-                for leg in range(1, N_LEGS + 1)
+                for leg in range(1, n_legs + 1)
             ),
             grid_columns=3,
             name=f"parameters {method}",
