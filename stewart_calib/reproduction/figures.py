@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..io import atomic_write_bytes
-from ..platform import N_PARAMS_PER_LEG, PARAMETER_FIELDS, LegGeometry
+from ..platform import PARAMETER_FIELDS, LegGeometry
 from ..viz.html_report import new_figure, png_bytes
 from .metrics import held_pose_ends, view_errors
 from .report import TARGET_METHODS, VERDICT_VIEW
@@ -70,10 +70,11 @@ def _parameter_figure(drive: LegGeometry, method_run: MethodRun, rows: np.ndarra
         else result.truth.params[rows] - nominal
     )
     fig = new_figure(13.0, 7.0)
-    axes = fig.subplots(2, 3, sharex=True).ravel()
-    for leg, ax in enumerate(axes):
+    columns = -(-drive.n_legs // 2)  # two rows of legs
+    axes = fig.subplots(2, columns, sharex=True).ravel()
+    for leg, ax in enumerate(axes[: drive.n_legs]):
         for k, field in enumerate(PARAMETER_FIELDS):
-            col = N_PARAMS_PER_LEG * leg + k
+            col = len(PARAMETER_FIELDS) * leg + k
             estimate = method_run.trace[rows, col]
             color = PARAMETER_COLORS[k]
             ax.plot(t, estimate, color=color, lw=1.1, label=f"δ{field}")
@@ -85,9 +86,9 @@ def _parameter_figure(drive: LegGeometry, method_run: MethodRun, rows: np.ndarra
         ax.set_title(f"leg {leg + 1}", fontsize=9)
         ax.grid(alpha=0.3)
         ax.tick_params(labelsize=7)
-    for ax in axes[3:]:
+    for ax in axes[columns:]:
         ax.set_xlabel("t [s]", fontsize=8)
-    for ax in axes[::3]:
+    for ax in axes[::columns]:
         ax.set_ylabel("δM [mm]", fontsize=8)
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside right center", fontsize=8, title="solid: estimate ± σ\ndashed: truth")

@@ -18,7 +18,7 @@ from importlib import metadata
 import numpy as np
 
 from ..identifiability import conditioning_summary, identifiability_report
-from ..platform import N_LEGS, N_PARAMS_PER_LEG, PARAMETER_FIELDS, PARAMETER_NAMES
+from ..platform import PARAMETER_FIELDS
 from ..simulation.load import elastic_of
 from ..simulation.robot import TABLE4_EKF_ERRORS_MM
 from .metrics import VIEWS, improvement_pct, rms, stage_metrics, tracker_gauge_error, tracker_own_error, view_errors
@@ -130,10 +130,11 @@ def _table4(reproduction: Reproduction) -> dict:
     unloaded = [run for run in reproduction.calibrated if reproduction.runs[run].unloaded]
     if unloaded:
         sources["truth without load"] = reproduction.true_no_load_error(unloaded[0])
+    per_leg = {source: np.reshape(values, (-1, len(PARAMETER_FIELDS))) for source, values in sources.items()}
     rows = [
-        {"leg": leg + 1, "source": source, "values": [float(v) for v in values.reshape(N_LEGS, N_PARAMS_PER_LEG)[leg]]}
-        for leg in range(N_LEGS)
-        for source, values in sources.items()
+        {"leg": leg + 1, "source": source, "values": [float(v) for v in values[leg]]}
+        for leg in range(len(per_leg["truth"]))
+        for source, values in per_leg.items()
     ]
     return {
         "columns": [f"δ{field}" for field in PARAMETER_FIELDS],
@@ -240,7 +241,7 @@ def results_dict(reproduction: Reproduction, run_time_s: float, config_source: s
             ],
         },
         "methods": runs,
-        "parameter_names": list(PARAMETER_NAMES),
+        "parameter_names": list(platform.drive.parameter_names),
         "estimator_config": dataclasses.asdict(reproduction.config),
         "parts": [
             {
@@ -288,8 +289,8 @@ def _compliance_cell(value: float, stddev: float | None) -> str:
     return f"{value:.3f}" + ("" if stddev is None else f" ± {stddev:.3f}")
 
 
-def _or_nones(values: list | None) -> list:
-    return [None] * N_LEGS if values is None else values
+def _or_nones(values: list | None, n: int) -> list:
+    return [None] * n if values is None else values
 
 
 def _markdown_table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -419,10 +420,14 @@ def tables_markdown(results: dict) -> str:
             + ":",
             "",
         ]
+        legs = len(next(iter(compliance["runs"].values()))["estimate"])
         lines += _markdown_table(
-            ["Run", *(f"c{i + 1}" for i in range(N_LEGS))],
+            ["Run", *(f"c{i + 1}" for i in range(legs))],
             [
-                [run, *(_compliance_cell(c, s) for c, s in zip(v["estimate"], _or_nones(v["stddev"]), strict=True))]
+                [
+                    run,
+                    *(_compliance_cell(c, s) for c, s in zip(v["estimate"], _or_nones(v["stddev"], legs), strict=True)),
+                ]
                 for run, v in compliance["runs"].items()
             ],
         )

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..config import EstimatorConfig
 from ..estimators import BatchEstimator, KalmanFiltered, make_estimator, method_names
-from ..platform import N_PARAMS, Platform
+from ..platform import Platform
 from ..progress import progress_bar
 from ..simulation import EstimatorController, FrozenController, NominalController, SimulationResult, run_experiment
 from ..simulation.experiment import Experiment
@@ -229,7 +229,7 @@ class _Diagnosed(_PassedThrough):
         self.controller.observe(sample)
         estimator = self.controller.estimator
         stddev = estimator.estimate().stddev if len(self.stddev) % self.every == 0 else None
-        self.stddev.append(np.full(N_PARAMS, np.nan) if stddev is None else stddev)
+        self.stddev.append(np.full(self.controller.drive_model().n_params, np.nan) if stddev is None else stddev)
         self.nis.append(estimator.filter.nis if self.kalman and len(self.controller.rejected) == refused else np.nan)
 
 
@@ -255,7 +255,8 @@ def run_ls(experiment: Experiment, config: EstimatorConfig, nominal: SimulationR
     # What the IK used: nominal during the calibration segment, the frozen fit from then on.
     trace = np.tile(estimate.error, (len(result.log), 1))
     trace[: calibration[-1] + 1] = 0.0
-    stddev = np.tile(np.full(N_PARAMS, np.nan) if estimate.stddev is None else estimate.stddev, (len(result.log), 1))
+    sigma = np.full(estimate.error.shape, np.nan) if estimate.stddev is None else estimate.stddev
+    stddev = np.tile(sigma, (len(result.log), 1))
     stddev[: calibration[-1] + 1] = np.nan
     return MethodRun(BATCH_METHOD, result, trace, estimate.error, len(estimator.rejected), fit_s + run_s, stddev)
 
@@ -400,10 +401,8 @@ def reproduce(
     """
     start = time.perf_counter()
     nominal_result = run_experiment(experiment, NominalController(experiment.platform), progress=progress)
-    n = len(nominal_result.log)
-    nominal = MethodRun(
-        NOMINAL, nominal_result, np.zeros((n, N_PARAMS)), np.zeros(N_PARAMS), 0, time.perf_counter() - start
-    )
+    n, m = len(nominal_result.log), experiment.platform.drive.n_params
+    nominal = MethodRun(NOMINAL, nominal_result, np.zeros((n, m)), np.zeros(m), 0, time.perf_counter() - start)
     # each run a call short of its progress bar (picklable: module-level functions and data)
     tasks: dict[str, Callable[..., MethodRun]] = {BATCH_METHOD: partial(run_ls, experiment, config, nominal_result)}
     for name, method, run_parts in online_runs(parts):
