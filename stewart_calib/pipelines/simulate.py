@@ -27,7 +27,7 @@ from ..drive import drive_model
 from ..errors import CalibError, shown
 from ..instruments import instrument_kind
 from ..io import atomic_paths, log_text, output_directory, read_calibrated_drive, truth_text
-from ..platform import N_PARAMS, Platform, platform_to_toml
+from ..platform import Platform, platform_to_toml, vector_to_params
 from ..simulation.closed_loop import FrozenController, NominalController, simulate_blocks
 from ..simulation.experiment import load_experiment
 from ..simulation.load import elastic_of
@@ -148,8 +148,8 @@ def _pose_errors(platform: Platform, log, truth, compare: bool) -> dict[str, np.
         # rigid, as the truth's per-sample parameters already carry the sag (spec §4)
         nominal = drive_model(replace(platform, elastic=None))
         logged = nominal.inverse_kinematics(R_d, t_d)
-        extensions = nominal.true_drive(np.zeros(N_PARAMS), truth.drive_terms).extensions(logged)
-        legs = truth.params.reshape(-1, 6, 7)
+        extensions = nominal.true_drive(np.zeros(nominal.n_params), truth.drive_terms).extensions(logged)
+        legs = vector_to_params(truth.params)
         reached = kin.forward_kinematics_per_pose(
             legs[:, :, :3], legs[:, :, 3:6], legs[:, :, 6], extensions, (R_d, t_d), strict=False
         )

@@ -212,9 +212,9 @@ def build_robot(
     truth from ``instrument_rng``)."""
     e = experiment
     r = e.robot
-    delta = base_errors(
-        r.errors, (r.scale_base_joints, r.scale_platform_joints, r.scale_lengths), r.random_spread_mm, robot_rng
-    )
+    drive = e.platform.drive
+    scales = (r.scale_base_joints, r.scale_platform_joints, r.scale_lengths)
+    delta = base_errors(r.errors, scales, r.random_spread_mm, robot_rng, drive.n_params)
     tracker = None
     if e.platform.tracker is not None:
         tracker = Tracker.with_residual(
@@ -226,14 +226,15 @@ def build_robot(
             reading_range_mm=e.platform.reading_range,
         )
     encoder_rng = encoder_rng or np.random.default_rng(0)
-    scale = encoder_rng.normal(0.0, r.stroke_scale_spread, 6) if r.stroke_scale_spread > 0 else np.zeros(6)
-    zero = encoder_rng.normal(0.0, r.encoder_zero_spread_mm, 6) if r.encoder_zero_spread_mm > 0 else np.zeros(6)
+    legs = drive.n_legs
+    scale = encoder_rng.normal(0.0, r.stroke_scale_spread, legs) if r.stroke_scale_spread > 0 else np.zeros(legs)
+    zero = encoder_rng.normal(0.0, r.encoder_zero_spread_mm, legs) if r.encoder_zero_spread_mm > 0 else np.zeros(legs)
     instrument = None
     if e.instrument is not None:
         instrument = SimulatedInstrument.build(
             e.platform.instrument, e.instrument, instrument_rng or np.random.default_rng(0)
         )
-    return TrueRobot(e.platform.drive.as_vector() + delta, e.load, tracker, r.encoder_noise_mm, scale, zero, instrument)
+    return TrueRobot(drive.as_vector() + delta, e.load, tracker, r.encoder_noise_mm, scale, zero, instrument)
 
 
 @dataclass
@@ -363,7 +364,7 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
     stroke_noise, reading_noise, instrument_draws = noise
     R_d, t_d = kin.pose_to_rt(plan.desired_poses[rows])
     m = len(t_d)
-    strokes, params = np.empty((m, 6)), np.empty((m, 42))
+    strokes, params = np.empty((m, len(robot.stroke_scale))), np.empty((m, robot.base_params.size))
     R, t = np.empty((m, 3, 3)), np.empty((m, 3))
     for i, k in enumerate(range(rows.start, rows.stop)):
         strokes[i] = _commanded(controller, R_d[i], t_d[i], plan.payload_kg[k])

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..platform import N_PARAMS, params_to_vector, vector_to_params
+from ..platform import params_to_vector, vector_to_params
 
 #: Paper Table 4, EKF columns: identified no-load errors of the nim-stewart platform, per leg
 #: ``[δj_x, δj_y, δj_z, δd_x, δd_y, δd_z, δl]`` [mm] (paper order, eq. 9).
@@ -22,14 +22,14 @@ TABLE4_EKF_ERRORS_MM = np.array(
         [-0.472, -0.397, 1.514, 1.459, 1.399, 0.378, 0.126],
         [-0.797, -2.545, -0.861, 2.745, -0.729, -0.351, -2.352],
     ]
-).reshape(N_PARAMS)
+).reshape(-1)  # the per-leg rows in the paper's order
 TABLE4_EKF_ERRORS_MM.setflags(write=False)
 
 
 def base_errors(
-    kind: str, block_scales: tuple[float, float, float], spread_mm: float, rng: np.random.Generator
+    kind: str, block_scales: tuple[float, float, float], spread_mm: float, rng: np.random.Generator, n_params: int
 ) -> np.ndarray:
-    """The true unloaded error δM_base, ``(42,)`` [mm].
+    """The true unloaded error δM_base, ``(n_params,)`` [mm] (42 for a 6-6 drive, Table 4's).
 
     Args:
         kind: ``"table4"`` (paper Table 4 EKF columns) or ``"random"`` (i.i.d. normal draws).
@@ -37,11 +37,12 @@ def base_errors(
             calibration knobs of ``configs/experiments/paper.toml``).
         spread_mm: standard deviation of the random draws [mm] (``"random"`` only).
         rng: drawn from only for ``"random"``.
+        n_params: entries of the drive's δM (``"random"`` only; Table 4 is the paper's 6-6 drive).
     """
     if kind == "table4":
         errors = TABLE4_EKF_ERRORS_MM
     elif kind == "random":
-        errors = rng.normal(0.0, spread_mm, N_PARAMS)
+        errors = rng.normal(0.0, spread_mm, n_params)
     else:
         raise ValueError(f"unknown error kind {kind!r}")
     sj, sd, sl = block_scales

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import kinematics as kin
-from ..platform import N_PARAMS, LegGeometry
+from ..platform import LegGeometry
 
 
 @dataclass(frozen=True)
@@ -36,8 +36,8 @@ class Tracker:
 
     @classmethod
     def with_residual(cls, nominal: LegGeometry, residual_mm: float, rng: np.random.Generator, **kw) -> Tracker:
-        """True geometry = nominal + i.i.d. normal residual σ = ``residual_mm`` on all 42 values."""
-        delta = rng.normal(0.0, residual_mm, N_PARAMS) if residual_mm > 0 else np.zeros(N_PARAMS)
+        """True geometry = nominal + i.i.d. normal residual σ = ``residual_mm`` on all its values (42 for six legs)."""
+        delta = rng.normal(0.0, residual_mm, nominal.n_params) if residual_mm > 0 else np.zeros(nominal.n_params)
         return cls(nominal.perturbed(delta), **kw)
 
     def true_readings(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
