@@ -28,11 +28,13 @@ import re
 import numpy as np
 
 from ..errors import CalibError
-from ..platform import N_LEGS, LegGeometry
+from ..platform import LegGeometry
 
 #: millimetres per controller length unit
 MM_PER_UNIT = {"mm": 1.0, "inch": 25.4}
 CONTROLLER_FORMAT = "stewart-calib/controller@1"
+#: genhexkins's struts (its NUM_STRUTS): the HAL and INI name joints 0 … 5
+GENHEXKINS_STRUTS = 6
 _SETP = re.compile(r"^\s*setp\s+genhexkins\.(base|platform)\.([0-5])\.([xyz])\s+(\S+)\s*(#.*)?$")
 
 
@@ -50,7 +52,7 @@ def linuxcnc_hal_text(drive: LegGeometry, units: str, source: str) -> str:
     for name, joints in (("base", drive.base_joints), ("platform", drive.platform_joints)):
         if name == "platform":
             lines += ["", "# Platform joints positions in platform coordinates"]
-        for n in range(N_LEGS):
+        for n in range(drive.n_legs):
             lines += [
                 f"setp genhexkins.{name}.{n}.{axis} {_number(joints[n, a] * scale)}" for a, axis in enumerate("xyz")
             ]
@@ -66,7 +68,7 @@ def linuxcnc_ini_text(drive: LegGeometry, stroke_scale: np.ndarray, units: str, 
         f"# stewart-calib: genhexkins strut lengths at the homing stroke {home_stroke_mm!r} mm, in {units};",
         "# merge into the machine's INI file",
     ]
-    for n in range(N_LEGS):
+    for n in range(drive.n_legs):
         home = (drive.initial_lengths[n] + (1.0 + stroke_scale[n]) * home_stroke_mm) * scale
         lines += [
             "",
@@ -86,7 +88,7 @@ def read_linuxcnc(hal_text: str, ini_text: str, units: str, home_stroke_mm: floa
         CalibError: a missing coordinate or joint, named.
     """
     mm = MM_PER_UNIT[units]
-    joints = {"base": np.full((N_LEGS, 3), np.nan), "platform": np.full((N_LEGS, 3), np.nan)}
+    joints = {"base": np.full((GENHEXKINS_STRUTS, 3), np.nan), "platform": np.full((GENHEXKINS_STRUTS, 3), np.nan)}
     for line in hal_text.splitlines():
         match = _SETP.match(line)
         if match:
@@ -96,7 +98,7 @@ def read_linuxcnc(hal_text: str, ini_text: str, units: str, home_stroke_mm: floa
         if not np.all(np.isfinite(values)):
             n, a = np.argwhere(~np.isfinite(values))[0]
             raise CalibError(f"{source}: no 'setp genhexkins.{name}.{n}.{'xyz'[a]}' line")
-    home, factor = np.full(N_LEGS, np.nan), np.full(N_LEGS, np.nan)
+    home, factor = np.full(GENHEXKINS_STRUTS, np.nan), np.full(GENHEXKINS_STRUTS, np.nan)
     joint = None
     for line in ini_text.splitlines():
         section = re.match(r"^\s*\[JOINT_([0-5])\]", line)
@@ -124,7 +126,7 @@ def controller_json_text(drive: LegGeometry, stroke_scale: np.ndarray, units: st
             "length_at_zero_stroke": float(drive.initial_lengths[n] * scale),
             "stroke_per_logged_unit": float(1.0 + stroke_scale[n]),
         }
-        for n in range(N_LEGS)
+        for n in range(drive.n_legs)
     ]
     return json.dumps({"format": CONTROLLER_FORMAT, "units": units, **extra, "legs": legs}, indent=1) + "\n"
 
@@ -143,6 +145,10 @@ def read_controller_json(text: str, source: str) -> tuple:
         scale = np.array([leg["stroke_per_logged_unit"] for leg in legs], dtype=float) - 1.0
     except (ValueError, KeyError, TypeError, AttributeError) as err:
         raise CalibError(f"{source}: not a controller JSON of six legs ({err})") from None
-    if base.shape != (N_LEGS, 3) or not all(math.isfinite(v) for v in np.concatenate([base.ravel(), lengths])):
+    try:  # the leg set's own checks of its shapes
+        geometry = LegGeometry(base, platform, lengths)
+    except ValueError:
+        geometry = None
+    if geometry is None or not all(math.isfinite(v) for v in np.concatenate([base.ravel(), lengths])):
         raise CalibError(f"{source}: expected six legs with finite joints and lengths")
-    return LegGeometry(base, platform, lengths), scale
+    return geometry, scale

@@ -16,7 +16,7 @@ from ..drive import DriveModel, drive_model
 from ..errors import CalibError, shown
 from ..estimate import Estimate
 from ..inputs import parse_json, read_input_text
-from ..platform import N_PARAMS, PARAMETER_NAMES, Platform
+from ..platform import PARAMETER_NAMES, Platform
 from .atomic import atomic_write_text
 from .tables import csv_text
 
@@ -27,22 +27,27 @@ RESULT_FORMAT = "stewart-calib/result@1"
 RESULT_SUM_TOLERANCE_MM = 1e-6
 
 
-def trace_text(t_s: np.ndarray, params: np.ndarray, header: bool = True) -> str:
-    """Trace CSV (spec §6): ``t_s`` plus the 42 estimated absolute parameters [mm] per sample.
+def trace_text(
+    t_s: np.ndarray, params: np.ndarray, header: bool = True, names: tuple[str, ...] = PARAMETER_NAMES
+) -> str:
+    """Trace CSV (spec §6): ``t_s`` plus the estimated absolute parameters [mm] per sample, one
+    column each of the drive's ``names`` (``DriveModel.parameter_names``: the 42 of spec §5 by default).
 
     ``header=False``: the rows only, to append to a trace written block by block.
     """
     t_s = np.asarray(t_s, dtype=float)
     params = np.asarray(params, dtype=float)
-    if t_s.ndim != 1 or params.shape != (len(t_s), N_PARAMS):
-        raise ValueError(f"trace needs t_s (N,) and params (N, {N_PARAMS}), got {t_s.shape} and {params.shape}")
-    text = csv_text(["t_s", *PARAMETER_NAMES], [t_s, *params.T])
+    if t_s.ndim != 1 or params.shape != (len(t_s), len(names)):
+        raise ValueError(f"trace needs t_s (N,) and params (N, {len(names)}), got {t_s.shape} and {params.shape}")
+    text = csv_text(["t_s", *names], [t_s, *params.T])
     return text if header else text.split("\n", 1)[1]
 
 
-def write_trace(path: str | Path, t_s: np.ndarray, params: np.ndarray) -> None:
+def write_trace(
+    path: str | Path, t_s: np.ndarray, params: np.ndarray, names: tuple[str, ...] = PARAMETER_NAMES
+) -> None:
     """Write a trace CSV (spec §6); see :func:`trace_text`."""
-    atomic_write_text(path, trace_text(t_s, params))
+    atomic_write_text(path, trace_text(t_s, params, names=names))
 
 
 # ----------------------------------------------------------------------------- results
@@ -60,7 +65,7 @@ def result_dict(estimate: Estimate, platform: Platform, samples_skipped: int = 0
         "format": RESULT_FORMAT,
         "method": estimate.method,
         "platform": platform.name,
-        "parameter_names": list(PARAMETER_NAMES),
+        "parameter_names": list(platform.drive.parameter_names),
         "nominal": nominal.tolist(),
         "estimate": (nominal + error).tolist(),
         "error": error.tolist(),
@@ -112,14 +117,15 @@ def validate_result(result, source: str) -> None:
     for key in ("method", "platform"):
         if not isinstance(result[key], str) or not result[key]:
             raise refuse(key, "a non-empty string")
-    if result["parameter_names"] != list(PARAMETER_NAMES):
-        raise refuse("parameter_names", f"the {N_PARAMS} names j1x ... l6 in the paper's order")
+    names = result["parameter_names"]
+    if names != list(PARAMETER_NAMES):
+        raise refuse("parameter_names", f"the {len(PARAMETER_NAMES)} names j1x ... l6 in the paper's order")
     for key in ("nominal", "estimate", "error", "stddev"):
         value = result[key]
         if key == "stddev" and value is None:
             continue
-        if not isinstance(value, list) or len(value) != N_PARAMS or not all(_is_number(v) for v in value):
-            raise refuse(key, f"a list of {N_PARAMS} finite numbers" + (" or null" if key == "stddev" else ""))
+        if not isinstance(value, list) or len(value) != len(names) or not all(_is_number(v) for v in value):
+            raise refuse(key, f"a list of {len(names)} finite numbers" + (" or null" if key == "stddev" else ""))
     if result["stddev"] is not None and min(result["stddev"]) < 0:
         raise refuse("stddev", "non-negative numbers")
     for key in ("samples_used", "samples_skipped"):
@@ -132,7 +138,7 @@ def validate_result(result, source: str) -> None:
     gap = np.abs(np.array(result["estimate"]) - np.array(result["nominal"]) - np.array(result["error"]))
     if gap.max() > RESULT_SUM_TOLERANCE_MM:
         i = int(gap.argmax())
-        raise refuse("estimate", f"nominal + error; {PARAMETER_NAMES[i]} differs by {gap[i]:.3g} mm")
+        raise refuse("estimate", f"nominal + error; {names[i]} differs by {gap[i]:.3g} mm")
 
 
 #: the largest |k_i| a result's stroke scale may hold: an encoder off by half its scale is a wrong

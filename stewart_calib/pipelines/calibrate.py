@@ -242,9 +242,9 @@ def run(args: argparse.Namespace) -> int:
             result_data["residual_rms"] = handover.residual_rms_field(residuals)
         result_json = io.result_text(result_data, str(out))
         pose_line = _pose_error_line(platform, result_data, checked, n_samples)
-        trace_csv = (
-            io.trace_text(log.t_s, result.trace) if trace_path and not streamed and result.trace is not None else None
-        )
+        trace_csv = None
+        if trace_path and not streamed and result.trace is not None:
+            trace_csv = io.trace_text(log.t_s, result.trace, names=platform.drive.parameter_names)
         platform_toml = (
             handover.calibrated_platform_text(platform, estimate, args.method, Path(args.log).name, created)
             if platform_out
