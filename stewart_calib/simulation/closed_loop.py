@@ -311,8 +311,11 @@ def simulate_blocks(
     robot = build_robot(experiment, robot_rng, tracker_rng, encoder_rng, instrument_rng)
     plan = schedule(experiment, poses_rng)
     n = len(plan.t_s)
-    # the (n, 6) stroke noise, then the (n, 6) reading noise of one stream, drawn a block at a time
-    stroke_noise, reading_noise = _consecutive_draws(noise_rng, n, 6, 2)
+    # the (n, legs) stroke noise, then the (n, rulers) reading noise of one stream, drawn a block at a
+    # time; without a tracker the readings' noise is drawn all the same, as wide as the drive's legs
+    legs = robot.stroke_scale.size
+    rulers = legs if robot.tracker is None else robot.tracker.geometry.n_legs
+    stroke_noise, reading_noise = _consecutive_draws(noise_rng, n, (legs, rulers))
     instrument_draws = robot.instrument.draw(n, instrument_rng) if robot.instrument is not None else np.zeros((n, 0))
     step = _settle_each if getattr(controller, "adaptive", True) else _settle_block
 
@@ -323,8 +326,8 @@ def simulate_blocks(
                 rows = slice(lo, min(lo + BLOCK_SAMPLES, n))
                 m = rows.stop - rows.start
                 noise = (
-                    stroke_noise.standard_normal((m, 6)),
-                    reading_noise.standard_normal((m, 6)),
+                    stroke_noise.standard_normal((m, legs)),
+                    reading_noise.standard_normal((m, rulers)),
                     instrument_draws[rows],
                 )
                 yield step(robot, plan, rows, controller, noise)
@@ -335,12 +338,12 @@ def simulate_blocks(
     return SimulationRun(robot, plan, blocks())
 
 
-def _consecutive_draws(rng: np.random.Generator, n: int, width: int, count: int) -> list[np.random.Generator]:
-    """Copies of ``rng`` at the starts of ``count`` consecutive ``rng.standard_normal((n, width))``
-    calls: drawing ``(m, width)`` blocks from the k-th copy gives the k-th call's rows in order
+def _consecutive_draws(rng: np.random.Generator, n: int, widths: tuple[int, ...]) -> list[np.random.Generator]:
+    """Copies of ``rng`` at the starts of consecutive ``rng.standard_normal((n, width))`` calls, one
+    per width: drawing ``(m, width)`` blocks from the k-th copy gives the k-th call's rows in order
     (a Generator fills its output value after value), without holding any of them whole."""
     starts = []
-    for _ in range(count):
+    for width in widths:
         starts.append(copy.deepcopy(rng))
         for lo in range(0, n, BLOCK_SAMPLES):  # past this call's draws
             rng.standard_normal((min(BLOCK_SAMPLES, n - lo), width))

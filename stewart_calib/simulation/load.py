@@ -41,7 +41,7 @@ import numpy as np
 from .. import kinematics as kin
 from .._jit import F8_1, F8_2, F8_3, FLOAT, I8_1, INT, RO_1, RO_2, njit
 from .._kernels import _finite_target, _fk_work, _newton
-from ..platform import Elastic, LegGeometry
+from ..platform import PARAMETER_FIELDS, Elastic, LegGeometry
 from ..statics import (
     SINGULAR_RATIO,
     SingularStatics,
@@ -108,10 +108,11 @@ def _stiffness(load: LoadModel) -> np.ndarray:
 @njit(nogil=True, error_model="numpy")
 def _pose_drift(base_params, R, t, forces, stiffness, params):
     """``params = M_base + δM`` (step 3 of the module docstring) of one pose from its leg forces [N]:
-    ``n_i`` on the base geometry ``base_params (42,)``; ``stiffness`` as :func:`_stiffness`."""
+    ``n_i`` on the base geometry ``base_params (42,)`` (seven a leg, one force a leg); ``stiffness`` as
+    :func:`_stiffness`."""
     k_leg, k_base, k_platform, k_bending = stiffness[0], stiffness[1], stiffness[2], stiffness[3]
     v = np.empty(3)
-    for i in range(6):
+    for i in range(len(forces)):
         o = 7 * i
         for a in range(3):
             v[a] = (
@@ -193,9 +194,11 @@ def _settle_poses(
 
 @njit(nogil=True, error_model="numpy")
 def _legs(params):
-    """``(j_i (6, 3), d_i (6, 3), l_i (6,))`` of a parameter vector ``(42,)`` (platform.vector_to_params)."""
-    base, plat, lengths = np.empty((6, 3)), np.empty((6, 3)), np.empty(6)
-    for i in range(6):
+    """``(j_i (6, 3), d_i (6, 3), l_i (6,))`` of a parameter vector ``(42,)`` (platform.vector_to_params),
+    seven a leg."""
+    n = len(params) // 7
+    base, plat, lengths = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
+    for i in range(n):
         for a in range(3):
             base[i, a] = params[7 * i + a]
             plat[i, a] = params[7 * i + 3 + a]
@@ -234,6 +237,11 @@ class Settling:
         radius = moment_radius(LegGeometry.from_params(base))
         return cls(base, centres, float(load.platform_mass_kg), radius, _stiffness(load), int(load.iterations))
 
+    @property
+    def n_legs(self) -> int:
+        """The drive's legs: seven parameters each."""
+        return self.base_params.size // len(PARAMETER_FIELDS)
+
     def _inputs(self, R: np.ndarray, t: np.ndarray, payload_kg) -> tuple[tuple, tuple]:
         """``(batch, the kernels' pose inputs)`` of poses ``(R, t)`` (copied: the kernels overwrite them)."""
         batch = np.broadcast_shapes(np.shape(R)[:-2], np.shape(t)[:-1], np.shape(payload_kg))
@@ -248,19 +256,20 @@ class Settling:
         """:func:`loaded_params` on this robot."""
         batch, inputs = self._inputs(R, t, payload_kg)
         n = len(inputs[1])
-        params, forces, ratios = np.empty((n, 42)), np.empty((n, 6)), np.empty(n)
+        params, forces, ratios = np.empty((n, self.base_params.size)), np.empty((n, self.n_legs)), np.empty(n)
         _loaded_params(*inputs, params, forces, ratios)
         _refuse_singular(ratios)
-        return params.reshape(batch + (42,)), forces.reshape(batch + (6,))
+        return params.reshape(batch + params.shape[1:]), forces.reshape(batch + forces.shape[1:])
 
     def settle(
         self, strokes: np.ndarray, payload_kg, guess: tuple[np.ndarray, np.ndarray]
     ) -> tuple[kin.FKSolution, np.ndarray]:
         """:func:`settle` on this robot."""
-        strokes = np.ascontiguousarray(strokes, dtype=float).reshape(-1, 6)
+        strokes = np.ascontiguousarray(strokes, dtype=float).reshape(-1, self.n_legs)
         n = len(strokes)
         _, inputs = self._inputs(*guess, np.broadcast_to(payload_kg, n))
-        params, forces, ratios, residual = np.empty((n, 42)), np.empty((n, 6)), np.empty(n), np.empty(n)
+        params, forces = np.empty((n, self.base_params.size)), np.empty((n, self.n_legs))
+        ratios, residual = np.empty(n), np.empty(n)
         steps = np.empty(n, dtype=np.int64)
         fk = (kin.FK_TOLERANCE_MM, kin.FK_MAX_ITERATIONS)
         _settle_poses(*inputs, strokes, self.iterations, *fk, params, forces, ratios, residual, steps)
