@@ -177,7 +177,7 @@ class PoseModel(OutsideModel):
     compiled_pose_reading = True  # the factor graph's rows in one compiled call (base.InstrumentModel)
     noise_channels = np.r_[0, 0, 0, 1, 1, 1]
     noise_channel_names = ("orientation_rad", "position_mm")
-    _group: ClassVar[list[np.ndarray]] = [np.arange(6)]
+    _group: ClassVar[list[np.ndarray]] = [np.arange(len(COLUMNS))]  # the whole reading
 
     @staticmethod
     def columns_of(instrument: Instrument) -> tuple[str, ...]:

@@ -261,7 +261,7 @@ def _parameter_section(result: dict) -> str:
         "<h2>Parameter errors δM ± σ</h2>"
         "<p>estimate = nominal + δM [mm] (paper eq. 9, Table 4); σ from the estimate's covariance.</p>"
         + parameter_figure(names, error, stddev)
-        + "<details><summary>all 42 parameters</summary>"
+        + f"<details><summary>all {len(names)} parameters</summary>"
         + html_table(["parameter", "nominal [mm]", "estimate [mm]", "δM [mm]", "σ [mm]", "|δM| / σ"], rows, "num")
         + "</details>"
     )
@@ -339,8 +339,8 @@ def _conditioning_section(result: dict) -> str:
             "<p>Weakest directions of the drive's and the instrument's unknowns (each unknown's share in σ "
             "of the readings; the poses constrain these least):</p><ol>"
             if outside
-            else "<p>Weakest directions of the 42 parameters (unit vectors in named parameters; the "
-            "poses constrain these least):</p><ol>"
+            else f"<p>Weakest directions of the {len(result['parameter_names'])} parameters (unit vectors in "
+            "named parameters; the poses constrain these least):</p><ol>"
         )
         + weakest
         + "</ol>"
