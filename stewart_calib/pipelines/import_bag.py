@@ -47,7 +47,6 @@ POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 MM_PER_UNIT = {"m": 1000.0, "mm": 1.0, "um": 1e-3}
 #: default largest time between the two stroke messages a row is interpolated from [s].
 DEFAULT_MAX_GAP_S = 0.1
-STROKE_COLUMNS = tuple(f"q{i}_mm" for i in range(1, 7))
 #: the log's columns of the tracker's readings and of a measured pose (spec §3, §7)
 READING_COLUMNS = INSTRUMENT_SECTIONS["tracker"].log_columns(0)
 MEASURED_POSE_COLUMNS = INSTRUMENT_SECTIONS["pose"].log_columns(0)
@@ -158,13 +157,13 @@ def _stamp_s(msg, bag_time_ns: int, clock: str) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
 
 
-def _joint_positions(msg, joints: list[str] | None) -> list[float] | str:
-    """The six legs' positions of a JointState, or why this message has none (its row is refused)."""
+def _joint_positions(msg, joints: list[str] | None, legs: int) -> list[float] | str:
+    """The ``legs`` legs' positions of a JointState, or why this message has none (its row is refused)."""
     positions = list(msg.position)
     if joints is None:
-        if len(positions) != 6:
+        if len(positions) != legs:
             return (
-                f"expected 6 joint positions, got {len(positions)} (names {shown(', '.join(msg.name))}); "
+                f"expected {legs} joint positions, got {len(positions)} (names {shown(', '.join(msg.name))}); "
                 "name the six joints with --stroke-joints / --reading-joints"
             )
         return positions
@@ -178,12 +177,20 @@ def _joint_positions(msg, joints: list[str] | None) -> list[float] | str:
 
 
 def read_topic(
-    reader, bag: Path, topic: str, option: str, kind: str, clock: str, joints: list[str] | None = None
+    reader,
+    bag: Path,
+    topic: str,
+    option: str,
+    kind: str,
+    clock: str,
+    joints: list[str] | None = None,
+    columns: tuple[str, ...] = (),
 ) -> TopicSeries:
     """All messages of ``topic`` as a :class:`TopicSeries` in stamp order.
 
     Args:
-        kind: ``JOINT_STATE`` (six positions) or ``POSE_STAMPED`` (position + roll, pitch, yaw).
+        kind: ``JOINT_STATE`` (one position a leg: as many as the log ``columns`` they fill, six) or
+            ``POSE_STAMPED`` (position + roll, pitch, yaw).
         clock: ``"header"`` (the message's ``header.stamp``) or ``"bag"`` (the recording time).
     Raises:
         CalibError: a missing topic (listing the bag's topics), another message type (naming
@@ -204,11 +211,11 @@ def read_topic(
         if t_s == 0.0:
             raise CalibError(f"{where}: header.stamp is zero; use --clock bag to take the recording time")
         if kind == JOINT_STATE:
-            if joints is None and len(set(msg.name)) == len(msg.position) == 6 and all(msg.name):
+            if joints is None and len(set(msg.name)) == len(msg.position) == len(columns) and all(msg.name):
                 # the first message's names fix the legs' order: a later message listing them in
                 # another order is matched by name, never taken in its own order
                 joints = list(msg.name)
-            positions = _joint_positions(msg, joints)
+            positions = _joint_positions(msg, joints, len(columns))
             if isinstance(positions, str):
                 refused.append((k + 1, positions))
                 continue
@@ -243,16 +250,16 @@ def log_text(t_s: np.ndarray, strokes_mm: np.ndarray, header: tuple[str, ...], m
     """The CSV text of a log: ``t_s``, ``q1_mm … q6_mm``, then the measurement columns ``header``."""
     buffer = text_io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(["t_s", *STROKE_COLUMNS, *header])
+    writer.writerow(["t_s", *io.STROKE_COLUMNS, *header])
     writer.writerows(np.column_stack([t_s, strokes_mm, measured]).tolist())
     return buffer.getvalue()
 
 
-def _joint_names(value: str | None, option: str) -> list[str] | None:
+def _joint_names(value: str | None, option: str, legs: int) -> list[str] | None:
     if value is None:
         return None
     names = [name.strip() for name in value.split(",")]
-    if len(names) != 6 or not all(names) or len(set(names)) != 6:
+    if len(names) != legs or not all(names) or len(set(names)) != legs:
         raise CalibError(f"{option}: expected six distinct joint names separated by commas, got {value!r}")
     return names
 
@@ -265,12 +272,16 @@ def run(args: argparse.Namespace) -> int:
         raise CalibError(f"--max-gap-s: expected a finite positive number of seconds, got {args.max_gap_s!r}")
     if args.readings is not None and args.readings == args.strokes:
         raise CalibError(f"--readings {shown(args.readings)}: the same topic as --strokes; expected the tracker's own")
-    stroke_joints = _joint_names(args.stroke_joints, "--stroke-joints")
-    reading_joints = _joint_names(args.reading_joints, "--reading-joints")
+    stroke_joints = _joint_names(args.stroke_joints, "--stroke-joints", len(io.STROKE_COLUMNS))
+    reading_joints = _joint_names(args.reading_joints, "--reading-joints", len(READING_COLUMNS))
     with open_bag(bag) as reader:
-        strokes = read_topic(reader, bag, args.strokes, "--strokes", JOINT_STATE, args.clock, stroke_joints)
+        strokes = read_topic(
+            reader, bag, args.strokes, "--strokes", JOINT_STATE, args.clock, stroke_joints, io.STROKE_COLUMNS
+        )
         if args.readings is not None:
-            measured = read_topic(reader, bag, args.readings, "--readings", JOINT_STATE, args.clock, reading_joints)
+            measured = read_topic(
+                reader, bag, args.readings, "--readings", JOINT_STATE, args.clock, reading_joints, READING_COLUMNS
+            )
             header = READING_COLUMNS
             values = measured.values * MM_PER_UNIT[args.reading_unit]
         else:
