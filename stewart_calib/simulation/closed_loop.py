@@ -42,7 +42,7 @@ from __future__ import annotations
 import copy
 import functools
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -165,8 +165,8 @@ class TrueRobot:
     load: LoadModel
     tracker: Tracker | None
     encoder_noise_mm: float
-    stroke_scale: np.ndarray = field(default_factory=lambda: np.zeros(6))
-    encoder_zero_mm: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    stroke_scale: np.ndarray
+    encoder_zero_mm: np.ndarray
     instrument: SimulatedInstrument | None = None
 
     def logged_strokes(self, strokes: np.ndarray, unit_noise: np.ndarray) -> np.ndarray:
