@@ -12,7 +12,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from .drive import PAYLOAD
-from .platform import N_PARAMS, LegGeometry, Platform
+from .platform import LegGeometry, Platform
 from .unknowns import UnknownLayout
 
 
@@ -21,13 +21,13 @@ class Estimate:
     """Identified kinematic parameter errors δM (paper eq. 9, Table 4).
 
     Attributes:
-        error: ``(42,)`` δM [mm], paper order.
-        covariance: ``(42, 42)`` [mm²] or None when the method gives none.
+        error: ``(n_params,)`` δM [mm], paper order (42 for the paper's 6-6 drive).
+        covariance: ``(n_params, n_params)`` [mm²] or None when the method gives none.
         method: the method's name (``ls``, ``paper-ekf``, ``ekf``, ``isam2``, ``lm``).
         samples_used: samples folded in.
         t_s: time of the last sample folded in [s] (nan if none).
-        layout: the blocks after δM in the unknown vector (none: the 42 drive parameters alone).
-        block_error: ``(layout.size − 42,)`` the blocks' errors from nominal [code units].
+        layout: the blocks after δM in the unknown vector (not given: δM alone, as long as ``error``).
+        block_error: ``(layout.size − n_params,)`` the blocks' errors from nominal [code units].
         full_covariance: ``(layout.size, layout.size)`` over ``[δM | blocks]`` [code units], or None.
         details: optional JSON-ready result fields the method adds (e.g. how it fixed the gauge,
             the noise it estimated); :func:`stewart_calib.io.result_dict` writes them.
@@ -38,10 +38,14 @@ class Estimate:
     method: str
     samples_used: int = 0
     t_s: float = float("nan")
-    layout: UnknownLayout = field(default_factory=UnknownLayout)
+    layout: UnknownLayout = field(default=None)  # type: ignore[assignment]  # None: δM alone, set in __post_init__
     block_error: np.ndarray = field(default_factory=lambda: np.zeros(0))
     full_covariance: np.ndarray | None = None
     details: dict | None = None
+
+    def __post_init__(self) -> None:
+        if self.layout is None:
+            object.__setattr__(self, "layout", UnknownLayout(n_params=len(self.error)))
 
     @classmethod
     def of_state(
@@ -56,14 +60,15 @@ class Estimate:
         """The estimate of a whole unknown vector ``x = [δM | blocks]`` with covariance ``P`` (copied)."""
         x = np.array(x, dtype=float)
         P = None if P is None else np.array(P, dtype=float)
+        n = layout.n_params
         return cls(
-            x[:N_PARAMS],
-            None if P is None else P[:N_PARAMS, :N_PARAMS],
+            x[:n],
+            None if P is None else P[:n, :n],
             method,
             samples_used,
             t_s,
             layout,
-            x[N_PARAMS:],
+            x[n:],
             None if layout.blocks == () else P,
         )
 
@@ -82,7 +87,7 @@ class Estimate:
         block, columns = self.layout.block(key), self.layout.slice(key)
         if block is None or columns is None:  # both or neither
             return None
-        start = columns.start - N_PARAMS
+        start = columns.start - self.layout.n_params
         return block.nominal + self.block_error[start : start + block.size]
 
     def unannounced_payload_kg(self) -> float:
@@ -95,7 +100,7 @@ class Estimate:
         """``{key: {"names", "estimate", "stddev"}}`` of every block, in file units (spec §7)."""
         stddev = None
         if self.full_covariance is not None:
-            stddev = np.sqrt(np.clip(np.diag(self.full_covariance)[N_PARAMS:], 0.0, None))
+            stddev = np.sqrt(np.clip(np.diag(self.full_covariance)[self.layout.n_params :], 0.0, None))
         out, start = {}, 0
         for block in self.layout.blocks:
             cols = slice(start, start + block.size)

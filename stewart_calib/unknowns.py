@@ -1,14 +1,14 @@
-"""The unknown vector: the 42 drive parameters first, then optional named blocks.
+"""The unknown vector: the drive parameters δM first, then optional named blocks.
 
 Layout (spec §5 and §7)::
 
-    x = [ δM (42, paper order) | block 1 | block 2 | … ]
+    x = [ δM (n_params: 42 for the paper's 6-6 drive, paper order) | block 1 | block 2 | … ]
 
 Every entry is an *error from its nominal value* in code units (mm, rad, dimensionless), so
 ``x = 0`` is the nominal model and each estimator's prior is ``N(0, diag(σ²))``. A block is an
 :class:`UnknownBlock`: a drive model's (:mod:`stewart_calib.drive`: the stroke scale ``k1…k6``) or
 an instrument's own unknowns (frame, targets, the tracker's geometry; declared by its model in
-:mod:`stewart_calib.instruments`). The result keeps the 42 drive values of §5 and adds one
+:mod:`stewart_calib.instruments`). The result keeps the drive values of §5 and adds one
 ``{"names", "estimate", "stddev"}`` entry per block under the block's ``key``, in file units.
 
 Gauge. An instrument frame {I} in {J} moves its predictions exactly as a rigid motion of all
@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
+from .platform import LegGeometry, vector_to_params
 
 #: the two rigid motions a block may share with the drive (see the module docstring).
 GAUGES = ("base", "platform")
@@ -35,7 +35,7 @@ GAUGES = ("base", "platform")
 
 @dataclass(frozen=True)
 class UnknownBlock:
-    """A named group of unknowns after the 42 drive parameters.
+    """A named group of unknowns after the drive parameters δM.
 
     Attributes:
         key: the result's key for the block (``"stroke_scale"``, ``"instrument"``).
@@ -92,9 +92,16 @@ class UnknownBlock:
 
 @dataclass(frozen=True)
 class UnknownLayout:
-    """Where each block sits in the unknown vector ``x = [δM | blocks…]``."""
+    """Where each block sits in the unknown vector ``x = [δM | blocks…]``.
+
+    Attributes:
+        blocks: the named blocks after δM, in order.
+        n_params: entries of δM, the drive's leg set's (:attr:`~stewart_calib.drive.DriveModel.n_params`,
+            42 for the paper's 6-6 drive); a keyword, the layout names no leg set of its own.
+    """
 
     blocks: tuple[UnknownBlock, ...] = ()
+    n_params: int = field(kw_only=True)
 
     def __post_init__(self) -> None:
         keys = [block.key for block in self.blocks]
@@ -103,12 +110,12 @@ class UnknownLayout:
 
     @property
     def size(self) -> int:
-        """``42 + Σ block sizes``."""
-        return N_PARAMS + sum(block.size for block in self.blocks)
+        """``n_params + Σ block sizes``."""
+        return self.n_params + sum(block.size for block in self.blocks)
 
     def slice(self, key: str) -> slice | None:
         """The columns of block ``key`` in ``x``, or None when the layout has no such block."""
-        start = N_PARAMS
+        start = self.n_params
         for block in self.blocks:
             if block.key == key:
                 return slice(start, start + block.size)
@@ -120,11 +127,11 @@ class UnknownLayout:
 
     def prior_sigma(self, drive_sigma_mm: float) -> np.ndarray:
         """``(size,)`` prior σ: ``drive_sigma_mm`` on δM, then each block's own [code units]."""
-        return np.concatenate([np.full(N_PARAMS, drive_sigma_mm), *(block.prior_sigma for block in self.blocks)])
+        return np.concatenate([np.full(self.n_params, drive_sigma_mm), *(block.prior_sigma for block in self.blocks)])
 
     def walks(self) -> np.ndarray:
         """``(size,)`` bool: which unknowns follow the parameter random walk (δM always)."""
-        return np.concatenate([np.ones(N_PARAMS, bool), *(np.full(b.size, b.random_walk) for b in self.blocks)])
+        return np.concatenate([np.ones(self.n_params, bool), *(np.full(b.size, b.random_walk) for b in self.blocks)])
 
     def gauge_rows(self, drive: LegGeometry) -> np.ndarray:
         """``(g, size)`` constraints ``C x = 0`` fixing the gauge the blocks share with the drive.
@@ -136,29 +143,32 @@ class UnknownLayout:
         """
         shared = {gauge for block in self.blocks for gauge in block.gauge}
         holder = next((block for block in self.blocks if block.holds_gauge), None)
-        start, joints = 0, drive.as_vector().reshape(N_LEGS, N_PARAMS_PER_LEG)
+        start, legs = 0, drive.params
         if holder is not None and (columns := self.slice(holder.key)) is not None:
-            start, joints = columns.start, holder.nominal.reshape(N_LEGS, N_PARAMS_PER_LEG)
+            start, legs = columns.start, vector_to_params(holder.nominal)
         rows = []
         for gauge, offset in (("base", 0), ("platform", 3)):
             if gauge in shared:
-                rows.append(_rigid_motion_rows(joints[:, offset : offset + 3], start + offset, self.size))
+                rows.append(_rigid_motion_rows(legs, offset, start, self.size))
         return np.vstack(rows) if rows else np.zeros((0, self.size))
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """``x`` → ``(δM (42,), {key: block error})``."""
+        """``x`` → ``(δM (n_params,), {key: block error})``."""
         x = np.asarray(x, dtype=float)
-        return x[:N_PARAMS], {block.key: x[self.slice(block.key)] for block in self.blocks}
+        return x[: self.n_params], {block.key: x[self.slice(block.key)] for block in self.blocks}
 
 
-def _rigid_motion_rows(joints: np.ndarray, offset: int, size: int) -> np.ndarray:
-    """Rows whose span is the rigid motions ``δp_i = a + ω × (p_i − p̄)`` of six joints, whose
-    columns in ``x`` are ``7 i + offset + (0, 1, 2)``: translation ``Σ δp_i`` and rotation
-    ``Σ (p_i − p̄) × δp_i``, each row scaled to unit norm."""
+def _rigid_motion_rows(legs: np.ndarray, offset: int, start: int, size: int) -> np.ndarray:
+    """Rows whose span is the rigid motions ``δp_i = a + ω × (p_i − p̄)`` of the joints
+    ``p_i = legs[i, offset : offset + 3]`` of the per-leg parameters ``legs`` ``(n_legs, 7)``, laid
+    out from column ``start`` of ``x`` as ``legs`` is (``p_i`` at ``start + 7 i + offset + (0, 1,
+    2)``): translation ``Σ δp_i`` and rotation ``Σ (p_i − p̄) × δp_i``, each row scaled to unit norm."""
     C = np.zeros((6, size))
+    per_leg = legs.shape[1]
+    joints = legs[:, offset : offset + 3]
     arms = joints - joints.mean(axis=0)
-    for i in range(N_LEGS):
-        cols = slice(N_PARAMS_PER_LEG * i + offset, N_PARAMS_PER_LEG * i + offset + 3)
+    for i in range(len(legs)):
+        cols = slice(start + per_leg * i + offset, start + per_leg * i + offset + 3)
         C[0:3, cols] = np.eye(3)
         r = arms[i]
         C[3:6, cols] = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])

@@ -86,13 +86,14 @@ def _python_paths(platform) -> None:
     from stewart_calib.resources import CONFIGS
     from stewart_calib.simulation import load_experiment
     from stewart_calib.simulation.load import Settling
+    from stewart_calib.unknowns import UnknownLayout
 
     drive, R, t = platform.drive, np.eye(3), np.array([0.0, 0.0, platform.workspace.home[2]])
     strokes = kin.inverse_kinematics(drive, R[None], t[None])[0]
     rows = np.hstack([drive.base_joints, drive.platform_joints, drive.initial_lengths[:, None]])
     kin.leg_residual(R, t, rows, strokes)
     r, H, R_meas, _ = kin.leg_ekf_observation(drive, np.zeros(42), R, t, strokes, 1e-4 * np.eye(6), 0.01)
-    state = kalman.FilterState("ekf", 1.0, 0.0)
+    state = kalman.FilterState("ekf", 1.0, 0.0, len(r), UnknownLayout(n_params=drive.n_params))
     kalman.fill_walk(state.Q, np.eye(42), 1e-4)
     state.update(H, -r, R_meas, 0.0)
     eigenvalues = np.full((2, 42), 1e-3)

@@ -361,7 +361,7 @@ def test_a_payload_step_is_one_sample_of_the_payload_in_closed_form():
     from stewart_calib.unknowns import UnknownBlock, UnknownLayout
 
     rng = np.random.default_rng(5)
-    layout = UnknownLayout((UnknownBlock(PAYLOAD, ("payload_kg",), np.zeros(1), np.array([50.0])),))
+    layout = UnknownLayout((UnknownBlock(PAYLOAD, ("payload_kg",), np.zeros(1), np.array([50.0])),), n_params=42)
     A = rng.normal(size=(6, 42))
     h = np.array([1.0, 2.0, 0.5, 1.5, 1.0, 0.8]) * 1e-3  # mm per kg
     sigma = 1e-4  # mm: the payload is known from one sample to σ / ‖h‖ ≈ 0.03 kg

@@ -110,7 +110,7 @@ def test_instrument_factor_on_the_unknown_vector_has_the_model_jacobian(platform
     # The tracker's geometry as unknowns, placed after δM: ∂r/∂p is the model's ∂r/∂θ in those columns.
     poses, delta = cases
     model = TrackerModel(platform.tracker, 0.002, geometry_sigma_mm=0.05)
-    layout = UnknownLayout((model.unknowns,))
+    layout = UnknownLayout((model.unknowns,), n_params=platform.drive.n_params)
     block = layout.slice("instrument")
     unknowns = np.r_[delta, np.random.default_rng(1).normal(0.0, 0.05, 42)]
     pose = poses[0]
@@ -136,9 +136,9 @@ def test_instrument_factor_on_the_unknown_vector_has_the_model_jacobian(platform
 
 
 def test_gauge_factor_is_the_linear_constraint(platform):
-    C = UnknownLayout((TrackerModel(platform.tracker, 0.002, geometry_sigma_mm=0.05).unknowns,)).gauge_rows(
-        platform.drive
-    )
+    C = UnknownLayout(
+        (TrackerModel(platform.tracker, 0.002, geometry_sigma_mm=0.05).unknowns,), n_params=platform.drive.n_params
+    ).gauge_rows(platform.drive)
     x = np.random.default_rng(2).normal(size=C.shape[1])
     values = gtsam.Values()
     values.insert(P, x)

@@ -102,7 +102,7 @@ def test_tracker_check_refuses_with_the_reason(platform):
 
 def test_layout_places_blocks_after_the_drive_and_reports_file_units(platform):
     tracker = _tracker(platform, 0.05)
-    layout = UnknownLayout((stroke_term(np.zeros(6), 0.02).block(), tracker.unknowns))
+    layout = UnknownLayout((stroke_term(np.zeros(6), 0.02).block(), tracker.unknowns), n_params=N_PARAMS)
     assert layout.size == N_PARAMS + 6 + N_PARAMS
     assert layout.slice("stroke_scale") == slice(42, 48) and layout.slice("instrument") == slice(48, 90)
     np.testing.assert_array_equal(layout.prior_sigma(5.0)[[0, 41, 42, 48]], [5.0, 5.0, 0.02, 0.05])
@@ -117,7 +117,7 @@ def test_gauge_rows_span_exactly_the_rigid_motions_of_the_joints(platform, holde
     block = _tracker(platform, 0.05).unknowns
     if holder == "drive":
         block = replace(block, holds_gauge=False)
-    layout = UnknownLayout((block,))
+    layout = UnknownLayout((block,), n_params=N_PARAMS)
     C = layout.gauge_rows(platform.drive)
     assert C.shape == (12, layout.size) and np.linalg.matrix_rank(C) == 12
     rng = np.random.default_rng(0)
@@ -132,14 +132,16 @@ def test_gauge_rows_span_exactly_the_rigid_motions_of_the_joints(platform, holde
         assert np.linalg.norm(C @ x) > 0.1 * np.linalg.norm(x)
         residue = x - np.linalg.pinv(C) @ (C @ x)
         assert np.linalg.norm(residue) < 1e-9 * np.linalg.norm(x)
-    assert UnknownLayout((stroke_term(np.zeros(6), 0.02).block(),)).gauge_rows(platform.drive).shape == (0, 48)
+    assert UnknownLayout((stroke_term(np.zeros(6), 0.02).block(),), n_params=N_PARAMS).gauge_rows(
+        platform.drive
+    ).shape == (0, 48)
 
 
 def test_estimate_of_a_generalised_state_adds_its_blocks_to_the_result(platform):
     from stewart_calib.estimate import Estimate
     from stewart_calib.io import result_dict, validate_result
 
-    layout = UnknownLayout((stroke_term(np.zeros(6), 0.02).block(),))
+    layout = UnknownLayout((stroke_term(np.zeros(6), 0.02).block(),), n_params=N_PARAMS)
     x = np.r_[np.full(N_PARAMS, 0.1), np.full(6, 0.01)]
     P = np.diag(np.r_[np.full(N_PARAMS, 0.04), np.full(6, 1e-4)])
     estimate = Estimate.of_state(x, P, layout, "ekf", 10, 1.0)
@@ -150,7 +152,7 @@ def test_estimate_of_a_generalised_state_adds_its_blocks_to_the_result(platform)
     assert result["stroke_scale"]["estimate"] == [0.01] * 6
     np.testing.assert_allclose(result["stroke_scale"]["stddev"], 0.01)
     assert "stroke_scale" not in result_dict(
-        Estimate.of_state(x[:N_PARAMS], P[:N_PARAMS, :N_PARAMS], UnknownLayout(), "ekf"), platform
+        Estimate.of_state(x[:N_PARAMS], P[:N_PARAMS, :N_PARAMS], UnknownLayout(n_params=N_PARAMS), "ekf"), platform
     )
 
 

@@ -76,7 +76,7 @@ def test_tracker_geometry_unknown_holds_the_gauge_and_is_consistent(platform):
     platform = replace(platform, tracker_geometry_sigma_mm=0.05)
     rng = np.random.default_rng(10)
     model = instrument_model(platform, _constant({}).noise)
-    C = UnknownLayout((model.unknowns,)).gauge_rows(platform.drive)
+    C = UnknownLayout((model.unknowns,), n_params=platform.drive.n_params).gauge_rows(platform.drive)
     truth = np.r_[random_error(rng, 0.5), rng.normal(0.0, 0.02, N_PARAMS)]
     truth -= np.linalg.pinv(C) @ (C @ truth)  # the truth in the gauge the estimators fix
     true_platform = replace(platform, tracker=platform.tracker.perturbed(truth[N_PARAMS:]))
@@ -116,7 +116,7 @@ def test_a_drive_with_a_millimetre_rigid_error_is_identified_against_the_tracker
     platform = replace(platform, tracker_geometry_sigma_mm=0.015)
     rng = np.random.default_rng(12)
     model = instrument_model(platform, _constant({}).noise)
-    C = UnknownLayout((model.unknowns,)).gauge_rows(platform.drive)
+    C = UnknownLayout((model.unknowns,), n_params=platform.drive.n_params).gauge_rows(platform.drive)
     drive_error = random_error(rng, 0.5)
     drive_error[[7 * i + a for i in range(6) for a in range(3)]] += np.tile([1.5, -1.0, 0.8], 6)  # base moved 2 mm
     truth = np.r_[drive_error, rng.normal(0.0, 0.015, N_PARAMS)]

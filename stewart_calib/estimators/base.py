@@ -165,7 +165,7 @@ def update_each(
     """``update`` with each of ``samples`` in turn.
 
     Args:
-        errors_out: ``(len(samples), 42)``: δM [mm] after each sample (the estimate in force
+        errors_out: ``(len(samples), n_params)``: δM [mm] after each sample (the estimate in force
             after a refused one), or None.
         first: the index of the first sample (added to the indices returned).
     Returns:

@@ -38,7 +38,6 @@ from ..config import LSConfig
 from ..drive import DriveModel
 from ..errors import CalibError, SampleRejected
 from ..instruments import OutsideModel, gauge, outside_model
-from ..platform import N_LEGS, N_PARAMS
 
 #: a singular value below this fraction of the largest counts as zero
 RANK_TOLERANCE = 1e-10
@@ -147,7 +146,7 @@ def _fk(problem: BatchProblem, x_drive: np.ndarray, guess) -> tuple[np.ndarray, 
             problem.inputs,
         )
     else:
-        strokes = problem.inputs[:, :N_LEGS]  # the stroke term reads the first six inputs
+        strokes = problem.inputs[:, : problem.drive.rows]  # the stroke term reads the first inputs, one a leg
         sol, inputs = problem.drive.settled_kinematics(strokes, problem.payload_kg, x_drive, guess, strict=False)
     return sol.R, sol.t, sol.converged, inputs
 
@@ -359,7 +358,7 @@ def _named_directions(
     if np.any(norms == 0):
         norms = np.where(norms == 0, 1.0, norms)
     _, _, Vt = np.linalg.svd(A / norms)  # A square: Vᵀ holds the null space's rows too
-    full = np.eye(N_PARAMS)  # every δM column, the gauge's directions too
+    full = np.eye(problem.drive.n_params)  # every δM column, the gauge's directions too
     own = np.linalg.norm(_system(problem, state, full, sigmas, np.ones(len(problem.inputs)), True)[0], axis=0)
     lift = _lift(problem, basis, True, state.unknowns.size)
 
@@ -406,16 +405,16 @@ def _subset(problem: BatchProblem, keep: np.ndarray) -> BatchProblem:
 
 def _reduced_size(problem: BatchProblem, basis: np.ndarray, fit_blocks: bool, n_unknowns: int) -> int:
     """Unknowns of the reduced fit ``[z_M, the drive's blocks (if fitted), u]``."""
-    return basis.shape[1] + (problem.drive.size - N_PARAMS) * fit_blocks + n_unknowns
+    return basis.shape[1] + (problem.drive.size - problem.drive.n_params) * fit_blocks + n_unknowns
 
 
 def _lift(problem: BatchProblem, basis: np.ndarray, fit_blocks: bool, n_unknowns: int) -> np.ndarray:
     """Reduced unknowns ``[z_M (30), the drive's blocks (or none), u]`` → full ``[x_drive, u]``."""
-    n_free, n_drive = basis.shape[1], problem.drive.size
-    n_blocks = (n_drive - N_PARAMS) * fit_blocks
+    n_free, n_drive, n_params = basis.shape[1], problem.drive.size, problem.drive.n_params
+    n_blocks = (n_drive - n_params) * fit_blocks
     lift = np.zeros((n_drive + n_unknowns, n_free + n_blocks + n_unknowns))
-    lift[:N_PARAMS, :n_free] = basis
-    lift[N_PARAMS : N_PARAMS + n_blocks, n_free : n_free + n_blocks] = np.eye(n_blocks)
+    lift[:n_params, :n_free] = basis
+    lift[n_params : n_params + n_blocks, n_free : n_free + n_blocks] = np.eye(n_blocks)
     lift[n_drive:, n_free + n_blocks :] = np.eye(n_unknowns)
     return lift
 
@@ -424,9 +423,10 @@ def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_bl
     """Whitened, weighted Jacobian ``A`` (finite rows) and residual ``b`` at ``state``."""
     e, H_X, H_u = problem.model.readings_residual(state.unknowns, problem.measured, state.R, state.t, jacobians=True)
     dxi = problem.drive.settled_pose_jacobian(state.x_drive, state.R, state.t, state.inputs, problem.payload_kg)
-    blocks = [H_X @ dxi[..., :N_PARAMS] @ basis]
-    if fit_blocks and dxi.shape[-1] > N_PARAMS:
-        blocks.append(H_X @ dxi[..., N_PARAMS:])
+    n_params = problem.drive.n_params
+    blocks = [H_X @ dxi[..., :n_params] @ basis]
+    if fit_blocks and dxi.shape[-1] > n_params:
+        blocks.append(H_X @ dxi[..., n_params:])
     blocks.append(H_u)
     scale = np.sqrt(weights)[:, None] / sigmas[None, :]
     A = np.concatenate(blocks, axis=-1) * scale[..., None]
@@ -436,11 +436,11 @@ def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_bl
 
 
 def _apply(problem: BatchProblem, state: _State, basis, step: np.ndarray, fit_blocks: bool) -> _State | None:
-    n_free = basis.shape[1]
-    n_blocks = (problem.drive.size - N_PARAMS) * fit_blocks
+    n_free, n_params = basis.shape[1], problem.drive.n_params
+    n_blocks = (problem.drive.size - n_params) * fit_blocks
     x_drive = state.x_drive.copy()
-    x_drive[:N_PARAMS] += basis @ step[:n_free]
-    x_drive[N_PARAMS : N_PARAMS + n_blocks] += step[n_free : n_free + n_blocks]
+    x_drive[:n_params] += basis @ step[:n_free]
+    x_drive[n_params : n_params + n_blocks] += step[n_free : n_free + n_blocks]
     unknowns = state.unknowns.retract(step[n_free + n_blocks :])
     R, t, ok, inputs = _fk(problem, x_drive, (state.R, state.t))
     if not np.all(ok):
@@ -532,7 +532,7 @@ def _not_converged(problem: BatchProblem, state: _State, basis, sigmas, weights,
     system (the poses leave directions free)."""
     blocks = "".join(f"{b.size} {b.key.replace('_', ' ')}s, " for b in problem.drive.blocks) if fit_blocks else ""
     fitted = (
-        f"{basis.shape[1]} drive directions (the 42 parameters less the gauge), "
+        f"{basis.shape[1]} drive directions (the {problem.drive.n_params} parameters less the gauge), "
         f"{blocks}the {state.unknowns.size} instrument unknowns"
     )
     head = (
@@ -580,7 +580,7 @@ def _blocks_identifiable(problem: BatchProblem, state: _State, basis, sigmas) ->
     n_free, out = basis.shape[1], {}
     start = n_free
     for block in problem.drive.blocks:
-        others = np.r_[np.arange(n_free), np.arange(n_free + problem.drive.size - N_PARAMS, A.shape[1])]
+        others = np.r_[np.arange(n_free), np.arange(n_free + problem.drive.size - problem.drive.n_params, A.shape[1])]
         columns = np.sort(np.r_[others, np.arange(start, start + block.size)])
         s = np.linalg.svd(A[:, columns], compute_uv=False)
         out[block.key] = bool(s[-1] > 1e-8 * s[0])

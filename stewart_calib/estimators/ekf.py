@@ -1,8 +1,8 @@
 """EKF on the leg-length model: the same model and noise as the factor graph.
 
-State ``X`` = the unknown vector (:mod:`stewart_calib.unknowns`): the drive's ``x_drive`` (δM, 42,
-paper order, then its unknown blocks where configured, :mod:`stewart_calib.drive`) and the
-instrument model's own unknowns ``θ``. Observation per sample: the six drive-leg residuals
+State ``X`` = the unknown vector (:mod:`stewart_calib.unknowns`): the drive's ``x_drive`` (δM, paper
+order, 42 on the paper's 6-6 drive, then its unknown blocks where configured, :mod:`stewart_calib.drive`)
+and the instrument model's own unknowns ``θ``. Observation per sample: the six drive-leg residuals
 ``r_i = ‖t + R d_i − j_i‖ − (l_i + e_i)`` of the drive model at the pose the instrument measured
 (its model's loose pose: for the tracker, FK of the readings); the expected value is 0, so the
 innovation is ``−r`` and ``H = ∂r/∂X``: the drive model's ``∂r/∂x_drive``, and ``J_x ∂ξ/∂θ`` on θ
@@ -62,7 +62,7 @@ from ..drive import PAYLOAD, payload_block
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta, needs_registration
-from ..platform import N_LEGS, N_PARAMS, Platform
+from ..platform import Platform
 from ..samples import Log, Sample
 from ..unknowns import UnknownLayout, gauge_conditioned
 from .base import Refusals, state_array, update_each
@@ -96,11 +96,11 @@ class LegEKF:
         self.drive = estimator_drive(platform, config.noise)
         layout = unknown_layout(platform, config.noise, self.model)
         payload = payload_block(platform.elastic)
-        self.layout = layout if payload is None else UnknownLayout((*layout.blocks, payload))
+        self.layout = layout if payload is None else UnknownLayout((*layout.blocks, payload), n_params=layout.n_params)
         # an unannounced payload (see the module docstring): its column, and the per-kg leg forces in
         # each prepared sample after the drive inputs
         self._payload = self.layout.slice(PAYLOAD)
-        self._per_kg = 0 if payload is None else N_LEGS
+        self._per_kg = 0 if payload is None else self.drive.rows
         C = self.layout.gauge_rows(platform.drive)
         # Q per unit ρ²Δt: the walking entries, conditioned on the gauge (None: the plain diagonal).
         walks = self.layout.walks()
@@ -167,7 +167,7 @@ class LegEKF:
         runs of samples it accepts, any other sample (start-up, refused, window statistics due…)
         through :meth:`update` — the same result."""
         count = len(block)
-        errors = np.zeros((0, N_PARAMS)) if errors_out is None else errors_out
+        errors = np.zeros((0, self.drive.n_params)) if errors_out is None else errors_out
         refused, late = [], []
         rows: tuple[np.ndarray, np.ndarray] | None = None
         j = 0
@@ -247,7 +247,7 @@ class LegEKF:
             observed = self._pose.solve(z, theta)
             if observed is not None and self._forces_at_state:
                 load_kg = prepared[width + self._per_kg]
-                inputs = drive.inputs(inputs[:N_LEGS], load_kg, observed.R, observed.t, self._forces_at())
+                inputs = drive.inputs(inputs[: drive.rows], load_kg, observed.R, observed.t, self._forces_at())
                 if self._per_kg:
                     per_kg = drive.payload_leg_forces(observed.R, observed.t, self._forces_at())
         dg_dm = None  # ∂r/∂m of the drive-leg residuals r on the unannounced payload m
@@ -333,7 +333,7 @@ class LegEKF:
 
     def current_error(self) -> np.ndarray:
         """δM [mm] after the last accepted sample."""
-        return self.filter.x[:N_PARAMS].copy()
+        return self.filter.x[: self.drive.n_params].copy()
 
     def export_state(self) -> dict:
         """Filter, pose warm start and samples held for registration as arrays (checkpoints;

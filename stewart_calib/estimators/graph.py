@@ -41,7 +41,7 @@ from ..errors import SampleRejected
 from ..estimate import Estimate
 from ..factors import diagonal_noise, drive_leg, gauge, instrument, instrument_pose, random_walk
 from ..instruments import instrument_model, instrument_theta
-from ..platform import N_LEGS, Platform
+from ..platform import Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout
 from .measurement import check_sample, estimator_drive, unknown_layout
@@ -125,7 +125,7 @@ class GraphBuilder:
                 drive_leg.DriveLegs.of(legs, self.drive),
                 robust_noise(gtsam.noiseModel.Isotropic.Sigma(len(legs), self.noise.stroke_sigma_mm), *self._robust),
             )
-            for legs in ([np.arange(N_LEGS)] if self._gaussian else [[i] for i in range(N_LEGS)])
+            for legs in ([np.arange(self.drive.rows)] if self._gaussian else [[i] for i in range(self.drive.rows)])
         ]
         self._group_noise: dict[tuple[int, ...], gtsam.noiseModel.Base] = {}
         # the channel groups of the last sample as factored (channels, noise): the tracker's groups

@@ -2,9 +2,10 @@
 
 Random-walk prediction (paper eq. 14–15: ``X`` unchanged, ``P ← P + Q``) and the update
 (eq. 17–19) are fused into :func:`kalman_update`, because the prediction is only an
-addition and fusing it saves a pass over the 42×42 covariance. The kernels are compiled
-with numba (on-disk cache, :func:`stewart_calib._jit.njit`): on arrays this small numpy's per-call
-overhead costs ~10× the arithmetic (benchmarks/speed.py against numpy and filterpy; BENCHMARKS.md).
+addition and fusing it saves a pass over the n×n covariance (42×42: the paper's δM). The
+kernels are compiled with numba (on-disk cache, :func:`stewart_calib._jit.njit`): on arrays this
+small numpy's per-call overhead costs ~10× the arithmetic (benchmarks/speed.py against numpy and
+filterpy; BENCHMARKS.md).
 
 One step of the recursion is defined once: :func:`fill_walk` (``Q = ρ²Δt · unit_Q``) and
 :func:`filter_step` (``R = s² R0``, the finite check, the gated update, the variance components).
@@ -301,7 +302,7 @@ def _leg_set_observation(x, row, observation, R_guess, t_guess, warm, scratch):
     drive, legs, extension_terms, variances, newton = observation
     R_pose, t_pose, extensions, nu, fk_work, factors, H_full = scratch
     starts, gains, base_factors, columns = extension_terms
-    n_drive = 7 * drive[0].shape[0]  # δM: seven parameters a leg
+    n_drive = drive[0].shape[0] * (drive[0].shape[1] + drive[1].shape[1] + 1)  # δM: [j_i | d_i | l_i] a leg
     for b in range(starts.shape[0]):
         for i in range(columns.shape[1]):
             c = columns[b, i]
@@ -525,9 +526,11 @@ class FilterState:
         method: the estimator's name, for the estimate and messages.
         prior_sigma_mm: σ of δM's prior [mm]; initial ``P = σ² I`` on δM.
         gate_probability: χ² gate probability with ``m`` degrees of freedom, 0 = off.
-        m: observation size.
-        layout: the unknown vector (default: δM alone); its blocks start from their own prior
-            σ, and ``P`` is conditioned on the gauge constraints ``C`` (``C x = 0`` then holds
+        m: observation size the gate is set for: rows of a sample as the caller's model declares them
+            (the drive's legs, :attr:`~stewart_calib.drive.DriveModel.rows`; the pose6 difference of
+            the paper's EKF); an observation of another size is gated at its own.
+        layout: the unknown vector (δM alone: ``UnknownLayout(n_params=…)``); its blocks start from
+            their own prior σ, and ``P`` is conditioned on the gauge constraints ``C`` (``C x = 0`` then holds
             for every state; the caller conditions its process noise the same way).
         C: the gauge rows (:meth:`~stewart_calib.unknowns.UnknownLayout.gauge_rows`), or None.
     """
@@ -537,8 +540,8 @@ class FilterState:
         method: str,
         prior_sigma_mm: float,
         gate_probability: float,
-        m: int = 6,
-        layout: UnknownLayout | None = None,
+        m: int,
+        layout: UnknownLayout,
         C: np.ndarray | None = None,
     ):
         if not 0.0 <= gate_probability < 1.0:
@@ -546,7 +549,7 @@ class FilterState:
         if not prior_sigma_mm > 0.0:
             raise CalibError(f"{method}: noise.prior_sigma_mm must be positive, got {prior_sigma_mm}")
         self.method = method
-        self.layout = layout or UnknownLayout()
+        self.layout = layout
         n = self.layout.size
         self.x = np.zeros(n)
         prior = np.diag(self.layout.prior_sigma(prior_sigma_mm) ** 2)

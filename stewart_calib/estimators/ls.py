@@ -7,9 +7,10 @@ updated model until the step is below ``ls.tolerance_mm``.
 
 Rotation rows [rad] are scaled by ``ls.rotation_weight_mm`` so the stacked residual is in
 mm throughout. Covariance: the Gauss–Newton covariance ``σ̂² (AᵀA)⁻¹`` of the weighted
-stacked Jacobian ``A``, scaled by the residual variance ``σ̂² = ‖b − A δ‖² / (6N − 42)`` —
-the data's own noise level, since the paper's LS has no noise model. It is None when the
-system is rank deficient (too few or too poor poses); ``singular_values`` says which.
+stacked Jacobian ``A``, scaled by the residual variance ``σ̂² = ‖b − A δ‖² / (6N − 42)`` (six pose
+rows a sample, 42 unknowns of the paper's δM) — the data's own noise level, since the paper's LS has
+no noise model. It is None when the system is rank deficient (too few or too poor poses);
+``singular_values`` says which.
 
 With an instrument outside the robot (spec §7 ``pose``, ``points``) the same class runs the
 batch maximum-likelihood fit of :mod:`.batch` instead: drive, stroke scale and the instrument's
@@ -28,7 +29,7 @@ from ..drive import DriveModel, drive_model
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..instruments import OutsideModel, instrument_kind, outside_model
-from ..platform import N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, Platform
+from ..platform import LegGeometry, Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout
 from .base import BufferedFit
@@ -43,9 +44,10 @@ class LSSolution:
     """Result of :func:`gauss_newton`.
 
     Attributes:
-        error: ``(size,)`` the drive's unknowns ``[δM [mm] | its unknown terms]`` (42 without a drive model).
+        error: ``(size,)`` the drive's unknowns ``[δM [mm] | its unknown terms]`` (δM alone,
+            ``n_params``, without a drive model).
         covariance: ``(size, size)``, or None when rank deficient.
-        singular_values: ``(min(6N, 42),)`` of the weighted stacked ``J_p`` at the solution,
+        singular_values: ``(min(6N, size),)`` of the weighted stacked ``J_p`` at the solution,
             descending [mm / mm]; their ratio is the conditioning of the identification.
         iterations: Gauss–Newton iterations taken.
         residual_rms_mm: RMS of the weighted stacked residual at the solution [mm].
@@ -71,7 +73,7 @@ def gauss_newton(
 
     Args:
         nominal: nominal drive geometry M.
-        strokes: ``(N, 6)`` executed strokes [mm] (with ``drive``: as logged).
+        strokes: ``(N, n_legs)`` executed strokes [mm] (with ``drive``: as logged).
         R_v, t_v: ``(N, 3, 3)``, ``(N, 3)`` measured poses P_v.
         config: tolerance, iteration cap, rotation weight.
         drive: the drive model whose extensions the strokes go through, its unknown terms fitted
@@ -82,13 +84,14 @@ def gauss_newton(
     Raises:
         CalibError: the model's FK fails (the iteration diverged) or no convergence.
     """
-    n = len(strokes)
     weight = np.r_[np.ones(3), np.full(3, config.rotation_weight_mm)]
-    size = N_PARAMS if drive is None else drive.size
+    n_params = nominal.n_params
+    per_leg = n_params // nominal.n_legs  # a leg's parameters [j_i | d_i | l_i], l_i the last
+    size = n_params if drive is None else drive.size
     error = np.zeros(size)
     R_m, t_m = R_v, t_v  # the measured pose is the best warm start for the model's FK
     for iteration in range(1, config.max_iterations + 1):
-        legs = nominal.perturbed(error[:N_PARAMS])
+        legs = nominal.perturbed(error[:n_params])
         lengths, inputs = strokes, None
         if drive is not None:
             inputs = drive.inputs(strokes, payload_kg, R_v, t_v, error)  # an elastic drive's forces at P_v
@@ -99,10 +102,8 @@ def gauss_newton(
         R_m, t_m = sol.R, sol.t
         b = (pose_difference(R_v, t_v, R_m, t_m) * weight).reshape(-1)
         J_p = kin.error_jacobian(legs, R_m, t_m)
-        if drive is not None and inputs is not None and size > N_PARAMS:
-            J_p = np.concatenate(
-                [J_p, J_p[..., N_PARAMS_PER_LEG - 1 :: N_PARAMS_PER_LEG] @ drive.extension_jacobian(inputs)], -1
-            )
+        if drive is not None and inputs is not None and size > n_params:
+            J_p = np.concatenate([J_p, J_p[..., per_leg - 1 :: per_leg] @ drive.extension_jacobian(inputs)], -1)
         A = (J_p * weight[:, None]).reshape(-1, size)
         U, s, Vt = np.linalg.svd(A, full_matrices=False)
         keep = s > RANK_TOLERANCE * s[0]
@@ -113,7 +114,7 @@ def gauss_newton(
     else:
         raise CalibError(f"ls: Gauss–Newton did not converge in {config.max_iterations} iterations")
     residual = b - A @ step
-    dof = 6 * n - size
+    dof = len(b) - size
     covariance = None
     if np.all(keep) and dof > 0:
         sigma2 = float(residual @ residual) / dof
@@ -174,7 +175,7 @@ class LeastSquares(BufferedFit):
     def estimate(self) -> Estimate:
         """Fit every buffered sample; zeros and no covariance before the first sample."""
         if not self._strokes:
-            return Estimate(np.zeros(N_PARAMS), None, self.name)
+            return Estimate(np.zeros(self.drive.n_params), None, self.name)
         if self._external is not None:
             return self._estimate_external(self._external)
         solution = gauss_newton(
@@ -189,7 +190,7 @@ class LeastSquares(BufferedFit):
         self.singular_values = solution.singular_values
         if self._fitted is None or not self._fitted.blocks:
             return Estimate(solution.error, solution.covariance, self.name, len(self._strokes), self._t_s)
-        layout = UnknownLayout(self._fitted.blocks)
+        layout = UnknownLayout(self._fitted.blocks, n_params=self._fitted.n_params)
         return Estimate.of_state(solution.error, solution.covariance, layout, self.name, len(self._strokes), self._t_s)
 
     def _estimate_external(self, model: OutsideModel) -> Estimate:
@@ -221,7 +222,7 @@ def external_estimate(method: str, drive, model, sol, samples_used: int, t_s: fl
     :class:`~.batch.BatchSolution` of ``drive``; the instrument's tangent covariance carried into its θ."""
     from ..unknowns import UnknownLayout
 
-    layout = UnknownLayout((*drive.blocks, model.unknowns))
+    layout = UnknownLayout((*drive.blocks, model.unknowns), n_params=drive.n_params)
     x = np.concatenate([sol.x_drive, model.theta(sol.unknowns) - model.unknowns.nominal])
     P = None
     if sol.covariance is not None:

@@ -48,14 +48,17 @@ def check_sample(platform: Platform, model: InstrumentModel, sample: Sample) -> 
     (inclusive bounds, spec §3), then whatever ``model.check`` refuses.
     """
     strokes = np.asarray(sample.strokes, dtype=float)
+    legs = platform.drive.n_legs
     lo, hi = platform.stroke_range if platform.stroke_range is not None else (-math.inf, math.inf)
     # One compiled check for the common, valid sample (the wording below costs several times more).
-    if not (strokes.shape == (6,) and math.isfinite(sample.t_s) and _kernels.all_within(strokes, float(lo), float(hi))):
+    if not (
+        strokes.shape == (legs,) and math.isfinite(sample.t_s) and _kernels.all_within(strokes, float(lo), float(hi))
+    ):
         if not np.isfinite(sample.t_s):
             raise SampleRejected(f"sample at t = {sample.t_s} s: non-finite time", SampleRejected.NON_FINITE)
-        if strokes.shape != (6,):
+        if strokes.shape != (legs,):
             raise SampleRejected(
-                f"sample at t = {sample.t_s} s: expected 6 stroke q values, got shape {strokes.shape}",
+                f"sample at t = {sample.t_s} s: expected {legs} stroke q values, got shape {strokes.shape}",
                 SampleRejected.NON_FINITE,
             )
         bad = np.flatnonzero(~np.isfinite(strokes))
@@ -79,8 +82,9 @@ def estimator_drive(platform: Platform, noise: NoiseConfig) -> DriveModel:
 
 def unknown_layout(platform: Platform, noise: NoiseConfig, model: InstrumentModel) -> UnknownLayout:
     """δM, then the drive's unknown blocks (:func:`estimator_drive`), then ``model``'s unknowns."""
-    blocks = estimator_drive(platform, noise).blocks
-    return UnknownLayout(blocks if model.unknowns is None else (*blocks, model.unknowns))
+    drive = estimator_drive(platform, noise)
+    blocks = drive.blocks
+    return UnknownLayout(blocks if model.unknowns is None else (*blocks, model.unknowns), n_params=drive.n_params)
 
 
 def drive_inputs(
@@ -270,9 +274,9 @@ def registered_start(
     columns, block = layout.slice("instrument"), layout.block("instrument")
     if columns is None or block is None or not needs_registration(platform):
         return start
-    width = len(model.columns)
-    usable = [s for s in samples if np.shape(s.strokes) == (6,) and np.shape(s.readings) == (width,)]
-    strokes = np.array([s.strokes for s in usable], dtype=float).reshape(-1, 6)
+    width, legs = len(model.columns), platform.drive.n_legs
+    usable = [s for s in samples if np.shape(s.strokes) == (legs,) and np.shape(s.readings) == (width,)]
+    strokes = np.array([s.strokes for s in usable], dtype=float).reshape(-1, legs)
     readings = np.array([s.readings for s in usable], dtype=float).reshape(-1, width)
     theta = instrument_theta(instrument_model(registered(platform, strokes, readings), noise), None)
     start[columns] = theta - block.nominal
@@ -343,7 +347,7 @@ class HeldForRegistration:
         """The held samples as arrays, while holding (a checkpoint without them has ended holding)."""
         return {
             "t_s": np.array([s.t_s for s in self.samples], dtype=float),
-            "strokes": np.array([s.strokes for s in self.samples], dtype=float).reshape(-1, 6),
+            "strokes": np.array([s.strokes for s in self.samples], dtype=float).reshape(-1, self._args[0].drive.n_legs),
             "readings": np.array([s.readings for s in self.samples], dtype=float).reshape(
                 len(self.samples), len(self._args[2].columns)
             ),
@@ -357,7 +361,7 @@ class HeldForRegistration:
             return
         held = state["held"]
         t_s = state_array(held, "t_s", np.shape(held.get("t_s", ())))
-        strokes = state_array(held, "strokes", (len(t_s), 6))
+        strokes = state_array(held, "strokes", (len(t_s), self._args[0].drive.n_legs))
         readings = state_array(held, "readings", (len(t_s), len(self._args[2].columns)))
         for k in range(len(t_s)):
             update(Sample(float(t_s[k]), strokes[k], readings[k]))
@@ -367,7 +371,7 @@ def drive_only_model(
     method: str, platform: Platform, config: EstimatorConfig, drive_blocks: bool = False
 ) -> InstrumentModel:
     """The instrument model of a method that identifies the drive from the measured pose ``P_v``
-    alone (``ls``, ``paper-ekf``): the 42 parameters and, where ``drive_blocks``, the drive's own
+    alone (``ls``, ``paper-ekf``): δM and, where ``drive_blocks``, the drive's own
     unknown terms (stroke scale, compliance).
 
     Raises:
@@ -379,7 +383,8 @@ def drive_only_model(
     drive = {block.key for block in estimator_drive(platform, config.noise).blocks}
     extra = [block.key for block in layout.blocks if not (drive_blocks and block.key in drive)]
     if extra:
-        allowed = "the 42 drive parameters and the drive's own blocks" if drive_blocks else "the 42 drive parameters"
+        parameters = f"the {layout.n_params} drive parameters"
+        allowed = f"{parameters} and the drive's own blocks" if drive_blocks else parameters
         raise CalibError(f"{method} identifies {allowed} only, not {', '.join(extra)}; use ekf, isam2 or lm")
     return model
 

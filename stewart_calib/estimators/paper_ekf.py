@@ -1,8 +1,8 @@
 """The paper's EKF (§3.2, eq. 14–19; Q and R of §4.1; Fig. 3 steps 1–4).
 
-State ``X = δM`` (42, paper order), random-walk prediction ``P ← P + Q`` per update
-(eq. 14–15), observation ``Y = P_v − P_m = J_k X + E`` (eq. 16) with ``J_k = J_p``
-(eq. 9–11). ``P_v`` is the measured pose (the tracker's: FK of the readings, step 1; or a
+State ``X = δM`` (the drive's ``n_params``, 42 in paper order), random-walk prediction
+``P ← P + Q`` per update (eq. 14–15), observation ``Y = P_v − P_m = J_k X + E`` (eq. 16) with
+``J_k = J_p`` (eq. 9–11). ``P_v`` is the measured pose (the tracker's: FK of the readings, step 1; or a
 pose instrument's, through its frame and target). ``P_m`` is the pose
 the *current* model ``M + X`` predicts for the executed strokes, and ``J_p`` is taken at
 that model and pose: a true EKF, which at ``X = 0`` is exactly the paper's form and which
@@ -37,7 +37,7 @@ from ..drive import drive_model
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..instruments import instrument_kind, instrument_model, instrument_theta
-from ..platform import N_PARAMS, Platform
+from ..platform import Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout
 from .base import checked_covariance, state_array
@@ -53,13 +53,16 @@ from .measurement import (
     unknown_layout,
 )
 
+#: rows of the observation ``Y = P_v − P_m``: a pose6 difference ``[mm, rad]``, whatever the leg set.
+POSE_ROWS = 6
+
 
 class PaperEKF:
     """The paper's pose-error EKF; ``update(sample)`` then ``estimate()``.
 
     Attributes:
         filter: the :class:`FilterState` (``x``, ``P``, ``Q``, last NIS).
-        R: ``(6, 6)`` measurement covariance in use (adapted when ``adaptive``).
+        R: ``(POSE_ROWS, POSE_ROWS)`` measurement covariance in use (adapted when ``adaptive``).
     """
 
     name = "paper-ekf"
@@ -75,18 +78,21 @@ class PaperEKF:
         self._layout = unknown_layout(platform, config.noise, self.model)
         self._held = HeldForRegistration(platform, config.noise, self.model, self._layout)
         self._theta = instrument_theta(self.model, None)  # the pose instrument's frame and target, once registered
-        self.filter = FilterState(self.name, config.noise.prior_sigma_mm, c.gate_probability)
+        n_params = self._drive.n_params
+        self.filter = FilterState(
+            self.name, config.noise.prior_sigma_mm, c.gate_probability, POSE_ROWS, UnknownLayout(n_params=n_params)
+        )
         self._noise = config.noise
-        self.filter.Q[np.diag_indices(N_PARAMS)] = c.process_noise
-        self.R = np.eye(6) * c.measurement_noise
+        self.filter.Q[np.diag_indices(n_params)] = c.process_noise
+        self.R = np.eye(POSE_ROWS) * c.measurement_noise
         # Y's orientation rows in the unit R is meant for: the paper states R = 4e-2 I without units.
         self._unit_scale = np.r_[np.ones(3), np.full(3, 1.0 if c.angle_unit == "rad" else np.degrees(1.0))]
         self._tracker_fk = WarmPose(self.model)
         self._model_fk = WarmFK()
         window = max(1, c.adaptive_window)
-        self._innovations = np.zeros((window, 6))
-        self._predicted = np.zeros((window, 6, 6))  # H P⁻ Hᵀ
-        self._corrections = np.zeros((window, N_PARAMS))  # K ν
+        self._innovations = np.zeros((window, POSE_ROWS))
+        self._predicted = np.zeros((window, POSE_ROWS, POSE_ROWS))  # H P⁻ Hᵀ
+        self._corrections = np.zeros((window, n_params))  # K ν
         self._filled = 0
 
     def update(self, sample: Sample) -> None:
@@ -147,13 +153,14 @@ class PaperEKF:
         block = self._layout.block("instrument")
         if block is None:
             return self.filter.estimate()
-        f, n = self.filter, N_PARAMS + block.size
+        f, n_params = self.filter, self._drive.n_params
+        n = n_params + block.size
         P = np.zeros((n, n))
-        P[:N_PARAMS, :N_PARAMS] = f.P
+        P[:n_params, :n_params] = f.P
         return Estimate.of_state(
             np.concatenate((f.x, self._theta - block.nominal)),
             P,
-            UnknownLayout((block,)),
+            UnknownLayout((block,), n_params=n_params),
             self.name,
             f.samples_used,
             f.t_s,
@@ -188,7 +195,7 @@ class PaperEKF:
     def import_state(self, state: dict) -> None:
         """Restore :meth:`export_state` exactly. Raises ``CalibError`` on a bad key or shape."""
         self.filter.import_state(state.get("filter", {}))
-        self.R = checked_covariance(state_array(state, "R", (6, 6)), "R")
+        self.R = checked_covariance(state_array(state, "R", (POSE_ROWS, POSE_ROWS)), "R")
         self._innovations = state_array(state, "innovations", self._innovations.shape)
         self._predicted = state_array(state, "predicted", self._predicted.shape)
         self._corrections = state_array(state, "corrections", self._corrections.shape)
@@ -208,10 +215,11 @@ def _pose_error_model(platform: Platform, config: EstimatorConfig):
     model = instrument_model(platform, config.noise)
     if not instrument_kind(platform).outside:
         return drive_only_model(PaperEKF.name, platform, config)
-    extra = [block.key.replace("_", " ") for block in drive_model(platform, config.noise).blocks]
+    drive = drive_model(platform, config.noise)
+    extra = [block.key.replace("_", " ") for block in drive.blocks]
     if extra:
         raise CalibError(
-            f"paper-ekf identifies the 42 drive parameters only, not the {', '.join(extra)} "
+            f"paper-ekf identifies the {drive.n_params} drive parameters only, not the {', '.join(extra)} "
             "(the [noise] settings ask for it); use ekf, isam2 or lm"
         )
     return model

@@ -61,6 +61,7 @@ import numpy as np
 from .._jit import F8_1, F8_2, FLOAT, njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected
+from ..unknowns import UnknownLayout
 from .base import state_array
 from .kalman import NO_COMPONENTS, ROWS_WINDOW_DUE, STEP_TAKEN, FilterState, fill_walk, filter_step, window_append
 
@@ -150,7 +151,7 @@ class RobustFilter:
         observe: Observe,
         robust,
         m: int,
-        layout=None,
+        layout: UnknownLayout,
         C: np.ndarray | None = None,
         unit_Q: np.ndarray | None = None,
         compiled_rows=None,
@@ -263,7 +264,7 @@ class RobustFilter:
         Args:
             t_s: ``(K,)`` times [s]; prepared: ``(K, width)`` prepared samples.
             plain: ``(K,)`` rows that pass every check of a sample (the others stop the block).
-            errors_out: ``(K, 42)``, δM [mm] after each row taken, or ``(0, 42)``: not kept.
+            errors_out: ``(K, n_params)``, δM [mm] after each row taken, or ``(0, n_params)``: not kept.
         """
         if self._compiled_rows is None or not self.started or not self._buffer.holds(prepared.shape[1]):
             return 0
