@@ -114,9 +114,10 @@ class RobustFilter:
         gate_probability: χ² gate probability (0 = off: then also no start-up refusals).
         observe: the linearised observation of a prepared sample at a state (see :data:`Observe`).
         robust: the ``[robust]`` settings (:class:`~stewart_calib.config.RobustConfig`).
-        m: rows of an observation as the batch's redundancy and its proposals count a sample: the
-            drive's residuals (:attr:`~stewart_calib.drive.DriveModel.rows`; an outside instrument's
-            tight observation has as many as the channels it saw).
+        m: rows of an observation as the gate and the batch's proposals count a sample: the drive's
+            residuals (:attr:`~stewart_calib.drive.DriveModel.rows`). A batch's redundancy counts the
+            rows each sample's observation has: ``m``, or an outside instrument's tight observation's
+            (the channels it saw, :meth:`~stewart_calib.instruments.base.InstrumentModel.groups`).
         layout, C: the unknown vector and its gauge rows (as :class:`FilterState`).
         unit_Q: the process noise per unit ``ρ² Δt`` (None: the identity).
         compiled_rows: the recursion over rows of prepared samples in one compiled call, observing
@@ -435,7 +436,7 @@ class RobustFilter:
         self._pass_components = np.zeros(2)
         buffer = self._buffer
         if linearised is not None:
-            used, last_t = self._observed_pass(x, P, use, noise_scale2, linearised)
+            used, rows, last_t = self._observed_pass(x, P, use, noise_scale2, linearised)
         elif self._compiled_rows is not None:
             _, _, used, last_t, *_ = self._compiled_rows(
                 x,
@@ -457,12 +458,13 @@ class RobustFilter:
                 np.empty((0, self._n)),
                 self._pass_components,
             )
+            rows = used * self._m  # a leg set of known geometry: the drive's rows, every sample
         else:
-            used, last_t = self._observed_pass(x, P, use, noise_scale2)
+            used, rows, last_t = self._observed_pass(x, P, use, noise_scale2)
         # the batch's hat-matrix trace, tr(P Σ Hᵀ R⁻¹ H) = n − tr(P P0⁻¹), is what the data
         # determine; the rest of the residual degrees of freedom are redundancy
         determined = self._free - float(np.sum(self._P0_pinv * P))  # tr(P0⁺ P), both symmetric
-        return x, P, used, last_t, used * self._m - determined
+        return x, P, used, last_t, rows - determined
 
     def _observed_pass(
         self,
@@ -471,11 +473,12 @@ class RobustFilter:
         use: np.ndarray,
         noise_scale2: float,
         linearised: tuple[np.ndarray, list] | None = None,
-    ) -> tuple[int, float]:
+    ) -> tuple[int, int, float]:
         """:meth:`_pass`'s recursion, observing each sample through ``observe`` (in place) at the
-        pass's own state, or taking it from ``linearised``."""
+        pass's own state, or taking it from ``linearised``; returns ``(samples used, their
+        observations' rows, last t_s)``."""
         Q = np.zeros((self._n, self._n))
-        last_t, used = math.nan, 0
+        last_t, used, rows = math.nan, 0, 0
         buffer = self._buffer
         for k in np.flatnonzero(use):
             observation = self._observe_or_none(buffer.prepared[k], x) if linearised is None else linearised[1][k]
@@ -489,8 +492,8 @@ class RobustFilter:
             status, _, _ = filter_step(x, P, Q, H, nu, R0, noise_scale2, math.inf, work, self._pass_components)
             if status != STEP_TAKEN:
                 continue  # degenerate: the step left x and P untouched
-            last_t, used = buffer.t[k], used + 1
-        return used, last_t
+            last_t, used, rows = buffer.t[k], used + 1, rows + len(nu)
+        return used, rows, last_t
 
     def _test(self, x: np.ndarray, P: np.ndarray, fitted: np.ndarray, redundancy: float, used: int):
         """``(d_k of every buffered sample, robust scale²)`` at the estimate ``(x, P)`` fitted to ``fitted``."""
