@@ -31,23 +31,23 @@ def drive_leg_rows(pose, unknowns, legs_of, nominal, columns, terms, inputs):
     Args:
         pose: ``(4, 4)`` homogeneous pose of {D} in {J} [mm] (``Pose3.matrix()``).
         unknowns: ``(size,)`` the unknown vector (the drive's ``x_drive`` first).
-        legs_of: ``(k,)`` the rows' leg indices (0…5).
+        legs_of: ``(k,)`` the rows' leg indices (0…5 on a six-legged drive).
         nominal: ``(k, 7)`` nominal ``[j_i | d_i | l_i]`` [mm]; columns: ``(k, 7)`` their δ_i's
             columns in ``unknowns``.
-        terms: the drive's extension terms ``(starts, gains, offsets, values (b, 6), columns (b, 6))``
+        terms: the drive's extension terms ``(starts, gains, offsets, values (b, legs), columns (b, legs))``
             (:meth:`stewart_calib.drive.DriveModel.kernel_terms`; a column −1: the value is known).
         inputs: the sample's drive inputs ``u``.
     Returns:
         ``(r (k,), ∂r/∂ξ (k, 6), ∂r/∂unknowns (k, size))``.
     """
     starts, gains, offsets, values, term_columns = terms
-    k = nominal.shape[0]
-    legs = np.empty((k, 7))
+    k, per_leg = nominal.shape
+    legs = np.empty((k, per_leg))
     extensions = np.empty(k)
     gain = np.empty((starts.shape[0], k))  # ∂e_i/∂v_{b,i} = g_b u_{b,i}
     for i in range(k):
         leg = legs_of[i]
-        for j in range(7):
+        for j in range(per_leg):
             legs[i, j] = nominal[i, j] + unknowns[columns[i, j]]
         e = 0.0
         for b in range(starts.shape[0]):
@@ -75,7 +75,7 @@ def _legs_at(pose, legs, extensions):
     k = legs.shape[0]
     R = np.ascontiguousarray(pose[:3, :3])
     t = np.ascontiguousarray(pose[:3, 3])
-    r, J_pose, J_legs = np.empty(k), np.empty((k, 6)), np.empty((k, 7))
+    r, J_pose, J_legs = np.empty(k), np.empty((k, 6)), np.empty(legs.shape)
     leg_rows(legs, R, t, extensions, r, J_pose, J_legs)
     return r, J_pose, J_legs
 
@@ -85,7 +85,7 @@ def _in_columns(J_legs, columns, size):
     """``(k, size)`` zeros with row i's ``∂r_i/∂leg`` in the unknowns' ``columns[i]``."""
     H = np.zeros((J_legs.shape[0], size))
     for i in range(J_legs.shape[0]):
-        for j in range(7):
+        for j in range(J_legs.shape[1]):
             H[i, columns[i, j]] = J_legs[i, j]
     return H
 
@@ -105,10 +105,10 @@ def unknown_leg_rows(pose, params, columns, extensions):
     a leg set whose geometry is unknown, the tracker's θ₀ + p in the unknown vector ``params``) with
     extensions ``e_i`` at ``pose`` ``(4, 4)``, and their Jacobians: ``(r (k,), ∂r/∂ξ (k, 6), ∂r/∂params
     (k, len(params)))`` (TrackerModel.residual's arithmetic, its J_instrument put in the rows' columns)."""
-    k = columns.shape[0]
-    legs = np.empty((k, 7))
+    k, per_leg = columns.shape
+    legs = np.empty((k, per_leg))
     for i in range(k):
-        for j in range(7):
+        for j in range(per_leg):
             legs[i, j] = params[columns[i, j]]
     r, J_pose, J_legs = _legs_at(pose, legs, extensions)
     return r, J_pose, _in_columns(J_legs, columns, params.shape[0])
@@ -166,11 +166,11 @@ def _right_jacobian_inverse(phi, J):
 
 @njit(**_JIT)
 def _product(A, B, sign, out):
-    """``out ← sign · A B`` for ``(6, 6)`` matrices, in loops."""
-    for a in range(6):
-        for b in range(6):
+    """``out ← sign · A B`` for small matrices (the pose tangent's ``(6, 6)``), in loops."""
+    for a in range(out.shape[0]):
+        for b in range(out.shape[1]):
             s = 0.0
-            for c in range(6):
+            for c in range(A.shape[1]):
                 s += A[a, c] * B[c, b]
             out[a, b] = sign * s
 
@@ -234,7 +234,7 @@ def pose_reading_rows(pose, theta, z):
             _product(H_frame, _tangent_from_pose6(theta[0:6], R_F), 1.0, J_block)
         else:
             _product(H, _tangent_from_pose6(theta[6:12], R_G), 1.0, J_block)
-        for a in range(6):
-            for b in range(6):
-                J_theta[a, 6 * block + b] = J_block[a, b]
+        for a in range(J_block.shape[0]):
+            for b in range(J_block.shape[1]):
+                J_theta[a, J_block.shape[1] * block + b] = J_block[a, b]
     return e, J_pose, J_theta

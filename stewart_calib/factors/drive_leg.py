@@ -29,7 +29,6 @@ import gtsam
 import numpy as np
 
 from ..drive import DriveModel
-from ..platform import N_PARAMS_PER_LEG
 from ._kernels import drive_leg_rows
 
 
@@ -59,9 +58,11 @@ class DriveLegs:
     def of(cls, legs, drive: DriveModel) -> DriveLegs:
         """Legs ``legs`` of ``drive``, whose ``x_drive`` opens the unknown vector."""
         legs = np.asarray(legs, dtype=np.int64).reshape(-1)
-        columns = N_PARAMS_PER_LEG * legs[:, None] + np.arange(N_PARAMS_PER_LEG)
+        params = drive.legs.params  # (legs, parameters of a leg): x_drive's first entries, leg by leg
+        per_leg = params.shape[1]
+        columns = per_leg * legs[:, None] + np.arange(per_leg)
         elastic = drive if drive.elastic is not None else None
-        nominal = np.array(drive.legs.params[legs])
+        nominal = np.array(params[legs])
         return cls(legs, nominal, np.ascontiguousarray(columns), drive.kernel_terms(), elastic)
 
 
@@ -77,7 +78,7 @@ def _error(
 ):
     pose, params = values.atPose3(pose_key).matrix(), values.atVector(params_key)
     if legs.elastic is not None:  # the forces where this evaluation puts the platform and its legs
-        inputs = legs.elastic.inputs(inputs[:6], payload_kg, pose[:3, :3], pose[:3, 3], params)
+        inputs = legs.elastic.inputs(inputs[: legs.elastic.rows], payload_kg, pose[:3, :3], pose[:3, 3], params)
     r, H_pose, H_params = drive_leg_rows(
         pose,
         params,

@@ -31,7 +31,6 @@ import gtsam
 import numpy as np
 
 from ..instruments.base import InstrumentModel
-from ..platform import N_PARAMS_PER_LEG
 from ._kernels import known_leg_rows, pose_reading_rows, unknown_leg_rows
 
 _KNOWN = np.zeros(0)  # θ of a model without unknowns
@@ -100,7 +99,7 @@ def _pose_reading_error(
     r, J_pose, J_theta = pose_reading_rows(values.atPose3(keys[0]).matrix(), theta, z)
     if H is not None:
         H[0] = J_pose
-        H_params = np.zeros((6, size))
+        H_params = np.zeros((len(r), size))
         H_params[:, block] = J_theta
         H[1] = H_params
     return r
@@ -146,7 +145,7 @@ def factor(
         and unknowns is not None
         and block is not None
         and len(keys) == 2
-        and len(channels) == 6
+        and len(channels) == len(z)  # the whole reading, in one compiled call
     ):
         nominal = np.ascontiguousarray(unknowns.nominal, dtype=float)
         return gtsam.CustomFactor(
@@ -154,7 +153,8 @@ def factor(
         )
     if model.compiled_unknown_legs and unknowns is not None and block is not None and len(keys) == 2:
         nominal = np.ascontiguousarray(unknowns.nominal, dtype=float)
-        columns = block.start + N_PARAMS_PER_LEG * channels[:, None] + np.arange(N_PARAMS_PER_LEG)
+        per_leg = unknowns.size // len(model.columns)  # the unknowns: one leg's row a reading channel
+        columns = block.start + per_leg * channels[:, None] + np.arange(per_leg)
         readings = np.ascontiguousarray(z[channels])
         return gtsam.CustomFactor(
             noise, keys, partial(_unknown_legs_error, readings, nominal, block, columns, tuple(keys))
