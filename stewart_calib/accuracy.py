@@ -42,7 +42,7 @@ from . import kinematics as kin
 from .drive import DriveModel, drive_model
 from .errors import CalibError
 from .estimate import Estimate
-from .platform import N_LEGS, N_PARAMS, Platform
+from .platform import Platform
 
 #: Workspace poses the prediction averages over, drawn uniformly in the ``[workspace]`` box
 #: (reachable within the stroke ranges) with a fixed seed, so that the same covariance always
@@ -290,8 +290,11 @@ def estimate_drive_covariance(estimate: Estimate, drive: DriveModel) -> np.ndarr
     if not identified or estimate.full_covariance is None:
         return estimate.covariance
     index = np.concatenate(
-        [np.arange(N_PARAMS)]
-        + [np.arange(s.start, s.stop) if s is not None else np.full(N_LEGS, -1) for s in spans[: identified[-1] + 1]]
+        [np.arange(drive.n_params)]
+        + [
+            np.arange(s.start, s.stop) if s is not None else np.full(drive.rows, -1)
+            for s in spans[: identified[-1] + 1]
+        ]
     )
     covariance = estimate.full_covariance[np.ix_(index, index)]
     missing = index < 0

@@ -37,7 +37,7 @@ from . import kinematics as kin
 from .drive import drive_model
 from .errors import CalibError
 from .instruments import instrument_kind
-from .platform import N_LEGS, Platform
+from .platform import Platform
 
 #: samples the diagnosis looks at, evenly spread over the log
 DIAGNOSED_SAMPLES = 400
@@ -85,12 +85,13 @@ def required_samples(platform: Platform) -> tuple[int, int, str]:
     values one sample measures."""
     from .instruments import outside_model
 
+    n_params, legs = platform.drive.n_params, platform.drive.n_legs
     if not instrument_kind(platform).outside:
-        return math.ceil(42 / N_LEGS), 42, "42 drive parameters"
+        return math.ceil(n_params / legs), n_params, f"{n_params} drive parameters"
     model = outside_model(platform)
     own, per_sample = model.nominal_unknowns().size, model.channel_sigma.size
-    unknowns = 42 + N_LEGS + own - 12
-    what = f"42 drive parameters, 6 stroke scales and {own} of the instrument, less 12 gauge directions"
+    unknowns = n_params + legs + own - 12  # a stroke scale a leg
+    what = f"{n_params} drive parameters, {legs} stroke scales and {own} of the instrument, less 12 gauge directions"
     return math.ceil(unknowns / per_sample), unknowns, what
 
 
@@ -177,25 +178,25 @@ def _check_reading_units(platform: Platform, R: np.ndarray, t: np.ndarray, readi
 
 
 def _leg_residuals_mm(lengths: np.ndarray, strokes: np.ndarray) -> np.ndarray:
-    """``(6,)`` RMS [mm] of each leg's length less its stroke about their mean difference: the
+    """``(legs,)`` RMS [mm] of each leg's length less its stroke about their mean difference: the
     offset absorbs ``l_i``; a stroke scale a few per cent off leaves a few per cent of the
     stroke's spread, a reversed or another leg's stroke the whole of it."""
     difference = lengths - strokes
     return np.sqrt(np.mean((difference - difference.mean(axis=0)) ** 2, axis=0))
 
 
-def _wirings() -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """``(description, column order, sign)`` of every single mistake: two columns swapped, one
-    leg's sign reversed."""
+def _wirings(legs: int) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """``(description, column order, sign)`` of every single mistake among ``legs`` stroke columns:
+    two columns swapped, one leg's sign reversed."""
     out = []
-    for i, j in combinations(range(N_LEGS), 2):
-        order = np.arange(N_LEGS)
+    for i, j in combinations(range(legs), 2):
+        order = np.arange(legs)
         order[[i, j]] = order[[j, i]]
-        out.append((f"swap {i} {j}", order, np.ones(N_LEGS)))
-    for i in range(N_LEGS):
-        sign = np.ones(N_LEGS)
+        out.append((f"swap {i} {j}", order, np.ones(legs)))
+    for i in range(legs):
+        sign = np.ones(legs)
         sign[i] = -1.0
-        out.append((f"sign {i}", np.arange(N_LEGS), sign))
+        out.append((f"sign {i}", np.arange(legs), sign))
     return out
 
 
@@ -210,7 +211,7 @@ def _rewired(strokes: np.ndarray, order: np.ndarray, sign: np.ndarray, platform:
 
 
 def _wiring_message(order, sign, columns, as_logged: float, rewired: float) -> str:
-    swapped = [i for i in range(N_LEGS) if order[i] != i]
+    swapped = [i for i in range(len(order)) if order[i] != i]
     if swapped:
         a, b = (columns[i] for i in swapped)
         cause, change = f"stroke columns {a} and {b} look swapped", f"with {a} and {b} exchanged"
@@ -227,7 +228,7 @@ def _wiring_message(order, sign, columns, as_logged: float, rewired: float) -> s
 
 
 def _pose_lengths(platform: Platform, strokes: np.ndarray, readings: np.ndarray):
-    """Leg lengths of the nominal drive at the platform poses the readings give ``(N, 6)`` [mm]
+    """Leg lengths of the nominal drive at the platform poses the readings give ``(N, legs)`` [mm]
     (NaN rows where no pose), and the whitened RMS of the registration that mapped them."""
     from .instruments import outside_model
 
@@ -252,7 +253,7 @@ def _pose_lengths(platform: Platform, strokes: np.ndarray, readings: np.ndarray)
     if poses is None:
         return None, whitened  # the readings fix no pose each: only the registration's fit tells
     R_P, t_P = poses
-    lengths = np.full((len(strokes), N_LEGS), np.nan)
+    lengths = np.full((len(strokes), platform.drive.n_legs), np.nan)
     lengths[usable] = kin.leg_lengths(platform.drive, R_P, t_P)
     return lengths, whitened
 
@@ -277,11 +278,11 @@ def _check_wiring(platform: Platform, strokes: np.ndarray, readings: np.ndarray,
     as_logged = _wiring_score(platform, strokes, readings)
     scores = sorted(
         (_wiring_score(platform, _rewired(strokes, order, sign, platform), readings), k)
-        for k, (_, order, sign) in enumerate(_wirings())
+        for k, (_, order, sign) in enumerate(_wirings(strokes.shape[1]))
     )
     (best, k), (second, _) = scores[0], scores[1]
     if best * WIRING_GAIN < min(as_logged, second):  # one rewiring alone explains the log
-        _, order, sign = _wirings()[k]
+        _, order, sign = _wirings(strokes.shape[1])[k]
         _refuse(where, _wiring_message(order, sign, stroke_columns, as_logged, best))
     return math.isfinite(as_logged)
 
@@ -292,7 +293,7 @@ def diagnose_log(
     """Refuse a log whose mistake has a nameable cause (see the module), before any solver runs.
 
     Args:
-        strokes: ``(N, 6)`` logged strokes [mm]; readings: ``(N, m)`` the instrument's readings in
+        strokes: ``(N, legs)`` logged strokes [mm]; readings: ``(N, m)`` the instrument's readings in
             code units (mm, rad; NaN where a point target was not seen).
         where: names the log in the message (its path).
         reading_columns: the log's reading column names (default: the platform's).
@@ -305,7 +306,7 @@ def diagnose_log(
     strokes = np.asarray(strokes, dtype=float)
     readings = np.asarray(readings, dtype=float)
     columns = list(reading_columns or columns_of(platform))
-    stroke_columns = [f"q{i}_mm" for i in range(1, N_LEGS + 1)]
+    stroke_columns = [f"q{i}_mm" for i in range(1, platform.drive.n_legs + 1)]
     if count:
         _check_count(platform, readings, where)
     pick = _evenly(len(strokes))

@@ -29,7 +29,7 @@ from . import kinematics as kin
 from .config import NoiseConfig
 from .drive import TERM_UNITS, DriveModel
 from .errors import CalibError
-from .platform import N_PARAMS, PARAMETER_NAMES, Platform
+from .platform import PARAMETER_FIELDS, PARAMETER_NAMES, Platform
 
 #: A singular value below this fraction of the largest counts as zero. Round-off in the
 #: whitened Jacobian sits near 1e-13 relative; a direction 1e-8 times weaker than the best
@@ -55,7 +55,7 @@ VERDICTS = ("identifiable", "poorly conditioned", "rank-deficient")
 
 
 def residual_covariance(platform: Platform, R: np.ndarray, t: np.ndarray, noise: NoiseConfig) -> np.ndarray:
-    """Noise of the six leg residuals at each pose, ``J_x Σ_x J_xᵀ + σ_q² I``, ``(N, 6, 6)`` [mm²].
+    """Noise of the drive's leg residuals at each pose, ``J_x Σ_x J_xᵀ + σ_q² I``, ``(N, legs, legs)`` [mm²].
 
     The pose enters through tracker FK, so the reading noise σ_s reaches every leg residual
     through the pose: leaving ``J_x Σ_x J_xᵀ`` out makes the weights wrong by orders of
@@ -65,11 +65,12 @@ def residual_covariance(platform: Platform, R: np.ndarray, t: np.ndarray, noise:
     sigma_x = kin.pose_covariance_from_legs(
         platform.required_tracker("the leg covariance"), R, t, noise.reading_sigma_mm
     )
-    return J_x @ sigma_x @ np.swapaxes(J_x, -1, -2) + noise.stroke_sigma_mm**2 * np.eye(6)
+    return J_x @ sigma_x @ np.swapaxes(J_x, -1, -2) + noise.stroke_sigma_mm**2 * np.eye(J_x.shape[-2])
 
 
 def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseConfig) -> np.ndarray:
-    """Per-pose whitened rows ``C^{-1/2} ∂r/∂M`` of the leg-length form, ``(N, 6, 42)`` [1/mm].
+    """Per-pose whitened rows ``C^{-1/2} ∂r/∂M`` of the leg-length form, ``(N, legs, n_params)``
+    [1/mm] (``(N, 6, 42)`` for the paper's drive).
 
     ``C = L Lᵀ`` (:func:`residual_covariance`) by Cholesky and ``C^{-1/2} = L⁻¹``, one compiled
     loop over the poses (:func:`stewart_calib._kernels.whitened_leg_rows`: numpy's batched
@@ -86,7 +87,7 @@ def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseCon
     poses = np.asarray(poses, dtype=float)
     R, t = kin.pose_to_rt(poses.reshape(-1, 6))
     drive, tracker = platform.drive, platform.required_tracker("the whitened leg Jacobian")
-    rows = np.empty((len(R), 6, N_PARAMS))
+    rows = np.empty((len(R), drive.n_legs, drive.n_params))
     _kernels.whitened_leg_rows(
         drive.base_joints,
         drive.platform_joints,
@@ -106,7 +107,7 @@ def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseCon
             f"pose {k + 1} {np.round(poses.reshape(-1, 6)[k], 6).tolist()}: the leg residual covariance is singular "
             "there (the tracker's Jacobian loses rank); expected a pose the tracker can measure"
         )
-    return rows.reshape(poses.shape[:-1] + (6, N_PARAMS))
+    return rows.reshape(poses.shape[:-1] + rows.shape[1:])
 
 
 def rotation_row_scale_mm(platform: Platform) -> float:
@@ -115,7 +116,7 @@ def rotation_row_scale_mm(platform: Platform) -> float:
 
 
 def scaled_paper_jacobian(platform: Platform, poses: np.ndarray) -> np.ndarray:
-    """The paper's ``J_p`` (eq. 8–11) per pose, rotation rows × :func:`rotation_row_scale_mm`, ``(N, 6, 42)``."""
+    """The paper's ``J_p`` (eq. 8–11) per pose, rotation rows × :func:`rotation_row_scale_mm`, ``(N, 6, n_params)``."""
     R, t = kin.pose_to_rt(np.asarray(poses, dtype=float))
     J_p = kin.error_jacobian(platform.drive, R, t)
     J_p[..., 3:, :] *= rotation_row_scale_mm(platform)
@@ -178,7 +179,7 @@ def _pivot_columns(A: np.ndarray, k: int) -> np.ndarray:
 
 
 def readable_basis(basis: np.ndarray) -> np.ndarray:
-    """Re-express an orthonormal basis ``(42, k)`` of a subspace with few parameters per vector.
+    """Re-express an orthonormal basis ``(n, k)`` of a subspace with few parameters per vector.
 
     An SVD returns an arbitrary rotation of the null space; reduced row-echelon form over
     the k most independent parameters (QR with column pivoting) gives vectors that each
@@ -194,31 +195,32 @@ def readable_basis(basis: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class IdentifiabilityReport:
-    """How well N poses identify the 42 drive parameters, under a noise model.
+    """How well N poses identify the drive parameters δM (and its blocks), under a noise model.
 
     Attributes:
         n_poses: number of poses N.
         noise: the noise model the weights and predictions use.
-        singular_values: ``(42,)`` of the whitened leg-length Jacobian, descending [1/mm].
+        singular_values: ``(n,)`` of the whitened leg-length Jacobian, descending [1/mm].
         rank: number of singular values above ``RANK_RTOL`` × the largest.
         condition_number: σmax/σmin of the leg-length form (inf when rank-deficient).
-        paper_singular_values: ``(42,)`` of the stacked ``J_p`` with scaled rotation rows (NaN: left out).
+        paper_singular_values: ``(n_params,)`` of the stacked ``J_p`` with scaled rotation rows (NaN: left out).
         paper_condition_number: σmax/σmin of that form.
         rotation_row_scale_mm: the length the ``J_p`` rotation rows were multiplied by [mm].
-        predicted_stddev_mm: ``(42,)`` Cramér–Rao standard deviation per parameter [mm]; inf for
+        predicted_stddev_mm: ``(n_params,)`` Cramér–Rao standard deviation per parameter [mm]; inf for
             a parameter that moves along the null space (not identifiable from these poses).
         observability: Borm & Menq O1…O5 of the leg-length form.
-        weakest: up to :data:`N_WEAKEST` ``(singular value, unit 42-vector)``, weakest first,
+        weakest: up to :data:`N_WEAKEST` ``(singular value, unit n-vector)``, weakest first,
             among the identified directions.
-        null_space: ``(42, 42 − rank)`` unit basis of the unidentified directions.
+        null_space: ``(n, n − rank)`` unit basis of the unidentified directions.
         verdict: one of :data:`VERDICTS`.
-        names: the unknowns' names: the 42, then the drive's unknown blocks where the report covers
-            them (:class:`InformationAccumulator`'s ``drive``); the singular values, the weakest
-            directions and the null space are then over all ``n`` of them, each block's column in
+        names: the unknowns' names: δM's (``n_params``, 42 for the paper's drive), then the drive's
+            unknown blocks where the report covers them (:class:`InformationAccumulator`'s
+            ``drive``); the singular values, the weakest directions and the null space are then
+            over all ``n`` of them, each block's column in
             :attr:`block_scale` units (the RMS leg-length change [mm] a unit of it makes), and
             :attr:`block_stddev` holds their Cramér–Rao σ in their own units.
         block_stddev: ``{key: (names, σ)}`` of the drive's unknown blocks (mm/kN, dimensionless k).
-        block_scale: ``(n − 42,)`` [mm per unit] the blocks' columns were scaled by.
+        block_scale: ``(n − n_params,)`` [mm per unit] the blocks' columns were scaled by.
     """
 
     n_poses: int
@@ -231,10 +233,10 @@ class IdentifiabilityReport:
     rotation_row_scale_mm: float
     predicted_stddev_mm: np.ndarray
     observability: dict[str, float]
+    null_space: np.ndarray
+    names: tuple[str, ...]
     weakest: list[tuple[float, np.ndarray]] = field(default_factory=list)
-    null_space: np.ndarray = field(default_factory=lambda: np.zeros((N_PARAMS, 0)))
     verdict: str = "identifiable"
-    names: tuple[str, ...] = PARAMETER_NAMES
     block_stddev: dict[str, tuple[tuple[str, ...], np.ndarray]] = field(default_factory=dict)
     block_scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
@@ -244,7 +246,7 @@ class IdentifiabilityReport:
 
     @property
     def size(self) -> int:
-        """Unknowns the report covers: 42, and the drive's unknown blocks."""
+        """Unknowns the report covers: δM's, and the drive's unknown blocks."""
         return len(self.names)
 
     def weakest_names(self) -> list[str]:
@@ -263,7 +265,7 @@ class IdentifiabilityReport:
             "format": "stewart-calib/identifiability@1",
             "n_poses": self.n_poses,
             "noise": {"reading_sigma_mm": self.noise.reading_sigma_mm, "stroke_sigma_mm": self.noise.stroke_sigma_mm},
-            "parameter_names": list(PARAMETER_NAMES),
+            "parameter_names": list(self.names[: len(self.predicted_stddev_mm)]),
             "leg_length_form": {
                 "singular_values": [float(s) for s in self.singular_values],
                 "condition_number": num(self.condition_number),
@@ -315,8 +317,9 @@ class IdentifiabilityReport:
         """The terminal report."""
         s = self.singular_values
         covered = "".join(f" and {names[0]}…{names[-1]}" for names, _ in self.block_stddev.values())
+        n_params = len(self.predicted_stddev_mm)
         lines = [
-            f"Identifiability of the 42 drive parameters{covered} from {self.n_poses} poses "
+            f"Identifiability of the {n_params} drive parameters{covered} from {self.n_poses} poses "
             f"(σ_s = {self.noise.reading_sigma_mm:g} mm, σ_q = {self.noise.stroke_sigma_mm:g} mm)",
             f"verdict: {self.verdict}  (rank {self.rank}/{self.size}; condition number "
             f"{self.condition_number:.4g}; poorly conditioned above {CONDITION_POOR:g}, "
@@ -343,9 +346,10 @@ class IdentifiabilityReport:
             lines += [f"  {name}" for name in self.null_space_names()]
         lines += ["", "predicted standard deviation per parameter (Cramér–Rao) [mm]:"]
         sd = self.predicted_stddev_mm
-        for leg in range(6):
-            cols = range(7 * leg, 7 * leg + 7)
-            lines.append("  " + "  ".join(f"{PARAMETER_NAMES[k]:>4} {_fmt_sd(sd[k])}" for k in cols))
+        per_leg = len(PARAMETER_FIELDS)
+        for start in range(0, len(sd), per_leg):
+            cols = range(start, start + per_leg)
+            lines.append("  " + "  ".join(f"{self.names[k]:>4} {_fmt_sd(sd[k])}" for k in cols))
         for key, (names, stddev) in self.block_stddev.items():
             unit = f" [{TERM_UNITS[key]}]" if key in TERM_UNITS else ""
             lines.append(
@@ -359,14 +363,14 @@ def _fmt_sd(value: float) -> str:
 
 
 #: Poses whose whitened rows are stacked under the running factor at a time: the only buffer
-#: that grows with a block, never with N. The stack, (6 · 256 + 42) × 42 floats (0.5 MB), stays
+#: that grows with a block, never with N. The stack, (6 · 256 + 42) × 42 floats (0.5 MB: the paper's drive), stays
 #: in a core's L2 cache (1 MB here) through the QR's 42 Householder passes: 2048 poses (4 MB)
 #: measured ~1.4× slower per pose, the flops being the same.
 BLOCK_POSES = 256
 
 
 def _stacked_factor(factor: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """Upper-triangular ``R'`` with ``R'ᵀR' = RᵀR + rowsᵀrows``: QR of ``[R; rows]``, ``(≤ 42, 42)``.
+    """Upper-triangular ``R'`` with ``R'ᵀR' = RᵀR + rowsᵀrows``: QR of ``[R; rows]``, ``(≤ n, n)``.
 
     Householder QR is an orthogonal transform, so ``R'`` has exactly the singular values and
     right singular vectors of every row stacked so far (to round-off): the information
@@ -393,12 +397,13 @@ def _stacked_factor(factor: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
 
 class InformationAccumulator:
-    """The 42 × 42 information of a pose stream, accumulated block by block (O(N) time, O(1) memory).
+    """The n × n information of a pose stream (n = 42: the paper's δM), accumulated block by block
+    (O(N) time, O(1) memory).
 
     For the leg-length form ``AᵀA = Σ_k A_kᵀ A_k`` with ``A_k`` the whitened rows of pose k
     (:func:`whitened_leg_jacobian`), and likewise for the paper's ``J_p`` form; each kept as
     its square-root factor (:func:`_stacked_factor`). :meth:`report` decomposes only these
-    42 × 42 factors, never an N-sized matrix, and gives what an SVD of the stacked rows gives.
+    n × n factors, never an N-sized matrix, and gives what an SVD of the stacked rows gives.
 
     Args:
         platform: nominal geometry (Jacobians at the nominal drive).
@@ -410,7 +415,7 @@ class InformationAccumulator:
             with the config's noise): where it has unknown blocks (the compliance c1…c6 with
             ``[elastic]``, the stroke scale where configured) the leg-length form covers them too,
             ``∂r_i/∂v_{b,i} = −g_b u_{b,i}`` whitened as the rows (then :meth:`add` needs the
-            samples' strokes and, for an elastic drive, payloads). None: the 42 alone.
+            samples' strokes and, for an elastic drive, payloads). None: δM alone.
     Raises:
         CalibError: both noise sigmas zero (no noise model, no weights).
     """
@@ -423,16 +428,17 @@ class InformationAccumulator:
         self.platform = platform
         self.noise = noise
         self.n_poses = 0
-        self.drive = drive if drive is not None and drive.size > N_PARAMS else None
-        size = N_PARAMS if self.drive is None else self.drive.size
+        self.n_params = n_params = platform.drive.n_params
+        self.drive = drive if drive is not None and drive.size > n_params else None
+        size = n_params if self.drive is None else self.drive.size
         self._leg_factor = np.zeros((0, size))
-        self._paper_factor = np.zeros((0, N_PARAMS)) if paper_form else None
-        self._block_squares = np.zeros(size - N_PARAMS)  # Σ over rows of each block column², unwhitened
+        self._paper_factor = np.zeros((0, n_params)) if paper_form else None
+        self._block_squares = np.zeros(size - n_params)  # Σ over rows of each block column², unwhitened
         self._block_rows = 0
 
     def add(self, poses: np.ndarray, strokes: np.ndarray | None = None, payload_kg=None) -> None:
         """Add the information of ``(n, 6)`` pose6 ``[mm, rad]``, :data:`BLOCK_POSES` at a time; with
-        the drive's blocks, their ``(n, 6)`` logged strokes [mm] (None: the drive's inverse
+        the drive's blocks, their ``(n, legs)`` logged strokes [mm] (None: the drive's inverse
         kinematics) and payloads (``(n,)`` or a scalar [kg]; None: 0)."""
         poses = np.asarray(poses, dtype=float).reshape(-1, 6)
         if self.drive is not None and strokes is None:
@@ -453,13 +459,13 @@ class InformationAccumulator:
             self.n_poses += len(block)
 
     def _block_columns(self, poses: np.ndarray, strokes: np.ndarray, payload_kg) -> np.ndarray:
-        """``C^{-1/2} ∂r/∂v`` of the drive's unknown blocks at the poses, ``(n, 6, size − 42)`` [1/unit]:
-        the same whitening ``C = L Lᵀ`` (:func:`residual_covariance`) as the 42 rows'."""
+        """``C^{-1/2} ∂r/∂v`` of the drive's unknown blocks at the poses, ``(n, legs, size − n_params)``
+        [1/unit]: the same whitening ``C = L Lᵀ`` (:func:`residual_covariance`) as δM's rows'."""
         drive = self.drive
         assert drive is not None
         R, t = kin.pose_to_rt(poses)
         inputs = drive.inputs(strokes, payload_kg, R, t) if drive.elastic is not None else drive.inputs(strokes)
-        columns = drive.with_terms(np.zeros((len(R), 6, N_PARAMS)), inputs)[..., N_PARAMS:]
+        columns = drive.with_terms(np.zeros((len(R), drive.rows, drive.n_params)), inputs)[..., drive.n_params :]
         self._block_squares += np.sum(columns**2, axis=(0, 1))
         self._block_rows += len(R)
         L = np.linalg.cholesky(residual_covariance(self.platform, R, t, self.noise))
@@ -467,19 +473,19 @@ class InformationAccumulator:
 
     @property
     def names(self) -> tuple[str, ...]:
-        """The unknowns' names: the 42, then the drive's blocks'."""
+        """The unknowns' names: δM's, then the drive's blocks'."""
         blocks = () if self.drive is None else self.drive.blocks
-        return PARAMETER_NAMES + tuple(name for block in blocks for name in block.names)
+        return self.platform.drive.parameter_names + tuple(name for block in blocks for name in block.names)
 
     def _column_scale(self) -> np.ndarray:
-        """``(size,)`` 1 on the 42; on a block's column the RMS leg-length change [mm] a unit of it makes
+        """``(size,)`` 1 on δM; on a block's column the RMS leg-length change [mm] a unit of it makes
         (over the poses, on its own leg): the SVD is of the unknowns ``v · scale``, each then in mm
         (their columns over the scale)."""
         rms = np.sqrt(self._block_squares / max(self._block_rows, 1))
-        return np.concatenate([np.ones(N_PARAMS), np.where(rms > 0.0, rms, 1.0)])
+        return np.concatenate([np.ones(self.n_params), np.where(rms > 0.0, rms, 1.0)])
 
     def covariance(self) -> np.ndarray | None:
-        """Cramér–Rao covariance ``(AᵀA)⁻¹`` of δM ``(42, 42)`` [mm²] of the leg-length form (the
+        """Cramér–Rao covariance ``(AᵀA)⁻¹`` of δM ``(n_params, n_params)`` [mm²] of the leg-length form (the
         drive's blocks, where covered, marginalised), from its square-root factor (``R⁻¹R⁻ᵀ``); None
         when the poses leave it rank-deficient."""
         size = self._leg_factor.shape[1]
@@ -489,7 +495,7 @@ class InformationAccumulator:
         if s[-1] <= RANK_RTOL * s[0]:
             return None
         inverse = np.linalg.solve(self._leg_factor, np.eye(size))
-        return (inverse @ inverse.T)[:N_PARAMS, :N_PARAMS]
+        return (inverse @ inverse.T)[: self.n_params, : self.n_params]
 
     def report(self) -> IdentifiabilityReport:
         """Singular values, Cramér–Rao bound, weakest directions and verdict of the poses added.
@@ -510,12 +516,12 @@ class InformationAccumulator:
         V_range, null = Vt[:rank].T, Vt[rank:].T
 
         stddev = _bounded_stddev(s, rank, Vt) / scale
-        block_stddev, start = {}, N_PARAMS
+        block_stddev, start = {}, self.n_params
         for block in () if self.drive is None else self.drive.blocks:
             block_stddev[block.key] = (block.names, stddev[start : start + block.size] * block.file_scale)
             start += block.size
 
-        s_paper = np.full(N_PARAMS, np.nan)
+        s_paper = np.full(self.n_params, np.nan)
         if self._paper_factor is not None:
             s_paper[:] = 0.0
             s_paper_all = np.linalg.svd(self._paper_factor, compute_uv=False)
@@ -540,14 +546,14 @@ class InformationAccumulator:
             paper_singular_values=s_paper,
             paper_condition_number=float(s_paper[0] / s_paper[-1]) if not s_paper[-1] <= 0 else float("inf"),
             rotation_row_scale_mm=rotation_row_scale_mm(self.platform),
-            predicted_stddev_mm=stddev[:N_PARAMS],
-            observability=observability_indices(s, 6 * self.n_poses),
+            predicted_stddev_mm=stddev[: self.n_params],
+            observability=observability_indices(s, self.platform.drive.n_legs * self.n_poses),
             weakest=[(float(s[k]), weak_vectors[:, j]) for j, k in enumerate(weak_idx)],
             null_space=readable_basis(null),
             verdict=verdict,
             names=self.names,
             block_stddev=block_stddev,
-            block_scale=scale[N_PARAMS:],
+            block_scale=scale[self.n_params :],
         )
 
 
@@ -603,7 +609,7 @@ def tracker_poses(platform: Platform, log) -> np.ndarray:
 
 
 def tracker_samples(platform: Platform, log) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """``(poses (n, 6) [mm, rad], strokes (n, 6), payloads (n,) or None)`` of a log's samples whose
+    """``(poses (n, 6) [mm, rad], strokes (n, legs), payloads (n,) or None)`` of a log's samples whose
     tracker FK converges (the others left out)."""
     # The desired pose is within a few mm of the real one: a good Newton start when present.
     guess = None if log.desired_poses is None else kin.pose_to_rt(log.desired_poses)
@@ -660,13 +666,13 @@ def warning_line(report: IdentifiabilityReport) -> str | None:
         names = report.null_space_names()
         shown = "; ".join(names[:3]) + (f"; … ({len(names) - 3} more)" if len(names) > 3 else "")
         return (
-            f"warning: the poses do not identify all 42 parameters (rank {report.rank}, "
+            f"warning: the poses do not identify all {report.size} parameters (rank {report.rank}, "
             f"{report.null_space_dimension} unidentified directions: {shown})"
         )
     if report.verdict == "poorly conditioned":
-        sv, v = report.weakest[0]
+        sv = report.weakest[0][0]
         return (
             f"warning: poorly conditioned (condition number {report.condition_number:.3g} > "
-            f"{CONDITION_POOR:g}); weakest direction {name_direction(v)} (σ {1.0 / sv:.3g} mm)"
+            f"{CONDITION_POOR:g}); weakest direction {report.weakest_names()[0]} (σ {1.0 / sv:.3g} mm)"
         )
     return None

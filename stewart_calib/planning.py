@@ -39,7 +39,7 @@ from .config import NoiseConfig
 from .errors import CalibError
 from .identifiability import RANK_RTOL, scaled_paper_jacobian, whitened_leg_jacobian
 from .instruments import instrument_kind, outside_model
-from .platform import N_PARAMS, Platform
+from .platform import Platform
 
 CRITERIA = ("A", "D", "O1", "E", "I")
 #: the tracker's default (its designs and tests predate ``I``); outside instruments default to ``I``
@@ -117,16 +117,17 @@ def _design(platform: Platform, poses: np.ndarray, criterion: str, noise: NoiseC
     """Six-row (tracker) or m-row (outside instrument) information blocks ``U_k`` ``(M, m, p)``
     and the weight of a linear criterion (``A``, ``I``; None: the identity of the tracker's ``A``).
 
-    The tracker's blocks are the 42 drive parameters' (whitened leg-length form, or the paper's
+    The tracker's blocks are the drive parameters δM's (whitened leg-length form, or the paper's
     ``J_p`` form for ``O1``); an outside instrument's are every unknown of the batch fit
-    (:meth:`stewart_calib.instruments.external.OutsideModel.information_rows`). ``A`` weighs the 42 drive
+    (:meth:`stewart_calib.instruments.external.OutsideModel.information_rows`). ``A`` weighs the drive
     parameters alike, ``I`` by the closed-loop error they cause (:func:`accuracy.error_weight`).
     """
     if not instrument_kind(platform).outside:
         if criterion == "O1":
             return scaled_paper_jacobian(platform, poses), None
         blocks = whitened_leg_jacobian(platform, poses, noise)
-        return blocks, error_weight(platform)[:N_PARAMS, :N_PARAMS] if criterion == "I" else None
+        n_params = platform.drive.n_params
+        return blocks, error_weight(platform)[:n_params, :n_params] if criterion == "I" else None
     if criterion == "O1":
         raise CalibError(
             f"criterion: O1 is of the paper's J_p form, the in-situ tracker's; expected one of "
@@ -137,7 +138,8 @@ def _design(platform: Platform, poses: np.ndarray, criterion: str, noise: NoiseC
         W = error_weight(platform)
         weight = lift[: len(W)].T @ W @ lift[: len(W)]
     else:
-        weight = lift[:N_PARAMS].T @ lift[:N_PARAMS]
+        n_params = platform.drive.n_params
+        weight = lift[:n_params].T @ lift[:n_params]
     # mm, rad and dimensionless columns: equilibrated, so that the ridge weighs them alike
     # (−tr(W F⁻¹) and log det rank designs as before, with W and F scaled alike)
     scale = np.sqrt(np.mean(np.sum(blocks**2, axis=1), axis=0))
@@ -322,7 +324,7 @@ def design_covariance(
     default: those in view, :meth:`~stewart_calib.instruments.external.OutsideModel.information_rows`)."""
     poses = np.asarray(poses, dtype=float).reshape(-1, 6)
     if not instrument_kind(platform).outside:
-        rows, lift = whitened_leg_jacobian(platform, poses, noise or NoiseConfig()), np.eye(N_PARAMS)
+        rows, lift = whitened_leg_jacobian(platform, poses, noise or NoiseConfig()), np.eye(platform.drive.n_params)
     else:
         rows, lift = outside_model(platform).information_rows(poses, seen)
     _, s, Vt = np.linalg.svd(rows.reshape(-1, rows.shape[-1]), full_matrices=False)
