@@ -30,7 +30,7 @@ from .estimators import BatchEstimator, KalmanFiltered
 from .estimators.base import accounted_estimate, late_index, take_late_rejections, update_block
 from .io import logs
 from .online import Rejections
-from .platform import N_LEGS, Platform
+from .platform import Platform
 from .progress import log_progress_bar, progress_bar
 from .samples import Log
 
@@ -48,9 +48,9 @@ class Calibration:
 
     Attributes:
         estimate: at the last sample (online) or the fit to the whole log (batch).
-        trace: ``(N, 42)`` estimated absolute parameters [mm] after each sample, or None.
+        trace: ``(N, n_params)`` estimated absolute parameters [mm] after each sample, or None.
         rejected: ``(sample index, SampleRejected)`` of samples the estimator refused.
-        stddev: ``(N, 42)`` σ of the parameters after each sample [mm] (NaN: no covariance), or None.
+        stddev: ``(N, n_params)`` σ of the parameters after each sample [mm] (NaN: no covariance), or None.
         nis: ``(N,)`` normalised innovation squared of each sample (Kalman methods; NaN where
             refused), or None.
         noise_scale: the estimator's measurement noise estimated from the data, as a multiple
@@ -158,7 +158,9 @@ class EvenlySpacedSamples:
     @property
     def log(self) -> Log:
         """The samples kept, in order."""
-        return self._log if self._log is not None else Log(np.zeros(0), np.zeros((0, 6)), np.zeros((0, 6)))
+        if self._log is None:  # no block seen: no columns known either
+            return Log(np.zeros(0), np.zeros((0, 0)), np.zeros((0, 0)))
+        return self._log
 
 
 @dataclass
@@ -208,15 +210,16 @@ def feed_online(
     Args:
         on_rejected: called with ``(sample index, t_s, error)`` for each sample refused, also
             those refused late (a robust start-up batch: among the last :data:`LATE_LOOKBACK`).
-        on_block: called after each block with it and the ``(n, 42)`` estimated parameter
+        on_block: called after each block with it and the ``(n, n_params)`` estimated parameter
             errors δM [mm] after each of its samples (a rejected sample leaves the estimate in
             force); None: not kept.
         bar: ticked per block (:func:`~stewart_calib.progress.progress_bar`), or None.
     """
     k = 0
     recent_t_s: deque[float] = deque(maxlen=LATE_LOOKBACK)
+    n_params = len(estimator.current_error()) if on_block is not None else 0  # δM's size, the estimator's own
     for block in blocks:
-        rows = np.empty((len(block), 42)) if on_block is not None else None
+        rows = np.empty((len(block), n_params)) if on_block is not None else None
         refused, late = update_block(estimator, block, rows)
         for j, err in refused:
             on_rejected(k + j, float(block.t_s[j]), err)
@@ -239,7 +242,8 @@ class SampleSpool:
     over the log (the exact residual RMS at the final estimate) without parsing the CSV again
     and without holding the log in memory. The file is deleted when closed (or the process ends).
 
-    Its size: 8 bytes × (1 + 6 + the readings + 6) a good sample — 152 bytes for the tracker,
+    Its size: 8 bytes × (1 + the strokes + the readings + the extra) a good sample — 152 bytes for the
+    tracker (six strokes, six readings, six residuals),
     ~150 MB for a log of 10⁶ rows; the README says so under ``calibrate``.
 
     Args:
@@ -254,7 +258,7 @@ class SampleSpool:
             self._file = tempfile.TemporaryFile(dir=directory)
         except OSError as err:
             raise self._refusal(err) from None
-        self._widths = (0, 0)
+        self._widths = (0, 0, 0)
 
     def _refusal(self, err: OSError) -> CalibError:
         return CalibError(
@@ -265,7 +269,7 @@ class SampleSpool:
     def add(self, block: Log, extra: np.ndarray) -> None:
         """The samples of ``block`` with ``extra``, ``(len(block), k)`` values of each."""
         rows = np.column_stack([block.t_s, block.strokes, block.readings, extra])
-        self._widths = (block.readings.shape[1], extra.shape[1])
+        self._widths = (block.strokes.shape[1], block.readings.shape[1], extra.shape[1])
         try:
             self._file.write(np.ascontiguousarray(rows, dtype=np.float64).tobytes())
         except OSError as err:
@@ -275,13 +279,13 @@ class SampleSpool:
         """The samples added, in order, as ``(Log, extra)`` blocks of at most the log reader's
         block size in bytes (:data:`stewart_calib.io.logs.BLOCK_BYTES`)."""
         self._file.seek(0)
-        readings, extra = self._widths
-        width = 1 + N_LEGS + readings + extra
+        legs, readings, extra = self._widths
+        width = 1 + legs + readings + extra
         row_bytes = 8 * width
         while readings and (data := self._file.read(max(logs.BLOCK_BYTES // row_bytes, 1) * row_bytes)):
             rows = np.frombuffer(data).reshape(-1, width)
             yield (
-                Log(rows[:, 0], rows[:, 1 : 1 + N_LEGS], rows[:, 1 + N_LEGS : width - extra]),
+                Log(rows[:, 0], rows[:, 1 : 1 + legs], rows[:, 1 + legs : width - extra]),
                 rows[:, width - extra :],
             )
 

@@ -62,7 +62,7 @@ def check_reachable(poses_mm_rad: np.ndarray, strokes_mm: np.ndarray, platform: 
             raise PoseOutOfRange(k, reason)
     if platform.stroke_range is not None:
         lo, hi = platform.stroke_range
-        strokes = np.asarray(strokes_mm, dtype=float).reshape(-1, 6)
+        strokes = np.asarray(strokes_mm, dtype=float).reshape(-1, platform.drive.n_legs)
         bad = np.argwhere((strokes < lo) | (strokes > hi))
         if bad.size:
             k, i = (int(v) for v in bad[0])
@@ -94,7 +94,7 @@ def compensate(
             legs are ``c_i f_i / 1000`` shorter under the forces ``f`` they hold there, so the
             strokes are longer by that over ``1 + k_i``. Ignored by a rigid drive.
     Returns:
-        ``(N, 6)`` strokes q_i [mm] (same leading shape as ``desired_poses_mm_rad``).
+        ``(N, legs)`` strokes q_i [mm] (same leading shape as ``desired_poses_mm_rad``).
     Raises:
         PoseOutOfRange: see :func:`check_reachable` (a roll of 5 meant as degrees, given
             to this radian argument, is refused here).

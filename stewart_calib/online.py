@@ -101,18 +101,18 @@ class RecentSamples:
     """The last ``size`` (strokes, readings) rows in a ring of two arrays: written a block at a
     time without a Python object per sample, read in order once per result."""
 
-    def __init__(self, size: int, width: int):
-        self._strokes, self._readings = np.empty((size, 6)), np.empty((size, width))
+    def __init__(self, size: int, legs: int, width: int):
+        self._strokes, self._readings = np.empty((size, legs)), np.empty((size, width))
         self._count = 0  # rows ever written; the next goes to _count % size
 
     def append(self, strokes: np.ndarray, readings: np.ndarray) -> None:
-        """Append one row ``(6,)``, ``(width,)`` [mm]."""
+        """Append one row ``(legs,)``, ``(width,)`` [mm]."""
         at = self._count % len(self._strokes)
         self._strokes[at], self._readings[at] = strokes, readings
         self._count += 1
 
     def extend(self, strokes: np.ndarray, readings: np.ndarray) -> None:
-        """Append rows ``(K, 6)`` and ``(K, width)`` [mm] (only the last ``size`` are kept)."""
+        """Append rows ``(K, legs)`` and ``(K, width)`` [mm] (only the last ``size`` are kept)."""
         count = len(strokes)
         keep = min(count, len(self._strokes))
         at = np.arange(self._count + count - keep, self._count + count) % len(self._strokes)
@@ -185,7 +185,7 @@ class OnlineCalibrator:
         self.rejections = Rejections()
         # accepted samples for the plausibility check: the leg residual needs a leg set's readings
         self._legs = not instrument_kind(platform).outside
-        self._recent = RecentSamples(RECENT_SAMPLES if self._legs else 0, 6)
+        self._recent = RecentSamples(RECENT_SAMPLES if self._legs else 0, platform.drive.n_legs, self._width)
         self._fixed: tuple | None = None  # (what they were made of, the checkpoint's fixed arrays)
 
     def update(self, sample: Sample) -> None:
@@ -200,7 +200,7 @@ class OnlineCalibrator:
             single = Log(np.array([sample.t_s]), np.array([sample.strokes]), np.array([sample.readings]))
         except (AttributeError, TypeError, ValueError) as err:
             raise CalibError(f"sample: not a Sample of arrays ({_one_line(err)})") from None
-        _check_block_shapes(single, self._width)
+        _check_block_shapes(single, self.platform.drive.n_legs, self._width)
         try:
             self._estimator.update(sample)
         except SampleRejected as err:
@@ -224,7 +224,7 @@ class OnlineCalibrator:
         Raises:
             CalibError: ``block`` is no log of this platform (shapes, types); nothing is counted.
         """
-        _check_block_shapes(block, self._width)
+        _check_block_shapes(block, self.platform.drive.n_legs, self._width)
         refused, late = update_block(self._estimator, block)
         # in update's order: a sample's own refusal, then those refused late after it
         for _, _, err in sorted(
@@ -418,9 +418,10 @@ def _check_members(data: bytes) -> None:
                 )
 
 
-def _check_block_shapes(block: Log, width: int) -> None:
-    """Refuse a block that is no log of a platform whose instrument reads ``width`` values: not
-    real numbers, or columns other than ``t_s (N,)``, strokes ``(N, 6)``, readings ``(N, width)``."""
+def _check_block_shapes(block: Log, legs: int, width: int) -> None:
+    """Refuse a block that is no log of a platform of ``legs`` drive legs whose instrument reads
+    ``width`` values: not real numbers, or columns other than ``t_s (N,)``, strokes ``(N, legs)``,
+    readings ``(N, width)``."""
     try:
         arrays = [np.asarray(values) for values in (block.t_s, block.strokes, block.readings)]
     except (TypeError, ValueError, AttributeError) as err:
@@ -430,10 +431,10 @@ def _check_block_shapes(block: Log, width: int) -> None:
             raise CalibError(f"samples: {name} of {values.dtype} values; expected real numbers")
     t_s, strokes, readings = arrays
     n = len(t_s) if t_s.ndim == 1 else -1
-    if n < 0 or strokes.shape != (n, 6) or readings.shape != (n, width):
+    if n < 0 or strokes.shape != (n, legs) or readings.shape != (n, width):
         raise CalibError(
             f"samples: t_s {t_s.shape}, strokes {strokes.shape}, readings {readings.shape}; "
-            f"expected (N,), (N, 6), (N, {width})"
+            f"expected (N,), (N, {legs}), (N, {width})"
         )
 
 

@@ -29,7 +29,7 @@ import numpy as np
 from . import kinematics as kin
 from .config import NoiseConfig
 from .errors import CalibError
-from .platform import PARAMETER_NAMES, Platform
+from .platform import Platform
 
 #: a parameter error beyond this many prior σ is refused (two-sided tail probability < 1e-20).
 PRIOR_SIGMAS = 10.0
@@ -41,20 +41,22 @@ NOISE_SCALE_LIMIT = 100.0
 
 
 def rms_leg_residual_mm(platform: Platform, error: np.ndarray, strokes: np.ndarray, readings: np.ndarray) -> float:
-    """RMS of the drive-leg residuals [mm] of the samples ``(N, 6)`` at the model ``M + error``.
+    """RMS of the drive-leg residuals [mm] of the samples (strokes ``(N, legs)``, tracker readings
+    ``(N, rulers)``) at the model ``M + error``.
 
     Samples whose tracker FK does not converge are left out (nan when none converges).
     """
-    strokes = np.asarray(strokes, dtype=float).reshape(-1, 6)
-    readings = np.asarray(readings, dtype=float).reshape(-1, 6)
+    strokes = np.asarray(strokes, dtype=float).reshape(-1, platform.drive.n_legs)
     if not len(strokes):
         return float("nan")
+    tracker = platform.required_tracker("the plausibility check")
+    readings = np.asarray(readings, dtype=float).reshape(-1, tracker.n_legs)
     # The drive's residual at the tracker's FK pose is the tracker-reading residual with the two
     # leg sets' roles swapped (q − (‖t + R d_i − j_i‖ − l_i), the negated leg residual): one
     # compiled pass whose FK starts from the sample before (track checks every --every rows,
     # ~3.5x the cold batch FK measured).
     residuals, converged = kin.tracker_reading_residuals(
-        platform.drive.perturbed(error), strokes, [platform.required_tracker("the plausibility check")], [readings]
+        platform.drive.perturbed(error), strokes, [tracker], [readings]
     )
     if not converged.any():
         return float("nan")
@@ -73,7 +75,7 @@ def check_plausible(
     """Refuse an estimate that the log cannot have come from ``platform`` with (see the module).
 
     Args:
-        error: δM [mm] of the estimate. strokes, readings: ``(N, 6)`` samples it was fitted to
+        error: δM [mm] of the estimate. strokes, readings: ``(N, legs)``, ``(N, rulers)`` samples it was fitted to
             (all of them, or the most recent ones for an online run) [mm]; with none, only
             the parameters are checked.
         noise_scale: the measurement noise the estimator found in the data, as a multiple of
@@ -105,7 +107,7 @@ def check_plausible(
         )
         raise CalibError(
             f"{method}: the log does not fit platform '{platform.name}': {residual}largest "
-            f"parameter error {PARAMETER_NAMES[worst]} = {error[worst]:.4g} mm "
+            f"parameter error {platform.drive.parameter_names[worst]} = {error[worst]:.4g} mm "
             f"({abs(error[worst]) / noise.prior_sigma_mm:.3g} × the prior σ {noise.prior_sigma_mm:g} mm; limit "
             f"{PRIOR_SIGMAS:g} ×){scatter} — a log of another platform, glitches in every sample, or a platform file "
             "that does not describe this robot?"

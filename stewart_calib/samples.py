@@ -19,7 +19,7 @@ class Sample:
 
     Attributes:
         t_s: time [s].
-        strokes: ``(6,)`` drive strokes q_i as executed (encoders) [mm].
+        strokes: ``(legs,)`` drive strokes q_i (six on the paper's drive) as executed (encoders) [mm].
         readings: ``(M,)`` the instrument's measurement z in the order of its model's ``columns``
             (:mod:`stewart_calib.instruments`), code units: for the in-situ tracker the six
             grating readings s_i [mm].
@@ -43,7 +43,7 @@ class Log:
 
     Attributes:
         t_s: ``(N,)`` [s], non-decreasing.
-        strokes: ``(N, 6)`` q_i [mm].
+        strokes: ``(N, legs)`` q_i [mm].
         readings: ``(N, M)`` the instrument's measurements (tracker: s_i [mm]).
         desired_poses: ``(N, 6)`` ``[mm, rad]`` or None when the log has no pose columns.
         stages: N labels or None.
@@ -126,9 +126,9 @@ class Truth:
 
     Attributes:
         t_s: ``(N,)`` [s].
-        params: ``(N, 42)`` true absolute drive parameters [mm], paper order.
+        params: ``(N, n_params)`` true absolute drive parameters [mm], paper order.
         true_poses: ``(N, 6)`` true pose ``[mm, rad]``, or None.
-        drive_terms: the true values ``(6,)`` of the drive's terms by the drive model's block key
+        drive_terms: the true values ``(legs,)`` of the drive's terms by the drive model's block key
             (:class:`~stewart_calib.drive.LegTerm`; spec §7: the stroke scale k_i); a term the truth
             does not give is absent.
         instrument: ``(names, values)`` of the true outside instrument's unknowns in file units

@@ -23,7 +23,7 @@ from . import io
 from . import kinematics as kin
 from .errors import CalibError
 from .instruments import instrument_kind
-from .platform import N_LEGS, Platform
+from .platform import Platform
 from .samples import Log
 
 
@@ -206,7 +206,7 @@ def nominal_model(platform: Platform) -> dict:
 def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str]]) -> np.ndarray | None:
     """The tracker's readings minus its readings predicted by each ``(result, source)`` model, as
     :func:`validate`'s predictions (within FK's tolerance) in one compiled pass over the log:
-    ``(len(models), N, 6)`` [mm], or None when a model's FK does not converge for a sample or the
+    ``(len(models), N, rulers)`` [mm], or None when a model's FK does not converge for a sample or the
     drive is elastic."""
     for result, source in models:
         _check_nominal(platform, result, source)
@@ -221,12 +221,12 @@ def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str
 
 
 def nominal_residuals(platform: Platform, block: Log) -> np.ndarray:
-    """``(len(block), 6)`` the tracker's readings minus what the nominal model predicts [mm], NaN
+    """``(len(block), rulers)`` the tracker's readings minus what the nominal model predicts [mm], NaN
     where its FK fails: the residual RMS "before", which needs no estimate, so is spooled with the
     samples on the first pass (on the read-ahead thread) and only the calibrated model's is left
     for the second."""
     before = tracker_residuals(platform, block, [(nominal_model(platform), "the nominal platform")])
-    return np.full((len(block), N_LEGS), np.nan) if before is None else before[0]
+    return np.full(block.readings.shape, np.nan) if before is None else before[0]
 
 
 #: blocks whose residuals :func:`streamed_residual_rms` computes at a time (on as many threads)
