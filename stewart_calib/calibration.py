@@ -352,7 +352,7 @@ def stream_calibration(
         CalibError: a bad log (as :func:`stewart_calib.io.read_log`), a method that rejected every sample.
     """
     estimator = estimators.make_estimator(method, platform, config)
-    nominal = platform.drive.as_vector()
+    nominal, names = platform.drive.as_vector(), platform.drive.parameter_names
     checked, skipped, rejections = EvenlySpacedSamples(CHECKED_SAMPLES), Tally(), Rejections()
     rejected: list[int] = []
     first_t_s: list[float] = []
@@ -374,7 +374,7 @@ def stream_calibration(
     written: list[int] = []
 
     def write_trace(block: Log, errors_mm: np.ndarray) -> None:
-        trace_file.write(io.trace_text(block.t_s, nominal + errors_mm, header=not written))
+        trace_file.write(io.trace_text(block.t_s, nominal + errors_mm, header=not written, names=names))
         written.append(len(block))
 
     blocks = read_ahead(read(block) for block in io.read_log_blocks(path, platform, skip_bad_rows=skip_bad_rows))

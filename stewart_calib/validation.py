@@ -173,7 +173,8 @@ def measurement_residuals(
     from .viz.html_report import Residuals  # matplotlib-free module, but only reports need it
 
     columns = io.reading_columns(platform)
-    angle = np.array([name in io.MEASURED_ANGLE_COLUMNS for name in columns])
+    angles = io.angle_columns(platform)
+    angle = np.array([name in angles for name in columns])
 
     def residual_file_units(predicted_code: np.ndarray) -> np.ndarray:
         difference = log.readings - predicted_code

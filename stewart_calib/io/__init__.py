@@ -18,7 +18,6 @@ from .atomic import (
 )
 from .logs import (
     LOG_REQUIRED,
-    MEASURED_ANGLE_COLUMNS,
     POSE_COLUMNS,
     READING_COLUMNS,
     STROKE_COLUMNS,
@@ -61,7 +60,6 @@ from .tables import csv_text, write_csv_blocks
 
 __all__ = [
     "LOG_REQUIRED",
-    "MEASURED_ANGLE_COLUMNS",
     "NOMINAL_TOLERANCE_MM",
     "POSE_COLUMNS",
     "READING_COLUMNS",

@@ -51,10 +51,6 @@ LOG_REQUIRED = ("t_s", *STROKE_COLUMNS, *READING_COLUMNS)
 POSE_COLUMNS = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
 TRUE_POSE_COLUMNS = tuple(f"true_{name}" for name in POSE_COLUMNS)
 STROKE_SCALE_NAMES = tuple(f"k{i}" for i in range(1, 7))
-#: the pose instrument's angle columns as io listed them before the models declared them
-#: (``InstrumentModel.angle_columns``): kept for :func:`stewart_calib.validation.measurement_residuals`
-#: until it asks :func:`angle_columns`, as the reader and writers here do
-MEASURED_ANGLE_COLUMNS = ("mroll_deg", "mpitch_deg", "myaw_deg")
 
 
 def reading_columns(platform: Platform | None) -> tuple[str, ...]:
