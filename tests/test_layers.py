@@ -140,3 +140,25 @@ def test_pipelines_import_nothing_private_from_each_other():
             ):
                 borrowed.append(f"{name} uses {node.value.id}.{node.attr}")
     assert borrowed == []
+
+
+#: the leg-set model (docs/architecture.md): the only modules that know a platform has six legs of
+#: seven parameters; everything else takes the sizes from the model or from its arrays
+LEG_SET_MODEL = {"platform.py", "kinematics.py", "_kernels.py", "statics.py", "drive.py"}
+
+
+def test_only_the_leg_set_model_names_the_number_of_legs():
+    """A 6-RSS hexapod must be a new leg-set model, not a fork of every module that hard-codes six legs."""
+    named = set()
+    for path in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            sized = isinstance(node, ast.Name) and node.id in {"N_LEGS", "N_PARAMS", "N_PARAMS_PER_LEG"}
+            six_loop = (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Name)
+                and node.func.id == "range"
+                and [ast.unparse(arg) for arg in node.args] == ["6"]
+            )
+            if sized or six_loop:
+                named.add(str(path.relative_to(PACKAGE)))
+    assert named <= LEG_SET_MODEL, sorted(named - LEG_SET_MODEL)
