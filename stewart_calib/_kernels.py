@@ -6,8 +6,10 @@ six legs and compiled, the same solve takes a few µs. The public, vectorised fu
 :mod:`stewart_calib.kinematics` keep their numpy signatures and call these; nothing else
 should import this module (but :mod:`stewart_calib.estimators.measurement`, for
 ``pose_difference`` and the sample check, ``LegGeometry.perturbed``,
-:mod:`stewart_calib.identifiability` for the whitened rows, and
-:mod:`stewart_calib.estimators.kalman`, whose compiled filter pass observes through them).
+:mod:`stewart_calib.identifiability` for the whitened rows,
+:mod:`stewart_calib.estimators.kalman`, whose compiled filter pass observes through them, and
+:mod:`stewart_calib.statics` and :mod:`stewart_calib.simulation.load`, whose robot settling under its
+load is here, below the kinematics, so that the tracker residuals of an elastic drive settle with it).
 
 Conventions (see :mod:`stewart_calib.kinematics`): mm and rad; a pose is ``(R, t)`` of the
 platform frame {D} in the base frame {J}; pose Jacobians are in the body tangent
@@ -362,8 +364,16 @@ def _fk_single(base, plat, initial_lengths, lengths, R, t, warm, tol_mm, max_ite
         residual = _newton(base, plat, target, R, t, tol_mm, max_iterations, work)[1]
         if residual <= tol_mm:
             return residual
+    _level_guess(base, plat, target, R, t)
+    return _newton(base, plat, target, R, t, tol_mm, max_iterations, work)[1] if finite else np.inf
+
+
+@njit(**_JIT)
+def _level_guess(base, plat, target, R, t):
+    """``(R, t)`` = kinematics.default_guess for leg lengths ``target``: level, above the base centre,
+    the mean leg length matched."""
     z = 0.0
-    for i in range(6):  # default_guess: level, above the base centre, mean leg length matched
+    for i in range(6):
         dx = base[i, 0] - plat[i, 0]
         dy = base[i, 1] - plat[i, 1]
         z += math.sqrt(max(target[i] * target[i] - dx * dx - dy * dy, 1.0)) + base[i, 2] - plat[i, 2]
@@ -372,7 +382,6 @@ def _fk_single(base, plat, initial_lengths, lengths, R, t, warm, tol_mm, max_ite
         R[i, i] = 1.0
         t[i] = 0.0
     t[2] = z / 6.0
-    return _newton(base, plat, target, R, t, tol_mm, max_iterations, work)[1] if finite else np.inf
 
 
 @njit(**_JIT)
@@ -422,12 +431,180 @@ def _within_a_step(R_a, t_a, R_b, t_b):
     return d2 <= _MAX_STEP_MM**2 and (trace - 1.0) / 2.0 >= math.cos(_MAX_STEP_RAD)
 
 
-@njit(entry=(RO_3, RO_3, RO_2, F8_3, RO_2, RO_2, RO_1, F8_2, FLOAT, INT, F8_3, F8_2), **_JIT)
+# ----------------------------------------------------------------------------- a robot settling under its load
+
+#: the statics matrix is refused as singular where ``|det|`` over the product of its column norms
+#: (Hadamard's ratio, 1 for orthogonal columns, 0 at a singularity; the moment rows divided by the
+#: platform's joint radius so that the ratio does not depend on the unit of length) falls below
+#: this. The leg forces grow as the inverse of the smallest singular value: at 1e-6 they are of the
+#: order of a million times the weight, no longer anything a leg carries.
+SINGULAR_RATIO = 1e-6
+
+
+@njit(**_JIT)
+def pose_gravity_forces(base, plat, R, t, weights, coms, radius, A, w, forces):
+    """One pose's ``Aᵀ`` (column i ``[n_i; R d_i × n_i]``), Hadamard's ratio of it with the moment rows
+    over ``radius`` (returned), and ``f`` solving ``Aᵀ f = −w`` for weights ``(K,)`` [N] at their centres
+    ``coms (K, 3)`` in {D} into ``forces (6,)`` (left unset where the ratio is below
+    :data:`SINGULAR_RATIO` or a pivot is zero); ``A (6, 6)``, ``w (6, 1)``: scratch
+    (:mod:`stewart_calib.statics`, whose equations these are)."""
+    for i in range(6):
+        p0 = R[0, 0] * plat[i, 0] + R[0, 1] * plat[i, 1] + R[0, 2] * plat[i, 2]
+        p1 = R[1, 0] * plat[i, 0] + R[1, 1] * plat[i, 1] + R[1, 2] * plat[i, 2]
+        p2 = R[2, 0] * plat[i, 0] + R[2, 1] * plat[i, 1] + R[2, 2] * plat[i, 2]
+        v0, v1, v2 = t[0] + p0 - base[i, 0], t[1] + p1 - base[i, 1], t[2] + p2 - base[i, 2]
+        norm = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        n0, n1, n2 = v0 / norm, v1 / norm, v2 / norm
+        A[0, i], A[1, i], A[2, i] = n0, n1, n2
+        A[3, i], A[4, i], A[5, i] = p1 * n2 - p2 * n1, p2 * n0 - p0 * n2, p0 * n1 - p1 * n0
+    # gravity (0, 0, −m g) at R c: force and moment about the platform origin, negated
+    w[0, 0], w[1, 0], w[2, 0], w[3, 0], w[4, 0], w[5, 0] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    for j in range(coms.shape[0]):
+        weight = weights[j]
+        c0 = R[0, 0] * coms[j, 0] + R[0, 1] * coms[j, 1] + R[0, 2] * coms[j, 2]
+        c1 = R[1, 0] * coms[j, 0] + R[1, 1] * coms[j, 1] + R[1, 2] * coms[j, 2]
+        w[2, 0] += weight
+        w[3, 0] += c1 * weight
+        w[4, 0] -= c0 * weight
+    product = 1.0  # of the column norms, moment rows over radius
+    for i in range(6):
+        column = A[0, i] * A[0, i] + A[1, i] * A[1, i] + A[2, i] * A[2, i]
+        column += (A[3, i] * A[3, i] + A[4, i] * A[4, i] + A[5, i] * A[5, i]) / (radius * radius)
+        product *= np.sqrt(column)
+    if not _solve(A, w):  # A becomes U of its LU: |det| is the product of U's diagonal
+        return 0.0
+    determinant = 1.0
+    for i in range(6):
+        determinant *= A[i, i]
+        forces[i] = w[i, 0]
+    return abs(determinant) / radius**3 / product
+
+
+@njit(**_JIT)
+def pose_drift(base_params, R, t, forces, stiffness, params):
+    """``params = M_base + δM`` of one pose from its leg forces [N] (:mod:`stewart_calib.simulation.load`,
+    step 3): ``n_i`` on the base geometry ``base_params (42,)``; ``stiffness``
+    ``[k_leg, k_base_joint, k_platform_joint, k_bending]`` [N/mm] (``inf``: that part rigid, no drift)."""
+    k_leg, k_base, k_platform, k_bending = stiffness[0], stiffness[1], stiffness[2], stiffness[3]
+    for i in range(len(forces)):  # seven parameters a leg, one force a leg
+        o = 7 * i
+        # the leg vector t + R d_i − j_i in scalars: an array a pose would cost as much as the rest
+        v0 = t[0] + R[0, 0] * base_params[o + 3] + R[0, 1] * base_params[o + 4] + R[0, 2] * base_params[o + 5]
+        v1 = t[1] + R[1, 0] * base_params[o + 3] + R[1, 1] * base_params[o + 4] + R[1, 2] * base_params[o + 5]
+        v2 = t[2] + R[2, 0] * base_params[o + 3] + R[2, 1] * base_params[o + 4] + R[2, 2] * base_params[o + 5]
+        v0, v1, v2 = v0 - base_params[o], v1 - base_params[o + 1], v2 - base_params[o + 2]
+        norm = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        f = forces[i]
+        v0, v1, v2 = v0 / norm * f, v1 / norm * f, v2 / norm * f  # the push of leg i on the platform, in {J} [N]
+        params[o], params[o + 1], params[o + 2] = (
+            base_params[o] - v0 / k_base,
+            base_params[o + 1] - v1 / k_base,
+            base_params[o + 2] - v2 / k_base,
+        )
+        for a in range(3):  # the same push in {D}: Rᵀ (n_i f_i)
+            body = R[0, a] * v0 + R[1, a] * v1 + R[2, a] * v2
+            sink = body / k_platform + body / k_bending if a == 2 else body / k_platform
+            params[o + 3 + a] = base_params[o + 3 + a] + sink
+        params[o + 6] = base_params[o + 6] - f / k_leg
+
+
+@njit(**_JIT)
+def split_params(params, base, plat, lengths):
+    """``j_i`` into ``base (6, 3)``, ``d_i`` into ``plat (6, 3)``, ``l_i`` into ``lengths (6,)`` of a
+    parameter vector ``(42,)`` (platform.vector_to_params), seven a leg."""
+    for i in range(len(lengths)):
+        for a in range(3):
+            base[i, a] = params[7 * i + a]
+            plat[i, a] = params[7 * i + 3 + a]
+        lengths[i] = params[7 * i + 6]
+
+
+@njit(**_JIT)
+def settle_scratch():
+    """Scratch arrays of :func:`settle_pose`: the statics' ``A``, ``w``, the loaded geometry's joints and
+    lengths, the extensions, the target lengths of the pass before."""
+    return (
+        np.empty((6, 6)),
+        np.empty((6, 1)),
+        np.empty((6, 3)),
+        np.empty((6, 3)),
+        np.empty(6),
+        np.empty(6),
+        np.empty(6),
+    )
+
+
+@njit(**_JIT)
+def settle_pose(legs, drift, load, terms, u, R, t, passes, settled_mm, tol_mm, max_iterations, work, scratch, forces):
+    """Where a robot comes to rest under its load for drive inputs ``u``, from the pose ``(R, t)``
+    (overwritten): passes of the leg forces at the pose (:func:`pose_gravity_forces` on the unloaded
+    legs), the geometry they load (:func:`pose_drift`, where the joints give), the leg extensions
+    (:func:`leg_extensions`, the forces written into ``u``'s force columns first), and Newton from the
+    pose to those lengths — ``passes`` of them, or fewer once no target length moved more than
+    ``settled_mm`` since the pass before (``settled_mm`` < 0: all of them). The simulator's truth
+    (:mod:`stewart_calib.simulation.load`: compliant legs and joints, no force term) and the elastic
+    drive model (:meth:`stewart_calib.drive.DriveModel.settled_kinematics`: rigid joints, the legs'
+    compliance a term on the forces) are both this.
+
+    Args:
+        legs: ``(base (6, 3), plat (6, 3), initial_lengths (6,))`` the unloaded geometry.
+        drift: ``(base_params (42,), stiffness (4,), params (42,) out)`` (:func:`pose_drift`;
+            ``base_params`` the vector of ``legs``), or None: the geometry does not move (numba compiles
+            that case without the drift, and Newton then runs on ``legs`` themselves).
+        load: ``(weights (K,) [N], coms (K, 3) in {D} [mm], radius [mm])`` (:func:`pose_gravity_forces`).
+        terms: ``(starts, gains, factors (b, 6), force_start)``: :func:`leg_extensions`' terms and the
+            first of ``u``'s six force columns (−1: no term takes the forces).
+        work, scratch: :func:`_fk_work`, :func:`settle_scratch`; forces: ``(6,)`` out [N].
+    Returns:
+        ``(the statics' last Hadamard ratio, Newton's last max |length error| [mm], its steps)``;
+        the error is ``inf`` where the ratio fell below :data:`SINGULAR_RATIO` or a length is not finite.
+    """
+    base, plat, initial_lengths = legs
+    weights, coms, radius = load
+    starts, gains, factors, force_start = terms
+    A, w, loaded_base, loaded_plat, lengths, extensions, previous = scratch
+    target = work[5]
+    ratio, residual, steps = 0.0, np.inf, 0
+    for p in range(passes):
+        ratio = pose_gravity_forces(base, plat, R, t, weights, coms, radius, A, w, forces)
+        if not ratio >= SINGULAR_RATIO:
+            return ratio, np.inf, steps
+        if drift is not None:
+            pose_drift(drift[0], R, t, forces, drift[1], drift[2])
+            split_params(drift[2], loaded_base, loaded_plat, lengths)
+        if force_start >= 0:
+            for i in range(6):
+                u[force_start + i] = forces[i]
+        leg_extensions(starts, gains, factors, u, extensions)
+        if drift is not None:
+            finite = _finite_target(lengths, extensions, target)
+        else:
+            finite = _finite_target(initial_lengths, extensions, target)
+        if not finite:
+            return ratio, np.inf, steps
+        moved = 0.0
+        for i in range(6):
+            moved = max(moved, abs(target[i] - previous[i]))
+            previous[i] = target[i]
+        if drift is not None:
+            steps, residual = _newton(loaded_base, loaded_plat, target, R, t, tol_mm, max_iterations, work)
+        else:
+            steps, residual = _newton(base, plat, target, R, t, tol_mm, max_iterations, work)
+        if p > 0 and moved <= settled_mm:
+            break
+    return ratio, residual, steps
+
+
+@njit(
+    entry=(RO_3, RO_3, RO_2, F8_3, RO_2, RO_2, RO_1, F8_2, FLOAT, INT, F8_3, F8_2)
+    + (I8_1, F8_1, F8_3, INT, F8_2, RO_2, F8_1, INT, FLOAT),
+    **_JIT,
+)
 def tracker_reading_residuals(
     bases,
     plats,
     initial_lengths,
-    strokes,
+    inputs,
     tracker_base,
     tracker_plat,
     tracker_lengths,
@@ -436,9 +613,19 @@ def tracker_reading_residuals(
     max_iterations,
     residuals,
     fk_residual,
+    starts,
+    gains,
+    factors,
+    force_start,
+    weights,
+    coms,
+    radii,
+    passes,
+    settled_mm,
 ):
     """The tracker's readings minus what it reads at the FK pose of each of ``m`` drives, for ``n``
-    consecutive samples (kinematics.tracker_reading_residuals), FK as :func:`fk_single`.
+    consecutive samples (kinematics.tracker_reading_residuals), FK as :func:`fk_single` — or, with
+    ``passes`` > 0, where each drive settles under its load (:func:`settle_pose`).
 
     Each Newton starts from a prediction (:func:`_moved_pose`): drive 0's pose extrapolated from
     its two samples before (a log moves smoothly; ~3 steps against ~5 from the level guess),
@@ -449,17 +636,22 @@ def tracker_reading_residuals(
     known pose did not converge, the level cold guess decides, as :func:`fk_newton`'s callers do.
 
     Args:
-        bases, plats: ``(m, 6, 3)`` joints; initial_lengths: ``(m, 6)``; strokes: ``(m, n, 6)``
-            each drive's strokes [mm].
+        bases, plats: ``(m, 6, 3)`` joints; initial_lengths: ``(m, 6)``; inputs: ``(m, n, width)``
+            each drive's inputs, whose extensions the terms ``starts (b,)``, ``gains (b,)``,
+            ``factors (m, b, 6)`` give (:func:`leg_extensions`).
         tracker_base, tracker_plat: ``(6, 3)``; tracker_lengths: ``(6,)``; readings: ``(n, 6)`` [mm].
         residuals: ``(m, n, 6)`` out: ``s_i − (‖R p_i + t − b_i‖ − l_i)`` of the tracker [mm].
         fk_residual: ``(m, n)`` out: max |length error| of each FK [mm] (``> tol_mm``: not converged).
+        force_start, weights ``(n, K)`` [N], coms ``(K, 3)``, radii ``(m,)``, passes, settled_mm: the
+            load, as :func:`settle_pose` takes it (the joints rigid: an elastic drive's compliance is a
+            term on the forces), sample k's ``weights[k]``; ``passes`` 0: no load (the others unused).
     """
     m = bases.shape[0]
     R, t = np.empty((m, 3, 3)), np.empty((m, 3))  # this sample's solutions
     R_1, t_1 = np.empty((m, 3, 3)), np.empty((m, 3))  # the sample before's
     R_2, t_2 = np.empty((3, 3)), np.empty(3)  # drive 0's two samples before
-    work = _fk_work()
+    work, scratch = _fk_work(), settle_scratch()
+    extensions, forces = np.empty(6), np.empty(6)
     for k in range(readings.shape[0]):
         for j in range(m):
             Rj, tj = R[j], t[j]
@@ -476,15 +668,38 @@ def tracker_reading_residuals(
                     _moved_pose(R_1[j], t_1[j], R_1[j - 1], t_1[j - 1], R[j - 1], t[j - 1], Rj, tj)
                 elif known:
                     copy_pose(R[j - 1], t[j - 1], Rj, tj)
-            if known and _finite_target(initial_lengths[j], strokes[j, k], work[5]):
-                residual = _newton(bases[j], plats[j], work[5], Rj, tj, tol_mm, max_iterations, work)[1]
-                if not _within_a_step(R_known, t_known, Rj, tj):
+            for cold in range(2):  # from the prediction where there is one, then from the level guess
+                if cold == 0 and not known:
+                    continue
+                leg_extensions(starts, gains, factors[j], inputs[j, k], extensions)
+                finite = _finite_target(initial_lengths[j], extensions, work[5])
+                if cold == 1:
+                    _level_guess(bases[j], plats[j], work[5], Rj, tj)
+                if not finite:
                     residual = np.inf
-            if not residual <= tol_mm:
-                cold = np.bool_(False)  # a literal False would compile _fk_single a second time, for Literal[bool]
-                residual = _fk_single(
-                    bases[j], plats[j], initial_lengths[j], strokes[j, k], Rj, tj, cold, tol_mm, max_iterations, work
-                )
+                elif passes == 0:
+                    residual = _newton(bases[j], plats[j], work[5], Rj, tj, tol_mm, max_iterations, work)[1]
+                else:
+                    residual = settle_pose(
+                        (bases[j], plats[j], initial_lengths[j]),
+                        None,
+                        (weights[k], coms, radii[j]),
+                        (starts, gains, factors[j], force_start),
+                        inputs[j, k],
+                        Rj,
+                        tj,
+                        passes,
+                        settled_mm,
+                        tol_mm,
+                        max_iterations,
+                        work,
+                        scratch,
+                        forces,
+                    )[1]
+                if cold == 0 and not _within_a_step(R_known, t_known, Rj, tj):
+                    residual = np.inf
+                if residual <= tol_mm:
+                    break
             fk_residual[j, k] = residual
             for i in range(6):  # inverse_kinematics: R p_i + t − b_i, its norm, less l_i
                 norm2 = 0.0

@@ -33,8 +33,8 @@ import numpy as np
 
 from . import kinematics as kin
 from .config import NoiseConfig
-from .platform import N_LEGS, N_PARAMS, Elastic, LegGeometry, Platform
-from .statics import gravity_leg_forces, masses_and_centres
+from .platform import G_N_PER_KG, N_LEGS, N_PARAMS, Elastic, LegGeometry, Platform
+from .statics import gravity_leg_forces, masses_and_centres, moment_radius
 from .unknowns import UnknownBlock
 
 #: the stroke term's key: the result's ``"stroke_scale"`` block (spec §7)
@@ -550,6 +550,37 @@ class DriveModel:
             np.array(self.term_values(x_drive)),  # writable: one compiled signature
             columns,
         )
+
+
+def tracker_reading_residuals(
+    drives: list[DriveModel], tracker: LegGeometry, strokes: np.ndarray, readings: np.ndarray, payload_kg=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The tracker's ``readings (N, 6)`` minus what it reads where each of ``drives`` (the same terms,
+    e.g. the nominal and a calibrated one) puts the platform for the logged ``strokes (N, 6)``, in one
+    compiled pass (:func:`~stewart_calib.kinematics.tracker_reading_residuals`): elastic drives
+    settled under the platform and a payload ``payload_kg`` (scalar or ``(N,)`` [kg]; None: 0) as
+    :meth:`DriveModel.settled_kinematics` settles them — the same fixed point, stopped by the same
+    :data:`SETTLED_MM`, per sample — by the simulator's compiled settling
+    (:func:`~stewart_calib._kernels.settle_pose`) with the joints rigid and the compliance the term
+    on the forces. ``(residuals (m, N, 6) [mm], converged (m, N))``."""
+    kernel_terms = [drive.kernel_terms() for drive in drives]
+    starts, gains = kernel_terms[0][:2]
+    terms = (starts, gains, np.array([offsets[:, None] + values for _, _, offsets, values, _ in kernel_terms]))
+    legs, elastic = [drive.legs for drive in drives], drives[0].elastic
+    if elastic is None:
+        return kin.tracker_reading_residuals(tracker, readings, legs, [strokes] * len(drives), terms)
+    masses, centres = masses_and_centres(
+        elastic.platform_mass_kg,
+        elastic.platform_com_mm,
+        0.0 if payload_kg is None else payload_kg,
+        elastic.payload_com_mm,
+        (len(readings),),
+    )
+    force_start = next(term.input_start for term in drives[0].terms if term.key == COMPLIANCE)
+    radii = np.array([moment_radius(drive.legs) for drive in drives])
+    load = (force_start, masses * G_N_PER_KG, centres, radii, SETTLING_PASSES + 1, SETTLED_MM)
+    inputs = [drive.inputs_near(strokes) for drive in drives]
+    return kin.tracker_reading_residuals(tracker, readings, legs, inputs, terms, load)
 
 
 def plain_drive(legs: LegGeometry) -> DriveModel:

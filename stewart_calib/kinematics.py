@@ -26,7 +26,7 @@ import numpy as np
 
 from . import _kernels
 from .errors import CalibError, SampleRejected
-from .platform import N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, vector_to_params
+from .platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, vector_to_params
 from .rotations import (  # noqa: F401 -- the pose algebra is part of the kinematics API
     pose_error,
     pose_to_rt,
@@ -427,18 +427,29 @@ def solve_fk(
 
 
 def tracker_reading_residuals(
-    tracker: LegGeometry, readings: np.ndarray, drives: list[LegGeometry], strokes: list[np.ndarray]
+    tracker: LegGeometry,
+    readings: np.ndarray,
+    drives: list[LegGeometry],
+    inputs: list[np.ndarray],
+    terms: tuple | None = None,
+    load: tuple | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The tracker's ``readings`` minus what it reads where each drive puts the platform, for a
     log's samples in order, in one compiled pass: ``readings − inverse_kinematics(tracker,
-    forward_kinematics(drives[j], strokes[j]))``, within FK's tolerance of that batch solve
+    forward_kinematics(drives[j], extensions[j]))``, within FK's tolerance of that batch solve
     (each Newton starts from a neighbouring solution, see
     :func:`stewart_calib._kernels.tracker_reading_residuals`, instead of the level guess).
 
     Args:
         readings: ``(N, 6)`` tracker readings s_i [mm].
         drives: ``m`` drive geometries, e.g. the nominal and a calibrated one.
-        strokes: ``m`` arrays ``(N, 6)``, each drive's strokes [mm] (e.g. scaled by its stroke scale).
+        inputs: ``m`` arrays ``(N, width)``, each drive's inputs: its extensions [mm] (e.g. strokes scaled
+            by its stroke scale) where ``terms`` is None.
+        terms: ``(starts (b,), gains (b,), factors (m, b, 6))``: the extensions as
+            :func:`stewart_calib._kernels.leg_extensions` makes them of the inputs.
+        load: ``(force_start, weights (N, K) [N], centres (K, 3) [mm], radii (m,), passes, settled_mm)``:
+            the drives settle under it, their joints rigid (:func:`stewart_calib._kernels.settle_pose`);
+            None: they are rigid.
     Returns:
         ``(residuals (m, N, 6) [mm], converged (m, N))``: a sample's residuals are meaningless
         where its FK did not converge.
@@ -446,11 +457,18 @@ def tracker_reading_residuals(
     c = np.ascontiguousarray
     readings = c(readings, dtype=float)
     residuals, fk_residual = np.empty((len(drives),) + readings.shape), np.empty((len(drives), len(readings)))
+    u = np.array(inputs, dtype=float)  # a copy: a settling drive's force columns are written into it
+    if terms is None:  # the inputs are the extensions: one term of gain 1
+        terms = (np.zeros(1, dtype=np.int64), np.ones(1), np.ones((len(drives), 1, N_LEGS)))
+    if load is None:
+        load = (-1, np.empty((len(readings), 0)), np.empty((0, 3)), np.ones(len(drives)), 0, 0.0)
+    force_start, weights, centres, radii, passes, settled_mm = load
+    starts, gains, factors = terms
     _kernels.tracker_reading_residuals(
         _readonly(c([d.base_joints for d in drives])),  # as LegGeometry's: the FK kernels compile once
         _readonly(c([d.platform_joints for d in drives])),
         _readonly(c([d.initial_lengths for d in drives])),
-        c(strokes, dtype=float).reshape(residuals.shape),
+        u,
         tracker.base_joints,
         tracker.platform_joints,
         tracker.initial_lengths,
@@ -459,6 +477,15 @@ def tracker_reading_residuals(
         FK_MAX_ITERATIONS,
         residuals,
         fk_residual,
+        c(starts, dtype=np.int64),
+        c(gains, dtype=float),
+        c(factors, dtype=float),
+        int(force_start),
+        c(weights, dtype=float),
+        _readonly(c(centres, dtype=float)),
+        c(radii, dtype=float),
+        int(passes),
+        float(settled_mm),
     )
     return residuals, fk_residual <= FK_TOLERANCE_MM
 

@@ -31,20 +31,13 @@ from __future__ import annotations
 import numpy as np
 
 from ._jit import F8_1, F8_2, FLOAT, RO_2, RO_3, njit
-from ._kernels import _solve
+from ._kernels import SINGULAR_RATIO, pose_gravity_forces
 from .errors import CalibError
 from .kinematics import leg_pose_jacobian, leg_unit_vectors, skew
 from .platform import G_N_PER_KG, N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
 
 #: gravity [N/kg] in {J}: along −z.
 GRAVITY_N_PER_KG = np.array([0.0, 0.0, -G_N_PER_KG])
-
-#: the statics matrix is refused as singular where ``|det|`` over the product of its column norms
-#: (Hadamard's ratio, 1 for orthogonal columns, 0 at a singularity; the moment rows divided by the
-#: platform's joint radius so that the ratio does not depend on the unit of length) falls below
-#: this. The leg forces grow as the inverse of the smallest singular value: at 1e-6 they are of the
-#: order of a million times the weight, no longer anything a leg carries.
-SINGULAR_RATIO = 1e-6
 
 
 class SingularStatics(CalibError):
@@ -139,7 +132,8 @@ def gravity_leg_forces(
     masses = c(np.broadcast_to(np.asarray(masses_kg, dtype=float), (*batch, len(coms_mm)))).reshape(len(R), -1)
     forces, ratios = np.empty((len(R), 6)), np.empty(len(R))
     radius = moment_radius(legs)
-    _gravity_forces(legs.base_joints, legs.platform_joints, R, t, masses, c(coms_mm), radius, forces, ratios)
+    weights = masses * G_N_PER_KG
+    _gravity_forces(legs.base_joints, legs.platform_joints, R, t, weights, c(coms_mm), radius, forces, ratios)
     bad = np.flatnonzero(~(ratios >= SINGULAR_RATIO))
     if bad.size:
         index = int(bad[0])
@@ -148,50 +142,13 @@ def gravity_leg_forces(
 
 
 @njit(entry=(RO_2, RO_2, RO_3, RO_2, RO_2, F8_2, FLOAT, F8_2, F8_1), nogil=True, error_model="numpy")
-def _gravity_forces(base, plat, R, t, masses, coms, radius, forces, ratios):
-    """:func:`pose_gravity_forces` of every pose ``k`` into ``forces[k]`` and ``ratios[k]``."""
+def _gravity_forces(base, plat, R, t, weights, coms, radius, forces, ratios):
+    """:func:`~stewart_calib._kernels.pose_gravity_forces` of every pose ``k`` (weights ``(n, K)`` [N])
+    into ``forces[k]`` and ``ratios[k]``."""
     A = np.empty((6, 6))
     w = np.empty((6, 1))
     for k in range(R.shape[0]):
-        ratios[k] = pose_gravity_forces(base, plat, R[k], t[k], masses[k], coms, radius, A, w, forces[k])
-
-
-@njit(nogil=True, error_model="numpy")
-def pose_gravity_forces(base, plat, R, t, masses, coms, radius, A, w, forces):
-    """One pose's ``Aᵀ`` (column i ``[n_i; R d_i × n_i]``), Hadamard's ratio of it with the moment rows
-    over ``radius`` (returned), and ``f`` solving ``Aᵀ f = −w`` for the masses at their centres into
-    ``forces (6,)`` (left unset where the ratio is below :data:`SINGULAR_RATIO` or a pivot is zero);
-    ``A (6, 6)``, ``w (6, 1)``: scratch. The simulator's settling (:mod:`.simulation.load`) takes it too."""
-    for i in range(6):
-        p0 = R[0, 0] * plat[i, 0] + R[0, 1] * plat[i, 1] + R[0, 2] * plat[i, 2]
-        p1 = R[1, 0] * plat[i, 0] + R[1, 1] * plat[i, 1] + R[1, 2] * plat[i, 2]
-        p2 = R[2, 0] * plat[i, 0] + R[2, 1] * plat[i, 1] + R[2, 2] * plat[i, 2]
-        v0, v1, v2 = t[0] + p0 - base[i, 0], t[1] + p1 - base[i, 1], t[2] + p2 - base[i, 2]
-        norm = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-        n0, n1, n2 = v0 / norm, v1 / norm, v2 / norm
-        A[0, i], A[1, i], A[2, i] = n0, n1, n2
-        A[3, i], A[4, i], A[5, i] = p1 * n2 - p2 * n1, p2 * n0 - p0 * n2, p0 * n1 - p1 * n0
-    # gravity (0, 0, −m g) at R c: force and moment about the platform origin, negated
-    w[0, 0], w[1, 0], w[2, 0], w[3, 0], w[4, 0], w[5, 0] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    for j in range(coms.shape[0]):
-        weight = masses[j] * G_N_PER_KG
-        c0 = R[0, 0] * coms[j, 0] + R[0, 1] * coms[j, 1] + R[0, 2] * coms[j, 2]
-        c1 = R[1, 0] * coms[j, 0] + R[1, 1] * coms[j, 1] + R[1, 2] * coms[j, 2]
-        w[2, 0] += weight
-        w[3, 0] += c1 * weight
-        w[4, 0] -= c0 * weight
-    product = 1.0  # of the column norms, moment rows over radius
-    for i in range(6):
-        column = A[0, i] * A[0, i] + A[1, i] * A[1, i] + A[2, i] * A[2, i]
-        column += (A[3, i] * A[3, i] + A[4, i] * A[4, i] + A[5, i] * A[5, i]) / (radius * radius)
-        product *= np.sqrt(column)
-    if not _solve(A, w):  # A becomes U of its LU: |det| is the product of U's diagonal
-        return 0.0
-    determinant = 1.0
-    for i in range(6):
-        determinant *= A[i, i]
-        forces[i] = w[i, 0]
-    return abs(determinant) / radius**3 / product
+        ratios[k] = pose_gravity_forces(base, plat, R[k], t[k], weights[k], coms, radius, A, w, forces[k])
 
 
 def masses_and_centres(

@@ -21,6 +21,7 @@ import numpy as np
 
 from . import io
 from . import kinematics as kin
+from .drive import tracker_reading_residuals
 from .errors import CalibError
 from .instruments import instrument_kind
 from .platform import Platform
@@ -206,18 +207,14 @@ def nominal_model(platform: Platform) -> dict:
 
 def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str]]) -> np.ndarray | None:
     """The tracker's readings minus its readings predicted by each ``(result, source)`` model, as
-    :func:`validate`'s predictions (within FK's tolerance) in one compiled pass over the log:
-    ``(len(models), N, rulers)`` [mm], or None when a model's FK does not converge for a sample or the
-    drive is elastic."""
+    :func:`validate`'s predictions (within FK's tolerance; an elastic drive settled under each row's
+    payload ``load_kg``) in one compiled pass over the log: ``(len(models), N, rulers)`` [mm], or None when
+    a model's FK does not converge for a sample."""
     for result, source in models:
         _check_nominal(platform, result, source)
     drives = [io.calibrated_drive(platform, result, source) for result, source in models]
-    if any(drive.elastic is not None for drive in drives):
-        return None  # the forces need the pose first: validate()'s settled kinematics
-    extensions = [drive.extensions(drive.inputs(log.strokes)) for drive in drives]
-    residuals, converged = kin.tracker_reading_residuals(
-        platform.required_tracker("the tracker residuals"), log.readings, [drive.legs for drive in drives], extensions
-    )
+    tracker = platform.required_tracker("the tracker residuals")
+    residuals, converged = tracker_reading_residuals(drives, tracker, log.strokes, log.readings, log.load_kg)
     return residuals if converged.all() else None
 
 

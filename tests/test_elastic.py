@@ -152,6 +152,38 @@ def test_the_drive_model_settles_where_compensation_sends_it(check):
         assert np.all(inputs[:, 6:] > 0)  # every leg in compression
 
 
+def test_the_compiled_tracker_residuals_are_those_of_validate_under_each_rows_payload(check):
+    """calibrate's residual pass (:func:`~stewart_calib.validation.tracker_residuals`: one compiled pass,
+    each sample settled by the simulator's settling kernel with the drive's joints rigid and its compliance
+    the term on the forces) gives what validate's predictions (the drive's settled_kinematics, batch numpy)
+    give, row by row at its own payload ``load_kg`` (0 / 20 / 40 kg), within what FK's tolerance and the
+    settling's stop (:data:`~stewart_calib.drive.SETTLED_MM` of the extension) leave open — on the nominal
+    model (compliance 0) and a calibrated one whose soft legs (20 mm/kN) take several passes to settle."""
+    from stewart_calib.drive import SETTLED_MM
+    from stewart_calib.validation import nominal_model, tracker_residuals, validate
+    from tests.test_kinematics import fk_tolerance_bound
+
+    _, run, platform, _ = check
+    log = run.log
+    assert len(np.unique(log.load_kg)) == 3
+    error = np.random.default_rng(5).normal(0.0, 0.5, 42)
+    result = {**nominal_model(platform), "error": error.tolist()}
+    result["compliance"] = {"names": [f"c{i}" for i in range(1, 7)], "estimate": np.full(6, 20.0).tolist()}
+    models = [(nominal_model(platform), "the nominal platform"), (result, "the result")]
+    residuals = tracker_residuals(platform, log, models)
+    assert residuals is not None
+    for (model, source), got in zip(models, residuals, strict=True):
+        predicted = validate(platform, model, log, False, source, errors=False)[0]
+        drive = platform.drive.perturbed(np.array(model["error"]))
+        fk = kin.forward_kinematics(drive, log.strokes)
+        # the settling stops where an extension moves ≤ SETTLED_MM a pass, the batch where every sample's does
+        bound = fk_tolerance_bound(platform.tracker, drive, fk.R, fk.t) * (1.0 + SETTLED_MM / kin.FK_TOLERANCE_MM)
+        assert np.abs(got - (log.readings - predicted)).max() <= bound
+    # the payload is each row's: the same log read as all unloaded predicts otherwise (c f: ~0.4 mm at 40 kg)
+    unloaded = replace(log, load_kg=np.zeros(len(log)))
+    assert np.abs(tracker_residuals(platform, unloaded, models)[1] - residuals[1]).max() > 0.1
+
+
 def test_neglected_force_derivatives_are_small_against_the_rows_they_would_join(check):
     """The factors and the EKF take the leg forces at the pose and geometry they evaluate, but leave
     ``c ∂f/∂ξ / 1000`` and ``c ∂f/∂M / 1000`` out of the Jacobians. Here (1 mm/kN, 60 + 40 kg) they

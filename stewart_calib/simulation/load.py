@@ -9,7 +9,8 @@ settles an adaptive controller's samples one at a time, and the vectorised numpy
    ``c_k`` in {D} contributes ``F = m_k g`` and ``M = (R c_k) × m_k g`` with
    ``g = [0, 0, −9.80665]`` N/kg — [N] and [N·mm].
 2. **Statics** (the transposed Jacobian; :mod:`stewart_calib.statics`, shared with the elastic
-   drive model of the estimators): the six legs are two-force members, leg i pushes the
+   drive model of the estimators; the compiled passes below are :func:`stewart_calib._kernels.settle_pose`,
+   which the elastic drive's tracker residuals settle with too): the six legs are two-force members, leg i pushes the
    platform with ``f_i n_i`` (``n_i`` the unit vector of paper eq. 1, base → platform, so
    ``f_i > 0`` is *compression*). Equilibrium ``Σ f_i n_i + F = 0``,
    ``Σ (R d_i) × f_i n_i + M = 0``, i.e. ``Aᵀ f = −w`` with ``Aᵀ`` the 6×6 matrix whose
@@ -33,23 +34,23 @@ so each iteration gains ~3 orders of magnitude; two are plenty).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from .. import kinematics as kin
 from .._jit import F8_1, F8_2, F8_3, FLOAT, I8_1, INT, RO_1, RO_2, njit
-from .._kernels import _finite_target, _fk_work, _newton
-from ..platform import PARAMETER_FIELDS, Elastic, LegGeometry
-from ..statics import (
+from .._kernels import (
     SINGULAR_RATIO,
-    SingularStatics,
-    _singular_message,
-    masses_and_centres,
-    moment_radius,
+    _fk_work,
+    pose_drift,
     pose_gravity_forces,
+    settle_pose,
+    settle_scratch,
+    split_params,
 )
+from ..platform import G_N_PER_KG, PARAMETER_FIELDS, Elastic, LegGeometry
+from ..statics import SingularStatics, _singular_message, masses_and_centres, moment_radius
 
 
 @dataclass(frozen=True)
@@ -105,48 +106,22 @@ def _stiffness(load: LoadModel) -> np.ndarray:
     )
 
 
-@njit(nogil=True, error_model="numpy")
-def _pose_drift(base_params, R, t, forces, stiffness, params):
-    """``params = M_base + δM`` (step 3 of the module docstring) of one pose from its leg forces [N]:
-    ``n_i`` on the base geometry ``base_params (42,)`` (seven a leg, one force a leg); ``stiffness`` as
-    :func:`_stiffness`."""
-    k_leg, k_base, k_platform, k_bending = stiffness[0], stiffness[1], stiffness[2], stiffness[3]
-    v = np.empty(3)
-    for i in range(len(forces)):
-        o = 7 * i
-        for a in range(3):
-            v[a] = (
-                t[a]
-                + R[a, 0] * base_params[o + 3]
-                + R[a, 1] * base_params[o + 4]
-                + R[a, 2] * base_params[o + 5]
-                - base_params[o + a]
-            )
-        norm = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
-        f = forces[i]
-        for a in range(3):
-            v[a] = v[a] / norm * f  # the push of leg i on the platform, in {J} [N]
-            params[o + a] = base_params[o + a] - v[a] / k_base
-        for a in range(3):  # the same push in {D}: Rᵀ (n_i f_i)
-            body = R[0, a] * v[0] + R[1, a] * v[1] + R[2, a] * v[2]
-            sink = body / k_platform + body / k_bending if a == 2 else body / k_platform
-            params[o + 3 + a] = base_params[o + 3 + a] + sink
-        params[o + 6] = base_params[o + 6] - f / k_leg
-
-
-_POSE_INPUTS = (RO_1, F8_3, F8_2, F8_2, RO_2, FLOAT, F8_1)  # base params, R, t, masses, centres, radius, stiffness
+_POSE_INPUTS = (RO_1, F8_3, F8_2, F8_2, RO_2, FLOAT, F8_1)  # base params, R, t, weights, centres, radius, stiffness
 
 
 @njit(entry=(*_POSE_INPUTS, F8_2, F8_2, F8_1), nogil=True, error_model="numpy")
-def _loaded_params(base_params, R, t, masses, coms, radius, stiffness, params, forces, ratios):
-    """:func:`loaded_params` of every pose ``k`` into ``params[k]``, ``forces[k]`` and the statics'
-    Hadamard ratio ``ratios[k]`` (params and forces unset below :data:`~stewart_calib.statics.SINGULAR_RATIO`)."""
-    base, plat, _ = _legs(base_params)
+def _loaded_params(base_params, R, t, weights, coms, radius, stiffness, params, forces, ratios):
+    """:func:`loaded_params` of every pose ``k`` (weights ``(n, 2)`` [N]) into ``params[k]``, ``forces[k]``
+    and the statics' Hadamard ratio ``ratios[k]`` (params and forces unset below
+    :data:`~stewart_calib._kernels.SINGULAR_RATIO`)."""
+    n_legs = len(base_params) // 7  # seven parameters a leg
+    base, plat, lengths = np.empty((n_legs, 3)), np.empty((n_legs, 3)), np.empty(n_legs)
+    split_params(base_params, base, plat, lengths)
     A, w = np.empty((6, 6)), np.empty((6, 1))
     for k in range(R.shape[0]):
-        ratios[k] = pose_gravity_forces(base, plat, R[k], t[k], masses[k], coms, radius, A, w, forces[k])
+        ratios[k] = pose_gravity_forces(base, plat, R[k], t[k], weights[k], coms, radius, A, w, forces[k])
         if ratios[k] >= SINGULAR_RATIO:
-            _pose_drift(base_params, R[k], t[k], forces[k], stiffness, params[k])
+            pose_drift(base_params, R[k], t[k], forces[k], stiffness, params[k])
 
 
 @njit(entry=(*_POSE_INPUTS, F8_2, INT, FLOAT, INT, F8_2, F8_2, F8_1, F8_1, I8_1), nogil=True, error_model="numpy")
@@ -154,7 +129,7 @@ def _settle_poses(
     base_params,
     R,
     t,
-    masses,
+    weights,
     coms,
     radius,
     stiffness,
@@ -169,41 +144,33 @@ def _settle_poses(
     newton_steps,
 ):
     """:func:`settle` of every pose ``k`` from its guess ``(R[k], t[k])`` (overwritten with where it
-    rests): ``iterations`` × (forces and ``params[k]`` at the pose, then FK of ``strokes[k]`` on
-    ``params[k]``); ``ratios[k]`` the statics' last Hadamard ratio (below the bound: stopped there),
-    ``residual[k]`` FK's last max |length error| [mm] (``inf`` for a non-finite stroke) after its
-    ``newton_steps[k]`` Newton steps."""
-    base, plat, _ = _legs(base_params)
-    A, w = np.empty((6, 6)), np.empty((6, 1))
-    work = _fk_work()
+    rests): ``iterations`` passes of :func:`~stewart_calib._kernels.settle_pose` (the forces and
+    ``params[k]`` at the pose, then FK of ``strokes[k]`` on ``params[k]``); ``ratios[k]`` the statics'
+    last Hadamard ratio (below the bound: stopped there), ``residual[k]`` FK's last max |length error|
+    [mm] (``inf`` for a non-finite stroke) after its ``newton_steps[k]`` Newton steps."""
+    n_legs = len(base_params) // 7  # seven parameters a leg
+    base, plat, lengths = np.empty((n_legs, 3)), np.empty((n_legs, 3)), np.empty(n_legs)
+    split_params(base_params, base, plat, lengths)
+    # the strokes are the extensions: one term, gain 1, no force column
+    terms = (np.zeros(1, dtype=np.int64), np.ones(1), np.ones((1, n_legs)), -1)
+    work, scratch = _fk_work(), settle_scratch()
     for k in range(R.shape[0]):
-        residual[k], newton_steps[k] = math.inf, 0
-        for _ in range(iterations):
-            ratios[k] = pose_gravity_forces(base, plat, R[k], t[k], masses[k], coms, radius, A, w, forces[k])
-            if not ratios[k] >= SINGULAR_RATIO:
-                break
-            _pose_drift(base_params, R[k], t[k], forces[k], stiffness, params[k])
-            drive_base, drive_plat, lengths = _legs(params[k])
-            if not _finite_target(lengths, strokes[k], work[5]):
-                residual[k] = math.inf
-                break
-            newton_steps[k], residual[k] = _newton(
-                drive_base, drive_plat, work[5], R[k], t[k], tol_mm, max_iterations, work
-            )
-
-
-@njit(nogil=True, error_model="numpy")
-def _legs(params):
-    """``(j_i (6, 3), d_i (6, 3), l_i (6,))`` of a parameter vector ``(42,)`` (platform.vector_to_params),
-    seven a leg."""
-    n = len(params) // 7
-    base, plat, lengths = np.empty((n, 3)), np.empty((n, 3)), np.empty(n)
-    for i in range(n):
-        for a in range(3):
-            base[i, a] = params[7 * i + a]
-            plat[i, a] = params[7 * i + 3 + a]
-        lengths[i] = params[7 * i + 6]
-    return base, plat, lengths
+        ratios[k], residual[k], newton_steps[k] = settle_pose(
+            (base, plat, lengths),
+            (base_params, stiffness, params[k]),
+            (weights[k], coms, radius),
+            terms,
+            strokes[k],
+            R[k],
+            t[k],
+            iterations,
+            -1.0,
+            tol_mm,
+            max_iterations,
+            work,
+            scratch,
+            forces[k],
+        )
 
 
 @dataclass(frozen=True)
@@ -250,7 +217,8 @@ class Settling:
         masses = np.empty((len(R_flat), 2))
         masses[:, 0] = self.platform_mass_kg
         masses[:, 1] = np.broadcast_to(payload_kg, batch).reshape(-1)
-        return batch, (self.base_params, R_flat, t_flat, masses, self.centres, self.radius, self.stiffness)
+        weights = masses * G_N_PER_KG
+        return batch, (self.base_params, R_flat, t_flat, weights, self.centres, self.radius, self.stiffness)
 
     def loaded_params(self, R: np.ndarray, t: np.ndarray, payload_kg) -> tuple[np.ndarray, np.ndarray]:
         """:func:`loaded_params` on this robot."""
