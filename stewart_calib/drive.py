@@ -567,8 +567,11 @@ def tracker_reading_residuals(
     starts, gains = kernel_terms[0][:2]
     terms = (starts, gains, np.array([offsets[:, None] + values for _, _, offsets, values, _ in kernel_terms]))
     legs, elastic = [drive.legs for drive in drives], drives[0].elastic
-    if elastic is None:
-        return kin.tracker_reading_residuals(tracker, readings, legs, [strokes] * len(drives), terms)
+    inputs = [drive.inputs_near(strokes) for drive in drives]  # an elastic drive's forces 0 until settled
+    if elastic is None or not any(np.any(drive.force_gains()) for drive in drives):
+        # rigid, or no leg gives under its force (the nominal compliance 0, before a calibration): the
+        # first FK is where each settles, and the forces need not be solved for
+        return kin.tracker_reading_residuals(tracker, readings, legs, inputs, terms)
     masses, centres = masses_and_centres(
         elastic.platform_mass_kg,
         elastic.platform_com_mm,
@@ -579,7 +582,6 @@ def tracker_reading_residuals(
     force_start = next(term.input_start for term in drives[0].terms if term.key == COMPLIANCE)
     radii = np.array([moment_radius(drive.legs) for drive in drives])
     load = (force_start, masses * G_N_PER_KG, centres, radii, SETTLING_PASSES + 1, SETTLED_MM)
-    inputs = [drive.inputs_near(strokes) for drive in drives]
     return kin.tracker_reading_residuals(tracker, readings, legs, inputs, terms, load)
 
 

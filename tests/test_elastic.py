@@ -158,7 +158,8 @@ def test_the_compiled_tracker_residuals_are_those_of_validate_under_each_rows_pa
     the term on the forces) gives what validate's predictions (the drive's settled_kinematics, batch numpy)
     give, row by row at its own payload ``load_kg`` (0 / 20 / 40 kg), within what FK's tolerance and the
     settling's stop (:data:`~stewart_calib.drive.SETTLED_MM` of the extension) leave open — on the nominal
-    model (compliance 0) and a calibrated one whose soft legs (20 mm/kN) take several passes to settle."""
+    model (compliance 0; alone, not settled: no leg gives) and a calibrated one whose soft legs (20 mm/kN)
+    take several passes to settle."""
     from stewart_calib.drive import SETTLED_MM
     from stewart_calib.validation import nominal_model, tracker_residuals, validate
     from tests.test_kinematics import fk_tolerance_bound
@@ -179,6 +180,8 @@ def test_the_compiled_tracker_residuals_are_those_of_validate_under_each_rows_pa
         # the settling stops where an extension moves ≤ SETTLED_MM a pass, the batch where every sample's does
         bound = fk_tolerance_bound(platform.tracker, drive, fk.R, fk.t) * (1.0 + SETTLED_MM / kin.FK_TOLERANCE_MM)
         assert np.abs(got - (log.readings - predicted)).max() <= bound
+        if model is models[0][0]:  # compliance 0: alone, its forces are not solved for (the rigid pass)
+            assert np.abs(tracker_residuals(platform, log, models[:1])[0] - got).max() <= bound
     # the payload is each row's: the same log read as all unloaded predicts otherwise (c f: ~0.4 mm at 40 kg)
     unloaded = replace(log, load_kg=np.zeros(len(log)))
     assert np.abs(tracker_residuals(platform, unloaded, models)[1] - residuals[1]).max() > 0.1
