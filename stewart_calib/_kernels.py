@@ -315,8 +315,8 @@ def _finite_target(initial_lengths, strokes, target):
     return finite
 
 
-@njit(entry=(RO_3, RO_3, RO_2, F8_2, F8_3, F8_2, FLOAT, INT, I8_1, F8_1), **_JIT)
-def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations, iterations, residual):
+@njit(entry=(RO_3, RO_3, RO_2, F8_2, F8_3, F8_2, FLOAT, INT, BOOL, I8_1, F8_1), **_JIT)
+def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations, along, iterations, residual):
     """Newton–Raphson FK (paper §3.2 step 1) for ``n`` poses, in place.
 
     Args:
@@ -329,16 +329,28 @@ def fk_newton(base, plat, initial_lengths, strokes, R, t, tol_mm, max_iterations
         R, t: ``(n, 3, 3)``, ``(n, 3)`` starting poses, overwritten with the solutions.
         tol_mm, max_iterations: stop once max |length error| ≤ ``tol_mm`` (a NaN residual
             also stops) or after ``max_iterations`` steps.
+        along: the poses are a log's, in order: pose k > 0 starts from pose k − 1's solution where
+            that converged (its solution standing only within one uncapped Newton step of it, as in
+            :func:`tracker_reading_residuals`), else from the level guess (``R[k]``, ``t[k]`` unused).
         iterations, residual: ``(n,)`` outputs: steps taken, max |length error| [mm] at the
             returned pose.
     """
     work = _fk_work()
     for k in range(strokes.shape[0]):
         g = k if base.shape[0] > 1 else 0
-        if _finite_target(initial_lengths[g], strokes[k], work[5]):
-            iterations[k], residual[k] = _newton(base[g], plat[g], work[5], R[k], t[k], tol_mm, max_iterations, work)
-        else:
+        if not _finite_target(initial_lengths[g], strokes[k], work[5]):
             iterations[k], residual[k] = 0, np.inf
+            continue
+        if along and k >= 1:
+            if residual[k - 1] <= tol_mm:
+                copy_pose(R[k - 1], t[k - 1], R[k], t[k])
+                iterations[k], residual[k] = _newton(
+                    base[g], plat[g], work[5], R[k], t[k], tol_mm, max_iterations, work
+                )
+                if residual[k] <= tol_mm and _within_a_step(R[k - 1], t[k - 1], R[k], t[k]):
+                    continue
+            _level_guess(base[g], plat[g], work[5], R[k], t[k])
+        iterations[k], residual[k] = _newton(base[g], plat[g], work[5], R[k], t[k], tol_mm, max_iterations, work)
 
 
 @njit(entry=(RO_2, RO_2, RO_1, F8_1, F8_2, F8_1, BOOL, FLOAT, INT), **_JIT)

@@ -124,6 +124,7 @@ def forward_kinematics(
     tol_mm: float = FK_TOLERANCE_MM,
     max_iterations: int = FK_MAX_ITERATIONS,
     strict: bool = True,
+    along: bool = False,
 ) -> FKSolution:
     """Forward kinematics by Newton–Raphson on the leg lengths (paper §3.2, step 1).
 
@@ -143,6 +144,9 @@ def forward_kinematics(
         tol_mm: convergence tolerance on max |length residual| [mm].
         max_iterations: iteration cap.
         strict: raise :class:`FKError` if any pose fails; otherwise report it in ``converged``.
+        along: ``strokes (N, 6)`` are a log's samples in order: each pose after the first starts
+            from the one before where that converged (~3 Newton steps against ~5 from the level guess;
+            within FK's tolerance of the same solutions, see :func:`stewart_calib._kernels.fk_newton`).
     Raises:
         FKError: lengths unreachable (no pose fits them) or no convergence within the cap.
     """
@@ -160,6 +164,7 @@ def forward_kinematics(
         tol_mm,
         max_iterations,
         strict,
+        along,
     )
 
 
@@ -208,7 +213,7 @@ def forward_kinematics_per_pose(
 
 
 def _newton_fk(
-    base, plat, lengths, strokes: np.ndarray, guess, tol_mm: float, max_iterations: int, strict: bool
+    base, plat, lengths, strokes: np.ndarray, guess, tol_mm: float, max_iterations: int, strict: bool, along=False
 ) -> FKSolution:
     """The FK entry points' one body: ``base, plat, lengths`` read-only C ``(G, 6, 3), (G, 6, 3),
     (G, 6)`` with ``G`` 1 or the flat batch size, ``strokes`` C ``(..., 6)``."""
@@ -219,7 +224,9 @@ def _newton_fk(
     R, t = R_start.reshape(-1, 3, 3), t_start.reshape(-1, 3)
     iterations = np.empty(len(flat), dtype=np.int64)
     residual = np.empty(len(flat))
-    _kernels.fk_newton(base, plat, lengths, flat, R, t, float(tol_mm), int(max_iterations), iterations, residual)
+    _kernels.fk_newton(
+        base, plat, lengths, flat, R, t, float(tol_mm), int(max_iterations), bool(along), iterations, residual
+    )
 
     # The compiled check first: `residual <= tol_mm` and `.all()` cost a sizeable share of a solve.
     if _kernels.all_within(residual, -np.inf, float(tol_mm)):

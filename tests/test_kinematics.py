@@ -160,6 +160,28 @@ def test_tracker_reading_residuals_are_batch_fk_and_ik():
         )
 
 
+def test_fk_along_a_log_is_the_batch_fk():
+    # each pose from the one before (a log in order), cold after a sample that does not converge and after
+    # a jump: the level-guess batch's solutions, to what FK's tolerance leaves open, and the same failures
+    platform = nim_stewart()
+    rng = np.random.default_rng(4)
+    path = np.cumsum(rng.normal(0.0, 0.3, (300, 6)), axis=0) * np.array([1.0, 1.0, 1.0, 1e-3, 1e-3, 1e-3])
+    poses = np.asarray(WS.home) + path
+    poses[150] = random_poses(platform, 1, rng)[0]  # a jump across the workspace and back
+    R, t = kin.pose_to_rt(poses)
+    readings = kin.inverse_kinematics(platform.tracker, R, t)
+    readings[100, 0] += 3000.0  # one leg 3 m longer than the rest
+    readings[200, 2] = np.nan
+    along = kin.forward_kinematics(platform.tracker, readings, strict=False, along=True)
+    batch = kin.forward_kinematics(platform.tracker, readings, strict=False)
+    assert np.array_equal(along.converged, batch.converged) and not along.converged[[100, 200]].any()
+    ok = batch.converged
+    # lengths within 1e-9 mm; the pose within the leg Jacobian's inverse of that (a few here)
+    assert np.abs(along.t - batch.t)[ok].max() <= 1e-7
+    assert np.abs(along.R - batch.R)[ok].max() <= 1e-10
+    assert along.iterations[ok].mean() < batch.iterations[ok].mean()
+
+
 def test_fk_refuses_inconsistent_lengths():
     legs = PLATFORM.drive
     strokes = kin.inverse_kinematics(legs, *kin.pose_to_rt(WS.home))

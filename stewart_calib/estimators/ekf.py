@@ -200,7 +200,8 @@ class LegEKF:
         if self.drive.elastic is None:
             inputs = self.drive.inputs(strokes)
         else:  # the forces at the tracker's poses and the state's geometry, as update() takes them
-            fk = kin.forward_kinematics(leg_set.legs, np.where(plain[:, None], readings, 0.0), strict=False)
+            # the block's samples in order: each FK from the sample before (~3 Newton steps, not ~5)
+            fk = kin.forward_kinematics(leg_set.legs, np.where(plain[:, None], readings, 0.0), strict=False, along=True)
             plain &= fk.converged
             R, t = fk.R[plain], fk.t[plain]
             payload = None if block.load_kg is None else np.asarray(block.load_kg, dtype=float)[plain]
