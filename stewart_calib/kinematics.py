@@ -26,7 +26,7 @@ import numpy as np
 
 from . import _kernels
 from .errors import CalibError, SampleRejected
-from .platform import N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, vector_to_params
+from .platform import N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, vector_to_params
 from .rotations import (  # noqa: F401 -- the pose algebra is part of the kinematics API
     pose_error,
     pose_to_rt,
@@ -466,7 +466,7 @@ def tracker_reading_residuals(
     residuals, fk_residual = np.empty((len(drives),) + readings.shape), np.empty((len(drives), len(readings)))
     u = np.array(inputs, dtype=float)  # a copy: a settling drive's force columns are written into it
     if terms is None:  # the inputs are the extensions: one term of gain 1
-        terms = (np.zeros(1, dtype=np.int64), np.ones(1), np.ones((len(drives), 1, N_LEGS)))
+        terms = (np.zeros(1, dtype=np.int64), np.ones(1), np.ones((len(drives), 1, len(drives[0].initial_lengths))))
     if load is None:
         load = (-1, np.empty((len(readings), 0)), np.empty((0, 3)), np.ones(len(drives)), 0, 0.0)
     force_start, weights, centres, radii, passes, settled_mm = load
