@@ -6,7 +6,8 @@ unknown vector ``p_w`` per parameter window: the drive's ``x_drive`` (δM, paper
 Factors of sample k (all from :mod:`stewart_calib.factors`):
 
 * six drive-leg factors on ``(x_k, p_w)``: the drive model's ``‖t + R d_i − j_i‖ − (l_i + e_i)``,
-  σ_q (:mod:`stewart_calib.factors.drive_leg`, :mod:`stewart_calib.drive`);
+  σ_q (:mod:`stewart_calib.factors.drive_leg`, :mod:`stewart_calib.drive`); in ``isam2``'s graph
+  (``walk_in_windows``) widened by the walk from the window's first sample to sample k;
 * tight coupling: the instrument's factors (:mod:`stewart_calib.factors.instrument`), one per
   channel group of its model — for the tracker one per ruler, ``‖t + R h_i − z_i‖ − (ls_i + s_i)``, σ_s;
   loose coupling: one pose prior on ``x_k`` from the model's loose pose and its covariance
@@ -106,13 +107,16 @@ class GraphBuilder:
 
     Args:
         chain: start a new parameter variable every window (else one variable for the log).
+        walk_in_windows: each sample's drive-leg factors carry the walk from its window's variable
+            to the sample (:meth:`epoch`).
     """
 
-    def __init__(self, platform: Platform, config: EstimatorConfig, chain: bool):
+    def __init__(self, platform: Platform, config: EstimatorConfig, chain: bool, walk_in_windows: bool = False):
         self.platform = platform
         self.noise = config.noise
         self.graph = config.isam2
         self.chain = chain
+        self.walk_in_windows = chain and walk_in_windows
         self.model = instrument_model(platform, config.noise)
         self.drive = estimator_drive(platform, config.noise)
         self.layout: UnknownLayout = unknown_layout(platform, config.noise, self.model)
@@ -208,7 +212,10 @@ class GraphBuilder:
         that by a walk of variance ``q (t_last − t_start) / 3`` (the end of a walk less its mean
         over the span; ``q`` is ``walk_rate_mm2_per_s``, None: the configured rate). Small beside the
         parameters' σ, but not beside their best-determined combinations: left out, lm's NEES on a
-        drifting robot was 1.7× its degrees of freedom."""
+        drifting robot was 1.7× its degrees of freedom. With ``walk_in_windows`` the variable is the
+        parameters at the window's first sample, and the walk from it to the last sample, ``q T``,
+        bounds what this should add; the window's samples, though, say where the parameters were
+        over the window too, and ``q T / 3`` is kept (not measured against ``q T``)."""
         span = max(state.last_t_s - state.window_start_s, 0.0) if self.chain else 0.0
         rate = self.noise.random_walk_mm_per_sqrt_s**2 if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
         return np.diag(np.where(self._walks, rate * span / 3.0, 0.0))
@@ -240,6 +247,17 @@ class GraphBuilder:
                 divided by ``s²`` (the same optimum, covariance ``/ s²``).
             walk_rate_mm2_per_s: the walk's rate ``Q`` a new window's walk factor carries [mm²/s]
                 (None: the configured one).
+
+        With ``walk_in_windows``, ``noise_scale2`` and ``walk_rate_mm2_per_s`` are those of the window
+        the sample is in, and its drive-leg rows carry, besides the stroke noise, the walk from the
+        window's variable to the sample: the variable is the parameters at the window's first sample
+        (the walk factor spans the windows' first samples), the sample's are a walk of ``Q τ`` from
+        them (``τ`` its time since that sample), which adds ``H_w (Q τ / s²) H_wᵀ`` to the rows'
+        covariance (``H_w`` their Jacobian on the walking unknowns). Left out, the graph had σ too
+        narrow on a drifting robot unless its front end's noise scale took that walk for noise (one
+        pass from its start-up's scale, not solved to its fixed point as ekf's): the default
+        configuration on a robot drifting 3× faster than told, 0.3× the default noise, mean z² 2.06
+        (benchmarks/robustness.py's drift logs, three seeds), 1.75 with it and the settled scale.
         Raises:
             SampleRejected: non-finite data, time going backwards, or FK failure; nothing is
                 changed (the caller keeps ``state``).
@@ -298,7 +316,10 @@ class GraphBuilder:
             block, size = (None, 0) if self._instrument is None else (self._instrument, self.layout.size)
             for channels, noise, legs in self._factored_groups(z):
                 factors.add(instrument.factor(self.model, x, z, channels, noise, p, block, size, legs=legs))
+        walked = self._walk_since_window(sample.t_s - state.window_start_s, noise_scale2, walk_rate_mm2_per_s)
         for drive_legs, noise in self._drive_legs:
+            if walked > 0.0:
+                noise = self._walked_noise(drive_legs, pose.matrix(), inputs, walked)
             factors.add(drive_leg.factor(x, p, drive_legs, inputs, noise, sample.load_kg))
 
         # The current parameter key is re-stamped every update so the smoother never
@@ -306,6 +327,26 @@ class GraphBuilder:
         timestamps = {x: sample.t_s, p: sample.t_s}
         state = ChainState(k + 1, state.window, state.window_start_s, state.window_samples + 1, sample.t_s, (R, t))
         return Epoch(factors, values, timestamps, state)
+
+    def _walk_since_window(self, tau_s: float, noise_scale2: float, walk_rate_mm2_per_s: float | None) -> float:
+        """The walk's variance ``Q τ / s²`` [code units²] a sample ``tau_s`` after its window's first
+        sample carries in its drive-leg rows (0 without ``walk_in_windows``)."""
+        if not self.walk_in_windows or tau_s <= 0.0:
+            return 0.0
+        rate = self.noise.random_walk_mm_per_sqrt_s**2 if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
+        return rate * tau_s / noise_scale2
+
+    def _walked_noise(
+        self, drive_legs: drive_leg.DriveLegs, pose: np.ndarray, inputs: np.ndarray, walked: float
+    ) -> gtsam.noiseModel.Base:
+        """The noise of ``drive_legs``'s rows with a walk of variance ``walked`` from the window's variable."""
+        covariance = walked * drive_leg.walk_covariance(drive_legs, pose, self.initial, inputs, self._walks)
+        variances = np.diag(covariance) + self.noise.stroke_sigma_mm**2
+        # legs that share no walking unknown (δM's legs: each its own columns) stay independent rows
+        if np.count_nonzero(covariance - np.diag(np.diag(covariance))) == 0:
+            return robust_noise(diagonal_noise(np.sqrt(variances)), *self._robust)
+        covariance[np.diag_indices_from(covariance)] = variances
+        return robust_noise(gtsam.noiseModel.Gaussian.Covariance(covariance), *self._robust)
 
     def _factored_groups(self, z: np.ndarray) -> list[tuple[np.ndarray, gtsam.noiseModel.Base, np.ndarray | None]]:
         """The model's channel groups of ``z`` as factored (:meth:`_merged`), each with its noise

@@ -23,6 +23,7 @@ from .base import Refusals, state_array, update_each
 from .ekf import LegEKF
 from .graph import ChainState, GraphBuilder, first_paragraph, params_key
 from .measurement import HeldForRegistration, check_sample
+from .robust import WALK_RAISING
 
 #: samples between the front end's anchor states (see :meth:`ISAM2Estimator.update`): a gtsam
 #: failure replays at most this many front-end updates.
@@ -78,7 +79,9 @@ class ISAM2Estimator:
     marginalised seconds later with that linearisation (after large initial errors, an outside
     instrument's log at 1 Hz: 3–5 % worse on held-out data than the batch optimum,
     benchmarks/hobby.py). The graph keeps the configured measurement noise ``R0`` and takes
-    the walk in units of the scale ``s²`` the front end measures (``Q / s²``, :meth:`_walk_scale2`);
+    the walk in units of the scale ``s²`` the front end measures (``Q / s²``, :meth:`_window_walk`),
+    between its windows' variables and, in each sample's drive-leg rows, from its window's variable
+    to the sample (:meth:`GraphBuilder.epoch`);
     its marginal covariance times ``s²`` is so that of noise ``s² R0`` and walk ``Q``. When the
     front end recovers from a lock-out, the smoother restarts from the front end's recovered
     Gaussian, as after a gtsam failure.
@@ -91,7 +94,7 @@ class ISAM2Estimator:
     _replay: list[Sample]
 
     def __init__(self, platform: Platform, config: EstimatorConfig):
-        self._builder = GraphBuilder(platform, config, chain=True)
+        self._builder = GraphBuilder(platform, config, chain=True, walk_in_windows=True)
         # the graph has no payload node: the front end takes the payload as the log's load_kg too
         elastic = platform.elastic
         front_platform = (
@@ -105,13 +108,9 @@ class ISAM2Estimator:
                 config, ekf=dataclasses.replace(config.ekf, gate_probability=config.isam2.gate_probability)
             ),
         )
-        # The graph holds the parameters constant over each of its windows (graph.window_s): the walk
-        # within a window is not in its factors, and on a drifting robot only a noise scale that takes
-        # that walk for noise keeps its σ honest — the front end's one pass from the start-up's scale
-        # (which does), not the scale solved to its fixed point, which is right for the front end's own
-        # per-sample walk. Honesty grid, tracker, 10 seeds: in band 110 of 120, 102 with the settled
-        # scale (drifting at 0.2× noise 19 → 11 of 20, NEES/dof 1.5–2.3: σ too narrow).
-        self._front.robust.settle_scale = False
+        # The front end lowers the walk rate only where the window differences reject the configured
+        # one at the same 5 % as it raises it (see _window_walk).
+        self._front.robust.walk_lowering = WALK_RAISING
         self._pending: list[Sample] = []  # start-up samples the front end has not yet decided on
         #: ``{t_s: (s², q)}``: the noise scale and walk rate [mm²/s] of the walk factor each buffered
         #: window opened with (_window_walk)
@@ -335,7 +334,7 @@ class ISAM2Estimator:
             kept = [s for s, outlier in zip(self._pending, front.startup_outliers, strict=True) if not outlier]
             self._pending = []
             x, P = front.startup_gaussian(front.noise_scale2)
-            P = P / front.noise_scale2  # in the graph's units (see _walk_scale2)
+            P = P / front.noise_scale2  # in the graph's units (see _window_walk)
             state = ChainState(
                 samples=len(kept), window_start_s=kept[-1].t_s, window_samples=len(kept), last_t_s=kept[-1].t_s
             )
@@ -379,30 +378,33 @@ class ISAM2Estimator:
         self._trim(sample.t_s)
 
     def _window_walk(self, state: ChainState, sample: Sample) -> tuple[float, float | None]:
-        """The measurement scale ``s²`` and the walk rate ``q`` [mm²/s] a window that ``sample`` opens
-        carries its walk factor at: the front end's right after that sample where the window is new
-        (however far the front end has run ahead), the ones it had where a rebuild replays it (so a
-        replay builds the factors of the uninterrupted run); ``(1, None)`` for a sample that opens none.
+        """The measurement scale ``s²`` and the walk rate ``q`` [mm²/s] of the window ``sample`` is in
+        (the walk factor of a window it opens, the walk from the window's first sample to it in its
+        drive-leg rows; :meth:`GraphBuilder.epoch`): the front end's right after the window's first
+        sample where the window is new (however far the front end has run ahead), the ones it had
+        where a rebuild replays it (so a replay builds the factors of the uninterrupted run).
 
-        The rate is the one the front end measures where it is above the configured one (with noise
-        adaptation; the configured one without): at the configured rate, the graph's error bars on a
-        robot drifting 3× faster were 1.3–1.9× too narrow (mean z² 1.7–3.7, 300-sample tracker logs,
-        the default configuration, benchmarks/robustness.py's drift logs), where ``ekf``'s z² was
-        0.97–1.33. Not below it: over the few windows of a short log the front end's rate is noisy,
-        and where the windows barely determine a direction it falls to its floor; taken as it was,
-        isam2's NEES on the honesty study's drifting cells at 0.2× noise rose from 0.99 to 1.77× its
-        degrees of freedom.
+        The rate is the one the front end measures (with noise adaptation; the configured one
+        without), above the configured one or below it. Above: at the configured rate, the graph's
+        error bars on a robot drifting 3× faster were 1.3–1.9× too narrow (mean z² 1.7–3.7, 300-sample
+        tracker logs, the default configuration, benchmarks/robustness.py's drift logs). Below: with
+        the walk in every sample's rows, the configured rate on a robot drifting 3× slower widened
+        the rows of a precise instrument far beyond its noise (0.3× the default: mean z² 0.27,
+        σ ~2× too wide). The front end lowers the rate only where the window differences reject the
+        configured one at 5 % (``RobustFilter.walk_lowering``), not its own 20 %: over the few
+        windows of a short log its rate is noisy and, lowered at 20 %, isam2's NEES on the honesty
+        study's drifting tracker cells (the walk matched) left the band in 6 of 60 runs (2 on main).
 
         The graph's factors keep the configured measurement noise ``R0`` and the walk goes in as
         ``Q / s²`` (:meth:`GraphBuilder.epoch`), so that ``s²`` × the marginal is the covariance of
         noise ``s² R0`` and walk ``Q``. Scaling the marginal of a graph of ``R0`` and ``Q`` by ``s²``
         scaled the walk's share too: on a drifting robot with the readings 0.2× / 5× the configured
         noise, its NEES was 2.5–4.7× / 0.5–0.8× its degrees of freedom (sweep configs/sweeps/honesty.toml)."""
-        if not self._builder.new_window(state, sample.t_s):
-            return 1.0, None
+        opens = state.samples == 0 or self._builder.new_window(state, sample.t_s)
+        start = sample.t_s if opens else state.window_start_s
         front = self._front.robust
-        rate = max(front.walk_rate_at(sample.t_s), self._builder.noise.random_walk_mm_per_sqrt_s**2)
-        return self._window_scales.setdefault(sample.t_s, (front.noise_scale2_at(sample.t_s), rate))
+        rate = front.walk_rate_at(start)
+        return self._window_scales.setdefault(start, (front.noise_scale2_at(start), rate))
 
     def _window_snapshot(self, t_s: float) -> _Snapshot | None:
         """The current window's :class:`_Snapshot` where a sample at ``t_s`` opens the next, else None."""

@@ -139,8 +139,8 @@ class RobustFilter:
         walk_rate_mm2_per_s: the random walk's variance rate in use [mm²/s].
         recoveries: lock-outs recovered from.
         steps: steps of the ``step`` unknown taken.
-        settle_scale: a window's noise scale is solved to its fixed point (see
-            :meth:`_measured_scale`); False: one pass from the scale in use (isam2's front end).
+        walk_lowering: the probability at which the window differences reject a rate as too large
+            (:meth:`_pooled_walk_rate`; :data:`WALK_REJECTION`, isam2's front end :data:`WALK_RAISING`).
     """
 
     def __init__(
@@ -182,7 +182,7 @@ class RobustFilter:
         self._gate_on = gate_probability > 0.0
         self.noise_scale2 = 1.0
         self.walk_rate_mm2_per_s = self._configured_walk
-        self.settle_scale = True
+        self.walk_lowering = WALK_REJECTION
         # (time of the sample after which they held, s², walk rate): see noise_scale2_at, walk_rate_at
         self._scale_history: deque = deque([(-math.inf, 1.0, self.walk_rate_mm2_per_s)], maxlen=SCALE_HISTORY)
         self.recoveries = 0
@@ -662,7 +662,7 @@ class RobustFilter:
         (:meth:`_walk_pooled`): no pass more where the scale moves within the tolerance (the last pass's
         ``(x, P)`` stands)."""
         scale2 = self.noise_scale2
-        for _ in range(SCALE_ITERATIONS if self.settle_scale else 1):
+        for _ in range(SCALE_ITERATIONS):
             # (scale of the pass × observed, expected): their ratio is the scale the window says
             observed, expected = self._pass_components
             self._scale_sums = remembered + [scale2 * observed, expected]
@@ -707,7 +707,7 @@ class RobustFilter:
         """The configured rate ``q₀`` [mm²/s] unless the window differences reject it, and then the
         rate nearest to it they do not reject: ``f(q) = Σ_w Σ_i p_wi / (λ_wi + q T_w)`` is χ² with
         ``n × windows`` degrees of freedom at the true rate, and a rate is rejected where ``f`` falls
-        below the χ²'s :data:`WALK_REJECTION` quantile (the differences are too small for it) or
+        below the χ²'s ``walk_lowering`` quantile (the differences are too small for it) or
         above its ``1 −`` :data:`WALK_RAISING` quantile (too large); each bound is a root of
         :func:`_walk_rate_root`. Over a few windows most directions move less than their own σ, and
         the plain root of ``f = n × windows`` is 0 about half the time whatever the walk: a filter
@@ -728,7 +728,7 @@ class RobustFilter:
         # f decreases in q: the lowest rate not rejected as too small for the differences is the root at
         # the upper quantile, the highest not rejected as too large the root at the lower one
         lowest = _walk_rate_root(lam, p, T, chdtri(dof, WALK_RAISING))
-        highest = _walk_rate_root(lam, p, T, chdtri(dof, 1.0 - WALK_REJECTION))
+        highest = _walk_rate_root(lam, p, T, chdtri(dof, 1.0 - self.walk_lowering))
         return min(max(self._configured_walk, lowest), highest)
 
     # ------------------------------------------------------------------ lock-out

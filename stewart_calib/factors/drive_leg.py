@@ -94,6 +94,15 @@ def _error(
     return r
 
 
+def walk_covariance(legs: DriveLegs, pose: np.ndarray, unknowns: np.ndarray, inputs: np.ndarray, walks: np.ndarray):
+    """``H_w H_wᵀ`` ``(k, k)``: the rows' covariance per unit walk variance of the unknowns ``walks``
+    (bool, ``(size,)``), ``H_w`` the rows' Jacobian on them at ``pose`` (``(4, 4)``) and ``unknowns``
+    (for δM each leg's own ``[−nᵀ, n_bᵀ, −1]``: 3 on the diagonal, whatever the pose)."""
+    _, _, H = drive_leg_rows(pose, unknowns, legs.legs, legs.nominal, legs.columns, legs.terms, inputs)
+    H_walk = H[:, walks]
+    return H_walk @ H_walk.T
+
+
 def factor(
     pose_key: int,
     params_key: int,
