@@ -137,7 +137,12 @@ def test_isam2_tracks_a_parameter_step(platform):
     # One-sided on purpose: the truth is a step, not the random walk the filter assumes; the
     # walk's covariance over-bounds a settled step, so only "not optimistic" is a claim.
     assert _nees(tracking, after) <= NEES_BOUND
-    assert _rms(tracking.error - after) <= 0.3 * _rms(after - before)
+    # Tracking, not the exact value: with this walk (0.01 mm/√s, 10× the stroke noise a second) the
+    # walk model's own posterior is half the step wide — ekf, the filter of that model sample by
+    # sample, measured an error 0.31× the step's RMS and σ 0.46× it. isam2 measured 0.34× (0.22×
+    # before each sample's rows carried the walk within its window: its σ then narrower than the
+    # walk model's posterior).
+    assert _rms(tracking.error - after) <= 0.5 * _rms(after - before)
     # The same log without a random walk cannot follow the step: the check has teeth.
     static = _run("isam2", platform, _config(lag_s=2.0), log).estimate()
     assert _nees(static, after) > 100 * NEES_BOUND
