@@ -194,13 +194,17 @@ class GraphBuilder:
         self._new_variable(factors, key)
         return factors
 
+    def _walk_rate(self, walk_rate_mm2_per_s: float | None) -> float:
+        """The walk's rate [mm²/s]: ``walk_rate_mm2_per_s``, or the configured one where it is None."""
+        return self.noise.random_walk_mm_per_sqrt_s**2 if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
+
     def walk_factor(
         self, window: int, dt_s: float, noise_scale2: float = 1.0, walk_rate_mm2_per_s: float | None = None
     ) -> gtsam.BetweenFactorVector:
         """The walk from parameter variable ``window`` to the next over ``dt_s`` [s] at the rate
         ``walk_rate_mm2_per_s`` (None: the configured one), in units of the measurement scale
         ``noise_scale2`` (see :meth:`epoch`); the first factor of the epoch that opens the window."""
-        rate = self.noise.random_walk_mm_per_sqrt_s**2 if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
+        rate = self._walk_rate(walk_rate_mm2_per_s)
         sigma = random_walk.sigma_mm(math.sqrt(rate / noise_scale2), dt_s, self.graph.chain_sigma_floor_mm)
         sigmas = np.where(self._walks, sigma, self.graph.chain_sigma_floor_mm)
         return random_walk.factor(params_key(window), params_key(window + 1), sigmas)
@@ -220,8 +224,7 @@ class GraphBuilder:
         tracker cells the same runs in band (108 of 120), the term small beside the σ of most
         parameters."""
         span = max(state.last_t_s - state.window_start_s, 0.0) if self.chain else 0.0
-        rate = self.noise.random_walk_mm_per_sqrt_s**2 if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
-        return np.diag(np.where(self._walks, rate * span / 3.0, 0.0))
+        return np.diag(np.where(self._walks, self._walk_rate(walk_rate_mm2_per_s) * span / 3.0, 0.0))
 
     def new_window(self, state: ChainState, t_s: float) -> bool:
         """Whether ``sample`` at ``t_s`` opens a new parameter variable after ``state``."""
@@ -336,8 +339,7 @@ class GraphBuilder:
         sample carries in its drive-leg rows (0 without ``walk_in_windows``)."""
         if not self.walk_in_windows or tau_s <= 0.0:
             return 0.0
-        rate = self.noise.random_walk_mm_per_sqrt_s**2 if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
-        return rate * tau_s / noise_scale2
+        return self._walk_rate(walk_rate_mm2_per_s) * tau_s / noise_scale2
 
     def _walked_noise(
         self, drive_legs: drive_leg.DriveLegs, pose: np.ndarray, inputs: np.ndarray, walked: float
