@@ -57,6 +57,21 @@ def test_ekf_holds_samples_until_it_can_register_and_checkpoints_them():
     assert first.estimate().samples_used == 30
 
 
+def test_the_held_samples_keep_their_payload_through_a_checkpoint():
+    """A held sample is replayed after registration as it was logged: with its ``load_kg`` (the
+    elastic drive's forces), also when the holding estimator was checkpointed and resumed."""
+    from dataclasses import replace
+
+    case = make_case(hobby(), 30, 302, POSE_TRUTH)
+    held = [replace(sample, load_kg=float(k)) for k, sample in enumerate(list(case.log)[: REGISTRATION_SAMPLES - 1])]
+    first = make_estimator("ekf", case.platform, _config())
+    for sample in held:
+        first.update(sample)
+    resumed = make_estimator("ekf", case.platform, _config())
+    resumed.import_state(first.export_state())
+    assert [s.load_kg for s in resumed._held.samples] == [s.load_kg for s in held]
+
+
 def _distance2(estimate, optimum, platform) -> tuple[float, int]:
     """``(Δᵀ P⁺ Δ, free directions)``: the estimate's distance from the batch optimum in the
     optimum's covariance ``P``, over the directions the gauge ``C x = 0`` leaves free."""

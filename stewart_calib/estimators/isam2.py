@@ -22,7 +22,7 @@ from ..samples import Log, Sample
 from .base import Refusals, state_array, update_each
 from .ekf import LegEKF
 from .graph import ChainState, GraphBuilder, first_paragraph, params_key
-from .measurement import HeldForRegistration, check_sample
+from .measurement import HeldForRegistration, check_sample, samples_from_arrays, samples_to_arrays
 from .robust import WALK_RAISING
 
 #: samples between the front end's anchor states (see :meth:`ISAM2Estimator.update`): a gtsam
@@ -522,7 +522,7 @@ class ISAM2Estimator:
         samples = self._replay
         state: dict[str, object] = {
             "chain": _chain_to_dict(self._state),
-            "replay": _samples_to_dict(samples, self._builder.drive.rows, len(self._builder.model.columns)),
+            "replay": samples_to_arrays(samples, self._builder.drive.rows, len(self._builder.model.columns)),
         }
         walks = np.array(list(self._window_scales.values()), dtype=float).reshape(-1, 2)
         state["window_scales"] = {
@@ -542,7 +542,7 @@ class ISAM2Estimator:
         else:
             state["initial"] = self._builder.initial.copy()  # where the unknown vector started
         state["front"] = self._front.export_state()
-        state["pending"] = _samples_to_dict(self._pending, self._builder.drive.rows, len(self._builder.model.columns))
+        state["pending"] = samples_to_arrays(self._pending, self._builder.drive.rows, len(self._builder.model.columns))
         return state
 
     def import_state(self, state: dict) -> None:
@@ -559,12 +559,12 @@ class ISAM2Estimator:
             return
         if "initial" in state:
             self._builder.initial = state_array(state, "initial", (self._builder.layout.size,))
-        replayed = _samples_from_dict(
+        replayed = samples_from_arrays(
             state.get("replay", {}), self._builder.drive.rows, len(self._builder.model.columns)
         )
         target = _chain_from_dict(state.get("chain", {}))
         self._front.import_state(state.get("front", {}))
-        self._pending = _samples_from_dict(
+        self._pending = samples_from_arrays(
             state.get("pending", {}), self._builder.drive.rows, len(self._builder.model.columns)
         )
         first = None
@@ -602,29 +602,6 @@ class ISAM2Estimator:
             target.last_t_s,
         ):
             raise CalibError("estimator state: the replay does not end where the saved chain did")
-
-
-def _samples_to_dict(samples: list[Sample], n_legs: int, n_columns: int) -> dict[str, np.ndarray]:
-    """Samples as arrays for a checkpoint (``n_legs`` strokes, ``n_columns`` readings each); ``load_kg``
-    NaN where a sample has no payload."""
-    return {
-        "t_s": np.array([s.t_s for s in samples], dtype=float),
-        "strokes": np.array([s.strokes for s in samples], dtype=float).reshape(-1, n_legs),
-        "readings": np.array([s.readings for s in samples], dtype=float).reshape(len(samples), n_columns),
-        "load_kg": np.array([np.nan if s.load_kg is None else s.load_kg for s in samples], dtype=float),
-    }
-
-
-def _samples_from_dict(arrays: dict, n_legs: int, n_columns: int) -> list[Sample]:
-    """:func:`_samples_to_dict` back; a checkpoint of before ``load_kg`` was kept has no payloads."""
-    t_s = state_array(arrays, "t_s", np.shape(arrays.get("t_s", ())))
-    strokes = state_array(arrays, "strokes", (len(t_s), n_legs))
-    readings = state_array(arrays, "readings", (len(t_s), n_columns))
-    load_kg = state_array(arrays, "load_kg", (len(t_s),)) if "load_kg" in arrays else np.full(len(t_s), np.nan)
-    return [
-        Sample(float(t_s[k]), strokes[k], readings[k], load_kg=None if np.isnan(load_kg[k]) else float(load_kg[k]))
-        for k in range(len(t_s))
-    ]
 
 
 @dataclass(frozen=True)

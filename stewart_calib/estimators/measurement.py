@@ -345,13 +345,7 @@ class HeldForRegistration:
 
     def export_state(self) -> dict:
         """The held samples as arrays, while holding (a checkpoint without them has ended holding)."""
-        return {
-            "t_s": np.array([s.t_s for s in self.samples], dtype=float),
-            "strokes": np.array([s.strokes for s in self.samples], dtype=float).reshape(-1, self._args[0].drive.n_legs),
-            "readings": np.array([s.readings for s in self.samples], dtype=float).reshape(
-                len(self.samples), len(self._args[2].columns)
-            ),
-        }
+        return samples_to_arrays(self.samples, self._args[0].drive.n_legs, len(self._args[2].columns))
 
     def restore(self, state: dict, update) -> None:
         """Restore a checkpoint's ``state`` of the estimator: its ``"held"`` samples are held again
@@ -359,12 +353,31 @@ class HeldForRegistration:
         if "held" not in state:
             self.active = False
             return
-        held = state["held"]
-        t_s = state_array(held, "t_s", np.shape(held.get("t_s", ())))
-        strokes = state_array(held, "strokes", (len(t_s), self._args[0].drive.n_legs))
-        readings = state_array(held, "readings", (len(t_s), len(self._args[2].columns)))
-        for k in range(len(t_s)):
-            update(Sample(float(t_s[k]), strokes[k], readings[k]))
+        for sample in samples_from_arrays(state["held"], self._args[0].drive.n_legs, len(self._args[2].columns)):
+            update(sample)
+
+
+def samples_to_arrays(samples: list[Sample], n_legs: int, n_columns: int) -> dict[str, np.ndarray]:
+    """Samples as arrays for a checkpoint (the samples an online method holds, has pending or replays):
+    ``n_legs`` strokes and ``n_columns`` readings each; ``load_kg`` NaN where a sample has no payload."""
+    return {
+        "t_s": np.array([s.t_s for s in samples], dtype=float),
+        "strokes": np.array([s.strokes for s in samples], dtype=float).reshape(-1, n_legs),
+        "readings": np.array([s.readings for s in samples], dtype=float).reshape(len(samples), n_columns),
+        "load_kg": np.array([np.nan if s.load_kg is None else s.load_kg for s in samples], dtype=float),
+    }
+
+
+def samples_from_arrays(arrays: dict, n_legs: int, n_columns: int) -> list[Sample]:
+    """:func:`samples_to_arrays` back; a checkpoint of before ``load_kg`` was kept has no payloads."""
+    t_s = state_array(arrays, "t_s", np.shape(arrays.get("t_s", ())))
+    strokes = state_array(arrays, "strokes", (len(t_s), n_legs))
+    readings = state_array(arrays, "readings", (len(t_s), n_columns))
+    load_kg = state_array(arrays, "load_kg", (len(t_s),)) if "load_kg" in arrays else np.full(len(t_s), np.nan)
+    return [
+        Sample(float(t_s[k]), strokes[k], readings[k], load_kg=None if np.isnan(load_kg[k]) else float(load_kg[k]))
+        for k in range(len(t_s))
+    ]
 
 
 def drive_only_model(
