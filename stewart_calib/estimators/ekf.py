@@ -34,7 +34,11 @@ The recursion is a :class:`~stewart_calib.estimators.robust.RobustFilter` (robus
 χ² gate with lock-out recovery, measurement and random-walk noise from the data, ``[robust]``);
 its observation at a state is the loose one above, or the tight one where the measurement fixes
 no pose there. A prepared sample is its drive inputs and the instrument's measurement, so the
-start-up batch can relinearise it at any state.
+start-up batch can relinearise it at any state. After the start-up each sample is linearised once, at
+the state before it: relinearised at its own posterior (an iterated update, measured on the simulated
+hobby hexapod with ``[elastic]``) it moved nothing held out, at 1.7–2.0× the CPU a sample on a pose
+instrument; what keeps the filter off the batch optimum there is the earlier samples' linearisation,
+which only a smoother revisits (BENCHMARKS.md, "The real data's stand-in").
 
 An unannounced payload (``[elastic] payload_sigma_kg`` > 0, spec §10): the payload mass ``m``
 [kg] at ``[elastic] payload_com_mm`` on top of each sample's ``load_kg`` (0 where the log has
