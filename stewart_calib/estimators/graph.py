@@ -18,6 +18,14 @@ Factors of sample k (all from :mod:`stewart_calib.factors`):
   N(0, diag(σ²)) (``prior_sigma_mm`` on δM, each block's own); where a block shares the drive's
   gauge, the constraint ``C p_w = 0`` on every ``p_w`` (:mod:`stewart_calib.factors.gauge`).
 
+An unannounced payload (``[elastic] payload_sigma_kg`` > 0, ``isam2`` only): the payload mass ``m``
+[kg] is the unknown vector's last entry, as in ekf's state (``isam2`` takes its front end's layout),
+and enters each drive-leg factor (:mod:`stewart_calib.factors.drive_leg`). Between windows it is
+tied by the floor σ alone, so it averages over the samples; a sample the front end takes as a step
+of it (:attr:`GraphBuilder.steps`) opens a new window whose walk factor lets ``m`` move by the prior's
+σ_m, so the step moves ``m`` at the sample it happens (the front end's value after the step its
+initial value), not δM over tens of samples.
+
 Measurement factors may carry a Huber or Cauchy kernel (``[isam2] robust``). The initial value
 of ``x_k`` is the instrument's loose pose (the tracker's FK) warm-started from the previous
 sample's pose, or the drive model's FK where the measurement does not fix a pose.
@@ -38,6 +46,7 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..config import EstimatorConfig
+from ..drive import PAYLOAD
 from ..errors import SampleRejected
 from ..estimate import Estimate
 from ..factors import diagonal_noise, drive_leg, gauge, instrument, instrument_pose, random_walk
@@ -109,9 +118,22 @@ class GraphBuilder:
         chain: start a new parameter variable every window (else one variable for the log).
         walk_in_windows: each sample's drive-leg factors carry the walk from its window's variable
             to the sample (:meth:`epoch`).
+        layout: the unknown vector (None: :func:`~.measurement.unknown_layout`'s); ``isam2`` passes its
+            front end's, which may end with an unannounced payload (see the module docstring).
+
+    Attributes:
+        steps: ``{t_s [s]: m [kg]}``: the samples (by time) that open a window as a step of the
+            unannounced payload, with the payload's initial value there (the caller keeps it).
     """
 
-    def __init__(self, platform: Platform, config: EstimatorConfig, chain: bool, walk_in_windows: bool = False):
+    def __init__(
+        self,
+        platform: Platform,
+        config: EstimatorConfig,
+        chain: bool,
+        walk_in_windows: bool = False,
+        layout: UnknownLayout | None = None,
+    ):
         self.platform = platform
         self.noise = config.noise
         self.graph = config.isam2
@@ -119,14 +141,17 @@ class GraphBuilder:
         self.walk_in_windows = chain and walk_in_windows
         self.model = instrument_model(platform, config.noise)
         self.drive = estimator_drive(platform, config.noise)
-        self.layout: UnknownLayout = unknown_layout(platform, config.noise, self.model)
+        self.layout: UnknownLayout = unknown_layout(platform, config.noise, self.model) if layout is None else layout
+        payload = self.layout.slice(PAYLOAD)
+        self._payload = None if payload is None else payload.start
+        self.steps: dict[float, float] = {}
         self._robust = (self.graph.robust, self.graph.robust_k)
         # Gaussian rows: one factor of the six legs (or of all the instrument's channels) is their
         # scalar factors exactly, at a sixth of the callbacks; a robust kernel weighs each alone.
         self._gaussian = self.graph.robust == "none"
         self._drive_legs = [
             (
-                drive_leg.DriveLegs.of(legs, self.drive),
+                drive_leg.DriveLegs.of(legs, self.drive, self._payload),
                 robust_noise(gtsam.noiseModel.Isotropic.Sigma(len(legs), self.noise.stroke_sigma_mm), *self._robust),
             )
             for legs in ([np.arange(self.drive.rows)] if self._gaussian else [[i] for i in range(self.drive.rows)])
@@ -199,14 +224,23 @@ class GraphBuilder:
         return self.noise.random_walk_mm_per_sqrt_s**2 if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
 
     def walk_factor(
-        self, window: int, dt_s: float, noise_scale2: float = 1.0, walk_rate_mm2_per_s: float | None = None
+        self,
+        window: int,
+        dt_s: float,
+        noise_scale2: float = 1.0,
+        walk_rate_mm2_per_s: float | None = None,
+        payload_step: bool = False,
     ) -> gtsam.BetweenFactorVector:
         """The walk from parameter variable ``window`` to the next over ``dt_s`` [s] at the rate
         ``walk_rate_mm2_per_s`` (None: the configured one), in units of the measurement scale
-        ``noise_scale2`` (see :meth:`epoch`); the first factor of the epoch that opens the window."""
+        ``noise_scale2`` (see :meth:`epoch`); the first factor of the epoch that opens the window.
+        With ``payload_step`` the unannounced payload steps by its prior's σ_m (as ekf adds σ_m² to
+        its process noise), else it is tied by the floor like every constant block."""
         rate = self._walk_rate(walk_rate_mm2_per_s)
         sigma = random_walk.sigma_mm(math.sqrt(rate / noise_scale2), dt_s, self.graph.chain_sigma_floor_mm)
         sigmas = np.where(self._walks, sigma, self.graph.chain_sigma_floor_mm)
+        if payload_step and self._payload is not None:
+            sigmas[self._payload] = self._prior_sigma[self._payload] / math.sqrt(noise_scale2)
         return random_walk.factor(params_key(window), params_key(window + 1), sigmas)
 
     def window_walk_covariance(self, state: ChainState, walk_rate_mm2_per_s: float | None = None) -> np.ndarray:
@@ -227,9 +261,12 @@ class GraphBuilder:
         return np.diag(np.where(self._walks, self._walk_rate(walk_rate_mm2_per_s) * span / 3.0, 0.0))
 
     def new_window(self, state: ChainState, t_s: float) -> bool:
-        """Whether ``sample`` at ``t_s`` opens a new parameter variable after ``state``."""
+        """Whether ``sample`` at ``t_s`` opens a new parameter variable after ``state`` (a window's
+        length, or a step of the unannounced payload, :attr:`steps`)."""
         if not self.chain or state.samples == 0:
             return False
+        if t_s in self.steps:
+            return True
         if self.graph.window_samples > 0:
             return state.window_samples >= self.graph.window_samples
         return t_s - state.window_start_s >= self.graph.window_s
@@ -309,8 +346,13 @@ class GraphBuilder:
             self._new_variable(factors, params_key(0))
         elif self.new_window(state, sample.t_s):
             w = state.window
+            step = self.steps.get(sample.t_s)
+            if step is not None:  # the payload starts from the front end's value after the step
+                guess = np.array(guess, dtype=float)
+                guess[self._payload] = step
             values.insert(params_key(w + 1), guess)  # type: ignore[arg-type]  # set: a new window is `wanted`
-            factors.add(self.walk_factor(w, sample.t_s - state.window_start_s, noise_scale2, walk_rate_mm2_per_s))
+            dt_s = sample.t_s - state.window_start_s
+            factors.add(self.walk_factor(w, dt_s, noise_scale2, walk_rate_mm2_per_s, step is not None))
             self._new_variable(factors, params_key(w + 1))
             state = replace(state, window=w + 1, window_start_s=sample.t_s, window_samples=0)
         p = params_key(state.window)

@@ -15,6 +15,7 @@ import gtsam
 import numpy as np
 
 from ..config import EstimatorConfig
+from ..drive import PAYLOAD
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..platform import Platform
@@ -85,6 +86,14 @@ class ISAM2Estimator:
     its marginal covariance times ``s²`` is so that of noise ``s² R0`` and walk ``Q``. When the
     front end recovers from a lock-out, the smoother restarts from the front end's recovered
     Gaussian, as after a gtsam failure.
+
+    An unannounced payload (``[elastic] payload_sigma_kg`` > 0, spec §10): the front end is ekf with
+    its payload state, and the graph takes its layout, the payload mass its last entry (:mod:`.graph`).
+    A sample the front end takes as a step of the payload (:class:`~.robust.RobustFilter`'s ``step``)
+    opens a parameter window whose walk factor lets the payload move by its prior σ, from the front
+    end's value after the step (:attr:`GraphBuilder.steps`, kept with the samples they open windows at
+    through trims, rebuilds and checkpoints), so the step moves the payload at the sample it happens;
+    the result carries the steps taken as ``"payload_steps"``, as ekf's.
     """
 
     name = "isam2"
@@ -94,20 +103,16 @@ class ISAM2Estimator:
     _replay: list[Sample]
 
     def __init__(self, platform: Platform, config: EstimatorConfig):
-        self._builder = GraphBuilder(platform, config, chain=True, walk_in_windows=True)
-        # the graph has no payload node: the front end takes the payload as the log's load_kg too
-        elastic = platform.elastic
-        front_platform = (
-            platform
-            if elastic is None
-            else dataclasses.replace(platform, elastic=dataclasses.replace(elastic, payload_sigma_kg=0.0))
-        )
         self._front = LegEKF(
-            front_platform,
+            platform,
             dataclasses.replace(
                 config, ekf=dataclasses.replace(config.ekf, gate_probability=config.isam2.gate_probability)
             ),
         )
+        # the front end's unknown vector, an unannounced payload included: the graph starts from its Gaussians
+        self._builder = GraphBuilder(platform, config, chain=True, walk_in_windows=True, layout=self._front.layout)
+        payload = self._front.layout.slice(PAYLOAD)
+        self._payload = None if payload is None else payload.start
         # The front end lowers the walk rate only where the window differences reject the configured
         # one at the same 5 % as it raises it (see _window_walk).
         self._front.robust.walk_lowering = WALK_RAISING
@@ -161,7 +166,7 @@ class ISAM2Estimator:
             self._front_anchor, self._front_since = self._front.export_state(), []
         self._front_since.append(sample)
         try:
-            self._front.update(sample)
+            self._front_update(sample)
         except SampleRejected:
             self._follow_front(started, recoveries)
             raise
@@ -216,9 +221,9 @@ class ISAM2Estimator:
         front = self._front.robust
         recoveries = front.recoveries
         anchor = self._front.export_state()
-        front_refused, front_late = self._front.update_block(run)
+        front_refused, front_late = self._front_block(run)
         if front.recoveries != recoveries or front_late:
-            self._front.import_state(anchor)
+            self._front_back_to(anchor, run.select(slice(0, 0)))
             return self._one_by_one(block, first, first + len(run), refused, late, errors_out)
         self._front_anchor, self._front_since = None, []  # update() anchors afresh
         rejected = dict(front_refused)
@@ -229,8 +234,7 @@ class ISAM2Estimator:
             refused += [(first + i, rejected[i]) for i in range(stop) if i in rejected]
             if failed is None:
                 return first + len(run)
-            self._front.import_state(anchor)
-            self._front.update_block(run.select(slice(0, stop)))
+            self._front_back_to(anchor, run.select(slice(0, stop)))
             refused.append((first + stop, failed[1]))
             return first + stop + 1
         for i in range(len(run)):
@@ -240,8 +244,7 @@ class ISAM2Estimator:
                 try:
                     self._add_or_reject(run[i])
                 except SampleRejected as err:
-                    self._front.import_state(anchor)
-                    self._front.update_block(run.select(slice(0, i)))
+                    self._front_back_to(anchor, run.select(slice(0, i)))
                     refused.append((first + i, err))
                     if errors_out is not None:
                         errors_out[first + i] = self.current_error()
@@ -249,6 +252,44 @@ class ISAM2Estimator:
             if errors_out is not None:
                 errors_out[first + i] = self.current_error()
         return first + len(run)
+
+    def _front_update(self, sample: Sample) -> None:
+        """The front end's ``update``, noting a step of the unannounced payload it takes at ``sample``."""
+        steps = self._front.robust.steps
+        self._front.update(sample)
+        self._note_step(sample, steps)
+
+    def _note_step(self, sample: Sample, steps_before: int) -> None:
+        """Where the front end took a payload step at ``sample`` (its count of steps moved from
+        ``steps_before``), the graph opens a window there with the payload it found (GraphBuilder.steps)."""
+        if self._front.robust.steps != steps_before:
+            self._builder.steps[sample.t_s] = float(self._front.filter.x[self._payload])
+
+    def _front_block(self, run: Log) -> tuple[Refusals, Refusals]:
+        """The front end over ``run`` (:meth:`LegEKF.update_block
+        <stewart_calib.estimators.ekf.LegEKF.update_block>`); with an unannounced payload, which it
+        takes one sample at a time anyway, sample by sample here so that its steps are noted."""
+        if self._payload is None:
+            return self._front.update_block(run)
+        refused: Refusals = []
+        late: Refusals = []
+        for i in range(len(run)):
+            steps = self._front.robust.steps
+            one = update_each(self._front, [run[i]], first=i)
+            self._note_step(run[i], steps)
+            refused += one[0]
+            late += one[1]
+        return refused, late
+
+    def _front_back_to(self, anchor: dict, since: Log) -> None:
+        """The front end back at its state ``anchor``, then ``since`` fed again; the payload steps it
+        noted on samples the graph does not hold are forgotten (those of ``since`` are noted again)."""
+        self._front.import_state(anchor)
+        self._forget_steps_after(self._state.last_t_s)
+        self._front_block(since)
+
+    def _forget_steps_after(self, t_s: float) -> None:
+        self._builder.steps = {t: kg for t, kg in self._builder.steps.items() if t <= t_s}
 
     def _add_in_windows(self, samples: list[Sample]) -> tuple[int, SampleRejected] | None:
         """``samples`` into the graph a parameter window at a time (:meth:`_add_window`); the
@@ -310,11 +351,12 @@ class ISAM2Estimator:
         if anchor is None:  # dropped by update_block, nothing fed since
             return
         self._front.import_state(anchor)
+        self._forget_steps_after(self._state.last_t_s)
         self._front_since = []
         for sample in replay:
             self._front_since.append(sample)
             try:
-                self._front.update(sample)
+                self._front_update(sample)
             except SampleRejected:
                 pass  # refused again, as the first time
 
@@ -431,6 +473,7 @@ class ISAM2Estimator:
         del self._replay[:cut]
         first_t = self._replay[0].t_s
         self._window_scales = {t: walk for t, walk in self._window_scales.items() if t >= first_t}
+        self._builder.steps = {t: kg for t, kg in self._builder.steps.items() if t >= first_t}
         self._snapshots = [replace(s, offset=s.offset - cut) for s in self._snapshots[newest:]]
 
     def _first_snapshot(self) -> _Snapshot | None:
@@ -454,10 +497,20 @@ class ISAM2Estimator:
 
     def estimate(self) -> Estimate:
         """δM of the current parameter variable and its 42×42 marginal covariance [mm²], scaled
-        by the measured noise (before the front end's start-up batch is decided: its estimate)."""
+        by the measured noise (before the front end's start-up batch is decided: its estimate);
+        with an unannounced payload, the steps of it taken as the result's ``"payload_steps"``."""
         if self._pending:
             front = self._front.estimate()
             return dataclasses.replace(front, method=self.name)
+        estimate = self._graph_estimate()
+        if self._payload is None:
+            return estimate
+        return dataclasses.replace(
+            estimate, details={**(estimate.details or {}), "payload_steps": self._front.robust.steps}
+        )
+
+    def _graph_estimate(self) -> Estimate:
+        """:meth:`estimate` from the graph (the front end's start-up decided)."""
         if self._state.samples == 0:
             return self._builder.prior_estimate(self.name)
         p = params_key(self._state.window)
@@ -537,6 +590,11 @@ class ISAM2Estimator:
                 "mean": first.mean,
                 "covariance": first.covariance,
             }
+        if self._payload is not None:  # the samples that open a window as a payload step, and its value there
+            state["payload_steps"] = {
+                "t_s": np.array(list(self._builder.steps), dtype=float),
+                "payload_kg": np.array(list(self._builder.steps.values()), dtype=float),
+            }
         if self._held.active:
             state["held"] = self._held.export_state()
         else:
@@ -592,6 +650,13 @@ class ISAM2Estimator:
         self._window_scales = {
             t: (a, q) for t, a, q in zip(scale_t_s.tolist(), scale2.tolist(), rate.tolist(), strict=True)
         }
+        if "payload_steps" in state:  # an unannounced payload's (see export_state)
+            steps = state["payload_steps"]
+            step_t_s = state_array(steps, "t_s", np.shape(steps.get("t_s", ())))
+            step_kg = state_array(steps, "payload_kg", (len(step_t_s),))
+            if not np.all(np.isfinite(step_kg)):
+                raise CalibError("estimator state: key 'payload_steps.payload_kg': expected finite masses")
+            self._builder.steps = dict(zip(step_t_s.tolist(), step_kg.tolist(), strict=True))
         try:
             self._rebuild(first, replayed)
         except SampleRejected as err:

@@ -18,6 +18,12 @@ kernel weighs a whole factor, so with one each leg gets a factor of its own.
 Jacobians, body tangent ``ξ = [ω, v]`` (GTSAM order): with ``n`` the unit leg vector and
 ``n_b = Rᵀ n``, ``∂r/∂ξ = [(d × n_b)ᵀ, n_bᵀ]`` and ``∂r/∂(j, d, l) = [−nᵀ, n_bᵀ, −1]``
 (the rows of paper eq. 8 in the leg-length form).
+
+An unannounced payload (``[elastic] payload_sigma_kg``, spec §10; ``isam2`` only): the payload mass
+``m`` [kg] is an entry of the unknown vector, and the leg forces are those under the sample's
+``load_kg`` plus ``m`` times the forces per kg at ``[elastic] payload_com_mm`` (they are linear in
+the masses), so ``∂r_i/∂m = −(∂e_i/∂f_i) f_{m,i} = c_i f_{m,i} / 1000`` — ekf's observation
+(:mod:`stewart_calib.estimators.ekf`), the forces' own change with the pose left out as above.
 """
 
 from __future__ import annotations
@@ -46,6 +52,8 @@ class DriveLegs:
             exact wherever the solver goes; the Jacobians leave out the forces' own derivatives
             (``c·∂f/∂ξ`` and ``c·∂f/∂M`` are ~1e-3 of the rows they would join, see
             tests/test_elastic.py), which slows no convergence measurably.
+        payload: the unannounced payload's column in the unknown vector (an elastic drive's, see the
+            module docstring), else None.
     """
 
     legs: np.ndarray
@@ -53,17 +61,19 @@ class DriveLegs:
     columns: np.ndarray
     terms: tuple
     elastic: DriveModel | None = None
+    payload: int | None = None
 
     @classmethod
-    def of(cls, legs, drive: DriveModel) -> DriveLegs:
-        """Legs ``legs`` of ``drive``, whose ``x_drive`` opens the unknown vector."""
+    def of(cls, legs, drive: DriveModel, payload: int | None = None) -> DriveLegs:
+        """Legs ``legs`` of ``drive``, whose ``x_drive`` opens the unknown vector (``payload``: the
+        unannounced payload's column in it, or None)."""
         legs = np.asarray(legs, dtype=np.int64).reshape(-1)
         params = drive.legs.params  # (legs, parameters of a leg): x_drive's first entries, leg by leg
         per_leg = params.shape[1]
         columns = per_leg * legs[:, None] + np.arange(per_leg)
         elastic = drive if drive.elastic is not None else None
         nominal = np.array(params[legs])
-        return cls(legs, nominal, np.ascontiguousarray(columns), drive.kernel_terms(), elastic)
+        return cls(legs, nominal, np.ascontiguousarray(columns), drive.kernel_terms(), elastic, payload)
 
 
 def _error(
@@ -77,8 +87,13 @@ def _error(
     H,
 ):
     pose, params = values.atPose3(pose_key).matrix(), values.atVector(params_key)
-    if legs.elastic is not None:  # the forces where this evaluation puts the platform and its legs
-        inputs = legs.elastic.inputs(inputs[: legs.elastic.rows], payload_kg, pose[:3, :3], pose[:3, 3], params)
+    elastic, dr_dm = legs.elastic, None
+    if elastic is not None:  # the forces where this evaluation puts the platform and its legs
+        inputs = elastic.inputs(inputs[: elastic.rows], payload_kg, pose[:3, :3], pose[:3, 3], params)
+        if legs.payload is not None:  # and the payload the unknown vector holds on top of payload_kg
+            per_kg = elastic.payload_leg_forces(pose[:3, :3], pose[:3, 3], params)
+            inputs = elastic.loaded_inputs(inputs, per_kg, float(params[legs.payload]))
+            dr_dm = -(elastic.force_gains(params) * per_kg)[legs.legs]
     r, H_pose, H_params = drive_leg_rows(
         pose,
         params,
@@ -89,6 +104,8 @@ def _error(
         inputs,
     )
     if H is not None:
+        if dr_dm is not None:
+            H_params[:, legs.payload] = dr_dm
         H[0] = H_pose
         H[1] = H_params
     return r
