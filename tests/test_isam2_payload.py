@@ -17,6 +17,7 @@ from stewart_calib import kinematics as kin
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.base import update_each
 from stewart_calib.factors import drive_leg
+from stewart_calib.io import result_dict
 from stewart_calib.platform import Elastic
 from tests.numdiff import numerical_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_error, random_poses
@@ -123,6 +124,8 @@ def test_isam2_finds_the_payload_ekf_finds_at_the_sample_of_each_step(check):
         found[sigma] = (isam2.estimate(), after)
     estimate, after = found[PAYLOAD_SIGMA_KG]
     assert estimate.details["payload_steps"] == 2
+    result = result_dict(estimate, _estimating(platform))  # the result file's keys, as ekf's
+    assert result["payload"]["names"] == ["payload_kg"] and result["payload_steps"] == 2
     assert abs(after[40] - 20.0) < 1.0 and abs(after[80] - 40.0) < 1.0, after
     assert max(after[k] for k in (50, 79, 90, len(samples) - 1)) < 5.0, after
     _, ignored = found[0.0]
