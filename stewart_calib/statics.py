@@ -28,6 +28,8 @@ initial length ``l_i`` does not enter the statics.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from ._jit import F8_1, F8_2, FLOAT, RO_2, RO_3, njit
@@ -43,12 +45,19 @@ GRAVITY_N_PER_KG = np.array([0.0, 0.0, -G_N_PER_KG])
 class SingularStatics(CalibError):
     """The statics matrix is singular at some pose: no leg forces balance the weight there.
 
-    ``index`` is the flat index of the first such pose in the batch (0 for a single pose).
+    ``index`` is the flat index of the first such pose in the batch (0 for a single pose), ``ratio``
+    its Hadamard ratio; :meth:`at` names the file and row a command read that pose from.
     """
 
-    def __init__(self, message: str, index: int):
+    def __init__(self, message: str, index: int, ratio: float = math.nan):
         super().__init__(message)
         self.index = index
+        self.ratio = ratio
+
+    def at(self, where: str, row: int, ratio: float) -> CalibError:
+        """The refusal of the pose of ``where`` (a file) at its 1-based line ``row``, of Hadamard ratio
+        ``ratio`` there, instead of a pose's index in a batch, which names nothing a user can find."""
+        return CalibError(f"{where}: row {row}: {_singular_reason(ratio)}")
 
 
 def gravity_wrench(R: np.ndarray, masses_kg: np.ndarray, coms_mm: np.ndarray) -> np.ndarray:
@@ -83,24 +92,33 @@ def moment_radius(legs: LegGeometry) -> float:
     return float(np.sqrt(np.mean(np.sum(legs.platform_joints**2, axis=-1)))) or 1.0
 
 
+def statics_ratios(legs: LegGeometry, statics: np.ndarray) -> np.ndarray:
+    """Hadamard's ratio ``|det| / Π‖column‖`` of statics matrices ``(..., 6, 6)``, their moment rows over
+    :func:`moment_radius`: 1 for orthogonal columns, 0 at a singular pose (:data:`SINGULAR_RATIO`)."""
+    scaled = np.array(statics, dtype=float)
+    scaled[..., 3:, :] /= moment_radius(legs)
+    return np.abs(np.linalg.det(scaled)) / np.prod(np.linalg.norm(scaled, axis=-2), axis=-1)
+
+
 def check_not_singular(legs: LegGeometry, statics: np.ndarray) -> None:
     """Refuse (:class:`SingularStatics`, one line) a batch of statics matrices ``(..., 6, 6)`` with
     a singular one (:data:`SINGULAR_RATIO`)."""
-    radius = moment_radius(legs)
-    scaled = np.array(statics, dtype=float)
-    scaled[..., 3:, :] /= radius
-    ratio = np.abs(np.linalg.det(scaled)) / np.prod(np.linalg.norm(scaled, axis=-2), axis=-1)
-    bad = np.flatnonzero(~(np.reshape(ratio, -1) >= SINGULAR_RATIO))
+    ratio = np.reshape(statics_ratios(legs, statics), -1)
+    bad = np.flatnonzero(~(ratio >= SINGULAR_RATIO))
     if bad.size:
         index = int(bad[0])
-        raise SingularStatics(_singular_message(index, float(np.reshape(ratio, -1)[index])), index)
+        raise SingularStatics(_singular_message(index, float(ratio[index])), index, float(ratio[index]))
+
+
+def _singular_reason(ratio: float) -> str:
+    return (
+        f"the statics matrix Aᵀ is singular (Hadamard ratio {ratio:.2g} < {SINGULAR_RATIO:g}): "
+        "no leg forces balance the weight there"
+    )
 
 
 def _singular_message(index: int, ratio: float) -> str:
-    return (
-        f"pose {index + 1}: the statics matrix Aᵀ is singular (Hadamard ratio {ratio:.2g} < {SINGULAR_RATIO:g}): "
-        "no leg forces balance the weight there"
-    )
+    return f"pose {index + 1}: {_singular_reason(ratio)}"
 
 
 def leg_forces(legs: LegGeometry, R: np.ndarray, t: np.ndarray, wrench: np.ndarray) -> np.ndarray:
@@ -137,7 +155,7 @@ def gravity_leg_forces(
     bad = np.flatnonzero(~(ratios >= SINGULAR_RATIO))
     if bad.size:
         index = int(bad[0])
-        raise SingularStatics(_singular_message(index, float(ratios[index])), index)
+        raise SingularStatics(_singular_message(index, float(ratios[index])), index, float(ratios[index]))
     return forces.reshape(*batch, 6)
 
 

@@ -179,7 +179,8 @@ def dispatch(args: argparse.Namespace) -> int:
         check_no_output_over_input(args)
         check_outputs_writable(args)
         return int(args.func(args) or 0)
-    except CalibError as err:  # names from files may hold line breaks or terminal escapes: shown escaped
+    except CalibError as refusal:  # names from files may hold line breaks or terminal escapes: shown escaped
+        err = _located(refusal, args)
         print(f"stewart-calib {args.command}: error: {shown(err)}", file=sys.stderr)
         return 2
     except OSError as err:  # the file system's refusals no check could foresee: full, read-only, I/O
@@ -202,6 +203,20 @@ def dispatch(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         print(f"stewart-calib {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+def _located(err: CalibError, args: argparse.Namespace) -> CalibError:
+    """A singular-statics refusal (spec §10) naming the row of the log or pose list it came from."""
+    from ..statics import SingularStatics
+
+    platform = getattr(args, "platform", None)
+    log, poses = getattr(args, "log", None), getattr(args, "poses", None)
+    path = log or poses
+    if not isinstance(err, SingularStatics) or platform is None or not path:
+        return err
+    from .handover import singular_statics_row
+
+    return singular_statics_row(err, platform, str(path), bool(log), bool(getattr(args, "skip_bad_rows", False)))
 
 
 def check_output_path(path, option: str) -> None:

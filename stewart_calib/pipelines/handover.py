@@ -135,3 +135,57 @@ def covariance_field(estimate: Estimate) -> list | None:
         order = np.r_[np.delete(np.arange(len(covariance)), np.r_[compliance]), np.r_[compliance]]
         covariance = covariance[np.ix_(order, order)]
     return covariance.tolist()
+
+
+# ----------------------------------------------------------------------------- singular statics
+
+
+def singular_statics_row(err, platform_path: str, path: str, is_log: bool, skip_bad_rows: bool = False) -> CalibError:
+    """A :class:`~stewart_calib.statics.SingularStatics` refusal naming the file and row of its pose.
+
+    The estimators, the diagnosis and compensation meet the pose in a batch of their own (a block,
+    evenly spaced samples), whose index names nothing a user can find: on this refusal alone the file
+    is read again for the first row whose statics are singular — a log's at the instrument's pose
+    (a tracker's forward kinematics of the readings) and at the rigid drive's forward kinematics of
+    the strokes, a pose list's at its poses. Without such a row (standard input, or a pose off the
+    nominal only) the refusal names the file."""
+    from .. import kinematics as kin
+    from ..platform import load_platform
+    from ..statics import SINGULAR_RATIO, statics_matrix, statics_ratios
+
+    if path == "-":
+        return CalibError(f"standard input: {err}")
+    try:
+        platform = load_platform(platform_path)
+        legs = platform.drive
+        ratios = lambda R, t: statics_ratios(legs, statics_matrix(legs, R, t))  # noqa: E731
+        if not is_log:
+            done = 0
+            for poses in io.read_pose_list_blocks(path):
+                ratio = ratios(*kin.pose_to_rt(poses))
+                bad = np.flatnonzero(~(ratio >= SINGULAR_RATIO))
+                if bad.size:
+                    return err.at(path, done + int(bad[0]) + 2, float(ratio[bad[0]]))  # the header is row 1
+                done += len(poses)
+            return CalibError(f"{path}: {err}")
+        rigid = drive_model(dataclasses.replace(platform, elastic=None))
+        reading_legs = instrument_kind(platform).reading_legs(platform)
+        line = 1  # the header
+        for block in io.read_log_blocks(path, platform, skip_bad_rows=skip_bad_rows):
+            skipped = {row for row, _ in block.skipped}
+            fits = [rigid.settled_kinematics(block.strokes, strict=False)[0]]
+            if reading_legs is not None:
+                fits.append(kin.forward_kinematics(reading_legs, block.readings, strict=False))
+            ratio = np.full(len(block), np.inf)
+            for fk in fits:  # the lower of the two poses' ratios, where their FK converged
+                ratio[fk.converged] = np.minimum(ratio[fk.converged], ratios(fk.R[fk.converged], fk.t[fk.converged]))
+            for k in range(len(block)):
+                line += 1
+                while line in skipped:
+                    line += 1
+                if ratio[k] < SINGULAR_RATIO:
+                    return err.at(path, line, float(ratio[k]))
+            line = max([line, *skipped])
+    except CalibError:
+        pass
+    return CalibError(f"{path}: {err}")

@@ -257,7 +257,7 @@ def _refuse_singular(ratios: np.ndarray) -> None:
     bad = np.flatnonzero(~(ratios >= SINGULAR_RATIO))
     if bad.size:
         index = int(bad[0])
-        raise SingularStatics(_singular_message(index, float(ratios[index])), index)
+        raise SingularStatics(_singular_message(index, float(ratios[index])), index, float(ratios[index]))
 
 
 def loaded_params(

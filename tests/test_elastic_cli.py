@@ -1,0 +1,93 @@
+"""The elastic robot through the command line as a user meets it (spec §10, issue 24's checklist): a pose
+where the statics matrix is singular refused in one line naming the file and the row, writing nothing;
+the HTML report's leg forces."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from stewart_calib.cli import main
+from stewart_calib.io import log_text
+from stewart_calib.platform import platform_to_toml
+
+
+@pytest.fixture(scope="module")
+def check(tmp_path_factory):
+    """benchmarks.elastic's check, small: 20 poses a stage at 0 / 20 / 40 kg."""
+    from benchmarks.elastic import check_run
+
+    _, run, platform = check_run(tmp_path_factory.mktemp("check"), 20, validation=5)
+    return run, platform
+
+
+def _parallel_legs(platform):
+    """``platform`` with its drive's base joints typed straight under its platform joints: every leg along z
+    at every level pose, no leg force can hold the weight's moment about z — singular statics at each
+    sample's pose (the tracker still finds the poses)."""
+    drive = platform.drive
+    base = drive.platform_joints + np.array([0.0, 0.0, 35.0 - drive.platform_joints[0, 2]])
+    lengths = np.linalg.norm(platform.workspace.home[:3] + drive.platform_joints - base, axis=-1)
+    return dataclasses.replace(
+        platform, drive=dataclasses.replace(drive, base_joints=base, initial_lengths=lengths), stroke_range=None
+    )
+
+
+@pytest.mark.parametrize("method", ["ekf", "ls"])
+def test_a_singular_pose_in_a_log_is_refused_naming_the_file_and_row(check, tmp_path, capsys, method):
+    run, platform = check
+    (tmp_path / "platform.toml").write_text(platform_to_toml(_parallel_legs(platform)))
+    (tmp_path / "log.csv").write_text(log_text(run.log, platform))
+    platform, log = str(tmp_path / "platform.toml"), str(tmp_path / "log.csv")
+    out = tmp_path / "out"
+    out.mkdir()
+    code = main(
+        ["calibrate", "--platform", platform, "--log", log, "--method", method, "--out", str(out / "r.json")]
+        + ["--platform-out", str(out / "c.toml")]
+    )
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err
+    assert err.startswith(f"stewart-calib calibrate: error: {log}: row 2: the statics matrix Aᵀ is singular"), err
+    assert not any(out.iterdir())  # nothing partial
+
+
+def test_a_singular_pose_in_a_pose_list_is_refused_naming_the_file_and_row(check, tmp_path, capsys):
+    _, platform = check
+    (tmp_path / "platform.toml").write_text(platform_to_toml(platform))
+    poses = tmp_path / "poses.csv"
+    poses.write_text("x_mm,y_mm,z_mm,roll_deg,pitch_deg,yaw_deg\n0,0,760,0,0,0\n0,0,760,0,0,90\n")
+    out = tmp_path / "q.csv"
+    argv = ["compensate", "--platform", str(tmp_path / "platform.toml"), "--poses", str(poses), "--out", str(out)]
+    # the quarter turn is beyond the workspace, refused as such first: a platform without one
+    (tmp_path / "platform.toml").write_text(
+        platform_to_toml(dataclasses.replace(platform, workspace=None, stroke_range=None))
+    )
+    assert main([*argv, "--payload-kg", "40"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"stewart-calib compensate: error: {poses}: row 3: the statics matrix Aᵀ is singular"), err
+    assert not out.exists()
+
+
+def test_the_html_report_shows_each_legs_force_and_give(check, tmp_path):
+    """The report's leg forces are the statics of the rows' loads (60 kg platform, 0 / 20 / 40 kg: the six
+    legs carry 590–1180 N of weight along z between them) and the give c_i f_i their compliance takes."""
+    import re
+
+    run, platform = check
+    (tmp_path / "platform.toml").write_text(platform_to_toml(platform))
+    (tmp_path / "log.csv").write_text(log_text(run.log, platform))
+    argv = ["calibrate", "--platform", str(tmp_path / "platform.toml"), "--log", str(tmp_path / "log.csv")]
+    assert main([*argv, "--method", "ekf", "--out", str(tmp_path / "r.json"), "--report", str(tmp_path / "rep")]) == 0
+    page = (tmp_path / "rep" / "index.html").read_text()
+    section = page[page.index("<h2>Leg forces</h2>") :]
+    rows = re.findall(r"<tr><td>leg (\d)</td>((?:<td>[^<]*</td>){5})</tr>", section)
+    assert [int(leg) for leg, _ in rows] == [1, 2, 3, 4, 5, 6]
+    values = np.array([[float(v) for v in re.findall(r"<td>([^<]*)</td>", cells)] for _, cells in rows])
+    low, mean, high, give_low, give_high = values.T
+    assert np.all((0 < give_low) & (give_low < give_high))
+    assert np.all((0 < low) & (low < mean) & (mean < high))
+    assert 9.80665 * 60.0 / 6 < np.mean(mean) < 9.80665 * 100.0 / 6 * 1.5  # the legs lean: a little over their share
+    np.testing.assert_allclose(give_high / high, 1.0, rtol=0.05)  # c ≈ 1 mm/kN: 1 µm a newton
+    assert "data:image/png;base64," in section
