@@ -34,6 +34,7 @@ from ..config import load_estimator_config
 from ..diagnosis import diagnose_log
 from ..drive import drive_model
 from ..errors import CalibError
+from ..estimate import Estimate
 from ..estimators.base import (
     accounting_words,
     skipped_count,
@@ -85,13 +86,20 @@ def _write_rerun(path: Path, platform: Platform, method: str, log: Log, run: Cal
         viz.log_parameter_band(rec, method, trace - nominal, run.stddev, log.t_s)
         viz.log_diagnostics(rec, method, log.t_s, residual, innovation, run.nis)
         if platform.elastic is not None:  # the legs' forces at the calibrated model's poses, and c ± σ
-            drive = drive_model(platform).calibrated_by(run.estimate)
-            _, inputs = drive.settled_kinematics(log.strokes, log.load_kg, strict=False)
-            block = run.estimate.block_results().get("compliance", {})
-            sigma = None if block.get("stddev") is None else np.asarray(block["stddev"])
-            c = drive.term_values()[-1]  # the compliance term comes last: identified, or [elastic]'s held value
-            viz.log_elastic(rec, method, inputs[:, drive.input_width - drive.rows :], c, sigma, log.t_s)
+            forces, c, sigma = _leg_forces(platform, run.estimate, log)
+            viz.log_elastic(rec, method, forces, c, sigma, log.t_s)
         viz.send_blueprint(rec, platform.drive.n_legs, [method], [], {method: kinds})
+
+
+def _leg_forces(platform: Platform, estimate: Estimate, log: Log):
+    """``(forces (N, legs) [N], c (legs,) [mm/kN], σ of c or None)`` of an elastic platform: the legs'
+    forces at the calibrated model's settled poses of every sample, under each row's payload; c the
+    model's compliance (the term comes last: identified, or ``[elastic]``'s held value)."""
+    drive = drive_model(platform).calibrated_by(estimate)
+    _, inputs = drive.settled_kinematics(log.strokes, log.load_kg, strict=False)
+    block = estimate.block_results().get("compliance", {})
+    sigma = None if block.get("stddev") is None else np.asarray(block["stddev"])
+    return inputs[:, drive.input_width - drive.rows :], drive.term_values()[-1], sigma
 
 
 def nominal_poses(platform: Platform, log: Log) -> np.ndarray:
@@ -252,11 +260,15 @@ def run(args: argparse.Namespace) -> int:
         )
         page = None
         if report_dir:
-            from ..viz.html_report import report_html
+            from ..viz.html_report import LegForces, report_html
 
             inputs = {"platform file": str(args.platform), "log": str(args.log)}
+            forces = None
+            if platform.elastic is not None:
+                forces_N, c, _ = _leg_forces(platform, estimate, log)
+                forces = LegForces(np.asarray(log.t_s), forces_N, c)
             page = report_html(
-                f"Calibration of {platform.name} with {args.method}", result_data, residuals, None, inputs
+                f"Calibration of {platform.name} with {args.method}", result_data, residuals, None, inputs, forces
             )
         if rerun_path:
             _write_rerun(rerun_path, platform, args.method, log, result, not estimators.method_spec(args.method).online)

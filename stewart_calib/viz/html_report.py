@@ -69,6 +69,21 @@ class HeldOut:
     registered: bool = False
 
 
+@dataclass(frozen=True)
+class LegForces:
+    """An elastic drive's axial leg forces over a log (spec §10), at the calibrated model's settled poses.
+
+    Attributes:
+        t_s: ``(N,)`` [s].
+        forces_N: ``(N, legs)`` [N], compression > 0.
+        compliance_mm_per_kN: ``(legs,)`` the model's c_i: identified, or ``[elastic]``'s held value.
+    """
+
+    t_s: np.ndarray
+    forces_N: np.ndarray
+    compliance_mm_per_kN: np.ndarray
+
+
 def rms(values: np.ndarray, axis=0) -> np.ndarray:
     """Root mean square ignoring NaN (a target not seen in a row)."""
     return np.sqrt(np.nanmean(np.square(values), axis=axis))
@@ -284,6 +299,38 @@ def _compliance_section(result: dict) -> str:
     )
 
 
+def leg_force_figure(forces: LegForces) -> str:
+    fig = new_figure(9.0, 2.6)
+    ax = fig.subplots()
+    stride = max(1, len(forces.t_s) // MAX_PLOTTED_SAMPLES)
+    for leg in range(forces.forces_N.shape[1]):
+        ax.plot(forces.t_s[::stride], forces.forces_N[::stride, leg], lw=0.7, label=f"leg {leg + 1}")
+    ax.set_xlabel("t [s]", fontsize=8)
+    ax.set_ylabel("axial force [N]")
+    ax.tick_params(labelsize=7)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=min(6, forces.forces_N.shape[1]))
+    return _png(fig)
+
+
+def _leg_force_section(forces: LegForces) -> str:
+    """Each leg's force over the log and what it gives under it, c_i f_i (spec §10)."""
+    f, c = np.asarray(forces.forces_N, dtype=float), np.asarray(forces.compliance_mm_per_kN, dtype=float)
+    give_um = f * c  # c [mm/kN] × f [N] = [µm]
+    rows = [
+        [f"leg {i + 1}", _fmt(np.nanmin(f[:, i])), _fmt(np.nanmean(f[:, i])), _fmt(np.nanmax(f[:, i]))]
+        + [_fmt(np.nanmin(give_um[:, i])), _fmt(np.nanmax(give_um[:, i]))]
+        for i in range(f.shape[1])
+    ]
+    return (
+        "<h2>Leg forces</h2><p>Each drive leg's axial force over the log (compression positive), from the statics "
+        "of the platform's weight and each row's payload at the calibrated model's poses, and the give "
+        "c_i f_i it takes under it (spec §10).</p>"
+        + html_table(["leg", "min [N]", "mean [N]", "max [N]", "c·f min [µm]", "c·f max [µm]"], rows, "num")
+        + leg_force_figure(forces)
+    )
+
+
 def _correlation_section(result: dict) -> str:
     covariance = result.get("covariance")
     if covariance is None:
@@ -421,6 +468,7 @@ def report_html(
     residuals: Residuals | None = None,
     held_out: HeldOut | None = None,
     inputs: dict[str, str] | None = None,
+    leg_forces: LegForces | None = None,
 ) -> str:
     """The whole page as text.
 
@@ -430,6 +478,7 @@ def report_html(
         residuals: the calibration log's residuals, or None.
         held_out: a validation's errors, or None.
         inputs: named input files (``{"platform file": "P.toml", "log": "L.csv"}``).
+        leg_forces: an elastic drive's leg forces over the log, or None.
     """
     summary = [
         ["method", result["method"]],
@@ -445,6 +494,7 @@ def report_html(
         _residual_section(residuals) if residuals is not None else "",
         _parameter_section(result),
         _compliance_section(result),
+        _leg_force_section(leg_forces) if leg_forces is not None else "",
         _correlation_section(result),
         _conditioning_section(result),
         _prediction_section(result),
