@@ -93,13 +93,12 @@ def _write_rerun(path: Path, platform: Platform, method: str, log: Log, run: Cal
 
 def _leg_forces(platform: Platform, estimate: Estimate, log: Log):
     """``(forces (N, legs) [N], c (legs,) [mm/kN], σ of c or None)`` of an elastic platform: the legs'
-    forces at the calibrated model's settled poses of every sample, under each row's payload; c the
+    forces at the calibrated model's settled poses of every sample (:func:`handover.leg_forces`), c the
     model's compliance (the term comes last: identified, or ``[elastic]``'s held value)."""
     drive = drive_model(platform).calibrated_by(estimate)
-    _, inputs = drive.settled_kinematics(log.strokes, log.load_kg, strict=False)
     block = estimate.block_results().get("compliance", {})
     sigma = None if block.get("stddev") is None else np.asarray(block["stddev"])
-    return inputs[:, drive.input_width - drive.rows :], drive.term_values()[-1], sigma
+    return handover.leg_forces(drive, log), drive.term_values()[-1], sigma
 
 
 def nominal_poses(platform: Platform, log: Log) -> np.ndarray:

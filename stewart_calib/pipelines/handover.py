@@ -137,6 +137,13 @@ def covariance_field(estimate: Estimate) -> list | None:
     return covariance.tolist()
 
 
+def leg_forces(drive: DriveModel, log) -> np.ndarray:
+    """``(N, legs)`` an elastic drive's axial leg forces [N] at its settled poses of a log's strokes, each
+    row under its own payload (compression > 0): what the report and the rerun recording show."""
+    _, inputs = drive.settled_kinematics(log.strokes, log.load_kg, strict=False)
+    return inputs[:, drive.input_width - drive.rows :]
+
+
 # ----------------------------------------------------------------------------- singular statics
 
 

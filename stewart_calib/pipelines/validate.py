@@ -178,11 +178,12 @@ def _file_columns(log: Log, predicted, position, orientation, platform: Platform
 
 
 def _whole_log(platform: Platform, path: str, bar) -> Log:
-    """The log's times, strokes and readings (all :func:`validate` and the report use), read a
-    block at a time, the ``bar`` ticked per block."""
+    """The log's times, strokes, readings and payloads (all :func:`validate` and the report use: an
+    elastic model predicts each row under its own load), read a block at a time, the ``bar`` ticked
+    per block."""
     blocks = []
     for block in io.read_log_blocks(path, platform):
-        blocks.append(Log(block.t_s, block.strokes, block.readings))
+        blocks.append(Log(block.t_s, block.strokes, block.readings, load_kg=block.load_kg))
         bar.update(len(block))
     return Log.concatenate(blocks)
 
@@ -232,14 +233,17 @@ def _diagnose_sample(platform: Platform, first: list, path: str) -> None:
 def _report_page(args, platform: Platform, result: dict, log, predicted, position, orientation) -> str:
     """The ``--report`` page: the held-out errors and residuals per channel, then the calibration's own
     sections (parameters ± σ, correlations, conditioning, config, versions) from the result."""
-    from ..viz.html_report import HeldOut, report_html
+    from ..viz.html_report import HeldOut, LegForces, report_html
 
     held = HeldOut(str(args.log), np.asarray(log.t_s), position, orientation, args.register_instrument)
     residuals = measurement_residuals(platform, log, result, predicted, "the held-out log")
     inputs = {"platform file": str(args.platform), "result": str(args.result), "held-out log": str(args.log)}
-    return report_html(
-        f"Validation of {platform.name} ({result['method']}) on {Path(args.log).name}", result, residuals, held, inputs
-    )
+    forces = None
+    if platform.elastic is not None:
+        drive = handover.calibrated_model(platform, args.result)
+        forces = LegForces(np.asarray(log.t_s), handover.leg_forces(drive, log), drive.term_values()[-1])
+    title = f"Validation of {platform.name} ({result['method']}) on {Path(args.log).name}"
+    return report_html(title, result, residuals, held, inputs, forces)
 
 
 def _summary(position: np.ndarray, orientation: np.ndarray | None, n: int) -> str:
