@@ -141,3 +141,28 @@ def test_a_streamed_calibration_takes_each_rows_payload_in_its_residuals(check, 
     rms = [json.loads((tmp_path / f"{name}.json").read_text())["residual_rms"] for name in ("streamed", "whole")]
     np.testing.assert_allclose(rms[0]["after"], rms[1]["after"], rtol=1e-6)
     assert max(rms[0]["after"]) < 0.003  # the tracker's 1 µm, not the payload's give
+
+
+def test_drawn_check_geometries_are_plausible_hexapods():
+    """benchmarks.elastic --geometry-seed: each drawn 6-6 platform reads as a platform file, stands away
+    from a singular pose at home (statics' Hadamard ratio > 1e-3), reaches its workspace's limits within
+    its stroke range, and its legs' series compliance is 1 mm/kN ± 30 %; the default is the check's own
+    geometry."""
+    import tomllib
+
+    from benchmarks.elastic import CheckGeometry, check_platform_toml, draw_geometry
+    from stewart_calib import kinematics as kin
+    from stewart_calib.platform import parse_platform
+    from stewart_calib.statics import statics_matrix, statics_ratios
+
+    assert "base r 420 mm, platform r 270 mm" in check_platform_toml(CheckGeometry())
+    for seed in range(1, 7):
+        geometry = draw_geometry(seed)
+        assert 0.7 <= geometry.compliance_mm_per_kN <= 1.3
+        platform = parse_platform(tomllib.loads(check_platform_toml(geometry)), f"seed {seed}")
+        R, t = kin.pose_to_rt(platform.workspace.home[None])
+        assert statics_ratios(platform.drive, statics_matrix(platform.drive, R, t))[0] > 1e-3
+        ws = platform.workspace
+        reach = np.r_[[ws.translation_limit] * 3, [ws.rotation_limit] * 3]
+        corners = ws.home + np.concatenate([np.diag(reach), -np.diag(reach)])  # each axis to its limit
+        assert np.all(np.abs(kin.inverse_kinematics(platform.drive, *kin.pose_to_rt(corners))) < 250.0)
