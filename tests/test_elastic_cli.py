@@ -5,6 +5,7 @@ the HTML report's leg forces."""
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -73,7 +74,6 @@ def test_a_singular_pose_in_a_pose_list_is_refused_naming_the_file_and_row(check
 def test_the_html_report_shows_each_legs_force_and_give(check, tmp_path):
     """The report's leg forces are the statics of the rows' loads (60 kg platform, 0 / 20 / 40 kg: the six
     legs carry 590–1180 N of weight along z between them) and the give c_i f_i their compliance takes."""
-    import re
 
     run, platform = check
     (tmp_path / "platform.toml").write_text(platform_to_toml(platform))
@@ -166,3 +166,22 @@ def test_drawn_check_geometries_are_plausible_hexapods():
         reach = np.r_[[ws.translation_limit] * 3, [ws.rotation_limit] * 3]
         corners = ws.home + np.concatenate([np.diag(reach), -np.diag(reach)])  # each axis to its limit
         assert np.all(np.abs(kin.inverse_kinematics(platform.drive, *kin.pose_to_rt(corners))) < 250.0)
+
+
+def test_identifiability_of_an_outside_instrument_names_the_compliance_it_covers(tmp_path, capsys):
+    """A motion-capture log of an elastic hobby hexapod: the report's heading named the drive, the stroke
+    scale and the instrument but not the compliance its bound covers (c1…c6 listed below it, unnamed)."""
+    from benchmarks.hobby import SOFT_LEGS, simulate
+
+    data = simulate(0, build=SOFT_LEGS)
+    (tmp_path / "platform.toml").write_text(platform_to_toml(data.elastic))
+    (tmp_path / "log.csv").write_text(log_text(data.fit, data.elastic))
+    assert (
+        main(["identifiability", "--platform", str(tmp_path / "platform.toml"), "--log", str(tmp_path / "log.csv")])
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert "Identifiability of drive, stroke scale, compliance and pose instrument from 108 poses" in out
+    assert "c in mm/kN" in out
+    sigma = {name: float(v) for name, v in re.findall(r"\b(c[1-6]) ([0-9.e+-]+)", out)}
+    assert sorted(sigma) == [f"c{i}" for i in range(1, 7)] and all(0 < v < 150.0 for v in sigma.values())

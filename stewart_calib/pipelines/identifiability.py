@@ -114,7 +114,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
     import numpy as np
 
     from .. import kinematics as kin
-    from ..drive import drive_model
+    from ..drive import COMPLIANCE, drive_model
     from ..estimators.batch import instrument_identifiability
     from ..instruments import outside_model, registered
     from ..planning import design_covariance
@@ -139,8 +139,10 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
         seen = None  # design_covariance finds the same channels in view
     report = instrument_identifiability(platform, strokes, readings, payload)
     equilibrated = report["condition_number_equilibrated"]
+    # the drive's blocks by name: the compliance too with [elastic] (spec §10), which the report covers
+    parts = ["drive", *(block.key.replace("_", " ") for block in drive.blocks)]
     print(
-        f"Identifiability of drive, stroke scale and {model.kind} instrument from {len(strokes)} poses: "
+        f"Identifiability of {', '.join(parts)} and {model.kind} instrument from {len(strokes)} poses: "
         f"{report['verdict']} (rank {report['rank']}/{report['unknowns']}; condition number "
         f"{equilibrated or float('inf'):.4g} with unit columns, poorly conditioned above {CONDITION_POOR:g}; "
         f"{report['condition_number'] or float('inf'):.4g} in mm, rad and k)"
@@ -149,7 +151,8 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
     for what, names in (("weakest directions (unit columns)", "weakest_directions"), ("not identified", "null_space")):
         if report[names]:
             print(f"{what}: " + "; ".join(report[names]))
-    print("predicted standard deviation per unknown (Cramér–Rao; mm, dimensionless k, degrees):")
+    c = ", c in mm/kN" if any(block.key == COMPLIANCE for block in drive.blocks) else ""
+    print(f"predicted standard deviation per unknown (Cramér–Rao; mm, dimensionless k{c}, degrees):")
     items = list(report["predicted_stddev"].items())
     for start in range(0, len(items), 7):
         print(
