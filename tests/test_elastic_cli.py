@@ -185,3 +185,24 @@ def test_identifiability_of_an_outside_instrument_names_the_compliance_it_covers
     assert "c in mm/kN" in out
     sigma = {name: float(v) for name, v in re.findall(r"\b(c[1-6]) ([0-9.e+-]+)", out)}
     assert sorted(sigma) == [f"c{i}" for i in range(1, 7)] and all(0 < v < 150.0 for v in sigma.values())
+
+
+def test_export_says_what_the_controller_leaves_out_of_an_elastic_calibration(check, tmp_path, capsys):
+    """genhexkins and the plain JSON hold no compliance: an elastic calibration exported lost its legs' give
+    without a word. Now one warning line with how much (the check's 60 kg platform at 1 mm/kN: a leg gives
+    up to ~0.2 mm); none where the compliance is 0 (a rigid or a paper-ekf calibration)."""
+    _, platform = check
+    calibrated = dataclasses.replace(
+        platform, elastic=dataclasses.replace(platform.elastic, compliance_mm_per_kN=np.full(6, 1.0))
+    )
+    for label, p in (("elastic", calibrated), ("held at 0", platform)):
+        (tmp_path / f"{label}.toml").write_text(platform_to_toml(p))
+        argv = ["export", "--platform", str(tmp_path / f"{label}.toml"), "--format", "json"]
+        assert main([*argv, "--out", str(tmp_path / "drive.json")]) == 0
+        err = capsys.readouterr().err
+        warned = re.search(r"warning: json has no leg compliance: .* give c_i f_i .*, ([0-9.e-]+)–([0-9.e-]+) mm", err)
+        if label == "elastic":
+            assert warned and err.count("\n") == 2, err
+            assert 0.0 < float(warned[1]) < float(warned[2]) < 0.5
+        else:
+            assert warned is None and "warning" not in err

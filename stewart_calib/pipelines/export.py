@@ -7,7 +7,8 @@ The calibrated model is the result's on its nominal platform, or the calibrated 
 alone (``calibrate --platform-out``). ``linuxcnc`` writes ``F`` (``kinematics.hal``: genhexkins's
 ``setp`` lines) and ``F`` with the suffix ``.ini`` (``[JOINT_N] HOME``/``HOME_OFFSET`` and each
 joint's ``SCALE`` factor); ``json`` writes the plain JSON of joints and leg lengths. Both are
-rendered before either is written.
+rendered before either is written. Neither holds a leg compliance (spec §10): with ``[elastic]`` a
+warning line says how much the legs give that the controller leaves out.
 """
 
 from __future__ import annotations
@@ -76,7 +77,31 @@ def run(args: argparse.Namespace) -> int:
     for path, text in files.items():
         io.atomic_write_text(path, text)
     print(f"stewart-calib export: wrote {', '.join(map(str, files))} ({args.format}, {args.units})", file=sys.stderr)
+    if platform.elastic is not None:
+        give = _give_mm(platform, model)
+        if give is not None:
+            print(
+                f"stewart-calib export: warning: {args.format} has no leg compliance: the controller leaves out the "
+                f"legs' give c_i f_i under the platform's own weight, {give[0]:.3g}–{give[1]:.3g} mm over the "
+                "workspace (more under a payload); stewart-calib compensate --payload-kg gives strokes with it",
+                file=sys.stderr,
+            )
     return 0
+
+
+def _give_mm(platform, model) -> tuple[float, float] | None:
+    """The least and the most any leg of the calibrated elastic ``model`` gives, ``c_i f_i`` [mm], at the
+    fixed workspace poses of the prediction without a payload; None for a compliance of 0."""
+    import numpy as np
+
+    from .. import kinematics as kin
+    from ..accuracy import evaluation_poses
+
+    compliance = model.term_values()[-1]  # the compliance term comes last
+    if not np.any(compliance):
+        return None
+    give = compliance * model.leg_forces(*kin.pose_to_rt(evaluation_poses(platform))) / 1000.0
+    return float(np.min(give)), float(np.max(give))
 
 
 def main(argv: list[str] | None = None) -> int:
