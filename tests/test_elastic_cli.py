@@ -206,3 +206,25 @@ def test_export_says_what_the_controller_leaves_out_of_an_elastic_calibration(ch
             assert 0.0 < float(warned[1]) < float(warned[2]) < 0.5
         else:
             assert warned is None and "warning" not in err
+
+
+def test_score_says_an_elastic_result_is_not_scored_against_its_own_quantity(tmp_path, capsys):
+    """simulate's truth holds each sample's loaded parameters and score closes the loop rigid: an elastic
+    ekf calibration of the check scored a 0.3 mm closed loop where, under load, it leaves ~1 µm. score
+    now says so in one warning line; a paper-ekf result (no compliance) gets none."""
+    from benchmarks.elastic import check_experiment_toml, check_platform_toml
+
+    (tmp_path / "elastic-check.toml").write_text(check_platform_toml())
+    (tmp_path / "experiment.toml").write_text(check_experiment_toml(20, validation=5))
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--experiment", str(tmp_path / "experiment.toml"), "--out", str(sim)]) == 0
+    files = ["--platform", str(sim / "platform.toml")]
+    for method in ("ekf", "paper-ekf"):
+        out = str(tmp_path / f"{method}.json")
+        assert main(["calibrate", *files, "--log", str(sim / "log.csv"), "--method", method, "--out", out]) == 0
+        capsys.readouterr()
+        assert main(["score", *files, "--result", out, "--truth", str(sim / "truth.csv")]) == 0
+        err = capsys.readouterr().err
+        assert ("warning: the truth's parameters are those in force at its last sample, loaded" in err) == (
+            method == "ekf"
+        ), err
