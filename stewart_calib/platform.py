@@ -248,6 +248,19 @@ def default_compliance_sigma(platform_mass_kg: float) -> float:
 COM_RADII_LIMIT = 10.0
 
 
+def centre_too_far(drive: LegGeometry, centre_mm: np.ndarray) -> str | None:
+    """What a centre of mass in {D} [mm] farther than :data:`COM_RADII_LIMIT` platform radii of ``drive``
+    (the largest ``‖d_i‖``) should have been, for a refusal naming its key; None when it is within."""
+    radius = float(np.max(np.linalg.norm(drive.platform_joints, axis=-1)))
+    distance = float(np.linalg.norm(centre_mm))
+    if distance <= COM_RADII_LIMIT * radius:
+        return None
+    return (
+        f"[x, y, z] in mm within {COM_RADII_LIMIT:g} platform radii ({COM_RADII_LIMIT * radius:.6g} mm) of "
+        f"{{D}}'s origin, got one {distance:.6g} mm away (a length in the wrong unit?)"
+    )
+
+
 @dataclass(frozen=True, eq=False)
 class Elastic:
     """The robot under its own weight and a payload (spec §10, ``[elastic]``).
@@ -578,20 +591,14 @@ def _elastic(doc: dict, drive: LegGeometry, source: str) -> Elastic | None:
     mass = _number(table, "platform_mass_kg", 0.0, source, "elastic")
     if not mass > 0:
         raise _refuse(source, "elastic.platform_mass_kg", f"a positive mass in kg, got {mass!r}")
-    radius = float(np.max(np.linalg.norm(drive.platform_joints, axis=-1)))
     centres = {}
     for key in ("platform_com_mm", "payload_com_mm"):
         centre = (
             _array(table, key, (3,), source, "elastic") if key in table or key == "platform_com_mm" else np.zeros(3)
         )
-        distance = float(np.linalg.norm(centre))
-        if distance > COM_RADII_LIMIT * radius:
-            raise _refuse(
-                source,
-                f"elastic.{key}",
-                f"[x, y, z] in mm within {COM_RADII_LIMIT:g} platform radii ({COM_RADII_LIMIT * radius:.6g} mm) of "
-                f"{{D}}'s origin, got one {distance:.6g} mm away (a length in the wrong unit?)",
-            )
+        too_far = centre_too_far(drive, centre)
+        if too_far:
+            raise _refuse(source, f"elastic.{key}", too_far)
         centres[key] = centre
     compliance = (
         _array(table, "compliance_mm_per_kN", (N_LEGS,), source, "elastic")

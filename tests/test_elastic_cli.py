@@ -228,3 +228,19 @@ def test_score_says_an_elastic_result_is_not_scored_against_its_own_quantity(tmp
         assert ("warning: the truth's parameters are those in force at its last sample, loaded" in err) == (
             method == "ekf"
         ), err
+
+
+def test_simulate_refuses_a_load_centre_every_other_command_would(tmp_path, capsys):
+    """An experiment's [load] centre of mass in metres typed as mm (90 m off the axis) was simulated — the
+    robot 20 mm off its poses — and written into the platform's [elastic], which calibrate then refused.
+    simulate refuses it by [elastic]'s rule, in one line naming the key, and writes nothing."""
+    from benchmarks.elastic import CheckGeometry, check_experiment_toml, check_platform_toml
+
+    (tmp_path / "elastic-check.toml").write_text(check_platform_toml())
+    far = dataclasses.replace(CheckGeometry(), payload_com_mm=(90000.0, -60.0, 120.0))
+    (tmp_path / "experiment.toml").write_text(check_experiment_toml(20, validation=5, geometry=far))
+    out = tmp_path / "sim"
+    assert main(["simulate", "--experiment", str(tmp_path / "experiment.toml"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "key 'load.payload_com_mm': expected [x, y, z] in mm within 10 platform radii" in err
+    assert not out.exists()

@@ -39,7 +39,7 @@ import numpy as np
 
 from ..errors import CalibError
 from ..instruments.registry import instrument_kind, kind_of
-from ..platform import Platform, load_platform, parse_instrument
+from ..platform import Platform, centre_too_far, load_platform, parse_instrument
 from ..resources import CONFIGS, read_toml
 from .instrument import InstrumentTruth
 from .load import LoadModel
@@ -258,6 +258,12 @@ def load_experiment(path: str | Path) -> Experiment:
         },
         iterations=ld.number("iterations", dflt["iterations"], minimum=1, integer=True),
     )
+    # the platform file simulate writes carries these centres as [elastic]'s: refused here by [elastic]'s rule,
+    # not written into a platform every other command refuses
+    for key in ("platform_com_mm", "payload_com_mm"):
+        too_far = centre_too_far(platform.drive, getattr(load, key))
+        if too_far:
+            raise ld.refuse(key, too_far)
     tr = sections["tracker"]
     tracker = TrackerConfig(
         noise_mm=tr.number("noise_mm", TrackerConfig.noise_mm, minimum=0.0),
