@@ -47,6 +47,10 @@ is the root of ``Σ_w Δxᵀ (P_w + P_{w+1} + q T_w I)⁻¹ Δx = n × windows``
 differences are already explained by the window covariances); each window's ``P_w`` is taken at
 the scale its own residuals have just updated. Measurement noise and parameter
 motion are so told apart by their time scales, not by one innovation sequence that both shape.
+A window whose walk in use could explain it within the noise (fewer than :data:`MIN_REDUNDANCY`
+residual degrees of freedom left: a configured walk far faster than the robot's) is measured as a
+static batch, where the components' fixed point would otherwise be the scale's floor
+(:meth:`RobustFilter._measured_scale`).
 Both estimates forget over ``noise_memory_samples``. Fixed noise stays available.
 """
 
