@@ -160,12 +160,13 @@ def test_report_is_one_static_self_contained_page(ekf_run):
         "Parameter errors δM ± σ",
         "Correlation matrix",
         "Conditioning",
+        "Leg forces",  # simulate's platform has [elastic] (spec §10)
         "Config",
         "Versions",
     ):
         assert f"<h2>{heading}</h2>" in page
     images = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
-    assert len(images) == 4  # residual RMS, residuals over time, δM ± σ, correlations
+    assert len(images) == 5  # residual RMS, residuals over time, δM ± σ, correlations, leg forces
     assert all(base64.b64decode(data).startswith(PNG_MAGIC) for data in images)
     result = read_result(ekf_run / "r.json")
     # the page shows the result's numbers: every RMS before and after, to 4 significant digits
