@@ -62,7 +62,6 @@ class BatchLM(BufferedFit):
         # robot that stood still was fitted as one that walked at 1 µm/√s, and the last window's
         # estimate stood on its last seconds: 1.4–3.1 µm closed loop at 0 and 40 kg where isam2 and
         # ekf left 0.4–1.1 (benchmarks.elastic --geometry-seed 3 and 4, 3 noise seeds each).
-        # Its cost: ~2 ms a sample, lm's CPU on the check's 900 samples 9.2 → 11.1 s.
         self._front: LegEKF | None = None
         if self._builder.chain and config.robust.adapt_noise:
             elastic = platform.elastic
