@@ -9,6 +9,20 @@ line prints that line and exits non-zero; it never shows a traceback for one.
 class CalibError(ValueError):
     """A user-facing error: ``str(err)`` is one line naming what is wrong and where."""
 
+    def __reduce__(self):
+        # a refusal raised in a worker process (a pool, a Dask worker) is pickled back to the caller;
+        # the default re-creates it as ``type(err)(*err.args)``, which fails for the subclasses whose
+        # constructor takes more than the message (SampleRejected's reason, SingularStatics' index)
+        return _unpickled, (type(self), self.args, self.__dict__)
+
+
+def _unpickled(cls: type, args: tuple, state: dict) -> CalibError:
+    """A pickled :class:`CalibError` made again without its constructor: its message and attributes."""
+    err = cls.__new__(cls, *args)
+    err.args = args
+    err.__dict__.update(state)
+    return err
+
 
 class SampleRejected(CalibError):
     """An estimator refused one sample (NaN, out of range, FK failure, gated outlier).
