@@ -61,7 +61,15 @@ def _summary(what: str, count: int, total: int, first: str) -> str:
     return f"stewart-calib calibrate: {what} {count} of {total} (first: {first})"
 
 
-def _write_rerun(path: Path, platform: Platform, method: str, log: Log, run: Calibration, batch: bool) -> None:
+def _write_rerun(
+    path: Path,
+    platform: Platform,
+    method: str,
+    log: Log,
+    run: Calibration,
+    batch: bool,
+    leg_forces: LegForceSeries | None = None,
+) -> None:
     """A rerun ``.rrd``: the platform geometry, the parameter errors δM over time with their ±σ
     bands [mm], and the method's diagnostics: drive-leg residuals after each sample and, for an
     online method, before it (the innovation), and the NIS of a Kalman method."""
@@ -85,13 +93,17 @@ def _write_rerun(path: Path, platform: Platform, method: str, log: Log, run: Cal
         viz.log_parameters(rec, method, trace - nominal, log.t_s)
         viz.log_parameter_band(rec, method, trace - nominal, run.stddev, log.t_s)
         viz.log_diagnostics(rec, method, log.t_s, residual, innovation, run.nis)
-        if platform.elastic is not None:  # the legs' forces at the calibrated model's poses, and c ± σ
-            forces, c, sigma = _leg_forces(platform, run.estimate, log)
+        if leg_forces is not None:  # an elastic platform's (_leg_forces): the legs' forces, and c ± σ
+            forces, c, sigma = leg_forces
             viz.log_elastic(rec, method, forces, c, sigma, log.t_s)
         viz.send_blueprint(rec, platform.drive.n_legs, [method], [], {method: kinds})
 
 
-def _leg_forces(platform: Platform, estimate: Estimate, log: Log):
+#: ``(forces (N, legs) [N], c (legs,) [mm/kN], σ of c or None)``: :func:`_leg_forces`
+LegForceSeries = tuple[np.ndarray, np.ndarray, np.ndarray | None]
+
+
+def _leg_forces(platform: Platform, estimate: Estimate, log: Log) -> LegForceSeries:
     """``(forces (N, legs) [N], c (legs,) [mm/kN], σ of c or None)`` of an elastic platform: the legs'
     forces at the calibrated model's settled poses of every sample (:func:`handover.leg_forces`), c the
     model's compliance (the term comes last: identified, or ``[elastic]``'s held value)."""
@@ -258,19 +270,23 @@ def run(args: argparse.Namespace) -> int:
             else None
         )
         page = None
+        # the whole log settled once at the calibrated model, for the report and the recording alike
+        leg_forces = (
+            _leg_forces(platform, estimate, log)
+            if platform.elastic is not None and (report_dir or rerun_path)
+            else None
+        )
         if report_dir:
             from ..viz.html_report import LegForces, report_html
 
             inputs = {"platform file": str(args.platform), "log": str(args.log)}
-            forces = None
-            if platform.elastic is not None:
-                forces_N, c, _ = _leg_forces(platform, estimate, log)
-                forces = LegForces(np.asarray(log.t_s), forces_N, c)
+            forces = None if leg_forces is None else LegForces(np.asarray(log.t_s), *leg_forces[:2])
             page = report_html(
                 f"Calibration of {platform.name} with {args.method}", result_data, residuals, None, inputs, forces
             )
         if rerun_path:
-            _write_rerun(rerun_path, platform, args.method, log, result, not estimators.method_spec(args.method).online)
+            batch = not estimators.method_spec(args.method).online
+            _write_rerun(rerun_path, platform, args.method, log, result, batch, leg_forces)
     if trace_csv is not None:
         io.atomic_write_text(trace_path, trace_csv)
     if platform_toml is not None:
