@@ -125,7 +125,7 @@ def test_loose_coupling_matches_tight(platform, noisy):
 def test_lm_solve_ends_at_a_round_off_rise_without_handing_over(monkeypatch):
     """A Gauss–Newton step at the optimum may raise the cost by round-off (2.4e-13 of it on
     benchmarks.scale's 10⁴-sample log); taken for an overshoot, it handed the optimum to gtsam's LM,
-    whose one QR trial step there took 159 s to end where it started."""
+    whose one trial step there took 159 s to end where it started."""
     import gtsam
 
     from stewart_calib.estimators import lm
