@@ -97,7 +97,8 @@ def _python_paths(platform) -> None:
     kalman.fill_walk(state.Q, np.eye(42), 1e-4)
     state.update(H, -r, R_meas, 0.0)
     eigenvalues = np.full((2, 42), 1e-3)
-    robust._walk_rate_root(eigenvalues, 2.0 * eigenvalues, np.array([10.0, 12.0]), 84.0)
+    coupling = np.zeros((2, 42, 42))
+    robust._walk_rate_in_use(eigenvalues, 2.0 * eigenvalues, np.array([10.0, 12.0]), coupling, 1e-6, 0.7, 2.7)
     load = load_experiment(CONFIGS / "experiments" / "quick.toml").load
     Settling.of(load, drive.as_vector()).loaded_params(R[None], t[None], 0.0)
 

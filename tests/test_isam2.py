@@ -262,9 +262,11 @@ def test_a_block_of_samples_is_the_samples_one_by_one(platform, monkeypatch, per
 
     Asked for the estimate after each sample, the graph takes one update a sample: equal to the
     front end's own rounding (tests/test_robust.py: its compiled recursion may sum in another
-    order; bit for bit when run alone). Otherwise one update a window: the relinearisation
-    threshold (1e-2 mm) then leaves the estimate ~δ²/L ≈ 1e-7 mm apart (here 9e-7 mm, on the
-    10⁴-sample scale log 3e-7 mm).
+    order; bit for bit when run alone). Otherwise one update a window: the fixed-lag smoother then
+    marginalises the windows older than its lag at other linearisation points, and the walk ties
+    the last window to them — as tightly as the rate the front end measures on this still robot
+    (0.15 µm/√s, 0.007 of the configured rate's variance): the estimate 0.10 σ apart (0.005 σ with a
+    lag that marginalises nothing, the relinearisation threshold 1e-2 or 1e-4 mm alike).
     """
     from benchmarks.common import synthetic_stream
     from stewart_calib.estimators.base import update_block, update_each
@@ -296,10 +298,10 @@ def test_a_block_of_samples_is_the_samples_one_by_one(platform, monkeypatch, per
         assert block.graph_size() == one.graph_size()
         np.testing.assert_allclose(final.covariance, expected.covariance, rtol=1e-6, atol=0)
     else:
-        # 1 % of each σ (~1e-3 mm; the linearisation error is ~1e-6 mm), and the covariance
-        # to 1e-4 of σ_i σ_j (measured 9e-7 mm and 5e-6)
+        # 20 % of each σ (measured 10 %: the marginalisation, above), and the covariance to 1e-4 of
+        # σ_i σ_j (measured 5e-6)
         sigma = np.sqrt(np.diag(expected.covariance))
-        assert np.all(np.abs(final.error - expected.error) <= 1e-2 * sigma)
+        assert np.all(np.abs(final.error - expected.error) <= 0.2 * sigma)
         assert np.max(np.abs(final.covariance - expected.covariance) / np.outer(sigma, sigma)) <= 1e-4
 
 
