@@ -2,7 +2,8 @@
 
 The gold standard for ``isam2``: it builds the same factors; with random walk 0 it uses one
 parameter variable for the whole log (the exact constant-parameter problem), which ``isam2``
-approximates with its near-hard chain.
+approximates with its near-hard chain. With a walk (and ``[robust] adapt_noise``) its rate is the
+one ``isam2``'s front end measures on the same samples, not the configured one taken as given.
 
 The solve takes full Gauss–Newton steps on gtsam's own linearisation while each one lowers the
 cost, stops where a step changes it by less than a relative 1e-10 either way, and hands over to
@@ -25,6 +26,7 @@ runs, sweep ``configs/sweeps/honesty.toml``).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import gtsam
@@ -37,8 +39,10 @@ from ..estimate import Estimate
 from ..platform import Platform
 from ..samples import Sample
 from .base import BufferedFit, late_index
+from .ekf import LegEKF
 from .graph import ChainState, GraphBuilder, first_paragraph, params_key, pose_key
 from .measurement import registered_start
+from .robust import WALK_RAISING
 
 
 class BatchLM(BufferedFit):
@@ -54,6 +58,25 @@ class BatchLM(BufferedFit):
     def __init__(self, platform: Platform, config: EstimatorConfig):
         self._config = config
         self._builder = GraphBuilder(platform, config, chain=config.noise.random_walk_mm_per_sqrt_s > 0)
+        # The walk's rate from the data, as isam2's front end measures it for the same graph: the
+        # configured rate unless the window differences reject it at 5 % either way. Taken as given, a
+        # robot that stood still was fitted as one that walked at 1 µm/√s, and the last window's
+        # estimate stood on its last seconds: 1.4–3.1 µm closed loop at 0 and 40 kg where isam2 and
+        # ekf left 0.4–1.1 (benchmarks.elastic --geometry-seed 3 and 4, 3 noise seeds each).
+        # Its cost: ~2 ms a sample, lm's CPU on the check's 900 samples 9.2 → 11.1 s.
+        self._front: LegEKF | None = None
+        if self._builder.chain and config.robust.adapt_noise:
+            elastic = platform.elastic
+            self._front = LegEKF(
+                platform
+                if elastic is None
+                else dataclasses.replace(platform, elastic=dataclasses.replace(elastic, payload_sigma_kg=0.0)),
+                dataclasses.replace(
+                    config, ekf=dataclasses.replace(config.ekf, gate_probability=config.isam2.gate_probability)
+                ),
+            )
+            self._front.robust.walk_lowering = WALK_RAISING
+        self._walk_rate: float | None = None  # the walk factors' rate [mm²/s]; None: the configured one
         self._graph = gtsam.NonlinearFactorGraph()
         self._values = gtsam.Values()
         self._state = ChainState()
@@ -118,6 +141,11 @@ class BatchLM(BufferedFit):
         self._values.insert(epoch.values)
         self._state = epoch.state
         self._solved = None
+        if self._front is not None:
+            try:
+                self._front.update(sample)
+            except SampleRejected:  # the graph's own gross-error test decides what lm leaves out
+                pass
 
     def estimate(self) -> Estimate:
         """Solve by LM; δM of the last parameter variable and its ``gtsam.Marginals`` covariance."""
@@ -133,7 +161,7 @@ class BatchLM(BufferedFit):
             covariance = _marginal_covariance(self._graph, self._values, p)
             if self._config.robust.adapt_noise:
                 covariance = covariance * scale2
-            covariance = covariance + self._builder.window_walk_covariance(self._state)
+            covariance = covariance + self._builder.window_walk_covariance(self._state, self._walk_rate)
             self._solved = Estimate.of_state(
                 self._values.atVector(p),
                 covariance,
@@ -161,6 +189,10 @@ class BatchLM(BufferedFit):
         (NEES 1.5–2.6× its degrees of freedom on drifting robots whose readings were 0.2× the told
         noise, sweep configs/sweeps/honesty.toml). Each step moves ``s²`` by the walk's share of the
         residual degrees of freedom less than the last: a few solves, warm-started."""
+        rate = None if self._front is None else self._front.robust.walk_rate_mm2_per_s
+        if rate != self._walk_rate:  # the front end's measured rate has moved since the factors were made
+            self._walk_rate = rate
+            self._replace_walk_factors()
         self._values = _solve(self._graph, self._values)
         if not self._config.robust.adapt_noise:
             return 1.0
@@ -169,11 +201,15 @@ class BatchLM(BufferedFit):
             if abs(scale2 / self._walk_scale2 - 1.0) <= 0.1 * math.sqrt(2.0 / max(redundancy, 1.0)):
                 break
             self._walk_scale2 = scale2
-            for index, window, dt_s in self._walk_factors:
-                self._graph.replace(index, self._builder.walk_factor(window, dt_s, scale2))
+            self._replace_walk_factors()
             self._values = _solve(self._graph, self._values)
             scale2, redundancy = self._variance_factor()
         return scale2
+
+    def _replace_walk_factors(self) -> None:
+        """Every walk factor at the current measurement scale and walk rate."""
+        for index, window, dt_s in self._walk_factors:
+            self._graph.replace(index, self._builder.walk_factor(window, dt_s, self._walk_scale2, self._walk_rate))
 
     def _variance_factor(self) -> tuple[float, float]:
         """The a-posteriori variance factor ``s² = χ² / r`` of the solved graph (Helmert) and its
