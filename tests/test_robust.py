@@ -406,8 +406,9 @@ def test_a_still_robot_has_the_configured_walk_lowered_to_what_its_data_allow(pl
     window differences' likelihood lowers the rate to 0.2–1.6 % of the configured variance (seeds
     0–3). The χ² test of their plain sum it replaced, which most directions' scatter drowns, left
     1.4–27 % (on benchmarks.elastic's check: 100 %, and a payload step taken for the walk)."""
+    config = EstimatorConfig()
     for seed in range(4):
         log, _, _ = _log(platform, seed, 1.0, 600)
-        estimator = make_estimator("ekf", platform, EstimatorConfig())
+        estimator = make_estimator("ekf", platform, config)
         feed(estimator, log)
-        assert estimator.robust.walk_rate_mm2_per_s <= 0.03 * 1e-6
+        assert estimator.robust.walk_rate_mm2_per_s <= 0.03 * config.noise.random_walk_mm_per_sqrt_s**2

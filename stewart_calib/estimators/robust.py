@@ -219,7 +219,7 @@ class RobustFilter:
         self._scale_sums = np.zeros(2)
         self._last_window: tuple[np.ndarray, np.ndarray, float, float] | None = None  # x, P, first and last t_s
         self._differences: deque = deque(maxlen=WALK_WINDOWS)
-        self._last_vectors: np.ndarray | None = None  # the last difference's directions (its spread's eigenvectors)
+        self._last_vectors: np.ndarray | None = None  # the last difference's directions (_walk_directions)
 
     # ------------------------------------------------------------------ protocol
 
@@ -648,10 +648,12 @@ class RobustFilter:
             shared = P_before.copy()
             if self._step_unknown is not None:  # it steps, it does not walk: its marginal left out
                 index = self._step_unknown[0]
-                for matrix in (spread, shared) if self._walking is not None else (spread, walks, shared):
+                for matrix in (spread, shared):
                     matrix[index, :], matrix[:, index] = 0.0, 0.0
-                if self._walking is not None:
+                if walks.dtype == bool:  # the mask of the unknowns that walk
                     walks[index] = False
+                else:
+                    walks[index, :], walks[:, index] = 0.0, 0.0
                 difference[index] = 0.0
             eigenvalues, vectors, projection2 = _walk_directions(spread, walks, difference)
             # the means of a walk over [a1, b1] and [a2, b2] differ by q ((a2 − b1) + (b1 − a1)/3 + (b2 − a2)/3)
@@ -952,7 +954,7 @@ def _mahalanobis2(step: np.ndarray, P: np.ndarray, gauge_projector: np.ndarray |
 def _walk_sums(lam: np.ndarray, p: np.ndarray, T: np.ndarray, q: float) -> tuple[float, float]:
     """``(−2 L(q), −2 dL/dq)`` of the window differences (see ``RobustFilter._pooled_walk_rate``)
     up to a constant: ``Σ log a + p / a`` and ``Σ T (a − p) / a²``, ``a = λ + q T``, over the
-    directions with ``λ > 0`` (``λ = 0``: held by the gauge, no information either way)."""
+    directions with ``λ > 0`` (``λ = 0``: held by the gauge or not walking, no information either way)."""
     deviance = 0.0
     slope = 0.0
     for w in range(lam.shape[0]):
