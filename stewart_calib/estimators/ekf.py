@@ -48,7 +48,9 @@ so the drive inputs are the forces at ``load_kg`` plus ``m`` times the forces pe
 steps ``m`` is constant, so it averages over the samples, and a step shows as a sample the gate
 refuses: one that passes with ``σ_m²`` added to ``m``'s process noise is taken as the step (the
 filter's ``step``, :class:`~.robust.RobustFilter`), so the step moves ``m`` at the sample it
-happens rather than 42 parameters over tens of samples. A random walk cannot do that: one slow
+happens rather than 42 parameters over tens of samples. That sample's update is iterated
+(relinearised at its own result): ``c_i f_{m,i} m`` is bilinear, and linearised where ``m`` has not
+stepped yet the update's covariance loses the compliance–payload tie. A random walk cannot do that: one slow
 enough to let ``m`` average leaves a 20 kg step tens of σ outside the gate; one fast enough to
 pass it makes ``m`` a per-sample nuisance that takes from every sample the information on the
 compliance it carries. Not in the compiled block path (samples go one at a time).
