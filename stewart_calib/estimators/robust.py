@@ -330,7 +330,9 @@ class RobustFilter:
         ``noise_scale2 · R0``: a pass over the samples it kept, linearised at its estimate (with
         ``relinearise``, their MAP to :data:`RELINEARISE_TOLERANCE`). Valid on the update that
         decides the batch, while the buffer holds exactly its samples (isam2 starts its graph from it)."""
-        x, P, *_ = self._pass(~self.startup_outliers, noise_scale2, linearised=self._linearise(self.filter.x.copy()))
+        x, P, *_ = self._pass(
+            ~self.startup_outliers, noise_scale2, linearised=self._linearise(self.filter.x.copy()), startup=True
+        )
         return x, P
 
     def _relinearise_startup(self) -> None:
@@ -339,7 +341,9 @@ class RobustFilter:
         the second-order error of those samples (~mm²/leg length) is several σ of the reading noise,
         a bias the recursion keeps (NEES/dof 1.65 where lm, on the same log, gives 0.97)."""
         f = self.filter
-        x, P, *_ = self._gauss_newton(~self.startup_outliers, self.noise_scale2, self._linearise(f.x.copy()))
+        x, P, *_ = self._gauss_newton(
+            ~self.startup_outliers, self.noise_scale2, self._linearise(f.x.copy()), startup=True
+        )
         f.x, f.P = x, P
 
     def _late_rejection(self, t_s: float) -> SampleRejected:
@@ -465,6 +469,7 @@ class RobustFilter:
         centre: np.ndarray | None = None,
         linearised: tuple[np.ndarray, list] | None = None,
         walk_rate_mm2_per_s: float | None = None,
+        startup: bool = False,
     ):
         """A filter pass from the prior over the buffered samples ``use``; returns
         ``(x, P, samples used, last t_s, residual degrees of freedom)``.
@@ -477,11 +482,14 @@ class RobustFilter:
         taken at ``x̄`` with the innovation ``ν(x̄) − H (x − x̄)`` at the running ``x`` — one
         Gauss–Newton step from ``x̄`` — instead of at the running ``x``.
         ``walk_rate_mm2_per_s``: the random walk within the pass (default the rate in use).
+        ``startup``: the decided start-up batch's own solve (:meth:`_relinearise_startup`,
+        :meth:`startup_gaussian`), which runs once the filter has started: an unknown that steps is
+        solved with the rest there, from its prior, as in every start-up pass.
         """
         walk = self.walk_rate_mm2_per_s if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
         x = (self._x0 if centre is None else centre).copy()
         P = self._P0.copy()
-        if self._step_unknown is not None and self.started:
+        if self._step_unknown is not None and self.started and not startup:
             # after the start-up, an unknown that steps is as the filter knows it in every batch (the
             # windows, a recovery): re-solved from its prior over a few samples it would trade against
             # its correlates (a payload against the compliance's scale), which a window would take
@@ -626,12 +634,14 @@ class RobustFilter:
             self._adopt()
         return outliers
 
-    def _gauss_newton(self, use: np.ndarray, noise_scale2: float, linearised: tuple[np.ndarray, list]):
+    def _gauss_newton(
+        self, use: np.ndarray, noise_scale2: float, linearised: tuple[np.ndarray, list], startup: bool = False
+    ):
         """:meth:`_pass` over ``use`` relinearised at its own result until the step from the
         linearisation point is within :data:`RELINEARISE_TOLERANCE` posterior σ (the MAP of the
-        prior and those samples); returns the last pass."""
+        prior and those samples); returns the last pass (``startup``: as :meth:`_pass`)."""
         for _ in range(MAX_RELINEARISATIONS):
-            solved = self._pass(use, noise_scale2, linearised=linearised)
+            solved = self._pass(use, noise_scale2, linearised=linearised, startup=startup)
             x, P = solved[0], solved[1]
             if _mahalanobis2(x - linearised[0], P, self._gauge_projector) <= RELINEARISE_TOLERANCE**2:
                 break
