@@ -526,8 +526,11 @@ def test_a_payload_step_is_the_map_of_its_sample_where_the_pattern_is_bilinear()
     miss = f.filter.x - x
     assert miss @ np.linalg.solve(P_map, miss) < RELINEARISE_TOLERANCE**2, miss
     correlation = lambda P: P[0, 42] / np.sqrt(P[0, 0] * P[42, 42])  # noqa: E731
-    np.testing.assert_allclose(correlation(f.filter.P), correlation(P_map), atol=0.02)
-    np.testing.assert_allclose(np.sqrt(np.diag(f.filter.P)), np.sqrt(np.diag(P_map)), rtol=0.05)
+    # linearised within 0.1σ of the MAP, the bilinear columns are off by 0.1 σ_m / m of themselves
+    # (0.5 % here; measured 6e-4 on the σ, 4e-7 on the correlation)
+    relative = RELINEARISE_TOLERANCE * np.sqrt(P_map[42, 42]) / x[42]
+    np.testing.assert_allclose(correlation(f.filter.P), correlation(P_map), atol=relative)
+    np.testing.assert_allclose(np.sqrt(np.diag(f.filter.P)), np.sqrt(np.diag(P_map)), rtol=relative)
     # the toy is one where the linearisation point matters: one update linearised before the step
     H = jacobian(x_prior)
     P_once = P_prior - P_prior @ H.T @ np.linalg.solve(H @ P_prior @ H.T + sigma**2 * np.eye(6), H @ P_prior)
