@@ -278,7 +278,9 @@ def test_the_command_line_under_load(check, tmp_path, capsys):
 
 def test_ekf_blocks_and_checkpoints_take_the_same_forces_as_one_sample_at_a_time(check):
     """The compiled block path prepares a block's inputs ahead, update() one sample at a time: both
-    take the forces at the start-up's geometry, so they agree to rounding; a checkpoint keeps it."""
+    take the forces at the start-up's geometry, so they agree to FK's tolerance (the block path starts
+    each pose's Newton at the pose its forces were taken at, update() at the sample before's: poses
+    within 1e-9 mm of leg length, δM 3e-8 mm apart, 1e-5 of its smallest σ); a checkpoint keeps it."""
     from stewart_calib.estimators import make_estimator
     from stewart_calib.estimators.base import update_block, update_each
 
@@ -288,9 +290,9 @@ def test_ekf_blocks_and_checkpoints_take_the_same_forces_as_one_sample_at_a_time
     update_each(one, samples)
     update_block(block, run.log)
     assert block._compiled  # the compiled recursion runs on the drive's blocks too
-    np.testing.assert_allclose(block.estimate().error, one.estimate().error, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(
-        block.estimate().block_values("compliance"), one.estimate().block_values("compliance"), rtol=0, atol=1e-9
+    np.testing.assert_allclose(block.estimate().error, one.estimate().error, rtol=0, atol=1e-6)  # σ ≥ 2e-3 mm
+    np.testing.assert_allclose(  # σ ≥ 5e-3 mm/kN
+        block.estimate().block_values("compliance"), one.estimate().block_values("compliance"), rtol=0, atol=1e-6
     )
     half, resumed = make_estimator("ekf", platform), make_estimator("ekf", platform)
     update_each(half, samples[:200])

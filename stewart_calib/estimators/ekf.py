@@ -72,6 +72,7 @@ from ..platform import Platform
 from ..samples import Log, Sample
 from ..unknowns import UnknownLayout, gauge_conditioned
 from .base import Refusals, state_array, update_each
+from .kalman import NO_POSES
 from .measurement import (
     HeldForRegistration,
     LegSetPose,
@@ -175,14 +176,14 @@ class LegEKF:
         count = len(block)
         errors = np.zeros((0, self.drive.n_params)) if errors_out is None else errors_out
         refused, late = [], []
-        rows: tuple[np.ndarray, np.ndarray] | None = None
+        rows: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         j = 0
         while j < count:
             if self._leg_set is not None and self._compiled and self.robust.started:
                 if rows is None:
                     rows = self._prepared_rows(block, self._leg_set)
-                prepared, plain = rows
-                j += self.robust.update_block(block.t_s[j:], prepared[j:], plain[j:], errors[j:])
+                prepared, poses, plain = rows
+                j += self.robust.update_block(block.t_s[j:], prepared[j:], poses[j:], plain[j:], errors[j:])
                 if j == count:
                     break
             one = update_each(self, [block[j]], None if errors_out is None else errors_out[j : j + 1], first=j)
@@ -191,9 +192,11 @@ class LegEKF:
             j += 1
         return refused, late
 
-    def _prepared_rows(self, block: Log, leg_set: LegSetPose) -> tuple[np.ndarray, np.ndarray]:
-        """``(prepared rows [u | z], the rows check_sample surely passes)`` of a block of the leg set's
-        readings; the check is stricter than check_sample (any doubt: the row goes through :meth:`update`)."""
+    def _prepared_rows(self, block: Log, leg_set: LegSetPose) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(prepared rows [u | z], their poses [R | t] where solved here (else none), the rows check_sample
+        surely passes)`` of a block of the leg set's readings; the check is stricter than check_sample (any
+        doubt: the row goes through :meth:`update`). An elastic drive's forces need the readings' poses:
+        the recursion's Newton then starts at them instead of solving each pose again."""
         lo, hi = self._stroke_bounds
         strokes, readings = np.asarray(block.strokes, dtype=float), np.asarray(block.readings, dtype=float)
         with np.errstate(invalid="ignore"):
@@ -203,6 +206,7 @@ class LegEKF:
                 & ((strokes >= lo) & (strokes <= hi)).all(axis=1)
                 & self.model.surely_pass(readings)
             )
+        poses = NO_POSES
         if self.drive.elastic is None:
             inputs = self.drive.inputs(strokes)
         else:  # the forces at the tracker's poses and the state's geometry, as update() takes them
@@ -214,8 +218,9 @@ class LegEKF:
             inputs = np.zeros((len(strokes), self.drive.input_width))
             inputs[:, : strokes.shape[1]] = strokes
             inputs[plain] = self.drive.inputs(strokes[plain], payload, R, t, self._forces_at())
+            poses = np.column_stack((fk.R.reshape(-1, 9), fk.t))
         prepared = np.ascontiguousarray(np.column_stack((inputs, readings)), dtype=float)
-        return prepared, plain
+        return prepared, poses, plain
 
     def _replay(self, held: Sample) -> None:
         strokes, z = check_sample(self.platform, self.model, held)

@@ -212,10 +212,26 @@ class LegSetPose(WarmPose):
         return nu, H, R0
 
     def rows(
-        self, x, P, Q, unit_Q, S_last, t_s, prepared, use, last_t, walk_rate, noise_scale2, gate_nis, skip, *window
+        self,
+        x,
+        P,
+        Q,
+        unit_Q,
+        S_last,
+        t_s,
+        prepared,
+        poses,
+        use,
+        last_t,
+        walk_rate,
+        noise_scale2,
+        gate_nis,
+        skip,
+        *window,
     ):
         """:func:`~.kalman.leg_set_filter_rows` from this warm start (moved to the last pose it found),
-        with the observation's fixed arguments; ``window`` = the sample window's arrays and span,
+        with the observation's fixed arguments; ``poses``: each row's pose where the caller knows it, Newton's
+        start there (``(0, 12)``: none); ``window`` = the sample window's arrays and span,
         ``since_window``, ``window``, ``errors_out``, ``components``. Returns ``(rows done, why it stopped,
         rows taken, last taken t_s, its NIS, since_window)``."""
         R, t = kin.start_pose(self._guess)
@@ -227,6 +243,7 @@ class LegSetPose(WarmPose):
             S_last,
             np.ascontiguousarray(t_s),  # a track's block may hand a strided view: one specialisation
             np.ascontiguousarray(prepared),
+            np.ascontiguousarray(poses),
             use,
             float(last_t),
             self._observation,

@@ -68,7 +68,16 @@ from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.spe
 from ..errors import CalibError, SampleRejected
 from ..unknowns import UnknownLayout
 from .base import state_array
-from .kalman import NO_COMPONENTS, ROWS_WINDOW_DUE, STEP_TAKEN, FilterState, fill_walk, filter_step, window_append
+from .kalman import (
+    NO_COMPONENTS,
+    NO_POSES,
+    ROWS_WINDOW_DUE,
+    STEP_TAKEN,
+    FilterState,
+    fill_walk,
+    filter_step,
+    window_append,
+)
 
 #: residual degrees of freedom a batch needs before it refuses any sample or estimates a scale.
 MIN_REDUNDANCY = 12.0
@@ -270,7 +279,9 @@ class RobustFilter:
         if self._since_window >= self._noise_due():
             self._window_statistics()
 
-    def update_block(self, t_s: np.ndarray, prepared: np.ndarray, plain: np.ndarray, errors_out: np.ndarray) -> int:
+    def update_block(
+        self, t_s: np.ndarray, prepared: np.ndarray, poses: np.ndarray, plain: np.ndarray, errors_out: np.ndarray
+    ) -> int:
         """Fold in rows of prepared samples from the first, in compiled calls, for as long as each is
         one the gated recursion accepts; returns how many it took. The row it stops at is for
         :meth:`update` (nothing of the state has moved for it). Takes none before the start-up is
@@ -278,6 +289,8 @@ class RobustFilter:
 
         Args:
             t_s: ``(K,)`` times [s]; prepared: ``(K, width)`` prepared samples.
+            poses: ``(K, 12)`` each row's pose ``[R row-major | t]`` where the caller solved it already
+                (Newton starts there), or ``(0, 12)``: unknown.
             plain: ``(K,)`` rows that pass every check of a sample (the others stop the block).
             errors_out: ``(K, n_params)``, δM [mm] after each row taken, or ``(0, n_params)``: not kept.
         """
@@ -296,6 +309,7 @@ class RobustFilter:
                 S_last,
                 t_s[done:],
                 prepared[done:],
+                poses[done:],
                 plain[done:],
                 f.t_s,
                 self.walk_rate_mm2_per_s,
@@ -512,6 +526,7 @@ class RobustFilter:
                 np.empty((self._m, self._m)),
                 buffer.t,
                 buffer.prepared,
+                NO_POSES,
                 use,
                 math.nan,
                 walk,
