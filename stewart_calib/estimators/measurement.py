@@ -211,27 +211,11 @@ class LegSetPose(WarmPose):
         self._guess = (R, t)
         return nu, H, R0
 
-    def rows(
-        self,
-        x,
-        P,
-        Q,
-        unit_Q,
-        S_last,
-        t_s,
-        prepared,
-        poses,
-        use,
-        last_t,
-        walk_rate,
-        noise_scale2,
-        gate_nis,
-        skip,
-        *window,
-    ):
+    def rows(self, x, P, Q, unit_Q, S_last, t_s, prepared, poses, use, last_t, walk, noise_scale2, gate, skip, *window):
         """:func:`~.kalman.leg_set_filter_rows` from this warm start (moved to the last pose it found),
-        with the observation's fixed arguments; ``poses``: each row's pose where the caller knows it, Newton's
-        start there (``(0, 12)``: none); ``window`` = the sample window's arrays and span,
+        with the observation's fixed arguments; ``walk``: the walk rate, ``gate``: the NIS gate; ``poses``: each
+        row's pose where the caller knows it, Newton's start there (``(0, 12)``: none); ``window`` = the sample
+        window's arrays and span,
         ``since_window``, ``window``, ``errors_out``, ``components``. Returns ``(rows done, why it stopped,
         rows taken, last taken t_s, its NIS, since_window)``."""
         R, t = kin.start_pose(self._guess)
@@ -247,9 +231,9 @@ class LegSetPose(WarmPose):
             use,
             float(last_t),
             self._observation,
-            float(walk_rate),
+            float(walk),
             float(noise_scale2),
-            float(gate_nis),
+            float(gate),
             skip,
             R,
             t,
