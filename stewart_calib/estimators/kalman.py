@@ -444,18 +444,13 @@ def leg_set_filter_rows(
         status = STEP_NON_FINITE
         fk_residual = math.inf
         if use[k] and (skip or math.isnan(last_t) or t_s[k] >= last_t):
-            if poses.shape[0]:
-                for a in range(3):
-                    t_start[a] = poses[k, 9 + a]
-                    for b in range(3):
-                        R_start[a, b] = poses[k, 3 * a + b]
-                fk_residual, nu, H, R0 = _leg_set_observation(
-                    x, prepared[k], observation, R_start, t_start, True, scratch
-                )
-            else:
-                fk_residual, nu, H, R0 = _leg_set_observation(
-                    x, prepared[k], observation, R_guess, t_guess, warm, scratch
-                )
+            R_from, t_from, from_warm = R_guess, t_guess, warm
+            if poses.shape[0]:  # the pose the caller solved: Newton confirms it in one step
+                _kernels.copy_pose(poses[k, :9].reshape((3, 3)), poses[k, 9:], R_start, t_start)
+                R_from, t_from, from_warm = R_start, t_start, True
+            fk_residual, nu, H, R0 = _leg_set_observation(
+                x, prepared[k], observation, R_from, t_from, from_warm, scratch
+            )
             if fk_residual <= tolerance:
                 walk_step = 0.0 if math.isnan(last_t) else walk_rate * max(t_s[k] - last_t, 0.0)
                 if walk_step != filled:  # at a steady rate Δt repeats: Q is already this one
