@@ -35,6 +35,7 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from .. import kinematics as kin
 from ..drive import COMPLIANCE, DriveModel, drive_model
@@ -485,7 +486,23 @@ def run_task(
     A method that refuses the data (a :class:`CalibError`, e.g. least squares not converging,
     or a singular solve) gives a row of NaN scores with ``failure`` saying why; anything else
     propagates (a bug, reported by the runner with the task named).
+
+    The task computes with one BLAS thread wherever it runs: OpenBLAS's multi-threaded kernels
+    (its Haswell and Zen ones among them) round differently from its one-thread kernels, and a
+    Dask worker starts with one thread (``OPENBLAS_NUM_THREADS=1``) where the sweep's own process
+    has the cores, so a task computed again on resume would not give the same row.
     """
+    with threadpool_limits(limits=1):
+        return _run_task(cell, seed, methods, checkpoints, refit_at_checkpoints)
+
+
+def _run_task(
+    cell: Cell,
+    seed: int,
+    methods: tuple[str, ...],
+    checkpoints: tuple[int, ...],
+    refit_at_checkpoints: tuple[str, ...],
+) -> list[dict]:
     rng = task_rng(cell.id, seed)
     data = simulate(cell.settings, cell.platform, rng)
     crb = bound_stddev_mm(data, cell.settings, cell.estimator_config.noise.prior_sigma_mm)
