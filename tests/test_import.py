@@ -29,7 +29,7 @@ OFFSETS = {"fit": "1234.5", "heldout": "873.25"}
 
 
 def hand_converted(name: str, out: Path) -> Path:
-    """The README's conversion of ``NAME_raw.csv`` by numpy and scipy (what a user wrote before)."""
+    """The motion-capture how-to's conversion of ``NAME_raw.csv`` by numpy and scipy (what a user wrote before)."""
     raw = np.genfromtxt(EXAMPLE / f"{name}_raw.csv", delimiter=",", names=True)
     quaternion = np.column_stack([raw["qx"], raw["qy"], raw["qz"], raw["qw"]])
     yaw, pitch, roll = Rotation.from_quat(quaternion).as_euler("ZYX", degrees=True).T

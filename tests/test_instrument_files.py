@@ -424,16 +424,17 @@ def test_instrument_presets_load(name):
     assert config.noise.prior_sigma_mm > 0
 
 
-def test_readme_motion_capture_example(tmp_path, monkeypatch, capsys):
-    """The README's worked example, as written: raw CSV → log → ls → validate on another day."""
+def test_howto_motion_capture_conversion(tmp_path, monkeypatch, capsys):
+    """The motion-capture how-to's conversion in numpy, as written: raw CSV → log → ls → validate
+    on another day."""
     from pathlib import Path
 
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    start = readme.index("```python\nimport csv")
-    code = readme[start + len("```python\n") : readme.index("```", start + 10)]
+    howto = (Path(__file__).resolve().parents[1] / "docs" / "howto" / "motion-capture.md").read_text()
+    start = howto.index("```python\nimport csv")
+    code = howto[start + len("```python\n") : howto.index("```", start + 10)]
     monkeypatch.chdir(tmp_path)
     (tmp_path / "examples").symlink_to(Path(__file__).resolve().parents[1] / "examples")
-    exec(compile(code, "README.md", "exec"), {})
+    exec(compile(code, "motion-capture.md", "exec"), {})
     assert (
         main(
             [

@@ -1,9 +1,10 @@
-"""Every fenced ``bash`` and ``python`` snippet of README.md runs as written.
+"""Every fenced ``bash`` and ``python`` snippet of README.md and of the how-to pages runs as written.
 
-The snippets run in order in one directory (later ones use the files earlier ones write), as in
+A page's snippets run in order in one directory (later ones use the files earlier ones write), as in
 a fresh clone: it holds links to the checkout's ``configs/`` and ``examples/`` and nothing else. They
 run in this process (an interpreter start per command would double the time):
 
+* ``source .venv/bin/activate`` is not run (this interpreter is that venv);
 * ``stewart-calib ARGS`` runs as ``stewart_calib.cli.main(ARGS)`` — ``.venv/bin/`` prefixes
   refer to the venv the set-up lines make, which is this one;
 * ``python3 -m venv …`` and ``pip install -e …`` are not run (this interpreter is that venv),
@@ -30,14 +31,19 @@ from stewart_calib.cli import build_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
+#: the site's pages whose commands run here (each in a directory of its own, as a reader starting on it)
+HOWTOS = [ROOT / "docs" / "index.md"] + [
+    ROOT / "docs" / "howto" / f"{name}.md"
+    for name in ("motion-capture", "laser-tracker", "in-situ-tracker", "under-load", "cluster")
+]
 FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
 
 
-def snippets() -> list[tuple[str, str]]:
-    """``(language, text)`` of every fenced bash / python block, in order."""
+def snippets(page: Path = README) -> list[tuple[str, str]]:
+    """``(language, text)`` of every fenced bash / python block of ``page``, in order."""
     return [
         (m.group(1), m.group(2))
-        for m in FENCE.finditer(README.read_text(encoding="utf-8"))
+        for m in FENCE.finditer(page.read_text(encoding="utf-8"))
         if m.group(1) in ("bash", "python")
     ]
 
@@ -80,6 +86,8 @@ def _prepare_inputs(work: Path, words: list[str]) -> None:
 def _run(words: list[str], work: Path) -> None:
     program = words[0].removeprefix(".venv/bin/")
     args = words[1:]
+    if words == ["source", ".venv/bin/activate"]:
+        return
     if program in ("python3", "python") and args[:2] == ["-m", "venv"]:
         return
     if program == "pip" or (program in ("python3", "python") and args[:2] == ["-m", "pip"]):
@@ -98,19 +106,30 @@ def _run(words: list[str], work: Path) -> None:
     assert main(args) == 0, f"stewart-calib {' '.join(args)} failed (its message is in the captured stderr)"
 
 
+def _run_page(page: Path, work: Path, monkeypatch) -> None:
+    """Every snippet of ``page`` in order, in ``work``, which holds links to configs/ and examples/."""
+    for shipped in ("configs", "examples"):
+        if (ROOT / shipped).is_dir():
+            (work / shipped).symlink_to(ROOT / shipped, target_is_directory=True)
+    monkeypatch.chdir(work)
+    for language, text in snippets(page):
+        if language == "bash":
+            for words in bash_commands(text):
+                _run(words, work)
+        else:
+            exec(compile(text, f"{page.name} python snippet", "exec"), {"__name__": "__main__"})
+
+
 def test_every_readme_snippet_runs_as_written(tmp_path, monkeypatch):
     found = snippets()
     assert any(language == "python" for language, _ in found) and any(language == "bash" for language, _ in found)
-    for shipped in ("configs", "examples"):
-        if (ROOT / shipped).is_dir():
-            (tmp_path / shipped).symlink_to(ROOT / shipped, target_is_directory=True)
-    monkeypatch.chdir(tmp_path)
-    for language, text in found:
-        if language == "bash":
-            for words in bash_commands(text):
-                _run(words, tmp_path)
-        else:
-            exec(compile(text, "README.md python snippet", "exec"), {"__name__": "__main__"})
+    _run_page(README, tmp_path, monkeypatch)
+
+
+@pytest.mark.parametrize("page", HOWTOS, ids=lambda page: page.stem)  # "index" is the site's front page
+def test_every_howto_snippet_runs_as_written(page, tmp_path, monkeypatch):
+    assert snippets(page), f"{page.name} has no bash or python snippet"
+    _run_page(page, tmp_path, monkeypatch)
 
 
 @pytest.mark.parametrize(
