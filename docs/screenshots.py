@@ -3,29 +3,25 @@
 ``python docs/screenshots.py [--site DIR] [--out DIR]`` builds the site with ``mkdocs build
 --strict`` (unless ``--site`` names one already built) and writes one PNG per page of
 :data:`PAGES` to ``--out`` (default ``out/screenshots``): the front page and a how-to, at a
-laptop's window size. Chromium runs without its sandbox, which needs a user namespace that a
-container or a root shell does not give it.
+laptop's window size, through the tests' own Chromium driver (``tests/browser.py``).
 """
 
 from __future__ import annotations
 
 import argparse
-import shutil
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # the checkout's tests/browser.py: one way to drive Chromium, the tests' too
+
+from tests.browser import browser, screenshot  # noqa: E402
 
 #: page (its source under docs/) → the PNG's name
 PAGES = {"index.md": "front-page.png", "howto/motion-capture.md": "howto-motion-capture.png"}
 WINDOW = (1280, 1600)
-
-
-def chromium() -> str | None:
-    """The Chromium executable on the path (Debian's ``chromium``, or ``chromium-browser``)."""
-    return shutil.which("chromium") or shutil.which("chromium-browser")
 
 
 def build_site(site: Path) -> None:
@@ -43,28 +39,7 @@ def page_file(site: Path, source: str) -> Path:
     return site / "index.html" if stem == "index" else site / stem / "index.html"
 
 
-def screenshot(browser: str, html: Path, png: Path, window: tuple[int, int] = WINDOW) -> None:
-    """One PNG of ``html`` as Chromium draws it in a ``window``-sized viewport."""
-    with tempfile.TemporaryDirectory() as profile:  # no state from, or left for, another run
-        subprocess.run(
-            [
-                browser,
-                "--headless",
-                "--no-sandbox",
-                "--disable-gpu",
-                "--hide-scrollbars",
-                f"--user-data-dir={profile}",
-                f"--window-size={window[0]},{window[1]}",
-                f"--screenshot={png}",
-                html.as_uri(),
-            ],
-            check=True,
-            capture_output=True,
-            timeout=120,
-        )
-
-
-def take(site: Path, out: Path, browser: str) -> list[Path]:
+def take(site: Path, out: Path) -> list[Path]:
     """Screenshots of :data:`PAGES` of the built ``site`` into ``out``; returns their paths."""
     out.mkdir(parents=True, exist_ok=True)
     written = []
@@ -72,7 +47,7 @@ def take(site: Path, out: Path, browser: str) -> list[Path]:
         html = page_file(site, source)
         if not html.is_file():
             raise SystemExit(f"{html}: not in the built site (is {source} in mkdocs.yml's nav?)")
-        screenshot(browser, html, out / name)
+        screenshot(html, out / name, *WINDOW)
         written.append(out / name)
     return written
 
@@ -82,15 +57,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--site", type=Path, help="a site already built (default: build one)")
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "screenshots")
     args = parser.parse_args(argv)
-    browser = chromium()
-    if browser is None:
+    if browser() is None:
         print("screenshots: no chromium on the path (Debian: apt-get install chromium)", file=sys.stderr)
         return 1
     with tempfile.TemporaryDirectory() as tmp:
         site = args.site or Path(tmp) / "site"
         if args.site is None:
             build_site(site)
-        for png in take(site, args.out, browser):
+        for png in take(site, args.out):
             print(png)
     return 0
 

@@ -43,9 +43,11 @@ def test_screenshots_show_the_front_page_and_a_howto(tmp_path):
     pytest.importorskip("mkdocs")
     pytest.importorskip("material")
     PIL = pytest.importorskip("PIL.Image")
-    screenshots = _load("screenshots")
-    if screenshots.chromium() is None:
+    from tests.browser import browser
+
+    if browser() is None:
         pytest.skip("no chromium on the path (Debian: apt-get install chromium)")
+    screenshots = _load("screenshots")
     assert screenshots.main(["--out", str(tmp_path)]) == 0
     for name in screenshots.PAGES.values():
         pixels = np.asarray(PIL.open(tmp_path / name).convert("RGB")).astype(int)
