@@ -1,7 +1,8 @@
 """The paper's figures (Ren et al. Figs. 5–9) as PNG files beside tables.md.
 
-* ``fig5_<run>.png`` — δM of one online run through the no-load stage, one panel per leg with its
-  seven parameters, each with its ±σ band and the truth in force (dashed): the convergence of Fig. 5;
+* ``fig5_<run>.png`` — δM of one online run through the no-load stage, one panel per parameter (a
+  row per kind, a column per leg), each with its ±σ band and the truth in force (dashed): the
+  convergence of Fig. 5;
 * ``fig6_<run>.png`` — the same through every load stage, the stages' starts marked (Fig. 6);
 * ``fig7_pose_errors.png`` — the true pose error at each validation pose, before calibration and
   with every run, per stage (Fig. 7);
@@ -34,8 +35,12 @@ from .runs import NOMINAL, MethodRun, Part, Reproduction, WorkerPool, fullest_ru
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-#: one colour per estimator; a run with more parts of the model is drawn solid, fewer dashed.
+#: one colour per estimator; the runs of one estimator differ by line style (and marker, Fig. 7).
 METHOD_COLORS = {NOMINAL: "0.45", "ls": "#d62728", "paper-ekf": "#ff7f0e", "ekf": "#1f77b4", "isam2": "#2ca02c"}
+#: a run with every part of its model solid, one part fewer dashed, two fewer dotted, …
+LINESTYLES = ("-", "--", ":", "-.")
+#: Fig. 7's markers in the same order, so that a run reads apart where its lines overlap
+MARKERS = ("o", "^", "s", "D")
 #: one colour per parameter of a leg (δj_x … δl), as the recording's parameter tabs.
 PARAMETER_COLORS = ("#e41a1c", "#377eb8", "#4daf4a", "#984ea3", "#ff7f00", "#a65628", "#1e1e1e")
 #: the method of the paper, drawn in Figs. 5–6 beside the methods of the bar.
@@ -50,16 +55,32 @@ def parameter_runs(parts: tuple[Part, ...]) -> list[str]:
 
 
 def _style(reproduction: Reproduction, run: str) -> dict:
+    """Colour by the run's estimator, line style and marker by how many parts of the model it lacks
+    against that estimator's fullest run (the runs of one estimator come rigid first, then a part
+    more each: :func:`.runs.online_runs`), so that every run of a figure has a style of its own."""
     method = reproduction.runs[run].method
-    fullest = (
-        run in (NOMINAL, method, PAPER_METHOD) if method not in TARGET_METHODS else run == reproduction.fullest(method)
-    )
-    return {"color": METHOD_COLORS.get(method, "0.3"), "linestyle": "-" if fullest else "--", "label": run}
+    siblings = [name for name, method_run in reproduction.runs.items() if method_run.method == method]
+    fewer = len(siblings) - 1 - siblings.index(run)
+    return {
+        "color": METHOD_COLORS.get(method, "0.3"),
+        "linestyle": LINESTYLES[fewer % len(LINESTYLES)],
+        "marker": MARKERS[fewer % len(MARKERS)],
+        "label": run,
+    }
+
+
+def _line_style(reproduction: Reproduction, run: str) -> dict:
+    """:func:`_style` without the marker: the circles of Figs. 8–9 are lines of many points."""
+    style = _style(reproduction, run)
+    del style["marker"]
+    return style
 
 
 def _parameter_figure(drive: LegGeometry, method_run: MethodRun, rows: np.ndarray, title: str):
-    """One panel per leg: δM of ``method_run`` at ``rows`` ± σ about the nominal ``drive``, and its
-    truth (dashed): in force, or unloaded for a run whose model carries the sag."""
+    """One panel per parameter — a row per kind (δj_x … δl), a column per leg — with δM of
+    ``method_run`` at ``rows``, its ±σ band and its truth (dashed): in force, or unloaded for a run
+    whose model carries the sag. One band a panel: seven overlapping bands in one leg's panel hide
+    each other, and the kinds differ in scale (δl moves by millimetres where δd_z moves by tenths)."""
     result = method_run.result
     nominal = drive.as_vector()
     t = result.log.t_s[rows]
@@ -69,29 +90,39 @@ def _parameter_figure(drive: LegGeometry, method_run: MethodRun, rows: np.ndarra
         if method_run.unloaded
         else result.truth.params[rows] - nominal
     )
-    fig = new_figure(13.0, 7.0)
-    columns = -(-drive.n_legs // 2)  # two rows of legs
-    axes = fig.subplots(2, columns, sharex=True).ravel()
-    for leg, ax in enumerate(axes[: drive.n_legs]):
-        for k, field in enumerate(PARAMETER_FIELDS):
-            col = len(PARAMETER_FIELDS) * leg + k
+    kinds = len(PARAMETER_FIELDS)
+    fig = new_figure(2.1 * drive.n_legs + 0.8, 1.25 * kinds + 0.9)
+    axes = fig.subplots(kinds, drive.n_legs, sharex=True, sharey="row", squeeze=False)
+    for leg in range(drive.n_legs):
+        for k in range(kinds):
+            ax, col, color = axes[k, leg], kinds * leg + k, PARAMETER_COLORS[k]
             estimate = method_run.trace[rows, col]
-            color = PARAMETER_COLORS[k]
-            ax.plot(t, estimate, color=color, lw=1.1, label=f"δ{field}")
             if method_run.stddev is not None:  # σ is kept at every parameter_stride-th sample
                 kept = np.isfinite(method_run.stddev[rows, col])
                 sigma = method_run.stddev[rows, col][kept]
-                ax.fill_between(t[kept], estimate[kept] - sigma, estimate[kept] + sigma, color=color, alpha=0.18, lw=0)
-            ax.plot(t, truth[:, col], color=color, lw=0.7, ls="--", alpha=0.8)
-        ax.set_title(f"leg {leg + 1}", fontsize=9)
-        ax.grid(alpha=0.3)
-        ax.tick_params(labelsize=7)
-    for ax in axes[columns:]:
-        ax.set_xlabel("t [s]", fontsize=8)
-    for ax in axes[::columns]:
-        ax.set_ylabel("δM [mm]", fontsize=8)
-    handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside right center", fontsize=8, title="solid: estimate ± σ\ndashed: truth")
+                ax.fill_between(
+                    t[kept], estimate[kept] - sigma, estimate[kept] + sigma, color=color, alpha=0.25, lw=0, label="± σ"
+                )
+            ax.plot(t, estimate, color=color, lw=1.0, label="estimate")
+            ax.plot(t, truth[:, col], color="0.2", lw=0.8, ls="--", label="truth")
+            ax.grid(alpha=0.3)
+            ax.tick_params(labelsize=6)
+        axes[0, leg].set_title(f"leg {leg + 1}", fontsize=9)
+        axes[-1, leg].set_xlabel("t [s]", fontsize=8)
+    for k, field in enumerate(PARAMETER_FIELDS):
+        axes[k, 0].set_ylabel(f"δ{field} [mm]", fontsize=8)
+    # the legend in grey: each row has its own colour, the legend says what the three marks are
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    handles = [
+        Patch(color="0.5", alpha=0.35),
+        Line2D([], [], color="0.35", lw=1.0),
+        Line2D([], [], color="0.2", lw=0.8, ls="--"),
+    ]
+    labels = ["± σ" if method_run.stddev is not None else "", "estimate", "truth"]
+    keep = [k for k, label in enumerate(labels) if label]
+    fig.legend([handles[k] for k in keep], [labels[k] for k in keep], loc="outside right center", fontsize=8)
     fig.suptitle(title, fontsize=10)
     return fig
 
@@ -117,10 +148,12 @@ def fig6(drive: LegGeometry, run: str, method_run: MethodRun):
     fig = _parameter_figure(
         drive, method_run, np.arange(len(result.log)), f"Fig. 6 — {run}: parameter errors through the load stages"
     )
+    top_row = [ax for ax in fig.axes if ax.get_subplotspec().is_first_row()]
     for ax in fig.axes:
         for start, name in _stage_starts(result)[1:]:
             ax.axvline(start, color="0.3", lw=0.8, ls=":")
-            ax.text(start, 1.0, f" {name}", transform=ax.get_xaxis_transform(), fontsize=7, va="top", color="0.3")
+            if ax in top_row:  # the stage's name once a column, not in each of its panels
+                ax.text(start, 1.0, f" {name}", transform=ax.get_xaxis_transform(), fontsize=7, va="top", color="0.3")
     return fig
 
 
@@ -139,7 +172,7 @@ def fig7(reproduction: Reproduction):
         for column, stage in enumerate(stages):
             mask = ends & (result.stages == stage)
             for row, values in enumerate((position, orientation)):
-                axes[row, column].plot(values[mask], marker="o", ms=2.5, lw=0.9, **style)
+                axes[row, column].plot(values[mask], ms=3.0, lw=0.9, **style)
     for column, stage in enumerate(stages):
         axes[0, column].set_title(stage, fontsize=9)
         axes[1, column].set_xlabel("validation pose", fontsize=8)
@@ -192,7 +225,7 @@ def fig8(reproduction: Reproduction):
         for run in panel_runs:
             d, a = _circle_points(reproduction, run, stage)
             xy = _magnified(d, a, centre, panel_gain)
-            style = _style(reproduction, run)
+            style = _line_style(reproduction, run)
             if run == NOMINAL:
                 style["label"] = "before calibration"
             ax.plot(*np.vstack([xy, xy[:1]]).T, lw=1.0, **style)
@@ -229,7 +262,7 @@ def fig9(reproduction: Reproduction):
             angle = np.unwrap(np.arctan2(desired[:, 1] - centre[1], desired[:, 0] - centre[0]))
             deviation = np.linalg.norm(actual - desired, axis=1)
             lowest, highest = min(lowest, deviation.min()), max(highest, deviation.max())
-            style = _style(reproduction, run)
+            style = _line_style(reproduction, run)
             if run == NOMINAL:
                 style["label"] = "before calibration"
             ax.plot(np.append(angle, angle[0]), np.append(deviation, deviation[0]), lw=1.0, **style)
