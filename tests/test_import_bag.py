@@ -8,18 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 pytest.importorskip("rosbags")
-from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin
-from rosbags.rosbag2 import Writer as Writer2
-from rosbags.typesys import Stores, get_typestore
 
 from stewart_calib.cli import main
 from stewart_calib.pipelines.import_bag import TopicSeries, interpolate_to_stamps
+from tests.ros_messages import JOINT_STATE, POSE_STAMPED, T0_S, bag_writer, joint_state, pose_stamped, stamp_ns
 
-T0_S = 1_700_000_000  # ROS stamps are seconds since the epoch
 STROKE_HZ, MEASUREMENT_HZ = 100.0, 30.0
 DURATION_S = 2.0
 AMPLITUDE_M, OMEGA_RAD_S = 0.05, 2 * np.pi * 0.7
@@ -47,39 +42,6 @@ def poses(t_s: np.ndarray) -> np.ndarray:
     return np.array([0.01, -0.02, 0.7, 0.05, -0.1, 0.3]) * (1.0 + s)
 
 
-def _time(typestore, t_s: float):
-    sec = int(np.floor(t_s))
-    return typestore.types["builtin_interfaces/msg/Time"](sec=T0_S + sec, nanosec=round((t_s - sec) * 1e9))
-
-
-def _header(typestore, t_s: float):
-    header = typestore.types["std_msgs/msg/Header"]
-    ros1 = "seq" in header.__dataclass_fields__  # ROS 1 headers carry a sequence number
-    return header(**({"seq": 0} if ros1 else {}), stamp=_time(typestore, t_s), frame_id="base")
-
-
-def joint_state(typestore, t_s: float, names: list[str], positions) -> object:
-    return typestore.types["sensor_msgs/msg/JointState"](
-        header=_header(typestore, t_s),
-        name=names,
-        position=np.asarray(positions, dtype=float),
-        velocity=np.zeros(0),
-        effort=np.zeros(0),
-    )
-
-
-def pose_stamped(typestore, t_s: float, pose) -> object:
-    types = typestore.types
-    x, y, z, w = Rotation.from_euler("ZYX", pose[[5, 4, 3]]).as_quat()  # R = Rz Ry Rx; quat x, y, z, w
-    return types["geometry_msgs/msg/PoseStamped"](
-        header=_header(typestore, t_s),
-        pose=types["geometry_msgs/msg/Pose"](
-            position=types["geometry_msgs/msg/Point"](x=pose[0], y=pose[1], z=pose[2]),
-            orientation=types["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w),
-        ),
-    )
-
-
 def write_bag(
     path: Path,
     kind: str,
@@ -91,21 +53,11 @@ def write_bag(
     (``/tracker/joint_states`` readings or ``/mocap/pose``), in ``kind`` = ros2-sqlite3 | ros2-mcap | ros1.
     ``without_a_joint``: the indices of the stroke and of the reading messages that lack one joint
     (and carry a seventh, unrelated one)."""
-    ros1 = kind == "ros1"
-    typestore = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
-    serialize = typestore.serialize_ros1 if ros1 else typestore.serialize_cdr
-    if ros1:
-        writer = Writer1(path)
-    else:
-        plugin = StoragePlugin.MCAP if kind == "ros2-mcap" else StoragePlugin.SQLITE3
-        writer = Writer2(path, version=9, storage_plugin=plugin)
-    joint_type = "sensor_msgs/msg/JointState"
+    writer, typestore, serialize = bag_writer(path, kind)
     with writer:
-        drive = writer.add_connection("/drive/joint_states", joint_type, typestore=typestore)
+        drive = writer.add_connection("/drive/joint_states", JOINT_STATE, typestore=typestore)
         topic, msgtype = (
-            ("/tracker/joint_states", joint_type)
-            if measurement == "readings"
-            else ("/mocap/pose", "geometry_msgs/msg/PoseStamped")
+            ("/tracker/joint_states", JOINT_STATE) if measurement == "readings" else ("/mocap/pose", POSE_STAMPED)
         )
         meas = writer.add_connection(topic, msgtype, typestore=typestore)
         messages = []
@@ -130,7 +82,7 @@ def write_bag(
             conn = writer.add_connection(extra_topic[0], extra_topic[1], typestore=typestore)
             messages.append((0.5, conn, typestore.types[extra_topic[1]](data="hello")))
         for t, connection, msg in sorted(messages, key=lambda m: m[0]):
-            writer.write(connection, round((T0_S + t) * 1e9), serialize(msg, connection.msgtype))
+            writer.write(connection, stamp_ns(t), serialize(msg, connection.msgtype))
 
 
 def read_csv(path: Path) -> tuple[list[str], np.ndarray]:
@@ -343,3 +295,33 @@ def test_a_message_without_one_of_the_joints_refuses_only_its_row(tmp_path, caps
     # across the two refused stroke messages the interpolation spans 30 ms: h²/8 · max|f''| with h 3×
     err_mm = np.abs(rows[:, 1:7] - 1000.0 * strokes_m(t_meas[kept]))
     assert err_mm.max() <= 9 * interpolation_bound_mm()
+
+
+def test_the_shipped_sample_bag_is_the_simulators_quick_run(tmp_path):
+    """examples/ros-bag/run.bag imports to the log ``simulate --experiment quick`` writes, and its
+    platform.toml is that simulation's: strokes and readings to float rounding of metres, stamps to
+    float seconds since the epoch. Where the simulator changed, ``python examples/ros-bag/make_bag.py``
+    writes both again."""
+    shipped = Path(__file__).resolve().parents[1] / "examples" / "ros-bag"
+    assert main(["simulate", "--experiment", "quick", "--out", str(tmp_path / "sim")]) == 0
+    out = tmp_path / "bag-log.csv"
+    argv = ["import-bag", str(shipped / "run.bag"), "--strokes", "/drive/joint_states"]
+    assert main([*argv, "--readings", "/tracker/joint_states", "--out", str(out)]) == 0
+    header, imported = read_csv(out)
+    simulated_header, simulated = read_csv_columns(tmp_path / "sim" / "log.csv", header)
+    assert header == simulated_header
+    # import-bag takes stamps as float seconds since the epoch: steps of 2.4e-7 s at T0_S
+    np.testing.assert_allclose(imported[:, 0], simulated[:, 0], rtol=0, atol=np.spacing(float(T0_S)))
+    # mm → m → mm: a float64 round trip through the division and the product, ~1e-13 mm at 300 mm
+    np.testing.assert_allclose(imported[:, 1:], simulated[:, 1:], rtol=1e-14, atol=1e-12)
+    assert (shipped / "platform.toml").read_text() == (tmp_path / "sim" / "platform.toml").read_text(), (
+        "examples/ros-bag/platform.toml is not the simulation's: python examples/ros-bag/make_bag.py"
+    )
+
+
+def read_csv_columns(path: Path, names: list[str]) -> tuple[list[str], np.ndarray]:
+    """The columns ``names`` of a CSV whose other columns may hold text (the log's ``stage``)."""
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    columns = [rows[0].index(name) for name in names]
+    return names, np.array([[float(row[k]) for k in columns] for row in rows[1:]])

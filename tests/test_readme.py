@@ -12,8 +12,9 @@ run in this process (an interpreter start per command would double the time):
 * ``python -m pytest`` is not run (this is that run), but must name no missing path;
 * ``reproduce`` is parsed by the real parser, not run: tests/test_reproduce.py runs it (its
   ``--quick`` form; the full one takes ~20 s alone); so is ``sweep`` (the smoke study starts a
-  Dask cluster and takes about a minute; tests/test_sweep_dask.py runs small sweeps);
-* a ROS bag a snippet reads is written beforehand with rosbags' writer (tests/test_import_bag.py).
+  Dask cluster and takes about a minute; tests/test_sweep_dask.py runs small sweeps).
+
+Every file a snippet reads is shipped (``examples/``, ``configs/``) or written by a snippet before it.
 
 A ``python`` block runs as a script (``runpy``-like ``exec``) in the same directory.
 """
@@ -73,17 +74,7 @@ def _check_pip_install(words: list[str]) -> None:
             assert set(match.group(1).split(",")) <= _extras(), f"README installs unknown extras: {target}"
 
 
-def _prepare_inputs(work: Path, words: list[str]) -> None:
-    """Inputs a snippet assumes the user has: a ROS bag for import-bag."""
-    if words[:1] == ["import-bag"]:
-        from tests.test_import_bag import write_bag
-
-        bag = work / words[1]
-        if not bag.exists():
-            write_bag(bag, "ros1" if bag.suffix == ".bag" else "ros2-sqlite3")
-
-
-def _run(words: list[str], work: Path) -> None:
+def _run(words: list[str]) -> None:
     program = words[0].removeprefix(".venv/bin/")
     args = words[1:]
     if words == ["source", ".venv/bin/activate"]:
@@ -102,7 +93,6 @@ def _run(words: list[str], work: Path) -> None:
     if args[:1] in (["reproduce"], ["sweep"]):
         build_parser().parse_args(args)  # exits (SystemExit) on an option the command does not have
         return
-    _prepare_inputs(work, args)
     assert main(args) == 0, f"stewart-calib {' '.join(args)} failed (its message is in the captured stderr)"
 
 
@@ -115,7 +105,7 @@ def _run_page(page: Path, work: Path, monkeypatch) -> None:
     for language, text in snippets(page):
         if language == "bash":
             for words in bash_commands(text):
-                _run(words, work)
+                _run(words)
         else:
             exec(compile(text, f"{page.name} python snippet", "exec"), {"__name__": "__main__"})
 
