@@ -17,7 +17,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the checkout's tests/browser.py: one way to drive Chromium, the tests' too
 
-from tests.browser import browser, screenshot  # noqa: E402
+from tests.browser import browser, screenshot  # noqa: E402 (the checkout joins sys.path first)
 
 #: page (its source under docs/) → the PNG's name
 PAGES = {"index.md": "front-page.png", "howto/motion-capture.md": "howto-motion-capture.png"}

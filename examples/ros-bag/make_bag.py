@@ -22,8 +22,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parents[1]))  # the checkout, for tests/ros_messages.py
 
-from stewart_calib.cli import main as cli  # noqa: E402
-from tests.ros_messages import JOINT_STATE, bag_writer, joint_state, stamp_ns  # noqa: E402
+from stewart_calib.cli import main as cli  # noqa: E402 (the checkout joins sys.path first)
+from tests.ros_messages import JOINT_STATE, bag_writer, joint_state, stamp_ns  # noqa: E402 (as above)
 
 JOINTS = [f"leg{i}" for i in range(1, 7)]
 LEGS = range(1, 7)
