@@ -104,19 +104,31 @@ def required_samples(platform: Platform) -> tuple[int, int, str]:
     return math.ceil(unknowns / per_sample), unknowns, what
 
 
-def _check_count(platform: Platform, readings: np.ndarray, where: str) -> None:
-    from .instruments.registration import distinct_count
+def require_poses(
+    platform: Platform, n: int, where: str, counted: str = "distinct sample(s)", noun: str = "samples"
+) -> None:
+    """Refuse ``n`` poses (of a log, a pose list, a plan) too few to calibrate ``platform``
+    (:func:`required_samples`), naming ``where`` and what was counted.
 
+    Raises:
+        CalibError: one line with the count, the unknowns and the poses they need.
+    """
     needed, unknowns, what = required_samples(platform)
-    finite = readings[np.any(np.isfinite(readings), axis=1)]
-    scale = np.full(readings.shape[1], 1e-9)
-    n = distinct_count(finite[_evenly(len(finite), 4 * needed)], scale, needed)
     if n < needed:
         _refuse(
             where,
-            f"too few samples: {n} distinct sample(s) for {unknowns} unknowns ({what}); "
+            f"too few {noun}: {n} {counted} for {unknowns} unknowns ({what}); "
             f"expected at least {needed} distinct poses, better several times that",
         )
+
+
+def _check_count(platform: Platform, readings: np.ndarray, where: str) -> None:
+    from .instruments.registration import distinct_count
+
+    needed, _, _ = required_samples(platform)
+    finite = readings[np.any(np.isfinite(readings), axis=1)]
+    scale = np.full(readings.shape[1], 1e-9)
+    require_poses(platform, distinct_count(finite[_evenly(len(finite), 4 * needed)], scale, needed), where)
 
 
 def _fk(platform: Platform, strokes: np.ndarray):

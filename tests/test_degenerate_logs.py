@@ -12,7 +12,7 @@ from stewart_calib.platform import Instrument, platform_to_toml
 from stewart_calib.samples import Log
 from stewart_calib.simulation.instrument import InstrumentTruth
 from tests.instrument_data import hobby, make_case
-from tests.synthetic import make_log, nim_stewart, random_poses
+from tests.synthetic import NIM_STEWART, make_log, nim_stewart, random_poses
 
 POSE = Instrument(kind="pose", position_sigma_mm=0.2, orientation_sigma_rad=np.radians(0.05))
 
@@ -116,3 +116,33 @@ def test_a_thousand_samples_at_rest_are_refused_as_a_log_that_does_not_move(tmp_
         in err
     )
     assert "distinct poses spread over the workspace" in err
+
+
+@pytest.mark.parametrize(
+    "argv, expected",
+    [
+        (
+            ["--n", "1"],
+            "--n: too few poses: 1 pose(s) asked for 42 unknowns (42 drive parameters); expected at least 7",
+        ),
+        (["--n", "6"], "--n: too few poses: 6 pose(s) asked for 42 unknowns"),
+        # one pose a dwell: the seventh would be written at t_s = inf, which no log reader takes
+        (["--n", "7", "--dwell-s", "1e308"], "--dwell-s 1e+308: expected a step that ends 7 poses within 1e+12 s"),
+    ],
+)
+def test_plan_refuses_fewer_poses_than_the_unknowns_need_and_times_beyond_a_log(tmp_path, capsys, argv, expected):
+    out = tmp_path / "p.csv"
+    assert cli.main(["plan", "--platform", str(NIM_STEWART), "--out", str(out), "--candidates", "50", *argv]) == 2
+    assert expected in _one_line(capsys) and not out.exists()
+
+
+def test_identifiability_refuses_a_pose_list_of_one_pose(tmp_path, capsys, pose_case):
+    """One pose (listed twice) fixes 6 of the 42 directions; the report answered with 'rank 6'."""
+    (tmp_path / "poses.csv").write_text("x_mm,y_mm,z_mm,roll_deg,pitch_deg,yaw_deg\n0,0,1000,0,0,0\n0,0,1000,0,0,0\n")
+    for platform, unknowns, needed in ((str(NIM_STEWART), 42, 7), (None, 48, 8)):
+        if platform is None:
+            platform, _ = _files(tmp_path, pose_case)
+        assert cli.main(["identifiability", "--platform", platform, "--poses", str(tmp_path / "poses.csv")]) == 2
+        err = _one_line(capsys)
+        assert f"poses.csv: too few poses: 1 distinct pose(s) for {unknowns} unknowns" in err
+        assert f"expected at least {needed} distinct poses" in err
