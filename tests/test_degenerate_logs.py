@@ -146,3 +146,27 @@ def test_identifiability_refuses_a_pose_list_of_one_pose(tmp_path, capsys, pose_
         err = _one_line(capsys)
         assert f"poses.csv: too few poses: 1 distinct pose(s) for {unknowns} unknowns" in err
         assert f"expected at least {needed} distinct poses" in err
+
+
+def test_a_borderline_condition_number_gets_one_verdict_whatever_its_last_bits(monkeypatch):
+    """The kernels' compiled forms round the whitened rows differently in the last bit (5.5e-16, condition
+    numbers 1e-13 apart): rows whose condition number is 1000 within that get one verdict, not two."""
+    from stewart_calib import identifiability
+    from stewart_calib.config import NoiseConfig
+
+    platform = nim_stewart()
+    poses = random_poses(platform, 30, np.random.default_rng(1))
+    rows = identifiability.whitened_leg_jacobian(platform, poses, NoiseConfig())
+    U, s, Vt = np.linalg.svd(rows.reshape(-1, rows.shape[-1]), full_matrices=False)
+    verdicts, conditions = set(), []
+    for relative in np.linspace(-3e-13, 3e-13, 7):
+        s_border = s.copy()
+        s_border[-1] = s[0] / (identifiability.CONDITION_POOR * (1.0 + relative))
+        border = ((U * s_border) @ Vt).reshape(rows.shape)
+        monkeypatch.setattr(identifiability, "whitened_leg_jacobian", lambda *_, rows=border: rows)
+        report = identifiability.identifiability_report(platform, poses, NoiseConfig(), False)
+        verdicts.add(report.verdict)
+        conditions.append(report.condition_number)
+    assert np.allclose(conditions, identifiability.CONDITION_POOR, rtol=1e-11, atol=0)  # on both sides of it
+    assert min(conditions) < identifiability.CONDITION_POOR < max(conditions)
+    assert verdicts == {"identifiable"}
