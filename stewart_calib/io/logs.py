@@ -457,7 +457,7 @@ class LogRowParser:
         self._load = index.get("load_kg")
         # with [elastic] the payload is an input (spec §10): a row without a usable one takes the careful path
         self._load_is_input = self._load is not None and platform is not None and platform.elastic is not None
-        self._load_limit = payload_limit(platform) if self._load_is_input else math.inf
+        self._load_limit = payload_limit(platform) if platform is not None else math.inf
         self._stage = index.get("stage")
         self._reading_angles = _angle_indices(platform)
         self._stroke_range = platform.stroke_range if platform is not None else None
