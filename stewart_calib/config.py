@@ -236,6 +236,10 @@ _AT_LEAST = {
     ("robust", "noise_every_samples"): (0, "at least one sample"),
 }
 
+#: the χ² gates' probabilities: the share of good samples a gate passes, so below 1 (a gate of
+#: probability 1 has no finite threshold, ``chi_square.chi2_quantile``); 0 turns the gate off.
+_PROBABILITY_SUFFIX = "_probability"
+
 
 def _coerce(source: str, key: str, value: Any, default: Any) -> Any:
     if isinstance(default, bool):
@@ -280,6 +284,10 @@ def config_from_dict(doc: dict, source: str = "<config>", base: EstimatorConfig 
             bound = _AT_LEAST.get((section, key))
             if bound is not None and not value > bound[0]:
                 raise CalibError(f"{source}: key '{full}': expected {bound[1]}, got {value!r}")
+            if key.endswith(_PROBABILITY_SUFFIX) and not value < 1.0:
+                raise CalibError(
+                    f"{source}: key '{full}': expected a probability in (0, 1) (0: the gate off), got {value!r}"
+                )
             if key.endswith(("_sigma_mm", "_mm_per_sqrt_s")) and value != 0 and implausible_sigma_mm(value):
                 raise CalibError(f"{source}: key '{full}': expected {implausible_sigma_mm(value)}")
             choices = _CHOICES.get((section, key))

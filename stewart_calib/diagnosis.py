@@ -7,16 +7,20 @@ that "does not rotate about two axes" for angles left in radians or two stroke c
 with one line naming the cause and its evidence:
 
 1. **too few samples** — fewer distinct samples than the unknowns need (how many are needed);
-2. **strokes in another unit** — the strokes barely move the platform while the instrument saw
+2. **a log that does not move** — the strokes and the readings both stay within a sliver
+   (:data:`REST_FRACTION`) of the stroke range: a robot at rest, however many samples, fixes no
+   parameter (the span of its poses is named, and what a calibration needs);
+3. **strokes in another unit** — the strokes barely move the platform while the instrument saw
    it move (or the strokes fill a sliver of the stroke range);
-3. **too few directions** — an outside instrument's frame and target orientations are told
+4. **too few directions** — an outside instrument's frame and target orientations are told
    apart only by poses that rotate about two axes; the missing ones are named;
-4. **readings in another unit** — the spread of the measured positions (or angles, or tracker
+5. **readings in another unit** — the spread of the measured positions (or angles, or tracker
    readings) against the spread the logged strokes give the nominal model: a rigid change of
    frame keeps distances between positions and angles between orientations, so the two spreads
    agree within the drive's errors whatever the frame; a ratio near 1/1000 is metres, near
-   π/180 radians;
-5. **stroke columns swapped or a leg's sign reversed** — each leg's length, from the measured
+   π/180 radians; readings that do not move at all are named as such
+   (:func:`~.plausibility.check_readings_follow`, the check ``track`` makes too);
+6. **stroke columns swapped or a leg's sign reversed** — each leg's length, from the measured
    poses (the tracker's forward kinematics, or the registration of an outside instrument),
    should follow its own stroke column with slope ≈ 1; a leg that follows another column, or
    follows its own backwards, is named with the residuals of both wirings;
@@ -38,6 +42,7 @@ from .drive import drive_model
 from .errors import CalibError
 from .instruments import instrument_kind
 from .platform import Platform
+from .plausibility import check_readings_follow
 
 #: samples the diagnosis looks at, evenly spread over the log
 DIAGNOSED_SAMPLES = 400
@@ -45,6 +50,10 @@ DIAGNOSED_SAMPLES = 400
 UNIT_TOLERANCE = 2.0
 #: a spread ratio beyond this factor from 1 (either way) matching no unit is refused as such
 SPREAD_LIMIT = 5.0
+#: a log whose strokes and readings (lengths) all spread less than this fraction of the stroke range
+#: (without one: of the legs' initial length) does not move: a hundredth, five times the sliver that
+#: strokes in metres fill (1e-3 × :data:`UNIT_TOLERANCE`), and far below any calibration's poses
+REST_FRACTION = 0.01
 #: samples the wiring test registers (22 wirings: every pair of columns swapped, every leg reversed)
 WIRING_SAMPLES = 120
 #: another wiring must explain the leg lengths this many times better to be named
@@ -95,19 +104,31 @@ def required_samples(platform: Platform) -> tuple[int, int, str]:
     return math.ceil(unknowns / per_sample), unknowns, what
 
 
-def _check_count(platform: Platform, readings: np.ndarray, where: str) -> None:
-    from .instruments.registration import distinct_count
+def require_poses(
+    platform: Platform, n: int, where: str, counted: str = "distinct sample(s)", noun: str = "samples"
+) -> None:
+    """Refuse ``n`` poses (of a log, a pose list, a plan) too few to calibrate ``platform``
+    (:func:`required_samples`), naming ``where`` and what was counted.
 
+    Raises:
+        CalibError: one line with the count, the unknowns and the poses they need.
+    """
     needed, unknowns, what = required_samples(platform)
-    finite = readings[np.any(np.isfinite(readings), axis=1)]
-    scale = np.full(readings.shape[1], 1e-9)
-    n = distinct_count(finite[_evenly(len(finite), 4 * needed)], scale, needed)
     if n < needed:
         _refuse(
             where,
-            f"too few samples: {n} distinct sample(s) for {unknowns} unknowns ({what}); "
+            f"too few {noun}: {n} {counted} for {unknowns} unknowns ({what}); "
             f"expected at least {needed} distinct poses, better several times that",
         )
+
+
+def _check_count(platform: Platform, readings: np.ndarray, where: str) -> None:
+    from .instruments.registration import distinct_count
+
+    needed, _, _ = required_samples(platform)
+    finite = readings[np.any(np.isfinite(readings), axis=1)]
+    scale = np.full(readings.shape[1], 1e-9)
+    require_poses(platform, distinct_count(finite[_evenly(len(finite), 4 * needed)], scale, needed), where)
 
 
 def _fk(platform: Platform, strokes: np.ndarray):
@@ -115,14 +136,48 @@ def _fk(platform: Platform, strokes: np.ndarray):
     return drive.settled_kinematics(strokes, strict=False)[0]
 
 
+def _stroke_reference(platform: Platform) -> tuple[float, str]:
+    """``(length [mm], what it is)`` the strokes' span is measured against: the stroke range, or
+    without one the legs' initial length."""
+    if platform.stroke_range is not None:
+        return platform.stroke_range[1] - platform.stroke_range[0], "the stroke range"
+    return float(np.mean(platform.drive.initial_lengths)), "the legs' initial length"
+
+
+def _check_moves(platform: Platform, strokes: np.ndarray, readings: np.ndarray, where: str, n_samples: int) -> None:
+    """Refuse a log at rest: strokes and readings (``strokes``, ``readings``: evenly spread samples of
+    the log's ``n_samples``) within :data:`REST_FRACTION` of the stroke range (the readings' spread,
+    not only the strokes', so that strokes in metres are named as such)."""
+    span = float(np.nanmax(np.ptp(strokes, axis=0))) if len(strokes) else 0.0
+    reference, what = _stroke_reference(platform)
+    limit = REST_FRACTION * reference
+    fk = _fk(platform, strokes)
+    ok = fk.converged
+    if span >= limit or ok.sum() < 2:
+        return
+    spreads = instrument_kind(platform).spreads(platform, fk.R[ok], fk.t[ok], readings[ok])
+    lengths = [spread for spread in spreads if not spread.angle]
+    if any(not spread.measured < limit for spread in lengths):  # NaN: nothing to say it rests
+        return
+    poses = kin.rt_to_pose(fk.R[ok], fk.t[ok])
+    span_mm = float(np.max(np.ptp(poses[:, :3], axis=0)))
+    span_deg = float(np.degrees(np.max(np.ptp(poses[:, 3:], axis=0))))
+    needed, unknowns, _ = required_samples(platform)
+    measured = ", ".join(f"the {spread.what} {spread.measured:.3g} mm" for spread in lengths)
+    _refuse(
+        where,
+        f"the log does not move: its {n_samples} samples' strokes span {span:.3g} mm and their poses "
+        f"{span_mm:.3g} mm / {span_deg:.3g}° ({measured} RMS); a calibration of {unknowns} unknowns needs at "
+        f"least {needed} distinct poses spread over the workspace, strokes spanning well over "
+        f"{limit:.3g} mm ({REST_FRACTION:g} of {what})",
+    )
+
+
 def _check_strokes_unit(platform: Platform, strokes: np.ndarray, where: str, stroke_columns: list[str]) -> None:
     """Strokes in metres fill a thousandth of the stroke range (without a range: of the legs'
     initial length); a log that really moves so little identifies nothing anyway."""
     span = float(np.nanmax(strokes) - np.nanmin(strokes)) if strokes.size else 0.0
-    if platform.stroke_range is not None:
-        reference, what = platform.stroke_range[1] - platform.stroke_range[0], "the stroke range"
-    else:
-        reference, what = float(np.mean(platform.drive.initial_lengths)), "the legs' initial length"
+    reference, what = _stroke_reference(platform)
     if 0 < span < 1e-3 * UNIT_TOLERANCE * reference:
         _refuse(
             where,
@@ -151,7 +206,8 @@ def _check_directions(platform: Platform, R: np.ndarray, t: np.ndarray, where: s
 
 
 def _check_ratio(where: str, what: str, columns: str, measured: float, expected: float, units, unit_word: str) -> None:
-    if not (math.isfinite(measured) and math.isfinite(expected)) or expected <= 0:
+    # readings that do not move are no unit: check_readings_follow names them
+    if not (math.isfinite(measured) and math.isfinite(expected)) or expected <= 0 or measured <= 0:
         return
     ratio = measured / expected
     unit = _named_unit(ratio, units)
@@ -309,13 +365,17 @@ def diagnose_log(
     stroke_columns = [f"q{i}_mm" for i in range(1, platform.drive.n_legs + 1)]
     if count:
         _check_count(platform, readings, where)
-    pick = _evenly(len(strokes))
+    n_samples = len(strokes)
+    pick = _evenly(n_samples)
     strokes, readings = strokes[pick], readings[pick]
+    if count:  # a held-out log may well hold one pose
+        _check_moves(platform, strokes, readings, where, n_samples)
     _check_strokes_unit(platform, strokes, where, stroke_columns)
     fk = _fk(platform, strokes)
     ok = fk.converged
     if ok.sum() >= 3:
         _check_reading_units(platform, fk.R[ok], fk.t[ok], readings[ok], where, columns)
+        check_readings_follow(platform, fk.R[ok], fk.t[ok], readings[ok], where, columns)
     registers = _check_wiring(platform, strokes, readings, where, stroke_columns)
     if not registers and instrument_kind(platform).outside and ok.sum() >= 3:
         _check_directions(platform, fk.R[ok], fk.t[ok], where)

@@ -41,6 +41,19 @@ RANK_RTOL = 1e-8
 #: achievable spread of the 42 directions); above 1e3 the weakest direction is at least 3× less
 #: well determined than that, a sign that the poses do not move some joint along its leg.
 CONDITION_POOR = 1e3
+#: significant digits the verdict reads a condition number to (:func:`poorly_conditioned`). The
+#: kernels' ahead-of-time and JIT forms round the whitened rows differently in the last bit (5.5e-16
+#: relative, the same poses; the quick experiment's log: 968.7889827920254 against …354), so a
+#: number within 1e-13 of the threshold would be "poorly conditioned" on one and not on the other;
+#: nine digits are far above that rounding and far below any change of the poses.
+CONDITION_DIGITS = 9
+
+
+def poorly_conditioned(condition_number: float) -> bool:
+    """The one decision of every conditioning verdict and warning (the leg-length form's, an outside
+    instrument's equilibrated number): beyond :data:`CONDITION_POOR`, read to :data:`CONDITION_DIGITS`."""
+    return float(f"{condition_number:.{CONDITION_DIGITS}g}") > CONDITION_POOR
+
 
 #: A named direction lists the components with at least this magnitude (unit vector).
 COMPONENT_MIN = 0.1
@@ -531,7 +544,7 @@ class InformationAccumulator:
         condition = s[0] / s[-1] if rank == size else np.inf
         if rank < size:
             verdict = "rank-deficient"
-        elif condition > CONDITION_POOR:
+        elif poorly_conditioned(condition):
             verdict = "poorly conditioned"
         else:
             verdict = "identifiable"

@@ -55,7 +55,6 @@ from .estimators.base import (
     update_block,
 )
 from .inputs import read_input_bytes
-from .instruments import instrument_kind
 from .platform import Platform, load_platform, parse_platform, platform_to_toml
 from .plausibility import check_plausible
 from .samples import Log, Sample
@@ -183,9 +182,8 @@ class OnlineCalibrator:
         self.rows_skipped = 0
         self.source: dict | None = None
         self.rejections = Rejections()
-        # accepted samples for the plausibility check: the leg residual needs a leg set's readings
-        self._legs = not instrument_kind(platform).outside
-        self._recent = RecentSamples(RECENT_SAMPLES if self._legs else 0, platform.drive.n_legs, self._width)
+        # accepted samples for the plausibility check (a leg set's residual, an outside instrument's motion)
+        self._recent = RecentSamples(RECENT_SAMPLES, platform.drive.n_legs, self._width)
         self._fixed: tuple | None = None  # (what they were made of, the checkpoint's fixed arrays)
 
     def update(self, sample: Sample) -> None:
@@ -209,8 +207,7 @@ class OnlineCalibrator:
         finally:
             for late in take_late_rejections(self._estimator):  # left out by a robust start-up batch
                 self.rejections.add(late)
-        if self._legs:
-            self._recent.append(sample.strokes, sample.readings)
+        self._recent.append(sample.strokes, sample.readings)
 
     def update_block(self, block: Log) -> list[int]:
         """Fold in every sample of ``block``: what :meth:`update` does with each in turn, the same
@@ -231,10 +228,9 @@ class OnlineCalibrator:
             [(j, 0, err) for j, err in refused] + [(j, 1, err) for j, err in late], key=lambda event: event[:2]
         ):
             self.rejections.add(err)
-        if self._legs:
-            accepted = np.ones(len(block), dtype=bool)
-            accepted[[j for j, _ in refused]] = False
-            self._recent.extend(np.asarray(block.strokes)[accepted], np.asarray(block.readings)[accepted])
+        accepted = np.ones(len(block), dtype=bool)
+        accepted[[j for j, _ in refused]] = False
+        self._recent.extend(np.asarray(block.strokes)[accepted], np.asarray(block.readings)[accepted])
         return [j for j, _ in refused]
 
     def estimate(self) -> Estimate:
@@ -272,7 +268,6 @@ class OnlineCalibrator:
                 :data:`RECENT_SAMPLES` accepted samples).
         """
         estimate = self.estimate()
-        # the leg residual it checks is the tracker's; an outside instrument's estimate has its parameters checked
         strokes, readings = self._recent.arrays()
         noise_scale = getattr(self._estimator, "noise_scale", lambda: None)()
         check_plausible(self.platform, estimate.error, self.config.noise, strokes, readings, self.method, noise_scale)

@@ -243,6 +243,64 @@ def default_compliance_sigma(platform_mass_kg: float) -> float:
     return DEFAULT_WEIGHT_DEFLECTION_MM / (platform_mass_kg * G_N_PER_KG / N_LEGS / 1000.0)
 
 
+#: the lightest moving platform accepted [kg]: a plate that carries six joints weighs more than a
+#: gram; below it the weight's leg forces (µN) give no leg anything to measure, and the default
+#: compliance σ (2 mm over a sixth of that weight) runs to astronomic values
+MIN_PLATFORM_MASS_KG = 1e-3
+
+
+def give_reference_mm(drive: LegGeometry, stroke_range: tuple[float, float] | None) -> tuple[float, str]:
+    """``(length [mm], what it is)`` no leg can give under a load: the stroke range (a leg that gave
+    more would leave its drive no stroke to hold any pose), or without one the shortest leg's length
+    at zero stroke (a leg cannot shorten by more than its length)."""
+    if stroke_range is not None:
+        return float(stroke_range[1] - stroke_range[0]), "the stroke range"
+    return float(np.min(drive.initial_lengths)), "the shortest leg's length"
+
+
+def least_give_mm_per_kg(compliance_mm_per_kN: float) -> float:
+    """The least shortening [mm] of the most loaded leg per kg on the platform at compliance
+    ``c`` [mm/kN]: six legs hold the weight ``m g`` along z, so one of them carries at least a sixth
+    of it axially, whatever the pose (``Σ f_i n_i,z = m g`` with ``n_i,z ≤ 1``)."""
+    return abs(compliance_mm_per_kN) * G_N_PER_KG / N_LEGS / 1000.0
+
+
+def payload_limit_kg(elastic: Elastic, reference_mm: float) -> float:
+    """The largest payload [kg] a platform declaring ``elastic`` can carry: beyond it the legs, at
+    their nominal compliance plus one prior σ, would give more than ``reference_mm``
+    (:func:`give_reference_mm`) under the weight of platform and payload; inf for legs declared rigid."""
+    per_kg = least_give_mm_per_kg(
+        float(np.max(np.abs(elastic.compliance_mm_per_kN))) + elastic.compliance_sigma_mm_per_kN
+    )
+    return math.inf if per_kg == 0.0 else max(reference_mm / per_kg - elastic.platform_mass_kg, 0.0)
+
+
+def payload_limit(platform: Platform) -> float:
+    """The largest payload [kg] ``platform`` can carry (:func:`payload_limit_kg`); inf without ``[elastic]``."""
+    if platform.elastic is None:
+        return math.inf
+    return payload_limit_kg(platform.elastic, give_reference_mm(platform.drive, platform.stroke_range)[0])
+
+
+def payload_refusal(platform: Platform, load_kg: float) -> str | None:
+    """What a log's ``load_kg`` beyond the payload ``platform`` can carry (:func:`payload_limit_kg`)
+    should have been, for a refusal naming its row and column; None when it is within (or the
+    platform has no ``[elastic]``). A value a thousand times a payload it could carry looks like grams."""
+    elastic = platform.elastic
+    if elastic is None:
+        return None
+    reference_mm, what = give_reference_mm(platform.drive, platform.stroke_range)
+    limit = payload_limit(platform)
+    if load_kg <= limit:
+        return None
+    grams = f"; it looks like grams ({load_kg / 1000.0:.6g} kg)" if load_kg / 1000.0 <= limit else ""
+    return (
+        f"a payload the platform can carry, at most {limit:.4g} kg: under {load_kg:.6g} kg its legs (compliance "
+        f"{float(np.max(np.abs(elastic.compliance_mm_per_kN))):.4g} + prior σ {elastic.compliance_sigma_mm_per_kN:.4g} "
+        f"mm/kN, [elastic]) would give more than {reference_mm:.4g} mm of {what}{grams}"
+    )
+
+
 #: a centre of mass farther than this many platform radii (the largest ``‖d_i‖``) from {D}'s origin
 #: is refused: a value typed in the wrong unit, not a payload the legs could hold.
 COM_RADII_LIMIT = 10.0
@@ -532,7 +590,7 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
             rotation_limit=math.radians(limits["rotation_limit_deg"]),
         )
 
-    elastic = _elastic(doc, drive, source)
+    elastic = _elastic(doc, drive, source, give_reference_mm(drive, stroke_range))
     platform = Platform(
         name,
         drive,
@@ -579,8 +637,9 @@ def _positive(table: dict, key: str, default: float, source: str, prefix: str) -
     return value
 
 
-def _elastic(doc: dict, drive: LegGeometry, source: str) -> Elastic | None:
-    """The optional ``[elastic]`` table (spec §10); None without it."""
+def _elastic(doc: dict, drive: LegGeometry, source: str, reference: tuple[float, str]) -> Elastic | None:
+    """The optional ``[elastic]`` table (spec §10); None without it. ``reference``: what no leg can
+    give (:func:`give_reference_mm`), which bounds the compliances, their σ and the payload's σ."""
     if "elastic" not in doc:
         return None
     table = doc["elastic"]
@@ -589,8 +648,12 @@ def _elastic(doc: dict, drive: LegGeometry, source: str) -> Elastic | None:
     if "platform_mass_kg" not in table:
         raise _refuse(source, "elastic.platform_mass_kg", "the platform's mass in kg (missing)")
     mass = _number(table, "platform_mass_kg", 0.0, source, "elastic")
-    if not mass > 0:
-        raise _refuse(source, "elastic.platform_mass_kg", f"a positive mass in kg, got {mass!r}")
+    if not mass >= MIN_PLATFORM_MASS_KG:
+        raise _refuse(
+            source,
+            "elastic.platform_mass_kg",
+            f"a mass in kg of at least {MIN_PLATFORM_MASS_KG:g} (a gram), got {mass!r}",
+        )
     centres = {}
     for key in ("platform_com_mm", "payload_com_mm"):
         centre = (
@@ -610,15 +673,39 @@ def _elastic(doc: dict, drive: LegGeometry, source: str) -> Elastic | None:
         if "true_compliance_mm_per_kN" in table
         else None
     )
-    return Elastic(
+    sigma = _non_negative(table, "compliance_sigma_mm_per_kN", default_compliance_sigma(mass), source, "elastic")
+    reference_mm, what = reference
+    weight_n = mass * G_N_PER_KG / N_LEGS
+    at_most = reference_mm / (least_give_mm_per_kg(1.0) * mass)  # [mm/kN]: a leg gives its reference length
+    for key, values in (("compliance_mm_per_kN", compliance), ("compliance_sigma_mm_per_kN", np.array([sigma]))):
+        largest = float(np.max(np.abs(values)))
+        if not largest <= at_most:
+            raise _refuse(
+                source,
+                f"elastic.{key}",
+                f"legs that can hold the platform: {largest:.4g} mm/kN gives a leg at least "
+                f"{least_give_mm_per_kg(largest) * mass:.4g} mm under a sixth of the platform's weight "
+                f"({weight_n:.4g} N), beyond {reference_mm:.4g} mm of {what} (expected at most {at_most:.4g} mm/kN)",
+            )
+    elastic = Elastic(
         mass,
         centres["platform_com_mm"],
         centres["payload_com_mm"],
         compliance,
-        _non_negative(table, "compliance_sigma_mm_per_kN", default_compliance_sigma(mass), source, "elastic"),
+        sigma,
         truth,
         _non_negative(table, "payload_sigma_kg", 0.0, source, "elastic"),
     )
+    limit = payload_limit_kg(elastic, reference_mm)
+    if not elastic.payload_sigma_kg <= limit:
+        raise _refuse(
+            source,
+            "elastic.payload_sigma_kg",
+            f"a payload σ the platform could carry: at most {limit:.4g} kg, beyond which its legs (compliance "
+            f"{float(np.max(np.abs(compliance))):.4g} + σ {sigma:.4g} mm/kN) would give more than "
+            f"{reference_mm:.4g} mm of {what}; got {elastic.payload_sigma_kg!r}",
+        )
+    return elastic
 
 
 def _pose6(table: dict, key: str, source: str) -> np.ndarray:

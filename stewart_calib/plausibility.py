@@ -20,6 +20,13 @@ which every sample is a glitch looks like.
 The thresholds are in units of the user's own σ, so they follow the configuration, and both
 sit orders of magnitude past the largest values measured on logs of the right platform whose
 noise is mismatched 5× (tests/test_plausibility.py).
+
+Before any of these, :func:`check_readings_follow` asks the question every command asks of a log
+(``calibrate``, ``validate`` and ``import`` through :func:`~stewart_calib.diagnosis.diagnose_log`,
+``track`` on its last samples): do the instrument's readings move where the logged strokes move
+the platform? Readings that stand still while the strokes move it by many times the instrument's
+noise (a column left at 0, a tracking system that lost the body and repeats a value) fit no
+geometry; an estimator fed them finds a nonsense stroke scale or fails far from the cause.
 """
 
 from __future__ import annotations
@@ -28,7 +35,9 @@ import numpy as np
 
 from . import kinematics as kin
 from .config import NoiseConfig
+from .drive import drive_model
 from .errors import CalibError
+from .instruments import instrument_kind
 from .platform import Platform
 
 #: a parameter error beyond this many prior σ is refused (two-sided tail probability < 1e-20).
@@ -38,6 +47,55 @@ RESIDUAL_SIGMAS = 1000.0
 #: a measurement noise the estimator finds beyond this multiple of the configured σ is refused
 #: (two orders of magnitude: σ wrong by 2–5× or a sagging platform's ~10× pass).
 NOISE_SCALE_LIMIT = 100.0
+#: readings spreading less than this fraction of the spread the strokes give the platform do not
+#: follow it (diagnosis.SPREAD_LIMIT's factor: the spreads of the same motions agree within the drive's errors) …
+STILL_FRACTION = 0.2
+#: … once the strokes move the platform by more than this many times what the instrument's noise
+#: alone spreads (a robot dwelling at one pose moves by its encoders' noise: nothing to compare)
+MOVED_NOISE = 10.0
+
+
+def check_readings_follow(
+    platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray, where: str, columns
+) -> None:
+    """Refuse readings of an instrument outside the robot that stand still while the strokes move
+    the platform (see the module): each group of channels (positions, orientations, a target's
+    positions) against the spread of the nominal instrument's readings at the strokes' nominal
+    poses ``(R, t)`` (:meth:`~.instruments.base.InstrumentModel.spreads`).
+
+    Args:
+        R, t: ``(N, 3, 3)``, ``(N, 3)`` the nominal drive's forward kinematics of the logged strokes.
+        readings: ``(N, m)`` the instrument's readings in code units (mm, rad; NaN: not seen).
+        where: names the log (its path, or the command) in the message; columns: the readings' names.
+    Raises:
+        CalibError: one line naming the columns, both spreads and the noise's.
+    """
+    kind = instrument_kind(platform)
+    if not kind.outside or len(R) < 2:
+        return
+    instrument = platform.instrument
+    columns = list(columns)
+    for spread in kind.spreads(platform, R, t, readings):
+        # the RMS distance from their centroid that white noise alone gives three coordinates or angles
+        sigma = np.degrees(instrument.orientation_sigma_rad) if spread.angle else instrument.position_sigma_mm
+        noise = float(np.sqrt(3.0) * sigma)
+        unit = "°" if spread.angle else " mm"
+        moved = spread.expected > MOVED_NOISE * noise
+        if moved and not spread.measured >= STILL_FRACTION * spread.expected:  # NaN: nothing seen moves
+            names = columns[spread.channels]
+            named = names[0] if len(names) == 1 else f"{names[0]}…{names[-1]}"
+            raise CalibError(
+                f"{where}: the {spread.what} {named} do not follow the platform: they spread "
+                f"{spread.measured:.3g}{unit} where the logged strokes move it {spread.expected:.4g}{unit} "
+                f"(the instrument's noise alone: {noise:.3g}{unit}); expected readings that move with the "
+                "robot (a column left at 0 or repeating one value, a body the instrument lost?)"
+            )
+
+
+def strokes_poses(platform: Platform, strokes: np.ndarray):
+    """The nominal drive's forward kinematics of ``strokes (N, legs)``, as the settled robot would
+    stand (non-converged rows marked, not raised)."""
+    return drive_model(platform).settled_kinematics(np.asarray(strokes, dtype=float), strict=False)[0]
 
 
 def rms_leg_residual_mm(platform: Platform, error: np.ndarray, strokes: np.ndarray, readings: np.ndarray) -> float:
@@ -75,9 +133,10 @@ def check_plausible(
     """Refuse an estimate that the log cannot have come from ``platform`` with (see the module).
 
     Args:
-        error: δM [mm] of the estimate. strokes, readings: ``(N, legs)``, ``(N, rulers)`` samples it was fitted to
-            (all of them, or the most recent ones for an online run) [mm]; with none, only
-            the parameters are checked.
+        error: δM [mm] of the estimate. strokes, readings: ``(N, legs)``, ``(N, m)`` samples it was fitted to
+            (all of them, or the most recent ones for an online run) [mm, rad]; with none, only
+            the parameters are checked. An outside instrument's readings are checked to follow the
+            strokes (:func:`check_readings_follow`); the tracker's, for their leg residual.
         noise_scale: the measurement noise the estimator found in the data, as a multiple of
             the configured σ (``ekf``, ``isam2``; None: not checked). Beyond
             :data:`NOISE_SCALE_LIMIT` no sample agrees with the others — a stream of glitches.
@@ -85,6 +144,13 @@ def check_plausible(
         CalibError: one line with the RMS residual, the largest parameter error and both limits.
     """
     error = np.asarray(error, dtype=float)
+    if instrument_kind(platform).outside:
+        if np.size(strokes):
+            fk = strokes_poses(platform, strokes)
+            ok = fk.converged
+            columns = instrument_kind(platform).columns_of(platform.instrument)
+            check_readings_follow(platform, fk.R[ok], fk.t[ok], np.asarray(readings, dtype=float)[ok], method, columns)
+        strokes = readings = np.zeros((0, platform.drive.n_legs))  # no leg set of known geometry to take residuals on
     sigma_mm = max(noise.reading_sigma_mm, noise.stroke_sigma_mm)
     rms_mm = rms_leg_residual_mm(platform, error, strokes, readings)
     worst = int(np.argmax(np.abs(error)))

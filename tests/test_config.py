@@ -37,6 +37,10 @@ def test_set_overrides_parse_toml_values():
         ("lag_s=3", "expected section.key=value"),
         ("noise.reading_sigma_mm=nan", "expected a finite non-negative number, got nan"),
         ("noise.reading_sigma_mm=abc", "expected a number"),
+        # a gate passing every sample has no finite χ² threshold: refused here, not as chdtri's ValueError
+        ("ekf.gate_probability=1", "key 'ekf.gate_probability': expected a probability in (0, 1) (0: the gate off)"),
+        ("isam2.gate_probability=1.5", "key 'isam2.gate_probability': expected a probability in (0, 1)"),
+        ("paper_ekf.gate_probability=1.0", "key 'paper_ekf.gate_probability': expected a probability in (0, 1)"),
     ],
 )
 def test_bad_overrides_are_refused_in_one_line_naming_the_key(override, expected):

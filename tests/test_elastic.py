@@ -50,8 +50,14 @@ def test_elastic_reads_with_its_defaults_and_round_trips():
 @pytest.mark.parametrize(
     ("keys", "expected"),
     [
-        ({"platform_mass_kg": -1.0}, "key 'elastic.platform_mass_kg': expected a positive mass in kg, got -1.0"),
-        ({"platform_mass_kg": 0.0}, "key 'elastic.platform_mass_kg': expected a positive mass in kg, got 0.0"),
+        (
+            {"platform_mass_kg": -1.0},
+            "key 'elastic.platform_mass_kg': expected a mass in kg of at least 0.001 (a gram), got -1.0",
+        ),
+        (
+            {"platform_mass_kg": 0.0},
+            "key 'elastic.platform_mass_kg': expected a mass in kg of at least 0.001 (a gram), got 0.0",
+        ),
         ({"platform_mass_kg": float("nan")}, "key 'elastic.platform_mass_kg': expected a finite number"),
         ({"platform_mass_kg": float("inf")}, "key 'elastic.platform_mass_kg': expected a finite number"),
         (

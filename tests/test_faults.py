@@ -159,7 +159,7 @@ REFUSALS = [
         "identifiability --platform {d}/P.toml --log {d}/log.csv --json {d}/log.csv",
         "--json {d}/log.csv: is the --log input",
     ),
-    ("paths", "plan --platform {d}/P.toml --n 5 --out {d}/P.toml", "--out {d}/P.toml: is the --platform input"),
+    ("paths", "plan --platform {d}/P.toml --n 10 --out {d}/P.toml", "--out {d}/P.toml: is the --platform input"),
     (
         "paths",
         "simulate --experiment quick --out {d} --controller frozen --result {d}/log.csv",
@@ -216,10 +216,10 @@ REFUSALS = [
     # sizes that exhaust the machine (found fuzzing the numeric options)
     (
         "nonsense",
-        "plan --platform {d}/P.toml --n 5 --candidates 1{zeros} --out {d}/p.csv",
+        "plan --platform {d}/P.toml --n 10 --candidates 1{zeros} --out {d}/p.csv",
         "argument --candidates: expected",
     ),
-    ("nonsense", "plan --platform {d}/P.toml --n 5 --candidates 100000000000 --out {d}/p.csv", "from 1 to 100000"),
+    ("nonsense", "plan --platform {d}/P.toml --n 10 --candidates 100000000000 --out {d}/p.csv", "from 1 to 100000"),
     ("nonsense", "sweep --spec {d}/seeds.toml --out {d}/sweep --workers 1{zeros}", "argument --workers: expected"),
     ("nonsense", "sweep --spec {d}/seeds.toml --out {d}/sweep --workers 0", "worker processes from 1 to"),
     # an output that is a FIFO (a device alike: as root, --out /dev/null swapped the null device for a file)
@@ -240,7 +240,7 @@ REFUSALS = [
                 "v.csv",
             ),
             ("identifiability --platform {d}/P.toml --log {d}/log.csv --json /proc/i.json", "--json", "i.json"),
-            ("plan --platform {d}/P.toml --n 5 --out /proc/p.csv", "--out", "p.csv"),
+            ("plan --platform {d}/P.toml --n 10 --out /proc/p.csv", "--out", "p.csv"),
             ("export --platform {d}/P.toml --format json --out /proc/e.json", "--out", "e.json"),
             ("simulate --experiment quick --out /proc/sim", "--out", "sim/platform.toml"),
             ("sweep --spec {d}/seeds.toml --out /proc/sweep", "--out", "sweep"),
@@ -396,12 +396,12 @@ REFUSALS = [
     ),
     (
         "nonsense",
-        "plan --platform {d}/zero_workspace.toml --n 5 --out {d}/p.csv",
+        "plan --platform {d}/zero_workspace.toml --n 10 --out {d}/p.csv",
         "key 'workspace': a box of zero size holds one pose only",
     ),
     (
         "nonsense",
-        "plan --platform {d}/P.toml --n 5 --out {d}/p.csv --seed -1",
+        "plan --platform {d}/P.toml --n 10 --out {d}/p.csv --seed -1",
         "argument --seed: expected a whole number ≥ 0",
     ),
     (

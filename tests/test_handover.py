@@ -98,7 +98,7 @@ def test_recalibrating_from_the_calibrated_platform_finds_errors_within_their_st
 
 def test_every_command_takes_the_calibrated_platform(ekf_run, sim, tmp_path):
     calibrated = str(ekf_run / "C.toml")
-    assert main(["plan", "--platform", calibrated, "--n", "3", "--out", str(tmp_path / "poses.csv")]) == 0
+    assert main(["plan", "--platform", calibrated, "--n", "7", "--out", str(tmp_path / "poses.csv")]) == 0
     assert main(["identifiability", "--platform", calibrated, "--log", str(sim / "log.csv")]) == 0
 
 

@@ -122,9 +122,9 @@ print(load_estimator_config("paper").noise)
     assert loaded[0].startswith(str(site)) and loaded[1].startswith(str(site))
     assert loaded[2] == str(load_estimator_config(CONFIGS / "estimators" / "paper.toml").noise)
     # the command line resolves names by the same function; one cheap command shows it
-    planned = run("plan", "--platform", "nim-stewart", "--n", "3", "--out", "poses.csv")
+    planned = run("plan", "--platform", "nim-stewart", "--n", "7", "--out", "poses.csv")
     assert planned.returncode == 0, planned.stderr
-    assert len((work / "poses.csv").read_text().splitlines()) == 1 + 3
+    assert len((work / "poses.csv").read_text().splitlines()) == 1 + 7
     missing = run("simulate", "--experiment", "quik", "--out", "sim")
     assert missing.returncode == 2
     assert "quik: experiment file not found (nor the name of a shipped file: paper, quick)" in missing.stderr

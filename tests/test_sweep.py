@@ -83,6 +83,9 @@ def test_estimator_setting_axis_reaches_the_config(tmp_path):
         ({"methods": ["ekf"]}, "'seeds'"),
         ({"seeds": 1, "grid": {"payload_schedule": "ramp"}}, "'ramp'"),
         ({"seeds": 1, "grid": {"payload_known": "yes"}}, "'grid.payload_known'"),
+        # a setting the estimators' config refuses is refused at load, before any task runs
+        ({"seeds": 1, "methods": ["ekf"], "grid": {"ekf": {"gate_probability": [0.9, 1.0]}}}, "'ekf.gate_probability'"),
+        ({"seeds": 1, "methods": ["isam2"], "grid": {"isam2": {"window_s": 0.0}}}, "'isam2.window_s'"),
     ],
 )
 def test_bad_spec_is_one_line_naming_it(tmp_path, capsys, doc, named):

@@ -389,9 +389,9 @@ def equilibrated_condition_number(A: np.ndarray) -> float | None:
 
 
 def _verdict(condition_number: float) -> str:
-    from ..identifiability import CONDITION_POOR
+    from ..identifiability import poorly_conditioned
 
-    return "poorly conditioned" if condition_number > CONDITION_POOR else "identifiable"
+    return "poorly conditioned" if poorly_conditioned(condition_number) else "identifiable"
 
 
 def _subset(problem: BatchProblem, keep: np.ndarray) -> BatchProblem:

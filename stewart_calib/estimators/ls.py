@@ -12,6 +12,12 @@ rows a sample, 42 unknowns of the paper's δM) — the data's own noise level, s
 no noise model. It is None when the system is rank deficient (too few or too poor poses);
 ``singular_values`` says which.
 
+The paper's LS takes every sample in, gross errors too (a glitched reading off by millimetres moves
+the whole fit), where ``ekf``, ``isam2`` and ``lm`` gate them. It stays the paper's baseline, and says
+so: after the fit each sample's six drive-leg residuals are tested against the noise model
+(:func:`gross_outliers`), and the samples no noise explains are named in the result (``"outliers"``),
+which ``calibrate`` prints as a warning.
+
 With an instrument outside the robot (spec §7 ``pose``, ``points``) the same class runs the
 batch maximum-likelihood fit of :mod:`.batch` instead: drive, stroke scale and the instrument's
 frame and target(s) together, the 12 gauge directions fixed and stated in the result.
@@ -24,7 +30,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .. import kinematics as kin
-from ..config import EstimatorConfig, LSConfig
+from ..chi_square import chdtri
+from ..config import EstimatorConfig, LSConfig, NoiseConfig
 from ..drive import DriveModel, drive_model
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
@@ -37,6 +44,8 @@ from .measurement import WarmPose, check_sample, drive_only_model, measured_pose
 
 #: singular values below this fraction of the largest count as zero (rank deficiency).
 RANK_TOLERANCE = 1e-10
+#: samples :func:`gross_outliers` names in its warning, worst first
+NAMED_OUTLIERS = 5
 
 
 @dataclass(frozen=True)
@@ -122,6 +131,75 @@ def gauss_newton(
     return LSSolution(error, covariance, s, iteration, float(np.sqrt(np.mean(residual**2))))
 
 
+def gross_outliers(
+    platform: Platform,
+    noise: NoiseConfig,
+    gate_probability: float,
+    error: np.ndarray,
+    residuals: np.ndarray,
+    R_v: np.ndarray,
+    t_v: np.ndarray,
+    t_s: np.ndarray,
+) -> dict | None:
+    """The samples whose post-fit residuals no noise explains, or None when chance explains them all.
+
+    Each sample's six drive-leg residuals ``r`` [mm] at the fitted model and its measured pose have
+    the covariance ``C = σ_q² I + σ_s² (J_d J_s⁻¹)(J_d J_s⁻¹)ᵀ`` (the stroke noise, and the tracker
+    readings' noise carried through the tracker's FK onto the drive legs; ``J`` the leg–pose
+    Jacobians of drive and tracker), so ``χ² = rᵀ C⁻¹ r`` is χ²(6) for a good sample. A sample is a
+    gross outlier when its χ² is beyond the gate's χ²(6) quantile times the scale the bulk fits at
+    (the median χ² over χ²(6)'s median, at least 1): a noise σ configured too small scales every
+    sample alike and names none. Chance puts ``N (1 − p)`` samples beyond the gate; the outliers are
+    reported when more are, by three Poisson σ and one.
+
+    Returns:
+        ``{"count", "samples", "gate_chi2", "bulk_scale", "t_s", "chi2", "noise_multiple"}`` of the outliers
+        (the :data:`NAMED_OUTLIERS` worst named by time, with their χ² and their RMS residual over the
+        noise's), JSON-ready; None when the gate is off.
+    """
+    if not 0.0 < gate_probability < 1.0 or len(residuals) == 0:
+        return None
+    tracker = platform.required_tracker("the ls outlier test")
+    legs = platform.drive.perturbed(error[: platform.drive.n_params])
+    carried = kin.leg_pose_jacobian(legs, R_v, t_v) @ np.linalg.inv(kin.leg_pose_jacobian(tracker, R_v, t_v))
+    covariance = noise.stroke_sigma_mm**2 * np.eye(legs.n_legs) + noise.reading_sigma_mm**2 * (
+        carried @ np.swapaxes(carried, -1, -2)
+    )
+    chi2 = np.einsum("ki,ki->k", residuals, np.linalg.solve(covariance, residuals[..., None])[..., 0])
+    dof = legs.n_legs
+    gate = chdtri(dof, 1.0 - gate_probability)
+    scale = max(float(np.median(chi2)) / chdtri(dof, 0.5), 1.0)
+    beyond = np.flatnonzero(chi2 > gate * scale)
+    chance = len(chi2) * (1.0 - gate_probability)
+    if len(beyond) <= chance + 3.0 * np.sqrt(chance) + 1.0:
+        return None
+    worst = beyond[np.argsort(chi2[beyond])[::-1][:NAMED_OUTLIERS]]
+    multiple = np.sqrt(chi2[worst] / dof)  # RMS whitened residual: the residual in units of its σ
+    return {
+        "count": len(beyond),
+        "samples": len(chi2),
+        "gate_chi2": float(gate),
+        "bulk_scale": scale,
+        "t_s": [float(v) for v in t_s[worst]],
+        "chi2": [float(v) for v in chi2[worst]],
+        "noise_multiple": [float(v) for v in multiple],
+    }
+
+
+def outlier_warning(outliers: dict) -> str:
+    """The one-line warning of :func:`gross_outliers`' result."""
+    times = ", ".join(f"{t:.6g}" for t in outliers["t_s"])
+    low, high = min(outliers["noise_multiple"]), max(outliers["noise_multiple"])
+    bulk = outliers["bulk_scale"]
+    return (
+        f"warning: ls took in {outliers['count']} of {outliers['samples']} samples that no noise explains: their "
+        f"post-fit leg residuals are up to {high:.3g}× their σ (χ² up to {max(outliers['chi2']):.4g} against the "
+        f"gate's {outliers['gate_chi2']:.3g}{f' × {bulk:.3g}, the scale the others fit at' if bulk > 1 else ''}; "
+        f"the worst at t_s = {times} s, {low:.3g}–{high:.3g}× σ) — gross errors that move the whole fit; ekf, "
+        "isam2 and lm gate them"
+    )
+
+
 class LeastSquares(BufferedFit):
     """Batch LS: ``update`` buffers measured poses, ``estimate`` fits all of them.
 
@@ -135,6 +213,8 @@ class LeastSquares(BufferedFit):
     def __init__(self, platform: Platform, config: EstimatorConfig):
         self.platform = platform
         self.config = config.ls
+        # the outlier test's noise model and gate: those ekf gates the same samples with
+        self._noise, self._gate_probability = config.noise, config.ekf.gate_probability
         self.drive = drive_model(platform)
         self._external = outside_model(platform) if instrument_kind(platform).outside else None
         if self._external is None:
@@ -148,6 +228,7 @@ class LeastSquares(BufferedFit):
         self._R_v: list[np.ndarray] = []
         self._t_v: list[np.ndarray | float] = []  # t_v, or with an outside instrument the sample times
         self._t_s = float("nan")
+        self._times: list[float] = []  # the tracker's samples' t_s, which name the outliers
         self.singular_values: np.ndarray | None = None
         self.rejected: list[tuple[int, SampleRejected]] = []
 
@@ -170,6 +251,7 @@ class LeastSquares(BufferedFit):
         self._payload.append(0.0 if sample.load_kg is None else sample.load_kg)
         self._R_v.append(R_v)
         self._t_v.append(t_v)
+        self._times.append(sample.t_s)
         self._t_s = sample.t_s
 
     def estimate(self) -> Estimate:
@@ -178,20 +260,33 @@ class LeastSquares(BufferedFit):
             return Estimate(np.zeros(self.drive.n_params), None, self.name)
         if self._external is not None:
             return self._estimate_external(self._external)
-        solution = gauss_newton(
-            self.platform.drive,
-            np.array(self._strokes),
-            np.array(self._R_v),
-            np.array(self._t_v),
-            self.config,
-            self._fitted,
-            np.array(self._payload),
-        )
+        strokes, R_v, t_v, payload = (np.array(v) for v in (self._strokes, self._R_v, self._t_v, self._payload))
+        solution = gauss_newton(self.platform.drive, strokes, R_v, t_v, self.config, self._fitted, payload)
         self.singular_values = solution.singular_values
         if self._fitted is None or not self._fitted.blocks:
-            return Estimate(solution.error, solution.covariance, self.name, len(self._strokes), self._t_s)
-        layout = UnknownLayout(self._fitted.blocks, n_params=self._fitted.n_params)
-        return Estimate.of_state(solution.error, solution.covariance, layout, self.name, len(self._strokes), self._t_s)
+            estimate = Estimate(solution.error, solution.covariance, self.name, len(self._strokes), self._t_s)
+        else:
+            layout = UnknownLayout(self._fitted.blocks, n_params=self._fitted.n_params)
+            estimate = Estimate.of_state(
+                solution.error, solution.covariance, layout, self.name, len(self._strokes), self._t_s
+            )
+        extensions = strokes  # the legs' length changes: δM's fit, or the fitted drive's terms at its solution
+        if self._fitted is not None:
+            inputs = self._fitted.inputs(strokes, payload, R_v, t_v, solution.error)
+            extensions = self._fitted.extensions(inputs, solution.error)
+        legs = self.platform.drive.perturbed(solution.error[: self.platform.drive.n_params])
+        residuals = kin.inverse_kinematics(legs, R_v, t_v) - extensions
+        outliers = gross_outliers(
+            self.platform,
+            self._noise,
+            self._gate_probability,
+            solution.error,
+            residuals,
+            R_v,
+            t_v,
+            np.array(self._times),
+        )
+        return estimate if outliers is None else replace(estimate, details={"outliers": outliers})
 
     def _estimate_external(self, model: OutsideModel) -> Estimate:
         from ..instruments.gauge import GAUGE_STATEMENT

@@ -21,7 +21,7 @@ import numpy as np
 from ..drive import STROKE_SCALE
 from ..errors import CalibError, shown
 from ..inputs import MAX_LINE_BYTES, MAX_TIME_S, open_input
-from ..platform import PARAMETER_NAMES, Instrument, Platform
+from ..platform import PARAMETER_NAMES, Instrument, Platform, payload_limit, payload_refusal
 from ..samples import Log, Sample, Truth
 from .atomic import atomic_write_text
 from .tables import (
@@ -243,6 +243,11 @@ def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) ->
                     f"[elastic], spec §10), got {float(load[k])!r}"
                 ),
             )
+            # a payload the platform could not carry is an impossible reading, like a stroke out of range
+            table.flag(
+                ~(load <= payload_limit(platform)),
+                lambda k: f"column 'load_kg': expected {payload_refusal(platform, float(load[k]))}",
+            )
 
 
 #: bytes of a log read and parsed at a time (a few ten thousand rows): what reading a log holds
@@ -452,6 +457,7 @@ class LogRowParser:
         self._load = index.get("load_kg")
         # with [elastic] the payload is an input (spec §10): a row without a usable one takes the careful path
         self._load_is_input = self._load is not None and platform is not None and platform.elastic is not None
+        self._load_limit = payload_limit(platform) if platform is not None else math.inf
         self._stage = index.get("stage")
         self._reading_angles = _angle_indices(platform)
         self._stroke_range = platform.stroke_range if platform is not None else None
@@ -480,7 +486,7 @@ class LogRowParser:
             return None
         if not all(map(math.isfinite, values)) or values[0] < self._last_t_s or abs(values[0]) > MAX_TIME_S:
             return None
-        if self._load_is_input and (load_kg is None or not 0.0 <= load_kg < math.inf):
+        if self._load_is_input and (load_kg is None or not 0.0 <= load_kg <= self._load_limit):
             return None
         for bounds, group in ((self._stroke_range, self._stroke_slice), (self._reading_range, self._reading_slice)):
             if bounds is not None and not bounds[0] <= min(values[group]) <= max(values[group]) <= bounds[1]:
@@ -516,7 +522,7 @@ class LogRowParser:
             return None
         if t_s[0] < -MAX_TIME_S or t_s[-1] > MAX_TIME_S:
             return None
-        if self._load_is_input and not np.all((load_kg >= 0) & (load_kg < np.inf)):
+        if self._load_is_input and not np.all((load_kg >= 0) & (load_kg <= self._load_limit)):
             return None
         for bounds, group in ((self._stroke_range, self._stroke_slice), (self._reading_range, self._reading_slice)):
             if bounds is not None and not bounds[0] <= values[:, group].min() <= values[:, group].max() <= bounds[1]:

@@ -39,6 +39,7 @@ from ..estimators.base import (
     accounting_words,
     skipped_count,
 )
+from ..estimators.ls import outlier_warning
 from ..identifiability import (
     conditioning_summary,
     identifiability_report,
@@ -238,6 +239,9 @@ def run(args: argparse.Namespace) -> int:
             for text in (warning, line):
                 if text:
                     print(f"stewart-calib calibrate: {text}", file=sys.stderr)
+        outliers = (estimate.details or {}).get("outliers")
+        if outliers:  # ls takes every sample in (the paper's baseline): it says when some are gross errors
+            print(f"stewart-calib calibrate: {outlier_warning(outliers)}", file=sys.stderr)
 
         samples_skipped = skipped_count(skipped.count, rejections.count, estimate)
         created = handover.created_now()

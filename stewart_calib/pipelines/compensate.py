@@ -19,7 +19,7 @@ from .. import io
 from ..compensation import PoseOutOfRange, compensate
 from ..errors import CalibError
 from ..io import read_pose_list_blocks
-from ..platform import load_platform
+from ..platform import load_platform, payload_refusal
 from . import run_command
 from .handover import calibrated_model
 
@@ -55,6 +55,9 @@ def run(args: argparse.Namespace) -> int:
         raise CalibError(
             f"--payload-kg: {args.platform} has no [elastic] (spec §10): a rigid model has no payload to compensate"
         )
+    too_heavy = payload_refusal(platform, args.payload_kg)
+    if too_heavy:
+        raise CalibError(f"--payload-kg: expected {too_heavy}")
     drive = calibrated_model(platform, args.result)  # with its blocks, where the calibration identified them
     strokes = _compensated_blocks(args.poses, drive, platform, args.payload_kg)
     rows = io.write_pose_list_blocks(args.out, strokes, io.STROKE_COLUMNS)

@@ -11,6 +11,7 @@ import json
 
 from .. import io
 from ..config import load_estimator_config
+from ..diagnosis import require_poses
 from ..drive import drive_model
 from ..errors import CalibError
 from ..identifiability import CONDITION_POOR, NO_POSE, InformationAccumulator, tracker_samples, warning_line
@@ -68,9 +69,11 @@ def run(args: argparse.Namespace) -> int:
         return _run_outside_instrument(args, platform)
     if args.log is not None:
         information = log_information(platform, args.log, args.pose_source, noise, args.skip_bad_rows)
+        require_poses(platform, information.n_poses, args.log, "pose(s)", "poses")
         covariance, poses = information.covariance(), None
     else:
         poses = read_pose_list(args.poses)
+        require_poses(platform, _distinct(poses), args.poses, "distinct pose(s)", "poses")
         information = InformationAccumulator(platform, noise, drive=drive_model(platform, noise))
         information.add(poses)  # the strokes of the drive's inverse kinematics, no payload
         covariance = information.covariance()
@@ -83,6 +86,13 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         io.atomic_write_text(args.json, json.dumps({**report.to_dict(), **prediction}, indent=2) + "\n")
     return 0
+
+
+def _distinct(poses) -> int:
+    """Distinct rows of a pose list ``(N, 6)``: a pose listed twice adds no direction."""
+    import numpy as np
+
+    return len(np.unique(np.asarray(poses, dtype=float), axis=0))
 
 
 def _prediction(platform: Platform, covariance, poses, n_poses: int, noise) -> dict:
@@ -127,10 +137,12 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
         model = outside_model(platform)
         fk, _ = drive.settled_kinematics(strokes, payload, strict=False)
         poses = fk.pose6[fk.converged]
+        require_poses(platform, len(poses), args.log, "pose(s)", "poses")
         seen = np.isfinite(readings[fk.converged])
     else:
         model = outside_model(platform)
         poses = read_pose_list(args.poses)
+        require_poses(platform, _distinct(poses), args.poses, "distinct pose(s)", "poses")
         R, t = kin.pose_to_rt(poses)
         payload = None  # a pose list has none: the platform's own weight
         strokes = drive.inverse_kinematics(R, t)

@@ -16,6 +16,9 @@ import numpy as np
 from .. import io
 from ..accuracy import predicted_error
 from ..config import load_estimator_config
+from ..diagnosis import require_poses
+from ..errors import CalibError
+from ..inputs import MAX_TIME_S
 from ..instruments import instrument_kind
 from ..planning import (
     CRITERIA,
@@ -103,6 +106,12 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
+    require_poses(platform, args.n, "--n", "pose(s) asked", "poses")
+    if not (args.n - 1) * args.dwell_s <= MAX_TIME_S:  # what a log's t_s may hold (spec §3's reader)
+        raise CalibError(
+            f"--dwell-s {args.dwell_s!r}: expected a step that ends {args.n} poses within {MAX_TIME_S:g} s, "
+            f"got a last t_s of {(args.n - 1) * args.dwell_s:.4g} s"
+        )
     criterion = args.criterion or default_criterion(platform)
     noise = load_estimator_config(args.config, args.set).noise
     start = time.perf_counter()
