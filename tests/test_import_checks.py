@@ -228,3 +228,99 @@ def test_the_clock_offset_of_a_hexapod_s_strokes_is_found_within_a_camera_frame(
     assert code == 0, err
     estimated = float(err.split("clock offset estimated ")[1].split(" s")[0])
     assert abs(estimated - 12.345) < 0.01
+
+
+# ----------------------------------------------------------------------------- silently wrong before
+
+
+def test_a_point_list_accounts_for_every_input_row(capsys, tmp_path):
+    """220 rows (55 times × 3 targets and a reference nest) were reported as "50 of 55 rows"."""
+    t = np.arange(55) * 2.0
+    rng = np.random.default_rng(3)
+    vendor.point_list_csv(tmp_path / "p.csv", t, {name: rng.normal(0, 300, (55, 3)) for name in ("A", "B", "C")})
+    (tmp_path / "m.toml").write_text(
+        '[instrument]\ntime = "Time"\ntarget = "Point"\ntargets = ["A", "B", "C"]\nposition = ["X", "Y", "Z"]\n\n'
+        + COUNTS_MAPPING.replace('time_unit = "ms"', 'time_unit = "ms"\nmax_gap_s = 0.5')
+    )
+    _write_counts(tmp_path / "c.csv", np.arange(0, 100, 0.25), _strokes_of(np.arange(0, 100, 0.25)))
+    code, err = _run(
+        capsys, "import", "--point-list", tmp_path / "p.csv", "--strokes", tmp_path / "c.csv",
+        "--mapping", tmp_path / "m.toml", "--out", tmp_path / "log.csv",
+    )  # fmt: skip
+    assert code == 0, err
+    assert "wrote" in err and "50 of 55 rows (0 where the instrument lost the body, 5 without strokes" in err
+    assert "220 point-list rows: 165 of the targets, grouped into 55 times; 55 of other targets, not on the " in err
+    assert "platform, passed over (55 of 'REF')" in err
+
+
+@pytest.mark.parametrize("option", ["--csv", "--strokes"])
+def test_a_pipe_is_refused_as_a_pipe_not_for_its_content(capsys, tmp_path, option):
+    """``--csv <(cat F.csv)`` was refused as "no column 'time_s' in the file" (its header read
+    already by the first pass); ``-`` as "file not found"."""
+    import os
+
+    read, write = os.pipe()
+    os.close(write)
+    fifo = f"/dev/fd/{read}"
+    try:
+        paths = {"--csv": EXAMPLE / "fit_raw.csv", "--strokes": EXAMPLE / "fit_counts.csv"}
+        paths[option] = fifo
+        argv = ["--motive", EXAMPLE / "fit_motive.csv", "--rigid-body", "platform", "--strokes", paths["--strokes"]]
+        argv += ["--mapping", EXAMPLE / "controller.toml", "--clock-offset-s", "1234.5"]
+        if option == "--csv":
+            argv = ["--csv", paths["--csv"], "--mapping", EXAMPLE / "raw.toml"]
+        err = _refused(capsys, tmp_path / "log.csv", "import", *argv)
+        assert f"{fifo}: not a regular file (a pipe, a process substitution or a device: cannot seek)" in err
+    finally:
+        os.close(read)
+    err = _refused(capsys, tmp_path / "log.csv", "import", "--csv", "-", "--mapping", EXAMPLE / "raw.toml")
+    assert "--csv -: standard input cannot be read twice" in err
+
+
+def test_with_the_platform_a_leg_that_counts_backwards_is_named(capsys, tmp_path):
+    """``sign = -1`` on leg 3 (its strokes below zero): the wiring test mirrored a reversed leg only
+    within the stroke range, so this log was written; calibrate then refused its first row."""
+    mapping = (
+        (EXAMPLE / "raw.toml")
+        .read_text()
+        .replace("counts_per_rev = 4096", "counts_per_rev = 4096\nsign = [1, 1, -1, 1, 1, 1]")
+    )
+    (tmp_path / "m.toml").write_text(mapping)
+    err = _refused(
+        capsys, tmp_path / "log.csv", "import", "--csv", EXAMPLE / "fit_raw.csv", "--mapping", tmp_path / "m.toml",
+        "--platform", "hobby-hexapod",
+    )  # fmt: skip
+    assert "leg 3's stroke looks reversed (q3_mm counts the wrong way)" in err
+
+
+def test_with_the_platform_a_quaternion_in_the_wrong_order_is_named(capsys, tmp_path):
+    """The example's quaternions (w x y z, its frame 30° and its target 90° from nominal) declared
+    x y z w: written before. Read so, every turn between two poses is the strokes' turn mirrored."""
+    (tmp_path / "m.toml").write_text((EXAMPLE / "raw.toml").read_text().replace('"wxyz"', '"xyzw"'))
+    err = _refused(
+        capsys, tmp_path / "log.csv", "import", "--csv", EXAMPLE / "fit_raw.csv", "--mapping", tmp_path / "m.toml",
+        "--platform", "hobby-hexapod",
+    )  # fmt: skip
+    assert "the measured orientations mroll_deg…myaw_deg turn as a mirror image of the strokes' poses" in err
+    assert "a quaternion read in the wrong order (w x y z against x y z w)" in err
+
+
+@pytest.mark.parametrize("declared, refused", [("xyzw", True), ("wxyz", False)])
+def test_without_a_platform_a_quaternion_order_is_told_by_the_identity(capsys, tmp_path, declared, refused):
+    """A pose log within 10° of the identity written w x y z and declared x y z w was accepted:
+    read so, every row is a turn of about 180°."""
+    header = ["t", "x", "y", "z", "x2", "y2", "z2", "qw", "qx", "qy", "qz", *(f"leg{i}" for i in range(1, 7))]
+    _generic(tmp_path / "g.csv", header)
+    (tmp_path / "m.toml").write_text(
+        POSE.format(position='["x", "y", "z"]').replace("wxyz", declared) + STROKES_IN_ROWS
+    )
+    argv = ["import", "--csv", tmp_path / "g.csv", "--mapping", tmp_path / "m.toml"]
+    if not refused:
+        code, err = _run(capsys, *argv, "--out", tmp_path / "log.csv")
+        assert code == 0, err
+        return
+    err = _refused(capsys, tmp_path / "log.csv", *argv)
+    assert (
+        f"{tmp_path / 'm.toml'}: 'instrument.quaternion_order' = 'xyzw': read so, the quaternions qw, qx, qy, qz" in err
+    )
+    assert "read as 'wxyz', within 1" in err and "expected quaternion_order = 'wxyz'" in err

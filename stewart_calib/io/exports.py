@@ -53,6 +53,8 @@ MM_PER = {
 }
 #: seconds per time unit
 S_PER = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+#: a platform's orientation in an instrument set up near it stays this close to the identity [deg]
+NEAR_IDENTITY_DEG = 30.0
 #: groups of a point list held before they are handed on as a block
 POINT_LIST_ROWS = 65536
 #: Z-up from Y-up: x' = x, y' = −z, z' = y
@@ -516,11 +518,48 @@ def check_distinct(mapping_path, uses: list[tuple[str, list]]) -> None:
             seen[name] = key
 
 
+def check_quaternion_order(path, mapping_path, columns: list[str], order: str, q: np.ndarray) -> None:
+    """Refuse quaternions whose declared order puts the scalar in the wrong place, told without
+    any model by where the identity is: a platform's orientation in an instrument set up near it
+    stays within tens of degrees of the identity, whose scalar part is ±1 — read in the other
+    order, that scalar becomes a vector part, and every rotation lies near 180°. A unit-norm check
+    cannot tell (every order has norm 1), nor can the spread of the rotations (the other order
+    turns between two rows by the same angles). Refused only where the declared order puts every
+    row near 180° and the other near the identity (an instrument really turned 180° from the
+    platform reads so too: its platform file's frame, through ``--platform``, decides then)."""
+    finite = np.all(np.isfinite(q), axis=1)
+    norm = np.linalg.norm(q[finite], axis=1)
+    if not finite.any() or not np.all(norm > 0):
+        return
+    other = "xyzw" if order == "wxyz" else "wxyz"
+    scalar = np.abs(q[finite] / norm[:, None])
+
+    def angles_deg(order_: str) -> np.ndarray:
+        return np.degrees(2.0 * np.arccos(np.clip(scalar[:, order_.index("w")], 0.0, 1.0)))
+
+    declared, fits = angles_deg(order), angles_deg(other)
+    if np.min(declared) > 180.0 - NEAR_IDENTITY_DEG and np.max(fits) < NEAR_IDENTITY_DEG:
+        _refuse(
+            mapping_path,
+            f"'instrument.quaternion_order' = {order!r}: read so, the quaternions {', '.join(columns)} of {path} are "
+            f"all {np.min(declared):.0f}–{np.max(declared):.0f}° from the identity; read as {other!r}, within "
+            f"{np.max(fits):.0f}° of it: expected quaternion_order = {other!r} (an instrument turned 180° from the "
+            "platform: give --platform with its frame to check the order against the strokes)",
+        )
+
+
 def generic_instrument_blocks(
-    path: Path, mapping_path: Path, table: dict, up_default: str = "z", extra: list[str] | None = None
+    path: Path,
+    mapping_path: Path,
+    table: dict,
+    up_default: str = "z",
+    extra: list[str] | None = None,
+    check_order: bool = True,
 ):
     """A plain CSV described by ``[instrument]``: ``(blocks, what, kind)``; the columns ``extra``
-    (e.g. the strokes logged in the same rows) follow the measurement's in each block, as read."""
+    (e.g. the strokes logged in the same rows) follow the measurement's in each block, as read.
+    ``check_order``: refuse quaternions whose declared order looks wrong
+    (:func:`check_quaternion_order`; without it the platform's check against the strokes decides)."""
     extra = extra or []
     header = header_of(path)
     section = "instrument"
@@ -586,9 +625,13 @@ def generic_instrument_blocks(
     )
 
     def pose_blocks():
+        first = True
         for block in numeric_blocks(path, 2, header, columns):
             p, a = block.values[:, :3] * MM_PER[unit], block.values[:, 3 : 3 + len(angles)]
             if quaternion is not None:
+                if first and check_order:
+                    check_quaternion_order(path, mapping_path, quaternion, order, a)
+                first = False
                 out = _poses_or_nan(p, a, order, up)
             else:
                 out = np.full((len(a), 6), np.nan)
@@ -601,9 +644,33 @@ def generic_instrument_blocks(
     return pose_blocks(), f"pose in {unit}, {what}, {up.upper()}-up", "pose"
 
 
-def point_list_blocks(path: Path, mapping_path: Path, table: dict, up_default: str = "z"):
+@dataclass
+class PointListTally:
+    """What became of a point list's rows as they were read: grouped into a time's row (one of
+    the ``targets``) or passed over as another target of the job (a reference nest), by name."""
+
+    targets: int = 0
+    times: int = 0
+    others: dict[str, int] | None = None
+
+    def __str__(self) -> str:
+        others = self.others or {}
+        rows = self.targets + sum(others.values())
+        text = f"{rows} point-list rows: {self.targets} of the targets, grouped into {self.times} times"
+        if others:
+            named = ", ".join(f"{count} of {name!r}" for name, count in others.items())
+            text += f"; {sum(others.values())} of other targets, not on the platform, passed over ({named})"
+        return text
+
+
+def point_list_blocks(
+    path: Path, mapping_path: Path, table: dict, up_default: str = "z", tally: PointListTally | None = None
+):
     """A laser tracker's point list (one row per measured target) grouped by time into rows of
-    the ``targets`` named in order (``p1 …``), a target not measured at that time left empty."""
+    the ``targets`` named in order (``p1 …``), a target not measured at that time left empty;
+    ``tally`` counts every row read (:class:`PointListTally`)."""
+    tally = tally if tally is not None else PointListTally()
+    tally.others = tally.others or {}
     header = header_of(path)
     section = "instrument"
     time = mapping_value(mapping_path, table, section, "time", None, str)
@@ -650,9 +717,12 @@ def point_list_blocks(path: Path, mapping_path: Path, table: dict, up_default: s
                 except (ValueError, IndexError):
                     _refuse(path, f"row {number}: expected numbers in columns {time!r}, {', '.join(position)}")
                 name = fields[target_j].strip()
-                if name not in targets:
-                    continue  # another target of the job (a reference nest): not on the platform
+                if name not in targets:  # another target of the job (a reference nest): not on the platform
+                    tally.others[name] = tally.others.get(name, 0) + 1
+                    continue
+                tally.targets += 1
                 if not rows or t != rows[-1][0]:
+                    tally.times += 1
                     if rows and t < rows[-1][0]:
                         _refuse(path, f"row {number}: column {time!r}: time goes back ({t} after {rows[-1][0]})")
                     if len(rows) >= POINT_LIST_ROWS:

@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import stat
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -99,14 +101,36 @@ def add_parser(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
+def _check_seekable(option: str, path: str | None) -> None:
+    """Refuse an input that is not a regular file: the header and the rows of an export (and of
+    the controller's log) are read in passes, which a pipe, a process substitution
+    (``<(cat F.csv)``) or standard input cannot give twice."""
+    if path is None:
+        return
+    if path == "-" and not os.path.exists(path):
+        raise CalibError(
+            f"{option} -: standard input cannot be read twice; import reads its files in passes: save it to a file"
+        )
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return  # not found, unreadable: the reader says which
+    if not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
+        raise CalibError(
+            f"{path}: not a regular file (a pipe, a process substitution or a device: cannot seek); import reads "
+            f"{option}'s file in passes: save it to a file"
+        )
+
+
 def _instrument(args, mapping: dict, mapping_path) -> tuple:
-    """``(blocks factory, what, kind, path)`` of the instrument's export."""
+    """``(blocks factory, what, kind, path, tally)`` of the instrument's export; ``tally`` (a point
+    list's: how its rows became the log's) or None."""
     if args.motive:
         if not args.rigid_body:
             raise CalibError("--motive: expected --rigid-body NAME (the rigid body on the platform)")
         path, up = Path(args.motive), args.up or "y"
         _, what = exports.motive_blocks(path, args.rigid_body, up)  # reads (and checks) the header now
-        return (lambda: exports.motive_blocks(path, args.rigid_body, up)[0]), what, "pose", path
+        return (lambda: exports.motive_blocks(path, args.rigid_body, up)[0]), what, "pose", path, None
     if args.vicon:
         if bool(args.segment) == bool(args.markers):
             raise CalibError("--vicon: expected --segment NAME (a pose) or --markers A,B,C (points)")
@@ -114,26 +138,34 @@ def _instrument(args, mapping: dict, mapping_path) -> tuple:
         path, up = Path(args.vicon), args.up or "z"
         option = "--segment" if args.segment else "--markers"
         _, what, kind = exports.vicon_blocks(path, names, up, option)
-        return (lambda: exports.vicon_blocks(path, names, up, option)[0]), what, kind, path
+        return (lambda: exports.vicon_blocks(path, names, up, option)[0]), what, kind, path, None
     if "instrument" not in mapping:
         option = "--csv" if args.csv else "--point-list"
         raise CalibError(f"{option}: expected --mapping M.toml with an [instrument] table describing its columns")
     table = mapping["instrument"]
     path = Path(args.csv or args.point_list)
     if args.csv:
+        checked = args.platform is None  # with a platform, the diagnosis checks the order against the strokes
         _, what, kind = exports.generic_instrument_blocks(path, mapping_path, table, args.up or "z")
         return (
             (
                 lambda extra=(): exports.generic_instrument_blocks(
-                    path, mapping_path, table, args.up or "z", list(extra)
+                    path, mapping_path, table, args.up or "z", list(extra), checked
                 )[0]
             ),
             what,
             kind,
             path,
+            None,
         )
     _, what, kind = exports.point_list_blocks(path, mapping_path, table, args.up or "z")
-    return (lambda: exports.point_list_blocks(path, mapping_path, table, args.up or "z")[0]), what, kind, path
+
+    def read_again():
+        tally.targets, tally.times, tally.others = 0, 0, {}  # the reading the log is written from counts
+        return exports.point_list_blocks(path, mapping_path, table, args.up or "z", tally)[0]
+
+    tally = exports.PointListTally()
+    return read_again, what, kind, path, tally
 
 
 class ControllerLog:
@@ -439,9 +471,11 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if not out.parent.is_dir():
         raise CalibError(f"--out {out}: directory {out.parent} does not exist")
+    for option in ("motive", "vicon", "csv", "point_list", "strokes"):
+        _check_seekable(f"--{option.replace('_', '-')}", getattr(args, option))
     mapping_path = Path(args.mapping) if args.mapping else None
     mapping = exports.load_mapping(mapping_path) if mapping_path else {}
-    make_blocks, what, kind, source = _instrument(args, mapping, mapping_path)
+    make_blocks, what, kind, source, tally = _instrument(args, mapping, mapping_path)
     stroke_table = mapping.get("strokes")
     if stroke_table is None or mapping_path is None:
         raise CalibError("expected --mapping M.toml with a [strokes] table: the stroke columns, their unit and clock")
@@ -457,7 +491,7 @@ def run(args: argparse.Namespace) -> int:
                 f"--platform {args.platform}: its [instrument] is '{platform.instrument.kind}'; the import gives "
                 f"a {kind} log"
             )
-    notes = [what, strokes.what]
+    notes: list = [what, *([tally] if tally is not None else []), strokes.what]
     if args.strokes is None:
         blocks = _same_file_rows(make_blocks, source, strokes, args.csv, notes)
     else:
@@ -501,7 +535,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"stewart-calib import: wrote {out}: {counts['written']} of {counts['read']} rows ({counts['lost']} where the "
         f"instrument lost the body, {counts['unjoined']} without strokes within {max_gap_s:g} s dropped); "
-        + "; ".join(notes),
+        + "; ".join(map(str, notes)),
         file=sys.stderr,
     )
     return 0
