@@ -24,6 +24,9 @@ with one line naming the cause and its evidence:
    poses (the tracker's forward kinematics, or the registration of an outside instrument),
    should follow its own stroke column with slope ≈ 1; a leg that follows another column, or
    follows its own backwards, is named with the residuals of both wirings;
+6. **orientations mirrored** — a pose instrument's turns between poses against the strokes':
+   a rotation apart whatever the frame, a mirror image when a quaternion was read in the wrong
+   order;
 Every test uses at most :data:`DIAGNOSED_SAMPLES` samples evenly spread over the log, so its
 cost does not grow with the log. Thresholds are ratios far from 1 (a factor
 :data:`UNIT_TOLERANCE` about a unit's factor, :data:`WIRING_GAIN` between two wirings), not
@@ -43,6 +46,7 @@ from .errors import CalibError
 from .instruments import instrument_kind
 from .platform import Platform
 from .plausibility import check_readings_follow
+from .rotations import rpy_to_rotation
 
 #: samples the diagnosis looks at, evenly spread over the log
 DIAGNOSED_SAMPLES = 400
@@ -54,10 +58,16 @@ SPREAD_LIMIT = 5.0
 #: (without one: of the legs' initial length) does not move: a hundredth, five times the sliver that
 #: strokes in metres fill (1e-3 × :data:`UNIT_TOLERANCE`), and far below any calibration's poses
 REST_FRACTION = 0.01
-#: samples the wiring test registers (22 wirings: every pair of columns swapped, every leg reversed)
+#: samples the wiring test registers (27 wirings: every pair of columns swapped, every leg reversed two ways)
 WIRING_SAMPLES = 120
 #: another wiring must explain the leg lengths this many times better to be named
 WIRING_GAIN = 5.0
+#: the turns of a log must span the third axis this well (a fraction of the first) for a mirror
+#: image to be told from a rotation
+HANDED_FRACTION = 0.1
+#: the two ways a leg's stroke is reversed in :func:`_wirings`' sign: mirrored within the stroke
+#: range (counting down from its far end), or negated (counting down from the same zero)
+MIRRORED, NEGATED = -1.0, -2.0
 #: a rotation whose spread is below this fraction of the log's largest (or of a third of the
 #: workspace's rotation limit, if larger) counts as not excited
 EXCITED_FRACTION = 0.2
@@ -205,6 +215,38 @@ def _check_directions(platform: Platform, R: np.ndarray, t: np.ndarray, where: s
         )
 
 
+def _check_handedness(platform: Platform, R: np.ndarray, readings: np.ndarray, where: str, columns) -> None:
+    """A pose instrument's orientations turning as a mirror image of the strokes' (a quaternion
+    read in the wrong order: a cyclic shift of its four parts is an improper map of the
+    quaternions, which turns each rotation between two poses into its inverse seen through a fixed
+    rotation). Whatever the instrument's frame and target, the turn between two measured poses is
+    the turn between the strokes' poses seen through the target's fixed rotation: the best linear
+    map between the two sets of turns is a rotation (determinant +1); a mirrored log gives −1.
+    Decided only where the poses turn about all three axes (else a mirror fits as well)."""
+    if platform.instrument is None or platform.instrument.kind != "pose":
+        return
+    R_m = rpy_to_rotation(readings[:, 3:6])
+    usable = np.all(np.isfinite(readings[:, 3:6]), axis=1)
+    if usable.sum() < 4:
+        return
+    R, R_m = R[usable], R_m[usable]
+
+    def turns(rotations: np.ndarray) -> np.ndarray:  # sin θ × axis of R₀ᵀ R
+        M = np.einsum("ji,njk->nik", rotations[0], rotations[1:])
+        return 0.5 * np.column_stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]])
+
+    H = turns(R_m).T @ turns(R)
+    spread = np.linalg.svd(H, compute_uv=False)
+    if not spread[2] > HANDED_FRACTION * spread[0] or np.linalg.det(H) >= 0:
+        return
+    _refuse(
+        where,
+        f"the measured orientations {_columns(list(columns[3:6]))} turn as a mirror image of the strokes' poses "
+        "(the map between their turns has determinant −1, where a frame and a target only rotate them): a "
+        "quaternion read in the wrong order (w x y z against x y z w), or Euler angles of the other handedness?",
+    )
+
+
 def _check_ratio(where: str, what: str, columns: str, measured: float, expected: float, units, unit_word: str) -> None:
     # readings that do not move are no unit: check_readings_follow names them
     if not (math.isfinite(measured) and math.isfinite(expected)) or expected <= 0 or measured <= 0:
@@ -243,26 +285,29 @@ def _leg_residuals_mm(lengths: np.ndarray, strokes: np.ndarray) -> np.ndarray:
 
 def _wirings(legs: int) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """``(description, column order, sign)`` of every single mistake among ``legs`` stroke columns:
-    two columns swapped, one leg's sign reversed."""
+    two columns swapped, one leg reversed (``sign`` :data:`MIRRORED` or :data:`NEGATED` there)."""
     out = []
     for i, j in combinations(range(legs), 2):
         order = np.arange(legs)
         order[[i, j]] = order[[j, i]]
         out.append((f"swap {i} {j}", order, np.ones(legs)))
     for i in range(legs):
-        sign = np.ones(legs)
-        sign[i] = -1.0
-        out.append((f"sign {i}", np.arange(legs), sign))
+        for reversal in (MIRRORED, NEGATED):
+            sign = np.ones(legs)
+            sign[i] = reversal
+            out.append((f"sign {i}", np.arange(legs), sign))
     return out
 
 
 def _rewired(strokes: np.ndarray, order: np.ndarray, sign: np.ndarray, platform: Platform) -> np.ndarray:
     """The strokes with columns reordered and reversed legs mirrored within the stroke range (or
-    their own span): a reversed encoder counts down from where a correct one counts up."""
+    their own span: a reversed encoder counts down from where a correct one counts up) or negated
+    (a sign of −1 about the same zero: the strokes run below zero)."""
     q = strokes[:, order].copy()
-    for i in np.flatnonzero(sign < 0):
+    for i in np.flatnonzero(sign == MIRRORED):
         low, high = platform.stroke_range if platform.stroke_range is not None else (np.min(q[:, i]), np.max(q[:, i]))
         q[:, i] = low + high - q[:, i]
+    q[:, sign == NEGATED] *= -1.0
     return q
 
 
@@ -332,13 +377,17 @@ def _check_wiring(platform: Platform, strokes: np.ndarray, readings: np.ndarray,
     pick = _evenly(len(strokes), WIRING_SAMPLES)
     strokes, readings = strokes[pick], readings[pick]
     as_logged = _wiring_score(platform, strokes, readings)
+    wirings = _wirings(strokes.shape[1])
     scores = sorted(
         (_wiring_score(platform, _rewired(strokes, order, sign, platform), readings), k)
-        for k, (_, order, sign) in enumerate(_wirings(strokes.shape[1]))
+        for k, (_, order, sign) in enumerate(wirings)
     )
-    (best, k), (second, _) = scores[0], scores[1]
+    best, k = scores[0]
+    # the other way of reversing the same leg differs by an offset only, which some instruments
+    # cannot see: the runner-up is the best of the other mistakes
+    second = next(score for score, j in scores[1:] if wirings[j][0] != wirings[k][0])
     if best * WIRING_GAIN < min(as_logged, second):  # one rewiring alone explains the log
-        _, order, sign = _wirings(strokes.shape[1])[k]
+        _, order, sign = wirings[k]
         _refuse(where, _wiring_message(order, sign, stroke_columns, as_logged, best))
     return math.isfinite(as_logged)
 
@@ -377,5 +426,7 @@ def diagnose_log(
         _check_reading_units(platform, fk.R[ok], fk.t[ok], readings[ok], where, columns)
         check_readings_follow(platform, fk.R[ok], fk.t[ok], readings[ok], where, columns)
     registers = _check_wiring(platform, strokes, readings, where, stroke_columns)
+    if ok.sum() >= 3:  # after the wiring: a reversed leg's poses turn wrongly too, and its cause is named there
+        _check_handedness(platform, fk.R[ok], readings[ok], where, columns)
     if not registers and instrument_kind(platform).outside and ok.sum() >= 3:
         _check_directions(platform, fk.R[ok], fk.t[ok], where)

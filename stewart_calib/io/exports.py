@@ -53,6 +53,8 @@ MM_PER = {
 }
 #: seconds per time unit
 S_PER = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+#: a platform's orientation in an instrument set up near it stays this close to the identity [deg]
+NEAR_IDENTITY_DEG = 30.0
 #: groups of a point list held before they are handed on as a block
 POINT_LIST_ROWS = 65536
 #: Z-up from Y-up: x' = x, y' = −z, z' = y
@@ -258,17 +260,27 @@ def motive_layout(path: Path, body: str) -> Layout:
         _refuse(
             path, f"row 1: 'Length Units' {info.get('Length Units')!r}; expected Meters, Centimeters or Millimeters"
         )
-    types, labels, _, properties, axes = (_split(line) for line in header[2:7])
+    types, labels, ids, properties, axes = (_split(line) for line in header[2:7])
     if axes[:2] != ["Frame", "Time (Seconds)"]:
         _refuse(path, "row 7: expected the columns 'Frame' and 'Time (Seconds)' first (Motive's header of 7 rows)")
     found = {}
     bodies = []
+    body_ids: list[str] = []  # the IDs (row 5) of the rigid bodies named ``body``
+    ids += [""] * (len(types) - len(ids))
     for j, (kind, label, prop, axis) in enumerate(zip(types, labels, properties, axes, strict=False)):
         if kind != "Rigid Body":
             continue
         if label not in bodies:
             bodies.append(label)
+        if label == body and ids[j] not in body_ids:
+            body_ids.append(ids[j])
         if label == body and prop in ("Rotation", "Position"):
+            if (prop, axis) in found:  # a second body of this name: which is the platform cannot be told
+                shown = f" (IDs {', '.join(body_ids)})" if len(body_ids) > 1 else ""
+                _refuse(
+                    path,
+                    f"row 4: two rigid bodies are named {body!r}{shown}; rename one in Motive and export again",
+                )
             found[(prop, axis)] = j
     keys = [("Rotation", "X"), ("Rotation", "Y"), ("Rotation", "Z"), ("Rotation", "W")]
     keys += [("Position", "X"), ("Position", "Y"), ("Position", "Z")]
@@ -305,19 +317,31 @@ def _poses_or_nan(positions_mm: np.ndarray, q: np.ndarray, order: str, up: str) 
 # ----------------------------------------------------------------------------- Vicon
 
 
-def vicon_blocks(path: Path, names: list[str], up: str = "z") -> tuple[Iterator[Block], str, str]:
+def vicon_blocks(
+    path: Path, names: list[str], up: str = "z", option: str | None = None
+) -> tuple[Iterator[Block], str, str]:
     """A segment's poses (``Segments`` section, one name) or markers' positions (``Trajectories``,
-    1..3 names, in the order of ``p1 …``) from a Vicon Nexus CSV export; returns ``(blocks, what was
-    read, kind)`` with kind ``pose`` or ``points``. The time is ``(Frame − 1) / rate``."""
+    names in the order of ``p1 …``) from a Vicon Nexus CSV export; returns ``(blocks, what was
+    read, kind)`` with kind ``pose`` or ``points``. The time is ``(Frame − 1) / rate``. A name is a
+    ``Subject:Name`` label or its ``Name`` alone where one subject has it; ``option`` (``--segment``
+    or ``--markers``) is the command-line option that named them, checked against the section."""
     with _open_text(path) as file:
         header = [file.readline() for _ in range(5)]
     section = _split(header[0])[0]
     if section not in ("Segments", "Trajectories"):
         _refuse(path, f"row 1: expected a Vicon Nexus export section 'Segments' or 'Trajectories', got {section!r}")
+    wanted = {"Segments": "--segment", "Trajectories": "--markers"}[section]
+    if option is not None and option != wanted:
+        _refuse(path, f"row 1: a {section} export, read with {wanted} (not {option})")
     try:
         rate = float(_split(header[1])[0])
     except ValueError:
         _refuse(path, f"row 2: expected the capture rate [Hz], got {_split(header[1])[0]!r}")
+    if not (math.isfinite(rate) and rate > 0):
+        _refuse(path, f"row 2: expected the capture rate [Hz], a positive number, got {_split(header[1])[0]!r}")
+    twice = sorted({name for name in names if names.count(name) > 1})
+    if twice:
+        _refuse(path, f"{option or 'names'}: {twice[0]!r} is named twice; expected each marker once")
     labels, axes, units = _split(header[2]), _split(header[3]), _split(header[4])
     if axes[:2] != ["Frame", "Sub Frame"]:
         _refuse(path, "row 4: expected the columns 'Frame' and 'Sub Frame' first (Vicon Nexus's header)")
@@ -329,9 +353,17 @@ def vicon_blocks(path: Path, names: list[str], up: str = "z") -> tuple[Iterator[
     columns, length_units = [0], set()
     for name in names:
         matches = [j for j, label in enumerate(labels) if label and name in (label, label.split(":")[-1])]
+        what = section[:-1].lower().replace("trajectorie", "marker")
         if not matches:
-            what = section[:-1].lower().replace("trajectorie", "marker")
             _refuse(path, f"row 3: no {what} named {name!r}; the file has {', '.join(map(repr, present))}")
+        if len(matches) > 1:  # two subjects with a segment (marker) of this name: which one is the platform's?
+            held = ", ".join(f"{labels[j]!r} (field {j + 1})" for j in matches)
+            fix = (
+                "rename one in Nexus and export again"
+                if len({labels[j] for j in matches}) < len(matches)
+                else "name one as Subject:Name"
+            )
+            _refuse(path, f"row 3: {len(matches)} {what}s are named {name!r}: {held}; {fix}")
         j = matches[0]
         if axes[j : j + width] != expected:
             _refuse(
@@ -455,22 +487,79 @@ def header_of(path: Path) -> list[str]:
 
 
 def column_indices(path: Path, header: list[str], names: list, key: str) -> list[int]:
-    """The indices of ``names`` in ``header``; an unknown name is refused with the nearest present."""
+    """The indices of ``names`` in ``header``; an unknown name is refused with the nearest present,
+    a name the header holds twice (which of them is meant cannot be told) naming both places."""
     out = []
     for name in names:
         if not isinstance(name, str):
             _refuse(path, f"'{key}': expected column names, got {name!r}")
         if name not in header:
             _refuse(path, f"'{key}': no column {name!r} in the file{_did_you_mean(name, header)}")
+        places = [j + 1 for j, label in enumerate(header) if label == name]
+        if len(places) > 1:
+            _refuse(
+                path,
+                f"row 1: column {name!r} ('{key}') appears {len(places)} times in the header (fields "
+                f"{', '.join(map(str, places))}); expected one column of each name",
+            )
         out.append(header.index(name))
     return out
 
 
+def check_distinct(mapping_path, uses: list[tuple[str, list]]) -> None:
+    """Refuse a mapping that reads one column for two quantities (``uses``: ``(key, column names)``
+    in the order the mapping gives them, e.g. the time column also named as a position)."""
+    seen: dict[str, str] = {}
+    for key, names in uses:
+        for name in names:
+            if name in seen:
+                same = "twice" if seen[name] == key else f"as '{seen[name]}' and as '{key}'"
+                _refuse(mapping_path, f"column {name!r} is named {same}; expected a different column for each")
+            seen[name] = key
+
+
+def check_quaternion_order(path, mapping_path, columns: list[str], order: str, q: np.ndarray) -> None:
+    """Refuse quaternions whose declared order puts the scalar in the wrong place, told without
+    any model by where the identity is: a platform's orientation in an instrument set up near it
+    stays within tens of degrees of the identity, whose scalar part is ±1 — read in the other
+    order, that scalar becomes a vector part, and every rotation lies near 180°. A unit-norm check
+    cannot tell (every order has norm 1), nor can the spread of the rotations (the other order
+    turns between two rows by the same angles). Refused only where the declared order puts every
+    row near 180° and the other near the identity (an instrument really turned 180° from the
+    platform reads so too: its platform file's frame, through ``--platform``, decides then)."""
+    finite = np.all(np.isfinite(q), axis=1)
+    norm = np.linalg.norm(q[finite], axis=1)
+    if not finite.any() or not np.all(norm > 0):
+        return
+    other = "xyzw" if order == "wxyz" else "wxyz"
+    scalar = np.abs(q[finite] / norm[:, None])
+
+    def angles_deg(order_: str) -> np.ndarray:
+        return np.degrees(2.0 * np.arccos(np.clip(scalar[:, order_.index("w")], 0.0, 1.0)))
+
+    declared, fits = angles_deg(order), angles_deg(other)
+    if np.min(declared) > 180.0 - NEAR_IDENTITY_DEG and np.max(fits) < NEAR_IDENTITY_DEG:
+        _refuse(
+            mapping_path,
+            f"'instrument.quaternion_order' = {order!r}: read so, the quaternions {', '.join(columns)} of {path} are "
+            f"all {np.min(declared):.0f}–{np.max(declared):.0f}° from the identity; read as {other!r}, within "
+            f"{np.max(fits):.0f}° of it: expected quaternion_order = {other!r} (an instrument turned 180° from the "
+            "platform: give --platform with its frame to check the order against the strokes)",
+        )
+
+
 def generic_instrument_blocks(
-    path: Path, mapping_path: Path, table: dict, up_default: str = "z", extra: list[str] | None = None
+    path: Path,
+    mapping_path: Path,
+    table: dict,
+    up_default: str = "z",
+    extra: list[str] | None = None,
+    check_order: bool = True,
 ):
     """A plain CSV described by ``[instrument]``: ``(blocks, what, kind)``; the columns ``extra``
-    (e.g. the strokes logged in the same rows) follow the measurement's in each block, as read."""
+    (e.g. the strokes logged in the same rows) follow the measurement's in each block, as read.
+    ``check_order``: refuse quaternions whose declared order looks wrong
+    (:func:`check_quaternion_order`; without it the platform's check against the strokes decides)."""
     extra = extra or []
     header = header_of(path)
     section = "instrument"
@@ -484,8 +573,12 @@ def generic_instrument_blocks(
     if points is not None:
         if not points or not all(isinstance(p, list) and len(p) == 3 for p in points):
             _refuse(mapping_path, "'instrument.points': expected a list of [x, y, z] column names per target")
-        columns = column_indices(path, header, [time, *(c for p in points for c in p)], "instrument.points")
+        flat = [c for p in points for c in p]
+        columns = column_indices(path, header, [time, *flat], "instrument.points")
         columns += column_indices(path, header, extra, "strokes.columns")
+        check_distinct(
+            mapping_path, [("instrument.time", [time]), ("instrument.points", flat), ("strokes.columns", extra)]
+        )
         width = 3 * len(points)
 
         def point_blocks():
@@ -520,11 +613,25 @@ def generic_instrument_blocks(
         angles, what = euler, f"Euler {convention} in {angle_unit}"
     columns = column_indices(path, header, [time, *position, *angles], "instrument")
     columns += column_indices(path, header, extra, "strokes.columns")
+    angle_key = "instrument.quaternion" if quaternion is not None else "instrument.euler"
+    check_distinct(
+        mapping_path,
+        [
+            ("instrument.time", [time]),
+            ("instrument.position", position),
+            (angle_key, angles),
+            ("strokes.columns", extra),
+        ],
+    )
 
     def pose_blocks():
+        first = True
         for block in numeric_blocks(path, 2, header, columns):
             p, a = block.values[:, :3] * MM_PER[unit], block.values[:, 3 : 3 + len(angles)]
             if quaternion is not None:
+                if first and check_order:
+                    check_quaternion_order(path, mapping_path, quaternion, order, a)
+                first = False
                 out = _poses_or_nan(p, a, order, up)
             else:
                 out = np.full((len(a), 6), np.nan)
@@ -537,9 +644,33 @@ def generic_instrument_blocks(
     return pose_blocks(), f"pose in {unit}, {what}, {up.upper()}-up", "pose"
 
 
-def point_list_blocks(path: Path, mapping_path: Path, table: dict, up_default: str = "z"):
+@dataclass
+class PointListTally:
+    """What became of a point list's rows as they were read: grouped into a time's row (one of
+    the ``targets``) or passed over as another target of the job (a reference nest), by name."""
+
+    targets: int = 0
+    times: int = 0
+    others: dict[str, int] | None = None
+
+    def __str__(self) -> str:
+        others = self.others or {}
+        rows = self.targets + sum(others.values())
+        text = f"{rows} point-list rows: {self.targets} of the targets, grouped into {self.times} times"
+        if others:
+            named = ", ".join(f"{count} of {name!r}" for name, count in others.items())
+            text += f"; {sum(others.values())} of other targets, not on the platform, passed over ({named})"
+        return text
+
+
+def point_list_blocks(
+    path: Path, mapping_path: Path, table: dict, up_default: str = "z", tally: PointListTally | None = None
+):
     """A laser tracker's point list (one row per measured target) grouped by time into rows of
-    the ``targets`` named in order (``p1 …``), a target not measured at that time left empty."""
+    the ``targets`` named in order (``p1 …``), a target not measured at that time left empty;
+    ``tally`` counts every row read (:class:`PointListTally`)."""
+    tally = tally if tally is not None else PointListTally()
+    tally.others = tally.others or {}
     header = header_of(path)
     section = "instrument"
     time = mapping_value(mapping_path, table, section, "time", None, str)
@@ -556,6 +687,14 @@ def point_list_blocks(path: Path, mapping_path: Path, table: dict, up_default: s
     unit = mapping_value(mapping_path, table, section, "position_unit", "mm", str, tuple(MM_PER))
     up = mapping_value(mapping_path, table, section, "up", up_default, str, ("y", "z"))
     time_j, target_j, *xyz = column_indices(path, header, [time, target, *position], "instrument")
+    check_distinct(
+        mapping_path, [("instrument.time", [time]), ("instrument.target", [target]), ("instrument.position", position)]
+    )
+    if not all(isinstance(name, str) for name in targets):
+        _refuse(mapping_path, f"'instrument.targets': expected target names, got {targets!r}")
+    twice = sorted({name for name in targets if targets.count(name) > 1})
+    if twice:
+        _refuse(mapping_path, f"'instrument.targets': {twice[0]!r} is named twice; expected each target once")
     K = len(targets)
 
     def block_of(rows: list[tuple[float, np.ndarray, int]]) -> Block:
@@ -578,9 +717,12 @@ def point_list_blocks(path: Path, mapping_path: Path, table: dict, up_default: s
                 except (ValueError, IndexError):
                     _refuse(path, f"row {number}: expected numbers in columns {time!r}, {', '.join(position)}")
                 name = fields[target_j].strip()
-                if name not in targets:
-                    continue  # another target of the job (a reference nest): not on the platform
+                if name not in targets:  # another target of the job (a reference nest): not on the platform
+                    tally.others[name] = tally.others.get(name, 0) + 1
+                    continue
+                tally.targets += 1
                 if not rows or t != rows[-1][0]:
+                    tally.times += 1
                     if rows and t < rows[-1][0]:
                         _refuse(path, f"row {number}: column {time!r}: time goes back ({t} after {rows[-1][0]})")
                     if len(rows) >= POINT_LIST_ROWS:
@@ -649,6 +791,7 @@ def stroke_columns(mapping_path: Path, table: dict) -> StrokeColumns:
         _refuse(mapping_path, "'strokes.sign': expected 1 or -1 per leg")
     zero = _six(mapping_path, "strokes.zero", table.get("zero", 0.0))
     time = mapping_value(mapping_path, table, section, "time", None, str)
+    check_distinct(mapping_path, [("strokes.time", [time] if time else []), ("strokes.columns", columns)])
     time_scale = S_PER[mapping_value(mapping_path, table, section, "time_unit", "s", str, tuple(S_PER))]
     return StrokeColumns(time, time_scale, columns, mm_per_raw, sign, zero, what)
 

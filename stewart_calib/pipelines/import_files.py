@@ -9,8 +9,8 @@ The instrument's export gives the measurement columns of spec §7 (``mx_mm … m
 pose, ``p1x_mm …`` for points) on its own clock; the strokes come from the same file (a generic
 CSV whose mapping file's ``[strokes]`` names its columns) or from the controller's log
 (``--strokes``, described by ``[strokes]``), on another clock: ``t_controller = t_instrument +
-offset``, the offset given or estimated (the lag that best lines up the speed of the strokes with
-the speed of the measured positions). Strokes are interpolated linearly to each measurement's
+offset``, the offset given or estimated (the lag at which the measured motion best explains the
+strokes, :func:`estimate_clock_offset`). Strokes are interpolated linearly to each measurement's
 time between the two controller rows around it, at most ``--max-gap-s`` apart; a measurement with
 no such pair, or where the instrument lost the body, gets no row — and is counted. Both files
 are read a block at a time and the log written as it goes (atomically: nothing partial is left).
@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import stat
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -37,14 +39,26 @@ from ..instruments import MODELS
 from ..io import exports
 from ..io.exports import Block
 from ..platform import INSTRUMENT_SECTIONS, load_platform
+from ..rotations import rpy_to_rotation
 from . import run_command
 
 #: default largest time between the two controller rows a measurement is interpolated across [s]
 DEFAULT_MAX_GAP_S = 0.1
 #: rows of each file the clock offset is estimated from
 ESTIMATE_ROWS = 200_000
-#: the speeds must correlate at least this well at the estimated offset
+#: the strokes must follow the measured motion at least this well (R = √R²) at the estimated offset
 MIN_CORRELATION = 0.5
+#: most points of the common grid the coarse search of the clock offset correlates on
+GRID_POINTS = 1 << 21
+#: peaks of the coarse search whose offsets are scored by the regression itself
+CANDIDATE_PEAKS = 16
+#: grid steps either side of a candidate the fit itself is scanned over
+REFINE_STEPS = 12
+#: a fit within this fraction of its best is as good (the offsets a held pose cannot tell apart)
+FLAT_TOP = 1e-9
+#: the least overlap of the two files (a fraction of the shorter) an estimated offset leaves, the
+#: first tried first
+OVERLAP_FRACTIONS = (0.9, 0.5)
 #: a row's position more than this factor from the log's typical size looks like another unit
 MIXED_UNITS_FACTOR = 100.0
 #: the rows whose median size is the log's typical one
@@ -87,40 +101,71 @@ def add_parser(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
+def _check_seekable(option: str, path: str | None) -> None:
+    """Refuse an input that is not a regular file: the header and the rows of an export (and of
+    the controller's log) are read in passes, which a pipe, a process substitution
+    (``<(cat F.csv)``) or standard input cannot give twice."""
+    if path is None:
+        return
+    if path == "-" and not os.path.exists(path):
+        raise CalibError(
+            f"{option} -: standard input cannot be read twice; import reads its files in passes: save it to a file"
+        )
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return  # not found, unreadable: the reader says which
+    if not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
+        raise CalibError(
+            f"{path}: not a regular file (a pipe, a process substitution or a device: cannot seek); import reads "
+            f"{option}'s file in passes: save it to a file"
+        )
+
+
 def _instrument(args, mapping: dict, mapping_path) -> tuple:
-    """``(blocks factory, what, kind, path)`` of the instrument's export."""
+    """``(blocks factory, what, kind, path, tally)`` of the instrument's export; ``tally`` (a point
+    list's: how its rows became the log's) or None."""
     if args.motive:
         if not args.rigid_body:
             raise CalibError("--motive: expected --rigid-body NAME (the rigid body on the platform)")
         path, up = Path(args.motive), args.up or "y"
         _, what = exports.motive_blocks(path, args.rigid_body, up)  # reads (and checks) the header now
-        return (lambda: exports.motive_blocks(path, args.rigid_body, up)[0]), what, "pose", path
+        return (lambda: exports.motive_blocks(path, args.rigid_body, up)[0]), what, "pose", path, None
     if args.vicon:
         if bool(args.segment) == bool(args.markers):
             raise CalibError("--vicon: expected --segment NAME (a pose) or --markers A,B,C (points)")
         names = [args.segment] if args.segment else [name.strip() for name in args.markers.split(",")]
         path, up = Path(args.vicon), args.up or "z"
-        _, what, kind = exports.vicon_blocks(path, names, up)
-        return (lambda: exports.vicon_blocks(path, names, up)[0]), what, kind, path
+        option = "--segment" if args.segment else "--markers"
+        _, what, kind = exports.vicon_blocks(path, names, up, option)
+        return (lambda: exports.vicon_blocks(path, names, up, option)[0]), what, kind, path, None
     if "instrument" not in mapping:
         option = "--csv" if args.csv else "--point-list"
         raise CalibError(f"{option}: expected --mapping M.toml with an [instrument] table describing its columns")
     table = mapping["instrument"]
     path = Path(args.csv or args.point_list)
     if args.csv:
+        checked = args.platform is None  # with a platform, the diagnosis checks the order against the strokes
         _, what, kind = exports.generic_instrument_blocks(path, mapping_path, table, args.up or "z")
         return (
             (
                 lambda extra=(): exports.generic_instrument_blocks(
-                    path, mapping_path, table, args.up or "z", list(extra)
+                    path, mapping_path, table, args.up or "z", list(extra), checked
                 )[0]
             ),
             what,
             kind,
             path,
+            None,
         )
     _, what, kind = exports.point_list_blocks(path, mapping_path, table, args.up or "z")
-    return (lambda: exports.point_list_blocks(path, mapping_path, table, args.up or "z")[0]), what, kind, path
+
+    def read_again():
+        tally.targets, tally.times, tally.others = 0, 0, {}  # the reading the log is written from counts
+        return exports.point_list_blocks(path, mapping_path, table, args.up or "z", tally)[0]
+
+    tally = exports.PointListTally()
+    return read_again, what, kind, path, tally
 
 
 class ControllerLog:
@@ -141,6 +186,8 @@ class ControllerLog:
         block = next(self._blocks, None)
         if block is None:
             self._done = True
+            if not self.rows:
+                raise CalibError(f"{self.path}: no data rows after the header; expected the controller's strokes")
             return False
         block.t_s = block.t_s * self.columns.time_scale
         self._latest = exports.check_time_order(self.path, block, self._latest, f"column {self.columns.time!r}")
@@ -174,55 +221,223 @@ class ControllerLog:
         return float(self.t_s[-1]) if len(self.t_s) else math.nan
 
 
-def estimate_clock_offset(instrument: Iterator[Block], controller: Iterator[Block], stroke_columns, where: str):
-    """The offset ``t_controller − t_instrument`` [s] at which the speed of the strokes best
-    matches the speed of the measured positions (normalised cross-correlation on a common time
-    grid, refined by a parabola through the peak), from the first :data:`ESTIMATE_ROWS` of each.
+def estimate_clock_offset(
+    instrument: Iterator[Block], controller: Iterator[Block], stroke_columns, where: str, kind: str, source=None
+) -> tuple[float, float]:
+    """The offset ``t_controller − t_instrument`` [s] at which the strokes are best explained by
+    the measured motion, from the first :data:`ESTIMATE_ROWS` rows of each file; of two fits, the
+    one that explains them better:
 
-    Returns ``(offset_s, correlation)``. Raises CalibError when the speeds do not correlate."""
+    * **the pose** — near a pose the strokes are a nearly linear function of the platform's pose,
+      so the strokes at ``t + offset`` are regressed on the instrument's coordinates at ``t``
+      (positions, and a pose's rotation as the vector part of ``R₀ᵀ R``): the offset maximises the
+      variance explained, R². A hexapod's strokes are such a function; their speed is not one of
+      the measured position's speed (a rotation moves the strokes and not the position);
+    * **the speeds** — the distance the strokes travel over each interval of the instrument's rows
+      against the distance the measured position travels (a drive whose strokes follow its path).
 
-    def gather(blocks, convert):
-        t, v, n = [], [], 0
-        for block in blocks:
-            t.append(block.t_s)
-            v.append(convert(block.values))
-            n += len(block.t_s)
-            if n >= ESTIMATE_ROWS:
-                break
-        return np.concatenate(t), np.concatenate(v)
+    Each is searched coarsely on a common grid (normalised cross-correlations by FFT; the
+    controller's motion averaged over each cell of the grid, never point-sampled — a 10 Hz
+    controller that holds each pose between 2 Hz camera frames, sampled at the frames, stands
+    still) and refined on the instrument's own rows against the controller's strokes interpolated
+    at ``t + offset``, continuous in the offset: no grid step remains in the estimate.
 
-    t_i, p = gather(instrument, lambda values: values[:, :3])
-    t_c, q = gather(controller, lambda values: stroke_columns.convert(values))
-    t_c = t_c * stroke_columns.time_scale
-    seen = np.all(np.isfinite(p), axis=1)
-    t_i, p = t_i[seen], p[seen]
+    Returns ``(offset_s, R)``. Raises CalibError when neither fit reaches :data:`MIN_CORRELATION`."""
+    t_i, x = _gather(instrument, source or where)
+    t_c, q = _gather(controller, where)
+    t_c, q = t_c * stroke_columns.time_scale, stroke_columns.convert(q)
+    seen = np.all(np.isfinite(x), axis=1)
+    t_i, x = t_i[seen], _motion_coordinates(x[seen], kind)
     if len(t_i) < 10 or len(t_c) < 10:
         raise CalibError(f"{where}: too few rows to estimate the clock offset; give --clock-offset-s")
-    speed_i = np.linalg.norm(np.diff(p, axis=0), axis=1) / np.diff(t_i)
-    speed_c = np.linalg.norm(np.diff(q, axis=0), axis=1) / np.diff(t_c)
-    mid_i, mid_c = (t_i[1:] + t_i[:-1]) / 2, (t_c[1:] + t_c[:-1]) / 2
-    dt = max(np.median(np.diff(t_i)), np.median(np.diff(t_c)))
-    grid_i = np.arange(mid_i[0], mid_i[-1], dt)
-    grid_c = np.arange(mid_c[0], mid_c[-1], dt)
-    a = np.interp(grid_i, mid_i, speed_i)
-    b = np.interp(grid_c, mid_c, speed_c)
-    a, b = (a - a.mean()) / (a.std() or 1.0), (b - b.mean()) / (b.std() or 1.0)
-    full, overlap = _correlate(b, a), _correlate(np.ones_like(b), np.ones_like(a))
-    enough = overlap >= 0.5 * min(len(a), len(b))
-    score = np.where(enough, full / np.maximum(overlap, 1.0), -np.inf)
-    k = int(np.argmax(score))
-    correlation = float(score[k])
-    if not correlation >= MIN_CORRELATION:
-        raise CalibError(
-            f"{where}: cannot estimate the clock offset: the speeds of the strokes and of the measured positions "
-            f"correlate at best {correlation:.2f} (expected ≥ {MIN_CORRELATION}); give --clock-offset-s"
-        )
-    shift = 0.0
-    if 0 < k < len(score) - 1 and np.isfinite(score[k - 1]) and np.isfinite(score[k + 1]):
-        denominator = score[k - 1] - 2 * score[k] + score[k + 1]
-        shift = 0.5 * (score[k - 1] - score[k + 1]) / denominator if denominator < 0 else 0.0
-    lag = (k - (len(a) - 1) + shift) * dt
-    return float(grid_c[0] - grid_i[0] + lag), correlation
+    moving = np.std(q, axis=0) > 0
+    q = q[:, moving]
+    if not moving.any() or not np.any(np.std(x[:, :3], axis=0) > 0):
+        raise CalibError(f"{where}: the strokes or the measured positions do not move; give --clock-offset-s")
+    step = min(np.median(np.diff(t_i)), np.median(np.diff(t_c)))
+    step = max(step, max(t_i[-1] - t_i[0], t_c[-1] - t_c[0]) / GRID_POINTS)
+    grid_i, grid_c = np.arange(t_i[0], t_i[-1], step), np.arange(t_c[0], t_c[-1], step)
+    if len(grid_i) < 10 or len(grid_c) < 10:
+        raise CalibError(f"{where}: too few rows to estimate the clock offset; give --clock-offset-s")
+    overlap = _correlate(np.ones(len(grid_c)), np.ones(len(grid_i)))
+    # two recordings of one session overlap nearly whole: an offset that leaves most of either
+    # unmatched is looked at only if none does (a fit to part of a smooth log can look good)
+    for fraction in OVERLAP_FRACTIONS:
+        enough = overlap >= fraction * min(len(grid_i), len(grid_c))
+        if enough.any():
+            offset, correlation = _best_offset(t_i, x, t_c, q, grid_i, grid_c, step, overlap, enough)
+            if correlation >= MIN_CORRELATION:
+                return offset, correlation
+    raise CalibError(
+        f"{where}: cannot estimate the clock offset: the strokes follow the measured motion at best with "
+        f"R = {correlation:.2f} (expected ≥ {MIN_CORRELATION}); give --clock-offset-s"
+    )
+
+
+def _best_offset(t_i, x, t_c, q, grid_i, grid_c, step: float, overlap, enough) -> tuple[float, float]:
+    """The better of the pose's and the speeds' fits over the offsets ``enough`` allows (see
+    :func:`estimate_clock_offset`): ``(offset_s, R)``."""
+
+    def candidates(explained: np.ndarray) -> np.ndarray:
+        # the grid's score only approximates the fit over a partial overlap: its highest peaks are
+        # candidates, each scored by the fit itself
+        score = np.where(enough, explained / np.maximum(overlap, 1.0) ** 2, -np.inf)
+        inner = score[1:-1]
+        peaks = np.flatnonzero(np.isfinite(inner) & (inner >= score[:-2]) & (inner >= score[2:])) + 1
+        peaks = peaks[np.argsort(score[peaks])[::-1][:CANDIDATE_PEAKS]] if len(peaks) else [int(np.argmax(score))]
+        return grid_c[0] - grid_i[0] + (np.asarray(peaks) - (len(grid_i) - 1)) * step
+
+    # the pose: whitened coordinates against each leg; a linear fit tells the candidates apart (few
+    # coefficients: a wrong offset is not fitted away by them), one with the curvature refines
+    z = _whitened(np.column_stack([np.interp(grid_i, t_i, column) for column in x.T]))
+    legs = [_standardised(np.interp(grid_c, t_c, column)) for column in q.T]
+    lags = candidates(sum(_correlate(leg, column) ** 2 for leg in legs for column in z.T) / len(legs))
+
+    def r2(offset: float, curved: bool = False) -> float:
+        return _explained(t_i, x, t_c, q, offset, curved)
+
+    coarse = _refined_maximum(r2, max(lags, key=r2), step)
+    pose_offset = _refined_maximum(lambda lag: r2(lag, True), coarse, step)
+    pose_r = math.sqrt(max(r2(pose_offset), 0.0))
+
+    # the speeds: each file's travelled distance, averaged over the grid's cells
+    speed_i = _standardised(np.diff(np.interp(np.append(grid_i, grid_i[-1] + step), t_i, _travelled(x[:, :3]))))
+    speed_c = _standardised(np.diff(np.interp(np.append(grid_c, grid_c[-1] + step), t_c, _travelled(q))))
+    lags = candidates(_correlate(speed_c, speed_i) * np.maximum(overlap, 1.0))
+
+    def speed_r(offset: float) -> float:
+        return _speed_correlation(t_i, x[:, :3], t_c, q, offset)
+
+    speed_offset = _refined_maximum(speed_r, max(lags, key=speed_r), step)
+    correlation, offset = max((pose_r, pose_offset), (speed_r(speed_offset), speed_offset))
+    return float(offset), correlation
+
+
+def _standardised(x: np.ndarray) -> np.ndarray:
+    spread = x.std()
+    return (x - x.mean()) / (spread if spread > 0 else 1.0)
+
+
+def _travelled(x: np.ndarray) -> np.ndarray:
+    """The distance travelled up to each row (0 at the first)."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(x, axis=0), axis=1))])
+
+
+def _speed_correlation(t_i: np.ndarray, p: np.ndarray, t_c: np.ndarray, q: np.ndarray, offset: float) -> float:
+    """Correlation of the distance the position travels between successive instrument rows with
+    the strokes' travel over the same intervals at ``t + offset`` (the strokes' distance travelled,
+    interpolated); −inf where fewer than 10 intervals lie inside the controller's span."""
+    inside = (t_i + offset >= t_c[0]) & (t_i + offset <= t_c[-1])
+    pairs = inside[1:] & inside[:-1]
+    if pairs.sum() < 10:
+        return -math.inf
+    a = np.linalg.norm(np.diff(p, axis=0), axis=1)[pairs]
+    b = np.diff(np.interp(t_i + offset, t_c, _travelled(q)))[pairs]
+    if not (a.std() > 0 and b.std() > 0):
+        return -math.inf
+    return float(np.corrcoef(a, b)[0, 1])
+
+
+def _gather(blocks: Iterator[Block], what) -> tuple[np.ndarray, np.ndarray]:
+    t, v, n = [], [], 0
+    for block in blocks:
+        t.append(block.t_s)
+        v.append(block.values)
+        n += len(block.t_s)
+        if n >= ESTIMATE_ROWS:
+            break
+    if not n:
+        raise CalibError(f"{what}: no data rows after the header; expected rows to estimate the clock offset from")
+    return np.concatenate(t), np.concatenate(v)
+
+
+def _motion_coordinates(values: np.ndarray, kind: str) -> np.ndarray:
+    """The instrument's coordinates the strokes are regressed on: a pose's position [mm] and the
+    vector part of its rotation relative to the first row's, ``R₀ᵀ R`` (``sin θ`` times the axis:
+    linear in small rotations, with no wrap at ±180° as roll-pitch-yaw angles have); points:
+    their coordinates [mm]."""
+    if kind != "pose":
+        return values
+    R = rpy_to_rotation(np.radians(values[:, 3:6]))
+    M = np.einsum("ji,njk->nik", R[0], R)
+    vector = 0.5 * np.column_stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]])
+    return np.column_stack([values[:, :3], vector])
+
+
+def _whitened(x: np.ndarray) -> np.ndarray:
+    """Centred ``x`` in orthonormal coordinates (its principal directions, each of unit variance;
+    directions without spread dropped)."""
+    centred = x - x.mean(axis=0)
+    u, s, _ = np.linalg.svd(centred, full_matrices=False)
+    keep = s > 1e-9 * s[0]
+    return u[:, keep] * math.sqrt(len(x))
+
+
+def _explained(
+    t_i: np.ndarray, x: np.ndarray, t_c: np.ndarray, q: np.ndarray, offset: float, curved: bool = False
+) -> float:
+    """R² of the strokes at ``t_i + offset`` (linear interpolation, rows inside the controller's
+    span) regressed on ``[1, x]`` (``curved``: and the products of ``x``), averaged over the legs;
+    −inf where fewer than 10 rows overlap."""
+    inside = (t_i + offset >= t_c[0]) & (t_i + offset <= t_c[-1])
+    if inside.sum() < 10:
+        return -math.inf
+    design = _design(x[inside], curved)
+    target = np.column_stack([np.interp(t_i[inside] + offset, t_c, leg) for leg in q.T])
+    basis = np.linalg.qr(design)[0]  # an orthonormal basis of the fit's columns (lstsq's SVD: 50× slower)
+    residual = target - basis @ (basis.T @ target)
+    total = np.sum((target - target.mean(axis=0)) ** 2, axis=0)
+    if not np.all(total > 0):
+        return -math.inf
+    return float(np.mean(1.0 - np.sum(residual**2, axis=0) / total))
+
+
+def _design(x: np.ndarray, curved: bool) -> np.ndarray:
+    """``[1, x]`` or (``curved``) ``[1, x, x_j x_k (j ≤ k)]`` of coordinates ``x`` scaled to unit
+    spread: the strokes are a smooth function of the pose, and a linear fit alone leaves its
+    curvature (a leg's length over ±10° and ±20 mm of motion), which moves the best offset by
+    milliseconds."""
+    z = (x - x.mean(axis=0)) / np.where(x.std(axis=0) > 0, x.std(axis=0), 1.0)
+    if not curved:
+        return np.column_stack([np.ones(len(z)), z])
+    j, k = np.triu_indices(z.shape[1])
+    return np.column_stack([np.ones(len(z)), z, z[:, j] * z[:, k]])
+
+
+def _refined_maximum(f, start: float, step: float) -> float:
+    """The offset near ``start`` where ``f`` is largest: ``f`` scanned over ±:data:`REFINE_STEPS`
+    grid steps at half a step (the grid's score is only near the fit's own peak), the best refined
+    by golden section."""
+    scan = start + step * np.arange(-REFINE_STEPS, REFINE_STEPS + 0.5, 0.5)
+    values = np.array([f(lag) for lag in scan])
+    k = int(np.argmax(values))
+    flat = values >= values[k] - FLAT_TOP * abs(values[k])
+    low, high = k, k
+    while low > 0 and flat[low - 1]:
+        low -= 1
+    while high < len(scan) - 1 and flat[high + 1]:
+        high += 1
+    if high > low:  # a flat top (a controller holding each pose between the frames): its middle
+        return float(scan[low] + scan[high]) / 2.0
+    return _golden_maximum(f, float(scan[k]) - step / 2, float(scan[k]) + step / 2)
+
+
+def _golden_maximum(f, low: float, high: float, iterations: int = 40) -> float:
+    """The argument in ``[low, high]`` where ``f`` (one peak) is largest: golden-section search."""
+    ratio = (math.sqrt(5.0) - 1.0) / 2.0
+    a, b = low, high
+    c, d = b - ratio * (b - a), a + ratio * (b - a)
+    fc, fd = f(c), f(d)
+    for _ in range(iterations):
+        if fc >= fd:
+            b, d, fd = d, c, fc
+            c = b - ratio * (b - a)
+            fc = f(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + ratio * (b - a)
+            fd = f(d)
+    return (a + b) / 2.0
 
 
 def _correlate(b: np.ndarray, a: np.ndarray) -> np.ndarray:
@@ -256,9 +471,11 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if not out.parent.is_dir():
         raise CalibError(f"--out {out}: directory {out.parent} does not exist")
+    for option in ("motive", "vicon", "csv", "point_list", "strokes"):
+        _check_seekable(f"--{option.replace('_', '-')}", getattr(args, option))
     mapping_path = Path(args.mapping) if args.mapping else None
     mapping = exports.load_mapping(mapping_path) if mapping_path else {}
-    make_blocks, what, kind, source = _instrument(args, mapping, mapping_path)
+    make_blocks, what, kind, source, tally = _instrument(args, mapping, mapping_path)
     stroke_table = mapping.get("strokes")
     if stroke_table is None or mapping_path is None:
         raise CalibError("expected --mapping M.toml with a [strokes] table: the stroke columns, their unit and clock")
@@ -274,11 +491,11 @@ def run(args: argparse.Namespace) -> int:
                 f"--platform {args.platform}: its [instrument] is '{platform.instrument.kind}'; the import gives "
                 f"a {kind} log"
             )
-    notes = [what, strokes.what]
+    notes: list = [what, *([tally] if tally is not None else []), strokes.what]
     if args.strokes is None:
         blocks = _same_file_rows(make_blocks, source, strokes, args.csv, notes)
     else:
-        offset = _clock_offset(args, stroke_table, make_blocks, strokes, mapping_path, notes)
+        offset = _clock_offset(args, stroke_table, make_blocks, strokes, mapping_path, notes, kind, source)
         blocks = _joined_rows(make_blocks(), ControllerLog(Path(args.strokes), strokes), offset, max_gap_s, notes)
     counts = {"read": 0, "lost": 0, "unjoined": 0, "written": 0}
     checked: list = []
@@ -298,6 +515,8 @@ def run(args: argparse.Namespace) -> int:
             strokes_mm[kept] = q
             if not columns:
                 columns.extend(INSTRUMENT_SECTIONS[kind].log_columns(block.values.shape[1] // 3))
+                if platform is not None and kind == "points":
+                    _check_target_count(args.platform, block.values.shape[1] // 3, len(platform.instrument.targets))
             if platform is not None and not checked and use.any():
                 from ..diagnosis import diagnose_log
 
@@ -316,10 +535,18 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"stewart-calib import: wrote {out}: {counts['written']} of {counts['read']} rows ({counts['lost']} where the "
         f"instrument lost the body, {counts['unjoined']} without strokes within {max_gap_s:g} s dropped); "
-        + "; ".join(notes),
+        + "; ".join(map(str, notes)),
         file=sys.stderr,
     )
     return 0
+
+
+def _check_target_count(platform_path, imported: int, targets: int) -> None:
+    if imported != targets:
+        raise CalibError(
+            f"--platform {platform_path}: the import gives {imported} targets (p1 … p{imported}) where its "
+            f"[instrument] has {targets} targets_mm; expected one target of the export for each"
+        )
 
 
 def _write(out: Path, rows, columns: list[str], unseen: bool) -> int:
@@ -355,7 +582,7 @@ def _same_file_rows(make_blocks, source, strokes, is_csv, notes):
         yield measured, strokes.convert(raw), np.ones(len(raw), dtype=bool), lost
 
 
-def _clock_offset(args, table: dict, make_blocks, strokes, mapping_path, notes) -> float:
+def _clock_offset(args, table: dict, make_blocks, strokes, mapping_path, notes, kind: str, source) -> float:
     offset = args.clock_offset_s
     from_file = table.get("clock_offset_s", 0.0)
     if offset is None and not args.estimate_clock_offset and from_file != "estimate":
@@ -369,9 +596,11 @@ def _clock_offset(args, table: dict, make_blocks, strokes, mapping_path, notes) 
         header = exports.header_of(path)
         indices = exports.column_indices(path, header, [strokes.time, *strokes.columns], "strokes")
         offset, correlation = estimate_clock_offset(
-            make_blocks(), exports.numeric_blocks(path, 2, header, indices), strokes, str(path)
+            make_blocks(), exports.numeric_blocks(path, 2, header, indices), strokes, str(path), kind, source
         )
-        notes.append(f"clock offset estimated {offset:.6g} s (speeds correlate {correlation:.2f})")
+        notes.append(
+            f"clock offset estimated {offset:.9g} s (the strokes follow the measured motion: R = {correlation:.4f})"
+        )
     elif not math.isfinite(offset):
         raise CalibError(f"--clock-offset-s: expected a finite number of seconds, got {offset!r}")
     else:
