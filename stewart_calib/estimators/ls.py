@@ -22,7 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from threadpoolctl import threadpool_limits
+from threadpoolctl import threadpool_limits  # type: ignore[import-untyped]
 
 from .. import kinematics as kin
 from ..config import EstimatorConfig, LSConfig
@@ -121,7 +121,7 @@ def gauss_newton(
                     extension = J_p[..., per_leg - 1 :: per_leg] @ drive.extension_jacobian(inputs)
                     J_p = np.concatenate([J_p, extension], -1)
                 A = (J_p * weight[:, None]).reshape(-1, size)
-                factor = np.linalg.qr(np.vstack([factor, np.column_stack([A, b])]), mode="r")
+                factor = np.asarray(np.linalg.qr(np.vstack([factor, np.column_stack([A, b])]), mode="r"))
             # [A | b] = Q [[R, c], [0, ρ]]: A's singular values and right vectors are R's, and
             # ‖b − A δ‖² = ρ² + ‖c − R δ‖²
             R, c = factor[:size, :size], factor[:size, size]

@@ -45,7 +45,7 @@ _STANDARD = {"stdin": 0, "stdout": 1, "stderr": 2}
 def protected_inputs(files: dict[str, str]) -> Iterator[None]:
     """For the block, refuse any write here onto one of ``files`` (path → the argument that names
     it, e.g. ``"--platform"``): the regular files among them, by identity (any name or link of them)."""
-    added = {}
+    added: dict[tuple[int, int], str] = {}
     for path, option in files.items():
         try:
             now = os.stat(path)

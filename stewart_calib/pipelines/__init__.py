@@ -143,7 +143,7 @@ def _read_files(args: argparse.Namespace) -> dict[str, str]:
     """``path → option`` of the files the command reads and does not replace on purpose (every
     write checks it is none of them: :func:`~stewart_calib.io.protected_inputs`)."""
     written = {option for option, _ in _written_files(args)}
-    files = {}
+    files: dict[str, str] = {}
     for dest in INPUT_ARGUMENTS:
         value = getattr(args, dest, None)
         if isinstance(value, str) and value != "-" and _option(dest) not in written:
