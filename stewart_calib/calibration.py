@@ -85,7 +85,7 @@ def run_calibration(
     estimator = estimators.make_estimator(method, platform, config)
     nominal = platform.drive.as_vector()
     if isinstance(estimator, BatchEstimator):
-        estimate = estimator.fit(list(log))
+        estimate = estimator.fit(iter(log))  # a sample at a time: ls holds its compact rows, not 10⁶ Samples
         rejected = list(estimator.rejected)
         # a batch fit holds for the whole log: one constant row per sample time
         rows = np.tile(nominal + estimate.error, (len(log), 1)) if trace or diagnostics else None

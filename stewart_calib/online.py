@@ -348,12 +348,14 @@ class OnlineCalibrator:
             raise CalibError(f"{shown_path}: corrupt checkpoint ({err.__class__.__name__}: {_one_line(err)})") from None
         if platform is not None:
             wanted = platform if isinstance(platform, Platform) else load_platform(platform)
-            if platform_to_toml(wanted) != platform_to_toml(calib.platform):
+            differ = _differing_tables(wanted, calib.platform)
+            if differ:
                 raise CalibError(
                     f"{shown_path}: written for platform '{shown(calib.platform.name)}', not for "
-                    f"'{shown(wanted.name)}'{'' if isinstance(platform, Platform) else f' ({shown(platform)})'}"
-                    " (or its nominal values differ)"
+                    f"'{shown(wanted.name)}'{'' if isinstance(platform, Platform) else f' ({shown(platform)})'}: "
+                    f"its {', '.join(f'[{table}]' for table in differ)} values differ"
                 )
+            calib.platform = wanted  # its name and description as the file now has them
         return calib
 
     @classmethod
@@ -370,7 +372,7 @@ class OnlineCalibrator:
         ):
             raise CalibError(f"checkpoint version {version!r} is not supported: expected {CHECKPOINT_VERSION}")
         platform = parse_platform(tomllib.loads(text("platform_toml")), "platform_toml")
-        config = config_from_dict(json.loads(text("config_json")), "config_json")
+        config = config_from_dict(_json_table(text("config_json"), "config_json"), "config_json")
         calib = cls(platform, text("method"), config)
         calib._estimator.import_state(_unflatten(arrays, "state"))
         calib.rows_read, calib.rows_skipped = _count(arrays, "rows_read"), _count(arrays, "rows_skipped")
@@ -381,6 +383,32 @@ class OnlineCalibrator:
         if not np.all(np.isfinite(calib.estimate().error)):
             raise CalibError("the restored estimate is not finite")
         return calib
+
+    def check_counts(self) -> None:
+        """Refuse stream counters that the estimate does not account for, as a reader that keeps
+        them (``track``) leaves them: every row read is used, skipped, dropped by a lock-out recovery
+        or held (:func:`~.estimators.base.row_accounting`), and the rows read of the current file are
+        among those read in all. (A caller of :meth:`update` alone need not count rows.)
+
+        Raises:
+            CalibError: naming the counter and what the estimate accounts for.
+        """
+        estimate = self.estimate()
+        fields = estimate.details or {}
+        dropped = int((fields.get("recovery") or {}).get("samples_dropped", 0))
+        skipped = skipped_count(self.rows_skipped, self.rejections.count, estimate)
+        accounted = estimate.samples_used + skipped + dropped + int(fields.get("samples_held", 0))
+        if self.rows_read != accounted:
+            raise CalibError(
+                f"array 'rows_read': {self.rows_read} rows read, but its estimate accounts for {accounted} "
+                f"({estimate.samples_used} used, {skipped} skipped, {dropped} dropped, "
+                f"{fields.get('samples_held', 0)} held); expected the counters of the state saved with them"
+            )
+        if self.source is not None and self.source["rows"] > self.rows_read:
+            raise CalibError(
+                f"array 'source_json': {self.source['rows']} rows read of {shown(str(self.source['path']))}, "
+                f"more than the {self.rows_read} read in all"
+            )
 
 
 #: the largest checkpoint read [bytes] (a tracker's is ~0.3 MB; isam2's replay buffer a few MB).
@@ -463,6 +491,22 @@ def _source_record(record) -> dict:
             "array 'source_json': expected the record of the log read (path, head_lines, head_sha256, rows)"
         )
     return record
+
+
+def _differing_tables(a: Platform, b: Platform) -> list[str]:
+    """The tables of the platform files ``a`` and ``b`` whose values differ. The free text
+    (``name``, ``description``) is left out: a checkpoint holds the estimate of a geometry, and
+    a platform renamed or described anew is the same robot."""
+    tables = [tomllib.loads(platform_to_toml(dataclasses.replace(p, name="", description=""))) for p in (a, b)]
+    return [key for key in sorted(set(tables[0]) | set(tables[1])) if tables[0].get(key) != tables[1].get(key)]
+
+
+def _json_table(text: str, key: str) -> dict:
+    """The JSON object of the checkpoint's array ``key`` (a config's sections)."""
+    value = json.loads(text)
+    if not isinstance(value, dict):
+        raise CalibError(f"array '{key}': expected a JSON object of config sections, got {type(value).__name__}")
+    return value
 
 
 def _wrong(key: str):

@@ -222,9 +222,9 @@ REFUSALS = [
     ("nonsense", "plan --platform {d}/P.toml --n 10 --candidates 100000000000 --out {d}/p.csv", "from 1 to 100000"),
     ("nonsense", "sweep --spec {d}/seeds.toml --out {d}/sweep --workers 1{zeros}", "argument --workers: expected"),
     ("nonsense", "sweep --spec {d}/seeds.toml --out {d}/sweep --workers 0", "worker processes from 1 to"),
-    # an output that is a FIFO (a device alike: as root, --out /dev/null swapped the null device for a file)
-    ("write", "export --platform {d}/P.toml --format json --out {d}/fifo", "--out {d}/fifo: is a FIFO, not a regular"),
-    ("write", "{calibrate} --trace {d}/fifo", "--trace {d}/fifo: is a FIFO, not a regular file"),
+    # an output that is a FIFO is written through, not replaced (a device alike: as root, --out /dev/null
+    # swapped the null device for a file): one no process reads is refused, not waited on for ever
+    ("write", "export --platform {d}/P.toml --format json --out {d}/fifo", "{d}/fifo: cannot write (a FIFO no process"),
     # an output folder no file can be made in, whoever runs it: procfs takes no file, and says yes to
     # root's os.access — every command refuses before its work, not only when it writes at the end
     *(
@@ -243,8 +243,8 @@ REFUSALS = [
             ("plan --platform {d}/P.toml --n 10 --out /proc/p.csv", "--out", "p.csv"),
             ("export --platform {d}/P.toml --format json --out /proc/e.json", "--out", "e.json"),
             ("simulate --experiment quick --out /proc/sim", "--out", "sim/platform.toml"),
-            ("sweep --spec {d}/seeds.toml --out /proc/sweep", "--out", "sweep"),
-            ("reproduce --quick --out /proc/out", "--out", "out"),
+            ("sweep --spec {d}/seeds.toml --out /proc/sweep", "--out", "sweep/results.parquet"),
+            ("reproduce --quick --out /proc/out", "--out", "out/results.json"),
             ("import-bag {d}/none.bag --strokes /a --readings /b --out /proc/l.csv", "--out", "l.csv"),
         )
     ),

@@ -337,8 +337,8 @@ def test_atomic_write_replaces_whole_file_and_leaves_nothing_on_failure(tmp_path
     assert target.read_text() == "second"
     assert oct(target.stat().st_mode & 0o777) == oct(0o666 & ~_umask())
     (tmp_path / "adir").mkdir()
-    with pytest.raises(CalibError, match="adir: cannot write"):
-        atomic_write_text(tmp_path / "adir", "x")  # os.replace onto a directory fails after the temp file exists
+    with pytest.raises(CalibError, match="adir: is a directory; expected a file path"):
+        atomic_write_text(tmp_path / "adir", "x")  # refused before a temporary file exists
     with pytest.raises(CalibError, match="cannot write"):
         atomic_write_text(tmp_path / "missing" / "out.txt", "x")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "out.txt"]

@@ -28,6 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from threadpoolctl import threadpool_limits  # type: ignore[import-untyped]
 
 from .. import kinematics as kin
 from ..chi_square import chdtri
@@ -46,6 +47,14 @@ from .measurement import WarmPose, check_sample, drive_only_model, measured_pose
 RANK_TOLERANCE = 1e-10
 #: samples :func:`gross_outliers` names in its warning, worst first
 NAMED_OUTLIERS = 5
+#: samples whose stacked Jacobian is formed at a time: each chunk's rows are folded into the
+#: triangular factor of the whole system (a QR update), so memory stays that of one chunk
+#: (~8 MB) however long the log, where the stacked ``6N × 42`` Jacobian and its SVD took
+#: ~15 GB at 10⁶ samples; a QR of the rows keeps the SVD's accuracy (the normal equations
+#: would square the condition number that the rank test reads). The factorisations are small
+#: and run on one BLAS thread: on a busy machine OpenBLAS's waiting threads made one 100×
+#: slower, and the result does not depend on the thread count.
+CHUNK_SAMPLES = 4096
 
 
 @dataclass(frozen=True)
@@ -97,38 +106,77 @@ def gauss_newton(
     n_params = nominal.n_params
     per_leg = n_params // nominal.n_legs  # a leg's parameters [j_i | d_i | l_i], l_i the last
     size = n_params if drive is None else drive.size
+    n = len(strokes)
     error = np.zeros(size)
-    R_m, t_m = R_v, t_v  # the measured pose is the best warm start for the model's FK
-    for iteration in range(1, config.max_iterations + 1):
-        legs = nominal.perturbed(error[:n_params])
-        lengths, inputs = strokes, None
-        if drive is not None:
-            inputs = drive.inputs(strokes, payload_kg, R_v, t_v, error)  # an elastic drive's forces at P_v
-            lengths = drive.extensions(inputs, error)
-        sol = kin.forward_kinematics(legs, lengths, guess=(R_m, t_m), strict=False)
-        if not np.all(sol.converged):
-            raise CalibError(f"ls: model forward kinematics failed at iteration {iteration}; the fit diverged")
-        R_m, t_m = sol.R, sol.t
-        b = (pose_difference(R_v, t_v, R_m, t_m) * weight).reshape(-1)
-        J_p = kin.error_jacobian(legs, R_m, t_m)
-        if drive is not None and inputs is not None and size > n_params:
-            J_p = np.concatenate([J_p, J_p[..., per_leg - 1 :: per_leg] @ drive.extension_jacobian(inputs)], -1)
-        A = (J_p * weight[:, None]).reshape(-1, size)
-        U, s, Vt = np.linalg.svd(A, full_matrices=False)
-        keep = s > RANK_TOLERANCE * s[0]
-        step = Vt[keep].T @ ((U[:, keep].T @ b) / s[keep])
-        error = error + step
-        if np.max(np.abs(step)) < config.tolerance_mm:
-            break
-    else:
-        raise CalibError(f"ls: Gauss–Newton did not converge in {config.max_iterations} iterations")
-    residual = b - A @ step
-    dof = len(b) - size
+    R_m, t_m = np.array(R_v, dtype=float), np.array(t_v, dtype=float)  # P_v: the best warm start for the FK
+    with threadpool_limits(limits=1):
+        for iteration in range(1, config.max_iterations + 1):
+            legs = nominal.perturbed(error[:n_params])
+            factor = np.zeros((0, size + 1))  # the triangular factor of [A | b] over the chunks so far
+            for chunk in range(0, n, CHUNK_SAMPLES):
+                rows = slice(chunk, min(n, chunk + CHUNK_SAMPLES))
+                lengths, inputs = strokes[rows], None
+                if drive is not None:  # an elastic drive's forces at P_v
+                    payload = None if payload_kg is None else payload_kg[rows]
+                    inputs = drive.inputs(strokes[rows], payload, R_v[rows], t_v[rows], error)
+                    lengths = drive.extensions(inputs, error)
+                sol = kin.forward_kinematics(legs, lengths, guess=(R_m[rows], t_m[rows]), strict=False)
+                if not np.all(sol.converged):
+                    raise CalibError(f"ls: model forward kinematics failed at iteration {iteration}; the fit diverged")
+                R_m[rows], t_m[rows] = sol.R, sol.t
+                b = (pose_difference(R_v[rows], t_v[rows], sol.R, sol.t) * weight).reshape(-1)
+                J_p = kin.error_jacobian(legs, sol.R, sol.t)
+                if drive is not None and inputs is not None and size > n_params:
+                    extension = J_p[..., per_leg - 1 :: per_leg] @ drive.extension_jacobian(inputs)
+                    J_p = np.concatenate([J_p, extension], -1)
+                A = (J_p * weight[:, None]).reshape(-1, size)
+                factor = np.asarray(np.linalg.qr(np.vstack([factor, np.column_stack([A, b])]), mode="r"))
+            # [A | b] = Q [[R, c], [0, ρ]]: A's singular values and right vectors are R's, and
+            # ‖b − A δ‖² = ρ² + ‖c − R δ‖²
+            R, c = factor[:size, :size], factor[:size, size]
+            rho2 = float(factor[size, size]) ** 2 if len(factor) > size else 0.0
+            U, s, Vt = np.linalg.svd(R, full_matrices=False)
+            keep = s > RANK_TOLERANCE * s[0]
+            step = Vt[keep].T @ ((U[:, keep].T @ c) / s[keep])
+            error = error + step
+            if np.max(np.abs(step)) < config.tolerance_mm:
+                break
+        else:
+            raise CalibError(f"ls: Gauss–Newton did not converge in {config.max_iterations} iterations")
+    residual2 = rho2 + float(np.sum((c - R @ step) ** 2))
+    dof = 6 * n - size
     covariance = None
     if np.all(keep) and dof > 0:
-        sigma2 = float(residual @ residual) / dof
-        covariance = sigma2 * (Vt.T / s**2) @ Vt
-    return LSSolution(error, covariance, s, iteration, float(np.sqrt(np.mean(residual**2))))
+        covariance = residual2 / dof * (Vt.T / s**2) @ Vt
+    return LSSolution(error, covariance, s, iteration, float(np.sqrt(residual2 / (6 * n))))
+
+
+class Rows:
+    """Rows of one width appended one at a time, held in one array that doubles when full: a
+    list of per-sample arrays costs several times their values in object headers (~0.6 kB a
+    sample for ls's four, against 0.15 kB of values)."""
+
+    def __init__(self) -> None:
+        self._data: np.ndarray | None = None
+        self._count = 0
+
+    def append(self, row) -> None:
+        """Append ``row`` (a number or an array: its values in order)."""
+        row = np.ravel(row)
+        if self._data is None:
+            self._data = np.empty((256, row.size))
+        elif self._count == len(self._data):
+            self._data = np.concatenate([self._data, np.empty_like(self._data)])
+        self._data[self._count] = row
+        self._count += 1
+
+    def __len__(self) -> int:
+        return self._count
+
+    def values(self) -> np.ndarray:
+        """``(rows, width)``: the rows appended, in order (a view)."""
+        assert self._data is not None, "no rows yet"
+        return self._data[: self._count]
 
 
 def gross_outliers(
@@ -223,10 +271,9 @@ class LeastSquares(BufferedFit):
             fitted = drive_model(platform, config.noise)
             # the paper's LS on δM alone where the drive has no unknown term and no leg forces
             self._fitted = fitted if fitted.blocks or fitted.elastic is not None else None
-        self._strokes: list[np.ndarray] = []
-        self._payload: list[float] = []
-        self._R_v: list[np.ndarray] = []
-        self._t_v: list[np.ndarray | float] = []  # t_v, or with an outside instrument the sample times
+        self._strokes, self._payload = Rows(), Rows()
+        self._R_v = Rows()  # R_v, or with an outside instrument the readings
+        self._t_v = Rows()  # t_v, or with an outside instrument the sample times
         self._t_s = float("nan")
         self._times: list[float] = []  # the tracker's samples' t_s, which name the outliers
         self.singular_values: np.ndarray | None = None
@@ -256,11 +303,12 @@ class LeastSquares(BufferedFit):
 
     def estimate(self) -> Estimate:
         """Fit every buffered sample; zeros and no covariance before the first sample."""
-        if not self._strokes:
+        if not len(self._strokes):
             return Estimate(np.zeros(self.drive.n_params), None, self.name)
         if self._external is not None:
             return self._estimate_external(self._external)
-        strokes, R_v, t_v, payload = (np.array(v) for v in (self._strokes, self._R_v, self._t_v, self._payload))
+        strokes, R_v = self._strokes.values(), self._R_v.values().reshape(-1, 3, 3)
+        t_v, payload = self._t_v.values(), self._payload.values()[:, 0]
         solution = gauss_newton(self.platform.drive, strokes, R_v, t_v, self.config, self._fitted, payload)
         self.singular_values = solution.singular_values
         if self._fitted is None or not self._fitted.blocks:
@@ -294,11 +342,11 @@ class LeastSquares(BufferedFit):
 
         problem = BatchProblem(
             drive=self.drive.identifying(),
-            inputs=self.drive.inputs_near(np.array(self._strokes)),
-            payload_kg=np.array(self._payload),
-            measured=np.array(self._R_v),
+            inputs=self.drive.inputs_near(self._strokes.values()),
+            payload_kg=self._payload.values()[:, 0],
+            measured=self._R_v.values(),
             model=model,
-            t_s=np.array(self._t_v),
+            t_s=self._t_v.values()[:, 0],
         )
         sol = fit(
             problem,

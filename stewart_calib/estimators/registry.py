@@ -32,6 +32,9 @@ class MethodSpec:
         checkpointable: its state can be saved and restored exactly (a :class:`Checkpointable`).
         instruments: the instrument kinds (``[instrument] kind``) it can calibrate with.
         summary: one line for ``--help`` and the docs.
+        bytes_per_sample: the memory a batch method holds for each sample of the log [bytes]
+            (:func:`~stewart_calib.memory.check_memory` says it before a run and refuses a log
+            that would not fit); None for a method whose memory does not grow with the log.
     """
 
     name: str
@@ -40,6 +43,7 @@ class MethodSpec:
     checkpointable: bool
     instruments: tuple[str, ...]
     summary: str
+    bytes_per_sample: int | None = None
 
     def build(self, platform: Platform, config: EstimatorConfig | None = None) -> Estimator:
         """The estimator for ``platform``, checked against the protocols this entry declares."""
@@ -96,6 +100,9 @@ METHODS: dict[str, MethodSpec] = {
             checkpointable=False,
             instruments=("tracker", "pose", "points"),
             summary="the same factor graph solved in batch by Levenberg–Marquardt",
+            # every sample's factors and values in gtsam's graph: the peak RSS's slope from 10³ to 10⁴
+            # samples of benchmarks/scale.py's log (197 → 332 MB)
+            bytes_per_sample=15_000,
         ),
     )
 }

@@ -15,6 +15,8 @@ from .atomic import (
     check_writable_directory,
     exclusive_lock,
     output_directory,
+    protected_inputs,
+    written_target,
 )
 from .logs import (
     LOG_REQUIRED,
@@ -82,6 +84,7 @@ __all__ = [
     "exclusive_lock",
     "log_text",
     "output_directory",
+    "protected_inputs",
     "read_calibrated_drive",
     "read_log",
     "read_log_blocks",
@@ -105,4 +108,5 @@ __all__ = [
     "write_result",
     "write_trace",
     "write_truth",
+    "written_target",
 ]

@@ -74,8 +74,24 @@ INPUT_ARGUMENTS = (
     *("motive", "vicon", "csv", "point_list", "strokes", "mapping", "truth"),  # import, score
 )
 OUTPUT_ARGUMENTS = ("out", "trace", "rerun", "platform_out", "json", "checkpoint")
-#: outputs that are directories, with the files a command writes in them
-OUTPUT_DIRECTORIES = {("simulate", "out"): ("platform.toml", "log.csv", "truth.csv"), ("*", "report"): ("index.html",)}
+#: outputs that are directories, with the files a command writes in them (those it names before
+#: its work; the others, a sweep's plots, are checked as they are written: :func:`io.written_target`)
+OUTPUT_DIRECTORIES = {
+    ("simulate", "out"): ("platform.toml", "log.csv", "truth.csv"),
+    ("sweep", "out"): ("results.parquet", "summary.csv", "summary.md"),
+    ("reproduce", "out"): ("results.json", "tables.md", "index.html", "reproduce.rrd"),
+    ("*", "report"): ("index.html",),
+}
+
+
+def ini_sibling(path: str | os.PathLike) -> str:
+    """The INI file ``export --format linuxcnc --out F`` writes beside ``F``: ``F`` with the suffix ``.ini``."""
+    root, _ = os.path.splitext(os.fspath(path))
+    return root + ".ini"
+
+
+#: files a command writes beside an output file, from its arguments
+OUTPUT_SIBLINGS = {("export", "out"): lambda args, path: [ini_sibling(path)] if args.format == "linuxcnc" else []}
 
 
 def _option(dest: str) -> str:
@@ -91,6 +107,9 @@ def _written_files(args: argparse.Namespace) -> list[tuple[str, str]]:
             continue
         files = OUTPUT_DIRECTORIES.get((args.command, dest)) or OUTPUT_DIRECTORIES.get(("*", dest))
         written += [(_option(dest), os.path.join(value, name)) for name in files] if files else [(_option(dest), value)]
+        siblings = OUTPUT_SIBLINGS.get((args.command, dest))
+        if siblings is not None:
+            written += [(_option(dest), sibling) for sibling in siblings(args, value)]
     for (command, dest_name), files in OUTPUT_DIRECTORIES.items():
         value = getattr(args, dest_name, None)
         if command in (args.command, "*") and dest_name not in OUTPUT_ARGUMENTS and value:
@@ -100,7 +119,8 @@ def _written_files(args: argparse.Namespace) -> list[tuple[str, str]]:
 
 def check_no_output_over_input(args: argparse.Namespace) -> None:
     """Refuse, before any work, an output path that names an input file of the same command
-    (the same file, by any path or link) or another of its outputs: the write would destroy it.
+    (the same file, by any path or link) or another of its outputs, or a directory: the write
+    would destroy it. The same check is made again by every write (:func:`~stewart_calib.io.written_target`).
 
     Raises:
         CalibError: naming both arguments and the path.
@@ -112,27 +132,28 @@ def check_no_output_over_input(args: argparse.Namespace) -> None:
         if key in seen and seen[key] != option:
             raise CalibError(f"{option} {shown(path)}: is also the {seen[key]} output; expected another path")
         seen.setdefault(key, option)
+    from .. import io
+
+    with io.protected_inputs(_read_files(args)):  # by identity: any name or link of an input
+        for option, path in written:
+            io.written_target(path, option)
+
+
+def _read_files(args: argparse.Namespace) -> dict[str, str]:
+    """``path → option`` of the files the command reads and does not replace on purpose (every
+    write checks it is none of them: :func:`~stewart_calib.io.protected_inputs`)."""
+    written = {option for option, _ in _written_files(args)}
+    files: dict[str, str] = {}
     for dest in INPUT_ARGUMENTS:
         value = getattr(args, dest, None)
-        if not isinstance(value, str) or value == "-" or not os.path.isfile(value):
-            continue
-        for option, path in written:
-            if option == _option(dest):  # track's checkpoint: read, then replaced on purpose
-                continue
-            try:
-                same = os.path.samefile(path, value)
-            except OSError:  # not there yet
-                same = False
-            if same:
-                raise CalibError(
-                    f"{option} {shown(path)}: is the {_option(dest)} input; writing it would destroy it — "
-                    "expected another path"
-                )
+        if isinstance(value, str) and value != "-" and _option(dest) not in written:
+            files.setdefault(value, _option(dest))
+    return files
 
 
 def _refuse_special_file(option: str, path: str) -> None:
-    """An output that is a device, FIFO or socket would be replaced by a regular file (every write
-    is a rename onto the path): as root ``--out /dev/null`` swapped the system's null device for one."""
+    """An output that the command reads back (``track``'s checkpoint) must be a file: a device,
+    FIFO or socket written through cannot be resumed from."""
     import stat
 
     try:
@@ -142,16 +163,16 @@ def _refuse_special_file(option: str, path: str) -> None:
     if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
         kind = "a FIFO" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
         raise CalibError(
-            f"{option} {shown(path)}: is {kind}, not a regular file; outputs are written to a temporary and renamed "
-            "onto their path, which would replace it — expected a file path"
+            f"{option} {shown(path)}: is {kind}, not a regular file; it is read back on a resume — expected a file path"
         )
 
 
 def check_outputs_writable(args: argparse.Namespace) -> None:
     """Refuse, before any work, an output whose directory cannot be written into — the one it is
     in, or for one still to be made the nearest that exists (:func:`~stewart_calib.io.check_writable_directory`):
-    every command, so none finds out only when it writes its result — and an output path that is a
-    device, FIFO or socket.
+    every command, so none finds out only when it writes its result —, an output file that is a
+    directory, and one the command reads back that is a device, FIFO or socket. Any other device,
+    FIFO or descriptor (``/dev/stdout``) is written through (:func:`~stewart_calib.io.written_target`).
 
     Raises:
         CalibError: naming the argument, the directory and the file system's reason.
@@ -159,7 +180,10 @@ def check_outputs_writable(args: argparse.Namespace) -> None:
     from .. import io
 
     for option, path in _written_files(args):
-        _refuse_special_file(option, path)
+        if option in map(_option, INPUT_ARGUMENTS):
+            _refuse_special_file(option, path)
+        if io.written_target(path, option).through:
+            continue
         directory = os.path.abspath(path)
         if not os.path.isdir(directory):  # an output directory (sweep, reproduce) that exists: itself
             directory = os.path.dirname(directory)
@@ -175,10 +199,13 @@ OPTIONAL_EXTRAS = {"rosbags": "ros"}
 def dispatch(args: argparse.Namespace) -> int:
     """Run the parsed subcommand: a :class:`CalibError` becomes one line on stderr and exit 2, and
     so does a missing optional dependency (naming the extra that installs it)."""
+    from .. import io
+
     try:
         check_no_output_over_input(args)
         check_outputs_writable(args)
-        return int(args.func(args) or 0)
+        with io.protected_inputs(_read_files(args)):
+            return int(args.func(args) or 0)
     except CalibError as refusal:  # names from files may hold line breaks or terminal escapes: shown escaped
         err = _located(refusal, args)
         print(f"stewart-calib {args.command}: error: {shown(err)}", file=sys.stderr)

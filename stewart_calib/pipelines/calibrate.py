@@ -48,6 +48,7 @@ from ..identifiability import (
     warning_line,
 )
 from ..instruments import instrument_kind, registered
+from ..memory import check_memory
 from ..online import Rejections
 from ..planning import noise_floor
 from ..platform import Platform, load_platform
@@ -149,6 +150,10 @@ def run(args: argparse.Namespace) -> int:
     # a leg set's readings stream (no registration, residuals per leg); an outside instrument's log is read whole
     outside = instrument_kind(platform).outside
     streamed = not outside and estimators.method_spec(args.method).online and not (rerun_path or report_dir)
+    if not streamed:  # what a method holding the whole log will need, before it reads a row
+        need = check_memory(args.method, estimators.method_spec(args.method).bytes_per_sample, args.log)
+        if need:
+            print(f"stewart-calib calibrate: {need}", file=sys.stderr)
 
     # Everything is rendered (so validated) before anything is written; a streamed trace goes to
     # a temporary that becomes the file only when the stack closes without error.

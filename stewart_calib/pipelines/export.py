@@ -22,7 +22,7 @@ from .. import io
 from ..errors import CalibError
 from ..io import controllers
 from ..platform import load_platform
-from . import run_command
+from . import ini_sibling, run_command
 from .handover import calibrated_model
 
 
@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     drive, k = model.legs, model.extension_per_stroke() - 1.0  # a leg moves 1 + k mm a logged mm
     source = f"{args.platform}" + (f" + {args.result}" if args.result else "")
     if args.format == "linuxcnc":
-        ini = out.with_suffix(".ini")
+        ini = Path(ini_sibling(out))
         if ini == out:
             raise CalibError(f"--out {out}: expected a name whose .ini sibling is another file (e.g. kinematics.hal)")
         files = {
@@ -74,8 +74,9 @@ def run(args: argparse.Namespace) -> int:
     else:
         extra = {"source": source, "platform": platform.name}
         files = {out: controllers.controller_json_text(drive, k, args.units, extra)}
-    for path, text in files.items():
-        io.atomic_write_text(path, text)
+    with io.atomic_paths(list(files)) as temporaries:  # both files or neither
+        for tmp, text in zip(temporaries, files.values(), strict=True):
+            tmp.write_text(text, encoding="utf-8")
     print(f"stewart-calib export: wrote {', '.join(map(str, files))} ({args.format}, {args.units})", file=sys.stderr)
     if platform.elastic is not None:
         give = _give_mm(platform, model)

@@ -69,6 +69,7 @@ import numpy as np
 
 from .. import io
 from ..config import load_estimator_config
+from ..diagnosis import DIAGNOSED_SAMPLES, diagnose_log
 from ..errors import CalibError, shown
 from ..estimators.base import accounting_words, skipped_count
 from ..inputs import MAX_LINE_BYTES
@@ -120,14 +121,33 @@ def line_chunks(
     regular = stat.S_ISREG(os.fstat(fd).st_mode)
     wait_at_end = follow and regular  # a pipe's end is final
     own_fd = None  # a replacement opened here (the caller closes the first)
-    pending, head = b"", b""  # the unfinished line; the first bytes of the file (what a rewrite changes)
+    # the unfinished line; the first and the last bytes read of the file (what a rewrite changes)
+    pending, head, tail = b"", b"", b""
     idle_since: float | None = None
+    # the last read found the file's end: before the next, look for a rotation or a rewrite (a
+    # file rewritten since would be read on from the old offset, in the middle of a row)
+    at_end = False
     try:
         while not stopped():
+            if at_end and path is not None:
+                replaced = _replacement(fd, path, head, tail)
+                if replaced is not None:
+                    new_fd, why = replaced
+                    if pending:  # the old file's last line, ended by the rotation
+                        yield [pending]
+                    pending, head, tail, idle_since, at_end = b"", b"", b"", None, False
+                    if new_fd != fd:
+                        if own_fd is not None:
+                            os.close(own_fd)
+                        fd = own_fd = new_fd
+                    yield Rotated(why)
+                    continue
             chunk = _read_ready(fd, regular)
+            at_end = wait_at_end and chunk == b""
             if chunk:
                 idle_since = None
                 head += chunk[: max(HEAD_BYTES - len(head), 0)]
+                tail = (tail + chunk)[-HEAD_BYTES:]
                 *complete, pending = (pending + chunk).split(b"\n")
                 if len(pending) > MAX_LINE_BYTES:  # /dev/zero, or no CSV at all: not held for ever
                     raise CalibError(
@@ -141,19 +161,6 @@ def line_chunks(
                 if pending and not stopped():  # a stop may come between the last read and this end
                     yield [pending]
                 return
-            if wait_at_end and path is not None:
-                replaced = _replacement(fd, path, head)
-                if replaced is not None:
-                    new_fd, why = replaced
-                    if pending:  # the old file's last line, ended by the rotation
-                        yield [pending]
-                    pending, head, idle_since = b"", b"", None
-                    if new_fd != fd:
-                        if own_fd is not None:
-                            os.close(own_fd)
-                        fd = own_fd = new_fd
-                    yield Rotated(why)
-                    continue
             now = time.monotonic()
             if idle_since is None:
                 idle_since = now
@@ -166,8 +173,9 @@ def line_chunks(
             os.close(own_fd)
 
 
-#: bytes at the start of a followed file compared at its end: a file rewritten from its start
-#: (truncated and written again faster than it is polled) differs there.
+#: bytes at the start of a followed file, and before the point read, compared at its end: a file
+#: rewritten from its start (truncated and written again faster than it is polled) differs at its
+#: start; one rewritten in place with its first rows kept differs before the point read.
 HEAD_BYTES = 4096
 
 
@@ -181,10 +189,16 @@ def _read_ready(fd: int, regular: bool) -> bytes | None:
         return None
 
 
-def _replacement(fd: int, path: str, head: bytes) -> tuple[int, str] | None:
+def _replacement(fd: int, path: str, head: bytes, tail: bytes = b"") -> tuple[int, str] | None:
     """``(descriptor, what happened)`` when the file at ``path`` is no longer what ``fd`` has read:
     another file there (its own new descriptor), or this one truncated or rewritten (``fd`` back at
-    its start); None when it is (or no file is there yet: a rotation between its rename and create)."""
+    its start); None when it is (or no file is there yet: a rotation between its rename and create).
+
+    Raises:
+        CalibError: the file was rewritten in place, its start kept and the bytes last read
+            (``tail``) changed: the rows already used are no longer the file's, and its rows
+            from here on would be read from the middle of one.
+    """
     try:
         now = os.stat(path)
     except OSError:
@@ -201,6 +215,13 @@ def _replacement(fd: int, path: str, head: bytes) -> tuple[int, str] | None:
     if head and os.pread(fd, len(head), 0) != head:
         os.lseek(fd, 0, os.SEEK_SET)
         return fd, "rewritten"
+    at = os.lseek(fd, 0, os.SEEK_CUR)
+    if tail and os.pread(fd, len(tail), at - len(tail)) != tail:
+        raise CalibError(
+            f"{shown(path)}: the log was rewritten in place while followed (its bytes {at - len(tail)}–{at}, "
+            "already read, changed; its first rows did not); expected rows appended at its end only — "
+            "a log rewritten is a new log: track it afresh"
+        )
     return None
 
 
@@ -262,6 +283,11 @@ def _start(args: argparse.Namespace) -> OnlineCalibrator:
     if not (checkpoint and checkpoint.exists()):
         return OnlineCalibrator(platform, args.method, config)
     calib = OnlineCalibrator.load(checkpoint, platform)
+    if calib.source is not None:  # written by track, which counts every row it reads
+        try:
+            calib.check_counts()
+        except CalibError as err:
+            raise CalibError(f"--checkpoint {shown(checkpoint)}: does not match its own estimate: {err}") from None
     if calib.method != args.method:
         raise CalibError(f"--checkpoint {shown(checkpoint)}: written by method '{calib.method}', not '{args.method}'")
     if (args.config or args.set) and calib.config != config:
@@ -408,7 +434,7 @@ def follow_log(
             break
         reader.head.add(chunk)
         held.append(chunk)
-    feed = reader.feed = _Feed(calib, every, lambda: _recorded(reader, write), skip_bad_rows)
+    feed = reader.feed = _Feed(calib, every, lambda: _recorded(reader, write), skip_bad_rows, source)
     feed.already = reader.already_read(reader.head, ended=len(reader.head.lines) <= wanted)
     line_number = 2
     for chunk in held:
@@ -433,6 +459,7 @@ def follow_log(
             reader.head.add(chunk)
         _feed_chunk(parser, feed, chunk, source, line_number)
         line_number += len(chunk)
+    feed.diagnose()  # a log shorter than the rows the diagnosis looks at
     if reader.head is not None:
         calib.source = reader.source_record()
     return feed
@@ -487,10 +514,25 @@ class _Feed:
     and ``write()`` called after every ``every``-th — a block is split there, so the writes come at
     the same rows either way."""
 
-    def __init__(self, calib: OnlineCalibrator, every: int, write: Callable[[], None], skip_bad_rows: bool):
+    def __init__(
+        self, calib: OnlineCalibrator, every: int, write: Callable[[], None], skip_bad_rows: bool, source: str = ""
+    ):
         self.calib, self.every, self.write, self.skip_bad_rows = calib, every, write, skip_bad_rows
+        self.source = source
         self.already, self.data_rows = 0, 0  # of the file being read
         self.first_bad: str | None = None
+        # the run's first good rows, held until the diagnosis has looked at them
+        self.undiagnosed: list[Log] | None = []
+
+    def diagnose(self) -> None:
+        """:func:`~stewart_calib.diagnosis.diagnose_log` on the run's first good rows (at most
+        :data:`~stewart_calib.diagnosis.DIAGNOSED_SAMPLES`), once: ``calibrate``'s check of the log,
+        which names a mistake's cause (a unit, swapped columns) where the estimate would go wrong."""
+        held, self.undiagnosed = self.undiagnosed, None
+        if held:
+            strokes = np.concatenate([np.asarray(block.strokes) for block in held])
+            readings = np.concatenate([np.asarray(block.readings) for block in held])
+            diagnose_log(self.calib.platform, strokes, readings, self.source, count=False)
 
     def rotated(self) -> None:
         """The next rows are a new file's, none of them read before."""
@@ -500,12 +542,20 @@ class _Feed:
         """The good rows ``block``, one after the other."""
         if block is None or not len(block):
             return
-        start = min(len(block), max(self.already - self.data_rows, 0))
-        self.data_rows += len(block)
+        first = self.data_rows  # the file's rows before this block
+        start = min(len(block), max(self.already - first, 0))
+        # a write within the block records the rows folded in up to it, not the whole block: a
+        # resume from that checkpoint reads the block's rest again (a kill -9 left it unused)
+        self.data_rows = first + start
+        if self.undiagnosed is not None and start < len(block):
+            self.undiagnosed.append(block.select(slice(start, len(block))))
+            if sum(map(len, self.undiagnosed)) >= DIAGNOSED_SAMPLES:
+                self.diagnose()
         while start < len(block):
             stop = min(len(block), start + self.every - self.calib.rows_read % self.every)
             self.calib.update_block(block if (start, stop) == (0, len(block)) else block.select(slice(start, stop)))
             self.calib.rows_read += stop - start
+            self.data_rows = first + stop
             self._write_when_due()
             start = stop
 
