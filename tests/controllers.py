@@ -102,6 +102,10 @@ class OpcUaController:
         self._server.iserver.aspace.set_attribute_value_callback(
             self._counter.nodeid, ua.AttributeIds.Value, self._counter_read
         )
+        # a variable of another type, for the refusals
+        await robot.add_variable(
+            ua.NodeId(PREFIX + "Name", self.ns), "Name", ua.Variant("hexapod", ua.VariantType.String)
+        )
         calib = await self._server.nodes.objects.add_object(self.ns, "Calib")
         self._writes = {}
         for key, length in self._lengths.items():
@@ -128,6 +132,7 @@ class OpcUaController:
 
     async def _publish(self, values: Iterable[float], counter: int, handshake: bool) -> None:
         ua = self.ua
+        await self._drained()
         for column, value in zip(self.columns, values, strict=True):
             vtype = getattr(ua.VariantType, self._types.get(column, "Double"))
             await self._server.write_attribute_value(
@@ -138,10 +143,18 @@ class OpcUaController:
         if handshake:
             self._seen.clear()
             self._wanted = self.reads + 2  # a whole poll (counter, values, counter) after this one
+
+    async def _drained(self) -> None:
+        if self.reads < self._wanted:
             await asyncio.wait_for(self._seen.wait(), 60)
 
     def publish(self, values: Iterable[float], counter: int, handshake: bool = True) -> None:
+        """Publish a sample, once a poll has seen the last one published with ``handshake``."""
         self._call(self._publish(list(values), counter, handshake))
+
+    def drain(self) -> None:
+        """Wait until a poll has seen the last sample published with ``handshake``."""
+        self._call(self._drained())
 
     def written(self, key: str):
         return self._call(self._writes[key].read_value())
@@ -160,13 +173,17 @@ class OpcUaController:
 
 
 def publisher(controller, rows: np.ndarray, first_counter: int = 1, skip: Callable[[int], bool] = lambda k: False):
-    """A thread that publishes ``rows`` one by one (counter ``first_counter`` up); rows ``k`` with
-    ``skip(k)`` are never published (their counter values are jumped over)."""
+    """Publish ``rows`` one by one (counter ``first_counter`` up), the first at once and the others
+    from a thread, each once the link has seen the one before; rows ``k`` with ``skip(k)`` are never
+    published (their counter values are jumped over). Returns the thread (it ends when the link
+    has seen the last row)."""
+    ks = [k for k in range(len(rows)) if not skip(k)]
+    controller.publish(rows[ks[0]], first_counter + ks[0])
 
     def run() -> None:
-        for k, row in enumerate(rows):
-            if not skip(k):
-                controller.publish(row, first_counter + k)
+        for k in ks[1:]:
+            controller.publish(rows[k], first_counter + k)
+        controller.drain()
 
     thread = threading.Thread(target=run, daemon=True)
     thread.start()
@@ -240,17 +257,23 @@ class AdsController:
         return link_toml(self.url, names, PREFIX + "Sample", {k: "Calib." + k for k in writes}, rate_hz)
 
     def publish(self, values: Iterable[float], counter: int, handshake: bool = True) -> None:
+        """Publish a sample, once a sum-read has seen the last one published with ``handshake``."""
+        self.drain()
         with self.lock:  # one cycle: no request is served in the middle of it
             for column, value in zip(self.columns, values, strict=True):
                 self._vars[column].value = struct.pack("<d", float(value))
             self._counter.value = struct.pack("<I", counter)
-            wanted = self.reads + 1  # a sum-read served after this cycle
-        if handshake:
-            for _ in range(60_000):
-                if self.reads >= wanted:
-                    return
-                threading.Event().wait(0.001)
-            raise TimeoutError("the link did not poll the ADS test server")
+            if handshake:
+                self._wanted = self.reads + 1  # a sum-read served after this cycle
+
+    _wanted = 0
+
+    def drain(self) -> None:
+        for _ in range(60_000):
+            if self.reads >= self._wanted:
+                return
+            threading.Event().wait(0.001)
+        raise TimeoutError("the link did not poll the ADS test server")
 
     def written(self, key: str):
         var = self._writes[key]

@@ -7,6 +7,8 @@ a sample counter.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -22,6 +24,8 @@ pytest.importorskip("asyncua")
 N = 40
 COLUMNS = list(LOG_REQUIRED)
 WRITES = {"parameters": 42, "stddev": 42, "samples_used": 1}
+#: the arrays the test controller holds: the estimate's, and one of another length
+ARRAYS = {**WRITES, "short": 41}
 
 
 def assert_equal_to_rounding(actual, expected) -> None:
@@ -45,16 +49,28 @@ def _log_of(rows: np.ndarray) -> Log:
 
 def _track(capsys, link_path, out, *argv):
     code = cli.main(
-        ["track", "--platform", str(NIM_STEWART), "--method", "ekf", "--link", str(link_path), "--out", str(out), *argv]
+        [
+            "track",
+            "--platform",
+            str(NIM_STEWART),
+            "--method",
+            "ekf",
+            "--link",
+            str(link_path),
+            "--out",
+            str(out),
+            *map(str, argv),
+        ]
     )
     return code, capsys.readouterr().err.strip().splitlines()
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def opcua():
+    """One server for the module (its start-up loads OPC UA's standard address space: ~5 s)."""
     from tests.controllers import OpcUaController
 
-    controller = OpcUaController(COLUMNS, WRITES)
+    controller = OpcUaController(COLUMNS, ARRAYS)
     yield controller
     controller.close()
 
@@ -83,3 +99,133 @@ def test_opcua_link_reads_every_row_and_writes_back_calibrates_estimate(opcua, r
     assert opcua.written("parameters") == result["estimate"]
     assert opcua.written("stddev") == result["stddev"]
     assert opcua.written("samples_used") == N
+
+
+def test_a_counter_jump_counts_the_samples_missed_and_uses_only_those_read(opcua, rows, tmp_path, capsys):
+    gone = {10, 11, 12}
+    code, err, out = _run_with(opcua, rows, tmp_path, capsys, skip=lambda k: k in gone)
+    assert code == 0, err
+    result = read_result(out)
+    assert (result["samples_used"], result["samples_missed"]) == (N - 3, 3)
+    assert err[-1].endswith(f"of {N - 3} rows; 3 samples missed)")
+    kept = [k for k in range(N) if k not in gone]
+    assert_equal_to_rounding(result["error"], run_calibration(nim_stewart(), _log_of(rows[kept]), "ekf").estimate.error)
+
+
+def test_a_resumed_link_reads_no_sample_twice(opcua, rows, tmp_path, capsys):
+    from tests.controllers import publisher
+
+    link, out, ckpt = tmp_path / "L.toml", tmp_path / "r.json", tmp_path / "c.npz"
+    link.write_text(opcua.link(WRITES))
+    thread = publisher(opcua, rows[:25])
+    assert _track(capsys, link, out, "--idle-timeout", "1", "--checkpoint", ckpt, "--every", "10")[0] == 0
+    thread.join(5)
+    assert read_result(out)["samples_used"] == 25
+    # the controller still shows sample 25 when the second run starts: it is not read again
+    thread = publisher(opcua, rows[25:], first_counter=26)
+    code, err = _track(capsys, link, out, "--idle-timeout", "1", "--checkpoint", ckpt, "--every", "10")
+    thread.join(5)
+    assert code == 0, err
+    result = read_result(out)
+    assert (result["samples_used"], result["samples_missed"]) == (N, 0)
+    assert_equal_to_rounding(result["error"], run_calibration(nim_stewart(), _log_of(rows), "ekf").estimate.error)
+    assert opcua.written("parameters") == result["estimate"]
+
+
+def test_a_dropped_connection_is_retried_and_its_gap_reported(opcua, rows, tmp_path, capsys):
+    link, out = tmp_path / "L.toml", tmp_path / "r.json"
+    link.write_text(opcua.link(WRITES))
+
+    opcua.publish(rows[0], 1)
+
+    def controller() -> None:
+        for k in range(1, 15):
+            opcua.publish(rows[k], k + 1)
+        opcua.drain()
+        opcua.stop()  # the link goes down; the controller's cycle goes on
+        for k in range(15, 20):
+            opcua.publish(rows[k], k + 1, handshake=False)
+        opcua.restart()
+        for k in range(20, N):
+            opcua.publish(rows[k], k + 1)
+        opcua.drain()
+
+    thread = threading.Thread(target=controller, daemon=True)
+    thread.start()
+    code, err = _track(capsys, link, out, "--idle-timeout", "3")
+    thread.join(5)
+    assert code == 0, err
+    lost = [line for line in err if "lost the link" in line]
+    back = [line for line in err if "is back after" in line]
+    assert len(lost) == 1 and len(back) == 1, err
+    assert back[0].endswith("5 samples missed (counter 15 → 21)"), back
+    result = read_result(out)
+    assert (result["samples_used"], result["samples_missed"]) == (N - 5, 5)
+    kept = [*range(15), *range(20, N)]
+    assert_equal_to_rounding(result["error"], run_calibration(nim_stewart(), _log_of(rows[kept]), "ekf").estimate.error)
+    assert opcua.written("parameters") == result["estimate"]
+
+
+def _names(opcua, **changed):
+    names = {column: opcua.node("Robot." + column) for column in COLUMNS}
+    return {**names, **changed}
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (
+            {"read": {"q3_mm": "ns=2;s=Robot.q7_mm"}},
+            "read.q3_mm = 'ns=2;s=Robot.q7_mm': not on the controller (BadNodeIdUnknown); "
+            "expected a variable it publishes",
+        ),
+        (
+            {"read": {"s2_mm": "ns=2;s=Robot.Name"}},
+            "read.s2_mm = 'ns=2;s=Robot.Name': the controller declares String; expected a number (a scalar)",
+        ),
+        (
+            {"write": {"parameters": "ns=2;s=Calib.short"}},
+            "write.parameters = 'ns=2;s=Calib.short': an array of 41 on the controller; the estimate has 42",
+        ),
+        (
+            {"write": {"samples_used": "ns=2;s=Calib.stddev"}},
+            "write.samples_used = 'ns=2;s=Calib.stddev': the controller declares Double array; "
+            "expected a number (a scalar)",
+        ),
+        (
+            {"write": {"stddev": "ns=2;s=Robot.q1_mm"}},
+            "write.stddev = 'ns=2;s=Robot.q1_mm': the controller declares Double; expected an array of numbers",
+        ),
+    ],
+)
+def test_a_variable_missing_or_of_another_type_is_refused_in_one_line_naming_it(
+    opcua, tmp_path, capsys, change, message
+):
+    from tests.controllers import link_toml
+
+    writes = {key: opcua.node("Calib." + key) for key in WRITES}
+    text = link_toml(
+        opcua.url,
+        _names(opcua, **change.get("read", {})),
+        opcua.node("Robot.Sample"),
+        {**writes, **change.get("write", {})},
+    )
+    link, out = tmp_path / "L.toml", tmp_path / "r.json"
+    link.write_text(text.replace("ns=2;", f"ns={opcua.ns};"))
+    code, err = _track(capsys, link, out, "--idle-timeout", "1")
+    assert code != 0 and err == [f"stewart-calib track: error: {link}: {message.replace('ns=2;', f'ns={opcua.ns};')}"]
+    assert not out.exists()
+
+
+def test_a_sample_that_is_not_finite_follows_the_log_rules(opcua, rows, tmp_path, capsys):
+    bad = rows.copy()
+    bad[5, 9] = np.nan  # s3_mm of the sixth sample
+    code, err, out = _run_with(opcua, bad, tmp_path, capsys, "--skip-bad-rows")
+    assert code == 0, err
+    result = read_result(out)
+    assert (result["samples_used"], result["samples_skipped"], result["samples_missed"]) == (N - 1, 1, 0)
+    assert err[0].startswith(
+        f"stewart-calib track: skipped bad log rows: 1 of {N} (first: {tmp_path / 'L.toml'}: row 7"
+    )
+    kept = [k for k in range(N) if k != 5]
+    assert_equal_to_rounding(result["error"], run_calibration(nim_stewart(), _log_of(rows[kept]), "ekf").estimate.error)

@@ -275,6 +275,9 @@ class Link:
         try:
             stamp = self.link.sample if self.link.sample is not None else self.link.read["t_s"]
             conn.check(self.link.read, stamp, self.link.write, self.lengths)
+        except CalibError as err:
+            conn.close()
+            raise CalibError(f"{shown(self.link.path)}: {err}") from None
         except BaseException:
             conn.close()
             raise
