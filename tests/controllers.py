@@ -218,7 +218,8 @@ class AdsController:
         class Handler(AdvancedHandler):
             def handle_request(self, request):
                 command = struct.unpack("<H", request.ams_header.command_id)[0]
-                group = struct.unpack("<I", request.ams_data[:4])[0] if len(request.ams_data) >= 4 else None
+                data = request.ams_header.data
+                group = struct.unpack("<I", data[:4])[0] if len(data) >= 4 else None
                 with outer.lock:  # a PLC serves ADS between its cycles: a request sees one cycle's values
                     if command == constants.ADSCOMMAND_READWRITE and group == constants.ADSIGRP_SUMUP_READ:
                         outer.reads += 1
@@ -293,4 +294,4 @@ def _ads_error(request, code: int):
     from pyads.testserver.testserver import AmsResponseData
 
     state = struct.unpack("<H", request.ams_header.state_flags)[0] | 0x0001
-    return AmsResponseData(struct.pack("<H", state), request.ams_header.error_code, struct.pack("<I", code))
+    return AmsResponseData(struct.pack("<H", state), request.ams_header.error_code, struct.pack("<II", code, 0))

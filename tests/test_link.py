@@ -229,3 +229,37 @@ def test_a_sample_that_is_not_finite_follows_the_log_rules(opcua, rows, tmp_path
     )
     kept = [k for k in range(N) if k != 5]
     assert_equal_to_rounding(result["error"], run_calibration(nim_stewart(), _log_of(rows[kept]), "ekf").estimate.error)
+
+
+@pytest.fixture(scope="module")
+def ads():
+    """One server for the module: the client library fixes its port, which a closed server holds a while."""
+    pytest.importorskip("pyads")
+    from tests.controllers import AdsController
+
+    controller = AdsController(COLUMNS, ARRAYS)
+    yield controller
+    controller.close()
+
+
+def test_ads_link_reads_by_sum_read_and_writes_back_calibrates_estimate(ads, rows, tmp_path, capsys):
+    gone = {20}
+    code, err, out = _run_with(ads, rows, tmp_path, capsys, "--every", "9", skip=lambda k: k in gone)
+    assert code == 0, err
+    result = read_result(out)
+    assert (result["samples_used"], result["samples_missed"]) == (N - 1, 1)
+    kept = [k for k in range(N) if k not in gone]
+    assert_equal_to_rounding(result["error"], run_calibration(nim_stewart(), _log_of(rows[kept]), "ekf").estimate.error)
+    assert ads.written("parameters") == result["estimate"]
+    assert ads.written("stddev") == result["stddev"]
+    assert ads.written("samples_used") == N - 1
+
+
+def test_ads_a_missing_symbol_is_refused_in_one_line_naming_it(ads, tmp_path, capsys):
+    link, out = tmp_path / "L.toml", tmp_path / "r.json"
+    link.write_text(ads.link(WRITES).replace('"Robot.s4_mm"', '"Robot.s4mm"'))
+    code, err = _track(capsys, link, out, "--idle-timeout", "1")
+    assert code != 0 and err[0] == (
+        f"stewart-calib track: error: {link}: read.s4_mm = 'Robot.s4mm': not on the controller (ADS error 1808); "
+        "expected a symbol the PLC program declares"
+    )
