@@ -704,7 +704,7 @@ def add_parser(subparsers) -> None:
         "--link",
         metavar="L.toml",
         help="take samples from a controller (OPC UA, TwinCAT ADS) named by this link file, and write the estimate"
-        " back (spec §16)",
+        " back (docs/howto/controller.md)",
     )
     parser.add_argument(
         "--follow",
