@@ -19,6 +19,7 @@ import socket
 import struct
 import tempfile
 import threading
+import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
 
@@ -64,6 +65,7 @@ class OpcUaController:
         logging.getLogger("asyncua").setLevel(logging.ERROR)  # its notes on a test server without security
         self._server = Server()
         self._lengths, self._types = lengths, types or {}
+        self.handed_back = HandedBack()
         self.reads = 0  # read requests that saw the counter (each poll reads it twice)
         self.counter = 0
         self._seen = asyncio.Event()
@@ -114,7 +116,15 @@ class OpcUaController:
                 value = ua.Variant(0, ua.VariantType.Int32)
             self._writes[key] = node = await calib.add_variable(ua.NodeId("Calib." + key, self.ns), key, value)
             await node.set_writable()
+        if "samples_used" in self._writes:
+            self._server.iserver.aspace.set_attribute_value_setter(
+                self._writes["samples_used"].nodeid, ua.AttributeIds.Value, self._samples_used_written
+            )
         await self._server.start()
+
+    def _samples_used_written(self, node, attr, value) -> None:
+        node.attributes[attr].value = value
+        self.handed_back.record(value.Value.Value)
 
     def _counter_read(self, nodeid, attr):
         self.reads += 1
@@ -170,6 +180,26 @@ class OpcUaController:
             self.stop()
         self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join(10)
+
+
+class HandedBack:
+    """How often and when the link wrote ``samples_used`` into the controller: the benchmark's clock."""
+
+    def __init__(self) -> None:
+        self.count, self.value, self.at = 0, 0, 0.0
+        self._changed = threading.Condition()
+
+    def record(self, value: int) -> None:
+        with self._changed:
+            self.count, self.value, self.at = self.count + 1, value, time.perf_counter()
+            self._changed.notify_all()
+
+    def wait_for(self, count: int, timeout_s: float) -> float | None:
+        """The time of the ``count``-th write (None: not within ``timeout_s``)."""
+        with self._changed:
+            if self._changed.wait_for(lambda: self.count >= count, timeout_s):
+                return self.at
+        return None
 
 
 def publisher(controller, rows: np.ndarray, first_counter: int = 1, skip: Callable[[int], bool] = lambda k: False):
@@ -249,6 +279,15 @@ class AdsController:
                 )
             self.handler.add_variable(var)
             self._writes[key] = var
+        self.handed_back = HandedBack()
+        if "samples_used" in self._writes:
+            var, plain = self._writes["samples_used"], self._writes["samples_used"].write
+
+            def write(value, request=None) -> None:
+                plain(value, request)
+                self.handed_back.record(struct.unpack("<i", var.value)[0])
+
+            var.write = write
         self.server = AdsTestServer(handler=self.handler, ip_address="127.0.0.1", logging=False)
         self.server.start()
         self.url = f"ads://127.0.0.1/{ADS_NET_ID}:851"

@@ -130,6 +130,13 @@ def test_a_resumed_link_reads_no_sample_twice(opcua, rows, tmp_path, capsys):
     assert (result["samples_used"], result["samples_missed"]) == (N, 0)
     assert_equal_to_rounding(result["error"], run_calibration(nim_stewart(), _log_of(rows), "ekf").estimate.error)
     assert opcua.written("parameters") == result["estimate"]
+    # a log file is not the link the checkpoint read: refused, not resumed at some row of it
+    write_log(tmp_path / "log.csv", _log_of(rows))
+    code = cli.main(
+        ["track", "--platform", str(NIM_STEWART), "--method", "ekf", "--log", str(tmp_path / "log.csv")]
+        + ["--out", str(tmp_path / "f.json"), "--checkpoint", str(ckpt)]
+    )
+    assert code != 0 and "not the log the checkpoint read (opc.tcp://" in capsys.readouterr().err
 
 
 def test_a_dropped_connection_is_retried_and_its_gap_reported(opcua, rows, tmp_path, capsys):

@@ -127,3 +127,14 @@ def test_a_counter_that_is_no_whole_number_is_refused():
 def test_a_value_that_is_not_finite_reaches_the_log_parser_as_such():
     link = _link(Script([[1, 0.1, math.nan, 1]]))
     assert _rows(link) == ["0.1,nan"]
+
+
+def test_a_counter_still_at_zero_has_published_no_sample():
+    link = _link(Script([[0, 0.0, 0.0, 0], [0, 0.0, 0.0, 0], [1, 0.1, 5.0, 1]]))
+    assert _rows(link) == ["0.1,5.0"] and link.samples_missed == 0
+
+
+def test_joining_a_running_controller_counts_the_samples_before_as_missed(capsys):
+    link = _link(Script([[41, 4.1, 5.0, 41], [42, 4.2, 6.0, 42]]))
+    assert _rows(link) == ["4.1,5.0", "4.2,6.0"] and link.samples_missed == 40
+    assert "joined opc.tcp://127.0.0.1:4840/ at its sample 41: the 40 before it are missed" in capsys.readouterr().err

@@ -11,7 +11,10 @@ with a ``connect(url, timeout_s)`` returning a :class:`Connection`, and one line
   the stamp again in **one** request; where the two stamps differ the controller moved on in the
   middle of the request and the sample is read again, so no row mixes two controller cycles;
 * a counter that rises by one is the next sample; a jump of k counts k − 1 samples as missed (the
-  poll was too slow, or the link was down), a fall is a controller that restarted: a new stream;
+  poll was too slow, or the link was down), a fall is a controller that restarted: a new stream.
+  A counter still at 0 has published no sample yet (the first is 1): the variables a controller
+  starts with are not taken for a sample; a run that joins a controller at its sample c (and no
+  checkpoint of this link says where it stopped) counts the c − 1 before it as missed;
 * a lost connection is retried with a growing wait (up to :data:`BACKOFF_MAX_S`), and the gap is
   reported with its length and the samples missed in it; no sample is ever made up;
 * the rows go to ``track`` as spec §3 CSV lines (each value as ``repr`` of its double, which
@@ -257,12 +260,13 @@ class Link:
         """The checkpoint's record: the link, the last counter (or time) read, the rows and samples missed.
 
         It has the keys of a log file's record (``path``, ``head_lines``, ``head_sha256``, ``rows``),
-        so a checkpoint of either kind reads the same way."""
+        so a checkpoint of either kind reads the same way; its digest is of the link, not of any
+        file's lines, so a log file fed to its checkpoint is told apart (refused, or ``--new-log``)."""
         return {
             "path": self.link.url,
             "link": self.link.url,
             "head_lines": 0,
-            "head_sha256": hashlib.sha256(self.header).hexdigest(),
+            "head_sha256": hashlib.sha256(b"link " + self.link.url.encode("utf-8")).hexdigest(),
             "rows": self.rows_read,
             "counter": self.counter,
             "t_s": self.t_s,
@@ -376,7 +380,13 @@ class Link:
         t_s = values[self.columns.index("t_s")]
         if self.link.sample is not None:
             counter = _whole(stamp)
-            if self.counter is not None:
+            if counter == 0 and not self.counter:  # a counter that has not risen yet: no sample published
+                return None, None
+            if self.counter is None and counter > 1:
+                # joined a running controller: its samples 1 … counter − 1 came before this run
+                self.samples_missed += counter - 1
+                say(f"joined {shown(self.link.url)} at its sample {counter}: the {counter - 1} before it are missed")
+            elif self.counter is not None:
                 if counter == self.counter:
                     return None, None
                 if counter < self.counter:

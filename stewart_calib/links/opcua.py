@@ -91,11 +91,15 @@ class OpcUaConnection:
             key = label.split(".", 1)[1]
             array = label.startswith("write.") and key in ARRAY_KEYS
             is_array = variant is not None and isinstance(variant.Value, list | tuple)
-            if vtype not in numeric or (is_array != array and not (array and variant is None)):
+            # an array variable a controller declared without filling it yet: its type and length are its own
+            unset = variant is None or variant.Value is None or (is_array and not variant.Value)
+            if label == "read.stage" and vtype == ua.VariantType.String and not is_array:
+                continue  # the log's one text column (spec §3)
+            if vtype not in numeric or (is_array != array and not (array and unset)):
                 want = "an array of numbers" if array else "a number (a scalar)"
                 got = (vtype.name if vtype is not None else "no value") + (" array" if is_array else "")
                 raise CalibError(f"{label} = '{shown(name)}': the controller declares {got}; expected {want}")
-            if array and is_array and len(variant.Value) != lengths.get(key, len(variant.Value)):
+            if array and not unset and len(variant.Value) != lengths.get(key, len(variant.Value)):
                 raise CalibError(
                     f"{label} = '{shown(name)}': an array of {len(variant.Value)} on the controller; "
                     f"the estimate has {lengths[key]}"

@@ -1,6 +1,6 @@
 """``stewart-calib track``: calibrate online from a log as it is written.
 
-    stewart-calib track --platform P.toml --method {paper-ekf,ekf,isam2} [--log FILE | -]
+    stewart-calib track --platform P.toml --method {paper-ekf,ekf,isam2} [--log FILE | - | --link L.toml]
                         [--follow] [--idle-timeout S] [--checkpoint C.npz] [--every N]
                         --out R.json [--config C.toml] [--set section.key=value ...]
                         [--skip-bad-rows]
@@ -18,6 +18,14 @@ happens. ``isam2`` adds a parameter window's samples in one smoother update wher
 but where its front end recovers from a lock-out the graph restarts at a point that depends on how
 the rows were blocked: measured up to 0.024 σ (0.068 mm) from ``calibrate`` on the quick
 experiment's log at --every 7 to 100. The bound is tested (tests/test_faults.py).
+
+``--link L.toml`` takes the samples from a controller instead (spec §16, :mod:`stewart_calib.links`:
+OPC UA, TwinCAT ADS): the link's rows go through the same parser, feed, writes and checkpoint as a
+log's (:func:`follow_link`), the estimate goes back into the controller's ``[write]`` variables at
+every write, and the result adds ``samples_missed``. The checkpoint's record of the source is then
+the link's last counter, so a resume passes over the samples already read by their counter, not by
+the first lines of a file. ``--idle-timeout`` ends a link that brought no new sample, or stayed
+down, for that long.
 
 When it stops:
   * at the end of the input (end of file; with ``--follow``, a file is polled for new rows
