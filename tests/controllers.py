@@ -324,7 +324,7 @@ class AdsController:
     def close(self) -> None:
         with contextlib.suppress(Exception):
             self.server.stop()
-            self.server.close()
+            self.server.join(5)  # its listening socket is free only once its loop has ended
         fcntl.flock(self._lock, fcntl.LOCK_UN)
         self._lock.close()
 

@@ -245,8 +245,6 @@ class Link:
         self.t_s: float | None = None if record is None else record.get("t_s")
         self.rows_read = 0 if record is None else int(record["rows"])
         self.samples_missed = 0 if record is None else int(record.get("samples_missed", 0))
-        self.resumed = record is not None
-        self.jumps = 0  # samples missed while connected (the poll slower than the controller)
         self.torn = 0  # reads taken again because the stamp moved within the request
         self.conn: Connection | None = None
         self._pending: dict[str, Sequence[float] | float] | None = None  # a write not yet through
@@ -393,7 +391,6 @@ class Link:
                     event = NewStream(f"the controller's sample counter fell from {self.counter} to {counter}")
                 elif counter > self.counter + 1:
                     self.samples_missed += counter - self.counter - 1
-                    self.jumps += counter - self.counter - 1
             self.counter = counter
         elif self.t_s is not None:
             if t_s == self.t_s or (not math.isfinite(t_s) and not math.isfinite(self.t_s)):

@@ -720,7 +720,10 @@ def add_parser(subparsers) -> None:
         help="at the end of FILE, wait for more rows (stop with a signal or --idle-timeout)",
     )
     parser.add_argument(
-        "--idle-timeout", type=float, metavar="S", help="stop after S seconds in which the log had no new data"
+        "--idle-timeout",
+        type=float,
+        metavar="S",
+        help="stop after S seconds in which the log had no new data (a link: no new sample, or the connection down)",
     )
     parser.add_argument(
         "--new-log",
