@@ -138,3 +138,16 @@ def test_joining_a_running_controller_counts_the_samples_before_as_missed(capsys
     link = _link(Script([[41, 4.1, 5.0, 41], [42, 4.2, 6.0, 42]]))
     assert _rows(link) == ["4.1,5.0", "4.2,6.0"] and link.samples_missed == 40
     assert "joined opc.tcp://127.0.0.1:4840/ at its sample 41: the 40 before it are missed" in capsys.readouterr().err
+
+
+def test_the_idle_time_counts_from_a_link_that_is_up_not_from_the_start_of_connecting():
+    script = Script([[0, 0.0, 0.0, 0], [0, 0.0, 0.0, 0], [1, 0.1, 5.0, 1]])  # the first sample comes later
+    slow = script.connector
+
+    def connector(link):
+        script.now += 5.0  # a controller slow to answer its first connection: 5 × the idle timeout
+        return slow(link)
+
+    spec = LinkFile("L.toml", "opc.tcp://127.0.0.1:4840/", 100.0, "N", READ, {})
+    link = Link(spec, {}, None, idle_timeout_s=1.0, clock=script.clock, connector=connector)
+    assert _rows(link) == ["0.1,5.0"]

@@ -319,6 +319,7 @@ class Link:
         down_counter = self.counter
         backoff = BACKOFF_FIRST_S
         next_poll = self.clock()
+        connected = False
         while not self.stopped():
             now = self.clock()
             if self.idle_timeout_s is not None and now - last_new >= self.idle_timeout_s:
@@ -334,6 +335,8 @@ class Link:
                     backoff = min(2 * backoff, BACKOFF_MAX_S)
                     continue
                 backoff = BACKOFF_FIRST_S
+                if not connected:  # the idle time counts from a link that is up (connecting is no silence)
+                    connected, last_new = True, self.clock()
             try:
                 self._flush_write()
                 values = self._read_whole()
