@@ -1,7 +1,8 @@
 """Comparative estimator benchmarks: ``python -m benchmarks [--quick] [--out-dir DIR]``.
 
 Runs the speed, accuracy and scale sections (:mod:`benchmarks.speed`, :mod:`benchmarks.accuracy`,
-:mod:`benchmarks.scale`: the estimators in-process, then every command through the CLI) and writes
+:mod:`benchmarks.scale`: the estimators in-process, then every command through the CLI) and the
+live link's (:mod:`benchmarks.link`: ``track --link`` against OPC UA and ADS controllers) and writes
 
 * a Markdown report — a table per section, each target marked met or not, machine, load and
   versions stated (full run: ``BENCHMARKS.md`` at the repository root);
@@ -21,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from benchmarks import accuracy, robustness, scale, speed
+from benchmarks import accuracy, link, robustness, scale, speed
 from benchmarks.common import ROOT, Section, machine, mark
 
 #: 1-minute load average per core above which the report says the machine was loaded.
@@ -112,9 +113,11 @@ def main(argv: list[str] | None = None) -> int:
     accuracy_section = accuracy.run(args.quick)
     robustness_section = robustness.run(args.quick)
     print(f"robustness done ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
+    link_section = link.section(args.quick)
+    print(f"live link done ({time.perf_counter() - start:.0f} s)", file=sys.stderr)
     info["seconds"] = time.perf_counter() - start
     info["load_after"] = list(os.getloadavg())
-    sections = [speed_section, accuracy_section, robustness_section, scale_section, cli_section]
+    sections = [speed_section, accuracy_section, robustness_section, scale_section, cli_section, link_section]
 
     plots = {
         section.title: os.path.relpath(path, markdown_path.parent)

@@ -8,7 +8,7 @@ For users who embed the estimator in their controller's processing unit::
             calib.update(sample)                        # SampleRejected: counted, state untouched
         except SampleRejected:
             pass
-        strokes = calib.compensated_strokes(pose6)      # IK of the estimated model
+        strokes = calib.compensated_strokes(pose_mm_deg)  # IK of the estimated model (angles in degrees)
     calib.save("ckpt.npz")
 
 A sample that cannot be used (non-finite, outside the platform's ranges, FK not converging,
@@ -238,7 +238,19 @@ class OnlineCalibrator:
         samples it does not count as used: :func:`~.estimators.base.row_accounting`)."""
         return accounted_estimate(self._estimator)
 
-    def compensated_strokes(self, pose_mm_rad: np.ndarray, payload_kg=0.0) -> np.ndarray:
+    def compensated_strokes(self, pose_mm_deg: np.ndarray, payload_kg=0.0) -> np.ndarray:
+        """Strokes [mm] that put the estimated drive at ``pose_mm_deg`` ``[x, y, z [mm], roll, pitch, yaw [deg]]``
+        (``(6,)`` or ``(N, 6)``): a pose in the units of every file (spec §1), the row of a pose list
+        or of ``compensate --poses -``. :meth:`compensated_strokes_rad` takes the angles in radians.
+
+        Raises:
+            as :meth:`compensated_strokes_rad`.
+        """
+        pose = np.array(pose_mm_deg, dtype=float)  # a copy: the caller's array is not converted
+        pose[..., 3:] = np.radians(pose[..., 3:])
+        return self.compensated_strokes_rad(pose, payload_kg)
+
+    def compensated_strokes_rad(self, pose_mm_rad: np.ndarray, payload_kg=0.0) -> np.ndarray:
         """Strokes [mm] that put the estimated drive at ``pose_mm_rad`` ``[x, y, z [mm], roll, pitch, yaw [rad]]``
         (``(6,)`` or ``(N, 6)``; paper Fig. 3 step 4), under a payload of ``payload_kg`` (scalar or
         ``(N,)``) where the platform has ``[elastic]`` (spec §10; a rigid drive ignores it), plus the

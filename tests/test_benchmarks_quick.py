@@ -40,6 +40,8 @@ def test_quick_run_writes_every_row(tmp_path):
         "imports of `calibrate ekf, 100 samples`",
         "calibrate ekf at 300 samples",
         *robustness.row_names(),
+        "link over OPC UA",
+        "link over ADS",
     ]
     for name in expected:
         assert sum(row.startswith(f"| {name}") for row in table_rows) == 1, name

@@ -77,7 +77,7 @@ def test_online_and_cli_refuse_unreachable_poses_alike(tmp_path, capsys):
     home = platform.workspace.home
     roll_in_degrees = np.array([0.0, 0.0, 1100.0, 5.0, 0.0, 0.0])  # 5 "rad": the user meant degrees
     with pytest.raises(PoseOutOfRange) as online:
-        OnlineCalibrator(platform, "ekf").compensated_strokes(np.vstack([home, roll_in_degrees]))
+        OnlineCalibrator(platform, "ekf").compensated_strokes_rad(np.vstack([home, roll_in_degrees]))
     assert online.value.pose_index == 1
     assert (
         online.value.reason
@@ -88,7 +88,7 @@ def test_online_and_cli_refuse_unreachable_poses_alike(tmp_path, capsys):
     with pytest.raises(
         PoseOutOfRange, match=r"^pose 0: the pose needs q\d_mm = .*, outside the stroke range \[-50.0, 50.0\] mm$"
     ):
-        OnlineCalibrator(narrow, "ekf").compensated_strokes(home + [0, 0, 150.0, 0, 0, 0])
+        OnlineCalibrator(narrow, "ekf").compensated_strokes_rad(home + [0, 0, 150.0, 0, 0, 0])
 
     io.write_result(tmp_path / "r.json", io.result_dict(Estimate(np.zeros(42), None, "ekf", 1), platform))
     io.write_pose_list(tmp_path / "poses.csv", roll_in_degrees[None])

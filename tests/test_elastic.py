@@ -589,7 +589,7 @@ def test_ekf_finds_an_unannounced_payload_and_its_steps(check):
     for sample in samples:
         online.update(sample)
     found = online.estimate()
-    strokes = online.compensated_strokes(validation[:5], payload_kg=0.0)
+    strokes = online.compensated_strokes_rad(validation[:5], payload_kg=0.0)
     expected = compensate(
         drive_model(estimating).calibrated_by(found), validation[:5], payload_kg=found.block_values("payload")[0]
     )

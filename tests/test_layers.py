@@ -24,7 +24,7 @@ LAYERS = (
     ("drive",),
     ("estimate", "instruments"),
     ("factors", "io", "identifiability", "accuracy", "compensation", "plausibility", "simulation", "viz"),
-    ("planning", "estimators", "diagnosis"),
+    ("planning", "estimators", "diagnosis", "links"),
     ("online", "reproduction", "sweep"),
     ("calibration", "validation"),
     ("pipelines",),

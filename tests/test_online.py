@@ -152,7 +152,11 @@ def test_result_and_compensation(platform, config, log):
     result = calib.result()
     assert (result["samples_used"], result["samples_skipped"], result["samples_rejected"]["count"]) == (20, 1, 1)
     poses = log.desired_poses[:3]
-    np.testing.assert_array_equal(calib.compensated_strokes(poses), compensate(calib.estimate(), poses, platform))
+    np.testing.assert_array_equal(calib.compensated_strokes_rad(poses), compensate(calib.estimate(), poses, platform))
+    # the same poses in the files' degrees
+    in_degrees = np.column_stack([poses[:, :3], np.degrees(poses[:, 3:])])
+    np.testing.assert_allclose(calib.compensated_strokes(in_degrees), calib.compensated_strokes_rad(poses), atol=1e-9)
+    assert np.abs(in_degrees[:, 3:] - poses[:, 3:]).max() > 1.0  # the test tells degrees from radians
 
 
 def _saved(platform, config, log, tmp_path):

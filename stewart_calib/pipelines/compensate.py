@@ -6,19 +6,29 @@ writes the pose columns and ``q1_mm … q6_mm``: the strokes to command so that 
 drive ``nominal + error`` lands at each pose (paper Fig. 3 step 4). A platform with ``[elastic]``
 carries its weight and ``--payload-kg M`` (default 0) there: the strokes are those that reach the
 poses under that load (spec §10).
+
+``--poses -`` streams (spec §16): poses from standard input, each pose's row (the pose columns and
+the strokes) written and flushed as soon as its line has come, to ``--out`` (``-``: standard
+output); an unreachable pose gets its row with the stroke fields empty and one line on stderr.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
+import sys
 from collections.abc import Iterator
+from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
 from .. import io
 from ..compensation import PoseOutOfRange, compensate
-from ..errors import CalibError
+from ..errors import CalibError, shown
 from ..io import read_pose_list_blocks
+from ..io.logs import POSE_COLUMNS
+from ..io.tables import header_fields, require_columns
 from ..platform import load_platform, payload_refusal
 from . import run_command
 from .handover import calibrated_model
@@ -35,8 +45,14 @@ def add_parser(subparsers) -> None:
     parser.add_argument(
         "--result", metavar="R.json", help="calibration result (spec §5); omit it with a calibrated platform"
     )
-    parser.add_argument("--poses", required=True, metavar="poses.csv", help="x_mm y_mm z_mm roll_deg pitch_deg yaw_deg")
-    parser.add_argument("--out", required=True, metavar="strokes.csv")
+    parser.add_argument(
+        "--poses",
+        required=True,
+        metavar="poses.csv",
+        help="x_mm y_mm z_mm roll_deg pitch_deg yaw_deg; '-': read them from standard input and write each pose's"
+        " row as soon as it is read",
+    )
+    parser.add_argument("--out", required=True, metavar="strokes.csv", help="'-': standard output")
     parser.add_argument(
         "--payload-kg",
         type=float,
@@ -59,6 +75,14 @@ def run(args: argparse.Namespace) -> int:
     if too_heavy:
         raise CalibError(f"--payload-kg: expected {too_heavy}")
     drive = calibrated_model(platform, args.result)  # with its blocks, where the calibration identified them
+    if args.poses == "-":
+        return _stream(sys.stdin.buffer, "<stdin>", args.out, drive, platform, args.payload_kg)
+    if args.out == "-":
+        try:
+            with open(args.poses, "rb") as poses:
+                return _stream(poses, args.poses, args.out, drive, platform, args.payload_kg)
+        except OSError as err:
+            raise CalibError(f"{shown(args.poses)}: cannot read the pose list ({err.strerror})") from None
     strokes = _compensated_blocks(args.poses, drive, platform, args.payload_kg)
     rows = io.write_pose_list_blocks(args.out, strokes, io.STROKE_COLUMNS)
     print(f"wrote {rows} stroke rows to {args.out}")
@@ -82,6 +106,63 @@ def _compensated_blocks(
             raise CalibError(f"{poses_path}: row {done + err.pose_index + 2}: {err.reason}") from None
         yield poses, strokes
         done += len(poses)
+
+
+def _stream(source: BinaryIO, name_text: str, out: str, drive, platform, payload_kg: float) -> int:
+    """``--poses -`` (or ``--out -``): the header, then each pose's row as soon as its line has come,
+    flushed (spec §16).
+
+    A row whose pose is unreachable gets its stroke fields empty, a row that is no pose (a field
+    that is no finite number) no row; each says why in one line on stderr, and the stream goes on.
+    The pose fields are written as read (the shortest text of their double).
+    """
+    name = Path(name_text)
+    header = header_fields(name, _text(source.readline(), name, 1).rstrip("\r\n").lstrip("\ufeff"))
+    require_columns(name, header, POSE_COLUMNS)
+    index = [header.index(column) for column in POSE_COLUMNS]
+    sink = sys.stdout if out == "-" else open(out, "w", encoding="utf-8")  # closed below
+    try:
+        print(",".join([*POSE_COLUMNS, *io.STROKE_COLUMNS]), file=sink, flush=True)
+        for row, line in enumerate(iter(source.readline, b""), start=2):
+            text = _text(line, name, row).rstrip("\r\n")
+            if not text.strip():
+                continue
+            fields = text.split(",")
+            try:
+                pose = np.array([_number(fields, k, POSE_COLUMNS[j]) for j, k in enumerate(index)])
+            except ValueError as err:
+                print(f"stewart-calib compensate: {shown(name)}: row {row}: {err}; no row written", file=sys.stderr)
+                continue
+            radians = np.r_[pose[:3], np.radians(pose[3:])]
+            try:
+                strokes = [repr(q) for q in compensate(drive, radians, limits=platform, payload_kg=payload_kg).tolist()]
+            except PoseOutOfRange as err:
+                print(f"stewart-calib compensate: {shown(name)}: row {row}: {err.reason}", file=sys.stderr)
+                strokes = [""] * len(io.STROKE_COLUMNS)
+            print(",".join([*map(repr, pose.tolist()), *strokes]), file=sink, flush=True)
+    except BrokenPipeError:  # the reader went away: nothing more to say to it
+        return 0
+    finally:
+        if sink is not sys.stdout:
+            sink.close()
+    return 0
+
+
+def _text(line: bytes, name: Path, row: int) -> str:
+    try:
+        return line.decode("utf-8")
+    except UnicodeDecodeError:
+        raise CalibError(f"{name}: row {row}: not UTF-8 text; expected a CSV row of poses") from None
+
+
+def _number(fields: list[str], k: int, column: str) -> float:
+    try:
+        value = float(fields[k]) if k < len(fields) and "_" not in fields[k] else math.nan
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise ValueError(f"column {column}: expected a finite number, got {fields[k] if k < len(fields) else ''!r}")
+    return value
 
 
 def main(argv: list[str] | None = None) -> int:

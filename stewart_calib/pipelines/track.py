@@ -1,6 +1,6 @@
 """``stewart-calib track``: calibrate online from a log as it is written.
 
-    stewart-calib track --platform P.toml --method {paper-ekf,ekf,isam2} [--log FILE | -]
+    stewart-calib track --platform P.toml --method {paper-ekf,ekf,isam2} [--log FILE | - | --link L.toml]
                         [--follow] [--idle-timeout S] [--checkpoint C.npz] [--every N]
                         --out R.json [--config C.toml] [--set section.key=value ...]
                         [--skip-bad-rows]
@@ -18,6 +18,14 @@ happens. ``isam2`` adds a parameter window's samples in one smoother update wher
 but where its front end recovers from a lock-out the graph restarts at a point that depends on how
 the rows were blocked: measured up to 0.024 σ (0.068 mm) from ``calibrate`` on the quick
 experiment's log at --every 7 to 100. The bound is tested (tests/test_faults.py).
+
+``--link L.toml`` takes the samples from a controller instead (spec §16, :mod:`stewart_calib.links`:
+OPC UA, TwinCAT ADS): the link's rows go through the same parser, feed, writes and checkpoint as a
+log's (:func:`follow_link`), the estimate goes back into the controller's ``[write]`` variables at
+every write, and the result adds ``samples_missed``. The checkpoint's record of the source is then
+the link's last counter, so a resume passes over the samples already read by their counter, not by
+the first lines of a file. ``--idle-timeout`` ends a link that brought no new sample, or stayed
+down, for that long.
 
 When it stops:
   * at the end of the input (end of file; with ``--follow``, a file is polled for new rows
@@ -67,7 +75,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import io
+from .. import io, links
 from ..config import load_estimator_config
 from ..diagnosis import DIAGNOSED_SAMPLES, diagnose_log
 from ..errors import CalibError, shown
@@ -312,6 +320,8 @@ def _write(
     if out is not None and calib.estimate().samples_used:  # before any, there is only the prior
         result = calib.result()
         result["final"] = final
+        if calib.source is not None and "samples_missed" in calib.source:  # a link's (spec §16)
+            result["samples_missed"] = calib.source["samples_missed"]
         writer.submit(out, lambda: io.result_text(result, str(out)).encode("utf-8"))
     if checkpoint:
         state = calib.checkpoint_bytes()
@@ -472,6 +482,28 @@ def _recorded(reader: _Reader, write: Callable[[], None]) -> None:
     write()
 
 
+def follow_link(
+    calib: OnlineCalibrator, link: links.Link, every: int, write: Callable[[], None], skip_bad_rows: bool
+) -> _Feed:
+    """Feed the rows of a controller ``link`` (spec §16) to ``calib`` as :func:`follow_log` feeds a
+    log's: the same parser, gating, accounting and writes. A resumed link has already passed over
+    the samples its checkpoint read (by their counter), so none counts as read before."""
+    parser = io.LogRowParser(link.name, link.header.decode("utf-8"), calib.platform)
+
+    def recorded() -> None:
+        calib.source = link.record()
+        write()
+
+    feed = _Feed(calib, every, recorded, skip_bad_rows)
+    for chunk in link.rows():
+        if isinstance(chunk, links.NewStream):  # its time may start again
+            parser = io.LogRowParser(link.name, link.header.decode("utf-8"), calib.platform)
+            continue
+        _feed_chunk(parser, feed, chunk, link.name, link.rows_read + 1)
+    calib.source = link.record()
+    return feed
+
+
 def _feed_chunk(parser: io.LogRowParser, feed: _Feed, chunk: list[bytes], source: str, line_number: int) -> None:
     """The lines ``chunk`` (the first is line ``line_number`` of the file) to ``feed``: as one
     block when every row is plain, else one by one with the good rows between bad ones in blocks."""
@@ -601,29 +633,39 @@ def run(args: argparse.Namespace) -> int:
 
 def _track(args: argparse.Namespace, out: Path, checkpoint: Path | None) -> int:
     calib = _start(args)
-    fd, source = _open_input(args.log)
+    stop = _StopRequest()
+    link = _open_link(args, calib, lambda: stop.requested) if args.link else None
+    fd, source = _open_input(args.log) if link is None else (-1, link.name)
     for path in (out, checkpoint):
         if path:
             _remove_debris(path)
-    stop = _StopRequest()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     writer = io.BackgroundWriter()
     identity = (lambda: {}) if source == "<stdin>" else (lambda: _identity(source))
     try:
         with writer:
-            chunks = line_chunks(
-                fd, args.follow, args.idle_timeout, lambda: stop.requested, None if source == "<stdin>" else source
-            )
-            feed = follow_log(
-                calib,
-                chunks,
-                source,
-                args.every,
-                lambda: _write(calib, writer, out, checkpoint),
-                args.skip_bad_rows,
-                identity,
-                args.new_log,
-            )
+            if link is not None:
+                feed = follow_link(
+                    calib,
+                    link,
+                    args.every,
+                    lambda: _write_and_hand_back(calib, writer, out, checkpoint, link),
+                    args.skip_bad_rows,
+                )
+            else:
+                chunks = line_chunks(
+                    fd, args.follow, args.idle_timeout, lambda: stop.requested, None if source == "<stdin>" else source
+                )
+                feed = follow_log(
+                    calib,
+                    chunks,
+                    source,
+                    args.every,
+                    lambda: _write(calib, writer, out, checkpoint),
+                    args.skip_bad_rows,
+                    identity,
+                    args.new_log,
+                )
             if feed.data_rows < feed.already and not stop.requested:
                 raise NotTheLog(
                     f"{shown(source)}: ended after {feed.data_rows} rows, before the {feed.already} rows the "
@@ -631,6 +673,8 @@ def _track(args: argparse.Namespace, out: Path, checkpoint: Path | None) -> int:
                 )
             if calib.estimate().samples_used:
                 _write(calib, writer, out, checkpoint, final=True)
+                if link is not None:
+                    _hand_back(calib, link, final=True)
     except NotTheLog:
         raise  # nothing was used: the checkpoint stays as it was
     except CalibError:
@@ -642,7 +686,9 @@ def _track(args: argparse.Namespace, out: Path, checkpoint: Path | None) -> int:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-        if source != "<stdin>":
+        if link is not None:
+            link.close()
+        elif source != "<stdin>":
             os.close(fd)
     first_bad = feed.first_bad
     if not calib.estimate().samples_used:
@@ -660,12 +706,46 @@ def _track(args: argparse.Namespace, out: Path, checkpoint: Path | None) -> int:
     estimate = calib.estimate()
     skipped = skipped_count(calib.rows_skipped, calib.rejections.count, estimate)
     stopped = ", stopped by signal" if stop.requested else ""
+    missed = f"; {link.samples_missed} samples missed" if link is not None and link.link.sample else ""
     print(
         f"stewart-calib track: wrote {out} ({args.method}: {estimate.samples_used} samples used, "
-        f"{skipped} skipped{accounting_words(estimate.details or {})}, of {calib.rows_read} rows{stopped})",
+        f"{skipped} skipped{accounting_words(estimate.details or {})}, of {calib.rows_read} rows{stopped}{missed})",
         file=sys.stderr,
     )
     return 0
+
+
+#: how long the final estimate is tried into a controller that is down or refuses it [s].
+FINAL_WRITE_S = 5.0
+
+
+def _open_link(args: argparse.Namespace, calib: OnlineCalibrator, stopped: Callable[[], bool]) -> links.Link:
+    """The controller link of ``--link`` (spec §16), resumed at the checkpoint's last counter."""
+    if args.log is not None:
+        raise CalibError("--link: give either --link or --log (a link takes samples from the controller)")
+    if args.follow:
+        raise CalibError("--follow: a link follows its controller; --follow is for a log file")
+    spec = links.load_link(args.link, calib.platform)
+    prior = io.result_dict(calib.estimate(), calib.platform)  # the arrays' lengths, as every result has them
+    return links.Link(spec, links.write_lengths(spec, prior), calib.source, args.idle_timeout, stopped)
+
+
+def _write_and_hand_back(
+    calib: OnlineCalibrator, writer: io.BackgroundWriter, out: Path, checkpoint: Path | None, link: links.Link
+) -> None:
+    _write(calib, writer, out, checkpoint)
+    _hand_back(calib, link)
+
+
+def _hand_back(calib: OnlineCalibrator, link: links.Link, final: bool = False) -> None:
+    """The estimate into the controller's ``[write]`` variables; the final one tried for :data:`FINAL_WRITE_S`."""
+    if not link.link.write or not calib.estimate().samples_used:
+        return
+    link.hand_back(calib.result())
+    if final and not link.finish(FINAL_WRITE_S):
+        print(
+            f"stewart-calib track: the final estimate could not be written into {shown(link.link.url)}", file=sys.stderr
+        )
 
 
 def add_parser(subparsers) -> None:
@@ -679,12 +759,21 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--method", required=True, metavar="METHOD", help=f"one of {', '.join(ONLINE_METHODS)}")
     parser.add_argument("--log", metavar="FILE", help="measurement log (spec §3); '-' or absent: standard input")
     parser.add_argument(
+        "--link",
+        metavar="L.toml",
+        help="take samples from a controller (OPC UA, TwinCAT ADS) named by this link file, and write the estimate"
+        " back (docs/howto/controller.md)",
+    )
+    parser.add_argument(
         "--follow",
         action="store_true",
         help="at the end of FILE, wait for more rows (stop with a signal or --idle-timeout)",
     )
     parser.add_argument(
-        "--idle-timeout", type=float, metavar="S", help="stop after S seconds in which the log had no new data"
+        "--idle-timeout",
+        type=float,
+        metavar="S",
+        help="stop after S seconds in which the log had no new data (a link: no new sample, or the connection down)",
     )
     parser.add_argument(
         "--new-log",
