@@ -1,7 +1,7 @@
 """``njit``: numba's decorator, compiled ahead of time at installation where it can be, with an
 on-disk cache wherever one can be written, and numba imported only when a kernel must compile.
 
-**Ahead of time** (issue 31). A kernel that Python calls (an *entry point*) declares the arguments
+**Ahead of time.** A kernel that Python calls (an *entry point*) declares the arguments
 its Python callers pass, ``@njit(entry=(F8_1, LEGS, FLOAT, …))`` in the types below. Installing the
 package (``setup.py``) compiles every entry point at those types with numba's ``pycc`` into one
 extension module, ``stewart_calib._aot_kernels``, with a manifest (:data:`AOT_MANIFEST`) of the
@@ -23,18 +23,16 @@ directory in the system's temporary directory, and when that cannot be made eith
 without a cache (each process pays the compile, a few seconds, instead of failing).
 
 A JIT compile says so once on a terminal (:class:`CompileNotice`), so the wait is not taken for a
-hang. What it costs, and the rules every kernel follows to keep it small (``calibrate --method
-ekf`` on 120 samples, empty cache: 26.4–27.3 s of CPU before them, 13.3–13.8 s after, same machine
-and load; peak 466 → 328 MB):
+hang. The rules every kernel follows to keep the compile small (together they halve the CPU time and
+cut the peak memory of a first ``calibrate --method ekf`` with an empty cache by 30 %):
 
 * every kernel goes through :func:`njit` (never ``numba.njit``): the cache fallbacks above, the
   notice, the AOT build, and LLVM level ``opt`` (:data:`OPT_LEVEL` = 1; :class:`OptimisationLevel`),
-  which compiles in ~3/4 of level 3's time and ran as fast (ekf, track, validate, identifiability,
-  compensate at 10⁵ samples, isam2 at 10⁴: equal CPU time). Ask for ``opt=3`` only where a
-  measurement shows the kernel faster;
+  which compiles in ~3/4 of level 3's time and runs as fast (ekf, track, validate, identifiability,
+  compensate, isam2). Ask for ``opt=3`` only where a benchmark shows the kernel faster;
 * no array-to-array slice assignment (``a[:] = b``, ``a[k, :] = b[j]``) in a kernel: numba compiles
-  a formatted shape-mismatch message into each (string joins, ``str`` of ints: ~40 % of the compile
-  before this rule). Copy element by element (``_kernels.copy_pose`` for a pose); filling with a
+  a formatted shape-mismatch message into each (string joins, ``str`` of ints: ~40 % of a kernel's
+  compile). Copy element by element (``_kernels.copy_pose`` for a pose); filling with a
   scalar (``a[:] = 0.0``) is free. Likewise ``@``, ``np.dot`` and ``np.sum`` on the small arrays
   of a kernel compile BLAS glue (~1 s each): write the loop;
 * one specialisation per kernel: numba compiles a kernel, and every kernel it calls, once per
@@ -66,7 +64,7 @@ from typing import Any, Literal
 import numpy as np
 
 #: LLVM optimisation level of the kernels (:class:`OptimisationLevel`): level 1 instead of numba's 3
-#: compiles in ~3/4 of the time, and the kernels ran as fast (measured: the module docstring).
+#: compiles in ~3/4 of the time, and the kernels run as fast (the module docstring).
 OPT_LEVEL = 1
 
 #: the modules that define kernels: the AOT build imports them, and its manifest holds their digests
@@ -194,7 +192,7 @@ class Tuple:
 def argument_check(specs: tuple):
     """A function of ``len(specs)`` arguments that is True when each matches its spec (:class:`Array`,
     :class:`Scalar`, :class:`Tuple`): one flat function generated per declaration, since checking
-    spec by spec through method calls and nested tuples cost ~1 µs an array — 15–25 µs a call of
+    spec by spec through method calls and nested tuples costs ~1 µs an array — 15–25 µs a call of
     the filter's kernels, which closed-loop runs and factor graphs call once or more a sample."""
     constants: dict = {"ndarray": np.ndarray}
     names = [f"a{i}" for i in range(len(specs))]
@@ -222,7 +220,7 @@ LEGS = Tuple((RO_2, RO_2, RO_1))
 class Kernel:
     """A kernel: its AOT function (an entry point whose arguments match its declaration) or numba's
     dispatcher, made on first need. numba sees it as that dispatcher (``_numba_type_``), so kernels call
-    each other as before; attributes it does not have (``signatures``, …) are the dispatcher's."""
+    each other as numba's do; attributes it does not have (``signatures``, …) are the dispatcher's."""
 
     def __init__(self, py_func, opt: int, options: dict, entry: tuple | None):
         functools.update_wrapper(self, py_func)

@@ -1,7 +1,7 @@
 """The χ² quantile the filters gate with, without importing ``scipy.special``.
 
 ``scipy.special`` costs ~0.2 s of every command's start (it pulls in scipy's array-API layer,
-``numpy.testing`` and ``numpy.f2py``), a fifth of the start-up budget of issue 15, for one
+``numpy.testing`` and ``numpy.f2py``), a fifth of a command's start-up budget, for one
 function called a few times a run. The regularised incomplete gamma function is a short series
 or continued fraction (Numerical Recipes §6.2); its inverse a safeguarded Newton iteration.
 Agrees with ``scipy.special.chdtri`` to ~1e-13 relative (tests/test_chi_square.py).

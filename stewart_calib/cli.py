@@ -14,8 +14,8 @@ import os
 import sys
 
 # Before numpy loads (a user's own setting wins): the commands' linear algebra is on matrices of
-# at most ~50 × 50, where OpenBLAS's threads only add synchronisation — on a shared 2-core machine
-# numpy's eigh of 48 × 48 took 5–8 ms with two threads against 0.3 ms with one.
+# at most ~50 × 50, where OpenBLAS's threads only add synchronisation: on a shared machine numpy's
+# eigh of 48 × 48 is an order of magnitude slower with two threads than with one.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from . import __version__

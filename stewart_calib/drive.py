@@ -9,9 +9,10 @@ none of them names a block of the drive. Drive leg i (paper eq. 1, spec §7)::
 ``(j_i, d_i, l_i)`` are the leg's seven parameters ``M + δM`` (paper order); the extension
 ``e_i`` is a sum of per-leg *terms* (:class:`LegTerm`): term b has an offset ``o_b``, six values
 ``v_b`` (its nominal from the platform file, plus an error where it is an unknown block) and a
-gain ``g_b`` on six columns ``u_b`` of the sample's drive inputs ``u``. The one term today is the
-stroke: ``o = 1``, ``v = k`` (the stroke scale), ``g u = q`` (the logged strokes), so
-``e_i = (1 + k_i) q_i``. Since every term is linear in its values, ``∂r_i/∂v_{b,i} = −g_b u_{b,i}``.
+gain ``g_b`` on six columns ``u_b`` of the sample's drive inputs ``u``. Every drive has the stroke
+term: ``o = 1``, ``v = k`` (the stroke scale), ``g u = q`` (the logged strokes), so a rigid drive's
+``e_i = (1 + k_i) q_i``; an elastic drive adds the compliance term on the leg forces (spec §10).
+Since every term is linear in its values, ``∂r_i/∂v_{b,i} = −g_b u_{b,i}``.
 
 The unknown vector of a drive is ``x_drive = [δM (42) | the errors of its unknown terms, six
 each, in term order]`` (:attr:`DriveModel.size` entries): the first entries of every estimator's
@@ -46,7 +47,7 @@ BLOCK_PRIOR_SIGMA = 0.1
 
 #: prior σ of the stroke scale with an instrument outside the robot when ``noise.stroke_scale_sigma``
 #: is 0: such logs come from encoders whose mm per count is the builders' nominal, a few per cent
-#: off per leg (issue 13: one leg 6 %), and the frame-and-target fit identifies k alongside
+#: off per leg (up to ~6 %), and the frame-and-target fit identifies k alongside
 STROKE_SCALE_SIGMA_OUTSIDE = 0.05
 
 
@@ -274,7 +275,7 @@ class DriveModel:
         extension moves by :data:`SETTLED_MM`. An industrial robot's forces change with the pose by
         ~1e-3 of themselves per mm, so each pass gains three orders (2–3 passes); a hobby robot's
         legs of 150 mm/kN under a payload of twice the platform's weight gain one order a pass (two
-        passes left 0.13 mm there, benchmarks/hobby.py's soft legs with 5 kg)."""
+        passes leave 0.13 mm there, benchmarks/hobby.py's soft legs with 5 kg)."""
         strokes = np.asarray(strokes, dtype=float)
         if self.elastic is None:
             inputs = self.inputs(strokes)
@@ -428,8 +429,8 @@ class DriveModel:
         pose and the joints: ``r(ξ; x, f(ξ, M)) = 0``, so ``∂r/∂ξ`` and ``∂r/∂M`` gain
         ``(∂r/∂f) ∂f/∂ξ`` and ``(∂r/∂f) ∂f/∂M`` (:func:`~stewart_calib.statics.leg_force_jacobians`).
         They are ~1e-3 of the rows they join, but a batch fit's weakest directions (compliance against
-        the leg offsets, condition ~1e6) are where that shows: without them ``ls`` crept along that
-        valley and stopped at its 200 evaluations on a simulated hobby hexapod (benchmarks/hobby.py,
+        the leg offsets, condition ~1e6) are where that shows: without them ``ls`` creeps along that
+        valley and stops at its 200 evaluations on a simulated hobby hexapod (benchmarks/hobby.py,
         soft-legs seed 0). A rigid drive: :meth:`pose_jacobian`."""
         if self.elastic is None:
             return self.pose_jacobian(x_drive, R, t, inputs)

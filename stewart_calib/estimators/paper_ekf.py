@@ -202,7 +202,7 @@ class PaperEKF:
         self._filled = int(state_array(state, "filled", ()))
         self._tracker_fk.import_state(state.get("tracker_fk", {}))
         self._model_fk.import_state(state.get("model_fk", {}))
-        if "instrument_theta" in state:  # checkpoints from before pose instruments have none: the tracker's ()
+        if "instrument_theta" in state:  # a tracker-only checkpoint may lack it: the tracker's θ is ()
             self._theta = state_array(state, "instrument_theta", self._theta.shape)
         self._held = HeldForRegistration(self.platform, self._noise, self.model, self._layout)
         self._held.restore(state, self.update)

@@ -2,10 +2,10 @@
 
 iSAM2 linearises every measurement factor about twice (when it enters and when its pose is
 relinearised), two factors a sample: tens of thousands of callbacks a log. Written with numpy,
-one callback made ~10 small arrays (fancy indexing, ``np.put``, ``np.zeros``, the rotation and
+one callback makes ~10 small arrays (fancy indexing, ``np.put``, ``np.zeros``, the rotation and
 translation apart) around a compiled core. Here each callback is one compiled call from what
 gtsam hands over (the pose as ``Pose3.matrix()``, the unknown vector) to the arrays it takes
-back: a linearisation measured at 0.4× (drive legs) and 0.35× (tracker) the time, gtsam's own
+back: a linearisation in 0.4× (drive legs) and 0.35× (tracker) the numpy one's time, gtsam's own
 part included. The arithmetic is :func:`stewart_calib.kinematics.leg_residual`'s (the same kernel,
 :func:`stewart_calib._kernels.leg_rows`), so the numbers are bit for bit the same.
 """

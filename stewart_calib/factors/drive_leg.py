@@ -9,7 +9,7 @@ extension of the sample's inputs (the stroke ``(1 + k_i) q_i``), whose terms' va
 nominal ones plus, where the drive identifies them, the unknown vector's errors
 (``∂r_i/∂v_{b,i} = −g_b u_{b,i}``). The factor's variables are the pose ``X_k`` (``gtsam.Pose3``)
 and the unknown vector of the current parameter window (the drive's first); leg i's row touches
-only its own seven columns and its terms' values. (One 42-vector variable measured faster than six
+only its own seven columns and its terms' values. (One 42-vector variable is faster than six
 7-vector variables; see :mod:`stewart_calib.estimators.isam2`.) One factor holds the six legs of
 a sample (one Python callback per linearisation instead of six, and one Jacobian block for gtsam
 to eliminate): with Gaussian noise the six rows are the six scalar factors exactly; a robust

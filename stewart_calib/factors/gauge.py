@@ -16,8 +16,8 @@ import gtsam
 import numpy as np
 
 #: σ of the constraint [code units]: 1e-4, four orders below the tightest prior (1e-2 mm) and below any
-#: instrument's noise, so a violation stays ~1e-8 mm; 1e-6 put the whitened Jacobian's condition number
-#: past 1e7 beside a 20 mm prior, and gtsam's Cholesky marginals (lm) failed as 'indeterminate'.
+#: instrument's noise, so a violation stays ~1e-8 mm; 1e-6 puts the whitened Jacobian's condition number
+#: past 1e7 beside a 20 mm prior, where gtsam's Cholesky marginals (lm) fail as 'indeterminate'.
 SIGMA = 1e-4
 
 

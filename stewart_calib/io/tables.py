@@ -110,8 +110,9 @@ def float_rows_csv(columns: list[np.ndarray], blank: tuple[int, ...] = (), large
     ``repr``, commas between, a line break after each row; see :func:`write_csv_blocks` for
     ``blank``), without the header; by pyarrow from :data:`CSV_CHUNK_ROWS` rows on, or for any
     rows of a ``large`` file: several times faster a row than ``repr`` on each field, its import
-    (a tenth of a second, tens of MB) paying off (BENCHMARKS.md). (An import of 10⁶ rows in blocks
-    of ~5400 once wrote each block's last ~1300 rows by ``repr``: a quarter of its time.)"""
+    (a tenth of a second, tens of MB) paying off (BENCHMARKS.md). ``large`` keeps a file written in
+    blocks on pyarrow for each block's remainder too: by ``repr``, the remainders of a 10⁶-row import
+    in blocks of ~5400 take a quarter of its time."""
     if len(columns[0]) < CSV_CHUNK_ROWS and not large:
         fields = [_repr_list(column, j in blank) for j, column in enumerate(columns)]
         return "".join(",".join(row) + "\n" for row in zip(*fields, strict=True)).encode()

@@ -24,7 +24,7 @@ from pathlib import Path
 from . import run_command
 
 #: a local cluster's worker processes per core at most: they share this machine's cores and memory
-#: (~200 MB each); a thousand on two cores was an endless start, 10⁴⁰⁰ a traceback
+#: (~200 MB each); a thousand on two cores never finish starting, and 10⁴⁰⁰ end in a traceback
 WORKERS_PER_CORE = 4
 
 

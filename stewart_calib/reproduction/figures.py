@@ -9,8 +9,9 @@
 * ``fig8_circle.png`` — the circle as run, its deviation from the desired circle magnified (Fig. 8);
 * ``fig9_polar.png`` — the deviation around the circle in polar form, per stage (Fig. 9).
 
-Figs. 5–6 are drawn for ``paper-ekf`` (the paper's method) and for each method of the bar with
-every part of its model. Pose errors are of the truth view (the verdict's); one value per held
+Figs. 5–6 are drawn for ``paper-ekf`` (the paper's method) and, with every part of its model, for
+each method held to the paper's headline improvements (:data:`~.report.TARGET_METHODS`). Pose errors
+are of the truth view (the verdict's); one value per held
 pose as in the tables (:mod:`.metrics`).
 """
 
@@ -43,7 +44,7 @@ LINESTYLES = ("-", "--", ":", "-.")
 MARKERS = ("o", "^", "s", "D")
 #: one colour per parameter of a leg (δj_x … δl), as the recording's parameter tabs.
 PARAMETER_COLORS = ("#e41a1c", "#377eb8", "#4daf4a", "#984ea3", "#ff7f00", "#a65628", "#1e1e1e")
-#: the method of the paper, drawn in Figs. 5–6 beside the methods of the bar.
+#: the method of the paper, drawn in Figs. 5–6 beside the methods held to its headline improvements.
 PAPER_METHOD = "paper-ekf"
 #: Fig. 8 magnifies the calibrated runs' deviation so that the largest is this fraction of the radius.
 CIRCLE_DEVIATION_SHARE = 0.25
@@ -310,8 +311,9 @@ def _png(figure: Figure) -> bytes:
 class RunFigures:
     """Figs. 5–6 of a run, drawn as soon as it is done where it ran (:func:`~.runs.reproduce`'s
     ``draw``: in its worker process, while the other runs go on). They need that run alone; drawn
-    one by one after every run, the nine figures took ~10 s of a ~40 s reproduction with a core
-    idle. Figs. 7–9 compare every run: :func:`draw_in` draws them in the same processes after."""
+    one by one in the parent after every run, the nine figures would take ~10 s of a ~40 s
+    reproduction with a core idle. Figs. 7–9 compare every run: :func:`draw_in` draws them in the
+    same processes after."""
 
     drive: LegGeometry
     runs: tuple[str, ...]
@@ -336,8 +338,8 @@ def draw_figure(reproduction: Reproduction, name: str) -> bytes:
 
 def draw_in(pool: WorkerPool, reproduction: Reproduction) -> dict[str, concurrent.futures.Future]:
     """The figures the runs did not draw (Figs. 7–9: they compare every run) drawn in ``pool``'s
-    processes, a figure a process, while the caller goes on: PNG futures by file name. In the
-    parent they were ~5 s of CPU after every run, with the other core idle."""
+    processes, a figure a process, while the caller goes on: PNG futures by file name (in the
+    parent they would be ~5 s of CPU after every run, with the other core idle)."""
     undrawn = [name for name, _, _ in figures(reproduction) if name not in reproduction.drawn]
     return {name: pool.executor.submit(draw_figure, reproduction, name) for name in undrawn}
 

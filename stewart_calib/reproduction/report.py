@@ -55,7 +55,7 @@ HEADLINE = (
 #: rounded tables they come out 85.3 / 79.1 / 81.4 (it used a mean orientation of 0.0116°, the
 #: table's three values give 0.0117°); the bar is the published text.
 PAPER_HEADLINE_PCT = {"position": 85.3, "orientation": 79.2, "circle": 81.4}
-#: Online methods that must meet the paper's headline improvements (the issue's bar), each with
+#: Online methods that must meet the paper's headline improvements, each with
 #: every part of its model (:meth:`Reproduction.fullest`).
 TARGET_METHODS = LAYERED_METHODS
 #: what the runs of :data:`LAYERED_METHODS` without a part model, and the configs they read.

@@ -43,7 +43,8 @@ ONLINE_METHODS = method_names(online=True)
 METHODS = (BATCH_METHOD, *ONLINE_METHODS)
 #: the controller that is not calibrated at all (paper: "before calibration").
 NOMINAL = "nominal"
-#: online methods run again with each part of the model added (the issue's bar applies to them).
+#: online methods run again with each part of the model added (they are the ones held to the
+#: paper's headline improvements).
 LAYERED_METHODS = ("ekf", "isam2")
 
 

@@ -1,7 +1,7 @@
 """Load model: payload + platform weight → static equilibrium → axial leg forces → compliance → δM.
 
 One compiled pass over the poses (batch axes ``...``; :func:`_settle_poses`): the closed loop
-settles an adaptive controller's samples one at a time, and the vectorised numpy of this chain cost
+settles an adaptive controller's samples one at a time, and in vectorised numpy this chain costs
 ~0.4 ms a sample there — a few seconds of every online run of ``reproduce``. The chain, for a pose
 ``(R, t)`` of {D} in {J} and the drive geometry in force:
 

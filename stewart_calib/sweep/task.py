@@ -127,7 +127,7 @@ def task_rng(cell_id: str, seed: int) -> np.random.Generator:
 def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generator) -> SweepData:
     """The data of one task (see the module docstring); draws in a fixed order from ``rng``.
 
-    The tracker's draws come first, in the order they always had, so a tracker cell's data do
+    The tracker's draws come first, in a fixed order of their own, so a tracker cell's data do
     not depend on the settings of the other instruments; the stroke scale and an outside
     instrument draw after them.
     """
