@@ -15,7 +15,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "stewart_calib"
 #: bottom first; a module may import from its own group and from groups of lower layers only.
 LAYERS = (
     ("_jit", "errors"),
-    ("inputs",),
+    ("inputs", "memory"),
     ("stewart_calib", "_kernels", "resources", "progress"),
     ("samples", "config", "rotations", "chi_square"),
     ("platform",),
