@@ -604,7 +604,7 @@ def _track(args: argparse.Namespace, out: Path, checkpoint: Path | None) -> int:
     fd, source = _open_input(args.log)
     for path in (out, checkpoint):
         if path:
-            _remove_debris(path)
+            _remove_debris(io.written_target(path).file)  # beside the file a link names: where its writes are
     stop = _StopRequest()
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     writer = io.BackgroundWriter()
