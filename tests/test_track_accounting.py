@@ -88,10 +88,13 @@ def test_a_resume_after_a_kill_mid_block_reads_the_rest_of_that_block(tmp_path, 
 
 def test_two_runs_through_a_symlink_to_one_checkpoint_are_one_run(tmp_path, log_path, capsys):
     """A link to the checkpoint is the checkpoint: its lock is the file's, and the write keeps the link."""
-    ckpt, link = tmp_path / "c.npz", tmp_path / "link.npz"
+    (tmp_path / "real").mkdir()
+    ckpt, link = tmp_path / "real" / "c.npz", tmp_path / "link.npz"
     link.symlink_to(ckpt)
+    debris = tmp_path / "real" / ".c.npz.k1ll3d.tmp"  # a killed writer's, beside the file written
+    debris.write_bytes(b"half a checkpoint")
     assert _track(capsys, "--log", str(log_path), "--out", str(tmp_path / "a.json"), "--checkpoint", str(link))[0] == 0
-    assert link.is_symlink() and OnlineCalibrator.load(ckpt, None).rows_read == N
+    assert link.is_symlink() and OnlineCalibrator.load(ckpt, None).rows_read == N and not debris.exists()
     with track.io.exclusive_lock(ckpt, "--checkpoint", "a test"):
         code, err = _track(capsys, "--log", str(log_path), "--out", str(tmp_path / "b.json"), "--checkpoint", str(link))
     assert code == 2 and len(err) == 1 and "in use (another track run is writing it" in err[0]

@@ -68,6 +68,9 @@ METHODS: dict[str, MethodSpec] = {
             checkpointable=False,
             instruments=("tracker", "pose", "points"),
             summary="the paper's batch least squares on the pose error (eq. 9–11)",
+            # its compact rows and the log read whole: the peak RSS's slope of calibrate ls from
+            # 10⁵ to 10⁶ samples of benchmarks/scale.py's log (290 → 720 MB)
+            bytes_per_sample=500,
         ),
         MethodSpec(
             "paper-ekf",

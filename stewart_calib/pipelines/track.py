@@ -76,6 +76,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import io, links
+from ..calibration import EvenlySpacedSamples
 from ..config import load_estimator_config
 from ..diagnosis import DIAGNOSED_SAMPLES, diagnose_log
 from ..errors import CalibError, shown
@@ -469,7 +470,7 @@ def follow_log(
             reader.head.add(chunk)
         _feed_chunk(parser, feed, chunk, source, line_number)
         line_number += len(chunk)
-    feed.diagnose()  # a log shorter than the rows the diagnosis looks at
+    feed.diagnose()  # a log that ended before a write was due
     if reader.head is not None:
         calib.source = reader.source_record()
     return feed
@@ -494,7 +495,7 @@ def follow_link(
         calib.source = link.record()
         write()
 
-    feed = _Feed(calib, every, recorded, skip_bad_rows)
+    feed = _Feed(calib, every, recorded, skip_bad_rows, link.name)
     for chunk in link.rows():
         if isinstance(chunk, links.NewStream):  # its time may start again
             parser = io.LogRowParser(link.name, link.header.decode("utf-8"), calib.platform)
@@ -553,18 +554,21 @@ class _Feed:
         self.source = source
         self.already, self.data_rows = 0, 0  # of the file being read
         self.first_bad: str | None = None
-        # the run's first good rows, held until the diagnosis has looked at them
-        self.undiagnosed: list[Log] | None = []
+        # the run's good rows, evenly spread, until the diagnosis has looked at them
+        self.undiagnosed: EvenlySpacedSamples | None = EvenlySpacedSamples(DIAGNOSED_SAMPLES)
 
     def diagnose(self) -> None:
-        """:func:`~stewart_calib.diagnosis.diagnose_log` on the run's first good rows (at most
-        :data:`~stewart_calib.diagnosis.DIAGNOSED_SAMPLES`), once: ``calibrate``'s check of the log,
-        which names a mistake's cause (a unit, swapped columns) where the estimate would go wrong."""
-        held, self.undiagnosed = self.undiagnosed, None
-        if held:
-            strokes = np.concatenate([np.asarray(block.strokes) for block in held])
-            readings = np.concatenate([np.asarray(block.readings) for block in held])
-            diagnose_log(self.calib.platform, strokes, readings, self.source, count=False)
+        """:func:`~stewart_calib.diagnosis.diagnose_log` on the run's good rows so far (at most
+        ``2 ×`` :data:`~stewart_calib.diagnosis.DIAGNOSED_SAMPLES`, evenly spread), once the estimator
+        uses samples: ``calibrate``'s check of the log, which names a mistake's cause (a unit, swapped
+        columns) where the estimate would go wrong. Not before: an outside instrument's estimator
+        holds its samples until poses that register it arrive, and rows at rest before them are no
+        evidence (their spread is the noise's: they "do not match the strokes")."""
+        held = self.undiagnosed
+        if held is None or not held.seen or not self.calib.estimate().samples_used:
+            return
+        self.undiagnosed = None
+        diagnose_log(self.calib.platform, held.log.strokes, held.log.readings, self.source, count=False)
 
     def rotated(self) -> None:
         """The next rows are a new file's, none of them read before."""
@@ -580,9 +584,7 @@ class _Feed:
         # resume from that checkpoint reads the block's rest again (a kill -9 left it unused)
         self.data_rows = first + start
         if self.undiagnosed is not None and start < len(block):
-            self.undiagnosed.append(block.select(slice(start, len(block))))
-            if sum(map(len, self.undiagnosed)) >= DIAGNOSED_SAMPLES:
-                self.diagnose()
+            self.undiagnosed.add(block if start == 0 else block.select(slice(start, len(block))))
         while start < len(block):
             stop = min(len(block), start + self.every - self.calib.rows_read % self.every)
             self.calib.update_block(block if (start, stop) == (0, len(block)) else block.select(slice(start, stop)))
@@ -606,6 +608,7 @@ class _Feed:
 
     def _write_when_due(self) -> None:
         if self.calib.rows_read % self.every == 0:
+            self.diagnose()  # before the first result
             self.write()
 
 
@@ -638,7 +641,7 @@ def _track(args: argparse.Namespace, out: Path, checkpoint: Path | None) -> int:
     fd, source = _open_input(args.log) if link is None else (-1, link.name)
     for path in (out, checkpoint):
         if path:
-            _remove_debris(path)
+            _remove_debris(io.written_target(path).file)  # beside the file a link names: where its writes are
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     writer = io.BackgroundWriter()
     identity = (lambda: {}) if source == "<stdin>" else (lambda: _identity(source))
