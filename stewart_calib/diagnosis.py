@@ -8,7 +8,7 @@ with one line naming the cause and its evidence:
 
 1. **too few samples** — fewer distinct samples than the unknowns need (how many are needed);
 2. **a log that does not move** — the strokes and the readings both stay within a sliver
-   (:data:`REST_FRACTION`) of the stroke range: a robot at rest, however many samples, fixes no
+   (:data:`~.plausibility.REST_FRACTION`) of the stroke range: a robot at rest, however many samples, fixes no
    parameter (the span of its poses is named, and what a calibration needs);
 3. **strokes in another unit** — the strokes barely move the platform while the instrument saw
    it move (or the strokes fill a sliver of the stroke range);
@@ -44,8 +44,8 @@ from . import kinematics as kin
 from .drive import drive_model
 from .errors import CalibError
 from .instruments import instrument_kind
-from .platform import Platform
-from .plausibility import check_readings_follow
+from .platform import Platform, give_reference_mm
+from .plausibility import REST_FRACTION, check_readings_follow
 from .rotations import rpy_to_rotation
 
 #: samples the diagnosis looks at, evenly spread over the log
@@ -54,10 +54,6 @@ DIAGNOSED_SAMPLES = 400
 UNIT_TOLERANCE = 2.0
 #: a spread ratio beyond this factor from 1 (either way) matching no unit is refused as such
 SPREAD_LIMIT = 5.0
-#: a log whose strokes and readings (lengths) all spread less than this fraction of the stroke range
-#: (without one: of the legs' initial length) does not move: a hundredth, five times the sliver that
-#: strokes in metres fill (1e-3 × :data:`UNIT_TOLERANCE`), and far below any calibration's poses
-REST_FRACTION = 0.01
 #: samples the wiring test registers (27 wirings: every pair of columns swapped, every leg reversed two ways)
 WIRING_SAMPLES = 120
 #: another wiring must explain the leg lengths this many times better to be named
@@ -147,11 +143,8 @@ def _fk(platform: Platform, strokes: np.ndarray):
 
 
 def _stroke_reference(platform: Platform) -> tuple[float, str]:
-    """``(length [mm], what it is)`` the strokes' span is measured against: the stroke range, or
-    without one the legs' initial length."""
-    if platform.stroke_range is not None:
-        return platform.stroke_range[1] - platform.stroke_range[0], "the stroke range"
-    return float(np.mean(platform.drive.initial_lengths)), "the legs' initial length"
+    """``(length [mm], what it is)`` the strokes' span is measured against (:func:`~.platform.give_reference_mm`)."""
+    return give_reference_mm(platform.drive, platform.stroke_range)
 
 
 def _check_moves(platform: Platform, strokes: np.ndarray, readings: np.ndarray, where: str, n_samples: int) -> None:
@@ -422,7 +415,13 @@ def diagnose_log(
     _check_strokes_unit(platform, strokes, where, stroke_columns)
     fk = _fk(platform, strokes)
     ok = fk.converged
-    if ok.sum() >= 3:
+    # readings are compared with the motion the strokes give: a log that holds one pose (a held-out
+    # log, track's first rows of a robot waiting) has none, and its readings spread by their noise alone
+    moves = (
+        bool(len(strokes))
+        and float(np.nanmax(np.ptp(strokes, axis=0))) >= REST_FRACTION * _stroke_reference(platform)[0]
+    )
+    if ok.sum() >= 3 and moves:
         _check_reading_units(platform, fk.R[ok], fk.t[ok], readings[ok], where, columns)
         check_readings_follow(platform, fk.R[ok], fk.t[ok], readings[ok], where, columns)
     registers = _check_wiring(platform, strokes, readings, where, stroke_columns)

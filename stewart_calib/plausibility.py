@@ -38,7 +38,7 @@ from .config import NoiseConfig
 from .drive import drive_model
 from .errors import CalibError
 from .instruments import instrument_kind
-from .platform import Platform
+from .platform import Platform, give_reference_mm
 
 #: a parameter error beyond this many prior σ is refused (two-sided tail probability < 1e-20).
 PRIOR_SIGMAS = 10.0
@@ -47,6 +47,10 @@ RESIDUAL_SIGMAS = 1000.0
 #: a measurement noise the estimator finds beyond this multiple of the configured σ is refused
 #: (two orders of magnitude: σ wrong by 2–5× or a sagging platform's ~10× pass).
 NOISE_SCALE_LIMIT = 100.0
+#: a log whose strokes and readings (lengths) all spread less than this fraction of the stroke range
+#: (without one: of the shortest leg) does not move: a hundredth, five times the sliver that strokes in
+#: metres fill (diagnosis: 1e-3 × its unit tolerance 2), and far below any calibration's poses
+REST_FRACTION = 0.01
 #: readings spreading less than this fraction of the spread the strokes give the platform do not
 #: follow it (diagnosis.SPREAD_LIMIT's factor: the spreads of the same motions agree within the drive's errors) …
 STILL_FRACTION = 0.2
@@ -159,6 +163,15 @@ def check_plausible(
     beyond_noise = np.size(strokes) > 0 and not rms_mm <= RESIDUAL_SIGMAS * sigma_mm
     scattered = noise_scale is not None and noise_scale > NOISE_SCALE_LIMIT
     if beyond_prior or beyond_noise or scattered:
+        # the samples checked at rest (track's last ones): that, not the fit, is what to name first
+        span = float(np.max(np.ptp(strokes, axis=0))) if np.size(strokes) else None
+        reference, what = give_reference_mm(platform.drive, platform.stroke_range)
+        still = (
+            f"the last {len(strokes)} samples it used do not move (their strokes span {span:.3g} mm, within "
+            f"{REST_FRACTION:g} of {what}, {reference:.4g} mm): a robot at rest fixes no parameter; "
+            if span is not None and span < REST_FRACTION * reference
+            else ""
+        )
         scatter = (
             f"; the samples scatter {noise_scale:.3g} × the configured noise σ (limit {NOISE_SCALE_LIMIT:g} ×)"
             if noise_scale is not None
@@ -172,7 +185,7 @@ def check_plausible(
             else ""
         )
         raise CalibError(
-            f"{method}: the log does not fit platform '{platform.name}': {residual}largest "
+            f"{method}: {still}the log does not fit platform '{platform.name}': {residual}largest "
             f"parameter error {platform.drive.parameter_names[worst]} = {error[worst]:.4g} mm "
             f"({abs(error[worst]) / noise.prior_sigma_mm:.3g} × the prior σ {noise.prior_sigma_mm:g} mm; limit "
             f"{PRIOR_SIGMAS:g} ×){scatter} — a log of another platform, glitches in every sample, or a platform file "
