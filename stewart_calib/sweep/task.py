@@ -35,7 +35,7 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-from threadpoolctl import threadpool_limits  # type: ignore[import-untyped]
+from threadpoolctl import threadpool_limits
 
 from .. import kinematics as kin
 from ..drive import COMPLIANCE, DriveModel, drive_model
