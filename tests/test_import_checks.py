@@ -324,3 +324,29 @@ def test_without_a_platform_a_quaternion_order_is_told_by_the_identity(capsys, t
         f"{tmp_path / 'm.toml'}: 'instrument.quaternion_order' = 'xyzw': read so, the quaternions qw, qx, qy, qz" in err
     )
     assert "read as 'wxyz', within 1" in err and "expected quaternion_order = 'wxyz'" in err
+
+
+def test_a_log_from_standard_input_is_read(tmp_path):
+    """``calibrate --log -`` said "-: log file not found" where ``track`` reads ``-`` as standard
+    input; a pipe on standard input now calibrates as the file does (read once, spooled)."""
+    import subprocess
+    import sys
+
+    log = tmp_path / "fit.csv"
+    assert cli.main(["import", "--csv", str(EXAMPLE / "fit_raw.csv"), "--mapping", str(EXAMPLE / "raw.toml"),
+                     "--out", str(log)]) == 0  # fmt: skip
+    config = Path(__file__).resolve().parents[1] / "configs" / "estimators" / "motion-capture.toml"
+    results = []
+    for source in ("-", str(log)):
+        results.append(tmp_path / f"r{len(results)}.json")
+        argv = ["calibrate", "--platform", "hobby-hexapod", "--log", source, "--method", "ls", "--config", str(config)]
+        done = subprocess.run(
+            [sys.executable, "-m", "stewart_calib.cli", *argv, "--out", str(results[-1])],
+            input=log.read_bytes(), capture_output=True, timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr.decode()
+        assert "108 samples used, 0 skipped, of 108 rows" in done.stderr.decode()
+    import json
+
+    first, second = (json.loads(path.read_text()) for path in results)
+    assert first["estimate"] == second["estimate"] and first["stddev"] == second["stddev"]
