@@ -30,7 +30,7 @@ import difflib
 import math
 import tomllib
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -651,10 +651,10 @@ class PointListTally:
 
     targets: int = 0
     times: int = 0
-    others: dict[str, int] | None = None
+    others: dict[str, int] = field(default_factory=dict)
 
     def __str__(self) -> str:
-        others = self.others or {}
+        others = self.others
         rows = self.targets + sum(others.values())
         text = f"{rows} point-list rows: {self.targets} of the targets, grouped into {self.times} times"
         if others:
@@ -670,7 +670,6 @@ def point_list_blocks(
     the ``targets`` named in order (``p1 …``), a target not measured at that time left empty;
     ``tally`` counts every row read (:class:`PointListTally`)."""
     tally = tally if tally is not None else PointListTally()
-    tally.others = tally.others or {}
     header = header_of(path)
     section = "instrument"
     time = mapping_value(mapping_path, table, section, "time", None, str)

@@ -284,14 +284,15 @@ def _best_offset(t_i, x, t_c, q, grid_i, grid_c, step: float, overlap, enough) -
         score = np.where(enough, explained / np.maximum(overlap, 1.0) ** 2, -np.inf)
         inner = score[1:-1]
         peaks = np.flatnonzero(np.isfinite(inner) & (inner >= score[:-2]) & (inner >= score[2:])) + 1
-        peaks = peaks[np.argsort(score[peaks])[::-1][:CANDIDATE_PEAKS]] if len(peaks) else [int(np.argmax(score))]
-        return grid_c[0] - grid_i[0] + (np.asarray(peaks) - (len(grid_i) - 1)) * step
+        best = peaks[np.argsort(score[peaks])[::-1][:CANDIDATE_PEAKS]] if len(peaks) else np.array([np.argmax(score)])
+        return grid_c[0] - grid_i[0] + (best - (len(grid_i) - 1)) * step
 
     # the pose: whitened coordinates against each leg; a linear fit tells the candidates apart (few
     # coefficients: a wrong offset is not fitted away by them), one with the curvature refines
     z = _whitened(np.column_stack([np.interp(grid_i, t_i, column) for column in x.T]))
     legs = [_standardised(np.interp(grid_c, t_c, column)) for column in q.T]
-    lags = candidates(sum(_correlate(leg, column) ** 2 for leg in legs for column in z.T) / len(legs))
+    explained = np.sum([_correlate(leg, column) ** 2 for leg in legs for column in z.T], axis=0) / len(legs)
+    lags = candidates(explained)
 
     def r2(offset: float, curved: bool = False) -> float:
         return _explained(t_i, x, t_c, q, offset, curved)
