@@ -350,3 +350,19 @@ def test_a_log_from_standard_input_is_read(tmp_path):
 
     first, second = (json.loads(path.read_text()) for path in results)
     assert first["estimate"] == second["estimate"] and first["stddev"] == second["stddev"]
+
+
+@pytest.mark.parametrize("export", ["motive", "csv"])
+def test_an_export_with_its_header_only_is_named_not_the_controller(capsys, tmp_path, export):
+    """A Motive export of its 7 header rows was reported as "no measurement falls between two
+    controller rows … instrument nan–nan s", blaming the controller's log."""
+    if export == "motive":
+        lines = (EXAMPLE / "fit_motive.csv").read_text().splitlines(keepends=True)[:7]
+        argv = ["--motive", tmp_path / "e.csv", "--rigid-body", "platform", "--strokes", EXAMPLE / "fit_counts.csv"]
+        argv += ["--mapping", EXAMPLE / "controller.toml", "--clock-offset-s", "1234.5"]
+    else:
+        lines = (EXAMPLE / "fit_raw.csv").read_text().splitlines(keepends=True)[:1]
+        argv = ["--csv", tmp_path / "e.csv", "--mapping", EXAMPLE / "raw.toml"]
+    (tmp_path / "e.csv").write_text("".join(lines))
+    err = _refused(capsys, tmp_path / "log.csv", "import", *argv)
+    assert f"{tmp_path / 'e.csv'}: no data rows after the header; expected the instrument's measurements" in err

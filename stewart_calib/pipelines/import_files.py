@@ -497,7 +497,8 @@ def run(args: argparse.Namespace) -> int:
         blocks = _same_file_rows(make_blocks, source, strokes, args.csv, notes)
     else:
         offset = _clock_offset(args, stroke_table, make_blocks, strokes, mapping_path, notes, kind, source)
-        blocks = _joined_rows(make_blocks(), ControllerLog(Path(args.strokes), strokes), offset, max_gap_s, notes)
+        controller = ControllerLog(Path(args.strokes), strokes)
+        blocks = _joined_rows(make_blocks(), controller, offset, max_gap_s, notes, source)
     counts = {"read": 0, "lost": 0, "unjoined": 0, "written": 0}
     checked: list = []
     columns: list[str] = []
@@ -526,6 +527,8 @@ def run(args: argparse.Namespace) -> int:
                 checked.append(True)
             counts["written"] += int(use.sum())
             yield [block.t_s[use], *strokes_mm[use].T, *block.values[use].T]
+        if not counts["read"]:
+            raise CalibError(f"{source}: no data rows after the header; expected the instrument's measurements")
         if not counts["written"]:  # raised inside the write: its temporary file is removed
             raise CalibError(
                 f"{source}: no row could be written ({counts['read']} read, {counts['lost']} without the body, "
@@ -609,7 +612,9 @@ def _clock_offset(args, table: dict, make_blocks, strokes, mapping_path, notes, 
     return offset
 
 
-def _joined_rows(instrument: Iterator[Block], controller: ControllerLog, offset_s: float, max_gap_s: float, notes):
+def _joined_rows(
+    instrument: Iterator[Block], controller: ControllerLog, offset_s: float, max_gap_s: float, notes, source
+):
     """``(block, strokes of the kept rows, kept, lost)`` per instrument block, the strokes from the
     controller's log at ``t + offset``; refuses a join with no overlap at all."""
     any_kept = False
@@ -626,6 +631,8 @@ def _joined_rows(instrument: Iterator[Block], controller: ControllerLog, offset_
         q, kept = controller.strokes_at(block.t_s + offset_s, max_gap_s)
         any_kept = any_kept or bool((kept & ~lost).any())
         yield block, q, kept, lost
+    if math.isnan(first_t):
+        raise CalibError(f"{source}: no data rows after the header; expected the instrument's measurements")
     controller_last = controller.drain()
     if not any_kept:
         raise CalibError(
