@@ -54,6 +54,8 @@ GRID_POINTS = 1 << 21
 CANDIDATE_PEAKS = 16
 #: grid steps either side of a candidate the fit itself is scanned over
 REFINE_STEPS = 12
+#: candidates whose unexplained part is within this factor of the best's fit as well
+AS_GOOD = 1.5
 #: a fit within this fraction of its best is as good (the offsets a held pose cannot tell apart)
 FLAT_TOP = 1e-9
 #: the least overlap of the two files (a fraction of the shorter) an estimated offset leaves, the
@@ -297,7 +299,7 @@ def _best_offset(t_i, x, t_c, q, grid_i, grid_c, step: float, overlap, enough) -
     def r2(offset: float, curved: bool = False) -> float:
         return _explained(t_i, x, t_c, q, offset, curved)
 
-    coarse = _refined_maximum(r2, max(lags, key=r2), step)
+    coarse = _refined_maximum(r2, _most_overlapping(lags, r2, t_i, t_c), step)
     pose_offset = _refined_maximum(lambda lag: r2(lag, True), coarse, step)
     pose_r = math.sqrt(max(r2(pose_offset), 0.0))
 
@@ -309,9 +311,20 @@ def _best_offset(t_i, x, t_c, q, grid_i, grid_c, step: float, overlap, enough) -
     def speed_r(offset: float) -> float:
         return _speed_correlation(t_i, x[:, :3], t_c, q, offset)
 
-    speed_offset = _refined_maximum(speed_r, max(lags, key=speed_r), step)
+    speed_offset = _refined_maximum(speed_r, _most_overlapping(lags, speed_r, t_i, t_c), step)
     correlation, offset = max((pose_r, pose_offset), (speed_r(speed_offset), speed_offset))
     return float(offset), correlation
+
+
+def _most_overlapping(lags: np.ndarray, fit, t_i: np.ndarray, t_c: np.ndarray) -> float:
+    """Of the candidate offsets, the one leaving the files overlapping longest among those that
+    fit about as well as the best (their unexplained part within :data:`AS_GOOD` of the best's): a
+    motion that repeats itself (a Lissajous figure, a pose sequence run twice) fits as well one
+    period off, over a shorter overlap."""
+    unexplained = np.array([1.0 - fit(lag) for lag in lags])
+    good = unexplained <= AS_GOOD * np.min(unexplained)
+    overlap = np.minimum(t_i[-1] + lags, t_c[-1]) - np.maximum(t_i[0] + lags, t_c[0])
+    return float(lags[good][np.argmax(overlap[good])])
 
 
 def _standardised(x: np.ndarray) -> np.ndarray:
