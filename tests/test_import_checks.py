@@ -233,26 +233,6 @@ def test_the_clock_offset_of_a_hexapod_s_strokes_is_found_within_a_camera_frame(
 # ----------------------------------------------------------------------------- silently wrong before
 
 
-def test_a_point_list_accounts_for_every_input_row(capsys, tmp_path):
-    """220 rows (55 times × 3 targets and a reference nest) were reported as "50 of 55 rows"."""
-    t = np.arange(55) * 2.0
-    rng = np.random.default_rng(3)
-    vendor.point_list_csv(tmp_path / "p.csv", t, {name: rng.normal(0, 300, (55, 3)) for name in ("A", "B", "C")})
-    (tmp_path / "m.toml").write_text(
-        '[instrument]\ntime = "Time"\ntarget = "Point"\ntargets = ["A", "B", "C"]\nposition = ["X", "Y", "Z"]\n\n'
-        + COUNTS_MAPPING.replace('time_unit = "ms"', 'time_unit = "ms"\nmax_gap_s = 0.5')
-    )
-    _write_counts(tmp_path / "c.csv", np.arange(0, 100, 0.25), _strokes_of(np.arange(0, 100, 0.25)))
-    code, err = _run(
-        capsys, "import", "--point-list", tmp_path / "p.csv", "--strokes", tmp_path / "c.csv",
-        "--mapping", tmp_path / "m.toml", "--out", tmp_path / "log.csv",
-    )  # fmt: skip
-    assert code == 0, err
-    assert "wrote" in err and "50 of 55 rows (0 where the instrument lost the body, 5 without strokes" in err
-    assert "220 point-list rows: 165 of the targets, grouped into 55 times; 55 of other targets, not on the " in err
-    assert "platform, passed over (55 of 'REF')" in err
-
-
 @pytest.mark.parametrize("option", ["--csv", "--strokes"])
 def test_a_pipe_is_refused_as_a_pipe_not_for_its_content(capsys, tmp_path, option):
     """``--csv <(cat F.csv)`` was refused as "no column 'time_s' in the file" (its header read
