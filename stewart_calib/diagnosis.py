@@ -58,9 +58,6 @@ SPREAD_LIMIT = 5.0
 WIRING_SAMPLES = 120
 #: another wiring must explain the leg lengths this many times better to be named
 WIRING_GAIN = 5.0
-#: the turns of a log must span the third axis this well (a fraction of the first) for a mirror
-#: image to be told from a rotation
-HANDED_FRACTION = 0.1
 #: the two ways a leg's stroke is reversed in :func:`_wirings`' sign: mirrored within the stroke
 #: range (counting down from its far end), or negated (counting down from the same zero)
 MIRRORED, NEGATED = -1.0, -2.0
@@ -215,7 +212,8 @@ def _check_handedness(platform: Platform, R: np.ndarray, readings: np.ndarray, w
     rotation). Whatever the instrument's frame and target, the turn between two measured poses is
     the turn between the strokes' poses seen through the target's fixed rotation: the best linear
     map between the two sets of turns is a rotation (determinant +1); a mirrored log gives −1.
-    Decided only where the poses turn about all three axes (else a mirror fits as well)."""
+    Refused only where the best mirror fits the turns :data:`WIRING_GAIN` times better than the best
+    rotation (poses that turn about fewer than three axes, or by no more than the noise, fit both)."""
     if platform.instrument is None or platform.instrument.kind != "pose":
         return
     R_m = rpy_to_rotation(readings[:, 3:6])
@@ -228,14 +226,22 @@ def _check_handedness(platform: Platform, R: np.ndarray, readings: np.ndarray, w
         M = np.einsum("ji,njk->nik", rotations[0], rotations[1:])
         return 0.5 * np.column_stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]])
 
-    H = turns(R_m).T @ turns(R)
-    spread = np.linalg.svd(H, compute_uv=False)
-    if not spread[2] > HANDED_FRACTION * spread[0] or np.linalg.det(H) >= 0:
+    m, f = turns(R_m), turns(R)
+    H = m.T @ f
+    if np.linalg.det(H) >= 0:
+        return
+    # the best rotation and the best mirror between the turns (Kabsch): their squared misfits
+    # differ by 4 s₃, s₃ the smallest singular value of H; a mirror must fit far better, not by noise
+    s1, s2, s3 = np.linalg.svd(H, compute_uv=False)
+    total = float(np.sum(m**2) + np.sum(f**2))
+    rotation, mirror = total - 2 * (s1 + s2 - s3), total - 2 * (s1 + s2 + s3)
+    if not rotation > WIRING_GAIN * max(mirror, 0.0):
         return
     _refuse(
         where,
         f"the measured orientations {_columns(list(columns[3:6]))} turn as a mirror image of the strokes' poses "
-        "(the map between their turns has determinant −1, where a frame and a target only rotate them): a "
+        f"(a mirror maps the turns between poses {rotation / max(mirror, 1e-300):.3g}× better than a rotation, where a "
+        "frame and a target only rotate them): a "
         "quaternion read in the wrong order (w x y z against x y z w), or Euler angles of the other handedness?",
     )
 

@@ -174,7 +174,12 @@ def _reason(err: BaseException) -> str:
 
 
 def _open(path: str | Path, what: str) -> int:
-    """A descriptor of ``path`` for reading; a FIFO without a writer does not block the open."""
+    """A descriptor of ``path`` for reading (``-``: standard input, as ``track`` reads it); a FIFO
+    without a writer does not block the open."""
+    if str(path) == "-" and not os.path.exists(path):
+        fd = os.dup(sys.stdin.fileno())
+        os.set_blocking(fd, False)
+        return fd
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except FileNotFoundError:

@@ -272,6 +272,9 @@ def test_a_laser_tracker_point_list(capsys, tmp_path):
         "--mapping", tmp_path / "m.toml", "--out", tmp_path / "log.csv",
     )  # fmt: skip
     assert code == 0, err
+    # every input row accounted for (a point list of 220 rows was reported as "59 of 59 rows")
+    assert "46 point-list rows: 34 of the targets, grouped into 12 times; 12 of other targets, not on the " in err
+    assert "platform, passed over (12 of 'REF')" in err
     rows = list(csv.reader(open(tmp_path / "log.csv")))
     assert len(rows) == 13 and rows[0][-3:] == ["p3x_mm", "p3y_mm", "p3z_mm"]
     assert rows[3][-3:] == ["", "", ""]

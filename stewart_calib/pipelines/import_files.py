@@ -54,6 +54,10 @@ GRID_POINTS = 1 << 21
 CANDIDATE_PEAKS = 16
 #: grid steps either side of a candidate the fit itself is scanned over
 REFINE_STEPS = 12
+#: candidates whose unexplained part is within this factor of the best's fit as well
+AS_GOOD = 1.5
+#: instrument rows the fits of the clock offset are evaluated on
+FIT_ROWS = 20_000
 #: a fit within this fraction of its best is as good (the offsets a held pose cannot tell apart)
 FLAT_TOP = 1e-9
 #: the least overlap of the two files (a fraction of the shorter) an estimated offset leaves, the
@@ -284,21 +288,24 @@ def _best_offset(t_i, x, t_c, q, grid_i, grid_c, step: float, overlap, enough) -
         score = np.where(enough, explained / np.maximum(overlap, 1.0) ** 2, -np.inf)
         inner = score[1:-1]
         peaks = np.flatnonzero(np.isfinite(inner) & (inner >= score[:-2]) & (inner >= score[2:])) + 1
-        if not len(peaks):
-            peaks = np.array([int(np.argmax(score))])
-        peaks = peaks[np.argsort(score[peaks])[::-1][:CANDIDATE_PEAKS]]
-        return grid_c[0] - grid_i[0] + (np.asarray(peaks) - (len(grid_i) - 1)) * step
+        best = peaks[np.argsort(score[peaks])[::-1][:CANDIDATE_PEAKS]] if len(peaks) else np.array([np.argmax(score)])
+        return grid_c[0] - grid_i[0] + (best - (len(grid_i) - 1)) * step
 
     # the pose: whitened coordinates against each leg; a linear fit tells the candidates apart (few
     # coefficients: a wrong offset is not fitted away by them), one with the curvature refines
     z = _whitened(np.column_stack([np.interp(grid_i, t_i, column) for column in x.T]))
     legs = [_standardised(np.interp(grid_c, t_c, column)) for column in q.T]
-    lags = candidates(np.sum([_correlate(leg, column) ** 2 for leg in legs for column in z.T], axis=0) / len(legs))
+    explained = np.sum([_correlate(leg, column) ** 2 for leg in legs for column in z.T], axis=0) / len(legs)
+    lags = candidates(explained)
+    # the fits themselves on at most FIT_ROWS of the instrument's rows, evenly spread (each is
+    # evaluated some 200 times)
+    every = max(1, math.ceil(len(t_i) / FIT_ROWS))
+    t_i, x = t_i[::every], x[::every]
 
     def r2(offset: float, curved: bool = False) -> float:
         return _explained(t_i, x, t_c, q, offset, curved)
 
-    coarse = _refined_maximum(r2, max(lags, key=r2), step)
+    coarse = _refined_maximum(r2, _most_overlapping(lags, r2, t_i, t_c), step)
     pose_offset = _refined_maximum(lambda lag: r2(lag, True), coarse, step)
     pose_r = math.sqrt(max(r2(pose_offset), 0.0))
 
@@ -310,9 +317,20 @@ def _best_offset(t_i, x, t_c, q, grid_i, grid_c, step: float, overlap, enough) -
     def speed_r(offset: float) -> float:
         return _speed_correlation(t_i, x[:, :3], t_c, q, offset)
 
-    speed_offset = _refined_maximum(speed_r, max(lags, key=speed_r), step)
+    speed_offset = _refined_maximum(speed_r, _most_overlapping(lags, speed_r, t_i, t_c), step)
     correlation, offset = max((pose_r, pose_offset), (speed_r(speed_offset), speed_offset))
     return float(offset), correlation
+
+
+def _most_overlapping(lags: np.ndarray, fit, t_i: np.ndarray, t_c: np.ndarray) -> float:
+    """Of the candidate offsets, the one leaving the files overlapping longest among those that
+    fit about as well as the best (their unexplained part within :data:`AS_GOOD` of the best's): a
+    motion that repeats itself (a Lissajous figure, a pose sequence run twice) fits as well one
+    period off, over a shorter overlap."""
+    unexplained = np.array([1.0 - fit(lag) for lag in lags])
+    good = unexplained <= AS_GOOD * np.min(unexplained)
+    overlap = np.minimum(t_i[-1] + lags, t_c[-1]) - np.maximum(t_i[0] + lags, t_c[0])
+    return float(lags[good][np.argmax(overlap[good])])
 
 
 def _standardised(x: np.ndarray) -> np.ndarray:
@@ -498,7 +516,8 @@ def run(args: argparse.Namespace) -> int:
         blocks = _same_file_rows(make_blocks, source, strokes, args.csv, notes)
     else:
         offset = _clock_offset(args, stroke_table, make_blocks, strokes, mapping_path, notes, kind, source)
-        blocks = _joined_rows(make_blocks(), ControllerLog(Path(args.strokes), strokes), offset, max_gap_s, notes)
+        controller = ControllerLog(Path(args.strokes), strokes)
+        blocks = _joined_rows(make_blocks(), controller, offset, max_gap_s, notes, source)
     counts = {"read": 0, "lost": 0, "unjoined": 0, "written": 0}
     checked: list = []
     columns: list[str] = []
@@ -527,6 +546,8 @@ def run(args: argparse.Namespace) -> int:
                 checked.append(True)
             counts["written"] += int(use.sum())
             yield [block.t_s[use], *strokes_mm[use].T, *block.values[use].T]
+        if not counts["read"]:
+            raise CalibError(f"{source}: no data rows after the header; expected the instrument's measurements")
         if not counts["written"]:  # raised inside the write: its temporary file is removed
             raise CalibError(
                 f"{source}: no row could be written ({counts['read']} read, {counts['lost']} without the body, "
@@ -610,7 +631,9 @@ def _clock_offset(args, table: dict, make_blocks, strokes, mapping_path, notes, 
     return offset
 
 
-def _joined_rows(instrument: Iterator[Block], controller: ControllerLog, offset_s: float, max_gap_s: float, notes):
+def _joined_rows(
+    instrument: Iterator[Block], controller: ControllerLog, offset_s: float, max_gap_s: float, notes, source
+):
     """``(block, strokes of the kept rows, kept, lost)`` per instrument block, the strokes from the
     controller's log at ``t + offset``; refuses a join with no overlap at all."""
     any_kept = False
@@ -627,6 +650,8 @@ def _joined_rows(instrument: Iterator[Block], controller: ControllerLog, offset_
         q, kept = controller.strokes_at(block.t_s + offset_s, max_gap_s)
         any_kept = any_kept or bool((kept & ~lost).any())
         yield block, q, kept, lost
+    if math.isnan(first_t):
+        raise CalibError(f"{source}: no data rows after the header; expected the instrument's measurements")
     controller_last = controller.drain()
     if not any_kept:
         raise CalibError(
