@@ -935,19 +935,19 @@ class RobustFilter:
         before, pooled = self.walk_rate_mm2_per_s, list(self._differences)
         first_t = float(self._buffer.t[since][0])
         self._walk_difference(x, P, first_t, last_t)
+        raised = self.walk_rate_mm2_per_s - before
+        # a jump is one difference the windows before it reject as a walk: a robot drifting faster than
+        # its rate in use moved between those windows too. The recovery then goes on as it would without
+        # the test: no difference across the jump (the windows after it measure the walk afresh), the
+        # rate as it was
+        if raised > 0.0 and pooled and self._rejected_as_too_large(pooled, self.walk_rate_mm2_per_s):
+            self._differences = deque(pooled, maxlen=WALK_WINDOWS)
+            self.walk_rate_mm2_per_s, self._last_window, self._last_vectors = before, None, None
+            return False
         self._last_window = (x, P, first_t, last_t)
         self._since_window = 0  # the next window's samples all come after these
         self._record_scale()
-        raised = self.walk_rate_mm2_per_s - before
         if raised <= 0.0:
-            return False
-        # a jump is one difference the windows before it reject as a walk: a robot drifting faster than
-        # its rate in use moved between those windows too. Across it, no difference (the windows after
-        # it measure the walk afresh) and the rate as it was.
-        if pooled and self._rejected_as_too_large(pooled, self.walk_rate_mm2_per_s):
-            self._differences = deque(pooled, maxlen=WALK_WINDOWS)
-            self.walk_rate_mm2_per_s, self._last_window, self._last_vectors = before, None, None
-            self._record_scale()
             return False
         f = self.filter
         saved = (f.x.copy(), f.P.copy(), f.t_s, f.samples_used)
