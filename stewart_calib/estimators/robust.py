@@ -965,6 +965,8 @@ class RobustFilter:
         if len(refused) - int(taken.sum()) >= self._robust.lockout_gated_samples:
             f.x, f.P, f.t_s, f.samples_used = saved
             return False
+        # fed in time order among samples taken before: the filter's time stays its latest sample's
+        f.t_s = max(f.t_s, saved[2])
         self._buffer.gated[taken] = False
         self.recovery_readmitted += int(taken.sum())
         return True
