@@ -202,6 +202,7 @@ class RobustFilter:
         self._robust = robust
         self._n, self._m = n, m
         self._gate_on = gate_probability > 0.0
+        self._gate_tail = 1.0 - gate_probability if self._gate_on else 0.5
         self.noise_scale2 = 1.0
         self.walk_rate_mm2_per_s = self._configured_walk
         self.walk_lowering = WALK_REJECTION
@@ -706,41 +707,64 @@ class RobustFilter:
         x, P = self._measured_scale(good, remembered, x, P, refresh)
         self.measured_noise = True
         first_t = float(self._buffer.t[good][0])
-        if self._last_window is not None:
-            x_before, P_before, first_before, t_before = self._last_window
-            spread, difference = P_before + P, x - x_before
-            walks = self._unit_Q.copy() if self._walking is None else self._walking.copy()
-            shared = P_before.copy()
-            if self._step_unknown is not None:  # it steps, it does not walk: its marginal left out
-                index = self._step_unknown[0]
-                for matrix in (spread, shared):
-                    matrix[index, :], matrix[:, index] = 0.0, 0.0
-                if walks.dtype == bool:  # the mask of the unknowns that walk
-                    walks[index] = False
-                else:
-                    walks[index, :], walks[:, index] = 0.0, 0.0
-                difference[index] = 0.0
-            eigenvalues, vectors, projection2 = _walk_directions(spread, walks, difference)
-            # the means of a walk over [a1, b1] and [a2, b2] differ by q ((a2 − b1) + (b1 − a1)/3 + (b2 − a2)/3)
-            span = max(first_t - t_before, 0.0) + ((t_before - first_before) + (last_t - first_t)) / 3.0
-            # this difference and the last share the window before: Cov = −P_before between them
-            coupling = np.zeros((self._n, self._n))
-            if self._last_vectors is not None:
-                coupling = (self._last_vectors.T @ shared @ vectors) ** 2
-            self._last_vectors = vectors
-            self._differences.append((eigenvalues, projection2, span, coupling))
-            walk = max(self._pooled_walk_rate(), MIN_WALK_FRACTION * self._configured_walk)
-            moved = abs(walk - self.walk_rate_mm2_per_s) > SCALE_TOLERANCE * max(walk, self.walk_rate_mm2_per_s)
-            self.walk_rate_mm2_per_s = walk
-            if moved and not refresh:
-                # the scale at the walk now in use: measured at the walk before, it had given that walk's
-                # share of the residuals to the noise or taken it from it (a static robot at 0.2× the noise,
-                # the default walk lowered at a window: the noise scale measured at the default walk, ~0.4 of
-                # the truth, stood with the lowered walk and the gate refused 3 clean samples of 100)
-                x, P, *_ = self._pass(good, self.noise_scale2, self.filter.x)
-                x, P = self._measured_scale(good, remembered, x, P)
+        x, P, *_ = self._walk_window(good)
+        if self._walk_difference(x, P, first_t, last_t) and not refresh:
+            # the scale at the walk now in use: measured at the walk before, it had given that walk's
+            # share of the residuals to the noise or taken it from it (a static robot at 0.2× the noise,
+            # the default walk lowered at a window: the noise scale measured at the default walk, ~0.4 of
+            # the truth, stood with the lowered walk and the gate refused 3 clean samples of 100)
+            x, P, *_ = self._pass(good, self.noise_scale2, self.filter.x)
+            self._measured_scale(good, remembered, x, P)
+            x, P, *_ = self._walk_window(good)
         self._last_window = (x, P, first_t, last_t)
         self._record_scale()
+
+    def _walk_window(self, use: np.ndarray):
+        """The buffered samples ``use`` as a window of the walk test (:meth:`_pass`'s tuple): a pass from
+        the prior at the scale in use, every sample linearised at the running estimate (one Gauss–Newton
+        step from it).
+
+        A pass that linearises each sample at its own state wanders, early on, by millimetres in the
+        directions a few seconds of a smooth path leave open, and its result there disagrees with the
+        window's samples by more than its σ: successive windows differ by up to 100× their covariance
+        in a few directions, which the test took for a walk (a tracker drifting at 6.5 µm/√s along a
+        10 Hz Lissajous path: the rate raised to 22–51 µm/√s, z² 0.1–0.3). The noise scale is measured
+        on the other pass (:meth:`_measured_scale`): linearised at the running estimate, whose mean has
+        seen the window's samples, it falls below its truth (test_robust's smooth path)."""
+        return self._pass(use, self.noise_scale2, self.filter.x, self._linearise(self.filter.x.copy()))
+
+    def _walk_difference(self, x: np.ndarray, P: np.ndarray, first_t: float, last_t: float) -> bool:
+        """The window ``(x, P)`` of the samples from ``first_t`` to ``last_t`` [s] against the last one:
+        their difference joins the walk test's and the walk rate in use is tested again. Returns
+        whether the rate moved beyond :data:`SCALE_TOLERANCE` (False where there is no window before)."""
+        if self._last_window is None:
+            return False
+        x_before, P_before, first_before, t_before = self._last_window
+        spread, difference = P_before + P, x - x_before
+        walks = self._unit_Q.copy() if self._walking is None else self._walking.copy()
+        shared = P_before.copy()
+        if self._step_unknown is not None:  # it steps, it does not walk: its marginal left out
+            index = self._step_unknown[0]
+            for matrix in (spread, shared):
+                matrix[index, :], matrix[:, index] = 0.0, 0.0
+            if walks.dtype == bool:  # the mask of the unknowns that walk
+                walks[index] = False
+            else:
+                walks[index, :], walks[:, index] = 0.0, 0.0
+            difference[index] = 0.0
+        eigenvalues, vectors, projection2 = _walk_directions(spread, walks, difference)
+        # the means of a walk over [a1, b1] and [a2, b2] differ by q ((a2 − b1) + (b1 − a1)/3 + (b2 − a2)/3)
+        span = max(first_t - t_before, 0.0) + ((t_before - first_before) + (last_t - first_t)) / 3.0
+        # this difference and the last share the window before: Cov = −P_before between them
+        coupling = np.zeros((self._n, self._n))
+        if self._last_vectors is not None:
+            coupling = (self._last_vectors.T @ shared @ vectors) ** 2
+        self._last_vectors = vectors
+        self._differences.append((eigenvalues, projection2, span, coupling))
+        walk = max(self._pooled_walk_rate(), MIN_WALK_FRACTION * self._configured_walk)
+        moved = abs(walk - self.walk_rate_mm2_per_s) > SCALE_TOLERANCE * max(walk, self.walk_rate_mm2_per_s)
+        self.walk_rate_mm2_per_s = walk
+        return moved
 
     def _measured_scale(
         self, good: np.ndarray, remembered: np.ndarray, x: np.ndarray, P: np.ndarray, refresh: bool = False
@@ -852,6 +876,16 @@ class RobustFilter:
         raising = float(chdtri(1, 2.0 * WALK_RAISING))
         return _walk_rate_in_use(lam, p, T, coupling, self._configured_walk, lowering, raising)
 
+    def _rejected_as_too_large(self, differences: list, rate_mm2_per_s: float) -> bool:
+        """Whether ``differences`` (of the walk test's pool) reject ``rate_mm2_per_s`` as too large at the
+        gate's probability: as sure as the gate is when it refuses a sample."""
+        lam, p = np.array([d[0] for d in differences]), np.array([d[1] for d in differences])
+        T = np.array([d[2] for d in differences], dtype=float)
+        coupling = np.array([d[3] for d in differences])
+        coupling[0] = 0.0
+        bound = float(chdtri(1, 2.0 * self._gate_tail))
+        return _walk_rate_in_use(lam, p, T, coupling, rate_mm2_per_s, bound, bound) < rate_mm2_per_s
+
     # ------------------------------------------------------------------ lock-out
 
     def _locked_out(self) -> bool:
@@ -866,13 +900,76 @@ class RobustFilter:
         outliers = self._solve(adopt=False)
         if self._solved[5] < MIN_REDUNDANCY or outliers.sum() * 2 > len(outliers):
             return
+        if self._walked(~outliers):
+            return
         self._adopt()
         self.recovery_dropped += used_before - int(np.sum(~gated_before & ~outliers))
         self.recovery_readmitted += int(np.sum(gated_before & ~outliers))
         self._buffer.gated[:] = outliers  # the batch's verdict replaces the lock-out's record
-        self._last_window = None  # the parameters moved: no window difference across the jump
-        self._last_vectors = None
         self.recoveries += 1
+
+    def _walked(self, agreeing: np.ndarray) -> bool:
+        """Whether a walk faster than the rate in use explains the lock-out: the samples the recovery's
+        batch agrees with since the last window are a window of the walk test (:meth:`_walk_window`),
+        and where their difference from the last window raises the rate, the filter's covariance takes
+        the walk the raised rate adds since that window and the refused samples are fed again. Taken
+        (True) where fewer than ``lockout_gated_samples`` of them are refused again; else the filter is
+        as it was and the recovery solves the recent samples afresh (a jump, or a stream of glitches),
+        at the rate the test has raised.
+
+        The walk test's windows come every ``max(startup_samples, lockout_window_samples)`` accepted
+        samples, then every ``noise_every_samples``, and a robot drifting several times faster than its
+        rate in use locks the gate out sooner: each recovery threw the filter's history away and,
+        breaking the chain of windows, left the next window no difference to test (a tracker at 1 µm
+        drifting 6.5× the default walk along a 10 Hz Lissajous path: 18 recoveries in 1 200 samples,
+        562 rows dropped)."""
+        if not self._robust.adapt_noise or self._last_window is None:
+            return False
+        since = agreeing & (self._buffer.t > self._last_window[3])
+        if not since.any():
+            return False
+        rate_from = self._last_window[3]
+        x, P, _, last_t, redundancy = self._walk_window(since)
+        if redundancy < MIN_REDUNDANCY:
+            return False
+        before, pooled = self.walk_rate_mm2_per_s, list(self._differences)
+        first_t = float(self._buffer.t[since][0])
+        self._walk_difference(x, P, first_t, last_t)
+        raised = self.walk_rate_mm2_per_s - before
+        # a jump is one difference the windows before it reject as a walk: a robot drifting faster than
+        # its rate in use moved between those windows too. The recovery then goes on as it would without
+        # the test: no difference across the jump (the windows after it measure the walk afresh), the
+        # rate as it was
+        if raised > 0.0 and pooled and self._rejected_as_too_large(pooled, self.walk_rate_mm2_per_s):
+            self._differences = deque(pooled, maxlen=WALK_WINDOWS)
+            self.walk_rate_mm2_per_s, self._last_window, self._last_vectors = before, None, None
+            return False
+        self._last_window = (x, P, first_t, last_t)
+        self._since_window = 0  # the next window's samples all come after these
+        self._record_scale()
+        if raised <= 0.0:
+            return False
+        f = self.filter
+        saved = (f.x.copy(), f.P.copy(), f.t_s, f.samples_used)
+        walk = np.zeros_like(f.P)
+        fill_walk(walk, self._unit_Q, raised * max(f.t_s - rate_from, 0.0))
+        f.P = f.P + walk
+        refused = np.flatnonzero(self._buffer.gated)
+        taken = np.zeros(len(self._buffer), dtype=bool)
+        for k in refused:
+            try:
+                self._step(float(self._buffer.t[k]), self._buffer.prepared[k].copy())
+                taken[k] = True
+            except SampleRejected:
+                pass
+        if len(refused) - int(taken.sum()) >= self._robust.lockout_gated_samples:
+            f.x, f.P, f.t_s, f.samples_used = saved
+            return False
+        # fed in time order among samples taken before: the filter's time stays its latest sample's
+        f.t_s = max(f.t_s, saved[2])
+        self._buffer.gated[taken] = False
+        self.recovery_readmitted += int(taken.sum())
+        return True
 
     # ------------------------------------------------------------------ checkpoints
 
