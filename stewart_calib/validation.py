@@ -140,8 +140,8 @@ def pose_error_summary(platform: Platform, result: dict, sample, register: bool,
     """:func:`pose_error_line` of the nominal and the calibrated model on ``sample`` (the log, or
     its first rows); None where a model cannot predict them (e.g. too few poses to fit a frame)."""
     try:
-        outside = instrument_kind(platform).outside
-        before = pose_errors(platform, nominal_model(platform), sample, outside, "the nominal platform")
+        nominal = registered_nominal_model(platform, sample)
+        before = pose_errors(platform, nominal, sample, False, "the nominal platform")
         after = pose_errors(platform, result, sample, register, str(source))
     except CalibError:
         return None
@@ -166,9 +166,9 @@ def measurement_residuals(
     log_label: str = "the calibration log",
 ):
     """Measured minus predicted per measurement column of the log (file units), with the nominal
-    model (an outside instrument's frame registered on the log) and with the calibration ``result``
-    — the predictions of ``validate`` (spec §7): the logged strokes through forward kinematics of the
-    model, then what the instrument reads there
+    model (an outside instrument's frame and target(s) at their best registration on the log) and
+    with the calibration ``result`` — the predictions of ``validate`` (spec §7): the logged strokes
+    through forward kinematics of the model, then what the instrument reads there
     (see :class:`~stewart_calib.viz.html_report.Residuals`). ``predicted``: the calibrated
     model's predictions [code units] when the caller has them (e.g. with a re-registered frame)."""
     from .viz.html_report import Residuals  # matplotlib-free module, but only reports need it
@@ -191,10 +191,14 @@ def measurement_residuals(
             return Residuals(tuple(columns), np.asarray(log.t_s), before, after, log_label, "the nominal platform")
     if predicted is None:
         predicted = validate(platform, result, log, False, "the result", errors=False)[0]
-    # An outside instrument's frame is rarely known to centimetres (spec §7): "before" registers it
-    # on the log, so that it measures the nominal robot, not where the cameras happen to stand.
-    before = residual_file_units(validate(platform, nominal, log, outside, "the nominal platform", errors=False)[0])
-    before_model = "the nominal platform" + (", its instrument frame fitted to this log" if outside else "")
+    # An outside instrument's frame and target(s) are rarely known to centimetres (spec §7): "before"
+    # registers them on the log, as the calibration fits them, so that it measures the nominal robot,
+    # not where the cameras happen to stand or where the rigid body's origin was put.
+    if outside:
+        nominal = registered_nominal_model(platform, log)
+    before = residual_file_units(validate(platform, nominal, log, False, "the nominal platform", errors=False)[0])
+    fitted = ", its instrument frame and target(s) fitted to this log" if outside else ""
+    before_model = "the nominal platform" + fitted
     return Residuals(
         tuple(columns), np.asarray(log.t_s), before, residual_file_units(predicted), log_label, before_model
     )
@@ -203,6 +207,27 @@ def measurement_residuals(
 def nominal_model(platform: Platform) -> dict:
     """The nominal platform as a calibration result (no error): what "before" predicts with."""
     return {"nominal": platform.drive.as_vector().tolist(), "error": [0.0] * len(platform.drive.as_vector())}
+
+
+def registered_nominal_model(platform: Platform, log) -> dict:
+    """:func:`nominal_model` with an outside instrument's frame and target(s) at their best
+    registration on ``log`` (:meth:`~stewart_calib.instruments.OutsideModel.best_registration`): the
+    nominal robot with the same instrument unknowns fitted as a calibration fits, the "before" of
+    every comparison. A leg-set tracker has none: the nominal model itself.
+
+    Raises:
+        CalibError: the log cannot be registered, or the nominal model's FK fails for a sample.
+    """
+    nominal = nominal_model(platform)
+    if not instrument_kind(platform).outside:
+        return nominal
+    from .instruments import outside_model
+
+    model = outside_model(platform)
+    R_X, t_X = _model_poses(platform, nominal, log, "the nominal platform")
+    unknowns = model.best_registration(R_X, t_X, log.readings)
+    block = {"names": list(model.unknown_names), "estimate": model.file_values(unknowns).tolist()}
+    return {**nominal, "instrument": block}
 
 
 def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str]]) -> np.ndarray | None:

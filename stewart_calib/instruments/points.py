@@ -365,7 +365,7 @@ class PointsModel(OutsideModel):
         return register_points(R_X, t_X, measured, self.instrument.position_sigma_mm)
 
     def refit_frame(self, unknowns, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray) -> PointsUnknowns:
-        """Kabsch of the targets seen onto their readings for F, then :func:`~.registration.refine_frame`.
+        """Kabsch of the targets seen onto their readings for F, then :func:`~.registration.refine`.
 
         Raises:
             CalibError: fewer than 3 distinct poses.
@@ -379,7 +379,7 @@ class PointsModel(OutsideModel):
         seen = np.all(np.isfinite(m), axis=2)
         R_F, t_F = kabsch(m[seen], in_base[seen])  # y = R_F m + t_F
         start = PointsUnknowns(R_F, t_F, unknowns.targets)
-        return registration.refine_frame(self, start, measured, R_X, t_X)
+        return registration.refine(self, start, measured, R_X, t_X)
 
     def unknowns_from_file(self, values) -> PointsUnknowns:
         values = np.asarray(values, dtype=float)

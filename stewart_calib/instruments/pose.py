@@ -322,7 +322,7 @@ class PoseModel(OutsideModel):
         return register_pose(R_X, t_X, *kin.pose_to_rt(measured), self.channel_sigma)
 
     def refit_frame(self, unknowns, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray) -> PoseUnknowns:
-        """Horn's closed form of ``X G = F M`` for F, then :func:`~.registration.refine_frame`.
+        """Horn's closed form of ``X G = F M`` for F, then :func:`~.registration.refine`.
 
         Raises:
             CalibError: fewer than 3 distinct poses.
@@ -334,7 +334,7 @@ class PoseModel(OutsideModel):
         R_F = lie.project_to_rotation(np.einsum("kij,klj->il", R_P, R_M))
         t_F = np.mean(t_P - np.einsum("ij,kj->ki", R_F, t_M), axis=0)
         start = PoseUnknowns(R_F, t_F, unknowns.R_target, unknowns.t_target)
-        return registration.refine_frame(self, start, measured, R_X, t_X)
+        return registration.refine(self, start, measured, R_X, t_X)
 
     def unknowns_from_file(self, values) -> PoseUnknowns:
         values = np.asarray(values, dtype=float)

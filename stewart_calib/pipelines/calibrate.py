@@ -306,8 +306,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _pose_error_line(platform: Platform, result: dict, checked: Log, n_samples: int) -> str | None:
     """What an engineer looks for first: the pose error before (nominal model; an outside
-    instrument's frame registered on the log) and after (the calibration), per axis and rotation,
-    over the evenly spaced samples the conditioning uses."""
+    instrument's frame and target(s) at their best registration on the log) and after (the
+    calibration), per axis and rotation, over the evenly spaced samples the conditioning uses."""
     line = pose_error_summary(platform, result, checked, False, n_samples, "the result")
     return line and line.replace(f"(first {len(checked)} rows)", f"({len(checked)} evenly spaced samples)")
 
