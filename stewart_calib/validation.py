@@ -230,6 +230,63 @@ def registered_nominal_model(platform: Platform, log) -> dict:
     return {**nominal, "instrument": block}
 
 
+#: the tail of the χ² test of :func:`unsupported_correction`: a right nominal model is called
+#: unsupported by its log in 1 % of logs
+NO_EVIDENCE_TAIL = 0.01
+
+
+def _whitened_squares(platform: Platform, result: dict, log, source: str) -> tuple[float, int]:
+    """The sum of squares of an outside instrument's whitened residuals (its model's: rotation
+    vectors, not Euler differences) with ``result``'s drive and instrument, and their number."""
+    from .instruments import outside_model
+
+    model = outside_model(platform)
+    R_X, t_X = _model_poses(platform, result, log, source)
+    values = _block(result, "instrument", model.unknown_names, source)
+    unknowns = model.nominal_unknowns() if values is None else model.unknowns_from_file(values)
+    e = model.readings_residual(unknowns, log.readings, R_X, t_X)[0] / model.channel_sigma
+    finite = np.isfinite(e)
+    return float(np.sum(e[finite] ** 2)), int(finite.sum())
+
+
+def unsupported_correction(platform: Platform, result: dict, log, rank: int, correction_mm: float) -> str | None:
+    """The loud line when an outside instrument's log gives no evidence that the nominal model is
+    wrong, None otherwise (or for a leg-set tracker).
+
+    The calibration fits ``rank`` unknowns where the nominal model's best registration
+    (:func:`registered_nominal_model`) fits the instrument's alone; were the nominal model right, the
+    fall of the whitened sum of squares, over the calibrated fit's own noise scale
+    ``s² = SS_after / (rows − rank)``, is χ² with as many degrees of freedom as the drive's share.
+    Below its :data:`NO_EVIDENCE_TAIL` quantile the calibration's ``correction_mm`` (how far it
+    moves the robot) rests on noise: the calibrated robot is likely further from its poses than
+    the nominal one.
+    """
+    if not instrument_kind(platform).outside:
+        return None
+    from .chi_square import chdtri
+    from .instruments import outside_model
+
+    dof = rank - len(outside_model(platform).unknown_names)
+    try:
+        before, _ = _whitened_squares(platform, registered_nominal_model(platform, log), log, "the nominal platform")
+        after, rows = _whitened_squares(platform, result, log, "the result")
+    except CalibError:
+        return None
+    if dof <= 0 or rows <= rank or not after > 0:
+        return None
+    fall = (before - after) / (after / (rows - rank))
+    threshold = chdtri(dof, NO_EVIDENCE_TAIL)
+    if fall >= threshold:
+        return None
+    return (
+        f"WARNING: the log gives no evidence that the nominal model is wrong — fitting the drive's {dof} "
+        f"unknowns lowers the residuals by χ² {fall:.3g}, where a right nominal model's fall below "
+        f"{threshold:.3g} in {1 - NO_EVIDENCE_TAIL:.0%} of logs; the calibrated model moves the robot by "
+        f"{correction_mm:.3g} mm on noise and is likely worse than the nominal one: keep the nominal model, "
+        "or log poses whose errors the instrument can see beyond its noise"
+    )
+
+
 def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str]]) -> np.ndarray | None:
     """The tracker's readings minus its readings predicted by each ``(result, source)`` model, as
     :func:`validate`'s predictions (within FK's tolerance; an elastic drive settled under each row's

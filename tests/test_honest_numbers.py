@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import re
 
 import numpy as np
@@ -94,3 +95,104 @@ def test_calibrate_before_is_the_nominal_models_best_registration(outside_run):
     assert set(printed) == set(expected)
     for axis, value in expected.items():
         assert printed[axis] == pytest.approx(value, rel=6e-4), (axis, line)
+
+
+# ----------------------------------------------------------------------------- absolute against motion
+
+
+def _reached(platform, delta: np.ndarray, poses: np.ndarray):
+    """Where a robot whose drive is ``nominal + delta`` goes for the nominal strokes of ``poses``."""
+    from stewart_calib import kinematics as kin
+
+    R, t = kin.pose_to_rt(poses)
+    reached = kin.forward_kinematics(platform.drive.perturbed(delta), kin.inverse_kinematics(platform.drive, R, t))
+    return reached.R, reached.t
+
+
+def _motion_position_error(platform, delta, poses, home) -> np.ndarray:
+    """‖position of (reached home)⁻¹ (reached X) − that of H⁻¹ X‖ per pose [mm], by FK."""
+    from stewart_calib.instruments import lie
+
+    R, t = _reached(platform, delta, np.vstack([poses, home]))
+    R_H, t_H = lie.inverse(R[-1], t[-1])
+    _, reached = lie.compose(R_H, t_H, R[:-1], t[:-1])
+    from stewart_calib import kinematics as kin
+
+    R_d, t_d = kin.pose_to_rt(np.vstack([poses, home]))
+    R_dH, t_dH = lie.inverse(R_d[-1], t_d[-1])
+    _, desired = lie.compose(R_dH, t_dH, R_d[:-1], t_d[:-1])
+    return np.linalg.norm(reached - desired, axis=1)
+
+
+def test_motion_from_home_loses_a_constant_offset_and_matches_forward_kinematics():
+    """A rigid motion of every base joint moves every pose alike: its absolute error is that
+    motion, its motion-from-home error zero. A random drive error's motion error is, to first
+    order, the motion Jacobian's (δM of 0.01 mm: second order 1e-4 of it)."""
+    from stewart_calib import accuracy
+    from stewart_calib.rotations import skew
+    from tests.synthetic import nim_stewart
+
+    platform = nim_stewart()
+    poses = accuracy.evaluation_poses(platform)[:20]
+    home = platform.workspace.home
+    D = accuracy.closed_loop_jacobian(platform, np.vstack([poses, home]))[..., :42]
+    D_motion = accuracy.motion_jacobian(D[:-1], poses, home, D[-1])
+    rigid = np.zeros(42)  # every base joint moved by a translation and a small rotation about {J}'s origin
+    joints = platform.drive.base_joints
+    moved = np.array([0.3, -0.2, 0.5]) + joints @ skew(np.array([1e-4, -2e-4, 3e-4])).T
+    for i in range(6):
+        rigid[7 * i : 7 * i + 3] = moved[i]
+    assert np.max(np.abs(D_motion @ rigid)) < 1e-9 * np.max(np.abs(D[:-1] @ rigid))
+    rng = np.random.default_rng(5)
+    delta = rng.normal(0.0, 0.01, 42)
+    first_order = np.linalg.norm((D_motion @ delta)[:, 3:], axis=1)
+    np.testing.assert_allclose(_motion_position_error(platform, delta, poses, home), first_order, rtol=2e-3, atol=1e-7)
+
+
+# ----------------------------------------------------------------------------- a worse robot, and the verdict
+
+RIGHT_NOMINAL = (
+    EXPERIMENT.replace("random_spread_mm = 0.5", "random_spread_mm = 0.001")
+    .replace("stroke_scale_spread = 0.03", "stroke_scale_spread = 0.0")
+    .replace("encoder_zero_spread_mm = 5.0", "encoder_zero_spread_mm = 0.0")
+    .replace("calibration = 40", "calibration = 80")
+)
+
+
+def test_a_calibration_on_noise_alone_says_so_loudly(tmp_path):
+    """A robot built to its nominal model (0.001 mm): whatever the fit changes rests on the noise,
+    the χ² fall of its residuals within what a right model's shows — a WARNING; a robot 0.5 mm off
+    (the fixture's) gets none."""
+    (tmp_path / "e.toml").write_text(RIGHT_NOMINAL.format(platform=HOBBY.as_posix()))
+    assert cli.main(["simulate", "--experiment", str(tmp_path / "e.toml"), "--out", str(tmp_path / "sim")]) == 0
+    argv = ["calibrate", "--platform", tmp_path / "sim" / "platform.toml", "--log", tmp_path / "sim" / "log.csv"]
+    status, err = _run([*argv, "--method", "ls", "--out", tmp_path / "r.json"])
+    assert status == 0, err
+    (warning,) = [line for line in err.splitlines() if "WARNING: the log gives no evidence" in line]
+    assert "likely worse than the nominal one" in warning
+    assert err.splitlines()[-1].endswith("the log gives no evidence the calibration improves on the nominal model")
+
+
+def test_an_evident_calibration_ends_with_its_verdict_against_the_tolerance(outside_run, tmp_path):
+    """No warning where the robot is off; the last line is the verdict: the motion's and the absolute
+    place's expected errors with their bands from the result, against the tolerance; exit 1 over it
+    only with --fail-over-tolerance."""
+    work, err = outside_run
+    assert "WARNING" not in err
+    result = json.loads((work / "r.json").read_text())["predicted_closed_loop"]
+    last = err.splitlines()[-1]
+    low, high = result["motion_position_band_mm"]
+    assert last.startswith("stewart-calib calibrate: verdict: expected mean error over the workspace: ")
+    assert f"motion from home {result['motion_position_mm']:.3g} mm" in last and f"{low:.3g}–{high:.3g} mm" in last
+    assert f"absolute place in {{J}} {result['position_mm']:.3g} mm" in last
+    assert result["motion_position_mm"] < result["position_mm"]  # the frame's trade weighs on the absolute place
+    argv = ["calibrate", "--platform", work / "sim" / "platform.toml", "--log", work / "fit.csv", "--method", "ls"]
+    argv += ["--out", tmp_path / "r.json"]
+    tight = [*argv, "--tolerance-mm", f"{low / 2:g}"]
+    status, err = _run(tight)
+    assert status == 0 and "against" in err.splitlines()[-1] and "motion over" in err.splitlines()[-1]
+    status, err = _run([*tight, "--fail-over-tolerance"])
+    assert status == 1 and (tmp_path / "r.json").exists()
+    loose = 2 * max(result["position_band_mm"][1], high)
+    status, err = _run([*argv, "--tolerance-mm", f"{loose:g}", "--tolerance-deg", "90", "--fail-over-tolerance"])
+    assert status == 0 and "motion within, absolute place within" in err.splitlines()[-1]

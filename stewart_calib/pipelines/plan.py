@@ -14,7 +14,7 @@ import time
 import numpy as np
 
 from .. import io
-from ..accuracy import predicted_error
+from ..accuracy import PREDICTION_HEAD, predicted_error
 from ..config import load_estimator_config
 from ..instruments import instrument_kind
 from ..planning import (
@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     covariance = design_covariance(platform, poses, noise)
     if covariance is not None:
         prediction = predicted_error(platform, covariance)
-        print(f"predicted closed-loop (absolute) pose error after calibration: {prediction.describe()}")
+        print(f"{PREDICTION_HEAD}: {prediction.describe()}")
     return 0
 
 
