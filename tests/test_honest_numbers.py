@@ -4,6 +4,7 @@ to an outside instrument (frame and target(s) fitted, as the calibration fits th
 from __future__ import annotations
 
 import contextlib
+import html
 import io
 import json
 import re
@@ -189,8 +190,11 @@ def test_an_evident_calibration_ends_with_its_verdict_against_the_tolerance(outs
     argv = ["calibrate", "--platform", work / "sim" / "platform.toml", "--log", work / "fit.csv", "--method", "ls"]
     argv += ["--out", tmp_path / "r.json"]
     tight = [*argv, "--tolerance-mm", f"{low / 2:g}"]
-    status, err = _run(tight)
+    status, err = _run([*tight, "--report", tmp_path / "report"])
     assert status == 0 and "against" in err.splitlines()[-1] and "motion over" in err.splitlines()[-1]
+    page = (tmp_path / "report" / "index.html").read_text(encoding="utf-8")
+    verdict = html.escape(err.splitlines()[-1].removeprefix("stewart-calib calibrate: verdict: "))
+    assert page.index(verdict) < page.index("<h2>Summary</h2>")  # the same verdict, at the top of the page
     status, err = _run([*tight, "--fail-over-tolerance"])
     assert status == 1 and (tmp_path / "r.json").exists()
     loose = 2 * max(result["position_band_mm"][1], high)

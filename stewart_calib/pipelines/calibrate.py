@@ -300,9 +300,9 @@ def run(args: argparse.Namespace) -> int:
 
             inputs = {"platform file": str(args.platform), "log": str(args.log)}
             forces = None if leg_forces is None else LegForces(np.asarray(log.t_s), *leg_forces[:2])
-            page = report_html(
-                f"Calibration of {platform.name} with {args.method}", result_data, residuals, None, inputs, forces
-            )
+            title = f"Calibration of {platform.name} with {args.method}"
+            shown = " — ".join(text for text in (verdict, unsupported) if text)
+            page = report_html(title, result_data, residuals, None, inputs, forces, shown)
         if rerun_path:
             batch = not estimators.method_spec(args.method).online
             _write_rerun(rerun_path, platform, args.method, log, result, batch, leg_forces)

@@ -80,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
                 platform, result, log, args.register_instrument, str(args.result)
             )
             if report_dir:
-                page = _report_page(args, platform, result, log, predicted, position, orientation)
+                verdict = _verdict(args, platform, result, position, orientation)[0]
+                page = _report_page(args, platform, result, log, predicted, position, orientation, verdict)
             io.write_csv_blocks(
                 args.out, header, [_file_columns(log, predicted, position, orientation, platform)], blank
             )
@@ -264,7 +265,7 @@ def _diagnose_sample(platform: Platform, first: list, path: str) -> None:
     diagnose_log(platform, sample.strokes, sample.readings, path, count=False)
 
 
-def _report_page(args, platform: Platform, result: dict, log, predicted, position, orientation) -> str:
+def _report_page(args, platform: Platform, result: dict, log, predicted, position, orientation, verdict: str) -> str:
     """The ``--report`` page: the held-out errors and residuals per channel, then the calibration's own
     sections (parameters ± σ, correlations, conditioning, config, versions) from the result."""
     from ..viz.html_report import HeldOut, LegForces, report_html
@@ -277,7 +278,7 @@ def _report_page(args, platform: Platform, result: dict, log, predicted, positio
         drive = handover.calibrated_model(platform, args.result)
         forces = LegForces(np.asarray(log.t_s), handover.leg_forces(drive, log), drive.term_values()[-1])
     title = f"Validation of {platform.name} ({result['method']}) on {Path(args.log).name}"
-    return report_html(title, result, residuals, held, inputs, forces)
+    return report_html(title, result, residuals, held, inputs, forces, verdict)
 
 
 def _summary(position: np.ndarray, orientation: np.ndarray | None, n: int) -> str:

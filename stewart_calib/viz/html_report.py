@@ -469,6 +469,7 @@ def report_html(
     held_out: HeldOut | None = None,
     inputs: dict[str, str] | None = None,
     leg_forces: LegForces | None = None,
+    verdict: str | None = None,
 ) -> str:
     """The whole page as text.
 
@@ -479,6 +480,8 @@ def report_html(
         held_out: a validation's errors, or None.
         inputs: named input files (``{"platform file": "P.toml", "log": "L.csv"}``).
         leg_forces: an elastic drive's leg forces over the log, or None.
+        verdict: the command's verdict line (:func:`~stewart_calib.accuracy.verdict_line`), shown
+            first; with its warning where the calibration rests on noise.
     """
     summary = [
         ["method", result["method"]],
@@ -489,6 +492,7 @@ def report_html(
         ["stewart-calib", result.get("version", "—")],
     ]
     sections = [
+        f'<h2>Verdict</h2><p class="verdict">{html.escape(verdict.removeprefix("verdict: "))}</p>' if verdict else "",
         "<h2>Summary</h2>" + html_table(None, summary, "summary"),
         _held_out_section(held_out) if held_out is not None else "",
         _residual_section(residuals) if residuals is not None else "",
