@@ -200,3 +200,45 @@ def test_an_evident_calibration_ends_with_its_verdict_against_the_tolerance(outs
     loose = 2 * max(result["position_band_mm"][1], high)
     status, err = _run([*argv, "--tolerance-mm", f"{loose:g}", "--tolerance-deg", "90", "--fail-over-tolerance"])
     assert status == 0 and "motion within, absolute place within" in err.splitlines()[-1]
+
+
+# ----------------------------------------------------------------------------- a plan that leaves the robot as it was
+
+
+def _plan(tmp_path, platform_text: str, *extra: str) -> tuple[int, str, str]:
+    (tmp_path / "p.toml").write_text(platform_text)
+    argv = ["plan", "--platform", tmp_path / "p.toml", "--n", "40", "--out", tmp_path / "poses.csv"]
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        status = cli.main([str(a) for a in [*argv, "--seed", "1", "--candidates", "300", *extra]])
+    return status, out.getvalue(), err.getvalue()
+
+
+def test_a_plan_not_clearly_better_than_the_nominal_model_says_what_to_change(tmp_path):
+    """A hobby hexapod kept within ±10 mm / ±4°: the plan's absolute place in {J} (its 90 % band's
+    top) is no better than half the nominal model's expected error for a robot built to the prior —
+    a warning naming what to change; the shipped ±30 mm / ±12° one plans clearly better, silently.
+    With strokes 0–100 mm and the motion-capture prior (20 mm), the margin is capped at 25 mm."""
+    from stewart_calib.config import load_estimator_config
+    from stewart_calib.planning import nominal_error
+
+    text = HOBBY.read_text()
+    small = text.replace("translation_limit_mm = 30.0", "translation_limit_mm = 10.0").replace(
+        "rotation_limit_deg = 12.0", "rotation_limit_deg = 4.0"
+    )
+    status, out, err = _plan(tmp_path, small)
+    assert status == 0
+    platform = load_platform(tmp_path / "p.toml")
+    nominal = nominal_error(platform, load_estimator_config().noise)
+    (line,) = err.splitlines()
+    assert line.startswith("stewart-calib plan: warning: this plan is not clearly better than the nominal model")
+    assert f"against the nominal model's {nominal.position_mm:.3g} mm" in line
+    assert "change: more than 40 poses, a less noisy instrument, a wider workspace" in line
+    high = float(re.search(r"90% of such calibrations [\d.]+–([\d.]+) mm", out)[1])
+    assert high >= 0.5 * nominal.position_mm
+    status, out, err = _plan(tmp_path, text)
+    assert status == 0 and err == ""
+    wide = small.replace("stroke_range_mm = [0.0, 90.0]", "stroke_range_mm = [0.0, 100.0]")
+    status, out, err = _plan(tmp_path, wide, "--config", "motion-capture")
+    assert status == 0 and "its strokes keep 25 mm inside the range at each end" in err
+    assert "a noise.prior_sigma_mm as small as the robot's build allows" in err

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 
 import numpy as np
@@ -23,6 +24,7 @@ from ..planning import (
     design_covariance,
     extreme_poses,
     plan_poses,
+    plan_warning,
     with_stroke_margin,
 )
 from ..platform import load_platform
@@ -124,6 +126,9 @@ def run(args: argparse.Namespace) -> int:
     if covariance is not None:
         prediction = predicted_error(platform, covariance)
         print(f"{PREDICTION_HEAD}: {prediction.describe()}")
+        warning = plan_warning(platform, noise, prediction, len(poses))
+        if warning:
+            print(f"stewart-calib plan: {warning}", file=sys.stderr)
     return 0
 
 
