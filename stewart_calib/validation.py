@@ -22,7 +22,7 @@ import numpy as np
 from . import io
 from . import kinematics as kin
 from .drive import tracker_reading_residuals
-from .errors import CalibError
+from .errors import CalibError, number
 from .instruments import instrument_kind
 from .platform import Platform
 from .samples import Log
@@ -48,8 +48,8 @@ def _model_poses(platform: Platform, result: dict, log, source: str, first_sampl
     if not np.all(fk.converged):
         k = int(np.flatnonzero(~fk.converged)[0])
         raise CalibError(
-            f"{source}: sample {first_sample + k + 1} of the log (t_s = {log.t_s[k]!r}): forward kinematics of the "
-            "calibrated model did not converge for its strokes"
+            f"{source}: sample {first_sample + k + 1} of the log (t_s = {number(log.t_s[k])}): forward kinematics "
+            "of the calibrated model did not converge for its strokes"
         )
     return fk.R, fk.t
 
@@ -101,8 +101,8 @@ def validate(
         if not np.all(seen.converged):
             k = int(np.flatnonzero(~seen.converged)[0])
             raise CalibError(
-                f"sample {first_sample + k + 1} (t_s = {log.t_s[k]!r}): tracker forward kinematics of its readings "
-                "did not converge"
+                f"sample {first_sample + k + 1} (t_s = {number(log.t_s[k])}): tracker forward kinematics of its "
+                "readings did not converge"
             )
         position, orientation = kin.pose_error(seen.R, seen.t, R_X, t_X)
         return predicted, position, orientation

@@ -242,3 +242,36 @@ def test_a_plan_not_clearly_better_than_the_nominal_model_says_what_to_change(tm
     status, out, err = _plan(tmp_path, wide, "--config", "motion-capture")
     assert status == 0 and "its strokes keep 25 mm inside the range at each end" in err
     assert "a noise.prior_sigma_mm as small as the robot's build allows" in err
+
+
+# ----------------------------------------------------------------------------- messages
+
+
+@pytest.mark.parametrize("command", ["calibrate", "plan", "identifiability", "track"])
+def test_help_lists_every_shipped_config(command, capsys):
+    from stewart_calib.resources import shipped_names
+
+    with pytest.raises(SystemExit):
+        cli.main([command, "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "motion-capture" in shipped_names("estimators") and "laser-tracker" in shipped_names("estimators")
+    assert f"({', '.join(shipped_names('estimators'))})" in text
+
+
+def test_a_time_is_shown_without_float_noise():
+    """A time that arithmetic left at 7.1000000000000005 reads 7.1 in a refusal; 15 digits keep an
+    epoch time's microseconds."""
+    from stewart_calib.config import NoiseConfig
+    from stewart_calib.errors import SampleRejected, number
+    from stewart_calib.estimators.measurement import check_sample
+    from stewart_calib.instruments import instrument_model
+    from stewart_calib.samples import Sample
+    from tests.synthetic import nim_stewart
+
+    platform = nim_stewart()
+    t_s = 71 * 0.1
+    assert repr(t_s) == "7.1000000000000005"
+    sample = Sample(t_s, np.full(6, np.nan), np.zeros(6))
+    with pytest.raises(SampleRejected, match=r"^sample at t = 7\.1 s: stroke q1 is not finite$"):
+        check_sample(platform, instrument_model(platform, NoiseConfig()), sample)
+    assert number(1741940000.123456) == "1741940000.12346" and number("x") == "x"

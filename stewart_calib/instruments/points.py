@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .. import kinematics as kin
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, number
 from ..kinematics import skew
 from ..platform import INSTRUMENT_SECTIONS, Instrument, Platform
 from . import lie, registration
@@ -269,11 +269,11 @@ class PointsModel(OutsideModel):
         reading = np.asarray(z, dtype=float)
         if reading.shape != self.channel_sigma.shape:
             raise SampleRejected(
-                f"sample at t = {t_s} s: expected {self.channel_sigma.size} target coordinates",
+                f"sample at t = {number(t_s)} s: expected {self.channel_sigma.size} target coordinates",
                 SampleRejected.NON_FINITE,
             )
         if not np.any(np.isfinite(reading)):
-            raise SampleRejected(f"sample at t = {t_s} s: no target seen", SampleRejected.NON_FINITE)
+            raise SampleRejected(f"sample at t = {number(t_s)} s: no target seen", SampleRejected.NON_FINITE)
         return reading
 
     def groups(self, z: np.ndarray) -> list[np.ndarray]:

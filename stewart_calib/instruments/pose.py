@@ -26,7 +26,7 @@ import numpy as np
 
 from .. import _kernels
 from .. import kinematics as kin
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, number
 from ..kinematics import rt_to_pose
 from ..platform import INSTRUMENT_SECTIONS, Instrument, Platform
 from . import lie, registration
@@ -246,7 +246,7 @@ class PoseModel(OutsideModel):
         reading = np.asarray(z, dtype=float)
         if reading.shape != (6,) or not np.all(np.isfinite(reading)):
             raise SampleRejected(
-                f"sample at t = {t_s} s: expected a finite pose reading (6 values)", SampleRejected.NON_FINITE
+                f"sample at t = {number(t_s)} s: expected a finite pose reading (6 values)", SampleRejected.NON_FINITE
             )
         return reading
 

@@ -11,6 +11,7 @@ import os
 import sys
 
 from ..errors import CalibError, shown
+from ..resources import shipped_names
 
 
 class Parser(argparse.ArgumentParser):
@@ -234,7 +235,8 @@ def add_config_arguments(parser: argparse.ArgumentParser, example: str = "isam2.
     parser.add_argument(
         "--config",
         metavar="C.toml",
-        help="estimator config: a file or a shipped name (default, paper); default: default.toml values",
+        help=f"estimator config: a file or a shipped name ({', '.join(shipped_names('estimators'))}); "
+        "default: default.toml values",
     )
     parser.add_argument(
         "--set",

@@ -33,7 +33,7 @@ from ..calibration import Calibration, EvenlySpacedSamples, SampleSpool, Tally, 
 from ..config import load_estimator_config
 from ..diagnosis import diagnose_log
 from ..drive import drive_model
-from ..errors import CalibError
+from ..errors import CalibError, number
 from ..estimate import Estimate
 from ..estimators.base import (
     accounting_words,
@@ -217,7 +217,7 @@ def run(args: argparse.Namespace) -> int:
                     f"{args.method} rejected samples:",
                     rejections.count,
                     n_samples,
-                    f"t_s={first_rejected_t_s!r}: {rejections.first}",
+                    f"t_s={number(first_rejected_t_s)}: {rejections.first}",
                 ),
                 file=sys.stderr,
             )
