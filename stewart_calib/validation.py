@@ -63,6 +63,19 @@ def _check_nominal(platform: Platform, result: dict, source: str) -> None:
         )
 
 
+def on_platform(platform: Platform, result: dict) -> dict:
+    """``result`` as a result on ``platform``: itself, or where ``platform`` is the calibrated
+    platform file that result wrote (spec §8: its legs are the result's estimate), the result with
+    no error left on it — as ``compensate`` and ``export`` take it; the blocks as they are."""
+    estimate = np.asarray(result["estimate"], dtype=float)
+    drive = platform.drive.as_vector()
+    if estimate.shape != drive.shape or result.get("platform") != platform.name:
+        return result
+    if float(np.max(np.abs(estimate - drive))) > io.NOMINAL_TOLERANCE_MM:
+        return result
+    return {**result, "nominal": drive.tolist(), "error": [0.0] * len(drive)}
+
+
 def validate(
     platform: Platform,
     result: dict,

@@ -14,7 +14,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from stewart_calib import cli
-from stewart_calib.io import read_log
+from stewart_calib.io import NOMINAL_TOLERANCE_MM, read_log
 from stewart_calib.platform import load_platform
 from tests.instrument_data import HOBBY
 from tests.test_instrument_files import EXPERIMENT
@@ -275,3 +275,20 @@ def test_a_time_is_shown_without_float_noise():
     with pytest.raises(SampleRejected, match=r"^sample at t = 7\.1 s: stroke q1 is not finite$"):
         check_sample(platform, instrument_model(platform, NoiseConfig()), sample)
     assert number(1741940000.123456) == "1741940000.12346" and number("x") == "x"
+
+
+def test_validate_takes_the_calibrated_platform_file_as_compensate_does(outside_run, tmp_path):
+    """The platform file calibrate --platform-out wrote, with its result: the same predictions as the
+    result on its nominal platform (it refused: "key 'nominal': … differs by …")."""
+    work, _ = outside_run
+    argv = ["calibrate", "--platform", work / "sim" / "platform.toml", "--log", work / "fit.csv", "--method", "ls"]
+    status, err = _run([*argv, "--out", tmp_path / "r.json", "--platform-out", tmp_path / "C.toml"])
+    assert status == 0, err
+    outputs = {}
+    for name, platform in (("nominal", work / "sim" / "platform.toml"), ("calibrated", tmp_path / "C.toml")):
+        check = ["validate", "--platform", platform, "--result", tmp_path / "r.json", "--log", work / "fit.csv"]
+        status, err = _run([*check, "--out", tmp_path / f"{name}.csv"])
+        assert status == 0, err
+        outputs[name] = np.genfromtxt(tmp_path / f"{name}.csv", delimiter=",", skip_header=1)
+    # the file holds the legs to the tolerance within which two drives are the same one
+    np.testing.assert_allclose(outputs["calibrated"], outputs["nominal"], rtol=0, atol=NOMINAL_TOLERANCE_MM)

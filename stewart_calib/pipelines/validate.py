@@ -35,7 +35,7 @@ from ..instruments import instrument_kind
 from ..platform import Platform, load_platform
 from ..progress import log_progress_bar
 from ..samples import Log
-from ..validation import measurement_residuals, pose_error_summary, validate
+from ..validation import measurement_residuals, on_platform, pose_error_summary, validate
 from . import add_tolerance_arguments, handover, run_command
 
 
@@ -63,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     report_dir = args.report and Path(args.report)
     handover.check_report_dir(report_dir)
     platform = load_platform(args.platform)
-    result = io.read_result(args.result)
+    result = on_platform(platform, io.read_result(args.result))  # also on the calibrated platform it wrote
     columns = io.reading_columns(platform)
     header = ["t_s", *columns, *(f"pred_{name}" for name in columns), "position_error_mm"]
     if instrument_kind(platform).measures_orientation:
