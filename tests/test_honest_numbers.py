@@ -292,3 +292,30 @@ def test_validate_takes_the_calibrated_platform_file_as_compensate_does(outside_
         outputs[name] = np.genfromtxt(tmp_path / f"{name}.csv", delimiter=",", skip_header=1)
     # the file holds the legs to the tolerance within which two drives are the same one
     np.testing.assert_allclose(outputs["calibrated"], outputs["nominal"], rtol=0, atol=NOMINAL_TOLERANCE_MM)
+
+
+@pytest.mark.parametrize("outside_run", ["pose"], indirect=True)
+def test_strokes_of_another_robot_are_named_not_the_registrations_symptom(outside_run, tmp_path):
+    """The strokes of the log's rows shuffled — another robot's log, as far as the poses go: the
+    readings rotate about every axis, the strokes' poses do not match them. It said "cannot register
+    the pose instrument: the poses do not rotate about two different axes"."""
+    work, _ = outside_run
+    lines = (work / "fit.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    columns = [header.index(f"q{i}_mm") for i in range(1, 7)]
+    rows = [line.split(",") for line in lines[1:]]
+    order = np.random.default_rng(0).permutation(len(rows))
+    for row, source in zip(rows, [rows[k] for k in order], strict=True):
+        for j in columns:
+            row[j] = source[j]
+    shuffled = tmp_path / "other.csv"
+    shuffled.write_text("\n".join([lines[0], *(",".join(row) for row in rows)]) + "\n")
+    argv = ["calibrate", "--platform", work / "sim" / "platform.toml", "--log", shuffled, "--method", "ls"]
+    status, err = _run([*argv, "--out", tmp_path / "r.json"])
+    (line,) = err.splitlines()
+    assert status == 2 and not (tmp_path / "r.json").exists()
+    assert re.fullmatch(
+        r"stewart-calib calibrate: error: .*other\.csv: the strokes do not fit this platform's legs: the angles "
+        r"between pairs of poses that they give the nominal model differ from the instrument's by [\d.]+° RMS .*",
+        line,
+    ), line
