@@ -319,3 +319,19 @@ def test_strokes_of_another_robot_are_named_not_the_registrations_symptom(outsid
         r"between pairs of poses that they give the nominal model differ from the instrument's by [\d.]+° RMS .*",
         line,
     ), line
+
+
+def test_missing_stroke_columns_are_the_drives_not_the_instruments(outside_run, tmp_path):
+    """It said 'missing column(s) q1_mm, … of the pose instrument that the platform's [instrument] names'."""
+    work, _ = outside_run
+    lines = (work / "fit.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    keep = [k for k, name in enumerate(header) if not name.startswith("q")]
+    (tmp_path / "noq.csv").write_text("\n".join(",".join(line.split(",")[k] for k in keep) for line in lines) + "\n")
+    argv = ["calibrate", "--platform", work / "sim" / "platform.toml", "--log", tmp_path / "noq.csv", "--method", "ls"]
+    status, err = _run([*argv, "--out", tmp_path / "r.json"])
+    (line,) = err.splitlines()
+    assert status == 2 and line.endswith(
+        "noq.csv: row 1: missing column(s) q1_mm, q2_mm, q3_mm, q4_mm, q5_mm, q6_mm of the drive's strokes [mm] "
+        "(spec §3)"
+    ), line
