@@ -63,3 +63,11 @@ def number(value: object) -> str:
         return f"{float(value):.15g}"  # type: ignore[arg-type]
     except (TypeError, ValueError):
         return str(value)
+
+
+def did_you_mean(word: str, known) -> str:
+    """``" (did you mean 'x'?)"`` naming the known word nearest a misspelt one, or ``""``."""
+    import difflib  # only a refusal needs it
+
+    close = difflib.get_close_matches(word, sorted(known), n=1, cutoff=0.5)
+    return f" (did you mean '{close[0]}'?)" if close else ""

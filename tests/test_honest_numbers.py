@@ -335,3 +335,29 @@ def test_missing_stroke_columns_are_the_drives_not_the_instruments(outside_run, 
         "noq.csv: row 1: missing column(s) q1_mm, q2_mm, q3_mm, q4_mm, q5_mm, q6_mm of the drive's strokes [mm] "
         "(spec §3)"
     ), line
+
+
+@pytest.mark.parametrize(
+    ("where", "text", "expected"),
+    [
+        ("config", "[ls]\nrobust_kk = 3.0\n", "unknown key 'ls.robust_kk' (did you mean 'robust_k'?)"),
+        ("config", "[lss]\nrobust_k = 3.0\n", "unknown section 'lss' (did you mean 'ls'?)"),
+        (
+            "platform",
+            "position_sigm_mm",
+            "key 'instrument.position_sigm_mm': expected a known key (spec §7) (did you mean 'position_sigma_mm'?)",
+        ),
+    ],
+)
+def test_a_misspelt_key_inside_a_table_gets_a_did_you_mean(tmp_path, capsys, where, text, expected):
+    platform = HOBBY
+    argv = ["plan", "--n", "10", "--out", str(tmp_path / "p.csv")]
+    if where == "config":
+        (tmp_path / "c.toml").write_text(text)
+        argv += ["--config", str(tmp_path / "c.toml")]
+    else:
+        platform = tmp_path / "p.toml"
+        platform.write_text(HOBBY.read_text().replace("position_sigma_mm = 0.2", f"{text} = 0.2"))
+    assert cli.main([*argv, "--platform", str(platform)]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert expected in line, line
