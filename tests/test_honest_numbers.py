@@ -361,3 +361,26 @@ def test_a_misspelt_key_inside_a_table_gets_a_did_you_mean(tmp_path, capsys, whe
     assert cli.main([*argv, "--platform", str(platform)]) == 2
     (line,) = capsys.readouterr().err.splitlines()
     assert expected in line, line
+
+
+def test_a_points_logs_residuals_are_drawn_at_the_rows_that_read_each_target():
+    """A laser tracker's point list: each row holds one of three targets, at epoch times. Every
+    channel's curve has the rows of its target (a line through all rows drew nothing: each other
+    row is NaN), and the times run from the log's first, named in the label (not "+1.74194e9")."""
+    from stewart_calib.viz.html_report import Residuals, residual_series
+
+    n, t0 = 30, 1741940000.25
+    channels = tuple(f"p{k}{axis}_mm" for k in (1, 2, 3) for axis in "xyz")
+    before = np.full((n, 9), np.nan)
+    rng = np.random.default_rng(2)
+    for row in range(n):
+        target = row % 3
+        before[row, 3 * target : 3 * target + 3] = rng.normal(0.0, 1.0, 3)
+    residuals = Residuals(channels, t0 + 0.5 * np.arange(n), before, 0.1 * before)
+    label, series = residual_series(residuals)
+    assert label == "t − 1741940000.25 s [s]"
+    for k, (t, b, a) in enumerate(series):
+        rows = np.arange(k // 3, n, 3)
+        np.testing.assert_array_equal(t, 0.5 * rows)
+        np.testing.assert_array_equal(b, before[rows, k])
+        np.testing.assert_array_equal(a, 0.1 * before[rows, k])
