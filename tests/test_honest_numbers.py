@@ -8,6 +8,7 @@ import html
 import io
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -384,3 +385,64 @@ def test_a_points_logs_residuals_are_drawn_at_the_rows_that_read_each_target():
         np.testing.assert_array_equal(t, 0.5 * rows)
         np.testing.assert_array_equal(b, before[rows, k])
         np.testing.assert_array_equal(a, 0.1 * before[rows, k])
+
+
+# ----------------------------------------------------------------------------- import
+
+_EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "hobby-mocap"
+EXAMPLE = _EXAMPLES if _EXAMPLES.is_dir() else None
+
+
+def _import(argv: list) -> tuple[int, str]:
+    return _run(["import", *argv])
+
+
+@pytest.mark.skipif(EXAMPLE is None, reason="the repository's examples/ (not installed with the package)")
+def test_import_names_its_input_files_not_the_output_not_yet_written(tmp_path):
+    mapping = tmp_path / "raw.toml"
+    mapping.write_text((EXAMPLE / "raw.toml").read_text().replace('position_unit = "m"', 'position_unit = "mm"'))
+    argv = ["--csv", EXAMPLE / "fit_raw.csv", "--mapping", mapping, "--platform", "hobby-hexapod"]
+    status, err = _import([*argv, "--out", tmp_path / "x.csv"])
+    (line,) = err.splitlines()
+    assert status == 2 and not (tmp_path / "x.csv").exists()
+    assert f"error: {EXAMPLE / 'fit_raw.csv'}: the positions mx_mm…mz_mm look like metres" in line, line
+    assert "x.csv" not in line
+
+
+@pytest.mark.skipif(EXAMPLE is None, reason="the repository's examples/ (not installed with the package)")
+@pytest.mark.parametrize("offset", [["--estimate-clock-offset"], ["--clock-offset-s", "1234.5"]])
+def test_a_controller_clock_in_milliseconds_is_named(tmp_path, offset):
+    """The controller's uptime logged in ms, the mapping saying s: the hint names the unit, and does
+    not ask for --estimate-clock-offset where it was given."""
+    lines = (EXAMPLE / "fit_counts.csv").read_text().splitlines()
+    rows = [line.split(",") for line in lines[1:]]
+    (tmp_path / "counts.csv").write_text(
+        "\n".join([lines[0], *(",".join([f"{float(r[0]) * 1000:.1f}", *r[1:]]) for r in rows)]) + "\n"
+    )
+    argv = ["--motive", EXAMPLE / "fit_motive.csv", "--rigid-body", "platform", "--strokes", tmp_path / "counts.csv"]
+    argv += ["--mapping", EXAMPLE / "controller.toml", *offset, "--platform", "hobby-hexapod"]
+    status, err = _import([*argv, "--out", tmp_path / "x.csv"])
+    (line,) = err.splitlines()
+    assert status == 2 and line.endswith(
+        "× the instrument's: in ms? set time_unit = \"ms\" in the mapping's [strokes]"
+    ), line
+    assert "--estimate-clock-offset" not in line
+
+
+def test_a_max_gap_within_the_controllers_period_is_hinted(tmp_path):
+    from stewart_calib.io import exports
+    from stewart_calib.pipelines.import_files import ControllerLog
+
+    path = tmp_path / "c.csv"
+    t = 0.1 * np.arange(50)
+    path.write_text("t,a,b,c,d,e,f\n" + "".join(f"{v:.1f},1,2,3,4,5,6\n" for v in t))
+    mapping = tmp_path / "m.toml"
+    mapping.write_text('[strokes]\ntime = "t"\ncolumns = ["a", "b", "c", "d", "e", "f"]\n')
+    columns = exports.stroke_columns(mapping, exports.load_mapping(mapping)["strokes"])
+    controller = ControllerLog(path, columns)
+    controller.strokes_at(np.array([0.05, 1.0]), 0.1)
+    assert controller.gap_hint(0.1) == (
+        "; --max-gap-s 0.1 s is within 1.5× the controller's row period (0.1 s), so the two rows around a "
+        "measurement are often further apart: give --max-gap-s 0.15 or more"
+    )
+    assert controller.gap_hint(0.15) == ""
