@@ -212,7 +212,7 @@ class PredictedError:
         }
 
     @classmethod
-    def from_dict(cls, field: dict) -> PredictedError | None:
+    def from_dict(cls, field: object) -> PredictedError | None:
         """A result's ``"predicted_closed_loop"`` field read back; None where it holds no
         prediction (none available, or written without the motion from home)."""
         if not isinstance(field, dict) or field.get("available") is False or "motion_position_mm" not in field:
@@ -293,7 +293,7 @@ def limiting_directions(platform: Platform, home_covariance: np.ndarray) -> str:
     vectors = vectors[:, ::-1]
     if not values[0] > 0:
         return ""
-    parts = []
+    parts: list[str] = []
     for value, vector in zip(values, vectors.T, strict=True):
         if np.sqrt(value) < LIMITING_SHARE * np.sqrt(values[0]) or len(parts) == 2:
             break

@@ -232,8 +232,9 @@ def run(args: argparse.Namespace) -> int:
             extra["conditioning"] = conditioning_summary(report)
         else:
             poses = nominal_poses(platform, checked)
-            extra["conditioning"] = outside_conditioning(platform, checked)
-            warning = outside_warning_line(extra["conditioning"])
+            conditioning = outside_conditioning(platform, checked)
+            extra["conditioning"] = conditioning
+            warning = outside_warning_line(conditioning)
         # the tracker's methods carry a random walk and the paper's forms: their covariances are not the
         # static Cramér–Rao bound the noise floor is, so only an outside instrument's is compared with it
         floor = noise_floor(platform, estimate.samples_used, config.noise) if outside else None
@@ -270,7 +271,7 @@ def run(args: argparse.Namespace) -> int:
         pose_line = _pose_error_line(platform, result_data, checked, n_samples)
         unsupported = None
         if outside and predicted.get("available", True):
-            rank = int(extra["conditioning"]["rank"])
+            rank = int(conditioning["rank"])
             unsupported = unsupported_correction(platform, result_data, checked, rank, predicted["correction_mm"])
         prediction = PredictedError.from_dict(predicted)
         verdict, over = (
