@@ -446,3 +446,53 @@ def test_a_max_gap_within_the_controllers_period_is_hinted(tmp_path):
         "measurement are often further apart: give --max-gap-s 0.15 or more"
     )
     assert controller.gap_hint(0.15) == ""
+
+
+def test_a_point_list_with_iso_date_times(tmp_path):
+    """A laser tracker's point list stamped 2026-03-14T09:26:53.500: refused as not a number, with
+    the option to read it named; with time_format = "iso" it joins the controller's clock (UTC
+    seconds, the offset given) — the same log as with seconds."""
+    import datetime
+
+    from tests import vendor_files as vendor
+    from tests.test_import import COUNTS_MAPPING, _strokes_of, _write_counts
+
+    t = np.arange(12) * 2.0
+    rng = np.random.default_rng(3)
+    smr = {name: rng.normal(0, 300, (12, 3)) for name in ("SMR1", "SMR2")}
+    vendor.point_list_csv(tmp_path / "seconds.csv", t, smr)
+    start = datetime.datetime(2026, 3, 14, 9, 26, 53, 500000, tzinfo=datetime.UTC)
+    lines = (tmp_path / "seconds.csv").read_text().splitlines()
+    stamped = [lines[0]]
+    for line in lines[1:]:
+        time, rest = line.split(",", 1)
+        stamp = (start + datetime.timedelta(seconds=float(time))).replace(tzinfo=None)
+        stamp = stamp.isoformat(timespec="milliseconds")
+        stamped.append(f"{stamp},{rest}")
+    (tmp_path / "iso.csv").write_text("\n".join(stamped) + "\n")
+    instrument = (
+        '[instrument]\ntime = "Time"\ntarget = "Point"\ntargets = ["SMR1", "SMR2"]\nposition = ["X", "Y", "Z"]\n'
+    )
+    strokes = "\n" + COUNTS_MAPPING.replace('time_unit = "ms"', 'time_unit = "ms"\nmax_gap_s = 0.5')
+    (tmp_path / "m.toml").write_text(instrument + strokes)
+    (tmp_path / "iso.toml").write_text(instrument + 'time_format = "iso"\n' + strokes)
+    _write_counts(tmp_path / "c.csv", np.arange(0, 25, 0.25), _strokes_of(np.arange(0, 25, 0.25)))
+    common = ["--strokes", tmp_path / "c.csv"]
+    status, _ = _import(["--point-list", tmp_path / "seconds.csv", *common, "--mapping", tmp_path / "m.toml",
+                         "--out", tmp_path / "seconds_log.csv"])  # fmt: skip
+    assert status == 0
+    status, err = _import(["--point-list", tmp_path / "iso.csv", *common, "--mapping", tmp_path / "m.toml",
+                           "--out", tmp_path / "x.csv"])  # fmt: skip
+    (line,) = err.splitlines()
+    assert status == 2 and line.endswith(
+        "iso.csv: row 2: expected a number in column 'Time' and numbers in X, Y, Z ('2026-03-14T09:26:53.500' is an "
+        'ISO date-time: set time_format = "iso" in [instrument])'
+    ), line
+    epoch = start.timestamp()
+    status, err = _import(["--point-list", tmp_path / "iso.csv", *common, "--mapping", tmp_path / "iso.toml",
+                           "--clock-offset-s", repr(-epoch), "--out", tmp_path / "iso_log.csv"])  # fmt: skip
+    assert status == 0, err
+    seconds = np.genfromtxt(tmp_path / "seconds_log.csv", delimiter=",", skip_header=1)
+    iso = np.genfromtxt(tmp_path / "iso_log.csv", delimiter=",", skip_header=1)
+    np.testing.assert_allclose(iso[:, 0] - epoch, seconds[:, 0], rtol=0, atol=1e-6)  # the file's milliseconds, to µs
+    np.testing.assert_array_equal(iso[:, 1:], seconds[:, 1:])
