@@ -1,4 +1,5 @@
-"""What a calibration leaves where the robot works: the predicted closed-loop (absolute) pose error.
+"""What a calibration leaves where the robot works: the predicted closed-loop pose error, absolute in
+{J} and of the motion from home.
 
 After a calibration the controller commands the strokes that the **estimate** says reach a desired
 pose X (inverse kinematics of ``M̂``, ``k̂``); the **true** robot moves them to
@@ -27,6 +28,15 @@ calibrated frame (``validate``), obvious to anything the robot touches.
   the platform joints' mean radius), so that ``tr(W Σ)`` is the mean squared displacement of a
   point at that radius — the linear (I-optimal) criterion that ``plan`` minimises.
 
+Absolute against motion. The error at X holds a part common to every pose — above all what the
+instrument's frame trades against (a near-rigid motion of the base joints), which a log through an
+outside instrument barely sees. The **motion from home** H, the relative pose ``H⁻¹ X`` the robot
+makes, loses that part: to first order (the chart of :func:`~stewart_calib.rotations.retract`)
+its error is ``δξ(X) − M(X) δξ(H)`` with ``M = [[Rᵀ, 0], [−Rᵀ p^, Rᵀ]]`` for ``H⁻¹ X = (R, p)``, zero
+for any constant pose offset in {J}. It is what the data can see and what a user checks with the
+same instrument; the absolute error in {J} is what anything the robot touches meets, and the
+principal axes of the error at home (:func:`limiting_directions`) say what limits it.
+
 The frame of the error: {J} and {D} are the frames of the estimate's gauge (the in-situ tracker's,
 or for an outside instrument where the joints best fit their nominal positions,
 :mod:`stewart_calib.instruments.gauge`), the only frames in which any instrument sees the robot.
@@ -43,6 +53,7 @@ from .drive import DriveModel, drive_model
 from .errors import CalibError
 from .estimate import Estimate
 from .platform import Platform
+from .rotations import skew
 
 #: Workspace poses the prediction averages over, drawn uniformly in the ``[workspace]`` box
 #: (reachable within the stroke ranges) with a fixed seed, so that the same covariance always
@@ -68,6 +79,9 @@ BAND_PROBABILITY = 0.9
 #: the hobby hexapod 3.9–4.1×; issue 27's laser-tracker report (random poses against the box's
 #: corners, 400 each) puts random poses there at 3.4–4.8×.
 NOISE_FLOOR_FACTOR = 3.0
+
+#: The words every command opens its predicted error with (calibrate, identifiability, plan, validate).
+PREDICTION_HEAD = "predicted closed-loop pose error after calibration"
 
 #: Candidate draws allowed per requested pose before giving up on a workspace whose box is
 #: mostly outside the stroke or reading ranges.
@@ -160,13 +174,18 @@ class PredictedError:
     """The predicted closed-loop error over workspace poses (see the module docstring).
 
     Attributes:
-        position_mm: expected mean position error ``mean_X E‖δt(X)‖`` [mm].
-        orientation_deg: expected mean orientation error [deg].
+        position_mm: expected mean absolute position error in {J} ``mean_X E‖δt(X)‖`` [mm].
+        orientation_deg: expected mean absolute orientation error [deg].
         n_poses: the workspace poses averaged over.
-        position_band_mm: ``(low, high)`` [mm], the mean position error of :data:`BAND_PROBABILITY`
-            of calibrations with this covariance lies between them (one calibration is one draw).
+        position_band_mm: ``(low, high)`` [mm], the mean absolute position error of
+            :data:`BAND_PROBABILITY` of calibrations with this covariance lies between them (one
+            calibration is one draw).
         workspace: True when they are the ``[workspace]`` box's, False when the platform has none
             and they are the measured poses themselves.
+        motion_position_mm, motion_orientation_deg, motion_position_band_mm: the same of the
+            motion from home (the error of ``H⁻¹ X``), what the data and the instrument see.
+        limited_by: the principal axes of the absolute error at home, in words
+            (:func:`limiting_directions`).
     """
 
     position_mm: float
@@ -174,6 +193,10 @@ class PredictedError:
     n_poses: int
     position_band_mm: tuple[float, float]
     workspace: bool = True
+    motion_position_mm: float = float("nan")
+    motion_orientation_deg: float = float("nan")
+    motion_position_band_mm: tuple[float, float] = (float("nan"), float("nan"))
+    limited_by: str = ""
 
     def to_dict(self) -> dict:
         return {
@@ -182,17 +205,51 @@ class PredictedError:
             "poses": self.n_poses,
             "over": "workspace" if self.workspace else "measured poses",
             "position_band_mm": list(self.position_band_mm),
+            "motion_position_mm": self.motion_position_mm,
+            "motion_orientation_deg": self.motion_orientation_deg,
+            "motion_position_band_mm": list(self.motion_position_band_mm),
+            "absolute_limited_by": self.limited_by,
         }
 
+    @classmethod
+    def from_dict(cls, field: object) -> PredictedError | None:
+        """A result's ``"predicted_closed_loop"`` field read back; None where it holds no
+        prediction (none available, or written without the motion from home)."""
+        if not isinstance(field, dict) or field.get("available") is False or "motion_position_mm" not in field:
+            return None
+        return cls(
+            float(field["position_mm"]),
+            float(field["orientation_deg"]),
+            int(field["poses"]),
+            tuple(field["position_band_mm"]),
+            field.get("over") == "workspace",
+            float(field["motion_position_mm"]),
+            float(field["motion_orientation_deg"]),
+            tuple(field["motion_position_band_mm"]),
+            str(field.get("absolute_limited_by", "")),
+        )
+
     def describe(self) -> str:
-        """``"0.0213 mm / 0.00141° (expected mean over 200 workspace poses; 90 % of such calibrations
-        0.0101–0.0352 mm)"``."""
+        """``"absolute in {J} 0.0213 mm / 0.00141° (expected mean over 200 workspace poses; 90 % of such calibrations
+        0.0101–0.0352 mm); motion from home 0.009 mm / 0.0011° (90 %: 0.004–0.016 mm); the absolute
+        error limited by a constant z (σ 0.02 mm)"``: the absolute error in {J} first, the motion's
+        and what limits the absolute one after — the words every command prints."""
         where = "workspace poses" if self.workspace else "measured poses (no [workspace] in the platform file)"
         low, high = self.position_band_mm
-        return (
-            f"{self.position_mm:.3g} mm / {self.orientation_deg:.3g}° (expected mean over {self.n_poses} {where}; "
+        text = (
+            f"absolute in {{J}} {self.position_mm:.3g} mm / {self.orientation_deg:.3g}° (expected mean over "
+            f"{self.n_poses} {where}; "
             f"{BAND_PROBABILITY:.0%} of such calibrations {low:.3g}–{high:.3g} mm)"
         )
+        if np.isfinite(self.motion_position_mm):
+            m_low, m_high = self.motion_position_band_mm
+            text += (
+                f"; motion from home {self.motion_position_mm:.3g} mm / {self.motion_orientation_deg:.3g}° "
+                f"({BAND_PROBABILITY:.0%}: {m_low:.3g}–{m_high:.3g} mm)"
+            )
+        if self.limited_by:
+            text += f"; the absolute error limited by {self.limited_by}"
+        return text
 
 
 def _expected_norms(covariance: np.ndarray) -> np.ndarray:
@@ -202,28 +259,88 @@ def _expected_norms(covariance: np.ndarray) -> np.ndarray:
     return np.mean(np.sqrt((draws**2) @ eigenvalues.T), axis=0)
 
 
-def predicted_error(platform: Platform, covariance: np.ndarray, poses: np.ndarray | None = None) -> PredictedError:
+def motion_jacobian(D: np.ndarray, poses: np.ndarray, home: np.ndarray, D_home: np.ndarray) -> np.ndarray:
+    """``(V, 6, n)`` the error of the motion from ``home`` to each pose, ``D(X) − M(X) D(H)`` (the
+    module docstring), from the absolute error Jacobians ``D (V, 6, n)`` at ``poses`` and
+    ``D_home (6, n)`` at ``home``; body tangent ``[ω, v]``."""
+    R_X, t_X = kin.pose_to_rt(np.asarray(poses, dtype=float).reshape(-1, 6))
+    R_H, t_H = kin.pose_to_rt(np.asarray(home, dtype=float))
+    R_rel = np.einsum("ji,njk->nik", R_H, R_X)
+    p_rel = np.einsum("ji,nj->ni", R_H, t_X - t_H)
+    Rt = np.swapaxes(R_rel, -1, -2)
+    M = np.zeros((len(R_X), 6, 6))
+    M[:, :3, :3] = Rt
+    M[:, 3:, 3:] = Rt
+    M[:, 3:, :3] = -Rt @ skew(p_rel)
+    return D - M @ D_home
+
+
+#: A principal axis of the error at home is named when it holds this share of the largest one's σ.
+LIMITING_SHARE = 0.5
+
+_AXIS_NAMES = ("rotation about x", "rotation about y", "rotation about z", "x", "y", "z")
+
+
+def limiting_directions(platform: Platform, home_covariance: np.ndarray) -> str:
+    """The principal axes of the absolute error at home (``(6, 6)`` covariance of ``[ω, v]``),
+    rotations weighed by :func:`rotation_length_mm`: each axis within :data:`LIMITING_SHARE` of the
+    largest (two at most), as ``"a constant z + 0.4 rotation about x (σ 0.61 mm)"`` — its components
+    of at least 0.3 (relative to the largest), and its σ in mm at that length."""
+    L = rotation_length_mm(platform)
+    scale = np.r_[[L] * 3, [1.0] * 3]
+    values, vectors = np.linalg.eigh(scale[:, None] * home_covariance * scale[None, :])
+    values = np.clip(values, 0.0, None)[::-1]
+    vectors = vectors[:, ::-1]
+    if not values[0] > 0:
+        return ""
+    parts: list[str] = []
+    for value, vector in zip(values, vectors.T, strict=True):
+        if np.sqrt(value) < LIMITING_SHARE * np.sqrt(values[0]) or len(parts) == 2:
+            break
+        lead = int(np.argmax(np.abs(vector)))
+        words = _AXIS_NAMES[lead]
+        for k in np.argsort(-np.abs(vector)):
+            ratio = vector[k] / vector[lead]
+            if k != lead and abs(vector[k]) >= 0.3:
+                words += f" {'+' if ratio > 0 else '−'} {abs(ratio):.2g} {_AXIS_NAMES[k]}"
+        parts.append(f"a constant {words} (σ {np.sqrt(value):.3g} mm)")
+    return " and ".join(parts)
+
+
+def predicted_error(
+    platform: Platform, covariance: np.ndarray, poses: np.ndarray | None = None, home: np.ndarray | None = None
+) -> PredictedError:
     """The expected mean closed-loop error left by an estimate of covariance ``covariance``.
 
     Args:
         covariance: ``(42, 42)`` over δM [mm²] (the stroke scale then exact) or ``(≥ 48, ≥ 48)``
             whose first 48 rows are ``[δM, k]``; further rows (instrument unknowns) do not enter.
         poses: ``(V, 6)`` the poses to average over (default :func:`evaluation_poses`).
+        home: ``(6,)`` where the motion starts (default the ``[workspace]`` home, else the first of
+            ``poses``).
     """
     covariance = np.asarray(covariance, dtype=float)
     workspace = poses is None
-    D = closed_loop_jacobian(platform, evaluation_poses(platform) if poses is None else poses)
+    poses = evaluation_poses(platform) if poses is None else np.asarray(poses, dtype=float).reshape(-1, 6)
+    if home is None:
+        home = platform.workspace.home if platform.workspace is not None else poses[0]
+    D = closed_loop_jacobian(platform, np.vstack([poses, home]))
     n = min(len(covariance), D.shape[-1])
-    D = D[..., :n]
-    pose_covariance = D @ covariance[:n, :n] @ np.swapaxes(D, -1, -2)
-    position = _expected_norms(pose_covariance[:, 3:, 3:])
-    orientation = _expected_norms(pose_covariance[:, :3, :3])
+    D, D_home = D[:-1, :, :n], D[-1, :, :n]
+    covariance = covariance[:n, :n]
+    pose_covariance = D @ covariance @ np.swapaxes(D, -1, -2)
+    D_motion = motion_jacobian(D, poses, home, D_home)
+    motion_covariance = D_motion @ covariance @ np.swapaxes(D_motion, -1, -2)
     return PredictedError(
-        float(np.mean(position)),
-        float(np.degrees(np.mean(orientation))),
+        float(np.mean(_expected_norms(pose_covariance[:, 3:, 3:]))),
+        float(np.degrees(np.mean(_expected_norms(pose_covariance[:, :3, :3])))),
         len(D),
-        _position_band(D[:, 3:, :], covariance[:n, :n]),
-        workspace=workspace,
+        _position_band(D[:, 3:, :], covariance),
+        workspace,
+        float(np.mean(_expected_norms(motion_covariance[:, 3:, 3:]))),
+        float(np.degrees(np.mean(_expected_norms(motion_covariance[:, :3, :3])))),
+        _position_band(D_motion[:, 3:, :], covariance),
+        limiting_directions(platform, D_home @ covariance @ D_home.T),
     )
 
 
@@ -261,7 +378,7 @@ def summary_line(
     estimate's change to where the robot goes is then within its own uncertainty, and the
     calibrated robot may be further from its poses than the uncalibrated one.
     """
-    head = f"predicted closed-loop (absolute) pose error after calibration: {prediction.describe()}"
+    head = f"{PREDICTION_HEAD}: {prediction.describe()}"
     reasons = []
     if noise_floor is not None and prediction.position_mm > NOISE_FLOOR_FACTOR * noise_floor.position_mm:
         reasons.append(
@@ -278,6 +395,77 @@ def summary_line(
     if reasons:
         return "warning: " + head + "; " + "; ".join(reasons), True
     return head, False
+
+
+def _against(band_mm: tuple[float, float], orientation_deg: float, tolerance_mm, tolerance_deg) -> str:
+    """``"within"``, ``"over"`` or ``"not sure"`` (the tolerance inside the 90 % band) of one error."""
+    words = []
+    if tolerance_mm is not None:
+        low, high = band_mm
+        words.append("within" if high <= tolerance_mm else "over" if low > tolerance_mm else "not sure")
+    if tolerance_deg is not None:
+        words.append("within" if orientation_deg <= tolerance_deg else "over")
+    return "over" if "over" in words else "not sure" if "not sure" in words else "within"
+
+
+def verdict_line(
+    prediction: PredictedError,
+    tolerance_mm: float | None = None,
+    tolerance_deg: float | None = None,
+    measured: str | None = None,
+    measured_motion: tuple[float, float | None] | None = None,
+) -> tuple[str, bool]:
+    """The last line of ``calibrate`` and ``validate`` (and the top of their report): the expected
+    error of the motion from home and of the absolute place in {J} over the workspace with their
+    90 % bands, each against the tolerance where given; ``(line, over)`` with ``over`` True where
+    either is over the tolerance or not surely within it.
+
+    Args:
+        measured: what a check measured, named in the line (``validate``).
+        measured_motion: ``(position RMS [mm], orientation RMS [deg] or None)`` a check measured of
+            the motion (through an outside instrument's frame): compared with the tolerance in
+            place of the motion's prediction.
+    """
+    m_low, m_high = prediction.motion_position_band_mm
+    low, high = prediction.position_band_mm
+    motion = (
+        f"motion from home {prediction.motion_position_mm:.3g} mm / {prediction.motion_orientation_deg:.3g}° "
+        f"({BAND_PROBABILITY:.0%}: {m_low:.3g}–{m_high:.3g} mm)"
+    )
+    absolute = (
+        f"absolute place in {{J}} {prediction.position_mm:.3g} mm / {prediction.orientation_deg:.3g}° "
+        f"({BAND_PROBABILITY:.0%}: {low:.3g}–{high:.3g} mm)"
+    )
+    where = "workspace" if prediction.workspace else "measured poses"
+    line = f"verdict: expected mean error over the {where}: {motion}, {absolute}"
+    if measured:
+        line += f"; {measured}"
+    if tolerance_mm is None and tolerance_deg is None:
+        return line + "; give --tolerance-mm / --tolerance-deg to compare", False
+    if measured_motion is not None:
+        rms_mm, rms_deg = measured_motion
+        motion_word = _against((rms_mm, rms_mm), rms_deg if rms_deg is not None else 0.0, tolerance_mm, tolerance_deg)
+    else:
+        motion_word = _against(
+            prediction.motion_position_band_mm, prediction.motion_orientation_deg, tolerance_mm, tolerance_deg
+        )
+    absolute_word = _against(prediction.position_band_mm, prediction.orientation_deg, tolerance_mm, tolerance_deg)
+    tolerance = " / ".join(
+        text
+        for text in (
+            None if tolerance_mm is None else f"{tolerance_mm:g} mm",
+            None if tolerance_deg is None else f"{tolerance_deg:g}°",
+        )
+        if text
+    )
+    line += f"; against {tolerance}: motion {motion_word}, absolute place {absolute_word}"
+    if absolute_word != "within" and prediction.limited_by:
+        line += f" (limited by {prediction.limited_by}: poses that tilt and reach to the workspace's edges see it)"
+    if motion_word != "within":
+        line += (
+            "; more poses, spread to the workspace's edges, or a less noisy instrument lower both (stewart-calib plan)"
+        )
+    return line, motion_word != "within" or absolute_word != "within"
 
 
 def estimate_drive_covariance(estimate: Estimate, drive: DriveModel) -> np.ndarray | None:

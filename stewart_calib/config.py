@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
-from .errors import CalibError, shown
+from .errors import CalibError, did_you_mean, shown
 from .inputs import check_document, implausible_sigma_mm
 from .resources import read_toml
 
@@ -270,7 +270,10 @@ def config_from_dict(doc: dict, source: str = "<config>", base: EstimatorConfig 
     updates = {}
     for section, table in doc.items():
         if section not in sections:
-            raise CalibError(f"{source}: unknown section '{section}': expected one of {', '.join(sections)}")
+            raise CalibError(
+                f"{source}: unknown section '{section}'{did_you_mean(section, sections)}: expected one of "
+                f"{', '.join(sections)}"
+            )
         if not isinstance(table, dict):
             raise CalibError(f"{source}: key '{section}': expected a table")
         current = getattr(config, section)
@@ -279,7 +282,8 @@ def config_from_dict(doc: dict, source: str = "<config>", base: EstimatorConfig 
         for key, value in table.items():
             full = f"{section}.{key}"
             if key not in known:
-                raise CalibError(f"{source}: unknown key '{full}': expected one of {', '.join(sorted(known))}")
+                hint = did_you_mean(key, known)
+                raise CalibError(f"{source}: unknown key '{full}'{hint}: expected one of {', '.join(sorted(known))}")
             value = _coerce(source, full, value, getattr(current, key))
             bound = _AT_LEAST.get((section, key))
             if bound is not None and not value > bound[0]:

@@ -24,9 +24,12 @@ with one line naming the cause and its evidence:
    poses (the tracker's forward kinematics, or the registration of an outside instrument),
    should follow its own stroke column with slope ≈ 1; a leg that follows another column, or
    follows its own backwards, is named with the residuals of both wirings;
-6. **orientations mirrored** — a pose instrument's turns between poses against the strokes':
+7. **orientations mirrored** — a pose instrument's turns between poses against the strokes':
    a rotation apart whatever the frame, a mirror image when a quaternion was read in the wrong
    order;
+8. **strokes of another platform** — the angle of the rotation between two poses is the same in
+   any instrument frame and for any target, so over pairs of poses a pose instrument's angles and
+   the strokes' (through the nominal model) correlate, within the drive's errors;
 Every test uses at most :data:`DIAGNOSED_SAMPLES` samples evenly spread over the log, so its
 cost does not grow with the log. Thresholds are ratios far from 1 (a factor
 :data:`UNIT_TOLERANCE` about a unit's factor, :data:`WIRING_GAIN` between two wirings), not
@@ -44,6 +47,7 @@ from . import kinematics as kin
 from .drive import drive_model
 from .errors import CalibError
 from .instruments import instrument_kind
+from .instruments.lie import so3_log
 from .platform import Platform, give_reference_mm
 from .plausibility import REST_FRACTION, check_readings_follow
 from .rotations import rpy_to_rotation
@@ -246,6 +250,44 @@ def _check_handedness(platform: Platform, R: np.ndarray, readings: np.ndarray, w
     )
 
 
+#: the angles between pairs of poses, from the strokes and from the instrument, must correlate at
+#: least this much (a drive's errors leave 0.94–0.99 on the shipped hobby example and simulations;
+#: the strokes of other rows, 0.0 ± 0.02)
+FIT_CORRELATION = 0.5
+#: and the instrument's angles must exceed its orientation noise this many times
+FIT_SIGMAS = 10.0
+
+
+def _check_strokes_fit(platform: Platform, R: np.ndarray, readings: np.ndarray, where: str) -> None:
+    """Strokes that are not this platform's (another robot's log, a rotary robot's angles in the
+    stroke columns), which a registration would meet as poses that "do not rotate": the angle of
+    the rotation between two poses is the same in any frame and for any target (``F⁻¹ X G``: the
+    relative rotation is only conjugated), so over every pair of poses the angles from the strokes
+    through the nominal model and from a pose instrument follow each other within the drive's errors."""
+    if not instrument_kind(platform).measures_orientation:
+        return
+    seen = np.all(np.isfinite(readings), axis=1)
+    if seen.sum() < 3:
+        return
+    R_M, _ = kin.pose_to_rt(readings[seen])
+    R = R[seen]
+    i, j = np.triu_indices(len(R), 1)
+    angle = lambda A: np.linalg.norm(so3_log(np.einsum("nji,njk->nik", A[i], A[j])), axis=1)  # noqa: E731
+    measured, modelled = angle(R_M), angle(R)
+    if not np.sqrt(np.mean(measured**2)) > FIT_SIGMAS * float(platform.instrument.orientation_sigma_rad):
+        return
+    correlation = float(np.corrcoef(measured, modelled)[0, 1]) if np.std(modelled) > 0 else 0.0
+    if correlation < FIT_CORRELATION:
+        mismatch = math.degrees(float(np.sqrt(np.mean((measured - modelled) ** 2))))
+        _refuse(
+            where,
+            f"the strokes do not fit this platform's legs: the angles between pairs of poses that they give the "
+            f"nominal model differ from the instrument's by {mismatch:.3g}° RMS (correlation {correlation:.2f}, "
+            f"expected above {FIT_CORRELATION:g}); expected strokes [mm] of this platform's legs (a log of another "
+            "robot, a rotary robot's angles in the stroke columns, or another --platform?)",
+        )
+
+
 def _check_ratio(where: str, what: str, columns: str, measured: float, expected: float, units, unit_word: str) -> None:
     # readings that do not move are no unit: check_readings_follow names them
     if not (math.isfinite(measured) and math.isfinite(expected)) or expected <= 0 or measured <= 0:
@@ -431,6 +473,8 @@ def diagnose_log(
         _check_reading_units(platform, fk.R[ok], fk.t[ok], readings[ok], where, columns)
         check_readings_follow(platform, fk.R[ok], fk.t[ok], readings[ok], where, columns)
     registers = _check_wiring(platform, strokes, readings, where, stroke_columns)
+    if instrument_kind(platform).outside and ok.sum() >= 3:  # after the wiring: a leg reversed is named as such
+        _check_strokes_fit(platform, fk.R[ok], readings[ok], where)
     if ok.sum() >= 3:  # after the wiring: a reversed leg's poses turn wrongly too, and its cause is named there
         _check_handedness(platform, fk.R[ok], readings[ok], where, columns)
     if not registers and instrument_kind(platform).outside and ok.sum() >= 3:

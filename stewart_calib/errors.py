@@ -53,3 +53,21 @@ def shown(name: object) -> str:
     line breaks, control characters (ESC, OSC, BEL, …) and other unprintable characters as
     Python escapes, so no name can forge a line or reach the terminal as a command."""
     return "".join(ch if ch.isprintable() else ascii(ch)[1:-1] for ch in str(name))
+
+
+def number(value: object) -> str:
+    """A number for a message: 15 significant digits, so that a time read as ``7.1`` from a file
+    shows as ``7.1``, not the ``7.1000000000000005`` that arithmetic on it leaves (``repr``'s 17),
+    while an epoch time keeps its microseconds; anything else as ``str``."""
+    try:
+        return f"{float(value):.15g}"  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return str(value)
+
+
+def did_you_mean(word: str, known) -> str:
+    """``" (did you mean 'x'?)"`` naming the known word nearest a misspelt one, or ``""``."""
+    import difflib  # only a refusal needs it
+
+    close = difflib.get_close_matches(word, sorted(known), n=1, cutoff=0.5)
+    return f" (did you mean '{close[0]}'?)" if close else ""

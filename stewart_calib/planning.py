@@ -357,6 +357,71 @@ def with_stroke_margin(platform: Platform, noise: NoiseConfig) -> Platform:
     return replace(platform, stroke_range=(low + margin, high - margin))
 
 
+def nominal_error(platform: Platform, noise: NoiseConfig) -> PredictedError:
+    """What the nominal model is expected to leave, for a robot built within the prior: the
+    predicted error (:func:`~stewart_calib.accuracy.predicted_error`) of the prior covariance —
+    ``noise.prior_sigma_mm`` on each δM and, with an outside instrument, the stroke scale's prior σ
+    (:func:`~stewart_calib.drive.drive_model`'s) — the yardstick a plan must clearly beat."""
+    from .drive import N_LEGS, drive_model
+
+    drive = drive_model(platform, noise, instrument_kind(platform).outside)
+    sigma = [noise.prior_sigma_mm] * platform.drive.n_params
+    for term in drive.terms:  # the terms up to the first known one, as predicted_error takes them
+        if term.prior_sigma is None:
+            break
+        sigma += [term.prior_sigma] * N_LEGS
+    return predicted_error(platform, np.diag(np.square(sigma)))
+
+
+#: A plan is clearly better than the nominal model when the upper end of its predicted error's
+#: 90 % band is below this fraction of the nominal model's expected error.
+CLEARLY_BETTER = 0.5
+
+
+def plan_warning(platform: Platform, noise: NoiseConfig, predicted: PredictedError, n_poses: int) -> str | None:
+    """The warning of a plan whose predicted error is not clearly better than the nominal model's
+    (:func:`nominal_error`, :data:`CLEARLY_BETTER`) in motion or in absolute place, or whose stroke
+    margin (:func:`with_stroke_margin`) is capped at a quarter of the range — a prior σ wider than the
+    robot's build shrinks the poses' spread — with what to change; None otherwise."""
+    nominal = nominal_error(platform, noise)
+    worse = [
+        f"{what} {after:.3g} mm (90 %: up to {high:.3g} mm) against the nominal model's {before:.3g} mm"
+        for what, after, high, before in (
+            (
+                "motion from home",
+                predicted.motion_position_mm,
+                predicted.motion_position_band_mm[1],
+                nominal.motion_position_mm,
+            ),
+            ("absolute place in {J}", predicted.position_mm, predicted.position_band_mm[1], nominal.position_mm),
+        )
+        if high >= CLEARLY_BETTER * before
+    ]
+    cramped = None
+    if platform.stroke_range is not None and instrument_kind(platform).outside:
+        low, high = platform.stroke_range
+        if STROKE_MARGIN_SIGMAS * noise.prior_sigma_mm >= 0.25 * (high - low):
+            cramped = (
+                f"its strokes keep {0.25 * (high - low):.3g} mm inside the range at each end, a quarter of it (the cap "
+                f"of {STROKE_MARGIN_SIGMAS:g} × noise.prior_sigma_mm {noise.prior_sigma_mm:g} mm), which shrinks the "
+                "poses' spread"
+            )
+    if not worse and cramped is None:
+        return None
+    advice = [f"more than {n_poses} poses", "a less noisy instrument"]
+    if cramped:
+        advice.insert(0, "a noise.prior_sigma_mm as small as the robot's build allows (a narrower stroke margin)")
+    if predicted.limited_by and any(text.startswith("absolute") for text in worse):
+        advice.append(f"a wider workspace, whose poses see {predicted.limited_by.split(' (σ')[0]}")
+    what = (
+        f"this plan is not clearly better than the nominal model (built to prior σ {noise.prior_sigma_mm:g} mm): "
+        + "; ".join(worse)
+        if worse
+        else "this plan's poses are cramped"
+    )
+    return f"warning: {what}{'; ' + cramped if cramped else ''}; change: {', '.join(advice)}"
+
+
 def default_criterion(platform: Platform) -> str:
     """``I`` (the predicted closed-loop error) for an outside instrument, ``A`` for the tracker."""
     return "I" if instrument_kind(platform).outside else DEFAULT_CRITERION

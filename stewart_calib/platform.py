@@ -13,7 +13,6 @@ and :func:`vector_to_params` convert between the two, and nothing else reorders 
 
 from __future__ import annotations
 
-import difflib
 import math
 import sys
 from collections.abc import Callable
@@ -23,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from . import resources
-from .errors import CalibError
+from .errors import CalibError, did_you_mean
 from .inputs import implausible_sigma_mm
 from .rotations import pose_to_rt, transform_points
 
@@ -453,8 +452,7 @@ def _check_keys(doc: dict, source: str) -> None:
                 # a key with a newline or other control character would break the one-line message
                 shown = key if key.isprintable() else key.encode("unicode_escape").decode("ascii")
                 full = f"{table}.{shown}" if table else shown
-                close = difflib.get_close_matches(key, sorted(known), n=1)
-                hint = f" (did you mean '{close[0]}'?)" if close else ""
+                hint = did_you_mean(key, known)
                 raise CalibError(f"{source}: unknown key '{full}'{hint}; expected one of {', '.join(sorted(known))}")
 
 
@@ -739,7 +737,11 @@ def parse_instrument(table, source: str) -> Instrument:
     unused = sorted(set(table) - {"kind", *section.keys})
     if unused:
         known = {key for other in INSTRUMENT_SECTIONS.values() for key in other.keys}
-        why = f"a key that kind = {kind!r} uses" if unused[0] in known else "a known key (spec §7)"
+        why = (
+            f"a key that kind = {kind!r} uses"
+            if unused[0] in known
+            else f"a known key (spec §7){did_you_mean(unused[0], section.keys)}"
+        )
         raise _refuse(source, f"instrument.{unused[0]}", why)
     # a key the kind does not read was refused above: every other key takes its default when absent
     targets = np.zeros((0, 3))

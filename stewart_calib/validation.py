@@ -22,7 +22,7 @@ import numpy as np
 from . import io
 from . import kinematics as kin
 from .drive import tracker_reading_residuals
-from .errors import CalibError
+from .errors import CalibError, number
 from .instruments import instrument_kind
 from .platform import Platform
 from .samples import Log
@@ -48,8 +48,8 @@ def _model_poses(platform: Platform, result: dict, log, source: str, first_sampl
     if not np.all(fk.converged):
         k = int(np.flatnonzero(~fk.converged)[0])
         raise CalibError(
-            f"{source}: sample {first_sample + k + 1} of the log (t_s = {log.t_s[k]!r}): forward kinematics of the "
-            "calibrated model did not converge for its strokes"
+            f"{source}: sample {first_sample + k + 1} of the log (t_s = {number(log.t_s[k])}): forward kinematics "
+            "of the calibrated model did not converge for its strokes"
         )
     return fk.R, fk.t
 
@@ -61,6 +61,19 @@ def _check_nominal(platform: Platform, result: dict, source: str) -> None:
             f"{source}: key 'nominal': expected the nominal drive of platform '{platform.name}'; it differs by "
             f"{gap:.3g} mm"
         )
+
+
+def on_platform(platform: Platform, result: dict) -> dict:
+    """``result`` as a result on ``platform``: itself, or where ``platform`` is the calibrated
+    platform file that result wrote (spec §8: its legs are the result's estimate), the result with
+    no error left on it — as ``compensate`` and ``export`` take it; the blocks as they are."""
+    estimate = np.asarray(result["estimate"], dtype=float)
+    drive = platform.drive.as_vector()
+    if estimate.shape != drive.shape or result.get("platform") != platform.name:
+        return result
+    if float(np.max(np.abs(estimate - drive))) > io.NOMINAL_TOLERANCE_MM:
+        return result
+    return {**result, "nominal": drive.tolist(), "error": [0.0] * len(drive)}
 
 
 def validate(
@@ -101,8 +114,8 @@ def validate(
         if not np.all(seen.converged):
             k = int(np.flatnonzero(~seen.converged)[0])
             raise CalibError(
-                f"sample {first_sample + k + 1} (t_s = {log.t_s[k]!r}): tracker forward kinematics of its readings "
-                "did not converge"
+                f"sample {first_sample + k + 1} (t_s = {number(log.t_s[k])}): tracker forward kinematics of its "
+                "readings did not converge"
             )
         position, orientation = kin.pose_error(seen.R, seen.t, R_X, t_X)
         return predicted, position, orientation
@@ -140,8 +153,8 @@ def pose_error_summary(platform: Platform, result: dict, sample, register: bool,
     """:func:`pose_error_line` of the nominal and the calibrated model on ``sample`` (the log, or
     its first rows); None where a model cannot predict them (e.g. too few poses to fit a frame)."""
     try:
-        outside = instrument_kind(platform).outside
-        before = pose_errors(platform, nominal_model(platform), sample, outside, "the nominal platform")
+        nominal = registered_nominal_model(platform, sample)
+        before = pose_errors(platform, nominal, sample, False, "the nominal platform")
         after = pose_errors(platform, result, sample, register, str(source))
     except CalibError:
         return None
@@ -166,9 +179,9 @@ def measurement_residuals(
     log_label: str = "the calibration log",
 ):
     """Measured minus predicted per measurement column of the log (file units), with the nominal
-    model (an outside instrument's frame registered on the log) and with the calibration ``result``
-    — the predictions of ``validate`` (spec §7): the logged strokes through forward kinematics of the
-    model, then what the instrument reads there
+    model (an outside instrument's frame and target(s) at their best registration on the log) and
+    with the calibration ``result`` — the predictions of ``validate`` (spec §7): the logged strokes
+    through forward kinematics of the model, then what the instrument reads there
     (see :class:`~stewart_calib.viz.html_report.Residuals`). ``predicted``: the calibrated
     model's predictions [code units] when the caller has them (e.g. with a re-registered frame)."""
     from .viz.html_report import Residuals  # matplotlib-free module, but only reports need it
@@ -191,10 +204,14 @@ def measurement_residuals(
             return Residuals(tuple(columns), np.asarray(log.t_s), before, after, log_label, "the nominal platform")
     if predicted is None:
         predicted = validate(platform, result, log, False, "the result", errors=False)[0]
-    # An outside instrument's frame is rarely known to centimetres (spec §7): "before" registers it
-    # on the log, so that it measures the nominal robot, not where the cameras happen to stand.
-    before = residual_file_units(validate(platform, nominal, log, outside, "the nominal platform", errors=False)[0])
-    before_model = "the nominal platform" + (", its instrument frame fitted to this log" if outside else "")
+    # An outside instrument's frame and target(s) are rarely known to centimetres (spec §7): "before"
+    # registers them on the log, as the calibration fits them, so that it measures the nominal robot,
+    # not where the cameras happen to stand or where the rigid body's origin was put.
+    if outside:
+        nominal = registered_nominal_model(platform, log)
+    before = residual_file_units(validate(platform, nominal, log, False, "the nominal platform", errors=False)[0])
+    fitted = ", its instrument frame and target(s) fitted to this log" if outside else ""
+    before_model = "the nominal platform" + fitted
     return Residuals(
         tuple(columns), np.asarray(log.t_s), before, residual_file_units(predicted), log_label, before_model
     )
@@ -203,6 +220,84 @@ def measurement_residuals(
 def nominal_model(platform: Platform) -> dict:
     """The nominal platform as a calibration result (no error): what "before" predicts with."""
     return {"nominal": platform.drive.as_vector().tolist(), "error": [0.0] * len(platform.drive.as_vector())}
+
+
+def registered_nominal_model(platform: Platform, log) -> dict:
+    """:func:`nominal_model` with an outside instrument's frame and target(s) at their best
+    registration on ``log`` (:meth:`~stewart_calib.instruments.OutsideModel.best_registration`): the
+    nominal robot with the same instrument unknowns fitted as a calibration fits, the "before" of
+    every comparison. A leg-set tracker has none: the nominal model itself.
+
+    Raises:
+        CalibError: the log cannot be registered, or the nominal model's FK fails for a sample.
+    """
+    nominal = nominal_model(platform)
+    if not instrument_kind(platform).outside:
+        return nominal
+    from .instruments import outside_model
+
+    model = outside_model(platform)
+    R_X, t_X = _model_poses(platform, nominal, log, "the nominal platform")
+    unknowns = model.best_registration(R_X, t_X, log.readings)
+    block = {"names": list(model.unknown_names), "estimate": model.file_values(unknowns).tolist()}
+    return {**nominal, "instrument": block}
+
+
+#: the tail of the χ² test of :func:`unsupported_correction`: a right nominal model is called
+#: unsupported by its log in 1 % of logs
+NO_EVIDENCE_TAIL = 0.01
+
+
+def _whitened_squares(platform: Platform, result: dict, log, source: str) -> tuple[float, int]:
+    """The sum of squares of an outside instrument's whitened residuals (its model's: rotation
+    vectors, not Euler differences) with ``result``'s drive and instrument, and their number."""
+    from .instruments import outside_model
+
+    model = outside_model(platform)
+    R_X, t_X = _model_poses(platform, result, log, source)
+    values = _block(result, "instrument", model.unknown_names, source)
+    unknowns = model.nominal_unknowns() if values is None else model.unknowns_from_file(values)
+    e = model.readings_residual(unknowns, log.readings, R_X, t_X)[0] / model.channel_sigma
+    finite = np.isfinite(e)
+    return float(np.sum(e[finite] ** 2)), int(finite.sum())
+
+
+def unsupported_correction(platform: Platform, result: dict, log, rank: int, correction_mm: float) -> str | None:
+    """The loud line when an outside instrument's log gives no evidence that the nominal model is
+    wrong, None otherwise (or for a leg-set tracker).
+
+    The calibration fits ``rank`` unknowns where the nominal model's best registration
+    (:func:`registered_nominal_model`) fits the instrument's alone; were the nominal model right, the
+    fall of the whitened sum of squares, over the calibrated fit's own noise scale
+    ``s² = SS_after / (rows − rank)``, is χ² with as many degrees of freedom as the drive's share.
+    Below its :data:`NO_EVIDENCE_TAIL` quantile the calibration's ``correction_mm`` (how far it
+    moves the robot) rests on noise: the calibrated robot is likely further from its poses than
+    the nominal one.
+    """
+    if not instrument_kind(platform).outside:
+        return None
+    from .chi_square import chdtri
+    from .instruments import outside_model
+
+    dof = rank - len(outside_model(platform).unknown_names)
+    try:
+        before, _ = _whitened_squares(platform, registered_nominal_model(platform, log), log, "the nominal platform")
+        after, rows = _whitened_squares(platform, result, log, "the result")
+    except CalibError:
+        return None
+    if dof <= 0 or rows <= rank or not after > 0:
+        return None
+    fall = (before - after) / (after / (rows - rank))
+    threshold = chdtri(dof, NO_EVIDENCE_TAIL)
+    if fall >= threshold:
+        return None
+    return (
+        f"WARNING: the log gives no evidence that the nominal model is wrong — fitting the drive's {dof} "
+        f"unknowns lowers the residuals by χ² {fall:.3g}, where a right nominal model's fall below "
+        f"{threshold:.3g} in {1 - NO_EVIDENCE_TAIL:.0%} of logs; the calibrated model moves the robot by "
+        f"{correction_mm:.3g} mm on noise and is likely worse than the nominal one: keep the nominal model, "
+        "or log poses whose errors the instrument can see beyond its noise"
+    )
 
 
 def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str]]) -> np.ndarray | None:

@@ -225,7 +225,7 @@ def test_cli_plans_for_a_motion_capture_platform(tmp_path, capsys, wide_pose):
     )
     printed = capsys.readouterr().out
     assert "planned 20 poses (I from 200 candidates and 729 box extremes" in printed
-    assert "predicted closed-loop (absolute) pose error after calibration:" in printed
+    assert "predicted closed-loop pose error after calibration: absolute in {J}" in printed
     assert read_pose_list(out).shape == (20, 6)
 
 
@@ -253,10 +253,13 @@ def test_a_small_workspace_calibration_warns_in_one_line_and_validate_says_what_
     assert cli_main(["calibrate", *args, "--method", "ls", "--out", str(out), "--report", str(report)]) == 0
     err = capsys.readouterr().err.splitlines()
     warnings = [line for line in err if "predicted closed-loop" in line]
-    assert len(warnings) == 1 and warnings[0].startswith("stewart-calib calibrate: warning: predicted closed-loop")
+    # the same verdict on the poses' conditioning as identifiability's below, then the prediction
+    assert len(warnings) == 1 and warnings[0].startswith("stewart-calib calibrate: warning: poorly conditioned")
+    assert "; predicted closed-loop pose error after calibration: absolute in {J}" in warnings[0]
     predicted = json.loads(out.read_text())["predicted_closed_loop"]
     assert predicted["position_mm"] > accuracy.NOISE_FLOOR_FACTOR * predicted["noise_floor_mm"]
-    assert predicted["warning"] in warnings[0] and f"{predicted['position_mm']:.3g} mm" in warnings[0]
+    assert predicted["warning"].removeprefix("warning: ") in warnings[0]
+    assert f"{predicted['position_mm']:.3g} mm" in warnings[0]
     assert "Predicted closed-loop error" in (report / "index.html").read_text()
 
     assert cli_main(["identifiability", *args]) == 0
@@ -265,8 +268,9 @@ def test_a_small_workspace_calibration_warns_in_one_line_and_validate_says_what_
     held = ["--log", str(tmp_path / "held.csv"), "--out", str(tmp_path / "V.csv")]
     assert cli_main(["validate", "--platform", str(platform_path), "--result", str(out), *held]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
-    assert len(lines) == 2 and "cannot see the robot's closed-loop (absolute) pose error" in lines[1]
-    assert f"the result predicts {predicted['position_mm']:.3g} mm" in lines[1]
+    assert len(lines) == 3 and "cannot see the robot's closed-loop (absolute) pose error" in lines[1]
+    assert lines[2].startswith("stewart-calib validate: verdict: ") and "validate measured the motion" in lines[2]
+    assert f"the result predicts absolute in {{J}} {predicted['position_mm']:.3g} mm" in lines[1]
     low, high = predicted["position_band_mm"]
     assert low < predicted["position_mm"] < high and f"{low:.3g}–{high:.3g} mm" in lines[1]
 

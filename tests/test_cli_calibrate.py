@@ -108,7 +108,8 @@ def test_online_method_writes_result_and_trace(tmp_path, log_path, capsys, fakes
     assert err[0].startswith(
         "stewart-calib calibrate: counting rejected samples: 3 of 10 (first: t_s=2.5: s1 = -1.0 is negative)"
     )
-    assert err[-1].endswith("(counting: 7 samples used, 3 skipped, of 10 rows)")
+    assert err[-2].endswith("(counting: 7 samples used, 3 skipped, of 10 rows)")
+    assert err[-1].startswith("stewart-calib calibrate: verdict: ")  # the line it ends with
 
 
 def test_batch_method_fits_whole_log_and_traces_a_constant(tmp_path, log_path, capsys, fakes):

@@ -691,8 +691,9 @@ def test_a_lock_out_recovery_accounts_for_every_row(tmp_path, capsys, method):
         )
         == 0
     )
-    line = capsys.readouterr().err.splitlines()[-1]
+    *_, line, verdict = capsys.readouterr().err.splitlines()  # calibrate ends with its verdict
     result = read_result(out)
+    assert verdict.startswith("stewart-calib calibrate: verdict: ")
     assert result["recovery"]["count"] >= 1 and "lock-out recover" in line and line.endswith("of 120 rows)")
     _accounted(result, 120)
     if method == "ekf":

@@ -326,7 +326,7 @@ def test_validate_report_shows_the_held_out_errors(pose_run):
     )
     page = (pose_run / "vreport" / "index.html").read_text(encoding="utf-8")
     assert "<h2>Held-out errors</h2>" in page and "<script" not in page.lower()
-    assert "before = the nominal platform, its instrument frame fitted to this log" in page
+    assert "before = the nominal platform, its instrument frame and target(s) fitted to this log" in page
     rows = (pose_run / "V.csv").read_text().splitlines()
     header = rows[0].split(",")
     position = np.array([float(r.split(",")[header.index("position_error_mm")]) for r in rows[1:]])

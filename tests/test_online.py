@@ -9,7 +9,7 @@ import pytest
 
 from stewart_calib.compensation import compensate
 from stewart_calib.config import config_from_dict
-from stewart_calib.errors import CalibError, SampleRejected
+from stewart_calib.errors import CalibError, SampleRejected, number
 from stewart_calib.online import CHECKPOINT_VERSION, ONLINE_METHODS, OnlineCalibrator, Rejections, npz_bytes
 from stewart_calib.samples import Sample
 from tests.faults import INDETERMINANT, degenerate_sample
@@ -83,7 +83,7 @@ def test_a_gtsam_failure_rejects_the_sample_and_the_smoother_is_rebuilt_without_
     calib.save(tmp_path / "c.npz")
     with pytest.raises(
         SampleRejected,
-        match=rf"^sample at t = {log.t_s[bad]} s: gtsam failed in the iSAM2 update \({INDETERMINANT} .*\)$",
+        match=rf"^sample at t = {number(log.t_s[bad])} s: gtsam failed in the iSAM2 update \({INDETERMINANT} .*\)$",
     ):
         calib.update(log[bad])
     assert calib.rejections.by_reason == {"solver failed": 1}

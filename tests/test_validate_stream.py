@@ -105,8 +105,9 @@ def test_streamed_validate_writes_the_whole_logs_file(tmp_path, monkeypatch, cap
     assert (tmp_path / "V.csv").read_text() == text
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == f"stewart-calib validate: {summary}"
-    # an outside instrument's check adds the line on what it cannot see (tests/test_accuracy.py)
-    assert len(lines) == (1 if platform.instrument.kind == "tracker" else 2)
+    # an outside instrument's check adds the line on what it cannot see (tests/test_accuracy.py); the verdict ends
+    assert len(lines) == (2 if platform.instrument.kind == "tracker" else 3)
+    assert lines[-1].startswith("stewart-calib validate: verdict: ")
 
 
 def test_register_instrument_writes_the_whole_logs_file(tmp_path, monkeypatch, capsys):
@@ -117,7 +118,7 @@ def test_register_instrument_writes_the_whole_logs_file(tmp_path, monkeypatch, c
     text, summary = _whole_file(platform, result, tmp_path / "log.csv", register=True)
     assert (tmp_path / "V.csv").read_text() == text
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0] == f"stewart-calib validate: {summary} (instrument re-registered)" and len(lines) == 2
+    assert lines[0] == f"stewart-calib validate: {summary} (instrument re-registered)" and len(lines) == 3
 
 
 def test_a_bad_row_in_a_late_block_leaves_no_output(tmp_path, monkeypatch, capsys):

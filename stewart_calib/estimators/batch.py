@@ -36,7 +36,7 @@ from numpy.typing import ArrayLike
 from .. import kinematics as kin
 from ..config import LSConfig
 from ..drive import DriveModel
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, number
 from ..instruments import OutsideModel, gauge, outside_model
 
 #: a singular value below this fraction of the largest counts as zero
@@ -171,7 +171,7 @@ def fit(
         (
             int(k),
             SampleRejected(
-                f"sample at t = {problem.t_s[k]} s: nominal forward kinematics did not converge",
+                f"sample at t = {number(problem.t_s[k])} s: nominal forward kinematics did not converge",
                 SampleRejected.FK_FAILED,
             ),
         )

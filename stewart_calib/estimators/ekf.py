@@ -65,7 +65,7 @@ import numpy as np
 from .. import kinematics as kin
 from ..config import EstimatorConfig
 from ..drive import PAYLOAD, payload_block
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, number
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta, needs_registration
 from ..platform import Platform
@@ -162,7 +162,8 @@ class LegEKF:
         last_t_s = self._held.samples[-1].t_s if self._held.active and self._held.samples else self.filter.t_s
         if sample.t_s < last_t_s:
             raise SampleRejected(
-                f"ekf: sample at t = {sample.t_s} s is older than the last one ({last_t_s} s)", SampleRejected.TIME_BACK
+                f"ekf: sample at t = {number(sample.t_s)} s is older than the last one ({number(last_t_s)} s)",
+                SampleRejected.TIME_BACK,
             )
         if not self._held.active:
             self.robust.update(sample.t_s, self._prepared(strokes, z, sample))

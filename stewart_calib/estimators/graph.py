@@ -47,7 +47,7 @@ import numpy as np
 from .. import kinematics as kin
 from ..config import EstimatorConfig
 from ..drive import PAYLOAD
-from ..errors import SampleRejected
+from ..errors import SampleRejected, number
 from ..estimate import Estimate
 from ..factors import diagonal_noise, drive_leg, gauge, instrument, instrument_pose, random_walk
 from ..instruments import instrument_model, instrument_theta
@@ -308,7 +308,7 @@ class GraphBuilder:
         strokes, z = check_sample(self.platform, self.model, sample)
         if sample.t_s < state.last_t_s:
             raise SampleRejected(
-                f"sample at t = {sample.t_s} s is older than the last one ({state.last_t_s} s)",
+                f"sample at t = {number(sample.t_s)} s is older than the last one ({number(state.last_t_s)} s)",
                 SampleRejected.TIME_BACK,
             )
         # The current estimate, asked for only where it is needed (isam2 pays a smoother query).

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..config import EstimatorConfig
 from ..drive import PAYLOAD
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, number
 from ..estimate import Estimate
 from ..platform import Platform
 from ..samples import Log, Sample
@@ -392,7 +392,7 @@ class ISAM2Estimator:
         except RuntimeError as err:  # gtsam's C++ exceptions; the smoother may be half-updated
             self._rebuild(self._first_snapshot(), self._replay)
             raise SampleRejected(
-                f"sample at t = {sample.t_s} s: gtsam failed in the iSAM2 update ({first_paragraph(err)})",
+                f"sample at t = {number(sample.t_s)} s: gtsam failed in the iSAM2 update ({first_paragraph(err)})",
                 SampleRejected.SOLVER,
             ) from None
 
@@ -400,7 +400,8 @@ class ISAM2Estimator:
         check_sample(self._builder.platform, self._builder.model, sample)
         if self._held.samples and sample.t_s < self._held.samples[-1].t_s:
             raise SampleRejected(
-                f"sample at t = {sample.t_s} s is older than the last one ({self._held.samples[-1].t_s} s)",
+                f"sample at t = {number(sample.t_s)} s is older than the last one "
+                f"({number(self._held.samples[-1].t_s)} s)",
                 SampleRejected.TIME_BACK,
             )
         self._held.hold_then_replay(sample, self._registered, self.update)

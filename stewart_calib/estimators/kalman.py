@@ -34,7 +34,7 @@ import numpy as np
 from .. import _kernels
 from .._jit import B_1, BOOL, F8_1, F8_2, FLOAT, I8_1, I8_2, INT, LEGS, Tuple, njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, number
 from ..estimate import Estimate
 from ..unknowns import UnknownLayout, gauge_conditioned
 from .base import checked_covariance, checked_time, state_array
@@ -602,16 +602,17 @@ class FilterState:
         )
         if status == STEP_NON_FINITE:
             raise SampleRejected(
-                f"{self.method}: sample at t = {t_s} s gives a non-finite observation", SampleRejected.NON_FINITE
+                f"{self.method}: sample at t = {number(t_s)} s gives a non-finite observation",
+                SampleRejected.NON_FINITE,
             )
         if status == STEP_NOT_POSITIVE_DEFINITE:
             raise SampleRejected(
-                f"{self.method}: sample at t = {t_s} s: innovation covariance not positive definite",
+                f"{self.method}: sample at t = {number(t_s)} s: innovation covariance not positive definite",
                 SampleRejected.NOT_POSITIVE_DEFINITE,
             )
         if status == STEP_GATED:
             raise SampleRejected(
-                f"{self.method}: sample at t = {t_s} s gated: NIS {nis:.3g} > χ² bound {gate_nis:.3g}",
+                f"{self.method}: sample at t = {number(t_s)} s gated: NIS {nis:.3g} > χ² bound {gate_nis:.3g}",
                 SampleRejected.GATED,
             )
         self.nis, self.S = nis, S

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..chi_square import chdtri
 from ..config import EstimatorConfig
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, number
 from ..estimate import Estimate
 from ..platform import Platform
 from ..samples import Sample
@@ -280,7 +280,7 @@ class BatchLM(BufferedFit):
                 graph.remove(k)
             values.erase(x)
             err = SampleRejected(
-                f"lm: sample at t = {t_s} s fails the gross-error test (χ² of its measurements at the "
+                f"lm: sample at t = {number(t_s)} s fails the gross-error test (χ² of its measurements at the "
                 "batch's robust noise scale)",
                 SampleRejected.GATED,
             )

@@ -24,7 +24,7 @@ from .. import _kernels
 from .. import kinematics as kin
 from ..config import EstimatorConfig, NoiseConfig
 from ..drive import DriveModel, drive_model
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, number
 from ..instruments import (
     InstrumentModel,
     PoseObservation,
@@ -55,20 +55,20 @@ def check_sample(platform: Platform, model: InstrumentModel, sample: Sample) -> 
         strokes.shape == (legs,) and math.isfinite(sample.t_s) and _kernels.all_within(strokes, float(lo), float(hi))
     ):
         if not np.isfinite(sample.t_s):
-            raise SampleRejected(f"sample at t = {sample.t_s} s: non-finite time", SampleRejected.NON_FINITE)
+            raise SampleRejected(f"sample at t = {number(sample.t_s)} s: non-finite time", SampleRejected.NON_FINITE)
         if strokes.shape != (legs,):
             raise SampleRejected(
-                f"sample at t = {sample.t_s} s: expected {legs} stroke q values, got shape {strokes.shape}",
+                f"sample at t = {number(sample.t_s)} s: expected {legs} stroke q values, got shape {strokes.shape}",
                 SampleRejected.NON_FINITE,
             )
         bad = np.flatnonzero(~np.isfinite(strokes))
         if bad.size:
             raise SampleRejected(
-                f"sample at t = {sample.t_s} s: stroke q{bad[0] + 1} is not finite", SampleRejected.NON_FINITE
+                f"sample at t = {number(sample.t_s)} s: stroke q{bad[0] + 1} is not finite", SampleRejected.NON_FINITE
             )
         i = int(np.flatnonzero((strokes < lo) | (strokes > hi))[0])
         raise SampleRejected(
-            f"sample at t = {sample.t_s} s: stroke q{i + 1} = {strokes[i]:.6g} mm outside [{lo}, {hi}] mm",
+            f"sample at t = {number(sample.t_s)} s: stroke q{i + 1} = {strokes[i]:.6g} mm outside [{lo}, {hi}] mm",
             SampleRejected.OUT_OF_RANGE,
         )
     return strokes, model.check(sample.readings, sample.t_s)
@@ -410,5 +410,7 @@ def measured_pose(
     step 1), or ``SampleRejected``."""
     observed = pose.solve(z, np.zeros(0) if theta is None else theta)
     if observed is None:
-        raise SampleRejected(f"sample at t = {t_s} s: the measurement does not fix a pose", SampleRejected.NO_POSE)
+        raise SampleRejected(
+            f"sample at t = {number(t_s)} s: the measurement does not fix a pose", SampleRejected.NO_POSE
+        )
     return observed.R, observed.t

@@ -22,7 +22,7 @@ from ..errors import CalibError
 from ..kinematics import pose_to_rt
 from ..platform import Instrument, Platform
 from ..unknowns import UnknownBlock
-from . import gauge
+from . import gauge, registration
 from .base import InstrumentModel
 
 #: prior σ of the instrument's unknowns for the methods that take one (ekf, isam2, lm), about the
@@ -136,6 +136,23 @@ class OutsideModel(InstrumentModel):
     @abstractmethod
     def unknowns_from_file(self, values) -> Any:
         """Unknowns from their file values (a result's ``"instrument"`` block)."""
+
+    def best_registration(self, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray) -> Any:
+        """The frame and target(s) that best map platform poses X onto the readings: the closed
+        form (:meth:`register`), then plain least squares over all of them
+        (:func:`~.registration.refine`) — the same instrument unknowns a calibration fits, so that
+        the nominal model's errors here are what it leaves at its best, not where the cameras and
+        the rigid body's origin happen to be.
+
+        Raises:
+            CalibError: as :meth:`register`.
+        """
+        start = self.register(R_X, t_X, measured)
+        return registration.refine(self, start, measured, R_X, t_X, frame_only=False)
+
+    def file_values(self, unknowns) -> np.ndarray:
+        """The unknowns in file units (a result's ``"instrument"`` block): :meth:`unknowns_from_file`'s inverse."""
+        return self.theta(unknowns) * self.unknowns.file_scale
 
     def seen_channels(self, R_X: np.ndarray, t_X: np.ndarray) -> np.ndarray:
         """``(N, m)`` True where the instrument reads the channel at platform pose X: all of them,

@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from .. import kinematics as kin
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, number
 from ..kinematics import skew
 from ..platform import INSTRUMENT_SECTIONS, Instrument, Platform
 from . import lie, registration
@@ -269,11 +269,11 @@ class PointsModel(OutsideModel):
         reading = np.asarray(z, dtype=float)
         if reading.shape != self.channel_sigma.shape:
             raise SampleRejected(
-                f"sample at t = {t_s} s: expected {self.channel_sigma.size} target coordinates",
+                f"sample at t = {number(t_s)} s: expected {self.channel_sigma.size} target coordinates",
                 SampleRejected.NON_FINITE,
             )
         if not np.any(np.isfinite(reading)):
-            raise SampleRejected(f"sample at t = {t_s} s: no target seen", SampleRejected.NON_FINITE)
+            raise SampleRejected(f"sample at t = {number(t_s)} s: no target seen", SampleRejected.NON_FINITE)
         return reading
 
     def groups(self, z: np.ndarray) -> list[np.ndarray]:
@@ -365,7 +365,7 @@ class PointsModel(OutsideModel):
         return register_points(R_X, t_X, measured, self.instrument.position_sigma_mm)
 
     def refit_frame(self, unknowns, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray) -> PointsUnknowns:
-        """Kabsch of the targets seen onto their readings for F, then :func:`~.registration.refine_frame`.
+        """Kabsch of the targets seen onto their readings for F, then :func:`~.registration.refine`.
 
         Raises:
             CalibError: fewer than 3 distinct poses.
@@ -379,7 +379,7 @@ class PointsModel(OutsideModel):
         seen = np.all(np.isfinite(m), axis=2)
         R_F, t_F = kabsch(m[seen], in_base[seen])  # y = R_F m + t_F
         start = PointsUnknowns(R_F, t_F, unknowns.targets)
-        return registration.refine_frame(self, start, measured, R_X, t_X)
+        return registration.refine(self, start, measured, R_X, t_X)
 
     def unknowns_from_file(self, values) -> PointsUnknowns:
         values = np.asarray(values, dtype=float)

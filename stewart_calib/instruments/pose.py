@@ -26,7 +26,7 @@ import numpy as np
 
 from .. import _kernels
 from .. import kinematics as kin
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, number
 from ..kinematics import rt_to_pose
 from ..platform import INSTRUMENT_SECTIONS, Instrument, Platform
 from . import lie, registration
@@ -246,7 +246,7 @@ class PoseModel(OutsideModel):
         reading = np.asarray(z, dtype=float)
         if reading.shape != (6,) or not np.all(np.isfinite(reading)):
             raise SampleRejected(
-                f"sample at t = {t_s} s: expected a finite pose reading (6 values)", SampleRejected.NON_FINITE
+                f"sample at t = {number(t_s)} s: expected a finite pose reading (6 values)", SampleRejected.NON_FINITE
             )
         return reading
 
@@ -322,7 +322,7 @@ class PoseModel(OutsideModel):
         return register_pose(R_X, t_X, *kin.pose_to_rt(measured), self.channel_sigma)
 
     def refit_frame(self, unknowns, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray) -> PoseUnknowns:
-        """Horn's closed form of ``X G = F M`` for F, then :func:`~.registration.refine_frame`.
+        """Horn's closed form of ``X G = F M`` for F, then :func:`~.registration.refine`.
 
         Raises:
             CalibError: fewer than 3 distinct poses.
@@ -334,7 +334,7 @@ class PoseModel(OutsideModel):
         R_F = lie.project_to_rotation(np.einsum("kij,klj->il", R_P, R_M))
         t_F = np.mean(t_P - np.einsum("ij,kj->ki", R_F, t_M), axis=0)
         start = PoseUnknowns(R_F, t_F, unknowns.R_target, unknowns.t_target)
-        return registration.refine_frame(self, start, measured, R_X, t_X)
+        return registration.refine(self, start, measured, R_X, t_X)
 
     def unknowns_from_file(self, values) -> PoseUnknowns:
         values = np.asarray(values, dtype=float)

@@ -12,9 +12,11 @@ unknowns that best map the **nominal** forward-kinematics poses ``X_k`` onto wha
   ``R_F`` taken as a free 3 × 3 matrix; solve, project ``R_F`` onto SO(3), solve again for
   ``t_F`` and ``p_j`` with it held.
 
-:func:`refine_frame` fits the frame alone (the target(s) and the robot's model held), for
-``validate --register-instrument``: after the kind's closed form (Horn/Kabsch), a few Gauss–Newton
-steps on the whitened residual, as the two halves of a pose reading carry different noise.
+:func:`refine` fits the frame alone (the target(s) and the robot's model held), for
+``validate --register-instrument``, or the frame and the target(s) together, for the nominal
+model's best registration (the "before" every command reports): after the closed form, a few
+Gauss–Newton steps on the whitened residual, as the two halves of a pose reading carry different
+noise and the closed forms do not weigh them.
 
 Each kind's closed forms are its model's (:meth:`~.pose.PoseModel.register`,
 :meth:`~.points.PointsModel.register`, ``refit_frame``); what they share is here.
@@ -63,20 +65,22 @@ def require_distinct(readings: np.ndarray, scale: np.ndarray, what: str) -> None
         )
 
 
-#: Gauss–Newton steps of :func:`refine_frame` after the closed form (it converges in 2–3)
-REFIT_ITERATIONS = 10
+#: Gauss–Newton steps of :func:`refine` after the closed form (it converges in 2–4)
+REFIT_ITERATIONS = 20
 
 
-def refine_frame(model, current, measured: np.ndarray, R_X: np.ndarray, t_X: np.ndarray):
+def refine(model, current, measured: np.ndarray, R_X: np.ndarray, t_X: np.ndarray, frame_only: bool = True):
     """Gauss–Newton on the whitened residual of ``model`` (an :class:`~.external.OutsideModel`)
-    over the frame alone, from ``current`` (its closed-form start, target(s) held): the two halves
-    of a pose reading carry different noise, which the closed form does not weigh."""
+    over the frame alone (``frame_only``, the target(s) held) or over the frame and the target(s),
+    from ``current`` (a closed-form start): plain least squares, no robust kernel, so that what it
+    leaves is the best any registration of these poses can do."""
     sigmas = model.channel_sigma
     for _ in range(REFIT_ITERATIONS):
         e, _, H_u = model.readings_residual(current, measured, R_X, t_X, jacobians=True)
         rows = np.isfinite(e)
-        step, *_ = np.linalg.lstsq((H_u[..., :6] / sigmas[:, None])[rows], -(e / sigmas)[rows], rcond=None)
-        current = current.retract(np.r_[step, np.zeros(current.size - 6)])
+        H = H_u[..., :6] if frame_only else H_u
+        step, *_ = np.linalg.lstsq((H / sigmas[:, None])[rows], -(e / sigmas)[rows], rcond=None)
+        current = current.retract(np.r_[step, np.zeros(current.size - step.size)])
         if np.max(np.abs(step)) < 1e-12:
             break
     return current

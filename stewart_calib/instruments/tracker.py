@@ -25,7 +25,7 @@ import numpy as np
 from .. import _kernels
 from .. import kinematics as kin
 from ..config import NoiseConfig
-from ..errors import SampleRejected
+from ..errors import SampleRejected, number
 from ..platform import INSTRUMENT_SECTIONS, Instrument, LegGeometry, Platform
 from ..unknowns import UnknownBlock
 from .base import InstrumentModel, PoseObservation, Residual, Spread
@@ -118,17 +118,17 @@ class TrackerModel(InstrumentModel):
         if readings.shape != self.channel_sigma.shape:
             expected = len(self.channel_sigma)
             raise SampleRejected(
-                f"sample at t = {t_s} s: expected {expected} reading s values, got shape {readings.shape}",
+                f"sample at t = {number(t_s)} s: expected {expected} reading s values, got shape {readings.shape}",
                 SampleRejected.NON_FINITE,
             )
         bad = np.flatnonzero(~np.isfinite(readings))
         if bad.size:
             raise SampleRejected(
-                f"sample at t = {t_s} s: reading s{bad[0] + 1} is not finite", SampleRejected.NON_FINITE
+                f"sample at t = {number(t_s)} s: reading s{bad[0] + 1} is not finite", SampleRejected.NON_FINITE
             )
         i = int(np.flatnonzero((readings < lo) | (readings > hi))[0])
         raise SampleRejected(
-            f"sample at t = {t_s} s: reading s{i + 1} = {readings[i]:.6g} mm outside [{lo}, {hi}] mm",
+            f"sample at t = {number(t_s)} s: reading s{i + 1} = {readings[i]:.6g} mm outside [{lo}, {hi}] mm",
             SampleRejected.OUT_OF_RANGE,
         )
 

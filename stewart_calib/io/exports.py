@@ -400,6 +400,7 @@ MAPPING_KEYS = {
     "instrument": {
         "time",
         "time_unit",
+        "time_format",
         "position",
         "position_unit",
         "quaternion",
@@ -663,6 +664,34 @@ class PointListTally:
         return text
 
 
+#: how a point list's time column is written: seconds (× time_unit) or ISO 8601 date-times
+TIME_FORMATS = ("number", "iso")
+
+
+def iso_seconds(text: str) -> float:
+    """An ISO 8601 date-time (``2026-03-14T09:26:53.589`` or with a space, ``Z`` or an offset) as
+    seconds since the Unix epoch; one without a zone is taken as UTC, so that a log's times keep
+    their differences whatever the machine's zone.
+
+    Raises:
+        ValueError: not an ISO date-time.
+    """
+    import datetime
+
+    stamp = datetime.datetime.fromisoformat(text.strip())
+    if stamp.tzinfo is None:
+        stamp = stamp.replace(tzinfo=datetime.UTC)
+    return stamp.timestamp()
+
+
+def _is_iso(text: str) -> bool:
+    try:
+        iso_seconds(text)
+    except ValueError:
+        return False
+    return True
+
+
 def point_list_blocks(
     path: Path, mapping_path: Path, table: dict, up_default: str = "z", tally: PointListTally | None = None
 ):
@@ -683,6 +712,7 @@ def point_list_blocks(
             "'targets' (1 to 3 names, in the order of p1, p2, p3) and 'position' (3 columns)",
         )
     time_scale = S_PER[mapping_value(mapping_path, table, section, "time_unit", "s", str, tuple(S_PER))]
+    iso = mapping_value(mapping_path, table, section, "time_format", "number", str, TIME_FORMATS) == "iso"
     unit = mapping_value(mapping_path, table, section, "position_unit", "mm", str, tuple(MM_PER))
     up = mapping_value(mapping_path, table, section, "up", up_default, str, ("y", "z"))
     time_j, target_j, *xyz = column_indices(path, header, [time, target, *position], "instrument")
@@ -711,10 +741,20 @@ def point_list_blocks(
                 if not fields:
                     continue
                 try:
-                    t = float(fields[time_j]) * time_scale
+                    t = iso_seconds(fields[time_j]) if iso else float(fields[time_j]) * time_scale
                     p = [float(fields[j]) * MM_PER[unit] for j in xyz]
                 except (ValueError, IndexError):
-                    _refuse(path, f"row {number}: expected numbers in columns {time!r}, {', '.join(position)}")
+                    stamp = fields[time_j] if time_j < len(fields) else ""
+                    hint = (
+                        f' ({stamp!r} is an ISO date-time: set time_format = "iso" in [instrument])'
+                        if not iso and _is_iso(stamp)
+                        else ""
+                    )
+                    what = "an ISO date-time" if iso else "a number"
+                    _refuse(
+                        path,
+                        f"row {number}: expected {what} in column {time!r} and numbers in {', '.join(position)}{hint}",
+                    )
                 name = fields[target_j].strip()
                 if name not in targets:  # another target of the job (a reference nest): not on the platform
                     tally.others[name] = tally.others.get(name, 0) + 1

@@ -180,8 +180,11 @@ def _time_backwards(t_s: float, latest_s: float) -> str:
 def _log_columns(path: Path, header: list[str], platform: Platform | None = None) -> tuple[bool, list[str], list[str]]:
     """``(has_pose, numeric columns, text columns)`` of a log header (spec §3, §7)."""
     required = ("t_s", *STROKE_COLUMNS, *reading_columns(platform))
+    # missing columns of one kind are named for what they hold: the drive's strokes are no instrument's
     missing = [name for name in required if name not in header]
-    if missing and _kind(platform).outside:
+    if missing and set(missing) <= set(STROKE_COLUMNS):
+        raise CalibError(f"{path}: row 1: missing column(s) {', '.join(missing)} of the drive's strokes [mm] (spec §3)")
+    if missing and _kind(platform).outside and set(missing) <= set(reading_columns(platform)):
         raise CalibError(
             f"{path}: row 1: missing column(s) {', '.join(missing)} of the {_instrument(platform).kind} instrument "
             "that the platform's [instrument] names (spec §7)"

@@ -6,10 +6,12 @@ pieces it shares with each pipeline's ``main(argv)`` live here, so nothing point
 
 import argparse
 import importlib
+import math
 import os
 import sys
 
 from ..errors import CalibError, shown
+from ..resources import shipped_names
 
 
 class Parser(argparse.ArgumentParser):
@@ -260,7 +262,8 @@ def add_config_arguments(parser: argparse.ArgumentParser, example: str = "isam2.
     parser.add_argument(
         "--config",
         metavar="C.toml",
-        help="estimator config: a file or a shipped name (default, paper); default: default.toml values",
+        help=f"estimator config: a file or a shipped name ({', '.join(shipped_names('estimators'))}); "
+        "default: default.toml values",
     )
     parser.add_argument(
         "--set",
@@ -268,6 +271,32 @@ def add_config_arguments(parser: argparse.ArgumentParser, example: str = "isam2.
         default=[],
         metavar="SECTION.KEY=VALUE",
         help=f"override a config value, e.g. {example}",
+    )
+
+
+def _tolerance(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite positive number, got {text!r}")
+    return value
+
+
+def add_tolerance_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--tolerance-mm``, ``--tolerance-deg`` and ``--fail-over-tolerance``: what the verdict line
+    (:func:`~stewart_calib.accuracy.verdict_line`) compares the expected errors with."""
+    parser.add_argument(
+        "--tolerance-mm", type=_tolerance, metavar="MM", help="position error the robot must keep to (verdict)"
+    )
+    parser.add_argument(
+        "--tolerance-deg", type=_tolerance, metavar="DEG", help="orientation error the robot must keep to (verdict)"
+    )
+    parser.add_argument(
+        "--fail-over-tolerance",
+        action="store_true",
+        help="exit 1 when the verdict is over the tolerance or not surely within it (outputs are written)",
     )
 
 

@@ -28,12 +28,12 @@ import numpy as np
 
 from .. import __version__, calibration, estimators, io
 from .. import kinematics as kin
-from ..accuracy import estimate_summary
+from ..accuracy import PredictedError, estimate_summary, verdict_line
 from ..calibration import Calibration, EvenlySpacedSamples, SampleSpool, Tally, run_calibration, stream_calibration
 from ..config import load_estimator_config
 from ..diagnosis import diagnose_log
 from ..drive import drive_model
-from ..errors import CalibError
+from ..errors import CalibError, number
 from ..estimate import Estimate
 from ..estimators.base import (
     accounting_words,
@@ -55,8 +55,14 @@ from ..platform import Platform, load_platform
 from ..plausibility import check_plausible
 from ..progress import MIN_LOG_ROWS
 from ..samples import Log
-from ..validation import measurement_residuals, nominal_residuals, pose_error_summary, streamed_residual_rms
-from . import add_config_arguments, check_output_path, handover, run_command
+from ..validation import (
+    measurement_residuals,
+    nominal_residuals,
+    pose_error_summary,
+    streamed_residual_rms,
+    unsupported_correction,
+)
+from . import add_config_arguments, add_tolerance_arguments, check_output_path, handover, run_command
 
 
 def _summary(what: str, count: int, total: int, first: str) -> str:
@@ -217,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
                     f"{args.method} rejected samples:",
                     rejections.count,
                     n_samples,
-                    f"t_s={first_rejected_t_s!r}: {rejections.first}",
+                    f"t_s={number(first_rejected_t_s)}: {rejections.first}",
                 ),
                 file=sys.stderr,
             )
@@ -232,7 +238,9 @@ def run(args: argparse.Namespace) -> int:
             extra["conditioning"] = conditioning_summary(report)
         else:
             poses = nominal_poses(platform, checked)
-            extra["conditioning"] = outside_conditioning(platform, checked)
+            conditioning = outside_conditioning(platform, checked)
+            extra["conditioning"] = conditioning
+            warning = outside_warning_line(conditioning)
         # the tracker's methods carry a random walk and the paper's forms: their covariances are not the
         # static Cramér–Rao bound the noise floor is, so only an outside instrument's is compared with it
         floor = noise_floor(platform, estimate.samples_used, config.noise) if outside else None
@@ -270,6 +278,18 @@ def run(args: argparse.Namespace) -> int:
             result_data["residual_rms"] = handover.residual_rms_field(residuals)
         result_json = io.result_text(result_data, str(out))
         pose_line = _pose_error_line(platform, result_data, checked, n_samples)
+        unsupported = None
+        if outside and predicted.get("available", True):
+            rank = int(conditioning["rank"])
+            unsupported = unsupported_correction(platform, result_data, checked, rank, predicted["correction_mm"])
+        prediction = PredictedError.from_dict(predicted)
+        verdict, over = (
+            verdict_line(prediction, args.tolerance_mm, args.tolerance_deg)
+            if prediction is not None
+            else ("verdict: none — the estimate has no covariance to predict its error from", True)
+        )
+        if unsupported:
+            verdict = f"{verdict}; the log gives no evidence the calibration improves on the nominal model"
         trace_csv = None
         if trace_path and not streamed and result.trace is not None:
             trace_csv = io.trace_text(log.t_s, result.trace, names=platform.drive.parameter_names)
@@ -290,9 +310,9 @@ def run(args: argparse.Namespace) -> int:
 
             inputs = {"platform file": str(args.platform), "log": str(args.log)}
             forces = None if leg_forces is None else LegForces(np.asarray(log.t_s), *leg_forces[:2])
-            page = report_html(
-                f"Calibration of {platform.name} with {args.method}", result_data, residuals, None, inputs, forces
-            )
+            title = f"Calibration of {platform.name} with {args.method}"
+            shown = " — ".join(text for text in (verdict, unsupported) if text)
+            page = report_html(title, result_data, residuals, None, inputs, forces, shown)
         if rerun_path:
             batch = not estimators.method_spec(args.method).online
             _write_rerun(rerun_path, platform, args.method, log, result, batch, leg_forces)
@@ -305,18 +325,40 @@ def run(args: argparse.Namespace) -> int:
     io.atomic_write_text(out, result_json)
     if pose_line:
         print(f"stewart-calib calibrate: {pose_line}", file=sys.stderr)
+    if unsupported:
+        print(f"stewart-calib calibrate: {unsupported}", file=sys.stderr)
     print(
         f"stewart-calib calibrate: wrote {out} ({args.method}: {estimate.samples_used} samples used, "
         f"{samples_skipped} skipped{accounting_words(estimate.details or {})}, of {n_samples + skipped.count} rows)",
         file=sys.stderr,
     )
-    return 0
+    print(f"stewart-calib calibrate: {verdict}", file=sys.stderr)
+    return 1 if over and args.fail_over_tolerance else 0
+
+
+def outside_warning_line(conditioning: dict) -> str | None:
+    """The warning ``identifiability --log`` gives of an outside instrument's poses, in its words:
+    its verdict on the equilibrated condition number (:data:`~stewart_calib.identifiability.CONDITION_POOR`)."""
+    from ..identifiability import CONDITION_POOR
+
+    verdict = conditioning.get("verdict")
+    if verdict == "rank-deficient":
+        return (
+            f"warning: the poses do not identify all {conditioning['unknowns']} unknowns (rank "
+            f"{conditioning['rank']}): {'; '.join(conditioning['null_space'][:3])}"
+        )
+    if verdict == "poorly conditioned":
+        return (
+            f"warning: poorly conditioned (condition number {conditioning['condition_number_equilibrated']:.3g} "
+            f"with unit columns > {CONDITION_POOR:g}); weakest direction {conditioning['weakest_directions'][0]}"
+        )
+    return None
 
 
 def _pose_error_line(platform: Platform, result: dict, checked: Log, n_samples: int) -> str | None:
     """What an engineer looks for first: the pose error before (nominal model; an outside
-    instrument's frame registered on the log) and after (the calibration), per axis and rotation,
-    over the evenly spaced samples the conditioning uses."""
+    instrument's frame and target(s) at their best registration on the log) and after (the
+    calibration), per axis and rotation, over the evenly spaced samples the conditioning uses."""
     line = pose_error_summary(platform, result, checked, False, n_samples, "the result")
     return line and line.replace(f"(first {len(checked)} rows)", f"({len(checked)} evenly spaced samples)")
 
@@ -345,6 +387,7 @@ def add_parser(subparsers) -> None:
         "--skip-bad-rows", action="store_true", help="skip bad log rows (reported) instead of refusing the log"
     )
     add_config_arguments(parser)
+    add_tolerance_arguments(parser)
     parser.set_defaults(func=run)
 
 

@@ -99,10 +99,10 @@ def _prediction(platform: Platform, covariance, poses, n_poses: int, noise) -> d
     """Print the predicted closed-loop error line of a pose set's Cramér–Rao covariance (over the
     workspace, or the poses themselves where the platform has none), warned against the noise
     floor of as many poses; its JSON field."""
-    from ..accuracy import predicted_error, summary_line
+    from ..accuracy import PREDICTION_HEAD, predicted_error, summary_line
     from ..planning import noise_floor
 
-    head = "predicted closed-loop (absolute) pose error after calibration: none"
+    head = f"{PREDICTION_HEAD}: none"
     if covariance is None:
         print(f"{head} (the poses do not identify every unknown)")
         return {"predicted_closed_loop": None}

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import io
-from ..errors import CalibError
+from ..errors import CalibError, number
 from ..instruments import MODELS
 from ..io import exports
 from ..io.exports import Block
@@ -172,6 +172,10 @@ def _instrument(args, mapping: dict, mapping_path) -> tuple:
     return read_again, what, kind, path, tally
 
 
+#: a --max-gap-s below this many of the controller's row periods is hinted at when rows are dropped
+GAP_PERIODS = 1.5
+
+
 class ControllerLog:
     """The controller's strokes [mm] on its clock, read a block at a time and kept only as far
     back as the next measurement needs (the measurements come in time order)."""
@@ -185,6 +189,18 @@ class ControllerLog:
         self._blocks = exports.numeric_blocks(path, 2, header, indices)
         self.t_s, self.q_mm = np.zeros(0), np.zeros((0, 6))
         self.rows, self.first_s, self._latest, self._done = 0, math.nan, -math.inf, False
+        self.period_s = math.nan  # the median step of its first block: a --max-gap-s below it joins few rows
+
+    def gap_hint(self, max_gap_s: float) -> str:
+        """``"; --max-gap-s 0.1 s is within 1.5× the controller's row period …"`` where it is, else ``""``."""
+        enough = round(GAP_PERIODS * self.period_s, 6)  # to the µs: 1.5 × 0.1 is 0.15, not 0.15000000000000002
+        if not (math.isfinite(self.period_s) and max_gap_s < enough):
+            return ""
+        return (
+            f"; --max-gap-s {max_gap_s:g} s is within {GAP_PERIODS:g}× the controller's row period "
+            f"({number(self.period_s)} s), so the two rows around a measurement are often further apart: give "
+            f"--max-gap-s {number(enough)} or more"
+        )
 
     def _read(self) -> bool:
         block = next(self._blocks, None)
@@ -202,6 +218,8 @@ class ControllerLog:
             )
         if not self.rows:
             self.first_s = float(block.t_s[0])
+            if len(block.t_s) > 1:
+                self.period_s = float(np.median(np.diff(block.t_s)))
         self.rows += len(block.t_s)
         self.t_s = np.concatenate([self.t_s, block.t_s])
         self.q_mm = np.concatenate([self.q_mm, self.columns.convert(block.values)])
@@ -223,6 +241,27 @@ class ControllerLog:
         while self._read():
             self.t_s, self.q_mm = self.t_s[-1:], self.q_mm[-1:]
         return float(self.t_s[-1]) if len(self.t_s) else math.nan
+
+
+#: the time units a clock may be logged in, by how many of them make a second
+TIME_UNITS = {"ms": 1e3, "us": 1e6, "ns": 1e9}
+
+
+def time_unit_hint(instrument_span_s: float, controller_span_s: float) -> str:
+    """``"; the controller's times span 1e+03× the instrument's: …"`` where the two logs of one
+    session span times a unit's factor apart (within 2×: a clock read in the wrong unit), else ``""``."""
+    if not (instrument_span_s > 0 and controller_span_s > 0):
+        return ""
+    ratio = controller_span_s / instrument_span_s
+    for unit, factor in TIME_UNITS.items():
+        if factor / 2 < ratio < 2 * factor:
+            return (
+                f"; the controller's times span {ratio:.3g}× the instrument's: in {unit}? set "
+                f'time_unit = "{unit}" in the mapping\'s [strokes]'
+            )
+        if factor / 2 < 1 / ratio < 2 * factor:
+            return f"; the instrument's times span {1 / ratio:.3g}× the controller's: in {unit}? set its time_unit"
+    return ""
 
 
 def estimate_clock_offset(
@@ -274,7 +313,8 @@ def estimate_clock_offset(
                 return offset, correlation
     raise CalibError(
         f"{where}: cannot estimate the clock offset: the strokes follow the measured motion at best with "
-        f"R = {correlation:.2f} (expected ≥ {MIN_CORRELATION}); give --clock-offset-s"
+        f"R = {correlation:.2f} (expected ≥ {MIN_CORRELATION})"
+        + (time_unit_hint(t_i[-1] - t_i[0], t_c[-1] - t_c[0]) or "; give --clock-offset-s")
     )
 
 
@@ -512,12 +552,16 @@ def run(args: argparse.Namespace) -> int:
                 f"a {kind} log"
             )
     notes: list = [what, *([tally] if tally is not None else []), strokes.what]
+    controller = None
     if args.strokes is None:
         blocks = _same_file_rows(make_blocks, source, strokes, args.csv, notes)
     else:
         offset = _clock_offset(args, stroke_table, make_blocks, strokes, mapping_path, notes, kind, source)
+        estimated = args.clock_offset_s is None and (
+            args.estimate_clock_offset or stroke_table.get("clock_offset_s") == "estimate"
+        )
         controller = ControllerLog(Path(args.strokes), strokes)
-        blocks = _joined_rows(make_blocks(), controller, offset, max_gap_s, notes, source)
+        blocks = _joined_rows(make_blocks(), controller, offset, max_gap_s, notes, source, estimated)
     counts = {"read": 0, "lost": 0, "unjoined": 0, "written": 0}
     checked: list = []
     columns: list[str] = []
@@ -542,23 +586,27 @@ def run(args: argparse.Namespace) -> int:
                 from ..diagnosis import diagnose_log
 
                 readings = io.readings_in_code_units(block.values[use], platform)
-                diagnose_log(platform, strokes_mm[use], readings, str(out), count=False)
+                inputs = str(source) if args.strokes is None else f"{source} with the strokes of {args.strokes}"
+                diagnose_log(platform, strokes_mm[use], readings, inputs, count=False)
                 checked.append(True)
             counts["written"] += int(use.sum())
             yield [block.t_s[use], *strokes_mm[use].T, *block.values[use].T]
         if not counts["read"]:
             raise CalibError(f"{source}: no data rows after the header; expected the instrument's measurements")
         if not counts["written"]:  # raised inside the write: its temporary file is removed
+            hint = controller.gap_hint(max_gap_s) if controller is not None and counts["unjoined"] else ""
             raise CalibError(
                 f"{source}: no row could be written ({counts['read']} read, {counts['lost']} without the body, "
-                f"{counts['unjoined']} without strokes within {max_gap_s:g} s); nothing written"
+                f"{counts['unjoined']} without strokes within {max_gap_s:g} s); nothing written{hint}"
             )
 
     _write(out, rows, columns, MODELS[kind].unseen_channels)
+    gap_hint = controller.gap_hint(max_gap_s) if controller is not None and counts["unjoined"] else ""
     print(
         f"stewart-calib import: wrote {out}: {counts['written']} of {counts['read']} rows ({counts['lost']} where the "
         f"instrument lost the body, {counts['unjoined']} without strokes within {max_gap_s:g} s dropped); "
-        + "; ".join(map(str, notes)),
+        + "; ".join(map(str, notes))
+        + gap_hint,
         file=sys.stderr,
     )
     return 0
@@ -632,7 +680,13 @@ def _clock_offset(args, table: dict, make_blocks, strokes, mapping_path, notes, 
 
 
 def _joined_rows(
-    instrument: Iterator[Block], controller: ControllerLog, offset_s: float, max_gap_s: float, notes, source
+    instrument: Iterator[Block],
+    controller: ControllerLog,
+    offset_s: float,
+    max_gap_s: float,
+    notes,
+    source,
+    estimated: bool = False,
 ):
     """``(block, strokes of the kept rows, kept, lost)`` per instrument block, the strokes from the
     controller's log at ``t + offset``; refuses a join with no overlap at all."""
@@ -654,11 +708,17 @@ def _joined_rows(
         raise CalibError(f"{source}: no data rows after the header; expected the instrument's measurements")
     controller_last = controller.drain()
     if not any_kept:
+        hint = time_unit_hint(last_t - first_t, controller_last - controller.first_s)
+        if not hint:
+            hint = (
+                "; the estimated offset lines up no rows: give --clock-offset-s"
+                if estimated
+                else "; give the clock offset (--clock-offset-s or --estimate-clock-offset)"
+            )
         raise CalibError(
             f"{controller.path}: no measurement falls between two controller rows at most {max_gap_s:g} s apart: "
             f"instrument {first_t:.6g}–{last_t:.6g} s + offset {offset_s:g} s against controller "
-            f"{controller.first_s:.6g}–{controller_last:.6g} s; give the clock offset (--clock-offset-s or "
-            "--estimate-clock-offset)"
+            f"{controller.first_s:.6g}–{controller_last:.6g} s{hint}"
         )
     notes.append(f"{controller.rows} controller rows")
 

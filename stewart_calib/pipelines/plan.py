@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 import time
 
 import numpy as np
 
 from .. import io
-from ..accuracy import predicted_error
+from ..accuracy import PREDICTION_HEAD, predicted_error
 from ..config import load_estimator_config
 from ..diagnosis import require_poses
 from ..errors import CalibError
@@ -26,6 +27,7 @@ from ..planning import (
     design_covariance,
     extreme_poses,
     plan_poses,
+    plan_warning,
     with_stroke_margin,
 )
 from ..platform import load_platform
@@ -132,7 +134,10 @@ def run(args: argparse.Namespace) -> int:
     covariance = design_covariance(platform, poses, noise)
     if covariance is not None:
         prediction = predicted_error(platform, covariance)
-        print(f"predicted closed-loop (absolute) pose error after calibration: {prediction.describe()}")
+        print(f"{PREDICTION_HEAD}: {prediction.describe()}")
+        warning = plan_warning(platform, noise, prediction, len(poses))
+        if warning:
+            print(f"stewart-calib plan: {warning}", file=sys.stderr)
     return 0
 
 

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import io
+from ..accuracy import PredictedError, predicted_error, verdict_line
 from ..diagnosis import diagnose_log
 from ..drive import drive_model
 from ..errors import CalibError
@@ -34,8 +35,8 @@ from ..instruments import instrument_kind
 from ..platform import Platform, load_platform
 from ..progress import log_progress_bar
 from ..samples import Log
-from ..validation import measurement_residuals, pose_error_summary, validate
-from . import handover, run_command
+from ..validation import measurement_residuals, on_platform, pose_error_summary, validate
+from . import add_tolerance_arguments, handover, run_command
 
 
 def add_parser(subparsers) -> None:
@@ -54,6 +55,7 @@ def add_parser(subparsers) -> None:
         help="fit the instrument frame again on this log (the instrument moved since the calibration)",
     )
     parser.add_argument("--report", metavar="DIR", help="also write a static HTML report DIR/index.html (spec §8)")
+    add_tolerance_arguments(parser)
     parser.set_defaults(func=run)
 
 
@@ -61,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     report_dir = args.report and Path(args.report)
     handover.check_report_dir(report_dir)
     platform = load_platform(args.platform)
-    result = io.read_result(args.result)
+    result = on_platform(platform, io.read_result(args.result))  # also on the calibrated platform it wrote
     columns = io.reading_columns(platform)
     header = ["t_s", *columns, *(f"pred_{name}" for name in columns), "position_error_mm"]
     if instrument_kind(platform).measures_orientation:
@@ -78,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
                 platform, result, log, args.register_instrument, str(args.result)
             )
             if report_dir:
-                page = _report_page(args, platform, result, log, predicted, position, orientation)
+                verdict = _verdict(args, platform, result, position, orientation)[0]
+                page = _report_page(args, platform, result, log, predicted, position, orientation, verdict)
             io.write_csv_blocks(
                 args.out, header, [_file_columns(log, predicted, position, orientation, platform)], blank
             )
@@ -105,37 +108,69 @@ def run(args: argparse.Namespace) -> int:
         print(f"stewart-calib validate: {pose_line}", file=sys.stderr)
     if moved:
         print(f"stewart-calib validate: {moved}", file=sys.stderr)
-    return 0
+    verdict, over = _verdict(args, platform, result, position, orientation)
+    print(f"stewart-calib validate: {verdict}")
+    return 1 if over and args.fail_over_tolerance else 0
 
 
-def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray) -> str:
-    """What a check through an outside instrument's frame cannot see, beside what it saw: the
-    frame (fitted with the drive, or again here) absorbs a constant pose error of the robot, so
-    the robot's closed-loop (absolute) error is the result's prediction, not this RMS."""
-    from ..accuracy import BAND_PROBABILITY, predicted_error
+def _verdict(args, platform: Platform, result: dict, position, orientation) -> tuple[str, bool]:
+    """The last line: what this check measured, with the result's expected errors, against the tolerance."""
+    measured = _measured_words(platform, position, orientation)
+    prediction = result_prediction(platform, result)
+    if prediction is None:
+        return f"verdict: {measured}; the result holds no prediction of its error elsewhere", True
+    seen = (_rms(position), None if orientation is None else _rms(orientation))
+    motion = seen if instrument_kind(platform).outside else None
+    return verdict_line(prediction, args.tolerance_mm, args.tolerance_deg, measured, motion)
 
-    seen_rms_mm = float(np.sqrt(np.nanmean(np.asarray(position_mm) ** 2)))
-    head = (
-        "a check through the instrument's calibrated frame cannot see the robot's closed-loop (absolute) "
-        f"pose error (the frame absorbs a constant offset); position RMS here {seen_rms_mm:.4g} mm, "
-    )
-    predicted = result.get("predicted_closed_loop")
-    if isinstance(predicted, dict) and predicted.get("available", True):
-        band = predicted.get("position_band_mm")  # results written before the band have none
-        return (
-            head + f"the result predicts {predicted['position_mm']:.3g} mm / {predicted['orientation_deg']:.3g}° "
-            f"where the robot works (expected mean over {predicted['poses']} {predicted['over']} poses"
-            + (f"; {BAND_PROBABILITY:.0%} of such calibrations {band[0]:.3g}–{band[1]:.3g} mm)" if band else ")")
-        )
+
+def result_prediction(platform: Platform, result: dict) -> PredictedError | None:
+    """The result's predicted error (its ``"predicted_closed_loop"`` field), or where it was written
+    without the motion from home, that of its covariance over the workspace; None without either."""
+    predicted = PredictedError.from_dict(result.get("predicted_closed_loop"))
+    if predicted is not None:
+        return predicted
     covariance = result.get("covariance")
     if covariance is None or platform.workspace is None:
-        return head + "and the result holds no covariance to predict that error from"
+        return None
     # the covariance's first rows: δM, then the drive's blocks the result has (spec §7, in the drive's order)
     n = len(result["error"]) + sum(
         len(result[term.key]["names"]) for term in drive_model(platform).terms if term.key in result
     )
-    prediction = predicted_error(platform, np.asarray(covariance, dtype=float)[:n, :n])
-    return head + f"the result's covariance predicts {prediction.describe()}"
+    return predicted_error(platform, np.asarray(covariance, dtype=float)[:n, :n])
+
+
+def _rms(values) -> float:
+    return float(np.sqrt(np.nanmean(np.asarray(values) ** 2)))
+
+
+def _measured_words(platform: Platform, position_mm: np.ndarray, orientation_deg) -> str:
+    """What this check measured, named: through an outside instrument's frame the motion (a constant
+    offset of the robot in {J} is absorbed by the frame), through the in-situ tracker the absolute place."""
+    what = "motion" if instrument_kind(platform).outside else "absolute place in {J}"
+    text = f"validate measured the {what}: position RMS {_rms(position_mm):.3g} mm"
+    if orientation_deg is not None:
+        text += f" / {_rms(orientation_deg):.3g}°"
+    if instrument_kind(platform).outside:
+        noise_mm = np.sqrt(3.0) * platform.instrument.position_sigma_mm  # ‖3 noisy coordinates‖
+        text += f" (the instrument's noise alone leaves {noise_mm:.3g} mm)"
+    return text
+
+
+def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray) -> str:
+    """What a check through an outside instrument's frame cannot see, beside what it saw: the
+    frame (fitted with the drive, or again here) absorbs a constant pose error of the robot, so it
+    measures the motion, and the robot's closed-loop (absolute) error is the result's prediction."""
+    seen_rms_mm = _rms(position_mm)
+    head = (
+        "validate measured the motion: a check through the instrument's frame cannot see the robot's "
+        "closed-loop (absolute) pose error (the frame absorbs a constant offset); position RMS here "
+        f"{seen_rms_mm:.4g} mm, "
+    )
+    prediction = result_prediction(platform, result)
+    if prediction is None:
+        return head + "and the result holds no covariance to predict that error from"
+    return head + f"the result predicts {prediction.describe()}"
 
 
 #: the held-out errors must exceed this many position σ of the instrument before a moved frame is suspected
@@ -230,7 +265,7 @@ def _diagnose_sample(platform: Platform, first: list, path: str) -> None:
     diagnose_log(platform, sample.strokes, sample.readings, path, count=False)
 
 
-def _report_page(args, platform: Platform, result: dict, log, predicted, position, orientation) -> str:
+def _report_page(args, platform: Platform, result: dict, log, predicted, position, orientation, verdict: str) -> str:
     """The ``--report`` page: the held-out errors and residuals per channel, then the calibration's own
     sections (parameters ± σ, correlations, conditioning, config, versions) from the result."""
     from ..viz.html_report import HeldOut, LegForces, report_html
@@ -243,7 +278,7 @@ def _report_page(args, platform: Platform, result: dict, log, predicted, positio
         drive = handover.calibrated_model(platform, args.result)
         forces = LegForces(np.asarray(log.t_s), handover.leg_forces(drive, log), drive.term_values()[-1])
     title = f"Validation of {platform.name} ({result['method']}) on {Path(args.log).name}"
-    return report_html(title, result, residuals, held, inputs, forces)
+    return report_html(title, result, residuals, held, inputs, forces, verdict)
 
 
 def _summary(position: np.ndarray, orientation: np.ndarray | None, n: int) -> str:

@@ -20,6 +20,7 @@ from importlib import metadata
 import numpy as np
 
 from ..drive import COMPLIANCE, STROKE_SCALE
+from ..errors import number
 
 #: libraries whose versions the page lists (the calibration's own comes from the result).
 LIBRARIES = ("numpy", "scipy", "gtsam", "matplotlib")
@@ -138,25 +139,51 @@ def residual_rms_figure(residuals: Residuals) -> str:
     return _png(fig)
 
 
+#: times beyond this many seconds (a clock's epoch) are drawn from the log's first, named in the label
+TIME_ORIGIN_S = 1e4
+
+
+def time_axis(t_s: np.ndarray) -> tuple[np.ndarray, str]:
+    """A plot's times and their label: from the log's first where they are a clock's epoch
+    (:data:`TIME_ORIGIN_S`), which a plot would otherwise print as an offset ("+1.74194e9")."""
+    t = np.asarray(t_s, dtype=float)
+    if len(t) and abs(t[0]) > TIME_ORIGIN_S:
+        return t - t[0], f"t − {number(t[0])} s [s]"
+    return t, "t [s]"
+
+
+def residual_series(residuals: Residuals) -> tuple[str, list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+    """What :func:`residual_time_figure` draws: the time axis' label and, per channel, ``(t, before,
+    after)`` at the rows that read it (a points log's row holds one target: a line through every
+    row would be broken at each other target's row and draw nothing), at most
+    :data:`MAX_PLOTTED_SAMPLES` of them; times from the log's first where they are a clock's epoch."""
+    t, label = time_axis(residuals.t_s)
+    series = []
+    for k in range(len(residuals.channels)):
+        rows = np.flatnonzero(np.isfinite(residuals.before[:, k]) | np.isfinite(residuals.after[:, k]))
+        rows = rows[:: max(1, len(rows) // MAX_PLOTTED_SAMPLES)]
+        series.append((t[rows], residuals.before[rows, k], residuals.after[rows, k]))
+    return label, series
+
+
 def residual_time_figure(residuals: Residuals) -> str:
     m = len(residuals.channels)
     cols = 3 if m > 4 else m
     rows = -(-m // cols)
     fig = new_figure(9.0, 1.9 * rows + 0.4)
     axes = np.atleast_1d(fig.subplots(rows, cols, sharex=True, squeeze=False)).ravel()
-    stride = max(1, len(residuals.t_s) // MAX_PLOTTED_SAMPLES)
-    t = residuals.t_s[::stride]
-    for k, channel in enumerate(residuals.channels):
+    label, series = residual_series(residuals)
+    for k, (channel, (t, before, after)) in enumerate(zip(residuals.channels, series, strict=True)):
         ax = axes[k]
-        ax.plot(t, residuals.before[::stride, k], lw=0.7, color="#c44e52", alpha=0.6, label="before")
-        ax.plot(t, residuals.after[::stride, k], lw=0.7, color="#4c72b0", label="after")
+        ax.plot(t, before, lw=0.7, color="#c44e52", alpha=0.6, label="before")
+        ax.plot(t, after, lw=0.7, color="#4c72b0", label="after")
         ax.set_title(channel, fontsize=8)
         ax.tick_params(labelsize=7)
         ax.grid(alpha=0.3)
     for ax in axes[m:]:
         ax.set_visible(False)
     for ax in axes[-cols:]:
-        ax.set_xlabel("t [s]", fontsize=8)
+        ax.set_xlabel(label, fontsize=8)
     axes[0].legend(fontsize=7)
     return _png(fig)
 
@@ -203,8 +230,9 @@ def held_out_figure(held: HeldOut) -> str:
         panels.append(("orientation error [deg]", held.orientation_error_deg))
     axes = fig.subplots(1, len(panels), squeeze=False)[0]
     for ax, (label, values) in zip(axes, panels, strict=True):
-        ax.plot(held.t_s, values, lw=0.7, color="#55a868")
-        ax.set_xlabel("t [s]")
+        t, t_label = time_axis(held.t_s)
+        ax.plot(t, values, lw=0.7, color="#55a868")
+        ax.set_xlabel(t_label)
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     return _png(fig)
@@ -303,9 +331,10 @@ def leg_force_figure(forces: LegForces) -> str:
     fig = new_figure(9.0, 2.6)
     ax = fig.subplots()
     stride = max(1, len(forces.t_s) // MAX_PLOTTED_SAMPLES)
+    t, label = time_axis(forces.t_s)
     for leg in range(forces.forces_N.shape[1]):
-        ax.plot(forces.t_s[::stride], forces.forces_N[::stride, leg], lw=0.7, label=f"leg {leg + 1}")
-    ax.set_xlabel("t [s]", fontsize=8)
+        ax.plot(t[::stride], forces.forces_N[::stride, leg], lw=0.7, label=f"leg {leg + 1}")
+    ax.set_xlabel(label, fontsize=8)
     ax.set_ylabel("axial force [N]")
     ax.tick_params(labelsize=7)
     ax.grid(alpha=0.3)
@@ -469,6 +498,7 @@ def report_html(
     held_out: HeldOut | None = None,
     inputs: dict[str, str] | None = None,
     leg_forces: LegForces | None = None,
+    verdict: str | None = None,
 ) -> str:
     """The whole page as text.
 
@@ -479,6 +509,8 @@ def report_html(
         held_out: a validation's errors, or None.
         inputs: named input files (``{"platform file": "P.toml", "log": "L.csv"}``).
         leg_forces: an elastic drive's leg forces over the log, or None.
+        verdict: the command's verdict line (:func:`~stewart_calib.accuracy.verdict_line`), shown
+            first; with its warning where the calibration rests on noise.
     """
     summary = [
         ["method", result["method"]],
@@ -489,6 +521,7 @@ def report_html(
         ["stewart-calib", result.get("version", "—")],
     ]
     sections = [
+        f'<h2>Verdict</h2><p class="verdict">{html.escape(verdict.removeprefix("verdict: "))}</p>' if verdict else "",
         "<h2>Summary</h2>" + html_table(None, summary, "summary"),
         _held_out_section(held_out) if held_out is not None else "",
         _residual_section(residuals) if residuals is not None else "",

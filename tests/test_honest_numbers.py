@@ -1,0 +1,498 @@
+"""Every number a user is shown is honest: the nominal model's "before" is its best registration
+to an outside instrument (frame and target(s) fitted, as the calibration fits them)."""
+
+from __future__ import annotations
+
+import contextlib
+import html
+import io
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.optimize import least_squares
+
+from stewart_calib import cli
+from stewart_calib.io import NOMINAL_TOLERANCE_MM, read_log
+from stewart_calib.platform import load_platform
+from tests.instrument_data import HOBBY
+from tests.test_instrument_files import EXPERIMENT
+
+POINTS = EXPERIMENT.replace(
+    'kind = "pose"\nposition_sigma_mm = 0.2\norientation_sigma_deg = 0.05',
+    'kind = "points"\nposition_sigma_mm = 0.1\ntargets_mm = [[40.0, 0.0, 5.0], [-20.0, 35.0, 5.0], [-20.0, -35.0, 8.0]]'
+    "\ntarget_spread_mm = 15.0",
+).replace("target_offset = [10.0, 5.0, 30.0, 0.0, 0.0, -90.0]\n", "")
+
+
+def _run(argv: list) -> tuple[int, str]:
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        status = cli.main([str(a) for a in argv])
+    return status, err.getvalue()
+
+
+@pytest.fixture(scope="module", params=["pose", "points"])
+def outside_run(request, tmp_path_factory):
+    """A hobby hexapod seen by an outside instrument whose frame and target(s) are far from the
+    platform file's (cameras 60 mm and 120° away, the rigid body's origin 30 mm off): the fit log,
+    calibrated by ls, and calibrate's stderr."""
+    work = tmp_path_factory.mktemp(request.param)
+    text = EXPERIMENT if request.param == "pose" else POINTS
+    (work / "e.toml").write_text(text.format(platform=HOBBY.as_posix()))
+    assert cli.main(["simulate", "--experiment", str(work / "e.toml"), "--out", str(work / "sim")]) == 0
+    lines = (work / "sim" / "log.csv").read_text().splitlines()
+    stage = lines[0].split(",").index("stage")
+    (work / "fit.csv").write_text("\n".join([lines[0], *(r for r in lines[1:] if r.split(",")[stage] == "fit")]) + "\n")
+    argv = ["calibrate", "--platform", work / "sim" / "platform.toml", "--log", work / "fit.csv", "--method", "ls"]
+    status, err = _run([*argv, "--out", work / "r.json"])
+    assert status == 0, err
+    return work, err
+
+
+def _before(line: str) -> dict[str, float]:
+    return {m[0]: float(m[1]) for m in re.findall(r"(x|y|z|rotation) ([\d.e+-]+) → ", line)}
+
+
+def best_registration_rms(platform, log) -> dict[str, float]:
+    """The nominal model's position RMS per instrument axis and rotation RMS at the frame and
+    target(s) that minimise the whitened readings' residual: scipy's least squares over the
+    instrument's tangent, from the platform file's frame and target(s) — no closed form."""
+    from stewart_calib.instruments import outside_model
+    from stewart_calib.validation import _model_poses, nominal_model
+
+    model = outside_model(platform)
+    R_X, t_X = _model_poses(platform, nominal_model(platform), log, "nominal")
+    start = model.nominal_unknowns()
+
+    def whitened(delta):
+        e = model.readings_residual(start.retract(delta), log.readings, R_X, t_X)[0] / model.channel_sigma
+        return np.nan_to_num(e).ravel()
+
+    # the frame is 120° from its nominal: start from a few orientations and keep the best
+    best = None
+    for yaw in np.radians([0.0, 90.0, 180.0, 270.0]):
+        x0 = np.zeros(start.size)
+        x0[5] = yaw
+        fit = least_squares(whitened, x0, x_scale="jac", xtol=1e-14, ftol=1e-14, gtol=1e-14)
+        best = fit if best is None or fit.cost < best.cost else best
+    unknowns = start.retract(best.x)
+    predicted, _, orientation = model.prediction_errors(unknowns, R_X, t_X, log.readings)
+    difference = model.position_differences(log.readings, predicted)
+    rms = dict(zip("xyz", np.sqrt(np.mean(difference**2, axis=0)), strict=True))
+    if orientation is not None:
+        rms["rotation"] = float(np.sqrt(np.mean(orientation**2)))
+    return rms
+
+
+def test_calibrate_before_is_the_nominal_models_best_registration(outside_run):
+    """Printed to 4 significant digits: the same optimum within the rounding (5e-4 relative)."""
+    work, err = outside_run
+    (line,) = [line for line in err.splitlines() if "pose error RMS" in line]
+    platform = load_platform(work / "sim" / "platform.toml")
+    expected = best_registration_rms(platform, read_log(work / "fit.csv", platform))
+    printed = _before(line)
+    assert set(printed) == set(expected)
+    for axis, value in expected.items():
+        assert printed[axis] == pytest.approx(value, rel=6e-4), (axis, line)
+
+
+# ----------------------------------------------------------------------------- absolute against motion
+
+
+def _reached(platform, delta: np.ndarray, poses: np.ndarray):
+    """Where a robot whose drive is ``nominal + delta`` goes for the nominal strokes of ``poses``."""
+    from stewart_calib import kinematics as kin
+
+    R, t = kin.pose_to_rt(poses)
+    reached = kin.forward_kinematics(platform.drive.perturbed(delta), kin.inverse_kinematics(platform.drive, R, t))
+    return reached.R, reached.t
+
+
+def _motion_position_error(platform, delta, poses, home) -> np.ndarray:
+    """‖position of (reached home)⁻¹ (reached X) − that of H⁻¹ X‖ per pose [mm], by FK."""
+    from stewart_calib.instruments import lie
+
+    R, t = _reached(platform, delta, np.vstack([poses, home]))
+    R_H, t_H = lie.inverse(R[-1], t[-1])
+    _, reached = lie.compose(R_H, t_H, R[:-1], t[:-1])
+    from stewart_calib import kinematics as kin
+
+    R_d, t_d = kin.pose_to_rt(np.vstack([poses, home]))
+    R_dH, t_dH = lie.inverse(R_d[-1], t_d[-1])
+    _, desired = lie.compose(R_dH, t_dH, R_d[:-1], t_d[:-1])
+    return np.linalg.norm(reached - desired, axis=1)
+
+
+def test_motion_from_home_loses_a_constant_offset_and_matches_forward_kinematics():
+    """A rigid motion of every base joint moves every pose alike: its absolute error is that
+    motion, its motion-from-home error zero. A random drive error's motion error is, to first
+    order, the motion Jacobian's (δM of 0.01 mm: second order 1e-4 of it)."""
+    from stewart_calib import accuracy
+    from stewart_calib.rotations import skew
+    from tests.synthetic import nim_stewart
+
+    platform = nim_stewart()
+    poses = accuracy.evaluation_poses(platform)[:20]
+    home = platform.workspace.home
+    D = accuracy.closed_loop_jacobian(platform, np.vstack([poses, home]))[..., :42]
+    D_motion = accuracy.motion_jacobian(D[:-1], poses, home, D[-1])
+    rigid = np.zeros(42)  # every base joint moved by a translation and a small rotation about {J}'s origin
+    joints = platform.drive.base_joints
+    moved = np.array([0.3, -0.2, 0.5]) + joints @ skew(np.array([1e-4, -2e-4, 3e-4])).T
+    for i in range(6):
+        rigid[7 * i : 7 * i + 3] = moved[i]
+    assert np.max(np.abs(D_motion @ rigid)) < 1e-9 * np.max(np.abs(D[:-1] @ rigid))
+    rng = np.random.default_rng(5)
+    delta = rng.normal(0.0, 0.01, 42)
+    first_order = np.linalg.norm((D_motion @ delta)[:, 3:], axis=1)
+    np.testing.assert_allclose(_motion_position_error(platform, delta, poses, home), first_order, rtol=2e-3, atol=1e-7)
+
+
+# ----------------------------------------------------------------------------- a worse robot, and the verdict
+
+RIGHT_NOMINAL = (
+    EXPERIMENT.replace("random_spread_mm = 0.5", "random_spread_mm = 0.001")
+    .replace("stroke_scale_spread = 0.03", "stroke_scale_spread = 0.0")
+    .replace("encoder_zero_spread_mm = 5.0", "encoder_zero_spread_mm = 0.0")
+    .replace("calibration = 40", "calibration = 80")
+)
+
+
+def test_a_calibration_on_noise_alone_says_so_loudly(tmp_path):
+    """A robot built to its nominal model (0.001 mm): whatever the fit changes rests on the noise,
+    the χ² fall of its residuals within what a right model's shows — a WARNING; a robot 0.5 mm off
+    (the fixture's) gets none."""
+    (tmp_path / "e.toml").write_text(RIGHT_NOMINAL.format(platform=HOBBY.as_posix()))
+    assert cli.main(["simulate", "--experiment", str(tmp_path / "e.toml"), "--out", str(tmp_path / "sim")]) == 0
+    argv = ["calibrate", "--platform", tmp_path / "sim" / "platform.toml", "--log", tmp_path / "sim" / "log.csv"]
+    status, err = _run([*argv, "--method", "ls", "--out", tmp_path / "r.json"])
+    assert status == 0, err
+    (warning,) = [line for line in err.splitlines() if "WARNING: the log gives no evidence" in line]
+    assert "likely worse than the nominal one" in warning
+    assert err.splitlines()[-1].endswith("the log gives no evidence the calibration improves on the nominal model")
+
+
+def test_an_evident_calibration_ends_with_its_verdict_against_the_tolerance(outside_run, tmp_path):
+    """No warning where the robot is off; the last line is the verdict: the motion's and the absolute
+    place's expected errors with their bands from the result, against the tolerance; exit 1 over it
+    only with --fail-over-tolerance."""
+    work, err = outside_run
+    assert "WARNING" not in err
+    result = json.loads((work / "r.json").read_text())["predicted_closed_loop"]
+    last = err.splitlines()[-1]
+    low, high = result["motion_position_band_mm"]
+    assert last.startswith("stewart-calib calibrate: verdict: expected mean error over the workspace: ")
+    assert f"motion from home {result['motion_position_mm']:.3g} mm" in last and f"{low:.3g}–{high:.3g} mm" in last
+    assert f"absolute place in {{J}} {result['position_mm']:.3g} mm" in last
+    assert result["motion_position_mm"] < result["position_mm"]  # the frame's trade weighs on the absolute place
+    argv = ["calibrate", "--platform", work / "sim" / "platform.toml", "--log", work / "fit.csv", "--method", "ls"]
+    argv += ["--out", tmp_path / "r.json"]
+    tight = [*argv, "--tolerance-mm", f"{low / 2:g}"]
+    status, err = _run([*tight, "--report", tmp_path / "report"])
+    assert status == 0 and "against" in err.splitlines()[-1] and "motion over" in err.splitlines()[-1]
+    page = (tmp_path / "report" / "index.html").read_text(encoding="utf-8")
+    verdict = html.escape(err.splitlines()[-1].removeprefix("stewart-calib calibrate: verdict: "))
+    assert page.index(verdict) < page.index("<h2>Summary</h2>")  # the same verdict, at the top of the page
+    status, err = _run([*tight, "--fail-over-tolerance"])
+    assert status == 1 and (tmp_path / "r.json").exists()
+    loose = 2 * max(result["position_band_mm"][1], high)
+    status, err = _run([*argv, "--tolerance-mm", f"{loose:g}", "--tolerance-deg", "90", "--fail-over-tolerance"])
+    assert status == 0 and "motion within, absolute place within" in err.splitlines()[-1]
+
+
+# ----------------------------------------------------------------------------- a plan that leaves the robot as it was
+
+
+def _plan(tmp_path, platform_text: str, *extra: str) -> tuple[int, str, str]:
+    (tmp_path / "p.toml").write_text(platform_text)
+    argv = ["plan", "--platform", tmp_path / "p.toml", "--n", "40", "--out", tmp_path / "poses.csv"]
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        status = cli.main([str(a) for a in [*argv, "--seed", "1", "--candidates", "300", *extra]])
+    return status, out.getvalue(), err.getvalue()
+
+
+def test_a_plan_not_clearly_better_than_the_nominal_model_says_what_to_change(tmp_path):
+    """A hobby hexapod kept within ±10 mm / ±4°: the plan's absolute place in {J} (its 90 % band's
+    top) is no better than half the nominal model's expected error for a robot built to the prior —
+    a warning naming what to change; the shipped ±30 mm / ±12° one plans clearly better, silently.
+    With strokes 0–100 mm and the motion-capture prior (20 mm), the margin is capped at 25 mm."""
+    from stewart_calib.config import load_estimator_config
+    from stewart_calib.planning import nominal_error
+
+    text = HOBBY.read_text()
+    small = text.replace("translation_limit_mm = 30.0", "translation_limit_mm = 10.0").replace(
+        "rotation_limit_deg = 12.0", "rotation_limit_deg = 4.0"
+    )
+    status, out, err = _plan(tmp_path, small)
+    assert status == 0
+    platform = load_platform(tmp_path / "p.toml")
+    nominal = nominal_error(platform, load_estimator_config().noise)
+    (line,) = err.splitlines()
+    assert line.startswith("stewart-calib plan: warning: this plan is not clearly better than the nominal model")
+    assert f"against the nominal model's {nominal.position_mm:.3g} mm" in line
+    assert "change: more than 40 poses, a less noisy instrument, a wider workspace" in line
+    high = float(re.search(r"90% of such calibrations [\d.]+–([\d.]+) mm", out)[1])
+    assert high >= 0.5 * nominal.position_mm
+    status, out, err = _plan(tmp_path, text)
+    assert status == 0 and err == ""
+    wide = small.replace("stroke_range_mm = [0.0, 90.0]", "stroke_range_mm = [0.0, 100.0]")
+    status, out, err = _plan(tmp_path, wide, "--config", "motion-capture")
+    assert status == 0 and "its strokes keep 25 mm inside the range at each end" in err
+    assert "a noise.prior_sigma_mm as small as the robot's build allows" in err
+
+
+# ----------------------------------------------------------------------------- messages
+
+
+@pytest.mark.parametrize("command", ["calibrate", "plan", "identifiability", "track"])
+def test_help_lists_every_shipped_config(command, capsys):
+    from stewart_calib.resources import shipped_names
+
+    with pytest.raises(SystemExit):
+        cli.main([command, "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "motion-capture" in shipped_names("estimators") and "laser-tracker" in shipped_names("estimators")
+    assert f"({', '.join(shipped_names('estimators'))})" in text
+
+
+def test_a_time_is_shown_without_float_noise():
+    """A time that arithmetic left at 7.1000000000000005 reads 7.1 in a refusal; 15 digits keep an
+    epoch time's microseconds."""
+    from stewart_calib.config import NoiseConfig
+    from stewart_calib.errors import SampleRejected, number
+    from stewart_calib.estimators.measurement import check_sample
+    from stewart_calib.instruments import instrument_model
+    from stewart_calib.samples import Sample
+    from tests.synthetic import nim_stewart
+
+    platform = nim_stewart()
+    t_s = 71 * 0.1
+    assert repr(t_s) == "7.1000000000000005"
+    sample = Sample(t_s, np.full(6, np.nan), np.zeros(6))
+    with pytest.raises(SampleRejected, match=r"^sample at t = 7\.1 s: stroke q1 is not finite$"):
+        check_sample(platform, instrument_model(platform, NoiseConfig()), sample)
+    assert number(1741940000.123456) == "1741940000.12346" and number("x") == "x"
+
+
+def test_validate_takes_the_calibrated_platform_file_as_compensate_does(outside_run, tmp_path):
+    """The platform file calibrate --platform-out wrote, with its result: the same predictions as the
+    result on its nominal platform (it refused: "key 'nominal': … differs by …")."""
+    work, _ = outside_run
+    argv = ["calibrate", "--platform", work / "sim" / "platform.toml", "--log", work / "fit.csv", "--method", "ls"]
+    status, err = _run([*argv, "--out", tmp_path / "r.json", "--platform-out", tmp_path / "C.toml"])
+    assert status == 0, err
+    outputs = {}
+    for name, platform in (("nominal", work / "sim" / "platform.toml"), ("calibrated", tmp_path / "C.toml")):
+        check = ["validate", "--platform", platform, "--result", tmp_path / "r.json", "--log", work / "fit.csv"]
+        status, err = _run([*check, "--out", tmp_path / f"{name}.csv"])
+        assert status == 0, err
+        outputs[name] = np.genfromtxt(tmp_path / f"{name}.csv", delimiter=",", skip_header=1)
+    # the file holds the legs to the tolerance within which two drives are the same one
+    np.testing.assert_allclose(outputs["calibrated"], outputs["nominal"], rtol=0, atol=NOMINAL_TOLERANCE_MM)
+
+
+@pytest.mark.parametrize("outside_run", ["pose"], indirect=True)
+def test_strokes_of_another_robot_are_named_not_the_registrations_symptom(outside_run, tmp_path):
+    """The strokes of the log's rows shuffled — another robot's log, as far as the poses go: the
+    readings rotate about every axis, the strokes' poses do not match them. It said "cannot register
+    the pose instrument: the poses do not rotate about two different axes"."""
+    work, _ = outside_run
+    lines = (work / "fit.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    columns = [header.index(f"q{i}_mm") for i in range(1, 7)]
+    rows = [line.split(",") for line in lines[1:]]
+    order = np.random.default_rng(0).permutation(len(rows))
+    for row, source in zip(rows, [rows[k] for k in order], strict=True):
+        for j in columns:
+            row[j] = source[j]
+    shuffled = tmp_path / "other.csv"
+    shuffled.write_text("\n".join([lines[0], *(",".join(row) for row in rows)]) + "\n")
+    argv = ["calibrate", "--platform", work / "sim" / "platform.toml", "--log", shuffled, "--method", "ls"]
+    status, err = _run([*argv, "--out", tmp_path / "r.json"])
+    (line,) = err.splitlines()
+    assert status == 2 and not (tmp_path / "r.json").exists()
+    assert re.fullmatch(
+        r"stewart-calib calibrate: error: .*other\.csv: the strokes do not fit this platform's legs: the angles "
+        r"between pairs of poses that they give the nominal model differ from the instrument's by [\d.]+° RMS .*",
+        line,
+    ), line
+
+
+def test_missing_stroke_columns_are_the_drives_not_the_instruments(outside_run, tmp_path):
+    """It said 'missing column(s) q1_mm, … of the pose instrument that the platform's [instrument] names'."""
+    work, _ = outside_run
+    lines = (work / "fit.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    keep = [k for k, name in enumerate(header) if not name.startswith("q")]
+    (tmp_path / "noq.csv").write_text("\n".join(",".join(line.split(",")[k] for k in keep) for line in lines) + "\n")
+    argv = ["calibrate", "--platform", work / "sim" / "platform.toml", "--log", tmp_path / "noq.csv", "--method", "ls"]
+    status, err = _run([*argv, "--out", tmp_path / "r.json"])
+    (line,) = err.splitlines()
+    assert status == 2 and line.endswith(
+        "noq.csv: row 1: missing column(s) q1_mm, q2_mm, q3_mm, q4_mm, q5_mm, q6_mm of the drive's strokes [mm] "
+        "(spec §3)"
+    ), line
+
+
+@pytest.mark.parametrize(
+    ("where", "text", "expected"),
+    [
+        ("config", "[ls]\nrobust_kk = 3.0\n", "unknown key 'ls.robust_kk' (did you mean 'robust_k'?)"),
+        ("config", "[lss]\nrobust_k = 3.0\n", "unknown section 'lss' (did you mean 'ls'?)"),
+        (
+            "platform",
+            "position_sigm_mm",
+            "key 'instrument.position_sigm_mm': expected a known key (spec §7) (did you mean 'position_sigma_mm'?)",
+        ),
+    ],
+)
+def test_a_misspelt_key_inside_a_table_gets_a_did_you_mean(tmp_path, capsys, where, text, expected):
+    platform = HOBBY
+    argv = ["plan", "--n", "10", "--out", str(tmp_path / "p.csv")]
+    if where == "config":
+        (tmp_path / "c.toml").write_text(text)
+        argv += ["--config", str(tmp_path / "c.toml")]
+    else:
+        platform = tmp_path / "p.toml"
+        platform.write_text(HOBBY.read_text().replace("position_sigma_mm = 0.2", f"{text} = 0.2"))
+    assert cli.main([*argv, "--platform", str(platform)]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert expected in line, line
+
+
+def test_a_points_logs_residuals_are_drawn_at_the_rows_that_read_each_target():
+    """A laser tracker's point list: each row holds one of three targets, at epoch times. Every
+    channel's curve has the rows of its target (a line through all rows drew nothing: each other
+    row is NaN), and the times run from the log's first, named in the label (not "+1.74194e9")."""
+    from stewart_calib.viz.html_report import Residuals, residual_series
+
+    n, t0 = 30, 1741940000.25
+    channels = tuple(f"p{k}{axis}_mm" for k in (1, 2, 3) for axis in "xyz")
+    before = np.full((n, 9), np.nan)
+    rng = np.random.default_rng(2)
+    for row in range(n):
+        target = row % 3
+        before[row, 3 * target : 3 * target + 3] = rng.normal(0.0, 1.0, 3)
+    residuals = Residuals(channels, t0 + 0.5 * np.arange(n), before, 0.1 * before)
+    label, series = residual_series(residuals)
+    assert label == "t − 1741940000.25 s [s]"
+    for k, (t, b, a) in enumerate(series):
+        rows = np.arange(k // 3, n, 3)
+        np.testing.assert_array_equal(t, 0.5 * rows)
+        np.testing.assert_array_equal(b, before[rows, k])
+        np.testing.assert_array_equal(a, 0.1 * before[rows, k])
+
+
+# ----------------------------------------------------------------------------- import
+
+_EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "hobby-mocap"
+EXAMPLE = _EXAMPLES if _EXAMPLES.is_dir() else None
+
+
+def _import(argv: list) -> tuple[int, str]:
+    return _run(["import", *argv])
+
+
+@pytest.mark.skipif(EXAMPLE is None, reason="the repository's examples/ (not installed with the package)")
+def test_import_names_its_input_files_not_the_output_not_yet_written(tmp_path):
+    mapping = tmp_path / "raw.toml"
+    mapping.write_text((EXAMPLE / "raw.toml").read_text().replace('position_unit = "m"', 'position_unit = "mm"'))
+    argv = ["--csv", EXAMPLE / "fit_raw.csv", "--mapping", mapping, "--platform", "hobby-hexapod"]
+    status, err = _import([*argv, "--out", tmp_path / "x.csv"])
+    (line,) = err.splitlines()
+    assert status == 2 and not (tmp_path / "x.csv").exists()
+    assert f"error: {EXAMPLE / 'fit_raw.csv'}: the positions mx_mm…mz_mm look like metres" in line, line
+    assert "x.csv" not in line
+
+
+@pytest.mark.skipif(EXAMPLE is None, reason="the repository's examples/ (not installed with the package)")
+@pytest.mark.parametrize("offset", [["--estimate-clock-offset"], ["--clock-offset-s", "1234.5"]])
+def test_a_controller_clock_in_milliseconds_is_named(tmp_path, offset):
+    """The controller's uptime logged in ms, the mapping saying s: the hint names the unit, and does
+    not ask for --estimate-clock-offset where it was given."""
+    lines = (EXAMPLE / "fit_counts.csv").read_text().splitlines()
+    rows = [line.split(",") for line in lines[1:]]
+    (tmp_path / "counts.csv").write_text(
+        "\n".join([lines[0], *(",".join([f"{float(r[0]) * 1000:.1f}", *r[1:]]) for r in rows)]) + "\n"
+    )
+    argv = ["--motive", EXAMPLE / "fit_motive.csv", "--rigid-body", "platform", "--strokes", tmp_path / "counts.csv"]
+    argv += ["--mapping", EXAMPLE / "controller.toml", *offset, "--platform", "hobby-hexapod"]
+    status, err = _import([*argv, "--out", tmp_path / "x.csv"])
+    (line,) = err.splitlines()
+    assert status == 2 and line.endswith(
+        "× the instrument's: in ms? set time_unit = \"ms\" in the mapping's [strokes]"
+    ), line
+    assert "--estimate-clock-offset" not in line
+
+
+def test_a_max_gap_within_the_controllers_period_is_hinted(tmp_path):
+    from stewart_calib.io import exports
+    from stewart_calib.pipelines.import_files import ControllerLog
+
+    path = tmp_path / "c.csv"
+    t = 0.1 * np.arange(50)
+    path.write_text("t,a,b,c,d,e,f\n" + "".join(f"{v:.1f},1,2,3,4,5,6\n" for v in t))
+    mapping = tmp_path / "m.toml"
+    mapping.write_text('[strokes]\ntime = "t"\ncolumns = ["a", "b", "c", "d", "e", "f"]\n')
+    columns = exports.stroke_columns(mapping, exports.load_mapping(mapping)["strokes"])
+    controller = ControllerLog(path, columns)
+    controller.strokes_at(np.array([0.05, 1.0]), 0.1)
+    assert controller.gap_hint(0.1) == (
+        "; --max-gap-s 0.1 s is within 1.5× the controller's row period (0.1 s), so the two rows around a "
+        "measurement are often further apart: give --max-gap-s 0.15 or more"
+    )
+    assert controller.gap_hint(0.15) == ""
+
+
+def test_a_point_list_with_iso_date_times(tmp_path):
+    """A laser tracker's point list stamped 2026-03-14T09:26:53.500: refused as not a number, with
+    the option to read it named; with time_format = "iso" it joins the controller's clock (UTC
+    seconds, the offset given) — the same log as with seconds."""
+    import datetime
+
+    from tests import vendor_files as vendor
+    from tests.test_import import COUNTS_MAPPING, _strokes_of, _write_counts
+
+    t = np.arange(12) * 2.0
+    rng = np.random.default_rng(3)
+    smr = {name: rng.normal(0, 300, (12, 3)) for name in ("SMR1", "SMR2")}
+    vendor.point_list_csv(tmp_path / "seconds.csv", t, smr)
+    start = datetime.datetime(2026, 3, 14, 9, 26, 53, 500000, tzinfo=datetime.UTC)
+    lines = (tmp_path / "seconds.csv").read_text().splitlines()
+    stamped = [lines[0]]
+    for line in lines[1:]:
+        time, rest = line.split(",", 1)
+        stamp = (start + datetime.timedelta(seconds=float(time))).replace(tzinfo=None)
+        stamp = stamp.isoformat(timespec="milliseconds")
+        stamped.append(f"{stamp},{rest}")
+    (tmp_path / "iso.csv").write_text("\n".join(stamped) + "\n")
+    instrument = (
+        '[instrument]\ntime = "Time"\ntarget = "Point"\ntargets = ["SMR1", "SMR2"]\nposition = ["X", "Y", "Z"]\n'
+    )
+    strokes = "\n" + COUNTS_MAPPING.replace('time_unit = "ms"', 'time_unit = "ms"\nmax_gap_s = 0.5')
+    (tmp_path / "m.toml").write_text(instrument + strokes)
+    (tmp_path / "iso.toml").write_text(instrument + 'time_format = "iso"\n' + strokes)
+    _write_counts(tmp_path / "c.csv", np.arange(0, 25, 0.25), _strokes_of(np.arange(0, 25, 0.25)))
+    common = ["--strokes", tmp_path / "c.csv"]
+    status, _ = _import(["--point-list", tmp_path / "seconds.csv", *common, "--mapping", tmp_path / "m.toml",
+                         "--out", tmp_path / "seconds_log.csv"])  # fmt: skip
+    assert status == 0
+    status, err = _import(["--point-list", tmp_path / "iso.csv", *common, "--mapping", tmp_path / "m.toml",
+                           "--out", tmp_path / "x.csv"])  # fmt: skip
+    (line,) = err.splitlines()
+    assert status == 2 and line.endswith(
+        "iso.csv: row 2: expected a number in column 'Time' and numbers in X, Y, Z ('2026-03-14T09:26:53.500' is an "
+        'ISO date-time: set time_format = "iso" in [instrument])'
+    ), line
+    epoch = start.timestamp()
+    status, err = _import(["--point-list", tmp_path / "iso.csv", *common, "--mapping", tmp_path / "iso.toml",
+                           "--clock-offset-s", repr(-epoch), "--out", tmp_path / "iso_log.csv"])  # fmt: skip
+    assert status == 0, err
+    seconds = np.genfromtxt(tmp_path / "seconds_log.csv", delimiter=",", skip_header=1)
+    iso = np.genfromtxt(tmp_path / "iso_log.csv", delimiter=",", skip_header=1)
+    np.testing.assert_allclose(iso[:, 0] - epoch, seconds[:, 0], rtol=0, atol=1e-6)  # the file's milliseconds, to µs
+    np.testing.assert_array_equal(iso[:, 1:], seconds[:, 1:])
