@@ -362,14 +362,14 @@ def nominal_error(platform: Platform, noise: NoiseConfig) -> PredictedError:
     predicted error (:func:`~stewart_calib.accuracy.predicted_error`) of the prior covariance —
     ``noise.prior_sigma_mm`` on each δM and, with an outside instrument, the stroke scale's prior σ
     (:func:`~stewart_calib.drive.drive_model`'s) — the yardstick a plan must clearly beat."""
-    from .drive import N_LEGS, drive_model
+    from .drive import drive_model
 
     drive = drive_model(platform, noise, instrument_kind(platform).outside)
     sigma = [noise.prior_sigma_mm] * platform.drive.n_params
     for term in drive.terms:  # the terms up to the first known one, as predicted_error takes them
         if term.prior_sigma is None:
             break
-        sigma += [term.prior_sigma] * N_LEGS
+        sigma += [term.prior_sigma] * platform.drive.n_legs
     return predicted_error(platform, np.diag(np.square(sigma)))
 
 
