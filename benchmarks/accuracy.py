@@ -27,7 +27,7 @@ import tempfile
 import numpy as np
 from scipy.stats import chi2
 
-from benchmarks.common import COMPACT_RINGS, GEOMETRIES, ROOT, Row, Section
+from benchmarks.common import COMPACT_RINGS, GEOMETRIES, ROOT, Row, Section, explain
 from stewart_calib.config import EstimatorConfig, NoiseConfig, PaperEKFConfig
 from stewart_calib.estimators import METHODS, fit_all, make_estimator, method_names
 from stewart_calib.simulation import EstimatorController, FrozenController, load_experiment, run_experiment
@@ -243,6 +243,18 @@ def run(quick: bool) -> Section:
         f"kg step held for {stage_samples} samples; random walk {DRIFT_RANDOM_WALK_MM_PER_SQRT_S} mm/√s for ekf and "
         "isam2, the paper's Q and R for paper-ekf, and paper-ekf again with Q and R matched to this simulation "
         f"({PAPER_EKF_MATCHED}); recovery = {DRIFT_WINDOW_SAMPLES}-sample mean position error below {DRIFT_FACTOR:g}× "
-        "its no-load value."
+        "its no-load value. The peer is the Cramér–Rao bound (RMS/CRB) and, for the drift, the batch `ls` frozen "
+        "after the no-load stage. Targets: RMS/CRB ≤ 1.2 and NEES in band in ≥ 90 % of the runs for ekf, isam2 and "
+        "lm; every online run recovers after the step."
     )
-    return Section("Accuracy", note, mc_rows + drift_rows, raw={"monte_carlo": mc_raw, "drift": drift_raw})
+    section = Section("Accuracy", note, mc_rows + drift_rows, raw={"monte_carlo": mc_raw, "drift": drift_raw})
+    return explain(section, WHY)
+
+
+#: why a target may not be met (a row not met carries its sentence)
+RIGID_STEP = (
+    "the rigid model cannot take up the payload's pose-dependent sag, so its error plateaus near 2× the no-load "
+    "level and a run counts as recovered only where a 10-sample mean dips under it by chance; with `[elastic]` "
+    "the step is taken within 10 samples (The elastic robot, table 3)."
+)
+WHY = {"drift: ": RIGID_STEP}

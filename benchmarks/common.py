@@ -1,9 +1,10 @@
 """What every benchmark section shares: timing, the two geometries, synthetic streams, rows.
 
-A section returns a :class:`Section`: a title, a note, and :class:`Row` s, each with the
-measured value, the target it is held against (or None) and whether it is met. Timing is
-always per call, reported as median and p99 over many calls; comparisons are ratios of
-medians measured side by side in the same run.
+A section returns a :class:`Section`: a title, a methods paragraph (``note``), and :class:`Row` s,
+each with the measured value, the target it is held against (or None), whether it is met and, for
+a target it may miss, why; a section whose results do not fit one row a benchmark adds
+:class:`Table` s of its own columns. Timing is always per call, reported as median and p99 over
+many calls; comparisons are ratios of medians measured side by side in the same run.
 """
 
 from __future__ import annotations
@@ -31,6 +32,18 @@ class Row:
     target: str = ""
     met: bool | None = None
     raw: dict = field(default_factory=dict)
+    #: one sentence on why the target is not met, shown where it is not
+    why: str = ""
+
+
+@dataclass
+class Table:
+    """A table of its own columns below a section's rows (``cells``: one list of strings a line)."""
+
+    title: str
+    columns: list[str]
+    cells: list[list[str]]
+    note: str = ""
 
 
 @dataclass
@@ -39,9 +52,38 @@ class Section:
     note: str
     rows: list[Row]
     raw: dict = field(default_factory=dict)
+    tables: list[Table] = field(default_factory=list)
+    #: the file name of a plot beside the section's saved results, or ""
+    plot: str = ""
 
     def to_dict(self) -> dict:
-        return {"title": self.title, "note": self.note, "rows": [asdict(r) for r in self.rows], "raw": self.raw}
+        return {
+            "title": self.title,
+            "note": self.note,
+            "rows": [asdict(r) for r in self.rows],
+            "raw": self.raw,
+            "tables": [asdict(t) for t in self.tables],
+            "plot": self.plot,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> Section:
+        return cls(
+            data["title"],
+            data["note"],
+            [Row(**row) for row in data["rows"]],
+            data.get("raw", {}),
+            [Table(**table) for table in data.get("tables", [])],
+            data.get("plot", ""),
+        )
+
+
+def explain(section: Section, why: dict[str, str]) -> Section:
+    """Give every row not met the sentence of ``why`` whose key its name starts with."""
+    for row in section.rows:
+        if row.met is False:
+            row.why = next((text for start, text in why.items() if row.name.startswith(start)), row.why)
+    return section
 
 
 def per_call_us(calls) -> np.ndarray:
@@ -87,11 +129,36 @@ def seeded_main(module: str, doc: str, run, default_seeds: int, argv: list[str] 
     return 0
 
 
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
 def markdown(section: Section) -> str:
-    """A stand-alone section's note and table (the benchmarks run on their own, not by ``python -m benchmarks``)."""
-    lines = [section.note, "", "| Benchmark | Measured | Target | Status |", "|---|---|---|---|"]
-    lines += [f"| {row.name} | {row.value} | {row.target or '—'} | {mark(row.met)} |" for row in section.rows]
-    return "\n".join(lines)
+    """A section's methods paragraph, its rows' table, a sentence for every target not met, and its
+    own tables (no heading: :mod:`benchmarks.report` adds it, with the machine and date)."""
+    lines = [section.note, ""]
+    if section.rows:
+        lines += ["| Benchmark | Measured | Target | Status |", "|---|---|---|---|"]
+        lines += [
+            f"| {_cell(row.name)} | {row.value} | {row.target or '—'} | {mark(row.met)} |" for row in section.rows
+        ]
+        lines.append("")
+    missed: dict[str, list[str]] = {}  # the rows a sentence explains, in order
+    for row in section.rows:
+        if row.met is False and row.why:
+            missed.setdefault(row.why, []).append(f"*{row.name}*")
+    if missed:
+        lines += ["Not met:", ""]
+        lines += [f"- {', '.join(names)}: {why}" for why, names in missed.items()]
+        lines.append("")
+    for table in section.tables:
+        lines += [f"#### {table.title}", ""]
+        if table.note:
+            lines += [table.note, ""]
+        lines += ["| " + " | ".join(table.columns) + " |", "|" + "---|" * len(table.columns)]
+        lines += ["| " + " | ".join(cells) + " |" for cells in table.cells]
+        lines.append("")
+    return "\n".join(lines).rstrip("\n")
 
 
 def rss_mib() -> float:

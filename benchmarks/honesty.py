@@ -4,22 +4,21 @@ Runs (or resumes) the sweep of ``configs/sweeps/honesty.toml`` — ekf, isam2 an
 in-situ tracker, motion capture and a laser tracker, with the reading noise 0.2–5× what the
 estimators are told, glitches 0 / 5 % and a drifting robot or not — on the local Dask cluster,
 and tells per method and instrument the share of runs whose NEES falls in the two-sided 95 %
-χ² band of its degrees of freedom, and the mean z² of every cell. Targets (issue 26): NEES in
-band in ≥ 90 % of the runs, and the mean z² in [0.5, 2] in every cell. ``--update-report``
-puts the section into BENCHMARKS.md. Finished tasks in DIR are kept (the sweep resumes).
+χ² band of its degrees of freedom, and the mean z² of every cell. Targets: NEES in band in
+≥ 90 % of the runs, and the mean z² in [0.5, 2] in every cell. ``--update-report`` saves the
+section's results in benchmarks/results/ and regenerates BENCHMARKS.md (as ``python -m
+benchmarks --only honesty`` does). Finished tasks in DIR are kept (the sweep resumes).
 """
 
 from __future__ import annotations
 
 import argparse
-import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import ROOT, Row, Section, machine
+from benchmarks.common import ROOT, Row, Section, markdown
 
 SPEC = ROOT / "configs" / "sweeps" / "honesty.toml"
 NEES_TARGET = 0.90
@@ -65,15 +64,37 @@ def honesty_section(spec, table) -> Section:
                     {"share_in_band": share, "z2_mean_per_cell": z2, "runs": len(pick), "failed": failed},
                 )
             )
-    note = (
+    return Section("Honesty over a grid", note(spec), rows)
+
+
+def section(quick: bool = False, out: Path | None = None, seeds: int | None = None, workers: int | None = None):
+    """Run (or resume) the sweep in ``out`` and summarise it (``quick``: one seed a cell, in a scratch directory)."""
+    import tempfile
+
+    from stewart_calib.sweep import load_spec, run_sweep
+    from stewart_calib.sweep.summary import write_summary
+
+    spec = load_spec(SPEC)
+    if quick or seeds is not None:
+        spec = spec.pilot(1 if quick else seeds)
+    with tempfile.TemporaryDirectory(prefix="stewart-calib-honesty-") as scratch:
+        out = Path(scratch) if quick else (out or ROOT / "out" / "honesty")
+        result = run_sweep(spec, out, workers=workers)
+        write_summary(spec, result.table, out)
+    return honesty_section(spec, result.table)
+
+
+def note(spec) -> str:
+    """The section's methods paragraph."""
+    return (
         f"`configs/sweeps/honesty.toml`: {spec.n_cells} cells × {len(spec.seeds)} seeds, {spec.axes['samples'][0]} "
         "random workspace poses a run on nim-stewart; reading noise (tracker rulers, motion capture, laser tracker) "
         "0.2 / 1 / 5 × what the estimators are told, glitches 0 / 5 %, drift 0 / 0.002 mm/√s (the estimators' walk "
         "matched), the estimators' noise adaptation on as users run them. NEES band: the two-sided 95 % band of χ² "
         "with the row's degrees of freedom (42 tracker; 36 outside instruments: the 30 gauge-free directions of δM "
-        "and the stroke scales). Per cell and seed: `DIR/summary.csv`."
+        "and the stroke scales). No peer: the reported σ against the true error. Per cell and seed: "
+        "`DIR/summary.csv`; the rows (`DIR/results.parquet`) are not committed."
     )
-    return Section("Honesty over a grid (issue 26)", note, rows)
 
 
 def _settings(cell: dict, spec) -> str:
@@ -81,35 +102,20 @@ def _settings(cell: dict, spec) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.scale import update_report
-    from stewart_calib.sweep import load_spec, run_sweep
-    from stewart_calib.sweep.summary import write_summary
+    from benchmarks import report
 
     parser = argparse.ArgumentParser(prog="python -m benchmarks.honesty", description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "honesty", help="the sweep's directory (resumed)")
     parser.add_argument("--seeds", type=int, help="only the first N seeds of every cell")
     parser.add_argument("--workers", type=int, help="local Dask workers (default: one per core)")
-    parser.add_argument("--update-report", action="store_true", help="replace this section of BENCHMARKS.md")
+    parser.add_argument("--update-report", action="store_true", help="save the results and regenerate BENCHMARKS.md")
     args = parser.parse_args(argv)
-    spec = load_spec(SPEC)
-    if args.seeds is not None:
-        spec = spec.pilot(args.seeds)
-    load_before, start = os.getloadavg()[0], time.perf_counter()
-    report = run_sweep(spec, args.out, workers=args.workers)
-    write_summary(spec, report.table, args.out)
-    section = honesty_section(spec, report.table)
-    for row in section.rows:
-        print(f"| {row.name} | {row.value} | {row.target} | {row.met} |")
+    info = report.start(" ".join(["python -m benchmarks.honesty", *(sys.argv[1:] if argv is None else argv)]))
+    result = section(False, args.out, args.seeds, args.workers)
+    print(markdown(result))
     if args.update_report:
-        host = machine()
-        cpu_hours = float(np.nansum(report.table["cpu_seconds"].to_numpy(zero_copy_only=False))) / 3600
-        info = (
-            f"Measured by `python -m benchmarks.honesty {' '.join(argv or sys.argv[1:])}` on {host['cpu']}, "
-            f"{host['cores']} cores: the methods' CPU {cpu_hours:.2f} h in all; this run {report.ran} tasks in "
-            f"{(time.perf_counter() - start) / 60:.1f} min (1-min load average {load_before:.1f} before, "
-            f"{os.getloadavg()[0]:.1f} after). Rows: {args.out / 'results.parquet'} (not committed)."
-        )
-        update_report(section, ROOT / "BENCHMARKS.md", None, info)
+        report.save("honesty", [result], info, quick=False)
+        report.write()
     return 0
 
 

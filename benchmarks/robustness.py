@@ -1,11 +1,11 @@
-"""Robustness and honesty of every method with the DEFAULT configuration (issue 14).
+"""Robustness and honesty of every method with the DEFAULT configuration.
 
 **Robustness**: a synthetic log (random workspace poses, 10 Hz, true δM σ = 1 mm, noise as the
 defaults assume) on the compact geometry — not the simulator's platform, whose numbers nothing
 here is tuned to — with glitches: one ruler of a sample off by a size drawn uniformly in the
 range, at a rate of the samples, either including the first two samples (*early*) or only in
 the second half (*late*). Each method's parameter RMS error is compared with its own RMS on the
-same log without glitches; the target (issue 14) is ≤ 1.5× for ``ekf`` and ``isam2``.
+same log without glitches; the target is ≤ 1.5× for ``ekf`` and ``isam2``.
 
 **Honesty**: the default configuration on logs whose noise differs from the default by a
 factor (static parameters), and on drift logs (the parameters random-walk at 0.3×, 1×, 3× and
@@ -13,9 +13,7 @@ factor (static parameters), and on drift logs (the parameters random-walk at 0.3
 says), the log's noise also off. Reported: mean z² = mean over seeds and the 42
 parameters of (error / reported σ)² (target [0.5, 2]) and the fraction of runs whose NEES lies
 in the two-sided 95 % χ²(42) band (target ≥ 90 %), over 20 seeds: an honest estimator passes with
-probability 0.92 (at most 2 of 20 out of the band), where over the glitch rows' 6 seeds it had to
-have all 6 in, a chance of 0.74, and one seed's log out of the band for every method, the batch
-optimum included, failed the row.
+probability 0.92 (at most 2 of 20 out of the band).
 
 **A robot drifting faster than configured, along a smooth path**: nim-stewart along the 10 Hz
 Lissajous path of ``benchmarks/fk_speed.py`` (a few seconds of it leave many directions open), the
