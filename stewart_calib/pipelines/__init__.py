@@ -274,13 +274,15 @@ def add_config_arguments(parser: argparse.ArgumentParser, example: str = "isam2.
     )
 
 
-def _tolerance(text: str) -> float:
+def positive_number(text: str, what: str = "number") -> float:
+    """An option's value that must be a finite positive number (an argparse ``type``; ``what``
+    names it in the refusal, e.g. ``"number of seconds"``)."""
     try:
         value = float(text)
     except ValueError:
         value = math.nan
     if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a finite positive number, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a finite positive {what}, got {text!r}")
     return value
 
 
@@ -288,10 +290,10 @@ def add_tolerance_arguments(parser: argparse.ArgumentParser) -> None:
     """``--tolerance-mm``, ``--tolerance-deg`` and ``--fail-over-tolerance``: what the verdict line
     (:func:`~stewart_calib.accuracy.verdict_line`) compares the expected errors with."""
     parser.add_argument(
-        "--tolerance-mm", type=_tolerance, metavar="MM", help="position error the robot must keep to (verdict)"
+        "--tolerance-mm", type=positive_number, metavar="MM", help="position error the robot must keep to (verdict)"
     )
     parser.add_argument(
-        "--tolerance-deg", type=_tolerance, metavar="DEG", help="orientation error the robot must keep to (verdict)"
+        "--tolerance-deg", type=positive_number, metavar="DEG", help="orientation error to keep to (verdict)"
     )
     parser.add_argument(
         "--fail-over-tolerance",

@@ -8,7 +8,6 @@ through it and ``stewart-calib identifiability --poses`` reads it back.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 
@@ -31,7 +30,7 @@ from ..planning import (
     with_stroke_margin,
 )
 from ..platform import load_platform
-from . import add_config_arguments, run_command
+from . import add_config_arguments, positive_number, run_command
 
 
 def add_platform_and_noise_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,13 +40,7 @@ def add_platform_and_noise_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _positive_seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a finite positive number of seconds, got {text!r}")
-    return value
+    return positive_number(text, "number of seconds")
 
 
 def _seed(text: str) -> int:
