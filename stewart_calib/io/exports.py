@@ -26,7 +26,6 @@ to Z-up (``x' = x, y' = −z, z' = y``, a proper rotation); encoder counts to mm
 
 from __future__ import annotations
 
-import difflib
 import math
 import tomllib
 from collections.abc import Iterator
@@ -35,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CalibError
+from ..errors import CalibError, did_you_mean
 from ..rotations import rotation_to_rpy
 
 #: millimetres per length unit, by the names a mapping file or an export uses
@@ -444,19 +443,14 @@ def load_mapping(path: Path) -> dict:
     for table, value in data.items():
         if table not in MAPPING_KEYS:
             _refuse(
-                path, f"unknown table [{table}]{_did_you_mean(table, MAPPING_KEYS)}; expected [instrument] or [strokes]"
+                path, f"unknown table [{table}]{did_you_mean(table, MAPPING_KEYS)}; expected [instrument] or [strokes]"
             )
         if not isinstance(value, dict):
             _refuse(path, f"{table}: expected a table [{table}]")
         for key in value:
             if key not in MAPPING_KEYS[table]:
-                _refuse(path, f"unknown key '{table}.{key}'{_did_you_mean(key, MAPPING_KEYS[table])}")
+                _refuse(path, f"unknown key '{table}.{key}'{did_you_mean(key, MAPPING_KEYS[table])}")
     return data
-
-
-def _did_you_mean(word: str, known) -> str:
-    close = difflib.get_close_matches(word, sorted(known), n=1, cutoff=0.5)
-    return f" (did you mean '{close[0]}'?)" if close else ""
 
 
 def mapping_value(path, table: dict, section: str, key: str, default=None, kind=None, choices=None):
@@ -495,7 +489,7 @@ def column_indices(path: Path, header: list[str], names: list, key: str) -> list
         if not isinstance(name, str):
             _refuse(path, f"'{key}': expected column names, got {name!r}")
         if name not in header:
-            _refuse(path, f"'{key}': no column {name!r} in the file{_did_you_mean(name, header)}")
+            _refuse(path, f"'{key}': no column {name!r} in the file{did_you_mean(name, header)}")
         places = [j + 1 for j, label in enumerate(header) if label == name]
         if len(places) > 1:
             _refuse(
