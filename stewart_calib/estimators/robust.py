@@ -60,6 +60,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
 
@@ -89,6 +90,8 @@ MAX_ITERATIONS = 6
 RELINEARISE_TOLERANCE = 0.1
 #: at most this many relinearisations of one batch (from the last solution it takes 1–3).
 MAX_RELINEARISATIONS = 10
+#: candidate steps of an unannounced payload run beside the filter at most (RobustFilter._test_steps)
+MAX_STEP_CANDIDATES = 4
 #: consecutive window differences pooled for the random-walk rate.
 WALK_WINDOWS = 8
 #: a walk rate is rejected as too large where the window differences' signed root deviance at it
@@ -143,12 +146,16 @@ class RobustFilter:
             through it (None: the passes observe sample by sample, :meth:`update_block` does nothing).
         relinearise: solve the start-up and recovery batches by Gauss–Newton (see the module
             docstring) rather than one pass linearised along its own way from the prior.
-        step: ``(index, variance)`` of an unknown that may step (an unannounced payload): where a
-            step of it explains a significant part of a sample's innovation (it lowers the NIS by
-            more than the gate's χ² bound at one degree of freedom), the sample is taken with
-            ``variance`` added to that unknown's process noise — the step, recognised in the sample
-            it happens at, whether or not the gate would have refused it. The samples buffered
-            before it are let go (a window across the step fits neither side).
+        step: ``(index, variance)`` of an unknown that may step (an unannounced payload), tested by
+            the samples that follow a candidate step (:meth:`_test_steps`): a candidate is the filter
+            with ``variance`` added to that unknown's process noise at one sample, run beside it, and
+            is taken where its samples' likelihood exceeds the filter's by more than half the gate's
+            χ² bound at one degree of freedom (a Bayes factor: the step's size is drawn from its
+            prior). A candidate starts every ``lockout_window_samples`` samples and at any sample a
+            step explains a significant part of (it lowers the NIS by more than that bound), so a
+            ramp or a step too small for one sample is found from the evidence of many, and one
+            sample's misfit is no step unless the samples after it agree. The samples buffered
+            before a step taken are let go (a window across the step fits neither side).
 
     Attributes:
         started: the start-up batch is decided (the gated recursion runs).
@@ -181,6 +188,10 @@ class RobustFilter:
         # a step is taken where it lowers the NIS beyond the gate's bound at one degree of freedom
         self._step_bound = float(chdtri(1, 1.0 - gate_probability)) if gate_probability > 0.0 else math.inf
         self.steps = 0
+        # candidate steps run beside the filter (_test_steps): each (x, P, log-likelihood ratio against the
+        # filter over its samples, NIS of its last sample), and the samples since the last one began
+        self._candidates: list[tuple[np.ndarray, np.ndarray, float, float]] = []
+        self._since_candidate = 0
         self.filter = FilterState(method, prior_sigma_mm, gate_probability, m, layout, C)
         n = len(self.filter.x)
         self._P0 = self.filter.P.copy()
@@ -392,7 +403,9 @@ class RobustFilter:
         rate = self.walk_rate_mm2_per_s if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
         fill_walk(Q, self._unit_Q, rate * max(dt_s, 0.0))
 
-    def _step(self, t_s: float, prepared: np.ndarray) -> None:
+    def _step(self, t_s: float, prepared: np.ndarray, test_steps: bool = True) -> None:
+        """One sample of the gated recursion; with an unknown that steps (and ``test_steps``: not a refused
+        sample fed again out of time order) the candidate steps take it too and may replace the filter."""
         f = self.filter
         observation = self._observe(prepared, f.x)
         if observation is None:
@@ -401,20 +414,86 @@ class RobustFilter:
             )
         nu, H, R0 = observation
         self._fill_Q(f.Q, 0.0 if math.isnan(f.t_s) else t_s - f.t_s)
-        step = self._step_unknown
-        stepped = step is not None and self._is_step(step, nu, H, self.noise_scale2 * R0)
-        if step is not None and stepped:
-            f.Q[step[0], step[0]] += step[1]
-            nu, H = self._iterated(prepared, nu, H, R0)
-        # a step's sample passes on the step's test: the rest of its misfit is what the step's own
-        # pattern (the compliance times the payload's forces) still has wrong, which the next samples mend
-        f.update(H, nu, R0, t_s, gated=not stepped, noise_scale2=self.noise_scale2)  # SampleRejected: untouched
-        if stepped:
-            self.steps += 1
-            self._buffer.clear()
-            self._since_window, self._last_window = 0, None
+        if self._step_unknown is not None and test_steps and self._test_steps(t_s, prepared, nu, H, R0):
+            return
+        f.update(H, nu, R0, t_s, noise_scale2=self.noise_scale2)  # SampleRejected: untouched
 
-    def _iterated(self, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray):
+    def _test_steps(self, t_s: float, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray) -> bool:
+        """The candidate steps of the ``step`` unknown on one sample (see the class docstring); True where
+        one is taken: the filter is then that candidate, this sample included.
+
+        Each candidate is the filter's recursion from the sample it began at, with the step's variance
+        added there (that sample's update iterated, :meth:`_iterated`), and it keeps the log-likelihood
+        ratio ``Σ log N(ν_c; 0, S_c) − log N(ν; 0, S)`` of its samples against the filter's: a sample the
+        filter refuses and the candidate takes counts with the filter's NIS (a step the filter does not
+        know gates its samples); one both refuse, not at all; one the candidate refuses and the filter
+        takes ends the candidate. The step's prior enters the ratio through the candidate's larger
+        ``S`` (an Occam factor of about ``log(σ_step / σ_after)``), so a step is taken on the evidence
+        the samples give of it, not on one sample's misfit, which the noise or a fault explains too."""
+        f = self.filter
+        index, variance = self._step_unknown
+        R = self.noise_scale2 * R0
+        S = H @ (f.P + f.Q) @ H.T + R
+        filter_ll = _log_likelihood(nu, S)
+        filter_takes = not filter_ll.nis > f.gate_nis
+        candidates = []
+        for x, P, ratio, last_nis in self._candidates:
+            observation = self._observe_or_none(prepared, x)
+            if observation is None:
+                candidates.append((x, P, ratio, last_nis))
+                continue
+            x, P = x.copy(), P.copy()
+            status, nis, S_c = filter_step(
+                x, P, f.Q, observation[1], observation[0], R0, self.noise_scale2, f.gate_nis,
+                f.workspace(len(nu)), NO_COMPONENTS,
+            )  # fmt: skip
+            if status == STEP_TAKEN:
+                candidates.append((x, P, ratio + _log_likelihood(observation[0], S_c).value - filter_ll.value, nis))
+            elif not filter_takes:
+                candidates.append((x, P, ratio, last_nis))  # both refuse it: it tells neither apart
+        self._since_candidate += 1
+        stepped_Q = f.Q.copy()
+        stepped_Q[index, index] += variance
+        stepped = S + variance * np.outer(H[:, index], H[:, index])
+        if self._since_candidate >= self._robust.lockout_window_samples or (
+            filter_ll.nis - float(nu @ np.linalg.solve(stepped, nu)) > self._step_bound
+        ):
+            self._since_candidate = 0
+            start = self._stepped_update(prepared, nu, H, R0, stepped_Q)
+            if start is not None:
+                x, P, S_c, nu_c = start
+                start_ll = _log_likelihood(nu_c, S_c)
+                candidates.append((x, P, start_ll.value - filter_ll.value, start_ll.nis))
+                if len(candidates) > MAX_STEP_CANDIDATES:  # the least likely of the older ones goes
+                    candidates.pop(int(np.argmin([c[2] for c in candidates[:-1]])))
+        self._candidates = candidates
+        if not candidates:
+            return False
+        best = int(np.argmax([c[2] for c in candidates]))
+        if not candidates[best][2] > 0.5 * self._step_bound:
+            return False
+        f.x, f.P, _, f.nis = candidates[best]
+        f.S = S
+        f.samples_used += 1
+        f.t_s = t_s
+        self.steps += 1
+        self._candidates, self._since_candidate = [], 0
+        self._buffer.clear()
+        self._since_window, self._last_window = 0, None
+        return True
+
+    def _stepped_update(self, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray, Q: np.ndarray):
+        """The filter's update of one sample with the process noise ``Q`` of a step, iterated
+        (:meth:`_iterated`): ``(x, P, S, ν)`` after it, or None where the update is degenerate."""
+        f = self.filter
+        nu, H = self._iterated(prepared, nu, H, R0, Q)
+        x, P = f.x.copy(), f.P.copy()
+        status, _, S = filter_step(
+            x, P, Q, H, nu, R0, self.noise_scale2, math.inf, f.workspace(len(nu)), NO_COMPONENTS
+        )
+        return (x, P, S, nu) if status == STEP_TAKEN else None
+
+    def _iterated(self, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray, Q: np.ndarray):
         """A step's sample as an iterated update: ``(ν, H)`` linearised at the update's own result, so
         that :meth:`FilterState.update` from the state before it is one Gauss–Newton step of that sample
         and the prior (to :data:`RELINEARISE_TOLERANCE` posterior σ), not a step linearised where the
@@ -436,7 +515,7 @@ class RobustFilter:
             status, _, _ = filter_step(
                 x,
                 P,
-                f.Q,
+                Q,
                 linearised[1],
                 innovation,
                 R0,
@@ -452,16 +531,6 @@ class RobustFilter:
                 break
             at, linearised = x, observation[:2]
         return linearised[0] + linearised[1] @ (at - x_prior), linearised[1]
-
-    def _is_step(self, step: tuple[int, float], nu: np.ndarray, H: np.ndarray, R: np.ndarray) -> bool:
-        """Whether a ``step`` (``(index, variance)``) explains a significant part of the innovation: it
-        lowers the NIS by more than the gate's χ² bound at one degree of freedom (a likelihood-ratio
-        test, so a step that the random walk's spread would let through the gate is still one)."""
-        f = self.filter
-        index, variance = step
-        S = H @ (f.P + f.Q) @ H.T + R
-        stepped = S + variance * np.outer(H[:, index], H[:, index])
-        return float(nu @ np.linalg.solve(S, nu) - nu @ np.linalg.solve(stepped, nu)) > self._step_bound
 
     # ------------------------------------------------------------------ batches
 
@@ -903,6 +972,7 @@ class RobustFilter:
         if self._walked(~outliers):
             return
         self._adopt()
+        self._candidates, self._since_candidate = [], 0  # they were steps from the state it replaced
         self.recovery_dropped += used_before - int(np.sum(~gated_before & ~outliers))
         self.recovery_readmitted += int(np.sum(gated_before & ~outliers))
         self._buffer.gated[:] = outliers  # the batch's verdict replaces the lock-out's record
@@ -958,7 +1028,7 @@ class RobustFilter:
         taken = np.zeros(len(self._buffer), dtype=bool)
         for k in refused:
             try:
-                self._step(float(self._buffer.t[k]), self._buffer.prepared[k].copy())
+                self._step(float(self._buffer.t[k]), self._buffer.prepared[k].copy(), test_steps=False)
                 taken[k] = True
             except SampleRejected:
                 pass
@@ -987,6 +1057,12 @@ class RobustFilter:
             **self._buffer.export_state(),
             "recovery_counts": np.array([self.recovery_dropped, self.recovery_readmitted], dtype=np.int64),
             "steps": np.int64(self.steps),
+            "step_candidates": {
+                "x": np.array([c[0] for c in self._candidates]).reshape(-1, self._n),
+                "P": np.array([c[1] for c in self._candidates]).reshape(-1, self._n, self._n),
+                "ratio_nis": np.array([c[2:] for c in self._candidates], dtype=float).reshape(-1, 2),
+                "since": np.int64(self._since_candidate),
+            },
             "difference_eigenvalues": np.array([d[0] for d in differences]).reshape(-1, self._n),
             "difference_projections": np.array([d[1] for d in differences]).reshape(-1, self._n),
             "difference_spans": np.array([d[2] for d in differences], dtype=float),
@@ -1032,6 +1108,16 @@ class RobustFilter:
                 int(v) for v in state_array(state, "recovery_counts", (2,))
             )
         self.steps = int(state_array(state, "steps", ())) if "steps" in state else 0  # none before steps counted
+        self._candidates, self._since_candidate = [], 0
+        if "step_candidates" in state:  # a checkpoint of before the candidates: they start afresh
+            kept = state["step_candidates"]
+            ratio_nis = state_array(kept, "ratio_nis", np.shape(kept.get("ratio_nis", ())))
+            if ratio_nis.ndim != 2 or ratio_nis.shape[1] != 2:
+                raise CalibError("estimator state: key 'step_candidates.ratio_nis': expected rows of (ratio, NIS)")
+            xs = state_array(kept, "x", (len(ratio_nis), self._n))
+            Ps = state_array(kept, "P", (len(ratio_nis), self._n, self._n))
+            self._candidates = [(x, P, float(r), float(q)) for x, P, (r, q) in zip(xs, Ps, ratio_nis, strict=True)]
+            self._since_candidate = int(state_array(kept, "since", ()))
         self._buffer.import_state(state)
         spans = state_array(state, "difference_spans", np.shape(state.get("difference_spans", ())))
         eigenvalues = state_array(state, "difference_eigenvalues", (len(spans), self._n))
@@ -1100,6 +1186,23 @@ def _walk_directions(
         lam[:k] = 1.0 / walk_share[walking]
     projection2[:k] = (directions[:, :k].T @ difference) ** 2
     return lam, directions, projection2
+
+
+class _Likelihood(NamedTuple):
+    nis: float  #: νᵀ S⁻¹ ν
+    value: float  #: log N(ν; 0, S)
+
+
+def _log_likelihood(nu: np.ndarray, S: np.ndarray) -> _Likelihood:
+    """An innovation's NIS and Gaussian log-density under its covariance ``S`` (Cholesky; −inf where
+    ``S`` is not positive definite)."""
+    try:
+        L = np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        return _Likelihood(math.inf, -math.inf)
+    w = np.linalg.solve(L, nu)
+    nis = float(w @ w)
+    return _Likelihood(nis, -0.5 * (nis + len(nu) * math.log(2.0 * math.pi)) - float(np.sum(np.log(np.diag(L)))))
 
 
 def _mahalanobis2(step: np.ndarray, P: np.ndarray, gauge_projector: np.ndarray | None) -> float:
