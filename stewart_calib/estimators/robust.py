@@ -60,6 +60,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -92,6 +93,8 @@ RELINEARISE_TOLERANCE = 0.1
 MAX_RELINEARISATIONS = 10
 #: candidate steps of an unannounced payload run beside the filter at most (RobustFilter._test_steps)
 MAX_STEP_CANDIDATES = 4
+#: the samples the filter took lately whose NIS gives the dispersion a candidate step's ratio is read at
+DISPERSION_SAMPLES = 100
 #: consecutive window differences pooled for the random-walk rate.
 WALK_WINDOWS = 8
 #: a walk rate is rejected as too large where the window differences' signed root deviance at it
@@ -188,10 +191,11 @@ class RobustFilter:
         # a step is taken where it lowers the NIS beyond the gate's bound at one degree of freedom
         self._step_bound = float(chdtri(1, 1.0 - gate_probability)) if gate_probability > 0.0 else math.inf
         self.steps = 0
-        # candidate steps run beside the filter (_test_steps): each (x, P, log-likelihood ratio against the
-        # filter over its samples, NIS of its last sample), and the samples since the last one began
-        self._candidates: list[tuple[np.ndarray, np.ndarray, float, float]] = []
+        # candidate steps run beside the filter (_test_steps), and the samples since the last one began
+        self._candidates: list[_Candidate] = []
         self._since_candidate = 0
+        # NIS per row of the samples the filter took lately: the dispersion the candidates' ratios are read at
+        self._dispersions: deque = deque(maxlen=DISPERSION_SAMPLES)
         self.filter = FilterState(method, prior_sigma_mm, gate_probability, m, layout, C)
         n = len(self.filter.x)
         self._P0 = self.filter.P.copy()
@@ -283,7 +287,8 @@ class RobustFilter:
         except SampleRejected as err:
             if err.reason == SampleRejected.GATED:
                 self._buffer.append(t_s, prepared, True)
-                if self._locked_out():
+                # a candidate step that explains the samples the filter refuses is given its window first
+                if self._locked_out() and not any(self._leads(c) for c in self._candidates):
                     self._recover()
             raise
         self._buffer.append(t_s, prepared, False)
@@ -424,57 +429,61 @@ class RobustFilter:
 
         Each candidate is the filter's recursion from the sample it began at, with the step's variance
         added there (that sample's update iterated, :meth:`_iterated`), and it keeps the log-likelihood
-        ratio ``Σ log N(ν_c; 0, S_c) − log N(ν; 0, S)`` of its samples against the filter's: a sample the
-        filter refuses and the candidate takes counts with the filter's NIS (a step the filter does not
-        know gates its samples); one both refuse, not at all; one the candidate refuses and the filter
-        takes ends the candidate. The step's prior enters the ratio through the candidate's larger
-        ``S`` (an Occam factor of about ``log(σ_step / σ_after)``), so a step is taken on the evidence
-        the samples give of it, not on one sample's misfit, which the noise or a fault explains too."""
+        ratio ``Σ log N(ν_c; 0, S_c) − log N(ν; 0, S)`` of the samples after that one against the
+        filter's: a sample the filter refuses and the candidate takes counts with the filter's NIS (a step
+        the filter does not know gates its samples); one both refuse, not at all; one the candidate
+        refuses and the filter takes ends the candidate. The step's prior enters the ratio through the
+        candidate's larger ``S`` (an Occam factor of about ``log(σ_step / σ_after)``). The ratio is read
+        at the dispersion of the filter's recent NIS (a quasi-likelihood: a noise model too tight makes
+        every ratio larger), and a candidate is taken once it leads after ``lockout_window_samples``
+        samples (while one leads, a lock-out waits for it): the sample a step begins at, and the few
+        after it at the same pose, are no evidence that a fault or the pose's own misfit could not
+        give."""
         f = self.filter
         index, variance = self._step_unknown
         R = self.noise_scale2 * R0
         S = H @ (f.P + f.Q) @ H.T + R
         filter_ll = _log_likelihood(nu, S)
         filter_takes = not filter_ll.nis > f.gate_nis
+        self._dispersions.append(min(filter_ll.nis, f.gate_nis) / len(nu))
         candidates = []
-        for x, P, ratio, last_nis in self._candidates:
-            observation = self._observe_or_none(prepared, x)
+        for c in self._candidates:
+            observation = self._observe_or_none(prepared, c.x)
             if observation is None:
-                candidates.append((x, P, ratio, last_nis))
+                candidates.append(c)
                 continue
-            x, P = x.copy(), P.copy()
+            x, P = c.x.copy(), c.P.copy()
             status, nis, S_c = filter_step(
                 x, P, f.Q, observation[1], observation[0], R0, self.noise_scale2, f.gate_nis,
                 f.workspace(len(nu)), NO_COMPONENTS,
             )  # fmt: skip
             if status == STEP_TAKEN:
-                candidates.append((x, P, ratio + _log_likelihood(observation[0], S_c).value - filter_ll.value, nis))
+                ratio = c.ratio + _log_likelihood(observation[0], S_c).value - filter_ll.value
+                candidates.append(_Candidate(x, P, ratio, nis, c.taken + 1, c.readmitted + (not filter_takes)))
             elif not filter_takes:
-                candidates.append((x, P, ratio, last_nis))  # both refuse it: it tells neither apart
+                candidates.append(c)  # both refuse it: it tells neither apart
         self._since_candidate += 1
-        stepped_Q = f.Q.copy()
-        stepped_Q[index, index] += variance
         stepped = S + variance * np.outer(H[:, index], H[:, index])
         if self._since_candidate >= self._robust.lockout_window_samples or (
             filter_ll.nis - float(nu @ np.linalg.solve(stepped, nu)) > self._step_bound
         ):
             self._since_candidate = 0
+            stepped_Q = f.Q.copy()
+            stepped_Q[index, index] += variance
             start = self._stepped_update(prepared, nu, H, R0, stepped_Q)
             if start is not None:
-                x, P, S_c, nu_c = start
-                start_ll = _log_likelihood(nu_c, S_c)
-                candidates.append((x, P, start_ll.value - filter_ll.value, start_ll.nis))
+                candidates.append(start)
                 if len(candidates) > MAX_STEP_CANDIDATES:  # the least likely of the older ones goes
-                    candidates.pop(int(np.argmin([c[2] for c in candidates[:-1]])))
+                    candidates.pop(int(np.argmin([c.ratio for c in candidates[:-1]])))
         self._candidates = candidates
         if not candidates:
             return False
-        best = int(np.argmax([c[2] for c in candidates]))
-        if not candidates[best][2] > 0.5 * self._step_bound:
+        best = candidates[int(np.argmax([c.ratio for c in candidates]))]
+        if not (self._leads(best) and best.taken >= self._robust.lockout_window_samples):
             return False
-        f.x, f.P, _, f.nis = candidates[best]
-        f.S = S
-        f.samples_used += 1
+        f.x, f.P, f.nis, f.S = best.x, best.P, best.nis, S
+        # this sample, and those the filter refused before and the step takes back in
+        f.samples_used += 1 + best.readmitted - (not filter_takes)
         f.t_s = t_s
         self.steps += 1
         self._candidates, self._since_candidate = [], 0
@@ -482,16 +491,22 @@ class RobustFilter:
         self._since_window, self._last_window = 0, None
         return True
 
+    def _leads(self, candidate: _Candidate) -> bool:
+        """Whether a candidate step's ratio is beyond its bound at the dispersion of the filter's NIS."""
+        dispersion = max(1.0, float(np.mean(self._dispersions))) if self._dispersions else 1.0
+        return candidate.ratio > 0.5 * self._step_bound * dispersion
+
     def _stepped_update(self, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray, Q: np.ndarray):
-        """The filter's update of one sample with the process noise ``Q`` of a step, iterated
-        (:meth:`_iterated`): ``(x, P, S, ν)`` after it, or None where the update is degenerate."""
+        """A candidate step from the filter's update of one sample with the process noise ``Q`` of the step,
+        iterated (:meth:`_iterated`); None where the update is degenerate."""
         f = self.filter
         nu, H = self._iterated(prepared, nu, H, R0, Q)
         x, P = f.x.copy(), f.P.copy()
-        status, _, S = filter_step(
+        status, nis, _ = filter_step(
             x, P, Q, H, nu, R0, self.noise_scale2, math.inf, f.workspace(len(nu)), NO_COMPONENTS
         )
-        return (x, P, S, nu) if status == STEP_TAKEN else None
+        refused = not nu @ np.linalg.solve(H @ (f.P + f.Q) @ H.T + self.noise_scale2 * R0, nu) <= f.gate_nis
+        return _Candidate(x, P, 0.0, nis, 0, int(refused)) if status == STEP_TAKEN else None
 
     def _iterated(self, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray, Q: np.ndarray):
         """A step's sample as an iterated update: ``(ν, H)`` linearised at the update's own result, so
@@ -1058,9 +1073,11 @@ class RobustFilter:
             "recovery_counts": np.array([self.recovery_dropped, self.recovery_readmitted], dtype=np.int64),
             "steps": np.int64(self.steps),
             "step_candidates": {
-                "x": np.array([c[0] for c in self._candidates]).reshape(-1, self._n),
-                "P": np.array([c[1] for c in self._candidates]).reshape(-1, self._n, self._n),
-                "ratio_nis": np.array([c[2:] for c in self._candidates], dtype=float).reshape(-1, 2),
+                "x": np.array([c.x for c in self._candidates]).reshape(-1, self._n),
+                "P": np.array([c.P for c in self._candidates]).reshape(-1, self._n, self._n),
+                "ratio_nis_taken": np.array(
+                    [(c.ratio, c.nis, c.taken, c.readmitted) for c in self._candidates], dtype=float
+                ).reshape(-1, 4),
                 "since": np.int64(self._since_candidate),
             },
             "difference_eigenvalues": np.array([d[0] for d in differences]).reshape(-1, self._n),
@@ -1111,12 +1128,18 @@ class RobustFilter:
         self._candidates, self._since_candidate = [], 0
         if "step_candidates" in state:  # a checkpoint of before the candidates: they start afresh
             kept = state["step_candidates"]
-            ratio_nis = state_array(kept, "ratio_nis", np.shape(kept.get("ratio_nis", ())))
-            if ratio_nis.ndim != 2 or ratio_nis.shape[1] != 2:
-                raise CalibError("estimator state: key 'step_candidates.ratio_nis': expected rows of (ratio, NIS)")
-            xs = state_array(kept, "x", (len(ratio_nis), self._n))
-            Ps = state_array(kept, "P", (len(ratio_nis), self._n, self._n))
-            self._candidates = [(x, P, float(r), float(q)) for x, P, (r, q) in zip(xs, Ps, ratio_nis, strict=True)]
+            rows = state_array(kept, "ratio_nis_taken", np.shape(kept.get("ratio_nis_taken", ())))
+            if rows.ndim != 2 or rows.shape[1] != 4:
+                raise CalibError(
+                    "estimator state: key 'step_candidates.ratio_nis_taken': expected rows of (ratio, NIS, "
+                    "samples taken, readmitted)"
+                )
+            xs = state_array(kept, "x", (len(rows), self._n))
+            Ps = state_array(kept, "P", (len(rows), self._n, self._n))
+            self._candidates = [
+                _Candidate(x, P, float(r), float(q), int(k), int(a))
+                for x, P, (r, q, k, a) in zip(xs, Ps, rows, strict=True)
+            ]
             self._since_candidate = int(state_array(kept, "since", ()))
         self._buffer.import_state(state)
         spans = state_array(state, "difference_spans", np.shape(state.get("difference_spans", ())))
@@ -1186,6 +1209,18 @@ def _walk_directions(
         lam[:k] = 1.0 / walk_share[walking]
     projection2[:k] = (directions[:, :k].T @ difference) ** 2
     return lam, directions, projection2
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    """A candidate step of :class:`RobustFilter`'s ``step`` unknown (:meth:`RobustFilter._test_steps`)."""
+
+    x: np.ndarray
+    P: np.ndarray
+    ratio: float  #: log-likelihood ratio against the filter over the samples after the one it began at
+    nis: float  #: NIS of its last sample
+    taken: int  #: samples it took after the one it began at
+    readmitted: int  #: samples it took that the filter refused, its first included
 
 
 class _Likelihood(NamedTuple):
