@@ -9,6 +9,7 @@ is refreshed every update so it is never marginalised while in use.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, replace
 
 import gtsam
@@ -117,6 +118,9 @@ class ISAM2Estimator:
         # one at the same 5 % as it raises it (see _window_walk).
         self._front.robust.walk_lowering = WALK_RAISING
         self._pending: list[Sample] = []  # start-up samples the front end has not yet decided on
+        # an unannounced payload's: the samples the front end's gate refused lately, which a step it takes
+        # afterwards takes back in (_note_step)
+        self._front_gated: list[Sample] = []
         #: ``{t_s: (s², q)}``: the noise scale and walk rate [mm²/s] of the walk factor each buffered
         #: window opened with (_window_walk)
         self._window_scales: dict[float, tuple[float, float]] = {}
@@ -188,7 +192,9 @@ class ISAM2Estimator:
         late: Refusals = []
         j = 0
         while j < len(block):
-            if not self._held.active and not self._pending and self._front.robust.started:
+            # an unannounced payload's samples go one by one: a step the front end takes after the samples
+            # that confirm it has the graph take back those it had refused then (_note_step)
+            if self._payload is None and not self._held.active and not self._pending and self._front.robust.started:
                 j = self._front_run(block, j, refused, late, errors_out)
             else:
                 j = self._one_by_one(block, j, j + 1, refused, late, errors_out)
@@ -256,14 +262,38 @@ class ISAM2Estimator:
     def _front_update(self, sample: Sample) -> None:
         """The front end's ``update``, noting a step of the unannounced payload it takes at ``sample``."""
         steps = self._front.robust.steps
-        self._front.update(sample)
+        try:
+            self._front.update(sample)
+        except SampleRejected as err:
+            if self._payload is not None and err.reason == SampleRejected.GATED:
+                self._front_gated.append(sample)
+            raise
         self._note_step(sample, steps)
 
     def _note_step(self, sample: Sample, steps_before: int) -> None:
         """Where the front end took a payload step at ``sample`` (its count of steps moved from
-        ``steps_before``), the graph opens a window there with the payload it found (GraphBuilder.steps)."""
-        if self._front.robust.steps != steps_before:
-            self._builder.steps[sample.t_s] = float(self._front.filter.x[self._payload])
+        ``steps_before``), the graph opens a window with the payload it found (GraphBuilder.steps) at the
+        sample the step happened at (the front end takes it once the samples after it agree): where the
+        graph holds samples after it already, it is rebuilt from the replay buffer with the window there
+        and the samples since that the front end's gate had refused, which the step takes back in — if
+        the buffer reaches back to it (else the window opens at ``sample``)."""
+        held_from = self._replay[0].t_s if self._replay else math.inf
+        self._front_gated = [s for s in self._front_gated if s.t_s >= held_from]
+        if self._front.robust.steps == steps_before:
+            return
+        payload_kg = float(self._front.filter.x[self._payload])
+        began_t_s = self._front.robust.step_t_s
+        taken_back = [s for s in self._front_gated if s.t_s >= began_t_s]
+        if not began_t_s <= self._state.last_t_s:  # the graph holds none after it: those taken back follow
+            self._builder.steps[began_t_s] = payload_kg
+            for taken in taken_back:
+                self._add(taken)
+        elif held_from <= began_t_s:
+            self._builder.steps[began_t_s] = payload_kg
+            self._rebuild(self._first_snapshot(), sorted(self._replay + taken_back, key=lambda s: s.t_s))
+        else:
+            self._builder.steps[sample.t_s] = payload_kg
+        self._front_gated = []
 
     def _front_block(self, run: Log) -> tuple[Refusals, Refusals]:
         """The front end over ``run`` (:meth:`LegEKF.update_block
@@ -276,6 +306,7 @@ class ISAM2Estimator:
         for i in range(len(run)):
             steps = self._front.robust.steps
             one = update_each(self._front, [run[i]], first=i)
+            self._front_gated += [run[i] for _, err in one[0] if err.reason == SampleRejected.GATED]
             self._note_step(run[i], steps)
             refused += one[0]
             late += one[1]

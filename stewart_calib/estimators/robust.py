@@ -191,6 +191,8 @@ class RobustFilter:
         # a step is taken where it lowers the NIS beyond the gate's bound at one degree of freedom
         self._step_bound = float(chdtri(1, 1.0 - gate_probability)) if gate_probability > 0.0 else math.inf
         self.steps = 0
+        #: the time of the sample the last step taken happened at (NaN before any)
+        self.step_t_s = math.nan
         # candidate steps run beside the filter (_test_steps), and the samples since the last one began
         self._candidates: list[_Candidate] = []
         self._since_candidate = 0
@@ -459,7 +461,7 @@ class RobustFilter:
             )  # fmt: skip
             if status == STEP_TAKEN:
                 ratio = c.ratio + _log_likelihood(observation[0], S_c).value - filter_ll.value
-                candidates.append(_Candidate(x, P, ratio, nis, c.taken + 1, c.readmitted + (not filter_takes)))
+                candidates.append(_Candidate(x, P, ratio, nis, c.taken + 1, c.readmitted + (not filter_takes), c.t_s))
             elif not filter_takes:
                 candidates.append(c)  # both refuse it: it tells neither apart
         self._since_candidate += 1
@@ -470,7 +472,7 @@ class RobustFilter:
             self._since_candidate = 0
             stepped_Q = f.Q.copy()
             stepped_Q[index, index] += variance
-            start = self._stepped_update(prepared, nu, H, R0, stepped_Q)
+            start = self._stepped_update(t_s, prepared, nu, H, R0, stepped_Q)
             if start is not None:
                 candidates.append(start)
                 if len(candidates) > MAX_STEP_CANDIDATES:  # the least likely of the older ones goes
@@ -486,6 +488,7 @@ class RobustFilter:
         f.samples_used += 1 + best.readmitted - (not filter_takes)
         f.t_s = t_s
         self.steps += 1
+        self.step_t_s = best.t_s
         self._candidates, self._since_candidate = [], 0
         self._buffer.clear()
         self._since_window, self._last_window = 0, None
@@ -496,7 +499,9 @@ class RobustFilter:
         dispersion = max(1.0, float(np.mean(self._dispersions))) if self._dispersions else 1.0
         return candidate.ratio > 0.5 * self._step_bound * dispersion
 
-    def _stepped_update(self, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray, Q: np.ndarray):
+    def _stepped_update(
+        self, t_s: float, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray, Q: np.ndarray
+    ):
         """A candidate step from the filter's update of one sample with the process noise ``Q`` of the step,
         iterated (:meth:`_iterated`); None where the update is degenerate."""
         f = self.filter
@@ -506,7 +511,7 @@ class RobustFilter:
             x, P, Q, H, nu, R0, self.noise_scale2, math.inf, f.workspace(len(nu)), NO_COMPONENTS
         )
         refused = not nu @ np.linalg.solve(H @ (f.P + f.Q) @ H.T + self.noise_scale2 * R0, nu) <= f.gate_nis
-        return _Candidate(x, P, 0.0, nis, 0, int(refused)) if status == STEP_TAKEN else None
+        return _Candidate(x, P, 0.0, nis, 0, int(refused), t_s) if status == STEP_TAKEN else None
 
     def _iterated(self, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray, Q: np.ndarray):
         """A step's sample as an iterated update: ``(ν, H)`` linearised at the update's own result, so
@@ -1076,9 +1081,11 @@ class RobustFilter:
                 "x": np.array([c.x for c in self._candidates]).reshape(-1, self._n),
                 "P": np.array([c.P for c in self._candidates]).reshape(-1, self._n, self._n),
                 "ratio_nis_taken": np.array(
-                    [(c.ratio, c.nis, c.taken, c.readmitted) for c in self._candidates], dtype=float
-                ).reshape(-1, 4),
+                    [(c.ratio, c.nis, c.taken, c.readmitted, c.t_s) for c in self._candidates], dtype=float
+                ).reshape(-1, 5),
                 "since": np.int64(self._since_candidate),
+                "last_step_t_s": np.float64(self.step_t_s),
+                "dispersions": np.array(self._dispersions, dtype=float),
             },
             "difference_eigenvalues": np.array([d[0] for d in differences]).reshape(-1, self._n),
             "difference_projections": np.array([d[1] for d in differences]).reshape(-1, self._n),
@@ -1125,22 +1132,26 @@ class RobustFilter:
                 int(v) for v in state_array(state, "recovery_counts", (2,))
             )
         self.steps = int(state_array(state, "steps", ())) if "steps" in state else 0  # none before steps counted
-        self._candidates, self._since_candidate = [], 0
+        self._candidates, self._since_candidate, self.step_t_s = [], 0, math.nan
+        self._dispersions = deque(maxlen=DISPERSION_SAMPLES)
         if "step_candidates" in state:  # a checkpoint of before the candidates: they start afresh
             kept = state["step_candidates"]
             rows = state_array(kept, "ratio_nis_taken", np.shape(kept.get("ratio_nis_taken", ())))
-            if rows.ndim != 2 or rows.shape[1] != 4:
+            if rows.ndim != 2 or rows.shape[1] != 5:
                 raise CalibError(
                     "estimator state: key 'step_candidates.ratio_nis_taken': expected rows of (ratio, NIS, "
-                    "samples taken, readmitted)"
+                    "samples taken, readmitted, time)"
                 )
             xs = state_array(kept, "x", (len(rows), self._n))
             Ps = state_array(kept, "P", (len(rows), self._n, self._n))
             self._candidates = [
-                _Candidate(x, P, float(r), float(q), int(k), int(a))
-                for x, P, (r, q, k, a) in zip(xs, Ps, rows, strict=True)
+                _Candidate(x, P, float(r), float(q), int(k), int(a), float(t))
+                for x, P, (r, q, k, a, t) in zip(xs, Ps, rows, strict=True)
             ]
             self._since_candidate = int(state_array(kept, "since", ()))
+            self.step_t_s = float(state_array(kept, "last_step_t_s", ()))
+            dispersions = state_array(kept, "dispersions", np.shape(kept.get("dispersions", ())))
+            self._dispersions = deque(dispersions.ravel().tolist(), maxlen=DISPERSION_SAMPLES)
         self._buffer.import_state(state)
         spans = state_array(state, "difference_spans", np.shape(state.get("difference_spans", ())))
         eigenvalues = state_array(state, "difference_eigenvalues", (len(spans), self._n))
@@ -1221,6 +1232,7 @@ class _Candidate:
     nis: float  #: NIS of its last sample
     taken: int  #: samples it took after the one it began at
     readmitted: int  #: samples it took that the filter refused, its first included
+    t_s: float  #: the time of the sample it began at: where the step happened
 
 
 class _Likelihood(NamedTuple):
