@@ -24,6 +24,7 @@ Pose perturbations are in the body tangent ``ξ = [ω, v]`` (rotation first), ``
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from functools import cached_property
 from typing import ClassVar
 
 import numpy as np
@@ -167,7 +168,6 @@ class RotaryLegs:
         if not (np.isfinite(low) and np.isfinite(high) and low < high <= low + 2.0 * np.pi):
             raise ValueError(f"angle_range must be finite, min < max, at most 2π wide, got {self.angle_range}")
         object.__setattr__(self, "angle_range", (low, high))
-        self._derive()
 
     # ------------------------------------------------------------------ the parameter vector
 
@@ -201,10 +201,12 @@ class RotaryLegs:
         first = _PER_LEG * np.arange(self.n_legs)[:, None]
         return first + np.arange(_A.start, _A.stop), first + np.arange(_D.start, _D.stop)
 
-    @property
+    @cached_property
     def w_directions(self) -> np.ndarray:
-        """``(6, 3)`` ``w_i = n_i × u_i``: the horn's direction at angle +90°."""
-        return self._w
+        """``(6, 3)`` ``w_i = n_i × u_i``: the horn's direction at angle +90° (read-only; every residual needs it)."""
+        w = _cross(self.crank_axes, self.zero_directions)
+        w.setflags(write=False)
+        return w
 
     def as_vector(self) -> np.ndarray:
         """``(66,)`` M leg by leg ``[a_i | d_i | h_i r_i o_i | tu_i tw_i]`` [mm, rad]; the tilts are 0:
@@ -252,14 +254,7 @@ class RotaryLegs:
             if isinstance(value, np.ndarray):
                 value.setflags(write=False)
             object.__setattr__(legs, field.name, value)
-        legs._derive()
         return legs
-
-    def _derive(self) -> None:
-        """The read-only ``w_i = n_i × u_i``, kept beside the fields (every residual needs it)."""
-        w = _cross(self.crank_axes, self.zero_directions)
-        w.setflags(write=False)
-        object.__setattr__(self, "_w", w)
 
     # ------------------------------------------------------------------ kinematics
 
