@@ -15,6 +15,8 @@ import dataclasses
 import gtsam
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from stewart_calib import kinematics as kin
 from stewart_calib.errors import SampleRejected
@@ -363,6 +365,21 @@ def test_ik_fk_ik_round_trip():
     again = ROUGH.coordinates(solution.R, solution.t)
     assert np.all(np.abs(again - e) <= angle_bound + 1e-12)
     assert np.max(np.abs(ROUGH.residuals(solution.R, solution.t, e))) <= FK_TOL_MM
+
+
+@settings(max_examples=40, deadline=None)
+@given(fraction=st.lists(st.floats(-1.0, 1.0, allow_nan=False), min_size=6, max_size=6).map(np.array))
+def test_fk_of_ik_across_the_box(fraction):
+    # hypothesis draws the box's faces and corners often: there the horns near ±90° and the rods
+    # near their reach, where J_pose is worst conditioned (the bound below grows with it)
+    R_home, t_home = home(ROUGH)
+    R, t = pose_to_rt(np.r_[t_home, 0.0, 0.0, 0.0] + HALF_BOX * fraction)
+    e = ROUGH.coordinates(R_home @ R, t)
+    assume(np.all(np.isfinite(e)))
+    solution = ROUGH.forward_kinematics(e, tol_mm=FK_TOL_MM)
+    bound = _pose_bounds(ROUGH, R_home @ R, t, e, np.maximum(solution.residual_mm, 1e-13))[0]
+    position_mm, angle_deg = pose_error(R_home @ R, t, solution.R, solution.t)
+    assert position_mm <= bound + 1e-12 and np.radians(angle_deg) <= bound + 1e-13
 
 
 def test_fk_batch_equals_per_sample():
