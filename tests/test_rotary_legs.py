@@ -11,6 +11,7 @@ rotation angle of ``R_aᵀ R_b``).
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import gtsam
 import numpy as np
@@ -160,6 +161,24 @@ def test_parameter_layout():
     blocks = M.reshape(6, len(PARAMETER_FIELDS))
     np.testing.assert_array_equal(blocks[:, 6:9], np.c_[ROUGH.horn_lengths, ROUGH.rod_lengths, ROUGH.angle_offsets])
     np.testing.assert_array_equal(blocks[:, 9:], 0.0)
+
+
+def test_priors_walks_and_the_coordinate_sigma_by_entry():
+    # the keys of config.NoiseConfig that the rotary entries read (spec §15: priors and walks in degrees)
+    noise = SimpleNamespace(
+        prior_sigma_mm=0.5,
+        angle_prior_sigma_deg=3.0,
+        random_walk_mm_per_sqrt_s=1e-4,
+        angle_random_walk_deg_per_sqrt_s=2e-3,
+        angle_sigma_deg=0.05,
+    )
+    prior, walk = LEGS.prior_sigmas(noise), LEGS.walk_sigmas(noise)
+    angle = LEGS.parameter_degrees
+    np.testing.assert_array_equal(prior[~angle], 0.5)
+    np.testing.assert_allclose(prior[angle], np.radians(3.0), rtol=1e-15)
+    np.testing.assert_array_equal(walk[~angle], 1e-4)
+    np.testing.assert_allclose(walk[angle], np.radians(noise.angle_random_walk_deg_per_sqrt_s), rtol=1e-15)
+    assert LEGS.coordinate_sigma(noise) == pytest.approx(np.radians(noise.angle_sigma_deg), rel=1e-15)
 
 
 # ----------------------------------------------------------------------------- perturbed

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 from functools import cached_property
-from typing import ClassVar
 
 import numpy as np
 
@@ -132,9 +131,12 @@ class RotaryLegs:
     angle_offsets: np.ndarray
     angle_range: tuple[float, float]
 
-    kind: ClassVar[str] = "rotary"
-    coordinate_unit: ClassVar[str] = "deg"
-    compiled: ClassVar[bool] = False
+    #: the leg model's kind (:class:`~stewart_calib.model.legs.LegModel`): the platform file's ``[drive] kind``
+    kind = "rotary"
+    #: the unit of the log's drive columns ``q{i}_deg`` (spec §15: commanded angles)
+    coordinate_unit = "deg"
+    #: no compiled kernels: the numpy paths of the drive and the estimators apply
+    compiled = False
 
     def __post_init__(self) -> None:
         arrays = {}
@@ -200,6 +202,25 @@ class RotaryLegs:
         ``d_i``: an outside instrument's gauge holds their mean rigid motion at nominal (spec §15)."""
         first = _PER_LEG * np.arange(self.n_legs)[:, None]
         return first + np.arange(_A.start, _A.stop), first + np.arange(_D.start, _D.stop)
+
+    def prior_sigmas(self, noise) -> np.ndarray:
+        """``(66,)`` prior σ of δM in code units from a :class:`~stewart_calib.config.NoiseConfig`:
+        ``noise.prior_sigma_mm`` on the lengths and positions, ``noise.angle_prior_sigma_deg`` (in rad)
+        on the zero offsets and axis tilts."""
+        return self._per_entry(noise.prior_sigma_mm, np.radians(noise.angle_prior_sigma_deg))
+
+    def walk_sigmas(self, noise) -> np.ndarray:
+        """``(66,)`` random walk of δM [mm/√s, rad/√s]: ``noise.random_walk_mm_per_sqrt_s`` on the lengths
+        and positions, ``noise.angle_random_walk_deg_per_sqrt_s`` (in rad) on the angles."""
+        return self._per_entry(noise.random_walk_mm_per_sqrt_s, np.radians(noise.angle_random_walk_deg_per_sqrt_s))
+
+    def coordinate_sigma(self, noise) -> float:
+        """σ of one logged coordinate, a commanded servo angle [rad]: ``noise.angle_sigma_deg``."""
+        return float(np.radians(noise.angle_sigma_deg))
+
+    def _per_entry(self, length: float, angle: float) -> np.ndarray:
+        """``(66,)`` ``angle`` where M holds an angle (:attr:`parameter_degrees`), ``length`` elsewhere."""
+        return np.where(self.parameter_degrees, float(angle), float(length))
 
     @cached_property
     def w_directions(self) -> np.ndarray:
@@ -427,7 +448,7 @@ class RotaryLegs:
         self,
         e: np.ndarray,
         guess: tuple[np.ndarray, np.ndarray] | None = None,
-        tol_mm: float = FK_TOLERANCE_MM,
+        tol_mm: float | None = FK_TOLERANCE_MM,
         strict: bool = True,
         along: bool = False,
         max_iterations: int = FK_MAX_ITERATIONS,
@@ -441,6 +462,7 @@ class RotaryLegs:
 
         Args:
             guess: starting ``(R, t)`` broadcastable to the batch; default :meth:`default_guess`.
+            tol_mm: None: :data:`~stewart_calib.kinematics.FK_TOLERANCE_MM`.
             strict: raise :class:`~stewart_calib.kinematics.FKError` if any sample fails; otherwise
                 report it in ``converged``.
             along: ``e (N, 6)`` are a log's samples in order and each follows the one before: where
@@ -452,6 +474,7 @@ class RotaryLegs:
         Raises:
             FKError: ``strict`` and a sample's rods unreachable or no convergence within the cap.
         """
+        tol_mm = FK_TOLERANCE_MM if tol_mm is None else float(tol_mm)
         e = np.asarray(e, dtype=float)
         batch = e.shape[:-1]
         flat = e.reshape(-1, self.n_legs)
