@@ -90,11 +90,12 @@ class ISAM2Estimator:
 
     An unannounced payload (``[elastic] payload_sigma_kg`` > 0, spec §10): the front end is ekf with
     its payload state, and the graph takes its layout, the payload mass its last entry (:mod:`.graph`).
-    A sample the front end takes as a step of the payload (:class:`~.robust.RobustFilter`'s ``step``)
-    opens a parameter window whose walk factor lets the payload move by its prior σ, from the front
-    end's value after the step (:attr:`GraphBuilder.steps`, kept with the samples they open windows at
-    through trims, rebuilds and checkpoints), so the step moves the payload at the sample it happens;
-    the result carries the steps taken as ``"payload_steps"``, as ekf's.
+    A step of the payload the front end takes (:class:`~.robust.RobustFilter`'s ``step``, once the
+    samples after it confirm it) opens a parameter window at the sample it happened at, whose walk
+    factor lets the payload move by its prior σ, from the front end's value after the step
+    (:attr:`GraphBuilder.steps`, kept with the samples they open windows at through trims, rebuilds and
+    checkpoints), and the samples the front end refused since are taken back into the graph; the
+    result carries the steps taken as ``"payload_steps"``, as ekf's.
     """
 
     name = "isam2"
@@ -273,10 +274,10 @@ class ISAM2Estimator:
     def _note_step(self, sample: Sample, steps_before: int) -> None:
         """Where the front end took a payload step at ``sample`` (its count of steps moved from
         ``steps_before``), the graph opens a window with the payload it found (GraphBuilder.steps) at the
-        sample the step happened at (the front end takes it once the samples after it agree): where the
-        graph holds samples after it already, it is rebuilt from the replay buffer with the window there
-        and the samples since that the front end's gate had refused, which the step takes back in — if
-        the buffer reaches back to it (else the window opens at ``sample``)."""
+        sample the step happened at (the front end takes it once the samples after it agree), the graph
+        rebuilt from the replay buffer with the window there and the samples since that the front end's
+        gate had refused, which the step takes back in — where the buffer reaches back to it (else the
+        window opens at ``sample``)."""
         held_from = self._replay[0].t_s if self._replay else math.inf
         self._front_gated = [s for s in self._front_gated if s.t_s >= held_from]
         if self._front.robust.steps == steps_before:
@@ -284,15 +285,11 @@ class ISAM2Estimator:
         payload_kg = float(self._front.filter.x[self._payload])
         began_t_s = self._front.robust.step_t_s
         taken_back = [s for s in self._front_gated if s.t_s >= began_t_s]
-        if not began_t_s <= self._state.last_t_s:  # the graph holds none after it: those taken back follow
-            self._builder.steps[began_t_s] = payload_kg
-            for taken in taken_back:
-                self._add(taken)
-        elif held_from <= began_t_s:
+        if min(began_t_s, self._state.last_t_s) < held_from:  # the buffer does not reach back to it
+            self._builder.steps[sample.t_s] = payload_kg
+        else:  # rebuilt, so that a checkpoint's replay or a gtsam-failure rebuild lands where this does
             self._builder.steps[began_t_s] = payload_kg
             self._rebuild(self._first_snapshot(), sorted(self._replay + taken_back, key=lambda s: s.t_s))
-        else:
-            self._builder.steps[sample.t_s] = payload_kg
         self._front_gated = []
 
     def _front_block(self, run: Log) -> tuple[Refusals, Refusals]:
