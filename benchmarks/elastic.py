@@ -565,6 +565,15 @@ PAYLOAD_STAGE_KG = 40.0
 PAYLOAD_RAMPS_S = (0.0, 20.0)
 #: the payload's error, in its reported σ, that every seed is to stay within
 PAYLOAD_Z_TARGET = 2.0
+#: why a configuration's row misses the target, where it does
+PAYLOAD_WHY = {
+    "paper": "the configuration's fast δM walk (0.1 mm/√s) takes most of what the payload does to the legs, "
+    "and what is left the tracker's unmodelled 15 µm geometry error (pose by pose, not white) biases: the σ "
+    "counts the samples of a pose as independent",
+    "default": "the configuration's 2 µm reading σ on a tracker whose geometry is 15 µm off locks the filter out "
+    "pose after pose, and the payload trades against the compliance's scale (the no-load stage pins neither), "
+    "so the σ of both is that of a model the data do not follow",
+}
 
 
 def paper_payload_experiment(directory: Path, seed: int, ramp_s: float = 0.0):
@@ -625,6 +634,7 @@ def payload_section(quick: bool = False) -> Section:
                 f"≤ {PAYLOAD_Z_TARGET:g} on every seed",
                 max(z) <= PAYLOAD_Z_TARGET,
                 {"runs": runs},
+                PAYLOAD_WHY[config],
             )
         )
     note = (

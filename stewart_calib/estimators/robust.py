@@ -421,11 +421,14 @@ class RobustFilter:
             )
         nu, H, R0 = observation
         self._fill_Q(f.Q, 0.0 if math.isnan(f.t_s) else t_s - f.t_s)
-        if self._step_unknown is not None and test_steps and self._test_steps(t_s, prepared, nu, H, R0):
+        step = self._step_unknown
+        if step is not None and test_steps and self._test_steps(step, t_s, prepared, nu, H, R0):
             return
         f.update(H, nu, R0, t_s, noise_scale2=self.noise_scale2)  # SampleRejected: untouched
 
-    def _test_steps(self, t_s: float, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray) -> bool:
+    def _test_steps(
+        self, step: tuple[int, float], t_s: float, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray
+    ) -> bool:
         """The candidate steps of the ``step`` unknown on one sample (see the class docstring); True where
         one is taken: the filter is then that candidate, this sample included.
 
@@ -442,7 +445,7 @@ class RobustFilter:
         after it at the same pose, are no evidence that a fault or the pose's own misfit could not
         give."""
         f = self.filter
-        index, variance = self._step_unknown
+        index, variance = step
         R = self.noise_scale2 * R0
         S = H @ (f.P + f.Q) @ H.T + R
         filter_ll = _log_likelihood(nu, S)
