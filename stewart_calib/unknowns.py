@@ -47,12 +47,13 @@ class UnknownBlock:
         file_scale: ``(n,)`` file value = code value × file_scale (``180/π`` for an angle).
         gauge: which of :data:`GAUGES` the block shares with the drive.
         random_walk: whether the block drifts with the drive's random walk (else constant).
-        holds_gauge: ``(base, platform)`` ``(n, 3)`` int columns of this block's values that hold its
-            own joints (a leg set's :attr:`~stewart_calib.model.legs.LegModel.gauge_columns`), the
-            gauge rows then holding their nominal mean rigid motion instead of the drive's — for a block
+        holds_gauge: the gauge rows hold this block's own joints (``joints``) at their nominal mean
+            rigid motion instead of the drive's — for a block
             known far better than the drive: the in-situ tracker's calibrated geometry then defines
             {J} and {D}, and the drive's own rigid error (millimetres, Table 4) is identified
             against it rather than pushed into the tracker, millimetres off its 15 µm prior.
+        joints: where it holds the gauge, ``(base, platform)`` ``(n, 3)`` int columns of its values
+            holding those joints (its leg set's :attr:`~stewart_calib.model.legs.LegModel.gauge_columns`).
     """
 
     key: str
@@ -62,9 +63,12 @@ class UnknownBlock:
     file_scale: np.ndarray = field(default=None)  # type: ignore[arg-type]  # None: ones, set in __post_init__
     gauge: tuple[str, ...] = ()
     random_walk: bool = False
-    holds_gauge: tuple[np.ndarray, np.ndarray] | None = None
+    holds_gauge: bool = False
+    joints: tuple[np.ndarray, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
+        if self.holds_gauge and self.joints is None:
+            raise ValueError(f"block '{self.key}' holds the gauge: it must name its joints' columns")
         n = len(self.names)
         scale = np.ones(n) if self.file_scale is None else self.file_scale
         for name, value in (("nominal", self.nominal), ("prior_sigma", self.prior_sigma), ("file_scale", scale)):
@@ -155,10 +159,10 @@ class UnknownLayout:
         unit norm so that a constraint weight means the same on each.
         """
         shared = {gauge for block in self.blocks for gauge in block.gauge}
-        holder = next((block for block in self.blocks if block.holds_gauge is not None), None)
+        holder = next((block for block in self.blocks if block.holds_gauge), None)
         start, values, joints = 0, drive.as_vector(), drive.gauge_columns
-        if holder is not None and holder.holds_gauge is not None and (columns := self.slice(holder.key)) is not None:
-            start, values, joints = columns.start, holder.nominal, holder.holds_gauge
+        if holder is not None and holder.joints is not None and (columns := self.slice(holder.key)) is not None:
+            start, values, joints = columns.start, holder.nominal, holder.joints
         rows = []
         for gauge, columns_of in zip(("base", "platform"), joints, strict=True):
             if gauge in shared:

@@ -105,7 +105,8 @@ class TrackerModel(InstrumentModel):
                 legs.as_vector(),
                 np.full(legs.n_params, geometry_sigma_mm),
                 gauge=("base", "platform"),
-                holds_gauge=legs.gauge_columns,
+                holds_gauge=True,
+                joints=legs.gauge_columns,
             )
 
     def check(self, z: np.ndarray, t_s: float) -> np.ndarray:
