@@ -101,7 +101,7 @@ def test_the_generic_factor_rows_equal_the_compiled_ones(setting):
 
 
 def test_the_generic_kinematics_equal_the_compiled_ones(setting):
-    platform, rng, R, t, compiled, generic, x = setting
+    _, _, R, t, compiled, generic, x = setting
     strokes = compiled.inverse_kinematics(R, t, x)
     np.testing.assert_allclose(generic.inverse_kinematics(R, t, x), strokes, rtol=0.0, atol=1e-9)
     ours, theirs = generic.forward_kinematics(strokes, x), compiled.forward_kinematics(strokes, x)
@@ -109,6 +109,7 @@ def test_the_generic_kinematics_equal_the_compiled_ones(setting):
     np.testing.assert_allclose(ours.t, theirs.t, rtol=0.0, atol=1e-9)
     np.testing.assert_allclose(ours.t, t, rtol=0.0, atol=1e-6)
     R_one, t_one = generic.solve_fk(strokes[0], x, None)
+    np.testing.assert_allclose(R_one, R[0], rtol=0.0, atol=1e-9)
     np.testing.assert_allclose(t_one, t[0], rtol=0.0, atol=1e-6)
     np.testing.assert_allclose(
         generic.residual(x, R, t, strokes), compiled.residual(x, R, t, strokes), rtol=0.0, atol=1e-9
