@@ -18,6 +18,7 @@ import numpy as np
 
 from ..kinematics import FK_TOLERANCE_MM, FKSolution
 from ..platform import LegGeometry
+from .rotary import RotaryLegs
 
 
 class LegModel(Protocol):
@@ -107,4 +108,4 @@ class LegModel(Protocol):
 
 
 #: ``[drive] kind`` → its leg model: the one registry of leg kinds (one line per kind)
-LEG_KINDS: dict[str, type] = {"prismatic": LegGeometry}
+LEG_KINDS: dict[str, type] = {"prismatic": LegGeometry, "rotary": RotaryLegs}
