@@ -139,3 +139,40 @@ def test_an_elastic_drive_needs_prismatic_legs():
     rotary = replace(platform, drive=NumpyLegs(platform.drive, kind="rotary"), elastic=elastic, source="robot.toml")
     with pytest.raises(CalibError, match=r"^robot\.toml: \[elastic\].*rotary"):
         drive_model(rotary)
+
+
+def test_a_rotary_drive_through_the_drive_model_and_its_factor():
+    """RotaryLegs (spec §15) plugs into the drive model: its Jacobians (stroke = angle scale unknown)
+    match central differences, the factor's rows are its residual over ``|J_e|``, FK inverts IK, and
+    an outside instrument's gauge leaves 66 − 12 = 54 free directions."""
+    from stewart_calib.instruments import gauge
+    from tests.test_rotary_legs import reachable_poses, servo_build, servo_errors
+
+    legs = servo_build()
+    drive = DriveModel(legs, (stroke_term(np.full(6, 0.01), 0.05),))
+    rng = np.random.default_rng(5)
+    # tilts 0: a perturbed set's J_M turns its axes about its own u, w (RotaryLegs), which at tilts
+    # of ~1° differ from the derivative of nominal.perturbed(δM) by ~1 % in the tilt columns
+    tilts = np.r_[np.tile(np.r_[np.zeros(9), 1.0, 1.0], 6), np.zeros(6)] > 0.0
+    x = np.where(tilts, 0.0, np.r_[servo_errors(rng), rng.normal(0.0, 0.01, 6)])
+    R, t, _ = reachable_poses(legs, 3, 7)
+    angles = drive.inverse_kinematics(R, t, x)
+    fk = drive.forward_kinematics(angles, x, guess=(R, t))
+    np.testing.assert_allclose(fk.t, t, rtol=0.0, atol=1e-6)
+    inputs = angles[0] + 0.01
+    J_pose, J_x = drive.jacobians(x, R[0], t[0], inputs)
+    numeric = numerical_jacobian(lambda v: drive.residual(v, R[0], t[0], inputs), x, eps=1e-6)
+    assert relative_error(J_x, numeric) < 1e-5
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = R[0], t[0]
+    r, H_pose, H = drive_leg.DriveLegs.of(np.arange(6), drive).rows(pose, x, inputs)
+    _, _, J_e = drive.geometry(x).residual_jacobians(R[0], t[0], drive.extensions(inputs, x))
+    np.testing.assert_allclose(r, drive.residual(x, R[0], t[0], inputs) / np.abs(J_e), rtol=1e-12)
+    np.testing.assert_allclose(H, J_x / np.abs(J_e)[:, None], rtol=1e-12)
+    basis = gauge.free_basis(legs)
+    assert basis.shape == (66, 54)
+    np.testing.assert_allclose(basis.T @ basis, np.eye(54), atol=1e-12)
+    covariance = 1e-4 * np.eye(6)
+    r_obs, H_obs, R_meas, _ = drive.observation(x, R[0], t[0], inputs, covariance, np.radians(0.05))
+    np.testing.assert_allclose(r_obs, drive.residual(x, R[0], t[0], inputs), rtol=1e-12)
+    assert H_obs.shape == (6, 72) and np.all(np.linalg.eigvalsh(R_meas) > 0.0)
