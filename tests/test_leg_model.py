@@ -162,6 +162,7 @@ def test_a_rotary_drive_through_the_drive_model_and_its_factor():
     inputs = angles[0] + 0.01
     J_pose, J_x = drive.jacobians(x, R[0], t[0], inputs)
     numeric = numerical_jacobian(lambda v: drive.residual(v, R[0], t[0], inputs), x, eps=1e-6)
+    assert J_pose.shape == (6, 6)
     assert relative_error(J_x, numeric) < 1e-5
     pose = np.eye(4)
     pose[:3, :3], pose[:3, 3] = R[0], t[0]
@@ -169,6 +170,7 @@ def test_a_rotary_drive_through_the_drive_model_and_its_factor():
     _, _, J_e = drive.geometry(x).residual_jacobians(R[0], t[0], drive.extensions(inputs, x))
     np.testing.assert_allclose(r, drive.residual(x, R[0], t[0], inputs) / np.abs(J_e), rtol=1e-12)
     np.testing.assert_allclose(H, J_x / np.abs(J_e)[:, None], rtol=1e-12)
+    np.testing.assert_allclose(H_pose, J_pose / np.abs(J_e)[:, None], rtol=1e-12)
     basis = gauge.free_basis(legs)
     assert basis.shape == (66, 54)
     np.testing.assert_allclose(basis.T @ basis, np.eye(54), atol=1e-12)
