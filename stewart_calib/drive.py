@@ -250,7 +250,7 @@ class DriveModel:
         masses, coms = masses_and_centres(
             e.platform_mass_kg, e.platform_com_mm, 0.0 if payload_kg is None else payload_kg, e.payload_com_mm, batch
         )
-        return gravity_leg_forces(self.geometry(x_drive), R, t, masses, coms)
+        return gravity_leg_forces(self.prismatic(x_drive), R, t, masses, coms)
 
     def payload_leg_forces(self, R: np.ndarray, t: np.ndarray, x_drive=None) -> np.ndarray:
         """``(..., 6)`` leg forces [N] per kg of payload at ``[elastic] payload_com_mm``: the forces are
@@ -259,7 +259,7 @@ class DriveModel:
         if e is None:
             raise ValueError("a rigid drive carries no leg forces")
         batch = np.shape(t)[:-1]
-        return gravity_leg_forces(self.geometry(x_drive), R, t, np.ones(batch + (1,)), e.payload_com_mm[None])
+        return gravity_leg_forces(self.prismatic(x_drive), R, t, np.ones(batch + (1,)), e.payload_com_mm[None])
 
     def loaded_inputs(self, inputs: np.ndarray, per_kg: np.ndarray, payload_kg: float) -> np.ndarray:
         """``inputs`` with ``payload_kg`` more payload: its leg forces (:meth:`payload_leg_forces`,
@@ -318,6 +318,18 @@ class DriveModel:
     def coordinate_sigma(self, noise: NoiseConfig) -> float:
         """σ of one logged drive coordinate (code units): the stroke's [mm], a servo angle's [rad]."""
         return self.legs.coordinate_sigma(noise)
+
+    def prismatic(self, x_drive: np.ndarray | None = None) -> LegGeometry:
+        """:meth:`geometry` where the legs are prismatic (:class:`~stewart_calib.platform.LegGeometry`):
+        what the compiled kernels and the statics of an elastic drive take.
+
+        Raises:
+            ValueError: legs of another kind.
+        """
+        legs = self.geometry(x_drive)
+        if not isinstance(legs, LegGeometry):
+            raise ValueError(f"the compiled kernels and the statics model prismatic legs, not {legs.kind}")
+        return legs
 
     def geometry(self, x_drive: np.ndarray | None = None) -> LegModel:
         """``M + δM`` (the nominal legs for None)."""
@@ -379,7 +391,7 @@ class DriveModel:
         platform's field of its nominal values, as the platform file's ``[drive]`` table does; the
         compliance goes to ``[elastic] compliance_mm_per_kN``)."""
         fields: dict[str, Any] = {term.key: term.nominal.copy() for term in self.terms if term.key != COMPLIANCE}
-        platform = replace(platform, drive=self.legs, **fields)
+        platform = replace(platform, drive=self.legs, **fields)  # type: ignore[arg-type]  # any leg kind
         for term in self.terms:
             if term.key == COMPLIANCE and platform.elastic is not None:
                 elastic = replace(platform.elastic, compliance_mm_per_kN=term.nominal.copy())
@@ -485,7 +497,7 @@ class DriveModel:
             e.payload_com_mm,
             np.shape(t)[:-1],
         )
-        df_dxi, df_dM = leg_force_jacobians(self.geometry(x_drive), R, t, forces, masses, coms)
+        df_dxi, df_dM = leg_force_jacobians(self.prismatic(x_drive), R, t, forces, masses, coms)
         dr_df = (-term.gain * self._term_factors(x_drive)[row])[:, None]  # r = ‖…‖ − (l + e): ∂r_i/∂f_i = −(o + c_i) g
         J_pose = J_pose + dr_df * df_dxi
         J_x = J_x.copy()
@@ -508,7 +520,7 @@ class DriveModel:
         extensions = self.extensions(inputs, x_drive)
         if self.legs.compiled:
             r, H_M, R_meas, J_x = kin.leg_ekf_observation(
-                self.legs, self.parameter_error(x_drive), R, t, extensions, pose_covariance, coordinate_sigma
+                self.prismatic(), self.parameter_error(x_drive), R, t, extensions, pose_covariance, coordinate_sigma
             )
             return r, self.with_terms(H_M, inputs), R_meas, J_x
         legs = self.geometry(x_drive)
@@ -613,7 +625,7 @@ def tracker_reading_residuals(
     kernel_terms = [drive.kernel_terms() for drive in drives]
     starts, gains = kernel_terms[0][:2]
     terms = (starts, gains, np.array([offsets[:, None] + values for _, _, offsets, values, _ in kernel_terms]))
-    legs, elastic = [drive.legs for drive in drives], drives[0].elastic
+    legs, elastic = [drive.prismatic() for drive in drives], drives[0].elastic
     inputs = [drive.inputs_near(strokes) for drive in drives]  # an elastic drive's forces 0 until settled
     if elastic is None or not any(np.any(drive.force_gains()) for drive in drives):
         # rigid, or no leg gives under its force (the nominal compliance 0, before a calibration): the
@@ -627,7 +639,7 @@ def tracker_reading_residuals(
         (len(readings),),
     )
     force_start = next(term.input_start for term in drives[0].terms if term.key == COMPLIANCE)
-    radii = np.array([moment_radius(drive.legs) for drive in drives])
+    radii = np.array([moment_radius(drive.prismatic()) for drive in drives])
     load = (force_start, masses * G_N_PER_KG, centres, radii, SETTLING_PASSES + 1, SETTLED_MM)
     return kin.tracker_reading_residuals(tracker, readings, legs, inputs, terms, load)
 

@@ -189,7 +189,7 @@ class LegSetPose(WarmPose):
         self.legs = legs
         starts, gains, offsets, values, columns = drive.kernel_terms()  # compiled legs only
         self._observation = (
-            drive.legs.kernel_geometry(),
+            drive.prismatic().kernel_geometry(),
             legs.kernel_geometry(),
             (starts, gains, np.ascontiguousarray(offsets[:, None] + values), columns),
             (float(model.channel_sigma[0]) ** 2, float(stroke_sigma_mm) ** 2),

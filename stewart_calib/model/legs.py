@@ -39,14 +39,29 @@ class LegModel(Protocol):
         compiled: the prismatic numba kernels apply (:class:`~stewart_calib.platform.LegGeometry` only).
     """
 
-    kind: str
-    n_legs: int
-    n_params: int
-    parameter_names: tuple[str, ...]
-    parameter_degrees: np.ndarray
-    coordinate_unit: str
-    gauge_columns: tuple[np.ndarray, np.ndarray]
-    compiled: bool
+    @property
+    def kind(self) -> str: ...
+
+    @property
+    def n_legs(self) -> int: ...
+
+    @property
+    def n_params(self) -> int: ...
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]: ...
+
+    @property
+    def parameter_degrees(self) -> np.ndarray: ...
+
+    @property
+    def coordinate_unit(self) -> str: ...
+
+    @property
+    def gauge_columns(self) -> tuple[np.ndarray, np.ndarray]: ...
+
+    @property
+    def compiled(self) -> bool: ...
 
     def as_vector(self) -> np.ndarray:
         """``(n_params,)`` M in code units (mm, rad)."""
