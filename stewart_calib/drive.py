@@ -429,6 +429,9 @@ class DriveModel:
         self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """``(∂r/∂ξ (..., n, 6), ∂r/∂x_drive (..., n, size))``, body tangent ``ξ = [ω, v]``."""
+        if self.legs.compiled:  # J_e = −1 and no extension needed: the compiled kinematics' Jacobians alone
+            J_pose, J_M = kin.leg_residual_jacobians(self.prismatic(x_drive), R, t)
+            return J_pose, self.with_terms(J_M, inputs)
         J_pose, J_M, J_e = self.geometry(x_drive).residual_jacobians(R, t, self.extensions(inputs, x_drive))
         return J_pose, self.with_terms(J_M, inputs, J_e)
 
