@@ -34,6 +34,13 @@ class NumpyLegs(LegGeometry):
     def perturbed(self, delta):
         return numpy_legs(LegGeometry.perturbed(self, delta))
 
+    def coordinates(self, R, t):
+        return kin.inverse_kinematics(self, R, t)
+
+    def segments(self, R, t, e):
+        platform_joints = kin.transform_points(R, t, self.platform_joints)
+        return np.stack([np.broadcast_to(self.base_joints, platform_joints.shape), platform_joints], axis=-2)
+
 
 def numpy_legs(legs: LegGeometry) -> NumpyLegs:
     return NumpyLegs(legs.base_joints, legs.platform_joints, legs.initial_lengths)

@@ -31,7 +31,7 @@ from stewart_calib.viz.recording import (
 )
 from tests.instrument_data import hobby
 from tests.readback import read_blueprint_names, read_entity_rows, read_scalars, read_static
-from tests.synthetic import nim_stewart, random_error, random_poses
+from tests.synthetic import nim_stewart, numpy_legs, random_error, random_poses
 
 METHODS = ("ls", "isam2")
 STAGES = ("no-load", "20kg")
@@ -184,6 +184,14 @@ def test_leg_strips_join_the_joints_at_the_pose(written):
     np.testing.assert_allclose(strips[:, 0], legs.base_joints, atol=1e-3)
     np.testing.assert_allclose(strips[:, 1], expected_platform_joints, atol=1e-3)
     assert not np.allclose(legs.base_joints, written["platform"].drive.base_joints, atol=1e-2)
+
+
+def test_any_leg_model_is_drawn_by_its_own_segments():
+    platform = nim_stewart()
+    R, t = kin.pose_to_rt(random_poses(platform, 5, np.random.default_rng(8)))
+    np.testing.assert_array_equal(
+        recording._leg_strips(numpy_legs(platform.drive), R, t), recording._leg_strips(platform.drive, R, t)
+    )
 
 
 def test_polar_plot_encodes_the_deviation(written):

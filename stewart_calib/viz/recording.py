@@ -57,6 +57,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from ..instruments.gauge import joint_columns
 from ..kinematics import transform_points
 from ..platform import PARAMETER_FIELDS, LegGeometry, Platform
 
@@ -258,10 +259,25 @@ def _closed_outline(points: np.ndarray) -> np.ndarray:
     return np.vstack([points[order], points[order[:1]]])
 
 
-def _leg_strips(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``(N·6, 2, 3)`` segments base joint → platform joint at each pose, in {J} [mm]."""
-    platform_joints = transform_points(R, t, legs.platform_joints)
-    base_joints = np.broadcast_to(legs.base_joints, platform_joints.shape)
+def _joints(legs) -> tuple[np.ndarray, np.ndarray]:
+    """``(base-side points (L, 3) in {J}, platform joints (L, 3) in {D})`` [mm] of a leg set, the entries
+    of its parameter vector that hold them (a prismatic leg's ``j_i`` and ``d_i``, a rotary leg's crank
+    centre ``a_i`` and ``d_i``)."""
+    M = legs.as_vector()
+    base, platform = joint_columns(legs)
+    return M[base].reshape(-1, 3), M[platform].reshape(-1, 3)
+
+
+def _leg_strips(legs, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(N·L, k, 3)`` each leg's polyline at each pose, in {J} [mm]: base joint → platform joint of a
+    prismatic leg; of any other leg model the segments it draws at the coordinates that close its legs
+    there (``segments(R, t, e)``: a rotary leg's crank centre → horn tip → platform joint)."""
+    if type(legs) is not LegGeometry:
+        polylines = legs.segments(R, t, legs.coordinates(R, t))
+        return polylines.reshape(-1, *polylines.shape[-2:])
+    base, platform = _joints(legs)
+    platform_joints = transform_points(R, t, platform)
+    base_joints = np.broadcast_to(base, platform_joints.shape)
     return np.stack([base_joints, platform_joints], axis=-2).reshape(-1, 2, 3)
 
 
@@ -280,8 +296,8 @@ def log_platform_geometry(rec: Recording, platform: Platform) -> None:
     # Joint letters as in the paper: drive j_i / d_i, tracker z_i / h_i (a platform measured by
     # another instrument may have no tracker).
     legs = {"drive": platform.drive} | ({} if platform.tracker is None else {"tracker": platform.tracker})
-    for frame, attribute, letters in (("base", "base_joints", "JZ"), ("platform", "platform_joints", "DH")):
-        joints = {kind: getattr(leg_set, attribute) for kind, leg_set in legs.items()}
+    for side, (frame, letters) in enumerate((("base", "JZ"), ("platform", "DH"))):
+        joints = {kind: _joints(leg_set)[side] for kind, leg_set in legs.items()}
         outline = _closed_outline(np.vstack(list(joints.values())))
         outline_strip = rr.LineStrips3D([outline], colors=_OUTLINE_COLOR, radii=_OUTLINE_RADIUS_MM)
         log(f"world/{frame}/outline", outline_strip, static=True)
@@ -331,7 +347,7 @@ def log_platform_pose(
     if desired is not None:
         R_d, t_d = _batch(desired[0], n, (3, 3), "R_desired"), _batch(desired[1], n, (3,), "t_desired")
         ghost = _closed_outline(
-            np.vstack([platform.drive.platform_joints, *(legs.platform_joints for _, legs, _ in drawn[1:])])
+            np.vstack([_joints(platform.drive)[1], *(_joints(legs)[1] for _, legs, _ in drawn[1:])])
         )
         rec.static_once(
             "world/platform_desired/outline", rr.LineStrips3D([ghost], colors=_GHOST_COLOR, radii=_OUTLINE_RADIUS_MM)
