@@ -162,3 +162,46 @@ def test_only_the_leg_set_model_names_the_number_of_legs():
             if sized or six_loop:
                 named.add(str(path.relative_to(PACKAGE)))
     assert named <= LEG_SET_MODEL, sorted(named - LEG_SET_MODEL)
+
+
+#: the fields of the prismatic leg set, which only the leg models (and the files at the edge) name
+LEG_FIELDS = {"base_joints", "platform_joints", "initial_lengths"}
+#: the modules (paths in the package; a path ending in "/" holds all below it) that may name them:
+#: the leg-set model and its files, and each other one with its reason
+LEG_FIELD_MODULES = {
+    "platform.py",
+    "kinematics.py",
+    "_kernels.py",
+    "statics.py",
+    "drive.py",
+    "model/",
+    "io/",  # the files at the edge: the platform file, the controllers' formats
+    "identifiability.py",  # the compiled whitened rows' arguments (prismatic legs only)
+    "estimators/measurement.py",  # the tracker's compiled observation
+    "instruments/gauge.py",  # the gauge of the joints (spec §7)
+    "instruments/points.py",  # the points instrument's registration seeds
+    "sweep/spec.py",  # the ring-platform family builds prismatic legs
+}
+
+
+def test_only_the_leg_models_name_the_leg_fields():
+    """Analyses and workflows reach the legs through DriveModel and the leg model's protocol
+    (parameter vector, names, residual, Jacobians, FK, IK): a rotary drive has no base joints."""
+    named = set()
+    for path in PACKAGE.rglob("*.py"):
+        where = str(path.relative_to(PACKAGE))
+        if any(
+            where == allowed or (allowed.endswith("/") and where.startswith(allowed)) for allowed in LEG_FIELD_MODULES
+        ):
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            attribute = isinstance(node, ast.Attribute) and node.attr in LEG_FIELDS
+            if attribute or (isinstance(node, ast.Constant) and node.value in LEG_FIELDS):
+                named.add(where)
+    assert named == set(), sorted(named)
+
+
+def test_the_leg_field_check_sees_fields():
+    # the check above passes vacuously if it reads nothing: the leg-set model itself names them
+    tree = ast.parse((PACKAGE / "kinematics.py").read_text(encoding="utf-8"))
+    assert any(isinstance(node, ast.Attribute) and node.attr in LEG_FIELDS for node in ast.walk(tree))
