@@ -289,3 +289,15 @@ def test_rerun_cli_verifies_the_file(written):
         pytest.skip("rerun CLI not installed")
     result = subprocess.run([cli, "rrd", "verify", str(written["path"])], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_parameter_fields_are_read_off_the_leg_models_names():
+    platform = nim_stewart()
+    assert recording.parameter_fields(platform.drive.parameter_names, 6) == PARAMETER_FIELDS
+    assert recording.parameter_fields(("a1x", "d1z", "h1", "tu1", "tw1", "a2x", "d2z", "h2", "tu2", "tw2"), 2) == (
+        "a_x",
+        "d_z",
+        "h",
+        "tu",
+        "tw",
+    )

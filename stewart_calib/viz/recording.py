@@ -175,16 +175,23 @@ def _checked_name(name: str, what: str) -> str:
     return name
 
 
-def parameter_path(leg: int, field: str, method: str) -> str:
-    """``params/leg{leg}/{field}/{method}`` for a leg numbered from 1 and a field of :data:`PARAMETER_FIELDS`."""
-    if leg < 1 or field not in PARAMETER_FIELDS:
+def parameter_fields(names: tuple[str, ...], n_legs: int) -> tuple[str, ...]:
+    """The fields of one leg in a leg model's parameter order, from its ``names`` (the first leg's,
+    its number written ``_`` or dropped at the end): ``j1x … l1`` → :data:`PARAMETER_FIELDS`
+    ``j_x … l``, a rotary leg's ``a1x … tw1`` → ``a_x … tw``."""
+    return tuple(name.replace("1", "_", 1).rstrip("_") for name in names[: len(names) // n_legs])
+
+
+def parameter_path(leg: int, field: str, method: str, fields: tuple[str, ...] = PARAMETER_FIELDS) -> str:
+    """``params/leg{leg}/{field}/{method}`` for a leg numbered from 1 and one of its ``fields``."""
+    if leg < 1 or field not in fields:
         raise ValueError(f"no parameter leg {leg} / {field!r}")
     return f"params/leg{leg}/{field}/{_checked_name(method, 'method')}"
 
 
-def band_paths(leg: int, field: str, method: str) -> tuple[str, str]:
+def band_paths(leg: int, field: str, method: str, fields: tuple[str, ...] = PARAMETER_FIELDS) -> tuple[str, str]:
     """``(upper, lower)`` edges of the ±σ band of one parameter."""
-    path = parameter_path(leg, field, method)
+    path = parameter_path(leg, field, method, fields)
     return f"{path}/upper", f"{path}/lower"
 
 
@@ -242,11 +249,10 @@ def _batch(values, n: int, tail: tuple[int, ...], what: str) -> np.ndarray:
     return values
 
 
-def _per_leg(values, n: int, what: str) -> np.ndarray:
-    """``values`` ``(n, 7 L)`` in the paper's order (a single ``(7 L,)`` is one row) as ``(n, L, 7)``:
-    a leg set's parameters, its L legs read off the array's own width."""
+def _per_leg(values, n: int, what: str, fields: int) -> np.ndarray:
+    """``values`` ``(n, F L)`` leg by leg (a single ``(F L,)`` is one row) as ``(n, L, F)``: a leg
+    set's parameters, ``fields`` F a leg, its L legs read off the array's own width."""
     values = np.asarray(values, dtype=float)
-    fields = len(PARAMETER_FIELDS)
     width = values.shape[-1] if values.ndim else 0
     if width == 0 or width % fields:
         raise ValueError(f"{what} must hold {fields} parameters a leg, got shape {values.shape}")
@@ -363,7 +369,9 @@ def _send_scalars(rec: Recording, entity_path: str, index, values: np.ndarray, s
     rec.stream.send_columns(entity_path, indexes=index, columns=rr.Scalars.columns(scalars=values))
 
 
-def log_parameters(rec: Recording, method: str, params_mm, times_s, samples=None) -> None:
+def log_parameters(
+    rec: Recording, method: str, params_mm, times_s, samples=None, fields: tuple[str, ...] = PARAMETER_FIELDS
+) -> None:
     """The 42 parameters of one method over time at ``params/leg{i}/{name}/{method}``.
 
     Pass the identified errors δM (or the truth's, with ``method=TRUTH``) rather than absolute
@@ -375,32 +383,43 @@ def log_parameters(rec: Recording, method: str, params_mm, times_s, samples=None
         params_mm: ``(42,)`` for one sample or ``(N, 42)`` in the paper's order [mm].
         times_s: scalar or ``(N,)`` [s].
         samples: ``(N,)`` sample indices; default ``0 … N−1``.
+        fields: one leg's parameters (:func:`parameter_fields` of another leg model's names).
     """
     n, index = _time_columns(times_s, samples)
-    per_leg = _per_leg(params_mm, n, "params_mm")
+    per_leg = _per_leg(params_mm, n, "params_mm", len(fields))
     # Truth: thin and pale, under the estimates drawn in the same hue.
     width, alpha = (1.0, 140) if method == TRUTH else (2.0, 255)
     for leg in range(per_leg.shape[1]):
-        for k, field in enumerate(PARAMETER_FIELDS):
-            style = rr.SeriesLines(colors=(*_PARAMETER_COLORS[k], alpha), widths=width, names=f"{field} {method}")
-            _send_scalars(rec, parameter_path(leg + 1, field, method), index, per_leg[:, leg, k], style)
+        for k, field in enumerate(fields):
+            color = _PARAMETER_COLORS[k % len(_PARAMETER_COLORS)]
+            style = rr.SeriesLines(colors=(*color, alpha), widths=width, names=f"{field} {method}")
+            _send_scalars(rec, parameter_path(leg + 1, field, method, fields), index, per_leg[:, leg, k], style)
 
 
-def log_parameter_band(rec: Recording, method: str, params_mm, stddev_mm, times_s, samples=None) -> None:
+def log_parameter_band(
+    rec: Recording,
+    method: str,
+    params_mm,
+    stddev_mm,
+    times_s,
+    samples=None,
+    fields: tuple[str, ...] = PARAMETER_FIELDS,
+) -> None:
     """The ±σ band of each of the 42 parameters: ``params ± stddev`` at ``…/{method}/upper|lower``,
     drawn thin in the parameter's colour around :func:`log_parameters`' curve.
 
     Args:
-        params_mm: ``(N, 42)`` as passed to :func:`log_parameters` [mm].
+        params_mm: ``(N, 42)`` as passed to :func:`log_parameters` [mm], leg by leg of ``fields``.
         stddev_mm: ``(N, 42)`` σ of each parameter after each sample [mm] (NaN: none).
     """
     n, index = _time_columns(times_s, samples)
-    centre = _per_leg(params_mm, n, "params_mm")
+    centre = _per_leg(params_mm, n, "params_mm", len(fields))
     sigma = _batch(stddev_mm, n, (centre[0].size,), "stddev_mm").reshape(centre.shape)
     for leg in range(centre.shape[1]):
-        for k, field in enumerate(PARAMETER_FIELDS):
-            style = rr.SeriesLines(colors=(*_PARAMETER_COLORS[k], 110), widths=0.75, names=f"{field} {method} ±σ")
-            upper, lower = band_paths(leg + 1, field, method)
+        for k, field in enumerate(fields):
+            color = _PARAMETER_COLORS[k % len(_PARAMETER_COLORS)]
+            style = rr.SeriesLines(colors=(*color, 110), widths=0.75, names=f"{field} {method} ±σ")
+            upper, lower = band_paths(leg + 1, field, method, fields)
             _send_scalars(rec, upper, index, centre[:, leg, k] + sigma[:, leg, k], style)
             _send_scalars(rec, lower, index, centre[:, leg, k] - sigma[:, leg, k], style)
 
@@ -555,13 +574,16 @@ def log_trajectory(
 # ----------------------------------------------------------------------------- layout
 
 
-def send_blueprint(rec: Recording, n_legs: int, methods, stages, diagnostics=None) -> None:
+def send_blueprint(
+    rec: Recording, n_legs: int, methods, stages, diagnostics=None, fields: tuple[str, ...] = PARAMETER_FIELDS
+) -> None:
     """Lay the panels out in tabs: scene, one parameter tab per method, pose errors, trajectories,
     and one diagnostics tab per method in ``diagnostics``.
 
     Each parameter tab holds one time-series view per drive leg (``n_legs`` of them) with that
     method's seven curves, their ±σ bands where logged, and the truth (Fig. 5); method comparison
-    is in the pose-error tab (Fig. 7). ``diagnostics`` maps a method to the kinds of :data:`DIAGNOSTICS` logged for it.
+    is in the pose-error tab (Fig. 7). ``diagnostics`` maps a method to the kinds of :data:`DIAGNOSTICS` logged for it;
+    ``fields``: one leg's parameters, as :func:`log_parameters` took them.
     """
     methods = [_checked_name(method, "method") for method in methods]
     stages = [_checked_name(stage, "stage") for stage in stages]
@@ -579,7 +601,7 @@ def send_blueprint(rec: Recording, n_legs: int, methods, stages, diagnostics=Non
                     # Entity queries know no inner wildcard, so list the 7 + 7 series.
                     contents=[
                         f"$origin/{field}/{name}{edge}"
-                        for field in PARAMETER_FIELDS
+                        for field in fields
                         for name in (method, TRUTH)
                         for edge in ("", "/upper", "/lower")
                     ],
