@@ -48,7 +48,7 @@ from typing import Protocol
 import numpy as np
 
 from .. import kinematics as kin
-from ..drive import STROKE_SCALE, drive_model, plain_drive
+from ..drive import STROKE_SCALE, drive_model
 from ..errors import SampleRejected
 from ..estimate import model_estimate
 from ..platform import LegGeometry, Platform
@@ -135,7 +135,7 @@ class EstimatorController:
         """IK of the model in force; an elastic one with its identified blocks, under ``payload_kg``
         (taken as 0 unless :attr:`payload_known`) and the payload the estimator found unannounced."""
         if self._elastic is None:
-            return plain_drive(self._drive).inverse_kinematics(R_d, t_d)
+            return kin.inverse_kinematics(self._drive, R_d, t_d)
         estimate = model_estimate(self.estimator)
         values = {term.key: estimate.block_values(term.key) for term in self._elastic.terms}
         drive = self._elastic.calibrated(self._error, values)
@@ -386,7 +386,7 @@ def _commanded(controller: Controller, R_d: np.ndarray, t_d: np.ndarray, payload
     else IK of its drive model."""
     command = getattr(controller, "strokes", None)
     if command is None:
-        return plain_drive(controller.drive_model()).inverse_kinematics(R_d, t_d)
+        return kin.inverse_kinematics(controller.drive_model(), R_d, t_d)
     return command(R_d, t_d, payload_kg)
 
 
