@@ -27,19 +27,14 @@ class NumpyLegs(LegGeometry):
     """The paper's legs as a leg model the compiled kernels do not take (only the exact
     :class:`LegGeometry` is theirs): the yardstick of the paths a rotary drive takes."""
 
+    kind = "prismatic"
+
     def residual_jacobians(self, R, t, e):
         J_pose, J_M = kin.leg_residual_jacobians(self, R, t)
         return J_pose, J_M, -np.ones(np.shape(e))
 
     def perturbed(self, delta):
         return numpy_legs(LegGeometry.perturbed(self, delta))
-
-    def coordinates(self, R, t):
-        return kin.inverse_kinematics(self, R, t)
-
-    def segments(self, R, t, e):
-        platform_joints = kin.transform_points(R, t, self.platform_joints)
-        return np.stack([np.broadcast_to(self.base_joints, platform_joints.shape), platform_joints], axis=-2)
 
 
 def numpy_legs(legs: LegGeometry) -> NumpyLegs:

@@ -186,10 +186,24 @@ def test_leg_strips_join_the_joints_at_the_pose(written):
     assert not np.allclose(legs.base_joints, written["platform"].drive.base_joints, atol=1e-2)
 
 
-def test_any_leg_model_is_drawn_by_its_own_segments():
+def test_a_rotary_leg_is_drawn_crank_horn_rod(monkeypatch):
+    from tests.test_rotary_legs import LEGS, reachable_poses
+
+    # the joints are the leg model's gauge columns (instruments.gauge.joint_columns of any leg model)
+    monkeypatch.setattr(recording, "joint_columns", lambda legs: tuple(np.ravel(c) for c in legs.gauge_columns))
+    R, t, _ = reachable_poses(LEGS, 4, 11)
+    strips = recording._leg_strips(LEGS, R, t).reshape(4, 6, 3, 3)
+    crank, horn, joint = strips[..., 0, :], strips[..., 1, :], strips[..., 2, :]
+    np.testing.assert_allclose(crank, np.broadcast_to(LEGS.crank_centres, crank.shape))
+    np.testing.assert_allclose(np.linalg.norm(horn - crank, axis=-1), np.broadcast_to(LEGS.horn_lengths, (4, 6)))
+    np.testing.assert_allclose(np.linalg.norm(joint - horn, axis=-1), np.broadcast_to(LEGS.rod_lengths, (4, 6)))
+    np.testing.assert_allclose(joint, kin.transform_points(R, t, LEGS.platform_joints), atol=1e-9)
+
+
+def test_any_prismatic_leg_model_is_drawn_straight():
     platform = nim_stewart()
     R, t = kin.pose_to_rt(random_poses(platform, 5, np.random.default_rng(8)))
-    np.testing.assert_array_equal(
+    np.testing.assert_array_equal(  # as the compiled leg set
         recording._leg_strips(numpy_legs(platform.drive), R, t), recording._leg_strips(platform.drive, R, t)
     )
 

@@ -276,15 +276,14 @@ def _joints(legs) -> tuple[np.ndarray, np.ndarray]:
 
 def _leg_strips(legs, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """``(N·L, k, 3)`` each leg's polyline at each pose, in {J} [mm]: base joint → platform joint of a
-    prismatic leg; of any other leg model the segments it draws at the coordinates that close its legs
-    there (``segments(R, t, e)``: a rotary leg's crank centre → horn tip → platform joint)."""
-    if type(legs) is not LegGeometry:
-        polylines = legs.segments(R, t, legs.coordinates(R, t))
-        return polylines.reshape(-1, *polylines.shape[-2:])
+    prismatic leg; a rotary leg's crank centre → horn joint (at the angle that closes the leg there)
+    → platform joint."""
     base, platform = _joints(legs)
     platform_joints = transform_points(R, t, platform)
-    base_joints = np.broadcast_to(base, platform_joints.shape)
-    return np.stack([base_joints, platform_joints], axis=-2).reshape(-1, 2, 3)
+    points = [np.broadcast_to(base, platform_joints.shape), platform_joints]
+    if type(legs) is not LegGeometry and legs.kind == "rotary":  # the horn between crank and rod
+        points.insert(1, legs.horn_joints(legs.coordinates(R, t)))
+    return np.stack(points, axis=-2).reshape(-1, len(points), 3)
 
 
 # ----------------------------------------------------------------------------- scene
