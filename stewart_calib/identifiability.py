@@ -70,7 +70,8 @@ VERDICTS = ("identifiable", "poorly conditioned", "rank-deficient")
 
 def residual_covariance(platform: Platform, R: np.ndarray, t: np.ndarray, noise: NoiseConfig) -> np.ndarray:
     """Noise of the drive's leg residuals at each pose, ``J_x Σ_x J_xᵀ + σ_q² diag(J_e²)``, ``(N, legs, legs)`` [mm²]
-    (``J_e = ∂r_i/∂e_i`` of the drive coordinate: −1 for a prismatic leg).
+    (``J_e = ∂r_i/∂e_i`` of the drive coordinate: −1 for a prismatic leg; σ_q the leg model's
+    ``coordinate_sigma``, ``noise.stroke_sigma_mm`` for prismatic legs).
 
     The pose enters through tracker FK, so the reading noise σ_s reaches every leg residual
     through the pose: leaving ``J_x Σ_x J_xᵀ`` out makes the weights wrong by orders of
@@ -90,9 +91,10 @@ def _leg_rows(platform: Platform, R: np.ndarray, t: np.ndarray, noise: NoiseConf
     )
     if _compiled(drive.legs):  # r = ‖t + R d − j‖ − (l + e): ∂r/∂e = −1
         noise_q = noise.stroke_sigma_mm**2 * np.eye(J_x.shape[-2])
-    else:
+    else:  # one logged coordinate's σ (a commanded servo angle's [rad]) through ∂r_i/∂e_i
         J_e = drive.legs.residual_jacobians(R, t, drive.extensions(inputs))[2]
-        noise_q = noise.stroke_sigma_mm**2 * J_e[..., :, None] ** 2 * np.eye(J_x.shape[-2])
+        sigma_e = drive.legs.coordinate_sigma(noise)
+        noise_q = sigma_e**2 * J_e[..., :, None] ** 2 * np.eye(J_x.shape[-2])
     return J_M, J_x @ sigma_x @ np.swapaxes(J_x, -1, -2) + noise_q
 
 

@@ -36,6 +36,12 @@ class NumpyLegs(LegGeometry):
     def perturbed(self, delta):
         return numpy_legs(LegGeometry.perturbed(self, delta))
 
+    def coordinate_sigma(self, noise):
+        return noise.stroke_sigma_mm
+
+    def prior_sigmas(self, noise):
+        return np.full(self.n_params, noise.prior_sigma_mm)
+
 
 def numpy_legs(legs: LegGeometry) -> NumpyLegs:
     return NumpyLegs(legs.base_joints, legs.platform_joints, legs.initial_lengths)
