@@ -98,6 +98,11 @@ def _leg_rows(platform: Platform, R: np.ndarray, t: np.ndarray, noise: NoiseConf
     return J_M, J_x @ sigma_x @ np.swapaxes(J_x, -1, -2) + noise_q
 
 
+def _degrees(legs) -> np.ndarray:
+    """``(n_params,)`` True where the leg model's parameter vector holds an angle (prismatic legs: none)."""
+    return np.zeros(legs.n_params, dtype=bool) if _compiled(legs) else np.asarray(legs.parameter_degrees, dtype=bool)
+
+
 def _compiled(legs) -> bool:
     """Whether ``legs`` are the leg set the prismatic compiled kernels take."""
     return type(legs) is LegGeometry
@@ -298,6 +303,9 @@ class IdentifiabilityReport:
         null_space: ``(n, n − rank)`` unit basis of the unidentified directions.
         verdict: one of :data:`VERDICTS`.
         parameters_per_leg: entries of δM a leg (the text report's rows: 7 for the paper's drive).
+        parameter_degrees: ``(n_params,)`` True where δM holds an angle (a servo's zero offset and axis
+            tilts, spec §15): in rad here and in the JSON, which then lists this mask; in degrees in the
+            text report.
         names: the unknowns' names: δM's (``n_params``, 42 for the paper's drive), then the drive's
             unknown blocks where the report covers them (:class:`InformationAccumulator`'s
             ``drive``); the singular values, the weakest directions and the null space are then
@@ -321,6 +329,7 @@ class IdentifiabilityReport:
     null_space: np.ndarray
     names: tuple[str, ...]
     parameters_per_leg: int
+    parameter_degrees: np.ndarray
     weakest: list[tuple[float, np.ndarray]] = field(default_factory=list)
     verdict: str = "identifiable"
     block_stddev: dict[str, tuple[tuple[str, ...], np.ndarray]] = field(default_factory=dict)
@@ -365,6 +374,7 @@ class IdentifiabilityReport:
                 "rotation_row_scale_mm": self.rotation_row_scale_mm,
             },
             "predicted_stddev_mm": [num(s) for s in self.predicted_stddev_mm],
+            **({"parameter_degrees": self.parameter_degrees.tolist()} if self.parameter_degrees.any() else {}),
             "weakest_directions": [
                 {
                     "singular_value": float(s),
@@ -430,8 +440,10 @@ class IdentifiabilityReport:
         if self.null_space_dimension:
             lines += ["", f"null space: dimension {self.null_space_dimension} (not identified by these poses):"]
             lines += [f"  {name}" for name in self.null_space_names()]
-        lines += ["", "predicted standard deviation per parameter (Cramér–Rao) [mm]:"]
-        sd = self.predicted_stddev_mm
+        degrees = self.parameter_degrees
+        units = "mm, angles in deg" if degrees.any() else "mm"
+        lines += ["", f"predicted standard deviation per parameter (Cramér–Rao) [{units}]:"]
+        sd = np.where(degrees, np.degrees(self.predicted_stddev_mm), self.predicted_stddev_mm)
         per_leg = self.parameters_per_leg
         for start in range(0, len(sd), per_leg):
             cols = range(start, start + per_leg)
@@ -639,6 +651,7 @@ class InformationAccumulator:
             verdict=verdict,
             names=self.names,
             parameters_per_leg=self.n_params // self.platform.drive.n_legs,
+            parameter_degrees=_degrees(self.platform.drive),
             block_stddev=block_stddev,
             block_scale=scale[self.n_params :],
         )
