@@ -28,6 +28,7 @@ class NumpyLegs(LegGeometry):
     :class:`LegGeometry` is theirs): the yardstick of the paths a rotary drive takes."""
 
     kind = "prismatic"
+    parameter_degrees = np.zeros(42, dtype=bool)
 
     def residual_jacobians(self, R, t, e):
         J_pose, J_M = kin.leg_residual_jacobians(self, R, t)

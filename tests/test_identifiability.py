@@ -231,3 +231,16 @@ def test_any_leg_model_gets_the_compiled_rows_and_paper_jacobian():
     pairs = ((whitened_leg_jacobian(generic, poses, noise), rows), (scaled_paper_jacobian(generic, poses), J_p))
     for got, want in pairs:
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-14 * np.abs(want).max())
+
+
+def test_another_leg_models_report_is_the_compiled_ones():
+    platform = nim_stewart()
+    poses = random_poses(platform, 12, np.random.default_rng(5))
+    generic = replace(platform, drive=numpy_legs(platform.drive))
+    report, compiled = (
+        identifiability_report(generic, poses, NoiseConfig()),
+        identifiability_report(platform, poses, NoiseConfig()),
+    )
+    assert report.parameters_per_leg == 7 and not report.parameter_degrees.any()
+    np.testing.assert_allclose(report.predicted_stddev_mm, compiled.predicted_stddev_mm, rtol=1e-9)
+    assert report.format_text().splitlines()[0] == compiled.format_text().splitlines()[0]
