@@ -166,7 +166,7 @@ def test_only_the_leg_set_model_names_the_number_of_legs():
 
 
 #: the fields of the prismatic leg set, which only the leg models (and the files at the edge) name
-LEG_FIELDS = {"base_joints", "platform_joints", "initial_lengths"}
+LEG_GEOMETRY_FIELDS = {"base_joints", "platform_joints", "initial_lengths"}
 #: the modules (paths in the package; a path ending in "/" holds all below it) that may name them:
 #: the leg-set model and its files, and each other one with its reason
 LEG_FIELD_MODULES = {
@@ -196,8 +196,8 @@ def test_only_the_leg_models_name_the_leg_fields():
         ):
             continue
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            attribute = isinstance(node, ast.Attribute) and node.attr in LEG_FIELDS
-            if attribute or (isinstance(node, ast.Constant) and node.value in LEG_FIELDS):
+            attribute = isinstance(node, ast.Attribute) and node.attr in LEG_GEOMETRY_FIELDS
+            if attribute or (isinstance(node, ast.Constant) and node.value in LEG_GEOMETRY_FIELDS):
                 named.add(where)
     assert named == set(), sorted(named)
 
@@ -205,4 +205,4 @@ def test_only_the_leg_models_name_the_leg_fields():
 def test_the_leg_field_check_sees_fields():
     # the check above passes vacuously if it reads nothing: the leg-set model itself names them
     tree = ast.parse((PACKAGE / "kinematics.py").read_text(encoding="utf-8"))
-    assert any(isinstance(node, ast.Attribute) and node.attr in LEG_FIELDS for node in ast.walk(tree))
+    assert any(isinstance(node, ast.Attribute) and node.attr in LEG_GEOMETRY_FIELDS for node in ast.walk(tree))
