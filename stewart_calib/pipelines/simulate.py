@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
             for k, (log, truth) in enumerate(run.blocks):
                 outside.add(log)
                 log_file.write(log_text(log, experiment.platform, header=k == 0))
-                truth_file.write(truth_text(truth, header=k == 0))
+                truth_file.write(truth_text(truth, header=k == 0, platform=experiment.platform))
                 errors = _pose_errors(experiment.platform, log, truth, args.controller != "nominal")
                 for name, values in errors.items():
                     squares[name] += np.nansum(values**2, axis=0)
