@@ -66,10 +66,87 @@ class LegGeometry:
             value.setflags(write=False)
             object.__setattr__(self, name, value)
 
+    #: the leg model's kind (:class:`~stewart_calib.model.legs.LegModel`): the platform file's ``[drive] kind``
+    kind = "prismatic"
+    #: the unit of a leg's coordinate ``e_i`` (its extension) in files: the log's ``q{i}_mm``
+    coordinate_unit = "mm"
+    #: the leg model's compiled kernels (:mod:`stewart_calib._kernels`) apply to it
+    compiled = True
+
     @property
     def n_legs(self) -> int:
         """Legs of the set (six for a 6-6 Gough platform and for the Table 2 tracker)."""
         return len(self.initial_lengths)
+
+    @property
+    def parameter_degrees(self) -> np.ndarray:
+        """``(n_params,)`` bool: which entries files give in degrees (none: all mm)."""
+        return np.zeros(self.n_params, dtype=bool)
+
+    @property
+    def gauge_columns(self) -> tuple[np.ndarray, np.ndarray]:
+        """``((n, 3), (n, 3))`` int: the entries of M holding the base joints ``j_i`` and the platform
+        joints ``d_i``, leg by leg, x y z (spec §7's gauge of an outside instrument)."""
+        base = N_PARAMS_PER_LEG * np.arange(self.n_legs)[:, None] + np.arange(3)
+        return base, base + 3
+
+    def prior_sigmas(self, noise) -> np.ndarray:
+        """``(n_params,)`` prior σ of δM [mm]: ``noise.prior_sigma_mm`` on every entry."""
+        return np.full(self.n_params, noise.prior_sigma_mm)
+
+    def walk_sigmas(self, noise) -> np.ndarray:
+        """``(n_params,)`` random walk of δM [mm/√s]: ``noise.random_walk_mm_per_sqrt_s`` on every entry."""
+        return np.full(self.n_params, noise.random_walk_mm_per_sqrt_s)
+
+    def coordinate_sigma(self, noise) -> float:
+        """σ of one leg's logged coordinate [mm]: ``noise.stroke_sigma_mm`` (the encoder)."""
+        return float(noise.stroke_sigma_mm)
+
+    # The leg model's arithmetic is the compiled kinematics' (imported here, not with the module: a
+    # platform file is read by commands that never compute, see :meth:`perturbed`).
+
+    def residuals(self, R: np.ndarray, t: np.ndarray, e: np.ndarray) -> np.ndarray:
+        """``r_i = ‖t + R d_i − j_i‖ − (l_i + e_i)``, ``(..., n)`` [mm] (paper eq. 1)."""
+        from . import kinematics
+
+        return kinematics.leg_residuals(self, R, t, e)
+
+    def residual_jacobians(
+        self, R: np.ndarray, t: np.ndarray, e: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(∂r/∂ξ (..., n, 6), ∂r/∂M (..., n, n_params), ∂r_i/∂e_i (..., n) = −1)`` of :meth:`residuals`."""
+        from . import kinematics
+
+        J_pose, J_M = kinematics.leg_residual_jacobians(self, R, t)
+        return J_pose, J_M, np.full(J_M.shape[:-1], -1.0)
+
+    def coordinates(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """The extensions ``(..., n)`` [mm] that close each leg at ``(R, t)`` (inverse kinematics)."""
+        from . import kinematics
+
+        return kinematics.inverse_kinematics(self, R, t)
+
+    def forward_kinematics(
+        self, e: np.ndarray, guess=None, tol_mm: float | None = None, strict: bool = True, along: bool = False
+    ):
+        """:func:`~stewart_calib.kinematics.forward_kinematics` of extensions ``e (..., n)`` [mm]
+        (``tol_mm`` None: :data:`~stewart_calib.kinematics.FK_TOLERANCE_MM`)."""
+        from . import kinematics
+
+        tol = kinematics.FK_TOLERANCE_MM if tol_mm is None else tol_mm
+        return kinematics.forward_kinematics(self, e, guess=guess, tol_mm=tol, strict=strict, along=along)
+
+    def solve_fk(self, e: np.ndarray, guess, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """One pose of extensions ``e (n,)`` from ``guess``, then cold (:func:`~stewart_calib.kinematics.solve_fk`)."""
+        from . import kinematics
+
+        return kinematics.solve_fk(self, e, guess, what)
+
+    def unit_vectors(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """``(..., n, 3)`` unit leg vectors in {J}: the direction each leg's force acts along."""
+        from . import kinematics
+
+        return kinematics.leg_unit_vectors(self, R, t)
 
     @property
     def n_params(self) -> int:

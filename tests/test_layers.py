@@ -18,8 +18,10 @@ LAYERS = (
     ("inputs", "memory"),
     ("stewart_calib", "_kernels", "resources", "progress"),
     ("samples", "config", "rotations", "chi_square"),
+    ("kinematics",),
     ("platform",),
-    ("kinematics", "unknowns"),
+    ("unknowns",),
+    ("model",),
     ("statics",),
     ("drive",),
     ("estimate", "instruments"),
@@ -47,7 +49,18 @@ def _imports(name: str, path: Path, known: set[str]) -> set[str]:
     """The stewart_calib modules ``name`` imports (a ``from package import module`` names the module)."""
     package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
     found = set()
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    # an import under `if TYPE_CHECKING:` names an annotation's type: no arrow at run time
+    typing_only = {
+        id(inner)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and ast.unparse(node.test) in {"TYPE_CHECKING", "typing.TYPE_CHECKING"}
+        for statement in node.body
+        for inner in ast.walk(statement)
+    }
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
         if isinstance(node, ast.Import):
             targets = [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
