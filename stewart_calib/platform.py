@@ -581,8 +581,11 @@ def _check_keys(doc: dict, source: str) -> None:
 
 
 def _drive_key_hint(key: str, kind: str) -> str:
-    """Where the ``[drive]`` key nearest ``key`` belongs to another drive kind than ``kind``: the
-    did-you-mean naming it and the kind that uses it; else ``""``."""
+    """Where ``key``, or the ``[drive]`` key nearest it, belongs to another drive kind than ``kind``:
+    a hint naming that kind (and the key meant); else ``""``."""
+    other = next((name for name, keys in DRIVE_KEYS.items() if key in keys), None)
+    if other is not None:
+        return f' (a key of [drive] kind = "{other}", spec §15; this [drive] is kind = "{kind}")'
     nearest = did_you_mean(key, set().union(*DRIVE_KEYS.values()))
     if not nearest or nearest == did_you_mean(key, DRIVE_KEYS[kind]):
         return ""
@@ -660,27 +663,27 @@ def _legs(doc: dict, section: str, source: str) -> tuple[LegGeometry, dict]:
 def _rotary(doc: dict, source: str) -> tuple[RotaryLegs, dict]:
     """The ``[drive]`` table of ``kind = "rotary"`` (spec §15) as :class:`~stewart_calib.model.rotary.RotaryLegs`
     [mm, rad]: axes normalised, zero directions made orthogonal to their axes and normalised."""
-    from .model.rotary import RotaryLegs  # the leg models import this module
+    from .model.rotary import RotaryLegs, orthonormal_zero_directions  # the leg models import this module
 
     table = doc.get("drive")
     if not isinstance(table, dict):
         raise _refuse(source, "drive", "a [drive] table")
     centres = _array(table, "crank_centres_mm", (N_LEGS, 3), source, "drive")
-    axes = _directions(table, "crank_axes", source)
-    zeros = _directions(table, "crank_zero_directions", source)
-    along = np.einsum("ij,ij->i", axes, zeros)
-    tilt_deg = np.degrees(np.arcsin(np.minimum(np.abs(along), 1.0)))
-    bad = np.flatnonzero(tilt_deg > ZERO_DIRECTION_TOLERANCE_DEG)
+    given = {key: _array(table, key, (N_LEGS, 3), source, "drive") for key in ("crank_axes", "crank_zero_directions")}
+    for key, rows in given.items():
+        bad = np.flatnonzero(~(np.linalg.norm(rows, axis=1) > 0.0))
+        if bad.size:
+            raise _refuse(source, f"drive.{key}[{int(bad[0]) + 1}]", "a direction [x, y, z] of nonzero length")
+    axes, zeros, off_deg = orthonormal_zero_directions(given["crank_axes"], given["crank_zero_directions"])
+    bad = np.flatnonzero(~(off_deg <= ZERO_DIRECTION_TOLERANCE_DEG))  # NaN: along the axis
     if bad.size:
         i = int(bad[0])
         raise _refuse(
             source,
             f"drive.crank_zero_directions[{i + 1}]",
             f"a direction within {ZERO_DIRECTION_TOLERANCE_DEG:g}° of orthogonal to its axis (crank_axes row "
-            f"{i + 1}), got one {tilt_deg[i]:.4g}° from orthogonal",
+            f"{i + 1}), got one {90.0 if np.isnan(off_deg[i]) else off_deg[i]:.4g}° from orthogonal",
         )
-    zeros = zeros - along[:, None] * axes
-    zeros /= np.linalg.norm(zeros, axis=1, keepdims=True)
     lengths = {}
     for key in ("horn_lengths_mm", "rod_lengths_mm"):
         lengths[key] = _array(table, key, (N_LEGS,), source, "drive")
@@ -722,16 +725,6 @@ def _rotary(doc: dict, source: str) -> tuple[RotaryLegs, dict]:
         angle_range=(math.radians(low), math.radians(high)),
     )
     return legs, table
-
-
-def _directions(table: dict, key: str, source: str) -> np.ndarray:
-    """A ``(6, 3)`` key of directions (spec §15), each row normalised; a row of zero length refused."""
-    rows = _array(table, key, (N_LEGS, 3), source, "drive")
-    norms = np.linalg.norm(rows, axis=1)
-    bad = np.flatnonzero(~(norms > 0.0))
-    if bad.size:
-        raise _refuse(source, f"drive.{key}[{int(bad[0]) + 1}]", "a direction [x, y, z] of nonzero length")
-    return rows / norms[:, None]
 
 
 def _check_spread(joints: np.ndarray, source: str, key: str) -> None:

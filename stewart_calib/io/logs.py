@@ -222,7 +222,7 @@ def _log_columns(path: Path, header: list[str], platform: Platform | None = None
     # missing columns of one kind are named for what they hold: the drive's strokes are no instrument's
     missing = [name for name in required if name not in header]
     other = ANGLE_COLUMNS if drive == STROKE_COLUMNS else STROKE_COLUMNS
-    if missing and set(missing) <= set(drive) and set(other) & set(header):
+    if set(missing) & set(drive) and set(other) & set(header):  # before the instrument's: the drive's kind
         kind = "prismatic" if drive == STROKE_COLUMNS else "rotary"
         raise CalibError(
             f"{path}: row 1: columns {other[0]} … {other[-1]} are another drive's; the platform's [drive] "

@@ -16,12 +16,17 @@ from ..drive import DriveModel, drive_model
 from ..errors import CalibError, shown
 from ..estimate import Estimate
 from ..inputs import parse_json, read_input_text
-from ..model.rotary import PARAMETER_NAMES as ROTARY_PARAMETER_NAMES
-from ..platform import PARAMETER_NAMES, Platform
+from ..model.rotary import PARAMETER_FIELDS as ROTARY_FIELDS
+from ..platform import N_LEGS, PARAMETER_NAMES, Platform
 from .atomic import atomic_write_text
 from .tables import csv_text
 
 RESULT_FORMAT = "stewart-calib/result@1"
+
+#: a rotary drive's 66 parameter names ``a1x … tw6`` (spec §15), which a result may hold without a platform at hand
+ROTARY_PARAMETER_NAMES: tuple[str, ...] = tuple(
+    f"{prefix}{leg}{suffix}" for leg in range(1, N_LEGS + 1) for prefix, suffix in ROTARY_FIELDS
+)
 
 
 def _gap_unit(platform: Platform) -> str:
