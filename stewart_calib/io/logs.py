@@ -225,7 +225,8 @@ def _log_columns(path: Path, header: list[str], platform: Platform | None = None
     if set(missing) & set(drive) and set(other) & set(header):  # before the instrument's: the drive's kind
         kind = "prismatic" if drive == STROKE_COLUMNS else "rotary"
         raise CalibError(
-            f"{path}: row 1: columns {other[0]} … {other[-1]} are another drive's; the platform's [drive] "
+            f"{path}: row 1: columns {_span([name for name in other if name in header])} are another drive's; "
+            "the platform's [drive] "
             f"(kind = \"{kind}\") expects {drive[0]} … {drive[-1]} ({_DRIVE_WORDS[kind]}, spec §15)"
         )
     if missing and set(missing) <= set(drive):
@@ -242,6 +243,11 @@ def _log_columns(path: Path, header: list[str], platform: Platform | None = None
     has_pose = optional_group(path, header, POSE_COLUMNS)
     numeric = [*required, *(POSE_COLUMNS if has_pose else ()), *(["load_kg"] if "load_kg" in header else [])]
     return has_pose, numeric, ["stage"] if "stage" in header else []
+
+
+def _span(names: list[str]) -> str:
+    """``q1_deg … q6_deg`` for a run of columns, the one name for one."""
+    return names[0] if len(names) == 1 else f"{names[0]} … {names[-1]}"
 
 
 #: what a drive's log columns hold, by its kind
