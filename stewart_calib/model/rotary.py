@@ -23,13 +23,14 @@ Pose perturbations are in the body tangent ``ξ = [ω, v]`` (rotation first), ``
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import ClassVar
 
 import numpy as np
 
+from ..kinematics import FK_MAX_ITERATIONS, FK_TOLERANCE_MM, FKError, FKSolution, fk_failed
 from ..platform import N_LEGS
-from ..rotations import so3_exp
+from ..rotations import retract, rotation_angle, so3_exp, transform_points
 
 #: the 11 entries of one leg's parameters, spec §15 order: ``(prefix, suffix)`` of the name ``{prefix}{leg}{suffix}``
 PARAMETER_FIELDS: tuple[tuple[str, str], ...] = (
@@ -48,6 +49,13 @@ PARAMETER_FIELDS: tuple[tuple[str, str], ...] = (
 _PER_LEG = len(PARAMETER_FIELDS)
 #: columns of one leg's block of M: crank centre, platform joint, horn, rod, zero offset, tilts
 _A, _D, _H, _ROD, _O, _TU, _TW = slice(0, 3), slice(3, 6), 6, 7, 8, 9, 10
+#: FK's Newton step is capped at this rotation [rad], and at this fraction of the mean rod length in
+#: translation (one rod's swing by the same angle), so that a poor start stays in Newton's basin
+MAX_STEP_RAD = 0.2
+#: FK's damping ``μ = FK_DAMPING · tr(JᵀJ) / 6`` of the normal equations ``(JᵀJ + μ I) ξ = −Jᵀ r``: a
+#: singular Jacobian still gives a bounded step, and near a solution the step is Newton's to a factor
+#: ``1 − μ/σ_min²`` (≈ 1 − 1e-8 for a servo build: quadratic convergence is kept to far below FK's tolerance)
+FK_DAMPING = 1e-12
 #: a zero direction whose part orthogonal to its axis is below this fraction of its length has no direction
 _DEGENERATE = 1e-12
 
@@ -209,8 +217,8 @@ class RotaryLegs:
         """
         d = np.asarray(delta, dtype=float).reshape(self.n_legs, _PER_LEG)
         u, w = self.zero_directions, self.w_directions
-        turn = so3_exp(u * d[:, _TU, None]) @ so3_exp(w * d[:, _TW, None])
-        return RotaryLegs(
+        turn = so3_exp(u * d[:, _TU, None]) @ so3_exp(w * d[:, _TW, None])  # exactly I where both are 0
+        return RotaryLegs._trusted(
             self.crank_centres + d[:, _A],
             _turned(self.crank_axes, turn),
             _turned(u, turn),
@@ -220,3 +228,257 @@ class RotaryLegs:
             self.angle_offsets + d[:, _O],
             self.angle_range,
         )
+
+    @classmethod
+    def _trusted(cls, *values) -> RotaryLegs:
+        """A set of fresh float arrays of the right shapes, without ``__post_init__``'s copies and checks:
+        :meth:`perturbed`'s sums, and its axes and zero directions turned by one rotation (orthonormal
+        to rounding), so a zero δM gives the same set bit for bit."""
+        legs = object.__new__(cls)
+        for field, value in zip(fields(cls), values, strict=True):
+            if isinstance(value, np.ndarray):
+                value.setflags(write=False)
+            object.__setattr__(legs, field.name, value)
+        return legs
+
+    # ------------------------------------------------------------------ kinematics
+
+    def horn_joints(self, e: np.ndarray) -> np.ndarray:
+        """``(..., 6, 3)`` the horns' ball joints ``b_i = a_i + h_i (cos φ_i u_i + sin φ_i w_i)``, ``φ_i = e_i + o_i``,
+        in {J} [mm], for coordinates ``e`` ``(..., 6)`` [rad]."""
+        phi = np.asarray(e, dtype=float) + self.angle_offsets
+        horn = np.cos(phi)[..., None] * self.zero_directions + np.sin(phi)[..., None] * self.w_directions
+        return self.crank_centres + self.horn_lengths[:, None] * horn
+
+    def _rods(self, R: np.ndarray, t: np.ndarray, e: np.ndarray) -> np.ndarray:
+        """``(..., 6, 3)`` the rods ``t + R d_i − b_i`` (horn joint → platform joint) in {J} [mm]."""
+        return transform_points(R, t, self.platform_joints) - self.horn_joints(e)
+
+    def residuals(self, R: np.ndarray, t: np.ndarray, e: np.ndarray) -> np.ndarray:
+        """``(..., 6)`` closure residuals ``‖t + R d_i − b_i(e_i)‖ − r_i`` [mm] at poses ``(R (..., 3, 3),
+        t (..., 3) [mm])`` and coordinates ``e (..., 6)`` [rad]."""
+        return np.linalg.norm(self._rods(R, t, e), axis=-1) - self.rod_lengths
+
+    def unit_vectors(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """``(..., 6, 3)`` unit rods (horn joint → platform joint) in {J} at the pose ``(R, t)`` with each
+        leg's coordinate from :meth:`coordinates`: the line a rod's force acts along (a two-force
+        member). NaN where a leg cannot reach the pose."""
+        rods = self._rods(R, t, self.coordinates(R, t))
+        return rods / np.linalg.norm(rods, axis=-1, keepdims=True)
+
+    def residual_jacobians(
+        self, R: np.ndarray, t: np.ndarray, e: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Jacobians of :meth:`residuals`: ``(J_pose (..., 6, 6), J_M (..., 6, 66), J_e (..., 6))``.
+
+        With ``m_i`` the unit rod, ``c, s = cos φ_i, sin φ_i``:
+
+        * ``J_pose`` on the body tangent ``ξ = [ω, v]``: row i ``[(d_i × Rᵀm_i)ᵀ, (Rᵀm_i)ᵀ]``;
+        * ``J_M`` block-diagonal, leg i's row in its own 11 columns: ``∂/∂a = −m``, ``∂/∂d = Rᵀm``,
+          ``∂/∂h = −m·(c u + s w)``, ``∂/∂r = −1``, ``∂/∂o = J_e``, and at tilt 0 (a ``δtu`` moves
+          ``w`` by ``δtu n``, a ``δtw`` moves ``u`` by ``−δtw n``) ``∂/∂tu = −h s (m·n)``,
+          ``∂/∂tw = h c (m·n)``;
+        * ``J_e = ∂r_i/∂e_i = −h (m·(−s u + c w))``.
+        """
+        phi = np.asarray(e, dtype=float) + self.angle_offsets
+        c, s = np.cos(phi), np.sin(phi)
+        u, w, n = self.zero_directions, self.w_directions, self.crank_axes
+        rods = self._rods(R, t, e)
+        m = rods / np.linalg.norm(rods, axis=-1, keepdims=True)
+        batch = m.shape[:-2]
+        m_body = np.einsum("...ji,...kj->...ki", np.broadcast_to(R, batch + (3, 3)), m)  # Rᵀ m_i per leg
+        J_pose = np.concatenate([np.cross(self.platform_joints, m_body), m_body], axis=-1)
+        mu, mw, mn = np.sum(m * u, axis=-1), np.sum(m * w, axis=-1), np.sum(m * n, axis=-1)
+        h = self.horn_lengths
+        J_e = -h * (c * mw - s * mu)
+        rows = np.empty(batch + (self.n_legs, _PER_LEG))
+        rows[..., _A] = -m
+        rows[..., _D] = m_body
+        rows[..., _H] = -(c * mu + s * mw)
+        rows[..., _ROD] = -1.0
+        rows[..., _O] = J_e
+        rows[..., _TU] = -h * s * mn
+        rows[..., _TW] = h * c * mn
+        J_M = np.zeros(batch + (self.n_legs, self.n_params))
+        legs = np.arange(self.n_legs)[:, None]
+        J_M[..., legs, _PER_LEG * legs + np.arange(_PER_LEG)] = rows
+        return J_pose, J_M, J_e
+
+    def _window_centre(self) -> float:
+        """The centre of the 360° window a horn solution is taken in (spec §15): 0, i.e. (−π, π], or
+        the range's own middle where the range crosses ±π."""
+        low, high = self.angle_range
+        return 0.5 * (low + high) if low < -np.pi or high > np.pi else 0.0
+
+    def coordinates(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Inverse kinematics: ``(..., 6)`` coordinates ``e_i`` [rad] closing each leg at ``(R, t)``.
+
+        With ``v = t + R d_i − a_i``, ``A = v·u_i``, ``B = v·w_i``, ``C = (|v|² + h_i² − r_i²) / (2 h_i)``,
+        closure is ``A cos φ + B sin φ = C``: ``φ = atan2(B, A) ± acos(C / √(A² + B²))``, and
+        ``e = φ − o_i``. Each of the two is taken in (−π, π] (or in the range's own 360° window where
+        the range crosses ±π); the one inside ``angle_range`` is returned, the one nearer the range's
+        middle where both are (spec §15's branch rule, applied to ``e``, which differs from the
+        commanded angle by the drive's angle scale only). NaN where the rod cannot reach the horn's
+        circle (``|C| > √(A² + B²)``) or neither solution is inside the range.
+        """
+        v = transform_points(R, t, self.platform_joints) - self.crank_centres
+        A = np.sum(v * self.zero_directions, axis=-1)
+        B = np.sum(v * self.w_directions, axis=-1)
+        h, r = self.horn_lengths, self.rod_lengths
+        C = (np.sum(v * v, axis=-1) + h * h - r * r) / (2.0 * h)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            opening = np.arccos(C / np.hypot(A, B))  # NaN where |C| > √(A² + B²): unreachable
+        centre, (low, high) = self._window_centre(), self.angle_range
+        middle = 0.5 * (low + high)
+        best = np.full(opening.shape, np.nan)
+        distance = np.full(opening.shape, np.inf)
+        for sign in (1.0, -1.0):
+            e = np.arctan2(B, A) + sign * opening - self.angle_offsets
+            e = centre + np.pi - np.mod(centre + np.pi - e, 2.0 * np.pi)  # in (centre − π, centre + π]
+            nearer = (e >= low) & (e <= high) & (np.abs(e - middle) < distance)
+            best = np.where(nearer, e, best)
+            distance = np.where(nearer, np.abs(e - middle), distance)
+        return best
+
+    # ------------------------------------------------------------------ forward kinematics
+
+    @property
+    def max_step_mm(self) -> float:
+        """FK's cap on a Newton step's translation [mm]: :data:`MAX_STEP_RAD` of the mean rod."""
+        return MAX_STEP_RAD * float(np.mean(self.rod_lengths))
+
+    def default_guess(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A level pose for coordinates ``e (..., 6)``: {D}'s joints centred over the horn joints
+        ``b_i(e)`` and raised so that the mean rod length is matched (the rods' horizontal spans from
+        that centring)."""
+        b = self.horn_joints(e)
+        xy = np.mean(b[..., :2] - self.platform_joints[:, :2], axis=-2)
+        span = b[..., :2] - (xy[..., None, :] + self.platform_joints[:, :2])
+        rise = np.sqrt(np.maximum(self.rod_lengths**2 - np.sum(span**2, axis=-1), 1.0))
+        t = np.concatenate([xy, np.mean(rise + b[..., 2] - self.platform_joints[:, 2], axis=-1)[..., None]], axis=-1)
+        return np.broadcast_to(np.eye(3), t.shape[:-1] + (3, 3)).copy(), t
+
+    def _newton(
+        self, e: np.ndarray, R: np.ndarray, t: np.ndarray, tol_mm: float, max_iterations: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Damped, capped Newton in the body tangent for flat ``e (N, 6)`` from ``(R (N, 3, 3), t (N, 3))``.
+
+        Each sample iterates until its own max |residual| is at most ``tol_mm`` (a NaN residual stops
+        too) or ``max_iterations`` steps; only the unfinished ones are computed each step. Returns
+        ``(R, t, iterations (N,), residual_mm (N,))``; non-finite ``e``: start kept, 0 steps, ``inf``.
+        """
+        R, t = R.copy(), t.copy()
+        iterations = np.zeros(len(e), dtype=np.int64)
+        residual = np.full(len(e), np.inf)
+        active = np.flatnonzero(np.all(np.isfinite(e), axis=-1))
+        cap_mm = self.max_step_mm
+        for step in range(max_iterations + 1):
+            r = self.residuals(R[active], t[active], e[active])
+            worst = np.max(np.abs(r), axis=-1)
+            residual[active] = worst
+            iterations[active] = step
+            going = (worst > tol_mm) & (step < max_iterations)
+            active, r = active[going], r[going]
+            if not len(active):
+                break
+            J = self.residual_jacobians(R[active], t[active], e[active])[0]
+            JtJ = np.einsum("nki,nkj->nij", J, J)
+            JtJ += (FK_DAMPING / 6.0) * np.trace(JtJ, axis1=-2, axis2=-1)[:, None, None] * np.eye(6)
+            xi = -np.linalg.solve(JtJ, np.einsum("nki,nk->ni", J, r)[..., None])[..., 0]
+            norm_w, norm_v = np.linalg.norm(xi[:, :3], axis=-1), np.linalg.norm(xi[:, 3:], axis=-1)
+            with np.errstate(divide="ignore"):
+                scale = np.minimum(1.0, np.minimum(MAX_STEP_RAD / norm_w, cap_mm / norm_v))
+            R[active], t[active] = retract(R[active], t[active], scale[:, None] * xi)
+        return R, t, iterations, residual
+
+    def _within_a_step(self, R_a, t_a, R_b, t_b) -> np.ndarray:
+        """Whether poses are less than one uncapped Newton step apart (:data:`MAX_STEP_RAD`, :attr:`max_step_mm`)."""
+        turn = rotation_angle(np.swapaxes(R_a, -1, -2) @ R_b)
+        return (np.linalg.norm(t_b - t_a, axis=-1) <= self.max_step_mm) & (turn <= MAX_STEP_RAD)
+
+    def forward_kinematics(
+        self,
+        e: np.ndarray,
+        guess: tuple[np.ndarray, np.ndarray] | None = None,
+        tol_mm: float = FK_TOLERANCE_MM,
+        strict: bool = True,
+        along: bool = False,
+        max_iterations: int = FK_MAX_ITERATIONS,
+    ) -> FKSolution:
+        """The pose closing every rod for coordinates ``e (..., 6)`` [rad], by damped, capped Newton.
+
+        Solves ``‖t + R d_i − b_i(e_i)‖ = r_i`` in the body tangent ``ξ = [ω, v]`` with ``J_pose`` of
+        :meth:`residual_jacobians`, all samples at once, each until its own max |residual| ≤ ``tol_mm``.
+        A step is capped at :data:`MAX_STEP_RAD` and :attr:`max_step_mm`; the normal equations are
+        damped by :data:`FK_DAMPING` (a singular pose gets a bounded step).
+
+        Args:
+            guess: starting ``(R, t)`` broadcastable to the batch; default :meth:`default_guess`.
+            strict: raise :class:`~stewart_calib.kinematics.FKError` if any sample fails; otherwise
+                report it in ``converged``.
+            along: ``e (N, 6)`` are a log's samples in order and each follows the one before: where
+                sample k − 1 converged and sample k's solution from its start is not within one
+                uncapped step of it (not converged, or another assembly of the legs), sample k is
+                solved again from sample k − 1's solution and takes that one if it converges within a
+                step of it. A sample so changed makes its successor a candidate in turn; each round
+                is one batch solve of the candidates.
+        Raises:
+            FKError: ``strict`` and a sample's rods unreachable or no convergence within the cap.
+        """
+        e = np.asarray(e, dtype=float)
+        batch = e.shape[:-1]
+        flat = e.reshape(-1, self.n_legs)
+        R0, t0 = np.empty(batch + (3, 3)), np.empty(batch + (3,))
+        R0[...], t0[...] = self.default_guess(e) if guess is None else guess
+        R, t, iterations, residual = self._newton(flat, R0.reshape(-1, 3, 3), t0.reshape(-1, 3), tol_mm, max_iterations)
+        if along:
+            candidates = np.arange(1, len(flat))
+            while len(candidates):
+                before = candidates - 1
+                keep = residual[before] <= tol_mm
+                keep[keep] = ~(
+                    (residual[candidates[keep]] <= tol_mm)
+                    & self._within_a_step(R[before[keep]], t[before[keep]], R[candidates[keep]], t[candidates[keep]])
+                )
+                candidates, before = candidates[keep], before[keep]
+                R_k, t_k, it_k, res_k = self._newton(flat[candidates], R[before], t[before], tol_mm, max_iterations)
+                taken = (res_k <= tol_mm) & self._within_a_step(R[before], t[before], R_k, t_k)
+                changed = candidates[taken]
+                R[changed], t[changed], residual[changed] = R_k[taken], t_k[taken], res_k[taken]
+                iterations[changed] += it_k[taken]
+                candidates = changed[changed + 1 < len(flat)] + 1
+        converged = residual <= tol_mm
+        if strict and not converged.all():
+            first = int(np.flatnonzero(~converged)[0])
+            where = f" (pose {tuple(int(i) for i in np.unravel_index(first, batch))})" if batch else ""
+            finite = np.all(np.isfinite(flat[first]))
+            reason = f"residual {residual[first]:.3g} mm" if finite else "non-finite angles"
+            raise FKError(
+                f"rotary forward kinematics did not converge{where}: {reason} after {iterations[first]} "
+                "Newton iterations; the crank angles may be unreachable"
+            )
+        return FKSolution(
+            R.reshape(batch + (3, 3)),
+            t.reshape(batch + (3,)),
+            iterations.reshape(batch),
+            converged.reshape(batch),
+            residual.reshape(batch),
+        )
+
+    def solve_fk(
+        self, e: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None, what: str, tol_mm: float = FK_TOLERANCE_MM
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One sample's FK for ``e (6,)`` [rad] from ``guess`` (the previous pose), then from
+        :meth:`default_guess`: a jump between samples can leave the old pose outside Newton's basin.
+
+        Raises:
+            SampleRejected: neither start converges; ``what`` names the leg set.
+        """
+        if guess is not None:
+            warm = self.forward_kinematics(e, guess, tol_mm, strict=False)
+            if warm.converged:
+                return warm.R, warm.t
+        cold = self.forward_kinematics(e, None, tol_mm, strict=False)
+        if cold.converged:
+            return cold.R, cold.t
+        raise fk_failed(what, float(cold.residual_mm))
