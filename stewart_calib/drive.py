@@ -354,6 +354,15 @@ class DriveModel:
         """``(6,)`` ``∂e_i/∂q_i`` (the stroke noise's gain into the leg): ``1 + k_i``."""
         return self._term_factors(x_drive)[self._stroke]
 
+    def stroke_gains(self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        """``(..., n)`` ``∂r_i/∂q_i = J_e,i (1 + k_i)`` at poses ``(R, t)``: a logged coordinate's gain into
+        its leg's residual (prismatic legs: ``−(1 + k_i)``, whatever the pose)."""
+        per_stroke = self.extension_per_stroke(x_drive)
+        if self.legs.compiled:
+            return -per_stroke
+        _, _, J_e = self.geometry(x_drive).residual_jacobians(R, t, self.extensions(inputs, x_drive))
+        return J_e * per_stroke
+
     def identifying(self, prior_sigma: float = BLOCK_PRIOR_SIGMA) -> DriveModel:
         """The same drive with every term an unknown block of prior σ ``prior_sigma`` — the compliance
         with ``[elastic]``'s own σ (mm/kN, not a fraction; held where that is 0)."""

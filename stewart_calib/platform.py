@@ -102,6 +102,11 @@ class LegGeometry:
         """σ of one leg's logged coordinate [mm]: ``noise.stroke_sigma_mm`` (the encoder)."""
         return float(noise.stroke_sigma_mm)
 
+    def kernel_geometry(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(base joints (n, 3), platform joints (n, 3), initial lengths (n,))`` [mm], read-only C
+        arrays: the leg set as the compiled kernels (:mod:`stewart_calib._kernels`) take it."""
+        return self.base_joints, self.platform_joints, self.initial_lengths
+
     # The leg model's arithmetic is the compiled kinematics' (imported here, not with the module: a
     # platform file is read by commands that never compute, see :meth:`perturbed`).
 

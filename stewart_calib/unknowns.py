@@ -125,13 +125,23 @@ class UnknownLayout:
     def block(self, key: str) -> UnknownBlock | None:
         return next((block for block in self.blocks if block.key == key), None)
 
-    def prior_sigma(self, drive_sigma_mm: float) -> np.ndarray:
-        """``(size,)`` prior σ: ``drive_sigma_mm`` on δM, then each block's own [code units]."""
+    def prior_sigma(self, drive_sigma_mm: float | np.ndarray) -> np.ndarray:
+        """``(size,)`` prior σ: ``drive_sigma_mm`` on δM (one for all, or ``(n_params,)`` entry by entry),
+        then each block's own [code units]."""
         return np.concatenate([np.full(self.n_params, drive_sigma_mm), *(block.prior_sigma for block in self.blocks)])
 
     def walks(self) -> np.ndarray:
         """``(size,)`` bool: which unknowns follow the parameter random walk (δM always)."""
         return np.concatenate([np.ones(self.n_params, bool), *(np.full(b.size, b.random_walk) for b in self.blocks)])
+
+    def walk_scales(self, drive_walk: np.ndarray, rate: float) -> np.ndarray | None:
+        """``(size,)`` each walking unknown's random walk over the common ``rate`` [per √s]: δM's
+        ``drive_walk`` ``(n_params,)`` (the drive's :meth:`~stewart_calib.drive.DriveModel.walk_sigmas`)
+        over it, 1 on the blocks; None where every entry walks at the rate itself (a prismatic drive)."""
+        drive_walk = np.asarray(drive_walk, dtype=float)
+        if not rate > 0.0 or np.all(drive_walk == rate):
+            return None
+        return np.concatenate([drive_walk / rate, np.ones(self.size - self.n_params)])
 
     def gauge_rows(self, drive: LegGeometry) -> np.ndarray:
         """``(g, size)`` constraints ``C x = 0`` fixing the gauge the blocks share with the drive.

@@ -123,7 +123,7 @@ def test_the_checker_sees_arrows():
     # importing the platform, and a relative 'from .. import kinematics' must name that module.
     graph = _graph()
     assert "stewart_calib.platform" in graph["stewart_calib.estimators.ekf"]
-    assert "stewart_calib.kinematics" in graph["stewart_calib.estimators.graph"]
+    assert "stewart_calib.kinematics" in graph["stewart_calib.estimators.measurement"]
 
 
 def test_pipelines_import_nothing_private_from_each_other():
