@@ -35,6 +35,11 @@ With an instrument outside the robot (``[instrument] kind = "pose" | "points"``)
 its readings instead of the tracker's; the encoders log ``(q − z_i) / (1 + k_i)`` for an
 executed stroke q (scale errors k_i, zero errors z_i, spec §7), and the truth's initial lengths
 are ``l_i + z_i``, what a model with the logged strokes must find.
+
+A rotary drive (spec §15) logs the angles its controller commands, exactly; its servos turn the
+horns by ``(1 + k_i) θ_i`` plus their own white error (``[robot] angle_noise_deg``), and the true
+pose is the forward kinematics of the true drive (:meth:`TrueRobot.true_drive`: the leg model with
+the experiment's errors and angle scale) there — rigid: no load moves it.
 """
 
 from __future__ import annotations
@@ -48,16 +53,17 @@ from typing import Protocol
 import numpy as np
 
 from .. import kinematics as kin
-from ..drive import STROKE_SCALE, drive_model
-from ..errors import SampleRejected
+from ..drive import STROKE_SCALE, DriveModel, drive_model, plain_drive
+from ..errors import CalibError, SampleRejected
 from ..estimate import model_estimate
+from ..model.legs import LegModel
 from ..platform import LegGeometry, Platform
 from ..progress import progress_bar
 from ..samples import Log, Sample, Truth
-from .experiment import Experiment, Schedule, schedule
+from .experiment import Experiment, RotaryRobotConfig, Schedule, schedule
 from .instrument import SimulatedInstrument
 from .load import LoadModel, Settling
-from .robot import base_errors, encoder_readings
+from .robot import base_errors, encoder_readings, rotary_errors
 from .tracker import Tracker
 
 
@@ -135,7 +141,7 @@ class EstimatorController:
         """IK of the model in force; an elastic one with its identified blocks, under ``payload_kg``
         (taken as 0 unless :attr:`payload_known`) and the payload the estimator found unannounced."""
         if self._elastic is None:
-            return kin.inverse_kinematics(self._drive, R_d, t_d)
+            return self._drive.coordinates(R_d, t_d)
         estimate = model_estimate(self.estimator)
         values = {term.key: estimate.block_values(term.key) for term in self._elastic.terms}
         drive = self._elastic.calibrated(self._error, values)
@@ -152,11 +158,12 @@ class TrueRobot:
     """The simulated machine: unloaded drive parameters, load model, tracker, encoder noise.
 
     Attributes:
-        base_params: ``(42,)`` nominal + δM_base [mm] (paper order).
+        base_params: ``(n_params,)`` nominal + δM_base (paper order; a rotary drive's 66, spec §15) [mm, rad].
         load: the load model.
         tracker: the simulated tracker (true geometry incl. residual), or None (no [tracker]).
-        encoder_noise_mm: σ of the logged strokes' noise [mm].
-        stroke_scale: ``(6,)`` true k_i: the encoders log ``q / (1 + k_i)``.
+        encoder_noise_mm: σ of the logged strokes' noise [mm]; a rotary drive's: of the angle each servo
+            holds about its command [rad] (its log holds the commands).
+        stroke_scale: ``(6,)`` true k_i: the encoders log ``q / (1 + k_i)`` (rotary: a servo turns ``(1 + k_i) θ``).
         encoder_zero_mm: ``(6,)`` true zero errors z_i [mm]: the encoders log ``q − z_i``.
         instrument: the simulated outside instrument, or None (the tracker measures).
     """
@@ -168,12 +175,42 @@ class TrueRobot:
     stroke_scale: np.ndarray
     encoder_zero_mm: np.ndarray
     instrument: SimulatedInstrument | None = None
+    nominal: LegModel | None = None
+
+    @property
+    def rotary(self) -> bool:
+        """A rotary drive (spec §15): commanded angles logged, the robot rigid."""
+        return self.nominal is not None and self.nominal.kind == "rotary"
 
     def logged_strokes(self, strokes: np.ndarray, unit_noise: np.ndarray) -> np.ndarray:
-        """What the encoders log for executed strokes [mm]: zero and scale errors, then noise."""
+        """What the encoders log for executed strokes [mm]: zero and scale errors, then noise; a rotary
+        drive logs the commanded angles as they are."""
+        if self.rotary:
+            return np.array(strokes, dtype=float)
         return encoder_readings(
             (strokes - self.encoder_zero_mm) / (1.0 + self.stroke_scale), self.encoder_noise_mm, unit_noise
         )
+
+    @functools.cached_property
+    def true_drive(self) -> DriveModel:
+        """The true drive of a rotary robot: its legs with the true errors and its true angle scale."""
+        if self.nominal is None:
+            raise ValueError("the true drive is built from the nominal legs (a rotary robot's)")
+        return plain_drive(self.nominal).true_drive(
+            self.base_params - self.nominal.as_vector(), {STROKE_SCALE: self.stroke_scale}
+        )
+
+    def settle(
+        self, strokes: np.ndarray, payload_kg: np.ndarray, guess, unit_noise: np.ndarray
+    ) -> tuple[kin.FKSolution, np.ndarray]:
+        """``(poses, true parameters (N, n_params))`` the robot reaches with the commanded ``strokes (N, 6)``:
+        the loaded fixed point of the load model (:class:`~.load.Settling`), or a rotary robot's forward
+        kinematics of its servos' angles (``unit_noise``: the standard normal draws of their white error)."""
+        if not self.rotary:
+            return self.settling.settle(strokes, payload_kg, guess)
+        held = strokes + self.encoder_noise_mm * unit_noise / (1.0 + self.stroke_scale)
+        sol = self.true_drive.forward_kinematics(held, guess=guess)
+        return sol, np.tile(self.base_params, (len(strokes), 1))
 
     def readings(
         self, R: np.ndarray, t: np.ndarray, reading_noise: np.ndarray, instrument_draws: np.ndarray
@@ -213,6 +250,8 @@ def build_robot(
     e = experiment
     r = e.robot
     drive = e.platform.drive
+    if isinstance(r, RotaryRobotConfig):
+        return _rotary_robot(experiment, r, robot_rng, encoder_rng, instrument_rng)
     scales = (r.scale_base_joints, r.scale_platform_joints, r.scale_lengths)
     delta = base_errors(r.errors, scales, r.random_spread_mm, robot_rng, drive.n_params)
     tracker = None
@@ -235,6 +274,39 @@ def build_robot(
             e.platform.instrument, e.instrument, instrument_rng or np.random.default_rng(0)
         )
     return TrueRobot(drive.as_vector() + delta, e.load, tracker, r.encoder_noise_mm, scale, zero, instrument)
+
+
+def _rotary_robot(
+    experiment: Experiment,
+    config: RotaryRobotConfig,
+    robot_rng: np.random.Generator,
+    encoder_rng: np.random.Generator | None,
+    instrument_rng: np.random.Generator | None,
+) -> TrueRobot:
+    """The true robot of a rotary drive's experiment (spec §15): its legs' errors from ``robot_rng``
+    (:func:`~.robot.rotary_errors`), the angle scale from ``encoder_rng``, rigid, measured from outside."""
+    e = experiment
+    legs = e.platform.drive
+    delta = rotary_errors(config, legs, robot_rng)
+    encoder_rng = encoder_rng or np.random.default_rng(0)
+    n = legs.n_legs
+    scale = encoder_rng.normal(0.0, config.angle_scale_spread, n) if config.angle_scale_spread > 0 else np.zeros(n)
+    if e.instrument is None:
+        raise CalibError(
+            f"{e.source}: key 'instrument': expected an instrument outside the robot (kind = \"pose\" or \"points\"): "
+            "a rotary drive is measured from outside (spec §15)"
+        )
+    instrument = SimulatedInstrument.build(e.platform.instrument, e.instrument, instrument_rng or np.random.default_rng(0))
+    return TrueRobot(
+        legs.as_vector() + delta,
+        e.load,
+        None,
+        np.radians(config.angle_noise_deg),
+        scale,
+        np.zeros(n),
+        instrument,
+        legs,
+    )
 
 
 @dataclass
@@ -355,7 +427,7 @@ def _settle_block(robot: TrueRobot, plan: Schedule, rows: slice, controller: Con
     (``noise``: the block's stroke and reading noise and instrument draws)."""
     R_d, t_d = kin.pose_to_rt(plan.desired_poses[rows])
     strokes = _commanded(controller, R_d, t_d, plan.payload_kg[rows])
-    sol, params = robot.settling.settle(strokes, plan.payload_kg[rows], (R_d, t_d))
+    sol, params = robot.settle(strokes, plan.payload_kg[rows], (R_d, t_d), noise[0])
     log, truth = _measured(robot, plan, rows, strokes, sol.R, sol.t, params, noise)
     for sample in log:  # the protocol promises observe() after every sample
         controller.observe(sample)
@@ -371,8 +443,8 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
     R, t = np.empty((m, 3, 3)), np.empty((m, 3))
     for i, k in enumerate(range(rows.start, rows.stop)):
         strokes[i] = _commanded(controller, R_d[i], t_d[i], plan.payload_kg[k])
-        sol, params[i : i + 1] = robot.settling.settle(
-            strokes[i : i + 1], plan.payload_kg[k : k + 1], (R_d[i : i + 1], t_d[i : i + 1])
+        sol, params[i : i + 1] = robot.settle(
+            strokes[i : i + 1], plan.payload_kg[k : k + 1], (R_d[i : i + 1], t_d[i : i + 1]), stroke_noise[i : i + 1]
         )
         R[i], t[i] = sol.R[0], sol.t[0]
         controller.observe(
@@ -386,7 +458,7 @@ def _commanded(controller: Controller, R_d: np.ndarray, t_d: np.ndarray, payload
     else IK of its drive model."""
     command = getattr(controller, "strokes", None)
     if command is None:
-        return kin.inverse_kinematics(controller.drive_model(), R_d, t_d)
+        return controller.drive_model().coordinates(R_d, t_d)
     return command(R_d, t_d, payload_kg)
 
 
@@ -402,7 +474,8 @@ def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, para
         load_kg=plan.payload_kg[rows].copy(),
     )
     params = params.copy()
-    params[:, 6::7] += robot.encoder_zero_mm  # the logged strokes' zero is the model's l_i
+    if not robot.rotary:
+        params[:, 6::7] += robot.encoder_zero_mm  # the logged strokes' zero is the model's l_i
     instrument = None
     if robot.instrument is not None:
         instrument = (robot.instrument.names(), robot.instrument.unknowns.file_values())
