@@ -191,7 +191,7 @@ def test_prismatic_key_in_a_rotary_drive_is_refused():
     doc = _doc()
     doc["drive"]["stroke_range_mm"] = [0.0, 90.0]
     message = _refusal(doc)
-    assert "unknown key 'drive.stroke_range_mm'" in message and "this [drive] is kind = \"rotary\"" in message
+    assert "unknown key 'drive.stroke_range_mm'" in message and 'this [drive] is kind = "rotary"' in message
 
 
 def test_explicit_prismatic_kind_is_the_default():
@@ -357,9 +357,7 @@ def test_rotary_result_holds_66_names_with_angles_in_degrees(tmp_path):
     degrees = legs.parameter_degrees
     np.testing.assert_allclose(np.array(result["error"])[degrees], np.degrees(estimate.error[degrees]), rtol=1e-15)
     np.testing.assert_array_equal(np.array(result["error"])[~degrees], estimate.error[~degrees])
-    np.testing.assert_allclose(
-        np.array(result["stddev"])[degrees], np.degrees(estimate.stddev[degrees]), rtol=1e-14
-    )
+    np.testing.assert_allclose(np.array(result["stddev"])[degrees], np.degrees(estimate.stddev[degrees]), rtol=1e-14)
     write_result(tmp_path / "r.json", result)
     back = read_result(tmp_path / "r.json")
     assert back == result
@@ -412,4 +410,18 @@ def test_prismatic_files_unchanged_by_the_drive_kind():
     assert truth_text(truth, platform=platform) == truth_text(truth)
     assert copy.deepcopy(result_dict(Estimate(np.zeros(42), None, "ls"), platform))["nominal"] == list(
         platform.drive.as_vector()
+    )
+
+
+def test_servo_home_is_reachable_and_an_unreachable_home_is_refused():
+    from stewart_calib.kinematics import pose_to_rt
+
+    platform = _servo(workspace=True)
+    angles = platform.drive.coordinates(*pose_to_rt(platform.workspace.home))
+    np.testing.assert_allclose(np.degrees(angles), 0.0, atol=1e-3)  # every horn horizontal at home
+    doc = _doc(workspace=True)
+    doc["workspace"]["home"] = [0.0, 0.0, 190.0, 0.0, 0.0, 0.0]  # beyond horn + rod
+    assert _refusal(doc).endswith(
+        "key 'workspace.home': expected a home pose every crank reaches with a commanded angle within [-75, 75] deg "
+        "(drive.angle_range_deg); leg 1 cannot"
     )

@@ -109,8 +109,10 @@ def test_simulate_writes_rotary_files_that_read_back(tmp_path, servo_run):
 
 
 def test_rotary_experiment_refuses_a_load_table_and_prismatic_robot_keys(tmp_path):
-    text = (ROOT / "configs" / "experiments" / "servo.toml").read_text().replace(
-        'platform = "servo-hexapod"', f'platform = "{ROOT / "configs" / "platforms" / "servo-hexapod.toml"}"'
+    text = (
+        (ROOT / "configs" / "experiments" / "servo.toml")
+        .read_text()
+        .replace('platform = "servo-hexapod"', f'platform = "{ROOT / "configs" / "platforms" / "servo-hexapod.toml"}"')
     )
     for extra, expected in (
         ("\n[load]\nplatform_mass_kg = 0.4\n", "key 'load': expected no [load] table"),
@@ -128,3 +130,66 @@ def test_rotary_robot_defaults_are_the_documented_servo_errors():
     assert (config.angle_offset_limit_deg, config.horn_spread_mm, config.rod_spread_mm) == (2.0, 0.2, 0.3)
     assert (config.joint_spread_mm, config.axis_tilt_spread_deg, config.angle_scale_spread) == (0.5, 0.75, 0.02)
     assert math.isclose(load_experiment("servo").robot.angle_noise_deg, 0.05)
+
+
+def test_compensate_writes_commanded_angles_after_the_pose_columns(tmp_path, servo_run):
+    """On the nominal platform, compensate's angles are those the simulated nominal controller commanded."""
+    from stewart_calib.pipelines import compensate, simulate
+
+    assert simulate.main(["--experiment", "servo", "--out", str(tmp_path)]) == 0
+    poses = servo_run.log.desired_poses[:5]
+    io.write_pose_list(tmp_path / "poses.csv", poses)
+    assert (
+        compensate.main(
+            [
+                "--platform",
+                str(tmp_path / "platform.toml"),
+                "--poses",
+                str(tmp_path / "poses.csv"),
+                "--out",
+                str(tmp_path / "angles.csv"),
+            ]
+        )
+        == 0
+    )
+    header, *rows = (tmp_path / "angles.csv").read_text().strip().split("\n")
+    assert header.split(",")[1:] == [*io.POSE_COLUMNS, *(f"q{i}_deg" for i in range(1, 7))]
+    angles = np.array([[float(v) for v in row.split(",")[7:]] for row in rows])
+    np.testing.assert_allclose(angles, np.degrees(servo_run.log.strokes[:5]), rtol=0, atol=1e-9)
+
+
+def test_export_json_writes_the_servos_geometry_and_zero_trim_and_linuxcnc_is_refused(tmp_path, capsys):
+    import json
+    from dataclasses import replace as replaced
+
+    from stewart_calib.pipelines import export
+    from stewart_calib.platform import platform_to_toml
+
+    platform = load_platform("servo-hexapod")
+    trimmed = replaced(platform, drive=platform.drive.perturbed(np.radians(np.tile([0] * 8 + [1.5, 0, 0], 6))))
+    (tmp_path / "p.toml").write_text(platform_to_toml(trimmed))
+    assert (
+        export.main(["--platform", str(tmp_path / "p.toml"), "--format", "json", "--out", str(tmp_path / "k.json")])
+        == 0
+    )
+    document = json.loads((tmp_path / "k.json").read_text())
+    assert document["kind"] == "rotary" and document["angle_range_deg"] == [-75.0, 75.0]
+    servo = document["legs"][0]
+    assert servo["zero_trim_deg"] == pytest.approx(1.5, abs=1e-12) and servo["horn_length"] == 25.0
+    np.testing.assert_allclose(servo["crank_axis"], platform.drive.crank_axes[0], atol=1e-12)
+    assert servo["angle_per_commanded_degree"] == 1.0
+    capsys.readouterr()
+    assert (
+        export.main(["--platform", str(tmp_path / "p.toml"), "--format", "linuxcnc", "--out", str(tmp_path / "k.hal")])
+        != 0
+    )
+    error = capsys.readouterr().err.strip()
+    assert (
+        error.endswith(
+            "genhexkins models prismatic struts; "
+            + str(tmp_path / "p.toml")
+            + " has a rotary drive (spec §15): use --format json"
+        )
+        and "\n" not in error
+    )
+    assert not (tmp_path / "k.hal").exists()

@@ -169,7 +169,11 @@ def log_text(log: Log, platform: Platform | None = None, header: bool = True) ->
     """
     readings = reading_columns(platform)
     names = ["t_s", *drive_columns(platform), *readings]
-    columns = [log.t_s, *strokes_in_file_units(log.strokes, platform).T, *readings_to_file(np.asarray(log.readings, dtype=float), platform)]
+    columns = [
+        log.t_s,
+        *strokes_in_file_units(log.strokes, platform).T,
+        *readings_to_file(np.asarray(log.readings, dtype=float), platform),
+    ]
     if log.desired_poses is not None:
         names += POSE_COLUMNS
         columns += pose_columns_deg(log.desired_poses)
@@ -227,7 +231,7 @@ def _log_columns(path: Path, header: list[str], platform: Platform | None = None
         raise CalibError(
             f"{path}: row 1: columns {_span([name for name in other if name in header])} are another drive's; "
             "the platform's [drive] "
-            f"(kind = \"{kind}\") expects {drive[0]} … {drive[-1]} ({_DRIVE_WORDS[kind]}, spec §15)"
+            f'(kind = "{kind}") expects {drive[0]} … {drive[-1]} ({_DRIVE_WORDS[kind]}, spec §15)'
         )
     if missing and set(missing) <= set(drive):
         kind = "prismatic" if drive == STROKE_COLUMNS else "rotary"

@@ -33,6 +33,7 @@ def _gap_unit(platform: Platform) -> str:
     """The unit of :func:`nominal_gap` on ``platform``: mm, or mm / deg where its drive has angles."""
     return "mm / deg" if np.any(platform.drive.parameter_degrees) else "mm"
 
+
 #: |estimate − (nominal + error)| a result file may show before it is refused [mm]: JSON
 #: writers that round to the nanometre still pass.
 RESULT_SUM_TOLERANCE_MM = 1e-6

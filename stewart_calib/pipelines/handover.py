@@ -82,7 +82,9 @@ def calibrated_model(platform: Platform, result_path: str | None) -> DriveModel:
     if result_path is None:
         return drive_model(platform)
     result = io.read_result(result_path)
-    gap = np.max(np.abs(np.array(result["estimate"]) - io.parameters_to_file(platform.drive.as_vector(), platform.drive)))
+    gap = np.max(
+        np.abs(np.array(result["estimate"]) - io.parameters_to_file(platform.drive.as_vector(), platform.drive))
+    )
     if gap <= io.NOMINAL_TOLERANCE_MM and result["platform"] == platform.name:
         return io.calibrated_drive(platform, {**result, "error": [0.0] * len(result["error"])}, str(result_path))
     return io.read_calibrated_drive(result_path, platform)

@@ -293,10 +293,12 @@ def _rotary_robot(
     scale = encoder_rng.normal(0.0, config.angle_scale_spread, n) if config.angle_scale_spread > 0 else np.zeros(n)
     if e.instrument is None:
         raise CalibError(
-            f"{e.source}: key 'instrument': expected an instrument outside the robot (kind = \"pose\" or \"points\"): "
+            f'{e.source}: key \'instrument\': expected an instrument outside the robot (kind = "pose" or "points"): '
             "a rotary drive is measured from outside (spec §15)"
         )
-    instrument = SimulatedInstrument.build(e.platform.instrument, e.instrument, instrument_rng or np.random.default_rng(0))
+    instrument = SimulatedInstrument.build(
+        e.platform.instrument, e.instrument, instrument_rng or np.random.default_rng(0)
+    )
     return TrueRobot(
         legs.as_vector() + delta,
         e.load,
