@@ -17,7 +17,7 @@ from ..errors import CalibError, shown
 from ..estimate import Estimate
 from ..inputs import parse_json, read_input_text
 from ..model.rotary import PARAMETER_FIELDS as ROTARY_FIELDS
-from ..platform import N_LEGS, PARAMETER_NAMES, Platform
+from ..platform import PARAMETER_FIELDS, PARAMETER_NAMES, Platform
 from .atomic import atomic_write_text
 from .tables import csv_text
 
@@ -25,7 +25,9 @@ RESULT_FORMAT = "stewart-calib/result@1"
 
 #: a rotary drive's 66 parameter names ``a1x … tw6`` (spec §15), which a result may hold without a platform at hand
 ROTARY_PARAMETER_NAMES: tuple[str, ...] = tuple(
-    f"{prefix}{leg}{suffix}" for leg in range(1, N_LEGS + 1) for prefix, suffix in ROTARY_FIELDS
+    f"{prefix}{leg}{suffix}"
+    for leg in range(1, len(PARAMETER_NAMES) // len(PARAMETER_FIELDS) + 1)
+    for prefix, suffix in ROTARY_FIELDS
 )
 
 
