@@ -425,3 +425,18 @@ def test_servo_home_is_reachable_and_an_unreachable_home_is_refused():
         "key 'workspace.home': expected a home pose every crank reaches with a commanded angle within [-75, 75] deg "
         "(drive.angle_range_deg); leg 1 cannot"
     )
+
+
+def test_a_link_file_reads_a_rotary_drives_commanded_angles(tmp_path):
+    from stewart_calib.links import load_link
+
+    platform = _servo()
+    columns = ["t_s", *(f"q{i}_mm" for i in range(1, 7)), "mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg"]
+    read = "".join(f'{column} = "ns=2;s=Robot.{column}"\n' for column in [*columns, "myaw_deg"])
+    (tmp_path / "link.toml").write_text(f'[link]\nurl = "opc.tcp://127.0.0.1:4840/"\nrate_hz = 10.0\n[read]\n{read}')
+    with pytest.raises(CalibError, match=r"\[read\] lacks q1_deg, q2_deg, q3_deg, q4_deg, q5_deg, q6_deg \("):
+        load_link(tmp_path / "link.toml", platform)
+    (tmp_path / "link.toml").write_text(
+        (tmp_path / "link.toml").read_text().replace('_mm = "ns=2;s=Robot.q', '_deg = "ns=2;s=Robot.q')
+    )
+    assert "q1_deg" in load_link(tmp_path / "link.toml", platform).read
