@@ -368,7 +368,10 @@ def test_rotary_result_holds_66_names_with_angles_in_degrees(tmp_path):
 def test_rotary_result_refused_on_a_prismatic_platform():
     platform = _servo()
     result = result_dict(_estimate(platform.drive), platform)
-    with pytest.raises(CalibError, match="key 'parameter_names': expected the 42 parameters of platform"):
+    with pytest.raises(
+        CalibError,
+        match="key 'parameter_names': expected the 42 parameters of the prismatic drive of platform 'nim-stewart', got 66",
+    ):
         calibrated_drive(nim_stewart(), result, "r.json")
 
 

@@ -264,12 +264,13 @@ def _parameter_names() -> tuple[tuple[str, ...], ...]:
 
 
 def _check_names(platform: Platform, result: dict, source: str) -> None:
-    """Refuse a result whose ``parameter_names`` are another drive kind's than ``platform``'s."""
-    if result["parameter_names"] != list(platform.drive.parameter_names):
+    """Refuse a result whose ``parameter_names`` (where it has them: a result being made may not yet)
+    are another drive kind's than ``platform``'s."""
+    names = result.get("parameter_names")
+    if names is not None and list(names) != list(platform.drive.parameter_names):
         raise CalibError(
-            f"{source}: key 'parameter_names': expected the {platform.drive.n_params} parameters of platform "
-            f"'{platform.name}''s {platform.drive.kind} drive, got {len(result['parameter_names'])} "
-            "(a result for another platform?)"
+            f"{source}: key 'parameter_names': expected the {platform.drive.n_params} parameters of the "
+            f"{platform.drive.kind} drive of platform '{platform.name}', got {len(names)} (a result for another platform?)"
         )
 
 
