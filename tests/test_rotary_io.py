@@ -370,7 +370,8 @@ def test_rotary_result_refused_on_a_prismatic_platform():
     result = result_dict(_estimate(platform.drive), platform)
     with pytest.raises(
         CalibError,
-        match="key 'parameter_names': expected the 42 parameters of the prismatic drive of platform 'nim-stewart', got 66",
+        match="key 'parameter_names': expected the 42 parameters of the prismatic drive of platform 'nim-stewart', "
+        "got 66",
     ):
         calibrated_drive(nim_stewart(), result, "r.json")
 

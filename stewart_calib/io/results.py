@@ -270,7 +270,8 @@ def _check_names(platform: Platform, result: dict, source: str) -> None:
     if names is not None and list(names) != list(platform.drive.parameter_names):
         raise CalibError(
             f"{source}: key 'parameter_names': expected the {platform.drive.n_params} parameters of the "
-            f"{platform.drive.kind} drive of platform '{platform.name}', got {len(names)} (a result for another platform?)"
+            f"{platform.drive.kind} drive of platform '{platform.name}', got {len(names)} "
+            "(a result for another platform?)"
         )
 
 
