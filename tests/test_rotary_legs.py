@@ -11,10 +11,13 @@ rotation angle of ``R_aᵀ R_b``).
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import gtsam
 import numpy as np
 import pytest
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from stewart_calib import kinematics as kin
 from stewart_calib.errors import SampleRejected
@@ -158,6 +161,24 @@ def test_parameter_layout():
     blocks = M.reshape(6, len(PARAMETER_FIELDS))
     np.testing.assert_array_equal(blocks[:, 6:9], np.c_[ROUGH.horn_lengths, ROUGH.rod_lengths, ROUGH.angle_offsets])
     np.testing.assert_array_equal(blocks[:, 9:], 0.0)
+
+
+def test_priors_walks_and_the_coordinate_sigma_by_entry():
+    # the keys of config.NoiseConfig that the rotary entries read (spec §15: priors and walks in degrees)
+    noise = SimpleNamespace(
+        prior_sigma_mm=0.5,
+        angle_prior_sigma_deg=3.0,
+        random_walk_mm_per_sqrt_s=1e-4,
+        angle_random_walk_deg_per_sqrt_s=2e-3,
+        angle_sigma_deg=0.05,
+    )
+    prior, walk = LEGS.prior_sigmas(noise), LEGS.walk_sigmas(noise)
+    angle = LEGS.parameter_degrees
+    np.testing.assert_array_equal(prior[~angle], 0.5)
+    np.testing.assert_allclose(prior[angle], np.radians(3.0), rtol=1e-15)
+    np.testing.assert_array_equal(walk[~angle], 1e-4)
+    np.testing.assert_allclose(walk[angle], np.radians(noise.angle_random_walk_deg_per_sqrt_s), rtol=1e-15)
+    assert LEGS.coordinate_sigma(noise) == pytest.approx(np.radians(noise.angle_sigma_deg), rel=1e-15)
 
 
 # ----------------------------------------------------------------------------- perturbed
@@ -363,6 +384,21 @@ def test_ik_fk_ik_round_trip():
     again = ROUGH.coordinates(solution.R, solution.t)
     assert np.all(np.abs(again - e) <= angle_bound + 1e-12)
     assert np.max(np.abs(ROUGH.residuals(solution.R, solution.t, e))) <= FK_TOL_MM
+
+
+@settings(max_examples=40, deadline=None)
+@given(fraction=st.lists(st.floats(-1.0, 1.0, allow_nan=False), min_size=6, max_size=6).map(np.array))
+def test_fk_of_ik_across_the_box(fraction):
+    # hypothesis draws the box's faces and corners often: there the horns near ±90° and the rods
+    # near their reach, where J_pose is worst conditioned (the bound below grows with it)
+    R_home, t_home = home(ROUGH)
+    R, t = pose_to_rt(np.r_[t_home, 0.0, 0.0, 0.0] + HALF_BOX * fraction)
+    e = ROUGH.coordinates(R_home @ R, t)
+    assume(np.all(np.isfinite(e)))
+    solution = ROUGH.forward_kinematics(e, tol_mm=FK_TOL_MM)
+    bound = _pose_bounds(ROUGH, R_home @ R, t, e, np.maximum(solution.residual_mm, 1e-13))[0]
+    position_mm, angle_deg = pose_error(R_home @ R, t, solution.R, solution.t)
+    assert position_mm <= bound + 1e-12 and np.radians(angle_deg) <= bound + 1e-13
 
 
 def test_fk_batch_equals_per_sample():

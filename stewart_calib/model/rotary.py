@@ -24,13 +24,13 @@ Pose perturbations are in the body tangent ``ξ = [ω, v]`` (rotation first), ``
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from typing import ClassVar
+from functools import cached_property
 
 import numpy as np
 
 from ..kinematics import FK_MAX_ITERATIONS, FK_TOLERANCE_MM, FKError, FKSolution, fk_failed
 from ..platform import N_LEGS
-from ..rotations import retract, rotation_angle, so3_exp, transform_points
+from ..rotations import retract, rotation_angle
 
 #: the 11 entries of one leg's parameters, spec §15 order: ``(prefix, suffix)`` of the name ``{prefix}{leg}{suffix}``
 PARAMETER_FIELDS: tuple[tuple[str, str], ...] = (
@@ -91,9 +91,18 @@ def orthonormal_zero_directions(
     return n, u, off_deg
 
 
-def _turned(vectors: np.ndarray, turns: np.ndarray) -> np.ndarray:
-    """``(..., 3)`` vectors turned by the ``(..., 3, 3)`` rotations ``turns``."""
-    return np.einsum("...ij,...j->...i", turns, vectors)
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a × b`` over the last axis (``np.cross`` costs several times more on small arrays)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _rotated(x: np.ndarray, k: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Rodrigues: ``(..., 3)`` vectors ``x`` turned by ``angle (...)`` [rad] about the unit ``k (..., 3)``;
+    ``x`` itself where the angle is 0."""
+    c, s = np.cos(angle)[..., None], np.sin(angle)[..., None]
+    return c * x + s * _cross(k, x) + (1.0 - c) * np.sum(k * x, axis=-1, keepdims=True) * k
 
 
 @dataclass(frozen=True)
@@ -122,9 +131,12 @@ class RotaryLegs:
     angle_offsets: np.ndarray
     angle_range: tuple[float, float]
 
-    kind: ClassVar[str] = "rotary"
-    coordinate_unit: ClassVar[str] = "deg"
-    compiled: ClassVar[bool] = False
+    #: the leg model's kind (:class:`~stewart_calib.model.legs.LegModel`): the platform file's ``[drive] kind``
+    kind = "rotary"
+    #: the unit of the log's drive columns ``q{i}_deg`` (spec §15: commanded angles)
+    coordinate_unit = "deg"
+    #: no compiled kernels: the numpy paths of the drive and the estimators apply
+    compiled = False
 
     def __post_init__(self) -> None:
         arrays = {}
@@ -191,10 +203,31 @@ class RotaryLegs:
         first = _PER_LEG * np.arange(self.n_legs)[:, None]
         return first + np.arange(_A.start, _A.stop), first + np.arange(_D.start, _D.stop)
 
-    @property
+    def prior_sigmas(self, noise) -> np.ndarray:
+        """``(66,)`` prior σ of δM in code units from a :class:`~stewart_calib.config.NoiseConfig`:
+        ``noise.prior_sigma_mm`` on the lengths and positions, ``noise.angle_prior_sigma_deg`` (in rad)
+        on the zero offsets and axis tilts."""
+        return self._per_entry(noise.prior_sigma_mm, np.radians(noise.angle_prior_sigma_deg))
+
+    def walk_sigmas(self, noise) -> np.ndarray:
+        """``(66,)`` random walk of δM [mm/√s, rad/√s]: ``noise.random_walk_mm_per_sqrt_s`` on the lengths
+        and positions, ``noise.angle_random_walk_deg_per_sqrt_s`` (in rad) on the angles."""
+        return self._per_entry(noise.random_walk_mm_per_sqrt_s, np.radians(noise.angle_random_walk_deg_per_sqrt_s))
+
+    def coordinate_sigma(self, noise) -> float:
+        """σ of one logged coordinate, a commanded servo angle [rad]: ``noise.angle_sigma_deg``."""
+        return float(np.radians(noise.angle_sigma_deg))
+
+    def _per_entry(self, length: float, angle: float) -> np.ndarray:
+        """``(66,)`` ``angle`` where M holds an angle (:attr:`parameter_degrees`), ``length`` elsewhere."""
+        return np.where(self.parameter_degrees, float(angle), float(length))
+
+    @cached_property
     def w_directions(self) -> np.ndarray:
-        """``(6, 3)`` ``w_i = n_i × u_i``: the horn's direction at angle +90°."""
-        return np.cross(self.crank_axes, self.zero_directions)
+        """``(6, 3)`` ``w_i = n_i × u_i``: the horn's direction at angle +90° (read-only; every residual needs it)."""
+        w = _cross(self.crank_axes, self.zero_directions)
+        w.setflags(write=False)
+        return w
 
     def as_vector(self) -> np.ndarray:
         """``(66,)`` M leg by leg ``[a_i | d_i | h_i r_i o_i | tu_i tw_i]`` [mm, rad]; the tilts are 0:
@@ -217,11 +250,14 @@ class RotaryLegs:
         """
         d = np.asarray(delta, dtype=float).reshape(self.n_legs, _PER_LEG)
         u, w = self.zero_directions, self.w_directions
-        turn = so3_exp(u * d[:, _TU, None]) @ so3_exp(w * d[:, _TW, None])  # exactly I where both are 0
+
+        def turned(x: np.ndarray) -> np.ndarray:  # Rot(u, tu) Rot(w, tw) x
+            return _rotated(_rotated(x, w, d[:, _TW]), u, d[:, _TU])
+
         return RotaryLegs._trusted(
             self.crank_centres + d[:, _A],
-            _turned(self.crank_axes, turn),
-            _turned(u, turn),
+            turned(self.crank_axes),
+            turned(u),
             self.horn_lengths + d[:, _H],
             self.rod_lengths + d[:, _ROD],
             self.platform_joints + d[:, _D],
@@ -250,9 +286,13 @@ class RotaryLegs:
         horn = np.cos(phi)[..., None] * self.zero_directions + np.sin(phi)[..., None] * self.w_directions
         return self.crank_centres + self.horn_lengths[:, None] * horn
 
+    def _platform_points(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """``(..., 6, 3)`` the platform joints in {J}, ``t + R d_i`` [mm] (one batched matrix product)."""
+        return self.platform_joints @ np.swapaxes(R, -1, -2) + np.asarray(t, dtype=float)[..., None, :]
+
     def _rods(self, R: np.ndarray, t: np.ndarray, e: np.ndarray) -> np.ndarray:
         """``(..., 6, 3)`` the rods ``t + R d_i − b_i`` (horn joint → platform joint) in {J} [mm]."""
-        return transform_points(R, t, self.platform_joints) - self.horn_joints(e)
+        return self._platform_points(R, t) - self.horn_joints(e)
 
     def residuals(self, R: np.ndarray, t: np.ndarray, e: np.ndarray) -> np.ndarray:
         """``(..., 6)`` closure residuals ``‖t + R d_i − b_i(e_i)‖ − r_i`` [mm] at poses ``(R (..., 3, 3),
@@ -286,8 +326,8 @@ class RotaryLegs:
         rods = self._rods(R, t, e)
         m = rods / np.linalg.norm(rods, axis=-1, keepdims=True)
         batch = m.shape[:-2]
-        m_body = np.einsum("...ji,...kj->...ki", np.broadcast_to(R, batch + (3, 3)), m)  # Rᵀ m_i per leg
-        J_pose = np.concatenate([np.cross(self.platform_joints, m_body), m_body], axis=-1)
+        J_pose = self._pose_rows(np.broadcast_to(R, batch + (3, 3)), m)
+        m_body = J_pose[..., 3:]
         mu, mw, mn = np.sum(m * u, axis=-1), np.sum(m * w, axis=-1), np.sum(m * n, axis=-1)
         h = self.horn_lengths
         J_e = -h * (c * mw - s * mu)
@@ -299,10 +339,13 @@ class RotaryLegs:
         rows[..., _O] = J_e
         rows[..., _TU] = -h * s * mn
         rows[..., _TW] = h * c * mn
-        J_M = np.zeros(batch + (self.n_legs, self.n_params))
-        legs = np.arange(self.n_legs)[:, None]
-        J_M[..., legs, _PER_LEG * legs + np.arange(_PER_LEG)] = rows
+        J_M = (rows[..., :, None, :] * np.eye(self.n_legs)[:, :, None]).reshape(batch + (self.n_legs, self.n_params))
         return J_pose, J_M, J_e
+
+    def _pose_rows(self, R: np.ndarray, m: np.ndarray) -> np.ndarray:
+        """``(..., 6, 6)`` ``∂r_i/∂ξ`` rows ``[(d_i × Rᵀm_i)ᵀ, (Rᵀm_i)ᵀ]`` for unit rods ``m (..., 6, 3)``."""
+        m_body = m @ R  # Rᵀ m_i per leg
+        return np.concatenate([_cross(self.platform_joints, m_body), m_body], axis=-1)
 
     def _window_centre(self) -> float:
         """The centre of the 360° window a horn solution is taken in (spec §15): 0, i.e. (−π, π], or
@@ -321,7 +364,7 @@ class RotaryLegs:
         commanded angle by the drive's angle scale only). NaN where the rod cannot reach the horn's
         circle (``|C| > √(A² + B²)``) or neither solution is inside the range.
         """
-        v = transform_points(R, t, self.platform_joints) - self.crank_centres
+        v = self._platform_points(R, t) - self.crank_centres
         A = np.sum(v * self.zero_directions, axis=-1)
         B = np.sum(v * self.w_directions, axis=-1)
         h, r = self.horn_lengths, self.rod_lengths
@@ -371,9 +414,13 @@ class RotaryLegs:
         iterations = np.zeros(len(e), dtype=np.int64)
         residual = np.full(len(e), np.inf)
         active = np.flatnonzero(np.all(np.isfinite(e), axis=-1))
+        horns = self.horn_joints(e)
         cap_mm = self.max_step_mm
         for step in range(max_iterations + 1):
-            r = self.residuals(R[active], t[active], e[active])
+            R_a = R[active]
+            rods = self._platform_points(R_a, t[active]) - horns[active]
+            length = np.linalg.norm(rods, axis=-1)
+            r = length - self.rod_lengths
             worst = np.max(np.abs(r), axis=-1)
             residual[active] = worst
             iterations[active] = step
@@ -381,10 +428,11 @@ class RotaryLegs:
             active, r = active[going], r[going]
             if not len(active):
                 break
-            J = self.residual_jacobians(R[active], t[active], e[active])[0]
-            JtJ = np.einsum("nki,nkj->nij", J, J)
+            J = self._pose_rows(R_a[going], rods[going] / length[going][..., None])
+            Jt = np.swapaxes(J, -1, -2)
+            JtJ = Jt @ J
             JtJ += (FK_DAMPING / 6.0) * np.trace(JtJ, axis1=-2, axis2=-1)[:, None, None] * np.eye(6)
-            xi = -np.linalg.solve(JtJ, np.einsum("nki,nk->ni", J, r)[..., None])[..., 0]
+            xi = -np.linalg.solve(JtJ, Jt @ r[..., None])[..., 0]
             norm_w, norm_v = np.linalg.norm(xi[:, :3], axis=-1), np.linalg.norm(xi[:, 3:], axis=-1)
             with np.errstate(divide="ignore"):
                 scale = np.minimum(1.0, np.minimum(MAX_STEP_RAD / norm_w, cap_mm / norm_v))
@@ -400,7 +448,7 @@ class RotaryLegs:
         self,
         e: np.ndarray,
         guess: tuple[np.ndarray, np.ndarray] | None = None,
-        tol_mm: float = FK_TOLERANCE_MM,
+        tol_mm: float | None = FK_TOLERANCE_MM,
         strict: bool = True,
         along: bool = False,
         max_iterations: int = FK_MAX_ITERATIONS,
@@ -414,6 +462,7 @@ class RotaryLegs:
 
         Args:
             guess: starting ``(R, t)`` broadcastable to the batch; default :meth:`default_guess`.
+            tol_mm: None: :data:`~stewart_calib.kinematics.FK_TOLERANCE_MM`.
             strict: raise :class:`~stewart_calib.kinematics.FKError` if any sample fails; otherwise
                 report it in ``converged``.
             along: ``e (N, 6)`` are a log's samples in order and each follows the one before: where
@@ -425,6 +474,7 @@ class RotaryLegs:
         Raises:
             FKError: ``strict`` and a sample's rods unreachable or no convergence within the cap.
         """
+        tol_mm = FK_TOLERANCE_MM if tol_mm is None else float(tol_mm)
         e = np.asarray(e, dtype=float)
         batch = e.shape[:-1]
         flat = e.reshape(-1, self.n_legs)
