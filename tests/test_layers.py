@@ -183,3 +183,42 @@ def test_only_the_leg_set_model_names_the_number_of_legs():
             if sized or six_loop:
                 named.add(str(path.relative_to(PACKAGE)))
     assert named <= LEG_SET_MODEL, sorted(named - LEG_SET_MODEL)
+
+
+#: the estimators and what they build on (issue 42): they reach the legs through the leg model
+#: (stewart_calib.model.legs.LegModel) and the drive model alone, so a second leg kind plugs in
+THROUGH_THE_LEG_MODEL = (
+    "unknowns.py",
+    "factors/drive_leg.py",
+    "factors/_kernels.py",
+    "estimators/kalman.py",
+    "estimators/ekf.py",
+    "estimators/measurement.py",
+    "estimators/graph.py",
+    "estimators/batch.py",
+    "estimators/ls.py",
+    "estimators/lm.py",
+    "estimators/paper_ekf.py",
+    "estimators/robust.py",
+    "instruments/gauge.py",
+    "instruments/registration.py",
+    "instruments/external.py",
+    "instruments/pose.py",
+    "instruments/points.py",
+)
+#: a prismatic leg set's own fields (read as attributes) and sizes (imported names)
+LEG_FIELDS = {"base_joints", "platform_joints", "initial_lengths", "params", "from_params"}
+LEG_SIZES = {"N_LEGS", "N_PARAMS", "N_PARAMS_PER_LEG", "vector_to_params", "params_to_vector"}
+
+
+def test_the_estimators_name_no_leg_field():
+    named = []
+    for module in THROUGH_THE_LEG_MODEL:
+        for node in ast.walk(ast.parse((PACKAGE / module).read_text(encoding="utf-8"))):
+            field = isinstance(node, ast.Attribute) and node.attr in LEG_FIELDS
+            size = (isinstance(node, ast.Name) and node.id in LEG_SIZES) or (
+                isinstance(node, ast.alias) and node.name in LEG_SIZES | LEG_FIELDS
+            )
+            if field or size:
+                named.append(f"{module}:{node.lineno if hasattr(node, 'lineno') else ''} {ast.unparse(node)}")
+    assert named == []
