@@ -444,3 +444,18 @@ def test_a_link_file_reads_a_rotary_drives_commanded_angles(tmp_path):
         (tmp_path / "link.toml").read_text().replace('_mm = "ns=2;s=Robot.q', '_deg = "ns=2;s=Robot.q')
     )
     assert "q1_deg" in load_link(tmp_path / "link.toml", platform).read
+
+
+def test_platform_out_of_a_rotary_calibration_is_the_turned_table(tmp_path):
+    """``--platform-out`` (spec §8, §15): the estimate as the same table — axes and zero directions turned,
+    ``angle_offsets_deg`` filled — which reads back as the calibrated legs."""
+    from stewart_calib.pipelines.handover import calibrated_platform_text
+
+    platform = _servo(workspace=True)
+    estimate = _estimate(platform.drive, seed=9)
+    text = calibrated_platform_text(platform, estimate, "lm", "log.csv", "2026-12-01T23:00:00Z")
+    back = parse_platform(tomllib.loads(text), SOURCE)
+    _assert_same_legs(back.drive, platform.drive.perturbed(estimate.error), atol=1e-12)
+    offsets = tomllib.loads(text)["drive"]["angle_offsets_deg"]
+    np.testing.assert_allclose(offsets, np.degrees(estimate.error[8::11]), atol=1e-12)
+    assert "calibrated by stewart-calib" in back.description
