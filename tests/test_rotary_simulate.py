@@ -193,3 +193,19 @@ def test_export_json_writes_the_servos_geometry_and_zero_trim_and_linuxcnc_is_re
         and "\n" not in error
     )
     assert not (tmp_path / "k.hal").exists()
+
+
+def test_a_pose_no_horn_reaches_refuses_the_experiment_naming_its_sample(tmp_path):
+    text = (ROOT / "configs" / "experiments" / "servo.toml").read_text()
+    text = text.replace(
+        'platform = "servo-hexapod"', f'platform = "{ROOT / "configs" / "platforms" / "servo-hexapod.toml"}"'
+    )
+    text = text.replace('segments = ["calibration", "validation"]', 'segments = ["calibration", "circle"]')
+    (tmp_path / "e.toml").write_text(text + "\n[circle]\nradius_mm = 90.0\npoints = 12\n")
+    with pytest.raises(CalibError) as info:
+        run_experiment(load_experiment(tmp_path / "e.toml"))
+    assert str(info.value) == (
+        f"{tmp_path / 'e.toml'}: sample 151 (t_s = 75 s, circle pose 1): the controller's model has no drive "
+        "coordinate within range for its desired pose (a rotary drive's drive.angle_range_deg); expected poses within "
+        "reach (a smaller workspace or trajectory)"
+    )

@@ -54,7 +54,7 @@ import numpy as np
 
 from .. import kinematics as kin
 from ..drive import STROKE_SCALE, DriveModel, drive_model, plain_drive
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, shown
 from ..estimate import model_estimate
 from ..model.legs import LegModel
 from ..platform import LegGeometry, Platform
@@ -404,7 +404,11 @@ def simulate_blocks(
                     reading_noise.standard_normal((m, rulers)),
                     instrument_draws[rows],
                 )
-                yield step(robot, plan, rows, controller, noise)
+                try:
+                    block = step(robot, plan, rows, controller, noise)
+                except Unreachable as err:
+                    raise CalibError(f"{shown(experiment.source)}: {err}") from None
+                yield block
                 bar.update(m)
         finally:
             bar.close()
@@ -428,7 +432,7 @@ def _settle_block(robot: TrueRobot, plan: Schedule, rows: slice, controller: Con
     """A model that never changes: the block's IK, settling and measurements in one vectorised pass
     (``noise``: the block's stroke and reading noise and instrument draws)."""
     R_d, t_d = kin.pose_to_rt(plan.desired_poses[rows])
-    strokes = _commanded(controller, R_d, t_d, plan.payload_kg[rows])
+    strokes = _commanded(controller, R_d, t_d, plan.payload_kg[rows], plan, rows.start)
     sol, params = robot.settle(strokes, plan.payload_kg[rows], (R_d, t_d), noise[0])
     log, truth = _measured(robot, plan, rows, strokes, sol.R, sol.t, params, noise)
     for sample in log:  # the protocol promises observe() after every sample
@@ -444,7 +448,7 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
     strokes, params = np.empty((m, len(robot.stroke_scale))), np.empty((m, robot.base_params.size))
     R, t = np.empty((m, 3, 3)), np.empty((m, 3))
     for i, k in enumerate(range(rows.start, rows.stop)):
-        strokes[i] = _commanded(controller, R_d[i], t_d[i], plan.payload_kg[k])
+        strokes[i] = _commanded(controller, R_d[i], t_d[i], plan.payload_kg[k], plan, k)
         sol, params[i : i + 1] = robot.settle(
             strokes[i : i + 1], plan.payload_kg[k : k + 1], (R_d[i : i + 1], t_d[i : i + 1]), stroke_noise[i : i + 1]
         )
@@ -455,13 +459,29 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
     return _measured(robot, plan, rows, strokes, R, t, params, noise)
 
 
-def _commanded(controller: Controller, R_d: np.ndarray, t_d: np.ndarray, payload_kg) -> np.ndarray:
+class Unreachable(ValueError):
+    """A desired pose the controller's model reaches with no drive coordinate (a rotary drive's
+    inverse kinematics: no horn angle within the angle range, spec §15)."""
+
+
+def _commanded(controller: Controller, R_d: np.ndarray, t_d: np.ndarray, payload_kg, plan: Schedule, first: int):
     """The strokes ``controller`` commands for desired poses: its own ``strokes`` where it has one,
-    else IK of its drive model."""
+    else IK of its drive model (``plan``'s samples from ``first``: named where one is unreachable).
+
+    Raises:
+        Unreachable: a pose with a coordinate the IK leaves NaN, naming its sample.
+    """
     command = getattr(controller, "strokes", None)
-    if command is None:
-        return controller.drive_model().coordinates(R_d, t_d)
-    return command(R_d, t_d, payload_kg)
+    strokes = controller.drive_model().coordinates(R_d, t_d) if command is None else command(R_d, t_d, payload_kg)
+    bad = np.flatnonzero(~np.all(np.isfinite(np.reshape(strokes, (-1, np.shape(strokes)[-1]))), axis=1))
+    if bad.size:
+        k = first + int(bad[0])
+        raise Unreachable(
+            f"sample {k + 1} (t_s = {plan.t_s[k]:g} s, {plan.kinds[k]} pose {plan.pose_index[k] + 1}): the "
+            "controller's model has no drive coordinate within range for its desired pose (a rotary drive's "
+            "drive.angle_range_deg); expected poses within reach (a smaller workspace or trajectory)"
+        )
+    return strokes
 
 
 def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, params, noise) -> tuple[Log, Truth]:
