@@ -362,7 +362,7 @@ def payload_limit_kg(elastic: Elastic, reference_mm: float) -> float:
 
 def payload_limit(platform: Platform) -> float:
     """The largest payload [kg] ``platform`` can carry (:func:`payload_limit_kg`); inf without ``[elastic]``."""
-    if platform.elastic is None:
+    if platform.elastic is None or not isinstance(platform.drive, LegGeometry):  # [elastic]: prismatic legs only
         return math.inf
     return payload_limit_kg(platform.elastic, give_reference_mm(platform.drive, platform.stroke_range)[0])
 
@@ -372,7 +372,7 @@ def payload_refusal(platform: Platform, load_kg: float) -> str | None:
     should have been, for a refusal naming its row and column; None when it is within (or the
     platform has no ``[elastic]``). A value a thousand times a payload it could carry looks like grams."""
     elastic = platform.elastic
-    if elastic is None:
+    if elastic is None or not isinstance(platform.drive, LegGeometry):  # [elastic]: prismatic legs only
         return None
     reference_mm, what = give_reference_mm(platform.drive, platform.stroke_range)
     limit = payload_limit(platform)
@@ -804,7 +804,9 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
             rotation_limit=math.radians(limits["rotation_limit_deg"]),
         )
 
-    elastic = None if rotary else _elastic(doc, drive, source, give_reference_mm(drive, stroke_range))
+    elastic = (
+        _elastic(doc, drive, source, give_reference_mm(drive, stroke_range)) if isinstance(drive, LegGeometry) else None
+    )
     platform = Platform(
         name,
         drive,
@@ -1005,11 +1007,12 @@ def _visibility(table: dict, n_targets: int, source: str) -> tuple[float | None,
 
 def _check_home_reachable(platform: Platform, workspace: Workspace, source: str) -> None:
     R, t = pose_to_rt(workspace.home)
-    if platform.drive.kind == "rotary":
-        angles = platform.drive.coordinates(R, t)
+    drive = platform.drive
+    if not isinstance(drive, LegGeometry):  # a rotary drive (spec §15)
+        angles = drive.coordinates(R, t)
         bad = np.flatnonzero(~np.isfinite(angles))
         if bad.size:
-            low, high = np.degrees(platform.drive.angle_range)
+            low, high = np.degrees(drive.angle_range)
             raise _refuse(
                 source,
                 "workspace.home",
@@ -1017,7 +1020,7 @@ def _check_home_reachable(platform: Platform, workspace: Workspace, source: str)
                 f"(drive.angle_range_deg); leg {int(bad[0]) + 1} cannot",
             )
     for legs, bounds, what in (
-        (None if platform.drive.kind == "rotary" else platform.drive, platform.stroke_range, "drive strokes"),
+        (drive if isinstance(drive, LegGeometry) else None, platform.stroke_range, "drive strokes"),
         (platform.tracker, platform.reading_range, "tracker readings"),
     ):
         if bounds is None or legs is None:
@@ -1061,13 +1064,15 @@ def platform_to_toml(platform: Platform) -> str:
     lines = [f"name = {_toml_str(platform.name)}"]
     if platform.description:
         lines.append(f"description = {_toml_str(platform.description)}")
-    rotary = platform.drive.kind == "rotary"
-    if rotary:
-        lines += _rotary_toml(platform.drive)
+    drive, prismatic = platform.drive, None
+    if isinstance(drive, LegGeometry):
+        prismatic = drive
+    else:  # a rotary drive (spec §15)
+        lines += _rotary_toml(drive)
         if np.any(platform.stroke_scale != 0):
             lines.append(f"stroke_scale = {_toml_list(platform.stroke_scale)}")
     for section, legs, key, bounds in (
-        ("drive", None if rotary else platform.drive, "stroke_range_mm", platform.stroke_range),
+        ("drive", prismatic, "stroke_range_mm", platform.stroke_range),
         ("tracker", platform.tracker, "reading_range_mm", platform.reading_range),
     ):
         if legs is None:

@@ -138,8 +138,8 @@ def _stream(source: BinaryIO, name_text: str, out: str, drive, platform, payload
                 continue
             radians = np.r_[pose[:3], np.radians(pose[3:])]
             try:
-                strokes = compensate(drive, radians, limits=platform, payload_kg=payload_kg)
-                strokes = [repr(q) for q in io.strokes_in_file_units(strokes, platform).tolist()]
+                commanded = compensate(drive, radians, limits=platform, payload_kg=payload_kg)
+                strokes = [repr(q) for q in io.strokes_in_file_units(commanded, platform).tolist()]
             except PoseOutOfRange as err:
                 print(f"stewart-calib compensate: {shown(name)}: row {row}: {err.reason}", file=sys.stderr)
                 strokes = [""] * len(columns)

@@ -11,7 +11,7 @@ Per sample k (paper Fig. 3 seen from the robot's side)::
 
 A **controller** is any object with two methods::
 
-    controller.drive_model() -> LegGeometry   # model used for the IK of the next desired pose
+    controller.drive_model() -> LegModel      # model used for the IK of the next desired pose
     controller.observe(sample: Sample) -> None # called after each sample
 
 and optionally ``controller.strokes(R_d, t_d, payload_kg) -> q``: its own IK where the model is
@@ -70,7 +70,7 @@ from .tracker import Tracker
 class Controller(Protocol):
     """What the closed loop needs of a controller (see the module docstring)."""
 
-    def drive_model(self) -> LegGeometry: ...
+    def drive_model(self) -> LegModel: ...
 
     def observe(self, sample: Sample) -> None: ...
 
@@ -83,7 +83,7 @@ class NominalController:
     def __init__(self, platform: Platform):
         self._drive = platform.drive
 
-    def drive_model(self) -> LegGeometry:
+    def drive_model(self) -> LegModel:
         return self._drive
 
     def observe(self, sample: Sample) -> None:
@@ -93,7 +93,7 @@ class NominalController:
 class FrozenController(NominalController):
     """Commands IK on a fixed drive geometry (e.g. a batch estimate frozen after calibration)."""
 
-    def __init__(self, drive: LegGeometry):
+    def __init__(self, drive: LegModel):
         self._drive = drive
 
 
@@ -123,7 +123,7 @@ class EstimatorController:
         self._elastic = drive_model(platform) if platform.elastic is not None else None
         self.payload_known = True
 
-    def drive_model(self) -> LegGeometry:
+    def drive_model(self) -> LegModel:
         return self._drive
 
     def observe(self, sample: Sample) -> None:

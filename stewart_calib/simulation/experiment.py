@@ -42,7 +42,7 @@ import numpy as np
 
 from ..errors import CalibError
 from ..instruments.registry import instrument_kind, kind_of
-from ..platform import Platform, centre_too_far, load_platform, parse_instrument
+from ..platform import LegGeometry, Platform, centre_too_far, load_platform, parse_instrument
 from ..resources import CONFIGS, read_toml
 from .instrument import InstrumentTruth
 from .load import LoadModel
@@ -281,6 +281,8 @@ def load_experiment(path: str | Path) -> Experiment:
     # the platform file simulate writes carries these centres as [elastic]'s: refused here by [elastic]'s rule,
     # not written into a platform every other command refuses
     for key in ("platform_com_mm", "payload_com_mm"):
+        if not isinstance(platform.drive, LegGeometry):  # a rotary drive takes no [load] (refused above)
+            break
         too_far = centre_too_far(platform.drive, getattr(load, key))
         if too_far:
             raise ld.refuse(key, too_far)

@@ -26,7 +26,7 @@ def in_range(platform: Platform, poses: np.ndarray, margin_mm: float) -> np.ndar
         ok &= np.all(np.isfinite(platform.drive.coordinates(R, t)), axis=1)
     for legs, bounds in ((platform.drive, platform.stroke_range), (platform.tracker, platform.reading_range)):
         if bounds is not None and legs is not None:
-            s = kin.inverse_kinematics(legs, R, t)
+            s = legs.coordinates(R, t)
             ok &= np.all((s >= bounds[0] + margin_mm) & (s <= bounds[1] - margin_mm), axis=1)
     return ok
 
