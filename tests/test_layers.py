@@ -35,6 +35,10 @@ LAYERS = (
 )
 RANK = {group: rank for rank, groups in enumerate(LAYERS) for group in groups}
 
+#: the one arrow allowed against the layers, lazily imported: the platform file's reader builds a
+#: rotary drive's legs (spec §15) until the reader moves to ``io/`` above ``model/`` (issue 42)
+PLATFORM_READER = ("stewart_calib.platform", "stewart_calib.model.rotary")
+
 
 def _module_name(path: Path) -> str:
     parts = ("stewart_calib", *path.relative_to(PACKAGE).with_suffix("").parts)
@@ -94,13 +98,16 @@ def test_imports_point_down_the_layers():
         f"{module} -> {target}"
         for module, targets in _graph().items()
         for target in targets
-        if _group(target) != _group(module) and RANK[_group(target)] >= RANK[_group(module)]
+        if _group(target) != _group(module)
+        and RANK[_group(target)] >= RANK[_group(module)]
+        and (module, target) != PLATFORM_READER
     ]
     assert upward == []
 
 
 def test_import_graph_has_no_circle():
     graph, state, circles = _graph(), {}, []
+    graph[PLATFORM_READER[0]] = graph[PLATFORM_READER[0]] - {PLATFORM_READER[1]}  # lazy: no circle at import
 
     def visit(module: str, path: list[str]) -> None:
         state[module] = "open"

@@ -274,7 +274,7 @@ def run(args: argparse.Namespace) -> int:
         created = handover.created_now()
         extra.update(
             {
-                "covariance": handover.covariance_field(estimate),
+                "covariance": handover.covariance_field(estimate, platform.drive),
                 "config": handover.config_field(config),
                 "version": __version__,
                 "created": created,
@@ -306,7 +306,8 @@ def run(args: argparse.Namespace) -> int:
             verdict = f"{verdict}; the log gives no evidence the calibration improves on the nominal model"
         trace_csv = None
         if trace_path and not streamed and result.trace is not None:
-            trace_csv = io.trace_text(log.t_s, result.trace, names=platform.drive.parameter_names)
+            trace = io.parameters_to_file(result.trace, platform.drive)  # a rotary drive's angles in degrees
+            trace_csv = io.trace_text(log.t_s, trace, names=platform.drive.parameter_names)
         platform_toml = (
             handover.calibrated_platform_text(platform, estimate, args.method, Path(args.log).name, created)
             if platform_out

@@ -112,8 +112,8 @@ def scores(platform, result: dict, truth) -> dict:
 def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
     result = io.read_result(args.result)
-    truth = io.read_truth(args.truth)
-    gap = float(np.max(np.abs(np.array(result["nominal"]) - platform.drive.as_vector())))
+    truth = io.read_truth(args.truth, platform)
+    gap = io.nominal_gap(result, platform)
     if gap > io.NOMINAL_TOLERANCE_MM:
         raise CalibError(
             f"{args.result}: key 'nominal': expected the nominal drive of {args.platform}; it differs by {gap:.3g} mm"
