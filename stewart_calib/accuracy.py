@@ -52,6 +52,7 @@ from . import kinematics as kin
 from .drive import DriveModel, drive_model
 from .errors import CalibError
 from .estimate import Estimate
+from .instruments.gauge import joint_columns
 from .platform import Platform
 from .rotations import skew
 
@@ -157,7 +158,9 @@ def closed_loop_jacobian(platform: Platform, poses: np.ndarray) -> np.ndarray:
 def rotation_length_mm(platform: Platform) -> float:
     """The length L [mm] a rotation error is weighed by in :func:`error_weight`: the platform
     joints' mean distance from {D}'s z axis (a rotation δφ moves them by about L·δφ)."""
-    return float(np.mean(np.linalg.norm(platform.drive.platform_joints[:, :2], axis=1)))
+    legs = platform.drive
+    joints = legs.as_vector()[joint_columns(legs)[1]].reshape(legs.n_legs, 3)
+    return float(np.mean(np.linalg.norm(joints[:, :2], axis=1)))
 
 
 def error_weight(platform: Platform, poses: np.ndarray | None = None) -> np.ndarray:

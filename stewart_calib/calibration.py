@@ -380,7 +380,8 @@ def stream_calibration(
     written: list[int] = []
 
     def write_trace(block: Log, errors_mm: np.ndarray) -> None:
-        trace_file.write(io.trace_text(block.t_s, nominal + errors_mm, header=not written, names=names))
+        params = io.parameters_to_file(nominal + errors_mm, platform.drive)  # a rotary drive's angles in degrees
+        trace_file.write(io.trace_text(block.t_s, params, header=not written, names=names))
         written.append(len(block))
 
     blocks = read_ahead(read(block) for block in io.read_log_blocks(path, platform, skip_bad_rows=skip_bad_rows))

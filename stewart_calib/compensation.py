@@ -104,7 +104,7 @@ def compensate(
         if nominal is None:
             raise CalibError("compensate: an Estimate needs the nominal platform to build M + δM")
         drive = (drive_model(nominal) if isinstance(nominal, Platform) else plain_drive(nominal)).calibrated_by(drive)
-    elif isinstance(drive, LegGeometry):
+    elif not isinstance(drive, DriveModel):  # a leg model alone
         drive = plain_drive(drive)
     poses = np.asarray(desired_poses_mm_rad, dtype=float)
     if poses.shape[-1:] != (6,) or not np.all(np.isfinite(poses)):

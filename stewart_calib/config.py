@@ -42,6 +42,11 @@ class NoiseConfig:
             positive they are identified with the drive under N(nominal, σ²) (spec §7), as the
             platform file's ``[tracker] geometry_sigma_mm`` asks, which wins where it is given;
             0 takes the tracker's geometry as exact.
+        angle_prior_sigma_deg: a rotary drive's (spec §15) prior σ of each angle of δM — zero
+            offsets ``o_i`` and axis tilts ``tu_i``, ``tw_i`` [deg]; its lengths take ``prior_sigma_mm``.
+        angle_sigma_deg: σ of one commanded servo angle [deg]: the rotary leg's analog of
+            ``stroke_sigma_mm``, entering the measurement covariance through ``∂r_i/∂e_i``.
+        angle_random_walk_deg_per_sqrt_s: a rotary drive's random walk of those angles [deg/√s].
     """
 
     reading_sigma_mm: float = 0.002
@@ -50,6 +55,9 @@ class NoiseConfig:
     prior_sigma_mm: float = 5.0
     stroke_scale_sigma: float = 0.0
     tracker_geometry_sigma_mm: float = 0.0
+    angle_prior_sigma_deg: float = 2.0
+    angle_sigma_deg: float = 0.05
+    angle_random_walk_deg_per_sqrt_s: float = 1e-3
 
 
 @dataclass(frozen=True)

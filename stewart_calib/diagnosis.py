@@ -44,7 +44,7 @@ from itertools import combinations
 import numpy as np
 
 from . import kinematics as kin
-from .drive import drive_model
+from .drive import drive_model, plain_drive
 from .errors import CalibError
 from .instruments import instrument_kind
 from .instruments.lie import so3_log
@@ -370,14 +370,14 @@ def _wiring_message(order, sign, columns, as_logged: float, rewired: float) -> s
 
 
 def _pose_lengths(platform: Platform, strokes: np.ndarray, readings: np.ndarray):
-    """Leg lengths of the nominal drive at the platform poses the readings give ``(N, legs)`` [mm]
+    """The nominal legs' coordinates (:func:`_coordinates`) at the platform poses the readings give ``(N, legs)``
     (NaN rows where no pose), and the whitened RMS of the registration that mapped them."""
     from .instruments import outside_model
 
     reading_legs = instrument_kind(platform).reading_legs(platform)
     if reading_legs is not None:
         fk = kin.forward_kinematics(reading_legs, readings, strict=False)
-        lengths = kin.leg_lengths(platform.drive, fk.R, fk.t)
+        lengths = _coordinates(platform, fk.R, fk.t)
         lengths[~fk.converged] = np.nan
         return lengths, None
     model = outside_model(platform)
@@ -396,8 +396,15 @@ def _pose_lengths(platform: Platform, strokes: np.ndarray, readings: np.ndarray)
         return None, whitened  # the readings fix no pose each: only the registration's fit tells
     R_P, t_P = poses
     lengths = np.full((len(strokes), platform.drive.n_legs), np.nan)
-    lengths[usable] = kin.leg_lengths(platform.drive, R_P, t_P)
+    lengths[usable] = _coordinates(platform, R_P, t_P)
     return lengths, whitened
+
+
+def _coordinates(platform: Platform, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(N, legs)`` the nominal legs' own coordinates at poses ``(R, t)``, no stroke scale nor any
+    other term (a prismatic leg's length less its initial length [mm]): what the strokes follow on
+    a straight line per leg where they are wired right."""
+    return plain_drive(platform.drive).inverse_kinematics(R, t)
 
 
 def _wiring_score(platform: Platform, strokes: np.ndarray, readings: np.ndarray) -> float:

@@ -4,21 +4,26 @@ Every estimator, factor and analysis talks to the drive only through a :class:`D
 it talks to the instrument only through an :class:`~stewart_calib.instruments.InstrumentModel`:
 none of them names a block of the drive. Drive leg i (paper eq. 1, spec §7)::
 
-    r_i = ‖t + R d_i − j_i‖ − (l_i + e_i),     e_i = Σ_b (o_b + v_{b,i}) g_b u_{b,i}
+    r_i = r_i(pose; M + δM, e_i),     e_i = Σ_b (o_b + v_{b,i}) g_b u_{b,i}
 
-``(j_i, d_i, l_i)`` are the leg's seven parameters ``M + δM`` (paper order); the extension
+with ``r_i`` the leg model's closure residual (:class:`~stewart_calib.model.legs.LegModel`: a
+prismatic leg's ``‖t + R d_i − j_i‖ − (l_i + e_i)``, paper eq. 1; a rotary leg's rod closure,
+spec §15) and ``M`` its parameters; the extension
 ``e_i`` is a sum of per-leg *terms* (:class:`LegTerm`): term b has an offset ``o_b``, six values
 ``v_b`` (its nominal from the platform file, plus an error where it is an unknown block) and a
 gain ``g_b`` on six columns ``u_b`` of the sample's drive inputs ``u``. Every drive has the stroke
 term: ``o = 1``, ``v = k`` (the stroke scale), ``g u = q`` (the logged strokes), so a rigid drive's
 ``e_i = (1 + k_i) q_i``; an elastic drive adds the compliance term on the leg forces (spec §10).
-Since every term is linear in its values, ``∂r_i/∂v_{b,i} = −g_b u_{b,i}``.
+Since every term is linear in its values, ``∂r_i/∂v_{b,i} = J_e,i g_b u_{b,i}`` with the leg
+model's ``J_e,i = ∂r_i/∂e_i`` (prismatic: −1). A rotary drive's stroke input is the commanded
+angle [rad], so ``k`` is its angle scale.
 
-The unknown vector of a drive is ``x_drive = [δM (42) | the errors of its unknown terms, six
+The unknown vector of a drive is ``x_drive = [δM (n_params) | the errors of its unknown terms, six
 each, in term order]`` (:attr:`DriveModel.size` entries): the first entries of every estimator's
 unknown vector (:mod:`stewart_calib.unknowns`), so the drive's Jacobians are its first columns.
 
-Compiled code sees a drive as :meth:`DriveModel.kernel_terms`: ``(starts, gains, offsets, values,
+Compiled code (prismatic legs only: ``legs.compiled``; elsewhere numpy of the same formulas) sees
+a drive as :meth:`DriveModel.kernel_terms`: ``(starts, gains, offsets, values,
 columns)`` of its terms, evaluated by :func:`stewart_calib._kernels.leg_extensions` (the EKF's
 fast path, :mod:`stewart_calib.estimators.kalman`) and by the drive-leg factor's kernel
 (:mod:`stewart_calib.factors._kernels`). To add a drive error source see docs/architecture.md.
@@ -34,7 +39,9 @@ import numpy as np
 
 from . import kinematics as kin
 from .config import NoiseConfig
-from .platform import G_N_PER_KG, N_LEGS, N_PARAMS, Elastic, LegGeometry, Platform
+from .errors import CalibError
+from .model.legs import LegModel
+from .platform import G_N_PER_KG, N_LEGS, Elastic, LegGeometry, Platform
 from .statics import gravity_leg_forces, masses_and_centres, moment_radius
 from .unknowns import UnknownBlock
 
@@ -136,13 +143,13 @@ class DriveModel:
     """The drive legs ``M`` and the terms of their extensions (see the module docstring).
 
     Attributes:
-        legs: the nominal geometry ``M``.
+        legs: the nominal leg model ``M`` (:class:`~stewart_calib.model.legs.LegModel`).
         terms: the extension's terms; those with a ``prior_sigma`` are unknown blocks.
         elastic: the masses whose weight the legs carry where a term takes the leg forces as inputs
             (the compliance, spec §10), else None.
     """
 
-    legs: LegGeometry
+    legs: LegModel
     terms: tuple[LegTerm, ...]
     elastic: Elastic | None = None
     # derived once (a filter asks for them at every sample): see __post_init__
@@ -152,11 +159,13 @@ class DriveModel:
     _stroke: int = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        unknown, start = [], N_PARAMS
+        if self.elastic is not None and self.legs.kind != "prismatic":
+            raise ValueError(f"an elastic drive needs prismatic legs, not {self.legs.kind}")
+        unknown, start = [], self.legs.n_params
         for row, term in enumerate(self.terms):
             if term.prior_sigma is not None:
-                unknown.append((row, slice(start, start + N_LEGS)))
-                start += N_LEGS
+                unknown.append((row, slice(start, start + self.legs.n_legs)))
+                start += self.legs.n_legs
         nominal = np.array([term.nominal for term in self.terms], dtype=float)
         factors = np.array([term.offset + term.nominal for term in self.terms], dtype=float)
         for array in (nominal, factors):
@@ -175,7 +184,7 @@ class DriveModel:
 
     @property
     def n_params(self) -> int:
-        """Entries of δM, the legs' geometry: the first entries of ``x_drive`` (42)."""
+        """Entries of δM, the legs' geometry: the first entries of ``x_drive`` (42 prismatic, 66 rotary)."""
         return self.legs.n_params
 
     @property
@@ -190,12 +199,12 @@ class DriveModel:
     @property
     def rows(self) -> int:
         """Rows of its residual per sample: one per leg."""
-        return N_LEGS
+        return self.legs.n_legs
 
     @property
     def size(self) -> int:
-        """Entries of ``x_drive``: 42 + six per unknown term."""
-        return N_PARAMS + N_LEGS * len(self._unknown)
+        """Entries of ``x_drive``: δM's + one per leg per unknown term."""
+        return self.legs.n_params + self.legs.n_legs * len(self._unknown)
 
     @property
     def input_width(self) -> int:
@@ -241,7 +250,7 @@ class DriveModel:
         masses, coms = masses_and_centres(
             e.platform_mass_kg, e.platform_com_mm, 0.0 if payload_kg is None else payload_kg, e.payload_com_mm, batch
         )
-        return gravity_leg_forces(self.geometry(x_drive), R, t, masses, coms)
+        return gravity_leg_forces(self.prismatic(x_drive), R, t, masses, coms)
 
     def payload_leg_forces(self, R: np.ndarray, t: np.ndarray, x_drive=None) -> np.ndarray:
         """``(..., 6)`` leg forces [N] per kg of payload at ``[elastic] payload_com_mm``: the forces are
@@ -250,7 +259,7 @@ class DriveModel:
         if e is None:
             raise ValueError("a rigid drive carries no leg forces")
         batch = np.shape(t)[:-1]
-        return gravity_leg_forces(self.geometry(x_drive), R, t, np.ones(batch + (1,)), e.payload_com_mm[None])
+        return gravity_leg_forces(self.prismatic(x_drive), R, t, np.ones(batch + (1,)), e.payload_com_mm[None])
 
     def loaded_inputs(self, inputs: np.ndarray, per_kg: np.ndarray, payload_kg: float) -> np.ndarray:
         """``inputs`` with ``payload_kg`` more payload: its leg forces (:meth:`payload_leg_forces`,
@@ -296,9 +305,33 @@ class DriveModel:
 
     def parameter_error(self, x_drive: np.ndarray) -> np.ndarray:
         """δM: the leg parameters' part of ``x_drive`` (or of an unknown vector that starts with it)."""
-        return np.asarray(x_drive)[:N_PARAMS]
+        return np.asarray(x_drive)[: self.legs.n_params]
 
-    def geometry(self, x_drive: np.ndarray | None = None) -> LegGeometry:
+    def prior_sigmas(self, noise: NoiseConfig) -> np.ndarray:
+        """``(n_params,)`` prior σ of δM, entry by entry, as the leg model gives it (code units)."""
+        return self.legs.prior_sigmas(noise)
+
+    def walk_sigmas(self, noise: NoiseConfig) -> np.ndarray:
+        """``(n_params,)`` random walk of δM [code units/√s], entry by entry, as the leg model gives it."""
+        return self.legs.walk_sigmas(noise)
+
+    def coordinate_sigma(self, noise: NoiseConfig) -> float:
+        """σ of one logged drive coordinate (code units): the stroke's [mm], a servo angle's [rad]."""
+        return self.legs.coordinate_sigma(noise)
+
+    def prismatic(self, x_drive: np.ndarray | None = None) -> LegGeometry:
+        """:meth:`geometry` where the legs are prismatic (:class:`~stewart_calib.platform.LegGeometry`):
+        what the compiled kernels and the statics of an elastic drive take.
+
+        Raises:
+            ValueError: legs of another kind.
+        """
+        legs = self.geometry(x_drive)
+        if not isinstance(legs, LegGeometry):
+            raise ValueError(f"the compiled kernels and the statics model prismatic legs, not {legs.kind}")
+        return legs
+
+    def geometry(self, x_drive: np.ndarray | None = None) -> LegModel:
         """``M + δM`` (the nominal legs for None)."""
         return self.legs if x_drive is None else self.legs.perturbed(self.parameter_error(x_drive))
 
@@ -333,6 +366,15 @@ class DriveModel:
         """``(6,)`` ``∂e_i/∂q_i`` (the stroke noise's gain into the leg): ``1 + k_i``."""
         return self._term_factors(x_drive)[self._stroke]
 
+    def stroke_gains(self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray) -> np.ndarray:
+        """``(..., n)`` ``∂r_i/∂q_i = J_e,i (1 + k_i)`` at poses ``(R, t)``: a logged coordinate's gain into
+        its leg's residual (prismatic legs: ``−(1 + k_i)``, whatever the pose)."""
+        per_stroke = self.extension_per_stroke(x_drive)
+        if self.legs.compiled:
+            return -per_stroke
+        _, _, J_e = self.geometry(x_drive).residual_jacobians(R, t, self.extensions(inputs, x_drive))
+        return J_e * per_stroke
+
     def identifying(self, prior_sigma: float = BLOCK_PRIOR_SIGMA) -> DriveModel:
         """The same drive with every term an unknown block of prior σ ``prior_sigma`` — the compliance
         with ``[elastic]``'s own σ (mm/kN, not a fraction; held where that is 0)."""
@@ -349,7 +391,7 @@ class DriveModel:
         platform's field of its nominal values, as the platform file's ``[drive]`` table does; the
         compliance goes to ``[elastic] compliance_mm_per_kN``)."""
         fields: dict[str, Any] = {term.key: term.nominal.copy() for term in self.terms if term.key != COMPLIANCE}
-        platform = replace(platform, drive=self.legs, **fields)
+        platform = replace(platform, drive=self.legs, **fields)  # type: ignore[arg-type]  # any leg kind
         for term in self.terms:
             if term.key == COMPLIANCE and platform.elastic is not None:
                 elastic = replace(platform.elastic, compliance_mm_per_kN=term.nominal.copy())
@@ -380,37 +422,47 @@ class DriveModel:
     # ------------------------------------------------------------------ residual and Jacobians
 
     def residual(self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray) -> np.ndarray:
-        """``r`` of the six legs at poses ``(R, t)``, ``(..., 6)`` [mm]."""
-        return kin.leg_residuals(self.geometry(x_drive), R, t, self.extensions(inputs, x_drive))
+        """``r`` of the legs at poses ``(R, t)``, ``(..., n_legs)`` [mm] (the leg model's residuals)."""
+        return self.geometry(x_drive).residuals(R, t, self.extensions(inputs, x_drive))
 
     def jacobians(
         self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """``(∂r/∂ξ (..., 6, 6), ∂r/∂x_drive (..., 6, size))``, body tangent ``ξ = [ω, v]``."""
-        J_pose, J_M = kin.leg_residual_jacobians(self.geometry(x_drive), R, t)
-        return J_pose, self.with_terms(J_M, inputs)
+        """``(∂r/∂ξ (..., n, 6), ∂r/∂x_drive (..., n, size))``, body tangent ``ξ = [ω, v]``."""
+        if self.legs.compiled:  # J_e = −1 and no extension needed: the compiled kinematics' Jacobians alone
+            J_pose, J_M = kin.leg_residual_jacobians(self.prismatic(x_drive), R, t)
+            return J_pose, self.with_terms(J_M, inputs)
+        J_pose, J_M, J_e = self.geometry(x_drive).residual_jacobians(R, t, self.extensions(inputs, x_drive))
+        return J_pose, self.with_terms(J_M, inputs, J_e)
 
-    def with_terms(self, J_M: np.ndarray, inputs: np.ndarray) -> np.ndarray:
-        """``∂r/∂M (..., 6, 42)`` completed with ``∂r_i/∂v_{b,i} = −g_b u_{b,i}`` of the unknown
-        terms: ``∂r/∂x_drive (..., 6, size)`` (``J_M`` itself where there are none)."""
+    def with_terms(self, J_M: np.ndarray, inputs: np.ndarray, J_e: np.ndarray | None = None) -> np.ndarray:
+        """``∂r/∂M (..., n, n_params)`` completed with ``∂r_i/∂v_{b,i} = J_e,i g_b u_{b,i}`` of the
+        unknown terms: ``∂r/∂x_drive (..., n, size)`` (``J_M`` itself where there are none).
+
+        Args:
+            J_e: ``(..., n)`` the leg model's ``∂r_i/∂e_i``; None: −1, a prismatic leg's.
+        """
         rows = self._unknown
         if not rows:
             return J_M
         inputs = np.asarray(inputs, dtype=float)
+        n_legs, n_params = self.legs.n_legs, self.legs.n_params
         J = np.zeros((*J_M.shape[:-1], self.size))
-        J[..., :N_PARAMS] = J_M
-        legs = np.arange(N_LEGS)
+        J[..., :n_params] = J_M
+        legs = np.arange(n_legs)
         for row, columns in rows:
             term = self.terms[row]
-            u = inputs[..., term.input_start : term.input_start + N_LEGS]
-            J[..., legs, columns.start + legs] = -(u if term.gain == 1.0 else term.gain * u)
+            u = inputs[..., term.input_start : term.input_start + n_legs]
+            gained = u if term.gain == 1.0 else term.gain * u
+            J[..., legs, columns.start + legs] = -gained if J_e is None else J_e * gained
         return J
 
     def extension_jacobian(self, inputs: np.ndarray) -> np.ndarray:
         """``∂e/∂(the unknown terms' errors)`` ``(..., 6, size − 42)``: ``g_b u_{b,i}`` on leg i's own
         value of each unknown term (the extension enters a leg as its initial length does)."""
         inputs = np.asarray(inputs, dtype=float)
-        return -self.with_terms(np.zeros((*inputs.shape[:-1], N_LEGS, N_PARAMS)), inputs)[..., N_PARAMS:]
+        n_params = self.legs.n_params
+        return -self.with_terms(np.zeros((*inputs.shape[:-1], self.legs.n_legs, n_params)), inputs)[..., n_params:]
 
     def pose_jacobian(self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray) -> np.ndarray:
         """``∂ξ/∂x_drive (..., 6, size)`` of forward-kinematics poses ``(R, t)``: by the implicit
@@ -448,11 +500,11 @@ class DriveModel:
             e.payload_com_mm,
             np.shape(t)[:-1],
         )
-        df_dxi, df_dM = leg_force_jacobians(self.geometry(x_drive), R, t, forces, masses, coms)
+        df_dxi, df_dM = leg_force_jacobians(self.prismatic(x_drive), R, t, forces, masses, coms)
         dr_df = (-term.gain * self._term_factors(x_drive)[row])[:, None]  # r = ‖…‖ − (l + e): ∂r_i/∂f_i = −(o + c_i) g
         J_pose = J_pose + dr_df * df_dxi
         J_x = J_x.copy()
-        J_x[..., :N_PARAMS] += dr_df * df_dM
+        J_x[..., : self.legs.n_params] += dr_df * df_dM
         return -np.linalg.solve(J_pose, J_x)
 
     def observation(
@@ -462,21 +514,23 @@ class DriveModel:
         t: np.ndarray,
         inputs: np.ndarray,
         pose_covariance: np.ndarray,
-        stroke_sigma_mm: float,
+        coordinate_sigma: float,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The EKF's observation at a pose ``(R, t)`` measured with covariance ``Σ_x``, one compiled
-        call (:func:`~stewart_calib.kinematics.leg_ekf_observation`): ``(r (6,), ∂r/∂x_drive (6,
-        size), J_x Σ_x J_xᵀ + σ_q² I, J_x = ∂r/∂ξ)``."""
-        r, H_M, R_meas, J_x = kin.leg_ekf_observation(
-            self.legs,
-            self.parameter_error(x_drive),
-            R,
-            t,
-            self.extensions(inputs, x_drive),
-            pose_covariance,
-            stroke_sigma_mm,
-        )
-        return r, self.with_terms(H_M, inputs), R_meas, J_x
+        """The EKF's observation at a pose ``(R, t)`` measured with covariance ``Σ_x``: ``(r (n,),
+        ∂r/∂x_drive (n, size), J_x Σ_x J_xᵀ + diag(J_e² σ_e²), J_x = ∂r/∂ξ)`` with ``σ_e``
+        (``coordinate_sigma``, :meth:`coordinate_sigma`) the σ of one logged coordinate; one compiled
+        call for compiled legs (:func:`~stewart_calib.kinematics.leg_ekf_observation`, ``J_e = −1``)."""
+        extensions = self.extensions(inputs, x_drive)
+        if self.legs.compiled:
+            r, H_M, R_meas, J_x = kin.leg_ekf_observation(
+                self.prismatic(), self.parameter_error(x_drive), R, t, extensions, pose_covariance, coordinate_sigma
+            )
+            return r, self.with_terms(H_M, inputs), R_meas, J_x
+        legs = self.geometry(x_drive)
+        r = legs.residuals(R, t, extensions)
+        J_x, H_M, J_e = legs.residual_jacobians(R, t, extensions)
+        R_meas = J_x @ pose_covariance @ J_x.T + np.diag((J_e * coordinate_sigma) ** 2)
+        return r, self.with_terms(H_M, inputs, J_e), R_meas, J_x
 
     # ------------------------------------------------------------------ kinematics
 
@@ -488,17 +542,17 @@ class DriveModel:
         strict: bool = True,
         tol_mm: float = kin.FK_TOLERANCE_MM,
     ) -> kin.FKSolution:
-        """Poses of samples ``inputs (..., width)`` (:func:`~stewart_calib.kinematics.forward_kinematics`)."""
-        return kin.forward_kinematics(
-            self.geometry(x_drive), self.extensions(inputs, x_drive), guess=guess, tol_mm=tol_mm, strict=strict
+        """Poses of samples ``inputs (..., width)`` (the leg model's forward kinematics)."""
+        return self.geometry(x_drive).forward_kinematics(
+            self.extensions(inputs, x_drive), guess=guess, tol_mm=tol_mm, strict=strict
         )
 
     def solve_fk(
         self, inputs: np.ndarray, x_drive: np.ndarray | None, guess, what: str = "drive model"
     ) -> tuple[np.ndarray, np.ndarray]:
-        """One sample's pose from ``guess``, then cold (:func:`~stewart_calib.kinematics.solve_fk`);
+        """One sample's pose from ``guess``, then cold (the leg model's ``solve_fk``);
         ``SampleRejected`` when neither converges."""
-        return kin.solve_fk(self.geometry(x_drive), self.extensions(inputs, x_drive), guess, what)
+        return self.geometry(x_drive).solve_fk(self.extensions(inputs, x_drive), guess, what)
 
     def inverse_kinematics(
         self,
@@ -508,8 +562,9 @@ class DriveModel:
         inputs: np.ndarray | None = None,
         payload_kg=None,
     ) -> np.ndarray:
-        """The strokes ``q (..., 6)`` [mm] that put the platform at ``(R, t)``: the legs' length
-        change less the other terms' part, over the stroke term's ``1 + k_i``.
+        """The strokes ``q (..., n)`` (the log's drive coordinates) that put the platform at ``(R, t)``:
+        the legs' coordinates (the leg model's inverse kinematics, NaN where a leg cannot reach) less
+        the other terms' part, over the stroke term's ``1 + k_i``.
 
         Args:
             inputs: ``(..., width)`` the samples' other drive inputs (their stroke columns are
@@ -517,8 +572,8 @@ class DriveModel:
                 drive's default: its leg forces at ``(R, t)`` under ``payload_kg`` (None: 0).
         """
         if inputs is None and self.elastic is not None:
-            inputs = self.inputs(np.zeros(np.shape(t)[:-1] + (N_LEGS,)), payload_kg, R, t, x_drive)
-        return self.strokes_for(kin.inverse_kinematics(self.geometry(x_drive), R, t), x_drive, inputs)
+            inputs = self.inputs(np.zeros(np.shape(t)[:-1] + (self.legs.n_legs,)), payload_kg, R, t, x_drive)
+        return self.strokes_for(self.geometry(x_drive).coordinates(R, t), x_drive, inputs)
 
     def strokes_for(
         self, extensions: np.ndarray, x_drive: np.ndarray | None = None, inputs: np.ndarray | None = None
@@ -540,7 +595,13 @@ class DriveModel:
 
     def kernel_terms(self, x_drive: np.ndarray | None = None) -> tuple:
         """The terms as compiled code takes them: ``(starts (b,) int64, gains (b,), offsets (b,),
-        values (b, 6) at x_drive, columns (b, 6) int64 of their errors in x_drive, −1 where known)``."""
+        values (b, 6) at x_drive, columns (b, 6) int64 of their errors in x_drive, −1 where known)``.
+
+        Raises:
+            ValueError: legs the compiled kernels do not model (``legs.compiled`` False).
+        """
+        if not self.legs.compiled:
+            raise ValueError(f"the compiled drive kernels model prismatic legs, not {self.legs.kind}")
         columns = np.full((len(self.terms), N_LEGS), -1, dtype=np.int64)
         for row, span in self._unknown:
             columns[row] = np.arange(span.start, span.stop)
@@ -567,7 +628,7 @@ def tracker_reading_residuals(
     kernel_terms = [drive.kernel_terms() for drive in drives]
     starts, gains = kernel_terms[0][:2]
     terms = (starts, gains, np.array([offsets[:, None] + values for _, _, offsets, values, _ in kernel_terms]))
-    legs, elastic = [drive.legs for drive in drives], drives[0].elastic
+    legs, elastic = [drive.prismatic() for drive in drives], drives[0].elastic
     inputs = [drive.inputs_near(strokes) for drive in drives]  # an elastic drive's forces 0 until settled
     if elastic is None or not any(np.any(drive.force_gains()) for drive in drives):
         # rigid, or no leg gives under its force (the nominal compliance 0, before a calibration): the
@@ -581,7 +642,7 @@ def tracker_reading_residuals(
         (len(readings),),
     )
     force_start = next(term.input_start for term in drives[0].terms if term.key == COMPLIANCE)
-    radii = np.array([moment_radius(drive.legs) for drive in drives])
+    radii = np.array([moment_radius(drive.prismatic()) for drive in drives])
     load = (force_start, masses * G_N_PER_KG, centres, radii, SETTLING_PASSES + 1, SETTLED_MM)
     return kin.tracker_reading_residuals(tracker, readings, legs, inputs, terms, load)
 
@@ -596,6 +657,11 @@ def drive_model(platform: Platform, noise: NoiseConfig | None = None, outside_in
     when ``noise.stroke_scale_sigma`` > 0 or, with an instrument outside the robot, always
     (:data:`STROKE_SCALE_SIGMA_OUTSIDE` by default), and with ``[elastic]`` the legs' compliance
     (:func:`compliance_term`, its σ from ``[elastic]``); all terms known without ``noise``."""
+    if platform.elastic is not None and platform.drive.kind != "prismatic":
+        raise CalibError(
+            f"{platform.source}: [elastic] models prismatic legs' compliance; "
+            f"a {platform.drive.kind} drive takes no [elastic] table (yet)"
+        )
     sigma = 0.0 if noise is None else noise.stroke_scale_sigma
     if sigma <= 0.0 and outside_instrument:
         sigma = STROKE_SCALE_SIGMA_OUTSIDE

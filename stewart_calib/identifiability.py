@@ -27,9 +27,10 @@ import numpy as np
 from . import _kernels
 from . import kinematics as kin
 from .config import NoiseConfig
-from .drive import TERM_UNITS, DriveModel
+from .drive import TERM_UNITS, DriveModel, drive_model
 from .errors import CalibError
-from .platform import PARAMETER_FIELDS, PARAMETER_NAMES, Platform
+from .instruments.gauge import joint_columns
+from .platform import PARAMETER_NAMES, LegGeometry, Platform
 
 #: A singular value below this fraction of the largest counts as zero. Round-off in the
 #: whitened Jacobian sits near 1e-13 relative; a direction 1e-8 times weaker than the best
@@ -68,26 +69,53 @@ VERDICTS = ("identifiable", "poorly conditioned", "rank-deficient")
 
 
 def residual_covariance(platform: Platform, R: np.ndarray, t: np.ndarray, noise: NoiseConfig) -> np.ndarray:
-    """Noise of the drive's leg residuals at each pose, ``J_x Σ_x J_xᵀ + σ_q² I``, ``(N, legs, legs)`` [mm²].
+    """Noise of the drive's leg residuals at each pose, ``J_x Σ_x J_xᵀ + σ_q² diag(J_e²)``, ``(N, legs, legs)`` [mm²]
+    (``J_e = ∂r_i/∂e_i`` of the drive coordinate: −1 for a prismatic leg; σ_q the leg model's
+    ``coordinate_sigma``, ``noise.stroke_sigma_mm`` for prismatic legs).
 
     The pose enters through tracker FK, so the reading noise σ_s reaches every leg residual
     through the pose: leaving ``J_x Σ_x J_xᵀ`` out makes the weights wrong by orders of
     magnitude (docs/measured-facts.md: an EKF with ``σ² I`` alone diverged).
     """
-    J_x = kin.leg_pose_jacobian(platform.drive, R, t)
+    return _leg_rows(platform, R, t, noise)[1]
+
+
+def _leg_rows(platform: Platform, R: np.ndarray, t: np.ndarray, noise: NoiseConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``(∂r/∂M (N, legs, n_params), C (N, legs, legs))`` of the nominal drive at poses ``(R, t)``, its
+    inputs those its inverse kinematics gives there (a rotary leg's Jacobians depend on its angle)."""
+    drive = drive_model(platform)
+    inputs = drive.inputs(drive.inverse_kinematics(R, t), None, R, t)
+    J_x, J_M = drive.jacobians(None, R, t, inputs)
     sigma_x = kin.pose_covariance_from_legs(
         platform.required_tracker("the leg covariance"), R, t, noise.reading_sigma_mm
     )
-    return J_x @ sigma_x @ np.swapaxes(J_x, -1, -2) + noise.stroke_sigma_mm**2 * np.eye(J_x.shape[-2])
+    if _compiled(drive.legs):  # r = ‖t + R d − j‖ − (l + e): ∂r/∂e = −1
+        noise_q = noise.stroke_sigma_mm**2 * np.eye(J_x.shape[-2])
+    else:  # one logged coordinate's σ (a commanded servo angle's [rad]) through ∂r_i/∂e_i
+        J_e = drive.legs.residual_jacobians(R, t, drive.extensions(inputs))[2]
+        sigma_e = drive.legs.coordinate_sigma(noise)
+        noise_q = sigma_e**2 * J_e[..., :, None] ** 2 * np.eye(J_x.shape[-2])
+    return J_M, J_x @ sigma_x @ np.swapaxes(J_x, -1, -2) + noise_q
+
+
+def _degrees(legs) -> np.ndarray:
+    """``(n_params,)`` True where the leg model's parameter vector holds an angle (prismatic legs: none)."""
+    return np.zeros(legs.n_params, dtype=bool) if _compiled(legs) else np.asarray(legs.parameter_degrees, dtype=bool)
+
+
+def _compiled(legs) -> bool:
+    """Whether ``legs`` are the leg set the prismatic compiled kernels take."""
+    return type(legs) is LegGeometry
 
 
 def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseConfig) -> np.ndarray:
     """Per-pose whitened rows ``C^{-1/2} ∂r/∂M`` of the leg-length form, ``(N, legs, n_params)``
     [1/mm] (``(N, 6, 42)`` for the paper's drive).
 
-    ``C = L Lᵀ`` (:func:`residual_covariance`) by Cholesky and ``C^{-1/2} = L⁻¹``, one compiled
-    loop over the poses (:func:`stewart_calib._kernels.whitened_leg_rows`: numpy's batched
-    6 × 6 Cholesky and solve cost over an order of magnitude more a pose).
+    ``C = L Lᵀ`` (:func:`residual_covariance`) by Cholesky and ``C^{-1/2} = L⁻¹``: for the prismatic
+    legs one compiled loop over the poses (:func:`stewart_calib._kernels.whitened_leg_rows`: numpy's
+    batched 6 × 6 Cholesky and solve cost over an order of magnitude more a pose), numpy's for any
+    other leg model (:func:`_whitened_rows`).
 
     Args:
         poses: ``(N, 6)`` pose6 ``[mm, rad]``.
@@ -100,19 +128,22 @@ def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseCon
     poses = np.asarray(poses, dtype=float)
     R, t = kin.pose_to_rt(poses.reshape(-1, 6))
     drive, tracker = platform.drive, platform.required_tracker("the whitened leg Jacobian")
-    rows = np.empty((len(R), drive.n_legs, drive.n_params))
-    _kernels.whitened_leg_rows(
-        drive.base_joints,
-        drive.platform_joints,
-        drive.initial_lengths,
-        tracker.base_joints,
-        tracker.platform_joints,
-        np.ascontiguousarray(R),
-        np.ascontiguousarray(t),
-        float(noise.reading_sigma_mm) ** 2,
-        float(noise.stroke_sigma_mm) ** 2,
-        rows,
-    )
+    if _compiled(drive):
+        rows = np.empty((len(R), drive.n_legs, drive.n_params))
+        _kernels.whitened_leg_rows(
+            drive.base_joints,
+            drive.platform_joints,
+            drive.initial_lengths,
+            tracker.base_joints,
+            tracker.platform_joints,
+            np.ascontiguousarray(R),
+            np.ascontiguousarray(t),
+            float(noise.reading_sigma_mm) ** 2,
+            float(noise.stroke_sigma_mm) ** 2,
+            rows,
+        )
+    else:
+        rows = _whitened_rows(platform, R, t, noise)
     singular = ~np.isfinite(rows).all(axis=(1, 2))
     if singular.any():
         k = int(np.argmax(singular))
@@ -123,15 +154,60 @@ def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseCon
     return rows.reshape(poses.shape[:-1] + rows.shape[1:])
 
 
+def _whitened_rows(platform: Platform, R: np.ndarray, t: np.ndarray, noise: NoiseConfig) -> np.ndarray:
+    """``L⁻¹ ∂r/∂M`` ``(N, legs, n_params)`` with ``C = L Lᵀ`` (:func:`_leg_rows`) of any leg model; NaN
+    rows at a pose whose ``C`` is not positive definite (as the compiled kernel gives them)."""
+    J_M, C = _leg_rows(platform, R, t, noise)
+    rows = np.full(J_M.shape, np.nan)
+    positive = np.all(np.isfinite(C), axis=(1, 2)) & np.all(np.linalg.eigvalsh(np.nan_to_num(C)) > 0.0, axis=1)
+    rows[positive] = np.linalg.solve(np.linalg.cholesky(C[positive]), J_M[positive])
+    return rows
+
+
+def platform_joints_mm(platform: Platform) -> np.ndarray:
+    """``(legs, 3)`` the drive's nominal platform joints ``d_i`` in {D} [mm]."""
+    legs = platform.drive
+    return legs.as_vector()[joint_columns(legs)[1]].reshape(legs.n_legs, 3)
+
+
 def rotation_row_scale_mm(platform: Platform) -> float:
     """Length [mm] the paper-form rotation rows are multiplied by: mean radius of the ``d_i``."""
-    return float(np.mean(np.linalg.norm(platform.drive.platform_joints[:, :2], axis=1)))
+    return float(np.mean(np.linalg.norm(platform_joints_mm(platform)[:, :2], axis=1)))
+
+
+def paper_jacobian(platform: Platform, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The paper's error Jacobian ``J_p`` (eq. 8–11) of the nominal drive at poses ``(R, t)``,
+    ``(N, 6, n_params)``: ``δE = [δh [mm], δθ (roll, pitch, yaw) [rad]] = J_p δM`` of the pose
+    reached with fixed drive coordinates. The prismatic legs' closed form
+    (:func:`~stewart_calib.kinematics.error_jacobian`), else the drive's forward-kinematics Jacobian
+    ``∂ξ/∂M`` (body tangent ``[ω, v]``) turned into it: ``δh = R v``, ``δθ = E⁻¹ R ω`` with ``E`` the
+    roll-pitch-yaw rates' angular velocity in {J} (``R = Rz(yaw) Ry(pitch) Rx(roll)``)."""
+    if _compiled(platform.drive):
+        return kin.error_jacobian(platform.drive, R, t)
+    drive = drive_model(platform)
+    inputs = drive.inputs(drive.inverse_kinematics(R, t), None, R, t)
+    J_xi = drive.pose_jacobian(None, R, t, inputs)[..., : drive.n_params]
+    _, pitch, yaw = np.moveaxis(kin.rotation_to_rpy(R), -1, 0)
+    zero, one = np.zeros_like(yaw), np.ones_like(yaw)
+    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+    E = np.stack(  # columns: Rz Ry e_x, Rz e_y, e_z
+        [
+            np.stack([cy * cp, -sy, zero], axis=-1),
+            np.stack([sy * cp, cy, zero], axis=-1),
+            np.stack([-sp, zero, one], axis=-1),
+        ],
+        axis=-2,
+    )
+    position = R @ J_xi[..., 3:, :]
+    rotation = np.linalg.solve(E, R @ J_xi[..., :3, :])
+    return np.concatenate([position, rotation], axis=-2)
 
 
 def scaled_paper_jacobian(platform: Platform, poses: np.ndarray) -> np.ndarray:
-    """The paper's ``J_p`` (eq. 8–11) per pose, rotation rows × :func:`rotation_row_scale_mm`, ``(N, 6, n_params)``."""
+    """The paper's ``J_p`` (:func:`paper_jacobian`) per pose, rotation rows × :func:`rotation_row_scale_mm`,
+    ``(N, 6, n_params)``."""
     R, t = kin.pose_to_rt(np.asarray(poses, dtype=float))
-    J_p = kin.error_jacobian(platform.drive, R, t)
+    J_p = paper_jacobian(platform, R, t)
     J_p[..., 3:, :] *= rotation_row_scale_mm(platform)
     return J_p
 
@@ -226,6 +302,10 @@ class IdentifiabilityReport:
             among the identified directions.
         null_space: ``(n, n − rank)`` unit basis of the unidentified directions.
         verdict: one of :data:`VERDICTS`.
+        parameters_per_leg: entries of δM a leg (the text report's rows: 7 for the paper's drive).
+        parameter_degrees: ``(n_params,)`` True where δM holds an angle (a servo's zero offset and axis
+            tilts, spec §15): in rad here and in the JSON, which then lists this mask; in degrees in the
+            text report.
         names: the unknowns' names: δM's (``n_params``, 42 for the paper's drive), then the drive's
             unknown blocks where the report covers them (:class:`InformationAccumulator`'s
             ``drive``); the singular values, the weakest directions and the null space are then
@@ -248,6 +328,8 @@ class IdentifiabilityReport:
     observability: dict[str, float]
     null_space: np.ndarray
     names: tuple[str, ...]
+    parameters_per_leg: int
+    parameter_degrees: np.ndarray
     weakest: list[tuple[float, np.ndarray]] = field(default_factory=list)
     verdict: str = "identifiable"
     block_stddev: dict[str, tuple[tuple[str, ...], np.ndarray]] = field(default_factory=dict)
@@ -292,6 +374,7 @@ class IdentifiabilityReport:
                 "rotation_row_scale_mm": self.rotation_row_scale_mm,
             },
             "predicted_stddev_mm": [num(s) for s in self.predicted_stddev_mm],
+            **({"parameter_degrees": self.parameter_degrees.tolist()} if self.parameter_degrees.any() else {}),
             "weakest_directions": [
                 {
                     "singular_value": float(s),
@@ -357,9 +440,11 @@ class IdentifiabilityReport:
         if self.null_space_dimension:
             lines += ["", f"null space: dimension {self.null_space_dimension} (not identified by these poses):"]
             lines += [f"  {name}" for name in self.null_space_names()]
-        lines += ["", "predicted standard deviation per parameter (Cramér–Rao) [mm]:"]
-        sd = self.predicted_stddev_mm
-        per_leg = len(PARAMETER_FIELDS)
+        degrees = self.parameter_degrees
+        units = "mm, angles in deg" if degrees.any() else "mm"
+        lines += ["", f"predicted standard deviation per parameter (Cramér–Rao) [{units}]:"]
+        sd = np.where(degrees, np.degrees(self.predicted_stddev_mm), self.predicted_stddev_mm)
+        per_leg = self.parameters_per_leg
         for start in range(0, len(sd), per_leg):
             cols = range(start, start + per_leg)
             lines.append("  " + "  ".join(f"{self.names[k]:>4} {_fmt_sd(sd[k])}" for k in cols))
@@ -565,6 +650,8 @@ class InformationAccumulator:
             null_space=readable_basis(null),
             verdict=verdict,
             names=self.names,
+            parameters_per_leg=self.n_params // self.platform.drive.n_legs,
+            parameter_degrees=_degrees(self.platform.drive),
             block_stddev=block_stddev,
             block_scale=scale[self.n_params :],
         )

@@ -21,12 +21,12 @@ in :mod:`stewart_calib._kernels`; the functions here keep their numpy signatures
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from . import _kernels
 from .errors import CalibError, SampleRejected
-from .platform import N_PARAMS, N_PARAMS_PER_LEG, LegGeometry, vector_to_params
 from .rotations import (  # noqa: F401 -- the pose algebra is part of the kinematics API
     pose_error,
     pose_to_rt,
@@ -39,6 +39,9 @@ from .rotations import (  # noqa: F401 -- the pose algebra is part of the kinema
     so3_exp,
     transform_points,
 )
+
+if TYPE_CHECKING:  # the annotations' type: platform.LegGeometry delegates its leg model to this module
+    from .platform import LegGeometry
 
 # ----------------------------------------------------------------------------- legs
 
@@ -271,9 +274,9 @@ def error_jacobian(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarra
     rows ``[n_iᵀ, −n_iᵀ R, 1]`` on ``[δj_i, δd_i, δl_i]`` (eq. 11).
     """
     R_flat, t_flat, batch = _flat_poses(R, t)
-    J_p = np.empty((len(R_flat), 6, N_PARAMS))
+    J_p = np.empty((len(R_flat), 6, legs.n_params))
     _kernels.error_jacobian(legs.base_joints, legs.platform_joints, R_flat, t_flat, J_p)
-    return J_p.reshape(batch + (6, N_PARAMS))
+    return J_p.reshape(batch + (6, legs.n_params))
 
 
 def _flat_poses(R: np.ndarray, t: np.ndarray, batch: tuple[int, ...] | None = None):
@@ -294,7 +297,7 @@ def leg_residuals(legs: LegGeometry, R: np.ndarray, t: np.ndarray, strokes: np.n
 def leg_residuals_per_sample(params_mm: np.ndarray, R: np.ndarray, t: np.ndarray, strokes_mm: np.ndarray) -> np.ndarray:
     """``(N, 6)`` drive-leg residuals ``‖t + R d_i − j_i‖ − (l_i + q_i)`` [mm] where sample k has its
     own parameters ``params_mm[k]`` (absolute 42-vector, paper order) and pose ``(R[k], t[k])``."""
-    p = vector_to_params(params_mm)
+    p = np.reshape(params_mm, (len(params_mm), np.shape(strokes_mm)[-1], -1))  # (N, legs, [j | d | l])
     joints = t[:, None, :] + np.einsum("nij,nkj->nki", R, p[:, :, 3:6]) - p[:, :, 0:3]
     return np.linalg.norm(joints, axis=-1) - (p[:, :, 6] + strokes_mm)
 
@@ -311,9 +314,10 @@ def leg_residual_param_jacobian(legs: LegGeometry, R: np.ndarray, t: np.ndarray)
 
 def block_diagonal_params(per_leg: np.ndarray) -> np.ndarray:
     """``(..., 6, 7)`` per-leg rows → ``(..., 6, 42)`` with leg i's row in columns 7i…7i+6."""
-    out = np.zeros(per_leg.shape[:-1] + (N_PARAMS,))
-    for i in range(per_leg.shape[-2]):
-        out[..., i, N_PARAMS_PER_LEG * i : N_PARAMS_PER_LEG * (i + 1)] = per_leg[..., i, :]
+    legs, width = per_leg.shape[-2:]
+    out = np.zeros(per_leg.shape[:-1] + (legs * width,))
+    for i in range(legs):
+        out[..., i, width * i : width * (i + 1)] = per_leg[..., i, :]
     return out
 
 
@@ -397,7 +401,7 @@ def leg_residual(
     c = np.ascontiguousarray  # one array layout, so one compiled signature
     legs, extensions = c(legs, dtype=float), c(extensions_mm, dtype=float)
     k = len(extensions)
-    r, J_pose, J_leg = np.empty(k), np.empty((k, 6)), np.empty((k, N_PARAMS_PER_LEG))
+    r, J_pose, J_leg = np.empty(k), np.empty((k, 6)), np.empty(legs.shape)
     _kernels.leg_rows(legs, c(R, dtype=float), c(t, dtype=float), extensions, r, J_pose, J_leg)
     return r, J_pose, J_leg
 

@@ -39,7 +39,7 @@ from .config import NoiseConfig
 from .errors import CalibError
 from .identifiability import RANK_RTOL, scaled_paper_jacobian, whitened_leg_jacobian
 from .instruments import instrument_kind, outside_model
-from .platform import Platform
+from .platform import LegGeometry, Platform
 
 CRITERIA = ("A", "D", "O1", "E", "I")
 #: the tracker's default (its designs and tests predate ``I``); outside instruments default to ``I``
@@ -360,12 +360,14 @@ def with_stroke_margin(platform: Platform, noise: NoiseConfig) -> Platform:
 def nominal_error(platform: Platform, noise: NoiseConfig) -> PredictedError:
     """What the nominal model is expected to leave, for a robot built within the prior: the
     predicted error (:func:`~stewart_calib.accuracy.predicted_error`) of the prior covariance —
-    ``noise.prior_sigma_mm`` on each δM and, with an outside instrument, the stroke scale's prior σ
+    ``noise.prior_sigma_mm`` on each δM (another leg model's own ``prior_sigmas``: a servo's angles
+    in rad) and, with an outside instrument, the stroke scale's prior σ
     (:func:`~stewart_calib.drive.drive_model`'s) — the yardstick a plan must clearly beat."""
     from .drive import drive_model
 
     drive = drive_model(platform, noise, instrument_kind(platform).outside)
-    sigma = [noise.prior_sigma_mm] * platform.drive.n_params
+    legs = platform.drive  # the prismatic legs' prior is noise.prior_sigma_mm on every entry
+    sigma = [noise.prior_sigma_mm] * legs.n_params if type(legs) is LegGeometry else list(legs.prior_sigmas(noise))
     for term in drive.terms:  # the terms up to the first known one, as predicted_error takes them
         if term.prior_sigma is None:
             break

@@ -18,6 +18,7 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,6 +26,9 @@ from . import resources
 from .errors import CalibError, did_you_mean
 from .inputs import implausible_sigma_mm
 from .rotations import pose_to_rt, transform_points
+
+if TYPE_CHECKING:
+    from .model.rotary import RotaryLegs
 
 N_LEGS = 6
 N_PARAMS_PER_LEG = 7
@@ -62,10 +66,92 @@ class LegGeometry:
             value.setflags(write=False)
             object.__setattr__(self, name, value)
 
+    #: the leg model's kind (:class:`~stewart_calib.model.legs.LegModel`): the platform file's ``[drive] kind``
+    kind = "prismatic"
+    #: the unit of a leg's coordinate ``e_i`` (its extension) in files: the log's ``q{i}_mm``
+    coordinate_unit = "mm"
+    #: the leg model's compiled kernels (:mod:`stewart_calib._kernels`) apply to it
+    compiled = True
+
     @property
     def n_legs(self) -> int:
         """Legs of the set (six for a 6-6 Gough platform and for the Table 2 tracker)."""
         return len(self.initial_lengths)
+
+    @property
+    def parameter_degrees(self) -> np.ndarray:
+        """``(n_params,)`` bool: which entries files give in degrees (none: all mm)."""
+        return np.zeros(self.n_params, dtype=bool)
+
+    @property
+    def gauge_columns(self) -> tuple[np.ndarray, np.ndarray]:
+        """``((n, 3), (n, 3))`` int: the entries of M holding the base joints ``j_i`` and the platform
+        joints ``d_i``, leg by leg, x y z (spec §7's gauge of an outside instrument)."""
+        base = N_PARAMS_PER_LEG * np.arange(self.n_legs)[:, None] + np.arange(3)
+        return base, base + 3
+
+    def prior_sigmas(self, noise) -> np.ndarray:
+        """``(n_params,)`` prior σ of δM [mm]: ``noise.prior_sigma_mm`` on every entry."""
+        return np.full(self.n_params, noise.prior_sigma_mm)
+
+    def walk_sigmas(self, noise) -> np.ndarray:
+        """``(n_params,)`` random walk of δM [mm/√s]: ``noise.random_walk_mm_per_sqrt_s`` on every entry."""
+        return np.full(self.n_params, noise.random_walk_mm_per_sqrt_s)
+
+    def coordinate_sigma(self, noise) -> float:
+        """σ of one leg's logged coordinate [mm]: ``noise.stroke_sigma_mm`` (the encoder)."""
+        return float(noise.stroke_sigma_mm)
+
+    def kernel_geometry(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(base joints (n, 3), platform joints (n, 3), initial lengths (n,))`` [mm], read-only C
+        arrays: the leg set as the compiled kernels (:mod:`stewart_calib._kernels`) take it."""
+        return self.base_joints, self.platform_joints, self.initial_lengths
+
+    # The leg model's arithmetic is the compiled kinematics' (imported here, not with the module: a
+    # platform file is read by commands that never compute, see :meth:`perturbed`).
+
+    def residuals(self, R: np.ndarray, t: np.ndarray, e: np.ndarray) -> np.ndarray:
+        """``r_i = ‖t + R d_i − j_i‖ − (l_i + e_i)``, ``(..., n)`` [mm] (paper eq. 1)."""
+        from . import kinematics
+
+        return kinematics.leg_residuals(self, R, t, e)
+
+    def residual_jacobians(
+        self, R: np.ndarray, t: np.ndarray, e: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(∂r/∂ξ (..., n, 6), ∂r/∂M (..., n, n_params), ∂r_i/∂e_i (..., n) = −1)`` of :meth:`residuals`."""
+        from . import kinematics
+
+        J_pose, J_M = kinematics.leg_residual_jacobians(self, R, t)
+        return J_pose, J_M, np.full(J_M.shape[:-1], -1.0)
+
+    def coordinates(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """The extensions ``(..., n)`` [mm] that close each leg at ``(R, t)`` (inverse kinematics)."""
+        from . import kinematics
+
+        return kinematics.inverse_kinematics(self, R, t)
+
+    def forward_kinematics(
+        self, e: np.ndarray, guess=None, tol_mm: float | None = None, strict: bool = True, along: bool = False
+    ):
+        """:func:`~stewart_calib.kinematics.forward_kinematics` of extensions ``e (..., n)`` [mm]
+        (``tol_mm`` None: :data:`~stewart_calib.kinematics.FK_TOLERANCE_MM`)."""
+        from . import kinematics
+
+        tol = kinematics.FK_TOLERANCE_MM if tol_mm is None else tol_mm
+        return kinematics.forward_kinematics(self, e, guess=guess, tol_mm=tol, strict=strict, along=along)
+
+    def solve_fk(self, e: np.ndarray, guess, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """One pose of extensions ``e (n,)`` from ``guess``, then cold (:func:`~stewart_calib.kinematics.solve_fk`)."""
+        from . import kinematics
+
+        return kinematics.solve_fk(self, e, guess, what)
+
+    def unit_vectors(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """``(..., n, 3)`` unit leg vectors in {J}: the direction each leg's force acts along."""
+        from . import kinematics
+
+        return kinematics.leg_unit_vectors(self, R, t)
 
     @property
     def n_params(self) -> int:
@@ -276,7 +362,7 @@ def payload_limit_kg(elastic: Elastic, reference_mm: float) -> float:
 
 def payload_limit(platform: Platform) -> float:
     """The largest payload [kg] ``platform`` can carry (:func:`payload_limit_kg`); inf without ``[elastic]``."""
-    if platform.elastic is None:
+    if platform.elastic is None or not isinstance(platform.drive, LegGeometry):  # [elastic]: prismatic legs only
         return math.inf
     return payload_limit_kg(platform.elastic, give_reference_mm(platform.drive, platform.stroke_range)[0])
 
@@ -286,7 +372,7 @@ def payload_refusal(platform: Platform, load_kg: float) -> str | None:
     should have been, for a refusal naming its row and column; None when it is within (or the
     platform has no ``[elastic]``). A value a thousand times a payload it could carry looks like grams."""
     elastic = platform.elastic
-    if elastic is None:
+    if elastic is None or not isinstance(platform.drive, LegGeometry):  # [elastic]: prismatic legs only
         return None
     reference_mm, what = give_reference_mm(platform.drive, platform.stroke_range)
     limit = payload_limit(platform)
@@ -358,10 +444,12 @@ class Platform:
 
     Attributes:
         name: free-text identifier.
-        drive: nominal drive legs (j_i, d_i, l_i) — what the controller believes.
+        drive: nominal drive legs — what the controller believes: prismatic (j_i, d_i, l_i, spec §2) or
+            rotary (spec §15, :class:`~stewart_calib.model.rotary.RotaryLegs`).
         tracker: tracker legs (z_i, h_i, l_si) (paper Table 2), or None when the platform
             file has no ``[tracker]`` (allowed when another instrument measured the logs).
-        stroke_range: ``(min, max)`` drive stroke q_i [mm], or None.
+        stroke_range: ``(min, max)`` drive stroke q_i [mm], or None (always for a rotary drive, whose
+            commanded angles' range is its legs' ``angle_range``).
         reading_range: ``(min, max)`` grating reading s_i [mm], or None.
         workspace: reachable box, or None.
         description: free text.
@@ -374,7 +462,7 @@ class Platform:
     """
 
     name: str
-    drive: LegGeometry
+    drive: LegGeometry | RotaryLegs
     tracker: LegGeometry | None
     stroke_range: tuple[float, float] | None = None
     reading_range: tuple[float, float] | None = None
@@ -414,7 +502,6 @@ class Platform:
 #: ``[instrument]``'s keys depend on its kind; :func:`parse_instrument` checks them.
 PLATFORM_KEYS: dict[str, set[str]] = {
     "": {"name", "description", "drive", "tracker", "workspace", "instrument", "elastic"},
-    "drive": {"base_joints_mm", "platform_joints_mm", "initial_lengths_mm", "stroke_range_mm", "stroke_scale"},
     "tracker": {"base_joints_mm", "platform_joints_mm", "initial_lengths_mm", "reading_range_mm", "geometry_sigma_mm"},
     "workspace": {"home", "translation_limit_mm", "rotation_limit_deg"},
     "elastic": {
@@ -427,6 +514,31 @@ PLATFORM_KEYS: dict[str, set[str]] = {
         "payload_sigma_kg",
     },
 }
+
+#: the keys of ``[drive]`` per ``kind`` (spec §2, §15); a ``[drive]`` without ``kind`` is the first.
+DRIVE_KEYS: dict[str, frozenset[str]] = {
+    "prismatic": frozenset(
+        {"kind", "base_joints_mm", "platform_joints_mm", "initial_lengths_mm", "stroke_range_mm", "stroke_scale"}
+    ),
+    "rotary": frozenset(
+        {
+            "kind",
+            "crank_centres_mm",
+            "crank_axes",
+            "crank_zero_directions",
+            "horn_lengths_mm",
+            "rod_lengths_mm",
+            "platform_joints_mm",
+            "angle_offsets_deg",
+            "angle_range_deg",
+            "stroke_scale",
+        }
+    ),
+}
+DRIVE_KINDS = tuple(DRIVE_KEYS)
+
+#: a crank's zero direction farther than this from orthogonal to its axis is refused [deg] (spec §15)
+ZERO_DIRECTION_TOLERANCE_DEG = 1.0
 
 #: a leg set whose every coordinate and length is below this [mm] was written in metres: no
 #: hexapod a tracker of grating rulers measures is under a centimetre.
@@ -441,9 +553,24 @@ def _refuse(source: str, key: str, expected: str) -> CalibError:
     return CalibError(f"{source}: key '{key}': expected {expected}")
 
 
+def drive_kind(doc: dict, source: str) -> str:
+    """``[drive] kind`` of a platform document (spec §15): ``"prismatic"`` where absent.
+
+    Raises:
+        CalibError: a kind that is not one of :data:`DRIVE_KINDS`, naming ``source`` and the key.
+    """
+    table = doc.get("drive")
+    kind = table.get("kind", DRIVE_KINDS[0]) if isinstance(table, dict) else DRIVE_KINDS[0]
+    if kind not in DRIVE_KINDS:
+        raise _refuse(source, "drive.kind", f"one of {', '.join(map(repr, DRIVE_KINDS))}, got {kind!r}")
+    return kind
+
+
 def _check_keys(doc: dict, source: str) -> None:
-    """Refuse a key :data:`PLATFORM_KEYS` does not know, suggesting the nearest known one."""
-    for table, known in PLATFORM_KEYS.items():
+    """Refuse a key :data:`PLATFORM_KEYS` (``[drive]``: :data:`DRIVE_KEYS` of its kind) does not know,
+    suggesting the nearest known one — of another drive kind too, saying which kind uses it."""
+    kind = drive_kind(doc, source)
+    for table, known in {**PLATFORM_KEYS, "drive": DRIVE_KEYS[kind]}.items():
         values = doc if not table else doc.get(table)
         if not isinstance(values, dict):
             continue
@@ -453,7 +580,22 @@ def _check_keys(doc: dict, source: str) -> None:
                 shown = key if key.isprintable() else key.encode("unicode_escape").decode("ascii")
                 full = f"{table}.{shown}" if table else shown
                 hint = did_you_mean(key, known)
+                if table == "drive":
+                    hint = _drive_key_hint(key, kind) or hint
                 raise CalibError(f"{source}: unknown key '{full}'{hint}; expected one of {', '.join(sorted(known))}")
+
+
+def _drive_key_hint(key: str, kind: str) -> str:
+    """Where ``key``, or the ``[drive]`` key nearest it, belongs to another drive kind than ``kind``:
+    a hint naming that kind (and the key meant); else ``""``."""
+    other = next((name for name, keys in DRIVE_KEYS.items() if key in keys), None)
+    if other is not None:
+        return f' (a key of [drive] kind = "{other}", spec §15; this [drive] is kind = "{kind}")'
+    nearest = did_you_mean(key, set().union(*DRIVE_KEYS.values()))
+    if not nearest or nearest == did_you_mean(key, DRIVE_KEYS[kind]):
+        return ""
+    other = next(name for name, keys in DRIVE_KEYS.items() if nearest == did_you_mean(key, keys))
+    return f'{nearest[:-1]} it is a key of [drive] kind = "{other}" (spec §15); this [drive] is kind = "{kind}")'
 
 
 def _is_number(value) -> bool:
@@ -523,6 +665,73 @@ def _legs(doc: dict, section: str, source: str) -> tuple[LegGeometry, dict]:
     return legs, table
 
 
+def _rotary(doc: dict, source: str) -> tuple[RotaryLegs, dict]:
+    """The ``[drive]`` table of ``kind = "rotary"`` (spec §15) as :class:`~stewart_calib.model.rotary.RotaryLegs`
+    [mm, rad]: axes normalised, zero directions made orthogonal to their axes and normalised."""
+    from .model.rotary import RotaryLegs, orthonormal_zero_directions  # the leg models import this module
+
+    table = doc.get("drive")
+    if not isinstance(table, dict):
+        raise _refuse(source, "drive", "a [drive] table")
+    centres = _array(table, "crank_centres_mm", (N_LEGS, 3), source, "drive")
+    given = {key: _array(table, key, (N_LEGS, 3), source, "drive") for key in ("crank_axes", "crank_zero_directions")}
+    for key, rows in given.items():
+        bad = np.flatnonzero(~(np.linalg.norm(rows, axis=1) > 0.0))
+        if bad.size:
+            raise _refuse(source, f"drive.{key}[{int(bad[0]) + 1}]", "a direction [x, y, z] of nonzero length")
+    axes, zeros, off_deg = orthonormal_zero_directions(given["crank_axes"], given["crank_zero_directions"])
+    bad = np.flatnonzero(~(off_deg <= ZERO_DIRECTION_TOLERANCE_DEG))  # NaN: along the axis
+    if bad.size:
+        i = int(bad[0])
+        raise _refuse(
+            source,
+            f"drive.crank_zero_directions[{i + 1}]",
+            f"a direction within {ZERO_DIRECTION_TOLERANCE_DEG:g}° of orthogonal to its axis (crank_axes row "
+            f"{i + 1}), got one {90.0 if np.isnan(off_deg[i]) else off_deg[i]:.4g}° from orthogonal",
+        )
+    lengths = {}
+    for key in ("horn_lengths_mm", "rod_lengths_mm"):
+        lengths[key] = _array(table, key, (N_LEGS,), source, "drive")
+        if np.any(lengths[key] <= 0):
+            raise _refuse(source, f"drive.{key}", "6 positive lengths in mm")
+    joints = _array(table, "platform_joints_mm", (N_LEGS, 3), source, "drive")
+    offsets_deg = (
+        _array(table, "angle_offsets_deg", (N_LEGS,), source, "drive")
+        if "angle_offsets_deg" in table
+        else np.zeros(N_LEGS)
+    )
+    if np.any(np.abs(offsets_deg) > 180.0):
+        raise _refuse(source, "drive.angle_offsets_deg", f"6 zero trims within ±180 deg, got {offsets_deg.tolist()}")
+    if "angle_range_deg" not in table:
+        raise _refuse(
+            source,
+            "drive.angle_range_deg",
+            '[min, max] in degrees: the commanded angles the servos accept (missing; required with kind = "rotary")',
+        )
+    low, high = _range(table, "angle_range_deg", source, "drive")  # type: ignore[misc]  # present: not None
+    if high - low > 360.0:
+        raise _refuse(source, "drive.angle_range_deg", f"[min, max] at most 360 deg apart, got [{low}, {high}]")
+    largest = max(np.abs(centres).max(), np.abs(joints).max(), *(values.max() for values in lengths.values()))
+    if largest < METRES_SUSPECT_MM:
+        raise CalibError(
+            f"{source}: [drive]: the geometry looks like metres (largest coordinate or length {largest:.4g}); "
+            "expected millimetres (spec §15)"
+        )
+    for key, points in (("crank_centres_mm", centres), ("platform_joints_mm", joints)):
+        _check_spread(points, source, f"drive.{key}")
+    legs = RotaryLegs(
+        crank_centres=centres,
+        crank_axes=axes,
+        zero_directions=zeros,
+        horn_lengths=lengths["horn_lengths_mm"],
+        rod_lengths=lengths["rod_lengths_mm"],
+        platform_joints=joints,
+        angle_offsets=np.radians(offsets_deg),
+        angle_range=(math.radians(low), math.radians(high)),
+    )
+    return legs, table
+
+
 def _check_spread(joints: np.ndarray, source: str, key: str) -> None:
     """Refuse six joints that coincide or lie on one line: a rotation about that line (or any,
     about a point) changes no leg length, so no pose could be solved or calibrated."""
@@ -547,14 +756,21 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
     description = doc.get("description", "")
     if not isinstance(description, str):
         raise _refuse(source, "description", "a string")
-    drive, drive_table = _legs(doc, "drive", source)
+    rotary = drive_kind(doc, source) == "rotary"
+    drive, drive_table = _rotary(doc, source) if rotary else _legs(doc, "drive", source)
+    if rotary and "elastic" in doc:
+        raise _refuse(
+            source,
+            "elastic",
+            'no [elastic] table with [drive] kind = "rotary" (a servo\'s torsional give is not modelled)',
+        )
     instrument = _instrument(doc, source)
     tracker, reading_range, geometry_sigma = None, None, 0.0
     if INSTRUMENT_SECTIONS[instrument.kind].reads_tracker or "tracker" in doc:
         tracker, tracker_table = _legs(doc, "tracker", source)
         reading_range = _range(tracker_table, "reading_range_mm", source, "tracker")
         geometry_sigma = _non_negative(tracker_table, "geometry_sigma_mm", 0.0, source, "tracker")
-    stroke_range = _range(drive_table, "stroke_range_mm", source, "drive")
+    stroke_range = None if rotary else _range(drive_table, "stroke_range_mm", source, "drive")
     stroke_scale = (
         _array(drive_table, "stroke_scale", (N_LEGS,), source, "drive")
         if "stroke_scale" in drive_table
@@ -588,7 +804,9 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
             rotation_limit=math.radians(limits["rotation_limit_deg"]),
         )
 
-    elastic = _elastic(doc, drive, source, give_reference_mm(drive, stroke_range))
+    elastic = (
+        _elastic(doc, drive, source, give_reference_mm(drive, stroke_range)) if isinstance(drive, LegGeometry) else None
+    )
     platform = Platform(
         name,
         drive,
@@ -789,8 +1007,20 @@ def _visibility(table: dict, n_targets: int, source: str) -> tuple[float | None,
 
 def _check_home_reachable(platform: Platform, workspace: Workspace, source: str) -> None:
     R, t = pose_to_rt(workspace.home)
+    drive = platform.drive
+    if not isinstance(drive, LegGeometry):  # a rotary drive (spec §15)
+        angles = drive.coordinates(R, t)
+        bad = np.flatnonzero(~np.isfinite(angles))
+        if bad.size:
+            low, high = np.degrees(drive.angle_range)
+            raise _refuse(
+                source,
+                "workspace.home",
+                f"a home pose every crank reaches with a commanded angle within [{low:g}, {high:g}] deg "
+                f"(drive.angle_range_deg); leg {int(bad[0]) + 1} cannot",
+            )
     for legs, bounds, what in (
-        (platform.drive, platform.stroke_range, "drive strokes"),
+        (drive if isinstance(drive, LegGeometry) else None, platform.stroke_range, "drive strokes"),
         (platform.tracker, platform.reading_range, "tracker readings"),
     ):
         if bounds is None or legs is None:
@@ -828,12 +1058,21 @@ def _toml_list(values) -> str:
 
 
 def platform_to_toml(platform: Platform) -> str:
-    """Serialise to the spec §2 TOML; ``parse_platform(tomllib.loads(...))`` round-trips exactly."""
+    """Serialise to the spec §2 TOML (a rotary drive's ``[drive]``: spec §15);
+    ``parse_platform(tomllib.loads(...))`` round-trips exactly (a rotary drive's directions and
+    angles to the last bit or two: they are normalised and converted again on reading)."""
     lines = [f"name = {_toml_str(platform.name)}"]
     if platform.description:
         lines.append(f"description = {_toml_str(platform.description)}")
+    drive, prismatic = platform.drive, None
+    if isinstance(drive, LegGeometry):
+        prismatic = drive
+    else:  # a rotary drive (spec §15)
+        lines += _rotary_toml(drive)
+        if np.any(platform.stroke_scale != 0):
+            lines.append(f"stroke_scale = {_toml_list(platform.stroke_scale)}")
     for section, legs, key, bounds in (
-        ("drive", platform.drive, "stroke_range_mm", platform.stroke_range),
+        ("drive", prismatic, "stroke_range_mm", platform.stroke_range),
         ("tracker", platform.tracker, "reading_range_mm", platform.reading_range),
     ):
         if legs is None:
@@ -864,6 +1103,24 @@ def platform_to_toml(platform: Platform) -> str:
             f"rotation_limit_deg = {math.degrees(ws.rotation_limit)!r}",
         ]
     return "\n".join(lines) + "\n"
+
+
+def _rotary_toml(legs: RotaryLegs) -> list[str]:
+    """The ``[drive]`` lines of a rotary drive (spec §15): its axes and zero directions as they are
+    (turned, in a calibrated platform), the zero trims in degrees."""
+    return [
+        "",
+        "[drive]",
+        'kind = "rotary"',
+        f"crank_centres_mm = {_toml_rows(legs.crank_centres)}",
+        f"crank_axes = {_toml_rows(legs.crank_axes)}",
+        f"crank_zero_directions = {_toml_rows(legs.zero_directions)}",
+        f"horn_lengths_mm = {_toml_list(legs.horn_lengths)}",
+        f"rod_lengths_mm = {_toml_list(legs.rod_lengths)}",
+        f"platform_joints_mm = {_toml_rows(legs.platform_joints)}",
+        f"angle_offsets_deg = {_toml_list(np.degrees(legs.angle_offsets))}",
+        f"angle_range_deg = {_toml_list(np.degrees(legs.angle_range))}",
+    ]
 
 
 def _pose6_toml(pose6: np.ndarray) -> str:

@@ -35,10 +35,10 @@ import numpy as np
 
 from . import kinematics as kin
 from .config import NoiseConfig
-from .drive import drive_model
+from .drive import drive_model, plain_drive
 from .errors import CalibError
 from .instruments import instrument_kind
-from .platform import Platform, give_reference_mm
+from .platform import LegGeometry, Platform, give_reference_mm
 
 #: a parameter error beyond this many prior σ is refused (two-sided tail probability < 1e-20).
 PRIOR_SIGMAS = 10.0
@@ -117,9 +117,13 @@ def rms_leg_residual_mm(platform: Platform, error: np.ndarray, strokes: np.ndarr
     # leg sets' roles swapped (q − (‖t + R d_i − j_i‖ − l_i), the negated leg residual): one
     # compiled pass whose FK starts from the sample before (track checks every --every rows,
     # ~3.5x the cold batch FK measured).
-    residuals, converged = kin.tracker_reading_residuals(
-        platform.drive.perturbed(error), strokes, [tracker], [readings]
-    )
+    legs = platform.drive.perturbed(error)
+    if type(legs) is LegGeometry:  # the leg set the compiled kernels take
+        residuals, converged = kin.tracker_reading_residuals(legs, strokes, [tracker], [readings])
+    else:
+        fk = kin.forward_kinematics(tracker, readings, strict=False)
+        converged = fk.converged[None]
+        residuals = plain_drive(legs).residual(None, fk.R, fk.t, strokes)[None]
     if not converged.any():
         return float("nan")
     return float(np.sqrt(np.mean(np.square(residuals[converged]))))

@@ -24,10 +24,12 @@ platform file does. Each estimator imposes ``C x = 0`` in its own way and says s
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .platform import LegGeometry, vector_to_params
+if TYPE_CHECKING:  # the annotation's type: the leg models sit above the unknown layout
+    from .model.legs import LegModel
 
 #: the two rigid motions a block may share with the drive (see the module docstring).
 GAUGES = ("base", "platform")
@@ -45,11 +47,13 @@ class UnknownBlock:
         file_scale: ``(n,)`` file value = code value × file_scale (``180/π`` for an angle).
         gauge: which of :data:`GAUGES` the block shares with the drive.
         random_walk: whether the block drifts with the drive's random walk (else constant).
-        holds_gauge: the gauge rows hold this block's own joints (its values laid out as δM's,
-            seven per leg) at their nominal mean rigid motion instead of the drive's — for a block
+        holds_gauge: the gauge rows hold this block's own joints (``joints``) at their nominal mean
+            rigid motion instead of the drive's — for a block
             known far better than the drive: the in-situ tracker's calibrated geometry then defines
             {J} and {D}, and the drive's own rigid error (millimetres, Table 4) is identified
             against it rather than pushed into the tracker, millimetres off its 15 µm prior.
+        joints: where it holds the gauge, ``(base, platform)`` ``(n, 3)`` int columns of its values
+            holding those joints (its leg set's :attr:`~stewart_calib.model.legs.LegModel.gauge_columns`).
     """
 
     key: str
@@ -60,8 +64,11 @@ class UnknownBlock:
     gauge: tuple[str, ...] = ()
     random_walk: bool = False
     holds_gauge: bool = False
+    joints: tuple[np.ndarray, np.ndarray] | None = None
 
     def __post_init__(self) -> None:
+        if self.holds_gauge and self.joints is None:
+            raise ValueError(f"block '{self.key}' holds the gauge: it must name its joints' columns")
         n = len(self.names)
         scale = np.ones(n) if self.file_scale is None else self.file_scale
         for name, value in (("nominal", self.nominal), ("prior_sigma", self.prior_sigma), ("file_scale", scale)):
@@ -125,15 +132,25 @@ class UnknownLayout:
     def block(self, key: str) -> UnknownBlock | None:
         return next((block for block in self.blocks if block.key == key), None)
 
-    def prior_sigma(self, drive_sigma_mm: float) -> np.ndarray:
-        """``(size,)`` prior σ: ``drive_sigma_mm`` on δM, then each block's own [code units]."""
+    def prior_sigma(self, drive_sigma_mm: float | np.ndarray) -> np.ndarray:
+        """``(size,)`` prior σ: ``drive_sigma_mm`` on δM (one for all, or ``(n_params,)`` entry by entry),
+        then each block's own [code units]."""
         return np.concatenate([np.full(self.n_params, drive_sigma_mm), *(block.prior_sigma for block in self.blocks)])
 
     def walks(self) -> np.ndarray:
         """``(size,)`` bool: which unknowns follow the parameter random walk (δM always)."""
         return np.concatenate([np.ones(self.n_params, bool), *(np.full(b.size, b.random_walk) for b in self.blocks)])
 
-    def gauge_rows(self, drive: LegGeometry) -> np.ndarray:
+    def walk_scales(self, drive_walk: np.ndarray, rate: float) -> np.ndarray | None:
+        """``(size,)`` each walking unknown's random walk over the common ``rate`` [per √s]: δM's
+        ``drive_walk`` ``(n_params,)`` (the drive's :meth:`~stewart_calib.drive.DriveModel.walk_sigmas`)
+        over it, 1 on the blocks; None where every entry walks at the rate itself (a prismatic drive)."""
+        drive_walk = np.asarray(drive_walk, dtype=float)
+        if not rate > 0.0 or np.all(drive_walk == rate):
+            return None
+        return np.concatenate([drive_walk / rate, np.ones(self.size - self.n_params)])
+
+    def gauge_rows(self, drive: LegModel) -> np.ndarray:
         """``(g, size)`` constraints ``C x = 0`` fixing the gauge the blocks share with the drive.
 
         Three rows hold the mean translation and three the mean rotation of the base joints
@@ -143,13 +160,13 @@ class UnknownLayout:
         """
         shared = {gauge for block in self.blocks for gauge in block.gauge}
         holder = next((block for block in self.blocks if block.holds_gauge), None)
-        start, legs = 0, drive.params
-        if holder is not None and (columns := self.slice(holder.key)) is not None:
-            start, legs = columns.start, vector_to_params(holder.nominal)
+        start, values, joints = 0, drive.as_vector(), drive.gauge_columns
+        if holder is not None and holder.joints is not None and (columns := self.slice(holder.key)) is not None:
+            start, values, joints = columns.start, holder.nominal, holder.joints
         rows = []
-        for gauge, offset in (("base", 0), ("platform", 3)):
+        for gauge, columns_of in zip(("base", "platform"), joints, strict=True):
             if gauge in shared:
-                rows.append(_rigid_motion_rows(legs, offset, start, self.size))
+                rows.append(_rigid_motion_rows(values, np.asarray(columns_of), start, self.size))
         return np.vstack(rows) if rows else np.zeros((0, self.size))
 
     def split(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -158,17 +175,16 @@ class UnknownLayout:
         return x[: self.n_params], {block.key: x[self.slice(block.key)] for block in self.blocks}
 
 
-def _rigid_motion_rows(legs: np.ndarray, offset: int, start: int, size: int) -> np.ndarray:
+def _rigid_motion_rows(values: np.ndarray, joints: np.ndarray, start: int, size: int) -> np.ndarray:
     """Rows whose span is the rigid motions ``δp_i = a + ω × (p_i − p̄)`` of the joints
-    ``p_i = legs[i, offset : offset + 3]`` of the per-leg parameters ``legs`` ``(n_legs, 7)``, laid
-    out from column ``start`` of ``x`` as ``legs`` is (``p_i`` at ``start + 7 i + offset + (0, 1,
-    2)``): translation ``Σ δp_i`` and rotation ``Σ (p_i − p̄) × δp_i``, each row scaled to unit norm."""
+    ``p_i = values[joints[i]]`` (``joints`` ``(n, 3)`` int columns of the parameter vector ``values``),
+    laid out from column ``start`` of ``x`` as ``values`` is (``p_i`` at ``start + joints[i]``):
+    translation ``Σ δp_i`` and rotation ``Σ (p_i − p̄) × δp_i``, each row scaled to unit norm."""
     C = np.zeros((6, size))
-    per_leg = legs.shape[1]
-    joints = legs[:, offset : offset + 3]
-    arms = joints - joints.mean(axis=0)
-    for i in range(len(legs)):
-        cols = slice(start + per_leg * i + offset, start + per_leg * i + offset + 3)
+    points = values[joints]
+    arms = points - points.mean(axis=0)
+    for i in range(len(joints)):
+        cols = start + joints[i]
         C[0:3, cols] = np.eye(3)
         r = arms[i]
         C[3:6, cols] = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])

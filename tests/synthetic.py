@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from stewart_calib import kinematics as kin
-from stewart_calib.platform import Platform, load_platform
+from stewart_calib.platform import LegGeometry, Platform, load_platform
 from stewart_calib.samples import Log
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -21,6 +21,31 @@ NIM_STEWART = ROOT / "configs" / "platforms" / "nim-stewart.toml"
 
 def nim_stewart() -> Platform:
     return load_platform(NIM_STEWART)
+
+
+class NumpyLegs(LegGeometry):
+    """The paper's legs as a leg model the compiled kernels do not take (only the exact
+    :class:`LegGeometry` is theirs): the yardstick of the paths a rotary drive takes."""
+
+    kind = "prismatic"
+    parameter_degrees = np.zeros(42, dtype=bool)
+
+    def residual_jacobians(self, R, t, e):
+        J_pose, J_M = kin.leg_residual_jacobians(self, R, t)
+        return J_pose, J_M, -np.ones(np.shape(e))
+
+    def perturbed(self, delta):
+        return numpy_legs(LegGeometry.perturbed(self, delta))
+
+    def coordinate_sigma(self, noise):
+        return noise.stroke_sigma_mm
+
+    def prior_sigmas(self, noise):
+        return np.full(self.n_params, noise.prior_sigma_mm)
+
+
+def numpy_legs(legs: LegGeometry) -> NumpyLegs:
+    return NumpyLegs(legs.base_joints, legs.platform_joints, legs.initial_lengths)
 
 
 def random_poses(platform: Platform, n: int, rng: np.random.Generator, fraction: float = 1.0) -> np.ndarray:

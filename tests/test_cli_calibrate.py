@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from stewart_calib import calibration, cli
+from stewart_calib import kinematics as kin
 from stewart_calib.calibration import run_calibration
 from stewart_calib.errors import SampleRejected
 from stewart_calib.estimate import Estimate
@@ -267,3 +268,18 @@ def test_samples_a_method_cannot_use_are_counted_and_reported_for_batch_and_onli
     result = read_result(tmp_path / "r.json")
     assert (result["samples_used"], result["samples_skipped"]) == (37, 3)
     assert any(f"{method} rejected samples: 3 of 40" in line for line in err)
+
+
+def test_the_rerun_residuals_of_any_leg_model_are_the_compiled_ones():
+    from dataclasses import replace
+
+    from stewart_calib.pipelines.calibrate import _residuals_per_sample
+    from tests.synthetic import nim_stewart, numpy_legs, random_error, random_poses
+
+    platform = nim_stewart()
+    R, t = kin.pose_to_rt(random_poses(platform, 8, np.random.default_rng(9)))
+    params = platform.drive.as_vector() + np.array([random_error(np.random.default_rng(k), 0.3) for k in range(8)])
+    strokes = np.random.default_rng(10).normal(0.0, 20.0, (8, 6))
+    compiled = _residuals_per_sample(platform, params, R, t, strokes)
+    generic = _residuals_per_sample(replace(platform, drive=numpy_legs(platform.drive)), params, R, t, strokes)
+    np.testing.assert_allclose(generic, compiled, rtol=0, atol=1e-9)

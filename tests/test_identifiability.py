@@ -19,12 +19,13 @@ from stewart_calib.identifiability import (
     name_direction,
     observability_indices,
     residual_covariance,
+    scaled_paper_jacobian,
     warning_line,
     whitened_leg_jacobian,
 )
 from stewart_calib.io import write_log
 from stewart_calib.platform import PARAMETER_NAMES
-from tests.synthetic import make_log, nim_stewart, random_error, random_poses
+from tests.synthetic import make_log, nim_stewart, numpy_legs, random_error, random_poses
 
 NOISE = NoiseConfig()
 INDEX = {name: k for k, name in enumerate(PARAMETER_NAMES)}
@@ -217,3 +218,29 @@ def test_cli_refuses_a_pose_list_without_pose_columns(platform, tmp_path, capsys
     assert cli_main(["identifiability", "--platform", str(platform.source), "--poses", str(path)]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and str(path) in err and "z_mm" in err
+
+
+def test_any_leg_model_gets_the_compiled_rows_and_paper_jacobian():
+    # whitened rows and J_p through the drive model's Jacobians (any leg model) equal the prismatic
+    # kernels' to round-off: J_p from ∂ξ/∂M by δh = R v, δθ = E⁻¹ R ω
+    platform = nim_stewart()
+    poses = random_poses(platform, 20, np.random.default_rng(3))
+    noise = NoiseConfig()
+    rows, J_p = whitened_leg_jacobian(platform, poses, noise), scaled_paper_jacobian(platform, poses)
+    generic = replace(platform, drive=numpy_legs(platform.drive))
+    pairs = ((whitened_leg_jacobian(generic, poses, noise), rows), (scaled_paper_jacobian(generic, poses), J_p))
+    for got, want in pairs:
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-14 * np.abs(want).max())
+
+
+def test_another_leg_models_report_is_the_compiled_ones():
+    platform = nim_stewart()
+    poses = random_poses(platform, 12, np.random.default_rng(5))
+    generic = replace(platform, drive=numpy_legs(platform.drive))
+    report, compiled = (
+        identifiability_report(generic, poses, NoiseConfig()),
+        identifiability_report(platform, poses, NoiseConfig()),
+    )
+    assert report.parameters_per_leg == 7 and not report.parameter_degrees.any()
+    np.testing.assert_allclose(report.predicted_stddev_mm, compiled.predicted_stddev_mm, rtol=1e-9)
+    assert report.format_text().splitlines()[0] == compiled.format_text().splitlines()[0]

@@ -114,3 +114,15 @@ def test_plan_refuses_a_dwell_time_that_would_not_increase_t_s(tmp_path, capsys,
     err = capsys.readouterr().err.strip().splitlines()
     assert stop.value.code == 2 and len(err) == 1 and "--dwell-s: expected a finite positive number" in err[0]
     assert not (tmp_path / "p.csv").exists()
+
+
+def test_the_nominal_yardstick_takes_another_leg_models_own_priors():
+    from dataclasses import replace
+
+    from stewart_calib.config import NoiseConfig
+    from stewart_calib.planning import nominal_error
+    from tests.synthetic import nim_stewart, numpy_legs
+
+    platform, noise = nim_stewart(), NoiseConfig()
+    generic = replace(platform, drive=numpy_legs(platform.drive))
+    assert nominal_error(generic, noise) == nominal_error(platform, noise)

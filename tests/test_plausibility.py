@@ -16,7 +16,7 @@ from stewart_calib.io import write_log
 from stewart_calib.online import OnlineCalibrator
 from stewart_calib.platform import LegGeometry, platform_to_toml
 from stewart_calib.plausibility import PRIOR_SIGMAS, RESIDUAL_SIGMAS, check_plausible, rms_leg_residual_mm
-from tests.synthetic import make_log, nim_stewart, random_error, random_poses
+from tests.synthetic import make_log, nim_stewart, numpy_legs, random_error, random_poses
 
 N = 60
 
@@ -162,3 +162,16 @@ def test_without_tracker_samples_the_refusal_names_no_leg_residual():
     with pytest.raises(CalibError) as refused:
         check_plausible(platform, error, noise, np.zeros((0, 6)), np.zeros((0, 6)), "lm")
     assert "largest parameter error j2z = 1000 mm" in str(refused.value) and "residual" not in str(refused.value)
+
+
+def test_any_leg_model_gets_the_compiled_leg_residual():
+    # the drive's residual at the tracker's poses through the drive model (any leg model) is the
+    # compiled pass's, whose roles of the two leg sets are swapped
+    platform = nim_stewart()
+    error = random_error(np.random.default_rng(6), 0.2)
+    poses = random_poses(platform, 30, np.random.default_rng(4))
+    log, _ = make_log(platform, random_error(np.random.default_rng(5)), poses, np.random.default_rng(7))
+    legs = platform.drive
+    generic = dataclasses.replace(platform, drive=numpy_legs(legs))
+    compiled = rms_leg_residual_mm(platform, error, log.strokes, log.readings)
+    assert rms_leg_residual_mm(generic, error, log.strokes, log.readings) == pytest.approx(compiled, rel=1e-9)

@@ -40,7 +40,8 @@ def test_an_existing_path_wins_over_a_shipped_name(tmp_path, monkeypatch):
 def test_an_unknown_name_lists_the_shipped_ones():
     with pytest.raises(
         CalibError,
-        match=r"nim-stewrat: platform file not found \(nor the name of a shipped file: hobby-hexapod, nim-stewart\)",
+        match=r"nim-stewrat: platform file not found "
+        r"\(nor the name of a shipped file: hobby-hexapod, nim-stewart, servo-hexapod\)",
     ):
         load_platform("nim-stewrat")
 

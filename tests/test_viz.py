@@ -31,7 +31,7 @@ from stewart_calib.viz.recording import (
 )
 from tests.instrument_data import hobby
 from tests.readback import read_blueprint_names, read_entity_rows, read_scalars, read_static
-from tests.synthetic import nim_stewart, random_error, random_poses
+from tests.synthetic import nim_stewart, numpy_legs, random_error, random_poses
 
 METHODS = ("ls", "isam2")
 STAGES = ("no-load", "20kg")
@@ -186,6 +186,28 @@ def test_leg_strips_join_the_joints_at_the_pose(written):
     assert not np.allclose(legs.base_joints, written["platform"].drive.base_joints, atol=1e-2)
 
 
+def test_a_rotary_leg_is_drawn_crank_horn_rod(monkeypatch):
+    from tests.test_rotary_legs import LEGS, reachable_poses
+
+    # the joints are the leg model's gauge columns (instruments.gauge.joint_columns of any leg model)
+    monkeypatch.setattr(recording, "joint_columns", lambda legs: tuple(np.ravel(c) for c in legs.gauge_columns))
+    R, t, _ = reachable_poses(LEGS, 4, 11)
+    strips = recording._leg_strips(LEGS, R, t).reshape(4, 6, 3, 3)
+    crank, horn, joint = strips[..., 0, :], strips[..., 1, :], strips[..., 2, :]
+    np.testing.assert_allclose(crank, np.broadcast_to(LEGS.crank_centres, crank.shape))
+    np.testing.assert_allclose(np.linalg.norm(horn - crank, axis=-1), np.broadcast_to(LEGS.horn_lengths, (4, 6)))
+    np.testing.assert_allclose(np.linalg.norm(joint - horn, axis=-1), np.broadcast_to(LEGS.rod_lengths, (4, 6)))
+    np.testing.assert_allclose(joint, kin.transform_points(R, t, LEGS.platform_joints), atol=1e-9)
+
+
+def test_any_prismatic_leg_model_is_drawn_straight():
+    platform = nim_stewart()
+    R, t = kin.pose_to_rt(random_poses(platform, 5, np.random.default_rng(8)))
+    np.testing.assert_array_equal(  # as the compiled leg set
+        recording._leg_strips(numpy_legs(platform.drive), R, t), recording._leg_strips(platform.drive, R, t)
+    )
+
+
 def test_polar_plot_encodes_the_deviation(written):
     stage, method = "20kg", "ls"
     deviation_mm = np.linalg.norm(written["actual_xyz"][stage, method] - written["desired_xyz"], axis=1)
@@ -281,3 +303,15 @@ def test_rerun_cli_verifies_the_file(written):
         pytest.skip("rerun CLI not installed")
     result = subprocess.run([cli, "rrd", "verify", str(written["path"])], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stdout + result.stderr
+
+
+def test_parameter_fields_are_read_off_the_leg_models_names():
+    platform = nim_stewart()
+    assert recording.parameter_fields(platform.drive.parameter_names, 6) == PARAMETER_FIELDS
+    assert recording.parameter_fields(("a1x", "d1z", "h1", "tu1", "tw1", "a2x", "d2z", "h2", "tu2", "tw2"), 2) == (
+        "a_x",
+        "d_z",
+        "h",
+        "tu",
+        "tw",
+    )

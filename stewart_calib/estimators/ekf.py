@@ -64,7 +64,6 @@ import dataclasses
 
 import numpy as np
 
-from .. import kinematics as kin
 from ..config import EstimatorConfig
 from ..drive import PAYLOAD, payload_block
 from ..errors import CalibError, SampleRejected, number
@@ -113,15 +112,20 @@ class LegEKF:
         C = self.layout.gauge_rows(platform.drive)
         # Q per unit ρ²Δt: the walking entries, conditioned on the gauge (None: the plain diagonal).
         walks = self.layout.walks()
-        unit_Q = None if walks.all() and len(C) == 0 else gauge_conditioned(np.diag(walks.astype(float)), C)
+        scales = self.layout.walk_scales(self.drive.walk_sigmas(config.noise), config.noise.random_walk_mm_per_sqrt_s)
+        if scales is None:
+            unit_Q = None if walks.all() and len(C) == 0 else gauge_conditioned(np.diag(walks.astype(float)), C)
+        else:  # δM's entries walk at their own rates (a rotary drive's angles)
+            unit_Q = gauge_conditioned(np.diag(walks * scales**2), C)
         self._instrument = self.layout.slice("instrument")
         # an instrument that offers compiled kernels (a leg set of known geometry) is observed in compiled
         # code, and the robust filter's batch passes and its gated recursion over a block of samples
         # (update_block) run in one compiled call each — but for an unannounced payload, whose step test
         # the per-sample path alone makes
         self._leg_set = None
-        if self.model.compiled_legs is not None:
+        if self.model.compiled_legs is not None and self.drive.legs.compiled:
             self._leg_set = LegSetPose(self.model, self.drive, self.noise.stroke_sigma_mm)
+        self._coordinate_sigma = self.drive.coordinate_sigma(config.noise)
         self._pose = self._leg_set or WarmPose(self.model)
         compiled_rows = self._leg_set.rows if self._leg_set is not None and payload is None else None
         self._compiled = compiled_rows is not None
@@ -130,7 +134,7 @@ class LegEKF:
         far_start = self._instrument is not None and needs_registration(platform)
         self.robust = RobustFilter(
             self.name,
-            config.noise.prior_sigma_mm,
+            self.drive.prior_sigmas(config.noise),
             config.noise.random_walk_mm_per_sqrt_s,
             config.ekf.gate_probability,
             self._observe,
@@ -214,7 +218,7 @@ class LegEKF:
             inputs = self.drive.inputs(strokes)
         else:  # the forces at the tracker's poses and the state's geometry, as update() takes them
             # the block's samples in order: each FK from the sample before (~3 Newton steps, not ~5)
-            fk = kin.forward_kinematics(leg_set.legs, np.where(plain[:, None], readings, 0.0), strict=False, along=True)
+            fk = leg_set.legs.forward_kinematics(np.where(plain[:, None], readings, 0.0), strict=False, along=True)
             plain &= fk.converged
             R, t = fk.R[plain], fk.t[plain]
             payload = None if block.load_kg is None else np.asarray(block.load_kg, dtype=float)[plain]
@@ -277,7 +281,7 @@ class LegEKF:
         if observed is None:
             return self._observe_tight(inputs, z, theta, x, dg_dm)
         residual, H_drive, R_meas, J_x = drive.observation(
-            x_drive, observed.R, observed.t, inputs, observed.covariance, self.noise.stroke_sigma_mm
+            x_drive, observed.R, observed.t, inputs, observed.covariance, self._coordinate_sigma
         )
         H_instrument = None if self._instrument is None else J_x @ observed.J_instrument
         return -residual, self._with_blocks(H_drive, H_instrument, dg_dm), R_meas
@@ -313,8 +317,9 @@ class LegEKF:
         H = -self._with_blocks(moves @ dg_dx, None, None if dg_dm is None else moves @ dg_dm)
         if self._instrument is not None:
             H[:, self._instrument] += res.J_instrument
-        A = res.J_pose @ J_g_inv * drive.extension_per_stroke(x_drive)  # ∂r/∂q: a stroke moves the drive model's pose
-        R_meas = np.diag(self.model.channel_sigma[channels] ** 2) + self.noise.stroke_sigma_mm**2 * (A @ A.T)
+        # a stroke moves the drive model's pose: ∂ξ/∂q = −J_g⁻¹ ∂r/∂q
+        A = res.J_pose @ J_g_inv * -drive.stroke_gains(x_drive, R, t, inputs)
+        R_meas = np.diag(self.model.channel_sigma[channels] ** 2) + self._coordinate_sigma**2 * (A @ A.T)
         return -res.r, H, 0.5 * (R_meas + R_meas.T)
 
     def samples_held(self) -> int:

@@ -44,7 +44,6 @@ from dataclasses import dataclass, replace
 import gtsam
 import numpy as np
 
-from .. import kinematics as kin
 from ..config import EstimatorConfig
 from ..drive import PAYLOAD
 from ..errors import SampleRejected, number
@@ -152,7 +151,9 @@ class GraphBuilder:
         self._drive_legs = [
             (
                 drive_leg.DriveLegs.of(legs, self.drive, self._payload),
-                robust_noise(gtsam.noiseModel.Isotropic.Sigma(len(legs), self.noise.stroke_sigma_mm), *self._robust),
+                robust_noise(
+                    gtsam.noiseModel.Isotropic.Sigma(len(legs), self.drive.coordinate_sigma(self.noise)), *self._robust
+                ),
             )
             for legs in ([np.arange(self.drive.rows)] if self._gaussian else [[i] for i in range(self.drive.rows)])
         ]
@@ -164,8 +165,11 @@ class GraphBuilder:
         # FK alone (its covariance, which model.pose adds, is for loose coupling)
         self._fk_legs = self.model.compiled_legs if self.graph.coupling == "tight" else None
         self._instrument = self.layout.slice("instrument")
-        self._prior_sigma = self.layout.prior_sigma(self.noise.prior_sigma_mm)
+        self._prior_sigma = self.layout.prior_sigma(self.drive.prior_sigmas(self.noise))
         self._walks = self.layout.walks()
+        self._walk_scales = self.layout.walk_scales(
+            self.drive.walk_sigmas(self.noise), self.noise.random_walk_mm_per_sqrt_s
+        )
         self._gauge = self.layout.gauge_rows(platform.drive)
         #: whether :meth:`epoch` asks for the current estimate only when a sample opens a window (no
         #: instrument unknowns, and the measurement always fixes the pose): then a window's samples
@@ -238,7 +242,11 @@ class GraphBuilder:
         its process noise), else it is tied by the floor like every constant block."""
         rate = self._walk_rate(walk_rate_mm2_per_s)
         sigma = random_walk.sigma_mm(math.sqrt(rate / noise_scale2), dt_s, self.graph.chain_sigma_floor_mm)
-        sigmas = np.where(self._walks, sigma, self.graph.chain_sigma_floor_mm)
+        floor = self.graph.chain_sigma_floor_mm
+        if self._walk_scales is None:
+            sigmas = np.where(self._walks, sigma, floor)
+        else:  # δM's entries walk at their own rates (a rotary drive's angles)
+            sigmas = np.where(self._walks, np.maximum(sigma * self._walk_scales, floor), floor)
         if payload_step and self._payload is not None:
             sigmas[self._payload] = self._prior_sigma[self._payload] / math.sqrt(noise_scale2)
         return random_walk.factor(params_key(window), params_key(window + 1), sigmas)
@@ -319,7 +327,7 @@ class GraphBuilder:
             else (self.initial if state.samples == 0 and self._instrument is not None else None)
         )
         if self._fk_legs is not None:
-            observed, (R, t) = None, kin.solve_fk(self._fk_legs, z, state.last_pose, "tracker")
+            observed, (R, t) = None, self._fk_legs.solve_fk(z, state.last_pose, "tracker")
         else:
             theta = instrument_theta(
                 self.model, None if guess is None or self._instrument is None else guess[self._instrument]

@@ -302,7 +302,7 @@ def _leg_set_observation(x, row, observation, R_guess, t_guess, warm, scratch):
     drive, legs, extension_terms, variances, newton = observation
     R_pose, t_pose, extensions, nu, fk_work, factors, H_full = scratch
     starts, gains, base_factors, columns = extension_terms
-    n_drive = drive[0].shape[0] * (drive[0].shape[1] + drive[1].shape[1] + 1)  # δM: [j_i | d_i | l_i] a leg
+    n_drive = drive[0].shape[0] * (drive[0].shape[1] + drive[1].shape[1] + 1)  # δM: the compiled (prismatic) leg layout
     for b in range(starts.shape[0]):
         for i in range(columns.shape[1]):
             c = columns[b, i]
@@ -539,7 +539,8 @@ class FilterState:
 
     Args:
         method: the estimator's name, for the estimate and messages.
-        prior_sigma_mm: σ of δM's prior [mm]; initial ``P = σ² I`` on δM.
+        prior_sigma_mm: σ of δM's prior [code units], one for all entries or ``(n_params,)`` entry by
+            entry (the drive's :meth:`~stewart_calib.drive.DriveModel.prior_sigmas`); initial ``P = diag(σ²)`` on δM.
         gate_probability: χ² gate probability with ``m`` degrees of freedom, 0 = off.
         m: observation size the gate is set for: rows of a sample as the caller's model declares them
             (the drive's legs, :attr:`~stewart_calib.drive.DriveModel.rows`; the pose6 difference of
@@ -553,7 +554,7 @@ class FilterState:
     def __init__(
         self,
         method: str,
-        prior_sigma_mm: float,
+        prior_sigma_mm: float | np.ndarray,
         gate_probability: float,
         m: int,
         layout: UnknownLayout,
@@ -561,7 +562,7 @@ class FilterState:
     ):
         if not 0.0 <= gate_probability < 1.0:
             raise CalibError(f"{method}: gate_probability must lie in [0, 1), got {gate_probability}")
-        if not prior_sigma_mm > 0.0:
+        if not np.all(np.asarray(prior_sigma_mm) > 0.0):
             raise CalibError(f"{method}: noise.prior_sigma_mm must be positive, got {prior_sigma_mm}")
         self.method = method
         self.layout = layout

@@ -90,7 +90,7 @@ class BatchLM(BufferedFit):
         self._late: list[SampleRejected] = []  # samples the test has left out, not yet reported
         self._prior_index: int | None = None  # the prior factor on the first parameter variable
         self._noise_scale: float | None = None
-        self._prior_sigma2 = self._builder.layout.prior_sigma(config.noise.prior_sigma_mm) ** 2
+        self._prior_sigma2 = self._builder.layout.prior_sigma(self._builder.drive.prior_sigmas(config.noise)) ** 2
         # the walk rows a parameter variable's gauge constraint pins (see _variance_factor)
         walks = self._builder.layout.walks()
         gauge = self._builder.layout.gauge_rows(platform.drive)

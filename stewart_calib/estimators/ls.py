@@ -90,7 +90,7 @@ def gauss_newton(
     """Iterated least squares ``min Σ_k ‖W (P_v,k − P_m,k(x))‖²`` (paper eq. 9–11).
 
     Args:
-        nominal: nominal drive geometry M.
+        nominal: nominal drive legs M (prismatic: the paper's error Jacobian ``J_p``).
         strokes: ``(N, n_legs)`` executed strokes [mm] (with ``drive``: as logged).
         R_v, t_v: ``(N, 3, 3)``, ``(N, 3)`` measured poses P_v.
         config: tolerance, iteration cap, rotation weight.
@@ -104,7 +104,7 @@ def gauss_newton(
     """
     weight = np.r_[np.ones(3), np.full(3, config.rotation_weight_mm)]
     n_params = nominal.n_params
-    per_leg = n_params // nominal.n_legs  # a leg's parameters [j_i | d_i | l_i], l_i the last
+    per_leg = n_params // nominal.n_legs  # a leg's parameters, its initial length the last
     size = n_params if drive is None else drive.size
     n = len(strokes)
     error = np.zeros(size)
@@ -120,7 +120,7 @@ def gauss_newton(
                     payload = None if payload_kg is None else payload_kg[rows]
                     inputs = drive.inputs(strokes[rows], payload, R_v[rows], t_v[rows], error)
                     lengths = drive.extensions(inputs, error)
-                sol = kin.forward_kinematics(legs, lengths, guess=(R_m[rows], t_m[rows]), strict=False)
+                sol = legs.forward_kinematics(lengths, guess=(R_m[rows], t_m[rows]), strict=False)
                 if not np.all(sol.converged):
                     raise CalibError(f"ls: model forward kinematics failed at iteration {iteration}; the fit diverged")
                 R_m[rows], t_m[rows] = sol.R, sol.t
@@ -266,6 +266,11 @@ class LeastSquares(BufferedFit):
         self.drive = drive_model(platform)
         self._external = outside_model(platform) if instrument_kind(platform).outside else None
         if self._external is None:
+            if platform.drive.kind != "prismatic":  # eq. 8–11: the error Jacobian of prismatic legs
+                raise CalibError(
+                    f"{platform.source}: ls with the in-situ tracker fits the paper's prismatic legs, not a "
+                    f"{platform.drive.kind} drive; use ekf, isam2 or lm"
+                )
             self.model = drive_only_model(self.name, platform, config, drive_blocks=True)
             self._pose = WarmPose(self.model)
             fitted = drive_model(platform, config.noise)
@@ -323,7 +328,7 @@ class LeastSquares(BufferedFit):
             inputs = self._fitted.inputs(strokes, payload, R_v, t_v, solution.error)
             extensions = self._fitted.extensions(inputs, solution.error)
         legs = self.platform.drive.perturbed(solution.error[: self.platform.drive.n_params])
-        residuals = kin.inverse_kinematics(legs, R_v, t_v) - extensions
+        residuals = legs.coordinates(R_v, t_v) - extensions
         outliers = gross_outliers(
             self.platform,
             self._noise,

@@ -34,7 +34,8 @@ from ..instruments import (
     needs_registration,
     registered,
 )
-from ..platform import LegGeometry, Platform
+from ..model.legs import LegModel
+from ..platform import Platform
 from ..samples import Sample
 from ..unknowns import UnknownLayout
 from .base import state_array
@@ -136,24 +137,17 @@ class _WarmStart:
 
 
 class WarmFK(_WarmStart):
-    """Forward kinematics for a stream of samples, warm-started from the last solution.
+    """Forward kinematics for a stream of samples, warm-started from the last solution."""
 
-    Args:
-        tol_mm: Newton tolerance on the leg lengths [mm].
-    """
+    def solve(self, legs: LegModel, coordinates: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """``(R, t)`` closing every leg of ``legs`` at its ``coordinates`` (paper step 1).
 
-    def __init__(self, tol_mm: float = kin.FK_TOLERANCE_MM):
-        self.tol_mm = tol_mm
-
-    def solve(self, legs: LegGeometry, lengths: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
-        """``(R, t)`` with ``‖t + R p_i − b_i‖ = initial_i + lengths_i`` (paper step 1).
-
-        Tries the previous pose first, then the default cold guess (:func:`~stewart_calib.kinematics.solve_fk`).
+        Tries the previous pose first, then the default cold guess (the leg model's ``solve_fk``).
 
         Raises:
             SampleRejected: neither start converges; ``what`` names the leg set.
         """
-        self._guess = kin.solve_fk(legs, lengths, self._guess, what, self.tol_mm)
+        self._guess = legs.solve_fk(coordinates, self._guess, what)
         return self._guess
 
 
@@ -174,27 +168,29 @@ class WarmPose(_WarmStart):
 
 class LegSetPose(WarmPose):
     """:class:`WarmPose` of an instrument that offers compiled kernels: its readings are those of a
-    prismatic leg set of known geometry (``model.compiled_legs``), so the EKF's observation of a prepared
+    prismatic leg set of known geometry (``model.compiled_legs``), and the drive's legs have compiled
+    kernels too (``drive.legs.compiled``), so the EKF's observation of a prepared
     sample ``[u | z]`` through the pose they fix is one compiled call
     (:func:`~.kalman.leg_set_observation`), and so is the robust filter's recursion over rows of them
     (:meth:`rows`, :func:`~.kalman.leg_set_filter_rows`: the same observation). Both move the one warm start.
 
     Args:
         model: the instrument model (``compiled_legs`` not None).
-        drive: the drive model the EKF identifies (its unknown terms: columns of the state after δM).
+        drive: the drive model the EKF identifies (its unknown terms: columns of the state after δM;
+            its legs compiled).
         stroke_sigma_mm: σ_q of a stroke [mm].
     """
 
     def __init__(self, model: InstrumentModel, drive: DriveModel, stroke_sigma_mm: float):
         super().__init__(model)
-        legs, nominal = model.compiled_legs, drive.legs
+        legs = model.compiled_legs
         if legs is None:
             raise TypeError(f"the {model.kind} instrument's model offers no compiled kernels")
         self.legs = legs
-        starts, gains, offsets, values, columns = drive.kernel_terms()
+        starts, gains, offsets, values, columns = drive.kernel_terms()  # compiled legs only
         self._observation = (
-            (nominal.base_joints, nominal.platform_joints, nominal.initial_lengths),
-            (legs.base_joints, legs.platform_joints, legs.initial_lengths),
+            drive.prismatic().kernel_geometry(),
+            legs.kernel_geometry(),
             (starts, gains, np.ascontiguousarray(offsets[:, None] + values), columns),
             (float(model.channel_sigma[0]) ** 2, float(stroke_sigma_mm) ** 2),
             (kin.FK_TOLERANCE_MM, kin.FK_MAX_ITERATIONS),

@@ -69,6 +69,11 @@ class PaperEKF:
 
     def __init__(self, platform: Platform, config: EstimatorConfig):
         c = config.paper_ekf
+        if platform.drive.kind != "prismatic":  # eq. 8–11: the error Jacobian of prismatic legs
+            raise CalibError(
+                f"{platform.source}: paper-ekf models the paper's prismatic legs, not a {platform.drive.kind} "
+                "drive; use ekf, isam2, lm or ls"
+            )
         if platform.elastic is not None:  # the paper's model identifies δM alone: c held at [elastic]'s nominal
             platform = replace(platform, elastic=replace(platform.elastic, compliance_sigma_mm_per_kN=0.0))
         self.platform = platform

@@ -132,7 +132,7 @@ class RobustFilter:
 
     Args:
         method: names the estimator in messages.
-        prior_sigma_mm: initial ``P = σ² I`` [mm²].
+        prior_sigma_mm: initial ``P = diag(σ²)`` on δM [code units]: one σ, or ``(n_params,)`` entry by entry.
         walk_mm_per_sqrt_s: configured random walk ρ [mm/√s] (``Q = ρ² Δt I`` unless adapted).
         gate_probability: χ² gate probability (0 = off: then also no start-up refusals).
         observe: the linearised observation of a prepared sample at a state (see :data:`Observe`).
@@ -173,7 +173,7 @@ class RobustFilter:
     def __init__(
         self,
         method: str,
-        prior_sigma_mm: float,
+        prior_sigma_mm: float | np.ndarray,
         walk_mm_per_sqrt_s: float,
         gate_probability: float,
         observe: Observe,

@@ -68,6 +68,32 @@ def drive_leg_rows(pose, unknowns, legs_of, nominal, columns, terms, inputs):
     return r, J_pose, H
 
 
+def drive_leg_rows_numpy(pose, unknowns, drive, legs_of, inputs):
+    """:func:`drive_leg_rows` of a drive whose legs have no compiled kernels, from its leg model
+    (:class:`~stewart_calib.drive.DriveModel`'s residual and Jacobians, numpy), each row over its
+    ``|J_e,i| = |∂r_i/∂e_i|``: a residual in the unit of the leg's coordinate, whose noise is one
+    logged coordinate's σ at every pose (:meth:`~stewart_calib.drive.DriveModel.coordinate_sigma`;
+    prismatic legs: ``|J_e| = 1``, the compiled rows).
+
+    Args:
+        pose: ``(4, 4)`` homogeneous pose; unknowns: ``(size,)``, the drive's ``x_drive`` first.
+        drive: the :class:`~stewart_calib.drive.DriveModel`.
+        legs_of: ``(k,)`` the rows' leg indices; inputs: the sample's drive inputs ``u``.
+    Returns:
+        ``(r (k,), ∂r/∂ξ (k, 6), ∂r/∂unknowns (k, size))``.
+    """
+    R, t = pose[:3, :3], pose[:3, 3]
+    x_drive = unknowns[: drive.size]
+    legs, extensions = drive.geometry(x_drive), drive.extensions(inputs, x_drive)
+    r = legs.residuals(R, t, extensions)
+    J_pose, J_M, J_e = legs.residual_jacobians(R, t, extensions)
+    J_x = drive.with_terms(J_M, inputs, J_e)
+    scale = 1.0 / np.abs(J_e[legs_of])
+    H = np.zeros((len(legs_of), len(unknowns)))
+    H[:, : drive.size] = J_x[legs_of] * scale[:, None]
+    return r[legs_of] * scale, J_pose[legs_of] * scale[:, None], H
+
+
 @njit(**_JIT)
 def _legs_at(pose, legs, extensions):
     """:func:`~stewart_calib._kernels.leg_rows` of ``legs (k, 7)`` with ``extensions`` at the homogeneous

@@ -1,15 +1,18 @@
 """Drive-leg factor: platform pose ↔ the drive model's unknowns (paper eq. 1).
 
-Residual of drive leg i (:mod:`stewart_calib.drive`)::
+Residual of drive leg i (:mod:`stewart_calib.drive`): the leg model's closure residual at the
+leg's parameters ``nominal_i + δ_i``, for prismatic legs::
 
     r_i = ‖t + R d_i − j_i‖ − (l_i + e_i),    (j_i, d_i, l_i) = nominal_i + δ_i
 
-with δ_i = (δj_i, δd_i, δl_i) the leg's slice of δM (paper eq. 9) and ``e_i`` the drive model's
+with δ_i the leg's slice of δM (paper eq. 9: ``(δj_i, δd_i, δl_i)``) and ``e_i`` the drive model's
 extension of the sample's inputs (the stroke ``(1 + k_i) q_i``), whose terms' values are the
 nominal ones plus, where the drive identifies them, the unknown vector's errors
-(``∂r_i/∂v_{b,i} = −g_b u_{b,i}``). The factor's variables are the pose ``X_k`` (``gtsam.Pose3``)
+(``∂r_i/∂v_{b,i} = J_e,i g_b u_{b,i}``, prismatic ``J_e = −1``). Prismatic legs (``legs.compiled``)
+are one compiled call; other leg kinds the drive model's numpy residual and Jacobians
+(:func:`._kernels.drive_leg_rows_numpy`), the same rows. The factor's variables are the pose ``X_k`` (``gtsam.Pose3``)
 and the unknown vector of the current parameter window (the drive's first); leg i's row touches
-only its own seven columns and its terms' values. (One 42-vector variable is faster than six
+only its own parameters' columns and its terms' values. (One 42-vector variable is faster than six
 7-vector variables; see :mod:`stewart_calib.estimators.isam2`.) One factor holds the six legs of
 a sample (one Python callback per linearisation instead of six, and one Jacobian block for gtsam
 to eliminate): with Gaussian noise the six rows are the six scalar factors exactly; a robust
@@ -35,7 +38,7 @@ import gtsam
 import numpy as np
 
 from ..drive import DriveModel
-from ._kernels import drive_leg_rows
+from ._kernels import drive_leg_rows, drive_leg_rows_numpy
 
 
 @dataclass(frozen=True)
@@ -44,8 +47,8 @@ class DriveLegs:
 
     Attributes:
         legs: ``(k,)`` leg indices (0-based).
-        nominal: ``(k, 7)`` their nominal ``[j_i | d_i | l_i]`` [mm].
-        columns: ``(k, 7)`` their δ_i's columns in the unknown vector.
+        nominal: ``(k, p)`` their nominal parameters, ``p`` a leg (prismatic ``[j_i | d_i | l_i]`` [mm]).
+        columns: ``(k, p)`` their δ_i's columns in the unknown vector.
         terms: the drive's extension terms (:meth:`~stewart_calib.drive.DriveModel.kernel_terms`).
         elastic: the drive where its inputs hold leg forces (spec §10), else None: each evaluation
             then takes the forces at the pose and the geometry being evaluated, so the residual is
@@ -54,6 +57,8 @@ class DriveLegs:
             tests/test_elastic.py), which slows no convergence measurably.
         payload: the unannounced payload's column in the unknown vector (an elastic drive's, see the
             module docstring), else None.
+        generic: the drive where its legs have no compiled kernels (``legs.compiled`` False): the
+            rows are then its numpy residual and Jacobians; None: the compiled ones.
     """
 
     legs: np.ndarray
@@ -62,18 +67,28 @@ class DriveLegs:
     terms: tuple
     elastic: DriveModel | None = None
     payload: int | None = None
+    generic: DriveModel | None = None
 
     @classmethod
     def of(cls, legs, drive: DriveModel, payload: int | None = None) -> DriveLegs:
         """Legs ``legs`` of ``drive``, whose ``x_drive`` opens the unknown vector (``payload``: the
         unannounced payload's column in it, or None)."""
         legs = np.asarray(legs, dtype=np.int64).reshape(-1)
-        params = drive.legs.params  # (legs, parameters of a leg): x_drive's first entries, leg by leg
+        model = drive.legs
+        params = model.as_vector().reshape(model.n_legs, -1)  # x_drive's first entries, leg by leg
         per_leg = params.shape[1]
         columns = per_leg * legs[:, None] + np.arange(per_leg)
         elastic = drive if drive.elastic is not None else None
         nominal = np.array(params[legs])
+        if not model.compiled:
+            return cls(legs, nominal, np.ascontiguousarray(columns), (), elastic, payload, drive)
         return cls(legs, nominal, np.ascontiguousarray(columns), drive.kernel_terms(), elastic, payload)
+
+    def rows(self, pose: np.ndarray, unknowns: np.ndarray, inputs: np.ndarray):
+        """``(r (k,), ∂r/∂ξ (k, 6), ∂r/∂unknowns (k, size))`` at ``pose`` ``(4, 4)`` and ``unknowns``."""
+        if self.generic is not None:
+            return drive_leg_rows_numpy(pose, unknowns, self.generic, self.legs, inputs)
+        return drive_leg_rows(pose, unknowns, self.legs, self.nominal, self.columns, self.terms, inputs)
 
 
 def _error(
@@ -94,15 +109,7 @@ def _error(
             per_kg = elastic.payload_leg_forces(pose[:3, :3], pose[:3, 3], params)
             inputs = elastic.loaded_inputs(inputs, per_kg, float(params[legs.payload]))
             dr_dm = -(elastic.force_gains(params) * per_kg)[legs.legs]
-    r, H_pose, H_params = drive_leg_rows(
-        pose,
-        params,
-        legs.legs,
-        legs.nominal,
-        legs.columns,
-        legs.terms,
-        inputs,
-    )
+    r, H_pose, H_params = legs.rows(pose, params, inputs)
     if H is not None:
         if dr_dm is not None:
             H_params[:, legs.payload] = dr_dm
@@ -114,8 +121,8 @@ def _error(
 def walk_covariance(legs: DriveLegs, pose: np.ndarray, unknowns: np.ndarray, inputs: np.ndarray, walks: np.ndarray):
     """``H_w H_wᵀ`` ``(k, k)``: the rows' covariance per unit walk variance of the unknowns ``walks``
     (bool, ``(size,)``), ``H_w`` the rows' Jacobian on them at ``pose`` (``(4, 4)``) and ``unknowns``
-    (for δM each leg's own ``[−nᵀ, n_bᵀ, −1]``: 3 on the diagonal, whatever the pose)."""
-    _, _, H = drive_leg_rows(pose, unknowns, legs.legs, legs.nominal, legs.columns, legs.terms, inputs)
+    (for a prismatic δM each leg's own ``[−nᵀ, n_bᵀ, −1]``: 3 on the diagonal, whatever the pose)."""
+    _, _, H = legs.rows(pose, unknowns, inputs)
     H_walk = H[:, walks]
     return H_walk @ H_walk.T
 
@@ -136,8 +143,8 @@ def factor(
         payload_kg: the sample's payload where the drive is elastic (spec §10; None: 0).
         noise: of the ``k`` rows.
 
-    The residual and both Jacobians are one compiled call (:func:`._kernels.drive_leg_rows`, on
-    :func:`stewart_calib.kinematics.leg_residual`'s kernel).
+    The residual and both Jacobians are one compiled call for prismatic legs (:func:`._kernels.drive_leg_rows`,
+    on :func:`stewart_calib.kinematics.leg_residual`'s kernel), else the drive model's numpy rows.
     """
     u = np.array(inputs, dtype=float)
     return gtsam.CustomFactor(noise, [pose_key, params_key], partial(_error, legs, u, payload_kg, pose_key, params_key))

@@ -11,8 +11,11 @@ centroid,
 
 so {J} stays the frame in which the base joints best fit (Kabsch) their nominal positions, {D}
 likewise for the platform joints, and the instrument frame and target(s) take the rigid parts.
-:func:`free_basis` spans the 30 directions of δM left free; :func:`to_gauge` moves a truth
-given in any frame into this gauge (for comparisons with simulator truth).
+The joints are the leg model's :attr:`~stewart_calib.model.legs.LegModel.gauge_columns` (a
+rotary drive's base-side points are its crank centres ``a_i``, spec §15).
+:func:`free_basis` spans the directions of δM left free (42 − 12 = 30 prismatic, 66 − 12 = 54
+rotary); :func:`to_gauge` moves a truth given in any frame into this gauge (for comparisons with
+simulator truth).
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import kinematics as kin
-from ..platform import PARAMETER_FIELDS, LegGeometry
+from ..model.legs import LegModel
 from . import lie
 
 #: stated in every result that fixes the gauge this way
@@ -32,11 +35,11 @@ GAUGE_STATEMENT = (
 )
 
 
-def joint_columns(legs: LegGeometry) -> tuple[np.ndarray, np.ndarray]:
-    """``(base, platform)``: the entries of ``legs``' parameter vector that hold the base joints ``j_i``
-    and the platform joints ``d_i``, leg by leg, x y z."""
-    base = np.array([len(PARAMETER_FIELDS) * i + a for i in range(legs.n_legs) for a in range(3)])
-    return base, base + 3
+def joint_columns(legs: LegModel) -> tuple[np.ndarray, np.ndarray]:
+    """``(base, platform)`` ``(3 n,)``: the entries of ``legs``' parameter vector that hold the base-side
+    points and the platform joints ``d_i``, leg by leg, x y z (:attr:`LegModel.gauge_columns`)."""
+    base, platform = legs.gauge_columns
+    return np.asarray(base).reshape(-1), np.asarray(platform).reshape(-1)
 
 
 def rigid_directions(points: np.ndarray) -> np.ndarray:
@@ -49,15 +52,15 @@ def rigid_directions(points: np.ndarray) -> np.ndarray:
     return G.reshape(3 * len(points), 6)
 
 
-def free_basis(nominal: LegGeometry) -> np.ndarray:
-    """``(42, 30)`` orthonormal basis of the δM satisfying the gauge (see the module docstring) for six
-    legs; ``(7 L, 7 L − 12)`` for L."""
+def free_basis(nominal: LegModel) -> np.ndarray:
+    """``(n_params, n_params − 12)`` orthonormal basis of the δM satisfying the gauge (see the module
+    docstring): the null space of its 12 constraints (``(42, 30)`` prismatic, ``(66, 54)`` rotary)."""
     B = np.eye(nominal.n_params)
     keep = np.ones(nominal.n_params, dtype=bool)
     blocks = []
-    base_columns, platform_columns = joint_columns(nominal)
-    for columns, points in ((base_columns, nominal.base_joints), (platform_columns, nominal.platform_joints)):
-        G = rigid_directions(points)
+    values = nominal.as_vector()
+    for columns in joint_columns(nominal):
+        G = rigid_directions(values[columns].reshape(-1, 3))
         Q, _ = np.linalg.qr(G)
         free = len(G) - G.shape[1]  # the directions ⟂ the rigid ones: 12 of a leg set's 18 joint coordinates
         complement = np.linalg.svd(np.eye(len(G)) - Q @ Q.T)[0][:, :free]
@@ -76,8 +79,8 @@ def kabsch(source: np.ndarray, destination: np.ndarray) -> tuple[np.ndarray, np.
     return R, cd - R @ cs
 
 
-def to_gauge(nominal: LegGeometry, params: np.ndarray) -> tuple[np.ndarray, tuple, tuple]:
-    """Move true absolute parameters ``(42,)`` into the gauge of :func:`free_basis`.
+def to_gauge(nominal: LegModel, params: np.ndarray) -> tuple[np.ndarray, tuple, tuple]:
+    """Move true absolute parameters ``(n_params,)`` of prismatic legs into the gauge of :func:`free_basis`.
 
     Returns:
         ``(params', (R_J, t_J), (R_D, t_D))``: the parameters in the gauge, and the rigid motions
@@ -85,8 +88,12 @@ def to_gauge(nominal: LegGeometry, params: np.ndarray) -> tuple[np.ndarray, tupl
         ``T_J'_J X T_D'_D⁻¹``, a frame ``F = T_J_I`` becomes ``T_J'_J F``, a target ``G = T_D_T``
         becomes ``T_D'_D G`` and target points ``p`` become ``R_D p + t_D``.
     """
-    legs = LegGeometry.from_params(params)
-    R_J, t_J = kabsch(legs.base_joints, nominal.base_joints)
-    R_D, t_D = kabsch(legs.platform_joints, nominal.platform_joints)
-    moved = LegGeometry(legs.base_joints @ R_J.T + t_J, legs.platform_joints @ R_D.T + t_D, legs.initial_lengths)
-    return moved.as_vector(), (R_J, t_J), (R_D, t_D)
+    if nominal.kind != "prismatic":  # a rigid move of a rotary base turns its crank axes too (spec §15)
+        raise ValueError(f"to_gauge moves prismatic legs' joints only, not a {nominal.kind} drive's")
+    base_columns, platform_columns = nominal.gauge_columns
+    values, moved = nominal.as_vector(), np.array(params, dtype=float)
+    R_J, t_J = kabsch(moved[base_columns], values[base_columns])
+    R_D, t_D = kabsch(moved[platform_columns], values[platform_columns])
+    moved[base_columns] = moved[base_columns] @ R_J.T + t_J
+    moved[platform_columns] = moved[platform_columns] @ R_D.T + t_D
+    return moved, (R_J, t_J), (R_D, t_D)

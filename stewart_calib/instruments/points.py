@@ -217,7 +217,9 @@ class PointsModel(OutsideModel):
         """A nominal points instrument for a simulated study: frame at {J}'s origin, ``n_targets`` (≤ 3)
         targets halfway out towards platform joints 1, 3, 5 and 25 mm above them (a position
         instrument has no orientation σ)."""
-        targets = 0.5 * platform.drive.platform_joints[0::2][:n_targets] + np.array([0.0, 0.0, 25.0])
+        legs = platform.drive
+        joints = legs.as_vector()[legs.gauge_columns[1]]  # the platform joints d_i (n, 3)
+        targets = 0.5 * joints[0::2][:n_targets] + np.array([0.0, 0.0, 25.0])
         return Instrument("points", targets=targets, position_sigma_mm=position_sigma_mm)
 
     @staticmethod

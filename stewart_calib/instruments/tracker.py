@@ -106,6 +106,7 @@ class TrackerModel(InstrumentModel):
                 np.full(legs.n_params, geometry_sigma_mm),
                 gauge=("base", "platform"),
                 holds_gauge=True,
+                joints=legs.gauge_columns,
             )
 
     def check(self, z: np.ndarray, t_s: float) -> np.ndarray:

@@ -16,7 +16,11 @@ joint, by what to multiply it (``1 / (1 + k_i)``). Lengths in the machine's ``LI
 **JSON**: ``{"format": "stewart-calib/controller@1", "units": "mm", "legs": [{"leg": 1,
 "base_joint": [x, y, z], "platform_joint": [x, y, z], "length_at_zero_stroke": l,
 "stroke_per_logged_unit": 1 + k}, …], …}``: a leg is ``length_at_zero_stroke +
-stroke_per_logged_unit · q`` long at the logged stroke q.
+stroke_per_logged_unit · q`` long at the logged stroke q. A rotary drive's (spec §15): ``"kind":
+"rotary"`` and per servo ``"crank_centre"``, ``"crank_axis"``, ``"zero_direction"`` (unit vectors in
+{J}), ``"horn_length"``, ``"rod_length"``, ``"platform_joint"``, ``"zero_trim_deg"`` (o_i: the
+horn's angle from its zero direction at the command 0) and ``"angle_per_commanded_degree"`` (1 + k_i):
+at the commanded angle θ the horn stands at ``(1 + k_i) θ + o_i`` about its axis, right-handed.
 """
 
 from __future__ import annotations
@@ -129,6 +133,35 @@ def controller_json_text(drive: LegGeometry, stroke_scale: np.ndarray, units: st
         for n in range(drive.n_legs)
     ]
     return json.dumps({"format": CONTROLLER_FORMAT, "units": units, **extra, "legs": legs}, indent=1) + "\n"
+
+
+def rotary_controller_json_text(legs, angle_scale: np.ndarray, units: str, extra: dict) -> str:
+    """The plain JSON of calibrated rotary legs (spec §15, :class:`~stewart_calib.model.rotary.RotaryLegs`)
+    in ``units``, with each servo's zero trim [deg] (see the module)."""
+    scale = 1.0 / MM_PER_UNIT[units]
+    servos = [
+        {
+            "leg": n + 1,
+            "crank_centre": (legs.crank_centres[n] * scale).tolist(),
+            "crank_axis": legs.crank_axes[n].tolist(),
+            "zero_direction": legs.zero_directions[n].tolist(),
+            "horn_length": float(legs.horn_lengths[n] * scale),
+            "rod_length": float(legs.rod_lengths[n] * scale),
+            "platform_joint": (legs.platform_joints[n] * scale).tolist(),
+            "zero_trim_deg": math.degrees(legs.angle_offsets[n]),
+            "angle_per_commanded_degree": float(1.0 + angle_scale[n]),
+        }
+        for n in range(legs.n_legs)
+    ]
+    document = {
+        "format": CONTROLLER_FORMAT,
+        "kind": "rotary",
+        "units": units,
+        **extra,
+        "angle_range_deg": np.degrees(legs.angle_range).tolist(),
+        "legs": servos,
+    }
+    return json.dumps(document, indent=1) + "\n"
 
 
 def read_controller_json(text: str, source: str) -> tuple:

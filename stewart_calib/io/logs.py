@@ -24,6 +24,7 @@ from ..inputs import MAX_LINE_BYTES, MAX_TIME_S, open_input
 from ..platform import PARAMETER_NAMES, Instrument, Platform, payload_limit, payload_refusal
 from ..samples import Log, Sample, Truth
 from .atomic import atomic_write_text
+from .results import parameters_from_file, parameters_to_file
 from .tables import (
     Table,
     csv_text,
@@ -46,11 +47,48 @@ if TYPE_CHECKING:
     from ..instruments.registry import InstrumentKind
 
 STROKE_COLUMNS = tuple(f"q{i}_mm" for i in range(1, 7))
+#: a rotary drive's commanded angles (spec §15)
+ANGLE_COLUMNS = tuple(f"q{i}_deg" for i in range(1, 7))
 READING_COLUMNS = tuple(f"s{i}_mm" for i in range(1, 7))
 LOG_REQUIRED = ("t_s", *STROKE_COLUMNS, *READING_COLUMNS)
 POSE_COLUMNS = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
 TRUE_POSE_COLUMNS = tuple(f"true_{name}" for name in POSE_COLUMNS)
 STROKE_SCALE_NAMES = tuple(f"k{i}" for i in range(1, 7))
+
+
+def drive_columns(platform: Platform | None) -> tuple[str, ...]:
+    """The log columns of the drive's coordinates (spec §3, §15): ``q1_mm … q6_mm`` for a prismatic
+    drive (also when ``platform`` is None), ``q1_deg … q6_deg`` for a rotary drive's commanded angles,
+    in the unit its leg model declares (``coordinate_unit``)."""
+    if platform is None:
+        return STROKE_COLUMNS
+    return tuple(f"q{i}_{platform.drive.coordinate_unit}" for i in range(1, platform.drive.n_legs + 1))
+
+
+def _drive_in_degrees(platform: Platform | None) -> bool:
+    """Whether the drive's log columns hold degrees (radians in code: a rotary drive's angles)."""
+    return platform is not None and platform.drive.coordinate_unit == "deg"
+
+
+def strokes_in_code_units(values: np.ndarray, platform: Platform | None) -> np.ndarray:
+    """File drive coordinates ``(..., legs)`` → code units (a rotary drive's degrees → radians)."""
+    values = np.asarray(values, dtype=float)
+    return np.radians(values) if _drive_in_degrees(platform) else values
+
+
+def strokes_in_file_units(values: np.ndarray, platform: Platform | None) -> np.ndarray:
+    """Code-unit drive coordinates ``(..., legs)`` → the log's units (:func:`drive_columns`)."""
+    values = np.asarray(values, dtype=float)
+    return np.degrees(values) if _drive_in_degrees(platform) else values
+
+
+def drive_range(platform: Platform | None) -> tuple[tuple[float, float] | None, str, str]:
+    """``(bounds in the log's units or None, the platform key that gives them, their unit)`` of the
+    drive's coordinates: ``drive.stroke_range_mm``, or a rotary drive's ``drive.angle_range_deg``."""
+    if _drive_in_degrees(platform):
+        low, high = np.degrees(platform.drive.angle_range)  # type: ignore[union-attr]  # a rotary drive's
+        return (float(low), float(high)), "drive.angle_range_deg", "deg"
+    return (None if platform is None else platform.stroke_range), "drive.stroke_range_mm", "mm"
 
 
 def reading_columns(platform: Platform | None) -> tuple[str, ...]:
@@ -130,8 +168,12 @@ def log_text(log: Log, platform: Platform | None = None, header: bool = True) ->
     ``header=False``: the rows only, to append to a log written block by block.
     """
     readings = reading_columns(platform)
-    names = ["t_s", *STROKE_COLUMNS, *readings]
-    columns = [log.t_s, *np.asarray(log.strokes).T, *readings_to_file(np.asarray(log.readings, dtype=float), platform)]
+    names = ["t_s", *drive_columns(platform), *readings]
+    columns = [
+        log.t_s,
+        *strokes_in_file_units(log.strokes, platform).T,
+        *readings_to_file(np.asarray(log.readings, dtype=float), platform),
+    ]
     if log.desired_poses is not None:
         names += POSE_COLUMNS
         columns += pose_columns_deg(log.desired_poses)
@@ -144,7 +186,7 @@ def log_text(log: Log, platform: Platform | None = None, header: bool = True) ->
     return csv_text(names, columns, header)
 
 
-def _flag_out_of_range(table: Table, columns, bounds, what: str, key: str) -> None:
+def _flag_out_of_range(table: Table, columns, bounds, what: str, key: str, unit: str = "mm") -> None:
     if bounds is None:
         return
     lo, hi = bounds
@@ -153,7 +195,7 @@ def _flag_out_of_range(table: Table, columns, bounds, what: str, key: str) -> No
         table.flag(
             (values < lo) | (values > hi),
             lambda k, name=name, values=values: (
-                f"column '{name}': expected a {what} within [{lo!r}, {hi!r}] mm ({key}), got {float(values[k])!r}"
+                f"column '{name}': expected a {what} within [{lo!r}, {hi!r}] {unit} ({key}), got {float(values[k])!r}"
             ),
         )
 
@@ -179,11 +221,23 @@ def _time_backwards(t_s: float, latest_s: float) -> str:
 
 def _log_columns(path: Path, header: list[str], platform: Platform | None = None) -> tuple[bool, list[str], list[str]]:
     """``(has_pose, numeric columns, text columns)`` of a log header (spec §3, §7)."""
-    required = ("t_s", *STROKE_COLUMNS, *reading_columns(platform))
+    drive = drive_columns(platform)
+    required = ("t_s", *drive, *reading_columns(platform))
     # missing columns of one kind are named for what they hold: the drive's strokes are no instrument's
     missing = [name for name in required if name not in header]
-    if missing and set(missing) <= set(STROKE_COLUMNS):
-        raise CalibError(f"{path}: row 1: missing column(s) {', '.join(missing)} of the drive's strokes [mm] (spec §3)")
+    other = ANGLE_COLUMNS if drive == STROKE_COLUMNS else STROKE_COLUMNS
+    if set(missing) & set(drive) and set(other) & set(header):  # before the instrument's: the drive's kind
+        kind = "prismatic" if drive == STROKE_COLUMNS else "rotary"
+        raise CalibError(
+            f"{path}: row 1: columns {_span([name for name in other if name in header])} are another drive's; "
+            "the platform's [drive] "
+            f'(kind = "{kind}") expects {drive[0]} … {drive[-1]} ({_DRIVE_WORDS[kind]}, spec §15)'
+        )
+    if missing and set(missing) <= set(drive):
+        kind = "prismatic" if drive == STROKE_COLUMNS else "rotary"
+        raise CalibError(
+            f"{path}: row 1: missing column(s) {', '.join(missing)} of the drive's {_DRIVE_WORDS[kind]} (spec §3, §15)"
+        )
     if missing and _kind(platform).outside and set(missing) <= set(reading_columns(platform)):
         raise CalibError(
             f"{path}: row 1: missing column(s) {', '.join(missing)} of the {_instrument(platform).kind} instrument "
@@ -193,6 +247,15 @@ def _log_columns(path: Path, header: list[str], platform: Platform | None = None
     has_pose = optional_group(path, header, POSE_COLUMNS)
     numeric = [*required, *(POSE_COLUMNS if has_pose else ()), *(["load_kg"] if "load_kg" in header else [])]
     return has_pose, numeric, ["stage"] if "stage" in header else []
+
+
+def _span(names: list[str]) -> str:
+    """``q1_deg … q6_deg`` for a run of columns, the one name for one."""
+    return names[0] if len(names) == 1 else f"{names[0]} … {names[-1]}"
+
+
+#: what a drive's log columns hold, by its kind
+_DRIVE_WORDS = {"prismatic": "strokes [mm]", "rotary": "commanded angles [deg]"}
 
 
 def _blank_columns(platform: Platform | None) -> tuple[str, ...]:
@@ -225,7 +288,7 @@ def _flag_partial_targets(table: Table, platform: Platform) -> None:
 def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) -> None:
     """Non-finite required values and readings or strokes outside the platform's ranges."""
     readings = reading_columns(platform)
-    finite_required = ["t_s", *STROKE_COLUMNS, *(() if _kind(platform).unseen_channels else readings)]
+    finite_required = ["t_s", *drive_columns(platform), *(() if _kind(platform).unseen_channels else readings)]
     flag_non_finite(table, [*finite_required, *(POSE_COLUMNS if has_pose else ())])
     t_s = table.numbers["t_s"]
     table.flag(
@@ -234,7 +297,9 @@ def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) ->
     if _kind(platform).unseen_channels and platform is not None:
         _flag_partial_targets(table, platform)
     if platform is not None:
-        _flag_out_of_range(table, STROKE_COLUMNS, platform.stroke_range, "stroke", "drive.stroke_range_mm")
+        bounds, key, unit = drive_range(platform)
+        what = "commanded angle" if unit == "deg" else "stroke"
+        _flag_out_of_range(table, drive_columns(platform), bounds, what, key, unit)
         if not _kind(platform).outside:
             _flag_out_of_range(table, READING_COLUMNS, platform.reading_range, "reading", "tracker.reading_range_mm")
         if platform.elastic is not None and "load_kg" in table.numbers:
@@ -415,7 +480,7 @@ def _log_of(table: Table, has_pose: bool, textual: list[str], platform: Platform
         poses[:, 3:] = np.radians(poses[:, 3:])
     return Log(
         t_s=table.numbers["t_s"][keep],
-        strokes=col(STROKE_COLUMNS),
+        strokes=strokes_in_code_units(col(drive_columns(platform)), platform),
         readings=readings_in_code_units(col(reading_columns(platform)), platform),
         desired_poses=poses,
         stages=[s for s, k in zip(table.texts["stage"], keep, strict=True) if k] if textual else None,
@@ -454,7 +519,7 @@ class LogRowParser:
         self._last_t_s = -math.inf
         index = {name: k for k, name in enumerate(self._header)}
         readings = reading_columns(platform)
-        stroke_indices = [index[name] for name in STROKE_COLUMNS]
+        stroke_indices = [index[name] for name in drive_columns(platform)]
         reading_indices = [index[name] for name in readings]
         pose_indices = [index[name] for name in POSE_COLUMNS] if self._has_pose else []
         self._load = index.get("load_kg")
@@ -463,7 +528,8 @@ class LogRowParser:
         self._load_limit = payload_limit(platform) if platform is not None else math.inf
         self._stage = index.get("stage")
         self._reading_angles = _angle_indices(platform)
-        self._stroke_range = platform.stroke_range if platform is not None else None
+        self._stroke_range = drive_range(platform)[0]
+        self._strokes_in_degrees = _drive_in_degrees(platform)
         legs = not _kind(platform).outside
         self._reading_range = platform.reading_range if legs and platform is not None else None
         # a points instrument's empty coordinates (a target not seen) take the careful path
@@ -504,7 +570,10 @@ class LogRowParser:
             desired = row[self._reading_slice.stop :]
             desired[3:] = np.radians(desired[3:])
         stage = fields[self._stage].strip() if self._stage is not None else ""
-        return Sample(t_s, row[self._stroke_slice], readings, desired, stage, load_kg)
+        strokes = row[self._stroke_slice]
+        if self._strokes_in_degrees:
+            strokes[:] = np.radians(strokes)
+        return Sample(t_s, strokes, readings, desired, stage, load_kg)
 
     def parse_block(self, lines: list[bytes]) -> Log | None:
         """The samples of consecutive rows ``lines`` (bytes, line breaks removed) when :meth:`parse`
@@ -538,7 +607,10 @@ class LogRowParser:
         if self._has_pose:
             desired = values[:, self._reading_slice.stop :]
             desired[:, 3:] = np.radians(desired[:, 3:])
-        return Log(t_s, values[:, self._stroke_slice], readings, desired, stages, load_kg)
+        strokes = values[:, self._stroke_slice]
+        if self._strokes_in_degrees:
+            strokes[:] = np.radians(strokes)
+        return Log(t_s, strokes, readings, desired, stages, load_kg)
 
     def _block_by_arrow(self, lines: list[bytes]) -> tuple | None:
         """``(values, load_kg, None)`` of an all-numeric log's rows by pyarrow (several times faster
@@ -604,7 +676,7 @@ class LogRowParser:
             pose[3:] = np.radians(pose[3:])
         return Sample(
             t_s,
-            np.array([number(name) for name in STROKE_COLUMNS]),
+            strokes_in_code_units(np.array([number(name) for name in drive_columns(self._platform)]), self._platform),
             readings_in_code_units(
                 np.array([[number(name) for name in reading_columns(self._platform)]]), self._platform
             )[0],
@@ -679,7 +751,7 @@ POSE_BLOCK_BYTES = 1 << 20
 
 #: columns a pose list holds as numbers when written by this package (its own, a log's, strokes):
 #: a header of these only is read by pyarrow.
-_POSE_LIST_NUMBERS = frozenset(("t_s", *POSE_COLUMNS, *STROKE_COLUMNS, *READING_COLUMNS))
+_POSE_LIST_NUMBERS = frozenset(("t_s", *POSE_COLUMNS, *STROKE_COLUMNS, *ANGLE_COLUMNS, *READING_COLUMNS))
 
 
 def read_pose_list_blocks(path: str | Path, block_bytes: int | None = None) -> Iterator[np.ndarray]:
@@ -747,19 +819,27 @@ def _refuse_non_utf8(file, path: Path, offset: int, what: str) -> None:
         offset += len(data)
 
 
-def write_truth(path: str | Path, truth: Truth) -> None:
+def write_truth(path: str | Path, truth: Truth, platform: Platform | None = None) -> None:
     """Write a truth file (spec §4) atomically; see :func:`truth_text`."""
-    atomic_write_text(path, truth_text(truth))
+    atomic_write_text(path, truth_text(truth, platform=platform))
 
 
-def truth_text(truth: Truth, header: bool = True) -> str:
-    """A truth file's CSV (spec §4): ``t_s``, the 42 parameters [mm], the true pose [mm, deg] if
-    present, then the constant spec §7 truth columns.
+def _parameter_names(platform: Platform | None) -> tuple[str, ...]:
+    """The drive parameters' names of ``platform`` (spec §5, §15); the 42 without a platform."""
+    return PARAMETER_NAMES if platform is None else platform.drive.parameter_names
+
+
+def truth_text(truth: Truth, header: bool = True, platform: Platform | None = None) -> str:
+    """A truth file's CSV (spec §4): ``t_s``, the drive's parameters (``platform``'s: the 42 [mm]
+    without one, a rotary drive's 66 with its angles in degrees, spec §15), the true pose [mm, deg]
+    if present, then the constant spec §7 truth columns (a rotary drive's angle scale ``k1 … k6``).
 
     ``header=False``: the rows only, to append to a truth file written block by block.
     """
-    names = ["t_s", *PARAMETER_NAMES]
-    columns = [truth.t_s, *np.asarray(truth.params, dtype=float).T]
+    names = ["t_s", *_parameter_names(platform)]
+    params = np.asarray(truth.params, dtype=float)
+    params = params if platform is None else parameters_to_file(params, platform.drive)
+    columns = [truth.t_s, *params.T]
     if truth.true_poses is not None:
         names += TRUE_POSE_COLUMNS
         columns += pose_columns_deg(truth.true_poses)
@@ -775,8 +855,9 @@ def truth_text(truth: Truth, header: bool = True) -> str:
     return csv_text(names, columns, header)
 
 
-def read_truth(path: str | Path) -> Truth:
-    """Read a truth file (spec §4).
+def read_truth(path: str | Path, platform: Platform | None = None) -> Truth:
+    """Read a truth file (spec §4) of ``platform``'s drive (the 42 parameters without one; a rotary
+    drive's 66, its angles read in degrees into radians, spec §15).
 
     Raises:
         CalibError: as for logs — missing file or column, no rows, a bad value (never skipped).
@@ -784,7 +865,7 @@ def read_truth(path: str | Path) -> Truth:
     path = Path(path)
     text = read_text(path, "truth file")
     header = read_header(path, text)
-    required = ("t_s", *PARAMETER_NAMES)
+    required = ("t_s", *_parameter_names(platform))
     require_columns(path, header, required)
     has_pose = optional_group(path, header, TRUE_POSE_COLUMNS)
     numeric = [*required, *(TRUE_POSE_COLUMNS if has_pose else ())]
@@ -795,7 +876,8 @@ def read_truth(path: str | Path) -> Truth:
     if has_pose:
         poses = np.column_stack([table.numbers[name] for name in TRUE_POSE_COLUMNS])
         poses[:, 3:] = np.radians(poses[:, 3:])
-    params = np.column_stack([table.numbers[name] for name in PARAMETER_NAMES])
+    params = np.column_stack([table.numbers[name] for name in _parameter_names(platform)])
+    params = params if platform is None else parameters_from_file(params, platform.drive)
     scale = None
     if all(name in header for name in STROKE_SCALE_NAMES):
         scale = np.array([_first_number(path, header, text, name) for name in STROKE_SCALE_NAMES])

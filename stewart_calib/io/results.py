@@ -16,11 +16,25 @@ from ..drive import DriveModel, drive_model
 from ..errors import CalibError, shown
 from ..estimate import Estimate
 from ..inputs import parse_json, read_input_text
-from ..platform import PARAMETER_NAMES, Platform
+from ..model.rotary import PARAMETER_FIELDS as ROTARY_FIELDS
+from ..platform import PARAMETER_FIELDS, PARAMETER_NAMES, Platform
 from .atomic import atomic_write_text
 from .tables import csv_text
 
 RESULT_FORMAT = "stewart-calib/result@1"
+
+#: a rotary drive's 66 parameter names ``a1x … tw6`` (spec §15), which a result may hold without a platform at hand
+ROTARY_PARAMETER_NAMES: tuple[str, ...] = tuple(
+    f"{prefix}{leg}{suffix}"
+    for leg in range(1, len(PARAMETER_NAMES) // len(PARAMETER_FIELDS) + 1)
+    for prefix, suffix in ROTARY_FIELDS
+)
+
+
+def _gap_unit(platform: Platform) -> str:
+    """The unit of :func:`nominal_gap` on ``platform``: mm, or mm / deg where its drive has angles."""
+    return "mm / deg" if np.any(platform.drive.parameter_degrees) else "mm"
+
 
 #: |estimate − (nominal + error)| a result file may show before it is refused [mm]: JSON
 #: writers that round to the nanometre still pass.
@@ -53,14 +67,35 @@ def write_trace(
 # ----------------------------------------------------------------------------- results
 
 
+def parameters_to_file(values: np.ndarray, legs) -> np.ndarray:
+    """``(..., n_params)`` drive parameters of leg model ``legs`` in code units → file units: the
+    entries ``legs.parameter_degrees`` marks (a rotary drive's o, tu, tw, spec §15) in degrees."""
+    values = np.asarray(values, dtype=float)
+    return np.where(legs.parameter_degrees, np.degrees(values), values)
+
+
+def parameters_from_file(values, legs) -> np.ndarray:
+    """:func:`parameters_to_file` undone: file units → code units (degrees → radians)."""
+    values = np.asarray(values, dtype=float)
+    return np.where(legs.parameter_degrees, np.radians(values), values)
+
+
+def parameter_file_scale(legs) -> np.ndarray:
+    """``(n_params,)`` the factor from code to file units of each drive parameter (180/π for an
+    angle, else 1): what a covariance's rows and columns are scaled by."""
+    return parameters_to_file(np.ones(len(legs.parameter_names)), legs)
+
+
 def result_dict(estimate: Estimate, platform: Platform, samples_skipped: int = 0, extra: dict | None = None) -> dict:
-    """The spec §5 result of ``estimate`` on ``platform`` (``estimate = nominal + error`` [mm]).
+    """The spec §5 result of ``estimate`` on ``platform`` (``estimate = nominal + error``), in file
+    units: mm, and degrees for a rotary drive's angles (spec §15).
 
     ``extra`` adds optional fields; it may not replace the spec's.
     """
-    nominal = platform.drive.as_vector()
-    error = np.asarray(estimate.error, dtype=float)
-    stddev = estimate.stddev
+    legs = platform.drive
+    nominal = parameters_to_file(legs.as_vector(), legs)
+    error = parameters_to_file(estimate.error, legs)
+    stddev = None if estimate.stddev is None else estimate.stddev * parameter_file_scale(legs)
     result = {
         "format": RESULT_FORMAT,
         "method": estimate.method,
@@ -118,8 +153,12 @@ def validate_result(result, source: str) -> None:
         if not isinstance(result[key], str) or not result[key]:
             raise refuse(key, "a non-empty string")
     names = result["parameter_names"]
-    if names != list(PARAMETER_NAMES):
-        raise refuse("parameter_names", f"the {len(PARAMETER_NAMES)} names j1x ... l6 in the paper's order")
+    if not any(names == list(known) for known in _parameter_names()):
+        raise refuse(
+            "parameter_names",
+            f"the {len(PARAMETER_NAMES)} names j1x ... l6 in the paper's order (spec §5), or a rotary drive's "
+            f"{len(ROTARY_PARAMETER_NAMES)} a1x ... tw6 (spec §15)",
+        )
     for key in ("nominal", "estimate", "error", "stddev"):
         value = result[key]
         if key == "stddev" and value is None:
@@ -205,6 +244,7 @@ def calibrated_drive(platform: Platform, result: dict, source: str) -> DriveMode
         CalibError: a block whose names are not the drive term's (``source`` names the file).
     """
     drive = drive_model(platform)
+    _check_names(platform, result, source)
     values = {}
     for term in drive.terms:
         block = result.get(term.key)
@@ -215,7 +255,30 @@ def calibrated_drive(platform: Platform, result: dict, source: str) -> DriveMode
                 f"{source}: key '{term.key}.names': expected {', '.join(term.names)}, got {', '.join(block['names'])}"
             )
         values[term.key] = np.array(block["estimate"], dtype=float)
-    return drive.calibrated(np.array(result["error"], dtype=float), values)
+    return drive.calibrated(parameters_from_file(result["error"], platform.drive), values)
+
+
+def _parameter_names() -> tuple[tuple[str, ...], ...]:
+    """The parameter names a result may hold: a prismatic drive's 42, a rotary drive's 66."""
+    return PARAMETER_NAMES, ROTARY_PARAMETER_NAMES
+
+
+def _check_names(platform: Platform, result: dict, source: str) -> None:
+    """Refuse a result whose ``parameter_names`` (where it has them: a result being made may not yet)
+    are another drive kind's than ``platform``'s."""
+    names = result.get("parameter_names")
+    if names is not None and list(names) != list(platform.drive.parameter_names):
+        raise CalibError(
+            f"{source}: key 'parameter_names': expected the {platform.drive.n_params} parameters of the "
+            f"{platform.drive.kind} drive of platform '{platform.name}', got {len(names)} "
+            "(a result for another platform?)"
+        )
+
+
+def nominal_gap(result: dict, platform: Platform) -> float:
+    """The largest |result nominal − ``platform``'s nominal drive| in file units [mm, deg]."""
+    nominal = parameters_to_file(platform.drive.as_vector(), platform.drive)
+    return float(np.max(np.abs(np.array(result["nominal"], dtype=float) - nominal)))
 
 
 def read_calibrated_drive(path: str | Path, platform: Platform) -> DriveModel:
@@ -231,10 +294,11 @@ def read_calibrated_drive(path: str | Path, platform: Platform) -> DriveModel:
             f"{path}: key 'platform': expected '{platform.name}' (the platform given), got '{result['platform']}' "
             "(a result for another platform?)"
         )
-    gap = float(np.max(np.abs(np.array(result["nominal"]) - platform.drive.as_vector())))
+    _check_names(platform, result, str(path))
+    gap = nominal_gap(result, platform)
     if gap > NOMINAL_TOLERANCE_MM:
         raise CalibError(
             f"{path}: key 'nominal': expected the nominal drive of platform '{platform.name}'; "
-            f"it differs by {gap:.3g} mm (a result for another platform?)"
+            f"it differs by {gap:.3g} {_gap_unit(platform)} (a result for another platform?)"
         )
     return calibrated_drive(platform, result, str(path))

@@ -36,8 +36,8 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from ..errors import CalibError, shown
-from ..io import reading_columns
-from ..io.logs import POSE_COLUMNS, STROKE_COLUMNS
+from ..io import drive_columns, reading_columns
+from ..io.logs import POSE_COLUMNS
 
 #: controller kinds by the scheme of ``[link] url``: the module that speaks to them.
 LINK_KINDS = {
@@ -162,7 +162,7 @@ def load_link(path: str | Path, platform=None) -> LinkFile:
     if "t_s" not in read:
         raise CalibError(f"{name}: [read] lacks t_s, the sample's time (spec §3)")
     if platform is not None:
-        needed = ("t_s", *STROKE_COLUMNS, *reading_columns(platform))
+        needed = ("t_s", *drive_columns(platform), *reading_columns(platform))
         missing = [column for column in needed if column not in read]
         if missing:
             raise CalibError(

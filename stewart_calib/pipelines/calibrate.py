@@ -32,7 +32,7 @@ from ..accuracy import PredictedError, estimate_summary, verdict_line
 from ..calibration import Calibration, EvenlySpacedSamples, SampleSpool, Tally, run_calibration, stream_calibration
 from ..config import load_estimator_config
 from ..diagnosis import diagnose_log
-from ..drive import drive_model
+from ..drive import drive_model, plain_drive
 from ..errors import CalibError, number
 from ..estimate import Estimate
 from ..estimators.base import (
@@ -51,7 +51,7 @@ from ..instruments import instrument_kind, registered
 from ..memory import check_memory
 from ..online import Rejections
 from ..planning import noise_floor
-from ..platform import Platform, load_platform
+from ..platform import LegGeometry, Platform, load_platform
 from ..plausibility import check_plausible
 from ..progress import MIN_LOG_ROWS
 from ..samples import Log
@@ -90,21 +90,35 @@ def _write_rerun(
     reading_legs = instrument_kind(platform).reading_legs(platform)
     if reading_legs is not None:  # the drive-leg residuals need the instrument's pose of each sample
         poses = kin.forward_kinematics(reading_legs, log.readings, strict=False)
-        residual = kin.leg_residuals_per_sample(trace, poses.R, poses.t, log.strokes)
+        residual = _residuals_per_sample(platform, trace, poses.R, poses.t, log.strokes)
         if not batch:
             before = np.vstack([nominal, trace[:-1]])  # the model in force when each sample arrived
-            innovation = kin.leg_residuals_per_sample(before, poses.R, poses.t, log.strokes)
+            innovation = _residuals_per_sample(platform, before, poses.R, poses.t, log.strokes)
     series = {"residual": residual, "innovation": innovation, "nis": run.nis}
     kinds = {kind for kind, values in series.items() if values is not None}
+    fields = viz.parameter_fields(platform.drive.parameter_names, platform.drive.n_legs)
     with io.atomic_path(path) as tmp, viz.open_recording(tmp) as rec:
         viz.log_platform_geometry(rec, platform)
-        viz.log_parameters(rec, method, trace - nominal, log.t_s)
-        viz.log_parameter_band(rec, method, trace - nominal, run.stddev, log.t_s)
+        viz.log_parameters(rec, method, trace - nominal, log.t_s, fields=fields)
+        viz.log_parameter_band(rec, method, trace - nominal, run.stddev, log.t_s, fields=fields)
         viz.log_diagnostics(rec, method, log.t_s, residual, innovation, run.nis)
         if leg_forces is not None:  # an elastic platform's (_leg_forces): the legs' forces, and c ± σ
             forces, c, sigma = leg_forces
             viz.log_elastic(rec, method, forces, c, sigma, log.t_s)
-        viz.send_blueprint(rec, platform.drive.n_legs, [method], [], {method: kinds})
+        viz.send_blueprint(rec, platform.drive.n_legs, [method], [], {method: kinds}, fields)
+
+
+def _residuals_per_sample(platform: Platform, params: np.ndarray, R: np.ndarray, t: np.ndarray, strokes: np.ndarray):
+    """``(N, legs)`` drive-leg residuals [mm] where sample k has its own absolute parameters ``params[k]``
+    and pose ``(R[k], t[k])``, the strokes its legs' extensions: one compiled pass for the prismatic
+    legs, else each sample's drive."""
+    legs = platform.drive
+    if type(legs) is LegGeometry:
+        return kin.leg_residuals_per_sample(params, R, t, strokes)
+    nominal = legs.as_vector()
+    return np.array(
+        [plain_drive(legs.perturbed(p - nominal)).residual(None, R[k], t[k], strokes[k]) for k, p in enumerate(params)]
+    )
 
 
 #: ``(forces (N, legs) [N], c (legs,) [mm/kN], σ of c or None)``: :func:`_leg_forces`
@@ -260,7 +274,7 @@ def run(args: argparse.Namespace) -> int:
         created = handover.created_now()
         extra.update(
             {
-                "covariance": handover.covariance_field(estimate),
+                "covariance": handover.covariance_field(estimate, platform.drive),
                 "config": handover.config_field(config),
                 "version": __version__,
                 "created": created,
@@ -292,7 +306,8 @@ def run(args: argparse.Namespace) -> int:
             verdict = f"{verdict}; the log gives no evidence the calibration improves on the nominal model"
         trace_csv = None
         if trace_path and not streamed and result.trace is not None:
-            trace_csv = io.trace_text(log.t_s, result.trace, names=platform.drive.parameter_names)
+            trace = io.parameters_to_file(result.trace, platform.drive)  # a rotary drive's angles in degrees
+            trace_csv = io.trace_text(log.t_s, trace, names=platform.drive.parameter_names)
         platform_toml = (
             handover.calibrated_platform_text(platform, estimate, args.method, Path(args.log).name, created)
             if platform_out

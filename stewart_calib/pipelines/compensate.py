@@ -2,7 +2,8 @@
 
 Reads a result JSON (spec §5) on its nominal platform — or the calibrated platform file alone
 (``calibrate --platform-out``, spec §8) — and a pose list with the log's pose columns (spec §3);
-writes the pose columns and ``q1_mm … q6_mm``: the strokes to command so that the calibrated
+writes the pose columns and ``q1_mm … q6_mm`` (a rotary drive: ``q1_deg … q6_deg``, spec §15): the
+strokes (commanded angles) to command so that the calibrated
 drive ``nominal + error`` lands at each pose (paper Fig. 3 step 4). A platform with ``[elastic]``
 carries its weight and ``--payload-kg M`` (default 0) there: the strokes are those that reach the
 poses under that load (spec §10).
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
         except OSError as err:
             raise CalibError(f"{shown(args.poses)}: cannot read the pose list ({err.strerror})") from None
     strokes = _compensated_blocks(args.poses, drive, platform, args.payload_kg)
-    rows = io.write_pose_list_blocks(args.out, strokes, io.STROKE_COLUMNS)
+    rows = io.write_pose_list_blocks(args.out, strokes, io.drive_columns(platform))
     print(f"wrote {rows} stroke rows to {args.out}")
     return 0
 
@@ -92,7 +93,8 @@ def run(args: argparse.Namespace) -> int:
 def _compensated_blocks(
     poses_path: str, drive, platform, payload_kg: float = 0.0
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """``(poses [mm, rad], strokes [mm])`` a block of the pose list at a time. A pose out of range
+    """``(poses [mm, rad], strokes in the log's units)`` a block of the pose list at a time (a rotary
+    drive's commanded angles in degrees, spec §15). A pose out of range
     is refused once the rest of the list is read, so that a bad row anywhere in it is refused
     first, as when the list was read whole."""
     blocks = read_pose_list_blocks(poses_path)
@@ -104,7 +106,7 @@ def _compensated_blocks(
             for _ in blocks:
                 pass
             raise CalibError(f"{poses_path}: row {done + err.pose_index + 2}: {err.reason}") from None
-        yield poses, strokes
+        yield poses, io.strokes_in_file_units(strokes, platform)
         done += len(poses)
 
 
@@ -122,7 +124,8 @@ def _stream(source: BinaryIO, name_text: str, out: str, drive, platform, payload
     index = [header.index(column) for column in POSE_COLUMNS]
     sink = sys.stdout if out == "-" else open(out, "w", encoding="utf-8")  # closed below
     try:
-        print(",".join([*POSE_COLUMNS, *io.STROKE_COLUMNS]), file=sink, flush=True)
+        columns = io.drive_columns(platform)
+        print(",".join([*POSE_COLUMNS, *columns]), file=sink, flush=True)
         for row, line in enumerate(iter(source.readline, b""), start=2):
             text = _text(line, name, row).rstrip("\r\n")
             if not text.strip():
@@ -135,10 +138,11 @@ def _stream(source: BinaryIO, name_text: str, out: str, drive, platform, payload
                 continue
             radians = np.r_[pose[:3], np.radians(pose[3:])]
             try:
-                strokes = [repr(q) for q in compensate(drive, radians, limits=platform, payload_kg=payload_kg).tolist()]
+                commanded = compensate(drive, radians, limits=platform, payload_kg=payload_kg)
+                strokes = [repr(q) for q in io.strokes_in_file_units(commanded, platform).tolist()]
             except PoseOutOfRange as err:
                 print(f"stewart-calib compensate: {shown(name)}: row {row}: {err.reason}", file=sys.stderr)
-                strokes = [""] * len(io.STROKE_COLUMNS)
+                strokes = [""] * len(columns)
             print(",".join([*map(repr, pose.tolist()), *strokes]), file=sink, flush=True)
     except BrokenPipeError:  # the reader went away: nothing more to say to it
         return 0

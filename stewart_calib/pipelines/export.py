@@ -6,7 +6,8 @@
 The calibrated model is the result's on its nominal platform, or the calibrated platform file's
 alone (``calibrate --platform-out``). ``linuxcnc`` writes ``F`` (``kinematics.hal``: genhexkins's
 ``setp`` lines) and ``F`` with the suffix ``.ini`` (``[JOINT_N] HOME``/``HOME_OFFSET`` and each
-joint's ``SCALE`` factor); ``json`` writes the plain JSON of joints and leg lengths. Both are
+joint's ``SCALE`` factor); ``json`` writes the plain JSON of joints and leg lengths — a rotary drive's
+(spec §15): its servos' geometry and zero trims; genhexkins, prismatic, refuses a rotary drive. Both are
 rendered before either is written. Neither holds a leg compliance (spec §10): with ``[elastic]`` a
 warning line says how much the legs give that the controller leaves out.
 """
@@ -60,6 +61,12 @@ def run(args: argparse.Namespace) -> int:
     if not math.isfinite(args.home_stroke_mm):
         raise CalibError(f"--home-stroke-mm: expected a finite stroke [mm], got {args.home_stroke_mm!r}")
     platform = load_platform(args.platform)
+    rotary = platform.drive.kind == "rotary"
+    if rotary and args.format == "linuxcnc":
+        raise CalibError(
+            f"--format linuxcnc: genhexkins models prismatic struts; {args.platform} has a rotary drive "
+            "(spec §15): use --format json"
+        )
     model = calibrated_model(platform, args.result)
     drive, k = model.legs, model.extension_per_stroke() - 1.0  # a leg moves 1 + k mm a logged mm
     source = f"{args.platform}" + (f" + {args.result}" if args.result else "")
@@ -73,7 +80,8 @@ def run(args: argparse.Namespace) -> int:
         }
     else:
         extra = {"source": source, "platform": platform.name}
-        files = {out: controllers.controller_json_text(drive, k, args.units, extra)}
+        write = controllers.rotary_controller_json_text if rotary else controllers.controller_json_text
+        files = {out: write(drive, k, args.units, extra)}
     with io.atomic_paths(list(files)) as temporaries:  # both files or neither
         for tmp, text in zip(temporaries, files.values(), strict=True):
             tmp.write_text(text, encoding="utf-8")

@@ -82,7 +82,9 @@ def calibrated_model(platform: Platform, result_path: str | None) -> DriveModel:
     if result_path is None:
         return drive_model(platform)
     result = io.read_result(result_path)
-    gap = np.max(np.abs(np.array(result["estimate"], dtype=float) - platform.drive.as_vector()))
+    gap = np.max(
+        np.abs(np.array(result["estimate"]) - io.parameters_to_file(platform.drive.as_vector(), platform.drive))
+    )
     if gap <= io.NOMINAL_TOLERANCE_MM and result["platform"] == platform.name:
         return io.calibrated_drive(platform, {**result, "error": [0.0] * len(result["error"])}, str(result_path))
     return io.read_calibrated_drive(result_path, platform)
@@ -122,12 +124,16 @@ def config_field(config: EstimatorConfig) -> dict:
     return clean(dataclasses.asdict(config))
 
 
-def covariance_field(estimate: Estimate) -> list | None:
+def covariance_field(estimate: Estimate, legs) -> list | None:
     """The covariance of every identified unknown in file units, in the order of ``parameter_names``
-    then the blocks' names (spec §8; the compliance last, §10), or None when the method gives none."""
+    then the blocks' names (spec §8; the compliance last, §10), or None when the method gives none;
+    ``legs``: the drive's nominal leg model, which says which of its parameters files give in degrees."""
+    drive_scale = io.parameter_file_scale(legs)  # a rotary drive's angles in degrees (spec §15)
     if estimate.full_covariance is None:
-        return None if estimate.covariance is None else np.asarray(estimate.covariance, dtype=float).tolist()
-    scale = np.concatenate([np.ones(len(estimate.error)), *(block.file_scale for block in estimate.layout.blocks)])
+        if estimate.covariance is None:
+            return None
+        return (np.asarray(estimate.covariance, dtype=float) * np.outer(drive_scale, drive_scale)).tolist()
+    scale = np.concatenate([drive_scale, *(block.file_scale for block in estimate.layout.blocks)])
     covariance = np.asarray(estimate.full_covariance, dtype=float) * np.outer(scale, scale)
     # spec §10: the compliance after the other blocks (the unknown vector keeps the drive's blocks together)
     compliance = estimate.layout.slice("compliance")

@@ -39,7 +39,7 @@ from .. import io
 from .. import kinematics as kin
 from ..drive import DriveModel, drive_model
 from ..errors import CalibError
-from ..platform import PARAMETER_NAMES, load_platform
+from ..platform import load_platform
 from . import run_command
 
 #: the score of a drive term's values (its block key before it): the largest error of the six
@@ -85,7 +85,7 @@ def scores(platform, result: dict, truth) -> dict:
     out = {
         "parameter_rms_mm": float(np.sqrt(np.mean(e**2))),
         "parameter_max_mm": float(abs(e[worst])),
-        "parameter_max_name": PARAMETER_NAMES[worst],
+        "parameter_max_name": platform.drive.parameter_names[worst],
     }
     stddev = result.get("stddev")
     if stddev is not None and np.all(np.asarray(stddev, dtype=float) > 0):
@@ -112,8 +112,8 @@ def scores(platform, result: dict, truth) -> dict:
 def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
     result = io.read_result(args.result)
-    truth = io.read_truth(args.truth)
-    gap = float(np.max(np.abs(np.array(result["nominal"]) - platform.drive.as_vector())))
+    truth = io.read_truth(args.truth, platform)
+    gap = io.nominal_gap(result, platform)
     if gap > io.NOMINAL_TOLERANCE_MM:
         raise CalibError(
             f"{args.result}: key 'nominal': expected the nominal drive of {args.platform}; it differs by {gap:.3g} mm"

@@ -119,13 +119,14 @@ def run(args: argparse.Namespace) -> int:
             for k, (log, truth) in enumerate(run.blocks):
                 outside.add(log)
                 log_file.write(log_text(log, experiment.platform, header=k == 0))
-                truth_file.write(truth_text(truth, header=k == 0))
+                truth_file.write(truth_text(truth, header=k == 0, platform=experiment.platform))
                 errors = _pose_errors(experiment.platform, log, truth, args.controller != "nominal")
                 for name, values in errors.items():
                     squares[name] += np.nansum(values**2, axis=0)
                     counts[name] += np.sum(np.isfinite(values), axis=0)
         outside.refuse(experiment.source, len(run.plan.t_s))
-        platform = replace(experiment.platform, elastic=elastic_of(experiment.load))
+        rotary = experiment.platform.drive.kind == "rotary"  # simulated rigid: no [elastic] (spec §15)
+        platform = replace(experiment.platform, elastic=None if rotary else elastic_of(experiment.load))
         platform_path.write_text(platform_to_toml(platform), encoding="utf-8")
     print(
         f"simulated {len(run.plan.t_s)} samples of '{shown(experiment.name)}' ({args.controller} controller) into "
@@ -148,11 +149,15 @@ def _pose_errors(platform: Platform, log, truth, compare: bool) -> dict[str, np.
         # rigid, as the truth's per-sample parameters already carry the sag (spec §4)
         nominal = drive_model(replace(platform, elastic=None))
         logged = nominal.inverse_kinematics(R_d, t_d)
-        extensions = nominal.true_drive(np.zeros(nominal.n_params), truth.drive_terms).extensions(logged)
-        legs = vector_to_params(truth.params)
-        reached = kin.forward_kinematics_per_pose(
-            legs[:, :, :3], legs[:, :, 3:6], legs[:, :, 6], extensions, (R_d, t_d), strict=False
-        )
+        if platform.drive.kind == "rotary":  # rigid: one true drive for every sample
+            true = nominal.true_drive(truth.params[0] - nominal.legs.as_vector(), truth.drive_terms)
+            reached = true.forward_kinematics(logged, guess=(R_d, t_d), strict=False)
+        else:
+            extensions = nominal.true_drive(np.zeros(nominal.n_params), truth.drive_terms).extensions(logged)
+            legs = vector_to_params(truth.params)
+            reached = kin.forward_kinematics_per_pose(
+                legs[:, :, :3], legs[:, :, 3:6], legs[:, :, 6], extensions, (R_d, t_d), strict=False
+            )
         ok = reached.converged
         error = np.full((len(R_d), 4), np.nan)
         error[ok] = np.column_stack(

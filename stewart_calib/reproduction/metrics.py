@@ -78,8 +78,11 @@ def tracker_gauge_error(result: SimulationResult, platform: Platform) -> dict[st
     if simulated is None:
         raise ValueError("the simulated robot has no tracker: its platform has none")
     true_tracker = simulated.geometry
-    R_J, t_J = gauge.kabsch(true_tracker.base_joints, nominal.base_joints)
-    R_D, t_D = gauge.kabsch(true_tracker.platform_joints, nominal.platform_joints)
+    true_M, nominal_M = true_tracker.as_vector(), nominal.as_vector()
+    (R_J, t_J), (R_D, t_D) = (  # base joints, then platform joints
+        gauge.kabsch(true_M[columns].reshape(-1, 3), nominal_M[columns].reshape(-1, 3))
+        for columns in gauge.joint_columns(nominal)
+    )
     R, t = kin.pose_to_rt(result.actual_poses[held_pose_ends(result)])
     # X' = T_J X T_D⁻¹: the true pose written in the frames the tracker's joints define
     R_gauge = R_J @ R @ R_D.T

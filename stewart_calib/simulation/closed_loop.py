@@ -11,7 +11,7 @@ Per sample k (paper Fig. 3 seen from the robot's side)::
 
 A **controller** is any object with two methods::
 
-    controller.drive_model() -> LegGeometry   # model used for the IK of the next desired pose
+    controller.drive_model() -> LegModel      # model used for the IK of the next desired pose
     controller.observe(sample: Sample) -> None # called after each sample
 
 and optionally ``controller.strokes(R_d, t_d, payload_kg) -> q``: its own IK where the model is
@@ -35,6 +35,11 @@ With an instrument outside the robot (``[instrument] kind = "pose" | "points"``)
 its readings instead of the tracker's; the encoders log ``(q − z_i) / (1 + k_i)`` for an
 executed stroke q (scale errors k_i, zero errors z_i, spec §7), and the truth's initial lengths
 are ``l_i + z_i``, what a model with the logged strokes must find.
+
+A rotary drive (spec §15) logs the angles its controller commands, exactly; its servos turn the
+horns by ``(1 + k_i) θ_i`` plus their own white error (``[robot] angle_noise_deg``), and the true
+pose is the forward kinematics of the true drive (:meth:`TrueRobot.true_drive`: the leg model with
+the experiment's errors and angle scale) there — rigid: no load moves it.
 """
 
 from __future__ import annotations
@@ -48,23 +53,24 @@ from typing import Protocol
 import numpy as np
 
 from .. import kinematics as kin
-from ..drive import STROKE_SCALE, drive_model
-from ..errors import SampleRejected
+from ..drive import STROKE_SCALE, DriveModel, drive_model, plain_drive
+from ..errors import CalibError, SampleRejected, shown
 from ..estimate import model_estimate
+from ..model.legs import LegModel
 from ..platform import LegGeometry, Platform
 from ..progress import progress_bar
 from ..samples import Log, Sample, Truth
-from .experiment import Experiment, Schedule, schedule
+from .experiment import Experiment, RotaryRobotConfig, Schedule, schedule
 from .instrument import SimulatedInstrument
 from .load import LoadModel, Settling
-from .robot import base_errors, encoder_readings
+from .robot import base_errors, encoder_readings, rotary_errors
 from .tracker import Tracker
 
 
 class Controller(Protocol):
     """What the closed loop needs of a controller (see the module docstring)."""
 
-    def drive_model(self) -> LegGeometry: ...
+    def drive_model(self) -> LegModel: ...
 
     def observe(self, sample: Sample) -> None: ...
 
@@ -77,7 +83,7 @@ class NominalController:
     def __init__(self, platform: Platform):
         self._drive = platform.drive
 
-    def drive_model(self) -> LegGeometry:
+    def drive_model(self) -> LegModel:
         return self._drive
 
     def observe(self, sample: Sample) -> None:
@@ -87,7 +93,7 @@ class NominalController:
 class FrozenController(NominalController):
     """Commands IK on a fixed drive geometry (e.g. a batch estimate frozen after calibration)."""
 
-    def __init__(self, drive: LegGeometry):
+    def __init__(self, drive: LegModel):
         self._drive = drive
 
 
@@ -117,7 +123,7 @@ class EstimatorController:
         self._elastic = drive_model(platform) if platform.elastic is not None else None
         self.payload_known = True
 
-    def drive_model(self) -> LegGeometry:
+    def drive_model(self) -> LegModel:
         return self._drive
 
     def observe(self, sample: Sample) -> None:
@@ -135,7 +141,7 @@ class EstimatorController:
         """IK of the model in force; an elastic one with its identified blocks, under ``payload_kg``
         (taken as 0 unless :attr:`payload_known`) and the payload the estimator found unannounced."""
         if self._elastic is None:
-            return kin.inverse_kinematics(self._drive, R_d, t_d)
+            return self._drive.coordinates(R_d, t_d)
         estimate = model_estimate(self.estimator)
         values = {term.key: estimate.block_values(term.key) for term in self._elastic.terms}
         drive = self._elastic.calibrated(self._error, values)
@@ -152,11 +158,12 @@ class TrueRobot:
     """The simulated machine: unloaded drive parameters, load model, tracker, encoder noise.
 
     Attributes:
-        base_params: ``(42,)`` nominal + δM_base [mm] (paper order).
+        base_params: ``(n_params,)`` nominal + δM_base (paper order; a rotary drive's 66, spec §15) [mm, rad].
         load: the load model.
         tracker: the simulated tracker (true geometry incl. residual), or None (no [tracker]).
-        encoder_noise_mm: σ of the logged strokes' noise [mm].
-        stroke_scale: ``(6,)`` true k_i: the encoders log ``q / (1 + k_i)``.
+        encoder_noise_mm: σ of the logged strokes' noise [mm]; a rotary drive's: of the angle each servo
+            holds about its command [rad] (its log holds the commands).
+        stroke_scale: ``(6,)`` true k_i: the encoders log ``q / (1 + k_i)`` (rotary: a servo turns ``(1 + k_i) θ``).
         encoder_zero_mm: ``(6,)`` true zero errors z_i [mm]: the encoders log ``q − z_i``.
         instrument: the simulated outside instrument, or None (the tracker measures).
     """
@@ -168,12 +175,42 @@ class TrueRobot:
     stroke_scale: np.ndarray
     encoder_zero_mm: np.ndarray
     instrument: SimulatedInstrument | None = None
+    nominal: LegModel | None = None
+
+    @property
+    def rotary(self) -> bool:
+        """A rotary drive (spec §15): commanded angles logged, the robot rigid."""
+        return self.nominal is not None and self.nominal.kind == "rotary"
 
     def logged_strokes(self, strokes: np.ndarray, unit_noise: np.ndarray) -> np.ndarray:
-        """What the encoders log for executed strokes [mm]: zero and scale errors, then noise."""
+        """What the encoders log for executed strokes [mm]: zero and scale errors, then noise; a rotary
+        drive logs the commanded angles as they are."""
+        if self.rotary:
+            return np.array(strokes, dtype=float)
         return encoder_readings(
             (strokes - self.encoder_zero_mm) / (1.0 + self.stroke_scale), self.encoder_noise_mm, unit_noise
         )
+
+    @functools.cached_property
+    def true_drive(self) -> DriveModel:
+        """The true drive of a rotary robot: its legs with the true errors and its true angle scale."""
+        if self.nominal is None:
+            raise ValueError("the true drive is built from the nominal legs (a rotary robot's)")
+        return plain_drive(self.nominal).true_drive(
+            self.base_params - self.nominal.as_vector(), {STROKE_SCALE: self.stroke_scale}
+        )
+
+    def settle(
+        self, strokes: np.ndarray, payload_kg: np.ndarray, guess, unit_noise: np.ndarray
+    ) -> tuple[kin.FKSolution, np.ndarray]:
+        """``(poses, true parameters (N, n_params))`` the robot reaches with the commanded ``strokes (N, 6)``:
+        the loaded fixed point of the load model (:class:`~.load.Settling`), or a rotary robot's forward
+        kinematics of its servos' angles (``unit_noise``: the standard normal draws of their white error)."""
+        if not self.rotary:
+            return self.settling.settle(strokes, payload_kg, guess)
+        held = strokes + self.encoder_noise_mm * unit_noise / (1.0 + self.stroke_scale)
+        sol = self.true_drive.forward_kinematics(held, guess=guess)
+        return sol, np.tile(self.base_params, (len(strokes), 1))
 
     def readings(
         self, R: np.ndarray, t: np.ndarray, reading_noise: np.ndarray, instrument_draws: np.ndarray
@@ -213,6 +250,8 @@ def build_robot(
     e = experiment
     r = e.robot
     drive = e.platform.drive
+    if isinstance(r, RotaryRobotConfig):
+        return _rotary_robot(experiment, r, robot_rng, encoder_rng, instrument_rng)
     scales = (r.scale_base_joints, r.scale_platform_joints, r.scale_lengths)
     delta = base_errors(r.errors, scales, r.random_spread_mm, robot_rng, drive.n_params)
     tracker = None
@@ -235,6 +274,41 @@ def build_robot(
             e.platform.instrument, e.instrument, instrument_rng or np.random.default_rng(0)
         )
     return TrueRobot(drive.as_vector() + delta, e.load, tracker, r.encoder_noise_mm, scale, zero, instrument)
+
+
+def _rotary_robot(
+    experiment: Experiment,
+    config: RotaryRobotConfig,
+    robot_rng: np.random.Generator,
+    encoder_rng: np.random.Generator | None,
+    instrument_rng: np.random.Generator | None,
+) -> TrueRobot:
+    """The true robot of a rotary drive's experiment (spec §15): its legs' errors from ``robot_rng``
+    (:func:`~.robot.rotary_errors`), the angle scale from ``encoder_rng``, rigid, measured from outside."""
+    e = experiment
+    legs = e.platform.drive
+    delta = rotary_errors(config, legs, robot_rng)
+    encoder_rng = encoder_rng or np.random.default_rng(0)
+    n = legs.n_legs
+    scale = encoder_rng.normal(0.0, config.angle_scale_spread, n) if config.angle_scale_spread > 0 else np.zeros(n)
+    if e.instrument is None:
+        raise CalibError(
+            f'{e.source}: key \'instrument\': expected an instrument outside the robot (kind = "pose" or "points"): '
+            "a rotary drive is measured from outside (spec §15)"
+        )
+    instrument = SimulatedInstrument.build(
+        e.platform.instrument, e.instrument, instrument_rng or np.random.default_rng(0)
+    )
+    return TrueRobot(
+        legs.as_vector() + delta,
+        e.load,
+        None,
+        np.radians(config.angle_noise_deg),
+        scale,
+        np.zeros(n),
+        instrument,
+        legs,
+    )
 
 
 @dataclass
@@ -330,7 +404,11 @@ def simulate_blocks(
                     reading_noise.standard_normal((m, rulers)),
                     instrument_draws[rows],
                 )
-                yield step(robot, plan, rows, controller, noise)
+                try:
+                    block = step(robot, plan, rows, controller, noise)
+                except Unreachable as err:
+                    raise CalibError(f"{shown(experiment.source)}: {err}") from None
+                yield block
                 bar.update(m)
         finally:
             bar.close()
@@ -354,8 +432,8 @@ def _settle_block(robot: TrueRobot, plan: Schedule, rows: slice, controller: Con
     """A model that never changes: the block's IK, settling and measurements in one vectorised pass
     (``noise``: the block's stroke and reading noise and instrument draws)."""
     R_d, t_d = kin.pose_to_rt(plan.desired_poses[rows])
-    strokes = _commanded(controller, R_d, t_d, plan.payload_kg[rows])
-    sol, params = robot.settling.settle(strokes, plan.payload_kg[rows], (R_d, t_d))
+    strokes = _commanded(controller, R_d, t_d, plan.payload_kg[rows], plan, rows.start)
+    sol, params = robot.settle(strokes, plan.payload_kg[rows], (R_d, t_d), noise[0])
     log, truth = _measured(robot, plan, rows, strokes, sol.R, sol.t, params, noise)
     for sample in log:  # the protocol promises observe() after every sample
         controller.observe(sample)
@@ -370,9 +448,9 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
     strokes, params = np.empty((m, len(robot.stroke_scale))), np.empty((m, robot.base_params.size))
     R, t = np.empty((m, 3, 3)), np.empty((m, 3))
     for i, k in enumerate(range(rows.start, rows.stop)):
-        strokes[i] = _commanded(controller, R_d[i], t_d[i], plan.payload_kg[k])
-        sol, params[i : i + 1] = robot.settling.settle(
-            strokes[i : i + 1], plan.payload_kg[k : k + 1], (R_d[i : i + 1], t_d[i : i + 1])
+        strokes[i] = _commanded(controller, R_d[i], t_d[i], plan.payload_kg[k], plan, k)
+        sol, params[i : i + 1] = robot.settle(
+            strokes[i : i + 1], plan.payload_kg[k : k + 1], (R_d[i : i + 1], t_d[i : i + 1]), stroke_noise[i : i + 1]
         )
         R[i], t[i] = sol.R[0], sol.t[0]
         controller.observe(
@@ -381,13 +459,29 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
     return _measured(robot, plan, rows, strokes, R, t, params, noise)
 
 
-def _commanded(controller: Controller, R_d: np.ndarray, t_d: np.ndarray, payload_kg) -> np.ndarray:
+class Unreachable(ValueError):
+    """A desired pose the controller's model reaches with no drive coordinate (a rotary drive's
+    inverse kinematics: no horn angle within the angle range, spec §15)."""
+
+
+def _commanded(controller: Controller, R_d: np.ndarray, t_d: np.ndarray, payload_kg, plan: Schedule, first: int):
     """The strokes ``controller`` commands for desired poses: its own ``strokes`` where it has one,
-    else IK of its drive model."""
+    else IK of its drive model (``plan``'s samples from ``first``: named where one is unreachable).
+
+    Raises:
+        Unreachable: a pose with a coordinate the IK leaves NaN, naming its sample.
+    """
     command = getattr(controller, "strokes", None)
-    if command is None:
-        return kin.inverse_kinematics(controller.drive_model(), R_d, t_d)
-    return command(R_d, t_d, payload_kg)
+    strokes = controller.drive_model().coordinates(R_d, t_d) if command is None else command(R_d, t_d, payload_kg)
+    bad = np.flatnonzero(~np.all(np.isfinite(np.reshape(strokes, (-1, np.shape(strokes)[-1]))), axis=1))
+    if bad.size:
+        k = first + int(bad[0])
+        raise Unreachable(
+            f"sample {k + 1} (t_s = {plan.t_s[k]:g} s, {plan.kinds[k]} pose {plan.pose_index[k] + 1}): the "
+            "controller's model has no drive coordinate within range for its desired pose (a rotary drive's "
+            "drive.angle_range_deg); expected poses within reach (a smaller workspace or trajectory)"
+        )
+    return strokes
 
 
 def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, params, noise) -> tuple[Log, Truth]:
@@ -402,7 +496,8 @@ def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, para
         load_kg=plan.payload_kg[rows].copy(),
     )
     params = params.copy()
-    params[:, 6::7] += robot.encoder_zero_mm  # the logged strokes' zero is the model's l_i
+    if not robot.rotary:
+        params[:, 6::7] += robot.encoder_zero_mm  # the logged strokes' zero is the model's l_i
     instrument = None
     if robot.instrument is not None:
         instrument = (robot.instrument.names(), robot.instrument.unknowns.file_values())

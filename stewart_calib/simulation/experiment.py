@@ -11,6 +11,9 @@ identical output. Layout (every key optional except ``seed`` and ``platform``; d
     [robot]     errors = "table4" | "random", scale_base_joints, scale_platform_joints,
                 scale_lengths, random_spread_mm, encoder_noise_mm, stroke_scale_spread,
                 encoder_zero_spread_mm
+                — a rotary drive's (spec §15) instead: angle_offset_limit_deg, horn_spread_mm,
+                rod_spread_mm, joint_spread_mm, axis_tilt_spread_deg, angle_scale_spread,
+                angle_noise_deg (:class:`RotaryRobotConfig`; no [load]: it is simulated rigid)
     [instrument] the nominal instrument of spec §7 (kind, frame, target, targets_mm,
                 position_sigma_mm, orientation_sigma_deg: written into the simulated platform and
                 used as the true noise) and its truth: frame_offset, target_offset,
@@ -39,7 +42,7 @@ import numpy as np
 
 from ..errors import CalibError
 from ..instruments.registry import instrument_kind, kind_of
-from ..platform import Platform, centre_too_far, load_platform, parse_instrument
+from ..platform import LegGeometry, Platform, centre_too_far, load_platform, parse_instrument
 from ..resources import CONFIGS, read_toml
 from .instrument import InstrumentTruth
 from .load import LoadModel
@@ -74,6 +77,29 @@ class RobotConfig:
     encoder_noise_mm: float = 0.0
     stroke_scale_spread: float = 0.0
     encoder_zero_spread_mm: float = 0.0
+
+
+@dataclass(frozen=True)
+class RotaryRobotConfig:
+    """True servo-horn robot (spec §15): per leg i.i.d. errors of its 11 parameters.
+
+    Attributes:
+        angle_offset_limit_deg: the zero offsets o_i are uniform in ± this [deg]: a horn sits on its
+            spline a fraction of a tooth off (25 teeth: 14.4° a tooth), what is left after trimming.
+        horn_spread_mm, rod_spread_mm: σ of the horn and rod lengths' errors [mm].
+        joint_spread_mm: σ of every coordinate of the crank centres and platform joints [mm].
+        axis_tilt_spread_deg: σ of each crank axis's tilts tu_i, tw_i [deg].
+        angle_scale_spread: σ of the servos' angle scale k_i: a commanded θ turns the horn by (1 + k_i) θ.
+        angle_noise_deg: σ of the white error of the angle a servo holds about its command [deg].
+    """
+
+    angle_offset_limit_deg: float = 2.0
+    horn_spread_mm: float = 0.2
+    rod_spread_mm: float = 0.3
+    joint_spread_mm: float = 0.5
+    axis_tilt_spread_deg: float = 0.75
+    angle_scale_spread: float = 0.02
+    angle_noise_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -126,7 +152,7 @@ class Experiment:
     seed: int
     platform: Platform
     sample_period_s: float
-    robot: RobotConfig
+    robot: RobotConfig | RotaryRobotConfig
     load: LoadModel
     tracker: TrackerConfig
     poses: PoseSetConfig
@@ -237,16 +263,10 @@ def load_experiment(path: str | Path) -> Experiment:
 
     sections = {key: _Table(doc.get(key, {}), key, source) for key in ("robot", "load", "tracker", "poses", "circle")}
     r = sections["robot"]
-    robot = RobotConfig(
-        errors=r.choice("errors", "table4", ("table4", "random")),
-        scale_base_joints=r.number("scale_base_joints", 1.0),
-        scale_platform_joints=r.number("scale_platform_joints", RobotConfig.scale_platform_joints),
-        scale_lengths=r.number("scale_lengths", 1.0),
-        random_spread_mm=r.number("random_spread_mm", 1.0, minimum=0.0),
-        encoder_noise_mm=r.number("encoder_noise_mm", 0.0, minimum=0.0),
-        stroke_scale_spread=r.number("stroke_scale_spread", 0.0, minimum=0.0),
-        encoder_zero_spread_mm=r.number("encoder_zero_spread_mm", 0.0, minimum=0.0),
-    )
+    rotary = platform.drive.kind == "rotary"
+    robot = _rotary_robot(r) if rotary else _robot(r)
+    if rotary and "load" in doc:
+        raise sections["load"].refuse("", 'no [load] table: a rotary drive (kind = "rotary") is simulated rigid')
     ld, dflt = sections["load"], LOAD_DEFAULTS
     load = LoadModel(
         platform_mass_kg=ld.number("platform_mass_kg", dflt["platform_mass_kg"], minimum=0.0),
@@ -261,6 +281,8 @@ def load_experiment(path: str | Path) -> Experiment:
     # the platform file simulate writes carries these centres as [elastic]'s: refused here by [elastic]'s rule,
     # not written into a platform every other command refuses
     for key in ("platform_com_mm", "payload_com_mm"):
+        if not isinstance(platform.drive, LegGeometry):  # a rotary drive takes no [load] (refused above)
+            break
         too_far = centre_too_far(platform.drive, getattr(load, key))
         if too_far:
             raise ld.refuse(key, too_far)
@@ -299,6 +321,36 @@ def load_experiment(path: str | Path) -> Experiment:
     stages = tuple(_stage(raw, f"stages[{k}]", source) for k, raw in enumerate(raw_stages))
     top.done(subtables=(*sections, "instrument"))
     return Experiment(name, seed, platform, period, robot, load, tracker, poses, circle, stages, source, instrument)
+
+
+def _robot(r: _Table) -> RobotConfig:
+    """A prismatic drive's ``[robot]`` (:class:`RobotConfig`)."""
+    return RobotConfig(
+        errors=r.choice("errors", "table4", ("table4", "random")),
+        scale_base_joints=r.number("scale_base_joints", 1.0),
+        scale_platform_joints=r.number("scale_platform_joints", RobotConfig.scale_platform_joints),
+        scale_lengths=r.number("scale_lengths", 1.0),
+        random_spread_mm=r.number("random_spread_mm", 1.0, minimum=0.0),
+        encoder_noise_mm=r.number("encoder_noise_mm", 0.0, minimum=0.0),
+        stroke_scale_spread=r.number("stroke_scale_spread", 0.0, minimum=0.0),
+        encoder_zero_spread_mm=r.number("encoder_zero_spread_mm", 0.0, minimum=0.0),
+    )
+
+
+def _rotary_robot(r: _Table) -> RotaryRobotConfig:
+    """A rotary drive's ``[robot]`` (:class:`RotaryRobotConfig`; spec §15)."""
+    defaults = RotaryRobotConfig()
+    config = RotaryRobotConfig(
+        **{
+            key: r.number(key, getattr(defaults, key), minimum=0.0)
+            for key in RotaryRobotConfig.__dataclass_fields__  # every one a spread or limit ≥ 0
+        }
+    )
+    if config.angle_offset_limit_deg > 180.0:
+        raise r.refuse("angle_offset_limit_deg", f"a zero offset within 180 deg, got {config.angle_offset_limit_deg}")
+    if config.angle_scale_spread > 0.1:
+        raise r.refuse("angle_scale_spread", f"a σ of the angle scale within 0.1, got {config.angle_scale_spread}")
+    return config
 
 
 #: the experiment's [instrument] keys that describe the truth, not the nominal instrument

@@ -49,6 +49,28 @@ def base_errors(
     return params_to_vector(vector_to_params(errors) * np.array([sj, sj, sj, sd, sd, sd, sl]))
 
 
+def rotary_errors(config, legs, rng: np.random.Generator) -> np.ndarray:
+    """The true error δM of a rotary drive (spec §15), ``(legs.n_params,)`` [mm, rad]: its zero offsets
+    uniform in ± ``config.angle_offset_limit_deg``, every other entry normal with the
+    :class:`~.experiment.RotaryRobotConfig`'s σ (crank centres and platform joints alike), drawn
+    leg by leg in the order of the parameter vector."""
+    spreads = {
+        "a": config.joint_spread_mm,
+        "d": config.joint_spread_mm,
+        "h": config.horn_spread_mm,
+        "r": config.rod_spread_mm,
+        "tu": np.radians(config.axis_tilt_spread_deg),
+        "tw": np.radians(config.axis_tilt_spread_deg),
+    }
+    prefixes = [name.rstrip("0123456789xyz") for name in legs.parameter_names]
+    sigma = np.array([spreads.get(prefix, 0.0) for prefix in prefixes])
+    offsets = np.array([prefix == "o" for prefix in prefixes])
+    delta = rng.standard_normal(legs.n_params) * sigma
+    limit = np.radians(config.angle_offset_limit_deg)
+    delta[offsets] = rng.uniform(-limit, limit, int(offsets.sum()))
+    return delta
+
+
 def encoder_readings(strokes_mm: np.ndarray, noise_mm: float, unit_noise: np.ndarray) -> np.ndarray:
     """Logged strokes: the executed ones plus encoder noise σ·``unit_noise`` [mm] (standard
     normal draws made up front by the caller)."""

@@ -15,15 +15,18 @@ CIRCLE_PLANES = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
 
 
 def in_range(platform: Platform, poses: np.ndarray, margin_mm: float) -> np.ndarray:
-    """``(N,)`` mask: nominal strokes and tracker readings within their ranges shrunk by ``margin_mm``.
+    """``(N,)`` mask: nominal strokes and tracker readings within their ranges shrunk by ``margin_mm``
+    (a rotary drive's commanded angles within its angle range, spec §15).
 
     The margin leaves room for the few-mm difference between desired and actual pose.
     """
     R, t = kin.pose_to_rt(poses)
     ok = np.ones(len(poses), dtype=bool)
+    if platform.drive.kind == "rotary":  # its IK is NaN where no horn reaches within the angle range
+        ok &= np.all(np.isfinite(platform.drive.coordinates(R, t)), axis=1)
     for legs, bounds in ((platform.drive, platform.stroke_range), (platform.tracker, platform.reading_range)):
         if bounds is not None and legs is not None:
-            s = kin.inverse_kinematics(legs, R, t)
+            s = legs.coordinates(R, t)
             ok &= np.all((s >= bounds[0] + margin_mm) & (s <= bounds[1] - margin_mm), axis=1)
     return ok
 

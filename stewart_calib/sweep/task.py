@@ -38,7 +38,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .. import kinematics as kin
-from ..drive import COMPLIANCE, DriveModel, drive_model
+from ..drive import COMPLIANCE, DriveModel, drive_model, plain_drive
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..estimators import BatchEstimator, make_estimator
@@ -46,7 +46,7 @@ from ..estimators.base import fit_all
 from ..estimators.batch import BatchProblem, cramer_rao
 from ..identifiability import identifiability_report, residual_covariance, stddev_from_factor, whitened_leg_jacobian
 from ..instruments import MODELS, gauge, instrument_kind, registered
-from ..platform import Elastic, Instrument, LegGeometry, Platform, vector_to_params
+from ..platform import Elastic, Instrument, LegGeometry, Platform
 from ..samples import Log
 from ..simulation.instrument import InstrumentTruth, SimulatedInstrument, truth_in_gauge
 from ..simulation.trajectories import random_static_poses
@@ -156,7 +156,7 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
     rigid = drive_model(replace(nominal, elastic=None), simulated_noise(settings))
     true_terms = {term.key: rng.normal(0.0, term.prior_sigma or 0.0, rigid.rows) for term in rigid.terms}
     true_rigid = rigid.true_drive(np.zeros(rigid.n_params), true_terms)
-    strokes = true_rigid.strokes_for(_leg_lengths(true_params, R, t) - vector_to_params(true_params)[..., 6])
+    strokes = true_rigid.strokes_for(_extensions(drive, true_params, R, t))
     per_stroke = true_rigid.extension_per_stroke()
     strokes += stroke_noise
     instrument = None
@@ -258,11 +258,19 @@ def _instrument_truth(settings: dict, rng: np.random.Generator) -> InstrumentTru
     return InstrumentTruth(offset, np.zeros(6), dropout_probability=settings["dropout_rate"])
 
 
-def _leg_lengths(params: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``‖t + R d_i − j_i‖`` with a drive of its own per pose, ``(N, 6)`` [mm]."""
-    p = vector_to_params(params)
-    base, plat = p[..., 0:3], p[..., 3:6]
-    return np.linalg.norm(t[:, None, :] + np.einsum("nij,nkj->nki", R, plat) - base, axis=-1)
+def _extensions(nominal, params: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(N, legs)`` the coordinates that close the legs at poses ``(R, t)`` of a drive of its own per
+    pose, absolute parameters ``params (N, n_params)`` of the leg model ``nominal``: one compiled pass
+    for the prismatic legs, else each distinct drive's inverse kinematics."""
+    if type(nominal) is LegGeometry:
+        return kin.leg_residuals_per_sample(params, R, t, np.zeros((len(params), nominal.n_legs)))
+    distinct, which = np.unique(params, axis=0, return_inverse=True)
+    extensions = np.empty((len(params), nominal.n_legs))
+    for k, row in enumerate(distinct):
+        at = which.ravel() == k
+        legs = nominal.perturbed(row - nominal.as_vector())
+        extensions[at] = plain_drive(legs).inverse_kinematics(R[at], t[at])
+    return extensions
 
 
 def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> np.ndarray:

@@ -57,6 +57,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from ..instruments.gauge import joint_columns
 from ..kinematics import transform_points
 from ..platform import PARAMETER_FIELDS, LegGeometry, Platform
 
@@ -174,16 +175,23 @@ def _checked_name(name: str, what: str) -> str:
     return name
 
 
-def parameter_path(leg: int, field: str, method: str) -> str:
-    """``params/leg{leg}/{field}/{method}`` for a leg numbered from 1 and a field of :data:`PARAMETER_FIELDS`."""
-    if leg < 1 or field not in PARAMETER_FIELDS:
+def parameter_fields(names: tuple[str, ...], n_legs: int) -> tuple[str, ...]:
+    """The fields of one leg in a leg model's parameter order, from its ``names`` (the first leg's,
+    its number written ``_`` or dropped at the end): ``j1x … l1`` → :data:`PARAMETER_FIELDS`
+    ``j_x … l``, a rotary leg's ``a1x … tw1`` → ``a_x … tw``."""
+    return tuple(name.replace("1", "_", 1).rstrip("_") for name in names[: len(names) // n_legs])
+
+
+def parameter_path(leg: int, field: str, method: str, fields: tuple[str, ...] = PARAMETER_FIELDS) -> str:
+    """``params/leg{leg}/{field}/{method}`` for a leg numbered from 1 and one of its ``fields``."""
+    if leg < 1 or field not in fields:
         raise ValueError(f"no parameter leg {leg} / {field!r}")
     return f"params/leg{leg}/{field}/{_checked_name(method, 'method')}"
 
 
-def band_paths(leg: int, field: str, method: str) -> tuple[str, str]:
+def band_paths(leg: int, field: str, method: str, fields: tuple[str, ...] = PARAMETER_FIELDS) -> tuple[str, str]:
     """``(upper, lower)`` edges of the ±σ band of one parameter."""
-    path = parameter_path(leg, field, method)
+    path = parameter_path(leg, field, method, fields)
     return f"{path}/upper", f"{path}/lower"
 
 
@@ -241,11 +249,10 @@ def _batch(values, n: int, tail: tuple[int, ...], what: str) -> np.ndarray:
     return values
 
 
-def _per_leg(values, n: int, what: str) -> np.ndarray:
-    """``values`` ``(n, 7 L)`` in the paper's order (a single ``(7 L,)`` is one row) as ``(n, L, 7)``:
-    a leg set's parameters, its L legs read off the array's own width."""
+def _per_leg(values, n: int, what: str, fields: int) -> np.ndarray:
+    """``values`` ``(n, F L)`` leg by leg (a single ``(F L,)`` is one row) as ``(n, L, F)``: a leg
+    set's parameters, ``fields`` F a leg, its L legs read off the array's own width."""
     values = np.asarray(values, dtype=float)
-    fields = len(PARAMETER_FIELDS)
     width = values.shape[-1] if values.ndim else 0
     if width == 0 or width % fields:
         raise ValueError(f"{what} must hold {fields} parameters a leg, got shape {values.shape}")
@@ -258,11 +265,25 @@ def _closed_outline(points: np.ndarray) -> np.ndarray:
     return np.vstack([points[order], points[order[:1]]])
 
 
-def _leg_strips(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``(N·6, 2, 3)`` segments base joint → platform joint at each pose, in {J} [mm]."""
-    platform_joints = transform_points(R, t, legs.platform_joints)
-    base_joints = np.broadcast_to(legs.base_joints, platform_joints.shape)
-    return np.stack([base_joints, platform_joints], axis=-2).reshape(-1, 2, 3)
+def _joints(legs) -> tuple[np.ndarray, np.ndarray]:
+    """``(base-side points (L, 3) in {J}, platform joints (L, 3) in {D})`` [mm] of a leg set, the entries
+    of its parameter vector that hold them (a prismatic leg's ``j_i`` and ``d_i``, a rotary leg's crank
+    centre ``a_i`` and ``d_i``)."""
+    M = legs.as_vector()
+    base, platform = joint_columns(legs)
+    return M[base].reshape(-1, 3), M[platform].reshape(-1, 3)
+
+
+def _leg_strips(legs, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(N·L, k, 3)`` each leg's polyline at each pose, in {J} [mm]: base joint → platform joint of a
+    prismatic leg; a rotary leg's crank centre → horn joint (at the angle that closes the leg there)
+    → platform joint."""
+    base, platform = _joints(legs)
+    platform_joints = transform_points(R, t, platform)
+    points = [np.broadcast_to(base, platform_joints.shape), platform_joints]
+    if type(legs) is not LegGeometry and legs.kind == "rotary":  # the horn between crank and rod
+        points.insert(1, legs.horn_joints(legs.coordinates(R, t)))
+    return np.stack(points, axis=-2).reshape(-1, len(points), 3)
 
 
 # ----------------------------------------------------------------------------- scene
@@ -280,8 +301,8 @@ def log_platform_geometry(rec: Recording, platform: Platform) -> None:
     # Joint letters as in the paper: drive j_i / d_i, tracker z_i / h_i (a platform measured by
     # another instrument may have no tracker).
     legs = {"drive": platform.drive} | ({} if platform.tracker is None else {"tracker": platform.tracker})
-    for frame, attribute, letters in (("base", "base_joints", "JZ"), ("platform", "platform_joints", "DH")):
-        joints = {kind: getattr(leg_set, attribute) for kind, leg_set in legs.items()}
+    for side, (frame, letters) in enumerate((("base", "JZ"), ("platform", "DH"))):
+        joints = {kind: _joints(leg_set)[side] for kind, leg_set in legs.items()}
         outline = _closed_outline(np.vstack(list(joints.values())))
         outline_strip = rr.LineStrips3D([outline], colors=_OUTLINE_COLOR, radii=_OUTLINE_RADIUS_MM)
         log(f"world/{frame}/outline", outline_strip, static=True)
@@ -331,7 +352,7 @@ def log_platform_pose(
     if desired is not None:
         R_d, t_d = _batch(desired[0], n, (3, 3), "R_desired"), _batch(desired[1], n, (3,), "t_desired")
         ghost = _closed_outline(
-            np.vstack([platform.drive.platform_joints, *(legs.platform_joints for _, legs, _ in drawn[1:])])
+            np.vstack([_joints(platform.drive)[1], *(_joints(legs)[1] for _, legs, _ in drawn[1:])])
         )
         rec.static_once(
             "world/platform_desired/outline", rr.LineStrips3D([ghost], colors=_GHOST_COLOR, radii=_OUTLINE_RADIUS_MM)
@@ -347,7 +368,9 @@ def _send_scalars(rec: Recording, entity_path: str, index, values: np.ndarray, s
     rec.stream.send_columns(entity_path, indexes=index, columns=rr.Scalars.columns(scalars=values))
 
 
-def log_parameters(rec: Recording, method: str, params_mm, times_s, samples=None) -> None:
+def log_parameters(
+    rec: Recording, method: str, params_mm, times_s, samples=None, fields: tuple[str, ...] = PARAMETER_FIELDS
+) -> None:
     """The 42 parameters of one method over time at ``params/leg{i}/{name}/{method}``.
 
     Pass the identified errors δM (or the truth's, with ``method=TRUTH``) rather than absolute
@@ -359,32 +382,43 @@ def log_parameters(rec: Recording, method: str, params_mm, times_s, samples=None
         params_mm: ``(42,)`` for one sample or ``(N, 42)`` in the paper's order [mm].
         times_s: scalar or ``(N,)`` [s].
         samples: ``(N,)`` sample indices; default ``0 … N−1``.
+        fields: one leg's parameters (:func:`parameter_fields` of another leg model's names).
     """
     n, index = _time_columns(times_s, samples)
-    per_leg = _per_leg(params_mm, n, "params_mm")
+    per_leg = _per_leg(params_mm, n, "params_mm", len(fields))
     # Truth: thin and pale, under the estimates drawn in the same hue.
     width, alpha = (1.0, 140) if method == TRUTH else (2.0, 255)
     for leg in range(per_leg.shape[1]):
-        for k, field in enumerate(PARAMETER_FIELDS):
-            style = rr.SeriesLines(colors=(*_PARAMETER_COLORS[k], alpha), widths=width, names=f"{field} {method}")
-            _send_scalars(rec, parameter_path(leg + 1, field, method), index, per_leg[:, leg, k], style)
+        for k, field in enumerate(fields):
+            color = _PARAMETER_COLORS[k % len(_PARAMETER_COLORS)]
+            style = rr.SeriesLines(colors=(*color, alpha), widths=width, names=f"{field} {method}")
+            _send_scalars(rec, parameter_path(leg + 1, field, method, fields), index, per_leg[:, leg, k], style)
 
 
-def log_parameter_band(rec: Recording, method: str, params_mm, stddev_mm, times_s, samples=None) -> None:
+def log_parameter_band(
+    rec: Recording,
+    method: str,
+    params_mm,
+    stddev_mm,
+    times_s,
+    samples=None,
+    fields: tuple[str, ...] = PARAMETER_FIELDS,
+) -> None:
     """The ±σ band of each of the 42 parameters: ``params ± stddev`` at ``…/{method}/upper|lower``,
     drawn thin in the parameter's colour around :func:`log_parameters`' curve.
 
     Args:
-        params_mm: ``(N, 42)`` as passed to :func:`log_parameters` [mm].
+        params_mm: ``(N, 42)`` as passed to :func:`log_parameters` [mm], leg by leg of ``fields``.
         stddev_mm: ``(N, 42)`` σ of each parameter after each sample [mm] (NaN: none).
     """
     n, index = _time_columns(times_s, samples)
-    centre = _per_leg(params_mm, n, "params_mm")
+    centre = _per_leg(params_mm, n, "params_mm", len(fields))
     sigma = _batch(stddev_mm, n, (centre[0].size,), "stddev_mm").reshape(centre.shape)
     for leg in range(centre.shape[1]):
-        for k, field in enumerate(PARAMETER_FIELDS):
-            style = rr.SeriesLines(colors=(*_PARAMETER_COLORS[k], 110), widths=0.75, names=f"{field} {method} ±σ")
-            upper, lower = band_paths(leg + 1, field, method)
+        for k, field in enumerate(fields):
+            color = _PARAMETER_COLORS[k % len(_PARAMETER_COLORS)]
+            style = rr.SeriesLines(colors=(*color, 110), widths=0.75, names=f"{field} {method} ±σ")
+            upper, lower = band_paths(leg + 1, field, method, fields)
             _send_scalars(rec, upper, index, centre[:, leg, k] + sigma[:, leg, k], style)
             _send_scalars(rec, lower, index, centre[:, leg, k] - sigma[:, leg, k], style)
 
@@ -539,13 +573,16 @@ def log_trajectory(
 # ----------------------------------------------------------------------------- layout
 
 
-def send_blueprint(rec: Recording, n_legs: int, methods, stages, diagnostics=None) -> None:
+def send_blueprint(
+    rec: Recording, n_legs: int, methods, stages, diagnostics=None, fields: tuple[str, ...] = PARAMETER_FIELDS
+) -> None:
     """Lay the panels out in tabs: scene, one parameter tab per method, pose errors, trajectories,
     and one diagnostics tab per method in ``diagnostics``.
 
     Each parameter tab holds one time-series view per drive leg (``n_legs`` of them) with that
     method's seven curves, their ±σ bands where logged, and the truth (Fig. 5); method comparison
-    is in the pose-error tab (Fig. 7). ``diagnostics`` maps a method to the kinds of :data:`DIAGNOSTICS` logged for it.
+    is in the pose-error tab (Fig. 7). ``diagnostics`` maps a method to the kinds of :data:`DIAGNOSTICS` logged for it;
+    ``fields``: one leg's parameters, as :func:`log_parameters` took them.
     """
     methods = [_checked_name(method, "method") for method in methods]
     stages = [_checked_name(stage, "stage") for stage in stages]
@@ -563,7 +600,7 @@ def send_blueprint(rec: Recording, n_legs: int, methods, stages, diagnostics=Non
                     # Entity queries know no inner wildcard, so list the 7 + 7 series.
                     contents=[
                         f"$origin/{field}/{name}{edge}"
-                        for field in PARAMETER_FIELDS
+                        for field in fields
                         for name in (method, TRUTH)
                         for edge in ("", "/upper", "/lower")
                     ],
