@@ -22,7 +22,7 @@ from ..platform import Platform
 from ..samples import Log, Sample
 from .base import Refusals, state_array, update_each
 from .ekf import LegEKF
-from .graph import ChainState, GraphBuilder, first_paragraph, params_key
+from .graph import ChainState, Epoch, GraphBuilder, first_paragraph, params_key
 from .measurement import HeldForRegistration, check_sample, samples_from_arrays, samples_to_arrays
 from .robust import WALK_RAISING
 
@@ -420,7 +420,7 @@ class ISAM2Estimator:
         self._replay.append(sample)
         self._trim(sample.t_s)
 
-    def _epoch(self, state: ChainState, sample: Sample):
+    def _epoch(self, state: ChainState, sample: Sample) -> Epoch:
         """:meth:`GraphBuilder.epoch` of ``sample`` after ``state``, in its window's scale, walk and length."""
         return self._builder.epoch(
             state, sample, self._current_params, *self._window_walk(state, sample), self._window_fraction(state)
