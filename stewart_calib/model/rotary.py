@@ -284,10 +284,10 @@ class RotaryLegs:
         :meth:`perturbed`'s sums, and its axes and zero directions turned by one rotation (orthonormal
         to rounding), so a zero δM gives the same set bit for bit."""
         legs = object.__new__(cls)
-        for field, value in zip(fields(cls), values, strict=True):
+        for member, value in zip(fields(cls), values, strict=True):
             if isinstance(value, np.ndarray):
                 value.setflags(write=False)
-            object.__setattr__(legs, field.name, value)
+            object.__setattr__(legs, member.name, value)
         return legs
 
     # ------------------------------------------------------------------ kinematics
