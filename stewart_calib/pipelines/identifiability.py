@@ -174,9 +174,10 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
         )
     weak = _weak_against_prior(drive.legs, report["predicted_stddev"], noise)
     if weak:
+        named = ", ".join(f"{name} {sd:.3g} (prior {prior:.3g})" for name, sd, prior in weak)
         print(
-            f"seen no better than their prior σ (a calibration keeps them near nominal; poses that see them "
-            f"better: stewart-calib plan): {', '.join(f'{name} {sd:.3g} (prior {prior:.3g})' for name, sd, prior in weak)}"
+            "seen no better than their prior σ (a calibration keeps them near nominal; poses that see them "
+            f"better: stewart-calib plan): {named}"
         )
     prediction = _prediction(platform, design_covariance(platform, poses, seen=seen), poses, len(poses), None)
     if args.json:
