@@ -308,3 +308,69 @@ def test_the_leg_polylines_of_a_prismatic_drive_are_its_legs():
         np.linalg.norm(lines[:, 1] - lines[:, 0], axis=-1),
         kin.inverse_kinematics(platform.drive, R, t)[0] + platform.drive.initial_lengths,
     )
+
+
+ANGLES = tuple(f"q{i}_deg" for i in range(1, 7))
+
+
+def _edited_log(servo, tmp_path: Path, edit, names: tuple[str, ...] = ANGLES) -> Path:
+    """The servo log with ``edit(values (N, len(names))) -> values`` applied to its columns ``names``
+    (default q1_deg … q6_deg [deg])."""
+    with servo["log"].open(newline="") as f:
+        rows = list(csv.reader(f))
+    columns = [rows[0].index(name) for name in names]
+    angles = edit(np.array([[float(row[j]) for j in columns] for row in rows[1:]]))
+    for row, values in zip(rows[1:], angles, strict=True):
+        for j, value in zip(columns, values, strict=True):
+            row[j] = repr(float(value))
+    path = tmp_path / "edited.csv"
+    with path.open("w", newline="") as f:
+        csv.writer(f).writerows(rows)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (np.radians, "the angles q1_deg…q6_deg look like radians, not deg"),
+        (lambda q: q[:, [1, 0, 2, 3, 4, 5]], "angle columns q1_deg and q2_deg look swapped"),
+        (lambda q: q * np.array([1, 1, -1, 1, 1, 1]), "leg 3's angle looks reversed (q3_deg counts the wrong way)"),
+    ],
+)
+def test_the_diagnosis_names_a_servo_logs_mistake_in_its_own_columns_and_degrees(
+    servo, capsys, tmp_path, edit, message
+):
+    log = _edited_log(servo, tmp_path, edit)
+    code, err = _run(
+        capsys,
+        "calibrate",
+        "--platform",
+        servo["platform"],
+        "--log",
+        log,
+        "--method",
+        "ekf",
+        "--out",
+        tmp_path / "x.json",
+    )
+    assert code != 0 and err.count("\n") == 0 and message in err, err
+    assert "mm" not in err.split(message)[1].replace("deg", "")  # its evidence in degrees
+
+
+def test_a_servo_log_whose_angles_are_another_robots_is_named(servo, capsys, tmp_path):
+    rng = np.random.default_rng(4)
+    log = _edited_log(servo, tmp_path, lambda q: rng.permutation(q))  # the rows' angles shuffled
+    argv = ["calibrate", "--platform", servo["platform"], "--log", log, "--method", "ekf", "--out", tmp_path / "x.json"]
+    code, err = _run(capsys, *argv)
+    assert code != 0 and err.count("\n") == 0
+    assert "the angles q1_deg…q6_deg do not fit this platform's legs" in err and "expected angles [deg]" in err
+
+
+def test_a_servo_log_at_rest_is_named_in_degrees_of_the_angle_range(servo, capsys, tmp_path):
+    rng = np.random.default_rng(4)
+    held = (*ANGLES, "mx_mm", "my_mm", "mz_mm", "mroll_deg", "mpitch_deg", "myaw_deg")
+    log = _edited_log(servo, tmp_path, lambda v: v[:1] + rng.normal(0.0, 0.01, v.shape), held)
+    argv = ["calibrate", "--platform", servo["platform"], "--log", log, "--method", "ekf", "--out", tmp_path / "x.json"]
+    code, err = _run(capsys, *argv)
+    assert code != 0 and err.count("\n") == 0
+    assert "samples' angles span" in err and "deg (0.01 of the angle range)" in err, err
