@@ -374,3 +374,15 @@ def test_a_servo_log_at_rest_is_named_in_degrees_of_the_angle_range(servo, capsy
     code, err = _run(capsys, *argv)
     assert code != 0 and err.count("\n") == 0
     assert "samples' angles span" in err and "deg (0.01 of the angle range)" in err, err
+
+
+def test_a_sweep_over_a_rotary_platform_is_refused_in_one_line_before_any_task(capsys, tmp_path):
+    spec = tmp_path / "drives.toml"
+    spec.write_text(
+        'name = "drives"\nmethods = ["ekf"]\nseeds = 1\n'
+        '[grid]\nplatform = ["hobby-hexapod", "servo-hexapod"]\ninstrument = "pose"\n'
+    )
+    code, err = _run(capsys, "sweep", "--spec", spec, "--out", tmp_path / "out")
+    assert code != 0 and err.count("\n") == 0
+    assert "key 'grid.platform'" in err and "'servo-hexapod', a rotary drive" in err
+    assert not (tmp_path / "out" / "results.parquet").exists()
