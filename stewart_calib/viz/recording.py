@@ -57,7 +57,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..platform import PARAMETER_FIELDS, LegGeometry, Platform
+from ..model.legs import LegModel
+from ..platform import PARAMETER_FIELDS, Platform
 from .geometry import leg_joints, leg_polylines
 
 SAMPLE_TIMELINE = "sample"
@@ -302,7 +303,7 @@ def log_platform_pose(
     t: np.ndarray,
     times_s,
     samples=None,
-    drive_legs: LegGeometry | None = None,
+    drive_legs: LegModel | None = None,
     desired: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
     """Platform pose(s), drive and tracker legs, and optionally the desired pose as a ghost.
