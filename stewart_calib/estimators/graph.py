@@ -21,10 +21,10 @@ Factors of sample k (all from :mod:`stewart_calib.factors`):
 An unannounced payload (``[elastic] payload_sigma_kg`` > 0, ``isam2`` only): the payload mass ``m``
 [kg] is the unknown vector's last entry, as in ekf's state (``isam2`` takes its front end's layout),
 and enters each drive-leg factor (:mod:`stewart_calib.factors.drive_leg`). Between windows it is
-tied by the floor σ alone, so it averages over the samples; a sample the front end takes as a step
-of it (:attr:`GraphBuilder.steps`) opens a new window whose walk factor lets ``m`` move by the prior's
-σ_m, so the step moves ``m`` at the sample it happens (the front end's value after the step its
-initial value), not δM over tens of samples.
+tied by the floor σ alone, so it averages over the samples; the sample a step of it happened at, as
+the front end found it (:attr:`GraphBuilder.steps`), opens a new window whose walk factor lets ``m``
+move by the prior's σ_m, so the step moves ``m`` at that sample (the front end's value after the step
+its initial value), not δM over tens of samples.
 
 Measurement factors may carry a Huber or Cauchy kernel (``[isam2] robust``). The initial value
 of ``x_k`` is the instrument's loose pose (the tracker's FK) warm-started from the previous
