@@ -58,8 +58,8 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from ..instruments.gauge import joint_columns
-from ..kinematics import transform_points
-from ..platform import PARAMETER_FIELDS, LegGeometry, Platform
+from ..model.kinematics import transform_points
+from ..model.platform import PARAMETER_FIELDS, LegGeometry, Platform
 
 SAMPLE_TIMELINE = "sample"
 #: per-method diagnostic series: leg residuals after and before each sample, and the NIS.

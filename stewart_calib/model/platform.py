@@ -1,7 +1,7 @@
 """Nominal geometry of a 6-6 Stewart platform and its in-situ tracker; the 42-vector layout.
 
 Fixed geometry lives here and nowhere else; per-sample data (strokes, readings, poses)
-is passed to the pure functions of :mod:`stewart_calib.kinematics`.
+is passed to the pure functions of :mod:`stewart_calib.model.kinematics`.
 
 The 42 kinematic parameters follow the paper's order (δM, eq. 9)::
 
@@ -22,13 +22,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import resources
-from .errors import CalibError, did_you_mean
-from .inputs import implausible_sigma_mm
+from .. import resources
+from ..errors import CalibError, did_you_mean
+from ..inputs import implausible_sigma_mm
 from .rotations import pose_to_rt, transform_points
 
 if TYPE_CHECKING:
-    from .model.rotary import RotaryLegs
+    from .rotary import RotaryLegs
 
 N_LEGS = 6
 N_PARAMS_PER_LEG = 7
@@ -70,7 +70,7 @@ class LegGeometry:
     kind = "prismatic"
     #: the unit of a leg's coordinate ``e_i`` (its extension) in files: the log's ``q{i}_mm``
     coordinate_unit = "mm"
-    #: the leg model's compiled kernels (:mod:`stewart_calib._kernels`) apply to it
+    #: the leg model's compiled kernels (:mod:`stewart_calib.model._kernels`) apply to it
     compiled = True
 
     @property
@@ -104,7 +104,7 @@ class LegGeometry:
 
     def kernel_geometry(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(base joints (n, 3), platform joints (n, 3), initial lengths (n,))`` [mm], read-only C
-        arrays: the leg set as the compiled kernels (:mod:`stewart_calib._kernels`) take it."""
+        arrays: the leg set as the compiled kernels (:mod:`stewart_calib.model._kernels`) take it."""
         return self.base_joints, self.platform_joints, self.initial_lengths
 
     # The leg model's arithmetic is the compiled kinematics' (imported here, not with the module: a
@@ -134,15 +134,16 @@ class LegGeometry:
     def forward_kinematics(
         self, e: np.ndarray, guess=None, tol_mm: float | None = None, strict: bool = True, along: bool = False
     ):
-        """:func:`~stewart_calib.kinematics.forward_kinematics` of extensions ``e (..., n)`` [mm]
-        (``tol_mm`` None: :data:`~stewart_calib.kinematics.FK_TOLERANCE_MM`)."""
+        """:func:`~stewart_calib.model.kinematics.forward_kinematics` of extensions ``e (..., n)`` [mm]
+        (``tol_mm`` None: :data:`~stewart_calib.model.kinematics.FK_TOLERANCE_MM`)."""
         from . import kinematics
 
         tol = kinematics.FK_TOLERANCE_MM if tol_mm is None else tol_mm
         return kinematics.forward_kinematics(self, e, guess=guess, tol_mm=tol, strict=strict, along=along)
 
     def solve_fk(self, e: np.ndarray, guess, what: str) -> tuple[np.ndarray, np.ndarray]:
-        """One pose of extensions ``e (n,)`` from ``guess``, then cold (:func:`~stewart_calib.kinematics.solve_fk`)."""
+        """One pose of extensions ``e (n,)`` from ``guess``, then cold
+        (:func:`~stewart_calib.model.kinematics.solve_fk`)."""
         from . import kinematics
 
         return kinematics.solve_fk(self, e, guess, what)
@@ -668,7 +669,7 @@ def _legs(doc: dict, section: str, source: str) -> tuple[LegGeometry, dict]:
 def _rotary(doc: dict, source: str) -> tuple[RotaryLegs, dict]:
     """The ``[drive]`` table of ``kind = "rotary"`` (spec §15) as :class:`~stewart_calib.model.rotary.RotaryLegs`
     [mm, rad]: axes normalised, zero directions made orthogonal to their axes and normalised."""
-    from .model.rotary import RotaryLegs, orthonormal_zero_directions  # the leg models import this module
+    from .rotary import RotaryLegs, orthonormal_zero_directions  # the leg models import this module
 
     table = doc.get("drive")
     if not isinstance(table, dict):
