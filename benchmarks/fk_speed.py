@@ -28,8 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from stewart_calib.io.platform_file import load_platform
 from stewart_calib.model import kinematics as kin
-from stewart_calib.model.platform import LegGeometry, load_platform
+from stewart_calib.model.platform import LegGeometry
 
 PLATFORM_FILE = Path(__file__).resolve().parents[1] / "configs" / "platforms" / "nim-stewart.toml"
 TOL_MM = 1e-9

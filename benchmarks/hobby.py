@@ -38,8 +38,9 @@ import scipy.optimize
 from benchmarks.common import Row, Section, Table, markdown
 from stewart_calib.config import EstimatorConfig
 from stewart_calib.instruments import lie, outside_model, pose
+from stewart_calib.io.platform_file import load_platform
 from stewart_calib.model import kinematics as kin
-from stewart_calib.model.platform import LegGeometry, Platform, load_platform
+from stewart_calib.model.platform import LegGeometry, Platform
 from stewart_calib.resources import CONFIGS
 from stewart_calib.samples import Log
 from stewart_calib.simulation.instrument import InstrumentTruth, SimulatedInstrument

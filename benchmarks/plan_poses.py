@@ -64,17 +64,10 @@ from benchmarks.common import NIM_STEWART_FILE, ROOT, Row, Section, explain, see
 from stewart_calib.analysis import accuracy
 from stewart_calib.config import load_estimator_config
 from stewart_calib.instruments import gauge
+from stewart_calib.io.platform_file import load_platform, parse_platform, platform_to_toml
 from stewart_calib.model import kinematics as kin
 from stewart_calib.model.drive import drive_model
-from stewart_calib.model.platform import (
-    Instrument,
-    LegGeometry,
-    Platform,
-    Workspace,
-    load_platform,
-    parse_platform,
-    platform_to_toml,
-)
+from stewart_calib.model.platform import Instrument, LegGeometry, Platform, Workspace
 from stewart_calib.samples import Log
 from stewart_calib.simulation.instrument import InstrumentTruth, SimulatedInstrument
 from stewart_calib.workflows import planning

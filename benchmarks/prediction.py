@@ -29,9 +29,9 @@ from stewart_calib import cli
 from stewart_calib.analysis.accuracy import evaluation_poses
 from stewart_calib.instruments import gauge, lie
 from stewart_calib.io import read_result, read_truth
+from stewart_calib.io.platform_file import load_platform
 from stewart_calib.model import kinematics as kin
 from stewart_calib.model.drive import drive_model
-from stewart_calib.model.platform import load_platform
 
 EXPERIMENT = """
 name = "prediction"

@@ -19,9 +19,10 @@ from stewart_calib.estimators import batch
 from stewart_calib.instruments import lie, outside_model
 from stewart_calib.instruments.points import visible_targets
 from stewart_calib.io import read_pose_list
+from stewart_calib.io.platform_file import parse_platform, platform_to_toml
 from stewart_calib.model import kinematics as kin
 from stewart_calib.model.drive import drive_model
-from stewart_calib.model.platform import Instrument, parse_platform, platform_to_toml
+from stewart_calib.model.platform import Instrument
 from stewart_calib.workflows import planning
 
 

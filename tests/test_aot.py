@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from stewart_calib import _jit, cli
-from stewart_calib.model.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
 from tests.synthetic import ROOT
 
 # every kernel module, so that ENTRY_POINTS (filled as they are imported) is whole when the tests below

@@ -7,7 +7,8 @@ import pytest
 
 from stewart_calib import cli
 from stewart_calib.io import write_log
-from stewart_calib.model.platform import Instrument, platform_to_toml
+from stewart_calib.io.platform_file import platform_to_toml
+from stewart_calib.model.platform import Instrument
 from stewart_calib.samples import Log
 from stewart_calib.simulation.instrument import InstrumentTruth
 from stewart_calib.workflows.online import OnlineCalibrator

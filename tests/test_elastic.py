@@ -14,8 +14,9 @@ from stewart_calib.cli import main
 from stewart_calib.errors import CalibError, SampleRejected
 from stewart_calib.io import read_log, result_dict
 from stewart_calib.io.logs import LogRowParser
+from stewart_calib.io.platform_file import load_platform, parse_platform, platform_to_toml
 from stewart_calib.model import kinematics as kin
-from stewart_calib.model.platform import LegGeometry, load_platform, parse_platform, platform_to_toml
+from stewart_calib.model.platform import LegGeometry
 from stewart_calib.model.statics import gravity_leg_forces
 from stewart_calib.simulation.experiment import load_experiment
 from stewart_calib.simulation.load import settle

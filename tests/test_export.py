@@ -15,8 +15,8 @@ import pytest
 
 from stewart_calib import cli
 from stewart_calib.io import controllers, write_log, write_pose_list
+from stewart_calib.io.platform_file import load_platform, platform_to_toml
 from stewart_calib.model import kinematics as kin
-from stewart_calib.model.platform import load_platform, platform_to_toml
 from stewart_calib.simulation.instrument import InstrumentTruth
 
 from . import instrument_data as idata

@@ -667,7 +667,7 @@ def test_a_lock_out_recovery_accounts_for_every_row(tmp_path, capsys, method):
     [elastic] that simulate now writes, the compliance predicts the step and nothing locks out)."""
     import dataclasses
 
-    from stewart_calib.model.platform import load_platform, platform_to_toml
+    from stewart_calib.io.platform_file import load_platform, platform_to_toml
 
     sim = tmp_path / "sim"
     assert cli.main(["simulate", "--experiment", "quick", "--out", str(sim)]) == 0
@@ -1013,7 +1013,7 @@ NAMES = [
 @pytest.mark.parametrize("name", NAMES)
 def test_a_platform_name_reads_back_and_is_escaped_in_messages(tmp_path, log, capsys, name):
     """--platform-out writes TOML that reads back for any name; messages show it escaped, one line."""
-    from stewart_calib.model.platform import load_platform, platform_to_toml
+    from stewart_calib.io.platform_file import load_platform, platform_to_toml
 
     platform = nim_stewart()
     path = tmp_path / "P.toml"

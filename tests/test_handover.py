@@ -16,7 +16,7 @@ from stewart_calib import __version__
 from stewart_calib.cli import main
 from stewart_calib.config import load_estimator_config
 from stewart_calib.io import read_result
-from stewart_calib.model.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
 from stewart_calib.pipelines import calibrate as calibrate_pipeline
 from tests.browser import browser, screenshot
 

@@ -16,7 +16,7 @@ from scipy.optimize import least_squares
 
 from stewart_calib import cli
 from stewart_calib.io import NOMINAL_TOLERANCE_MM, read_log
-from stewart_calib.model.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
 from tests.instrument_data import HOBBY
 from tests.test_instrument_files import EXPERIMENT
 

@@ -13,8 +13,9 @@ from stewart_calib.config import NoiseConfig, config_from_dict
 from stewart_calib.errors import CalibError
 from stewart_calib.estimators.base import feed
 from stewart_calib.io import write_log
+from stewart_calib.io.platform_file import platform_to_toml
 from stewart_calib.model import kinematics as kin
-from stewart_calib.model.platform import LegGeometry, platform_to_toml
+from stewart_calib.model.platform import LegGeometry
 from stewart_calib.workflows.online import OnlineCalibrator
 from tests.synthetic import make_log, nim_stewart, numpy_legs, random_error, random_poses
 

@@ -24,7 +24,7 @@ from stewart_calib.io import (
     write_log,
     write_result,
 )
-from stewart_calib.model.platform import parse_platform, platform_to_toml
+from stewart_calib.io.platform_file import parse_platform, platform_to_toml
 from stewart_calib.samples import Log, Truth
 from tests.synthetic import ROOT, nim_stewart
 

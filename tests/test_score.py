@@ -12,7 +12,7 @@ import pytest
 
 from stewart_calib import cli
 from stewart_calib.io import read_log, read_result, read_truth, write_result
-from stewart_calib.model.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
 
 
 @pytest.fixture(scope="module")

@@ -6,8 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from stewart_calib.io.platform_file import load_platform
 from stewart_calib.model import kinematics as kin
-from stewart_calib.model.platform import LegGeometry, load_platform
+from stewart_calib.model.platform import LegGeometry
 from stewart_calib.model.statics import (
     G_N_PER_KG,
     SingularStatics,

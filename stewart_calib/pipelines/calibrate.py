@@ -45,10 +45,11 @@ from ..estimators.base import (
 )
 from ..estimators.ls import outlier_warning
 from ..instruments import instrument_kind, registered
+from ..io.platform_file import load_platform
 from ..memory import check_memory
 from ..model import kinematics as kin
 from ..model.drive import drive_model, plain_drive
-from ..model.platform import LegGeometry, Platform, load_platform
+from ..model.platform import LegGeometry, Platform
 from ..progress import MIN_LOG_ROWS
 from ..samples import Log
 from ..workflows import calibration

@@ -22,7 +22,7 @@ from pathlib import Path
 from .. import io
 from ..errors import CalibError
 from ..io import controllers
-from ..model.platform import load_platform
+from ..io.platform_file import load_platform
 from . import ini_sibling, run_command
 from .handover import calibrated_model
 

@@ -18,8 +18,9 @@ from ..config import EstimatorConfig
 from ..errors import CalibError
 from ..estimate import Estimate
 from ..instruments import instrument_kind
+from ..io.platform_file import platform_to_toml
 from ..model.drive import DriveModel, drive_model
-from ..model.platform import Platform, platform_to_toml
+from ..model.platform import Platform
 
 REPORT_PAGE = "index.html"
 
@@ -162,8 +163,8 @@ def singular_statics_row(err, platform_path: str, path: str, is_log: bool, skip_
     (a tracker's forward kinematics of the readings) and at the rigid drive's forward kinematics of
     the strokes, a pose list's at its poses. Without such a row (standard input, or a pose off the
     nominal only) the refusal names the file."""
+    from ..io.platform_file import load_platform
     from ..model import kinematics as kin
-    from ..model.platform import load_platform
     from ..model.statics import SINGULAR_RATIO, statics_matrix, statics_ratios
 
     if path == "-":

@@ -15,8 +15,9 @@ from ..config import load_estimator_config
 from ..errors import CalibError
 from ..instruments import instrument_kind
 from ..io import read_pose_list
+from ..io.platform_file import load_platform
 from ..model.drive import drive_model
-from ..model.platform import Platform, load_platform
+from ..model.platform import Platform
 from ..workflows.diagnosis import require_poses
 from . import run_command
 from .plan import add_platform_and_noise_arguments

@@ -38,7 +38,8 @@ from ..errors import CalibError, number
 from ..instruments import MODELS
 from ..io import exports
 from ..io.exports import Block
-from ..model.platform import INSTRUMENT_SECTIONS, load_platform
+from ..io.platform_file import load_platform
+from ..model.platform import INSTRUMENT_SECTIONS
 from ..model.rotations import rpy_to_rotation
 from . import run_command
 

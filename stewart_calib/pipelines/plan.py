@@ -19,7 +19,7 @@ from ..config import load_estimator_config
 from ..errors import CalibError
 from ..inputs import MAX_TIME_S
 from ..instruments import instrument_kind
-from ..model.platform import load_platform
+from ..io.platform_file import load_platform
 from ..workflows.diagnosis import require_poses
 from ..workflows.planning import (
     CRITERIA,

@@ -37,9 +37,9 @@ import numpy as np
 
 from .. import io
 from ..errors import CalibError
+from ..io.platform_file import load_platform
 from ..model import kinematics as kin
 from ..model.drive import DriveModel, drive_model
-from ..model.platform import load_platform
 from . import run_command
 
 #: the score of a drive term's values (its block key before it): the largest error of the six

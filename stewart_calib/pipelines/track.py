@@ -80,7 +80,7 @@ from ..config import load_estimator_config
 from ..errors import CalibError, shown
 from ..estimators.base import accounting_words, skipped_count
 from ..inputs import MAX_LINE_BYTES
-from ..model.platform import load_platform
+from ..io.platform_file import load_platform
 from ..samples import Log, Sample
 from ..workflows.calibration import EvenlySpacedSamples
 from ..workflows.diagnosis import DIAGNOSED_SAMPLES, diagnose_log

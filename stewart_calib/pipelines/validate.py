@@ -30,8 +30,9 @@ from .. import io
 from ..analysis.accuracy import PredictedError, predicted_error, verdict_line
 from ..errors import CalibError
 from ..instruments import instrument_kind
+from ..io.platform_file import load_platform
 from ..model.drive import drive_model
-from ..model.platform import Platform, load_platform
+from ..model.platform import Platform
 from ..progress import log_progress_bar
 from ..samples import Log
 from ..workflows.diagnosis import diagnose_log

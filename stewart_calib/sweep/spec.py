@@ -42,7 +42,8 @@ from ..config import EstimatorConfig, NoiseConfig, config_from_dict
 from ..errors import CalibError
 from ..estimators import METHODS
 from ..instruments import MODELS
-from ..model.platform import LegGeometry, Platform, load_platform, platform_to_toml
+from ..io.platform_file import load_platform, platform_to_toml
+from ..model.platform import LegGeometry, Platform
 from ..resources import CONFIGS, read_toml
 
 #: Samples (and validation poses) of one task at most: a task holds its log in memory, and a

@@ -55,8 +55,9 @@ from ..estimators.base import (
     update_block,
 )
 from ..inputs import read_input_bytes
+from ..io.platform_file import load_platform, parse_platform, platform_to_toml
 from ..model.drive import PAYLOAD, drive_model
-from ..model.platform import Platform, load_platform, parse_platform, platform_to_toml
+from ..model.platform import Platform
 from ..samples import Log, Sample
 
 CHECKPOINT_FORMAT = "stewart-calib/checkpoint"
