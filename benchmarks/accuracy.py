@@ -4,7 +4,7 @@
 an embedded Dask local cluster, one worker per core): a true δM (σ = 1 mm), random workspace
 poses, one sample per pose at 10 Hz with exactly the estimators' noise model (reading σ_s,
 stroke σ_q), constant parameters (random walk 0: the problem the bound is for). Every method
-fits the same log. The bound is :func:`stewart_calib.identifiability.identifiability_report` on
+fits the same log. The bound is :func:`stewart_calib.analysis.identifiability.identifiability_report` on
 the same poses (:mod:`stewart_calib.sweep.task` computes every per-run score).
 
 * **RMS / CRB**: ``sqrt(mean over seeds and the 42 parameters of (error_p / crb_p)²)`` — 1 for

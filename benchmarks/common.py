@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart_calib.platform import Platform, load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model.platform import Platform
 
 ROOT = Path(__file__).resolve().parents[1]
 NIM_STEWART_FILE = ROOT / "configs" / "platforms" / "nim-stewart.toml"

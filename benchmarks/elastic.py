@@ -43,15 +43,15 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import Row, Section, Table, markdown
-from stewart_calib import kinematics as kin
-from stewart_calib.calibration import run_calibration
-from stewart_calib.compensation import compensate
+from stewart_calib.analysis.compensation import compensate
 from stewart_calib.config import load_estimator_config
-from stewart_calib.platform import Platform
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import Platform
 from stewart_calib.samples import Log
 from stewart_calib.simulation import run_experiment
 from stewart_calib.simulation.experiment import load_experiment
 from stewart_calib.simulation.load import elastic_of, settle
+from stewart_calib.workflows.calibration import run_calibration
 
 METHODS = ("ls", "lm", "ekf", "isam2")
 CHECK_STAGES_KG = (0.0, 20.0, 40.0)

@@ -7,7 +7,7 @@ Lissajous trajectory inside the ±200 mm / ±20° workspace (FK tolerance 1e-9 m
 
 * Newton iterations: cold (from home) and warm (from the previous pose of the trajectory);
 * µs per single warm solve (median over calls) of ``kinematics.forward_kinematics`` (the
-  package's one path: a cached numba kernel, ``stewart_calib._kernels.fk_newton``), of a
+  package's one path: a cached numba kernel, ``stewart_calib.model._kernels.fk_newton``), of a
   plain straightforward numpy Newton written here as the peer, and their ratio;
 * poses/s of one batched ``forward_kinematics`` call on ``N`` (10 000) poses, cold and warm
   (best of 3 calls);
@@ -28,8 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart_calib import kinematics as kin
-from stewart_calib.platform import LegGeometry, load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import LegGeometry
 
 PLATFORM_FILE = Path(__file__).resolve().parents[1] / "configs" / "platforms" / "nim-stewart.toml"
 TOL_MM = 1e-9

@@ -36,10 +36,11 @@ import numpy as np
 import scipy.optimize
 
 from benchmarks.common import Row, Section, Table, markdown
-from stewart_calib import kinematics as kin
 from stewart_calib.config import EstimatorConfig
 from stewart_calib.instruments import lie, outside_model, pose
-from stewart_calib.platform import LegGeometry, Platform, load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import LegGeometry, Platform
 from stewart_calib.resources import CONFIGS
 from stewart_calib.samples import Log
 from stewart_calib.simulation.instrument import InstrumentTruth, SimulatedInstrument
@@ -82,7 +83,7 @@ class Build:
 
     def elastic_guess(self):
         """The platform file's ``[elastic]`` for this build (None for a rigid one)."""
-        from stewart_calib.platform import Elastic
+        from stewart_calib.model.platform import Elastic
 
         return Elastic(self.guess_mass_kg, np.array(self.guess_com_mm)) if self.compliance_mm_per_kN else None
 
@@ -140,10 +141,10 @@ def simulate(seed: int, n_fit: int = N_FIT, n_held_out: int = N_HELD_OUT, build:
     """Fit log, a held-out log of the same session and one of another day (frame moved), of a
     robot with the hardware of ``build``. A leg of extension ``(1 + k) q`` logged reaches
     ``l + (1 + k) q − c f / 1000 + e``: the compliance ``c`` under its force ``f`` from the true
-    platform's weight (:func:`~stewart_calib.statics.gravity_leg_forces`) and the unmodelled
+    platform's weight (:func:`~stewart_calib.model.statics.gravity_leg_forces`) and the unmodelled
     ``e`` (lead error at the stroke, backlash to a side drawn per pose); so the strokes logged
     for a pose are ``(L − l + c f / 1000 − e) / (1 + k)``."""
-    from stewart_calib.statics import gravity_leg_forces
+    from stewart_calib.model.statics import gravity_leg_forces
 
     rng = np.random.default_rng(seed)
     platform = load_platform(HOBBY)
@@ -241,14 +242,14 @@ def peer_held_out(theta: np.ndarray, log: Log, register: bool) -> tuple[float, f
 
 def ours_fit(platform: Platform, log: Log, method: str = "ls", config: EstimatorConfig | None = None):
     """``calibrate``'s run of ``method`` (closed-form registration first), its estimate."""
-    from stewart_calib.calibration import run_calibration
+    from stewart_calib.workflows.calibration import run_calibration
 
     return run_calibration(platform, log, method, config).estimate
 
 
 def ours_held_out(platform: Platform, estimate, log: Log, register: bool) -> tuple[float, float]:
     from stewart_calib.io import result_dict
-    from stewart_calib.validation import validate
+    from stewart_calib.workflows.validation import validate
 
     _, position, orientation = validate(platform, result_dict(estimate, platform), log, register)
     return _rms(position), _rms(orientation)

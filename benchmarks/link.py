@@ -35,9 +35,9 @@ import numpy as np
 
 from benchmarks import report
 from benchmarks.common import ROOT, Row, Section, markdown
-from stewart_calib.calibration import run_calibration
 from stewart_calib.io import read_log, read_result, write_log
 from stewart_calib.io.logs import LOG_REQUIRED
+from stewart_calib.workflows.calibration import run_calibration
 from tests.controllers import AdsController, OpcUaController
 from tests.synthetic import NIM_STEWART, nim_stewart, tracked_log
 

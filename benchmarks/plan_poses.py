@@ -34,7 +34,7 @@ hobby needed strokes beyond the range on the true robot, calibrate dropped them,
 ended at 1.3–1.6× the plan's prediction.
 
 **Metric: true closed-loop error.** For the 200 fixed evaluation poses X of
-:func:`stewart_calib.accuracy.evaluation_poses`: strokes ``IK(estimate, X) / (1 + k̂)``, reached
+:func:`stewart_calib.analysis.accuracy.evaluation_poses`: strokes ``IK(estimate, X) / (1 + k̂)``, reached
 pose ``FK(true drive, (1 + k) q)``, mean position [µm] and orientation error against X, with the
 truth moved into the estimate's gauge (:func:`stewart_calib.instruments.gauge.to_gauge`: no
 outside instrument sees a rigid motion of all base or all platform joints). The target (issue 27):
@@ -45,7 +45,7 @@ per-seed range beside it.
 ``ls``: the one-line warning's predicted error (expected mean over the workspace, from the fit's
 covariance) against the true closed-loop error of that fit, per seed (target: within 2×), and
 whether the truth lies in the line's 90 % band; 10 seeds (the truth is one draw of the estimate's
-error: within 2× of any one number ~85 % of the time, :mod:`stewart_calib.accuracy`).
+error: within 2× of any one number ~85 % of the time, :mod:`stewart_calib.analysis.accuracy`).
 
 ``python -m benchmarks.plan_poses [--seeds N] [--quick]`` prints the table.
 """
@@ -61,23 +61,17 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from benchmarks.common import NIM_STEWART_FILE, ROOT, Row, Section, explain, seeded_main
-from stewart_calib import accuracy, planning
-from stewart_calib import kinematics as kin
-from stewart_calib.calibration import run_calibration
+from stewart_calib.analysis import accuracy
 from stewart_calib.config import load_estimator_config
-from stewart_calib.drive import drive_model
 from stewart_calib.instruments import gauge
-from stewart_calib.platform import (
-    Instrument,
-    LegGeometry,
-    Platform,
-    Workspace,
-    load_platform,
-    parse_platform,
-    platform_to_toml,
-)
+from stewart_calib.io.platform_file import load_platform, parse_platform, platform_to_toml
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.drive import drive_model
+from stewart_calib.model.platform import Instrument, LegGeometry, Platform, Workspace
 from stewart_calib.samples import Log
 from stewart_calib.simulation.instrument import InstrumentTruth, SimulatedInstrument
+from stewart_calib.workflows import planning
+from stewart_calib.workflows.calibration import run_calibration
 
 RATIO_TARGET = 0.5
 PLAN_SECONDS_TARGET = 60.0

@@ -4,7 +4,7 @@ On simulated rigid hobby hexapods (every parameter off by σ 0.5 mm, stroke scal
 truth file's drive is the robot's at every pose) seen
 by a motion-capture pose and by three laser-tracker points, each seed is simulated, calibrated
 (``calibrate --method ls``, default config) and assessed by ``identifiability --log`` on the same
-log. The truth's mean error over the workspace poses of :func:`stewart_calib.accuracy.evaluation_poses`
+log. The truth's mean error over the workspace poses of :func:`stewart_calib.analysis.accuracy.evaluation_poses`
 is measured by closing the loop — the controller commands IK of the estimate, the true robot
 executes it (``score``'s closed loop, the truth moved into the estimate's gauge) — absolute in {J}
 and of the motion from the workspace's home. A row counts the seeds whose truth lies in the 90 %
@@ -26,12 +26,12 @@ from pathlib import Path
 import numpy as np
 
 from stewart_calib import cli
-from stewart_calib import kinematics as kin
-from stewart_calib.accuracy import evaluation_poses
-from stewart_calib.drive import drive_model
+from stewart_calib.analysis.accuracy import evaluation_poses
 from stewart_calib.instruments import gauge, lie
 from stewart_calib.io import read_result, read_truth
-from stewart_calib.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.drive import drive_model
 
 EXPERIMENT = """
 name = "prediction"

@@ -90,8 +90,8 @@ def drifting_smooth_log(platform, seed: int, n: int = DRIFT_LOG[0]):
     ``J_k = (J_{k−1}⁻¹ + q Δt I)⁻¹ + A_kᵀ A_k`` over the whitened rows from the estimators' prior gives,
     with the true walk ``q`` (as ``stewart_calib.sweep.task.bound_stddev_mm`` does for a sweep's)."""
     from benchmarks.fk_speed import trajectory
+    from stewart_calib.analysis.identifiability import whitened_leg_jacobian
     from stewart_calib.config import NoiseConfig
-    from stewart_calib.identifiability import whitened_leg_jacobian
 
     _, rate_hz, walk, reading_mm = DRIFT_LOG
     rng = np.random.default_rng(seed)

@@ -288,7 +288,8 @@ class CliInputs:
         """Platform, and per size a 10 Hz log (the Lissajous stream), a pose list and an experiment;
         with ``exports`` also ``import``'s Motive export and count log."""
         from stewart_calib.io import atomic_write_text, write_log, write_pose_list
-        from stewart_calib.platform import Elastic, platform_to_toml
+        from stewart_calib.io.platform_file import platform_to_toml
+        from stewart_calib.model.platform import Elastic
 
         platform = nim_stewart()
         (self.root / "out").mkdir(parents=True, exist_ok=True)

@@ -22,10 +22,11 @@ import tracemalloc
 
 import numpy as np
 
-from stewart_calib import kinematics as kin
 from stewart_calib.config import EstimatorConfig
 from stewart_calib.estimators import make_estimator
-from stewart_calib.platform import Platform, load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import Platform
 from stewart_calib.samples import Sample
 
 PLATFORM = "configs/platforms/nim-stewart.toml"

@@ -21,13 +21,13 @@ from scipy.optimize import least_squares
 
 from benchmarks.common import Row, Section, explain, fmt_time_us, nim_stewart, per_call_us, stats_us, synthetic_stream
 from benchmarks.fk_speed import peer_fk, trajectory
-from stewart_calib import kinematics as kin
 from stewart_calib.config import LSConfig
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.kalman import kalman_update
 from stewart_calib.estimators.ls import gauss_newton
 from stewart_calib.estimators.measurement import pose_difference
-from stewart_calib.platform import N_PARAMS
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import N_PARAMS
 
 FK_TARGET_US = 10.0
 FK_BATCH_TARGET_POSES_PER_S = 500_000

@@ -53,15 +53,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from benchmarks.common import Row, Section, seeded_main
-from stewart_calib import kinematics as kin
-from stewart_calib.calibration import run_calibration
 from stewart_calib.config import load_estimator_config
 from stewart_calib.instruments import gauge
-from stewart_calib.platform import LegGeometry, Platform
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import LegGeometry, Platform
 from stewart_calib.samples import Log
 from stewart_calib.simulation import load_experiment, run_experiment
 from stewart_calib.simulation.experiment import Stage
 from stewart_calib.simulation.trajectories import random_static_poses
+from stewart_calib.workflows.calibration import run_calibration
 
 METHODS = ("ekf", "isam2", "lm")
 ONLINE_METHODS = ("ekf", "isam2")

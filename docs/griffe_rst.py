@@ -1,7 +1,7 @@
 """A griffe extension for the API pages: the docstrings' reStructuredText spellings read as Markdown.
 
 The package's docstrings are written for a reader of the source (and pydoc): Sphinx roles such as
-``:class:`~stewart_calib.online.OnlineCalibrator``` and literal blocks introduced by ``::``.
+``:class:`~stewart_calib.workflows.online.OnlineCalibrator``` and literal blocks introduced by ``::``.
 mkdocstrings renders Markdown, where those show as typed. This turns a role into inline code of
 its target (the last component where the target starts with ``~``, as Sphinx shows it) and a
 paragraph's closing ``::`` into ``:`` (the indented block after it is already code in Markdown).

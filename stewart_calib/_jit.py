@@ -38,7 +38,7 @@ cut the peak memory of a first ``calibrate --method ekf`` with an empty cache by
 * one specialisation per kernel: numba compiles a kernel, and every kernel it calls, once per
   distinct argument type — C or A layout, int32 or int64, a writable or a read-only array, a
   literal or a variable. Python wrappers pass C-contiguous float64 arrays, Python floats and ints,
-  and drive or tracker geometry read-only, as :class:`~stewart_calib.platform.LegGeometry` holds it
+  and drive or tracker geometry read-only, as :class:`~stewart_calib.model.platform.LegGeometry` holds it
   (the ``entry`` declaration says which); inside a kernel, a constant ``True``/``False`` or integer
   handed to another kernel is a ``Literal`` type of its own (``np.bool_(False)`` is not);
 * every kernel called from Python is a compile of its own of its whole call tree (numba links and
@@ -69,8 +69,8 @@ OPT_LEVEL = 1
 
 #: the modules that define kernels: the AOT build imports them, and its manifest holds their digests
 KERNEL_MODULES = (
-    "stewart_calib._kernels",
-    "stewart_calib.statics",
+    "stewart_calib.model._kernels",
+    "stewart_calib.model.statics",
     "stewart_calib.factors._kernels",
     "stewart_calib.estimators.kalman",
     "stewart_calib.estimators.robust",
@@ -208,7 +208,7 @@ F8_1, F8_2, F8_3 = Array(1), Array(2), Array(3)
 I8_1, I8_2, B_1 = Array(1, "int64"), Array(2, "int64"), Array(1, "bool")
 #: a Fortran-ordered float64 matrix: the Jacobian blocks GTSAM hands a custom factor
 F8_2F = Array(2, layout="F")
-#: read-only float64 arrays, as :class:`~stewart_calib.platform.LegGeometry` holds them
+#: read-only float64 arrays, as :class:`~stewart_calib.model.platform.LegGeometry` holds them
 RO_1, RO_2, RO_3 = (Array(n, readonly=True) for n in (1, 2, 3))
 #: a leg set's ``(base joints, platform joints, initial lengths)``, read-only (LegGeometry)
 LEGS = Tuple((RO_2, RO_2, RO_1))

@@ -11,9 +11,9 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from .drive import PAYLOAD
-from .platform import LegGeometry, Platform
-from .unknowns import UnknownLayout
+from .model.drive import PAYLOAD
+from .model.platform import LegGeometry, Platform
+from .model.unknowns import UnknownLayout
 
 
 @dataclass(frozen=True)

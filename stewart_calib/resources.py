@@ -1,7 +1,7 @@
 """Where the shipped configs live: ``configs/`` at the repository root, installed inside the
 package as ``stewart_calib/configs`` (a link in the source tree), so that a wheel finds them too.
 
-A command's ``--platform``, ``--experiment`` or ``--config`` (and :func:`~stewart_calib.platform.load_platform`
+A command's ``--platform``, ``--experiment`` or ``--config`` (and :func:`~stewart_calib.io.platform_file.load_platform`
 and friends) take either a path or the name of a shipped file (spec §8): ``nim-stewart``,
 ``quick``, ``paper``. A path that exists always wins.
 """

@@ -1,7 +1,7 @@
 """Per-sample working data: what one row of the measurement log holds (spec §3), and the
 simulator's truth for a log (spec §4).
 
-Kept apart from the fixed geometry in :mod:`stewart_calib.platform`. Code works in mm and
+Kept apart from the fixed geometry in :mod:`stewart_calib.model.platform`. Code works in mm and
 rad; the log's degrees are converted at the file edge (:mod:`stewart_calib.io`).
 """
 
@@ -129,7 +129,7 @@ class Truth:
         params: ``(N, n_params)`` true absolute drive parameters [mm], paper order.
         true_poses: ``(N, 6)`` true pose ``[mm, rad]``, or None.
         drive_terms: the true values ``(legs,)`` of the drive's terms by the drive model's block key
-            (:class:`~stewart_calib.drive.LegTerm`; spec §7: the stroke scale k_i); a term the truth
+            (:class:`~stewart_calib.model.drive.LegTerm`; spec §7: the stroke scale k_i); a term the truth
             does not give is absent.
         instrument: ``(names, values)`` of the true outside instrument's unknowns in file units
             (frame and target(s), spec §7), or None.

@@ -5,7 +5,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from stewart_calib.platform import N_PARAMS
+from stewart_calib.model.platform import N_PARAMS
 
 #: what gtsam 4.3.0 says first when it throws IndeterminantLinearSystemException.
 INDETERMINANT = "Indeterminate linear system detected while working near variable"

@@ -11,9 +11,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from stewart_calib import kinematics as kin
 from stewart_calib.estimators.batch import BatchProblem
-from stewart_calib.platform import Instrument, Platform, load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import Instrument, Platform
 from stewart_calib.resources import CONFIGS
 from stewart_calib.samples import Log
 from stewart_calib.simulation import instrument as simulated

@@ -21,7 +21,7 @@ Compare with :func:`relative_error` (Frobenius norm over the whole matrix): elem
 ratios blow up on entries that are exactly zero analytically.
 
 Pose tangent: ``ξ = [ω, v]`` (rotation first, body frame) as in ``gtsam.Pose3``.
-:func:`numerical_pose_jacobian` perturbs with :func:`stewart_calib.kinematics.retract`
+:func:`numerical_pose_jacobian` perturbs with :func:`stewart_calib.model.kinematics.retract`
 (``R Exp(ω)``, ``t + R v``); :func:`numerical_pose3_jacobian` with ``gtsam.Pose3.retract``,
 which in gtsam 4.3.0 is the full SE(3) exponential (``t + R V(ω) v``). The two charts agree to
 first order at ``ξ = 0``, so both give the same Jacobian (to O(eps²)).
@@ -33,7 +33,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from stewart_calib import kinematics as kin
+from stewart_calib.model import kinematics as kin
 
 EPS_MM = 1e-2
 """Central-difference step for arguments in mm (see module docstring) [mm]."""

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from stewart_calib import kinematics as kin
-from stewart_calib.platform import LegGeometry, Platform, load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import LegGeometry, Platform
 from stewart_calib.samples import Log
 
 ROOT = Path(__file__).resolve().parents[1]

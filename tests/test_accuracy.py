@@ -11,16 +11,19 @@ import numpy as np
 import pytest
 
 from benchmarks.plan_poses import wide_hexapod
-from stewart_calib import accuracy, io, planning
-from stewart_calib import kinematics as kin
+from stewart_calib import io
+from stewart_calib.analysis import accuracy
 from stewart_calib.cli import main as cli_main
-from stewart_calib.drive import drive_model
 from stewart_calib.errors import CalibError
 from stewart_calib.estimators import batch
 from stewart_calib.instruments import lie, outside_model
 from stewart_calib.instruments.points import visible_targets
 from stewart_calib.io import read_pose_list
-from stewart_calib.platform import Instrument, parse_platform, platform_to_toml
+from stewart_calib.io.platform_file import parse_platform, platform_to_toml
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.drive import drive_model
+from stewart_calib.model.platform import Instrument
+from stewart_calib.workflows import planning
 
 
 def _toml_doc(platform):
@@ -305,8 +308,8 @@ def test_equilibrated_condition_number_does_not_depend_on_units_and_sets_the_ver
 
 
 def test_information_accumulator_covariance_is_the_inverse_information():
+    from stewart_calib.analysis.identifiability import InformationAccumulator, whitened_leg_jacobian
     from stewart_calib.config import NoiseConfig
-    from stewart_calib.identifiability import InformationAccumulator, whitened_leg_jacobian
     from tests.synthetic import nim_stewart, random_poses
 
     platform, noise = nim_stewart(), NoiseConfig()

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from stewart_calib import _jit, cli
-from stewart_calib.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
 from tests.synthetic import ROOT
 
 # every kernel module, so that ENTRY_POINTS (filled as they are imported) is whole when the tests below
@@ -81,12 +81,12 @@ def _python_paths(platform) -> None:
     """What the quick commands leave to the Python paths that reproduce takes (the paper's EKF, an unknown
     tracker geometry, a filter without a compiled recursion, the true drive under load): one call each, at the
     home pose; and the robust filter's walk test, which needs two noise windows (the quick log has one)."""
-    from stewart_calib import kinematics as kin
     from stewart_calib.estimators import kalman, robust
+    from stewart_calib.model import kinematics as kin
+    from stewart_calib.model.unknowns import UnknownLayout
     from stewart_calib.resources import CONFIGS
     from stewart_calib.simulation import load_experiment
     from stewart_calib.simulation.load import Settling
-    from stewart_calib.unknowns import UnknownLayout
 
     drive, R, t = platform.drive, np.eye(3), np.array([0.0, 0.0, platform.workspace.home[2]])
     strokes = kin.inverse_kinematics(drive, R[None], t[None])[0]
@@ -171,10 +171,10 @@ def _leaves(value):
 
 
 def test_arguments_other_than_declared_take_the_jit():
-    from stewart_calib import _kernels
+    from stewart_calib.model import _kernels
 
     values = np.array([0.0, -0.5, 2.0])
-    aot = _jit.aot_functions()["stewart_calib._kernels.all_within"]
+    aot = _jit.aot_functions()["stewart_calib.model._kernels.all_within"]
     assert aot((values, -1.0, 1.0)) is False
     for other in (values.astype(np.float32), np.repeat(values, 2)[::2], values.astype(int)):
         assert not _jit.F8_1.accepts(other)

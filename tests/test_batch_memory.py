@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from stewart_calib import cli, memory
-from stewart_calib import kinematics as kin
 from stewart_calib.config import EstimatorConfig
 from stewart_calib.estimators import ls
 from stewart_calib.io import write_log
+from stewart_calib.model import kinematics as kin
 from tests.synthetic import NIM_STEWART, make_log, nim_stewart, random_error, random_poses, tracked_log
 
 

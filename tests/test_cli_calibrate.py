@@ -8,15 +8,16 @@ import sys
 import numpy as np
 import pytest
 
-from stewart_calib import calibration, cli
-from stewart_calib import kinematics as kin
-from stewart_calib.calibration import run_calibration
+from stewart_calib import cli
 from stewart_calib.errors import SampleRejected
 from stewart_calib.estimate import Estimate
 from stewart_calib.estimators.registry import METHODS, MethodSpec
 from stewart_calib.io import read_result, write_log
+from stewart_calib.model import kinematics as kin
 from stewart_calib.pipelines import calibrate as calibrate_pipeline
 from stewart_calib.samples import Log
+from stewart_calib.workflows import calibration
+from stewart_calib.workflows.calibration import run_calibration
 from tests.synthetic import NIM_STEWART, make_log, nim_stewart, random_error, random_poses
 
 STEP_MM = 0.001

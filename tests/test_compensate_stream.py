@@ -10,8 +10,8 @@ import sys
 import numpy as np
 
 from stewart_calib import io
-from stewart_calib.compensation import compensate
-from stewart_calib.online import OnlineCalibrator
+from stewart_calib.analysis.compensation import compensate
+from stewart_calib.workflows.online import OnlineCalibrator
 from tests.synthetic import NIM_STEWART, ROOT, nim_stewart
 
 #: a guard against a hang (a row never flushed), not a timing: the answer comes in milliseconds

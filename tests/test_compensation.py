@@ -5,10 +5,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
-from stewart_calib.compensation import compensate
+from stewart_calib.analysis.compensation import compensate
 from stewart_calib.errors import CalibError
 from stewart_calib.estimate import Estimate
+from stewart_calib.model import kinematics as kin
 from tests.synthetic import nim_stewart, random_error, random_poses
 
 
@@ -68,9 +68,9 @@ def test_cli_writes_strokes_that_reach_the_poses(tmp_path):
 
 def test_online_and_cli_refuse_unreachable_poses_alike(tmp_path, capsys):
     from stewart_calib import io
+    from stewart_calib.analysis.compensation import PoseOutOfRange
     from stewart_calib.cli import main
-    from stewart_calib.compensation import PoseOutOfRange
-    from stewart_calib.online import OnlineCalibrator
+    from stewart_calib.workflows.online import OnlineCalibrator
     from tests.synthetic import NIM_STEWART
 
     platform = nim_stewart()

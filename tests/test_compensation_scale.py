@@ -9,11 +9,12 @@ import json
 import numpy as np
 
 from stewart_calib import cli
-from stewart_calib import kinematics as kin
-from stewart_calib.compensation import compensate
-from stewart_calib.drive import DriveModel, stroke_term
+from stewart_calib.analysis.compensation import compensate
 from stewart_calib.io import write_pose_list
-from stewart_calib.platform import PARAMETER_NAMES, load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.drive import DriveModel, stroke_term
+from stewart_calib.model.platform import PARAMETER_NAMES
 
 K = np.array([0.03, -0.02, 0.05, 0.0, -0.04, 0.01])
 

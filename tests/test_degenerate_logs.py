@@ -7,10 +7,11 @@ import pytest
 
 from stewart_calib import cli
 from stewart_calib.io import write_log
-from stewart_calib.online import OnlineCalibrator
-from stewart_calib.platform import Instrument, platform_to_toml
+from stewart_calib.io.platform_file import platform_to_toml
+from stewart_calib.model.platform import Instrument
 from stewart_calib.samples import Log
 from stewart_calib.simulation.instrument import InstrumentTruth
+from stewart_calib.workflows.online import OnlineCalibrator
 from tests.instrument_data import hobby, make_case
 from tests.synthetic import NIM_STEWART, make_log, nim_stewart, random_poses
 
@@ -151,7 +152,7 @@ def test_identifiability_refuses_a_pose_list_of_one_pose(tmp_path, capsys, pose_
 def test_a_borderline_condition_number_gets_one_verdict_whatever_its_last_bits(monkeypatch):
     """The kernels' compiled forms round the whitened rows differently in the last bit (5.5e-16, condition
     numbers 1e-13 apart): rows whose condition number is 1000 within that get one verdict, not two."""
-    from stewart_calib import identifiability
+    from stewart_calib.analysis import identifiability
     from stewart_calib.config import NoiseConfig
 
     platform = nim_stewart()
@@ -203,10 +204,10 @@ def test_a_held_out_log_at_one_pose_is_validated_not_taken_for_readings_in_anoth
 def test_an_implausible_estimate_from_samples_at_rest_names_them_first(at_rest):
     """track checks its estimate on its last samples: when those hold one pose, the refusal says so
     before the solver's symptom (a 3 mm leg residual on the quick experiment's log held at a pose)."""
+    from stewart_calib.analysis.plausibility import PRIOR_SIGMAS, check_plausible
     from stewart_calib.config import NoiseConfig
     from stewart_calib.errors import CalibError
     from stewart_calib.io import read_log
-    from stewart_calib.plausibility import PRIOR_SIGMAS, check_plausible
 
     platform = nim_stewart()
     still = read_log(at_rest / "still.csv", platform)

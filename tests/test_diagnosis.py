@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 
 from stewart_calib import cli
-from stewart_calib.diagnosis import diagnose_log, required_samples
 from stewart_calib.errors import CalibError
 from stewart_calib.io import write_log
-from stewart_calib.platform import Instrument
+from stewart_calib.model.platform import Instrument
 from stewart_calib.samples import Log
 from stewart_calib.simulation.instrument import InstrumentTruth
+from stewart_calib.workflows.diagnosis import diagnose_log, required_samples
 
 from . import instrument_data as idata
 from . import synthetic as syn
@@ -113,7 +113,7 @@ def _planar(rotate: tuple[int, ...]):
         half[[3 + k for k in range(3) if k not in rotate]] = 0.0
         poses = ws.home + rng.uniform(-1.0, 1.0, (80, 6)) * half
         case = _pose_case()
-        from stewart_calib import kinematics as kin
+        from stewart_calib.model import kinematics as kin
 
         R, t = kin.pose_to_rt(poses)
         true_drive = platform.drive.perturbed(case.true_params - platform.drive.as_vector())
@@ -234,7 +234,7 @@ def test_calibrate_refuses_before_the_solver_in_one_line(tmp_path, capsys):
 
 def test_a_fit_that_does_not_converge_names_what_it_fitted_and_why():
     """Past the diagnosis (the API, or a mistake it does not know), ls still names the cause."""
-    from stewart_calib.calibration import run_calibration
+    from stewart_calib.workflows.calibration import run_calibration
 
     platform, log = _pose()
     with pytest.raises(CalibError) as refused:

@@ -29,7 +29,7 @@ def test_sphinx_roles_and_literal_markers_read_as_markdown():
     pytest.importorskip("griffe")
     rst = _load("griffe_rst")
     text = (
-        "Use :class:`~stewart_calib.online.OnlineCalibrator` and :func:`.base.residual`;"
+        "Use :class:`~stewart_calib.workflows.online.OnlineCalibrator` and :func:`.base.residual`;"
         " :meth:`x.y` too.\n\nFor users::\n\n    calib.update(sample)\n\n::\n\n    code\n"
     )
     assert rst.markdown(text) == (

@@ -1,4 +1,4 @@
-"""The drive model (stewart_calib.drive): its residual is the leg-length model, its Jacobians match
+"""The drive model (stewart_calib.model.drive): its residual is the leg-length model, its Jacobians match
 central differences (pose through ``kinematics.retract``), its compiled forms (the extensions'
 kernel, the drive-leg factor's) equal its numpy ones — for the stroke term alone and for a drive
 with a second term on inputs of its own, as a new error source adds one."""
@@ -9,11 +9,11 @@ import gtsam
 import numpy as np
 import pytest
 
-from stewart_calib import _kernels
-from stewart_calib import kinematics as kin
-from stewart_calib.drive import DriveModel, LegTerm, drive_model, stroke_term
 from stewart_calib.factors import drive_leg
 from stewart_calib.instruments import lie
+from stewart_calib.model import _kernels
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.drive import DriveModel, LegTerm, drive_model, stroke_term
 from tests.numdiff import numerical_jacobian, numerical_pose_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_error, random_poses
 

@@ -7,12 +7,12 @@ import pytest
 from filterpy.kalman import KalmanFilter
 from scipy.stats import chi2
 
-from stewart_calib import kinematics as kin
 from stewart_calib.config import config_from_dict
 from stewart_calib.errors import SampleRejected
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.base import feed
 from stewart_calib.estimators.kalman import kalman_update
+from stewart_calib.model import kinematics as kin
 from stewart_calib.samples import Sample
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses, static_logs
 

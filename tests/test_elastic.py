@@ -10,15 +10,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
 from stewart_calib.cli import main
 from stewart_calib.errors import CalibError, SampleRejected
 from stewart_calib.io import read_log, result_dict
 from stewart_calib.io.logs import LogRowParser
-from stewart_calib.platform import LegGeometry, load_platform, parse_platform, platform_to_toml
+from stewart_calib.io.platform_file import load_platform, parse_platform, platform_to_toml
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import LegGeometry
+from stewart_calib.model.statics import gravity_leg_forces
 from stewart_calib.simulation.experiment import load_experiment
 from stewart_calib.simulation.load import settle
-from stewart_calib.statics import gravity_leg_forces
 from tests.test_platform import _doc, _refusal, _to_toml
 
 QUICK = Path(__file__).resolve().parents[1] / "configs" / "experiments" / "quick.toml"
@@ -140,8 +141,8 @@ def check(tmp_path_factory):
 def test_the_drive_model_settles_where_compensation_sends_it(check):
     """IK under a payload (compensate) and the settled FK of those strokes are each other's inverse,
     and the truth's own compliance puts the simulated robot where the model says."""
-    from stewart_calib.compensation import compensate
-    from stewart_calib.drive import drive_model
+    from stewart_calib.analysis.compensation import compensate
+    from stewart_calib.model.drive import drive_model
 
     _, run, platform, _ = check
     truth = replace(platform.elastic, compliance_mm_per_kN=platform.elastic.true_compliance_mm_per_kN)
@@ -159,15 +160,15 @@ def test_the_drive_model_settles_where_compensation_sends_it(check):
 
 
 def test_the_compiled_tracker_residuals_are_those_of_validate_under_each_rows_payload(check):
-    """calibrate's residual pass (:func:`~stewart_calib.validation.tracker_residuals`: one compiled pass,
+    """calibrate's residual pass (:func:`~stewart_calib.workflows.validation.tracker_residuals`: one compiled pass,
     each sample settled by the simulator's settling kernel with the drive's joints rigid and its compliance
     the term on the forces) gives what validate's predictions (the drive's settled_kinematics, batch numpy)
     give, row by row at its own payload ``load_kg`` (0 / 20 / 40 kg), within what FK's tolerance and the
-    settling's stop (:data:`~stewart_calib.drive.SETTLED_MM` of the extension) leave open — on the nominal
+    settling's stop (:data:`~stewart_calib.model.drive.SETTLED_MM` of the extension) leave open — on the nominal
     model (compliance 0; alone, not settled: no leg gives) and a calibrated one whose soft legs (20 mm/kN)
     take several passes to settle."""
-    from stewart_calib.drive import SETTLED_MM
-    from stewart_calib.validation import nominal_model, tracker_residuals, validate
+    from stewart_calib.model.drive import SETTLED_MM
+    from stewart_calib.workflows.validation import nominal_model, tracker_residuals, validate
     from tests.test_kinematics import fk_tolerance_bound
 
     _, run, platform, _ = check
@@ -199,7 +200,7 @@ def test_neglected_force_derivatives_are_small_against_the_rows_they_would_join(
     are ~1.2e-3 of ``∂r/∂ξ`` and ``∂r/∂M`` (the relative error of a Newton step that leaves them
     out); a hobby robot's 150 mm/kN at 2 kg gives the same order (c·f is what matters: 0.2 mm
     here, 0.5 mm there, against legs of 200–700 mm)."""
-    from stewart_calib.statics import leg_force_jacobians
+    from stewart_calib.model.statics import leg_force_jacobians
 
     _, run, platform, _ = check
     drive, elastic = platform.drive, platform.elastic
@@ -218,7 +219,7 @@ def test_neglected_force_derivatives_are_small_against_the_rows_they_would_join(
 @pytest.mark.parametrize("method", ["ls", "lm", "ekf", "isam2"])
 def test_every_method_identifies_the_compliance_and_compensates_any_payload(check, method):
     from benchmarks.elastic import _subset, closed_loop_um
-    from stewart_calib.calibration import run_calibration
+    from stewart_calib.workflows.calibration import run_calibration
 
     _, run, platform, calibration = check
     validation = run.desired_poses[np.asarray(run.kinds) == "validation"][:20]
@@ -354,7 +355,7 @@ def test_payload_sigma_reads_round_trips_and_refuses_a_negative_one(tmp_path):
 def test_a_payload_adds_its_mass_times_the_forces_per_kg(check):
     """The leg forces are linear in the masses: those under a payload m are the platform's alone plus
     m times :meth:`DriveModel.payload_leg_forces` (closed form of the statics, to rounding)."""
-    from stewart_calib.drive import drive_model
+    from stewart_calib.model.drive import drive_model
 
     _, run, platform, _ = check
     drive = drive_model(platform)
@@ -400,9 +401,9 @@ def test_a_payload_step_is_its_samples_payload_in_closed_form():
     ``(hᵀR⁻¹h)⁻¹ hᵀR⁻¹ ν̄`` (the prior's σ_m is 50 kg, the data's 0.02); a misfit the payload does not
     explain is refused, not taken for a step."""
     from stewart_calib.config import RobustConfig
-    from stewart_calib.drive import PAYLOAD
     from stewart_calib.estimators.robust import RobustFilter
-    from stewart_calib.unknowns import UnknownBlock, UnknownLayout
+    from stewart_calib.model.drive import PAYLOAD
+    from stewart_calib.model.unknowns import UnknownBlock, UnknownLayout
 
     rng = np.random.default_rng(5)
     layout = UnknownLayout((UnknownBlock(PAYLOAD, ("payload_kg",), np.zeros(1), np.array([50.0])),), n_params=42)
@@ -456,9 +457,9 @@ def test_the_start_up_solves_a_payload_with_the_rest():
     twice, and its correlations cut (table 3's robot in the loop: σ_m 0.012 kg where the batch's own
     Hessian gives 0.21, the payload 0.29 kg off and never freed)."""
     from stewart_calib.config import RobustConfig
-    from stewart_calib.drive import PAYLOAD
     from stewart_calib.estimators.robust import RobustFilter
-    from stewart_calib.unknowns import UnknownBlock, UnknownLayout
+    from stewart_calib.model.drive import PAYLOAD
+    from stewart_calib.model.unknowns import UnknownBlock, UnknownLayout
 
     rng = np.random.default_rng(3)
     layout = UnknownLayout((UnknownBlock(PAYLOAD, ("payload_kg",), np.zeros(1), np.array([50.0])),), n_params=42)
@@ -489,9 +490,9 @@ def test_a_payload_step_is_the_map_of_its_sample_where_the_pattern_is_bilinear()
     compliance's column lacks ``m f_m`` and the covariance misses the line that ties m to it (the
     correlation more than 0.3 off the MAP's)."""
     from stewart_calib.config import RobustConfig
-    from stewart_calib.drive import PAYLOAD
     from stewart_calib.estimators.robust import RELINEARISE_TOLERANCE, RobustFilter
-    from stewart_calib.unknowns import UnknownBlock, UnknownLayout
+    from stewart_calib.model.drive import PAYLOAD
+    from stewart_calib.model.unknowns import UnknownBlock, UnknownLayout
 
     rng = np.random.default_rng(11)
     layout = UnknownLayout((UnknownBlock(PAYLOAD, ("payload_kg",), np.zeros(1), np.array([50.0])),), n_params=42)
@@ -565,9 +566,9 @@ def test_ekf_finds_an_unannounced_payload_and_its_steps(check):
     each c_i within 5 % and compensates at 40 kg as with the payload known (rigid-like without it);
     a checkpoint keeps the payload and its steps."""
     from benchmarks.elastic import _subset, closed_loop_um
-    from stewart_calib.calibration import run_calibration
     from stewart_calib.estimators import make_estimator
     from stewart_calib.estimators.base import update_each
+    from stewart_calib.workflows.calibration import run_calibration
 
     _, run, platform, calibration = check
     log = replace(_subset(run.log, calibration), load_kg=None)
@@ -595,9 +596,9 @@ def test_ekf_finds_an_unannounced_payload_and_its_steps(check):
     np.testing.assert_array_equal(resumed.estimate().block_values("payload"), one.estimate().block_values("payload"))
     assert resumed.robust.steps == one.robust.steps == 2
     # a controller asking the library for strokes gets them under the payload found, as the loop above
-    from stewart_calib.compensation import compensate
-    from stewart_calib.drive import drive_model
-    from stewart_calib.online import OnlineCalibrator
+    from stewart_calib.analysis.compensation import compensate
+    from stewart_calib.model.drive import drive_model
+    from stewart_calib.workflows.online import OnlineCalibrator
 
     online = OnlineCalibrator(estimating, "ekf")
     for sample in samples:
@@ -619,8 +620,8 @@ def test_ekf_finds_an_unannounced_payload_and_its_steps(check):
 
 
 def _tracker_report(platform, log, noise):
-    from stewart_calib.drive import drive_model
-    from stewart_calib.identifiability import identifiability_report, tracker_samples
+    from stewart_calib.analysis.identifiability import identifiability_report, tracker_samples
+    from stewart_calib.model.drive import drive_model
 
     poses, strokes, payload = tracker_samples(platform, log)
     report = identifiability_report(platform, poses, noise, False, drive_model(platform, noise), strokes, payload)
@@ -632,9 +633,9 @@ def test_the_tracker_bound_covers_the_compliance_as_the_stacked_drive_jacobian(c
     (drive.jacobians at the tracker's poses and the samples' forces) whitened by the residual's
     covariance and stacked densely; the blocks' scaling changes the SVD's units, not the bound."""
     from benchmarks.elastic import _subset
+    from stewart_calib.analysis.identifiability import residual_covariance
     from stewart_calib.config import load_estimator_config
-    from stewart_calib.drive import drive_model
-    from stewart_calib.identifiability import residual_covariance
+    from stewart_calib.model.drive import drive_model
 
     _, run, platform, calibration = check
     noise = load_estimator_config().noise
@@ -660,8 +661,8 @@ def test_the_tracker_bound_of_c_is_the_batch_fits_covariance(check):
     import dataclasses
 
     from benchmarks.elastic import _subset
-    from stewart_calib.calibration import run_calibration
     from stewart_calib.config import load_estimator_config
+    from stewart_calib.workflows.calibration import run_calibration
 
     _, run, platform, calibration = check
     config = load_estimator_config()
@@ -685,7 +686,7 @@ def test_the_ekf_payload_column_with_an_outside_instrument_is_the_numerical_deri
     kinematics, ``∂ξ/∂m = −J_g⁻¹ ∂g/∂m``), on the hobby hexapod with soft legs (150 mm/kN)."""
     from stewart_calib.estimators import make_estimator
     from stewart_calib.estimators.measurement import check_sample
-    from stewart_calib.platform import Elastic
+    from stewart_calib.model.platform import Elastic
     from tests.instrument_data import hobby, make_case
     from tests.test_instrument_ls import POINTS, POINTS_TRUTH, POSE_TRUTH
 
@@ -725,8 +726,8 @@ def test_the_settled_pose_jacobian_matches_numerical_differences():
     ``ξ = [ω, v]``; a hobby robot's soft legs (150 mm/kN, 2 kg, 5 kg payload) make that change show."""
     from benchmarks.hobby import SOFT_LEGS, simulate
     from stewart_calib.config import NoiseConfig
-    from stewart_calib.drive import drive_model
     from stewart_calib.instruments import lie
+    from stewart_calib.model.drive import drive_model
 
     platform = simulate(0, n_fit=4, n_held_out=1, build=SOFT_LEGS).elastic
     platform = replace(platform, elastic=replace(platform.elastic, compliance_mm_per_kN=np.full(6, 150.0)))

@@ -15,7 +15,8 @@ import pytest
 from stewart_calib import cli
 from stewart_calib.errors import CalibError
 from stewart_calib.io import read_log, write_log
-from stewart_calib.platform import G_N_PER_KG, Elastic, parse_platform, payload_limit, platform_to_toml
+from stewart_calib.io.platform_file import parse_platform, platform_to_toml
+from stewart_calib.model.platform import G_N_PER_KG, Elastic, payload_limit
 from stewart_calib.resources import read_toml
 from tests.synthetic import NIM_STEWART, make_log, nim_stewart, random_poses
 

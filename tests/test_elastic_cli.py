@@ -12,7 +12,7 @@ import pytest
 
 from stewart_calib.cli import main
 from stewart_calib.io import log_text
-from stewart_calib.platform import platform_to_toml
+from stewart_calib.io.platform_file import platform_to_toml
 
 
 @pytest.fixture(scope="module")
@@ -151,9 +151,9 @@ def test_drawn_check_geometries_are_plausible_hexapods():
     import tomllib
 
     from benchmarks.elastic import CheckGeometry, check_platform_toml, draw_geometry
-    from stewart_calib import kinematics as kin
-    from stewart_calib.platform import parse_platform
-    from stewart_calib.statics import statics_matrix, statics_ratios
+    from stewart_calib.io.platform_file import parse_platform
+    from stewart_calib.model import kinematics as kin
+    from stewart_calib.model.statics import statics_matrix, statics_ratios
 
     assert "base r 420 mm, platform r 270 mm" in check_platform_toml(CheckGeometry())
     for seed in range(1, 7):

@@ -7,7 +7,7 @@ import pickle
 import pytest
 
 from stewart_calib.errors import CalibError, SampleRejected
-from stewart_calib.statics import SingularStatics
+from stewart_calib.model.statics import SingularStatics
 
 
 def _rejected() -> SampleRejected:

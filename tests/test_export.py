@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from stewart_calib import cli
-from stewart_calib import kinematics as kin
 from stewart_calib.io import controllers, write_log, write_pose_list
-from stewart_calib.platform import load_platform, platform_to_toml
+from stewart_calib.io.platform_file import load_platform, platform_to_toml
+from stewart_calib.model import kinematics as kin
 from stewart_calib.simulation.instrument import InstrumentTruth
 
 from . import instrument_data as idata

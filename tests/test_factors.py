@@ -7,11 +7,11 @@ import gtsam
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
-from stewart_calib.drive import DriveModel, drive_model, stroke_term
 from stewart_calib.factors import drive_leg, gauge, instrument, instrument_pose, random_walk
 from stewart_calib.instruments.tracker import TrackerModel
-from stewart_calib.unknowns import UnknownLayout
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.drive import DriveModel, drive_model, stroke_term
+from stewart_calib.model.unknowns import UnknownLayout
 from tests.numdiff import numerical_jacobian, numerical_pose3_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_error, random_poses
 
@@ -184,7 +184,7 @@ def test_pose_instrument_factor_is_the_models_residual_in_one_compiled_call():
     # factors/_kernels.pose_reading_rows against PoseModel.residual through the factor: a reading near the
     # prediction, one on it (e ≈ 0) and one turned by π about an axis (Log's branch near π).
     from stewart_calib.instruments import pose as pose_model
-    from stewart_calib.rotations import rotation_to_rpy, so3_exp
+    from stewart_calib.model.rotations import rotation_to_rpy, so3_exp
     from tests.test_instrument_models import _models
 
     model = _models()[0]

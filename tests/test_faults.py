@@ -29,9 +29,9 @@ from hypothesis import strategies as st
 from stewart_calib import cli
 from stewart_calib.errors import CalibError
 from stewart_calib.io import read_result, write_log
-from stewart_calib.online import OnlineCalibrator, npz_bytes
 from stewart_calib.pipelines.track import follow_log, line_chunks
 from stewart_calib.samples import Log, Sample
+from stewart_calib.workflows.online import OnlineCalibrator, npz_bytes
 from tests.synthetic import NIM_STEWART, ROOT, nim_stewart, tracked_log
 
 N = 40
@@ -667,7 +667,7 @@ def test_a_lock_out_recovery_accounts_for_every_row(tmp_path, capsys, method):
     [elastic] that simulate now writes, the compliance predicts the step and nothing locks out)."""
     import dataclasses
 
-    from stewart_calib.platform import load_platform, platform_to_toml
+    from stewart_calib.io.platform_file import load_platform, platform_to_toml
 
     sim = tmp_path / "sim"
     assert cli.main(["simulate", "--experiment", "quick", "--out", str(sim)]) == 0
@@ -1013,7 +1013,7 @@ NAMES = [
 @pytest.mark.parametrize("name", NAMES)
 def test_a_platform_name_reads_back_and_is_escaped_in_messages(tmp_path, log, capsys, name):
     """--platform-out writes TOML that reads back for any name; messages show it escaped, one line."""
-    from stewart_calib.platform import load_platform, platform_to_toml
+    from stewart_calib.io.platform_file import load_platform, platform_to_toml
 
     platform = nim_stewart()
     path = tmp_path / "P.toml"

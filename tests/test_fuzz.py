@@ -17,8 +17,8 @@ from hypothesis import strategies as st
 from stewart_calib.config import load_estimator_config
 from stewart_calib.errors import CalibError
 from stewart_calib.io import LOG_REQUIRED, POSE_COLUMNS, LogRowParser, read_log
-from stewart_calib.online import OnlineCalibrator
-from stewart_calib.platform import load_platform, parse_platform, platform_to_toml
+from stewart_calib.io.platform_file import load_platform, parse_platform, platform_to_toml
+from stewart_calib.workflows.online import OnlineCalibrator
 from tests.synthetic import nim_stewart
 
 SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

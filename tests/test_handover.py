@@ -16,8 +16,8 @@ from stewart_calib import __version__
 from stewart_calib.cli import main
 from stewart_calib.config import load_estimator_config
 from stewart_calib.io import read_result
+from stewart_calib.io.platform_file import load_platform
 from stewart_calib.pipelines import calibrate as calibrate_pipeline
-from stewart_calib.platform import load_platform
 from tests.browser import browser, screenshot
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -120,10 +120,15 @@ def test_residual_rms_is_that_of_validate_predictions(sim, ekf_run):
     # model's on the first pass, spooled) gives what validate's predictions (a batch FK per model
     # from the level guess) give, within what FK's tolerance leaves open; the streamed RMS over
     # blocks without the rejected samples is the RMS of those samples' residuals
-    from stewart_calib import kinematics as kin
     from stewart_calib.io import read_log
+    from stewart_calib.model import kinematics as kin
     from stewart_calib.pipelines import handover
-    from stewart_calib.validation import measurement_residuals, nominal_residuals, streamed_residual_rms, validate
+    from stewart_calib.workflows.validation import (
+        measurement_residuals,
+        nominal_residuals,
+        streamed_residual_rms,
+        validate,
+    )
     from tests.test_kinematics import fk_tolerance_bound
 
     platform = load_platform(sim / "platform.toml")
@@ -190,8 +195,8 @@ def test_report_renders_in_a_headless_browser(ekf_run, tmp_path):
 
 def test_rerun_recording_has_sigma_bands_and_diagnostics(sim, tmp_path):
     readback = pytest.importorskip("tests.readback")
-    from stewart_calib import kinematics as kin
     from stewart_calib.io import read_log
+    from stewart_calib.model import kinematics as kin
 
     rrd = tmp_path / "r.rrd"
     assert _calibrate(sim, tmp_path / "r.json", "ekf", "--rerun", str(rrd)) == 0

@@ -16,7 +16,7 @@ from scipy.optimize import least_squares
 
 from stewart_calib import cli
 from stewart_calib.io import NOMINAL_TOLERANCE_MM, read_log
-from stewart_calib.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
 from tests.instrument_data import HOBBY
 from tests.test_instrument_files import EXPERIMENT
 
@@ -61,7 +61,7 @@ def best_registration_rms(platform, log) -> dict[str, float]:
     target(s) that minimise the whitened readings' residual: scipy's least squares over the
     instrument's tangent, from the platform file's frame and target(s) — no closed form."""
     from stewart_calib.instruments import outside_model
-    from stewart_calib.validation import _model_poses, nominal_model
+    from stewart_calib.workflows.validation import _model_poses, nominal_model
 
     model = outside_model(platform)
     R_X, t_X = _model_poses(platform, nominal_model(platform), log, "nominal")
@@ -104,7 +104,7 @@ def test_calibrate_before_is_the_nominal_models_best_registration(outside_run):
 
 def _reached(platform, delta: np.ndarray, poses: np.ndarray):
     """Where a robot whose drive is ``nominal + delta`` goes for the nominal strokes of ``poses``."""
-    from stewart_calib import kinematics as kin
+    from stewart_calib.model import kinematics as kin
 
     R, t = kin.pose_to_rt(poses)
     reached = kin.forward_kinematics(platform.drive.perturbed(delta), kin.inverse_kinematics(platform.drive, R, t))
@@ -118,7 +118,7 @@ def _motion_position_error(platform, delta, poses, home) -> np.ndarray:
     R, t = _reached(platform, delta, np.vstack([poses, home]))
     R_H, t_H = lie.inverse(R[-1], t[-1])
     _, reached = lie.compose(R_H, t_H, R[:-1], t[:-1])
-    from stewart_calib import kinematics as kin
+    from stewart_calib.model import kinematics as kin
 
     R_d, t_d = kin.pose_to_rt(np.vstack([poses, home]))
     R_dH, t_dH = lie.inverse(R_d[-1], t_d[-1])
@@ -130,8 +130,8 @@ def test_motion_from_home_loses_a_constant_offset_and_matches_forward_kinematics
     """A rigid motion of every base joint moves every pose alike: its absolute error is that
     motion, its motion-from-home error zero. A random drive error's motion error is, to first
     order, the motion Jacobian's (δM of 0.01 mm: second order 1e-4 of it)."""
-    from stewart_calib import accuracy
-    from stewart_calib.rotations import skew
+    from stewart_calib.analysis import accuracy
+    from stewart_calib.model.rotations import skew
     from tests.synthetic import nim_stewart
 
     platform = nim_stewart()
@@ -221,7 +221,7 @@ def test_a_plan_not_clearly_better_than_the_nominal_model_says_what_to_change(tm
     a warning naming what to change; the shipped ±30 mm / ±12° one plans clearly better, silently.
     With strokes 0–100 mm and the motion-capture prior (20 mm), the margin is capped at 25 mm."""
     from stewart_calib.config import load_estimator_config
-    from stewart_calib.planning import nominal_error
+    from stewart_calib.workflows.planning import nominal_error
 
     text = HOBBY.read_text()
     small = text.replace("translation_limit_mm = 30.0", "translation_limit_mm = 10.0").replace(

@@ -9,10 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
-from stewart_calib.cli import main as cli_main
-from stewart_calib.config import NoiseConfig
-from stewart_calib.identifiability import (
+from stewart_calib.analysis.identifiability import (
     CONDITION_POOR,
     conditioning_summary,
     identifiability_report,
@@ -23,8 +20,11 @@ from stewart_calib.identifiability import (
     warning_line,
     whitened_leg_jacobian,
 )
+from stewart_calib.cli import main as cli_main
+from stewart_calib.config import NoiseConfig
 from stewart_calib.io import write_log
-from stewart_calib.platform import PARAMETER_NAMES
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import PARAMETER_NAMES
 from tests.synthetic import make_log, nim_stewart, numpy_legs, random_error, random_poses
 
 NOISE = NoiseConfig()

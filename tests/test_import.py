@@ -201,7 +201,7 @@ def test_motive_quaternions_y_up_and_millimetres(capsys, tmp_path):
 
 
 def _pose_platform():
-    from stewart_calib.platform import load_platform
+    from stewart_calib.io.platform_file import load_platform
 
     return load_platform("hobby-hexapod")
 

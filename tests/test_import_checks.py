@@ -12,8 +12,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from stewart_calib import cli
-from stewart_calib import kinematics as kin
-from stewart_calib.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
 
 from . import vendor_files as vendor
 from .test_import import COUNTS_MAPPING, EXAMPLE, _motion, _strokes_of, _write_counts

@@ -16,7 +16,8 @@ from stewart_calib import io
 from stewart_calib.cli import main
 from stewart_calib.errors import CalibError
 from stewart_calib.instruments.pose import PoseModel
-from stewart_calib.platform import Instrument, parse_platform, platform_to_toml
+from stewart_calib.io.platform_file import parse_platform, platform_to_toml
+from stewart_calib.model.platform import Instrument
 from stewart_calib.samples import Truth
 from stewart_calib.simulation.instrument import InstrumentTruth
 from tests.instrument_data import HOBBY, hobby, make_case

@@ -13,7 +13,7 @@ from stewart_calib.config import EstimatorConfig
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.batch import cramer_rao
 from stewart_calib.instruments import points
-from stewart_calib.platform import Instrument
+from stewart_calib.model.platform import Instrument
 from stewart_calib.simulation.instrument import InstrumentTruth
 from tests.instrument_data import hobby, make_case, problem, truth_in_gauge
 

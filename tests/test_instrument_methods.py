@@ -10,8 +10,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from stewart_calib.calibration import run_calibration
 from stewart_calib.config import load_estimator_config
+from stewart_calib.workflows.calibration import run_calibration
 from tests.instrument_data import hobby, make_case
 from tests.test_instrument_ls import POINTS, POINTS_TRUTH, POSE_TRUTH, _normalised_errors
 
@@ -72,9 +72,9 @@ def test_targets_on_a_line_give_every_method_a_finite_estimate_near_the_bound(me
 def test_targets_fix_a_pose_only_off_a_line():
     """The loose pose of a reading: none where the three targets lie within σ/0.01 rad (5 mm here)
     of one line; a pose whose covariance bounds the rotation about it where they lie 10 mm off."""
-    from stewart_calib import kinematics as kin
     from stewart_calib.instruments import instrument_model, instrument_theta
     from stewart_calib.instruments.points import LOOSE_ROTATION_SIGMA_RAD
+    from stewart_calib.model import kinematics as kin
 
     R_X, t_X = kin.pose_to_rt(np.array([[2.0, -3.0, 250.0, 0.05, -0.02, 0.1]]))
     for off_mm, fixed in ((0.0, False), (4.0, False), (10.0, True)):

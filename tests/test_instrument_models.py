@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
 from stewart_calib.errors import CalibError
 from stewart_calib.instruments import gauge, lie, points, pose
+from stewart_calib.model import kinematics as kin
 from tests.numdiff import EPS_MM, EPS_RAD, numerical_jacobian, numerical_pose_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_poses
 
@@ -108,7 +108,7 @@ def test_to_gauge_satisfies_the_gauge_and_keeps_leg_lengths():
     B = gauge.free_basis(platform.drive)
     np.testing.assert_allclose(delta - B @ (B.T @ delta), 0.0, atol=1e-9)
     # a pose X becomes T_J'_J X T_D'_D⁻¹: every leg keeps its length
-    from stewart_calib.platform import LegGeometry
+    from stewart_calib.model.platform import LegGeometry
 
     R, t = kin.pose_to_rt(random_poses(platform, 1, rng)[0])
     R2, t2 = lie.compose(*lie.compose(R_J, t_J, R, t), *lie.inverse(R_D, t_D))
@@ -152,7 +152,7 @@ def test_refit_frame_recovers_a_moved_frame():
     start = pose.PoseUnknowns(np.eye(3), np.zeros(3), u.R_target, u.t_target)
     from dataclasses import replace
 
-    from stewart_calib.platform import Instrument
+    from stewart_calib.model.platform import Instrument
 
     platform = replace(nim_stewart(), instrument=Instrument("pose", position_sigma_mm=0.1, orientation_sigma_rad=1e-3))
     found = pose.PoseModel(platform).refit_frame(start, R_X, t_X, measured)
@@ -186,7 +186,7 @@ def _models():
 
     from stewart_calib.config import NoiseConfig
     from stewart_calib.instruments import instrument_model
-    from stewart_calib.platform import Instrument
+    from stewart_calib.model.platform import Instrument
     from tests.instrument_data import hobby
 
     pose_platform = hobby()

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from benchmarks.hobby import simulate
-from stewart_calib.calibration import run_calibration
 from stewart_calib.config import config_from_dict
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.base import feed
 from stewart_calib.estimators.measurement import REGISTRATION_SAMPLES
+from stewart_calib.workflows.calibration import run_calibration
 from tests.instrument_data import hobby, make_case
 from tests.test_instrument_ls import POINTS, POINTS_TRUTH, POSE_TRUTH, _normalised_errors
 

@@ -1,4 +1,4 @@
-"""Measurement models (stewart_calib.instruments) and the unknown vector (stewart_calib.unknowns)."""
+"""Measurement models (stewart_calib.instruments) and the unknown vector (stewart_calib.model.unknowns)."""
 
 from __future__ import annotations
 
@@ -7,14 +7,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
 from stewart_calib.config import NoiseConfig
-from stewart_calib.drive import stroke_term
 from stewart_calib.errors import SampleRejected
 from stewart_calib.instruments import MODELS, InstrumentModel, instrument_model, instrument_theta
 from stewart_calib.instruments.tracker import TrackerModel
-from stewart_calib.platform import INSTRUMENT_KINDS, N_PARAMS
-from stewart_calib.unknowns import UnknownLayout
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.drive import stroke_term
+from stewart_calib.model.platform import INSTRUMENT_KINDS, N_PARAMS
+from stewart_calib.model.unknowns import UnknownLayout
 from tests.numdiff import EPS_MM, numerical_jacobian, numerical_pose_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_poses
 

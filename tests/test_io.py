@@ -23,7 +23,7 @@ from stewart_calib.io import (
     write_trace,
     write_truth,
 )
-from stewart_calib.platform import PARAMETER_NAMES
+from stewart_calib.model.platform import PARAMETER_NAMES
 from stewart_calib.samples import Log, Truth
 from tests.synthetic import nim_stewart
 

@@ -13,13 +13,13 @@ import gtsam
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
 from stewart_calib.config import RobustConfig
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.base import update_each
 from stewart_calib.factors import drive_leg
 from stewart_calib.io import result_dict
-from stewart_calib.platform import Elastic
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import Elastic
 from tests.numdiff import numerical_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_error, random_poses
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
 from stewart_calib.estimators.measurement import pose_difference
-from stewart_calib.platform import LegGeometry
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import LegGeometry
 
 from .synthetic import nim_stewart, random_poses
 
@@ -45,9 +45,9 @@ def test_leg_ekf_observation_equals_its_numpy_definition(k):
 
 def _leg_set_pose(guess=None):
     """The EKF's compiled observation through the tracker (known geometry) of ``PLATFORM``'s drive."""
-    from stewart_calib.drive import drive_model
     from stewart_calib.estimators.measurement import LegSetPose
     from stewart_calib.instruments.tracker import TrackerModel
+    from stewart_calib.model.drive import drive_model
 
     pose = LegSetPose(TrackerModel(PLATFORM.tracker, 0.002), drive_model(PLATFORM), 0.001)
     pose.import_state({} if guess is None else {"R": guess[0], "t": guess[1]})
@@ -80,9 +80,9 @@ def test_the_leg_set_observation_with_an_unknown_drive_term_is_the_drive_models(
     """With the stroke scale unknown (columns 42…47 of the state) and an unknown after them, the compiled
     observation is the drive model's (its extensions and ``∂r/∂x_drive`` with the terms) at the
     tracker's FK pose, 0 on the other unknown's column."""
-    from stewart_calib.drive import drive_model
     from stewart_calib.estimators.measurement import LegSetPose
     from stewart_calib.instruments.tracker import TrackerModel
+    from stewart_calib.model.drive import drive_model
 
     rng = np.random.default_rng(4)
     drive = drive_model(PLATFORM, outside_instrument=True)
@@ -180,9 +180,9 @@ def test_fk_per_pose_geometry_solves_each_pose_with_its_own_legs():
 def test_the_pose_instrument_kernel_equals_its_lie_group_definition(seed):
     """``_kernels.pose_instrument_observation`` (PoseModel.pose) against the composition it compiles:
     ``X = F M G⁻¹``, ``Ad_G N Ad_Gᵀ`` and ``[Ad_{G M⁻¹}, −Ad_G] (∂θ/∂[φ, γ])⁻¹`` in numpy."""
-    from stewart_calib import _kernels
     from stewart_calib.instruments import lie
     from stewart_calib.instruments.pose import theta_tangent_jacobian
+    from stewart_calib.model import _kernels
 
     rng = np.random.default_rng(seed)
     theta = np.r_[rng.normal(0, 100, 3), rng.uniform(-3, 3, 3), rng.normal(0, 50, 3), rng.uniform(-1.2, 1.2, 3)]

@@ -1,4 +1,4 @@
-"""Kinematics (stewart_calib.kinematics) against its definitions, the paper and finite differences.
+"""Kinematics (stewart_calib.model.kinematics) against its definitions, the paper and finite differences.
 
 Poses are compared in local coordinates: translation norm [mm] and the rotation angle of
 ``R_aᵀ R_b`` [rad] (never raw Euler differences). Jacobians are compared with the shared
@@ -16,8 +16,8 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from stewart_calib import kinematics as kin
-from stewart_calib.platform import LegGeometry
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import LegGeometry
 
 from .numdiff import (
     EPS_MM,

@@ -16,28 +16,20 @@ PACKAGE = Path(__file__).resolve().parents[1] / "stewart_calib"
 LAYERS = (
     ("_jit", "errors"),
     ("inputs", "memory"),
-    ("stewart_calib", "_kernels", "resources", "progress"),
-    ("samples", "config", "rotations", "chi_square"),
-    ("kinematics",),
-    ("platform",),
-    ("unknowns",),
-    ("statics",),
+    ("stewart_calib", "resources", "progress"),
+    ("samples", "config", "chi_square"),
     ("model",),
-    ("drive",),
     ("estimate", "instruments"),
-    ("factors", "io", "identifiability", "accuracy", "compensation", "plausibility", "simulation", "viz"),
-    ("planning", "estimators", "diagnosis", "links"),
-    ("online", "reproduction", "sweep"),
-    ("calibration", "validation"),
+    ("io",),
+    ("factors", "analysis", "simulation", "viz"),
+    ("estimators", "links"),
+    ("workflows",),
+    ("reproduction", "sweep"),
     ("pipelines",),
     ("cli",),
     ("__main__",),
 )
 RANK = {group: rank for rank, groups in enumerate(LAYERS) for group in groups}
-
-#: the one arrow allowed against the layers, lazily imported: the platform file's reader builds a
-#: rotary drive's legs (spec §15) until the reader moves to ``io/`` above ``model/`` (issue 42)
-PLATFORM_READER = ("stewart_calib.platform", "stewart_calib.model.rotary")
 
 
 def _module_name(path: Path) -> str:
@@ -98,16 +90,13 @@ def test_imports_point_down_the_layers():
         f"{module} -> {target}"
         for module, targets in _graph().items()
         for target in targets
-        if _group(target) != _group(module)
-        and RANK[_group(target)] >= RANK[_group(module)]
-        and (module, target) != PLATFORM_READER
+        if _group(target) != _group(module) and RANK[_group(target)] >= RANK[_group(module)]
     ]
     assert upward == []
 
 
 def test_import_graph_has_no_circle():
     graph, state, circles = _graph(), {}, []
-    graph[PLATFORM_READER[0]] = graph[PLATFORM_READER[0]] - {PLATFORM_READER[1]}  # lazy: no circle at import
 
     def visit(module: str, path: list[str]) -> None:
         state[module] = "open"
@@ -126,10 +115,10 @@ def test_import_graph_has_no_circle():
 
 def test_the_checker_sees_arrows():
     # The checks above pass vacuously if imports are not found: the estimators must be seen
-    # importing the platform, and a relative 'from .. import kinematics' must name that module.
+    # importing the platform, and a relative 'from ..model import kinematics' must name that module.
     graph = _graph()
-    assert "stewart_calib.platform" in graph["stewart_calib.estimators.ekf"]
-    assert "stewart_calib.kinematics" in graph["stewart_calib.estimators.measurement"]
+    assert "stewart_calib.model.platform" in graph["stewart_calib.estimators.ekf"]
+    assert "stewart_calib.model.kinematics" in graph["stewart_calib.estimators.measurement"]
 
 
 def test_pipelines_import_nothing_private_from_each_other():
@@ -164,7 +153,15 @@ def test_pipelines_import_nothing_private_from_each_other():
 
 #: the leg-set model (docs/architecture.md): the only modules that know a platform has six legs of
 #: seven parameters; everything else takes the sizes from the model or from its arrays
-LEG_SET_MODEL = {"platform.py", "kinematics.py", "_kernels.py", "statics.py", "drive.py", "model/rotary.py"}
+LEG_SET_MODEL = {
+    "model/platform.py",
+    "model/kinematics.py",
+    "model/_kernels.py",
+    "model/statics.py",
+    "model/drive.py",
+    "model/rotary.py",
+    "io/platform_file.py",  # the platform file's tables hold one row a leg (spec §2, §15)
+}
 
 
 def test_only_the_leg_set_model_names_the_number_of_legs():
@@ -189,14 +186,9 @@ LEG_GEOMETRY_FIELDS = {"base_joints", "platform_joints", "initial_lengths"}
 #: the modules (paths in the package; a path ending in "/" holds all below it) that may name them:
 #: the leg-set model and its files, and each other one with its reason
 LEG_FIELD_MODULES = {
-    "platform.py",
-    "kinematics.py",
-    "_kernels.py",
-    "statics.py",
-    "drive.py",
     "model/",
     "io/",  # the files at the edge: the platform file, the controllers' formats
-    "identifiability.py",  # the compiled whitened rows' arguments (prismatic legs only)
+    "analysis/identifiability.py",  # the compiled whitened rows' arguments (prismatic legs only)
     "sweep/spec.py",  # the ring-platform family builds prismatic legs
 }
 
@@ -220,5 +212,5 @@ def test_only_the_leg_models_name_the_leg_fields():
 
 def test_the_leg_field_check_sees_fields():
     # the check above passes vacuously if it reads nothing: the leg-set model itself names them
-    tree = ast.parse((PACKAGE / "kinematics.py").read_text(encoding="utf-8"))
+    tree = ast.parse((PACKAGE / "model" / "kinematics.py").read_text(encoding="utf-8"))
     assert any(isinstance(node, ast.Attribute) and node.attr in LEG_GEOMETRY_FIELDS for node in ast.walk(tree))

@@ -10,12 +10,12 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
-from stewart_calib.drive import DriveModel, drive_model, stroke_term
 from stewart_calib.errors import CalibError
 from stewart_calib.factors import drive_leg
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.drive import DriveModel, drive_model, stroke_term
 from stewart_calib.model.legs import LEG_KINDS, LegModel
-from stewart_calib.platform import Elastic, LegGeometry
+from stewart_calib.model.platform import Elastic, LegGeometry
 from tests.numdiff import numerical_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_error, random_poses
 

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from stewart_calib import cli
-from stewart_calib.calibration import run_calibration
 from stewart_calib.io import read_log, read_result, write_log
 from stewart_calib.io.logs import LOG_REQUIRED
 from stewart_calib.samples import Log
+from stewart_calib.workflows.calibration import run_calibration
 from tests.synthetic import NIM_STEWART, nim_stewart, tracked_log
 
 pytest.importorskip("asyncua")

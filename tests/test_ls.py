@@ -5,9 +5,9 @@ import dataclasses
 import numpy as np
 import pytest
 
+from stewart_calib.analysis.identifiability import identifiability_report
 from stewart_calib.config import NoiseConfig, config_from_dict
 from stewart_calib.estimators import make_estimator
-from stewart_calib.identifiability import identifiability_report
 from tests.synthetic import nim_stewart, static_logs
 
 PLATFORM = nim_stewart()

@@ -10,7 +10,7 @@ import pytest
 
 from stewart_calib import cli
 from stewart_calib.io import write_log
-from stewart_calib.platform import platform_to_toml
+from stewart_calib.io.platform_file import platform_to_toml
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
 
 N = 300

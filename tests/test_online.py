@@ -7,11 +7,11 @@ import zipfile
 import numpy as np
 import pytest
 
-from stewart_calib.compensation import compensate
+from stewart_calib.analysis.compensation import compensate
 from stewart_calib.config import config_from_dict
 from stewart_calib.errors import CalibError, SampleRejected, number
-from stewart_calib.online import CHECKPOINT_VERSION, ONLINE_METHODS, OnlineCalibrator, Rejections, npz_bytes
 from stewart_calib.samples import Sample
+from stewart_calib.workflows.online import CHECKPOINT_VERSION, ONLINE_METHODS, OnlineCalibrator, Rejections, npz_bytes
 from tests.faults import INDETERMINANT, degenerate_sample
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
 

@@ -12,7 +12,7 @@ import pytest
 
 from stewart_calib.config import config_from_dict
 from stewart_calib.errors import SampleRejected
-from stewart_calib.online import OnlineCalibrator
+from stewart_calib.workflows.online import OnlineCalibrator
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
 
 N = 200

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from stewart_calib import cli
-from stewart_calib.platform import load_platform, platform_to_toml
+from stewart_calib.io.platform_file import load_platform, platform_to_toml
 from tests.synthetic import NIM_STEWART, ROOT
 
 

@@ -7,13 +7,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
-from stewart_calib import planning
+from stewart_calib.analysis.identifiability import identifiability_report, whitened_leg_jacobian
 from stewart_calib.cli import main as cli_main
 from stewart_calib.config import NoiseConfig
 from stewart_calib.errors import CalibError
-from stewart_calib.identifiability import identifiability_report, whitened_leg_jacobian
 from stewart_calib.io import read_pose_list
+from stewart_calib.model import kinematics as kin
+from stewart_calib.workflows import planning
 from tests.synthetic import NIM_STEWART, nim_stewart, random_poses
 
 NOISE = NoiseConfig()
@@ -120,7 +120,7 @@ def test_the_nominal_yardstick_takes_another_leg_models_own_priors():
     from dataclasses import replace
 
     from stewart_calib.config import NoiseConfig
-    from stewart_calib.planning import nominal_error
+    from stewart_calib.workflows.planning import nominal_error
     from tests.synthetic import nim_stewart, numpy_legs
 
     platform, noise = nim_stewart(), NoiseConfig()

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from stewart_calib.errors import CalibError
-from stewart_calib.kinematics import leg_lengths, pose_to_rt
-from stewart_calib.platform import PARAMETER_NAMES, load_platform, parse_platform, platform_to_toml
+from stewart_calib.io.platform_file import load_platform, parse_platform, platform_to_toml
+from stewart_calib.model.kinematics import leg_lengths, pose_to_rt
+from stewart_calib.model.platform import PARAMETER_NAMES
 from tests.synthetic import NIM_STEWART, nim_stewart
 
 

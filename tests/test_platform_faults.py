@@ -8,7 +8,7 @@ import pytest
 
 from stewart_calib import cli
 from stewart_calib.errors import CalibError
-from stewart_calib.platform import parse_platform
+from stewart_calib.io.platform_file import parse_platform
 from tests.test_platform import _doc, _refusal, _to_toml
 
 

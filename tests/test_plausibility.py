@@ -8,14 +8,15 @@ import numpy as np
 import pytest
 
 from stewart_calib import cli
-from stewart_calib import kinematics as kin
+from stewart_calib.analysis.plausibility import PRIOR_SIGMAS, RESIDUAL_SIGMAS, check_plausible, rms_leg_residual_mm
 from stewart_calib.config import NoiseConfig, config_from_dict
 from stewart_calib.errors import CalibError
 from stewart_calib.estimators.base import feed
 from stewart_calib.io import write_log
-from stewart_calib.online import OnlineCalibrator
-from stewart_calib.platform import LegGeometry, platform_to_toml
-from stewart_calib.plausibility import PRIOR_SIGMAS, RESIDUAL_SIGMAS, check_plausible, rms_leg_residual_mm
+from stewart_calib.io.platform_file import platform_to_toml
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import LegGeometry
+from stewart_calib.workflows.online import OnlineCalibrator
 from tests.synthetic import make_log, nim_stewart, numpy_legs, random_error, random_poses
 
 N = 60

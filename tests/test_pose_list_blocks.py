@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from stewart_calib import io
+from stewart_calib.analysis.compensation import PoseOutOfRange, compensate
 from stewart_calib.cli import main
-from stewart_calib.compensation import PoseOutOfRange, compensate
 from stewart_calib.errors import CalibError
 from stewart_calib.estimate import Estimate
 from stewart_calib.io import logs

@@ -146,7 +146,7 @@ def test_the_api_example_runs_for_the_tracker_and_a_pose_instrument(tmp_path, mo
     import numpy as np
 
     from stewart_calib.io import write_log
-    from stewart_calib.online import OnlineCalibrator
+    from stewart_calib.workflows.online import OnlineCalibrator
     from tests import synthetic
 
     text = _api_snippet()

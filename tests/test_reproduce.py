@@ -16,7 +16,7 @@ from stewart_calib.cli import main as cli_main
 from stewart_calib.config import load_estimator_config
 from stewart_calib.errors import CalibError, SampleRejected
 from stewart_calib.estimate import Estimate
-from stewart_calib.platform import PARAMETER_FIELDS
+from stewart_calib.model.platform import PARAMETER_FIELDS
 from stewart_calib.reproduction import reproduce, results_dict
 from stewart_calib.reproduction.metrics import VIEWS
 from stewart_calib.reproduction.record import SCENE_CIRCLE_STRIDE, entity_name, parameter_stride
@@ -400,7 +400,7 @@ def test_gauge_error_is_the_rigid_part_of_the_tracker_error():
     exact is exact in frames {J} moved by that translation: the truth view charges it in full."""
     from types import SimpleNamespace
 
-    from stewart_calib.platform import LegGeometry
+    from stewart_calib.model.platform import LegGeometry
     from stewart_calib.reproduction.metrics import tracker_gauge_error
 
     platform = load_experiment(QUICK).platform

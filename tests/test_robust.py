@@ -16,8 +16,8 @@ from stewart_calib.config import EstimatorConfig, config_from_dict
 from stewart_calib.errors import CalibError, SampleRejected
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.base import feed
-from stewart_calib.online import OnlineCalibrator
 from stewart_calib.samples import Sample
+from stewart_calib.workflows.online import OnlineCalibrator
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
 
 N = 120
@@ -167,7 +167,7 @@ def test_a_walk_faster_than_the_robot_does_not_take_the_start_up_scale_to_its_fl
     the mean over 20 within 4σ/√20."""
     from stewart_calib.config import RobustConfig
     from stewart_calib.estimators.robust import RobustFilter
-    from stewart_calib.unknowns import UnknownLayout
+    from stewart_calib.model.unknowns import UnknownLayout
 
     n, rows, samples, sigma, walk_mm_per_sqrt_s = 10, 6, 30, 0.01, 0.14
     spread = np.sqrt(2 / (rows * samples - n))
@@ -364,7 +364,7 @@ def test_the_batch_counts_the_rows_each_observation_has_not_the_declared_rows():
     scale's σ is about √(2/296) ≈ 0.08 (0.07 measured over 20 seeds), 4σ allowed."""
     from stewart_calib.config import RobustConfig
     from stewart_calib.estimators.robust import RobustFilter
-    from stewart_calib.unknowns import UnknownLayout
+    from stewart_calib.model.unknowns import UnknownLayout
 
     rng = np.random.default_rng(29)
     n, rows, samples, sigma = 4, 3, 100, 0.01

@@ -15,9 +15,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from stewart_calib import cli, io
-from stewart_calib import kinematics as kin
 from stewart_calib.io import read_log
-from stewart_calib.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
 from stewart_calib.resources import CONFIGS
 from stewart_calib.viz.geometry import leg_polylines, robot_at
 

@@ -24,7 +24,7 @@ from stewart_calib.io import (
     write_log,
     write_result,
 )
-from stewart_calib.platform import parse_platform, platform_to_toml
+from stewart_calib.io.platform_file import parse_platform, platform_to_toml
 from stewart_calib.samples import Log, Truth
 from tests.synthetic import ROOT, nim_stewart
 
@@ -418,7 +418,7 @@ def test_prismatic_files_unchanged_by_the_drive_kind():
 
 
 def test_servo_home_is_reachable_and_an_unreachable_home_is_refused():
-    from stewart_calib.kinematics import pose_to_rt
+    from stewart_calib.model.kinematics import pose_to_rt
 
     platform = _servo(workspace=True)
     angles = platform.drive.coordinates(*pose_to_rt(platform.workspace.home))

@@ -19,11 +19,11 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from stewart_calib import kinematics as kin
 from stewart_calib.errors import SampleRejected
 from stewart_calib.model import RotaryLegs
+from stewart_calib.model import kinematics as kin
 from stewart_calib.model.rotary import PARAMETER_FIELDS, orthonormal_zero_directions
-from stewart_calib.rotations import pose_error, pose_to_rt, so3_exp
+from stewart_calib.model.rotations import pose_error, pose_to_rt, so3_exp
 
 from .numdiff import EPS_MM, EPS_RAD, numerical_jacobian, numerical_pose3_jacobian, relative_error
 

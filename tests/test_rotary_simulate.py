@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from stewart_calib import io
-from stewart_calib import kinematics as kin
-from stewart_calib.drive import STROKE_SCALE, drive_model
 from stewart_calib.errors import CalibError
 from stewart_calib.instruments.pose import predict
-from stewart_calib.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.drive import STROKE_SCALE, drive_model
 from stewart_calib.simulation import load_experiment, run_experiment
 from stewart_calib.simulation.experiment import RotaryRobotConfig
 from tests.synthetic import ROOT
@@ -162,8 +162,8 @@ def test_export_json_writes_the_servos_geometry_and_zero_trim_and_linuxcnc_is_re
     import json
     from dataclasses import replace as replaced
 
+    from stewart_calib.io.platform_file import platform_to_toml
     from stewart_calib.pipelines import export
-    from stewart_calib.platform import platform_to_toml
 
     platform = load_platform("servo-hexapod")
     trimmed = replaced(platform, drive=platform.drive.perturbed(np.radians(np.tile([0] * 8 + [1.5, 0, 0], 6))))

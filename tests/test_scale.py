@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stewart_calib import identifiability as ident
+from stewart_calib.analysis import identifiability as ident
 from stewart_calib.config import NoiseConfig
 from stewart_calib.errors import CalibError
 from tests.synthetic import nim_stewart, random_poses
@@ -106,7 +106,7 @@ def _write_log_with_faults(path, n: int = 60) -> None:
     platform = nim_stewart()
     rng = np.random.default_rng(15)
     poses = random_poses(platform, n, rng)
-    from stewart_calib import kinematics as kin
+    from stewart_calib.model import kinematics as kin
 
     R, t = kin.pose_to_rt(poses)
     log = Log(
@@ -198,7 +198,7 @@ def test_read_ahead_hands_on_items_and_errors_in_order():
     # loop stops the thread
     import threading
 
-    from stewart_calib.calibration import read_ahead
+    from stewart_calib.workflows.calibration import read_ahead
 
     def items():
         yield from (1, 2)
@@ -252,8 +252,8 @@ def _peak_bytes(argv) -> int:
 def test_online_commands_hold_no_more_at_4n_samples(long_logs, tmp_path, monkeypatch, command):
     # Blocks of ~12 rows, so both logs span many, and calibrate's conditioning sample of at most
     # 200; the first run also loads caches and imports.
-    from stewart_calib import calibration
     from stewart_calib.io import logs
+    from stewart_calib.workflows import calibration
 
     monkeypatch.setattr(logs, "BLOCK_BYTES", 1 << 12)
     monkeypatch.setattr(calibration, "CHECKED_SAMPLES", 100)
@@ -351,8 +351,8 @@ def test_a_spooled_log_reads_back_as_it_was_read(long_logs, tmp_path, monkeypatc
     # calibrate's second pass (the residual RMS at the final estimate) reads the samples back from
     # its spool, with values of each computed on the first pass, in blocks of the reader's size,
     # instead of parsing the CSV again
-    from stewart_calib.calibration import SampleSpool
     from stewart_calib.io import logs, read_log
+    from stewart_calib.workflows.calibration import SampleSpool
 
     monkeypatch.setattr(logs, "BLOCK_BYTES", 1 << 12)
     spool = SampleSpool(tmp_path)

@@ -12,7 +12,7 @@ import pytest
 
 from stewart_calib import cli
 from stewart_calib.io import read_log, read_result, read_truth, write_result
-from stewart_calib.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +62,7 @@ def test_score_of_a_calibration_and_of_the_truth_itself(quick, tmp_path, capsys)
 def test_calibrate_and_validate_print_the_pose_error_before_and_after(quick, tmp_path, capsys):
     """The tracker's pose (its FK of the readings) against the drive's FK of the strokes, per axis:
     the nominal model's x RMS is recomputed here from the log."""
-    from stewart_calib import kinematics as kin
+    from stewart_calib.model import kinematics as kin
 
     _, sim, result, err = quick
     (line,) = [line for line in err.splitlines() if "pose error RMS" in line]

@@ -14,7 +14,7 @@ import pytest
 
 from stewart_calib.config import load_estimator_config
 from stewart_calib.errors import CalibError
-from stewart_calib.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
 from stewart_calib.resources import CONFIGS, resolve
 from stewart_calib.simulation.experiment import load_experiment
 

@@ -10,11 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
 from stewart_calib.cli import main
 from stewart_calib.estimate import Estimate
 from stewart_calib.io import read_log, read_truth, result_dict, write_result
-from stewart_calib.platform import PARAMETER_NAMES, load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import PARAMETER_NAMES
 from stewart_calib.simulation.closed_loop import FrozenController, run_experiment
 from stewart_calib.simulation.experiment import load_experiment
 

@@ -8,14 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
 from stewart_calib.errors import CalibError
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.statics import G_N_PER_KG, gravity_wrench, leg_forces
 from stewart_calib.samples import Sample
 from stewart_calib.simulation.closed_loop import FrozenController, run_experiment
 from stewart_calib.simulation.experiment import load_experiment
 from stewart_calib.simulation.load import loaded_params, settle
 from stewart_calib.simulation.trajectories import random_static_poses
-from stewart_calib.statics import G_N_PER_KG, gravity_wrench, leg_forces
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "configs" / "experiments" / "paper.toml"
@@ -430,7 +430,7 @@ def test_random_errors_have_the_configured_spread_per_block(quick):
 
 def executed_strokes(params: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """``q_i = ‖t + R d_i − j_i‖ − l_i`` with each sample's own drive parameters, ``(N, 6)`` [mm]."""
-    from stewart_calib.platform import vector_to_params
+    from stewart_calib.model.platform import vector_to_params
 
     p = vector_to_params(params)
     R, t = kin.pose_to_rt(poses)

@@ -1,4 +1,4 @@
-"""Statics (stewart_calib/statics.py): equilibrium, the forces' Jacobians against central
+"""Statics (stewart_calib/model/statics.py): equilibrium, the forces' Jacobians against central
 differences, and a singular pose refused in one line."""
 
 from __future__ import annotations
@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stewart_calib import kinematics as kin
-from stewart_calib.platform import LegGeometry, load_platform
-from stewart_calib.statics import (
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import LegGeometry
+from stewart_calib.model.statics import (
     G_N_PER_KG,
     SingularStatics,
     gravity_leg_forces,

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from stewart_calib import kinematics as kin
 from stewart_calib.cli import main
-from stewart_calib.drive import STROKE_SCALE, drive_model
 from stewart_calib.errors import CalibError
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.base import feed
 from stewart_calib.instruments import registered
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.drive import STROKE_SCALE, drive_model
 from stewart_calib.sweep import store
 from stewart_calib.sweep.spec import INSTRUMENTS, load_spec, parse_spec
 from stewart_calib.sweep.task import bound_stddev_mm, payload_schedule, run_task, simulate, task_rng

@@ -14,9 +14,9 @@ import pytest
 
 from stewart_calib import cli
 from stewart_calib.io import read_result, write_log
-from stewart_calib.online import OnlineCalibrator, npz_bytes
+from stewart_calib.io.platform_file import load_platform, platform_to_toml
 from stewart_calib.pipelines import track
-from stewart_calib.platform import load_platform, platform_to_toml
+from stewart_calib.workflows.online import OnlineCalibrator, npz_bytes
 from tests.synthetic import NIM_STEWART, tracked_log
 
 N = 40

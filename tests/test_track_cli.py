@@ -17,13 +17,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from stewart_calib import cli
-from stewart_calib.calibration import run_calibration
 from stewart_calib.errors import CalibError
 from stewart_calib.io import LogRowParser, read_log, read_result, write_log
 from stewart_calib.io.logs import ARROW_MIN_ROWS
-from stewart_calib.online import OnlineCalibrator
 from stewart_calib.pipelines.track import lines
 from stewart_calib.samples import Sample
+from stewart_calib.workflows.calibration import run_calibration
+from stewart_calib.workflows.online import OnlineCalibrator
 from tests.faults import INDETERMINANT, degenerate_sample
 from tests.synthetic import NIM_STEWART, ROOT, make_log, nim_stewart, random_error, random_poses, tracked_log
 

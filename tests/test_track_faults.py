@@ -13,8 +13,8 @@ import pytest
 
 from stewart_calib import cli
 from stewart_calib.io import read_result, write_log
-from stewart_calib.online import OnlineCalibrator
 from stewart_calib.pipelines.track import lines
+from stewart_calib.workflows.online import OnlineCalibrator
 from tests.synthetic import NIM_STEWART, ROOT, tracked_log
 from tests.test_track_cli import assert_equal_to_rounding
 

@@ -14,8 +14,8 @@ from stewart_calib.estimators import make_estimator
 from stewart_calib.factors import gauge
 from stewart_calib.instruments import instrument_model
 from stewart_calib.io import result_dict
-from stewart_calib.platform import N_PARAMS
-from stewart_calib.unknowns import UnknownLayout
+from stewart_calib.model.platform import N_PARAMS
+from stewart_calib.model.unknowns import UnknownLayout
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
 
 METHODS = ("ekf", "isam2", "lm")

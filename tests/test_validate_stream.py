@@ -10,11 +10,12 @@ from stewart_calib import io
 from stewart_calib.cli import main
 from stewart_calib.estimate import Estimate
 from stewart_calib.io import logs
+from stewart_calib.io.platform_file import platform_to_toml
 from stewart_calib.io.tables import csv_text
+from stewart_calib.model.platform import Instrument
 from stewart_calib.pipelines.validate import _summary
-from stewart_calib.platform import Instrument, platform_to_toml
 from stewart_calib.simulation.instrument import InstrumentTruth
-from stewart_calib.validation import validate
+from stewart_calib.workflows.validation import validate
 from tests.instrument_data import hobby, make_case
 from tests.synthetic import make_log, nim_stewart, random_error, random_poses
 

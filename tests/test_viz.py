@@ -12,8 +12,8 @@ import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
 
-from stewart_calib import kinematics as kin
-from stewart_calib.platform import N_PARAMS_PER_LEG, PARAMETER_FIELDS
+from stewart_calib.model import kinematics as kin
+from stewart_calib.model.platform import N_PARAMS_PER_LEG, PARAMETER_FIELDS
 from stewart_calib.viz import geometry, recording
 from stewart_calib.viz.recording import (
     SAMPLE_TIMELINE,

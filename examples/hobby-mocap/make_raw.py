@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from stewart_calib import kinematics as kin
-from stewart_calib.platform import load_platform
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.model import kinematics as kin
 from stewart_calib.resources import CONFIGS
 from stewart_calib.simulation.instrument import InstrumentTruth, SimulatedInstrument
 

@@ -11,7 +11,7 @@
 the samples it skipped in ``rejected``. :class:`KalmanFiltered` — a Kalman method shows its
 ``filter`` (the NIS of the last update, for diagnostics). :class:`Checkpointable` — a method whose state can be
 saved and restored exactly adds ``export_state()`` / ``import_state(state)`` (nested dicts of
-arrays; ``stewart_calib.online`` writes them to checkpoints). :class:`BlockUpdating` — a method
+arrays; ``stewart_calib.workflows.online`` writes them to checkpoints). :class:`BlockUpdating` — a method
 that folds in a block of samples faster than one ``update`` at a time adds ``update_block``;
 callers go through :func:`update_block`, which falls back to :func:`update_each`.
 

@@ -2,13 +2,13 @@
 
 What ``ls`` runs for the instruments of spec §7 other than the tracker (``pose``, ``points``).
 The unknowns are the drive model's ``x_drive`` (the 42 errors δM in paper order, then its unknown
-blocks, :mod:`stewart_calib.drive`: the stroke scale ``k_1..k_6``) and the instrument's frame and
+blocks, :mod:`stewart_calib.model.drive`: the stroke scale ``k_1..k_6``) and the instrument's frame and
 target(s); the 12 directions no outside instrument can see are fixed by
 :mod:`stewart_calib.instruments.gauge` (30 free drive directions). For every logged sample the
 drive model's forward kinematics gives the platform pose X, the instrument model predicts its
 reading, and the whitened residuals of all samples are minimised by Levenberg–Marquardt, with the
 pose's dependence on ``x_drive`` from the implicit function theorem
-(:meth:`~stewart_calib.drive.DriveModel.pose_jacobian`).
+(:meth:`~stewart_calib.model.drive.DriveModel.pose_jacobian`).
 
 Robust by construction, with nothing for a user to tune:
 
@@ -33,11 +33,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .. import kinematics as kin
 from ..config import LSConfig
-from ..drive import DriveModel
 from ..errors import CalibError, SampleRejected, number
 from ..instruments import OutsideModel, gauge, outside_model
+from ..model import kinematics as kin
+from ..model.drive import DriveModel
 
 #: a singular value below this fraction of the largest counts as zero
 RANK_TOLERANCE = 1e-10
@@ -81,7 +81,7 @@ class BatchProblem:
     ) -> BatchProblem:
         """The problem of a log of ``platform``'s outside instrument, with the platform file's σ
         and the drive model's unknowns (an elastic drive's under the samples' ``payload_kg``)."""
-        from ..drive import drive_model
+        from ..model.drive import drive_model
 
         drive = drive_model(platform).identifying()
         return cls(
@@ -276,7 +276,7 @@ def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], fil
     Returns:
         JSON-ready ``{"unknowns", "rank", "condition_number", "condition_number_equilibrated"
         (:func:`equilibrated_condition_number`), "verdict" (of the equilibrated number, with the
-        thresholds of :mod:`stewart_calib.identifiability`), "null_space_dimension",
+        thresholds of :mod:`stewart_calib.analysis.identifiability`), "null_space_dimension",
         "weakest_directions" and "null_space" (named, :func:`_named_directions`), "<block>_identifiable"
         per drive block, "predicted_stddev": {name: σ in file units (a servo's angles in degrees; None:
         not identified)}}``.
@@ -326,7 +326,7 @@ def instrument_identifiability(platform, strokes: np.ndarray, readings: np.ndarr
     file units, NaN: a target not seen; ``payload_kg`` or None) at the nominal drive and the
     platform's instrument as it stands — register it on a log first
     (:func:`~stewart_calib.instruments.registered`)."""
-    from ..drive import drive_model
+    from ..model.drive import drive_model
 
     model = outside_model(platform)
     drive = drive_model(platform).identifying()
@@ -345,17 +345,17 @@ def instrument_identifiability(platform, strokes: np.ndarray, readings: np.ndarr
 def _named_directions(
     problem: BatchProblem, state: _State, basis, sigmas, A: np.ndarray, rank: int, names: list[str]
 ) -> tuple[list[str], list[str]]:
-    """The weakest identified directions (up to :data:`~stewart_calib.identifiability.N_WEAKEST`,
+    """The weakest identified directions (up to :data:`~stewart_calib.analysis.identifiability.N_WEAKEST`,
     weakest first) and the ``A.shape[1] − rank`` unidentified ones of the gauge-reduced Jacobian
     (``A``: its square triangular factor) with unit columns, each named in the unknowns
-    (:func:`~stewart_calib.identifiability.name_direction`).
+    (:func:`~stewart_calib.analysis.identifiability.name_direction`).
 
     A direction of the reduced unknowns is lifted to all of them (δM through the gauge's basis) and
     each component weighed by its unknown's own whitened column norm: the share, in σ of the
     readings, each unknown takes in it — mm, rad and k made comparable as the verdict's unit
     columns make them.
     """
-    from ..identifiability import N_WEAKEST, name_direction
+    from ..analysis.identifiability import N_WEAKEST, name_direction
 
     norms = np.linalg.norm(A, axis=0)
     if np.any(norms == 0):
@@ -392,7 +392,7 @@ def equilibrated_condition_number(A: np.ndarray) -> float | None:
 
 
 def _verdict(condition_number: float) -> str:
-    from ..identifiability import poorly_conditioned
+    from ..analysis.identifiability import poorly_conditioned
 
     return "poorly conditioned" if poorly_conditioned(condition_number) else "identifiable"
 

@@ -1,7 +1,7 @@
 """EKF on the leg-length model: the same model and noise as the factor graph.
 
-State ``X`` = the unknown vector (:mod:`stewart_calib.unknowns`): the drive's ``x_drive`` (δM, paper
-order, 42 on the paper's 6-6 drive, then its unknown blocks where configured, :mod:`stewart_calib.drive`)
+State ``X`` = the unknown vector (:mod:`stewart_calib.model.unknowns`): the drive's ``x_drive`` (δM, paper
+order, 42 on the paper's 6-6 drive, then its unknown blocks where configured, :mod:`stewart_calib.model.drive`)
 and the instrument model's own unknowns ``θ``. Observation per sample: the six drive-leg residuals
 ``r_i = ‖t + R d_i − j_i‖ − (l_i + e_i)`` of the drive model at the pose the instrument measured
 (its model's loose pose: for the tracker, FK of the readings); the expected value is 0, so the
@@ -22,7 +22,7 @@ correlated; with ``σ² I`` alone this filter diverges (docs/measured-facts.md).
 Process noise: a random walk of δM, ``Q = ρ² Δt`` on its entries with ``ρ`` =
 ``noise.random_walk_mm_per_sqrt_s`` and ``Δt`` between samples (``t_s``), as in the graph; the
 other blocks are constant. Gauge: where the instrument's unknowns share the drive's gauge, the
-prior and ``Q`` are conditioned on ``C X = 0`` (:func:`~stewart_calib.unknowns.gauge_conditioned`),
+prior and ``Q`` are conditioned on ``C X = 0`` (:func:`~stewart_calib.model.unknowns.gauge_conditioned`),
 so every state holds the base and platform joints' mean rigid motion at nominal exactly.
 
 An instrument whose kind is registered on the data (a frame far from nominal) is handled by
@@ -65,13 +65,13 @@ import dataclasses
 import numpy as np
 
 from ..config import EstimatorConfig
-from ..drive import PAYLOAD, payload_block
 from ..errors import CalibError, SampleRejected, number
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta, needs_registration
-from ..platform import Platform
+from ..model.drive import PAYLOAD, payload_block
+from ..model.platform import Platform
+from ..model.unknowns import UnknownLayout, gauge_conditioned
 from ..samples import Log, Sample
-from ..unknowns import UnknownLayout, gauge_conditioned
 from .base import Refusals, state_array, update_each
 from .kalman import NO_POSES
 from .measurement import (

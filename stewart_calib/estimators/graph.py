@@ -2,11 +2,11 @@
 
 Variables: one ``Pose3`` ``x_k`` per sample (the platform {D} in {J}, mm and rad) and one
 unknown vector ``p_w`` per parameter window: the drive's ``x_drive`` (δM, paper eq. 9, paper order,
-[mm], and its unknown blocks) followed by the instrument's unknowns (:mod:`stewart_calib.unknowns`).
+[mm], and its unknown blocks) followed by the instrument's unknowns (:mod:`stewart_calib.model.unknowns`).
 Factors of sample k (all from :mod:`stewart_calib.factors`):
 
 * six drive-leg factors on ``(x_k, p_w)``: the drive model's ``‖t + R d_i − j_i‖ − (l_i + e_i)``,
-  σ_q (:mod:`stewart_calib.factors.drive_leg`, :mod:`stewart_calib.drive`); in ``isam2``'s graph
+  σ_q (:mod:`stewart_calib.factors.drive_leg`, :mod:`stewart_calib.model.drive`); in ``isam2``'s graph
   (``walk_in_windows``) widened by the walk from the window's first sample to sample k;
 * tight coupling: the instrument's factors (:mod:`stewart_calib.factors.instrument`), one per
   channel group of its model — for the tracker one per ruler, ``‖t + R h_i − z_i‖ − (ls_i + s_i)``, σ_s;
@@ -45,14 +45,14 @@ import gtsam
 import numpy as np
 
 from ..config import EstimatorConfig
-from ..drive import PAYLOAD
 from ..errors import SampleRejected, number
 from ..estimate import Estimate
 from ..factors import diagonal_noise, drive_leg, gauge, instrument, instrument_pose, random_walk
 from ..instruments import instrument_model, instrument_theta
-from ..platform import Platform
+from ..model.drive import PAYLOAD
+from ..model.platform import Platform
+from ..model.unknowns import UnknownLayout
 from ..samples import Sample
-from ..unknowns import UnknownLayout
 from .measurement import check_sample, estimator_drive, unknown_layout
 
 

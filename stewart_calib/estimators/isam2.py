@@ -16,10 +16,10 @@ import gtsam
 import numpy as np
 
 from ..config import EstimatorConfig
-from ..drive import PAYLOAD
 from ..errors import CalibError, SampleRejected, number
 from ..estimate import Estimate
-from ..platform import Platform
+from ..model.drive import PAYLOAD
+from ..model.platform import Platform
 from ..samples import Log, Sample
 from .base import Refusals, state_array, update_each
 from .ekf import LegEKF

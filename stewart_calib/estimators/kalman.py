@@ -31,12 +31,12 @@ import math
 
 import numpy as np
 
-from .. import _kernels
 from .._jit import B_1, BOOL, F8_1, F8_2, FLOAT, I8_1, I8_2, INT, LEGS, Tuple, njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected, number
 from ..estimate import Estimate
-from ..unknowns import UnknownLayout, gauge_conditioned
+from ..model import _kernels
+from ..model.unknowns import UnknownLayout, gauge_conditioned
 from .base import checked_covariance, checked_time, state_array
 
 _FAST = {"reassoc", "contract", "arcp", "nsz"}
@@ -540,15 +540,16 @@ class FilterState:
     Args:
         method: the estimator's name, for the estimate and messages.
         prior_sigma_mm: σ of δM's prior [code units], one for all entries or ``(n_params,)`` entry by
-            entry (the drive's :meth:`~stewart_calib.drive.DriveModel.prior_sigmas`); initial ``P = diag(σ²)`` on δM.
+            entry (the drive's :meth:`~stewart_calib.model.drive.DriveModel.prior_sigmas`); initial
+            ``P = diag(σ²)`` on δM.
         gate_probability: χ² gate probability with ``m`` degrees of freedom, 0 = off.
         m: observation size the gate is set for: rows of a sample as the caller's model declares them
-            (the drive's legs, :attr:`~stewart_calib.drive.DriveModel.rows`; the pose6 difference of
+            (the drive's legs, :attr:`~stewart_calib.model.drive.DriveModel.rows`; the pose6 difference of
             the paper's EKF); an observation of another size is gated at its own.
         layout: the unknown vector (δM alone: ``UnknownLayout(n_params=…)``); its blocks start from
             their own prior σ, and ``P`` is conditioned on the gauge constraints ``C`` (``C x = 0`` then holds
             for every state; the caller conditions its process noise the same way).
-        C: the gauge rows (:meth:`~stewart_calib.unknowns.UnknownLayout.gauge_rows`), or None.
+        C: the gauge rows (:meth:`~stewart_calib.model.unknowns.UnknownLayout.gauge_rows`), or None.
     """
 
     def __init__(

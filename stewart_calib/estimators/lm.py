@@ -36,7 +36,7 @@ from ..chi_square import chdtri
 from ..config import EstimatorConfig
 from ..errors import CalibError, SampleRejected, number
 from ..estimate import Estimate
-from ..platform import Platform
+from ..model.platform import Platform
 from ..samples import Sample
 from .base import BufferedFit, late_index
 from .ekf import LegEKF

@@ -30,16 +30,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .. import kinematics as kin
 from ..chi_square import chdtri
 from ..config import EstimatorConfig, LSConfig, NoiseConfig
-from ..drive import DriveModel, drive_model
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..instruments import OutsideModel, instrument_kind, outside_model
-from ..platform import LegGeometry, Platform
+from ..model import kinematics as kin
+from ..model.drive import DriveModel, drive_model
+from ..model.platform import LegGeometry, Platform
+from ..model.unknowns import UnknownLayout
 from ..samples import Sample
-from ..unknowns import UnknownLayout
 from .base import BufferedFit
 from .measurement import WarmPose, check_sample, drive_only_model, measured_pose, pose_difference
 
@@ -368,7 +368,7 @@ class LeastSquares(BufferedFit):
 def external_estimate(method: str, drive, model, sol, samples_used: int, t_s: float, gauge: str) -> Estimate:
     """An :class:`Estimate` over ``[x_drive | instrument]`` (spec §7 blocks) from a
     :class:`~.batch.BatchSolution` of ``drive``; the instrument's tangent covariance carried into its θ."""
-    from ..unknowns import UnknownLayout
+    from ..model.unknowns import UnknownLayout
 
     layout = UnknownLayout((*drive.blocks, model.unknowns), n_params=drive.n_params)
     x = np.concatenate([sol.x_drive, model.theta(sol.unknowns) - model.unknowns.nominal])

@@ -20,10 +20,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .. import _kernels
-from .. import kinematics as kin
 from ..config import EstimatorConfig, NoiseConfig
-from ..drive import DriveModel, drive_model
 from ..errors import CalibError, SampleRejected, number
 from ..instruments import (
     InstrumentModel,
@@ -34,10 +31,13 @@ from ..instruments import (
     needs_registration,
     registered,
 )
+from ..model import _kernels
+from ..model import kinematics as kin
+from ..model.drive import DriveModel, drive_model
 from ..model.legs import LegModel
-from ..platform import Platform
+from ..model.platform import Platform
+from ..model.unknowns import UnknownLayout
 from ..samples import Sample
-from ..unknowns import UnknownLayout
 from .base import state_array
 from .kalman import leg_set_filter_rows, leg_set_observation
 
@@ -77,7 +77,7 @@ def check_sample(platform: Platform, model: InstrumentModel, sample: Sample) -> 
 
 def estimator_drive(platform: Platform, noise: NoiseConfig) -> DriveModel:
     """The drive an estimator identifies: its unknown terms as ``noise`` asks, and
-    the encoders' scale always with an instrument outside the robot (:func:`~stewart_calib.drive.drive_model`)."""
+    the encoders' scale always with an instrument outside the robot (:func:`~stewart_calib.model.drive.drive_model`)."""
     return drive_model(platform, noise, outside_instrument=instrument_kind(platform).outside)
 
 
@@ -98,12 +98,12 @@ def drive_inputs(
     x_drive=None,
     per_kg: bool = False,
 ) -> np.ndarray:
-    """One sample's drive inputs (:meth:`~stewart_calib.drive.DriveModel.inputs`): its strokes and, for
+    """One sample's drive inputs (:meth:`~stewart_calib.model.drive.DriveModel.inputs`): its strokes and, for
     an elastic drive, the leg forces under ``payload_kg`` (the log's ``load_kg``; None: 0) at the pose
     the measurement fixes with the instrument at its nominal (:meth:`InstrumentModel.pose`, from
     ``guess``), or where it fixes none at the drive's own forward kinematics; with ``per_kg``,
     followed by the leg forces per kg of payload at that pose
-    (:meth:`~stewart_calib.drive.DriveModel.payload_leg_forces`, for an estimated payload)."""
+    (:meth:`~stewart_calib.model.drive.DriveModel.payload_leg_forces`, for an estimated payload)."""
     if drive.elastic is None:
         return drive.inputs(strokes)
     observed = model.pose(z, instrument_theta(model, None), guess)
@@ -245,7 +245,7 @@ def pose_difference(R_v: np.ndarray, t_v: np.ndarray, R_m: np.ndarray, t_m: np.n
     """``Y = P_v − P_m`` as ``[δh [mm], δθ [rad]]`` (paper eq. 9 and Fig. 3 step 2).
 
     ``δθ`` is the difference of roll-pitch-yaw, wrapped to (−π, π], the coordinates in
-    which :func:`~stewart_calib.kinematics.error_jacobian` is written.
+    which :func:`~stewart_calib.model.kinematics.error_jacobian` is written.
     """
     shape = np.shape
     batch = np.broadcast_shapes(shape(R_v)[:-2], shape(t_v)[:-1], shape(R_m)[:-2], shape(t_m)[:-1])

@@ -31,15 +31,15 @@ from dataclasses import replace
 
 import numpy as np
 
-from .. import kinematics as kin
 from ..config import EstimatorConfig
-from ..drive import drive_model
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..instruments import instrument_kind, instrument_model, instrument_theta
-from ..platform import Platform
+from ..model import kinematics as kin
+from ..model.drive import drive_model
+from ..model.platform import Platform
+from ..model.unknowns import UnknownLayout
 from ..samples import Sample
-from ..unknowns import UnknownLayout
 from .base import checked_covariance, state_array
 from .kalman import FilterState
 from .measurement import (

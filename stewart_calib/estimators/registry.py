@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from ..config import EstimatorConfig
 from ..errors import CalibError
-from ..platform import Platform
+from ..model.platform import Platform
 from .base import BatchEstimator, Checkpointable, Estimator
 
 

@@ -69,7 +69,7 @@ import numpy as np
 from .._jit import F8_1, F8_2, F8_3, FLOAT, njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected
-from ..unknowns import UnknownLayout
+from ..model.unknowns import UnknownLayout
 from .base import state_array
 from .kalman import (
     NO_COMPONENTS,
@@ -139,7 +139,7 @@ class RobustFilter:
         observe: the linearised observation of a prepared sample at a state (see :data:`Observe`).
         robust: the ``[robust]`` settings (:class:`~stewart_calib.config.RobustConfig`).
         m: rows of an observation as the gate and the batch's proposals count a sample: the drive's
-            residuals (:attr:`~stewart_calib.drive.DriveModel.rows`). A batch's redundancy counts the
+            residuals (:attr:`~stewart_calib.model.drive.DriveModel.rows`). A batch's redundancy counts the
             rows each sample's observation has: ``m``, or an outside instrument's tight observation's
             (the channels it saw, :meth:`~stewart_calib.instruments.base.InstrumentModel.groups`).
         layout, C: the unknown vector and its gauge rows (as :class:`FilterState`).

@@ -6,8 +6,8 @@ one callback makes ~10 small arrays (fancy indexing, ``np.put``, ``np.zeros``, t
 translation apart) around a compiled core. Here each callback is one compiled call from what
 gtsam hands over (the pose as ``Pose3.matrix()``, the unknown vector) to the arrays it takes
 back: a linearisation in 0.4× (drive legs) and 0.35× (tracker) the numpy one's time, gtsam's own
-part included. The arithmetic is :func:`stewart_calib.kinematics.leg_residual`'s (the same kernel,
-:func:`stewart_calib._kernels.leg_rows`), so the numbers are bit for bit the same.
+part included. The arithmetic is :func:`stewart_calib.model.kinematics.leg_residual`'s (the same kernel,
+:func:`stewart_calib.model._kernels.leg_rows`), so the numbers are bit for bit the same.
 """
 
 from __future__ import annotations
@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 
 from .._jit import F8_1, F8_2, F8_2F, I8_1, I8_2, Tuple, njit
-from .._kernels import _adjoint, _rotation, _tangent_from_pose6, leg_rows
+from ..model._kernels import _adjoint, _rotation, _tangent_from_pose6, leg_rows
 
-# as stewart_calib._kernels: x / 0 gives inf/NaN as numpy does
+# as stewart_calib.model._kernels: x / 0 gives inf/NaN as numpy does
 _JIT: dict[str, Any] = {"nogil": True, "error_model": "numpy"}
 
 
@@ -35,7 +35,7 @@ def drive_leg_rows(pose, unknowns, legs_of, nominal, columns, terms, inputs):
         nominal: ``(k, 7)`` nominal ``[j_i | d_i | l_i]`` [mm]; columns: ``(k, 7)`` their δ_i's
             columns in ``unknowns``.
         terms: the drive's extension terms ``(starts, gains, offsets, values (b, legs), columns (b, legs))``
-            (:meth:`stewart_calib.drive.DriveModel.kernel_terms`; a column −1: the value is known).
+            (:meth:`stewart_calib.model.drive.DriveModel.kernel_terms`; a column −1: the value is known).
         inputs: the sample's drive inputs ``u``.
     Returns:
         ``(r (k,), ∂r/∂ξ (k, 6), ∂r/∂unknowns (k, size))``.
@@ -70,14 +70,14 @@ def drive_leg_rows(pose, unknowns, legs_of, nominal, columns, terms, inputs):
 
 def drive_leg_rows_numpy(pose, unknowns, drive, legs_of, inputs):
     """:func:`drive_leg_rows` of a drive whose legs have no compiled kernels, from its leg model
-    (:class:`~stewart_calib.drive.DriveModel`'s residual and Jacobians, numpy), each row over its
+    (:class:`~stewart_calib.model.drive.DriveModel`'s residual and Jacobians, numpy), each row over its
     ``|J_e,i| = |∂r_i/∂e_i|``: a residual in the unit of the leg's coordinate, whose noise is one
-    logged coordinate's σ at every pose (:meth:`~stewart_calib.drive.DriveModel.coordinate_sigma`;
+    logged coordinate's σ at every pose (:meth:`~stewart_calib.model.drive.DriveModel.coordinate_sigma`;
     prismatic legs: ``|J_e| = 1``, the compiled rows).
 
     Args:
         pose: ``(4, 4)`` homogeneous pose; unknowns: ``(size,)``, the drive's ``x_drive`` first.
-        drive: the :class:`~stewart_calib.drive.DriveModel`.
+        drive: the :class:`~stewart_calib.model.drive.DriveModel`.
         legs_of: ``(k,)`` the rows' leg indices; inputs: the sample's drive inputs ``u``.
     Returns:
         ``(r (k,), ∂r/∂ξ (k, 6), ∂r/∂unknowns (k, size))``.
@@ -96,7 +96,7 @@ def drive_leg_rows_numpy(pose, unknowns, drive, legs_of, inputs):
 
 @njit(**_JIT)
 def _legs_at(pose, legs, extensions):
-    """:func:`~stewart_calib._kernels.leg_rows` of ``legs (k, 7)`` with ``extensions`` at the homogeneous
+    """:func:`~stewart_calib.model._kernels.leg_rows` of ``legs (k, 7)`` with ``extensions`` at the homogeneous
     ``pose (4, 4)`` (``Pose3.matrix()``): ``(r (k,), ∂r/∂ξ (k, 6), ∂r/∂leg (k, 7))``."""
     k = legs.shape[0]
     R = np.ascontiguousarray(pose[:3, :3])

@@ -1,6 +1,6 @@
 """Drive-leg factor: platform pose ↔ the drive model's unknowns (paper eq. 1).
 
-Residual of drive leg i (:mod:`stewart_calib.drive`): the leg model's closure residual at the
+Residual of drive leg i (:mod:`stewart_calib.model.drive`): the leg model's closure residual at the
 leg's parameters ``nominal_i + δ_i``, for prismatic legs::
 
     r_i = ‖t + R d_i − j_i‖ − (l_i + e_i),    (j_i, d_i, l_i) = nominal_i + δ_i
@@ -37,7 +37,7 @@ from functools import partial
 import gtsam
 import numpy as np
 
-from ..drive import DriveModel
+from ..model.drive import DriveModel
 from ._kernels import drive_leg_rows, drive_leg_rows_numpy
 
 
@@ -49,7 +49,7 @@ class DriveLegs:
         legs: ``(k,)`` leg indices (0-based).
         nominal: ``(k, p)`` their nominal parameters, ``p`` a leg (prismatic ``[j_i | d_i | l_i]`` [mm]).
         columns: ``(k, p)`` their δ_i's columns in the unknown vector.
-        terms: the drive's extension terms (:meth:`~stewart_calib.drive.DriveModel.kernel_terms`).
+        terms: the drive's extension terms (:meth:`~stewart_calib.model.drive.DriveModel.kernel_terms`).
         elastic: the drive where its inputs hold leg forces (spec §10), else None: each evaluation
             then takes the forces at the pose and the geometry being evaluated, so the residual is
             exact wherever the solver goes; the Jacobians leave out the forces' own derivatives
@@ -139,12 +139,12 @@ def factor(
     ``legs`` (all six in one factor unless a robust kernel weighs each alone).
 
     Args:
-        inputs: the sample's drive inputs ``u`` (:meth:`~stewart_calib.drive.DriveModel.inputs`).
+        inputs: the sample's drive inputs ``u`` (:meth:`~stewart_calib.model.drive.DriveModel.inputs`).
         payload_kg: the sample's payload where the drive is elastic (spec §10; None: 0).
         noise: of the ``k`` rows.
 
     The residual and both Jacobians are one compiled call for prismatic legs (:func:`._kernels.drive_leg_rows`,
-    on :func:`stewart_calib.kinematics.leg_residual`'s kernel), else the drive model's numpy rows.
+    on :func:`stewart_calib.model.kinematics.leg_residual`'s kernel), else the drive model's numpy rows.
     """
     u = np.array(inputs, dtype=float)
     return gtsam.CustomFactor(noise, [pose_key, params_key], partial(_error, legs, u, payload_kg, pose_key, params_key))

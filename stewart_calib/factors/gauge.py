@@ -3,7 +3,7 @@
 Where an instrument's unknowns (its frame in {J}, its target in {D}, the tracker's geometry)
 move the predictions exactly as a rigid motion of all base or all platform joints does, those
 directions are fixed by holding the joints' mean rigid motion at nominal
-(:meth:`stewart_calib.unknowns.UnknownLayout.gauge_rows`). The constraint is linear, so the
+(:meth:`stewart_calib.model.unknowns.UnknownLayout.gauge_rows`). The constraint is linear, so the
 residual is ``C x`` and its Jacobian ``C``; σ = :data:`SIGMA` makes it hard next to any prior
 (µm to mm) while keeping the system well conditioned in double precision.
 """

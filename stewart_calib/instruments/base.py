@@ -4,7 +4,7 @@ platform pose, and what its kind is.
 Every estimator talks to the instrument only through an instance of a subclass, and the rest of
 the package asks the subclass itself (:mod:`.registry`: kind → class), so adding an instrument
 touches :mod:`stewart_calib.instruments`, one entry in :mod:`.registry` and one in
-:data:`stewart_calib.platform.INSTRUMENT_SECTIONS` — never an estimator (docs/architecture.md,
+:data:`stewart_calib.model.platform.INSTRUMENT_SECTIONS` — never an estimator (docs/architecture.md,
 with the tracker as the worked example). An instrument outside the robot subclasses
 :class:`~.external.OutsideModel`, which adds what its registration, validation, diagnosis and
 simulation ask.
@@ -18,11 +18,11 @@ measurement ``z``:
   ``z`` in code units: mm and rad; a channel not measured in a row, e.g. a hidden target, is NaN);
   the kind's ``angle_columns`` name those that hold angles (degrees in the file, radians in ``z``:
   the log reader and writers convert them), every other one a length (mm in both);
-* ``unknowns`` — its own :class:`~stewart_calib.unknowns.UnknownBlock` (names, nominal ``θ₀``
+* ``unknowns`` — its own :class:`~stewart_calib.model.unknowns.UnknownBlock` (names, nominal ``θ₀``
   in code units, prior σ, which gauge directions the drive shares), or None when it is known
   exactly. ``θ`` passed to the functions is always absolute: ``θ₀ + error``; ``()`` when None;
 * ``channel_sigma`` — ``(M,)`` σ of each channel of ``z`` [code units]: white, independent;
-* ``compiled_legs`` — where the model offers compiled kernels: the :class:`~stewart_calib.platform.LegGeometry`
+* ``compiled_legs`` — where the model offers compiled kernels: the :class:`~stewart_calib.model.platform.LegGeometry`
   of known geometry whose extensions the readings are (σ ``channel_sigma[0]`` each), so that the EKF
   solves the pose and observes through it in compiled code (:class:`~stewart_calib.estimators.measurement.LegSetPose`);
   None otherwise;
@@ -50,8 +50,8 @@ from typing import ClassVar, NamedTuple
 import numpy as np
 
 from ..config import NoiseConfig
-from ..platform import Instrument, LegGeometry, Platform
-from ..unknowns import UnknownBlock
+from ..model.platform import Instrument, LegGeometry, Platform
+from ..model.unknowns import UnknownBlock
 from . import lie
 
 

@@ -19,9 +19,9 @@ import numpy as np
 
 from ..config import NoiseConfig
 from ..errors import CalibError
-from ..kinematics import pose_to_rt
-from ..platform import Instrument, Platform
-from ..unknowns import UnknownBlock
+from ..model.kinematics import pose_to_rt
+from ..model.platform import Instrument, Platform
+from ..model.unknowns import UnknownBlock
 from . import gauge, registration
 from .base import InstrumentModel
 
@@ -190,7 +190,7 @@ class OutsideModel(InstrumentModel):
         return self.names_of(self.instrument)
 
     def _block(self) -> UnknownBlock:
-        """The instrument's :class:`~stewart_calib.unknowns.UnknownBlock` (spec §7 ``"instrument"``):
+        """The instrument's :class:`~stewart_calib.model.unknowns.UnknownBlock` (spec §7 ``"instrument"``):
         it shares both gauges with the drive (frame ↔ base joints, target(s) ↔ platform joints)."""
         angles = self._angles()
         return UnknownBlock(
@@ -213,7 +213,7 @@ class OutsideModel(InstrumentModel):
             CalibError: the log cannot be registered (fewer than 3 distinct poses, no rotation), or
                 the nominal drive reaches none of its strokes.
         """
-        from ..drive import drive_model
+        from ..model.drive import drive_model
 
         model = cls(platform)
         # an elastic drive settles under the platform's weight alone here: a payload moves the legs by
@@ -243,7 +243,7 @@ class OutsideModel(InstrumentModel):
             ``(rows (N, m, p), lift (drive size + n_instrument, p))``; a channel not read at a pose
             has zero rows there.
         """
-        from ..drive import drive_model
+        from ..model.drive import drive_model
 
         drive = drive_model(self.platform).identifying()
         R, t = pose_to_rt(np.asarray(poses, dtype=float).reshape(-1, 6))

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import kinematics as kin
+from ..model import kinematics as kin
 from ..model.legs import LegModel
 from . import lie
 

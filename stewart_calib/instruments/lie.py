@@ -1,14 +1,14 @@
 """SO(3) and SE(3) pieces the instrument models need, vectorised numpy, GTSAM conventions.
 
 Tangent order is GTSAM's ``Pose3``: ``ξ = [ω, v]``, rotation first, body frame, and a pose is
-perturbed as ``R Exp(ω)``, ``t + R v`` (:func:`stewart_calib.kinematics.retract`).
+perturbed as ``R Exp(ω)``, ``t + R v`` (:func:`stewart_calib.model.kinematics.retract`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..rotations import pose_to_rt, skew
+from ..model.rotations import pose_to_rt, skew
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:

@@ -19,10 +19,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .. import kinematics as kin
 from ..errors import CalibError, SampleRejected, number
-from ..kinematics import skew
-from ..platform import INSTRUMENT_SECTIONS, Instrument, Platform
+from ..model import kinematics as kin
+from ..model.kinematics import skew
+from ..model.platform import INSTRUMENT_SECTIONS, Instrument, Platform
 from . import lie, registration
 from .base import PoseObservation, Residual, Spread, position_spread_mm
 from .external import OutsideModel

@@ -24,11 +24,11 @@ from typing import ClassVar
 
 import numpy as np
 
-from .. import _kernels
-from .. import kinematics as kin
 from ..errors import CalibError, SampleRejected, number
-from ..kinematics import rt_to_pose
-from ..platform import INSTRUMENT_SECTIONS, Instrument, Platform
+from ..model import _kernels
+from ..model import kinematics as kin
+from ..model.kinematics import rt_to_pose
+from ..model.platform import INSTRUMENT_SECTIONS, Instrument, Platform
 from . import lie, registration
 from .base import PoseObservation, Residual, Spread, position_spread_mm, rotation_spread_rad
 from .external import OutsideModel

@@ -2,7 +2,7 @@
 
 Adding an instrument: its model module in this package (a subclass of
 :class:`~.base.InstrumentModel`, or of :class:`~.external.OutsideModel` for one outside the robot),
-one entry in :data:`MODELS` and one in :data:`stewart_calib.platform.INSTRUMENT_SECTIONS` (what it
+one entry in :data:`MODELS` and one in :data:`stewart_calib.model.platform.INSTRUMENT_SECTIONS` (what it
 reads of the platform file: the file layer lies below this package) (docs/architecture.md). The
 estimators build whatever :func:`instrument_model` returns; every other question about an
 instrument is asked of its class (:func:`instrument_kind`), so nothing outside this package
@@ -15,7 +15,7 @@ import numpy as np
 
 from ..config import NoiseConfig
 from ..errors import CalibError
-from ..platform import Instrument, Platform
+from ..model.platform import Instrument, Platform
 from .base import InstrumentModel
 from .external import OutsideModel
 from .points import PointsModel

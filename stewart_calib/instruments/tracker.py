@@ -1,7 +1,7 @@
 """The in-situ tracker (paper §2, Table 2): six grating rulers between base and platform.
 
 Ruler i reads ``s_i`` with ``‖t + R h_i − z_i‖ = ls_i + s_i`` — the drive's leg geometry
-(:func:`stewart_calib.kinematics.leg_residual`) with the tracker's joints ``z_i`` (in {J}),
+(:func:`stewart_calib.model.kinematics.leg_residual`) with the tracker's joints ``z_i`` (in {J}),
 ``h_i`` (in {D}) and zero-reading lengths ``ls_i``. Both couplings:
 
 * tight: one residual per ruler, ``r_i = ‖t + R h_i − z_i‖ − (ls_i + s_i)`` [mm], σ_s each;
@@ -22,12 +22,12 @@ import math
 
 import numpy as np
 
-from .. import _kernels
-from .. import kinematics as kin
 from ..config import NoiseConfig
 from ..errors import SampleRejected, number
-from ..platform import INSTRUMENT_SECTIONS, Instrument, LegGeometry, Platform
-from ..unknowns import UnknownBlock
+from ..model import _kernels
+from ..model import kinematics as kin
+from ..model.platform import INSTRUMENT_SECTIONS, Instrument, LegGeometry, Platform
+from ..model.unknowns import UnknownBlock
 from .base import InstrumentModel, PoseObservation, Residual, Spread
 
 #: the log columns of the six readings s_i [mm] (spec §3).

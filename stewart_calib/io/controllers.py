@@ -32,7 +32,7 @@ import re
 import numpy as np
 
 from ..errors import CalibError
-from ..platform import LegGeometry
+from ..model.platform import LegGeometry
 
 #: millimetres per controller length unit
 MM_PER_UNIT = {"mm": 1.0, "inch": 25.4}

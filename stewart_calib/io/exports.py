@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CalibError, did_you_mean
-from ..rotations import rotation_to_rpy
+from ..model.rotations import rotation_to_rpy
 
 #: millimetres per length unit, by the names a mapping file or an export uses
 MM_PER = {

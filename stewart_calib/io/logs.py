@@ -18,10 +18,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..drive import STROKE_SCALE
 from ..errors import CalibError, shown
 from ..inputs import MAX_LINE_BYTES, MAX_TIME_S, open_input
-from ..platform import PARAMETER_NAMES, Instrument, Platform, payload_limit, payload_refusal
+from ..model.drive import STROKE_SCALE
+from ..model.platform import PARAMETER_NAMES, Instrument, Platform, payload_limit, payload_refusal
 from ..samples import Log, Sample, Truth
 from .atomic import atomic_write_text
 from .results import parameters_from_file, parameters_to_file

@@ -12,12 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..drive import DriveModel, drive_model
 from ..errors import CalibError, shown
 from ..estimate import Estimate
 from ..inputs import parse_json, read_input_text
+from ..model.drive import DriveModel, drive_model
+from ..model.platform import PARAMETER_FIELDS, PARAMETER_NAMES, Platform
 from ..model.rotary import PARAMETER_FIELDS as ROTARY_FIELDS
-from ..platform import PARAMETER_FIELDS, PARAMETER_NAMES, Platform
 from .atomic import atomic_write_text
 from .tables import csv_text
 

@@ -4,7 +4,7 @@ A leg model owns a parameter vector ``M`` (its layout and names, leg by leg) and
 residual ``r_i(pose; M, e_i) = 0`` in one coordinate ``e_i`` per leg — a prismatic leg's extension
 [mm], a rotary leg's crank angle before its zero offset [rad] — with its Jacobians, forward and
 inverse kinematics, the direction its force acts along and the columns of ``M`` that hold an
-outside instrument's gauge. :class:`~stewart_calib.drive.DriveModel` and every estimator reach the
+outside instrument's gauge. :class:`~stewart_calib.model.drive.DriveModel` and every estimator reach the
 legs through it alone; compiled fast paths are taken only where :attr:`LegModel.compiled`.
 
 A new leg kind is one module implementing :class:`LegModel` and one line of :data:`LEG_KINDS`.
@@ -16,8 +16,8 @@ from typing import Protocol
 
 import numpy as np
 
-from ..kinematics import FK_TOLERANCE_MM, FKSolution
-from ..platform import LegGeometry
+from .kinematics import FK_TOLERANCE_MM, FKSolution
+from .platform import LegGeometry
 from .rotary import RotaryLegs
 
 
@@ -36,7 +36,7 @@ class LegModel(Protocol):
         gauge_columns: ``((n, 3), (n, 3))`` int columns in M of the base-side points (prismatic
             ``j_i``, rotary crank centres ``a_i``) and of the platform joints ``d_i``: an outside
             instrument's gauge holds their mean rigid motion at nominal (spec §7, §15).
-        compiled: the prismatic numba kernels apply (:class:`~stewart_calib.platform.LegGeometry` only).
+        compiled: the prismatic numba kernels apply (:class:`~stewart_calib.model.platform.LegGeometry` only).
     """
 
     @property

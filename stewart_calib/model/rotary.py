@@ -18,7 +18,7 @@ direction by ``Rot(u_i, tu) Rot(w_i, tw)`` about the set's own ``u_i``, ``w_i`` 
 rotation first), so a set reports ``tu = tw = 0`` for itself and is the reference of its own tilts.
 
 Pose perturbations are in the body tangent ``ξ = [ω, v]`` (rotation first), ``R ← R Exp(ω)``,
-``t ← t + R v``, the tangent of ``gtsam.Pose3.retract`` (:mod:`stewart_calib.rotations`).
+``t ← t + R v``, the tangent of ``gtsam.Pose3.retract`` (:mod:`stewart_calib.model.rotations`).
 """
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ from functools import cached_property
 
 import numpy as np
 
-from ..kinematics import FK_MAX_ITERATIONS, FK_TOLERANCE_MM, FKError, FKSolution, fk_failed
-from ..platform import N_LEGS
-from ..rotations import retract, rotation_angle
+from .kinematics import FK_MAX_ITERATIONS, FK_TOLERANCE_MM, FKError, FKSolution, fk_failed
+from .platform import N_LEGS
+from .rotations import retract, rotation_angle
 
 #: the 11 entries of one leg's parameters, spec §15 order: ``(prefix, suffix)`` of the name ``{prefix}{leg}{suffix}``
 PARAMETER_FIELDS: tuple[tuple[str, str], ...] = (
@@ -477,8 +477,8 @@ class RotaryLegs:
 
         Args:
             guess: starting ``(R, t)`` broadcastable to the batch; default :meth:`default_guess`.
-            tol_mm: None: :data:`~stewart_calib.kinematics.FK_TOLERANCE_MM`.
-            strict: raise :class:`~stewart_calib.kinematics.FKError` if any sample fails; otherwise
+            tol_mm: None: :data:`~stewart_calib.model.kinematics.FK_TOLERANCE_MM`.
+            strict: raise :class:`~stewart_calib.model.kinematics.FKError` if any sample fails; otherwise
                 report it in ``converged``.
             along: ``e (N, 6)`` are a log's samples in order and each follows the one before: where
                 sample k − 1 converged and sample k's solution from its start is not within one

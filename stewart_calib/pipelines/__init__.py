@@ -236,7 +236,7 @@ def dispatch(args: argparse.Namespace) -> int:
 
 def _located(err: CalibError, args: argparse.Namespace) -> CalibError:
     """A singular-statics refusal (spec §10) naming the row of the log or pose list it came from."""
-    from ..statics import SingularStatics
+    from ..model.statics import SingularStatics
 
     platform = getattr(args, "platform", None)
     log, poses = getattr(args, "log", None), getattr(args, "poses", None)
@@ -288,7 +288,7 @@ def positive_number(text: str, what: str = "number") -> float:
 
 def add_tolerance_arguments(parser: argparse.ArgumentParser) -> None:
     """``--tolerance-mm``, ``--tolerance-deg`` and ``--fail-over-tolerance``: what the verdict line
-    (:func:`~stewart_calib.accuracy.verdict_line`) compares the expected errors with."""
+    (:func:`~stewart_calib.analysis.accuracy.verdict_line`) compares the expected errors with."""
     parser.add_argument(
         "--tolerance-mm", type=positive_number, metavar="MM", help="position error the robot must keep to (verdict)"
     )

@@ -26,13 +26,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import __version__, calibration, estimators, io
-from .. import kinematics as kin
-from ..accuracy import PredictedError, estimate_summary, verdict_line
-from ..calibration import Calibration, EvenlySpacedSamples, SampleSpool, Tally, run_calibration, stream_calibration
+from .. import __version__, estimators, io
+from ..analysis.accuracy import PredictedError, estimate_summary, verdict_line
+from ..analysis.identifiability import (
+    conditioning_summary,
+    identifiability_report,
+    instrument_conditioning,
+    measured_samples,
+    warning_line,
+)
+from ..analysis.plausibility import check_plausible
 from ..config import load_estimator_config
-from ..diagnosis import diagnose_log
-from ..drive import drive_model, plain_drive
 from ..errors import CalibError, number
 from ..estimate import Estimate
 from ..estimators.base import (
@@ -40,22 +44,27 @@ from ..estimators.base import (
     skipped_count,
 )
 from ..estimators.ls import outlier_warning
-from ..identifiability import (
-    conditioning_summary,
-    identifiability_report,
-    instrument_conditioning,
-    measured_samples,
-    warning_line,
-)
 from ..instruments import instrument_kind, registered
+from ..io.platform_file import load_platform
 from ..memory import check_memory
-from ..online import Rejections
-from ..planning import noise_floor
-from ..platform import LegGeometry, Platform, load_platform
-from ..plausibility import check_plausible
+from ..model import kinematics as kin
+from ..model.drive import drive_model, plain_drive
+from ..model.platform import LegGeometry, Platform
 from ..progress import MIN_LOG_ROWS
 from ..samples import Log
-from ..validation import (
+from ..workflows import calibration
+from ..workflows.calibration import (
+    Calibration,
+    EvenlySpacedSamples,
+    SampleSpool,
+    Tally,
+    run_calibration,
+    stream_calibration,
+)
+from ..workflows.diagnosis import diagnose_log
+from ..workflows.online import Rejections
+from ..workflows.planning import noise_floor
+from ..workflows.validation import (
     measurement_residuals,
     nominal_residuals,
     pose_error_summary,
@@ -369,8 +378,9 @@ def run(args: argparse.Namespace) -> int:
 
 def outside_warning_line(conditioning: dict) -> str | None:
     """The warning ``identifiability --log`` gives of an outside instrument's poses, in its words:
-    its verdict on the equilibrated condition number (:data:`~stewart_calib.identifiability.CONDITION_POOR`)."""
-    from ..identifiability import CONDITION_POOR
+    its verdict on the equilibrated condition number
+    (:data:`~stewart_calib.analysis.identifiability.CONDITION_POOR`)."""
+    from ..analysis.identifiability import CONDITION_POOR
 
     verdict = conditioning.get("verdict")
     if verdict == "rank-deficient":

@@ -25,12 +25,13 @@ from typing import BinaryIO
 import numpy as np
 
 from .. import io
-from ..compensation import PoseOutOfRange, compensate
+from ..analysis.compensation import PoseOutOfRange, compensate
 from ..errors import CalibError, shown
 from ..io import read_pose_list_blocks
 from ..io.logs import POSE_COLUMNS
+from ..io.platform_file import load_platform
 from ..io.tables import header_fields, require_columns
-from ..platform import load_platform, payload_refusal
+from ..model.platform import payload_refusal
 from . import run_command
 from .handover import calibrated_model
 

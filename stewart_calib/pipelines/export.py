@@ -22,7 +22,7 @@ from pathlib import Path
 from .. import io
 from ..errors import CalibError
 from ..io import controllers
-from ..platform import load_platform
+from ..io.platform_file import load_platform
 from . import ini_sibling, run_command
 from .handover import calibrated_model
 
@@ -103,8 +103,8 @@ def _give_mm(platform, model) -> tuple[float, float] | None:
     fixed workspace poses of the prediction without a payload; None for a compliance of 0."""
     import numpy as np
 
-    from .. import kinematics as kin
-    from ..accuracy import evaluation_poses
+    from ..analysis.accuracy import evaluation_poses
+    from ..model import kinematics as kin
 
     compliance = model.term_values()[-1]  # the compliance term comes last
     if not np.any(compliance):

@@ -15,11 +15,12 @@ import numpy as np
 
 from .. import __version__, io
 from ..config import EstimatorConfig
-from ..drive import DriveModel, drive_model
 from ..errors import CalibError
 from ..estimate import Estimate
 from ..instruments import instrument_kind
-from ..platform import Platform, platform_to_toml
+from ..io.platform_file import platform_to_toml
+from ..model.drive import DriveModel, drive_model
+from ..model.platform import Platform
 
 REPORT_PAGE = "index.html"
 
@@ -154,7 +155,7 @@ def leg_forces(drive: DriveModel, log) -> np.ndarray:
 
 
 def singular_statics_row(err, platform_path: str, path: str, is_log: bool, skip_bad_rows: bool = False) -> CalibError:
-    """A :class:`~stewart_calib.statics.SingularStatics` refusal naming the file and row of its pose.
+    """A :class:`~stewart_calib.model.statics.SingularStatics` refusal naming the file and row of its pose.
 
     The estimators, the diagnosis and compensation meet the pose in a batch of their own (a block,
     evenly spaced samples), whose index names nothing a user can find: on this refusal alone the file
@@ -162,9 +163,9 @@ def singular_statics_row(err, platform_path: str, path: str, is_log: bool, skip_
     (a tracker's forward kinematics of the readings) and at the rigid drive's forward kinematics of
     the strokes, a pose list's at its poses. Without such a row (standard input, or a pose off the
     nominal only) the refusal names the file."""
-    from .. import kinematics as kin
-    from ..platform import load_platform
-    from ..statics import SINGULAR_RATIO, statics_matrix, statics_ratios
+    from ..io.platform_file import load_platform
+    from ..model import kinematics as kin
+    from ..model.statics import SINGULAR_RATIO, statics_matrix, statics_ratios
 
     if path == "-":
         return CalibError(f"standard input: {err}")

@@ -1,7 +1,7 @@
 """``stewart-calib identifiability``: is a pose set (a log's or a planned list) good enough?
 
-Prints :meth:`~stewart_calib.identifiability.IdentifiabilityReport.format_text`; ``--json``
-writes :meth:`~stewart_calib.identifiability.IdentifiabilityReport.to_dict`.
+Prints :meth:`~stewart_calib.analysis.identifiability.IdentifiabilityReport.format_text`; ``--json``
+writes :meth:`~stewart_calib.analysis.identifiability.IdentifiabilityReport.to_dict`.
 """
 
 from __future__ import annotations
@@ -10,14 +10,15 @@ import argparse
 import json
 
 from .. import io
+from ..analysis.identifiability import CONDITION_POOR, NO_POSE, InformationAccumulator, tracker_samples, warning_line
 from ..config import load_estimator_config
-from ..diagnosis import require_poses
-from ..drive import drive_model
 from ..errors import CalibError
-from ..identifiability import CONDITION_POOR, NO_POSE, InformationAccumulator, tracker_samples, warning_line
 from ..instruments import instrument_kind
 from ..io import read_pose_list
-from ..platform import Platform, load_platform
+from ..io.platform_file import load_platform
+from ..model.drive import drive_model
+from ..model.platform import Platform
+from ..workflows.diagnosis import require_poses
 from . import run_command
 from .plan import add_platform_and_noise_arguments
 
@@ -99,8 +100,8 @@ def _prediction(platform: Platform, covariance, poses, n_poses: int, noise) -> d
     """Print the predicted closed-loop error line of a pose set's Cramér–Rao covariance (over the
     workspace, or the poses themselves where the platform has none), warned against the noise
     floor of as many poses; its JSON field."""
-    from ..accuracy import PREDICTION_HEAD, predicted_error, summary_line
-    from ..planning import noise_floor
+    from ..analysis.accuracy import PREDICTION_HEAD, predicted_error, summary_line
+    from ..workflows.planning import noise_floor
 
     head = f"{PREDICTION_HEAD}: none"
     if covariance is None:
@@ -124,11 +125,11 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
     parameters the poses see no better than their prior (:func:`_weak_against_prior`)."""
     import numpy as np
 
-    from .. import kinematics as kin
-    from ..drive import COMPLIANCE, drive_model
     from ..estimators.batch import instrument_identifiability
     from ..instruments import outside_model, registered
-    from ..planning import design_covariance
+    from ..model import kinematics as kin
+    from ..model.drive import COMPLIANCE, drive_model
+    from ..workflows.planning import design_covariance
 
     drive = drive_model(platform).identifying()
     if args.log is not None:

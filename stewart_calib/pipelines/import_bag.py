@@ -37,8 +37,8 @@ import numpy as np
 
 from .. import io
 from ..errors import CalibError, shown
-from ..platform import INSTRUMENT_SECTIONS
-from ..rotations import rotation_to_rpy
+from ..model.platform import INSTRUMENT_SECTIONS
+from ..model.rotations import rotation_to_rpy
 from . import run_command
 
 JOINT_STATE = "sensor_msgs/msg/JointState"

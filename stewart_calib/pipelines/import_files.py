@@ -17,7 +17,7 @@ are read a block at a time and the log written as it goes (atomically: nothing p
 
 One line on stderr says what was done: rows read, rows written, rows dropped and why, the units
 and conventions assumed. With ``--platform`` the log is also checked for the mistakes of
-:mod:`stewart_calib.diagnosis` before it is written. The formats and the mapping file:
+:mod:`stewart_calib.workflows.diagnosis` before it is written. The formats and the mapping file:
 docs/formats.md §12.
 """
 
@@ -38,8 +38,9 @@ from ..errors import CalibError, number
 from ..instruments import MODELS
 from ..io import exports
 from ..io.exports import Block
-from ..platform import INSTRUMENT_SECTIONS, load_platform
-from ..rotations import rpy_to_rotation
+from ..io.platform_file import load_platform
+from ..model.platform import INSTRUMENT_SECTIONS
+from ..model.rotations import rpy_to_rotation
 from . import run_command
 
 #: default largest time between the two controller rows a measurement is interpolated across [s]
@@ -590,7 +591,7 @@ def run(args: argparse.Namespace) -> int:
                 if platform is not None and kind == "points":
                     _check_target_count(args.platform, block.values.shape[1] // 3, len(platform.instrument.targets))
             if platform is not None and not checked and use.any():
-                from ..diagnosis import diagnose_log
+                from ..workflows.diagnosis import diagnose_log
 
                 readings = io.readings_in_code_units(block.values[use], platform)
                 inputs = str(source) if args.strokes is None else f"{source} with the strokes of {args.strokes}"

@@ -14,13 +14,14 @@ import time
 import numpy as np
 
 from .. import io
-from ..accuracy import PREDICTION_HEAD, predicted_error
+from ..analysis.accuracy import PREDICTION_HEAD, predicted_error
 from ..config import load_estimator_config
-from ..diagnosis import require_poses
 from ..errors import CalibError
 from ..inputs import MAX_TIME_S
 from ..instruments import instrument_kind
-from ..planning import (
+from ..io.platform_file import load_platform
+from ..workflows.diagnosis import require_poses
+from ..workflows.planning import (
     CRITERIA,
     default_criterion,
     design_covariance,
@@ -29,7 +30,6 @@ from ..planning import (
     plan_warning,
     with_stroke_margin,
 )
-from ..platform import load_platform
 from . import add_config_arguments, positive_number, run_command
 
 

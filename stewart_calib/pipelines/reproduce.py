@@ -34,7 +34,7 @@ from pathlib import Path
 from ..config import load_estimator_config
 from ..errors import CalibError, shown
 from ..io import atomic_path, atomic_write_text
-from ..platform import Platform
+from ..model.platform import Platform
 from ..progress import progress_bar
 from ..reproduction import Part, index_html, reproduce, results_dict, tables_markdown, write_figures, write_recording
 from ..reproduction.figures import RunFigures, draw_in, figures

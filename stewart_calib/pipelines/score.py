@@ -10,7 +10,7 @@ reports are those at the last sample; a batch fit's hold for the whole log):
 * **z²** — the mean of ``((estimate − truth) / σ)²`` with the result's own σ: 1 when the reported
   error bars are honest, far above 1 when they are too small;
 * **closed loop** — the mean position [mm] and orientation [deg] error over the fixed reachable
-  workspace poses of :func:`stewart_calib.accuracy.evaluation_poses` when the controller commands
+  workspace poses of :func:`stewart_calib.analysis.accuracy.evaluation_poses` when the controller commands
   IK of the estimate and the true robot executes the strokes; beside it, the same with the
   nominal model (uncalibrated).
 
@@ -36,10 +36,10 @@ from dataclasses import replace
 import numpy as np
 
 from .. import io
-from .. import kinematics as kin
-from ..drive import DriveModel, drive_model
 from ..errors import CalibError
-from ..platform import load_platform
+from ..io.platform_file import load_platform
+from ..model import kinematics as kin
+from ..model.drive import DriveModel, drive_model
 from . import run_command
 
 #: the score of a drive term's values (its block key before it): the largest error of the six
@@ -73,7 +73,7 @@ def closed_loop_error(commanded: DriveModel, true: DriveModel, poses: np.ndarray
 
 def scores(platform, result: dict, truth) -> dict:
     """The scores of ``result`` against ``truth`` (see the module)."""
-    from ..accuracy import evaluation_poses
+    from ..analysis.accuracy import evaluation_poses
     from ..instruments import gauge, instrument_kind
 
     true_params = truth.params[-1]

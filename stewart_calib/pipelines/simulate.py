@@ -22,12 +22,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from .. import kinematics as kin
-from ..drive import drive_model
 from ..errors import CalibError, shown
 from ..instruments import instrument_kind
 from ..io import atomic_paths, log_text, output_directory, read_calibrated_drive, truth_text
-from ..platform import Platform, platform_to_toml, vector_to_params
+from ..io.platform_file import platform_to_toml
+from ..model import kinematics as kin
+from ..model.drive import drive_model
+from ..model.platform import Platform, vector_to_params
 from ..simulation.closed_loop import FrozenController, NominalController, simulate_blocks
 from ..simulation.experiment import load_experiment
 from ..simulation.load import elastic_of

@@ -76,15 +76,15 @@ from pathlib import Path
 import numpy as np
 
 from .. import io, links
-from ..calibration import EvenlySpacedSamples
 from ..config import load_estimator_config
-from ..diagnosis import DIAGNOSED_SAMPLES, diagnose_log
 from ..errors import CalibError, shown
 from ..estimators.base import accounting_words, skipped_count
 from ..inputs import MAX_LINE_BYTES
-from ..online import ONLINE_METHODS, OnlineCalibrator
-from ..platform import load_platform
+from ..io.platform_file import load_platform
 from ..samples import Log, Sample
+from ..workflows.calibration import EvenlySpacedSamples
+from ..workflows.diagnosis import DIAGNOSED_SAMPLES, diagnose_log
+from ..workflows.online import ONLINE_METHODS, OnlineCalibrator
 from . import add_config_arguments, check_output_path, run_command
 
 #: how often an idle input is polled [s]: latency of noticing new rows and signals.
@@ -558,8 +558,8 @@ class _Feed:
         self.undiagnosed: EvenlySpacedSamples | None = EvenlySpacedSamples(DIAGNOSED_SAMPLES)
 
     def diagnose(self) -> None:
-        """:func:`~stewart_calib.diagnosis.diagnose_log` on the run's good rows so far (at most
-        ``2 ×`` :data:`~stewart_calib.diagnosis.DIAGNOSED_SAMPLES`, evenly spread), once the estimator
+        """:func:`~stewart_calib.workflows.diagnosis.diagnose_log` on the run's good rows so far (at most
+        ``2 ×`` :data:`~stewart_calib.workflows.diagnosis.DIAGNOSED_SAMPLES`, evenly spread), once the estimator
         uses samples: ``calibrate``'s check of the log, which names a mistake's cause (a unit, swapped
         columns) where the estimate would go wrong. Not before: an outside instrument's estimator
         holds its samples until poses that register it arrive, and rows at rest before them are no

@@ -27,15 +27,16 @@ from pathlib import Path
 import numpy as np
 
 from .. import io
-from ..accuracy import PredictedError, predicted_error, verdict_line
-from ..diagnosis import diagnose_log
-from ..drive import drive_model
+from ..analysis.accuracy import PredictedError, predicted_error, verdict_line
 from ..errors import CalibError
 from ..instruments import instrument_kind
-from ..platform import Platform, load_platform
+from ..io.platform_file import load_platform
+from ..model.drive import drive_model
+from ..model.platform import Platform
 from ..progress import log_progress_bar
 from ..samples import Log
-from ..validation import measurement_residuals, on_platform, pose_error_summary, validate
+from ..workflows.diagnosis import diagnose_log
+from ..workflows.validation import measurement_residuals, on_platform, pose_error_summary, validate
 from . import add_tolerance_arguments, handover, run_command
 
 
@@ -227,7 +228,7 @@ def _validated_blocks(platform: Platform, result: dict, path: str, result_source
     """V.csv's columns a block of the log at a time (each row's prediction is its own), the ``bar``
     ticked per block; each block's ``(position, orientation)`` errors are appended to ``errors``
     and the blocks up to :data:`SAMPLE_ROWS` rows to ``first`` (then joined into one and diagnosed:
-    :func:`~stewart_calib.diagnosis.diagnose_log`). A prediction refused is raised once the rest of
+    :func:`~stewart_calib.workflows.diagnosis.diagnose_log`). A prediction refused is raised once the rest of
     the log is read, so that a bad row anywhere in it is refused first, as when the log was read whole."""
     blocks = io.read_log_blocks(path, platform)
     done = 0

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..io import atomic_write_bytes
-from ..platform import PARAMETER_FIELDS, LegGeometry
+from ..model.platform import PARAMETER_FIELDS, LegGeometry
 from ..viz.html_report import new_figure, png_bytes
 from .metrics import held_pose_ends, view_errors
 from .report import TARGET_METHODS, VERDICT_VIEW

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import kinematics as kin
 from ..instruments import gauge
-from ..platform import Platform
+from ..model import kinematics as kin
+from ..model.platform import Platform
 from ..simulation import SimulationResult
 
 VIEWS = ("tracker", "truth")

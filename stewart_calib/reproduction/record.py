@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import kinematics as kin
-from ..platform import LegGeometry, Platform
+from ..model import kinematics as kin
+from ..model.platform import LegGeometry, Platform
 from ..viz import recording as viz
 from .metrics import held_pose_ends
 from .runs import BATCH_METHOD, NOMINAL, MethodRun, Reproduction, parameter_stride

@@ -17,8 +17,8 @@ from importlib import metadata
 
 import numpy as np
 
-from ..identifiability import conditioning_summary, identifiability_report
-from ..platform import PARAMETER_FIELDS
+from ..analysis.identifiability import conditioning_summary, identifiability_report
+from ..model.platform import PARAMETER_FIELDS
 from ..simulation.load import elastic_of
 from ..simulation.robot import TABLE4_EKF_ERRORS_MM
 from .metrics import VIEWS, improvement_pct, rms, stage_metrics, tracker_gauge_error, tracker_own_error, view_errors

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..config import EstimatorConfig
 from ..estimators import BatchEstimator, KalmanFiltered, make_estimator, method_names
-from ..platform import Platform
+from ..model.platform import Platform
 from ..progress import progress_bar
 from ..simulation import EstimatorController, FrozenController, NominalController, SimulationResult, run_experiment
 from ..simulation.experiment import Experiment

@@ -52,12 +52,12 @@ from typing import Protocol
 
 import numpy as np
 
-from .. import kinematics as kin
-from ..drive import STROKE_SCALE, DriveModel, drive_model, plain_drive
 from ..errors import CalibError, SampleRejected, shown
 from ..estimate import model_estimate
+from ..model import kinematics as kin
+from ..model.drive import STROKE_SCALE, DriveModel, drive_model, plain_drive
 from ..model.legs import LegModel
-from ..platform import LegGeometry, Platform
+from ..model.platform import LegGeometry, Platform
 from ..progress import progress_bar
 from ..samples import Log, Sample, Truth
 from .experiment import Experiment, RotaryRobotConfig, Schedule, schedule

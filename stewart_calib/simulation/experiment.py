@@ -42,7 +42,8 @@ import numpy as np
 
 from ..errors import CalibError
 from ..instruments.registry import instrument_kind, kind_of
-from ..platform import LegGeometry, Platform, centre_too_far, load_platform, parse_instrument
+from ..io.platform_file import load_platform, parse_instrument
+from ..model.platform import LegGeometry, Platform, centre_too_far
 from ..resources import CONFIGS, read_toml
 from .instrument import InstrumentTruth
 from .load import LoadModel

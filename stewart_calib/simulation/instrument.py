@@ -21,7 +21,7 @@ import numpy as np
 
 from ..instruments import OutsideModel, gauge, points, pose
 from ..instruments.registry import kind_of
-from ..platform import Instrument, LegGeometry
+from ..model.platform import Instrument, LegGeometry
 
 
 @dataclass(frozen=True)

@@ -8,8 +8,8 @@ settles an adaptive controller's samples one at a time, and in vectorised numpy 
 1. **Gravity wrench** on the platform about its origin ``t`` (in {J}): each mass ``m_k`` [kg] at
    ``c_k`` in {D} contributes ``F = m_k g`` and ``M = (R c_k) × m_k g`` with
    ``g = [0, 0, −9.80665]`` N/kg — [N] and [N·mm].
-2. **Statics** (the transposed Jacobian; :mod:`stewart_calib.statics`, shared with the elastic
-   drive model of the estimators; the compiled passes below are :func:`stewart_calib._kernels.settle_pose`,
+2. **Statics** (the transposed Jacobian; :mod:`stewart_calib.model.statics`, shared with the elastic
+   drive model of the estimators; the compiled passes below are :func:`stewart_calib.model._kernels.settle_pose`,
    which the elastic drive's tracker residuals settle with too): the six legs are two-force members, leg i pushes the
    platform with ``f_i n_i`` (``n_i`` the unit vector of paper eq. 1, base → platform, so
    ``f_i > 0`` is *compression*). Equilibrium ``Σ f_i n_i + F = 0``,
@@ -38,9 +38,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import kinematics as kin
 from .._jit import F8_1, F8_2, F8_3, FLOAT, I8_1, INT, RO_1, RO_2, njit
-from .._kernels import (
+from ..model import kinematics as kin
+from ..model._kernels import (
     SINGULAR_RATIO,
     _fk_work,
     pose_drift,
@@ -49,8 +49,8 @@ from .._kernels import (
     settle_scratch,
     split_params,
 )
-from ..platform import G_N_PER_KG, PARAMETER_FIELDS, Elastic, LegGeometry
-from ..statics import SingularStatics, _singular_message, masses_and_centres, moment_radius
+from ..model.platform import G_N_PER_KG, PARAMETER_FIELDS, Elastic, LegGeometry
+from ..model.statics import SingularStatics, _singular_message, masses_and_centres, moment_radius
 
 
 @dataclass(frozen=True)
@@ -113,7 +113,7 @@ _POSE_INPUTS = (RO_1, F8_3, F8_2, F8_2, RO_2, FLOAT, F8_1)  # base params, R, t,
 def _loaded_params(base_params, R, t, weights, coms, radius, stiffness, params, forces, ratios):
     """:func:`loaded_params` of every pose ``k`` (weights ``(n, 2)`` [N]) into ``params[k]``, ``forces[k]``
     and the statics' Hadamard ratio ``ratios[k]`` (params and forces unset below
-    :data:`~stewart_calib._kernels.SINGULAR_RATIO`)."""
+    :data:`~stewart_calib.model._kernels.SINGULAR_RATIO`)."""
     n_legs = len(base_params) // 7  # seven parameters a leg
     base, plat, lengths = np.empty((n_legs, 3)), np.empty((n_legs, 3)), np.empty(n_legs)
     split_params(base_params, base, plat, lengths)
@@ -144,7 +144,7 @@ def _settle_poses(
     newton_steps,
 ):
     """:func:`settle` of every pose ``k`` from its guess ``(R[k], t[k])`` (overwritten with where it
-    rests): ``iterations`` passes of :func:`~stewart_calib._kernels.settle_pose` (the forces and
+    rests): ``iterations`` passes of :func:`~stewart_calib.model._kernels.settle_pose` (the forces and
     ``params[k]`` at the pose, then FK of ``strokes[k]`` on ``params[k]``); ``ratios[k]`` the statics'
     last Hadamard ratio (below the bound: stopped there), ``residual[k]`` FK's last max |length error|
     [mm] (``inf`` for a non-finite stroke) after its ``newton_steps[k]`` Newton steps."""
@@ -182,7 +182,7 @@ class Settling:
         base_params: ``(42,)`` true unloaded drive parameters [mm], read-only.
         centres: ``(2, 3)`` the platform's and the payload's centres of mass in {D} [mm], read-only.
         platform_mass_kg: the platform's own mass [kg].
-        radius: the statics' moment radius (:func:`~stewart_calib.statics.moment_radius`) [mm].
+        radius: the statics' moment radius (:func:`~stewart_calib.model.statics.moment_radius`) [mm].
         stiffness: as :func:`_stiffness`.
         iterations: FK ↔ compliance iterations of :meth:`settle`.
     """

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..platform import params_to_vector, vector_to_params
+from ..model.platform import params_to_vector, vector_to_params
 
 #: Paper Table 4, EKF columns: identified no-load errors of the nim-stewart platform, per leg
 #: ``[δj_x, δj_y, δj_z, δd_x, δd_y, δd_z, δl]`` [mm] (paper order, eq. 9).

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import kinematics as kin
-from ..platform import LegGeometry
+from ..model import kinematics as kin
+from ..model.platform import LegGeometry
 
 
 @dataclass(frozen=True)

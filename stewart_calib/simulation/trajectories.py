@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import kinematics as kin
-from ..platform import Platform
+from ..model import kinematics as kin
+from ..model.platform import Platform
 
 #: circle plane → (in-plane axis a, in-plane axis b) of the pose6 position
 CIRCLE_PLANES = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}

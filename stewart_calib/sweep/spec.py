@@ -42,7 +42,8 @@ from ..config import EstimatorConfig, NoiseConfig, config_from_dict
 from ..errors import CalibError
 from ..estimators import METHODS
 from ..instruments import MODELS
-from ..platform import LegGeometry, Platform, load_platform, platform_to_toml
+from ..io.platform_file import load_platform, platform_to_toml
+from ..model.platform import LegGeometry, Platform
 from ..resources import CONFIGS, read_toml
 
 #: Samples (and validation poses) of one task at most: a task holds its log in memory, and a
@@ -567,7 +568,7 @@ def _noise_table(settings: dict, reading_scale: float = 1.0) -> dict:
 def simulated_noise(settings: dict) -> NoiseConfig:
     """The noise the cell simulates (what the bound is for, whatever the estimators are told): the
     readings' σ × ``noise_scale``, and the drive's terms whose true values spread with that spread as
-    their prior σ — so :func:`~stewart_calib.drive.drive_model` with it draws and bounds them."""
+    their prior σ — so :func:`~stewart_calib.model.drive.drive_model` with it draws and bounds them."""
     return NoiseConfig(**_noise_table(settings, settings["noise_scale"]))
 
 

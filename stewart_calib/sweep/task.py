@@ -37,16 +37,21 @@ from dataclasses import dataclass, replace
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .. import kinematics as kin
-from ..drive import COMPLIANCE, DriveModel, drive_model, plain_drive
+from ..analysis.identifiability import (
+    identifiability_report,
+    residual_covariance,
+    stddev_from_factor,
+    whitened_leg_jacobian,
+)
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..estimators import BatchEstimator, make_estimator
 from ..estimators.base import fit_all
 from ..estimators.batch import BatchProblem, cramer_rao
-from ..identifiability import identifiability_report, residual_covariance, stddev_from_factor, whitened_leg_jacobian
 from ..instruments import MODELS, gauge, instrument_kind, registered
-from ..platform import Elastic, Instrument, LegGeometry, Platform
+from ..model import kinematics as kin
+from ..model.drive import COMPLIANCE, DriveModel, drive_model, plain_drive
+from ..model.platform import Elastic, Instrument, LegGeometry, Platform
 from ..samples import Log
 from ..simulation.instrument import InstrumentTruth, SimulatedInstrument, truth_in_gauge
 from ..simulation.trajectories import random_static_poses
@@ -81,7 +86,7 @@ class SweepData:
         glitched: ``(N,)`` True where one reading carries a glitch.
         validation_poses: ``(V, 6)`` fresh poses of the closed-loop check [mm, rad].
         true_terms: the true values ``(6,)`` of the drive's terms by block key
-            (:class:`~stewart_calib.drive.LegTerm`): the stroke scales k_i (logged strokes are
+            (:class:`~stewart_calib.model.drive.LegTerm`): the stroke scales k_i (logged strokes are
             ``q / (1 + k)``) and, on an elastic robot, its legs' compliance [mm/kN].
         true_instrument: the true outside instrument (None for the tracker).
         true_elastic: the robot's masses and, as ``true_compliance_mm_per_kN``, its legs' true

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..instruments.gauge import joint_columns
-from ..kinematics import transform_points
-from ..platform import LegGeometry
-from ..rotations import pose_to_rt
+from ..model.kinematics import transform_points
+from ..model.platform import LegGeometry
+from ..model.rotations import pose_to_rt
 from .html_report import Robot
 
 

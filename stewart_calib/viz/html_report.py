@@ -19,8 +19,8 @@ from importlib import metadata
 
 import numpy as np
 
-from ..drive import COMPLIANCE, STROKE_SCALE
 from ..errors import number
+from ..model.drive import COMPLIANCE, STROKE_SCALE
 
 #: libraries whose versions the page lists (the calibration's own comes from the result).
 LIBRARIES = ("numpy", "scipy", "gtsam", "matplotlib")
@@ -601,7 +601,7 @@ def report_html(
         held_out: a validation's errors, or None.
         inputs: named input files (``{"platform file": "P.toml", "log": "L.csv"}``).
         leg_forces: an elastic drive's leg forces over the log, or None.
-        verdict: the command's verdict line (:func:`~stewart_calib.accuracy.verdict_line`), shown
+        verdict: the command's verdict line (:func:`~stewart_calib.analysis.accuracy.verdict_line`), shown
             first; with its warning where the calibration rests on noise.
         robot: the drive drawn nominal and calibrated, and which parameters are angles, or None.
     """

@@ -58,7 +58,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from ..model.legs import LegModel
-from ..platform import PARAMETER_FIELDS, Platform
+from ..model.platform import PARAMETER_FIELDS, Platform
 from .geometry import leg_joints, leg_polylines
 
 SAMPLE_TIMELINE = "sample"

@@ -5,7 +5,7 @@ After a calibration the controller commands the strokes that the **estimate** sa
 pose X (inverse kinematics of ``M̂``, ``k̂``); the **true** robot moves them to
 ``FK(M, k; q)``. With the estimate's error ``e = θ̂ − θ`` over ``θ = x_drive = [δM (42), k (6)]``
 (the drive model's unknowns, every term identified) the achieved pose misses X by, to first order
-(the drive's FK Jacobian, :meth:`stewart_calib.drive.DriveModel.pose_jacobian`, at the nominal drive),
+(the drive's FK Jacobian, :meth:`stewart_calib.model.drive.DriveModel.pose_jacobian`, at the nominal drive),
 
     δξ(X) = −∂ξ/∂θ (X) · e        (body tangent ``[ω, v]``: rotation, then position in {D})
 
@@ -31,7 +31,7 @@ calibrated frame (``validate``), obvious to anything the robot touches.
 Absolute against motion. The error at X holds a part common to every pose — above all what the
 instrument's frame trades against (a near-rigid motion of the base joints), which a log through an
 outside instrument barely sees. The **motion from home** H, the relative pose ``H⁻¹ X`` the robot
-makes, loses that part: to first order (the chart of :func:`~stewart_calib.rotations.retract`)
+makes, loses that part: to first order (the chart of :func:`~stewart_calib.model.rotations.retract`)
 its error is ``δξ(X) − M(X) δξ(H)`` with ``M = [[Rᵀ, 0], [−Rᵀ p^, Rᵀ]]`` for ``H⁻¹ X = (R, p)``, zero
 for any constant pose offset in {J}. It is what the data can see and what a user checks with the
 same instrument; the absolute error in {J} is what anything the robot touches meets, and the
@@ -48,13 +48,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import kinematics as kin
-from .drive import DriveModel, drive_model
-from .errors import CalibError
-from .estimate import Estimate
-from .instruments.gauge import joint_columns
-from .platform import Platform
-from .rotations import skew
+from ..errors import CalibError
+from ..estimate import Estimate
+from ..instruments.gauge import joint_columns
+from ..model import kinematics as kin
+from ..model.drive import DriveModel, drive_model
+from ..model.platform import Platform
+from ..model.rotations import skew
 
 #: Workspace poses the prediction averages over, drawn uniformly in the ``[workspace]`` box
 #: (reachable within the stroke ranges) with a fixed seed, so that the same covariance always
@@ -364,7 +364,7 @@ def _position_band(D_position: np.ndarray, covariance: np.ndarray) -> tuple[floa
 
 def correction_size(platform: Platform, estimate: DriveModel, poses: np.ndarray | None = None) -> float:
     """Mean position change [mm] over the workspace poses (or ``poses``) that the estimated drive
-    (:meth:`~stewart_calib.drive.DriveModel.calibrated`) makes to where the robot goes:
+    (:meth:`~stewart_calib.model.drive.DriveModel.calibrated`) makes to where the robot goes:
     ``‖FK(estimate, IK(nominal, X)) − X‖`` — the uncalibrated robot's closed-loop error if the
     estimate were the truth."""
     poses = evaluation_poses(platform) if poses is None else np.asarray(poses, dtype=float).reshape(-1, 6)

@@ -19,13 +19,13 @@ from typing import TypeVar
 
 import numpy as np
 
-from . import io
-from . import kinematics as kin
-from .drive import tracker_reading_residuals
-from .errors import CalibError, number
-from .instruments import instrument_kind
-from .platform import Platform
-from .samples import Log
+from .. import io
+from ..errors import CalibError, number
+from ..instruments import instrument_kind
+from ..model import kinematics as kin
+from ..model.drive import tracker_reading_residuals
+from ..model.platform import Platform
+from ..samples import Log
 
 
 def _block(result: dict, key: str, expected_names, source: str) -> np.ndarray | None:
@@ -120,7 +120,7 @@ def validate(
         position, orientation = kin.pose_error(seen.R, seen.t, R_X, t_X)
         return predicted, position, orientation
 
-    from .instruments import outside_model
+    from ..instruments import outside_model
 
     model = outside_model(platform)
     values = _block(result, "instrument", model.unknown_names, result_source)
@@ -142,7 +142,7 @@ def pose_errors(platform: Platform, result: dict, log, register: bool, source: s
         keep = seen.converged
         _, orientation = kin.pose_error(seen.R[keep], seen.t[keep], R_X[keep], t_X[keep])
         return np.column_stack([seen.t[keep] - t_X[keep], orientation])
-    from .instruments import outside_model
+    from ..instruments import outside_model
 
     predicted, _, orientation = validate(platform, result, log, register, source)
     difference = outside_model(platform).position_differences(log.readings, predicted)
@@ -184,7 +184,7 @@ def measurement_residuals(
     through forward kinematics of the model, then what the instrument reads there
     (see :class:`~stewart_calib.viz.html_report.Residuals`). ``predicted``: the calibrated
     model's predictions [code units] when the caller has them (e.g. with a re-registered frame)."""
-    from .viz.html_report import Residuals  # matplotlib-free module, but only reports need it
+    from ..viz.html_report import Residuals  # matplotlib-free module, but only reports need it
 
     columns = io.reading_columns(platform)
     angles = io.angle_columns(platform)
@@ -234,7 +234,7 @@ def registered_nominal_model(platform: Platform, log) -> dict:
     nominal = nominal_model(platform)
     if not instrument_kind(platform).outside:
         return nominal
-    from .instruments import outside_model
+    from ..instruments import outside_model
 
     model = outside_model(platform)
     R_X, t_X = _model_poses(platform, nominal, log, "the nominal platform")
@@ -251,7 +251,7 @@ NO_EVIDENCE_TAIL = 0.01
 def _whitened_squares(platform: Platform, result: dict, log, source: str) -> tuple[float, int]:
     """The sum of squares of an outside instrument's whitened residuals (its model's: rotation
     vectors, not Euler differences) with ``result``'s drive and instrument, and their number."""
-    from .instruments import outside_model
+    from ..instruments import outside_model
 
     model = outside_model(platform)
     R_X, t_X = _model_poses(platform, result, log, source)
@@ -276,8 +276,8 @@ def unsupported_correction(platform: Platform, result: dict, log, rank: int, cor
     """
     if not instrument_kind(platform).outside:
         return None
-    from .chi_square import chdtri
-    from .instruments import outside_model
+    from ..chi_square import chdtri
+    from ..instruments import outside_model
 
     dof = rank - len(outside_model(platform).unknown_names)
     try:
@@ -348,7 +348,7 @@ def streamed_residual_rms(
 ) -> dict:
     """The result's ``"residual_rms"`` field (:func:`~stewart_calib.pipelines.handover.residual_rms_field`)
     of a streamed tracker log without its ``rejected`` samples, from the ``(block, before)`` pairs of
-    its :class:`~stewart_calib.calibration.SampleSpool` (``before``: the :func:`nominal_residuals` of
+    its :class:`~stewart_calib.workflows.calibration.SampleSpool` (``before``: the :func:`nominal_residuals` of
     each sample): the calibrated model's residuals are computed here, and the per-channel sums of
     squares add up over the blocks.
     """

@@ -22,7 +22,7 @@ sit orders of magnitude past the largest values measured on logs of the right pl
 noise is mismatched 5× (tests/test_plausibility.py).
 
 Before any of these, :func:`check_readings_follow` asks the question every command asks of a log
-(``calibrate``, ``validate`` and ``import`` through :func:`~stewart_calib.diagnosis.diagnose_log`,
+(``calibrate``, ``validate`` and ``import`` through :func:`~stewart_calib.workflows.diagnosis.diagnose_log`,
 ``track`` on its last samples): do the instrument's readings move where the logged strokes move
 the platform? Readings that stand still while the strokes move it by many times the instrument's
 noise (a column left at 0, a tracking system that lost the body and repeats a value) fit no
@@ -33,12 +33,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kinematics as kin
-from .config import NoiseConfig
-from .drive import drive_model, plain_drive
-from .errors import CalibError
-from .instruments import instrument_kind
-from .platform import LegGeometry, Platform, give_reference_mm
+from ..config import NoiseConfig
+from ..errors import CalibError
+from ..instruments import instrument_kind
+from ..model import kinematics as kin
+from ..model.drive import drive_model, plain_drive
+from ..model.platform import LegGeometry, Platform, give_reference_mm
 
 #: a parameter error beyond this many prior σ is refused (two-sided tail probability < 1e-20).
 PRIOR_SIGMAS = 10.0

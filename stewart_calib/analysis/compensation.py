@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import kinematics as kin
-from .drive import DriveModel, drive_model, plain_drive
-from .errors import CalibError
-from .estimate import Estimate
-from .platform import LegGeometry, Platform
+from ..errors import CalibError
+from ..estimate import Estimate
+from ..model import kinematics as kin
+from ..model.drive import DriveModel, drive_model, plain_drive
+from ..model.platform import LegGeometry, Platform
 
 
 class PoseOutOfRange(CalibError):
@@ -82,7 +82,7 @@ def compensate(
     platform's weight and a payload of ``payload_kg``, spec §10).
 
     Args:
-        drive: the calibrated drive model (:meth:`~stewart_calib.drive.DriveModel.calibrated`),
+        drive: the calibrated drive model (:meth:`~stewart_calib.model.drive.DriveModel.calibrated`),
             an :class:`Estimate` (then ``nominal`` supplies ``M`` and the drive's nominal terms,
             which the estimate's identified blocks replace), or legs ``M + δM`` alone (their
             strokes are their length changes).

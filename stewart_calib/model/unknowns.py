@@ -6,7 +6,7 @@ Layout (spec §5 and §7)::
 
 Every entry is an *error from its nominal value* in code units (mm, rad, dimensionless), so
 ``x = 0`` is the nominal model and each estimator's prior is ``N(0, diag(σ²))``. A block is an
-:class:`UnknownBlock`: a drive model's (:mod:`stewart_calib.drive`: the stroke scale ``k1…k6``) or
+:class:`UnknownBlock`: a drive model's (:mod:`stewart_calib.model.drive`: the stroke scale ``k1…k6``) or
 an instrument's own unknowns (frame, targets, the tracker's geometry; declared by its model in
 :mod:`stewart_calib.instruments`). The result keeps the drive values of §5 and adds one
 ``{"names", "estimate", "stddev"}`` entry per block under the block's ``key``, in file units.
@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:  # the annotation's type: the leg models sit above the unknown layout
-    from .model.legs import LegModel
+    from .legs import LegModel
 
 #: the two rigid motions a block may share with the drive (see the module docstring).
 GAUGES = ("base", "platform")
@@ -103,7 +103,7 @@ class UnknownLayout:
 
     Attributes:
         blocks: the named blocks after δM, in order.
-        n_params: entries of δM, the drive's leg set's (:attr:`~stewart_calib.drive.DriveModel.n_params`,
+        n_params: entries of δM, the drive's leg set's (:attr:`~stewart_calib.model.drive.DriveModel.n_params`,
             42 for the paper's 6-6 drive); a keyword, the layout names no leg set of its own.
     """
 
@@ -143,7 +143,7 @@ class UnknownLayout:
 
     def walk_scales(self, drive_walk: np.ndarray, rate: float) -> np.ndarray | None:
         """``(size,)`` each walking unknown's random walk over the common ``rate`` [per √s]: δM's
-        ``drive_walk`` ``(n_params,)`` (the drive's :meth:`~stewart_calib.drive.DriveModel.walk_sigmas`)
+        ``drive_walk`` ``(n_params,)`` (the drive's :meth:`~stewart_calib.model.drive.DriveModel.walk_sigmas`)
         over it, 1 on the blocks; None where every entry walks at the rate itself (a prismatic drive)."""
         drive_walk = np.asarray(drive_walk, dtype=float)
         if not rate > 0.0 or np.all(drive_walk == rate):

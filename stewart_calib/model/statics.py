@@ -13,7 +13,7 @@ centre of mass ``c_k`` in {D}. The forces balance it::
 
 in {J} about the platform origin ([N] and [N·mm]). Rotated into {D} and written rotation first,
 the same equations read ``Jᵀ f = −w_D`` with ``J`` the leg-length pose Jacobian of
-:func:`stewart_calib.kinematics.leg_pose_jacobian` (rows ``[d_i × u_i, u_i]``, ``u_i = Rᵀ n_i``)
+:func:`stewart_calib.model.kinematics.leg_pose_jacobian` (rows ``[d_i × u_i, u_i]``, ``u_i = Rᵀ n_i``)
 and ``w_D = [Σ c_k × m_k g_D; Σ m_k g_D]``, ``g_D = Rᵀ g``: the virtual-work statement that leg
 forces and platform wrench are dual through the leg-rate Jacobian. The Jacobians below are
 derived in that form.
@@ -32,9 +32,9 @@ import math
 
 import numpy as np
 
-from ._jit import F8_1, F8_2, FLOAT, RO_2, RO_3, njit
+from .._jit import F8_1, F8_2, FLOAT, RO_2, RO_3, njit
+from ..errors import CalibError
 from ._kernels import SINGULAR_RATIO, pose_gravity_forces
-from .errors import CalibError
 from .kinematics import leg_pose_jacobian, leg_unit_vectors, skew
 from .platform import G_N_PER_KG, N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
 
@@ -161,7 +161,7 @@ def gravity_leg_forces(
 
 @njit(entry=(RO_2, RO_2, RO_3, RO_2, RO_2, F8_2, FLOAT, F8_2, F8_1), nogil=True, error_model="numpy")
 def _gravity_forces(base, plat, R, t, weights, coms, radius, forces, ratios):
-    """:func:`~stewart_calib._kernels.pose_gravity_forces` of every pose ``k`` (weights ``(n, K)`` [N])
+    """:func:`~stewart_calib.model._kernels.pose_gravity_forces` of every pose ``k`` (weights ``(n, K)`` [N])
     into ``forces[k]`` and ``ratios[k]``."""
     A = np.empty((6, 6))
     w = np.empty((6, 1))

@@ -40,24 +40,25 @@ from pathlib import Path
 
 import numpy as np
 
-from . import io
-from .compensation import compensate
-from .config import EstimatorConfig, config_from_dict, load_estimator_config
-from .drive import PAYLOAD, drive_model
-from .errors import CalibError, SampleRejected, shown
-from .estimate import Estimate, model_estimate
-from .estimators import method_names, method_spec
-from .estimators.base import (
+from .. import io
+from ..analysis.compensation import compensate
+from ..analysis.plausibility import check_plausible
+from ..config import EstimatorConfig, config_from_dict, load_estimator_config
+from ..errors import CalibError, SampleRejected, shown
+from ..estimate import Estimate, model_estimate
+from ..estimators import method_names, method_spec
+from ..estimators.base import (
     CheckpointableEstimator,
     accounted_estimate,
     skipped_count,
     take_late_rejections,
     update_block,
 )
-from .inputs import read_input_bytes
-from .platform import Platform, load_platform, parse_platform, platform_to_toml
-from .plausibility import check_plausible
-from .samples import Log, Sample
+from ..inputs import read_input_bytes
+from ..io.platform_file import load_platform, parse_platform, platform_to_toml
+from ..model.drive import PAYLOAD, drive_model
+from ..model.platform import Platform
+from ..samples import Log, Sample
 
 CHECKPOINT_FORMAT = "stewart-calib/checkpoint"
 CHECKPOINT_VERSION = 1
@@ -259,7 +260,7 @@ class OnlineCalibrator:
         Raises:
             PoseOutOfRange: a pose outside the platform's workspace, or needing a stroke outside
                 its stroke range — the same checks and error type as ``stewart-calib compensate``
-                (:func:`~stewart_calib.compensation.check_reachable`).
+                (:func:`~stewart_calib.analysis.compensation.check_reachable`).
             CalibError: non-finite poses or a wrong shape.
         """
         if not self._identifies_drive_blocks:
@@ -276,7 +277,7 @@ class OnlineCalibrator:
 
         Raises:
             CalibError: the estimate is not credible for this platform (a log of another
-                platform; :func:`~stewart_calib.plausibility.check_plausible` on the last
+                platform; :func:`~stewart_calib.analysis.plausibility.check_plausible` on the last
                 :data:`RECENT_SAMPLES` accepted samples).
         """
         estimate = self.estimate()

@@ -1,17 +1,17 @@
-"""numba kernels behind :mod:`stewart_calib.kinematics` and the EKFs' per-sample path.
+"""numba kernels behind :mod:`stewart_calib.model.kinematics` and the EKFs' per-sample path.
 
 Why numba: one 6-leg pose is ~100 flops, so numpy's 1–2 µs per small-array call dominates
 (a warm numpy Newton solve costs 100–200 µs, docs/measured-facts.md); written as loops over the
 six legs and compiled, the same solve takes a few µs. The public, vectorised functions of
-:mod:`stewart_calib.kinematics` keep their numpy signatures and call these; nothing else
+:mod:`stewart_calib.model.kinematics` keep their numpy signatures and call these; nothing else
 should import this module (but :mod:`stewart_calib.estimators.measurement`, for
 ``pose_difference`` and the sample check, ``LegGeometry.perturbed``,
-:mod:`stewart_calib.identifiability` for the whitened rows,
+:mod:`stewart_calib.analysis.identifiability` for the whitened rows,
 :mod:`stewart_calib.estimators.kalman`, whose compiled filter pass observes through them, and
-:mod:`stewart_calib.statics` and :mod:`stewart_calib.simulation.load`, whose robot settling under its
+:mod:`stewart_calib.model.statics` and :mod:`stewart_calib.simulation.load`, whose robot settling under its
 load is here, below the kinematics, so that the tracker residuals of an elastic drive settle with it).
 
-Conventions (see :mod:`stewart_calib.kinematics`): mm and rad; a pose is ``(R, t)`` of the
+Conventions (see :mod:`stewart_calib.model.kinematics`): mm and rad; a pose is ``(R, t)`` of the
 platform frame {D} in the base frame {J}; pose Jacobians are in the body tangent
 ``ξ = [ω, v]`` (rotation first, GTSAM order), ``R ← R Exp(ω)``, ``t ← t + R v``.
 
@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from ._jit import BOOL, F8_1, F8_2, F8_3, FLOAT, I8_1, INT, RO_1, RO_2, RO_3, njit
+from .._jit import BOOL, F8_1, F8_2, F8_3, FLOAT, I8_1, INT, RO_1, RO_2, RO_3, njit
 
 # error_model="numpy": x / 0 gives inf/NaN as in numpy instead of raising ZeroDivisionError.
 _JIT: dict[str, Any] = {"nogil": True, "error_model": "numpy"}
@@ -459,7 +459,7 @@ def pose_gravity_forces(base, plat, R, t, weights, coms, radius, A, w, forces):
     over ``radius`` (returned), and ``f`` solving ``Aᵀ f = −w`` for weights ``(K,)`` [N] at their centres
     ``coms (K, 3)`` in {D} into ``forces (6,)`` (left unset where the ratio is below
     :data:`SINGULAR_RATIO` or a pivot is zero); ``A (6, 6)``, ``w (6, 1)``: scratch
-    (:mod:`stewart_calib.statics`, whose equations these are)."""
+    (:mod:`stewart_calib.model.statics`, whose equations these are)."""
     for i in range(6):
         p0 = R[0, 0] * plat[i, 0] + R[0, 1] * plat[i, 1] + R[0, 2] * plat[i, 2]
         p1 = R[1, 0] * plat[i, 0] + R[1, 1] * plat[i, 1] + R[1, 2] * plat[i, 2]
@@ -555,7 +555,7 @@ def settle_pose(legs, drift, load, terms, u, R, t, passes, settled_mm, tol_mm, m
     pose to those lengths — ``passes`` of them, or fewer once no target length moved more than
     ``settled_mm`` since the pass before (``settled_mm`` < 0: all of them). The simulator's truth
     (:mod:`stewart_calib.simulation.load`: compliant legs and joints, no force term) and the elastic
-    drive model (:meth:`stewart_calib.drive.DriveModel.settled_kinematics`: rigid joints, the legs'
+    drive model (:meth:`stewart_calib.model.drive.DriveModel.settled_kinematics`: rigid joints, the legs'
     compliance a term on the forces) are both this.
 
     Args:

@@ -21,18 +21,18 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from . import estimators, instruments, io
-from .config import EstimatorConfig
+from .. import estimators, instruments, io
+from ..config import EstimatorConfig
+from ..errors import CalibError, SampleRejected, shown
+from ..estimate import Estimate
+from ..estimators import BatchEstimator, KalmanFiltered
+from ..estimators.base import accounted_estimate, late_index, take_late_rejections, update_block
+from ..io import logs
+from ..model.platform import Platform
+from ..progress import log_progress_bar, progress_bar
+from ..samples import Log
 from .diagnosis import diagnose_log
-from .errors import CalibError, SampleRejected, shown
-from .estimate import Estimate
-from .estimators import BatchEstimator, KalmanFiltered
-from .estimators.base import accounted_estimate, late_index, take_late_rejections, update_block
-from .io import logs
 from .online import Rejections
-from .platform import Platform
-from .progress import log_progress_bar, progress_bar
-from .samples import Log
 
 #: the result's conditioning section (and a streamed run's plausibility check) look at between
 #: this many and twice this many samples, evenly spaced over the log (:class:`EvenlySpacedSamples`).

@@ -15,7 +15,7 @@ Conventions (spec §1, paper §3.1):
 
 No I/O and no estimator state live here. The per-pose loops that numpy runs slowly (FK's
 Newton iteration, the error Jacobian, the leg EKF's fused observation) are numba kernels
-in :mod:`stewart_calib._kernels`; the functions here keep their numpy signatures.
+in :mod:`stewart_calib.model._kernels`; the functions here keep their numpy signatures.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..errors import CalibError, SampleRejected
 from . import _kernels
-from .errors import CalibError, SampleRejected
 from .rotations import (  # noqa: F401 -- the pose algebra is part of the kinematics API
     pose_error,
     pose_to_rt,
@@ -135,7 +135,7 @@ def forward_kinematics(
     body tangent ``ξ = [ω, v]`` with the leg Jacobian of :func:`leg_pose_jacobian`. Each pose
     of a batch iterates until its own residual is below ``tol_mm``; steps are capped at
     0.2 rad / 100 mm so a poor guess stays in Newton's basin, and a singular Jacobian gets
-    the least-squares step. One compiled loop (:func:`stewart_calib._kernels.fk_newton`)
+    the least-squares step. One compiled loop (:func:`stewart_calib.model._kernels.fk_newton`)
     serves single poses, batches, and (:func:`forward_kinematics_per_pose`) batches where
     every pose has its own geometry.
 
@@ -149,7 +149,7 @@ def forward_kinematics(
         strict: raise :class:`FKError` if any pose fails; otherwise report it in ``converged``.
         along: ``strokes (N, 6)`` are a log's samples in order: each pose after the first starts
             from the one before where that converged (~3 Newton steps against ~5 from the level guess;
-            within FK's tolerance of the same solutions, see :func:`stewart_calib._kernels.fk_newton`).
+            within FK's tolerance of the same solutions, see :func:`stewart_calib.model._kernels.fk_newton`).
     Raises:
         FKError: lengths unreachable (no pose fits them) or no convergence within the cap.
     """
@@ -449,7 +449,7 @@ def tracker_reading_residuals(
     log's samples in order, in one compiled pass: ``readings − inverse_kinematics(tracker,
     forward_kinematics(drives[j], extensions[j]))``, within FK's tolerance of that batch solve
     (each Newton starts from a neighbouring solution, see
-    :func:`stewart_calib._kernels.tracker_reading_residuals`, instead of the level guess).
+    :func:`stewart_calib.model._kernels.tracker_reading_residuals`, instead of the level guess).
 
     Args:
         readings: ``(N, 6)`` tracker readings s_i [mm].
@@ -457,9 +457,9 @@ def tracker_reading_residuals(
         inputs: ``m`` arrays ``(N, width)``, each drive's inputs: its extensions [mm] (e.g. strokes scaled
             by its stroke scale) where ``terms`` is None.
         terms: ``(starts (b,), gains (b,), factors (m, b, 6))``: the extensions as
-            :func:`stewart_calib._kernels.leg_extensions` makes them of the inputs.
+            :func:`stewart_calib.model._kernels.leg_extensions` makes them of the inputs.
         load: ``(force_start, weights (N, K) [N], centres (K, 3) [mm], radii (m,), passes, settled_mm)``:
-            the drives settle under it, their joints rigid (:func:`stewart_calib._kernels.settle_pose`);
+            the drives settle under it, their joints rigid (:func:`stewart_calib.model._kernels.settle_pose`);
             None: they are rigid.
     Returns:
         ``(residuals (m, N, 6) [mm], converged (m, N))``: a sample's residuals are meaningless

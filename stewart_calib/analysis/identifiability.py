@@ -24,13 +24,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _kernels
-from . import kinematics as kin
-from .config import NoiseConfig
-from .drive import TERM_UNITS, DriveModel, drive_model
-from .errors import CalibError
-from .instruments.gauge import joint_columns
-from .platform import PARAMETER_NAMES, LegGeometry, Platform
+from ..config import NoiseConfig
+from ..errors import CalibError
+from ..instruments.gauge import joint_columns
+from ..model import _kernels
+from ..model import kinematics as kin
+from ..model.drive import TERM_UNITS, DriveModel, drive_model
+from ..model.platform import PARAMETER_NAMES, LegGeometry, Platform
 
 #: A singular value below this fraction of the largest counts as zero. Round-off in the
 #: whitened Jacobian sits near 1e-13 relative; a direction 1e-8 times weaker than the best
@@ -113,7 +113,7 @@ def whitened_leg_jacobian(platform: Platform, poses: np.ndarray, noise: NoiseCon
     [1/mm] (``(N, 6, 42)`` for the paper's drive).
 
     ``C = L Lᵀ`` (:func:`residual_covariance`) by Cholesky and ``C^{-1/2} = L⁻¹``: for the prismatic
-    legs one compiled loop over the poses (:func:`stewart_calib._kernels.whitened_leg_rows`: numpy's
+    legs one compiled loop over the poses (:func:`stewart_calib.model._kernels.whitened_leg_rows`: numpy's
     batched 6 × 6 Cholesky and solve cost over an order of magnitude more a pose), numpy's for any
     other leg model (:func:`_whitened_rows`).
 
@@ -179,7 +179,7 @@ def paper_jacobian(platform: Platform, R: np.ndarray, t: np.ndarray) -> np.ndarr
     """The paper's error Jacobian ``J_p`` (eq. 8–11) of the nominal drive at poses ``(R, t)``,
     ``(N, 6, n_params)``: ``δE = [δh [mm], δθ (roll, pitch, yaw) [rad]] = J_p δM`` of the pose
     reached with fixed drive coordinates. The prismatic legs' closed form
-    (:func:`~stewart_calib.kinematics.error_jacobian`), else the drive's forward-kinematics Jacobian
+    (:func:`~stewart_calib.model.kinematics.error_jacobian`), else the drive's forward-kinematics Jacobian
     ``∂ξ/∂M`` (body tangent ``[ω, v]``) turned into it: ``δh = R v``, ``δθ = E⁻¹ R ω`` with ``E`` the
     roll-pitch-yaw rates' angular velocity in {J} (``R = Rz(yaw) Ry(pitch) Rx(roll)``)."""
     if _compiled(platform.drive):
@@ -509,7 +509,7 @@ class InformationAccumulator:
         paper_form: also the paper's form; False leaves it out (the report's paper fields NaN), for
             callers that read the leg form only (``calibrate``'s conditioning: its compile, ~2 s on a
             first run, and its time a pose).
-        drive: the drive model the estimators identify (:func:`~stewart_calib.drive.drive_model`
+        drive: the drive model the estimators identify (:func:`~stewart_calib.model.drive.drive_model`
             with the config's noise): where it has unknown blocks (the compliance c1…c6 with
             ``[elastic]``, the stroke scale where configured) the leg-length form covers them too,
             ``∂r_i/∂v_{b,i} = −g_b u_{b,i}`` whitened as the rows (then :meth:`add` needs the

@@ -4,7 +4,7 @@ Conventions (spec §1, paper §3.1): a pose is the platform frame {D} in the bas
 ``(R, t)`` or a *pose6* ``[x, y, z [mm], roll, pitch, yaw [rad]]`` with
 ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (paper eq. 20–21); perturbations are in the body tangent
 ``ξ = [ω, v]`` (rotation first, GTSAM's order). Nothing here knows about legs or platforms, so
-every layer may use it (:mod:`stewart_calib.kinematics` re-exports it with the leg functions).
+every layer may use it (:mod:`stewart_calib.model.kinematics` re-exports it with the leg functions).
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Which poses should a user measure? Optimal experimental design over random workspace poses.
 
 Each candidate pose contributes a block of six rows ``U_k`` to the stacked identification
-Jacobian (see :mod:`stewart_calib.identifiability`), so the information of a design is
+Jacobian (see :mod:`stewart_calib.analysis.identifiability`), so the information of a design is
 ``F = F₀ + Σ U_kᵀ U_k``. Criteria (bigger is better):
 
 * ``A`` (default): ``−tr F⁻¹`` of the whitened leg-length form — minimises the sum of the 42
@@ -35,13 +35,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from .accuracy import PredictedError, error_weight, predicted_error, reachable_poses, within_ranges
-from .config import NoiseConfig
-from .errors import CalibError
-from .identifiability import RANK_RTOL, scaled_paper_jacobian, whitened_leg_jacobian
-from .instruments import instrument_kind, outside_model
-from .model.rotary import RotaryLegs
-from .platform import LegGeometry, Platform
+from ..analysis.accuracy import PredictedError, error_weight, predicted_error, reachable_poses, within_ranges
+from ..analysis.identifiability import RANK_RTOL, scaled_paper_jacobian, whitened_leg_jacobian
+from ..config import NoiseConfig
+from ..errors import CalibError
+from ..instruments import instrument_kind, outside_model
+from ..model.platform import LegGeometry, Platform
+from ..model.rotary import RotaryLegs
 
 CRITERIA = ("A", "D", "O1", "E", "I")
 #: the tracker's default (its designs and tests predate ``I``); outside instruments default to ``I``
@@ -82,7 +82,7 @@ FACE_BIAS_EXPONENT = 0.3
 
 def candidate_poses(platform: Platform, n: int, rng: np.random.Generator) -> np.ndarray:
     """``(n, 6)`` random reachable poses in the workspace box, denser near its faces
-    (:data:`FACE_BIAS_EXPONENT`; :func:`stewart_calib.accuracy.reachable_poses`).
+    (:data:`FACE_BIAS_EXPONENT`; :func:`stewart_calib.analysis.accuracy.reachable_poses`).
 
     Raises:
         CalibError: the platform has no ``[workspace]``, or almost no pose of the box is reachable.
@@ -338,7 +338,7 @@ def design_covariance(
 def noise_floor(platform: Platform, n_poses: int, noise: NoiseConfig | None = None) -> PredictedError | None:
     """What the instrument's noise leaves with ``n_poses`` poses spread over the workspace box's
     :func:`extreme_poses` (their Cramér–Rao covariance × 729 / n): the closed-loop error a
-    calibration of that size can expect, the yardstick of :func:`stewart_calib.accuracy.summary_line`.
+    calibration of that size can expect, the yardstick of :func:`stewart_calib.analysis.accuracy.summary_line`.
     None without ``[workspace]``, or where the extremes do not identify every unknown."""
     if platform.workspace is None or n_poses < 1:
         return None
@@ -371,11 +371,11 @@ def _margin(prior_sigma: float, width: float) -> float:
 
 def nominal_error(platform: Platform, noise: NoiseConfig) -> PredictedError:
     """What the nominal model is expected to leave, for a robot built within the prior: the
-    predicted error (:func:`~stewart_calib.accuracy.predicted_error`) of the prior covariance —
+    predicted error (:func:`~stewart_calib.analysis.accuracy.predicted_error`) of the prior covariance —
     ``noise.prior_sigma_mm`` on each δM (another leg model's own ``prior_sigmas``: a servo's angles
     in rad) and, with an outside instrument, the stroke scale's prior σ
-    (:func:`~stewart_calib.drive.drive_model`'s) — the yardstick a plan must clearly beat."""
-    from .drive import drive_model
+    (:func:`~stewart_calib.model.drive.drive_model`'s) — the yardstick a plan must clearly beat."""
+    from ..model.drive import drive_model
 
     drive = drive_model(platform, noise, instrument_kind(platform).outside)
     legs = platform.drive  # the prismatic legs' prior is noise.prior_sigma_mm on every entry

@@ -20,11 +20,11 @@ angle [rad], so ``k`` is its angle scale.
 
 The unknown vector of a drive is ``x_drive = [δM (n_params) | the errors of its unknown terms, six
 each, in term order]`` (:attr:`DriveModel.size` entries): the first entries of every estimator's
-unknown vector (:mod:`stewart_calib.unknowns`), so the drive's Jacobians are its first columns.
+unknown vector (:mod:`stewart_calib.model.unknowns`), so the drive's Jacobians are its first columns.
 
 Compiled code (prismatic legs only: ``legs.compiled``; elsewhere numpy of the same formulas) sees
 a drive as :meth:`DriveModel.kernel_terms`: ``(starts, gains, offsets, values,
-columns)`` of its terms, evaluated by :func:`stewart_calib._kernels.leg_extensions` (the EKF's
+columns)`` of its terms, evaluated by :func:`stewart_calib.model._kernels.leg_extensions` (the EKF's
 fast path, :mod:`stewart_calib.estimators.kalman`) and by the drive-leg factor's kernel
 (:mod:`stewart_calib.factors._kernels`). To add a drive error source see docs/architecture.md.
 """
@@ -37,10 +37,10 @@ from typing import Any
 
 import numpy as np
 
+from ..config import NoiseConfig
+from ..errors import CalibError
 from . import kinematics as kin
-from .config import NoiseConfig
-from .errors import CalibError
-from .model.legs import LegModel
+from .legs import LegModel
 from .platform import G_N_PER_KG, N_LEGS, Elastic, LegGeometry, Platform
 from .statics import gravity_leg_forces, masses_and_centres, moment_radius
 from .unknowns import UnknownBlock
@@ -320,7 +320,7 @@ class DriveModel:
         return self.legs.coordinate_sigma(noise)
 
     def prismatic(self, x_drive: np.ndarray | None = None) -> LegGeometry:
-        """:meth:`geometry` where the legs are prismatic (:class:`~stewart_calib.platform.LegGeometry`):
+        """:meth:`geometry` where the legs are prismatic (:class:`~stewart_calib.model.platform.LegGeometry`):
         what the compiled kernels and the statics of an elastic drive take.
 
         Raises:
@@ -479,7 +479,7 @@ class DriveModel:
     ) -> np.ndarray:
         """:meth:`pose_jacobian` of :meth:`settled_kinematics`' poses, whose leg forces move with the
         pose and the joints: ``r(ξ; x, f(ξ, M)) = 0``, so ``∂r/∂ξ`` and ``∂r/∂M`` gain
-        ``(∂r/∂f) ∂f/∂ξ`` and ``(∂r/∂f) ∂f/∂M`` (:func:`~stewart_calib.statics.leg_force_jacobians`).
+        ``(∂r/∂f) ∂f/∂ξ`` and ``(∂r/∂f) ∂f/∂M`` (:func:`~stewart_calib.model.statics.leg_force_jacobians`).
         They are ~1e-3 of the rows they join, but a batch fit's weakest directions (compliance against
         the leg offsets, condition ~1e6) are where that shows: without them ``ls`` creeps along that
         valley and stops at its 200 evaluations on a simulated hobby hexapod (benchmarks/hobby.py,
@@ -519,7 +519,7 @@ class DriveModel:
         """The EKF's observation at a pose ``(R, t)`` measured with covariance ``Σ_x``: ``(r (n,),
         ∂r/∂x_drive (n, size), J_x Σ_x J_xᵀ + diag(J_e² σ_e²), J_x = ∂r/∂ξ)`` with ``σ_e``
         (``coordinate_sigma``, :meth:`coordinate_sigma`) the σ of one logged coordinate; one compiled
-        call for compiled legs (:func:`~stewart_calib.kinematics.leg_ekf_observation`, ``J_e = −1``)."""
+        call for compiled legs (:func:`~stewart_calib.model.kinematics.leg_ekf_observation`, ``J_e = −1``)."""
         extensions = self.extensions(inputs, x_drive)
         if self.legs.compiled:
             r, H_M, R_meas, J_x = kin.leg_ekf_observation(
@@ -619,11 +619,11 @@ def tracker_reading_residuals(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The tracker's ``readings (N, 6)`` minus what it reads where each of ``drives`` (the same terms,
     e.g. the nominal and a calibrated one) puts the platform for the logged ``strokes (N, 6)``, in one
-    compiled pass (:func:`~stewart_calib.kinematics.tracker_reading_residuals`): elastic drives
+    compiled pass (:func:`~stewart_calib.model.kinematics.tracker_reading_residuals`): elastic drives
     settled under the platform and a payload ``payload_kg`` (scalar or ``(N,)`` [kg]; None: 0) as
     :meth:`DriveModel.settled_kinematics` settles them — the same fixed point, stopped by the same
     :data:`SETTLED_MM`, per sample — by the simulator's compiled settling
-    (:func:`~stewart_calib._kernels.settle_pose`) with the joints rigid and the compliance the term
+    (:func:`~stewart_calib.model._kernels.settle_pose`) with the joints rigid and the compliance the term
     on the forces. ``(residuals (m, N, 6) [mm], converged (m, N))``."""
     kernel_terms = [drive.kernel_terms() for drive in drives]
     starts, gains = kernel_terms[0][:2]

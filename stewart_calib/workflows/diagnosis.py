@@ -43,14 +43,14 @@ from itertools import combinations
 
 import numpy as np
 
-from . import kinematics as kin
-from .drive import drive_model, plain_drive
-from .errors import CalibError
-from .instruments import instrument_kind
-from .instruments.lie import so3_log
-from .platform import Platform, give_reference_mm
-from .plausibility import REST_FRACTION, check_readings_follow
-from .rotations import rpy_to_rotation
+from ..analysis.plausibility import REST_FRACTION, check_readings_follow
+from ..errors import CalibError
+from ..instruments import instrument_kind
+from ..instruments.lie import so3_log
+from ..model import kinematics as kin
+from ..model.drive import drive_model, plain_drive
+from ..model.platform import Platform, give_reference_mm
+from ..model.rotations import rpy_to_rotation
 
 #: samples the diagnosis looks at, evenly spread over the log
 DIAGNOSED_SAMPLES = 400
@@ -99,7 +99,7 @@ def required_samples(platform: Platform) -> tuple[int, int, str]:
     """``(samples needed, unknowns, what they are)`` for a calibration of ``platform``'s drive
     with its instrument: the unknowns the data must fix (gauge directions excluded) over the
     values one sample measures."""
-    from .instruments import outside_model
+    from ..instruments import outside_model
 
     n_params, legs = platform.drive.n_params, platform.drive.n_legs
     if not instrument_kind(platform).outside:
@@ -131,7 +131,7 @@ def require_poses(
 
 
 def _check_count(platform: Platform, readings: np.ndarray, where: str) -> None:
-    from .instruments.registration import distinct_count
+    from ..instruments.registration import distinct_count
 
     needed, _, _ = required_samples(platform)
     finite = readings[np.any(np.isfinite(readings), axis=1)]
@@ -157,7 +157,7 @@ def _stroke_reference(platform: Platform) -> tuple[float, str]:
 def _drive_words(platform: Platform) -> tuple[list[str], str, str, float]:
     """``(the log's drive columns, what they hold, their file unit, file units per code unit)``:
     ``q1_mm …``, strokes in mm; a rotary drive's ``q1_deg …``, angles in degrees (radians in code)."""
-    from .io.logs import drive_columns
+    from ..io.logs import drive_columns
 
     columns = list(drive_columns(platform))
     if platform.drive.coordinate_unit == "deg":
@@ -401,7 +401,7 @@ def _wiring_message(order, sign, words, as_logged: float, rewired: float) -> str
 def _pose_lengths(platform: Platform, strokes: np.ndarray, readings: np.ndarray):
     """The nominal legs' coordinates (:func:`_coordinates`) at the platform poses the readings give ``(N, legs)``
     (NaN rows where no pose), and the whitened RMS of the registration that mapped them."""
-    from .instruments import outside_model
+    from ..instruments import outside_model
 
     reading_legs = instrument_kind(platform).reading_legs(platform)
     if reading_legs is not None:
@@ -483,7 +483,7 @@ def diagnose_log(
     Raises:
         CalibError: one line naming the cause and its evidence.
     """
-    from .io.logs import reading_columns as columns_of
+    from ..io.logs import reading_columns as columns_of
 
     strokes = np.asarray(strokes, dtype=float)
     readings = np.asarray(readings, dtype=float)
