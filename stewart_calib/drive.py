@@ -432,8 +432,19 @@ class DriveModel:
         if self.legs.compiled:  # J_e = −1 and no extension needed: the compiled kinematics' Jacobians alone
             J_pose, J_M = kin.leg_residual_jacobians(self.prismatic(x_drive), R, t)
             return J_pose, self.with_terms(J_M, inputs)
-        J_pose, J_M, J_e = self.geometry(x_drive).residual_jacobians(R, t, self.extensions(inputs, x_drive))
+        _, J_pose, J_M, J_e = self.leg_rows(x_drive, R, t, self.extensions(inputs, x_drive))
         return J_pose, self.with_terms(J_M, inputs, J_e)
+
+    def leg_rows(
+        self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, extensions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(r, J_pose, J_M, J_e)``: the leg model's residuals and Jacobians of :meth:`geometry` at
+        ``x_drive`` for the legs' ``extensions``, ``J_M`` taken in δM (``legs.delta_jacobian``: the
+        drive perturbs its nominal legs, whose axes a rotary set's tilts are about)."""
+        legs = self.geometry(x_drive)
+        J_pose, J_M, J_e = legs.residual_jacobians(R, t, extensions)
+        J_M = J_M if x_drive is None else self.legs.delta_jacobian(J_M, legs)
+        return legs.residuals(R, t, extensions), J_pose, J_M, J_e
 
     def with_terms(self, J_M: np.ndarray, inputs: np.ndarray, J_e: np.ndarray | None = None) -> np.ndarray:
         """``∂r/∂M (..., n, n_params)`` completed with ``∂r_i/∂v_{b,i} = J_e,i g_b u_{b,i}`` of the
@@ -526,9 +537,7 @@ class DriveModel:
                 self.prismatic(), self.parameter_error(x_drive), R, t, extensions, pose_covariance, coordinate_sigma
             )
             return r, self.with_terms(H_M, inputs), R_meas, J_x
-        legs = self.geometry(x_drive)
-        r = legs.residuals(R, t, extensions)
-        J_x, H_M, J_e = legs.residual_jacobians(R, t, extensions)
+        r, J_x, H_M, J_e = self.leg_rows(x_drive, R, t, extensions)
         R_meas = J_x @ pose_covariance @ J_x.T + np.diag((J_e * coordinate_sigma) ** 2)
         return r, self.with_terms(H_M, inputs, J_e), R_meas, J_x
 

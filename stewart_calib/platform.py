@@ -125,6 +125,10 @@ class LegGeometry:
         J_pose, J_M = kinematics.leg_residual_jacobians(self, R, t)
         return J_pose, J_M, np.full(J_M.shape[:-1], -1.0)
 
+    def delta_jacobian(self, J_M: np.ndarray, perturbed: LegGeometry) -> np.ndarray:
+        """``∂r/∂δM`` of ``self.perturbed(δM)`` from ``perturbed``'s own ``J_M``: ``J_M`` itself (δM adds)."""
+        return J_M
+
     def coordinates(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """The extensions ``(..., n)`` [mm] that close each leg at ``(R, t)`` (inverse kinematics)."""
         from . import kinematics
@@ -340,6 +344,9 @@ def give_reference_mm(drive: LegGeometry, stroke_range: tuple[float, float] | No
     at zero stroke (a leg cannot shorten by more than its length)."""
     if stroke_range is not None:
         return float(stroke_range[1] - stroke_range[0]), "the stroke range"
+    if not isinstance(drive, LegGeometry):
+        low, high = drive.angle_range
+        return float(high - low), "the angle range"
     return float(np.min(drive.initial_lengths)), "the shortest leg's length"
 
 

@@ -342,6 +342,27 @@ class RotaryLegs:
         J_M = (rows[..., :, None, :] * np.eye(self.n_legs)[:, :, None]).reshape(batch + (self.n_legs, self.n_params))
         return J_pose, J_M, J_e
 
+    def delta_jacobian(self, J_M: np.ndarray, perturbed: RotaryLegs) -> np.ndarray:
+        """``∂r/∂δM`` of ``self.perturbed(δM)`` from ``J_M (..., 6, 66)``, the Jacobian of ``perturbed`` (that
+        set) in its own parameters (:meth:`residual_jacobians`, tilts about its own axes).
+
+        Positions, lengths and offsets add, so their columns stay. The tilts do not: ``Rot(u⁰, tu) Rot(w⁰, tw)``
+        (``u⁰``, ``w⁰`` this set's) moved by ``dtu``, ``dtw`` turns the perturbed set by the small rotation
+        ``ω = u⁰ dtu + w' dtw`` ({J}; ``w' = R w⁰`` the perturbed set's), which is ``ω·u'``, ``ω·w'`` of its own
+        tilts and ``ω·n'`` of its zero offset (a turn of ``u'``, ``w'`` about ``n'`` adds to ``φ``):
+        column ``tu`` becomes ``(u⁰·u') J_tu + (u⁰·w') J_tw + (u⁰·n') J_o``; column ``tw`` stays.
+        """
+        u0 = self.zero_directions
+        chain = np.stack(
+            [np.sum(u0 * v, axis=-1) for v in (perturbed.zero_directions, perturbed.w_directions, perturbed.crank_axes)]
+        )  # (3, 6): u⁰·u', u⁰·w', u⁰·n' per leg
+        J = np.array(J_M, dtype=float)
+        first = _PER_LEG * np.arange(self.n_legs)
+        J[..., first + _TU] = (
+            chain[0] * J_M[..., first + _TU] + chain[1] * J_M[..., first + _TW] + chain[2] * J_M[..., first + _O]
+        )
+        return J
+
     def _pose_rows(self, R: np.ndarray, m: np.ndarray) -> np.ndarray:
         """``(..., 6, 6)`` ``∂r_i/∂ξ`` rows ``[(d_i × Rᵀm_i)ᵀ, (Rᵀm_i)ᵀ]`` for unit rods ``m (..., 6, 3)``."""
         m_body = m @ R  # Rᵀ m_i per leg
