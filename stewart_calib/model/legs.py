@@ -83,6 +83,12 @@ class LegModel(Protocol):
         (prismatic: −1)."""
         ...
 
+    def moved(self, delta: np.ndarray, base: tuple, platform: tuple) -> np.ndarray:
+        """``δM'`` such that ``self.perturbed(δM')`` is ``self.perturbed(δM)`` with its base side moved by the
+        rigid motion ``base = (R, t)`` (points ``p → R p + t``, directions turned by ``R``) and its platform
+        joints by ``platform``: a truth moved into an outside instrument's gauge (spec §7, §15)."""
+        ...
+
     def delta_jacobian(self, J_M: np.ndarray, perturbed: LegModel) -> np.ndarray:
         """``∂r/∂δM (..., n, n_params)`` of ``self.perturbed(δM)`` from ``J_M``, the ``residual_jacobians``
         of ``perturbed`` (that set) in its own parameters: ``J_M`` itself where δM adds (prismatic),
