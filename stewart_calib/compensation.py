@@ -66,7 +66,7 @@ def check_reachable(poses_mm_rad: np.ndarray, strokes_mm: np.ndarray, platform: 
     bad = np.argwhere(~np.isfinite(strokes))
     if bad.size:
         k, i = (int(v) for v in bad[0])
-        raise PoseOutOfRange(k, f"leg {i + 1} cannot reach the pose (no drive coordinate of it closes the leg in range)")
+        raise PoseOutOfRange(k, f"leg {i + 1} cannot reach the pose (no coordinate of it closes the leg in range)")
     bounds = platform.coordinate_range
     if bounds is not None:
         unit = platform.drive.coordinate_unit

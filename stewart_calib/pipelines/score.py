@@ -39,8 +39,8 @@ from .. import io
 from .. import kinematics as kin
 from ..drive import DriveModel, drive_model
 from ..errors import CalibError
-from ..rotations import motion_error
 from ..platform import load_platform
+from ..rotations import motion_error
 from . import run_command
 
 #: the score of a drive term's values (its block key before it): the largest error of the six
@@ -71,7 +71,8 @@ def closed_loop_poses(commanded: DriveModel, true: DriveModel, poses: np.ndarray
     R_d, t_d = kin.pose_to_rt(poses)
     logged = commanded.inverse_kinematics(R_d, t_d)
     commanded_ok = np.all(np.isfinite(logged), axis=-1)
-    reached = true.forward_kinematics(true.inputs(np.where(commanded_ok[:, None], logged, 0.0)), guess=(R_d, t_d), strict=False)
+    strokes = np.where(commanded_ok[:, None], logged, 0.0)
+    reached = true.forward_kinematics(true.inputs(strokes), guess=(R_d, t_d), strict=False)
     if not reached.converged[commanded_ok].all():
         raise CalibError("the true robot cannot reach the strokes the estimate commands at some workspace pose")
     return np.where(commanded_ok[:, None, None], reached.R, np.nan), np.where(commanded_ok[:, None], reached.t, np.nan)
