@@ -157,6 +157,7 @@ class DriveModel:
     _nominal: np.ndarray = field(init=False, repr=False, compare=False)
     _factors: np.ndarray = field(init=False, repr=False, compare=False)
     _stroke: int = field(init=False, repr=False, compare=False)
+    _last_geometry: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.elastic is not None and self.legs.kind != "prismatic":
@@ -174,6 +175,7 @@ class DriveModel:
         for name, value in (("_unknown", tuple(unknown)), ("_nominal", nominal), ("_factors", factors)):
             object.__setattr__(self, name, value)
         object.__setattr__(self, "_stroke", stroke)
+        object.__setattr__(self, "_last_geometry", (None, self.legs))
 
     # ------------------------------------------------------------------ layout
 
@@ -332,8 +334,20 @@ class DriveModel:
         return legs
 
     def geometry(self, x_drive: np.ndarray | None = None) -> LegModel:
-        """``M + δM`` (the nominal legs for None)."""
-        return self.legs if x_drive is None else self.legs.perturbed(self.parameter_error(x_drive))
+        """``M + δM`` (the nominal legs for None). Legs without compiled kernels keep the last one: a
+        graph's factors are linearised at one ``x_drive`` each (a rotary set's ``perturbed`` turns 12 axes
+        and zero directions, a third of a factor's cost)."""
+        if x_drive is None:
+            return self.legs
+        delta = self.parameter_error(x_drive)
+        if self.legs.compiled:
+            return self.legs.perturbed(delta)
+        key = np.asarray(delta, dtype=float).tobytes()
+        last_key, legs = self._last_geometry
+        if key != last_key:
+            legs = self.legs.perturbed(delta)
+            object.__setattr__(self, "_last_geometry", (key, legs))
+        return legs
 
     def term_values(self, x_drive: np.ndarray | None = None) -> np.ndarray:
         """``(terms, 6)`` absolute values ``v`` of every term: nominal, plus the error in ``x_drive``."""
