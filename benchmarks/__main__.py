@@ -78,6 +78,7 @@ RUNNERS = {
     "plan-poses": _runner("plan_poses", "run"),
     "elastic": _runner("elastic", "section"),
     "elastic-geometries": _runner("elastic", "geometries_section"),
+    "elastic-payload": _runner("elastic", "payload_section"),
     "hobby": _runner("hobby", "section"),
     "honesty": _runner("honesty", "section"),
     "link": _runner("link", "section"),

@@ -558,6 +558,102 @@ def geometries_section(quick: bool = False, methods=METHODS) -> Section:
     )
 
 
+#: the unannounced payload on the paper's experiment: (method, shipped estimator config) of its rows
+PAYLOAD_RUNS = (("ekf", "paper"), ("ekf", "default"), ("isam2", "paper"), ("isam2", "default"))
+#: the payload put on by the paper's experiment [kg], and how: ramp [s]
+PAYLOAD_STAGE_KG = 40.0
+PAYLOAD_RAMPS_S = (0.0, 20.0)
+#: the payload's error, in its reported σ, that every seed is to stay within
+PAYLOAD_Z_TARGET = 2.0
+#: why a configuration's row misses the target, where it does
+PAYLOAD_WHY = {
+    "paper": "the configuration's fast δM walk (0.1 mm/√s) takes most of what the payload does to the legs, and "
+    "what is left trades the payload against the compliance's scale, which the no-load stage leaves uncertain "
+    "(c·(f_platform + m f_payload) is what the data see): a filter's σ, linearised on that bilinear pattern, is "
+    "too small where the scale is off",
+    "default": "the configuration's 2 µm reading σ on a tracker whose geometry is 15 µm off locks the filter out "
+    "pose after pose, and the payload trades against the compliance's scale (the no-load stage pins neither), "
+    "so the σ of both is that of a model the data do not follow",
+}
+
+
+def paper_payload_experiment(directory: Path, seed: int, ramp_s: float = 0.0):
+    """configs/experiments/paper.toml's no-load stage, then its 40 kg stage put on over ``ramp_s`` [s]
+    (the paper's robot with its in-situ tracker, 2.33 mm/kN, the tracker's 15 µm geometry residual)."""
+    from stewart_calib.resources import CONFIGS
+
+    text = (CONFIGS / "experiments" / "paper.toml").read_text()
+    text = text.replace('platform = "../platforms/nim-stewart.toml"', 'platform = "nim-stewart"')
+    start, end = text.index('[[stages]]\nname = "20kg"'), text.index('[[stages]]\nname = "40kg"')
+    text = (text[:start] + text[end:]).replace("ramp_s = 20.0", f"ramp_s = {ramp_s!r}")
+    text = text.replace("seed = 20240517", f"seed = {seed}")
+    path = directory / f"paper-payload-{seed}-{ramp_s:g}.toml"
+    path.write_text(text)
+    return load_experiment(path)
+
+
+def unannounced_payload(platform: Platform, log: Log, method: str, config: str) -> tuple[float, float, int]:
+    """``(payload found [kg], its σ, steps taken)`` of ``method`` with the shipped estimator ``config``
+    on ``log`` without its ``load_kg``, the platform declaring ``payload_sigma_kg``."""
+    from stewart_calib.resources import resolve
+
+    estimating = dataclasses.replace(
+        platform, elastic=dataclasses.replace(platform.elastic, payload_sigma_kg=PAYLOAD_SIGMA_KG)
+    )
+    estimate = run_calibration(
+        estimating, dataclasses.replace(log, load_kg=None), method, load_estimator_config(resolve(config, "estimators"))
+    ).estimate
+    column = estimate.layout.slice("payload").start
+    sigma = float(np.sqrt(estimate.full_covariance[column, column]))
+    return estimate.unannounced_payload_kg(), sigma, int(estimate.details["payload_steps"])
+
+
+def payload_section(quick: bool = False) -> Section:
+    """The unannounced payload on the paper's experiment: per method and configuration, the payload found
+    on each seed, put on at once and over the paper's 20 s ramp (``quick``: one seed, the step only)."""
+    seeds, ramps = (range(1, 2), PAYLOAD_RAMPS_S[:1]) if quick else (range(1, 4), PAYLOAD_RAMPS_S)
+    found: dict[tuple[str, str, float], list[tuple[float, float, int]]] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for ramp_s in ramps:
+            for seed in seeds:
+                experiment = paper_payload_experiment(Path(tmp), seed, ramp_s)
+                platform = dataclasses.replace(experiment.platform, elastic=elastic_of(experiment.load))
+                log = run_experiment(experiment).log
+                for method, config in PAYLOAD_RUNS:
+                    found.setdefault((method, config, ramp_s), []).append(
+                        unannounced_payload(platform, log, method, config)
+                    )
+    rows, cells = [], []
+    for (method, config, ramp_s), runs in found.items():
+        z = [abs(m - PAYLOAD_STAGE_KG) / sigma for m, sigma, _ in runs]
+        put_on = "at once" if ramp_s == 0.0 else f"over {ramp_s:g} s"
+        cells.append([method, config, put_on, *(f"{m:.1f} ± {sigma:.1f} ({steps})" for m, sigma, steps in runs)])
+        rows.append(
+            Row(
+                f"unannounced {PAYLOAD_STAGE_KG:g} kg put on {put_on}, {method} --config {config}",
+                f"worst error / σ {max(z):.1f} (the payload's, against 40 kg)",
+                f"≤ {PAYLOAD_Z_TARGET:g} on every seed",
+                max(z) <= PAYLOAD_Z_TARGET,
+                {"runs": runs},
+                PAYLOAD_WHY[config],
+            )
+        )
+    note = (
+        "The paper's robot and experiment (`configs/experiments/paper.toml`: nim-stewart, its in-situ tracker with "
+        "the 15 µm residual of its own geometry, 2.33 mm/kN legs) with its no-load stage and then 40 kg put on at "
+        "once or over the paper's 20 s ramp, logged without `load_kg`; the platform declares `[elastic] "
+        f"payload_sigma_kg = {PAYLOAD_SIGMA_KG:g}`. Each method with a shipped configuration (`--config`), as `track` "
+        "runs it; cell: the payload found ± its σ [kg] (steps taken), one per seed "
+        f"({', '.join(str(s) for s in seeds)}). Target: within {PAYLOAD_Z_TARGET:g}σ of 40 kg on every seed."
+    )
+    table = Table(
+        "Payload found ± σ [kg] (steps), per seed",
+        ["method", "config", "40 kg put on", *(f"seed {s}" for s in seeds)],
+        cells,
+    )
+    return Section("An unannounced payload on the paper's experiment", note, rows, {}, [table])
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="60 poses a stage, 1 seed (a smoke run)")

@@ -30,6 +30,7 @@ SECTIONS = {
     "plan-poses": "Planned poses for outside instruments",
     "elastic": "The elastic robot",
     "elastic-geometries": "The elastic check on other geometries",
+    "elastic-payload": "An unannounced payload on the paper's experiment",
     "hobby": "The real data's stand-in: every method against the builders' 48-parameter fit",
     "honesty": "Honesty over a grid",
     "link": "Live link to a controller",

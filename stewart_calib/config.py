@@ -146,8 +146,10 @@ class ISAM2Config:
             the graph (0 = off; :mod:`stewart_calib.estimators.robust`), and of ``lm``'s test of
             each sample's residuals at its solution, which leaves gross errors out (:mod:`.estimators.lm`).
         coupling: ``tight`` (one factor per tracker reading) or ``loose`` (tracker FK pose prior).
-        window_s: a new parameter variable every ``window_s`` seconds [s].
-        window_samples: if > 0, a new parameter variable every this many samples instead.
+        window_s: a new parameter variable every ``window_s`` seconds [s]; ``isam2`` shortens a window
+            to ``q₀ / q`` of it where the walk rate ``q`` its front end measures is above the configured
+            ``q₀`` (``ISAM2._window_fraction``).
+        window_samples: if > 0, a new parameter variable every this many samples instead (shortened alike).
         chain_sigma_floor_mm: least σ of the random walk between parameter variables [mm]; with
             random walk 0, ``isam2`` ties its chain of variables with this near-hard σ (a single
             static variable inside the fixed-lag smoother keeps growing), ``lm`` uses one variable.

@@ -453,12 +453,9 @@ class DriveModel:
         self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, extensions: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(r, J_pose, J_M, J_e)``: the leg model's residuals and Jacobians of :meth:`geometry` at
-        ``x_drive`` for the legs' ``extensions``, ``J_M`` taken in δM (``legs.delta_jacobian``: the
-        drive perturbs its nominal legs, whose axes a rotary set's tilts are about)."""
+        ``x_drive`` for the legs' ``extensions``, one perturbed set for both."""
         legs = self.geometry(x_drive)
-        J_pose, J_M, J_e = legs.residual_jacobians(R, t, extensions)
-        J_M = J_M if x_drive is None else self.legs.delta_jacobian(J_M, legs)
-        return legs.residuals(R, t, extensions), J_pose, J_M, J_e
+        return legs.residuals(R, t, extensions), *legs.residual_jacobians(R, t, extensions)
 
     def with_terms(self, J_M: np.ndarray, inputs: np.ndarray, J_e: np.ndarray | None = None) -> np.ndarray:
         """``∂r/∂M (..., n, n_params)`` completed with ``∂r_i/∂v_{b,i} = J_e,i g_b u_{b,i}`` of the

@@ -133,10 +133,6 @@ class LegGeometry:
             moved[columns] = moved[columns] @ np.asarray(R).T + t
         return moved - self.as_vector()
 
-    def delta_jacobian(self, J_M: np.ndarray, perturbed: LegGeometry) -> np.ndarray:
-        """``∂r/∂δM`` of ``self.perturbed(δM)`` from ``perturbed``'s own ``J_M``: ``J_M`` itself (δM adds)."""
-        return J_M
-
     def coordinates(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """The extensions ``(..., n)`` [mm] that close each leg at ``(R, t)`` (inverse kinematics)."""
         from . import kinematics
@@ -435,9 +431,10 @@ class Elastic:
             checks (``simulate``), never read by an estimator; None on a real robot.
         payload_sigma_kg: > 0: ``ekf`` and ``isam2`` estimate the payload that the log does not
             announce, a mass [kg] at ``payload_com_mm`` on top of each sample's ``load_kg`` (0 where the
-            log has none), with this prior σ, and take a step of it where a sample gated at the estimate
-            passes with this σ added (:mod:`stewart_calib.estimators.ekf`; ``isam2``'s front end decides,
-            :mod:`stewart_calib.estimators.isam2`); 0 (default): the payload is the log's ``load_kg``.
+            log has none), with this prior σ, and take a step of it where the samples after a candidate
+            step (this σ added at one sample) confirm it (:mod:`stewart_calib.estimators.ekf`; ``isam2``'s
+            front end decides, :mod:`stewart_calib.estimators.isam2`); 0 (default): the payload is the log's
+            ``load_kg``.
     """
 
     platform_mass_kg: float

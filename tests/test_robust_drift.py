@@ -22,10 +22,10 @@ from benchmarks.robustness import (
 from tests.synthetic import nim_stewart
 
 
-@pytest.fixture(scope="module")
-def drifting():
+@pytest.fixture(scope="module", params=[0, 2])
+def drifting(request):
     platform = nim_stewart()
-    return platform, *drifting_smooth_log(platform, seed=0)
+    return platform, *drifting_smooth_log(platform, seed=request.param)
 
 
 @pytest.mark.parametrize("method", ["ekf", "isam2"])
@@ -33,7 +33,9 @@ def test_a_robot_drifting_faster_than_configured_keeps_its_rows_and_honest_error
     """The issue's targets: ≥ 90 % of the rows used, the error within 2× the bound, z² in [0.5, 2]. On the
     code before, the filter locked out again and again — each recovery broke the chain of windows, so
     the next window had no difference to test — and the smooth path's open directions looked like a
-    walk of 20–50 µm/√s to the windows' own linearisation (here: ekf z² 0.12, isam2 error 2.3× the bound)."""
+    walk of 20–50 µm/√s to the windows' own linearisation (seed 0: ekf z² 0.12, isam2 error 2.3× the
+    bound). With the rate raised only to the lowest the window differences do not reject, and isam2's
+    1 s windows whatever the walk, seed 2 gave ekf z² 2.56 and isam2 4.05."""
     platform, log, truth, bound = drifting
     used, error_over_bound, z2 = drift_scores(platform, method, log, truth, bound)
     assert used >= DRIFT_ROWS_USED

@@ -64,7 +64,7 @@ def servo_build(angle_range_deg=(-90.0, 90.0), angle_offsets_deg=(0.0,) * 6) -> 
 
 
 LEGS = servo_build()
-FIELDS = [field.name for field in dataclasses.fields(RotaryLegs)]
+FIELDS = [field.name for field in dataclasses.fields(RotaryLegs) if field.name != "tilt_reference"]
 
 
 def servo_errors(rng: np.random.Generator) -> np.ndarray:
@@ -74,7 +74,9 @@ def servo_errors(rng: np.random.Generator) -> np.ndarray:
     return sigma * rng.standard_normal(66)
 
 
-ROUGH = LEGS.perturbed(servo_errors(np.random.default_rng(7)))  # nothing aligned: every term of J_M is non-zero
+# nothing aligned: every term of J_M is non-zero; its own tilt reference (a platform file's set), so
+# its tilt columns are about its own axes
+ROUGH = dataclasses.replace(LEGS.perturbed(servo_errors(np.random.default_rng(7))), tilt_reference=None)
 
 
 def home(legs: RotaryLegs = LEGS) -> tuple[np.ndarray, np.ndarray]:
@@ -276,6 +278,28 @@ def test_parameter_jacobian_through_perturbed(field):
         assert relative_error(J_M[..., column], numeric) < JACOBIAN_REL_TOL, ROUGH.parameter_names[column]
     leg_of_column = np.arange(66) // 11
     np.testing.assert_array_equal(J_M[..., np.arange(6)[:, None] != leg_of_column], 0.0)  # block-diagonal
+
+
+def test_tilt_jacobian_of_a_tilted_set_is_the_drives_derivative():
+    # the drive perturbs its nominal legs by the whole δM: at a set tilted by 1° its tu, tw columns
+    # must be ∂/∂δ of nominal.perturbed(δ), the derivative an estimator linearises with
+    R, t, e = POSES
+    delta = np.zeros(66)
+    delta[_TILT_COLUMNS] = np.radians(1.0) * np.resize([1.0, -0.7, 0.4], len(_TILT_COLUMNS))
+    tilted = ROUGH.perturbed(delta)
+    J_M = tilted.residual_jacobians(R, t, e)[1]
+    for column in _TILT_COLUMNS:
+
+        def moved(x, column=column):
+            step = delta.copy()
+            step[column] += x[0]
+            return ROUGH.perturbed(step).residuals(R, t, e)
+
+        numeric = numerical_jacobian(moved, np.zeros(1), EPS_RAD)[..., 0]
+        assert relative_error(J_M[..., column], numeric) < JACOBIAN_REL_TOL, ROUGH.parameter_names[column]
+
+
+_TILT_COLUMNS = np.concatenate([9 + 11 * np.arange(6), 10 + 11 * np.arange(6)])
 
 
 def test_jacobians_broadcast_over_batches():

@@ -45,15 +45,17 @@ An unannounced payload (``[elastic] payload_sigma_kg`` > 0, spec §10): the payl
 none) is the state's last entry, prior ``N(0, σ_m²)``. The leg forces are linear in the masses,
 so the drive inputs are the forces at ``load_kg`` plus ``m`` times the forces per kg ``f_m``
 (prepared with the sample) and ``∂r_i/∂m = −(∂e_i/∂f_i) f_{m,i} = c_i f_{m,i} / 1000``. Between
-steps ``m`` is constant, so it averages over the samples, and a step shows as a sample the gate
-refuses: one that passes with ``σ_m²`` added to ``m``'s process noise is taken as the step (the
-filter's ``step``, :class:`~.robust.RobustFilter`), so the step moves ``m`` at the sample it
-happens rather than 42 parameters over tens of samples. That sample's update is iterated
-(relinearised at its own result): ``c_i f_{m,i} m`` is bilinear, and linearised where ``m`` has not
-stepped yet the update's covariance loses the compliance–payload tie. A random walk cannot do that: one slow
-enough to let ``m`` average leaves a 20 kg step tens of σ outside the gate; one fast enough to
-pass it makes ``m`` a per-sample nuisance that takes from every sample the information on the
-compliance it carries. Not in the compiled block path (samples go one at a time).
+steps ``m`` is constant, so it averages over the samples; a step is tested by the samples after it
+(the filter's ``step``, :meth:`~.robust.RobustFilter._test_steps`): a candidate, the filter with
+``σ_m²`` added to ``m``'s process noise at one sample (that sample's update iterated, relinearised at its
+own result: ``c_i f_{m,i} m`` is bilinear, and linearised where ``m`` has not stepped yet the update's
+covariance loses the compliance–payload tie), runs beside the filter and replaces it once its samples'
+likelihood beats the filter's, so the step moves ``m`` from the sample it happened at rather than 42
+parameters over tens of samples — also where the configured δM walk takes most of what the step does
+to one sample, or the payload is put on over a ramp. A random walk of ``m`` cannot do that: one slow
+enough to let ``m`` average leaves a 20 kg step tens of σ outside the gate; one fast enough to pass it
+makes ``m`` a per-sample nuisance that takes from every sample the information on the compliance it
+carries. Not in the compiled block path (samples go one at a time).
 """
 
 from __future__ import annotations

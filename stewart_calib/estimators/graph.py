@@ -21,10 +21,10 @@ Factors of sample k (all from :mod:`stewart_calib.factors`):
 An unannounced payload (``[elastic] payload_sigma_kg`` > 0, ``isam2`` only): the payload mass ``m``
 [kg] is the unknown vector's last entry, as in ekf's state (``isam2`` takes its front end's layout),
 and enters each drive-leg factor (:mod:`stewart_calib.factors.drive_leg`). Between windows it is
-tied by the floor σ alone, so it averages over the samples; a sample the front end takes as a step
-of it (:attr:`GraphBuilder.steps`) opens a new window whose walk factor lets ``m`` move by the prior's
-σ_m, so the step moves ``m`` at the sample it happens (the front end's value after the step its
-initial value), not δM over tens of samples.
+tied by the floor σ alone, so it averages over the samples; the sample a step of it happened at, as
+the front end found it (:attr:`GraphBuilder.steps`), opens a new window whose walk factor lets ``m``
+move by the prior's σ_m, so the step moves ``m`` at that sample (the front end's value after the step
+its initial value), not δM over tens of samples.
 
 Measurement factors may carry a Huber or Cauchy kernel (``[isam2] robust``). The initial value
 of ``x_k`` is the instrument's loose pose (the tracker's FK) warm-started from the previous
@@ -268,16 +268,16 @@ class GraphBuilder:
         span = max(state.last_t_s - state.window_start_s, 0.0) if self.chain else 0.0
         return np.diag(np.where(self._walks, self._walk_rate(walk_rate_mm2_per_s) * span / 3.0, 0.0))
 
-    def new_window(self, state: ChainState, t_s: float) -> bool:
+    def new_window(self, state: ChainState, t_s: float, fraction: float = 1.0) -> bool:
         """Whether ``sample`` at ``t_s`` opens a new parameter variable after ``state`` (a window's
-        length, or a step of the unannounced payload, :attr:`steps`)."""
+        length, ``fraction`` of the configured one, or a step of the unannounced payload, :attr:`steps`)."""
         if not self.chain or state.samples == 0:
             return False
         if t_s in self.steps:
             return True
         if self.graph.window_samples > 0:
-            return state.window_samples >= self.graph.window_samples
-        return t_s - state.window_start_s >= self.graph.window_s
+            return state.window_samples >= max(1, math.ceil(fraction * self.graph.window_samples))
+        return t_s - state.window_start_s >= fraction * self.graph.window_s
 
     def epoch(
         self,
@@ -286,6 +286,7 @@ class GraphBuilder:
         params_guess,
         noise_scale2: float = 1.0,
         walk_rate_mm2_per_s: float | None = None,
+        window_fraction: float = 1.0,
     ) -> Epoch:
         """Factors, values and timestamps of ``sample`` and the state after it.
 
@@ -298,6 +299,8 @@ class GraphBuilder:
                 divided by ``s²`` (the same optimum, covariance ``/ s²``).
             walk_rate_mm2_per_s: the walk's rate ``Q`` a new window's walk factor carries [mm²/s]
                 (None: the configured one).
+            window_fraction: the current window's length as a fraction of the configured one
+                (:meth:`new_window`; ``isam2`` shortens it where the walk is fast beside the noise).
 
         With ``walk_in_windows``, ``noise_scale2`` and ``walk_rate_mm2_per_s`` are those of the window
         the sample is in, and its drive-leg rows carry, besides the stroke noise, the walk from the
@@ -320,7 +323,9 @@ class GraphBuilder:
                 SampleRejected.TIME_BACK,
             )
         # The current estimate, asked for only where it is needed (isam2 pays a smoother query).
-        wanted = state.samples > 0 and (self._instrument is not None or self.new_window(state, sample.t_s))
+        wanted = state.samples > 0 and (
+            self._instrument is not None or self.new_window(state, sample.t_s, window_fraction)
+        )
         guess = (
             params_guess()
             if wanted
@@ -352,7 +357,7 @@ class GraphBuilder:
             values.insert(params_key(0), self.initial)
             factors.add(random_walk.prior(params_key(0), self._prior_sigma))
             self._new_variable(factors, params_key(0))
-        elif self.new_window(state, sample.t_s):
+        elif self.new_window(state, sample.t_s, window_fraction):
             w = state.window
             step = self.steps.get(sample.t_s)
             if step is not None:  # the payload starts from the front end's value after the step

@@ -89,12 +89,6 @@ class LegModel(Protocol):
         joints by ``platform``: a truth moved into an outside instrument's gauge (spec §7, §15)."""
         ...
 
-    def delta_jacobian(self, J_M: np.ndarray, perturbed: LegModel) -> np.ndarray:
-        """``∂r/∂δM (..., n, n_params)`` of ``self.perturbed(δM)`` from ``J_M``, the ``residual_jacobians``
-        of ``perturbed`` (that set) in its own parameters: ``J_M`` itself where δM adds (prismatic),
-        the chain rule where a parameter is the set's own reference (a rotary set's axis tilts)."""
-        ...
-
     def coordinates(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Inverse kinematics: ``(..., n)`` the ``e`` closing each leg at ``(R, t)``, NaN where a leg
         cannot reach it (rotary: spec §15's branch rule)."""

@@ -23,7 +23,7 @@ Pose perturbations are in the body tangent ``ξ = [ω, v]`` (rotation first), ``
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from functools import cached_property
 
 import numpy as np
@@ -120,6 +120,10 @@ class RotaryLegs:
         angle_offsets: ``(6,)`` ``o_i``, the servos' zero trim [rad].
         angle_range: ``(min, max)`` commanded angles the servos accept [rad], at most a turn wide:
             it chooses between the two horn solutions of the inverse kinematics (:meth:`coordinates`).
+        tilt_reference: ``(6, 3)`` the zero directions ``u⁰_i`` the tilts ``tu`` are taken about: the
+            set's own ``u_i`` (default), or, for a set :meth:`perturbed` from another, that set's. The
+            drive perturbs its nominal legs by the whole δM, so ``∂/∂tu`` at a tilted set turns about
+            ``u⁰_i``, not about its own (tilted) ``u_i``; ``∂/∂tw`` turns about ``Rot(u⁰, tu) w⁰ = w_i``.
     """
 
     crank_centres: np.ndarray
@@ -130,6 +134,7 @@ class RotaryLegs:
     platform_joints: np.ndarray
     angle_offsets: np.ndarray
     angle_range: tuple[float, float]
+    tilt_reference: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     #: the leg model's kind (:class:`~stewart_calib.model.legs.LegModel`): the platform file's ``[drive] kind``
     kind = "rotary"
@@ -163,6 +168,13 @@ class RotaryLegs:
         if len(bad):
             raise ValueError(f"crank axis and zero direction of leg {bad[0] + 1} span no plane")
         arrays["crank_axes"], arrays["zero_directions"] = n, u
+        if self.tilt_reference is not None:
+            reference = np.array(self.tilt_reference, dtype=float)
+            if reference.shape != (N_LEGS, 3):
+                raise ValueError(f"tilt_reference must have shape {(N_LEGS, 3)}, got {reference.shape}")
+            arrays["tilt_reference"] = reference
+        else:
+            arrays["tilt_reference"] = u.copy()
         for name, value in arrays.items():
             value.setflags(write=False)
             object.__setattr__(self, name, value)
@@ -263,6 +275,7 @@ class RotaryLegs:
             self.platform_joints + d[:, _D],
             self.angle_offsets + d[:, _O],
             self.angle_range,
+            np.array(u),
         )
 
     def moved(self, delta: np.ndarray, base: tuple, platform: tuple) -> np.ndarray:
@@ -300,10 +313,10 @@ class RotaryLegs:
         :meth:`perturbed`'s sums, and its axes and zero directions turned by one rotation (orthonormal
         to rounding), so a zero δM gives the same set bit for bit."""
         legs = object.__new__(cls)
-        for field, value in zip(fields(cls), values, strict=True):
+        for member, value in zip(fields(cls), values, strict=True):
             if isinstance(value, np.ndarray):
                 value.setflags(write=False)
-            object.__setattr__(legs, field.name, value)
+            object.__setattr__(legs, member.name, value)
         return legs
 
     # ------------------------------------------------------------------ kinematics
@@ -344,9 +357,10 @@ class RotaryLegs:
 
         * ``J_pose`` on the body tangent ``ξ = [ω, v]``: row i ``[(d_i × Rᵀm_i)ᵀ, (Rᵀm_i)ᵀ]``;
         * ``J_M`` block-diagonal, leg i's row in its own 11 columns: ``∂/∂a = −m``, ``∂/∂d = Rᵀm``,
-          ``∂/∂h = −m·(c u + s w)``, ``∂/∂r = −1``, ``∂/∂o = J_e``, and at tilt 0 (a ``δtu`` moves
-          ``w`` by ``δtu n``, a ``δtw`` moves ``u`` by ``−δtw n``) ``∂/∂tu = −h s (m·n)``,
-          ``∂/∂tw = h c (m·n)``;
+          ``∂/∂h = −m·(c u + s w)``, ``∂/∂r = −1``, ``∂/∂o = J_e``, and the tilts, which turn the
+          horn ``c u + s w`` about ``u⁰`` (:attr:`tilt_reference`) and about ``w``:
+          ``∂/∂tu = −h m·(u⁰ × (c u + s w))`` (``−h s (m·n)`` at tilt 0, where ``u⁰ = u``),
+          ``∂/∂tw = −h m·(w × (c u + s w)) = h c (m·n)``;
         * ``J_e = ∂r_i/∂e_i = −h (m·(−s u + c w))``.
         """
         phi = np.asarray(e, dtype=float) + self.angle_offsets
@@ -366,31 +380,11 @@ class RotaryLegs:
         rows[..., _H] = -(c * mu + s * mw)
         rows[..., _ROD] = -1.0
         rows[..., _O] = J_e
-        rows[..., _TU] = -h * s * mn
+        horn = c[..., None] * u + s[..., None] * w
+        rows[..., _TU] = -h * np.sum(m * _cross(self.tilt_reference, horn), axis=-1)
         rows[..., _TW] = h * c * mn
         J_M = (rows[..., :, None, :] * np.eye(self.n_legs)[:, :, None]).reshape(batch + (self.n_legs, self.n_params))
         return J_pose, J_M, J_e
-
-    def delta_jacobian(self, J_M: np.ndarray, perturbed: RotaryLegs) -> np.ndarray:
-        """``∂r/∂δM`` of ``self.perturbed(δM)`` from ``J_M (..., 6, 66)``, the Jacobian of ``perturbed`` (that
-        set) in its own parameters (:meth:`residual_jacobians`, tilts about its own axes).
-
-        Positions, lengths and offsets add, so their columns stay. The tilts do not: ``Rot(u⁰, tu) Rot(w⁰, tw)``
-        (``u⁰``, ``w⁰`` this set's) moved by ``dtu``, ``dtw`` turns the perturbed set by the small rotation
-        ``ω = u⁰ dtu + w' dtw`` ({J}; ``w' = R w⁰`` the perturbed set's), which is ``ω·u'``, ``ω·w'`` of its own
-        tilts and ``ω·n'`` of its zero offset (a turn of ``u'``, ``w'`` about ``n'`` adds to ``φ``):
-        column ``tu`` becomes ``(u⁰·u') J_tu + (u⁰·w') J_tw + (u⁰·n') J_o``; column ``tw`` stays.
-        """
-        u0 = self.zero_directions
-        chain = np.stack(
-            [np.sum(u0 * v, axis=-1) for v in (perturbed.zero_directions, perturbed.w_directions, perturbed.crank_axes)]
-        )  # (3, 6): u⁰·u', u⁰·w', u⁰·n' per leg
-        J = np.array(J_M, dtype=float)
-        first = _PER_LEG * np.arange(self.n_legs)
-        J[..., first + _TU] = (
-            chain[0] * J_M[..., first + _TU] + chain[1] * J_M[..., first + _TW] + chain[2] * J_M[..., first + _O]
-        )
-        return J
 
     def _pose_rows(self, R: np.ndarray, m: np.ndarray) -> np.ndarray:
         """``(..., 6, 6)`` ``∂r_i/∂ξ`` rows ``[(d_i × Rᵀm_i)ᵀ, (Rᵀm_i)ᵀ]`` for unit rods ``m (..., 6, 3)``."""
