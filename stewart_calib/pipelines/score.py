@@ -132,8 +132,8 @@ def scores(platform, result: dict, truth) -> dict:
     poses = poses[np.all(np.isfinite(calibrated.inverse_kinematics(R, t)), axis=-1)]
     home = None if platform.workspace is None else platform.workspace.home
     for key, drive in (("closed_loop", calibrated), ("closed_loop_nominal", nominal)):
-        values = closed_loop_error(drive, true, poses, home)
-        out[f"{key}_mm"], out[f"{key}_deg"], out[f"{key}_motion_mm"], out[f"{key}_motion_deg"] = values
+        errors = closed_loop_error(drive, true, poses, home)
+        out[f"{key}_mm"], out[f"{key}_deg"], out[f"{key}_motion_mm"], out[f"{key}_motion_deg"] = errors
     out["poses"] = len(poses)
     return out
 
