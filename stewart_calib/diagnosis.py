@@ -106,8 +106,9 @@ def required_samples(platform: Platform) -> tuple[int, int, str]:
         return math.ceil(n_params / legs), n_params, f"{n_params} drive parameters"
     model = outside_model(platform)
     own, per_sample = model.nominal_unknowns().size, model.channel_sigma.size
-    unknowns = n_params + legs + own - 12  # a stroke scale a leg
-    what = f"{n_params} drive parameters, {legs} stroke scales and {own} of the instrument, less 12 gauge directions"
+    unknowns = n_params + legs + own - 12  # a stroke scale a leg (a servo's angle scale)
+    scales = "stroke" if platform.drive.coordinate_unit == "mm" else "angle"
+    what = f"{n_params} drive parameters, {legs} {scales} scales and {own} of the instrument, less 12 gauge directions"
     return math.ceil(unknowns / per_sample), unknowns, what
 
 
@@ -144,8 +145,24 @@ def _fk(platform: Platform, strokes: np.ndarray):
 
 
 def _stroke_reference(platform: Platform) -> tuple[float, str]:
-    """``(length [mm], what it is)`` the strokes' span is measured against (:func:`~.platform.give_reference_mm`)."""
+    """``(span in code units, what it is)`` the drive's coordinates' span is measured against: a
+    prismatic drive's length [mm] (:func:`~.platform.give_reference_mm`), a rotary drive's angle
+    range [rad] (spec §15)."""
+    if platform.drive.coordinate_unit == "deg":
+        low, high = platform.drive.angle_range  # type: ignore[union-attr]  # a rotary drive's
+        return high - low, "the angle range"
     return give_reference_mm(platform.drive, platform.stroke_range)
+
+
+def _drive_words(platform: Platform) -> tuple[list[str], str, str, float]:
+    """``(the log's drive columns, what they hold, their file unit, file units per code unit)``:
+    ``q1_mm …``, strokes in mm; a rotary drive's ``q1_deg …``, angles in degrees (radians in code)."""
+    from .io.logs import drive_columns
+
+    columns = list(drive_columns(platform))
+    if platform.drive.coordinate_unit == "deg":
+        return columns, "angles", "deg", math.degrees(1.0)
+    return columns, "strokes", "mm", 1.0
 
 
 def _check_moves(platform: Platform, strokes: np.ndarray, readings: np.ndarray, where: str, n_samples: int) -> None:
@@ -155,6 +172,7 @@ def _check_moves(platform: Platform, strokes: np.ndarray, readings: np.ndarray, 
     span = float(np.nanmax(np.ptp(strokes, axis=0))) if len(strokes) else 0.0
     reference, what = _stroke_reference(platform)
     limit = REST_FRACTION * reference
+    _, noun, unit, scale = _drive_words(platform)
     fk = _fk(platform, strokes)
     ok = fk.converged
     if span >= limit or ok.sum() < 2:
@@ -170,23 +188,26 @@ def _check_moves(platform: Platform, strokes: np.ndarray, readings: np.ndarray, 
     measured = ", ".join(f"the {spread.what} {spread.measured:.3g} mm" for spread in lengths)
     _refuse(
         where,
-        f"the log does not move: its {n_samples} samples' strokes span {span:.3g} mm and their poses "
+        f"the log does not move: its {n_samples} samples' {noun} span {span * scale:.3g} {unit} and their poses "
         f"{span_mm:.3g} mm / {span_deg:.3g}° ({measured} RMS); a calibration of {unknowns} unknowns needs at "
-        f"least {needed} distinct poses spread over the workspace, strokes spanning well over "
-        f"{limit:.3g} mm ({REST_FRACTION:g} of {what})",
+        f"least {needed} distinct poses spread over the workspace, {noun} spanning well over "
+        f"{limit * scale:.3g} {unit} ({REST_FRACTION:g} of {what})",
     )
 
 
 def _check_strokes_unit(platform: Platform, strokes: np.ndarray, where: str, stroke_columns: list[str]) -> None:
     """Strokes in metres fill a thousandth of the stroke range (without a range: of the legs'
-    initial length); a log that really moves so little identifies nothing anyway."""
+    initial length), a servo's angles in radians (spec §15: the log holds degrees) π/180 of its
+    angle range; a log that really moves so little identifies nothing anyway."""
     span = float(np.nanmax(strokes) - np.nanmin(strokes)) if strokes.size else 0.0
     reference, what = _stroke_reference(platform)
-    if 0 < span < 1e-3 * UNIT_TOLERANCE * reference:
+    _, noun, unit, scale = _drive_words(platform)
+    factor, other = (1e-3, "metres") if unit == "mm" else (math.radians(1.0), "radians")
+    if 0 < span < factor * UNIT_TOLERANCE * reference:
         _refuse(
             where,
-            f"the strokes {_columns(stroke_columns)} look like metres, not mm: they span {span:.4g} against "
-            f"{reference:.4g} mm of {what} (×1000: {1000 * span:.4g} mm)",
+            f"the {noun} {_columns(stroke_columns)} look like {other}, not {unit}: they span {span * scale:.4g} "
+            f"against {reference * scale:.4g} {unit} of {what} (×{1 / factor:.4g}: {span * scale / factor:.4g} {unit})",
         )
 
 
@@ -279,23 +300,27 @@ def _check_strokes_fit(platform: Platform, R: np.ndarray, readings: np.ndarray, 
     correlation = float(np.corrcoef(measured, modelled)[0, 1]) if np.std(modelled) > 0 else 0.0
     if correlation < FIT_CORRELATION:
         mismatch = math.degrees(float(np.sqrt(np.mean((measured - modelled) ** 2))))
+        columns, noun, unit, _ = _drive_words(platform)
+        other = "a rotary robot's angles in the stroke columns" if unit == "mm" else "another robot's servos"
         _refuse(
             where,
-            f"the strokes do not fit this platform's legs: the angles between pairs of poses that they give the "
-            f"nominal model differ from the instrument's by {mismatch:.3g}° RMS (correlation {correlation:.2f}, "
-            f"expected above {FIT_CORRELATION:g}); expected strokes [mm] of this platform's legs (a log of another "
-            "robot, a rotary robot's angles in the stroke columns, or another --platform?)",
+            f"the {noun} {_columns(columns)} do not fit this platform's legs: the angles between pairs of poses "
+            f"that they give the nominal model differ from the instrument's by {mismatch:.3g}° RMS (correlation "
+            f"{correlation:.2f}, expected above {FIT_CORRELATION:g}); expected {noun} [{unit}] of this platform's "
+            f"legs (a log of another robot, {other}, or another --platform?)",
         )
 
 
-def _check_ratio(where: str, what: str, columns: str, measured: float, expected: float, units, unit_word: str) -> None:
+def _check_ratio(
+    where: str, what: str, columns: str, measured: float, expected: float, units, unit_word: str, noun: str
+) -> None:
     # readings that do not move are no unit: check_readings_follow names them
     if not (math.isfinite(measured) and math.isfinite(expected)) or expected <= 0 or measured <= 0:
         return
     ratio = measured / expected
     unit = _named_unit(ratio, units)
     evidence = (
-        f"they spread {measured:.4g} {unit_word} where the logged strokes through the nominal model give "
+        f"they spread {measured:.4g} {unit_word} where the logged {noun} through the nominal model give "
         f"{expected:.4g} {unit_word}"
     )
     if unit is not None:
@@ -303,17 +328,17 @@ def _check_ratio(where: str, what: str, columns: str, measured: float, expected:
     if ratio > SPREAD_LIMIT or ratio < 1 / SPREAD_LIMIT:
         _refuse(
             where,
-            f"the {what} {columns} do not match the strokes: {evidence} ({ratio:.3g}×); expected the same "
+            f"the {what} {columns} do not match the {noun}: {evidence} ({ratio:.3g}×); expected the same "
             f"spread in {unit_word} (another unit, other columns, or a log of another platform)",
         )
 
 
 def _check_reading_units(platform: Platform, R: np.ndarray, t: np.ndarray, readings: np.ndarray, where: str, columns):
+    noun = _drive_words(platform)[1]
     for spread in instrument_kind(platform).spreads(platform, R, t, readings):
         units, unit_word = (ANGLE_UNITS, "degrees") if spread.angle else (LENGTH_UNITS, "mm")
-        _check_ratio(
-            where, spread.what, _columns(columns[spread.channels]), spread.measured, spread.expected, units, unit_word
-        )
+        named = _columns(columns[spread.channels])
+        _check_ratio(where, spread.what, named, spread.measured, spread.expected, units, unit_word, noun)
 
 
 def _leg_residuals_mm(lengths: np.ndarray, strokes: np.ndarray) -> np.ndarray:
@@ -352,21 +377,25 @@ def _rewired(strokes: np.ndarray, order: np.ndarray, sign: np.ndarray, platform:
     return q
 
 
-def _wiring_message(order, sign, columns, as_logged: float, rewired: float) -> str:
+def _wiring_message(order, sign, words, as_logged: float, rewired: float) -> str:
+    """The cause and evidence of one rewiring; ``words``: :func:`_drive_words`' (columns, noun, unit, scale)."""
+    columns, noun, unit, scale = words
+    one = noun[:-1]  # "stroke", "angle"
     swapped = [i for i in range(len(order)) if order[i] != i]
     if swapped:
         a, b = (columns[i] for i in swapped)
-        cause, change = f"stroke columns {a} and {b} look swapped", f"with {a} and {b} exchanged"
+        cause, change = f"{one} columns {a} and {b} look swapped", f"with {a} and {b} exchanged"
     else:
         leg = int(np.flatnonzero(sign < 0)[0])
-        cause = f"leg {leg + 1}'s stroke looks reversed ({columns[leg]} counts the wrong way)"
+        cause = f"leg {leg + 1}'s {one} looks reversed ({columns[leg]} counts the wrong way)"
         change = f"with {columns[leg]} reversed"
+    legs = "leg lengths" if unit == "mm" else "servo angles"
     logged = (
-        "the readings do not register onto the poses of the strokes as logged"
+        f"the readings do not register onto the poses of the {noun} as logged"
         if math.isinf(as_logged)
-        else f"the leg lengths of the measured poses follow the strokes as logged to {as_logged:.3g} mm RMS"
+        else f"the {legs} of the measured poses follow the {noun} as logged to {as_logged * scale:.3g} {unit} RMS"
     )
-    return f"{cause}: {logged}; {change} they follow them to {rewired:.3g} mm"
+    return f"{cause}: {logged}; {change} they follow them to {rewired * scale:.3g} {unit}"
 
 
 def _pose_lengths(platform: Platform, strokes: np.ndarray, readings: np.ndarray):
@@ -419,7 +448,7 @@ def _wiring_score(platform: Platform, strokes: np.ndarray, readings: np.ndarray)
     return float(np.max(_leg_residuals_mm(lengths[rows], strokes[rows])))
 
 
-def _check_wiring(platform: Platform, strokes: np.ndarray, readings: np.ndarray, where: str, stroke_columns) -> bool:
+def _check_wiring(platform: Platform, strokes: np.ndarray, readings: np.ndarray, where: str) -> bool:
     """Refuse a log that one rewiring (two columns swapped, a leg reversed) explains far better
     than every other; returns whether the log as written registers."""
     pick = _evenly(len(strokes), WIRING_SAMPLES)
@@ -436,7 +465,7 @@ def _check_wiring(platform: Platform, strokes: np.ndarray, readings: np.ndarray,
     second = next(score for score, j in scores[1:] if wirings[j][0] != wirings[k][0])
     if best * WIRING_GAIN < min(as_logged, second):  # one rewiring alone explains the log
         _, order, sign = wirings[k]
-        _refuse(where, _wiring_message(order, sign, stroke_columns, as_logged, best))
+        _refuse(where, _wiring_message(order, sign, _drive_words(platform), as_logged, best))
     return math.isfinite(as_logged)
 
 
@@ -459,7 +488,7 @@ def diagnose_log(
     strokes = np.asarray(strokes, dtype=float)
     readings = np.asarray(readings, dtype=float)
     columns = list(reading_columns or columns_of(platform))
-    stroke_columns = [f"q{i}_mm" for i in range(1, platform.drive.n_legs + 1)]
+    stroke_columns = _drive_words(platform)[0]
     if count:
         _check_count(platform, readings, where)
     n_samples = len(strokes)
@@ -479,7 +508,7 @@ def diagnose_log(
     if ok.sum() >= 3 and moves:
         _check_reading_units(platform, fk.R[ok], fk.t[ok], readings[ok], where, columns)
         check_readings_follow(platform, fk.R[ok], fk.t[ok], readings[ok], where, columns)
-    registers = _check_wiring(platform, strokes, readings, where, stroke_columns)
+    registers = _check_wiring(platform, strokes, readings, where)
     if instrument_kind(platform).outside and ok.sum() >= 3:  # after the wiring: a leg reversed is named as such
         _check_strokes_fit(platform, fk.R[ok], readings[ok], where)
     if ok.sum() >= 3:  # after the wiring: a reversed leg's poses turn wrongly too, and its cause is named there

@@ -30,6 +30,7 @@ Linear in N at the default 2000 candidates; quadratic when M grows with N (BENCH
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -39,6 +40,7 @@ from .config import NoiseConfig
 from .errors import CalibError
 from .identifiability import RANK_RTOL, scaled_paper_jacobian, whitened_leg_jacobian
 from .instruments import instrument_kind, outside_model
+from .model.rotary import RotaryLegs
 from .platform import LegGeometry, Platform
 
 CRITERIA = ("A", "D", "O1", "E", "I")
@@ -349,12 +351,22 @@ def noise_floor(platform: Platform, n_poses: int, noise: NoiseConfig | None = No
 
 def with_stroke_margin(platform: Platform, noise: NoiseConfig) -> Platform:
     """The platform whose stroke range is :data:`STROKE_MARGIN_SIGMAS` prior σ narrower at each end
-    (at most a quarter of the range): where plan puts an outside instrument's poses."""
+    (at most a quarter of the range): where plan puts an outside instrument's poses. A rotary drive's
+    angle range (spec §15) narrows by as many ``noise.angle_prior_sigma_deg``, the zero trims' σ."""
+    if isinstance(platform.drive, RotaryLegs):
+        low, high = platform.drive.angle_range
+        margin = _margin(math.radians(noise.angle_prior_sigma_deg), high - low)
+        return replace(platform, drive=replace(platform.drive, angle_range=(low + margin, high - margin)))
     if platform.stroke_range is None:
         return platform
     low, high = platform.stroke_range
-    margin = min(STROKE_MARGIN_SIGMAS * noise.prior_sigma_mm, 0.25 * (high - low))
+    margin = _margin(noise.prior_sigma_mm, high - low)
     return replace(platform, stroke_range=(low + margin, high - margin))
+
+
+def _margin(prior_sigma: float, width: float) -> float:
+    """:data:`STROKE_MARGIN_SIGMAS` × ``prior_sigma``, at most a quarter of the range's ``width``."""
+    return min(STROKE_MARGIN_SIGMAS * prior_sigma, 0.25 * width)
 
 
 def nominal_error(platform: Platform, noise: NoiseConfig) -> PredictedError:

@@ -342,15 +342,15 @@ def default_compliance_sigma(platform_mass_kg: float) -> float:
 MIN_PLATFORM_MASS_KG = 1e-3
 
 
-def give_reference_mm(drive: LegGeometry, stroke_range: tuple[float, float] | None) -> tuple[float, str]:
+def give_reference_mm(drive: LegGeometry | RotaryLegs, stroke_range: tuple[float, float] | None) -> tuple[float, str]:
     """``(length [mm], what it is)`` no leg can give under a load: the stroke range (a leg that gave
     more would leave its drive no stroke to hold any pose), or without one the shortest leg's length
-    at zero stroke (a leg cannot shorten by more than its length)."""
+    at zero stroke (a leg cannot shorten by more than its length); for another leg kind (a rotary
+    drive, spec §15, which takes no ``[elastic]``) its shortest rod."""
     if stroke_range is not None:
         return float(stroke_range[1] - stroke_range[0]), "the stroke range"
-    if not isinstance(drive, LegGeometry):  # a rotary drive's commanded angles [rad]
-        low, high = drive.angle_range
-        return float(high - low), "the angle range"
+    if not isinstance(drive, LegGeometry):
+        return float(np.min(drive.rod_lengths)), "the shortest rod's length"
     return float(np.min(drive.initial_lengths)), "the shortest leg's length"
 
 

@@ -334,7 +334,7 @@ def test_missing_stroke_columns_are_the_drives_not_the_instruments(outside_run, 
     (line,) = err.splitlines()
     assert status == 2 and line.endswith(
         "noq.csv: row 1: missing column(s) q1_mm, q2_mm, q3_mm, q4_mm, q5_mm, q6_mm of the drive's strokes [mm] "
-        "(spec §3)"
+        "(spec §3, §15)"
     ), line
 
 

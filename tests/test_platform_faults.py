@@ -37,7 +37,7 @@ def _set(section, key, value):
         (
             _set("drive", "stroke_rnage_mm", [-420.0, 520.0]),
             "unknown key 'drive.stroke_rnage_mm' (did you mean 'stroke_range_mm'?); expected one of base_joints_mm, "
-            "initial_lengths_mm, platform_joints_mm, stroke_range_mm",
+            "initial_lengths_mm, kind, platform_joints_mm, stroke_range_mm",
         ),
         (lambda d: d.__setitem__("nmae", "x"), "unknown key 'nmae' (did you mean 'name'?)"),
         (

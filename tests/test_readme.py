@@ -35,7 +35,7 @@ README = ROOT / "README.md"
 #: the site's pages whose commands run here (each in a directory of its own, as a reader starting on it)
 HOWTOS = [ROOT / "docs" / "index.md"] + [
     ROOT / "docs" / "howto" / f"{name}.md"
-    for name in ("motion-capture", "laser-tracker", "in-situ-tracker", "under-load", "cluster")
+    for name in ("motion-capture", "laser-tracker", "in-situ-tracker", "under-load", "cluster", "servo-platform")
 ]
 FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
 

@@ -14,7 +14,7 @@ from rerun.chunk import RrdReader
 
 from stewart_calib import kinematics as kin
 from stewart_calib.platform import N_PARAMS_PER_LEG, PARAMETER_FIELDS
-from stewart_calib.viz import recording
+from stewart_calib.viz import geometry, recording
 from stewart_calib.viz.recording import (
     SAMPLE_TIMELINE,
     TIME_TIMELINE,
@@ -186,13 +186,11 @@ def test_leg_strips_join_the_joints_at_the_pose(written):
     assert not np.allclose(legs.base_joints, written["platform"].drive.base_joints, atol=1e-2)
 
 
-def test_a_rotary_leg_is_drawn_crank_horn_rod(monkeypatch):
+def test_a_rotary_leg_is_drawn_crank_horn_rod():
     from tests.test_rotary_legs import LEGS, reachable_poses
 
-    # the joints are the leg model's gauge columns (instruments.gauge.joint_columns of any leg model)
-    monkeypatch.setattr(recording, "joint_columns", lambda legs: tuple(np.ravel(c) for c in legs.gauge_columns))
     R, t, _ = reachable_poses(LEGS, 4, 11)
-    strips = recording._leg_strips(LEGS, R, t).reshape(4, 6, 3, 3)
+    strips = geometry.leg_polylines(LEGS, R, t).reshape(4, 6, 3, 3)
     crank, horn, joint = strips[..., 0, :], strips[..., 1, :], strips[..., 2, :]
     np.testing.assert_allclose(crank, np.broadcast_to(LEGS.crank_centres, crank.shape))
     np.testing.assert_allclose(np.linalg.norm(horn - crank, axis=-1), np.broadcast_to(LEGS.horn_lengths, (4, 6)))
@@ -204,7 +202,7 @@ def test_any_prismatic_leg_model_is_drawn_straight():
     platform = nim_stewart()
     R, t = kin.pose_to_rt(random_poses(platform, 5, np.random.default_rng(8)))
     np.testing.assert_array_equal(  # as the compiled leg set
-        recording._leg_strips(numpy_legs(platform.drive), R, t), recording._leg_strips(platform.drive, R, t)
+        geometry.leg_polylines(numpy_legs(platform.drive), R, t), geometry.leg_polylines(platform.drive, R, t)
     )
 
 

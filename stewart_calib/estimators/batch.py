@@ -288,7 +288,8 @@ def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], fil
         (:func:`equilibrated_condition_number`), "verdict" (of the equilibrated number, with the
         thresholds of :mod:`stewart_calib.identifiability`), "null_space_dimension",
         "weakest_directions" and "null_space" (named, :func:`_named_directions`), "<block>_identifiable"
-        per drive block, "predicted_stddev": {name: σ in file units (None: not identified)}}``.
+        per drive block, "predicted_stddev": {name: σ in file units (a servo's angles in degrees; None:
+        not identified)}}``.
     """
     drive = problem.drive
     R, t, ok, inputs = _fk(problem, np.zeros(drive.size), None)
@@ -312,10 +313,12 @@ def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], fil
         covariance = lift @ np.linalg.inv(A.T @ A) @ lift.T
         n = drive.size
         variance = np.r_[np.diag(covariance)[:n], np.diag(file_jacobian @ covariance[n:, n:] @ file_jacobian.T)]
-        stddev = [float(v) for v in np.sqrt(np.clip(variance, 0.0, None))]
+        sd = np.sqrt(np.clip(variance, 0.0, None))
+        sd[: drive.n_params] *= np.where(drive.legs.parameter_degrees, np.degrees(1.0), 1.0)  # file units
+        stddev = [float(v) for v in sd]
     return {
         "unknowns": int(A.shape[1]),
-        "gauge": gauge.GAUGE_STATEMENT,
+        "gauge": gauge.gauge_statement(drive.legs.kind),
         "rank": rank,
         "condition_number": float(s[0] / s[-1]) if rank == A.shape[1] else None,
         "condition_number_equilibrated": equilibrated,

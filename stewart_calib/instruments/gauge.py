@@ -26,13 +26,25 @@ from .. import kinematics as kin
 from ..model.legs import LegModel
 from . import lie
 
-#: stated in every result that fixes the gauge this way
-GAUGE_STATEMENT = (
-    "12 gauge directions fixed: the base joints' and the platform joints' errors carry no common rigid "
-    "motion (sum of dj_i = 0 and sum of (j_i - centroid) x dj_i = 0; the same for d_i), so {J} and {D} "
-    "are the frames where the joints best fit their nominal positions; the instrument frame and "
-    "target(s) absorb the rigid parts"
-)
+#: the base-side points whose rigid motion the gauge holds, by leg kind: ``(what they are, their symbol)``
+BASE_POINTS = {"prismatic": ("base joints", "j"), "rotary": ("crank centres", "a")}
+
+
+def gauge_statement(kind: str) -> str:
+    """What every result that fixes the gauge this way states, in the base-side points of the leg
+    kind ``kind`` (:attr:`LegModel.kind`, :data:`BASE_POINTS`; a rotary drive's crank centres ``a_i``,
+    spec §15)."""
+    points, symbol = BASE_POINTS[kind]
+    return (
+        f"12 gauge directions fixed: the {points}' and the platform joints' errors carry no common rigid "
+        f"motion (sum of d{symbol}_i = 0 and sum of ({symbol}_i - centroid) x d{symbol}_i = 0; the same for "
+        "d_i), so {J} and {D} are the frames where the joints best fit their nominal positions; the "
+        "instrument frame and target(s) absorb the rigid parts"
+    )
+
+
+#: stated in every result of a prismatic drive that fixes the gauge this way
+GAUGE_STATEMENT = gauge_statement("prismatic")
 
 
 def joint_columns(legs: LegModel) -> tuple[np.ndarray, np.ndarray]:

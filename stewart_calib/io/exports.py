@@ -50,6 +50,8 @@ MM_PER = {
     "in": 25.4,
     "inches": 25.4,
 }
+#: degrees per angle unit: a servo drive's commanded angles (spec §15), which a log holds in degrees
+DEG_PER = {"deg": 1.0, "degrees": 1.0, "rad": 180.0 / np.pi, "radians": 180.0 / np.pi}
 #: seconds per time unit
 S_PER = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 #: a platform's orientation in an instrument set up near it stays this close to the identity [deg]
@@ -777,7 +779,9 @@ def point_list_blocks(
 
 @dataclass(frozen=True)
 class StrokeColumns:
-    """How a file's stroke columns become ``q1_mm … q6_mm``: ``q = sign (raw − zero) mm_per_raw``."""
+    """How a file's stroke columns become ``q1_mm … q6_mm``: ``q = sign (raw − zero) mm_per_raw``; a
+    servo drive's angles (``unit`` deg or rad) ``q1_deg … q6_deg``, ``mm_per_raw`` then degrees per raw
+    unit and ``log_unit`` ``"deg"``."""
 
     time: str | None
     time_scale: float
@@ -786,6 +790,7 @@ class StrokeColumns:
     sign: np.ndarray
     zero: np.ndarray
     what: str
+    log_unit: str = "mm"
 
     def convert(self, raw: np.ndarray) -> np.ndarray:
         return self.sign * (raw - self.zero) * self.mm_per_raw
@@ -797,7 +802,7 @@ def stroke_columns(mapping_path: Path, table: dict) -> StrokeColumns:
     columns = mapping_value(mapping_path, table, section, "columns", None, list)
     if columns is None or len(columns) != 6 or not all(isinstance(c, str) for c in columns):
         _refuse(mapping_path, "'strokes.columns': expected the six stroke column names of legs 1..6")
-    unit = mapping_value(mapping_path, table, section, "unit", "mm", str, ("counts", *MM_PER))
+    unit = mapping_value(mapping_path, table, section, "unit", "mm", str, ("counts", *MM_PER, *DEG_PER))
     if unit == "counts":
         per_mm = table.get("counts_per_mm")
         if per_mm is None:
@@ -817,6 +822,8 @@ def stroke_columns(mapping_path: Path, table: dict) -> StrokeColumns:
                 1.0 / _six(mapping_path, "strokes.counts_per_mm", per_mm),
                 "encoder counts / counts_per_mm",
             )
+    elif unit in DEG_PER:
+        mm_per_raw, what = np.full(6, DEG_PER[unit]), f"servo angles in {unit}"
     else:
         mm_per_raw, what = np.full(6, MM_PER[unit]), f"strokes in {unit}"
     sign = _six(mapping_path, "strokes.sign", table.get("sign", 1.0))
@@ -826,7 +833,8 @@ def stroke_columns(mapping_path: Path, table: dict) -> StrokeColumns:
     time = mapping_value(mapping_path, table, section, "time", None, str)
     check_distinct(mapping_path, [("strokes.time", [time] if time else []), ("strokes.columns", columns)])
     time_scale = S_PER[mapping_value(mapping_path, table, section, "time_unit", "s", str, tuple(S_PER))]
-    return StrokeColumns(time, time_scale, columns, mm_per_raw, sign, zero, what)
+    log_unit = "deg" if unit in DEG_PER else "mm"
+    return StrokeColumns(time, time_scale, columns, mm_per_raw, sign, zero, what, log_unit)
 
 
 def _six(path, key: str, value) -> np.ndarray:

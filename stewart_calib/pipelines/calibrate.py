@@ -78,9 +78,13 @@ def _write_rerun(
     batch: bool,
     leg_forces: LegForceSeries | None = None,
 ) -> None:
-    """A rerun ``.rrd``: the platform geometry, the parameter errors δM over time with their ±σ
-    bands [mm], and the method's diagnostics: drive-leg residuals after each sample and, for an
-    online method, before it (the innovation), and the NIS of a Kalman method."""
+    """A rerun ``.rrd``: the platform geometry, the robot at each sample drawn with the calibrated
+    legs (a rotary drive's crank → horn → rod, :func:`~stewart_calib.viz.recording.log_platform_pose`)
+    at the instrument's pose where it fixes one (the tracker), else at the calibrated model's forward
+    kinematics of the logged coordinates, the parameter errors δM over time with their ±σ bands in
+    file units (mm; a servo's angles in degrees), and the method's diagnostics: drive-leg residuals
+    after each sample and, for an online method, before it (the innovation), and the NIS of a Kalman
+    method."""
     from ..viz import recording as viz  # rerun is slow to import; only --rerun needs it
 
     nominal, trace = platform.drive.as_vector(), run.trace
@@ -97,10 +101,20 @@ def _write_rerun(
     series = {"residual": residual, "innovation": innovation, "nis": run.nis}
     kinds = {kind for kind, values in series.items() if values is not None}
     fields = viz.parameter_fields(platform.drive.parameter_names, platform.drive.n_legs)
+    calibrated = drive_model(platform).calibrated_by(run.estimate)
+    if reading_legs is None:
+        poses = calibrated.settled_kinematics(log.strokes, log.load_kg, strict=False)[0]
+    drawn = np.all(np.isfinite(poses.t), axis=1) & np.asarray(poses.converged)
+    errors = io.parameters_to_file(trace - nominal, platform.drive)  # a servo's angles in degrees
+    stddev = None if run.stddev is None else io.parameters_to_file(run.stddev, platform.drive)
     with io.atomic_path(path) as tmp, viz.open_recording(tmp) as rec:
         viz.log_platform_geometry(rec, platform)
-        viz.log_parameters(rec, method, trace - nominal, log.t_s, fields=fields)
-        viz.log_parameter_band(rec, method, trace - nominal, run.stddev, log.t_s, fields=fields)
+        if drawn.any():
+            samples = np.flatnonzero(drawn)
+            R, t = poses.R[drawn], poses.t[drawn]
+            viz.log_platform_pose(rec, platform, R, t, log.t_s[drawn], samples, drive_legs=calibrated.legs)
+        viz.log_parameters(rec, method, errors, log.t_s, fields=fields)
+        viz.log_parameter_band(rec, method, errors, stddev, log.t_s, fields=fields)
         viz.log_diagnostics(rec, method, log.t_s, residual, innovation, run.nis)
         if leg_forces is not None:  # an elastic platform's (_leg_forces): the legs' forces, and c ± σ
             forces, c, sigma = leg_forces
@@ -321,13 +335,15 @@ def run(args: argparse.Namespace) -> int:
             else None
         )
         if report_dir:
+            from ..viz.geometry import robot_at
             from ..viz.html_report import LegForces, report_html
 
             inputs = {"platform file": str(args.platform), "log": str(args.log)}
             forces = None if leg_forces is None else LegForces(np.asarray(log.t_s), *leg_forces[:2])
             title = f"Calibration of {platform.name} with {args.method}"
             shown = " — ".join(text for text in (verdict, unsupported) if text)
-            page = report_html(title, result_data, residuals, None, inputs, forces, shown)
+            robot = robot_at(platform, drive_model(platform).calibrated_by(estimate).legs)
+            page = report_html(title, result_data, residuals, None, inputs, forces, shown, robot)
         if rerun_path:
             batch = not estimators.method_spec(args.method).online
             _write_rerun(rerun_path, platform, args.method, log, result, batch, leg_forces)

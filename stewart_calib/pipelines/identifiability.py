@@ -66,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
     noise = load_estimator_config(args.config, args.set).noise
     if instrument_kind(platform).outside:
-        return _run_outside_instrument(args, platform)
+        return _run_outside_instrument(args, platform, noise)
     if args.log is not None:
         information = log_information(platform, args.log, args.pose_source, noise, args.skip_bad_rows)
         require_poses(platform, information.n_poses, args.log, "pose(s)", "poses")
@@ -117,10 +117,11 @@ def _prediction(platform: Platform, covariance, poses, n_poses: int, noise) -> d
     return {"predicted_closed_loop": {**prediction.to_dict(), **field}}
 
 
-def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int:
+def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise) -> int:
     """An instrument outside the robot (spec §7): the Cramér–Rao σ of drive, stroke scale and
     instrument unknowns together, at the nominal drive and the instrument registered on the log
-    (a pose list: the nominal instrument reading the nominal robot at those poses)."""
+    (a pose list: the nominal instrument reading the nominal robot at those poses), and the drive's
+    parameters the poses see no better than their prior (:func:`_weak_against_prior`)."""
     import numpy as np
 
     from .. import kinematics as kin
@@ -152,7 +153,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
     report = instrument_identifiability(platform, strokes, readings, payload)
     equilibrated = report["condition_number_equilibrated"]
     # the drive's blocks by name: the compliance too with [elastic] (spec §10), which the report covers
-    parts = ["drive", *(block.key.replace("_", " ") for block in drive.blocks)]
+    parts = ["drive", *(_block_name(drive, block) for block in drive.blocks)]
     print(
         f"Identifiability of {', '.join(parts)} and {model.kind} instrument from {len(strokes)} poses: "
         f"{report['verdict']} (rank {report['rank']}/{report['unknowns']}; condition number "
@@ -171,11 +172,45 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform) -> int
             "  "
             + "  ".join(f"{name} {'not id' if sd is None else f'{sd:.3g}'}" for name, sd in items[start : start + 7])
         )
+    weak = _weak_against_prior(drive.legs, report["predicted_stddev"], noise)
+    if weak:
+        named = ", ".join(f"{name} {sd:.3g} (prior {prior:.3g})" for name, sd, prior in weak)
+        print(
+            "seen no better than their prior σ (a calibration keeps them near nominal; poses that see them "
+            f"better: stewart-calib plan): {named}"
+        )
     prediction = _prediction(platform, design_covariance(platform, poses, seen=seen), poses, len(poses), None)
     if args.json:
-        document = {"format": "stewart-calib/identifiability-instrument@1", **report, **prediction}
+        document = {
+            "format": "stewart-calib/identifiability-instrument@1",
+            **report,
+            "weak_against_prior": [name for name, _, _ in weak],
+            **prediction,
+        }
         io.atomic_write_text(args.json, json.dumps(document, indent=2) + "\n")
     return 0
+
+
+def _weak_against_prior(legs, stddev: dict, noise) -> list[tuple[str, float, float]]:
+    """``(name, Cramér–Rao σ, prior σ)`` in file units of each drive parameter whose σ from the poses
+    alone (``stddev``: the report's, by name) is above its prior σ (the leg model's ``prior_sigmas``;
+    a servo's zero offsets and axis tilts in degrees), largest ratio first; none where the poses do
+    not identify every unknown (the null space names those)."""
+    import numpy as np
+
+    prior = legs.prior_sigmas(noise) * np.where(legs.parameter_degrees, np.degrees(1.0), 1.0)
+    weak = [
+        (name, stddev[name], float(p))
+        for name, p in zip(legs.parameter_names, prior, strict=True)
+        if stddev[name] is not None and stddev[name] > p
+    ]
+    return sorted(weak, key=lambda item: -item[1] / item[2])
+
+
+def _block_name(drive, block) -> str:
+    """A drive block's words (``stroke scale``; a rotary drive's ``angle scale``, spec §15)."""
+    name = block.key.replace("_", " ")
+    return name.replace("stroke", "angle") if drive.legs.coordinate_unit == "deg" else name
 
 
 def main(argv: list[str] | None = None) -> int:

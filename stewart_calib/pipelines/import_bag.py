@@ -2,7 +2,7 @@
 
     stewart-calib import-bag BAG --strokes TOPIC (--readings TOPIC | --pose TOPIC) --out L.csv
                              [--stroke-joints N1,…,N6] [--reading-joints N1,…,N6]
-                             [--stroke-unit m|mm|um] [--reading-unit m|mm|um] [--pose-unit m|mm|um]
+                             [--stroke-unit m|mm|um|rad|deg] [--reading-unit m|mm|um] [--pose-unit m|mm|um]
                              [--clock header|bag] [--max-gap-s S]
 
 Reads ROS 2 bags (sqlite3 or MCAP directory) and ROS 1 ``.bag`` files with the ``rosbags``
@@ -45,6 +45,8 @@ JOINT_STATE = "sensor_msgs/msg/JointState"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 #: millimetres per unit of each ``--*-unit`` choice.
 MM_PER_UNIT = {"m": 1000.0, "mm": 1.0, "um": 1e-3}
+#: degrees per unit of a servo drive's joint positions (spec §15: the log's ``q1_deg … q6_deg``; ROS: rad)
+DEG_PER_UNIT = {"rad": 180.0 / math.pi, "deg": 1.0}
 #: default largest time between the two stroke messages a row is interpolated from [s].
 DEFAULT_MAX_GAP_S = 0.1
 #: the log's columns of the tracker's readings and of a measured pose (spec §3, §7)
@@ -246,11 +248,18 @@ def read_topic(
 # ----------------------------------------------------------------------------- the log
 
 
-def log_text(t_s: np.ndarray, strokes_mm: np.ndarray, header: tuple[str, ...], measured: np.ndarray) -> str:
-    """The CSV text of a log: ``t_s``, ``q1_mm … q6_mm``, then the measurement columns ``header``."""
+def log_text(
+    t_s: np.ndarray,
+    strokes_mm: np.ndarray,
+    header: tuple[str, ...],
+    measured: np.ndarray,
+    drive_columns: tuple[str, ...] = io.STROKE_COLUMNS,
+) -> str:
+    """The CSV text of a log: ``t_s``, the drive's ``drive_columns`` (``q1_mm … q6_mm``, a servo
+    drive's ``q1_deg … q6_deg``), then the measurement columns ``header``."""
     buffer = text_io.StringIO()
     writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(["t_s", *io.STROKE_COLUMNS, *header])
+    writer.writerow(["t_s", *drive_columns, *header])
     writer.writerows(np.column_stack([t_s, strokes_mm, measured]).tolist())
     return buffer.getvalue()
 
@@ -298,11 +307,14 @@ def run(args: argparse.Namespace) -> int:
             f"{measured.t_s[0]:.3f}–{measured.t_s[-1]:.3f} s); check --clock or raise --max-gap-s"
         )
     t_s = measured.t_s[kept]
-    strokes_mm, measured_values = q * MM_PER_UNIT[args.stroke_unit], values[kept]
+    angles = args.stroke_unit in DEG_PER_UNIT  # a servo drive's joint positions
+    strokes_mm = q * (DEG_PER_UNIT if angles else MM_PER_UNIT)[args.stroke_unit]
+    measured_values = values[kept]
     for option, array in (("--strokes", strokes_mm), ((args.readings and "--readings") or "--pose", measured_values)):
         if not np.all(np.isfinite(array)):  # finite in the bag, overflowed by the unit's scale
             raise CalibError(f"{bag}: {option}: values that are not finite in mm (overflow of the unit conversion)")
-    io.atomic_write_text(out, log_text(t_s - t_s[0], strokes_mm, header, measured_values))
+    drive_columns = io.ANGLE_COLUMNS if angles else io.STROKE_COLUMNS
+    io.atomic_write_text(out, log_text(t_s - t_s[0], strokes_mm, header, measured_values, drive_columns))
     start = datetime.fromtimestamp(t_s[0], tz=UTC).isoformat(timespec="milliseconds")
     dropped = int((~kept).sum())
     option, topic = ("--readings", args.readings) if args.readings is not None else ("--pose", args.pose)
@@ -341,11 +353,12 @@ def add_parser(subparsers) -> None:
         "--reading-joints", metavar="N1,…,N6", help="joint names of tracker legs 1..6 (default: in order)"
     )
     for what in ("stroke", "reading", "pose"):
+        angles = ", or rad | deg: a servo drive's angles, written as q1_deg … q6_deg" if what == "stroke" else ""
         parser.add_argument(
             f"--{what}-unit",
-            choices=tuple(MM_PER_UNIT),
+            choices=(*MM_PER_UNIT, *DEG_PER_UNIT) if what == "stroke" else tuple(MM_PER_UNIT),
             default="m",
-            help=f"unit of the {what} positions in the bag (default m, as ROS)",
+            help=f"unit of the {what} positions in the bag (default m, as ROS{angles})",
         )
     parser.add_argument(
         "--clock",

@@ -551,6 +551,13 @@ def run(args: argparse.Namespace) -> int:
                 f"--platform {args.platform}: its [instrument] is '{platform.instrument.kind}'; the import gives "
                 f"a {kind} log"
             )
+        if platform.drive.coordinate_unit != strokes.log_unit:
+            raise CalibError(
+                f"{mapping_path}: [strokes] unit gives {strokes.what} where --platform {args.platform}'s [drive] "
+                f'(kind = "{platform.drive.kind}") takes {io.drive_columns(platform)[0]} … '
+                f"{io.drive_columns(platform)[-1]}; expected a unit in {platform.drive.coordinate_unit}"
+            )
+    drive_columns = tuple(f"q{i}_{strokes.log_unit}" for i in range(1, 7))  # spec §3, §15
     notes: list = [what, *([tally] if tally is not None else []), strokes.what]
     controller = None
     if args.strokes is None:
@@ -576,7 +583,7 @@ def run(args: argparse.Namespace) -> int:
             counts["lost"] += int(lost.sum())
             counts["unjoined"] += int((~kept & ~lost).sum())
             use = kept & ~lost
-            strokes_mm = np.full((len(block.t_s), len(io.STROKE_COLUMNS)), np.nan)
+            strokes_mm = np.full((len(block.t_s), len(drive_columns)), np.nan)  # a servo's: degrees
             strokes_mm[kept] = q
             if not columns:
                 columns.extend(INSTRUMENT_SECTIONS[kind].log_columns(block.values.shape[1] // 3))
@@ -587,7 +594,8 @@ def run(args: argparse.Namespace) -> int:
 
                 readings = io.readings_in_code_units(block.values[use], platform)
                 inputs = str(source) if args.strokes is None else f"{source} with the strokes of {args.strokes}"
-                diagnose_log(platform, strokes_mm[use], readings, inputs, count=False)
+                coordinates = io.strokes_in_code_units(strokes_mm[use], platform)
+                diagnose_log(platform, coordinates, readings, inputs, count=False)
                 checked.append(True)
             counts["written"] += int(use.sum())
             yield [block.t_s[use], *strokes_mm[use].T, *block.values[use].T]
@@ -600,7 +608,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{counts['unjoined']} without strokes within {max_gap_s:g} s); nothing written{hint}"
             )
 
-    _write(out, rows, columns, MODELS[kind].unseen_channels)
+    _write(out, rows, drive_columns, columns, MODELS[kind].unseen_channels)
     gap_hint = controller.gap_hint(max_gap_s) if controller is not None and counts["unjoined"] else ""
     print(
         f"stewart-calib import: wrote {out}: {counts['written']} of {counts['read']} rows ({counts['lost']} where the "
@@ -620,14 +628,15 @@ def _check_target_count(platform_path, imported: int, targets: int) -> None:
         )
 
 
-def _write(out: Path, rows, columns: list[str], unseen: bool) -> int:
-    """Write the rows (blocks of float columns) as a log; the header is known once the first
-    block is, so the first block is looked at before the file is opened. ``unseen``: the
-    instrument may leave a reading's channels unmeasured (NaN, written as empty fields)."""
+def _write(out: Path, rows, drive_columns: tuple[str, ...], columns: list[str], unseen: bool) -> int:
+    """Write the rows (blocks of float columns) as a log, the drive's in ``drive_columns`` (``q1_mm …``,
+    a servo's ``q1_deg …``); the header is known once the first block is, so the first block is looked
+    at before the file is opened. ``unseen``: the instrument may leave a reading's channels unmeasured
+    (NaN, written as empty fields)."""
     blocks = iter(rows())
     first = next(blocks)
-    header = ["t_s", *io.STROKE_COLUMNS, *columns]
-    blank = tuple(1 + len(io.STROKE_COLUMNS) + j for j in range(len(columns))) if unseen else ()
+    header = ["t_s", *drive_columns, *columns]
+    blank = tuple(1 + len(drive_columns) + j for j in range(len(columns))) if unseen else ()
 
     def all_blocks():
         yield first

@@ -116,10 +116,11 @@ def run(args: argparse.Namespace) -> int:
     extremes = ""
     if instrument_kind(platform).outside:
         extremes = f" and {len(extreme_poses(platform))} box extremes"
-        narrowed = with_stroke_margin(platform, noise).stroke_range
-        if platform.stroke_range is not None and narrowed is not None:
-            margin_mm = narrowed[0] - platform.stroke_range[0]
-            extremes += f"; strokes {margin_mm:.3g} mm inside the range, for the true robot's offsets"
+        narrowed, _, unit = io.drive_range(with_stroke_margin(platform, noise))
+        bounds = io.drive_range(platform)[0]
+        if bounds is not None and narrowed is not None:
+            what = "strokes" if unit == "mm" else "angles"
+            extremes += f"; {what} {narrowed[0] - bounds[0]:.3g} {unit} inside the range, for the true robot's offsets"
     print(
         f"planned {len(poses)} poses ({criterion} from {args.candidates} candidates{extremes}, {elapsed_s:.2f} s) "
         f"-> {args.out}"

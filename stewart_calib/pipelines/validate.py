@@ -268,17 +268,18 @@ def _diagnose_sample(platform: Platform, first: list, path: str) -> None:
 def _report_page(args, platform: Platform, result: dict, log, predicted, position, orientation, verdict: str) -> str:
     """The ``--report`` page: the held-out errors and residuals per channel, then the calibration's own
     sections (parameters ± σ, correlations, conditioning, config, versions) from the result."""
+    from ..viz.geometry import robot_at
     from ..viz.html_report import HeldOut, LegForces, report_html
 
     held = HeldOut(str(args.log), np.asarray(log.t_s), position, orientation, args.register_instrument)
     residuals = measurement_residuals(platform, log, result, predicted, "the held-out log")
     inputs = {"platform file": str(args.platform), "result": str(args.result), "held-out log": str(args.log)}
     forces = None
+    drive = handover.calibrated_model(platform, args.result)
     if platform.elastic is not None:
-        drive = handover.calibrated_model(platform, args.result)
         forces = LegForces(np.asarray(log.t_s), handover.leg_forces(drive, log), drive.term_values()[-1])
     title = f"Validation of {platform.name} ({result['method']}) on {Path(args.log).name}"
-    return report_html(title, result, residuals, held, inputs, forces, verdict)
+    return report_html(title, result, residuals, held, inputs, forces, verdict, robot_at(platform, drive.legs))
 
 
 def _summary(position: np.ndarray, orientation: np.ndarray | None, n: int) -> str:

@@ -532,10 +532,19 @@ def _platform(value: str, families: dict, path: Path, refuse) -> Platform | Fami
 
 
 def _platform_file(value: str, path: Path, refuse) -> Platform:
-    """A platform file relative to the spec, or a shipped platform's name."""
+    """A platform file relative to the spec, or a shipped platform's name, of a prismatic drive: the
+    sweep's true errors (mm on every entry), its truth moved into the gauge
+    (:func:`~stewart_calib.instruments.gauge.to_gauge`) and its bound are the prismatic legs'."""
     for candidate in (path.parent / value, CONFIGS / "platforms" / f"{value}.toml"):
         if candidate.is_file():
-            return load_platform(candidate)
+            platform = load_platform(candidate)
+            if platform.drive.kind != "prismatic":
+                raise refuse(
+                    f"expected a platform of prismatic legs (the sweep draws, gauges and bounds their errors), got "
+                    f"{_shown(value)}, a {platform.drive.kind} drive (spec §15): calibrate it with simulate and "
+                    "calibrate (docs/howto/servo-platform.md)"
+                )
+            return platform
     raise refuse(
         "expected a shipped platform name, a platform file relative to the spec or a [families] name, "
         f"got {_shown(value)}"

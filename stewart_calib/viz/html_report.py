@@ -85,6 +85,27 @@ class LegForces:
     compliance_mm_per_kN: np.ndarray
 
 
+@dataclass(frozen=True)
+class Robot:
+    """The drive drawn at one pose, nominal and calibrated (:func:`~stewart_calib.viz.geometry.robot_at`).
+
+    Attributes:
+        kind: the drive's leg kind (``prismatic``, ``rotary``: its legs drawn crank → horn → rod).
+        pose: what the pose is, for the page's text (e.g. ``the workspace's home``).
+        nominal: ``(L, k, 3)`` each nominal leg's polyline in {J} [mm]
+            (:func:`~stewart_calib.viz.geometry.leg_polylines`).
+        calibrated: ``(L, k, 3)`` the calibrated legs' at the same pose.
+        parameter_degrees: ``(n_params,)`` True where the result gives the parameter in degrees
+            (a servo's zero offset and axis tilts, spec §15).
+    """
+
+    kind: str
+    pose: str
+    nominal: np.ndarray
+    calibrated: np.ndarray
+    parameter_degrees: np.ndarray
+
+
 def rms(values: np.ndarray, axis=0) -> np.ndarray:
     """Root mean square ignoring NaN (a target not seen in a row)."""
     return np.sqrt(np.nanmean(np.square(values), axis=axis))
@@ -188,20 +209,70 @@ def residual_time_figure(residuals: Residuals) -> str:
     return _png(fig)
 
 
-def parameter_figure(names: list[str], error: np.ndarray, stddev: np.ndarray | None) -> str:
-    fig = new_figure(10.0, 3.0)
-    ax = fig.subplots()
-    x = np.arange(len(names))
-    ax.axhline(0.0, color="0.6", lw=0.8)
-    if stddev is not None:
-        ax.errorbar(x, error, yerr=stddev, fmt="o", ms=3, capsize=2, color="#4c72b0", ecolor="#8fa8d8", label="δM ± σ")
-    else:
-        ax.plot(x, error, "o", ms=3, color="#4c72b0", label="δM (no covariance)")
-    ax.set_xticks(x, names, rotation=90, fontsize=7)
-    ax.set_xlim(-0.7, len(names) - 0.3)
-    ax.set_ylabel("parameter error δM [mm]")
-    ax.grid(axis="y", alpha=0.3)
-    ax.legend(fontsize=8)
+def parameter_figure(
+    names: list[str], error: np.ndarray, stddev: np.ndarray | None, degrees: np.ndarray | None = None
+) -> str:
+    """δM ± σ per parameter; with ``degrees`` (True: the entry is an angle [deg]) one panel per unit."""
+    degrees = np.zeros(len(names), dtype=bool) if degrees is None else np.asarray(degrees, dtype=bool)
+    panels = [(unit, np.flatnonzero(degrees == (unit == "deg"))) for unit in ("mm", "deg")]
+    panels = [(unit, idx) for unit, idx in panels if len(idx)]
+    fig = new_figure(10.0, 3.0 * len(panels))
+    for ax, (unit, idx) in zip(fig.subplots(len(panels), 1, squeeze=False)[:, 0], panels, strict=True):
+        x = np.arange(len(idx))
+        ax.axhline(0.0, color="0.6", lw=0.8)
+        if stddev is not None:
+            ax.errorbar(
+                x,
+                error[idx],
+                yerr=stddev[idx],
+                fmt="o",
+                ms=3,
+                capsize=2,
+                color="#4c72b0",
+                ecolor="#8fa8d8",
+                label="δM ± σ",
+            )
+        else:
+            ax.plot(x, error[idx], "o", ms=3, color="#4c72b0", label="δM (no covariance)")
+        ax.set_xticks(x, [names[k] for k in idx], rotation=90, fontsize=7)
+        ax.set_xlim(-0.7, len(idx) - 0.3)
+        ax.set_ylabel(f"parameter error δM [{unit}]")
+        ax.grid(axis="y", alpha=0.3)
+        ax.legend(fontsize=8)
+    return _png(fig)
+
+
+#: the report's drawing: (the leg's segment, its colour) — a rotary leg's horn, then its rod
+_SEGMENT_COLORS = {"prismatic": (("leg", "#dd8452"),), "rotary": (("horn", "#c44e52"), ("rod", "#dd8452"))}
+
+
+def robot_figure(robot: Robot) -> str:
+    """The robot from above (x–y) and from the side (x–z): the calibrated legs in colour (a rotary
+    leg's horn and rod apart), the nominal ones thin and grey, each platform's outline through its joints."""
+    fig = new_figure(9.0, 4.2)
+    axes = fig.subplots(1, 2)
+    segments = _SEGMENT_COLORS.get(robot.kind, _SEGMENT_COLORS["prismatic"])
+    for ax, (i, j, view) in zip(axes, ((0, 1, "from above"), (0, 2, "from the side")), strict=True):
+        for polylines, calibrated in ((robot.nominal, False), (robot.calibrated, True)):
+            for k, (segment, color) in enumerate(segments):
+                ends = polylines[:, k : k + 2]
+                for leg, (a, b) in enumerate(ends):
+                    label = f"{segment}s {'calibrated' if calibrated else 'nominal'}" if leg == 0 else None
+                    style = {"color": color, "lw": 2.2} if calibrated else {"color": "0.6", "lw": 0.8, "ls": "--"}
+                    ax.plot([a[i], b[i]], [a[j], b[j]], label=label, **style)
+            joints = polylines[:, -1]
+            order = np.argsort(np.arctan2(joints[:, 1], joints[:, 0]))
+            outline = joints[np.r_[order, order[:1]]]
+            ax.plot(
+                outline[:, i], outline[:, j], color="#4c72b0" if calibrated else "0.7", lw=1.2 if calibrated else 0.6
+            )
+            ax.plot(polylines[:, 0, i], polylines[:, 0, j], "o", ms=3, color="k" if calibrated else "0.6")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.set_xlabel(f"{'xyz'[i]} [mm]")
+        ax.set_ylabel(f"{'xyz'[j]} [mm]")
+        ax.set_title(view, fontsize=9)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7, loc="upper right")
     return _png(fig)
 
 
@@ -282,17 +353,21 @@ def _residual_section(residuals: Residuals) -> str:
     )
 
 
-def _parameter_section(result: dict) -> str:
+def _parameter_section(result: dict, degrees: np.ndarray | None = None) -> str:
+    """δM ± σ of every parameter; ``degrees`` (True: given in degrees) adds each one's unit."""
     names = list(result["parameter_names"])
     error = np.array(result["error"], dtype=float)
     stddev = None if result.get("stddev") is None else np.array(result["stddev"], dtype=float)
+    mixed = degrees is not None and bool(np.any(degrees))
     rows = []
     for k, name in enumerate(names):
         sigma = None if stddev is None else stddev[k]
         ratio = None if sigma is None or sigma <= 0 else abs(error[k]) / sigma
+        unit = ["deg" if degrees[k] else "mm"] if mixed else []  # type: ignore[index]  # mixed: not None
         rows.append(
             [
                 name,
+                *unit,
                 _fmt(result["nominal"][k], 8),
                 _fmt(result["estimate"][k], 8),
                 _fmt(error[k]),
@@ -300,13 +375,29 @@ def _parameter_section(result: dict) -> str:
                 _fmt(ratio, 3),
             ]
         )
+    if mixed:
+        text = "estimate = nominal + δM, in mm and degrees as each parameter's unit says (spec §15)"
+        header = ["parameter", "unit", "nominal", "estimate", "δM", "σ", "|δM| / σ"]
+    else:
+        text = "estimate = nominal + δM [mm] (paper eq. 9, Table 4)"
+        header = ["parameter", "nominal [mm]", "estimate [mm]", "δM [mm]", "σ [mm]", "|δM| / σ"]
     return (
         "<h2>Parameter errors δM ± σ</h2>"
-        "<p>estimate = nominal + δM [mm] (paper eq. 9, Table 4); σ from the estimate's covariance.</p>"
-        + parameter_figure(names, error, stddev)
+        f"<p>{text}; σ from the estimate's covariance.</p>"
+        + parameter_figure(names, error, stddev, degrees if mixed else None)
         + f"<details><summary>all {len(names)} parameters</summary>"
-        + html_table(["parameter", "nominal [mm]", "estimate [mm]", "δM [mm]", "σ [mm]", "|δM| / σ"], rows, "num")
+        + html_table(header, rows, "num")
         + "</details>"
+    )
+
+
+def _robot_section(robot: Robot) -> str:
+    legs = "crank → horn → rod → platform joint" if robot.kind == "rotary" else "base joint → platform joint"
+    return (
+        "<h2>The robot</h2>"
+        f"<p>The calibrated drive at {html.escape(robot.pose)}, each leg drawn {legs} (the nominal one dashed "
+        "grey; the differences are the calibration's, at the drawing's scale often a fraction of a line's "
+        "width).</p>" + robot_figure(robot)
     )
 
 
@@ -499,6 +590,7 @@ def report_html(
     inputs: dict[str, str] | None = None,
     leg_forces: LegForces | None = None,
     verdict: str | None = None,
+    robot: Robot | None = None,
 ) -> str:
     """The whole page as text.
 
@@ -511,6 +603,7 @@ def report_html(
         leg_forces: an elastic drive's leg forces over the log, or None.
         verdict: the command's verdict line (:func:`~stewart_calib.accuracy.verdict_line`), shown
             first; with its warning where the calibration rests on noise.
+        robot: the drive drawn nominal and calibrated, and which parameters are angles, or None.
     """
     summary = [
         ["method", result["method"]],
@@ -525,7 +618,8 @@ def report_html(
         "<h2>Summary</h2>" + html_table(None, summary, "summary"),
         _held_out_section(held_out) if held_out is not None else "",
         _residual_section(residuals) if residuals is not None else "",
-        _parameter_section(result),
+        _robot_section(robot) if robot is not None else "",
+        _parameter_section(result, None if robot is None else robot.parameter_degrees),
         _compliance_section(result),
         _leg_force_section(leg_forces) if leg_forces is not None else "",
         _correlation_section(result),

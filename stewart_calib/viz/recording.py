@@ -57,9 +57,9 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..instruments.gauge import joint_columns
-from ..kinematics import transform_points
-from ..platform import PARAMETER_FIELDS, LegGeometry, Platform
+from ..model.legs import LegModel
+from ..platform import PARAMETER_FIELDS, Platform
+from .geometry import leg_joints, leg_polylines
 
 SAMPLE_TIMELINE = "sample"
 #: per-method diagnostic series: leg residuals after and before each sample, and the NIS.
@@ -265,27 +265,6 @@ def _closed_outline(points: np.ndarray) -> np.ndarray:
     return np.vstack([points[order], points[order[:1]]])
 
 
-def _joints(legs) -> tuple[np.ndarray, np.ndarray]:
-    """``(base-side points (L, 3) in {J}, platform joints (L, 3) in {D})`` [mm] of a leg set, the entries
-    of its parameter vector that hold them (a prismatic leg's ``j_i`` and ``d_i``, a rotary leg's crank
-    centre ``a_i`` and ``d_i``)."""
-    M = legs.as_vector()
-    base, platform = joint_columns(legs)
-    return M[base].reshape(-1, 3), M[platform].reshape(-1, 3)
-
-
-def _leg_strips(legs, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``(N·L, k, 3)`` each leg's polyline at each pose, in {J} [mm]: base joint → platform joint of a
-    prismatic leg; a rotary leg's crank centre → horn joint (at the angle that closes the leg there)
-    → platform joint."""
-    base, platform = _joints(legs)
-    platform_joints = transform_points(R, t, platform)
-    points = [np.broadcast_to(base, platform_joints.shape), platform_joints]
-    if type(legs) is not LegGeometry and legs.kind == "rotary":  # the horn between crank and rod
-        points.insert(1, legs.horn_joints(legs.coordinates(R, t)))
-    return np.stack(points, axis=-2).reshape(-1, len(points), 3)
-
-
 # ----------------------------------------------------------------------------- scene
 
 
@@ -302,7 +281,7 @@ def log_platform_geometry(rec: Recording, platform: Platform) -> None:
     # another instrument may have no tracker).
     legs = {"drive": platform.drive} | ({} if platform.tracker is None else {"tracker": platform.tracker})
     for side, (frame, letters) in enumerate((("base", "JZ"), ("platform", "DH"))):
-        joints = {kind: _joints(leg_set)[side] for kind, leg_set in legs.items()}
+        joints = {kind: leg_joints(leg_set)[side] for kind, leg_set in legs.items()}
         outline = _closed_outline(np.vstack(list(joints.values())))
         outline_strip = rr.LineStrips3D([outline], colors=_OUTLINE_COLOR, radii=_OUTLINE_RADIUS_MM)
         log(f"world/{frame}/outline", outline_strip, static=True)
@@ -324,7 +303,7 @@ def log_platform_pose(
     t: np.ndarray,
     times_s,
     samples=None,
-    drive_legs: LegGeometry | None = None,
+    drive_legs: LegModel | None = None,
     desired: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
     """Platform pose(s), drive and tracker legs, and optionally the desired pose as a ghost.
@@ -347,12 +326,12 @@ def log_platform_pose(
         drawn.append(("tracker", platform.tracker, _TRACKER_COLOR))
     for name, legs, color in drawn:
         rec.static_once(f"world/legs/{name}", rr.LineStrips3D.from_fields(colors=color, radii=_LEG_RADIUS_MM))
-        strips = rr.LineStrips3D.columns(strips=_leg_strips(legs, R, t)).partition(np.full(n, legs.n_legs))
+        strips = rr.LineStrips3D.columns(strips=leg_polylines(legs, R, t)).partition(np.full(n, legs.n_legs))
         send(f"world/legs/{name}", indexes=index, columns=strips)
     if desired is not None:
         R_d, t_d = _batch(desired[0], n, (3, 3), "R_desired"), _batch(desired[1], n, (3,), "t_desired")
         ghost = _closed_outline(
-            np.vstack([_joints(platform.drive)[1], *(_joints(legs)[1] for _, legs, _ in drawn[1:])])
+            np.vstack([leg_joints(platform.drive)[1], *(leg_joints(legs)[1] for _, legs, _ in drawn[1:])])
         )
         rec.static_once(
             "world/platform_desired/outline", rr.LineStrips3D([ghost], colors=_GHOST_COLOR, radii=_OUTLINE_RADIUS_MM)
