@@ -82,6 +82,7 @@ RUNNERS = {
     "hobby": _runner("hobby", "section"),
     "honesty": _runner("honesty", "section"),
     "link": _runner("link", "section"),
+    "rotary": _runner("rotary", "section"),
 }
 
 

@@ -126,16 +126,14 @@ def reachable_poses(
 
 
 def within_ranges(platform: Platform, poses: np.ndarray) -> np.ndarray:
-    """``(N,)`` True where the nominal strokes (and tracker readings, where the platform has a
-    tracker with a reading range) of ``poses`` lie within the platform's ranges; a rotary drive's
-    angles are within its ``angle_range`` where its inverse kinematics gives them (spec §15's
-    branch rule: NaN outside)."""
+    """``(N,)`` True where the nominal drive reaches ``poses`` (its inverse kinematics gives every leg
+    a coordinate: a rotary drive's IK has none outside its angle range) and its strokes (and tracker
+    readings, where the platform has a tracker with a reading range) lie within the platform's ranges."""
     R, t = kin.pose_to_rt(np.asarray(poses, dtype=float))
-    ok = np.ones(len(R), dtype=bool)
+    strokes = drive_model(platform).inverse_kinematics(R, t)
+    ok = np.all(np.isfinite(strokes), axis=1)
     if platform.stroke_range is not None:
-        ok &= _within(drive_model(platform).inverse_kinematics(R, t), platform.stroke_range)
-    elif platform.drive.kind != "prismatic":  # a prismatic leg reaches every pose without a range
-        ok &= np.all(np.isfinite(drive_model(platform).inverse_kinematics(R, t)), axis=1)
+        ok &= _within(strokes, platform.stroke_range)
     if platform.tracker is not None and platform.reading_range is not None:
         ok &= _within(kin.inverse_kinematics(platform.tracker, R, t), platform.reading_range)
     return ok

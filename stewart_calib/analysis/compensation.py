@@ -34,8 +34,10 @@ _AXES = ("x", "y", "z", "roll", "pitch", "yaw")
 
 
 def check_reachable(poses_mm_rad: np.ndarray, strokes_mm: np.ndarray, platform: Platform) -> None:
-    """Refuse the first pose outside ``platform.workspace`` (± limits about home per axis) or
-    whose strokes leave ``platform.stroke_range`` (inclusive); limits the platform lacks are not checked.
+    """Refuse the first pose outside ``platform.workspace`` (± limits about home per axis), one a leg
+    cannot reach (its stroke NaN: a rotary drive's horn and rod do not close, or no horn solution is in
+    its angle range) or whose strokes leave ``platform.coordinate_range`` (inclusive: the stroke range,
+    a rotary drive's commanded angles' range); limits the platform lacks are not checked.
 
     Raises:
         PoseOutOfRange: naming the pose, the axis or leg, the value and the limits.
@@ -60,14 +62,23 @@ def check_reachable(poses_mm_rad: np.ndarray, strokes_mm: np.ndarray, platform: 
                     f"workspace's ±{np.degrees(ws.rotation_limit):.4g}° about home (angles in rad, not degrees?)"
                 )
             raise PoseOutOfRange(k, reason)
-    if platform.stroke_range is not None:
-        lo, hi = platform.stroke_range
-        strokes = np.asarray(strokes_mm, dtype=float).reshape(-1, platform.drive.n_legs)
-        bad = np.argwhere((strokes < lo) | (strokes > hi))
+    strokes = np.asarray(strokes_mm, dtype=float).reshape(-1, platform.drive.n_legs)
+    bad = np.argwhere(~np.isfinite(strokes))
+    if bad.size:
+        k, i = (int(v) for v in bad[0])
+        raise PoseOutOfRange(k, f"leg {i + 1} cannot reach the pose (no coordinate of it closes the leg in range)")
+    bounds = platform.coordinate_range
+    if bounds is not None:
+        unit = platform.drive.coordinate_unit
+        to_file = np.degrees if unit == "deg" else np.asarray  # a rotary drive's commanded angles [rad] → deg
+        lo, hi = (float(v) for v in to_file(bounds))
+        bad = np.argwhere((strokes < bounds[0]) | (strokes > bounds[1]))
         if bad.size:
             k, i = (int(v) for v in bad[0])
             raise PoseOutOfRange(
-                k, f"the pose needs q{i + 1}_mm = {strokes[k, i]:.6g}, outside the stroke range [{lo}, {hi}] mm"
+                k,
+                f"the pose needs q{i + 1}_{unit} = {float(to_file(strokes[k, i])):.6g}, outside the "
+                f"{'stroke' if unit == 'mm' else 'angle'} range [{lo}, {hi}] {unit}",
             )
 
 

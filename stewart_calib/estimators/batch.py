@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
+from threadpoolctl import threadpool_limits
 
 from ..config import LSConfig
 from ..errors import CalibError, SampleRejected, number
@@ -164,6 +165,15 @@ def fit(
     Raises:
         CalibError: the log cannot be registered, or the fit diverges.
     """
+    # its factorisations are small (a few hundred rows by ~80): on one BLAS thread, as ls.CHUNK_SAMPLES says
+    # why (on a busy two-core machine OpenBLAS's waiting threads make them several times slower)
+    with threadpool_limits(limits=1):
+        return _fit(problem, robust_k, estimate_noise, drive_blocks, tolerance_mm)
+
+
+def _fit(
+    problem: BatchProblem, robust_k: float, estimate_noise: bool, drive_blocks: str, tolerance_mm: float
+) -> BatchSolution:
     n = len(problem.inputs)
     start = np.zeros(problem.drive.size)
     R0, t0, ok, inputs0 = _fk(problem, start, None)

@@ -92,7 +92,10 @@ def kabsch(source: np.ndarray, destination: np.ndarray) -> tuple[np.ndarray, np.
 
 
 def to_gauge(nominal: LegModel, params: np.ndarray) -> tuple[np.ndarray, tuple, tuple]:
-    """Move true absolute parameters ``(n_params,)`` of prismatic legs into the gauge of :func:`free_basis`.
+    """Move true absolute parameters ``(n_params,)`` (``nominal.as_vector()`` + the true δM) into the gauge
+    of :func:`free_basis`: the base side by the rigid motion that best fits (Kabsch) its points to the
+    nominal ones, the platform joints likewise (a rotary base's crank axes and zero directions turn with
+    it, :meth:`~stewart_calib.model.legs.LegModel.moved`).
 
     Returns:
         ``(params', (R_J, t_J), (R_D, t_D))``: the parameters in the gauge, and the rigid motions
@@ -100,12 +103,8 @@ def to_gauge(nominal: LegModel, params: np.ndarray) -> tuple[np.ndarray, tuple, 
         ``T_J'_J X T_D'_D⁻¹``, a frame ``F = T_J_I`` becomes ``T_J'_J F``, a target ``G = T_D_T``
         becomes ``T_D'_D G`` and target points ``p`` become ``R_D p + t_D``.
     """
-    if nominal.kind != "prismatic":  # a rigid move of a rotary base turns its crank axes too (spec §15)
-        raise ValueError(f"to_gauge moves prismatic legs' joints only, not a {nominal.kind} drive's")
     base_columns, platform_columns = nominal.gauge_columns
-    values, moved = nominal.as_vector(), np.array(params, dtype=float)
-    R_J, t_J = kabsch(moved[base_columns], values[base_columns])
-    R_D, t_D = kabsch(moved[platform_columns], values[platform_columns])
-    moved[base_columns] = moved[base_columns] @ R_J.T + t_J
-    moved[platform_columns] = moved[platform_columns] @ R_D.T + t_D
-    return moved, (R_J, t_J), (R_D, t_D)
+    values, params = nominal.as_vector(), np.asarray(params, dtype=float)
+    base = kabsch(params[base_columns], values[base_columns])
+    platform = kabsch(params[platform_columns], values[platform_columns])
+    return values + nominal.moved(params - values, base, platform), base, platform

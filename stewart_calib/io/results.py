@@ -31,9 +31,10 @@ ROTARY_PARAMETER_NAMES: tuple[str, ...] = tuple(
 )
 
 
-def _gap_unit(platform: Platform) -> str:
-    """The unit of :func:`nominal_gap` on ``platform``: mm, or mm / deg where its drive has angles."""
-    return "mm / deg" if np.any(platform.drive.parameter_degrees) else "mm"
+def parameter_unit(legs) -> str:
+    """The unit of a drive's parameters in files (of :func:`nominal_gap`): mm, or mm / deg where the leg
+    model ``legs`` has angles."""
+    return "mm / deg" if np.any(legs.parameter_degrees) else "mm"
 
 
 #: |estimate − (nominal + error)| a result file may show before it is refused [mm]: JSON
@@ -299,6 +300,6 @@ def read_calibrated_drive(path: str | Path, platform: Platform) -> DriveModel:
     if gap > NOMINAL_TOLERANCE_MM:
         raise CalibError(
             f"{path}: key 'nominal': expected the nominal drive of platform '{platform.name}'; "
-            f"it differs by {gap:.3g} {_gap_unit(platform)} (a result for another platform?)"
+            f"it differs by {gap:.3g} {parameter_unit(platform.drive)} (a result for another platform?)"
         )
     return calibrated_drive(platform, result, str(path))

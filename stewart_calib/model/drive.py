@@ -157,6 +157,7 @@ class DriveModel:
     _nominal: np.ndarray = field(init=False, repr=False, compare=False)
     _factors: np.ndarray = field(init=False, repr=False, compare=False)
     _stroke: int = field(init=False, repr=False, compare=False)
+    _last_geometry: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.elastic is not None and self.legs.kind != "prismatic":
@@ -174,6 +175,7 @@ class DriveModel:
         for name, value in (("_unknown", tuple(unknown)), ("_nominal", nominal), ("_factors", factors)):
             object.__setattr__(self, name, value)
         object.__setattr__(self, "_stroke", stroke)
+        object.__setattr__(self, "_last_geometry", (None, self.legs))
 
     # ------------------------------------------------------------------ layout
 
@@ -332,8 +334,20 @@ class DriveModel:
         return legs
 
     def geometry(self, x_drive: np.ndarray | None = None) -> LegModel:
-        """``M + δM`` (the nominal legs for None)."""
-        return self.legs if x_drive is None else self.legs.perturbed(self.parameter_error(x_drive))
+        """``M + δM`` (the nominal legs for None). Legs without compiled kernels keep the last one: a
+        graph's factors are linearised at one ``x_drive`` each (a rotary set's ``perturbed`` turns 12 axes
+        and zero directions, a third of a factor's cost)."""
+        if x_drive is None:
+            return self.legs
+        delta = self.parameter_error(x_drive)
+        if self.legs.compiled:
+            return self.legs.perturbed(delta)
+        key = np.asarray(delta, dtype=float).tobytes()
+        last_key, legs = self._last_geometry
+        if key != last_key:
+            legs = self.legs.perturbed(delta)
+            object.__setattr__(self, "_last_geometry", (key, legs))
+        return legs
 
     def term_values(self, x_drive: np.ndarray | None = None) -> np.ndarray:
         """``(terms, 6)`` absolute values ``v`` of every term: nominal, plus the error in ``x_drive``."""
@@ -432,8 +446,16 @@ class DriveModel:
         if self.legs.compiled:  # J_e = −1 and no extension needed: the compiled kinematics' Jacobians alone
             J_pose, J_M = kin.leg_residual_jacobians(self.prismatic(x_drive), R, t)
             return J_pose, self.with_terms(J_M, inputs)
-        J_pose, J_M, J_e = self.geometry(x_drive).residual_jacobians(R, t, self.extensions(inputs, x_drive))
+        _, J_pose, J_M, J_e = self.leg_rows(x_drive, R, t, self.extensions(inputs, x_drive))
         return J_pose, self.with_terms(J_M, inputs, J_e)
+
+    def leg_rows(
+        self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, extensions: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(r, J_pose, J_M, J_e)``: the leg model's residuals and Jacobians of :meth:`geometry` at
+        ``x_drive`` for the legs' ``extensions``, one perturbed set for both."""
+        legs = self.geometry(x_drive)
+        return legs.residuals(R, t, extensions), *legs.residual_jacobians(R, t, extensions)
 
     def with_terms(self, J_M: np.ndarray, inputs: np.ndarray, J_e: np.ndarray | None = None) -> np.ndarray:
         """``∂r/∂M (..., n, n_params)`` completed with ``∂r_i/∂v_{b,i} = J_e,i g_b u_{b,i}`` of the
@@ -526,9 +548,7 @@ class DriveModel:
                 self.prismatic(), self.parameter_error(x_drive), R, t, extensions, pose_covariance, coordinate_sigma
             )
             return r, self.with_terms(H_M, inputs), R_meas, J_x
-        legs = self.geometry(x_drive)
-        r = legs.residuals(R, t, extensions)
-        J_x, H_M, J_e = legs.residual_jacobians(R, t, extensions)
+        r, J_x, H_M, J_e = self.leg_rows(x_drive, R, t, extensions)
         R_meas = J_x @ pose_covariance @ J_x.T + np.diag((J_e * coordinate_sigma) ** 2)
         return r, self.with_terms(H_M, inputs, J_e), R_meas, J_x
 

@@ -83,6 +83,12 @@ class LegModel(Protocol):
         (prismatic: −1)."""
         ...
 
+    def moved(self, delta: np.ndarray, base: tuple, platform: tuple) -> np.ndarray:
+        """``δM'`` such that ``self.perturbed(δM')`` is ``self.perturbed(δM)`` with its base side moved by the
+        rigid motion ``base = (R, t)`` (points ``p → R p + t``, directions turned by ``R``) and its platform
+        joints by ``platform``: a truth moved into an outside instrument's gauge (spec §7, §15)."""
+        ...
+
     def coordinates(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Inverse kinematics: ``(..., n)`` the ``e`` closing each leg at ``(R, t)``, NaN where a leg
         cannot reach it (rotary: spec §15's branch rule)."""

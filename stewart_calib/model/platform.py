@@ -120,6 +120,14 @@ class LegGeometry:
         J_pose, J_M = kinematics.leg_residual_jacobians(self, R, t)
         return J_pose, J_M, np.full(J_M.shape[:-1], -1.0)
 
+    def moved(self, delta: np.ndarray, base: tuple, platform: tuple) -> np.ndarray:
+        """``δM'`` of ``self.perturbed(δM)`` with its base joints moved by the rigid motion ``base = (R, t)``
+        (``j → R j + t``) and its platform joints by ``platform`` (``d → R d + t``); lengths kept."""
+        moved = self.as_vector() + np.asarray(delta, dtype=float)
+        for columns, (R, t) in zip(self.gauge_columns, (base, platform), strict=True):
+            moved[columns] = moved[columns] @ np.asarray(R).T + t
+        return moved - self.as_vector()
+
     def coordinates(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """The extensions ``(..., n)`` [mm] that close each leg at ``(R, t)`` (inverse kinematics)."""
         from . import kinematics
@@ -473,6 +481,12 @@ class Platform:
     stroke_scale: np.ndarray = field(default_factory=lambda: np.zeros(N_LEGS), compare=False)
     tracker_geometry_sigma_mm: float = 0.0
     elastic: Elastic | None = field(default=None, compare=False)
+
+    @property
+    def coordinate_range(self) -> tuple[float, float] | None:
+        """``(min, max)`` of the log's drive coordinates in code units, or None: the stroke range [mm],
+        or a rotary drive's commanded angles' ``angle_range`` [rad] (spec §15)."""
+        return self.stroke_range if isinstance(self.drive, LegGeometry) else self.drive.angle_range
 
     def required_tracker(self, what: str) -> LegGeometry:
         """:attr:`tracker` for ``what``, which needs the in-situ tracker's legs.

@@ -278,6 +278,35 @@ class RotaryLegs:
             np.array(u),
         )
 
+    def moved(self, delta: np.ndarray, base: tuple, platform: tuple) -> np.ndarray:
+        """``δM'`` such that ``self.perturbed(δM')`` is ``self.perturbed(δM)`` with its base side moved by the
+        rigid motion ``base = (R, t)`` (crank centres ``a → R a + t``, axes and zero directions turned by ``R``)
+        and its platform joints by ``platform = (R, t)`` (``d → R d + t``): spec §15's rigid move of the base.
+
+        The turned axis ``n'`` gives the tilts about this set's ``u⁰``, ``w⁰`` (``Rot(u⁰, tu) Rot(w⁰, tw) n⁰ =
+        sin tw u⁰ + cos tw (cos tu n⁰ − sin tu w⁰)``), and the turned zero direction's angle from where those
+        tilts put ``u⁰``, about ``n'``, adds to the zero offset.
+        """
+        legs = self.perturbed(delta)
+        (R_J, t_J), (R_D, t_D) = base, platform
+        n, u = legs.crank_axes @ np.asarray(R_J).T, legs.zero_directions @ np.asarray(R_J).T
+        u0, w0, n0 = self.zero_directions, self.w_directions, self.crank_axes
+        tw = np.arcsin(np.clip(np.sum(n * u0, axis=-1), -1.0, 1.0))
+        tu = np.arctan2(-np.sum(n * w0, axis=-1), np.sum(n * n0, axis=-1))
+
+        def turned(x: np.ndarray) -> np.ndarray:  # Rot(u⁰, tu) Rot(w⁰, tw) x, as perturbed turns it
+            return _rotated(_rotated(x, w0, tw), u0, tu)
+
+        turn = np.arctan2(np.sum(u * turned(w0), axis=-1), np.sum(u * turned(u0), axis=-1))
+        out = np.zeros((self.n_legs, _PER_LEG))
+        out[:, _A] = legs.crank_centres @ np.asarray(R_J).T + t_J - self.crank_centres
+        out[:, _D] = legs.platform_joints @ np.asarray(R_D).T + t_D - self.platform_joints
+        out[:, _H] = legs.horn_lengths - self.horn_lengths
+        out[:, _ROD] = legs.rod_lengths - self.rod_lengths
+        out[:, _O] = legs.angle_offsets + turn - self.angle_offsets
+        out[:, _TU], out[:, _TW] = tu, tw
+        return out.reshape(-1)
+
     @classmethod
     def _trusted(cls, *values) -> RotaryLegs:
         """A set of fresh float arrays of the right shapes, without ``__post_init__``'s copies and checks:

@@ -117,3 +117,21 @@ def pose_error(R_desired, t_desired, R_actual, t_actual) -> tuple[np.ndarray, np
     position_error_mm = np.linalg.norm(np.asarray(t_actual) - np.asarray(t_desired), axis=-1)
     relative = np.swapaxes(np.asarray(R_desired), -1, -2) @ np.asarray(R_actual)
     return position_error_mm, np.degrees(rotation_angle(relative))
+
+
+def motion_error(desired_home, desired, reached_home, reached) -> tuple[np.ndarray, np.ndarray]:
+    """The error of a motion from home (spec §15): :func:`pose_error` of ``T_home⁻¹ T`` reached against
+    ``X_home⁻¹ X`` desired — the position of {D}'s origin and the rotation angle of the relative pose.
+
+    Args:
+        desired_home, reached_home: ``(R (3, 3), t (3,))`` the desired and the reached pose at home.
+        desired, reached: ``(R (..., 3, 3), t (..., 3))`` the desired and the reached poses.
+    Returns:
+        ``(position_error_mm (...), orientation_error_deg (...))``.
+    """
+
+    def relative(home, pose):  # T_home⁻¹ T
+        (R_h, t_h), (R, t) = home, pose
+        return np.swapaxes(R_h, -1, -2) @ R, np.einsum("ji,...j->...i", R_h, np.asarray(t) - t_h)
+
+    return pose_error(*relative(desired_home, desired), *relative(reached_home, reached))

@@ -40,6 +40,7 @@ from ..errors import CalibError
 from ..io.platform_file import load_platform
 from ..model import kinematics as kin
 from ..model.drive import DriveModel, drive_model
+from ..model.rotations import motion_error
 from . import run_command
 
 #: the score of a drive term's values (its block key before it): the largest error of the six
@@ -59,16 +60,40 @@ def add_parser(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def closed_loop_error(commanded: DriveModel, true: DriveModel, poses: np.ndarray) -> tuple[float, float]:
-    """Mean position [mm] and orientation [deg] error at ``poses`` ``[mm, rad]`` when IK of the
-    ``commanded`` drive gives the logged strokes and the ``true`` drive executes them."""
+def closed_loop_poses(commanded: DriveModel, true: DriveModel, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(R (N, 3, 3), t (N, 3))`` the ``true`` drive reaches at ``poses`` ``[mm, rad]`` when IK of the
+    ``commanded`` drive gives the strokes; NaN where the commanded model reaches no stroke (a rotary
+    drive's horn, spec §15: the controller refuses the pose).
+
+    Raises:
+        CalibError: the true robot cannot reach strokes the commanded model gives.
+    """
     R_d, t_d = kin.pose_to_rt(poses)
     logged = commanded.inverse_kinematics(R_d, t_d)
-    reached = true.forward_kinematics(true.inputs(logged), guess=(R_d, t_d), strict=False)
-    if not reached.converged.all():
+    commanded_ok = np.all(np.isfinite(logged), axis=-1)
+    strokes = np.where(commanded_ok[:, None], logged, 0.0)
+    reached = true.forward_kinematics(true.inputs(strokes), guess=(R_d, t_d), strict=False)
+    if not reached.converged[commanded_ok].all():
         raise CalibError("the true robot cannot reach the strokes the estimate commands at some workspace pose")
-    position_mm, orientation_deg = kin.pose_error(R_d, t_d, reached.R, reached.t)
-    return float(np.mean(position_mm)), float(np.mean(orientation_deg))
+    return np.where(commanded_ok[:, None, None], reached.R, np.nan), np.where(commanded_ok[:, None], reached.t, np.nan)
+
+
+def closed_loop_error(
+    commanded: DriveModel, true: DriveModel, poses: np.ndarray, home: np.ndarray | None = None
+) -> tuple[float, float, float, float]:
+    """Mean ``(position [mm], orientation [deg])`` error at ``poses`` ``[mm, rad]`` when IK of the
+    ``commanded`` drive gives the strokes and the ``true`` drive executes them, absolute in {J} and
+    of the motion from ``home`` (spec §15; NaN without a home), over the poses the commanded model
+    reaches (:func:`closed_loop_poses`)."""
+    R_d, t_d = kin.pose_to_rt(poses)
+    R, t = closed_loop_poses(commanded, true, poses)
+    position_mm, orientation_deg = kin.pose_error(R_d, t_d, R, t)
+    motion = (np.nan, np.nan)
+    if home is not None:
+        R_h, t_h = closed_loop_poses(commanded, true, np.asarray(home)[None])
+        motion_mm, motion_deg = motion_error(kin.pose_to_rt(home), (R_d, t_d), (R_h[0], t_h[0]), (R, t))
+        motion = (float(np.nanmean(motion_mm)), float(np.nanmean(motion_deg)))
+    return float(np.nanmean(position_mm)), float(np.nanmean(orientation_deg)), *motion
 
 
 def scores(platform, result: dict, truth) -> dict:
@@ -79,8 +104,8 @@ def scores(platform, result: dict, truth) -> dict:
     true_params = truth.params[-1]
     if instrument_kind(platform).outside:  # its fit leaves the drive's gauge directions where the gauge puts them
         true_params, _, _ = gauge.to_gauge(platform.drive, true_params)
-    estimate = np.asarray(result["estimate"], dtype=float)
-    e = estimate - true_params
+    estimate = io.parameters_from_file(result["estimate"], platform.drive)
+    e = io.parameters_to_file(estimate - true_params, platform.drive)  # mm, and a rotary drive's angles in deg
     worst = int(np.argmax(np.abs(e)))
     out = {
         "parameter_rms_mm": float(np.sqrt(np.mean(e**2))),
@@ -100,11 +125,15 @@ def scores(platform, result: dict, truth) -> dict:
             out[f"{key}{TERM_ERROR}"] = float(np.max(np.abs(values - truth.drive_terms[key])))
     nominal_params = platform.drive.as_vector()
     true = nominal.true_drive(true_params - nominal_params, truth.drive_terms)
+    calibrated = nominal.calibrated(estimate - nominal_params, fitted)
     poses = evaluation_poses(platform)
-    out["closed_loop_mm"], out["closed_loop_deg"] = closed_loop_error(
-        nominal.calibrated(estimate - nominal_params, fitted), true, poses
-    )
-    out["closed_loop_nominal_mm"], out["closed_loop_nominal_deg"] = closed_loop_error(nominal, true, poses)
+    R, t = kin.pose_to_rt(poses)
+    # the poses both models command (a rotary drive's calibrated horns may not reach an edge pose the nominal ones do)
+    poses = poses[np.all(np.isfinite(calibrated.inverse_kinematics(R, t)), axis=-1)]
+    home = None if platform.workspace is None else platform.workspace.home
+    for key, drive in (("closed_loop", calibrated), ("closed_loop_nominal", nominal)):
+        errors = closed_loop_error(drive, true, poses, home)
+        out[f"{key}_mm"], out[f"{key}_deg"], out[f"{key}_motion_mm"], out[f"{key}_motion_deg"] = errors
     out["poses"] = len(poses)
     return out
 
@@ -125,11 +154,21 @@ def run(args: argparse.Namespace) -> int:
         for key, value in s.items()
         if key.endswith(TERM_ERROR)
     )
+    motion = (
+        f"; motion from home {s['closed_loop_motion_mm']:.4g} mm / {s['closed_loop_motion_deg']:.4g}° (nominal model "
+        f"{s['closed_loop_nominal_motion_mm']:.4g} mm / {s['closed_loop_nominal_motion_deg']:.4g}°)"
+        if math.isfinite(s["closed_loop_motion_mm"])
+        else ""
+    )
+    names = platform.drive.parameter_names
+    unit = io.parameter_unit(platform.drive)  # a rotary drive's angles in deg
+    worst_unit = "deg" if platform.drive.parameter_degrees[names.index(s["parameter_max_name"])] else "mm"
     print(
-        f"stewart-calib score: parameters RMS {s['parameter_rms_mm']:.4g} mm, max {s['parameter_max_mm']:.4g} mm "
+        f"stewart-calib score: parameters RMS {s['parameter_rms_mm']:.4g} {unit}, max {s['parameter_max_mm']:.4g} "
+        f"{worst_unit} "
         f"({s['parameter_max_name']}){terms}; {z2}; closed loop {s['closed_loop_mm']:.4g} mm / "
         f"{s['closed_loop_deg']:.4g}° (nominal model {s['closed_loop_nominal_mm']:.4g} mm / "
-        f"{s['closed_loop_nominal_deg']:.4g}°, mean over {s['poses']} workspace poses)"
+        f"{s['closed_loop_nominal_deg']:.4g}°, mean over {s['poses']} workspace poses){motion}"
     )
     if platform.elastic is not None and "compliance" in result:
         print(

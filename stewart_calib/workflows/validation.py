@@ -55,11 +55,11 @@ def _model_poses(platform: Platform, result: dict, log, source: str, first_sampl
 
 
 def _check_nominal(platform: Platform, result: dict, source: str) -> None:
-    gap = float(np.max(np.abs(np.array(result["nominal"]) - platform.drive.as_vector())))
+    gap = io.nominal_gap(result, platform)  # in file units: a rotary drive's angles in degrees
     if gap > io.NOMINAL_TOLERANCE_MM:
         raise CalibError(
             f"{source}: key 'nominal': expected the nominal drive of platform '{platform.name}'; it differs by "
-            f"{gap:.3g} mm"
+            f"{gap:.3g} {io.parameter_unit(platform.drive)}"
         )
 
 
@@ -68,7 +68,7 @@ def on_platform(platform: Platform, result: dict) -> dict:
     platform file that result wrote (spec §8: its legs are the result's estimate), the result with
     no error left on it — as ``compensate`` and ``export`` take it; the blocks as they are."""
     estimate = np.asarray(result["estimate"], dtype=float)
-    drive = platform.drive.as_vector()
+    drive = io.parameters_to_file(platform.drive.as_vector(), platform.drive)  # a result's units
     if estimate.shape != drive.shape or result.get("platform") != platform.name:
         return result
     if float(np.max(np.abs(estimate - drive))) > io.NOMINAL_TOLERANCE_MM:
@@ -219,7 +219,8 @@ def measurement_residuals(
 
 def nominal_model(platform: Platform) -> dict:
     """The nominal platform as a calibration result (no error): what "before" predicts with."""
-    return {"nominal": platform.drive.as_vector().tolist(), "error": [0.0] * len(platform.drive.as_vector())}
+    nominal = io.parameters_to_file(platform.drive.as_vector(), platform.drive)  # a result's units
+    return {"nominal": nominal.tolist(), "error": [0.0] * len(nominal)}
 
 
 def registered_nominal_model(platform: Platform, log) -> dict:
