@@ -17,7 +17,7 @@ Lissajous trajectory inside the ±200 mm / ±20° workspace (FK tolerance 1e-9 m
 * the time of the first call in this process (numba loading its on-disk cache, or compiling
   when the cache is cold: delete ``stewart_calib/**/__pycache__/*.nb[ic]`` to see that).
 
-Nothing here is asserted; the numbers are for the benchmark issue.
+Nothing here is asserted; the numbers are for reading beside BENCHMARKS.md.
 """
 
 from __future__ import annotations

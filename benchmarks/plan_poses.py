@@ -1,14 +1,14 @@
-"""Planned against random calibration poses for outside instruments (issue 27): true closed-loop error.
+"""Planned against random calibration poses for outside instruments: true closed-loop error.
 
 **Data.** Simulated straight from the models (no load): a true drive ``nominal + δM`` (joints
 i.i.d. 0.5 mm, initial lengths 3 mm), true stroke scale ``k`` (i.i.d. 2 %), the instrument's true
 frame 30 mm / 2° off its nominal (and a pose target 5 mm / 1°; points targets i.i.d. 0.5 mm);
 strokes are the true drive's IK divided by ``1 + k``, readings the simulated instrument's with
-its σ (:mod:`stewart_calib.simulation.instrument`). Geometries: **issue 27's own robot** — the
-shipped hobby hexapod with a laser tracker on three reflectors (15 µm) at the tests' positions
-(``tests/test_instrument_ls.py``), whose numbers the issue quotes (400 random poses within 60 %
-of the box, the tests' draw: Cramér–Rao 301 µm, the issue: 225 µm; 400 at the full box's
-corners, strokes ignored: 48.5 µm, the issue: 47–67 µm) — the shipped nim-stewart with a laser
+its σ (:mod:`stewart_calib.simulation.instrument`). Geometries: **the hobby with a laser tracker** —
+the shipped hobby hexapod with a laser tracker on three reflectors (15 µm) at the tests' positions
+(``tests/test_instrument_ls.py``), with a user's reported numbers beside (400 random poses within
+60 % of the box, the tests' draw: Cramér–Rao 301 µm, reported: 225 µm; 400 at the full box's
+corners, strokes ignored: 48.5 µm, reported: 47–67 µm) — the shipped nim-stewart with a laser
 tracker on three reflectors (15 µm), a wide test hexapod unlike the shipped ones (base 400 mm,
 platform 120 mm, ±60 mm / ±10°) with the same tracker, and the shipped hobby hexapod with its
 motion capture (0.2 mm / 0.05°).
@@ -16,32 +16,32 @@ motion capture (0.2 mm / 0.05°).
 **Fits.** ``ls`` through ``calibration.run_calibration`` (the command's path: the frame
 registered in closed form, then the batch fit of drive, stroke scale and instrument) on (a)
 ``plan``'s 60 poses (default criterion ``I``, seed = the run's), (b) 400 poses uniform in the
-reachable workspace box and (c) 400 poses uniform within 60 % of the box (issue 27's draw, where
+reachable workspace box and (c) 400 poses uniform within 60 % of the box (the reported draw, where
 the hobby's strokes stay in range); all measured with the same truth.
 
 **Why (b) cannot be halved.** The evaluation poses are drawn as (b) is, so (b) already spreads
 its information where the error is averaged; a design gains over it only in directions that the
 workspace's interior hides (the leg lengths against the frame's height). The continuous I-optimal
 design over plan's candidates (multiplicative algorithm, converged: its equivalence-theorem lower
-bound equals its value) bounds any 60 of them: on issue 27's robot it predicts 1.03× the error of
+bound equals its value) bounds any 60 of them: on the hobby with a laser tracker it predicts 1.03× the error of
 (b) (Cramér–Rao), plan's 60 poses 1.09× (before the stroke margin); candidates pushed out to the
 reachable boundary and a position-only criterion change plan's prediction by < 0.5 %. Against
 (c), whose poses do not reach the box's faces, a plan does gain.
 
 **Poses the true robot reaches.** ``plan`` keeps its poses 2 prior σ (10 mm) inside the stroke
 range (``planning.STROKE_MARGIN_SIGMAS``): planned at the nominal limits, 21–23 of 60 poses of the
-hobby needed strokes beyond the range on the true robot, calibrate dropped them, and the fit
-ended at 1.3–1.6× the plan's prediction.
+hobby need strokes beyond the range on the true robot, calibrate drops them, and the fit ends at
+1.3–1.6× the plan's prediction.
 
 **Metric: true closed-loop error.** For the 200 fixed evaluation poses X of
 :func:`stewart_calib.analysis.accuracy.evaluation_poses`: strokes ``IK(estimate, X) / (1 + k̂)``, reached
 pose ``FK(true drive, (1 + k) q)``, mean position [µm] and orientation error against X, with the
 truth moved into the estimate's gauge (:func:`stewart_calib.instruments.gauge.to_gauge`: no
-outside instrument sees a rigid motion of all base or all platform joints). The target (issue 27):
+outside instrument sees a rigid motion of all base or all platform joints). The target:
 planned ≤ 0.5 × random, on a hidden laser-tracker hexapod; here the ratio of the means over seeds,
 per-seed range beside it.
 
-**The small-workspace case** (issue 27): the hobby hexapod, 60 poses uniform within ±20 mm / ±8°,
+**The small-workspace case**: the hobby hexapod, 60 poses uniform within ±20 mm / ±8°,
 ``ls``: the one-line warning's predicted error (expected mean over the workspace, from the fit's
 covariance) against the true closed-loop error of that fit, per seed (target: within 2×), and
 whether the truth lies in the line's 90 % band; 10 seeds (the truth is one draw of the estimate's
@@ -82,9 +82,9 @@ TARGET_OFFSET = np.array([5.0, 3.0, -5.0, 1.0, 0.5, -1.0])
 TARGET_SPREAD_MM = 0.5
 SMALL_TRANSLATION_MM, SMALL_ROTATION_DEG = 20.0, 8.0
 THREE_SMRS = np.array([[250.0, 0.0, 30.0], [-125.0, 216.0, 30.0], [-125.0, -216.0, 60.0]])
-#: issue 27's robot: the reflectors of tests/test_instrument_ls.py on the hobby's platform
+#: the hobby with a laser tracker: the reflectors of tests/test_instrument_ls.py on the hobby's platform
 HOBBY_SMRS = np.array([[60.0, 0.0, 25.0], [-30.0, 50.0, 25.0], [-30.0, -50.0, 40.0]])
-#: issue 27's random draw: uniform within this fraction of the workspace box (tests/instrument_data.py)
+#: the reported random draw: uniform within this fraction of the workspace box (tests/instrument_data.py)
 ISSUE_BOX_FRACTION = 0.6
 #: seeds of the small-workspace case (each fit is a second or two)
 SMALL_WORKSPACE_SEEDS = 10
@@ -204,7 +204,7 @@ def compare(platform: Platform, seed: int, size: Size) -> dict:
 
 
 def inner_poses(platform: Platform, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Issue 27's random draw: ``n`` poses uniform within :data:`ISSUE_BOX_FRACTION` of the workspace
+    """The reported random draw: ``n`` poses uniform within :data:`ISSUE_BOX_FRACTION` of the workspace
     box, within the stroke ranges."""
     ws = platform.workspace
     half = ISSUE_BOX_FRACTION * np.r_[[ws.translation_limit] * 3, [ws.rotation_limit] * 3]
@@ -216,7 +216,7 @@ def inner_poses(platform: Platform, n: int, rng: np.random.Generator) -> np.ndar
 
 
 def small_workspace(seed: int) -> dict:
-    """Issue 27's case: the warning's prediction against the truth of one ``ls`` fit."""
+    """The small-workspace case: the warning's prediction against the truth of one ``ls`` fit."""
     platform = geometries()["hobby, motion capture"]
     rng = np.random.default_rng(1000 + seed)
     robot = true_robot(platform, rng)

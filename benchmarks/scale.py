@@ -216,16 +216,16 @@ CLI_SIZES = (1_000, 10_000, 100_000, 1_000_000)
 CLI_START_SAMPLES = 100
 #: a run longer than this is stopped and reported as over the cap (larger sizes are skipped).
 CLI_CAP_S = 900.0
-#: modules a start-up must not import (issue 15): recording, reproduction, statistics, graph methods.
+#: modules a start-up must not import: recording, reproduction, statistics, graph methods.
 HEAVY_MODULES = ("rerun", "gtsam", "scipy.stats", "stewart_calib.reproduction")
 
 CLI_TARGETS = {  # (command, size): (target text, value in µs/sample or MiB, key)
     ("calibrate ekf", 100_000): 20.0,
-    ("calibrate ekf [elastic]", 100_000): 25.0,  # issue 24
+    ("calibrate ekf [elastic]", 100_000): 25.0,
     ("calibrate isam2", 100_000): 1000.0,
     ("track ekf", 100_000): 40.0,
     ("identifiability", 100_000): 20.0,
-    ("import", 1_000_000): 10.0,  # issue 28: 10⁶ rows in ≤ 10 s
+    ("import", 1_000_000): 10.0,  # 10⁶ rows in ≤ 10 s
 }
 CLI_RSS_TARGET_MIB = {("calibrate ekf", 1_000_000): 500.0, ("import", 1_000_000): 300.0}
 IMPORT_TARGET_S = 1.0
@@ -684,7 +684,7 @@ CLI_WHY = {
 }
 
 
-# ----------------------------------------------------------------------------- start-up (issue 31)
+# ----------------------------------------------------------------------------- start-up
 #
 # What a new user meets: each command's first run after an installation, with numba's on-disk cache
 # empty (every kernel the command uses is compiled), and the runs after it (the kernels loaded from
@@ -701,7 +701,7 @@ STARTUP_WARM_RUNS = 3
 @dataclass(frozen=True)
 class StartupCase:
     """A command of the start-up table: its arguments in the work directory ``root``; ``targets``:
-    which of the issue's targets apply to it: ``calibrate`` (ekf's), ``reproduce`` (the full one's),
+    which of the start-up targets apply to it: ``calibrate`` (ekf's), ``reproduce`` (the full one's),
     ``mocap`` (isam2 with the motion-capture preset, warm)."""
 
     name: str

@@ -1,4 +1,4 @@
-"""Soak test (benchmark, not CI; issue 7): long runs must stay healthy and bounded.
+"""Soak test (benchmark, not CI): long runs must stay healthy and bounded.
 
     python -m benchmarks.soak [--ekf-updates 1000000] [--isam2-samples 100000] [--time-limit-s 600]
 

@@ -1,4 +1,4 @@
-"""The in-situ tracker's own geometry as an unknown (issue 13): true closed-loop accuracy.
+"""The in-situ tracker's own geometry as an unknown: true closed-loop accuracy.
 
 **Data.** The simulator's paper experiment (``configs/experiments/paper.toml``: nim-stewart, the
 paper's Table 4 drive errors, ruler noise 0.5 µm, 50 nm quantum, the tracker's own geometry off
@@ -34,8 +34,8 @@ tracker's joints:
   them (``UnknownBlock.holds_gauge``): its joints' common rigid motion stays at nominal — to first
   order the same frames as (a)'s Kabsch fit, where the truth is compared.
 
-Each method's error is the mean over seeds of its per-seed RMS; the target ratio (issue 13:
-an online method with the geometry identified within 1.25× the joint ``lm`` fit) is the ratio
+Each method's error is the mean over seeds of its per-seed RMS; the target ratio (an
+online method with the geometry identified within 1.25× the joint ``lm`` fit) is the ratio
 of those means, with the per-seed range beside it.
 
 **Why the tracker holds the gauge.** Table 4's drive errors carry a common rigid motion of

@@ -22,7 +22,7 @@ calibrated frame (``validate``), obvious to anything the robot touches.
   the mean position error of 90 % of such calibrations. One calibration's error is one draw
   ``e``: where a few poorly seen directions dominate (poses that neither tilt nor reach far), its
   mean over the workspace is nearly ``|z|·c`` for a single standard normal z, so it lands within
-  2× of any one number only ~85 % of the time (measured: issue 27's small workspace, 10 fits,
+  2× of any one number only ~85 % of the time (benchmarks/plan_poses.py's small workspace, 10 fits:
   the truth's quantile in the predicted distribution spread 0.10–0.93, all within the band);
 * :func:`error_weight`: ``W = mean_X Dᵀ diag(L² I₃, I₃) D`` (rotation rows weighed by a length L,
   the platform joints' mean radius), so that ``tr(W Σ)`` is the mean squared displacement of a
@@ -76,9 +76,9 @@ BAND_PROBABILITY = 0.9
 #: leaves with as many poses spread over the workspace box's extremes (``planning.noise_floor``);
 #: measured (Cramér–Rao, 60 poses; nim-stewart with a laser tracker and with its in-situ tracker,
 #: benchmarks.plan_poses' wide hexapod, the hobby's motion capture): ``plan``'s designs 0.65–1.04×
-#: the floor, uniform random poses in the box 1.3–2.2×, issue 27's 60 poses within ±20 mm / ±8° of
-#: the hobby hexapod 3.9–4.1×; issue 27's laser-tracker report (random poses against the box's
-#: corners, 400 each) puts random poses there at 3.4–4.8×.
+#: the floor, uniform random poses in the box 1.3–2.2×, 60 poses within ±20 mm / ±8° of the hobby
+#: hexapod 3.9–4.1×; the hobby with a laser tracker (random poses against the box's corners, 400
+#: each) puts random poses at 3.4–4.8×.
 NOISE_FLOOR_FACTOR = 3.0
 
 #: The words every command opens its predicted error with (calibrate, identifiability, plan, validate).

@@ -505,8 +505,8 @@ def _polished(problem, state: _State, basis, sigmas, weights, fit_blocks, cost: 
 
     LM stops on a step below ``tolerance_mm`` (or a decrease below 1e-14 of the cost); along the
     weakest directions (condition ~1e7) the iterate is then a few 1e-9 mm from the minimum, where
-    the path left it: the hobby round trip's two logs, equal to 4e-14°, stopped 5.3e-9 mm apart in
-    δM (issue 28). The undamped steps contract ~30× each (hobby: 5e-7, 2e-8, 5e-10 mm), so one or
+    the path left it: the hobby round trip's two logs, equal to 4e-14°, stop 5.3e-9 mm apart in
+    δM. The undamped steps contract ~30× each (hobby: 5e-7, 2e-8, 5e-10 mm), so one or
     two of them put the result at the minimum itself: the same two logs then agree to 3e-12 mm.
     """
     last = math.inf

@@ -35,8 +35,8 @@ The recursion is a :class:`~stewart_calib.estimators.robust.RobustFilter` (robus
 its observation at a state is the loose one above, or the tight one where the measurement fixes
 no pose there. A prepared sample is its drive inputs and the instrument's measurement, so the
 start-up batch can relinearise it at any state. After the start-up each sample is linearised once, at
-the state before it: relinearised at its own posterior (an iterated update, measured on the simulated
-hobby hexapod with ``[elastic]``) it moved nothing held out, at 1.7–2.0× the CPU a sample on a pose
+the state before it: relinearised at its own posterior (an iterated update, on the simulated
+hobby hexapod with ``[elastic]``) it moves nothing held out, at 1.7–2.0× the CPU a sample on a pose
 instrument; what keeps the filter off the batch optimum there is the earlier samples' linearisation,
 which only a smoother revisits (BENCHMARKS.md, "The real data's stand-in").
 
@@ -372,8 +372,8 @@ class LegEKF:
     def import_state(self, state: dict) -> None:
         """Restore :meth:`export_state` exactly. Raises ``CalibError`` on a bad key or shape."""
         self.robust.import_state(state.get("robust", {}))
-        # a prepared row's layout follows the model (13fac42 added the load column of an elastic drive
-        # seen through an instrument with unknowns): rows of another layout would be misread, not refused
+        # a prepared row's layout follows the model (an elastic drive seen through an instrument with
+        # unknowns adds the load column): rows of another layout would be misread, not refused
         width = self.drive.input_width + self._per_kg + int(self._forces_at_state) + len(self.model.columns)
         if self.robust.buffered_width() not in (None, width):
             raise CalibError(

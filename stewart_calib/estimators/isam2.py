@@ -712,14 +712,14 @@ class ISAM2Estimator:
             ):
                 raise CalibError("estimator state: snapshot covariance is not positive definite")
             first = _Snapshot(_chain_from_dict(snapshot.get("chain", {})), mean, covariance, 0)
-        scales = state.get("window_scales", {})  # a checkpoint of before them: the front end's scale
+        scales = state.get("window_scales", {})  # an older checkpoint has none: the front end's scale
         scale_t_s = state_array(scales, "t_s", np.shape(scales.get("t_s", ())))
         scale2 = state_array(scales, "noise_scale2", (len(scale_t_s),))
         if not np.all((scale2 > 0.0) & np.isfinite(scale2)):
             raise CalibError("estimator state: key 'window_scales.noise_scale2': expected finite scales > 0")
         if "walk_rate_mm2_per_s" in scales:
             rate = state_array(scales, "walk_rate_mm2_per_s", (len(scale_t_s),))
-        else:  # a checkpoint of before the measured rate: the graph walked at the configured one
+        else:  # an older checkpoint, without the measured rate: the graph walked at the configured one
             rate = np.full(len(scale_t_s), self._builder.noise.random_walk_mm_per_sqrt_s**2)
         if not np.all((rate >= 0.0) & np.isfinite(rate)):
             raise CalibError("estimator state: key 'window_scales.walk_rate_mm2_per_s': expected finite rates ≥ 0")

@@ -11,9 +11,8 @@ own linear model predicts a decrease below :data:`PREDICTED_TOLERANCE`: round-of
 hands over to gtsam's ``LevenbergMarquardtOptimizer`` (multifrontal QR) at the first step that raises it
 by more (or whose linear system Cholesky cannot solve). On a well-started graph GN
 converges in 3–4 steps; gtsam's optimiser reaches the same optimum (to 1e-9 of the cost) but
-spent 3.4× the time on 500 samples (5.9 s against 1.7 s: after convergence it keeps raising λ, an
-error evaluation of every Python factor each time), which put ``lm`` on a 10⁴–10⁵-sample log out
-of reach (issue 15).
+takes ~3.4× the time on 500 samples (after convergence it keeps raising λ, an error evaluation of
+every Python factor each time), which puts ``lm`` on a 10⁴–10⁵-sample log out of reach.
 
 Gross errors: after each solve, every sample's measurement factors are tested together — their
 χ² at the optimum against the gate's quantile (``[isam2] gate_probability``, the gate ``isam2``'s

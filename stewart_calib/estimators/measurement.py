@@ -366,7 +366,7 @@ def samples_to_arrays(samples: list[Sample], n_legs: int, n_columns: int) -> dic
 
 
 def samples_from_arrays(arrays: dict, n_legs: int, n_columns: int) -> list[Sample]:
-    """:func:`samples_to_arrays` back; a checkpoint of before ``load_kg`` was kept has no payloads."""
+    """:func:`samples_to_arrays` back; an older checkpoint, without ``load_kg``, has no payloads."""
     t_s = state_array(arrays, "t_s", np.shape(arrays.get("t_s", ())))
     strokes = state_array(arrays, "strokes", (len(t_s), n_legs))
     readings = state_array(arrays, "readings", (len(t_s), n_columns))

@@ -1129,7 +1129,7 @@ class RobustFilter:
             if history.ndim != 2 or history.shape[1] != 3 or not len(history):
                 raise CalibError("estimator state: key 'scale_history': expected rows of (time, scale, walk rate)")
             self._scale_history = deque((tuple(row) for row in history.tolist()), maxlen=SCALE_HISTORY)
-        else:  # a checkpoint of before it kept the history: the scales in use from its first sample on
+        else:  # a checkpoint without the history (an older format): the scales in use from its first sample on
             self._scale_history = deque(
                 [(-math.inf, self.noise_scale2, self.walk_rate_mm2_per_s)], maxlen=SCALE_HISTORY
             )
@@ -1140,14 +1140,14 @@ class RobustFilter:
         self._scale_sums = state_array(state, "scale_sums", (2,))
         started, self.recoveries, self._since_window, measured = (int(v) for v in state_array(state, "counters", (4,)))
         self.started, self.measured_noise = bool(started), bool(measured)
-        if "recovery_counts" in state:  # a checkpoint of before it counted none
+        if "recovery_counts" in state:  # a checkpoint of an older format counts none
             self.recovery_dropped, self.recovery_readmitted = (
                 int(v) for v in state_array(state, "recovery_counts", (2,))
             )
         self.steps = int(state_array(state, "steps", ())) if "steps" in state else 0  # none before steps counted
         self._candidates, self._since_candidate, self.step_t_s = [], 0, math.nan
         self._dispersions = deque(maxlen=DISPERSION_SAMPLES)
-        if "step_candidates" in state:  # a checkpoint of before the candidates: they start afresh
+        if "step_candidates" in state:  # an older checkpoint has none: they start afresh
             kept = state["step_candidates"]
             rows = state_array(kept, "ratio_nis_taken", np.shape(kept.get("ratio_nis_taken", ())))
             if rows.ndim != 2 or rows.shape[1] != 5:
@@ -1172,14 +1172,14 @@ class RobustFilter:
         if "difference_couplings" in state:
             couplings = state_array(state, "difference_couplings", (len(spans), self._n, self._n))
             differences = list(zip(eigenvalues, projections, spans, couplings, strict=True))
-        else:  # a checkpoint of before the walk's own directions: its rate pooled afresh from the next windows
+        else:  # an older checkpoint, without the walk's own directions: its rate pooled afresh from the next windows
             differences = []
         self._differences = deque(differences, maxlen=WALK_WINDOWS)
         window = state.get("window")
         self._last_vectors = None
         if window is None:
             self._last_window = None
-        else:  # a checkpoint of before first_t_s: the window as an instant at its end
+        else:  # an older checkpoint, without first_t_s: the window as an instant at its end
             if "difference_vectors" in window:
                 self._last_vectors = state_array(window, "difference_vectors", (self._n, self._n))
             last_t = float(state_array(window, "t_s", ()))

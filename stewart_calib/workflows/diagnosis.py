@@ -1,4 +1,4 @@
-"""Mistakes in a log named by their cause, before any solver runs (issue 28).
+"""Mistakes in a log named by their cause, before any solver runs.
 
 A log converted by hand goes wrong in a few typical ways, and each makes a solver fail far from
 the cause (a non-converging Levenberg–Marquardt for positions left in metres, a registration
