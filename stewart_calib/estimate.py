@@ -12,7 +12,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from .model.drive import PAYLOAD
-from .model.platform import LegGeometry, Platform
+from .model.legs import LegModel
+from .model.platform import Platform
 from .model.unknowns import UnknownLayout
 
 
@@ -77,7 +78,7 @@ class Estimate:
         """``sqrt(diag(covariance))`` [mm], or None."""
         return None if self.covariance is None else np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
 
-    def drive(self, nominal: LegGeometry | Platform) -> LegGeometry:
+    def drive(self, nominal: LegModel | Platform) -> LegModel:
         """The estimated drive geometry ``M + δM``."""
         legs = nominal.drive if isinstance(nominal, Platform) else nominal
         return legs.perturbed(self.error)

@@ -459,3 +459,16 @@ def test_platform_out_of_a_rotary_calibration_is_the_turned_table(tmp_path):
     offsets = tomllib.loads(text)["drive"]["angle_offsets_deg"]
     np.testing.assert_allclose(offsets, np.degrees(estimate.error[8::11]), atol=1e-12)
     assert "calibrated by stewart-calib" in back.description
+
+
+def test_a_prismatic_only_path_refuses_a_rotary_drive_naming_the_kind():
+    from stewart_calib.errors import CalibError
+    from stewart_calib.io.platform_file import load_platform
+    from stewart_calib.resources import resolve
+
+    platform = load_platform(resolve("servo-hexapod", "platforms"))
+    with pytest.raises(
+        CalibError, match=r"key 'drive.kind': the statics check takes prismatic legs; this drive is rotary"
+    ):
+        platform.prismatic_drive("the statics check")
+    assert load_platform(resolve("nim-stewart", "platforms")).prismatic_drive("x").n_params == 42

@@ -21,6 +21,7 @@ The observability indices of Borm & Menq (1991) are of the whitened leg-length f
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TypeGuard
 
 import numpy as np
 
@@ -103,7 +104,7 @@ def _degrees(legs) -> np.ndarray:
     return np.zeros(legs.n_params, dtype=bool) if _compiled(legs) else np.asarray(legs.parameter_degrees, dtype=bool)
 
 
-def _compiled(legs) -> bool:
+def _compiled(legs) -> TypeGuard[LegGeometry]:
     """Whether ``legs`` are the leg set the prismatic compiled kernels take."""
     return type(legs) is LegGeometry
 

@@ -208,7 +208,7 @@ def gross_outliers(
     if not 0.0 < gate_probability < 1.0 or len(residuals) == 0:
         return None
     tracker = platform.required_tracker("the ls outlier test")
-    legs = platform.drive.perturbed(error[: platform.drive.n_params])
+    legs = platform.prismatic_drive("the ls outlier test").perturbed(error[: platform.drive.n_params])
     carried = kin.leg_pose_jacobian(legs, R_v, t_v) @ np.linalg.inv(kin.leg_pose_jacobian(tracker, R_v, t_v))
     covariance = noise.stroke_sigma_mm**2 * np.eye(legs.n_legs) + noise.reading_sigma_mm**2 * (
         carried @ np.swapaxes(carried, -1, -2)
@@ -314,7 +314,15 @@ class LeastSquares(BufferedFit):
             return self._estimate_external(self._external)
         strokes, R_v = self._strokes.values(), self._R_v.values().reshape(-1, 3, 3)
         t_v, payload = self._t_v.values(), self._payload.values()[:, 0]
-        solution = gauss_newton(self.platform.drive, strokes, R_v, t_v, self.config, self._fitted, payload)
+        solution = gauss_newton(
+            self.platform.prismatic_drive("ls with the in-situ tracker"),
+            strokes,
+            R_v,
+            t_v,
+            self.config,
+            self._fitted,
+            payload,
+        )
         self.singular_values = solution.singular_values
         if self._fitted is None or not self._fitted.blocks:
             estimate = Estimate(solution.error, solution.covariance, self.name, len(self._strokes), self._t_s)

@@ -127,7 +127,7 @@ class PaperEKF:
         R_v, t_v = measured_pose(self._tracker_fk, z, t_s, self._theta)
         # the drive's nominal terms (spec §7; an elastic drive's forces at P_v, spec §10)
         strokes = self._drive.extensions(self._drive.inputs(strokes, payload_kg, R_v, t_v))
-        drive = self.platform.drive.perturbed(self.filter.x)
+        drive = self.platform.prismatic_drive("paper-ekf").perturbed(self.filter.x)
         R_m, t_m = self._model_fk.solve(drive, strokes, "drive model")
         Y = pose_difference(R_v, t_v, R_m, t_m) * self._unit_scale
         J_k = kin.error_jacobian(drive, R_m, t_m) * self._unit_scale[:, None]

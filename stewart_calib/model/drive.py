@@ -667,7 +667,7 @@ def tracker_reading_residuals(
     return kin.tracker_reading_residuals(tracker, readings, legs, inputs, terms, load)
 
 
-def plain_drive(legs: LegGeometry) -> DriveModel:
+def plain_drive(legs: LegModel) -> DriveModel:
     """``legs`` whose strokes are their length changes (stroke scale 0, no other term)."""
     return DriveModel(legs, (stroke_term(np.zeros(N_LEGS)),))
 

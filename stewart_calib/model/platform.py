@@ -488,6 +488,19 @@ class Platform:
         or a rotary drive's commanded angles' ``angle_range`` [rad] (spec §15)."""
         return self.stroke_range if isinstance(self.drive, LegGeometry) else self.drive.angle_range
 
+    def prismatic_drive(self, what: str) -> LegGeometry:
+        """:attr:`drive` for ``what``, which takes prismatic legs (the paper's error Jacobian, the
+        statics, the LinuxCNC kinematics, the paper's experiments).
+
+        Raises:
+            CalibError: the drive is of another kind (a rotary drive, spec §15).
+        """
+        if not isinstance(self.drive, LegGeometry):
+            raise CalibError(
+                f"{self.source}: key 'drive.kind': {what} takes prismatic legs; this drive is {self.drive.kind}"
+            )
+        return self.drive
+
     def required_tracker(self, what: str) -> LegGeometry:
         """:attr:`tracker` for ``what``, which needs the in-situ tracker's legs.
 

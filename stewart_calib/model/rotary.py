@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 from functools import cached_property
+from typing import cast
 
 import numpy as np
 
@@ -381,7 +382,7 @@ class RotaryLegs:
         rows[..., _ROD] = -1.0
         rows[..., _O] = J_e
         horn = c[..., None] * u + s[..., None] * w
-        rows[..., _TU] = -h * np.sum(m * _cross(self.tilt_reference, horn), axis=-1)
+        rows[..., _TU] = -h * np.sum(m * _cross(cast(np.ndarray, self.tilt_reference), horn), axis=-1)
         rows[..., _TW] = h * c * mn
         J_M = (rows[..., :, None, :] * np.eye(self.n_legs)[:, :, None]).reshape(batch + (self.n_legs, self.n_params))
         return J_pose, J_M, J_e

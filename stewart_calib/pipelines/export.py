@@ -74,14 +74,19 @@ def run(args: argparse.Namespace) -> int:
         ini = Path(ini_sibling(out))
         if ini == out:
             raise CalibError(f"--out {out}: expected a name whose .ini sibling is another file (e.g. kinematics.hal)")
+        legs = model.prismatic()
         files = {
-            out: controllers.linuxcnc_hal_text(drive, args.units, source),
-            ini: controllers.linuxcnc_ini_text(drive, k, args.units, args.home_stroke_mm),
+            out: controllers.linuxcnc_hal_text(legs, args.units, source),
+            ini: controllers.linuxcnc_ini_text(legs, k, args.units, args.home_stroke_mm),
         }
     else:
         extra = {"source": source, "platform": platform.name}
-        write = controllers.rotary_controller_json_text if rotary else controllers.controller_json_text
-        files = {out: write(drive, k, args.units, extra)}
+        text = (
+            controllers.rotary_controller_json_text(drive, k, args.units, extra)
+            if rotary
+            else controllers.controller_json_text(model.prismatic(), k, args.units, extra)
+        )
+        files = {out: text}
     with io.atomic_paths(list(files)) as temporaries:  # both files or neither
         for tmp, text in zip(temporaries, files.values(), strict=True):
             tmp.write_text(text, encoding="utf-8")

@@ -171,7 +171,7 @@ def singular_statics_row(err, platform_path: str, path: str, is_log: bool, skip_
         return CalibError(f"standard input: {err}")
     try:
         platform = load_platform(platform_path)
-        legs = platform.drive
+        legs = platform.prismatic_drive("the statics check")
         ratios = lambda R, t: statics_ratios(legs, statics_matrix(legs, R, t))  # noqa: E731
         if not is_log:
             done = 0

@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
         )
         for name, description, file, platform in PARTS
     )
-    draw = RunFigures.of(experiment.platform.drive, parts)
+    draw = RunFigures.of(experiment.platform.prismatic_drive("the paper's figures"), parts)
     with WorkerPool(workers) if workers > 1 else contextlib.nullcontext() as pool:
         reproduction = reproduce(experiment, config, progress=True, parts=parts, workers=pool or 1, draw=draw)
         drawing = {} if pool is None else draw_in(pool, reproduction)

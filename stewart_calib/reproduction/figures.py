@@ -292,7 +292,7 @@ def _fig6(drive: LegGeometry, run: str, method_run: MethodRun) -> tuple[str, str
 
 def figures(reproduction: Reproduction) -> list[tuple[str, str, Callable[[], Figure]]]:
     """``(file name, caption, how to draw it)`` of every figure, in the order of the page."""
-    drive, runs = reproduction.platform.drive, reproduction.runs
+    drive, runs = reproduction.platform.prismatic_drive("the paper's figures"), reproduction.runs
     named = parameter_runs(reproduction.parts)
     return [
         *(_fig5(drive, run, runs[run]) for run in named),

@@ -81,7 +81,7 @@ class NominalController:
     adaptive = False
 
     def __init__(self, platform: Platform):
-        self._drive = platform.drive
+        self._drive: LegModel = platform.drive
 
     def drive_model(self) -> LegModel:
         return self._drive

@@ -188,7 +188,11 @@ def ring_platform(
     base_angles = np.radians(centres + signs * base_half_angle_deg)
     platform_angles = np.radians(centres + signs * platform_half_angle_deg)
     base = np.column_stack(
-        [base_radius_mm * np.cos(base_angles), base_radius_mm * np.sin(base_angles), like.drive.base_joints[:, 2]]
+        [
+            base_radius_mm * np.cos(base_angles),
+            base_radius_mm * np.sin(base_angles),
+            like.prismatic_drive("a sweep").base_joints[:, 2],
+        ]
     )
     plat = np.column_stack(
         [

@@ -302,7 +302,9 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
     drive = simulated_drive(data.platform, settings)
     blocks = drive.blocks
     if data.true_instrument is not None:
-        delta, unknowns = truth_in_gauge(data.platform.drive, data.true_params[-1], data.true_instrument.unknowns)
+        delta, unknowns = truth_in_gauge(
+            data.platform.prismatic_drive("a sweep"), data.true_params[-1], data.true_instrument.unknowns
+        )
         simulated = replace(
             data.platform,
             instrument=true_noise(data.platform, settings),
@@ -352,7 +354,9 @@ def truth(data: SweepData) -> np.ndarray:
     :mod:`stewart_calib.instruments.gauge` for an outside instrument), then the scored blocks'
     (:attr:`SweepData.scored`: the stroke scales, the legs' compliance [mm/kN])."""
     if data.true_instrument is not None:
-        delta, _ = truth_in_gauge(data.platform.drive, data.true_params[-1], data.true_instrument.unknowns)
+        delta, _ = truth_in_gauge(
+            data.platform.prismatic_drive("a sweep"), data.true_params[-1], data.true_instrument.unknowns
+        )
     else:
         delta = data.true_error
     return np.concatenate([delta, *(data.true_terms[key] for key in data.scored)])
@@ -483,7 +487,9 @@ def run_method(
 def _truth_at(data: SweepData, n: int) -> np.ndarray:
     """δM in force at sample ``n`` (1-based), in the gauge for an outside instrument."""
     if data.true_instrument is not None:
-        return truth_in_gauge(data.platform.drive, data.true_params[n - 1], data.true_instrument.unknowns)[0]
+        return truth_in_gauge(
+            data.platform.prismatic_drive("a sweep"), data.true_params[n - 1], data.true_instrument.unknowns
+        )[0]
     return data.true_params[n - 1] - data.platform.drive.as_vector()
 
 
