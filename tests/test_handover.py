@@ -171,7 +171,7 @@ def test_report_is_one_static_self_contained_page(ekf_run):
     ):
         assert f"<h2>{heading}</h2>" in page
     images = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
-    assert len(images) == 5  # residual RMS, residuals over time, δM ± σ, correlations, leg forces
+    assert len(images) == 6  # the robot, residual RMS, residuals over time, δM ± σ, correlations, leg forces
     assert all(base64.b64decode(data).startswith(PNG_MAGIC) for data in images)
     result = read_result(ekf_run / "r.json")
     # the page shows the result's numbers: every RMS before and after, to 4 significant digits
@@ -336,7 +336,7 @@ def test_validate_report_shows_the_held_out_errors(pose_run):
     header = rows[0].split(",")
     position = np.array([float(r.split(",")[header.index("position_error_mm")]) for r in rows[1:]])
     assert f"<td>{np.sqrt(np.mean(position**2)):.4g}</td><td>{position.max():.4g}</td>" in page
-    assert len(re.findall(r'src="data:image/png;base64,', page)) == 5  # + the held-out errors over time
+    assert len(re.findall(r'src="data:image/png;base64,', page)) == 6  # the robot, + the held-out errors over time
 
 
 def test_report_without_matplotlib_is_refused_before_any_work(sim, tmp_path, capsys, monkeypatch):

@@ -22,7 +22,7 @@ from tests.synthetic import ROOT
 
 #: a small kernel is enough: the cache location is decided when each function is decorated.
 CALL_A_KERNEL = (
-    "import numpy as np; from stewart_calib import _kernels; print(_kernels.all_within(np.zeros(6), -1.0, 1.0))"
+    "import numpy as np; from stewart_calib.model import _kernels; print(_kernels.all_within(np.zeros(6), -1.0, 1.0))"
 )
 
 
@@ -144,9 +144,9 @@ def test_the_fk_kernels_compile_once_for_every_caller(tmp_path):
     Newton solve and the single-pose FK once, not once per caller (issue 31: each costs seconds)."""
     script = (
         "import numpy as np\n"
-        "from stewart_calib import _kernels, kinematics as kin\n"
+        "from stewart_calib.model import _kernels, kinematics as kin\n"
         "from tests.synthetic import ROOT\n"
-        "from stewart_calib.model.platform import load_platform\n"
+        "from stewart_calib.io.platform_file import load_platform\n"
         "p = load_platform(ROOT / 'configs' / 'platforms' / 'nim-stewart.toml')\n"
         "R, t = np.eye(3)[None], np.array([[0.0, 0.0, p.workspace.home[2]]])\n"
         "readings = kin.inverse_kinematics(p.tracker, R, t)\n"

@@ -64,7 +64,9 @@ def servo_build(angle_range_deg=(-90.0, 90.0), angle_offsets_deg=(0.0,) * 6) -> 
 
 
 LEGS = servo_build()
-FIELDS = [field.name for field in dataclasses.fields(RotaryLegs) if field.name != "tilt_reference"]
+FIELDS = [
+    field.name for field in dataclasses.fields(RotaryLegs) if field.name not in ("tilt_reference", "reach_margin")
+]
 
 
 def servo_errors(rng: np.random.Generator) -> np.ndarray:
@@ -479,3 +481,19 @@ def test_along_follows_the_log_where_the_start_would_jump():
     assert position_mm.max() < 1e-9 and angle_deg.max() < 1e-9
     plain = LEGS.forward_kinematics(e, tol_mm=FK_TOL_MM, along=True)  # nothing to follow: the default starts
     np.testing.assert_array_equal(plain.t, LEGS.forward_kinematics(e, tol_mm=FK_TOL_MM).t)
+
+
+def test_a_reach_margin_refuses_poses_near_a_rods_full_stretch():
+    # raise the platform until leg 1's rod is nearly in line with its horn: the exact IK still
+    # reaches it, a plan's margin (the crank angle to where the two solutions meet) does not
+    wide = dataclasses.replace(LEGS, angle_range=(-0.99 * np.pi, 0.99 * np.pi))  # only the reach bounds it
+    R, t = home(wide)
+    lifts = np.linspace(0.0, 60.0, 601)
+    e = wide.coordinates(np.broadcast_to(R, (len(lifts), 3, 3)), t + lifts[:, None] * [0.0, 0.0, 1.0])
+    last = np.flatnonzero(np.all(np.isfinite(e), axis=1))[-1]
+    assert 0 < last < len(lifts) - 1  # the sweep leaves the reach
+    edge = t + lifts[last] * np.array([0.0, 0.0, 1.0])
+    margined = dataclasses.replace(wide, reach_margin=np.radians(4.0))
+    assert np.all(np.isfinite(wide.coordinates(R, edge)))
+    assert np.isnan(margined.coordinates(R, edge)).any()
+    np.testing.assert_array_equal(margined.coordinates(R, t), wide.coordinates(R, t))  # home is far from it

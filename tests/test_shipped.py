@@ -128,4 +128,7 @@ print(load_estimator_config("paper").noise)
     assert len((work / "poses.csv").read_text().splitlines()) == 1 + 7
     missing = run("simulate", "--experiment", "quik", "--out", "sim")
     assert missing.returncode == 2
-    assert "quik: experiment file not found (nor the name of a shipped file: paper, quick, servo)" in missing.stderr
+    assert (
+        "quik: experiment file not found (nor the name of a shipped file: paper, quick, servo, servo-points)"
+        in missing.stderr
+    )

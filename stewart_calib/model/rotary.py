@@ -125,6 +125,10 @@ class RotaryLegs:
             set's own ``u_i`` (default), or, for a set :meth:`perturbed` from another, that set's. The
             drive perturbs its nominal legs by the whole δM, so ``∂/∂tu`` at a tilted set turns about
             ``u⁰_i``, not about its own (tilted) ``u_i``; ``∂/∂tw`` turns about ``Rot(u⁰, tu) w⁰ = w_i``.
+        reach_margin: the crank angle [rad] a pose must keep from where a leg's two horn solutions
+            meet (rod in line with the horn, fully stretched or folded) for :meth:`coordinates` to
+            count it reachable: 0 (default) for the exact inverse kinematics; a plan's margin, so that
+            a calibrated model, whose rods and horns differ from the nominal, still reaches its poses.
     """
 
     crank_centres: np.ndarray
@@ -136,6 +140,7 @@ class RotaryLegs:
     angle_offsets: np.ndarray
     angle_range: tuple[float, float]
     tilt_reference: np.ndarray | None = field(default=None, compare=False, repr=False)
+    reach_margin: float = 0.0
 
     #: the leg model's kind (:class:`~stewart_calib.model.legs.LegModel`): the platform file's ``[drive] kind``
     kind = "rotary"
@@ -183,6 +188,9 @@ class RotaryLegs:
         if not (np.isfinite(low) and np.isfinite(high) and low < high <= low + 2.0 * np.pi):
             raise ValueError(f"angle_range must be finite, min < max, at most 2π wide, got {self.angle_range}")
         object.__setattr__(self, "angle_range", (low, high))
+        if not 0.0 <= float(self.reach_margin) < 0.5 * np.pi:
+            raise ValueError(f"reach_margin must be in [0, π/2) rad, got {self.reach_margin}")
+        object.__setattr__(self, "reach_margin", float(self.reach_margin))
 
     # ------------------------------------------------------------------ the parameter vector
 
@@ -277,6 +285,7 @@ class RotaryLegs:
             self.angle_offsets + d[:, _O],
             self.angle_range,
             np.array(u),
+            self.reach_margin,
         )
 
     def moved(self, delta: np.ndarray, base: tuple, platform: tuple) -> np.ndarray:
@@ -407,7 +416,8 @@ class RotaryLegs:
         the range crosses ±π); the one inside ``angle_range`` is returned, the one nearer the range's
         middle where both are (spec §15's branch rule, applied to ``e``, which differs from the
         commanded angle by the drive's angle scale only). NaN where the rod cannot reach the horn's
-        circle (``|C| > √(A² + B²)``) or neither solution is inside the range.
+        circle (``|C| > √(A² + B²)``), comes within :attr:`reach_margin` of it (``acos`` within the
+        margin of 0 or π), or neither solution is inside the range.
         """
         v = self._platform_points(R, t) - self.crank_centres
         A = np.sum(v * self.zero_directions, axis=-1)
@@ -416,6 +426,8 @@ class RotaryLegs:
         C = (np.sum(v * v, axis=-1) + h * h - r * r) / (2.0 * h)
         with np.errstate(invalid="ignore", divide="ignore"):
             opening = np.arccos(C / np.hypot(A, B))  # NaN where |C| > √(A² + B²): unreachable
+        if self.reach_margin > 0.0:
+            opening = np.where((opening >= self.reach_margin) & (opening <= np.pi - self.reach_margin), opening, np.nan)
         centre, (low, high) = self._window_centre(), self.angle_range
         middle = 0.5 * (low + high)
         best = np.full(opening.shape, np.nan)

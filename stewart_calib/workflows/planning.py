@@ -352,11 +352,13 @@ def noise_floor(platform: Platform, n_poses: int, noise: NoiseConfig | None = No
 def with_stroke_margin(platform: Platform, noise: NoiseConfig) -> Platform:
     """The platform whose stroke range is :data:`STROKE_MARGIN_SIGMAS` prior σ narrower at each end
     (at most a quarter of the range): where plan puts an outside instrument's poses. A rotary drive's
-    angle range (spec §15) narrows by as many ``noise.angle_prior_sigma_deg``, the zero trims' σ."""
+    angle range (spec §15) narrows by as many ``noise.angle_prior_sigma_deg``, the zero trims' σ, and
+    its poses keep as much crank angle from a rod's full stretch or fold (``RotaryLegs.reach_margin``)."""
     if isinstance(platform.drive, RotaryLegs):
         low, high = platform.drive.angle_range
         margin = _margin(math.radians(noise.angle_prior_sigma_deg), high - low)
-        return replace(platform, drive=replace(platform.drive, angle_range=(low + margin, high - margin)))
+        narrowed = replace(platform.drive, angle_range=(low + margin, high - margin), reach_margin=margin)
+        return replace(platform, drive=narrowed)
     if platform.stroke_range is None:
         return platform
     low, high = platform.stroke_range
