@@ -34,7 +34,7 @@ SECTIONS = {
     "hobby": "The real data's stand-in: every method against the builders' 48-parameter fit",
     "honesty": "Honesty over a grid",
     "link": "Live link to a controller",
-    "rotary": "The rotary (servo-horn) hexapod: calibration accuracy against the Cramér–Rao bound",
+    "rotary": "The rotary (servo-horn) hexapod",
 }
 
 #: 1-minute load average per core above which a section says its machine was loaded
