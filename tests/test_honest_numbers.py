@@ -317,7 +317,8 @@ def test_strokes_of_another_robot_are_named_not_the_registrations_symptom(outsid
     assert status == 2 and not (tmp_path / "r.json").exists()
     assert re.fullmatch(
         r"stewart-calib calibrate: error: .*other\.csv: the strokes q1_mm…q6_mm do not fit this platform's legs: "
-        r"the angles between pairs of poses that they give the nominal model differ from the instrument's by [\d.]+° RMS .*",
+        r"the angles between pairs of poses that they give the nominal model differ from the instrument's "
+        r"by [\d.]+° RMS .*",
         line,
     ), line
 
