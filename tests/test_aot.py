@@ -192,7 +192,8 @@ def test_arguments_other_than_declared_take_the_jit():
 WITHOUT_AOT = """
 import sys
 import numpy as np
-from stewart_calib import _jit, _kernels
+from stewart_calib import _jit
+from stewart_calib.model import _kernels
 {hide}
 print(_kernels.all_within(np.array([0.5, -0.5]), -1.0, 1.0), len(_kernels.all_within.signatures))
 """
