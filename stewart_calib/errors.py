@@ -57,7 +57,7 @@ def shown(name: object) -> str:
 
 def number(value: object) -> str:
     """A number for a message: 15 significant digits, so that a time read as ``7.1`` from a file
-    shows as ``7.1``, not the ``7.1000000000000005`` that arithmetic on it leaves (``repr``'s 17),
+    shows as ``7.1``, not the 7.1 and fifteen more digits that arithmetic on it leaves (``repr``'s 17),
     while an epoch time keeps its microseconds; anything else as ``str``."""
     try:
         return f"{float(value):.15g}"  # type: ignore[arg-type]

@@ -45,7 +45,7 @@ RANK_RTOL = 1e-8
 CONDITION_POOR = 1e3
 #: significant digits the verdict reads a condition number to (:func:`poorly_conditioned`). The
 #: kernels' ahead-of-time and JIT forms round the whitened rows differently in the last bit (5.5e-16
-#: relative, the same poses; the quick experiment's log: 968.7889827920254 against …354), so a
+#: relative on the same poses: condition numbers that differ in the 16th digit), so a
 #: number within 1e-13 of the threshold would be "poorly conditioned" on one and not on the other;
 #: nine digits are far above that rounding and far below any change of the poses.
 CONDITION_DIGITS = 9

@@ -232,21 +232,44 @@ def _newton_fk(
     )
 
     # The compiled check first: `residual <= tol_mm` and `.all()` cost a sizeable share of a solve.
-    if _kernels.all_within(residual, -np.inf, float(tol_mm)):
-        converged = np.ones(len(flat), dtype=bool)
-    else:
-        converged = residual <= tol_mm
-        if strict and not converged.all():
-            first = int(np.flatnonzero(~converged)[0])
-            where = f" (pose {tuple(int(i) for i in np.unravel_index(first, batch))})" if batch else ""
-            reason = (
-                "non-finite lengths" if not np.all(np.isfinite(flat[first])) else f"residual {residual[first]:.3g} mm"
-            )
-            raise FKError(
-                f"forward kinematics did not converge{where}: {reason} after {iterations[first]} "
-                "Newton iterations; the leg lengths may be unreachable"
-            )
+    converged = (
+        np.ones(len(flat), dtype=bool) if _kernels.all_within(residual, -np.inf, float(tol_mm)) else residual <= tol_mm
+    )
+    return fk_solution(
+        R, t, iterations, residual, converged, flat, batch, strict, "forward kinematics", "lengths", "leg lengths"
+    )
 
+
+def fk_solution(
+    R: np.ndarray,
+    t: np.ndarray,
+    iterations: np.ndarray,
+    residual: np.ndarray,
+    converged: np.ndarray,
+    coordinates: np.ndarray,
+    batch: tuple[int, ...],
+    strict: bool,
+    what: str,
+    coordinate_name: str,
+    reach_name: str,
+) -> FKSolution:
+    """The :class:`FKSolution` of a flat batch of Newton solves (``R (n, 3, 3)``, ``t (n, 3)``, their
+    ``iterations``, ``residual`` [mm] and ``converged``, from ``coordinates (n, 6)``) shaped as
+    ``batch``; every leg model's FK ends here.
+
+    Raises:
+        FKError: ``strict`` and a pose did not converge; it names ``what`` solved, the first such pose
+            as non-finite ``coordinate_name``, or the ``reach_name`` unreachable.
+    """
+    if strict and not converged.all():
+        first = int(np.flatnonzero(~converged)[0])
+        where = f" (pose {tuple(int(i) for i in np.unravel_index(first, batch))})" if batch else ""
+        finite = np.all(np.isfinite(coordinates[first]))
+        reason = f"residual {residual[first]:.3g} mm" if finite else f"non-finite {coordinate_name}"
+        raise FKError(
+            f"{what} did not converge{where}: {reason} after {iterations[first]} "
+            f"Newton iterations; the {reach_name} may be unreachable"
+        )
     return FKSolution(
         R.reshape(batch + (3, 3)),
         t.reshape(batch + (3,)),

@@ -29,7 +29,7 @@ from typing import cast
 
 import numpy as np
 
-from .kinematics import FK_MAX_ITERATIONS, FK_TOLERANCE_MM, FKError, FKSolution, fk_failed
+from .kinematics import FK_MAX_ITERATIONS, FK_TOLERANCE_MM, FKSolution, fk_failed, fk_solution
 from .platform import N_LEGS
 from .rotations import retract, rotation_angle
 
@@ -554,22 +554,18 @@ class RotaryLegs:
                 R[changed], t[changed], residual[changed] = R_k[taken], t_k[taken], res_k[taken]
                 iterations[changed] += it_k[taken]
                 candidates = changed[changed + 1 < len(flat)] + 1
-        converged = residual <= tol_mm
-        if strict and not converged.all():
-            first = int(np.flatnonzero(~converged)[0])
-            where = f" (pose {tuple(int(i) for i in np.unravel_index(first, batch))})" if batch else ""
-            finite = np.all(np.isfinite(flat[first]))
-            reason = f"residual {residual[first]:.3g} mm" if finite else "non-finite angles"
-            raise FKError(
-                f"rotary forward kinematics did not converge{where}: {reason} after {iterations[first]} "
-                "Newton iterations; the crank angles may be unreachable"
-            )
-        return FKSolution(
-            R.reshape(batch + (3, 3)),
-            t.reshape(batch + (3,)),
-            iterations.reshape(batch),
-            converged.reshape(batch),
-            residual.reshape(batch),
+        return fk_solution(
+            R,
+            t,
+            iterations,
+            residual,
+            residual <= tol_mm,
+            flat,
+            batch,
+            strict,
+            "rotary forward kinematics",
+            "angles",
+            "crank angles",
         )
 
     def solve_fk(

@@ -194,7 +194,7 @@ class ControllerLog:
 
     def gap_hint(self, max_gap_s: float) -> str:
         """``"; --max-gap-s 0.1 s is within 1.5× the controller's row period …"`` where it is, else ``""``."""
-        enough = round(GAP_PERIODS * self.period_s, 6)  # to the µs: 1.5 × 0.1 is 0.15, not 0.15000000000000002
+        enough = round(GAP_PERIODS * self.period_s, 6)  # to the µs: 1.5 × 0.1 in binary floats is one ulp above 0.15
         if not (math.isfinite(self.period_s) and max_gap_s < enough):
             return ""
         return (

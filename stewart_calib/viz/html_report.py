@@ -166,7 +166,7 @@ TIME_ORIGIN_S = 1e4
 
 def time_axis(t_s: np.ndarray) -> tuple[np.ndarray, str]:
     """A plot's times and their label: from the log's first where they are a clock's epoch
-    (:data:`TIME_ORIGIN_S`), which a plot would otherwise print as an offset ("+1.74194e9")."""
+    (:data:`TIME_ORIGIN_S`), which a plot would otherwise print as an offset of some 1.7e9 s (a Unix time)."""
     t = np.asarray(t_s, dtype=float)
     if len(t) and abs(t[0]) > TIME_ORIGIN_S:
         return t - t[0], f"t − {number(t[0])} s [s]"
