@@ -7,10 +7,28 @@ rad; the log's degrees are converted at the file edge (:mod:`stewart_calib.io`).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from itertools import repeat
 
 import numpy as np
+
+#: the input channel of the payload [kg], a scalar per sample (spec §3 ``load_kg``, §10)
+LOAD_KG = "load_kg"
+#: the input channel of each leg's temperature [°C], ``(6,)`` per sample (spec §17 ``temp1_C … temp6_C``
+#: or ``temp_C`` for all legs)
+TEMPERATURE_C = "temperature_C"
+#: the input channel of the direction gravity acts in, a unit vector in {J} ``(3,)`` per sample
+#: (spec §17 ``gravity_x gravity_y gravity_z``)
+GRAVITY = "gravity"
+
+#: a sample's named inputs beside its drive readings: channel → value (a float or an array)
+Inputs = Mapping[str, "np.ndarray | float"]
+
+
+def input_rows(inputs: Mapping[str, np.ndarray], index) -> dict[str, np.ndarray]:
+    """The rows ``index`` (a mask, slice, index array or integer) of every channel of a log's ``inputs``."""
+    return {name: values[index] for name, values in inputs.items()}
 
 
 @dataclass(frozen=True)
@@ -25,8 +43,9 @@ class Sample:
             grating readings s_i [mm].
         desired_pose: ``(6,)`` pose the controller was asked for ``[mm, rad]``, or None.
         stage: free label of the experiment stage ("" when absent).
-        load_kg: payload [kg]: an input of the estimators where the platform has ``[elastic]`` (spec §10),
-            else for reports only.
+        inputs: the sample's named input channels (:data:`LOAD_KG`, :data:`TEMPERATURE_C`,
+            :data:`GRAVITY`): what the drive's terms read (:class:`~stewart_calib.model.drive.DriveModel`),
+            empty where the log carries none.
     """
 
     t_s: float
@@ -34,7 +53,7 @@ class Sample:
     readings: np.ndarray
     desired_pose: np.ndarray | None = None
     stage: str = ""
-    load_kg: float | None = None
+    inputs: Inputs = field(default_factory=dict)
 
 
 @dataclass
@@ -47,7 +66,7 @@ class Log:
         readings: ``(N, M)`` the instrument's measurements (tracker: s_i [mm]).
         desired_poses: ``(N, 6)`` ``[mm, rad]`` or None when the log has no pose columns.
         stages: N labels or None.
-        load_kg: ``(N,)`` payload [kg] or None (see :class:`Sample`).
+        inputs: the named input channels, each ``(N, ...)`` (see :class:`Sample`).
         skipped: ``(row, reason)`` of rows skipped on reading (1-based file line numbers).
     """
 
@@ -56,7 +75,7 @@ class Log:
     readings: np.ndarray
     desired_poses: np.ndarray | None = None
     stages: list[str] | None = None
-    load_kg: np.ndarray | None = None
+    inputs: dict[str, np.ndarray] = field(default_factory=dict)
     skipped: list[tuple[int, str]] = field(default_factory=list)
 
     def __len__(self) -> int:
@@ -69,7 +88,7 @@ class Log:
             self.readings[k],
             None if self.desired_poses is None else self.desired_poses[k],
             "" if self.stages is None else self.stages[k],
-            None if self.load_kg is None else float(self.load_kg[k]),
+            input_rows(self.inputs, k),
         )
 
     def __iter__(self):
@@ -82,12 +101,13 @@ class Log:
             self.readings,
             repeat(None, n) if self.desired_poses is None else self.desired_poses,
             repeat("", n) if self.stages is None else self.stages,
-            repeat(None, n) if self.load_kg is None else np.asarray(self.load_kg, dtype=float).tolist(),
+            (input_rows(self.inputs, k) for k in range(n)),
         )
 
     @classmethod
     def concatenate(cls, logs: list[Log]) -> Log:
-        """The samples of ``logs`` (at least one, all with the same optional fields) one after the other."""
+        """The samples of ``logs`` (at least one, all with the same optional fields and input channels)
+        one after the other."""
         first = logs[0]
 
         def joined(name: str) -> np.ndarray:
@@ -102,7 +122,7 @@ class Log:
             joined("readings"),
             joined_optional("desired_poses"),
             None if first.stages is None else [s for log in logs for s in log.stages or ()],
-            joined_optional("load_kg"),
+            {name: np.concatenate([log.inputs[name] for log in logs]) for name in first.inputs},
             [row for log in logs for row in log.skipped],
         )
 
@@ -116,7 +136,7 @@ class Log:
             self.readings[mask_or_index],
             pick(self.desired_poses),
             stages,
-            pick(self.load_kg),
+            input_rows(self.inputs, mask_or_index),
         )
 
 

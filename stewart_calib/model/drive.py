@@ -13,7 +13,15 @@ spec §15) and ``M`` its parameters; the extension
 ``v_b`` (its nominal from the platform file, plus an error where it is an unknown block) and a
 gain ``g_b`` on six columns ``u_b`` of the sample's drive inputs ``u``. Every drive has the stroke
 term: ``o = 1``, ``v = k`` (the stroke scale), ``g u = q`` (the logged strokes), so a rigid drive's
-``e_i = (1 + k_i) q_i``; an elastic drive adds the compliance term on the leg forces (spec §10).
+``e_i = (1 + k_i) q_i``; an elastic drive adds the compliance term on the leg forces (spec §10), a
+drive with ``[thermal]`` the expansion term on each leg's temperature (spec §17).
+
+A term's inputs come from its *source* (:data:`TERM_SOURCES`): the logged strokes, or a function of
+the sample's named input channels (:data:`~stewart_calib.samples.LOAD_KG`,
+:data:`~stewart_calib.samples.TEMPERATURE_C`, :data:`~stewart_calib.samples.GRAVITY`:
+``Sample.inputs``, ``Log.inputs``) and, for the leg forces, of the pose. Estimators hand a
+sample's channels to :meth:`DriveModel.inputs` as they come and never read one by name, so a new
+input is one source here and one line where the log's columns are parsed (docs/architecture.md).
 Since every term is linear in its values, ``∂r_i/∂v_{b,i} = J_e,i g_b u_{b,i}`` with the leg
 model's ``J_e,i = ∂r_i/∂e_i`` (prismatic: −1). A rotary drive's stroke input is the commanded
 angle [rad], so ``k`` is its angle scale.
@@ -39,9 +47,10 @@ import numpy as np
 
 from ..config import NoiseConfig
 from ..errors import CalibError
+from ..samples import LOAD_KG, TEMPERATURE_C, Inputs
 from . import kinematics as kin
 from .legs import LegModel
-from .platform import G_N_PER_KG, N_LEGS, Elastic, LegGeometry, Platform
+from .platform import G_N_PER_KG, N_LEGS, Elastic, LegGeometry, Platform, Thermal
 from .statics import gravity_leg_forces, masses_and_centres, moment_radius
 from .unknowns import UnknownBlock
 
@@ -70,6 +79,7 @@ class LegTerm:
         input_start: the first of its six columns in the sample's drive inputs ``u``.
         gain: ``g`` (code units of the extension per unit of input).
         prior_sigma: prior σ of its errors where they are unknowns, None where the term is known.
+        source: the key in :data:`TERM_SOURCES` of what its six inputs are.
     """
 
     key: str
@@ -79,6 +89,7 @@ class LegTerm:
     input_start: int
     gain: float = 1.0
     prior_sigma: float | None = None
+    source: str = "strokes"
 
     def block(self) -> UnknownBlock:
         """The unknown block of its errors (about :attr:`nominal`, σ :attr:`prior_sigma`)."""
@@ -93,8 +104,11 @@ SETTLED_MM = 1e-7
 #: the compliance term's key: the result's ``"compliance"`` block (spec §10)
 COMPLIANCE = "compliance"
 
+#: the thermal expansion term's key: the result's ``"thermal"`` block (spec §17)
+THERMAL = "thermal"
+
 #: the units a report gives a term's values (and σ) in, by the term's key
-TERM_UNITS = {STROKE_SCALE: "-", COMPLIANCE: "mm/kN"}
+TERM_UNITS = {STROKE_SCALE: "-", COMPLIANCE: "mm/kN", THERMAL: "ppm/K"}
 
 
 def compliance_term(elastic: Elastic) -> LegTerm:
@@ -110,6 +124,27 @@ def compliance_term(elastic: Elastic) -> LegTerm:
         N_LEGS,
         -1e-3,
         sigma if sigma > 0.0 else None,
+        "leg_forces",
+    )
+
+
+def thermal_term(thermal: Thermal, input_start: int) -> LegTerm:
+    """``α_i (T_i − T_ref) · 1e-6 · L_i``: each leg's growth [mm] with its temperature (spec §17), the
+    expansion ``α`` [ppm/K] about ``[thermal] expansion_ppm_per_K``, an unknown block where its σ is
+    positive. The input ``(T_i − T_ref) · 1e-6 · L_i`` takes ``L_i`` the nominal leg's length from
+    joint to joint at its nominal extension (:func:`_thermal_inputs`), so the term is linear in ``α``
+    like every other: ``(l_i + e_i)(1 + α_i ΔT_i · 1e-6) = l_i + e_i + α_i ΔT_i · 1e-6 (l_i + e_i)``, off
+    by ``α ΔT`` times what the calibration corrects in ``l_i + e_i`` — 20 ppm/K · 15 K · 2 mm = 0.6 µm."""
+    sigma = float(thermal.expansion_sigma_ppm_per_K)
+    return LegTerm(
+        THERMAL,
+        tuple(f"alpha{i}" for i in range(1, N_LEGS + 1)),
+        0.0,
+        np.array(thermal.expansion_ppm_per_K, dtype=float),
+        input_start,
+        1.0,
+        sigma if sigma > 0.0 else None,
+        "thermal",
     )
 
 
@@ -147,11 +182,14 @@ class DriveModel:
         terms: the extension's terms; those with a ``prior_sigma`` are unknown blocks.
         elastic: the masses whose weight the legs carry where a term takes the leg forces as inputs
             (the compliance, spec §10), else None.
+        thermal: the reference temperature of the legs' geometry where a term takes their
+            temperatures (the expansion, spec §17), else None.
     """
 
     legs: LegModel
     terms: tuple[LegTerm, ...]
     elastic: Elastic | None = None
+    thermal: Thermal | None = None
     # derived once (a filter asks for them at every sample): see __post_init__
     _unknown: tuple[tuple[int, slice], ...] = field(init=False, repr=False, compare=False)
     _nominal: np.ndarray = field(init=False, repr=False, compare=False)
@@ -213,44 +251,82 @@ class DriveModel:
         """Columns of a sample's drive inputs ``u``."""
         return max(term.input_start + N_LEGS for term in self.terms)
 
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """The input channels its terms read (:data:`TERM_SOURCES`), those a log must carry first."""
+        names: list[str] = []
+        for term in self.terms:
+            for name in TERM_SOURCES[term.source].channels:
+                if name not in names:
+                    names.append(name)
+        return tuple(names)
+
+    @property
+    def required_channels(self) -> tuple[str, ...]:
+        """The channels without which its inputs cannot be formed (a leg's temperature under ``[thermal]``)."""
+        return tuple(name for term in self.terms for name in TERM_SOURCES[term.source].required)
+
+    @property
+    def needs_pose(self) -> bool:
+        """Whether a term's inputs depend on the pose (the leg forces): forward kinematics then settles."""
+        return any(TERM_SOURCES[term.source].needs_pose for term in self.terms)
+
     def inputs(
-        self, strokes: np.ndarray, payload_kg=None, R: np.ndarray | None = None, t=None, x_drive=None
+        self, strokes: np.ndarray, channels: Inputs | None = None, R: np.ndarray | None = None, t=None, x_drive=None
     ) -> np.ndarray:
-        """The drive inputs ``u`` of samples with logged ``strokes`` ``(..., 6)`` [mm]: the strokes, then
-        (an elastic drive) the leg forces [N] at poses ``(R, t)`` under the platform's weight and a
-        payload of ``payload_kg`` (None: 0), :meth:`leg_forces`.
+        """The drive inputs ``u (..., input_width)`` of samples with logged ``strokes`` ``(..., 6)`` and
+        input ``channels`` (a sample's or a log's ``inputs``; None: none), each term's six columns in
+        term order from its source (:data:`TERM_SOURCES`): the strokes; an elastic drive's leg forces
+        [N] at poses ``(R, t)`` (:meth:`leg_forces`); a drive with ``[thermal]`` each leg's
+        ``(T_i − T_ref) · 1e-6 · L_i`` [mm per ppm/K].
 
         The forces are taken at the pose given — the measured one where the instrument fixes a pose,
         else the drive's own forward kinematics (:meth:`settled_kinematics`) — on the nominal legs:
         both are off the truth by what the calibration corrects, some 1e-3 of the arms, so the
         forces by ~1e-3 relative, ~0.1 µm of ``c·f`` at 1 mm/kN and 100 N (tests/test_elastic.py).
+
+        Raises:
+            ValueError: a term needs the pose and none is given, or a channel the samples lack.
         """
         strokes = np.asarray(strokes, dtype=float)
-        if self.elastic is None:
+        if len(self.terms) == 1:
             return strokes
-        if R is None or t is None:
+        if self.needs_pose and (R is None or t is None):
             raise ValueError("an elastic drive's inputs need the poses its leg forces are taken at")
-        return np.concatenate([strokes, self.leg_forces(R, t, payload_kg, x_drive)], axis=-1)
+        return self._inputs(strokes, channels or {}, R, t, x_drive)
 
-    def inputs_near(self, strokes: np.ndarray, payload_kg=None, pose=None, x_drive=None) -> np.ndarray:
+    def _inputs(self, strokes: np.ndarray, channels: Inputs, R, t, x_drive) -> np.ndarray:
+        """:meth:`inputs`, the pose-dependent columns 0 where ``R`` is None."""
+        parts = []
+        for term in self.terms:
+            source = TERM_SOURCES[term.source]
+            if source.needs_pose and R is None:
+                parts.append(np.zeros_like(strokes))
+            else:
+                part = source.inputs(self, strokes, channels, R, t, x_drive)
+                parts.append(np.broadcast_to(part, np.broadcast_shapes(np.shape(part), strokes.shape)))
+        shape = np.broadcast_shapes(*(np.shape(part) for part in parts))
+        return np.concatenate([np.broadcast_to(part, shape) for part in parts], axis=-1)
+
+    def inputs_near(self, strokes: np.ndarray, channels: Inputs | None = None, pose=None, x_drive=None) -> np.ndarray:
         """:meth:`inputs` at ``pose = (R, t)`` where one is known near the samples' (a warm start),
         else with no force: a first guess for forward kinematics, whose pose then gives the inputs."""
         strokes = np.asarray(strokes, dtype=float)
-        if self.elastic is None:
-            return self.inputs(strokes)
-        if pose is not None:
-            return self.inputs(strokes, payload_kg, pose[0], pose[1], x_drive)
-        return np.concatenate([strokes, np.zeros_like(strokes)], axis=-1)
+        if pose is not None or not self.needs_pose:
+            R, t = (None, None) if pose is None else pose
+            return self.inputs(strokes, channels, R, t, x_drive)
+        return self._inputs(strokes, channels or {}, None, None, x_drive)
 
-    def leg_forces(self, R: np.ndarray, t: np.ndarray, payload_kg=None, x_drive=None) -> np.ndarray:
-        """``(..., 6)`` axial forces [N] of the nominal legs holding the platform and a payload
-        ``payload_kg`` (scalar or ``(...)``; None: 0) at poses ``(R, t)`` (spec §10)."""
+    def leg_forces(self, R: np.ndarray, t: np.ndarray, channels: Inputs | None = None, x_drive=None) -> np.ndarray:
+        """``(..., 6)`` axial forces [N] of the nominal legs holding the platform and the payload of the
+        samples' ``load_kg`` channel (scalar or ``(...)``; absent: 0) at poses ``(R, t)`` (spec §10)."""
         e = self.elastic
         if e is None:
             raise ValueError("a rigid drive carries no leg forces")
         batch = np.shape(t)[:-1]
+        payload = (channels or {}).get(LOAD_KG)
         masses, coms = masses_and_centres(
-            e.platform_mass_kg, e.platform_com_mm, 0.0 if payload_kg is None else payload_kg, e.payload_com_mm, batch
+            e.platform_mass_kg, e.platform_com_mm, 0.0 if payload is None else payload, e.payload_com_mm, batch
         )
         return gravity_leg_forces(self.prismatic(x_drive), R, t, masses, coms)
 
@@ -263,23 +339,33 @@ class DriveModel:
         batch = np.shape(t)[:-1]
         return gravity_leg_forces(self.prismatic(x_drive), R, t, np.ones(batch + (1,)), e.payload_com_mm[None])
 
+    def _force_columns(self) -> slice:
+        """The six columns of ``u`` that hold the leg forces (the compliance term's)."""
+        start = next(term.input_start for term in self.terms if term.source == "leg_forces")
+        return slice(start, start + N_LEGS)
+
     def loaded_inputs(self, inputs: np.ndarray, per_kg: np.ndarray, payload_kg: float) -> np.ndarray:
         """``inputs`` with ``payload_kg`` more payload: its leg forces (:meth:`payload_leg_forces`,
         ``per_kg``) added to the force columns."""
         loaded = np.array(inputs, dtype=float)
-        loaded[..., N_LEGS : 2 * N_LEGS] += payload_kg * np.asarray(per_kg)
+        loaded[..., self._force_columns()] += payload_kg * np.asarray(per_kg)
         return loaded
 
     def force_gains(self, x_drive: np.ndarray | None = None) -> np.ndarray:
-        """``(6,)`` ``∂e_i/∂f_i`` [mm/N] of the leg forces (inputs 6…11) at ``x_drive``: ``−c_i / 1000``."""
+        """``(6,)`` ``∂e_i/∂f_i`` [mm/N] of the leg forces at ``x_drive``: ``−c_i / 1000``."""
         gains = np.zeros(N_LEGS)
         for term, factor in zip(self.terms, self._term_factors(x_drive), strict=True):
-            if term.input_start == N_LEGS:
+            if term.source == "leg_forces":
                 gains = gains + factor * term.gain
         return gains
 
     def settled_kinematics(
-        self, strokes: np.ndarray, payload_kg=None, x_drive: np.ndarray | None = None, guess=None, strict: bool = True
+        self,
+        strokes: np.ndarray,
+        channels: Inputs | None = None,
+        x_drive: np.ndarray | None = None,
+        guess=None,
+        strict: bool = True,
     ) -> tuple[kin.FKSolution, np.ndarray]:
         """``(forward kinematics, the inputs at its poses)`` of logged ``strokes (N, 6)``: for an
         elastic drive the fixed point of forces ↔ pose, as the loaded robot settles, passes until no
@@ -288,15 +374,15 @@ class DriveModel:
         legs of 150 mm/kN under a payload of twice the platform's weight gain one order a pass (two
         passes leave 0.13 mm there, benchmarks/hobby.py's soft legs with 5 kg)."""
         strokes = np.asarray(strokes, dtype=float)
-        if self.elastic is None:
-            inputs = self.inputs(strokes)
+        if not self.needs_pose:
+            inputs = self.inputs(strokes, channels)
             return self.forward_kinematics(inputs, x_drive, guess=guess, strict=strict), inputs
-        inputs = self.inputs_near(strokes, payload_kg, guess, x_drive)
+        inputs = self.inputs_near(strokes, channels, guess, x_drive)
         extension = self.extensions(inputs, x_drive)
         for _ in range(SETTLING_PASSES):
             sol = self.forward_kinematics(inputs, x_drive, guess=guess, strict=strict)
             guess = (sol.R, sol.t)
-            inputs = self.inputs(strokes, payload_kg, sol.R, sol.t, x_drive)
+            inputs = self.inputs(strokes, channels, sol.R, sol.t, x_drive)
             previous, extension = extension, self.extensions(inputs, x_drive)
             moved = np.abs(extension - previous)
             if not np.any(moved > SETTLED_MM):  # NaN (a pose FK did not reach, strict=False): nothing to settle
@@ -391,10 +477,12 @@ class DriveModel:
 
     def identifying(self, prior_sigma: float = BLOCK_PRIOR_SIGMA) -> DriveModel:
         """The same drive with every term an unknown block of prior σ ``prior_sigma`` — the compliance
-        with ``[elastic]``'s own σ (mm/kN, not a fraction; held where that is 0)."""
+        and the expansion with their tables' own σ (mm/kN and ppm/K, not a fraction; held where 0)."""
         terms = tuple(
             compliance_term(self.elastic)
             if term.key == COMPLIANCE and self.elastic is not None
+            else thermal_term(self.thermal, term.input_start)
+            if term.key == THERMAL and self.thermal is not None
             else replace(term, prior_sigma=prior_sigma)
             for term in self.terms
         )
@@ -403,13 +491,17 @@ class DriveModel:
     def onto(self, platform: Platform) -> Platform:
         """``platform`` with this drive's legs and its terms' values (a term's key names the
         platform's field of its nominal values, as the platform file's ``[drive]`` table does; the
-        compliance goes to ``[elastic] compliance_mm_per_kN``)."""
-        fields: dict[str, Any] = {term.key: term.nominal.copy() for term in self.terms if term.key != COMPLIANCE}
+        compliance goes to ``[elastic] compliance_mm_per_kN``, the expansion to ``[thermal]
+        expansion_ppm_per_K``)."""
+        tables = (COMPLIANCE, THERMAL)
+        fields: dict[str, Any] = {term.key: term.nominal.copy() for term in self.terms if term.key not in tables}
         platform = replace(platform, drive=self.legs, **fields)  # type: ignore[arg-type]  # any leg kind
         for term in self.terms:
             if term.key == COMPLIANCE and platform.elastic is not None:
                 elastic = replace(platform.elastic, compliance_mm_per_kN=term.nominal.copy())
                 platform = replace(platform, elastic=elastic)
+            if term.key == THERMAL and platform.thermal is not None:
+                platform = replace(platform, thermal=replace(platform.thermal, expansion_ppm_per_K=term.nominal.copy()))
         return platform
 
     def calibrated_by(self, estimate) -> DriveModel:
@@ -426,7 +518,7 @@ class DriveModel:
             else replace(term, prior_sigma=None)
             for term in self.terms
         )
-        return DriveModel(self.legs.perturbed(np.asarray(error, dtype=float)), terms, self.elastic)
+        return DriveModel(self.legs.perturbed(np.asarray(error, dtype=float)), terms, self.elastic, self.thermal)
 
     def true_drive(self, error: np.ndarray, values: Mapping[str, np.ndarray]) -> DriveModel:
         """:meth:`calibrated` to a simulator's truth (spec §4, §7: its terms' ``values`` by block
@@ -497,7 +589,7 @@ class DriveModel:
         return -np.linalg.solve(J_pose, J_x)
 
     def settled_pose_jacobian(
-        self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray, payload_kg=None
+        self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray, channels: Inputs | None = None
     ) -> np.ndarray:
         """:meth:`pose_jacobian` of :meth:`settled_kinematics`' poses, whose leg forces move with the
         pose and the joints: ``r(ξ; x, f(ξ, M)) = 0``, so ``∂r/∂ξ`` and ``∂r/∂M`` gain
@@ -509,6 +601,8 @@ class DriveModel:
         if self.elastic is None:
             return self.pose_jacobian(x_drive, R, t, inputs)
         from .statics import leg_force_jacobians
+
+        payload_kg = (channels or {}).get(LOAD_KG)
 
         J_pose, J_x = self.jacobians(x_drive, R, t, inputs)
         row = next(row for row, term in enumerate(self.terms) if term.key == COMPLIANCE)
@@ -580,7 +674,7 @@ class DriveModel:
         t: np.ndarray,
         x_drive: np.ndarray | None = None,
         inputs: np.ndarray | None = None,
-        payload_kg=None,
+        channels: Inputs | None = None,
     ) -> np.ndarray:
         """The strokes ``q (..., n)`` (the log's drive coordinates) that put the platform at ``(R, t)``:
         the legs' coordinates (the leg model's inverse kinematics, NaN where a leg cannot reach) less
@@ -588,12 +682,16 @@ class DriveModel:
 
         Args:
             inputs: ``(..., width)`` the samples' other drive inputs (their stroke columns are
-                ignored); needed only where the drive has terms besides the stroke. An elastic
-                drive's default: its leg forces at ``(R, t)`` under ``payload_kg`` (None: 0).
+                ignored); needed only where the drive has terms besides the stroke. Default: the
+                inputs of the samples' ``channels`` at ``(R, t)`` (the leg forces there) and at the
+                strokes of the stroke term alone (a leg's length for its growth with temperature,
+                which the strokes then change by its growth times α ΔT, 1e-9 of it).
         """
-        if inputs is None and self.elastic is not None:
-            inputs = self.inputs(np.zeros(np.shape(t)[:-1] + (self.legs.n_legs,)), payload_kg, R, t, x_drive)
-        return self.strokes_for(self.geometry(x_drive).coordinates(R, t), x_drive, inputs)
+        coordinates = self.geometry(x_drive).coordinates(R, t)
+        if inputs is None and len(self.terms) > 1:
+            first = coordinates / self._term_factors(x_drive)[self._stroke]
+            inputs = self.inputs(first, channels, R, t, x_drive)
+        return self.strokes_for(coordinates, x_drive, inputs)
 
     def strokes_for(
         self, extensions: np.ndarray, x_drive: np.ndarray | None = None, inputs: np.ndarray | None = None
@@ -635,12 +733,16 @@ class DriveModel:
 
 
 def tracker_reading_residuals(
-    drives: list[DriveModel], tracker: LegGeometry, strokes: np.ndarray, readings: np.ndarray, payload_kg=None
+    drives: list[DriveModel],
+    tracker: LegGeometry,
+    strokes: np.ndarray,
+    readings: np.ndarray,
+    channels: Inputs | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The tracker's ``readings (N, 6)`` minus what it reads where each of ``drives`` (the same terms,
     e.g. the nominal and a calibrated one) puts the platform for the logged ``strokes (N, 6)``, in one
     compiled pass (:func:`~stewart_calib.model.kinematics.tracker_reading_residuals`): elastic drives
-    settled under the platform and a payload ``payload_kg`` (scalar or ``(N,)`` [kg]; None: 0) as
+    settled under the platform and the payload of the log's ``channels`` (``load_kg`` ``(N,)`` [kg]; absent: 0) as
     :meth:`DriveModel.settled_kinematics` settles them — the same fixed point, stopped by the same
     :data:`SETTLED_MM`, per sample — by the simulator's compiled settling
     (:func:`~stewart_calib.model._kernels.settle_pose`) with the joints rigid and the compliance the term
@@ -649,11 +751,12 @@ def tracker_reading_residuals(
     starts, gains = kernel_terms[0][:2]
     terms = (starts, gains, np.array([offsets[:, None] + values for _, _, offsets, values, _ in kernel_terms]))
     legs, elastic = [drive.prismatic() for drive in drives], drives[0].elastic
-    inputs = [drive.inputs_near(strokes) for drive in drives]  # an elastic drive's forces 0 until settled
+    inputs = [drive.inputs_near(strokes, channels) for drive in drives]  # an elastic drive's forces 0 until settled
     if elastic is None or not any(np.any(drive.force_gains()) for drive in drives):
         # rigid, or no leg gives under its force (the nominal compliance 0, before a calibration): the
         # first FK is where each settles, and the forces need not be solved for
         return kin.tracker_reading_residuals(tracker, readings, legs, inputs, terms)
+    payload_kg = (channels or {}).get(LOAD_KG)
     masses, centres = masses_and_centres(
         elastic.platform_mass_kg,
         elastic.platform_com_mm,
@@ -661,7 +764,7 @@ def tracker_reading_residuals(
         elastic.payload_com_mm,
         (len(readings),),
     )
-    force_start = next(term.input_start for term in drives[0].terms if term.key == COMPLIANCE)
+    force_start = drives[0]._force_columns().start
     radii = np.array([moment_radius(drive.prismatic()) for drive in drives])
     load = (force_start, masses * G_N_PER_KG, centres, radii, SETTLING_PASSES + 1, SETTLED_MM)
     return kin.tracker_reading_residuals(tracker, readings, legs, inputs, terms, load)
@@ -676,7 +779,8 @@ def drive_model(platform: Platform, noise: NoiseConfig | None = None, outside_in
     """The drive of ``platform``: its legs, the stroke term about ``[drive] stroke_scale``, unknown
     when ``noise.stroke_scale_sigma`` > 0 or, with an instrument outside the robot, always
     (:data:`STROKE_SCALE_SIGMA_OUTSIDE` by default), and with ``[elastic]`` the legs' compliance
-    (:func:`compliance_term`, its σ from ``[elastic]``); all terms known without ``noise``."""
+    (:func:`compliance_term`, its σ from ``[elastic]``), with ``[thermal]`` the legs' expansion
+    (:func:`thermal_term`, its σ from ``[thermal]``); all terms known without ``noise``."""
     if platform.elastic is not None and platform.drive.kind != "prismatic":
         raise CalibError(
             f"{platform.source}: [elastic] models prismatic legs' compliance; "
@@ -689,4 +793,56 @@ def drive_model(platform: Platform, noise: NoiseConfig | None = None, outside_in
     if platform.elastic is not None:
         compliance = compliance_term(platform.elastic)
         terms += (compliance if noise is not None else replace(compliance, prior_sigma=None),)
-    return DriveModel(platform.drive, terms, platform.elastic)
+    if platform.thermal is not None:
+        if platform.drive.kind != "prismatic":
+            raise CalibError(
+                f"{platform.source}: [thermal] models prismatic legs' growth; "
+                f"a {platform.drive.kind} drive takes no [thermal] table (yet)"
+            )
+        thermal = thermal_term(platform.thermal, N_LEGS * len(terms))
+        terms += (thermal if noise is not None else replace(thermal, prior_sigma=None),)
+    return DriveModel(platform.drive, terms, platform.elastic, platform.thermal)
+
+
+@dataclass(frozen=True)
+class TermSource:
+    """What a term's six inputs are: a function of the samples' strokes, input channels, poses and the
+    drive, and what it reads.
+
+    Attributes:
+        inputs: ``(drive, strokes (..., 6), channels, R, t, x_drive) → (..., 6)``.
+        channels: the input channels it reads (:class:`~stewart_calib.samples.Log` ``inputs``).
+        required: those of them it cannot do without.
+        needs_pose: whether it reads the pose (then forward kinematics settles, :meth:`DriveModel.settled_kinematics`).
+    """
+
+    inputs: Any
+    channels: tuple[str, ...] = ()
+    required: tuple[str, ...] = ()
+    needs_pose: bool = False
+
+
+def _thermal_inputs(drive: DriveModel, strokes: np.ndarray, channels: Inputs, R, t, x_drive) -> np.ndarray:
+    """``(T_i − T_ref) · 1e-6 · L_i`` [mm per ppm/K] with ``L_i`` the nominal leg's length from joint
+    to joint at the strokes' nominal extension (:func:`thermal_term`)."""
+    if drive.thermal is None:
+        raise ValueError("a drive without [thermal] takes no temperatures")
+    temperature = channels.get(TEMPERATURE_C)
+    if temperature is None:
+        raise ValueError(f"a drive with [thermal] needs each sample's '{TEMPERATURE_C}'")
+    extension = strokes * drive.extension_per_stroke()
+    lengths = drive.legs.joint_lengths(extension)
+    return (np.asarray(temperature, dtype=float) - drive.thermal.reference_temperature_C) * 1e-6 * lengths
+
+
+#: every term's source by its key (:attr:`LegTerm.source`): adding a drive input is one entry here
+#: and one line where the log's columns are parsed (:mod:`stewart_calib.io.logs`)
+TERM_SOURCES: dict[str, TermSource] = {
+    "strokes": TermSource(lambda drive, strokes, channels, R, t, x_drive: strokes),
+    "leg_forces": TermSource(
+        lambda drive, strokes, channels, R, t, x_drive: drive.leg_forces(R, t, channels, x_drive),
+        channels=(LOAD_KG,),
+        needs_pose=True,
+    ),
+    "thermal": TermSource(_thermal_inputs, channels=(TEMPERATURE_C,), required=(TEMPERATURE_C,)),
+}

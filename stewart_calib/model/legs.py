@@ -109,6 +109,11 @@ class LegModel(Protocol):
         """One pose from ``guess``, then cold; ``SampleRejected`` when neither converges."""
         ...
 
+    def joint_lengths(self, e: np.ndarray) -> np.ndarray:
+        """``(..., n)`` each leg's length from joint to joint at coordinates ``e`` [mm]: what its
+        temperature scales (spec §17)."""
+        ...
+
     def unit_vectors(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """``(..., n, 3)`` in {J}: the direction each leg's force acts along (prismatic: the leg;
         rotary: the rod, a two-force member)."""

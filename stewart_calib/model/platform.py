@@ -128,6 +128,11 @@ class LegGeometry:
             moved[columns] = moved[columns] @ np.asarray(R).T + t
         return moved - self.as_vector()
 
+    def joint_lengths(self, e: np.ndarray) -> np.ndarray:
+        """``(..., n)`` each leg's length from joint to joint at extensions ``e`` [mm]: ``l_i + e_i``, what
+        its temperature scales (spec §17)."""
+        return self.initial_lengths + np.asarray(e, dtype=float)
+
     def coordinates(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """The extensions ``(..., n)`` [mm] that close each leg at ``(R, t)`` (inverse kinematics)."""
         from . import kinematics
@@ -411,6 +416,35 @@ def centre_too_far(drive: LegGeometry, centre_mm: np.ndarray) -> str | None:
     )
 
 
+#: the direction gravity acts along in {J} where nothing else is declared: −z (spec §10)
+DOWN = np.array([0.0, 0.0, -1.0])
+
+#: the most a leg's thermal expansion coefficient may be [ppm/K] (spec §17): steel's is 11.5, aluminium's 23
+EXPANSION_LIMIT_PPM_PER_K = 100.0
+#: the temperatures a log or a command may give [°C] (spec §17)
+TEMPERATURE_RANGE_C = (-50.0, 150.0)
+
+
+@dataclass(frozen=True, eq=False)
+class Thermal:
+    """Each drive leg's thermal expansion (spec §17, ``[thermal]``): leg i at temperature ``T_i`` has
+    its joint-to-joint length scaled by ``1 + α_i (T_i − T_ref) · 1e-6`` (a prismatic leg's
+    ``l_i + (1 + k_i) q_i − c_i f_i / 1000``, a rotary leg's rod).
+
+    Attributes:
+        reference_temperature_C: ``T_ref`` [°C], where the geometry of ``[drive]`` holds.
+        expansion_ppm_per_K: ``(6,)`` nominal ``α_i`` [ppm/K = µm/(m·K)].
+        expansion_sigma_ppm_per_K: prior σ of ``α_i`` about the nominal [ppm/K]; 0: held at nominal.
+        true_expansion_ppm_per_K: ``(6,)`` the truth a simulated platform carries for reports and
+            checks (``simulate``), never read by an estimator; None on a real robot.
+    """
+
+    reference_temperature_C: float = 20.0
+    expansion_ppm_per_K: np.ndarray = field(default_factory=lambda: np.zeros(N_LEGS))
+    expansion_sigma_ppm_per_K: float = 20.0
+    true_expansion_ppm_per_K: np.ndarray | None = None
+
+
 @dataclass(frozen=True, eq=False)
 class Elastic:
     """The robot under its own weight and a payload (spec §10, ``[elastic]``).
@@ -425,6 +459,8 @@ class Elastic:
             :func:`default_compliance_sigma` of the platform's mass).
         true_compliance_mm_per_kN: ``(6,)`` the truth a simulated platform carries for reports and
             checks (``simulate``), never read by an estimator; None on a real robot.
+        gravity: ``(3,)`` the unit vector in {J} gravity acts along (spec §17 ``[elastic] gravity``, default
+            −z); a log's ``gravity_x/y/z`` columns give it per row instead (a tilting mount).
         payload_sigma_kg: > 0: ``ekf`` and ``isam2`` estimate the payload that the log does not
             announce, a mass [kg] at ``payload_com_mm`` on top of each sample's ``load_kg`` (0 where the
             log has none), with this prior σ, and take a step of it where the samples after a candidate
@@ -440,6 +476,7 @@ class Elastic:
     compliance_sigma_mm_per_kN: float = None  # type: ignore[assignment]  # None: the default, set in __post_init__
     true_compliance_mm_per_kN: np.ndarray | None = None
     payload_sigma_kg: float = 0.0
+    gravity: np.ndarray = field(default_factory=lambda: DOWN.copy())
 
     def __post_init__(self) -> None:
         if self.compliance_sigma_mm_per_kN is None:
@@ -467,6 +504,7 @@ class Platform:
         tracker_geometry_sigma_mm: prior σ of the tracker's own 42 values [mm] (``[tracker]
             geometry_sigma_mm``); 0: known exactly.
         elastic: masses and leg compliances (spec §10, ``[elastic]``), or None: a rigid robot.
+        thermal: each leg's thermal expansion (spec §17, ``[thermal]``), or None: temperature ignored.
     """
 
     name: str
@@ -481,6 +519,7 @@ class Platform:
     stroke_scale: np.ndarray = field(default_factory=lambda: np.zeros(N_LEGS), compare=False)
     tracker_geometry_sigma_mm: float = 0.0
     elastic: Elastic | None = field(default=None, compare=False)
+    thermal: Thermal | None = field(default=None, compare=False)
 
     @property
     def coordinate_range(self) -> tuple[float, float] | None:

@@ -351,6 +351,11 @@ class RotaryLegs:
         t (..., 3) [mm])`` and coordinates ``e (..., 6)`` [rad]."""
         return np.linalg.norm(self._rods(R, t, e), axis=-1) - self.rod_lengths
 
+    def joint_lengths(self, e: np.ndarray) -> np.ndarray:
+        """``(..., 6)`` each leg's length from joint to joint whatever its angle ``e`` [rad]: the rod ``r_i``
+        [mm], what its temperature scales (spec §17)."""
+        return np.broadcast_to(self.rod_lengths, np.shape(e)).copy()
+
     def unit_vectors(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """``(..., 6, 3)`` unit rods (horn joint → platform joint) in {J} at the pose ``(R, t)`` with each
         leg's coordinate from :meth:`coordinates`: the line a rod's force acts along (a two-force
