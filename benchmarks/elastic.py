@@ -47,7 +47,7 @@ from stewart_calib.analysis.compensation import compensate
 from stewart_calib.config import load_estimator_config
 from stewart_calib.model import kinematics as kin
 from stewart_calib.model.platform import Platform
-from stewart_calib.samples import Log
+from stewart_calib.samples import LOAD_KG, Log
 from stewart_calib.simulation import run_experiment
 from stewart_calib.simulation.experiment import load_experiment
 from stewart_calib.simulation.load import elastic_of, settle
@@ -223,21 +223,13 @@ def check_run(directory: Path, poses: int, validation: int = 100, geometry: Chec
 
 
 def _subset(log: Log, keep: np.ndarray) -> Log:
-    pick = lambda a: None if a is None else np.asarray(a)[keep]  # noqa: E731
-    return Log(
-        log.t_s[keep],
-        log.strokes[keep],
-        log.readings[keep],
-        pick(log.desired_poses),
-        None if log.stages is None else [s for s, k in zip(log.stages, keep, strict=True) if k],
-        pick(log.load_kg),
-    )
+    return log.select(np.asarray(keep))
 
 
 def closed_loop_um(run, platform: Platform, estimate, poses: np.ndarray, payload_kg: float) -> float:
     """RMS ‖t_reached − t_desired‖ [µm] of ``poses`` commanded with ``estimate``'s compensated strokes
     under ``payload_kg``, on the simulated robot (which settles under its weight and the payload)."""
-    strokes = compensate(estimate, poses, nominal=platform, payload_kg=payload_kg)
+    strokes = compensate(estimate, poses, nominal=platform, inputs={LOAD_KG: payload_kg})
     robot = run.robot
     logged_to_executed = strokes * (1.0 + robot.stroke_scale) + robot.encoder_zero_mm
     R_d, t_d = kin.pose_to_rt(poses)
@@ -304,7 +296,7 @@ class _PayloadUnannounced:
         self._estimator = estimator
 
     def update(self, sample) -> None:
-        self._estimator.update(dataclasses.replace(sample, load_kg=None))
+        self._estimator.update(dataclasses.replace(sample, inputs={}))
 
     def __getattr__(self, name):
         return getattr(self._estimator, name)
@@ -601,7 +593,7 @@ def unannounced_payload(platform: Platform, log: Log, method: str, config: str) 
         platform, elastic=dataclasses.replace(platform.elastic, payload_sigma_kg=PAYLOAD_SIGMA_KG)
     )
     estimate = run_calibration(
-        estimating, dataclasses.replace(log, load_kg=None), method, load_estimator_config(resolve(config, "estimators"))
+        estimating, dataclasses.replace(log, inputs={}), method, load_estimator_config(resolve(config, "estimators"))
     ).estimate
     column = estimate.layout.slice("payload").start
     sigma = float(np.sqrt(estimate.full_covariance[column, column]))

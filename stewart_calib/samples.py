@@ -22,8 +22,60 @@ TEMPERATURE_C = "temperature_C"
 #: (spec §17 ``gravity_x gravity_y gravity_z``)
 GRAVITY = "gravity"
 
+#: each channel's values per sample: () a scalar, (n,) a vector
+CHANNEL_SHAPES: dict[str, tuple[int, ...]] = {LOAD_KG: (), TEMPERATURE_C: (6,), GRAVITY: (3,)}
+
+#: what a sample without a channel takes for it where a log's rows are packed (no payload: 0 kg);
+#: NaN for the others
+CHANNEL_DEFAULTS: dict[str, float] = {LOAD_KG: 0.0}
+#: entries of :func:`packed_inputs`
+PACKED_WIDTH = sum(int(np.prod(shape, dtype=int)) for shape in CHANNEL_SHAPES.values())
+
 #: a sample's named inputs beside its drive readings: channel → value (a float or an array)
 Inputs = Mapping[str, "np.ndarray | float"]
+
+
+def packed_inputs(inputs: Mapping) -> np.ndarray:
+    """A sample's channels as one flat vector, every channel of :data:`CHANNEL_SHAPES` in order, at
+    :data:`CHANNEL_DEFAULTS` (else NaN) where the sample lacks it: how a buffer of samples keeps them."""
+    return np.concatenate(
+        [
+            np.ravel(np.asarray(inputs[name], dtype=float))
+            if inputs.get(name) is not None
+            else np.full(int(np.prod(shape, dtype=int)), CHANNEL_DEFAULTS.get(name, np.nan))
+            for name, shape in CHANNEL_SHAPES.items()
+        ]
+    )
+
+
+def unpacked_inputs(packed: np.ndarray) -> dict[str, np.ndarray]:
+    """:func:`packed_inputs` of ``N`` samples ``(N, PACKED_WIDTH)`` back to a log's channels, those
+    that no sample had (all NaN) left out."""
+    channels, start = {}, 0
+    for name, shape in CHANNEL_SHAPES.items():
+        width = int(np.prod(shape, dtype=int))
+        values = np.asarray(packed[:, start : start + width], dtype=float).reshape(len(packed), *shape)
+        start += width
+        if not np.all(np.isnan(values)):
+            channels[name] = values
+    return channels
+
+
+def with_payload(inputs: Inputs | None, extra_kg: float) -> dict:
+    """``inputs`` with ``extra_kg`` more payload on every sample (an estimated payload the log does not
+    announce, on top of its ``load_kg``)."""
+    channels = dict(inputs or {})
+    if extra_kg:
+        channels[LOAD_KG] = np.asarray(channels.get(LOAD_KG, 0.0), dtype=float) + extra_kg
+    return channels
+
+
+def broadcast_inputs(inputs: Inputs | None, n: int) -> dict[str, np.ndarray]:
+    """Every channel of ``inputs`` (a scalar or one value a channel applies to all) as ``(n, ...)`` rows."""
+    return {
+        name: np.broadcast_to(np.asarray(value, dtype=float), (n, *CHANNEL_SHAPES.get(name, np.shape(value))))
+        for name, value in (inputs or {}).items()
+    }
 
 
 def input_rows(inputs: Mapping[str, np.ndarray], index) -> dict[str, np.ndarray]:

@@ -21,7 +21,7 @@ from tests.synthetic import nim_stewart, random_error, random_poses
 def _second_term(prior_sigma: float | None) -> LegTerm:
     """A term ``(0 + c_i) · (−f_i / 1000)`` on inputs 6…11: the form of a leg compliance."""
     names = tuple(f"c{i}" for i in range(1, 7))
-    return LegTerm("compliance", names, 0.0, np.linspace(0.01, 0.06, 6), 6, -1e-3, prior_sigma)
+    return LegTerm("compliance", names, 0.0, np.linspace(0.01, 0.06, 6), 6, -1e-3, prior_sigma, "leg_forces")
 
 
 @pytest.fixture(scope="module")
@@ -126,5 +126,6 @@ def test_platform_drive_and_what_a_calibration_hands_on(setting):
     handed = calibrated.onto(platform)
     np.testing.assert_array_equal(handed.stroke_scale, k)
     np.testing.assert_array_equal(handed.drive.as_vector(), platform.drive.perturbed(error).as_vector())
-    with pytest.raises(ValueError, match="needs the inputs of its term 'compliance'"):
+    # the inputs of a term on the leg forces come from the masses the drive carries: none here
+    with pytest.raises(ValueError, match="a rigid drive carries no leg forces"):
         setting[4]["two terms"].inverse_kinematics(np.eye(3), np.array([0.0, 0.0, 500.0]))

@@ -18,6 +18,7 @@ from stewart_calib.io.platform_file import load_platform, parse_platform, platfo
 from stewart_calib.model import kinematics as kin
 from stewart_calib.model.platform import LegGeometry
 from stewart_calib.model.statics import gravity_leg_forces
+from stewart_calib.samples import LOAD_KG
 from stewart_calib.simulation.experiment import load_experiment
 from stewart_calib.simulation.load import settle
 from tests.test_platform import _doc, _refusal, _to_toml
@@ -150,8 +151,8 @@ def test_the_drive_model_settles_where_compensation_sends_it(check):
     drive = drive_model(true_platform)
     poses = run.desired_poses[:20]
     for payload in (0.0, 40.0):
-        strokes = compensate(drive, poses, payload_kg=payload)
-        fk, inputs = drive.settled_kinematics(strokes, np.full(len(poses), payload))
+        strokes = compensate(drive, poses, inputs={LOAD_KG: payload})
+        fk, inputs = drive.settled_kinematics(strokes, {LOAD_KG: np.full(len(poses), payload)})
         np.testing.assert_allclose(kin.rt_to_pose(fk.R, fk.t), poses, atol=1e-5)  # the fixed point: nm
         R, t = kin.pose_to_rt(poses)
         sol, _ = settle(run.robot.load, run.robot.base_params, strokes, np.full(len(poses), payload), (R, t))
@@ -173,7 +174,7 @@ def test_the_compiled_tracker_residuals_are_those_of_validate_under_each_rows_pa
 
     _, run, platform, _ = check
     log = run.log
-    assert len(np.unique(log.load_kg)) == 3
+    assert len(np.unique(log.inputs[LOAD_KG])) == 3
     error = np.random.default_rng(5).normal(0.0, 0.5, 42)
     result = {**nominal_model(platform), "error": error.tolist()}
     result["compliance"] = {"names": [f"c{i}" for i in range(1, 7)], "estimate": np.full(6, 20.0).tolist()}
@@ -190,7 +191,7 @@ def test_the_compiled_tracker_residuals_are_those_of_validate_under_each_rows_pa
         if model is models[0][0]:  # compliance 0: alone, its forces are not solved for (the rigid pass)
             assert np.abs(tracker_residuals(platform, log, models[:1])[0] - got).max() <= bound
     # the payload is each row's: the same log read as all unloaded predicts otherwise (c f: ~0.4 mm at 40 kg)
-    unloaded = replace(log, load_kg=np.zeros(len(log)))
+    unloaded = replace(log, inputs={LOAD_KG: np.zeros(len(log))})
     assert np.abs(tracker_residuals(platform, unloaded, models)[1] - residuals[1]).max() > 0.1
 
 
@@ -320,7 +321,7 @@ def test_an_isam2_checkpoint_keeps_each_samples_payload(check):
     from stewart_calib.estimators.base import update_each
 
     _, run, platform, _ = check
-    loaded = [sample for sample in run.log if sample.load_kg]
+    loaded = [sample for sample in run.log if sample.inputs[LOAD_KG]]
     samples = loaded[:80]
     one, half = make_estimator("isam2", platform), make_estimator("isam2", platform)
     update_each(one, samples)
@@ -363,10 +364,10 @@ def test_a_payload_adds_its_mass_times_the_forces_per_kg(check):
     per_kg = drive.payload_leg_forces(R, t)
     for mass in (7.5, 40.0):
         np.testing.assert_allclose(
-            drive.leg_forces(R, t, mass), drive.leg_forces(R, t) + mass * per_kg, rtol=1e-12, atol=1e-9
+            drive.leg_forces(R, t, {LOAD_KG: mass}), drive.leg_forces(R, t) + mass * per_kg, rtol=1e-12, atol=1e-9
         )
         inputs = drive.inputs(run.log.strokes[:25], None, R, t)
-        np.testing.assert_allclose(drive.loaded_inputs(inputs, per_kg, mass)[:, 6:], drive.leg_forces(R, t, mass))
+        np.testing.assert_allclose(drive.loaded_inputs(inputs, per_kg, mass)[:, 6:], drive.leg_forces(R, t, {LOAD_KG: mass}))
 
 
 def test_the_ekf_payload_column_is_the_numerical_derivative(check):
@@ -383,7 +384,7 @@ def test_the_ekf_payload_column_is_the_numerical_derivative(check):
     x[layout.slice("payload")] = 25.0
     column = layout.slice("payload").start
     for k in (0, 50, 100):
-        sample = replace(run.log[k], load_kg=None)
+        sample = replace(run.log[k], inputs={})
         strokes, z = check_sample(ekf.platform, ekf.model, sample)
         prepared = ekf._prepared(strokes, z, sample)
         _, H, _ = ekf._observe(prepared, x)
@@ -571,7 +572,7 @@ def test_ekf_finds_an_unannounced_payload_and_its_steps(check):
     from stewart_calib.workflows.calibration import run_calibration
 
     _, run, platform, calibration = check
-    log = replace(_subset(run.log, calibration), load_kg=None)
+    log = replace(_subset(run.log, calibration), inputs={})
     estimating = _payload_platform(platform)
     estimate = run_calibration(estimating, log, "ekf").estimate
     column = estimate.layout.slice("payload").start
@@ -607,12 +608,12 @@ def test_ekf_finds_an_unannounced_payload_and_its_steps(check):
         except SampleRejected:  # a step's first samples, refused until the samples after them confirm it
             pass
     found = online.estimate()
-    strokes = online.compensated_strokes_rad(validation[:5], payload_kg=0.0)
+    strokes = online.compensated_strokes_rad(validation[:5], {LOAD_KG: 0.0})
     expected = compensate(
-        drive_model(estimating).calibrated_by(found), validation[:5], payload_kg=found.block_values("payload")[0]
+        drive_model(estimating).calibrated_by(found), validation[:5], inputs={LOAD_KG: found.block_values("payload")[0]}
     )
     np.testing.assert_allclose(strokes, expected, rtol=0, atol=1e-9)
-    ignored = compensate(drive_model(estimating).calibrated_by(found), validation[:5], payload_kg=0.0)
+    ignored = compensate(drive_model(estimating).calibrated_by(found), validation[:5], inputs={LOAD_KG: 0.0})
     assert np.abs(strokes - ignored).max() > 0.05  # ~40 kg: tens of µm a leg at 2.3 mm/kN
 
 
@@ -623,9 +624,9 @@ def _tracker_report(platform, log, noise):
     from stewart_calib.analysis.identifiability import identifiability_report, tracker_samples
     from stewart_calib.model.drive import drive_model
 
-    poses, strokes, payload = tracker_samples(platform, log)
-    report = identifiability_report(platform, poses, noise, False, drive_model(platform, noise), strokes, payload)
-    return report, poses, strokes, payload
+    poses, strokes, channels = tracker_samples(platform, log)
+    report = identifiability_report(platform, poses, noise, False, drive_model(platform, noise), strokes, channels)
+    return report, poses, strokes, channels
 
 
 def test_the_tracker_bound_covers_the_compliance_as_the_stacked_drive_jacobian(check):
@@ -639,11 +640,11 @@ def test_the_tracker_bound_covers_the_compliance_as_the_stacked_drive_jacobian(c
 
     _, run, platform, calibration = check
     noise = load_estimator_config().noise
-    report, poses, strokes, payload = _tracker_report(platform, _subset(run.log, calibration), noise)
+    report, poses, strokes, channels = _tracker_report(platform, _subset(run.log, calibration), noise)
     assert report.names[42:] == tuple(f"c{i}" for i in range(1, 7)) and report.rank == 48
     drive = drive_model(platform, noise)
     R, t = kin.pose_to_rt(poses)
-    _, J = drive.jacobians(None, R, t, drive.inputs(strokes, payload, R, t))
+    _, J = drive.jacobians(None, R, t, drive.inputs(strokes, channels, R, t))
     A = np.linalg.solve(np.linalg.cholesky(residual_covariance(platform, R, t, noise)), J).reshape(-1, 48)
     stddev = np.sqrt(np.diag(np.linalg.inv(A.T @ A)))
     np.testing.assert_allclose(report.predicted_stddev_mm, stddev[:42], rtol=1e-6)
@@ -735,15 +736,15 @@ def test_the_settled_pose_jacobian_matches_numerical_differences():
     data = simulate(0, n_fit=4, n_held_out=1, build=SOFT_LEGS)
     strokes, payload = data.fit.strokes, np.full(4, 5.0)
     x = np.random.default_rng(3).normal(0.0, 0.3, drive.size)
-    fk, inputs = drive.settled_kinematics(strokes, payload, x)
-    analytic = drive.settled_pose_jacobian(x, fk.R, fk.t, inputs, payload)
+    fk, inputs = drive.settled_kinematics(strokes, {LOAD_KG: payload}, x)
+    analytic = drive.settled_pose_jacobian(x, fk.R, fk.t, inputs, {LOAD_KG: payload})
     numeric = np.zeros_like(analytic)
     step = 1e-4
     for j in range(drive.size):
         dx = np.zeros(drive.size)
         dx[j] = step
-        plus, _ = drive.settled_kinematics(strokes, payload, x + dx, (fk.R, fk.t))
-        minus, _ = drive.settled_kinematics(strokes, payload, x - dx, (fk.R, fk.t))
+        plus, _ = drive.settled_kinematics(strokes, {LOAD_KG: payload}, x + dx, (fk.R, fk.t))
+        minus, _ = drive.settled_kinematics(strokes, {LOAD_KG: payload}, x - dx, (fk.R, fk.t))
         omega = lie.so3_log(np.swapaxes(minus.R, -1, -2) @ plus.R)
         v = np.einsum("...ji,...j->...i", fk.R, plus.t - minus.t)
         numeric[..., j] = np.concatenate([omega, v], axis=-1) / (2 * step)

@@ -18,6 +18,7 @@ from stewart_calib.io import read_log, write_log
 from stewart_calib.io.platform_file import parse_platform, platform_to_toml
 from stewart_calib.model.platform import G_N_PER_KG, Elastic, payload_limit
 from stewart_calib.resources import read_toml
+from stewart_calib.samples import LOAD_KG
 from tests.synthetic import NIM_STEWART, make_log, nim_stewart, random_poses
 
 MASS_KG, SIGMA = 60.0, 20.0  # nim-stewart's 60 kg platform, legs' compliance σ 20 mm/kN
@@ -73,15 +74,15 @@ def elastic_files(tmp_path):
     log, _ = make_log(nim_stewart(), np.zeros(42), random_poses(platform, 30, rng), rng)
     load = np.repeat([0.0, 20.0, 40.0], 10)
     (tmp_path / "p.toml").write_text(platform_to_toml(platform))
-    return platform, dataclasses.replace(log, load_kg=load), tmp_path
+    return platform, dataclasses.replace(log, inputs={LOAD_KG: load}), tmp_path
 
 
 def test_a_payload_the_platform_could_not_carry_is_refused_naming_row_and_column(elastic_files):
     """One row of 1e9 kg was used and set all six compliances to 0 ± 0 (truth 2.33 mm/kN)."""
     platform, log, tmp_path = elastic_files
-    load = log.load_kg.copy()
+    load = log.inputs[LOAD_KG].copy()
     load[4] = 1e9
-    write_log(tmp_path / "log.csv", dataclasses.replace(log, load_kg=load), platform)
+    write_log(tmp_path / "log.csv", dataclasses.replace(log, inputs={LOAD_KG: load}), platform)
     with pytest.raises(CalibError) as err:
         read_log(tmp_path / "log.csv", platform)
     message = str(err.value)
@@ -93,7 +94,7 @@ def test_a_payload_the_platform_could_not_carry_is_refused_naming_row_and_column
 
 def test_a_payload_in_grams_is_named_as_such(elastic_files, capsys):
     platform, log, tmp_path = elastic_files
-    write_log(tmp_path / "log.csv", dataclasses.replace(log, load_kg=log.load_kg * 1000.0), platform)
+    write_log(tmp_path / "log.csv", dataclasses.replace(log, inputs={LOAD_KG: log.inputs[LOAD_KG] * 1000.0}), platform)
     argv = ["calibrate", "--platform", str(tmp_path / "p.toml"), "--log", str(tmp_path / "log.csv")]
     assert cli.main([*argv, "--method", "ekf", "--out", str(tmp_path / "r.json")]) == 2
     err = capsys.readouterr().err

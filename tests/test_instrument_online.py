@@ -13,6 +13,7 @@ from stewart_calib.config import config_from_dict
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.base import feed
 from stewart_calib.estimators.measurement import REGISTRATION_SAMPLES
+from stewart_calib.samples import LOAD_KG
 from stewart_calib.workflows.calibration import run_calibration
 from tests.instrument_data import hobby, make_case
 from tests.test_instrument_ls import POINTS, POINTS_TRUTH, POSE_TRUTH, _normalised_errors
@@ -63,13 +64,16 @@ def test_the_held_samples_keep_their_payload_through_a_checkpoint():
     from dataclasses import replace
 
     case = make_case(hobby(), 30, 302, POSE_TRUTH)
-    held = [replace(sample, load_kg=float(k)) for k, sample in enumerate(list(case.log)[: REGISTRATION_SAMPLES - 1])]
+    held = [
+        replace(sample, inputs={LOAD_KG: float(k)})
+        for k, sample in enumerate(list(case.log)[: REGISTRATION_SAMPLES - 1])
+    ]
     first = make_estimator("ekf", case.platform, _config())
     for sample in held:
         first.update(sample)
     resumed = make_estimator("ekf", case.platform, _config())
     resumed.import_state(first.export_state())
-    assert [s.load_kg for s in resumed._held.samples] == [s.load_kg for s in held]
+    assert [s.inputs[LOAD_KG] for s in resumed._held.samples] == [s.inputs[LOAD_KG] for s in held]
 
 
 def _distance2(estimate, optimum, platform) -> tuple[float, int]:

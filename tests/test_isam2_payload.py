@@ -20,6 +20,7 @@ from stewart_calib.factors import drive_leg
 from stewart_calib.io import result_dict
 from stewart_calib.model import kinematics as kin
 from stewart_calib.model.platform import Elastic
+from stewart_calib.samples import LOAD_KG
 from tests.numdiff import numerical_jacobian, relative_error
 from tests.synthetic import nim_stewart, random_error, random_poses
 
@@ -38,7 +39,7 @@ def check(tmp_path_factory):
 
     _, run, platform = check_run(tmp_path_factory.mktemp("check"), 40, validation=20)
     calibration = np.asarray(run.kinds) == "calibration"
-    log = replace(_subset(run.log, calibration), load_kg=None)
+    log = replace(_subset(run.log, calibration), inputs={})
     return run, platform, log
 
 
@@ -73,8 +74,8 @@ def test_the_drive_leg_factor_payload_column_is_the_numerical_derivative():
             pose = gtsam.Pose3(gtsam.Rot3(R), t)
             strokes = kin.inverse_kinematics(platform.drive, R, t) + 0.05
             load_kg = 10.0
-            inputs = drive.inputs(strokes, load_kg, R, t)
-            f = drive_leg.factor(X, P, spec, inputs, gtsam.noiseModel.Unit.Create(len(legs)), load_kg)
+            inputs = drive.inputs(strokes, {LOAD_KG: load_kg}, R, t)
+            f = drive_leg.factor(X, P, spec, inputs, gtsam.noiseModel.Unit.Create(len(legs)), {LOAD_KG: load_kg})
 
             def error(u, f=f, pose=pose):
                 values = gtsam.Values()
@@ -95,7 +96,7 @@ def test_the_drive_leg_factor_payload_column_is_the_numerical_derivative():
             np.testing.assert_allclose(H[:, payload], (c * per_kg / 1000.0)[spec.legs], rtol=1e-12)
             assert np.abs(H[:, payload]).min() > 1e-4  # mm per kg: the column is there to be checked
             # the residual is the drive model's under load_kg + m
-            loaded = drive.inputs(strokes, load_kg + unknowns[payload], R, t, unknowns)
+            loaded = drive.inputs(strokes, {LOAD_KG: load_kg + unknowns[payload]}, R, t, unknowns)
             expected = drive.residual(unknowns[: drive.size], R, t, loaded)
             np.testing.assert_allclose(error(unknowns), expected[spec.legs], rtol=0, atol=1e-9)
 

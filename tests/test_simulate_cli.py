@@ -16,6 +16,7 @@ from stewart_calib.io import read_log, read_truth, result_dict, write_result
 from stewart_calib.io.platform_file import load_platform
 from stewart_calib.model import kinematics as kin
 from stewart_calib.model.platform import PARAMETER_NAMES
+from stewart_calib.samples import LOAD_KG
 from stewart_calib.simulation.closed_loop import FrozenController, run_experiment
 from stewart_calib.simulation.experiment import load_experiment
 
@@ -45,7 +46,7 @@ def test_output_reads_back_with_the_projects_reader(simulated):
     np.testing.assert_array_equal(truth.params, expected.truth.params)
     np.testing.assert_allclose(truth.true_poses, expected.actual_poses, rtol=0, atol=1e-12)
     assert log.stages == list(expected.stages)
-    np.testing.assert_array_equal(log.load_kg, expected.payload_kg)
+    np.testing.assert_array_equal(log.inputs[LOAD_KG], expected.payload_kg)
 
 
 def test_output_reads_back_with_a_plain_csv_reader(simulated):

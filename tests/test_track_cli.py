@@ -418,4 +418,4 @@ def test_a_block_parses_as_its_rows_one_by_one(lines):
         assert mine.t_s == theirs.t_s
         for name in ("strokes", "readings", "desired_pose"):
             np.testing.assert_array_equal(getattr(mine, name), getattr(theirs, name))
-        assert (mine.stage, mine.load_kg) == (theirs.stage, theirs.load_kg)
+        assert (mine.stage, dict(mine.inputs)) == (theirs.stage, dict(theirs.inputs))

@@ -14,6 +14,7 @@ from ..estimate import Estimate
 from ..model import kinematics as kin
 from ..model.drive import DriveModel, drive_model, plain_drive
 from ..model.platform import LegGeometry, Platform
+from ..samples import Inputs
 
 
 class PoseOutOfRange(CalibError):
@@ -87,10 +88,11 @@ def compensate(
     desired_poses_mm_rad: np.ndarray,
     nominal: Platform | LegGeometry | None = None,
     limits: Platform | None = None,
-    payload_kg=0.0,
+    inputs: Inputs | None = None,
 ) -> np.ndarray:
-    """Strokes that put the estimated drive at ``desired_poses_mm_rad`` (an elastic drive: under its
-    platform's weight and a payload of ``payload_kg``, spec §10).
+    """Strokes that put the estimated drive at ``desired_poses_mm_rad`` under the input channels
+    ``inputs`` (an elastic drive: its platform's weight and the payload ``load_kg``, spec §10; a
+    thermal one: the legs' ``temperature_C``, spec §17).
 
     Args:
         drive: the calibrated drive model (:meth:`~stewart_calib.model.drive.DriveModel.calibrated`),
@@ -101,9 +103,12 @@ def compensate(
         nominal: the platform or nominal drive; required with an :class:`Estimate`.
         limits: the platform whose workspace and stroke range the poses and strokes must
             respect (:func:`check_reachable`), or None for no check.
-        payload_kg: the payload [kg] (scalar or ``(N,)``) an elastic drive carries at the poses: its
-            legs are ``c_i f_i / 1000`` shorter under the forces ``f`` they hold there, so the
-            strokes are longer by that over ``1 + k_i``. Ignored by a rigid drive.
+        inputs: the channels at the poses, each a scalar or ``(N, ...)``
+            (:data:`~stewart_calib.samples.CHANNEL_SHAPES`; None: none, 0 kg at the reference
+            temperature). An elastic drive's legs are ``c_i f_i / 1000`` shorter under the forces
+            ``f`` they hold under the payload, so the strokes are longer by that over ``1 + k_i``; a
+            warm leg is longer by ``α_i ΔT_i L_i``, so its stroke is shorter. A drive without the
+            term ignores its channel.
     Returns:
         ``(N, legs)`` strokes q_i [mm] (same leading shape as ``desired_poses_mm_rad``).
     Raises:
@@ -120,7 +125,7 @@ def compensate(
     poses = np.asarray(desired_poses_mm_rad, dtype=float)
     if poses.shape[-1:] != (6,) or not np.all(np.isfinite(poses)):
         raise CalibError(f"compensate: expected finite poses of shape (N, 6), got shape {poses.shape}")
-    strokes = drive.inverse_kinematics(*kin.pose_to_rt(poses), payload_kg=payload_kg)
+    strokes = drive.inverse_kinematics(*kin.pose_to_rt(poses), channels=inputs)
     if limits is not None:
         check_reachable(poses, strokes, limits)
     return strokes

@@ -32,6 +32,7 @@ from ..model import _kernels
 from ..model import kinematics as kin
 from ..model.drive import TERM_UNITS, DriveModel, drive_model
 from ..model.platform import PARAMETER_NAMES, LegGeometry, Platform
+from ..samples import Inputs, broadcast_inputs, input_rows
 
 #: A singular value below this fraction of the largest counts as zero. Round-off in the
 #: whitened Jacobian sits near 1e-13 relative; a direction 1e-8 times weaker than the best
@@ -535,35 +536,35 @@ class InformationAccumulator:
         self._block_squares = np.zeros(size - n_params)  # Σ over rows of each block column², unwhitened
         self._block_rows = 0
 
-    def add(self, poses: np.ndarray, strokes: np.ndarray | None = None, payload_kg=None) -> None:
+    def add(self, poses: np.ndarray, strokes: np.ndarray | None = None, channels: Inputs | None = None) -> None:
         """Add the information of ``(n, 6)`` pose6 ``[mm, rad]``, :data:`BLOCK_POSES` at a time; with
         the drive's blocks, their ``(n, legs)`` logged strokes [mm] (None: the drive's inverse
-        kinematics) and payloads (``(n,)`` or a scalar [kg]; None: 0)."""
+        kinematics) and input channels (``Log.inputs``, each ``(n, ...)`` or one value for all; None:
+        none, 0 kg at the reference temperature)."""
         poses = np.asarray(poses, dtype=float).reshape(-1, 6)
+        rows_of = broadcast_inputs(channels, len(poses))
         if self.drive is not None and strokes is None:
-            strokes = self.drive.inverse_kinematics(*kin.pose_to_rt(poses), payload_kg=payload_kg)
-        payload = None if payload_kg is None else np.broadcast_to(np.asarray(payload_kg, dtype=float), len(poses))
+            strokes = self.drive.inverse_kinematics(*kin.pose_to_rt(poses), channels=rows_of)
         for start in range(0, len(poses), BLOCK_POSES):
             block = poses[start : start + BLOCK_POSES]
             rows = whitened_leg_jacobian(self.platform, block, self.noise)
             if self.drive is not None and strokes is not None:
                 span = slice(start, start + len(block))
                 rows = np.concatenate(
-                    [rows, self._block_columns(block, strokes[span], None if payload is None else payload[span])],
-                    axis=-1,
+                    [rows, self._block_columns(block, strokes[span], input_rows(rows_of, span))], axis=-1
                 )
             self._leg_factor = _stacked_factor(self._leg_factor, rows)
             if self._paper_factor is not None:
                 self._paper_factor = _stacked_factor(self._paper_factor, scaled_paper_jacobian(self.platform, block))
             self.n_poses += len(block)
 
-    def _block_columns(self, poses: np.ndarray, strokes: np.ndarray, payload_kg) -> np.ndarray:
+    def _block_columns(self, poses: np.ndarray, strokes: np.ndarray, channels: Inputs) -> np.ndarray:
         """``C^{-1/2} ∂r/∂v`` of the drive's unknown blocks at the poses, ``(n, legs, size − n_params)``
         [1/unit]: the same whitening ``C = L Lᵀ`` (:func:`residual_covariance`) as δM's rows'."""
         drive = self.drive
         assert drive is not None
         R, t = kin.pose_to_rt(poses)
-        inputs = drive.inputs(strokes, payload_kg, R, t) if drive.elastic is not None else drive.inputs(strokes)
+        inputs = drive.inputs(strokes, channels, R, t)
         columns = drive.with_terms(np.zeros((len(R), drive.rows, drive.n_params)), inputs)[..., drive.n_params :]
         self._block_squares += np.sum(columns**2, axis=(0, 1))
         self._block_rows += len(R)
@@ -683,7 +684,7 @@ def identifiability_report(
     paper_form: bool = True,
     drive: DriveModel | None = None,
     strokes: np.ndarray | None = None,
-    payload_kg=None,
+    channels: Inputs | None = None,
 ) -> IdentifiabilityReport:
     """Singular values, Cramér–Rao bound, weakest directions and verdict for a pose set.
 
@@ -692,7 +693,7 @@ def identifiability_report(
         poses: ``(N, 6)`` pose6 ``[mm, rad]``.
         noise: reading and stroke sigmas.
         paper_form: also the paper's ``J_p`` form (:class:`InformationAccumulator`).
-        drive, strokes, payload_kg: the drive's unknown blocks too (:class:`InformationAccumulator`).
+        drive, strokes, channels: the drive's unknown blocks too (:class:`InformationAccumulator`).
     Raises:
         CalibError: no poses, or no noise.
     """
@@ -700,7 +701,7 @@ def identifiability_report(
     if poses.shape[0] == 0 or poses.shape[1] != 6:
         raise CalibError(f"poses: expected an (N, 6) array with N ≥ 1, got shape {poses.shape}")
     information = InformationAccumulator(platform, noise, paper_form, drive)
-    information.add(poses, strokes, payload_kg)
+    information.add(poses, strokes, channels)
     return information.report()
 
 
@@ -709,17 +710,17 @@ def tracker_poses(platform: Platform, log) -> np.ndarray:
     return tracker_samples(platform, log)[0]
 
 
-def tracker_samples(platform: Platform, log) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """``(poses (n, 6) [mm, rad], strokes (n, legs), payloads (n,) or None)`` of a log's samples whose
+def tracker_samples(platform: Platform, log) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+    """``(poses (n, 6) [mm, rad], strokes (n, legs), input channels)`` of a log's samples whose
     tracker FK converges (the others left out)."""
     # The desired pose is within a few mm of the real one: a good Newton start when present.
     guess = None if log.desired_poses is None else kin.pose_to_rt(log.desired_poses)
     fk = kin.forward_kinematics(platform.required_tracker("tracker poses"), log.readings, guess, strict=False)
-    payload = None if log.load_kg is None else np.asarray(log.load_kg, dtype=float)[fk.converged]
-    return fk.pose6[fk.converged], np.asarray(log.strokes, dtype=float)[fk.converged], payload
+    channels = input_rows(log.inputs, fk.converged)
+    return fk.pose6[fk.converged], np.asarray(log.strokes, dtype=float)[fk.converged], channels
 
 
-def measured_samples(platform: Platform, log) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+def measured_samples(platform: Platform, log) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """:func:`tracker_samples`, refusing a log where none converges.
 
     Raises:

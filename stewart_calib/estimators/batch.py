@@ -28,6 +28,7 @@ Robust by construction, with nothing for a user to tune:
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,6 +40,7 @@ from ..errors import CalibError, SampleRejected, number
 from ..instruments import OutsideModel, gauge, outside_model
 from ..model import kinematics as kin
 from ..model.drive import DriveModel
+from ..samples import Inputs, input_rows
 
 #: a singular value below this fraction of the largest counts as zero
 RANK_TOLERANCE = 1e-10
@@ -65,8 +67,9 @@ class BatchProblem:
             components from the platform file (``channel_sigma``) and the noise channel each
             belongs to (``noise_channels``, named by ``noise_channel_names``).
         t_s: ``(N,)`` sample times [s].
-        payload_kg: ``(N,)`` the samples' payload [kg] where the drive is elastic (None: 0); its leg
-            forces are then taken at the drive's forward-kinematics poses of each step of the fit.
+        channels: the samples' input channels (``Log.inputs``, each ``(N, ...)``): an elastic drive's
+            leg forces under their payload are taken at the drive's forward-kinematics poses of each
+            step of the fit.
     """
 
     drive: DriveModel
@@ -74,24 +77,25 @@ class BatchProblem:
     measured: np.ndarray
     model: OutsideModel
     t_s: np.ndarray
-    payload_kg: np.ndarray | None = None
+    channels: Mapping[str, np.ndarray] = field(default_factory=dict)
 
     @classmethod
     def of_log(
-        cls, platform, strokes: ArrayLike, measured: ArrayLike, t_s: ArrayLike, payload_kg: ArrayLike | None = None
+        cls, platform, strokes: ArrayLike, measured: ArrayLike, t_s: ArrayLike, channels: Inputs | None = None
     ) -> BatchProblem:
         """The problem of a log of ``platform``'s outside instrument, with the platform file's σ
-        and the drive model's unknowns (an elastic drive's under the samples' ``payload_kg``)."""
+        and the drive model's unknowns (an elastic drive's under the samples' input ``channels``)."""
         from ..model.drive import drive_model
 
         drive = drive_model(platform).identifying()
+        arrays = {name: np.asarray(values, dtype=float) for name, values in (channels or {}).items()}
         return cls(
             drive,
-            drive.inputs_near(np.asarray(strokes, dtype=float)),
+            drive.inputs_near(np.asarray(strokes, dtype=float), arrays),
             np.asarray(measured, dtype=float),
             outside_model(platform),
             np.asarray(t_s, dtype=float),
-            None if payload_kg is None else np.asarray(payload_kg, dtype=float),
+            arrays,
         )
 
 
@@ -141,14 +145,14 @@ class _State:
 
 
 def _fk(problem: BatchProblem, x_drive: np.ndarray, guess) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    if problem.drive.elastic is None:
+    if not problem.drive.needs_pose:
         sol, inputs = (
             problem.drive.forward_kinematics(problem.inputs, x_drive, guess=guess, strict=False),
             problem.inputs,
         )
     else:
         strokes = problem.inputs[:, : problem.drive.rows]  # the stroke term reads the first inputs, one a leg
-        sol, inputs = problem.drive.settled_kinematics(strokes, problem.payload_kg, x_drive, guess, strict=False)
+        sol, inputs = problem.drive.settled_kinematics(strokes, problem.channels, x_drive, guess, strict=False)
     return sol.R, sol.t, sol.converged, inputs
 
 
@@ -331,9 +335,9 @@ def identifiability(problem: BatchProblem, unknowns, names: tuple[str, ...], fil
     }
 
 
-def instrument_identifiability(platform, strokes: np.ndarray, readings: np.ndarray, payload_kg) -> dict:
+def instrument_identifiability(platform, strokes: np.ndarray, readings: np.ndarray, channels: Inputs | None) -> dict:
     """:func:`identifiability` of an outside instrument's samples (``strokes`` [mm], ``readings`` in
-    file units, NaN: a target not seen; ``payload_kg`` or None) at the nominal drive and the
+    file units, NaN: a target not seen; the log's input ``channels`` or None) at the nominal drive and the
     platform's instrument as it stands — register it on a log first
     (:func:`~stewart_calib.instruments.registered`)."""
     from ..model.drive import drive_model
@@ -341,13 +345,14 @@ def instrument_identifiability(platform, strokes: np.ndarray, readings: np.ndarr
     model = outside_model(platform)
     drive = drive_model(platform).identifying()
     unknowns = model.nominal_unknowns()
+    arrays = {name: np.asarray(values, dtype=float) for name, values in (channels or {}).items()}
     problem = BatchProblem(
         drive,
-        drive.inputs_near(strokes),
+        drive.inputs_near(strokes, arrays),
         readings,
         model,
         np.arange(len(strokes), dtype=float),
-        payload_kg,
+        arrays,
     )
     return identifiability(problem, unknowns, model.unknown_names, unknowns.file_jacobian())
 
@@ -410,9 +415,12 @@ def _verdict(condition_number: float) -> str:
 def _subset(problem: BatchProblem, keep: np.ndarray) -> BatchProblem:
     from dataclasses import replace
 
-    payload = None if problem.payload_kg is None else problem.payload_kg[keep]
     return replace(
-        problem, inputs=problem.inputs[keep], measured=problem.measured[keep], t_s=problem.t_s[keep], payload_kg=payload
+        problem,
+        inputs=problem.inputs[keep],
+        measured=problem.measured[keep],
+        t_s=problem.t_s[keep],
+        channels=input_rows(problem.channels, keep),
     )
 
 
@@ -435,7 +443,7 @@ def _lift(problem: BatchProblem, basis: np.ndarray, fit_blocks: bool, n_unknowns
 def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_blocks: bool):
     """Whitened, weighted Jacobian ``A`` (finite rows) and residual ``b`` at ``state``."""
     e, H_X, H_u = problem.model.readings_residual(state.unknowns, problem.measured, state.R, state.t, jacobians=True)
-    dxi = problem.drive.settled_pose_jacobian(state.x_drive, state.R, state.t, state.inputs, problem.payload_kg)
+    dxi = problem.drive.settled_pose_jacobian(state.x_drive, state.R, state.t, state.inputs, problem.channels)
     n_params = problem.drive.n_params
     blocks = [H_X @ dxi[..., :n_params] @ basis]
     if fit_blocks and dxi.shape[-1] > n_params:

@@ -71,7 +71,7 @@ from ..instruments import instrument_model, instrument_theta, needs_registration
 from ..model.drive import PAYLOAD, payload_block
 from ..model.platform import Platform
 from ..model.unknowns import UnknownLayout, gauge_conditioned
-from ..samples import Log, Sample
+from ..samples import Log, Sample, input_rows
 from .base import Refusals, state_array, update_each
 from .kalman import NO_POSES
 from .measurement import (
@@ -161,6 +161,7 @@ class LegEKF:
         # degrees off (simulated hobby hexapod: 6° in roll) and gravity seen tilted as much — a fit whose
         # c·f is not validate's (benchmarks/hobby.py: plain held-out 0.50 mm against lm's 0.35).
         self._forces_at_state = self.drive.elastic is not None and self._instrument is not None
+        self._packed_width = self.drive.packed_width if self._forces_at_state else 0
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample; ``SampleRejected`` leaves the state untouched."""
@@ -214,17 +215,16 @@ class LegEKF:
                 & self.model.surely_pass(readings)
             )
         poses = NO_POSES
-        if self.drive.elastic is None:
-            inputs = self.drive.inputs(strokes)
+        if not self.drive.needs_pose:
+            inputs = self.drive.inputs(strokes, block.inputs)
         else:  # the forces at the tracker's poses and the state's geometry, as update() takes them
             # the block's samples in order: each FK from the sample before (~3 Newton steps, not ~5)
             fk = leg_set.legs.forward_kinematics(np.where(plain[:, None], readings, 0.0), strict=False, along=True)
             plain &= fk.converged
             R, t = fk.R[plain], fk.t[plain]
-            payload = None if block.load_kg is None else np.asarray(block.load_kg, dtype=float)[plain]
             inputs = np.zeros((len(strokes), self.drive.input_width))
             inputs[:, : strokes.shape[1]] = strokes
-            inputs[plain] = self.drive.inputs(strokes[plain], payload, R, t, self._forces_at())
+            inputs[plain] = self.drive.inputs(strokes[plain], input_rows(block.inputs, plain), R, t, self._forces_at())
             poses = np.column_stack((fk.R.reshape(-1, 9), fk.t))
         prepared = np.ascontiguousarray(np.column_stack((inputs, readings)), dtype=float)
         return prepared, poses, plain
@@ -234,13 +234,13 @@ class LegEKF:
         self.robust.update(held.t_s, self._prepared(strokes, z, held))
 
     def _prepared(self, strokes: np.ndarray, z: np.ndarray, sample: Sample) -> np.ndarray:
-        """A prepared sample ``[u | forces per kg (an unannounced payload) | load_kg (forces taken at the
-        state) | z]``."""
+        """A prepared sample ``[u | forces per kg (an unannounced payload) | the channels the forces read
+        (forces taken at the state: :meth:`~stewart_calib.model.drive.DriveModel.packed_pose_channels`) | z]``."""
         inputs = drive_inputs(
-            self.drive, self.model, strokes, z, sample.load_kg, self._pose.guess, self._forces_at(), self._per_kg > 0
+            self.drive, self.model, strokes, z, sample.inputs, self._pose.guess, self._forces_at(), self._per_kg > 0
         )
-        load = [0.0 if sample.load_kg is None else float(sample.load_kg)] if self._forces_at_state else []
-        return np.concatenate((inputs, load, np.ravel(z)))
+        packed = self.drive.packed_pose_channels(sample.inputs) if self._forces_at_state else np.zeros(0)
+        return np.concatenate((inputs, packed, np.ravel(z)))
 
     def _forces_at(self) -> np.ndarray | None:
         """The drive state whose geometry an elastic drive's leg forces are taken at: the one the
@@ -258,15 +258,16 @@ class LegEKF:
         drive = self.drive
         width = drive.input_width
         inputs, per_kg = prepared[:width], prepared[width : width + self._per_kg]
-        z = prepared[width + self._per_kg + int(self._forces_at_state) :]
+        packed = self._packed_width
+        z = prepared[width + self._per_kg + packed :]
         x_drive = x[: drive.size]
         theta = instrument_theta(self.model, None if self._instrument is None else x[self._instrument])
         observed = None
         if self._leg_set is None:
             observed = self._pose.solve(z, theta)
             if observed is not None and self._forces_at_state:
-                load_kg = prepared[width + self._per_kg]
-                inputs = drive.inputs(inputs[: drive.rows], load_kg, observed.R, observed.t, self._forces_at())
+                channels = drive.unpacked_pose_channels(prepared[width + self._per_kg : width + self._per_kg + packed])
+                inputs = drive.reposed(inputs, channels, observed.R, observed.t, self._forces_at())
                 if self._per_kg:
                     per_kg = drive.payload_leg_forces(observed.R, observed.t, self._forces_at())
         dg_dm = None  # ∂r/∂m of the drive-leg residuals r on the unannounced payload m
@@ -374,7 +375,7 @@ class LegEKF:
         self.robust.import_state(state.get("robust", {}))
         # a prepared row's layout follows the model (an elastic drive seen through an instrument with
         # unknowns adds the load column): rows of another layout would be misread, not refused
-        width = self.drive.input_width + self._per_kg + int(self._forces_at_state) + len(self.model.columns)
+        width = self.drive.input_width + self._per_kg + self._packed_width + len(self.model.columns)
         if self.robust.buffered_width() not in (None, width):
             raise CalibError(
                 f"estimator state: buffered samples of {self.robust.buffered_width()} columns, expected {width} "

@@ -344,9 +344,9 @@ class GraphBuilder:
                 if guess is None and state.samples > 0:
                     guess = params_guess()
                 x_drive = None if guess is None else guess[: self.drive.size]
-                rest = self.drive.inputs_near(strokes, sample.load_kg, state.last_pose)
+                rest = self.drive.inputs_near(strokes, sample.inputs, state.last_pose)
                 R, t = self.drive.solve_fk(rest, x_drive, state.last_pose)
-        inputs = self.drive.inputs(strokes, sample.load_kg, R, t)  # the forces at the pose found (spec §10)
+        inputs = self.drive.inputs(strokes, sample.inputs, R, t)  # the forces at the pose found (spec §10)
         pose = gtsam.Pose3(gtsam.Rot3(R), t)
 
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -381,7 +381,7 @@ class GraphBuilder:
         for drive_legs, noise in self._drive_legs:
             if walked > 0.0:
                 noise = self._walked_noise(drive_legs, pose.matrix(), inputs, walked)
-            factors.add(drive_leg.factor(x, p, drive_legs, inputs, noise, sample.load_kg))
+            factors.add(drive_leg.factor(x, p, drive_legs, inputs, noise, sample.inputs))
 
         # The current parameter key is re-stamped every update so the smoother never
         # marginalises the variable new factors are about to touch (docs/measured-facts.md).

@@ -25,6 +25,7 @@ frame and target(s) together, the 12 gauge directions fixed and stated in the re
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -39,7 +40,7 @@ from ..model import kinematics as kin
 from ..model.drive import DriveModel, drive_model
 from ..model.platform import LegGeometry, Platform
 from ..model.unknowns import UnknownLayout
-from ..samples import Sample
+from ..samples import Sample, input_rows, packed_inputs, unpacked_inputs
 from .base import BufferedFit
 from .measurement import WarmPose, check_sample, drive_only_model, measured_pose, pose_difference
 
@@ -85,7 +86,7 @@ def gauss_newton(
     t_v: np.ndarray,
     config: LSConfig,
     drive: DriveModel | None = None,
-    payload_kg: np.ndarray | None = None,
+    channels: Mapping[str, np.ndarray] | None = None,
 ) -> LSSolution:
     """Iterated least squares ``min Σ_k ‖W (P_v,k − P_m,k(x))‖²`` (paper eq. 9–11).
 
@@ -97,7 +98,8 @@ def gauss_newton(
         drive: the drive model whose extensions the strokes go through, its unknown terms fitted
             with δM (an extension enters ``P_m`` as the leg's initial length does, so their columns
             are ``J_p``'s ``l_i`` columns times ``∂e_i/∂v``); an elastic drive's leg forces are taken
-            at ``P_v`` under ``payload_kg`` ``(N,)`` with the geometry of each iteration. None: the
+            at ``P_v`` under the samples' input ``channels`` (each ``(N, ...)``, ``Log.inputs``) with the
+            geometry of each iteration. None: the
             strokes are the legs' length changes and the unknowns δM alone.
     Raises:
         CalibError: the model's FK fails (the iteration diverged) or no convergence.
@@ -117,8 +119,8 @@ def gauss_newton(
                 rows = slice(chunk, min(n, chunk + CHUNK_SAMPLES))
                 lengths, inputs = strokes[rows], None
                 if drive is not None:  # an elastic drive's forces at P_v
-                    payload = None if payload_kg is None else payload_kg[rows]
-                    inputs = drive.inputs(strokes[rows], payload, R_v[rows], t_v[rows], error)
+                    chunk_channels = input_rows(channels or {}, rows)
+                    inputs = drive.inputs(strokes[rows], chunk_channels, R_v[rows], t_v[rows], error)
                     lengths = drive.extensions(inputs, error)
                 sol = legs.forward_kinematics(lengths, guess=(R_m[rows], t_m[rows]), strict=False)
                 if not np.all(sol.converged):
@@ -276,7 +278,7 @@ class LeastSquares(BufferedFit):
             fitted = drive_model(platform, config.noise)
             # the paper's LS on δM alone where the drive has no unknown term and no leg forces
             self._fitted = fitted if fitted.blocks or fitted.elastic is not None else None
-        self._strokes, self._payload = Rows(), Rows()
+        self._strokes, self._channels = Rows(), Rows()
         self._R_v = Rows()  # R_v, or with an outside instrument the readings
         self._t_v = Rows()  # t_v, or with an outside instrument the sample times
         self._t_s = float("nan")
@@ -290,17 +292,17 @@ class LeastSquares(BufferedFit):
         if self._external is not None:
             strokes, readings = check_sample(self.platform, self._external, sample)
             self._strokes.append(strokes)
-            self._payload.append(0.0 if sample.load_kg is None else sample.load_kg)
+            self._channels.append(packed_inputs(sample.inputs))
             self._R_v.append(readings)
             self._t_v.append(sample.t_s)
             self._t_s = sample.t_s
             return
         strokes, z = check_sample(self.platform, self.model, sample)
         if self._fitted is None:
-            strokes = self.drive.extensions(self.drive.inputs(strokes))  # the drive's nominal terms (spec §7)
+            strokes = self.drive.extensions(self.drive.inputs(strokes, sample.inputs))  # the drive's nominal terms
         R_v, t_v = measured_pose(self._pose, z, sample.t_s)
         self._strokes.append(strokes)
-        self._payload.append(0.0 if sample.load_kg is None else sample.load_kg)
+        self._channels.append(packed_inputs(sample.inputs))
         self._R_v.append(R_v)
         self._t_v.append(t_v)
         self._times.append(sample.t_s)
@@ -313,7 +315,7 @@ class LeastSquares(BufferedFit):
         if self._external is not None:
             return self._estimate_external(self._external)
         strokes, R_v = self._strokes.values(), self._R_v.values().reshape(-1, 3, 3)
-        t_v, payload = self._t_v.values(), self._payload.values()[:, 0]
+        t_v, channels = self._t_v.values(), unpacked_inputs(self._channels.values())
         solution = gauss_newton(
             self.platform.prismatic_drive("ls with the in-situ tracker"),
             strokes,
@@ -321,7 +323,7 @@ class LeastSquares(BufferedFit):
             t_v,
             self.config,
             self._fitted,
-            payload,
+            channels,
         )
         self.singular_values = solution.singular_values
         if self._fitted is None or not self._fitted.blocks:
@@ -333,7 +335,7 @@ class LeastSquares(BufferedFit):
             )
         extensions = strokes  # the legs' length changes: δM's fit, or the fitted drive's terms at its solution
         if self._fitted is not None:
-            inputs = self._fitted.inputs(strokes, payload, R_v, t_v, solution.error)
+            inputs = self._fitted.inputs(strokes, channels, R_v, t_v, solution.error)
             extensions = self._fitted.extensions(inputs, solution.error)
         legs = self.platform.drive.perturbed(solution.error[: self.platform.drive.n_params])
         residuals = legs.coordinates(R_v, t_v) - extensions
@@ -353,10 +355,11 @@ class LeastSquares(BufferedFit):
         from ..instruments.gauge import GAUGE_STATEMENT
         from .batch import BatchProblem, fit
 
+        channels = unpacked_inputs(self._channels.values())
         problem = BatchProblem(
             drive=self.drive.identifying(),
-            inputs=self.drive.inputs_near(self._strokes.values()),
-            payload_kg=self._payload.values()[:, 0],
+            inputs=self.drive.inputs_near(self._strokes.values(), channels),
+            channels=channels,
             measured=self._R_v.values(),
             model=model,
             t_s=self._t_v.values()[:, 0],

@@ -37,7 +37,7 @@ from ..model.drive import DriveModel, drive_model
 from ..model.legs import LegModel
 from ..model.platform import Platform
 from ..model.unknowns import UnknownLayout
-from ..samples import Sample
+from ..samples import CHANNEL_SHAPES, Sample
 from .base import state_array
 from .kalman import leg_set_filter_rows, leg_set_observation
 
@@ -93,26 +93,27 @@ def drive_inputs(
     model: InstrumentModel,
     strokes: np.ndarray,
     z: np.ndarray,
-    payload_kg,
+    channels,
     guess=None,
     x_drive=None,
     per_kg: bool = False,
 ) -> np.ndarray:
     """One sample's drive inputs (:meth:`~stewart_calib.model.drive.DriveModel.inputs`): its strokes and, for
-    an elastic drive, the leg forces under ``payload_kg`` (the log's ``load_kg``; None: 0) at the pose
+    an elastic drive, the leg forces under its input ``channels`` (``Sample.inputs``) at the pose
     the measurement fixes with the instrument at its nominal (:meth:`InstrumentModel.pose`, from
     ``guess``), or where it fixes none at the drive's own forward kinematics; with ``per_kg``,
     followed by the leg forces per kg of payload at that pose
     (:meth:`~stewart_calib.model.drive.DriveModel.payload_leg_forces`, for an estimated payload)."""
-    if drive.elastic is None:
-        return drive.inputs(strokes)
+    if not drive.needs_pose:
+        return drive.inputs(strokes, channels)
     observed = model.pose(z, instrument_theta(model, None), guess)
     if observed is None:
-        solution, settled = drive.settled_kinematics(np.asarray(strokes)[None], payload_kg, strict=False)
+        batch = {name: np.asarray(value)[None] for name, value in (channels or {}).items()}
+        solution, settled = drive.settled_kinematics(np.asarray(strokes)[None], batch, strict=False)
         R, t, inputs = solution.R[0], solution.t[0], settled[0]
     else:
         R, t = observed.R, observed.t
-        inputs = drive.inputs(strokes, payload_kg, R, t, x_drive)
+        inputs = drive.inputs(strokes, channels, R, t, x_drive)
     return np.concatenate([inputs, drive.payload_leg_forces(R, t, x_drive)]) if per_kg else inputs
 
 
@@ -356,25 +357,33 @@ class HeldForRegistration:
 
 def samples_to_arrays(samples: list[Sample], n_legs: int, n_columns: int) -> dict[str, np.ndarray]:
     """Samples as arrays for a checkpoint (the samples an online method holds, has pending or replays):
-    ``n_legs`` strokes and ``n_columns`` readings each; ``load_kg`` NaN where a sample has no payload."""
-    return {
+    ``n_legs`` strokes and ``n_columns`` readings each, and every input channel one of them carries by
+    its name (``load_kg``, …), NaN where a sample has none."""
+    arrays = {
         "t_s": np.array([s.t_s for s in samples], dtype=float),
         "strokes": np.array([s.strokes for s in samples], dtype=float).reshape(-1, n_legs),
         "readings": np.array([s.readings for s in samples], dtype=float).reshape(len(samples), n_columns),
-        "load_kg": np.array([np.nan if s.load_kg is None else s.load_kg for s in samples], dtype=float),
     }
+    for name, shape in CHANNEL_SHAPES.items():
+        if any(name in s.inputs for s in samples):
+            missing = np.full(shape, np.nan)
+            arrays[name] = np.array([s.inputs.get(name, missing) for s in samples], dtype=float).reshape(-1, *shape)
+    return arrays
 
 
 def samples_from_arrays(arrays: dict, n_legs: int, n_columns: int) -> list[Sample]:
-    """:func:`samples_to_arrays` back; an older checkpoint, without ``load_kg``, has no payloads."""
+    """:func:`samples_to_arrays` back; a channel a checkpoint lacks is absent from its samples."""
     t_s = state_array(arrays, "t_s", np.shape(arrays.get("t_s", ())))
     strokes = state_array(arrays, "strokes", (len(t_s), n_legs))
     readings = state_array(arrays, "readings", (len(t_s), n_columns))
-    load_kg = state_array(arrays, "load_kg", (len(t_s),)) if "load_kg" in arrays else np.full(len(t_s), np.nan)
-    return [
-        Sample(float(t_s[k]), strokes[k], readings[k], load_kg=None if np.isnan(load_kg[k]) else float(load_kg[k]))
-        for k in range(len(t_s))
-    ]
+    channels = {
+        name: state_array(arrays, name, (len(t_s), *shape)) for name, shape in CHANNEL_SHAPES.items() if name in arrays
+    }
+
+    def inputs(k: int) -> dict:
+        return {name: values[k] for name, values in channels.items() if not np.all(np.isnan(values[k]))}
+
+    return [Sample(float(t_s[k]), strokes[k], readings[k], inputs=inputs(k)) for k in range(len(t_s))]
 
 
 def drive_only_model(

@@ -17,7 +17,7 @@ frame and target are fixed at their closed-form registration on the first sample
 replayed, as in the leg-length EKF) and the strokes at the encoders' nominal scale — the paper's
 model has neither unknown; ``ekf``, ``isam2`` and ``lm`` identify them. A platform with
 ``[elastic]`` (spec §10) keeps the paper's state too: each leg's compliance is held at its nominal
-value, the leg forces taken at ``P_v`` under the sample's ``load_kg``.
+value, the leg forces taken at ``P_v`` under the sample's payload (its input channels).
 
 Optional adaptive Q/R (paper ref. [28]; innovation-based, Mohamed & Schwarz 1999): over
 the last ``adaptive_window`` updates, ``R = mean(ν νᵀ − H P⁻ Hᵀ)`` with its eigenvalues
@@ -105,7 +105,7 @@ class PaperEKF:
         A pose instrument's first samples are held until they register it, then replayed."""
         strokes, z = check_sample(self.platform, self.model, sample)
         if not self._held.active:
-            self._update(strokes, z, sample.t_s, sample.load_kg)
+            self._update(strokes, z, sample.t_s, sample.inputs)
             return
         self._held.hold_then_replay(sample, self._registered, self._replay)
 
@@ -121,12 +121,12 @@ class PaperEKF:
         self._theta = instrument_theta(self.model, start[self._layout.slice("instrument")])
 
     def _replay(self, held: Sample) -> None:
-        self._update(*check_sample(self.platform, self.model, held), held.t_s, held.load_kg)
+        self._update(*check_sample(self.platform, self.model, held), held.t_s, held.inputs)
 
-    def _update(self, strokes: np.ndarray, z: np.ndarray, t_s: float, payload_kg=None) -> None:
+    def _update(self, strokes: np.ndarray, z: np.ndarray, t_s: float, channels=None) -> None:
         R_v, t_v = measured_pose(self._tracker_fk, z, t_s, self._theta)
         # the drive's nominal terms (spec §7; an elastic drive's forces at P_v, spec §10)
-        strokes = self._drive.extensions(self._drive.inputs(strokes, payload_kg, R_v, t_v))
+        strokes = self._drive.extensions(self._drive.inputs(strokes, channels, R_v, t_v))
         drive = self.platform.prismatic_drive("paper-ekf").perturbed(self.filter.x)
         R_m, t_m = self._model_fk.solve(drive, strokes, "drive model")
         Y = pose_difference(R_v, t_v, R_m, t_m) * self._unit_scale

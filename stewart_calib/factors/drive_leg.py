@@ -94,7 +94,7 @@ class DriveLegs:
 def _error(
     legs: DriveLegs,
     inputs: np.ndarray,
-    payload_kg: float | None,
+    channels,
     pose_key: int,
     params_key: int,
     this: gtsam.CustomFactor,
@@ -104,8 +104,8 @@ def _error(
     pose, params = values.atPose3(pose_key).matrix(), values.atVector(params_key)
     elastic, dr_dm = legs.elastic, None
     if elastic is not None:  # the forces where this evaluation puts the platform and its legs
-        inputs = elastic.inputs(inputs[: elastic.rows], payload_kg, pose[:3, :3], pose[:3, 3], params)
-        if legs.payload is not None:  # and the payload the unknown vector holds on top of payload_kg
+        inputs = elastic.reposed(inputs, channels, pose[:3, :3], pose[:3, 3], params)
+        if legs.payload is not None:  # and the payload the unknown vector holds on top of the log's
             per_kg = elastic.payload_leg_forces(pose[:3, :3], pose[:3, 3], params)
             inputs = elastic.loaded_inputs(inputs, per_kg, float(params[legs.payload]))
             dr_dm = -(elastic.force_gains(params) * per_kg)[legs.legs]
@@ -133,18 +133,19 @@ def factor(
     legs: DriveLegs,
     inputs: np.ndarray,
     noise: gtsam.noiseModel.Base,
-    payload_kg: float | None = None,
+    channels=None,
 ) -> gtsam.CustomFactor:
     """A ``CustomFactor`` on ``(Pose3 pose_key, unknown vector params_key)``: one row per leg of
     ``legs`` (all six in one factor unless a robust kernel weighs each alone).
 
     Args:
         inputs: the sample's drive inputs ``u`` (:meth:`~stewart_calib.model.drive.DriveModel.inputs`).
-        payload_kg: the sample's payload where the drive is elastic (spec §10; None: 0).
+        channels: the sample's input channels (``Sample.inputs``): where the drive is elastic, the
+            payload its leg forces carry (spec §10), taken again at each evaluation's pose.
         noise: of the ``k`` rows.
 
     The residual and both Jacobians are one compiled call for prismatic legs (:func:`._kernels.drive_leg_rows`,
     on :func:`stewart_calib.model.kinematics.leg_residual`'s kernel), else the drive model's numpy rows.
     """
     u = np.array(inputs, dtype=float)
-    return gtsam.CustomFactor(noise, [pose_key, params_key], partial(_error, legs, u, payload_kg, pose_key, params_key))
+    return gtsam.CustomFactor(noise, [pose_key, params_key], partial(_error, legs, u, channels, pose_key, params_key))

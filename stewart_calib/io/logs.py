@@ -22,7 +22,7 @@ from ..errors import CalibError, shown
 from ..inputs import MAX_LINE_BYTES, MAX_TIME_S, open_input
 from ..model.drive import STROKE_SCALE
 from ..model.platform import PARAMETER_NAMES, Instrument, Platform, payload_limit, payload_refusal
-from ..samples import Log, Sample, Truth
+from ..samples import LOAD_KG, Log, Sample, Truth
 from .atomic import atomic_write_text
 from .results import parameters_from_file, parameters_to_file
 from .tables import (
@@ -180,9 +180,9 @@ def log_text(log: Log, platform: Platform | None = None, header: bool = True) ->
     if log.stages is not None:
         names.append("stage")
         columns.append(list(log.stages))
-    if log.load_kg is not None:
+    if LOAD_KG in log.inputs:
         names.append("load_kg")
-        columns.append(np.asarray(log.load_kg, dtype=float))
+        columns.append(np.asarray(log.inputs[LOAD_KG], dtype=float))
     return csv_text(names, columns, header)
 
 
@@ -484,7 +484,7 @@ def _log_of(table: Table, has_pose: bool, textual: list[str], platform: Platform
         readings=readings_in_code_units(col(reading_columns(platform)), platform),
         desired_poses=poses,
         stages=[s for s, k in zip(table.texts["stage"], keep, strict=True) if k] if textual else None,
-        load_kg=table.numbers["load_kg"][keep] if "load_kg" in table.numbers else None,
+        inputs={LOAD_KG: table.numbers["load_kg"][keep]} if "load_kg" in table.numbers else {},
         skipped=skipped,
     )
 
@@ -573,7 +573,7 @@ class LogRowParser:
         strokes = row[self._stroke_slice]
         if self._strokes_in_degrees:
             strokes[:] = np.radians(strokes)
-        return Sample(t_s, strokes, readings, desired, stage, load_kg)
+        return Sample(t_s, strokes, readings, desired, stage, {} if load_kg is None else {LOAD_KG: load_kg})
 
     def parse_block(self, lines: list[bytes]) -> Log | None:
         """The samples of consecutive rows ``lines`` (bytes, line breaks removed) when :meth:`parse`
@@ -610,7 +610,7 @@ class LogRowParser:
         strokes = values[:, self._stroke_slice]
         if self._strokes_in_degrees:
             strokes[:] = np.radians(strokes)
-        return Log(t_s, strokes, readings, desired, stages, load_kg)
+        return Log(t_s, strokes, readings, desired, stages, {} if load_kg is None else {LOAD_KG: load_kg})
 
     def _block_by_arrow(self, lines: list[bytes]) -> tuple | None:
         """``(values, load_kg, None)`` of an all-numeric log's rows by pyarrow (several times faster
@@ -682,7 +682,7 @@ class LogRowParser:
             )[0],
             pose,
             table.texts["stage"][0] if self._textual else "",
-            number("load_kg") if "load_kg" in self._numeric else None,
+            {LOAD_KG: number("load_kg")} if "load_kg" in self._numeric else {},
         )
 
 

@@ -47,7 +47,7 @@ import numpy as np
 
 from ..config import NoiseConfig
 from ..errors import CalibError
-from ..samples import LOAD_KG, TEMPERATURE_C, Inputs
+from ..samples import CHANNEL_SHAPES, LOAD_KG, TEMPERATURE_C, Inputs
 from . import kinematics as kin
 from .legs import LegModel
 from .platform import G_N_PER_KG, N_LEGS, Elastic, LegGeometry, Platform, Thermal
@@ -103,6 +103,9 @@ SETTLED_MM = 1e-7
 
 #: the compliance term's key: the result's ``"compliance"`` block (spec §10)
 COMPLIANCE = "compliance"
+
+#: what a pose-dependent term takes for a channel a sample lacks (:meth:`DriveModel.packed_pose_channels`)
+CHANNEL_DEFAULTS = {LOAD_KG: 0.0}
 
 #: the thermal expansion term's key: the result's ``"thermal"`` block (spec §17)
 THERMAL = "thermal"
@@ -338,6 +341,56 @@ class DriveModel:
             raise ValueError("a rigid drive carries no leg forces")
         batch = np.shape(t)[:-1]
         return gravity_leg_forces(self.prismatic(x_drive), R, t, np.ones(batch + (1,)), e.payload_com_mm[None])
+
+    @property
+    def pose_channels(self) -> tuple[str, ...]:
+        """The channels that the pose-dependent terms read (:meth:`reposed` takes them again)."""
+        return tuple(
+            dict.fromkeys(
+                name
+                for term in self.terms
+                if TERM_SOURCES[term.source].needs_pose
+                for name in TERM_SOURCES[term.source].channels
+            )
+        )
+
+    def packed_pose_channels(self, channels: Inputs | None) -> np.ndarray:
+        """A sample's :attr:`pose_channels` as one flat float vector, a channel it lacks at what the
+        terms take for it (no payload: 0 kg): how a filter keeps them beside its prepared inputs
+        (:meth:`unpacked_pose_channels` reads it back)."""
+        channels = channels or {}
+        parts = [
+            np.full(CHANNEL_SHAPES[name], CHANNEL_DEFAULTS[name]) if channels.get(name) is None else channels[name]
+            for name in self.pose_channels
+        ]
+        return np.concatenate([np.ravel(np.asarray(part, dtype=float)) for part in parts]) if parts else np.zeros(0)
+
+    @property
+    def packed_width(self) -> int:
+        """Entries of :meth:`packed_pose_channels`."""
+        return sum(int(np.prod(CHANNEL_SHAPES[name], dtype=int)) for name in self.pose_channels)
+
+    def unpacked_pose_channels(self, packed: np.ndarray) -> dict[str, np.ndarray]:
+        """:meth:`packed_pose_channels` back."""
+        channels, start = {}, 0
+        for name in self.pose_channels:
+            shape = CHANNEL_SHAPES[name]
+            width = int(np.prod(shape, dtype=int))
+            channels[name] = np.asarray(packed[start : start + width], dtype=float).reshape(shape)
+            start += width
+        return channels
+
+    def reposed(
+        self, inputs: np.ndarray, channels: Inputs | None, R: np.ndarray, t: np.ndarray, x_drive=None
+    ) -> np.ndarray:
+        """``inputs`` with the pose-dependent terms' columns (the leg forces) taken again at ``(R, t)``."""
+        out = np.array(inputs, dtype=float)
+        for term in self.terms:
+            source = TERM_SOURCES[term.source]
+            if source.needs_pose:
+                columns = slice(term.input_start, term.input_start + N_LEGS)
+                out[..., columns] = source.inputs(self, out[..., :N_LEGS], channels or {}, R, t, x_drive)
+        return out
 
     def _force_columns(self) -> slice:
         """The six columns of ``u`` that hold the leg forces (the compliance term's)."""
@@ -589,7 +642,12 @@ class DriveModel:
         return -np.linalg.solve(J_pose, J_x)
 
     def settled_pose_jacobian(
-        self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray, channels: Inputs | None = None
+        self,
+        x_drive: np.ndarray | None,
+        R: np.ndarray,
+        t: np.ndarray,
+        inputs: np.ndarray,
+        channels: Inputs | None = None,
     ) -> np.ndarray:
         """:meth:`pose_jacobian` of :meth:`settled_kinematics`' poses, whose leg forces move with the
         pose and the joints: ``r(ξ; x, f(ξ, M)) = 0``, so ``∂r/∂ξ`` and ``∂r/∂M`` gain
@@ -824,12 +882,13 @@ class TermSource:
 
 def _thermal_inputs(drive: DriveModel, strokes: np.ndarray, channels: Inputs, R, t, x_drive) -> np.ndarray:
     """``(T_i − T_ref) · 1e-6 · L_i`` [mm per ppm/K] with ``L_i`` the nominal leg's length from joint
-    to joint at the strokes' nominal extension (:func:`thermal_term`)."""
+    to joint at the strokes' nominal extension (:func:`thermal_term`); 0 without temperatures (the
+    legs at the reference: a log's rows are refused before, :attr:`DriveModel.required_channels`)."""
     if drive.thermal is None:
         raise ValueError("a drive without [thermal] takes no temperatures")
     temperature = channels.get(TEMPERATURE_C)
-    if temperature is None:
-        raise ValueError(f"a drive with [thermal] needs each sample's '{TEMPERATURE_C}'")
+    if temperature is None:  # a pose list, a command without a temperature: the reference (spec §17)
+        return np.zeros_like(strokes)
     extension = strokes * drive.extension_per_stroke()
     lengths = drive.legs.joint_lengths(extension)
     return (np.asarray(temperature, dtype=float) - drive.thermal.reference_temperature_C) * 1e-6 * lengths

@@ -112,7 +112,7 @@ def _write_rerun(
     fields = viz.parameter_fields(platform.drive.parameter_names, platform.drive.n_legs)
     calibrated = drive_model(platform).calibrated_by(run.estimate)
     if reading_legs is None:
-        poses = calibrated.settled_kinematics(log.strokes, log.load_kg, strict=False)[0]
+        poses = calibrated.settled_kinematics(log.strokes, log.inputs, strict=False)[0]
     drawn = np.all(np.isfinite(poses.t), axis=1) & np.asarray(poses.converged)
     errors = io.parameters_to_file(trace - nominal, platform.drive)  # a servo's angles in degrees
     stddev = None if run.stddev is None else io.parameters_to_file(run.stddev, platform.drive)
@@ -162,7 +162,7 @@ def nominal_poses(platform: Platform, log: Log) -> np.ndarray:
     """``(n, 6)`` the nominal drive's FK poses of a log's strokes (those that converge): where an
     outside instrument's log put the robot, for a platform without ``[workspace]``."""
     drive = drive_model(platform)
-    fk, _ = drive.settled_kinematics(log.strokes, log.load_kg, strict=False)
+    fk, _ = drive.settled_kinematics(log.strokes, log.inputs, strict=False)
     return fk.pose6[fk.converged]
 
 
@@ -172,7 +172,7 @@ def outside_conditioning(platform: Platform, log: Log) -> dict:
     from ..estimators.batch import instrument_identifiability
 
     at_registration = registered(platform, log.strokes, log.readings)
-    return instrument_conditioning(instrument_identifiability(at_registration, log.strokes, log.readings, log.load_kg))
+    return instrument_conditioning(instrument_identifiability(at_registration, log.strokes, log.readings, log.inputs))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -268,9 +268,9 @@ def run(args: argparse.Namespace) -> int:
         extra: dict[str, object] = {"samples_rejected": rejections.summary()}
         warning = None
         if not outside:  # the leg set's FK gives the poses to assess
-            poses, strokes, payload = measured_samples(platform, checked)
+            poses, strokes, channels = measured_samples(platform, checked)
             drive = drive_model(platform, config.noise)  # its unknown blocks too, as the estimators identify them
-            report = identifiability_report(platform, poses, config.noise, False, drive, strokes, payload)
+            report = identifiability_report(platform, poses, config.noise, False, drive, strokes, channels)
             warning = warning_line(report)
             extra["conditioning"] = conditioning_summary(report)
         else:

@@ -32,6 +32,7 @@ from ..io.logs import POSE_COLUMNS
 from ..io.platform_file import load_platform
 from ..io.tables import header_fields, require_columns
 from ..model.platform import payload_refusal
+from ..samples import LOAD_KG, Inputs
 from . import run_command
 from .handover import calibrated_model
 
@@ -77,23 +78,22 @@ def run(args: argparse.Namespace) -> int:
     if too_heavy:
         raise CalibError(f"--payload-kg: expected {too_heavy}")
     drive = calibrated_model(platform, args.result)  # with its blocks, where the calibration identified them
+    inputs = {LOAD_KG: args.payload_kg}  # the input channels every pose is commanded at
     if args.poses == "-":
-        return _stream(sys.stdin.buffer, "<stdin>", args.out, drive, platform, args.payload_kg)
+        return _stream(sys.stdin.buffer, "<stdin>", args.out, drive, platform, inputs)
     if args.out == "-":
         try:
             with open(args.poses, "rb") as poses:
-                return _stream(poses, args.poses, args.out, drive, platform, args.payload_kg)
+                return _stream(poses, args.poses, args.out, drive, platform, inputs)
         except OSError as err:
             raise CalibError(f"{shown(args.poses)}: cannot read the pose list ({err.strerror})") from None
-    strokes = _compensated_blocks(args.poses, drive, platform, args.payload_kg)
+    strokes = _compensated_blocks(args.poses, drive, platform, inputs)
     rows = io.write_pose_list_blocks(args.out, strokes, io.drive_columns(platform))
     print(f"wrote {rows} stroke rows to {args.out}")
     return 0
 
 
-def _compensated_blocks(
-    poses_path: str, drive, platform, payload_kg: float = 0.0
-) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def _compensated_blocks(poses_path: str, drive, platform, inputs: Inputs) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """``(poses [mm, rad], strokes in the log's units)`` a block of the pose list at a time (a rotary
     drive's commanded angles in degrees, spec §15). A pose out of range
     is refused once the rest of the list is read, so that a bad row anywhere in it is refused
@@ -102,7 +102,7 @@ def _compensated_blocks(
     done = 0
     for poses in blocks:
         try:
-            strokes = compensate(drive, poses, limits=platform, payload_kg=payload_kg)
+            strokes = compensate(drive, poses, limits=platform, inputs=inputs)
         except PoseOutOfRange as err:
             for _ in blocks:
                 pass
@@ -111,7 +111,7 @@ def _compensated_blocks(
         done += len(poses)
 
 
-def _stream(source: BinaryIO, name_text: str, out: str, drive, platform, payload_kg: float) -> int:
+def _stream(source: BinaryIO, name_text: str, out: str, drive, platform, inputs: Inputs) -> int:
     """``--poses -`` (or ``--out -``): the header, then each pose's row as soon as its line has come,
     flushed (spec §16).
 
@@ -139,7 +139,7 @@ def _stream(source: BinaryIO, name_text: str, out: str, drive, platform, payload
                 continue
             radians = np.r_[pose[:3], np.radians(pose[3:])]
             try:
-                commanded = compensate(drive, radians, limits=platform, payload_kg=payload_kg)
+                commanded = compensate(drive, radians, limits=platform, inputs=inputs)
                 strokes = [repr(q) for q in io.strokes_in_file_units(commanded, platform).tolist()]
             except PoseOutOfRange as err:
                 print(f"stewart-calib compensate: {shown(name)}: row {row}: {err.reason}", file=sys.stderr)

@@ -147,7 +147,7 @@ def covariance_field(estimate: Estimate, legs) -> list | None:
 def leg_forces(drive: DriveModel, log) -> np.ndarray:
     """``(N, legs)`` an elastic drive's axial leg forces [N] at its settled poses of a log's strokes, each
     row under its own payload (compression > 0): what the report and the rerun recording show."""
-    _, inputs = drive.settled_kinematics(log.strokes, log.load_kg, strict=False)
+    _, inputs = drive.settled_kinematics(log.strokes, log.inputs, strict=False)
     return inputs[:, drive.input_width - drive.rows :]
 
 

@@ -35,7 +35,7 @@ def log_information(platform: Platform, path: str, source: str, noise, skip_bad_
                 raise CalibError(
                     f"{path}: no pose columns; expected {', '.join(io.POSE_COLUMNS)} for --pose-source desired"
                 )
-            information.add(block.desired_poses, block.strokes, block.load_kg)
+            information.add(block.desired_poses, block.strokes, block.inputs)
         else:
             information.add(*tracker_samples(platform, block))
     if information.n_poses == 0:
@@ -134,10 +134,10 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
     drive = drive_model(platform).identifying()
     if args.log is not None:
         log = io.read_log(args.log, platform, args.skip_bad_rows)
-        strokes, readings, payload = log.strokes, log.readings, log.load_kg
+        strokes, readings, channels = log.strokes, log.readings, log.inputs
         platform = registered(platform, strokes, readings)
         model = outside_model(platform)
-        fk, _ = drive.settled_kinematics(strokes, payload, strict=False)
+        fk, _ = drive.settled_kinematics(strokes, channels, strict=False)
         poses = fk.pose6[fk.converged]
         require_poses(platform, len(poses), args.log, "pose(s)", "poses")
         seen = np.isfinite(readings[fk.converged])
@@ -146,12 +146,12 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
         poses = read_pose_list(args.poses)
         require_poses(platform, _distinct(poses), args.poses, "distinct pose(s)", "poses")
         R, t = kin.pose_to_rt(poses)
-        payload = None  # a pose list has none: the platform's own weight
+        channels = {}  # a pose list has none: the platform's own weight, at the reference temperature
         strokes = drive.inverse_kinematics(R, t)
         readings = model.predicted_readings(model.nominal_unknowns(), R, t)
         readings = np.where(model.seen_channels(R, t), readings, np.nan)  # e.g. a target out of its cone
         seen = None  # design_covariance finds the same channels in view
-    report = instrument_identifiability(platform, strokes, readings, payload)
+    report = instrument_identifiability(platform, strokes, readings, channels)
     equilibrated = report["condition_number_equilibrated"]
     # the drive's blocks by name: the compliance too with [elastic] (spec §10), which the report covers
     parts = ["drive", *(_block_name(drive, block) for block in drive.blocks)]

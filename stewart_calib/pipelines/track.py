@@ -537,7 +537,10 @@ def _log_of(samples: list[Sample]) -> Log | None:
         stack([sample.readings for sample in samples]),
         None if first.desired_pose is None else stack([sample.desired_pose for sample in samples]),
         [sample.stage for sample in samples],
-        None if first.load_kg is None else np.array([sample.load_kg for sample in samples], dtype=float),
+        {
+            name: stack([sample.inputs[name] for sample in samples]).reshape(len(samples), *np.shape(value))
+            for name, value in first.inputs.items()
+        },
     )
 
 

@@ -219,7 +219,7 @@ def _whole_log(platform: Platform, path: str, bar) -> Log:
     per block."""
     blocks = []
     for block in io.read_log_blocks(path, platform):
-        blocks.append(Log(block.t_s, block.strokes, block.readings, load_kg=block.load_kg))
+        blocks.append(Log(block.t_s, block.strokes, block.readings, inputs=block.inputs))
         bar.update(len(block))
     return Log.concatenate(blocks)
 

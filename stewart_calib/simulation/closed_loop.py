@@ -59,7 +59,7 @@ from ..model.drive import STROKE_SCALE, DriveModel, drive_model, plain_drive
 from ..model.legs import LegModel
 from ..model.platform import LegGeometry, Platform
 from ..progress import progress_bar
-from ..samples import Log, Sample, Truth
+from ..samples import LOAD_KG, Log, Sample, Truth, with_payload
 from .experiment import Experiment, RotaryRobotConfig, Schedule, schedule
 from .instrument import SimulatedInstrument
 from .load import LoadModel, Settling
@@ -145,8 +145,8 @@ class EstimatorController:
         estimate = model_estimate(self.estimator)
         values = {term.key: estimate.block_values(term.key) for term in self._elastic.terms}
         drive = self._elastic.calibrated(self._error, values)
-        payload = (payload_kg if self.payload_known else 0.0) + estimate.unannounced_payload_kg()
-        return drive.inverse_kinematics(R_d, t_d, payload_kg=payload)
+        announced = {LOAD_KG: payload_kg} if self.payload_known else {}
+        return drive.inverse_kinematics(R_d, t_d, channels=with_payload(announced, estimate.unannounced_payload_kg()))
 
     def trace(self) -> np.ndarray:
         """``(N, 42)`` δM in force after each observed sample [mm] (paper Figs. 5–6)."""
@@ -493,7 +493,7 @@ def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, para
         readings=robot.readings(R, t, reading_noise, instrument_draws),
         desired_poses=plan.desired_poses[rows].copy(),
         stages=list(plan.stages[rows]),
-        load_kg=plan.payload_kg[rows].copy(),
+        inputs={LOAD_KG: plan.payload_kg[rows].copy()},
     )
     params = params.copy()
     if not robot.rotary:
@@ -551,5 +551,5 @@ def _sample(robot: TrueRobot, plan, k: int, stroke, stroke_noise, R, t, reading_
         readings=robot.readings(R, t, reading_noise, instrument_draws),
         desired_pose=plan.desired_poses[k],
         stage=str(plan.stages[k]),
-        load_kg=float(plan.payload_kg[k]),
+        inputs={LOAD_KG: float(plan.payload_kg[k])},
     )

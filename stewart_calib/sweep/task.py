@@ -52,7 +52,7 @@ from ..instruments import MODELS, gauge, instrument_kind, registered
 from ..model import kinematics as kin
 from ..model.drive import COMPLIANCE, DriveModel, drive_model, plain_drive
 from ..model.platform import Elastic, Instrument, LegGeometry, Platform
-from ..samples import Log
+from ..samples import LOAD_KG, Log
 from ..simulation.instrument import InstrumentTruth, SimulatedInstrument, truth_in_gauge
 from ..simulation.trajectories import random_static_poses
 from .spec import Cell, Family, simulated_noise
@@ -119,6 +119,11 @@ class SweepData:
         return robot.true_drive(self.true_error, self.true_terms)
 
     @property
+    def true_inputs(self) -> dict[str, np.ndarray]:
+        """The true payload of every sample as the log's channel would give it (none: a rigid robot)."""
+        return {} if self.payload_kg is None else {LOAD_KG: self.payload_kg}
+
+    @property
     def final_payload_kg(self) -> float:
         """The payload at the last sample [kg] (0 on a rigid robot): the closed loop's."""
         return 0.0 if self.payload_kg is None else float(self.payload_kg[-1])
@@ -174,7 +179,8 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
         # a glitch moves one measured position coordinate (pose: x, y or z; points: one of the
         # first target's), as a reflection or a swapped marker does
         readings[glitched, legs[glitched] % 3] += signs[glitched] * settings["glitch_size_mm"]
-    true_elastic = payload = load_kg = None
+    true_elastic = payload = None
+    announced: dict[str, np.ndarray] = {}
     if settings["platform_mass_kg"] > 0:  # the legs give under the weight: longer strokes reach the same pose
         spread = rng.normal(0.0, settings["compliance_spread"], drive.n_legs)
         true_elastic = replace(
@@ -182,13 +188,13 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
         )
         payload = payload_schedule(settings)
         loaded = replace(true_rigid, legs=LegGeometry.from_params(true_params[0]), elastic=true_elastic)
-        forces = loaded.leg_forces(R, t, payload)
+        forces = loaded.leg_forces(R, t, {LOAD_KG: payload})
         strokes += true_elastic.true_compliance_mm_per_kN * forces / 1000.0 / per_stroke
         true_terms[COMPLIANCE] = np.asarray(true_elastic.true_compliance_mm_per_kN)
-        load_kg = payload if settings["payload_known"] else None
+        announced = {LOAD_KG: payload} if settings["payload_known"] else {}
         if settings["elastic_model"]:
             nominal = replace(nominal, elastic=elastic_table(settings))
-    log = Log(t_s=np.arange(n) * dt_s, strokes=strokes, readings=readings, desired_poses=poses, load_kg=load_kg)
+    log = Log(t_s=np.arange(n) * dt_s, strokes=strokes, readings=readings, desired_poses=poses, inputs=announced)
     return SweepData(
         nominal,
         log,
@@ -310,7 +316,7 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
             instrument=true_noise(data.platform, settings),
             elastic=None if data.true_elastic is None else elastic_table(settings),
         )
-        problem = BatchProblem.of_log(simulated, data.log.strokes, data.log.readings, data.log.t_s, data.payload_kg)
+        problem = BatchProblem.of_log(simulated, data.log.strokes, data.log.readings, data.log.t_s, data.true_inputs)
         errors = [data.true_terms[block.key] - block.nominal for block in blocks]
         bound = cramer_rao(problem, np.concatenate([delta, *errors]), unknowns)
         stddev = np.sqrt(np.clip(np.diag(bound)[: drive.size], 0.0, None))
@@ -324,7 +330,7 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
     R, t = kin.pose_to_rt(poses)
     L = np.linalg.cholesky(residual_covariance(data.platform, R, t, noise))
     if blocks:  # ∂r_i/∂v_{b,i} = −g_b u_{b,i} of each term's own inputs, whitened as the rows of δM
-        inputs = drive.inputs(data.log.strokes, data.payload_kg, R, t)
+        inputs = drive.inputs(data.log.strokes, data.true_inputs, R, t)
         rows = np.concatenate([rows, np.linalg.solve(L, -drive.extension_jacobian(inputs))], axis=2)
     n = rows.shape[2]
     if settings["drift_mm_per_sqrt_s"] == 0:
@@ -383,11 +389,11 @@ def closed_loop_errors(data: SweepData, estimate: Estimate | None = None) -> tup
     its nominal — and the true robot (:attr:`SweepData.true_drive`: parameters of the last
     sample, true scales, settling under its weight and the last sample's payload) executes them."""
     R_d, t_d = kin.pose_to_rt(data.validation_poses)
-    known = data.final_payload_kg if data.log.load_kg is not None else 0.0
+    known = {LOAD_KG: data.final_payload_kg} if LOAD_KG in data.log.inputs else {}
     drive = drive_model(data.platform)
     commanded = drive.calibrated_by(estimate) if estimate is not None else drive
-    strokes = commanded.inverse_kinematics(R_d, t_d, payload_kg=known)
-    actual, _ = data.true_drive.settled_kinematics(strokes, data.final_payload_kg, guess=(R_d, t_d))
+    strokes = commanded.inverse_kinematics(R_d, t_d, channels=known)
+    actual, _ = data.true_drive.settled_kinematics(strokes, {LOAD_KG: data.final_payload_kg}, guess=(R_d, t_d))
     position_mm, orientation_deg = kin.pose_error(R_d, t_d, actual.R, actual.t)
     return float(position_mm.mean()), float(orientation_deg.mean())
 

@@ -30,7 +30,7 @@ from ..estimators.base import accounted_estimate, late_index, take_late_rejectio
 from ..io import logs
 from ..model.platform import Platform
 from ..progress import log_progress_bar, progress_bar
-from ..samples import Log
+from ..samples import CHANNEL_SHAPES, Log
 from .diagnosis import diagnose_log
 from .online import Rejections
 
@@ -237,16 +237,16 @@ def feed_online(
 
 
 class SampleSpool:
-    """The good samples of a streamed log (``t_s``, strokes, readings, the payload where the log has
-    ``load_kg``, and per-sample extra columns as float64 rows) in an unnamed temporary file, read back
+    """The good samples of a streamed log (``t_s``, strokes, readings, the input channels the log has
+    (``Log.inputs``), and per-sample extra columns as float64 rows) in an unnamed temporary file, read back
     a block at a time: the second pass over the log (the exact residual RMS at the final estimate)
     without parsing the CSV again and without holding the log in memory. The file is deleted when
-    closed (or the process ends). The payload is kept because an elastic model's residuals depend on
-    it: without it the second pass took every row as unloaded (residual RMS after an ekf calibration
-    of a 0 / 20 / 40 kg log 21–72 µm instead of 1 µm).
+    closed (or the process ends). The channels are kept because the model's residuals depend on them
+    (an elastic drive's on the payload, a thermal one's on the temperatures): without them the
+    second pass would take every row as unloaded at the reference temperature.
 
-    Its size: 8 bytes × (1 + the strokes + the readings + the payload + the extra) a good sample — 152
-    bytes for the tracker (six strokes, six readings, six residuals; 160 with ``load_kg``),
+    Its size: 8 bytes × (1 + the strokes + the readings + the channels + the extra) a good sample —
+    152 bytes for the tracker (six strokes, six readings, six residuals; 160 with ``load_kg``),
     ~150 MB for a log of 10⁶ rows; the README says so under ``calibrate``.
 
     Args:
@@ -262,6 +262,7 @@ class SampleSpool:
         except OSError as err:
             raise self._refusal(err) from None
         self._widths = (0, 0, 0, 0)
+        self._channels: tuple[str, ...] = ()
 
     def _refusal(self, err: OSError) -> CalibError:
         return CalibError(
@@ -271,9 +272,11 @@ class SampleSpool:
 
     def add(self, block: Log, extra: np.ndarray) -> None:
         """The samples of ``block`` with ``extra``, ``(len(block), k)`` values of each."""
-        payload = () if block.load_kg is None else (block.load_kg,)
-        rows = np.column_stack([block.t_s, block.strokes, block.readings, *payload, extra])
-        self._widths = (block.strokes.shape[1], block.readings.shape[1], len(payload), extra.shape[1])
+        self._channels = tuple(name for name in CHANNEL_SHAPES if name in block.inputs)
+        channels = [np.asarray(block.inputs[name], dtype=float).reshape(len(block), -1) for name in self._channels]
+        rows = np.column_stack([block.t_s, block.strokes, block.readings, *channels, extra])
+        width = sum(column.shape[1] for column in channels)
+        self._widths = (block.strokes.shape[1], block.readings.shape[1], width, extra.shape[1])
         try:
             self._file.write(np.ascontiguousarray(rows, dtype=np.float64).tobytes())
         except OSError as err:
@@ -283,15 +286,20 @@ class SampleSpool:
         """The samples added, in order, as ``(Log, extra)`` blocks of at most the log reader's
         block size in bytes (:data:`stewart_calib.io.logs.BLOCK_BYTES`)."""
         self._file.seek(0)
-        legs, readings, payload, extra = self._widths
-        width = 1 + legs + readings + payload + extra
+        legs, readings, packed, extra = self._widths
+        width = 1 + legs + readings + packed + extra
         row_bytes = 8 * width
         while readings and (data := self._file.read(max(logs.BLOCK_BYTES // row_bytes, 1) * row_bytes)):
             rows = np.frombuffer(data).reshape(-1, width)
             end = 1 + legs + readings
-            load_kg = rows[:, end] if payload else None
+            channels = {}
+            for name in self._channels:
+                shape = CHANNEL_SHAPES[name]
+                size = int(np.prod(shape, dtype=int))
+                channels[name] = rows[:, end : end + size].reshape(len(rows), *shape)
+                end += size
             yield (
-                Log(rows[:, 0], rows[:, 1 : 1 + legs], rows[:, 1 + legs : end], load_kg=load_kg),
+                Log(rows[:, 0], rows[:, 1 : 1 + legs], rows[:, 1 + legs : 1 + legs + readings], inputs=channels),
                 rows[:, width - extra :],
             )
 

@@ -58,7 +58,7 @@ from ..inputs import read_input_bytes
 from ..io.platform_file import load_platform, parse_platform, platform_to_toml
 from ..model.drive import PAYLOAD, drive_model
 from ..model.platform import Platform
-from ..samples import Log, Sample
+from ..samples import Inputs, Log, Sample, with_payload
 
 CHECKPOINT_FORMAT = "stewart-calib/checkpoint"
 CHECKPOINT_VERSION = 1
@@ -239,7 +239,7 @@ class OnlineCalibrator:
         samples it does not count as used: :func:`~.estimators.base.row_accounting`)."""
         return accounted_estimate(self._estimator)
 
-    def compensated_strokes(self, pose_mm_deg: np.ndarray, payload_kg=0.0) -> np.ndarray:
+    def compensated_strokes(self, pose_mm_deg: np.ndarray, inputs: Inputs | None = None) -> np.ndarray:
         """Strokes [mm] that put the estimated drive at ``pose_mm_deg`` ``[x, y, z [mm], roll, pitch, yaw [deg]]``
         (``(6,)`` or ``(N, 6)``): a pose in the units of every file (spec §1), the row of a pose list
         or of ``compensate --poses -``. :meth:`compensated_strokes_rad` takes the angles in radians.
@@ -249,13 +249,14 @@ class OnlineCalibrator:
         """
         pose = np.array(pose_mm_deg, dtype=float)  # a copy: the caller's array is not converted
         pose[..., 3:] = np.radians(pose[..., 3:])
-        return self.compensated_strokes_rad(pose, payload_kg)
+        return self.compensated_strokes_rad(pose, inputs)
 
-    def compensated_strokes_rad(self, pose_mm_rad: np.ndarray, payload_kg=0.0) -> np.ndarray:
+    def compensated_strokes_rad(self, pose_mm_rad: np.ndarray, inputs: Inputs | None = None) -> np.ndarray:
         """Strokes [mm] that put the estimated drive at ``pose_mm_rad`` ``[x, y, z [mm], roll, pitch, yaw [rad]]``
-        (``(6,)`` or ``(N, 6)``; paper Fig. 3 step 4), under a payload of ``payload_kg`` (scalar or
-        ``(N,)``) where the platform has ``[elastic]`` (spec §10; a rigid drive ignores it), plus the
-        payload the estimator found beyond the announced one (``[elastic] payload_sigma_kg``).
+        (``(6,)`` or ``(N, 6)``; paper Fig. 3 step 4), under the input channels ``inputs`` (e.g.
+        ``{"load_kg": 20.0, "temperature_C": 25.0}``, each a scalar or ``(N, ...)``; a drive without
+        the term ignores its channel: :func:`~stewart_calib.analysis.compensation.compensate`), plus
+        the payload the estimator found beyond the announced one (``[elastic] payload_sigma_kg``).
 
         Raises:
             PoseOutOfRange: a pose outside the platform's workspace, or needing a stroke outside
@@ -265,10 +266,10 @@ class OnlineCalibrator:
         """
         if not self._identifies_drive_blocks:
             drive = self._drive.calibrated(self._estimator.current_error(), {})
-            return compensate(drive, pose_mm_rad, limits=self.platform, payload_kg=payload_kg)
+            return compensate(drive, pose_mm_rad, limits=self.platform, inputs=inputs)
         estimate = model_estimate(self._estimator)
-        payload_kg = np.asarray(payload_kg, dtype=float) + estimate.unannounced_payload_kg()
-        return compensate(self._drive.calibrated_by(estimate), pose_mm_rad, limits=self.platform, payload_kg=payload_kg)
+        loaded = with_payload(inputs, estimate.unannounced_payload_kg())
+        return compensate(self._drive.calibrated_by(estimate), pose_mm_rad, limits=self.platform, inputs=loaded)
 
     def result(self) -> dict:
         """The current estimate as a spec §5 result, with the added ``samples_rejected`` field.

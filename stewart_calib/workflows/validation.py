@@ -44,7 +44,7 @@ def _model_poses(platform: Platform, result: dict, log, source: str, first_sampl
     """FK poses of the logged strokes with the calibrated drive model; ``log``'s samples are
     numbered from ``first_sample`` (a block of a longer log)."""
     drive = io.calibrated_drive(platform, result, source)
-    fk, _ = drive.settled_kinematics(log.strokes, log.load_kg, strict=False)  # each row at its own payload
+    fk, _ = drive.settled_kinematics(log.strokes, log.inputs, strict=False)  # each row at its own payload
     if not np.all(fk.converged):
         k = int(np.flatnonzero(~fk.converged)[0])
         raise CalibError(
@@ -304,13 +304,13 @@ def unsupported_correction(platform: Platform, result: dict, log, rank: int, cor
 def tracker_residuals(platform: Platform, log: Log, models: list[tuple[dict, str]]) -> np.ndarray | None:
     """The tracker's readings minus its readings predicted by each ``(result, source)`` model, as
     :func:`validate`'s predictions (within FK's tolerance; an elastic drive settled under each row's
-    payload ``load_kg``) in one compiled pass over the log: ``(len(models), N, rulers)`` [mm], or None when
+    input channels) in one compiled pass over the log: ``(len(models), N, rulers)`` [mm], or None when
     a model's FK does not converge for a sample."""
     for result, source in models:
         _check_nominal(platform, result, source)
     drives = [io.calibrated_drive(platform, result, source) for result, source in models]
     tracker = platform.required_tracker("the tracker residuals")
-    residuals, converged = tracker_reading_residuals(drives, tracker, log.strokes, log.readings, log.load_kg)
+    residuals, converged = tracker_reading_residuals(drives, tracker, log.strokes, log.readings, log.inputs)
     return residuals if converged.all() else None
 
 
