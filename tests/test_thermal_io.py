@@ -25,6 +25,8 @@ from stewart_calib.io import (
     log_text,
     read_log,
     read_log_blocks,
+    read_pose_list,
+    read_pose_list_blocks,
     result_dict,
     validate_result,
     write_log,
@@ -273,8 +275,11 @@ def test_thermal_needs_a_temperature_in_every_row(tmp_path):
 
 
 def test_gravity_columns_are_normalised_rows(tmp_path):
-    log = read_log(_csv(tmp_path, list(GRAVITY_COLUMNS), [["0", "0", "-9.80665"], ["0", "3", "-4"]]))
-    np.testing.assert_allclose(log.inputs[GRAVITY], [[0, 0, -1], [0, 0.6, -0.8]], rtol=0, atol=1e-16)
+    rows = [["0", "0", "-9.80665"], ["0", "3", "-4"], ["1e200", "0", "-1e200"], ["0", "1e-320", "0"]]
+    log = read_log(_csv(tmp_path, list(GRAVITY_COLUMNS), rows))
+    half = np.sqrt(0.5)  # no square of a component overflows or underflows: the largest is scaled out first
+    expected = [[0, 0, -1], [0, 0.6, -0.8], [half, 0, -half], [0, 1, 0]]
+    np.testing.assert_allclose(log.inputs[GRAVITY], expected, rtol=0, atol=2e-16)
 
 
 def test_gravity_columns_come_all_three_or_none(tmp_path):
@@ -365,6 +370,17 @@ def _written(tmp_path, text: str, name: str = "log.csv"):
     path = tmp_path / name
     path.write_text(text)
     return path
+
+
+def test_a_log_with_channels_reads_as_a_pose_list(tmp_path):
+    """A simulated log with its channels is also a pose list (``compensate``, ``validate``): its poses,
+    by pyarrow where the file is large, whatever the channels hold."""
+    rng = np.random.default_rng(5)
+    log = replace(_channels_log(3000, rng), desired_poses=np.c_[rng.normal(0, 100, (3000, 3)), np.zeros((3000, 3))])
+    path = _written(tmp_path, log_text(log))
+    poses = read_pose_list(path)
+    np.testing.assert_array_equal(poses[:, :3], log.desired_poses[:, :3])
+    assert len(list(read_pose_list_blocks(path, block_bytes=1 << 14))) > 3
 
 
 def test_every_reader_path_gives_the_same_channels(tmp_path):

@@ -200,19 +200,16 @@ def log_text(log: Log, platform: Platform | None = None, header: bool = True) ->
     if log.stages is not None:
         names.append("stage")
         columns.append(list(log.stages))
-    for name, channel_columns, values in (
-        (LOAD_KG, ("load_kg",), None),
-        (TEMPERATURE_C, TEMPERATURE_COLUMNS, len(TEMPERATURE_COLUMNS)),
-        (GRAVITY, GRAVITY_COLUMNS, len(GRAVITY_COLUMNS)),
-    ):
+    load = log.inputs.get(LOAD_KG)
+    if load is not None:  # a payload not known as "nan", as it always was
+        names.append("load_kg")
+        columns.append(np.asarray(load, dtype=float))
+    for name, channel_columns in ((TEMPERATURE_C, TEMPERATURE_COLUMNS), (GRAVITY, GRAVITY_COLUMNS)):
         channel = log.inputs.get(name)
-        if channel is None:
-            continue
-        names += channel_columns
-        if values is None:  # the payload as it always was: a NaN as "nan"
-            columns.append(np.asarray(channel, dtype=float))
-            continue
-        columns += [_blank_unknown(column) for column in np.broadcast_to(channel, (len(log), values)).T]
+        if channel is not None:
+            names += channel_columns
+            values = np.asarray(channel, dtype=float).reshape(len(log), len(channel_columns))
+            columns += [_blank_unknown(column) for column in values.T]
     return csv_text(names, columns, header)
 
 
@@ -316,36 +313,51 @@ class InputColumns:
         """``Log.inputs`` (or ``Sample.inputs``) of the checked values of :attr:`names` (each ``(n,)``,
         or a float for one row): :data:`~stewart_calib.samples.LOAD_KG` as read,
         :data:`~stewart_calib.samples.TEMPERATURE_C` ``(n, 6)`` [°C] (``temp_C`` for every leg) and
-        :data:`~stewart_calib.samples.GRAVITY` ``(n, 3)`` normalised; NaN where a value is not known."""
+        :data:`~stewart_calib.samples.GRAVITY` ``(n, 3)`` normalised
+        (:func:`~.platform_file.unit_direction`); NaN where a value is not known."""
         out: dict[str, np.ndarray] = {}
         if self.load:
             out[LOAD_KG] = numbers["load_kg"]  # type: ignore[assignment]  # a row's float or a column
         if self.temperatures:
-            temperature = np.stack([np.asarray(numbers[name], dtype=float) for name in self.temperatures], axis=-1)
-            out[TEMPERATURE_C] = np.repeat(temperature, len(TEMPERATURE_COLUMNS) // temperature.shape[-1], axis=-1)
+            temperature = _rows_of(numbers, self.temperatures)
+            if len(self.temperatures) == 1:
+                temperature = np.repeat(temperature, len(TEMPERATURE_COLUMNS), axis=-1)
+            out[TEMPERATURE_C] = temperature
         if self.gravity:
-            direction = np.stack([np.asarray(numbers[name], dtype=float) for name in GRAVITY_COLUMNS], axis=-1)
-            out[GRAVITY] = unit_direction(direction, np.linalg.norm(direction, axis=-1, keepdims=True))
+            out[GRAVITY] = unit_direction(_rows_of(numbers, GRAVITY_COLUMNS))
         return out
 
-    def plain(self, numbers: Mapping[str, np.ndarray | float]) -> np.ndarray:
-        """Which rows' values of :attr:`names` (as :meth:`channels` takes them) every check passes as
-        they are — a payload within what the platform carries where it is an input, temperatures
-        within :data:`~stewart_calib.model.platform.TEMPERATURE_RANGE_C`, a finite direction of nonzero
-        length — for the row parser's fast paths; the others go the careful way, which takes an
-        empty field where the platform needs no value and words every refusal."""
-        good = np.array(True)
+    def plain(self, numbers: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Which rows' values of :attr:`names` (columns ``(n,)``) every check passes as they are — a
+        payload within what the platform carries where it is an input, temperatures within
+        :data:`~stewart_calib.model.platform.TEMPERATURE_RANGE_C`, a direction of finite nonzero length
+        — for the row parser's block path; the others go the careful way, which takes an empty field
+        where the platform needs no value and words every refusal. :meth:`plain_row` for one row."""
+        good = np.ones(len(next(iter(numbers.values()))), dtype=bool) if numbers else np.array(True)
         if self.load_limit_kg is not None:
-            load = np.asarray(numbers["load_kg"], dtype=float)
-            good = good & (load >= 0.0) & (load <= self.load_limit_kg)
+            load = numbers["load_kg"]
+            good &= (load >= 0.0) & (load <= self.load_limit_kg)
         low, high = TEMPERATURE_RANGE_C
         for name in self.temperatures:
-            temperature = np.asarray(numbers[name], dtype=float)
-            good = good & (temperature >= low) & (temperature <= high)
+            good &= (numbers[name] >= low) & (numbers[name] <= high)
         if self.gravity:
-            direction = np.stack([np.asarray(numbers[name], dtype=float) for name in GRAVITY_COLUMNS], axis=-1)
-            good = good & np.isfinite(direction).all(axis=-1) & (np.linalg.norm(direction, axis=-1) > 0.0)
+            direction = [numbers[name] for name in GRAVITY_COLUMNS]
+            good &= np.logical_and.reduce([np.isfinite(g) for g in direction])
+            good &= np.logical_or.reduce([g != 0.0 for g in direction])
         return good
+
+    def plain_row(self, values: Mapping[str, float]) -> bool:
+        """:meth:`plain` of one row's floats, in Python's own arithmetic: the row parser's per-row path,
+        where numpy's call on a few scalars would cost several times the row's parsing."""
+        if self.load_limit_kg is not None and not 0.0 <= values["load_kg"] <= self.load_limit_kg:
+            return False
+        low, high = TEMPERATURE_RANGE_C
+        if not all(low <= values[name] <= high for name in self.temperatures):
+            return False
+        if self.gravity:
+            direction = [values[name] for name in GRAVITY_COLUMNS]
+            return all(map(math.isfinite, direction)) and any(g != 0.0 for g in direction)
+        return True
 
     def flag(self, table: Table) -> None:
         """Flag the rows whose temperatures or gravity directions are bad (the payload's checks need
@@ -398,12 +410,17 @@ class InputColumns:
             ),
         )
         table.flag(
-            (count == 3) & (np.linalg.norm(np.where(known, direction, 0.0), axis=1) == 0.0),
+            (count == 3) & ~np.any(direction != 0.0, axis=1),
             lambda k: (
                 f"columns {both}: expected the direction of gravity in {{J}}, of nonzero length (spec §17), "
                 f"got {direction[k].tolist()}"
             ),
         )
+
+
+def _rows_of(numbers: Mapping[str, np.ndarray | float], names: tuple[str, ...]) -> np.ndarray:
+    """``(n, len(names))`` (or ``(len(names),)`` for one row's floats) of the columns ``names``."""
+    return np.ascontiguousarray(np.array([numbers[name] for name in names], dtype=float).T)
 
 
 def _log_columns(
@@ -752,7 +769,7 @@ class LogRowParser:
             return None
         if not all(map(math.isfinite, values)) or values[0] < self._last_t_s or abs(values[0]) > MAX_TIME_S:
             return None
-        if named and not self._inputs.plain(named):
+        if named and not self._inputs.plain_row(named):
             return None
         for bounds, group in ((self._stroke_range, self._stroke_slice), (self._reading_range, self._reading_slice)):
             if bounds is not None and not bounds[0] <= min(values[group]) <= max(values[group]) <= bounds[1]:
@@ -951,7 +968,9 @@ POSE_BLOCK_BYTES = 1 << 20
 
 #: columns a pose list holds as numbers when written by this package (its own, a log's, strokes):
 #: a header of these only is read by pyarrow.
-_POSE_LIST_NUMBERS = frozenset(("t_s", *POSE_COLUMNS, *STROKE_COLUMNS, *ANGLE_COLUMNS, *READING_COLUMNS))
+_POSE_LIST_NUMBERS = frozenset(
+    ("t_s", *POSE_COLUMNS, *STROKE_COLUMNS, *ANGLE_COLUMNS, *READING_COLUMNS, *TEMPERATURE_COLUMNS, *GRAVITY_COLUMNS)
+)
 
 
 def read_pose_list_blocks(path: str | Path, block_bytes: int | None = None) -> Iterator[np.ndarray]:
