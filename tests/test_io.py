@@ -24,7 +24,7 @@ from stewart_calib.io import (
     write_truth,
 )
 from stewart_calib.model.platform import PARAMETER_NAMES
-from stewart_calib.samples import Log, Truth
+from stewart_calib.samples import LOAD_KG, Log, Truth
 from tests.synthetic import nim_stewart
 
 HEADER = "t_s," + ",".join(f"q{i}_mm" for i in range(1, 7)) + "," + ",".join(f"s{i}_mm" for i in range(1, 7))
@@ -60,7 +60,7 @@ def _random_log(n: int, rng: np.random.Generator, poses: bool = True) -> Log:
         readings=rng.uniform(-100, 100, (n, 6)),
         desired_poses=np.c_[rng.normal(0, 100, (n, 3)), rng.normal(0, 0.2, (n, 3))] if poses else None,
         stages=[rng.choice(["no-load", "20kg", 'odd, "quoted" label']) for _ in range(n)] if poses else None,
-        load_kg=rng.choice([0.0, 20.0, np.nan], n) if poses else None,
+        inputs={LOAD_KG: rng.choice([0.0, 20.0, np.nan], n)} if poses else {},
     )
 
 
@@ -74,7 +74,7 @@ def test_log_round_trip_is_exact(tmp_path):
     np.testing.assert_array_equal(back.t_s, log.t_s)
     np.testing.assert_array_equal(back.strokes, log.strokes)
     np.testing.assert_array_equal(back.readings, log.readings)
-    np.testing.assert_array_equal(back.load_kg, log.load_kg)
+    np.testing.assert_array_equal(back.inputs[LOAD_KG], log.inputs[LOAD_KG])
     assert back.stages == log.stages
     # positions are exact; angles pass through degrees and back, within one rounding [rad]
     np.testing.assert_array_equal(back.desired_poses[:, :3], log.desired_poses[:, :3])
@@ -99,7 +99,7 @@ def test_log_minimal_columns_order_free_unknown_ignored(tmp_path):
     assert log.t_s.tolist() == [0.5]
     assert log.strokes.tolist() == [[0, 1, 2, 3, 4, 5]]
     assert log.readings.tolist() == [[6, 7, 8, 9, 10, 11]]
-    assert log.desired_poses is None and log.stages is None and log.load_kg is None
+    assert log.desired_poses is None and log.stages is None and log.inputs == {}
 
 
 def test_log_tolerates_bom_crlf_and_blank_lines(tmp_path):

@@ -1,5 +1,6 @@
-"""Files at the edge (spec §3–§6): measurement logs, pose lists and truth files (:mod:`.logs`),
-results and traces (:mod:`.results`), all written atomically (:mod:`.atomic`).
+"""Files at the edge (spec §3–§6, §17): measurement logs with their input channels, pose lists and
+truth files (:mod:`.logs`), results and traces (:mod:`.results`), all written atomically
+(:mod:`.atomic`).
 
 Files hold mm and degrees; the arrays returned hold mm and rad. Every refusal is a
 :class:`~stewart_calib.errors.CalibError` with one line naming the file, the row or key, and
@@ -20,12 +21,16 @@ from .atomic import (
 )
 from .logs import (
     ANGLE_COLUMNS,
+    GRAVITY_COLUMNS,
     LOG_REQUIRED,
     POSE_COLUMNS,
     READING_COLUMNS,
     STROKE_COLUMNS,
     STROKE_SCALE_NAMES,
+    TEMPERATURE_COLUMN,
+    TEMPERATURE_COLUMNS,
     TRUE_POSE_COLUMNS,
+    InputColumns,
     LogRowParser,
     angle_columns,
     blank_reading_columns,
@@ -72,6 +77,7 @@ from .tables import csv_text, write_csv_blocks
 
 __all__ = [
     "ANGLE_COLUMNS",
+    "GRAVITY_COLUMNS",
     "LOG_REQUIRED",
     "NOMINAL_TOLERANCE_MM",
     "POSE_COLUMNS",
@@ -80,8 +86,11 @@ __all__ = [
     "RESULT_SUM_TOLERANCE_MM",
     "STROKE_COLUMNS",
     "STROKE_SCALE_NAMES",
+    "TEMPERATURE_COLUMN",
+    "TEMPERATURE_COLUMNS",
     "TRUE_POSE_COLUMNS",
     "BackgroundWriter",
+    "InputColumns",
     "LogRowParser",
     "angle_columns",
     "atomic_path",

@@ -21,7 +21,8 @@ log's units (mm, degrees) — from files of any length, holding one block of row
 The conversions: positions to mm by the file's unit; orientation to roll-pitch-yaw [deg] with
 ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (spec §1) from a quaternion (either order) or Euler angles
 (scipy's convention strings: upper case intrinsic, lower case extrinsic); a Y-up system turned
-to Z-up (``x' = x, y' = −z, z' = y``, a proper rotation); encoder counts to mm per leg.
+to Z-up (``x' = x, y' = −z, z' = y``, a proper rotation); encoder counts to mm per leg; a
+controller's temperatures (one per leg, or one for all) to °C per leg (spec §17).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ import numpy as np
 
 from ..errors import CalibError, did_you_mean
 from ..model.rotations import rotation_to_rpy
+from .logs import TEMPERATURE_COLUMNS
 
 #: millimetres per length unit, by the names a mapping file or an export uses
 MM_PER = {
@@ -54,6 +56,10 @@ MM_PER = {
 DEG_PER = {"deg": 1.0, "degrees": 1.0, "rad": 180.0 / np.pi, "radians": 180.0 / np.pi}
 #: seconds per time unit
 S_PER = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+#: °C at 0 of a temperature unit: a controller's temperatures, which a log holds in °C (spec §17)
+CELSIUS_AT_ZERO = {"C": 0.0, "K": -273.15}
+#: how a note names a temperature unit
+_TEMPERATURE_WORDS = {"C": "°C", "K": "K"}
 #: a platform's orientation in an instrument set up near it stays this close to the identity [deg]
 NEAR_IDENTITY_DEG = 30.0
 #: groups of a point list held before they are handed on as a block
@@ -426,6 +432,8 @@ MAPPING_KEYS = {
         "zero",
         "clock_offset_s",
         "max_gap_s",
+        "temperatures",
+        "temperature_unit",
     },
 }
 
@@ -791,9 +799,32 @@ class StrokeColumns:
     zero: np.ndarray
     what: str
     log_unit: str = "mm"
+    temperatures: tuple[str, ...] = ()
+    celsius_at_zero: float = 0.0
 
     def convert(self, raw: np.ndarray) -> np.ndarray:
         return self.sign * (raw - self.zero) * self.mm_per_raw
+
+    @property
+    def read_columns(self) -> list[str]:
+        """The controller's columns a row of it is read from: the six strokes, then the temperatures."""
+        return [*self.columns, *self.temperatures]
+
+    @property
+    def log_columns(self) -> tuple[str, ...]:
+        """The log columns of its temperatures (``temp1_C … temp6_C``, spec §17), or none."""
+        return TEMPERATURE_COLUMNS if self.temperatures else ()
+
+    def convert_row(self, raw: np.ndarray) -> np.ndarray:
+        """``(n, 6 + t)`` raw values of :attr:`read_columns` → ``(n, 6 + 6 or 0)`` the strokes in the
+        log's unit, then each leg's temperature [°C] (one column for all legs repeated): the values the
+        import interpolates to each measurement's time, the temperatures like the strokes."""
+        raw = np.asarray(raw, dtype=float)
+        q = self.convert(raw[:, : len(self.columns)])
+        if not self.temperatures:
+            return q
+        celsius = raw[:, len(self.columns) :] + self.celsius_at_zero
+        return np.hstack([q, np.repeat(celsius, 6 // celsius.shape[1], axis=1)])
 
 
 def stroke_columns(mapping_path: Path, table: dict) -> StrokeColumns:
@@ -831,10 +862,39 @@ def stroke_columns(mapping_path: Path, table: dict) -> StrokeColumns:
         _refuse(mapping_path, "'strokes.sign': expected 1 or -1 per leg")
     zero = _six(mapping_path, "strokes.zero", table.get("zero", 0.0))
     time = mapping_value(mapping_path, table, section, "time", None, str)
-    check_distinct(mapping_path, [("strokes.time", [time] if time else []), ("strokes.columns", columns)])
+    temperatures = mapping_value(mapping_path, table, section, "temperatures", [], list)
+    if len(temperatures) not in (0, 1, 6) or not all(isinstance(c, str) for c in temperatures):
+        _refuse(
+            mapping_path,
+            f"'strokes.temperatures': expected the temperature column names of legs 1..6, or one for all legs "
+            f"(spec §17), got {temperatures!r}",
+        )
+    check_distinct(
+        mapping_path,
+        [
+            ("strokes.time", [time] if time else []),
+            ("strokes.columns", columns),
+            ("strokes.temperatures", temperatures),
+        ],
+    )
+    temperature_unit = mapping_value(mapping_path, table, section, "temperature_unit", "C", str, tuple(CELSIUS_AT_ZERO))
     time_scale = S_PER[mapping_value(mapping_path, table, section, "time_unit", "s", str, tuple(S_PER))]
     log_unit = "deg" if unit in DEG_PER else "mm"
-    return StrokeColumns(time, time_scale, columns, mm_per_raw, sign, zero, what, log_unit)
+    if temperatures:
+        shown = "one for all legs" if len(temperatures) == 1 else "one per leg"
+        what += f", temperatures in {_TEMPERATURE_WORDS[temperature_unit]} ({shown})"
+    return StrokeColumns(
+        time,
+        time_scale,
+        columns,
+        mm_per_raw,
+        sign,
+        zero,
+        what,
+        log_unit,
+        tuple(temperatures),
+        CELSIUS_AT_ZERO[temperature_unit],
+    )
 
 
 def _six(path, key: str, value) -> np.ndarray:

@@ -1,4 +1,7 @@
-"""Measurement logs, pose lists and truth files (spec §3–§4).
+"""Measurement logs, pose lists and truth files (spec §3–§4), with the logs' input channels: the
+payload ``load_kg`` (spec §10), each leg's temperature ``temp1_C … temp6_C`` or ``temp_C`` and the
+direction of gravity ``gravity_x gravity_y gravity_z`` (spec §17), read into ``Log.inputs`` by the
+names of :mod:`stewart_calib.samples` (:class:`InputColumns`).
 
 Files hold mm and degrees; the arrays returned hold mm and rad. Every refusal is a
 :class:`~stewart_calib.errors.CalibError` with one line naming the file, the row (its
@@ -11,7 +14,8 @@ from __future__ import annotations
 import math
 import operator
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
+from dataclasses import dataclass
 from itertools import chain
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -21,9 +25,17 @@ import numpy as np
 from ..errors import CalibError, shown
 from ..inputs import MAX_LINE_BYTES, MAX_TIME_S, open_input
 from ..model.drive import STROKE_SCALE
-from ..model.platform import PARAMETER_NAMES, Instrument, Platform, payload_limit, payload_refusal
-from ..samples import LOAD_KG, Log, Sample, Truth
+from ..model.platform import (
+    PARAMETER_NAMES,
+    TEMPERATURE_RANGE_C,
+    Instrument,
+    Platform,
+    payload_limit,
+    payload_refusal,
+)
+from ..samples import GRAVITY, LOAD_KG, TEMPERATURE_C, Log, Sample, Truth
 from .atomic import atomic_write_text
+from .platform_file import unit_direction
 from .results import parameters_from_file, parameters_to_file
 from .tables import (
     Table,
@@ -54,6 +66,12 @@ LOG_REQUIRED = ("t_s", *STROKE_COLUMNS, *READING_COLUMNS)
 POSE_COLUMNS = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
 TRUE_POSE_COLUMNS = tuple(f"true_{name}" for name in POSE_COLUMNS)
 STROKE_SCALE_NAMES = tuple(f"k{i}" for i in range(1, 7))
+#: each drive leg's temperature [°C] (spec §17)
+TEMPERATURE_COLUMNS = tuple(f"temp{i}_C" for i in range(1, 7))
+#: one temperature [°C] for all legs (spec §17), read where the per-leg columns are absent
+TEMPERATURE_COLUMN = "temp_C"
+#: the direction gravity acts along, a vector in {J} normalised per row (spec §17)
+GRAVITY_COLUMNS = ("gravity_x", "gravity_y", "gravity_z")
 
 
 def drive_columns(platform: Platform | None) -> tuple[str, ...]:
@@ -162,8 +180,10 @@ def write_log(path: str | Path, log: Log, platform: Platform | None = None) -> N
 
 
 def log_text(log: Log, platform: Platform | None = None, header: bool = True) -> str:
-    """A measurement log's CSV (spec §3, §7): ``t_s``, q, the readings of ``platform``'s instrument
-    (the tracker's s when None), then pose [mm, deg], ``stage``, ``load_kg`` if present.
+    """A measurement log's CSV (spec §3, §7, §17): ``t_s``, q, the readings of ``platform``'s instrument
+    (the tracker's s when None), then pose [mm, deg], ``stage`` and the input channels the log has:
+    ``load_kg``, ``temp1_C … temp6_C``, ``gravity_x gravity_y gravity_z`` (a temperature or direction
+    not known, NaN, as an empty field).
 
     ``header=False``: the rows only, to append to a log written block by block.
     """
@@ -180,10 +200,25 @@ def log_text(log: Log, platform: Platform | None = None, header: bool = True) ->
     if log.stages is not None:
         names.append("stage")
         columns.append(list(log.stages))
-    if LOAD_KG in log.inputs:
+    load = log.inputs.get(LOAD_KG)
+    if load is not None:  # a payload not known as "nan", as it always was
         names.append("load_kg")
-        columns.append(np.asarray(log.inputs[LOAD_KG], dtype=float))
+        columns.append(np.asarray(load, dtype=float))
+    for name, channel_columns in ((TEMPERATURE_C, TEMPERATURE_COLUMNS), (GRAVITY, GRAVITY_COLUMNS)):
+        channel = log.inputs.get(name)
+        if channel is not None:
+            names += channel_columns
+            values = np.asarray(channel, dtype=float).reshape(len(log), len(channel_columns))
+            columns += [_blank_unknown(column) for column in values.T]
     return csv_text(names, columns, header)
+
+
+def _blank_unknown(values: np.ndarray) -> np.ndarray | list:
+    """A float column with its NaN (a value not known) as empty fields, for :func:`~.tables.csv_text`."""
+    values = np.asarray(values, dtype=float)
+    if np.isfinite(values).all():
+        return values
+    return ["" if not math.isfinite(v) else v for v in values.tolist()]
 
 
 def _flag_out_of_range(table: Table, columns, bounds, what: str, key: str, unit: str = "mm") -> None:
@@ -219,8 +254,179 @@ def _time_backwards(t_s: float, latest_s: float) -> str:
     return f"column 't_s': expected time non-decreasing, got {t_s!r} after {latest_s!r}"
 
 
-def _log_columns(path: Path, header: list[str], platform: Platform | None = None) -> tuple[bool, list[str], list[str]]:
-    """``(has_pose, numeric columns, text columns)`` of a log header (spec §3, §7)."""
+@dataclass(frozen=True)
+class InputColumns:
+    """The columns of a log's input channels as its header holds them (spec §3, §10, §17), and what
+    the platform needs of them.
+
+    Attributes:
+        load: the header has ``load_kg``.
+        temperatures: :data:`TEMPERATURE_COLUMNS`, ``(TEMPERATURE_COLUMN,)`` (one for all legs) or ``()``.
+        gravity: the header has :data:`GRAVITY_COLUMNS`.
+        load_limit_kg: the largest payload the platform carries where ``load_kg`` is an input (its
+            ``[elastic]``), else None.
+        thermal: the platform declares ``[thermal]``: every row needs its temperatures.
+        elastic: the platform declares ``[elastic]``: a row with gravity columns needs its direction.
+    """
+
+    load: bool = False
+    temperatures: tuple[str, ...] = ()
+    gravity: bool = False
+    load_limit_kg: float | None = None
+    thermal: bool = False
+    elastic: bool = False
+
+    @classmethod
+    def of(cls, path: Path, header: list[str], platform: Platform | None) -> InputColumns:
+        """The input columns of a log ``header``; the per-leg temperatures win over ``temp_C`` where
+        both are given (``temp_C`` is then an unknown column, ignored).
+
+        Raises:
+            CalibError: some but not all of the per-leg temperatures or of the gravity columns; no
+                temperature where ``platform`` declares ``[thermal]``.
+        """
+        per_leg = optional_group(path, header, TEMPERATURE_COLUMNS)
+        temperatures = TEMPERATURE_COLUMNS if per_leg else (TEMPERATURE_COLUMN,) if TEMPERATURE_COLUMN in header else ()
+        thermal = platform is not None and platform.thermal is not None
+        if thermal and not temperatures:
+            raise CalibError(
+                f"{path}: row 1: missing column(s) {_span(list(TEMPERATURE_COLUMNS))} or {TEMPERATURE_COLUMN}: "
+                "each leg's temperature [°C], an input where the platform has [thermal] (spec §17)"
+            )
+        elastic = platform is not None and platform.elastic is not None
+        load = "load_kg" in header
+        return cls(
+            load,
+            temperatures,
+            optional_group(path, header, GRAVITY_COLUMNS),
+            payload_limit(platform) if load and elastic else None,  # type: ignore[arg-type]  # elastic: a platform
+            thermal,
+            elastic,
+        )
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        """The columns, in the order of :meth:`channels`' channels."""
+        return (*(("load_kg",) if self.load else ()), *self.temperatures, *(GRAVITY_COLUMNS if self.gravity else ()))
+
+    def channels(self, numbers: Mapping[str, np.ndarray | float]) -> dict[str, np.ndarray]:
+        """``Log.inputs`` (or ``Sample.inputs``) of the checked values of :attr:`names` (each ``(n,)``,
+        or a float for one row): :data:`~stewart_calib.samples.LOAD_KG` as read,
+        :data:`~stewart_calib.samples.TEMPERATURE_C` ``(n, 6)`` [°C] (``temp_C`` for every leg) and
+        :data:`~stewart_calib.samples.GRAVITY` ``(n, 3)`` normalised
+        (:func:`~.platform_file.unit_direction`); NaN where a value is not known."""
+        out: dict[str, np.ndarray] = {}
+        if self.load:
+            out[LOAD_KG] = numbers["load_kg"]  # type: ignore[assignment]  # a row's float or a column
+        if self.temperatures:
+            temperature = _rows_of(numbers, self.temperatures)
+            if len(self.temperatures) == 1:
+                temperature = np.repeat(temperature, len(TEMPERATURE_COLUMNS), axis=-1)
+            out[TEMPERATURE_C] = temperature
+        if self.gravity:
+            out[GRAVITY] = unit_direction(_rows_of(numbers, GRAVITY_COLUMNS))
+        return out
+
+    def plain(self, numbers: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Which rows' values of :attr:`names` (columns ``(n,)``) every check passes as they are — a
+        payload within what the platform carries where it is an input, temperatures within
+        :data:`~stewart_calib.model.platform.TEMPERATURE_RANGE_C`, a direction of finite nonzero length
+        — for the row parser's block path; the others go the careful way, which takes an empty field
+        where the platform needs no value and words every refusal. :meth:`plain_row` for one row."""
+        good = np.ones(len(next(iter(numbers.values()))), dtype=bool) if numbers else np.array(True)
+        if self.load_limit_kg is not None:
+            load = numbers["load_kg"]
+            good &= (load >= 0.0) & (load <= self.load_limit_kg)
+        low, high = TEMPERATURE_RANGE_C
+        for name in self.temperatures:
+            good &= (numbers[name] >= low) & (numbers[name] <= high)
+        if self.gravity:
+            direction = [numbers[name] for name in GRAVITY_COLUMNS]
+            good &= np.logical_and.reduce([np.isfinite(g) for g in direction])
+            good &= np.logical_or.reduce([g != 0.0 for g in direction])
+        return good
+
+    def plain_row(self, values: Mapping[str, float]) -> bool:
+        """:meth:`plain` of one row's floats, in Python's own arithmetic: the row parser's per-row path,
+        where numpy's call on a few scalars would cost several times the row's parsing."""
+        if self.load_limit_kg is not None and not 0.0 <= values["load_kg"] <= self.load_limit_kg:
+            return False
+        low, high = TEMPERATURE_RANGE_C
+        if not all(low <= values[name] <= high for name in self.temperatures):
+            return False
+        if self.gravity:
+            direction = [values[name] for name in GRAVITY_COLUMNS]
+            return all(map(math.isfinite, direction)) and any(g != 0.0 for g in direction)
+        return True
+
+    def flag(self, table: Table) -> None:
+        """Flag the rows whose temperatures or gravity directions are bad (the payload's checks need
+        the platform: :func:`_flag_log_values`): a temperature outside the range, or none where the
+        platform has ``[thermal]``; a direction with one or two of its three components, not finite or
+        of zero length, or none where the platform has ``[elastic]``."""
+        low, high = TEMPERATURE_RANGE_C
+        for name in self.temperatures:
+            values = table.numbers[name]
+            if self.thermal:
+                table.flag(
+                    np.isnan(values),
+                    lambda k, name=name: (
+                        f"column '{name}': expected each leg's temperature [°C] in every row where the platform "
+                        "has [thermal] (spec §17), got none"
+                    ),
+                )
+            table.flag(
+                ~np.isnan(values) & ~((values >= low) & (values <= high)),
+                lambda k, name=name, values=values: (
+                    f"column '{name}': expected a temperature within [{low:g}, {high:g}] °C (spec §17), "
+                    f"got {float(values[k])!r}"
+                ),
+            )
+        if not self.gravity:
+            return
+        direction = np.column_stack([table.numbers[name] for name in GRAVITY_COLUMNS]).reshape(-1, 3)
+        known = ~np.isnan(direction)
+        count = known.sum(axis=1)
+        both = ", ".join(GRAVITY_COLUMNS)
+        table.flag(
+            (count > 0) & (count < 3),
+            lambda k: (
+                f"column '{GRAVITY_COLUMNS[int(np.argmin(known[k]))]}': expected all three of {both} or none (spec §17)"
+            ),
+        )
+        if self.elastic:
+            table.flag(
+                count == 0,
+                lambda k: (
+                    f"column '{GRAVITY_COLUMNS[0]}': expected the direction of gravity in {{J}} in every row "
+                    "where the platform has [elastic] and the log its columns (spec §17), got none"
+                ),
+            )
+        table.flag(
+            (count == 3) & ~np.isfinite(direction).all(axis=1),
+            lambda k: (
+                f"column '{GRAVITY_COLUMNS[int(np.argmin(np.isfinite(direction[k])))]}': expected a finite "
+                f"number, got {float(direction[k][np.argmin(np.isfinite(direction[k]))])!r}"
+            ),
+        )
+        table.flag(
+            (count == 3) & ~np.any(direction != 0.0, axis=1),
+            lambda k: (
+                f"columns {both}: expected the direction of gravity in {{J}}, of nonzero length (spec §17), "
+                f"got {direction[k].tolist()}"
+            ),
+        )
+
+
+def _rows_of(numbers: Mapping[str, np.ndarray | float], names: tuple[str, ...]) -> np.ndarray:
+    """``(n, len(names))`` (or ``(len(names),)`` for one row's floats) of the columns ``names``."""
+    return np.ascontiguousarray(np.array([numbers[name] for name in names], dtype=float).T)
+
+
+def _log_columns(
+    path: Path, header: list[str], platform: Platform | None = None
+) -> tuple[bool, list[str], list[str], InputColumns]:
+    """``(has_pose, numeric columns, text columns, input columns)`` of a log header (spec §3, §7, §17)."""
     drive = drive_columns(platform)
     required = ("t_s", *drive, *reading_columns(platform))
     # missing columns of one kind are named for what they hold: the drive's strokes are no instrument's
@@ -245,8 +451,9 @@ def _log_columns(path: Path, header: list[str], platform: Platform | None = None
         )
     require_columns(path, header, required)
     has_pose = optional_group(path, header, POSE_COLUMNS)
-    numeric = [*required, *(POSE_COLUMNS if has_pose else ()), *(["load_kg"] if "load_kg" in header else [])]
-    return has_pose, numeric, ["stage"] if "stage" in header else []
+    inputs = InputColumns.of(path, header, platform)
+    numeric = [*required, *(POSE_COLUMNS if has_pose else ()), *inputs.names]
+    return has_pose, numeric, ["stage"] if "stage" in header else [], inputs
 
 
 def _span(names: list[str]) -> str:
@@ -259,9 +466,16 @@ _DRIVE_WORDS = {"prismatic": "strokes [mm]", "rotary": "commanded angles [deg]"}
 
 
 def _blank_columns(platform: Platform | None) -> tuple[str, ...]:
-    """Columns whose empty fields read as NaN: ``load_kg`` (payload may be unknown) and the
+    """Columns whose empty fields read as NaN: the input channels' (a payload, a temperature or a
+    direction may be unknown; :meth:`InputColumns.flag` refuses it where the platform needs it) and the
     target coordinates of a points instrument (a target not seen)."""
-    return ("load_kg", *(reading_columns(platform) if _kind(platform).unseen_channels else ()))
+    return (
+        "load_kg",
+        *TEMPERATURE_COLUMNS,
+        TEMPERATURE_COLUMN,
+        *GRAVITY_COLUMNS,
+        *(reading_columns(platform) if _kind(platform).unseen_channels else ()),
+    )
 
 
 def _flag_partial_targets(table: Table, platform: Platform) -> None:
@@ -285,8 +499,9 @@ def _flag_partial_targets(table: Table, platform: Platform) -> None:
         )
 
 
-def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) -> None:
-    """Non-finite required values and readings or strokes outside the platform's ranges."""
+def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool, inputs: InputColumns) -> None:
+    """Non-finite required values, readings or strokes outside the platform's ranges and bad input
+    channels (a payload the platform cannot carry, :meth:`InputColumns.flag`)."""
     readings = reading_columns(platform)
     finite_required = ["t_s", *drive_columns(platform), *(() if _kind(platform).unseen_channels else readings)]
     flag_non_finite(table, [*finite_required, *(POSE_COLUMNS if has_pose else ())])
@@ -316,6 +531,7 @@ def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool) ->
                 ~(load <= payload_limit(platform)),
                 lambda k: f"column 'load_kg': expected {payload_refusal(platform, float(load[k]))}",
             )
+    inputs.flag(table)
 
 
 #: bytes of a log read and parsed at a time (a few ten thousand rows): what reading a log holds
@@ -390,18 +606,18 @@ def read_log_blocks(
             read_header(path, "")  # refuses the empty file
         header = header_fields(path, header_line)
         file.seek(len(header_bytes))
-        has_pose, numeric, textual = _log_columns(path, header, platform)
+        has_pose, numeric, textual, inputs = _log_columns(path, header, platform)
         latest_s, rows, good = -math.inf, 0, 0
         first_skipped: tuple[int, str] | None = None
         by_arrow = set(numeric) == set(header)
         for table in _row_tables(
             file, path, header_line, header, numeric, textual, _blank_columns(platform), by_arrow, block_bytes
         ):
-            _flag_log_values(table, platform, has_pose)
+            _flag_log_values(table, platform, has_pose, inputs)
             latest_s = _flag_time_backwards(table, latest_s)
             if not skip_bad_rows:
                 refuse_first(path, table)
-            block = _log_of(table, has_pose, textual, platform)
+            block = _log_of(table, has_pose, textual, platform, inputs)
             rows, good = rows + len(table), good + len(block)
             first_skipped = first_skipped or (block.skipped[0] if block.skipped else None)
             yield block
@@ -468,7 +684,7 @@ def _next_block(file, block_bytes: int, path: Path) -> bytes:
     return b"".join(parts)
 
 
-def _log_of(table: Table, has_pose: bool, textual: list[str], platform: Platform | None) -> Log:
+def _log_of(table: Table, has_pose: bool, textual: list[str], platform: Platform | None, inputs: InputColumns) -> Log:
     """The good rows of a checked table as a :class:`Log` [mm, rad]; its bad rows as ``skipped``."""
     skipped = [(int(table.lines[k]), table.issues[k]) for k in sorted(table.issues)]
     keep = np.ones(len(table), dtype=bool)
@@ -484,7 +700,7 @@ def _log_of(table: Table, has_pose: bool, textual: list[str], platform: Platform
         readings=readings_in_code_units(col(reading_columns(platform)), platform),
         desired_poses=poses,
         stages=[s for s, k in zip(table.texts["stage"], keep, strict=True) if k] if textual else None,
-        inputs={LOAD_KG: table.numbers["load_kg"][keep]} if "load_kg" in table.numbers else {},
+        inputs=inputs.channels({name: table.numbers[name][keep] for name in inputs.names}),
         skipped=skipped,
     )
 
@@ -514,7 +730,7 @@ class LogRowParser:
         self._path = Path(source)
         self._header_line = header_line.lstrip("\ufeff").rstrip("\r\n")
         self._header = read_header(self._path, self._header_line)
-        self._has_pose, self._numeric, self._textual = _log_columns(self._path, self._header, platform)
+        self._has_pose, self._numeric, self._textual, self._inputs = _log_columns(self._path, self._header, platform)
         self._platform = platform
         self._last_t_s = -math.inf
         index = {name: k for k, name in enumerate(self._header)}
@@ -522,10 +738,8 @@ class LogRowParser:
         stroke_indices = [index[name] for name in drive_columns(platform)]
         reading_indices = [index[name] for name in readings]
         pose_indices = [index[name] for name in POSE_COLUMNS] if self._has_pose else []
-        self._load = index.get("load_kg")
-        # with [elastic] the payload is an input (spec §10): a row without a usable one takes the careful path
-        self._load_is_input = self._load is not None and platform is not None and platform.elastic is not None
-        self._load_limit = payload_limit(platform) if platform is not None else math.inf
+        # the input channels' fields: a row whose values are not plainly good takes the careful path
+        self._input_indices = [index[name] for name in self._inputs.names]
         self._stage = index.get("stage")
         self._reading_angles = _angle_indices(platform)
         self._stroke_range = drive_range(platform)[0]
@@ -550,12 +764,12 @@ class LogRowParser:
             return None
         try:
             values = list(map(float, self._pick(fields)))  # t_s, strokes, readings, pose
-            load_kg = None if self._load is None else float(fields[self._load])
+            named = {name: float(fields[k]) for name, k in zip(self._inputs.names, self._input_indices, strict=True)}
         except ValueError:
             return None
         if not all(map(math.isfinite, values)) or values[0] < self._last_t_s or abs(values[0]) > MAX_TIME_S:
             return None
-        if self._load_is_input and (load_kg is None or not 0.0 <= load_kg <= self._load_limit):
+        if named and not self._inputs.plain_row(named):
             return None
         for bounds, group in ((self._stroke_range, self._stroke_slice), (self._reading_range, self._reading_slice)):
             if bounds is not None and not bounds[0] <= min(values[group]) <= max(values[group]) <= bounds[1]:
@@ -573,7 +787,7 @@ class LogRowParser:
         strokes = row[self._stroke_slice]
         if self._strokes_in_degrees:
             strokes[:] = np.radians(strokes)
-        return Sample(t_s, strokes, readings, desired, stage, {} if load_kg is None else {LOAD_KG: load_kg})
+        return Sample(t_s, strokes, readings, desired, stage, self._inputs.channels(named))
 
     def parse_block(self, lines: list[bytes]) -> Log | None:
         """The samples of consecutive rows ``lines`` (bytes, line breaks removed) when :meth:`parse`
@@ -588,13 +802,13 @@ class LogRowParser:
         parsed = parsed or self._block_by_float(lines)
         if parsed is None:
             return None
-        values, load_kg, stages = parsed  # values: t_s, strokes, readings, pose
+        values, named, stages = parsed  # values: t_s, strokes, readings, pose; named: the input columns
         t_s = values[:, 0]
         if not np.isfinite(values).all() or t_s[0] < self._last_t_s or np.any(t_s[1:] < t_s[:-1]):
             return None
         if t_s[0] < -MAX_TIME_S or t_s[-1] > MAX_TIME_S:
             return None
-        if self._load_is_input and not np.all((load_kg >= 0) & (load_kg <= self._load_limit)):
+        if named and not np.all(self._inputs.plain(named)):
             return None
         for bounds, group in ((self._stroke_range, self._stroke_slice), (self._reading_range, self._reading_slice)):
             if bounds is not None and not bounds[0] <= values[:, group].min() <= values[:, group].max() <= bounds[1]:
@@ -610,19 +824,19 @@ class LogRowParser:
         strokes = values[:, self._stroke_slice]
         if self._strokes_in_degrees:
             strokes[:] = np.radians(strokes)
-        return Log(t_s, strokes, readings, desired, stages, {} if load_kg is None else {LOAD_KG: load_kg})
+        return Log(t_s, strokes, readings, desired, stages, self._inputs.channels(named))
 
     def _block_by_arrow(self, lines: list[bytes]) -> tuple | None:
-        """``(values, load_kg, None)`` of an all-numeric log's rows by pyarrow (several times faster
+        """``(values, the input columns by name, None)`` of an all-numeric log's rows by pyarrow (several times faster
         a row than ``float`` on each field; BENCHMARKS.md), or None where it has any doubt."""
         table = numbers_by_arrow(self._header, b"\n".join(lines) + b"\n")
         if table is None or len(table) != len(lines):
             return None
         values = np.column_stack([table.numbers[self._header[k]] for k in self._pick_indices])
-        return values, table.numbers.get("load_kg"), None
+        return values, {name: table.numbers[name] for name in self._inputs.names}, None
 
     def _block_by_float(self, lines: list[bytes]) -> tuple | None:
-        """``(values, load_kg, stages)`` of the rows by :meth:`_plain`'s field split and ``float``, or
+        """``(values, the input columns by name, stages)`` of the rows by :meth:`_plain`'s field split and ``float``, or
         None where :meth:`_plain` would give None."""
         try:
             text = b"\n".join(lines).decode("utf-8")
@@ -635,11 +849,14 @@ class LogRowParser:
             return None
         try:
             values = np.fromiter(map(float, chain.from_iterable(map(self._pick, rows))), dtype=float)
-            load_kg = None if self._load is None else np.array([float(fields[self._load]) for fields in rows])
+            named = {
+                name: np.array([float(fields[k]) for fields in rows])
+                for name, k in zip(self._inputs.names, self._input_indices, strict=True)
+            }
         except ValueError:
             return None
         stages = [fields[self._stage].strip() for fields in rows] if self._stage is not None else None
-        return values.reshape(len(rows), -1), load_kg, stages
+        return values.reshape(len(rows), -1), named, stages
 
     def parse(self, line: str, row: int) -> Sample | None:
         """The sample of one row (``row``: its 1-based line number), or None for a blank line.
@@ -663,7 +880,7 @@ class LogRowParser:
             set(_blank_columns(self._platform)),
         )
         table.lines = np.array([row])
-        _flag_log_values(table, self._platform, self._has_pose)
+        _flag_log_values(table, self._platform, self._has_pose, self._inputs)
         t_s = float(table.numbers["t_s"][0])
         if not table.issues and t_s < self._last_t_s:
             table.issues[0] = _time_backwards(t_s, self._last_t_s)
@@ -682,7 +899,7 @@ class LogRowParser:
             )[0],
             pose,
             table.texts["stage"][0] if self._textual else "",
-            {LOAD_KG: number("load_kg")} if "load_kg" in self._numeric else {},
+            self._inputs.channels({name: number(name) for name in self._inputs.names}),
         )
 
 
@@ -751,7 +968,9 @@ POSE_BLOCK_BYTES = 1 << 20
 
 #: columns a pose list holds as numbers when written by this package (its own, a log's, strokes):
 #: a header of these only is read by pyarrow.
-_POSE_LIST_NUMBERS = frozenset(("t_s", *POSE_COLUMNS, *STROKE_COLUMNS, *ANGLE_COLUMNS, *READING_COLUMNS))
+_POSE_LIST_NUMBERS = frozenset(
+    ("t_s", *POSE_COLUMNS, *STROKE_COLUMNS, *ANGLE_COLUMNS, *READING_COLUMNS, *TEMPERATURE_COLUMNS, *GRAVITY_COLUMNS)
+)
 
 
 def read_pose_list_blocks(path: str | Path, block_bytes: int | None = None) -> Iterator[np.ndarray]:

@@ -1,9 +1,10 @@
-"""The platform file (spec §2, §6, §15): its TOML reader (:func:`load_platform`,
+"""The platform file (spec §2, §6, §10, §15, §17): its TOML reader (:func:`load_platform`,
 :func:`parse_platform`, :func:`parse_instrument`) and writer (:func:`platform_to_toml`).
 
 The geometry it builds lives in :mod:`stewart_calib.model.platform` (the prismatic leg set, the
-workspace, the instrument, the elastic drive) and :mod:`stewart_calib.model.rotary` (the rotary
-leg set); what each instrument kind reads of the file is that module's ``INSTRUMENT_SECTIONS``.
+workspace, the instrument, the elastic drive of ``[elastic]``, the legs' thermal expansion of
+``[thermal]``) and :mod:`stewart_calib.model.rotary` (the rotary leg set); what each instrument kind
+reads of the file is that module's ``INSTRUMENT_SECTIONS``.
 """
 
 from __future__ import annotations
@@ -20,15 +21,19 @@ from ..inputs import implausible_sigma_mm
 from ..model.platform import (
     DEFAULT_ORIENTATION_SIGMA_DEG,
     DEFAULT_POSITION_SIGMA_MM,
+    DOWN,
+    EXPANSION_LIMIT_PPM_PER_K,
     G_N_PER_KG,
     INSTRUMENT_KINDS,
     INSTRUMENT_SECTIONS,
     MIN_PLATFORM_MASS_KG,
     N_LEGS,
+    TEMPERATURE_RANGE_C,
     Elastic,
     Instrument,
     LegGeometry,
     Platform,
+    Thermal,
     Workspace,
     centre_too_far,
     default_compliance_sigma,
@@ -43,7 +48,7 @@ from ..model.rotations import pose_to_rt, transform_points
 #: would otherwise be ignored without a word (a stroke range silently not enforced).
 #: ``[instrument]``'s keys depend on its kind; :func:`parse_instrument` checks them.
 PLATFORM_KEYS: dict[str, set[str]] = {
-    "": {"name", "description", "drive", "tracker", "workspace", "instrument", "elastic"},
+    "": {"name", "description", "drive", "tracker", "workspace", "instrument", "elastic", "thermal"},
     "tracker": {"base_joints_mm", "platform_joints_mm", "initial_lengths_mm", "reading_range_mm", "geometry_sigma_mm"},
     "workspace": {"home", "translation_limit_mm", "rotation_limit_deg"},
     "elastic": {
@@ -54,6 +59,13 @@ PLATFORM_KEYS: dict[str, set[str]] = {
         "compliance_sigma_mm_per_kN",
         "true_compliance_mm_per_kN",
         "payload_sigma_kg",
+        "gravity",
+    },
+    "thermal": {
+        "reference_temperature_C",
+        "expansion_ppm_per_K",
+        "expansion_sigma_ppm_per_K",
+        "true_expansion_ppm_per_K",
     },
 }
 
@@ -361,6 +373,7 @@ def parse_platform(doc: dict, source: str = "<memory>") -> Platform:
         stroke_scale,
         geometry_sigma,
         elastic,
+        _thermal(doc, source),
     )
     if workspace is not None:
         _check_home_reachable(platform, workspace, source)
@@ -452,6 +465,7 @@ def _elastic(doc: dict, drive: LegGeometry, source: str, reference: tuple[float,
         sigma,
         truth,
         _non_negative(table, "payload_sigma_kg", 0.0, source, "elastic"),
+        _gravity(table, source),
     )
     limit = payload_limit_kg(elastic, reference_mm)
     if not elastic.payload_sigma_kg <= limit:
@@ -463,6 +477,94 @@ def _elastic(doc: dict, drive: LegGeometry, source: str, reference: tuple[float,
             f"{reference_mm:.4g} mm of {what}; got {elastic.payload_sigma_kg!r}",
         )
     return elastic
+
+
+def _gravity(table: dict, source: str) -> np.ndarray:
+    """``[elastic] gravity`` (spec §17): the direction gravity acts along in {J}, normalised; −z where absent."""
+    if "gravity" not in table:
+        return DOWN.copy()
+    direction = _array(table, "gravity", (3,), source, "elastic")
+    if not np.any(direction != 0.0):
+        raise _refuse(
+            source, "elastic.gravity", "a direction [gx, gy, gz] in {J} of nonzero length (default [0, 0, -1])"
+        )
+    return unit_direction(direction)
+
+
+def unit_direction(direction: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` directions of finite, nonzero components scaled to unit length (NaN where a component
+    is), by the largest component first so that no square overflows or underflows. One already of unit
+    length (to the last bit or two) is kept as it is: a written unit vector then reads back bit for bit,
+    where dividing by its norm again moves the last bit of about a third of them (a platform file
+    written by :func:`platform_to_toml`, a log by :func:`~.logs.log_text`). Written out component by
+    component, not as numpy reductions, so that every row, alone or in a block, gets the same correctly
+    rounded operations in the same order, so the same bits; one row's (the row parser's per-row path)
+    in Python's floats, at a tenth of numpy's cost on three numbers."""
+    direction = np.asarray(direction, dtype=float)
+    if direction.shape == (3,):
+        return _unit_row(*direction.tolist())
+    x, y, z = direction[..., 0], direction[..., 1], direction[..., 2]
+    with np.errstate(invalid="ignore", over="ignore"):
+        largest = np.maximum(np.maximum(np.abs(x), np.abs(y)), np.abs(z))
+        sx, sy, sz = x / largest, y / largest, z / largest
+        scaled_norm = np.sqrt(sx * sx + sy * sy + sz * sz)
+        norm = np.sqrt(x * x + y * y + z * z)
+    unit = np.stack([sx / scaled_norm, sy / scaled_norm, sz / scaled_norm], axis=-1)
+    return np.where((np.abs(norm - 1.0) <= UNIT_TOLERANCE)[..., None], direction, unit)
+
+
+#: a direction whose norm is this close to 1 is taken as of unit length (:func:`unit_direction`): 4 ulp
+UNIT_TOLERANCE = 4.0 * np.finfo(float).eps
+
+
+def _unit_row(x: float, y: float, z: float) -> np.ndarray:
+    """:func:`unit_direction` of one direction, the same operations on Python's floats."""
+    if math.isnan(x) or math.isnan(y) or math.isnan(z):
+        return np.full(3, math.nan)
+    norm = math.sqrt(x * x + y * y + z * z)  # a float product overflows to inf, as numpy's does
+    if abs(norm - 1.0) <= UNIT_TOLERANCE:
+        return np.array([x, y, z])
+    largest = max(abs(x), abs(y), abs(z))
+    sx, sy, sz = x / largest, y / largest, z / largest
+    scaled_norm = math.sqrt(sx * sx + sy * sy + sz * sz)
+    return np.array([sx / scaled_norm, sy / scaled_norm, sz / scaled_norm])
+
+
+def _thermal(doc: dict, source: str) -> Thermal | None:
+    """The optional ``[thermal]`` table (spec §17); None without it. A rotary drive's is read too (its
+    rods grow alike); whether the drive model takes it is :func:`~stewart_calib.model.drive.drive_model`'s
+    to say."""
+    if "thermal" not in doc:
+        return None
+    table = doc["thermal"]
+    if not isinstance(table, dict):
+        raise _refuse(source, "thermal", "a [thermal] table")
+    low, high = TEMPERATURE_RANGE_C
+    reference = _number(table, "reference_temperature_C", Thermal.reference_temperature_C, source, "thermal")
+    if not low <= reference <= high:
+        raise _refuse(
+            source,
+            "thermal.reference_temperature_C",
+            f"a temperature within [{low:g}, {high:g}] °C (where the geometry of [drive] holds), got {reference!r}",
+        )
+    coefficients: dict[str, np.ndarray | None] = {}
+    for key in ("expansion_ppm_per_K", "true_expansion_ppm_per_K"):
+        values = _array(table, key, (N_LEGS,), source, "thermal") if key in table else None
+        if values is not None and np.any(np.abs(values) > EXPANSION_LIMIT_PPM_PER_K):
+            raise _refuse(
+                source,
+                f"thermal.{key}",
+                f"6 expansion coefficients α_i within ±{EXPANSION_LIMIT_PPM_PER_K:g} ppm/K (steel's is about 11.5, "
+                f"aluminium's 23), got {values.tolist()}",
+            )
+        coefficients[key] = values
+    nominal = coefficients["expansion_ppm_per_K"]
+    return Thermal(
+        reference,
+        np.zeros(N_LEGS) if nominal is None else nominal,
+        _non_negative(table, "expansion_sigma_ppm_per_K", Thermal.expansion_sigma_ppm_per_K, source, "thermal"),
+        coefficients["true_expansion_ppm_per_K"],
+    )
 
 
 def _pose6(table: dict, key: str, source: str) -> np.ndarray:
@@ -633,6 +735,7 @@ def platform_to_toml(platform: Platform) -> str:
             lines.append(f"geometry_sigma_mm = {platform.tracker_geometry_sigma_mm!r}")
     lines += _instrument_toml(platform.instrument)
     lines += _elastic_toml(platform.elastic)
+    lines += _thermal_toml(platform.thermal)
     if platform.workspace is not None:
         ws = platform.workspace
         home = np.concatenate([ws.home[:3], np.degrees(ws.home[3:])])
@@ -711,6 +814,25 @@ def _elastic_toml(elastic: Elastic | None) -> list[str]:
         lines.append(f"true_compliance_mm_per_kN = {_toml_list(elastic.true_compliance_mm_per_kN)}")
     if elastic.payload_sigma_kg > 0.0:
         lines.append(f"payload_sigma_kg = {float(elastic.payload_sigma_kg)!r}")
+    if not np.array_equal(elastic.gravity, DOWN):
+        lines.append(f"gravity = {_toml_list(elastic.gravity)}")
+    return lines
+
+
+def _thermal_toml(thermal: Thermal | None) -> list[str]:
+    """The ``[thermal]`` lines (none where temperature is ignored): a calibrated platform's expansion as
+    ``expansion_ppm_per_K`` (spec §17, ``--platform-out``)."""
+    if thermal is None:
+        return []
+    lines = [
+        "",
+        "[thermal]",
+        f"reference_temperature_C = {float(thermal.reference_temperature_C)!r}",
+        f"expansion_ppm_per_K = {_toml_list(thermal.expansion_ppm_per_K)}",
+        f"expansion_sigma_ppm_per_K = {float(thermal.expansion_sigma_ppm_per_K)!r}",
+    ]
+    if thermal.true_expansion_ppm_per_K is not None:
+        lines.append(f"true_expansion_ppm_per_K = {_toml_list(thermal.true_expansion_ppm_per_K)}")
     return lines
 
 

@@ -1,4 +1,4 @@
-"""Calibration results (spec §5) and traces (spec §6).
+"""Calibration results (spec §5, with the blocks of §7, §10 and §17) and traces (spec §6).
 
 Every refusal is one :class:`~stewart_calib.errors.CalibError` line naming the file and the key;
 every writer goes through :func:`~.atomic.atomic_write_text`, so a bad result writes nothing.
@@ -15,8 +15,8 @@ import numpy as np
 from ..errors import CalibError, shown
 from ..estimate import Estimate
 from ..inputs import parse_json, read_input_text
-from ..model.drive import DriveModel, drive_model
-from ..model.platform import PARAMETER_FIELDS, PARAMETER_NAMES, Platform
+from ..model.drive import THERMAL, DriveModel, drive_model, thermal_term
+from ..model.platform import EXPANSION_LIMIT_PPM_PER_K, PARAMETER_FIELDS, PARAMETER_NAMES, Platform
 from ..model.rotary import PARAMETER_FIELDS as ROTARY_FIELDS
 from .atomic import atomic_write_text
 from .tables import csv_text
@@ -110,11 +110,29 @@ def result_dict(estimate: Estimate, platform: Platform, samples_skipped: int = 0
         "samples_skipped": int(samples_skipped),
     }
     result.update(estimate.block_results())  # spec §7: "stroke_scale", "instrument" where identified
+    if platform.thermal is not None and THERMAL not in result:
+        result[THERMAL] = held_thermal_block(platform)
     extra = {**(estimate.details or {}), **(extra or {})}
     clash = set(extra) & set(result)
     if clash:
         raise ValueError(f"extra result fields may not replace spec fields: {', '.join(sorted(clash))}")
     return {**result, **extra}
+
+
+def held_thermal_block(platform: Platform) -> dict:
+    """The result's ``"thermal"`` block (spec §17: present whenever ``[thermal]`` is declared) of a
+    calibration that held the expansion at its nominal (``expansion_sigma_ppm_per_K = 0``): the
+    nominal ``alpha1 … alpha6`` [ppm/K], known exactly (σ 0)."""
+    term = thermal_term(platform.thermal, 0)  # type: ignore[arg-type]  # declared: the caller's check
+    return {"names": list(term.names), "estimate": term.nominal.tolist(), "stddev": [0.0] * len(term.names)}
+
+
+#: the names of the blocks whose names the spec fixes (§7 the stroke scale, §10 the compliance, §17 the expansion)
+BLOCK_NAMES = {
+    "stroke_scale": tuple(f"k{i}" for i in range(1, 7)),
+    "compliance": tuple(f"c{i}" for i in range(1, 7)),
+    THERMAL: tuple(f"alpha{i}" for i in range(1, 7)),
+}
 
 
 def _is_number(value) -> bool:
@@ -172,7 +190,7 @@ def validate_result(result, source: str) -> None:
         value = result[key]
         if not isinstance(value, int) or isinstance(value, bool) or value < 0:
             raise refuse(key, f"a non-negative whole number, got {value!r}")
-    for key in ("stroke_scale", "compliance", "instrument", "payload"):
+    for key in ("stroke_scale", "compliance", THERMAL, "instrument", "payload"):
         if key in result:
             _validate_block(result[key], key, refuse)
     gap = np.abs(np.array(result["estimate"]) - np.array(result["nominal"]) - np.array(result["error"]))
@@ -193,9 +211,9 @@ def _validate_block(block, key: str, refuse) -> None:
     if not all(isinstance(name, str) for name in block["names"]):
         raise refuse(f"{key}.names", "a list of strings")
     n = len(block["names"])
-    for prefix, named in (("k", "stroke_scale"), ("c", "compliance")):
-        if key == named and block["names"] != [f"{prefix}{i}" for i in range(1, 7)]:
-            raise refuse(f"{key}.names", f'["{prefix}1", ..., "{prefix}6"]')
+    names = BLOCK_NAMES.get(key)
+    if names is not None and block["names"] != list(names):
+        raise refuse(f"{key}.names", f'["{names[0]}", ..., "{names[-1]}"]')
     for part in ("estimate", "stddev"):
         value = block.get(part)
         if part == "stddev" and value is None:
@@ -207,6 +225,12 @@ def _validate_block(block, key: str, refuse) -> None:
             f"{key}.estimate",
             f"scale errors k_i within ±{MAX_STROKE_SCALE:g} (a leg moving (1 + k_i) mm per logged mm), "
             f"got {block['estimate']}",
+        )
+    if key == THERMAL and max(abs(alpha) for alpha in block["estimate"]) > EXPANSION_LIMIT_PPM_PER_K:
+        raise refuse(
+            f"{key}.estimate",
+            f"expansion coefficients α_i within ±{EXPANSION_LIMIT_PPM_PER_K:g} ppm/K (spec §17; what a platform "
+            f"file's [thermal] takes), got {block['estimate']}",
         )
 
 

@@ -229,13 +229,18 @@ def require_columns(path: Path, header: list[str], required) -> None:
         raise CalibError(f"{path}: row 1: missing required column(s) {', '.join(missing)}")
 
 
+#: how a refusal names the size of a group of columns (a pose's six, a direction's three)
+_COUNT_WORDS = {2: "two", 3: "three", 6: "six"}
+
+
 def optional_group(path: Path, header: list[str], group) -> bool:
     """True when all of ``group`` is present, False when none; a partial set is refused."""
     present = [name for name in group if name in header]
     if present and len(present) < len(group):
         missing = [name for name in group if name not in header]
+        count = _COUNT_WORDS.get(len(group), str(len(group)))
         raise CalibError(
-            f"{path}: row 1: columns {', '.join(group)} come all six or none; missing {', '.join(missing)}"
+            f"{path}: row 1: columns {', '.join(group)} come all {count} or none; missing {', '.join(missing)}"
         )
     return bool(present)
 
