@@ -392,7 +392,7 @@ class DriveModel:
                 out[..., columns] = source.inputs(self, out[..., :N_LEGS], channels or {}, R, t, x_drive)
         return out
 
-    def _force_columns(self) -> slice:
+    def force_columns(self) -> slice:
         """The six columns of ``u`` that hold the leg forces (the compliance term's)."""
         start = next(term.input_start for term in self.terms if term.source == "leg_forces")
         return slice(start, start + N_LEGS)
@@ -401,7 +401,7 @@ class DriveModel:
         """``inputs`` with ``payload_kg`` more payload: its leg forces (:meth:`payload_leg_forces`,
         ``per_kg``) added to the force columns."""
         loaded = np.array(inputs, dtype=float)
-        loaded[..., self._force_columns()] += payload_kg * np.asarray(per_kg)
+        loaded[..., self.force_columns()] += payload_kg * np.asarray(per_kg)
         return loaded
 
     def force_gains(self, x_drive: np.ndarray | None = None) -> np.ndarray:
@@ -822,7 +822,7 @@ def tracker_reading_residuals(
         elastic.payload_com_mm,
         (len(readings),),
     )
-    force_start = drives[0]._force_columns().start
+    force_start = drives[0].force_columns().start
     radii = np.array([moment_radius(drive.prismatic()) for drive in drives])
     load = (force_start, masses * G_N_PER_KG, centres, radii, SETTLING_PASSES + 1, SETTLED_MM)
     return kin.tracker_reading_residuals(tracker, readings, legs, inputs, terms, load)

@@ -19,7 +19,7 @@ from ..errors import CalibError
 from ..estimate import Estimate
 from ..instruments import instrument_kind
 from ..io.platform_file import platform_to_toml
-from ..model.drive import DriveModel, drive_model
+from ..model.drive import COMPLIANCE, THERMAL, DriveModel, drive_model
 from ..model.platform import Platform
 
 REPORT_PAGE = "index.html"
@@ -136,19 +136,21 @@ def covariance_field(estimate: Estimate, legs) -> list | None:
         return (np.asarray(estimate.covariance, dtype=float) * np.outer(drive_scale, drive_scale)).tolist()
     scale = np.concatenate([drive_scale, *(block.file_scale for block in estimate.layout.blocks)])
     covariance = np.asarray(estimate.full_covariance, dtype=float) * np.outer(scale, scale)
-    # spec §10: the compliance after the other blocks (the unknown vector keeps the drive's blocks together)
-    compliance = estimate.layout.slice("compliance")
-    if compliance is not None:
-        order = np.r_[np.delete(np.arange(len(covariance)), np.r_[compliance]), np.r_[compliance]]
+    # spec §10, §17: the compliance after the other blocks, the expansion after it (the unknown vector
+    # keeps the drive's blocks together)
+    last = [np.r_[span] for span in (estimate.layout.slice(COMPLIANCE), estimate.layout.slice(THERMAL)) if span]
+    if last:
+        moved = np.concatenate(last)
+        order = np.r_[np.delete(np.arange(len(covariance)), moved), moved]
         covariance = covariance[np.ix_(order, order)]
     return covariance.tolist()
 
 
 def leg_forces(drive: DriveModel, log) -> np.ndarray:
     """``(N, legs)`` an elastic drive's axial leg forces [N] at its settled poses of a log's strokes, each
-    row under its own payload (compression > 0): what the report and the rerun recording show."""
+    row under its own input channels (compression > 0): what the report and the rerun recording show."""
     _, inputs = drive.settled_kinematics(log.strokes, log.inputs, strict=False)
-    return inputs[:, drive.input_width - drive.rows :]
+    return inputs[:, drive.force_columns()]
 
 
 # ----------------------------------------------------------------------------- singular statics
