@@ -6,8 +6,8 @@ Pure functions under a thin pipeline (:mod:`stewart_calib.pipelines.reproduce`):
     results_dict(reproduction, run_time_s) -> dict              # report.py: every number (results.json)
     tables_markdown(results) -> str                             # report.py: tables.md from results["tables"]
     write_recording(path, reproduction)                         # record.py: reproduce.rrd
-    write_figures(directory, reproduction) -> [(file, caption)] # figures.py: Figs. 5–9 as PNG
-    index_html(tables_md, figures, recording) -> str            # page.py: index.html
+    write_figures(directory, reproduction) -> [FigureFile]      # figures.py: Figs. 5–9 as PNG
+    index_html(tables_md, figures, recording) -> str            # page.py: index.html, a tab per run
 
 :mod:`.metrics` holds the measures: pose errors as the tracker sees them and as the simulator
 knows them, one value per held pose.

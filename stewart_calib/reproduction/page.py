@@ -2,16 +2,20 @@
 
 The page is tables.md itself turned into HTML (the markdown :func:`.report.tables_markdown` writes:
 headings, paragraphs, bullet lists, pipe tables, ``**bold**`` and ```code```), so the page and the
-file cannot disagree, followed by the figures, which it links as the PNG files beside it. Layout
-and table style are the calibration report's (:mod:`stewart_calib.viz.html_report`).
+file cannot disagree, followed by the figures, which it links as the PNG files beside it: Figs. 5–6
+of one run at a time under a row of tabs, one a run, each with the run's line and marker of Figs.
+7–9 (radio buttons and CSS: a tab shows its run's figures in place, with no script), then Figs.
+7–9. Layout and table style are the calibration report's (:mod:`stewart_calib.viz.html_report`).
 """
 
 from __future__ import annotations
 
 import html
+import math
 import re
 
 from ..viz.html_report import html_page, html_table
+from .figures import PAPER_METHOD, FigureFile, RunStyle
 
 _INLINE = ((re.compile(r"\*\*(.+?)\*\*"), r"<strong>\1</strong>"), (re.compile(r"`(.+?)`"), r"<code>\1</code>"))
 
@@ -79,15 +83,91 @@ def markdown_html(text: str) -> tuple[str, str]:
     return title, "".join(parts)
 
 
-def index_html(tables_md: str, figures: list[tuple[str, str]], recording: str) -> str:
-    """The whole page: tables.md, then each ``(file name, caption)`` figure, then where the rerun
-    recording ``recording`` is."""
-    title, body = markdown_html(tables_md)
-    figure_html = "".join(
-        f'<figure><img alt="{html.escape(caption)}" src="{html.escape(name)}"><figcaption>{html.escape(caption)} '
-        f'(<a href="{html.escape(name)}">{html.escape(name)}</a>)</figcaption></figure>'
-        for name, caption in figures
+#: SVG dash patterns of the line styles of :data:`.figures.LINESTYLES` [px at a stroke of 2 px]
+DASHES = {"-": "", "--": "6 3", ":": "1.5 2.5", "-.": "6 2.5 1.5 2.5"}
+#: SVG shapes of the markers of :data:`.figures.MARKERS`: a circle, or a regular polygon's
+#: (corners, angle of its first corner [°]), as matplotlib draws them
+MARKER_POLYGONS = {"^": (3, 90), "v": (3, 270), "<": (3, 180), ">": (3, 0), "s": (4, 45), "D": (4, 90)}
+MARKER_POLYGONS |= {"p": (5, 90), "h": (6, 90)}
+#: the swatch of a run in its tab [px]: width, height, marker radius
+SWATCH_PX = (34, 12, 4.0)
+
+_TABS_STYLE = """
+.runs > input { position: absolute; opacity: 0; pointer-events: none; }
+.runs .tabs { display: flex; flex-wrap: wrap; gap: .25em; border-bottom: 1px solid #ccc; margin: .6em 0 0; }
+.runs .tabs label { display: inline-flex; align-items: center; gap: .4em; padding: .3em .7em; cursor: pointer;
+  border: 1px solid #ccc; border-bottom: none; border-radius: 4px 4px 0 0; background: #f4f4f4; font-size: .9em; }
+.runs .panel { display: none; }
+"""
+
+
+def swatch_svg(style: RunStyle) -> str:
+    """An inline SVG of ``style``'s line and hollow marker, as a legend of Figs. 7–9 draws the run."""
+    width, height, radius = SWATCH_PX
+    x, y = width / 2, height / 2
+    dash = DASHES[style.linestyle]
+    line = (
+        f'<line x1="1" y1="{y}" x2="{width - 1}" y2="{y}" stroke="{style.color}" stroke-width="2"'
+        + (f' stroke-dasharray="{dash}"' if dash else "")
+        + "/>"
     )
+    paint = f'fill="#fff" stroke="{style.color}" stroke-width="1.3"'
+    if style.marker in MARKER_POLYGONS:
+        corners, first_deg = MARKER_POLYGONS[style.marker]
+        angles = [math.radians(first_deg + 360.0 * k / corners) for k in range(corners)]
+        points = " ".join(f"{x + radius * math.cos(a):.2f},{y - radius * math.sin(a):.2f}" for a in angles)
+        marker = f'<polygon points="{points}" {paint}/>'
+    else:
+        marker = f'<circle cx="{x}" cy="{y}" r="{radius * 0.85:.2f}" {paint}/>'
+    box = f'width="{width}" height="{height}" viewBox="0 0 {width} {height}"'
+    return f'<svg {box} aria-hidden="true">{line}{marker}</svg>'
+
+
+def _figure_html(figure: FigureFile) -> str:
+    name, caption = html.escape(figure.name), html.escape(figure.caption)
+    return (
+        f'<figure><img alt="{caption}" src="{name}"><figcaption>{caption} '
+        f'(<a href="{name}">{name}</a>)</figcaption></figure>'
+    )
+
+
+def run_tabs_html(figures: list[FigureFile]) -> str:
+    """The figures of each run under a row of tabs, one a run in the order they come, the paper's
+    method shown first: radio buttons before the tabs and the panels, whose ``:checked`` state CSS
+    reads to show one panel and mark its tab."""
+    runs: dict[str, list[FigureFile]] = {}
+    for figure in figures:
+        if figure.run is not None:
+            runs.setdefault(figure.run, []).append(figure)
+    if not runs:
+        return ""
+    shown = PAPER_METHOD if PAPER_METHOD in runs else next(iter(runs))
+    inputs, tabs, panels, rules = [], [], [], []
+    for k, (run, run_figures) in enumerate(runs.items()):
+        style = run_figures[0].style
+        checked = " checked" if run == shown else ""
+        inputs.append(f'<input type="radio" name="run" id="run-{k}"{checked}>')
+        swatch = "" if style is None else swatch_svg(style)
+        tabs.append(f'<label for="run-{k}">{swatch}{html.escape(run)}</label>')
+        panels.append(f'<div class="panel" id="panel-{k}">{"".join(_figure_html(f) for f in run_figures)}</div>')
+        rules.append(
+            f"#run-{k}:checked ~ #panel-{k} {{ display: block; }}\n"
+            f"#run-{k}:checked ~ .tabs label[for=run-{k}] {{ background: #fff; font-weight: 600; "
+            "margin-bottom: -1px; border-bottom: 1px solid #fff; }\n"
+            f"#run-{k}:focus-visible ~ .tabs label[for=run-{k}] {{ outline: 2px solid #4a90d9; }}\n"
+        )
+    return (
+        f"<style>{_TABS_STYLE}{''.join(rules)}</style>"
+        "<p>Figs. 5–6 of one run: choose it by its tab (its line and marker are those of Figs. 7–9).</p>"
+        f'<div class="runs">{"".join(inputs)}<div class="tabs">{"".join(tabs)}</div>{"".join(panels)}</div>'
+    )
+
+
+def index_html(tables_md: str, figures: list[FigureFile], recording: str) -> str:
+    """The whole page: tables.md, then the figures (Figs. 5–6 of each run under its tab, then the
+    others), then where the rerun recording ``recording`` is."""
+    title, body = markdown_html(tables_md)
+    figure_html = run_tabs_html(figures) + "".join(_figure_html(f) for f in figures if f.run is None)
     recording_html = (
         f"<p>Every sample of every run, the 3D scene and the diagnostics: <code>rerun {html.escape(recording)}</code> "
         "in this directory.</p>"
