@@ -325,7 +325,7 @@ def test_an_elastic_robot_is_the_rigid_one_with_its_legs_giving_under_the_weight
     assert LOAD_KG not in b.log.inputs and LOAD_KG not in a.log.inputs  # payload_known = false: the log does not say
     drive = drive_model(replace(b.platform, elastic=b.true_elastic))
     R, t = kin.pose_to_rt(b.log.desired_poses)
-    forces = drive.leg_forces(R, t, b.payload_kg, b.true_params[0] - b.platform.drive.as_vector())
+    forces = drive.leg_forces(R, t, {LOAD_KG: b.payload_kg}, b.true_params[0] - b.platform.drive.as_vector())
     assert forces.mean() > 0.5 * (60.0 + 15.0) * 9.8 / 6  # the legs hold the platform up: compression
     np.testing.assert_allclose(b.log.strokes - a.log.strokes, compliance * forces / 1000.0, rtol=1e-9, atol=1e-12)
     assert b.platform.elastic is not None and np.all(b.platform.elastic.compliance_mm_per_kN == 0)  # nominal 0
