@@ -69,6 +69,7 @@ def _runner(module: str, function: str, *args):
 #: what measures each section of :data:`benchmarks.report.SECTIONS`: ``(quick, seed, results dir)`` → sections
 RUNNERS = {
     "speed": _runner("speed", "run", "seed"),
+    "reference": _runner("reference", "run", "seed"),
     "accuracy": _runner("accuracy", "run"),
     "robustness": _robustness,
     "scale": _scale,

@@ -37,9 +37,10 @@ import scipy.optimize
 
 from benchmarks.common import Row, Section, Table, markdown
 from stewart_calib.config import EstimatorConfig
-from stewart_calib.instruments import lie, outside_model, pose
+from stewart_calib.instruments import outside_model, pose
 from stewart_calib.io.platform_file import load_platform
 from stewart_calib.model import kinematics as kin
+from stewart_calib.model import rotations
 from stewart_calib.model.platform import LegGeometry, Platform
 from stewart_calib.resources import CONFIGS
 from stewart_calib.samples import Log
@@ -199,7 +200,7 @@ def peer_poses(theta: np.ndarray, strokes: np.ndarray, guess) -> tuple[np.ndarra
 def _peer_residual(theta: np.ndarray, strokes: np.ndarray, measured: np.ndarray) -> np.ndarray:
     R_m, t_m = kin.pose_to_rt(measured)
     R, t = peer_poses(theta, strokes, (R_m, t_m))
-    rot_deg = np.degrees(lie.so3_log(np.swapaxes(R_m, -1, -2) @ R))
+    rot_deg = np.degrees(rotations.so3_log(np.swapaxes(R_m, -1, -2) @ R))
     return np.concatenate([t - t_m, rot_deg], axis=1).reshape(-1)
 
 
@@ -208,8 +209,8 @@ def peer_fit(platform: Platform, log: Log) -> np.ndarray:
     model = outside_model(platform)
     fk = kin.forward_kinematics(platform.drive, log.strokes, strict=False)
     start = model.register(fk.R, fk.t, log.readings)
-    R_Fi, t_Fi = lie.inverse(start.R_frame, start.t_frame)
-    R_Gi, t_Gi = lie.inverse(start.R_target, start.t_target)
+    R_Fi, t_Fi = rotations.inverse(start.R_frame, start.t_frame)
+    R_Gi, t_Gi = rotations.inverse(start.R_target, start.t_target)
     theta0 = np.concatenate(
         [
             kin.transform_points(R_Fi, t_Fi, platform.drive.base_joints).reshape(-1),

@@ -27,10 +27,11 @@ import numpy as np
 
 from stewart_calib import cli
 from stewart_calib.analysis.accuracy import evaluation_poses
-from stewart_calib.instruments import gauge, lie
+from stewart_calib.instruments import gauge
 from stewart_calib.io import read_result, read_truth
 from stewart_calib.io.platform_file import load_platform
 from stewart_calib.model import kinematics as kin
+from stewart_calib.model import rotations
 from stewart_calib.model.drive import drive_model
 
 EXPERIMENT = """
@@ -75,8 +76,8 @@ def true_errors(platform, result: dict, truth) -> tuple[float, float]:
     reached = true.forward_kinematics(true.inputs(commanded.inverse_kinematics(R_d, t_d)), guess=(R_d, t_d))
     absolute, _ = kin.pose_error(R_d[:-1], t_d[:-1], reached.R[:-1], reached.t[:-1])
     # the motion from home: (reached home)⁻¹ reached X against H⁻¹ X
-    _, moved = lie.compose(*lie.inverse(reached.R[-1], reached.t[-1]), reached.R[:-1], reached.t[:-1])
-    _, wanted = lie.compose(*lie.inverse(R_d[-1], t_d[-1]), R_d[:-1], t_d[:-1])
+    _, moved = rotations.compose(*rotations.inverse(reached.R[-1], reached.t[-1]), reached.R[:-1], reached.t[:-1])
+    _, wanted = rotations.compose(*rotations.inverse(R_d[-1], t_d[-1]), R_d[:-1], t_d[:-1])
     return float(np.mean(absolute)), float(np.mean(np.linalg.norm(moved - wanted, axis=1)))
 
 

@@ -21,6 +21,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 #: every section's name (``--only NAME``) in the report's order, and its title
 SECTIONS = {
     "speed": "Speed",
+    "reference": "Prismatic speed beside the reference code",
     "accuracy": "Accuracy",
     "robustness": "Robustness and honesty (default configuration)",
     "scale": "Scale",

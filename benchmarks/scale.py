@@ -481,11 +481,18 @@ GNU_TIME = Path("/usr/bin/time")
 
 
 def _run_cli(
-    argv: list[str], cap_s: float, stdout_path: Path, python_flags: tuple[str, ...] = (), env: dict | None = None
+    argv: list[str],
+    cap_s: float,
+    stdout_path: Path,
+    python_flags: tuple[str, ...] = (),
+    env: dict | None = None,
+    root: Path | None = None,
 ) -> dict:
-    """Run ``python [flags] -m stewart_calib ARGV`` as a user would (``env``: variables to set besides);
-    wall time, peak RSS, exit status."""
-    env = {**os.environ, "PYTHONPATH": str(PACKAGE_ROOT), **(env or {})}
+    """Run ``python [flags] -m stewart_calib ARGV`` as a user would (``env``: variables to set besides;
+    ``root``: the checkout whose package runs, :data:`PACKAGE_ROOT` unless given); wall time, CPU
+    time, peak RSS, exit status."""
+    root = root or PACKAGE_ROOT
+    env = {**os.environ, "PYTHONPATH": str(root), **(env or {})}
     command = [sys.executable, *python_flags, "-m", "stewart_calib", *argv]
     # A forked child's ru_maxrss counts the parent's pages until exec; GNU time measures the
     # command from a small process of its own, so only the command's memory is counted.
@@ -497,7 +504,7 @@ def _run_cli(
         start = time.perf_counter()
         # cwd too: ``python -m`` puts it ahead of PYTHONPATH on sys.path
         proc = subprocess.Popen(
-            command, stdout=out, stderr=err, stdin=subprocess.DEVNULL, cwd=PACKAGE_ROOT, env=env, start_new_session=True
+            command, stdout=out, stderr=err, stdin=subprocess.DEVNULL, cwd=root, env=env, start_new_session=True
         )  # its own process group: a capped run is stopped whole
         deadline = start + cap_s
         while True:

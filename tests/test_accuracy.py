@@ -16,11 +16,12 @@ from stewart_calib.analysis import accuracy
 from stewart_calib.cli import main as cli_main
 from stewart_calib.errors import CalibError
 from stewart_calib.estimators import batch
-from stewart_calib.instruments import lie, outside_model
+from stewart_calib.instruments import outside_model
 from stewart_calib.instruments.points import visible_targets
 from stewart_calib.io import read_pose_list
 from stewart_calib.io.platform_file import parse_platform, platform_to_toml
 from stewart_calib.model import kinematics as kin
+from stewart_calib.model import rotations
 from stewart_calib.model.drive import drive_model
 from stewart_calib.model.platform import Instrument
 from stewart_calib.workflows import planning
@@ -57,7 +58,7 @@ def test_closed_loop_jacobian_is_the_pose_change_of_ik_then_fk(wide_points):
     estimate, scale = wide_points.drive.perturbed(e[:42]), wide_points.stroke_scale + e[42:]
     strokes = kin.inverse_kinematics(estimate, R, t) / (1.0 + scale)  # what the controller commands
     reached = kin.forward_kinematics(wide_points.drive, strokes * (1.0 + wide_points.stroke_scale), guess=(R, t))
-    omega = lie.so3_log(np.swapaxes(R, -1, -2) @ reached.R)
+    omega = rotations.so3_log(np.swapaxes(R, -1, -2) @ reached.R)
     v = np.einsum("nji,nj->ni", R, reached.t - t)  # body tangent [ω, v]
     np.testing.assert_allclose(np.c_[omega, v], -D @ e, rtol=1e-3, atol=1e-9)
 

@@ -729,7 +729,7 @@ def test_the_settled_pose_jacobian_matches_numerical_differences():
     ``ξ = [ω, v]``; a hobby robot's soft legs (150 mm/kN, 2 kg, 5 kg payload) make that change show."""
     from benchmarks.hobby import SOFT_LEGS, simulate
     from stewart_calib.config import NoiseConfig
-    from stewart_calib.instruments import lie
+    from stewart_calib.model import rotations
     from stewart_calib.model.drive import drive_model
 
     platform = simulate(0, n_fit=4, n_held_out=1, build=SOFT_LEGS).elastic
@@ -747,7 +747,7 @@ def test_the_settled_pose_jacobian_matches_numerical_differences():
         dx[j] = step
         plus, _ = drive.settled_kinematics(strokes, {LOAD_KG: payload}, x + dx, (fk.R, fk.t))
         minus, _ = drive.settled_kinematics(strokes, {LOAD_KG: payload}, x - dx, (fk.R, fk.t))
-        omega = lie.so3_log(np.swapaxes(minus.R, -1, -2) @ plus.R)
+        omega = rotations.so3_log(np.swapaxes(minus.R, -1, -2) @ plus.R)
         v = np.einsum("...ji,...j->...i", fk.R, plus.t - minus.t)
         numeric[..., j] = np.concatenate([omega, v], axis=-1) / (2 * step)
     np.testing.assert_allclose(analytic, numeric, atol=1e-5 * np.abs(numeric).max())  # settled to SETTLED_MM

@@ -113,16 +113,16 @@ def _reached(platform, delta: np.ndarray, poses: np.ndarray):
 
 def _motion_position_error(platform, delta, poses, home) -> np.ndarray:
     """‖position of (reached home)⁻¹ (reached X) − that of H⁻¹ X‖ per pose [mm], by FK."""
-    from stewart_calib.instruments import lie
+    from stewart_calib.model import rotations
 
     R, t = _reached(platform, delta, np.vstack([poses, home]))
-    R_H, t_H = lie.inverse(R[-1], t[-1])
-    _, reached = lie.compose(R_H, t_H, R[:-1], t[:-1])
+    R_H, t_H = rotations.inverse(R[-1], t[-1])
+    _, reached = rotations.compose(R_H, t_H, R[:-1], t[:-1])
     from stewart_calib.model import kinematics as kin
 
     R_d, t_d = kin.pose_to_rt(np.vstack([poses, home]))
-    R_dH, t_dH = lie.inverse(R_d[-1], t_d[-1])
-    _, desired = lie.compose(R_dH, t_dH, R_d[:-1], t_d[:-1])
+    R_dH, t_dH = rotations.inverse(R_d[-1], t_d[-1])
+    _, desired = rotations.compose(R_dH, t_dH, R_d[:-1], t_d[:-1])
     return np.linalg.norm(reached - desired, axis=1)
 
 

@@ -230,59 +230,6 @@ def test_drive_strokes_are_zero_at_home():
     assert np.max(np.abs(strokes)) <= 1e-3
 
 
-# ----------------------------------------------------------------------------- rotations
-
-angle = st.floats(min_value=-np.radians(179.0), max_value=np.radians(179.0))
-pitch = st.floats(min_value=-np.radians(89.0), max_value=np.radians(89.0))
-rpy_strategy = st.tuples(angle, pitch, angle).map(np.array)
-
-
-def Rx(a):  # paper eq. 21
-    return np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
-
-
-def Ry(b):  # paper eq. 21
-    return np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
-
-
-def Rz(g):  # paper eq. 21
-    return np.array([[np.cos(g), -np.sin(g), 0], [np.sin(g), np.cos(g), 0], [0, 0, 1]])
-
-
-@settings(max_examples=100, deadline=None)
-@given(rpy=rpy_strategy)
-def test_rpy_is_rz_ry_rx_and_round_trips(rpy):
-    R = kin.rpy_to_rotation(rpy)
-    # eq. 20: R = Rz(γ) Ry(β) Rx(α); both are a few flops on O(1) numbers: 1e-15.
-    np.testing.assert_allclose(R, Rz(rpy[2]) @ Ry(rpy[1]) @ Rx(rpy[0]), rtol=0, atol=1e-15)
-    # atan2 recovery with |pitch| ≤ 89°: the conditioning 1/cos(89°) ≈ 57 costs ~2 digits.
-    np.testing.assert_allclose(kin.rotation_to_rpy(R), rpy, rtol=0, atol=1e-13)
-
-
-def test_rotation_to_rpy_round_trips_random_rotations():
-    R = Rotation.random(200, random_state=np.random.default_rng(2)).as_matrix()
-    back = kin.rpy_to_rotation(kin.rotation_to_rpy(R))
-    assert np.max(kin.rotation_angle(np.swapaxes(R, -1, -2) @ back)) <= 1e-12
-
-
-def test_pose_error_known_cases():
-    eye, t0 = np.eye(3), np.array([10.0, -20.0, 1100.0])
-    position_mm, angle_deg = kin.pose_error(eye, t0, eye, t0 + [3.0, 4.0, 0.0])
-    assert position_mm == pytest.approx(5.0, abs=1e-12) and angle_deg == pytest.approx(0.0, abs=1e-12)
-
-    axis = np.array([1.0, 2.0, -2.0]) / 3.0
-    R_a = kin.rpy_to_rotation(np.radians([5.0, -10.0, 30.0]))
-    R_b = R_a @ kin.so3_exp(np.radians(7.5) * axis)  # 7.5° about a body axis
-    position_mm, angle_deg = kin.pose_error(R_a, t0, R_b, t0)
-    assert position_mm == 0.0 and angle_deg == pytest.approx(7.5, abs=1e-12)
-
-    # Near 0 and π, where arccos(trace) would lose half the digits.
-    tiny = kin.so3_exp(1e-9 * axis)
-    half_turn = kin.so3_exp((np.pi - 1e-7) * axis)
-    _, angle_deg = kin.pose_error(np.stack([eye, eye]), np.zeros((2, 3)), np.stack([tiny, half_turn]), np.zeros((2, 3)))
-    np.testing.assert_allclose(np.radians(angle_deg), [1e-9, np.pi - 1e-7], rtol=1e-9)
-
-
 # ----------------------------------------------------------------------------- error model
 
 J_P_POSES = random_poses(PLATFORM, 3, np.random.default_rng(3))

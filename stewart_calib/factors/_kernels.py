@@ -140,7 +140,7 @@ def unknown_leg_rows(pose, params, columns, extensions):
 
 @njit(**_JIT)
 def _so3_log(R, phi):
-    """``Log(R)`` into ``phi (3,)`` [rad] (instruments.lie.so3_log: the series below sin θ = 1e-9, the
+    """``Log(R)`` into ``phi (3,)`` [rad] (model.rotations.so3_log: the series below sin θ = 1e-9, the
     axis from ``(R + Rᵀ)/2 + I`` near π)."""
     phi[0] = 0.5 * (R[2, 1] - R[1, 2])
     phi[1] = 0.5 * (R[0, 2] - R[2, 0])
@@ -168,7 +168,7 @@ def _so3_log(R, phi):
 
 @njit(**_JIT)
 def _right_jacobian_inverse(phi, J):
-    """``J_r⁻¹(φ) = I + [φ]×/2 + c [φ]×²`` into ``J (3, 3)`` (instruments.lie.so3_right_jacobian_inverse;
+    """``J_r⁻¹(φ) = I + [φ]×/2 + c [φ]×²`` into ``J (3, 3)`` (model.rotations.so3_right_jacobian_inverse;
     ``[φ]×² = φ φᵀ − θ² I``)."""
     theta2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
     if theta2 < 1e-8:

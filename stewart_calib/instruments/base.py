@@ -50,9 +50,9 @@ from typing import ClassVar, NamedTuple
 import numpy as np
 
 from ..config import NoiseConfig
+from ..model import rotations
 from ..model.platform import Instrument, LegGeometry, Platform
 from ..model.unknowns import UnknownBlock
-from . import lie
 
 
 class Residual(NamedTuple):
@@ -238,8 +238,8 @@ def position_spread_mm(points: np.ndarray) -> float:
 def rotation_spread_rad(R: np.ndarray) -> float:
     """RMS angle [rad] of ``(N, 3, 3)`` rotations from their chordal mean: the same for
     ``F R_k G`` as for ``R_k`` (the mean moves with them), so it needs no frame."""
-    mean = lie.project_to_rotation(np.mean(R, axis=0))
-    return float(np.sqrt(np.mean(np.sum(lie.so3_log(np.einsum("ji,kjl->kil", mean, R)) ** 2, axis=-1))))
+    mean = rotations.project_to_rotation(np.mean(R, axis=0))
+    return float(np.sqrt(np.mean(np.sum(rotations.so3_log(np.einsum("ji,kjl->kil", mean, R)) ** 2, axis=-1))))
 
 
 def instrument_theta(model: InstrumentModel, block_error: np.ndarray | None) -> np.ndarray:

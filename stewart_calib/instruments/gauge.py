@@ -23,8 +23,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..model import kinematics as kin
+from ..model import rotations
 from ..model.legs import LegModel
-from . import lie
 
 #: the base-side points whose rigid motion the gauge holds, by leg kind: ``(what they are, their symbol)``
 BASE_POINTS = {"prismatic": ("base joints", "j"), "rotary": ("crank centres", "a")}
@@ -87,7 +87,7 @@ def kabsch(source: np.ndarray, destination: np.ndarray) -> tuple[np.ndarray, np.
     """``(R, t)`` minimising ``Σ ‖R s_i + t − d_i‖²`` over rigid motions (Kabsch / Horn)."""
     cs, cd = source.mean(axis=0), destination.mean(axis=0)
     H = (destination - cd).T @ (source - cs)
-    R = lie.project_to_rotation(H)
+    R = rotations.project_to_rotation(H)
     return R, cd - R @ cs
 
 

@@ -21,9 +21,10 @@ import numpy as np
 
 from ..errors import CalibError, SampleRejected, number
 from ..model import kinematics as kin
+from ..model import rotations
 from ..model.kinematics import skew
 from ..model.platform import INSTRUMENT_SECTIONS, Instrument, Platform
-from . import lie, registration
+from . import registration
 from .base import PoseObservation, Residual, Spread, position_spread_mm
 from .external import OutsideModel
 from .gauge import kabsch
@@ -78,7 +79,7 @@ class PointsUnknowns:
     def file_jacobian(self) -> np.ndarray:
         n = 6 + self.targets.size
         J = np.eye(n)
-        J[:6, :6] = lie.pose6_tangent_jacobian(kin.rt_to_pose(self.R_frame, self.t_frame))
+        J[:6, :6] = rotations.pose6_tangent_jacobian(kin.rt_to_pose(self.R_frame, self.t_frame))
         J[3:6] = np.degrees(J[3:6])
         return J
 
@@ -172,7 +173,7 @@ def register_points(R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray, sigm
             f"cannot register the points instrument: its {A.shape[1]} linear unknowns have rank {rank} over these "
             "poses; expected poses that translate and rotate the targets in three dimensions"
         )
-    R_F = lie.project_to_rotation(solution[:9].reshape(3, 3))  # row-major: R_F[i, a] at 3i + a
+    R_F = rotations.project_to_rotation(solution[:9].reshape(3, 3))  # row-major: R_F[i, a] at 3i + a
     A, b = system(R_F)
     solution, *_ = np.linalg.lstsq(A, b, rcond=None)
     return PointsUnknowns(R_F, solution[:3], solution[3:].reshape(K, 3))
@@ -287,7 +288,7 @@ class PointsModel(OutsideModel):
 
     def _theta_jacobian_inverse(self, theta: np.ndarray) -> np.ndarray:
         J = np.eye(len(theta))
-        J[:6, :6] = np.linalg.inv(lie.pose6_tangent_jacobian(theta[:6]))
+        J[:6, :6] = np.linalg.inv(rotations.pose6_tangent_jacobian(theta[:6]))
         return J
 
     def residual(self, R: np.ndarray, t: np.ndarray, theta: np.ndarray, z: np.ndarray, channels: np.ndarray):
@@ -336,7 +337,7 @@ class PointsModel(OutsideModel):
 
     def theta_jacobian(self, unknowns: PointsUnknowns) -> np.ndarray:
         J = np.eye(unknowns.size)
-        J[:6, :6] = lie.pose6_tangent_jacobian(kin.rt_to_pose(unknowns.R_frame, unknowns.t_frame))
+        J[:6, :6] = rotations.pose6_tangent_jacobian(kin.rt_to_pose(unknowns.R_frame, unknowns.t_frame))
         return J
 
     def readings_residual(self, unknowns, measured, R_X, t_X, jacobians=False):

@@ -25,11 +25,11 @@ from typing import ClassVar
 import numpy as np
 
 from ..errors import CalibError, SampleRejected, number
-from ..model import _kernels
+from ..model import _kernels, rotations
 from ..model import kinematics as kin
 from ..model.kinematics import rt_to_pose
 from ..model.platform import INSTRUMENT_SECTIONS, Instrument, Platform
-from . import lie, registration
+from . import registration
 from .base import PoseObservation, Residual, Spread, position_spread_mm, rotation_spread_rad
 from .external import OutsideModel
 
@@ -82,7 +82,7 @@ class PoseUnknowns:
         J = np.zeros((12, 12))
         for block, (R, t) in enumerate(((self.R_frame, self.t_frame), (self.R_target, self.t_target))):
             rows = slice(6 * block, 6 * block + 6)
-            J[rows, rows] = lie.pose6_tangent_jacobian(kin.rt_to_pose(R, t))
+            J[rows, rows] = rotations.pose6_tangent_jacobian(kin.rt_to_pose(R, t))
             J[6 * block + 3 : 6 * block + 6] = np.degrees(J[6 * block + 3 : 6 * block + 6])
         return J
 
@@ -94,8 +94,8 @@ def nominal(instrument: Instrument) -> PoseUnknowns:
 
 def predict(u: PoseUnknowns, R_X: np.ndarray, t_X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``P = F⁻¹ X G``: the pose of {T} in {I} the instrument should read at platform pose X."""
-    R_Fi, t_Fi = lie.inverse(u.R_frame, u.t_frame)
-    return lie.compose(*lie.compose(R_Fi, t_Fi, R_X, t_X), u.R_target, u.t_target)
+    R_Fi, t_Fi = rotations.inverse(u.R_frame, u.t_frame)
+    return rotations.compose(*rotations.compose(R_Fi, t_Fi, R_X, t_X), u.R_target, u.t_target)
 
 
 def residual(u: PoseUnknowns, measured: np.ndarray, R_X: np.ndarray, t_X: np.ndarray, jacobians: bool = False):
@@ -108,15 +108,15 @@ def residual(u: PoseUnknowns, measured: np.ndarray, R_X: np.ndarray, t_X: np.nda
     """
     R_m, t_m = kin.pose_to_rt(measured)
     R_P, t_P = predict(u, R_X, t_X)
-    e_rot = lie.so3_log(np.swapaxes(R_m, -1, -2) @ R_P)
+    e_rot = rotations.so3_log(np.swapaxes(R_m, -1, -2) @ R_P)
     e = np.concatenate([e_rot, t_P - t_m], axis=-1)
     if not jacobians:
         return e, None, None
     H_delta = np.zeros(e.shape + (6,))
-    H_delta[..., :3, :3] = lie.so3_right_jacobian_inverse(e_rot)
+    H_delta[..., :3, :3] = rotations.so3_right_jacobian_inverse(e_rot)
     H_delta[..., 3:, 3:] = R_P
-    H_X = H_delta @ lie.adjoint(*lie.inverse(u.R_target, u.t_target))
-    H_F = -H_delta @ lie.adjoint(*lie.inverse(R_P, t_P))
+    H_X = H_delta @ rotations.adjoint(*rotations.inverse(u.R_target, u.t_target))
+    H_F = -H_delta @ rotations.adjoint(*rotations.inverse(R_P, t_P))
     return e, H_X, np.concatenate([H_F, H_delta], axis=-1)
 
 
@@ -157,7 +157,7 @@ def register_pose(
     R_G, R_F = v[:9].reshape(3, 3).T, v[9:].reshape(3, 3).T
     if np.linalg.det(R_F) < 0:
         R_G, R_F = -R_G, -R_F
-    R_G, R_F = lie.project_to_rotation(R_G), lie.project_to_rotation(R_F)
+    R_G, R_F = rotations.project_to_rotation(R_G), rotations.project_to_rotation(R_F)
     A = np.concatenate([R_X, -np.broadcast_to(eye, (n, 3, 3))], axis=2).reshape(3 * n, 6)
     b = (np.einsum("ij,kj->ki", R_F, t_M) - t_X).reshape(-1)
     solution, *_ = np.linalg.lstsq(A, b, rcond=None)
@@ -310,9 +310,9 @@ class PoseModel(OutsideModel):
     def platform_poses(self, unknowns, readings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``X = F M G⁻¹`` of each reading."""
         R_M, t_M = kin.pose_to_rt(readings)
-        return lie.compose(
-            *lie.compose(unknowns.R_frame, unknowns.t_frame, R_M, t_M),
-            *lie.inverse(unknowns.R_target, unknowns.t_target),
+        return rotations.compose(
+            *rotations.compose(unknowns.R_frame, unknowns.t_frame, R_M, t_M),
+            *rotations.inverse(unknowns.R_target, unknowns.t_target),
         )
 
     def instrument_at(self, theta: np.ndarray) -> Instrument:
@@ -330,8 +330,8 @@ class PoseModel(OutsideModel):
         sigmas = self.channel_sigma
         R_M, t_M = kin.pose_to_rt(measured)
         registration.require_distinct(measured, np.r_[np.full(3, sigmas[3]), np.full(3, sigmas[0])], "pose instrument")
-        R_P, t_P = lie.compose(R_X, t_X, unknowns.R_target, unknowns.t_target)  # X G = F M
-        R_F = lie.project_to_rotation(np.einsum("kij,klj->il", R_P, R_M))
+        R_P, t_P = rotations.compose(R_X, t_X, unknowns.R_target, unknowns.t_target)  # X G = F M
+        R_F = rotations.project_to_rotation(np.einsum("kij,klj->il", R_P, R_M))
         t_F = np.mean(t_P - np.einsum("ij,kj->ki", R_F, t_M), axis=0)
         start = PoseUnknowns(R_F, t_F, unknowns.R_target, unknowns.t_target)
         return registration.refine(self, start, measured, R_X, t_X)
@@ -346,6 +346,6 @@ class PoseModel(OutsideModel):
 def theta_tangent_jacobian(theta: np.ndarray) -> np.ndarray:
     """``∂θ/∂[φ, γ]`` ``(12, 12)``: pose6 coordinates of frame and target against their body tangents."""
     J = np.zeros((12, 12))
-    J[:6, :6] = lie.pose6_tangent_jacobian(theta[:6])
-    J[6:, 6:] = lie.pose6_tangent_jacobian(theta[6:12])
+    J[:6, :6] = rotations.pose6_tangent_jacobian(theta[:6])
+    J[6:, 6:] = rotations.pose6_tangent_jacobian(theta[6:12])
     return J

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CalibError, did_you_mean
-from ..model.rotations import rotation_to_rpy
+from ..model.rotations import quaternion_to_rotation, rotation_to_rpy
 from .logs import TEMPERATURE_COLUMNS
 
 #: millimetres per length unit, by the names a mapping file or an export uses
@@ -189,18 +189,6 @@ def _first_bad_cell(path: Path, first_line: int, names: list[str], wanted: list[
 # ----------------------------------------------------------------------------- orientations
 
 
-def quaternion_rotations(q: np.ndarray, order: str) -> np.ndarray:
-    """``(n, 4)`` quaternions in ``order`` (``wxyz`` or ``xyzw``) → ``(n, 3, 3)`` rotations."""
-    w, x, y, z = (q[:, order.index(axis)] for axis in "wxyz")
-    norm = np.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w / norm, x / norm, y / norm, z / norm
-    R = np.empty((len(q), 3, 3))
-    R[:, 0] = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=1)
-    R[:, 1] = np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=1)
-    R[:, 2] = np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=1)
-    return R
-
-
 def euler_rotations(angles_rad: np.ndarray, convention: str) -> np.ndarray:
     """``(n, 3)`` Euler angles [rad] in scipy's ``convention`` (e.g. ``ZYX`` intrinsic, ``xyz``
     extrinsic) → ``(n, 3, 3)`` rotations."""
@@ -317,7 +305,7 @@ def _poses_or_nan(positions_mm: np.ndarray, q: np.ndarray, order: str, up: str) 
     seen = np.all(np.isfinite(q), axis=1) & np.all(np.isfinite(positions_mm), axis=1)
     seen &= np.linalg.norm(np.where(np.isfinite(q), q, 0.0), axis=1) > 1e-9
     if seen.any():
-        out[seen] = pose_columns(positions_mm[seen], quaternion_rotations(q[seen], order), up)
+        out[seen] = pose_columns(positions_mm[seen], quaternion_to_rotation(q[seen], order), up)
     return out
 
 

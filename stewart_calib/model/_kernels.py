@@ -158,7 +158,7 @@ def _rotation(pose6, R):
 
 @njit(**_JIT)
 def _adjoint(R, t):
-    """``Ad_T = [[R, 0], [t^ R, R]]`` (6, 6) in the ``[ω, v]`` order (instruments.lie.adjoint)."""
+    """``Ad_T = [[R, 0], [t^ R, R]]`` (6, 6) in the ``[ω, v]`` order (model.rotations.adjoint)."""
     Ad = np.zeros((6, 6))
     for a in range(3):
         for b in range(3):
@@ -174,7 +174,7 @@ def _adjoint(R, t):
 @njit(**_JIT)
 def _tangent_from_pose6(pose6, R):
     """``(∂pose6/∂ξ)⁻¹ = [[0, Rᵀ T], [Rᵀ, 0]]`` (6, 6): the inverse of
-    instruments.lie.pose6_tangent_jacobian ``[[0, R], [T⁻¹ R, 0]]`` in closed form (``T`` of paper
+    model.rotations.pose6_tangent_jacobian ``[[0, R], [T⁻¹ R, 0]]`` in closed form (``T`` of paper
     eq. 4–5 at the pose's pitch β and yaw γ)."""
     cb, sb = math.cos(pose6[4]), math.sin(pose6[4])
     cg, sg = math.cos(pose6[5]), math.sin(pose6[5])

@@ -38,7 +38,7 @@ import numpy as np
 from .. import io
 from ..errors import CalibError, shown
 from ..model.platform import INSTRUMENT_SECTIONS
-from ..model.rotations import rotation_to_rpy
+from ..model.rotations import quaternion_to_rotation, rotation_to_rpy
 from . import run_command
 
 JOINT_STATE = "sensor_msgs/msg/JointState"
@@ -97,18 +97,6 @@ def interpolate_to_stamps(source: TopicSeries, t_s: np.ndarray, max_gap_s: float
     span = t_src[hi] - t_src[lo]
     weight = np.divide(t - t_src[lo], span, out=np.zeros_like(t), where=span > 0)[:, None]
     return source.values[lo] * (1.0 - weight) + source.values[hi] * weight, kept
-
-
-def quaternion_to_rpy(xyzw: np.ndarray) -> np.ndarray:
-    """``(N, 4)`` unit quaternions ``(x, y, z, w)`` (ROS order) → ``(N, 3)`` roll, pitch, yaw [rad]
-    with ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (spec §1)."""
-    q = xyzw / np.linalg.norm(xyzw, axis=1, keepdims=True)
-    x, y, z, w = q.T
-    R = np.empty((len(q), 3, 3))
-    R[:, 0] = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], axis=1)
-    R[:, 1] = np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], axis=1)
-    R[:, 2] = np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], axis=1)
-    return rotation_to_rpy(R)
 
 
 # ----------------------------------------------------------------------------- reading a bag
@@ -241,7 +229,7 @@ def read_topic(
     if kind == POSE_STAMPED:
         if np.any(np.linalg.norm(rows[:, 3:], axis=1) < 1e-9):
             raise CalibError(f"{bag}: {option} {topic}: a pose has a zero quaternion; expected unit quaternions")
-        rows = np.hstack([rows[:, :3], quaternion_to_rpy(rows[:, 3:])])
+        rows = np.hstack([rows[:, :3], rotation_to_rpy(quaternion_to_rotation(rows[:, 3:], "xyzw"))])
     return TopicSeries(times, rows, tuple(refused))
 
 

@@ -46,11 +46,10 @@ import numpy as np
 from ..analysis.plausibility import REST_FRACTION, check_readings_follow
 from ..errors import CalibError
 from ..instruments import instrument_kind
-from ..instruments.lie import so3_log
 from ..model import kinematics as kin
 from ..model.drive import drive_model, plain_drive
 from ..model.platform import Platform, give_reference_mm
-from ..model.rotations import rpy_to_rotation
+from ..model.rotations import rotation_axis_sin, rpy_to_rotation, so3_log
 
 #: samples the diagnosis looks at, evenly spread over the log
 DIAGNOSED_SAMPLES = 400
@@ -248,8 +247,7 @@ def _check_handedness(platform: Platform, R: np.ndarray, readings: np.ndarray, w
     R, R_m = R[usable], R_m[usable]
 
     def turns(rotations: np.ndarray) -> np.ndarray:  # sin θ × axis of R₀ᵀ R
-        M = np.einsum("ji,njk->nik", rotations[0], rotations[1:])
-        return 0.5 * np.column_stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]])
+        return rotation_axis_sin(np.einsum("ji,njk->nik", rotations[0], rotations[1:]))
 
     m, f = turns(R_m), turns(R)
     H = m.T @ f
