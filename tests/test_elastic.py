@@ -367,7 +367,9 @@ def test_a_payload_adds_its_mass_times_the_forces_per_kg(check):
             drive.leg_forces(R, t, {LOAD_KG: mass}), drive.leg_forces(R, t) + mass * per_kg, rtol=1e-12, atol=1e-9
         )
         inputs = drive.inputs(run.log.strokes[:25], None, R, t)
-        np.testing.assert_allclose(drive.loaded_inputs(inputs, per_kg, mass)[:, 6:], drive.leg_forces(R, t, {LOAD_KG: mass}))
+        np.testing.assert_allclose(
+            drive.loaded_inputs(inputs, per_kg, mass)[:, 6:], drive.leg_forces(R, t, {LOAD_KG: mass})
+        )
 
 
 def test_the_ekf_payload_column_is_the_numerical_derivative(check):

@@ -69,6 +69,8 @@ class LoadModel:
         iterations: FK ↔ compliance fixed-point iterations in :func:`settle`.
         gravity: ``(3,)`` the unit vector in {J} gravity acts along where a pose is given none of its
             own (a mount tilted once: ``[load] gravity`` of the experiment; default −z).
+        tilt_axis: ``(3,)`` the unit axis in {J} a tilting mount turns about (the experiment's stages'
+            ``tilt_deg``, :func:`~stewart_calib.simulation.experiment.tilted_gravity`).
     """
 
     platform_mass_kg: float
@@ -80,6 +82,7 @@ class LoadModel:
     bending_N_per_mm: float = float("inf")
     iterations: int = 2
     gravity: np.ndarray = field(default_factory=lambda: DOWN.copy())
+    tilt_axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
 
 
 def elastic_of(load: LoadModel) -> Elastic | None:
