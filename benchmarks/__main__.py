@@ -84,6 +84,7 @@ RUNNERS = {
     "honesty": _runner("honesty", "section"),
     "link": _runner("link", "section"),
     "rotary": _runner("rotary", "section"),
+    "tilt": _runner("tilt", "section"),
 }
 
 

@@ -36,6 +36,7 @@ SECTIONS = {
     "honesty": "Honesty over a grid",
     "link": "Live link to a controller",
     "rotary": "The rotary (servo-horn) hexapod",
+    "tilt": "The elastic robot on a tilting mount",
 }
 
 #: 1-minute load average per core above which a section says its machine was loaded

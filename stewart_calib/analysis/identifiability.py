@@ -584,10 +584,10 @@ class InformationAccumulator:
         rms = np.sqrt(self._block_squares / max(self._block_rows, 1))
         return np.concatenate([np.ones(self.n_params), np.where(rms > 0.0, rms, 1.0)])
 
-    def covariance(self) -> np.ndarray | None:
+    def covariance(self, blocks: bool = False) -> np.ndarray | None:
         """Cramér–Rao covariance ``(AᵀA)⁻¹`` of δM ``(n_params, n_params)`` [mm²] of the leg-length form (the
-        drive's blocks, where covered, marginalised), from its square-root factor (``R⁻¹R⁻ᵀ``); None
-        when the poses leave it rank-deficient."""
+        drive's blocks, where covered, marginalised; ``blocks``: over δM and the blocks, ``(size, size)`` in
+        code units), from its square-root factor (``R⁻¹R⁻ᵀ``); None when the poses leave it rank-deficient."""
         size = self._leg_factor.shape[1]
         if len(self._leg_factor) < size:
             return None
@@ -595,7 +595,8 @@ class InformationAccumulator:
         if s[-1] <= RANK_RTOL * s[0]:
             return None
         inverse = np.linalg.solve(self._leg_factor, np.eye(size))
-        return (inverse @ inverse.T)[: self.n_params, : self.n_params]
+        covariance = inverse @ inverse.T
+        return covariance if blocks else covariance[: self.n_params, : self.n_params]
 
     def report(self) -> IdentifiabilityReport:
         """Singular values, Cramér–Rao bound, weakest directions and verdict of the poses added.

@@ -106,7 +106,7 @@ def _error(
     if elastic is not None:  # the forces where this evaluation puts the platform and its legs
         inputs = elastic.reposed(inputs, channels, pose[:3, :3], pose[:3, 3], params)
         if legs.payload is not None:  # and the payload the unknown vector holds on top of the log's
-            per_kg = elastic.payload_leg_forces(pose[:3, :3], pose[:3, 3], params)
+            per_kg = elastic.payload_leg_forces(pose[:3, :3], pose[:3, 3], params, channels)
             inputs = elastic.loaded_inputs(inputs, per_kg, float(params[legs.payload]))
             dr_dm = -(elastic.force_gains(params) * per_kg)[legs.legs]
     r, H_pose, H_params = legs.rows(pose, params, inputs)

@@ -454,12 +454,12 @@ SINGULAR_RATIO = 1e-6
 
 
 @njit(**_JIT)
-def pose_gravity_forces(base, plat, R, t, weights, coms, radius, A, w, forces):
+def pose_gravity_forces(base, plat, R, t, weights, down, coms, radius, A, w, forces):
     """One pose's ``Aᵀ`` (column i ``[n_i; R d_i × n_i]``), Hadamard's ratio of it with the moment rows
-    over ``radius`` (returned), and ``f`` solving ``Aᵀ f = −w`` for weights ``(K,)`` [N] at their centres
-    ``coms (K, 3)`` in {D} into ``forces (6,)`` (left unset where the ratio is below
-    :data:`SINGULAR_RATIO` or a pivot is zero); ``A (6, 6)``, ``w (6, 1)``: scratch
-    (:mod:`stewart_calib.model.statics`, whose equations these are)."""
+    over ``radius`` (returned), and ``f`` solving ``Aᵀ f = −w`` for weights ``(K,)`` [N] acting along the
+    unit vector ``down (3,)`` in {J} at their centres ``coms (K, 3)`` in {D} into ``forces (6,)`` (left
+    unset where the ratio is below :data:`SINGULAR_RATIO` or a pivot is zero); ``A (6, 6)``, ``w (6, 1)``:
+    scratch (:mod:`stewart_calib.model.statics`, whose equations these are)."""
     for i in range(6):
         p0 = R[0, 0] * plat[i, 0] + R[0, 1] * plat[i, 1] + R[0, 2] * plat[i, 2]
         p1 = R[1, 0] * plat[i, 0] + R[1, 1] * plat[i, 1] + R[1, 2] * plat[i, 2]
@@ -469,15 +469,20 @@ def pose_gravity_forces(base, plat, R, t, weights, coms, radius, A, w, forces):
         n0, n1, n2 = v0 / norm, v1 / norm, v2 / norm
         A[0, i], A[1, i], A[2, i] = n0, n1, n2
         A[3, i], A[4, i], A[5, i] = p1 * n2 - p2 * n1, p2 * n0 - p0 * n2, p0 * n1 - p1 * n0
-    # gravity (0, 0, −m g) at R c: force and moment about the platform origin, negated
+    # the weight W down at R c: force and moment about the platform origin, negated (for down = −z the
+    # products are those of (0, 0, −W) exactly, so the forces are bit for bit those of gravity along −z)
     w[0, 0], w[1, 0], w[2, 0], w[3, 0], w[4, 0], w[5, 0] = 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     for j in range(coms.shape[0]):
-        weight = weights[j]
+        g0, g1, g2 = weights[j] * down[0], weights[j] * down[1], weights[j] * down[2]
         c0 = R[0, 0] * coms[j, 0] + R[0, 1] * coms[j, 1] + R[0, 2] * coms[j, 2]
         c1 = R[1, 0] * coms[j, 0] + R[1, 1] * coms[j, 1] + R[1, 2] * coms[j, 2]
-        w[2, 0] += weight
-        w[3, 0] += c1 * weight
-        w[4, 0] -= c0 * weight
+        c2 = R[2, 0] * coms[j, 0] + R[2, 1] * coms[j, 1] + R[2, 2] * coms[j, 2]
+        w[0, 0] -= g0
+        w[1, 0] -= g1
+        w[2, 0] -= g2
+        w[3, 0] -= c1 * g2 - c2 * g1
+        w[4, 0] -= c2 * g0 - c0 * g2
+        w[5, 0] -= c0 * g1 - c1 * g0
     product = 1.0  # of the column norms, moment rows over radius
     for i in range(6):
         column = A[0, i] * A[0, i] + A[1, i] * A[1, i] + A[2, i] * A[2, i]
@@ -563,7 +568,8 @@ def settle_pose(legs, drift, load, terms, u, R, t, passes, settled_mm, tol_mm, m
         drift: ``(base_params (42,), stiffness (4,), params (42,) out)`` (:func:`pose_drift`;
             ``base_params`` the vector of ``legs``), or None: the geometry does not move (numba compiles
             that case without the drift, and Newton then runs on ``legs`` themselves).
-        load: ``(weights (K,) [N], coms (K, 3) in {D} [mm], radius [mm])`` (:func:`pose_gravity_forces`).
+        load: ``(weights (K,) [N], down (3,) the unit vector in {J} they act along, coms (K, 3) in {D} [mm],
+            radius [mm])`` (:func:`pose_gravity_forces`).
         terms: ``(starts, gains, factors (b, 6), force_start)``: :func:`leg_extensions`' terms and the
             first of ``u``'s six force columns (−1: no term takes the forces).
         work, scratch: :func:`_fk_work`, :func:`settle_scratch`; forces: ``(6,)`` out [N].
@@ -572,13 +578,13 @@ def settle_pose(legs, drift, load, terms, u, R, t, passes, settled_mm, tol_mm, m
         the error is ``inf`` where the ratio fell below :data:`SINGULAR_RATIO` or a length is not finite.
     """
     base, plat, initial_lengths = legs
-    weights, coms, radius = load
+    weights, down, coms, radius = load
     starts, gains, factors, force_start = terms
     A, w, loaded_base, loaded_plat, lengths, extensions, previous = scratch
     target = work[5]
     ratio, residual, steps = 0.0, np.inf, 0
     for p in range(passes):
-        ratio = pose_gravity_forces(base, plat, R, t, weights, coms, radius, A, w, forces)
+        ratio = pose_gravity_forces(base, plat, R, t, weights, down, coms, radius, A, w, forces)
         if not ratio >= SINGULAR_RATIO:
             return ratio, np.inf, steps
         if drift is not None:
@@ -609,7 +615,7 @@ def settle_pose(legs, drift, load, terms, u, R, t, passes, settled_mm, tol_mm, m
 
 @njit(
     entry=(RO_3, RO_3, RO_2, F8_3, RO_2, RO_2, RO_1, F8_2, FLOAT, INT, F8_3, F8_2)
-    + (I8_1, F8_1, F8_3, INT, F8_2, RO_2, F8_1, INT, FLOAT),
+    + (I8_1, F8_1, F8_3, INT, F8_2, F8_2, RO_2, F8_1, INT, FLOAT),
     **_JIT,
 )
 def tracker_reading_residuals(
@@ -630,6 +636,7 @@ def tracker_reading_residuals(
     factors,
     force_start,
     weights,
+    downs,
     coms,
     radii,
     passes,
@@ -654,9 +661,10 @@ def tracker_reading_residuals(
         tracker_base, tracker_plat: ``(6, 3)``; tracker_lengths: ``(6,)``; readings: ``(n, 6)`` [mm].
         residuals: ``(m, n, 6)`` out: ``s_i − (‖R p_i + t − b_i‖ − l_i)`` of the tracker [mm].
         fk_residual: ``(m, n)`` out: max |length error| of each FK [mm] (``> tol_mm``: not converged).
-        force_start, weights ``(n, K)`` [N], coms ``(K, 3)``, radii ``(m,)``, passes, settled_mm: the
-            load, as :func:`settle_pose` takes it (the joints rigid: an elastic drive's compliance is a
-            term on the forces), sample k's ``weights[k]``; ``passes`` 0: no load (the others unused).
+        force_start, weights ``(n, K)`` [N], downs ``(n, 3)``, coms ``(K, 3)``, radii ``(m,)``, passes,
+            settled_mm: the load, as :func:`settle_pose` takes it (the joints rigid: an elastic drive's
+            compliance is a term on the forces), sample k's ``weights[k]`` along its gravity's unit vector
+            ``downs[k]`` in {J}; ``passes`` 0: no load (the others unused).
     """
     m = bases.shape[0]
     R, t = np.empty((m, 3, 3)), np.empty((m, 3))  # this sample's solutions
@@ -695,7 +703,7 @@ def tracker_reading_residuals(
                     residual = settle_pose(
                         (bases[j], plats[j], initial_lengths[j]),
                         None,
-                        (weights[k], coms, radii[j]),
+                        (weights[k], downs[k], coms, radii[j]),
                         (starts, gains, factors[j], force_start),
                         inputs[j, k],
                         Rj,

@@ -47,10 +47,10 @@ import numpy as np
 
 from ..config import NoiseConfig
 from ..errors import CalibError
-from ..samples import CHANNEL_SHAPES, LOAD_KG, TEMPERATURE_C, Inputs
+from ..samples import CHANNEL_SHAPES, GRAVITY, LOAD_KG, TEMPERATURE_C, Inputs
 from . import kinematics as kin
 from .legs import LegModel
-from .platform import G_N_PER_KG, N_LEGS, Elastic, LegGeometry, Platform, Thermal
+from .platform import DOWN, G_N_PER_KG, N_LEGS, Elastic, LegGeometry, Platform, Thermal
 from .statics import gravity_leg_forces, masses_and_centres, moment_radius
 from .unknowns import UnknownBlock
 
@@ -104,7 +104,9 @@ SETTLED_MM = 1e-7
 #: the compliance term's key: the result's ``"compliance"`` block (spec §10)
 COMPLIANCE = "compliance"
 
-#: what a pose-dependent term takes for a channel a sample lacks (:meth:`DriveModel.packed_pose_channels`)
+#: what a pose-dependent term takes for a channel a sample lacks (:meth:`DriveModel.packed_pose_channels`),
+#: where the drive's own tables do not say (:meth:`DriveModel.channel_default`: gravity along
+#: ``[elastic] gravity``)
 CHANNEL_DEFAULTS = {LOAD_KG: 0.0}
 
 #: the thermal expansion term's key: the result's ``"thermal"`` block (spec §17)
@@ -320,9 +322,31 @@ class DriveModel:
             return self.inputs(strokes, channels, R, t, x_drive)
         return self._inputs(strokes, channels or {}, None, None, x_drive)
 
+    def channel_default(self, name: str) -> np.ndarray:
+        """What its terms take for channel ``name`` where a sample lacks it: gravity along ``[elastic]
+        gravity`` (−z without it), the others :data:`CHANNEL_DEFAULTS` (no payload: 0 kg)."""
+        if name == GRAVITY:
+            return np.array(DOWN if self.elastic is None else self.elastic.gravity, dtype=float)
+        return np.full(CHANNEL_SHAPES[name], CHANNEL_DEFAULTS[name])
+
+    def gravity(self, channels: Inputs | None = None) -> np.ndarray:
+        """``(..., 3)`` the unit vector in {J} gravity acts along for samples of ``channels``: their
+        ``gravity`` channel (a tilting mount, spec §17), a sample without one (NaN in a buffer of
+        samples, :func:`~stewart_calib.samples.packed_inputs`) and samples without the channel at
+        :meth:`channel_default`. Taken as given: a log's rows and ``[elastic] gravity`` are normalised
+        where they are read (:mod:`stewart_calib.io`), and a longer vector here is a heavier platform."""
+        default = self.channel_default(GRAVITY)
+        given = (channels or {}).get(GRAVITY)
+        if given is None:
+            return default
+        given = np.asarray(given, dtype=float)
+        missing = np.isnan(given)
+        return np.where(missing, default, given) if missing.any() else given
+
     def leg_forces(self, R: np.ndarray, t: np.ndarray, channels: Inputs | None = None, x_drive=None) -> np.ndarray:
         """``(..., 6)`` axial forces [N] of the nominal legs holding the platform and the payload of the
-        samples' ``load_kg`` channel (scalar or ``(...)``; absent: 0) at poses ``(R, t)`` (spec §10)."""
+        samples' ``load_kg`` channel (scalar or ``(...)``; absent: 0) at poses ``(R, t)`` (spec §10), under
+        gravity along their ``gravity`` channel (:meth:`gravity`; spec §17)."""
         e = self.elastic
         if e is None:
             raise ValueError("a rigid drive carries no leg forces")
@@ -331,16 +355,20 @@ class DriveModel:
         masses, coms = masses_and_centres(
             e.platform_mass_kg, e.platform_com_mm, 0.0 if payload is None else payload, e.payload_com_mm, batch
         )
-        return gravity_leg_forces(self.prismatic(x_drive), R, t, masses, coms)
+        return gravity_leg_forces(self.prismatic(x_drive), R, t, masses, coms, self.gravity(channels))
 
-    def payload_leg_forces(self, R: np.ndarray, t: np.ndarray, x_drive=None) -> np.ndarray:
-        """``(..., 6)`` leg forces [N] per kg of payload at ``[elastic] payload_com_mm``: the forces are
-        linear in the masses, so a payload ``m`` adds ``m`` times these to :meth:`leg_forces`."""
+    def payload_leg_forces(
+        self, R: np.ndarray, t: np.ndarray, x_drive=None, channels: Inputs | None = None
+    ) -> np.ndarray:
+        """``(..., 6)`` leg forces [N] per kg of payload at ``[elastic] payload_com_mm`` under the gravity
+        of ``channels`` (:meth:`gravity`): the forces are linear in the masses, so a payload ``m`` adds
+        ``m`` times these to :meth:`leg_forces`."""
         e = self.elastic
         if e is None:
             raise ValueError("a rigid drive carries no leg forces")
         batch = np.shape(t)[:-1]
-        return gravity_leg_forces(self.prismatic(x_drive), R, t, np.ones(batch + (1,)), e.payload_com_mm[None])
+        down = self.gravity(channels)
+        return gravity_leg_forces(self.prismatic(x_drive), R, t, np.ones(batch + (1,)), e.payload_com_mm[None], down)
 
     @property
     def pose_channels(self) -> tuple[str, ...]:
@@ -356,12 +384,11 @@ class DriveModel:
 
     def packed_pose_channels(self, channels: Inputs | None) -> np.ndarray:
         """A sample's :attr:`pose_channels` as one flat float vector, a channel it lacks at what the
-        terms take for it (no payload: 0 kg): how a filter keeps them beside its prepared inputs
-        (:meth:`unpacked_pose_channels` reads it back)."""
+        terms take for it (:meth:`channel_default`: no payload, 0 kg; gravity along ``[elastic] gravity``):
+        how a filter keeps them beside its prepared inputs (:meth:`unpacked_pose_channels` reads it back)."""
         channels = channels or {}
         parts = [
-            np.full(CHANNEL_SHAPES[name], CHANNEL_DEFAULTS[name]) if channels.get(name) is None else channels[name]
-            for name in self.pose_channels
+            self.channel_default(name) if channels.get(name) is None else channels[name] for name in self.pose_channels
         ]
         return np.concatenate([np.ravel(np.asarray(part, dtype=float)) for part in parts]) if parts else np.zeros(0)
 
@@ -661,6 +688,7 @@ class DriveModel:
         from .statics import leg_force_jacobians
 
         payload_kg = (channels or {}).get(LOAD_KG)
+        down = self.gravity(channels)
 
         J_pose, J_x = self.jacobians(x_drive, R, t, inputs)
         row = next(row for row, term in enumerate(self.terms) if term.key == COMPLIANCE)
@@ -674,7 +702,7 @@ class DriveModel:
             e.payload_com_mm,
             np.shape(t)[:-1],
         )
-        df_dxi, df_dM = leg_force_jacobians(self.prismatic(x_drive), R, t, forces, masses, coms)
+        df_dxi, df_dM = leg_force_jacobians(self.prismatic(x_drive), R, t, forces, masses, coms, down)
         dr_df = (-term.gain * self._term_factors(x_drive)[row])[:, None]  # r = ‖…‖ − (l + e): ∂r_i/∂f_i = −(o + c_i) g
         J_pose = J_pose + dr_df * df_dxi
         J_x = J_x.copy()
@@ -800,7 +828,8 @@ def tracker_reading_residuals(
     """The tracker's ``readings (N, 6)`` minus what it reads where each of ``drives`` (the same terms,
     e.g. the nominal and a calibrated one) puts the platform for the logged ``strokes (N, 6)``, in one
     compiled pass (:func:`~stewart_calib.model.kinematics.tracker_reading_residuals`): elastic drives
-    settled under the platform and the payload of the log's ``channels`` (``load_kg`` ``(N,)`` [kg]; absent: 0) as
+    settled under the platform and the payload of the log's ``channels`` (``load_kg`` ``(N,)`` [kg]; absent: 0),
+    gravity along their ``gravity`` (``(N, 3)``; absent: ``[elastic] gravity``, :meth:`DriveModel.gravity`), as
     :meth:`DriveModel.settled_kinematics` settles them — the same fixed point, stopped by the same
     :data:`SETTLED_MM`, per sample — by the simulator's compiled settling
     (:func:`~stewart_calib.model._kernels.settle_pose`) with the joints rigid and the compliance the term
@@ -824,7 +853,8 @@ def tracker_reading_residuals(
     )
     force_start = drives[0].force_columns().start
     radii = np.array([moment_radius(drive.prismatic()) for drive in drives])
-    load = (force_start, masses * G_N_PER_KG, centres, radii, SETTLING_PASSES + 1, SETTLED_MM)
+    downs = np.broadcast_to(drives[0].gravity(channels), (len(readings), 3))
+    load = (force_start, masses * G_N_PER_KG, downs, centres, radii, SETTLING_PASSES + 1, SETTLED_MM)
     return kin.tracker_reading_residuals(tracker, readings, legs, inputs, terms, load)
 
 
@@ -900,7 +930,7 @@ TERM_SOURCES: dict[str, TermSource] = {
     "strokes": TermSource(lambda drive, strokes, channels, R, t, x_drive: strokes),
     "leg_forces": TermSource(
         lambda drive, strokes, channels, R, t, x_drive: drive.leg_forces(R, t, channels, x_drive),
-        channels=(LOAD_KG,),
+        channels=(LOAD_KG, GRAVITY),
         needs_pose=True,
     ),
     "thermal": TermSource(_thermal_inputs, channels=(TEMPERATURE_C,), required=(TEMPERATURE_C,)),

@@ -481,9 +481,9 @@ def tracker_reading_residuals(
             by its stroke scale) where ``terms`` is None.
         terms: ``(starts (b,), gains (b,), factors (m, b, 6))``: the extensions as
             :func:`stewart_calib.model._kernels.leg_extensions` makes them of the inputs.
-        load: ``(force_start, weights (N, K) [N], centres (K, 3) [mm], radii (m,), passes, settled_mm)``:
-            the drives settle under it, their joints rigid (:func:`stewart_calib.model._kernels.settle_pose`);
-            None: they are rigid.
+        load: ``(force_start, weights (N, K) [N], downs (N, 3), centres (K, 3) [mm], radii (m,), passes,
+            settled_mm)``, ``downs`` each sample's unit vector of gravity in {J}: the drives settle under
+            it, their joints rigid (:func:`stewart_calib.model._kernels.settle_pose`); None: they are rigid.
     Returns:
         ``(residuals (m, N, 6) [mm], converged (m, N))``: a sample's residuals are meaningless
         where its FK did not converge.
@@ -495,8 +495,16 @@ def tracker_reading_residuals(
     if terms is None:  # the inputs are the extensions: one term of gain 1
         terms = (np.zeros(1, dtype=np.int64), np.ones(1), np.ones((len(drives), 1, len(drives[0].initial_lengths))))
     if load is None:
-        load = (-1, np.empty((len(readings), 0)), np.empty((0, 3)), np.ones(len(drives)), 0, 0.0)
-    force_start, weights, centres, radii, passes, settled_mm = load
+        load = (
+            -1,
+            np.empty((len(readings), 0)),
+            np.empty((len(readings), 3)),
+            np.empty((0, 3)),
+            np.ones(len(drives)),
+            0,
+            0.0,
+        )
+    force_start, weights, downs, centres, radii, passes, settled_mm = load
     starts, gains, factors = terms
     _kernels.tracker_reading_residuals(
         _readonly(c([d.base_joints for d in drives])),  # as LegGeometry's: the FK kernels compile once
@@ -516,6 +524,7 @@ def tracker_reading_residuals(
         c(factors, dtype=float),
         int(force_start),
         c(weights, dtype=float),
+        np.array(np.broadcast_to(downs, (len(readings), 3)), dtype=float),  # a writable copy: one signature
         _readonly(c(centres, dtype=float)),
         c(radii, dtype=float),
         int(passes),

@@ -6,10 +6,11 @@ elastic drive model of the estimators (spec §10). Pure numpy, vectorised over t
 
 Equilibrium (spec §10). The six legs are two-force members: leg i pushes the platform with
 ``f_i n_i`` (``n_i`` the unit vector of paper eq. 1, base → platform, so ``f_i > 0`` is
-*compression*). Gravity (``g = 9.80665`` m/s² along −z of {J}) acts on each mass ``m_k`` at its
-centre of mass ``c_k`` in {D}. The forces balance it::
+*compression*). Gravity (``g = 9.80665`` m/s² along the unit vector ``down`` of {J}: −z, spec §10, or
+the direction a tilted mount gives, spec §17) acts on each mass ``m_k`` at its centre of mass ``c_k`` in
+{D}. The forces balance it::
 
-    Aᵀ f = −w,    column i of Aᵀ = [n_i; R d_i × n_i],    w = [Σ m_k g; Σ (R c_k) × m_k g]
+    Aᵀ f = −w,    column i of Aᵀ = [n_i; R d_i × n_i],    w = [Σ m_k g; Σ (R c_k) × m_k g],    g = 9.80665 down
 
 in {J} about the platform origin ([N] and [N·mm]). Rotated into {D} and written rotation first,
 the same equations read ``Jᵀ f = −w_D`` with ``J`` the leg-length pose Jacobian of
@@ -17,6 +18,12 @@ the same equations read ``Jᵀ f = −w_D`` with ``J`` the leg-length pose Jacob
 and ``w_D = [Σ c_k × m_k g_D; Σ m_k g_D]``, ``g_D = Rᵀ g``: the virtual-work statement that leg
 forces and platform wrench are dual through the leg-rate Jacobian. The Jacobians below are
 derived in that form.
+
+Gravity's direction is an input, ``down (..., 3)`` beside the poses (default :data:`DOWN`, −z): the
+statics of a robot on a mount tilted by ``Q`` are those of the upright robot whose base joints,
+pose and gravity are all turned by ``Qᵀ`` (tests/test_tilt.py checks that invariance). Only the
+wrench sees it; ``down`` is taken as given — a unit vector, as the platform file's and the log's
+readers (spec §17) normalise it — since a longer one is a heavier platform, not a tilt.
 
 Derivatives. Perturbing ``J`` or ``w_D`` by ``δ``: ``δf = −J⁻ᵀ (δw_D + δJᵀ f)``. For the body
 tangent ``ξ = [ω, v]`` (``R ← R Exp(ω)``, ``t ← t + R v``, as everywhere in the package):
@@ -36,10 +43,7 @@ from .._jit import F8_1, F8_2, FLOAT, RO_2, RO_3, njit
 from ..errors import CalibError
 from ._kernels import SINGULAR_RATIO, pose_gravity_forces
 from .kinematics import leg_pose_jacobian, leg_unit_vectors, skew
-from .platform import G_N_PER_KG, N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
-
-#: gravity [N/kg] in {J}: along −z.
-GRAVITY_N_PER_KG = np.array([0.0, 0.0, -G_N_PER_KG])
+from .platform import DOWN, G_N_PER_KG, N_LEGS, N_PARAMS, N_PARAMS_PER_LEG, LegGeometry
 
 
 class SingularStatics(CalibError):
@@ -60,21 +64,22 @@ class SingularStatics(CalibError):
         return CalibError(f"{where}: row {row}: {_singular_reason(ratio)}")
 
 
-def gravity_wrench(R: np.ndarray, masses_kg: np.ndarray, coms_mm: np.ndarray) -> np.ndarray:
+def gravity_wrench(R: np.ndarray, masses_kg: np.ndarray, coms_mm: np.ndarray, down: np.ndarray = DOWN) -> np.ndarray:
     """Gravity wrench ``w = [F [N], M [N·mm]]`` on the platform about its origin, in {J}.
 
     Args:
         R: ``(..., 3, 3)`` platform orientation.
         masses_kg: ``(..., K)`` masses [kg] (broadcast against the batch).
         coms_mm: ``(K, 3)`` their centres of mass in {D} [mm].
+        down: ``(..., 3)`` the unit vector in {J} gravity acts along (default −z).
     Returns:
         ``(..., 6)``.
     """
     masses_kg = np.asarray(masses_kg, dtype=float)
-    masses_kg = np.broadcast_to(
-        masses_kg, np.broadcast_shapes(np.shape(R)[:-2], masses_kg.shape[:-1]) + masses_kg.shape[-1:]
-    )
-    weights = masses_kg[..., None] * GRAVITY_N_PER_KG  # (..., K, 3)
+    down = np.asarray(down, dtype=float)
+    batch = np.broadcast_shapes(np.shape(R)[:-2], masses_kg.shape[:-1], down.shape[:-1])
+    masses_kg = np.broadcast_to(masses_kg, batch + masses_kg.shape[-1:])
+    weights = masses_kg[..., None] * (G_N_PER_KG * down)[..., None, :]  # (..., K, 3)
     arms = np.einsum("...ij,kj->...ki", R, np.asarray(coms_mm, dtype=float))  # (..., K, 3)
     return np.concatenate([weights.sum(axis=-2), np.cross(arms, weights).sum(axis=-2)], axis=-1)
 
@@ -133,25 +138,32 @@ def leg_forces(legs: LegGeometry, R: np.ndarray, t: np.ndarray, wrench: np.ndarr
 
 
 def gravity_leg_forces(
-    legs: LegGeometry, R: np.ndarray, t: np.ndarray, masses_kg: np.ndarray, coms_mm: np.ndarray
+    legs: LegGeometry,
+    R: np.ndarray,
+    t: np.ndarray,
+    masses_kg: np.ndarray,
+    coms_mm: np.ndarray,
+    down: np.ndarray = DOWN,
 ) -> np.ndarray:
     """Leg forces [N] holding masses ``(..., K)`` [kg] at centres ``(K, 3)`` in {D} [mm] at poses
-    ``(R, t)``, ``(..., 6)``: :func:`leg_forces` of :func:`gravity_wrench` in one compiled pass
-    (an order of magnitude faster than the vectorised numpy on small batches, equal to it to rounding).
+    ``(R, t)`` under gravity along the unit vectors ``down (..., 3)`` in {J} (default −z), ``(..., 6)``:
+    :func:`leg_forces` of :func:`gravity_wrench` in one compiled pass (an order of magnitude faster
+    than the vectorised numpy on small batches, equal to it to rounding).
 
     Raises:
         SingularStatics: as :func:`leg_forces` (the same ratio).
     """
     c = np.ascontiguousarray
     coms_mm = np.asarray(coms_mm, dtype=float)
-    batch = np.broadcast_shapes(np.shape(R)[:-2], np.shape(t)[:-1], np.shape(masses_kg)[:-1])
+    batch = np.broadcast_shapes(np.shape(R)[:-2], np.shape(t)[:-1], np.shape(masses_kg)[:-1], np.shape(down)[:-1])
     R = c(np.broadcast_to(R, (*batch, 3, 3)), dtype=float).reshape(-1, 3, 3)
     t = c(np.broadcast_to(t, (*batch, 3)), dtype=float).reshape(-1, 3)
     masses = c(np.broadcast_to(np.asarray(masses_kg, dtype=float), (*batch, len(coms_mm)))).reshape(len(R), -1)
+    downs = np.array(np.broadcast_to(np.asarray(down, dtype=float), (*batch, 3))).reshape(-1, 3)  # writable
     forces, ratios = np.empty((len(R), 6)), np.empty(len(R))
     radius = moment_radius(legs)
     weights = masses * G_N_PER_KG
-    _gravity_forces(legs.base_joints, legs.platform_joints, R, t, weights, c(coms_mm), radius, forces, ratios)
+    _gravity_forces(legs.base_joints, legs.platform_joints, R, t, weights, downs, c(coms_mm), radius, forces, ratios)
     bad = np.flatnonzero(~(ratios >= SINGULAR_RATIO))
     if bad.size:
         index = int(bad[0])
@@ -159,14 +171,14 @@ def gravity_leg_forces(
     return forces.reshape(*batch, 6)
 
 
-@njit(entry=(RO_2, RO_2, RO_3, RO_2, RO_2, F8_2, FLOAT, F8_2, F8_1), nogil=True, error_model="numpy")
-def _gravity_forces(base, plat, R, t, weights, coms, radius, forces, ratios):
-    """:func:`~stewart_calib.model._kernels.pose_gravity_forces` of every pose ``k`` (weights ``(n, K)`` [N])
-    into ``forces[k]`` and ``ratios[k]``."""
+@njit(entry=(RO_2, RO_2, RO_3, RO_2, RO_2, F8_2, RO_2, FLOAT, F8_2, F8_1), nogil=True, error_model="numpy")
+def _gravity_forces(base, plat, R, t, weights, downs, coms, radius, forces, ratios):
+    """:func:`~stewart_calib.model._kernels.pose_gravity_forces` of every pose ``k`` (weights ``(n, K)`` [N]
+    along ``downs[k]``, ``(n, 3)`` unit vectors in {J}) into ``forces[k]`` and ``ratios[k]``."""
     A = np.empty((6, 6))
     w = np.empty((6, 1))
     for k in range(R.shape[0]):
-        ratios[k] = pose_gravity_forces(base, plat, R[k], t[k], weights[k], coms, radius, A, w, forces[k])
+        ratios[k] = pose_gravity_forces(base, plat, R[k], t[k], weights[k], downs[k], coms, radius, A, w, forces[k])
 
 
 def masses_and_centres(
@@ -180,13 +192,19 @@ def masses_and_centres(
 
 
 def leg_force_jacobians(
-    legs: LegGeometry, R: np.ndarray, t: np.ndarray, forces_N: np.ndarray, masses_kg: np.ndarray, coms_mm: np.ndarray
+    legs: LegGeometry,
+    R: np.ndarray,
+    t: np.ndarray,
+    forces_N: np.ndarray,
+    masses_kg: np.ndarray,
+    coms_mm: np.ndarray,
+    down: np.ndarray = DOWN,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Jacobians of :func:`gravity_leg_forces` at its solution ``forces_N``: ``(∂f/∂ξ, ∂f/∂M)``.
 
     Args:
         forces_N: ``(..., 6)`` the forces at ``(R, t)`` [N].
-        masses_kg, coms_mm: as :func:`gravity_leg_forces`.
+        masses_kg, coms_mm, down: as :func:`gravity_leg_forces`.
     Returns:
         ``(..., 6, 6)`` [N per rad, N/mm] for the body tangent ``ξ = [ω, v]``, and ``(..., 6, 42)``
         [N/mm] on the drive parameters in the paper's order (zero on every ``l_i``).
@@ -200,7 +218,7 @@ def leg_force_jacobians(
     arms = skew(legs.platform_joints)  # (6, 3, 3): [d_i]×
 
     # the gravity wrench's change with the orientation: δg_D = [g_D]× ω
-    g_D = np.einsum("...ji,j->...i", R, GRAVITY_N_PER_KG)
+    g_D = np.einsum("...ji,...j->...i", R, G_N_PER_KG * np.asarray(down, dtype=float))
     dg = skew(g_D)  # (..., 3, 3)
     masses_kg = np.broadcast_to(
         np.asarray(masses_kg, dtype=float),

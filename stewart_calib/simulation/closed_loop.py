@@ -15,7 +15,9 @@ A **controller** is any object with two methods::
     controller.observe(sample: Sample) -> None # called after each sample
 
 and optionally ``controller.strokes(R_d, t_d, payload_kg) -> q``: its own IK where the model is
-more than a leg geometry (an elastic drive under the payload, spec §10).
+more than a leg geometry (an elastic drive under the payload, spec §10); on a tilting mount (an
+experiment's stages' ``tilt_deg``, spec §17) it is called with ``gravity=`` the samples' unit vectors
+of gravity in {J} too.
 
 :class:`NominalController` (uncalibrated) and :class:`FrozenController` (a frozen batch
 estimate, or the true no-load geometry for a perfect calibration) never change their model;
@@ -59,7 +61,7 @@ from ..model.drive import STROKE_SCALE, DriveModel, drive_model, plain_drive
 from ..model.legs import LegModel
 from ..model.platform import LegGeometry, Platform
 from ..progress import progress_bar
-from ..samples import LOAD_KG, Log, Sample, Truth, with_payload
+from ..samples import GRAVITY, LOAD_KG, Log, Sample, Truth, with_payload
 from .experiment import Experiment, RotaryRobotConfig, Schedule, schedule
 from .instrument import SimulatedInstrument
 from .load import LoadModel, Settling
@@ -137,15 +139,18 @@ class EstimatorController:
             self._drive = self._nominal.perturbed(self._error)
         self._trace.append(self._error)
 
-    def strokes(self, R_d: np.ndarray, t_d: np.ndarray, payload_kg) -> np.ndarray:
+    def strokes(self, R_d: np.ndarray, t_d: np.ndarray, payload_kg, gravity=None) -> np.ndarray:
         """IK of the model in force; an elastic one with its identified blocks, under ``payload_kg``
-        (taken as 0 unless :attr:`payload_known`) and the payload the estimator found unannounced."""
+        (taken as 0 unless :attr:`payload_known`) and the payload the estimator found unannounced, gravity
+        along ``gravity`` (None: the platform's ``[elastic] gravity``)."""
         if self._elastic is None:
             return self._drive.coordinates(R_d, t_d)
         estimate = model_estimate(self.estimator)
         values = {term.key: estimate.block_values(term.key) for term in self._elastic.terms}
         drive = self._elastic.calibrated(self._error, values)
-        announced = {LOAD_KG: payload_kg} if self.payload_known else {}
+        announced: dict = {LOAD_KG: payload_kg} if self.payload_known else {}
+        if gravity is not None:
+            announced[GRAVITY] = gravity
         return drive.inverse_kinematics(R_d, t_d, channels=with_payload(announced, estimate.unannounced_payload_kg()))
 
     def trace(self) -> np.ndarray:
@@ -201,13 +206,14 @@ class TrueRobot:
         )
 
     def settle(
-        self, strokes: np.ndarray, payload_kg: np.ndarray, guess, unit_noise: np.ndarray
+        self, strokes: np.ndarray, payload_kg: np.ndarray, guess, unit_noise: np.ndarray, gravity=None
     ) -> tuple[kin.FKSolution, np.ndarray]:
         """``(poses, true parameters (N, n_params))`` the robot reaches with the commanded ``strokes (N, 6)``:
-        the loaded fixed point of the load model (:class:`~.load.Settling`), or a rotary robot's forward
-        kinematics of its servos' angles (``unit_noise``: the standard normal draws of their white error)."""
+        the loaded fixed point of the load model (:class:`~.load.Settling`) under gravity along ``gravity``
+        (``(N, 3)``; None: the load model's), or a rotary robot's forward kinematics of its servos' angles
+        (``unit_noise``: the standard normal draws of their white error)."""
         if not self.rotary:
-            return self.settling.settle(strokes, payload_kg, guess)
+            return self.settling.settle(strokes, payload_kg, guess, gravity)
         held = strokes + self.encoder_noise_mm * unit_noise / (1.0 + self.stroke_scale)
         sol = self.true_drive.forward_kinematics(held, guess=guess)
         return sol, np.tile(self.base_params, (len(strokes), 1))
@@ -222,13 +228,14 @@ class TrueRobot:
             raise ValueError("a robot without an outside instrument is measured by its tracker: it needs one")
         return self.tracker.read(R, t, reading_noise)
 
-    def drive_at(self, pose6: np.ndarray, payload_kg: float = 0.0) -> LegGeometry:
-        """True drive geometry in force at a pose ``[mm, rad]`` under a payload [kg].
+    def drive_at(self, pose6: np.ndarray, payload_kg: float = 0.0, gravity=None) -> LegGeometry:
+        """True drive geometry in force at a pose ``[mm, rad]`` under a payload [kg], gravity along
+        ``gravity`` ``(3,)`` (None: the load model's).
 
         ``drive_at(home, 0.0)`` is what a perfect no-load calibration would find.
         """
         R, t = kin.pose_to_rt(np.asarray(pose6, dtype=float)[None])
-        params, _ = self.settling.loaded_params(R, t, payload_kg)
+        params, _ = self.settling.loaded_params(R, t, payload_kg, gravity)
         return LegGeometry.from_params(params[0])
 
     @functools.cached_property
@@ -432,8 +439,9 @@ def _settle_block(robot: TrueRobot, plan: Schedule, rows: slice, controller: Con
     """A model that never changes: the block's IK, settling and measurements in one vectorised pass
     (``noise``: the block's stroke and reading noise and instrument draws)."""
     R_d, t_d = kin.pose_to_rt(plan.desired_poses[rows])
-    strokes = _commanded(controller, R_d, t_d, plan.payload_kg[rows], plan, rows.start)
-    sol, params = robot.settle(strokes, plan.payload_kg[rows], (R_d, t_d), noise[0])
+    gravity = None if plan.gravity is None else plan.gravity[rows]
+    strokes = _commanded(controller, R_d, t_d, plan.payload_kg[rows], plan, rows.start, gravity)
+    sol, params = robot.settle(strokes, plan.payload_kg[rows], (R_d, t_d), noise[0], gravity)
     log, truth = _measured(robot, plan, rows, strokes, sol.R, sol.t, params, noise)
     for sample in log:  # the protocol promises observe() after every sample
         controller.observe(sample)
@@ -448,9 +456,14 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
     strokes, params = np.empty((m, len(robot.stroke_scale))), np.empty((m, robot.base_params.size))
     R, t = np.empty((m, 3, 3)), np.empty((m, 3))
     for i, k in enumerate(range(rows.start, rows.stop)):
-        strokes[i] = _commanded(controller, R_d[i], t_d[i], plan.payload_kg[k], plan, k)
+        gravity = None if plan.gravity is None else plan.gravity[k]
+        strokes[i] = _commanded(controller, R_d[i], t_d[i], plan.payload_kg[k], plan, k, gravity)
         sol, params[i : i + 1] = robot.settle(
-            strokes[i : i + 1], plan.payload_kg[k : k + 1], (R_d[i : i + 1], t_d[i : i + 1]), stroke_noise[i : i + 1]
+            strokes[i : i + 1],
+            plan.payload_kg[k : k + 1],
+            (R_d[i : i + 1], t_d[i : i + 1]),
+            stroke_noise[i : i + 1],
+            None if gravity is None else gravity[None],
         )
         R[i], t[i] = sol.R[0], sol.t[0]
         controller.observe(
@@ -464,15 +477,23 @@ class Unreachable(ValueError):
     inverse kinematics: no horn angle within the angle range, spec §15)."""
 
 
-def _commanded(controller: Controller, R_d: np.ndarray, t_d: np.ndarray, payload_kg, plan: Schedule, first: int):
-    """The strokes ``controller`` commands for desired poses: its own ``strokes`` where it has one,
-    else IK of its drive model (``plan``'s samples from ``first``: named where one is unreachable).
+def _commanded(
+    controller: Controller, R_d: np.ndarray, t_d: np.ndarray, payload_kg, plan: Schedule, first: int, gravity=None
+):
+    """The strokes ``controller`` commands for desired poses: its own ``strokes`` where it has one (told
+    the samples' ``gravity`` where the mount tilts), else IK of its drive model (``plan``'s samples from
+    ``first``: named where one is unreachable).
 
     Raises:
         Unreachable: a pose with a coordinate the IK leaves NaN, naming its sample.
     """
     command = getattr(controller, "strokes", None)
-    strokes = controller.drive_model().coordinates(R_d, t_d) if command is None else command(R_d, t_d, payload_kg)
+    if command is None:
+        strokes = controller.drive_model().coordinates(R_d, t_d)
+    elif gravity is None:
+        strokes = command(R_d, t_d, payload_kg)
+    else:
+        strokes = command(R_d, t_d, payload_kg, gravity=gravity)
     bad = np.flatnonzero(~np.all(np.isfinite(np.reshape(strokes, (-1, np.shape(strokes)[-1]))), axis=1))
     if bad.size:
         k = first + int(bad[0])
@@ -493,7 +514,7 @@ def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, para
         readings=robot.readings(R, t, reading_noise, instrument_draws),
         desired_poses=plan.desired_poses[rows].copy(),
         stages=list(plan.stages[rows]),
-        inputs={LOAD_KG: plan.payload_kg[rows].copy()},
+        inputs=_channels(plan, rows),
     )
     params = params.copy()
     if not robot.rotary:
@@ -551,5 +572,14 @@ def _sample(robot: TrueRobot, plan, k: int, stroke, stroke_noise, R, t, reading_
         readings=robot.readings(R, t, reading_noise, instrument_draws),
         desired_pose=plan.desired_poses[k],
         stage=str(plan.stages[k]),
-        inputs={LOAD_KG: float(plan.payload_kg[k])},
+        inputs={name: value if np.ndim(value) else float(value) for name, value in _channels(plan, k).items()},
     )
+
+
+def _channels(plan: Schedule, index) -> dict[str, np.ndarray]:
+    """The input channels a log holds at ``plan``'s samples ``index`` (a slice or a sample): the payload,
+    and gravity's direction where the mount tilts."""
+    channels = {LOAD_KG: np.array(plan.payload_kg[index])}
+    if plan.gravity is not None:
+        channels[GRAVITY] = np.array(plan.gravity[index])
+    return channels

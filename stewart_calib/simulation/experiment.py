@@ -19,11 +19,23 @@ identical output. Layout (every key optional except ``seed`` and ``platform``; d
                 used as the true noise) and its truth: frame_offset, target_offset,
                 target_spread_mm, dropout_probability (see simulation/instrument.py)
     [load]      platform_mass_kg, platform_com_mm, payload_com_mm, leg_N_per_mm,
-                base_joint_N_per_mm, platform_joint_N_per_mm, bending_N_per_mm, iterations
+                base_joint_N_per_mm, platform_joint_N_per_mm, bending_N_per_mm, iterations,
+                gravity = [gx, gy, gz] (the direction gravity acts along in {J} on a mount tilted once:
+                normalised, a zero vector refused; default [0, 0, -1]; simulate writes it as the
+                platform's [elastic] gravity, spec §17), tilt_axis = [ax, ay, az] (the axis in {J} a
+                tilting mount turns about, like a telescope's elevation axis; normalised; default
+                [1, 0, 0])
     [tracker]   noise_mm, quantum_mm, geometry_residual_mm
     [poses]     calibration, validation (counts), samples_per_pose, workspace_fraction, margin_mm
     [circle]    radius_mm, plane, points, samples_per_point, centre_offset_mm
-    [[stages]]  name, load_kg, ramp_s, segments = ["calibration", "validation", "circle"]
+    [[stages]]  name, load_kg, ramp_s, segments = ["calibration", "validation", "circle"],
+                tilt_deg (the mount turned by this angle [deg] about tilt_axis, right-handed, within
+                ±180; reached over ramp_s from the stage before's, as the payload is; default 0)
+
+A mount that tilts: where any stage's ``tilt_deg`` is not 0, gravity at a sample with the mount at
+``θ`` acts along ``Rot(tilt_axis, θ)ᵀ gravity`` in {J} (the base turned by ``θ``, the world's
+gravity fixed), the robot settles under it and the log carries it per row (``Log.inputs`` ``gravity``,
+spec §17 ``gravity_x gravity_y gravity_z``).
 
 :func:`load_experiment` validates every key (a wrong type or an unknown key raises
 :class:`~stewart_calib.errors.CalibError` naming the file and the key). :func:`schedule` turns an
@@ -143,6 +155,7 @@ class Stage:
     load_kg: float
     ramp_s: float
     segments: tuple[str, ...]
+    tilt_deg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -218,6 +231,19 @@ class _Table:
             raise self.refuse(key, "a non-empty string")
         return value
 
+    def direction(self, key: str, default) -> np.ndarray:
+        """A direction ``[x, y, z]``, normalised; a zero, non-finite or short vector refused."""
+        self.used.add(key)
+        value = self.doc.get(key, default)
+        try:
+            arr = np.array(value, dtype=float)
+        except (TypeError, ValueError):
+            arr = np.array([])
+        norm = float(np.linalg.norm(arr)) if arr.shape == (3,) else math.nan
+        if not (np.all(np.isfinite(arr)) and norm > 0.0):
+            raise self.refuse(key, f"a direction [x, y, z] in {{J}} (a non-zero vector, normalised), got {value!r}")
+        return arr / norm
+
     def vector3(self, key: str, default) -> tuple[float, float, float]:
         x, y, z = self.vector(key, default, 3)
         return x, y, z
@@ -278,6 +304,8 @@ def load_experiment(path: str | Path) -> Experiment:
             for key in ("leg_N_per_mm", "base_joint_N_per_mm", "platform_joint_N_per_mm", "bending_N_per_mm")
         },
         iterations=ld.number("iterations", dflt["iterations"], minimum=1, integer=True),
+        gravity=ld.direction("gravity", [0.0, 0.0, -1.0]),
+        tilt_axis=ld.direction("tilt_axis", [1.0, 0.0, 0.0]),
     )
     # the platform file simulate writes carries these centres as [elastic]'s: refused here by [elastic]'s rule,
     # not written into a platform every other command refuses
@@ -411,7 +439,10 @@ def _stage(raw, prefix: str, source: str) -> Stage:
         load_kg=t.number("load_kg", 0.0, minimum=0.0),
         ramp_s=t.number("ramp_s", 0.0, minimum=0.0),
         segments=tuple(segments),
+        tilt_deg=t.number("tilt_deg", 0.0),
     )
+    if abs(stage.tilt_deg) > 180.0:
+        raise t.refuse("tilt_deg", f"an angle within ±180 deg, got {stage.tilt_deg}")
     t.done()
     return stage
 
@@ -424,6 +455,8 @@ class Schedule:
         t_s: ``(N,)`` [s]. desired_poses: ``(N, 6)`` [mm, rad]. payload_kg: ``(N,)`` payload in
         force (ramped) [kg]. stages: ``(N,)`` stage names. kinds: ``(N,)`` segment kinds.
         pose_index: ``(N,)`` index of the pose within its segment (static pose or circle point).
+        gravity: ``(N, 3)`` the unit vector in {J} gravity acts along at each sample where the mount
+        tilts (a stage's ``tilt_deg``), else None (``[load] gravity`` throughout).
     """
 
     t_s: np.ndarray
@@ -432,6 +465,15 @@ class Schedule:
     stages: np.ndarray
     kinds: np.ndarray
     pose_index: np.ndarray
+    gravity: np.ndarray | None = None
+
+
+def tilted_gravity(gravity: np.ndarray, axis: np.ndarray, tilt_deg: np.ndarray) -> np.ndarray:
+    """``(N, 3)`` gravity's unit vector in {J} with the mount turned by ``tilt_deg (N,)`` [deg] about the
+    unit ``axis`` (in {J}, right-handed): ``Rot(axis, θ)ᵀ gravity``, Rodrigues' formula with ``−θ``."""
+    theta = -np.radians(np.asarray(tilt_deg, dtype=float))[:, None]
+    g, a = np.asarray(gravity, dtype=float), np.asarray(axis, dtype=float)
+    return g * np.cos(theta) + np.cross(a, g) * np.sin(theta) + a * (a @ g) * (1.0 - np.cos(theta))
 
 
 def schedule(experiment: Experiment, rng: np.random.Generator) -> Schedule:
@@ -469,13 +511,16 @@ def schedule(experiment: Experiment, rng: np.random.Generator) -> Schedule:
             lo = rows.stop
     t_s = np.arange(n) * e.sample_period_s
 
-    # Payload: linear ramp from the previous stage's load over ramp_s from the stage's start.
-    payload = np.empty(n)
+    # Payload and tilt: linear ramps from the previous stage's over ramp_s from the stage's start.
+    payload, tilt = np.empty(n), np.empty(n)
     bounds = stage_start + [n]
-    previous = 0.0
+    previous, previous_tilt = 0.0, 0.0
     for stage, lo, hi in zip(e.stages, bounds[:-1], bounds[1:], strict=True):
         elapsed = t_s[lo:hi] - (t_s[lo] if hi > lo else 0.0)
         ramp = np.ones_like(elapsed) if stage.ramp_s == 0 else np.clip(elapsed / stage.ramp_s, 0.0, 1.0)
         payload[lo:hi] = previous + (stage.load_kg - previous) * ramp
-        previous = stage.load_kg
-    return Schedule(t_s, desired, payload, stages, kinds, index)
+        tilt[lo:hi] = previous_tilt + (stage.tilt_deg - previous_tilt) * ramp
+        previous, previous_tilt = stage.load_kg, stage.tilt_deg
+    tilting = any(stage.tilt_deg != 0.0 for stage in e.stages)
+    gravity = tilted_gravity(e.load.gravity, e.load.tilt_axis, tilt) if tilting else None
+    return Schedule(t_s, desired, payload, stages, kinds, index, gravity)

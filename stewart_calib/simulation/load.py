@@ -6,8 +6,9 @@ settles an adaptive controller's samples one at a time, and in vectorised numpy 
 ``(R, t)`` of {D} in {J} and the drive geometry in force:
 
 1. **Gravity wrench** on the platform about its origin ``t`` (in {J}): each mass ``m_k`` [kg] at
-   ``c_k`` in {D} contributes ``F = m_k g`` and ``M = (R c_k) × m_k g`` with
-   ``g = [0, 0, −9.80665]`` N/kg — [N] and [N·mm].
+   ``c_k`` in {D} contributes ``F = m_k g`` and ``M = (R c_k) × m_k g`` with ``g = 9.80665 down``
+   N/kg — [N] and [N·mm] — ``down`` the unit vector in {J} gravity acts along: −z on a level mount
+   (:attr:`LoadModel.gravity`), per pose on a tilting one (spec §17).
 2. **Statics** (the transposed Jacobian; :mod:`stewart_calib.model.statics`, shared with the elastic
    drive model of the estimators; the compiled passes below are :func:`stewart_calib.model._kernels.settle_pose`,
    which the elastic drive's tracker residuals settle with too): the six legs are two-force members, leg i pushes the
@@ -34,7 +35,7 @@ so each iteration gains ~3 orders of magnitude; two are plenty).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -49,7 +50,7 @@ from ..model._kernels import (
     settle_scratch,
     split_params,
 )
-from ..model.platform import G_N_PER_KG, PARAMETER_FIELDS, Elastic, LegGeometry
+from ..model.platform import DOWN, G_N_PER_KG, PARAMETER_FIELDS, Elastic, LegGeometry
 from ..model.statics import SingularStatics, _singular_message, masses_and_centres, moment_radius
 
 
@@ -66,6 +67,10 @@ class LoadModel:
         platform_joint_N_per_mm: axial stiffness of a platform (upper Hooke) joint [N/mm].
         bending_N_per_mm: plate bending stiffness at a joint [N/mm]; ``inf`` = rigid plate.
         iterations: FK ↔ compliance fixed-point iterations in :func:`settle`.
+        gravity: ``(3,)`` the unit vector in {J} gravity acts along where a pose is given none of its
+            own (a mount tilted once: ``[load] gravity`` of the experiment; default −z).
+        tilt_axis: ``(3,)`` the unit axis in {J} a tilting mount turns about (the experiment's stages'
+            ``tilt_deg``, :func:`~stewart_calib.simulation.experiment.tilted_gravity`).
     """
 
     platform_mass_kg: float
@@ -76,6 +81,8 @@ class LoadModel:
     platform_joint_N_per_mm: float
     bending_N_per_mm: float = float("inf")
     iterations: int = 2
+    gravity: np.ndarray = field(default_factory=lambda: DOWN.copy())
+    tilt_axis: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
 
 
 def elastic_of(load: LoadModel) -> Elastic | None:
@@ -86,7 +93,8 @@ def elastic_of(load: LoadModel) -> Elastic | None:
     Each joint's drift of step 3 lies along its leg, so it changes the leg length by ``−f_i / k``
     exactly as the leg's own compliance does: ``c_i = 1000 (1/k_leg + 1/k_base + 1/k_platform)``
     [mm/kN]. A finite plate bending moves the platform joints along z of {D}, not along the legs,
-    and is not part of c. None for a massless platform (spec §10 needs a positive mass).
+    and is not part of c. The mount's gravity is ``[elastic] gravity`` (spec §17). None for a massless
+    platform (spec §10 needs a positive mass).
     """
     if not load.platform_mass_kg > 0:
         return None
@@ -96,6 +104,7 @@ def elastic_of(load: LoadModel) -> Elastic | None:
         np.array(load.platform_com_mm, dtype=float),
         np.array(load.payload_com_mm, dtype=float),
         true_compliance_mm_per_kN=np.full(6, 1000.0 * series),
+        gravity=np.array(load.gravity, dtype=float),
     )
 
 
@@ -106,12 +115,14 @@ def _stiffness(load: LoadModel) -> np.ndarray:
     )
 
 
-_POSE_INPUTS = (RO_1, F8_3, F8_2, F8_2, RO_2, FLOAT, F8_1)  # base params, R, t, weights, centres, radius, stiffness
+# base params, R, t, weights, downs, centres, radius, stiffness
+_POSE_INPUTS = (RO_1, F8_3, F8_2, F8_2, F8_2, RO_2, FLOAT, F8_1)
 
 
 @njit(entry=(*_POSE_INPUTS, F8_2, F8_2, F8_1), nogil=True, error_model="numpy")
-def _loaded_params(base_params, R, t, weights, coms, radius, stiffness, params, forces, ratios):
-    """:func:`loaded_params` of every pose ``k`` (weights ``(n, 2)`` [N]) into ``params[k]``, ``forces[k]``
+def _loaded_params(base_params, R, t, weights, downs, coms, radius, stiffness, params, forces, ratios):
+    """:func:`loaded_params` of every pose ``k`` (weights ``(n, 2)`` [N] along ``downs[k]``, unit vectors
+    in {J}) into ``params[k]``, ``forces[k]``
     and the statics' Hadamard ratio ``ratios[k]`` (params and forces unset below
     :data:`~stewart_calib.model._kernels.SINGULAR_RATIO`)."""
     n_legs = len(base_params) // 7  # seven parameters a leg
@@ -119,7 +130,7 @@ def _loaded_params(base_params, R, t, weights, coms, radius, stiffness, params, 
     split_params(base_params, base, plat, lengths)
     A, w = np.empty((6, 6)), np.empty((6, 1))
     for k in range(R.shape[0]):
-        ratios[k] = pose_gravity_forces(base, plat, R[k], t[k], weights[k], coms, radius, A, w, forces[k])
+        ratios[k] = pose_gravity_forces(base, plat, R[k], t[k], weights[k], downs[k], coms, radius, A, w, forces[k])
         if ratios[k] >= SINGULAR_RATIO:
             pose_drift(base_params, R[k], t[k], forces[k], stiffness, params[k])
 
@@ -130,6 +141,7 @@ def _settle_poses(
     R,
     t,
     weights,
+    downs,
     coms,
     radius,
     stiffness,
@@ -158,7 +170,7 @@ def _settle_poses(
         ratios[k], residual[k], newton_steps[k] = settle_pose(
             (base, plat, lengths),
             (base_params, stiffness, params[k]),
-            (weights[k], coms, radius),
+            (weights[k], downs[k], coms, radius),
             terms,
             strokes[k],
             R[k],
@@ -185,6 +197,7 @@ class Settling:
         radius: the statics' moment radius (:func:`~stewart_calib.model.statics.moment_radius`) [mm].
         stiffness: as :func:`_stiffness`.
         iterations: FK ↔ compliance iterations of :meth:`settle`.
+        gravity: ``(3,)`` the unit vector in {J} gravity acts along where a pose is given none.
     """
 
     base_params: np.ndarray
@@ -193,6 +206,7 @@ class Settling:
     radius: float
     stiffness: np.ndarray
     iterations: int
+    gravity: np.ndarray = field(default_factory=lambda: DOWN.copy())
 
     @classmethod
     def of(cls, load: LoadModel, base_params: np.ndarray) -> Settling:
@@ -202,27 +216,31 @@ class Settling:
         for array in (base, centres):
             array.setflags(write=False)
         radius = moment_radius(LegGeometry.from_params(base))
-        return cls(base, centres, float(load.platform_mass_kg), radius, _stiffness(load), int(load.iterations))
+        gravity = np.array(load.gravity, dtype=float)
+        return cls(base, centres, float(load.platform_mass_kg), radius, _stiffness(load), int(load.iterations), gravity)
 
     @property
     def n_legs(self) -> int:
         """The drive's legs: seven parameters each."""
         return self.base_params.size // len(PARAMETER_FIELDS)
 
-    def _inputs(self, R: np.ndarray, t: np.ndarray, payload_kg) -> tuple[tuple, tuple]:
-        """``(batch, the kernels' pose inputs)`` of poses ``(R, t)`` (copied: the kernels overwrite them)."""
-        batch = np.broadcast_shapes(np.shape(R)[:-2], np.shape(t)[:-1], np.shape(payload_kg))
+    def _inputs(self, R: np.ndarray, t: np.ndarray, payload_kg, gravity=None) -> tuple[tuple, tuple]:
+        """``(batch, the kernels' pose inputs)`` of poses ``(R, t)`` (copied: the kernels overwrite them)
+        under gravity along ``gravity`` ``(..., 3)`` (None: :attr:`gravity`)."""
+        down = self.gravity if gravity is None else np.asarray(gravity, dtype=float)
+        batch = np.broadcast_shapes(np.shape(R)[:-2], np.shape(t)[:-1], np.shape(payload_kg), down.shape[:-1])
         R_flat = np.array(np.broadcast_to(R, (*batch, 3, 3)), dtype=float).reshape(-1, 3, 3)
         t_flat = np.array(np.broadcast_to(t, (*batch, 3)), dtype=float).reshape(-1, 3)
         masses = np.empty((len(R_flat), 2))
         masses[:, 0] = self.platform_mass_kg
         masses[:, 1] = np.broadcast_to(payload_kg, batch).reshape(-1)
         weights = masses * G_N_PER_KG
-        return batch, (self.base_params, R_flat, t_flat, weights, self.centres, self.radius, self.stiffness)
+        downs = np.array(np.broadcast_to(down, (*batch, 3)), dtype=float).reshape(-1, 3)
+        return batch, (self.base_params, R_flat, t_flat, weights, downs, self.centres, self.radius, self.stiffness)
 
-    def loaded_params(self, R: np.ndarray, t: np.ndarray, payload_kg) -> tuple[np.ndarray, np.ndarray]:
+    def loaded_params(self, R: np.ndarray, t: np.ndarray, payload_kg, gravity=None) -> tuple[np.ndarray, np.ndarray]:
         """:func:`loaded_params` on this robot."""
-        batch, inputs = self._inputs(R, t, payload_kg)
+        batch, inputs = self._inputs(R, t, payload_kg, gravity)
         n = len(inputs[1])
         params, forces, ratios = np.empty((n, self.base_params.size)), np.empty((n, self.n_legs)), np.empty(n)
         _loaded_params(*inputs, params, forces, ratios)
@@ -230,12 +248,13 @@ class Settling:
         return params.reshape(batch + params.shape[1:]), forces.reshape(batch + forces.shape[1:])
 
     def settle(
-        self, strokes: np.ndarray, payload_kg, guess: tuple[np.ndarray, np.ndarray]
+        self, strokes: np.ndarray, payload_kg, guess: tuple[np.ndarray, np.ndarray], gravity=None
     ) -> tuple[kin.FKSolution, np.ndarray]:
         """:func:`settle` on this robot."""
         strokes = np.ascontiguousarray(strokes, dtype=float).reshape(-1, self.n_legs)
         n = len(strokes)
-        _, inputs = self._inputs(*guess, np.broadcast_to(payload_kg, n))
+        down = self.gravity if gravity is None else gravity
+        _, inputs = self._inputs(*guess, np.broadcast_to(payload_kg, n), np.broadcast_to(down, (n, 3)))
         params, forces = np.empty((n, self.base_params.size)), np.empty((n, self.n_legs))
         ratios, residual = np.empty(n), np.empty(n)
         steps = np.empty(n, dtype=np.int64)
@@ -261,7 +280,7 @@ def _refuse_singular(ratios: np.ndarray) -> None:
 
 
 def loaded_params(
-    load: LoadModel, base_params: np.ndarray, R: np.ndarray, t: np.ndarray, payload_kg
+    load: LoadModel, base_params: np.ndarray, R: np.ndarray, t: np.ndarray, payload_kg, gravity=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """True drive parameters under load at pose ``(R, t)``: ``M_base + δM_load``.
 
@@ -271,16 +290,22 @@ def loaded_params(
     Args:
         base_params: ``(42,)`` true unloaded drive parameters (nominal + manufacturing errors) [mm].
         payload_kg: scalar or ``(...)`` payload mass [kg].
+        gravity: ``(..., 3)`` the unit vector in {J} gravity acts along at each pose (None: ``load.gravity``).
     Returns:
         ``((..., 42) params [mm], (..., 6) leg forces [N])``.
     Raises:
         SingularStatics: at a pose where the statics matrix is singular.
     """
-    return Settling.of(load, base_params).loaded_params(R, t, payload_kg)
+    return Settling.of(load, base_params).loaded_params(R, t, payload_kg, gravity)
 
 
 def settle(
-    load: LoadModel, base_params: np.ndarray, strokes: np.ndarray, payload_kg, guess: tuple[np.ndarray, np.ndarray]
+    load: LoadModel,
+    base_params: np.ndarray,
+    strokes: np.ndarray,
+    payload_kg,
+    guess: tuple[np.ndarray, np.ndarray],
+    gravity=None,
 ) -> tuple[kin.FKSolution, np.ndarray]:
     """Where the loaded robot comes to rest for executed strokes: FK ↔ compliance fixed point.
 
@@ -293,10 +318,11 @@ def settle(
         strokes: ``(N, 6)`` executed strokes q [mm].
         payload_kg: scalar or ``(N,)`` [kg].
         guess: ``(R (N, 3, 3), t (N, 3))`` start (e.g. the desired or previous pose).
+        gravity: ``(3,)`` or ``(N, 3)`` the unit vector in {J} gravity acts along (None: ``load.gravity``).
     Returns:
         ``(FK solution of the final iteration, (N, 42) true params in force [mm])``.
     Raises:
         kinematics.FKError: some pose did not converge (unreachable strokes).
         SingularStatics: the statics matrix is singular at a pose on the way.
     """
-    return Settling.of(load, base_params).settle(strokes, payload_kg, guess)
+    return Settling.of(load, base_params).settle(strokes, payload_kg, guess, gravity)
