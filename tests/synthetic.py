@@ -31,7 +31,7 @@ class NumpyLegs(LegGeometry):
     kind = "prismatic"
     parameter_degrees = np.zeros(42, dtype=bool)
 
-    def residual_jacobians(self, R, t, e):
+    def residual_jacobians(self, R, t, e, *, lengthening=None):
         J_pose, J_M = kin.leg_residual_jacobians(self, R, t)
         return J_pose, J_M, -np.ones(np.shape(e))
 

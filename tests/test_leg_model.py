@@ -43,11 +43,11 @@ class ScaledLegs(NumpyLegs):
 
     scale: np.ndarray = field(default_factory=lambda: np.ones(6))
 
-    def residuals(self, R, t, e):
-        return self.legs.residuals(R, t, self.scale * np.asarray(e))
+    def residuals(self, R, t, e, *, lengthening=None):
+        return self.legs.residuals(R, t, self.scale * np.asarray(e), lengthening=lengthening)
 
-    def residual_jacobians(self, R, t, e):
-        J_pose, J_M, J_e = self.legs.residual_jacobians(R, t, self.scale * np.asarray(e))
+    def residual_jacobians(self, R, t, e, *, lengthening=None):
+        J_pose, J_M, J_e = self.legs.residual_jacobians(R, t, self.scale * np.asarray(e), lengthening=lengthening)
         return J_pose, J_M, J_e * self.scale
 
 

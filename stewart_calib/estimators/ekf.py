@@ -309,7 +309,7 @@ class LegEKF:
         ``SampleRejected`` when the drive model's FK fails."""
         drive = self.drive
         x_drive = x[: drive.size]
-        R, t = self._drive_fk.solve(drive.geometry(x_drive), drive.extensions(inputs, x_drive), "drive model")
+        R, t = self._drive_fk.solve_drive(drive, inputs, x_drive, "drive model")
         J_g, dg_dx = drive.jacobians(x_drive, R, t, inputs)
         J_g_inv = np.linalg.inv(J_g)
         channels = np.concatenate(self.model.groups(z))

@@ -151,6 +151,12 @@ class WarmFK(_WarmStart):
         self._guess = legs.solve_fk(coordinates, self._guess, what)
         return self._guess
 
+    def solve_drive(self, drive, inputs: np.ndarray, x_drive: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`solve` of a :class:`~stewart_calib.model.drive.DriveModel` at ``x_drive`` for one
+        sample's drive ``inputs`` (its legs' coordinates and whatever else its terms give them)."""
+        self._guess = drive.solve_fk(inputs, x_drive, self._guess, what)
+        return self._guess
+
 
 class WarmPose(_WarmStart):
     """An instrument model's loose pose for a stream of samples, warm-started from the last one."""

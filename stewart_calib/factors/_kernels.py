@@ -84,7 +84,8 @@ def drive_leg_rows_numpy(pose, unknowns, drive, legs_of, inputs):
     """
     R, t = pose[:3, :3], pose[:3, 3]
     x_drive = unknowns[: drive.size]
-    r, J_pose, J_M, J_e = drive.leg_rows(x_drive, R, t, drive.extensions(inputs, x_drive))
+    extensions, lengthening = drive.extensions(inputs, x_drive), drive.lengthening(inputs, x_drive)
+    r, J_pose, J_M, J_e = drive.leg_rows(x_drive, R, t, extensions, lengthening)
     J_x = drive.with_terms(J_M, inputs, J_e)
     scale = 1.0 / np.abs(J_e[legs_of])
     H = np.zeros((len(legs_of), len(unknowns)))

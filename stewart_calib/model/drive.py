@@ -16,6 +16,13 @@ term: ``o = 1``, ``v = k`` (the stroke scale), ``g u = q`` (the logged strokes),
 ``e_i = (1 + k_i) q_i``; an elastic drive adds the compliance term on the leg forces (spec §10), a
 drive with ``[thermal]`` the expansion term on each leg's temperature (spec §17).
 
+A term whose source *lengthens* the leg (:attr:`TermSource.lengthens`: the expansion, which scales
+the leg's length from joint to joint) belongs to ``e_i`` only where the leg's coordinate is that
+length (``legs.coordinate_is_length``: prismatic, ``(l_i + e_i)`` grows). Elsewhere (a rotary leg,
+whose ``e_i`` is an angle and whose rod grows, spec §17) such terms sum to the leg model's
+*lengthening* ``Δℓ_i = Σ (o_b + v_{b,i}) g_b u_{b,i}`` [mm] (:meth:`DriveModel.lengthening`), which
+every kinematic method of the leg model takes beside ``e``, with ``∂r_i/∂Δℓ_i = −1``.
+
 A term's inputs come from its *source* (:data:`TERM_SOURCES`): the logged strokes, or a function of
 the sample's named input channels (:data:`~stewart_calib.samples.LOAD_KG`,
 :data:`~stewart_calib.samples.TEMPERATURE_C`, :data:`~stewart_calib.samples.GRAVITY`:
@@ -23,8 +30,8 @@ the sample's named input channels (:data:`~stewart_calib.samples.LOAD_KG`,
 sample's channels to :meth:`DriveModel.inputs` as they come and never read one by name, so a new
 input is one source here and one line where the log's columns are parsed (docs/architecture.md).
 Since every term is linear in its values, ``∂r_i/∂v_{b,i} = J_e,i g_b u_{b,i}`` with the leg
-model's ``J_e,i = ∂r_i/∂e_i`` (prismatic: −1). A rotary drive's stroke input is the commanded
-angle [rad], so ``k`` is its angle scale.
+model's ``J_e,i = ∂r_i/∂e_i`` (prismatic: −1), and ``−g_b u_{b,i}`` for a term of the lengthening.
+A rotary drive's stroke input is the commanded angle [rad], so ``k`` is its angle scale.
 
 The unknown vector of a drive is ``x_drive = [δM (n_params) | the errors of its unknown terms, six
 each, in term order]`` (:attr:`DriveModel.size` entries): the first entries of every estimator's
@@ -134,7 +141,8 @@ def compliance_term(elastic: Elastic) -> LegTerm:
 
 
 def thermal_term(thermal: Thermal, input_start: int) -> LegTerm:
-    """``α_i (T_i − T_ref) · 1e-6 · L_i``: each leg's growth [mm] with its temperature (spec §17), the
+    """``α_i (T_i − T_ref) · 1e-6 · L_i``: each leg's growth [mm] with its temperature (spec §17; a
+    term that lengthens the leg, :attr:`TermSource.lengthens`: a rotary leg's rod ``L_i = r_i`` grows), the
     expansion ``α`` [ppm/K] about ``[thermal] expansion_ppm_per_K``, an unknown block where its σ is
     positive. The input ``(T_i − T_ref) · 1e-6 · L_i`` takes ``L_i`` the nominal leg's length from
     joint to joint at its nominal extension (:func:`_thermal_inputs`), so the term is linear in ``α``
@@ -200,6 +208,7 @@ class DriveModel:
     _nominal: np.ndarray = field(init=False, repr=False, compare=False)
     _factors: np.ndarray = field(init=False, repr=False, compare=False)
     _stroke: int = field(init=False, repr=False, compare=False)
+    _lengthening: tuple[int, ...] = field(init=False, repr=False, compare=False)
     _last_geometry: tuple = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -218,7 +227,15 @@ class DriveModel:
         for name, value in (("_unknown", tuple(unknown)), ("_nominal", nominal), ("_factors", factors)):
             object.__setattr__(self, name, value)
         object.__setattr__(self, "_stroke", stroke)
+        # a lengthening term is the leg's coordinate itself where that is a length: only the
+        # other legs' models take it apart from e (see the module docstring)
+        lengthening = () if self.legs.coordinate_is_length else self._lengthening_rows()
+        object.__setattr__(self, "_lengthening", lengthening)
         object.__setattr__(self, "_last_geometry", (None, self.legs))
+
+    def _lengthening_rows(self) -> tuple[int, ...]:
+        """The rows of the terms whose source lengthens the leg (:attr:`TermSource.lengthens`)."""
+        return tuple(row for row, term in enumerate(self.terms) if TERM_SOURCES[term.source].lengthens)
 
     # ------------------------------------------------------------------ layout
 
@@ -531,10 +548,24 @@ class DriveModel:
         return np.array([term.offset for term in self.terms])[:, None] + self.term_values(x_drive)
 
     def extensions(self, inputs: np.ndarray, x_drive: np.ndarray | None = None) -> np.ndarray:
-        """``e = Σ_b (o_b + v_b) g_b u_b``, ``(..., 6)`` [mm], at ``x_drive`` (None: nominal values)."""
+        """``e = Σ_b (o_b + v_b) g_b u_b``, ``(..., 6)`` (the legs' coordinates: [mm] prismatic, [rad]
+        rotary), at ``x_drive`` (None: nominal values), over the terms but those of the
+        :meth:`lengthening`."""
+        return self._sum(inputs, x_drive, lengthening=False)
+
+    def lengthening(self, inputs: np.ndarray, x_drive: np.ndarray | None = None) -> np.ndarray | None:
+        """``Δℓ = Σ_b (o_b + v_b) g_b u_b`` ``(..., 6)`` [mm] over the terms that lengthen legs whose
+        coordinate is no length (a rotary leg's rod grown with its temperature), at ``x_drive``; None
+        where there are none (prismatic legs: :meth:`extensions` holds them)."""
+        return self._sum(inputs, x_drive, lengthening=True) if self._lengthening else None
+
+    def _sum(self, inputs: np.ndarray, x_drive: np.ndarray | None, lengthening: bool) -> np.ndarray:
+        """:meth:`extensions` (``lengthening`` False) or :meth:`lengthening`'s sum."""
         inputs = np.asarray(inputs, dtype=float)
         parts = []
-        for term, factor in zip(self.terms, self._term_factors(x_drive), strict=True):
+        for row, (term, factor) in enumerate(zip(self.terms, self._term_factors(x_drive), strict=True)):
+            if (row in self._lengthening) != lengthening:
+                continue
             u = inputs[..., term.input_start : term.input_start + N_LEGS]
             parts.append(factor * (u if term.gain == 1.0 else term.gain * u))
         out = parts[0]
@@ -552,7 +583,8 @@ class DriveModel:
         per_stroke = self.extension_per_stroke(x_drive)
         if self.legs.compiled:
             return -per_stroke
-        _, _, J_e = self.geometry(x_drive).residual_jacobians(R, t, self.extensions(inputs, x_drive))
+        extensions, lengthening = self.extensions(inputs, x_drive), self.lengthening(inputs, x_drive)
+        _, _, J_e = self.geometry(x_drive).residual_jacobians(R, t, extensions, lengthening=lengthening)
         return J_e * per_stroke
 
     def identifying(self, prior_sigma: float = BLOCK_PRIOR_SIGMA) -> DriveModel:
@@ -609,7 +641,8 @@ class DriveModel:
 
     def residual(self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray) -> np.ndarray:
         """``r`` of the legs at poses ``(R, t)``, ``(..., n_legs)`` [mm] (the leg model's residuals)."""
-        return self.geometry(x_drive).residuals(R, t, self.extensions(inputs, x_drive))
+        extensions, lengthening = self.extensions(inputs, x_drive), self.lengthening(inputs, x_drive)
+        return self.geometry(x_drive).residuals(R, t, extensions, lengthening=lengthening)
 
     def jacobians(
         self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, inputs: np.ndarray
@@ -618,20 +651,30 @@ class DriveModel:
         if self.legs.compiled:  # J_e = −1 and no extension needed: the compiled kinematics' Jacobians alone
             J_pose, J_M = kin.leg_residual_jacobians(self.prismatic(x_drive), R, t)
             return J_pose, self.with_terms(J_M, inputs)
-        _, J_pose, J_M, J_e = self.leg_rows(x_drive, R, t, self.extensions(inputs, x_drive))
+        extensions, lengthening = self.extensions(inputs, x_drive), self.lengthening(inputs, x_drive)
+        _, J_pose, J_M, J_e = self.leg_rows(x_drive, R, t, extensions, lengthening)
         return J_pose, self.with_terms(J_M, inputs, J_e)
 
     def leg_rows(
-        self, x_drive: np.ndarray | None, R: np.ndarray, t: np.ndarray, extensions: np.ndarray
+        self,
+        x_drive: np.ndarray | None,
+        R: np.ndarray,
+        t: np.ndarray,
+        extensions: np.ndarray,
+        lengthening: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(r, J_pose, J_M, J_e)``: the leg model's residuals and Jacobians of :meth:`geometry` at
-        ``x_drive`` for the legs' ``extensions``, one perturbed set for both."""
+        ``x_drive`` for the legs' ``extensions`` and :meth:`lengthening`, one perturbed set for both."""
         legs = self.geometry(x_drive)
-        return legs.residuals(R, t, extensions), *legs.residual_jacobians(R, t, extensions)
+        return (
+            legs.residuals(R, t, extensions, lengthening=lengthening),
+            *legs.residual_jacobians(R, t, extensions, lengthening=lengthening),
+        )
 
     def with_terms(self, J_M: np.ndarray, inputs: np.ndarray, J_e: np.ndarray | None = None) -> np.ndarray:
         """``∂r/∂M (..., n, n_params)`` completed with ``∂r_i/∂v_{b,i} = J_e,i g_b u_{b,i}`` of the
-        unknown terms: ``∂r/∂x_drive (..., n, size)`` (``J_M`` itself where there are none).
+        unknown terms (``−g_b u_{b,i}`` of a term of the :meth:`lengthening`, which enters a leg as its
+        fixed length does): ``∂r/∂x_drive (..., n, size)`` (``J_M`` itself where there are none).
 
         Args:
             J_e: ``(..., n)`` the leg model's ``∂r_i/∂e_i``; None: −1, a prismatic leg's.
@@ -648,7 +691,10 @@ class DriveModel:
             term = self.terms[row]
             u = inputs[..., term.input_start : term.input_start + n_legs]
             gained = u if term.gain == 1.0 else term.gain * u
-            J[..., legs, columns.start + legs] = -gained if J_e is None else J_e * gained
+            if J_e is None or row in self._lengthening:  # ∂r_i/∂e_i of a prismatic leg, or ∂r_i/∂Δℓ_i: −1
+                J[..., legs, columns.start + legs] = -gained
+            else:
+                J[..., legs, columns.start + legs] = J_e * gained
         return J
 
     def extension_jacobian(self, inputs: np.ndarray) -> np.ndarray:
@@ -728,7 +774,7 @@ class DriveModel:
                 self.prismatic(), self.parameter_error(x_drive), R, t, extensions, pose_covariance, coordinate_sigma
             )
             return r, self.with_terms(H_M, inputs), R_meas, J_x
-        r, J_x, H_M, J_e = self.leg_rows(x_drive, R, t, extensions)
+        r, J_x, H_M, J_e = self.leg_rows(x_drive, R, t, extensions, self.lengthening(inputs, x_drive))
         R_meas = J_x @ pose_covariance @ J_x.T + np.diag((J_e * coordinate_sigma) ** 2)
         return r, self.with_terms(H_M, inputs, J_e), R_meas, J_x
 
@@ -744,7 +790,11 @@ class DriveModel:
     ) -> kin.FKSolution:
         """Poses of samples ``inputs (..., width)`` (the leg model's forward kinematics)."""
         return self.geometry(x_drive).forward_kinematics(
-            self.extensions(inputs, x_drive), guess=guess, tol_mm=tol_mm, strict=strict
+            self.extensions(inputs, x_drive),
+            guess=guess,
+            tol_mm=tol_mm,
+            strict=strict,
+            lengthening=self.lengthening(inputs, x_drive),
         )
 
     def solve_fk(
@@ -752,7 +802,8 @@ class DriveModel:
     ) -> tuple[np.ndarray, np.ndarray]:
         """One sample's pose from ``guess``, then cold (the leg model's ``solve_fk``);
         ``SampleRejected`` when neither converges."""
-        return self.geometry(x_drive).solve_fk(self.extensions(inputs, x_drive), guess, what)
+        extensions, lengthening = self.extensions(inputs, x_drive), self.lengthening(inputs, x_drive)
+        return self.geometry(x_drive).solve_fk(extensions, guess, what, lengthening=lengthening)
 
     def inverse_kinematics(
         self,
@@ -771,23 +822,30 @@ class DriveModel:
                 ignored); needed only where the drive has terms besides the stroke. Default: the
                 inputs of the samples' ``channels`` at ``(R, t)`` (the leg forces there) and at the
                 strokes of the stroke term alone (a leg's length for its growth with temperature,
-                which the strokes then change by its growth times α ΔT, 1e-9 of it).
+                which the strokes then change by its growth times α ΔT, 1e-9 of it). Legs that take
+                a :meth:`lengthening` are solved again with it.
         """
-        coordinates = self.geometry(x_drive).coordinates(R, t)
+        legs = self.geometry(x_drive)
+        coordinates = legs.coordinates(R, t)
         if inputs is None and len(self.terms) > 1:
             first = coordinates / self._term_factors(x_drive)[self._stroke]
             inputs = self.inputs(first, channels, R, t, x_drive)
+        if self._lengthening:
+            if inputs is None:
+                raise ValueError("inverse kinematics of this drive needs the inputs of its lengthening")
+            coordinates = legs.coordinates(R, t, lengthening=self.lengthening(inputs, x_drive))
         return self.strokes_for(coordinates, x_drive, inputs)
 
     def strokes_for(
         self, extensions: np.ndarray, x_drive: np.ndarray | None = None, inputs: np.ndarray | None = None
     ) -> np.ndarray:
-        """The strokes ``q (..., 6)`` [mm] that extend the legs by ``extensions`` ``e (..., 6)`` [mm]:
-        ``e`` less the other terms' part, over the stroke term's ``1 + k_i`` (``inputs`` as
+        """The strokes ``q (..., 6)`` that put the legs at the coordinates ``extensions`` ``e (..., 6)``
+        ([mm] prismatic, [rad] rotary): ``e`` less the other terms' part (those of :meth:`extensions`:
+        a :meth:`lengthening` is no part of ``e``), over the stroke term's ``1 + k_i`` (``inputs`` as
         :meth:`inverse_kinematics` takes them)."""
         factors = self._term_factors(x_drive)
         for row, (term, factor) in enumerate(zip(self.terms, factors, strict=True)):
-            if row == self._stroke:
+            if row == self._stroke or row in self._lengthening:
                 continue
             if inputs is None:
                 raise ValueError(f"inverse kinematics of this drive needs the inputs of its term '{term.key}'")
@@ -882,11 +940,6 @@ def drive_model(platform: Platform, noise: NoiseConfig | None = None, outside_in
         compliance = compliance_term(platform.elastic)
         terms += (compliance if noise is not None else replace(compliance, prior_sigma=None),)
     if platform.thermal is not None:
-        if platform.drive.kind != "prismatic":
-            raise CalibError(
-                f"{platform.source}: [thermal] models prismatic legs' growth; "
-                f"a {platform.drive.kind} drive takes no [thermal] table (yet)"
-            )
         thermal = thermal_term(platform.thermal, N_LEGS * len(terms))
         terms += (thermal if noise is not None else replace(thermal, prior_sigma=None),)
     return DriveModel(platform.drive, terms, platform.elastic, platform.thermal)
@@ -902,12 +955,16 @@ class TermSource:
         channels: the input channels it reads (:class:`~stewart_calib.samples.Log` ``inputs``).
         required: those of them it cannot do without.
         needs_pose: whether it reads the pose (then forward kinematics settles, :meth:`DriveModel.settled_kinematics`).
+        lengthens: whether its term adds to each leg's length from joint to joint (the expansion):
+            part of the leg's coordinate where that is a length, else the leg model's lengthening
+            (:meth:`DriveModel.lengthening`).
     """
 
     inputs: Any
     channels: tuple[str, ...] = ()
     required: tuple[str, ...] = ()
     needs_pose: bool = False
+    lengthens: bool = False
 
 
 def _thermal_inputs(drive: DriveModel, strokes: np.ndarray, channels: Inputs, R, t, x_drive) -> np.ndarray:
@@ -933,5 +990,5 @@ TERM_SOURCES: dict[str, TermSource] = {
         channels=(LOAD_KG, GRAVITY),
         needs_pose=True,
     ),
-    "thermal": TermSource(_thermal_inputs, channels=(TEMPERATURE_C,), required=(TEMPERATURE_C,)),
+    "thermal": TermSource(_thermal_inputs, channels=(TEMPERATURE_C,), required=(TEMPERATURE_C,), lengthens=True),
 }

@@ -36,6 +36,11 @@ PARAMETER_NAMES: tuple[str, ...] = tuple(
 )
 
 
+def _lengthened(e: np.ndarray, lengthening: np.ndarray | None) -> np.ndarray:
+    """A prismatic leg's extension ``e + Δℓ`` [mm]: its coordinate is a length (``e`` itself for None)."""
+    return e if lengthening is None else np.asarray(e, dtype=float) + lengthening
+
+
 @dataclass(frozen=True)
 class LegGeometry:
     """Six legs between base and platform: ``length_i = ‖t + R p_i − b_i‖``.
@@ -67,6 +72,8 @@ class LegGeometry:
     coordinate_unit = "mm"
     #: the leg model's compiled kernels (:mod:`stewart_calib.model._kernels`) apply to it
     compiled = True
+    #: ``e_i`` is the leg's length change, so a lengthening ``Δℓ`` is the extension ``e + Δℓ``
+    coordinate_is_length = True
 
     @property
     def n_legs(self) -> int:
@@ -105,16 +112,20 @@ class LegGeometry:
     # The leg model's arithmetic is the compiled kinematics' (imported here, not with the module: a
     # platform file is read by commands that never compute, see :meth:`perturbed`).
 
-    def residuals(self, R: np.ndarray, t: np.ndarray, e: np.ndarray) -> np.ndarray:
-        """``r_i = ‖t + R d_i − j_i‖ − (l_i + e_i)``, ``(..., n)`` [mm] (paper eq. 1)."""
+    def residuals(
+        self, R: np.ndarray, t: np.ndarray, e: np.ndarray, *, lengthening: np.ndarray | None = None
+    ) -> np.ndarray:
+        """``r_i = ‖t + R d_i − j_i‖ − (l_i + e_i + Δℓ_i)``, ``(..., n)`` [mm] (paper eq. 1), ``Δℓ`` the
+        ``lengthening`` (None: 0)."""
         from . import kinematics
 
-        return kinematics.leg_residuals(self, R, t, e)
+        return kinematics.leg_residuals(self, R, t, _lengthened(e, lengthening))
 
     def residual_jacobians(
-        self, R: np.ndarray, t: np.ndarray, e: np.ndarray
+        self, R: np.ndarray, t: np.ndarray, e: np.ndarray, *, lengthening: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(∂r/∂ξ (..., n, 6), ∂r/∂M (..., n, n_params), ∂r_i/∂e_i (..., n) = −1)`` of :meth:`residuals`."""
+        """``(∂r/∂ξ (..., n, 6), ∂r/∂M (..., n, n_params), ∂r_i/∂e_i (..., n) = −1)`` of :meth:`residuals`
+        (none depends on ``e`` or the ``lengthening``)."""
         from . import kinematics
 
         J_pose, J_M = kinematics.leg_residual_jacobians(self, R, t)
@@ -133,28 +144,40 @@ class LegGeometry:
         its temperature scales (spec §17)."""
         return self.initial_lengths + np.asarray(e, dtype=float)
 
-    def coordinates(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """The extensions ``(..., n)`` [mm] that close each leg at ``(R, t)`` (inverse kinematics)."""
+    def coordinates(self, R: np.ndarray, t: np.ndarray, *, lengthening: np.ndarray | None = None) -> np.ndarray:
+        """The extensions ``(..., n)`` [mm] that close each leg at ``(R, t)`` (inverse kinematics), less
+        the ``lengthening`` ``Δℓ (..., n)`` [mm] the legs have besides (None: 0)."""
         from . import kinematics
 
-        return kinematics.inverse_kinematics(self, R, t)
+        extensions = kinematics.inverse_kinematics(self, R, t)
+        return extensions if lengthening is None else extensions - lengthening
 
     def forward_kinematics(
-        self, e: np.ndarray, guess=None, tol_mm: float | None = None, strict: bool = True, along: bool = False
+        self,
+        e: np.ndarray,
+        guess=None,
+        tol_mm: float | None = None,
+        strict: bool = True,
+        along: bool = False,
+        *,
+        lengthening: np.ndarray | None = None,
     ):
-        """:func:`~stewart_calib.model.kinematics.forward_kinematics` of extensions ``e (..., n)`` [mm]
-        (``tol_mm`` None: :data:`~stewart_calib.model.kinematics.FK_TOLERANCE_MM`)."""
+        """:func:`~stewart_calib.model.kinematics.forward_kinematics` of extensions ``e + Δℓ (..., n)`` [mm]
+        (``tol_mm`` None: :data:`~stewart_calib.model.kinematics.FK_TOLERANCE_MM`; ``lengthening`` Δℓ None: 0)."""
         from . import kinematics
 
         tol = kinematics.FK_TOLERANCE_MM if tol_mm is None else tol_mm
-        return kinematics.forward_kinematics(self, e, guess=guess, tol_mm=tol, strict=strict, along=along)
+        extensions = _lengthened(e, lengthening)
+        return kinematics.forward_kinematics(self, extensions, guess=guess, tol_mm=tol, strict=strict, along=along)
 
-    def solve_fk(self, e: np.ndarray, guess, what: str) -> tuple[np.ndarray, np.ndarray]:
-        """One pose of extensions ``e (n,)`` from ``guess``, then cold
+    def solve_fk(
+        self, e: np.ndarray, guess, what: str, *, lengthening: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One pose of extensions ``e + Δℓ (n,)`` from ``guess``, then cold
         (:func:`~stewart_calib.model.kinematics.solve_fk`)."""
         from . import kinematics
 
-        return kinematics.solve_fk(self, e, guess, what)
+        return kinematics.solve_fk(self, _lengthened(e, lengthening), guess, what)
 
     def unit_vectors(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """``(..., n, 3)`` unit leg vectors in {J}: the direction each leg's force acts along."""

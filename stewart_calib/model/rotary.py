@@ -9,7 +9,10 @@ drive, ``o_i`` the zero trim) its ball joint is at::
 with ``u_i`` the horn's direction at angle 0, and a rod of length ``r_i`` joins it to the platform
 joint ``d_i`` (in {D}). The closure residual of leg i at the pose ``(R, t)`` of {D} in {J} is::
 
-    r_i = ‖t + R d_i − b_i‖ − r_i      [mm]
+    r_i = ‖t + R d_i − b_i‖ − (r_i + Δℓ_i)      [mm]
+
+with ``Δℓ_i`` the leg's lengthening besides its geometry (its growth with temperature, spec §17: the
+rod is what grows; 0 unless given), an input of every kinematic method like ``e``.
 
 The parameter vector M holds 11 entries a leg, leg by leg (spec §15):
 ``a_x a_y a_z d_x d_y d_z h r o tu tw`` — ``o``, ``tu``, ``tw`` in rad in code (degrees in files).
@@ -148,6 +151,8 @@ class RotaryLegs:
     coordinate_unit = "deg"
     #: no compiled kernels: the numpy paths of the drive and the estimators apply
     compiled = False
+    #: ``e_i`` is an angle: a leg's lengthening goes to its rod (spec §17), not to ``e``
+    coordinate_is_length = False
 
     def __post_init__(self) -> None:
         arrays = {}
@@ -346,10 +351,18 @@ class RotaryLegs:
         """``(..., 6, 3)`` the rods ``t + R d_i − b_i`` (horn joint → platform joint) in {J} [mm]."""
         return self._platform_points(R, t) - self.horn_joints(e)
 
-    def residuals(self, R: np.ndarray, t: np.ndarray, e: np.ndarray) -> np.ndarray:
-        """``(..., 6)`` closure residuals ``‖t + R d_i − b_i(e_i)‖ − r_i`` [mm] at poses ``(R (..., 3, 3),
-        t (..., 3) [mm])`` and coordinates ``e (..., 6)`` [rad]."""
-        return np.linalg.norm(self._rods(R, t, e), axis=-1) - self.rod_lengths
+    def rods_lengthened(self, lengthening: np.ndarray | None) -> np.ndarray:
+        """``(..., 6)`` the rods' lengths ``r_i + Δℓ_i`` [mm] with the ``lengthening`` ``Δℓ (..., 6)``
+        (None: the rods ``r_i``)."""
+        return self.rod_lengths if lengthening is None else self.rod_lengths + np.asarray(lengthening, dtype=float)
+
+    def residuals(
+        self, R: np.ndarray, t: np.ndarray, e: np.ndarray, *, lengthening: np.ndarray | None = None
+    ) -> np.ndarray:
+        """``(..., 6)`` closure residuals ``‖t + R d_i − b_i(e_i)‖ − (r_i + Δℓ_i)`` [mm] at poses ``(R (..., 3, 3),
+        t (..., 3) [mm])``, coordinates ``e (..., 6)`` [rad] and the rods' ``lengthening`` Δℓ ``(..., 6)`` [mm]
+        (None: 0)."""
+        return np.linalg.norm(self._rods(R, t, e), axis=-1) - self.rods_lengthened(lengthening)
 
     def joint_lengths(self, e: np.ndarray) -> np.ndarray:
         """``(..., 6)`` each leg's length from joint to joint whatever its angle ``e`` [rad]: the rod ``r_i``
@@ -364,9 +377,10 @@ class RotaryLegs:
         return rods / np.linalg.norm(rods, axis=-1, keepdims=True)
 
     def residual_jacobians(
-        self, R: np.ndarray, t: np.ndarray, e: np.ndarray
+        self, R: np.ndarray, t: np.ndarray, e: np.ndarray, *, lengthening: np.ndarray | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Jacobians of :meth:`residuals`: ``(J_pose (..., 6, 6), J_M (..., 6, 66), J_e (..., 6))``.
+        """Jacobians of :meth:`residuals`: ``(J_pose (..., 6, 6), J_M (..., 6, 66), J_e (..., 6))``, none of
+        which depends on the rods' ``lengthening`` (``∂r_i/∂Δℓ_i = −1``, as ``∂r_i/∂r_i``).
 
         With ``m_i`` the unit rod, ``c, s = cos φ_i, sin φ_i``:
 
@@ -412,8 +426,9 @@ class RotaryLegs:
         low, high = self.angle_range
         return 0.5 * (low + high) if low < -np.pi or high > np.pi else 0.0
 
-    def coordinates(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """Inverse kinematics: ``(..., 6)`` coordinates ``e_i`` [rad] closing each leg at ``(R, t)``.
+    def coordinates(self, R: np.ndarray, t: np.ndarray, *, lengthening: np.ndarray | None = None) -> np.ndarray:
+        """Inverse kinematics: ``(..., 6)`` coordinates ``e_i`` [rad] closing each leg at ``(R, t)``, its rod
+        ``r_i`` longer by the ``lengthening`` Δℓ ``(..., 6)`` [mm] (None: 0).
 
         With ``v = t + R d_i − a_i``, ``A = v·u_i``, ``B = v·w_i``, ``C = (|v|² + h_i² − r_i²) / (2 h_i)``,
         closure is ``A cos φ + B sin φ = C``: ``φ = atan2(B, A) ± acos(C / √(A² + B²))``, and
@@ -427,7 +442,7 @@ class RotaryLegs:
         v = self._platform_points(R, t) - self.crank_centres
         A = np.sum(v * self.zero_directions, axis=-1)
         B = np.sum(v * self.w_directions, axis=-1)
-        h, r = self.horn_lengths, self.rod_lengths
+        h, r = self.horn_lengths, self.rods_lengthened(lengthening)
         C = (np.sum(v * v, axis=-1) + h * h - r * r) / (2.0 * h)
         with np.errstate(invalid="ignore", divide="ignore"):
             opening = np.arccos(C / np.hypot(A, B))  # NaN where |C| > √(A² + B²): unreachable
@@ -452,21 +467,22 @@ class RotaryLegs:
         """FK's cap on a Newton step's translation [mm]: :data:`MAX_STEP_RAD` of the mean rod."""
         return MAX_STEP_RAD * float(np.mean(self.rod_lengths))
 
-    def default_guess(self, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def default_guess(self, e: np.ndarray, lengthening: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """A level pose for coordinates ``e (..., 6)``: {D}'s joints centred over the horn joints
-        ``b_i(e)`` and raised so that the mean rod length is matched (the rods' horizontal spans from
-        that centring)."""
+        ``b_i(e)`` and raised so that the mean rod length (with its ``lengthening``) is matched (the
+        rods' horizontal spans from that centring)."""
         b = self.horn_joints(e)
         xy = np.mean(b[..., :2] - self.platform_joints[:, :2], axis=-2)
         span = b[..., :2] - (xy[..., None, :] + self.platform_joints[:, :2])
-        rise = np.sqrt(np.maximum(self.rod_lengths**2 - np.sum(span**2, axis=-1), 1.0))
+        rise = np.sqrt(np.maximum(self.rods_lengthened(lengthening) ** 2 - np.sum(span**2, axis=-1), 1.0))
         t = np.concatenate([xy, np.mean(rise + b[..., 2] - self.platform_joints[:, 2], axis=-1)[..., None]], axis=-1)
         return np.broadcast_to(np.eye(3), t.shape[:-1] + (3, 3)).copy(), t
 
     def _newton(
-        self, e: np.ndarray, R: np.ndarray, t: np.ndarray, tol_mm: float, max_iterations: int
+        self, e: np.ndarray, rod_mm: np.ndarray, R: np.ndarray, t: np.ndarray, tol_mm: float, max_iterations: int
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Damped, capped Newton in the body tangent for flat ``e (N, 6)`` from ``(R (N, 3, 3), t (N, 3))``.
+        """Damped, capped Newton in the body tangent for flat ``e (N, 6)`` and rod lengths ``rod_mm (N, 6)``
+        [mm] from ``(R (N, 3, 3), t (N, 3))``.
 
         Each sample iterates until its own max |residual| is at most ``tol_mm`` (a NaN residual stops
         too) or ``max_iterations`` steps; only the unfinished ones are computed each step. Returns
@@ -482,7 +498,7 @@ class RotaryLegs:
             R_a = R[active]
             rods = self._platform_points(R_a, t[active]) - horns[active]
             length = np.linalg.norm(rods, axis=-1)
-            r = length - self.rod_lengths
+            r = length - rod_mm[active]
             worst = np.max(np.abs(r), axis=-1)
             residual[active] = worst
             iterations[active] = step
@@ -514,11 +530,14 @@ class RotaryLegs:
         strict: bool = True,
         along: bool = False,
         max_iterations: int = FK_MAX_ITERATIONS,
+        *,
+        lengthening: np.ndarray | None = None,
     ) -> FKSolution:
         """The pose closing every rod for coordinates ``e (..., 6)`` [rad], by damped, capped Newton.
 
-        Solves ``‖t + R d_i − b_i(e_i)‖ = r_i`` in the body tangent ``ξ = [ω, v]`` with ``J_pose`` of
-        :meth:`residual_jacobians`, all samples at once, each until its own max |residual| ≤ ``tol_mm``.
+        Solves ``‖t + R d_i − b_i(e_i)‖ = r_i + Δℓ_i`` (``lengthening`` Δℓ ``(..., 6)`` [mm], None: 0)
+        in the body tangent ``ξ = [ω, v]`` with ``J_pose`` of :meth:`residual_jacobians`, all samples at
+        once, each until its own max |residual| ≤ ``tol_mm``.
         A step is capped at :data:`MAX_STEP_RAD` and :attr:`max_step_mm`; the normal equations are
         damped by :data:`FK_DAMPING` (a singular pose gets a bounded step).
 
@@ -540,9 +559,12 @@ class RotaryLegs:
         e = np.asarray(e, dtype=float)
         batch = e.shape[:-1]
         flat = e.reshape(-1, self.n_legs)
+        rods = np.broadcast_to(self.rods_lengthened(lengthening), e.shape).reshape(-1, self.n_legs)
         R0, t0 = np.empty(batch + (3, 3)), np.empty(batch + (3,))
-        R0[...], t0[...] = self.default_guess(e) if guess is None else guess
-        R, t, iterations, residual = self._newton(flat, R0.reshape(-1, 3, 3), t0.reshape(-1, 3), tol_mm, max_iterations)
+        R0[...], t0[...] = self.default_guess(e, lengthening) if guess is None else guess
+        R, t, iterations, residual = self._newton(
+            flat, rods, R0.reshape(-1, 3, 3), t0.reshape(-1, 3), tol_mm, max_iterations
+        )
         if along:
             candidates = np.arange(1, len(flat))
             while len(candidates):
@@ -553,7 +575,9 @@ class RotaryLegs:
                     & self._within_a_step(R[before[keep]], t[before[keep]], R[candidates[keep]], t[candidates[keep]])
                 )
                 candidates, before = candidates[keep], before[keep]
-                R_k, t_k, it_k, res_k = self._newton(flat[candidates], R[before], t[before], tol_mm, max_iterations)
+                R_k, t_k, it_k, res_k = self._newton(
+                    flat[candidates], rods[candidates], R[before], t[before], tol_mm, max_iterations
+                )
                 taken = (res_k <= tol_mm) & self._within_a_step(R[before], t[before], R_k, t_k)
                 changed = candidates[taken]
                 R[changed], t[changed], residual[changed] = R_k[taken], t_k[taken], res_k[taken]
@@ -574,19 +598,26 @@ class RotaryLegs:
         )
 
     def solve_fk(
-        self, e: np.ndarray, guess: tuple[np.ndarray, np.ndarray] | None, what: str, tol_mm: float = FK_TOLERANCE_MM
+        self,
+        e: np.ndarray,
+        guess: tuple[np.ndarray, np.ndarray] | None,
+        what: str,
+        tol_mm: float = FK_TOLERANCE_MM,
+        *,
+        lengthening: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """One sample's FK for ``e (6,)`` [rad] from ``guess`` (the previous pose), then from
-        :meth:`default_guess`: a jump between samples can leave the old pose outside Newton's basin.
+        """One sample's FK for ``e (6,)`` [rad] and the rods' ``lengthening`` ``(6,)`` [mm] (None: 0) from
+        ``guess`` (the previous pose), then from :meth:`default_guess`: a jump between samples can leave the
+        old pose outside Newton's basin.
 
         Raises:
             SampleRejected: neither start converges; ``what`` names the leg set.
         """
         if guess is not None:
-            warm = self.forward_kinematics(e, guess, tol_mm, strict=False)
+            warm = self.forward_kinematics(e, guess, tol_mm, strict=False, lengthening=lengthening)
             if warm.converged:
                 return warm.R, warm.t
-        cold = self.forward_kinematics(e, None, tol_mm, strict=False)
+        cold = self.forward_kinematics(e, None, tol_mm, strict=False, lengthening=lengthening)
         if cold.converged:
             return cold.R, cold.t
         raise fk_failed(what, float(cold.residual_mm))
