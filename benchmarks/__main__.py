@@ -83,6 +83,7 @@ RUNNERS = {
     "honesty": _runner("honesty", "section"),
     "link": _runner("link", "section"),
     "rotary": _runner("rotary", "section"),
+    "thermal": _runner("thermal", "section"),
 }
 
 

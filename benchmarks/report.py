@@ -35,6 +35,7 @@ SECTIONS = {
     "honesty": "Honesty over a grid",
     "link": "Live link to a controller",
     "rotary": "The rotary (servo-horn) hexapod",
+    "thermal": "Temperature: the warm-up",
 }
 
 #: 1-minute load average per core above which a section says its machine was loaded
