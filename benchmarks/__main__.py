@@ -85,6 +85,7 @@ RUNNERS = {
     "link": _runner("link", "section"),
     "rotary": _runner("rotary", "section"),
     "tilt": _runner("tilt", "section"),
+    "thermal": _runner("thermal", "section"),
 }
 
 

@@ -37,6 +37,7 @@ SECTIONS = {
     "link": "Live link to a controller",
     "rotary": "The rotary (servo-horn) hexapod",
     "tilt": "The elastic robot on a tilting mount",
+    "thermal": "Temperature: the warm-up",
 }
 
 #: 1-minute load average per core above which a section says its machine was loaded

@@ -121,14 +121,14 @@ def test_a_thermal_key_that_is_no_table_is_refused(doc):
     assert _refusal(bad) == f"{SOURCE}: key 'thermal': expected a [thermal] table"
 
 
-def test_a_rotary_drive_reads_thermal_and_its_model_says_what_it_takes():
+def test_a_rotary_drive_reads_thermal_and_its_model_grows_the_rods():
     servo = tomllib.loads((ROOT / "configs" / "platforms" / "servo-hexapod.toml").read_text())
     del servo["workspace"]
     servo["thermal"] = {"expansion_ppm_per_K": ALPHA}
     platform = parse_platform(servo, SOURCE)
     assert platform.thermal.expansion_ppm_per_K.tolist() == ALPHA
-    with pytest.raises(CalibError, match=r"^thermal\.toml: \[thermal\] models prismatic legs' growth"):
-        drive_model(platform)
+    drive = drive_model(platform, NoiseConfig())
+    assert [block.key for block in drive.blocks][-1] == "thermal"  # spec §17: the rods grow (model/rotary.py)
 
 
 # ----------------------------------------------------------------------------- [elastic] gravity

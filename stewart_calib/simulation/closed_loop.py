@@ -42,6 +42,12 @@ A rotary drive (spec §15) logs the angles its controller commands, exactly; its
 horns by ``(1 + k_i) θ_i`` plus their own white error (``[robot] angle_noise_deg``), and the true
 pose is the forward kinematics of the true drive (:meth:`TrueRobot.true_drive`: the leg model with
 the experiment's errors and angle scale) there — rigid: no load moves it.
+
+A warm-up (the experiment's ``[thermal]``, :class:`~.experiment.WarmUp`) gives each sample its legs'
+temperatures ``T_i``: the true robot's legs grow joint to joint by ``1 + α_i (T_i − T_ref) · 1e-6`` with its
+true expansion ``α`` (:meth:`~.load.Settling.settle`), the in-situ tracker (of a low-expansion material)
+does not, the log carries the temperatures as its ``temperature_C`` channel and the truth ``α`` as its
+``"thermal"`` drive term.
 """
 
 from __future__ import annotations
@@ -57,11 +63,11 @@ import numpy as np
 from ..errors import CalibError, SampleRejected, shown
 from ..estimate import model_estimate
 from ..model import kinematics as kin
-from ..model.drive import STROKE_SCALE, DriveModel, drive_model, plain_drive
+from ..model.drive import STROKE_SCALE, THERMAL, DriveModel, drive_model, plain_drive
 from ..model.legs import LegModel
 from ..model.platform import LegGeometry, Platform
 from ..progress import progress_bar
-from ..samples import GRAVITY, LOAD_KG, Log, Sample, Truth, with_payload
+from ..samples import GRAVITY, LOAD_KG, TEMPERATURE_C, Log, Sample, Truth, with_payload
 from .experiment import Experiment, RotaryRobotConfig, Schedule, schedule
 from .instrument import SimulatedInstrument
 from .load import LoadModel, Settling
@@ -171,6 +177,9 @@ class TrueRobot:
         stroke_scale: ``(6,)`` true k_i: the encoders log ``q / (1 + k_i)`` (rotary: a servo turns ``(1 + k_i) θ``).
         encoder_zero_mm: ``(6,)`` true zero errors z_i [mm]: the encoders log ``q − z_i``.
         instrument: the simulated outside instrument, or None (the tracker measures).
+        nominal: a rotary robot's nominal legs (its true drive is built from them), else None.
+        expansion_ppm_per_K: ``(6,)`` the legs' true thermal expansion α_i [ppm/K], or None (no warm-up).
+        reference_temperature_C: ``T_ref`` [°C], where ``base_params`` hold.
     """
 
     base_params: np.ndarray
@@ -181,6 +190,8 @@ class TrueRobot:
     encoder_zero_mm: np.ndarray
     instrument: SimulatedInstrument | None = None
     nominal: LegModel | None = None
+    expansion_ppm_per_K: np.ndarray | None = None
+    reference_temperature_C: float = 20.0
 
     @property
     def rotary(self) -> bool:
@@ -205,18 +216,45 @@ class TrueRobot:
             self.base_params - self.nominal.as_vector(), {STROKE_SCALE: self.stroke_scale}
         )
 
+    def growth(self, temperature_C: np.ndarray | None) -> np.ndarray | None:
+        """``(..., 6)`` each leg's relative growth ``α_i (T_i − T_ref) · 1e-6`` at ``temperature_C`` (``(..., 6)``
+        or a scalar for all legs [°C]); None without a warm-up or a temperature."""
+        if self.expansion_ppm_per_K is None or temperature_C is None:
+            return None
+        return self.expansion_ppm_per_K * (np.asarray(temperature_C, dtype=float) - self.reference_temperature_C) * 1e-6
+
     def settle(
-        self, strokes: np.ndarray, payload_kg: np.ndarray, guess, unit_noise: np.ndarray, gravity=None
+        self,
+        strokes: np.ndarray,
+        payload_kg: np.ndarray,
+        guess,
+        unit_noise: np.ndarray,
+        gravity=None,
+        temperature_C: np.ndarray | None = None,
     ) -> tuple[kin.FKSolution, np.ndarray]:
         """``(poses, true parameters (N, n_params))`` the robot reaches with the commanded ``strokes (N, 6)``:
         the loaded fixed point of the load model (:class:`~.load.Settling`) under gravity along ``gravity``
-        (``(N, 3)``; None: the load model's), or a rotary robot's forward kinematics of its servos' angles
-        (``unit_noise``: the standard normal draws of their white error)."""
+        (``(N, 3)``; None: the load model's) with its legs at ``temperature_C`` (``(N, 6)`` [°C]; None: at
+        the reference), or a rotary robot's forward kinematics of its servos' angles (``unit_noise``: the
+        standard normal draws of their white error)."""
         if not self.rotary:
-            return self.settling.settle(strokes, payload_kg, guess, gravity)
+            return self.settling.settle(strokes, payload_kg, guess, gravity, self.growth(temperature_C))
         held = strokes + self.encoder_noise_mm * unit_noise / (1.0 + self.stroke_scale)
         sol = self.true_drive.forward_kinematics(held, guess=guess)
         return sol, np.tile(self.base_params, (len(strokes), 1))
+
+    def reached(
+        self, logged: np.ndarray, guess, payload_kg=0.0, temperature_C: np.ndarray | float | None = None
+    ) -> kin.FKSolution:
+        """Where this prismatic robot settles when its controller commands the strokes ``logged (N, 6)``
+        (in the encoders' units: executed as ``(1 + k_i) q_i + z_i``) under ``payload_kg`` with its legs at
+        ``temperature_C`` (a scalar or ``(N, 6)`` [°C]; None: the reference), from ``guess = (R, t)``: what
+        a check commands with a calibrated model's ``compensate`` and measures."""
+        strokes = np.asarray(logged, dtype=float) * (1.0 + self.stroke_scale) + self.encoder_zero_mm
+        n = len(strokes)
+        growth = self.growth(None if temperature_C is None else np.broadcast_to(temperature_C, (n, strokes.shape[-1])))
+        sol, _ = self.settling.settle(strokes, np.broadcast_to(payload_kg, n), guess, growth=growth)
+        return sol
 
     def readings(
         self, R: np.ndarray, t: np.ndarray, reading_noise: np.ndarray, instrument_draws: np.ndarray
@@ -280,7 +318,18 @@ def build_robot(
         instrument = SimulatedInstrument.build(
             e.platform.instrument, e.instrument, instrument_rng or np.random.default_rng(0)
         )
-    return TrueRobot(drive.as_vector() + delta, e.load, tracker, r.encoder_noise_mm, scale, zero, instrument)
+    warm = e.warm_up
+    return TrueRobot(
+        drive.as_vector() + delta,
+        e.load,
+        tracker,
+        r.encoder_noise_mm,
+        scale,
+        zero,
+        instrument,
+        expansion_ppm_per_K=None if warm is None else warm.true_expansion_ppm_per_K.copy(),
+        reference_temperature_C=20.0 if warm is None else warm.reference_temperature_C,
+    )
 
 
 def _rotary_robot(
@@ -441,7 +490,8 @@ def _settle_block(robot: TrueRobot, plan: Schedule, rows: slice, controller: Con
     R_d, t_d = kin.pose_to_rt(plan.desired_poses[rows])
     gravity = None if plan.gravity is None else plan.gravity[rows]
     strokes = _commanded(controller, R_d, t_d, plan.payload_kg[rows], plan, rows.start, gravity)
-    sol, params = robot.settle(strokes, plan.payload_kg[rows], (R_d, t_d), noise[0], gravity)
+    temperature = None if plan.temperature_C is None else plan.temperature_C[rows]
+    sol, params = robot.settle(strokes, plan.payload_kg[rows], (R_d, t_d), noise[0], gravity, temperature)
     log, truth = _measured(robot, plan, rows, strokes, sol.R, sol.t, params, noise)
     for sample in log:  # the protocol promises observe() after every sample
         controller.observe(sample)
@@ -464,6 +514,7 @@ def _settle_each(robot: TrueRobot, plan: Schedule, rows: slice, controller: Cont
             (R_d[i : i + 1], t_d[i : i + 1]),
             stroke_noise[i : i + 1],
             None if gravity is None else gravity[None],
+            None if plan.temperature_C is None else plan.temperature_C[k : k + 1],
         )
         R[i], t[i] = sol.R[0], sol.t[0]
         controller.observe(
@@ -526,7 +577,7 @@ def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, para
         t_s=plan.t_s[rows].copy(),
         params=params,
         true_poses=kin.rt_to_pose(R, t),
-        drive_terms={STROKE_SCALE: robot.stroke_scale.copy()},
+        drive_terms=_true_terms(robot),
         instrument=instrument,
     )
     return log, truth
@@ -578,8 +629,19 @@ def _sample(robot: TrueRobot, plan, k: int, stroke, stroke_noise, R, t, reading_
 
 def _channels(plan: Schedule, index) -> dict[str, np.ndarray]:
     """The input channels a log holds at ``plan``'s samples ``index`` (a slice or a sample): the payload,
-    and gravity's direction where the mount tilts."""
+    gravity's direction where the mount tilts, and a warm-up's leg temperatures."""
     channels = {LOAD_KG: np.array(plan.payload_kg[index])}
     if plan.gravity is not None:
         channels[GRAVITY] = np.array(plan.gravity[index])
+    if plan.temperature_C is not None:
+        channels[TEMPERATURE_C] = np.array(plan.temperature_C[index])
     return channels
+
+
+def _true_terms(robot: TrueRobot) -> dict[str, np.ndarray]:
+    """The truth's drive terms (:attr:`~stewart_calib.samples.Truth.drive_terms`): the stroke scale, and a
+    warm-up's expansion."""
+    terms = {STROKE_SCALE: robot.stroke_scale.copy()}
+    if robot.expansion_ppm_per_K is not None:
+        terms[THERMAL] = robot.expansion_ppm_per_K.copy()
+    return terms

@@ -26,6 +26,12 @@ identical output. Layout (every key optional except ``seed`` and ``platform``; d
                 tilting mount turns about, like a telescope's elevation axis; normalised; default
                 [1, 0, 0])
     [tracker]   noise_mm, quantum_mm, geometry_residual_mm
+    [thermal]   a warm-up (spec §17; prismatic drives only): ambient_start_C, ambient_end_C (the
+                hall's temperature at the first and the last sample, a linear ramp between),
+                leg_spread_K (each leg's own offset from the ambient, uniform in ± this),
+                time_constant_s (the legs follow the ambient through a first-order lag; 0: at once),
+                expansion_ppm_per_K, expansion_spread_ppm_per_K (the true robot's α_i: this nominal
+                plus a normal draw of this σ per leg) — see :class:`WarmUp`
     [poses]     calibration, validation (counts), samples_per_pose, workspace_fraction, margin_mm
     [circle]    radius_mm, plane, points, samples_per_point, centre_offset_mm
     [[stages]]  name, load_kg, ramp_s, segments = ["calibration", "validation", "circle"],
@@ -39,9 +45,15 @@ spec §17 ``gravity_x gravity_y gravity_z``).
 
 :func:`load_experiment` validates every key (a wrong type or an unknown key raises
 :class:`~stewart_calib.errors.CalibError` naming the file and the key). :func:`schedule` turns an
-experiment into per-sample arrays (desired pose, time, payload, stage, segment kind); the
-calibration and validation pose sets are drawn once per experiment (in that order, from the
-experiment's generator) and shared by all stages, so stages are comparable.
+experiment into per-sample arrays (desired pose, time, payload, stage, segment kind, the legs'
+temperatures); the calibration and validation pose sets are drawn once per experiment (in that
+order, from the experiment's generator) and shared by all stages, so stages are comparable.
+
+A ``[thermal]`` warm-up's draws (the legs' offsets from the ambient, then their true expansion) come
+from the seed's seventh stream (:data:`THERMAL_STREAM`, beside the closed loop's six), at load: the
+experiment's platform then carries the truth as ``[thermal] true_expansion_ppm_per_K`` (the platform
+file's own ``[thermal]``, or its defaults where it has none), as ``simulate`` writes it, and the true
+robot's legs grow by it (:mod:`.closed_loop`).
 """
 
 from __future__ import annotations
@@ -55,7 +67,15 @@ import numpy as np
 from ..errors import CalibError
 from ..instruments.registry import instrument_kind, kind_of
 from ..io.platform_file import load_platform, parse_instrument
-from ..model.platform import LegGeometry, Platform, centre_too_far
+from ..model.platform import (
+    EXPANSION_LIMIT_PPM_PER_K,
+    N_LEGS,
+    TEMPERATURE_RANGE_C,
+    LegGeometry,
+    Platform,
+    Thermal,
+    centre_too_far,
+)
 from ..resources import CONFIGS, read_toml
 from .instrument import InstrumentTruth
 from .load import LoadModel
@@ -146,6 +166,47 @@ class CircleConfig:
     centre_offset_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
+#: the seed's stream (``SeedSequence(seed).spawn``'s index) a warm-up draws from: after the closed loop's six
+THERMAL_STREAM = 6
+
+
+@dataclass(frozen=True, eq=False)
+class WarmUp:
+    """The legs' temperatures over a simulated log and the true robot's expansion (``[thermal]``).
+
+    Leg i at time ``t`` [s] since the first sample is at ``T_i(t) = A_lag(t) + o_i``: the ambient ramps
+    linearly, ``A(t) = A_0 + ρ t`` with ``ρ = (A_1 − A_0) / t_end`` over the log's ``t_end``, and each leg
+    follows it through a first-order lag of time constant ``τ`` from equilibrium at the start,
+    ``A_lag(t) = A_0 + ρ (t − τ (1 − e^{−t/τ}))`` (exact for a ramp; ``τ = 0``: ``A(t)``); ``o_i`` is the
+    leg's own offset (a motor's heat, a draught). The true leg's length joint to joint is scaled by
+    ``1 + α_i (T_i − T_ref) · 1e-6`` (spec §17).
+
+    Attributes:
+        ambient_start_C, ambient_end_C: ``A_0``, ``A_1`` [°C].
+        time_constant_s: ``τ`` [s].
+        leg_offsets_K: ``(6,)`` ``o_i`` [K] (drawn uniform in ± ``leg_spread_K``).
+        true_expansion_ppm_per_K: ``(6,)`` the true ``α_i`` [ppm/K] (drawn).
+        reference_temperature_C: ``T_ref`` [°C], the platform's ``[thermal]``.
+    """
+
+    ambient_start_C: float
+    ambient_end_C: float
+    time_constant_s: float
+    leg_offsets_K: np.ndarray
+    true_expansion_ppm_per_K: np.ndarray
+    reference_temperature_C: float = 20.0
+
+    def leg_temperatures(self, t_s: np.ndarray) -> np.ndarray:
+        """``(N, 6)`` ``T_i`` [°C] of the samples at times ``t_s (N,)`` [s] (the first is the ramp's start)."""
+        t = np.asarray(t_s, dtype=float)
+        elapsed = t - (t[0] if t.size else 0.0)
+        duration = float(elapsed[-1]) if t.size else 0.0
+        rate = (self.ambient_end_C - self.ambient_start_C) / duration if duration > 0 else 0.0
+        tau = self.time_constant_s
+        lagged = elapsed if tau == 0 else elapsed - tau * -np.expm1(-elapsed / tau)
+        return self.ambient_start_C + rate * lagged[:, None] + self.leg_offsets_K
+
+
 @dataclass(frozen=True)
 class Stage:
     """One load stage: payload [kg] reached linearly over ``ramp_s`` [s] from the previous
@@ -174,6 +235,7 @@ class Experiment:
     stages: tuple[Stage, ...]
     source: str = field(default="<memory>", compare=False)
     instrument: InstrumentTruth | None = None
+    warm_up: WarmUp | None = None
 
 
 #: [load] defaults — the tuned nim-stewart values; configs/experiments/paper.toml explains them.
@@ -342,14 +404,17 @@ def load_experiment(path: str | Path) -> Experiment:
     for table in sections.values():
         table.done()
     platform, instrument = _instrument(doc, platform, source)
+    platform, warm_up = _warm_up(doc, platform, seed, source)
 
     top.used.add("stages")
     raw_stages = doc.get("stages")
     if not isinstance(raw_stages, list) or not raw_stages:
         raise top.refuse("stages", "one or more [[stages]] tables")
     stages = tuple(_stage(raw, f"stages[{k}]", source) for k, raw in enumerate(raw_stages))
-    top.done(subtables=(*sections, "instrument"))
-    return Experiment(name, seed, platform, period, robot, load, tracker, poses, circle, stages, source, instrument)
+    top.done(subtables=(*sections, "instrument", "thermal"))
+    return Experiment(
+        name, seed, platform, period, robot, load, tracker, poses, circle, stages, source, instrument, warm_up
+    )
 
 
 def _robot(r: _Table) -> RobotConfig:
@@ -415,6 +480,40 @@ def _instrument(doc: dict, platform: Platform, source: str) -> tuple[Platform, I
     return replace(platform, instrument=instrument), truth
 
 
+def _warm_up(doc: dict, platform: Platform, seed: int, source: str) -> tuple[Platform, WarmUp | None]:
+    """The experiment's ``[thermal]`` warm-up (:class:`WarmUp`; its draws from :data:`THERMAL_STREAM`)
+    and the platform with the truth in its ``[thermal]``; none: the platform as it is, no warm-up."""
+    from dataclasses import replace
+
+    if "thermal" not in doc:
+        return platform, None
+    t = _Table(doc["thermal"], "thermal", source)
+    if platform.drive.kind != "prismatic":
+        raise t.refuse("", f"no [thermal] table: a {platform.drive.kind} drive is simulated without a warm-up (yet)")
+    low, high = TEMPERATURE_RANGE_C
+    start = t.number("ambient_start_C", 20.0)
+    end = t.number("ambient_end_C", start)
+    spread = t.number("leg_spread_K", 0.0, minimum=0.0)
+    tau = t.number("time_constant_s", 0.0, minimum=0.0)
+    nominal = t.number("expansion_ppm_per_K", 11.5)
+    sigma = t.number("expansion_spread_ppm_per_K", 0.0, minimum=0.0)
+    t.done()
+    for key, value in (("ambient_start_C", start), ("ambient_end_C", end)):
+        if not (low <= value - spread and value + spread <= high):
+            expected = f"legs within {low:g}…{high:g} °C (spec §17) with leg_spread_K = {spread:g}, got {value:g}"
+            raise t.refuse(key, expected)
+    thermal_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(THERMAL_STREAM + 1)[THERMAL_STREAM])
+    offsets = thermal_rng.uniform(-spread, spread, N_LEGS)
+    alpha = nominal + sigma * thermal_rng.standard_normal(N_LEGS)
+    if np.any(np.abs(alpha) > EXPANSION_LIMIT_PPM_PER_K):
+        key = "expansion_ppm_per_K" if abs(nominal) > EXPANSION_LIMIT_PPM_PER_K else "expansion_spread_ppm_per_K"
+        drew = alpha.round(1).tolist()
+        raise t.refuse(key, f"true expansions within ±{EXPANSION_LIMIT_PPM_PER_K:g} ppm/K, drew {drew}")
+    table = platform.thermal or Thermal()
+    platform = replace(platform, thermal=replace(table, true_expansion_ppm_per_K=alpha))
+    return platform, WarmUp(start, end, tau, offsets, alpha, float(table.reference_temperature_C))
+
+
 def _missing(table: _Table, key: str, expected: str):
     raise table.refuse(key, f"{expected} (missing)")
 
@@ -457,6 +556,7 @@ class Schedule:
         pose_index: ``(N,)`` index of the pose within its segment (static pose or circle point).
         gravity: ``(N, 3)`` the unit vector in {J} gravity acts along at each sample where the mount
         tilts (a stage's ``tilt_deg``), else None (``[load] gravity`` throughout).
+        temperature_C: ``(N, 6)`` each leg's temperature [°C] of a warm-up (:class:`WarmUp`), else None.
     """
 
     t_s: np.ndarray
@@ -466,6 +566,7 @@ class Schedule:
     kinds: np.ndarray
     pose_index: np.ndarray
     gravity: np.ndarray | None = None
+    temperature_C: np.ndarray | None = None
 
 
 def tilted_gravity(gravity: np.ndarray, axis: np.ndarray, tilt_deg: np.ndarray) -> np.ndarray:
@@ -523,4 +624,5 @@ def schedule(experiment: Experiment, rng: np.random.Generator) -> Schedule:
         previous, previous_tilt = stage.load_kg, stage.tilt_deg
     tilting = any(stage.tilt_deg != 0.0 for stage in e.stages)
     gravity = tilted_gravity(e.load.gravity, e.load.tilt_axis, tilt) if tilting else None
-    return Schedule(t_s, desired, payload, stages, kinds, index, gravity)
+    temperature = None if e.warm_up is None else e.warm_up.leg_temperatures(t_s)
+    return Schedule(t_s, desired, payload, stages, kinds, index, gravity, temperature)

@@ -135,7 +135,7 @@ def _loaded_params(base_params, R, t, weights, downs, coms, radius, stiffness, p
             pose_drift(base_params, R[k], t[k], forces[k], stiffness, params[k])
 
 
-@njit(entry=(*_POSE_INPUTS, F8_2, INT, FLOAT, INT, F8_2, F8_2, F8_1, F8_1, I8_1), nogil=True, error_model="numpy")
+@njit(entry=(*_POSE_INPUTS, F8_2, F8_2, INT, FLOAT, INT, F8_2, F8_2, F8_1, F8_1, I8_1), nogil=True, error_model="numpy")
 def _settle_poses(
     base_params,
     R,
@@ -146,6 +146,7 @@ def _settle_poses(
     radius,
     stiffness,
     strokes,
+    growth,
     iterations,
     tol_mm,
     max_iterations,
@@ -159,20 +160,32 @@ def _settle_poses(
     rests): ``iterations`` passes of :func:`~stewart_calib.model._kernels.settle_pose` (the forces and
     ``params[k]`` at the pose, then FK of ``strokes[k]`` on ``params[k]``); ``ratios[k]`` the statics'
     last Hadamard ratio (below the bound: stopped there), ``residual[k]`` FK's last max |length error|
-    [mm] (``inf`` for a non-finite stroke) after its ``newton_steps[k]`` Newton steps."""
+    [mm] (``inf`` for a non-finite stroke) after its ``newton_steps[k]`` Newton steps.
+
+    ``growth[k]`` ``(6,)`` scales each leg joint to joint, ``(l'_i + q_i)(1 + s_i)`` with ``l'_i = l_i −
+    f_i / k_leg`` the loaded leg's initial length (a warm leg's ``s_i = α_i ΔT_i · 1e-6``, :class:`Settling`):
+    three terms of the extension on ``u = [q, s (l + q), f]``, ``q + s (l + q) − s f / k_leg``, the last on
+    the forces the settling writes into ``u`` (0 where ``s`` is: the strokes alone, bit for bit)."""
     n_legs = len(base_params) // 7  # seven parameters a leg
     base, plat, lengths = np.empty((n_legs, 3)), np.empty((n_legs, 3)), np.empty(n_legs)
     split_params(base_params, base, plat, lengths)
-    # the strokes are the extensions: one term, gain 1, no force column
-    terms = (np.zeros(1, dtype=np.int64), np.ones(1), np.ones((1, n_legs)), -1)
+    starts = np.array([0, n_legs, 2 * n_legs], dtype=np.int64)
+    gains = np.array([1.0, 1.0, -1.0 / stiffness[0]])
+    factors = np.ones((3, n_legs))
+    terms = (starts, gains, factors, 2 * n_legs)
+    u = np.zeros(3 * n_legs)
     work, scratch = _fk_work(), settle_scratch()
     for k in range(R.shape[0]):
+        for i in range(n_legs):
+            u[i] = strokes[k, i]
+            u[n_legs + i] = growth[k, i] * (lengths[i] + strokes[k, i])
+            factors[2, i] = growth[k, i]
         ratios[k], residual[k], newton_steps[k] = settle_pose(
             (base, plat, lengths),
             (base_params, stiffness, params[k]),
             (weights[k], downs[k], coms, radius),
             terms,
-            strokes[k],
+            u,
             R[k],
             t[k],
             iterations,
@@ -248,18 +261,22 @@ class Settling:
         return params.reshape(batch + params.shape[1:]), forces.reshape(batch + forces.shape[1:])
 
     def settle(
-        self, strokes: np.ndarray, payload_kg, guess: tuple[np.ndarray, np.ndarray], gravity=None
+        self, strokes: np.ndarray, payload_kg, guess: tuple[np.ndarray, np.ndarray], gravity=None, growth=None
     ) -> tuple[kin.FKSolution, np.ndarray]:
-        """:func:`settle` on this robot."""
+        """:func:`settle` on this robot, each leg joint to joint scaled by ``1 + growth`` (``(N, 6)``, a warm
+        leg's ``α_i ΔT_i · 1e-6``; None: 0), ``(l_i + q_i − f_i / k_leg)(1 + s_i)``: the leg grows, loaded
+        as it is, and its joints' give does not (the experiment's ``[thermal]``, spec §17)."""
         strokes = np.ascontiguousarray(strokes, dtype=float).reshape(-1, self.n_legs)
         n = len(strokes)
         down = self.gravity if gravity is None else gravity
+        growth = np.zeros((n, self.n_legs)) if growth is None else np.ascontiguousarray(growth, dtype=float)
+        growth = np.broadcast_to(growth, (n, self.n_legs)).copy()
         _, inputs = self._inputs(*guess, np.broadcast_to(payload_kg, n), np.broadcast_to(down, (n, 3)))
         params, forces = np.empty((n, self.base_params.size)), np.empty((n, self.n_legs))
         ratios, residual = np.empty(n), np.empty(n)
         steps = np.empty(n, dtype=np.int64)
         fk = (kin.FK_TOLERANCE_MM, kin.FK_MAX_ITERATIONS)
-        _settle_poses(*inputs, strokes, self.iterations, *fk, params, forces, ratios, residual, steps)
+        _settle_poses(*inputs, strokes, growth, self.iterations, *fk, params, forces, ratios, residual, steps)
         _refuse_singular(ratios)
         converged = residual <= kin.FK_TOLERANCE_MM
         if not converged.all():
