@@ -69,7 +69,6 @@ from ..instruments.registry import instrument_kind, kind_of
 from ..io.platform_file import load_platform, parse_instrument
 from ..model.platform import (
     EXPANSION_LIMIT_PPM_PER_K,
-    N_LEGS,
     TEMPERATURE_RANGE_C,
     LegGeometry,
     Platform,
@@ -503,8 +502,8 @@ def _warm_up(doc: dict, platform: Platform, seed: int, source: str) -> tuple[Pla
             expected = f"legs within {low:g}…{high:g} °C (spec §17) with leg_spread_K = {spread:g}, got {value:g}"
             raise t.refuse(key, expected)
     thermal_rng = np.random.default_rng(np.random.SeedSequence(seed).spawn(THERMAL_STREAM + 1)[THERMAL_STREAM])
-    offsets = thermal_rng.uniform(-spread, spread, N_LEGS)
-    alpha = nominal + sigma * thermal_rng.standard_normal(N_LEGS)
+    offsets = thermal_rng.uniform(-spread, spread, platform.drive.n_legs)
+    alpha = nominal + sigma * thermal_rng.standard_normal(platform.drive.n_legs)
     if np.any(np.abs(alpha) > EXPANSION_LIMIT_PPM_PER_K):
         key = "expansion_ppm_per_K" if abs(nominal) > EXPANSION_LIMIT_PPM_PER_K else "expansion_spread_ppm_per_K"
         drew = alpha.round(1).tolist()
