@@ -27,11 +27,12 @@ from stewart_calib.model import kinematics as kin
 from stewart_calib.model.drive import THERMAL, drive_model
 from stewart_calib.model.platform import Elastic, Thermal
 from stewart_calib.samples import TEMPERATURE_C, Log
-from tests.synthetic import nim_stewart, random_error, random_poses
+from tests.synthetic import ROOT, nim_stewart, random_error, random_poses
 
 REFERENCE_C = 22.0
 TRUE_ALPHA = np.array([11.5, 12.0, 10.5, 13.0, 11.0, 12.5])  # ppm/K
 N = 200
+EXAMPLE = ROOT / "examples" / "hobby-mocap"
 
 
 def thermal_platform(sigma_ppm_per_K: float = 20.0):
@@ -541,3 +542,29 @@ def test_the_report_and_the_recording_show_each_legs_temperature_and_growth(warm
     _, grown = read_scalars(tmp_path / "r.rrd", "growth/leg3/ekf")
     np.testing.assert_allclose(grown, growth_um[:, 2], rtol=0.01, atol=0.05)
     assert "inputs" in read_blueprint_names(tmp_path / "r.rrd")
+
+
+def test_import_reads_a_loggers_own_temperature_column_from_the_same_rows(tmp_path, capsys):
+    """A logger that writes counts, the pose and one temperature per row (``--csv``): the temperature is read
+    with the strokes, every leg's the same, after the measured columns."""
+    rows = (EXAMPLE / "fit_raw.csv").read_text().splitlines()
+    warm_C = [20.0 + 0.25 * k for k in range(len(rows) - 1)]
+    (tmp_path / "raw.csv").write_text(
+        "\n".join([rows[0] + ",leg_C", *(f"{row},{c!r}" for row, c in zip(rows[1:], warm_C, strict=True))]) + "\n"
+    )
+    mapping = (EXAMPLE / "raw.toml").read_text() + 'temperatures = ["leg_C"]\n'
+    (tmp_path / "raw.toml").write_text(mapping)
+    out = tmp_path / "log.csv"
+    code, _, err = run(
+        capsys, "import", "--csv", tmp_path / "raw.csv", "--mapping", tmp_path / "raw.toml", "--out", out
+    )
+    assert code == 0, err
+    assert out.read_text().splitlines()[0].split(",")[-6:] == [f"temp{i}_C" for i in range(1, 7)]
+    log = read_log(out, dataclasses.replace(load_platform("hobby-hexapod"), thermal=Thermal()))
+    np.testing.assert_array_equal(log.inputs[TEMPERATURE_C], np.repeat(np.array(warm_C)[:, None], 6, axis=1))
+    plain = tmp_path / "plain.csv"
+    assert (
+        run(capsys, "import", "--csv", EXAMPLE / "fit_raw.csv", "--mapping", EXAMPLE / "raw.toml", "--out", plain)[0]
+        == 0
+    )
+    np.testing.assert_array_equal(log.strokes, read_log(plain, load_platform("hobby-hexapod")).strokes)

@@ -494,7 +494,7 @@ def leg_temperature_figure(legs: LegTemperatures) -> str:
         top.plot(t[::stride], legs.temperatures_C[::stride, leg], lw=0.7, label=f"leg {leg + 1}")
         bottom.plot(t[::stride], legs.growth_um[::stride, leg], lw=0.7, label=f"leg {leg + 1}")
     top.set_ylabel("temperature [°C]")
-    bottom.set_ylabel("growth α_i ΔT_i L_i [µm]")
+    bottom.set_ylabel("growth α ΔT L [µm]")
     bottom.set_xlabel(label, fontsize=8)
     for ax in (top, bottom):
         ax.tick_params(labelsize=7)
