@@ -48,7 +48,7 @@ from ..instruments import instrument_kind, registered
 from ..io.platform_file import load_platform
 from ..memory import check_memory
 from ..model import kinematics as kin
-from ..model.drive import drive_model, plain_drive
+from ..model.drive import COMPLIANCE, THERMAL, drive_model, plain_drive
 from ..model.platform import LegGeometry, Platform
 from ..progress import MIN_LOG_ROWS
 from ..samples import Log
@@ -86,6 +86,7 @@ def _write_rerun(
     run: Calibration,
     batch: bool,
     leg_forces: LegForceSeries | None = None,
+    leg_temperatures: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> None:
     """A rerun ``.rrd``: the platform geometry, the robot at each sample drawn with the calibrated
     legs (a rotary drive's crank → horn → rod, :func:`~stewart_calib.viz.recording.log_platform_pose`)
@@ -93,7 +94,8 @@ def _write_rerun(
     kinematics of the logged coordinates, the parameter errors δM over time with their ±σ bands in
     file units (mm; a servo's angles in degrees), and the method's diagnostics: drive-leg residuals
     after each sample and, for an online method, before it (the innovation), and the NIS of a Kalman
-    method."""
+    method; with ``[thermal]`` each leg's temperature and growth over the log
+    (:func:`handover.leg_temperatures`)."""
     from ..viz import recording as viz  # rerun is slow to import; only --rerun needs it
 
     nominal, trace = platform.drive.as_vector(), run.trace
@@ -128,7 +130,10 @@ def _write_rerun(
         if leg_forces is not None:  # an elastic platform's (_leg_forces): the legs' forces, and c ± σ
             forces, c, sigma = leg_forces
             viz.log_elastic(rec, method, forces, c, sigma, log.t_s)
-        viz.send_blueprint(rec, platform.drive.n_legs, [method], [], {method: kinds}, fields)
+        if leg_temperatures is not None:
+            viz.log_thermal(rec, method, *leg_temperatures, log.t_s)
+        views = viz.THERMAL_VIEWS if leg_temperatures is not None else ()
+        viz.send_blueprint(rec, platform.drive.n_legs, [method], [], {method: kinds}, fields, views)
 
 
 def _residuals_per_sample(platform: Platform, params: np.ndarray, R: np.ndarray, t: np.ndarray, strokes: np.ndarray):
@@ -151,11 +156,13 @@ LegForceSeries = tuple[np.ndarray, np.ndarray, np.ndarray | None]
 def _leg_forces(platform: Platform, estimate: Estimate, log: Log) -> LegForceSeries:
     """``(forces (N, legs) [N], c (legs,) [mm/kN], σ of c or None)`` of an elastic platform: the legs'
     forces at the calibrated model's settled poses of every sample (:func:`handover.leg_forces`), c the
-    model's compliance (the term comes last: identified, or ``[elastic]``'s held value)."""
+    model's compliance (identified, or ``[elastic]``'s held value)."""
     drive = drive_model(platform).calibrated_by(estimate)
-    block = estimate.block_results().get("compliance", {})
+    block = estimate.block_results().get(COMPLIANCE, {})
     sigma = None if block.get("stddev") is None else np.asarray(block["stddev"])
-    return handover.leg_forces(drive, log), drive.term_values()[-1], sigma
+    compliance = handover.term_values(drive, COMPLIANCE)
+    assert compliance is not None  # an elastic platform's drive has the term
+    return handover.leg_forces(drive, log), compliance, sigma
 
 
 def nominal_poses(platform: Platform, log: Log) -> np.ndarray:
@@ -166,13 +173,31 @@ def nominal_poses(platform: Platform, log: Log) -> np.ndarray:
     return fk.pose6[fk.converged]
 
 
-def outside_conditioning(platform: Platform, log: Log) -> dict:
-    """The "conditioning" section of a pose or points instrument's result: what ``identifiability
-    --log`` reports of these samples (the nominal drive, the instrument registered on them)."""
+def outside_conditioning(platform: Platform, log: Log) -> tuple[dict, str | None]:
+    """``(the "conditioning" section of a pose or points instrument's result, the expansion's trade-off
+    line or None)``: what ``identifiability --log`` reports of these samples (the nominal drive with
+    every term free, the instrument registered on them; :func:`handover.thermal_trade_off_line`)."""
     from ..estimators.batch import instrument_identifiability
 
     at_registration = registered(platform, log.strokes, log.readings)
-    return instrument_conditioning(instrument_identifiability(at_registration, log.strokes, log.readings, log.inputs))
+    report = instrument_identifiability(at_registration, log.strokes, log.readings, log.inputs)
+    drive = drive_model(platform).identifying()
+    span = handover.temperature_span_K(log.inputs)
+    line = handover.thermal_trade_off_line(drive, handover.outside_stddev(drive, report), span)
+    return instrument_conditioning(report), line
+
+
+def tracker_trade_off_line(platform: Platform, drive, report, poses, strokes, channels, noise) -> str | None:
+    """:func:`handover.thermal_trade_off_line` of the tracker's samples: their expansion's Cramér–Rao σ
+    with every term of the drive free (``report`` itself where they already are)."""
+    separating = handover.trade_off_drive(drive)
+    if separating is None:
+        return None
+    if separating.size != drive.size:
+        report = identifiability_report(platform, poses, noise, False, separating, strokes, channels)
+    names, stddev = report.block_stddev[THERMAL]
+    span = handover.temperature_span_K(channels)
+    return handover.thermal_trade_off_line(drive, dict(zip(names, stddev.tolist(), strict=True)), span)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -273,9 +298,10 @@ def run(args: argparse.Namespace) -> int:
             report = identifiability_report(platform, poses, config.noise, False, drive, strokes, channels)
             warning = warning_line(report)
             extra["conditioning"] = conditioning_summary(report)
+            thermal_line = tracker_trade_off_line(platform, drive, report, poses, strokes, channels, config.noise)
         else:
             poses = nominal_poses(platform, checked)
-            conditioning = outside_conditioning(platform, checked)
+            conditioning, thermal_line = outside_conditioning(platform, checked)
             extra["conditioning"] = conditioning
             warning = outside_warning_line(conditioning)
         # the tracker's methods carry a random walk and the paper's forms: their covariances are not the
@@ -289,6 +315,8 @@ def run(args: argparse.Namespace) -> int:
             for text in (warning, line):
                 if text:
                     print(f"stewart-calib calibrate: {text}", file=sys.stderr)
+        if thermal_line:
+            print(f"stewart-calib calibrate: {thermal_line}", file=sys.stderr)
         outliers = (estimate.details or {}).get("outliers")
         if outliers:  # ls takes every sample in (the paper's baseline): it says when some are gross errors
             print(f"stewart-calib calibrate: {outlier_warning(outliers)}", file=sys.stderr)
@@ -343,19 +371,25 @@ def run(args: argparse.Namespace) -> int:
             if platform.elastic is not None and (report_dir or rerun_path)
             else None
         )
+        leg_temperatures = (
+            handover.leg_temperatures(drive_model(platform).calibrated_by(estimate), log)
+            if platform.thermal is not None and (report_dir or rerun_path)
+            else None
+        )
         if report_dir:
             from ..viz.geometry import robot_at
-            from ..viz.html_report import LegForces, report_html
+            from ..viz.html_report import LegForces, LegTemperatures, report_html
 
             inputs = {"platform file": str(args.platform), "log": str(args.log)}
             forces = None if leg_forces is None else LegForces(np.asarray(log.t_s), *leg_forces[:2])
             title = f"Calibration of {platform.name} with {args.method}"
             shown = " — ".join(text for text in (verdict, unsupported) if text)
             robot = robot_at(platform, drive_model(platform).calibrated_by(estimate).legs)
-            page = report_html(title, result_data, residuals, None, inputs, forces, shown, robot)
+            thermal = None if leg_temperatures is None else LegTemperatures(np.asarray(log.t_s), *leg_temperatures)
+            page = report_html(title, result_data, residuals, None, inputs, forces, shown, robot, thermal)
         if rerun_path:
             batch = not estimators.method_spec(args.method).online
-            _write_rerun(rerun_path, platform, args.method, log, result, batch, leg_forces)
+            _write_rerun(rerun_path, platform, args.method, log, result, batch, leg_forces, leg_temperatures)
     if trace_csv is not None:
         io.atomic_write_text(trace_path, trace_csv)
     if platform_toml is not None:

@@ -6,7 +6,9 @@ writes the pose columns and ``q1_mm … q6_mm`` (a rotary drive: ``q1_deg … q6
 strokes (commanded angles) to command so that the calibrated
 drive ``nominal + error`` lands at each pose (paper Fig. 3 step 4). A platform with ``[elastic]``
 carries its weight and ``--payload-kg M`` (default 0) there: the strokes are those that reach the
-poses under that load (spec §10).
+poses under that load (spec §10). A platform with ``[thermal]`` has its legs at ``--temperature-C T``
+(all legs; default the reference temperature): the strokes are those that reach the poses with each
+leg grown by ``α_i (T − T_ref) L_i`` (spec §17).
 
 ``--poses -`` streams (spec §16): poses from standard input, each pose's row (the pose columns and
 the strokes) written and flushed as soon as its line has come, to ``--out`` (``-``: standard
@@ -31,8 +33,8 @@ from ..io import read_pose_list_blocks
 from ..io.logs import POSE_COLUMNS
 from ..io.platform_file import load_platform
 from ..io.tables import header_fields, require_columns
-from ..model.platform import payload_refusal
-from ..samples import LOAD_KG, Inputs
+from ..model.platform import TEMPERATURE_RANGE_C, payload_refusal
+from ..samples import LOAD_KG, TEMPERATURE_C, Inputs
 from . import run_command
 from .handover import calibrated_model
 
@@ -63,6 +65,14 @@ def add_parser(subparsers) -> None:
         metavar="M",
         help="payload [kg] carried at the poses (a platform with [elastic], spec §10; default 0)",
     )
+    parser.add_argument(
+        "--temperature-C",
+        dest="temperature_C",
+        type=float,
+        metavar="T",
+        help="every leg's temperature [°C] at the poses (a platform with [thermal], spec §17; default its "
+        "reference temperature)",
+    )
     parser.set_defaults(func=run)
 
 
@@ -77,8 +87,11 @@ def run(args: argparse.Namespace) -> int:
     too_heavy = payload_refusal(platform, args.payload_kg)
     if too_heavy:
         raise CalibError(f"--payload-kg: expected {too_heavy}")
+    temperature_C = _temperature_C(args, platform)
     drive = calibrated_model(platform, args.result)  # with its blocks, where the calibration identified them
-    inputs = {LOAD_KG: args.payload_kg}  # the input channels every pose is commanded at
+    inputs: dict = {LOAD_KG: args.payload_kg}  # the input channels every pose is commanded at
+    if temperature_C is not None:  # one temperature for every leg: the channel's shape, a value per leg
+        inputs[TEMPERATURE_C] = np.full(drive.rows, temperature_C)
     if args.poses == "-":
         return _stream(sys.stdin.buffer, "<stdin>", args.out, drive, platform, inputs)
     if args.out == "-":
@@ -91,6 +104,25 @@ def run(args: argparse.Namespace) -> int:
     rows = io.write_pose_list_blocks(args.out, strokes, io.drive_columns(platform))
     print(f"wrote {rows} stroke rows to {args.out}")
     return 0
+
+
+def _temperature_C(args: argparse.Namespace, platform) -> float | None:
+    """``--temperature-C`` checked (a platform with ``[thermal]``, a temperature within
+    :data:`~stewart_calib.model.platform.TEMPERATURE_RANGE_C`), its reference temperature where the
+    option is not given; None for a platform without ``[thermal]``."""
+    value = args.temperature_C
+    if value is not None:
+        low, high = TEMPERATURE_RANGE_C
+        if not (np.isfinite(value) and low <= value <= high):
+            raise CalibError(f"--temperature-C: expected a temperature within [{low:g}, {high:g}] °C, got {value!r}")
+        if platform.thermal is None:
+            raise CalibError(
+                f"--temperature-C: {args.platform} has no [thermal] (spec §17): a model without the legs' "
+                "expansion has no temperature to compensate"
+            )
+    if platform.thermal is None:
+        return None
+    return float(platform.thermal.reference_temperature_C if value is None else value)
 
 
 def _compensated_blocks(poses_path: str, drive, platform, inputs: Inputs) -> Iterator[tuple[np.ndarray, np.ndarray]]:

@@ -21,6 +21,7 @@ from ..instruments import instrument_kind
 from ..io.platform_file import platform_to_toml
 from ..model.drive import COMPLIANCE, THERMAL, DriveModel, drive_model
 from ..model.platform import Platform
+from ..samples import TEMPERATURE_C
 
 REPORT_PAGE = "index.html"
 
@@ -144,6 +145,99 @@ def covariance_field(estimate: Estimate, legs) -> list | None:
         order = np.r_[np.delete(np.arange(len(covariance)), moved), moved]
         covariance = covariance[np.ix_(order, order)]
     return covariance.tolist()
+
+
+def term_values(drive: DriveModel, key: str) -> np.ndarray | None:
+    """``(legs,)`` the values of the drive's term ``key`` (the compliance c_i [mm/kN], the expansion α_i
+    [ppm/K]): identified, or the platform's held value; None where the drive has no such term."""
+    rows = [row for row, term in enumerate(drive.terms) if term.key == key]
+    return drive.term_values()[rows[0]] if rows else None
+
+
+def leg_temperatures(drive: DriveModel, log) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(temperatures (N, legs) [°C], growth (N, legs) [µm])`` of a thermal drive over a log: each leg's
+    temperature and what it grew by there, the expansion term's part of its extension, ``α_i (T_i −
+    T_ref) · 1e-6 · L_i`` (spec §17, the drive's α: identified, or ``[thermal]``'s held value) — what the
+    report and the rerun recording show; None without ``[thermal]`` or without the log's temperatures."""
+    rows = [row for row, term in enumerate(drive.terms) if term.key == THERMAL]
+    temperatures = log.inputs.get(TEMPERATURE_C)
+    if not rows or temperatures is None:
+        return None
+    term, alpha = drive.terms[rows[0]], drive.term_values()[rows[0]]
+    inputs = drive.inputs_near(log.strokes, log.inputs)  # the growth needs no pose (the forces' columns do)
+    growth_mm = alpha * term.gain * inputs[..., term.input_start : term.input_start + drive.rows]
+    return np.asarray(temperatures, dtype=float), growth_mm * 1e3
+
+
+# ----------------------------------------------------------------------------- the expansion against the legs
+
+
+def trade_off_drive(drive: DriveModel) -> DriveModel | None:
+    """``drive`` with every term an unknown (the stroke scale k_i too), where its expansion α_i is an
+    unknown block (spec §17): at one temperature each leg's growth ``α_i ΔT (l_i + q_i)`` is a
+    combination of the columns of ``l_i`` and ``k_i``, so the Cramér–Rao σ of α with ``k`` free is
+    what the log's temperatures themselves tell of it (:func:`thermal_trade_off_line`); None
+    without that block."""
+    if not any(block.key == THERMAL for block in drive.blocks):
+        return None
+    return drive.identifying()
+
+
+def temperature_span_K(channels) -> np.ndarray | None:
+    """``(legs,)`` each leg's temperature span over the samples' channels (max − min) [K], or None
+    where they carry no temperature."""
+    temperatures = (channels or {}).get(TEMPERATURE_C)
+    if temperatures is None or not len(temperatures):
+        return None
+    return np.ptp(np.asarray(temperatures, dtype=float), axis=0)
+
+
+def thermal_trade_off_line(drive: DriveModel, stddev: dict, span_K: np.ndarray | None) -> str | None:
+    """One warning line where the log's temperatures do not separate the legs' expansion from their
+    lengths and stroke scale, else None.
+
+    ``stddev``: the Cramér–Rao σ [ppm/K] of ``alpha1 …`` by name from the data alone with ``l_i`` and
+    ``k_i`` free (:func:`trade_off_drive`; None or inf: not identified; a name absent: not judged). A
+    leg's α is not separated where that σ exceeds the prior σ of ``[thermal]
+    expansion_sigma_ppm_per_K``: the log then tells α less than the prior does (its information
+    ``1/σ²`` below the prior's), and a calibration keeps it near the nominal — the threshold is the
+    data's information against the prior's, which a log that spans (nearly) one temperature does
+    not reach."""
+    term = next((term for term in drive.terms if term.key == THERMAL and term.prior_sigma is not None), None)
+    if term is None:
+        return None
+    prior = float(term.prior_sigma or 0.0)  # a held term (None) is no block: not reached
+    judged = np.array([name in stddev for name in term.names])
+    sigma = np.array([np.inf if stddev.get(name) is None else float(stddev[name]) for name in term.names])
+    weak = judged & ~(sigma <= prior)
+    if not weak.any():
+        return None
+    names = [name for name, w in zip(term.names, weak, strict=True) if w]
+    shown = f"{names[0]}…{names[-1]}" if len(names) == len(term.names) else ", ".join(names)
+    span = "no temperatures" if span_K is None else f"{float(np.max(span_K[weak])):.3g} K"
+    seen = sigma[weak][np.isfinite(sigma[weak])]
+    told = (
+        "not identified by the data"
+        if not seen.size
+        else f"Cramér–Rao σ {float(np.min(seen)):.3g}–{float(np.max(seen)):.3g} ppm/K from the data"
+    )
+    return (
+        f"warning: {shown} not separable from l_i and k_i: the log spans {span} (at one temperature "
+        f"α_i ΔT (l_i + q_i) is a combination of l_i and k_i; {told}, above the prior σ {prior:g} ppm/K): "
+        "the calibration keeps them near [thermal] expansion_ppm_per_K; a log over a warm-up separates them"
+    )
+
+
+def outside_stddev(drive, report: dict) -> dict:
+    """An outside instrument's Cramér–Rao σ by name
+    (:func:`~stewart_calib.estimators.batch.instrument_identifiability`), with the expansion's inf
+    where its block is not identified (every σ is None where the rank is short, the block's own
+    verdict then says whether it is among what the poses leave out)."""
+    stddev = dict(report["predicted_stddev"])
+    if report.get(f"{THERMAL}_identifiable") is not False:
+        return {name: value for name, value in stddev.items() if value is not None}
+    names = [name for term in drive.terms if term.key == THERMAL for name in term.names]
+    return {**stddev, **{name: float("inf") for name in names}}
 
 
 def leg_forces(drive: DriveModel, log) -> np.ndarray:

@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import json
 
+import numpy as np
+
 from .. import io
 from ..analysis.identifiability import CONDITION_POOR, NO_POSE, InformationAccumulator, tracker_samples, warning_line
 from ..config import load_estimator_config
@@ -16,31 +18,64 @@ from ..errors import CalibError
 from ..instruments import instrument_kind
 from ..io import read_pose_list
 from ..io.platform_file import load_platform
-from ..model.drive import drive_model
+from ..model.drive import THERMAL, drive_model
 from ..model.platform import Platform
+from ..samples import TEMPERATURE_C
 from ..workflows.diagnosis import require_poses
-from . import run_command
+from . import handover, run_command
 from .plan import add_platform_and_noise_arguments
 
 
 def log_information(platform: Platform, path: str, source: str, noise, skip_bad_rows: bool = False):
     """The :class:`InformationAccumulator` of a log's poses — tracker FK of the readings, or the
     desired pose columns — read a block at a time (memory independent of the log's length), over the
-    drive's unknowns as the estimators identify them (the compliance with ``[elastic]``, the stroke
-    scale where configured: at the samples' strokes and payloads)."""
-    information = InformationAccumulator(platform, noise, drive=drive_model(platform, noise))
+    drive's unknowns as the estimators identify them (the compliance with ``[elastic]``, the expansion
+    with ``[thermal]``, the stroke scale where configured: at the samples' strokes and input channels),
+    and the expansion's trade-off line with the legs' lengths (:func:`thermal_line`) or None."""
+    drive = drive_model(platform, noise)
+    information = InformationAccumulator(platform, noise, drive=drive)
+    separating = handover.trade_off_drive(drive)
+    if separating is not None and separating.size == drive.size:
+        separating = None  # every term already free: the report's own σ of the expansion is the one
+    free = None if separating is None else InformationAccumulator(platform, noise, False, separating)
+    low = high = None
     for block in io.read_log_blocks(path, platform, skip_bad_rows):
         if source == "desired":
             if block.desired_poses is None:
                 raise CalibError(
                     f"{path}: no pose columns; expected {', '.join(io.POSE_COLUMNS)} for --pose-source desired"
                 )
-            information.add(block.desired_poses, block.strokes, block.inputs)
+            samples = (block.desired_poses, block.strokes, block.inputs)
         else:
-            information.add(*tracker_samples(platform, block))
+            samples = tracker_samples(platform, block)
+        information.add(*samples)
+        if free is not None:
+            free.add(*samples)
+        span = _span_of(samples[2])
+        if span is not None:
+            low = span[0] if low is None else np.minimum(low, span[0])
+            high = span[1] if high is None else np.maximum(high, span[1])
     if information.n_poses == 0:
         raise CalibError(NO_POSE)
-    return information
+    spans = None if low is None or high is None else high - low
+    return information, thermal_line(drive, information if free is None else free, spans)
+
+
+def _span_of(channels) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(lowest, highest)`` temperature of each leg over a block's samples, or None without any."""
+    temperatures = channels.get(TEMPERATURE_C)
+    if temperatures is None or not len(temperatures):
+        return None
+    return np.min(temperatures, axis=0), np.max(temperatures, axis=0)
+
+
+def thermal_line(drive, information: InformationAccumulator, span_K) -> str | None:
+    """:func:`handover.thermal_trade_off_line` of the expansion's Cramér–Rao σ in ``information``
+    (accumulated with every term of the drive free: :func:`handover.trade_off_drive`)."""
+    if handover.trade_off_drive(drive) is None:
+        return None
+    names, stddev = information.report().block_stddev[THERMAL]
+    return handover.thermal_trade_off_line(drive, dict(zip(names, stddev.tolist(), strict=True)), span_K)
 
 
 def add_parser(subparsers) -> None:
@@ -68,8 +103,9 @@ def run(args: argparse.Namespace) -> int:
     noise = load_estimator_config(args.config, args.set).noise
     if instrument_kind(platform).outside:
         return _run_outside_instrument(args, platform, noise)
+    trade_off = None
     if args.log is not None:
-        information = log_information(platform, args.log, args.pose_source, noise, args.skip_bad_rows)
+        information, trade_off = log_information(platform, args.log, args.pose_source, noise, args.skip_bad_rows)
         require_poses(platform, information.n_poses, args.log, "pose(s)", "poses")
         covariance, poses = information.covariance(), None
     else:
@@ -81,11 +117,13 @@ def run(args: argparse.Namespace) -> int:
     report = information.report()
     print(report.format_text())
     warning = warning_line(report)
-    if warning:
-        print(warning)
+    for line in (warning, trade_off):
+        if line:
+            print(line)
     prediction = _prediction(platform, covariance, poses, information.n_poses, noise)
     if args.json:
-        io.atomic_write_text(args.json, json.dumps({**report.to_dict(), **prediction}, indent=2) + "\n")
+        thermal = {} if trade_off is None else {"thermal_trade_off": trade_off}
+        io.atomic_write_text(args.json, json.dumps({**report.to_dict(), **prediction, **thermal}, indent=2) + "\n")
     return 0
 
 
@@ -166,6 +204,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
         if report[names]:
             print(f"{what}: " + "; ".join(report[names]))
     c = ", c in mm/kN" if any(block.key == COMPLIANCE for block in drive.blocks) else ""
+    c += ", α in ppm/K" if any(block.key == THERMAL for block in drive.blocks) else ""
     print(f"predicted standard deviation per unknown (Cramér–Rao; mm, dimensionless k{c}, degrees):")
     items = list(report["predicted_stddev"].items())
     for start in range(0, len(items), 7):
@@ -180,6 +219,10 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
             "seen no better than their prior σ (a calibration keeps them near nominal; poses that see them "
             f"better: stewart-calib plan): {named}"
         )
+    span = handover.temperature_span_K(channels) if args.log is not None else None
+    trade_off = handover.thermal_trade_off_line(drive, handover.outside_stddev(drive, report), span)
+    if trade_off:
+        print(trade_off)
     prediction = _prediction(platform, design_covariance(platform, poses, seen=seen), poses, len(poses), None)
     if args.json:
         document = {
@@ -187,6 +230,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
             **report,
             "weak_against_prior": [name for name, _, _ in weak],
             **prediction,
+            **({} if trade_off is None else {"thermal_trade_off": trade_off}),
         }
         io.atomic_write_text(args.json, json.dumps(document, indent=2) + "\n")
     return 0

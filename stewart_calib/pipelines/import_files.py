@@ -178,17 +178,19 @@ GAP_PERIODS = 1.5
 
 
 class ControllerLog:
-    """The controller's strokes [mm] on its clock, read a block at a time and kept only as far
+    """The controller's strokes [mm] on its clock, and its legs' temperatures [°C] where the mapping
+    names them (``[strokes] temperatures``, spec §17), read a block at a time and kept only as far
     back as the next measurement needs (the measurements come in time order)."""
 
     def __init__(self, path: Path, columns: exports.StrokeColumns):
         if columns.time is None:
             raise CalibError(f"{path}: the mapping's [strokes] names no 'time' column of the controller's log")
         header = exports.header_of(path)
-        indices = exports.column_indices(path, header, [columns.time, *columns.columns], "strokes")
+        indices = exports.column_indices(path, header, [columns.time, *columns.read_columns], "strokes")
         self.path, self.columns = path, columns
         self._blocks = exports.numeric_blocks(path, 2, header, indices)
-        self.t_s, self.q_mm = np.zeros(0), np.zeros((0, 6))
+        # the strokes, then each leg's temperature where the mapping names them: interpolated together
+        self.t_s, self.q_mm = np.zeros(0), np.zeros((0, len(columns.columns) + len(columns.log_columns)))
         self.rows, self.first_s, self._latest, self._done = 0, math.nan, -math.inf, False
         self.period_s = math.nan  # the median step of its first block: a --max-gap-s below it joins few rows
 
@@ -215,7 +217,8 @@ class ControllerLog:
         if not np.all(np.isfinite(block.values)):
             k, j = np.argwhere(~np.isfinite(block.values))[0]
             raise CalibError(
-                f"{self.path}: row {block.lines[k]}: column {self.columns.columns[j]!r}: expected a number, got none"
+                f"{self.path}: row {block.lines[k]}: column {self.columns.read_columns[j]!r}: expected a number, "
+                "got none"
             )
         if not self.rows:
             self.first_s = float(block.t_s[0])
@@ -223,11 +226,12 @@ class ControllerLog:
                 self.period_s = float(np.median(np.diff(block.t_s)))
         self.rows += len(block.t_s)
         self.t_s = np.concatenate([self.t_s, block.t_s])
-        self.q_mm = np.concatenate([self.q_mm, self.columns.convert(block.values)])
+        self.q_mm = np.concatenate([self.q_mm, self.columns.convert_row(block.values)])
         return True
 
     def strokes_at(self, t_s: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """``(strokes (M, 6) [mm], kept (len(t_s),))`` at the controller times ``t_s`` (increasing)."""
+        """``(strokes (M, 6) [mm] then the legs' temperatures (M, 6) [°C] where mapped, kept (len(t_s),))`` at
+        the controller times ``t_s`` (increasing)."""
         from .import_bag import TopicSeries, interpolate_to_stamps
 
         while not self._done and (not len(self.t_s) or self.t_s[-1] < t_s[-1]):
@@ -585,7 +589,9 @@ def run(args: argparse.Namespace) -> int:
             counts["unjoined"] += int((~kept & ~lost).sum())
             use = kept & ~lost
             strokes_mm = np.full((len(block.t_s), len(drive_columns)), np.nan)  # a servo's: degrees
-            strokes_mm[kept] = q
+            strokes_mm[kept] = q[:, : len(drive_columns)]
+            temperatures = np.full((len(block.t_s), len(strokes.log_columns)), np.nan)
+            temperatures[kept] = q[:, len(drive_columns) :]
             if not columns:
                 columns.extend(INSTRUMENT_SECTIONS[kind].log_columns(block.values.shape[1] // 3))
                 if platform is not None and kind == "points":
@@ -599,7 +605,7 @@ def run(args: argparse.Namespace) -> int:
                 diagnose_log(platform, coordinates, readings, inputs, count=False)
                 checked.append(True)
             counts["written"] += int(use.sum())
-            yield [block.t_s[use], *strokes_mm[use].T, *block.values[use].T]
+            yield [block.t_s[use], *strokes_mm[use].T, *block.values[use].T, *temperatures[use].T]
         if not counts["read"]:
             raise CalibError(f"{source}: no data rows after the header; expected the instrument's measurements")
         if not counts["written"]:  # raised inside the write: its temporary file is removed
@@ -609,7 +615,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{counts['unjoined']} without strokes within {max_gap_s:g} s); nothing written{hint}"
             )
 
-    _write(out, rows, drive_columns, columns, MODELS[kind].unseen_channels)
+    _write(out, rows, drive_columns, columns, MODELS[kind].unseen_channels, strokes.log_columns)
     gap_hint = controller.gap_hint(max_gap_s) if controller is not None and counts["unjoined"] else ""
     print(
         f"stewart-calib import: wrote {out}: {counts['written']} of {counts['read']} rows ({counts['lost']} where the "
@@ -629,14 +635,17 @@ def _check_target_count(platform_path, imported: int, targets: int) -> None:
         )
 
 
-def _write(out: Path, rows, drive_columns: tuple[str, ...], columns: list[str], unseen: bool) -> int:
+def _write(
+    out: Path, rows, drive_columns: tuple[str, ...], columns: list[str], unseen: bool, after: tuple[str, ...] = ()
+) -> int:
     """Write the rows (blocks of float columns) as a log, the drive's in ``drive_columns`` (``q1_mm …``,
-    a servo's ``q1_deg …``); the header is known once the first block is, so the first block is looked
-    at before the file is opened. ``unseen``: the instrument may leave a reading's channels unmeasured
-    (NaN, written as empty fields)."""
+    a servo's ``q1_deg …``), the measured ``columns``, then ``after`` (the legs' temperatures
+    ``temp1_C … temp6_C``, spec §17, or none); the header is known once the first block is, so the
+    first block is looked at before the file is opened. ``unseen``: the instrument may leave a
+    reading's channels unmeasured (NaN, written as empty fields)."""
     blocks = iter(rows())
     first = next(blocks)
-    header = ["t_s", *drive_columns, *columns]
+    header = ["t_s", *drive_columns, *columns, *after]
     blank = tuple(1 + len(drive_columns) + j for j in range(len(columns))) if unseen else ()
 
     def all_blocks():
@@ -647,20 +656,21 @@ def _write(out: Path, rows, drive_columns: tuple[str, ...], columns: list[str], 
 
 
 def _same_file_rows(make_blocks, source, strokes, is_csv, notes):
-    """The strokes from the instrument's own file (a generic CSV, its stroke columns read with the
-    measurement's, after them): every row joins itself."""
+    """The strokes (and the legs' temperatures, where mapped) from the instrument's own file (a generic
+    CSV, its stroke columns read with the measurement's, after them): every row joins itself."""
     if not is_csv:
         raise CalibError("expected --strokes C.csv: the controller's log of the strokes (this export has none)")
     notes.append("strokes from the same rows")
-    for block in make_blocks(strokes.columns):
-        raw = block.values[:, -6:]
+    read = strokes.read_columns
+    for block in make_blocks(read):
+        raw = block.values[:, -len(read) :]
         finite = np.isfinite(raw)
         if not finite.all():
             k, j = np.argwhere(~finite)[0]
-            raise CalibError(f"{source}: row {block.lines[k]}: column {strokes.columns[j]!r}: expected a number")
-        measured = Block(block.t_s * 1.0, block.values[:, :-6], block.lines)
+            raise CalibError(f"{source}: row {block.lines[k]}: column {read[j]!r}: expected a number")
+        measured = Block(block.t_s * 1.0, block.values[:, : -len(read)], block.lines)
         lost = ~np.any(np.isfinite(measured.values), axis=1)
-        yield measured, strokes.convert(raw), np.ones(len(raw), dtype=bool), lost
+        yield measured, strokes.convert_row(raw), np.ones(len(raw), dtype=bool), lost
 
 
 def _clock_offset(args, table: dict, make_blocks, strokes, mapping_path, notes, kind: str, source) -> float:

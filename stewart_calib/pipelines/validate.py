@@ -31,7 +31,7 @@ from ..analysis.accuracy import PredictedError, predicted_error, verdict_line
 from ..errors import CalibError
 from ..instruments import instrument_kind
 from ..io.platform_file import load_platform
-from ..model.drive import drive_model
+from ..model.drive import COMPLIANCE, drive_model
 from ..model.platform import Platform
 from ..progress import log_progress_bar
 from ..samples import Log
@@ -214,9 +214,9 @@ def _file_columns(log: Log, predicted, position, orientation, platform: Platform
 
 
 def _whole_log(platform: Platform, path: str, bar) -> Log:
-    """The log's times, strokes, readings and payloads (all :func:`validate` and the report use: an
-    elastic model predicts each row under its own load), read a block at a time, the ``bar`` ticked
-    per block."""
+    """The log's times, strokes, readings and input channels (all :func:`validate` and the report use:
+    an elastic model predicts each row under its own load, a thermal one at its own temperatures), read
+    a block at a time, the ``bar`` ticked per block."""
     blocks = []
     for block in io.read_log_blocks(path, platform):
         blocks.append(Log(block.t_s, block.strokes, block.readings, inputs=block.inputs))
@@ -270,7 +270,7 @@ def _report_page(args, platform: Platform, result: dict, log, predicted, positio
     """The ``--report`` page: the held-out errors and residuals per channel, then the calibration's own
     sections (parameters ± σ, correlations, conditioning, config, versions) from the result."""
     from ..viz.geometry import robot_at
-    from ..viz.html_report import HeldOut, LegForces, report_html
+    from ..viz.html_report import HeldOut, LegForces, LegTemperatures, report_html
 
     held = HeldOut(str(args.log), np.asarray(log.t_s), position, orientation, args.register_instrument)
     residuals = measurement_residuals(platform, log, result, predicted, "the held-out log")
@@ -278,9 +278,14 @@ def _report_page(args, platform: Platform, result: dict, log, predicted, positio
     forces = None
     drive = handover.calibrated_model(platform, args.result)
     if platform.elastic is not None:
-        forces = LegForces(np.asarray(log.t_s), handover.leg_forces(drive, log), drive.term_values()[-1])
+        compliance = handover.term_values(drive, COMPLIANCE)
+        assert compliance is not None  # an elastic platform's drive has the term
+        forces = LegForces(np.asarray(log.t_s), handover.leg_forces(drive, log), compliance)
+    legs = handover.leg_temperatures(drive, log)  # the held-out log's temperatures, where [thermal] has them
+    thermal = None if legs is None else LegTemperatures(np.asarray(log.t_s), *legs)
     title = f"Validation of {platform.name} ({result['method']}) on {Path(args.log).name}"
-    return report_html(title, result, residuals, held, inputs, forces, verdict, robot_at(platform, drive.legs))
+    robot = robot_at(platform, drive.legs)
+    return report_html(title, result, residuals, held, inputs, forces, verdict, robot, thermal)
 
 
 def _summary(position: np.ndarray, orientation: np.ndarray | None, n: int) -> str:

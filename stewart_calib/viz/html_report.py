@@ -20,7 +20,7 @@ from importlib import metadata
 import numpy as np
 
 from ..errors import number
-from ..model.drive import COMPLIANCE, STROKE_SCALE
+from ..model.drive import COMPLIANCE, STROKE_SCALE, THERMAL
 
 #: libraries whose versions the page lists (the calibration's own comes from the result).
 LIBRARIES = ("numpy", "scipy", "gtsam", "matplotlib")
@@ -83,6 +83,22 @@ class LegForces:
     t_s: np.ndarray
     forces_N: np.ndarray
     compliance_mm_per_kN: np.ndarray
+
+
+@dataclass(frozen=True)
+class LegTemperatures:
+    """A thermal drive's legs over a log (spec §17).
+
+    Attributes:
+        t_s: ``(N,)`` [s].
+        temperatures_C: ``(N, legs)`` each leg's temperature [°C].
+        growth_um: ``(N, legs)`` what each leg grew by at it, ``α_i (T_i − T_ref) L_i`` [µm], with the
+            model's α (identified, or ``[thermal]``'s held value).
+    """
+
+    t_s: np.ndarray
+    temperatures_C: np.ndarray
+    growth_um: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -451,13 +467,67 @@ def _leg_force_section(forces: LegForces) -> str:
     )
 
 
+def _thermal_section(result: dict) -> str:
+    """The legs' expansion α_i ± σ (spec §17), where the platform declares ``[thermal]``."""
+    block = result.get(THERMAL)
+    if not isinstance(block, dict):
+        return ""
+    stddev = block.get("stddev") or [None] * len(block["names"])
+    rows = [
+        [name, _fmt(value), _fmt(sigma)]
+        for name, value, sigma in zip(block["names"], block["estimate"], stddev, strict=True)
+    ]
+    return (
+        "<h2>Leg expansion α ± σ</h2><p>Each drive leg's length from joint to joint is scaled by "
+        "1 + α_i (T_i − T_ref) · 1e-6 at its temperature T_i (spec §17); σ 0: held at the platform's value.</p>"
+        + html_table(["leg", "α [ppm/K]", "σ [ppm/K]"], rows, "num")
+    )
+
+
+def leg_temperature_figure(legs: LegTemperatures) -> str:
+    """Two panels over the log, one line per leg: its temperature, and what it grew by."""
+    fig = new_figure(9.0, 4.4)
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    stride = max(1, len(legs.t_s) // MAX_PLOTTED_SAMPLES)
+    t, label = time_axis(legs.t_s)
+    for leg in range(legs.temperatures_C.shape[1]):
+        top.plot(t[::stride], legs.temperatures_C[::stride, leg], lw=0.7, label=f"leg {leg + 1}")
+        bottom.plot(t[::stride], legs.growth_um[::stride, leg], lw=0.7, label=f"leg {leg + 1}")
+    top.set_ylabel("temperature [°C]")
+    bottom.set_ylabel("growth α ΔT L [µm]")
+    bottom.set_xlabel(label, fontsize=8)
+    for ax in (top, bottom):
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+    top.legend(fontsize=7, ncol=min(6, legs.temperatures_C.shape[1]))
+    return _png(fig)
+
+
+def _leg_temperature_section(legs: LegTemperatures) -> str:
+    """Each leg's temperature over the log and what it grew by, α_i ΔT_i L_i (spec §17)."""
+    T, growth = np.asarray(legs.temperatures_C, dtype=float), np.asarray(legs.growth_um, dtype=float)
+    rows = [
+        [f"leg {i + 1}", _fmt(np.nanmin(T[:, i])), _fmt(np.nanmean(T[:, i])), _fmt(np.nanmax(T[:, i]))]
+        + [_fmt(np.nanmin(growth[:, i])), _fmt(np.nanmax(growth[:, i]))]
+        for i in range(T.shape[1])
+    ]
+    header = ["leg", "min [°C]", "mean [°C]", "max [°C]", "growth min [µm]", "growth max [µm]"]
+    return (
+        "<h2>Leg temperatures</h2><p>Each drive leg's temperature over the log and what it grew by there, "
+        "α_i (T_i − T_ref) L_i with the model's expansion α_i and L_i its length from joint to joint (spec §17): "
+        "what a controller without thermal compensation leaves out.</p>"
+        + html_table(header, rows, "num")
+        + leg_temperature_figure(legs)
+    )
+
+
 def _correlation_section(result: dict) -> str:
     covariance = result.get("covariance")
     if covariance is None:
         return "<h2>Correlations</h2><p>The method gave no covariance.</p>"
     covariance = np.array(covariance, dtype=float)
     names = list(result["parameter_names"])
-    for block in (STROKE_SCALE, "instrument", COMPLIANCE):  # the covariance's order (spec §8, §10)
+    for block in (STROKE_SCALE, "instrument", COMPLIANCE, THERMAL):  # the covariance's order (spec §8, §10, §17)
         if isinstance(result.get(block), dict):
             names += list(result[block]["names"])
     names = names[: len(covariance)]
@@ -591,6 +661,7 @@ def report_html(
     leg_forces: LegForces | None = None,
     verdict: str | None = None,
     robot: Robot | None = None,
+    leg_temperatures: LegTemperatures | None = None,
 ) -> str:
     """The whole page as text.
 
@@ -604,6 +675,7 @@ def report_html(
         verdict: the command's verdict line (:func:`~stewart_calib.analysis.accuracy.verdict_line`), shown
             first; with its warning where the calibration rests on noise.
         robot: the drive drawn nominal and calibrated, and which parameters are angles, or None.
+        leg_temperatures: a thermal drive's leg temperatures and growth over the log, or None.
     """
     summary = [
         ["method", result["method"]],
@@ -622,6 +694,8 @@ def report_html(
         _parameter_section(result, None if robot is None else robot.parameter_degrees),
         _compliance_section(result),
         _leg_force_section(leg_forces) if leg_forces is not None else "",
+        _thermal_section(result),
+        _leg_temperature_section(leg_temperatures) if leg_temperatures is not None else "",
         _correlation_section(result),
         _conditioning_section(result),
         _prediction_section(result),

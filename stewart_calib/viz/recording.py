@@ -428,6 +428,30 @@ def log_elastic(rec: Recording, method: str, forces_N, compliance, compliance_si
             _send_scalars(rec, base + suffix, index, values, style)
 
 
+#: the views of the inputs tab (:func:`send_blueprint`): a thermal drive's legs (:func:`log_thermal`)
+THERMAL_VIEWS = (("temperature", "leg temperatures [°C]"), ("growth", "leg growth α_i ΔT_i L_i [µm]"))
+
+
+def log_thermal(rec: Recording, method: str, temperatures_C, growth_um, times_s) -> None:
+    """A thermal drive (spec §17): each leg's temperature [°C] at every sample at
+    ``temperature/leg{i}`` and what it grew by there, ``α_i (T_i − T_ref) L_i`` [µm] with the method's
+    α, at ``growth/leg{i}/{method}``: one line per leg in each of the inputs tab's views
+    (:data:`THERMAL_VIEWS`).
+
+    Args:
+        temperatures_C, growth_um: ``(N, legs)``.
+    """
+    n, index = _time_columns(times_s, None)
+    temperatures = _batch(temperatures_C, n, np.shape(temperatures_C)[1:], "temperatures_C")
+    growth = _batch(growth_um, n, np.shape(temperatures_C)[1:], "growth_um")
+    for leg in range(temperatures.shape[1]):
+        colour = (*_LEG_COLORS[leg % len(_LEG_COLORS)], 255)
+        style = rr.SeriesLines(colors=colour, widths=1.5, names=f"T{leg + 1} [°C]")
+        _send_scalars(rec, f"temperature/leg{leg + 1}", index, temperatures[:, leg], style)
+        style = rr.SeriesLines(colors=colour, widths=1.5, names=f"leg {leg + 1} {method} [µm]")
+        _send_scalars(rec, f"growth/leg{leg + 1}/{_checked_name(method, 'method')}", index, growth[:, leg], style)
+
+
 def log_diagnostics(
     rec: Recording, method: str, times_s, residual_mm=None, innovation_mm=None, nis=None, samples=None
 ) -> None:
@@ -553,10 +577,17 @@ def log_trajectory(
 
 
 def send_blueprint(
-    rec: Recording, n_legs: int, methods, stages, diagnostics=None, fields: tuple[str, ...] = PARAMETER_FIELDS
+    rec: Recording,
+    n_legs: int,
+    methods,
+    stages,
+    diagnostics=None,
+    fields: tuple[str, ...] = PARAMETER_FIELDS,
+    inputs: tuple[tuple[str, str], ...] = (),
 ) -> None:
     """Lay the panels out in tabs: scene, one parameter tab per method, pose errors, trajectories,
-    and one diagnostics tab per method in ``diagnostics``.
+    one diagnostics tab per method in ``diagnostics``, and, where ``inputs`` names ``(origin, title)``
+    views (:data:`THERMAL_VIEWS`), an inputs tab of those time series.
 
     Each parameter tab holds one time-series view per drive leg (``n_legs`` of them) with that
     method's seven curves, their ±σ bands where logged, and the truth (Fig. 5); method comparison
@@ -620,9 +651,14 @@ def send_blueprint(
         )
         for method, kinds in (diagnostics or {}).items()
     ]
+    input_tabs = (
+        [rrb.Vertical(*(rrb.TimeSeriesView(origin=origin, name=name) for origin, name in inputs), name="inputs")]
+        if inputs
+        else []
+    )
     rec.stream.send_blueprint(
         rrb.Blueprint(
-            rrb.Tabs(scene, *parameter_tabs, errors, trajectories, *diagnostic_tabs),
+            rrb.Tabs(scene, *parameter_tabs, errors, trajectories, *diagnostic_tabs, *input_tabs),
             rrb.TimePanel(timeline=TIME_TIMELINE),
         )
     )

@@ -243,6 +243,10 @@ class OnlineCalibrator:
         """Strokes [mm] that put the estimated drive at ``pose_mm_deg`` ``[x, y, z [mm], roll, pitch, yaw [deg]]``
         (``(6,)`` or ``(N, 6)``): a pose in the units of every file (spec §1), the row of a pose list
         or of ``compensate --poses -``. :meth:`compensated_strokes_rad` takes the angles in radians.
+        ``inputs`` are the channels the poses are commanded at, e.g. the legs warm at 28 °C on a
+        platform with ``[thermal]`` (spec §17), as ``compensate --temperature-C 28`` takes them::
+
+            calibrator.compensated_strokes(pose, {"temperature_C": np.full(6, 28.0)})
 
         Raises:
             as :meth:`compensated_strokes_rad`.
