@@ -35,7 +35,15 @@ README = ROOT / "README.md"
 #: the site's pages whose commands run here (each in a directory of its own, as a reader starting on it)
 HOWTOS = [ROOT / "docs" / "index.md"] + [
     ROOT / "docs" / "howto" / f"{name}.md"
-    for name in ("motion-capture", "laser-tracker", "in-situ-tracker", "under-load", "cluster", "servo-platform")
+    for name in (
+        "motion-capture",
+        "laser-tracker",
+        "in-situ-tracker",
+        "under-load",
+        "cluster",
+        "servo-platform",
+        "temperature",
+    )
 ]
 FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
 
@@ -116,30 +124,7 @@ def test_every_readme_snippet_runs_as_written(tmp_path, monkeypatch):
     _run_page(README, tmp_path, monkeypatch)
 
 
-#: pages whose commands simulate a shipped experiment that comes with the model it shows: they run
-#: once it is there (the warm-up of spec §17)
-SHIPPED_WITH = {"temperature": ROOT / "configs" / "experiments" / "warmup.toml"}
-HOWTOS += [ROOT / "docs" / "howto" / f"{name}.md" for name in SHIPPED_WITH]
-
-
-def _howto_cases() -> list:
-    return [
-        pytest.param(
-            page,
-            id=page.stem,  # "index" is the site's front page
-            marks=[
-                pytest.mark.skipif(
-                    not SHIPPED_WITH[page.stem].exists(), reason=f"no {SHIPPED_WITH[page.stem].name} yet"
-                )
-            ]
-            if page.stem in SHIPPED_WITH
-            else [],
-        )
-        for page in HOWTOS
-    ]
-
-
-@pytest.mark.parametrize("page", _howto_cases())
+@pytest.mark.parametrize("page", HOWTOS, ids=lambda page: page.stem)
 def test_every_howto_snippet_runs_as_written(page, tmp_path, monkeypatch):
     assert snippets(page), f"{page.name} has no bash or python snippet"
     _run_page(page, tmp_path, monkeypatch)

@@ -129,6 +129,6 @@ print(load_estimator_config("paper").noise)
     missing = run("simulate", "--experiment", "quik", "--out", "sim")
     assert missing.returncode == 2
     assert (
-        "quik: experiment file not found (nor the name of a shipped file: paper, quick, servo, servo-points, tilted, warmup)"
-        in missing.stderr
+        "quik: experiment file not found (nor the name of a shipped file: "
+        "paper, quick, servo, servo-points, tilted, warmup)" in missing.stderr
     )
