@@ -98,3 +98,31 @@ def test_points_with_one_target_per_row_missing():
     estimate = make_estimator("ls", case.platform, EstimatorConfig()).fit(list(case.log))
     assert tuple(estimate.block_results()["instrument"]["names"]) == points.unknown_names(3)
     assert estimate.samples_used == 60 - int(np.sum(~seen_rows.any(axis=1)))
+
+
+def test_a_block_the_log_cannot_see_is_held_and_the_others_are_still_fitted():
+    """A log at one temperature says nothing of the legs' expansion (its columns are 0): ls holds the
+    expansion at nominal and fits the stroke scale as it does without [thermal], to the bit."""
+    from dataclasses import replace
+
+    from stewart_calib.model.platform import Thermal
+    from stewart_calib.samples import TEMPERATURE_C
+
+    case = make_case(hobby(), 60, 302, POSE_TRUTH)
+    results = []
+    for thermal in (None, Thermal()):
+        platform = replace(case.platform, thermal=thermal)
+        log = (
+            case.log
+            if thermal is None
+            else replace(case.log, inputs={TEMPERATURE_C: np.full((len(case.log), 6), 20.0)})
+        )
+        estimator = make_estimator("ls", platform, EstimatorConfig())
+        for sample in log:
+            estimator.update(sample)
+        results.append(estimator.estimate())
+    rigid, thermal = results
+    assert thermal.details["stroke_scale_identified"] and not thermal.details["thermal_identified"]
+    np.testing.assert_array_equal(thermal.error, rigid.error)
+    np.testing.assert_array_equal(thermal.block_values("stroke_scale"), rigid.block_values("stroke_scale"))
+    np.testing.assert_array_equal(thermal.block_values("thermal"), np.zeros(6))

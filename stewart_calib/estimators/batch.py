@@ -109,8 +109,8 @@ class BatchSolution:
         unknowns: the instrument's fitted unknowns.
         covariance: full covariance over ``[x_drive, instrument tangent]``, or None when the fit is
             rank deficient.
-        drive_blocks_fitted: False when the drive's blocks were held at their nominal values (not
-            identifiable).
+        drive_blocks_fitted: by block key, False where the block was held at its nominal values (not
+            identifiable from the log: the expansion of a log at one temperature), the others fitted.
         noise_sigmas: ``{channel: σ}`` estimated from the residuals.
         residual_rms: ``{channel: RMS}`` of the residuals at the start (registered nominal
             model) and at the solution, file units.
@@ -125,7 +125,7 @@ class BatchSolution:
     x_drive: np.ndarray
     unknowns: object
     covariance: np.ndarray | None
-    drive_blocks_fitted: bool
+    drive_blocks_fitted: dict[str, bool]
     noise_sigmas: dict
     residual_rms: dict
     singular_values: np.ndarray
@@ -204,9 +204,10 @@ def _fit(
     basis = gauge.free_basis(problem.drive.legs)
     sigmas = np.array(problem.model.channel_sigma, dtype=float)
     start_rms = _channel_rms(problem, problem.model.readings_residual(unknowns, problem.measured, R0, t0)[0])
-    fit_blocks = drive_blocks != "off"
-    if drive_blocks == "auto":
-        fit_blocks = all(_blocks_identifiable(problem, state, basis, sigmas).values())
+    fitted = {block.key: drive_blocks != "off" for block in problem.drive.blocks}
+    if drive_blocks == "auto":  # each block that the log sees is fitted, the others held at nominal
+        fitted = _blocks_identifiable(problem, state, basis, sigmas)
+    fit_blocks = _fitted_columns(problem, fitted)
     weights = np.ones(len(problem.inputs))
     evaluations = 0
     for _ in range(MAX_ROUNDS):
@@ -238,7 +239,7 @@ def _fit(
         x_drive=state.x_drive,
         unknowns=state.unknowns,
         covariance=covariance,
-        drive_blocks_fitted=bool(fit_blocks),
+        drive_blocks_fitted=fitted,
         noise_sigmas={
             name: float(sigmas[problem.model.noise_channels == c][0])
             for c, name in enumerate(problem.model.noise_channel_names)
@@ -424,30 +425,48 @@ def _subset(problem: BatchProblem, keep: np.ndarray) -> BatchProblem:
     )
 
 
-def _reduced_size(problem: BatchProblem, basis: np.ndarray, fit_blocks: bool, n_unknowns: int) -> int:
-    """Unknowns of the reduced fit ``[z_M, the drive's blocks (if fitted), u]``."""
-    return basis.shape[1] + (problem.drive.size - problem.drive.n_params) * fit_blocks + n_unknowns
+def _fitted_columns(problem: BatchProblem, fitted: dict[str, bool] | bool) -> np.ndarray:
+    """``(size − n_params,)`` bool: the drive's block columns a fit takes, from whether each block is
+    fitted (by key, or one answer for all)."""
+    blocks = problem.drive.blocks
+    if isinstance(fitted, bool):
+        fitted = {block.key: fitted for block in blocks}
+    if not blocks:
+        return np.zeros(0, dtype=bool)
+    return np.concatenate([np.full(block.size, bool(fitted[block.key])) for block in blocks])
 
 
-def _lift(problem: BatchProblem, basis: np.ndarray, fit_blocks: bool, n_unknowns: int) -> np.ndarray:
-    """Reduced unknowns ``[z_M (30), the drive's blocks (or none), u]`` → full ``[x_drive, u]``."""
+def _reduced_size(problem: BatchProblem, basis: np.ndarray, fit_blocks: np.ndarray, n_unknowns: int) -> int:
+    """Unknowns of the reduced fit ``[z_M, the drive's fitted block columns, u]``."""
+    return basis.shape[1] + int(np.count_nonzero(fit_blocks)) + n_unknowns
+
+
+def _lift(problem: BatchProblem, basis: np.ndarray, fit_blocks: np.ndarray | bool, n_unknowns: int) -> np.ndarray:
+    """Reduced unknowns ``[z_M (30), the drive's fitted block columns, u]`` → full ``[x_drive, u]``
+    (a held block's rows zero)."""
+    if isinstance(fit_blocks, bool):
+        fit_blocks = _fitted_columns(problem, fit_blocks)
     n_free, n_drive, n_params = basis.shape[1], problem.drive.size, problem.drive.n_params
-    n_blocks = (n_drive - n_params) * fit_blocks
+    columns = n_params + np.flatnonzero(fit_blocks)
+    n_blocks = len(columns)
     lift = np.zeros((n_drive + n_unknowns, n_free + n_blocks + n_unknowns))
     lift[:n_params, :n_free] = basis
-    lift[n_params : n_params + n_blocks, n_free : n_free + n_blocks] = np.eye(n_blocks)
+    lift[columns, n_free + np.arange(n_blocks)] = 1.0
     lift[n_drive:, n_free + n_blocks :] = np.eye(n_unknowns)
     return lift
 
 
-def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_blocks: bool):
-    """Whitened, weighted Jacobian ``A`` (finite rows) and residual ``b`` at ``state``."""
+def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_blocks: np.ndarray | bool):
+    """Whitened, weighted Jacobian ``A`` (finite rows) and residual ``b`` at ``state``, the drive's block
+    columns ``fit_blocks`` (a mask over them, or all / none)."""
+    if isinstance(fit_blocks, bool):
+        fit_blocks = _fitted_columns(problem, fit_blocks)
     e, H_X, H_u = problem.model.readings_residual(state.unknowns, problem.measured, state.R, state.t, jacobians=True)
     dxi = problem.drive.settled_pose_jacobian(state.x_drive, state.R, state.t, state.inputs, problem.channels)
     n_params = problem.drive.n_params
     blocks = [H_X @ dxi[..., :n_params] @ basis]
-    if fit_blocks and dxi.shape[-1] > n_params:
-        blocks.append(H_X @ dxi[..., n_params:])
+    if np.any(fit_blocks):
+        blocks.append(H_X @ dxi[..., n_params:][..., fit_blocks])
     blocks.append(H_u)
     scale = np.sqrt(weights)[:, None] / sigmas[None, :]
     A = np.concatenate(blocks, axis=-1) * scale[..., None]
@@ -456,12 +475,13 @@ def _system(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_bl
     return A[rows], b[rows]
 
 
-def _apply(problem: BatchProblem, state: _State, basis, step: np.ndarray, fit_blocks: bool) -> _State | None:
+def _apply(problem: BatchProblem, state: _State, basis, step: np.ndarray, fit_blocks: np.ndarray) -> _State | None:
     n_free, n_params = basis.shape[1], problem.drive.n_params
-    n_blocks = (problem.drive.size - n_params) * fit_blocks
+    columns = n_params + np.flatnonzero(fit_blocks)
+    n_blocks = len(columns)
     x_drive = state.x_drive.copy()
     x_drive[:n_params] += basis @ step[:n_free]
-    x_drive[n_params : n_params + n_blocks] += step[n_free : n_free + n_blocks]
+    x_drive[columns] += step[n_free : n_free + n_blocks]
     unknowns = state.unknowns.retract(step[n_free + n_blocks :])
     R, t, ok, inputs = _fk(problem, x_drive, (state.R, state.t))
     if not np.all(ok):
@@ -547,11 +567,14 @@ IMPLAUSIBLE_SCALE = 0.3
 WEAK_CONDITION = 1e8
 
 
-def _not_converged(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_blocks: bool) -> str:
+def _not_converged(problem: BatchProblem, state: _State, basis, sigmas, weights, fit_blocks: np.ndarray) -> str:
     """What a non-converging fit was fitting and its most likely cause, from its last iterate:
     residuals far beyond the noise (the model cannot explain the readings) or a nearly singular
     system (the poses leave directions free)."""
-    blocks = "".join(f"{b.size} {b.key.replace('_', ' ')}s, " for b in problem.drive.blocks) if fit_blocks else ""
+    mask = iter(
+        np.split(fit_blocks, np.cumsum([b.size for b in problem.drive.blocks])[:-1]) if problem.drive.blocks else ()
+    )
+    blocks = "".join(f"{b.size} {b.key.replace('_', ' ')}s, " for b in problem.drive.blocks if np.all(next(mask)))
     fitted = (
         f"{basis.shape[1]} drive directions (the {problem.drive.n_params} parameters less the gauge), "
         f"{blocks}the {state.unknowns.size} instrument unknowns"
@@ -572,7 +595,7 @@ def _not_converged(problem: BatchProblem, state: _State, basis, sigmas, weights,
             "(readings in another unit or frame convention, columns mixed up, or a log of another platform)"
         )
     scale = problem.drive.extension_per_stroke(state.x_drive) - 1.0  # the stroke scale k of each leg
-    if fit_blocks and np.max(np.abs(scale)) > IMPLAUSIBLE_SCALE:
+    if np.any(fit_blocks) and np.max(np.abs(scale)) > IMPLAUSIBLE_SCALE:
         leg = int(np.argmax(np.abs(scale)))
         return (
             f"{head}; most likely the readings move the platform by another amount than the strokes say: the "

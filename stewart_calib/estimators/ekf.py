@@ -269,7 +269,7 @@ class LegEKF:
                 channels = drive.unpacked_pose_channels(prepared[width + self._per_kg : width + self._per_kg + packed])
                 inputs = drive.reposed(inputs, channels, observed.R, observed.t, self._forces_at())
                 if self._per_kg:
-                    per_kg = drive.payload_leg_forces(observed.R, observed.t, self._forces_at())
+                    per_kg = drive.payload_leg_forces(observed.R, observed.t, self._forces_at(), channels)
         dg_dm = None  # ∂r/∂m of the drive-leg residuals r on the unannounced payload m
         if self._payload is not None:
             inputs = drive.loaded_inputs(inputs, per_kg, float(x[self._payload][0]))

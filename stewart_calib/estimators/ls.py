@@ -390,7 +390,7 @@ def external_estimate(method: str, drive, model, sol, samples_used: int, t_s: fl
         P = lift @ sol.covariance @ lift.T
     details = {
         "gauge": gauge,
-        **{f"{block.key}_identified": sol.drive_blocks_fitted for block in drive.blocks},
+        **{f"{block.key}_identified": sol.drive_blocks_fitted[block.key] for block in drive.blocks},
         "noise_estimated": sol.noise_sigmas,
         "residual_rms": sol.residual_rms,
         "readings_downweighted": sol.downweighted,

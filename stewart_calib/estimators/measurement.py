@@ -114,7 +114,7 @@ def drive_inputs(
     else:
         R, t = observed.R, observed.t
         inputs = drive.inputs(strokes, channels, R, t, x_drive)
-    return np.concatenate([inputs, drive.payload_leg_forces(R, t, x_drive)]) if per_kg else inputs
+    return np.concatenate([inputs, drive.payload_leg_forces(R, t, x_drive, channels)]) if per_kg else inputs
 
 
 class _WarmStart:
