@@ -22,8 +22,20 @@ from ..io import atomic_path, atomic_write_text
 from .spec import Family, SweepSpec
 
 QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
-SCORES = ("rms_mm", "rms_over_crb", "nees", "z2", "closed_loop_mm", "seconds", "cpu_seconds")
-PLOTTED = ("rms_over_crb", "nees", "closed_loop_mm", "seconds")
+SCORES = (
+    "rms_mm",
+    "rms_over_crb",
+    "nees",
+    "z2",
+    "closed_loop_mm",
+    "closed_loop_motion_mm",
+    "closed_loop_nominal_motion_mm",
+    "seconds",
+    "cpu_seconds",
+)
+PLOTTED = ("rms_over_crb", "nees", "closed_loop_mm", "closed_loop_motion_mm", "seconds")
+#: plotted on a log scale (they span decades across a grid)
+LOG_SCALED = ("rms_over_crb", "nees", "closed_loop_mm", "closed_loop_motion_mm")
 
 
 def nees_in_band(nees: np.ndarray, dof: np.ndarray) -> np.ndarray:
@@ -105,6 +117,7 @@ def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
         "z² median",
         "z² mean",
         "closed loop [mm]",
+        "motion from home [mm] (nominal)",
         "s per run",
     ]
     lines = [
@@ -131,6 +144,7 @@ def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
             f"{e['z2_q50']:.3g}",
             f"{e['z2_mean']:.3g}",
             f"{e['closed_loop_mm_q50']:.3g}",
+            f"{e['closed_loop_motion_mm_q50']:.3g} ({e['closed_loop_nominal_motion_mm_q50']:.3g})",
             f"{e['seconds_q50']:.2g}",
         ]
         lines.append("| " + " | ".join(cells) + " |")
@@ -175,7 +189,7 @@ def _plots(spec: SweepSpec, table: pa.Table, directory: Path) -> list[Path]:
                 panel.set_xticks(range(len(ticks)), [f"{t:g}" if isinstance(t, float) else str(t) for t in ticks])
                 panel.set_xlabel(axis)
             panel.set_ylabel(score)
-            if score in ("rms_over_crb", "nees", "closed_loop_mm") and np.nanmin(values, initial=np.inf) > 0:
+            if score in LOG_SCALED and np.nanmin(values, initial=np.inf) > 0:
                 panel.set_yscale("log")
             panel.grid(alpha=0.3)
         panels[0][0].legend(fontsize="small")
