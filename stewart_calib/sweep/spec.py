@@ -194,7 +194,7 @@ SETTINGS_BY_NAME = {s.name: s for s in SETTINGS}
 DRIVES = ("prismatic", "rotary")
 DEFAULT_PLATFORMS = {"prismatic": "nim-stewart", "rotary": "servo-hexapod"}
 
-#: Settings only a rotary cell reads: a prismatic cell's id leaves them out (they decide none of its rows).
+#: Settings only a rotary cell reads: a cell's id leaves them out at their defaults (:func:`_identity_settings`).
 ROTARY_SETTINGS = (
     "drive",
     "angle_sigma_deg",
@@ -570,10 +570,14 @@ def _toml(value) -> str:
 
 
 def _identity_settings(settings: dict) -> dict:
-    """The settings that decide a cell's rows: a prismatic cell's leave out the rotary drive's."""
-    if settings["drive"] == "prismatic":
-        return {name: value for name, value in settings.items() if name not in ROTARY_SETTINGS}
-    return settings
+    """The settings a cell's id hashes: all but the rotary drive's at their defaults, so that a prismatic
+    cell keeps its id whatever settings only a rotary one reads (and its finished rows are found again),
+    while two cells that differ in any setting never share one."""
+    return {
+        name: value
+        for name, value in settings.items()
+        if not (name in ROTARY_SETTINGS and value == SETTINGS_BY_NAME[name].default)
+    }
 
 
 def _raise(err: CalibError):

@@ -10,19 +10,24 @@ IK of the true drive, tracker readings from IK of the known tracker geometry, wh
 exactly the estimators' model. With ``drift_mm_per_sqrt_s`` > 0 the true δM walks (the
 estimators' process model, matched). A glitch adds ±``glitch_size_mm`` to one reading (leg drawn
 at random) in a ``glitch_rate`` fraction of the samples — what a dirty grating or a lost count does.
+A rotary drive (``drive = "rotary"``, spec §15) is a servo build measured from outside, its truth a
+servo build's errors (:func:`simulate_rotary`).
 
 **The scores** (:func:`score`), each of the final estimate against the true δM in force at the
 last sample:
 
-* ``rms_mm``: RMS of the errors of δM (the 42 of a 6-6 drive).
+* ``rms_mm``: RMS of the errors of δM (the 42 of a 6-6 drive; a rotary drive's lengths and positions),
+  ``rms_deg`` a rotary drive's angles' (zero offsets, axis tilts) [deg] (None, a null, on a prismatic drive).
 * ``rms_over_crb``: RMS of the errors in units of the bound (:func:`bound_stddev_mm`) over the
   identified parameters — 1 for an efficient estimator.
 * ``nees``: ``eᵀ Σ⁻¹ e`` with the estimate's own covariance (χ²(42) when consistent).
-* ``z2``: mean of ``(e_p / σ_p)²`` over the 42 parameters with the estimate's own σ_p — 1 when
+* ``z2``: mean of ``(e_p / σ_p)²`` over the scored parameters with the estimate's own σ_p — 1 when
   the reported standard deviations are right, whatever their correlations.
 * ``closed_loop_mm`` / ``closed_loop_deg``: mean pose error when the controller commands IK with
   the estimated drive to ``validation_poses`` fresh poses and the true robot goes to FK of those
   strokes; ``closed_loop_nominal_mm`` is the same with the nominal drive (uncalibrated).
+  ``closed_loop_motion_mm`` / ``_deg``: the same for the motion from home (spec §15), what an outside
+  instrument sees and scores a rotary drive.
 * ``seconds`` / ``cpu_seconds``: wall and CPU time of the method on the log (CPU time does not
   grow when other work shares the machine: what a study's projection to a cluster uses);
   ``samples_rejected``: samples it refused.
@@ -522,7 +527,7 @@ def score(data: SweepData, estimate: Estimate, crb: np.ndarray) -> dict:
     delta, angles = e[: len(estimate.error)], data.platform.drive.parameter_degrees
     return {
         "rms_mm": float(np.sqrt(np.mean(delta[~angles] ** 2))),
-        "rms_deg": float(np.degrees(np.sqrt(np.mean(delta[angles] ** 2)))) if angles.any() else float("nan"),
+        "rms_deg": float(np.degrees(np.sqrt(np.mean(delta[angles] ** 2)))) if angles.any() else None,
         "rms_over_crb": float(np.sqrt(np.mean((e[identified] / crb[identified]) ** 2)))
         if identified.any()
         else float("nan"),
