@@ -97,15 +97,19 @@ def write_summary(spec: SweepSpec, table: pa.Table, out: Path) -> list[Path]:
     return [out / "summary.csv", out / "summary.md", *_plots(spec, table, out / "plots")]
 
 
-def _tracker_dof(spec: SweepSpec) -> int:
-    """The NEES's degrees of freedom with the tracker: δM of the first cell's drive (a family's
-    draws keep its legs)."""
-    platform = spec.cells[0].platform
+def _tracker_dof(spec: SweepSpec) -> int | None:
+    """The NEES's degrees of freedom with the tracker: δM of the first tracker cell's drive (a
+    family's draws keep its legs); None without a tracker cell."""
+    tracked = [cell for cell in spec.cells if cell.settings["instrument"] == "tracker"]
+    if not tracked:
+        return None
+    platform = tracked[0].platform
     return (platform.like if isinstance(platform, Family) else platform).drive.n_params
 
 
 def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
     dof = _tracker_dof(spec)
+    band = "" if dof is None else f", [{chi2.ppf(0.025, dof):.1f}, {chi2.ppf(0.975, dof):.1f}] for the tracker's {dof}"
     head = [
         *spec.swept,
         "method",
@@ -124,9 +128,8 @@ def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
         f"# Sweep '{spec.name}'",
         "",
         f"{len(spec.cells)} cells × {len(spec.seeds)} seeds × {len(spec.methods)} methods; medians over the seeds "
-        "(IQR: 25–75 % quantiles; NEES band: the two-sided 95 % band of χ² with the row's degrees of freedom, "
-        f"[{chi2.ppf(0.025, dof):.1f}, {chi2.ppf(0.975, dof):.1f}] for the tracker's {dof}). Quantiles of every score: "
-        "summary.csv.",
+        "(IQR: 25–75 % quantiles; NEES band: the two-sided 95 % band of χ² with the row's degrees of freedom"
+        f"{band}). Quantiles of every score: summary.csv.",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),
