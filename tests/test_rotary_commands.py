@@ -376,7 +376,8 @@ def test_a_servo_log_at_rest_is_named_in_degrees_of_the_angle_range(servo, capsy
     assert "samples' angles span" in err and "deg (0.01 of the angle range)" in err, err
 
 
-def test_a_sweep_over_a_rotary_platform_is_refused_in_one_line_before_any_task(capsys, tmp_path):
+def test_a_sweep_of_a_rotary_platform_in_prismatic_cells_is_refused_in_one_line_before_any_task(capsys, tmp_path):
+    """A sweep's cells take a platform of their own drive (``drive = "rotary"`` sweeps servo builds)."""
     spec = tmp_path / "drives.toml"
     spec.write_text(
         'name = "drives"\nmethods = ["ekf"]\nseeds = 1\n'
@@ -384,5 +385,7 @@ def test_a_sweep_over_a_rotary_platform_is_refused_in_one_line_before_any_task(c
     )
     code, err = _run(capsys, "sweep", "--spec", spec, "--out", tmp_path / "out")
     assert code != 0 and err.count("\n") == 0
-    assert "key 'grid.platform'" in err and "'servo-hexapod', a rotary drive" in err
+    assert (
+        "key 'grid.platform'" in err and "'servo-hexapod' is a rotary platform; the cells of drive = 'prismatic'" in err
+    )
     assert not (tmp_path / "out" / "results.parquet").exists()

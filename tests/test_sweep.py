@@ -5,6 +5,8 @@ Dask itself (a real scheduler and workers, resume, a dying worker) is tests/test
 
 from __future__ import annotations
 
+import hashlib
+import json
 import tomllib
 from dataclasses import replace
 from pathlib import Path
@@ -460,3 +462,171 @@ def test_the_robust_filter_keeps_a_still_robot_still(tmp_path):
         ekf = make_estimator("ekf", data.platform, cell.estimator_config)
         feed(ekf, list(data.log))
         assert ekf.robust.walk_rate_mm2_per_s == 0.0, (seed, ekf.robust.walk_rate_mm2_per_s)
+
+
+#: Rows of prismatic ls tasks (cell id fixed, so the package version does not enter the draws), as the
+#: package computed them before a rotary drive could be swept, on x86-64 with one BLAS thread: another
+#: CPU's BLAS may round differently (docs/sweeps.md), the rows of this machine are today's to the bit.
+TODAYS_ROWS = {
+    "tracker": (
+        {"samples": 30, "glitch_rate": 0.1, "stroke_scale_error": 0.01},
+        {
+            "rms_mm": "0x1.d7dfa8483bc2fp+2",
+            "rms_over_crb": "0x1.d26109cb93423p+6",
+            "nees": "0x1.562e2cb4c1d36p+6",
+            "z2": "0x1.5f70d7dba38d5p+0",
+            "closed_loop_mm": "0x1.288adf745e844p-2",
+            "closed_loop_deg": "0x1.d29d2126da054p-5",
+            "closed_loop_nominal_mm": "0x1.65ffaa59762d8p+1",
+        },
+        (48, 7),
+    ),
+    "pose": (
+        {"instrument": "pose", "samples": 30},
+        {
+            "rms_mm": "0x1.fb9b31a731592p+0",
+            "rms_over_crb": "0x1.455d8358c5c8ep+0",
+            "nees": "0x1.c63f3b615d131p+5",
+            "z2": "0x1.9be3b797b9279p+0",
+            "closed_loop_mm": "0x1.08460e545231dp+2",
+            "closed_loop_deg": "0x1.35383a6bd8969p-3",
+            "closed_loop_nominal_mm": "0x1.27ab42ea8ca2dp+1",
+        },
+        (36, 0),
+    ),
+}
+
+
+@pytest.mark.parametrize("case", TODAYS_ROWS)
+def test_a_prismatic_cell_is_todays(tmp_path, case):
+    """drive = "prismatic" (the default) draws, fits and scores as before the drive axis (to 1e-12);
+    giving it explicitly, or any rotary setting at its default, is the same cell (the same id)."""
+    grid, scores, (dof, glitches) = TODAYS_ROWS[case]
+    cell = spec_of({"methods": ["ls"], "seeds": 1, "grid": grid}, tmp_path).cells[0]
+    (row,) = run_task(replace(cell, id="0123456789ab"), 3, ("ls",))
+    assert row["drive"] == "prismatic" and row["failure"] == ""
+    # the scores as they were, to 1e-12 (another processor's BLAS may round the fit's last bits otherwise)
+    for name, value in scores.items():
+        assert row[name] == pytest.approx(float.fromhex(value), rel=1e-12, abs=1e-15), name
+    assert (row["nees_dof"], row["glitches"]) == (dof, glitches) and row["rms_deg"] is None
+    explicit = {"drive": "prismatic", "horn_spread_mm": 0.2, "angle_sigma_deg": 0.05}
+    assert spec_of({"methods": ["ls"], "seeds": 1, "grid": grid | explicit}, tmp_path).cells[0].id == cell.id
+    other = spec_of({"methods": ["ls"], "seeds": 1, "grid": grid | {"horn_spread_mm": 0.5}}, tmp_path).cells[0]
+    assert other.id != cell.id  # two cells of different settings never share an id (nor a part)
+
+
+def test_a_prismatic_cells_id_hashes_the_settings_prismatic_legs_read(tmp_path):
+    from stewart_calib.sweep.spec import ROTARY_SETTINGS, _fingerprint
+
+    spec = spec_of({"methods": ["ekf"], "seeds": 1, "grid": {"reading_sigma_mm": [0.002, 0.01]}}, tmp_path)
+    for cell in spec.cells:
+        settings = {name: value for name, value in cell.settings.items() if name not in ROTARY_SETTINGS}
+        identity = {"settings": settings, "platform": _fingerprint(cell.platform), **spec.run_wide}
+        digest = hashlib.blake2b(json.dumps(identity, sort_keys=True).encode(), digest_size=6).hexdigest()
+        assert cell.id == digest
+
+
+def test_drive_is_an_axis_each_cell_on_a_platform_of_its_legs(tmp_path):
+    spec = spec_of(
+        {"methods": ["ekf"], "seeds": 1, "grid": {"drive": ["prismatic", "rotary"], "instrument": ["pose", "points"]}},
+        tmp_path,
+    )
+    assert spec.swept == ["drive", "instrument"]
+    assert [(c.settings["drive"], c.settings["platform"]) for c in spec.cells] == [
+        ("prismatic", "nim-stewart"),
+        ("prismatic", "nim-stewart"),
+        ("rotary", "servo-hexapod"),
+        ("rotary", "servo-hexapod"),
+    ]
+    assert [c.platform.drive.n_params for c in spec.cells] == [42, 42, 66, 66]
+    rotary = spec.cells[2].estimator_config.noise
+    assert (rotary.angle_sigma_deg, rotary.angle_random_walk_deg_per_sqrt_s) == (0.05, 0.0)  # matched: no walk
+
+
+#: A small rotary cell: the shipped servo build, its errors the shipped servo experiment's spreads
+#: (configs/experiments/servo.toml) but the joints' 1 mm, motion capture σ 0.05 mm / 0.05°.
+ROTARY = {"drive": "rotary", "instrument": "pose", "samples": 60, "validation_poses": 30}
+
+
+def test_a_rotary_truth_is_a_servo_builds(tmp_path):
+    """66 unknowns a servo (spec §15 order), zero offsets uniform within the limit, the logged angles
+    those that close the true legs over the true angle scales, plus the servos' white error."""
+    _, cell = _cell(tmp_path, **ROTARY, stroke_scale_error=0.02, angle_sigma_deg=1e-6)
+    data = simulate(cell.settings, cell.platform, task_rng(cell.id, 0))
+    legs = data.platform.drive
+    assert data.true_params.shape == (60, 66) and data.scored == (STROKE_SCALE,)
+    names = np.array(legs.parameter_names)
+    offsets = np.degrees(data.true_error[np.char.startswith(names, "o")])
+    assert np.all(np.abs(offsets) <= 2.0) and np.std(offsets) > 0.3
+    scale = data.true_terms[STROKE_SCALE]
+    assert np.all(scale != 0) and np.all(np.abs(scale) < 0.1)
+    R, t = kin.pose_to_rt(data.log.desired_poses)
+    closing = legs.perturbed(data.true_error).coordinates(R, t)
+    # the servos' error: σ 1e-6° (360 draws: the sample σ within 15 % at 4σ, the scales' (1 + k) within 5 %)
+    error_deg = np.degrees(data.log.strokes * (1.0 + scale) - closing)
+    assert 0.8 < np.std(error_deg) / 1e-6 < 1.2 and abs(np.mean(error_deg)) < 4 * 1e-6 / np.sqrt(360)
+
+
+@pytest.mark.parametrize("instrument", ["pose", "points"])
+def test_a_rotary_cell_calibrates_the_motion_from_home_better_than_the_nominal_model(tmp_path, instrument):
+    """ls and ekf on a servo build measured from outside: scored over the 54 gauge-free directions of
+    the 66 and the six angle scales, and, where an outside instrument leaves the robot's place in {J}
+    open, in its motion from home — better than the nominal model's, in position and in rotation."""
+    _, cell = _cell(tmp_path, ("ls", "ekf"), **ROTARY | {"instrument": instrument})
+    rows = run_task(cell, 0, ("ls", "ekf"))
+    for row in rows:
+        assert row["failure"] == "" and row["platform"] == "servo-hexapod" and row["nees_dof"] == 60, row
+        assert np.isfinite(row["rms_deg"]) and 0.1 < row["rms_over_crb"] < 5, row
+        assert row["closed_loop_motion_mm"] < 0.6 * row["closed_loop_nominal_motion_mm"], row
+        assert row["closed_loop_motion_deg"] < 0.6 * row["closed_loop_nominal_motion_deg"], row
+
+
+def test_a_rotary_family_draws_servo_builds_level_at_home(tmp_path):
+    family = {
+        "like": "servo-hexapod",
+        "base_radius_mm": [90.0, 110.0],
+        "platform_radius_mm": 75.0,
+        "base_half_angle_deg": 15.0,
+        "platform_half_angle_deg": [40.0, 50.0],
+    }
+    doc = {"methods": ["ekf"], "seeds": 1, "grid": {**ROTARY, "platform": "servos"}, "families": {"servos": family}}
+    cell = spec_of(doc, tmp_path).cells[0]
+    shipped = cell.platform.like
+    drawn = [cell.platform.draw(np.random.default_rng(seed)) for seed in (0, 1)]
+    home = kin.pose_to_rt(shipped.workspace.home[None])
+    for platform in drawn:
+        np.testing.assert_allclose(platform.drive.coordinates(*home), 0.0, atol=1e-12)  # every horn level at home
+        radii = np.linalg.norm(platform.drive.as_vector().reshape(6, 11)[:, :2], axis=1)  # a_x, a_y
+        assert 90.0 <= radii[0] <= 110.0 and np.ptp(radii) < 1e-9
+    assert not np.allclose(drawn[0].drive.as_vector(), drawn[1].drive.as_vector())
+    # the shipped build's own rings give the shipped build (its file's 5 significant digits)
+    fixed = replace(cell.platform, ranges=np.array([[100.0] * 2, [75.0] * 2, [15.0] * 2, [45.0] * 2]))
+    np.testing.assert_allclose(
+        fixed.draw(np.random.default_rng(0)).drive.as_vector(), shipped.drive.as_vector(), atol=1e-3
+    )
+
+
+@pytest.mark.parametrize(
+    "grid, methods, key, said",
+    [
+        ({"drive": "rotary"}, ["ekf"], "grid.instrument", "measured from outside the robot (spec §15): expected pose"),
+        (ROTARY, ["paper-ekf"], "methods", "'paper-ekf' takes prismatic legs"),
+        (ROTARY | {"platform_mass_kg": 60.0}, ["ekf"], "grid.platform_mass_kg", "takes 0.0 (the elastic robot is one"),
+        (ROTARY | {"compliance_mm_per_kN": [1.0, 2.0]}, ["ekf"], "grid.compliance_mm_per_kN", "got 2.0"),
+        (ROTARY | {"payload_schedule": "step"}, ["ekf"], "grid.payload_schedule", 'takes "constant"'),
+        (ROTARY | {"drift_mm_per_sqrt_s": 0.01}, ["ekf"], "grid.drift_mm_per_sqrt_s", "parameters do not walk"),
+        ({"drive": "servo"}, ["ekf"], "grid.drive", "unknown drive 'servo': expected one of prismatic, rotary"),
+        (
+            {"platform": "servo-hexapod"},
+            ["ekf"],
+            "grid.platform",
+            "a rotary platform; the cells of drive = 'prismatic'",
+        ),
+        (ROTARY | {"platform": "nim-stewart"}, ["ekf"], "grid.platform", "(shipped: servo-hexapod, or a [families]"),
+    ],
+)
+def test_what_a_rotary_cell_cannot_simulate_is_refused_in_one_line(tmp_path, grid, methods, key, said):
+    with pytest.raises(CalibError) as refused:
+        spec_of({"methods": methods, "seeds": 1, "grid": grid}, tmp_path)
+    message = str(refused.value)
+    assert "\n" not in message and f"spec.toml: key '{key}': " in message and said in message, message

@@ -334,6 +334,41 @@ class RotaryLegs:
             object.__setattr__(legs, member.name, value)
         return legs
 
+    def on_rings(
+        self,
+        base_radius_mm: float,
+        platform_radius_mm: float,
+        base_half_angle_deg: float,
+        platform_half_angle_deg: float,
+        home: tuple[np.ndarray, np.ndarray],
+    ) -> RotaryLegs:
+        """This servo build with its shafts and platform joints moved onto two rings, laid out as
+        ``configs/platforms/servo-hexapod.toml`` is: leg ``2k + m`` (k = 0, 1, 2; m = 0, 1) has its crank
+        centre at angle ``120k ∓ a`` on a circle of ``base_radius_mm`` and its platform joint at ``120k ∓ b``
+        on ``platform_radius_mm`` (``a``, ``b``: the half angles [deg]), at this set's heights.
+
+        Each shaft lies along its ring's radius, pointing in for m = 0 and out for m = 1, so ``w = n × u`` is
+        +z in every leg (a positive angle lifts each horn); at angle 0 the horn is level along the tangent,
+        away from its pair's partner. Horns, angle range and zero trim 0 as this set has them; each rod
+        spans the horn's tip at angle 0 to its platform joint at the pose ``home = (R, t)``, so every angle
+        is 0 there.
+        """
+        side = np.tile([-1.0, 1.0], 3)  # m = 0: shaft in, horn clockwise; m = 1: shaft out, horn counter-clockwise
+
+        def ring(radius_mm: float, half_angle_deg: float, heights_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            angles = np.radians(np.repeat([0.0, 120.0, 240.0], 2) + side * half_angle_deg)
+            return np.column_stack([radius_mm * np.cos(angles), radius_mm * np.sin(angles), heights_mm]), angles
+
+        centres, angles = ring(base_radius_mm, base_half_angle_deg, self.crank_centres[:, 2])
+        joints, _ = ring(platform_radius_mm, platform_half_angle_deg, self.platform_joints[:, 2])
+        radial = np.column_stack([np.cos(angles), np.sin(angles), np.zeros(self.n_legs)])
+        tangent = np.column_stack([-np.sin(angles), np.cos(angles), np.zeros(self.n_legs)])
+        axes, zero = side[:, None] * radial, side[:, None] * tangent
+        R, t = home
+        tips = centres + self.horn_lengths[:, None] * zero
+        rods = np.linalg.norm(np.asarray(t) + joints @ np.asarray(R).T - tips, axis=1)
+        return RotaryLegs(centres, axes, zero, self.horn_lengths, rods, joints, np.zeros(self.n_legs), self.angle_range)
+
     # ------------------------------------------------------------------ kinematics
 
     def horn_joints(self, e: np.ndarray) -> np.ndarray:

@@ -21,7 +21,8 @@ import numpy as np
 
 from ..instruments import OutsideModel, gauge, points, pose
 from ..instruments.registry import kind_of
-from ..model.platform import Instrument, LegGeometry
+from ..model.legs import LegModel
+from ..model.platform import Instrument
 
 
 @dataclass(frozen=True)
@@ -81,9 +82,10 @@ def _model(instrument: Instrument) -> type[OutsideModel]:
     return model
 
 
-def truth_in_gauge(nominal: LegGeometry, true_params: np.ndarray, unknowns) -> tuple[np.ndarray, object]:
+def truth_in_gauge(nominal: LegModel, true_params: np.ndarray, unknowns) -> tuple[np.ndarray, object]:
     """A simulator's truth in the gauge of :func:`stewart_calib.instruments.gauge.free_basis`:
-    ``(δM (42), the instrument's unknowns moved alike)`` for true absolute parameters ``(42,)``
-    and true instrument unknowns (``PoseUnknowns`` or ``PointsUnknowns``)."""
+    ``(δM (n_params: 42 prismatic, 66 rotary), the instrument's unknowns moved alike)`` for true absolute
+    parameters ``(n_params,)`` of the leg model ``nominal`` and true instrument unknowns (``PoseUnknowns``
+    or ``PointsUnknowns``)."""
     params, (R_J, t_J), (R_D, t_D) = gauge.to_gauge(nominal, true_params)
     return params - nominal.as_vector(), unknowns.in_frames(R_J, t_J, R_D, t_D)

@@ -26,7 +26,7 @@ from tqdm import tqdm
 from ..errors import CalibError
 from . import store
 from .limits import MAX_CPU_HOURS, MAX_TASKS
-from .spec import SweepSpec
+from .spec import SweepSpec, cost_kind
 from .task import run_task
 
 #: How long to wait for a named scheduler before giving up [s].
@@ -47,7 +47,8 @@ class SweepPlan:
         tasks: the spec's tasks (cells × seeds).
         done: those whose part exists already.
         cpu_seconds: estimated CPU time of the methods on the unfinished tasks [s]: the
-            methods' CPU per sample for the task's instrument (``cpu_seconds`` of past rows, or
+            methods' CPU per sample for the task's instrument and drive (:func:`~.spec.cost_kind`;
+            ``cpu_seconds`` of past rows, or
             of a pilot task run here) times the samples of every unfinished task.
         basis: where the per-sample costs come from, for the plan line.
         pilots: the pilot tasks' rows (each written as its part when the run goes ahead).
@@ -110,22 +111,23 @@ def plan_sweep(
     done, damaged = store.part_states(spec, out)
     todo = [(cell, seed) for cell, seed in spec.tasks() if (cell.id, seed) not in done]
     # an instrument sets a task's cost more than any other setting (motion capture and laser
-    # trackers run the methods' general paths): one cost per sample for each
+    # trackers run the methods' general paths), and a rotary drive (numpy paths, no compiled
+    # kernels): one cost per sample for each of their pairs
     past = store.past_cost(out, COST_PARTS)
     per_sample = {kind: cost for kind, (cost, _) in past.items()}
     said = [f"{count} finished {kind} tasks" for kind, (_, count) in past.items()]
     pilots = []
-    for kind in dict.fromkeys(cell.settings["instrument"] for cell, _ in todo):
+    for kind in dict.fromkeys(cost_kind(cell.settings) for cell, _ in todo):
         if kind in per_sample:
             continue
-        cell, seed = next(task for task in todo if task[0].settings["instrument"] == kind)
+        cell, seed = next(task for task in todo if cost_kind(task[0].settings) == kind)
         rows = run_task(cell, seed, spec.methods, spec.checkpoints, spec.refit_at_checkpoints)
         cpu = sum(row["cpu_seconds"] for row in rows if row["cpu_seconds"] == row["cpu_seconds"])
         per_sample[kind] = cpu / cell.settings["samples"]
         pilots.append(rows)
         said.append(f"a {kind} pilot task: {cpu:.2g} CPU-s for {cell.settings['samples']} samples")
     basis = "; ".join(said) or "nothing left to run"
-    cpu_seconds = sum(per_sample[cell.settings["instrument"]] * cell.settings["samples"] for cell, _ in todo)
+    cpu_seconds = sum(per_sample[cost_kind(cell.settings)] * cell.settings["samples"] for cell, _ in todo)
     if max_cpu_hours is not None and cpu_seconds > max_cpu_hours * 3600:
         raise CalibError(
             f"{spec.source}: {len(todo):,} tasks would take ≈ {cpu_seconds / 3600:,.0f} CPU-hours ({basis}), more "

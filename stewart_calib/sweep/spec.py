@@ -11,6 +11,7 @@ Layout (``configs/sweeps/smoke.toml`` documents every key)::
 
     [grid]                               # every setting: one value, or a list of values (an axis)
     platform = ["nim-stewart", "compact"]
+    drive = "prismatic"                  # the legs: prismatic, or rotary (servo horns, spec §15)
     reading_sigma_mm = [0.002, 0.02]
     "ekf.gate_probability" = [0.0, 0.9999]   # estimator setting (section.key) as an axis
 
@@ -43,7 +44,9 @@ from ..errors import CalibError
 from ..estimators import METHODS
 from ..instruments import MODELS
 from ..io.platform_file import load_platform, platform_to_toml
+from ..model import kinematics as kin
 from ..model.platform import LegGeometry, Platform
+from ..model.rotary import RotaryLegs
 from ..resources import CONFIGS, read_toml
 
 #: Samples (and validation poses) of one task at most: a task holds its log in memory, and a
@@ -81,7 +84,15 @@ SETTINGS = (
         "platform",
         str,
         "nim-stewart",
-        doc="shipped platform name, platform file (relative to the spec) or a [families] name",
+        doc="shipped platform name, platform file (relative to the spec) or a [families] name, of the cell's "
+        'drive (default: nim-stewart, or servo-hexapod where drive = "rotary")',
+    ),
+    Setting(
+        "drive",
+        str,
+        "prismatic",
+        doc="the legs: prismatic (6-6 legs whose length is the stroke) or rotary (servo horns and rods, 6-RSS, "
+        "spec §15: 66 unknowns, angles logged, measured by an outside instrument; scored in the motion from home)",
     ),
     Setting("instrument", str, "tracker", doc="what measures the platform (spec §7): tracker, pose or points"),
     Setting("instrument_sigma_mm", float, 0.05, positive=True, doc="pose / points: σ of one measured coordinate [mm]"),
@@ -90,7 +101,14 @@ SETTINGS = (
     Setting("dropout_rate", float, 0.0, minimum=0.0, maximum=0.9, doc="points: chance a target is not seen"),
     Setting("frame_offset_mm", float, 50.0, minimum=0.0, doc="pose / points: true frame's offset from nominal [mm]"),
     Setting("frame_offset_deg", float, 10.0, minimum=0.0, maximum=90.0, doc="pose / points: its rotation [deg]"),
-    Setting("stroke_scale_error", float, 0.0, minimum=0.0, maximum=0.2, doc="σ of the true stroke scales k_i"),
+    Setting(
+        "stroke_scale_error",
+        float,
+        0.0,
+        minimum=0.0,
+        maximum=0.2,
+        doc="σ of the true stroke scales k_i (rotary: the servos' angle scales, φ = (1 + k) θ + o)",
+    ),
     Setting("samples", int, 200, minimum=1, maximum=MAX_SAMPLES, doc="samples per run, one per random workspace pose"),
     Setting("rate_hz", float, 10.0, positive=True, doc="sample rate [Hz] (sets Δt of the random walk)"),
     Setting(
@@ -101,9 +119,16 @@ SETTINGS = (
         maximum=1.0,
         doc="poses uniform in this fraction of the workspace box",
     ),
-    Setting("error_sigma_mm", float, 1.0, minimum=0.0, doc="σ of the true δM's i.i.d. normal draw [mm]"),
+    Setting(
+        "error_sigma_mm",
+        float,
+        1.0,
+        minimum=0.0,
+        doc="σ of the true δM's i.i.d. normal draw [mm] (rotary: of each coordinate of the crank centres and "
+        "platform joints)",
+    ),
     Setting("reading_sigma_mm", float, 0.002, positive=True, doc="σ of the tracker readings' white noise [mm]"),
-    Setting("stroke_sigma_mm", float, 0.001, positive=True, doc="σ of the logged strokes' white noise [mm]"),
+    Setting("stroke_sigma_mm", float, 0.001, positive=True, doc="prismatic: σ of the logged strokes' white noise [mm]"),
     Setting(
         "noise_scale",
         float,
@@ -112,7 +137,7 @@ SETTINGS = (
         doc="the simulated reading noise (tracker or outside instrument) is this multiple of what the "
         "estimators are told",
     ),
-    Setting("drift_mm_per_sqrt_s", float, 0.0, minimum=0.0, doc="random walk of the true δM [mm/√s]"),
+    Setting("drift_mm_per_sqrt_s", float, 0.0, minimum=0.0, doc="prismatic: random walk of the true δM [mm/√s]"),
     Setting("glitch_rate", float, 0.0, minimum=0.0, maximum=1.0, doc="fraction of samples with one glitched reading"),
     Setting("glitch_size_mm", float, 1.0, minimum=0.0, doc="size of a glitch [mm] (added with a random sign)"),
     Setting("validation_poses", int, 50, minimum=1, maximum=MAX_SAMPLES, doc="fresh poses of the closed-loop check"),
@@ -121,8 +146,8 @@ SETTINGS = (
         float,
         0.0,
         minimum=0.0,
-        doc="the moving platform's mass [kg], its centre at {D}'s origin (spec §10); 0: a rigid robot, the "
-        "other elastic settings ignored",
+        doc="prismatic: the moving platform's mass [kg], its centre at {D}'s origin (spec §10); 0: a rigid "
+        "robot, the other elastic settings ignored",
     ),
     Setting("compliance_mm_per_kN", float, 1.0, minimum=0.0, doc="the legs' true axial compliance, their mean [mm/kN]"),
     Setting("compliance_spread", float, 0.0, minimum=0.0, maximum=1.0, doc="relative σ of each leg's true compliance"),
@@ -136,8 +161,61 @@ SETTINGS = (
         doc="the estimators model the compliance (the platform's [elastic]: nominal 0, default prior σ), "
         "else they calibrate the elastic robot as a rigid one",
     ),
+    Setting(
+        "angle_sigma_deg",
+        float,
+        0.05,
+        positive=True,
+        doc="rotary: σ of the angle a servo holds about its logged command [deg] (white; the estimators are told it)",
+    ),
+    Setting(
+        "angle_offset_limit_deg",
+        float,
+        2.0,
+        minimum=0.0,
+        maximum=7.2,
+        doc="rotary: the true zero offsets o_i are uniform in ± this [deg] (a horn a fraction of a spline tooth "
+        "off, 14.4° a tooth on a 25-tooth spline, after trimming by eye)",
+    ),
+    Setting("horn_spread_mm", float, 0.2, minimum=0.0, doc="rotary: σ of the true horn lengths' errors [mm]"),
+    Setting("rod_spread_mm", float, 0.3, minimum=0.0, doc="rotary: σ of the true rod lengths' errors [mm]"),
+    Setting(
+        "axis_tilt_spread_deg",
+        float,
+        0.75,
+        minimum=0.0,
+        maximum=10.0,
+        doc="rotary: σ of each servo shaft's true tilts tu_i, tw_i [deg] (a servo in a printed pocket)",
+    ),
 )
 SETTINGS_BY_NAME = {s.name: s for s in SETTINGS}
+
+#: The leg kinds a cell simulates (spec §15), and the platform a cell of each takes when the grid names none.
+DRIVES = ("prismatic", "rotary")
+DEFAULT_PLATFORMS = {"prismatic": "nim-stewart", "rotary": "servo-hexapod"}
+
+#: Settings only a rotary cell reads: a cell's id leaves them out at their defaults (:func:`_identity_settings`).
+ROTARY_SETTINGS = (
+    "drive",
+    "angle_sigma_deg",
+    "angle_offset_limit_deg",
+    "horn_spread_mm",
+    "rod_spread_mm",
+    "axis_tilt_spread_deg",
+)
+
+#: Settings of prismatic legs alone: the elastic robot (its legs' axial compliance, spec §10) and the drift
+#: of δM in mm; a rotary cell refuses any value but the default.
+PRISMATIC_SETTINGS = (
+    "drift_mm_per_sqrt_s",
+    "platform_mass_kg",
+    "compliance_mm_per_kN",
+    "compliance_spread",
+    "payload_kg",
+    "payload_schedule",
+    "payload_known",
+    "elastic_model",
+)
 
 #: Instruments the sweep simulates (spec §7): every kind.
 INSTRUMENTS = tuple(MODELS)
@@ -156,6 +234,9 @@ class Family:
     the half angles [deg]). Joint heights, tracker, ranges and workspace are those of ``like``;
     initial lengths are the leg lengths at home, so every stroke is 0 at home.
 
+    A family is of its ``like``'s drive (:attr:`kind`): a rotary ``like`` (a servo build, spec §15)
+    puts the servo shafts on the base ring instead (:func:`servo_ring_platform`).
+
     Attributes:
         name: the family's name (the ``platform`` value that selects it).
         like: the platform everything but the drive rings comes from.
@@ -166,12 +247,40 @@ class Family:
     like: Platform
     ranges: np.ndarray
 
+    @property
+    def kind(self) -> str:
+        """The drive's kind (``prismatic`` | ``rotary``): its ``like``'s."""
+        return self.like.drive.kind
+
     def draw(self, rng: np.random.Generator) -> Platform:
         """One platform of the family (draws only the dimensions that have a range)."""
         low, high = self.ranges[:, 0], self.ranges[:, 1]
         values = np.where(high > low, low + (high - low) * rng.random(len(low)), low)
         base_radius, platform_radius, base_half_angle, platform_half_angle = values
-        return ring_platform(self.like, base_radius, platform_radius, base_half_angle, platform_half_angle, self.name)
+        build = servo_ring_platform if self.kind == "rotary" else ring_platform
+        return build(self.like, base_radius, platform_radius, base_half_angle, platform_half_angle, self.name)
+
+
+def servo_ring_platform(
+    like: Platform,
+    base_radius_mm: float,
+    platform_radius_mm: float,
+    base_half_angle_deg: float,
+    platform_half_angle_deg: float,
+    name: str,
+) -> Platform:
+    """``like``'s servo build (spec §15) with its servo shafts and platform joints on two rings (see
+    :class:`Family` and :meth:`~stewart_calib.model.rotary.RotaryLegs.on_rings`): horns, heights, angle
+    range, instrument and workspace are ``like``'s, the rods span the horns' tips to the platform joints
+    at home, so every angle is 0 there (the horns level)."""
+    legs = like.drive
+    if not isinstance(legs, RotaryLegs):
+        raise ValueError(f"a servo ring platform is built on a rotary platform, got a {legs.kind} drive")
+    home = kin.pose_to_rt(like.required_workspace("a servo ring platform").home)
+    drive = legs.on_rings(base_radius_mm, platform_radius_mm, base_half_angle_deg, platform_half_angle_deg, home)
+    return dataclasses.replace(
+        like, name=name, drive=drive, description=f"servo ring family '{name}' drawn from {like.name}"
+    )
 
 
 def ring_platform(
@@ -253,6 +362,7 @@ class SweepSpec:
     axes: dict
     platforms: dict
     run_wide: dict
+    platform_named: bool = True
 
     @property
     def n_cells(self) -> int:
@@ -269,9 +379,11 @@ class SweepSpec:
         cells = []
         for index, values in enumerate(itertools.product(*self.axes.values())):
             settings = dict(zip(names, values, strict=True))
+            if not self.platform_named:
+                settings["platform"] = DEFAULT_PLATFORMS[settings["drive"]]
             platform = self.platforms[settings["platform"]]
             config = _estimator_config(settings, self.source)
-            identity = {"settings": settings, "platform": _fingerprint(platform), **self.run_wide}
+            identity = {"settings": _identity_settings(settings), "platform": _fingerprint(platform), **self.run_wide}
             digest = hashlib.blake2b(json.dumps(identity, sort_keys=True).encode(), digest_size=6).hexdigest()
             cells.append(Cell(digest, index, settings, platform, config))
         return tuple(cells)
@@ -366,6 +478,11 @@ def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
             raise refuse(
                 "methods", f"method '{unable[0]}' cannot calibrate with instrument '{value}' (grid.instrument)"
             )
+    for value in axes["drive"]:
+        if value not in DRIVES:
+            raise refuse("grid.drive", f"unknown drive '{value}': expected one of {', '.join(DRIVES)}")
+    if "rotary" in axes["drive"]:
+        _check_rotary(axes, methods, refuse)
     for value in axes["payload_schedule"]:
         if value not in SCHEDULES:
             raise refuse("grid.payload_schedule", f"unknown schedule '{value}': expected one of {', '.join(SCHEDULES)}")
@@ -374,7 +491,19 @@ def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
             "checkpoints",
             f"expected sample counts ≤ the smallest 'samples' ({min(axes['samples'])}), got {max(checkpoints)}",
         )
-    platforms = {value: _platform(value, families, path, refuse) for value in axes["platform"]}
+    platform_named = "platform" in doc.get("grid", {})
+    platforms: dict[str, Platform | Family] = {}
+    for drive in axes["drive"]:
+        for value in axes["platform"] if platform_named else [DEFAULT_PLATFORMS[drive]]:
+            platform = platforms.get(value) or _platform(value, families, path, refuse)
+            kind = platform.kind if isinstance(platform, Family) else platform.drive.kind
+            if kind != drive:
+                raise refuse(
+                    "grid.platform",
+                    f"{_shown(value)} is a {kind} platform; the cells of drive = {drive!r} take a {drive} one "
+                    f"(shipped: {DEFAULT_PLATFORMS[drive]}, or a [families] table like one)",
+                )
+            platforms[value] = platform
 
     run_wide = {
         "methods": list(methods),
@@ -392,7 +521,63 @@ def parse_spec(doc: dict, path: str | Path) -> SweepSpec:
         axes,
         platforms,
         run_wide,
+        platform_named,
     )
+
+
+def _check_rotary(axes: dict, methods: list[str], refuse) -> None:
+    """Refuse what a rotary cell cannot simulate or calibrate: the in-situ tracker (the sweep's is a
+    prismatic leg set), the paper's EKF (its error Jacobian is the prismatic legs'), an elastic robot (the
+    axial compliance of prismatic legs, spec §10) and a drift of δM in mm/√s (which a servo's angles have no
+    rate of)."""
+    if "tracker" in axes["instrument"]:
+        raise refuse(
+            "grid.instrument",
+            'drive = "rotary" is measured from outside the robot (spec §15): expected pose or points, got '
+            "'tracker' (the sweep's in-situ tracker is a prismatic leg set)",
+        )
+    if "paper-ekf" in methods:
+        raise refuse(
+            "methods", "method 'paper-ekf' takes prismatic legs (the paper's error Jacobian), not drive = \"rotary\""
+        )
+    for name in PRISMATIC_SETTINGS:
+        default = SETTINGS_BY_NAME[name].default
+        other = [value for value in axes[name] if value != default]
+        if other:
+            why = (
+                "a rotary drive's parameters do not walk here"
+                if name == "drift_mm_per_sqrt_s"
+                else "the elastic robot is one of prismatic legs (spec §10)"
+            )
+            raise refuse(
+                f"grid.{name}",
+                f'drive = "rotary" takes {_toml(default)} ({why}), got {_shown(other[0])}; sweep it in a spec of '
+                "prismatic cells",
+            )
+
+
+def cost_kind(settings: dict) -> str:
+    """What sets a task's cost per sample most, as the plan line names it: its instrument, and ``rotary``
+    before it for a rotary drive (its legs run numpy paths, the prismatic legs compiled kernels)."""
+    return settings["instrument"] if settings["drive"] == "prismatic" else f"rotary {settings['instrument']}"
+
+
+def _toml(value) -> str:
+    """A setting's value as the spec writes it (``true``, ``"constant"``, ``0.0``)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return f'"{value}"' if isinstance(value, str) else repr(value)
+
+
+def _identity_settings(settings: dict) -> dict:
+    """The settings a cell's id hashes: all but the rotary drive's at their defaults, so that a prismatic
+    cell keeps its id whatever settings only a rotary one reads (and its finished rows are found again),
+    while two cells that differ in any setting never share one."""
+    return {
+        name: value
+        for name, value in settings.items()
+        if not (name in ROTARY_SETTINGS and value == SETTINGS_BY_NAME[name].default)
+    }
 
 
 def _raise(err: CalibError):
@@ -537,19 +722,11 @@ def _platform(value: str, families: dict, path: Path, refuse) -> Platform | Fami
 
 
 def _platform_file(value: str, path: Path, refuse) -> Platform:
-    """A platform file relative to the spec, or a shipped platform's name, of a prismatic drive: the
-    sweep's true errors (mm on every entry), its truth moved into the gauge
-    (:func:`~stewart_calib.instruments.gauge.to_gauge`) and its bound are the prismatic legs'."""
+    """A platform file relative to the spec, or a shipped platform's name, of either drive (each cell
+    checks it is of its own, :func:`parse_spec`)."""
     for candidate in (path.parent / value, CONFIGS / "platforms" / f"{value}.toml"):
         if candidate.is_file():
-            platform = load_platform(candidate)
-            if platform.drive.kind != "prismatic":
-                raise refuse(
-                    f"expected a platform of prismatic legs (the sweep draws, gauges and bounds their errors), got "
-                    f"{_shown(value)}, a {platform.drive.kind} drive (spec §15): calibrate it with simulate and "
-                    "calibrate (docs/howto/servo-platform.md)"
-                )
-            return platform
+            return load_platform(candidate)
     raise refuse(
         "expected a shipped platform name, a platform file relative to the spec or a [families] name, "
         f"got {_shown(value)}"
@@ -566,6 +743,8 @@ def _noise_table(settings: dict, reading_scale: float = 1.0) -> dict:
     }
     if settings["stroke_scale_error"] > 0:
         table["stroke_scale_sigma"] = settings["stroke_scale_error"]
+    if settings["drive"] == "rotary":  # a servo's held angle, and its angles' walk (none: they do not drift here)
+        table |= {"angle_sigma_deg": settings["angle_sigma_deg"], "angle_random_walk_deg_per_sqrt_s": 0.0}
     return table
 
 

@@ -22,7 +22,7 @@ import pyarrow.parquet as pq
 
 from ..errors import CalibError, shown
 from ..io import atomic_path
-from .spec import SweepSpec
+from .spec import SweepSpec, cost_kind
 from .task import METRICS
 
 RESULTS = "results.parquet"
@@ -109,18 +109,22 @@ def finished(spec: SweepSpec, out: Path) -> set[tuple[str, int]]:
 
 
 def past_cost(out: Path, limit: int) -> dict[str, tuple[float, int]]:
-    """Per instrument, the methods' CPU time per sample over up to ``limit`` finished parts in
-    ``out`` [s] and how many parts gave it (none where there are none, or none readable)."""
+    """Per instrument and drive (:func:`~.spec.cost_kind`), the methods' CPU time per sample over up to
+    ``limit`` finished parts in ``out`` [s] and how many parts gave it (none where there are none, or
+    none readable; a part without a ``drive`` column is a prismatic one's)."""
     totals: dict[str, list[float]] = {}
     for path in sorted((out / PARTS).glob("*.parquet"))[:limit]:
         try:
-            table = pq.read_table(path, columns=["cpu_seconds", "samples", "instrument"])
+            drive_column = ["drive"] if "drive" in pq.read_schema(path).names else []
+            table = pq.read_table(path, columns=["cpu_seconds", "samples", "instrument", *drive_column])
         except (OSError, ValueError, KeyError, pa.ArrowException):  # a part the run will recompute or refuse
             continue
         if not table.num_rows:
             continue
         values = [v for v in table["cpu_seconds"].to_pylist() if v is not None and v == v]
-        total = totals.setdefault(table["instrument"][0].as_py(), [0.0, 0.0, 0])
+        drive = table["drive"][0].as_py() if drive_column else "prismatic"
+        kind = cost_kind({"instrument": table["instrument"][0].as_py(), "drive": drive})
+        total = totals.setdefault(kind, [0.0, 0.0, 0])
         total[0] += sum(values)
         total[1] += table["samples"][0].as_py()
         total[2] += 1

@@ -22,8 +22,20 @@ from ..io import atomic_path, atomic_write_text
 from .spec import Family, SweepSpec
 
 QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
-SCORES = ("rms_mm", "rms_over_crb", "nees", "z2", "closed_loop_mm", "seconds", "cpu_seconds")
-PLOTTED = ("rms_over_crb", "nees", "closed_loop_mm", "seconds")
+SCORES = (
+    "rms_mm",
+    "rms_over_crb",
+    "nees",
+    "z2",
+    "closed_loop_mm",
+    "closed_loop_motion_mm",
+    "closed_loop_nominal_motion_mm",
+    "seconds",
+    "cpu_seconds",
+)
+PLOTTED = ("rms_over_crb", "nees", "closed_loop_mm", "closed_loop_motion_mm", "seconds")
+#: plotted on a log scale (they span decades across a grid)
+LOG_SCALED = ("rms_over_crb", "nees", "closed_loop_mm", "closed_loop_motion_mm")
 
 
 def nees_in_band(nees: np.ndarray, dof: np.ndarray) -> np.ndarray:
@@ -85,15 +97,19 @@ def write_summary(spec: SweepSpec, table: pa.Table, out: Path) -> list[Path]:
     return [out / "summary.csv", out / "summary.md", *_plots(spec, table, out / "plots")]
 
 
-def _tracker_dof(spec: SweepSpec) -> int:
-    """The NEES's degrees of freedom with the tracker: δM of the first cell's drive (a family's
-    draws keep its legs)."""
-    platform = spec.cells[0].platform
+def _tracker_dof(spec: SweepSpec) -> int | None:
+    """The NEES's degrees of freedom with the tracker: δM of the first tracker cell's drive (a
+    family's draws keep its legs); None without a tracker cell."""
+    tracked = [cell for cell in spec.cells if cell.settings["instrument"] == "tracker"]
+    if not tracked:
+        return None
+    platform = tracked[0].platform
     return (platform.like if isinstance(platform, Family) else platform).drive.n_params
 
 
 def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
     dof = _tracker_dof(spec)
+    band = "" if dof is None else f", [{chi2.ppf(0.025, dof):.1f}, {chi2.ppf(0.975, dof):.1f}] for the tracker's {dof}"
     head = [
         *spec.swept,
         "method",
@@ -105,15 +121,15 @@ def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
         "z² median",
         "z² mean",
         "closed loop [mm]",
+        "motion from home [mm] (nominal)",
         "s per run",
     ]
     lines = [
         f"# Sweep '{spec.name}'",
         "",
         f"{len(spec.cells)} cells × {len(spec.seeds)} seeds × {len(spec.methods)} methods; medians over the seeds "
-        "(IQR: 25–75 % quantiles; NEES band: the two-sided 95 % band of χ² with the row's degrees of freedom, "
-        f"[{chi2.ppf(0.025, dof):.1f}, {chi2.ppf(0.975, dof):.1f}] for the tracker's {dof}). Quantiles of every score: "
-        "summary.csv.",
+        "(IQR: 25–75 % quantiles; NEES band: the two-sided 95 % band of χ² with the row's degrees of freedom"
+        f"{band}). Quantiles of every score: summary.csv.",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),
@@ -131,6 +147,7 @@ def _markdown(spec: SweepSpec, summary: list[dict]) -> str:
             f"{e['z2_q50']:.3g}",
             f"{e['z2_mean']:.3g}",
             f"{e['closed_loop_mm_q50']:.3g}",
+            f"{e['closed_loop_motion_mm_q50']:.3g} ({e['closed_loop_nominal_motion_mm_q50']:.3g})",
             f"{e['seconds_q50']:.2g}",
         ]
         lines.append("| " + " | ".join(cells) + " |")
@@ -175,7 +192,7 @@ def _plots(spec: SweepSpec, table: pa.Table, directory: Path) -> list[Path]:
                 panel.set_xticks(range(len(ticks)), [f"{t:g}" if isinstance(t, float) else str(t) for t in ticks])
                 panel.set_xlabel(axis)
             panel.set_ylabel(score)
-            if score in ("rms_over_crb", "nees", "closed_loop_mm") and np.nanmin(values, initial=np.inf) > 0:
+            if score in LOG_SCALED and np.nanmin(values, initial=np.inf) > 0:
                 panel.set_yscale("log")
             panel.grid(alpha=0.3)
         panels[0][0].legend(fontsize="small")

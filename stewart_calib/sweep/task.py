@@ -10,19 +10,24 @@ IK of the true drive, tracker readings from IK of the known tracker geometry, wh
 exactly the estimators' model. With ``drift_mm_per_sqrt_s`` > 0 the true δM walks (the
 estimators' process model, matched). A glitch adds ±``glitch_size_mm`` to one reading (leg drawn
 at random) in a ``glitch_rate`` fraction of the samples — what a dirty grating or a lost count does.
+A rotary drive (``drive = "rotary"``, spec §15) is a servo build measured from outside, its truth a
+servo build's errors (:func:`simulate_rotary`).
 
 **The scores** (:func:`score`), each of the final estimate against the true δM in force at the
 last sample:
 
-* ``rms_mm``: RMS of the errors of δM (the 42 of a 6-6 drive).
+* ``rms_mm``: RMS of the errors of δM (the 42 of a 6-6 drive; a rotary drive's lengths and positions),
+  ``rms_deg`` a rotary drive's angles' (zero offsets, axis tilts) [deg] (None, a null, on a prismatic drive).
 * ``rms_over_crb``: RMS of the errors in units of the bound (:func:`bound_stddev_mm`) over the
   identified parameters — 1 for an efficient estimator.
 * ``nees``: ``eᵀ Σ⁻¹ e`` with the estimate's own covariance (χ²(42) when consistent).
-* ``z2``: mean of ``(e_p / σ_p)²`` over the 42 parameters with the estimate's own σ_p — 1 when
+* ``z2``: mean of ``(e_p / σ_p)²`` over the scored parameters with the estimate's own σ_p — 1 when
   the reported standard deviations are right, whatever their correlations.
 * ``closed_loop_mm`` / ``closed_loop_deg``: mean pose error when the controller commands IK with
   the estimated drive to ``validation_poses`` fresh poses and the true robot goes to FK of those
   strokes; ``closed_loop_nominal_mm`` is the same with the nominal drive (uncalibrated).
+  ``closed_loop_motion_mm`` / ``_deg``: the same for the motion from home (spec §15), what an outside
+  instrument sees and scores a rotary drive.
 * ``seconds`` / ``cpu_seconds``: wall and CPU time of the method on the log (CPU time does not
   grow when other work shares the machine: what a study's projection to a cluster uses);
   ``samples_rejected``: samples it refused.
@@ -52,8 +57,11 @@ from ..instruments import MODELS, gauge, instrument_kind, registered
 from ..model import kinematics as kin
 from ..model.drive import COMPLIANCE, DriveModel, drive_model, plain_drive
 from ..model.platform import Elastic, Instrument, LegGeometry, Platform
+from ..model.rotations import motion_error
 from ..samples import LOAD_KG, Log
+from ..simulation.experiment import RotaryRobotConfig
 from ..simulation.instrument import InstrumentTruth, SimulatedInstrument, truth_in_gauge
+from ..simulation.robot import rotary_errors
 from ..simulation.trajectories import random_static_poses
 from .spec import Cell, Family, simulated_noise
 
@@ -63,12 +71,18 @@ POSE_MARGIN_MM = 10.0
 
 METRICS = (
     "rms_mm",
+    "rms_deg",
     "rms_over_crb",
     "nees",
     "z2",
     "closed_loop_mm",
     "closed_loop_deg",
     "closed_loop_nominal_mm",
+    "closed_loop_nominal_deg",
+    "closed_loop_motion_mm",
+    "closed_loop_motion_deg",
+    "closed_loop_nominal_motion_mm",
+    "closed_loop_nominal_motion_deg",
     "seconds",
     "cpu_seconds",
 )
@@ -139,8 +153,10 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
 
     The tracker's draws come first, in a fixed order of their own, so a tracker cell's data do
     not depend on the settings of the other instruments; the stroke scale and an outside
-    instrument draw after them.
+    instrument draw after them. A rotary drive's data are :func:`simulate_rotary`'s.
     """
+    if settings["drive"] == "rotary":
+        return simulate_rotary(settings, platform, rng)
     nominal = with_instrument(platform.draw(rng) if isinstance(platform, Family) else platform, settings)
     n = settings["samples"]
     dt_s = 1.0 / settings["rate_hz"]
@@ -206,6 +222,66 @@ def simulate(settings: dict, platform: Platform | Family, rng: np.random.Generat
         true_elastic,
         payload,
         scored_blocks(nominal, settings),
+    )
+
+
+def simulate_rotary(settings: dict, platform: Platform | Family, rng: np.random.Generator) -> SweepData:
+    """The data of one task of a servo-horn (6-RSS) drive, spec §15; draws in a fixed order from ``rng``.
+
+    The true legs carry a servo build's errors (:func:`rotary_robot`, drawn by
+    :func:`~stewart_calib.simulation.robot.rotary_errors`): zero offsets uniform in ±
+    ``angle_offset_limit_deg``, horns, rods, crank centres and platform joints (``error_sigma_mm`` a
+    coordinate) and the shafts' tilts normal. The logged angles close the true legs at random workspace
+    poses over the true angle scales ``1 + k_i`` (``stroke_scale_error``), plus each servo's white
+    error of σ ``angle_sigma_deg``; the outside instrument reads the true poses, a glitch moving one
+    measured position coordinate as it does on the prismatic drive.
+
+    Raises:
+        CalibError: the true servos cannot reach a pose the nominal ones reach (a horn past the angle
+            range or a rod beyond its horn's circle: errors out of proportion to the build).
+    """
+    nominal = with_instrument(platform.draw(rng) if isinstance(platform, Family) else platform, settings)
+    n = settings["samples"]
+    legs = nominal.drive
+    error = rotary_errors(rotary_robot(settings), legs, rng)
+    poses = random_static_poses(nominal, n, rng, settings["workspace_fraction"], POSE_MARGIN_MM)
+    R, t = kin.pose_to_rt(poses)
+    angle_noise = rng.normal(0.0, math.radians(settings["angle_sigma_deg"]), (n, legs.n_legs))
+    glitched = rng.random(n) < settings["glitch_rate"]
+    coordinates = rng.integers(0, 3, n)
+    signs = rng.choice([-1.0, 1.0], n)
+    validation = random_static_poses(
+        nominal, settings["validation_poses"], rng, settings["workspace_fraction"], POSE_MARGIN_MM
+    )
+    rigid = drive_model(nominal, simulated_noise(settings))
+    true_terms = {term.key: rng.normal(0.0, term.prior_sigma or 0.0, rigid.rows) for term in rigid.terms}
+    strokes = rigid.true_drive(error, true_terms).inverse_kinematics(R, t)
+    if not np.all(np.isfinite(strokes)):
+        raise CalibError(
+            f"the true servos of {nominal.name} cannot reach {int(np.sum(~np.isfinite(strokes).all(axis=1)))} of "
+            "the random poses: lower the rotary errors or workspace_fraction"
+        )
+    strokes += angle_noise
+    instrument = SimulatedInstrument.build(true_noise(nominal, settings), _instrument_truth(settings, rng), rng)
+    readings = instrument.read(R, t, instrument.draw(n, rng))
+    readings[glitched, coordinates[glitched]] += signs[glitched] * settings["glitch_size_mm"]
+    log = Log(t_s=np.arange(n) / settings["rate_hz"], strokes=strokes, readings=readings, desired_poses=poses)
+    true_params = np.tile(legs.as_vector() + error, (n, 1))
+    return SweepData(
+        nominal, log, true_params, glitched, validation, true_terms, instrument, scored=scored_blocks(nominal, settings)
+    )
+
+
+def rotary_robot(settings: dict) -> RotaryRobotConfig:
+    """The true servo build's error spreads of a rotary cell (the experiments' ``[robot]`` table, spec §15)."""
+    return RotaryRobotConfig(
+        angle_offset_limit_deg=settings["angle_offset_limit_deg"],
+        horn_spread_mm=settings["horn_spread_mm"],
+        rod_spread_mm=settings["rod_spread_mm"],
+        joint_spread_mm=settings["error_sigma_mm"],
+        axis_tilt_spread_deg=settings["axis_tilt_spread_deg"],
+        angle_scale_spread=settings["stroke_scale_error"],
+        angle_noise_deg=settings["angle_sigma_deg"],
     )
 
 
@@ -308,9 +384,7 @@ def bound_stddev_mm(data: SweepData, settings: dict, prior_sigma_mm: float) -> n
     drive = simulated_drive(data.platform, settings)
     blocks = drive.blocks
     if data.true_instrument is not None:
-        delta, unknowns = truth_in_gauge(
-            data.platform.prismatic_drive("a sweep"), data.true_params[-1], data.true_instrument.unknowns
-        )
+        delta, unknowns = truth_in_gauge(data.platform.drive, data.true_params[-1], data.true_instrument.unknowns)
         simulated = replace(
             data.platform,
             instrument=true_noise(data.platform, settings),
@@ -360,9 +434,7 @@ def truth(data: SweepData) -> np.ndarray:
     :mod:`stewart_calib.instruments.gauge` for an outside instrument), then the scored blocks'
     (:attr:`SweepData.scored`: the stroke scales, the legs' compliance [mm/kN])."""
     if data.true_instrument is not None:
-        delta, _ = truth_in_gauge(
-            data.platform.prismatic_drive("a sweep"), data.true_params[-1], data.true_instrument.unknowns
-        )
+        delta, _ = truth_in_gauge(data.platform.drive, data.true_params[-1], data.true_instrument.unknowns)
     else:
         delta = data.true_error
     return np.concatenate([delta, *(data.true_terms[key] for key in data.scored)])
@@ -381,21 +453,41 @@ def nees_basis(data: SweepData, n: int) -> np.ndarray:
     return basis
 
 
-def closed_loop_errors(data: SweepData, estimate: Estimate | None = None) -> tuple[float, float]:
+def closed_loop_errors(data: SweepData, estimate: Estimate | None = None) -> dict[str, float]:
     """Mean position [mm] and orientation [deg] error at the validation poses when the
     controller commands encoder strokes by IK with the estimated drive (None: the nominal one) —
     its δM, stroke scales (``q = (L − l) / (1 + k)``) and, on an elastic robot, its compliance
     under the payload it knows of (0 where the log does not say); a block it did not identify at
     its nominal — and the true robot (:attr:`SweepData.true_drive`: parameters of the last
-    sample, true scales, settling under its weight and the last sample's payload) executes them."""
+    sample, true scales, settling under its weight and the last sample's payload) executes them.
+
+    Returns ``{"closed_loop_mm", "closed_loop_deg"}``: the pose reached in {J}, and
+    ``{"closed_loop_motion_mm", "closed_loop_motion_deg"}``: the motion from the workspace's home
+    (spec §15, :func:`~stewart_calib.model.rotations.motion_error`), the true robot commanded home and
+    then to each pose — what an outside instrument sees (it leaves the robot's place in {J} open
+    along directions the data barely see). Poses the commanded model cannot reach (a rotary drive's
+    horn past its range) are left out, as the controller refuses them."""
     R_d, t_d = kin.pose_to_rt(data.validation_poses)
     known = {LOAD_KG: data.final_payload_kg} if LOAD_KG in data.log.inputs else {}
+    payload = {LOAD_KG: data.final_payload_kg}
     drive = drive_model(data.platform)
     commanded = drive.calibrated_by(estimate) if estimate is not None else drive
+    true = data.true_drive
     strokes = commanded.inverse_kinematics(R_d, t_d, channels=known)
-    actual, _ = data.true_drive.settled_kinematics(strokes, {LOAD_KG: data.final_payload_kg}, guess=(R_d, t_d))
+    reached = np.all(np.isfinite(strokes), axis=-1)
+    if not reached.all():
+        R_d, t_d, strokes = R_d[reached], t_d[reached], strokes[reached]
+    actual, _ = true.settled_kinematics(strokes, payload, guess=(R_d, t_d))
     position_mm, orientation_deg = kin.pose_error(R_d, t_d, actual.R, actual.t)
-    return float(position_mm.mean()), float(orientation_deg.mean())
+    R_h, t_h = kin.pose_to_rt(data.platform.required_workspace("a sweep's motion from home").home[None])
+    home, _ = true.settled_kinematics(commanded.inverse_kinematics(R_h, t_h, channels=known), payload, guess=(R_h, t_h))
+    motion_mm, motion_deg = motion_error((R_h[0], t_h[0]), (R_d, t_d), (home.R[0], home.t[0]), (actual.R, actual.t))
+    return {
+        "closed_loop_mm": float(position_mm.mean()),
+        "closed_loop_deg": float(orientation_deg.mean()),
+        "closed_loop_motion_mm": float(motion_mm.mean()),
+        "closed_loop_motion_deg": float(motion_deg.mean()),
+    }
 
 
 def score(data: SweepData, estimate: Estimate, crb: np.ndarray) -> dict:
@@ -432,17 +524,17 @@ def score(data: SweepData, estimate: Estimate, crb: np.ndarray) -> dict:
         variance = np.diag(C)
         if np.all(variance > 0):
             z2 = float(np.mean(e[estimated] ** 2 / variance))
-    position_mm, orientation_deg = closed_loop_errors(data, estimate)
+    delta, angles = e[: len(estimate.error)], data.platform.drive.parameter_degrees
     return {
-        "rms_mm": float(np.sqrt(np.mean(e[: len(estimate.error)] ** 2))),
+        "rms_mm": float(np.sqrt(np.mean(delta[~angles] ** 2))),
+        "rms_deg": float(np.degrees(np.sqrt(np.mean(delta[angles] ** 2)))) if angles.any() else None,
         "rms_over_crb": float(np.sqrt(np.mean((e[identified] / crb[identified]) ** 2)))
         if identified.any()
         else float("nan"),
         "nees": nees,
         "nees_dof": dof,
         "z2": z2,
-        "closed_loop_mm": position_mm,
-        "closed_loop_deg": orientation_deg,
+        **closed_loop_errors(data, estimate),
     }
 
 
@@ -493,9 +585,7 @@ def run_method(
 def _truth_at(data: SweepData, n: int) -> np.ndarray:
     """δM in force at sample ``n`` (1-based), in the gauge for an outside instrument."""
     if data.true_instrument is not None:
-        return truth_in_gauge(
-            data.platform.prismatic_drive("a sweep"), data.true_params[n - 1], data.true_instrument.unknowns
-        )[0]
+        return truth_in_gauge(data.platform.drive, data.true_params[n - 1], data.true_instrument.unknowns)[0]
     return data.true_params[n - 1] - data.platform.drive.as_vector()
 
 
@@ -531,7 +621,7 @@ def _run_task(
     rng = task_rng(cell.id, seed)
     data = simulate(cell.settings, cell.platform, rng)
     crb = bound_stddev_mm(data, cell.settings, cell.estimator_config.noise.prior_sigma_mm)
-    nominal_mm, _ = closed_loop_errors(data)
+    nominal = {key.replace("loop", "loop_nominal"): value for key, value in closed_loop_errors(data).items()}
     rows = []
     for method in methods:
         try:
@@ -541,7 +631,7 @@ def _run_task(
             scores = {name: float("nan") for name in METRICS} | {"samples_rejected": None, "nees_dof": None}
             scores |= {f"rms_over_crb_at_{n}": float("nan") for n in checkpoints}
             failure = str(err).splitlines()[0] if str(err) else err.__class__.__name__
-        scores["closed_loop_nominal_mm"] = nominal_mm
+        scores |= nominal
         rows.append(
             {
                 "cell": cell.id,
