@@ -524,7 +524,7 @@ def tracker_reading_residuals(
         c(factors, dtype=float),
         int(force_start),
         c(weights, dtype=float),
-        np.array(np.broadcast_to(downs, (len(readings), 3)), dtype=float),  # a writable copy: one signature
+        np.array(np.broadcast_to(downs, (len(readings), 3)), dtype=float, order="C"),  # a writable copy: one signature
         _readonly(c(centres, dtype=float)),
         c(radii, dtype=float),
         int(passes),

@@ -159,7 +159,9 @@ def gravity_leg_forces(
     R = c(np.broadcast_to(R, (*batch, 3, 3)), dtype=float).reshape(-1, 3, 3)
     t = c(np.broadcast_to(t, (*batch, 3)), dtype=float).reshape(-1, 3)
     masses = c(np.broadcast_to(np.asarray(masses_kg, dtype=float), (*batch, len(coms_mm)))).reshape(len(R), -1)
-    downs = np.array(np.broadcast_to(np.asarray(down, dtype=float), (*batch, 3))).reshape(-1, 3)  # writable
+    downs = np.array(np.broadcast_to(np.asarray(down, dtype=float), (*batch, 3)), order="C").reshape(
+        -1, 3
+    )  # writable, C
     forces, ratios = np.empty((len(R), 6)), np.empty(len(R))
     radius = moment_radius(legs)
     weights = masses * G_N_PER_KG

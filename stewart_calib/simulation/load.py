@@ -242,13 +242,13 @@ class Settling:
         under gravity along ``gravity`` ``(..., 3)`` (None: :attr:`gravity`)."""
         down = self.gravity if gravity is None else np.asarray(gravity, dtype=float)
         batch = np.broadcast_shapes(np.shape(R)[:-2], np.shape(t)[:-1], np.shape(payload_kg), down.shape[:-1])
-        R_flat = np.array(np.broadcast_to(R, (*batch, 3, 3)), dtype=float).reshape(-1, 3, 3)
-        t_flat = np.array(np.broadcast_to(t, (*batch, 3)), dtype=float).reshape(-1, 3)
+        R_flat = np.array(np.broadcast_to(R, (*batch, 3, 3)), dtype=float, order="C").reshape(-1, 3, 3)
+        t_flat = np.array(np.broadcast_to(t, (*batch, 3)), dtype=float, order="C").reshape(-1, 3)
         masses = np.empty((len(R_flat), 2))
         masses[:, 0] = self.platform_mass_kg
         masses[:, 1] = np.broadcast_to(payload_kg, batch).reshape(-1)
         weights = masses * G_N_PER_KG
-        downs = np.array(np.broadcast_to(down, (*batch, 3)), dtype=float).reshape(-1, 3)
+        downs = np.array(np.broadcast_to(down, (*batch, 3)), dtype=float, order="C").reshape(-1, 3)
         return batch, (self.base_params, R_flat, t_flat, weights, downs, self.centres, self.radius, self.stiffness)
 
     def loaded_params(self, R: np.ndarray, t: np.ndarray, payload_kg, gravity=None) -> tuple[np.ndarray, np.ndarray]:
