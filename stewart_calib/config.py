@@ -193,7 +193,7 @@ class RobustConfig:
             the innovations (variance components); false: the ``[noise]`` values as given.
         noise_memory_samples: samples over which those estimates forget (exponential), counted
             in the windows they are taken from.
-        noise_every_samples: once the first windows have given the random walk (8 differences),
+        noise_every_samples: once the first windows have given the random walk (12 differences),
             the noise estimates are taken every this many accepted samples (at least every window)
             from the window of the last ``max(startup_samples, lockout_window_samples)`` samples:
             a window's batch costs what the recursion does per sample, so taking one every window

@@ -96,9 +96,8 @@ def _python_paths(platform) -> None:
     state = kalman.FilterState("ekf", 1.0, 0.0, len(r), UnknownLayout(n_params=drive.n_params))
     kalman.fill_walk(state.Q, np.eye(42), 1e-4)
     state.update(H, -r, R_meas, 0.0)
-    eigenvalues = np.full((2, 42), 1e-3)
-    coupling = np.zeros((2, 42, 42))
-    robust._walk_rate_in_use(eigenvalues, 2.0 * eigenvalues, np.array([10.0, 12.0]), coupling, 1e-6, 0.7, 2.7)
+    eigenvalues = np.full(84, 1e-3)
+    robust._walk_rate_in_use(eigenvalues, 2.0 * eigenvalues, 1e-6, 0.7, 2.7)
     load = load_experiment(CONFIGS / "experiments" / "quick.toml").load
     Settling.of(load, drive.as_vector()).loaded_params(R[None], t[None], 0.0)
 

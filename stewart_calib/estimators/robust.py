@@ -39,14 +39,16 @@ the prior — not every window for ever: a window's batch costs what the recursi
 Its post-fit residuals give the measurement scale, ``s² = Σ νᵀ R0⁻¹ ν / redundancy`` (the random
 walk barely moves the parameters within one window), the window solved again at the scale it says
 until that settles (a pass's variance components are unbiased only at the true scale), and again
-when the walk rate moves. Successive windows give the random-walk
+when the walk rate moves. The windows give the random-walk
 rate: for a walk of rate ``q`` [mm²/s], the means over windows ``[a1, b1]`` and ``[a2, b2]`` differ
 by a covariance ``q T W`` (``W`` the walk per unit rate, ``unit_Q``) with
 ``T = (a2 − b1) + (b1 − a1)/3 + (b2 − a2)/3`` (two thirds of the span for adjacent windows), so two
-window estimates differ by ``P_w + P_{w+1} + q T W``; each window's ``P_w`` is taken at the scale its
+window estimates differ by ``P_w + P_v + q T W``; each window's ``P_w`` is taken at the scale its
 own residuals have just updated. The rate in use is the configured one unless the likelihood of
-the last :data:`WALK_WINDOWS` differences rejects it (:meth:`RobustFilter._pooled_walk_rate`): as too
-large, then the nearest one it does not reject; as too small, their maximum-likelihood rate. Measurement
+the last :data:`WALK_HISTORY` windows, every one against every other, rejects it
+(:meth:`RobustFilter._pooled_walk_rate`): as too large, then the nearest one it does not reject; as
+too small, their maximum-likelihood rate. Windows far apart tell a walk, whose spread keeps growing
+with the time apart, from a stationary excess over the windows' covariance, which does not. Measurement
 noise and parameter
 motion are so told apart by their time scales, not by one innovation sequence that both shape.
 A window whose walk in use could explain it within the noise (fewer than :data:`MIN_REDUNDANCY`
@@ -66,7 +68,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._jit import F8_1, F8_2, F8_3, FLOAT, njit
+from .._jit import F8_1, FLOAT, njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected
 from ..model.unknowns import UnknownLayout
@@ -96,8 +98,10 @@ MAX_RELINEARISATIONS = 10
 MAX_STEP_CANDIDATES = 4
 #: the samples the filter took lately whose NIS gives the dispersion a candidate step's ratio is read at
 DISPERSION_SAMPLES = 100
-#: consecutive window differences pooled for the random-walk rate.
-WALK_WINDOWS = 8
+#: window differences (successive windows) after which the windows come every ``noise_every_samples``.
+WALK_WINDOWS = 12
+#: the last windows the random-walk rate is measured over, all of them against each other.
+WALK_HISTORY = 16
 #: a walk rate is rejected as too large where the window differences' signed root deviance at it
 #: falls below the normal's quantile at this probability, and as too small where it exceeds the
 #: quantile at 1 − WALK_RAISING: see ``RobustFilter._pooled_walk_rate``.
@@ -243,11 +247,10 @@ class RobustFilter:
         self._buffer = _SampleWindow(self._window)
         self._since_window = 0
         # noise statistics: [Σ νᵀR0⁻¹ν, Σ redundancy] over windows, the last window's estimate,
-        # and per window difference (eigenvalues of P_w + P_{w+1}, squared projections, T)
+        # and the walk test's windows (x, P, first and last t_s, whether it begins a run of windows)
         self._scale_sums = np.zeros(2)
         self._last_window: tuple[np.ndarray, np.ndarray, float, float] | None = None  # x, P, first and last t_s
-        self._differences: deque = deque(maxlen=WALK_WINDOWS)
-        self._last_vectors: np.ndarray | None = None  # the last difference's directions (_walk_directions)
+        self._windows: deque = deque(maxlen=WALK_HISTORY)
 
     # ------------------------------------------------------------------ protocol
 
@@ -784,7 +787,7 @@ class RobustFilter:
         rate then in use): passed again at every window, as the start-up's are, a long log's windows took
         4 passes instead of 1–2, a third of ``calibrate ekf``'s time at 10⁵ samples. One pass at the
         scale measured, and no walk re-pass, biased the scale 19 % high on clean data (test_robust)."""
-        return len(self._differences) >= WALK_WINDOWS
+        return _differences(self._windows) >= WALK_WINDOWS
 
     def _window_statistics(self) -> None:
         """Measurement scale and random-walk rate from the window of recent good samples."""
@@ -809,6 +812,7 @@ class RobustFilter:
             x, P, *_ = self._pass(good, self.noise_scale2, self.filter.x)
             self._measured_scale(good, remembered, x, P)
             x, P, *_ = self._walk_window(good)
+            self._windows[-1] = (x, P, first_t, last_t, self._windows[-1][4])
         self._last_window = (x, P, first_t, last_t)
         self._record_scale()
 
@@ -827,33 +831,14 @@ class RobustFilter:
         return self._pass(use, self.noise_scale2, self.filter.x, self._linearise(self.filter.x.copy()))
 
     def _walk_difference(self, x: np.ndarray, P: np.ndarray, first_t: float, last_t: float) -> bool:
-        """The window ``(x, P)`` of the samples from ``first_t`` to ``last_t`` [s] against the last one:
-        their difference joins the walk test's and the walk rate in use is tested again. Returns
-        whether the rate moved beyond :data:`SCALE_TOLERANCE` (False where there is no window before)."""
-        if self._last_window is None:
+        """The window ``(x, P)`` of the samples from ``first_t`` to ``last_t`` [s] joins the walk test's
+        windows and the walk rate in use is tested again. Returns whether the rate moved beyond
+        :data:`SCALE_TOLERANCE` (False where there is no window before it to compare it with: the
+        first window, or the first after a step or a jump, which begins a new run of windows)."""
+        begins = self._last_window is None
+        self._windows.append((x, P, first_t, last_t, begins))
+        if begins:
             return False
-        x_before, P_before, first_before, t_before = self._last_window
-        spread, difference = P_before + P, x - x_before
-        walks = self._unit_Q.copy() if self._walking is None else self._walking.copy()
-        shared = P_before.copy()
-        if self._step_unknown is not None:  # it steps, it does not walk: its marginal left out
-            index = self._step_unknown[0]
-            for matrix in (spread, shared):
-                matrix[index, :], matrix[:, index] = 0.0, 0.0
-            if walks.dtype == bool:  # the mask of the unknowns that walk
-                walks[index] = False
-            else:
-                walks[index, :], walks[:, index] = 0.0, 0.0
-            difference[index] = 0.0
-        eigenvalues, vectors, projection2 = _walk_directions(spread, walks, difference)
-        # the means of a walk over [a1, b1] and [a2, b2] differ by q ((a2 − b1) + (b1 − a1)/3 + (b2 − a2)/3)
-        span = max(first_t - t_before, 0.0) + ((t_before - first_before) + (last_t - first_t)) / 3.0
-        # this difference and the last share the window before: Cov = −P_before between them
-        coupling = np.zeros((self._n, self._n))
-        if self._last_vectors is not None:
-            coupling = (self._last_vectors.T @ shared @ vectors) ** 2
-        self._last_vectors = vectors
-        self._differences.append((eigenvalues, projection2, span, coupling))
         walk = max(self._pooled_walk_rate(), MIN_WALK_FRACTION * self._configured_walk)
         moved = abs(walk - self.walk_rate_mm2_per_s) > SCALE_TOLERANCE * max(walk, self.walk_rate_mm2_per_s)
         self.walk_rate_mm2_per_s = walk
@@ -931,19 +916,19 @@ class RobustFilter:
         return self._held_at(t_s)[2]
 
     def _pooled_walk_rate(self) -> float:
-        """The configured rate ``q₀`` [mm²/s] unless the window differences reject it; rejected as too
-        large, the rate nearest to it they do not reject; as too small, their maximum-likelihood rate
-        ``q̂``. The differences' log-likelihood in the rate is
-        ``L(q) = −½ Σ_w Σ_i [log(λ_wi + q T_w) + p_wi / (λ_wi + q T_w)]``, each difference taken along
-        the directions that diagonalise its windows' spread and the walk (:func:`_walk_directions`);
-        a rate is rejected as too large where its signed root deviance
-        ``sign(q̂ − q) √(2 (L(q̂) − L(q)) / κ(q̂))`` (q̂ the maximum-likelihood rate, ≈ N(0, 1) at the
-        true rate) falls below the normal's ``walk_lowering`` quantile, as too small where it exceeds
-        its ``1 −`` :data:`WALK_RAISING` quantile (:func:`_walk_rate_in_use`). ``κ ≥ 1`` (:func:`_dispersion`)
-        is what successive differences, sharing a window, add to the score's variance over the
-        independent terms ``L`` counts them as.
+        """The configured rate ``q₀`` [mm²/s] unless the last :data:`WALK_HISTORY` windows reject it;
+        rejected as too large, the rate nearest to it they do not reject; as too small, their
+        maximum-likelihood rate ``q̂``. Their log-likelihood in the rate is
+        ``L(q) = −½ Σ_j [log(λ_j + q) + p_j / (λ_j + q)]`` over the independent terms every window against
+        every other one gives (:func:`_window_terms`): the windows' separations, not only their neighbours',
+        tell a walk, whose spread keeps growing with the time apart, from a stationary excess of the
+        windows over their own covariance (a tracker's unmodelled geometry, which each window's poses see
+        their own way), which moves far windows no more than near ones. A rate is rejected as too large
+        where its signed root deviance ``sign(q̂ − q) √(2 (L(q̂) − L(q)))`` (≈ N(0, 1) at the true rate)
+        falls below the normal's ``walk_lowering`` quantile, as too small where it exceeds its
+        ``1 −`` :data:`WALK_RAISING` quantile (:func:`_walk_rate_in_use`).
 
-        The likelihood weighs each direction by what it says about the walk, ``T / (λ + q T)``:
+        The likelihood weighs each direction by what it says about the walk, ``1 / (λ + q)``:
         most of the 42–54 directions move less over a window than their windows' own σ and say
         nothing, and a test of the plain sum ``Σ p / (λ + q T)`` against its χ² drowned the few that
         do in their scatter. On a robot standing still under the in-situ tracker (benchmarks.elastic's
@@ -968,25 +953,39 @@ class RobustFilter:
         as too small, ``q̂`` is the rate they say: on benchmarks/robustness.py's smooth-path drift log
         (a tracker at 1 µm drifting 6.5× the default walk, 5 seeds) the bound raised the rate to
         4.2–6.2 µm/√s and ekf's mean z² was 1.22–2.56; ``q̂`` gives 4.6–6.8 µm/√s and 1.11–1.83."""
-        lam = np.array([d[0] for d in self._differences])
-        p = np.array([d[1] for d in self._differences])
-        T = np.array([d[2] for d in self._differences], dtype=float)
-        coupling = np.array([d[3] for d in self._differences])
-        coupling[0] = 0.0  # its partner, the difference before, has left the pool (or never was)
+        lam, p = self._walk_terms(self._windows)
         # one-sided normal quantiles as χ² with one degree of freedom at twice the probability
         lowering = float(chdtri(1, 2.0 * self.walk_lowering))
         raising = float(chdtri(1, 2.0 * WALK_RAISING))
-        return _walk_rate_in_use(lam, p, T, coupling, self._configured_walk, lowering, raising)
+        return _walk_rate_in_use(lam, p, self._configured_walk, lowering, raising)
 
-    def _rejected_as_too_large(self, differences: list, rate_mm2_per_s: float) -> bool:
-        """Whether ``differences`` (of the walk test's pool) reject ``rate_mm2_per_s`` as too large at the
+    def _walk_terms(self, windows) -> tuple[np.ndarray, np.ndarray]:
+        """The walk test's windows as the independent terms of the rate's likelihood (:func:`_window_terms`),
+        each run of windows on its own: the unknown a payload step moves, which steps and does not walk,
+        left out."""
+        walks = self._unit_Q.copy() if self._walking is None else self._walking.copy()
+        index = None if self._step_unknown is None else self._step_unknown[0]
+        if index is not None:
+            if walks.dtype == bool:  # the mask of the unknowns that walk
+                walks[index] = False
+            else:
+                walks[index, :], walks[:, index] = 0.0, 0.0
+        runs: list[list] = []
+        for window in windows:
+            if window[4] or not runs:
+                runs.append([])
+            runs[-1].append(window)
+        terms = [_window_terms(run, walks, index) for run in runs if len(run) > 1]
+        if not terms:
+            return np.zeros(0), np.zeros(0)
+        return np.concatenate([t[0] for t in terms]), np.concatenate([t[1] for t in terms])
+
+    def _rejected_as_too_large(self, windows: list, rate_mm2_per_s: float) -> bool:
+        """Whether ``windows`` (of the walk test's) reject ``rate_mm2_per_s`` as too large at the
         gate's probability: as sure as the gate is when it refuses a sample."""
-        lam, p = np.array([d[0] for d in differences]), np.array([d[1] for d in differences])
-        T = np.array([d[2] for d in differences], dtype=float)
-        coupling = np.array([d[3] for d in differences])
-        coupling[0] = 0.0
+        lam, p = self._walk_terms(windows)
         bound = float(chdtri(1, 2.0 * self._gate_tail))
-        return _walk_rate_in_use(lam, p, T, coupling, rate_mm2_per_s, bound, bound) < rate_mm2_per_s
+        return _walk_rate_in_use(lam, p, rate_mm2_per_s, bound, bound) < rate_mm2_per_s
 
     # ------------------------------------------------------------------ lock-out
 
@@ -1035,7 +1034,7 @@ class RobustFilter:
         x, P, _, last_t, redundancy = self._walk_window(since)
         if redundancy < MIN_REDUNDANCY:
             return False
-        before, pooled = self.walk_rate_mm2_per_s, list(self._differences)
+        before, pooled = self.walk_rate_mm2_per_s, list(self._windows)
         first_t = float(self._buffer.t[since][0])
         self._walk_difference(x, P, first_t, last_t)
         raised = self.walk_rate_mm2_per_s - before
@@ -1043,9 +1042,9 @@ class RobustFilter:
         # its rate in use moved between those windows too. The recovery then goes on as it would without
         # the test: no difference across the jump (the windows after it measure the walk afresh), the
         # rate as it was
-        if raised > 0.0 and pooled and self._rejected_as_too_large(pooled, self.walk_rate_mm2_per_s):
-            self._differences = deque(pooled, maxlen=WALK_WINDOWS)
-            self.walk_rate_mm2_per_s, self._last_window, self._last_vectors = before, None, None
+        if raised > 0.0 and _differences(pooled) and self._rejected_as_too_large(pooled, self.walk_rate_mm2_per_s):
+            self._windows = deque(pooled, maxlen=WALK_HISTORY)
+            self.walk_rate_mm2_per_s, self._last_window = before, None
             return False
         self._last_window = (x, P, first_t, last_t)
         self._since_window = 0  # the next window's samples all come after these
@@ -1078,7 +1077,7 @@ class RobustFilter:
 
     def export_state(self) -> dict:
         """Everything :meth:`update` reads or writes, as arrays."""
-        differences = list(self._differences)
+        windows = list(self._windows)
         state = {
             "filter": self.filter.export_state(),
             "prior_mean": self._x0.copy(),
@@ -1100,10 +1099,12 @@ class RobustFilter:
                 "last_step_t_s": np.float64(self.step_t_s),
                 "dispersions": np.array(self._dispersions, dtype=float),
             },
-            "difference_eigenvalues": np.array([d[0] for d in differences]).reshape(-1, self._n),
-            "difference_projections": np.array([d[1] for d in differences]).reshape(-1, self._n),
-            "difference_spans": np.array([d[2] for d in differences], dtype=float),
-            "difference_couplings": np.array([d[3] for d in differences]).reshape(-1, self._n, self._n),
+            "walk_windows": {
+                "x": np.array([w[0] for w in windows]).reshape(-1, self._n),
+                "P": np.array([w[1] for w in windows]).reshape(-1, self._n, self._n),
+                "t_s": np.array([w[2:4] for w in windows], dtype=float).reshape(-1, 2),
+                "begins": np.array([w[4] for w in windows], dtype=np.int64),
+            },
             # a caller that takes the filter back to this state (isam2's front end, after a run a
             # sample failed in) still asks for the scales of samples before it
             "scale_history": np.array(self._scale_history, dtype=float).reshape(-1, 3),
@@ -1111,8 +1112,6 @@ class RobustFilter:
         if self._last_window is not None:
             x, P, first_t, last_t = self._last_window
             state["window"] = {"x": x, "P": P, "first_t_s": np.float64(first_t), "t_s": np.float64(last_t)}
-            if self._last_vectors is not None:
-                state["window"]["difference_vectors"] = self._last_vectors.copy()
         return state
 
     def buffered_width(self) -> int | None:
@@ -1166,22 +1165,21 @@ class RobustFilter:
             dispersions = state_array(kept, "dispersions", np.shape(kept.get("dispersions", ())))
             self._dispersions = deque(dispersions.ravel().tolist(), maxlen=DISPERSION_SAMPLES)
         self._buffer.import_state(state)
-        spans = state_array(state, "difference_spans", np.shape(state.get("difference_spans", ())))
-        eigenvalues = state_array(state, "difference_eigenvalues", (len(spans), self._n))
-        projections = state_array(state, "difference_projections", (len(spans), self._n))
-        if "difference_couplings" in state:
-            couplings = state_array(state, "difference_couplings", (len(spans), self._n, self._n))
-            differences = list(zip(eigenvalues, projections, spans, couplings, strict=True))
-        else:  # an older checkpoint, without the walk's own directions: its rate pooled afresh from the next windows
-            differences = []
-        self._differences = deque(differences, maxlen=WALK_WINDOWS)
+        self._windows = deque(maxlen=WALK_HISTORY)
+        if "walk_windows" in state:  # an older checkpoint has none: its rate measured afresh from the next windows
+            kept = state["walk_windows"]
+            times = state_array(kept, "t_s", np.shape(kept.get("t_s", ())))
+            if times.ndim != 2 or times.shape[1] != 2:
+                raise CalibError("estimator state: key 'walk_windows.t_s': expected rows of (first, last) sample times")
+            xs = state_array(kept, "x", (len(times), self._n))
+            Ps = state_array(kept, "P", (len(times), self._n, self._n))
+            begins = state_array(kept, "begins", (len(times),))
+            for x, P, (first_t, last_t), begin in zip(xs, Ps, times, begins, strict=True):
+                self._windows.append((x, P, float(first_t), float(last_t), bool(begin)))
         window = state.get("window")
-        self._last_vectors = None
         if window is None:
             self._last_window = None
         else:  # an older checkpoint, without first_t_s: the window as an instant at its end
-            if "difference_vectors" in window:
-                self._last_vectors = state_array(window, "difference_vectors", (self._n, self._n))
             last_t = float(state_array(window, "t_s", ()))
             first_t = float(state_array(window, "first_t_s", ())) if "first_t_s" in window else last_t
             self._last_window = (
@@ -1235,6 +1233,55 @@ def _walk_directions(
     return lam, directions, projection2
 
 
+def _differences(windows) -> int:
+    """The walk test's window differences: successive windows within each run of windows."""
+    return sum(1 for k, window in enumerate(windows) if k > 0 and not window[4])
+
+
+def _window_terms(run: list, walks: np.ndarray, step_index: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """A run of ``K`` windows of the walk test (``(x, P, first t, last t, …)``, in time order) as the
+    independent terms ``p_j ~ (λ_j + q) χ²₁`` of the walk rate's likelihood, every window against every
+    other one: a stationary excess of the windows over their ``P_w`` (the same misfit, seen through each
+    window's poses) moves windows far apart in time no more than neighbours, a walk of rate ``q`` moves
+    them by ``q`` times their distance, so only spread that keeps growing with the time apart raises ``q``.
+
+    Along the directions ``g_i`` that diagonalise the windows' mean spread and the walk
+    (:func:`_walk_directions`, ``g_iᵀ W g_i = 1``), the window estimates ``y_w = g_iᵀ x_w`` are a walk's
+    means over the windows plus errors of variance ``v_wi = g_iᵀ P_w g_i``: a walk from the first
+    window's start ``a_1`` has the means over ``[a_u, b_u]`` and ``[a_w, b_w]`` (``u ≤ w``) covary by
+    ``q C_uw``, ``C_uw = (a_u − a_1) + (b_u − a_u)/2`` (``/3`` for ``u = w``). The ``K − 1`` contrasts
+    ``d = y_{2…K} − y_1`` (free of the unknown mean) have covariance ``A_i + q M C Mᵀ``,
+    ``A_i = v_1i 1 1ᵀ + diag(v_2i … v_Ki)``; with ``A_i = L Lᵀ`` and ``L⁻¹ M C Mᵀ L⁻ᵀ = U diag(μ) Uᵀ``,
+    ``z = Uᵀ L⁻¹ d`` has independent entries of variance ``1 + q μ_j``: terms ``λ_j = 1/μ_j``,
+    ``p_j = z_j² / μ_j``. Successive windows alone (the windows' neighbours) see a walk over one
+    window's span; the runs' far pairs over the whole of it."""
+    xs = np.array([w[0] for w in run])
+    Ps = np.array([w[1] for w in run])
+    first = np.array([w[2] for w in run], dtype=float)
+    span = np.array([w[3] for w in run], dtype=float) - first
+    if step_index is not None:  # it steps, it does not walk: its marginal left out
+        xs[:, step_index] = 0.0
+        Ps[:, step_index, :], Ps[:, :, step_index] = 0.0, 0.0
+    lam, directions, _ = _walk_directions(Ps.mean(axis=0), walks, np.zeros(xs.shape[1]))
+    g = directions[:, lam > 0.0]
+    y = xs @ g  # (K, k)
+    # a window's own variance along the mean's directions, kept off 0 where its P is singular there
+    v = np.maximum(np.einsum("wni,ni->wi", Ps @ g, g), 1e-9 * lam[lam > 0.0])
+    start = first - first[0]
+    earlier = np.minimum.outer(np.arange(len(run)), np.arange(len(run)))
+    C = start[earlier] + span[earlier] / 2.0
+    C[np.diag_indices_from(C)] = start + span / 3.0
+    M = np.hstack([-np.ones((len(run) - 1, 1)), np.eye(len(run) - 1)])
+    walk = M @ C @ M.T
+    A = v[0][:, None, None] + v[1:].T[:, :, None] * np.eye(len(run) - 1)  # (k, K − 1, K − 1)
+    L = np.linalg.cholesky(A)
+    whitened = np.linalg.solve(L, np.broadcast_to(walk, A.shape))
+    mu, U = np.linalg.eigh(np.linalg.solve(L, whitened.transpose(0, 2, 1)))
+    z = np.einsum("kab,ka->kb", U, np.linalg.solve(L, (M @ y).T[:, :, None])[..., 0])
+    informative = mu > 1e-12 * max(float(mu.max(initial=0.0)), 1e-300)
+    return 1.0 / mu[informative], z[informative] ** 2 / mu[informative]
+
+
 @dataclass(frozen=True)
 class _Candidate:
     """A candidate step of :class:`RobustFilter`'s ``step`` unknown (:meth:`RobustFilter._test_steps`)."""
@@ -1276,19 +1323,18 @@ def _mahalanobis2(step: np.ndarray, P: np.ndarray, gauge_projector: np.ndarray |
 
 
 @njit(nogil=True, error_model="numpy")
-def _walk_sums(lam: np.ndarray, p: np.ndarray, T: np.ndarray, q: float) -> tuple[float, float]:
-    """``(−2 L(q), −2 dL/dq)`` of the window differences (see ``RobustFilter._pooled_walk_rate``)
-    up to a constant: ``Σ log a + p / a`` and ``Σ T (a − p) / a²``, ``a = λ + q T``, over the
-    directions with ``λ > 0`` (``λ = 0``: held by the gauge or not walking, no information either way)."""
+def _walk_sums(lam: np.ndarray, p: np.ndarray, q: float) -> tuple[float, float]:
+    """``(−2 L(q), −2 dL/dq)`` of the walk test's terms (see ``RobustFilter._pooled_walk_rate``) up to a
+    constant: ``Σ log a + p / a`` and ``Σ (a − p) / a²``, ``a = λ + q``, over the terms with ``λ > 0``
+    (``λ = 0``: padding, no information either way)."""
     deviance = 0.0
     slope = 0.0
-    for w in range(lam.shape[0]):
-        for i in range(lam.shape[1]):
-            if lam[w, i] <= 0.0:
-                continue
-            a = lam[w, i] + q * T[w]
-            deviance += math.log(a) + p[w, i] / a
-            slope += T[w] * (a - p[w, i]) / (a * a)
+    for j in range(lam.shape[0]):
+        if lam[j] <= 0.0:
+            continue
+        a = lam[j] + q
+        deviance += math.log(a) + p[j] / a
+        slope += (a - p[j]) / (a * a)
     return deviance, slope
 
 
@@ -1299,76 +1345,35 @@ def _narrowed(low: float, high: float) -> float:
     return math.sqrt(low * high) if low > 0.0 else 1e-3 * high
 
 
-@njit(nogil=True, error_model="numpy")
-def _dispersion(lam: np.ndarray, T: np.ndarray, coupling: np.ndarray, q: float) -> float:
-    """``κ(q) = Var(score) / information`` of the window differences at the rate ``q``: 1 for
-    independent differences; successive ones share a window, ``Cov(d_k, d_{k+1}) = −P_k``, so
-    their squared projections covary by ``2 (u_kiᵀ P_k u_{k+1,j})²`` (``coupling[k+1]``), and the
-    score's variance grows by ``Σ_k Σ_ij g_ki g_{k+1,j} coupling_{k+1,ij}`` over its independent
-    ``½ Σ T² / a²`` (``g = T / a²`` each term's weight in the score)."""
-    information = 0.0
-    for w in range(lam.shape[0]):
-        for i in range(lam.shape[1]):
-            if lam[w, i] > 0.0:
-                a = lam[w, i] + q * T[w]
-                information += 0.5 * T[w] * T[w] / (a * a)
-    if information <= 0.0:
-        return 1.0
-    covariance = 0.0
-    for w in range(1, lam.shape[0]):
-        for i in range(lam.shape[1]):
-            if lam[w - 1, i] <= 0.0:
-                continue
-            a = lam[w - 1, i] + q * T[w - 1]
-            before = T[w - 1] / (a * a)
-            for j in range(lam.shape[1]):
-                if lam[w, j] > 0.0:
-                    b = lam[w, j] + q * T[w]
-                    covariance += before * T[w] / (b * b) * coupling[w, i, j]
-    return 1.0 + covariance / information
-
-
-@njit(entry=(F8_2, F8_2, F8_1, F8_3, FLOAT, FLOAT, FLOAT), nogil=True, error_model="numpy")
-def _walk_rate_in_use(
-    lam: np.ndarray,
-    p: np.ndarray,
-    T: np.ndarray,
-    coupling: np.ndarray,
-    configured: float,
-    lowering: float,
-    raising: float,
-) -> float:
-    """``configured`` where its deviance ``2 (L(q̂) − L(q))`` is at most ``lowering × κ(q̂)`` (it lies
-    above the maximum-likelihood rate ``q̂``) or ``raising × κ(q̂)`` (below it); else, above, the rate
-    ``q ≥ 0`` [mm²/s] nearest ``configured`` within that bound, below, ``q̂`` (χ²₁ quantiles, ``κ`` the
-    :func:`_dispersion` of the differences whose successive pairs are coupled by ``coupling``:
-    ``RobustFilter._pooled_walk_rate``). ``q̂`` is the root of the score between 0 and
-    the largest single direction's own root ``(p − λ) / T``, above which every term falls; the bound
-    the deviance's root between ``q̂`` and ``configured``; all by bisection (compiled: called once a
-    window on 8 × 42–54 arrays)."""
+@njit(entry=(F8_1, F8_1, FLOAT, FLOAT, FLOAT), nogil=True, error_model="numpy")
+def _walk_rate_in_use(lam: np.ndarray, p: np.ndarray, configured: float, lowering: float, raising: float) -> float:
+    """``configured`` where its deviance ``2 (L(q̂) − L(q))`` is at most ``lowering`` (it lies above the
+    maximum-likelihood rate ``q̂``) or ``raising`` (below it); else, above, the rate ``q ≥ 0`` [mm²/s]
+    nearest ``configured`` within that bound, below, ``q̂`` (χ²₁ quantiles: ``RobustFilter._pooled_walk_rate``)
+    — of the independent terms ``p_j ~ (λ_j + q) χ²₁`` (:func:`_window_terms`). ``q̂`` is the root of the
+    score between 0 and the largest single term's own root ``p − λ``, above which every term falls; the
+    bound the deviance's root between ``q̂`` and ``configured``; all by bisection (compiled: called once a
+    window on a few hundred terms)."""
     upper = 0.0
-    for w in range(lam.shape[0]):
-        for i in range(lam.shape[1]):
-            if lam[w, i] > 0.0 and p[w, i] > lam[w, i]:
-                upper = max(upper, (p[w, i] - lam[w, i]) / T[w])
+    for j in range(lam.shape[0]):
+        if lam[j] > 0.0 and p[j] > lam[j]:
+            upper = max(upper, p[j] - lam[j])
     best = 0.0
-    if upper > 0.0 and _walk_sums(lam, p, T, 0.0)[1] < 0.0:  # L still rises at q = 0
+    if upper > 0.0 and _walk_sums(lam, p, 0.0)[1] < 0.0:  # L still rises at q = 0
         low, high = 0.0, upper
         for _ in range(WALK_BISECTIONS):
             middle = _narrowed(low, high)
-            if _walk_sums(lam, p, T, middle)[1] < 0.0:
+            if _walk_sums(lam, p, middle)[1] < 0.0:
                 low = middle
             else:
                 high = middle
             if high - low <= WALK_RELATIVE_WIDTH * high:
                 break
         best = 0.5 * (low + high)
-    at_best = _walk_sums(lam, p, T, best)[0]
+    at_best = _walk_sums(lam, p, best)[0]
     lowered = configured >= best  # the configured rate is tested as too large, else as too small
-    # the dispersion taken once, at the estimate (quasi-likelihood's habit): each bisection step is then
-    # one pass over the terms, not over their pairs
-    bound = (lowering if lowered else raising) * _dispersion(lam, T, coupling, best)
-    if _walk_sums(lam, p, T, configured)[0] - at_best <= bound:
+    bound = lowering if lowered else raising
+    if _walk_sums(lam, p, configured)[0] - at_best <= bound:
         return configured
     if not lowered:  # raised: the data's own rate (see RobustFilter._pooled_walk_rate)
         return best
@@ -1376,7 +1381,7 @@ def _walk_rate_in_use(
     low, high = best, configured
     for _ in range(WALK_BISECTIONS):
         middle = _narrowed(low, high)
-        if _walk_sums(lam, p, T, middle)[0] - at_best <= bound:
+        if _walk_sums(lam, p, middle)[0] - at_best <= bound:
             low = middle
         else:
             high = middle
