@@ -417,16 +417,21 @@ def _robot_section(robot: Robot) -> str:
     )
 
 
+def _block_rows(block: dict) -> list[list[str]]:
+    """``[name, estimate, σ]`` of each value of a result's block (σ blank where the result gives none)."""
+    stddev = block.get("stddev") or [None] * len(block["names"])
+    return [
+        [name, _fmt(value), _fmt(sigma)]
+        for name, value, sigma in zip(block["names"], block["estimate"], stddev, strict=True)
+    ]
+
+
 def _compliance_section(result: dict) -> str:
     """The legs' compliance c_i ± σ (spec §10), where the result identified it."""
     block = result.get(COMPLIANCE)
     if not isinstance(block, dict):
         return ""
-    stddev = block.get("stddev") or [None] * len(block["names"])
-    rows = [
-        [name, _fmt(value), _fmt(sigma)]
-        for name, value, sigma in zip(block["names"], block["estimate"], stddev, strict=True)
-    ]
+    rows = _block_rows(block)
     return (
         "<h2>Leg compliance c ± σ</h2><p>Each drive leg is c_i f_i / 1000 mm shorter under an axial force "
         "f_i [N] (compression), the forces from the statics of the platform's weight and the payload "
@@ -472,11 +477,7 @@ def _thermal_section(result: dict) -> str:
     block = result.get(THERMAL)
     if not isinstance(block, dict):
         return ""
-    stddev = block.get("stddev") or [None] * len(block["names"])
-    rows = [
-        [name, _fmt(value), _fmt(sigma)]
-        for name, value, sigma in zip(block["names"], block["estimate"], stddev, strict=True)
-    ]
+    rows = _block_rows(block)
     return (
         "<h2>Leg expansion α ± σ</h2><p>Each drive leg's length from joint to joint is scaled by "
         "1 + α_i (T_i − T_ref) · 1e-6 at its temperature T_i (spec §17); σ 0: held at the platform's value.</p>"
