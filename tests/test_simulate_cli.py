@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from stewart_calib.cli import main
+from stewart_calib.errors import CalibError
 from stewart_calib.estimate import Estimate
 from stewart_calib.io import read_log, read_truth, result_dict, write_result
 from stewart_calib.io.platform_file import load_platform
@@ -287,3 +288,33 @@ def test_a_model_that_learns_sees_the_same_run_in_blocks(monkeypatch):
     np.testing.assert_array_equal(runs[0].truth.params, runs[1].truth.params)
     np.testing.assert_array_equal(runs[0].actual_poses, runs[1].actual_poses)
     assert runs[0].log.stages == runs[1].log.stages
+
+
+def test_calibration_poses_from_a_plan_are_the_ones_simulated(tmp_path, capsys):
+    """``[poses] calibration_file``: the poses plan wrote are the calibration segment's, in order, on
+    the same robot as the seed's random draw; a pose out of range and a count beside it are refused."""
+    platform = "nim-stewart"
+    assert main(["plan", "--platform", platform, "--n", "9", "--out", str(tmp_path / "p.csv"), "--seed", "1"]) == 0
+    planned = np.loadtxt(tmp_path / "p.csv", delimiter=",", skiprows=1)[:, 1:]  # t_s, then the pose columns
+    text = QUICK.read_text().replace("calibration = 12", 'calibration_file = "p.csv"')
+    text = text.replace('platform = "nim-stewart"', f'platform = "{platform}"')
+    (tmp_path / "e.toml").write_text(text)
+    experiment = load_experiment(tmp_path / "e.toml")
+    run = run_experiment(experiment)
+    kinds = np.asarray(run.kinds)
+    first = (np.asarray(run.stages) == "no-load") & (kinds == "calibration")
+    desired = run.desired_poses[first][:: experiment.poses.samples_per_pose]
+    np.testing.assert_allclose(desired[:, :3], planned[:, :3], atol=1e-9)
+    np.testing.assert_allclose(np.degrees(desired[:, 3:]), planned[:, 3:], atol=1e-9)
+    random = run_experiment(load_experiment(QUICK))
+    np.testing.assert_array_equal(run.robot.base_params, random.robot.base_params)
+    (tmp_path / "both.toml").write_text(text.replace("[poses]", "[poses]\ncalibration = 3"))
+    with pytest.raises(CalibError, match=r"key 'poses.calibration': expected no count where calibration_file"):
+        load_experiment(tmp_path / "both.toml")
+    far = np.loadtxt(tmp_path / "p.csv", delimiter=",", skiprows=1)
+    far[4, 1] += 1000.0
+    np.savetxt(
+        tmp_path / "p.csv", far, delimiter=",", header="t_s,x_mm,y_mm,z_mm,roll_deg,pitch_deg,yaw_deg", comments=""
+    )
+    with pytest.raises(CalibError, match=r"calibration_file.*pose 5 \(row 6\) is not, nor are 0 other"):
+        load_experiment(tmp_path / "e.toml")

@@ -32,7 +32,10 @@ identical output. Layout (every key optional except ``seed`` and ``platform``; d
                 time_constant_s (the legs follow the ambient through a first-order lag; 0: at once),
                 expansion_ppm_per_K, expansion_spread_ppm_per_K (the true robot's α_i: this nominal
                 plus a normal draw of this σ per leg) — see :class:`WarmUp`
-    [poses]     calibration, validation (counts), samples_per_pose, workspace_fraction, margin_mm
+    [poses]     calibration, validation (counts), samples_per_pose, workspace_fraction, margin_mm,
+                calibration_file (a pose list, spec §3's pose columns — ``plan``'s output — relative to
+                this file: the calibration poses, in its order, instead of ``calibration`` random ones;
+                every pose within the nominal stroke and reading ranges, or the row is refused)
     [circle]    radius_mm, plane, points, samples_per_point, centre_offset_mm
     [[stages]]  name, load_kg, ramp_s, segments = ["calibration", "validation", "circle"],
                 tilt_deg (the mount turned by this angle [deg] about tilt_axis, right-handed, within
@@ -78,7 +81,7 @@ from ..model.platform import (
 from ..resources import CONFIGS, read_toml
 from .instrument import InstrumentTruth
 from .load import LoadModel
-from .trajectories import CIRCLE_PLANES, circle_poses, random_static_poses
+from .trajectories import CIRCLE_PLANES, circle_poses, in_range, random_static_poses
 
 SEGMENT_KINDS = ("calibration", "validation", "circle")
 
@@ -145,13 +148,15 @@ class TrackerConfig:
 
 @dataclass(frozen=True)
 class PoseSetConfig:
-    """Static pose sets: counts, samples held per pose, workspace fraction, range margin [mm]."""
+    """Static pose sets: counts, samples held per pose, workspace fraction, range margin [mm], and
+    the calibration poses given (``(N, 6)`` [mm, rad] from ``calibration_file``; None: drawn)."""
 
     calibration: int = 60
     validation: int = 50
     samples_per_pose: int = 1
     workspace_fraction: float = 0.8
     margin_mm: float = 10.0
+    calibration_poses: np.ndarray | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)
@@ -383,12 +388,16 @@ def load_experiment(path: str | Path) -> Experiment:
         geometry_residual_mm=tr.number("geometry_residual_mm", TrackerConfig.geometry_residual_mm, minimum=0.0),
     )
     ps = sections["poses"]
+    given = _calibration_file(ps, path, platform) if "calibration_file" in ps.doc else None
     poses = PoseSetConfig(
-        calibration=ps.number("calibration", PoseSetConfig.calibration, minimum=0, integer=True),
+        calibration=len(given)
+        if given is not None
+        else ps.number("calibration", PoseSetConfig.calibration, minimum=0, integer=True),
         validation=ps.number("validation", PoseSetConfig.validation, minimum=0, integer=True),
         samples_per_pose=ps.number("samples_per_pose", PoseSetConfig.samples_per_pose, minimum=1, integer=True),
         workspace_fraction=ps.number("workspace_fraction", PoseSetConfig.workspace_fraction, minimum=0.0),
         margin_mm=ps.number("margin_mm", PoseSetConfig.margin_mm, minimum=0.0),
+        calibration_poses=given,
     )
     if poses.workspace_fraction > 1.0:
         raise ps.refuse("workspace_fraction", "a fraction in [0, 1]")
@@ -526,6 +535,24 @@ def _platform(value: str, experiment_path: Path, table: _Table) -> Platform:
     raise table.refuse("platform", f"a platform file relative to the experiment or a packaged name, got {value!r}")
 
 
+def _calibration_file(table: _Table, experiment_path: Path, platform: Platform) -> np.ndarray:
+    """``[poses] calibration_file``'s poses ``(N, 6)`` [mm, rad]: a pose list relative to the experiment
+    file, each pose within the nominal ranges (the true robot reaches the others only by chance)."""
+    from ..io import read_pose_list
+
+    if "calibration" in table.doc:
+        raise table.refuse("calibration", "no count where calibration_file gives the poses")
+    poses = read_pose_list(experiment_path.parent / table.string("calibration_file", None))
+    outside = np.flatnonzero(~in_range(platform, poses, 0.0))
+    if outside.size:
+        raise table.refuse(
+            "calibration_file",
+            f"poses within the nominal stroke and reading ranges; pose {outside[0] + 1} (row {outside[0] + 2}) "
+            f"is not, nor are {outside.size - 1} other(s)",
+        )
+    return poses
+
+
 def _stage(raw, prefix: str, source: str) -> Stage:
     t = _Table(raw, prefix, source)
     t.used.add("segments")
@@ -580,8 +607,13 @@ def schedule(experiment: Experiment, rng: np.random.Generator) -> Schedule:
     """Lay the stages' segments out in time (draws the calibration, then validation poses)."""
     e = experiment
     sets = {
-        kind: random_static_poses(e.platform, count, rng, e.poses.workspace_fraction, e.poses.margin_mm)
-        for kind, count in (("calibration", e.poses.calibration), ("validation", e.poses.validation))
+        kind: given
+        if given is not None
+        else random_static_poses(e.platform, count, rng, e.poses.workspace_fraction, e.poses.margin_mm)
+        for kind, count, given in (
+            ("calibration", e.poses.calibration, e.poses.calibration_poses),
+            ("validation", e.poses.validation, None),
+        )
     }
     sets["circle"] = circle_poses(
         e.platform.required_workspace("the circle").home,
