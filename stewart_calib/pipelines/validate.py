@@ -21,6 +21,7 @@ conditioning. Nothing is written unless the whole run succeeds.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -28,11 +29,13 @@ import numpy as np
 
 from .. import io
 from ..analysis.accuracy import PredictedError, predicted_error, verdict_line
+from ..config import NoiseConfig
 from ..errors import CalibError
 from ..instruments import instrument_kind
 from ..io.platform_file import load_platform
+from ..model import kinematics as kin
 from ..model.drive import COMPLIANCE, drive_model
-from ..model.platform import Platform
+from ..model.platform import LegGeometry, Platform
 from ..progress import log_progress_bar
 from ..samples import Log
 from ..workflows.diagnosis import diagnose_log
@@ -81,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
                 platform, result, log, args.register_instrument, str(args.result)
             )
             if report_dir:
-                verdict = _verdict(args, platform, result, position, orientation)[0]
+                verdict = _verdict(args, platform, result, position, orientation, log)[0]
                 page = _report_page(args, platform, result, log, predicted, position, orientation, verdict)
             io.write_csv_blocks(
                 args.out, header, [_file_columns(log, predicted, position, orientation, platform)], blank
@@ -109,19 +112,25 @@ def run(args: argparse.Namespace) -> int:
         print(f"stewart-calib validate: {pose_line}", file=sys.stderr)
     if moved:
         print(f"stewart-calib validate: {moved}", file=sys.stderr)
-    verdict, over = _verdict(args, platform, result, position, orientation)
+    verdict, over = _verdict(args, platform, result, position, orientation, sample)
     print(f"stewart-calib validate: {verdict}")
     return 1 if over and args.fail_over_tolerance else 0
 
 
-def _verdict(args, platform: Platform, result: dict, position, orientation) -> tuple[str, bool]:
-    """The last line: what this check measured, with the result's expected errors, against the tolerance."""
-    measured = _measured_words(platform, position, orientation)
+def _verdict(args, platform: Platform, result: dict, position, orientation, sample: Log) -> tuple[str, bool]:
+    """The last line: what this check measured (and what the noise alone leaves at the poses of ``sample``,
+    the log or its first rows), with the result's expected errors, against the tolerance."""
+    position_noise_mm, orientation_noise_deg = _noise_rms(platform, result, sample)
+    measured = _measured_words(platform, position, orientation, position_noise_mm, orientation_noise_deg)
     prediction = result_prediction(platform, result)
     if prediction is None:
         return f"verdict: {measured}; the result holds no prediction of its error elsewhere", True
-    seen = (_rms(position), None if orientation is None else _rms(orientation))
-    motion = seen if instrument_kind(platform).outside else None
+    motion = None
+    if instrument_kind(platform).outside:  # the robot's own error: what is left beyond the instrument's noise
+        motion = (
+            _beyond(_rms(position), position_noise_mm),
+            None if orientation is None else _beyond(_rms(orientation), orientation_noise_deg),
+        )
     return verdict_line(prediction, args.tolerance_mm, args.tolerance_deg, measured, motion)
 
 
@@ -145,17 +154,53 @@ def _rms(values) -> float:
     return float(np.sqrt(np.nanmean(np.asarray(values) ** 2)))
 
 
-def _measured_words(platform: Platform, position_mm: np.ndarray, orientation_deg) -> str:
+def _noise_rms(platform: Platform, result: dict, sample: Log) -> tuple[float, float]:
+    """The RMS position [mm] and orientation [deg] error the noise alone leaves in a row: an outside
+    instrument's ‖3 coordinates of σ each‖ (a pose instrument's rotation angle likewise); the in-situ
+    tracker's forward kinematics of readings of σ_s beside the drive's of strokes of σ_q (the result's
+    ``[noise]``, first order: ``σ² (JᵀJ)⁻¹`` each) at the poses of ``sample``."""
+    if instrument_kind(platform).outside:
+        instrument = platform.instrument
+        return float(np.sqrt(3.0) * instrument.position_sigma_mm), float(
+            np.sqrt(3.0) * np.degrees(instrument.orientation_sigma_rad)
+        )
+    tracker = platform.tracker
+    assert tracker is not None  # the instrument is the in-situ tracker
+    noise = {**dataclasses.asdict(NoiseConfig()), **result.get("config", {}).get("noise", {})}
+    fk, _ = drive_model(platform).settled_kinematics(sample.strokes, sample.inputs, strict=False)
+    R, t = fk.R[fk.converged], fk.t[fk.converged]
+    if not len(R):
+        return 0.0, 0.0
+    covariance = kin.pose_covariance_from_legs(tracker, R, t, noise["reading_sigma_mm"])
+    if isinstance(platform.drive, LegGeometry):  # a servo's angle noise is the drive model's own (spec §15)
+        covariance = covariance + kin.pose_covariance_from_legs(platform.drive, R, t, noise["stroke_sigma_mm"])
+    position = np.trace(covariance[:, 3:, 3:], axis1=-2, axis2=-1)
+    rotation = np.trace(covariance[:, :3, :3], axis1=-2, axis2=-1)
+    return float(np.sqrt(np.mean(position))), float(np.degrees(np.sqrt(np.mean(rotation))))
+
+
+def _beyond(rms: float, noise_rms: float) -> float:
+    """What an RMS error holds beyond independent noise of RMS ``noise_rms`` (in quadrature; 0 where the
+    noise explains it all)."""
+    return float(np.sqrt(max(rms**2 - noise_rms**2, 0.0)))
+
+
+def _measured_words(
+    platform: Platform, position_mm: np.ndarray, orientation_deg, noise_mm: float, noise_deg: float
+) -> str:
     """What this check measured, named: through an outside instrument's frame the motion (a constant
-    offset of the robot in {J} is absorbed by the frame), through the in-situ tracker the absolute place."""
+    offset of the robot in {J} is absorbed by the frame), through the in-situ tracker the absolute place:
+    the rows' RMS and, beyond the noise (:func:`_noise_rms`), the robot's own — which the verdict holds
+    against the tolerance where an outside instrument measured it."""
     what = "motion" if instrument_kind(platform).outside else "absolute place in {J}"
     text = f"validate measured the {what}: position RMS {_rms(position_mm):.3g} mm"
     if orientation_deg is not None:
         text += f" / {_rms(orientation_deg):.3g}°"
-    if instrument_kind(platform).outside:
-        noise_mm = np.sqrt(3.0) * platform.instrument.position_sigma_mm  # ‖3 noisy coordinates‖
-        text += f" (the instrument's noise alone leaves {noise_mm:.3g} mm)"
-    return text
+    beyond = f"{_beyond(_rms(position_mm), noise_mm):.3g} mm"
+    if orientation_deg is not None:
+        beyond += f" / {_beyond(_rms(orientation_deg), noise_deg):.3g}°"
+    what = "instrument's" if instrument_kind(platform).outside else "tracker's and the strokes'"
+    return text + f" (the {what} noise alone leaves {noise_mm:.3g} mm; beyond it {beyond})"
 
 
 def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray) -> str:
