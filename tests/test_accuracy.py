@@ -111,6 +111,31 @@ def test_information_rows_are_the_batch_fits_jacobian(kind, wide_points, wide_po
     np.testing.assert_allclose(planning.design_covariance(platform, poses), covariance, rtol=1e-6, atol=tolerance)
 
 
+def test_information_rows_of_a_log_with_payloads_are_the_batch_fits_jacobian(wide_pose):
+    """An elastic robot measured without and with a payload (spec §10): the rows at the log's payloads
+    are the batch fit's, whose compliance the payload's forces tell from the leg lengths — identifiability
+    --log took every pose under the platform's weight alone, a compliance σ several times the fit's."""
+    from stewart_calib.model.platform import Elastic
+    from stewart_calib.samples import LOAD_KG
+
+    platform = replace(wide_pose, elastic=Elastic(20.0, np.array([0.0, 0.0, -30.0]), np.array([10.0, 0.0, 40.0])))
+    poses = np.tile(accuracy.reachable_poses(platform, 12, np.random.default_rng(3)), (2, 1))
+    channels = {LOAD_KG: np.repeat([0.0, 30.0], 12)}
+    model = outside_model(platform)
+    R, t = kin.pose_to_rt(poses)
+    drive = drive_model(platform).identifying()
+    inputs = drive.inputs(drive.inverse_kinematics(R, t, channels=channels), channels, R, t)
+    readings = model.predicted_readings(model.nominal_unknowns(), R, t)
+    problem = batch.BatchProblem(drive, inputs, readings, model, np.arange(len(R), dtype=float), channels)
+    covariance = batch.cramer_rao(problem, np.zeros(drive.size), model.nominal_unknowns())
+    tolerance = 1e-7 * np.abs(covariance).max()
+    designed = planning.design_covariance(platform, poses, channels=channels)
+    np.testing.assert_allclose(designed, covariance, rtol=1e-6, atol=tolerance)
+    compliance = slice(48, 54)
+    weight_only = planning.design_covariance(platform, poses)
+    assert np.all(np.diag(weight_only)[compliance] > 4.0 * np.diag(designed)[compliance])
+
+
 def test_exchanges_find_the_brute_force_optimum_of_small_designs():
     """Every 5 of 12 candidate blocks (3 rows, 5 unknowns), by I = −tr(W F⁻¹), for 20 random
     problems: DETMAX then Fedorov's swaps is a local search, so it may miss the exhaustive best;

@@ -225,7 +225,9 @@ class OutsideModel(InstrumentModel):
         unknowns = model.register(fk.R[usable], fk.t[usable], np.asarray(readings)[usable])
         return replace(platform, instrument=model.instrument_at(model.theta(unknowns)))
 
-    def information_rows(self, poses: np.ndarray, seen: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def information_rows(
+        self, poses: np.ndarray, seen: np.ndarray | None = None, channels=None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Each pose's whitened rows of the identification Jacobian, at the nominal drive and the
         platform file's instrument: what the batch fit (``ls``) would see, the Fisher information
         of a pose set being ``Σ_k A_kᵀ A_k``.
@@ -239,6 +241,9 @@ class OutsideModel(InstrumentModel):
             poses: ``(N, 6)`` pose6 ``[mm, rad]`` the robot is driven to.
             seen: ``(N, m)`` which channels the instrument read (a log's finite readings); default
                 :meth:`seen_channels`.
+            channels: the poses' input channels (a log's ``inputs``, row for row: its payloads, whose
+                leg forces let the compliance be told from the leg lengths, spec §10; temperatures);
+                default none, the platform's own weight at the reference temperature.
         Returns:
             ``(rows (N, m, p), lift (drive size + n_instrument, p))``; a channel not read at a pose
             has zero rows there.
@@ -250,7 +255,8 @@ class OutsideModel(InstrumentModel):
         unknowns = self.nominal_unknowns()
         readings = self.predicted_readings(unknowns, R, t)
         _, H_X, H_u = self.readings_residual(unknowns, readings, R, t, jacobians=True)
-        dxi = drive.pose_jacobian(None, R, t, drive.inputs_near(drive.inverse_kinematics(R, t), None, (R, t)))
+        strokes = drive.inverse_kinematics(R, t, channels=channels)
+        dxi = drive.pose_jacobian(None, R, t, drive.inputs_near(strokes, channels, (R, t)))
         basis = gauge.free_basis(self.platform.drive)
         m = drive.n_params
         columns = [H_X @ dxi[..., :m] @ basis, H_X @ dxi[..., m:], H_u]

@@ -179,6 +179,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
         poses = fk.pose6[fk.converged]
         require_poses(platform, len(poses), args.log, "pose(s)", "poses")
         seen = np.isfinite(readings[fk.converged])
+        converged = {name: np.asarray(values)[fk.converged] for name, values in channels.items()}
     else:
         model = outside_model(platform)
         poses = read_pose_list(args.poses)
@@ -189,6 +190,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
         readings = model.predicted_readings(model.nominal_unknowns(), R, t)
         readings = np.where(model.seen_channels(R, t), readings, np.nan)  # e.g. a target out of its cone
         seen = None  # design_covariance finds the same channels in view
+        converged = channels
     report = instrument_identifiability(platform, strokes, readings, channels)
     equilibrated = report["condition_number_equilibrated"]
     # the drive's blocks by name: the compliance too with [elastic] (spec §10), which the report covers
@@ -223,7 +225,10 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
     trade_off = handover.thermal_trade_off_line(drive, handover.outside_stddev(drive, report), span)
     if trade_off:
         print(trade_off)
-    prediction = _prediction(platform, design_covariance(platform, poses, seen=seen), poses, len(poses), None)
+    # at the log's payloads (and temperatures), as the calibration sees them: without them an elastic
+    # drive's compliance trades against the leg lengths under the platform's weight alone
+    covariance = design_covariance(platform, poses, seen=seen, channels=converged)
+    prediction = _prediction(platform, covariance, poses, len(poses), None)
     if args.json:
         document = {
             "format": "stewart-calib/identifiability-instrument@1",

@@ -316,19 +316,24 @@ def _value(criterion: str, info: np.ndarray, weight: np.ndarray | None) -> float
 
 
 def design_covariance(
-    platform: Platform, poses: np.ndarray, noise: NoiseConfig | None = None, seen: np.ndarray | None = None
+    platform: Platform,
+    poses: np.ndarray,
+    noise: NoiseConfig | None = None,
+    seen: np.ndarray | None = None,
+    channels=None,
 ) -> np.ndarray | None:
     """Cramér–Rao covariance of the unknowns from a pose list, at the nominal model: over the 42
     drive parameters for the tracker (whitened leg-length form), over ``[δM (42), k (6),
     instrument]`` for an outside instrument (its batch fit's unknowns, gauge held). None when the
     poses do not identify every unknown (singular values below ``RANK_RTOL`` of the largest).
     ``seen``: ``(N, m)`` the instrument's channels read at each pose (a log's finite readings;
-    default: those in view, :meth:`~stewart_calib.instruments.external.OutsideModel.information_rows`)."""
+    default: those in view, :meth:`~stewart_calib.instruments.external.OutsideModel.information_rows`);
+    ``channels``: the poses' input channels (a log's payloads and temperatures, row for row; default none)."""
     poses = np.asarray(poses, dtype=float).reshape(-1, 6)
     if not instrument_kind(platform).outside:
         rows, lift = whitened_leg_jacobian(platform, poses, noise or NoiseConfig()), np.eye(platform.drive.n_params)
     else:
-        rows, lift = outside_model(platform).information_rows(poses, seen)
+        rows, lift = outside_model(platform).information_rows(poses, seen, channels)
     _, s, Vt = np.linalg.svd(rows.reshape(-1, rows.shape[-1]), full_matrices=False)
     if s[-1] <= RANK_RTOL * s[0]:
         return None
