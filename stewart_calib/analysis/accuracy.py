@@ -429,9 +429,10 @@ def verdict_line(
         measured: what a check measured, named in the line (``validate``).
         measured_motion: ``(position RMS [mm], orientation RMS [deg] or None)`` a check measured of
             the motion through an outside instrument's frame, beyond the instrument's noise: over the
-            tolerance, the motion is over it; within, the prediction's word stands — the instrument
-            sees its targets, whose fitted places absorb near-rigid moves of the platform joints that
-            move {D}'s origin, so a check sees only part of the motion's error (benchmarks.prediction).
+            tolerance, the motion is over it; within, the prediction's word stands — through the
+            fitted frame and target(s) a check does not see a rotation of {D} at home that the targets'
+            places absorb, which turns the motion's position (``T_home⁻¹ T``, in {D}'s home frame), so
+            it sees only part of the motion's error (benchmarks.prediction).
     """
     m_low, m_high = prediction.motion_position_band_mm
     low, high = prediction.position_band_mm
