@@ -77,6 +77,7 @@ RUNNERS = {
     "startup": _runner("scale", "run_startup"),
     "tracker-geometry": _runner("tracker_geometry", "run"),
     "plan-poses": _runner("plan_poses", "run"),
+    "prediction": _runner("prediction", "section"),
     "elastic": _runner("elastic", "section"),
     "elastic-geometries": _runner("elastic", "geometries_section"),
     "elastic-payload": _runner("elastic", "payload_section"),

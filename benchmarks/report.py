@@ -29,6 +29,7 @@ SECTIONS = {
     "startup": "Start-up through the CLI",
     "tracker-geometry": "Tracker geometry",
     "plan-poses": "Planned poses for outside instruments",
+    "prediction": "Predicted errors against the truth",
     "elastic": "The elastic robot",
     "elastic-geometries": "The elastic check on other geometries",
     "elastic-payload": "An unannounced payload on the paper's experiment",
