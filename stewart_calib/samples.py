@@ -28,8 +28,30 @@ CHANNEL_SHAPES: dict[str, tuple[int, ...]] = {LOAD_KG: (), TEMPERATURE_C: (6,), 
 #: what a sample without a channel takes for it where a log's rows are packed (no payload: 0 kg);
 #: NaN for the others
 CHANNEL_DEFAULTS: dict[str, float] = {LOAD_KG: 0.0}
+
+
+def _packed_columns() -> dict[str, slice]:
+    """Each channel's columns in a packed row, in :data:`CHANNEL_SHAPES`' order."""
+    columns, start = {}, 0
+    for name, shape in CHANNEL_SHAPES.items():
+        width = int(np.prod(shape, dtype=int))
+        columns[name] = slice(start, start + width)
+        start += width
+    return columns
+
+
+#: each channel's columns in a row of :func:`packed_inputs`, in :data:`CHANNEL_SHAPES`' order
+PACKED_COLUMNS = _packed_columns()
 #: entries of :func:`packed_inputs`
-PACKED_WIDTH = sum(int(np.prod(shape, dtype=int)) for shape in CHANNEL_SHAPES.values())
+PACKED_WIDTH = sum(columns.stop - columns.start for columns in PACKED_COLUMNS.values())
+#: the row of :func:`packed_inputs` of a sample without channels: :data:`CHANNEL_DEFAULTS`, else NaN
+PACKED_DEFAULTS = np.concatenate(
+    [
+        np.full(columns.stop - columns.start, CHANNEL_DEFAULTS.get(name, np.nan))
+        for name, columns in PACKED_COLUMNS.items()
+    ]
+)
+PACKED_DEFAULTS.flags.writeable = False
 
 #: a sample's named inputs beside its drive readings: channel → value (a float or an array)
 Inputs = Mapping[str, "np.ndarray | float"]
@@ -37,25 +59,24 @@ Inputs = Mapping[str, "np.ndarray | float"]
 
 def packed_inputs(inputs: Mapping) -> np.ndarray:
     """A sample's channels as one flat vector, every channel of :data:`CHANNEL_SHAPES` in order, at
-    :data:`CHANNEL_DEFAULTS` (else NaN) where the sample lacks it: how a buffer of samples keeps them."""
-    return np.concatenate(
-        [
-            np.ravel(np.asarray(inputs[name], dtype=float))
-            if inputs.get(name) is not None
-            else np.full(int(np.prod(shape, dtype=int)), CHANNEL_DEFAULTS.get(name, np.nan))
-            for name, shape in CHANNEL_SHAPES.items()
-        ]
-    )
+    :data:`CHANNEL_DEFAULTS` (else NaN) where the sample lacks it: how a buffer of samples keeps them.
+
+    Called for every sample a batch method buffers, so it writes the channels a sample has into a
+    copy of :data:`PACKED_DEFAULTS` rather than building an array for every channel and joining them."""
+    packed = PACKED_DEFAULTS.copy()
+    for name, columns in PACKED_COLUMNS.items():
+        value = inputs.get(name)
+        if value is not None:
+            packed[columns] = np.ravel(np.asarray(value, dtype=float))
+    return packed
 
 
 def unpacked_inputs(packed: np.ndarray) -> dict[str, np.ndarray]:
     """:func:`packed_inputs` of ``N`` samples ``(N, PACKED_WIDTH)`` back to a log's channels, those
     that no sample had (all NaN) left out."""
-    channels, start = {}, 0
-    for name, shape in CHANNEL_SHAPES.items():
-        width = int(np.prod(shape, dtype=int))
-        values = np.asarray(packed[:, start : start + width], dtype=float).reshape(len(packed), *shape)
-        start += width
+    channels = {}
+    for name, columns in PACKED_COLUMNS.items():
+        values = np.asarray(packed[:, columns], dtype=float).reshape(len(packed), *CHANNEL_SHAPES[name])
         if not np.all(np.isnan(values)):
             channels[name] = values
     return channels

@@ -24,7 +24,7 @@ from stewart_calib.io import (
     write_truth,
 )
 from stewart_calib.model.platform import PARAMETER_NAMES
-from stewart_calib.samples import LOAD_KG, Log, Truth
+from stewart_calib.samples import GRAVITY, LOAD_KG, TEMPERATURE_C, Log, Truth, packed_inputs, unpacked_inputs
 from tests.synthetic import nim_stewart
 
 HEADER = "t_s," + ",".join(f"q{i}_mm" for i in range(1, 7)) + "," + ",".join(f"s{i}_mm" for i in range(1, 7))
@@ -80,6 +80,23 @@ def test_log_round_trip_is_exact(tmp_path):
     np.testing.assert_array_equal(back.desired_poses[:, :3], log.desired_poses[:, :3])
     np.testing.assert_allclose(back.desired_poses[:, 3:], log.desired_poses[:, 3:], rtol=4e-16, atol=0)
     assert back.skipped == []
+
+
+def test_packed_inputs_round_trip_a_buffer_of_samples_with_and_without_channels():
+    rng = np.random.default_rng(3)
+    temperatures, gravity = rng.uniform(15.0, 30.0, (3, 6)), rng.normal(size=3)
+    samples = [
+        {LOAD_KG: 12.5, TEMPERATURE_C: temperatures[0]},
+        {},
+        {TEMPERATURE_C: temperatures[2], GRAVITY: gravity},
+    ]
+    channels = unpacked_inputs(np.array([packed_inputs(sample) for sample in samples]))
+    assert set(channels) == {LOAD_KG, TEMPERATURE_C, GRAVITY}
+    np.testing.assert_array_equal(channels[LOAD_KG], [12.5, 0.0, 0.0])  # no payload: 0 kg
+    np.testing.assert_array_equal(channels[TEMPERATURE_C], [temperatures[0], np.full(6, np.nan), temperatures[2]])
+    np.testing.assert_array_equal(channels[GRAVITY], [np.full(3, np.nan), np.full(3, np.nan), gravity])
+    # a channel no sample has is left out (a payload is never so: its default is 0 kg, not NaN)
+    assert set(unpacked_inputs(np.array([packed_inputs({LOAD_KG: 1.0})]))) == {LOAD_KG}
 
 
 def test_log_header_is_spec_order_and_degrees(tmp_path):
