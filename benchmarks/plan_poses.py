@@ -367,6 +367,13 @@ UNIFORM_WHY = (
     "candidates, which bounds every 60-pose design, predicts 1.03× the Cramér–Rao error of 400 uniform random poses."
 )
 WHY |= {f"{name}: planned / random": UNIFORM_WHY for name in GEOMETRY_NAMES}
+#: against as many random poses: the realised ratio of single fits, the predictions' beside it
+AS_MANY_WHY = (
+    "one fit's error is one draw of its predicted distribution (the truth in its 90 % band in the count beside it), "
+    "so the ratio of three seeds' single fits scatters about the ratio of the fits' own predictions, which the "
+    "design controls."
+)
+WHY |= {f"{name}: planned / as many random poses": AS_MANY_WHY for name in GEOMETRY_NAMES}
 WHY["hobby, motion capture: planned / random"] = (
     "no 60 poses within plan's stroke margin reach 400 uniform random poses here: the continuous I-optimal design "
     "over plan's candidates predicts 1.61 mm for any 60 of them, 1.07× the 1.51 mm of the 400 (plan's own 60: "
