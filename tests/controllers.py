@@ -169,15 +169,28 @@ class OpcUaController:
     def written(self, key: str):
         return self._call(self._writes[key].read_value())
 
+    async def _drop_the_network(self) -> None:
+        listening = self._server.bserver
+        # no connection is accepted from here on, then the open ones are dropped. asyncua's own
+        # stop drops them first and stops listening after: a link reconnecting at once could be
+        # accepted in between, and that stop then waited for its connection to end (the link
+        # reading on, no gap seen)
+        listening._server.close()
+        await listening.stop()
+
     def stop(self) -> None:
-        self._call(self._server.stop())
+        """The network goes down: the link's connection is dropped and no new one accepted. The
+        controller's address space and cycle go on (asyncua's whole server stop would also wait
+        up to 1 s for its clock task, the link down that much longer)."""
+        self._call(self._drop_the_network())
 
     def restart(self) -> None:
-        self._call(self._server.start())
+        """The network is back: connections are accepted again."""
+        self._call(self._server.bserver.start())
 
     def close(self) -> None:
         with contextlib.suppress(Exception):
-            self.stop()
+            self._call(self._server.stop())
         self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join(10)
 

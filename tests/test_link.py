@@ -152,8 +152,12 @@ def test_a_dropped_connection_is_retried_and_its_gap_reported(opcua, rows, tmp_p
         opcua.stop()  # the link goes down; the controller's cycle goes on
         for k in range(15, 20):
             opcua.publish(rows[k], k + 1, handshake=False)
+        # the sample the link finds when it is back, published before it can be: whenever the
+        # link reconnects, its first poll sees counter 21 (not 20, had it come back between the
+        # restart and this publish), and the next is published only once that poll has seen it
+        opcua.publish(rows[20], 21)
         opcua.restart()
-        for k in range(20, N):
+        for k in range(21, N):
             opcua.publish(rows[k], k + 1)
         opcua.drain()
 
