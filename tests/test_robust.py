@@ -411,3 +411,31 @@ def test_a_still_robot_has_the_configured_walk_lowered_to_what_its_data_allow(pl
         estimator = make_estimator("ekf", platform, config)
         feed(estimator, log)
         assert estimator.robust.walk_rate_mm2_per_s <= 0.03 * config.noise.random_walk_mm_per_sqrt_s**2
+
+
+def test_the_window_contrasts_terms_are_those_of_their_pencil():
+    """:func:`_contrast_terms` (white contrasts, tridiagonal QL) gives, direction by direction, the
+    eigenvalues ``μ`` of the contrasts ``y_{2…K} − y_1``' walk covariance over their error covariance
+    and the squared contrasts along the eigenvectors: those of the generalised ``eigh`` of the pencil."""
+    from stewart_calib.estimators.robust import _contrast_terms
+
+    rng = np.random.default_rng(5)
+    K, k = 9, 4
+    start = np.cumsum(rng.uniform(20.0, 30.0, K)) - 25.0
+    start -= start[0]
+    span = rng.uniform(5.0, 15.0, K)
+    variances, estimates = rng.uniform(1e-6, 1e-4, (K, k)), rng.normal(0.0, 1e-2, (K, k))
+    mu, z = np.empty((k, K - 1)), np.empty((k, K - 1))
+    assert _contrast_terms(start, span, variances, estimates, mu, z)
+    earlier = np.minimum.outer(np.arange(K), np.arange(K))
+    C = start[earlier] + span[earlier] / 2.0
+    C[np.diag_indices_from(C)] = start + span / 3.0
+    M = np.hstack([-np.ones((K - 1, 1)), np.eye(K - 1)])
+    for i in range(k):
+        A = M @ np.diag(variances[:, i]) @ M.T
+        L = np.linalg.cholesky(A)
+        whitened = np.linalg.solve(L, np.linalg.solve(L, M @ C @ M.T).T)
+        expected_mu, U = np.linalg.eigh(whitened)
+        expected_z = U.T @ np.linalg.solve(L, M @ estimates[:, i])
+        np.testing.assert_allclose(mu[i], expected_mu, rtol=1e-10)
+        np.testing.assert_allclose(z[i] ** 2, expected_z**2, rtol=1e-8, atol=1e-12 * np.sum(expected_z**2))

@@ -68,7 +68,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._jit import F8_1, FLOAT, njit
+from .._jit import F8_1, F8_2, FLOAT, njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected
 from ..model.unknowns import UnknownLayout
@@ -1211,9 +1211,12 @@ def _walk_directions(
     lam, projection2, directions = np.zeros(n), np.zeros(n), np.zeros((n, n))
     if walks.dtype == bool:
         A, B = np.flatnonzero(walks), np.flatnonzero(~walks)
-        # g = [u; −S_BB⁺ S_BA u]: gᵀ d = uᵀ (d_A − S_AB S_BB⁺ d_B), gᵀ S g = uᵀ S_A|B u
-        regression = np.linalg.pinv(spread[np.ix_(B, B)], hermitian=True) @ spread[np.ix_(B, A)]
-        conditional = spread[np.ix_(A, A)] - spread[np.ix_(A, B)] @ regression
+        if len(B):
+            # g = [u; −S_BB⁺ S_BA u]: gᵀ d = uᵀ (d_A − S_AB S_BB⁺ d_B), gᵀ S g = uᵀ S_A|B u
+            regression = np.linalg.pinv(spread[np.ix_(B, B)], hermitian=True) @ spread[np.ix_(B, A)]
+            conditional = spread[np.ix_(A, A)] - spread[np.ix_(A, B)] @ regression
+        else:  # every unknown walks (a drive's own): S itself, without an empty block's pinv (~40 µs a window)
+            regression, conditional = np.zeros((0, n)), spread
         eigenvalues, vectors = np.linalg.eigh(0.5 * (conditional + conditional.T))
         informative = eigenvalues > 1e-12 * max(eigenvalues.max(initial=0.0), 1e-300)
         k = int(informative.sum())
@@ -1249,12 +1252,11 @@ def _window_terms(run: list, walks: np.ndarray, step_index: int | None) -> tuple
     (:func:`_walk_directions`, ``g_iᵀ W g_i = 1``), the window estimates ``y_w = g_iᵀ x_w`` are a walk's
     means over the windows plus errors of variance ``v_wi = g_iᵀ P_w g_i``: a walk from the first
     window's start ``a_1`` has the means over ``[a_u, b_u]`` and ``[a_w, b_w]`` (``u ≤ w``) covary by
-    ``q C_uw``, ``C_uw = (a_u − a_1) + (b_u − a_u)/2`` (``/3`` for ``u = w``). The ``K − 1`` contrasts
-    ``d = y_{2…K} − y_1`` (free of the unknown mean) have covariance ``A_i + q M C Mᵀ``,
-    ``A_i = v_1i 1 1ᵀ + diag(v_2i … v_Ki)``; with ``A_i = L Lᵀ`` and ``L⁻¹ M C Mᵀ L⁻ᵀ = U diag(μ) Uᵀ``,
-    ``z = Uᵀ L⁻¹ d`` has independent entries of variance ``1 + q μ_j``: terms ``λ_j = 1/μ_j``,
-    ``p_j = z_j² / μ_j``. Successive windows alone (the windows' neighbours) see a walk over one
-    window's span; the runs' far pairs over the whole of it."""
+    ``q C_uw``, ``C_uw = (a_u − a_1) + (b_u − a_u)/2`` (``/3`` for ``u = w``). Any ``K − 1`` contrasts
+    of the ``y_w`` (free of the unknown mean) give the same terms: those of the pencil of their walk
+    covariance and their error covariance (:func:`_contrast_terms`), ``λ_j = 1/μ_j``, ``p_j = z_j² / μ_j``
+    with ``z_j`` of variance ``1 + q μ_j``. Successive windows alone (the windows' neighbours) see a walk
+    over one window's span; the runs' far pairs over the whole of it."""
     xs = np.array([w[0] for w in run])
     Ps = np.array([w[1] for w in run])
     first = np.array([w[2] for w in run], dtype=float)
@@ -1267,19 +1269,177 @@ def _window_terms(run: list, walks: np.ndarray, step_index: int | None) -> tuple
     y = xs @ g  # (K, k)
     # a window's own variance along the mean's directions, kept off 0 where its P is singular there
     v = np.maximum(np.einsum("wni,ni->wi", Ps @ g, g), 1e-9 * lam[lam > 0.0])
-    start = first - first[0]
-    earlier = np.minimum.outer(np.arange(len(run)), np.arange(len(run)))
-    C = start[earlier] + span[earlier] / 2.0
-    C[np.diag_indices_from(C)] = start + span / 3.0
-    M = np.hstack([-np.ones((len(run) - 1, 1)), np.eye(len(run) - 1)])
-    walk = M @ C @ M.T
-    A = v[0][:, None, None] + v[1:].T[:, :, None] * np.eye(len(run) - 1)  # (k, K − 1, K − 1)
-    L = np.linalg.cholesky(A)
-    whitened = np.linalg.solve(L, np.broadcast_to(walk, A.shape))
-    mu, U = np.linalg.eigh(np.linalg.solve(L, whitened.transpose(0, 2, 1)))
-    z = np.einsum("kab,ka->kb", U, np.linalg.solve(L, (M @ y).T[:, :, None])[..., 0])
+    mu, z = np.empty((g.shape[1], len(run) - 1)), np.empty((g.shape[1], len(run) - 1))
+    if not _contrast_terms(first - first[0], span, v, y, mu, z):
+        raise np.linalg.LinAlgError("walk test: the window contrasts' eigenvalues did not converge")
     informative = mu > 1e-12 * max(float(mu.max(initial=0.0)), 1e-300)
     return 1.0 / mu[informative], z[informative] ** 2 / mu[informative]
+
+
+#: QL sweeps of one eigenvalue of a window run's contrasts before :func:`_contrast_terms` gives up (LAPACK's)
+_QL_ITERATIONS = 30
+
+
+@njit(entry=(F8_1, F8_1, F8_2, F8_2, F8_2, F8_2), nogil=True, error_model="numpy")
+def _contrast_terms(
+    start_s: np.ndarray, span_s: np.ndarray, variances: np.ndarray, estimates: np.ndarray, mu: np.ndarray, z: np.ndarray
+) -> bool:
+    """The walk test's terms of a run of ``K`` windows (:func:`_window_terms`), direction by direction:
+    for each column ``i`` of ``variances`` and ``estimates`` (``(K, k)``: the windows' ``v_wi`` and
+    ``y_wi``), the eigenvalues ``μ (K − 1,)`` of ``K − 1`` contrasts' walk covariance over their error
+    covariance, ascending, into ``mu[i]``, and the contrasts along the eigenvectors, ``z[i]``, each of
+    variance ``1 + q μ_j``, of the windows' means' covariance per unit rate ``C``: ``C_uw = s_u + t_u/2``
+    (``u < w``), ``s_u + t_u/3`` (``u = w``), ``s`` their starts from the first one's (``start_s``),
+    ``t`` their spans (``span_s``) [s]. Returns False where the QL iteration does not converge (:data:`_QL_ITERATIONS`).
+
+    Scaled by ``v_wi^(−1/2)`` the windows' errors are white and their mean lies along
+    ``m = V^(−1/2) 1``; a reflection taking ``m`` onto the first axis leaves ``K − 1`` white contrasts,
+    whose walk covariance is the rest of the reflected ``V^(−1/2) C V^(−1/2)``. Its eigenvalues come from
+    Householder tridiagonalisation and implicit QL, every transformation applied to the contrasts'
+    vector rather than accumulated into eigenvectors: numpy's batched Cholesky, solves and ``eigh`` of
+    the ``(k, K − 1, K − 1)`` pencils cost ~2.5 ms a window (its LAPACK takes ~20 µs an ``eigh`` of
+    15 × 15), ~8 µs a sample of ``calibrate ekf``."""
+    K, k = variances.shape
+    walk = np.empty((K, K))
+    for a in range(K):
+        for b in range(K):
+            earlier = min(a, b)
+            walk[a, b] = start_s[earlier] + span_s[earlier] / (3.0 if a == b else 2.0)
+    S = np.empty((K, K))
+    y = np.empty(K)
+    u = np.empty(K)
+    p = np.empty(K)
+    d = np.empty(K)
+    e = np.empty(K)
+    contrasts = np.empty(K)
+    for i in range(k):
+        for a in range(K):
+            u[a] = 1.0 / math.sqrt(variances[a, i])  # the mean's direction, white
+            y[a] = estimates[a, i] * u[a]
+        for a in range(K):
+            for b in range(K):
+                S[a, b] = walk[a, b] * u[a] * u[b]
+        _reflect(S, y, u, p, 0)  # the contrasts: axes 1 … K − 1
+        for c in range(1, K - 2):  # their block tridiagonal, column by column
+            for a in range(c + 1, K):
+                u[a] = S[a, c]
+            alpha = _reflect(S, y, u, p, c + 1)
+            S[c + 1, c], S[c, c + 1] = alpha, alpha
+            for a in range(c + 2, K):
+                S[a, c], S[c, a] = 0.0, 0.0
+        n = K - 1
+        # QL deflates from the top and converges in fewer sweeps with the large entries at the bottom
+        # (as LAPACK's dsteqr chooses between QL and QR): the reduction leaves them at the top here
+        flip = abs(S[1, 1]) > abs(S[n, n])
+        for j in range(n):
+            h = n - 1 - j if flip else j
+            d[h], contrasts[h] = S[j + 1, j + 1], y[j + 1]
+            if j + 1 < n:
+                e[h - 1 if flip else h] = S[j + 1, j + 2]
+        if not _tridiagonal_ql(d, e, contrasts, n):
+            return False
+        for j in range(1, n):  # ascending, as LAPACK orders them
+            value, along = d[j], contrasts[j]
+            h = j - 1
+            while h >= 0 and d[h] > value:
+                d[h + 1], contrasts[h + 1] = d[h], contrasts[h]
+                h -= 1
+            d[h + 1], contrasts[h + 1] = value, along
+        for j in range(n):
+            mu[i, j], z[i, j] = d[j], contrasts[j]
+    return True
+
+
+@njit(nogil=True, error_model="numpy")
+def _reflect(S: np.ndarray, y: np.ndarray, x: np.ndarray, p: np.ndarray, start: int) -> float:
+    """Apply, on the axes ``start …``, the Householder reflection ``H`` that takes ``x[start:]`` onto the
+    axis ``start`` to ``S`` (``H S H``, its block from ``start`` on) and to ``y``; returns ``H x``'s entry
+    there. ``p``: work space; ``x`` is overwritten."""
+    K = S.shape[0]
+    norm2 = 0.0
+    for a in range(start, K):
+        norm2 += x[a] * x[a]
+    if norm2 == 0.0:
+        return 0.0
+    alpha = -math.copysign(math.sqrt(norm2), x[start])
+    x[start] -= alpha  # the reflection's vector v, H = I − τ v vᵀ
+    vv = 0.0
+    for a in range(start, K):
+        vv += x[a] * x[a]
+    tau = 2.0 / vv
+    kappa = 0.0
+    for a in range(start, K):
+        total = 0.0
+        for b in range(start, K):
+            total += S[a, b] * x[b]
+        p[a] = tau * total
+        kappa += x[a] * p[a]
+    kappa *= 0.5 * tau
+    for a in range(start, K):
+        p[a] -= kappa * x[a]
+    for a in range(start, K):
+        for b in range(start, a + 1):
+            S[a, b] -= x[a] * p[b] + p[a] * x[b]
+            S[b, a] = S[a, b]
+    along = 0.0
+    for a in range(start, K):
+        along += x[a] * y[a]
+    along *= tau
+    for a in range(start, K):
+        y[a] -= along * x[a]
+    return alpha
+
+
+@njit(nogil=True, error_model="numpy")
+def _tridiagonal_ql(d: np.ndarray, e: np.ndarray, y: np.ndarray, n: int) -> bool:
+    """Eigenvalues of the symmetric tridiagonal ``n × n`` matrix of diagonal ``d`` and off-diagonal ``e``
+    (``e[j]`` between ``j`` and ``j + 1``, ``e[n − 1]`` unused) into ``d``, by implicit QL with Wilkinson's
+    shift, each rotation applied to ``y``, so that ``y`` ends as ``Zᵀ y`` (``Z`` the eigenvectors).
+    False where an eigenvalue takes more than :data:`_QL_ITERATIONS` sweeps."""
+    e[n - 1] = 0.0
+    for low in range(n):
+        iterations = 0
+        while True:
+            m = low
+            while m < n - 1:
+                dd = abs(d[m]) + abs(d[m + 1])
+                if abs(e[m]) + dd == dd:
+                    break
+                m += 1
+            if m == low:
+                break
+            if iterations == _QL_ITERATIONS:
+                return False
+            iterations += 1
+            g = (d[low + 1] - d[low]) / (2.0 * e[low])
+            r = math.hypot(g, 1.0)
+            g = d[m] - d[low] + e[low] / (g + math.copysign(r, g))
+            s, c, p = 1.0, 1.0, 0.0
+            deflated = False
+            for j in range(m - 1, low - 1, -1):
+                f, b = s * e[j], c * e[j]
+                r = math.sqrt(f * f + g * g)  # no overflow: the entries are O(the walk over the run / its σ²)
+                e[j + 1] = r
+                if r == 0.0:  # underflow: the matrix splits here
+                    d[j + 1] -= p
+                    e[m] = 0.0
+                    deflated = True
+                    break
+                s, c = f * (1.0 / r), g * (1.0 / r)
+                g = d[j + 1] - p
+                r = (d[j] - g) * s + 2.0 * c * b
+                p = s * r
+                d[j + 1] = g + p
+                g = c * r - b
+                f = y[j + 1]
+                y[j + 1] = s * y[j] + c * f
+                y[j] = c * y[j] - s * f
+            if deflated:
+                continue
+            d[low] -= p
+            e[low] = g
+            e[m] = 0.0
+    return True
 
 
 @dataclass(frozen=True)
