@@ -68,7 +68,7 @@ from ..config import EstimatorConfig
 from ..errors import CalibError, SampleRejected, number
 from ..estimate import Estimate
 from ..instruments import instrument_model, instrument_theta, needs_registration
-from ..model.drive import PAYLOAD, payload_block
+from ..model.drive import COMPLIANCE, PAYLOAD, payload_block
 from ..model.platform import Platform
 from ..model.unknowns import UnknownLayout, gauge_conditioned
 from ..samples import Log, Sample, input_rows
@@ -147,6 +147,7 @@ class LegEKF:
             step=None
             if payload is None or self._payload is None
             else (self._payload.start, payload.prior_sigma[0] ** 2),
+            step_curvature=self._payload_curvature(),
             compiled_rows=compiled_rows,
         )
         self._stroke_bounds = platform.stroke_range if platform.stroke_range is not None else (-np.inf, np.inf)
@@ -162,6 +163,26 @@ class LegEKF:
         # c·f is not validate's (benchmarks/hobby.py: plain held-out 0.50 mm against lm's 0.35).
         self._forces_at_state = self.drive.elastic is not None and self._instrument is not None
         self._packed_width = self.drive.packed_width if self._forces_at_state else 0
+
+    def _payload_curvature(self):
+        """``(columns, coefficients)`` of the unannounced payload's bilinear term (the robust filter's
+        ``step_curvature``): drive row ``i``'s ``∂²r_i/∂c_i∂m = −(∂g_i/∂c_i) f_{m,i}``, ``g`` the force gains,
+        linear in the compliance; None without a payload or a compliance unknown."""
+        compliance = self.layout.slice(COMPLIANCE)
+        if (
+            self._payload is None
+            or compliance is None
+            or compliance.stop - compliance.start != self.drive.rows
+            or compliance.stop > self.drive.size
+        ):
+            return None
+        columns = np.arange(compliance.start, compliance.stop)
+        unit = np.zeros(self.drive.size)
+        gains_at_zero = self.drive.force_gains(unit)
+        unit[columns] = 1.0
+        per_unit = self.drive.force_gains(unit) - gains_at_zero  # leg i's gain per unit of c_i
+        width, rows = self.drive.input_width, self._per_kg
+        return columns, lambda prepared: -per_unit * prepared[width : width + rows]
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample; ``SampleRejected`` leaves the state untouched."""
