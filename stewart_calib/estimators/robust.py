@@ -40,10 +40,10 @@ Its post-fit residuals give the measurement scale, ``s² = Σ νᵀ R0⁻¹ ν /
 walk barely moves the parameters within one window), the window solved again at the scale it says
 until that settles (a pass's variance components are unbiased only at the true scale), and again
 when the walk rate moves. The windows give the random-walk
-rate: for a walk of rate ``q`` [mm²/s], the means over windows ``[a1, b1]`` and ``[a2, b2]`` differ
-by a covariance ``q T W`` (``W`` the walk per unit rate, ``unit_Q``) with
-``T = (a2 − b1) + (b1 − a1)/3 + (b2 − a2)/3`` (two thirds of the span for adjacent windows), so two
-window estimates differ by ``P_w + P_v + q T W``; each window's ``P_w`` is taken at the scale its
+rate: a window's pass walks at the rate in use, so its estimate is δM at the window's last sample,
+and for a walk of rate ``q`` [mm²/s] the windows ending at ``b1`` and ``b2`` differ by a covariance
+``q T W`` (``W`` the walk per unit rate, ``unit_Q``) with ``T = b2 − b1``, so two window estimates
+differ by ``P_w + P_v + q T W``; each window's ``P_w`` is taken at the scale its
 own residuals have just updated. The rate in use is the configured one unless the likelihood of
 the last :data:`WALK_HISTORY` windows, every one against every other, rejects it
 (:meth:`RobustFilter._pooled_walk_rate`): as too large, then the nearest one it does not reject; as
@@ -1304,7 +1304,9 @@ def _window_terms(run: list, walks: np.ndarray, step_index: int | None) -> tuple
     (:func:`_walk_directions`, ``g_iᵀ W g_i = 1``), the window estimates ``y_w = g_iᵀ x_w`` are a walk's
     means over the windows plus errors of variance ``v_wi = g_iᵀ P_w g_i``: a walk from the first
     window's start ``a_1`` has the means over ``[a_u, b_u]`` and ``[a_w, b_w]`` (``u ≤ w``) covary by
-    ``q C_uw``, ``C_uw = (a_u − a_1) + (b_u − a_u)/2`` (``/3`` for ``u = w``). Any ``K − 1`` contrasts
+    ``q C_uw``, ``C_uw = (a_u − a_1) + (b_u − a_u)/2`` (``/3`` for ``u = w``); the filter's windows come
+    as instants at their last samples (``a = b``, :meth:`RobustFilter._walk_difference`), where ``C_uw``
+    is the time from the first to the earlier of the two. Any ``K − 1`` contrasts
     of the ``y_w`` (free of the unknown mean) give the same terms: those of the pencil of their walk
     covariance and their error covariance (:func:`_contrast_terms`), ``λ_j = 1/μ_j``, ``p_j = z_j² / μ_j``
     with ``z_j`` of variance ``1 + q μ_j``. Successive windows alone (the windows' neighbours) see a walk
