@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import re
 from dataclasses import replace
 
 import numpy as np
@@ -16,7 +17,7 @@ from stewart_calib.analysis import accuracy
 from stewart_calib.cli import main as cli_main
 from stewart_calib.errors import CalibError
 from stewart_calib.estimators import batch
-from stewart_calib.instruments import outside_model
+from stewart_calib.instruments import gauge, outside_model, registration
 from stewart_calib.instruments.points import visible_targets
 from stewart_calib.io import read_pose_list
 from stewart_calib.io.platform_file import parse_platform, platform_to_toml
@@ -298,10 +299,24 @@ def test_a_small_workspace_calibration_warns_in_one_line_and_validate_says_what_
     assert cli_main(["validate", "--platform", str(platform_path), "--result", str(out), *held]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 3 and "cannot see the robot's closed-loop (absolute) pose error" in lines[1]
-    assert lines[2].startswith("stewart-calib validate: verdict: ") and "validate measured the motion" in lines[2]
+    assert lines[2].startswith("stewart-calib validate: verdict: ")
+    assert "validate measured the error as the instrument sees it after registration" in lines[2]
     assert f"the result predicts absolute in {{J}} {predicted['position_mm']:.3g} mm" in lines[1]
     low, high = predicted["position_band_mm"]
     assert low < predicted["position_mm"] < high and f"{low:.3g}–{high:.3g} mm" in lines[1]
+    # with the frame fitted again: the registered error measured, beside the registered prediction
+    assert (
+        cli_main(["validate", "--platform", str(platform_path), "--result", str(out), *held, "--register-instrument"])
+        == 0
+    )
+    verdict = capsys.readouterr().out.strip().splitlines()[-1]
+    registered = predicted["registered_position_mm"]
+    r_low, r_high = predicted["registered_position_band_mm"]
+    assert r_low < registered < predicted["motion_position_mm"]
+    assert f"as the instrument sees it after registration {registered:.3g} mm" in verdict
+    assert f"({r_low:.3g}–{r_high:.3g} mm)" in verdict.replace("90 %: ", "").replace("90%: ", "")
+    assert "validate measured the error as the instrument sees it after registration: position RMS" in verdict
+    assert re.search(r"beyond it [0-9.e-]+ mm / [0-9.e-]+°\), (within|above|below) the predicted registered", verdict)
 
 
 def test_identifiability_reports_the_prediction_of_a_pose_list(tmp_path, capsys, wide_pose):
@@ -347,3 +362,55 @@ def test_information_accumulator_covariance_is_the_inverse_information():
     few = InformationAccumulator(platform, noise)
     few.add(poses[:5])
     assert few.covariance() is None
+
+
+@pytest.mark.parametrize("kind", ["points", "pose"])
+def test_a_rigid_motion_of_either_joint_set_leaves_no_registered_error(kind, wide_points, wide_pose):
+    """Moving all base joints by one rigid motion moves every pose by it in {J} (the frame absorbs it),
+    the platform joints likewise in {D} (the target or the targets' places absorb it): a covariance
+    spanned by those 12 directions leaves an absolute error but none as the instrument sees it."""
+    platform = wide_points if kind == "points" else wide_pose
+    values = platform.drive.as_vector()
+    B = np.zeros((48, 12))
+    for k, columns in enumerate(gauge.joint_columns(platform.drive)):
+        B[columns, 6 * k : 6 * k + 6] = gauge.rigid_directions(values[columns].reshape(-1, 3))
+    predicted = accuracy.predicted_error(platform, 0.01 * B @ B.T)
+    assert predicted.position_mm > 0.01
+    assert predicted.registered_position_mm < 1e-7 * predicted.position_mm
+    assert max(predicted.registered_position_band_mm) < 1e-7 * predicted.position_mm
+
+
+@pytest.mark.parametrize("kind", ["points", "pose"])
+def test_the_registered_error_is_the_readings_error_after_the_best_registration(kind, wide_points, wide_pose):
+    """One estimate error, driven through IK/FK: the instrument's readings of the poses the true robot
+    reaches, registered to the desired poses by the instrument's own fit (frame and target(s), plain
+    least squares), leave per pose the error the linear projection gives."""
+    platform = wide_points if kind == "points" else wide_pose
+    rng = np.random.default_rng(3)
+    poses = accuracy.reachable_poses(platform, 30, rng)
+    e = np.r_[rng.normal(0.0, 1e-3, 42), np.zeros(6)]
+    R, t = kin.pose_to_rt(poses)
+    strokes = kin.inverse_kinematics(platform.drive.perturbed(e[:42]), R, t)
+    reached = kin.forward_kinematics(platform.drive, strokes, guess=(R, t))
+    model = outside_model(platform)
+    measured = model.predicted_readings(model.nominal_unknowns(), reached.R, reached.t)
+    fitted = registration.refine(model, model.nominal_unknowns(), measured, R, t, frame_only=False)
+    position = model.prediction_errors(fitted, R, t, measured)[1]
+    D_seen, _ = accuracy.registered_jacobian(platform, accuracy.closed_loop_jacobian(platform, poses), poses)
+    rows = (D_seen @ -e).reshape(len(poses), -1, 3)
+    linear = np.linalg.norm(rows[:, 1], axis=-1) if kind == "pose" else np.sqrt(np.mean(np.sum(rows**2, -1), -1))
+    assert np.mean(linear) > 1e-4  # not all absorbed
+    np.testing.assert_allclose(position, linear, rtol=1e-2, atol=1e-3 * np.mean(linear))
+
+
+def test_the_registered_prediction_is_written_and_read_back(wide_points):
+    predicted = accuracy.predicted_error(wide_points, 1e-4 * np.eye(48))
+    field = json.loads(json.dumps(predicted.to_dict()))
+    assert field["registered_orientation_deg"] is None  # points read no orientation
+    read = accuracy.PredictedError.from_dict(field)
+    assert read.registered_position_mm == predicted.registered_position_mm > 0
+    assert read.registered_position_band_mm == predicted.registered_position_band_mm
+    assert np.isnan(read.registered_orientation_deg)
+    assert predicted.registered_words() in predicted.describe() and "°" not in predicted.registered_words()
+    old = {k: v for k, v in field.items() if not k.startswith("registered_")}  # a result written before
+    assert np.isnan(accuracy.PredictedError.from_dict(old).registered_position_mm)

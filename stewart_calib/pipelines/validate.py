@@ -125,13 +125,13 @@ def _verdict(args, platform: Platform, result: dict, position, orientation, samp
     prediction = result_prediction(platform, result)
     if prediction is None:
         return f"verdict: {measured}; the result holds no prediction of its error elsewhere", True
-    motion = None
+    registered = None
     if instrument_kind(platform).outside:  # the robot's own error: what is left beyond the instrument's noise
-        motion = (
+        registered = (
             _beyond(_rms(position), position_noise_mm),
             None if orientation is None else _beyond(_rms(orientation), orientation_noise_deg),
         )
-    return verdict_line(prediction, args.tolerance_mm, args.tolerance_deg, measured, motion)
+    return verdict_line(prediction, args.tolerance_mm, args.tolerance_deg, measured, registered)
 
 
 def result_prediction(platform: Platform, result: dict) -> PredictedError | None:
@@ -188,11 +188,16 @@ def _beyond(rms: float, noise_rms: float) -> float:
 def _measured_words(
     platform: Platform, position_mm: np.ndarray, orientation_deg, noise_mm: float, noise_deg: float
 ) -> str:
-    """What this check measured, named: through an outside instrument's frame the motion (a constant
-    offset of the robot in {J} is absorbed by the frame), through the in-situ tracker the absolute place:
+    """What this check measured, named: through an outside instrument's fitted frame and target(s) the
+    error as the instrument sees it after registration (they absorb a rigid motion of {J} and the
+    targets' places in {D}), through the in-situ tracker the absolute place:
     the rows' RMS and, beyond the noise (:func:`_noise_rms`), the robot's own — which the verdict holds
     against the tolerance where an outside instrument measured it."""
-    what = "motion" if instrument_kind(platform).outside else "absolute place in {J}"
+    what = (
+        "error as the instrument sees it after registration"
+        if instrument_kind(platform).outside
+        else "absolute place in {J}"
+    )
     text = f"validate measured the {what}: position RMS {_rms(position_mm):.3g} mm"
     if orientation_deg is not None:
         text += f" / {_rms(orientation_deg):.3g}°"
@@ -205,13 +210,15 @@ def _measured_words(
 
 def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray) -> str:
     """What a check through an outside instrument's frame cannot see, beside what it saw: the
-    frame (fitted with the drive, or again here) absorbs a constant pose error of the robot, so it
-    measures the motion, and the robot's closed-loop (absolute) error is the result's prediction."""
+    frame and target(s) (fitted with the drive, the frame again here) absorb a rigid motion of {J}
+    and the targets' places in {D}, so it measures the registered error, and the robot's closed-loop
+    (absolute) error is the result's prediction."""
     seen_rms_mm = _rms(position_mm)
     head = (
-        "validate measured the motion: a check through the instrument's frame cannot see the robot's "
-        "closed-loop (absolute) pose error (the frame absorbs a constant offset); position RMS here "
-        f"{seen_rms_mm:.4g} mm, "
+        "validate measured the error as the instrument sees it after registration: a check through the "
+        "instrument's fitted frame and target(s) cannot see the robot's closed-loop (absolute) pose error "
+        "(they absorb a rigid motion of {J} and the targets' places in {D}); "
+        f"position RMS here {seen_rms_mm:.4g} mm, "
     )
     prediction = result_prediction(platform, result)
     if prediction is None:
