@@ -456,10 +456,10 @@ def _why(label: str, runs: list[dict]) -> dict[str, str]:
         return {
             "calibrate's 90 % band": (
                 f"the truth is {over['calibrate'][0]:.2f}× / {over['calibrate'][1]:.2f}× calibrate's expected error "
-                "(median, absolute / motion), its misses above the band: ls's covariance with the tracker is "
-                "σ̂² (AᵀA)⁻¹ of its weighted pose rows taken as independent and of one variance (the paper's LS has "
-                "no noise model), while the tracker's and the strokes' noise through forward kinematics is "
-                "correlated across a pose's six rows and changes with the pose."
+                "(median, absolute / motion); ls's covariance with the tracker is the sandwich of its weighted "
+                "pose-form fit on the readings' and strokes' noise through forward kinematics, exact to first "
+                "order (tests/test_ls.py draws it), so a band missed in more than one seed in ten is the band's "
+                "own spread over ten seeds or the prediction's mean over the workspace against the truth's."
             ),
             "identifiability's 90 % band": (
                 f"the truth is {over['identifiability'][0]:.2f}× / {over['identifiability'][1]:.2f}× "

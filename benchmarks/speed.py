@@ -24,7 +24,7 @@ from benchmarks.fk_speed import peer_fk, trajectory
 from stewart_calib.config import LSConfig
 from stewart_calib.estimators import make_estimator
 from stewart_calib.estimators.kalman import kalman_update
-from stewart_calib.estimators.ls import gauss_newton
+from stewart_calib.estimators.ls import PoseNoise, gauss_newton
 from stewart_calib.estimators.measurement import pose_difference
 from stewart_calib.model import kinematics as kin
 from stewart_calib.model.platform import N_PARAMS
@@ -163,9 +163,9 @@ def _ls_row(n_poses: int, repeats: int, rng: np.random.Generator) -> Row:
     log, true_error = synthetic_stream(platform, n_poses, rng, rate_hz=10.0, smooth=False)
     sol = kin.forward_kinematics(platform.tracker, log.readings)
     R_v, t_v, strokes = sol.R, sol.t, log.strokes
-    config = LSConfig()
-    ours = gauss_newton(platform.drive, strokes, R_v, t_v, config)  # untimed: first calls compile kernels
-    ours_s = per_call_us([lambda: gauss_newton(platform.drive, strokes, R_v, t_v, config)] * repeats) / 1e6
+    config, noise = LSConfig(), PoseNoise(platform.tracker, 0.002, 0.001)
+    ours = gauss_newton(platform.drive, strokes, R_v, t_v, config, noise)  # untimed: first calls compile kernels
+    ours_s = per_call_us([lambda: gauss_newton(platform.drive, strokes, R_v, t_v, config, noise)] * repeats) / 1e6
 
     weight = np.r_[np.ones(3), np.full(3, config.rotation_weight_mm)]
     warm = {"pose": (R_v, t_v)}  # model FK warm-started from its last solution, as gauss_newton does

@@ -25,6 +25,10 @@ def _poses_and_strokes(n: int, seed: int):
     return platform, log.strokes, R_v + 0.0, t_v + 0.0
 
 
+def _noise(platform) -> ls.PoseNoise:
+    return ls.PoseNoise(platform.tracker, 0.002, 0.001)  # the σ's of _poses_and_strokes' log
+
+
 def test_ls_never_forms_the_stacked_jacobian_of_the_whole_log(monkeypatch):
     """The stacked ``6N × 42`` Jacobian alone is 6 MB at N = 3 000 (and its SVD as much again):
     the fit's peak stays below that one array (what is left is a chunk's work, ~0.5 MB in chunks
@@ -33,10 +37,12 @@ def test_ls_never_forms_the_stacked_jacobian_of_the_whole_log(monkeypatch):
     monkeypatch.setattr(ls, "CHUNK_SAMPLES", 256)
     platform, strokes, R_v, t_v = _poses_and_strokes(n, 5)
     stacked_bytes = 6 * n * platform.drive.n_params * 8
-    ls.gauss_newton(platform.drive, strokes[:50], R_v[:50], t_v[:50], EstimatorConfig().ls)  # compiled untraced
+    ls.gauss_newton(
+        platform.drive, strokes[:50], R_v[:50], t_v[:50], EstimatorConfig().ls, _noise(platform)
+    )  # compiled untraced
     tracemalloc.start()
     try:
-        solution = ls.gauss_newton(platform.drive, strokes, R_v, t_v, EstimatorConfig().ls)
+        solution = ls.gauss_newton(platform.drive, strokes, R_v, t_v, EstimatorConfig().ls, _noise(platform))
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
@@ -48,9 +54,9 @@ def test_ls_in_chunks_is_the_fit_in_one(monkeypatch):
     to 1e-6 σ, where the noise puts σ ~ 1e-3 mm and the solve's rounding ~1e-12 mm)."""
     platform, strokes, R_v, t_v = _poses_and_strokes(300, 6)
     config = EstimatorConfig().ls
-    whole = ls.gauss_newton(platform.drive, strokes, R_v, t_v, config)
+    whole = ls.gauss_newton(platform.drive, strokes, R_v, t_v, config, _noise(platform))
     monkeypatch.setattr(ls, "CHUNK_SAMPLES", 7)
-    chunked = ls.gauss_newton(platform.drive, strokes, R_v, t_v, config)
+    chunked = ls.gauss_newton(platform.drive, strokes, R_v, t_v, config, _noise(platform))
     sigma = np.sqrt(np.diag(whole.covariance))
     assert np.all(np.abs(chunked.error - whole.error) <= 1e-6 * sigma)
     np.testing.assert_allclose(chunked.singular_values, whole.singular_values, rtol=1e-9)

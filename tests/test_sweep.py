@@ -473,8 +473,8 @@ TODAYS_ROWS = {
         {
             "rms_mm": "0x1.d7dfa8483bc2fp+2",
             "rms_over_crb": "0x1.d26109cb93423p+6",
-            "nees": "0x1.562e2cb4c1d36p+6",
-            "z2": "0x1.5f70d7dba38d5p+0",
+            "nees": "0x1.ea428d4b3072fp+5",
+            "z2": "0x1.39bff59844ebfp+0",
             "closed_loop_mm": "0x1.288adf745e844p-2",
             "closed_loop_deg": "0x1.d29d2126da054p-5",
             "closed_loop_nominal_mm": "0x1.65ffaa59762d8p+1",

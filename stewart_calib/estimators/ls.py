@@ -6,11 +6,17 @@ samples and solving for the step is one Gauss–Newton iteration; it is repeated
 updated model until the step is below ``ls.tolerance_mm``.
 
 Rotation rows [rad] are scaled by ``ls.rotation_weight_mm`` so the stacked residual is in
-mm throughout. Covariance: the Gauss–Newton covariance ``σ̂² (AᵀA)⁻¹`` of the weighted
-stacked Jacobian ``A``, scaled by the residual variance ``σ̂² = ‖b − A δ‖² / (6N − 42)`` (six pose
-rows a sample, 42 unknowns of the paper's δM) — the data's own noise level, since the paper's LS has
-no noise model. It is None when the system is rank deficient (too few or too poor poses);
-``singular_values`` says which.
+mm throughout. The weighting is the paper's, not the noise's: a sample's six pose rows are neither
+independent nor of one variance (``P_v`` is the FK of six tracker readings, ``P_m`` of six noisy
+strokes), so the covariance is the sandwich of this weighted fit,
+``s² (AᵀA)⁻¹ (Σ_k A_kᵀ S_k A_k) (AᵀA)⁻¹`` with ``A`` the weighted stacked Jacobian and ``S_k = W Σ_k W``
+the weighted pose noise of sample k, ``Σ_k = σ_z² G_v G_vᵀ + σ_q² G_m G_mᵀ`` (``G`` the pose's
+sensitivity to the six readings at ``P_v`` and to the six strokes at ``P_m``, the ``l_i`` columns of
+``J_p``; :class:`PoseNoise`). ``s²`` is the data's own noise scale on the told σ's:
+``‖b − A δ‖² / (Σ_k tr S_k − tr((AᵀA)⁻¹ Σ_k A_kᵀ S_k A_k))``, the residual over its expectation at
+``s = 1``. ``σ̂² (AᵀA)⁻¹``, which takes the rows as independent of one variance, is 1.1–1.4× too
+confident with the paper's tracker. It is None when the system is rank deficient (too few or too poor
+poses); ``singular_values`` says which.
 
 The paper's LS takes every sample in, gross errors too (a glitched reading off by millimetres moves
 the whole fit), where ``ekf``, ``isam2`` and ``lm`` gate them. It stays the paper's baseline, and says
@@ -59,13 +65,29 @@ CHUNK_SAMPLES = 4096
 
 
 @dataclass(frozen=True)
+class PoseNoise:
+    """The noise of ``P_v − P_m`` that :func:`gauss_newton`'s covariance carries (not its weighting).
+
+    Attributes:
+        tracker: the tracker's legs, whose readings' FK is ``P_v``.
+        reading_sigma_mm: σ_z of a tracker reading [mm].
+        stroke_sigma_mm: σ_q of an executed stroke [mm].
+    """
+
+    tracker: LegGeometry
+    reading_sigma_mm: float
+    stroke_sigma_mm: float
+
+
+@dataclass(frozen=True)
 class LSSolution:
     """Result of :func:`gauss_newton`.
 
     Attributes:
         error: ``(size,)`` the drive's unknowns ``[δM [mm] | its unknown terms]`` (δM alone,
             ``n_params``, without a drive model).
-        covariance: ``(size, size)``, or None when rank deficient.
+        covariance: ``(size, size)``, the sandwich of the weighted fit (module docstring), or None
+            when rank deficient.
         singular_values: ``(min(6N, size),)`` of the weighted stacked ``J_p`` at the solution,
             descending [mm / mm]; their ratio is the conditioning of the identification.
         iterations: Gauss–Newton iterations taken.
@@ -85,6 +107,7 @@ def gauss_newton(
     R_v: np.ndarray,
     t_v: np.ndarray,
     config: LSConfig,
+    noise: PoseNoise,
     drive: DriveModel | None = None,
     channels: Mapping[str, np.ndarray] | None = None,
 ) -> LSSolution:
@@ -95,6 +118,7 @@ def gauss_newton(
         strokes: ``(N, n_legs)`` executed strokes [mm] (with ``drive``: as logged).
         R_v, t_v: ``(N, 3, 3)``, ``(N, 3)`` measured poses P_v.
         config: tolerance, iteration cap, rotation weight.
+        noise: the readings' and strokes' noise, which the covariance carries through both FKs.
         drive: the drive model whose extensions the strokes go through, its unknown terms fitted
             with δM (an extension enters ``P_m`` as the leg's initial length does, so their columns
             are ``J_p``'s ``l_i`` columns times ``∂e_i/∂v``); an elastic drive's leg forces are taken
@@ -115,6 +139,8 @@ def gauss_newton(
         for iteration in range(1, config.max_iterations + 1):
             legs = nominal.perturbed(error[:n_params])
             factor = np.zeros((0, size + 1))  # the triangular factor of [A | b] over the chunks so far
+            meat = np.zeros((size, size))  # Σ_k A_kᵀ S_k A_k, S_k the weighted pose noise of sample k
+            noise_trace = 0.0  # Σ_k tr S_k [mm²]
             for chunk in range(0, n, CHUNK_SAMPLES):
                 rows = slice(chunk, min(n, chunk + CHUNK_SAMPLES))
                 lengths, inputs = strokes[rows], None
@@ -131,7 +157,19 @@ def gauss_newton(
                 if drive is not None and inputs is not None and size > n_params:
                     extension = J_p[..., per_leg - 1 :: per_leg] @ drive.extension_jacobian(inputs)
                     J_p = np.concatenate([J_p, extension], -1)
-                A = (J_p * weight[:, None]).reshape(-1, size)
+                A_k = J_p * weight[:, None]
+                # the weighted pose's sensitivities to readings and strokes: a leg's length change
+                # moves a pose as its initial length l_i does; the strokes' through the drive's
+                # extensions is taken at its unit gain (stroke scales are 1 to ~1e-3)
+                readings_k = (
+                    noise.reading_sigma_mm * weight[:, None] * _length_columns(noise.tracker, R_v[rows], t_v[rows])
+                )
+                strokes_k = noise.stroke_sigma_mm * weight[:, None] * J_p[..., per_leg - 1 : n_params : per_leg]
+                for G in (readings_k, strokes_k):
+                    carried = (np.swapaxes(G, -1, -2) @ A_k).reshape(-1, size)
+                    meat += carried.T @ carried
+                    noise_trace += float(np.sum(G**2))
+                A = A_k.reshape(-1, size)
                 factor = np.asarray(np.linalg.qr(np.vstack([factor, np.column_stack([A, b])]), mode="r"))
             # [A | b] = Q [[R, c], [0, ρ]]: A's singular values and right vectors are R's, and
             # ‖b − A δ‖² = ρ² + ‖c − R δ‖²
@@ -146,11 +184,20 @@ def gauss_newton(
         else:
             raise CalibError(f"ls: Gauss–Newton did not converge in {config.max_iterations} iterations")
     residual2 = rho2 + float(np.sum((c - R @ step) ** 2))
-    dof = 6 * n - size
     covariance = None
-    if np.all(keep) and dof > 0:
-        covariance = residual2 / dof * (Vt.T / s**2) @ Vt
+    if np.all(keep) and 6 * n > size:
+        bread = (Vt.T / s**2) @ Vt  # (AᵀA)⁻¹
+        sandwich = bread @ meat @ bread
+        expected_residual2 = noise_trace - float(np.sum(bread * meat))  # E‖b − Aδ‖² at s = 1
+        covariance = residual2 / expected_residual2 * sandwich
     return LSSolution(error, covariance, s, iteration, float(np.sqrt(residual2 / (6 * n))))
+
+
+def _length_columns(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """``(..., 6, n_legs)``: ``∂P/∂length_i`` in ``pose_difference``'s coordinates at the poses
+    ``legs`` reach, the ``l_i`` columns of their error Jacobian ``J_p``."""
+    per_leg = legs.n_params // legs.n_legs
+    return kin.error_jacobian(legs, R, t)[..., per_leg - 1 :: per_leg]
 
 
 class Rows:
@@ -322,6 +369,11 @@ class LeastSquares(BufferedFit):
             R_v,
             t_v,
             self.config,
+            PoseNoise(
+                self.platform.required_tracker("ls with the in-situ tracker"),
+                self._noise.reading_sigma_mm,
+                self._noise.stroke_sigma_mm,
+            ),
             self._fitted,
             channels,
         )
