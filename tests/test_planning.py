@@ -58,7 +58,9 @@ def test_block_updates_equal_direct_computation(platform):
         direct = [np.trace(np.linalg.inv(F + sign * u.T @ u)) - np.trace(cov) for u in blocks]
         np.testing.assert_allclose(planning._trace_change(cov, blocks, sign), direct, rtol=1e-6)
     updated = planning._woodbury(cov, U[15], +1.0)
-    np.testing.assert_allclose(updated, np.linalg.inv(F + U[15].T @ U[15]), rtol=1e-6, atol=1e-12 * np.abs(cov).max())
+    # both are inverses of a poorly conditioned F (10 poses for 42 unknowns): entries near 0 carry
+    # cond(F)·eps of the largest, and which BLAS kernels run moves them by ~1e-12 of it
+    np.testing.assert_allclose(updated, np.linalg.inv(F + U[15].T @ U[15]), rtol=1e-6, atol=1e-9 * np.abs(cov).max())
 
 
 def test_e_branch_and_bound_finds_the_exhaustive_best(platform):
@@ -125,7 +127,8 @@ def test_the_nominal_yardstick_takes_another_leg_models_own_priors():
 
     platform, noise = nim_stewart(), NoiseConfig()
     generic = replace(platform, drive=numpy_legs(platform.drive))
-    assert nominal_error(generic, noise) == nominal_error(platform, noise)
+    # field by field, NaN equal to NaN: the in-situ tracker has no registered error (NaN fields)
+    np.testing.assert_equal(nominal_error(generic, noise).to_dict(), nominal_error(platform, noise).to_dict())
 
 
 def test_a_motion_capture_plan_predicts_what_ls_then_reports_and_beats_as_many_random_poses():

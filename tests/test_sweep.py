@@ -466,7 +466,11 @@ def test_the_robust_filter_keeps_a_still_robot_still(tmp_path):
 
 #: Rows of prismatic ls tasks (cell id fixed, so the package version does not enter the draws), as the
 #: package computed them before a rotary drive could be swept, on x86-64 with one BLAS thread: another
-#: CPU's BLAS may round differently (docs/sweeps.md), the rows of this machine are today's to the bit.
+#: CPU's BLAS, and the JIT against the ahead-of-time kernels, round the 30-sample fit's last bits
+#: differently (docs/sweeps.md; the pose cell's rms_mm 2.4e-12 apart between an Intel and an AMD
+#: machine; the tracker cell's NEES, through the inverse of an ill-conditioned covariance, 1.2e-10 apart between
+#: the JIT and the ahead-of-time kernels), so they are held to :data:`TODAYS_REL`, far below any change of the method.
+TODAYS_REL = 1e-8
 TODAYS_ROWS = {
     "tracker": (
         {"samples": 30, "glitch_rate": 0.1, "stroke_scale_error": 0.01},
@@ -499,15 +503,15 @@ TODAYS_ROWS = {
 
 @pytest.mark.parametrize("case", TODAYS_ROWS)
 def test_a_prismatic_cell_is_todays(tmp_path, case):
-    """drive = "prismatic" (the default) draws, fits and scores as before the drive axis (to 1e-12);
+    """drive = "prismatic" (the default) draws, fits and scores as before the drive axis (to TODAYS_REL);
     giving it explicitly, or any rotary setting at its default, is the same cell (the same id)."""
     grid, scores, (dof, glitches) = TODAYS_ROWS[case]
     cell = spec_of({"methods": ["ls"], "seeds": 1, "grid": grid}, tmp_path).cells[0]
     (row,) = run_task(replace(cell, id="0123456789ab"), 3, ("ls",))
     assert row["drive"] == "prismatic" and row["failure"] == ""
-    # the scores as they were, to 1e-12 (another processor's BLAS may round the fit's last bits otherwise)
+    # the scores as they were, to TODAYS_REL (another processor's BLAS may round the fit's last bits otherwise)
     for name, value in scores.items():
-        assert row[name] == pytest.approx(float.fromhex(value), rel=1e-12, abs=1e-15), name
+        assert row[name] == pytest.approx(float.fromhex(value), rel=TODAYS_REL, abs=1e-15), name
     assert (row["nees_dof"], row["glitches"]) == (dof, glitches) and row["rms_deg"] is None
     explicit = {"drive": "prismatic", "horn_spread_mm": 0.2, "angle_sigma_deg": 0.05}
     assert spec_of({"methods": ["ls"], "seeds": 1, "grid": grid | explicit}, tmp_path).cells[0].id == cell.id
