@@ -164,8 +164,7 @@ def _noise_rms(platform: Platform, result: dict, sample: Log) -> tuple[float, fl
         return float(np.sqrt(3.0) * instrument.position_sigma_mm), float(
             np.sqrt(3.0) * np.degrees(instrument.orientation_sigma_rad)
         )
-    tracker = platform.tracker
-    assert tracker is not None  # the instrument is the in-situ tracker
+    tracker = platform.required_tracker("validate's noise of the in-situ tracker's readings")
     noise = {**dataclasses.asdict(NoiseConfig()), **result.get("config", {}).get("noise", {})}
     fk, _ = drive_model(platform).settled_kinematics(sample.strokes, sample.inputs, strict=False)
     R, t = fk.R[fk.converged], fk.t[fk.converged]
