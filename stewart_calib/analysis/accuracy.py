@@ -54,6 +54,7 @@ or for an outside instrument where the joints best fit their nominal positions,
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -510,12 +511,22 @@ def _against(band_mm: tuple[float, float], orientation_deg: float, tolerance_mm,
     return "over" if "over" in words else "not sure" if "not sure" in words else "within"
 
 
+class MeasuredError(NamedTuple):
+    """What a check measured of the robot's own error, beyond its instrument's noise: the position RMS
+    [mm] with its 90 % interval from the noise's spread over the rows, and the orientation RMS [deg]
+    (None where the instrument gives none)."""
+
+    position_mm: float
+    position_band_mm: tuple[float, float]
+    orientation_deg: float | None
+
+
 def verdict_line(
     prediction: PredictedError,
     tolerance_mm: float | None = None,
     tolerance_deg: float | None = None,
     measured: str | None = None,
-    measured_registered: tuple[float, float | None] | None = None,
+    measured_registered: MeasuredError | None = None,
 ) -> tuple[str, bool]:
     """The last line of ``calibrate`` and ``validate`` (and the top of their report): the expected
     error of the motion from home and of the absolute place in {J} over the workspace with their
@@ -524,13 +535,13 @@ def verdict_line(
 
     Args:
         measured: what a check measured, named in the line (``validate``).
-        measured_registered: ``(position RMS [mm], orientation RMS [deg] or None)`` a check measured
-            through an outside instrument's fitted frame and target(s), beyond the instrument's noise:
-            the error as the instrument sees it after registration, set beside its prediction's band
-            (the line says whether it lies in it). Over the tolerance, the motion is over it; within,
-            the prediction's word stands — the frame and target(s) absorb a rigid motion of {J} and the
-            targets' places in {D} (a rotation of {D} at home among them, which turns the motion's
-            position ``T_home⁻¹ T``), so the registered error is only part of the motion's
+        measured_registered: what a check measured through an outside instrument's fitted frame and
+            target(s), beyond the instrument's noise: the error as the instrument sees it after
+            registration, set beside its prediction's band (the line says whether the two intervals
+            meet). Surely over the tolerance (its interval's bottom above it), the motion is over it;
+            otherwise the prediction's word stands — the frame and target(s) absorb a rigid motion of
+            {J} and the targets' places in {D} (a rotation of {D} at home among them, which turns the
+            motion's position ``T_home⁻¹ T``), so the registered error is only part of the motion's
             (benchmarks.prediction).
     """
     m_low, m_high = prediction.motion_position_band_mm
@@ -551,8 +562,14 @@ def verdict_line(
         line += f"; {measured}"
     if measured_registered is not None and np.isfinite(prediction.registered_position_mm):
         r_low, r_high = prediction.registered_position_band_mm
-        seen_mm = measured_registered[0]
-        place = "within" if r_low <= seen_mm <= r_high else "above" if seen_mm > r_high else "below"
+        seen_low, seen_high = measured_registered.position_band_mm
+        place = (
+            "its interval meets"
+            if seen_low <= r_high and seen_high >= r_low
+            else "above"
+            if seen_low > r_high
+            else "below"
+        )
         line += f", {place} the predicted registered error's {BAND_PROBABILITY:.0%} band"
     if tolerance_mm is None and tolerance_deg is None:
         return line + "; give --tolerance-mm / --tolerance-deg to compare", False
@@ -560,8 +577,10 @@ def verdict_line(
         prediction.motion_position_band_mm, prediction.motion_orientation_deg, tolerance_mm, tolerance_deg
     )
     if measured_registered is not None:
-        rms_mm, rms_deg = measured_registered
-        seen = _against((rms_mm, rms_mm), rms_deg if rms_deg is not None else 0.0, tolerance_mm, tolerance_deg)
+        rms_deg = measured_registered.orientation_deg
+        seen = _against(
+            measured_registered.position_band_mm, rms_deg if rms_deg is not None else 0.0, tolerance_mm, tolerance_deg
+        )
         motion_word = "over" if seen == "over" else motion_word
     absolute_word = _against(prediction.position_band_mm, prediction.orientation_deg, tolerance_mm, tolerance_deg)
     tolerance = " / ".join(

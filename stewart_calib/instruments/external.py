@@ -114,6 +114,13 @@ class OutsideModel(InstrumentModel):
         position error (N,) [mm]; orientation error (N,) [deg], None where the kind gives none)``."""
 
     @abstractmethod
+    def error_weights(self, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Each reading component's weight in one row's squared errors of :meth:`prediction_errors`,
+        ``(position (N, m) [1], orientation (N, m) [deg²/rad²] or None where the kind gives none)``,
+        the components ``seen`` (N, m) read: a row's squared error is ``Σ_j w_j e_j²`` of its residual
+        ``e`` (validate's noise, :func:`~stewart_calib.workflows.validation.noise_squares`)."""
+
+    @abstractmethod
     def position_differences(self, readings: np.ndarray, predicted: np.ndarray) -> np.ndarray:
         """``(n, 3)`` measured minus predicted positions [mm]: one row a position read."""
 

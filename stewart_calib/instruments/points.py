@@ -356,6 +356,12 @@ class PointsModel(OutsideModel):
         seen = np.isfinite(readings.reshape(predicted.shape))
         return np.where(seen, predicted, np.nan).reshape(len(R_X), -1), errors(readings, predicted), None
 
+    def error_weights(self, seen: np.ndarray) -> tuple[np.ndarray, None]:
+        """A row's squared error is the mean over its targets seen of theirs (:func:`errors`)."""
+        targets = np.all(seen.reshape(len(seen), -1, 3), axis=-1)
+        per_target = 1.0 / np.maximum(targets.sum(axis=-1, keepdims=True), 1)
+        return np.repeat(np.where(targets, per_target, 0.0), 3, axis=-1), None
+
     def position_differences(self, readings: np.ndarray, predicted: np.ndarray) -> np.ndarray:
         """One row a target seen."""
         difference = (readings - predicted).reshape(-1, 3)

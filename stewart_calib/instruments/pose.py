@@ -303,6 +303,12 @@ class PoseModel(OutsideModel):
         position, orientation = errors(R_m, t_m, R_P, t_P)
         return rt_to_pose(R_P, t_P), position, orientation
 
+    def error_weights(self, seen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``‖t_P − t_m‖²`` of the residual's last three, the angle² [deg²] of its first three (small angles)."""
+        position = np.where(seen, np.r_[np.zeros(3), np.ones(3)], 0.0)
+        orientation = np.where(seen, np.r_[np.full(3, np.degrees(1.0) ** 2), np.zeros(3)], 0.0)
+        return position, orientation
+
     def position_differences(self, readings: np.ndarray, predicted: np.ndarray) -> np.ndarray:
         """One row a sample, in the instrument's axes."""
         return readings[:, :3] - predicted[:, :3]

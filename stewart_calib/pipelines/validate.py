@@ -28,18 +28,24 @@ from pathlib import Path
 import numpy as np
 
 from .. import io
-from ..analysis.accuracy import PredictedError, predicted_error, verdict_line
+from ..analysis.accuracy import BAND_PROBABILITY, MeasuredError, PredictedError, predicted_error, verdict_line
 from ..config import NoiseConfig
 from ..errors import CalibError
 from ..instruments import instrument_kind
 from ..io.platform_file import load_platform
-from ..model import kinematics as kin
 from ..model.drive import COMPLIANCE, drive_model
-from ..model.platform import LegGeometry, Platform
+from ..model.platform import Platform
 from ..progress import log_progress_bar
 from ..samples import Log
 from ..workflows.diagnosis import diagnose_log
-from ..workflows.validation import measurement_residuals, on_platform, pose_error_summary, validate
+from ..workflows.validation import (
+    NoiseSquares,
+    measurement_residuals,
+    noise_squares,
+    on_platform,
+    pose_error_summary,
+    validate,
+)
 from . import add_tolerance_arguments, handover, run_command
 
 
@@ -118,19 +124,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _verdict(args, platform: Platform, result: dict, position, orientation, sample: Log) -> tuple[str, bool]:
-    """The last line: what this check measured (and what the noise alone leaves at the poses of ``sample``,
-    the log or its first rows), with the result's expected errors, against the tolerance."""
-    position_noise_mm, orientation_noise_deg = _noise_rms(platform, result, sample)
-    measured = _measured_words(platform, position, orientation, position_noise_mm, orientation_noise_deg)
+    """The last line: what this check measured (and what the noise alone leaves in it, at the poses of
+    ``sample``, the log or its first rows), with the result's expected errors, against the tolerance."""
+    noise = result_noise(platform, result, sample, args.register_instrument, len(position))
+    measured, beyond = _measured_words(platform, position, orientation, noise)
     prediction = result_prediction(platform, result)
     if prediction is None:
         return f"verdict: {measured}; the result holds no prediction of its error elsewhere", True
-    registered = None
-    if instrument_kind(platform).outside:  # the robot's own error: what is left beyond the instrument's noise
-        registered = (
-            _beyond(_rms(position), position_noise_mm),
-            None if orientation is None else _beyond(_rms(orientation), orientation_noise_deg),
-        )
+    registered = beyond if instrument_kind(platform).outside else None  # the robot's own, as the instrument sees it
     return verdict_line(prediction, args.tolerance_mm, args.tolerance_deg, measured, registered)
 
 
@@ -154,57 +155,44 @@ def _rms(values) -> float:
     return float(np.sqrt(np.nanmean(np.asarray(values) ** 2)))
 
 
-def _noise_rms(platform: Platform, result: dict, sample: Log) -> tuple[float, float]:
-    """The RMS position [mm] and orientation [deg] error the noise alone leaves in a row: an outside
-    instrument's ‖3 coordinates of σ each‖ (a pose instrument's rotation angle likewise); the in-situ
-    tracker's forward kinematics of readings of σ_s beside the drive's of strokes of σ_q (the result's
-    ``[noise]``, first order: ``σ² (JᵀJ)⁻¹`` each) at the poses of ``sample``."""
-    if instrument_kind(platform).outside:
-        instrument = platform.instrument
-        return float(np.sqrt(3.0) * instrument.position_sigma_mm), float(
-            np.sqrt(3.0) * np.degrees(instrument.orientation_sigma_rad)
-        )
-    tracker = platform.required_tracker("validate's noise of the in-situ tracker's readings")
+def result_noise(
+    platform: Platform, result: dict, sample: Log, register: bool, rows: int
+) -> tuple[NoiseSquares, NoiseSquares | None]:
+    """:func:`~stewart_calib.workflows.validation.noise_squares` of a check of ``rows`` rows, the
+    in-situ tracker's readings and strokes of the result's ``[noise]`` σ (an outside instrument's
+    are the platform file's)."""
     noise = {**dataclasses.asdict(NoiseConfig()), **result.get("config", {}).get("noise", {})}
-    fk, _ = drive_model(platform).settled_kinematics(sample.strokes, sample.inputs, strict=False)
-    R, t = fk.R[fk.converged], fk.t[fk.converged]
-    if not len(R):
-        return 0.0, 0.0
-    covariance = kin.pose_covariance_from_legs(tracker, R, t, noise["reading_sigma_mm"])
-    if isinstance(platform.drive, LegGeometry):  # a servo's angle noise is the drive model's own (spec §15)
-        covariance = covariance + kin.pose_covariance_from_legs(platform.drive, R, t, noise["stroke_sigma_mm"])
-    position = np.trace(covariance[:, 3:, 3:], axis1=-2, axis2=-1)
-    rotation = np.trace(covariance[:, :3, :3], axis1=-2, axis2=-1)
-    return float(np.sqrt(np.mean(position))), float(np.degrees(np.sqrt(np.mean(rotation))))
-
-
-def _beyond(rms: float, noise_rms: float) -> float:
-    """What an RMS error holds beyond independent noise of RMS ``noise_rms`` (in quadrature; 0 where the
-    noise explains it all)."""
-    return float(np.sqrt(max(rms**2 - noise_rms**2, 0.0)))
+    return noise_squares(platform, result, sample, register, rows, noise["reading_sigma_mm"], noise["stroke_sigma_mm"])
 
 
 def _measured_words(
-    platform: Platform, position_mm: np.ndarray, orientation_deg, noise_mm: float, noise_deg: float
-) -> str:
+    platform: Platform, position_mm: np.ndarray, orientation_deg, noise: tuple[NoiseSquares, NoiseSquares | None]
+) -> tuple[str, MeasuredError]:
     """What this check measured, named: through an outside instrument's fitted frame and target(s) the
     error as the instrument sees it after registration (they absorb a rigid motion of {J} and the
-    targets' places in {D}), through the in-situ tracker the absolute place:
-    the rows' RMS and, beyond the noise (:func:`_noise_rms`), the robot's own — which the verdict holds
-    against the tolerance where an outside instrument measured it."""
-    what = (
-        "error as the instrument sees it after registration"
-        if instrument_kind(platform).outside
-        else "absolute place in {J}"
-    )
+    targets' places in {D}), through the in-situ tracker the absolute place: the rows' RMS and, beyond
+    the noise (:func:`result_noise`), the robot's own with its 90 % interval from the noise's spread over
+    the rows — which the verdict holds against the tolerance where an outside instrument measured it."""
+    outside = instrument_kind(platform).outside
+    what = "error as the instrument sees it after registration" if outside else "absolute place in {J}"
     text = f"validate measured the {what}: position RMS {_rms(position_mm):.3g} mm"
     if orientation_deg is not None:
         text += f" / {_rms(orientation_deg):.3g}°"
-    beyond = f"{_beyond(_rms(position_mm), noise_mm):.3g} mm"
-    if orientation_deg is not None:
-        beyond += f" / {_beyond(_rms(orientation_deg), noise_deg):.3g}°"
-    what = "instrument's" if instrument_kind(platform).outside else "tracker's and the strokes'"
-    return text + f" (the {what} noise alone leaves {noise_mm:.3g} mm; beyond it {beyond})"
+    position_noise, orientation_noise = noise
+    own_mm, band_mm = position_noise.beyond(_rms(position_mm), BAND_PROBABILITY)
+    beyond = f"{own_mm:.3g} mm ({BAND_PROBABILITY:.0%}: {band_mm[0]:.3g}–{band_mm[1]:.3g} mm)"
+    own_deg = None
+    if orientation_deg is not None and orientation_noise is not None:
+        own_deg, band_deg = orientation_noise.beyond(_rms(orientation_deg), BAND_PROBABILITY)
+        beyond += f" / {own_deg:.3g}° ({BAND_PROBABILITY:.0%}: {band_deg[0]:.3g}–{band_deg[1]:.3g}°)"
+    noise_words = f"{position_noise.rms:.3g} mm"
+    if orientation_deg is not None and orientation_noise is not None:
+        noise_words += f" / {orientation_noise.rms:.3g}°"
+    source = "instrument's" if outside else "tracker's and the strokes'"
+    return (
+        text + f" (the {source} noise alone leaves {noise_words}; beyond it {beyond})",
+        MeasuredError(own_mm, band_mm, own_deg),
+    )
 
 
 def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray) -> str:

@@ -15,16 +15,18 @@ import collections
 import concurrent.futures
 import math
 from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 from typing import TypeVar
 
 import numpy as np
+from scipy import stats
 
 from .. import io
 from ..errors import CalibError, number
 from ..instruments import instrument_kind
 from ..model import kinematics as kin
 from ..model.drive import tracker_reading_residuals
-from ..model.platform import Platform
+from ..model.platform import LegGeometry, Platform
 from ..samples import Log
 
 
@@ -128,6 +130,114 @@ def validate(
     if register:
         unknowns = model.refit_frame(unknowns, R_X, t_X, log.readings)
     return model.prediction_errors(unknowns, R_X, t_X, log.readings)
+
+
+@dataclass(frozen=True)
+class NoiseSquares:
+    """What the noise alone adds to the mean square of a check's errors over its rows — position
+    [mm²] or orientation [deg²] — and how it spreads: the mean square measured is ``B + mean``, ``B``
+    the robot's own, with variance ``variance + cross · B`` (the noise's own square, then its product
+    with the robot's error, spread evenly over the rows)."""
+
+    mean: float
+    variance: float
+    cross: float
+
+    @property
+    def rms(self) -> float:
+        """The RMS the noise alone leaves [mm or deg]."""
+        return math.sqrt(self.mean)
+
+    def beyond(self, rms: float, probability: float) -> tuple[float, tuple[float, float]]:
+        """The robot's own RMS in a measured ``rms`` (in quadrature; 0 where the noise explains it all)
+        and its two-sided ``probability`` interval from the noise's spread over the rows (normal in the
+        mean square: many rows)."""
+        own = rms**2 - self.mean
+        spread = float(stats.norm.ppf(0.5 + probability / 2)) * math.sqrt(self.variance + self.cross * max(own, 0.0))
+        return math.sqrt(max(own, 0.0)), (math.sqrt(max(own - spread, 0.0)), math.sqrt(max(own + spread, 0.0)))
+
+
+#: the rows of a log whose poses the noise's statistics are computed at (a long log's start stands for
+#: it: they scale to its length)
+NOISE_ROWS = 2000
+
+
+def noise_squares(
+    platform: Platform,
+    result: dict,
+    log: Log,
+    register: bool,
+    rows: int,
+    reading_sigma_mm: float,
+    stroke_sigma_mm: float,
+) -> tuple[NoiseSquares, NoiseSquares | None]:
+    """What the noise alone adds to :func:`validate`'s mean squared position [mm²] and orientation
+    [deg²] errors (None where the instrument gives none) over a log of ``rows`` rows whose first are
+    ``log``'s, to first order.
+
+    Through an outside instrument its readings' residual ``e = (I − H) n`` (``n`` the noise of σ_j a
+    component, ``H`` the hat matrix of the frame fitted again with ``register``, else 0 — the frame the
+    calibration fitted is the result's, its error part of the result's prediction): the mean square
+    ``eᵀ W e`` (``W`` :meth:`~stewart_calib.instruments.external.OutsideModel.error_weights` over the
+    rows) has mean ``tr((I − H) D)`` and variance ``2 tr(((I − H) D)²)``, ``D = diag(σ² W)``; the fit
+    absorbs 6 of the noise's degrees of freedom, a share of each row's. Through the in-situ tracker
+    each row's position (and orientation) noise is its forward kinematics' of readings of
+    ``reading_sigma_mm`` beside the drive's of strokes of ``stroke_sigma_mm`` (a servo's angle noise is
+    the drive model's own, spec §15): ``σ² (JᵀJ)⁻¹`` each, the 3 × 3 blocks ``P`` of a row, mean
+    ``tr P``, variance ``2 tr P²``. The statistics are taken at the first :data:`NOISE_ROWS` rows'
+    poses and scaled to ``rows`` (the fit's leverage ``H`` inversely with them).
+
+    Raises:
+        CalibError: as :func:`validate` (forward kinematics of the calibrated model).
+    """
+    sample = log.select(slice(0, NOISE_ROWS))
+    n, scale = len(sample), len(sample) / rows  # ``scale``: a row's share of the log, against the sample's
+    R_X, t_X = _model_poses(platform, result, sample, "result")
+    legs = instrument_kind(platform).reading_legs(platform)
+    if legs is not None:
+        covariance = kin.pose_covariance_from_legs(legs, R_X, t_X, reading_sigma_mm)
+        if isinstance(platform.drive, LegGeometry):
+            covariance = covariance + kin.pose_covariance_from_legs(platform.drive, R_X, t_X, stroke_sigma_mm)
+        blocks = (covariance[:, 3:, 3:], np.degrees(1.0) ** 2 * covariance[:, :3, :3])
+        return tuple(  # type: ignore[return-value]
+            NoiseSquares(
+                float(np.mean(np.trace(P, axis1=-2, axis2=-1))),
+                2.0 * scale * float(np.mean(np.einsum("nij,nji->n", P, P))) / n,
+                4.0 * scale * float(np.mean(np.trace(P, axis1=-2, axis2=-1))) / (3.0 * n),
+            )
+            for P in blocks
+        )
+
+    from ..instruments import outside_model
+
+    model = outside_model(platform)
+    values = _block(result, "instrument", model.unknown_names, "result")
+    unknowns = model.nominal_unknowns() if values is None else model.unknowns_from_file(values)
+    e, _, H_u = model.readings_residual(unknowns, sample.readings, R_X, t_X, jacobians=register)
+    seen = np.isfinite(e)
+    sigma = np.broadcast_to(model.channel_sigma, e.shape)[seen]
+    leverage = np.zeros_like(sigma)
+    if register:  # the frame's hat matrix, its leverage on the whole log's rows a row's share of the sample's
+        A = (H_u[..., :6] / model.channel_sigma[:, None])[seen]
+        G_inv = np.linalg.inv(A.T @ A)
+        leverage = scale * np.einsum("ji,ik,jk->j", A, G_inv, A)
+
+    def squares(weights: np.ndarray) -> NoiseSquares:
+        w = weights[seen] / n
+        D = sigma**2 * w
+        hat = 0.0
+        if register:
+            B = A.T @ (D[:, None] * A)
+            hat = scale**2 * float(np.trace(G_inv @ B @ G_inv @ B))
+        variance = 2.0 * (scale * np.sum(D**2) - 2.0 * scale * np.sum(leverage * D**2) + hat)
+        return NoiseSquares(
+            float(np.sum(D * (1.0 - leverage))),
+            float(variance),
+            4.0 * scale * float(np.sum(w**2 * sigma**2) / np.sum(w)),
+        )
+
+    position, orientation = model.error_weights(seen)
+    return squares(position), None if orientation is None else squares(orientation)
 
 
 def pose_errors(platform: Platform, result: dict, log, register: bool, source: str = "result") -> np.ndarray:
