@@ -74,7 +74,9 @@ class OpcUaController:
         self._call(self._setup())
 
     def _call(self, coroutine):
-        return asyncio.run_coroutine_threadsafe(coroutine, self._loop).result(timeout=30)
+        # longer than a handshake's own wait for the poll (_drained, 60 s): on a loaded machine that wait
+        # decides, with its own error, not this one's bare TimeoutError
+        return asyncio.run_coroutine_threadsafe(coroutine, self._loop).result(timeout=90)
 
     def node(self, name: str) -> str:
         return f"ns={self.ns};s={name}"
