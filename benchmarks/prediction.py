@@ -357,8 +357,8 @@ def run_seed(name: str, elastic: bool, seed: int, work: Path, poses: int) -> dic
     planned = _run(["plan", "--platform", platform_path, "--n", poses, "--out", work / "plan.csv", "--seed", seed])
     (work / "p.toml").write_text(experiment_text(setup, elastic, seed, poses, planned=True))
     _run(["simulate", "--experiment", work / "p.toml", "--out", work / "planned"])
-    # the in-situ tracker's plan keeps no margin from its reading range: a true robot off its nominal
-    # reads beyond it at some planned poses (the simulated tracker then reads nothing), rows a user skips
+    # a true robot off its nominal may still read beyond the tracker's range at a planned pose (plan's
+    # margin covers a robot built within the prior; the simulated tracker then reads nothing), rows a user skips
     _run(
         [
             "calibrate",
@@ -437,11 +437,11 @@ def _why(label: str, runs: list[dict]) -> dict[str, str]:
         planned = _ratio(runs, "planned", "plan", "absolute"), _ratio(runs, "planned", "plan", "motion")
         skipped = sum(r["planned_rows_skipped"] for r in runs)
         ls = (
-            "calibrate --method ls with the in-situ tracker is the paper's pose-form least squares (the tracker's "
-            "FK poses, rotations weighed by 300 mm), not the leg-length maximum likelihood whose Cramér–Rao "
-            f"bound plan and identifiability state: on plan's A-optimal poses its own covariance predicts "
-            f"{planned[0]:.2g}× / {planned[1]:.2g}× the bound's error (absolute / motion), on random poses "
-            "near 1 (the calibrate ÷ identifiability row)"
+            "calibrate --method ls with the in-situ tracker whitens each pose's rows by the readings' and strokes' "
+            "noise (generalised least squares, the leg-length maximum likelihood to first order, whose Cramér–Rao "
+            f"bound plan and identifiability state): on plan's poses its own covariance predicts {planned[0]:.2g}× / "
+            f"{planned[1]:.2g}× the bound's error (absolute / motion), the bound's own to the data's noise scale s "
+            "(its spread over 6·60 − 42 residual degrees of freedom: ±4 %)"
         )
         over = {
             command: [
@@ -453,9 +453,9 @@ def _why(label: str, runs: list[dict]) -> dict[str, str]:
             **_validate_why(runs),
             "calibrate's 90 % band": (
                 f"the truth is {over['calibrate'][0]:.2f}× / {over['calibrate'][1]:.2f}× calibrate's expected error "
-                "(median, absolute / motion); ls's covariance with the tracker is the sandwich of its weighted "
-                "pose-form fit on the readings' and strokes' noise through forward kinematics, exact to first "
-                "order (tests/test_ls.py draws it), so a band missed in more than one seed in ten is the band's "
+                "(median, absolute / motion); ls's covariance with the tracker is that of its fit whitened by the "
+                "readings' and strokes' noise through forward kinematics, exact to first order (tests/test_ls.py "
+                "draws it), so a band missed in more than one seed in ten is the band's "
                 "own spread over ten seeds or the prediction's mean over the workspace against the truth's."
             ),
             "identifiability's 90 % band": (
@@ -465,9 +465,9 @@ def _why(label: str, runs: list[dict]) -> dict[str, str]:
             ),
             "÷ plan": ls + ".",
             "plan's 90 % band": (
-                f"the truth is that of {ls}; and plan keeps no margin from the tracker's reading range (it does "
-                f"from an outside instrument's stroke range): {skipped} planned pose(s) over the seeds read "
-                "beyond it on the true robot and were skipped."
+                f"the truth is that of {ls}; plan keeps the tracker's readings inside their range by twice the "
+                f"spread a robot built within the prior puts on them, and {skipped} planned pose(s) over the seeds "
+                "read beyond it on the true robot and were skipped."
             ),
         }
     identified = _ratio(runs, "identifiability", "calibrate", "absolute")

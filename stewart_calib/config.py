@@ -69,10 +69,17 @@ class LSConfig:
             lengths to 1e-9 mm, which puts a ~1e-8 mm noise floor under the step (× the
             conditioning), so much tighter values never converge on inconsistent data.
         max_iterations: Gauss–Newton iteration cap.
-        rotation_weight_mm: the rotation rows of ``δE`` [rad] are multiplied by this length
-            [mm] so that both halves of the residual are in mm and weigh alike (about the
-            platform radius; it also lowers the condition number ~4×, docs/measured-facts.md).
-            1.0 is the paper's unweighted form.
+        weighting: how the in-situ tracker's pose rows ``P_v − P_m`` are weighed. ``noise``:
+            each sample's six rows whitened by their covariance, the readings' and strokes' noise
+            (``[noise]``) through both forward kinematics — generalised least squares, the
+            maximum-likelihood fit to first order, at the Cramér–Rao bound that ``identifiability``
+            and ``plan`` predict. ``paper``: the paper's pose-form fit, the rotation rows scaled by
+            ``rotation_weight_mm`` (the paper reproduction's ``configs/estimators/paper.toml``); on
+            planned poses it leaves 1.3–1.4× the bound's error.
+        rotation_weight_mm: with ``weighting = "paper"``, the rotation rows of ``δE`` [rad] are
+            multiplied by this length [mm] so that both halves of the residual are in mm and weigh
+            alike (about the platform radius; it also lowers the condition number ~4×,
+            docs/measured-facts.md). 1.0 is the paper's unweighted form.
         robust_k: instruments outside the robot (spec §7): Huber threshold on a reading's RMS
             whitened residual [σ]; 0 = plain least squares. At 3 σ a Gaussian reading is almost
             never down-weighted (RMS of 6 normals > 3: p ≈ 1e-11), a glitch is; a reading 4× past
@@ -86,6 +93,7 @@ class LSConfig:
 
     tolerance_mm: float = 1e-7
     max_iterations: int = 20
+    weighting: str = "noise"
     rotation_weight_mm: float = 300.0
     robust_k: float = 3.0
     estimate_noise: bool = True
@@ -222,6 +230,7 @@ class EstimatorConfig:
 
 _CHOICES = {
     ("ls", "stroke_scale"): ("auto", "on", "off"),
+    ("ls", "weighting"): ("noise", "paper"),
     ("paper_ekf", "angle_unit"): ("rad", "deg"),
     ("isam2", "coupling"): ("tight", "loose"),
     ("isam2", "robust"): ("none", "huber", "cauchy"),

@@ -61,7 +61,7 @@ def test_ls_in_chunks_is_the_fit_in_one(monkeypatch):
     assert np.all(np.abs(chunked.error - whole.error) <= 1e-6 * sigma)
     np.testing.assert_allclose(chunked.singular_values, whole.singular_values, rtol=1e-9)
     np.testing.assert_allclose(np.sqrt(np.diag(chunked.covariance)), sigma, rtol=1e-9)
-    assert chunked.residual_rms_mm == pytest.approx(whole.residual_rms_mm, rel=1e-9)
+    assert chunked.residual_rms == pytest.approx(whole.residual_rms, rel=1e-9)
 
 
 def test_lm_on_a_log_beyond_the_memory_available_is_refused_before_it_starts(tmp_path, capsys, monkeypatch):

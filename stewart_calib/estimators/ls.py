@@ -5,18 +5,23 @@ model ``M + δM`` gives ``P_m`` (FK of the executed strokes). Stacking ``J_p`` o
 samples and solving for the step is one Gauss–Newton iteration; it is repeated at the
 updated model until the step is below ``ls.tolerance_mm``.
 
-Rotation rows [rad] are scaled by ``ls.rotation_weight_mm`` so the stacked residual is in
-mm throughout. The weighting is the paper's, not the noise's: a sample's six pose rows are neither
-independent nor of one variance (``P_v`` is the FK of six tracker readings, ``P_m`` of six noisy
-strokes), so the covariance is the sandwich of this weighted fit,
-``s² (AᵀA)⁻¹ (Σ_k A_kᵀ S_k A_k) (AᵀA)⁻¹`` with ``A`` the weighted stacked Jacobian and ``S_k = W Σ_k W``
-the weighted pose noise of sample k, ``Σ_k = σ_z² G_v G_vᵀ + σ_q² G_m G_mᵀ`` (``G`` the pose's
-sensitivity to the six readings at ``P_v`` and to the six strokes at ``P_m``, the ``l_i`` columns of
-``J_p``; :class:`PoseNoise`). ``s²`` is the data's own noise scale on the told σ's:
+A sample's six pose rows are neither independent nor of one variance (``P_v`` is the FK of six
+tracker readings, ``P_m`` of six noisy strokes): their noise is ``Σ_k = σ_z² G_v G_vᵀ + σ_q² G_m G_mᵀ``
+(``G`` the pose's sensitivity to the six readings at ``P_v`` and to the six strokes at ``P_m``, the
+``l_i`` columns of ``J_p``; :class:`PoseNoise`). ``ls.weighting`` says how the rows are weighed
+(:func:`pose_weights`): ``noise`` (the default) whitens each sample's rows by ``Σ_k`` — generalised
+least squares, the maximum-likelihood fit of the readings and strokes to first order, whose
+covariance is the leg-length form's Cramér–Rao bound that ``identifiability`` and ``plan`` state;
+``paper`` is the paper's own weighting, the rotation rows [rad] scaled by ``ls.rotation_weight_mm`` so
+the stacked residual is in mm throughout, which on planned (A-optimal) poses leaves 1.3–1.4× the bound's
+error. Either way the covariance is the sandwich of the weighted fit,
+``s² (AᵀA)⁻¹ (Σ_k A_kᵀ S_k A_k) (AᵀA)⁻¹`` with ``A`` the weighted stacked Jacobian and ``S_k = W_k Σ_k W_kᵀ``
+the weighted pose noise of sample k (the identity where ``W_k`` whitens, and the sandwich
+``(AᵀA)⁻¹``). ``s²`` is the data's own noise scale on the told σ's:
 ``‖b − A δ‖² / (Σ_k tr S_k − tr((AᵀA)⁻¹ Σ_k A_kᵀ S_k A_k))``, the residual over its expectation at
-``s = 1``. ``σ̂² (AᵀA)⁻¹``, which takes the rows as independent of one variance, is 1.1–1.4× too
-confident with the paper's tracker. It is None when the system is rank deficient (too few or too poor
-poses); ``singular_values`` says which.
+``s = 1``. With the paper's weighting ``σ̂² (AᵀA)⁻¹``, which takes the rows as independent of one
+variance, is 1.1–1.4× too confident with the paper's tracker. The covariance is None when the system
+is rank deficient (too few or too poor poses); ``singular_values`` says which.
 
 The paper's LS takes every sample in, gross errors too (a glitched reading off by millimetres moves
 the whole fit), where ``ekf``, ``isam2`` and ``lm`` gate them. It stays the paper's baseline, and says
@@ -66,7 +71,8 @@ CHUNK_SAMPLES = 4096
 
 @dataclass(frozen=True)
 class PoseNoise:
-    """The noise of ``P_v − P_m`` that :func:`gauss_newton`'s covariance carries (not its weighting).
+    """The noise of ``P_v − P_m`` that :func:`gauss_newton`'s covariance carries (and, with
+    ``ls.weighting = "noise"``, its weighting).
 
     Attributes:
         tracker: the tracker's legs, whose readings' FK is ``P_v``.
@@ -89,16 +95,18 @@ class LSSolution:
         covariance: ``(size, size)``, the sandwich of the weighted fit (module docstring), or None
             when rank deficient.
         singular_values: ``(min(6N, size),)`` of the weighted stacked ``J_p`` at the solution,
-            descending [mm / mm]; their ratio is the conditioning of the identification.
+            descending (the paper's weighting: [mm / mm]; the noise's: [1 / mm]); their ratio is the
+            conditioning of the identification.
         iterations: Gauss–Newton iterations taken.
-        residual_rms_mm: RMS of the weighted stacked residual at the solution [mm].
+        residual_rms: RMS of the weighted stacked residual at the solution (the paper's weighting:
+            [mm]; the noise's: in σ, near 1 where the noise is as told).
     """
 
     error: np.ndarray
     covariance: np.ndarray | None
     singular_values: np.ndarray
     iterations: int
-    residual_rms_mm: float
+    residual_rms: float
 
 
 def gauss_newton(
@@ -111,14 +119,16 @@ def gauss_newton(
     drive: DriveModel | None = None,
     channels: Mapping[str, np.ndarray] | None = None,
 ) -> LSSolution:
-    """Iterated least squares ``min Σ_k ‖W (P_v,k − P_m,k(x))‖²`` (paper eq. 9–11).
+    """Iterated least squares ``min Σ_k ‖W_k (P_v,k − P_m,k(x))‖²`` (paper eq. 9–11; ``W_k``:
+    :func:`pose_weights`).
 
     Args:
         nominal: nominal drive legs M (prismatic: the paper's error Jacobian ``J_p``).
         strokes: ``(N, n_legs)`` executed strokes [mm] (with ``drive``: as logged).
         R_v, t_v: ``(N, 3, 3)``, ``(N, 3)`` measured poses P_v.
-        config: tolerance, iteration cap, rotation weight.
-        noise: the readings' and strokes' noise, which the covariance carries through both FKs.
+        config: tolerance, iteration cap, weighting (and the paper's rotation weight).
+        noise: the readings' and strokes' noise, which the covariance (and the noise's weighting)
+            carries through both FKs.
         drive: the drive model whose extensions the strokes go through, its unknown terms fitted
             with δM (an extension enters ``P_m`` as the leg's initial length does, so their columns
             are ``J_p``'s ``l_i`` columns times ``∂e_i/∂v``); an elastic drive's leg forces are taken
@@ -128,7 +138,6 @@ def gauss_newton(
     Raises:
         CalibError: the model's FK fails (the iteration diverged) or no convergence.
     """
-    weight = np.r_[np.ones(3), np.full(3, config.rotation_weight_mm)]
     n_params = nominal.n_params
     per_leg = n_params // nominal.n_legs  # a leg's parameters, its initial length the last
     size = n_params if drive is None else drive.size
@@ -140,7 +149,7 @@ def gauss_newton(
             legs = nominal.perturbed(error[:n_params])
             factor = np.zeros((0, size + 1))  # the triangular factor of [A | b] over the chunks so far
             meat = np.zeros((size, size))  # Σ_k A_kᵀ S_k A_k, S_k the weighted pose noise of sample k
-            noise_trace = 0.0  # Σ_k tr S_k [mm²]
+            noise_trace = 0.0  # Σ_k tr S_k
             for chunk in range(0, n, CHUNK_SAMPLES):
                 rows = slice(chunk, min(n, chunk + CHUNK_SAMPLES))
                 lengths, inputs = strokes[rows], None
@@ -152,20 +161,19 @@ def gauss_newton(
                 if not np.all(sol.converged):
                     raise CalibError(f"ls: model forward kinematics failed at iteration {iteration}; the fit diverged")
                 R_m[rows], t_m[rows] = sol.R, sol.t
-                b = (pose_difference(R_v[rows], t_v[rows], sol.R, sol.t) * weight).reshape(-1)
                 J_p = kin.error_jacobian(legs, sol.R, sol.t)
+                # the pose's sensitivities to readings and strokes: a leg's length change moves a pose
+                # as its initial length l_i does; the strokes' through the drive's extensions is taken
+                # at its unit gain (stroke scales are 1 to ~1e-3)
+                readings_k = noise.reading_sigma_mm * _length_columns(noise.tracker, R_v[rows], t_v[rows])
+                strokes_k = noise.stroke_sigma_mm * J_p[..., per_leg - 1 : n_params : per_leg]
+                W_k = pose_weights(config, readings_k, strokes_k)
+                b = (W_k @ pose_difference(R_v[rows], t_v[rows], sol.R, sol.t)[..., None]).reshape(-1)
                 if drive is not None and inputs is not None and size > n_params:
                     extension = J_p[..., per_leg - 1 :: per_leg] @ drive.extension_jacobian(inputs)
                     J_p = np.concatenate([J_p, extension], -1)
-                A_k = J_p * weight[:, None]
-                # the weighted pose's sensitivities to readings and strokes: a leg's length change
-                # moves a pose as its initial length l_i does; the strokes' through the drive's
-                # extensions is taken at its unit gain (stroke scales are 1 to ~1e-3)
-                readings_k = (
-                    noise.reading_sigma_mm * weight[:, None] * _length_columns(noise.tracker, R_v[rows], t_v[rows])
-                )
-                strokes_k = noise.stroke_sigma_mm * weight[:, None] * J_p[..., per_leg - 1 : n_params : per_leg]
-                for G in (readings_k, strokes_k):
+                A_k = W_k @ J_p
+                for G in (W_k @ readings_k, W_k @ strokes_k):
                     carried = (np.swapaxes(G, -1, -2) @ A_k).reshape(-1, size)
                     meat += carried.T @ carried
                     noise_trace += float(np.sum(G**2))
@@ -191,6 +199,21 @@ def gauss_newton(
         expected_residual2 = noise_trace - float(np.sum(bread * meat))  # E‖b − Aδ‖² at s = 1
         covariance = residual2 / expected_residual2 * sandwich
     return LSSolution(error, covariance, s, iteration, float(np.sqrt(residual2 / (6 * n))))
+
+
+def pose_weights(config: LSConfig, readings: np.ndarray, strokes: np.ndarray) -> np.ndarray:
+    """``(N, 6, 6)`` the weights ``W_k`` of each sample's pose rows ``P_v − P_m``.
+
+    ``readings``, ``strokes``: ``(N, 6, n_legs)`` the pose's sensitivities to the readings and to the
+    strokes, each times its σ [mm], so that the pose noise is ``Σ_k = G_v G_vᵀ + G_m G_mᵀ``.
+    ``ls.weighting = "noise"``: ``W_k = L_k⁻¹`` with ``Σ_k = L_k L_kᵀ`` (each sample's rows whitened);
+    ``"paper"``: the paper's ``diag(1, 1, 1, w, w, w)``, ``w = ls.rotation_weight_mm``.
+    """
+    if config.weighting == "paper":
+        weight = np.r_[np.ones(3), np.full(3, config.rotation_weight_mm)]
+        return np.broadcast_to(np.diag(weight), (len(readings), 6, 6))
+    pose_noise = readings @ np.swapaxes(readings, -1, -2) + strokes @ np.swapaxes(strokes, -1, -2)
+    return np.linalg.inv(np.linalg.cholesky(pose_noise))
 
 
 def _length_columns(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:

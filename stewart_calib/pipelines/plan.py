@@ -28,6 +28,7 @@ from ..workflows.planning import (
     extreme_poses,
     plan_poses,
     plan_warning,
+    reading_margin_mm,
     with_stroke_margin,
 )
 from . import add_config_arguments, positive_number, run_command
@@ -121,6 +122,9 @@ def run(args: argparse.Namespace) -> int:
         if bounds is not None and narrowed is not None:
             what = "strokes" if unit == "mm" else "angles"
             extremes += f"; {what} {narrowed[0] - bounds[0]:.3g} {unit} inside the range, for the true robot's offsets"
+    reading_margin = reading_margin_mm(platform, noise)
+    if reading_margin is not None:
+        extremes += f"; tracker readings {reading_margin:.3g} mm inside their range, for the true robot's offsets"
     print(
         f"planned {len(poses)} poses ({criterion} from {args.candidates} candidates{extremes}, {elapsed_s:.2f} s) "
         f"-> {args.out}"

@@ -35,11 +35,19 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..analysis.accuracy import PredictedError, error_weight, predicted_error, reachable_poses, within_ranges
+from ..analysis.accuracy import (
+    PredictedError,
+    closed_loop_jacobian,
+    error_weight,
+    predicted_error,
+    reachable_poses,
+    within_ranges,
+)
 from ..analysis.identifiability import RANK_RTOL, scaled_paper_jacobian, whitened_leg_jacobian
 from ..config import NoiseConfig
 from ..errors import CalibError
 from ..instruments import instrument_kind, outside_model
+from ..model import kinematics as kin
 from ..model.platform import LegGeometry, Platform
 from ..model.rotary import RotaryLegs
 
@@ -72,6 +80,13 @@ RIDGE_REL = 1e-6
 #: 2 %): 21–23 of 60 poses planned at the nominal limits out of range, the fit then at 1.3–1.6×
 #: the plan's prediction.
 STROKE_MARGIN_SIGMAS = 2.0
+
+#: The in-situ tracker's readings keep as many σ of the spread the true robot's offsets put on them
+#: inside the reading range (:func:`with_reading_margin`): the true robot reaches another pose for the
+#: nominal strokes, and a planned pose whose nominal readings sit at the range's end reads beyond it
+#: about half the time. Measured (benchmarks.prediction, nim-stewart, parameters off by σ 0.5 mm,
+#: 10 seeds of 60 planned poses, no margin): 5–7 poses read beyond the range and were skipped.
+READING_MARGIN_SIGMAS = STROKE_MARGIN_SIGMAS
 
 #: Candidates are drawn denser near the faces of the workspace box, where optimal designs put
 #: their poses (the legs' directions spread most there); every candidate stays inside the box.
@@ -376,12 +391,43 @@ def _margin(prior_sigma: float, width: float) -> float:
     return min(STROKE_MARGIN_SIGMAS * prior_sigma, 0.25 * width)
 
 
-def nominal_error(platform: Platform, noise: NoiseConfig) -> PredictedError:
-    """What the nominal model is expected to leave, for a robot built within the prior: the
-    predicted error (:func:`~stewart_calib.analysis.accuracy.predicted_error`) of the prior covariance —
-    ``noise.prior_sigma_mm`` on each δM (another leg model's own ``prior_sigmas``: a servo's angles
-    in rad) and, with an outside instrument, the stroke scale's prior σ
-    (:func:`~stewart_calib.model.drive.drive_model`'s) — the yardstick a plan must clearly beat."""
+def with_reading_margin(platform: Platform, noise: NoiseConfig) -> Platform:
+    """The platform whose in-situ tracker's reading range is :func:`reading_margin_mm` narrower at each
+    end (unchanged without a tracker or a reading range): where plan puts the tracker's poses."""
+    margin = reading_margin_mm(platform, noise)
+    if margin is None or platform.reading_range is None:
+        return platform
+    low, high = platform.reading_range
+    return replace(platform, reading_range=(low + margin, high - margin))
+
+
+def reading_margin_mm(platform: Platform, noise: NoiseConfig) -> float | None:
+    """:data:`READING_MARGIN_SIGMAS` σ [mm], at most a quarter of the reading range; None without a
+    tracker or a reading range. σ is the largest spread of a reading over the box's
+    :func:`extreme_poses`, where the range binds, for a robot built within its prior: the pose the
+    robot reaches for the nominal strokes moves by ``D δθ`` (``closed_loop_jacobian``, δθ under the
+    prior of :func:`prior_sigmas`), which moves reading i by row i of ``J_t D δθ`` (``J_t`` the
+    tracker's leg–pose Jacobian); the tracker's own geometry (``[tracker] geometry_sigma_mm``, else
+    ``noise.tracker_geometry_sigma_mm``) moves it by ``√3 σ_g`` besides (its two joints along the leg,
+    its zero)."""
+    if platform.tracker is None or platform.reading_range is None:
+        return None
+    poses = extreme_poses(platform)
+    R, t = kin.pose_to_rt(poses)
+    sigma = prior_sigmas(platform, noise)
+    carried = kin.leg_pose_jacobian(platform.tracker, R, t) @ closed_loop_jacobian(platform, poses)[..., : len(sigma)]
+    geometry_sigma_mm = platform.tracker_geometry_sigma_mm or noise.tracker_geometry_sigma_mm
+    spread_mm = np.sqrt(np.sum((carried * sigma) ** 2, axis=-1) + 3.0 * geometry_sigma_mm**2)
+    low, high = platform.reading_range
+    return min(READING_MARGIN_SIGMAS * float(spread_mm.max()), 0.25 * (high - low))
+
+
+def prior_sigmas(platform: Platform, noise: NoiseConfig) -> np.ndarray:
+    """The prior σ of the drive's unknowns before calibration, for a robot built within the prior:
+    ``noise.prior_sigma_mm`` on each δM (another leg model's own ``prior_sigmas``: a servo's angles in
+    rad) and, with an outside instrument, the stroke scale's prior σ
+    (:func:`~stewart_calib.model.drive.drive_model`'s): the terms up to the first known one, in the
+    order of :func:`~stewart_calib.analysis.accuracy.closed_loop_jacobian`'s columns."""
     from ..model.drive import drive_model
 
     drive = drive_model(platform, noise, instrument_kind(platform).outside)
@@ -391,7 +437,14 @@ def nominal_error(platform: Platform, noise: NoiseConfig) -> PredictedError:
         if term.prior_sigma is None:
             break
         sigma += [term.prior_sigma] * platform.drive.n_legs
-    return predicted_error(platform, np.diag(np.square(sigma)))
+    return np.array(sigma)
+
+
+def nominal_error(platform: Platform, noise: NoiseConfig) -> PredictedError:
+    """What the nominal model is expected to leave, for a robot built within the prior: the
+    predicted error (:func:`~stewart_calib.analysis.accuracy.predicted_error`) of the prior covariance
+    (:func:`prior_sigmas`) — the yardstick a plan must clearly beat."""
+    return predicted_error(platform, np.diag(np.square(prior_sigmas(platform, noise))))
 
 
 #: A plan is clearly better than the nominal model when the upper end of its predicted error's
@@ -458,7 +511,8 @@ def plan_poses(
 ) -> np.ndarray:
     """Pick ``n`` calibration poses from ``n_candidates`` random reachable workspace poses (and,
     for an outside instrument, the box's :func:`extreme_poses`; its poses keep a margin from the
-    stroke limits, :func:`with_stroke_margin`).
+    stroke limits, :func:`with_stroke_margin`, the in-situ tracker's from its reading limits,
+    :func:`with_reading_margin`).
 
     Args:
         platform: nominal geometry with a ``[workspace]``.
@@ -466,8 +520,8 @@ def plan_poses(
         criterion: one of :data:`CRITERIA` (default :func:`default_criterion`).
         rng: randomness of the candidates (default ``np.random.default_rng()``).
         n_candidates: random candidate poses to choose from.
-        noise: weights of the leg-length form, and the prior σ of the stroke margin (default
-            :class:`NoiseConfig`).
+        noise: weights of the leg-length form, and the prior σ of the stroke and reading margins
+            (default :class:`NoiseConfig`).
     Returns:
         ``(n, 6)`` desired poses ``[mm, rad]``, in the order drawn (a usable driving order).
     Raises:
@@ -481,7 +535,7 @@ def plan_poses(
     rng = np.random.default_rng() if rng is None else rng
     noise = noise or NoiseConfig()
     outside = instrument_kind(platform).outside
-    reach = with_stroke_margin(platform, noise) if outside else platform
+    reach = with_reading_margin(with_stroke_margin(platform, noise) if outside else platform, noise)
     candidates = candidate_poses(reach, n_candidates, rng)
     if outside:
         candidates = np.concatenate([extreme_poses(reach), candidates])
