@@ -98,9 +98,7 @@ def _python_paths(platform) -> None:
     state.update(H, -r, R_meas, 0.0)
     eigenvalues = np.full(84, 1e-3)
     robust._walk_rate_in_use(eigenvalues, 2.0 * eigenvalues, 1e-6, 0.7, 2.7)
-    robust._contrast_terms(
-        np.arange(3.0), np.ones(3), np.ones((3, 2)), np.eye(3, 2), np.empty((2, 2)), np.empty((2, 2))
-    )
+    robust._contrast_terms(np.arange(3.0), np.ones((3, 2)), np.eye(3, 2), np.empty((2, 2)), np.empty((2, 2)))
     load = load_experiment(CONFIGS / "experiments" / "quick.toml").load
     Settling.of(load, drive.as_vector()).loaded_params(R[None], t[None], 0.0)
 

@@ -414,28 +414,32 @@ def test_a_still_robot_has_the_configured_walk_lowered_to_what_its_data_allow(pl
 
 
 def test_the_window_contrasts_terms_are_those_of_their_pencil():
-    """:func:`_contrast_terms` (white contrasts, tridiagonal QL) gives, direction by direction, the
-    eigenvalues ``μ`` of the contrasts ``y_{2…K} − y_1``' walk covariance over their error covariance
-    and the squared contrasts along the eigenvectors: those of the generalised ``eigh`` of the pencil."""
+    """:func:`_contrast_terms` (successive differences, tridiagonal QL) gives, direction by direction, the
+    terms of the contrasts ``y_{2…K} − y_1``: ``λ = 1/μ`` and ``z²/μ``, ``μ`` the eigenvalues of their walk
+    covariance over their error covariance and ``z`` the white contrasts along the eigenvectors (the
+    generalised ``eigh`` of the pencil); of windows at one instant, whose contrast no walk moves, a term
+    ``λ = ∞`` where ``μ = 0``."""
     from stewart_calib.estimators.robust import _contrast_terms
 
     rng = np.random.default_rng(5)
     K, k = 9, 4
-    start = np.cumsum(rng.uniform(20.0, 30.0, K)) - 25.0
-    start -= start[0]
-    span = rng.uniform(5.0, 15.0, K)
-    variances, estimates = rng.uniform(1e-6, 1e-4, (K, k)), rng.normal(0.0, 1e-2, (K, k))
-    mu, z = np.empty((k, K - 1)), np.empty((k, K - 1))
-    assert _contrast_terms(start, span, variances, estimates, mu, z)
-    earlier = np.minimum.outer(np.arange(K), np.arange(K))
-    C = start[earlier] + span[earlier] / 2.0
-    C[np.diag_indices_from(C)] = start + span / 3.0
-    M = np.hstack([-np.ones((K - 1, 1)), np.eye(K - 1)])
-    for i in range(k):
-        A = M @ np.diag(variances[:, i]) @ M.T
-        L = np.linalg.cholesky(A)
-        whitened = np.linalg.solve(L, np.linalg.solve(L, M @ C @ M.T).T)
-        expected_mu, U = np.linalg.eigh(whitened)
-        expected_z = U.T @ np.linalg.solve(L, M @ estimates[:, i])
-        np.testing.assert_allclose(mu[i], expected_mu, rtol=1e-10)
-        np.testing.assert_allclose(z[i] ** 2, expected_z**2, rtol=1e-8, atol=1e-12 * np.sum(expected_z**2))
+    for repeated in (None, 4):
+        times = np.cumsum(rng.uniform(20.0, 30.0, K)) + 1e3
+        if repeated is not None:
+            times[repeated] = times[repeated - 1]
+        variances, estimates = rng.uniform(1e-6, 1e-4, (K, k)), rng.normal(0.0, 1e-2, (K, k))
+        lam, p = np.empty((k, K - 1)), np.empty((k, K - 1))
+        assert _contrast_terms(times, variances, estimates, lam, p)
+        start = times - times[0]
+        C = start[np.minimum.outer(np.arange(K), np.arange(K))]  # a walk's covariance at the instants
+        M = np.hstack([-np.ones((K - 1, 1)), np.eye(K - 1)])
+        for i in range(k):
+            L = np.linalg.cholesky(M @ np.diag(variances[:, i]) @ M.T)
+            mu, U = np.linalg.eigh(np.linalg.solve(L, np.linalg.solve(L, M @ C @ M.T).T))
+            z = U.T @ np.linalg.solve(L, M @ estimates[:, i])
+            walking = mu > 1e-12 * mu.max()
+            assert np.sum(np.isinf(lam[i])) == np.sum(~walking) == (repeated is not None)
+            order, expected = np.argsort(lam[i])[: walking.sum()], np.argsort(1.0 / mu[walking])
+            np.testing.assert_allclose(lam[i][order], (1.0 / mu[walking])[expected], rtol=1e-10)
+            expected_p = (z[walking] ** 2 / mu[walking])[expected]
+            np.testing.assert_allclose(p[i][order], expected_p, rtol=1e-8, atol=1e-12 * expected_p.sum())

@@ -139,7 +139,6 @@ def gauss_newton(
         CalibError: the model's FK fails (the iteration diverged) or no convergence.
     """
     n_params = nominal.n_params
-    per_leg = n_params // nominal.n_legs  # a leg's parameters, its initial length the last
     size = n_params if drive is None else drive.size
     n = len(strokes)
     error = np.zeros(size)
@@ -148,36 +147,20 @@ def gauss_newton(
         for iteration in range(1, config.max_iterations + 1):
             legs = nominal.perturbed(error[:n_params])
             factor = np.zeros((0, size + 1))  # the triangular factor of [A | b] over the chunks so far
-            meat = np.zeros((size, size))  # Σ_k A_kᵀ S_k A_k, S_k the weighted pose noise of sample k
-            noise_trace = 0.0  # Σ_k tr S_k
             for chunk in range(0, n, CHUNK_SAMPLES):
                 rows = slice(chunk, min(n, chunk + CHUNK_SAMPLES))
                 lengths, inputs = strokes[rows], None
                 if drive is not None:  # an elastic drive's forces at P_v
-                    chunk_channels = input_rows(channels or {}, rows)
-                    inputs = drive.inputs(strokes[rows], chunk_channels, R_v[rows], t_v[rows], error)
+                    inputs = _drive_inputs(drive, strokes, channels, R_v, t_v, error, rows)
                     lengths = drive.extensions(inputs, error)
                 sol = legs.forward_kinematics(lengths, guess=(R_m[rows], t_m[rows]), strict=False)
                 if not np.all(sol.converged):
                     raise CalibError(f"ls: model forward kinematics failed at iteration {iteration}; the fit diverged")
                 R_m[rows], t_m[rows] = sol.R, sol.t
-                J_p = kin.error_jacobian(legs, sol.R, sol.t)
-                # the pose's sensitivities to readings and strokes: a leg's length change moves a pose
-                # as its initial length l_i does; the strokes' through the drive's extensions is taken
-                # at its unit gain (stroke scales are 1 to ~1e-3)
-                readings_k = noise.reading_sigma_mm * _length_columns(noise.tracker, R_v[rows], t_v[rows])
-                strokes_k = noise.stroke_sigma_mm * J_p[..., per_leg - 1 : n_params : per_leg]
-                W_k = pose_weights(config, readings_k, strokes_k)
+                J_p = _pose_jacobian(legs, sol.R, sol.t, drive, inputs, size)
+                W_k = _weighted_noise(config, noise, legs, R_v[rows], t_v[rows], J_p)[0]
                 b = (W_k @ pose_difference(R_v[rows], t_v[rows], sol.R, sol.t)[..., None]).reshape(-1)
-                if drive is not None and inputs is not None and size > n_params:
-                    extension = J_p[..., per_leg - 1 :: per_leg] @ drive.extension_jacobian(inputs)
-                    J_p = np.concatenate([J_p, extension], -1)
-                A_k = W_k @ J_p
-                for G in (W_k @ readings_k, W_k @ strokes_k):
-                    carried = (np.swapaxes(G, -1, -2) @ A_k).reshape(-1, size)
-                    meat += carried.T @ carried
-                    noise_trace += float(np.sum(G**2))
-                A = A_k.reshape(-1, size)
+                A = (W_k @ J_p).reshape(-1, size)
                 factor = np.asarray(np.linalg.qr(np.vstack([factor, np.column_stack([A, b])]), mode="r"))
             # [A | b] = Q [[R, c], [0, ρ]]: A's singular values and right vectors are R's, and
             # ‖b − A δ‖² = ρ² + ‖c − R δ‖²
@@ -186,14 +169,20 @@ def gauss_newton(
             U, s, Vt = np.linalg.svd(R, full_matrices=False)
             keep = s > RANK_TOLERANCE * s[0]
             step = Vt[keep].T @ ((U[:, keep].T @ c) / s[keep])
-            error = error + step
+            linearised, error = error, error + step
             if np.max(np.abs(step)) < config.tolerance_mm:
                 break
         else:
             raise CalibError(f"ls: Gauss–Newton did not converge in {config.max_iterations} iterations")
+        full_rank = bool(np.all(keep)) and 6 * n > size
+        if full_rank:
+            # at the last iteration's linearisation, as (AᵀA)⁻¹: once, not at every iteration
+            meat, noise_trace = _pose_noise_meat(
+                legs, strokes, R_v, t_v, R_m, t_m, config, noise, drive, channels, linearised
+            )
     residual2 = rho2 + float(np.sum((c - R @ step) ** 2))
     covariance = None
-    if np.all(keep) and 6 * n > size:
+    if full_rank:
         bread = (Vt.T / s**2) @ Vt  # (AᵀA)⁻¹
         sandwich = bread @ meat @ bread
         expected_residual2 = noise_trace - float(np.sum(bread * meat))  # E‖b − Aδ‖² at s = 1
@@ -214,6 +203,78 @@ def pose_weights(config: LSConfig, readings: np.ndarray, strokes: np.ndarray) ->
         return np.broadcast_to(np.diag(weight), (len(readings), 6, 6))
     pose_noise = readings @ np.swapaxes(readings, -1, -2) + strokes @ np.swapaxes(strokes, -1, -2)
     return np.linalg.inv(np.linalg.cholesky(pose_noise))
+
+
+def _weighted_noise(
+    config: LSConfig, noise: PoseNoise, legs: LegGeometry, R_v: np.ndarray, t_v: np.ndarray, J_p: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(W_k, W_k G_v, W_k G_m)`` of samples at the measured poses ``(R_v, t_v)`` whose model poses
+    have the Jacobian ``J_p`` (of ``legs``): :func:`pose_weights` and the weighted pose's sensitivities
+    to the readings and the strokes, each times its σ [mm]. A leg's length change moves a pose as its
+    initial length l_i does; the strokes' through the drive's extensions is taken at its unit gain
+    (stroke scales are 1 to ~1e-3)."""
+    per_leg = legs.n_params // legs.n_legs  # a leg's parameters, its initial length the last
+    readings_k = noise.reading_sigma_mm * _length_columns(noise.tracker, R_v, t_v)
+    strokes_k = noise.stroke_sigma_mm * J_p[..., per_leg - 1 : legs.n_params : per_leg]
+    W_k = pose_weights(config, readings_k, strokes_k)
+    return W_k, W_k @ readings_k, W_k @ strokes_k
+
+
+def _drive_inputs(
+    drive: DriveModel,
+    strokes: np.ndarray,
+    channels: Mapping[str, np.ndarray] | None,
+    R_v: np.ndarray,
+    t_v: np.ndarray,
+    error: np.ndarray,
+    rows: slice,
+) -> np.ndarray:
+    """The drive's inputs of the samples ``rows`` (an elastic drive's forces at ``P_v``)."""
+    return drive.inputs(strokes[rows], input_rows(channels or {}, rows), R_v[rows], t_v[rows], error)
+
+
+def _pose_jacobian(
+    legs: LegGeometry, R: np.ndarray, t: np.ndarray, drive: DriveModel | None, inputs: np.ndarray | None, size: int
+) -> np.ndarray:
+    """``(N, 6, size)``: ``J_p`` at the poses ``(R, t)`` the model ``legs`` reach, with the drive's unknown
+    terms' columns (``J_p``'s ``l_i`` columns times ``∂e_i/∂v``)."""
+    J_p = kin.error_jacobian(legs, R, t)
+    if drive is not None and inputs is not None and size > legs.n_params:
+        per_leg = legs.n_params // legs.n_legs
+        J_p = np.concatenate([J_p, J_p[..., per_leg - 1 :: per_leg] @ drive.extension_jacobian(inputs)], -1)
+    return J_p
+
+
+def _pose_noise_meat(
+    legs: LegGeometry,
+    strokes: np.ndarray,
+    R_v: np.ndarray,
+    t_v: np.ndarray,
+    R_m: np.ndarray,
+    t_m: np.ndarray,
+    config: LSConfig,
+    noise: PoseNoise,
+    drive: DriveModel | None,
+    channels: Mapping[str, np.ndarray] | None,
+    error: np.ndarray,
+) -> tuple[np.ndarray, float]:
+    """``(Σ_k A_kᵀ S_k A_k, Σ_k tr S_k [mm²])`` of the sandwich covariance (module docstring), ``S_k`` the
+    weighted pose noise of sample ``k``, ``A_k`` its weighted ``J_p`` at the model poses ``(R_m, t_m)`` that
+    ``legs`` (of the unknowns ``error``) reach, chunk by chunk as :func:`gauss_newton` forms them."""
+    n = len(strokes)
+    size = legs.n_params if drive is None else drive.size
+    meat, noise_trace = np.zeros((size, size)), 0.0
+    for chunk in range(0, n, CHUNK_SAMPLES):
+        rows = slice(chunk, min(n, chunk + CHUNK_SAMPLES))
+        inputs = None if drive is None else _drive_inputs(drive, strokes, channels, R_v, t_v, error, rows)
+        J_p = _pose_jacobian(legs, R_m[rows], t_m[rows], drive, inputs, size)
+        W_k, *carriers = _weighted_noise(config, noise, legs, R_v[rows], t_v[rows], J_p)
+        A_k = W_k @ J_p
+        for G in carriers:
+            carried = (np.swapaxes(G, -1, -2) @ A_k).reshape(-1, size)
+            meat += carried.T @ carried
+            noise_trace += float(np.sum(G**2))
+    return meat, noise_trace
 
 
 def _length_columns(legs: LegGeometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -1302,19 +1302,15 @@ def _window_terms(run: list, walks: np.ndarray, step_index: int | None) -> tuple
 
     Along the directions ``g_i`` that diagonalise the windows' mean spread and the walk
     (:func:`_walk_directions`, ``g_iᵀ W g_i = 1``), the window estimates ``y_w = g_iᵀ x_w`` are a walk's
-    means over the windows plus errors of variance ``v_wi = g_iᵀ P_w g_i``: a walk from the first
-    window's start ``a_1`` has the means over ``[a_u, b_u]`` and ``[a_w, b_w]`` (``u ≤ w``) covary by
-    ``q C_uw``, ``C_uw = (a_u − a_1) + (b_u − a_u)/2`` (``/3`` for ``u = w``); the filter's windows come
-    as instants at their last samples (``a = b``, :meth:`RobustFilter._walk_difference`), where ``C_uw``
-    is the time from the first to the earlier of the two. Any ``K − 1`` contrasts
-    of the ``y_w`` (free of the unknown mean) give the same terms: those of the pencil of their walk
-    covariance and their error covariance (:func:`_contrast_terms`), ``λ_j = 1/μ_j``, ``p_j = z_j² / μ_j``
-    with ``z_j`` of variance ``1 + q μ_j``. Successive windows alone (the windows' neighbours) see a walk
-    over one window's span; the runs' far pairs over the whole of it."""
+    values at the windows plus errors of variance ``v_wi = g_iᵀ P_w g_i``; each window is an instant at
+    its last sample (:meth:`RobustFilter._walk_difference`; so is an older checkpoint's, which spans its
+    samples). Any ``K − 1`` contrasts of the ``y_w`` (free of the unknown mean) give the same terms, those
+    of the pencil of their walk covariance and their error covariance; :func:`_contrast_terms` takes the
+    successive differences, whose walk covariance is diagonal. Successive windows alone (the windows'
+    neighbours) see a walk over one window's span; the runs' far pairs over the whole of it."""
     xs = np.array([w[0] for w in run])
     Ps = np.array([w[1] for w in run])
-    first = np.array([w[2] for w in run], dtype=float)
-    span = np.array([w[3] for w in run], dtype=float) - first
+    times = np.array([w[3] for w in run], dtype=float)
     if step_index is not None:  # it steps, it does not walk: its marginal left out
         xs[:, step_index] = 0.0
         Ps[:, step_index, :], Ps[:, :, step_index] = 0.0, 0.0
@@ -1323,177 +1319,146 @@ def _window_terms(run: list, walks: np.ndarray, step_index: int | None) -> tuple
     y = xs @ g  # (K, k)
     # a window's own variance along the mean's directions, kept off 0 where its P is singular there
     v = np.maximum(np.einsum("wni,ni->wi", Ps @ g, g), 1e-9 * lam[lam > 0.0])
-    mu, z = np.empty((g.shape[1], len(run) - 1)), np.empty((g.shape[1], len(run) - 1))
-    if not _contrast_terms(first - first[0], span, v, y, mu, z):
+    terms_lam, terms_p = np.empty((g.shape[1], len(run) - 1)), np.empty((g.shape[1], len(run) - 1))
+    if not _contrast_terms(times, v, y, terms_lam, terms_p):
         raise np.linalg.LinAlgError("walk test: the window contrasts' eigenvalues did not converge")
-    informative = mu > 1e-12 * max(float(mu.max(initial=0.0)), 1e-300)
-    return 1.0 / mu[informative], z[informative] ** 2 / mu[informative]
+    # a term 10¹² times less sure of the walk than the surest says nothing (and λ = ∞, of windows at one instant)
+    informative = terms_lam < 1e12 * terms_lam.min(initial=math.inf)
+    return terms_lam[informative], terms_p[informative]
 
 
 #: QL sweeps of one eigenvalue of a window run's contrasts before :func:`_contrast_terms` gives up (LAPACK's)
 _QL_ITERATIONS = 30
 
 
-@njit(entry=(F8_1, F8_1, F8_2, F8_2, F8_2, F8_2), nogil=True, error_model="numpy")
+@njit(entry=(F8_1, F8_2, F8_2, F8_2, F8_2), nogil=True, error_model="numpy")
 def _contrast_terms(
-    start_s: np.ndarray, span_s: np.ndarray, variances: np.ndarray, estimates: np.ndarray, mu: np.ndarray, z: np.ndarray
+    times_s: np.ndarray, variances: np.ndarray, estimates: np.ndarray, lam: np.ndarray, p: np.ndarray
 ) -> bool:
     """The walk test's terms of a run of ``K`` windows (:func:`_window_terms`), direction by direction:
     for each column ``i`` of ``variances`` and ``estimates`` (``(K, k)``: the windows' ``v_wi`` and
-    ``y_wi``), the eigenvalues ``μ (K − 1,)`` of ``K − 1`` contrasts' walk covariance over their error
-    covariance, ascending, into ``mu[i]``, and the contrasts along the eigenvectors, ``z[i]``, each of
-    variance ``1 + q μ_j``, of the windows' means' covariance per unit rate ``C``: ``C_uw = s_u + t_u/2``
-    (``u < w``), ``s_u + t_u/3`` (``u = w``), ``s`` their starts from the first one's (``start_s``),
-    ``t`` their spans (``span_s``) [s]. Returns False where the QL iteration does not converge (:data:`_QL_ITERATIONS`).
+    ``y_wi``, the windows instants at ``times_s``, non-decreasing [s]), the ``K − 1`` terms
+    ``p_j ~ (λ_j + q) χ²₁`` into ``lam[i]`` and ``p[i]``, in no particular order. Returns False where
+    the QL iteration does not converge (:data:`_QL_ITERATIONS`).
 
-    Scaled by ``v_wi^(−1/2)`` the windows' errors are white and their mean lies along
-    ``m = V^(−1/2) 1``; a reflection taking ``m`` onto the first axis leaves ``K − 1`` white contrasts,
-    whose walk covariance is the rest of the reflected ``V^(−1/2) C V^(−1/2)``. Its eigenvalues come from
-    Householder tridiagonalisation and implicit QL, every transformation applied to the contrasts'
-    vector rather than accumulated into eigenvectors: numpy's batched Cholesky, solves and ``eigh`` of
-    the ``(k, K − 1, K − 1)`` pencils cost ~2.5 ms a window (its LAPACK takes ~20 µs an ``eigh`` of
-    15 × 15), ~8 µs a sample of ``calibrate ekf``."""
+    A walk's increments between the windows are independent: the successive differences
+    ``d_j = y_{j+1} − y_j`` have the walk covariance ``q Δ``, ``Δ = diag(t_{j+1} − t_j)``, and an error
+    covariance ``E`` that is tridiagonal (``v_j + v_{j+1}`` on its diagonal, ``−v_{j+1}`` beside it).
+    Scaled by ``Δ^(−1/2)`` the walk is white, so the eigenvalues ``ν_j`` of the tridiagonal
+    ``Δ^(−1/2) E Δ^(−1/2)`` and the scaled differences along its eigenvectors, ``c_j ~ N(0, ν_j + q)``,
+    are the terms: ``λ_j = ν_j``, ``p_j = c_j²`` (:func:`_tridiagonal_ql`). Windows at one instant (a
+    log's repeated times) are one window of their inverse-variance mean, and their contrast, which no
+    walk moves, is a term ``λ = ∞``, ``p = 0``."""
     K, k = variances.shape
-    walk = np.empty((K, K))
-    for a in range(K):
-        for b in range(K):
-            earlier = min(a, b)
-            walk[a, b] = start_s[earlier] + span_s[earlier] / (3.0 if a == b else 2.0)
-    S = np.empty((K, K))
-    y = np.empty(K)
-    u = np.empty(K)
-    p = np.empty(K)
-    d = np.empty(K)
-    e = np.empty(K)
-    contrasts = np.empty(K)
-    for i in range(k):
-        for a in range(K):
-            u[a] = 1.0 / math.sqrt(variances[a, i])  # the mean's direction, white
-            y[a] = estimates[a, i] * u[a]
-        for a in range(K):
-            for b in range(K):
-                S[a, b] = walk[a, b] * u[a] * u[b]
-        _reflect(S, y, u, p, 0)  # the contrasts: axes 1 … K − 1
-        for c in range(1, K - 2):  # their block tridiagonal, column by column
-            for a in range(c + 1, K):
-                u[a] = S[a, c]
-            alpha = _reflect(S, y, u, p, c + 1)
-            S[c + 1, c], S[c, c + 1] = alpha, alpha
-            for a in range(c + 2, K):
-                S[a, c], S[c, a] = 0.0, 0.0
-        n = K - 1
-        # QL deflates from the top and converges in fewer sweeps with the large entries at the bottom
-        # (as LAPACK's dsteqr chooses between QL and QR): the reduction leaves them at the top here
-        flip = abs(S[1, 1]) > abs(S[n, n])
-        for j in range(n):
-            h = n - 1 - j if flip else j
-            d[h], contrasts[h] = S[j + 1, j + 1], y[j + 1]
+    t, mean, variance = np.empty(K), np.empty((K, k)), np.empty((K, k))
+    n = 0  # the last instant's index: n contrasts
+    t[0], mean[0], variance[0] = times_s[0], estimates[0], variances[0]
+    for a in range(1, K):
+        if times_s[a] > t[n]:
+            n += 1
+            t[n], mean[n], variance[n] = times_s[a], estimates[a], variances[a]
+        else:
+            for i in range(k):
+                precision = 1.0 / variance[n, i] + 1.0 / variances[a, i]
+                mean[n, i] = (mean[n, i] / variance[n, i] + estimates[a, i] / variances[a, i]) / precision
+                variance[n, i] = 1.0 / precision
+    gap = t[1 : n + 1] - t[:n]
+    root_gap = np.sqrt(gap)
+    d, e, c = np.zeros((K, k)), np.zeros((K, k)), np.zeros((K, k))
+    for j in range(n):
+        for i in range(k):
+            d[j, i] = (variance[j, i] + variance[j + 1, i]) / gap[j]
+            c[j, i] = (mean[j + 1, i] - mean[j, i]) / root_gap[j]
             if j + 1 < n:
-                e[h - 1 if flip else h] = S[j + 1, j + 2]
-        if not _tridiagonal_ql(d, e, contrasts, n):
-            return False
-        for j in range(1, n):  # ascending, as LAPACK orders them
-            value, along = d[j], contrasts[j]
-            h = j - 1
-            while h >= 0 and d[h] > value:
-                d[h + 1], contrasts[h + 1] = d[h], contrasts[h]
-                h -= 1
-            d[h + 1], contrasts[h + 1] = value, along
-        for j in range(n):
-            mu[i, j], z[i, j] = d[j], contrasts[j]
+                e[j, i] = -variance[j + 1, i] / (root_gap[j] * root_gap[j + 1])
+    for i in range(k):
+        # QL deflates from the top and converges in fewer sweeps with the large entries at the bottom
+        # (as LAPACK's dsteqr chooses between QL and QR): reversed where they lie at the top
+        if n > 1 and abs(d[0, i]) > abs(d[n - 1, i]):
+            d[:n, i], c[:n, i] = d[:n, i][::-1].copy(), c[:n, i][::-1].copy()
+            e[: n - 1, i] = e[: n - 1, i][::-1].copy()
+    if n > 0 and not _tridiagonal_ql(d, e, c, n):
+        return False
+    for i in range(k):
+        for j in range(K - 1):
+            lam[i, j], p[i, j] = (d[j, i], c[j, i] * c[j, i]) if j < n else (math.inf, 0.0)
     return True
-
-
-@njit(nogil=True, error_model="numpy")
-def _reflect(S: np.ndarray, y: np.ndarray, x: np.ndarray, p: np.ndarray, start: int) -> float:
-    """Apply, on the axes ``start …``, the Householder reflection ``H`` that takes ``x[start:]`` onto the
-    axis ``start`` to ``S`` (``H S H``, its block from ``start`` on) and to ``y``; returns ``H x``'s entry
-    there. ``p``: work space; ``x`` is overwritten."""
-    K = S.shape[0]
-    norm2 = 0.0
-    for a in range(start, K):
-        norm2 += x[a] * x[a]
-    if norm2 == 0.0:
-        return 0.0
-    alpha = -math.copysign(math.sqrt(norm2), x[start])
-    x[start] -= alpha  # the reflection's vector v, H = I − τ v vᵀ
-    vv = 0.0
-    for a in range(start, K):
-        vv += x[a] * x[a]
-    tau = 2.0 / vv
-    kappa = 0.0
-    for a in range(start, K):
-        total = 0.0
-        for b in range(start, K):
-            total += S[a, b] * x[b]
-        p[a] = tau * total
-        kappa += x[a] * p[a]
-    kappa *= 0.5 * tau
-    for a in range(start, K):
-        p[a] -= kappa * x[a]
-    for a in range(start, K):
-        for b in range(start, a + 1):
-            S[a, b] -= x[a] * p[b] + p[a] * x[b]
-            S[b, a] = S[a, b]
-    along = 0.0
-    for a in range(start, K):
-        along += x[a] * y[a]
-    along *= tau
-    for a in range(start, K):
-        y[a] -= along * x[a]
-    return alpha
 
 
 @njit(nogil=True, error_model="numpy")
 def _tridiagonal_ql(d: np.ndarray, e: np.ndarray, y: np.ndarray, n: int) -> bool:
-    """Eigenvalues of the symmetric tridiagonal ``n × n`` matrix of diagonal ``d`` and off-diagonal ``e``
-    (``e[j]`` between ``j`` and ``j + 1``, ``e[n − 1]`` unused) into ``d``, by implicit QL with Wilkinson's
-    shift, each rotation applied to ``y``, so that ``y`` ends as ``Zᵀ y`` (``Z`` the eigenvectors).
-    False where an eigenvalue takes more than :data:`_QL_ITERATIONS` sweeps."""
+    """Eigenvalues of ``k`` symmetric tridiagonal ``n × n`` matrices, the columns of the diagonals ``d``
+    and off-diagonals ``e`` (``(≥ n, k)``: ``e[j]`` between ``j`` and ``j + 1``, ``e[n − 1]`` unused),
+    into ``d``, by implicit QL with Wilkinson's shift, each rotation applied to ``y``'s column, so that
+    it ends as ``Zᵀ y`` (``Z`` the eigenvectors). False where an eigenvalue takes more than
+    :data:`_QL_ITERATIONS` sweeps.
+
+    Each matrix takes the rotations it takes alone, in its own order; the ``k`` matrices' sweeps are
+    interleaved, a rotation of each in turn: a rotation waits on the last one's square root and
+    division, and a matrix swept alone spent most of its time waiting (~7 µs a 15 × 15 matrix)."""
+    k = d.shape[1]
+    low, end, iterations = np.zeros(k, np.int64), np.zeros(k, np.int64), np.zeros(k, np.int64)
+    s, c, p, g = np.empty(k), np.empty(k), np.empty(k), np.empty(k)
+    sweeping = np.zeros(k, np.bool_)
     e[n - 1] = 0.0
-    for low in range(n):
-        iterations = 0
-        while True:
-            m = low
-            while m < n - 1:
-                dd = abs(d[m]) + abs(d[m + 1])
-                if abs(e[m]) + dd == dd:
+    while True:
+        longest = 0
+        for i in range(k):  # each matrix's next sweep: from low to the first negligible off-diagonal
+            sweeping[i] = False
+            while low[i] < n:
+                m = low[i]
+                while m < n - 1:
+                    dd = abs(d[m, i]) + abs(d[m + 1, i])
+                    if abs(e[m, i]) + dd == dd:
+                        break
+                    m += 1
+                if m != low[i]:
                     break
-                m += 1
-            if m == low:
-                break
-            if iterations == _QL_ITERATIONS:
-                return False
-            iterations += 1
-            g = (d[low + 1] - d[low]) / (2.0 * e[low])
-            r = math.hypot(g, 1.0)
-            g = d[m] - d[low] + e[low] / (g + math.copysign(r, g))
-            s, c, p = 1.0, 1.0, 0.0
-            deflated = False
-            for j in range(m - 1, low - 1, -1):
-                f, b = s * e[j], c * e[j]
-                r = math.sqrt(f * f + g * g)  # no overflow: the entries are O(the walk over the run / its σ²)
-                e[j + 1] = r
-                if r == 0.0:  # underflow: the matrix splits here
-                    d[j + 1] -= p
-                    e[m] = 0.0
-                    deflated = True
-                    break
-                s, c = f * (1.0 / r), g * (1.0 / r)
-                g = d[j + 1] - p
-                r = (d[j] - g) * s + 2.0 * c * b
-                p = s * r
-                d[j + 1] = g + p
-                g = c * r - b
-                f = y[j + 1]
-                y[j + 1] = s * y[j] + c * f
-                y[j] = c * y[j] - s * f
-            if deflated:
+                low[i] += 1  # its eigenvalue there has converged
+                iterations[i] = 0
+            if low[i] == n:
                 continue
-            d[low] -= p
-            e[low] = g
-            e[m] = 0.0
-    return True
+            if iterations[i] == _QL_ITERATIONS:
+                return False
+            iterations[i] += 1
+            top = low[i]
+            shift = (d[top + 1, i] - d[top, i]) / (2.0 * e[top, i])
+            r = math.hypot(shift, 1.0)
+            g[i] = d[m, i] - d[top, i] + e[top, i] / (shift + math.copysign(r, shift))
+            s[i], c[i], p[i] = 1.0, 1.0, 0.0
+            end[i], sweeping[i] = m, True
+            longest = max(longest, m - top)
+        if longest == 0:
+            return True
+        for step in range(longest):
+            for i in range(k):
+                j = end[i] - 1 - step
+                if not sweeping[i] or j < low[i]:
+                    continue
+                f, b, chased = s[i] * e[j, i], c[i] * e[j, i], g[i]
+                r = math.sqrt(
+                    f * f + chased * chased
+                )  # no overflow: the entries are O(the windows' σ² over their gaps)
+                e[j + 1, i] = r
+                if r == 0.0:  # underflow: the matrix splits here, and its next sweep starts afresh
+                    d[j + 1, i] -= p[i]
+                    e[end[i], i] = 0.0
+                    sweeping[i] = False
+                    continue
+                sine, cosine = f * (1.0 / r), chased * (1.0 / r)
+                shifted = d[j + 1, i] - p[i]
+                r = (d[j, i] - shifted) * sine + 2.0 * cosine * b
+                rotated = sine * r
+                d[j + 1, i] = shifted + rotated
+                g[i], s[i], c[i], p[i] = cosine * r - b, sine, cosine, rotated
+                f, h = y[j + 1, i], y[j, i]
+                y[j + 1, i] = sine * h + cosine * f
+                y[j, i] = cosine * h - sine * f
+        for i in range(k):
+            if sweeping[i]:
+                d[low[i], i] -= p[i]
+                e[low[i], i] = g[i]
+                e[end[i], i] = 0.0
 
 
 @dataclass(frozen=True)
@@ -1537,19 +1502,30 @@ def _mahalanobis2(step: np.ndarray, P: np.ndarray, gauge_projector: np.ndarray |
 
 
 @njit(nogil=True, error_model="numpy")
-def _walk_sums(lam: np.ndarray, p: np.ndarray, q: float) -> tuple[float, float]:
-    """``(−2 L(q), −2 dL/dq)`` of the walk test's terms (see ``RobustFilter._pooled_walk_rate``) up to a
-    constant: ``Σ log a + p / a`` and ``Σ (a − p) / a²``, ``a = λ + q``, over the terms with ``λ > 0``
-    (``λ = 0``: padding, no information either way)."""
+def _walk_deviance(lam: np.ndarray, p: np.ndarray, q: float) -> float:
+    """``−2 L(q)`` of the walk test's terms (see ``RobustFilter._pooled_walk_rate``) up to a constant:
+    ``Σ log a + p / a``, ``a = λ + q``, over the terms with ``λ > 0`` (``λ = 0``: padding, no information
+    either way)."""
     deviance = 0.0
-    slope = 0.0
     for j in range(lam.shape[0]):
         if lam[j] <= 0.0:
             continue
         a = lam[j] + q
         deviance += math.log(a) + p[j] / a
+    return deviance
+
+
+@njit(nogil=True, error_model="numpy")
+def _walk_slope(lam: np.ndarray, p: np.ndarray, q: float) -> float:
+    """``−2 dL/dq`` of the terms of :func:`_walk_deviance`: ``Σ (a − p) / a²``, apart from it (the root's
+    bisection needs no logarithm)."""
+    slope = 0.0
+    for j in range(lam.shape[0]):
+        if lam[j] <= 0.0:
+            continue
+        a = lam[j] + q
         slope += (a - p[j]) / (a * a)
-    return deviance, slope
+    return slope
 
 
 @njit(nogil=True, error_model="numpy")
@@ -1573,21 +1549,21 @@ def _walk_rate_in_use(lam: np.ndarray, p: np.ndarray, configured: float, lowerin
         if lam[j] > 0.0 and p[j] > lam[j]:
             upper = max(upper, p[j] - lam[j])
     best = 0.0
-    if upper > 0.0 and _walk_sums(lam, p, 0.0)[1] < 0.0:  # L still rises at q = 0
+    if upper > 0.0 and _walk_slope(lam, p, 0.0) < 0.0:  # L still rises at q = 0
         low, high = 0.0, upper
         for _ in range(WALK_BISECTIONS):
             middle = _narrowed(low, high)
-            if _walk_sums(lam, p, middle)[1] < 0.0:
+            if _walk_slope(lam, p, middle) < 0.0:
                 low = middle
             else:
                 high = middle
             if high - low <= WALK_RELATIVE_WIDTH * high:
                 break
         best = 0.5 * (low + high)
-    at_best = _walk_sums(lam, p, best)[0]
+    at_best = _walk_deviance(lam, p, best)
     lowered = configured >= best  # the configured rate is tested as too large, else as too small
     bound = lowering if lowered else raising
-    if _walk_sums(lam, p, configured)[0] - at_best <= bound:
+    if _walk_deviance(lam, p, configured) - at_best <= bound:
         return configured
     if not lowered:  # raised: the data's own rate (see RobustFilter._pooled_walk_rate)
         return best
@@ -1595,7 +1571,7 @@ def _walk_rate_in_use(lam: np.ndarray, p: np.ndarray, configured: float, lowerin
     low, high = best, configured
     for _ in range(WALK_BISECTIONS):
         middle = _narrowed(low, high)
-        if _walk_sums(lam, p, middle)[0] - at_best <= bound:
+        if _walk_deviance(lam, p, middle) - at_best <= bound:
             low = middle
         else:
             high = middle
