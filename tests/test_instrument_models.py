@@ -235,3 +235,31 @@ def test_instrument_model_residual_and_pose_jacobians(which):
 
     assert relative_error(seen.J_instrument, numerical_jacobian(tangent, theta, steps)) < 1e-6
     assert np.all(np.linalg.eigvalsh(seen.covariance) > 0)
+
+
+def test_points_pose_hands_over_what_the_readings_hold_beyond_the_pose():
+    """Three targets' nine coordinates fix a pose and three distances: ``pose`` gives the fit's residual
+    along the directions no pose moves, with its ∂/∂θ (the fit's own pose moving with θ) and σ² I."""
+    model = _models()[1]
+    rng = np.random.default_rng(5)
+    theta = model.unknowns.nominal + rng.normal(0, 0.01, model.unknowns.size)
+    R, t = kin.pose_to_rt(np.r_[5.0, -3.0, 200.0, 0.1, -0.05, 0.2])
+    channels = np.arange(model.channel_sigma.size)
+    z = -model.residual(R, t, theta, np.zeros(channels.size), channels).r + rng.normal(0, 0.05, channels.size)
+    seen = model.pose(z, theta, None)
+    redundant = seen.redundant
+    A = model.residual(seen.R, seen.t, theta, z, channels).J_pose
+    across = np.eye(channels.size) - A @ np.linalg.solve(A.T @ A, A.T)  # onto what no pose moves
+    fitted = model.residual(seen.R, seen.t, theta, z, channels).r
+    assert redundant.r.shape == (3,)
+    np.testing.assert_allclose(redundant.r @ redundant.r, fitted @ across @ fitted, rtol=1e-8)
+    np.testing.assert_allclose(redundant.covariance, 0.05**2 * np.eye(3))
+    steps = np.where(model.unknowns.file_scale > 1, EPS_RAD, EPS_MM)
+
+    def at_its_pose(th):
+        moved = model.pose(z, th, None)
+        return model.residual(moved.R, moved.t, th, z, channels).r
+
+    D = numerical_jacobian(at_its_pose, theta, steps)
+    assert relative_error(redundant.J_instrument.T @ redundant.J_instrument, D.T @ across @ D) < 1e-5
+    assert model.pose(z[:6].tolist() + [np.nan] * 3, theta, None) is None  # two targets: no pose at all

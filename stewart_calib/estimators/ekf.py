@@ -6,8 +6,10 @@ and the instrument model's own unknowns ``θ``. Observation per sample: the six 
 ``r_i = ‖t + R d_i − j_i‖ − (l_i + e_i)`` of the drive model at the pose the instrument measured
 (its model's loose pose: for the tracker, FK of the readings); the expected value is 0, so the
 innovation is ``−r`` and ``H = ∂r/∂X``: the drive model's ``∂r/∂x_drive``, and ``J_x ∂ξ/∂θ`` on θ
-(the measured pose moves with the instrument's unknowns). The filter names neither an instrument
-nor a block of the drive.
+(the measured pose moves with the instrument's unknowns); where the measurement holds more than
+the pose (a points instrument's distances between its targets: ``PoseObservation.redundant``), those
+rows too, on θ alone, with their own covariance. The filter names neither an instrument nor a block
+of the drive.
 
 Where the measurement does not fix a pose (a points instrument seeing fewer than three targets)
 the observation is the instrument's own residual ``h(ξ(X), θ) − z`` at the pose ``ξ(X)`` the drive
@@ -306,7 +308,16 @@ class LegEKF:
             x_drive, observed.R, observed.t, inputs, observed.covariance, self._coordinate_sigma
         )
         H_instrument = None if self._instrument is None else J_x @ observed.J_instrument
-        return -residual, self._with_blocks(H_drive, H_instrument, dg_dm), R_meas
+        H = self._with_blocks(H_drive, H_instrument, dg_dm)
+        redundant = observed.redundant
+        if redundant is None or self._instrument is None:
+            return -residual, H, R_meas
+        # what the measurement holds beyond the pose: rows on the instrument's unknowns alone
+        H_redundant = np.zeros((len(redundant.r), self.layout.size))
+        H_redundant[:, self._instrument] = redundant.J_instrument
+        R_all = np.zeros((len(H) + len(H_redundant),) * 2)
+        R_all[: len(H), : len(H)], R_all[len(H) :, len(H) :] = R_meas, redundant.covariance
+        return np.concatenate((-residual, -redundant.r)), np.vstack((H, H_redundant)), R_all
 
     def _with_blocks(
         self, H_drive: np.ndarray, H_instrument: np.ndarray | None, H_payload: np.ndarray | None = None

@@ -72,6 +72,23 @@ class Residual(NamedTuple):
     channels: np.ndarray
 
 
+class Redundant(NamedTuple):
+    """The part of one measurement the pose it implies leaves over: the residual at that pose along the
+    directions no pose can move (a points instrument's 3K − 6 beyond the pose's six: the distances between
+    its targets). Only the model's unknowns and the noise move it, and to first order its noise is
+    independent of the pose's.
+
+    Attributes:
+        r: ``(k,)`` [code units of the channels].
+        J_instrument: ``(k, n)`` ``∂r/∂θ``.
+        covariance: ``(k, k)``.
+    """
+
+    r: np.ndarray
+    J_instrument: np.ndarray
+    covariance: np.ndarray
+
+
 class PoseObservation(NamedTuple):
     """Loose coupling: the pose of {D} in {J} one measurement implies.
 
@@ -79,12 +96,15 @@ class PoseObservation(NamedTuple):
         R, t: ``(3, 3)``, ``(3,)`` [mm].
         covariance: ``(6, 6)`` on the body tangent ``[ω, v]`` [rad², mm²], from ``channel_sigma``.
         J_instrument: ``(6, n)`` ``∂ξ/∂θ``: how the implied pose moves with the model's unknowns.
+        redundant: what the measurement holds beyond the pose (:class:`Redundant`), None where it
+            holds nothing more (six channels for six pose coordinates).
     """
 
     R: np.ndarray
     t: np.ndarray
     covariance: np.ndarray
     J_instrument: np.ndarray
+    redundant: Redundant | None = None
 
 
 class InstrumentModel(ABC):

@@ -25,7 +25,7 @@ from ..model import rotations
 from ..model.kinematics import skew
 from ..model.platform import INSTRUMENT_SECTIONS, Instrument, Platform
 from . import registration
-from .base import PoseObservation, Residual, Spread, position_spread_mm
+from .base import PoseObservation, Redundant, Residual, Spread, position_spread_mm
 from .external import OutsideModel
 from .gauge import kabsch
 
@@ -315,12 +315,18 @@ class PointsModel(OutsideModel):
         in_base = kin.transform_points(u.R_frame, u.t_frame, m[seen])
         R_X, t_X = kabsch(u.targets[seen], in_base)
         rows = np.flatnonzero(np.repeat(seen, 3))
-        _, H_X, H_u = residual(u, z, R_X, t_X, jacobians=True)
+        e, H_X, H_u = residual(u, z, R_X, t_X, jacobians=True)
         A = H_X[rows]
         information = A.T @ A
-        covariance = self.instrument.position_sigma_mm**2 * np.linalg.inv(information)
-        J_theta = -np.linalg.solve(information, A.T @ (H_u[rows] @ self._theta_jacobian_inverse(theta)))
-        return PoseObservation(R_X, t_X, covariance, J_theta)
+        sigma2 = self.instrument.position_sigma_mm**2
+        covariance = sigma2 * np.linalg.inv(information)
+        J_u = H_u[rows] @ self._theta_jacobian_inverse(theta)
+        J_theta = -np.linalg.solve(information, A.T @ J_u)
+        # the readings' 3k − 6 directions no pose moves (the targets' distances): left out, the targets'
+        # shape is seen only through the drive's legs, and its error there bends the implied pose
+        left_over = np.linalg.svd(A, full_matrices=True)[0][:, 6:].T
+        redundant = Redundant(left_over @ e[rows], left_over @ J_u, sigma2 * np.eye(len(left_over)))
+        return PoseObservation(R_X, t_X, covariance, J_theta, redundant)
 
     # what the callers of an outside instrument ask (external.OutsideModel)
 
