@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -50,8 +51,15 @@ def _build_wheel(tmp_path: Path) -> Path:
     """Build from a copy of the sources: setuptools writes build/ and *.egg-info beside them."""
     source = tmp_path / "source"
     source.mkdir()
-    for name in ("pyproject.toml", "README.md"):
-        shutil.copy(ROOT / name, source / name)
+    shutil.copy(ROOT / "README.md", source / "README.md")
+    # No setup.py in the copy, so no AOT kernels to compile: the isolated build environment needs
+    # setuptools and wheel alone, not numpy, numba, scipy and gtsam (installing those was most of
+    # the build's time; the checkout's own install builds with the full list)
+    pyproject = (ROOT / "pyproject.toml").read_text(encoding="utf-8")
+    build_requires = re.search(r"^requires = \[.*\]$", pyproject, flags=re.MULTILINE)
+    assert build_requires is not None and '"setuptools>=68", "wheel"' in build_requires[0]
+    pure_requires = 'requires = ["setuptools>=68", "wheel"]'
+    (source / "pyproject.toml").write_text(pyproject.replace(build_requires[0], pure_requires), encoding="utf-8")
     for name in ("stewart_calib", "configs"):
         shutil.copytree(ROOT / name, source / name, symlinks=True, ignore=shutil.ignore_patterns("__pycache__"))
     dest = tmp_path / "dist"
