@@ -14,12 +14,12 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import math
+import statistics
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import TypeVar
 
 import numpy as np
-from scipy import stats
 
 from .. import io
 from ..errors import CalibError, number
@@ -153,7 +153,11 @@ class NoiseSquares:
         and its two-sided ``probability`` interval from the noise's spread over the rows (normal in the
         mean square: many rows)."""
         own = rms**2 - self.mean
-        spread = float(stats.norm.ppf(0.5 + probability / 2)) * math.sqrt(self.variance + self.cross * max(own, 0.0))
+        # the standard library's normal quantile: calibrate imports this module, and keeps scipy.stats out of
+        # its start-up (tests/test_scale.py)
+        spread = statistics.NormalDist().inv_cdf(0.5 + probability / 2) * math.sqrt(
+            self.variance + self.cross * max(own, 0.0)
+        )
         return math.sqrt(max(own, 0.0)), (math.sqrt(max(own - spread, 0.0)), math.sqrt(max(own + spread, 0.0)))
 
 
