@@ -158,7 +158,7 @@ def gauss_newton(
                     raise CalibError(f"ls: model forward kinematics failed at iteration {iteration}; the fit diverged")
                 R_m[rows], t_m[rows] = sol.R, sol.t
                 J_p = _pose_jacobian(legs, sol.R, sol.t, drive, inputs, size)
-                W_k = _weighted_noise(config, noise, legs, R_v[rows], t_v[rows], J_p)[0]
+                W_k = _weighted_noise(config, noise, legs, R_v[rows], t_v[rows], J_p, carriers=False)[0]
                 b = (W_k @ pose_difference(R_v[rows], t_v[rows], sol.R, sol.t)[..., None]).reshape(-1)
                 A = (W_k @ J_p).reshape(-1, size)
                 factor = np.asarray(np.linalg.qr(np.vstack([factor, np.column_stack([A, b])]), mode="r"))
@@ -206,18 +206,27 @@ def pose_weights(config: LSConfig, readings: np.ndarray, strokes: np.ndarray) ->
 
 
 def _weighted_noise(
-    config: LSConfig, noise: PoseNoise, legs: LegGeometry, R_v: np.ndarray, t_v: np.ndarray, J_p: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    config: LSConfig,
+    noise: PoseNoise,
+    legs: LegGeometry,
+    R_v: np.ndarray,
+    t_v: np.ndarray,
+    J_p: np.ndarray,
+    carriers: bool = True,
+) -> tuple[np.ndarray, ...]:
     """``(W_k, W_k G_v, W_k G_m)`` of samples at the measured poses ``(R_v, t_v)`` whose model poses
     have the Jacobian ``J_p`` (of ``legs``): :func:`pose_weights` and the weighted pose's sensitivities
-    to the readings and the strokes, each times its σ [mm]. A leg's length change moves a pose as its
-    initial length l_i does; the strokes' through the drive's extensions is taken at its unit gain
-    (stroke scales are 1 to ~1e-3)."""
+    to the readings and the strokes, each times its σ [mm]; ``(W_k,)`` alone without ``carriers`` (a
+    Gauss–Newton iteration needs only the weights, and the paper's are the noise's of no sample). A
+    leg's length change moves a pose as its initial length l_i does; the strokes' through the drive's
+    extensions is taken at its unit gain (stroke scales are 1 to ~1e-3)."""
+    if config.weighting == "paper" and not carriers:
+        return (pose_weights(config, J_p, J_p),)
     per_leg = legs.n_params // legs.n_legs  # a leg's parameters, its initial length the last
     readings_k = noise.reading_sigma_mm * _length_columns(noise.tracker, R_v, t_v)
     strokes_k = noise.stroke_sigma_mm * J_p[..., per_leg - 1 : legs.n_params : per_leg]
     W_k = pose_weights(config, readings_k, strokes_k)
-    return W_k, W_k @ readings_k, W_k @ strokes_k
+    return (W_k, W_k @ readings_k, W_k @ strokes_k) if carriers else (W_k,)
 
 
 def _drive_inputs(
