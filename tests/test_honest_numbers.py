@@ -323,6 +323,59 @@ def test_strokes_of_another_robot_are_named_not_the_registrations_symptom(outsid
     ), line
 
 
+def _another_robots_platform(work: Path, tmp_path: Path) -> Path:
+    """The fixture's platform with its platform joints 35 % further out: the log is another robot's."""
+    text = (work / "sim" / "platform.toml").read_text()
+    start = text.index("platform_joints_mm")
+    end = text.index("\n]", start)
+    scaled = re.sub(r"-?\d+\.\d+", lambda m: f"{float(m[0]) * 1.35:.3f}", text[start:end])
+    (tmp_path / "other.toml").write_text(text[:start] + scaled + text[end:])
+    return tmp_path / "other.toml"
+
+
+def _servo_angles_as_strokes(tmp_path: Path) -> Path:
+    """A servo hexapod's log (its angles −30…+30°) with the angles shifted by 45 into the stroke columns."""
+    assert cli.main(["simulate", "--experiment", "servo", "--out", str(tmp_path / "servo")]) == 0
+    lines = (tmp_path / "servo" / "log.csv").read_text().splitlines()
+    header = [re.sub(r"^(q\d)_deg$", r"\1_mm", name) for name in lines[0].split(",")]
+    angles = [j for j, name in enumerate(header) if re.fullmatch(r"q\d_mm", name)]
+    rows = [line.split(",") for line in lines[1:]]
+    for row in rows:
+        for j in angles:
+            row[j] = f"{float(row[j]) + 45.0:.6f}"
+    (tmp_path / "angles.csv").write_text("\n".join([",".join(header), *(",".join(row) for row in rows)]) + "\n")
+    return tmp_path / "angles.csv"
+
+
+@pytest.mark.parametrize("outside_run", ["pose"], indirect=True)
+@pytest.mark.parametrize("case", ["another robot", "servo angles"])
+def test_strokes_that_no_registration_fits_are_named_with_the_misfit(outside_run, tmp_path, case):
+    """Strokes whose poses rotate about every axis, as the readings do, but fit no frame and target:
+    the log of a robot with its platform joints 35 % further out, or a servo robot's angles in the
+    stroke columns. It said "cannot register the pose instrument: the poses do not rotate about two
+    different axes"."""
+    work, _ = outside_run
+    if case == "another robot":
+        platform, log = _another_robots_platform(work, tmp_path), work / "fit.csv"
+    else:
+        platform, log = work / "sim" / "platform.toml", _servo_angles_as_strokes(tmp_path)
+    status, err = _run(
+        ["calibrate", "--platform", platform, "--log", log, "--method", "ls", "--out", tmp_path / "r.json"]
+    )
+    (line,) = err.splitlines()
+    assert status == 2 and not (tmp_path / "r.json").exists()
+    match = re.fullmatch(
+        rf"stewart-calib calibrate: error: .*{log.name}: the strokes q1_mm…q6_mm do not fit this platform's legs: "
+        r"the readings turn about every axis \([\d.]+°, [\d.]+°, [\d.]+° RMS\), but no frame and target of the "
+        r"instrument turn the poses the strokes give the nominal model onto them: the best leaves ([\d.]+)° RMS, "
+        r"[\d.e+]+× the instrument's σ; expected strokes \[mm\] of this platform's legs \(a log of another robot, "
+        r"a rotary robot's angles in the stroke columns, or another --platform\?\)",
+        line,
+    )
+    assert match, line
+    assert float(match[1]) > 1.0  # 20× the instrument's σ 0.05° at least
+
+
 def test_missing_stroke_columns_are_the_drives_not_the_instruments(outside_run, tmp_path):
     """It said 'missing column(s) q1_mm, … of the pose instrument that the platform's [instrument] names'."""
     work, _ = outside_run

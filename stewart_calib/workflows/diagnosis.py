@@ -29,7 +29,9 @@ with one line naming the cause and its evidence:
    order;
 8. **strokes of another platform** — the angle of the rotation between two poses is the same in
    any instrument frame and for any target, so over pairs of poses a pose instrument's angles and
-   the strokes' (through the nominal model) correlate, within the drive's errors;
+   the strokes' (through the nominal model) correlate, within the drive's errors; and where the
+   registration fails although both the strokes' poses and the readings rotate about two axes, the
+   misfit of the best frame and target is named, not the poses;
 Every test uses at most :data:`DIAGNOSED_SAMPLES` samples evenly spread over the log, so its
 cost does not grow with the log. Thresholds are ratios far from 1 (a factor
 :data:`UNIT_TOLERANCE` about a unit's factor, :data:`WIRING_GAIN` between two wirings), not
@@ -309,6 +311,42 @@ def _check_strokes_fit(platform: Platform, R: np.ndarray, readings: np.ndarray, 
         )
 
 
+def _check_strokes_register(platform: Platform, R: np.ndarray, readings: np.ndarray, where: str) -> None:
+    """Strokes that no frame and target map onto a pose instrument's readings, where both the
+    strokes' poses (:func:`_check_directions`) and the readings rotate about two axes: the registration
+    failed for the misfit, not for the poses (another robot's log, a rotary robot's angles in the
+    stroke columns). Called once the registration failed; the misfit is the closed form's,
+    :func:`~stewart_calib.instruments.pose.hand_eye_rotations`."""
+    from ..instruments.pose import hand_eye_rotations
+
+    if platform.instrument is None or platform.instrument.kind != "pose":
+        return
+    seen = np.all(np.isfinite(readings), axis=1)
+    if seen.sum() < 3:
+        return
+    R_M, _ = kin.pose_to_rt(readings[seen])
+    R = R[seen]
+    turns = so3_log(np.einsum("ji,njk->nik", R_M[0], R_M))  # the readings' turns from the first, any frame
+    principal = np.linalg.svd(turns - turns.mean(axis=0), compute_uv=False) / math.sqrt(len(turns))
+    sigma = float(platform.instrument.orientation_sigma_rad)
+    if not principal[1] > FIT_SIGMAS * sigma:  # they do turn about one axis only: the registration's words hold
+        return
+    R_G, R_F, _ = hand_eye_rotations(R, R_M)
+    misfit = np.linalg.norm(so3_log(np.einsum("nji,kj,nkl,lm->nim", R_M, R_F, R, R_G)), axis=1)  # (F M)ᵀ X G
+    left = math.degrees(float(np.sqrt(np.mean(misfit**2))))
+    columns, noun, unit, _ = _drive_words(platform)
+    other = "a rotary robot's angles in the stroke columns" if unit == "mm" else "another robot's servos"
+    axes = "every axis" if principal[2] > FIT_SIGMAS * sigma else "two axes"
+    _refuse(
+        where,
+        f"the {noun} {_columns(columns)} do not fit this platform's legs: the readings turn about {axes} "
+        f"({', '.join(f'{math.degrees(v):.3g}°' for v in principal)} RMS), but no frame and target of the "
+        f"instrument turn the poses the {noun} give the nominal model onto them: the best leaves {left:.3g}° RMS, "
+        f"{left / math.degrees(sigma):.3g}× the instrument's σ; expected {noun} [{unit}] of this platform's legs "
+        f"(a log of another robot, {other}, or another --platform?)",
+    )
+
+
 def _check_ratio(
     where: str, what: str, columns: str, measured: float, expected: float, units, unit_word: str, noun: str
 ) -> None:
@@ -513,3 +551,4 @@ def diagnose_log(
         _check_handedness(platform, fk.R[ok], readings[ok], where, columns)
     if not registers and instrument_kind(platform).outside and ok.sum() >= 3:
         _check_directions(platform, fk.R[ok], fk.t[ok], where)
+        _check_strokes_register(platform, fk.R[ok], readings[ok], where)
