@@ -303,6 +303,26 @@ def test_a_plan_not_clearly_better_than_the_nominal_model_says_what_to_change(tm
     assert "a noise.prior_sigma_mm as small as the robot's build allows" in err
 
 
+def test_a_box_the_plans_stroke_margin_leaves_unreachable_names_the_margin(tmp_path):
+    """Strokes 0–100 mm with the motion-capture prior (20 mm): plan keeps them 25 mm inside the range,
+    and few poses of the shipped ±30 mm / ±12° box reach 25–75 mm. It said "expected a box whose poses
+    mostly lie within the stroke and reading ranges" of a box whose poses mostly do; a smaller prior
+    σ plans."""
+    wide = HOBBY.read_text().replace("stroke_range_mm = [0.0, 90.0]", "stroke_range_mm = [0.0, 100.0]")
+    status, _, err = _plan(tmp_path, wide, "--config", "motion-capture")
+    (line,) = err.splitlines()
+    assert status == 2 and not (tmp_path / "poses.csv").exists()
+    assert re.fullmatch(
+        r"stewart-calib plan: error: .*p\.toml: key 'workspace': expected a box whose poses mostly lie within the "
+        r"ranges plan keeps its poses in \(the strokes 25–75 mm, 25 mm inside the stroke range at each end \(2 × "
+        r"noise\.prior_sigma_mm 20 mm, at most a quarter of the range\); a smaller prior σ in the config, as small "
+        r"as the robot's build allows, widens them\); only \d+ of \d+ random poses do",
+        line,
+    ), line
+    status, _, err = _plan(tmp_path, wide, "--config", "motion-capture", "--set", "noise.prior_sigma_mm=5")
+    assert status == 0, err
+
+
 # ----------------------------------------------------------------------------- messages
 
 

@@ -102,12 +102,17 @@ MAX_DRAWS_PER_POSE = 50
 
 
 def reachable_poses(
-    platform: Platform, n: int, rng: np.random.Generator, face_bias_exponent: float = 1.0
+    platform: Platform,
+    n: int,
+    rng: np.random.Generator,
+    face_bias_exponent: float = 1.0,
+    ranges: str = "the stroke and reading ranges",
 ) -> np.ndarray:
     """``(n, 6)`` random poses in the workspace box with strokes and readings within range.
 
     Each coordinate is ``home + limit · sign(w)|w|^face_bias_exponent``, w uniform in [−1, 1]
-    (1: uniform in the box; below 1: denser near its faces).
+    (1: uniform in the box; below 1: denser near its faces). ``ranges`` names the ranges in the
+    refusal (a caller that narrowed them says how).
 
     Raises:
         CalibError: the platform has no ``[workspace]``, or almost no pose of the box is reachable.
@@ -126,8 +131,8 @@ def reachable_poses(
     while count < n:
         if draws > MAX_DRAWS_PER_POSE * n:
             raise CalibError(
-                f"{platform.source}: key 'workspace': expected a box whose poses mostly lie within the "
-                f"stroke and reading ranges; only {count} of {draws} random poses do"
+                f"{platform.source}: key 'workspace': expected a box whose poses mostly lie within {ranges}; "
+                f"only {count} of {draws} random poses do"
             )
         w = rng.uniform(-1.0, 1.0, (n, 6))
         batch = ws.home + np.sign(w) * np.abs(w) ** face_bias_exponent * half
