@@ -356,6 +356,27 @@ def test_a_time_is_shown_without_float_noise():
     assert number(1741940000.123456) == "1741940000.12346" and number("x") == "x"
 
 
+def test_times_in_refusals_of_the_filters_and_point_lists_read_without_float_noise(tmp_path):
+    """The robust filter's late rejection of a sample at 71 × 0.1 s, and a point list in ms whose time
+    goes back from 6700 to 6600 ms (× 0.001: 6.6000000000000005 s): both said the 17 digits."""
+    from types import SimpleNamespace
+
+    from stewart_calib.estimators.robust import RobustFilter
+    from tests.test_import import COUNTS_MAPPING, _strokes_of, _write_counts
+
+    late = RobustFilter._late_rejection(SimpleNamespace(method="ekf"), 71 * 0.1)  # type: ignore[arg-type]  # a stub self
+    assert str(late).startswith("ekf: sample at t = 7.1 s is inconsistent with the start-up batch"), str(late)
+    rows = ["Time,Point,X,Y,Z", "6500,SMR1,0,0,0", "6700,SMR1,1,0,0", "6600,SMR1,2,0,0"]
+    (tmp_path / "points.csv").write_text("\n".join(rows) + "\n")
+    instrument = '[instrument]\ntime = "Time"\ntime_unit = "ms"\ntarget = "Point"\ntargets = ["SMR1"]\n'
+    (tmp_path / "m.toml").write_text(instrument + 'position = ["X", "Y", "Z"]\n\n' + COUNTS_MAPPING)
+    _write_counts(tmp_path / "c.csv", np.arange(0, 25, 0.25), _strokes_of(np.arange(0, 25, 0.25)))
+    status, err = _import(["--point-list", tmp_path / "points.csv", "--strokes", tmp_path / "c.csv",
+                           "--mapping", tmp_path / "m.toml", "--out", tmp_path / "x.csv"])  # fmt: skip
+    (line,) = err.splitlines()
+    assert status == 2 and line.endswith("points.csv: row 4: column 'Time': time goes back (6.6 after 6.7)"), line
+
+
 def test_validate_takes_the_calibrated_platform_file_as_compensate_does(outside_run, tmp_path):
     """The platform file calibrate --platform-out wrote, with its result: the same predictions as the
     result on its nominal platform (it refused: "key 'nominal': … differs by …")."""

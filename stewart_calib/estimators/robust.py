@@ -70,7 +70,7 @@ import numpy as np
 
 from .._jit import F8_1, F8_2, FLOAT, njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, number
 from ..model.unknowns import UnknownLayout
 from .base import state_array
 from .kalman import (
@@ -275,7 +275,8 @@ class RobustFilter:
             observation = self._observe(prepared, self.filter.x)  # SampleRejected from FK passes on
             if observation is None:
                 raise SampleRejected(
-                    f"{self.method}: sample at t = {t_s} s: the measurement does not fix a pose", SampleRejected.NO_POSE
+                    f"{self.method}: sample at t = {number(t_s)} s: the measurement does not fix a pose",
+                    SampleRejected.NO_POSE,
                 )
             # its NIS against the state before it, as the recursion reports one per sample
             nu, H, R0 = observation
@@ -392,7 +393,7 @@ class RobustFilter:
 
     def _late_rejection(self, t_s: float) -> SampleRejected:
         err = SampleRejected(
-            f"{self.method}: sample at t = {t_s} s is inconsistent with the start-up batch "
+            f"{self.method}: sample at t = {number(t_s)} s is inconsistent with the start-up batch "
             "(χ² test at its robust noise scale)",
             SampleRejected.GATED,
         )
@@ -428,7 +429,8 @@ class RobustFilter:
         observation = self._observe(prepared, f.x)
         if observation is None:
             raise SampleRejected(
-                f"{self.method}: sample at t = {t_s} s: the measurement does not fix a pose", SampleRejected.NO_POSE
+                f"{self.method}: sample at t = {number(t_s)} s: the measurement does not fix a pose",
+                SampleRejected.NO_POSE,
             )
         nu, H, R0 = observation
         self._fill_Q(f.Q, 0.0 if math.isnan(f.t_s) else t_s - f.t_s)
