@@ -377,6 +377,22 @@ def test_times_in_refusals_of_the_filters_and_point_lists_read_without_float_noi
     assert status == 2 and line.endswith("points.csv: row 4: column 'Time': time goes back (6.6 after 6.7)"), line
 
 
+def test_the_readmes_simulate_runs_again_where_its_output_directory_is_named_like_the_experiment(tmp_path, monkeypatch):
+    """`stewart-calib simulate --experiment servo --out servo`, as the README writes it, a second time:
+    it said "servo: is a directory; expected a experiment file" — the first run's output hid the
+    shipped experiment. A bare name that is a directory and no shipped file is still refused as such,
+    with its article."""
+    monkeypatch.chdir(tmp_path)
+    for _ in range(2):
+        status, err = _run(["simulate", "--experiment", "servo", "--out", "servo"])
+        assert status == 0, err
+    (tmp_path / "mine").mkdir()
+    status, err = _run(["simulate", "--experiment", "mine", "--out", "out"])
+    assert status == 2 and err.splitlines() == [
+        "stewart-calib simulate: error: mine: is a directory; expected an experiment file"
+    ]
+
+
 def test_validate_takes_the_calibrated_platform_file_as_compensate_does(outside_run, tmp_path):
     """The platform file calibrate --platform-out wrote, with its result: the same predictions as the
     result on its nominal platform (it refused: "key 'nominal': … differs by …")."""
