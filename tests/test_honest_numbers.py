@@ -186,22 +186,34 @@ SLIGHTLY_OFF = (
 )
 
 
-def test_a_calibration_likely_worse_than_the_nominal_model_says_so_loudly(tmp_path):
+@pytest.fixture(scope="module")
+def slightly_off_run(tmp_path_factory):
+    """:data:`SLIGHTLY_OFF` simulated, its fit and held-out stages apart, the fit calibrated by ls
+    with a report: the work directory and calibrate's stderr."""
+    tmp_path = tmp_path_factory.mktemp("slightly-off")
+    (tmp_path / "e.toml").write_text(SLIGHTLY_OFF.format(platform=HOBBY.as_posix()))
+    sim = tmp_path / "sim"
+    assert cli.main(["simulate", "--experiment", str(tmp_path / "e.toml"), "--out", str(sim)]) == 0
+    lines = (sim / "log.csv").read_text().splitlines()
+    stage = lines[0].split(",").index("stage")
+    for name, kept in (("fit.csv", "fit"), ("held.csv", "held-out")):
+        rows = [r for r in lines[1:] if r.split(",")[stage] == kept]
+        (tmp_path / name).write_text("\n".join([lines[0], *rows]) + "\n")
+    argv = ["calibrate", "--platform", sim / "platform.toml", "--log", tmp_path / "fit.csv", "--method", "ls"]
+    status, err = _run([*argv, "--out", tmp_path / "r.json", "--report", tmp_path / "report"])
+    assert status == 0, err
+    return tmp_path, err
+
+
+def test_a_calibration_likely_worse_than_the_nominal_model_says_so_loudly(slightly_off_run):
     """It moves the robot by 7.0 mm and its motion by 0.42 mm, each less than its own expected error
     (13.6 mm, motion 0.71 mm): a WARNING line of its own, the verdict's end and the report's top say
     the calibrated model is likely worse — and the truth agrees (closed loop 7.0 mm where the nominal
     model's is 0.43 mm). It said so only at the end of the long conditioning warning, and the verdict
     not at all. The fixture's robot (11 mm off, moved 16 mm against 21 mm expected, but its motion
     3.1 mm against 1.0 mm) gets no such line (test_an_evident_calibration_…)."""
-    (tmp_path / "e.toml").write_text(SLIGHTLY_OFF.format(platform=HOBBY.as_posix()))
+    tmp_path, err = slightly_off_run
     sim = tmp_path / "sim"
-    assert cli.main(["simulate", "--experiment", str(tmp_path / "e.toml"), "--out", str(sim)]) == 0
-    lines = (sim / "log.csv").read_text().splitlines()
-    stage = lines[0].split(",").index("stage")
-    (tmp_path / "fit.csv").write_text("\n".join([lines[0], *(r for r in lines[1:] if r.split(",")[stage] == "fit")]))
-    argv = ["calibrate", "--platform", sim / "platform.toml", "--log", tmp_path / "fit.csv", "--method", "ls"]
-    status, err = _run([*argv, "--out", tmp_path / "r.json", "--report", tmp_path / "report"])
-    assert status == 0, err
     (warning,) = [line for line in err.splitlines() if "WARNING" in line]
     p = json.loads((tmp_path / "r.json").read_text())["predicted_closed_loop"]
     assert p["position_mm"] > p["correction_mm"] and p["motion_position_mm"] > p["motion_correction_mm"]
@@ -231,6 +243,36 @@ def test_a_calibration_likely_worse_than_the_nominal_model_says_so_loudly(tmp_pa
         assert cli.main([str(a) for a in score]) == 0
     closed_loop = re.search(r"closed loop ([\d.]+) mm .*\(nominal model ([\d.]+) mm", out.getvalue())
     assert float(closed_loop[1]) > 5 * float(closed_loop[2]), out.getvalue()
+
+
+def test_validate_says_loudly_when_the_calibrated_model_predicts_held_out_data_no_better(slightly_off_run, tmp_path):
+    """The held-out poses of the same robot, both models through the instrument registered on them:
+    the calibrated one's position RMS above the nominal model's — a WARNING line and the verdict's end
+    (it printed "x 0.1962 → 0.2113 mm, …" and nothing else). Without --register-instrument the
+    calibrated model reads through the calibration's frame: no comparison."""
+    work, _ = slightly_off_run
+    argv = ["validate", "--platform", work / "sim" / "platform.toml", "--result", work / "r.json"]
+    argv += ["--log", work / "held.csv", "--out", tmp_path / "V.csv"]
+    out, captured = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(captured):
+        assert cli.main([str(a) for a in [*argv, "--register-instrument"]]) == 0
+    err = captured.getvalue()
+    (pose_line,) = [line for line in err.splitlines() if "pose error RMS, nominal → calibrated model" in line]
+    (warning,) = [line for line in err.splitlines() if "WARNING" in line]
+    before_x, after_x = map(float, re.search(r"x ([\d.]+) → ([\d.]+) mm", pose_line).groups())
+    assert after_x > before_x  # as on every axis
+    assert re.fullmatch(
+        r"stewart-calib validate: WARNING: the calibrated model predicts this log no better than the nominal model: "
+        r"position RMS ([\d.]+) mm against the nominal model's ([\d.]+) mm, each through the instrument registered "
+        r"on it; the calibration likely left the robot worse: keep the nominal model, or calibrate again on poses "
+        r"that tilt and reach to the workspace's edges \(stewart-calib plan\)",
+        warning,
+    ), warning
+    assert (
+        out.getvalue().splitlines()[-1].endswith("; on this log the calibrated model is no better than the nominal one")
+    )
+    status, err = _run(argv)
+    assert status == 0 and "WARNING" not in err
 
 
 def test_an_evident_calibration_ends_with_its_verdict_against_the_tolerance(outside_run, tmp_path):
