@@ -647,8 +647,8 @@ class ISAM2Estimator:
         return self._smoother.getFactors().nrFactors(), self._smoother.getLinearizationPoint().size()
 
     def export_state(self) -> dict:
-        """The chain state, the snapshot the buffer starts at (none before the first trim) and
-        the buffered samples, as arrays."""
+        """The chain state, the snapshot the buffer starts at (none before the first trim; its
+        covariance ``covariance_mm2``, the marginal itself) and the buffered samples, as arrays."""
         samples = self._replay
         state: dict[str, object] = {
             "chain": _chain_to_dict(self._state),
@@ -665,7 +665,7 @@ class ISAM2Estimator:
             state["snapshot"] = {
                 "chain": _chain_to_dict(first.state),
                 "mean": first.mean,
-                "covariance": first.covariance,
+                "covariance_mm2": first.covariance,
             }
         if self._payload is not None:  # the samples that open a window as a payload step, and its value there
             state["payload_steps"] = {
@@ -681,7 +681,8 @@ class ISAM2Estimator:
         return state
 
     def import_state(self, state: dict) -> None:
-        """Rebuild from :meth:`export_state` on a freshly built estimator.
+        """Rebuild from :meth:`export_state` on a freshly built estimator (or from the state of a
+        checkpoint whose snapshot holds ``covariance``: :func:`_snapshot_covariance`).
 
         Raises:
             CalibError: a missing key, a wrong shape, a non-positive-definite prior or a replay
@@ -707,7 +708,7 @@ class ISAM2Estimator:
             snapshot = state["snapshot"]
             size = self._builder.layout.size
             mean = state_array(snapshot, "mean", (size,))
-            covariance = state_array(snapshot, "covariance", (size, size))
+            covariance = _snapshot_covariance(snapshot, size, self._front.robust.noise_scale2)
             if not np.all(np.isfinite(covariance)) or np.any(
                 np.linalg.eigvalsh(self._builder.prior_covariance(covariance)) <= 0.0
             ):
@@ -760,6 +761,19 @@ class _Snapshot:
     mean: np.ndarray
     covariance: np.ndarray
     offset: int
+
+
+def _snapshot_covariance(snapshot: dict, size: int, noise_scale2: float) -> np.ndarray:
+    """The covariance [mm²] of a checkpoint's :class:`_Snapshot`: ``covariance_mm2`` as it is, or a
+    ``covariance`` times ``noise_scale2``, the front end's ``s²`` when the checkpoint was written.
+
+    A checkpoint that holds ``covariance`` was written while the graph kept the configured noise
+    ``R0`` (each window's walk ``Q / s²``) and its marginal was that times the front end's ``s²`` of
+    the moment: the graph of now is in the units of the noise and the walk (:meth:`ISAM2Estimator._window_walk`),
+    and taken as it was that prior would be ``1 / s²`` too wide or too narrow."""
+    if "covariance_mm2" in snapshot:
+        return state_array(snapshot, "covariance_mm2", (size, size))
+    return state_array(snapshot, "covariance", (size, size)) * noise_scale2
 
 
 def _chain_to_dict(state: ChainState) -> dict:
