@@ -126,6 +126,19 @@ def test_an_isam2_checkpoint_of_the_graph_in_the_configured_noise_resumes_as_one
     assert np.max(np.abs(before.covariance - now.covariance)) <= 1e-9 * np.max(np.abs(now.covariance))
 
 
+def test_a_checkpoint_without_the_walk_of_the_scales_memory_takes_the_walk_in_use(platform, config, log, tmp_path):
+    """The noise scale's remembered sums carry the walk their windows were measured at (``scale_walk``,
+    which decides whether a moved walk drops them); a checkpoint of before holds none and resumes with
+    them as measured at the walk in use."""
+    _feed(OnlineCalibrator(platform, "ekf", config), log.select(slice(0, 97))).save(tmp_path / "c.npz")
+    with np.load(tmp_path / "c.npz") as npz:
+        arrays = {name: npz[name] for name in npz.files if name != "state/robust/scale_walk"}
+    _rewrite(tmp_path / "c.npz", arrays)
+    robust = OnlineCalibrator.load(tmp_path / "c.npz", None).export_state()["robust"]
+    assert robust["scale_sums"][1] > 0.0
+    assert robust["scale_walk"] == robust["scale_sums"][1] * np.log(robust["noise"][1])
+
+
 def _unusable(platform, t_s):
     readings_at_home = np.zeros(6)
     return {
