@@ -303,6 +303,48 @@ def test_an_evident_calibration_ends_with_its_verdict_against_the_tolerance(outs
     assert status == 0 and "motion within, absolute place within" in err.splitlines()[-1]
 
 
+#: the motion capture's hobby hexapod with its encoders' zeros 15 mm off (σ; the README's example: 10–25 mm),
+#: 40 poses: the nominal drive's Cramér–Rao bound of its registered error is 1.38× the fit's covariance
+FAR_OFF = (
+    EXPERIMENT.replace("encoder_zero_spread_mm = 5.0", "encoder_zero_spread_mm = 15.0")
+    .replace("validation = 20", "validation = 0")
+    .replace('[[stages]]\nname = "held-out"\nsegments = ["validation"]\n', "")
+)
+
+
+def test_identifiability_of_a_log_predicts_what_calibrate_predicts_at_its_fit(tmp_path):
+    """A robot millimetres off its nominal model: ``identifiability --log`` linearises its bound at the log's
+    ls fit, as calibrate's covariance is, and predicts the absolute, the motion's and the registered error
+    within 5 % of calibrate's (both with the file's σ: re-estimated from 240 readings they move some 5 %); at
+    the nominal drive the registered error differs by more than 20 %."""
+    from stewart_calib.analysis.accuracy import predicted_error
+    from stewart_calib.instruments import registered
+    from stewart_calib.pipelines.calibrate import nominal_poses
+    from stewart_calib.workflows.planning import design_covariance
+
+    (tmp_path / "e.toml").write_text(FAR_OFF.format(platform=HOBBY.as_posix()))
+    assert cli.main(["simulate", "--experiment", str(tmp_path / "e.toml"), "--out", str(tmp_path / "sim")]) == 0
+    given = ["--platform", tmp_path / "sim" / "platform.toml", "--log", tmp_path / "sim" / "log.csv"]
+    given += ["--set", "ls.estimate_noise=false"]
+    status, err = _run(["calibrate", *given, "--method", "ls", "--out", tmp_path / "r.json"])
+    assert status == 0, err
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        assert cli.main([str(a) for a in ["identifiability", *given, "--json", tmp_path / "i.json"]]) == 0
+    assert "predicted closed-loop pose error after calibration (at the log's ls fit): " in out.getvalue()
+    calibrated = json.loads((tmp_path / "r.json").read_text())["predicted_closed_loop"]
+    bound = json.loads((tmp_path / "i.json").read_text())["predicted_closed_loop"]
+    for key in ("position_mm", "motion_position_mm", "registered_position_mm"):
+        assert bound[key] == pytest.approx(calibrated[key], rel=0.05), key
+    platform = load_platform(tmp_path / "sim" / "platform.toml")
+    log = read_log(tmp_path / "sim" / "log.csv", platform)
+    at_nominal = registered(platform, log.strokes, log.readings)
+    poses = nominal_poses(platform, log)
+    assert len(poses) == len(log)
+    nominal = predicted_error(at_nominal, design_covariance(at_nominal, poses, seen=np.isfinite(log.readings)))
+    assert abs(nominal.registered_position_mm / calibrated["registered_position_mm"] - 1.0) > 0.2
+
+
 # ----------------------------------------------------------------------------- a plan that leaves the robot as it was
 
 

@@ -502,16 +502,19 @@ def motion_correction_size(
 
 
 def summary_line(
-    prediction: PredictedError, noise_floor: PredictedError | None, correction_mm: float | None = None
+    prediction: PredictedError,
+    noise_floor: PredictedError | None,
+    correction_mm: float | None = None,
+    what: str = PREDICTION_HEAD,
 ) -> tuple[str, bool]:
-    """The one line ``calibrate`` and ``identifiability`` print, and whether it is a warning.
+    """The one line ``calibrate`` and ``identifiability`` print (``what`` its head), and whether it is a warning.
 
     A warning when the predicted position error exceeds :data:`NOISE_FLOOR_FACTOR` × the noise
     floor (None: not compared), or (with an estimate) the correction the calibration makes: the
     estimate's change to where the robot goes is then within its own uncertainty, and the
     calibrated robot may be further from its poses than the uncalibrated one.
     """
-    head = f"{PREDICTION_HEAD}: {prediction.describe()}"
+    head = f"{what}: {prediction.describe()}"
     reasons = []
     if noise_floor is not None and prediction.position_mm > NOISE_FLOOR_FACTOR * noise_floor.position_mm:
         reasons.append(
