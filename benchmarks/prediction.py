@@ -513,12 +513,8 @@ def _why(label: str, runs: list[dict]) -> dict[str, str]:
         else {
             "identifiability's 90 % band": (
                 f"identifiability's expected absolute error is {identified:.2f}× calibrate's on the same log (median); "
-                "its bound is taken at the nominal model, compliance 0, calibrate's covariance at its estimate. "
-                "The fit's rows are the settled pose Jacobian's (the leg forces move with the pose and the joints), "
-                "whose deflection c f(ξ, M) tells the weak leg-length directions apart in proportion to c, and at "
-                "c = 0 tells nothing: with the settled rows at the true compliance the bound is calibrate's (points, "
-                "elastic, seed 4: 1.38 → 1.14 mm against calibrate's 1.12; at the nominal 0 they change nothing), "
-                "so identifiability's misses below the band are its bound's for a robot stiffer than this one. "
+                "its bound is taken at the log's own ls fit, the settled pose Jacobian at the fitted compliance, "
+                "the same point as calibrate's covariance; its misses are the band's spread over the seeds. "
             )
             + _outside_band_text(runs, "identifiability")
         }
