@@ -108,14 +108,12 @@ def run(args: argparse.Namespace) -> int:
         return _run_outside_instrument(args, platform, config)
     trade_off = bound = None
     if args.log is not None:
-        # read once (a FIFO's log cannot be read again): the fit holds every sample anyway
-        log = io.read_log(args.log, platform, args.skip_bad_rows)
-        information, trade_off = log_information(platform, [log], args.log, args.pose_source, noise)
+        # a block at a time, in one pass (memory independent of the log's length, a FIFO read once): the
+        # tracker's leg-length rows hardly move with the drive, so the bound stays at the nominal drive
+        blocks = io.read_log_blocks(args.log, platform, args.skip_bad_rows)
+        information, trade_off = log_information(platform, blocks, args.log, args.pose_source, noise)
         require_poses(platform, information.n_poses, args.log, "pose(s)", "poses")
-        # the report at the nominal drive, as calibrate's "conditioning"; the prediction's bound at the fit
-        fit, bound = fitted_platform(platform, log, config, args.log)
-        at_fit = information if fit is None else log_information(fit, [log], args.log, args.pose_source, noise)[0]
-        covariance, poses = at_fit.covariance(), None
+        covariance, poses, bound = information.covariance(), None, "at the nominal drive"
     else:
         poses = read_pose_list(args.poses)
         require_poses(platform, _distinct(poses), args.poses, "distinct pose(s)", "poses")
