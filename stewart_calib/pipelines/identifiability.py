@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import json
-from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -22,18 +21,18 @@ from ..io import read_pose_list
 from ..io.platform_file import load_platform
 from ..model.drive import THERMAL, drive_model
 from ..model.platform import Platform
-from ..samples import TEMPERATURE_C, Log
+from ..samples import TEMPERATURE_C
 from ..workflows.diagnosis import require_poses
 from . import handover, run_command
 from .plan import add_platform_and_noise_arguments
 
 
-def log_information(platform: Platform, blocks: Iterable[Log], path: str, source: str, noise):
-    """The :class:`InformationAccumulator` of a log's poses (``blocks``: the log ``path`` whole, or a
-    block at a time) — tracker FK of the readings, or the desired pose columns — over the drive's
-    unknowns as the estimators identify them (the compliance with ``[elastic]``, the expansion with
-    ``[thermal]``, the stroke scale where configured: at the samples' strokes and input channels), and
-    the expansion's trade-off line with the legs' lengths (:func:`thermal_line`) or None."""
+def log_information(platform: Platform, path: str, source: str, noise, skip_bad_rows: bool = False):
+    """The :class:`InformationAccumulator` of a log's poses — tracker FK of the readings, or the
+    desired pose columns — read a block at a time (memory independent of the log's length), over the
+    drive's unknowns as the estimators identify them (the compliance with ``[elastic]``, the expansion
+    with ``[thermal]``, the stroke scale where configured: at the samples' strokes and input channels),
+    and the expansion's trade-off line with the legs' lengths (:func:`thermal_line`) or None."""
     drive = drive_model(platform, noise)
     information = InformationAccumulator(platform, noise, drive=drive)
     separating = handover.trade_off_drive(drive)
@@ -41,7 +40,7 @@ def log_information(platform: Platform, blocks: Iterable[Log], path: str, source
         separating = None  # every term already free: the report's own σ of the expansion is the one
     free = None if separating is None else InformationAccumulator(platform, noise, False, separating)
     low = high = None
-    for block in blocks:
+    for block in io.read_log_blocks(path, platform, skip_bad_rows):
         if source == "desired":
             if block.desired_poses is None:
                 raise CalibError(
@@ -108,10 +107,9 @@ def run(args: argparse.Namespace) -> int:
         return _run_outside_instrument(args, platform, config)
     trade_off = bound = None
     if args.log is not None:
-        # a block at a time, in one pass (memory independent of the log's length, a FIFO read once): the
-        # tracker's leg-length rows hardly move with the drive, so the bound stays at the nominal drive
-        blocks = io.read_log_blocks(args.log, platform, args.skip_bad_rows)
-        information, trade_off = log_information(platform, blocks, args.log, args.pose_source, noise)
+        # the tracker's leg-length rows hardly move with the drive: the bound at the nominal drive, the
+        # log streamed (an ls fit would hold it whole)
+        information, trade_off = log_information(platform, args.log, args.pose_source, noise, args.skip_bad_rows)
         require_poses(platform, information.n_poses, args.log, "pose(s)", "poses")
         covariance, poses, bound = information.covariance(), None, "at the nominal drive"
     else:
@@ -142,12 +140,11 @@ def _distinct(poses) -> int:
 
 def fitted_platform(platform: Platform, log, config, path: str) -> tuple[Platform | None, str]:
     """``(platform, words)``: the platform at the log's own ``ls`` fit — the fit ``calibrate --method ls``
-    makes (:func:`~stewart_calib.workflows.calibration.run_calibration`), its drive and, with an outside
-    instrument, its frame and target(s) (:func:`handover.calibrated_platform`) — where a log's Cramér–Rao
+    makes (:func:`~stewart_calib.workflows.calibration.run_calibration`), its drive and, and the outside
+    instrument's frame and target(s) (:func:`handover.calibrated_platform`) — where a log's Cramér–Rao
     bound is linearised, so that it is the covariance ``calibrate`` predicts from at the drive calibrate
-    finds, not at the nominal one millimetres away; None where ls cannot fit the log (a rotary drive on
-    the tracker, a fit that diverges or is rank-deficient: the bound then at the nominal drive, the words
-    say why)."""
+    finds, not at the nominal one millimetres away; None where ls cannot fit the log (a fit that diverges
+    or is rank-deficient: the bound then at the nominal drive, the words say why)."""
     from ..workflows.calibration import run_calibration
 
     try:

@@ -279,6 +279,24 @@ FIT_CORRELATION = 0.5
 FIT_SIGMAS = 10.0
 
 
+def _seen_rotations(R: np.ndarray, readings: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(R, R_M)``: the strokes' pose orientations and the pose instrument's, at the rows whose readings
+    are all finite; None where fewer than 3 are (too few to tell a misfit)."""
+    seen = np.all(np.isfinite(readings), axis=1)
+    if seen.sum() < 3:
+        return None
+    R_M, _ = kin.pose_to_rt(readings[seen])
+    return R[seen], R_M
+
+
+def _stroke_words(platform: Platform) -> tuple[list[str], str, str, str]:
+    """:func:`_drive_words`' columns, noun and unit, and the other drive whose values a log of the
+    wrong robot may hold in those columns (the refusals of strokes that do not fit the legs)."""
+    columns, noun, unit, _ = _drive_words(platform)
+    other = "a rotary robot's angles in the stroke columns" if unit == "mm" else "another robot's servos"
+    return columns, noun, unit, other
+
+
 def _check_strokes_fit(platform: Platform, R: np.ndarray, readings: np.ndarray, where: str) -> None:
     """Strokes that are not this platform's (another robot's log, a rotary robot's angles in the
     stroke columns), which a registration would meet as poses that "do not rotate": the angle of
@@ -287,11 +305,10 @@ def _check_strokes_fit(platform: Platform, R: np.ndarray, readings: np.ndarray, 
     through the nominal model and from a pose instrument follow each other within the drive's errors."""
     if not instrument_kind(platform).measures_orientation:
         return
-    seen = np.all(np.isfinite(readings), axis=1)
-    if seen.sum() < 3:
+    rotations = _seen_rotations(R, readings)
+    if rotations is None:
         return
-    R_M, _ = kin.pose_to_rt(readings[seen])
-    R = R[seen]
+    R, R_M = rotations
     i, j = np.triu_indices(len(R), 1)
     angle = lambda A: np.linalg.norm(so3_log(np.einsum("nji,njk->nik", A[i], A[j])), axis=1)  # noqa: E731
     measured, modelled = angle(R_M), angle(R)
@@ -300,8 +317,7 @@ def _check_strokes_fit(platform: Platform, R: np.ndarray, readings: np.ndarray, 
     correlation = float(np.corrcoef(measured, modelled)[0, 1]) if np.std(modelled) > 0 else 0.0
     if correlation < FIT_CORRELATION:
         mismatch = math.degrees(float(np.sqrt(np.mean((measured - modelled) ** 2))))
-        columns, noun, unit, _ = _drive_words(platform)
-        other = "a rotary robot's angles in the stroke columns" if unit == "mm" else "another robot's servos"
+        columns, noun, unit, other = _stroke_words(platform)
         _refuse(
             where,
             f"the {noun} {_columns(columns)} do not fit this platform's legs: the angles between pairs of poses "
@@ -321,11 +337,10 @@ def _check_strokes_register(platform: Platform, R: np.ndarray, readings: np.ndar
 
     if platform.instrument is None or platform.instrument.kind != "pose":
         return
-    seen = np.all(np.isfinite(readings), axis=1)
-    if seen.sum() < 3:
+    rotations = _seen_rotations(R, readings)
+    if rotations is None:
         return
-    R_M, _ = kin.pose_to_rt(readings[seen])
-    R = R[seen]
+    R, R_M = rotations
     turns = so3_log(np.einsum("ji,njk->nik", R_M[0], R_M))  # the readings' turns from the first, any frame
     principal = np.linalg.svd(turns - turns.mean(axis=0), compute_uv=False) / math.sqrt(len(turns))
     sigma = float(platform.instrument.orientation_sigma_rad)
@@ -334,8 +349,7 @@ def _check_strokes_register(platform: Platform, R: np.ndarray, readings: np.ndar
     R_G, R_F, _ = hand_eye_rotations(R, R_M)
     misfit = np.linalg.norm(so3_log(np.einsum("nji,kj,nkl,lm->nim", R_M, R_F, R, R_G)), axis=1)  # (F M)ᵀ X G
     left = math.degrees(float(np.sqrt(np.mean(misfit**2))))
-    columns, noun, unit, _ = _drive_words(platform)
-    other = "a rotary robot's angles in the stroke columns" if unit == "mm" else "another robot's servos"
+    columns, noun, unit, other = _stroke_words(platform)
     axes = "every axis" if principal[2] > FIT_SIGMAS * sigma else "two axes"
     _refuse(
         where,
