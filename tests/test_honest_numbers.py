@@ -479,19 +479,34 @@ def test_the_readmes_simulate_runs_again_where_its_output_directory_is_named_lik
 
 def test_validate_takes_the_calibrated_platform_file_as_compensate_does(outside_run, tmp_path):
     """The platform file calibrate --platform-out wrote, with its result: the same predictions as the
-    result on its nominal platform (it refused: "key 'nominal': … differs by …")."""
+    result on its nominal platform (it refused: "key 'nominal': … differs by …"), and the same
+    comparison with the nominal model — the one its description names, not the file's own drive,
+    which is the calibrated model (it compared the calibrated model with itself and warned that the
+    calibration left the robot no better than nominal). Where the nominal platform cannot be found,
+    one line says so and what to give."""
     work, _ = outside_run
     argv = ["calibrate", "--platform", work / "sim" / "platform.toml", "--log", work / "fit.csv", "--method", "ls"]
     status, err = _run([*argv, "--out", tmp_path / "r.json", "--platform-out", tmp_path / "C.toml"])
     assert status == 0, err
-    outputs = {}
+    outputs, compared = {}, {}
     for name, platform in (("nominal", work / "sim" / "platform.toml"), ("calibrated", tmp_path / "C.toml")):
         check = ["validate", "--platform", platform, "--result", tmp_path / "r.json", "--log", work / "fit.csv"]
         status, err = _run([*check, "--out", tmp_path / f"{name}.csv"])
         assert status == 0, err
         outputs[name] = np.genfromtxt(tmp_path / f"{name}.csv", delimiter=",", skip_header=1)
+        compared[name] = [line for line in err.splitlines() if "nominal" in line]
     # the file holds the legs to the tolerance within which two drives are the same one
     np.testing.assert_allclose(outputs["calibrated"], outputs["nominal"], rtol=0, atol=NOMINAL_TOLERANCE_MM)
+    assert compared["calibrated"] == compared["nominal"] and "nominal → calibrated" in compared["nominal"][0]
+    moved = tmp_path / "C.toml"
+    moved.write_text(re.sub(r"nominal platform: .* \(.*\)", "nominal platform: gone (gone.toml)", moved.read_text()))
+    check = ["validate", "--platform", moved, "--result", tmp_path / "r.json", "--log", work / "fit.csv"]
+    status, err = _run([*check, "--out", tmp_path / "moved.csv"])
+    assert status == 0 and [line for line in err.splitlines() if "nominal" in line] == [
+        f"stewart-calib validate: no comparison with the nominal model: {moved} is the calibrated platform file "
+        "of " + str(tmp_path / "r.json") + ", and the nominal platform it names (gone.toml) is not found or holds "
+        "another drive; give --platform the nominal platform file to compare"
+    ], err
 
 
 @pytest.mark.parametrize("outside_run", ["pose"], indirect=True)

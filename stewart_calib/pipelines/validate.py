@@ -43,6 +43,7 @@ from ..workflows.validation import (
     compared_pose_errors,
     measurement_residuals,
     noise_squares,
+    nominal_platform_of,
     on_platform,
     validate,
 )
@@ -73,7 +74,11 @@ def run(args: argparse.Namespace) -> int:
     report_dir = args.report and Path(args.report)
     handover.check_report_dir(report_dir)
     platform = load_platform(args.platform)
-    result = on_platform(platform, io.read_result(args.result))  # also on the calibrated platform it wrote
+    written = io.read_result(args.result)
+    result = on_platform(platform, written)  # also on the calibrated platform it wrote
+    # "before" is the nominal model's: on the calibrated platform file, its nominal platform's
+    nominal, missing = nominal_platform_of(platform, written)
+    compare = None if nominal is None else (nominal, written if nominal is not platform else result)
     columns = io.reading_columns(platform)
     header = ["t_s", *columns, *(f"pred_{name}" for name in columns), "position_error_mm"]
     if instrument_kind(platform).measures_orientation:
@@ -90,12 +95,10 @@ def run(args: argparse.Namespace) -> int:
                 platform, result, log, args.register_instrument, str(args.result)
             )
             if report_dir:
-                compared = compared_pose_errors(
-                    platform, result, log, args.register_instrument, len(position), args.result
-                )
+                compared = _compared(args, compare, log, len(position))
                 verdict = _verdict(args, platform, result, position, orientation, log, compared)[0]
                 shown = " — ".join(text for text in (verdict, compared and compared[1]) if text)
-                page = _report_page(args, platform, result, log, predicted, position, orientation, shown)
+                page = _report_page(args, platform, result, log, predicted, position, orientation, shown, compare)
             io.write_csv_blocks(
                 args.out, header, [_file_columns(log, predicted, position, orientation, platform)], blank
             )
@@ -118,7 +121,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"stewart-calib validate: {_unseen_error_line(platform, result, position)}")
     sample = log if (report_dir or args.register_instrument) else first[0]
     if not report_dir:
-        compared = compared_pose_errors(platform, result, sample, args.register_instrument, len(position), args.result)
+        compared = _compared(args, compare, sample, len(position))
+    if compare is None:
+        print(
+            f"stewart-calib validate: no comparison with the nominal model: {args.platform} is the calibrated platform "
+            f"file of {args.result}, and {missing}; give --platform the nominal platform file to compare",
+            file=sys.stderr,
+        )
     for line in compared or ():
         if line:  # the pose error line, then the loud one where the calibrated model is no better
             print(f"stewart-calib validate: {line}", file=sys.stderr)
@@ -127,6 +136,14 @@ def run(args: argparse.Namespace) -> int:
     verdict, over = _verdict(args, platform, result, position, orientation, sample, compared)
     print(f"stewart-calib validate: {verdict}")
     return 1 if over and args.fail_over_tolerance else 0
+
+
+def _compared(args, compare: tuple[Platform, dict] | None, sample: Log, rows: int):
+    """:func:`compared_pose_errors` of the nominal platform and the result on it (``compare``), or None
+    where there is no nominal platform to compare with."""
+    if compare is None:
+        return None
+    return compared_pose_errors(*compare, sample, args.register_instrument, rows, args.result)
 
 
 def _verdict(
@@ -318,14 +335,22 @@ def _diagnose_sample(platform: Platform, first: list, path: str) -> None:
     diagnose_log(platform, sample.strokes, sample.readings, path, count=False)
 
 
-def _report_page(args, platform: Platform, result: dict, log, predicted, position, orientation, verdict: str) -> str:
-    """The ``--report`` page: the held-out errors and residuals per channel, then the calibration's own
-    sections (parameters ± σ, correlations, conditioning, config, versions) from the result."""
+def _report_page(
+    args, platform: Platform, result: dict, log, predicted, position, orientation, verdict: str, compare
+) -> str:
+    """The ``--report`` page: the held-out errors and residuals per channel (before: the nominal platform's
+    of ``compare``, else the calibrated platform file's own), then the calibration's own sections
+    (parameters ± σ, correlations, conditioning, config, versions) from the result."""
     from ..viz.geometry import robot_at
     from ..viz.html_report import HeldOut, LegForces, LegTemperatures, report_html
 
     held = HeldOut(str(args.log), np.asarray(log.t_s), position, orientation, args.register_instrument)
-    residuals = measurement_residuals(platform, log, result, predicted, "the held-out log")
+    before_on, with_result = compare or (platform, result)
+    residuals = measurement_residuals(before_on, log, with_result, predicted, "the held-out log")
+    if compare is None:  # no nominal platform to be found: "before" is the calibrated file's own drive
+        residuals = dataclasses.replace(
+            residuals, before_model=f"{args.platform} itself (its nominal platform not found)"
+        )
     inputs = {"platform file": str(args.platform), "result": str(args.result), "held-out log": str(args.log)}
     forces = None
     drive = handover.calibrated_model(platform, args.result)

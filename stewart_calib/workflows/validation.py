@@ -14,6 +14,7 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import math
+import re
 import statistics
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -24,6 +25,7 @@ import numpy as np
 from .. import io
 from ..errors import CalibError, number
 from ..instruments import instrument_kind
+from ..io.platform_file import load_platform
 from ..model import kinematics as kin
 from ..model.drive import tracker_reading_residuals
 from ..model.platform import LegGeometry, Platform
@@ -65,17 +67,50 @@ def _check_nominal(platform: Platform, result: dict, source: str) -> None:
         )
 
 
-def on_platform(platform: Platform, result: dict) -> dict:
-    """``result`` as a result on ``platform``: itself, or where ``platform`` is the calibrated
-    platform file that result wrote (spec §8: its legs are the result's estimate), the result with
-    no error left on it — as ``compensate`` and ``export`` take it; the blocks as they are."""
+def wrote_platform(platform: Platform, result: dict) -> bool:
+    """Whether ``platform`` is the calibrated platform file that ``result`` wrote (spec §8): its
+    legs are the result's estimate."""
     estimate = np.asarray(result["estimate"], dtype=float)
     drive = io.parameters_to_file(platform.drive.as_vector(), platform.drive)  # a result's units
     if estimate.shape != drive.shape or result.get("platform") != platform.name:
+        return False
+    return float(np.max(np.abs(estimate - drive))) <= io.NOMINAL_TOLERANCE_MM
+
+
+def on_platform(platform: Platform, result: dict) -> dict:
+    """``result`` as a result on ``platform``: itself, or where ``platform`` is the calibrated
+    platform file that result wrote (:func:`wrote_platform`), the result with no error left on it —
+    as ``compensate`` and ``export`` take it; the blocks as they are."""
+    if not wrote_platform(platform, result):
         return result
-    if float(np.max(np.abs(estimate - drive))) > io.NOMINAL_TOLERANCE_MM:
-        return result
+    drive = io.parameters_to_file(platform.drive.as_vector(), platform.drive)
     return {**result, "nominal": drive.tolist(), "error": [0.0] * len(drive)}
+
+
+#: how a calibrated platform file's ``description`` names its nominal platform (spec §8)
+_NOMINAL_NAMED = re.compile(r"; nominal platform: (?P<name>.*) \((?P<file>.*)\)$")
+
+
+def nominal_platform_of(platform: Platform, result: dict) -> tuple[Platform | None, str]:
+    """``(nominal, where)``: for the calibrated platform file ``result`` wrote, the nominal platform
+    its ``description`` names ("…; nominal platform: NAME (FILE)", spec §8) — the file, else the
+    shipped platform NAME — where it holds the result's nominal drive, and ``(None, what was
+    looked for)`` where none does; for any other platform, ``(platform, "")``: its drive is the
+    nominal one. The "before" of a comparison is this platform's: the calibrated file's own drive
+    is the calibrated model."""
+    if not wrote_platform(platform, result):
+        return platform, ""
+    named = _NOMINAL_NAMED.search(platform.description or "")
+    if named is None:
+        return None, "its description names no nominal platform"
+    for where in (named["file"], named["name"]):
+        try:
+            candidate = load_platform(where)
+        except CalibError:
+            continue
+        if candidate.name == result.get("platform") and io.nominal_gap(result, candidate) <= io.NOMINAL_TOLERANCE_MM:
+            return candidate, where
+    return None, f"the nominal platform it names ({named['file']}) is not found or holds another drive"
 
 
 def validate(
