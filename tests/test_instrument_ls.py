@@ -126,3 +126,28 @@ def test_a_block_the_log_cannot_see_is_held_and_the_others_are_still_fitted():
     np.testing.assert_array_equal(thermal.error, rigid.error)
     np.testing.assert_array_equal(thermal.block_values("stroke_scale"), rigid.block_values("stroke_scale"))
     np.testing.assert_array_equal(thermal.block_values("thermal"), np.zeros(6))
+
+
+def test_ls_noise_of_each_channel_is_unbiased_where_one_channel_pins_most_unknowns():
+    """The σ ls re-estimates for position and orientation, each over the degrees of freedom the fit
+    takes from that channel (the trace of its rows of the hat matrix), not a share by the number of
+    rows: a pose instrument of 1 mm / 0.005° over 20 poses takes ~40 of its 48 unknowns from the
+    orientation's 60 rows, ~8 from the position's. Shared by the rows (24 each) σ̂² came out 0.52× the
+    truth for orientation, 1.51× for position (the covariance then ~2× too confident along what the
+    orientation pins); per run σ̂²/σ² spreads as χ²_ν/ν, ν ≈ 20 and 52, so the mean of 20 runs is within
+    3 σ of 1: ±3 √(2 / (20 ν)), 0.21 and 0.13."""
+    from dataclasses import replace
+
+    platform = hobby()
+    platform = replace(
+        platform,
+        instrument=replace(platform.instrument, position_sigma_mm=1.0, orientation_sigma_rad=math.radians(0.005)),
+    )
+    ratios = []
+    for run in range(20):
+        case = make_case(platform, 20, 100 + run, POSE_TRUTH)
+        noise = make_estimator("ls", platform, EstimatorConfig()).fit(list(case.log)).details["noise_estimated"]
+        ratios.append([noise["orientation_rad"] / math.radians(0.005), noise["position_mm"] / 1.0])
+    orientation, position = np.mean(np.square(ratios), axis=0)
+    assert abs(orientation - 1.0) <= 3.0 * math.sqrt(2.0 / (20 * 20)), orientation
+    assert abs(position - 1.0) <= 3.0 * math.sqrt(2.0 / (20 * 52)), position

@@ -48,3 +48,20 @@ def test_the_pooled_sides_row_passes_honest_bands_and_fails_a_band_too_small_on_
     shifted = {"a": [_run(rng, 0.6) for _ in range(60)]}
     row = prediction.sides_row(shifted)
     assert not row.met and "above / below" in row.why
+
+
+def test_the_sides_row_says_what_twin_bands_missing_together_leave_counted_once():
+    """calibrate's and identifiability's bands are one prediction of one truth: identifiability's a copy of
+    calibrate's here, each pair of misses counts once in the why."""
+    rng = np.random.default_rng(2)
+    runs = []
+    for _ in range(60):
+        run = _run(rng, 0.6)
+        run["identifiability"] = dict(run["calibrate"])
+        runs.append(run)
+    row = prediction.sides_row({"a": runs})
+    sides = [prediction._sides(run) for run in runs]
+    twins = sum(side[k] != 0 for side in sides for k in (0, 1))
+    above = sum(s == 1 for side in sides for s in side) - sum(side[k] == 1 for side in sides for k in (0, 1))
+    assert not row.met and f"{twins} of the misses are calibrate's and identifiability's" in row.why
+    assert f"counted once, {above} above" in row.why
