@@ -57,7 +57,11 @@ parameters over tens of samples — also where the configured δM walk takes mos
 to one sample, or the payload is put on over a ramp. A random walk of ``m`` cannot do that: one slow
 enough to let ``m`` average leaves a 20 kg step tens of σ outside the gate; one fast enough to pass it
 makes ``m`` a per-sample nuisance that takes from every sample the information on the compliance it
-carries. Not in the compiled block path (samples go one at a time).
+carries. Where the compliance is an unknown too, ``m`` is held at its prior mean (its column out of
+every observation, no step tested) until the compliance is known to within its own value on every leg
+(:meth:`~.robust.RobustFilter._release_payload`): linearised at compliances the data have not settled, the
+column ``c_i f_{m,i}`` puts ``m`` and ``c`` on a wrong point of the curved ridge ``c_i (f_{p,i} + m f_{m,i})``
+the samples see. Not in the compiled block path (samples go one at a time).
 """
 
 from __future__ import annotations
@@ -149,7 +153,7 @@ class LegEKF:
             step=None
             if payload is None or self._payload is None
             else (self._payload.start, payload.prior_sigma[0] ** 2),
-            step_curvature=self._payload_curvature(),
+            step_factors=self._payload_factors(),
             compiled_rows=compiled_rows,
         )
         self._stroke_bounds = platform.stroke_range if platform.stroke_range is not None else (-np.inf, np.inf)
@@ -166,10 +170,11 @@ class LegEKF:
         self._forces_at_state = self.drive.elastic is not None and self._instrument is not None
         self._packed_width = self.drive.packed_width if self._forces_at_state else 0
 
-    def _payload_curvature(self):
-        """``(columns, coefficients)`` of the unannounced payload's bilinear term (the robust filter's
-        ``step_curvature``): drive row ``i``'s ``∂²r_i/∂c_i∂m = −(∂g_i/∂c_i) f_{m,i}``, ``g`` the force gains,
-        linear in the compliance; None without a payload or a compliance unknown."""
+    def _payload_factors(self):
+        """``(columns, nominal)`` of the compliance the unannounced payload multiplies (the robust filter's
+        ``step_factors``): drive row ``i``'s ``∂r_i/∂m = g_i f_{m,i}``, ``g`` the force gains, linear in
+        the compliance ``nominal + x[columns]`` (``nominal = g_i / (∂g_i/∂c_i)`` at ``x = 0``); None without
+        a payload or a compliance unknown."""
         compliance = self.layout.slice(COMPLIANCE)
         if (
             self._payload is None
@@ -183,8 +188,7 @@ class LegEKF:
         gains_at_zero = self.drive.force_gains(unit)
         unit[columns] = 1.0
         per_unit = self.drive.force_gains(unit) - gains_at_zero  # leg i's gain per unit of c_i
-        width, rows = self.drive.input_width, self._per_kg
-        return columns, lambda prepared: -per_unit * prepared[width : width + rows]
+        return columns, gains_at_zero / per_unit
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample; ``SampleRejected`` leaves the state untouched."""

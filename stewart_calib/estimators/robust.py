@@ -164,11 +164,10 @@ class RobustFilter:
             ramp or a step too small for one sample is found from the evidence of many, and one
             sample's misfit is no step unless the samples after it agree. The samples buffered
             before a step taken are let go (a window across the step fits neither side).
-        step_curvature: ``(columns, coefficients)`` of a ``step`` unknown that enters the observation
-            bilinearly (an unannounced payload times the compliance): row ``k``'s residual has the second
-            derivative ``coefficients(prepared)[k]`` in that unknown and ``x[columns[k]]``. The
-            start-up's last solve (:meth:`_relinearise_startup`) then adds the second-order variance of
-            that product to each row's (:meth:`_curved`).
+        step_factors: ``(columns, nominal)`` of the unknowns a ``step`` unknown multiplies in the
+            observation (an unannounced payload, the compliance: row ``k``'s residual is bilinear in it and
+            ``x[columns[k]]``), whose values are ``nominal + x[columns]``: the ``step`` unknown is then held
+            at its prior mean until those values are known to within themselves (:meth:`_release_payload`).
 
     Attributes:
         started: the start-up batch is decided (the gated recursion runs).
@@ -176,6 +175,9 @@ class RobustFilter:
         walk_rate_mm2_per_s: the random walk's variance rate in use [mm²/s].
         recoveries: lock-outs recovered from.
         steps: steps of the ``step`` unknown taken.
+        payload_held: the ``step`` unknown of ``step_factors`` is held at its prior mean, its column
+            out of every observation (:meth:`_release_payload`).
+        payload_released_t_s: the time [s] of the sample it was released at (NaN while held, or never held).
         walk_lowering: the probability at which the window differences reject a rate as too large
             (:meth:`_pooled_walk_rate`; :data:`WALK_REJECTION`, isam2's front end :data:`WALK_RAISING`).
     """
@@ -195,11 +197,13 @@ class RobustFilter:
         compiled_rows=None,
         relinearise: bool = False,
         step: tuple[int, float] | None = None,
-        step_curvature: tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]] | None = None,
+        step_factors: tuple[np.ndarray, np.ndarray] | None = None,
     ):
         self.method = method
         self._step_unknown = step
-        self._step_curvature = step_curvature
+        self._step_factors = step_factors
+        self.payload_held = step is not None and step_factors is not None
+        self.payload_released_t_s = math.nan
         # a step is taken where it lowers the NIS beyond the gate's bound at one degree of freedom
         self._step_bound = float(chdtri(1, 1.0 - gate_probability)) if gate_probability > 0.0 else math.inf
         self.steps = 0
@@ -227,7 +231,7 @@ class RobustFilter:
         self._walking: np.ndarray | None = diagonal == 1.0 if plain else None
         self._compiled_rows = compiled_rows
         self._configured_walk = walk_mm_per_sqrt_s**2
-        self._observe = observe
+        self._observe_model = observe
         self._robust = robust
         self._n, self._m = n, m
         self._gate_on = gate_probability > 0.0
@@ -386,7 +390,7 @@ class RobustFilter:
         a bias the recursion keeps (NEES/dof 1.65 where lm, on the same log, gives 0.97)."""
         f = self.filter
         x, P, *_ = self._gauss_newton(
-            ~self.startup_outliers, self.noise_scale2, self._linearise(f.x.copy()), startup=True, curved=True
+            ~self.startup_outliers, self.noise_scale2, self._linearise(f.x.copy()), startup=True
         )
         f.x, f.P = x, P
 
@@ -417,6 +421,54 @@ class RobustFilter:
 
     # ------------------------------------------------------------------ recursion
 
+    def _observe(self, prepared: np.ndarray, x: np.ndarray):
+        """The observation of a prepared sample at ``x`` (:data:`Observe`), the held payload's column
+        out of it (:meth:`_release_payload`): the sample says nothing of that unknown yet."""
+        observation = self._observe_model(prepared, x)
+        if observation is None or not self.payload_held:
+            return observation
+        nu, H, R0 = observation
+        return nu, self._without_payload(H), R0
+
+    def _without_payload(self, H: np.ndarray) -> np.ndarray:
+        """``H`` without the column of the ``step`` unknown of ``step_factors`` (as it is where there is none)."""
+        if self._step_factors is None or self._step_unknown is None:
+            return H
+        H = H.copy()
+        H[:, self._step_unknown[0]] = 0.0
+        return H
+
+    def _compliance_settled(self, x: np.ndarray, P: np.ndarray) -> bool:
+        """Whether the values of ``step_factors`` are known to within themselves at ``(x, P)``,
+        ``σ_{c_i} < |c_i|`` on every leg (True where there are none)."""
+        if self._step_factors is None:
+            return True
+        columns, nominal = self._step_factors
+        return bool(np.all(np.diag(P)[columns] < (nominal + x[columns]) ** 2))
+
+    def _release_payload(self, t_s: float) -> None:
+        """Releases the held payload (:attr:`payload_held`) at the sample at ``t_s`` [s] once the compliance
+        it multiplies is known to within its own value, ``σ_{c_i} < |c_i|`` on every leg
+        (:meth:`_compliance_settled`): the payload's column ``∂r_i/∂m = −c_i f_{m,i} / 1000`` is then
+        linearised at compliances whose sign and size the samples have settled, and the payload is its
+        prior (mean and σ, uncorrelated), as a step of the prior's σ from the prior's mean leaves it.
+
+        Before, the column is linearised at a compliance the data have not seen — the nominal, 0 for a
+        controller that believes its legs rigid, with a prior σ of 2 mm over the platform's weight (82 mm/kN
+        on the paper's robot) — and the payload and the compliance trade along the curved ridge
+        ``c_i (f_{p,i} + m f_{m,i})`` the samples see: a filter update puts a narrow Gaussian on the ridge's
+        tangent at a wrong point of it, which the updates after it keep (the paper's experiment, the
+        tracker's geometry exact, readings white at 0.5 µm and told so: ``m`` 7.75 ± 0.36 kg after the first
+        pose past the start-up's four, truth 0; ``c`` 2–11 mm/kN, truth 2.33). The second-order variance of
+        the product, ``(∂²r_i/∂c_i∂m)² (P_cc P_mm + P_cm²)`` added to each row's, in the start-up's solves
+        alone leaves that to the recursion, and in every update keeps the filter's σ wide where the
+        compliance stays uncertain (a fast δM walk), where the step test then finds no step. Held, the
+        compliance is identified alone, linear in the samples. Batches from the prior hold the payload the same way,
+        sample by sample (:meth:`_observed_pass`)."""
+        if self.payload_held and self._compliance_settled(self.filter.x, self.filter.P):
+            self.payload_held = False
+            self.payload_released_t_s = t_s
+
     def _fill_Q(self, Q: np.ndarray, dt_s: float, walk_rate_mm2_per_s: float | None = None) -> None:
         rate = self.walk_rate_mm2_per_s if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
         fill_walk(Q, self._unit_Q, rate * max(dt_s, 0.0))
@@ -425,6 +477,7 @@ class RobustFilter:
         """One sample of the gated recursion; with an unknown that steps (and ``test_steps``: not a refused
         sample fed again out of time order) the candidate steps take it too and may replace the filter."""
         f = self.filter
+        self._release_payload(t_s)
         observation = self._observe(prepared, f.x)
         if observation is None:
             raise SampleRejected(
@@ -433,35 +486,15 @@ class RobustFilter:
         nu, H, R0 = observation
         self._fill_Q(f.Q, 0.0 if math.isnan(f.t_s) else t_s - f.t_s)
         step = self._step_unknown
-        if step is not None and test_steps and self._test_steps(step, t_s, prepared, nu, H, R0):
+        # a held payload has no step to test: its column is not in the samples yet
+        if (
+            step is not None
+            and test_steps
+            and not self.payload_held
+            and self._test_steps(step, t_s, prepared, nu, H, R0)
+        ):
             return
         f.update(H, nu, R0, t_s, noise_scale2=self.noise_scale2)  # SampleRejected: untouched
-
-    def _curved(self, prepared: np.ndarray, R0: np.ndarray, P: np.ndarray, noise_scale2: float) -> np.ndarray:
-        """``R0`` of a sample linearised at a state of covariance ``P``, with the second-order variance of
-        the ``step_curvature`` product added to each row: for ``r = a u v`` about the state, ``u`` and
-        ``v`` jointly Gaussian, ``Var(r)`` exceeds its linearisation's by ``a² (P_uu P_vv + P_uv²)``.
-
-        The compliance ``c_i`` and an unannounced payload ``m`` enter a leg as ``c_i f_{m,i} m``. The start-up's
-        few poses (30 samples, 4 static poses) pin neither while the prior leaves both wide (c ± 82 mm/kN, m
-        ± 50 kg), and their solve linearised at its own result put a narrow Gaussian along the tangent of
-        the curved c–m ridge there; the recursion, linearised where it went on, then ended sure of both
-        where neither was right: on the paper's experiment's no-load stage (its tracker's geometry exact,
-        readings white at 20 µm, σ told) ekf ended at m 13.2 ± 0.45 kg (truth 0) and c 1.0–1.2 ± 0.065
-        mm/kN (truth 2.33), where the batch MAP of the same samples is m 0.85 ± 1.14, c 2.0–2.3 ± 0.2, and
-        without the payload unknown ekf's c is 2.1–2.4 ± 0.13 (the unknown added made c surer). With the
-        term in the start-up's solves: m 0.65 ± 0.26, c 1.9–2.7 ± 0.12–0.15 (tests/test_payload_unannounced.py).
-        In the recursion too it costs the step test its evidence (a candidate's prior adds σ_m² to
-        ``P_mm``): with ``--config paper`` the 40 kg step went unfound on 2 of 3 seeds."""
-        if self._step_curvature is None or self._step_unknown is None:
-            return R0
-        columns, coefficients = self._step_curvature
-        if len(R0) != len(columns):  # an observation of other rows (a tight one): linearised as it is
-            return R0
-        index = self._step_unknown[0]
-        a = coefficients(prepared)
-        added = a**2 * (P[columns, columns] * P[index, index] + P[columns, index] ** 2)
-        return R0 + np.diag(added / noise_scale2)
 
     def _test_steps(
         self, step: tuple[int, float], t_s: float, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray
@@ -614,7 +647,6 @@ class RobustFilter:
         linearised: tuple[np.ndarray, list] | None = None,
         walk_rate_mm2_per_s: float | None = None,
         startup: bool = False,
-        curved: bool = False,
     ):
         """A filter pass from the prior over the buffered samples ``use``; returns
         ``(x, P, samples used, last t_s, residual degrees of freedom)``.
@@ -630,7 +662,6 @@ class RobustFilter:
         ``startup``: the decided start-up batch's own solve (:meth:`_relinearise_startup`,
         :meth:`startup_gaussian`), which runs once the filter has started: an unknown that steps is
         solved with the rest there, from its prior, as in every start-up pass.
-        ``curved``: each sample with :meth:`_curved`'s term at the pass's running ``P`` (with ``linearised``).
         """
         walk = self.walk_rate_mm2_per_s if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
         x = (self._x0 if centre is None else centre).copy()
@@ -648,7 +679,7 @@ class RobustFilter:
         self._pass_components = np.zeros(2)
         buffer = self._buffer
         if linearised is not None:
-            used, rows, last_t = self._observed_pass(x, P, use, noise_scale2, walk, linearised, curved=curved)
+            used, rows, last_t = self._observed_pass(x, P, use, noise_scale2, walk, linearised)
         elif self._compiled_rows is not None:
             _, _, used, last_t, *_ = self._compiled_rows(
                 x,
@@ -687,12 +718,12 @@ class RobustFilter:
         noise_scale2: float,
         walk_rate_mm2_per_s: float,
         linearised: tuple[np.ndarray, list] | None = None,
-        curved: bool = False,
     ) -> tuple[int, int, float]:
         """:meth:`_pass`'s recursion, observing each sample through ``observe`` (in place) at the
         pass's own state, or taking it from ``linearised``; returns ``(samples used, their
-        observations' rows, last t_s)``; ``curved``: each sample's ``R0`` with :meth:`_curved`'s term at the
-        pass's running ``P``."""
+        observations' rows, last t_s)``. The ``step`` unknown of ``step_factors`` takes no part in a sample
+        while the filter holds it or the pass's own compliance is not yet known to within itself
+        (:meth:`_compliance_settled`; :meth:`_release_payload`)."""
         Q = np.zeros((self._n, self._n))
         last_t, used, rows = math.nan, 0, 0
         buffer = self._buffer
@@ -701,12 +732,13 @@ class RobustFilter:
             if observation is None:
                 continue
             nu, H, R0 = observation
+            # a batch from the prior re-solves the compliance from its prior: the payload waits for it there too
+            if self.payload_held or not self._compliance_settled(x, P):
+                H = self._without_payload(H)
             if linearised is not None:
                 nu = nu - H @ (x - linearised[0])
             self._fill_Q(Q, 0.0 if math.isnan(last_t) else buffer.t[k] - last_t, walk_rate_mm2_per_s)
             work = self.filter.workspace(len(nu))
-            if curved:
-                R0 = self._curved(buffer.prepared[k], R0, P + Q, noise_scale2)
             status, _, _ = filter_step(x, P, Q, H, nu, R0, noise_scale2, math.inf, work, self._pass_components)
             if status != STEP_TAKEN:
                 continue  # degenerate: the step left x and P untouched
@@ -791,13 +823,12 @@ class RobustFilter:
         noise_scale2: float,
         linearised: tuple[np.ndarray, list],
         startup: bool = False,
-        curved: bool = False,
     ):
         """:meth:`_pass` over ``use`` relinearised at its own result until the step from the
         linearisation point is within :data:`RELINEARISE_TOLERANCE` posterior σ (the MAP of the
-        prior and those samples); returns the last pass (``startup``, ``curved``: as :meth:`_pass`)."""
+        prior and those samples); returns the last pass (``startup``: as :meth:`_pass`)."""
         for _ in range(MAX_RELINEARISATIONS):
-            solved = self._pass(use, noise_scale2, linearised=linearised, startup=startup, curved=curved)
+            solved = self._pass(use, noise_scale2, linearised=linearised, startup=startup)
             x, P = solved[0], solved[1]
             if _mahalanobis2(x - linearised[0], P, self._gauge_projector) <= RELINEARISE_TOLERANCE**2:
                 break
@@ -1150,6 +1181,7 @@ class RobustFilter:
                 "since": np.int64(self._since_candidate),
                 "last_step_t_s": np.float64(self.step_t_s),
                 "dispersions": np.array(self._dispersions, dtype=float),
+                "payload_held": np.array([float(self.payload_held), self.payload_released_t_s]),
             },
             "walk_windows": {
                 "x": np.array([w[0] for w in windows]).reshape(-1, self._n),
@@ -1197,6 +1229,7 @@ class RobustFilter:
             )
         self.steps = int(state_array(state, "steps", ())) if "steps" in state else 0  # none before steps counted
         self._candidates, self._since_candidate, self.step_t_s = [], 0, math.nan
+        self.payload_held, self.payload_released_t_s = False, math.nan  # an older checkpoint's was never held
         self._dispersions = deque(maxlen=DISPERSION_SAMPLES)
         if "step_candidates" in state:  # an older checkpoint has none: they start afresh
             kept = state["step_candidates"]
@@ -1216,6 +1249,9 @@ class RobustFilter:
             self.step_t_s = float(state_array(kept, "last_step_t_s", ()))
             dispersions = state_array(kept, "dispersions", np.shape(kept.get("dispersions", ())))
             self._dispersions = deque(dispersions.ravel().tolist(), maxlen=DISPERSION_SAMPLES)
+            if "payload_held" in kept:
+                held, self.payload_released_t_s = state_array(kept, "payload_held", (2,))
+                self.payload_held = bool(held) and self._step_factors is not None
         self._buffer.import_state(state)
         self._windows = deque(maxlen=WALK_HISTORY)
         if "walk_windows" in state:  # an older checkpoint has none: its rate measured afresh from the next windows
