@@ -30,7 +30,10 @@ result's band of the same;
 its verdict is wrong where it says "within" of a truth over the tolerance or "over" of one within
 (absolute place and motion). Ratios: medians over the seeds of one command's expected mean error over
 another's for the same poses (calibrate ÷ identifiability on the log, calibrate on the planned poses ÷
-plan).
+plan). Targets: a band's row needs the hits of 10 seeds an honest 90 % band falls below 7 % of the time (8
+of 10; "90 % of seeds" is the binomial's mean, missed by an honest band in 26 % of rows); every band pooled
+holds 90 % within two standard errors, and its misses above and below within two standard deviations of
+an even split (a band too small or too large on one side).
 
 ``python -m benchmarks.prediction [--seeds N] [--quick]`` prints the table; ``python -m benchmarks --only
 prediction`` saves it as the section of BENCHMARKS.md.
@@ -68,6 +71,8 @@ SEEDS, QUICK_SEEDS = 10, 2
 CALIBRATION_POSES, HELD_OUT_POSES = 60, 30
 QUICK_POSES = 30
 IN_BAND_TARGET = 0.9
+#: a row of one band over the seeds fails an honest 90 % band at most this often (:func:`seeds_needed`)
+ROW_FALSE_FAIL = 0.1
 #: the ratio of two commands' predictions for the same poses counts as agreeing within this factor
 RATIO_TARGET = 1.25
 #: validate's tolerance: this many times the result's expected mean of what validate measures
@@ -259,6 +264,8 @@ def in_band(predicted: dict, absolute: float, motion: float) -> dict:
         "motion_in_band": bool(m_low <= motion <= m_high),
         "absolute_mm": predicted["position_mm"],
         "motion_mm": predicted["motion_position_mm"],
+        "absolute_band_mm": [low, high],
+        "motion_band_mm": [m_low, m_high],
     }
 
 
@@ -292,6 +299,7 @@ def run_seed(name: str, elastic: bool, seed: int, work: Path, poses: int) -> dic
         low, high = result["predicted_closed_loop"]["registered_position_band_mm"]
         out["calibrate"]["registered_mm"] = result["predicted_closed_loop"]["registered_position_mm"]
         out["calibrate"]["registered_in_band"] = bool(low <= out["registered_mm"] <= high)
+        out["calibrate"]["registered_band_mm"] = [low, high]
     identified = json.loads((work / "i.json").read_text())["predicted_closed_loop"]
     out["identifiability"] = in_band(identified, absolute, motion)
 
@@ -383,6 +391,32 @@ def run_seed(name: str, elastic: bool, seed: int, work: Path, poses: int) -> dic
     return out
 
 
+def _below(n: int, k: int, p: float = IN_BAND_TARGET) -> float:
+    """``P(X < k)`` for ``X ~ Binomial(n, p)``: an honest band's chance of fewer than ``k`` hits in ``n``."""
+    return sum(math.comb(n, j) * p**j * (1.0 - p) ** (n - j) for j in range(k))
+
+
+def seeds_needed(n: int) -> int:
+    """The hits of ``n`` seeds a band row needs: the most ``k`` with ``P(X < k) ≤`` :data:`ROW_FALSE_FAIL`
+    for the hits ``X ~ Binomial(n, 0.9)`` of an honest 90 % band. "≥ 90 % of seeds" itself is the
+    binomial's mean, which an honest band misses in more than a quarter of rows of 10 seeds (26 %: each
+    row a coin with a quarter's bias); 8 of 10 it misses in 7 % (at 20 seeds 16 of them, 4 %; at 30, 25, 7 %). A band
+    too narrow on one side shows in the pooled rows (:func:`pooled_row`, :func:`sides_row`), whose
+    hundreds of bands hold the share to 90 % within two standard errors and the misses to both sides."""
+    k = 0
+    while k < n and _below(n, k + 1) <= ROW_FALSE_FAIL:
+        k += 1
+    return k
+
+
+def _target(n: int, each: bool = False) -> str:
+    need = seeds_needed(n)
+    return (
+        f"≥ {need}/{n} seeds{' each' if each else ''} (an honest 90 % band falls below {need} of {n} with "
+        f"probability {_below(n, need):.2f})"
+    )
+
+
 def _share(runs: list[dict], command: str, what: str) -> int:
     return sum(r[command][f"{what}_in_band"] for r in runs)
 
@@ -423,8 +457,9 @@ def _outside_band_text(runs: list[dict], command: str) -> str:
         missed = [r for r in runs if not r[command][f"{what}_in_band"]]
         above = sum(_dig(r, tuple(key.split("."))) > r[command][f"{what}_mm"] for r in missed)
         parts.append(f"{what} {len(missed)} outside ({above} above, {len(missed) - above} below)")
-    n, need = len(runs), int(np.ceil(IN_BAND_TARGET * len(runs)))
-    chance = 1.0 - sum(math.comb(n, k) * 0.1**k * 0.9 ** (n - k) for k in range(n - need + 1))
+    n = len(runs)
+    need = seeds_needed(n)
+    chance = _below(n, need)
     return (
         f"{'; '.join(parts)} of {n} seeds; an honest 90 % band misses more than {n - need} of {n} with "
         f"probability {chance:.2f} for each of the two."
@@ -456,8 +491,9 @@ def _why(label: str, runs: list[dict]) -> dict[str, str]:
                 "(median, absolute / motion); ls's covariance with the tracker is that of its fit whitened by the "
                 "readings' and strokes' noise through forward kinematics, exact to first order (tests/test_ls.py "
                 "draws it), so a band missed in more than one seed in ten is the band's "
-                "own spread over ten seeds or the prediction's mean over the workspace against the truth's."
-            ),
+                "own spread over ten seeds or the prediction's mean over the workspace against the truth's. "
+            )
+            + _outside_band_text(runs, "calibrate"),
             "identifiability's 90 % band": (
                 f"the truth is {over['identifiability'][0]:.2f}× / {over['identifiability'][1]:.2f}× "
                 "identifiability's expected error (median, absolute / motion), its misses above the band: "
@@ -477,20 +513,30 @@ def _why(label: str, runs: list[dict]) -> dict[str, str]:
         else {
             "identifiability's 90 % band": (
                 f"identifiability's expected absolute error is {identified:.2f}× calibrate's on the same log (median); "
-                "its bound is taken at the nominal model (compliance 0) and the platform file's σ, calibrate's "
-                "covariance at its estimate with the σ it re-estimates; linearised at the true compliance the bound "
-                "moves a fifth of the way (points, elastic, seed 3: 1.29 → 1.25 mm against calibrate's 1.09 mm), "
-                "the rest is not explained here. "
+                "its bound is taken at the log's own ls fit, the settled pose Jacobian at the fitted compliance, "
+                "the same point as calibrate's covariance; its misses are the band's spread over the seeds. "
             )
             + _outside_band_text(runs, "identifiability")
         }
     )
     registered = [r["registered_mm"] / r["calibrate"]["registered_mm"] for r in runs]
+    missed = [v for r, v in zip(runs, registered, strict=True) if not r["calibrate"]["registered_in_band"]]
+    outside = sum(v > 1 for v in missed), sum(v <= 1 for v in missed)
     return {
         **why,
         "calibrate's registered 90 % band": (
             f"the truth's registered error is {np.median(registered):.2f}× calibrate's prediction of it (median; "
-            f"{sum(v > 1 for v in registered)} of {len(runs)} above)."
+            f"{sum(v > 1 for v in registered)} of {len(runs)} above); of the seeds outside the band {outside[0]} "
+            f"above, {outside[1]} below; an honest band leaves {max(outside)} or more of {len(runs)} on one side "
+            f"with probability {1.0 - _below(len(runs), max(outside), 0.05):.3f}, some one of the "
+            "section's 92 band sides at 0.01."
+            + (
+                " The estimate's error against its covariance over the free drive directions (measured aside, seeds "
+                "0–9: χ² 48.6 on average against its 42 degrees of freedom, ±2.9) says ls's covariance with the "
+                "pose instrument on the elastic robot may be some 8 % small in σ, the cause not found."
+                if label == "pose, elastic"
+                else ""
+            )
         ),
         **_validate_why(runs),
     }
@@ -523,7 +569,7 @@ def _validate_why(runs: list[dict]) -> dict[str, str]:
 
 def _rows(label: str, runs: list[dict]) -> list[Row]:
     n = len(runs)
-    need = int(np.ceil(IN_BAND_TARGET * n))
+    need = seeds_needed(n)
     rows = []
     for command, truth in (
         ("calibrate", "the truth"),
@@ -535,7 +581,7 @@ def _rows(label: str, runs: list[dict]) -> list[Row]:
             Row(
                 f"{label}: {truth} in {command}'s 90 % band (absolute / motion)",
                 f"{a}/{n} / {m}/{n}",
-                f"≥ {IN_BAND_TARGET:.0%} of seeds each",
+                _target(n, each=True),
                 bool(a >= need and m >= need),
             )
         )
@@ -545,7 +591,7 @@ def _rows(label: str, runs: list[dict]) -> list[Row]:
             Row(
                 f"{label}: the truth's registered error in calibrate's registered 90 % band",
                 f"{registered}/{n}",
-                f"≥ {IN_BAND_TARGET:.0%} of seeds",
+                _target(n),
                 bool(registered >= need),
             )
         )
@@ -556,7 +602,7 @@ def _rows(label: str, runs: list[dict]) -> list[Row]:
         Row(
             f"{label}: the truth's RMS at its poses in validate's stated 90 % interval of the {what} (noise out)",
             f"{covered}/{n} (validate's own ÷ the truth's, median {np.median(seen):.3g}×)",
-            f"≥ {IN_BAND_TARGET:.0%} of seeds",
+            _target(n),
             bool(covered >= need),
         )
     )
@@ -565,7 +611,7 @@ def _rows(label: str, runs: list[dict]) -> list[Row]:
         Row(
             f"{label}: validate's 90 % interval of the {what} meets the result's 90 % band",
             f"{banded}/{n}",
-            f"≥ {IN_BAND_TARGET:.0%} of seeds",
+            _target(n),
             bool(banded >= need),
         )
     )
@@ -575,7 +621,7 @@ def _rows(label: str, runs: list[dict]) -> list[Row]:
             f"{label}: validate's verdict at {TOLERANCE_FACTOR:g}× the predicted error (wrong: motion or absolute)",
             f"wrong in {wrong}/{n}",
             f"≤ {1 - IN_BAND_TARGET:.0%} of seeds",
-            bool(wrong <= n - need),
+            bool(wrong <= n - math.ceil(IN_BAND_TARGET * n)),
         )
     )
     ratios = {
@@ -637,10 +683,58 @@ def pooled_row(runs: dict[str, list[dict]]) -> Row:
     return row
 
 
+def _sides(run: dict) -> list[int]:
+    """Where each band of :func:`_coverages` left its truth: +1 above, −1 below, 0 within (above or below
+    the band's expected mean where the band itself is not in the run)."""
+    sides = []
+    for command, keys in TRUTHS.items():
+        for what, key in zip(("absolute", "motion"), keys, strict=True):
+            if not run[command][f"{what}_in_band"]:
+                sides.append(1 if _dig(run, tuple(key.split("."))) > run[command][f"{what}_mm"] else -1)
+            else:
+                sides.append(0)
+    if "registered_in_band" in run["calibrate"]:
+        inside = run["calibrate"]["registered_in_band"]
+        sides.append(0 if inside else (1 if run["registered_mm"] > run["calibrate"]["registered_mm"] else -1))
+    validate = run["validate"]
+    inside = validate["truth_in_interval"]
+    sides.append(0 if inside else (1 if validate["truth_rms_mm"] > validate["seen_interval_mm"][1] else -1))
+    return sides
+
+
+def sides_row(runs: dict[str, list[dict]]) -> Row:
+    """The pooled misses by side: an honest band leaves 5 % of its truths above it and 5 % below, so of
+    ``m`` misses the ones above are Binomial(m, ½); one side's prediction too small or too large (an
+    omitted noise term, a spread too narrow) tips them. Target: the two sides within two standard
+    deviations of that binomial, ``|above − below| ≤ 2√m`` (an honest pool beyond it 5 % of the time)."""
+    sides = [side for group in runs.values() for run in group for side in _sides(run)]
+    above, below = sides.count(1), sides.count(-1)
+    limit = 2.0 * math.sqrt(above + below)
+    row = Row(
+        "the pooled misses of every stated 90 % band: truth above against below",
+        f"{above} above, {below} below",
+        f"|above − below| ≤ {limit:.3g} (two standard deviations of an honest split of {above + below})",
+        bool(abs(above - below) <= limit),
+    )
+    if not row.met:
+        by = {
+            label: (
+                sum(s == 1 for run in group for s in _sides(run)),
+                sum(s == -1 for run in group for s in _sides(run)),
+            )
+            for label, group in runs.items()
+        }
+        row.why = (
+            "above / below by instrument and robot: " + ", ".join(f"{k} {a}/{b}" for k, (a, b) in by.items()) + "."
+        )
+    return row
+
+
 def section_of(runs: dict[str, list[dict]], seeds: int) -> Section:
     """The section of measured ``runs`` (by instrument and robot, one a seed): rows, whys and the table."""
     rows = [row for label, group in runs.items() for row in rows_of(label, group)]
     rows.append(pooled_row(runs))
+    rows.append(sides_row(runs))
     cells = []
     for label, group in runs.items():
         median = lambda *keys, group=group: float(np.median([_dig(r, keys) for r in group]))  # noqa: E731

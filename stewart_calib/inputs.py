@@ -188,7 +188,8 @@ def _open(path: str | Path, what: str) -> int:
         raise CalibError(f"{shown(path)}: cannot read {what} ({err.strerror or err.__class__.__name__})") from None
     if stat.S_ISDIR(os.fstat(fd).st_mode):
         os.close(fd)
-        raise CalibError(f"{shown(path)}: is a directory; expected a {what}")
+        article = "an" if what[:1] in "aeiou" else "a"  # an experiment file, a log file
+        raise CalibError(f"{shown(path)}: is a directory; expected {article} {what}")
     return fd
 
 

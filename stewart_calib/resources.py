@@ -23,11 +23,13 @@ def shipped_names(kind: str) -> list[str]:
 
 
 def resolve(value: str | Path, kind: str) -> Path:
-    """``value`` as a path when it exists or names a directory; else the shipped file of that
-    name (with or without ``.toml``) in ``configs/<kind>/`` when there is one; else ``value``
-    unchanged, for the caller's "not found" message (see :func:`not_found_hint`)."""
+    """``value`` as a path when it is a file or names a directory; else the shipped file of that
+    name (with or without ``.toml``) in ``configs/<kind>/`` when there is one — also where a bare
+    name is a directory here (``simulate --experiment servo --out servo`` run a second time: the
+    first run's output directory does not hide the shipped experiment); else ``value`` unchanged, for
+    the caller's "not found" or "is a directory" message (see :func:`not_found_hint`)."""
     path = Path(value)
-    if path.exists() or len(path.parts) != 1:
+    if (path.exists() and not path.is_dir()) or len(path.parts) != 1:
         return path
     packaged = CONFIGS / kind / f"{path.name.removesuffix('.toml')}.toml"
     return packaged if packaged.is_file() else path

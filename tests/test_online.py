@@ -100,6 +100,45 @@ def test_a_gtsam_failure_rejects_the_sample_and_the_smoother_is_rebuilt_without_
     assert np.max(np.abs(estimate.covariance - never.covariance)) <= RESUME_TOLERANCE_MM["isam2"] * 1e-2
 
 
+def test_an_isam2_checkpoint_of_the_graph_in_the_configured_noise_resumes_as_one_of_now(platform, config, tmp_path):
+    """A checkpoint written while isam2's graph kept the configured noise ``R0`` holds its snapshot's
+    covariance as ``covariance``: the marginal of then, over the front end's ``s²``. It resumes as the
+    checkpoint of the same state written now (``covariance_mm2``). Readings at 0.3× the told noise
+    (``s²`` ≈ 0.08), so that the units show: a checkpoint written by the code of before and taken in
+    mm² ended 2.1σ from the uninterrupted run, its σ 13–38 % wide (0.48σ and 0.99–1.05, the two codes'
+    own difference, once converted)."""
+    rng = np.random.default_rng(5)
+    error = random_error(rng, 1.0)
+    log, _ = make_log(platform, error, random_poses(platform, 150, rng), rng, 0.002 * 0.3, 0.001 * 0.3)
+    cut = 97  # deep into the run: the replay buffer starts at a snapshot
+    _feed(OnlineCalibrator(platform, "isam2", config), log.select(slice(0, cut))).save(tmp_path / "now.npz")
+    with np.load(tmp_path / "now.npz") as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    noise_scale2 = float(arrays["state/front/robust/noise"][0])
+    assert noise_scale2 < 0.2
+    arrays["state/snapshot/covariance"] = arrays.pop("state/snapshot/covariance_mm2") / noise_scale2
+    _rewrite(tmp_path / "before.npz", arrays)
+    now, before = (
+        _feed(OnlineCalibrator.load(tmp_path / name, None), log.select(slice(cut, len(log)))).estimate()
+        for name in ("now.npz", "before.npz")
+    )
+    assert np.max(np.abs(before.error - now.error)) <= 1e-9
+    assert np.max(np.abs(before.covariance - now.covariance)) <= 1e-9 * np.max(np.abs(now.covariance))
+
+
+def test_a_checkpoint_without_the_walk_of_the_scales_memory_takes_the_walk_in_use(platform, config, log, tmp_path):
+    """The noise scale's remembered sums carry the walk their windows were measured at (``scale_walk``,
+    which decides whether a moved walk drops them); a checkpoint of before holds none and resumes with
+    them as measured at the walk in use."""
+    _feed(OnlineCalibrator(platform, "ekf", config), log.select(slice(0, 97))).save(tmp_path / "c.npz")
+    with np.load(tmp_path / "c.npz") as npz:
+        arrays = {name: npz[name] for name in npz.files if name != "state/robust/scale_walk"}
+    _rewrite(tmp_path / "c.npz", arrays)
+    robust = OnlineCalibrator.load(tmp_path / "c.npz", None).export_state()["robust"]
+    assert robust["scale_sums"][1] > 0.0
+    assert robust["scale_walk"] == robust["scale_sums"][1] * np.log(robust["noise"][1])
+
+
 def _unusable(platform, t_s):
     readings_at_home = np.zeros(6)
     return {

@@ -63,6 +63,7 @@ from ..estimate import Estimate
 from ..instruments.gauge import joint_columns
 from ..instruments.registry import instrument_kind, outside_model
 from ..model import kinematics as kin
+from ..model import rotations
 from ..model.drive import DriveModel, drive_model
 from ..model.platform import Platform
 from ..model.rotations import skew
@@ -101,12 +102,17 @@ MAX_DRAWS_PER_POSE = 50
 
 
 def reachable_poses(
-    platform: Platform, n: int, rng: np.random.Generator, face_bias_exponent: float = 1.0
+    platform: Platform,
+    n: int,
+    rng: np.random.Generator,
+    face_bias_exponent: float = 1.0,
+    ranges: str = "the stroke and reading ranges",
 ) -> np.ndarray:
     """``(n, 6)`` random poses in the workspace box with strokes and readings within range.
 
     Each coordinate is ``home + limit · sign(w)|w|^face_bias_exponent``, w uniform in [−1, 1]
-    (1: uniform in the box; below 1: denser near its faces).
+    (1: uniform in the box; below 1: denser near its faces). ``ranges`` names the ranges in the
+    refusal (a caller that narrowed them says how).
 
     Raises:
         CalibError: the platform has no ``[workspace]``, or almost no pose of the box is reachable.
@@ -125,8 +131,8 @@ def reachable_poses(
     while count < n:
         if draws > MAX_DRAWS_PER_POSE * n:
             raise CalibError(
-                f"{platform.source}: key 'workspace': expected a box whose poses mostly lie within the "
-                f"stroke and reading ranges; only {count} of {draws} random poses do"
+                f"{platform.source}: key 'workspace': expected a box whose poses mostly lie within {ranges}; "
+                f"only {count} of {draws} random poses do"
             )
         w = rng.uniform(-1.0, 1.0, (n, 6))
         batch = ws.home + np.sign(w) * np.abs(w) ** face_bias_exponent * half
@@ -471,17 +477,44 @@ def correction_size(platform: Platform, estimate: DriveModel, poses: np.ndarray 
     return float(np.mean(position_mm[reached.converged])) if reached.converged.any() else float("inf")
 
 
+def motion_correction_size(
+    platform: Platform, estimate: DriveModel, poses: np.ndarray | None = None, home: np.ndarray | None = None
+) -> float:
+    """Mean position change [mm] of the motion from ``home`` (default the ``[workspace]`` home, else the
+    first of ``poses``) to each pose that the estimated drive makes: ``‖p(FK(H')⁻¹ FK(X')) − p(H⁻¹ X)‖``
+    with ``X' = (estimate, IK(nominal, X))`` — the uncalibrated robot's error of motion if the estimate
+    were the truth; a constant offset of every pose (what an outside instrument's frame trades
+    against) moves no motion."""
+    poses = evaluation_poses(platform) if poses is None else np.asarray(poses, dtype=float).reshape(-1, 6)
+    if home is None:
+        home = platform.workspace.home if platform.workspace is not None else poses[0]
+    R, t = kin.pose_to_rt(np.vstack([poses, home]))
+    drive = drive_model(platform)
+    reached, _ = estimate.settled_kinematics(drive.inverse_kinematics(R, t), guess=(R, t), strict=False)
+    if not reached.converged[-1]:
+        return float("inf")
+    R_h, t_h = rotations.inverse(reached.R[-1], reached.t[-1])
+    _, moved = rotations.compose(R_h, t_h, reached.R[:-1], reached.t[:-1])
+    R_d, t_d = rotations.inverse(R[-1], t[-1])
+    _, desired = rotations.compose(R_d, t_d, R[:-1], t[:-1])
+    change = np.linalg.norm(moved - desired, axis=1)[reached.converged[:-1]]
+    return float(np.mean(change)) if change.size else float("inf")
+
+
 def summary_line(
-    prediction: PredictedError, noise_floor: PredictedError | None, correction_mm: float | None = None
+    prediction: PredictedError,
+    noise_floor: PredictedError | None,
+    correction_mm: float | None = None,
+    what: str = PREDICTION_HEAD,
 ) -> tuple[str, bool]:
-    """The one line ``calibrate`` and ``identifiability`` print, and whether it is a warning.
+    """The one line ``calibrate`` and ``identifiability`` print (``what`` its head), and whether it is a warning.
 
     A warning when the predicted position error exceeds :data:`NOISE_FLOOR_FACTOR` × the noise
     floor (None: not compared), or (with an estimate) the correction the calibration makes: the
     estimate's change to where the robot goes is then within its own uncertainty, and the
     calibrated robot may be further from its poses than the uncalibrated one.
     """
-    head = f"{PREDICTION_HEAD}: {prediction.describe()}"
+    head = f"{what}: {prediction.describe()}"
     reasons = []
     if noise_floor is not None and prediction.position_mm > NOISE_FLOOR_FACTOR * noise_floor.position_mm:
         reasons.append(
@@ -498,6 +531,36 @@ def summary_line(
     if reasons:
         return "warning: " + head + "; " + "; ".join(reasons), True
     return head, False
+
+
+def worse_than_nominal_line(
+    prediction: PredictedError, correction_mm: float | None, motion_correction_mm: float | None
+) -> str | None:
+    """The loud line when a calibration moves the robot by less than its own expected error, both in
+    absolute place (``correction_mm``, :func:`correction_size`) and in the motion from home
+    (``motion_correction_mm``, :func:`motion_correction_size`), None otherwise: the nominal model then
+    lies within the estimate's uncertainty of it even where the log sees best, and were the nominal
+    model right, the calibrated robot would miss its poses by the whole move.
+
+    Both must fall short: an outside instrument's frame trades against a near-rigid motion of the
+    joints, so the absolute correction of a robot the calibration does improve can lie within its
+    uncertainty too; the motion, which the log sees, then still moves by more than its own.
+    """
+    if correction_mm is None or motion_correction_mm is None:
+        return None
+    if not (prediction.position_mm > correction_mm and prediction.motion_position_mm > motion_correction_mm):
+        return None
+    low, high = prediction.position_band_mm
+    m_low, m_high = prediction.motion_position_band_mm
+    limited = f"; the absolute error limited by {prediction.limited_by}" if prediction.limited_by else ""
+    return (
+        f"WARNING: the calibrated model is likely worse than the nominal one: it moves the robot by "
+        f"{correction_mm:.3g} mm and its motion from home by {motion_correction_mm:.3g} mm, each less than its own "
+        f"expected error ({prediction.position_mm:.3g} mm, {BAND_PROBABILITY:.0%}: {low:.3g}–{high:.3g} mm; motion "
+        f"{prediction.motion_position_mm:.3g} mm, {BAND_PROBABILITY:.0%}: {m_low:.3g}–{m_high:.3g} mm), so the log "
+        f"does not support the move{limited}: keep the nominal model, or log poses that tilt and reach to the "
+        "workspace's edges (stewart-calib plan)"
+    )
 
 
 def _against(band_mm: tuple[float, float], orientation_deg: float, tolerance_mm, tolerance_deg) -> str:
@@ -646,6 +709,7 @@ def estimate_summary(
         **prediction.to_dict(),
         "noise_floor_mm": None if noise_floor is None else noise_floor.position_mm,
         "correction_mm": correction,
+        "motion_correction_mm": motion_correction_size(platform, drive.calibrated_by(estimate), poses),
         "warning": line if warn else None,
     }
     return field, line, warn

@@ -27,7 +27,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from ..errors import CalibError, SampleRejected
+from ..errors import CalibError, SampleRejected, number
 from ..estimate import Estimate
 from ..inputs import MAX_TIME_S
 from ..samples import Log, Sample
@@ -262,7 +262,7 @@ def checked_covariance(matrix: np.ndarray, key: str) -> np.ndarray:
 def checked_time(t_s: float, key: str) -> float:
     """``t_s`` [s] when NaN (no sample yet) or a plausible time (within ±:data:`~stewart_calib.inputs.MAX_TIME_S`)."""
     if not (math.isnan(t_s) or abs(t_s) <= MAX_TIME_S):
-        raise CalibError(f"estimator state: key '{key}': {t_s} s is no time of a log (expected within ±1e12 s)")
+        raise CalibError(f"estimator state: key '{key}': {number(t_s)} s is no time of a log (expected within ±1e12 s)")
     return t_s
 
 

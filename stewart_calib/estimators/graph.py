@@ -158,9 +158,11 @@ class GraphBuilder:
             for legs in ([np.arange(self.drive.rows)] if self._gaussian else [[i] for i in range(self.drive.rows)])
         ]
         self._group_noise: dict[tuple[int, ...], gtsam.noiseModel.Base] = {}
+        # the drive legs' and channel groups' noise at the last measurement scale other than 1 (a window's)
+        self._scaled: tuple[float, list, dict] = (1.0, self._drive_legs, self._group_noise)
         # the channel groups of the last sample as factored (channels, noise): the tracker's groups
         # are one constant list, so a sample's are most often the very list of the one before
-        self._groups: tuple[list[np.ndarray] | None, list[tuple]] = (None, [])
+        self._groups: tuple[list[np.ndarray] | None, list[tuple], float] = (None, [], 1.0)
         # tight coupling to a leg set of known geometry: the pose's initial value is the readings'
         # FK alone (its covariance, which model.pose adds, is for loose coupling)
         self._fk_legs = self.model.compiled_legs if self.graph.coupling == "tight" else None
@@ -178,12 +180,29 @@ class GraphBuilder:
         #: the unknown vector's first value (zeros, or the instrument block at its registration)
         self.initial = np.zeros(self.layout.size)
 
-    def _noise(self, channels: np.ndarray) -> gtsam.noiseModel.Base:
-        """The (robust) noise model of one channel group, made once per distinct group."""
+    def _noise(self, channels: np.ndarray, scale2: float = 1.0) -> gtsam.noiseModel.Base:
+        """The (robust) noise model of one channel group at ``scale2`` × its variance, made once per
+        distinct group (at one scale other than 1 at a time: :meth:`_at_scale`)."""
         key = tuple(int(c) for c in channels)
-        if key not in self._group_noise:
-            self._group_noise[key] = robust_noise(diagonal_noise(self.model.channel_sigma[list(key)]), *self._robust)
-        return self._group_noise[key]
+        noise = self._at_scale(scale2)[1]
+        if key not in noise:
+            sigma = self.model.channel_sigma[list(key)] * math.sqrt(scale2)
+            noise[key] = robust_noise(diagonal_noise(sigma), *self._robust)
+        return noise[key]
+
+    def _at_scale(self, scale2: float) -> tuple[list, dict]:
+        """``(the drive legs with their noise, the channel groups' noise)`` at ``scale2`` × the
+        configured measurement covariance: made when the scale changes (a window's, in time order)."""
+        if scale2 == 1.0:
+            return self._drive_legs, self._group_noise
+        if self._scaled[0] != scale2:
+            sigma = self.drive.coordinate_sigma(self.noise) * math.sqrt(scale2)
+            legs = [
+                (legs, robust_noise(gtsam.noiseModel.Isotropic.Sigma(len(legs.legs), sigma), *self._robust))
+                for legs, _ in self._drive_legs
+            ]
+            self._scaled = (scale2, legs, {})
+        return self._scaled[1], self._scaled[2]
 
     def _merged(self, groups: list[np.ndarray]) -> list[np.ndarray]:
         """The model's channel groups, as one group where the noise is Gaussian."""
@@ -287,6 +306,7 @@ class GraphBuilder:
         noise_scale2: float = 1.0,
         walk_rate_mm2_per_s: float | None = None,
         window_fraction: float = 1.0,
+        measurement_scale2: float = 1.0,
     ) -> Epoch:
         """Factors, values and timestamps of ``sample`` and the state after it.
 
@@ -301,6 +321,9 @@ class GraphBuilder:
                 (None: the configured one).
             window_fraction: the current window's length as a fraction of the configured one
                 (:meth:`new_window`; ``isam2`` shortens it where the walk is fast beside the noise).
+            measurement_scale2: the sample's measurement covariance in the graph, this × the configured
+                ``R0`` (``isam2``: its window's ``s²``, the graph in the units of ``R`` and ``Q`` themselves;
+                ``lm``: 1, one scale for the whole graph, ``noise_scale2``).
 
         With ``walk_in_windows``, ``noise_scale2`` and ``walk_rate_mm2_per_s`` are those of the window
         the sample is in, and its drive-leg rows carry, besides the stroke noise, the walk from the
@@ -371,16 +394,17 @@ class GraphBuilder:
         p = params_key(state.window)
 
         if self.graph.coupling == "loose" and observed is not None and self._instrument is None:
-            noise = robust_noise(gtsam.noiseModel.Gaussian.Covariance(observed.covariance), *self._robust)
+            covariance = observed.covariance * measurement_scale2
+            noise = robust_noise(gtsam.noiseModel.Gaussian.Covariance(covariance), *self._robust)
             factors.add(instrument_pose.factor(x, pose, noise))
         else:
             block, size = (None, 0) if self._instrument is None else (self._instrument, self.layout.size)
-            for channels, noise, legs in self._factored_groups(z):
+            for channels, noise, legs in self._factored_groups(z, measurement_scale2):
                 factors.add(instrument.factor(self.model, x, z, channels, noise, p, block, size, legs=legs))
         walked = self._walk_since_window(sample.t_s - state.window_start_s, noise_scale2, walk_rate_mm2_per_s)
-        for drive_legs, noise in self._drive_legs:
+        for drive_legs, noise in self._at_scale(measurement_scale2)[0]:
             if walked > 0.0:
-                noise = self._walked_noise(drive_legs, pose.matrix(), inputs, walked)
+                noise = self._walked_noise(drive_legs, pose.matrix(), inputs, walked, measurement_scale2)
             factors.add(drive_leg.factor(x, p, drive_legs, inputs, noise, sample.inputs))
 
         # The current parameter key is re-stamped every update so the smoother never
@@ -397,28 +421,32 @@ class GraphBuilder:
         return self._walk_rate(walk_rate_mm2_per_s) * tau_s / noise_scale2
 
     def _walked_noise(
-        self, drive_legs: drive_leg.DriveLegs, pose: np.ndarray, inputs: np.ndarray, walked: float
+        self, drive_legs: drive_leg.DriveLegs, pose: np.ndarray, inputs: np.ndarray, walked: float, scale2: float
     ) -> gtsam.noiseModel.Base:
-        """The noise of ``drive_legs``'s rows with a walk of variance ``walked`` from the window's variable."""
+        """The noise of ``drive_legs``'s rows, ``scale2`` × their configured variance, with a walk of
+        variance ``walked`` from the window's variable."""
         covariance = walked * drive_leg.walk_covariance(drive_legs, pose, self.initial, inputs, self._walks)
-        variances = np.diag(covariance) + self.noise.stroke_sigma_mm**2
+        variances = np.diag(covariance) + scale2 * self.noise.stroke_sigma_mm**2
         # legs that share no walking unknown (δM's legs: each its own columns) stay independent rows
         if np.count_nonzero(covariance - np.diag(np.diag(covariance))) == 0:
             return robust_noise(diagonal_noise(np.sqrt(variances)), *self._robust)
         covariance[np.diag_indices_from(covariance)] = variances
         return robust_noise(gtsam.noiseModel.Gaussian.Covariance(covariance), *self._robust)
 
-    def _factored_groups(self, z: np.ndarray) -> list[tuple[np.ndarray, gtsam.noiseModel.Base, np.ndarray | None]]:
-        """The model's channel groups of ``z`` as factored (:meth:`_merged`), each with its noise
-        and :func:`~stewart_calib.factors.instrument.known_legs`."""
+    def _factored_groups(
+        self, z: np.ndarray, scale2: float = 1.0
+    ) -> list[tuple[np.ndarray, gtsam.noiseModel.Base, np.ndarray | None]]:
+        """The model's channel groups of ``z`` as factored (:meth:`_merged`), each with its noise at
+        ``scale2`` × the configured variance and :func:`~stewart_calib.factors.instrument.known_legs`."""
         groups = self.model.groups(z)
-        if groups is not self._groups[0]:
+        if groups is not self._groups[0] or scale2 != self._groups[2]:
             self._groups = (
                 groups,
                 [
-                    (channels, self._noise(channels), instrument.known_legs(self.model, channels))
+                    (channels, self._noise(channels, scale2), instrument.known_legs(self.model, channels))
                     for channels in self._merged(groups)
                 ],
+                scale2,
             )
         return self._groups[1]
 

@@ -80,11 +80,10 @@ class ISAM2Estimator:
     handful of samples, millimetres off in the directions they do not yet determine — and
     marginalised seconds later with that linearisation (after large initial errors, an outside
     instrument's log at 1 Hz: 3–5 % worse on held-out data than the batch optimum,
-    benchmarks/hobby.py). The graph keeps the configured measurement noise ``R0`` and takes
-    the walk in units of the scale ``s²`` the front end measures (``Q / s²``, :meth:`_window_walk`),
-    between its windows' variables and, in each sample's drive-leg rows, from its window's variable
-    to the sample (:meth:`GraphBuilder.epoch`);
-    its marginal covariance times ``s²`` is so that of noise ``s² R0`` and walk ``Q``. When the
+    benchmarks/hobby.py). The graph's samples carry the noise ``s² R0`` at the scale ``s²`` the front
+    end measured for their window, and the walk ``Q`` at its rate (:meth:`_window_walk`), between its
+    windows' variables and, in each sample's drive-leg rows, from its window's variable to the sample
+    (:meth:`GraphBuilder.epoch`): its marginal covariance is that of the noise and the walk. When the
     front end recovers from a lock-out, the smoother restarts from the front end's recovered
     Gaussian, as after a gtsam failure.
 
@@ -417,7 +416,7 @@ class ISAM2Estimator:
         take the start-up samples it kept once it decided, then ``sample`` (accepted by it)."""
         front = self._front.robust
         if front.recoveries != recoveries:
-            x, P = self._front.filter.x.copy(), self._held_payload(self._front.filter.P / front.noise_scale2)
+            x, P = self._front.filter.x.copy(), self._held_payload(self._front.filter.P.copy())
             # the restart holds the samples of the front end's recovered Gaussian, no others
             state = dataclasses.replace(self._state, samples=self._front.filter.samples_used)
             self._rebuild(_Snapshot(state, x, P, 0), [])
@@ -428,7 +427,7 @@ class ISAM2Estimator:
             kept = [s for s, outlier in zip(self._pending, front.startup_outliers, strict=True) if not outlier]
             self._pending = []
             x, P = front.startup_gaussian(front.noise_scale2)
-            P = self._held_payload(P / front.noise_scale2)  # in the graph's units (see _window_walk)
+            P = self._held_payload(P)
             state = ChainState(
                 samples=len(kept), window_start_s=kept[-1].t_s, window_samples=len(kept), last_t_s=kept[-1].t_s
             )
@@ -489,8 +488,9 @@ class ISAM2Estimator:
 
     def _epoch(self, state: ChainState, sample: Sample) -> Epoch:
         """:meth:`GraphBuilder.epoch` of ``sample`` after ``state``, in its window's scale, walk and length."""
+        scale2, rate = self._window_walk(state, sample)
         return self._builder.epoch(
-            state, sample, self._current_params, *self._window_walk(state, sample), self._window_fraction(state)
+            state, sample, self._current_params, 1.0, rate, self._window_fraction(state), measurement_scale2=scale2
         )
 
     def _window_fraction(self, state: ChainState) -> float:
@@ -534,11 +534,13 @@ class ISAM2Estimator:
         windows of a short log its rate is noisy and, lowered at 20 %, isam2's NEES on the honesty
         study's drifting tracker cells (the walk matched) left the band in 6 of 60 runs (2 on main).
 
-        The graph's factors keep the configured measurement noise ``R0`` and the walk goes in as
-        ``Q / s²`` (:meth:`GraphBuilder.epoch`), so that ``s²`` × the marginal is the covariance of
-        noise ``s² R0`` and walk ``Q``. Scaling the marginal of a graph of ``R0`` and ``Q`` by ``s²``
-        scaled the walk's share too: on a drifting robot with the readings 0.2× / 5× the configured
-        noise, its NEES was 2.5–4.7× / 0.5–0.8× its degrees of freedom (sweep configs/sweeps/honesty.toml)."""
+        The graph is in the units of the noise and the walk themselves: a window's samples carry
+        ``s² R0`` at their window's ``s²``, the walk ``Q`` (:meth:`GraphBuilder.epoch`), and its marginal
+        is the covariance, as ekf's ``P`` is. In units of one scale (``R0`` and ``Q / s²`` of each
+        window, the marginal times the scale of the moment), a scale that moved over the lag weighed
+        the walk of its earlier windows by the ratio of the two: on a robot drifting 10× faster than
+        told, the readings at 0.3× the told noise, the scale falling from 12–20 at the start-up to
+        0.1–2, mean z² 6.4 and NEES in band 25 % (benchmarks/robustness.py's honesty logs)."""
         opens = state.samples == 0 or self._builder.new_window(state, sample.t_s, self._window_fraction(state))
         start = sample.t_s if opens else state.window_start_s
         front = self._front.robust
@@ -618,7 +620,7 @@ class ISAM2Estimator:
         # the walk from the window's variable to the last sample, as lm adds it (GraphBuilder.window_walk_covariance)
         window = self._window_scales.get(self._state.window_start_s)
         walk = self._builder.window_walk_covariance(self._state, None if window is None else window[1])
-        covariance = covariance * self._front.robust.noise_scale2 + walk
+        covariance = covariance + walk
         return Estimate.of_state(
             self._smoother.calculateEstimateVector(p),
             covariance,
@@ -667,8 +669,8 @@ class ISAM2Estimator:
         return self._smoother.getFactors().nrFactors(), self._smoother.getLinearizationPoint().size()
 
     def export_state(self) -> dict:
-        """The chain state, the snapshot the buffer starts at (none before the first trim) and
-        the buffered samples, as arrays."""
+        """The chain state, the snapshot the buffer starts at (none before the first trim; its
+        covariance ``covariance_mm2``, the marginal itself) and the buffered samples, as arrays."""
         samples = self._replay
         state: dict[str, object] = {
             "chain": _chain_to_dict(self._state),
@@ -685,7 +687,7 @@ class ISAM2Estimator:
             state["snapshot"] = {
                 "chain": _chain_to_dict(first.state),
                 "mean": first.mean,
-                "covariance": first.covariance,
+                "covariance_mm2": first.covariance,
             }
         if self._payload is not None:  # the samples that open a window as a payload step, and its value there
             state["payload_steps"] = {
@@ -701,7 +703,8 @@ class ISAM2Estimator:
         return state
 
     def import_state(self, state: dict) -> None:
-        """Rebuild from :meth:`export_state` on a freshly built estimator.
+        """Rebuild from :meth:`export_state` on a freshly built estimator (or from the state of a
+        checkpoint whose snapshot holds ``covariance``: :func:`_snapshot_covariance`).
 
         Raises:
             CalibError: a missing key, a wrong shape, a non-positive-definite prior or a replay
@@ -727,7 +730,7 @@ class ISAM2Estimator:
             snapshot = state["snapshot"]
             size = self._builder.layout.size
             mean = state_array(snapshot, "mean", (size,))
-            covariance = state_array(snapshot, "covariance", (size, size))
+            covariance = _snapshot_covariance(snapshot, size, self._front.robust.noise_scale2)
             if not np.all(np.isfinite(covariance)) or np.any(
                 np.linalg.eigvalsh(self._builder.prior_covariance(covariance)) <= 0.0
             ):
@@ -780,6 +783,19 @@ class _Snapshot:
     mean: np.ndarray
     covariance: np.ndarray
     offset: int
+
+
+def _snapshot_covariance(snapshot: dict, size: int, noise_scale2: float) -> np.ndarray:
+    """The covariance [mm²] of a checkpoint's :class:`_Snapshot`: ``covariance_mm2`` as it is, or a
+    ``covariance`` times ``noise_scale2``, the front end's ``s²`` when the checkpoint was written.
+
+    A checkpoint that holds ``covariance`` was written while the graph kept the configured noise
+    ``R0`` (each window's walk ``Q / s²``) and its marginal was that times the front end's ``s²`` of
+    the moment: the graph of now is in the units of the noise and the walk (:meth:`ISAM2Estimator._window_walk`),
+    and taken as it was that prior would be ``1 / s²`` too wide or too narrow."""
+    if "covariance_mm2" in snapshot:
+        return state_array(snapshot, "covariance_mm2", (size, size))
+    return state_array(snapshot, "covariance", (size, size)) * noise_scale2
 
 
 def _chain_to_dict(state: ChainState) -> dict:

@@ -263,7 +263,10 @@ class OutsideModel(InstrumentModel):
         readings = self.predicted_readings(unknowns, R, t)
         _, H_X, H_u = self.readings_residual(unknowns, readings, R, t, jacobians=True)
         strokes = drive.inverse_kinematics(R, t, channels=channels)
-        dxi = drive.pose_jacobian(None, R, t, drive.inputs_near(strokes, channels, (R, t)))
+        # the fit's own rows: the leg forces move with the pose and the joints, a deflection c f(ξ, M) the
+        # weak leg-length directions see at a nominal compliance c ≠ 0 (the rigid rows where c = 0)
+        inputs = drive.inputs_near(strokes, channels, (R, t))
+        dxi = drive.settled_pose_jacobian(None, R, t, inputs, channels)
         basis = gauge.free_basis(self.platform.drive)
         m = drive.n_params
         columns = [H_X @ dxi[..., :m] @ basis, H_X @ dxi[..., m:], H_u]

@@ -125,6 +125,29 @@ def errors(R_m, t_m, R_P, t_P) -> tuple[np.ndarray, np.ndarray]:
     return kin.pose_error(R_m, t_m, R_P, t_P)
 
 
+def hand_eye_rotations(R_X: np.ndarray, R_M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The target's and the frame's orientations ``(R_G, R_F)`` with ``R_X R_G ≈ R_F R_M`` in least
+    squares, and the singular values of the stacked equations (smallest last).
+
+    ``vec(R_X R_G) − vec(R_F R_M) = 0`` is linear in ``[vec R_G, vec R_F]`` (18 unknowns, 9 rows a
+    pose): its least singular vector, projected onto rotations. Poses that rotate about two axes and
+    agree with the readings leave one singular value near zero and the next well above it.
+    """
+    n = len(R_X)
+    eye = np.eye(3)
+    # column-major vec: vec(A X) = (I ⊗ A) vec X, vec(X B) = (Bᵀ ⊗ I) vec X
+    rows = np.concatenate(
+        [np.stack([np.kron(eye, R_X[k]) for k in range(n)]), -np.stack([np.kron(R_M[k].T, eye) for k in range(n)])],
+        axis=2,
+    ).reshape(9 * n, 18)
+    _, s, Vt = np.linalg.svd(rows, full_matrices=False)
+    v = Vt[-1]
+    R_G, R_F = v[:9].reshape(3, 3).T, v[9:].reshape(3, 3).T
+    if np.linalg.det(R_F) < 0:
+        R_G, R_F = -R_G, -R_F
+    return rotations.project_to_rotation(R_G), rotations.project_to_rotation(R_F), s
+
+
 def register_pose(
     R_X: np.ndarray, t_X: np.ndarray, R_M: np.ndarray, t_M: np.ndarray, sigmas: np.ndarray
 ) -> PoseUnknowns:
@@ -142,22 +165,12 @@ def register_pose(
     )
     n = len(R_X)
     eye = np.eye(3)
-    # column-major vec: vec(A X) = (I ⊗ A) vec X, vec(X B) = (Bᵀ ⊗ I) vec X
-    rows = np.concatenate(
-        [np.stack([np.kron(eye, R_X[k]) for k in range(n)]), -np.stack([np.kron(R_M[k].T, eye) for k in range(n)])],
-        axis=2,
-    ).reshape(9 * n, 18)
-    _, s, Vt = np.linalg.svd(rows, full_matrices=False)
+    R_G, R_F, s = hand_eye_rotations(R_X, R_M)
     if s[-2] <= max(3.0 * s[-1], registration.RELATIVE_RANK_TOLERANCE * s[0]):
         raise CalibError(
             "cannot register the pose instrument: the poses do not rotate about two different axes, so its "
             "frame's and its target's orientations cannot be told apart; expected poses with varied rotations"
         )
-    v = Vt[-1]
-    R_G, R_F = v[:9].reshape(3, 3).T, v[9:].reshape(3, 3).T
-    if np.linalg.det(R_F) < 0:
-        R_G, R_F = -R_G, -R_F
-    R_G, R_F = rotations.project_to_rotation(R_G), rotations.project_to_rotation(R_F)
     A = np.concatenate([R_X, -np.broadcast_to(eye, (n, 3, 3))], axis=2).reshape(3 * n, 6)
     b = (np.einsum("ij,kj->ki", R_F, t_M) - t_X).reshape(-1)
     solution, *_ = np.linalg.lstsq(A, b, rcond=None)

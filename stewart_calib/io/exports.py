@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CalibError, did_you_mean
+from ..errors import number as shown_number
 from ..model.rotations import quaternion_to_rotation, rotation_to_rpy
 from .logs import TEMPERATURE_COLUMNS
 
@@ -755,7 +756,11 @@ def point_list_blocks(
                 if not rows or t != rows[-1][0]:
                     tally.times += 1
                     if rows and t < rows[-1][0]:
-                        _refuse(path, f"row {number}: column {time!r}: time goes back ({t} after {rows[-1][0]})")
+                        _refuse(
+                            path,
+                            f"row {number}: column {time!r}: time goes back ({shown_number(t)} after "
+                            f"{shown_number(rows[-1][0])})",
+                        )
                     if len(rows) >= POINT_LIST_ROWS:
                         yield block_of(rows)
                         rows = []

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from ..errors import CalibError, shown
+from ..errors import CalibError, number, shown
 from ..io import drive_columns, reading_columns
 from ..io.logs import POSE_COLUMNS
 
@@ -399,7 +399,7 @@ class Link:
             if t_s == self.t_s or (not math.isfinite(t_s) and not math.isfinite(self.t_s)):
                 return None, None
             if t_s < self.t_s:
-                event = NewStream(f"the controller's time fell from {self.t_s} to {t_s}")
+                event = NewStream(f"the controller's time fell from {number(self.t_s)} to {number(t_s)}")
         self.t_s = t_s
         if event is not None:
             say(f"{event.why}: the controller restarted; a new stream")

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__, estimators, io
-from ..analysis.accuracy import PredictedError, estimate_summary, verdict_line
+from ..analysis.accuracy import PredictedError, estimate_summary, verdict_line, worse_than_nominal_line
 from ..analysis.identifiability import (
     conditioning_summary,
     identifiability_report,
@@ -353,8 +353,17 @@ def run(args: argparse.Namespace) -> int:
             if prediction is not None
             else ("verdict: none — the estimate has no covariance to predict its error from", True)
         )
+        # the χ² test's line already says the calibrated model is likely worse: one loud line
+        worse = (
+            None
+            if unsupported or prediction is None
+            else worse_than_nominal_line(prediction, predicted["correction_mm"], predicted["motion_correction_mm"])
+        )
         if unsupported:
             verdict = f"{verdict}; the log gives no evidence the calibration improves on the nominal model"
+        elif worse:
+            verdict = f"{verdict}; the calibrated model is likely worse than the nominal one"
+        loud = unsupported or worse
         trace_csv = None
         if trace_path and not streamed and result.trace is not None:
             trace = io.parameters_to_file(result.trace, platform.drive)  # a rotary drive's angles in degrees
@@ -383,7 +392,7 @@ def run(args: argparse.Namespace) -> int:
             inputs = {"platform file": str(args.platform), "log": str(args.log)}
             forces = None if leg_forces is None else LegForces(np.asarray(log.t_s), *leg_forces[:2])
             title = f"Calibration of {platform.name} with {args.method}"
-            shown = " — ".join(text for text in (verdict, unsupported) if text)
+            shown = " — ".join(text for text in (verdict, loud) if text)
             robot = robot_at(platform, drive_model(platform).calibrated_by(estimate).legs)
             thermal = None if leg_temperatures is None else LegTemperatures(np.asarray(log.t_s), *leg_temperatures)
             page = report_html(title, result_data, residuals, None, inputs, forces, shown, robot, thermal)
@@ -399,8 +408,8 @@ def run(args: argparse.Namespace) -> int:
     io.atomic_write_text(out, result_json)
     if pose_line:
         print(f"stewart-calib calibrate: {pose_line}", file=sys.stderr)
-    if unsupported:
-        print(f"stewart-calib calibrate: {unsupported}", file=sys.stderr)
+    if loud:
+        print(f"stewart-calib calibrate: {loud}", file=sys.stderr)
     print(
         f"stewart-calib calibrate: wrote {out} ({args.method}: {estimate.samples_used} samples used, "
         f"{samples_skipped} skipped{accounting_words(estimate.details or {})}, of {n_samples + skipped.count} rows)",

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 import numpy as np
 
@@ -100,14 +101,17 @@ def add_parser(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
-    noise = load_estimator_config(args.config, args.set).noise
+    config = load_estimator_config(args.config, args.set)
+    noise = config.noise
     if instrument_kind(platform).outside:
-        return _run_outside_instrument(args, platform, noise)
-    trade_off = None
+        return _run_outside_instrument(args, platform, config)
+    trade_off = bound = None
     if args.log is not None:
+        # the tracker's leg-length rows hardly move with the drive: the bound at the nominal drive, the
+        # log streamed (an ls fit would hold it whole)
         information, trade_off = log_information(platform, args.log, args.pose_source, noise, args.skip_bad_rows)
         require_poses(platform, information.n_poses, args.log, "pose(s)", "poses")
-        covariance, poses = information.covariance(), None
+        covariance, poses, bound = information.covariance(), None, "at the nominal drive"
     else:
         poses = read_pose_list(args.poses)
         require_poses(platform, _distinct(poses), args.poses, "distinct pose(s)", "poses")
@@ -120,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
     for line in (warning, trade_off):
         if line:
             print(line)
-    prediction = _prediction(platform, covariance, poses, information.n_poses, noise)
+    prediction = _prediction(platform, covariance, poses, information.n_poses, noise, bound)
     if args.json:
         thermal = {} if trade_off is None else {"thermal_trade_off": trade_off}
         io.atomic_write_text(args.json, json.dumps({**report.to_dict(), **prediction, **thermal}, indent=2) + "\n")
@@ -134,33 +138,55 @@ def _distinct(poses) -> int:
     return len(np.unique(np.asarray(poses, dtype=float), axis=0))
 
 
-def _prediction(platform: Platform, covariance, poses, n_poses: int, noise) -> dict:
+def fitted_platform(platform: Platform, log, config, path: str) -> tuple[Platform | None, str]:
+    """``(platform, words)``: the platform at the log's own ``ls`` fit — the fit ``calibrate --method ls``
+    makes (:func:`~stewart_calib.workflows.calibration.run_calibration`), its drive and, and the outside
+    instrument's frame and target(s) (:func:`handover.calibrated_platform`) — where a log's Cramér–Rao
+    bound is linearised, so that it is the covariance ``calibrate`` predicts from at the drive calibrate
+    finds, not at the nominal one millimetres away; None where ls cannot fit the log (a fit that diverges
+    or is rank-deficient: the bound then at the nominal drive, the words say why)."""
+    from ..workflows.calibration import run_calibration
+
+    try:
+        estimate = run_calibration(platform, log, "ls", config).estimate
+    except CalibError as err:
+        return None, f"at the nominal drive: ls cannot fit the log ({err})"
+    if estimate.covariance is None:
+        return None, "at the nominal drive: the log's ls fit is rank-deficient"
+    created = handover.created_now()
+    return handover.calibrated_platform(platform, estimate, "ls", Path(path).name, created), "at the log's ls fit"
+
+
+def _prediction(platform: Platform, covariance, poses, n_poses: int, noise, bound: str | None = None) -> dict:
     """Print the predicted closed-loop error line of a pose set's Cramér–Rao covariance (over the
     workspace, or the poses themselves where the platform has none), warned against the noise
-    floor of as many poses; its JSON field."""
+    floor of as many poses, with ``bound``, the words saying where a log's is linearised
+    (:func:`fitted_platform`; None: a pose list's, at the nominal drive); its JSON field."""
     from ..analysis.accuracy import PREDICTION_HEAD, predicted_error, summary_line
     from ..workflows.planning import noise_floor
 
-    head = f"{PREDICTION_HEAD}: none"
+    what = PREDICTION_HEAD if bound is None else f"{PREDICTION_HEAD} ({bound})"
     if covariance is None:
-        print(f"{head} (the poses do not identify every unknown)")
+        print(f"{what}: none (the poses do not identify every unknown)")
         return {"predicted_closed_loop": None}
     if platform.workspace is None and poses is None:
-        print(f"{head} (no [workspace] to predict over)")
+        print(f"{what}: none (no [workspace] to predict over)")
         return {"predicted_closed_loop": None}
     prediction = predicted_error(platform, covariance, None if platform.workspace is not None else poses)
     floor = noise_floor(platform, n_poses, noise)
-    line, warn = summary_line(prediction, floor)
+    line, warn = summary_line(prediction, floor, what=what)
     print(line)
     field = {"noise_floor_mm": None if floor is None else floor.position_mm, "warning": line if warn else None}
     return {"predicted_closed_loop": {**prediction.to_dict(), **field}}
 
 
-def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise) -> int:
+def _run_outside_instrument(args: argparse.Namespace, platform: Platform, config) -> int:
     """An instrument outside the robot (spec §7): the Cramér–Rao σ of drive, stroke scale and
     instrument unknowns together, at the nominal drive and the instrument registered on the log
-    (a pose list: the nominal instrument reading the nominal robot at those poses), and the drive's
-    parameters the poses see no better than their prior (:func:`_weak_against_prior`)."""
+    (a pose list: the nominal instrument reading the nominal robot at those poses), the drive's
+    parameters the poses see no better than their prior (:func:`_weak_against_prior`), and the
+    predicted closed-loop error of the bound at the log's ls fit (:func:`fitted_platform`; a pose
+    list's at the nominal drive)."""
     import numpy as np
 
     from ..estimators.batch import instrument_identifiability
@@ -170,14 +196,21 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
     from ..workflows.planning import design_covariance
 
     drive = drive_model(platform).identifying()
+    bound = None
     if args.log is not None:
         log = io.read_log(args.log, platform, args.skip_bad_rows)
         strokes, readings, channels = log.strokes, log.readings, log.inputs
+        fit, bound = fitted_platform(platform, log, config, args.log)
         platform = registered(platform, strokes, readings)
         model = outside_model(platform)
         fk, _ = drive.settled_kinematics(strokes, channels, strict=False)
         poses = fk.pose6[fk.converged]
         require_poses(platform, len(poses), args.log, "pose(s)", "poses")
+        # the bound's rows where the fit put the robot: its poses of the strokes, the channels read there
+        at = platform if fit is None else fit
+        if fit is not None:
+            fk, _ = drive_model(fit).settled_kinematics(strokes, channels, strict=False)
+        bound_poses = fk.pose6[fk.converged]
         seen = np.isfinite(readings[fk.converged])
         converged = {name: np.asarray(values)[fk.converged] for name, values in channels.items()}
     else:
@@ -191,6 +224,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
         readings = np.where(model.seen_channels(R, t), readings, np.nan)  # e.g. a target out of its cone
         seen = None  # design_covariance finds the same channels in view
         converged = channels
+        at, bound_poses = platform, poses
     report = instrument_identifiability(platform, strokes, readings, channels)
     equilibrated = report["condition_number_equilibrated"]
     # the drive's blocks by name: the compliance too with [elastic] (spec §10), which the report covers
@@ -214,7 +248,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
             "  "
             + "  ".join(f"{name} {'not id' if sd is None else f'{sd:.3g}'}" for name, sd in items[start : start + 7])
         )
-    weak = _weak_against_prior(drive.legs, report["predicted_stddev"], noise)
+    weak = _weak_against_prior(drive.legs, report["predicted_stddev"], config.noise)
     if weak:
         named = ", ".join(f"{name} {sd:.3g} (prior {prior:.3g})" for name, sd, prior in weak)
         print(
@@ -227,8 +261,8 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, noise)
         print(trade_off)
     # at the log's payloads (and temperatures), as the calibration sees them: without them an elastic
     # drive's compliance trades against the leg lengths under the platform's weight alone
-    covariance = design_covariance(platform, poses, seen=seen, channels=converged)
-    prediction = _prediction(platform, covariance, poses, len(poses), None)
+    covariance = design_covariance(at, bound_poses, seen=seen, channels=converged)
+    prediction = _prediction(platform, covariance, poses, len(poses), None, bound)
     if args.json:
         document = {
             "format": "stewart-calib/identifiability-instrument@1",

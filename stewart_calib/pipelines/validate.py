@@ -40,10 +40,10 @@ from ..samples import Log
 from ..workflows.diagnosis import diagnose_log
 from ..workflows.validation import (
     NoiseSquares,
+    compared_pose_errors,
     measurement_residuals,
     noise_squares,
     on_platform,
-    pose_error_summary,
     validate,
 )
 from . import add_tolerance_arguments, handover, run_command
@@ -90,8 +90,12 @@ def run(args: argparse.Namespace) -> int:
                 platform, result, log, args.register_instrument, str(args.result)
             )
             if report_dir:
-                verdict = _verdict(args, platform, result, position, orientation, log)[0]
-                page = _report_page(args, platform, result, log, predicted, position, orientation, verdict)
+                compared = compared_pose_errors(
+                    platform, result, log, args.register_instrument, len(position), args.result
+                )
+                verdict = _verdict(args, platform, result, position, orientation, log, compared)[0]
+                shown = " — ".join(text for text in (verdict, compared and compared[1]) if text)
+                page = _report_page(args, platform, result, log, predicted, position, orientation, shown)
             io.write_csv_blocks(
                 args.out, header, [_file_columns(log, predicted, position, orientation, platform)], blank
             )
@@ -113,26 +117,35 @@ def run(args: argparse.Namespace) -> int:
     if instrument_kind(platform).outside:
         print(f"stewart-calib validate: {_unseen_error_line(platform, result, position)}")
     sample = log if (report_dir or args.register_instrument) else first[0]
-    pose_line = pose_error_summary(platform, result, sample, args.register_instrument, len(position), args.result)
-    if pose_line:
-        print(f"stewart-calib validate: {pose_line}", file=sys.stderr)
+    if not report_dir:
+        compared = compared_pose_errors(platform, result, sample, args.register_instrument, len(position), args.result)
+    for line in compared or ():
+        if line:  # the pose error line, then the loud one where the calibrated model is no better
+            print(f"stewart-calib validate: {line}", file=sys.stderr)
     if moved:
         print(f"stewart-calib validate: {moved}", file=sys.stderr)
-    verdict, over = _verdict(args, platform, result, position, orientation, sample)
+    verdict, over = _verdict(args, platform, result, position, orientation, sample, compared)
     print(f"stewart-calib validate: {verdict}")
     return 1 if over and args.fail_over_tolerance else 0
 
 
-def _verdict(args, platform: Platform, result: dict, position, orientation, sample: Log) -> tuple[str, bool]:
+def _verdict(
+    args, platform: Platform, result: dict, position, orientation, sample: Log, compared=None
+) -> tuple[str, bool]:
     """The last line: what this check measured (and what the noise alone leaves in it, at the poses of
-    ``sample``, the log or its first rows), with the result's expected errors, against the tolerance."""
+    ``sample``, the log or its first rows), with the result's expected errors, against the tolerance;
+    ending with the nominal model's comparison where ``compared`` (:func:`compared_pose_errors`) warns."""
     noise = result_noise(platform, result, sample, args.register_instrument, len(position))
     measured, beyond = _measured_words(platform, position, orientation, noise)
     prediction = result_prediction(platform, result)
     if prediction is None:
-        return f"verdict: {measured}; the result holds no prediction of its error elsewhere", True
-    registered = beyond if instrument_kind(platform).outside else None  # the robot's own, as the instrument sees it
-    return verdict_line(prediction, args.tolerance_mm, args.tolerance_deg, measured, registered)
+        verdict, over = f"verdict: {measured}; the result holds no prediction of its error elsewhere", True
+    else:
+        registered = beyond if instrument_kind(platform).outside else None  # the robot's own, as the instrument sees it
+        verdict, over = verdict_line(prediction, args.tolerance_mm, args.tolerance_deg, measured, registered)
+    if compared and compared[1]:
+        verdict += "; on this log the calibrated model is no better than the nominal one"
+    return verdict, over
 
 
 def result_prediction(platform: Platform, result: dict) -> PredictedError | None:

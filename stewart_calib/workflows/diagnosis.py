@@ -29,7 +29,9 @@ with one line naming the cause and its evidence:
    order;
 8. **strokes of another platform** — the angle of the rotation between two poses is the same in
    any instrument frame and for any target, so over pairs of poses a pose instrument's angles and
-   the strokes' (through the nominal model) correlate, within the drive's errors;
+   the strokes' (through the nominal model) correlate, within the drive's errors; and where the
+   registration fails although both the strokes' poses and the readings rotate about two axes, the
+   misfit of the best frame and target is named, not the poses;
 Every test uses at most :data:`DIAGNOSED_SAMPLES` samples evenly spread over the log, so its
 cost does not grow with the log. Thresholds are ratios far from 1 (a factor
 :data:`UNIT_TOLERANCE` about a unit's factor, :data:`WIRING_GAIN` between two wirings), not
@@ -277,6 +279,24 @@ FIT_CORRELATION = 0.5
 FIT_SIGMAS = 10.0
 
 
+def _seen_rotations(R: np.ndarray, readings: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(R, R_M)``: the strokes' pose orientations and the pose instrument's, at the rows whose readings
+    are all finite; None where fewer than 3 are (too few to tell a misfit)."""
+    seen = np.all(np.isfinite(readings), axis=1)
+    if seen.sum() < 3:
+        return None
+    R_M, _ = kin.pose_to_rt(readings[seen])
+    return R[seen], R_M
+
+
+def _stroke_words(platform: Platform) -> tuple[list[str], str, str, str]:
+    """:func:`_drive_words`' columns, noun and unit, and the other drive whose values a log of the
+    wrong robot may hold in those columns (the refusals of strokes that do not fit the legs)."""
+    columns, noun, unit, _ = _drive_words(platform)
+    other = "a rotary robot's angles in the stroke columns" if unit == "mm" else "another robot's servos"
+    return columns, noun, unit, other
+
+
 def _check_strokes_fit(platform: Platform, R: np.ndarray, readings: np.ndarray, where: str) -> None:
     """Strokes that are not this platform's (another robot's log, a rotary robot's angles in the
     stroke columns), which a registration would meet as poses that "do not rotate": the angle of
@@ -285,11 +305,10 @@ def _check_strokes_fit(platform: Platform, R: np.ndarray, readings: np.ndarray, 
     through the nominal model and from a pose instrument follow each other within the drive's errors."""
     if not instrument_kind(platform).measures_orientation:
         return
-    seen = np.all(np.isfinite(readings), axis=1)
-    if seen.sum() < 3:
+    rotations = _seen_rotations(R, readings)
+    if rotations is None:
         return
-    R_M, _ = kin.pose_to_rt(readings[seen])
-    R = R[seen]
+    R, R_M = rotations
     i, j = np.triu_indices(len(R), 1)
     angle = lambda A: np.linalg.norm(so3_log(np.einsum("nji,njk->nik", A[i], A[j])), axis=1)  # noqa: E731
     measured, modelled = angle(R_M), angle(R)
@@ -298,8 +317,7 @@ def _check_strokes_fit(platform: Platform, R: np.ndarray, readings: np.ndarray, 
     correlation = float(np.corrcoef(measured, modelled)[0, 1]) if np.std(modelled) > 0 else 0.0
     if correlation < FIT_CORRELATION:
         mismatch = math.degrees(float(np.sqrt(np.mean((measured - modelled) ** 2))))
-        columns, noun, unit, _ = _drive_words(platform)
-        other = "a rotary robot's angles in the stroke columns" if unit == "mm" else "another robot's servos"
+        columns, noun, unit, other = _stroke_words(platform)
         _refuse(
             where,
             f"the {noun} {_columns(columns)} do not fit this platform's legs: the angles between pairs of poses "
@@ -307,6 +325,40 @@ def _check_strokes_fit(platform: Platform, R: np.ndarray, readings: np.ndarray, 
             f"{correlation:.2f}, expected above {FIT_CORRELATION:g}); expected {noun} [{unit}] of this platform's "
             f"legs (a log of another robot, {other}, or another --platform?)",
         )
+
+
+def _check_strokes_register(platform: Platform, R: np.ndarray, readings: np.ndarray, where: str) -> None:
+    """Strokes that no frame and target map onto a pose instrument's readings, where both the
+    strokes' poses (:func:`_check_directions`) and the readings rotate about two axes: the registration
+    failed for the misfit, not for the poses (another robot's log, a rotary robot's angles in the
+    stroke columns). Called once the registration failed; the misfit is the closed form's,
+    :func:`~stewart_calib.instruments.pose.hand_eye_rotations`."""
+    from ..instruments.pose import hand_eye_rotations
+
+    if platform.instrument is None or platform.instrument.kind != "pose":
+        return
+    rotations = _seen_rotations(R, readings)
+    if rotations is None:
+        return
+    R, R_M = rotations
+    turns = so3_log(np.einsum("ji,njk->nik", R_M[0], R_M))  # the readings' turns from the first, any frame
+    principal = np.linalg.svd(turns - turns.mean(axis=0), compute_uv=False) / math.sqrt(len(turns))
+    sigma = float(platform.instrument.orientation_sigma_rad)
+    if not principal[1] > FIT_SIGMAS * sigma:  # they do turn about one axis only: the registration's words hold
+        return
+    R_G, R_F, _ = hand_eye_rotations(R, R_M)
+    misfit = np.linalg.norm(so3_log(np.einsum("nji,kj,nkl,lm->nim", R_M, R_F, R, R_G)), axis=1)  # (F M)ᵀ X G
+    left = math.degrees(float(np.sqrt(np.mean(misfit**2))))
+    columns, noun, unit, other = _stroke_words(platform)
+    axes = "every axis" if principal[2] > FIT_SIGMAS * sigma else "two axes"
+    _refuse(
+        where,
+        f"the {noun} {_columns(columns)} do not fit this platform's legs: the readings turn about {axes} "
+        f"({', '.join(f'{math.degrees(v):.3g}°' for v in principal)} RMS), but no frame and target of the "
+        f"instrument turn the poses the {noun} give the nominal model onto them: the best leaves {left:.3g}° RMS, "
+        f"{left / math.degrees(sigma):.3g}× the instrument's σ; expected {noun} [{unit}] of this platform's legs "
+        f"(a log of another robot, {other}, or another --platform?)",
+    )
 
 
 def _check_ratio(
@@ -513,3 +565,4 @@ def diagnose_log(
         _check_handedness(platform, fk.R[ok], readings[ok], where, columns)
     if not registers and instrument_kind(platform).outside and ok.sum() >= 3:
         _check_directions(platform, fk.R[ok], fk.t[ok], where)
+        _check_strokes_register(platform, fk.R[ok], readings[ok], where)

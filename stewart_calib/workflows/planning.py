@@ -95,14 +95,17 @@ READING_MARGIN_SIGMAS = STROKE_MARGIN_SIGMAS
 FACE_BIAS_EXPONENT = 0.3
 
 
-def candidate_poses(platform: Platform, n: int, rng: np.random.Generator) -> np.ndarray:
+def candidate_poses(
+    platform: Platform, n: int, rng: np.random.Generator, ranges: str = "the stroke and reading ranges"
+) -> np.ndarray:
     """``(n, 6)`` random reachable poses in the workspace box, denser near its faces
-    (:data:`FACE_BIAS_EXPONENT`; :func:`stewart_calib.analysis.accuracy.reachable_poses`).
+    (:data:`FACE_BIAS_EXPONENT`; :func:`stewart_calib.analysis.accuracy.reachable_poses`, whose
+    refusal names ``ranges``).
 
     Raises:
         CalibError: the platform has no ``[workspace]``, or almost no pose of the box is reachable.
     """
-    return reachable_poses(platform, n, rng, FACE_BIAS_EXPONENT)
+    return reachable_poses(platform, n, rng, FACE_BIAS_EXPONENT, ranges)
 
 
 def extreme_poses(platform: Platform) -> np.ndarray:
@@ -386,6 +389,43 @@ def with_stroke_margin(platform: Platform, noise: NoiseConfig) -> Platform:
     return replace(platform, stroke_range=(low + margin, high - margin))
 
 
+def margin_words(platform: Platform, reach: Platform, noise: NoiseConfig) -> str:
+    """The ranges ``reach`` (``platform`` narrowed by :func:`with_stroke_margin` and
+    :func:`with_reading_margin`) keeps plan's poses in, in words, with the prior σ that sets each
+    margin: ``"the ranges plan keeps its poses in (the strokes 25–75 mm, 25 mm inside the stroke range at
+    each end (2 × noise.prior_sigma_mm 20 mm, …); …)"``."""
+    parts = []
+    if isinstance(platform.drive, RotaryLegs) and isinstance(reach.drive, RotaryLegs):
+        (low, _), (inner_low, inner_high) = platform.drive.angle_range, reach.drive.angle_range
+        if inner_low > low:
+            parts.append(
+                f"the servo angles {math.degrees(inner_low):.3g}–{math.degrees(inner_high):.3g}°, "
+                f"{math.degrees(inner_low - low):.3g}° inside their range at each end ({STROKE_MARGIN_SIGMAS:g} × "
+                f"noise.angle_prior_sigma_deg {noise.angle_prior_sigma_deg:g}°, at most a quarter of the range)"
+            )
+    elif platform.stroke_range is not None and reach.stroke_range is not None:
+        (low, _), (inner_low, inner_high) = platform.stroke_range, reach.stroke_range
+        if inner_low > low:
+            parts.append(
+                f"the strokes {inner_low:.3g}–{inner_high:.3g} mm, {inner_low - low:.3g} mm inside the stroke range at "
+                f"each end ({STROKE_MARGIN_SIGMAS:g} × noise.prior_sigma_mm {noise.prior_sigma_mm:g} mm, at most a "
+                "quarter of the range)"
+            )
+    if platform.reading_range is not None and reach.reading_range is not None:
+        (low, _), (inner_low, inner_high) = platform.reading_range, reach.reading_range
+        if inner_low > low:
+            parts.append(
+                f"the tracker's readings {inner_low:.4g}–{inner_high:.4g} mm, {inner_low - low:.3g} mm inside their "
+                "range at each end (the spread a robot built within the prior σ gives them)"
+            )
+    if not parts:
+        return "the stroke and reading ranges"
+    return (
+        f"the ranges plan keeps its poses in ({'; '.join(parts)}; a smaller prior σ in the config, as small as "
+        "the robot's build allows, widens them)"
+    )
+
+
 def _margin(prior_sigma: float, width: float) -> float:
     """:data:`STROKE_MARGIN_SIGMAS` × ``prior_sigma``, at most a quarter of the range's ``width``."""
     return min(STROKE_MARGIN_SIGMAS * prior_sigma, 0.25 * width)
@@ -536,7 +576,7 @@ def plan_poses(
     noise = noise or NoiseConfig()
     outside = instrument_kind(platform).outside
     reach = with_reading_margin(with_stroke_margin(platform, noise) if outside else platform, noise)
-    candidates = candidate_poses(reach, n_candidates, rng)
+    candidates = candidate_poses(reach, n_candidates, rng, margin_words(platform, reach, noise))
     if outside:
         candidates = np.concatenate([extreme_poses(reach), candidates])
     blocks, weight = _design(platform, candidates, criterion, noise)

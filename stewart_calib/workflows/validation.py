@@ -266,6 +266,17 @@ def pose_errors(platform: Platform, result: dict, log, register: bool, source: s
 def pose_error_summary(platform: Platform, result: dict, sample, register: bool, n_rows: int, source) -> str | None:
     """:func:`pose_error_line` of the nominal and the calibrated model on ``sample`` (the log, or
     its first rows); None where a model cannot predict them (e.g. too few poses to fit a frame)."""
+    compared = compared_pose_errors(platform, result, sample, register, n_rows, source)
+    return None if compared is None else compared[0]
+
+
+def compared_pose_errors(
+    platform: Platform, result: dict, sample, register: bool, n_rows: int, source
+) -> tuple[str, str | None] | None:
+    """``(line, warning)``: :func:`pose_error_summary`'s line and, where the two models are compared
+    alike (the in-situ tracker's absolute poses, or an outside instrument registered on ``sample`` for
+    both) and the calibrated model's position RMS is no lower than the nominal model's, the loud line
+    saying so (:func:`no_better_line`); None where a model cannot predict them."""
     try:
         nominal = registered_nominal_model(platform, sample)
         before = pose_errors(platform, nominal, sample, False, "the nominal platform")
@@ -273,7 +284,28 @@ def pose_error_summary(platform: Platform, result: dict, sample, register: bool,
     except CalibError:
         return None
     rows = f" (first {len(sample)} rows)" if len(sample) < n_rows else ""
-    return pose_error_line(before, after, f"nominal → calibrated model{rows}")
+    line = pose_error_line(before, after, f"nominal → calibrated model{rows}")
+    outside = instrument_kind(platform).outside
+    if outside and not register:  # the calibrated model through the calibration's frame: not alike
+        return line, None
+    return line, no_better_line(before, after, outside, rows)
+
+
+def no_better_line(before: np.ndarray, after: np.ndarray, registered: bool, rows: str = "") -> str | None:
+    """The loud line when the calibrated model predicts a log no better than the nominal model (the
+    position RMS over all three axes of :func:`pose_errors`, ``after`` at or above ``before``), None
+    otherwise: on data the fit never saw, a calibration that improves the robot fits better."""
+    rms = lambda v: float(np.sqrt(np.nanmean(np.sum(v[:, :3] ** 2, axis=1))))  # noqa: E731
+    nominal_mm, calibrated_mm = rms(before), rms(after)
+    if not calibrated_mm >= nominal_mm:
+        return None
+    how = ", each through the instrument registered on it" if registered else ""
+    return (
+        f"WARNING: the calibrated model predicts this log{rows} no better than the nominal model: position RMS "
+        f"{calibrated_mm:.4g} mm against the nominal model's {nominal_mm:.4g} mm{how}; the calibration likely left the "
+        "robot worse: keep the nominal model, or calibrate again on poses that tilt and reach to the workspace's "
+        "edges (stewart-calib plan)"
+    )
 
 
 def pose_error_line(before: np.ndarray, after: np.ndarray, models: str) -> str:

@@ -1,0 +1,50 @@
+"""The prediction section's targets (benchmarks/prediction.py): what honest 90 % bands meet, and what a
+band too small on one side fails."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from benchmarks import prediction
+
+
+def _run(rng: np.random.Generator, tail: float) -> dict:
+    """One seed whose every band is a 90 % band of a standard normal truth, the truth shifted by ``tail``
+    (0: honest)."""
+    z = rng.standard_normal(8) + tail
+    inside = np.abs(z) <= 1.645
+    band = {"absolute_mm": 0.0, "motion_mm": 0.0}
+    run = {"absolute_mm": z[0], "motion_mm": z[1], "registered_mm": z[6]}
+    for k, command in enumerate(("calibrate", "identifiability", "plan")):
+        run[command] = {
+            **band,
+            "absolute_in_band": bool(inside[2 * k]),
+            "motion_in_band": bool(inside[2 * k + 1]),
+        }
+    run["planned"] = {"truth_absolute_mm": z[4], "truth_motion_mm": z[5]}
+    run["calibrate"].update(registered_mm=0.0, registered_in_band=bool(inside[6]))
+    run["validate"] = {
+        "truth_in_interval": bool(inside[7]),
+        "truth_rms_mm": z[7],
+        "seen_interval_mm": [-1.645, 1.645],
+    }
+    return run
+
+
+def test_a_band_row_fails_an_honest_band_rarely_and_ninety_percent_of_seeds_would_often():
+    assert prediction.seeds_needed(10) == 8
+    rng = np.random.default_rng(0)
+    hits = rng.binomial(10, 0.9, 20000)
+    assert np.mean(hits < prediction.seeds_needed(10)) <= prediction.ROW_FALSE_FAIL
+    assert np.mean(hits < 9) > 0.25  # "≥ 90 % of seeds": a quarter of honest rows fail
+
+
+def test_the_pooled_sides_row_passes_honest_bands_and_fails_a_band_too_small_on_one_side():
+    rng = np.random.default_rng(1)
+    honest = {"a": [_run(rng, 0.0) for _ in range(60)]}
+    assert prediction.sides_row(honest).met
+    assert prediction.pooled_row(honest).met
+    # the truth 0.6 σ above the band's centre: 14 % above, 2 % below; the pooled share alone (84 %) fails too
+    shifted = {"a": [_run(rng, 0.6) for _ in range(60)]}
+    row = prediction.sides_row(shifted)
+    assert not row.met and "above / below" in row.why
