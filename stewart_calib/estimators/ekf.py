@@ -19,7 +19,12 @@ on the drive-leg residuals ``g`` and the strokes' noise carried through ``J_g⁻
 Measurement covariance: ``J_x Σ_x J_xᵀ + σ_q² I`` (full 6×6), with ``Σ_x`` the measured pose's
 covariance (for the tracker propagated from i.i.d. reading noise σ_s) and ``J_x`` the
 residuals' pose Jacobian — all six residuals share the one measured pose, so their errors are
-correlated; with ``σ² I`` alone this filter diverges (docs/measured-facts.md).
+correlated; with ``σ² I`` alone this filter diverges (docs/measured-facts.md). With
+``noise.pose_misfit_sigma_mm = σ_m`` the tracker's readings are off, besides, by a misfit that stays while
+the platform holds a pose (its geometry's residual seen through the pose) and is drawn afresh at the next:
+``b ~ N(0, (σ_m/σ_s)² R_meas)`` rides beside the state over a pose's samples (the robust filter's
+``pose_misfit``), so ``n`` samples of a static pose weigh as their mean, ``σ_s²/n + σ_m²`` a reading, not
+as ``n`` independent readings; the samples then go one at a time (no compiled block path).
 
 Process noise: a random walk of δM, ``Q = ρ² Δt`` on its entries with ``ρ`` =
 ``noise.random_walk_mm_per_sqrt_s`` and ``Δt`` between samples (``t_s``), as in the graph; the
@@ -133,7 +138,10 @@ class LegEKF:
             self._leg_set = LegSetPose(self.model, self.drive, self.noise.stroke_sigma_mm)
         self._coordinate_sigma = self.drive.coordinate_sigma(config.noise)
         self._pose = self._leg_set or WarmPose(self.model)
-        compiled_rows = self._leg_set.rows if self._leg_set is not None and payload is None else None
+        pose_misfit = self._pose_misfit(config.noise)
+        compiled_rows = (
+            self._leg_set.rows if self._leg_set is not None and payload is None and pose_misfit is None else None
+        )
         self._compiled = compiled_rows is not None
         # an instrument registered on the data starts far from the answer (frame, encoder zeros, scale):
         # its start-up batches are solved by Gauss–Newton, not one pass linearised at the prior
@@ -155,6 +163,7 @@ class LegEKF:
             else (self._payload.start, payload.prior_sigma[0] ** 2),
             step_factors=self._payload_factors(),
             compiled_rows=compiled_rows,
+            pose_misfit=pose_misfit,
         )
         self._stroke_bounds = platform.stroke_range if platform.stroke_range is not None else (-np.inf, np.inf)
         self.filter = self.robust.filter
@@ -169,6 +178,20 @@ class LegEKF:
         # c·f is not validate's (benchmarks/hobby.py: plain held-out 0.50 mm against lm's 0.35).
         self._forces_at_state = self.drive.elastic is not None and self._instrument is not None
         self._packed_width = self.drive.packed_width if self._forces_at_state else 0
+
+    def _pose_misfit(self, noise) -> tuple[float, float] | None:
+        """The robust filter's ``pose_misfit`` of ``noise.pose_misfit_sigma_mm`` (None at 0): its variance over
+        the readings' ``reading_sigma_mm²``, as it enters the legs' residuals through the same pose, and the
+        strokes' tolerance of one pose, 5 ``stroke_sigma_mm`` (a static pose's encoders read within it)."""
+        sigma = noise.pose_misfit_sigma_mm
+        if sigma <= 0.0:
+            return None
+        if self.model.kind != "tracker":
+            raise CalibError(
+                f"noise.pose_misfit_sigma_mm = {sigma:g}: the in-situ tracker's misfit, but the instrument is "
+                f"{self.model.kind!r}"
+            )
+        return (sigma / noise.reading_sigma_mm) ** 2, 5.0 * noise.stroke_sigma_mm
 
     def _payload_factors(self):
         """``(columns, nominal)`` of the compliance the unannounced payload multiplies (the robust filter's

@@ -60,6 +60,7 @@ Both estimates forget over ``noise_memory_samples``. Fixed noise stays available
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from collections.abc import Callable
@@ -82,6 +83,7 @@ from .kalman import (
     fill_walk,
     filter_step,
     window_append,
+    workspace_size,
 )
 
 #: residual degrees of freedom a batch needs before it refuses any sample or estimates a scale.
@@ -171,6 +173,12 @@ class RobustFilter:
             observation (an unannounced payload, the compliance: row ``k``'s residual is bilinear in it and
             ``x[columns[k]]``), whose values are ``nominal + x[columns]``: the ``step`` unknown is then held
             at its prior mean until those values are known to within themselves (:meth:`_release_payload`).
+        pose_misfit: ``(κ, tolerance)``: the instrument's reading error holds, besides the white noise
+            ``s² R0``, a misfit ``b ~ N(0, κ R0)`` that stays while the platform holds a pose (its first
+            ``m`` inputs, the strokes, within ``tolerance`` of the sample before) and is drawn afresh at the
+            next: ``b`` rides beside the state through every update at one pose (:meth:`_misfit_step`), so a
+            static pose's samples tell the parameters what their mean does, ``(s² / n + κ) R0``, not ``n``
+            independent readings. None: no misfit (every sample independent).
 
     Attributes:
         started: the start-up batch is decided (the gated recursion runs).
@@ -201,6 +209,7 @@ class RobustFilter:
         relinearise: bool = False,
         step: tuple[int, float] | None = None,
         step_factors: tuple[np.ndarray, np.ndarray] | None = None,
+        pose_misfit: tuple[float, float] | None = None,
     ):
         self.method = method
         self._step_unknown = step
@@ -218,6 +227,12 @@ class RobustFilter:
         # NIS per row of the samples the filter took lately: the dispersion the candidates' ratios are read at
         self._dispersions: deque = deque(maxlen=DISPERSION_SAMPLES)
         self.filter = FilterState(method, prior_sigma_mm, gate_probability, m, layout, C)
+        # the misfit held over a pose (pose_misfit): its variance over R0, the inputs' tolerance of one pose,
+        # the filter's misfit at the pose it holds, and that of the last batch pass and of the solved batch
+        self._kappa, self._pose_tolerance = (0.0, 0.0) if pose_misfit is None else pose_misfit
+        self._misfit: _Misfit | None = None
+        self._pass_misfit: _Misfit | None = None
+        self._solved_misfit: _Misfit | None = None
         n = len(self.filter.x)
         self._P0 = self.filter.P.copy()
         self._x0 = np.zeros(n)  # the prior's mean: 0, or where a registration started the filter
@@ -400,6 +415,7 @@ class RobustFilter:
             ~self.startup_outliers, self.noise_scale2, self._linearise(f.x.copy()), startup=True
         )
         f.x, f.P = x, P
+        self._misfit = self._pass_misfit
 
     def _late_rejection(self, t_s: float) -> SampleRejected:
         err = SampleRejected(
@@ -476,6 +492,76 @@ class RobustFilter:
             self.payload_held = False
             self.payload_released_t_s = t_s
 
+    def _held(self, misfit: _Misfit | None, prepared: np.ndarray, m: int) -> bool:
+        """Whether ``prepared`` is at the pose ``misfit`` was drawn at (its first inputs within the tolerance)."""
+        return (
+            misfit is not None
+            and len(misfit.b) == m
+            and bool(np.max(np.abs(prepared[: self._m] - misfit.inputs)) <= self._pose_tolerance)
+        )
+
+    def _innovation(self, nu: np.ndarray, misfit: _Misfit | None, prepared: np.ndarray) -> np.ndarray:
+        """``ν`` of the parameters alone less the misfit the pose's samples so far put on it (``pose_misfit``)."""
+        return nu - misfit.b if misfit is not None and self._held(misfit, prepared, len(nu)) else nu
+
+    def _predicted(
+        self, P: np.ndarray, H: np.ndarray, R0: np.ndarray, misfit: _Misfit | None, prepared: np.ndarray
+    ) -> np.ndarray:
+        """The innovation covariance of a sample at the parameters' covariance ``P``: ``H P Hᵀ + s² R0``, and the
+        misfit's share (``pose_misfit``): its prior ``κ R0`` at a new pose, what the pose's samples left at one held."""
+        S = H @ P @ H.T + self.noise_scale2 * R0
+        if self._kappa <= 0.0:
+            return S
+        if misfit is not None and self._held(misfit, prepared, len(R0)):
+            C = H @ misfit.P_xb
+            return S + C + C.T + misfit.P_bb
+        return S + self._kappa * R0
+
+    def _misfit_step(
+        self,
+        x: np.ndarray,
+        P: np.ndarray,
+        misfit: _Misfit | None,
+        Q: np.ndarray,
+        H: np.ndarray,
+        nu: np.ndarray,
+        R0: np.ndarray,
+        noise_scale2: float,
+        gate_nis: float,
+        components: np.ndarray,
+        prepared: np.ndarray,
+    ) -> tuple[int, float, np.ndarray, _Misfit | None]:
+        """:func:`~.kalman.filter_step` of one sample, in place on ``(x, P)``, with the pose's misfit ``b``
+        (``pose_misfit``) beside the parameters; returns ``(status, NIS, S, the misfit after it)``.
+
+        The state is ``[x; b]`` with ``ν − b̂`` observed through ``[H I]``: at a new pose ``b`` is drawn afresh,
+        ``N(0, κ R0)`` uncorrelated with ``x``; at the pose the last sample was taken at, it is what that left
+        (``b̂``, its covariance and its cross-covariance with ``x``). A static pose's ``n`` samples so give the
+        parameters the information of their mean, ``Hᵀ ((s²/n + κ) R0)⁻¹ H``, and each sample's NIS is against
+        what the samples before it at the pose predict. Where the step is not taken, the misfit is as it was.
+        Without ``pose_misfit``, :func:`filter_step` alone (the misfit None)."""
+        if self._kappa <= 0.0:
+            status, nis, S = filter_step(
+                x, P, Q, H, nu, R0, noise_scale2, gate_nis, self.filter.workspace(len(nu)), components
+            )
+            return status, nis, S, None
+        n, m = len(x), len(nu)
+        if misfit is not None and self._held(misfit, prepared, m):
+            b, P_xb, P_bb = misfit.b, misfit.P_xb, misfit.P_bb
+        else:
+            b, P_xb, P_bb = np.zeros(m), np.zeros((n, m)), self._kappa * R0
+        xa = np.concatenate((x, b))
+        Pa = np.block([[P, P_xb], [P_xb.T, P_bb]])
+        Qa = np.zeros((n + m, n + m))
+        Qa[:n, :n] = Q
+        Ha = np.hstack((H, np.eye(m)))
+        work = np.empty(workspace_size(n + m, m))
+        status, nis, S = filter_step(xa, Pa, Qa, Ha, nu - b, R0, noise_scale2, gate_nis, work, components)
+        if status != STEP_TAKEN:
+            return status, nis, S, misfit
+        x[:], P[:] = xa[:n], Pa[:n, :n]
+        return status, nis, S, _Misfit(prepared[: self._m].copy(), xa[n:].copy(), Pa[:n, n:].copy(), Pa[n:, n:].copy())
+
     def _fill_Q(self, Q: np.ndarray, dt_s: float, walk_rate_mm2_per_s: float | None = None) -> None:
         rate = self.walk_rate_mm2_per_s if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
         fill_walk(Q, self._unit_Q, rate * max(dt_s, 0.0))
@@ -502,7 +588,15 @@ class RobustFilter:
             and self._test_steps(step, t_s, prepared, nu, H, R0)
         ):
             return
-        f.update(H, nu, R0, t_s, noise_scale2=self.noise_scale2)  # SampleRejected: untouched
+        if self._kappa <= 0.0:
+            f.update(H, nu, R0, t_s, noise_scale2=self.noise_scale2)  # SampleRejected: untouched
+            return
+        gate_nis = f.gate_for(len(nu))
+        status, nis, S, misfit = self._misfit_step(
+            f.x, f.P, self._misfit, f.Q, H, nu, R0, self.noise_scale2, gate_nis, NO_COMPONENTS, prepared
+        )
+        f.count_step(status, nis, S, t_s, gate_nis)  # SampleRejected: untouched, the misfit too
+        self._misfit = misfit
 
     def _test_steps(
         self, step: tuple[int, float], t_s: float, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray
@@ -524,8 +618,8 @@ class RobustFilter:
         give."""
         f = self.filter
         index, variance = step
-        R = self.noise_scale2 * R0
-        S = H @ (f.P + f.Q) @ H.T + R
+        S = self._predicted(f.P + f.Q, H, R0, self._misfit, prepared)
+        nu_raw, nu = nu, self._innovation(nu, self._misfit, prepared)
         filter_ll = _log_likelihood(nu, S)
         filter_takes = not filter_ll.nis > f.gate_nis
         self._dispersions.append(min(filter_ll.nis, f.gate_nis) / len(nu))
@@ -536,13 +630,16 @@ class RobustFilter:
                 candidates.append(c)
                 continue
             x, P = c.x.copy(), c.P.copy()
-            status, nis, S_c = filter_step(
-                x, P, f.Q, observation[1], observation[0], R0, self.noise_scale2, f.gate_nis,
-                f.workspace(len(nu)), NO_COMPONENTS,
+            status, nis, S_c, misfit = self._misfit_step(
+                x, P, c.misfit, f.Q, observation[1], observation[0], R0, self.noise_scale2, f.gate_nis,
+                NO_COMPONENTS, prepared,
             )  # fmt: skip
             if status == STEP_TAKEN:
-                ratio = c.ratio + _log_likelihood(observation[0], S_c).value - filter_ll.value
-                candidates.append(_Candidate(x, P, ratio, nis, c.taken + 1, c.readmitted + (not filter_takes), c.t_s))
+                taken_ll = _log_likelihood(self._innovation(observation[0], c.misfit, prepared), S_c)
+                ratio = c.ratio + taken_ll.value - filter_ll.value
+                candidates.append(
+                    _Candidate(x, P, ratio, nis, c.taken + 1, c.readmitted + (not filter_takes), c.t_s, misfit)
+                )
             elif not filter_takes:
                 candidates.append(c)  # both refuse it: it tells neither apart
         self._since_candidate += 1
@@ -553,7 +650,7 @@ class RobustFilter:
             self._since_candidate = 0
             stepped_Q = f.Q.copy()
             stepped_Q[index, index] += variance
-            start = self._stepped_update(t_s, prepared, nu, H, R0, stepped_Q)
+            start = self._stepped_update(t_s, prepared, nu_raw, H, R0, stepped_Q)
             if start is not None:
                 candidates.append(start)
                 if len(candidates) > MAX_STEP_CANDIDATES:  # the least likely of the older ones goes
@@ -565,6 +662,7 @@ class RobustFilter:
         if not (self._leads(best) and best.taken >= self._robust.lockout_window_samples):
             return False
         f.x, f.P, f.nis, f.S = best.x, best.P, best.nis, S
+        self._misfit = best.misfit
         # this sample, and those the filter refused before and the step takes back in
         f.samples_used += 1 + best.readmitted - (not filter_takes)
         f.t_s = t_s
@@ -588,11 +686,13 @@ class RobustFilter:
         f = self.filter
         nu, H = self._iterated(prepared, nu, H, R0, Q)
         x, P = f.x.copy(), f.P.copy()
-        status, nis, _ = filter_step(
-            x, P, Q, H, nu, R0, self.noise_scale2, math.inf, f.workspace(len(nu)), NO_COMPONENTS
+        status, nis, _, misfit = self._misfit_step(
+            x, P, self._misfit, Q, H, nu, R0, self.noise_scale2, math.inf, NO_COMPONENTS, prepared
         )
-        refused = not nu @ np.linalg.solve(H @ (f.P + f.Q) @ H.T + self.noise_scale2 * R0, nu) <= f.gate_nis
-        return _Candidate(x, P, 0.0, nis, 0, int(refused), t_s) if status == STEP_TAKEN else None
+        nu_b = self._innovation(nu, self._misfit, prepared)
+        S = self._predicted(f.P + f.Q, H, R0, self._misfit, prepared)
+        refused = not nu_b @ np.linalg.solve(S, nu_b) <= f.gate_nis
+        return _Candidate(x, P, 0.0, nis, 0, int(refused), t_s, misfit) if status == STEP_TAKEN else None
 
     def _iterated(self, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray, Q: np.ndarray):
         """A step's sample as an iterated update: ``(ν, H)`` linearised at the update's own result, so
@@ -613,18 +713,10 @@ class RobustFilter:
         for _ in range(MAX_RELINEARISATIONS):
             x, P = x_prior.copy(), f.P.copy()
             innovation = linearised[0] + linearised[1] @ (at - x_prior)
-            status, _, _ = filter_step(
-                x,
-                P,
-                Q,
-                linearised[1],
-                innovation,
-                R0,
-                self.noise_scale2,
-                math.inf,
-                f.workspace(len(nu)),
-                NO_COMPONENTS,
-            )
+            status, *_ = self._misfit_step(
+                x, P, self._misfit, Q, linearised[1], innovation, R0, self.noise_scale2, math.inf, NO_COMPONENTS,
+                prepared,
+            )  # fmt: skip
             if status != STEP_TAKEN or _mahalanobis2(x - at, P, self._gauge_projector) <= RELINEARISE_TOLERANCE**2:
                 break
             observation = self._observe_or_none(prepared, x)
@@ -735,6 +827,7 @@ class RobustFilter:
         Q = np.zeros((self._n, self._n))
         last_t, used, rows = math.nan, 0, 0
         buffer = self._buffer
+        misfit = None
         for k in np.flatnonzero(use):
             observation = self._observe_or_none(buffer.prepared[k], x) if linearised is None else linearised[1][k]
             if observation is None:
@@ -746,11 +839,13 @@ class RobustFilter:
             if linearised is not None:
                 nu = nu - H @ (x - linearised[0])
             self._fill_Q(Q, 0.0 if math.isnan(last_t) else buffer.t[k] - last_t, walk_rate_mm2_per_s)
-            work = self.filter.workspace(len(nu))
-            status, _, _ = filter_step(x, P, Q, H, nu, R0, noise_scale2, math.inf, work, self._pass_components)
+            status, _, _, misfit = self._misfit_step(
+                x, P, misfit, Q, H, nu, R0, noise_scale2, math.inf, self._pass_components, buffer.prepared[k]
+            )
             if status != STEP_TAKEN:
                 continue  # degenerate: the step left x and P untouched
             last_t, used, rows = buffer.t[k], used + 1, rows + len(nu)
+        self._pass_misfit = misfit
         return used, rows, last_t
 
     def _test(self, x: np.ndarray, P: np.ndarray, fitted: np.ndarray, redundancy: float, used: int):
@@ -762,7 +857,8 @@ class RobustFilter:
         # post-fit residuals of the fitted samples have ~redundancy/used degrees of freedom each
         dof = max(redundancy / max(used, 1), 0.5)
         scale2 = max(float(np.median(unit[fitted & ~missing]) / chdtri(dof, 0.5)), MIN_NOISE_SCALE2)
-        S = scale2 * R0 + H @ P @ np.swapaxes(H, 1, 2)
+        # a sample at the estimate, its pose's misfit too (pose_misfit)
+        S = (scale2 + self._kappa) * R0 + H @ P @ np.swapaxes(H, 1, 2)
         tested = np.einsum("ki,ki->k", nu, np.linalg.solve(S, nu[..., None])[..., 0])
         tested[missing] = math.inf  # no pose at this estimate: not one of the good samples
         return tested, scale2
@@ -821,6 +917,7 @@ class RobustFilter:
             solved = self._pass(~outliers, scale2)
         x, P, used, last_t, redundancy = solved
         self._solved = (x, P, used, last_t, scale2, redundancy)
+        self._solved_misfit = self._pass_misfit
         if adopt:
             self._adopt()
         return outliers
@@ -847,6 +944,7 @@ class RobustFilter:
         x, P, used, last_t, scale2, redundancy = self._solved
         f = self.filter
         f.x, f.P, f.samples_used, f.t_s = x, P, used, last_t
+        self._misfit = self._solved_misfit
         if self._robust.adapt_noise and redundancy >= MIN_REDUNDANCY:
             self.noise_scale2 = max(scale2, MIN_NOISE_SCALE2)
             self.measured_noise = True
@@ -1254,7 +1352,36 @@ class RobustFilter:
         if self._last_window is not None:
             x, P, first_t, last_t = self._last_window
             state["window"] = {"x": x, "P": P, "first_t_s": np.float64(first_t), "t_s": np.float64(last_t)}
+        if self._kappa > 0.0:  # the misfit at the pose the filter and each candidate hold (None: a new pose next)
+            misfits = [self._misfit, *(c.misfit for c in self._candidates)]
+            state["pose_misfits"] = {
+                "held": np.array([m is not None for m in misfits], dtype=np.int64),
+                **{
+                    field: np.array([getattr(m, field) for m in misfits if m is not None]).reshape(-1, *shape)
+                    for field, shape in self._misfit_shapes().items()
+                },
+            }
         return state
+
+    def _misfit_shapes(self) -> dict[str, tuple[int, ...]]:
+        """The shapes of a :class:`_Misfit`'s arrays, as a checkpoint holds them."""
+        m = self._m
+        return {"inputs": (m,), "b": (m,), "P_xb": (self._n, m), "P_bb": (m, m)}
+
+    def _import_misfits(self, state: dict) -> None:
+        """The misfits :meth:`export_state` wrote, the filter's and its candidates' (none: a new pose next)."""
+        kept = state.get("pose_misfits")
+        count = 1 + len(self._candidates)
+        misfits: list[_Misfit | None] = [None] * count
+        if kept is not None and self._kappa > 0.0:
+            held = state_array(kept, "held", (count,)).astype(bool)
+            fields = {f: state_array(kept, f, (int(held.sum()), *shape)) for f, shape in self._misfit_shapes().items()}
+            for row, k in enumerate(np.flatnonzero(held)):
+                misfits[k] = _Misfit(*(values[row] for values in fields.values()))
+        self._misfit = misfits[0]
+        self._candidates = [
+            dataclasses.replace(c, misfit=m) for c, m in zip(self._candidates, misfits[1:], strict=True)
+        ]
 
     def buffered_width(self) -> int | None:
         """Columns of the prepared samples it holds, or None while it holds none."""
@@ -1338,6 +1465,7 @@ class RobustFilter:
                 first_t,
                 last_t,
             )
+        self._import_misfits(state)
 
 
 def _walk_directions(
@@ -1581,6 +1709,18 @@ class _Candidate:
     taken: int  #: samples it took after the one it began at
     readmitted: int  #: samples it took that the filter refused, its first included
     t_s: float  #: the time of the sample it began at: where the step happened
+    misfit: _Misfit | None = None  #: the misfit at the pose it holds (``pose_misfit``)
+
+
+@dataclass(frozen=True)
+class _Misfit:
+    """The instrument's misfit at a pose the platform holds (:class:`RobustFilter`'s ``pose_misfit``) as the
+    samples taken there leave it (:meth:`RobustFilter._misfit_step`)."""
+
+    inputs: np.ndarray  #: the first inputs (strokes) of the pose
+    b: np.ndarray  #: its mean (m,) [the observation's units]
+    P_xb: np.ndarray  #: its covariance with the state (n, m)
+    P_bb: np.ndarray  #: its covariance (m, m)
 
 
 class _Likelihood(NamedTuple):
