@@ -140,7 +140,7 @@ class LegEKF:
         self._pose = self._leg_set or WarmPose(self.model)
         pose_misfit = self._pose_misfit(config.noise)
         compiled_rows = (
-            self._leg_set.rows if self._leg_set is not None and payload is None and pose_misfit is None else None
+            self._leg_set.rows if self._leg_set is not None and payload is None and pose_misfit[0] == 0.0 else None
         )
         self._compiled = compiled_rows is not None
         # an instrument registered on the data starts far from the answer (frame, encoder zeros, scale):
@@ -179,19 +179,18 @@ class LegEKF:
         self._forces_at_state = self.drive.elastic is not None and self._instrument is not None
         self._packed_width = self.drive.packed_width if self._forces_at_state else 0
 
-    def _pose_misfit(self, noise) -> tuple[float, float] | None:
-        """The robust filter's ``pose_misfit`` of ``noise.pose_misfit_sigma_mm`` (None at 0): its variance over
-        the readings' ``reading_sigma_mm²``, as it enters the legs' residuals through the same pose, and the
-        strokes' tolerance of one pose, 5 ``stroke_sigma_mm`` (a static pose's encoders read within it)."""
+    def _pose_misfit(self, noise) -> tuple[float, float]:
+        """The robust filter's ``pose_misfit`` of ``noise.pose_misfit_sigma_mm``: its variance over the readings'
+        ``reading_sigma_mm²``, as it enters the legs' residuals through the same pose (0: none), and the
+        strokes' tolerance of one pose, 5 ``stroke_sigma_mm`` (a static pose's encoders read within it), which
+        the step candidates begin at (:meth:`~.robust.RobustFilter._test_steps`) with or without a misfit."""
         sigma = noise.pose_misfit_sigma_mm
-        if sigma <= 0.0:
-            return None
-        if self.model.kind != "tracker":
+        if sigma > 0.0 and self.model.kind != "tracker":
             raise CalibError(
                 f"noise.pose_misfit_sigma_mm = {sigma:g}: the in-situ tracker's misfit, but the instrument is "
                 f"{self.model.kind!r}"
             )
-        return (sigma / noise.reading_sigma_mm) ** 2, 5.0 * noise.stroke_sigma_mm
+        return max(sigma, 0.0) ** 2 / noise.reading_sigma_mm**2, 5.0 * noise.stroke_sigma_mm
 
     def _payload_factors(self):
         """``(columns, nominal)`` of the compliance the unannounced payload multiplies (the robust filter's
