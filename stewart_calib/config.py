@@ -42,6 +42,12 @@ class NoiseConfig:
             positive they are identified with the drive under N(nominal, σ²) (spec §7), as the
             platform file's ``[tracker] geometry_sigma_mm`` asks, which wins where it is given;
             0 takes the tracker's geometry as exact.
+        pose_misfit_sigma_mm: σ of the in-situ tracker's reading error that stays while the platform
+            holds a pose [mm] — its geometry's residual seen through the pose, less what the drive's
+            parameters take up of it — besides the white noise ``reading_sigma_mm``: ekf (and isam2's front
+            end) carry it as a misfit drawn afresh at each pose (the ``pose_misfit`` of
+            :class:`~stewart_calib.estimators.robust.RobustFilter`), so the samples of a static pose count
+            as their mean, not as independent readings; 0: every reading independent.
         angle_prior_sigma_deg: a rotary drive's (spec §15) prior σ of each angle of δM — zero
             offsets ``o_i`` and axis tilts ``tu_i``, ``tw_i`` [deg]; its lengths take ``prior_sigma_mm``.
         angle_sigma_deg: σ of one commanded servo angle [deg]: the rotary leg's analog of
@@ -55,6 +61,7 @@ class NoiseConfig:
     prior_sigma_mm: float = 5.0
     stroke_scale_sigma: float = 0.0
     tracker_geometry_sigma_mm: float = 0.0
+    pose_misfit_sigma_mm: float = 0.0
     angle_prior_sigma_deg: float = 2.0
     angle_sigma_deg: float = 0.05
     angle_random_walk_deg_per_sqrt_s: float = 1e-3

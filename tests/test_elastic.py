@@ -586,7 +586,7 @@ def test_ekf_finds_an_unannounced_payload_and_its_steps(check):
     )
     validation = run.desired_poses[np.asarray(run.kinds) == "validation"][:20]
     # the closed loop commands under the payload found: logged 0 plus the estimate's
-    # ignoring it: ~200 µm; 5.2 since the start-up takes c·m's second-order variance (RobustFilter._curved)
+    # ignoring it: ~200 µm
     assert closed_loop_um(run, platform, estimate, validation, 40.0) < 5.5
     result = result_dict(estimate, estimating)
     assert result["payload"]["names"] == ["payload_kg"] and result["payload_steps"] == 2

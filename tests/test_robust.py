@@ -473,3 +473,68 @@ def test_the_window_contrasts_terms_are_those_of_their_pencil():
             np.testing.assert_allclose(lam[i][order], (1.0 / mu[walking])[expected], rtol=1e-10)
             expected_p = (z[walking] ** 2 / mu[walking])[expected]
             np.testing.assert_allclose(p[i][order], expected_p, rtol=1e-8, atol=1e-12 * expected_p.sum())
+
+
+def _misfit_filter(n: int, rows: int, sigma: float, kappa: float):
+    from stewart_calib.config import RobustConfig
+    from stewart_calib.estimators.robust import RobustFilter
+    from stewart_calib.model.unknowns import UnknownLayout
+
+    def observe(prepared, x):
+        H, z = prepared[: rows * n].reshape(rows, n), prepared[rows * n :]
+        return z - H @ x, H, sigma**2 * np.eye(rows)
+
+    robust = RobustConfig(startup_samples=0, adapt_noise=False)  # the gated recursion from the first sample
+    layout = UnknownLayout(n_params=n)
+    return RobustFilter("toy", 1.0, 0.0, 0.0, observe, robust, rows, layout=layout, pose_misfit=(kappa, 1e-9))
+
+
+def _misfit_poses(rng, n: int, rows: int, sigma: float, kappa: float, poses: int, per_pose: int):
+    """``(t, prepared)`` of ``poses`` static poses of ``per_pose`` samples each (the first ``rows`` entries of a
+    prepared sample, its pose's inputs, the same at one pose), their readings off by a misfit per pose and white
+    noise, and each pose's ``(H, mean reading)``."""
+    truth, samples, means = rng.normal(0.0, 1.0, n), [], []
+    for pose in range(poses):
+        H = rng.normal(size=(rows, n))
+        misfit = rng.normal(0.0, np.sqrt(kappa) * sigma, rows)
+        z = H @ truth + misfit + rng.normal(0.0, sigma, (per_pose, rows))
+        samples += [(0.1 * (pose * per_pose + k), np.concatenate((H.ravel(), z[k]))) for k in range(per_pose)]
+        means.append((H, z.mean(axis=0)))
+    return samples, means
+
+
+def test_a_static_poses_samples_count_as_their_mean_with_the_poses_misfit():
+    """With ``pose_misfit`` (κ: a misfit N(0, κ R0) drawn afresh at each pose, the white noise R0 besides), the
+    filter after ``p`` static poses of ``k`` samples is the posterior of the poses' mean readings, each of
+    covariance ``(1/k + κ) R0``: the exact linear answer (before: the samples of a pose counted as ``k``
+    independent readings, P ``k``-fold too small in the directions a pose sees, less its misfit)."""
+    n, rows, sigma, kappa, per_pose = 5, 3, 0.01, 4.0, 8
+    rng = np.random.default_rng(43)
+    samples, means = _misfit_poses(rng, n, rows, sigma, kappa, poses=6, per_pose=per_pose)
+    f = _misfit_filter(n, rows, sigma, kappa)
+    for t_s, prepared in samples:
+        f.update(t_s, prepared)
+    information, weighted = np.eye(n), np.zeros(n)  # the prior N(0, I)
+    for H, z in means:
+        W = np.linalg.inv((1.0 / per_pose + kappa) * sigma**2 * np.eye(rows))
+        information += H.T @ W @ H
+        weighted += H.T @ W @ z
+    P = np.linalg.inv(information)
+    np.testing.assert_allclose(f.filter.P, P, rtol=1e-8, atol=1e-14)
+    np.testing.assert_allclose(f.filter.x, P @ weighted, rtol=1e-8, atol=1e-12)
+
+
+def test_a_checkpoint_within_a_pose_keeps_its_misfit():
+    """Resumed from a checkpoint taken within a pose, the filter goes on with that pose's misfit (not a new
+    pose's): the same state as the filter that ran through."""
+    n, rows, sigma, kappa = 5, 3, 0.01, 4.0
+    samples, _ = _misfit_poses(np.random.default_rng(7), n, rows, sigma, kappa, poses=3, per_pose=6)
+    through, resumed = _misfit_filter(n, rows, sigma, kappa), _misfit_filter(n, rows, sigma, kappa)
+    for t_s, prepared in samples[:9]:  # half-way through the second pose
+        through.update(t_s, prepared)
+    resumed.import_state(through.export_state())
+    for t_s, prepared in samples[9:]:
+        through.update(t_s, prepared)
+        resumed.update(t_s, prepared)
+    np.testing.assert_array_equal(resumed.filter.x, through.filter.x)
+    np.testing.assert_array_equal(resumed.filter.P, through.filter.P)

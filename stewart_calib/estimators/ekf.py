@@ -19,7 +19,12 @@ on the drive-leg residuals ``g`` and the strokes' noise carried through ``J_g⁻
 Measurement covariance: ``J_x Σ_x J_xᵀ + σ_q² I`` (full 6×6), with ``Σ_x`` the measured pose's
 covariance (for the tracker propagated from i.i.d. reading noise σ_s) and ``J_x`` the
 residuals' pose Jacobian — all six residuals share the one measured pose, so their errors are
-correlated; with ``σ² I`` alone this filter diverges (docs/measured-facts.md).
+correlated; with ``σ² I`` alone this filter diverges (docs/measured-facts.md). With
+``noise.pose_misfit_sigma_mm = σ_m`` the tracker's readings are off, besides, by a misfit that stays while
+the platform holds a pose (its geometry's residual seen through the pose) and is drawn afresh at the next:
+``b ~ N(0, (σ_m/σ_s)² R_meas)`` rides beside the state over a pose's samples (the robust filter's
+``pose_misfit``), so ``n`` samples of a static pose weigh as their mean, ``σ_s²/n + σ_m²`` a reading, not
+as ``n`` independent readings; the samples then go one at a time (no compiled block path).
 
 Process noise: a random walk of δM, ``Q = ρ² Δt`` on its entries with ``ρ`` =
 ``noise.random_walk_mm_per_sqrt_s`` and ``Δt`` between samples (``t_s``), as in the graph; the
@@ -57,7 +62,11 @@ parameters over tens of samples — also where the configured δM walk takes mos
 to one sample, or the payload is put on over a ramp. A random walk of ``m`` cannot do that: one slow
 enough to let ``m`` average leaves a 20 kg step tens of σ outside the gate; one fast enough to pass it
 makes ``m`` a per-sample nuisance that takes from every sample the information on the compliance it
-carries. Not in the compiled block path (samples go one at a time).
+carries. Where the compliance is an unknown too, ``m`` is held at its prior mean (its column out of
+every observation, no step tested) until the compliance is known to within its own value on every leg
+(:meth:`~.robust.RobustFilter._release_payload`): linearised at compliances the data have not settled, the
+column ``c_i f_{m,i}`` puts ``m`` and ``c`` on a wrong point of the curved ridge ``c_i (f_{p,i} + m f_{m,i})``
+the samples see. Not in the compiled block path (samples go one at a time).
 """
 
 from __future__ import annotations
@@ -129,7 +138,10 @@ class LegEKF:
             self._leg_set = LegSetPose(self.model, self.drive, self.noise.stroke_sigma_mm)
         self._coordinate_sigma = self.drive.coordinate_sigma(config.noise)
         self._pose = self._leg_set or WarmPose(self.model)
-        compiled_rows = self._leg_set.rows if self._leg_set is not None and payload is None else None
+        pose_misfit = self._pose_misfit(config.noise)
+        compiled_rows = (
+            self._leg_set.rows if self._leg_set is not None and payload is None and pose_misfit[0] == 0.0 else None
+        )
         self._compiled = compiled_rows is not None
         # an instrument registered on the data starts far from the answer (frame, encoder zeros, scale):
         # its start-up batches are solved by Gauss–Newton, not one pass linearised at the prior
@@ -149,8 +161,9 @@ class LegEKF:
             step=None
             if payload is None or self._payload is None
             else (self._payload.start, payload.prior_sigma[0] ** 2),
-            step_curvature=self._payload_curvature(),
+            step_factors=self._payload_factors(),
             compiled_rows=compiled_rows,
+            pose_misfit=pose_misfit,
         )
         self._stroke_bounds = platform.stroke_range if platform.stroke_range is not None else (-np.inf, np.inf)
         self.filter = self.robust.filter
@@ -166,10 +179,24 @@ class LegEKF:
         self._forces_at_state = self.drive.elastic is not None and self._instrument is not None
         self._packed_width = self.drive.packed_width if self._forces_at_state else 0
 
-    def _payload_curvature(self):
-        """``(columns, coefficients)`` of the unannounced payload's bilinear term (the robust filter's
-        ``step_curvature``): drive row ``i``'s ``∂²r_i/∂c_i∂m = −(∂g_i/∂c_i) f_{m,i}``, ``g`` the force gains,
-        linear in the compliance; None without a payload or a compliance unknown."""
+    def _pose_misfit(self, noise) -> tuple[float, float]:
+        """The robust filter's ``pose_misfit`` of ``noise.pose_misfit_sigma_mm``: its variance over the readings'
+        ``reading_sigma_mm²``, as it enters the legs' residuals through the same pose (0: none), and the
+        strokes' tolerance of one pose, 5 ``stroke_sigma_mm`` (a static pose's encoders read within it), which
+        the step candidates begin at (:meth:`~.robust.RobustFilter._test_steps`) with or without a misfit."""
+        sigma = noise.pose_misfit_sigma_mm
+        if sigma > 0.0 and self.model.kind != "tracker":
+            raise CalibError(
+                f"noise.pose_misfit_sigma_mm = {sigma:g}: the in-situ tracker's misfit, but the instrument is "
+                f"{self.model.kind!r}"
+            )
+        return max(sigma, 0.0) ** 2 / noise.reading_sigma_mm**2, 5.0 * noise.stroke_sigma_mm
+
+    def _payload_factors(self):
+        """``(columns, nominal)`` of the compliance the unannounced payload multiplies (the robust filter's
+        ``step_factors``): drive row ``i``'s ``∂r_i/∂m = g_i f_{m,i}``, ``g`` the force gains, linear in
+        the compliance ``nominal + x[columns]`` (``nominal = g_i / (∂g_i/∂c_i)`` at ``x = 0``); None without
+        a payload or a compliance unknown."""
         compliance = self.layout.slice(COMPLIANCE)
         if (
             self._payload is None
@@ -183,8 +210,7 @@ class LegEKF:
         gains_at_zero = self.drive.force_gains(unit)
         unit[columns] = 1.0
         per_unit = self.drive.force_gains(unit) - gains_at_zero  # leg i's gain per unit of c_i
-        width, rows = self.drive.input_width, self._per_kg
-        return columns, lambda prepared: -per_unit * prepared[width : width + rows]
+        return columns, gains_at_zero / per_unit
 
     def update(self, sample: Sample) -> None:
         """Fold in one sample; ``SampleRejected`` leaves the state untouched."""

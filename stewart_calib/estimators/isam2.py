@@ -287,9 +287,15 @@ class ISAM2Estimator:
         A snapshot of before the step would not do: it holds the samples before the step linearised at
         the estimate of then, which the step moves (the compliance by 6 %); from it the payload is
         26.6 kg after the check's 20 kg step and 42.7 kg at its 40 kg end (8 µm closed loop), from the
-        step window's 23.8 and 40.2 kg (1.5 µm; ekf 20.0 and 39.7 kg)."""
+        step window's 23.8 and 40.2 kg (1.5 µm; ekf 20.0 and 39.7 kg).
+
+        The front end's release of the payload it held (:meth:`_held_payload`) opens a window the same way,
+        at the first sample the graph takes since: the payload's prior σ from its prior mean."""
         held_from = self._replay[0].t_s if self._replay else math.inf
         self._front_gated = [s for s in self._front_gated if s.t_s >= held_from]
+        released_t_s = self._front.robust.payload_released_t_s
+        if released_t_s > self._state.last_t_s:  # the first sample the graph takes since the front end released it
+            self._builder.steps[sample.t_s] = float(self._front.filter.x[self._payload])
         if self._front.robust.steps == steps_before:
             return
         payload_kg = float(self._front.filter.x[self._payload])
@@ -410,7 +416,7 @@ class ISAM2Estimator:
         take the start-up samples it kept once it decided, then ``sample`` (accepted by it)."""
         front = self._front.robust
         if front.recoveries != recoveries:
-            x, P = self._front.filter.x.copy(), self._front.filter.P.copy()
+            x, P = self._front.filter.x.copy(), self._held_payload(self._front.filter.P.copy())
             # the restart holds the samples of the front end's recovered Gaussian, no others
             state = dataclasses.replace(self._state, samples=self._front.filter.samples_used)
             self._rebuild(_Snapshot(state, x, P, 0), [])
@@ -421,12 +427,28 @@ class ISAM2Estimator:
             kept = [s for s, outlier in zip(self._pending, front.startup_outliers, strict=True) if not outlier]
             self._pending = []
             x, P = front.startup_gaussian(front.noise_scale2)
+            P = self._held_payload(P)
             state = ChainState(
                 samples=len(kept), window_start_s=kept[-1].t_s, window_samples=len(kept), last_t_s=kept[-1].t_s
             )
             self._rebuild(_Snapshot(state, x, P, 0), [])
         for sample in batch:
             self._add_or_reject(sample)
+
+    def _held_payload(self, P: np.ndarray) -> np.ndarray:
+        """``P`` of the front end's Gaussian with the payload it holds at its prior mean
+        (:attr:`RobustFilter.payload_held <stewart_calib.estimators.robust.RobustFilter.payload_held>`)
+        pinned there by the chain's floor σ, the tie of every constant block between windows: the graph's
+        drive-leg factors have its column, and free at its prior beside a compliance the samples have not
+        settled, it slid along the compliance–payload ridge as the front end's did (the paper's experiment,
+        the tracker's geometry exact, readings white at 0.5 µm and told so: 62.8 ± 0.34 kg after a 40 kg
+        step). The window that opens at the front end's release gives it the prior's σ (:meth:`_note_step`)."""
+        if self._payload is None or not self._front.robust.payload_held:
+            return P
+        P = P.copy()
+        P[self._payload, :], P[:, self._payload] = 0.0, 0.0
+        P[self._payload, self._payload] = self._builder.graph.chain_sigma_floor_mm**2
+        return P
 
     def _add_or_reject(self, sample: Sample) -> None:
         """:meth:`_add`; where gtsam fails, the smoother rebuilt without ``sample`` and

@@ -598,10 +598,19 @@ class FilterState:
         """:func:`filter_step` with ``self.Q`` and ``R = noise_scale2 · R0``; counts the sample or raises
         ``SampleRejected`` (``gated`` false: whatever its NIS, a sample a test of its own has taken)."""
         m = len(residual)
-        gate_nis = math.inf if not gated else self.gate_nis if m == self._m else self._gate(m)  # another size
+        gate_nis = self.gate_for(m) if gated else math.inf
         status, nis, S = filter_step(
             self.x, self.P, self.Q, H, residual, R0, noise_scale2, gate_nis, self.workspace(m), NO_COMPONENTS
         )
+        self.count_step(status, nis, S, t_s, gate_nis)
+
+    def gate_for(self, m: int) -> float:
+        """The gate's NIS bound on an ``m``-row observation (the configured size's, or another's)."""
+        return self.gate_nis if m == self._m else self._gate(m)
+
+    def count_step(self, status: int, nis: float, S: np.ndarray, t_s: float, gate_nis: float) -> None:
+        """Counts a step :func:`filter_step` took at ``t_s`` [s] (its NIS and ``S`` the last ones) or raises
+        ``SampleRejected`` with why it did not (the state as it was)."""
         if status == STEP_NON_FINITE:
             raise SampleRejected(
                 f"{self.method}: sample at t = {number(t_s)} s gives a non-finite observation",

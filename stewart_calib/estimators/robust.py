@@ -60,6 +60,7 @@ Both estimates forget over ``noise_memory_samples``. Fixed noise stays available
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from collections.abc import Callable
@@ -82,6 +83,7 @@ from .kalman import (
     fill_walk,
     filter_step,
     window_append,
+    workspace_size,
 )
 
 #: residual degrees of freedom a batch needs before it refuses any sample or estimates a scale.
@@ -167,11 +169,17 @@ class RobustFilter:
             ramp or a step too small for one sample is found from the evidence of many, and one
             sample's misfit is no step unless the samples after it agree. The samples buffered
             before a step taken are let go (a window across the step fits neither side).
-        step_curvature: ``(columns, coefficients)`` of a ``step`` unknown that enters the observation
-            bilinearly (an unannounced payload times the compliance): row ``k``'s residual has the second
-            derivative ``coefficients(prepared)[k]`` in that unknown and ``x[columns[k]]``. The
-            start-up's last solve (:meth:`_relinearise_startup`) then adds the second-order variance of
-            that product to each row's (:meth:`_curved`).
+        step_factors: ``(columns, nominal)`` of the unknowns a ``step`` unknown multiplies in the
+            observation (an unannounced payload, the compliance: row ``k``'s residual is bilinear in it and
+            ``x[columns[k]]``), whose values are ``nominal + x[columns]``: the ``step`` unknown is then held
+            at its prior mean until those values are known to within themselves (:meth:`_release_payload`).
+        pose_misfit: ``(κ, tolerance)``: the instrument's reading error holds, besides the white noise
+            ``s² R0``, a misfit ``b ~ N(0, κ R0)`` that stays while the platform holds a pose (its first
+            ``m`` inputs, the strokes, within ``tolerance`` of the sample before) and is drawn afresh at the
+            next: ``b`` rides beside the state through every update at one pose (:meth:`_misfit_step`), so a
+            static pose's samples tell the parameters what their mean does, ``(s² / n + κ) R0``, not ``n``
+            independent readings; κ = 0 or None: no misfit (every sample independent). The step
+            candidates begin at each new pose by the same tolerance (:meth:`_test_steps`).
 
     Attributes:
         started: the start-up batch is decided (the gated recursion runs).
@@ -179,6 +187,9 @@ class RobustFilter:
         walk_rate_mm2_per_s: the random walk's variance rate in use [mm²/s].
         recoveries: lock-outs recovered from.
         steps: steps of the ``step`` unknown taken.
+        payload_held: the ``step`` unknown of ``step_factors`` is held at its prior mean, its column
+            out of every observation (:meth:`_release_payload`).
+        payload_released_t_s: the time [s] of the sample it was released at (NaN while held, or never held).
         walk_lowering: the probability at which the window differences reject a rate as too large
             (:meth:`_pooled_walk_rate`; :data:`WALK_REJECTION`, isam2's front end :data:`WALK_RAISING`).
     """
@@ -198,11 +209,14 @@ class RobustFilter:
         compiled_rows=None,
         relinearise: bool = False,
         step: tuple[int, float] | None = None,
-        step_curvature: tuple[np.ndarray, Callable[[np.ndarray], np.ndarray]] | None = None,
+        step_factors: tuple[np.ndarray, np.ndarray] | None = None,
+        pose_misfit: tuple[float, float] | None = None,
     ):
         self.method = method
         self._step_unknown = step
-        self._step_curvature = step_curvature
+        self._step_factors = step_factors
+        self.payload_held = step is not None and step_factors is not None
+        self.payload_released_t_s = math.nan
         # a step is taken where it lowers the NIS beyond the gate's bound at one degree of freedom
         self._step_bound = float(chdtri(1, 1.0 - gate_probability)) if gate_probability > 0.0 else math.inf
         self.steps = 0
@@ -214,6 +228,16 @@ class RobustFilter:
         # NIS per row of the samples the filter took lately: the dispersion the candidates' ratios are read at
         self._dispersions: deque = deque(maxlen=DISPERSION_SAMPLES)
         self.filter = FilterState(method, prior_sigma_mm, gate_probability, m, layout, C)
+        # the misfit held over a pose (pose_misfit): its variance over R0, the inputs' tolerance of one pose,
+        # the filter's misfit at the pose it holds, and that of the last batch pass and of the solved batch
+        self._kappa, self._pose_tolerance = (0.0, 0.0) if pose_misfit is None else pose_misfit
+        self._misfit: _Misfit | None = None
+        self._pass_misfit: _Misfit | None = None
+        self._solved_misfit: _Misfit | None = None
+        # candidate steps begin at each new pose where the noise model is the user's or holds the pose's misfit
+        # (_test_steps); the inputs of the last sample they saw tell a new pose
+        self._candidates_per_pose = pose_misfit is not None and (self._kappa > 0.0 or not robust.adapt_noise)
+        self._last_inputs = np.zeros(0)
         n = len(self.filter.x)
         self._P0 = self.filter.P.copy()
         self._x0 = np.zeros(n)  # the prior's mean: 0, or where a registration started the filter
@@ -230,7 +254,7 @@ class RobustFilter:
         self._walking: np.ndarray | None = diagonal == 1.0 if plain else None
         self._compiled_rows = compiled_rows
         self._configured_walk = walk_mm_per_sqrt_s**2
-        self._observe = observe
+        self._observe_model = observe
         self._robust = robust
         self._n, self._m = n, m
         self._gate_on = gate_probability > 0.0
@@ -393,9 +417,10 @@ class RobustFilter:
         a bias the recursion keeps (NEES/dof 1.65 where lm, on the same log, gives 0.97)."""
         f = self.filter
         x, P, *_ = self._gauss_newton(
-            ~self.startup_outliers, self.noise_scale2, self._linearise(f.x.copy()), startup=True, curved=True
+            ~self.startup_outliers, self.noise_scale2, self._linearise(f.x.copy()), startup=True
         )
         f.x, f.P = x, P
+        self._misfit = self._pass_misfit
 
     def _late_rejection(self, t_s: float) -> SampleRejected:
         err = SampleRejected(
@@ -424,6 +449,124 @@ class RobustFilter:
 
     # ------------------------------------------------------------------ recursion
 
+    def _observe(self, prepared: np.ndarray, x: np.ndarray):
+        """The observation of a prepared sample at ``x`` (:data:`Observe`), the held payload's column
+        out of it (:meth:`_release_payload`): the sample says nothing of that unknown yet."""
+        observation = self._observe_model(prepared, x)
+        if observation is None or not self.payload_held:
+            return observation
+        nu, H, R0 = observation
+        return nu, self._without_payload(H), R0
+
+    def _without_payload(self, H: np.ndarray) -> np.ndarray:
+        """``H`` without the column of the ``step`` unknown of ``step_factors`` (as it is where there is none)."""
+        if self._step_factors is None or self._step_unknown is None:
+            return H
+        H = H.copy()
+        H[:, self._step_unknown[0]] = 0.0
+        return H
+
+    def _compliance_settled(self, x: np.ndarray, P: np.ndarray) -> bool:
+        """Whether the values of ``step_factors`` are known to within themselves at ``(x, P)``,
+        ``σ_{c_i} < |c_i|`` on every leg (True where there are none)."""
+        if self._step_factors is None:
+            return True
+        columns, nominal = self._step_factors
+        return bool(np.all(np.diag(P)[columns] < (nominal + x[columns]) ** 2))
+
+    def _release_payload(self, t_s: float) -> None:
+        """Releases the held payload (:attr:`payload_held`) at the sample at ``t_s`` [s] once the compliance
+        it multiplies is known to within its own value, ``σ_{c_i} < |c_i|`` on every leg
+        (:meth:`_compliance_settled`): the payload's column ``∂r_i/∂m = −c_i f_{m,i} / 1000`` is then
+        linearised at compliances whose sign and size the samples have settled, and the payload is its
+        prior (mean and σ, uncorrelated), as a step of the prior's σ from the prior's mean leaves it.
+
+        Before, the column is linearised at a compliance the data have not seen — the nominal, 0 for a
+        controller that believes its legs rigid, with a prior σ of 2 mm over the platform's weight (82 mm/kN
+        on the paper's robot) — and the payload and the compliance trade along the curved ridge
+        ``c_i (f_{p,i} + m f_{m,i})`` the samples see: a filter update puts a narrow Gaussian on the ridge's
+        tangent at a wrong point of it, which the updates after it keep (the paper's experiment, the
+        tracker's geometry exact, readings white at 0.5 µm and told so: ``m`` 7.75 ± 0.36 kg after the first
+        pose past the start-up's four, truth 0; ``c`` 2–11 mm/kN, truth 2.33). The second-order variance of
+        the product, ``(∂²r_i/∂c_i∂m)² (P_cc P_mm + P_cm²)`` added to each row's, in the start-up's solves
+        alone leaves that to the recursion, and in every update keeps the filter's σ wide where the
+        compliance stays uncertain (a fast δM walk), where the step test then finds no step. Held, the
+        compliance is identified alone, linear in the samples. Batches from the prior hold the payload the same way,
+        sample by sample (:meth:`_observed_pass`)."""
+        if self.payload_held and self._compliance_settled(self.filter.x, self.filter.P):
+            self.payload_held = False
+            self.payload_released_t_s = t_s
+
+    def _held(self, misfit: _Misfit | None, prepared: np.ndarray, m: int) -> bool:
+        """Whether ``prepared`` is at the pose ``misfit`` was drawn at (its first inputs within the tolerance)."""
+        return (
+            misfit is not None
+            and len(misfit.b) == m
+            and bool(np.max(np.abs(prepared[: self._m] - misfit.inputs)) <= self._pose_tolerance)
+        )
+
+    def _innovation(self, nu: np.ndarray, misfit: _Misfit | None, prepared: np.ndarray) -> np.ndarray:
+        """``ν`` of the parameters alone less the misfit the pose's samples so far put on it (``pose_misfit``)."""
+        return nu - misfit.b if misfit is not None and self._held(misfit, prepared, len(nu)) else nu
+
+    def _predicted(
+        self, P: np.ndarray, H: np.ndarray, R0: np.ndarray, misfit: _Misfit | None, prepared: np.ndarray
+    ) -> np.ndarray:
+        """The innovation covariance of a sample at the parameters' covariance ``P``: ``H P Hᵀ + s² R0``, and the
+        misfit's share (``pose_misfit``): its prior ``κ R0`` at a new pose, what the pose's samples left at one held."""
+        S = H @ P @ H.T + self.noise_scale2 * R0
+        if self._kappa <= 0.0:
+            return S
+        if misfit is not None and self._held(misfit, prepared, len(R0)):
+            C = H @ misfit.P_xb
+            return S + C + C.T + misfit.P_bb
+        return S + self._kappa * R0
+
+    def _misfit_step(
+        self,
+        x: np.ndarray,
+        P: np.ndarray,
+        misfit: _Misfit | None,
+        Q: np.ndarray,
+        H: np.ndarray,
+        nu: np.ndarray,
+        R0: np.ndarray,
+        noise_scale2: float,
+        gate_nis: float,
+        components: np.ndarray,
+        prepared: np.ndarray,
+    ) -> tuple[int, float, np.ndarray, _Misfit | None]:
+        """:func:`~.kalman.filter_step` of one sample, in place on ``(x, P)``, with the pose's misfit ``b``
+        (``pose_misfit``) beside the parameters; returns ``(status, NIS, S, the misfit after it)``.
+
+        The state is ``[x; b]`` with ``ν − b̂`` observed through ``[H I]``: at a new pose ``b`` is drawn afresh,
+        ``N(0, κ R0)`` uncorrelated with ``x``; at the pose the last sample was taken at, it is what that left
+        (``b̂``, its covariance and its cross-covariance with ``x``). A static pose's ``n`` samples so give the
+        parameters the information of their mean, ``Hᵀ ((s²/n + κ) R0)⁻¹ H``, and each sample's NIS is against
+        what the samples before it at the pose predict. Where the step is not taken, the misfit is as it was.
+        Without ``pose_misfit``, :func:`filter_step` alone (the misfit None)."""
+        if self._kappa <= 0.0:
+            status, nis, S = filter_step(
+                x, P, Q, H, nu, R0, noise_scale2, gate_nis, self.filter.workspace(len(nu)), components
+            )
+            return status, nis, S, None
+        n, m = len(x), len(nu)
+        if misfit is not None and self._held(misfit, prepared, m):
+            b, P_xb, P_bb = misfit.b, misfit.P_xb, misfit.P_bb
+        else:
+            b, P_xb, P_bb = np.zeros(m), np.zeros((n, m)), self._kappa * R0
+        xa = np.concatenate((x, b))
+        Pa = np.block([[P, P_xb], [P_xb.T, P_bb]])
+        Qa = np.zeros((n + m, n + m))
+        Qa[:n, :n] = Q
+        Ha = np.hstack((H, np.eye(m)))
+        work = np.empty(workspace_size(n + m, m))
+        status, nis, S = filter_step(xa, Pa, Qa, Ha, nu - b, R0, noise_scale2, gate_nis, work, components)
+        if status != STEP_TAKEN:
+            return status, nis, S, misfit
+        x[:], P[:] = xa[:n], Pa[:n, :n]
+        return status, nis, S, _Misfit(prepared[: self._m].copy(), xa[n:].copy(), Pa[:n, n:].copy(), Pa[n:, n:].copy())
+
     def _fill_Q(self, Q: np.ndarray, dt_s: float, walk_rate_mm2_per_s: float | None = None) -> None:
         rate = self.walk_rate_mm2_per_s if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
         fill_walk(Q, self._unit_Q, rate * max(dt_s, 0.0))
@@ -432,6 +575,7 @@ class RobustFilter:
         """One sample of the gated recursion; with an unknown that steps (and ``test_steps``: not a refused
         sample fed again out of time order) the candidate steps take it too and may replace the filter."""
         f = self.filter
+        self._release_payload(t_s)
         observation = self._observe(prepared, f.x)
         if observation is None:
             raise SampleRejected(
@@ -441,35 +585,23 @@ class RobustFilter:
         nu, H, R0 = observation
         self._fill_Q(f.Q, 0.0 if math.isnan(f.t_s) else t_s - f.t_s)
         step = self._step_unknown
-        if step is not None and test_steps and self._test_steps(step, t_s, prepared, nu, H, R0):
+        # a held payload has no step to test: its column is not in the samples yet
+        if (
+            step is not None
+            and test_steps
+            and not self.payload_held
+            and self._test_steps(step, t_s, prepared, nu, H, R0)
+        ):
             return
-        f.update(H, nu, R0, t_s, noise_scale2=self.noise_scale2)  # SampleRejected: untouched
-
-    def _curved(self, prepared: np.ndarray, R0: np.ndarray, P: np.ndarray, noise_scale2: float) -> np.ndarray:
-        """``R0`` of a sample linearised at a state of covariance ``P``, with the second-order variance of
-        the ``step_curvature`` product added to each row: for ``r = a u v`` about the state, ``u`` and
-        ``v`` jointly Gaussian, ``Var(r)`` exceeds its linearisation's by ``a² (P_uu P_vv + P_uv²)``.
-
-        The compliance ``c_i`` and an unannounced payload ``m`` enter a leg as ``c_i f_{m,i} m``. The start-up's
-        few poses (30 samples, 4 static poses) pin neither while the prior leaves both wide (c ± 82 mm/kN, m
-        ± 50 kg), and their solve linearised at its own result put a narrow Gaussian along the tangent of
-        the curved c–m ridge there; the recursion, linearised where it went on, then ended sure of both
-        where neither was right: on the paper's experiment's no-load stage (its tracker's geometry exact,
-        readings white at 20 µm, σ told) ekf ended at m 13.2 ± 0.45 kg (truth 0) and c 1.0–1.2 ± 0.065
-        mm/kN (truth 2.33), where the batch MAP of the same samples is m 0.85 ± 1.14, c 2.0–2.3 ± 0.2, and
-        without the payload unknown ekf's c is 2.1–2.4 ± 0.13 (the unknown added made c surer). With the
-        term in the start-up's solves: m 0.65 ± 0.26, c 1.9–2.7 ± 0.12–0.15 (tests/test_payload_unannounced.py).
-        In the recursion too it costs the step test its evidence (a candidate's prior adds σ_m² to
-        ``P_mm``): with ``--config paper`` the 40 kg step went unfound on 2 of 3 seeds."""
-        if self._step_curvature is None or self._step_unknown is None:
-            return R0
-        columns, coefficients = self._step_curvature
-        if len(R0) != len(columns):  # an observation of other rows (a tight one): linearised as it is
-            return R0
-        index = self._step_unknown[0]
-        a = coefficients(prepared)
-        added = a**2 * (P[columns, columns] * P[index, index] + P[columns, index] ** 2)
-        return R0 + np.diag(added / noise_scale2)
+        if self._kappa <= 0.0:
+            f.update(H, nu, R0, t_s, noise_scale2=self.noise_scale2)  # SampleRejected: untouched
+            return
+        gate_nis = f.gate_for(len(nu))
+        status, nis, S, misfit = self._misfit_step(
+            f.x, f.P, self._misfit, f.Q, H, nu, R0, self.noise_scale2, gate_nis, NO_COMPONENTS, prepared
+        )
+        f.count_step(status, nis, S, t_s, gate_nis)  # SampleRejected: untouched, the misfit too
+        self._misfit = misfit
 
     def _test_steps(
         self, step: tuple[int, float], t_s: float, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray
@@ -488,11 +620,20 @@ class RobustFilter:
         every ratio larger), and a candidate is taken once it leads after ``lockout_window_samples``
         samples (while one leads, a lock-out waits for it): the sample a step begins at, and the few
         after it at the same pose, are no evidence that a fault or the pose's own misfit could not
-        give."""
+        give.
+
+        A candidate begins, too, at the first sample of each new pose (``pose_misfit``'s inputs tolerance)
+        where the noise model is the user's (``adapt_noise`` off) or holds the pose's misfit (κ > 0): begun
+        only every ``lockout_window_samples``, a step found began up to that many samples late, and a fast
+        δM walk had taken what the step did to the samples between (the paper's experiment, ``--config
+        paper``, a 40 kg step: 23.0 ± 4.0, 32.2 ± 6.8, 36.6 ± 7.4 kg, seeds 1–3; at each pose 39.0 ± 9.8,
+        39.1 ± 9.5, 38.6 ± 8.4). Where the scale is measured and the misfit is not modelled, the windows
+        take the samples for as white as one pose's are, and a candidate at a new pose takes that pose's
+        misfit for a step (the default configuration there: 16–29 steps taken)."""
         f = self.filter
         index, variance = step
-        R = self.noise_scale2 * R0
-        S = H @ (f.P + f.Q) @ H.T + R
+        S = self._predicted(f.P + f.Q, H, R0, self._misfit, prepared)
+        nu_raw, nu = nu, self._innovation(nu, self._misfit, prepared)
         filter_ll = _log_likelihood(nu, S)
         filter_takes = not filter_ll.nis > f.gate_nis
         self._dispersions.append(min(filter_ll.nis, f.gate_nis) / len(nu))
@@ -503,24 +644,34 @@ class RobustFilter:
                 candidates.append(c)
                 continue
             x, P = c.x.copy(), c.P.copy()
-            status, nis, S_c = filter_step(
-                x, P, f.Q, observation[1], observation[0], R0, self.noise_scale2, f.gate_nis,
-                f.workspace(len(nu)), NO_COMPONENTS,
+            status, nis, S_c, misfit = self._misfit_step(
+                x, P, c.misfit, f.Q, observation[1], observation[0], R0, self.noise_scale2, f.gate_nis,
+                NO_COMPONENTS, prepared,
             )  # fmt: skip
             if status == STEP_TAKEN:
-                ratio = c.ratio + _log_likelihood(observation[0], S_c).value - filter_ll.value
-                candidates.append(_Candidate(x, P, ratio, nis, c.taken + 1, c.readmitted + (not filter_takes), c.t_s))
+                taken_ll = _log_likelihood(self._innovation(observation[0], c.misfit, prepared), S_c)
+                ratio = c.ratio + taken_ll.value - filter_ll.value
+                candidates.append(
+                    _Candidate(x, P, ratio, nis, c.taken + 1, c.readmitted + (not filter_takes), c.t_s, misfit)
+                )
             elif not filter_takes:
                 candidates.append(c)  # both refuse it: it tells neither apart
         self._since_candidate += 1
+        new_pose = self._candidates_per_pose and not (
+            len(self._last_inputs) == self._m
+            and np.max(np.abs(prepared[: self._m] - self._last_inputs)) <= self._pose_tolerance
+        )
+        self._last_inputs = prepared[: self._m].copy()
         stepped = S + variance * np.outer(H[:, index], H[:, index])
-        if self._since_candidate >= self._robust.lockout_window_samples or (
-            filter_ll.nis - float(nu @ np.linalg.solve(stepped, nu)) > self._step_bound
+        if (
+            new_pose
+            or self._since_candidate >= self._robust.lockout_window_samples
+            or (filter_ll.nis - float(nu @ np.linalg.solve(stepped, nu)) > self._step_bound)
         ):
             self._since_candidate = 0
             stepped_Q = f.Q.copy()
             stepped_Q[index, index] += variance
-            start = self._stepped_update(t_s, prepared, nu, H, R0, stepped_Q)
+            start = self._stepped_update(t_s, prepared, nu_raw, H, R0, stepped_Q)
             if start is not None:
                 candidates.append(start)
                 if len(candidates) > MAX_STEP_CANDIDATES:  # the least likely of the older ones goes
@@ -532,6 +683,7 @@ class RobustFilter:
         if not (self._leads(best) and best.taken >= self._robust.lockout_window_samples):
             return False
         f.x, f.P, f.nis, f.S = best.x, best.P, best.nis, S
+        self._misfit = best.misfit
         # this sample, and those the filter refused before and the step takes back in
         f.samples_used += 1 + best.readmitted - (not filter_takes)
         f.t_s = t_s
@@ -555,11 +707,13 @@ class RobustFilter:
         f = self.filter
         nu, H = self._iterated(prepared, nu, H, R0, Q)
         x, P = f.x.copy(), f.P.copy()
-        status, nis, _ = filter_step(
-            x, P, Q, H, nu, R0, self.noise_scale2, math.inf, f.workspace(len(nu)), NO_COMPONENTS
+        status, nis, _, misfit = self._misfit_step(
+            x, P, self._misfit, Q, H, nu, R0, self.noise_scale2, math.inf, NO_COMPONENTS, prepared
         )
-        refused = not nu @ np.linalg.solve(H @ (f.P + f.Q) @ H.T + self.noise_scale2 * R0, nu) <= f.gate_nis
-        return _Candidate(x, P, 0.0, nis, 0, int(refused), t_s) if status == STEP_TAKEN else None
+        nu_b = self._innovation(nu, self._misfit, prepared)
+        S = self._predicted(f.P + f.Q, H, R0, self._misfit, prepared)
+        refused = not nu_b @ np.linalg.solve(S, nu_b) <= f.gate_nis
+        return _Candidate(x, P, 0.0, nis, 0, int(refused), t_s, misfit) if status == STEP_TAKEN else None
 
     def _iterated(self, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray, Q: np.ndarray):
         """A step's sample as an iterated update: ``(ν, H)`` linearised at the update's own result, so
@@ -580,18 +734,10 @@ class RobustFilter:
         for _ in range(MAX_RELINEARISATIONS):
             x, P = x_prior.copy(), f.P.copy()
             innovation = linearised[0] + linearised[1] @ (at - x_prior)
-            status, _, _ = filter_step(
-                x,
-                P,
-                Q,
-                linearised[1],
-                innovation,
-                R0,
-                self.noise_scale2,
-                math.inf,
-                f.workspace(len(nu)),
-                NO_COMPONENTS,
-            )
+            status, *_ = self._misfit_step(
+                x, P, self._misfit, Q, linearised[1], innovation, R0, self.noise_scale2, math.inf, NO_COMPONENTS,
+                prepared,
+            )  # fmt: skip
             if status != STEP_TAKEN or _mahalanobis2(x - at, P, self._gauge_projector) <= RELINEARISE_TOLERANCE**2:
                 break
             observation = self._observe_or_none(prepared, x)
@@ -622,7 +768,6 @@ class RobustFilter:
         linearised: tuple[np.ndarray, list] | None = None,
         walk_rate_mm2_per_s: float | None = None,
         startup: bool = False,
-        curved: bool = False,
     ):
         """A filter pass from the prior over the buffered samples ``use``; returns
         ``(x, P, samples used, last t_s, residual degrees of freedom)``.
@@ -638,7 +783,6 @@ class RobustFilter:
         ``startup``: the decided start-up batch's own solve (:meth:`_relinearise_startup`,
         :meth:`startup_gaussian`), which runs once the filter has started: an unknown that steps is
         solved with the rest there, from its prior, as in every start-up pass.
-        ``curved``: each sample with :meth:`_curved`'s term at the pass's running ``P`` (with ``linearised``).
         """
         walk = self.walk_rate_mm2_per_s if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s
         x = (self._x0 if centre is None else centre).copy()
@@ -656,7 +800,7 @@ class RobustFilter:
         self._pass_components = np.zeros(2)
         buffer = self._buffer
         if linearised is not None:
-            used, rows, last_t = self._observed_pass(x, P, use, noise_scale2, walk, linearised, curved=curved)
+            used, rows, last_t = self._observed_pass(x, P, use, noise_scale2, walk, linearised)
         elif self._compiled_rows is not None:
             _, _, used, last_t, *_ = self._compiled_rows(
                 x,
@@ -695,30 +839,34 @@ class RobustFilter:
         noise_scale2: float,
         walk_rate_mm2_per_s: float,
         linearised: tuple[np.ndarray, list] | None = None,
-        curved: bool = False,
     ) -> tuple[int, int, float]:
         """:meth:`_pass`'s recursion, observing each sample through ``observe`` (in place) at the
         pass's own state, or taking it from ``linearised``; returns ``(samples used, their
-        observations' rows, last t_s)``; ``curved``: each sample's ``R0`` with :meth:`_curved`'s term at the
-        pass's running ``P``."""
+        observations' rows, last t_s)``. The ``step`` unknown of ``step_factors`` takes no part in a sample
+        while the filter holds it or the pass's own compliance is not yet known to within itself
+        (:meth:`_compliance_settled`; :meth:`_release_payload`)."""
         Q = np.zeros((self._n, self._n))
         last_t, used, rows = math.nan, 0, 0
         buffer = self._buffer
+        misfit = None
         for k in np.flatnonzero(use):
             observation = self._observe_or_none(buffer.prepared[k], x) if linearised is None else linearised[1][k]
             if observation is None:
                 continue
             nu, H, R0 = observation
+            # a batch from the prior re-solves the compliance from its prior: the payload waits for it there too
+            if self.payload_held or not self._compliance_settled(x, P):
+                H = self._without_payload(H)
             if linearised is not None:
                 nu = nu - H @ (x - linearised[0])
             self._fill_Q(Q, 0.0 if math.isnan(last_t) else buffer.t[k] - last_t, walk_rate_mm2_per_s)
-            work = self.filter.workspace(len(nu))
-            if curved:
-                R0 = self._curved(buffer.prepared[k], R0, P + Q, noise_scale2)
-            status, _, _ = filter_step(x, P, Q, H, nu, R0, noise_scale2, math.inf, work, self._pass_components)
+            status, _, _, misfit = self._misfit_step(
+                x, P, misfit, Q, H, nu, R0, noise_scale2, math.inf, self._pass_components, buffer.prepared[k]
+            )
             if status != STEP_TAKEN:
                 continue  # degenerate: the step left x and P untouched
             last_t, used, rows = buffer.t[k], used + 1, rows + len(nu)
+        self._pass_misfit = misfit
         return used, rows, last_t
 
     def _test(self, x: np.ndarray, P: np.ndarray, fitted: np.ndarray, redundancy: float, used: int):
@@ -730,7 +878,8 @@ class RobustFilter:
         # post-fit residuals of the fitted samples have ~redundancy/used degrees of freedom each
         dof = max(redundancy / max(used, 1), 0.5)
         scale2 = max(float(np.median(unit[fitted & ~missing]) / chdtri(dof, 0.5)), MIN_NOISE_SCALE2)
-        S = scale2 * R0 + H @ P @ np.swapaxes(H, 1, 2)
+        # a sample at the estimate, its pose's misfit too (pose_misfit)
+        S = (scale2 + self._kappa) * R0 + H @ P @ np.swapaxes(H, 1, 2)
         tested = np.einsum("ki,ki->k", nu, np.linalg.solve(S, nu[..., None])[..., 0])
         tested[missing] = math.inf  # no pose at this estimate: not one of the good samples
         return tested, scale2
@@ -789,6 +938,7 @@ class RobustFilter:
             solved = self._pass(~outliers, scale2)
         x, P, used, last_t, redundancy = solved
         self._solved = (x, P, used, last_t, scale2, redundancy)
+        self._solved_misfit = self._pass_misfit
         if adopt:
             self._adopt()
         return outliers
@@ -799,13 +949,12 @@ class RobustFilter:
         noise_scale2: float,
         linearised: tuple[np.ndarray, list],
         startup: bool = False,
-        curved: bool = False,
     ):
         """:meth:`_pass` over ``use`` relinearised at its own result until the step from the
         linearisation point is within :data:`RELINEARISE_TOLERANCE` posterior σ (the MAP of the
-        prior and those samples); returns the last pass (``startup``, ``curved``: as :meth:`_pass`)."""
+        prior and those samples); returns the last pass (``startup``: as :meth:`_pass`)."""
         for _ in range(MAX_RELINEARISATIONS):
-            solved = self._pass(use, noise_scale2, linearised=linearised, startup=startup, curved=curved)
+            solved = self._pass(use, noise_scale2, linearised=linearised, startup=startup)
             x, P = solved[0], solved[1]
             if _mahalanobis2(x - linearised[0], P, self._gauge_projector) <= RELINEARISE_TOLERANCE**2:
                 break
@@ -816,6 +965,7 @@ class RobustFilter:
         x, P, used, last_t, scale2, redundancy = self._solved
         f = self.filter
         f.x, f.P, f.samples_used, f.t_s = x, P, used, last_t
+        self._misfit = self._solved_misfit
         if self._robust.adapt_noise and redundancy >= MIN_REDUNDANCY:
             self.noise_scale2 = max(scale2, MIN_NOISE_SCALE2)
             self.measured_noise = True
@@ -1208,6 +1358,8 @@ class RobustFilter:
                 "since": np.int64(self._since_candidate),
                 "last_step_t_s": np.float64(self.step_t_s),
                 "dispersions": np.array(self._dispersions, dtype=float),
+                "payload_held": np.array([float(self.payload_held), self.payload_released_t_s]),
+                "last_inputs": self._last_inputs.copy(),
             },
             "walk_windows": {
                 "x": np.array([w[0] for w in windows]).reshape(-1, self._n),
@@ -1222,7 +1374,36 @@ class RobustFilter:
         if self._last_window is not None:
             x, P, first_t, last_t = self._last_window
             state["window"] = {"x": x, "P": P, "first_t_s": np.float64(first_t), "t_s": np.float64(last_t)}
+        if self._kappa > 0.0:  # the misfit at the pose the filter and each candidate hold (None: a new pose next)
+            misfits = [self._misfit, *(c.misfit for c in self._candidates)]
+            state["pose_misfits"] = {
+                "held": np.array([m is not None for m in misfits], dtype=np.int64),
+                **{
+                    field: np.array([getattr(m, field) for m in misfits if m is not None]).reshape(-1, *shape)
+                    for field, shape in self._misfit_shapes().items()
+                },
+            }
         return state
+
+    def _misfit_shapes(self) -> dict[str, tuple[int, ...]]:
+        """The shapes of a :class:`_Misfit`'s arrays, as a checkpoint holds them."""
+        m = self._m
+        return {"inputs": (m,), "b": (m,), "P_xb": (self._n, m), "P_bb": (m, m)}
+
+    def _import_misfits(self, state: dict) -> None:
+        """The misfits :meth:`export_state` wrote, the filter's and its candidates' (none: a new pose next)."""
+        kept = state.get("pose_misfits")
+        count = 1 + len(self._candidates)
+        misfits: list[_Misfit | None] = [None] * count
+        if kept is not None and self._kappa > 0.0:
+            held = state_array(kept, "held", (count,)).astype(bool)
+            fields = {f: state_array(kept, f, (int(held.sum()), *shape)) for f, shape in self._misfit_shapes().items()}
+            for row, k in enumerate(np.flatnonzero(held)):
+                misfits[k] = _Misfit(*(values[row] for values in fields.values()))
+        self._misfit = misfits[0]
+        self._candidates = [
+            dataclasses.replace(c, misfit=m) for c, m in zip(self._candidates, misfits[1:], strict=True)
+        ]
 
     def buffered_width(self) -> int | None:
         """Columns of the prepared samples it holds, or None while it holds none."""
@@ -1259,6 +1440,8 @@ class RobustFilter:
             )
         self.steps = int(state_array(state, "steps", ())) if "steps" in state else 0  # none before steps counted
         self._candidates, self._since_candidate, self.step_t_s = [], 0, math.nan
+        self._last_inputs = np.zeros(0)
+        self.payload_held, self.payload_released_t_s = False, math.nan  # an older checkpoint's was never held
         self._dispersions = deque(maxlen=DISPERSION_SAMPLES)
         if "step_candidates" in state:  # an older checkpoint has none: they start afresh
             kept = state["step_candidates"]
@@ -1278,6 +1461,11 @@ class RobustFilter:
             self.step_t_s = float(state_array(kept, "last_step_t_s", ()))
             dispersions = state_array(kept, "dispersions", np.shape(kept.get("dispersions", ())))
             self._dispersions = deque(dispersions.ravel().tolist(), maxlen=DISPERSION_SAMPLES)
+            if "payload_held" in kept:
+                held, self.payload_released_t_s = state_array(kept, "payload_held", (2,))
+                self.payload_held = bool(held) and self._step_factors is not None
+            if "last_inputs" in kept:  # an older checkpoint's: a new pose next
+                self._last_inputs = state_array(kept, "last_inputs", np.shape(kept["last_inputs"])).ravel()
         self._buffer.import_state(state)
         self._windows = deque(maxlen=WALK_HISTORY)
         if "walk_windows" in state:  # an older checkpoint has none: its rate measured afresh from the next windows
@@ -1302,6 +1490,7 @@ class RobustFilter:
                 first_t,
                 last_t,
             )
+        self._import_misfits(state)
 
 
 def _walk_directions(
@@ -1545,6 +1734,18 @@ class _Candidate:
     taken: int  #: samples it took after the one it began at
     readmitted: int  #: samples it took that the filter refused, its first included
     t_s: float  #: the time of the sample it began at: where the step happened
+    misfit: _Misfit | None = None  #: the misfit at the pose it holds (``pose_misfit``)
+
+
+@dataclass(frozen=True)
+class _Misfit:
+    """The instrument's misfit at a pose the platform holds (:class:`RobustFilter`'s ``pose_misfit``) as the
+    samples taken there leave it (:meth:`RobustFilter._misfit_step`)."""
+
+    inputs: np.ndarray  #: the first inputs (strokes) of the pose
+    b: np.ndarray  #: its mean (m,) [the observation's units]
+    P_xb: np.ndarray  #: its covariance with the state (n, m)
+    P_bb: np.ndarray  #: its covariance (m, m)
 
 
 class _Likelihood(NamedTuple):
