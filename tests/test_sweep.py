@@ -485,15 +485,15 @@ TODAYS_ROWS = {
         },
         (48, 7),
     ),
-    "pose": (
+    "pose": (  # ls with each noise channel's σ over its own degrees of freedom (the hat matrix's trace)
         {"instrument": "pose", "samples": 30},
         {
-            "rms_mm": "0x1.fb9b31a731592p+0",
-            "rms_over_crb": "0x1.455d8358c5c8ep+0",
-            "nees": "0x1.c63f3b615d131p+5",
-            "z2": "0x1.9be3b797b9279p+0",
-            "closed_loop_mm": "0x1.08460e545231dp+2",
-            "closed_loop_deg": "0x1.35383a6bd8969p-3",
+            "rms_mm": "0x1.05221d69d7a8ap+1",
+            "rms_over_crb": "0x1.4b448b5d45a46p+0",
+            "nees": "0x1.98073baf6dde9p+5",
+            "z2": "0x1.870a420ba57d1p+0",
+            "closed_loop_mm": "0x1.12cc4ebb1d6d7p+2",
+            "closed_loop_deg": "0x1.5c077de85ef8fp-3",
             "closed_loop_nominal_mm": "0x1.27ab42ea8ca2dp+1",
         },
         (36, 0),
