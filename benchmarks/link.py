@@ -49,6 +49,9 @@ WRITES = {"parameters": 42, "stddev": 42, "samples_used": 1}
 WARM_UP = 50
 #: longest a sample may wait for its estimate before the latency run gives up (a hang guard)
 GIVE_UP_S = 30.0
+#: how long track waits for a sample after the last before it ends [s]; ``--quick``'s shorter wait
+#: ends each of its six runs sooner (the share read is not held to its target there)
+IDLE_S, QUICK_IDLE_S = 2.0, 1.0
 
 
 def _track(link: Path, out: Path, every: int, idle_s: float) -> subprocess.Popen:
@@ -67,12 +70,12 @@ def _connected(controller, process: subprocess.Popen) -> None:
         time.sleep(0.01)
 
 
-def sustained(controller, rows: np.ndarray, work: Path, rate_hz: float = CYCLE_HZ) -> dict:
+def sustained(controller, rows: np.ndarray, work: Path, rate_hz: float = CYCLE_HZ, idle_s: float = IDLE_S) -> dict:
     """Publish ``rows`` at ``rate_hz`` while track polls at the same rate."""
     link, out = work / "L.toml", work / "sustained.json"
     link.write_text(controller.link(WRITES, rate_hz=rate_hz))
     controller.publish(np.zeros(len(COLUMNS)), 0, handshake=False)
-    process = _track(link, out, 100, 2.0)
+    process = _track(link, out, 100, idle_s)
     _connected(controller, process)
     period = 1.0 / rate_hz
     start = time.perf_counter()
@@ -107,12 +110,12 @@ def sustained(controller, rows: np.ndarray, work: Path, rate_hz: float = CYCLE_H
     }
 
 
-def latency(controller, rows: np.ndarray, work: Path) -> dict:
+def latency(controller, rows: np.ndarray, work: Path, idle_s: float = IDLE_S) -> dict:
     """Publish each row once the estimate of the one before has been written back."""
     link, out = work / "L.toml", work / "latency.json"
     link.write_text(controller.link(WRITES, rate_hz=CYCLE_HZ))
     controller.publish(np.zeros(len(COLUMNS)), 0, handshake=False)
-    process = _track(link, out, 1, 2.0)
+    process = _track(link, out, 1, idle_s)
     _connected(controller, process)
     waits = []
     start = 0.0
@@ -145,6 +148,7 @@ def latency(controller, rows: np.ndarray, work: Path) -> dict:
 def run(quick: bool, seconds: float) -> dict:
     n = 200 if quick else int(seconds * CYCLE_HZ)
     n_latency = 150 if quick else 1000
+    idle_s = QUICK_IDLE_S if quick else IDLE_S
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         write_log(work / "log.csv", tracked_log(3, n))
@@ -155,9 +159,9 @@ def run(quick: bool, seconds: float) -> dict:
         for name, kind in (("OPC UA", OpcUaController), ("ADS", AdsController)):
             controller = kind(COLUMNS, WRITES)
             try:
-                measured = sustained(controller, rows, work)
-                measured["slow"] = sustained(controller, rows[: n // 10], work, SLOW_HZ)
-                measured["latency"] = latency(controller, rows[:n_latency], work)
+                measured = sustained(controller, rows, work, idle_s=idle_s)
+                measured["slow"] = sustained(controller, rows[: n // 10], work, SLOW_HZ, idle_s)
+                measured["latency"] = latency(controller, rows[:n_latency], work, idle_s)
             finally:
                 controller.close()
             # in the link's own σ: it read fewer samples than calibrate, whose σ is the smaller

@@ -13,6 +13,7 @@ import json
 import os
 import re
 import resource
+import shutil
 import signal
 import subprocess
 import sys
@@ -42,28 +43,25 @@ def log():
     return tracked_log(30, N)
 
 
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory, log) -> Path:
+    """``log.csv``, ``P.toml`` and ``R.json`` (its ekf result) once for the module: ~90 cases read
+    them, and a calibration each cost more than the refusals themselves."""
+    directory = tmp_path_factory.mktemp("calibrated")
+    write_log(directory / "log.csv", log)
+    (directory / "P.toml").write_text(NIM_STEWART.read_text())
+    argv = ["calibrate", "--platform", str(NIM_STEWART), "--log", str(directory / "log.csv"), "--method", "ekf"]
+    assert cli.main([*argv, "--out", str(directory / "R.json")]) == 0
+    return directory
+
+
 @pytest.fixture
-def work(tmp_path, log):
-    """A directory with ``log.csv`` (N rows of nim-stewart), ``P.toml`` (its platform) and ``R.json``
-    (a result of it)."""
-    write_log(tmp_path / "log.csv", log)
-    (tmp_path / "P.toml").write_text(NIM_STEWART.read_text())
-    assert (
-        cli.main(
-            [
-                "calibrate",
-                "--platform",
-                str(NIM_STEWART),
-                "--log",
-                str(tmp_path / "log.csv"),
-                "--method",
-                "ekf",
-                "--out",
-                str(tmp_path / "R.json"),
-            ]
-        )
-        == 0
-    )
+def work(tmp_path, calibrated):
+    """A directory of its own with ``log.csv`` (N rows of nim-stewart), ``P.toml`` (its platform) and
+    ``R.json`` (a result of it): copies of :func:`calibrated`'s (R.json names no path), in the order
+    they were written there."""
+    for name in ("log.csv", "P.toml", "R.json"):
+        shutil.copyfile(calibrated / name, tmp_path / name)
     return tmp_path
 
 

@@ -12,7 +12,10 @@ run in this process (an interpreter start per command would double the time):
 * ``python -m pytest`` is not run (this is that run), but must name no missing path;
 * ``reproduce`` is parsed by the real parser, not run: tests/test_reproduce.py runs it (its
   ``--quick`` form; the full one takes ~20 s alone); so is ``sweep`` (the smoke study starts a
-  Dask cluster and takes about a minute; tests/test_sweep_dask.py runs small sweeps).
+  Dask cluster and takes about a minute; tests/test_sweep_dask.py runs small sweeps);
+* ``track --follow --idle-timeout S`` is parsed as written and runs with :data:`IDLE_TIMEOUT_S`:
+  the snippets' logs are whole before it starts, so the timeout only waits for rows that never
+  come (5 s of nothing per page); every row is read and every file written as with S.
 
 Every file a snippet reads is shipped (``examples/``, ``configs/``) or written by a snippet before it.
 
@@ -46,6 +49,8 @@ HOWTOS = [ROOT / "docs" / "index.md"] + [
     )
 ]
 FENCE = re.compile(r"^```(\w*)\n(.*?)^```", re.S | re.M)
+#: ``track --follow``'s idle timeout here [s]: the log is complete, so it only ends the wait at its end
+IDLE_TIMEOUT_S = 0.2
 
 
 def snippets(page: Path = README) -> list[tuple[str, str]]:
@@ -101,6 +106,10 @@ def _run(words: list[str]) -> None:
     if args[:1] in (["reproduce"], ["sweep"]):
         build_parser().parse_args(args)  # exits (SystemExit) on an option the command does not have
         return
+    if args[:1] == ["track"] and "--follow" in args and "--idle-timeout" in args:
+        build_parser().parse_args(args)
+        at = args.index("--idle-timeout") + 1
+        args = [*args[:at], str(IDLE_TIMEOUT_S), *args[at + 1 :]]
     assert main(args) == 0, f"stewart-calib {' '.join(args)} failed (its message is in the captured stderr)"
 
 

@@ -167,9 +167,17 @@ def _design(platform: Platform, poses: np.ndarray, criterion: str, noise: NoiseC
     return blocks / scale, weight / np.outer(scale, scale)
 
 
+def _blocks_times(U: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """``U[k] @ matrix`` for every block of ``U`` ``(K, m, p)``, as one ``(K·m, p)`` product: numpy
+    multiplies a stack by a matrix a block at a time, ~2.5× slower on plan's ~2700 candidates of
+    6 rows, each row's sums the same."""
+    K, m, p = U.shape
+    return (U.reshape(K * m, p) @ matrix).reshape(K, m, matrix.shape[-1])
+
+
 def _logdet_change(cov: np.ndarray, U: np.ndarray, sign: float) -> np.ndarray:
     """``log det(F ± UᵀU) − log det F = log det(I₆ ± U F⁻¹ Uᵀ)`` per block ``(K,)``."""
-    S = np.eye(U.shape[1]) + sign * (U @ cov) @ np.swapaxes(U, -1, -2)
+    S = np.eye(U.shape[1]) + sign * _blocks_times(U, cov) @ np.swapaxes(U, -1, -2)
     if sign > 0:  # S is then positive definite: Cholesky is ~10× cheaper than slogdet
         return 2.0 * np.sum(np.log(np.diagonal(np.linalg.cholesky(S), axis1=-2, axis2=-1)), axis=-1)
     sign_det, logdet = np.linalg.slogdet(S)
@@ -180,9 +188,9 @@ def _logdet_change(cov: np.ndarray, U: np.ndarray, sign: float) -> np.ndarray:
 def _trace_change(cov: np.ndarray, U: np.ndarray, sign: float, weight: np.ndarray | None = None) -> np.ndarray:
     """``tr W(F ± UᵀU)⁻¹ − tr W F⁻¹ = ∓ tr(S⁻¹ U F⁻¹ W F⁻¹ Uᵀ)`` with ``S = I ± U F⁻¹ Uᵀ``, per
     block (``W``: ``weight``, the identity when None)."""
-    UC = U @ cov
+    UC = _blocks_times(U, cov)
     S = np.eye(U.shape[1]) + sign * UC @ np.swapaxes(U, -1, -2)
-    UCW = UC if weight is None else UC @ weight
+    UCW = UC if weight is None else _blocks_times(UC, weight)
     change = -sign * np.trace(np.linalg.solve(S, UCW @ np.swapaxes(UC, -1, -2)), axis1=-2, axis2=-1)
     if sign > 0:
         return change
