@@ -58,17 +58,20 @@ def _before(line: str) -> dict[str, float]:
 
 def best_registration_rms(platform, log) -> dict[str, float]:
     """The nominal model's position RMS per instrument axis and rotation RMS at the frame and
-    target(s) that minimise the whitened readings' residual: scipy's least squares over the
-    instrument's tangent, from the platform file's frame and target(s) — no closed form."""
+    target(s) of a plain registration: unweighted least squares on the readings' residual in SI
+    units (positions in metres, rotations in radians), scipy's over the instrument's tangent, from
+    the platform file's frame and target(s) — no closed form, no noise model."""
     from stewart_calib.instruments import outside_model
     from stewart_calib.workflows.validation import _model_poses, nominal_model
 
     model = outside_model(platform)
     R_X, t_X = _model_poses(platform, nominal_model(platform), log, "nominal")
     start = model.nominal_unknowns()
+    # a pose reading's residual is [rad ×3, mm ×3], a point's [mm ×3] a target
+    si = np.r_[np.ones(3), np.full(3, 1e3)] if model.kind == "pose" else np.full(model.channel_sigma.size, 1e3)
 
     def whitened(delta):
-        e = model.readings_residual(start.retract(delta), log.readings, R_X, t_X)[0] / model.channel_sigma
+        e = model.readings_residual(start.retract(delta), log.readings, R_X, t_X)[0] / si
         return np.nan_to_num(e).ravel()
 
     # the frame is 120° from its nominal: start from a few orientations and keep the best
@@ -264,7 +267,7 @@ def test_validate_says_loudly_when_the_calibrated_model_predicts_held_out_data_n
     assert re.fullmatch(
         r"stewart-calib validate: WARNING: the calibrated model predicts this log no better than the nominal model: "
         r"position RMS ([\d.]+) mm against the nominal model's ([\d.]+) mm, each through the instrument registered "
-        r"on it; the calibration likely left the robot worse: keep the nominal model, or calibrate again on poses "
+        r"on it by its σ; the calibration likely left the robot worse: keep the nominal model, or calibrate again on poses "
         r"that tilt and reach to the workspace's edges \(stewart-calib plan\)",
         warning,
     ), warning

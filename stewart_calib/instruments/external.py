@@ -144,18 +144,24 @@ class OutsideModel(InstrumentModel):
     def unknowns_from_file(self, values) -> Any:
         """Unknowns from their file values (a result's ``"instrument"`` block)."""
 
-    def best_registration(self, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray) -> Any:
+    def best_registration(
+        self, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray, plain: bool = False
+    ) -> Any:
         """The frame and target(s) that best map platform poses X onto the readings: the closed
-        form (:meth:`register`), then plain least squares over all of them
-        (:func:`~.registration.refine`) — the same instrument unknowns a calibration fits, so that
-        the nominal model's errors here are what it leaves at its best, not where the cameras and
-        the rigid body's origin happen to be.
+        form (:meth:`register`), then least squares over all of them (:func:`~.registration.refine`)
+        — the same instrument unknowns a calibration fits, so that the nominal model's errors here
+        are what it leaves at its best, not where the cameras and the rigid body's origin happen to
+        be. Weighed by the instrument's σ (the maximum-likelihood registration), or ``plain``:
+        unweighted in SI units (position [m], rotation [rad]), the registration a user computes
+        without a noise model — the "before" every command prints, so that it never looks better
+        or worse than that by the choice of weights.
 
         Raises:
             CalibError: as :meth:`register`.
         """
         start = self.register(R_X, t_X, measured)
-        return registration.refine(self, start, measured, R_X, t_X, frame_only=False)
+        scale = registration.si_scale(self) if plain else None
+        return registration.refine(self, start, measured, R_X, t_X, frame_only=False, scale=scale)
 
     def file_values(self, unknowns) -> np.ndarray:
         """The unknowns in file units (a result's ``"instrument"`` block): :meth:`unknowns_from_file`'s inverse."""

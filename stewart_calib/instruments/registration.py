@@ -14,9 +14,10 @@ unknowns that best map the **nominal** forward-kinematics poses ``X_k`` onto wha
 
 :func:`refine` fits the frame alone (the target(s) and the robot's model held), for
 ``validate --register-instrument``, or the frame and the target(s) together, for the nominal
-model's best registration (the "before" every command reports): after the closed form, a few
-Gauss–Newton steps on the whitened residual, as the two halves of a pose reading carry different
-noise and the closed forms do not weigh them.
+model's registrations: after the closed form, a few Gauss–Newton steps on the residual weighed
+per channel — by the instrument's σ (the maximum-likelihood registration: the two halves of a pose
+reading carry different noise and the closed forms do not weigh them), or unweighted in SI units
+(:data:`SI_SCALE`: the plain registration, the "before" every command reports).
 
 Each kind's closed forms are its model's (:meth:`~.pose.PoseModel.register`,
 :meth:`~.points.PointsModel.register`, ``refit_frame``); what they share is here.
@@ -69,12 +70,31 @@ def require_distinct(readings: np.ndarray, scale: np.ndarray, what: str) -> None
 REFIT_ITERATIONS = 20
 
 
-def refine(model, current, measured: np.ndarray, R_X: np.ndarray, t_X: np.ndarray, frame_only: bool = True):
-    """Gauss–Newton on the whitened residual of ``model`` (an :class:`~.external.OutsideModel`)
-    over the frame alone (``frame_only``, the target(s) held) or over the frame and the target(s),
-    from ``current`` (a closed-form start): plain least squares, no robust kernel, so that what it
-    leaves is the best any registration of these poses can do."""
-    sigmas = model.channel_sigma
+#: Each noise channel's length in SI units, by the unit its name ends in: the plain registration's
+#: weights (position [m], rotation [rad]: a radian weighs as a metre, 1000 mm/rad).
+SI_SCALE = {"mm": 1000.0, "rad": 1.0}
+
+
+def si_scale(model) -> np.ndarray:
+    """``(m,)`` each component of ``model``'s reading divided by it is in SI units (:data:`SI_SCALE`)."""
+    per_channel = np.array([SI_SCALE[name.rsplit("_", 1)[1]] for name in model.noise_channel_names])
+    return per_channel[model.noise_channels]
+
+
+def refine(
+    model,
+    current,
+    measured: np.ndarray,
+    R_X: np.ndarray,
+    t_X: np.ndarray,
+    frame_only: bool = True,
+    scale: np.ndarray | None = None,
+):
+    """Gauss–Newton on the residual of ``model`` (an :class:`~.external.OutsideModel`) over the
+    frame alone (``frame_only``, the target(s) held) or over the frame and the target(s), from
+    ``current`` (a closed-form start): least squares, no robust kernel, each component divided by
+    ``scale`` (``(m,)``; default the instrument's σ, the whitened residual)."""
+    sigmas = model.channel_sigma if scale is None else scale
     for _ in range(REFIT_ITERATIONS):
         e, _, H_u = model.readings_residual(current, measured, R_X, t_X, jacobians=True)
         rows = np.isfinite(e)

@@ -311,19 +311,22 @@ def compared_pose_errors(
     """``(line, warning)``: :func:`pose_error_summary`'s line and, where the two models are compared
     alike (the in-situ tracker's absolute poses, or an outside instrument registered on ``sample`` for
     both) and the calibrated model's position RMS is no lower than the nominal model's, the loud line
-    saying so (:func:`no_better_line`); None where a model cannot predict them."""
+    saying so (:func:`no_better_line`); None where a model cannot predict them. The line's "before" is
+    the nominal model's plain registration; the test's, its σ-weighted one, as the calibrated model's."""
+    outside = instrument_kind(platform).outside
     try:
-        nominal = registered_nominal_model(platform, sample)
-        before = pose_errors(platform, nominal, sample, False, "the nominal platform")
+        before = pose_errors(platform, registered_nominal_model(platform, sample), sample, False, "the nominal platform")
         after = pose_errors(platform, result, sample, register, str(source))
+        # the paired test weighs both models' registrations alike: the calibrated model's is the σ-weighted one
+        alike = registered_nominal_model(platform, sample, plain=False) if outside and register else None
+        before_alike = before if alike is None else pose_errors(platform, alike, sample, False, "the nominal platform")
     except CalibError:
         return None
     rows = f" (first {len(sample)} rows)" if len(sample) < n_rows else ""
     line = pose_error_line(before, after, f"nominal → calibrated model{rows}")
-    outside = instrument_kind(platform).outside
     if outside and not register:  # the calibrated model through the calibration's frame: not alike
         return line, None
-    return line, no_better_line(before, after, outside, rows)
+    return line, no_better_line(before_alike, after, outside, rows)
 
 
 #: the one-sided tail of :func:`no_better_line`'s paired test: two models that predict a log
@@ -353,7 +356,7 @@ def no_better_line(before: np.ndarray, after: np.ndarray, registered: bool, rows
         return None
     rms = lambda v: float(np.sqrt(np.nanmean(squares(v))))  # noqa: E731
     nominal_mm, calibrated_mm = rms(before), rms(after)
-    how = ", each through the instrument registered on it" if registered else ""
+    how = ", each through the instrument registered on it by its σ" if registered else ""
     return (
         f"WARNING: the calibrated model predicts this log{rows} no better than the nominal model: position RMS "
         f"{calibrated_mm:.4g} mm against the nominal model's {nominal_mm:.4g} mm{how}; the calibration likely left the "
@@ -423,11 +426,15 @@ def nominal_model(platform: Platform) -> dict:
     return {"nominal": nominal.tolist(), "error": [0.0] * len(nominal)}
 
 
-def registered_nominal_model(platform: Platform, log) -> dict:
+def registered_nominal_model(platform: Platform, log, plain: bool = True) -> dict:
     """:func:`nominal_model` with an outside instrument's frame and target(s) at their best
     registration on ``log`` (:meth:`~stewart_calib.instruments.OutsideModel.best_registration`): the
-    nominal robot with the same instrument unknowns fitted as a calibration fits, the "before" of
-    every comparison. A leg-set tracker has none: the nominal model itself.
+    nominal robot with the same instrument unknowns fitted as a calibration fits. ``plain``: by
+    unweighted least squares in SI units, the "before" of every comparison a person reads (where
+    the nominal model misses the rotations too, the σ-weighted registration trades them for a
+    smaller position error than a user's own registration shows); else weighed by the instrument's
+    σ, the optimum of the whitened residual that a χ² test compares with. A leg-set tracker has none: the nominal model
+    itself.
 
     Raises:
         CalibError: the log cannot be registered, or the nominal model's FK fails for a sample.
@@ -439,7 +446,7 @@ def registered_nominal_model(platform: Platform, log) -> dict:
 
     model = outside_model(platform)
     R_X, t_X = _model_poses(platform, nominal, log, "the nominal platform")
-    unknowns = model.best_registration(R_X, t_X, log.readings)
+    unknowns = model.best_registration(R_X, t_X, log.readings, plain=plain)
     block = {"names": list(model.unknown_names), "estimate": model.file_values(unknowns).tolist()}
     return {**nominal, "instrument": block}
 
@@ -467,7 +474,7 @@ def unsupported_correction(platform: Platform, result: dict, log, rank: int, cor
     """The loud line when an outside instrument's log gives no evidence that the nominal model is
     wrong, None otherwise (or for a leg-set tracker).
 
-    The calibration fits ``rank`` unknowns where the nominal model's best registration
+    The calibration fits ``rank`` unknowns where the nominal model's σ-weighted registration
     (:func:`registered_nominal_model`) fits the instrument's alone; were the nominal model right, the
     fall of the whitened sum of squares, over the calibrated fit's own noise scale
     ``s² = SS_after / (rows − rank)``, is χ² with as many degrees of freedom as the drive's share.
@@ -482,7 +489,8 @@ def unsupported_correction(platform: Platform, result: dict, log, rank: int, cor
 
     dof = rank - len(outside_model(platform).unknown_names)
     try:
-        before, _ = _whitened_squares(platform, registered_nominal_model(platform, log), log, "the nominal platform")
+        nominal = registered_nominal_model(platform, log, plain=False)
+        before, _ = _whitened_squares(platform, nominal, log, "the nominal platform")
         after, rows = _whitened_squares(platform, result, log, "the result")
     except CalibError:
         return None
