@@ -267,8 +267,8 @@ def test_validate_says_loudly_when_the_calibrated_model_predicts_held_out_data_n
     assert re.fullmatch(
         r"stewart-calib validate: WARNING: the calibrated model predicts this log no better than the nominal model: "
         r"position RMS ([\d.]+) mm against the nominal model's ([\d.]+) mm, each through the instrument registered "
-        r"on it by its σ; the calibration likely left the robot worse: keep the nominal model, or calibrate again on poses "
-        r"that tilt and reach to the workspace's edges \(stewart-calib plan\)",
+        r"on it by its σ; the calibration likely left the robot worse: keep the nominal model, or calibrate again on "
+        r"poses that tilt and reach to the workspace's edges \(stewart-calib plan\)",
         warning,
     ), warning
     assert (

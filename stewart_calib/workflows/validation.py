@@ -315,7 +315,8 @@ def compared_pose_errors(
     the nominal model's plain registration; the test's, its σ-weighted one, as the calibrated model's."""
     outside = instrument_kind(platform).outside
     try:
-        before = pose_errors(platform, registered_nominal_model(platform, sample), sample, False, "the nominal platform")
+        plain = registered_nominal_model(platform, sample)
+        before = pose_errors(platform, plain, sample, False, "the nominal platform")
         after = pose_errors(platform, result, sample, register, str(source))
         # the paired test weighs both models' registrations alike: the calibrated model's is the σ-weighted one
         alike = registered_nominal_model(platform, sample, plain=False) if outside and register else None
