@@ -144,9 +144,7 @@ class OutsideModel(InstrumentModel):
     def unknowns_from_file(self, values) -> Any:
         """Unknowns from their file values (a result's ``"instrument"`` block)."""
 
-    def best_registration(
-        self, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray, plain: bool = False
-    ) -> Any:
+    def best_registration(self, R_X: np.ndarray, t_X: np.ndarray, measured: np.ndarray, plain: bool = False) -> Any:
         """The frame and target(s) that best map platform poses X onto the readings: the closed
         form (:meth:`register`), then least squares over all of them (:func:`~.registration.refine`)
         — the same instrument unknowns a calibration fits, so that the nominal model's errors here
