@@ -30,8 +30,8 @@ result's band of the same;
 its verdict is wrong where it says "within" of a truth over the tolerance or "over" of one within
 (absolute place and motion). Ratios: medians over the seeds of one command's expected mean error over
 another's for the same poses (calibrate ÷ identifiability on the log, calibrate on the planned poses ÷
-plan). Targets: a band's row needs the hits of 10 seeds an honest 90 % band falls below 7 % of the time (8
-of 10; "90 % of seeds" is the binomial's mean, missed by an honest band in 26 % of rows); every band pooled
+plan). Targets: a band's row needs the hits of 20 seeds an honest 90 % band falls below 4 % of the time
+(16 of 20; "90 % of seeds" is the binomial's mean, missed by an honest band in 32 % of rows); every band pooled
 holds 90 % within two standard errors, and its misses above and below within two standard deviations of
 an even split (a band too small or too large on one side; the deviation's variance taken seed by seed, as
 a seed's bands share its truth).
@@ -68,7 +68,7 @@ from stewart_calib.pipelines.handover import calibrated_model
 from stewart_calib.simulation.closed_loop import simulate_blocks
 from stewart_calib.simulation.experiment import load_experiment
 
-SEEDS, QUICK_SEEDS = 10, 2
+SEEDS, QUICK_SEEDS = 20, 2
 CALIBRATION_POSES, HELD_OUT_POSES = 60, 30
 QUICK_POSES = 30
 IN_BAND_TARGET = 0.9
@@ -494,7 +494,7 @@ def _why(label: str, runs: list[dict]) -> dict[str, str]:
                 "draws it; measured aside over seeds 0–39, the estimate's error against it χ² 42.6 ± 1.5 on average "
                 "against its 42 degrees of freedom, the truth in calibrate's band in 36 / 34 of 40 seeds, 2 / 3 above "
                 "and 2 / 3 below, absolute / motion), so a band missed in more than one seed in ten is the band's "
-                "own spread over ten seeds or the prediction's mean over the workspace against the truth's. "
+                f"own spread over {len(runs)} seeds or the prediction's mean over the workspace against the truth's. "
             )
             + _outside_band_text(runs, "calibrate"),
             "identifiability's 90 % band": (
