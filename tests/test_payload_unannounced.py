@@ -20,6 +20,29 @@ from stewart_calib.simulation.load import elastic_of
 from stewart_calib.workflows.calibration import run_calibration
 
 
+def _paper_run(tmp_path, sets: list[str], exact_tracker: bool = True, noise_mm: str | None = None, stage=None):
+    """ekf with the default configuration and ``sets`` on the paper's payload experiment (seed 1), logged
+    without ``load_kg`` (only the ``stage`` named, where given), the platform declaring ``payload_sigma_kg =
+    50``: ``(estimate, elastic)``. ``exact_tracker``: the tracker's own geometry without its 15 µm residual;
+    ``noise_mm``: its readings' white noise instead of the ruler's 0.5 µm."""
+    paper_payload_experiment(tmp_path, seed=1)
+    path = tmp_path / "paper-payload-1-0.toml"
+    text = path.read_text()
+    if exact_tracker:
+        text = text.replace("geometry_residual_mm = 0.015", "geometry_residual_mm = 0.0")
+    if noise_mm is not None:
+        text = text.replace("noise_mm = 0.0005 ", f"noise_mm = {noise_mm} ")
+    path.write_text(text)
+    experiment = load_experiment(path)
+    log = run_experiment(experiment).log
+    if stage is not None:
+        log = log.select(np.asarray(log.stages) == stage)
+    elastic = replace(elastic_of(experiment.load), payload_sigma_kg=50.0)
+    config = load_estimator_config(resolve("default", "estimators"), sets)
+    platform = replace(experiment.platform, elastic=elastic)
+    return run_calibration(platform, replace(log, inputs={}), "ekf", config).estimate, elastic
+
+
 def test_ekf_with_the_paper_config_finds_an_unannounced_40_kg_step(tmp_path):
     experiment = paper_payload_experiment(tmp_path, seed=1)
     run = run_experiment(experiment)
@@ -35,18 +58,8 @@ def test_ekf_keeps_the_payload_and_the_compliance_apart_before_any_step(tmp_path
     # payload is 0 and c 2.33 mm/kN; c·(f_platform + m f_payload) is bilinear, and the start-up's 4 poses pin
     # neither. Before the start-up's solves took that product's second-order variance: m 13.2 ± 0.45 kg,
     # c 1.0–1.2 ± 0.065 (the batch MAP of the same samples: m 0.85 ± 1.14, c 2.0–2.3 ± 0.2)
-    paper_payload_experiment(tmp_path, seed=1)
-    path = tmp_path / "paper-payload-1-0.toml"
-    text = path.read_text().replace("geometry_residual_mm = 0.015", "geometry_residual_mm = 0.0")
-    path.write_text(text.replace("noise_mm = 0.0005 ", "noise_mm = 0.02 "))
-    experiment = load_experiment(path)
-    log = run_experiment(experiment).log
-    log = replace(log.select(np.asarray(log.stages) == "no-load"), inputs={})
-    elastic = replace(elastic_of(experiment.load), payload_sigma_kg=50.0)
-    config = load_estimator_config(
-        resolve("default", "estimators"), ["noise.reading_sigma_mm=0.02", "robust.adapt_noise=false"]
-    )
-    estimate = run_calibration(replace(experiment.platform, elastic=elastic), log, "ekf", config).estimate
+    sets = ["noise.reading_sigma_mm=0.02", "robust.adapt_noise=false"]
+    estimate, elastic = _paper_run(tmp_path, sets, noise_mm="0.02", stage="no-load")
     results = estimate.block_results()
     payload, compliance = results["payload"], results["compliance"]
     assert abs(payload["estimate"][0]) < 3.0 * payload["stddev"][0], payload
@@ -59,16 +72,7 @@ def test_ekf_holds_the_payload_until_the_compliance_is_known(tmp_path):
     # configuration's walk, the noise held): only the c–m ridge is left. The payload's column c_i f_m,i was
     # linearised at compliances the start-up's 4 poses had not settled (nominal 0 ± 82 mm/kN): the first pose
     # after them put m at 7.75 ± 0.36 kg (truth 0), 5 steps were taken, and the end 62.7 ± 0.35 kg
-    paper_payload_experiment(tmp_path, seed=1)
-    path = tmp_path / "paper-payload-1-0.toml"
-    path.write_text(path.read_text().replace("geometry_residual_mm = 0.015", "geometry_residual_mm = 0.0"))
-    experiment = load_experiment(path)
-    log = replace(run_experiment(experiment).log, inputs={})
-    elastic = replace(elastic_of(experiment.load), payload_sigma_kg=50.0)
-    config = load_estimator_config(
-        resolve("default", "estimators"), ["noise.reading_sigma_mm=0.0005", "robust.adapt_noise=false"]
-    )
-    estimate = run_calibration(replace(experiment.platform, elastic=elastic), log, "ekf", config).estimate
+    estimate, elastic = _paper_run(tmp_path, ["noise.reading_sigma_mm=0.0005", "robust.adapt_noise=false"])
     results = estimate.block_results()
     payload, compliance = results["payload"], results["compliance"]
     assert estimate.details["payload_steps"] == 1  # the one the log has
@@ -82,11 +86,7 @@ def test_ekf_told_the_trackers_misfit_per_pose_finds_the_step_within_its_sigma(t
     # tracker's 15 µm geometry residual a misfit that stays over each static pose's 8 samples: with
     # noise.pose_misfit_sigma_mm the 2 µm the new poses' innovations show, a pose's samples count as their mean.
     # Without it (every reading independent, the windows' scale at the ruler's 0.5 µm): 6 steps, 40.19 ± 0.02 kg
-    experiment = paper_payload_experiment(tmp_path, seed=1)
-    log = replace(run_experiment(experiment).log, inputs={})
-    elastic = replace(elastic_of(experiment.load), payload_sigma_kg=50.0)
-    config = load_estimator_config(resolve("default", "estimators"), ["noise.pose_misfit_sigma_mm=0.002"])
-    estimate = run_calibration(replace(experiment.platform, elastic=elastic), log, "ekf", config).estimate
+    estimate, _ = _paper_run(tmp_path, ["noise.pose_misfit_sigma_mm=0.002"], exact_tracker=False)
     payload = estimate.block_results()["payload"]
     found, sigma = payload["estimate"][0], payload["stddev"][0]
     assert estimate.details["payload_steps"] == 1  # the one the log has
