@@ -47,7 +47,8 @@ class NoiseConfig:
             parameters take up of it — besides the white noise ``reading_sigma_mm``: ekf (and isam2's front
             end) carry it as a misfit drawn afresh at each pose (the ``pose_misfit`` of
             :class:`~stewart_calib.estimators.robust.RobustFilter`), so the samples of a static pose count
-            as their mean, not as independent readings; 0: every reading independent.
+            as their mean, not as independent readings; 0: every reading independent — but where ekf tests
+            an unannounced payload's steps, which it then takes as large as ``reading_sigma_mm``.
         angle_prior_sigma_deg: a rotary drive's (spec §15) prior σ of each angle of δM — zero
             offsets ``o_i`` and axis tilts ``tu_i``, ``tw_i`` [deg]; its lengths take ``prior_sigma_mm``.
         angle_sigma_deg: σ of one commanded servo angle [deg]: the rotary leg's analog of

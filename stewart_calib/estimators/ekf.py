@@ -24,7 +24,8 @@ correlated; with ``σ² I`` alone this filter diverges (docs/measured-facts.md).
 the platform holds a pose (its geometry's residual seen through the pose) and is drawn afresh at the next:
 ``b ~ N(0, (σ_m/σ_s)² R_meas)`` rides beside the state over a pose's samples (the robust filter's
 ``pose_misfit``), so ``n`` samples of a static pose weigh as their mean, ``σ_s²/n + σ_m²`` a reading, not
-as ``n`` independent readings; the samples then go one at a time (no compiled block path).
+as ``n`` independent readings; the samples then go one at a time (no compiled block path). Where an
+unannounced payload's steps are tested and no ``σ_m`` is given, ``σ_m = σ_s``.
 
 Process noise: a random walk of δM, ``Q = ρ² Δt`` on its entries with ``ρ`` =
 ``noise.random_walk_mm_per_sqrt_s`` and ``Δt`` between samples (``t_s``), as in the graph; the
@@ -108,7 +109,10 @@ class LegEKF:
 
     name = "ekf"
 
-    def __init__(self, platform: Platform, config: EstimatorConfig):
+    def __init__(self, platform: Platform, config: EstimatorConfig, steps_see_pose_means: bool = True):
+        """``steps_see_pose_means``: where an unannounced payload's steps are tested and no
+        ``noise.pose_misfit_sigma_mm`` is given, carry the in-situ tracker's misfit at its readings' σ
+        (:meth:`_pose_misfit`); False: every reading independent, as a front end whose graph takes them."""
         self.platform = platform
         self.noise = config.noise
         self.model = instrument_model(platform, config.noise)
@@ -138,7 +142,7 @@ class LegEKF:
             self._leg_set = LegSetPose(self.model, self.drive, self.noise.stroke_sigma_mm)
         self._coordinate_sigma = self.drive.coordinate_sigma(config.noise)
         self._pose = self._leg_set or WarmPose(self.model)
-        pose_misfit = self._pose_misfit(config.noise)
+        pose_misfit = self._pose_misfit(config.noise, payload is not None and steps_see_pose_means)
         compiled_rows = (
             self._leg_set.rows if self._leg_set is not None and payload is None and pose_misfit[0] == 0.0 else None
         )
@@ -179,18 +183,26 @@ class LegEKF:
         self._forces_at_state = self.drive.elastic is not None and self._instrument is not None
         self._packed_width = self.drive.packed_width if self._forces_at_state else 0
 
-    def _pose_misfit(self, noise) -> tuple[float, float]:
+    def _pose_misfit(self, noise, payload_steps: bool) -> tuple[float, float]:
         """The robust filter's ``pose_misfit`` of ``noise.pose_misfit_sigma_mm``: its variance over the readings'
         ``reading_sigma_mm²``, as it enters the legs' residuals through the same pose (0: none), and the
         strokes' tolerance of one pose, 5 ``stroke_sigma_mm`` (a static pose's encoders read within it), which
-        the step candidates begin at (:meth:`~.robust.RobustFilter._test_steps`) with or without a misfit."""
+        the step candidates begin at (:meth:`~.robust.RobustFilter._test_steps`) with or without a misfit.
+
+        Where an unannounced payload's steps are tested (``payload_steps``) and none is given, the in-situ
+        tracker's misfit is taken as large as its readings' σ_s: each static pose's samples then test a step
+        as their mean does. The misfit cannot be measured from the data (the drive's unknowns take up what
+        they can of it and the readings' scale shows the rest as noise), and were its samples independent a
+        pose's own misfit, seen by every one of them, would be taken for a step."""
         sigma = noise.pose_misfit_sigma_mm
         if sigma > 0.0 and self.model.kind != "tracker":
             raise CalibError(
                 f"noise.pose_misfit_sigma_mm = {sigma:g}: the in-situ tracker's misfit, but the instrument is "
                 f"{self.model.kind!r}"
             )
-        return max(sigma, 0.0) ** 2 / noise.reading_sigma_mm**2, 5.0 * noise.stroke_sigma_mm
+        if sigma == 0.0 and payload_steps and self.model.kind == "tracker":
+            sigma = noise.reading_sigma_mm
+        return sigma**2 / noise.reading_sigma_mm**2, 5.0 * noise.stroke_sigma_mm
 
     def _payload_factors(self):
         """``(columns, nominal)`` of the compliance the unannounced payload multiplies (the robust filter's

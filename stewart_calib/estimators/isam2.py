@@ -109,6 +109,8 @@ class ISAM2Estimator:
             dataclasses.replace(
                 config, ekf=dataclasses.replace(config.ekf, gate_probability=config.isam2.gate_probability)
             ),
+            # the graph weighs every reading as independent: its front end's steps are tested alike
+            steps_see_pose_means=False,
         )
         # the front end's unknown vector, an unannounced payload included: the graph starts from its Gaussians
         self._builder = GraphBuilder(platform, config, chain=True, walk_in_windows=True, layout=self._front.layout)
