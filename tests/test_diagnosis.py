@@ -293,10 +293,12 @@ def test_validate_verdict_through_a_moved_frame_blames_the_frame_not_the_robot(t
     assert cli.main(["calibrate", *common, str(result), "--log", str(paths["fit"]), "--method", "ls"]) == 0
     capsys.readouterr()
     validate = ["validate", *common, str(tmp_path / "V.csv"), "--result", str(result), "--log", str(paths["moved"])]
-    assert cli.main([*validate, "--tolerance-mm", "1"]) == 0  # the prediction's motion band: 0.2–0.65 mm
-    out = capsys.readouterr().out
-    verdict = [line for line in out.splitlines() if "verdict:" in line]
-    assert len(verdict) == 1, out
-    assert "above the predicted registered error" not in verdict[0], verdict[0]
-    assert "motion within" in verdict[0] and "more poses" not in verdict[0], verdict[0]
-    assert "looks moved" in verdict[0] and "--register-instrument" in verdict[0], verdict[0]
+    for report in ([], ["--report", str(tmp_path / "report")]):  # the report reads the log whole: named there too
+        assert cli.main([*validate, "--tolerance-mm", "1", *report]) == 0  # the prediction's motion: 0.2–0.65 mm
+        captured = capsys.readouterr()
+        assert "the instrument frame looks moved since the calibration" in captured.err, (report, captured.err)
+        verdict = [line for line in captured.out.splitlines() if "verdict:" in line]
+        assert len(verdict) == 1, captured.out
+        assert "above the predicted registered error" not in verdict[0], verdict[0]
+        assert "motion within" in verdict[0] and "more poses" not in verdict[0], verdict[0]
+        assert "looks moved" in verdict[0] and "--register-instrument" in verdict[0], verdict[0]

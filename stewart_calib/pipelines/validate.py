@@ -95,8 +95,10 @@ def run(args: argparse.Namespace) -> int:
                 platform, result, log, args.register_instrument, str(args.result)
             )
             if report_dir:
+                if not args.register_instrument:  # through the calibration's frame, which may have moved
+                    moved = _moved_frame_hint(platform, result, log, position, str(args.result))
                 compared = _compared(args, compare, log, len(position))
-                verdict = _verdict(args, platform, result, position, orientation, log, compared)[0]
+                verdict = _verdict(args, platform, result, position, orientation, log, compared, moved is not None)[0]
                 shown = " — ".join(text for text in (verdict, compared and compared[1]) if text)
                 page = _report_page(args, platform, result, log, predicted, position, orientation, shown, compare)
             io.write_csv_blocks(
