@@ -277,3 +277,28 @@ def test_validate_diagnoses_the_held_out_log_and_names_a_moved_frame(tmp_path, c
     assert hint[0].endswith("add --register-instrument")
     assert cli.main([*validate, str(paths["fit"])]) == 0
     assert "looks moved" not in capsys.readouterr().err  # the calibration's own session: nothing moved
+
+
+def test_validate_verdict_through_a_moved_frame_blames_the_frame_not_the_robot(tmp_path, capsys):
+    """Where validate names a moved frame ("not the robot"), its verdict does not hold the errors through
+    that frame against the tolerance (calling the motion over and asking for more poses): it says the
+    frame moved and what to add."""
+    fit = _pose_case()
+    moved = idata.make_case(idata.hobby(), 60, 3, InstrumentTruth(FRAME + [8.0, -5.0, 3.0, 1.0, 0.5, -2.0], TARGET))
+    paths = {name: tmp_path / f"{name}.csv" for name in ("fit", "moved")}
+    write_log(paths["fit"], fit.log, fit.platform)
+    write_log(paths["moved"], moved.log, fit.platform)
+    result = tmp_path / "r.json"
+    common = ["--platform", "hobby-hexapod", "--out"]
+    assert cli.main(["calibrate", *common, str(result), "--log", str(paths["fit"]), "--method", "ls"]) == 0
+    capsys.readouterr()
+    validate = ["validate", *common, str(tmp_path / "V.csv"), "--result", str(result), "--log", str(paths["moved"])]
+    for report in ([], ["--report", str(tmp_path / "report")]):  # the report reads the log whole: named there too
+        assert cli.main([*validate, "--tolerance-mm", "1", *report]) == 0  # the prediction's motion: 0.2–0.65 mm
+        captured = capsys.readouterr()
+        assert "the instrument frame looks moved since the calibration" in captured.err, (report, captured.err)
+        verdict = [line for line in captured.out.splitlines() if "verdict:" in line]
+        assert len(verdict) == 1, captured.out
+        assert "above the predicted registered error" not in verdict[0], verdict[0]
+        assert "motion within" in verdict[0] and "more poses" not in verdict[0], verdict[0]
+        assert "looks moved" in verdict[0] and "--register-instrument" in verdict[0], verdict[0]

@@ -95,8 +95,10 @@ def run(args: argparse.Namespace) -> int:
                 platform, result, log, args.register_instrument, str(args.result)
             )
             if report_dir:
+                if not args.register_instrument:  # through the calibration's frame, which may have moved
+                    moved = _moved_frame_hint(platform, result, log, position, str(args.result))
                 compared = _compared(args, compare, log, len(position))
-                verdict = _verdict(args, platform, result, position, orientation, log, compared)[0]
+                verdict = _verdict(args, platform, result, position, orientation, log, compared, moved is not None)[0]
                 shown = " — ".join(text for text in (verdict, compared and compared[1]) if text)
                 page = _report_page(args, platform, result, log, predicted, position, orientation, shown, compare)
             io.write_csv_blocks(
@@ -133,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"stewart-calib validate: {line}", file=sys.stderr)
     if moved:
         print(f"stewart-calib validate: {moved}", file=sys.stderr)
-    verdict, over = _verdict(args, platform, result, position, orientation, sample, compared)
+    verdict, over = _verdict(args, platform, result, position, orientation, sample, compared, moved is not None)
     print(f"stewart-calib validate: {verdict}")
     return 1 if over and args.fail_over_tolerance else 0
 
@@ -147,18 +149,27 @@ def _compared(args, compare: tuple[Platform, dict] | None, sample: Log, rows: in
 
 
 def _verdict(
-    args, platform: Platform, result: dict, position, orientation, sample: Log, compared=None
+    args, platform: Platform, result: dict, position, orientation, sample: Log, compared=None, moved: bool = False
 ) -> tuple[str, bool]:
     """The last line: what this check measured (and what the noise alone leaves in it, at the poses of
     ``sample``, the log or its first rows), with the result's expected errors, against the tolerance;
-    ending with the nominal model's comparison where ``compared`` (:func:`compared_pose_errors`) warns."""
+    ending with the nominal model's comparison where ``compared`` (:func:`compared_pose_errors`) warns.
+    ``moved``: the instrument frame looks moved since the calibration (:func:`_moved_frame_hint`), so the
+    errors through the calibration's frame measure the move, not the robot: not held against the
+    prediction or the tolerance."""
     noise = result_noise(platform, result, sample, args.register_instrument, len(position))
     measured, beyond = _measured_words(platform, position, orientation, noise)
+    if moved:
+        measured += (
+            "; these errors are through an instrument frame that looks moved since the calibration, not the robot's: "
+            "add --register-instrument"
+        )
     prediction = result_prediction(platform, result)
     if prediction is None:
         verdict, over = f"verdict: {measured}; the result holds no prediction of its error elsewhere", True
     else:
-        registered = beyond if instrument_kind(platform).outside else None  # the robot's own, as the instrument sees it
+        # the robot's own, as the instrument sees it; through a moved frame, the move's
+        registered = beyond if instrument_kind(platform).outside and not moved else None
         verdict, over = verdict_line(prediction, args.tolerance_mm, args.tolerance_deg, measured, registered)
     if compared and compared[1]:
         verdict += "; on this log the calibrated model is no better than the nominal one"
