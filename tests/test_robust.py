@@ -524,6 +524,23 @@ def test_a_static_poses_samples_count_as_their_mean_with_the_poses_misfit():
     np.testing.assert_allclose(f.filter.x, P @ weighted, rtol=1e-8, atol=1e-12)
 
 
+def test_a_pose_is_held_against_its_first_inputs_not_the_last_samples():
+    """Inputs creeping by less than the tolerance a sample (a slow motion) leave the pose once they are beyond
+    it from the pose's first sample: each sample against the one before it, the creep stayed one pose forever."""
+    n, rows, sigma, kappa = 5, 3, 0.01, 4.0
+    samples, _ = _misfit_poses(np.random.default_rng(11), n, rows, sigma, kappa, poses=1, per_pose=6)
+    f = _misfit_filter(n, rows, sigma, kappa)
+    firsts = []
+    for k, (t_s, prepared) in enumerate(samples):
+        prepared = prepared.copy()
+        prepared[:rows] += 0.6e-9 * k  # the tolerance is 1e-9
+        f.update(t_s, prepared)
+        firsts.append(f._misfit.inputs.copy())
+    starts = [samples[k][1][:rows] + 0.6e-9 * k for k in (0, 0, 2, 2, 4, 4)]
+    for found, start in zip(firsts, starts, strict=True):
+        np.testing.assert_array_equal(found, start)
+
+
 def test_a_checkpoint_within_a_pose_keeps_its_misfit():
     """Resumed from a checkpoint taken within a pose, the filter goes on with that pose's misfit (not a new
     pose's): the same state as the filter that ran through."""

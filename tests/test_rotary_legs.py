@@ -497,3 +497,17 @@ def test_a_reach_margin_refuses_poses_near_a_rods_full_stretch():
     assert np.all(np.isfinite(wide.coordinates(R, edge)))
     assert np.isnan(margined.coordinates(R, edge)).any()
     np.testing.assert_array_equal(margined.coordinates(R, t), wide.coordinates(R, t))  # home is far from it
+
+
+def test_ekf_holds_a_servo_pose_within_five_sigma_of_its_angles():
+    """The inputs' tolerance of one static pose (where the robust filter's step candidates begin) is in
+    the logged coordinates' own unit: a servo's angles [rad], not the strokes' σ [mm]."""
+    from stewart_calib.config import EstimatorConfig
+    from stewart_calib.estimators.ekf import LegEKF
+    from stewart_calib.io.platform_file import load_platform
+    from stewart_calib.resources import CONFIGS
+
+    config = EstimatorConfig()
+    ekf = LegEKF(load_platform(CONFIGS / "platforms" / "servo-hexapod.toml"), config)
+    assert ekf.robust._pose_tolerance == pytest.approx(5.0 * ekf.drive.coordinate_sigma(config.noise), rel=1e-12)
+    assert ekf.drive.coordinate_sigma(config.noise) != config.noise.stroke_sigma_mm

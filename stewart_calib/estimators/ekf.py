@@ -186,8 +186,9 @@ class LegEKF:
     def _pose_misfit(self, noise, payload_steps: bool) -> tuple[float, float]:
         """The robust filter's ``pose_misfit`` of ``noise.pose_misfit_sigma_mm``: its variance over the readings'
         ``reading_sigma_mm²``, as it enters the legs' residuals through the same pose (0: none), and the
-        strokes' tolerance of one pose, 5 ``stroke_sigma_mm`` (a static pose's encoders read within it), which
-        the step candidates begin at (:meth:`~.robust.RobustFilter._test_steps`) with or without a misfit.
+        inputs' tolerance of one pose, 5 σ of a logged coordinate (a stroke's [mm], a servo's angle [rad]:
+        a static pose's encoders read within it), which the step candidates begin at
+        (:meth:`~.robust.RobustFilter._test_steps`) with or without a misfit.
 
         Where an unannounced payload's steps are tested (``payload_steps``) and none is given, the in-situ
         tracker's misfit is taken as large as its readings' σ_s: each static pose's samples then test a step
@@ -202,7 +203,7 @@ class LegEKF:
             )
         if sigma == 0.0 and payload_steps and self.model.kind == "tracker":
             sigma = noise.reading_sigma_mm
-        return sigma**2 / noise.reading_sigma_mm**2, 5.0 * noise.stroke_sigma_mm
+        return sigma**2 / noise.reading_sigma_mm**2, 5.0 * self._coordinate_sigma  # a servo's angles in rad
 
     def _payload_factors(self):
         """``(columns, nominal)`` of the compliance the unannounced payload multiplies (the robust filter's

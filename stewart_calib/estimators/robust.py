@@ -553,8 +553,10 @@ class RobustFilter:
         n, m = len(x), len(nu)
         if misfit is not None and self._held(misfit, prepared, m):
             b, P_xb, P_bb = misfit.b, misfit.P_xb, misfit.P_bb
+            inputs = misfit.inputs  # the pose's first: a slow creep of the inputs leaves the pose in the end
         else:
             b, P_xb, P_bb = np.zeros(m), np.zeros((n, m)), self._kappa * R0
+            inputs = prepared[: self._m].copy()
         xa = np.concatenate((x, b))
         Pa = np.block([[P, P_xb], [P_xb.T, P_bb]])
         Qa = np.zeros((n + m, n + m))
@@ -565,7 +567,7 @@ class RobustFilter:
         if status != STEP_TAKEN:
             return status, nis, S, misfit
         x[:], P[:] = xa[:n], Pa[:n, :n]
-        return status, nis, S, _Misfit(prepared[: self._m].copy(), xa[n:].copy(), Pa[:n, n:].copy(), Pa[n:, n:].copy())
+        return status, nis, S, _Misfit(inputs, xa[n:].copy(), Pa[:n, n:].copy(), Pa[n:, n:].copy())
 
     def _fill_Q(self, Q: np.ndarray, dt_s: float, walk_rate_mm2_per_s: float | None = None) -> None:
         rate = self.walk_rate_mm2_per_s if walk_rate_mm2_per_s is None else walk_rate_mm2_per_s

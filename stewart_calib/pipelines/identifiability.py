@@ -140,7 +140,7 @@ def _distinct(poses) -> int:
 
 def fitted_platform(platform: Platform, log, config, path: str) -> tuple[Platform | None, str]:
     """``(platform, words)``: the platform at the log's own ``ls`` fit — the fit ``calibrate --method ls``
-    makes (:func:`~stewart_calib.workflows.calibration.run_calibration`), its drive and, and the outside
+    makes (:func:`~stewart_calib.workflows.calibration.run_calibration`), its drive and the outside
     instrument's frame and target(s) (:func:`handover.calibrated_platform`) — where a log's Cramér–Rao
     bound is linearised, so that it is the covariance ``calibrate`` predicts from at the drive calibrate
     finds, not at the nominal one millimetres away; None where ls cannot fit the log (a fit that diverges
