@@ -609,6 +609,21 @@ def test_missing_stroke_columns_are_the_drives_not_the_instruments(outside_run, 
     ), line
 
 
+@pytest.mark.parametrize("method", ["ls", "ekf"])
+def test_the_trackers_pose_misfit_set_for_an_outside_instrument_is_named(outside_run, tmp_path, method):
+    """ls took it silently; ekf refused it naming neither where it was set nor the platform."""
+    work, _ = outside_run
+    argv = ["calibrate", "--platform", work / "sim" / "platform.toml", "--log", work / "fit.csv", "--method", method]
+    status, err = _run([*argv, "--set", "noise.pose_misfit_sigma_mm=0.1", "--out", tmp_path / "r.json"])
+    (line,) = err.splitlines()
+    kind = "pose" if "pose" in work.name else "points"
+    assert status == 2 and line.endswith(
+        "noise.pose_misfit_sigma_mm = 0.1 (--set or the config file): the in-situ tracker's misfit at a pose, but "
+        f"the instrument of {work / 'sim' / 'platform.toml'} is '{kind}'; expected 0 (no such key) for it"
+    ), line
+    assert not (tmp_path / "r.json").exists()
+
+
 @pytest.mark.parametrize(
     ("where", "text", "expected"),
     [

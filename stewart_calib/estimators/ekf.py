@@ -195,12 +195,7 @@ class LegEKF:
         as their mean does. The misfit cannot be measured from the data (the drive's unknowns take up what
         they can of it and the readings' scale shows the rest as noise), and were its samples independent a
         pose's own misfit, seen by every one of them, would be taken for a step."""
-        sigma = noise.pose_misfit_sigma_mm
-        if sigma > 0.0 and self.model.kind != "tracker":
-            raise CalibError(
-                f"noise.pose_misfit_sigma_mm = {sigma:g}: the in-situ tracker's misfit, but the instrument is "
-                f"{self.model.kind!r}"
-            )
+        sigma = noise.pose_misfit_sigma_mm  # another instrument's is refused by make_estimator
         if sigma == 0.0 and payload_steps and self.model.kind == "tracker":
             sigma = noise.reading_sigma_mm
         return sigma**2 / noise.reading_sigma_mm**2, 5.0 * self._coordinate_sigma  # a servo's angles in rad

@@ -152,4 +152,10 @@ def make_estimator(method: str, platform: Platform, config: EstimatorConfig | No
             f"method '{method}' does not take the {kind} instrument of {platform.source}; "
             f"expected one of {', '.join(method_names(instrument=kind))}"
         )
+    misfit = 0.0 if config is None else config.noise.pose_misfit_sigma_mm
+    if misfit > 0.0 and kind != "tracker":
+        raise CalibError(
+            f"noise.pose_misfit_sigma_mm = {misfit:g} (--set or the config file): the in-situ tracker's misfit "
+            f"at a pose, but the instrument of {platform.source} is '{kind}'; expected 0 (no such key) for it"
+        )
     return spec.build(platform, config)
