@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 from stewart_calib.config import load_estimator_config
+from stewart_calib.simulation.instrument import InstrumentTruth
 from stewart_calib.workflows.calibration import run_calibration
 from tests.instrument_data import hobby, make_case
-from tests.test_instrument_ls import POINTS, POINTS_TRUTH, POSE_TRUTH, _normalised_errors
+from tests.test_instrument_ls import FAR_FRAME, POINTS, POINTS_TRUTH, POSE_TRUTH, _normalised_errors
 
 #: Monte Carlo runs per method: 2 × 60 unknowns put the mean z² at 1 ± 0.13, so the issue's 1.2 on
 #: the RMS ratio (1.44 on z²) sits 3.4 standard deviations above an efficient estimator
@@ -88,3 +89,21 @@ def test_targets_fix_a_pose_only_off_a_line():
         if fixed:
             np.testing.assert_allclose(pose.t, t_X[0], atol=1e-9)
             assert np.sqrt(np.max(np.linalg.eigvalsh(pose.covariance[:3, :3]))) <= LOOSE_ROTATION_SIGMA_RAD
+
+
+@pytest.mark.parametrize("method", ["ekf", "isam2", "lm"])
+def test_method_with_the_instrument_metres_away_is_as_near_the_truth_as_ls(method):
+    """Motion capture's origin 2.7 m from the robot, encoder zeros ~15 mm and stroke scales ~3 % off (a
+    hobby build): what registration leaves of the frame's orientation moves its origin's place by the
+    lever arm, which the instrument's prior must allow (at 20 mm there ekf, isam2 and lm stood 3.1×,
+    3.0× and 1.6× ls's error, in units of the bound). ls has no prior: the peer on the same logs."""
+    platform = hobby()
+    config = load_estimator_config("motion-capture", OVERRIDES)
+    z: dict[str, list] = {method: [], "ls": []}
+    for run in range(RUNS):
+        truth = InstrumentTruth(FAR_FRAME, POSE_TRUTH.target_offset)
+        case = make_case(platform, 80, 100 + run, truth, length_spread_mm=15.0, scale_spread=0.03)
+        for name in z:
+            z[name].append(_normalised_errors(case, run_calibration(platform, case.log, name, config).estimate))
+    ratio = {name: math.sqrt(np.mean(np.square(found))) for name, found in z.items()}
+    assert ratio[method] <= 1.25 * ratio["ls"], ratio

@@ -267,9 +267,9 @@ def registered_start(
     platform: Platform, noise: NoiseConfig, model: InstrumentModel, layout: UnknownLayout, samples: list[Sample]
 ) -> np.ndarray:
     """The unknown vector to start from: zeros, but for an instrument registered on the data
-    (:func:`~stewart_calib.instruments.registry.needs_registration`) its block at the closed-form
-    registration on ``samples`` — a frame 100 mm and any rotation from nominal is then within the
-    linearisation of every method, with no prior widened.
+    (:func:`~stewart_calib.instruments.registry.needs_registration`) its block at the registration
+    on ``samples`` (the closed form refined by least squares) — a frame 100 mm and any rotation from
+    nominal, or metres away, is then within the linearisation of every method.
 
     Raises:
         CalibError: the samples cannot register the instrument (the reason says why).

@@ -11,6 +11,7 @@ answers, so nothing here asks which kind it is.
 
 from __future__ import annotations
 
+import math
 from abc import abstractmethod
 from dataclasses import replace
 from typing import Any, ClassVar
@@ -26,12 +27,18 @@ from . import gauge, registration
 from .base import InstrumentModel
 
 #: prior σ of the instrument's unknowns for the methods that take one (ekf, isam2, lm), about the
-#: nominal that calibrate sets by the closed-form registration (:meth:`OutsideModel.registered_platform`):
+#: nominal that calibrate sets by the registration (:meth:`OutsideModel.registered_platform`):
 #: what registration leaves is the drive errors' share, some mm and a degree or two, so 20 mm / 0.2 rad
 #: cover it 3× over while keeping the normal equations of a hard-gauged graph within double
 #: precision (a 1 m / π prior beside a 1e-6 mm gauge tie made lm's Cholesky indeterminate)
 PRIOR_SIGMA_MM = 20.0
 PRIOR_SIGMA_RAD = 0.2
+#: how far from the robot an instrument's origin may stand [mm] (a laser tracker on its stand, motion
+#: capture's origin on the floor). The frame's orientation turns about that origin, so what registration
+#: leaves of it moves the origin's place by the lever arm: its prior σ there is
+#: ``hypot(PRIOR_SIGMA_MM, PRIOR_SIGMA_RAD · reach)``, 0.6 m: a prior of 20 mm there pulls the fit of a
+#: robot seen from metres away (tests/test_instrument_methods.py)
+INSTRUMENT_REACH_MM = 3000.0
 
 
 class OutsideModel(InstrumentModel):
@@ -204,21 +211,25 @@ class OutsideModel(InstrumentModel):
         """The instrument's :class:`~stewart_calib.model.unknowns.UnknownBlock` (spec §7 ``"instrument"``):
         it shares both gauges with the drive (frame ↔ base joints, target(s) ↔ platform joints)."""
         angles = self._angles()
+        sigma = np.where(angles, PRIOR_SIGMA_RAD, PRIOR_SIGMA_MM)
+        sigma[:3] = math.hypot(PRIOR_SIGMA_MM, PRIOR_SIGMA_RAD * INSTRUMENT_REACH_MM)  # θ: the frame's place first
         return UnknownBlock(
             "instrument",
             self.unknown_names,
             self.theta(self.nominal_unknowns()),
-            np.where(angles, PRIOR_SIGMA_RAD, PRIOR_SIGMA_MM),
+            sigma,
             np.where(angles, 180.0 / np.pi, 1.0),
             gauge=("base", "platform"),
         )
 
     @classmethod
     def registered_platform(cls, platform: Platform, strokes: np.ndarray, readings: np.ndarray) -> Platform:
-        """``platform`` with its instrument's nominal frame and target(s) replaced by the closed-form
-        registration of the nominal forward-kinematics poses onto the readings
-        (:meth:`register`): every method then starts within the drive's errors of the answer, not
-        a frame 100 mm and any rotation away, and no prior needs widening.
+        """``platform`` with its instrument's nominal frame and target(s) replaced by the registration
+        of the nominal forward-kinematics poses onto the readings (:meth:`best_registration`: the closed
+        form refined by least squares): every method then starts within the drive's errors of the
+        answer, not a frame 100 mm and any rotation away. The closed form alone, from orientations that
+        the drive's errors turn by a degree or two, can leave the frame's orientation 0.25 rad off,
+        metres at the robot where the instrument stands metres away.
 
         Raises:
             CalibError: the log cannot be registered (fewer than 3 distinct poses, no rotation), or
@@ -233,7 +244,7 @@ class OutsideModel(InstrumentModel):
         usable = fk.converged & np.any(np.isfinite(readings), axis=1)
         if not np.any(usable):
             raise CalibError("cannot register the instrument: nominal forward kinematics converged for no sample")
-        unknowns = model.register(fk.R[usable], fk.t[usable], np.asarray(readings)[usable])
+        unknowns = model.best_registration(fk.R[usable], fk.t[usable], np.asarray(readings)[usable])
         return replace(platform, instrument=model.instrument_at(model.theta(unknowns)))
 
     def information_rows(
