@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
             if report_dir:
                 if not args.register_instrument:  # through the calibration's frame, which may have moved
                     moved = _moved_frame_hint(platform, result, log, position, str(args.result))
-                compared = _compared(args, compare, log, len(position))
+                compared = _compared(args, compare, log, len(position), moved is not None)
                 verdict = _verdict(args, platform, result, position, orientation, log, compared, moved is not None)[0]
                 shown = " — ".join(text for text in (verdict, compared and compared[1]) if text)
                 page = _report_page(args, platform, result, log, predicted, position, orientation, shown, compare)
@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"stewart-calib validate: {_unseen_error_line(platform, result, position)}")
     sample = log if (report_dir or args.register_instrument) else first[0]
     if not report_dir:
-        compared = _compared(args, compare, sample, len(position))
+        compared = _compared(args, compare, sample, len(position), moved is not None)
     if compare is None:
         print(
             f"stewart-calib validate: no comparison with the nominal model: {args.platform} is the calibrated platform "
@@ -140,12 +140,13 @@ def run(args: argparse.Namespace) -> int:
     return 1 if over and args.fail_over_tolerance else 0
 
 
-def _compared(args, compare: tuple[Platform, dict] | None, sample: Log, rows: int):
-    """:func:`compared_pose_errors` of the nominal platform and the result on it (``compare``), or None
-    where there is no nominal platform to compare with."""
+def _compared(args, compare: tuple[Platform, dict] | None, sample: Log, rows: int, moved: bool):
+    """:func:`compared_pose_errors` of the nominal platform and the result on it (``compare``) on this
+    held-out log (``moved``: :func:`_moved_frame_hint` named a moved frame), or None where there is no
+    nominal platform to compare with."""
     if compare is None:
         return None
-    return compared_pose_errors(*compare, sample, args.register_instrument, rows, args.result)
+    return compared_pose_errors(*compare, sample, args.register_instrument, rows, args.result, True, moved)
 
 
 def _verdict(
