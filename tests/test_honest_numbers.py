@@ -387,7 +387,7 @@ def test_a_plan_not_clearly_better_than_the_nominal_model_says_what_to_change(tm
     assert line.startswith("stewart-calib plan: warning: this plan is not clearly better than the nominal model")
     assert f"against the nominal model's {nominal.position_mm:.3g} mm" in line
     assert "change: more than 40 poses, a less noisy instrument, a wider workspace" in line
-    high = float(re.search(r"90% of such calibrations [\d.]+–([\d.]+) mm", out)[1])
+    high = float(re.search(r"absolute place in \{J\} [\d.]+ mm / [\d.]+° \(90%: [\d.]+–([\d.]+) mm\)", out)[1])
     assert high >= 0.5 * nominal.position_mm
     status, out, err = _plan(tmp_path, text)
     assert status == 0 and err == ""
