@@ -227,7 +227,7 @@ def registered_error(platform, commanded, true, poses: np.ndarray) -> np.ndarray
 
 NUMBER = r"([0-9.e+-]+)"
 PLAN_LINE = re.compile(
-    rf"absolute in \{{J\}} {NUMBER} mm .*?calibrations {NUMBER}–{NUMBER} mm\); motion from home {NUMBER} mm "
+    rf"absolute place in \{{J\}} {NUMBER} mm .*?\(90 ?%: {NUMBER}–{NUMBER} mm\), motion from home {NUMBER} mm "
     rf".*?\(90 ?%: {NUMBER}–{NUMBER} mm\)"
 )
 VALIDATE_LINE = re.compile(

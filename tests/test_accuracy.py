@@ -279,7 +279,8 @@ def test_cli_plans_for_a_motion_capture_platform(tmp_path, capsys, wide_pose):
     )
     printed = capsys.readouterr().out
     assert "planned 20 poses (I from 200 candidates and 729 box extremes" in printed
-    assert "predicted closed-loop pose error after calibration: absolute in {J}" in printed
+    assert "predicted closed-loop pose error after calibration: expected mean over 200 workspace poses" in printed
+    assert "(90% of such calibrations in each band): absolute place in {J}" in printed
     assert read_pose_list(out).shape == (20, 6)
 
 
@@ -309,7 +310,7 @@ def test_a_small_workspace_calibration_warns_in_one_line_and_validate_says_what_
     warnings = [line for line in err if "predicted closed-loop" in line]
     # the same verdict on the poses' conditioning as identifiability's below, then the prediction
     assert len(warnings) == 1 and warnings[0].startswith("stewart-calib calibrate: warning: poorly conditioned")
-    assert "; predicted closed-loop pose error after calibration: absolute in {J}" in warnings[0]
+    assert "; predicted closed-loop pose error after calibration: expected mean over 200 workspace poses" in warnings[0]
     predicted = json.loads(out.read_text())["predicted_closed_loop"]
     assert predicted["position_mm"] > accuracy.NOISE_FLOOR_FACTOR * predicted["noise_floor_mm"]
     assert predicted["warning"].removeprefix("warning: ") in warnings[0]
@@ -325,9 +326,14 @@ def test_a_small_workspace_calibration_warns_in_one_line_and_validate_says_what_
     assert len(lines) == 3 and "cannot see the robot's closed-loop (absolute) pose error" in lines[1]
     assert lines[2].startswith("stewart-calib validate: verdict: ")
     assert "validate measured the error as the instrument sees it after registration" in lines[2]
-    assert f"the result predicts absolute in {{J}} {predicted['position_mm']:.3g} mm" in lines[1]
+    # the prediction printed once, in the verdict, in the words and order of calibrate's prediction line
+    prediction = accuracy.PredictedError.from_dict(predicted)
+    assert lines[1].endswith(f"the verdict's absolute place in {{J}}, limited by {predicted['absolute_limited_by']}")
+    assert prediction.expected_words() in lines[2] and prediction.expected_words() in warnings[0]
+    assert all(line.count("motion from home") == (i == 2) for i, line in enumerate(lines)), lines
     low, high = predicted["position_band_mm"]
-    assert low < predicted["position_mm"] < high and f"{low:.3g}–{high:.3g} mm" in lines[1]
+    assert low < predicted["position_mm"] < high
+    assert f"absolute place in {{J}} {predicted['position_mm']:.3g} mm / " in lines[2]
     # with the frame fitted again: the registered error measured, beside the registered prediction
     assert (
         cli_main(["validate", "--platform", str(platform_path), "--result", str(out), *held, "--register-instrument"])

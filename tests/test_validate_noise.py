@@ -119,3 +119,21 @@ def test_the_stated_interval_covers_the_robots_own_error():
         low, high = stated.beyond(np.sqrt(np.mean(validate(platform, result, log, True)[1] ** 2)), 0.9)[1]
         covered += low <= own <= high
     assert 0.855 <= covered / DRAWS <= 0.945, covered
+
+
+def test_an_error_below_the_noise_is_bounded_by_what_the_noise_can_hide_not_called_zero():
+    """The README's hobby log with --register-instrument: orientation RMS 0.0771° where the noise alone
+    leaves 0.0859°. The stated interval was "0° (90%: 0–0°)" — the robot surely perfect — because the
+    measurement fell below the noise's mean by more than its spread; a measurement the noise happened
+    to lower says nothing smaller of the robot than one at the noise's own RMS: the interval's top is
+    what the noise's spread lets a robot of no error of its own hide, and it never falls as the
+    measured RMS falls."""
+    from stewart_calib.workflows.validation import NoiseSquares
+
+    noise = NoiseSquares(0.0859**2, (0.0359**2 / 1.645) ** 2, 4.0 * 0.0859**2 / 60)
+    own, (low, high) = noise.beyond(0.0771, 0.9)
+    assert own == 0.0 and low == 0.0
+    assert high == pytest.approx(0.0359, rel=0.01)
+    assert high == noise.beyond(noise.rms, 0.9)[1][1]  # as measured at the noise's own RMS
+    tops = [noise.beyond(rms, 0.9)[1][1] for rms in np.linspace(0.0, 0.12, 25)]
+    assert all(np.diff(tops) >= 0.0), tops

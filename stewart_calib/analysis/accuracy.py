@@ -265,28 +265,39 @@ class PredictedError:
         )
 
     def describe(self) -> str:
-        """``"absolute in {J} 0.0213 mm / 0.00141° (expected mean over 200 workspace poses; 90 % of such calibrations
-        0.0101–0.0352 mm); motion from home 0.009 mm / 0.0011° (90 %: 0.004–0.016 mm); the absolute
-        error limited by a constant z (σ 0.02 mm)"``: the absolute error in {J} first, the motion's
-        and what limits the absolute one after — the words every command prints."""
+        """``"expected mean over 200 workspace poses (90% of such calibrations in each band): absolute place in
+        {J} 0.0213 mm / 0.00141° (90%: 0.0101–0.0352 mm), motion from home 0.009 mm / 0.0011° (90%:
+        0.004–0.016 mm); the absolute error limited by a constant z (σ 0.02 mm)"``: where the means are
+        taken and what a band is, :meth:`expected_words`, and what limits the absolute error — the words
+        every command's prediction prints."""
         where = "workspace poses" if self.workspace else "measured poses (no [workspace] in the platform file)"
-        low, high = self.position_band_mm
         text = (
-            f"absolute in {{J}} {self.position_mm:.3g} mm / {self.orientation_deg:.3g}° (expected mean over "
-            f"{self.n_poses} {where}; "
-            f"{BAND_PROBABILITY:.0%} of such calibrations {low:.3g}–{high:.3g} mm)"
+            f"expected mean over {self.n_poses} {where} ({BAND_PROBABILITY:.0%} of such calibrations in each band): "
+            + self.expected_words()
         )
-        if np.isfinite(self.motion_position_mm):
-            m_low, m_high = self.motion_position_band_mm
-            text += (
-                f"; motion from home {self.motion_position_mm:.3g} mm / {self.motion_orientation_deg:.3g}° "
-                f"({BAND_PROBABILITY:.0%}: {m_low:.3g}–{m_high:.3g} mm)"
-            )
-        if np.isfinite(self.registered_position_mm):
-            text += f"; {self.registered_words()}"
         if self.limited_by:
             text += f"; the absolute error limited by {self.limited_by}"
         return text
+
+    def expected_words(self) -> str:
+        """``"absolute place in {J} 0.0213 mm / 0.00141° (90%: 0.0101–0.0352 mm), motion from home 0.009 mm /
+        0.0011° (90%: 0.004–0.016 mm)"``, then (an outside instrument) :meth:`registered_words`: the
+        expected errors with their bands in the one order and the one set of words that the prediction
+        lines (:meth:`describe`) and the verdict (:func:`verdict_line`) both print."""
+        low, high = self.position_band_mm
+        parts = [
+            f"absolute place in {{J}} {self.position_mm:.3g} mm / {self.orientation_deg:.3g}° "
+            f"({BAND_PROBABILITY:.0%}: {low:.3g}–{high:.3g} mm)"
+        ]
+        if np.isfinite(self.motion_position_mm):
+            m_low, m_high = self.motion_position_band_mm
+            parts.append(
+                f"motion from home {self.motion_position_mm:.3g} mm / {self.motion_orientation_deg:.3g}° "
+                f"({BAND_PROBABILITY:.0%}: {m_low:.3g}–{m_high:.3g} mm)"
+            )
+        if np.isfinite(self.registered_position_mm):
+            parts.append(self.registered_words())
+        return ", ".join(parts)
 
     def registered_words(self) -> str:
         """``"as the instrument sees it after registration 0.03 mm / 0.001° (90 %: 0.02–0.04 mm)"``
@@ -592,9 +603,10 @@ def verdict_line(
     measured_registered: MeasuredError | None = None,
 ) -> tuple[str, bool]:
     """The last line of ``calibrate`` and ``validate`` (and the top of their report): the expected
-    error of the motion from home and of the absolute place in {J} over the workspace with their
-    90 % bands, each against the tolerance where given; ``(line, over)`` with ``over`` True where
-    either is over the tolerance or not surely within it.
+    error of the absolute place in {J} and of the motion from home over the workspace with their
+    90 % bands (:meth:`PredictedError.expected_words`, the prediction lines' words), each against the
+    tolerance where given; ``(line, over)`` with ``over`` True where either is over the tolerance or not
+    surely within it.
 
     Args:
         measured: what a check measured, named in the line (``validate``).
@@ -607,20 +619,8 @@ def verdict_line(
             motion's position ``T_home⁻¹ T``), so the registered error is only part of the motion's
             (benchmarks.prediction).
     """
-    m_low, m_high = prediction.motion_position_band_mm
-    low, high = prediction.position_band_mm
-    motion = (
-        f"motion from home {prediction.motion_position_mm:.3g} mm / {prediction.motion_orientation_deg:.3g}° "
-        f"({BAND_PROBABILITY:.0%}: {m_low:.3g}–{m_high:.3g} mm)"
-    )
-    absolute = (
-        f"absolute place in {{J}} {prediction.position_mm:.3g} mm / {prediction.orientation_deg:.3g}° "
-        f"({BAND_PROBABILITY:.0%}: {low:.3g}–{high:.3g} mm)"
-    )
     where = "workspace" if prediction.workspace else "measured poses"
-    line = f"verdict: expected mean error over the {where}: {motion}, {absolute}"
-    if np.isfinite(prediction.registered_position_mm):
-        line += f", {prediction.registered_words()}"
+    line = f"verdict: expected mean error over the {where}: {prediction.expected_words()}"
     if measured:
         line += f"; {measured}"
     if measured_registered is not None and np.isfinite(prediction.registered_position_mm):

@@ -76,9 +76,10 @@ def run(args: argparse.Namespace) -> int:
     platform = load_platform(args.platform)
     written = io.read_result(args.result)
     result = on_platform(platform, written)  # also on the calibrated platform it wrote
-    # "before" is the nominal model's: on the calibrated platform file, its nominal platform's
+    # "before" is the nominal model's: on the calibrated platform file, its nominal platform's, with the result
+    # as written (on any other platform ``result`` is ``written``)
     nominal, missing = nominal_platform_of(platform, written)
-    compare = None if nominal is None else (nominal, written if nominal is not platform else result)
+    compare = None if nominal is None else (nominal, written)
     columns = io.reading_columns(platform)
     header = ["t_s", *columns, *(f"pred_{name}" for name in columns), "position_error_mm"]
     if instrument_kind(platform).measures_orientation:
@@ -97,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
             if report_dir:
                 if not args.register_instrument:  # through the calibration's frame, which may have moved
                     moved = _moved_frame_hint(platform, result, log, position, str(args.result))
-                compared = _compared(args, compare, log, len(position))
+                compared = _compared(args, compare, log, len(position), moved is not None)
                 verdict = _verdict(args, platform, result, position, orientation, log, compared, moved is not None)[0]
                 shown = " — ".join(text for text in (verdict, compared and compared[1]) if text)
                 page = _report_page(args, platform, result, log, predicted, position, orientation, shown, compare)
@@ -123,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"stewart-calib validate: {_unseen_error_line(platform, result, position)}")
     sample = log if (report_dir or args.register_instrument) else first[0]
     if not report_dir:
-        compared = _compared(args, compare, sample, len(position))
+        compared = _compared(args, compare, sample, len(position), moved is not None)
     if compare is None:
         print(
             f"stewart-calib validate: no comparison with the nominal model: {args.platform} is the calibrated platform "
@@ -140,12 +141,13 @@ def run(args: argparse.Namespace) -> int:
     return 1 if over and args.fail_over_tolerance else 0
 
 
-def _compared(args, compare: tuple[Platform, dict] | None, sample: Log, rows: int):
-    """:func:`compared_pose_errors` of the nominal platform and the result on it (``compare``), or None
-    where there is no nominal platform to compare with."""
+def _compared(args, compare: tuple[Platform, dict] | None, sample: Log, rows: int, moved: bool):
+    """:func:`compared_pose_errors` of the nominal platform and the result on it (``compare``) on this
+    held-out log (``moved``: :func:`_moved_frame_hint` named a moved frame), or None where there is no
+    nominal platform to compare with."""
     if compare is None:
         return None
-    return compared_pose_errors(*compare, sample, args.register_instrument, rows, args.result)
+    return compared_pose_errors(*compare, sample, args.register_instrument, rows, args.result, True, moved)
 
 
 def _verdict(
@@ -240,7 +242,8 @@ def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray
     """What a check through an outside instrument's frame cannot see, beside what it saw: the
     frame and target(s) (fitted with the drive, the frame again here) absorb a rigid motion of {J}
     and the targets' places in {D}, so it measures the registered error, and the robot's closed-loop
-    (absolute) error is the result's prediction."""
+    (absolute) error is the result's prediction — which the verdict gives (printed once, there), this
+    line what limits it."""
     seen_rms_mm = _rms(position_mm)
     head = (
         "validate measured the error as the instrument sees it after registration: a check through the "
@@ -251,7 +254,8 @@ def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray
     prediction = result_prediction(platform, result)
     if prediction is None:
         return head + "and the result holds no covariance to predict that error from"
-    return head + f"the result predicts {prediction.describe()}"
+    limited = f", limited by {prediction.limited_by}" if prediction.limited_by else ""
+    return head + f"the result's prediction of that error is the verdict's absolute place in {{J}}{limited}"
 
 
 #: the held-out errors must exceed this many position σ of the instrument before a moved frame is suspected

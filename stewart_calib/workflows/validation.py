@@ -186,14 +186,16 @@ class NoiseSquares:
     def beyond(self, rms: float, probability: float) -> tuple[float, tuple[float, float]]:
         """The robot's own RMS in a measured ``rms`` (in quadrature; 0 where the noise explains it all)
         and its two-sided ``probability`` interval from the noise's spread over the rows (normal in the
-        mean square: many rows)."""
+        mean square: many rows). A measured RMS below the noise's is read as the noise's: the interval's
+        top is then what the noise's spread lets a robot of no error of its own hide, ``√(z σ₀)`` with
+        ``σ₀² = variance`` — a measurement the noise happened to lower says nothing smaller of the robot."""
         own = rms**2 - self.mean
         # the standard library's normal quantile: calibrate imports this module, and keeps scipy.stats out of
         # its start-up (tests/test_scale.py)
-        spread = statistics.NormalDist().inv_cdf(0.5 + probability / 2) * math.sqrt(
-            self.variance + self.cross * max(own, 0.0)
-        )
-        return math.sqrt(max(own, 0.0)), (math.sqrt(max(own - spread, 0.0)), math.sqrt(max(own + spread, 0.0)))
+        z = statistics.NormalDist().inv_cdf(0.5 + probability / 2)
+        spread = lambda square: z * math.sqrt(self.variance + self.cross * square)  # noqa: E731
+        seen = max(own, 0.0)
+        return math.sqrt(seen), (math.sqrt(max(own - spread(seen), 0.0)), math.sqrt(seen + spread(seen)))
 
 
 #: the rows of a log whose poses the noise's statistics are computed at (a long log's start stands for
@@ -306,13 +308,26 @@ def pose_error_summary(platform: Platform, result: dict, sample, register: bool,
 
 
 def compared_pose_errors(
-    platform: Platform, result: dict, sample, register: bool, n_rows: int, source
+    platform: Platform,
+    result: dict,
+    sample,
+    register: bool,
+    n_rows: int,
+    source,
+    held_out: bool = False,
+    moved: bool = False,
 ) -> tuple[str, str | None] | None:
     """``(line, warning)``: :func:`pose_error_summary`'s line and, where the two models are compared
     alike (the in-situ tracker's absolute poses, or an outside instrument registered on ``sample`` for
-    both) and the calibrated model's position RMS is no lower than the nominal model's, the loud line
-    saying so (:func:`no_better_line`); None where a model cannot predict them. The line's "before" is
-    the nominal model's plain registration; the test's, its σ-weighted one, as the calibrated model's."""
+    both) and the calibrated model predicts it worse, the loud line saying so (:func:`no_better_line`);
+    None where a model cannot predict them. The line's "before" is the nominal model's plain
+    registration; the test's, its σ-weighted one, as the calibrated model's.
+
+    ``held_out``: ``sample`` is not the calibration's log, so without ``register`` the calibrated model
+    reads it through the calibration's instrument frame and target(s) while the nominal model's are fitted
+    to it — the line names each side's. ``moved``: that frame looks moved since the calibration
+    (``validate``'s hint), its errors the move's: the line gives the nominal model's alone, not set beside
+    them as a comparison."""
     outside = instrument_kind(platform).outside
     try:
         plain = registered_nominal_model(platform, sample)
@@ -324,10 +339,25 @@ def compared_pose_errors(
     except CalibError:
         return None
     rows = f" (first {len(sample)} rows)" if len(sample) < n_rows else ""
-    line = pose_error_line(before, after, f"nominal → calibrated model{rows}")
+    through_calibration = held_out and outside and not register
+    if through_calibration and moved:
+        line = pose_error_line(
+            before, None, f"nominal model{rows}, its instrument frame and target(s) fitted to this log"
+        )
+        return (
+            line + "; not set beside the calibrated model's, which through the calibration's instrument frame "
+            "measure that frame's move since (add --register-instrument to compare the two alike)",
+            None,
+        )
+    sides = (
+        " (nominal: instrument frame and target(s) fitted to this log; calibrated: through the calibration's)"
+        if through_calibration
+        else ""
+    )
+    line = pose_error_line(before, after, f"nominal → calibrated model{rows}{sides}")
     if outside and not register:  # the calibrated model through the calibration's frame: not alike
         return line, None
-    return line, no_better_line(before_alike, after, outside, rows)
+    return line, no_better_line(before_alike, after, outside, rows, before)
 
 
 #: the one-sided tail of :func:`no_better_line`'s paired test: two models that predict a log
@@ -335,7 +365,9 @@ def compared_pose_errors(
 WORSE_TAIL = 0.01
 
 
-def no_better_line(before: np.ndarray, after: np.ndarray, registered: bool, rows: str = "") -> str | None:
+def no_better_line(
+    before: np.ndarray, after: np.ndarray, registered: bool, rows: str = "", shown: np.ndarray | None = None
+) -> str | None:
     """The loud line when the calibrated model predicts a log worse than the nominal model, None
     otherwise: on data the fit never saw, a calibration that improves the robot fits better.
 
@@ -344,7 +376,12 @@ def no_better_line(before: np.ndarray, after: np.ndarray, registered: bool, rows
     mean above zero by more than the :data:`WORSE_TAIL` quantile of its standard error. A log whose
     poses the two models predict alike within the noise (a nominal model already as good there) is
     no evidence either way: comparing the two RMS alone called such a calibration worse in half of
-    such logs."""
+    such logs.
+
+    ``before`` are the nominal model's errors the test takes (``registered``: through the instrument
+    registered by its σ, as the calibrated model's); ``shown``, those of the pose error line
+    (:func:`pose_error_line`, a plain registration; default ``before``), which the line quotes, so that
+    the figures a user reads agree, and names the test that decided with its own figure."""
     squares = lambda v: np.sum(v[:, :3] ** 2, axis=1)  # noqa: E731
     difference = squares(after) - squares(before)
     difference = difference[np.isfinite(difference)]
@@ -356,22 +393,30 @@ def no_better_line(before: np.ndarray, after: np.ndarray, registered: bool, rows
     if not float(np.mean(difference)) > margin:
         return None
     rms = lambda v: float(np.sqrt(np.nanmean(squares(v))))  # noqa: E731
-    nominal_mm, calibrated_mm = rms(before), rms(after)
-    how = ", each through the instrument registered on it by its σ" if registered else ""
+    shown = before if shown is None else shown
+    alike = (
+        f", both models through the instrument registered on this log by its σ (the nominal model's RMS so "
+        f"{rms(before):.4g} mm)"
+        if registered
+        else ""
+    )
     return (
         f"WARNING: the calibrated model predicts this log{rows} no better than the nominal model: position RMS "
-        f"{calibrated_mm:.4g} mm against the nominal model's {nominal_mm:.4g} mm{how}; the calibration likely left the "
-        "robot worse: keep the nominal model, or calibrate again on poses that tilt and reach to the workspace's "
-        "edges (stewart-calib plan)"
+        f"{rms(after):.4g} mm against the nominal model's {rms(shown):.4g} mm (the pose error line's); a paired test "
+        f"of each row's squared position error{alike} finds the calibrated model's larger (one-sided, "
+        f"{WORSE_TAIL:.0%}); the calibration likely left the robot worse: keep the nominal model, or calibrate again "
+        "on poses that tilt and reach to the workspace's edges (stewart-calib plan)"
     )
 
 
-def pose_error_line(before: np.ndarray, after: np.ndarray, models: str) -> str:
-    """One line: the RMS of :func:`pose_errors` per axis and of the rotation, before → after."""
+def pose_error_line(before: np.ndarray, after: np.ndarray | None, models: str) -> str:
+    """One line: the RMS of :func:`pose_errors` per axis and of the rotation, before → after (``after``
+    None: the one model's)."""
     rms = lambda v: float(np.sqrt(np.nanmean(v**2)))  # noqa: E731
-    parts = [f"{axis} {rms(before[:, k]):.4g} → {rms(after[:, k]):.4g} mm" for k, axis in enumerate("xyz")]
+    pair = lambda k: f"{rms(before[:, k]):.4g}" + ("" if after is None else f" → {rms(after[:, k]):.4g}")  # noqa: E731
+    parts = [f"{axis} {pair(k)} mm" for k, axis in enumerate("xyz")]
     if np.isfinite(before[:, 3]).any():
-        parts.append(f"rotation {rms(before[:, 3]):.4g} → {rms(after[:, 3]):.4g}°")
+        parts.append(f"rotation {pair(3)}°")
     return f"pose error RMS, {models}: {', '.join(parts)}"
 
 
