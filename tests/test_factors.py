@@ -7,7 +7,7 @@ import gtsam
 import numpy as np
 import pytest
 
-from stewart_calib.factors import drive_leg, gauge, instrument, instrument_pose, random_walk
+from stewart_calib.factors import drive_leg, gauge, instrument, instrument_pose, pose_misfit, random_walk
 from stewart_calib.instruments.tracker import TrackerModel
 from stewart_calib.model import kinematics as kin
 from stewart_calib.model.drive import DriveModel, drive_model, stroke_term
@@ -206,3 +206,79 @@ def test_pose_instrument_factor_is_the_models_residual_in_one_compiled_call():
         np.testing.assert_allclose(A_pose, reference.J_pose, rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(A_params[:, block], reference.J_instrument, rtol=1e-12, atol=1e-12)
         assert np.all(A_params[:, :3] == 0.0)
+
+
+def test_pose_misfit_adds_its_rows_to_the_drive_leg_and_tracker_factors(platform, cases):
+    # a static pose's misfit b (the tracker's six channels, then the six legs) added to each factor's rows:
+    # the residual is the factor's own plus b[rows], its Jacobians the factor's and the rows' selector on b
+    poses, delta = cases
+    B = pose_misfit.misfit_key(0)
+    b = np.random.default_rng(5).normal(0.0, 0.01, 12)
+    model = TrackerModel(platform.tracker, 0.002)
+    spec = drive_leg.DriveLegs.of([4, 1], drive_model(platform))
+    strokes = 10.0 * np.arange(6) - 20.0
+    pose = poses[1]
+    R, t = pose.rotation().matrix(), pose.translation()
+    readings = kin.inverse_kinematics(platform.tracker, R, t) - 0.05
+    made = [
+        (drive_leg.factor(X, P, spec, strokes, gtsam.noiseModel.Unit.Create(2)), [X, P], 6 + spec.legs),
+        (instrument.factor(model, X, readings, np.array([3, 0]), gtsam.noiseModel.Unit.Create(2)), [X], [3, 0]),
+    ]
+
+    def values(p, d, misfit):
+        v = _values(p, d)
+        v.insert(B, misfit)
+        return v
+
+    for plain, keys, rows in made:
+        noise = plain.noiseModel()
+        if len(keys) == 2:
+            f = drive_leg.factor(X, P, spec, strokes, noise, misfit=(B, rows))
+        else:
+            f = instrument.factor(model, X, readings, np.array([3, 0]), noise, misfit=(B, np.asarray(rows)))
+        assert list(f.keys()) == [*keys, B]
+        expected = plain.unwhitenedError(_values(pose, delta)) + b[rows]
+        np.testing.assert_allclose(f.unwhitenedError(values(pose, delta, b)), expected, rtol=0, atol=1e-12)
+        A, _ = f.linearize(values(pose, delta, b)).jacobian()
+        H_pose = numerical_pose3_jacobian(lambda p, f=f: f.unwhitenedError(values(p, delta, b)), pose)
+        H_b = numerical_jacobian(lambda m, f=f: f.unwhitenedError(values(pose, delta, m)), b)
+        assert relative_error(A[:, :6], H_pose) <= 1e-6
+        assert relative_error(A[:, -12:], H_b) <= 1e-9
+        if len(keys) == 2:
+            H_params = numerical_jacobian(lambda d, f=f: f.unwhitenedError(values(pose, d, b)), delta)
+            assert relative_error(A[:, 6:-12], H_params) <= 1e-6
+
+
+def test_pose_misfit_conditional_with_the_marginal_prior_is_the_joint_gaussian():
+    # b | p of a joint N(mean, Σ) of [p; b], with N(mean_p, Σ_pp) on p: the graph's information is Σ⁻¹
+    # and its optimum the mean (how isam2's rebuild keeps a pose's misfit held across a snapshot)
+    rng = np.random.default_rng(3)
+    n, m = 4, 3
+    A = rng.normal(size=(n + m, n + m))
+    covariance, mean = A @ A.T + 0.1 * np.eye(n + m), rng.normal(size=n + m)
+    B = pose_misfit.misfit_key(2)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorVector(P, mean[:n], gtsam.noiseModel.Gaussian.Covariance(covariance[:n, :n])))
+    conditional = pose_misfit.conditional(P, B, mean, covariance, n)
+    graph.add(conditional)
+    values = gtsam.Values()
+    values.insert(P, rng.normal(size=n))
+    values.insert(B, rng.normal(size=m))
+    ordering = gtsam.Ordering()
+    ordering.push_back(P)
+    ordering.push_back(B)
+    information = graph.linearize(values).hessian(ordering)[0]
+    np.testing.assert_allclose(information, np.linalg.inv(covariance), rtol=1e-9, atol=1e-9)
+    H, _ = conditional.linearize(values).jacobian()
+    whitened = lambda x: conditional.whitenedError(_vector_values(x[:n], x[n:], B))  # noqa: E731
+    x = np.concatenate((values.atVector(P), values.atVector(B)))
+    assert relative_error(H, numerical_jacobian(whitened, x)) <= 1e-9
+    optimum = gtsam.GaussNewtonOptimizer(graph, values).optimize()
+    np.testing.assert_allclose(np.r_[optimum.atVector(P), optimum.atVector(B)], mean, atol=1e-9)
+
+
+def _vector_values(p: np.ndarray, b: np.ndarray, key: int) -> gtsam.Values:
+    values = gtsam.Values()
+    values.insert(P, p)
+    values.insert(key, b)
+    return values

@@ -109,10 +109,7 @@ class LegEKF:
 
     name = "ekf"
 
-    def __init__(self, platform: Platform, config: EstimatorConfig, steps_see_pose_means: bool = True):
-        """``steps_see_pose_means``: where an unannounced payload's steps are tested and no
-        ``noise.pose_misfit_sigma_mm`` is given, carry the in-situ tracker's misfit at its readings' σ
-        (:meth:`_pose_misfit`); False: every reading independent, as a front end whose graph takes them."""
+    def __init__(self, platform: Platform, config: EstimatorConfig):
         self.platform = platform
         self.noise = config.noise
         self.model = instrument_model(platform, config.noise)
@@ -142,7 +139,10 @@ class LegEKF:
             self._leg_set = LegSetPose(self.model, self.drive, self.noise.stroke_sigma_mm)
         self._coordinate_sigma = self.drive.coordinate_sigma(config.noise)
         self._pose = self._leg_set or WarmPose(self.model)
-        pose_misfit = self._pose_misfit(config.noise, payload is not None and steps_see_pose_means)
+        pose_misfit = self._pose_misfit(config.noise, payload is not None)
+        #: ``(κ, tolerance)`` of the in-situ tracker's misfit at a static pose it carries (κ = 0: none;
+        #: :meth:`_pose_misfit`), which isam2's graph carries alike
+        self.pose_misfit = pose_misfit
         compiled_rows = (
             self._leg_set.rows if self._leg_set is not None and payload is None and pose_misfit[0] == 0.0 else None
         )

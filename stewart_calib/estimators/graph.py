@@ -26,6 +26,11 @@ the front end found it (:attr:`GraphBuilder.steps`), opens a new window whose wa
 move by the prior's σ_m, so the step moves ``m`` at that sample (the front end's value after the step
 its initial value), not δM over tens of samples.
 
+The in-situ tracker's misfit at a static pose (``pose_misfit``, where the front end carries it: an unannounced
+payload's steps tested on the tracker, or ``noise.pose_misfit_sigma_mm``): one variable ``b`` a static pose
+(inputs within the tolerance of the pose's first sample's), prior ``N(0, κ R0)``, added to every measurement
+row of the pose's samples (:mod:`stewart_calib.factors.pose_misfit`), so they weigh as their mean, as in ekf.
+
 Measurement factors may carry a Huber or Cauchy kernel (``[isam2] robust``). The initial value
 of ``x_k`` is the instrument's loose pose (the tracker's FK) warm-started from the previous
 sample's pose, or the drive model's FK where the measurement does not fix a pose.
@@ -47,7 +52,7 @@ import numpy as np
 from ..config import EstimatorConfig
 from ..errors import SampleRejected, number
 from ..estimate import Estimate
-from ..factors import diagonal_noise, drive_leg, gauge, instrument, instrument_pose, random_walk
+from ..factors import diagonal_noise, drive_leg, gauge, instrument, instrument_pose, pose_misfit, random_walk
 from ..instruments import instrument_model, instrument_theta
 from ..model.drive import PAYLOAD
 from ..model.platform import Platform
@@ -77,6 +82,10 @@ class ChainState:
         window_samples: samples in the current window.
         last_t_s: time of the last accepted sample [s].
         last_pose: ``(R, t)`` of the last tracker FK, the warm start of the next.
+        misfits: the static poses' misfit variables made so far (:mod:`~stewart_calib.factors.pose_misfit`;
+            the current one's key ``misfit_key(misfits − 1)``).
+        misfit_inputs: the first inputs of the pose the last sample was at, whose misfit the next sample
+            shares where its inputs are within the tolerance of them; None: the next sample is at a new pose.
     """
 
     samples: int = 0
@@ -85,6 +94,8 @@ class ChainState:
     window_samples: int = 0
     last_t_s: float = -math.inf
     last_pose: tuple[np.ndarray, np.ndarray] | None = None
+    misfits: int = 0
+    misfit_inputs: np.ndarray | None = None
 
 
 @dataclass
@@ -119,6 +130,11 @@ class GraphBuilder:
             to the sample (:meth:`epoch`).
         layout: the unknown vector (None: :func:`~.measurement.unknown_layout`'s); ``isam2`` passes its
             front end's, which may end with an unannounced payload (see the module docstring).
+        pose_misfit: ``(κ, tolerance)`` of the in-situ tracker's misfit at a static pose, as its front end
+            carries it (:meth:`LegEKF._pose_misfit <stewart_calib.estimators.ekf.LegEKF._pose_misfit>`): each
+            static pose (inputs within ``tolerance`` of its first sample's) has one misfit variable, prior
+            ``N(0, κ R0)``, added to its samples' measurement rows (:mod:`~stewart_calib.factors.pose_misfit`);
+            None or κ = 0: every sample independent.
 
     Attributes:
         steps: ``{t_s [s]: m [kg]}``: the samples (by time) that open a window as a step of the
@@ -132,6 +148,7 @@ class GraphBuilder:
         chain: bool,
         walk_in_windows: bool = False,
         layout: UnknownLayout | None = None,
+        pose_misfit: tuple[float, float] | None = None,
     ):
         self.platform = platform
         self.noise = config.noise
@@ -179,6 +196,11 @@ class GraphBuilder:
         self.guess_at_windows_only = self._instrument is None and self.model.compiled_legs is not None
         #: the unknown vector's first value (zeros, or the instrument block at its registration)
         self.initial = np.zeros(self.layout.size)
+        self._kappa, self._pose_tolerance = (0.0, 0.0) if pose_misfit is None else pose_misfit
+        # a misfit's rows: the instrument's (tight: its channels; loose: the pose prior's six), then the drive's legs
+        self._misfit_offset = 6 if self.graph.coupling == "loose" else len(self.model.channel_sigma)
+        #: rows of a static pose's misfit variable (0: no misfit)
+        self.misfit_size = self._misfit_offset + self.drive.rows if self._kappa > 0.0 else 0
 
     def _noise(self, channels: np.ndarray, scale2: float = 1.0) -> gtsam.noiseModel.Base:
         """The (robust) noise model of one channel group at ``scale2`` × its variance, made once per
@@ -375,6 +397,17 @@ class GraphBuilder:
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         k, x = state.samples, pose_key(state.samples)
         values.insert(x, pose)
+        loose = self.graph.coupling == "loose" and observed is not None and self._instrument is None
+        misfit, misfits, misfit_inputs = None, state.misfits, state.misfit_inputs
+        if self.misfit_size:
+            pose_inputs = np.asarray(strokes, dtype=float)[: self.drive.rows]
+            if misfit_inputs is None or np.max(np.abs(pose_inputs - misfit_inputs)) > self._pose_tolerance:
+                # a new pose: its misfit drawn afresh, κ R0 in the graph's units (R0 / noise_scale2)
+                misfits, misfit_inputs = misfits + 1, pose_inputs.copy()
+                key = pose_misfit.misfit_key(misfits - 1)
+                values.insert(key, np.zeros(self.misfit_size))
+                factors.add(self._misfit_prior(key, None if not loose else observed.covariance, noise_scale2))  # type: ignore[union-attr]
+            misfit = pose_misfit.misfit_key(misfits - 1)
         if k == 0:
             state = replace(state, window_start_s=sample.t_s)
             values.insert(params_key(0), self.initial)
@@ -393,25 +426,56 @@ class GraphBuilder:
             state = replace(state, window=w + 1, window_start_s=sample.t_s, window_samples=0)
         p = params_key(state.window)
 
-        if self.graph.coupling == "loose" and observed is not None and self._instrument is None:
-            covariance = observed.covariance * measurement_scale2
+        if loose:
+            covariance = observed.covariance * measurement_scale2  # type: ignore[union-attr]
             noise = robust_noise(gtsam.noiseModel.Gaussian.Covariance(covariance), *self._robust)
-            factors.add(instrument_pose.factor(x, pose, noise))
+            rows = None if misfit is None else (misfit, np.arange(6))
+            factors.add(instrument_pose.factor(x, pose, noise, rows))
         else:
             block, size = (None, 0) if self._instrument is None else (self._instrument, self.layout.size)
             for channels, noise, legs in self._factored_groups(z, measurement_scale2):
-                factors.add(instrument.factor(self.model, x, z, channels, noise, p, block, size, legs=legs))
+                rows = None if misfit is None else (misfit, channels)
+                factors.add(
+                    instrument.factor(self.model, x, z, channels, noise, p, block, size, legs=legs, misfit=rows)
+                )
         walked = self._walk_since_window(sample.t_s - state.window_start_s, noise_scale2, walk_rate_mm2_per_s)
         for drive_legs, noise in self._at_scale(measurement_scale2)[0]:
             if walked > 0.0:
                 noise = self._walked_noise(drive_legs, pose.matrix(), inputs, walked, measurement_scale2)
-            factors.add(drive_leg.factor(x, p, drive_legs, inputs, noise, sample.inputs))
+            rows = None if misfit is None else (misfit, self._misfit_offset + drive_legs.legs)
+            factors.add(drive_leg.factor(x, p, drive_legs, inputs, noise, sample.inputs, rows))
 
         # The current parameter key is re-stamped every update so the smoother never
         # marginalises the variable new factors are about to touch (docs/measured-facts.md).
         timestamps = {x: sample.t_s, p: sample.t_s}
-        state = ChainState(k + 1, state.window, state.window_start_s, state.window_samples + 1, sample.t_s, (R, t))
+        if misfit is not None:  # and the pose's misfit, while its samples come
+            timestamps[misfit] = sample.t_s
+        state = ChainState(
+            k + 1,
+            state.window,
+            state.window_start_s,
+            state.window_samples + 1,
+            sample.t_s,
+            (R, t),
+            misfits,
+            misfit_inputs,
+        )
         return Epoch(factors, values, timestamps, state)
+
+    def _misfit_prior(self, key: int, pose_covariance: np.ndarray | None, noise_scale2: float):
+        """A new pose's misfit ``N(0, κ R0 / noise_scale2)``: ``R0`` the configured covariance of the rows it
+        joins (the instrument's channels, or the loose pose prior's ``pose_covariance``; the drive's legs)."""
+        legs = np.full(self.drive.rows, self.drive.coordinate_sigma(self.noise) ** 2)
+        scale = self._kappa / noise_scale2
+        if pose_covariance is None:
+            variances = np.concatenate((np.asarray(self.model.channel_sigma, dtype=float) ** 2, legs))
+            return pose_misfit.prior(key, np.sqrt(scale * variances))
+        covariance = np.zeros((self.misfit_size, self.misfit_size))
+        covariance[:6, :6] = pose_covariance
+        covariance[np.arange(6, self.misfit_size), np.arange(6, self.misfit_size)] = legs
+        return gtsam.PriorFactorVector(
+            key, np.zeros(self.misfit_size), gtsam.noiseModel.Gaussian.Covariance(scale * covariance)
+        )
 
     def _walk_since_window(self, tau_s: float, noise_scale2: float, walk_rate_mm2_per_s: float | None) -> float:
         """The walk's variance ``Q τ / s²`` [code units²] a sample ``tau_s`` after its window's first

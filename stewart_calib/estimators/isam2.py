@@ -18,6 +18,8 @@ import numpy as np
 from ..config import EstimatorConfig
 from ..errors import CalibError, SampleRejected, number
 from ..estimate import Estimate
+from ..factors import pose_misfit
+from ..factors.pose_misfit import misfit_key
 from ..model.drive import PAYLOAD
 from ..model.platform import Platform
 from ..samples import Log, Sample
@@ -94,7 +96,11 @@ class ISAM2Estimator:
     factor lets the payload move by its prior σ, from the front end's value after the step
     (:attr:`GraphBuilder.steps`, kept with the samples they open windows at through trims, rebuilds and
     checkpoints), and the samples the front end refused since are taken back into the graph; the
-    result carries the steps taken as ``"payload_steps"``, as ekf's.
+    result carries the steps taken as ``"payload_steps"``, as ekf's. Where the front end carries the in-situ
+    tracker's misfit at a static pose (:attr:`LegEKF.pose_misfit <stewart_calib.estimators.ekf.LegEKF.pose_misfit>`),
+    the graph holds one misfit variable a pose (:mod:`.graph`), marginalised with the lag once the pose is left;
+    a snapshot taken within a pose holds the joint marginal of the window's variable and that pose's misfit,
+    which a rebuild puts back as the parameters' prior and the misfit's conditional on them.
     """
 
     name = "isam2"
@@ -109,11 +115,17 @@ class ISAM2Estimator:
             dataclasses.replace(
                 config, ekf=dataclasses.replace(config.ekf, gate_probability=config.isam2.gate_probability)
             ),
-            # the graph weighs every reading as independent: its front end's steps are tested alike
-            steps_see_pose_means=False,
         )
-        # the front end's unknown vector, an unannounced payload included: the graph starts from its Gaussians
-        self._builder = GraphBuilder(platform, config, chain=True, walk_in_windows=True, layout=self._front.layout)
+        # the front end's unknown vector, an unannounced payload included: the graph starts from its Gaussians;
+        # and the in-situ tracker's misfit at a static pose where the front end carries it
+        self._builder = GraphBuilder(
+            platform,
+            config,
+            chain=True,
+            walk_in_windows=True,
+            layout=self._front.layout,
+            pose_misfit=self._front.pose_misfit,
+        )
         payload = self._front.layout.slice(PAYLOAD)
         self._payload = None if payload is None else payload.start
         # The front end lowers the walk rate only where the window differences reject the configured
@@ -134,6 +146,8 @@ class ISAM2Estimator:
         thresholds = gtsam.ISAM2ThresholdMap()  # per variable type: poses mix rad and mm
         thresholds.insert(("x", np.r_[[rad] * 3, [mm] * 3]))
         thresholds.insert(("p", np.full(self._builder.layout.size, mm)))
+        if self._builder.misfit_size:
+            thresholds.insert(("b", np.full(self._builder.misfit_size, mm)))
         params.setRelinearizeThreshold(thresholds)
         params.relinearizeSkip = 1
         # Reuse the slots of removed factors so the factor index stays bounded too.
@@ -553,8 +567,14 @@ class ISAM2Estimator:
         """The current window's :class:`_Snapshot` where a sample at ``t_s`` opens the next, else None."""
         if not self._builder.new_window(self._state, t_s, self._window_fraction(self._state)):
             return None
-        covariance = self._smoother.marginalCovariance(params_key(self._state.window))
-        return _Snapshot(self._state, self._current_params(), 0.5 * (covariance + covariance.T), len(self._replay))
+        p = params_key(self._state.window)
+        if self._state.misfit_inputs is None:
+            covariance, mean = self._smoother.marginalCovariance(p), self._current_params()
+        else:  # a pose held across the window: its misfit's joint marginal too (the next samples share it)
+            b = misfit_key(self._state.misfits - 1)
+            covariance = self._smoother.getISAM2().jointMarginalCovariance([p, b]).fullMatrix()
+            mean = np.concatenate((self._current_params(), self._smoother.calculateEstimateVector(b)))
+        return _Snapshot(self._state, mean, 0.5 * (covariance + covariance.T), len(self._replay))
 
     def _trim(self, t_s: float) -> None:
         """Drop what the newest snapshot at least one lag old makes redundant."""
@@ -587,11 +607,20 @@ class ISAM2Estimator:
         self._smoother = gtsam.IncrementalFixedLagSmoother(self._lag_s, self._params)
         self._state, self._snapshots, self._replay = ChainState(), [], []
         if first is not None:
-            p = params_key(first.state.window)
-            factors, values = self._builder.gaussian_prior(p, first.mean, first.covariance), gtsam.Values()
-            values.insert(p, first.mean)
-            self._smoother.update(factors, values, {p: first.state.last_t_s})
-            self._state = first.state
+            p, n = params_key(first.state.window), self._builder.layout.size
+            factors = self._builder.gaussian_prior(p, first.mean[:n], first.covariance[:n, :n])
+            values, timestamps = gtsam.Values(), {p: first.state.last_t_s}
+            values.insert(p, first.mean[:n])
+            state = first.state
+            if len(first.mean) > n:  # the misfit of the pose held across it, as b | p (pose_misfit.conditional)
+                b = misfit_key(state.misfits - 1)
+                factors.add(pose_misfit.conditional(p, b, first.mean, first.covariance, n))
+                values.insert(b, first.mean[n:])
+                timestamps[b] = state.last_t_s
+            elif state.misfit_inputs is not None:  # a Gaussian without it (the front end's): a new pose next
+                state = replace(state, misfit_inputs=None)
+            self._smoother.update(factors, values, timestamps)  # type: ignore[arg-type]  # gtsam stubs, as below
+            self._state = state
             self._snapshots = [replace(first, offset=0)]  # the buffer starts at it (checkpoints, rebuilds)
         for sample in samples:  # may be the old buffer: the attribute was rebound above, not cleared
             self._add(sample)
@@ -730,14 +759,19 @@ class ISAM2Estimator:
         first = None
         if "snapshot" in state:
             snapshot = state["snapshot"]
-            size = self._builder.layout.size
+            chain = _chain_from_dict(snapshot.get("chain", {}))
+            n = self._builder.layout.size
+            # with the misfit of a pose held across the snapshot, its joint marginal with it (_window_snapshot)
+            size = n + (self._builder.misfit_size if chain.misfit_inputs is not None else 0)
             mean = state_array(snapshot, "mean", (size,))
             covariance = _snapshot_covariance(snapshot, size, self._front.robust.noise_scale2)
-            if not np.all(np.isfinite(covariance)) or np.any(
-                np.linalg.eigvalsh(self._builder.prior_covariance(covariance)) <= 0.0
+            if (
+                not np.all(np.isfinite(covariance))
+                or np.any(np.linalg.eigvalsh(self._builder.prior_covariance(covariance[:n, :n])) <= 0.0)
+                or (size > n and np.any(np.linalg.eigvalsh(0.5 * (covariance + covariance.T)) <= 0.0))
             ):
                 raise CalibError("estimator state: snapshot covariance is not positive definite")
-            first = _Snapshot(_chain_from_dict(snapshot.get("chain", {})), mean, covariance, 0)
+            first = _Snapshot(chain, mean, covariance, 0)
         scales = state.get("window_scales", {})  # an older checkpoint has none: the front end's scale
         scale_t_s = state_array(scales, "t_s", np.shape(scales.get("t_s", ())))
         scale2 = state_array(scales, "noise_scale2", (len(scale_t_s),))
@@ -777,7 +811,9 @@ class _Snapshot:
     opened: everything the samples up to then say about δM, as one Gaussian.
 
     Attributes:
-        state: the chain state at that moment. mean: δM [mm]. covariance: [mm²].
+        state: the chain state at that moment. mean: δM [mm]. covariance: [mm²]. Where the platform
+            held a pose across the window (``state.misfit_inputs``), both of ``[δM; b]``, ``b`` that
+            pose's misfit (:mod:`~stewart_calib.factors.pose_misfit`), which the next samples share.
         offset: index in the replay buffer of the first sample of the next window.
     """
 
@@ -810,12 +846,17 @@ def _chain_to_dict(state: ChainState) -> dict:
     }
     if state.last_pose is not None:
         out["last_R"], out["last_t"] = state.last_pose
+    if state.misfits:  # the static poses' misfits (pose_misfit): their count, the held pose's first inputs
+        out["misfits"] = np.int64(state.misfits)
+        if state.misfit_inputs is not None:
+            out["misfit_inputs"] = state.misfit_inputs
     return out
 
 
 def _chain_from_dict(d: dict) -> ChainState:
     integer = lambda key: int(state_array(d, key, ()))  # noqa: E731
     pose = (state_array(d, "last_R", (3, 3)), state_array(d, "last_t", (3,))) if "last_R" in d else None
+    inputs = state_array(d, "misfit_inputs", np.shape(d["misfit_inputs"])) if "misfit_inputs" in d else None
     return ChainState(
         integer("samples"),
         integer("window"),
@@ -823,4 +864,6 @@ def _chain_from_dict(d: dict) -> ChainState:
         integer("window_samples"),
         float(state_array(d, "last_t_s", ())),
         pose,
+        integer("misfits") if "misfits" in d else 0,
+        None if inputs is None else np.array(inputs, dtype=float).reshape(-1),
     )

@@ -8,6 +8,7 @@ Jacobians plus a thin ``gtsam.CustomFactor`` adapter.
   the paper's way).
 * :mod:`.random_walk` — the unknown vector's random walk between parameter windows and its prior.
 * :mod:`.gauge` — the gauge constraint ``C x = 0`` where an instrument's unknowns share the drive's.
+* :mod:`.pose_misfit` — the in-situ tracker's misfit at a static pose, added to its samples' rows.
 """
 
 import gtsam

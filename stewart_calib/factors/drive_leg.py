@@ -38,6 +38,7 @@ import gtsam
 import numpy as np
 
 from ..model.drive import DriveModel
+from . import pose_misfit
 from ._kernels import drive_leg_rows, drive_leg_rows_numpy
 
 
@@ -134,6 +135,7 @@ def factor(
     inputs: np.ndarray,
     noise: gtsam.noiseModel.Base,
     channels=None,
+    misfit: tuple[int, np.ndarray] | None = None,
 ) -> gtsam.CustomFactor:
     """A ``CustomFactor`` on ``(Pose3 pose_key, unknown vector params_key)``: one row per leg of
     ``legs`` (all six in one factor unless a robust kernel weighs each alone).
@@ -143,9 +145,12 @@ def factor(
         channels: the sample's input channels (``Sample.inputs``): where the drive is elastic, the
             payload its leg forces carry (spec §10), taken again at each evaluation's pose.
         noise: of the ``k`` rows.
+        misfit: ``(key, rows)``: a static pose's misfit variable and its rows of these legs, added to the
+            residual (:mod:`.pose_misfit`); None: none.
 
     The residual and both Jacobians are one compiled call for prismatic legs (:func:`._kernels.drive_leg_rows`,
     on :func:`stewart_calib.model.kinematics.leg_residual`'s kernel), else the drive model's numpy rows.
     """
     u = np.array(inputs, dtype=float)
-    return gtsam.CustomFactor(noise, [pose_key, params_key], partial(_error, legs, u, channels, pose_key, params_key))
+    error = partial(_error, legs, u, channels, pose_key, params_key)
+    return pose_misfit.custom(noise, [pose_key, params_key], error, misfit)

@@ -31,6 +31,7 @@ import gtsam
 import numpy as np
 
 from ..instruments.base import InstrumentModel
+from . import pose_misfit
 from ._kernels import known_leg_rows, pose_reading_rows, unknown_leg_rows
 
 _KNOWN = np.zeros(0)  # θ of a model without unknowns
@@ -125,6 +126,7 @@ def factor(
     block: slice | None = None,
     size: int = 0,
     legs: np.ndarray | None = None,
+    misfit: tuple[int, np.ndarray] | None = None,
 ) -> gtsam.CustomFactor:
     """A ``CustomFactor`` for ``channels`` of the measurement ``z``.
 
@@ -132,12 +134,14 @@ def factor(
         params_key, block, size: the unknown-vector variable, the model's columns in it and its
             length; all three when the model has unknowns, none otherwise.
         legs: :func:`known_legs` of ``channels`` where the caller keeps them (else found here).
+        misfit: ``(key, rows)``: a static pose's misfit variable and its rows of these channels, added to
+            the residual (:mod:`.pose_misfit`); None: none.
     """
     channels = np.asarray(channels, dtype=np.int64)
     z = np.asarray(z, dtype=float)
     legs = known_legs(model, channels) if legs is None else legs
     if legs is not None:
-        return gtsam.CustomFactor(noise, [pose_key], partial(_known_legs_error, legs, z[channels], pose_key))
+        return pose_misfit.custom(noise, [pose_key], partial(_known_legs_error, legs, z[channels], pose_key), misfit)
     keys = [pose_key] if block is None or params_key is None else [pose_key, params_key]
     unknowns = model.unknowns
     if (
@@ -148,15 +152,15 @@ def factor(
         and len(channels) == len(z)  # the whole reading, in one compiled call
     ):
         nominal = np.ascontiguousarray(unknowns.nominal, dtype=float)
-        return gtsam.CustomFactor(
-            noise, keys, partial(_pose_reading_error, np.array(z), nominal, block, size, tuple(keys))
+        return pose_misfit.custom(
+            noise, keys, partial(_pose_reading_error, np.array(z), nominal, block, size, tuple(keys)), misfit
         )
     if model.compiled_unknown_legs and unknowns is not None and block is not None and len(keys) == 2:
         nominal = np.ascontiguousarray(unknowns.nominal, dtype=float)
         per_leg = unknowns.size // len(model.columns)  # the unknowns: one leg's row a reading channel
         columns = block.start + per_leg * channels[:, None] + np.arange(per_leg)
         readings = np.ascontiguousarray(z[channels])
-        return gtsam.CustomFactor(
-            noise, keys, partial(_unknown_legs_error, readings, nominal, block, columns, tuple(keys))
+        return pose_misfit.custom(
+            noise, keys, partial(_unknown_legs_error, readings, nominal, block, columns, tuple(keys)), misfit
         )
-    return gtsam.CustomFactor(noise, keys, partial(_error, model, z, channels, block, size, tuple(keys)))
+    return pose_misfit.custom(noise, keys, partial(_error, model, z, channels, block, size, tuple(keys)), misfit)

@@ -16,6 +16,8 @@ from functools import partial
 import gtsam
 import numpy as np
 
+from . import pose_misfit
+
 
 def residual(measured: gtsam.Pose3, pose: gtsam.Pose3, jacobians: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
     """``Log(T_m⁻¹ T)`` ``(6,)`` and, if asked, its Jacobian ``(6, 6)`` on the body tangent of ``pose``."""
@@ -34,6 +36,9 @@ def _error(measured: gtsam.Pose3, this: gtsam.CustomFactor, values: gtsam.Values
     return e
 
 
-def factor(pose_key: int, measured: gtsam.Pose3, noise: gtsam.noiseModel.Base) -> gtsam.CustomFactor:
-    """A unary ``CustomFactor`` on ``Pose3 pose_key``: the pose prior ``T_m`` with ``noise``."""
-    return gtsam.CustomFactor(noise, [pose_key], partial(_error, measured))
+def factor(
+    pose_key: int, measured: gtsam.Pose3, noise: gtsam.noiseModel.Base, misfit: tuple[int, np.ndarray] | None = None
+) -> gtsam.CustomFactor:
+    """A unary ``CustomFactor`` on ``Pose3 pose_key``: the pose prior ``T_m`` with ``noise``; with ``misfit =
+    (key, rows)`` a static pose's misfit variable's rows added to it (:mod:`.pose_misfit`)."""
+    return pose_misfit.custom(noise, [pose_key], partial(_error, measured), misfit)
