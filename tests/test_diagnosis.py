@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -279,10 +280,9 @@ def test_validate_diagnoses_the_held_out_log_and_names_a_moved_frame(tmp_path, c
     assert "looks moved" not in capsys.readouterr().err  # the calibration's own session: nothing moved
 
 
-def test_validate_verdict_through_a_moved_frame_blames_the_frame_not_the_robot(tmp_path, capsys):
-    """Where validate names a moved frame ("not the robot"), its verdict does not hold the errors through
-    that frame against the tolerance (calling the motion over and asking for more poses): it says the
-    frame moved and what to add."""
+def _calibrated_then_moved(tmp_path, capsys) -> tuple[dict, Path, list[str]]:
+    """A hobby session calibrated by ls (``fit.csv``) and another day's log with the cameras moved
+    (``moved.csv``): the logs' paths, the result's, and the ``--platform … --out`` arguments."""
     fit = _pose_case()
     moved = idata.make_case(idata.hobby(), 60, 3, InstrumentTruth(FRAME + [8.0, -5.0, 3.0, 1.0, 0.5, -2.0], TARGET))
     paths = {name: tmp_path / f"{name}.csv" for name in ("fit", "moved")}
@@ -292,6 +292,14 @@ def test_validate_verdict_through_a_moved_frame_blames_the_frame_not_the_robot(t
     common = ["--platform", "hobby-hexapod", "--out"]
     assert cli.main(["calibrate", *common, str(result), "--log", str(paths["fit"]), "--method", "ls"]) == 0
     capsys.readouterr()
+    return paths, result, common
+
+
+def test_validate_verdict_through_a_moved_frame_blames_the_frame_not_the_robot(tmp_path, capsys):
+    """Where validate names a moved frame ("not the robot"), its verdict does not hold the errors through
+    that frame against the tolerance (calling the motion over and asking for more poses): it says the
+    frame moved and what to add."""
+    paths, result, common = _calibrated_then_moved(tmp_path, capsys)
     validate = ["validate", *common, str(tmp_path / "V.csv"), "--result", str(result), "--log", str(paths["moved"])]
     for report in ([], ["--report", str(tmp_path / "report")]):  # the report reads the log whole: named there too
         assert cli.main([*validate, "--tolerance-mm", "1", *report]) == 0  # the prediction's motion: 0.2–0.65 mm
@@ -311,15 +319,7 @@ def test_validate_without_register_names_each_sides_frame_and_compares_no_moved_
     "calibration made it 2× worse". Where the moved-frame hint fires, the nominal model's figures stand
     alone, the calibrated model's not set beside them; on the calibration's own session (nothing moved)
     the comparison stands with each side's frame named."""
-    fit = _pose_case()
-    moved = idata.make_case(idata.hobby(), 60, 3, InstrumentTruth(FRAME + [8.0, -5.0, 3.0, 1.0, 0.5, -2.0], TARGET))
-    paths = {name: tmp_path / f"{name}.csv" for name in ("fit", "moved")}
-    write_log(paths["fit"], fit.log, fit.platform)
-    write_log(paths["moved"], moved.log, fit.platform)
-    result = tmp_path / "r.json"
-    common = ["--platform", "hobby-hexapod", "--out"]
-    assert cli.main(["calibrate", *common, str(result), "--log", str(paths["fit"]), "--method", "ls"]) == 0
-    capsys.readouterr()
+    paths, result, common = _calibrated_then_moved(tmp_path, capsys)
     validate = ["validate", *common, str(tmp_path / "V.csv"), "--result", str(result), "--log"]
     assert cli.main([*validate, str(paths["moved"])]) == 0
     (line,) = [line for line in capsys.readouterr().err.splitlines() if "pose error RMS" in line]
