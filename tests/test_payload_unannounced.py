@@ -100,36 +100,46 @@ def test_isam2_carries_the_trackers_misfit_per_pose_and_keeps_it_through_a_check
     # isam2 with the default configuration on the paper's experiment (seed 2), the tracker's 15 µm geometry
     # residual a misfit over each static pose's 8 samples: its graph holds one misfit variable a pose, as its
     # front end (ekf) does, so a pose's samples count as their mean. With every reading independent in the
-    # graph: 14 steps, 39.43 ± 0.09 kg (6.7σ off). Exported within a pose (its misfit held across the
-    # checkpoint's snapshot), resumed and fed the rest: the uninterrupted run's payload and δM
+    # graph: 14 steps, 39.43 ± 0.09 kg (6.7σ off). Resumed and fed the rest, the uninterrupted run's payload
+    # and δM from a checkpoint exported within a pose (its misfit held across the checkpoint's snapshot), and
+    # from one exported between the step and its confirmation lockout_window_samples later, while the front
+    # end's gate refuses the samples after the step (which the graph takes back once it is confirmed): those
+    # samples were not in the checkpoint, and resumed there the graph ended at 8.7 kg
     from stewart_calib.estimators import make_estimator
     from stewart_calib.estimators.base import update_each
 
     experiment = paper_payload_experiment(tmp_path, seed=2)
-    log = replace(run_experiment(experiment).log, inputs={})
+    run = run_experiment(experiment)
+    log = replace(run.log, inputs={})
     platform = replace(experiment.platform, elastic=replace(elastic_of(experiment.load), payload_sigma_kg=50.0))
     config = load_estimator_config(resolve("default", "estimators"))
     samples = list(log)
+    step = int(np.argmax(np.asarray(run.payload_kg) > 0.0))  # the sample the payload goes on at (1060)
     one, half = make_estimator("isam2", platform, config), make_estimator("isam2", platform, config)
-    update_each(one, samples)
+    unconfirmed = step + config.robust.lockout_window_samples // 2
+    refused, _ = update_each(one, samples[:unconfirmed])
+    assert one.estimate().details["payload_steps"] == 0 and any(k >= step for k, _ in refused)
+    checkpoints = {unconfirmed: one.export_state()}
+    update_each(one, samples[unconfirmed:])
     end = one.estimate()
     payload = end.block_results()["payload"]
     found, sigma = payload["estimate"][0], payload["stddev"][0]
     assert end.details["payload_steps"] == 1  # the one the log has
     assert abs(found - PAYLOAD_STAGE_KG) < 2.0 * sigma and sigma < 1.0, payload
-    cut = 3 * len(samples) // 4  # after the step (sample 1060)
+    cut = 3 * len(samples) // 4  # after the step
     update_each(half, samples[:cut])
     while not (_within_pose(samples, cut) and len(half._first_snapshot().mean) > end.layout.size):
         update_each(half, [samples[cut]])
         cut += 1
-    state = half.export_state()
-    assert "misfit_inputs" in state["chain"] and "misfit_inputs" in state["snapshot"]["chain"]
-    resumed = make_estimator("isam2", platform, config)
-    resumed.import_state(state)
-    update_each(resumed, samples[cut:])
-    again = resumed.estimate()
-    assert abs(again.unannounced_payload_kg() - end.unannounced_payload_kg()) < 1e-3 * sigma
-    np.testing.assert_allclose(again.error, end.error, rtol=0, atol=1e-5)
+    checkpoints[cut] = half.export_state()
+    assert "misfit_inputs" in checkpoints[cut]["chain"] and "misfit_inputs" in checkpoints[cut]["snapshot"]["chain"]
+    for cut, state in checkpoints.items():
+        resumed = make_estimator("isam2", platform, config)
+        resumed.import_state(state)
+        update_each(resumed, samples[cut:])
+        again = resumed.estimate()
+        assert abs(again.unannounced_payload_kg() - end.unannounced_payload_kg()) < 1e-3 * sigma, cut
+        np.testing.assert_allclose(again.error, end.error, rtol=0, atol=1e-5, err_msg=f"resumed at sample {cut}")
 
 
 def _within_pose(samples, k: int) -> bool:

@@ -95,7 +95,7 @@ class ISAM2Estimator:
     samples after it confirm it) opens a parameter window at the sample it happened at, whose walk
     factor lets the payload move by its prior σ, from the front end's value after the step
     (:attr:`GraphBuilder.steps`, kept with the samples they open windows at through trims, rebuilds and
-    checkpoints), and the samples the front end refused since are taken back into the graph; the
+    checkpoints), and the samples the front end refused since (checkpointed too) are taken back into the graph; the
     result carries the steps taken as ``"payload_steps"``, as ekf's. Where the front end carries the in-situ
     tracker's misfit at a static pose (:attr:`LegEKF.pose_misfit <stewart_calib.estimators.ekf.LegEKF.pose_misfit>`),
     the graph holds one misfit variable a pose (:mod:`.graph`), marginalised with the lag once the pose is left;
@@ -725,6 +725,12 @@ class ISAM2Estimator:
                 "t_s": np.array(list(self._builder.steps), dtype=float),
                 "payload_kg": np.array(list(self._builder.steps.values()), dtype=float),
             }
+            # the samples the front end's gate refused while a candidate step was being tested, which the graph
+            # takes back in once the step is confirmed (_note_step): without them, a checkpoint taken between a
+            # step and its confirmation left the graph without the samples after the step
+            state["front_gated"] = samples_to_arrays(
+                self._front_gated, self._builder.drive.rows, len(self._builder.model.columns)
+            )
         if self._held.active:
             state["held"] = self._held.export_state()
         else:
@@ -793,6 +799,10 @@ class ISAM2Estimator:
             if not np.all(np.isfinite(step_kg)):
                 raise CalibError("estimator state: key 'payload_steps.payload_kg': expected finite masses")
             self._builder.steps = dict(zip(step_t_s.tolist(), step_kg.tolist(), strict=True))
+        if "front_gated" in state:  # an older checkpoint has none: a step confirmed after it takes back those since
+            self._front_gated = samples_from_arrays(
+                state["front_gated"], self._builder.drive.rows, len(self._builder.model.columns)
+            )
         try:
             self._rebuild(first, replayed)
         except SampleRejected as err:
