@@ -133,6 +133,14 @@ def test_isam2_carries_the_trackers_misfit_per_pose_and_keeps_it_through_a_check
         cut += 1
     checkpoints[cut] = half.export_state()
     assert "misfit_inputs" in checkpoints[cut]["chain"] and "misfit_inputs" in checkpoints[cut]["snapshot"]["chain"]
+    # a sample gtsam fails on is taken back from the front end (its anchor, then the samples fed since but that
+    # one): the refused samples among them are noted once, not again beside their first note
+    resumed = make_estimator("isam2", platform, config)
+    resumed.import_state(checkpoints[unconfirmed])
+    update_each(resumed, samples[unconfirmed : unconfirmed + 3])
+    resumed._take_back_from_front()
+    noted = [s.t_s for s in resumed._front_gated]
+    assert noted[-2:] == [s.t_s for s in samples[unconfirmed : unconfirmed + 2]] and noted == sorted(set(noted))
     for cut, state in checkpoints.items():
         resumed = make_estimator("isam2", platform, config)
         resumed.import_state(state)

@@ -419,6 +419,9 @@ class ISAM2Estimator:
             return
         self._front.import_state(anchor)
         self._forget_steps_after(self._state.last_t_s)
+        # the samples fed since the anchor that its gate refused are noted again as they are fed again (and
+        # the last one never came): kept as well, a step confirmed later took them into the graph twice
+        self._front_gated = [s for s in self._front_gated if s.t_s < self._front_since[0].t_s]
         self._front_since = []
         for sample in replay:
             self._front_since.append(sample)
