@@ -176,3 +176,37 @@ def test_any_leg_model_gets_the_compiled_leg_residual():
     generic = dataclasses.replace(platform, drive=numpy_legs(legs))
     compiled = rms_leg_residual_mm(platform, error, log.strokes, log.readings)
     assert rms_leg_residual_mm(generic, error, log.strokes, log.readings) == pytest.approx(compiled, rel=1e-9)
+
+
+def test_an_estimate_beyond_the_prior_says_the_robot_is_built_looser_than_it(tmp_path, capsys):
+    """A laser tracker's three reflectors on a hand-built hobby hexapod whose encoder zeros are ~15 mm off,
+    calibrated under the laser-tracker config's 5 mm prior: lm's largest error reaches 4.1 prior σ, beyond the
+    3.7 the largest of 42 errors of a robot built to the prior stays within in 99 % of robots, and calibrate
+    says so with the σ to give; the same robot built to 3 mm (largest 1.1 σ), and ls, say nothing."""
+    from stewart_calib.analysis.plausibility import prior_reach_warning
+    from stewart_calib.config import load_estimator_config
+    from stewart_calib.workflows.calibration import run_calibration
+    from tests.instrument_data import hobby, make_case
+    from tests.test_instrument_ls import POINTS, POINTS_TRUTH
+
+    platform = hobby(POINTS)
+    config = load_estimator_config("laser-tracker", ["noise.stroke_sigma_mm=0.001"])
+    loose, built = (make_case(platform, 100, 300, POINTS_TRUTH, length_spread_mm=s) for s in (15.0, 3.0))
+    for case, warns in ((loose, True), (built, False)):
+        estimate = run_calibration(platform, case.log, "lm", config).estimate
+        line = prior_reach_warning(platform, estimate.error, config.noise, "lm")
+        assert (line is not None) == warns, line
+    assert prior_reach_warning(platform, np.full(42, 50.0), config.noise, "ls") is None
+    assert "--set noise.prior_sigma_mm=" in line_of(tmp_path, capsys, platform, loose.log)
+
+
+def line_of(tmp_path, capsys, platform, log) -> str:
+    """calibrate's line on the prior, lm with the laser-tracker config, on ``log`` of ``platform`` (files in
+    ``tmp_path``; the stroke range as wide as the robot's 15 mm zeros take its strokes)."""
+    (tmp_path / "p.toml").write_text(platform_to_toml(dataclasses.replace(platform, stroke_range=(-50.0, 150.0))))
+    write_log(tmp_path / "log.csv", log, platform)
+    argv = ["calibrate", "--platform", tmp_path / "p.toml", "--log", tmp_path / "log.csv", "--method", "lm"]
+    argv += ["--config", "laser-tracker", "--set", "noise.stroke_sigma_mm=0.001", "--out", tmp_path / "r.json"]
+    assert cli.main([str(a) for a in argv]) == 0
+    (line,) = [text for text in capsys.readouterr().err.splitlines() if "× the prior σ" in text]
+    return line
