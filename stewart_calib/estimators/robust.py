@@ -168,7 +168,10 @@ class RobustFilter:
             step explains a significant part of (it lowers the NIS by more than that bound), so a
             ramp or a step too small for one sample is found from the evidence of many, and one
             sample's misfit is no step unless the samples after it agree. The samples buffered
-            before a step taken are let go (a window across the step fits neither side).
+            before a step taken are let go (a window across the step fits neither side). A step taken
+            begins a change that may go on (a payload put on over seconds): until a candidate from the
+            filter before it loses, the candidates begin there, so that the samples taken while the
+            unknown moved leave the estimate.
         step_factors: ``(columns, nominal)`` of the unknowns a ``step`` unknown multiplies in the
             observation (an unannounced payload, the compliance: row ``k``'s residual is bilinear in it and
             ``x[columns[k]]``), whose values are ``nominal + x[columns]``: the ``step`` unknown is then held
@@ -222,9 +225,14 @@ class RobustFilter:
         self.steps = 0
         #: the time of the sample the last step taken happened at (NaN before any)
         self.step_t_s = math.nan
+        #: the time of the last sample the filter the last step taken began from held: those between it and
+        #: ``step_t_s`` are out of the estimate, taken while the unknown moved (NaN before any)
+        self.step_origin_t_s = math.nan
         # candidate steps run beside the filter (_test_steps), and the samples since the last one began
         self._candidates: list[_Candidate] = []
         self._since_candidate = 0
+        # the filter before the last step taken began, while the change it began may go on (_test_steps)
+        self._change_origin: _Origin | None = None
         # NIS per row of the samples the filter took lately: the dispersion the candidates' ratios are read at
         self._dispersions: deque = deque(maxlen=DISPERSION_SAMPLES)
         self.filter = FilterState(method, prior_sigma_mm, gate_probability, m, layout, C)
@@ -331,8 +339,13 @@ class RobustFilter:
         except SampleRejected as err:
             if err.reason == SampleRejected.GATED:
                 self._buffer.append(t_s, prepared, True)
-                # a candidate step that explains the samples the filter refuses is given its window first
-                if self._locked_out() and not any(self._leads(c) for c in self._candidates):
+                # a candidate step that explains the samples the filter refuses is given its window first, and
+                # while a change goes on, the candidates from before it (the filter lags the moving unknown)
+                if (
+                    self._locked_out()
+                    and self._change_origin is None
+                    and not any(self._leads(c) for c in self._candidates)
+                ):
                     self._recover()
             raise
         self._buffer.append(t_s, prepared, False)
@@ -631,16 +644,32 @@ class RobustFilter:
         paper``, a 40 kg step: 23.0 ± 4.0, 32.2 ± 6.8, 36.6 ± 7.4 kg, seeds 1–3; at each pose 39.0 ± 9.8,
         39.1 ± 9.5, 38.6 ± 8.4). Where the scale is measured and the misfit is not modelled, the windows
         take the samples for as white as one pose's are, and a candidate at a new pose takes that pose's
-        misfit for a step (the default configuration there: 16–29 steps taken)."""
+        misfit for a step (the default configuration there: 16–29 steps taken).
+
+        A step taken begins a change that may go on: the unknown put on over seconds (the paper's payload, over
+        20 s) is found as a run of steps, each taken ``lockout_window_samples`` after it began, and the samples
+        between were taken at a value the filter had not caught up with; what they leave along the ridge the
+        samples see (the payload's column is bilinear in it and the compliance) stays (ekf, default configuration,
+        the paper's 0/20/40 kg experiment: 38.25 ± 0.31, 37.94 ± 0.34, 39.33 ± 0.51 kg, seeds 1–3; without the
+        ramps' samples 40.20 ± 0.37, 39.74 ± 0.39, 40.45 ± 0.55). So while a change goes on the candidates begin
+        from its origin, the filter before the sample the first step began at (walked to the sample, the step's
+        variance added), and a candidate taken from there leaves out the samples between (the step that follows a
+        ramp as far as it has come, not the sum of steps each taken at the value before). The change is over once a
+        candidate from the origin has seen a window of samples and the filter explains them at least as well (its
+        ratio ≤ 0: the samples the filter kept since tell the unknown no worse than the origin and one step); until
+        then a lock-out waits for the candidates, since the filter lags the moving unknown by design (a recovery's
+        batch there re-solved the compliance against a payload some kilograms behind)."""
         f = self.filter
         index, variance = step
         S = self._predicted(f.P + f.Q, H, R0, self._misfit, prepared)
-        nu_raw, nu = nu, self._innovation(nu, self._misfit, prepared)
+        nu = self._innovation(nu, self._misfit, prepared)
         filter_ll = _log_likelihood(nu, S)
         filter_takes = not filter_ll.nis > f.gate_nis
         self._dispersions.append(min(filter_ll.nis, f.gate_nis) / len(nu))
         candidates = []
+        change_over = False
         for c in self._candidates:
+            from_change = self._change_origin is not None and c.origin is self._change_origin
             observation = self._observe_or_none(prepared, c.x)
             if observation is None:
                 candidates.append(c)
@@ -654,8 +683,12 @@ class RobustFilter:
                 taken_ll = _log_likelihood(self._innovation(observation[0], c.misfit, prepared), S_c)
                 ratio = c.ratio + taken_ll.value - filter_ll.value
                 candidates.append(
-                    _Candidate(x, P, ratio, nis, c.taken + 1, c.readmitted + (not filter_takes), c.t_s, misfit)
+                    _Candidate(
+                        x, P, ratio, nis, c.taken + 1, c.readmitted + (not filter_takes), c.t_s, c.origin, misfit
+                    )
                 )
+                # a window of samples, and the filter's state explains them as well: the change was over
+                change_over |= from_change and c.taken + 1 >= self._robust.lockout_window_samples and ratio <= 0.0
             elif not filter_takes:
                 candidates.append(c)  # both refuse it: it tells neither apart
         self._since_candidate += 1
@@ -671,14 +704,18 @@ class RobustFilter:
             or (filter_ll.nis - float(nu @ np.linalg.solve(stepped, nu)) > self._step_bound)
         ):
             self._since_candidate = 0
-            stepped_Q = f.Q.copy()
+            origin = self._change_origin or _Origin(f.x.copy(), f.P.copy(), self._misfit, f.t_s, f.samples_used)
+            stepped_Q = np.zeros_like(f.Q)  # the walk since the origin's last sample, and the step
+            self._fill_Q(stepped_Q, 0.0 if math.isnan(origin.t_s) else t_s - origin.t_s)
             stepped_Q[index, index] += variance
-            start = self._stepped_update(t_s, prepared, nu_raw, H, R0, stepped_Q)
+            start = self._stepped_update(t_s, prepared, origin, R0, stepped_Q, filter_takes)
             if start is not None:
                 candidates.append(start)
                 if len(candidates) > MAX_STEP_CANDIDATES:  # the least likely of the older ones goes
                     candidates.pop(int(np.argmin([c.ratio for c in candidates[:-1]])))
         self._candidates = candidates
+        if change_over:
+            self._change_origin = None
         if not candidates:
             return False
         best = candidates[int(np.argmax([c.ratio for c in candidates]))]
@@ -686,8 +723,10 @@ class RobustFilter:
             return False
         f.x, f.P, f.nis, f.S = best.x, best.P, best.nis, S
         self._misfit = best.misfit
-        # this sample, and those the filter refused before and the step takes back in
-        f.samples_used += 1 + best.readmitted - (not filter_takes)
+        # the origin's samples, the one the step began at and those it took after it
+        f.samples_used = best.origin.samples_used + 1 + best.taken
+        self._change_origin = best.origin
+        self.step_origin_t_s = best.origin.t_s
         f.t_s = t_s
         self.steps += 1
         self.step_t_s = best.t_s
@@ -702,22 +741,25 @@ class RobustFilter:
         return candidate.ratio > 0.5 * self._step_bound * dispersion
 
     def _stepped_update(
-        self, t_s: float, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray, Q: np.ndarray
+        self, t_s: float, prepared: np.ndarray, origin: _Origin, R0: np.ndarray, Q: np.ndarray, filter_takes: bool
     ):
-        """A candidate step from the filter's update of one sample with the process noise ``Q`` of the step,
-        iterated (:meth:`_iterated`); None where the update is degenerate."""
-        f = self.filter
-        nu, H = self._iterated(prepared, nu, H, R0, Q)
-        x, P = f.x.copy(), f.P.copy()
+        """A candidate step from the update of one sample at ``origin`` with the process noise ``Q`` of the step,
+        iterated (:meth:`_iterated`); None where the update is degenerate or the sample fixes no pose there."""
+        observation = self._observe_or_none(prepared, origin.x)
+        if observation is None:
+            return None
+        nu, H = self._iterated(prepared, observation[0], observation[1], R0, Q, origin)
+        x, P = origin.x.copy(), origin.P.copy()
         status, nis, _, misfit = self._misfit_step(
-            x, P, self._misfit, Q, H, nu, R0, self.noise_scale2, math.inf, NO_COMPONENTS, prepared
+            x, P, origin.misfit, Q, H, nu, R0, self.noise_scale2, math.inf, NO_COMPONENTS, prepared
         )
-        nu_b = self._innovation(nu, self._misfit, prepared)
-        S = self._predicted(f.P + f.Q, H, R0, self._misfit, prepared)
-        refused = not nu_b @ np.linalg.solve(S, nu_b) <= f.gate_nis
-        return _Candidate(x, P, 0.0, nis, 0, int(refused), t_s, misfit) if status == STEP_TAKEN else None
+        return (
+            _Candidate(x, P, 0.0, nis, 0, int(not filter_takes), t_s, origin, misfit) if status == STEP_TAKEN else None
+        )
 
-    def _iterated(self, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray, Q: np.ndarray):
+    def _iterated(
+        self, prepared: np.ndarray, nu: np.ndarray, H: np.ndarray, R0: np.ndarray, Q: np.ndarray, origin: _Origin
+    ):
         """A step's sample as an iterated update: ``(ν, H)`` linearised at the update's own result, so
         that :meth:`FilterState.update` from the state before it is one Gauss–Newton step of that sample
         and the prior (to :data:`RELINEARISE_TOLERANCE` posterior σ), not a step linearised where the
@@ -730,14 +772,13 @@ class RobustFilter:
         with the tracker's geometry exact, five seeds, ekf ended with the compliances' common error
         at up to 5.6σ and the payload 0.1–0.34 kg low at up to 5.8σ (σ 0.05–0.08 kg); iterated, within
         1.6σ and 1.5σ (σ 0.15–0.24 kg)."""
-        f = self.filter
-        x_prior = f.x
+        x_prior = origin.x
         at, linearised = x_prior, (nu, H)
         for _ in range(MAX_RELINEARISATIONS):
-            x, P = x_prior.copy(), f.P.copy()
+            x, P = x_prior.copy(), origin.P.copy()
             innovation = linearised[0] + linearised[1] @ (at - x_prior)
             status, *_ = self._misfit_step(
-                x, P, self._misfit, Q, linearised[1], innovation, R0, self.noise_scale2, math.inf, NO_COMPONENTS,
+                x, P, origin.misfit, Q, linearised[1], innovation, R0, self.noise_scale2, math.inf, NO_COMPONENTS,
                 prepared,
             )  # fmt: skip
             if status != STEP_TAKEN or _mahalanobis2(x - at, P, self._gauge_projector) <= RELINEARISE_TOLERANCE**2:
@@ -1266,6 +1307,7 @@ class RobustFilter:
             return
         self._adopt()
         self._candidates, self._since_candidate = [], 0  # they were steps from the state it replaced
+        self._change_origin = None
         self.recovery_dropped += used_before - int(np.sum(~gated_before & ~outliers))
         self.recovery_readmitted += int(np.sum(gated_before & ~outliers))
         self._buffer.gated[:] = outliers  # the batch's verdict replaces the lock-out's record
@@ -1336,9 +1378,18 @@ class RobustFilter:
 
     # ------------------------------------------------------------------ checkpoints
 
+    def _origins(self) -> list[_Origin]:
+        """The candidates' origins and the change's, each once (the change's first where there is one)."""
+        origins = [] if self._change_origin is None else [self._change_origin]
+        for c in self._candidates:
+            if not any(c.origin is o for o in origins):
+                origins.append(c.origin)
+        return origins
+
     def export_state(self) -> dict:
         """Everything :meth:`update` reads or writes, as arrays."""
         windows = list(self._windows)
+        origins = self._origins()
         state = {
             "filter": self.filter.export_state(),
             "prior_mean": self._x0.copy(),
@@ -1362,6 +1413,15 @@ class RobustFilter:
                 "dispersions": np.array(self._dispersions, dtype=float),
                 "payload_held": np.array([float(self.payload_held), self.payload_released_t_s]),
                 "last_inputs": self._last_inputs.copy(),
+                "origin_x": np.array([o.x for o in origins]).reshape(-1, self._n),
+                "origin_P": np.array([o.P for o in origins]).reshape(-1, self._n, self._n),
+                "origin_t_s": np.array([o.t_s for o in origins], dtype=float),
+                "origin_samples_used": np.array([o.samples_used for o in origins], dtype=np.int64),
+                # each candidate's origin, and whether the first is the change's
+                "origin_of": np.array(
+                    [next(k for k, o in enumerate(origins) if c.origin is o) for c in self._candidates], dtype=np.int64
+                ),
+                "changing": np.int64(self._change_origin is not None),
             },
             "walk_windows": {
                 "x": np.array([w[0] for w in windows]).reshape(-1, self._n),
@@ -1377,7 +1437,7 @@ class RobustFilter:
             x, P, first_t, last_t = self._last_window
             state["window"] = {"x": x, "P": P, "first_t_s": np.float64(first_t), "t_s": np.float64(last_t)}
         if self._kappa > 0.0:  # the misfit at the pose the filter and each candidate hold (None: a new pose next)
-            misfits = [self._misfit, *(c.misfit for c in self._candidates)]
+            misfits = [self._misfit, *(c.misfit for c in self._candidates), *(o.misfit for o in origins)]
             state["pose_misfits"] = {
                 "held": np.array([m is not None for m in misfits], dtype=np.int64),
                 **{
@@ -1393,19 +1453,44 @@ class RobustFilter:
         return {"inputs": (m,), "b": (m,), "P_xb": (self._n, m), "P_bb": (m, m)}
 
     def _import_misfits(self, state: dict) -> None:
-        """The misfits :meth:`export_state` wrote, the filter's and its candidates' (none: a new pose next)."""
+        """The misfits :meth:`export_state` wrote, the filter's, its candidates' and their origins' (none: a new
+        pose next)."""
         kept = state.get("pose_misfits")
-        count = 1 + len(self._candidates)
-        misfits: list[_Misfit | None] = [None] * count
+        origins = self._origins()
+        misfits: list[_Misfit | None] = [None] * (1 + len(self._candidates) + len(origins))
         if kept is not None and self._kappa > 0.0:
-            held = state_array(kept, "held", (count,)).astype(bool)
+            # an older checkpoint's origins (the filter at the import) hold none
+            saved = len(misfits) if "origin_of" in state.get("step_candidates", {}) else 1 + len(self._candidates)
+            held = state_array(kept, "held", (saved,)).astype(bool)
             fields = {f: state_array(kept, f, (int(held.sum()), *shape)) for f, shape in self._misfit_shapes().items()}
             for row, k in enumerate(np.flatnonzero(held)):
                 misfits[k] = _Misfit(*(values[row] for values in fields.values()))
         self._misfit = misfits[0]
+        k = len(self._candidates)
+        restored = [dataclasses.replace(o, misfit=m) for o, m in zip(origins, misfits[1 + k :], strict=True)]
         self._candidates = [
-            dataclasses.replace(c, misfit=m) for c, m in zip(self._candidates, misfits[1:], strict=True)
+            dataclasses.replace(c, misfit=m, origin=restored[next(j for j, o in enumerate(origins) if c.origin is o)])
+            for c, m in zip(self._candidates, misfits[1 : 1 + k], strict=True)
         ]
+        if self._change_origin is not None:
+            self._change_origin = restored[0]
+
+    def _import_origins(self, kept: dict, candidates: int) -> list[_Origin | None]:
+        """``[the change's origin (None: no change goes on), each candidate's]`` from ``step_candidates`` (their
+        misfits come with :meth:`_import_misfits`)."""
+        if "origin_of" not in kept:  # an older checkpoint's: the candidates as begun from the filter restored
+            f = self.filter
+            return [None, *[_Origin(f.x.copy(), f.P.copy(), None, f.t_s, f.samples_used)] * candidates]
+        t = state_array(kept, "origin_t_s", np.shape(kept["origin_t_s"])).ravel()
+        xs = state_array(kept, "origin_x", (len(t), self._n))
+        Ps = state_array(kept, "origin_P", (len(t), self._n, self._n))
+        used = state_array(kept, "origin_samples_used", (len(t),))
+        origins = [_Origin(x, P, None, float(when), int(u)) for x, P, when, u in zip(xs, Ps, t, used, strict=True)]
+        of = state_array(kept, "origin_of", (candidates,)).astype(int)
+        if np.any((of < 0) | (of >= len(origins))):
+            raise CalibError("estimator state: key 'step_candidates.origin_of': expected indices of origin rows")
+        changing = bool(state_array(kept, "changing", ())) and len(origins) > 0
+        return [origins[0] if changing else None, *(origins[k] for k in of)]
 
     def buffered_width(self) -> int | None:
         """Columns of the prepared samples it holds, or None while it holds none."""
@@ -1455,10 +1540,12 @@ class RobustFilter:
                 )
             xs = state_array(kept, "x", (len(rows), self._n))
             Ps = state_array(kept, "P", (len(rows), self._n, self._n))
+            origins = self._import_origins(kept, len(rows))
             self._candidates = [
-                _Candidate(x, P, float(r), float(q), int(k), int(a), float(t))
-                for x, P, (r, q, k, a, t) in zip(xs, Ps, rows, strict=True)
+                _Candidate(x, P, float(r), float(q), int(k), int(a), float(t), origin)
+                for x, P, (r, q, k, a, t), origin in zip(xs, Ps, rows, origins[1:], strict=True)
             ]
+            self._change_origin = origins[0]
             self._since_candidate = int(state_array(kept, "since", ()))
             self.step_t_s = float(state_array(kept, "last_step_t_s", ()))
             dispersions = state_array(kept, "dispersions", np.shape(kept.get("dispersions", ())))
@@ -1736,7 +1823,20 @@ class _Candidate:
     taken: int  #: samples it took after the one it began at
     readmitted: int  #: samples it took that the filter refused, its first included
     t_s: float  #: the time of the sample it began at: where the step happened
+    origin: _Origin  #: the filter it began from
     misfit: _Misfit | None = None  #: the misfit at the pose it holds (``pose_misfit``)
+
+
+@dataclass(frozen=True)
+class _Origin:
+    """The filter a candidate step began from (:meth:`RobustFilter._test_steps`): the filter before the sample it
+    began at, or, while a step taken may still go on, before the sample that step began at."""
+
+    x: np.ndarray
+    P: np.ndarray
+    misfit: _Misfit | None  #: at the pose it held (``pose_misfit``)
+    t_s: float  #: the time of its last sample (NaN before any)
+    samples_used: int
 
 
 @dataclass(frozen=True)
