@@ -104,8 +104,9 @@ def row_accounting(estimator: Estimator) -> dict:
     """The result fields that account for the samples an estimator took but its estimate's
     ``samples_used`` does not count: ``"samples_held"`` (waiting to register the instrument) and
     ``"recovery"`` (lock-out recoveries: samples dropped from the estimate, and readmitted after a
-    refusal), each only when not empty. With them, rows = used + skipped + dropped + held, where
-    skipped counts the bad rows and the refused samples not readmitted (:func:`skipped_count`)."""
+    refusal) and ``"payload_change"`` (an unannounced payload's steps, alike), each only when not empty.
+    With them, rows = used + skipped + dropped + held, where skipped counts the bad rows and the refused
+    samples not readmitted (:func:`skipped_count`)."""
     fields: dict = {}
     held = getattr(estimator, "samples_held", lambda: 0)()
     if held:
@@ -113,14 +114,21 @@ def row_accounting(estimator: Estimator) -> dict:
     recovery = getattr(estimator, "recovery_summary", lambda: None)()
     if recovery:
         fields["recovery"] = recovery
+    change = getattr(estimator, "payload_change_summary", lambda: None)()
+    if change:
+        fields["payload_change"] = change
     return fields
 
 
 def skipped_count(bad_rows: int, refused: int, estimate: Estimate) -> int:
     """The result's ``samples_skipped``: bad rows and refused samples, less those a lock-out
-    recovery readmitted (``estimate``'s details, :func:`row_accounting`): they are among the used."""
-    recovery = (estimate.details or {}).get("recovery") or {}
-    return bad_rows + refused - int(recovery.get("samples_readmitted", 0))
+    recovery or an unannounced payload's step readmitted (``estimate``'s details, :func:`row_accounting`):
+    they are among the used."""
+    details = estimate.details or {}
+    readmitted = sum(
+        int((details.get(key) or {}).get("samples_readmitted", 0)) for key in ("recovery", "payload_change")
+    )
+    return bad_rows + refused - readmitted
 
 
 def accounted_estimate(estimator: Estimator) -> Estimate:
@@ -139,6 +147,11 @@ def accounting_words(fields: dict) -> str:
         words += f", {recovery['samples_dropped']} dropped by {recovery['count']} lock-out recover{plural}"
         if recovery["samples_readmitted"]:
             words += f" (which took back {recovery['samples_readmitted']} it had refused)"
+    change = fields.get("payload_change")
+    if change and change["samples_dropped"]:
+        words += f", {change['samples_dropped']} taken while an unannounced payload changed left out"
+    if change and change["samples_readmitted"]:
+        words += f", {change['samples_readmitted']} refused before a payload step took back"
     if fields.get("samples_held"):
         words += f", {fields['samples_held']} held to register the instrument (too few distinct poses)"
     return words

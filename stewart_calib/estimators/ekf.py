@@ -397,6 +397,10 @@ class LegEKF:
         """Lock-out recoveries and the samples they dropped and readmitted (see :class:`RobustFilter`)."""
         return self.robust.recovery_summary()
 
+    def payload_change_summary(self) -> dict | None:
+        """The samples its payload steps moved out of and into the estimate (see :class:`RobustFilter`)."""
+        return self.robust.payload_change_summary()
+
     def take_late_rejections(self) -> list[SampleRejected]:
         """Start-up samples the robust batch left out once decided (see :class:`RobustFilter`)."""
         return self._held.take_late() + self.robust.take_late_rejections()

@@ -135,6 +135,8 @@ class ISAM2Estimator:
         # an unannounced payload's: the samples the front end's gate refused lately, which a step it takes
         # afterwards takes back in (_note_step)
         self._front_gated: list[Sample] = []
+        # the samples the graph's payload steps left out (taken while the payload moved) and took back in
+        self._step_dropped, self._step_readmitted = 0, 0
         #: ``{t_s: (s², q)}``: the noise scale and walk rate [mm²/s] of the walk factor each buffered
         #: window opened with (_window_walk)
         self._window_scales: dict[float, tuple[float, float]] = {}
@@ -330,6 +332,8 @@ class ISAM2Estimator:
             replay = [
                 s for s in sorted(self._replay + taken_back, key=lambda s: s.t_s) if not origin_t_s < s.t_s < began_t_s
             ]
+            self._step_dropped += sum(1 for s in self._replay if origin_t_s < s.t_s < began_t_s)
+            self._step_readmitted += len(taken_back)
             self._rebuild(self._first_snapshot(), replay)
             # the Gaussian this smoother, and so every rebuild and checkpoint after it, starts from
             after = [s for s in self._snapshots if s.offset > 0 and s.state.window_start_s >= began_t_s]
@@ -680,6 +684,12 @@ class ISAM2Estimator:
         """Lock-out recoveries of its front end and the samples they dropped and readmitted."""
         return self._front.recovery_summary()
 
+    def payload_change_summary(self) -> dict | None:
+        """The samples the graph's payload steps left out and took back in (as :class:`RobustFilter`'s)."""
+        if not (self._step_dropped or self._step_readmitted):
+            return None
+        return {"samples_dropped": self._step_dropped, "samples_readmitted": self._step_readmitted}
+
     def take_late_rejections(self) -> list[SampleRejected]:
         """Start-up samples its front end left out once decided (they never entered the graph)."""
         return self._held.take_late() + self._front.take_late_rejections()
@@ -742,6 +752,7 @@ class ISAM2Estimator:
             state["front_gated"] = samples_to_arrays(
                 self._front_gated, self._builder.drive.rows, len(self._builder.model.columns)
             )
+            state["step_counts"] = np.array([self._step_dropped, self._step_readmitted], dtype=np.int64)
         if self._held.active:
             state["held"] = self._held.export_state()
         else:
@@ -810,6 +821,8 @@ class ISAM2Estimator:
             if not np.all(np.isfinite(step_kg)):
                 raise CalibError("estimator state: key 'payload_steps.payload_kg': expected finite masses")
             self._builder.steps = dict(zip(step_t_s.tolist(), step_kg.tolist(), strict=True))
+        if "step_counts" in state:  # an older checkpoint counted none
+            self._step_dropped, self._step_readmitted = (int(v) for v in state_array(state, "step_counts", (2,)))
         if "front_gated" in state:  # an older checkpoint has none: a step confirmed after it takes back those since
             self._front_gated = samples_from_arrays(
                 state["front_gated"], self._builder.drive.rows, len(self._builder.model.columns)

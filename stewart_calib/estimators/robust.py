@@ -276,6 +276,8 @@ class RobustFilter:
         #: samples the recoveries took out of the estimate (used before, not in the re-solved state)
         #: and those they took back in after the gate had refused them
         self.recovery_dropped, self.recovery_readmitted = 0, 0
+        # the samples the payload steps taken left out of the estimate, and those refused that they took in
+        self.step_dropped, self.step_readmitted = 0, 0
         self.started = robust.startup_samples <= 0
         self._late: list[SampleRejected] = []
         #: ``noise_scale2`` was measured from the data (a batch had the redundancy)
@@ -454,6 +456,14 @@ class RobustFilter:
             "samples_dropped": self.recovery_dropped,
             "samples_readmitted": self.recovery_readmitted,
         }
+
+    def payload_change_summary(self) -> dict | None:
+        """The result's ``"payload_change"`` field (None where the steps taken moved no sample in or out): the
+        samples a step taken from a change's origin left out of the estimate (taken while the payload moved),
+        and those the filter had refused that a step took in."""
+        if not (self.step_dropped or self.step_readmitted):
+            return None
+        return {"samples_dropped": self.step_dropped, "samples_readmitted": self.step_readmitted}
 
     def take_late_rejections(self) -> list[SampleRejected]:
         """The start-up samples the decided batch left out (each once), for the caller's count."""
@@ -723,7 +733,12 @@ class RobustFilter:
             return False
         f.x, f.P, f.nis, f.S = best.x, best.P, best.nis, S
         self._misfit = best.misfit
-        # the origin's samples, the one the step began at and those it took after it
+        # the origin's samples, the one the step began at and those it took after it (this one too): of the
+        # filter's samples since the origin (this one not yet), those the step did not take are out (taken while
+        # the unknown moved), and those the filter refused before this one that it took are in
+        self.step_readmitted += best.readmitted - (not filter_takes)
+        in_both = 1 + best.taken - best.readmitted - filter_takes
+        self.step_dropped += f.samples_used - best.origin.samples_used - in_both
         f.samples_used = best.origin.samples_used + 1 + best.taken
         self._change_origin = best.origin
         self.step_origin_t_s = best.origin.t_s
@@ -1401,6 +1416,7 @@ class RobustFilter:
             ),
             **self._buffer.export_state(),
             "recovery_counts": np.array([self.recovery_dropped, self.recovery_readmitted], dtype=np.int64),
+            "step_counts": np.array([self.step_dropped, self.step_readmitted], dtype=np.int64),
             "steps": np.int64(self.steps),
             "step_candidates": {
                 "x": np.array([c.x for c in self._candidates]).reshape(-1, self._n),
@@ -1526,6 +1542,9 @@ class RobustFilter:
                 int(v) for v in state_array(state, "recovery_counts", (2,))
             )
         self.steps = int(state_array(state, "steps", ())) if "steps" in state else 0  # none before steps counted
+        self.step_dropped, self.step_readmitted = (
+            (int(v) for v in state_array(state, "step_counts", (2,))) if "step_counts" in state else (0, 0)
+        )
         self._candidates, self._since_candidate, self.step_t_s = [], 0, math.nan
         self._last_inputs = np.zeros(0)
         self.payload_held, self.payload_released_t_s = False, math.nan  # an older checkpoint's was never held
