@@ -1482,21 +1482,21 @@ class RobustFilter:
             for row, k in enumerate(np.flatnonzero(held)):
                 misfits[k] = _Misfit(*(values[row] for values in fields.values()))
         self._misfit = misfits[0]
-        k = len(self._candidates)
-        restored = [dataclasses.replace(o, misfit=m) for o, m in zip(origins, misfits[1 + k :], strict=True)]
+        n_candidates = len(self._candidates)
+        restored = [dataclasses.replace(o, misfit=m) for o, m in zip(origins, misfits[1 + n_candidates :], strict=True)]
         self._candidates = [
             dataclasses.replace(c, misfit=m, origin=restored[next(j for j, o in enumerate(origins) if c.origin is o)])
-            for c, m in zip(self._candidates, misfits[1 : 1 + k], strict=True)
+            for c, m in zip(self._candidates, misfits[1 : 1 + n_candidates], strict=True)
         ]
         if self._change_origin is not None:
             self._change_origin = restored[0]
 
-    def _import_origins(self, kept: dict, candidates: int) -> list[_Origin | None]:
-        """``[the change's origin (None: no change goes on), each candidate's]`` from ``step_candidates`` (their
+    def _import_origins(self, kept: dict, candidates: int) -> tuple[_Origin | None, list[_Origin]]:
+        """``(the change's origin (None: no change goes on), each candidate's)`` from ``step_candidates`` (their
         misfits come with :meth:`_import_misfits`)."""
         if "origin_of" not in kept:  # an older checkpoint's: the candidates as begun from the filter restored
             f = self.filter
-            return [None, *[_Origin(f.x.copy(), f.P.copy(), None, f.t_s, f.samples_used)] * candidates]
+            return None, [_Origin(f.x.copy(), f.P.copy(), None, f.t_s, f.samples_used)] * candidates
         t = state_array(kept, "origin_t_s", np.shape(kept["origin_t_s"])).ravel()
         xs = state_array(kept, "origin_x", (len(t), self._n))
         Ps = state_array(kept, "origin_P", (len(t), self._n, self._n))
@@ -1506,7 +1506,7 @@ class RobustFilter:
         if np.any((of < 0) | (of >= len(origins))):
             raise CalibError("estimator state: key 'step_candidates.origin_of': expected indices of origin rows")
         changing = bool(state_array(kept, "changing", ())) and len(origins) > 0
-        return [origins[0] if changing else None, *(origins[k] for k in of)]
+        return (origins[0] if changing else None), [origins[k] for k in of]
 
     def buffered_width(self) -> int | None:
         """Columns of the prepared samples it holds, or None while it holds none."""
@@ -1559,12 +1559,11 @@ class RobustFilter:
                 )
             xs = state_array(kept, "x", (len(rows), self._n))
             Ps = state_array(kept, "P", (len(rows), self._n, self._n))
-            origins = self._import_origins(kept, len(rows))
+            self._change_origin, origins = self._import_origins(kept, len(rows))
             self._candidates = [
                 _Candidate(x, P, float(r), float(q), int(k), int(a), float(t), origin)
-                for x, P, (r, q, k, a, t), origin in zip(xs, Ps, rows, origins[1:], strict=True)
+                for x, P, (r, q, k, a, t), origin in zip(xs, Ps, rows, origins, strict=True)
             ]
-            self._change_origin = origins[0]
             self._since_candidate = int(state_array(kept, "since", ()))
             self.step_t_s = float(state_array(kept, "last_step_t_s", ()))
             dispersions = state_array(kept, "dispersions", np.shape(kept.get("dispersions", ())))
