@@ -197,10 +197,10 @@ def test_an_estimate_beyond_the_prior_says_the_robot_is_built_looser_than_it(tmp
         line = prior_reach_warning(platform, estimate.error, config.noise, "lm")
         assert (line is not None) == warns, line
     assert prior_reach_warning(platform, np.full(42, 50.0), config.noise, "ls") is None
-    assert "--set noise.prior_sigma_mm=" in line_of(tmp_path, capsys, platform, loose.log)
+    assert "--set noise.prior_sigma_mm=" in _prior_line(tmp_path, capsys, platform, loose.log)
 
 
-def line_of(tmp_path, capsys, platform, log) -> str:
+def _prior_line(tmp_path, capsys, platform, log) -> str:
     """calibrate's line on the prior, lm with the laser-tracker config, on ``log`` of ``platform`` (files in
     ``tmp_path``; the stroke range as wide as the robot's 15 mm zeros take its strokes)."""
     (tmp_path / "p.toml").write_text(platform_to_toml(dataclasses.replace(platform, stroke_range=(-50.0, 150.0))))

@@ -329,10 +329,9 @@ class ISAM2Estimator:
         else:  # rebuilt, so that a checkpoint's replay or a gtsam-failure rebuild lands where this does
             self._builder.steps[began_t_s] = payload_kg
             origin_t_s = self._front.robust.step_origin_t_s
-            replay = [
-                s for s in sorted(self._replay + taken_back, key=lambda s: s.t_s) if not origin_t_s < s.t_s < began_t_s
-            ]
-            self._step_dropped += sum(1 for s in self._replay if origin_t_s < s.t_s < began_t_s)
+            kept = [s for s in self._replay if not origin_t_s < s.t_s < began_t_s]  # those taken back come after
+            replay = sorted(kept + taken_back, key=lambda s: s.t_s)
+            self._step_dropped += len(self._replay) - len(kept)
             self._step_readmitted += len(taken_back)
             self._rebuild(self._first_snapshot(), replay)
             # the Gaussian this smoother, and so every rebuild and checkpoint after it, starts from

@@ -672,7 +672,7 @@ class RobustFilter:
         f = self.filter
         index, variance = step
         S = self._predicted(f.P + f.Q, H, R0, self._misfit, prepared)
-        nu = self._innovation(nu, self._misfit, prepared)
+        nu_raw, nu = nu, self._innovation(nu, self._misfit, prepared)
         filter_ll = _log_likelihood(nu, S)
         filter_takes = not filter_ll.nis > f.gate_nis
         self._dispersions.append(min(filter_ll.nis, f.gate_nis) / len(nu))
@@ -714,11 +714,13 @@ class RobustFilter:
             or (filter_ll.nis - float(nu @ np.linalg.solve(stepped, nu)) > self._step_bound)
         ):
             self._since_candidate = 0
-            origin = self._change_origin or _Origin(f.x.copy(), f.P.copy(), self._misfit, f.t_s, f.samples_used)
+            origin, observed = self._change_origin, None
+            if origin is None:  # from the filter as it is: its own observation of this sample is the origin's
+                origin, observed = _Origin(f.x.copy(), f.P.copy(), self._misfit, f.t_s, f.samples_used), (nu_raw, H)
             stepped_Q = np.zeros_like(f.Q)  # the walk since the origin's last sample, and the step
             self._fill_Q(stepped_Q, 0.0 if math.isnan(origin.t_s) else t_s - origin.t_s)
             stepped_Q[index, index] += variance
-            start = self._stepped_update(t_s, prepared, origin, R0, stepped_Q, filter_takes)
+            start = self._stepped_update(t_s, prepared, origin, R0, stepped_Q, filter_takes, observed)
             if start is not None:
                 candidates.append(start)
                 if len(candidates) > MAX_STEP_CANDIDATES:  # the least likely of the older ones goes
@@ -756,11 +758,19 @@ class RobustFilter:
         return candidate.ratio > 0.5 * self._step_bound * dispersion
 
     def _stepped_update(
-        self, t_s: float, prepared: np.ndarray, origin: _Origin, R0: np.ndarray, Q: np.ndarray, filter_takes: bool
+        self,
+        t_s: float,
+        prepared: np.ndarray,
+        origin: _Origin,
+        R0: np.ndarray,
+        Q: np.ndarray,
+        filter_takes: bool,
+        observed: tuple[np.ndarray, np.ndarray] | None = None,
     ):
         """A candidate step from the update of one sample at ``origin`` with the process noise ``Q`` of the step,
-        iterated (:meth:`_iterated`); None where the update is degenerate or the sample fixes no pose there."""
-        observation = self._observe_or_none(prepared, origin.x)
+        iterated (:meth:`_iterated`); None where the update is degenerate or the sample fixes no pose there.
+        ``observed``: the sample's ``(ν, H)`` at ``origin.x`` where the caller has it (None: observed here)."""
+        observation = observed if observed is not None else self._observe_or_none(prepared, origin.x)
         if observation is None:
             return None
         nu, H = self._iterated(prepared, observation[0], observation[1], R0, Q, origin)
