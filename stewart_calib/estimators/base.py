@@ -100,6 +100,14 @@ def take_late_rejections(estimator: Estimator) -> list[SampleRejected]:
     return take() if take is not None else []
 
 
+def payload_change_field(dropped: int, readmitted: int) -> dict | None:
+    """The result's ``"payload_change"`` from the samples an unannounced payload's steps left out of the estimate
+    (taken while the payload moved) and took back in after a refusal; None where they moved none."""
+    if not (dropped or readmitted):
+        return None
+    return {"samples_dropped": dropped, "samples_readmitted": readmitted}
+
+
 def row_accounting(estimator: Estimator) -> dict:
     """The result fields that account for the samples an estimator took but its estimate's
     ``samples_used`` does not count: ``"samples_held"`` (waiting to register the instrument) and

@@ -23,7 +23,7 @@ from ..factors.pose_misfit import misfit_key
 from ..model.drive import PAYLOAD
 from ..model.platform import Platform
 from ..samples import Log, Sample
-from .base import Refusals, state_array, update_each
+from .base import Refusals, payload_change_field, state_array, update_each
 from .ekf import LegEKF
 from .graph import ChainState, Epoch, GraphBuilder, first_paragraph, params_key
 from .measurement import HeldForRegistration, check_sample, samples_from_arrays, samples_to_arrays
@@ -685,9 +685,7 @@ class ISAM2Estimator:
 
     def payload_change_summary(self) -> dict | None:
         """The samples the graph's payload steps left out and took back in (as :class:`RobustFilter`'s)."""
-        if not (self._step_dropped or self._step_readmitted):
-            return None
-        return {"samples_dropped": self._step_dropped, "samples_readmitted": self._step_readmitted}
+        return payload_change_field(self._step_dropped, self._step_readmitted)
 
     def take_late_rejections(self) -> list[SampleRejected]:
         """Start-up samples its front end left out once decided (they never entered the graph)."""

@@ -73,7 +73,7 @@ from .._jit import F8_1, F8_2, FLOAT, njit
 from ..chi_square import chdtri  # chi2.ppf(p, m) is chdtri(m, 1 - p); scipy.special costs ~0.2 s of import
 from ..errors import CalibError, SampleRejected, number
 from ..model.unknowns import UnknownLayout
-from .base import state_array
+from .base import payload_change_field, state_array
 from .kalman import (
     NO_COMPONENTS,
     NO_POSES,
@@ -461,9 +461,7 @@ class RobustFilter:
         """The result's ``"payload_change"`` field (None where the steps taken moved no sample in or out): the
         samples a step taken from a change's origin left out of the estimate (taken while the payload moved),
         and those the filter had refused that a step took in."""
-        if not (self.step_dropped or self.step_readmitted):
-            return None
-        return {"samples_dropped": self.step_dropped, "samples_readmitted": self.step_readmitted}
+        return payload_change_field(self.step_dropped, self.step_readmitted)
 
     def take_late_rejections(self) -> list[SampleRejected]:
         """The start-up samples the decided batch left out (each once), for the caller's count."""
@@ -1407,7 +1405,7 @@ class RobustFilter:
         """The candidates' origins and the change's, each once (the change's first where there is one)."""
         origins = [] if self._change_origin is None else [self._change_origin]
         for c in self._candidates:
-            if not any(c.origin is o for o in origins):
+            if _index_of(c.origin, origins) is None:
                 origins.append(c.origin)
         return origins
 
@@ -1444,9 +1442,7 @@ class RobustFilter:
                 "origin_t_s": np.array([o.t_s for o in origins], dtype=float),
                 "origin_samples_used": np.array([o.samples_used for o in origins], dtype=np.int64),
                 # each candidate's origin, and whether the first is the change's
-                "origin_of": np.array(
-                    [next(k for k, o in enumerate(origins) if c.origin is o) for c in self._candidates], dtype=np.int64
-                ),
+                "origin_of": np.array([_index_of(c.origin, origins) for c in self._candidates], dtype=np.int64),
                 "changing": np.int64(self._change_origin is not None),
             },
             "walk_windows": {
@@ -1495,7 +1491,7 @@ class RobustFilter:
         n_candidates = len(self._candidates)
         restored = [dataclasses.replace(o, misfit=m) for o, m in zip(origins, misfits[1 + n_candidates :], strict=True)]
         self._candidates = [
-            dataclasses.replace(c, misfit=m, origin=restored[next(j for j, o in enumerate(origins) if c.origin is o)])
+            dataclasses.replace(c, misfit=m, origin=restored[_index_of(c.origin, origins)])
             for c, m in zip(self._candidates, misfits[1 : 1 + n_candidates], strict=True)
         ]
         if self._change_origin is not None:
@@ -1853,6 +1849,11 @@ class _Candidate:
     t_s: float  #: the time of the sample it began at: where the step happened
     origin: _Origin  #: the filter it began from
     misfit: _Misfit | None = None  #: the misfit at the pose it holds (``pose_misfit``)
+
+
+def _index_of(origin: _Origin, origins: list[_Origin]):
+    """The index of ``origin`` itself (not an equal one: candidates share the object) in ``origins``, or None."""
+    return next((k for k, o in enumerate(origins) if o is origin), None)
 
 
 @dataclass(frozen=True)
