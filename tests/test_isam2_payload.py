@@ -195,6 +195,9 @@ def test_the_payload_and_its_steps_survive_a_checkpoint_and_a_rebuild(check):
     update_each(resumed, samples[exported:])
     end, expected = resumed.estimate(), one.estimate()
     assert end.details["payload_steps"] == expected.details["payload_steps"] == 2
+    # the run the walk had counts from the first sample before the checkpoint (its time kept in the state)
+    assert end.details["payload_walk"] == expected.details["payload_walk"], end.details
+    assert expected.details["payload_walk"]["over_s"] == pytest.approx(samples[-1].t_s - samples[0].t_s)
     assert abs(end.unannounced_payload_kg() - expected.unannounced_payload_kg()) < 1e-3 * _payload(expected)[1]
     np.testing.assert_allclose(end.error, expected.error, rtol=0, atol=1e-6)
     steps_t_s = state["payload_steps"]["t_s"]

@@ -42,7 +42,7 @@ from ..instruments import instrument_kind
 from ..io.results import parameter_file_scale
 from ..model import kinematics as kin
 from ..model.drive import drive_model, plain_drive
-from ..model.platform import LegGeometry, Platform, give_reference_mm
+from ..model.platform import Elastic, LegGeometry, Platform, give_reference_mm, least_give_mm_per_kg
 
 #: a parameter error beyond this many prior σ is refused (two-sided tail probability < 1e-20).
 PRIOR_SIGMAS = 10.0
@@ -166,6 +166,45 @@ def prior_reach_warning(platform: Platform, error: np.ndarray, noise: NoiseConfi
         f"{len(reach)} errors stays within {bound:.2g} × in {PRIOR_REACH_PROBABILITY:.0%} of robots): the robot is "
         "built looser than the prior says, which draws the directions the data barely see toward nominal (ls is not "
         f"drawn); run again with --set {key}={abs(value) / 2.0:.2g} or more"
+    )
+
+
+def payload_walk_warning(elastic: Elastic | None, estimate) -> str | None:
+    """A warning where the δM random walk could carry an unannounced payload put on gradually (the platform's
+    ``[elastic]`` table ``elastic``); None otherwise.
+
+    An unannounced payload (``[elastic] payload_sigma_kg``) is found from the leg change it makes,
+    ``c_i f_i / 1000`` (spec §10). Put on at once, that change is a step the filter tests; put on gradually,
+    it is a slow leg change that δM's random walk explains as well, where the walk can reach that far. Over
+    the run's ``T`` s the walk in use (``ρ`` [mm/√s], ``estimate.details["payload_walk"]``) moves each
+    parameter ``ρ √T``; where that is more than the least give of the most loaded leg under a payload of
+    ``payload_sigma_kg`` (:func:`~stewart_calib.model.platform.least_give_mm_per_kg` at the largest
+    compliance, the estimate's where it identified one), a payload of the size the platform declares can pass
+    for drift. On the paper's experiment, 40 kg over a 20 s ramp: ``--config paper`` walks 1.46 mm over the
+    212 s against a 0.26 mm give (payload found 21–25 kg, 2.8–4.9 σ low), the default and ``paper-elastic``
+    0.015 mm (38.7–40.6 kg). The test is one-sided: below it a walk can still take part of a ramp (``--config
+    paper`` with a walk of 0.005 mm/√s, 0.07 mm over the run: isam2 31.5 kg)."""
+    walk = (estimate.details or {}).get("payload_walk")
+    if not walk or elastic is None or not elastic.payload_sigma_kg > 0.0:
+        return None
+    compliance = estimate.block_values("compliance")
+    if compliance is None:
+        compliance = elastic.compliance_mm_per_kN
+    give_mm = least_give_mm_per_kg(float(np.max(np.abs(compliance)))) * elastic.payload_sigma_kg
+    rate, run_s = float(walk["mm_per_sqrt_s"]), float(walk["over_s"])
+    walked_mm = rate * math.sqrt(run_s)
+    if not (give_mm > 0.0 and walked_mm > give_mm):
+        return None
+    column = estimate.layout.slice("payload").start
+    sigma = math.sqrt(estimate.full_covariance[column, column]) if estimate.full_covariance is not None else math.nan
+    return (
+        f"warning: a payload put on gradually passes for drift here, and the payload found "
+        f"({estimate.unannounced_payload_kg():.3g} ± {sigma:.2g} kg) is then too low: over the run's {run_s:.4g} s "
+        f"the δM random walk in use ({rate:.3g} mm/√s) moves each parameter {walked_mm:.3g} mm, more than the "
+        f"{give_mm:.3g} mm a payload of {elastic.payload_sigma_kg:g} kg (elastic.payload_sigma_kg) gives the most "
+        "loaded leg; give the log a load_kg column, or a walk far slower than "
+        f"{give_mm / math.sqrt(run_s):.2g} mm/√s (the default's 0.001, or --config paper-elastic on the paper's "
+        "tracker)"
     )
 
 

@@ -412,11 +412,11 @@ class LegEKF:
 
     def estimate(self) -> Estimate:
         """The unknown vector and ``P`` after the last accepted sample (with an unannounced payload,
-        the steps of it taken as the result's ``"payload_steps"``)."""
+        its result fields, :meth:`~.robust.RobustFilter.payload_details`)."""
         estimate = self.filter.estimate()
         if self._payload is None:
             return estimate
-        return dataclasses.replace(estimate, details={**(estimate.details or {}), "payload_steps": self.robust.steps})
+        return dataclasses.replace(estimate, details={**(estimate.details or {}), **self.robust.payload_details()})
 
     def current_estimate(self) -> Estimate:
         """``estimate()``: the filter carries its covariance anyway."""

@@ -642,7 +642,7 @@ class ISAM2Estimator:
     def estimate(self) -> Estimate:
         """δM of the current parameter variable and its 42×42 marginal covariance [mm²], scaled
         by the measured noise (before the front end's start-up batch is decided: its estimate);
-        with an unannounced payload, the steps of it taken as the result's ``"payload_steps"``."""
+        with an unannounced payload, its result fields (:meth:`~.robust.RobustFilter.payload_details`)."""
         if self._pending:
             front = self._front.estimate()
             return dataclasses.replace(front, method=self.name)
@@ -650,7 +650,7 @@ class ISAM2Estimator:
         if self._payload is None:
             return estimate
         return dataclasses.replace(
-            estimate, details={**(estimate.details or {}), "payload_steps": self._front.robust.steps}
+            estimate, details={**(estimate.details or {}), **self._front.robust.payload_details()}
         )
 
     def _graph_estimate(self) -> Estimate:

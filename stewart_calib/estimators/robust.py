@@ -220,6 +220,8 @@ class RobustFilter:
         self._step_factors = step_factors
         self.payload_held = step is not None and step_factors is not None
         self.payload_released_t_s = math.nan
+        #: the time of the first sample offered [s] (NaN before any): the run a walk is measured over
+        self.first_t_s = math.nan
         # a step is taken where it lowers the NIS beyond the gate's bound at one degree of freedom
         self._step_bound = float(chdtri(1, 1.0 - gate_probability)) if gate_probability > 0.0 else math.inf
         self.steps = 0
@@ -311,6 +313,8 @@ class RobustFilter:
                 :meth:`take_late_rejections`.
         """
         prepared = np.asarray(prepared, dtype=float)
+        if math.isnan(self.first_t_s):
+            self.first_t_s = float(t_s)
         if not self.started:
             observation = self._observe(prepared, self.filter.x)  # SampleRejected from FK passes on
             if observation is None:
@@ -462,6 +466,15 @@ class RobustFilter:
         samples a step taken from a change's origin left out of the estimate (taken while the payload moved),
         and those the filter had refused that a step took in."""
         return payload_change_field(self.step_dropped, self.step_readmitted)
+
+    def payload_details(self) -> dict:
+        """The result fields of an unannounced payload: ``"payload_steps"``, the steps of it taken, and
+        ``"payload_walk"``, the δM random walk in use ``mm_per_sqrt_s`` [mm/√s] and the run it had ``over_s`` [s]
+        (first sample offered to the last taken) to carry a payload put on gradually
+        (:func:`~stewart_calib.analysis.plausibility.payload_walk_warning`)."""
+        run_s = self.filter.t_s - self.first_t_s
+        walk = {"mm_per_sqrt_s": math.sqrt(self.walk_rate_mm2_per_s), "over_s": run_s if math.isfinite(run_s) else 0.0}
+        return {"payload_steps": self.steps, "payload_walk": walk}
 
     def take_late_rejections(self) -> list[SampleRejected]:
         """The start-up samples the decided batch left out (each once), for the caller's count."""
@@ -1426,6 +1439,7 @@ class RobustFilter:
             "recovery_counts": np.array([self.recovery_dropped, self.recovery_readmitted], dtype=np.int64),
             "step_counts": np.array([self.step_dropped, self.step_readmitted], dtype=np.int64),
             "steps": np.int64(self.steps),
+            "first_t_s": np.float64(self.first_t_s),
             "step_candidates": {
                 "x": np.array([c.x for c in self._candidates]).reshape(-1, self._n),
                 "P": np.array([c.P for c in self._candidates]).reshape(-1, self._n, self._n),
@@ -1548,6 +1562,8 @@ class RobustFilter:
                 int(v) for v in state_array(state, "recovery_counts", (2,))
             )
         self.steps = int(state_array(state, "steps", ())) if "steps" in state else 0  # none before steps counted
+        # an older checkpoint's run is counted from its first sample after this one
+        self.first_t_s = float(state_array(state, "first_t_s", ())) if "first_t_s" in state else math.nan
         self.step_dropped, self.step_readmitted = (
             (int(v) for v in state_array(state, "step_counts", (2,))) if "step_counts" in state else (0, 0)
         )

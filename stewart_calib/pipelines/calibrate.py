@@ -35,7 +35,7 @@ from ..analysis.identifiability import (
     measured_samples,
     warning_line,
 )
-from ..analysis.plausibility import check_plausible, prior_reach_warning
+from ..analysis.plausibility import check_plausible, payload_walk_warning, prior_reach_warning
 from ..config import load_estimator_config
 from ..errors import CalibError, number
 from ..estimate import Estimate
@@ -279,9 +279,12 @@ def run(args: argparse.Namespace) -> int:
             args.method,
             noise_scale,
         )
-        reach = prior_reach_warning(platform, estimate.error, config.noise, args.method)
-        if reach:
-            print(f"stewart-calib calibrate: {reach}", file=sys.stderr)
+        for text in (
+            prior_reach_warning(platform, estimate.error, config.noise, args.method),
+            payload_walk_warning(platform.elastic, estimate),
+        ):
+            if text:
+                print(f"stewart-calib calibrate: {text}", file=sys.stderr)
         if rejections.count:
             print(
                 _summary(

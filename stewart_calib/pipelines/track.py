@@ -76,6 +76,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import io, links
+from ..analysis.plausibility import payload_walk_warning
 from ..config import load_estimator_config
 from ..errors import CalibError, shown
 from ..estimators.base import accounting_words, skipped_count
@@ -710,6 +711,9 @@ def _track(args: argparse.Namespace, out: Path, checkpoint: Path | None) -> int:
     if calib.rejections.count:
         report(f"{args.method} rejected samples:", calib.rejections.count, calib.rejections.first)
     estimate = calib.estimate()
+    payload = payload_walk_warning(calib.platform.elastic, estimate)
+    if payload:
+        print(f"stewart-calib track: {payload}", file=sys.stderr)
     skipped = skipped_count(calib.rows_skipped, calib.rejections.count, estimate)
     stopped = ", stopped by signal" if stop.requested else ""
     missed = f"; {link.samples_missed} samples missed" if link is not None and link.link.sample else ""
