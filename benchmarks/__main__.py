@@ -78,6 +78,7 @@ RUNNERS = {
     "tracker-geometry": _runner("tracker_geometry", "run"),
     "plan-poses": _runner("plan_poses", "run"),
     "prediction": _runner("prediction", "section"),
+    "prediction-power": _runner("prediction_power", "section"),
     "elastic": _runner("elastic", "section"),
     "elastic-geometries": _runner("elastic", "geometries_section"),
     "elastic-payload": _runner("elastic", "payload_section"),

@@ -574,8 +574,8 @@ PAYLOAD_WHY = {
     "± 0.6 mm/kN against the true 2.33 (seeds 1–2) and the payload as much low (ekf 24.3 ± 5.4, 22.9 ± 4.4, 21.2 "
     "± 3.8 kg; put on at once, where the walk has one sample, 38.8 ± 10.4, 38.6 ± 9.9, 38.1 ± 8.9, c 2.4 ± 0.5). "
     "configs/estimators/paper-elastic.toml is the paper's settings for an elastic model (δM's walk 0.001 mm/√s: "
-    "the compliance carries the sag). calibrate and track say so: the walk in use moves each parameter 1.46 mm over the "
-    "run's 212 s, more than the 0.26 mm a payload of payload_sigma_kg = 50 gives the most loaded leg",
+    "the compliance carries the sag). calibrate and track say so: the walk in use moves each parameter 1.46 mm over "
+    "the run's 212 s, more than the 0.26 mm a payload of payload_sigma_kg = 50 gives the most loaded leg",
     "default": "a payload put on over 20 s is found as a change: each step taken begins at the filter from before "
     "the change and leaves out the samples taken while the payload moved, and the change ends once the filter "
     "explains a window of samples as well as a step from there. The last step's window of 20 samples straddles "

@@ -30,6 +30,7 @@ SECTIONS = {
     "tracker-geometry": "Tracker geometry",
     "plan-poses": "Planned poses for outside instruments",
     "prediction": "Predicted errors against the truth",
+    "prediction-power": "calibrate's bands over a thousand robots",
     "elastic": "The elastic robot",
     "elastic-geometries": "The elastic check on other geometries",
     "elastic-payload": "An unannounced payload on the paper's experiment",

@@ -75,3 +75,29 @@ def test_the_sides_row_says_what_twin_bands_missing_together_leave_counted_once(
     above = sum(s == 1 for side in sides for s in side) - sum(side[k] == 1 for side in sides for k in (0, 1))
     assert not row.met and f"{twins} of the misses are calibrate's and identifiability's" in row.why
     assert f"counted once, {above} above" in row.why
+
+
+def _power_runs(rng: np.random.Generator, n: int, scale: float) -> list[dict]:
+    """``n`` robots whose motion and absolute bands are the 90 % bands of a standard normal truth, the truth
+    ``scale`` × that wide (1: honest)."""
+    z = scale * rng.standard_normal((n, 2))
+    return [{what: (float(v), -1.645, 1.645) for what, v in zip(("motion", "absolute"), row, strict=True)} for row in z]
+
+
+def test_the_thousand_robot_rows_pass_honest_bands_and_fail_a_band_too_narrow_by_a_seventh():
+    from benchmarks import prediction_power
+
+    rng = np.random.default_rng(4)
+    fails = [not all(r.met for r in prediction_power.rows_of("x", _power_runs(rng, 1000, 1.0))) for _ in range(100)]
+    assert np.mean(fails) <= 0.12  # two rows, each one-sided at two standard errors and a sides test
+    narrow = prediction_power.rows_of("x", _power_runs(rng, 1000, 1.15))  # holds 85 % (1.5 % below 88.1 %)
+    assert not any(r.met for r in narrow) and all("probability" in r.why for r in narrow)
+
+
+def test_a_thousand_robot_run_gives_calibrates_bands_of_one_robot(tmp_path):
+    from benchmarks import prediction_power
+
+    run = prediction_power.band_run("points", 7, tmp_path)
+    for what in ("motion", "absolute"):
+        truth, low, high = run[what]
+        assert 0.0 < low < high and truth > 0.0, run
