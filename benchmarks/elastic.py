@@ -578,8 +578,7 @@ PAYLOAD_WHY = {
     "the run's 212 s, more than the 0.26 mm a payload of payload_sigma_kg = 50 gives the most loaded leg",
     "default": "seed 3 takes 14 steps where its log has one change: 11 are not the ramp's (7 in the no-load stage, "
     "−1.0 to 0.5 kg, 4 after the ramp). At 8 of its 100 no-load static poses (6 of 85 loaded) the tracker's misfit is "
-    "far "
-    "beyond the modelled one (first sample's NIS above the 6-dof gate, 5–12 per row on all 8 samples), the filter "
+    "far beyond the modelled one (first sample's NIS above the 6-dof gate, 5–12 per row on all 8 samples), the filter "
     "refuses the whole pose and scores each of its samples against a fresh pose misfit, while a candidate step that "
     "took the pose's first sample fits the other seven at white noise: one pose's misfit counts eight times for the "
     "step. Each such step gives the payload its prior σ again and leaves the samples before it out, so the 40 kg "

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import Row, Section, Table, seeded_main
-from benchmarks.prediction import IN_BAND_TARGET, SETUPS, _below, experiment_text
+from benchmarks.prediction import CALIBRATION_POSES, IN_BAND_TARGET, SETUPS, _below, experiment_text
 from stewart_calib.analysis.accuracy import closed_loop_jacobian, evaluation_poses, motion_jacobian, predicted_error
 from stewart_calib.config import load_estimator_config
 from stewart_calib.estimators.batch import BatchProblem, fit
@@ -38,7 +38,6 @@ SEEDS, QUICK_SEEDS = 1000, 20
 #: the instruments of benchmarks/prediction.py calibrated here, and the first seed (apart from its 0-19)
 INSTRUMENTS = ("pose", "points")
 FIRST_SEED = 1000
-CALIBRATION_POSES = 60
 
 
 def band_run(name: str, seed: int, directory: Path) -> dict:
