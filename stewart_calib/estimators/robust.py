@@ -668,8 +668,8 @@ class RobustFilter:
         while it leads) until the candidate takes a sample at another pose. The paper's experiment, no-load
         stage: at 8 of its 100 static poses the tracker's misfit is far beyond κ (first NIS above the 6-dof
         gate) and the filter refuses the whole pose, where counting the pose's 8 samples against a fresh misfit
-        each took one pose's misfit for a step (ekf, seed 3, 40 kg put on at once: 14 steps; so, 2). A candidate that
-        has left its start pose and leads is taken also where it refuses a sample the filter refuses too,
+        each took one pose's misfit for a step (ekf, seed 3, 40 kg put on at once: 14 steps; withheld, 2). A
+        candidate that has left its start pose and leads is taken also where it refuses a sample the filter refuses,
         before its window: the unknown has moved past both (40 kg put on over 20 s, with the ratio withheld
         alone: the leading candidate stayed frozen while the filter refused every sample, and the lock-out
         waited for it: isam2, seed 3, 23.9 kg for 50 s).
