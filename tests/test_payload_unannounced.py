@@ -197,6 +197,8 @@ def test_isam2_carries_the_trackers_misfit_per_pose_and_keeps_it_through_a_check
         again = resumed.estimate()
         assert abs(again.unannounced_payload_kg() - end.unannounced_payload_kg()) < 1e-3 * sigma, cut
         np.testing.assert_allclose(again.error, end.error, rtol=0, atol=1e-5, err_msg=f"resumed at sample {cut}")
+
+
 @pytest.mark.parametrize("method", ["ekf", "isam2"])
 def test_a_pose_whose_misfit_is_beyond_the_modelled_one_is_not_taken_for_a_step(tmp_path, method):
     # the paper's experiment, seed 3, 40 kg put on at once: at 8 of its 100 no-load static poses the tracker's
