@@ -212,6 +212,38 @@ def test_a_pose_whose_misfit_is_beyond_the_modelled_one_is_not_taken_for_a_step(
     assert 1 <= steps <= 2 and abs(found - PAYLOAD_STAGE_KG) < 2.0 * sigma, (found, sigma, steps)
 
 
+def test_a_checkpoint_keeps_the_evidence_a_candidate_step_withholds_at_its_start_pose(tmp_path):
+    # ekf on the same log, resumed from checkpoints taken where a candidate step still at the new pose it began at
+    # withholds that pose's ratio (the payload's own step, and one of the no-load poses the filter refuses whole):
+    # the resumed run ends where the uninterrupted one does. Before, a checkpoint kept no withheld ratio and the
+    # candidates resumed counting every sample
+    from stewart_calib.estimators import make_estimator
+    from stewart_calib.estimators.base import update_each
+
+    experiment = paper_payload_experiment(tmp_path, seed=3)
+    run = run_experiment(experiment)
+    samples = list(replace(run.log, inputs={}))
+    platform = replace(experiment.platform, elastic=replace(elastic_of(experiment.load), payload_sigma_kg=50.0))
+    config = load_estimator_config(resolve("default", "estimators"))
+    step = int(np.argmax(np.asarray(run.payload_kg) > 0.0))
+    one = make_estimator("ekf", platform, config)
+    checkpoints = {}
+    for k, sample in enumerate(samples):
+        update_each(one, [sample])
+        withholding = any(c.at_start and c.at_new_pose and c.start_ratio > 0.0 for c in one.robust._candidates)
+        if withholding and (not checkpoints or (k > step and max(checkpoints) < step)):
+            checkpoints[k + 1] = one.export_state()
+    assert len(checkpoints) == 2 and min(checkpoints) < step < max(checkpoints), sorted(checkpoints)
+    end = one.estimate()
+    for cut, state in checkpoints.items():
+        resumed = make_estimator("ekf", platform, config)
+        resumed.import_state(state)
+        update_each(resumed, samples[cut:])
+        again = resumed.estimate()
+        assert again.details["payload_steps"] == end.details["payload_steps"], cut
+        np.testing.assert_allclose(again.error, end.error, rtol=0, atol=1e-5, err_msg=f"resumed at sample {cut}")
+
+
 def _within_pose(samples, k: int) -> bool:
     """Whether samples ``k − 1`` and ``k`` are at one static pose (their strokes within 5 µm)."""
     return bool(np.max(np.abs(np.asarray(samples[k].strokes) - np.asarray(samples[k - 1].strokes))) < 5e-3)

@@ -353,7 +353,7 @@ class RobustFilter:
                 if (
                     self._locked_out()
                     and self._change_origin is None
-                    and not any(self._leads(c) or self._leads_withheld(c) for c in self._candidates)
+                    and not any(self._leads(c.ratio) or self._leads(c.start_ratio) for c in self._candidates)
                 ):
                     self._recover()
             raise
@@ -767,7 +767,7 @@ class RobustFilter:
         confirmed = best.taken >= self._robust.lockout_window_samples or (
             self._kappa > 0.0 and not best.at_start and not filter_takes and best.refused_last
         )
-        if not (self._leads(best) and confirmed):
+        if not (self._leads(best.ratio) and confirmed):
             return False
         f.x, f.P, f.nis, f.S = best.x, best.P, best.nis, S
         self._misfit = best.misfit
@@ -788,18 +788,11 @@ class RobustFilter:
         self._since_window, self._last_window = 0, None
         return True
 
-    def _leads_withheld(self, candidate: _Candidate) -> bool:
-        """Whether a candidate still at the new pose it began at leads on the ratio withheld there."""
-        return (
-            candidate.at_start
-            and candidate.at_new_pose
-            and self._leads(dataclasses.replace(candidate, ratio=candidate.start_ratio))
-        )
-
-    def _leads(self, candidate: _Candidate) -> bool:
-        """Whether a candidate step's ratio is beyond its bound at the dispersion of the filter's NIS."""
+    def _leads(self, ratio: float) -> bool:
+        """Whether a candidate step's ``ratio`` (or the one it withholds at its start pose, 0 once it has left it)
+        is beyond its bound at the dispersion of the filter's NIS."""
         dispersion = max(1.0, float(np.mean(self._dispersions))) if self._dispersions else 1.0
-        return candidate.ratio > 0.5 * self._step_bound * dispersion
+        return ratio > 0.5 * self._step_bound * dispersion
 
     def _stepped_update(
         self,
@@ -1932,7 +1925,7 @@ class _Candidate:
     #: the ratio of the pose's samples is withheld (``start_ratio``) until the candidate has left the pose
     at_new_pose: bool = False
     refused_last: bool = False  #: it refused the last sample it saw, as the filter did
-    start_ratio: float = 0.0  #: the ratio withheld at its start pose (``at_new_pose``)
+    start_ratio: float = 0.0  #: the ratio withheld at its start pose (``at_new_pose``); 0 once it has left it
 
 
 def _index_of(origin: _Origin, origins: list[_Origin]):
