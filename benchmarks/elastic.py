@@ -576,10 +576,6 @@ PAYLOAD_WHY = {
     "configs/estimators/paper-elastic.toml is the paper's settings for an elastic model (δM's walk 0.001 mm/√s: "
     "the compliance carries the sag). calibrate and track say so: the walk in use moves each parameter 1.46 mm over "
     "the run's 212 s, more than the 0.26 mm a payload of payload_sigma_kg = 50 gives the most loaded leg",
-    "paper-elastic": "isam2 on seed 1 (at once and over the ramp): its front end finds the step as ekf does (39.9 ± "
-    "0.45 kg, the step begun at 106.0 s), but the graph rebuilt over its replay from 102.9 s with the step's window "
-    "opening at 106.0 s settles at −1.4 kg with the payload's σ near 0; the graph's cause is not found. Seeds 2–8 of "
-    "the same configuration end within 1.4σ for both methods, both ways of putting the payload on",
 }
 
 
