@@ -20,7 +20,9 @@ which types it.
 when neither ``NUMBA_CACHE_DIR``, the ``__pycache__`` beside the source (read-only site-packages)
 nor the user-wide cache (read-only home) can be written. :func:`njit` then points numba at a private
 directory in the system's temporary directory, and when that cannot be made either, compiles
-without a cache (each process pays the compile, a few seconds, instead of failing).
+without a cache (each process pays the compile, a few seconds, instead of failing). A cached kernel's
+key holds every kernel module's source (:func:`_keyed_on_kernel_sources`), since its machine code holds
+the kernels it calls from other modules.
 
 A JIT compile says so once on a terminal (:class:`CompileNotice`), so the wait is not taken for a
 hang. The rules every kernel follows to keep the compile small (together they halve the CPU time and
@@ -361,7 +363,7 @@ def _private_temporary_dir() -> str | None:
 def _cached_njit(func, options: dict):
     numba, numba_config = load_numba()
     try:
-        return numba.njit(cache=True, **options)(func)
+        return _keyed_on_kernel_sources(numba.njit(cache=True, **options)(func))
     except RuntimeError as err:
         if "cannot cache" not in str(err):
             raise
@@ -369,11 +371,34 @@ def _cached_njit(func, options: dict):
     if fallback is not None and numba_config.CACHE_DIR != fallback:
         numba_config.CACHE_DIR = fallback  # numba reads it for every later function too
         try:
-            return numba.njit(cache=True, **options)(func)
+            return _keyed_on_kernel_sources(numba.njit(cache=True, **options)(func))
         except RuntimeError as err:
             if "cannot cache" not in str(err):
                 raise
     return numba.njit(cache=False, **options)(func)
+
+
+@functools.cache
+def kernel_sources_stamp() -> str:
+    """One SHA-256 over :func:`source_digests`: every kernel module's source."""
+    return hashlib.sha256(json.dumps(source_digests(), sort_keys=True).encode()).hexdigest()
+
+
+def _keyed_on_kernel_sources(dispatcher):
+    """``dispatcher`` with its cache index keyed on every kernel module's source too.
+
+    numba keys a function's cached machine code on its own file's modification time and size alone, and
+    that code holds every kernel it calls, those of other modules included (numba's documented limit: a
+    change to a symbol defined in another file is not seen): robust.py's kernels hold kalman.py's, and
+    after a change to kalman.py alone (a checkout, an edit in an editable install) they would run its old
+    code from the cache. With :func:`kernel_sources_stamp` in the key, a change to any kernel module
+    compiles every kernel again. The stamp is numba's attribute
+    (``IndexDataCacheFile._source_stamp``, read when an index is loaded and written with it); a numba
+    without it keeps its own key."""
+    cache_file = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)
+    if cache_file is not None and hasattr(cache_file, "_source_stamp"):
+        cache_file._source_stamp = (cache_file._source_stamp, kernel_sources_stamp())
+    return dispatcher
 
 
 @functools.cache

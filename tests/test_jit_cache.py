@@ -165,3 +165,38 @@ def test_the_fk_kernels_compile_once_for_every_caller(tmp_path):
         [sys.executable, "-c", script], env=env, cwd=ROOT, capture_output=True, text=True, timeout=600
     )
     assert (done.returncode, done.stdout.strip()) == (0, "1 1"), done.stderr
+
+
+#: a kernel called once, its cache hits and misses printed; "changed": as after an edit of another kernel module
+CACHE_HIT_OR_MISS = """
+import sys
+import numpy as np
+from stewart_calib import _jit
+if sys.argv[1:] == ["changed"]:
+    digests = _jit.source_digests()
+    digests["stewart_calib.estimators.kalman"] = "0" * 64
+    _jit.source_digests = lambda: digests
+from stewart_calib.model import _kernels
+_kernels.all_within(np.zeros(6), -1.0, 1.0)
+stats = _kernels.all_within.stats
+print(sum(stats.cache_hits.values()), sum(stats.cache_misses.values()))
+"""
+
+
+def test_a_change_to_another_kernel_module_compiles_every_kernel_again(tmp_path):
+    """numba keys a cached kernel on its own module's file alone, while its machine code holds the kernels
+    it calls from other modules (robust.py's hold kalman.py's): after a change to one module only, its
+    callers in others would run its old code from the cache. The key holds every kernel module's source."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_CACHE_DIR": str(tmp_path / "cache"), "STEWART_CALIB_AOT": "0"}
+
+    def hits_and_misses(*argv: str) -> str:
+        done = subprocess.run(
+            [sys.executable, "-c", CACHE_HIT_OR_MISS, *argv], env=env, cwd=tmp_path, capture_output=True, text=True,
+            timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        return done.stdout.strip()
+
+    assert hits_and_misses() == "0 1"  # an empty cache: compiled
+    assert hits_and_misses() == "1 0"  # the same sources: loaded
+    assert hits_and_misses("changed") == "0 1"  # another module's source changed: compiled again
