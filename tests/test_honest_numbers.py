@@ -178,6 +178,33 @@ def test_a_calibration_on_noise_alone_says_so_loudly(tmp_path):
     assert err.splitlines()[-1].endswith("the log gives no evidence the calibration improves on the nominal model")
 
 
+@pytest.mark.parametrize("method", ["ekf", "ls"])
+def test_a_calibration_that_fits_its_own_log_worse_than_the_nominal_model_names_the_estimate(outside_run, method):
+    """Residuals that rise, not fall, are no evidence about the nominal model (the audit: paper-ekf on the
+    README's motion-capture log, "gives no evidence that the nominal model is wrong … χ² -569"): the
+    estimate stopped short of the log's optimum, and the line says which method reaches it."""
+    from stewart_calib.workflows.validation import unsupported_correction
+
+    work, _ = outside_run
+    platform = load_platform(work / "sim" / "platform.toml")
+    log = read_log(work / "fit.csv", platform)
+    result = json.loads((work / "r.json").read_text())
+    assert unsupported_correction(platform, result, log, 54, 1.0) is None  # ls's own fit: its residuals fall
+    legs = [k for k, name in enumerate(result["parameter_names"]) if name.startswith("l")]
+    error = np.asarray(result["error"])
+    error[legs] += [3.0, -3.0, 3.0, -3.0, 3.0, -3.0]  # the legs 3 mm off where the fit had them
+    worse = {
+        **result,
+        "method": method,
+        "error": error.tolist(),
+        "estimate": (np.asarray(result["nominal"]) + error).tolist(),
+    }
+    line, words = unsupported_correction(platform, worse, log, 54, 1.0)
+    assert line.startswith("WARNING: the calibrated model fits its own log worse than the nominal model registered")
+    assert f"the {method} estimate stopped short of the log's optimum" in line and "no evidence" not in line
+    assert ("--method ls" in line) == (method == "ekf") and words.endswith("worse than the nominal one")
+
+
 #: a robot 0.5 mm off its nominal model (σ of each joint coordinate and leg), its encoders exact, 80
 #: poses within half the workspace: motion capture sees its errors (χ² falls), but not the frame's
 #: trade with the legs, along which ls moves the robot 7 mm (seed 3 of a new user's own simulation)
@@ -830,6 +857,32 @@ def test_validates_verdict_holds_the_robots_own_error_beyond_the_instruments_noi
     # only part of the motion's error (the targets' fitted places absorb some), so the prediction's word
     assert "motion not sure" in verdict(0.12, position, None)[0]
     assert "motion not sure" in verdict(0.09, position, None)[0]  # 0.1 measured, but not surely over 0.09
+
+
+def test_validates_verdict_holds_what_it_measured_of_the_absolute_place_against_the_tolerance():
+    """A check surely over the tolerance is over it, whatever the prediction said: through the in-situ
+    tracker it measured the absolute place itself; re-registered through an outside instrument the error
+    in {J} is no smaller than the best frame's, which it measured (through the calibration's frame it may
+    be smaller: that frame's own error is in the rows). Above the result's band, the line says why more
+    poses would not help (the audit's case: 0.036 mm measured, 0.0041 mm predicted, "absolute place within"
+    a 0.01 mm tolerance)."""
+    from stewart_calib.analysis.accuracy import MeasuredError, PredictedError, verdict_line
+
+    prediction = PredictedError(
+        0.004, 0.001, 200, (0.003, 0.0055), True, 0.004, 0.001, (0.003, 0.0054), "",
+        registered_position_mm=0.003, registered_orientation_deg=0.001, registered_position_band_mm=(0.002, 0.004),
+    )  # fmt: skip
+    seen = MeasuredError(0.036, (0.0354, 0.0365), None)
+    tracker, _ = verdict_line(prediction, 0.01, None, "validate measured the absolute place in {J}", seen)
+    assert "above the predicted absolute place's 90% band: the robot or the instrument is not as it was" in tracker
+    assert "motion within, absolute place over" in tracker and "stewart-calib plan" not in tracker
+    refitted, over = verdict_line(prediction, 0.01, None, "", seen, registered=True, refitted=True)
+    assert "above the predicted registered error's 90% band" in refitted
+    assert "motion over, absolute place over" in refitted and over
+    through_calibration, _ = verdict_line(prediction, 0.01, None, "", seen, registered=True)
+    assert "motion over, absolute place within" in through_calibration
+    within, over = verdict_line(prediction, 0.05, None, "", seen)  # measured within: the prediction's words
+    assert "motion within, absolute place within" in within and not over
 
 
 def test_validate_calls_a_calibration_worse_only_where_the_held_out_log_says_so():

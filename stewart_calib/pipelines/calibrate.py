@@ -349,7 +349,7 @@ def run(args: argparse.Namespace) -> int:
             result_data["residual_rms"] = handover.residual_rms_field(residuals)
         result_json = io.result_text(result_data, str(out))
         pose_line = _pose_error_line(platform, result_data, checked, n_samples)
-        unsupported = None
+        unsupported = None  # the χ² test's (loud line, the verdict's words)
         if outside and predicted.get("available", True):
             rank = int(conditioning["rank"])
             unsupported = unsupported_correction(platform, result_data, checked, rank, predicted["correction_mm"])
@@ -366,10 +366,10 @@ def run(args: argparse.Namespace) -> int:
             else worse_than_nominal_line(prediction, predicted["correction_mm"], predicted["motion_correction_mm"])
         )
         if unsupported:
-            verdict = f"{verdict}; the log gives no evidence the calibration improves on the nominal model"
+            verdict = f"{verdict}; {unsupported[1]}"
         elif worse:
             verdict = f"{verdict}; the calibrated model is likely worse than the nominal one"
-        loud = unsupported or worse
+        loud = unsupported[0] if unsupported else worse
         trace_csv = None
         if trace_path and not streamed and result.trace is not None:
             trace = io.parameters_to_file(result.trace, platform.drive)  # a rotary drive's angles in degrees

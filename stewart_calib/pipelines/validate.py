@@ -170,9 +170,12 @@ def _verdict(
     if prediction is None:
         verdict, over = f"verdict: {measured}; the result holds no prediction of its error elsewhere", True
     else:
-        # the robot's own, as the instrument sees it; through a moved frame, the move's
-        registered = beyond if instrument_kind(platform).outside and not moved else None
-        verdict, over = verdict_line(prediction, args.tolerance_mm, args.tolerance_deg, measured, registered)
+        # the robot's own; through a moved frame, the move's
+        outside = instrument_kind(platform).outside
+        verdict, over = verdict_line(
+            prediction, args.tolerance_mm, args.tolerance_deg, measured, None if moved else beyond, outside,
+            args.register_instrument,
+        )  # fmt: skip
     if compared and compared[1]:
         verdict += "; on this log the calibrated model is no better than the nominal one"
     return verdict, over

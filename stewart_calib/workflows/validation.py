@@ -24,6 +24,7 @@ import numpy as np
 
 from .. import io
 from ..errors import CalibError, number
+from ..estimators import method_names
 from ..instruments import instrument_kind
 from ..io.platform_file import load_platform
 from ..model import kinematics as kin
@@ -516,9 +517,11 @@ def _whitened_squares(platform: Platform, result: dict, log, source: str) -> tup
     return float(np.sum(e[finite] ** 2)), int(finite.sum())
 
 
-def unsupported_correction(platform: Platform, result: dict, log, rank: int, correction_mm: float) -> str | None:
-    """The loud line when an outside instrument's log gives no evidence that the nominal model is
-    wrong, None otherwise (or for a leg-set tracker).
+def unsupported_correction(
+    platform: Platform, result: dict, log, rank: int, correction_mm: float
+) -> tuple[str, str] | None:
+    """``(the loud line, the verdict's words)`` when an outside instrument's log gives no evidence that
+    the nominal model is wrong, None otherwise (or for a leg-set tracker).
 
     The calibration fits ``rank`` unknowns where the nominal model's σ-weighted registration
     (:func:`registered_nominal_model`) fits the instrument's alone; were the nominal model right, the
@@ -526,7 +529,9 @@ def unsupported_correction(platform: Platform, result: dict, log, rank: int, cor
     ``s² = SS_after / (rows − rank)``, is χ² with as many degrees of freedom as the drive's share.
     Below its :data:`NO_EVIDENCE_TAIL` quantile the calibration's ``correction_mm`` (how far it
     moves the robot) rests on noise: the calibrated robot is likely further from its poses than
-    the nominal one.
+    the nominal one. Below zero the calibrated model fits its own log worse than the nominal one
+    registered to it: that is no verdict on the nominal model but on the estimate, which stopped
+    short of the log's optimum (an online filter's single pass linearised far from it).
     """
     if not instrument_kind(platform).outside:
         return None
@@ -546,12 +551,28 @@ def unsupported_correction(platform: Platform, result: dict, log, rank: int, cor
     threshold = chdtri(dof, NO_EVIDENCE_TAIL)
     if fall >= threshold:
         return None
+    if fall < 0.0:
+        method = result.get("method", "")
+        remedy = (
+            "check that the log is this robot's (its platform file, the strokes' zeros and units)"
+            if method in method_names(online=False)
+            else "calibrate this log with --method ls, which iterates to its optimum"
+        )
+        return (
+            f"WARNING: the calibrated model fits its own log worse than the nominal model registered to it "
+            f"(the sum of squares of its σ-weighted residuals is {after / before:.3g}× the nominal model's): the "
+            f"{method} estimate stopped short of the log's optimum and moves "
+            f"the robot by {correction_mm:.3g} mm that the log does not support, so it is likely worse than the "
+            f"nominal one; {remedy}",
+            "the calibrated model fits its own log worse than the nominal one",
+        )
     return (
         f"WARNING: the log gives no evidence that the nominal model is wrong — fitting the drive's {dof} "
         f"unknowns lowers the residuals by χ² {fall:.3g}, where a right nominal model's fall below "
         f"{threshold:.3g} in {1 - NO_EVIDENCE_TAIL:.0%} of logs; the calibrated model moves the robot by "
         f"{correction_mm:.3g} mm on noise and is likely worse than the nominal one: keep the nominal model, "
-        "or log poses whose errors the instrument can see beyond its noise"
+        "or log poses whose errors the instrument can see beyond its noise",
+        "the log gives no evidence the calibration improves on the nominal model",
     )
 
 
