@@ -295,7 +295,12 @@ def test_cli_plans_for_a_motion_capture_platform(tmp_path, capsys, wide_pose):
     )
     printed = capsys.readouterr().out
     assert "planned 20 poses (I from 200 candidates and 729 box extremes" in printed
-    assert "predicted closed-loop pose error after calibration: expected mean over 200 workspace poses" in printed
+    # the noise the prediction takes, named: calibrate re-estimates it, plan cannot
+    sigma = (
+        f"σ {wide_pose.instrument.position_sigma_mm:g} mm / {np.degrees(wide_pose.instrument.orientation_sigma_rad):g}°"
+    )
+    head = f"predicted closed-loop pose error after calibration (for the instrument's {sigma}, the platform file's "
+    assert head + "[instrument]): expected mean over 200 workspace poses" in printed
     assert "(90% of such calibrations in each band): absolute place in {J}" in printed
     assert read_pose_list(out).shape == (20, 6)
 
@@ -382,7 +387,8 @@ def test_identifiability_reports_the_prediction_of_a_pose_list(tmp_path, capsys,
         wide_pose, planning.design_covariance(wide_pose, read_pose_list(tmp_path / "p.csv"))
     )
     assert document["predicted_closed_loop"]["position_mm"] == pytest.approx(expected.position_mm, rel=1e-9)
-    assert f"after calibration: {expected.describe()}" in printed
+    assert f"after calibration (for the instrument's σ {wide_pose.instrument.position_sigma_mm:g} mm" in printed
+    assert f"[instrument]): {expected.describe()}" in printed
     assert document["verdict"] in ("identifiable", "poorly conditioned")
     # planned poses sit below the noise floor of as many poses at the box's extremes: no warning
     assert document["predicted_closed_loop"]["warning"] is None

@@ -368,7 +368,10 @@ def test_identifiability_of_a_log_predicts_what_calibrate_predicts_at_its_fit(tm
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         assert cli.main([str(a) for a in ["identifiability", *given, "--json", tmp_path / "i.json"]]) == 0
-    assert "predicted closed-loop pose error after calibration (at the log's ls fit): " in out.getvalue()
+    assert (
+        "predicted closed-loop pose error after calibration (at the log's ls fit; for the instrument's σ"
+        in out.getvalue()
+    )
     calibrated = json.loads((tmp_path / "r.json").read_text())["predicted_closed_loop"]
     bound = json.loads((tmp_path / "i.json").read_text())["predicted_closed_loop"]
     for key in ("position_mm", "motion_position_mm", "registered_position_mm"):

@@ -171,3 +171,20 @@ def test_the_tracker_plan_keeps_a_true_robots_readings_in_range(platform):
         readings = kin.inverse_kinematics(platform.tracker, reached.R, reached.t)
         beyond += int(np.sum(np.any((readings < low) | (readings > high), axis=1)))
     assert beyond == 0, f"{beyond} of {20 * len(poses)} poses read beyond the tracker's range"
+
+
+@pytest.mark.parametrize(("config", "words"), [(None, "the default configuration's"), ("paper", "--config paper's")])
+def test_a_plans_prediction_names_the_noise_it_takes(tmp_path, capsys, config, words):
+    """A prediction is as small as the noise it is given: the README's plan without --config predicted
+    0.0017 mm where calibrate --config paper, whose tracker readings are 10× noisier, predicted 0.155."""
+    from stewart_calib.config import load_estimator_config
+    from stewart_calib.resources import resolve
+
+    argv = ["plan", "--platform", str(NIM_STEWART), "--n", "30", "--out", str(tmp_path / "p.csv"), "--seed", "1"]
+    assert cli_main([*argv, *(["--config", config] if config else [])]) == 0
+    noise = load_estimator_config(None if config is None else resolve(config, "estimators")).noise
+    line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("predicted closed-loop"))
+    assert line.startswith(
+        f"predicted closed-loop pose error after calibration (for tracker readings of σ {noise.reading_sigma_mm:g} mm "
+        f"and drive coordinates of σ {noise.stroke_sigma_mm:g} mm, {words}"
+    )

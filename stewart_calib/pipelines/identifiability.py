@@ -14,7 +14,7 @@ import numpy as np
 
 from .. import io
 from ..analysis.identifiability import CONDITION_POOR, NO_POSE, InformationAccumulator, tracker_samples, warning_line
-from ..config import load_estimator_config
+from ..config import NoiseConfig, load_estimator_config
 from ..errors import CalibError
 from ..instruments import instrument_kind
 from ..io import read_pose_list
@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
     for line in (warning, trade_off):
         if line:
             print(line)
-    prediction = _prediction(platform, covariance, poses, information.n_poses, noise, bound)
+    prediction = _prediction(platform, covariance, poses, information.n_poses, noise, args.config, bound)
     if args.json:
         thermal = {} if trade_off is None else {"thermal_trade_off": trade_off}
         io.atomic_write_text(args.json, json.dumps({**report.to_dict(), **prediction, **thermal}, indent=2) + "\n")
@@ -157,15 +157,19 @@ def fitted_platform(platform: Platform, log, config, path: str) -> tuple[Platfor
     return handover.calibrated_platform(platform, estimate, "ls", Path(path).name, created), "at the log's ls fit"
 
 
-def _prediction(platform: Platform, covariance, poses, n_poses: int, noise, bound: str | None = None) -> dict:
+def _prediction(
+    platform: Platform, covariance, poses, n_poses: int, noise, config: str | None, bound: str | None = None
+) -> dict:
     """Print the predicted closed-loop error line of a pose set's Cramér–Rao covariance (over the
     workspace, or the poses themselves where the platform has none), warned against the noise
     floor of as many poses, with ``bound``, the words saying where a log's is linearised
-    (:func:`fitted_platform`; None: a pose list's, at the nominal drive); its JSON field."""
+    (:func:`fitted_platform`; None: a pose list's, at the nominal drive), and the noise it takes
+    (:func:`~stewart_calib.workflows.planning.noise_words`, ``config``: ``--config``'s name); its JSON field."""
     from ..analysis.accuracy import PREDICTION_HEAD, predicted_error, summary_line
-    from ..workflows.planning import noise_floor
+    from ..workflows.planning import noise_floor, noise_words
 
-    what = PREDICTION_HEAD if bound is None else f"{PREDICTION_HEAD} ({bound})"
+    words = noise_words(platform, noise or NoiseConfig(), config)
+    what = f"{PREDICTION_HEAD} ({words})" if bound is None else f"{PREDICTION_HEAD} ({bound}; {words})"
     if covariance is None:
         print(f"{what}: none (the poses do not identify every unknown)")
         return {"predicted_closed_loop": None}
@@ -262,7 +266,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, config
     # at the log's payloads (and temperatures), as the calibration sees them: without them an elastic
     # drive's compliance trades against the leg lengths under the platform's weight alone
     covariance = design_covariance(at, bound_poses, seen=seen, channels=converged)
-    prediction = _prediction(platform, covariance, poses, len(poses), None, bound)
+    prediction = _prediction(platform, covariance, poses, len(poses), None, args.config, bound)
     if args.json:
         document = {
             "format": "stewart-calib/identifiability-instrument@1",

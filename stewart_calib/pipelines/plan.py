@@ -26,6 +26,7 @@ from ..workflows.planning import (
     default_criterion,
     design_covariance,
     extreme_poses,
+    noise_words,
     plan_poses,
     plan_warning,
     reading_margin_mm,
@@ -132,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
     covariance = design_covariance(platform, poses, noise)
     if covariance is not None:
         prediction = predicted_error(platform, covariance)
-        print(f"{PREDICTION_HEAD}: {prediction.describe()}")
+        print(f"{PREDICTION_HEAD} ({noise_words(platform, noise, args.config)}): {prediction.describe()}")
         warning = plan_warning(platform, noise, prediction, len(poses))
         if warning:
             print(f"stewart-calib plan: {warning}", file=sys.stderr)

@@ -366,6 +366,24 @@ def design_covariance(
     return lift @ ((Vt.T / s**2) @ Vt) @ lift.T
 
 
+def noise_words(platform: Platform, noise: NoiseConfig, config: str | None) -> str:
+    """The noise :func:`design_covariance` takes, named as the prediction lines of ``plan`` and
+    ``identifiability`` print it: an outside instrument's σ from the platform file's ``[instrument]``
+    (``calibrate`` re-estimates it from the log's residuals), the in-situ tracker's readings' and the drive's
+    coordinates' from the estimator configuration's ``[noise]`` (``config``: ``--config``'s name; None, the
+    default configuration) — a prediction is as small as the noise it is given."""
+    if instrument_kind(platform).outside:
+        sigma = f"{platform.instrument.position_sigma_mm:g} mm"
+        if instrument_kind(platform).measures_orientation:
+            sigma += f" / {math.degrees(platform.instrument.orientation_sigma_rad):g}°"
+        return f"for the instrument's σ {sigma}, the platform file's [instrument]"
+    legs = platform.drive
+    coordinate = legs.coordinate_sigma(noise)
+    drive = f"{coordinate:g} mm" if legs.coordinate_unit == "mm" else f"{math.degrees(coordinate):g}°"
+    source = f"--config {config}'s" if config else "the default configuration's: --config names your estimator's"
+    return f"for tracker readings of σ {noise.reading_sigma_mm:g} mm and drive coordinates of σ {drive}, {source}"
+
+
 def noise_floor(platform: Platform, n_poses: int, noise: NoiseConfig | None = None) -> PredictedError | None:
     """What the instrument's noise leaves with ``n_poses`` poses spread over the workspace box's
     :func:`extreme_poses` (their Cramér–Rao covariance × 729 / n): the closed-loop error a
