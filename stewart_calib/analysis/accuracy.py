@@ -600,10 +600,11 @@ def relinearised_summary(
     n = optimum.layout.n_params
     given_log = dataclasses.replace(optimum, covariance=second[:n, :n], full_covariance=second)
     poses = None if platform.workspace is not None else measured_poses
-    covariances = (estimate_drive_covariance(given_log, drive), estimate_drive_covariance(optimum, drive))
-    if any(c is None or not np.all(np.isfinite(c)) for c in covariances):
+    covariances = [estimate_drive_covariance(given_log, drive), estimate_drive_covariance(optimum, drive)]
+    finite = [c for c in covariances if c is not None and np.all(np.isfinite(c))]
+    if len(finite) < len(covariances):
         return {"available": False}, None
-    again, best = (predicted_error(platform, c, poses) for c in covariances)
+    again, best = (predicted_error(platform, c, poses) for c in finite)
     field = {
         "position_mm": again.position_mm,
         "motion_position_mm": again.motion_position_mm,
