@@ -53,6 +53,7 @@ or for an outside instrument where the joints best fit their nominal positions,
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -588,6 +589,64 @@ def worse_than_nominal_line(
         f"{prediction.motion_position_mm:.3g} mm, {BAND_PROBABILITY:.0%}: {m_low:.3g}–{m_high:.3g} mm), so the log "
         f"does not support the move{limited}: keep the nominal model, or log poses that tilt and reach to the "
         "workspace's edges (stewart-calib plan)"
+    )
+
+
+def relinearised_summary(
+    platform: Platform, prediction: PredictedError, estimate: Estimate, optimum: Estimate, measured_poses: np.ndarray
+) -> tuple[dict, str | None]:
+    """An online method's prediction against what the log says of its estimate: ``(the result's "relinearised"
+    field, the loud line or None)``, ``optimum`` the log's MAP found from ``estimate``
+    (:class:`~stewart_calib.estimators.Relinearising`).
+
+    A filter's estimate and covariance sum each sample's information at the state it stood at when the sample
+    came; where that state moved by millimetres over the log (an outside instrument's frame and the encoder
+    zeros, found along the way), its covariance is not the information the log holds, nor its state the log's
+    optimum. Given the log, the truth is ``N(x̂, P̂)`` about the optimum (Laplace), so the estimate's error
+    ``x − x_true`` has the second moment ``P̂ + d dᵀ``, ``d = x − x̂``: its expected mean error follows with no
+    threshold, and equals the method's own prediction where its recursion is the batch's (one linearisation
+    point: an honest run differs by the model's curvature, a few per cent). The line is written where that
+    expected mean (absolute place or motion from home) lies above the top of the method's own band — beyond
+    what :data:`BAND_PROBABILITY` of calibrations with its covariance would show: its prediction then does not
+    describe its error. One-sided: a filter less sure than the log (a walk) misleads no one."""
+    drive = drive_model(platform)
+    offset = np.concatenate((estimate.error - optimum.error, estimate.block_error - optimum.block_error))
+    if optimum.full_covariance is None:
+        return {"available": False}, None
+    second = optimum.full_covariance + np.outer(offset, offset)
+    n = optimum.layout.n_params
+    given_log = dataclasses.replace(optimum, covariance=second[:n, :n], full_covariance=second)
+    poses = None if platform.workspace is not None else measured_poses
+    covariances = [estimate_drive_covariance(given_log, drive), estimate_drive_covariance(optimum, drive)]
+    finite = [c for c in covariances if c is not None and np.all(np.isfinite(c))]
+    if len(finite) < len(covariances):
+        return {"available": False}, None
+    again, best = (predicted_error(platform, c, poses) for c in finite)
+    field = {
+        "position_mm": again.position_mm,
+        "motion_position_mm": again.motion_position_mm,
+        "optimum_position_mm": best.position_mm,
+        "optimum_motion_position_mm": best.motion_position_mm,
+    }
+    method, motion_band = estimate.method, prediction.motion_position_band_mm
+    beyond = [
+        f"{what} {theirs:.3g} mm where its own is {own:.3g} mm ({BAND_PROBABILITY:.0%}: {band[0]:.3g}–{band[1]:.3g} mm)"
+        for what, theirs, own, band in (
+            ("absolute place in {J}", again.position_mm, prediction.position_mm, prediction.position_band_mm),
+            ("motion from home", again.motion_position_mm, prediction.motion_position_mm, motion_band),
+        )
+        if theirs > band[1]
+    ]
+    if not beyond:
+        return field, None
+    return field, (
+        f"WARNING: {method}'s predicted error is smaller than the log allows: the log's optimum (Gauss–Newton from "
+        f"{method}'s estimate over the samples it used) expects of {method}'s estimate {'; '.join(beyond)}, beyond "
+        f"its own band. It took each sample's information at the state it stood at when the sample came, and here "
+        f"that state moved far over the log (the instrument's frame and the encoder zeros, found along the way), "
+        f"so its covariance does not describe its error: for a log measured whole, calibrate with --method ls or "
+        f"lm (the optimum's expected error: absolute {best.position_mm:.3g} mm, "
+        f"motion {best.motion_position_mm:.3g} mm)"
     )
 
 

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from .base import BatchEstimator, Checkpointable, Estimator, KalmanFiltered, fit_all
+from .base import BatchEstimator, Checkpointable, Estimator, KalmanFiltered, Relinearising, fit_all
 from .registry import METHODS, MethodSpec, make_estimator, method_names, method_spec
 
 __all__ = [
@@ -13,6 +13,7 @@ __all__ = [
     "Estimator",
     "KalmanFiltered",
     "MethodSpec",
+    "Relinearising",
     "fit_all",
     "make_estimator",
     "method_names",

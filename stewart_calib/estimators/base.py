@@ -93,6 +93,17 @@ class KalmanFiltered(Protocol):
     filter: _NIS
 
 
+@runtime_checkable
+class Relinearising(Protocol):
+    """An online method whose estimate and covariance sum each sample's information at the state it stood at
+    when the sample came (``ekf``; ``isam2``, whose factors keep their linearisation within its threshold), so
+    that a caller holding the whole log can ask what the log holds: its optimum, found from that estimate."""
+
+    def relinearised(self, samples: Iterable[Sample]) -> Estimate | None:
+        """The MAP of the method's prior and ``samples`` (those it used) by Gauss–Newton from ``estimate()``, with
+        the method's own model, noise and walk, and its covariance there; None where it does not settle."""
+
+
 def take_late_rejections(estimator: Estimator) -> list[SampleRejected]:
     """Samples an estimator took provisionally and has since left out (a robust start-up batch,
     :mod:`.robust`), each reported once; ``err.t_s`` is the sample's time. Empty for others."""

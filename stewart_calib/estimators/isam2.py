@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 
 import gtsam
@@ -678,6 +679,11 @@ class ISAM2Estimator:
     def samples_held(self) -> int:
         """Samples held to register the instrument, not yet used (:class:`HeldForRegistration`)."""
         return self._held.waiting()
+
+    def relinearised(self, samples: Iterable[Sample]) -> Estimate | None:
+        """:class:`~.base.Relinearising`: the MAP of ``samples`` by Gauss–Newton from the graph's estimate, its
+        front end's passes (the same model, noise and unknown vector as the graph's factors)."""
+        return self._front.optimum_from(self.estimate(), samples)
 
     def recovery_summary(self) -> dict | None:
         """Lock-out recoveries of its front end and the samples they dropped and readmitted."""

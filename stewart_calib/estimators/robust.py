@@ -438,7 +438,7 @@ class RobustFilter:
         the second-order error of those samples (~mm²/leg length) is several σ of the reading noise,
         a bias the recursion keeps (NEES/dof 1.65 where lm, on the same log, gives 0.97)."""
         f = self.filter
-        x, P, *_ = self._gauss_newton(
+        (x, P, *_), _ = self._gauss_newton(
             ~self.startup_outliers, self.noise_scale2, self._linearise(f.x.copy()), startup=True
         )
         f.x, f.P = x, P
@@ -856,6 +856,21 @@ class RobustFilter:
 
     # ------------------------------------------------------------------ batches
 
+    def optimum_from(
+        self, t_s: np.ndarray, prepared: np.ndarray, at: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(x, P)``: the MAP of the prior and the prepared samples ``(t_s, prepared)`` by Gauss–Newton from the
+        state ``at`` (:meth:`_gauss_newton`: passes from the prior, every sample observed at one point, at the
+        noise scale and walk rate in use), or None where it does not settle in :data:`MAX_RELINEARISATIONS`.
+
+        The recursion's own ``P`` sums each sample's information at the state before it; where that state moved
+        by millimetres along the way (an outside instrument's frame and encoder zeros found over the samples),
+        its covariance is not the information the samples hold, nor is its state their optimum."""
+        samples = (np.asarray(t_s, dtype=float), np.asarray(prepared, dtype=float))
+        use = np.ones(len(prepared), dtype=bool)
+        solved, settled = self._gauss_newton(use, self.noise_scale2, self._linearise(at, prepared), samples=samples)
+        return (solved[0], solved[1]) if settled else None
+
     def _observe_or_none(self, prepared: np.ndarray, x: np.ndarray):
         """:data:`Observe` in a batch: a sample that fixes no pose at ``x`` is skipped, not fatal."""
         try:
@@ -863,10 +878,11 @@ class RobustFilter:
         except SampleRejected:
             return None
 
-    def _linearise(self, at: np.ndarray) -> tuple[np.ndarray, list]:
-        """``(at, every buffered sample's observation there)`` (None where it fixes no pose): the
-        linearisation a Gauss–Newton pass (:meth:`_pass`) reuses."""
-        return at, [self._observe_or_none(prepared, at) for prepared in self._buffer.prepared]
+    def _linearise(self, at: np.ndarray, prepared: np.ndarray | None = None) -> tuple[np.ndarray, list]:
+        """``(at, every buffered sample's observation there)`` (None where it fixes no pose; ``prepared``: those
+        samples' instead): the linearisation a Gauss–Newton pass (:meth:`_pass`) reuses."""
+        rows = self._buffer.prepared if prepared is None else prepared
+        return at, [self._observe_or_none(row, at) for row in rows]
 
     def _pass(
         self,
@@ -876,8 +892,10 @@ class RobustFilter:
         linearised: tuple[np.ndarray, list] | None = None,
         walk_rate_mm2_per_s: float | None = None,
         startup: bool = False,
+        samples: tuple[np.ndarray, np.ndarray] | None = None,
     ):
-        """A filter pass from the prior over the buffered samples ``use``; returns
+        """A filter pass from the prior over the buffered samples ``use`` (``samples``: ``(t_s, prepared)`` of
+        others, observed as ``linearised`` has them); returns
         ``(x, P, samples used, last t_s, residual degrees of freedom)``.
 
         ``centre``: the prior's mean (default the filter's prior: 0, the manufacturing prior, or a
@@ -908,7 +926,7 @@ class RobustFilter:
         self._pass_components = np.zeros(2)
         buffer = self._buffer
         if linearised is not None:
-            used, rows, last_t = self._observed_pass(x, P, use, noise_scale2, walk, linearised)
+            used, rows, last_t = self._observed_pass(x, P, use, noise_scale2, walk, linearised, samples)
         elif self._compiled_rows is not None:
             _, _, used, last_t, *_ = self._compiled_rows(
                 x,
@@ -947,18 +965,20 @@ class RobustFilter:
         noise_scale2: float,
         walk_rate_mm2_per_s: float,
         linearised: tuple[np.ndarray, list] | None = None,
+        samples: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> tuple[int, int, float]:
         """:meth:`_pass`'s recursion, observing each sample through ``observe`` (in place) at the
         pass's own state, or taking it from ``linearised``; returns ``(samples used, their
         observations' rows, last t_s)``. The ``step`` unknown of ``step_factors`` takes no part in a sample
         while the filter holds it or the pass's own compliance is not yet known to within itself
-        (:meth:`_compliance_settled`; :meth:`_release_payload`)."""
+        (:meth:`_compliance_settled`; :meth:`_release_payload`). ``samples``: ``(t_s, prepared)`` of the
+        samples ``use`` indexes (default the buffer's)."""
         Q = np.zeros((self._n, self._n))
         last_t, used, rows = math.nan, 0, 0
-        buffer = self._buffer
+        times, prepared = (self._buffer.t, self._buffer.prepared) if samples is None else samples
         misfit = None
         for k in np.flatnonzero(use):
-            observation = self._observe_or_none(buffer.prepared[k], x) if linearised is None else linearised[1][k]
+            observation = self._observe_or_none(prepared[k], x) if linearised is None else linearised[1][k]
             if observation is None:
                 continue
             nu, H, R0 = observation
@@ -967,13 +987,13 @@ class RobustFilter:
                 H = self._without_payload(H)
             if linearised is not None:
                 nu = nu - H @ (x - linearised[0])
-            self._fill_Q(Q, 0.0 if math.isnan(last_t) else buffer.t[k] - last_t, walk_rate_mm2_per_s)
+            self._fill_Q(Q, 0.0 if math.isnan(last_t) else times[k] - last_t, walk_rate_mm2_per_s)
             status, _, _, misfit = self._misfit_step(
-                x, P, misfit, Q, H, nu, R0, noise_scale2, math.inf, self._pass_components, buffer.prepared[k]
+                x, P, misfit, Q, H, nu, R0, noise_scale2, math.inf, self._pass_components, prepared[k]
             )
             if status != STEP_TAKEN:
                 continue  # degenerate: the step left x and P untouched
-            last_t, used, rows = buffer.t[k], used + 1, rows + len(nu)
+            last_t, used, rows = times[k], used + 1, rows + len(nu)
         self._pass_misfit = misfit
         return used, rows, last_t
 
@@ -1041,7 +1061,7 @@ class RobustFilter:
         if not self._robust.adapt_noise:
             scale2 = self.noise_scale2
         if linearised is not None:  # relinearising (self._relinearise), at the scale it will carry on with
-            solved = self._gauss_newton(~outliers, scale2, linearised)
+            solved, _ = self._gauss_newton(~outliers, scale2, linearised)
         elif scale2 != self.noise_scale2:  # the state's P at the scale it will carry on with
             solved = self._pass(~outliers, scale2)
         x, P, used, last_t, redundancy = solved
@@ -1057,17 +1077,19 @@ class RobustFilter:
         noise_scale2: float,
         linearised: tuple[np.ndarray, list],
         startup: bool = False,
+        samples: tuple[np.ndarray, np.ndarray] | None = None,
     ):
         """:meth:`_pass` over ``use`` relinearised at its own result until the step from the
         linearisation point is within :data:`RELINEARISE_TOLERANCE` posterior σ (the MAP of the
-        prior and those samples); returns the last pass (``startup``: as :meth:`_pass`)."""
+        prior and those samples); returns ``(the last pass, whether it settled so)`` (``startup``,
+        ``samples``: as :meth:`_pass`)."""
         for _ in range(MAX_RELINEARISATIONS):
-            solved = self._pass(use, noise_scale2, linearised=linearised, startup=startup)
+            solved = self._pass(use, noise_scale2, linearised=linearised, startup=startup, samples=samples)
             x, P = solved[0], solved[1]
             if _mahalanobis2(x - linearised[0], P, self._gauge_projector) <= RELINEARISE_TOLERANCE**2:
-                break
-            linearised = self._linearise(x)
-        return solved
+                return solved, True
+            linearised = self._linearise(x, None if samples is None else samples[1])
+        return solved, False
 
     def _adopt(self) -> None:
         x, P, used, last_t, scale2, redundancy = self._solved

@@ -27,7 +27,13 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__, estimators, io
-from ..analysis.accuracy import PredictedError, estimate_summary, verdict_line, worse_than_nominal_line
+from ..analysis.accuracy import (
+    PredictedError,
+    estimate_summary,
+    relinearised_summary,
+    verdict_line,
+    worse_than_nominal_line,
+)
 from ..analysis.identifiability import (
     conditioning_summary,
     identifiability_report,
@@ -256,7 +262,11 @@ def run(args: argparse.Namespace) -> int:
             # isam2 costs milliseconds a sample (a pose instrument's whole session in the smoother: ~15 ms),
             # so a few hundred samples take seconds: its bar shows whatever the log's length
             progress = sys.stderr.isatty() and (len(log) >= MIN_LOG_ROWS or args.method == "isam2")
-            result = run_calibration(platform, log, args.method, config, bool(trace_path), progress, bool(rerun_path))
+            # a filter linearises each sample once, along its way: with an outside instrument, whose frame and
+            # encoder zeros it finds over the log, its covariance is asked again at its estimate
+            result = run_calibration(
+                platform, log, args.method, config, bool(trace_path), progress, bool(rerun_path), outside
+            )
             estimate, n_samples, noise_scale = result.estimate, len(log), result.noise_scale
             rejections = Rejections.of(err for _, err in result.rejected)
             first_rejected_t_s = float(log.t_s[result.rejected[0][0]]) if result.rejected else None
@@ -314,6 +324,12 @@ def run(args: argparse.Namespace) -> int:
         # static Cramér–Rao bound the noise floor is, so only an outside instrument's is compared with it
         floor = noise_floor(platform, estimate.samples_used, config.noise) if outside else None
         predicted, line, warns = estimate_summary(platform, estimate, floor, poses)
+        own = PredictedError.from_dict(predicted)
+        overconfident = None
+        if not streamed and result.relinearised is not None and own is not None:
+            predicted["relinearised"], overconfident = relinearised_summary(
+                platform, own, estimate, result.relinearised, poses
+            )
         extra["predicted_closed_loop"] = predicted
         if warning and warns:  # one warning line: the poses' conditioning, then what it leaves
             print(f"stewart-calib calibrate: {warning}; {line.removeprefix('warning: ')}", file=sys.stderr)
@@ -353,7 +369,7 @@ def run(args: argparse.Namespace) -> int:
         if outside and predicted.get("available", True):
             rank = int(conditioning["rank"])
             unsupported = unsupported_correction(platform, result_data, checked, rank, predicted["correction_mm"])
-        prediction = PredictedError.from_dict(predicted)
+        prediction = own
         verdict, over = (
             verdict_line(prediction, args.tolerance_mm, args.tolerance_deg)
             if prediction is not None
@@ -369,7 +385,9 @@ def run(args: argparse.Namespace) -> int:
             verdict = f"{verdict}; {unsupported[1]}"
         elif worse:
             verdict = f"{verdict}; the calibrated model is likely worse than the nominal one"
-        loud = unsupported[0] if unsupported else worse
+        if overconfident:
+            verdict = f"{verdict}; {args.method}'s predicted error is smaller than the log allows (warned above)"
+        loud = [text for text in (unsupported[0] if unsupported else worse, overconfident) if text]
         trace_csv = None
         if trace_path and not streamed and result.trace is not None:
             trace = io.parameters_to_file(result.trace, platform.drive)  # a rotary drive's angles in degrees
@@ -398,7 +416,7 @@ def run(args: argparse.Namespace) -> int:
             inputs = {"platform file": str(args.platform), "log": str(args.log)}
             forces = None if leg_forces is None else LegForces(np.asarray(log.t_s), *leg_forces[:2])
             title = f"Calibration of {platform.name} with {args.method}"
-            shown = " — ".join(text for text in (verdict, loud) if text)
+            shown = " — ".join((verdict, *loud))
             robot = robot_at(platform, drive_model(platform).calibrated_by(estimate).legs)
             thermal = None if leg_temperatures is None else LegTemperatures(np.asarray(log.t_s), *leg_temperatures)
             page = report_html(title, result_data, residuals, None, inputs, forces, shown, robot, thermal)
@@ -414,8 +432,8 @@ def run(args: argparse.Namespace) -> int:
     io.atomic_write_text(out, result_json)
     if pose_line:
         print(f"stewart-calib calibrate: {pose_line}", file=sys.stderr)
-    if loud:
-        print(f"stewart-calib calibrate: {loud}", file=sys.stderr)
+    for text in loud:
+        print(f"stewart-calib calibrate: {text}", file=sys.stderr)
     print(
         f"stewart-calib calibrate: wrote {out} ({args.method}: {estimate.samples_used} samples used, "
         f"{samples_skipped} skipped{accounting_words(estimate.details or {})}, of {n_samples + skipped.count} rows)",
