@@ -65,6 +65,7 @@ from stewart_calib.model import kinematics as kin
 from stewart_calib.model.drive import COMPLIANCE, STROKE_SCALE, drive_model
 from stewart_calib.model.rotations import motion_error
 from stewart_calib.pipelines.handover import calibrated_model
+from stewart_calib.pipelines.score import closed_loop_poses
 from stewart_calib.simulation.closed_loop import simulate_blocks
 from stewart_calib.simulation.experiment import load_experiment
 
@@ -200,12 +201,12 @@ def true_drive(platform, experiment: Path):
 
 def closed_loop(commanded, true, poses: np.ndarray, home: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per pose ``(absolute, motion from home)`` position error [mm] of the ``true`` robot settled at the
-    strokes IK of ``commanded`` gives (both under the platform's weight, no payload)."""
+    strokes IK of ``commanded`` gives (both under the platform's weight, no payload: score's closed loop)."""
     R, t = kin.pose_to_rt(np.vstack([poses, home]))
-    reached, _ = true.settled_kinematics(commanded.inverse_kinematics(R, t), None, guess=(R, t))
-    absolute, _ = kin.pose_error(R[:-1], t[:-1], reached.R[:-1], reached.t[:-1])
+    reached_R, reached_t = closed_loop_poses(commanded, true, np.vstack([poses, home]))
+    absolute, _ = kin.pose_error(R[:-1], t[:-1], reached_R[:-1], reached_t[:-1])
     motion, _ = motion_error(
-        (R[-1], t[-1]), (R[:-1], t[:-1]), (reached.R[-1], reached.t[-1]), (reached.R[:-1], reached.t[:-1])
+        (R[-1], t[-1]), (R[:-1], t[:-1]), (reached_R[-1], reached_t[-1]), (reached_R[:-1], reached_t[:-1])
     )
     return absolute, motion
 

@@ -226,6 +226,9 @@ class Truth:
             does not give is absent.
         instrument: ``(names, values)`` of the true outside instrument's unknowns in file units
             (frame and target(s), spec §7), or None.
+        unloaded: ``(n_params,)`` an elastic robot's drive with no force on its legs [mm] (spec §10: what an
+            elastic calibration estimates, its compliance beside it; ``params`` are that drive loaded at each
+            sample), or None (a rigid robot: ``params`` are its drive).
     """
 
     t_s: np.ndarray
@@ -233,3 +236,4 @@ class Truth:
     true_poses: np.ndarray | None = None
     drive_terms: dict[str, np.ndarray] = field(default_factory=dict)
     instrument: tuple[tuple[str, ...], np.ndarray] | None = None
+    unloaded: np.ndarray | None = None

@@ -208,26 +208,35 @@ def test_export_says_what_the_controller_leaves_out_of_an_elastic_calibration(ch
             assert warned is None and "warning" not in err
 
 
-def test_score_says_an_elastic_result_is_not_scored_against_its_own_quantity(tmp_path, capsys):
-    """simulate's truth holds each sample's loaded parameters and score closes the loop rigid: an elastic
-    ekf calibration of the check scored a 0.3 mm closed loop where, under load, it leaves ~1 µm. score
-    now says so in one warning line; a paper-ekf result (no compliance) gets none."""
+def test_score_says_what_an_elastic_robots_results_are_scored_against(tmp_path, capsys):
+    """simulate's truth holds each sample's loaded parameters and, beside them, the robot's unloaded drive
+    (spec §10): an elastic ekf result is scored against that and the closed loop settles under the
+    platform's weight, a paper-ekf result (no compliance) against the last row, and one line on stderr says
+    which. A truth file without the unloaded drive (an older simulate's) keeps the warning that neither
+    score is an elastic result's error."""
     from benchmarks.elastic import check_experiment_toml, check_platform_toml
+    from stewart_calib.io import read_truth, write_truth
+    from stewart_calib.io.platform_file import load_platform
 
     (tmp_path / "elastic-check.toml").write_text(check_platform_toml())
     (tmp_path / "experiment.toml").write_text(check_experiment_toml(20, validation=5))
     sim = tmp_path / "sim"
     assert main(["simulate", "--experiment", str(tmp_path / "experiment.toml"), "--out", str(sim)]) == 0
     files = ["--platform", str(sim / "platform.toml")]
+    older = tmp_path / "older-truth.csv"
+    platform = load_platform(sim / "platform.toml")
+    write_truth(older, dataclasses.replace(read_truth(sim / "truth.csv", platform), unloaded=None), platform)
     for method in ("ekf", "paper-ekf"):
         out = str(tmp_path / f"{method}.json")
         assert main(["calibrate", *files, "--log", str(sim / "log.csv"), "--method", method, "--out", out]) == 0
         capsys.readouterr()
         assert main(["score", *files, "--result", out, "--truth", str(sim / "truth.csv")]) == 0
         err = capsys.readouterr().err
-        assert ("warning: the truth's parameters are those in force at its last sample, loaded" in err) == (
-            method == "ekf"
-        ), err
+        against = "its unloaded drive" if method == "ekf" else "those in force at the truth's last sample"
+        assert f"parameters scored against {against}" in err and "warning" not in err, err
+        assert main(["score", *files, "--result", out, "--truth", str(older)]) == 0
+        err = capsys.readouterr().err
+        assert ("neither score is its error" in err) == (method == "ekf"), err
 
 
 def test_simulate_refuses_a_load_centre_every_other_command_would(tmp_path, capsys):

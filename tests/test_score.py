@@ -47,16 +47,20 @@ def test_score_of_a_calibration_and_of_the_truth_itself(quick, tmp_path, capsys)
     s = json.loads(scores.read_text())
     assert s["closed_loop_mm"] < s["closed_loop_nominal_mm"]  # the calibration helps
     assert np.isfinite(s["z2"]) and s["poses"] == 200
-    # the truth itself as the result: no parameter error, no closed-loop error (FK's tolerance)
+    # the truth itself as the result: no parameter error, no closed-loop error (FK's tolerance); the elastic
+    # result's truth is the robot's unloaded drive and true compliance (the robot settles under its weight)
     perfect = read_result(result)
-    truth = read_truth(sim / "truth.csv").params[-1]
+    truth = read_truth(sim / "truth.csv").unloaded
     perfect["estimate"] = truth.tolist()
     perfect["error"] = (truth - np.array(perfect["nominal"])).tolist()
+    elastic = load_platform(sim / "platform.toml").elastic
+    perfect["compliance"]["estimate"] = elastic.true_compliance_mm_per_kN.tolist()
     write_result(tmp_path / "perfect.json", perfect)
     argv[argv.index(result)] = tmp_path / "perfect.json"
     assert cli.main([str(a) for a in argv]) == 0
     s = json.loads(scores.read_text())
     assert s["parameter_rms_mm"] == 0.0 and s["closed_loop_mm"] < 1e-6 and s["closed_loop_deg"] < 1e-6
+    assert s["compliance_max_error"] == 0.0 and s["truth"] == "unloaded" and s["closed_loop_settled"]
 
 
 def test_calibrate_and_validate_print_the_pose_error_before_and_after(quick, tmp_path, capsys):

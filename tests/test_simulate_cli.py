@@ -240,7 +240,8 @@ def whole_run_texts(experiment) -> tuple[str, str]:
     instrument = (
         None if robot.instrument is None else (robot.instrument.names(), robot.instrument.unknowns.file_values())
     )
-    truth = Truth(plan.t_s, params, kin.rt_to_pose(sol.R, sol.t), {"stroke_scale": robot.stroke_scale}, instrument)
+    terms = {"stroke_scale": robot.stroke_scale}
+    truth = Truth(plan.t_s, params, kin.rt_to_pose(sol.R, sol.t), terms, instrument, robot.unloaded_params)
     return log_text(log, experiment.platform), truth_text(truth)
 
 

@@ -66,6 +66,8 @@ LOG_REQUIRED = ("t_s", *STROKE_COLUMNS, *READING_COLUMNS)
 POSE_COLUMNS = ("x_mm", "y_mm", "z_mm", "roll_deg", "pitch_deg", "yaw_deg")
 TRUE_POSE_COLUMNS = tuple(f"true_{name}" for name in POSE_COLUMNS)
 STROKE_SCALE_NAMES = tuple(f"k{i}" for i in range(1, 7))
+#: the prefix of a truth file's unloaded drive parameters (an elastic robot's, spec §10): ``unloaded_j1x …``
+UNLOADED_PREFIX = "unloaded_"
 #: each drive leg's temperature [°C] (spec §17)
 TEMPERATURE_COLUMNS = tuple(f"temp{i}_C" for i in range(1, 7))
 #: one temperature [°C] for all legs (spec §17), read where the per-leg columns are absent
@@ -1051,7 +1053,8 @@ def _parameter_names(platform: Platform | None) -> tuple[str, ...]:
 def truth_text(truth: Truth, header: bool = True, platform: Platform | None = None) -> str:
     """A truth file's CSV (spec §4): ``t_s``, the drive's parameters (``platform``'s: the 42 [mm]
     without one, a rotary drive's 66 with its angles in degrees, spec §15), the true pose [mm, deg]
-    if present, then the constant spec §7 truth columns (a rotary drive's angle scale ``k1 … k6``).
+    if present, then the constant spec §7 truth columns (a rotary drive's angle scale ``k1 … k6``) and an
+    elastic robot's unloaded drive (spec §10, ``unloaded_j1x …``).
 
     ``header=False``: the rows only, to append to a truth file written block by block.
     """
@@ -1068,6 +1071,9 @@ def truth_text(truth: Truth, header: bool = True, platform: Platform | None = No
         constants += zip(STROKE_SCALE_NAMES, truth.drive_terms[STROKE_SCALE], strict=True)
     if truth.instrument is not None:
         constants += zip(*truth.instrument, strict=True)
+    if truth.unloaded is not None:
+        unloaded = truth.unloaded if platform is None else parameters_to_file(truth.unloaded, platform.drive)
+        constants += zip((UNLOADED_PREFIX + name for name in _parameter_names(platform)), unloaded, strict=True)
     for name, value in constants:
         names.append(name)
         columns.append(np.full(len(truth.t_s), float(value)))
@@ -1099,17 +1105,21 @@ def read_truth(path: str | Path, platform: Platform | None = None) -> Truth:
     params = params if platform is None else parameters_from_file(params, platform.drive)
     scale = None
     if all(name in header for name in STROKE_SCALE_NAMES):
-        scale = np.array([_first_number(path, header, text, name) for name in STROKE_SCALE_NAMES])
-    others = [name for name in header if name and name not in {*numeric, *STROKE_SCALE_NAMES}]
-    instrument = (
-        (tuple(others), np.array([_first_number(path, header, text, name) for name in others])) if others else None
-    )
-    return Truth(table.numbers["t_s"], params, poses, {} if scale is None else {STROKE_SCALE: scale}, instrument)
+        scale = _first_numbers(path, header, text, STROKE_SCALE_NAMES)
+    unloaded_names = [UNLOADED_PREFIX + name for name in _parameter_names(platform)]
+    unloaded = None
+    if all(name in header for name in unloaded_names):
+        unloaded = _first_numbers(path, header, text, unloaded_names)
+        unloaded = unloaded if platform is None else parameters_from_file(unloaded, platform.drive)
+    others = [name for name in header if name and name not in {*numeric, *STROKE_SCALE_NAMES, *unloaded_names}]
+    instrument = (tuple(others), _first_numbers(path, header, text, others)) if others else None
+    terms = {} if scale is None else {STROKE_SCALE: scale}
+    return Truth(table.numbers["t_s"], params, poses, terms, instrument, unloaded)
 
 
-def _first_number(path: Path, header: list[str], text: str, name: str) -> float:
-    """The value of a constant truth column (spec §7 blocks) in the first row."""
-    table = parse_table(path, header, text, [name])
-    flag_non_finite(table, [name])
+def _first_numbers(path: Path, header: list[str], text: str, names: list[str] | tuple[str, ...]) -> np.ndarray:
+    """The values of constant truth columns (spec §7 blocks, §10's unloaded drive) in the first row."""
+    table = parse_table(path, header, text, list(names))
+    flag_non_finite(table, list(names))
     refuse_first(path, table)
-    return float(table.numbers[name][0])
+    return np.array([table.numbers[name][0] for name in names], dtype=float)

@@ -16,8 +16,15 @@ reports are those at the last sample; a batch fit's hold for the whole log):
 
 With ``[elastic]`` (spec §10) the truth's rows are the parameters in force at each sample, loaded (the
 platform's weight and the payload moved the joints and shortened the legs), while an elastic
-calibration estimates the unloaded legs and their compliance: the two are not the same quantity, and
-a warning line says so (``benchmarks.elastic`` closes the loop under load instead).
+calibration estimates the unloaded legs and their compliance. ``simulate`` writes the robot's unloaded
+drive beside them (``unloaded_j1x …``) and its legs' true compliance into the platform file
+(``[elastic] true_compliance_mm_per_kN``); with both, the true robot is that elastic one: an elastic
+result's parameters and compliance are scored against them (a rigid result's against the last row,
+the drive in force it estimates), and the closed loop commands each model's strokes under the
+platform's weight (an elastic model's compensate its legs' give) and lets the true robot settle under
+it (the fixed point of its leg forces and pose, the simulator's own), as ``benchmarks.elastic`` does.
+A line on stderr says so. Without them (a truth file of an older simulate) an elastic result gets a
+warning that neither score is its error.
 
 With an instrument outside the robot the 12 directions of a rigid move of all base (or all
 platform) joints are not identified (spec §7): the truth is moved into the estimate's gauge first
@@ -39,12 +46,17 @@ from .. import io
 from ..errors import CalibError
 from ..io.platform_file import load_platform
 from ..model import kinematics as kin
-from ..model.drive import DriveModel, drive_model
+from ..model.drive import COMPLIANCE, DriveModel, drive_model
 from ..model.rotations import motion_error
 from . import run_command
 
 #: the score of a drive term's values (its block key before it): the largest error of the six
 TERM_ERROR = "_max_error"
+#: a term's unit where it has one, as the score line prints it
+TERM_UNITS = {COMPLIANCE: " mm/kN"}
+#: what the parameters are scored against (the scores' ``"truth"``): the truth file's last row, or an elastic
+#: robot's unloaded drive (spec §4, §10)
+TRUTH_LAST_ROW, TRUTH_UNLOADED = "last row", "unloaded"
 
 
 def add_parser(subparsers) -> None:
@@ -62,8 +74,9 @@ def add_parser(subparsers) -> None:
 
 def closed_loop_poses(commanded: DriveModel, true: DriveModel, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(R (N, 3, 3), t (N, 3))`` the ``true`` drive reaches at ``poses`` ``[mm, rad]`` when IK of the
-    ``commanded`` drive gives the strokes; NaN where the commanded model reaches no stroke (a rotary
-    drive's horn, spec §15: the controller refuses the pose).
+    ``commanded`` drive gives the strokes (an elastic one's under the platform's weight, spec §10), where it
+    settles (an elastic one under its weight: the fixed point of its leg forces and its pose); NaN where the
+    commanded model reaches no stroke (a rotary drive's horn, spec §15: the controller refuses the pose).
 
     Raises:
         CalibError: the true robot cannot reach strokes the commanded model gives.
@@ -72,7 +85,7 @@ def closed_loop_poses(commanded: DriveModel, true: DriveModel, poses: np.ndarray
     logged = commanded.inverse_kinematics(R_d, t_d)
     commanded_ok = np.all(np.isfinite(logged), axis=-1)
     strokes = np.where(commanded_ok[:, None], logged, 0.0)
-    reached = true.forward_kinematics(true.inputs(strokes), guess=(R_d, t_d), strict=False)
+    reached, _ = true.settled_kinematics(strokes, guess=(R_d, t_d), strict=False)
     if not reached.converged[commanded_ok].all():
         raise CalibError("the true robot cannot reach the strokes the estimate commands at some workspace pose")
     return np.where(commanded_ok[:, None, None], reached.R, np.nan), np.where(commanded_ok[:, None], reached.t, np.nan)
@@ -96,14 +109,28 @@ def closed_loop_error(
     return float(np.nanmean(position_mm)), float(np.nanmean(orientation_deg)), *motion
 
 
+def elastic_truth(platform, truth) -> bool:
+    """Whether ``truth`` is of an elastic robot it can be unloaded from: its unloaded drive (spec §4) and the
+    platform's true compliance (spec §10, ``[elastic] true_compliance_mm_per_kN``) both given."""
+    elastic = platform.elastic
+    return elastic is not None and elastic.true_compliance_mm_per_kN is not None and truth.unloaded is not None
+
+
 def scores(platform, result: dict, truth) -> dict:
     """The scores of ``result`` against ``truth`` (see the module)."""
     from ..analysis.accuracy import evaluation_poses
     from ..instruments import gauge, instrument_kind
 
-    true_params = truth.params[-1]
+    elastic = elastic_truth(platform, truth)
+    # the true robot's drive: rigid, spec §4's last row; elastic, its unloaded drive (its compliance beside it)
+    true_drive_params = truth.unloaded if elastic else truth.params[-1]
+    loaded_params = truth.params[-1]
     if instrument_kind(platform).outside:  # its fit leaves the drive's gauge directions where the gauge puts them
-        true_params, _, _ = gauge.to_gauge(platform.drive, true_params)
+        true_drive_params, _, _ = gauge.to_gauge(platform.drive, true_drive_params)
+        loaded_params, _, _ = gauge.to_gauge(platform.drive, loaded_params)
+    # an elastic result estimates the unloaded drive; a rigid one the drive in force, loaded
+    unloaded = elastic and COMPLIANCE in result
+    true_params = true_drive_params if unloaded else loaded_params
     estimate = io.parameters_from_file(result["estimate"], platform.drive)
     e = io.parameters_to_file(estimate - true_params, platform.drive)  # mm, and a rotary drive's angles in deg
     worst = int(np.argmax(np.abs(e)))
@@ -115,16 +142,18 @@ def scores(platform, result: dict, truth) -> dict:
     stddev = result.get("stddev")
     if stddev is not None and np.all(np.asarray(stddev, dtype=float) > 0):
         out["z2"] = float(np.mean((e / np.asarray(stddev, dtype=float)) ** 2))
-    # the rigid drive of spec §4's truth: δM and the terms the truth file gives
-    nominal = drive_model(replace(platform, elastic=None))
+    nominal = drive_model(platform if elastic else replace(platform, elastic=None))
+    true_terms = dict(truth.drive_terms)
+    if elastic:
+        true_terms[COMPLIANCE] = platform.elastic.true_compliance_mm_per_kN
     fitted = {
         term.key: np.array(result[term.key]["estimate"], dtype=float) for term in nominal.terms if term.key in result
     }
     for key, values in fitted.items():
-        if key in truth.drive_terms:
-            out[f"{key}{TERM_ERROR}"] = float(np.max(np.abs(values - truth.drive_terms[key])))
+        if key in true_terms:
+            out[f"{key}{TERM_ERROR}"] = float(np.max(np.abs(values - true_terms[key])))
     nominal_params = platform.drive.as_vector()
-    true = nominal.true_drive(true_params - nominal_params, truth.drive_terms)
+    true = nominal.true_drive(true_drive_params - nominal_params, true_terms)
     calibrated = nominal.calibrated(estimate - nominal_params, fitted)
     poses = evaluation_poses(platform)
     R, t = kin.pose_to_rt(poses)
@@ -135,6 +164,8 @@ def scores(platform, result: dict, truth) -> dict:
         errors = closed_loop_error(drive, true, poses, home)
         out[f"{key}_mm"], out[f"{key}_deg"], out[f"{key}_motion_mm"], out[f"{key}_motion_deg"] = errors
     out["poses"] = len(poses)
+    out["truth"] = TRUTH_UNLOADED if unloaded else TRUTH_LAST_ROW
+    out["closed_loop_settled"] = elastic
     return out
 
 
@@ -151,6 +182,7 @@ def run(args: argparse.Namespace) -> int:
     z2 = f"z² {s['z2']:.3g}" if "z2" in s else "z² — (no σ in the result)"
     terms = "".join(
         f", {key.removesuffix(TERM_ERROR).replace('_', ' ')} within {value:.2g}"
+        f"{TERM_UNITS.get(key.removesuffix(TERM_ERROR), '')}"
         for key, value in s.items()
         if key.endswith(TERM_ERROR)
     )
@@ -170,12 +202,24 @@ def run(args: argparse.Namespace) -> int:
         f"{s['closed_loop_deg']:.4g}° (nominal model {s['closed_loop_nominal_mm']:.4g} mm / "
         f"{s['closed_loop_nominal_deg']:.4g}°, mean over {s['poses']} workspace poses){motion}"
     )
-    if platform.elastic is not None and "compliance" in result:
+    if s["closed_loop_settled"]:
+        against = (
+            "its unloaded drive (truth.csv's unloaded_*) and the platform's true_compliance_mm_per_kN"
+            if s["truth"] == TRUTH_UNLOADED
+            else "those in force at the truth's last sample, loaded, as a rigid result estimates them"
+        )
+        print(
+            f"stewart-calib score: the robot is elastic (spec §10): parameters scored against {against}; closed "
+            "loop: each model's strokes under the platform's weight, executed by the true robot, which settles "
+            "under it",
+            file=sys.stderr,
+        )
+    elif platform.elastic is not None and COMPLIANCE in result:
         print(
             "stewart-calib score: warning: the truth's parameters are those in force at its last sample, loaded "
             "(spec §10), and the closed loop takes the robot rigid; the elastic result estimates the unloaded legs "
-            "and their compliance, so neither score is its error (python -m benchmarks.elastic closes the loop "
-            "under load)",
+            "and their compliance, so neither score is its error (the truth file has no unloaded_* columns or the "
+            "platform no [elastic] true_compliance_mm_per_kN: simulate it again to score it)",
             file=sys.stderr,
         )
     if args.json:

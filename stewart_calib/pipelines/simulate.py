@@ -6,13 +6,15 @@ Writes into DIR (created if needed), each file atomically:
   experiment's masses and centres of mass and the truth of the legs' compliance as ``[elastic]``
   (spec §10; :func:`stewart_calib.simulation.load.elastic_of`);
 * ``log.csv`` — the measurement log (spec §3) with desired poses, stages and payload;
-* ``truth.csv`` — the true drive parameters and true poses, row for row (spec §4).
+* ``truth.csv`` — the true drive parameters and true poses, row for row (spec §4), and an elastic
+  robot's unloaded drive (``unloaded_j1x …``, its compliance in ``platform.toml``);
 
 ``--controller nominal`` (default) drives the robot with IK of its nominal model (uncalibrated, as
 in the paper before calibration); ``--controller frozen --result R.json`` drives it with IK of
 the calibrated model ``nominal + error`` of a result JSON (spec §5), i.e. a compensated robot
-whose model stays frozen while the load changes. Same experiment file (and result) → identical
-files. A tqdm bar goes to stderr when it is a terminal.
+whose model stays frozen while the load changes; an elastic result's (spec §10: its compliance and
+every other identified term) under each stage's payload, its legs' give compensated. Same experiment
+file (and result) → identical files. A tqdm bar goes to stderr when it is a terminal.
 """
 
 from __future__ import annotations
@@ -55,14 +57,24 @@ def add_parser(subparsers) -> None:
 
 
 def controller_for(args: argparse.Namespace, platform: Platform):
-    """The controller ``--controller`` asks for (``--result`` read and checked against ``platform``)."""
+    """The controller ``--controller`` asks for (``--result`` read and checked against ``platform``, the
+    platform file simulate writes: with ``[elastic]``, a result's compliance is applied under each stage's
+    payload)."""
     if args.controller == "nominal":
         if args.result is not None:
             raise CalibError("--result is only used with --controller frozen")
         return NominalController(platform)
     if args.result is None:
         raise CalibError("--controller frozen needs --result R.json (a calibration result)")
-    return FrozenController(read_calibrated_drive(args.result, platform).legs)
+    drive = read_calibrated_drive(args.result, platform)
+    return FrozenController(drive.legs, drive if drive.elastic is not None else None)
+
+
+def written_platform(experiment) -> Platform:
+    """The platform file simulate writes for ``experiment``: its nominal platform with the truth of the legs'
+    compliance as ``[elastic]`` (a rotary drive is simulated rigid: none, spec §15)."""
+    rotary = experiment.platform.drive.kind == "rotary"
+    return replace(experiment.platform, elastic=None if rotary else elastic_of(experiment.load))
 
 
 class _OutOfRange:
@@ -100,7 +112,8 @@ class _OutOfRange:
 
 def run(args: argparse.Namespace) -> int:
     experiment = load_experiment(args.experiment)
-    controller = controller_for(args, experiment.platform)
+    platform = written_platform(experiment)
+    controller = controller_for(args, platform)
     # the three files appear together or not at all, and a directory made for them goes again
     # on a failure (a full disk, a signal): no partial output
     with (
@@ -126,8 +139,6 @@ def run(args: argparse.Namespace) -> int:
                     squares[name] += np.nansum(values**2, axis=0)
                     counts[name] += np.sum(np.isfinite(values), axis=0)
         outside.refuse(experiment.source, len(run.plan.t_s))
-        rotary = experiment.platform.drive.kind == "rotary"  # simulated rigid: no [elastic] (spec §15)
-        platform = replace(experiment.platform, elastic=None if rotary else elastic_of(experiment.load))
         platform_path.write_text(platform_to_toml(platform), encoding="utf-8")
     print(
         f"simulated {len(run.plan.t_s)} samples of '{shown(experiment.name)}' ({args.controller} controller) into "

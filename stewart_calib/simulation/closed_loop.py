@@ -20,7 +20,8 @@ experiment's stages' ``tilt_deg``, spec §17) it is called with ``gravity=`` the
 of gravity in {J} too.
 
 :class:`NominalController` (uncalibrated) and :class:`FrozenController` (a frozen batch
-estimate, or the true no-load geometry for a perfect calibration) never change their model;
+estimate, an elastic one's commanded under the payload as the online controller's are,
+:func:`loaded_strokes`; or the true no-load geometry for a perfect calibration) never change their model;
 they say so with ``adaptive = False``, and the samples are then settled in vectorised blocks
 of :data:`BLOCK_SAMPLES` (identical results whatever the block size: each kind of noise is
 drawn as by one call for all samples). Any other controller — :class:`EstimatorController`,
@@ -70,7 +71,7 @@ from ..progress import progress_bar
 from ..samples import GRAVITY, LOAD_KG, TEMPERATURE_C, Log, Sample, Truth, with_payload
 from .experiment import Experiment, RotaryRobotConfig, Schedule, schedule
 from .instrument import SimulatedInstrument
-from .load import LoadModel, Settling
+from .load import LoadModel, Settling, elastic_of
 from .robot import base_errors, encoder_readings, rotary_errors
 from .tracker import Tracker
 
@@ -98,11 +99,39 @@ class NominalController:
         """Nothing: the nominal model does not learn."""
 
 
-class FrozenController(NominalController):
-    """Commands IK on a fixed drive geometry (e.g. a batch estimate frozen after calibration)."""
+def loaded_strokes(
+    drive: DriveModel, R_d: np.ndarray, t_d: np.ndarray, payload_kg, gravity=None, unannounced_kg: float = 0.0
+) -> np.ndarray:
+    """IK of an elastic ``drive`` (its legs and terms: compliance, stroke scale, …) at the desired poses, its legs
+    holding the platform's weight and ``payload_kg`` (None: not announced, taken as 0) plus ``unannounced_kg``,
+    gravity along ``gravity`` (None: the platform's ``[elastic] gravity``): the strokes that reach the poses
+    under that load (spec §10)."""
+    announced: dict = {} if payload_kg is None else {LOAD_KG: payload_kg}
+    if gravity is not None:
+        announced[GRAVITY] = gravity
+    return drive.inverse_kinematics(R_d, t_d, channels=with_payload(announced, unannounced_kg))
 
-    def __init__(self, drive: LegModel):
+
+class FrozenController(NominalController):
+    """Commands IK on a fixed drive geometry (e.g. a batch estimate frozen after calibration); an elastic
+    calibration's with its compliance under each sample's payload.
+
+    Args:
+        drive: the legs whose IK gives the strokes.
+        elastic: the calibrated elastic drive (``drive`` and its identified terms, :meth:`DriveModel.calibrated`)
+            whose :func:`loaded_strokes` under the stage's announced payload give them instead: a rigid IK
+            leaves the legs' give under the platform's weight and the payload uncompensated, or None.
+    """
+
+    def __init__(self, drive: LegModel, elastic: DriveModel | None = None):
         self._drive = drive
+        self._elastic = elastic
+
+    def strokes(self, R_d: np.ndarray, t_d: np.ndarray, payload_kg, gravity=None) -> np.ndarray:
+        """IK of the frozen model: the elastic one's under ``payload_kg``, gravity along ``gravity``."""
+        if self._elastic is None:
+            return self.drive_model().coordinates(R_d, t_d)
+        return loaded_strokes(self._elastic, R_d, t_d, payload_kg, gravity)
 
 
 class EstimatorController:
@@ -154,10 +183,8 @@ class EstimatorController:
         estimate = model_estimate(self.estimator)
         values = {term.key: estimate.block_values(term.key) for term in self._elastic.terms}
         drive = self._elastic.calibrated(self._error, values)
-        announced: dict = {LOAD_KG: payload_kg} if self.payload_known else {}
-        if gravity is not None:
-            announced[GRAVITY] = gravity
-        return drive.inverse_kinematics(R_d, t_d, channels=with_payload(announced, estimate.unannounced_payload_kg()))
+        announced = payload_kg if self.payload_known else None
+        return loaded_strokes(drive, R_d, t_d, announced, gravity, estimate.unannounced_payload_kg())
 
     def trace(self) -> np.ndarray:
         """``(N, 42)`` δM in force after each observed sample [mm] (paper Figs. 5–6)."""
@@ -206,6 +233,22 @@ class TrueRobot:
         return encoder_readings(
             (strokes - self.encoder_zero_mm) / (1.0 + self.stroke_scale), self.encoder_noise_mm, unit_noise
         )
+
+    @property
+    def unloaded_params(self) -> np.ndarray | None:
+        """``(n_params,)`` the drive with no force on its legs, its initial lengths those of the logged strokes'
+        zero (the truth's ``params`` are this drive loaded, spec §10), or None for a rigid robot (a rotary drive,
+        a massless platform: no ``[elastic]``, :func:`~.load.elastic_of`)."""
+        if self.rotary or elastic_of(self.load) is None:
+            return None
+        return self.at_logged_zero(self.base_params)
+
+    def at_logged_zero(self, params: np.ndarray) -> np.ndarray:
+        """Prismatic drive parameters ``(..., n_params)`` with their initial lengths at the logged strokes' zero:
+        the model's ``l_i`` of a log whose encoders read ``q − z_i`` (a copy)."""
+        params = np.array(params, dtype=float)
+        params[..., 6::7] += self.encoder_zero_mm
+        return params
 
     @functools.cached_property
     def true_drive(self) -> DriveModel:
@@ -567,9 +610,7 @@ def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, para
         stages=list(plan.stages[rows]),
         inputs=_channels(plan, rows),
     )
-    params = params.copy()
-    if not robot.rotary:
-        params[:, 6::7] += robot.encoder_zero_mm  # the logged strokes' zero is the model's l_i
+    params = params.copy() if robot.rotary else robot.at_logged_zero(params)
     instrument = None
     if robot.instrument is not None:
         instrument = (robot.instrument.names(), robot.instrument.unknowns.file_values())
@@ -579,6 +620,7 @@ def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, para
         true_poses=kin.rt_to_pose(R, t),
         drive_terms=_true_terms(robot),
         instrument=instrument,
+        unloaded=robot.unloaded_params,
     )
     return log, truth
 
@@ -601,7 +643,7 @@ def run_experiment(
     first = truths[0]
     joined = lambda name: np.concatenate([getattr(truth, name) for truth in truths])  # noqa: E731
     actual_poses = joined("true_poses")
-    truth = Truth(joined("t_s"), joined("params"), actual_poses, first.drive_terms, first.instrument)
+    truth = Truth(joined("t_s"), joined("params"), actual_poses, first.drive_terms, first.instrument, first.unloaded)
     plan = run.plan
     return SimulationResult(
         log,
