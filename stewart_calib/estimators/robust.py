@@ -1655,11 +1655,10 @@ class RobustFilter:
                     int(a),
                     float(t),
                     origin,
-                    None,
-                    bool(g[0]),
-                    bool(g[1]),
-                    bool(g[2]),
-                    float(g[3]),
+                    at_start=bool(g[0]),
+                    at_new_pose=bool(g[1]),
+                    refused_last=bool(g[2]),
+                    start_ratio=float(g[3]),
                 )
                 for x, P, (r, q, k, a, t), origin, g in zip(xs, Ps, rows, origins, flags, strict=True)
             ]
