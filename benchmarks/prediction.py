@@ -9,7 +9,9 @@ off by σ 3 %. Every drive parameter off by σ 0.5 mm. **Elastic**: the platform
 (compliance identified from nominal 0), and the calibration poses are measured twice, without and with
 a payload (40 kg, 2 kg) in ``load_kg``. Per seed, through the CLI (``stewart_calib.cli.main``, default
 config): ``simulate`` 60 random calibration poses (80 % of the workspace box) and 30 held-out ones (0 kg);
-``calibrate --method ls`` and ``identifiability --log`` on the calibration poses; ``validate`` of the
+``calibrate --method ls``, ``calibrate --method ekf`` (the online method, its prediction that of its
+estimate given the log through an outside instrument) and ``identifiability --log`` on the calibration
+poses; ``validate`` of the
 result on the held-out poses (``--tolerance-mm``: the result's expected mean of what validate measures);
 ``plan --n 60 --seed S`` on the same platform file, then the same robot ``simulate``d at the planned poses
 (``[poses] calibration_file``, 0 kg: a pose list carries no payload) and calibrated (``--skip-bad-rows``:
@@ -295,6 +297,14 @@ def run_seed(name: str, elastic: bool, seed: int, work: Path, poses: int) -> dic
     absolute, motion = (float(np.mean(v)) for v in closed_loop(commanded, true, workspace, home))
     out = {"seed": seed, "absolute_mm": absolute, "motion_mm": motion, "calibrate_cpu_s": calibrate_s}
     out["calibrate"] = in_band(result["predicted_closed_loop"], absolute, motion)
+    argv = ["calibrate", "--platform", platform_path, "--log", sim / "fit.csv", "--method", "ekf"]
+    _run([*argv, "--out", work / "re.json"])
+    online = json.loads((work / "re.json").read_text())["predicted_closed_loop"]
+    e_absolute, e_motion = (
+        float(np.mean(v)) for v in closed_loop(calibrated_model(platform, str(work / "re.json")), true, workspace, home)
+    )
+    out["ekf"] = in_band(online, e_absolute, e_motion)
+    out["ekf"].update({"truth_absolute_mm": e_absolute, "truth_motion_mm": e_motion})
     outside = instrument_kind(platform).outside
     if outside:  # the truth as the instrument sees it after registration, over the workspace poses
         out["registered_mm"] = float(np.mean(registered_error(platform, commanded, true, workspace)))
@@ -442,6 +452,7 @@ TRUTHS = {
     "calibrate": ("absolute_mm", "motion_mm"),
     "identifiability": ("absolute_mm", "motion_mm"),
     "plan": ("planned.truth_absolute_mm", "planned.truth_motion_mm"),
+    "ekf": ("ekf.truth_absolute_mm", "ekf.truth_motion_mm"),
 }
 
 
@@ -580,6 +591,7 @@ def _rows(label: str, runs: list[dict]) -> list[Row]:
         ("calibrate", "the truth"),
         ("identifiability", "the truth"),
         ("plan", "the truth at its poses"),
+        ("ekf", "the truth of calibrate --method ekf"),
     ):
         a, m = _share(runs, command, "absolute"), _share(runs, command, "motion")
         rows.append(
@@ -659,7 +671,7 @@ def section(quick: bool = False, seeds: int | None = None) -> Section:
 
 
 def _coverages(run: dict) -> list[bool]:
-    """Each stated 90 % band of one seed against its truth: calibrate's, identifiability's and plan's
+    """Each stated 90 % band of one seed against its truth: calibrate's, identifiability's, plan's and ekf's
     (absolute and motion), calibrate's registered one, validate's interval."""
     covered = [run[command][f"{what}_in_band"] for command in TRUTHS for what in ("absolute", "motion")]
     if "registered_in_band" in run["calibrate"]:
@@ -790,6 +802,8 @@ def section_of(runs: dict[str, list[dict]], seeds: int) -> Section:
                 f"{median('identifiability', 'absolute_mm'):.3g} / {median('identifiability', 'motion_mm'):.3g}",
                 f"{median('planned', 'truth_absolute_mm'):.3g} / {median('planned', 'truth_motion_mm'):.3g}",
                 f"{median('plan', 'absolute_mm'):.3g} / {median('plan', 'motion_mm'):.3g}",
+                f"{median('ekf', 'truth_absolute_mm'):.3g} / {median('ekf', 'truth_motion_mm'):.3g}",
+                f"{median('ekf', 'absolute_mm'):.3g} / {median('ekf', 'motion_mm'):.3g}",
                 f"{median('validate', 'rms_mm'):.3g} ({median('validate', 'noise_mm'):.3g}) / "
                 f"{median('validate', 'truth_rms_mm'):.3g}",
             ]
@@ -803,6 +817,8 @@ def section_of(runs: dict[str, list[dict]], seeds: int) -> Section:
             "identifiability predicts",
             "truth at plan's poses",
             "plan predicts",
+            "truth of ekf's result",
+            "ekf predicts",
             "validate's RMS (noise) / truth's RMS at its poses",
         ],
         cells,

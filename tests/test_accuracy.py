@@ -87,6 +87,28 @@ def test_the_band_of_an_isotropic_error_holds_the_chi_quantiles(n):
     assert chi.cdf(high / 2.0, 3) == pytest.approx(0.95, abs=0.005)
 
 
+def test_an_error_off_its_mean_has_the_noncentral_chi_mean_and_quantiles():
+    """An error ``N(μ, σ² I)`` (an online method's estimate off the log's optimum by a known step): its norm
+    is σ times a noncentral χ with 3 degrees of freedom and ``ν = ‖μ‖/σ``, whose mean is
+    ``σ (√(2/π) e^{−ν²/2} + (ν + 1/ν) erf(ν/√2))`` and whose square's quantiles are the noncentral χ²'s. The
+    mean within 5 % (512 draws), the band's ends within 0.5 % in probability (20 000 draws). Before: no mean
+    (a zero-mean error's 3.19 mm and band 1.17–5.59 mm where ν = 2 gives 4.99 mm, 2.18–8.00 mm)."""
+    from scipy.special import erf
+    from scipy.stats import ncx2
+
+    sigma, mean = 2.0, np.array([3.0, 0.0, -np.sqrt(7.0)])  # ‖μ‖ = 4 mm, ν = 2
+    nu = np.linalg.norm(mean) / sigma
+    expected = sigma * (np.sqrt(2.0 / np.pi) * np.exp(-(nu**2) / 2.0) + (nu + 1.0 / nu) * erf(nu / np.sqrt(2.0)))
+    value = accuracy._expected_norms(sigma**2 * np.eye(3)[None], mean[None])[0]
+    assert value == pytest.approx(expected, rel=0.05)
+    n = 48
+    D = np.zeros((1, 3, n))
+    D[0, :, :3] = np.eye(3)
+    low, high = accuracy._position_band(D, sigma**2 * np.eye(n), np.r_[mean, np.zeros(n - 3)])
+    assert ncx2.cdf((low / sigma) ** 2, 3, nu**2) == pytest.approx(0.05, abs=0.005)
+    assert ncx2.cdf((high / sigma) ** 2, 3, nu**2) == pytest.approx(0.95, abs=0.005)
+
+
 def test_prediction_matches_the_spread_of_simulated_estimates(wide_points):
     """Draws of the estimate from its covariance, driven through IK/FK: the mean position error
     over the poses equals the prediction (the linearisation holds at micrometre errors)."""

@@ -11,21 +11,22 @@ from benchmarks import prediction
 def _run(rng: np.random.Generator, tail: float, shared: bool = False) -> dict:
     """One seed whose every band is a 90 % band of a standard normal truth, the truth shifted by ``tail``
     (0: honest); ``shared``: one truth for all of the seed's bands (as a seed's bands share its robot)."""
-    z = (np.full(8, rng.standard_normal()) if shared else rng.standard_normal(8)) + tail
+    z = (np.full(10, rng.standard_normal()) if shared else rng.standard_normal(10)) + tail
     inside = np.abs(z) <= 1.645
     band = {"absolute_mm": 0.0, "motion_mm": 0.0}
-    run = {"absolute_mm": z[0], "motion_mm": z[1], "registered_mm": z[6]}
-    for k, command in enumerate(("calibrate", "identifiability", "plan")):
+    run = {"absolute_mm": z[0], "motion_mm": z[1], "registered_mm": z[8]}
+    for k, command in enumerate(("calibrate", "identifiability", "plan", "ekf")):
         run[command] = {
             **band,
             "absolute_in_band": bool(inside[2 * k]),
             "motion_in_band": bool(inside[2 * k + 1]),
         }
     run["planned"] = {"truth_absolute_mm": z[4], "truth_motion_mm": z[5]}
-    run["calibrate"].update(registered_mm=0.0, registered_in_band=bool(inside[6]))
+    run["ekf"].update(truth_absolute_mm=z[6], truth_motion_mm=z[7])
+    run["calibrate"].update(registered_mm=0.0, registered_in_band=bool(inside[8]))
     run["validate"] = {
-        "truth_in_interval": bool(inside[7]),
-        "truth_rms_mm": z[7],
+        "truth_in_interval": bool(inside[9]),
+        "truth_rms_mm": z[9],
         "seen_interval_mm": [-1.645, 1.645],
     }
     return run
@@ -51,7 +52,7 @@ def test_the_pooled_sides_row_passes_honest_bands_and_fails_a_band_too_small_on_
 
 
 def test_the_sides_row_holds_honest_bands_that_miss_together_within_a_seed():
-    """Every band of a seed on one truth: its misses come eight at a time on one side. Counted as
+    """Every band of a seed on one truth: its misses come ten at a time on one side. Counted as
     independent misses, honest bands failed the row in about half of the pools of 60 seeds."""
     rng = np.random.default_rng(3)
     fails = [not prediction.sides_row({"a": [_run(rng, 0.0, shared=True) for _ in range(60)]}).met for _ in range(200)]

@@ -332,11 +332,16 @@ def _band_or_nan(band) -> tuple[float, float]:
     return _nan_if_none(low), _nan_if_none(high)
 
 
-def _expected_norms(covariance: np.ndarray) -> np.ndarray:
-    """``E‖x‖`` for ``x ~ N(0, C)``, one per ``(..., 3, 3)`` covariance, from fixed draws."""
-    eigenvalues = np.clip(np.linalg.eigvalsh(covariance), 0.0, None)
+def _expected_norms(covariance: np.ndarray, mean: np.ndarray | None = None) -> np.ndarray:
+    """``E‖x‖`` for ``x ~ N(mean, C)`` (``mean`` default 0), one per ``(..., 3, 3)`` covariance and
+    ``(..., 3)`` mean, from fixed draws."""
+    eigenvalues, eigenvectors = np.linalg.eigh(covariance)
+    root = eigenvectors * np.sqrt(np.clip(eigenvalues, 0.0, None))[..., None, :]
     draws = np.random.default_rng(EVALUATION_SEED).standard_normal((NORM_DRAWS, 3))
-    return np.mean(np.sqrt((draws**2) @ eigenvalues.T), axis=0)
+    errors = np.einsum("...ij,sj->...si", root, draws)
+    if mean is not None:
+        errors = errors + mean[..., None, :]
+    return np.mean(np.linalg.norm(errors, axis=-1), axis=-1)
 
 
 def motion_jacobian(D: np.ndarray, poses: np.ndarray, home: np.ndarray, D_home: np.ndarray) -> np.ndarray:
@@ -380,11 +385,11 @@ def registered_jacobian(platform: Platform, D: np.ndarray, poses: np.ndarray) ->
 
 
 def _registered_prediction(
-    platform: Platform, D: np.ndarray, poses: np.ndarray, covariance: np.ndarray
+    platform: Platform, D: np.ndarray, poses: np.ndarray, covariance: np.ndarray, mean: np.ndarray
 ) -> tuple[float, float, tuple[float, float]]:
     """``(position [mm], orientation [deg] or NaN, position band [mm])`` of :func:`registered_jacobian`:
     a pose reading's position and rotation rows, or each 3-D target's position (its mean over the
-    targets read)."""
+    targets read), for an error ``N(mean, covariance)``."""
     nan = float("nan")
     if not instrument_kind(platform).outside:
         return nan, nan, (nan, nan)
@@ -395,10 +400,14 @@ def _registered_prediction(
     if instrument_kind(platform).measures_orientation:
         rotation, rows, read = rows[:, 0], rows[:, 1:], read[:, 1:]
         rotation_covariance = rotation @ covariance @ np.swapaxes(rotation, -1, -2)
-        orientation = float(np.degrees(np.mean(_expected_norms(rotation_covariance))))
+        orientation = float(np.degrees(np.mean(_expected_norms(rotation_covariance, rotation @ mean))))
     position = rows[read]
     position_covariance = position @ covariance @ np.swapaxes(position, -1, -2)
-    return float(np.mean(_expected_norms(position_covariance))), orientation, _position_band(position, covariance)
+    return (
+        float(np.mean(_expected_norms(position_covariance, position @ mean))),
+        orientation,
+        _position_band(position, covariance, mean),
+    )
 
 
 #: A principal axis of the error at home is named when it holds this share of the largest one's σ.
@@ -434,9 +443,14 @@ def limiting_directions(platform: Platform, home_covariance: np.ndarray) -> str:
 
 
 def predicted_error(
-    platform: Platform, covariance: np.ndarray, poses: np.ndarray | None = None, home: np.ndarray | None = None
+    platform: Platform,
+    covariance: np.ndarray,
+    poses: np.ndarray | None = None,
+    home: np.ndarray | None = None,
+    mean: np.ndarray | None = None,
 ) -> PredictedError:
-    """The expected mean closed-loop error left by an estimate of covariance ``covariance``.
+    """The expected mean closed-loop error left by an estimate whose error has covariance ``covariance``
+    (and mean ``mean``, default 0).
 
     Args:
         covariance: ``(42, 42)`` over δM [mm²] (the stroke scale then exact) or ``(≥ 48, ≥ 48)``
@@ -444,6 +458,9 @@ def predicted_error(
         poses: ``(V, 6)`` the poses to average over (default :func:`evaluation_poses`).
         home: ``(6,)`` where the motion starts (default the ``[workspace]`` home, else the first of
             ``poses``).
+        mean: the error's mean over the same unknowns as ``covariance`` (an estimate off the log's
+            optimum by a known step, :func:`estimate_summary`'s ``optimum``); its limiting directions are
+            those of the second moment.
     """
     covariance = np.asarray(covariance, dtype=float)
     workspace = poses is None
@@ -454,32 +471,38 @@ def predicted_error(
     n = min(len(covariance), D.shape[-1])
     D, D_home = D[:-1, :, :n], D[-1, :, :n]
     covariance = covariance[:n, :n]
-    pose_covariance = D @ covariance @ np.swapaxes(D, -1, -2)
+    mean = np.zeros(n) if mean is None else np.asarray(mean, dtype=float)[:n]
+    pose_covariance, pose_mean = D @ covariance @ np.swapaxes(D, -1, -2), D @ mean
     D_motion = motion_jacobian(D, poses, home, D_home)
-    motion_covariance = D_motion @ covariance @ np.swapaxes(D_motion, -1, -2)
+    motion_covariance, motion_mean = D_motion @ covariance @ np.swapaxes(D_motion, -1, -2), D_motion @ mean
     return PredictedError(
-        float(np.mean(_expected_norms(pose_covariance[:, 3:, 3:]))),
-        float(np.degrees(np.mean(_expected_norms(pose_covariance[:, :3, :3])))),
+        float(np.mean(_expected_norms(pose_covariance[:, 3:, 3:], pose_mean[:, 3:]))),
+        float(np.degrees(np.mean(_expected_norms(pose_covariance[:, :3, :3], pose_mean[:, :3])))),
         len(D),
-        _position_band(D[:, 3:, :], covariance),
+        _position_band(D[:, 3:, :], covariance, mean),
         workspace,
-        float(np.mean(_expected_norms(motion_covariance[:, 3:, 3:]))),
-        float(np.degrees(np.mean(_expected_norms(motion_covariance[:, :3, :3])))),
-        _position_band(D_motion[:, 3:, :], covariance),
-        limiting_directions(platform, D_home @ covariance @ D_home.T),
-        *_registered_prediction(platform, D, poses, covariance),
+        float(np.mean(_expected_norms(motion_covariance[:, 3:, 3:], motion_mean[:, 3:]))),
+        float(np.degrees(np.mean(_expected_norms(motion_covariance[:, :3, :3], motion_mean[:, :3])))),
+        _position_band(D_motion[:, 3:, :], covariance, mean),
+        limiting_directions(platform, D_home @ (covariance + np.outer(mean, mean)) @ D_home.T),
+        *_registered_prediction(platform, D, poses, covariance, mean),
     )
 
 
-def _position_band(D_position: np.ndarray, covariance: np.ndarray) -> tuple[float, float]:
+def _position_band(
+    D_position: np.ndarray, covariance: np.ndarray, mean: np.ndarray | None = None
+) -> tuple[float, float]:
     """The :data:`BAND_PROBABILITY` band ``(low, high)`` [mm] of ``mean_X ‖D_t(X) e‖`` for
-    ``e ~ N(0, covariance)``, from fixed draws: the mean over the poses of one estimate's error."""
+    ``e ~ N(mean, covariance)`` (``mean`` default 0), from fixed draws: the mean over the poses of one
+    estimate's error."""
     eigenvalues, eigenvectors = np.linalg.eigh(0.5 * (covariance + covariance.T))
     root = eigenvectors * np.sqrt(np.clip(eigenvalues, 0.0, None))
-    rows = D_position.reshape(-1, D_position.shape[-1]) @ root  # a standard normal draw's error at each pose
+    flat = D_position.reshape(-1, D_position.shape[-1])
+    rows = flat @ root  # a standard normal draw's error at each pose
+    offset = np.zeros(len(flat)) if mean is None else flat @ mean
     means = []
     for block in np.split(_band_draws(len(root)), range(BAND_BLOCK, BAND_DRAWS, BAND_BLOCK)):
-        errors = (block @ rows.T).reshape(len(block), len(D_position), 3)
+        errors = (block @ rows.T + offset).reshape(len(block), len(D_position), 3)
         means.append(np.mean(np.sqrt(np.einsum("spr,spr->sp", errors, errors)), axis=1))
     low, high = np.quantile(np.concatenate(means), [(1.0 - BAND_PROBABILITY) / 2, (1.0 + BAND_PROBABILITY) / 2])
     return float(low), float(high)
@@ -592,61 +615,73 @@ def worse_than_nominal_line(
     )
 
 
-def relinearised_summary(
-    platform: Platform, prediction: PredictedError, estimate: Estimate, optimum: Estimate, measured_poses: np.ndarray
-) -> tuple[dict, str | None]:
-    """An online method's prediction against what the log says of its estimate: ``(the result's "relinearised"
-    field, the loud line or None)``, ``optimum`` the log's MAP found from ``estimate``
-    (:class:`~stewart_calib.estimators.Relinearising`).
+def given_log(estimate: Estimate, optimum: Estimate) -> Estimate | None:
+    """``estimate`` with the covariance of its error given the log, ``optimum`` the log's MAP found from it
+    (:class:`~stewart_calib.estimators.Relinearising`); None where the optimum has no covariance.
 
     A filter's estimate and covariance sum each sample's information at the state it stood at when the sample
     came; where that state moved by millimetres over the log (an outside instrument's frame and the encoder
     zeros, found along the way), its covariance is not the information the log holds, nor its state the log's
     optimum. Given the log, the truth is ``N(x̂, P̂)`` about the optimum (Laplace), so the estimate's error
-    ``x − x_true`` has the second moment ``P̂ + d dᵀ``, ``d = x − x̂``: its expected mean error follows with no
-    threshold, and equals the method's own prediction where its recursion is the batch's (one linearisation
-    point: an honest run differs by the model's curvature, a few per cent). The line is written where that
-    expected mean (absolute place or motion from home) lies above the top of the method's own band — beyond
-    what :data:`BAND_PROBABILITY` of calibrations with its covariance would show: its prediction then does not
-    describe its error. One-sided: a filter less sure than the log (a walk) misleads no one."""
-    drive = drive_model(platform)
-    offset = np.concatenate((estimate.error - optimum.error, estimate.block_error - optimum.block_error))
+    ``x − x_true`` has the second moment ``P̂ + d dᵀ``, ``d = x − x̂``: the covariance every prediction of the
+    estimate takes, equal to the method's own where its recursion is the batch's (one linearisation point: an
+    honest run differs by the model's curvature, a few per cent)."""
     if optimum.full_covariance is None:
-        return {"available": False}, None
+        return None
+    offset = np.concatenate((estimate.error - optimum.error, estimate.block_error - optimum.block_error))
     second = optimum.full_covariance + np.outer(offset, offset)
     n = optimum.layout.n_params
-    given_log = dataclasses.replace(optimum, covariance=second[:n, :n], full_covariance=second)
-    poses = None if platform.workspace is not None else measured_poses
-    covariances = [estimate_drive_covariance(given_log, drive), estimate_drive_covariance(optimum, drive)]
-    finite = [c for c in covariances if c is not None and np.all(np.isfinite(c))]
-    if len(finite) < len(covariances):
+    return dataclasses.replace(estimate, covariance=second[:n, :n], full_covariance=second)
+
+
+def relinearised_summary(
+    platform: Platform,
+    method: str,
+    own: PredictedError,
+    judged: PredictedError,
+    optimum: Estimate,
+    measured_poses: np.ndarray,
+) -> tuple[dict, str | None]:
+    """An online ``method``'s own prediction ``own`` against ``judged``, that of its estimate given the log
+    (:func:`given_log`), ``optimum`` the log's MAP: ``(the result's "relinearised" field, the loud line or
+    None)``.
+
+    The line is written where the expected mean given the log (absolute place or motion from home) lies above
+    the top of the method's own band — beyond what :data:`BAND_PROBABILITY` of calibrations with its covariance
+    would show: the method stopped short of the log's optimum, and its own covariance does not describe its
+    error. One-sided: a filter less sure than the log (a walk) misleads no one."""
+    covariance = estimate_drive_covariance(optimum, drive_model(platform))
+    if covariance is None or not np.all(np.isfinite(covariance)):
         return {"available": False}, None
-    again, best = (predicted_error(platform, c, poses) for c in finite)
+    best = predicted_error(platform, covariance, None if platform.workspace is not None else measured_poses)
     field = {
-        "position_mm": again.position_mm,
-        "motion_position_mm": again.motion_position_mm,
+        "position_mm": judged.position_mm,
+        "motion_position_mm": judged.motion_position_mm,
+        "filter_position_mm": own.position_mm,
+        "filter_position_band_mm": list(own.position_band_mm),
+        "filter_motion_position_mm": own.motion_position_mm,
+        "filter_motion_position_band_mm": list(own.motion_position_band_mm),
         "optimum_position_mm": best.position_mm,
         "optimum_motion_position_mm": best.motion_position_mm,
     }
-    method, motion_band = estimate.method, prediction.motion_position_band_mm
     beyond = [
-        f"{what} {theirs:.3g} mm where its own is {own:.3g} mm ({BAND_PROBABILITY:.0%}: {band[0]:.3g}–{band[1]:.3g} mm)"
-        for what, theirs, own, band in (
-            ("absolute place in {J}", again.position_mm, prediction.position_mm, prediction.position_band_mm),
-            ("motion from home", again.motion_position_mm, prediction.motion_position_mm, motion_band),
+        f"{what} {theirs:.3g} mm where its own covariance claims {mine:.3g} mm ({BAND_PROBABILITY:.0%}: "
+        f"{band[0]:.3g}–{band[1]:.3g} mm)"
+        for what, theirs, mine, band in (
+            ("absolute place in {J}", judged.position_mm, own.position_mm, own.position_band_mm),
+            ("motion from home", judged.motion_position_mm, own.motion_position_mm, own.motion_position_band_mm),
         )
         if theirs > band[1]
     ]
     if not beyond:
         return field, None
     return field, (
-        f"WARNING: {method}'s predicted error is smaller than the log allows: the log's optimum (Gauss–Newton from "
-        f"{method}'s estimate over the samples it used) expects of {method}'s estimate {'; '.join(beyond)}, beyond "
-        f"its own band. It took each sample's information at the state it stood at when the sample came, and here "
-        f"that state moved far over the log (the instrument's frame and the encoder zeros, found along the way), "
-        f"so its covariance does not describe its error: for a log measured whole, calibrate with --method ls or "
-        f"lm (the optimum's expected error: absolute {best.position_mm:.3g} mm, "
-        f"motion {best.motion_position_mm:.3g} mm)"
+        f"WARNING: {method} stopped short of the log's optimum: the optimum (Gauss–Newton from {method}'s estimate "
+        f"over the samples it used) expects of {method}'s estimate {'; '.join(beyond)}, beyond its own band. It "
+        f"took each sample's information at the state it stood at when the sample came, and here that state moved "
+        f"far over the log (the instrument's frame and the encoder zeros, found along the way): the prediction "
+        f"above is the log's, not its own; for a log measured whole, calibrate with --method ls or lm (the "
+        f"optimum's expected error: absolute {best.position_mm:.3g} mm, motion {best.motion_position_mm:.3g} mm)"
     )
 
 
@@ -761,45 +796,65 @@ def verdict_line(
     return line, motion_word != "within" or absolute_word != "within"
 
 
-def estimate_drive_covariance(estimate: Estimate, drive: DriveModel) -> np.ndarray | None:
-    """The covariance of an estimate over ``drive``'s unknowns as :func:`predicted_error` takes
-    them: δM, then each term of the drive up to the last the estimate identified (a term it did
-    not identify before that one: zero rows, known exactly). None when the estimate has none (a
-    rank-deficient fit)."""
+def _drive_index(estimate: Estimate, drive: DriveModel) -> np.ndarray:
+    """Where each of ``drive``'s unknowns as :func:`predicted_error` takes them sits in the estimate's
+    unknown vector: δM, then each term of the drive up to the last the estimate identified (−1 for a term
+    it did not identify before that one: known exactly)."""
     spans = [estimate.layout.slice(term.key) for term in drive.terms]
     identified = [k for k, span in enumerate(spans) if span is not None]
-    if not identified or estimate.full_covariance is None:
-        return estimate.covariance
-    index = np.concatenate(
+    return np.concatenate(
         [np.arange(drive.n_params)]
         + [
             np.arange(s.start, s.stop) if s is not None else np.full(drive.rows, -1)
-            for s in spans[: identified[-1] + 1]
+            for s in spans[: identified[-1] + 1 if identified else 0]
         ]
     )
+
+
+def estimate_drive_covariance(estimate: Estimate, drive: DriveModel) -> np.ndarray | None:
+    """The covariance of an estimate over ``drive``'s unknowns as :func:`predicted_error` takes
+    them (:func:`_drive_index`; a term not identified: zero rows, known exactly). None when the estimate
+    has none (a rank-deficient fit)."""
+    index = _drive_index(estimate, drive)
+    if len(index) == drive.n_params or estimate.full_covariance is None:
+        return estimate.covariance
     covariance = estimate.full_covariance[np.ix_(index, index)]
     missing = index < 0
     covariance[missing, :] = covariance[:, missing] = 0.0
     return covariance
 
 
+def _drive_offset(estimate: Estimate, optimum: Estimate, drive: DriveModel) -> np.ndarray:
+    """``estimate − optimum`` over ``drive``'s unknowns as :func:`estimate_drive_covariance` takes them."""
+    offset = np.concatenate((estimate.error - optimum.error, estimate.block_error - optimum.block_error))
+    index = _drive_index(optimum, drive)
+    return np.where(index >= 0, offset[np.maximum(index, 0)], 0.0)
+
+
 def estimate_summary(
-    platform: Platform, estimate: Estimate, noise_floor: PredictedError | None, measured_poses: np.ndarray
+    platform: Platform,
+    estimate: Estimate,
+    noise_floor: PredictedError | None,
+    measured_poses: np.ndarray,
+    optimum: Estimate | None = None,
 ) -> tuple[dict, str, bool]:
     """The prediction of a calibration result: ``(result field, one line, is a warning)``.
 
     Over the workspace box, or where the platform has no ``[workspace]`` over ``measured_poses``
     (the log's). The field is :meth:`PredictedError.to_dict` with the noise floor's and the
     correction's position error and the warning (``"warning": line or null``); without a
-    covariance, ``{"available": false}`` and a line saying why.
+    covariance, ``{"available": false}`` and a line saying why. ``optimum``: the log's MAP found from
+    ``estimate`` (:func:`given_log`), whose covariance about it the truth has: the estimate's error is then
+    ``N(estimate − optimum, optimum's covariance)``.
     """
     drive = drive_model(platform)
-    covariance = estimate_drive_covariance(estimate, drive)
+    covariance = estimate_drive_covariance(estimate if optimum is None else optimum, drive)
     if covariance is None or not np.all(np.isfinite(covariance)):
         line = "warning: no predicted closed-loop pose error: the estimate has no covariance (rank-deficient fit)"
         return {"available": False, "warning": line}, line, True
     poses = None if platform.workspace is not None else measured_poses
-    prediction = predicted_error(platform, covariance, poses)
+    mean = None if optimum is None else _drive_offset(estimate, optimum, drive)
+    prediction = predicted_error(platform, covariance, poses, mean=mean)
     correction = correction_size(platform, drive.calibrated_by(estimate), poses)
     line, warn = summary_line(prediction, noise_floor, correction)
     field = {

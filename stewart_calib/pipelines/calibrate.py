@@ -30,6 +30,7 @@ from .. import __version__, estimators, io
 from ..analysis.accuracy import (
     PredictedError,
     estimate_summary,
+    given_log,
     relinearised_summary,
     verdict_line,
     worse_than_nominal_line,
@@ -324,12 +325,20 @@ def run(args: argparse.Namespace) -> int:
         # static Cramér–Rao bound the noise floor is, so only an outside instrument's is compared with it
         floor = noise_floor(platform, estimate.samples_used, config.noise) if outside else None
         predicted, line, warns = estimate_summary(platform, estimate, floor, poses)
-        own = PredictedError.from_dict(predicted)
+        prediction = PredictedError.from_dict(predicted)
         overconfident = None
-        if not streamed and result.relinearised is not None and own is not None:
-            predicted["relinearised"], overconfident = relinearised_summary(
-                platform, own, estimate, result.relinearised, poses
-            )
+        optimum = None if streamed else result.relinearised
+        judged = None if optimum is None else given_log(estimate, optimum)
+        if optimum is not None and judged is not None and prediction is not None:
+            # the prediction, the verdict and the covariance written are of the estimate's error given the
+            # log, not of the filter's own claim (which the field keeps)
+            predicted, line, warns = estimate_summary(platform, estimate, floor, poses, optimum)
+            own, prediction = prediction, PredictedError.from_dict(predicted)
+            if prediction is not None:
+                predicted["relinearised"], overconfident = relinearised_summary(
+                    platform, args.method, own, prediction, optimum, poses
+                )
+                estimate = judged
         extra["predicted_closed_loop"] = predicted
         if warning and warns:  # one warning line: the poses' conditioning, then what it leaves
             print(f"stewart-calib calibrate: {warning}; {line.removeprefix('warning: ')}", file=sys.stderr)
@@ -369,7 +378,6 @@ def run(args: argparse.Namespace) -> int:
         if outside and predicted.get("available", True):
             rank = int(conditioning["rank"])
             unsupported = unsupported_correction(platform, result_data, checked, rank, predicted["correction_mm"])
-        prediction = own
         verdict, over = (
             verdict_line(prediction, args.tolerance_mm, args.tolerance_deg)
             if prediction is not None
@@ -386,7 +394,7 @@ def run(args: argparse.Namespace) -> int:
         elif worse:
             verdict = f"{verdict}; the calibrated model is likely worse than the nominal one"
         if overconfident:
-            verdict = f"{verdict}; {args.method}'s predicted error is smaller than the log allows (warned above)"
+            verdict = f"{verdict}; {args.method} stopped short of the log's optimum (warned above)"
         loud = [text for text in (unsupported[0] if unsupported else worse, overconfident) if text]
         trace_csv = None
         if trace_path and not streamed and result.trace is not None:
