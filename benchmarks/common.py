@@ -9,6 +9,7 @@ many calls; comparisons are ratios of medians measured side by side in the same 
 
 from __future__ import annotations
 
+import ctypes
 import os
 import platform as host
 import time
@@ -183,6 +184,7 @@ def machine() -> dict:
     return {
         "cpu": cpu,
         "cores": os.cpu_count(),
+        "blas_kernels": blas_kernels(),
         "load_average_1_5_15": [round(x, 2) for x in os.getloadavg()],
         "python": host.python_version(),
         "numpy": np.__version__,
@@ -192,6 +194,27 @@ def machine() -> dict:
         "filterpy": filterpy.__version__,
         "stewart_calib": getattr(stewart_calib, "__version__", "0.1.0"),
     }
+
+
+#: the function naming the kernels OpenBLAS chose at load: scipy-openblas 64-bit and 32-bit (numpy's), plain OpenBLAS
+OPENBLAS_CORENAME = ("scipy_openblas_get_corename64_", "scipy_openblas_get_corename", "openblas_get_corename")
+
+
+def blas_kernels() -> str | None:
+    """The kernels the OpenBLAS numpy loaded chose for this CPU (``"OpenBLAS SkylakeX"``), None for another BLAS.
+    Kernels round differently, and plan's exchanges then pick other, equally good poses: benchmarks.plan_poses's
+    hobby with a laser tracker, seed 0, the same code, leaves 46 µm with Haswell's kernels (an AMD EPYC's) and 128 µm
+    with SkylakeX's (predicted 156 and 153 µm)."""
+    with open("/proc/self/maps") as f:
+        libraries = sorted({line.split()[-1] for line in f if "openblas" in line.lower() and ".so" in line})
+    for library in libraries:
+        loaded = ctypes.CDLL(library)
+        for symbol in OPENBLAS_CORENAME:
+            if hasattr(loaded, symbol):
+                corename = getattr(loaded, symbol)
+                corename.restype = ctypes.c_char_p
+                return f"OpenBLAS {corename().decode()}"
+    return None
 
 
 def nim_stewart() -> Platform:

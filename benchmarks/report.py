@@ -86,6 +86,7 @@ def measured_line(record: dict) -> str:
     """Where and when a section was measured: command, date, machine, load and versions."""
     host = record.get("machine", {})
     cores = f", {host['cores']} cores" if host.get("cores") else ""
+    cores += f", {host['blas_kernels']} kernels" if host.get("blas_kernels") else ""
     minutes = f" in {record['seconds'] / 60:.1f} min" if record.get("seconds") else ""
     if "load_before" in host:
         before, after = host["load_before"][0], host["load_after"][0]

@@ -91,3 +91,14 @@ def test_every_target_not_met_says_why():
         for section in report.load(name, False)["sections"]:
             for row in section.rows:
                 assert row.met is not False or row.why, f"{section.title}: {row.name}"
+
+
+def test_the_machine_line_names_the_blas_kernels():
+    """Kernels round differently and move plan's poses (benchmarks.plan_poses, the machine's BLAS): the section's
+    machine line says which ran, as the process loaded them."""
+    from benchmarks.common import blas_kernels
+
+    kernels = blas_kernels()
+    assert kernels is not None and kernels.startswith("OpenBLAS ")  # numpy's wheels ship OpenBLAS
+    line = report.measured_line({"command": "c", "machine": {"cpu": "A CPU", "cores": 2, "blas_kernels": kernels}})
+    assert f"machine: A CPU, 2 cores, {kernels} kernels;" in line
