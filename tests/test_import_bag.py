@@ -325,3 +325,18 @@ def read_csv_columns(path: Path, names: list[str]) -> tuple[list[str], np.ndarra
         rows = list(csv.reader(f))
     columns = [rows[0].index(name) for name in names]
     return names, np.array([[float(row[k]) for k in columns] for row in rows[1:]])
+
+
+def test_load_kg_is_written_in_every_row_and_a_bad_one_refused(tmp_path, capsys):
+    """A bag of a session at 20 kg: ``--load-kg 20`` gives every row ``load_kg`` 20 (spec §10); −1 kg is refused."""
+    bag = tmp_path / "run"
+    write_bag(bag, "ros2-sqlite3")
+    out = tmp_path / "log.csv"
+    base = ["import-bag", str(bag), "--strokes", "/drive/joint_states", "--readings", "/tracker/joint_states"]
+    assert main([*base, "--load-kg", "20", "--out", str(out)]) == 0
+    assert "payload 20 kg in every row" in capsys.readouterr().err
+    header, rows = read_csv(out)
+    assert header[-1] == "load_kg" and header[7:13] == [f"s{i}_mm" for i in range(1, 7)]
+    np.testing.assert_array_equal(rows[:, -1], np.full(len(rows), 20.0))
+    err = _refusal(capsys, [*base, "--load-kg", "-1", "--out", str(tmp_path / "bad.csv")])
+    assert "--load-kg: expected a finite payload ≥ 0 kg" in err and not (tmp_path / "bad.csv").exists()

@@ -22,7 +22,8 @@ The conversions: positions to mm by the file's unit; orientation to roll-pitch-y
 ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (spec §1) from a quaternion (either order) or Euler angles
 (scipy's convention strings: upper case intrinsic, lower case extrinsic); a Y-up system turned
 to Z-up (``x' = x, y' = −z, z' = y``, a proper rotation); encoder counts to mm per leg; a
-controller's temperatures (one per leg, or one for all) to °C per leg (spec §17).
+controller's temperatures (one per leg, or one for all) to °C per leg (spec §17); its payload to kg
+(spec §10).
 """
 
 from __future__ import annotations
@@ -59,6 +60,8 @@ DEG_PER = {"deg": 1.0, "degrees": 1.0, "rad": 180.0 / np.pi, "radians": 180.0 / 
 S_PER = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
 #: °C at 0 of a temperature unit: a controller's temperatures, which a log holds in °C (spec §17)
 CELSIUS_AT_ZERO = {"C": 0.0, "K": -273.15}
+#: kilograms per mass unit: a controller's payload, which a log holds in kg (``load_kg``, spec §10)
+KG_PER = {"kg": 1.0, "g": 1e-3, "lb": 0.45359237}
 #: how a note names a temperature unit
 _TEMPERATURE_WORDS = {"C": "°C", "K": "K"}
 #: a platform's orientation in an instrument set up near it stays this close to the identity [deg]
@@ -423,6 +426,8 @@ MAPPING_KEYS = {
         "max_gap_s",
         "temperatures",
         "temperature_unit",
+        "load_kg",
+        "load_unit",
     },
 }
 
@@ -794,30 +799,37 @@ class StrokeColumns:
     log_unit: str = "mm"
     temperatures: tuple[str, ...] = ()
     celsius_at_zero: float = 0.0
+    load: str | None = None
+    kg_per_load_unit: float = 1.0
 
     def convert(self, raw: np.ndarray) -> np.ndarray:
         return self.sign * (raw - self.zero) * self.mm_per_raw
 
     @property
     def read_columns(self) -> list[str]:
-        """The controller's columns a row of it is read from: the six strokes, then the temperatures."""
-        return [*self.columns, *self.temperatures]
+        """The controller's columns a row of it is read from: the six strokes, the payload, then the temperatures."""
+        return [*self.columns, *([self.load] if self.load else []), *self.temperatures]
 
     @property
     def log_columns(self) -> tuple[str, ...]:
-        """The log columns of its temperatures (``temp1_C … temp6_C``, spec §17), or none."""
-        return TEMPERATURE_COLUMNS if self.temperatures else ()
+        """The log columns of its payload (``load_kg``, spec §10) and its temperatures (``temp1_C …
+        temp6_C``, spec §17), each where mapped, in the order of :meth:`convert_row`'s columns after the strokes."""
+        return (*(("load_kg",) if self.load else ()), *(TEMPERATURE_COLUMNS if self.temperatures else ()))
 
     def convert_row(self, raw: np.ndarray) -> np.ndarray:
-        """``(n, 6 + t)`` raw values of :attr:`read_columns` → ``(n, 6 + 6 or 0)`` the strokes in the
-        log's unit, then each leg's temperature [°C] (one column for all legs repeated): the values the
-        import interpolates to each measurement's time, the temperatures like the strokes."""
+        """``(n, 6 + l + t)`` raw values of :attr:`read_columns` → ``(n, 6 + len(log_columns))`` the strokes
+        in the log's unit, the payload [kg], then each leg's temperature [°C] (one column for all legs
+        repeated): the values the import joins to each measurement's time."""
         raw = np.asarray(raw, dtype=float)
-        q = self.convert(raw[:, : len(self.columns)])
-        if not self.temperatures:
-            return q
-        celsius = raw[:, len(self.columns) :] + self.celsius_at_zero
-        return np.hstack([q, np.repeat(celsius, 6 // celsius.shape[1], axis=1)])
+        six, loads = len(self.columns), int(bool(self.load))
+        celsius = raw[:, six + loads :] + self.celsius_at_zero
+        return np.hstack(
+            [
+                self.convert(raw[:, :six]),
+                raw[:, six : six + loads] * self.kg_per_load_unit,
+                np.repeat(celsius, 6 // celsius.shape[1], axis=1) if self.temperatures else celsius,
+            ]
+        )
 
 
 def stroke_columns(mapping_path: Path, table: dict) -> StrokeColumns:
@@ -862,20 +874,25 @@ def stroke_columns(mapping_path: Path, table: dict) -> StrokeColumns:
             f"'strokes.temperatures': expected the temperature column names of legs 1..6, or one for all legs "
             f"(spec §17), got {temperatures!r}",
         )
+    load = mapping_value(mapping_path, table, section, "load_kg", None, str)
     check_distinct(
         mapping_path,
         [
             ("strokes.time", [time] if time else []),
             ("strokes.columns", columns),
             ("strokes.temperatures", temperatures),
+            ("strokes.load_kg", [load] if load else []),
         ],
     )
+    load_unit = mapping_value(mapping_path, table, section, "load_unit", "kg", str, tuple(KG_PER))
     temperature_unit = mapping_value(mapping_path, table, section, "temperature_unit", "C", str, tuple(CELSIUS_AT_ZERO))
     time_scale = S_PER[mapping_value(mapping_path, table, section, "time_unit", "s", str, tuple(S_PER))]
     log_unit = "deg" if unit in DEG_PER else "mm"
     if temperatures:
         shown = "one for all legs" if len(temperatures) == 1 else "one per leg"
         what += f", temperatures in {_TEMPERATURE_WORDS[temperature_unit]} ({shown})"
+    if load:
+        what += f", payload {load!r} in {load_unit} (held from the row at or before each measurement)"
     return StrokeColumns(
         time,
         time_scale,
@@ -887,6 +904,8 @@ def stroke_columns(mapping_path: Path, table: dict) -> StrokeColumns:
         log_unit,
         tuple(temperatures),
         CELSIUS_AT_ZERO[temperature_unit],
+        load,
+        KG_PER[load_unit],
     )
 
 

@@ -30,8 +30,9 @@ from ..model.platform import (
     TEMPERATURE_RANGE_C,
     Instrument,
     Platform,
+    payload_expected,
     payload_limit,
-    payload_refusal,
+    payloads_refused,
 )
 from ..samples import GRAVITY, LOAD_KG, TEMPERATURE_C, Log, Sample, Truth
 from .atomic import atomic_write_text
@@ -521,17 +522,10 @@ def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool, in
             _flag_out_of_range(table, READING_COLUMNS, platform.reading_range, "reading", "tracker.reading_range_mm")
         if platform.elastic is not None and "load_kg" in table.numbers:
             load = table.numbers["load_kg"]
-            table.flag(
-                ~(np.isfinite(load) & (load >= 0)),
-                lambda k: (
-                    f"column 'load_kg': expected a finite payload ≥ 0 kg (an input where the platform has "
-                    f"[elastic], spec §10), got {float(load[k])!r}"
-                ),
-            )
             # a payload the platform could not carry is an impossible reading, like a stroke out of range
             table.flag(
-                ~(load <= payload_limit(platform)),
-                lambda k: f"column 'load_kg': expected {payload_refusal(platform, float(load[k]))}",
+                payloads_refused(platform, load),
+                lambda k: f"column 'load_kg': expected {payload_expected(platform, float(load[k]))}",
             )
     inputs.flag(table)
 

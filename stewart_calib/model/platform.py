@@ -421,6 +421,22 @@ def payload_refusal(platform: Platform, load_kg: float) -> str | None:
     )
 
 
+def payload_expected(platform: Platform | None, load_kg: float) -> str | None:
+    """What a payload ``load_kg`` [kg] (a log's ``load_kg``, an option's) should have been, for a
+    refusal naming where it came from: a finite payload ≥ 0 kg and, with ``platform``, one it can
+    carry (:func:`payload_refusal`); None when it is both."""
+    if not (math.isfinite(load_kg) and load_kg >= 0.0):
+        return f"a finite payload ≥ 0 kg (an input where the platform has [elastic], spec §10), got {load_kg!r}"
+    return None if platform is None else payload_refusal(platform, load_kg)
+
+
+def payloads_refused(platform: Platform | None, load_kg: np.ndarray) -> np.ndarray:
+    """Which of the payloads ``load_kg`` [kg] :func:`payload_expected` refuses (not finite, below 0 or,
+    with ``platform``, beyond its :func:`payload_limit`), at once."""
+    limit = math.inf if platform is None else payload_limit(platform)
+    return ~(np.isfinite(load_kg) & (load_kg >= 0.0) & (load_kg <= limit))
+
+
 #: a centre of mass farther than this many platform radii (the largest ``‖d_i‖``) from {D}'s origin
 #: is refused: a value typed in the wrong unit, not a payload the legs could hold.
 COM_RADII_LIMIT = 10.0

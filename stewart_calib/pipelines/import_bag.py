@@ -3,7 +3,7 @@
     stewart-calib import-bag BAG --strokes TOPIC (--readings TOPIC | --pose TOPIC) --out L.csv
                              [--stroke-joints N1,…,N6] [--reading-joints N1,…,N6]
                              [--stroke-unit m|mm|um|rad|deg] [--reading-unit m|mm|um] [--pose-unit m|mm|um]
-                             [--clock header|bag] [--max-gap-s S]
+                             [--clock header|bag] [--max-gap-s S] [--load-kg KG]
 
 Reads ROS 2 bags (sqlite3 or MCAP directory) and ROS 1 ``.bag`` files with the ``rosbags``
 library — no ROS installation needed. Drive strokes come from a ``sensor_msgs/JointState``
@@ -18,7 +18,8 @@ no row (the count is reported). The legs are matched by joint name in every mess
 without one of them is refused alone and counted (a reading gets no row; the strokes are
 interpolated across a refused stroke message, within ``--max-gap-s``). ``t_s`` is seconds since
 the first written row. ROS messages carry SI units (REP 103: metres), hence the default ``m``;
-the unit flags say otherwise.
+the unit flags say otherwise. ``--load-kg`` writes the payload the platform carries through the
+recording as ``load_kg`` in every row (spec §10).
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ import numpy as np
 
 from .. import io
 from ..errors import CalibError, shown
-from ..model.platform import INSTRUMENT_SECTIONS
+from ..model.platform import INSTRUMENT_SECTIONS, payload_expected
 from ..model.rotations import quaternion_to_rotation, rotation_to_rpy
 from . import run_command
 
@@ -267,6 +268,9 @@ def run(args: argparse.Namespace) -> int:
         raise CalibError(f"--out {out}: directory {out.parent} does not exist")
     if not (math.isfinite(args.max_gap_s) and args.max_gap_s > 0):
         raise CalibError(f"--max-gap-s: expected a finite positive number of seconds, got {args.max_gap_s!r}")
+    not_a_payload = payload_expected(None, args.load_kg) if args.load_kg is not None else None
+    if not_a_payload:
+        raise CalibError(f"--load-kg: expected {not_a_payload}")
     if args.readings is not None and args.readings == args.strokes:
         raise CalibError(f"--readings {shown(args.readings)}: the same topic as --strokes; expected the tracker's own")
     stroke_joints = _joint_names(args.stroke_joints, "--stroke-joints", len(io.STROKE_COLUMNS))
@@ -302,6 +306,9 @@ def run(args: argparse.Namespace) -> int:
         if not np.all(np.isfinite(array)):  # finite in the bag, overflowed by the unit's scale
             raise CalibError(f"{bag}: {option}: values that are not finite in mm (overflow of the unit conversion)")
     drive_columns = io.ANGLE_COLUMNS if angles else io.STROKE_COLUMNS
+    if args.load_kg is not None:  # one payload through the whole recording
+        header = (*header, "load_kg")
+        measured_values = np.column_stack([measured_values, np.full(len(t_s), args.load_kg)])
     io.atomic_write_text(out, log_text(t_s - t_s[0], strokes_mm, header, measured_values, drive_columns))
     start = datetime.fromtimestamp(t_s[0], tz=UTC).isoformat(timespec="milliseconds")
     dropped = int((~kept).sum())
@@ -310,7 +317,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"stewart-calib import-bag: wrote {out} ({int(kept.sum())} rows from t = {start}, of {messages} {option} "
         f"message(s); {dropped} without stroke messages within {args.max_gap_s!r} s dropped"
-        f"{measured.refused_words(option, shown(topic))}{strokes.refused_words('--strokes', shown(args.strokes))})",
+        f"{measured.refused_words(option, shown(topic))}{strokes.refused_words('--strokes', shown(args.strokes))}"
+        f"{'' if args.load_kg is None else f'; payload {args.load_kg:g} kg in every row'})",
         file=sys.stderr,
     )
     return 0
@@ -360,6 +368,13 @@ def add_parser(subparsers) -> None:
         default=DEFAULT_MAX_GAP_S,
         metavar="S",
         help=f"largest gap between the stroke messages a row is interpolated across (default {DEFAULT_MAX_GAP_S} s)",
+    )
+    parser.add_argument(
+        "--load-kg",
+        type=float,
+        metavar="KG",
+        help="the payload [kg] the platform carries through the recording, written as load_kg in every row (an "
+        "input where the platform has [elastic], spec §10)",
     )
     parser.set_defaults(func=run)
 

@@ -3,7 +3,7 @@
     stewart-calib import (--motive F.csv --rigid-body NAME | --vicon F.csv (--segment NAME | --markers A,B,C)
                           | --csv F.csv | --point-list F.csv) [--mapping M.toml] [--strokes C.csv]
                          [--clock-offset-s S | --estimate-clock-offset] [--max-gap-s S] [--up y|z]
-                         [--platform P.toml] --out L.csv
+                         [--load-kg KG] [--platform P.toml] --out L.csv
 
 The instrument's export gives the measurement columns of spec §7 (``mx_mm … myaw_deg`` for a
 pose, ``p1x_mm …`` for points) on its own clock; the strokes come from the same file (a generic
@@ -12,7 +12,9 @@ CSV whose mapping file's ``[strokes]`` names its columns) or from the controller
 offset``, the offset given or estimated (the lag at which the measured motion best explains the
 strokes, :func:`estimate_clock_offset`). Strokes are interpolated linearly to each measurement's
 time between the two controller rows around it, at most ``--max-gap-s`` apart; a measurement with
-no such pair, or where the instrument lost the body, gets no row — and is counted. Both files
+no such pair, or where the instrument lost the body, gets no row — and is counted. The payload
+(``load_kg``, spec §10) is ``--load-kg`` in every row, or the mapping's ``[strokes] load_kg`` column
+held from the controller row at or before each measurement (a payload changes in steps). Both files
 are read a block at a time and the log written as it goes (atomically: nothing partial is left).
 
 One line on stderr says what was done: rows read, rows written, rows dropped and why, the units
@@ -39,7 +41,7 @@ from ..instruments import MODELS
 from ..io import exports
 from ..io.exports import Block
 from ..io.platform_file import load_platform
-from ..model.platform import INSTRUMENT_SECTIONS
+from ..model.platform import INSTRUMENT_SECTIONS, payload_expected, payloads_refused
 from ..model.rotations import rpy_to_rotation
 from . import run_command
 
@@ -101,9 +103,30 @@ def add_parser(subparsers) -> None:
     parser.add_argument(
         "--up", choices=("y", "z"), help="the instrument's up axis (default: y for Motive, z otherwise)"
     )
+    parser.add_argument(
+        "--load-kg",
+        type=float,
+        metavar="KG",
+        help="the payload [kg] the platform carries through the whole import, written as load_kg in every row "
+        "(an input where the platform has [elastic], spec §10); or map the controller's column as [strokes] load_kg",
+    )
     parser.add_argument("--platform", metavar="P.toml", help="check the log against this platform (spec §2, §7)")
     parser.add_argument("--out", required=True, metavar="L.csv", help="measurement log to write (spec §3, §7)")
     parser.set_defaults(func=run)
+
+
+def _check_payloads(path, lines: np.ndarray, values: np.ndarray, columns: exports.StrokeColumns, platform) -> None:
+    """Refuse a row whose mapped payload (``values``: :meth:`~.exports.StrokeColumns.convert_row`'s, in
+    kg) is not one the log reader takes (:func:`~stewart_calib.model.platform.payload_expected`)."""
+    if not columns.load:
+        return
+    load = values[:, len(columns.columns)]
+    bad = payloads_refused(platform, load)
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise CalibError(
+            f"{path}: row {lines[k]}: column {columns.load!r}: expected {payload_expected(platform, float(load[k]))}"
+        )
 
 
 def _check_seekable(option: str, path: str | None) -> None:
@@ -178,18 +201,19 @@ GAP_PERIODS = 1.5
 
 
 class ControllerLog:
-    """The controller's strokes [mm] on its clock, and its legs' temperatures [°C] where the mapping
-    names them (``[strokes] temperatures``, spec §17), read a block at a time and kept only as far
-    back as the next measurement needs (the measurements come in time order)."""
+    """The controller's strokes [mm] on its clock, and its payload [kg] and its legs' temperatures [°C]
+    where the mapping names them (``[strokes] load_kg``, spec §10, and ``temperatures``, §17), read a
+    block at a time and kept only as far back as the next measurement needs (the measurements come in
+    time order)."""
 
-    def __init__(self, path: Path, columns: exports.StrokeColumns):
+    def __init__(self, path: Path, columns: exports.StrokeColumns, platform=None):
         if columns.time is None:
             raise CalibError(f"{path}: the mapping's [strokes] names no 'time' column of the controller's log")
         header = exports.header_of(path)
         indices = exports.column_indices(path, header, [columns.time, *columns.read_columns], "strokes")
-        self.path, self.columns = path, columns
+        self.path, self.columns, self.platform = path, columns, platform
         self._blocks = exports.numeric_blocks(path, 2, header, indices)
-        # the strokes, then each leg's temperature where the mapping names them: interpolated together
+        # the strokes, then the payload and each leg's temperature where the mapping names them
         self.t_s, self.q_mm = np.zeros(0), np.zeros((0, len(columns.columns) + len(columns.log_columns)))
         self.rows, self.first_s, self._latest, self._done = 0, math.nan, -math.inf, False
         self.period_s = math.nan  # the median step of its first block: a --max-gap-s below it joins few rows
@@ -226,17 +250,24 @@ class ControllerLog:
                 self.period_s = float(np.median(np.diff(block.t_s)))
         self.rows += len(block.t_s)
         self.t_s = np.concatenate([self.t_s, block.t_s])
-        self.q_mm = np.concatenate([self.q_mm, self.columns.convert_row(block.values)])
+        converted = self.columns.convert_row(block.values)
+        _check_payloads(self.path, block.lines, converted, self.columns, self.platform)
+        self.q_mm = np.concatenate([self.q_mm, converted])
         return True
 
     def strokes_at(self, t_s: np.ndarray, max_gap_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """``(strokes (M, 6) [mm] then the legs' temperatures (M, 6) [°C] where mapped, kept (len(t_s),))`` at
-        the controller times ``t_s`` (increasing)."""
+        """``(strokes (M, 6) [mm] then the payload [kg] and the legs' temperatures (M, 6) [°C] where mapped,
+        kept (len(t_s),))`` at the controller times ``t_s`` (increasing): the strokes and temperatures
+        interpolated, the payload that of the row at or before (it changes in steps: a load put on between
+        two rows is not half there)."""
         from .import_bag import TopicSeries, interpolate_to_stamps
 
         while not self._done and (not len(self.t_s) or self.t_s[-1] < t_s[-1]):
             self._read()
         q, kept = interpolate_to_stamps(TopicSeries(self.t_s, self.q_mm), t_s, max_gap_s)
+        if self.columns.load:  # a kept time has a row at or before it
+            load = len(self.columns.columns)
+            q[:, load] = self.q_mm[np.searchsorted(self.t_s, t_s[kept], side="right") - 1, load]
         keep_from = max(int(np.searchsorted(self.t_s, t_s[-1], side="right")) - 1, 0)
         self.t_s, self.q_mm = self.t_s[keep_from:], self.q_mm[keep_from:]
         return q, kept
@@ -562,17 +593,29 @@ def run(args: argparse.Namespace) -> int:
                 f'(kind = "{platform.drive.kind}") takes {io.drive_columns(platform)[0]} … '
                 f"{io.drive_columns(platform)[-1]}; expected a unit in {platform.drive.coordinate_unit}"
             )
+    if args.load_kg is not None:
+        if strokes.load:
+            raise CalibError(
+                f"--load-kg: the mapping's [strokes] load_kg = {strokes.load!r} gives the payload already; expected "
+                "one of the two"
+            )
+        not_a_payload = payload_expected(platform, args.load_kg)
+        if not_a_payload:
+            raise CalibError(f"--load-kg: expected {not_a_payload}")
+    constant_load = ("load_kg",) if args.load_kg is not None else ()
     drive_columns = tuple(f"q{i}_{strokes.log_unit}" for i in range(1, 7))  # spec §3, §15
     notes: list = [what, *([tally] if tally is not None else []), strokes.what]
+    if constant_load:
+        notes.append(f"payload {args.load_kg:g} kg in every row")
     controller = None
     if args.strokes is None:
-        blocks = _same_file_rows(make_blocks, source, strokes, args.csv, notes)
+        blocks = _same_file_rows(make_blocks, source, strokes, args.csv, notes, platform)
     else:
         offset = _clock_offset(args, stroke_table, make_blocks, strokes, mapping_path, notes, kind, source)
         estimated = args.clock_offset_s is None and (
             args.estimate_clock_offset or stroke_table.get("clock_offset_s") == "estimate"
         )
-        controller = ControllerLog(Path(args.strokes), strokes)
+        controller = ControllerLog(Path(args.strokes), strokes, platform)
         blocks = _joined_rows(make_blocks(), controller, offset, max_gap_s, notes, source, estimated)
     counts = {"read": 0, "lost": 0, "unjoined": 0, "written": 0}
     checked: list = []
@@ -590,8 +633,10 @@ def run(args: argparse.Namespace) -> int:
             use = kept & ~lost
             strokes_mm = np.full((len(block.t_s), len(drive_columns)), np.nan)  # a servo's: degrees
             strokes_mm[kept] = q[:, : len(drive_columns)]
-            temperatures = np.full((len(block.t_s), len(strokes.log_columns)), np.nan)
-            temperatures[kept] = q[:, len(drive_columns) :]
+            channels = np.full((len(block.t_s), len(strokes.log_columns)), np.nan)  # the payload, the temperatures
+            channels[kept] = q[:, len(drive_columns) :]
+            if constant_load:
+                channels = np.column_stack([np.full(len(block.t_s), args.load_kg), channels])
             if not columns:
                 columns.extend(INSTRUMENT_SECTIONS[kind].log_columns(block.values.shape[1] // 3))
                 if platform is not None and kind == "points":
@@ -605,7 +650,7 @@ def run(args: argparse.Namespace) -> int:
                 diagnose_log(platform, coordinates, readings, inputs, count=False)
                 checked.append(True)
             counts["written"] += int(use.sum())
-            yield [block.t_s[use], *strokes_mm[use].T, *block.values[use].T, *temperatures[use].T]
+            yield [block.t_s[use], *strokes_mm[use].T, *block.values[use].T, *channels[use].T]
         if not counts["read"]:
             raise CalibError(f"{source}: no data rows after the header; expected the instrument's measurements")
         if not counts["written"]:  # raised inside the write: its temporary file is removed
@@ -615,7 +660,7 @@ def run(args: argparse.Namespace) -> int:
                 f"{counts['unjoined']} without strokes within {max_gap_s:g} s); nothing written{hint}"
             )
 
-    _write(out, rows, drive_columns, columns, MODELS[kind].unseen_channels, strokes.log_columns)
+    _write(out, rows, drive_columns, columns, MODELS[kind].unseen_channels, (*constant_load, *strokes.log_columns))
     gap_hint = controller.gap_hint(max_gap_s) if controller is not None and counts["unjoined"] else ""
     print(
         f"stewart-calib import: wrote {out}: {counts['written']} of {counts['read']} rows ({counts['lost']} where the "
@@ -639,10 +684,10 @@ def _write(
     out: Path, rows, drive_columns: tuple[str, ...], columns: list[str], unseen: bool, after: tuple[str, ...] = ()
 ) -> int:
     """Write the rows (blocks of float columns) as a log, the drive's in ``drive_columns`` (``q1_mm …``,
-    a servo's ``q1_deg …``), the measured ``columns``, then ``after`` (the legs' temperatures
-    ``temp1_C … temp6_C``, spec §17, or none); the header is known once the first block is, so the
-    first block is looked at before the file is opened. ``unseen``: the instrument may leave a
-    reading's channels unmeasured (NaN, written as empty fields)."""
+    a servo's ``q1_deg …``), the measured ``columns``, then ``after`` (the payload ``load_kg``, spec §10,
+    and the legs' temperatures ``temp1_C … temp6_C``, spec §17, each or none); the header is known once
+    the first block is, so the first block is looked at before the file is opened. ``unseen``: the
+    instrument may leave a reading's channels unmeasured (NaN, written as empty fields)."""
     blocks = iter(rows())
     first = next(blocks)
     header = ["t_s", *drive_columns, *columns, *after]
@@ -655,9 +700,9 @@ def _write(
     return io.write_csv_blocks(out, header, all_blocks(), blank)
 
 
-def _same_file_rows(make_blocks, source, strokes, is_csv, notes):
-    """The strokes (and the legs' temperatures, where mapped) from the instrument's own file (a generic
-    CSV, its stroke columns read with the measurement's, after them): every row joins itself."""
+def _same_file_rows(make_blocks, source, strokes, is_csv, notes, platform=None):
+    """The strokes (and the payload and the legs' temperatures, where mapped) from the instrument's own
+    file (a generic CSV, its stroke columns read with the measurement's, after them): every row joins itself."""
     if not is_csv:
         raise CalibError("expected --strokes C.csv: the controller's log of the strokes (this export has none)")
     notes.append("strokes from the same rows")
@@ -670,7 +715,9 @@ def _same_file_rows(make_blocks, source, strokes, is_csv, notes):
             raise CalibError(f"{source}: row {block.lines[k]}: column {read[j]!r}: expected a number")
         measured = Block(block.t_s * 1.0, block.values[:, : -len(read)], block.lines)
         lost = ~np.any(np.isfinite(measured.values), axis=1)
-        yield measured, strokes.convert_row(raw), np.ones(len(raw), dtype=bool), lost
+        converted = strokes.convert_row(raw)
+        _check_payloads(source, block.lines, converted, strokes, platform)
+        yield measured, converted, np.ones(len(raw), dtype=bool), lost
 
 
 def _clock_offset(args, table: dict, make_blocks, strokes, mapping_path, notes, kind: str, source) -> float:
