@@ -104,7 +104,10 @@ def test_cli_writes_a_pose_list_that_reads_back(platform, tmp_path, capsys):
     assert header == "t_s,x_mm,y_mm,z_mm,roll_deg,pitch_deg,yaw_deg"
     expected = planning.plan_poses(platform, 10, "D", np.random.default_rng(7), 300, NOISE)
     np.testing.assert_allclose(read_pose_list(out), expected, rtol=1e-12, atol=1e-12)  # repr floats round-trip
-    assert "planned 10 poses" in capsys.readouterr().out
+    printed = capsys.readouterr().out.splitlines()
+    # every line plan prints names the command, as every other command's messages do
+    assert printed[0].startswith("stewart-calib plan: planned 10 poses")
+    assert all(line.startswith("stewart-calib plan: ") for line in printed)
 
 
 @pytest.mark.parametrize("dwell", ["nan", "-1", "0", "abc"])
