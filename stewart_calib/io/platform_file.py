@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import resources
-from ..errors import CalibError, did_you_mean
+from ..errors import CalibError, did_you_mean, without_noise
 from ..inputs import implausible_sigma_mm
 from ..model.platform import (
     DEFAULT_ORIENTATION_SIGMA_DEG,
@@ -692,18 +692,24 @@ def load_platform(path: str | Path) -> Platform:
     return parse_platform(doc, str(path))
 
 
+def _toml_float(value: float) -> str:
+    """A float as the platform file writes it: TOML's float (``12.0``) of its 15 significant digits."""
+    return repr(without_noise(float(value)))
+
+
 def _toml_rows(rows: np.ndarray) -> str:
-    return "[\n" + "".join(f"    [{', '.join(repr(float(v)) for v in row)}],\n" for row in rows) + "]"
+    return "[\n" + "".join(f"    [{', '.join(_toml_float(v) for v in row)}],\n" for row in rows) + "]"
 
 
 def _toml_list(values) -> str:
-    return "[" + ", ".join(repr(float(v)) for v in values) + "]"
+    return "[" + ", ".join(_toml_float(v) for v in values) + "]"
 
 
 def platform_to_toml(platform: Platform) -> str:
-    """Serialise to the spec §2 TOML (a rotary drive's ``[drive]``: spec §15);
-    ``parse_platform(tomllib.loads(...))`` round-trips exactly (a rotary drive's directions and
-    angles to the last bit or two: they are normalised and converted again on reading)."""
+    """Serialise to the spec §2 TOML (a rotary drive's ``[drive]``: spec §15), every number to 15
+    significant digits (:func:`~stewart_calib.errors.without_noise`: ``12.0``, not the
+    ``12.000000000000002`` of 12° through radians); ``parse_platform(tomllib.loads(...))`` gives the
+    platform to those digits, and writing it again gives the same text."""
     lines = [f"name = {_toml_str(platform.name)}"]
     if platform.description:
         lines.append(f"description = {_toml_str(platform.description)}")
@@ -732,7 +738,7 @@ def platform_to_toml(platform: Platform) -> str:
         if section == "drive" and np.any(platform.stroke_scale != 0):
             lines.append(f"stroke_scale = {_toml_list(platform.stroke_scale)}")
         if section == "tracker" and platform.tracker_geometry_sigma_mm > 0:
-            lines.append(f"geometry_sigma_mm = {platform.tracker_geometry_sigma_mm!r}")
+            lines.append(f"geometry_sigma_mm = {_toml_float(platform.tracker_geometry_sigma_mm)}")
     lines += _instrument_toml(platform.instrument)
     lines += _elastic_toml(platform.elastic)
     lines += _thermal_toml(platform.thermal)
@@ -743,8 +749,8 @@ def platform_to_toml(platform: Platform) -> str:
             "",
             "[workspace]",
             f"home = {_toml_list(home)}",
-            f"translation_limit_mm = {float(ws.translation_limit)!r}",
-            f"rotation_limit_deg = {math.degrees(ws.rotation_limit)!r}",
+            f"translation_limit_mm = {_toml_float(ws.translation_limit)}",
+            f"rotation_limit_deg = {_toml_float(math.degrees(ws.rotation_limit))}",
         ]
     return "\n".join(lines) + "\n"
 
@@ -776,10 +782,10 @@ _INSTRUMENT_TOML = {
     "frame": lambda instrument: _pose6_toml(instrument.frame),
     "target": lambda instrument: _pose6_toml(instrument.target),
     "targets_mm": lambda instrument: _toml_rows(instrument.targets),
-    "position_sigma_mm": lambda instrument: repr(float(instrument.position_sigma_mm)),
-    "orientation_sigma_deg": lambda instrument: repr(math.degrees(instrument.orientation_sigma_rad)),
+    "position_sigma_mm": lambda instrument: _toml_float(instrument.position_sigma_mm),
+    "orientation_sigma_deg": lambda instrument: _toml_float(math.degrees(instrument.orientation_sigma_rad)),
     "visibility_cone_deg": lambda instrument: (
-        None if instrument.visibility_cone_deg is None else repr(float(instrument.visibility_cone_deg))
+        None if instrument.visibility_cone_deg is None else _toml_float(instrument.visibility_cone_deg)
     ),
     "target_axes": lambda instrument: (
         None if instrument.visibility_cone_deg is None else _toml_rows(instrument.target_axes)
@@ -804,16 +810,16 @@ def _elastic_toml(elastic: Elastic | None) -> list[str]:
     lines = [
         "",
         "[elastic]",
-        f"platform_mass_kg = {float(elastic.platform_mass_kg)!r}",
+        f"platform_mass_kg = {_toml_float(elastic.platform_mass_kg)}",
         f"platform_com_mm = {_toml_list(elastic.platform_com_mm)}",
         f"payload_com_mm = {_toml_list(elastic.payload_com_mm)}",
         f"compliance_mm_per_kN = {_toml_list(elastic.compliance_mm_per_kN)}",
-        f"compliance_sigma_mm_per_kN = {float(elastic.compliance_sigma_mm_per_kN)!r}",
+        f"compliance_sigma_mm_per_kN = {_toml_float(elastic.compliance_sigma_mm_per_kN)}",
     ]
     if elastic.true_compliance_mm_per_kN is not None:
         lines.append(f"true_compliance_mm_per_kN = {_toml_list(elastic.true_compliance_mm_per_kN)}")
     if elastic.payload_sigma_kg > 0.0:
-        lines.append(f"payload_sigma_kg = {float(elastic.payload_sigma_kg)!r}")
+        lines.append(f"payload_sigma_kg = {_toml_float(elastic.payload_sigma_kg)}")
     if not np.array_equal(elastic.gravity, DOWN):
         lines.append(f"gravity = {_toml_list(elastic.gravity)}")
     return lines
@@ -827,9 +833,9 @@ def _thermal_toml(thermal: Thermal | None) -> list[str]:
     lines = [
         "",
         "[thermal]",
-        f"reference_temperature_C = {float(thermal.reference_temperature_C)!r}",
+        f"reference_temperature_C = {_toml_float(thermal.reference_temperature_C)}",
         f"expansion_ppm_per_K = {_toml_list(thermal.expansion_ppm_per_K)}",
-        f"expansion_sigma_ppm_per_K = {float(thermal.expansion_sigma_ppm_per_K)!r}",
+        f"expansion_sigma_ppm_per_K = {_toml_float(thermal.expansion_sigma_ppm_per_K)}",
     ]
     if thermal.true_expansion_ppm_per_K is not None:
         lines.append(f"true_expansion_ppm_per_K = {_toml_list(thermal.true_expansion_ppm_per_K)}")

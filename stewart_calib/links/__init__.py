@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from ..errors import CalibError, number, shown
+from ..errors import CalibError, number, shown, without_noise
 from ..io import drive_columns, reading_columns
 from ..io.logs import POSE_COLUMNS
 
@@ -463,10 +463,11 @@ def _whole(value: float) -> int:
 
 
 def _field(value: Any) -> str:
-    """A CSV field of a controller's value: a number as its double's ``repr`` (read back exactly)."""
+    """A CSV field of a controller's value: a number as the log's writers write it (its double's 15
+    significant digits, :func:`~stewart_calib.errors.without_noise`: a float32's every digit)."""
     if isinstance(value, str):
         return '"' + value.replace('"', '""') + '"'
-    return repr(float(value))
+    return repr(without_noise(float(value)))
 
 
 def write_lengths(link: LinkFile, result: dict) -> dict[str, int]:
