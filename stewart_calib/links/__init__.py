@@ -486,14 +486,16 @@ def write_lengths(link: LinkFile, result: dict) -> dict[str, int]:
 
 
 def written(result: dict, key: str) -> Sequence[float] | float:
-    """What ``[write] key`` gets of a spec §5 result."""
+    """What ``[write] key`` gets of a spec §5 result: the numbers its file holds (15 significant digits,
+    :func:`~stewart_calib.errors.without_noise`), so that the controller holds the result value for value."""
     if key == "parameters":
-        return result["estimate"]
+        return without_noise(result["estimate"])
     if key == "stddev":
-        return result["stddev"] if result["stddev"] is not None else [math.nan] * len(result["estimate"])
+        stddev = result["stddev"]
+        return without_noise(stddev) if stddev is not None else [math.nan] * len(result["estimate"])
     if key == "samples_used":
         return result["samples_used"]
     block = result.get(key)
     if block is None:
         raise CalibError(f"write.{key}: this calibration identifies no {key} block to hand back")
-    return block["estimate"]
+    return without_noise(block["estimate"])
