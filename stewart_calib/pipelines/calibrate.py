@@ -295,18 +295,19 @@ def run(args: argparse.Namespace) -> int:
         ):
             if text:
                 print(f"stewart-calib calibrate: {text}", file=sys.stderr)
-        if rejections.count:
+        rejected = rejections.in_result(estimate)  # those the method took back in are among the used
+        if rejected["count"]:
             print(
                 _summary(
                     f"{args.method} rejected samples:",
-                    rejections.count,
+                    rejected["count"],
                     n_samples,
                     f"t_s={number(first_rejected_t_s)}: {rejections.first}",
                 ),
                 file=sys.stderr,
             )
 
-        extra: dict[str, object] = {"samples_rejected": rejections.summary()}
+        extra: dict[str, object] = {"samples_rejected": rejected}
         warning = None
         if not outside:  # the leg set's FK gives the poses to assess
             poses, strokes, channels = measured_samples(platform, checked)
