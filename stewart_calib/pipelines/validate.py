@@ -129,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
         + (" (instrument re-registered)" if args.register_instrument else "")
     )
     if instrument_kind(platform).outside:
-        print(f"stewart-calib validate: {_unseen_error_line(platform, result, position)}")
+        print(f"stewart-calib validate: {_unseen_error_line(platform, result, position, args.register_instrument)}")
     sample = log if (report_dir or args.register_instrument) else first[0]
     if not report_dir:
         compared = _compared(args, compare, sample, len(position), moved is not None)
@@ -194,7 +194,7 @@ def _verdict(
     prediction or the tolerance. ``in_sample``: the log is the calibration's own (:data:`IN_SAMPLE_LINE`), which
     the measured words say."""
     noise = result_noise(platform, result, sample, args.register_instrument, len(position))
-    measured, beyond = _measured_words(platform, position, orientation, noise)
+    measured, beyond = _measured_words(platform, position, orientation, noise, args.register_instrument)
     if in_sample:
         measured += " on the calibration's own log (in-sample: the fit, not held-out accuracy)"
     if moved:
@@ -247,16 +247,32 @@ def result_noise(
     return noise_squares(platform, result, sample, register, rows, noise["reading_sigma_mm"], noise["stroke_sigma_mm"])
 
 
+def _outside_check_words(register: bool) -> str:
+    """What a check through an outside instrument measured: with ``--register-instrument`` (``register``),
+    through its frame and target(s) fitted again to this log, the error as the instrument sees it after
+    registration (the prediction's quantity, :mod:`stewart_calib.analysis.accuracy`); else through the
+    calibration's frame and target(s), fitted to the calibration's log — their own error and any move of
+    the instrument since are in the rows too."""
+    if register:
+        return "error as the instrument sees it after registration (its frame and target(s) fitted again to this log)"
+    return "error as the instrument sees it through the calibration's frame and target(s) (not fitted to this log)"
+
+
 def _measured_words(
-    platform: Platform, position_mm: np.ndarray, orientation_deg, noise: tuple[NoiseSquares, NoiseSquares | None]
+    platform: Platform,
+    position_mm: np.ndarray,
+    orientation_deg,
+    noise: tuple[NoiseSquares, NoiseSquares | None],
+    register: bool,
 ) -> tuple[str, MeasuredError]:
-    """What this check measured, named: through an outside instrument's fitted frame and target(s) the
-    error as the instrument sees it after registration (they absorb a rigid motion of {J} and the
-    targets' places in {D}), through the in-situ tracker the absolute place: the rows' RMS and, beyond
-    the noise (:func:`result_noise`), the robot's own with its 90 % interval from the noise's spread over
-    the rows — which the verdict holds against the tolerance where an outside instrument measured it."""
+    """What this check measured, named: through an outside instrument's frame and target(s) the error as
+    the instrument sees it (:func:`_outside_check_words`: fitted again to this log with ``register``, else
+    the calibration's; they absorb a rigid motion of {J} and the targets' places in {D}), through the
+    in-situ tracker the absolute place: the rows' RMS and, beyond the noise (:func:`result_noise`), the
+    robot's own with its 90 % interval from the noise's spread over the rows — which the verdict holds
+    against the tolerance where an outside instrument measured it."""
     outside = instrument_kind(platform).outside
-    what = "error as the instrument sees it after registration" if outside else "absolute place in {J}"
+    what = _outside_check_words(register) if outside else "absolute place in {J}"
     text = f"validate measured the {what}: position RMS {_rms(position_mm):.3g} mm"
     if orientation_deg is not None:
         text += f" / {_rms(orientation_deg):.3g}°"
@@ -277,15 +293,15 @@ def _measured_words(
     )
 
 
-def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray) -> str:
+def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray, register: bool) -> str:
     """What a check through an outside instrument's frame cannot see, beside what it saw: the
     frame and target(s) (fitted with the drive, the frame again here) absorb a rigid motion of {J}
     and the targets' places in {D}, so it measures the registered error, and the robot's closed-loop
     (absolute) error is the result's prediction — which the verdict gives (printed once, there), this
-    line what limits it."""
+    line what limits it. ``register``: the frame and target(s) were fitted again to this log."""
     seen_rms_mm = _rms(position_mm)
     head = (
-        "validate measured the error as the instrument sees it after registration: a check through the "
+        f"validate measured the {_outside_check_words(register)}: a check through the "
         "instrument's fitted frame and target(s) cannot see the robot's closed-loop (absolute) pose error "
         "(they absorb a rigid motion of {J} and the targets' places in {D}); "
         f"position RMS here {seen_rms_mm:.4g} mm, "
