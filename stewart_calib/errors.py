@@ -78,16 +78,17 @@ _EXACT_POWERS_OF_TEN = [float(10**k) for k in range(23)]
 def without_noise(value):
     """``value`` as a file writes it: every float rounded to the number :func:`number` shows (15
     significant digits), so that its ``repr`` holds no binary noise (``0.7``, not ``0.7000000000000001``)
-    while keeping every digit a double carries meaningfully (at most half a unit in the 15th digit,
-    5e-16 relative, below any measurement's noise).
+    while keeping every digit a double carries meaningfully (it moves a value by at most half a unit
+    in its 15th digit, 5e-15 relative, far below any measurement's noise).
 
     A float (Python or numpy) gives a float, a float array an array of the same shape, a list, tuple
-    or dict the same with its floats rounded (a JSON document); anything else (ints, bools, text,
-    NaN, ±inf) is returned as it is. An array is rounded in numpy, to the same doubles as
-    ``float(f"{x:.15g}")`` of each element (``tests/test_outputs.py`` holds them equal): its 15-digit
-    integer ``N = rint(x·10^k)`` is exact but where the product falls on a half, decided then by the
-    product's exact remainder (Dekker's two-product), and ``N / 10^k`` is the correctly rounded
-    decimal for ``0 ≤ k ≤ 22`` (``1e-8 ≤ |x| < 1e15``); elements outside go through Python's formatting.
+    or dict the same with its floats rounded (a JSON document); anything else (ints, bools, text) is
+    returned as it is, and NaN and ±inf stay what they are. An array is rounded in numpy, to the same
+    doubles as ``float(f"{x:.15g}")`` of each element (``tests/test_written_numbers.py`` holds them
+    equal): its 15-digit integer ``N = rint(x·10^k)`` is exact but where the product falls on a half,
+    decided then by the product's exact remainder (Dekker's two-product), and ``N / 10^k`` is the
+    correctly rounded decimal for ``0 ≤ k ≤ 22`` (``1e-8 ≤ |x| < 1e15``); elements outside go through
+    Python's formatting.
     """
     import numpy as np  # errors sits below numpy's users; only a writer needs it
 

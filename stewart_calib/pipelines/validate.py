@@ -164,8 +164,8 @@ def _compared(args, compare: tuple[Platform, dict] | None, sample: Log, rows: in
 
 #: what ``validate`` says of a log whose bytes are those the result was calibrated from (its ``log_sha256``)
 IN_SAMPLE_LINE = (
-    "this log is the calibration's own (its bytes are those of the result's log_sha256): the errors below are "
-    "in-sample, how well the model fits the samples it was fitted to, not its accuracy on a held-out log"
+    "this log is the calibration's own (its bytes are those of the result's log_sha256): validate's errors on it "
+    "are in-sample, how well the model fits the samples it was fitted to, not its accuracy on a held-out log"
 )
 
 
