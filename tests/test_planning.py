@@ -186,7 +186,9 @@ def test_a_plans_prediction_names_the_noise_it_takes(tmp_path, capsys, config, w
     argv = ["plan", "--platform", str(NIM_STEWART), "--n", "30", "--out", str(tmp_path / "p.csv"), "--seed", "1"]
     assert cli_main([*argv, *(["--config", config] if config else [])]) == 0
     noise = load_estimator_config(None if config is None else resolve(config, "estimators")).noise
-    line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("predicted closed-loop"))
+    printed = capsys.readouterr().out.splitlines()
+    line = next(line for line in printed if line.startswith("stewart-calib plan: predicted closed-loop"))
+    line = line.removeprefix("stewart-calib plan: ")
     assert line.startswith(
         f"predicted closed-loop pose error after calibration (for tracker readings of σ {noise.reading_sigma_mm:g} mm "
         f"and drive coordinates of σ {noise.stroke_sigma_mm:g} mm, {words}"
