@@ -93,3 +93,14 @@ def test_json_files_write_15_digits(tmp_path):
     controller = json.loads(controller_json_text(platform.drive, np.full(6, 0.1 * 7 - 0.7), "inch", {}))
     inches = [v for leg in controller["legs"] for v in [*leg["base_joint"], leg["stroke_per_logged_unit"]]]
     assert max(map(_significant_digits, inches)) <= 15 and controller["legs"][0]["stroke_per_logged_unit"] == 1.0
+
+
+def test_a_platforms_identity_keeps_every_bit():
+    """A sweep's cell id hashes its platform's values to the bit (``exact``): the 15 digits of the file would
+    give every cell, and so every task's random draws, another id."""
+    platform = nim_stewart()
+    turned = dataclasses.replace(platform, drive=platform.drive.perturbed(np.full(42, 1 / 3)))
+    exact = platform_to_toml(turned, exact=True)
+    assert exact != platform_to_toml(turned)
+    back = parse_platform(tomllib.loads(exact), "exact.toml")
+    np.testing.assert_array_equal(back.drive.as_vector(), turned.drive.as_vector())
