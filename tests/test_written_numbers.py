@@ -104,3 +104,17 @@ def test_a_platforms_identity_keeps_every_bit():
     assert exact != platform_to_toml(turned)
     back = parse_platform(tomllib.loads(exact), "exact.toml")
     np.testing.assert_array_equal(back.drive.as_vector(), turned.drive.as_vector())
+
+
+def test_a_checkpoint_keeps_its_platform_to_the_bit(tmp_path):
+    """A checkpoint is state, not a file for people: its platform is read back as it was, to the last bit."""
+    from stewart_calib.workflows.online import OnlineCalibrator
+
+    platform = nim_stewart()
+    turned = dataclasses.replace(platform, drive=platform.drive.perturbed(np.full(42, 1 / 3)))
+    OnlineCalibrator(turned, "ekf").save(tmp_path / "c.npz")
+    resumed = OnlineCalibrator.load(tmp_path / "c.npz", None)
+    np.testing.assert_array_equal(resumed.platform.drive.as_vector(), turned.drive.as_vector())
+    assert OnlineCalibrator.load(tmp_path / "c.npz", turned).platform.drive.as_vector().tolist() == (
+        turned.drive.as_vector().tolist()
+    )

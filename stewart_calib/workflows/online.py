@@ -340,7 +340,7 @@ class OnlineCalibrator:
                     "format": np.array(CHECKPOINT_FORMAT),
                     "version": np.array(CHECKPOINT_VERSION),
                     "method": np.array(self.method),
-                    "platform_toml": np.array(platform_to_toml(self.platform)),
+                    "platform_toml": np.array(platform_to_toml(self.platform, exact=True)),
                     "config_json": np.array(json.dumps(dataclasses.asdict(self.config))),
                 },
             )
@@ -533,7 +533,9 @@ def _differing_tables(a: Platform, b: Platform) -> list[str]:
     """The tables of the platform files ``a`` and ``b`` whose values differ. The free text
     (``name``, ``description``) is left out: a checkpoint holds the estimate of a geometry, and
     a platform renamed or described anew is the same robot."""
-    tables = [tomllib.loads(platform_to_toml(dataclasses.replace(p, name="", description=""))) for p in (a, b)]
+    tables = [
+        tomllib.loads(platform_to_toml(dataclasses.replace(p, name="", description=""), exact=True)) for p in (a, b)
+    ]
     return [key for key in sorted(set(tables[0]) | set(tables[1])) if tables[0].get(key) != tables[1].get(key)]
 
 
