@@ -234,7 +234,8 @@ PLAN_LINE = re.compile(
     rf".*?\(90 ?%: {NUMBER}–{NUMBER} mm\)"
 )
 VALIDATE_LINE = re.compile(
-    r"verdict: .*validate measured the (error as the instrument sees it after registration|absolute place in "
+    r"verdict: .*validate measured the (error as the instrument sees it after registration \(its frame and target\(s\) "
+    r"fitted again to this log\)|absolute place in "
     rf"\{{J\}}): position RMS {NUMBER} mm.*? noise alone leaves {NUMBER} mm.*?; beyond it {NUMBER} mm "
     rf"\(90 ?%: {NUMBER}–{NUMBER} mm\).*?; against [0-9.e+-]+ mm: "
     r"motion (within|over|not sure), absolute place (within|over|not sure)"

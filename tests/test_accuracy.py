@@ -368,7 +368,13 @@ def test_a_small_workspace_calibration_warns_in_one_line_and_validate_says_what_
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 3 and "cannot see the robot's closed-loop (absolute) pose error" in lines[1]
     assert lines[2].startswith("stewart-calib validate: verdict: ")
-    assert "validate measured the error as the instrument sees it after registration" in lines[2]
+    # through the calibration's frame and target(s), not fitted again: not "after registration"
+    measured = "validate measured the error as the instrument sees it through the calibration's frame and target(s)"
+    assert measured in lines[1] and measured in lines[2]
+    assert (
+        "sees it after registration" not in lines[1]
+        and "validate measured the error as the instrument sees it after" not in lines[2]
+    )
     # the prediction printed once, in the verdict, in the words and order of calibrate's prediction line
     prediction = accuracy.PredictedError.from_dict(predicted)
     assert lines[1].endswith(f"the verdict's absolute place in {{J}}, limited by {predicted['absolute_limited_by']}")
@@ -388,7 +394,8 @@ def test_a_small_workspace_calibration_warns_in_one_line_and_validate_says_what_
     assert r_low < registered < predicted["motion_position_mm"]
     assert f"as the instrument sees it after registration {registered:.3g} mm" in verdict
     assert f"({r_low:.3g}–{r_high:.3g} mm)" in verdict.replace("90 %: ", "").replace("90%: ", "")
-    assert "validate measured the error as the instrument sees it after registration: position RMS" in verdict
+    refitted = "(its frame and target(s) fitted again to this log): position RMS"
+    assert f"validate measured the error as the instrument sees it after registration {refitted}" in verdict
     assert re.search(
         r"beyond it [0-9.e-]+ mm \(90%: [0-9.e-]+–[0-9.e-]+ mm\) / [0-9.e-]+° \(90%: [0-9.e-]+–[0-9.e-]+°\)\), "
         r"(its interval meets|above|below) the predicted registered",

@@ -99,7 +99,7 @@ def test_simulate_writes_the_masses_and_the_compliance_truth(simulated):
     np.testing.assert_array_equal(elastic.payload_com_mm, load.payload_com_mm)
     np.testing.assert_array_equal(elastic.compliance_mm_per_kN, np.zeros(6))  # nominal: not yet calibrated
     series = 1e3 / load.leg_N_per_mm + 1e3 / load.base_joint_N_per_mm + 1e3 / load.platform_joint_N_per_mm
-    np.testing.assert_allclose(elastic.true_compliance_mm_per_kN, series, rtol=1e-15)
+    np.testing.assert_allclose(elastic.true_compliance_mm_per_kN, series, rtol=5e-15)  # 15 digits
 
 
 @pytest.mark.parametrize(("value", "shown"), [("-2.0", "-2.0"), ("nan", "nan"), ("inf", "inf"), ("", "nan")])

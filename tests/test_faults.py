@@ -656,6 +656,14 @@ def _accounted(result: dict, rows: int) -> None:
         + result.get("samples_held", 0)
     )
     assert total == rows, result
+    # the refused are those not taken back in: the count the skipped hold (no bad rows here), the gated less
+    # the readmitted by reason, and each taken back counted once, among the readmitted
+    readmitted = recovery.get("samples_readmitted", 0) + (result.get("payload_change") or {}).get(
+        "samples_readmitted", 0
+    )
+    rejected = result["samples_rejected"]
+    assert rejected["count"] == result["samples_skipped"] == sum(rejected["by_reason"].values()), result
+    assert rejected.get("readmitted", 0) == readmitted
 
 
 @pytest.mark.parametrize("method", ["ekf", "isam2"])
@@ -689,11 +697,15 @@ def test_a_lock_out_recovery_accounts_for_every_row(tmp_path, capsys, method):
         )
         == 0
     )
-    *_, line, verdict = capsys.readouterr().err.splitlines()  # calibrate ends with its verdict
+    *printed, line, verdict = capsys.readouterr().err.splitlines()  # calibrate ends with its verdict
     result = read_result(out)
     assert verdict.startswith("stewart-calib calibrate: verdict: ")
     assert result["recovery"]["count"] >= 1 and "lock-out recover" in line and line.endswith("of 120 rows)")
     _accounted(result, 120)
+    # every refusal of this log is taken back by a recovery: none is printed or written as rejected
+    assert result["recovery"]["samples_readmitted"] > 0 and result["samples_rejected"]["count"] == 0
+    assert f"took back {result['recovery']['samples_readmitted']} it had refused" in line
+    assert not any("rejected samples" in text for text in printed)
     if method == "ekf":
         assert _track(capsys, "--log", str(sim / "log.csv"), "--out", str(out))[0] == 0
         _accounted(read_result(out), 120)

@@ -104,7 +104,10 @@ def test_cli_writes_a_pose_list_that_reads_back(platform, tmp_path, capsys):
     assert header == "t_s,x_mm,y_mm,z_mm,roll_deg,pitch_deg,yaw_deg"
     expected = planning.plan_poses(platform, 10, "D", np.random.default_rng(7), 300, NOISE)
     np.testing.assert_allclose(read_pose_list(out), expected, rtol=1e-12, atol=1e-12)  # repr floats round-trip
-    assert "planned 10 poses" in capsys.readouterr().out
+    printed = capsys.readouterr().out.splitlines()
+    # every line plan prints names the command, as every other command's messages do
+    assert printed[0].startswith("stewart-calib plan: planned 10 poses")
+    assert all(line.startswith("stewart-calib plan: ") for line in printed)
 
 
 @pytest.mark.parametrize("dwell", ["nan", "-1", "0", "abc"])
@@ -183,7 +186,9 @@ def test_a_plans_prediction_names_the_noise_it_takes(tmp_path, capsys, config, w
     argv = ["plan", "--platform", str(NIM_STEWART), "--n", "30", "--out", str(tmp_path / "p.csv"), "--seed", "1"]
     assert cli_main([*argv, *(["--config", config] if config else [])]) == 0
     noise = load_estimator_config(None if config is None else resolve(config, "estimators")).noise
-    line = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("predicted closed-loop"))
+    printed = capsys.readouterr().out.splitlines()
+    line = next(line for line in printed if line.startswith("stewart-calib plan: predicted closed-loop"))
+    line = line.removeprefix("stewart-calib plan: ")
     assert line.startswith(
         f"predicted closed-loop pose error after calibration (for tracker readings of σ {noise.reading_sigma_mm:g} mm "
         f"and drive coordinates of σ {noise.stroke_sigma_mm:g} mm, {words}"

@@ -11,7 +11,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from stewart_calib.errors import CalibError
+from stewart_calib.errors import CalibError, without_noise
 from stewart_calib.estimate import Estimate
 from stewart_calib.io import (
     calibrated_drive,
@@ -231,10 +231,11 @@ def test_rotary_platform_round_trips_through_toml():
     text = platform_to_toml(calibrated)
     assert 'kind = "rotary"' in text and "angle_offsets_deg = [" in text and "base_joints_mm" not in text
     back = parse_platform(tomllib.loads(text), SOURCE)
-    # positions and lengths exactly; directions normalised again, angles through degrees: to the last bits
-    _assert_same_legs(back.drive, calibrated.drive, atol=1e-15)
+    # every number to its 15 significant digits (positions of a few hundred mm to 1e-12): positions and lengths
+    # exactly those; directions normalised again, angles through degrees
+    _assert_same_legs(back.drive, calibrated.drive, atol=1e-12)
     for name in ("crank_centres", "horn_lengths", "rod_lengths", "platform_joints"):
-        np.testing.assert_array_equal(getattr(back.drive, name), getattr(calibrated.drive, name))
+        np.testing.assert_array_equal(getattr(back.drive, name), without_noise(getattr(calibrated.drive, name)))
     np.testing.assert_array_equal(back.stroke_scale, calibrated.stroke_scale)
     assert back.instrument.kind == "pose" and back.name == platform.name
     # the turned axes are written as turned: not the nominal ones
@@ -260,11 +261,11 @@ def test_rotary_log_columns_are_degrees_and_read_back_in_rad(tmp_path):
     header = text.split("\n", 1)[0].split(",")
     assert header[:7] == ["t_s", *(f"q{i}_deg" for i in range(1, 7))]
     first = [float(v) for v in text.split("\n")[1].split(",")]
-    np.testing.assert_allclose(first[1:7], np.degrees(log.strokes[0]), rtol=1e-15)
+    np.testing.assert_allclose(first[1:7], np.degrees(log.strokes[0]), rtol=5e-15)  # 15 digits
     write_log(tmp_path / "log.csv", log, platform)
     back = read_log(tmp_path / "log.csv", platform)
-    np.testing.assert_allclose(back.strokes, log.strokes, rtol=1e-15, atol=0)
-    np.testing.assert_allclose(back.readings, log.readings, rtol=1e-15, atol=1e-18)
+    np.testing.assert_allclose(back.strokes, log.strokes, rtol=5e-15, atol=0)
+    np.testing.assert_allclose(back.readings, log.readings, rtol=5e-15, atol=1e-18)
 
 
 def test_rotary_log_with_stroke_columns_is_refused_naming_the_angles(tmp_path):
@@ -360,7 +361,7 @@ def test_rotary_result_holds_66_names_with_angles_in_degrees(tmp_path):
     np.testing.assert_allclose(np.array(result["stddev"])[degrees], np.degrees(estimate.stddev[degrees]), rtol=1e-14)
     write_result(tmp_path / "r.json", result)
     back = read_result(tmp_path / "r.json")
-    assert back == result
+    assert back == without_noise(result)
     # read back in rad: the same calibrated legs, turned axes and trims included
     _assert_same_legs(calibrated_drive(platform, back, "r.json").legs, legs.perturbed(estimate.error), atol=1e-12)
 
@@ -399,7 +400,7 @@ def test_rotary_truth_round_trips_with_66_names_in_degrees(tmp_path):
     np.testing.assert_allclose(row[9], math.degrees(params[0, 8]), rtol=1e-15)  # o1 in degrees
     (tmp_path / "truth.csv").write_text(text)
     back = read_truth(tmp_path / "truth.csv", platform)
-    np.testing.assert_allclose(back.params, params, rtol=1e-15, atol=1e-18)
+    np.testing.assert_allclose(back.params, params, rtol=5e-15, atol=1e-18)  # 15 digits
     np.testing.assert_array_equal(back.drive_terms["stroke_scale"], 0.02)
     with pytest.raises(CalibError, match=r"missing required column\(s\) j1x"):
         read_truth(tmp_path / "truth.csv")  # a prismatic reader: the 42 names are not there

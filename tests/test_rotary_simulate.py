@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from stewart_calib import io
-from stewart_calib.errors import CalibError
+from stewart_calib.errors import CalibError, without_noise
 from stewart_calib.instruments.pose import predict
 from stewart_calib.io.platform_file import load_platform
 from stewart_calib.model import kinematics as kin
@@ -96,16 +96,18 @@ def test_simulate_writes_rotary_files_that_read_back(tmp_path, servo_run):
     text = (tmp_path / "log.csv").read_text()
     assert text.startswith("t_s,q1_deg,q2_deg,q3_deg,q4_deg,q5_deg,q6_deg,mx_mm")
     log = io.read_log(tmp_path / "log.csv", platform)
-    np.testing.assert_allclose(log.strokes, servo_run.log.strokes, rtol=1e-15, atol=1e-17)
+    np.testing.assert_allclose(log.strokes, servo_run.log.strokes, rtol=5e-15, atol=1e-17)  # 15 digits
     low, high = platform.drive.angle_range
     assert np.all((log.strokes >= low) & (log.strokes <= high))
     truth = io.read_truth(tmp_path / "truth.csv", platform)
     assert (tmp_path / "truth.csv").read_text().split(",", 12)[1:12] == list(platform.drive.parameter_names[:11])
-    np.testing.assert_allclose(truth.params, servo_run.truth.params, rtol=1e-15, atol=1e-16)
-    np.testing.assert_array_equal(truth.drive_terms[STROKE_SCALE], servo_run.truth.drive_terms[STROKE_SCALE])
+    np.testing.assert_allclose(truth.params, servo_run.truth.params, rtol=5e-15, atol=1e-16)
+    np.testing.assert_array_equal(
+        truth.drive_terms[STROKE_SCALE], without_noise(servo_run.truth.drive_terms[STROKE_SCALE])
+    )
     degrees = platform.drive.parameter_degrees
     first = np.array([float(v) for v in (tmp_path / "truth.csv").read_text().split("\n")[1].split(",")[1:67]])
-    np.testing.assert_allclose(first[degrees], np.degrees(servo_run.truth.params[0, degrees]), rtol=1e-15)
+    np.testing.assert_allclose(first[degrees], np.degrees(servo_run.truth.params[0, degrees]), rtol=5e-15)
 
 
 def test_rotary_experiment_refuses_a_load_table_and_prismatic_robot_keys(tmp_path):

@@ -92,7 +92,7 @@ def _whole_file(platform, result, path, register: bool = False) -> tuple[str, st
     [
         (_tracker_case, 5000, 1_500_000),
         (_tracker_case, 300, 8192),
-        (_points_case, 5000, 1_000_000),
+        (_points_case, 5000, 800_000),
         (_pose_case, 200, 4096),
     ],
 )

@@ -139,15 +139,18 @@ def row_accounting(estimator: Estimator) -> dict:
     return fields
 
 
-def skipped_count(bad_rows: int, refused: int, estimate: Estimate) -> int:
-    """The result's ``samples_skipped``: bad rows and refused samples, less those a lock-out
-    recovery or an unannounced payload's step readmitted (``estimate``'s details, :func:`row_accounting`):
-    they are among the used."""
+def readmitted_count(estimate: Estimate) -> int:
+    """The refused samples a lock-out recovery or an unannounced payload's step took back in (``estimate``'s
+    details, :func:`row_accounting`): among the used (or dropped again), no longer among the refused. The gate
+    had refused each (reason ``gated outlier``): only its refusals are tried again."""
     details = estimate.details or {}
-    readmitted = sum(
-        int((details.get(key) or {}).get("samples_readmitted", 0)) for key in ("recovery", "payload_change")
-    )
-    return bad_rows + refused - readmitted
+    return sum(int((details.get(key) or {}).get("samples_readmitted", 0)) for key in ("recovery", "payload_change"))
+
+
+def skipped_count(bad_rows: int, refused: int, estimate: Estimate) -> int:
+    """The result's ``samples_skipped``: bad rows and refused samples, less those taken back in
+    (:func:`readmitted_count`): they are among the used."""
+    return bad_rows + refused - readmitted_count(estimate)
 
 
 def accounted_estimate(estimator: Estimator) -> Estimate:

@@ -31,7 +31,7 @@ import re
 
 import numpy as np
 
-from ..errors import CalibError
+from ..errors import CalibError, without_noise
 from ..model.platform import LegGeometry
 
 #: millimetres per controller length unit
@@ -43,7 +43,7 @@ _SETP = re.compile(r"^\s*setp\s+genhexkins\.(base|platform)\.([0-5])\.([xyz])\s+
 
 
 def _number(value: float) -> str:
-    return repr(float(value))
+    return repr(without_noise(float(value)))
 
 
 def linuxcnc_hal_text(drive: LegGeometry, units: str, source: str) -> str:
@@ -132,7 +132,8 @@ def controller_json_text(drive: LegGeometry, stroke_scale: np.ndarray, units: st
         }
         for n in range(drive.n_legs)
     ]
-    return json.dumps({"format": CONTROLLER_FORMAT, "units": units, **extra, "legs": legs}, indent=1) + "\n"
+    document = {"format": CONTROLLER_FORMAT, "units": units, **extra, "legs": legs}
+    return json.dumps(without_noise(document), indent=1) + "\n"
 
 
 def rotary_controller_json_text(legs, angle_scale: np.ndarray, units: str, extra: dict) -> str:
@@ -161,7 +162,7 @@ def rotary_controller_json_text(legs, angle_scale: np.ndarray, units: str, extra
         "angle_range_deg": np.degrees(legs.angle_range).tolist(),
         "legs": servos,
     }
-    return json.dumps(document, indent=1) + "\n"
+    return json.dumps(without_noise(document), indent=1) + "\n"
 
 
 def read_controller_json(text: str, source: str) -> tuple:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import operator
 import os
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from itertools import chain
 from pathlib import Path
@@ -535,7 +535,12 @@ def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool, in
 BLOCK_BYTES = 1 << 22
 
 
-def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: bool = False) -> Log:
+def read_log(
+    path: str | Path,
+    platform: Platform | None = None,
+    skip_bad_rows: bool = False,
+    digest: Callable[[bytes], None] | None = None,
+) -> Log:
     """Read a measurement log (spec §3) into a :class:`Log` [mm, rad].
 
     A bad sample row — wrong number of fields, a missing, non-numeric or non-finite value,
@@ -548,12 +553,15 @@ def read_log(path: str | Path, platform: Platform | None = None, skip_bad_rows: 
     is None): ``Log.readings`` holds the tracker's s [mm], a pose's ``[x, y, z mm, roll, pitch,
     yaw rad]`` or the targets' ``p1x … pKz`` [mm] with NaN for a target not seen.
 
+    ``digest`` is handed every byte of the log, in order, before a row is parsed: the bytes read (a
+    pipe's or standard input's as they came), e.g. ``hashlib.sha256().update`` for the result's ``log_sha256``.
+
     Raises:
         CalibError: the file is missing, unreadable or not UTF-8; a required column is
             missing or the pose columns are partial; there are no sample rows; a bad row
             (unless skipped); every row is bad.
     """
-    return Log.concatenate(list(read_log_blocks(path, platform, skip_bad_rows)))
+    return Log.concatenate(list(read_log_blocks(path, platform, skip_bad_rows, digest=digest)))
 
 
 def _open_log(path: Path, what: str = "log file"):
@@ -579,7 +587,11 @@ def _decoded(data: bytes, path: Path, offset: int, encoding: str = "utf-8", what
 
 
 def read_log_blocks(
-    path: str | Path, platform: Platform | None = None, skip_bad_rows: bool = False, block_bytes: int | None = None
+    path: str | Path,
+    platform: Platform | None = None,
+    skip_bad_rows: bool = False,
+    block_bytes: int | None = None,
+    digest: Callable[[bytes], None] | None = None,
 ) -> Iterator[Log]:
     """:func:`read_log`'s samples, checks and messages, one :class:`Log` per block of rows.
 
@@ -587,13 +599,17 @@ def read_log_blocks(
     however long the log: what online methods and streaming commands read. Each block's
     ``skipped`` lists its bad rows (when skipped); a block may hold no sample. A refusal is
     raised when its block is reached, so a consumer must not act on earlier blocks before the
-    last one is read.
+    last one is read. ``digest``: as :func:`read_log`'s, when the first block is asked for.
 
     Raises:
         CalibError: as :func:`read_log`.
     """
     path, block_bytes = Path(path), block_bytes or BLOCK_BYTES
     with _open_log(path) as file:
+        if digest is not None:  # the file is seekable (a pipe spooled): its bytes once, then parsed from the start
+            for chunk in iter(lambda: file.read(BLOCK_BYTES), b""):
+                digest(chunk)
+            file.seek(0)
         header_bytes = _line(file, path)
         header_line = _decoded(header_bytes, path, 0, "utf-8-sig").rstrip(
             "\n"

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from .. import resources
-from ..errors import CalibError, did_you_mean
+from ..errors import CalibError, did_you_mean, without_noise
 from ..inputs import implausible_sigma_mm
 from ..model.platform import (
     DEFAULT_ORIENTATION_SIGMA_DEG,
@@ -692,18 +693,35 @@ def load_platform(path: str | Path) -> Platform:
     return parse_platform(doc, str(path))
 
 
-def _toml_rows(rows: np.ndarray) -> str:
-    return "[\n" + "".join(f"    [{', '.join(repr(float(v)) for v in row)}],\n" for row in rows) + "]"
+#: a float as TOML text (``12.0``)
+FloatText = Callable[[float], str]
 
 
-def _toml_list(values) -> str:
-    return "[" + ", ".join(repr(float(v)) for v in values) + "]"
+def _toml_float(value: float) -> str:
+    """A float as the platform file writes it: TOML's float (``12.0``) of its 15 significant digits."""
+    return repr(without_noise(float(value)))
 
 
-def platform_to_toml(platform: Platform) -> str:
-    """Serialise to the spec §2 TOML (a rotary drive's ``[drive]``: spec §15);
-    ``parse_platform(tomllib.loads(...))`` round-trips exactly (a rotary drive's directions and
-    angles to the last bit or two: they are normalised and converted again on reading)."""
+def _exact_float(value: float) -> str:
+    """A float as its double's ``repr``, to the bit: :func:`platform_to_toml`'s ``exact`` text."""
+    return repr(float(value))
+
+
+def _toml_rows(rows: np.ndarray, text: FloatText) -> str:
+    return "[\n" + "".join(f"    [{', '.join(text(v) for v in row)}],\n" for row in rows) + "]"
+
+
+def _toml_list(values, text: FloatText) -> str:
+    return "[" + ", ".join(text(v) for v in values) + "]"
+
+
+def platform_to_toml(platform: Platform, exact: bool = False) -> str:
+    """Serialise to the spec §2 TOML (a rotary drive's ``[drive]``: spec §15), every number to 15
+    significant digits (:func:`~stewart_calib.errors.without_noise`: ``12.0``, not the
+    ``12.000000000000002`` of 12° through radians); ``parse_platform(tomllib.loads(...))`` gives the
+    platform to those digits, and writing it again gives the same text. ``exact``: every number as its
+    double's ``repr`` instead, to the bit (what identifies a platform's values: a sweep's cell ids)."""
+    text = _exact_float if exact else _toml_float
     lines = [f"name = {_toml_str(platform.name)}"]
     if platform.description:
         lines.append(f"description = {_toml_str(platform.description)}")
@@ -711,9 +729,9 @@ def platform_to_toml(platform: Platform) -> str:
     if isinstance(drive, LegGeometry):
         prismatic = drive
     else:  # a rotary drive (spec §15)
-        lines += _rotary_toml(drive)
+        lines += _rotary_toml(drive, text)
         if np.any(platform.stroke_scale != 0):
-            lines.append(f"stroke_scale = {_toml_list(platform.stroke_scale)}")
+            lines.append(f"stroke_scale = {_toml_list(platform.stroke_scale, text)}")
     for section, legs, key, bounds in (
         ("drive", prismatic, "stroke_range_mm", platform.stroke_range),
         ("tracker", platform.tracker, "reading_range_mm", platform.reading_range),
@@ -723,103 +741,103 @@ def platform_to_toml(platform: Platform) -> str:
         lines += [
             "",
             f"[{section}]",
-            f"base_joints_mm = {_toml_rows(legs.base_joints)}",
-            f"platform_joints_mm = {_toml_rows(legs.platform_joints)}",
-            f"initial_lengths_mm = {_toml_list(legs.initial_lengths)}",
+            f"base_joints_mm = {_toml_rows(legs.base_joints, text)}",
+            f"platform_joints_mm = {_toml_rows(legs.platform_joints, text)}",
+            f"initial_lengths_mm = {_toml_list(legs.initial_lengths, text)}",
         ]
         if bounds is not None:
-            lines.append(f"{key} = {_toml_list(bounds)}")
+            lines.append(f"{key} = {_toml_list(bounds, text)}")
         if section == "drive" and np.any(platform.stroke_scale != 0):
-            lines.append(f"stroke_scale = {_toml_list(platform.stroke_scale)}")
+            lines.append(f"stroke_scale = {_toml_list(platform.stroke_scale, text)}")
         if section == "tracker" and platform.tracker_geometry_sigma_mm > 0:
-            lines.append(f"geometry_sigma_mm = {platform.tracker_geometry_sigma_mm!r}")
-    lines += _instrument_toml(platform.instrument)
-    lines += _elastic_toml(platform.elastic)
-    lines += _thermal_toml(platform.thermal)
+            lines.append(f"geometry_sigma_mm = {text(platform.tracker_geometry_sigma_mm)}")
+    lines += _instrument_toml(platform.instrument, text)
+    lines += _elastic_toml(platform.elastic, text)
+    lines += _thermal_toml(platform.thermal, text)
     if platform.workspace is not None:
         ws = platform.workspace
         home = np.concatenate([ws.home[:3], np.degrees(ws.home[3:])])
         lines += [
             "",
             "[workspace]",
-            f"home = {_toml_list(home)}",
-            f"translation_limit_mm = {float(ws.translation_limit)!r}",
-            f"rotation_limit_deg = {math.degrees(ws.rotation_limit)!r}",
+            f"home = {_toml_list(home, text)}",
+            f"translation_limit_mm = {text(ws.translation_limit)}",
+            f"rotation_limit_deg = {text(math.degrees(ws.rotation_limit))}",
         ]
     return "\n".join(lines) + "\n"
 
 
-def _rotary_toml(legs: RotaryLegs) -> list[str]:
+def _rotary_toml(legs: RotaryLegs, text: FloatText) -> list[str]:
     """The ``[drive]`` lines of a rotary drive (spec §15): its axes and zero directions as they are
     (turned, in a calibrated platform), the zero trims in degrees."""
     return [
         "",
         "[drive]",
         'kind = "rotary"',
-        f"crank_centres_mm = {_toml_rows(legs.crank_centres)}",
-        f"crank_axes = {_toml_rows(legs.crank_axes)}",
-        f"crank_zero_directions = {_toml_rows(legs.zero_directions)}",
-        f"horn_lengths_mm = {_toml_list(legs.horn_lengths)}",
-        f"rod_lengths_mm = {_toml_list(legs.rod_lengths)}",
-        f"platform_joints_mm = {_toml_rows(legs.platform_joints)}",
-        f"angle_offsets_deg = {_toml_list(np.degrees(legs.angle_offsets))}",
-        f"angle_range_deg = {_toml_list(np.degrees(legs.angle_range))}",
+        f"crank_centres_mm = {_toml_rows(legs.crank_centres, text)}",
+        f"crank_axes = {_toml_rows(legs.crank_axes, text)}",
+        f"crank_zero_directions = {_toml_rows(legs.zero_directions, text)}",
+        f"horn_lengths_mm = {_toml_list(legs.horn_lengths, text)}",
+        f"rod_lengths_mm = {_toml_list(legs.rod_lengths, text)}",
+        f"platform_joints_mm = {_toml_rows(legs.platform_joints, text)}",
+        f"angle_offsets_deg = {_toml_list(np.degrees(legs.angle_offsets), text)}",
+        f"angle_range_deg = {_toml_list(np.degrees(legs.angle_range), text)}",
     ]
 
 
-def _pose6_toml(pose6: np.ndarray) -> str:
-    return _toml_list(np.concatenate([pose6[:3], np.degrees(pose6[3:])]))
+def _pose6_toml(pose6: np.ndarray, text: FloatText) -> str:
+    return _toml_list(np.concatenate([pose6[:3], np.degrees(pose6[3:])]), text)
 
 
 #: ``[instrument]`` key → its value in TOML, or None where it is left out (the cone's keys without a cone).
 _INSTRUMENT_TOML = {
-    "frame": lambda instrument: _pose6_toml(instrument.frame),
-    "target": lambda instrument: _pose6_toml(instrument.target),
-    "targets_mm": lambda instrument: _toml_rows(instrument.targets),
-    "position_sigma_mm": lambda instrument: repr(float(instrument.position_sigma_mm)),
-    "orientation_sigma_deg": lambda instrument: repr(math.degrees(instrument.orientation_sigma_rad)),
-    "visibility_cone_deg": lambda instrument: (
-        None if instrument.visibility_cone_deg is None else repr(float(instrument.visibility_cone_deg))
+    "frame": lambda instrument, text: _pose6_toml(instrument.frame, text),
+    "target": lambda instrument, text: _pose6_toml(instrument.target, text),
+    "targets_mm": lambda instrument, text: _toml_rows(instrument.targets, text),
+    "position_sigma_mm": lambda instrument, text: text(instrument.position_sigma_mm),
+    "orientation_sigma_deg": lambda instrument, text: text(math.degrees(instrument.orientation_sigma_rad)),
+    "visibility_cone_deg": lambda instrument, text: (
+        None if instrument.visibility_cone_deg is None else text(instrument.visibility_cone_deg)
     ),
-    "target_axes": lambda instrument: (
-        None if instrument.visibility_cone_deg is None else _toml_rows(instrument.target_axes)
+    "target_axes": lambda instrument, text: (
+        None if instrument.visibility_cone_deg is None else _toml_rows(instrument.target_axes, text)
     ),
 }
 
 
-def _instrument_toml(instrument: Instrument) -> list[str]:
+def _instrument_toml(instrument: Instrument, text: FloatText) -> list[str]:
     """The ``[instrument]`` lines: the keys its kind reads (none for the default, the tracker)."""
     keys = INSTRUMENT_SECTIONS[instrument.kind].keys
     if not keys:
         return []
-    values = {key: _INSTRUMENT_TOML[key](instrument) for key in keys}
+    values = {key: _INSTRUMENT_TOML[key](instrument, text) for key in keys}
     lines = ["", "[instrument]", f"kind = {_toml_str(instrument.kind)}"]
     return lines + [f"{key} = {value}" for key, value in values.items() if value is not None]
 
 
-def _elastic_toml(elastic: Elastic | None) -> list[str]:
+def _elastic_toml(elastic: Elastic | None, text: FloatText) -> list[str]:
     """The ``[elastic]`` lines (none for a rigid robot)."""
     if elastic is None:
         return []
     lines = [
         "",
         "[elastic]",
-        f"platform_mass_kg = {float(elastic.platform_mass_kg)!r}",
-        f"platform_com_mm = {_toml_list(elastic.platform_com_mm)}",
-        f"payload_com_mm = {_toml_list(elastic.payload_com_mm)}",
-        f"compliance_mm_per_kN = {_toml_list(elastic.compliance_mm_per_kN)}",
-        f"compliance_sigma_mm_per_kN = {float(elastic.compliance_sigma_mm_per_kN)!r}",
+        f"platform_mass_kg = {text(elastic.platform_mass_kg)}",
+        f"platform_com_mm = {_toml_list(elastic.platform_com_mm, text)}",
+        f"payload_com_mm = {_toml_list(elastic.payload_com_mm, text)}",
+        f"compliance_mm_per_kN = {_toml_list(elastic.compliance_mm_per_kN, text)}",
+        f"compliance_sigma_mm_per_kN = {text(elastic.compliance_sigma_mm_per_kN)}",
     ]
     if elastic.true_compliance_mm_per_kN is not None:
-        lines.append(f"true_compliance_mm_per_kN = {_toml_list(elastic.true_compliance_mm_per_kN)}")
+        lines.append(f"true_compliance_mm_per_kN = {_toml_list(elastic.true_compliance_mm_per_kN, text)}")
     if elastic.payload_sigma_kg > 0.0:
-        lines.append(f"payload_sigma_kg = {float(elastic.payload_sigma_kg)!r}")
+        lines.append(f"payload_sigma_kg = {text(elastic.payload_sigma_kg)}")
     if not np.array_equal(elastic.gravity, DOWN):
-        lines.append(f"gravity = {_toml_list(elastic.gravity)}")
+        lines.append(f"gravity = {_toml_list(elastic.gravity, text)}")
     return lines
 
 
-def _thermal_toml(thermal: Thermal | None) -> list[str]:
+def _thermal_toml(thermal: Thermal | None, text: FloatText) -> list[str]:
     """The ``[thermal]`` lines (none where temperature is ignored): a calibrated platform's expansion as
     ``expansion_ppm_per_K`` (spec §17, ``--platform-out``)."""
     if thermal is None:
@@ -827,12 +845,12 @@ def _thermal_toml(thermal: Thermal | None) -> list[str]:
     lines = [
         "",
         "[thermal]",
-        f"reference_temperature_C = {float(thermal.reference_temperature_C)!r}",
-        f"expansion_ppm_per_K = {_toml_list(thermal.expansion_ppm_per_K)}",
-        f"expansion_sigma_ppm_per_K = {float(thermal.expansion_sigma_ppm_per_K)!r}",
+        f"reference_temperature_C = {text(thermal.reference_temperature_C)}",
+        f"expansion_ppm_per_K = {_toml_list(thermal.expansion_ppm_per_K, text)}",
+        f"expansion_sigma_ppm_per_K = {text(thermal.expansion_sigma_ppm_per_K)}",
     ]
     if thermal.true_expansion_ppm_per_K is not None:
-        lines.append(f"true_expansion_ppm_per_K = {_toml_list(thermal.true_expansion_ppm_per_K)}")
+        lines.append(f"true_expansion_ppm_per_K = {_toml_list(thermal.true_expansion_ppm_per_K, text)}")
     return lines
 
 

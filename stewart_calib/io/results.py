@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CalibError, shown
+from ..errors import CalibError, shown, without_noise
 from ..estimate import Estimate
 from ..inputs import parse_json, read_input_text
 from ..model.drive import THERMAL, DriveModel, drive_model, thermal_term
@@ -235,9 +235,11 @@ def _validate_block(block, key: str, refuse) -> None:
 
 
 def result_text(result: dict, source: str) -> str:
-    """The JSON text of a validated result (see :func:`validate_result`)."""
+    """The JSON text of a validated result (see :func:`validate_result`), its numbers to 15 significant
+    digits (:func:`~stewart_calib.errors.without_noise`; a covariance's too, whose 16th digit is the
+    arithmetic's noise)."""
     validate_result(result, source)
-    return json.dumps(result, indent=2) + "\n"
+    return json.dumps(without_noise(result), indent=2) + "\n"
 
 
 def write_result(path: str | Path, result: dict) -> None:

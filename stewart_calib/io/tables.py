@@ -15,13 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import CalibError
+from ..errors import CalibError, without_noise
 from ..inputs import MAX_STREAM_BYTES, read_input_bytes
 from .atomic import atomic_path
 
 
 def csv_text(header: list[str], columns: list, with_header: bool = True) -> str:
-    """CSV text of equal-length columns; floats are written with ``repr`` (round-trip exact).
+    """CSV text of equal-length columns; floats are written as the ``repr`` of their
+    :func:`~stewart_calib.errors.without_noise` (15 significant digits: ``0.7``, not ``0.7000000000000001``).
 
     ``with_header=False``: the rows only (a block appended to a file written block by block).
     """
@@ -37,7 +38,8 @@ def csv_text(header: list[str], columns: list, with_header: bool = True) -> str:
         for start in range(0, n, CSV_CHUNK_ROWS):
             buffer.write(_rows_text([c[start : start + CSV_CHUNK_ROWS] for c in columns]))
         return buffer.getvalue()
-    writer.writerows(zip(*(c.tolist() if isinstance(c, np.ndarray) else c for c in columns), strict=True))
+    rows = zip(*(without_noise(c.tolist() if isinstance(c, np.ndarray) else list(c)) for c in columns), strict=True)
+    writer.writerows(rows)
     return buffer.getvalue()
 
 
@@ -72,12 +74,13 @@ def _rows_text(columns: list) -> str:
 
 def _field_texts(column) -> list[str]:
     """A :func:`_renderable` column's fields as the csv module writes them in a row of several:
-    ``repr`` of a float, ``str`` of an int, text quoted where it must be."""
+    ``repr`` of a float's :func:`~stewart_calib.errors.without_noise`, ``str`` of an int, text quoted
+    where it must be."""
     values = column.tolist() if isinstance(column, np.ndarray) else column
     if values and all(type(v) is str for v in values):
         rendered = {value: _quoted(value) for value in set(values)}  # a few stage names over many rows
         return [rendered[v] for v in values]
-    return [v if type(v) is str else repr(v) for v in values]
+    return [v if type(v) is str else repr(without_noise(v)) for v in values]
 
 
 def write_csv_blocks(path: str | Path, header: list[str], blocks, blank: tuple[int, ...] = ()) -> int:
@@ -106,13 +109,14 @@ def write_csv_blocks(path: str | Path, header: list[str], blocks, blank: tuple[i
 
 
 def float_rows_csv(columns: list[np.ndarray], blank: tuple[int, ...] = (), large: bool = False) -> bytes:
-    """The rows of equal-length float columns as :func:`csv_text` writes them (each float's
-    ``repr``, commas between, a line break after each row; see :func:`write_csv_blocks` for
-    ``blank``), without the header; by pyarrow from :data:`CSV_CHUNK_ROWS` rows on, or for any
-    rows of a ``large`` file: several times faster a row than ``repr`` on each field, its import
-    (a tenth of a second, tens of MB) paying off (BENCHMARKS.md). ``large`` keeps a file written in
-    blocks on pyarrow for each block's remainder too: by ``repr``, the remainders of a 10⁶-row import
-    in blocks of ~5400 take a quarter of its time."""
+    """The rows of equal-length float columns as :func:`csv_text` writes them (the ``repr`` of each
+    float's :func:`~stewart_calib.errors.without_noise`, commas between, a line break after each row;
+    see :func:`write_csv_blocks` for ``blank``), without the header; by pyarrow from
+    :data:`CSV_CHUNK_ROWS` rows on, or for any rows of a ``large`` file: several times faster a row
+    than ``repr`` on each field, its import (a tenth of a second, tens of MB) paying off
+    (BENCHMARKS.md). ``large`` keeps a file written in blocks on pyarrow for each block's remainder
+    too: by ``repr``, the remainders of a 10⁶-row import in blocks of ~5400 take a quarter of its time."""
+    columns = [without_noise(np.asarray(column, dtype=float)) for column in columns]
     if len(columns[0]) < CSV_CHUNK_ROWS and not large:
         fields = [_repr_list(column, j in blank) for j, column in enumerate(columns)]
         return "".join(",".join(row) + "\n" for row in zip(*fields, strict=True)).encode()

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from ..errors import CalibError, number, shown
+from ..errors import CalibError, number, shown, without_noise
 from ..io import drive_columns, reading_columns
 from ..io.logs import POSE_COLUMNS
 
@@ -463,10 +463,11 @@ def _whole(value: float) -> int:
 
 
 def _field(value: Any) -> str:
-    """A CSV field of a controller's value: a number as its double's ``repr`` (read back exactly)."""
+    """A CSV field of a controller's value: a number as the log's writers write it (its double's 15
+    significant digits, :func:`~stewart_calib.errors.without_noise`: a float32's every digit)."""
     if isinstance(value, str):
         return '"' + value.replace('"', '""') + '"'
-    return repr(float(value))
+    return repr(without_noise(float(value)))
 
 
 def write_lengths(link: LinkFile, result: dict) -> dict[str, int]:
@@ -485,14 +486,16 @@ def write_lengths(link: LinkFile, result: dict) -> dict[str, int]:
 
 
 def written(result: dict, key: str) -> Sequence[float] | float:
-    """What ``[write] key`` gets of a spec §5 result."""
+    """What ``[write] key`` gets of a spec §5 result: the numbers its file holds (15 significant digits,
+    :func:`~stewart_calib.errors.without_noise`), so that the controller holds the result value for value."""
     if key == "parameters":
-        return result["estimate"]
+        return without_noise(result["estimate"])
     if key == "stddev":
-        return result["stddev"] if result["stddev"] is not None else [math.nan] * len(result["estimate"])
+        stddev = result["stddev"]
+        return without_noise(stddev) if stddev is not None else [math.nan] * len(result["estimate"])
     if key == "samples_used":
         return result["samples_used"]
     block = result.get(key)
     if block is None:
         raise CalibError(f"write.{key}: this calibration identifies no {key} block to hand back")
-    return block["estimate"]
+    return without_noise(block["estimate"])

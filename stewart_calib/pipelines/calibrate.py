@@ -20,6 +20,7 @@ config, versions).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import sys
 from contextlib import ExitStack
 from pathlib import Path
@@ -235,6 +236,7 @@ def run(args: argparse.Namespace) -> int:
     with ExitStack() as stack:
         skipped = Tally()
         residuals = None
+        log_digest = hashlib.sha256()  # of the log's bytes as read (standard input's too): validate knows its own log
         if streamed:
             trace_file = None
             if trace_path:
@@ -251,13 +253,14 @@ def run(args: argparse.Namespace) -> int:
                 args.skip_bad_rows,
                 trace_file,
                 lambda block: spool.add(block, nominal_residuals(platform, block)),
+                log_digest.update,
             )
             estimate, n_samples, skipped = streaming.estimate, streaming.samples, streaming.skipped
             rejections, first_rejected_t_s = streaming.rejections, streaming.first_rejected_t_s
             noise_scale = streaming.noise_scale
             checked = streaming.checked.log
         else:
-            log = io.read_log(args.log, platform, skip_bad_rows=args.skip_bad_rows)
+            log = io.read_log(args.log, platform, skip_bad_rows=args.skip_bad_rows, digest=log_digest.update)
             skipped.add(log.skipped)
             diagnose_log(platform, log.strokes, log.readings, args.log)
             # isam2 costs milliseconds a sample (a pose instrument's whole session in the smoother: ~15 ms),
@@ -296,18 +299,19 @@ def run(args: argparse.Namespace) -> int:
         ):
             if text:
                 print(f"stewart-calib calibrate: {text}", file=sys.stderr)
-        if rejections.count:
+        rejected = rejections.in_result(estimate)  # those the method took back in are among the used
+        if rejected["count"]:
             print(
                 _summary(
                     f"{args.method} rejected samples:",
-                    rejections.count,
+                    rejected["count"],
                     n_samples,
                     f"t_s={number(first_rejected_t_s)}: {rejections.first}",
                 ),
                 file=sys.stderr,
             )
 
-        extra: dict[str, object] = {"samples_rejected": rejections.summary()}
+        extra: dict[str, object] = {"samples_rejected": rejected, "log_sha256": log_digest.hexdigest()}
         warning = None
         if not outside:  # the leg set's FK gives the poses to assess
             poses, strokes, channels = measured_samples(platform, checked)

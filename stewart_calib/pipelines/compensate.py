@@ -28,7 +28,7 @@ import numpy as np
 
 from .. import io
 from ..analysis.compensation import PoseOutOfRange, compensate
-from ..errors import CalibError, shown
+from ..errors import CalibError, shown, without_noise
 from ..io import read_pose_list_blocks
 from ..io.logs import POSE_COLUMNS
 from ..io.platform_file import load_platform
@@ -173,11 +173,11 @@ def _stream(source: BinaryIO, name_text: str, out: str, drive, platform, inputs:
             radians = np.r_[pose[:3], np.radians(pose[3:])]
             try:
                 commanded = compensate(drive, radians, limits=platform, inputs=inputs)
-                strokes = [repr(q) for q in io.strokes_in_file_units(commanded, platform).tolist()]
+                strokes = [repr(q) for q in without_noise(io.strokes_in_file_units(commanded, platform)).tolist()]
             except PoseOutOfRange as err:
                 print(f"stewart-calib compensate: {shown(name)}: row {row}: {err.reason}", file=sys.stderr)
                 strokes = [""] * len(columns)
-            print(",".join([*map(repr, pose.tolist()), *strokes]), file=sink, flush=True)
+            print(",".join([*map(repr, without_noise(pose).tolist()), *strokes]), file=sink, flush=True)
     except BrokenPipeError:  # the reader went away: nothing more to say to it
         return 0
     finally:

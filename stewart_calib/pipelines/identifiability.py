@@ -15,7 +15,7 @@ import numpy as np
 from .. import io
 from ..analysis.identifiability import CONDITION_POOR, NO_POSE, InformationAccumulator, tracker_samples, warning_line
 from ..config import NoiseConfig, load_estimator_config
-from ..errors import CalibError
+from ..errors import CalibError, without_noise
 from ..instruments import instrument_kind
 from ..io import read_pose_list
 from ..io.platform_file import load_platform
@@ -127,7 +127,8 @@ def run(args: argparse.Namespace) -> int:
     prediction = _prediction(platform, covariance, poses, information.n_poses, noise, args.config, bound)
     if args.json:
         thermal = {} if trade_off is None else {"thermal_trade_off": trade_off}
-        io.atomic_write_text(args.json, json.dumps({**report.to_dict(), **prediction, **thermal}, indent=2) + "\n")
+        document = without_noise({**report.to_dict(), **prediction, **thermal})
+        io.atomic_write_text(args.json, json.dumps(document, indent=2) + "\n")
     return 0
 
 
@@ -275,7 +276,7 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, config
             **prediction,
             **({} if trade_off is None else {"thermal_trade_off": trade_off}),
         }
-        io.atomic_write_text(args.json, json.dumps(document, indent=2) + "\n")
+        io.atomic_write_text(args.json, json.dumps(without_noise(document), indent=2) + "\n")
     return 0
 
 

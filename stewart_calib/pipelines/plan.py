@@ -127,13 +127,14 @@ def run(args: argparse.Namespace) -> int:
     if reading_margin is not None:
         extremes += f"; tracker readings {reading_margin:.3g} mm inside their range, for the true robot's offsets"
     print(
-        f"planned {len(poses)} poses ({criterion} from {args.candidates} candidates{extremes}, {elapsed_s:.2f} s) "
-        f"-> {args.out}"
+        f"stewart-calib plan: planned {len(poses)} poses ({criterion} from {args.candidates} candidates{extremes}, "
+        f"{elapsed_s:.2f} s) -> {args.out}"
     )
     covariance = design_covariance(platform, poses, noise)
     if covariance is not None:
         prediction = predicted_error(platform, covariance)
-        print(f"{PREDICTION_HEAD} ({noise_words(platform, noise, args.config)}): {prediction.describe()}")
+        noise_named = noise_words(platform, noise, args.config)
+        print(f"stewart-calib plan: {PREDICTION_HEAD} ({noise_named}): {prediction.describe()}")
         warning = plan_warning(platform, noise, prediction, len(poses))
         if warning:
             print(f"stewart-calib plan: {warning}", file=sys.stderr)

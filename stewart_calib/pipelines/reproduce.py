@@ -32,7 +32,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..config import load_estimator_config
-from ..errors import CalibError, shown
+from ..errors import CalibError, shown, without_noise
 from ..io import atomic_path, atomic_write_text
 from ..model.platform import Platform
 from ..progress import progress_bar
@@ -133,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
     with progress_bar(total=len(figures(reproduction)), desc="reproduce: figures", unit="figure") as bar:
         written = write_figures(out, reproduction, bar)
     results = results_dict(reproduction, time.perf_counter() - start, f"configs/estimators/{CONFIG}")
-    atomic_write_text(out / "results.json", json.dumps(results, indent=1, ensure_ascii=False) + "\n")
+    atomic_write_text(out / "results.json", json.dumps(without_noise(results), indent=1, ensure_ascii=False) + "\n")
     tables = tables_markdown(results)
     atomic_write_text(out / "tables.md", tables)
     atomic_write_text(out / "index.html", index_html(tables, written, "reproduce.rrd"))

@@ -43,7 +43,7 @@ from dataclasses import replace
 import numpy as np
 
 from .. import io
-from ..errors import CalibError
+from ..errors import CalibError, without_noise
 from ..io.platform_file import load_platform
 from ..model import kinematics as kin
 from ..model.drive import COMPLIANCE, DriveModel, drive_model
@@ -224,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.json:
         finite = {k: None if isinstance(v, float) and not math.isfinite(v) else v for k, v in s.items()}
-        io.atomic_write_text(args.json, json.dumps(finite, indent=1) + "\n")
+        io.atomic_write_text(args.json, json.dumps(without_noise(finite), indent=1) + "\n")
     return 0
 
 

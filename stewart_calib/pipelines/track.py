@@ -708,9 +708,10 @@ def _track(args: argparse.Namespace, out: Path, checkpoint: Path | None) -> int:
     )
     if calib.rows_skipped:
         report("skipped bad log rows:", calib.rows_skipped, first_bad or "in an earlier run")
-    if calib.rejections.count:
-        report(f"{args.method} rejected samples:", calib.rejections.count, calib.rejections.first)
     estimate = calib.estimate()
+    rejected = calib.rejections.in_result(estimate)  # those taken back in are among the used
+    if rejected["count"]:
+        report(f"{args.method} rejected samples:", rejected["count"], rejected["first"])
     payload = payload_walk_warning(calib.platform.elastic, estimate)
     if payload:
         print(f"stewart-calib track: {payload}", file=sys.stderr)

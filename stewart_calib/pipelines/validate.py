@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import sys
 from pathlib import Path
 
@@ -87,10 +88,12 @@ def run(args: argparse.Namespace) -> int:
     unseen = io.blank_reading_columns(platform)  # a target not seen: empty fields, read and predicted, and its error
     blank = (*(1 + j for j in unseen), *(1 + len(columns) + j for j in unseen), 1 + 2 * len(columns))
     page = moved = None
+    log_digest = hashlib.sha256()
     with log_progress_bar(args.log, "validate") as bar:
         if report_dir or args.register_instrument:
             # the report plots, and the instrument frame is fitted to, the whole log
-            log = _whole_log(platform, args.log, bar)
+            log = _whole_log(platform, args.log, bar, log_digest.update)
+            in_sample = _in_sample(written, log_digest)
             diagnose_log(platform, log.strokes, log.readings, args.log, count=False)
             predicted, position, orientation = validate(
                 platform, result, log, args.register_instrument, str(args.result)
@@ -99,7 +102,9 @@ def run(args: argparse.Namespace) -> int:
                 if not args.register_instrument:  # through the calibration's frame, which may have moved
                     moved = _moved_frame_hint(platform, result, log, position, str(args.result))
                 compared = _compared(args, compare, log, len(position), moved is not None)
-                verdict = _verdict(args, platform, result, position, orientation, log, compared, moved is not None)[0]
+                verdict = _verdict(
+                    args, platform, result, position, orientation, log, compared, moved is not None, in_sample
+                )[0]
                 shown = " — ".join(text for text in (verdict, compared and compared[1]) if text)
                 page = _report_page(args, platform, result, log, predicted, position, orientation, shown, compare)
             io.write_csv_blocks(
@@ -108,8 +113,11 @@ def run(args: argparse.Namespace) -> int:
         else:
             errors: list[tuple] = []
             first: list[Log] = []
-            blocks = _validated_blocks(platform, result, args.log, str(args.result), bar, errors, first)
+            blocks = _validated_blocks(
+                platform, result, args.log, str(args.result), bar, errors, first, log_digest.update
+            )
             io.write_csv_blocks(args.out, header, blocks, blank)
+            in_sample = _in_sample(written, log_digest)
             position = np.concatenate([e[0] for e in errors])
             orientation = None if errors[0][1] is None else np.concatenate([e[1] for e in errors])
             sample_errors = np.concatenate([e[0] for e in errors])[: len(first[0])]
@@ -121,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
         + (" (instrument re-registered)" if args.register_instrument else "")
     )
     if instrument_kind(platform).outside:
-        print(f"stewart-calib validate: {_unseen_error_line(platform, result, position)}")
+        print(f"stewart-calib validate: {_unseen_error_line(platform, result, position, args.register_instrument)}")
     sample = log if (report_dir or args.register_instrument) else first[0]
     if not report_dir:
         compared = _compared(args, compare, sample, len(position), moved is not None)
@@ -136,7 +144,11 @@ def run(args: argparse.Namespace) -> int:
             print(f"stewart-calib validate: {line}", file=sys.stderr)
     if moved:
         print(f"stewart-calib validate: {moved}", file=sys.stderr)
-    verdict, over = _verdict(args, platform, result, position, orientation, sample, compared, moved is not None)
+    if in_sample:
+        print(f"stewart-calib validate: {IN_SAMPLE_LINE}", file=sys.stderr)
+    verdict, over = _verdict(
+        args, platform, result, position, orientation, sample, compared, moved is not None, in_sample
+    )
     print(f"stewart-calib validate: {verdict}")
     return 1 if over and args.fail_over_tolerance else 0
 
@@ -150,17 +162,41 @@ def _compared(args, compare: tuple[Platform, dict] | None, sample: Log, rows: in
     return compared_pose_errors(*compare, sample, args.register_instrument, rows, args.result, True, moved)
 
 
+#: what ``validate`` says of a log whose bytes are those the result was calibrated from (its ``log_sha256``)
+IN_SAMPLE_LINE = (
+    "this log is the calibration's own (its bytes are those of the result's log_sha256): validate's errors on it "
+    "are in-sample, how well the model fits the samples it was fitted to, not its accuracy on a held-out log"
+)
+
+
+def _in_sample(result: dict, log_digest) -> bool:
+    """Whether the log read (its bytes' ``log_digest``) is the one the result was calibrated from (the
+    result's ``log_sha256``); False for a result written without it."""
+    return result.get("log_sha256") == log_digest.hexdigest()
+
+
 def _verdict(
-    args, platform: Platform, result: dict, position, orientation, sample: Log, compared=None, moved: bool = False
+    args,
+    platform: Platform,
+    result: dict,
+    position,
+    orientation,
+    sample: Log,
+    compared=None,
+    moved: bool = False,
+    in_sample: bool = False,
 ) -> tuple[str, bool]:
     """The last line: what this check measured (and what the noise alone leaves in it, at the poses of
     ``sample``, the log or its first rows), with the result's expected errors, against the tolerance;
     ending with the nominal model's comparison where ``compared`` (:func:`compared_pose_errors`) warns.
     ``moved``: the instrument frame looks moved since the calibration (:func:`_moved_frame_hint`), so the
     errors through the calibration's frame measure the move, not the robot: not held against the
-    prediction or the tolerance."""
+    prediction or the tolerance. ``in_sample``: the log is the calibration's own (:data:`IN_SAMPLE_LINE`), which
+    the measured words say."""
     noise = result_noise(platform, result, sample, args.register_instrument, len(position))
-    measured, beyond = _measured_words(platform, position, orientation, noise)
+    measured, beyond = _measured_words(platform, position, orientation, noise, args.register_instrument)
+    if in_sample:
+        measured += " on the calibration's own log (in-sample: the fit, not held-out accuracy)"
     if moved:
         measured += (
             "; these errors are through an instrument frame that looks moved since the calibration, not the robot's: "
@@ -211,16 +247,32 @@ def result_noise(
     return noise_squares(platform, result, sample, register, rows, noise["reading_sigma_mm"], noise["stroke_sigma_mm"])
 
 
+def _outside_check_words(register: bool) -> str:
+    """What a check through an outside instrument measured: with ``--register-instrument`` (``register``),
+    through its frame and target(s) fitted again to this log, the error as the instrument sees it after
+    registration (the prediction's quantity, :mod:`stewart_calib.analysis.accuracy`); else through the
+    calibration's frame and target(s), fitted to the calibration's log — their own error and any move of
+    the instrument since are in the rows too."""
+    if register:
+        return "error as the instrument sees it after registration (its frame and target(s) fitted again to this log)"
+    return "error as the instrument sees it through the calibration's frame and target(s) (not fitted to this log)"
+
+
 def _measured_words(
-    platform: Platform, position_mm: np.ndarray, orientation_deg, noise: tuple[NoiseSquares, NoiseSquares | None]
+    platform: Platform,
+    position_mm: np.ndarray,
+    orientation_deg,
+    noise: tuple[NoiseSquares, NoiseSquares | None],
+    register: bool,
 ) -> tuple[str, MeasuredError]:
-    """What this check measured, named: through an outside instrument's fitted frame and target(s) the
-    error as the instrument sees it after registration (they absorb a rigid motion of {J} and the
-    targets' places in {D}), through the in-situ tracker the absolute place: the rows' RMS and, beyond
-    the noise (:func:`result_noise`), the robot's own with its 90 % interval from the noise's spread over
-    the rows — which the verdict holds against the tolerance where an outside instrument measured it."""
+    """What this check measured, named: through an outside instrument's frame and target(s) the error as
+    the instrument sees it (:func:`_outside_check_words`: fitted again to this log with ``register``, else
+    the calibration's; they absorb a rigid motion of {J} and the targets' places in {D}), through the
+    in-situ tracker the absolute place: the rows' RMS and, beyond the noise (:func:`result_noise`), the
+    robot's own with its 90 % interval from the noise's spread over the rows — which the verdict holds
+    against the tolerance where an outside instrument measured it."""
     outside = instrument_kind(platform).outside
-    what = "error as the instrument sees it after registration" if outside else "absolute place in {J}"
+    what = _outside_check_words(register) if outside else "absolute place in {J}"
     text = f"validate measured the {what}: position RMS {_rms(position_mm):.3g} mm"
     if orientation_deg is not None:
         text += f" / {_rms(orientation_deg):.3g}°"
@@ -241,15 +293,15 @@ def _measured_words(
     )
 
 
-def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray) -> str:
+def _unseen_error_line(platform: Platform, result: dict, position_mm: np.ndarray, register: bool) -> str:
     """What a check through an outside instrument's frame cannot see, beside what it saw: the
     frame and target(s) (fitted with the drive, the frame again here) absorb a rigid motion of {J}
     and the targets' places in {D}, so it measures the registered error, and the robot's closed-loop
     (absolute) error is the result's prediction — which the verdict gives (printed once, there), this
-    line what limits it."""
+    line what limits it. ``register``: the frame and target(s) were fitted again to this log."""
     seen_rms_mm = _rms(position_mm)
     head = (
-        "validate measured the error as the instrument sees it after registration: a check through the "
+        f"validate measured the {_outside_check_words(register)}: a check through the "
         "instrument's fitted frame and target(s) cannot see the robot's closed-loop (absolute) pose error "
         "(they absorb a rigid motion of {J} and the targets' places in {D}); "
         f"position RMS here {seen_rms_mm:.4g} mm, "
@@ -300,24 +352,27 @@ def _file_columns(log: Log, predicted, position, orientation, platform: Platform
     ]
 
 
-def _whole_log(platform: Platform, path: str, bar) -> Log:
+def _whole_log(platform: Platform, path: str, bar, digest) -> Log:
     """The log's times, strokes, readings and input channels (all :func:`validate` and the report use:
     an elastic model predicts each row under its own load, a thermal one at its own temperatures), read
-    a block at a time, the ``bar`` ticked per block."""
+    a block at a time, the ``bar`` ticked per block, its bytes handed to ``digest``."""
     blocks = []
-    for block in io.read_log_blocks(path, platform):
+    for block in io.read_log_blocks(path, platform, digest=digest):
         blocks.append(Log(block.t_s, block.strokes, block.readings, inputs=block.inputs))
         bar.update(len(block))
     return Log.concatenate(blocks)
 
 
-def _validated_blocks(platform: Platform, result: dict, path: str, result_source: str, bar, errors: list, first: list):
+def _validated_blocks(
+    platform: Platform, result: dict, path: str, result_source: str, bar, errors: list, first: list, digest
+):
     """V.csv's columns a block of the log at a time (each row's prediction is its own), the ``bar``
     ticked per block; each block's ``(position, orientation)`` errors are appended to ``errors``
     and the blocks up to :data:`SAMPLE_ROWS` rows to ``first`` (then joined into one and diagnosed:
     :func:`~stewart_calib.workflows.diagnosis.diagnose_log`). A prediction refused is raised once the rest of
-    the log is read, so that a bad row anywhere in it is refused first, as when the log was read whole."""
-    blocks = io.read_log_blocks(path, platform)
+    the log is read, so that a bad row anywhere in it is refused first, as when the log was read whole.
+    The log's bytes go to ``digest`` (:func:`stewart_calib.io.read_log`)."""
+    blocks = io.read_log_blocks(path, platform, digest=digest)
     done = 0
     for block in blocks:
         bar.update(len(block))

@@ -771,9 +771,9 @@ def _estimator_config(settings: dict, source: str) -> EstimatorConfig:
 
 
 def _fingerprint(platform: Platform | Family) -> str:
-    """What a cell's rows depend on of its platform: the file's values, or the family's definition."""
+    """What a cell's rows depend on of its platform: the file's values, or the family's definition, each
+    number to the bit (a platform's identity: the ids of the cells, which seed their tasks, stay as they were)."""
     if isinstance(platform, Family):
-        return json.dumps(
-            {"family": platform.name, "like": platform_to_toml(platform.like), "ranges": platform.ranges.tolist()}
-        )
-    return platform_to_toml(platform)
+        like = platform_to_toml(platform.like, exact=True)
+        return json.dumps({"family": platform.name, "like": like, "ranges": platform.ranges.tolist()})
+    return platform_to_toml(platform, exact=True)

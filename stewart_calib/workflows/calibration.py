@@ -373,11 +373,12 @@ def stream_calibration(
     skip_bad_rows: bool,
     trace_file=None,
     on_read: Callable[[Log], None] | None = None,
+    digest: Callable[[bytes], None] | None = None,
 ) -> StreamedRun:
     """An online ``method`` over the log at ``path``, read a block at a time (memory independent
     of its length); the trace rows (spec §6) are written to the open ``trace_file`` as they come,
     and ``on_read`` gets each block of good samples as it is read, on the read-ahead thread (e.g.
-    :meth:`SampleSpool.add` for a second pass).
+    :meth:`SampleSpool.add` for a second pass); ``digest`` the log's bytes (:func:`stewart_calib.io.read_log`).
 
     Raises:
         CalibError: a bad log (as :func:`stewart_calib.io.read_log`), a method that rejected every sample.
@@ -409,7 +410,7 @@ def stream_calibration(
         trace_file.write(io.trace_text(block.t_s, params, header=not written, names=names))
         written.append(len(block))
 
-    blocks = read_ahead(read(block) for block in io.read_log_blocks(path, platform, skip_bad_rows=skip_bad_rows))
+    blocks = read_ahead(read(block) for block in io.read_log_blocks(path, platform, skip_bad_rows, digest=digest))
     with log_progress_bar(path, f"calibrate {method}") as bar:
         n = feed_online(estimator, blocks, refused, write_trace if trace_file is not None else None, bar)
     if rejections.count == n:

@@ -50,6 +50,7 @@ from ..estimators import method_names, method_spec
 from ..estimators.base import (
     CheckpointableEstimator,
     accounted_estimate,
+    readmitted_count,
     skipped_count,
     take_late_rejections,
     update_block,
@@ -93,8 +94,23 @@ class Rejections:
         self.first = self.first or str(err)
 
     def summary(self) -> dict:
-        """The result's ``samples_rejected`` field (added to spec §5)."""
+        """Every refusal by reason and the first one's message (a checkpoint's record, which a resumed run adds to)."""
         return {"count": self.count, "by_reason": dict(sorted(self.by_reason.items())), "first": self.first or None}
+
+    def in_result(self, estimate: Estimate) -> dict:
+        """The result's ``samples_rejected`` field (added to spec §5): the samples refused and not taken back in
+        by ``estimate``'s method (:func:`~stewart_calib.estimators.base.readmitted_count`, gated outliers each),
+        the count ``samples_skipped`` holds, with ``"readmitted"`` where the method took some back; ``"first"``
+        is the first refusal's message."""
+        readmitted = readmitted_count(estimate)
+        by_reason = Counter(self.by_reason)
+        by_reason[SampleRejected.GATED] -= readmitted
+        field = {
+            "count": self.count - readmitted,
+            "by_reason": {reason: n for reason, n in sorted(by_reason.items()) if n > 0},
+            "first": (self.first or None) if self.count > readmitted else None,
+        }
+        return {**field, "readmitted": readmitted} if readmitted else field
 
 
 class RecentSamples:
@@ -290,7 +306,9 @@ class OnlineCalibrator:
         noise_scale = getattr(self._estimator, "noise_scale", lambda: None)()
         check_plausible(self.platform, estimate.error, self.config.noise, strokes, readings, self.method, noise_scale)
         skipped = skipped_count(self.rows_skipped, self.rejections.count, estimate)
-        return io.result_dict(estimate, self.platform, skipped, {"samples_rejected": self.rejections.summary()})
+        return io.result_dict(
+            estimate, self.platform, skipped, {"samples_rejected": self.rejections.in_result(estimate)}
+        )
 
     def export_state(self) -> dict:
         """The estimator's state (nested dict of arrays); equal states give equal futures."""
@@ -322,7 +340,7 @@ class OnlineCalibrator:
                     "format": np.array(CHECKPOINT_FORMAT),
                     "version": np.array(CHECKPOINT_VERSION),
                     "method": np.array(self.method),
-                    "platform_toml": np.array(platform_to_toml(self.platform)),
+                    "platform_toml": np.array(platform_to_toml(self.platform, exact=True)),
                     "config_json": np.array(json.dumps(dataclasses.asdict(self.config))),
                 },
             )
@@ -515,7 +533,9 @@ def _differing_tables(a: Platform, b: Platform) -> list[str]:
     """The tables of the platform files ``a`` and ``b`` whose values differ. The free text
     (``name``, ``description``) is left out: a checkpoint holds the estimate of a geometry, and
     a platform renamed or described anew is the same robot."""
-    tables = [tomllib.loads(platform_to_toml(dataclasses.replace(p, name="", description=""))) for p in (a, b)]
+    tables = [
+        tomllib.loads(platform_to_toml(dataclasses.replace(p, name="", description=""), exact=True)) for p in (a, b)
+    ]
     return [key for key in sorted(set(tables[0]) | set(tables[1])) if tables[0].get(key) != tables[1].get(key)]
 
 
