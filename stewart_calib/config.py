@@ -48,9 +48,11 @@ class NoiseConfig:
             ``tracker_geometry_sigma_mm`` gives its σ: measure the σ of the tracker's own geometry error on
             the log (:mod:`stewart_calib.workflows.tracker_geometry`: the readings' residuals after a drive
             fit, split into white noise and what an error of the 42 values moves) and, where the log shows
-            one, identify the geometry with the drive under that σ — the reported covariance then holds
-            what a tracker's geometry error does to the result. A tracker the log shows as exact keeps its
-            geometry fixed, and nothing changes. false: the geometry as the settings give it.
+            one, identify the geometry with the drive under that σ, the readings at the white σ measured
+            beside it (``reading_sigma_mm``, which would otherwise count the error twice) — the reported
+            covariance then holds what a tracker's geometry error does to the result. A tracker the log
+            shows as exact keeps its geometry fixed, and nothing changes. false: the geometry as the
+            settings give it.
         pose_misfit_sigma_mm: σ of the in-situ tracker's reading error that stays while the platform
             holds a pose [mm] — its geometry's residual seen through the pose, less what the drive's
             parameters take up of it — besides the white noise ``reading_sigma_mm``: ekf (and isam2's front

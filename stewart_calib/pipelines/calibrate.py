@@ -101,9 +101,9 @@ def _with_measured_geometry(platform: Platform, method: str, config, log: Log):
         )
     else:
         print(
-            f"stewart-calib calibrate: {found}: its 42 values are identified with the drive under that σ "
-            "(noise.tracker_geometry_sigma_mm; --set noise.estimate_tracker_geometry=false takes the geometry "
-            "as exact)",
+            f"stewart-calib calibrate: {found}: its 42 values are identified with the drive under that σ, the "
+            "readings at the white σ (noise.tracker_geometry_sigma_mm, noise.reading_sigma_mm; --set "
+            "noise.estimate_tracker_geometry=false takes the geometry as exact)",
             file=sys.stderr,
         )
     return measured

@@ -21,7 +21,7 @@ experiment's log at --every 7 to 100. The bound is tested (tests/test_faults.py)
 measures the in-situ tracker's own geometry error on the log before it runs
 (:mod:`stewart_calib.workflows.tracker_geometry`); ``track`` reads no log ahead and takes the geometry
 as the settings give it: the same estimates where it is given the σ ``calibrate`` measured (its
-result's ``config``, ``--set noise.tracker_geometry_sigma_mm=…``).
+result's ``config``: ``--set noise.tracker_geometry_sigma_mm=… --set noise.reading_sigma_mm=…``).
 
 ``--link L.toml`` takes the samples from a controller instead (spec §16, :mod:`stewart_calib.links`:
 OPC UA, TwinCAT ADS): the link's rows go through the same parser, feed, writes and checkpoint as a
