@@ -117,3 +117,12 @@ def test_one_early_row_less_sets_off_no_lock_out(logs, tmp_path):
     (shorter / "platform.toml").write_text((sim / "platform.toml").read_text(encoding="utf-8"), encoding="utf-8")
     result, err = _calibrate(shorter, "ekf", tmp_path / "r.json")
     assert "lock-out" not in err and result["samples_used"] == 119
+
+
+def test_a_glitch_is_not_taken_for_white_noise(logs):
+    platform = load_platform(logs / "real" / "platform.toml")
+    log = read_log(logs / "real" / "log.csv", platform)
+    log.readings[40, 2] += 1.0  # one reading 1 mm off: σ_w 38 µm were it taken as white noise
+    estimate = estimate_tracker_geometry(platform, log, EstimatorConfig())
+    assert estimate.white_sigma_mm == pytest.approx(TrackerConfig.noise_mm, rel=0.3)
+    assert estimate.sigma_mm == pytest.approx(RESIDUAL_MM, rel=4 * 0.5 * np.sqrt(2 / 30))
