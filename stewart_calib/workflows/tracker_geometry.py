@@ -142,7 +142,8 @@ def estimate_tracker_geometry(platform: Platform, log: Log, config: EstimatorCon
         r, converged = tracker_reading_residuals(drives, legs, log.strokes, log.readings, log.inputs)
         return r, converged.all(axis=0)
 
-    (r0,), ok = residuals(drives_at([(0, 0.0)]), tracker)
+    at_fit = [drive.calibrated(fitted.error, values)]
+    (r0,), ok = residuals(at_fit, tracker)
     steps = [STEP_MM] * len(fitted.error)
     for term in unknown:
         steps += [float(term.prior_sigma) * 1e-3] * len(values[term.key])
@@ -156,8 +157,8 @@ def estimate_tracker_geometry(platform: Platform, log: Log, config: EstimatorCon
     for k in range(len(base)):
         delta = np.zeros_like(base)
         delta[k] = STEP_MM
-        (above,), ok_above = residuals(drives_at([(0, 0.0)]), tracker.perturbed(delta))
-        (below,), ok_below = residuals(drives_at([(0, 0.0)]), tracker.perturbed(-delta))
+        (above,), ok_above = residuals(at_fit, tracker.perturbed(delta))
+        (below,), ok_below = residuals(at_fit, tracker.perturbed(-delta))
         ok_g &= ok_above & ok_below
         G_columns.append(((above - below) / (2.0 * STEP_MM)).ravel())
     G = np.array(G_columns).T
@@ -174,16 +175,20 @@ def _gross(r: np.ndarray, H: np.ndarray, rulers: int) -> np.ndarray:
     """The samples whose residual off ``H`` is beyond :data:`GROSS_RATIO` × the median sample's RMS: a
     glitch of a reading, which would otherwise be taken for white noise of every reading (one 1 mm
     glitch among quick's 120 samples raised σ_w from 0.5 to 38 µm)."""
-    U, s, _ = np.linalg.svd(H, full_matrices=False)
-    U = U[:, s > RANK_TOLERANCE * s[0]]
+    U = _range_basis(H)
     rms = np.sqrt(np.mean((r - U @ (U.T @ r)).reshape(-1, rulers) ** 2, axis=1))
     return rms > GROSS_RATIO * np.median(rms)
 
 
+def _range_basis(H: np.ndarray) -> np.ndarray:
+    """An orthonormal basis of what ``H``'s columns span (what the drive's unknowns take up)."""
+    U, s, _ = np.linalg.svd(H, full_matrices=False)
+    return U[:, s > RANK_TOLERANCE * s[0]]
+
+
 def _variance_components(r: np.ndarray, H: np.ndarray, G: np.ndarray, samples: int) -> TrackerGeometryEstimate:
     """σ_g, σ_w of ``r = H δx + G δθ + w`` (the module's model) by maximum likelihood."""
-    U, s, _ = np.linalg.svd(H, full_matrices=False)
-    U = U[:, s > RANK_TOLERANCE * s[0]]
+    U = _range_basis(H)
     projected_r = r - U @ (U.T @ r)
     projected_G = G - U @ (U.T @ G)
     V, s_g, _ = np.linalg.svd(projected_G, full_matrices=False)
