@@ -27,8 +27,9 @@ class NoiseConfig:
         reading_sigma_mm: σ_s of one tracker grating reading [mm]: ruler noise plus the
             tracker's residual geometry error, taken as white. The default 2 µm suits a tracker
             whose geometry is known to a few µm; the simulated nim-stewart tracker (15 µm
-            geometry residual) needs ~0.02 mm (``configs/estimators/paper.toml``), or every
-            reported covariance is far too small.
+            geometry residual) needs ~0.02 mm where its geometry is taken as exact
+            (``configs/estimators/paper.toml``), or every reported covariance is far too small —
+            ``estimate_tracker_geometry`` identifies the geometry instead, and the white σ stays.
         stroke_sigma_mm: σ_q of one executed drive stroke [mm] (encoder).
         random_walk_mm_per_sqrt_s: parameter random walk [mm/√s]: over Δt each parameter's
             variance grows by ``random_walk² Δt`` (paper eq. 15's Q; graph between-factors).
@@ -41,7 +42,17 @@ class NoiseConfig:
         tracker_geometry_sigma_mm: prior σ of the in-situ tracker's own 42 values [mm]: with it
             positive they are identified with the drive under N(nominal, σ²) (spec §7), as the
             platform file's ``[tracker] geometry_sigma_mm`` asks, which wins where it is given;
-            0 takes the tracker's geometry as exact.
+            0 takes the tracker's geometry as exact, unless ``estimate_tracker_geometry`` finds it off.
+        estimate_tracker_geometry: ``calibrate`` with the in-situ tracker and a method that identifies its
+            geometry (``ekf``, ``isam2``, ``lm``), where neither the platform file nor
+            ``tracker_geometry_sigma_mm`` gives its σ: measure the σ of the tracker's own geometry error on
+            the log (:mod:`stewart_calib.workflows.tracker_geometry`: the readings' residuals after a drive
+            fit, split into white noise and what an error of the 42 values moves) and, where the log shows
+            one, identify the geometry with the drive under that σ, the readings at the white σ measured
+            beside it (``reading_sigma_mm``, which would otherwise count the error twice) — the reported
+            covariance then holds what a tracker's geometry error does to the result. A tracker the log
+            shows as exact keeps its geometry fixed, and nothing changes. false: the geometry as the
+            settings give it.
         pose_misfit_sigma_mm: σ of the in-situ tracker's reading error that stays while the platform
             holds a pose [mm] — its geometry's residual seen through the pose, less what the drive's
             parameters take up of it — besides the white noise ``reading_sigma_mm``: ekf (and isam2's front
@@ -62,6 +73,7 @@ class NoiseConfig:
     prior_sigma_mm: float = 5.0
     stroke_scale_sigma: float = 0.0
     tracker_geometry_sigma_mm: float = 0.0
+    estimate_tracker_geometry: bool = True
     pose_misfit_sigma_mm: float = 0.0
     angle_prior_sigma_deg: float = 2.0
     angle_sigma_deg: float = 0.05

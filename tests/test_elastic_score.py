@@ -15,8 +15,8 @@ import pytest
 from stewart_calib.cli import main
 from stewart_calib.io import read_log, read_result, read_truth
 
-# quick.toml's robot without its loaded stage, its tracker's geometry exact: the default configuration does
-# not model a 15 µm geometry residual (quick's), which leaves ~10× calibrate's predicted error
+# quick.toml's robot without its loaded stage, its tracker's geometry exact: what is scored is the drive's
+# elastic model alone, not a 15 µm geometry residual (quick's), identified under the σ calibrate measures
 EXPERIMENT = """name = "elastic-round-trip"
 seed = 7
 platform = "nim-stewart"

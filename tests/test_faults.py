@@ -1069,6 +1069,10 @@ def test_track_isam2_is_calibrate_to_its_documented_bound(tmp_path, capsys, ever
         common = ["--platform", str(platform), "--method", "isam2"]
         assert cli.main(["calibrate", *common, "--log", str(path), "--out", str(tmp_path / "c.json")]) == 0
         calibrated = read_result(tmp_path / "c.json")
+        # track reads no log ahead: it takes the tracker's geometry σ calibrate measured on the log, as documented
+        noise = calibrated["config"]["noise"]
+        for key in ("tracker_geometry_sigma_mm", "reading_sigma_mm"):
+            common += ["--set", f"noise.{key}={noise[key]!r}"]
         half = tmp_path / "half.csv"
         half.write_text("".join(path.read_text().splitlines(keepends=True)[:61]))
         ckpt, out = tmp_path / "ck.npz", tmp_path / "t.json"

@@ -32,6 +32,9 @@ class MethodSpec:
         checkpointable: its state can be saved and restored exactly (a :class:`Checkpointable`).
         instruments: the instrument kinds (``[instrument] kind``) it can calibrate with.
         summary: one line for ``--help`` and the docs.
+        tracker_geometry: it identifies the in-situ tracker's own geometry with the drive
+            (``noise.tracker_geometry_sigma_mm``); ``ls`` and ``paper-ekf`` fit the drive to the measured
+            pose alone and refuse it.
         bytes_per_sample: the memory a batch method holds for each sample of the log [bytes]
             (:func:`~stewart_calib.memory.check_memory` says it before a run and refuses a log
             that would not fit); None for a method whose memory does not grow with the log.
@@ -44,6 +47,7 @@ class MethodSpec:
     instruments: tuple[str, ...]
     summary: str
     bytes_per_sample: int | None = None
+    tracker_geometry: bool = True
 
     def build(self, platform: Platform, config: EstimatorConfig | None = None) -> Estimator:
         """The estimator for ``platform``, checked against the protocols this entry declares."""
@@ -71,6 +75,7 @@ METHODS: dict[str, MethodSpec] = {
             # its compact rows and the log read whole: the peak RSS's slope of calibrate ls from
             # 10⁵ to 10⁶ samples of benchmarks/scale.py's log (290 → 720 MB)
             bytes_per_sample=500,
+            tracker_geometry=False,
         ),
         MethodSpec(
             "paper-ekf",
@@ -79,6 +84,7 @@ METHODS: dict[str, MethodSpec] = {
             checkpointable=True,
             instruments=("tracker", "pose"),
             summary="the paper's EKF on the pose error (eq. 14–19)",
+            tracker_geometry=False,
         ),
         MethodSpec(
             "ekf",

@@ -23,6 +23,7 @@ import argparse
 import hashlib
 import sys
 from contextlib import ExitStack
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -72,6 +73,7 @@ from ..workflows.calibration import (
 from ..workflows.diagnosis import diagnose_log
 from ..workflows.online import Rejections
 from ..workflows.planning import noise_floor
+from ..workflows.tracker_geometry import ESTIMATE_SAMPLES, applies, with_estimated_geometry
 from ..workflows.validation import (
     measurement_residuals,
     nominal_residuals,
@@ -80,6 +82,33 @@ from ..workflows.validation import (
     unsupported_correction,
 )
 from . import add_config_arguments, add_tolerance_arguments, check_output_path, handover, run_command
+
+
+def _with_measured_geometry(platform: Platform, method: str, config, log: Log):
+    """``config`` with the tracker's geometry σ the log shows (:mod:`stewart_calib.workflows.tracker_geometry`),
+    said on stderr where the log shows an error, and warned of where ``method`` cannot identify it."""
+    measured, estimate = with_estimated_geometry(platform, method, config, log)
+    if estimate is None or not estimate.detected:
+        return measured
+    found = (
+        f"the tracker's own geometry is off its nominal by σ {estimate.sigma_mm:.2g} mm a value (measured on "
+        f"{estimate.samples} samples beside {estimate.white_sigma_mm:.2g} mm of white reading noise; likelihood "
+        f"ratio {estimate.likelihood_ratio:.3g} > {estimate.threshold:.3g})"
+    )
+    if measured is config:  # the method fits the drive to the measured pose alone
+        print(
+            f"stewart-calib calibrate: warning: {found}, which {method} cannot identify: its σ and predicted error "
+            "leave out what that error does to the result; ekf, isam2 and lm identify it",
+            file=sys.stderr,
+        )
+    else:
+        print(
+            f"stewart-calib calibrate: {found}: its 42 values are identified with the drive under that σ, the "
+            "readings at the white σ (noise.tracker_geometry_sigma_mm, noise.reading_sigma_mm; --set "
+            "noise.estimate_tracker_geometry=false takes the geometry as exact)",
+            file=sys.stderr,
+        )
+    return measured
 
 
 def _summary(what: str, count: int, total: int, first: str) -> str:
@@ -245,6 +274,9 @@ def run(args: argparse.Namespace) -> int:
                 )
             spool = SampleSpool(out.parent)
             stack.callback(spool.close)
+            # the tracker's geometry measured on the log's head, which the stream reads first (diagnosed)
+            measure = applies(platform, config)
+            configure = (ESTIMATE_SAMPLES, partial(_with_measured_geometry, platform, args.method, config))
             streaming = stream_calibration(
                 platform,
                 args.log,
@@ -254,7 +286,9 @@ def run(args: argparse.Namespace) -> int:
                 trace_file,
                 lambda block: spool.add(block, nominal_residuals(platform, block)),
                 log_digest.update,
+                configure if measure else None,
             )
+            config = streaming.config or config
             estimate, n_samples, skipped = streaming.estimate, streaming.samples, streaming.skipped
             rejections, first_rejected_t_s = streaming.rejections, streaming.first_rejected_t_s
             noise_scale = streaming.noise_scale
@@ -263,6 +297,7 @@ def run(args: argparse.Namespace) -> int:
             log = io.read_log(args.log, platform, skip_bad_rows=args.skip_bad_rows, digest=log_digest.update)
             skipped.add(log.skipped)
             diagnose_log(platform, log.strokes, log.readings, args.log)
+            config = _with_measured_geometry(platform, args.method, config, log)
             # isam2 costs milliseconds a sample (a pose instrument's whole session in the smoother: ~15 ms),
             # so a few hundred samples take seconds: its bar shows whatever the log's length
             progress = sys.stderr.isatty() and (len(log) >= MIN_LOG_ROWS or args.method == "isam2")

@@ -17,7 +17,11 @@ happens. ``isam2`` adds a parameter window's samples in one smoother update wher
 (within its relinearisation threshold: measured ≤ 5e-5 σ on a clean 300-row log at --every 1 to 100),
 but where its front end recovers from a lock-out the graph restarts at a point that depends on how
 the rows were blocked: measured up to 0.024 σ (0.068 mm) from ``calibrate`` on the quick
-experiment's log at --every 7 to 100. The bound is tested (tests/test_faults.py).
+experiment's log at --every 7 to 100. The bound is tested (tests/test_faults.py). ``calibrate``
+measures the in-situ tracker's own geometry error on the log before it runs
+(:mod:`stewart_calib.workflows.tracker_geometry`); ``track`` reads no log ahead and takes the geometry
+as the settings give it: the same estimates where it is given the σ ``calibrate`` measured (its
+result's ``config``: ``--set noise.tracker_geometry_sigma_mm=… --set noise.reading_sigma_mm=…``).
 
 ``--link L.toml`` takes the samples from a controller instead (spec §16, :mod:`stewart_calib.links`:
 OPC UA, TwinCAT ADS): the link's rows go through the same parser, feed, writes and checkpoint as a

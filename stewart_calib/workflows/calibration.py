@@ -10,6 +10,7 @@ use these; the pipelines stay thin commands that import nothing private from eac
 
 from __future__ import annotations
 
+import itertools
 import queue
 import tempfile
 import threading
@@ -203,6 +204,7 @@ class StreamedRun:
             in ``rejections`` and the first one's time in ``first_rejected_t_s``.
         checked: :class:`EvenlySpacedSamples` of the log.
         noise_scale: as :attr:`Calibration.noise_scale`.
+        config: the configuration the estimator ran with.
     """
 
     estimate: Estimate
@@ -213,6 +215,7 @@ class StreamedRun:
     first_rejected_t_s: float | None
     checked: EvenlySpacedSamples
     noise_scale: float | None = None
+    config: EstimatorConfig | None = None
 
 
 def feed_online(
@@ -374,16 +377,21 @@ def stream_calibration(
     trace_file=None,
     on_read: Callable[[Log], None] | None = None,
     digest: Callable[[bytes], None] | None = None,
+    configure: tuple[int, Callable[[Log], EstimatorConfig]] | None = None,
 ) -> StreamedRun:
     """An online ``method`` over the log at ``path``, read a block at a time (memory independent
     of its length); the trace rows (spec §6) are written to the open ``trace_file`` as they come,
     and ``on_read`` gets each block of good samples as it is read, on the read-ahead thread (e.g.
     :meth:`SampleSpool.add` for a second pass); ``digest`` the log's bytes (:func:`stewart_calib.io.read_log`).
+    ``configure = (n, function)``: the estimator is built with ``function(head)``'s configuration instead,
+    ``head`` the log's first blocks of at least ``n`` samples (held, so the log is still read once: a pipe or
+    FIFO as well as a file).
 
     Raises:
         CalibError: a bad log (as :func:`stewart_calib.io.read_log`), a method that rejected every sample.
     """
-    estimator = estimators.make_estimator(method, platform, config)
+    if configure is None:  # a configuration the method refuses is refused before the log is read
+        estimator = estimators.make_estimator(method, platform, config)
     nominal, names = platform.drive.as_vector(), platform.drive.parameter_names
     checked, skipped, rejections = EvenlySpacedSamples(CHECKED_SAMPLES), Tally(), Rejections()
     rejected: list[int] = []
@@ -410,7 +418,19 @@ def stream_calibration(
         trace_file.write(io.trace_text(block.t_s, params, header=not written, names=names))
         written.append(len(block))
 
-    blocks = read_ahead(read(block) for block in io.read_log_blocks(path, platform, skip_bad_rows, digest=digest))
+    blocks: Iterable[Log] = read_ahead(
+        read(block) for block in io.read_log_blocks(path, platform, skip_bad_rows, digest=digest)
+    )
+    if configure is not None:
+        head_samples, configured = configure
+        head = []
+        for block in blocks:
+            head.append(block)
+            if sum(map(len, head)) >= head_samples:
+                break
+        config = configured(Log.concatenate(head))
+        estimator = estimators.make_estimator(method, platform, config)
+        blocks = itertools.chain(head, blocks)
     with log_progress_bar(path, f"calibrate {method}") as bar:
         n = feed_online(estimator, blocks, refused, write_trace if trace_file is not None else None, bar)
     if rejections.count == n:
@@ -424,4 +444,5 @@ def stream_calibration(
         first_t_s[0] if first_t_s else None,
         checked,
         getattr(estimator, "noise_scale", lambda: None)(),
+        config,
     )

@@ -1,0 +1,128 @@
+"""The in-situ tracker's own geometry error measured on the log (issue 43,
+:mod:`stewart_calib.workflows.tracker_geometry`): ``calibrate`` with the default configuration finds
+quick's 15 µm residual, identifies the geometry under the σ it measured and reports a covariance
+that holds it; on a tracker of exactly its nominal geometry it finds none and changes nothing."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+
+import numpy as np
+import pytest
+
+from stewart_calib import cli
+from stewart_calib.config import EstimatorConfig
+from stewart_calib.io import read_log
+from stewart_calib.io.platform_file import load_platform
+from stewart_calib.resources import resolve
+from stewart_calib.simulation.experiment import TrackerConfig
+from stewart_calib.workflows.tracker_geometry import FALSE_ALARM, _variance_components, estimate_tracker_geometry
+
+QUICK = resolve("quick", "experiments")
+#: the simulated tracker's residual, i.i.d. on its 42 values [mm] (quick.toml keeps the default)
+RESIDUAL_MM = TrackerConfig.geometry_residual_mm
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    """quick's simulation as it is (``real``: the tracker's geometry 15 µm off) and with the tracker exact."""
+    out = tmp_path_factory.mktemp("tracker-geometry")
+    text = open(QUICK, encoding="utf-8").read()
+    ideal = out / "ideal.toml"
+    ideal.write_text(text + "\n[tracker]\ngeometry_residual_mm = 0.0\n", encoding="utf-8")
+    for name, experiment in (("real", QUICK), ("ideal", ideal)):
+        assert cli.main(["simulate", "--experiment", str(experiment), "--out", str(out / name)]) == 0
+    return out
+
+
+def _calibrate(sim, method, out, *extra) -> tuple[dict, str]:
+    err = io.StringIO()
+    argv = ["calibrate", "--platform", sim / "platform.toml", "--log", sim / "log.csv", "--method", method]
+    with contextlib.redirect_stderr(err):
+        assert cli.main([str(a) for a in [*argv, "--out", out, *extra]]) == 0
+    return json.loads(out.read_text(encoding="utf-8")), err.getvalue()
+
+
+def _score(sim, result_path, tmp_path) -> dict:
+    scores = tmp_path / "scores.json"
+    argv = ["score", "--platform", sim / "platform.toml", "--result", result_path, "--truth", sim / "truth.csv"]
+    assert cli.main([str(a) for a in [*argv, "--json", scores]]) == 0
+    return json.loads(scores.read_text(encoding="utf-8"))
+
+
+def test_white_noise_alone_shows_no_geometry_error_and_one_is_found_at_its_size():
+    rng = np.random.default_rng(4)
+    rows, drive, geometry, white = 3000, 48, 42, 1.0
+    H, G = rng.normal(size=(rows, drive)), rng.normal(size=(rows, geometry))
+    noise = rng.normal(0.0, white, rows)
+    assert not _variance_components(H @ rng.normal(size=drive) + noise, H, G, rows).detected
+    sigma = 0.5
+    found = _variance_components(H @ rng.normal(size=drive) + G @ rng.normal(0.0, sigma, geometry) + noise, H, G, rows)
+    assert found.detected
+    # σ̂² from 42 directions: relative σ √(2/42) = 0.22, so σ̂ within 4 × 0.11 of σ
+    assert found.sigma_mm == pytest.approx(sigma, rel=4 * 0.5 * np.sqrt(2 / geometry))
+    assert found.white_sigma_mm == pytest.approx(white, rel=4 * np.sqrt(2 / rows))
+
+
+@pytest.mark.parametrize("name", ["real", "ideal"])
+def test_the_log_shows_the_simulated_trackers_residual_and_none_where_it_is_exact(logs, name):
+    platform = load_platform(logs / name / "platform.toml")
+    estimate = estimate_tracker_geometry(platform, read_log(logs / name / "log.csv", platform), EstimatorConfig())
+    assert estimate.white_sigma_mm == pytest.approx(TrackerConfig.noise_mm, rel=0.3)  # the rulers' 0.5 µm
+    if name == "ideal":  # a false alarm once in 1/FALSE_ALARM exact trackers
+        assert not estimate.detected and FALSE_ALARM <= 1e-3
+        return
+    assert estimate.detected
+    # one draw of 42 values seen along ~30 directions: σ̂ within 4 × ½√(2/30) of the residual's σ
+    assert estimate.sigma_mm == pytest.approx(RESIDUAL_MM, rel=4 * 0.5 * np.sqrt(2 / 30))
+
+
+@pytest.mark.parametrize("method", ["ekf", "isam2"])
+def test_calibrate_by_default_reports_a_covariance_that_holds_the_trackers_residual(logs, method, tmp_path):
+    sim = logs / "real"
+    result, err = _calibrate(sim, method, tmp_path / "r.json")
+    assert "the tracker's own geometry is off its nominal" in err
+    assert result["config"]["noise"]["tracker_geometry_sigma_mm"] > 0
+    assert result["samples_used"] == 120
+    # z² is the mean of 42 squared z-scores, each χ²(1) with the σ honest: mean 1, its σ at most √2
+    # however they correlate. Taken as exact, the geometry left z² at 22 (ekf) and 25 (isam2).
+    assert _score(sim, tmp_path / "r.json", tmp_path)["z2"] < 1 + 4 * np.sqrt(2)
+
+
+def test_an_exact_trackers_calibration_is_the_one_without_the_estimate(logs, tmp_path):
+    sim = logs / "ideal"
+    result, err = _calibrate(sim, "ekf", tmp_path / "on.json")
+    fixed, _ = _calibrate(sim, "ekf", tmp_path / "off.json", "--set", "noise.estimate_tracker_geometry=false")
+    assert "geometry is off" not in err
+    assert result["config"]["noise"]["tracker_geometry_sigma_mm"] == 0.0
+    assert result["estimate"] == fixed["estimate"] and result["stddev"] == fixed["stddev"]
+
+
+def test_ls_warns_that_it_cannot_identify_the_geometry_the_log_shows(logs, tmp_path):
+    result, err = _calibrate(logs / "real", "ls", tmp_path / "r.json")
+    assert "warning: the tracker's own geometry is off its nominal" in err and "ls cannot identify" in err
+    assert result["config"]["noise"]["tracker_geometry_sigma_mm"] == 0.0
+
+
+def test_one_early_row_less_sets_off_no_lock_out(logs, tmp_path):
+    """quick's log without its second row: with the geometry taken as exact, a ramp sample's NIS crossed the gate
+    and the lock-out's recovery from the prior left out 43 of the 119 rows."""
+    sim = logs / "real"
+    lines = (sim / "log.csv").read_text(encoding="utf-8").splitlines(keepends=True)
+    shorter = tmp_path / "sim"
+    shorter.mkdir()
+    (shorter / "log.csv").write_text("".join(lines[:2] + lines[3:]), encoding="utf-8")
+    (shorter / "platform.toml").write_text((sim / "platform.toml").read_text(encoding="utf-8"), encoding="utf-8")
+    result, err = _calibrate(shorter, "ekf", tmp_path / "r.json")
+    assert "lock-out" not in err and result["samples_used"] == 119
+
+
+def test_a_glitch_is_not_taken_for_white_noise(logs):
+    platform = load_platform(logs / "real" / "platform.toml")
+    log = read_log(logs / "real" / "log.csv", platform)
+    log.readings[40, 2] += 1.0  # one reading 1 mm off: σ_w 38 µm were it taken as white noise
+    estimate = estimate_tracker_geometry(platform, log, EstimatorConfig())
+    assert estimate.white_sigma_mm == pytest.approx(TrackerConfig.noise_mm, rel=0.3)
+    assert estimate.sigma_mm == pytest.approx(RESIDUAL_MM, rel=4 * 0.5 * np.sqrt(2 / 30))
