@@ -91,7 +91,7 @@ def _with_measured_geometry(platform: Platform, method: str, config, log: Log):
     if estimate is None or not estimate.detected:
         return measured
     found = (
-        f"the tracker's own geometry is off its nominal by σ {estimate.sigma_mm:.2g} mm a value (measured on "
+        f"the tracker's own geometry is off its nominal by σ {estimate.sigma_mm:.2g} mm per value (measured on "
         f"{estimate.samples} samples beside {estimate.white_sigma_mm:.2g} mm of white reading noise; likelihood "
         f"ratio {estimate.likelihood_ratio:.3g} > {estimate.threshold:.3g})"
     )
