@@ -6,6 +6,7 @@ that holds it; on a tracker of exactly its nominal geometry it finds none and ch
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 
@@ -126,3 +127,35 @@ def test_a_glitch_is_not_taken_for_white_noise(logs):
     estimate = estimate_tracker_geometry(platform, log, EstimatorConfig())
     assert estimate.white_sigma_mm == pytest.approx(TrackerConfig.noise_mm, rel=0.3)
     assert estimate.sigma_mm == pytest.approx(RESIDUAL_MM, rel=4 * 0.5 * np.sqrt(2 / 30))
+
+
+def test_lms_noise_scale_leaves_the_prior_as_given(logs):
+    """lm with ``[robust] adapt_noise`` scales its covariance by the variance factor s² its data show; a
+    prior is no noise (the tracker geometry's σ measured on the log, the drive's tolerance), so lm's
+    covariance is that of the noise s² R0 with the prior as given: lm's at fixed noise with the readings'
+    and strokes' σ times s (the walk off: its rate is the front end's, measured at each run's noise).
+    Before, s² scaled the prior too: on quick (s² 0.30, its strokes quieter than their configured σ) the
+    σ of δM came out 0.80× (with the walk, calibrate's predicted error 10.4 µm against isam2's 19.5 and
+    the truth's 24.8)."""
+    from stewart_calib.estimators import make_estimator
+
+    platform = load_platform(logs / "real" / "platform.toml")
+    log = read_log(logs / "real" / "log.csv", platform)
+    config = EstimatorConfig()
+    measured = estimate_tracker_geometry(platform, log, config)
+    noise = dataclasses.replace(
+        config.noise,
+        tracker_geometry_sigma_mm=measured.sigma_mm,
+        reading_sigma_mm=measured.white_sigma_mm,
+        random_walk_mm_per_sqrt_s=0.0,
+    )
+    adapted = make_estimator("lm", platform, dataclasses.replace(config, noise=noise))
+    adapted_sigma = adapted.fit(iter(log)).stddev
+    s = adapted.noise_scale()
+    assert s is not None and s < 0.7  # the case: the data quieter than the model
+    scaled = dataclasses.replace(
+        noise, reading_sigma_mm=noise.reading_sigma_mm * s, stroke_sigma_mm=noise.stroke_sigma_mm * s
+    )
+    fixed = dataclasses.replace(config, noise=scaled, robust=dataclasses.replace(config.robust, adapt_noise=False))
+    fixed_sigma = make_estimator("lm", platform, fixed).fit(iter(log)).stddev
+    np.testing.assert_allclose(adapted_sigma, fixed_sigma, rtol=0.01)
