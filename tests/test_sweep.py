@@ -634,3 +634,45 @@ def test_what_a_rotary_cell_cannot_simulate_is_refused_in_one_line(tmp_path, gri
         spec_of({"methods": methods, "seeds": 1, "grid": grid}, tmp_path)
     message = str(refused.value)
     assert "\n" not in message and f"spec.toml: key '{key}': " in message and said in message, message
+
+
+def test_a_rows_rejected_samples_are_those_refused_in_the_end(tmp_path, monkeypatch):
+    """A sweep row counts rejections as calibrate's ``samples_rejected`` does: a sample refused and then
+    taken back in by a lock-out recovery is among the used, not the rejected, and one a robust start-up
+    batch left out afterwards is among the rejected. Here ekf refuses its 3rd and 4th samples, a recovery
+    takes one back, and its 6th and 7th are left out late: 2 − 1 + 2 = 3 (before: 2, the refusals alone)."""
+    from stewart_calib.errors import SampleRejected
+    from stewart_calib.sweep import task
+
+    class Accounted:
+        """ekf, but refusing the 3rd and 4th samples, taking one back in (its recovery's summary) and
+        leaving out the 6th and 7th late."""
+
+        def __init__(self, inner):
+            self.inner, self.k, self.late = inner, 0, []
+
+        def update(self, sample):
+            self.k += 1
+            if self.k in (6, 7):
+                self.late.append(SampleRejected(f"sample at t = {sample.t_s} s: left out", SampleRejected.GATED))
+            if self.k in (3, 4):
+                raise SampleRejected(f"sample at t = {sample.t_s} s: gated", SampleRejected.GATED)
+            self.inner.update(sample)
+
+        def take_late_rejections(self):
+            late, self.late = self.late, []
+            return late
+
+        def recovery_summary(self):
+            return {"count": 1, "samples_dropped": 0, "samples_readmitted": 1}
+
+        def estimate(self):
+            return self.inner.estimate()
+
+        def current_error(self):
+            return self.inner.current_error()
+
+    monkeypatch.setattr(task, "make_estimator", lambda *args: Accounted(make_estimator(*args)))
+    _, cell = _cell(tmp_path, samples=60)
+    (row,) = run_task(cell, 11, ("ekf",))
+    assert row["failure"] == "" and row["samples_rejected"] == 3

@@ -30,7 +30,8 @@ last sample:
   instrument sees and scores a rotary drive.
 * ``seconds`` / ``cpu_seconds``: wall and CPU time of the method on the log (CPU time does not
   grow when other work shares the machine: what a study's projection to a cluster uses);
-  ``samples_rejected``: samples it refused.
+  ``samples_rejected``: samples it refused in the end (as ``calibrate``'s ``samples_rejected``: those a
+  robust start-up batch left out in, those a lock-out recovery or a payload step took back in out).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from ..analysis.identifiability import (
 from ..errors import CalibError, SampleRejected
 from ..estimate import Estimate
 from ..estimators import BatchEstimator, make_estimator
-from ..estimators.base import fit_all
+from ..estimators.base import accounted_estimate, fit_all, readmitted_count, take_late_rejections
 from ..estimators.batch import BatchProblem, cramer_rao
 from ..instruments import MODELS, gauge, instrument_kind, registered
 from ..model import kinematics as kin
@@ -560,16 +561,18 @@ def run_method(
                 at_checkpoint[n] = fit_all(make_estimator(method, platform, cell.estimator_config), samples[:n]).error
             except CalibError:  # e.g. ls not converging on a short prefix: that checkpoint is NaN
                 at_checkpoint[n] = np.full(platform.drive.n_params, np.nan)
-    else:
+    else:  # the refusals counted as calibrate counts them: late ones in, those taken back in out
         rejected = 0
         for k, sample in enumerate(samples, start=1):
             try:
                 estimator.update(sample)
             except SampleRejected:
                 rejected += 1
+            rejected += len(take_late_rejections(estimator))
             if k in checkpoints:
                 at_checkpoint[k] = estimator.current_error()
-        estimate = estimator.estimate()
+        estimate = accounted_estimate(estimator)
+        rejected -= readmitted_count(estimate)
     seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu_start
     row = score(data, estimate, crb)
     row["seconds"], row["cpu_seconds"] = seconds, cpu_seconds
