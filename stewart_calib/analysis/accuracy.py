@@ -615,6 +615,11 @@ def worse_than_nominal_line(
     )
 
 
+def _offset(estimate: Estimate, optimum: Estimate) -> np.ndarray:
+    """``estimate − optimum`` over their whole unknown vector ``[δM | blocks]``."""
+    return np.concatenate((estimate.error - optimum.error, estimate.block_error - optimum.block_error))
+
+
 def given_log(estimate: Estimate, optimum: Estimate) -> Estimate | None:
     """``estimate`` with the covariance of its error given the log, ``optimum`` the log's MAP found from it
     (:class:`~stewart_calib.estimators.Relinearising`); None where the optimum has no covariance.
@@ -628,7 +633,7 @@ def given_log(estimate: Estimate, optimum: Estimate) -> Estimate | None:
     honest run differs by the model's curvature, a few per cent)."""
     if optimum.full_covariance is None:
         return None
-    offset = np.concatenate((estimate.error - optimum.error, estimate.block_error - optimum.block_error))
+    offset = _offset(estimate, optimum)
     second = optimum.full_covariance + np.outer(offset, offset)
     n = optimum.layout.n_params
     return dataclasses.replace(estimate, covariance=second[:n, :n], full_covariance=second)
@@ -826,7 +831,7 @@ def estimate_drive_covariance(estimate: Estimate, drive: DriveModel) -> np.ndarr
 
 def _drive_offset(estimate: Estimate, optimum: Estimate, drive: DriveModel) -> np.ndarray:
     """``estimate − optimum`` over ``drive``'s unknowns as :func:`estimate_drive_covariance` takes them."""
-    offset = np.concatenate((estimate.error - optimum.error, estimate.block_error - optimum.block_error))
+    offset = _offset(estimate, optimum)
     index = _drive_index(optimum, drive)
     return np.where(index >= 0, offset[np.maximum(index, 0)], 0.0)
 

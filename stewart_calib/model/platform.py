@@ -430,6 +430,18 @@ def payload_expected(platform: Platform | None, load_kg: float) -> str | None:
     return None if platform is None else payload_refusal(platform, load_kg)
 
 
+def check_payload_option(option: str, load_kg: float, platform: Platform | None = None) -> None:
+    """Refuse a payload given on the command line (``--load-kg``, ``--payload-kg``) that
+    :func:`payload_expected` refuses, in one line naming ``option``.
+
+    Raises:
+        CalibError: ``load_kg`` is not finite, below 0, or (with ``platform``) beyond its payload limit.
+    """
+    not_a_payload = payload_expected(platform, load_kg)
+    if not_a_payload:
+        raise CalibError(f"{option}: expected {not_a_payload}")
+
+
 def payloads_refused(platform: Platform | None, load_kg: np.ndarray) -> np.ndarray:
     """Which of the payloads ``load_kg`` [kg] :func:`payload_expected` refuses (not finite, below 0 or,
     with ``platform``, beyond its :func:`payload_limit`), at once."""

@@ -33,7 +33,7 @@ from ..io import read_pose_list_blocks
 from ..io.logs import POSE_COLUMNS
 from ..io.platform_file import load_platform
 from ..io.tables import header_fields, require_columns
-from ..model.platform import TEMPERATURE_RANGE_C, payload_expected, payload_refusal
+from ..model.platform import TEMPERATURE_RANGE_C, check_payload_option, payload_refusal
 from ..samples import LOAD_KG, TEMPERATURE_C, Inputs
 from . import run_command
 from .handover import calibrated_model
@@ -77,9 +77,7 @@ def add_parser(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    not_a_payload = payload_expected(None, args.payload_kg)
-    if not_a_payload:
-        raise CalibError(f"--payload-kg: expected {not_a_payload}")
+    check_payload_option("--payload-kg", args.payload_kg)
     platform = load_platform(args.platform)
     if args.payload_kg and platform.elastic is None:
         raise CalibError(

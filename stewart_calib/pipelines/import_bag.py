@@ -38,7 +38,7 @@ import numpy as np
 
 from .. import io
 from ..errors import CalibError, shown
-from ..model.platform import INSTRUMENT_SECTIONS, payload_expected
+from ..model.platform import INSTRUMENT_SECTIONS, check_payload_option
 from ..model.rotations import quaternion_to_rotation, rotation_to_rpy
 from . import run_command
 
@@ -268,9 +268,8 @@ def run(args: argparse.Namespace) -> int:
         raise CalibError(f"--out {out}: directory {out.parent} does not exist")
     if not (math.isfinite(args.max_gap_s) and args.max_gap_s > 0):
         raise CalibError(f"--max-gap-s: expected a finite positive number of seconds, got {args.max_gap_s!r}")
-    not_a_payload = payload_expected(None, args.load_kg) if args.load_kg is not None else None
-    if not_a_payload:
-        raise CalibError(f"--load-kg: expected {not_a_payload}")
+    if args.load_kg is not None:
+        check_payload_option("--load-kg", args.load_kg)
     if args.readings is not None and args.readings == args.strokes:
         raise CalibError(f"--readings {shown(args.readings)}: the same topic as --strokes; expected the tracker's own")
     stroke_joints = _joint_names(args.stroke_joints, "--stroke-joints", len(io.STROKE_COLUMNS))

@@ -41,7 +41,7 @@ from ..instruments import MODELS
 from ..io import exports
 from ..io.exports import Block
 from ..io.platform_file import load_platform
-from ..model.platform import INSTRUMENT_SECTIONS, payload_expected, payloads_refused
+from ..model.platform import INSTRUMENT_SECTIONS, check_payload_option, payload_expected, payloads_refused
 from ..model.rotations import rpy_to_rotation
 from . import run_command
 
@@ -599,9 +599,7 @@ def run(args: argparse.Namespace) -> int:
                 f"--load-kg: the mapping's [strokes] load_kg = {strokes.load!r} gives the payload already; expected "
                 "one of the two"
             )
-        not_a_payload = payload_expected(platform, args.load_kg)
-        if not_a_payload:
-            raise CalibError(f"--load-kg: expected {not_a_payload}")
+        check_payload_option("--load-kg", args.load_kg, platform)
     constant_load = ("load_kg",) if args.load_kg is not None else ()
     drive_columns = tuple(f"q{i}_{strokes.log_unit}" for i in range(1, 7))  # spec §3, §15
     notes: list = [what, *([tally] if tally is not None else []), strokes.what]

@@ -131,7 +131,12 @@ def estimate_tracker_geometry(platform: Platform, log: Log, config: EstimatorCon
 
     def drives_at(steps: list[tuple[int, float]]) -> list:
         """The fitted drive with its unknown ``steps`` ``(column, step)`` applied one at a time."""
-        return [drive_at(fitted_x + step * np.eye(len(fitted_x))[column]) for column, step in steps]
+        moved = []
+        for column, step in steps:
+            x = fitted_x.copy()
+            x[column] += step
+            moved.append(drive_at(x))
+        return moved
 
     def residuals(drives, legs):
         r, converged = tracker_reading_residuals(drives, legs, log.strokes, log.readings, log.inputs)
