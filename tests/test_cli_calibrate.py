@@ -68,6 +68,7 @@ def fakes(monkeypatch):
     monkeypatch.setattr(calibrate_pipeline, "diagnose_log", lambda *args: None)
     monkeypatch.setattr(calibration, "diagnose_log", lambda *args: None)
     # nor can a drive fit measure a tracker's geometry on them (tests/test_tracker_geometry_estimate.py)
+    monkeypatch.setattr(calibrate_pipeline, "applies", lambda platform, config: False)
     monkeypatch.setattr(
         calibrate_pipeline, "with_estimated_geometry", lambda platform, method, config, log: (config, None)
     )

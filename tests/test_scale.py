@@ -254,12 +254,10 @@ def test_online_commands_hold_no_more_at_4n_samples(long_logs, tmp_path, monkeyp
     # tracker's geometry is measured on of at most 100 (both fixed, whatever N); the first run also
     # loads caches and imports.
     from stewart_calib.io import logs
-    from stewart_calib.pipelines import calibrate
     from stewart_calib.workflows import calibration, tracker_geometry
 
     monkeypatch.setattr(logs, "BLOCK_BYTES", 1 << 12)
     monkeypatch.setattr(calibration, "CHECKED_SAMPLES", 100)
-    monkeypatch.setattr(calibrate, "ESTIMATE_SAMPLES", 100)
     monkeypatch.setattr(tracker_geometry, "ESTIMATE_SAMPLES", 100)
     platform = str(nim_stewart().source)
 

@@ -15,7 +15,7 @@ import pytest
 
 from stewart_calib import cli
 from stewart_calib.config import EstimatorConfig
-from stewart_calib.io import read_log
+from stewart_calib.io import read_log, write_log
 from stewart_calib.io.platform_file import load_platform
 from stewart_calib.resources import resolve
 from stewart_calib.simulation.experiment import TrackerConfig
@@ -159,3 +159,62 @@ def test_lms_noise_scale_leaves_the_prior_as_given(logs):
     fixed = dataclasses.replace(config, noise=scaled, robust=dataclasses.replace(config.robust, adapt_noise=False))
     fixed_sigma = make_estimator("lm", platform, fixed).fit(iter(log)).stddev
     np.testing.assert_allclose(adapted_sigma, fixed_sigma, rtol=0.01)
+
+
+def _rest_then(log, rest: int, rng):
+    """``log`` after ``rest`` samples of the robot resting at its first pose (fresh noise on every reading:
+    encoders 1 µm, rulers 0.5 µm), 10 ms apart before it."""
+    from stewart_calib.samples import Log
+
+    at_rest = log.select(np.zeros(rest, dtype=int))
+    at_rest.strokes += rng.normal(0.0, 1e-3, at_rest.strokes.shape)
+    at_rest.readings += rng.normal(0.0, TrackerConfig.noise_mm, at_rest.readings.shape)
+    at_rest.t_s -= 0.01 * np.arange(rest, 0, -1)
+    return Log.concatenate([at_rest, log])
+
+
+def test_the_samples_read_count_fifty_of_a_held_pose():
+    from stewart_calib.workflows.tracker_geometry import HELD_SAMPLES, EstimateSamples
+
+    rng = np.random.default_rng(2)
+    at_rest = np.full((300, 6), 500.0) + rng.normal(0.0, 1e-3, (300, 6))
+    moving = 500.0 + np.cumsum(np.full((40, 6), 0.5), axis=0)  # 0.5 mm a sample: every sample a pose
+    picked = EstimateSamples()
+    assert not picked.add(np.vstack([at_rest, moving]))
+    assert picked.indices == [*range(HELD_SAMPLES), *range(300, 340)] and picked.poses == 41
+
+
+def test_a_log_that_starts_at_rest_still_shows_the_trackers_residual(logs, tmp_path):
+    """quick's log after 3000 samples at rest (30 s at home before the robot moves). Before, the estimate
+    read those 3000 samples' first 2000, of one pose, on which the drive's fit failed: no estimate, no
+    line, and ekf's σ without the geometry's error (z² 22 on quick)."""
+    sim = logs / "real"
+    platform = load_platform(sim / "platform.toml")
+    rested = tmp_path / "sim"
+    rested.mkdir()
+    log = _rest_then(read_log(sim / "log.csv", platform), 3000, np.random.default_rng(3))
+    write_log(rested / "log.csv", log, platform)
+    (rested / "platform.toml").write_text((sim / "platform.toml").read_text(encoding="utf-8"), encoding="utf-8")
+    result, err = _calibrate(rested, "ekf", tmp_path / "r.json")
+    assert "the tracker's own geometry is off its nominal" in err
+    assert result["config"]["noise"]["tracker_geometry_sigma_mm"] == pytest.approx(
+        RESIDUAL_MM, rel=4 * 0.5 * np.sqrt(2 / 30)
+    )
+
+
+def test_a_log_at_rest_past_the_head_is_said_to_give_no_estimate(logs, tmp_path, monkeypatch):
+    from stewart_calib.workflows import tracker_geometry
+
+    monkeypatch.setattr(tracker_geometry, "ESTIMATE_SAMPLES", 100)  # the head then holds 2000 samples at most
+    sim = logs / "real"
+    platform = load_platform(sim / "platform.toml")
+    rested = tmp_path / "sim"
+    rested.mkdir()
+    log = _rest_then(read_log(sim / "log.csv", platform), 2500, np.random.default_rng(3))
+    write_log(rested / "log.csv", log, platform)
+    (rested / "platform.toml").write_text((sim / "platform.toml").read_text(encoding="utf-8"), encoding="utf-8")
+    result, err = _calibrate(rested, "ekf", tmp_path / "r.json")
+    assert (
+        "warning: the tracker's own geometry was not measured: the log's first 2000 samples hold 1 pose (50 read" in err
+    )
+    assert result["config"]["noise"]["tracker_geometry_sigma_mm"] == 0.0

@@ -73,7 +73,7 @@ from ..workflows.calibration import (
 from ..workflows.diagnosis import diagnose_log
 from ..workflows.online import Rejections
 from ..workflows.planning import noise_floor
-from ..workflows.tracker_geometry import ESTIMATE_SAMPLES, applies, with_estimated_geometry
+from ..workflows.tracker_geometry import HELD_SAMPLES, EstimateSamples, applies, with_estimated_geometry
 from ..workflows.validation import (
     measurement_residuals,
     nominal_residuals,
@@ -84,10 +84,21 @@ from ..workflows.validation import (
 from . import add_config_arguments, add_tolerance_arguments, check_output_path, handover, run_command
 
 
-def _with_measured_geometry(platform: Platform, method: str, config, log: Log):
+def _with_measured_geometry(platform: Platform, method: str, config, unmeasured: list[str], log: Log):
     """``config`` with the tracker's geometry σ the log shows (:mod:`stewart_calib.workflows.tracker_geometry`),
-    said on stderr where the log shows an error, and warned of where ``method`` cannot identify it."""
+    said on stderr where the log shows an error, and warned of where ``method`` cannot identify it; where the
+    estimate applies but the log's head gives none, the warning is added to ``unmeasured`` (said once the log
+    is known to be this robot's: a log of another one is refused for what it is)."""
     measured, estimate = with_estimated_geometry(platform, method, config, log)
+    if estimate is None and applies(platform, config):
+        picked = EstimateSamples()
+        picked.add(log.strokes)
+        unmeasured.append(
+            f"warning: the tracker's own geometry was not measured: the log's first {picked.seen} samples hold "
+            f"{picked.poses} pose{'' if picked.poses == 1 else 's'} ({len(picked.indices)} read: at most "
+            f"{HELD_SAMPLES} of one held pose), which give no drive fit to measure it against; it is taken as exact, "
+            "and an error of it is missing from the σ and the predicted error"
+        )
     if estimate is None or not estimate.detected:
         return measured
     found = (
@@ -266,6 +277,7 @@ def run(args: argparse.Namespace) -> int:
         skipped = Tally()
         residuals = None
         log_digest = hashlib.sha256()  # of the log's bytes as read (standard input's too): validate knows its own log
+        unmeasured: list[str] = []  # the tracker geometry's warning where the log's head gives no estimate
         if streamed:
             trace_file = None
             if trace_path:
@@ -276,7 +288,9 @@ def run(args: argparse.Namespace) -> int:
             stack.callback(spool.close)
             # the tracker's geometry measured on the log's head, which the stream reads first (diagnosed)
             measure = applies(platform, config)
-            configure = (ESTIMATE_SAMPLES, partial(_with_measured_geometry, platform, args.method, config))
+            head = EstimateSamples()
+            measured = partial(_with_measured_geometry, platform, args.method, config, unmeasured)
+            configure = (lambda block: head.add(block.strokes), measured)
             streaming = stream_calibration(
                 platform,
                 args.log,
@@ -297,7 +311,7 @@ def run(args: argparse.Namespace) -> int:
             log = io.read_log(args.log, platform, skip_bad_rows=args.skip_bad_rows, digest=log_digest.update)
             skipped.add(log.skipped)
             diagnose_log(platform, log.strokes, log.readings, args.log)
-            config = _with_measured_geometry(platform, args.method, config, log)
+            config = _with_measured_geometry(platform, args.method, config, unmeasured, log)
             # isam2 costs milliseconds a sample (a pose instrument's whole session in the smoother: ~15 ms),
             # so a few hundred samples take seconds: its bar shows whatever the log's length
             progress = sys.stderr.isatty() and (len(log) >= MIN_LOG_ROWS or args.method == "isam2")
@@ -329,6 +343,7 @@ def run(args: argparse.Namespace) -> int:
             noise_scale,
         )
         for text in (
+            *unmeasured,
             prior_reach_warning(platform, estimate.error, config.noise, args.method),
             payload_walk_warning(platform.elastic, estimate),
         ):

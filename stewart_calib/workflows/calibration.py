@@ -377,15 +377,16 @@ def stream_calibration(
     trace_file=None,
     on_read: Callable[[Log], None] | None = None,
     digest: Callable[[bytes], None] | None = None,
-    configure: tuple[int, Callable[[Log], EstimatorConfig]] | None = None,
+    configure: tuple[Callable[[Log], bool], Callable[[Log], EstimatorConfig]] | None = None,
 ) -> StreamedRun:
     """An online ``method`` over the log at ``path``, read a block at a time (memory independent
     of its length); the trace rows (spec §6) are written to the open ``trace_file`` as they come,
     and ``on_read`` gets each block of good samples as it is read, on the read-ahead thread (e.g.
     :meth:`SampleSpool.add` for a second pass); ``digest`` the log's bytes (:func:`stewart_calib.io.read_log`).
-    ``configure = (n, function)``: the estimator is built with ``function(head)``'s configuration instead,
-    ``head`` the log's first blocks of at least ``n`` samples (held, so the log is still read once: a pipe or
-    FIFO as well as a file).
+    ``configure = (complete, function)``: the estimator is built with ``function(head)``'s configuration
+    instead, ``head`` the log's first blocks up to the one after which ``complete(block)`` (called with each
+    block in turn) is true, or the whole log (held, so the log is still read once: a pipe or FIFO as well as a
+    file).
 
     Raises:
         CalibError: a bad log (as :func:`stewart_calib.io.read_log`), a method that rejected every sample.
@@ -422,11 +423,11 @@ def stream_calibration(
         read(block) for block in io.read_log_blocks(path, platform, skip_bad_rows, digest=digest)
     )
     if configure is not None:
-        head_samples, configured = configure
+        complete, configured = configure
         head = []
         for block in blocks:
             head.append(block)
-            if sum(map(len, head)) >= head_samples:
+            if complete(block):
                 break
         config = configured(Log.concatenate(head))
         estimator = estimators.make_estimator(method, platform, config)
