@@ -20,7 +20,6 @@ config, versions).
 from __future__ import annotations
 
 import argparse
-import hashlib
 import sys
 from contextlib import ExitStack
 from functools import partial
@@ -265,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
     with ExitStack() as stack:
         skipped = Tally()
         residuals = None
-        log_digest = hashlib.sha256()  # of the log's bytes as read (standard input's too): validate knows its own log
+        log_digest = io.LogDigest()  # of the log's bytes as read (standard input's too): validate knows its own log
         if streamed:
             trace_file = None
             if trace_path:
@@ -346,7 +345,7 @@ def run(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
 
-        extra: dict[str, object] = {"samples_rejected": rejected, "log_sha256": log_digest.hexdigest()}
+        extra: dict[str, object] = {"samples_rejected": rejected, **log_digest.field()}
         warning = None
         if not outside:  # the leg set's FK gives the poses to assess
             poses, strokes, channels = measured_samples(platform, checked)
