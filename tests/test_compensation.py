@@ -35,7 +35,7 @@ def test_estimate_without_nominal_is_refused():
         compensate(Estimate(np.zeros(42), None, "test"), np.zeros((1, 6)))
 
 
-def test_cli_writes_strokes_that_reach_the_poses(tmp_path):
+def test_cli_writes_strokes_that_reach_the_poses(tmp_path, capsys):
     from stewart_calib import io
     from stewart_calib.cli import main
     from stewart_calib.io import read_pose_list, write_pose_list
@@ -49,6 +49,8 @@ def test_cli_writes_strokes_that_reach_the_poses(tmp_path):
     write_pose_list(tmp_path / "poses.csv", poses)
     argv = ["compensate", "--platform", str(NIM_STEWART), "--result", str(tmp_path / "r.json")]
     assert main([*argv, "--poses", str(tmp_path / "poses.csv"), "--out", str(tmp_path / "q.csv")]) == 0
+    # its status line names the command, as every command's does (the strokes are in the file, not on stdout)
+    assert capsys.readouterr().out == f"stewart-calib compensate: wrote 20 stroke rows to {tmp_path / 'q.csv'}\n"
     text = (tmp_path / "q.csv").read_text().splitlines()
     assert text[0].split(",")[-6:] == [f"q{i}_mm" for i in range(1, 7)]
     strokes = np.array([row.split(",")[-6:] for row in text[1:]], dtype=float)

@@ -205,7 +205,11 @@ def test_cli_reads_a_log_and_writes_json(platform, tmp_path, capsys):
         ["identifiability", "--platform", str(platform.source), "--log", str(tmp_path / "log.csv"), "--json", str(out)]
     )
     assert code == 0
-    assert "verdict: identifiable" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "verdict: identifiable" in printed
+    # the lines after the report, which judge it, name the command (as plan's and calibrate's do)
+    (line,) = [line for line in printed.splitlines() if "predicted closed-loop pose error after calibration" in line]
+    assert line.startswith("stewart-calib identifiability: predicted closed-loop pose error after calibration ("), line
     doc = json.loads(out.read_text())
     # Tracker FK poses differ from the true ones by µm: the report is that of the true poses.
     expected = identifiability_report(platform, poses, NOISE)

@@ -86,3 +86,36 @@ def test_validate_on_another_log_or_an_older_result_says_nothing_of_it(calibrate
     io.write_result(calibrated / "older.json", older)
     out, err = _validate(capsys, calibrated, "fit.csv", "older.json")
     assert not any("in-sample" in line or "calibration's own" in line for line in out + err)
+
+
+@pytest.mark.parametrize("ending", ["\n", ""], ids=["line-break", "no-final-line-break"])
+def test_track_writes_the_sha256_of_the_log_it_read_and_validate_knows_it(calibrated, tmp_path, capsys, ending):
+    # track's final result names its log as calibrate's does, read to its end in lines (a last one without its
+    # line break too): validate on that log says it is in-sample, as the online estimate has had every row of it
+    text = (calibrated / "fit.csv").read_text(encoding="utf-8").removesuffix("\n") + ending
+    (tmp_path / "fit.csv").write_bytes(text.encode("utf-8"))
+    argv = ["track", "--platform", str(calibrated / "p.toml"), "--method", "ekf", "--log", str(tmp_path / "fit.csv")]
+    assert main([*argv, "--every", "7", "--out", str(tmp_path / "t.json")]) == 0
+    written = io.read_result(tmp_path / "t.json")
+    assert written["final"] and written["log_sha256"] == hashlib.sha256(text.encode("utf-8")).hexdigest()
+    io.write_result(calibrated / "track.json", written)
+    (calibrated / "track-fit.csv").write_bytes(text.encode("utf-8"))
+    out, err = _validate(capsys, calibrated, "track-fit.csv", "track.json")
+    assert f"stewart-calib validate: {IN_SAMPLE_LINE}" in err and "in-sample" in out[-1]
+    out, err = _validate(capsys, calibrated, "held.csv", "track.json")
+    assert not any("in-sample" in line or "calibration's own" in line for line in out + err)
+
+
+def test_track_digests_the_lines_it_reads_from_standard_input(calibrated, tmp_path):
+    argv = ["track", "--platform", str(calibrated / "p.toml"), "--method", "ekf", "--log", "-"]
+    with open(calibrated / "fit.csv", "rb") as log:
+        done = subprocess.run(
+            [sys.executable, "-m", "stewart_calib", *argv, "--out", str(tmp_path / "t.json")],
+            stdin=log,
+            capture_output=True,
+            cwd=ROOT,
+            timeout=300,
+        )
+    assert done.returncode == 0, done.stderr
+    written = json.loads((tmp_path / "t.json").read_text())
+    assert written["log_sha256"] == io.read_result(calibrated / "r.json")["log_sha256"]

@@ -265,3 +265,31 @@ def test_every_row_is_accounted_for_when_a_payload_goes_on_over_20_s(tmp_path, m
     dropped = change["samples_dropped"] + (estimate.details.get("recovery") or {}).get("samples_dropped", 0)
     assert change["samples_readmitted"] > 0
     assert estimate.samples_used + skipped_count(0, len(result.rejected), estimate) + dropped == len(log)
+
+
+def test_the_sample_a_payload_step_is_taken_at_without_it_is_listed_among_the_refusals(tmp_path):
+    # the paper's experiment, seed 3, 40 kg put on at once, ekf: its first step is confirmed before its window (14 of
+    # 20 samples), at a sample that the candidate taken refuses as the filter does (the payload moved past both), so
+    # that no state holds it. Before, the update returned, the sample was listed nowhere and samples_skipped counted
+    # it only through a samples_readmitted one short (121 refusals listed, 20 + 18 readmitted; now 122, 21 + 18)
+    from stewart_calib.errors import SampleRejected
+    from stewart_calib.estimators import make_estimator
+    from stewart_calib.estimators.base import accounted_estimate, skipped_count, update_each
+
+    experiment = paper_payload_experiment(tmp_path, seed=3)
+    samples = list(replace(run_experiment(experiment).log, inputs={}))
+    platform = replace(experiment.platform, elastic=replace(elastic_of(experiment.load), payload_sigma_kg=50.0))
+    ekf = make_estimator("ekf", platform, load_estimator_config(resolve("default", "estimators")))
+    listed, stepped_at = [], []  # (time of the sample, its refusal); the samples a step was taken at
+    for k, sample in enumerate(samples):
+        steps = ekf.robust.steps
+        refused, late = update_each(ekf, [sample], first=k)
+        listed += [(sample.t_s, err) for _, err in refused] + [(err.t_s, err) for _, err in late]
+        if ekf.robust.steps > steps and not refused:
+            stepped_at.append(sample.t_s)
+    assert stepped_at, "no payload step taken"
+    (reason,) = [err.reason for t_s, err in listed if t_s == stepped_at[0]]
+    assert reason == SampleRejected.GATED
+    estimate = accounted_estimate(ekf)
+    dropped = estimate.details["payload_change"]["samples_dropped"] + estimate.details["recovery"]["samples_dropped"]
+    assert estimate.samples_used + skipped_count(0, len(listed), estimate) + dropped == len(samples)

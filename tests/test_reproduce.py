@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import json
 import math
 import re
@@ -42,10 +44,25 @@ RECORDED = (
 
 
 @pytest.fixture(scope="module")
-def out(tmp_path_factory) -> Path:
+def run(tmp_path_factory) -> tuple[Path, str]:
+    """``reproduce --quick``: the directory it wrote, and what it printed on standard output."""
     out = tmp_path_factory.mktemp("reproduce")
-    assert cli_main(["reproduce", "--quick", "--out", str(out)]) == 0
-    return out
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        assert cli_main(["reproduce", "--quick", "--out", str(out)]) == 0
+    return out, printed.getvalue()
+
+
+@pytest.fixture(scope="module")
+def out(run) -> Path:
+    return run[0]
+
+
+def test_the_status_line_names_the_command(run):
+    out, printed = run
+    # as every command's status lines do
+    line = rf"stewart-calib reproduce: reproduced 'quick' in \d+\.\d s into {re.escape(str(out))}\n"
+    assert re.fullmatch(line, printed), printed
 
 
 @pytest.fixture(scope="module")

@@ -101,7 +101,8 @@ def test_identifiability_text_says_angle_scale_and_names_the_weak_ones(servo, ca
     assert cli.main(["identifiability", "--platform", str(servo["platform"]), "--log", str(servo["log"])]) == 0
     text = capsys.readouterr().out
     assert text.startswith("Identifiability of drive, angle scale and pose instrument from 70 poses")
-    (line,) = [line for line in text.splitlines() if line.startswith("seen no better than their prior")]
+    prior = "stewart-calib identifiability: seen no better than their prior"
+    (line,) = [line for line in text.splitlines() if line.startswith(prior)]
     assert re.search(r"tw\d [\d.]+ \(prior 2\)", line)
 
 

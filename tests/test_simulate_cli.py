@@ -120,7 +120,7 @@ def validation_errors(out: Path) -> dict[str, float]:
     return {stage: float(position[(kinds == "validation") & (stages == stage)].mean()) for stage in ("no-load", "40kg")}
 
 
-def test_frozen_true_model_drives_far_closer_than_nominal(simulated, true_result, tmp_path):
+def test_frozen_true_model_drives_far_closer_than_nominal(simulated, true_result, tmp_path, capsys):
     path, drive = true_result
     out = tmp_path / "frozen"
     assert (
@@ -129,6 +129,10 @@ def test_frozen_true_model_drives_far_closer_than_nominal(simulated, true_result
         )
         == 0
     )
+    # its two status lines name the command, as every command's do
+    done, errors = capsys.readouterr().out.splitlines()
+    assert done.startswith("stewart-calib simulate: simulated ") and done.endswith(f" (frozen controller) into {out}")
+    assert errors.startswith("stewart-calib simulate: pose error RMS (true − desired), nominal → frozen controller: x ")
     # the files are the in-memory run with the same frozen model
     expected = run_experiment(load_experiment(QUICK), FrozenController(drive))
     np.testing.assert_array_equal(read_truth(out / "truth.csv").params, without_noise(expected.truth.params))

@@ -260,6 +260,9 @@ def test_a_part_cut_short_is_computed_again_on_resume_and_said(tmp_path, capsys)
     said = capsys.readouterr().out
     assert "(1 already done; 2 damaged parts computed again, first " in said and "shorter than any Parquet" in said
     assert "2 tasks run, 1 already done, 0 failed of 3" in said
+    # the plan line and the summary line name the command, as every command's status lines do
+    assert said.startswith("stewart-calib sweep: cut: 1 cells × 3 seeds = 3 tasks (1 already done; ")
+    assert said.splitlines()[-1].startswith("stewart-calib sweep: 2 tasks run, 1 already done, 0 failed of 3;")
     assert _rows(out) == rows
     middle = len(whole) // 2
     parts[2].write_bytes(whole[:8] + bytes(b ^ 0xFF for b in whole[8:middle]) + whole[middle:])

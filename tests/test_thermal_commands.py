@@ -459,7 +459,7 @@ def test_identifiability_names_the_expansion_and_its_trade_off_at_one_temperatur
         "(l_i + q_i) is a combination of l_i and k_i; not identified by the data, above the prior σ 20 ppm/K): "
         "the calibration keeps them near [thermal] expansion_ppm_per_K; a log over a warm-up separates them"
     )
-    assert expected in text.splitlines()
+    assert f"stewart-calib identifiability: {expected}" in text.splitlines()  # the JSON's field is the line itself
     assert json.loads((tmp_path / "i.json").read_text())["thermal_trade_off"] == expected
 
 
@@ -492,7 +492,9 @@ def test_the_trade_off_threshold_is_the_data_against_the_prior(warm, tmp_path, c
         )
     assert found["p"] == ([], [])
     (identifiability_line,), (calibrate_line,) = found["tight"]
-    assert identifiability_line.startswith("warning: alpha1…alpha6 not separable from l_i and k_i: the log spans 0.3 K")
+    assert identifiability_line.startswith(
+        "stewart-calib identifiability: warning: alpha1…alpha6 not separable from l_i and k_i: the log spans 0.3 K"
+    )
     sigma = [float(v) for v in re.search(r"Cramér–Rao σ ([0-9.]+)–([0-9.]+) ppm/K", identifiability_line).groups()]
     assert 1.0 < sigma[0] <= sigma[1] < 10.0 and "above the prior σ 1 ppm/K" in identifiability_line
     assert calibrate_line.startswith(

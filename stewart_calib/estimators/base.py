@@ -106,7 +106,9 @@ class Relinearising(Protocol):
 
 def take_late_rejections(estimator: Estimator) -> list[SampleRejected]:
     """Samples an estimator took provisionally and has since left out (a robust start-up batch,
-    :mod:`.robust`), each reported once; ``err.t_s`` is the sample's time. Empty for others."""
+    :mod:`.robust`), or refused in an update that moved its state all the same (an unannounced payload's
+    step taken at a sample it does not take), each reported once; ``err.t_s`` is the sample's time. Empty
+    for others."""
     take = getattr(estimator, "take_late_rejections", None)
     return take() if take is not None else []
 

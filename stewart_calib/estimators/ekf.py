@@ -406,8 +406,9 @@ class LegEKF:
         return self.robust.payload_change_summary()
 
     def take_late_rejections(self) -> list[SampleRejected]:
-        """Start-up samples the robust batch left out once decided (see :class:`RobustFilter`)."""
-        return self._held.take_late() + self.robust.take_late_rejections()
+        """Start-up samples the robust batch left out once decided, and those an unannounced payload's step was
+        taken at without them (see :class:`RobustFilter`)."""
+        return self._held.take_late() + self.robust.take_late_rejections() + self.robust.take_step_refusals()
 
     def noise_scale(self) -> float | None:
         """The measurement noise found in the data as a multiple of the configured σ (None

@@ -287,6 +287,9 @@ class ISAM2Estimator:
             if self._payload is not None and err.reason == SampleRejected.GATED:
                 self._front_gated.append(sample)
             raise
+        # a step the front end took at this sample without it: the graph takes the sample itself, as it takes
+        # back the front end's refusals since the step began (_note_step), so it is no refusal of isam2's
+        self._front.robust.take_step_refusals()
         self._note_step(sample, steps)
 
     def _note_step(self, sample: Sample, steps_before: int) -> None:

@@ -285,6 +285,8 @@ class RobustFilter:
         self.step_dropped, self.step_readmitted = 0, 0
         self.started = robust.startup_samples <= 0
         self._late: list[SampleRejected] = []
+        # the samples a payload step was taken at that its state does not hold (take_step_refusals)
+        self._step_refused: list[SampleRejected] = []
         #: ``noise_scale2`` was measured from the data (a batch had the redundancy)
         self.measured_noise = False
         #: the start-up batch's verdict on its samples (in order), once it is decided
@@ -483,6 +485,13 @@ class RobustFilter:
         """The start-up samples the decided batch left out (each once), for the caller's count."""
         late, self._late = self._late, []
         return late
+
+    def take_step_refusals(self) -> list[SampleRejected]:
+        """The samples a step of the ``step`` unknown was taken at without taking them (each once; ``err.t_s``
+        its time): the candidate taken refused the sample as the filter did (a step confirmed before its
+        window, :meth:`_test_steps`), so the update that took the step returned and the sample is in no state."""
+        refused, self._step_refused = self._step_refused, []
+        return refused
 
     # ------------------------------------------------------------------ recursion
 
@@ -704,6 +713,7 @@ class RobustFilter:
         filter_takes = not filter_ll.nis > f.gate_nis
         self._dispersions.append(min(filter_ll.nis, f.gate_nis) / len(nu))
         candidates = []
+        taking = []  # the candidates that take this sample
         change_over = False
         for c in self._candidates:
             from_change = self._change_origin is not None and c.origin is self._change_origin
@@ -722,12 +732,13 @@ class RobustFilter:
                 gain = taken_ll.value - filter_ll.value
                 withheld = at_start and c.at_new_pose
                 ratio, start_ratio = (c.ratio, c.start_ratio + gain) if withheld else (c.ratio + gain, 0.0)
-                candidates.append(
+                taking.append(
                     _Candidate(
                         x, P, ratio, nis, c.taken + 1, c.readmitted + (not filter_takes), c.t_s, c.origin, misfit,
                         at_start, c.at_new_pose, start_ratio=start_ratio,
                     )
                 )  # fmt: skip
+                candidates.append(taking[-1])
                 # a window of samples, and the filter's state explains them as well: the change was over
                 change_over |= (
                     from_change and not at_start and c.taken + 1 >= self._robust.lockout_window_samples and ratio <= 0.0
@@ -756,6 +767,7 @@ class RobustFilter:
             start = self._stepped_update(t_s, prepared, origin, R0, stepped_Q, filter_takes, observed)
             if start is not None:
                 candidates.append(start)
+                taking.append(start)
                 if len(candidates) > MAX_STEP_CANDIDATES:  # the least likely of the older ones goes
                     candidates.pop(int(np.argmin([c.ratio + c.start_ratio for c in candidates[:-1]])))
         self._candidates = candidates
@@ -771,11 +783,14 @@ class RobustFilter:
             return False
         f.x, f.P, f.nis, f.S = best.x, best.P, best.nis, S
         self._misfit = best.misfit
-        # the origin's samples, the one the step began at and those it took after it (this one too): of the
-        # filter's samples since the origin (this one not yet), those the step did not take are out (taken while
-        # the unknown moved), and those the filter refused before this one that it took are in
-        self.step_readmitted += best.readmitted - (not filter_takes)
-        in_both = 1 + best.taken - best.readmitted - filter_takes
+        # the origin's samples, the one the step began at and those it took after it (this one too, where it
+        # took it): of the filter's samples since the origin (this one not yet), those the step did not take are
+        # out (taken while the unknown moved), and those the filter refused before this one that it took are in
+        takes = any(best is c for c in taking)
+        self.step_readmitted += best.readmitted - (takes and not filter_takes)
+        in_both = 1 + best.taken - best.readmitted - (takes and filter_takes)
+        if not takes:  # the step refused it, as the filter did (or sees no pose in it): refused, said once
+            self._step_refused.append(self._step_refusal(t_s, filter_takes))
         self.step_dropped += f.samples_used - best.origin.samples_used - in_both
         f.samples_used = best.origin.samples_used + 1 + best.taken
         self._change_origin = best.origin
@@ -787,6 +802,24 @@ class RobustFilter:
         self._buffer.clear()
         self._since_window, self._last_window = 0, None
         return True
+
+    def _step_refusal(self, t_s: float, filter_takes: bool) -> SampleRejected:
+        """The refusal of the sample at ``t_s`` that a step was taken at without it (:meth:`take_step_refusals`):
+        gated by the filter and the step, or, where the filter takes it, fixing no pose at the step's state."""
+        if filter_takes:
+            err = SampleRejected(
+                f"{self.method}: sample at t = {number(t_s)} s: the measurement does not fix a pose at the payload "
+                "step taken at it",
+                SampleRejected.NO_POSE,
+            )
+        else:
+            err = SampleRejected(
+                f"{self.method}: sample at t = {number(t_s)} s is refused by the filter and by the payload step "
+                "taken at it (χ² gate)",
+                SampleRejected.GATED,
+            )
+        err.t_s = t_s
+        return err
 
     def _leads(self, ratio: float) -> bool:
         """Whether a candidate step's ``ratio`` (or the one it withholds at its start pose, 0 once it has left it)

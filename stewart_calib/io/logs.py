@@ -11,6 +11,7 @@ expected. Every writer goes through :func:`~.atomic.atomic_write_text`.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import operator
 import os
@@ -530,6 +531,30 @@ def _flag_log_values(table: Table, platform: Platform | None, has_pose: bool, in
     inputs.flag(table)
 
 
+class LogDigest:
+    """The SHA-256 of a log's bytes as a reader hands them on (the ``digest`` hook of :func:`read_log` and
+    :func:`read_log_blocks`, ``track``'s lines): a result's ``"log_sha256"``, by which ``validate`` knows
+    the log a calibration was fitted to (docs/formats.md)."""
+
+    #: the result's field
+    FIELD = "log_sha256"
+
+    def __init__(self):
+        self._sha256 = hashlib.sha256()
+
+    def update(self, data: bytes) -> None:
+        """The next bytes of the log, in order (a reader's ``digest`` hook)."""
+        self._sha256.update(data)
+
+    def field(self) -> dict[str, str]:
+        """The result's field: the digest of the bytes so far, in lower-case hex."""
+        return {self.FIELD: self._sha256.hexdigest()}
+
+    def is_of(self, result: dict) -> bool:
+        """Whether ``result`` was fitted to these bytes (its ``"log_sha256"``); False for one written without it."""
+        return result.get(self.FIELD) == self._sha256.hexdigest()
+
+
 #: bytes of a log read and parsed at a time (a few ten thousand rows): what reading a log holds
 #: in memory besides the samples kept, whatever the log's length.
 BLOCK_BYTES = 1 << 22
@@ -554,7 +579,7 @@ def read_log(
     yaw rad]`` or the targets' ``p1x … pKz`` [mm] with NaN for a target not seen.
 
     ``digest`` is handed every byte of the log, in order, before a row is parsed: the bytes read (a
-    pipe's or standard input's as they came), e.g. ``hashlib.sha256().update`` for the result's ``log_sha256``.
+    pipe's or standard input's as they came), e.g. :meth:`LogDigest.update` for the result's ``log_sha256``.
 
     Raises:
         CalibError: the file is missing, unreadable or not UTF-8; a required column is

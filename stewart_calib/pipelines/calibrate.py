@@ -20,7 +20,6 @@ config, versions).
 from __future__ import annotations
 
 import argparse
-import hashlib
 import sys
 from contextlib import ExitStack
 from functools import partial
@@ -276,7 +275,7 @@ def run(args: argparse.Namespace) -> int:
     with ExitStack() as stack:
         skipped = Tally()
         residuals = None
-        log_digest = hashlib.sha256()  # of the log's bytes as read (standard input's too): validate knows its own log
+        log_digest = io.LogDigest()  # of the log's bytes as read (standard input's too): validate knows its own log
         unmeasured: list[str] = []  # the tracker geometry's warning where the log's head gives no estimate
         if streamed:
             trace_file = None
@@ -361,7 +360,7 @@ def run(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
 
-        extra: dict[str, object] = {"samples_rejected": rejected, "log_sha256": log_digest.hexdigest()}
+        extra: dict[str, object] = {"samples_rejected": rejected, **log_digest.field()}
         warning = None
         if not outside:  # the leg set's FK gives the poses to assess
             poses, strokes, channels = measured_samples(platform, checked)

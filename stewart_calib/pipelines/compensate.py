@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
             raise CalibError(f"{shown(args.poses)}: cannot read the pose list ({err.strerror})") from None
     strokes = _compensated_blocks(args.poses, drive, platform, inputs)
     rows = io.write_pose_list_blocks(args.out, strokes, io.drive_columns(platform))
-    print(f"wrote {rows} stroke rows to {args.out}")
+    print(f"stewart-calib compensate: wrote {rows} stroke rows to {shown(args.out)}")
     return 0
 
 

@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     warning = warning_line(report)
     for line in (warning, trade_off):
         if line:
-            print(line)
+            print(f"stewart-calib identifiability: {line}")
     prediction = _prediction(platform, covariance, poses, information.n_poses, noise, args.config, bound)
     if args.json:
         thermal = {} if trade_off is None else {"thermal_trade_off": trade_off}
@@ -172,15 +172,15 @@ def _prediction(
     words = noise_words(platform, noise or NoiseConfig(), config)
     what = f"{PREDICTION_HEAD} ({words})" if bound is None else f"{PREDICTION_HEAD} ({bound}; {words})"
     if covariance is None:
-        print(f"{what}: none (the poses do not identify every unknown)")
+        print(f"stewart-calib identifiability: {what}: none (the poses do not identify every unknown)")
         return {"predicted_closed_loop": None}
     if platform.workspace is None and poses is None:
-        print(f"{what}: none (no [workspace] to predict over)")
+        print(f"stewart-calib identifiability: {what}: none (no [workspace] to predict over)")
         return {"predicted_closed_loop": None}
     prediction = predicted_error(platform, covariance, None if platform.workspace is not None else poses)
     floor = noise_floor(platform, n_poses, noise)
     line, warn = summary_line(prediction, floor, what=what)
-    print(line)
+    print(f"stewart-calib identifiability: {line}")
     field = {"noise_floor_mm": None if floor is None else floor.position_mm, "warning": line if warn else None}
     return {"predicted_closed_loop": {**prediction.to_dict(), **field}}
 
@@ -257,13 +257,13 @@ def _run_outside_instrument(args: argparse.Namespace, platform: Platform, config
     if weak:
         named = ", ".join(f"{name} {sd:.3g} (prior {prior:.3g})" for name, sd, prior in weak)
         print(
-            "seen no better than their prior σ (a calibration keeps them near nominal; poses that see them "
-            f"better: stewart-calib plan): {named}"
+            "stewart-calib identifiability: seen no better than their prior σ (a calibration keeps them near "
+            f"nominal; poses that see them better: stewart-calib plan): {named}"
         )
     span = handover.temperature_span_K(channels) if args.log is not None else None
     trade_off = handover.thermal_trade_off_line(drive, handover.outside_stddev(drive, report), span)
     if trade_off:
-        print(trade_off)
+        print(f"stewart-calib identifiability: {trade_off}")
     # at the log's payloads (and temperatures), as the calibration sees them: without them an elastic
     # drive's compliance trades against the leg lengths under the platform's weight alone
     covariance = design_covariance(at, bound_poses, seen=seen, channels=converged)

@@ -137,7 +137,10 @@ def run(args: argparse.Namespace) -> int:
     tables = tables_markdown(results)
     atomic_write_text(out / "tables.md", tables)
     atomic_write_text(out / "index.html", index_html(tables, written, "reproduce.rrd"))
-    print(f"reproduced '{shown(experiment.name)}' in {results['run_time_s']:.1f} s into {shown(out)}")
+    print(
+        f"stewart-calib reproduce: reproduced '{shown(experiment.name)}' in {results['run_time_s']:.1f} s into "
+        f"{shown(out)}"
+    )
     return 0
 
 

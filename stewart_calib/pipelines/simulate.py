@@ -141,10 +141,10 @@ def run(args: argparse.Namespace) -> int:
         outside.refuse(experiment.source, len(run.plan.t_s))
         platform_path.write_text(platform_to_toml(platform), encoding="utf-8")
     print(
-        f"simulated {len(run.plan.t_s)} samples of '{shown(experiment.name)}' ({args.controller} controller) into "
-        f"{shown(out)}"
+        f"stewart-calib simulate: simulated {len(run.plan.t_s)} samples of '{shown(experiment.name)}' "
+        f"({args.controller} controller) into {shown(out)}"
     )
-    print(_pose_error_line(squares, counts, args.controller))
+    print(f"stewart-calib simulate: {_pose_error_line(squares, counts, args.controller)}")
     return 0
 
 

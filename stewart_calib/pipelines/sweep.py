@@ -86,12 +86,12 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     plan = plan_sweep(spec, out, None if args.yes else MAX_TASKS, None if args.yes else MAX_CPU_HOURS)
     workers = args.workers if args.workers is not None else (None if args.scheduler else default_workers())
-    print(plan.describe(spec, workers), flush=True)
+    print(f"stewart-calib sweep: {plan.describe(spec, workers)}", flush=True)
     report = run_sweep(spec, out, scheduler=args.scheduler, workers=args.workers, progress=True, plan=plan)
     write_summary(spec, report.table, out)
     print(
-        f"{report.ran} tasks run, {report.skipped} already done, {len(report.failed)} failed of {report.tasks}; "
-        f"{report.table.num_rows} rows in {out / RESULTS} ({report.seconds:.0f} s)"
+        f"stewart-calib sweep: {report.ran} tasks run, {report.skipped} already done, {len(report.failed)} failed "
+        f"of {report.tasks}; {report.table.num_rows} rows in {out / RESULTS} ({report.seconds:.0f} s)"
     )
     if report.failed:
         print(

@@ -44,7 +44,8 @@ When it stops:
 
 Every result ``track`` writes carries the added field ``"final"``: false for the periodic
 writes while tracking, true for the one written when tracking ended normally (end of input,
-idle timeout, signal).
+idle timeout, signal). The final one of a log (not of a link) adds ``"log_sha256"``, as ``calibrate``'s:
+the SHA-256 of the lines read, which are the log's bytes where it was read to its end.
 
 A line is a row only once its line break has arrived (or the input has truly ended): the
 unfinished tail of the last read, when a signal or the idle timeout stops tracking, is left
@@ -116,7 +117,12 @@ class Rotated(list):
 
 
 def line_chunks(
-    fd: int, follow: bool, idle_timeout_s: float | None, stopped: Callable[[], bool], path: str | None = None
+    fd: int,
+    follow: bool,
+    idle_timeout_s: float | None,
+    stopped: Callable[[], bool],
+    path: str | None = None,
+    digest: Callable[[bytes], None] | None = None,
 ) -> Iterator[list[bytes]]:
     """Complete lines of ``fd`` as they arrive (the line break removed), a list per read.
 
@@ -131,7 +137,12 @@ def line_chunks(
     With ``follow`` on the regular file at ``path``: when the file there is replaced (renamed,
     deleted and created again), truncated, or rewritten from its start, the old file's last line
     is yielded, then a :class:`Rotated` marker, then the new content's lines from its start.
+
+    ``digest`` (as :func:`~stewart_calib.io.read_log`'s) is handed the bytes of each line as it is yielded,
+    its line break included: a log read to its end whole, the file's bytes (an unfinished last line left
+    unread is not among them; after a rotation the new file's follow the old one's).
     """
+    hand_on = digest or (lambda data: None)
     regular = stat.S_ISREG(os.fstat(fd).st_mode)
     wait_at_end = follow and regular  # a pipe's end is final
     own_fd = None  # a replacement opened here (the caller closes the first)
@@ -148,6 +159,7 @@ def line_chunks(
                 if replaced is not None:
                     new_fd, why = replaced
                     if pending:  # the old file's last line, ended by the rotation
+                        hand_on(pending)
                         yield [pending]
                     pending, head, tail, idle_since, at_end = b"", b"", b"", None, False
                     if new_fd != fd:
@@ -162,17 +174,20 @@ def line_chunks(
                 idle_since = None
                 head += chunk[: max(HEAD_BYTES - len(head), 0)]
                 tail = (tail + chunk)[-HEAD_BYTES:]
-                *complete, pending = (pending + chunk).split(b"\n")
+                joined = pending + chunk
+                *complete, pending = joined.split(b"\n")
                 if len(pending) > MAX_LINE_BYTES:  # /dev/zero, or no CSV at all: not held for ever
                     raise CalibError(
                         f"{shown(path or '<stdin>')}: a line longer than {MAX_LINE_BYTES} bytes (no line break); "
                         "expected CSV rows"
                     )
                 if complete:
+                    hand_on(joined[: len(joined) - len(pending)])
                     yield complete
                 continue
             if chunk == b"" and not wait_at_end:
                 if pending and not stopped():  # a stop may come between the last read and this end
+                    hand_on(pending)
                     yield [pending]
                 return
             now = time.monotonic()
@@ -315,10 +330,17 @@ def _start(args: argparse.Namespace) -> OnlineCalibrator:
 
 
 def _write(
-    calib: OnlineCalibrator, writer: io.BackgroundWriter, out: Path | None, checkpoint: Path | None, final: bool = False
+    calib: OnlineCalibrator,
+    writer: io.BackgroundWriter,
+    out: Path | None,
+    checkpoint: Path | None,
+    final: bool = False,
+    log_digest: io.LogDigest | None = None,
 ) -> None:
     """The result (unless ``out`` is None) and the checkpoint, through ``writer``; ``final`` marks
-    the result of a run that ended normally (the added field ``"final"``).
+    the result of a run that ended normally (the added field ``"final"``), which adds the ``"log_sha256"``
+    of ``log_digest``, the lines read (a log's, not a link's): the estimate has had every one of them,
+    where a periodic result, written within a read, has not had the read's later lines.
 
     The state is taken here (the result's plain lists, the checkpoint's bytes); only the result's
     JSON text and the file writes are left to the writer's thread.
@@ -328,6 +350,8 @@ def _write(
         result["final"] = final
         if calib.source is not None and "samples_missed" in calib.source:  # a link's (spec §16)
             result["samples_missed"] = calib.source["samples_missed"]
+        if final and log_digest is not None:
+            result.update(log_digest.field())
         writer.submit(out, lambda: io.result_text(result, str(out)).encode("utf-8"))
     if checkpoint:
         state = calib.checkpoint_bytes()
@@ -652,6 +676,7 @@ def _track(args: argparse.Namespace, out: Path, checkpoint: Path | None) -> int:
             _remove_debris(io.written_target(path).file)  # beside the file a link names: where its writes are
     previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     writer = io.BackgroundWriter()
+    log_digest = io.LogDigest()  # of a log's lines read: validate knows the log
     identity = (lambda: {}) if source == "<stdin>" else (lambda: _identity(source))
     try:
         with writer:
@@ -665,7 +690,12 @@ def _track(args: argparse.Namespace, out: Path, checkpoint: Path | None) -> int:
                 )
             else:
                 chunks = line_chunks(
-                    fd, args.follow, args.idle_timeout, lambda: stop.requested, None if source == "<stdin>" else source
+                    fd,
+                    args.follow,
+                    args.idle_timeout,
+                    lambda: stop.requested,
+                    None if source == "<stdin>" else source,
+                    log_digest.update,
                 )
                 feed = follow_log(
                     calib,
@@ -683,7 +713,7 @@ def _track(args: argparse.Namespace, out: Path, checkpoint: Path | None) -> int:
                     "checkpoint had read of it; feed that log from its start"
                 )
             if calib.estimate().samples_used:
-                _write(calib, writer, out, checkpoint, final=True)
+                _write(calib, writer, out, checkpoint, final=True, log_digest=None if link is not None else log_digest)
                 if link is not None:
                     _hand_back(calib, link, final=True)
     except NotTheLog:

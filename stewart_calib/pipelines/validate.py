@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import sys
 from pathlib import Path
 
@@ -88,12 +87,12 @@ def run(args: argparse.Namespace) -> int:
     unseen = io.blank_reading_columns(platform)  # a target not seen: empty fields, read and predicted, and its error
     blank = (*(1 + j for j in unseen), *(1 + len(columns) + j for j in unseen), 1 + 2 * len(columns))
     page = moved = None
-    log_digest = hashlib.sha256()
+    log_digest = io.LogDigest()
     with log_progress_bar(args.log, "validate") as bar:
         if report_dir or args.register_instrument:
             # the report plots, and the instrument frame is fitted to, the whole log
             log = _whole_log(platform, args.log, bar, log_digest.update)
-            in_sample = _in_sample(written, log_digest)
+            in_sample = log_digest.is_of(written)
             diagnose_log(platform, log.strokes, log.readings, args.log, count=False)
             predicted, position, orientation = validate(
                 platform, result, log, args.register_instrument, str(args.result)
@@ -117,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
                 platform, result, args.log, str(args.result), bar, errors, first, log_digest.update
             )
             io.write_csv_blocks(args.out, header, blocks, blank)
-            in_sample = _in_sample(written, log_digest)
+            in_sample = log_digest.is_of(written)
             position = np.concatenate([e[0] for e in errors])
             orientation = None if errors[0][1] is None else np.concatenate([e[1] for e in errors])
             sample_errors = np.concatenate([e[0] for e in errors])[: len(first[0])]
@@ -167,12 +166,6 @@ IN_SAMPLE_LINE = (
     "this log is the calibration's own (its bytes are those of the result's log_sha256): validate's errors on it "
     "are in-sample, how well the model fits the samples it was fitted to, not its accuracy on a held-out log"
 )
-
-
-def _in_sample(result: dict, log_digest) -> bool:
-    """Whether the log read (its bytes' ``log_digest``) is the one the result was calibrated from (the
-    result's ``log_sha256``); False for a result written without it."""
-    return result.get("log_sha256") == log_digest.hexdigest()
 
 
 def _verdict(

@@ -65,7 +65,7 @@ class SweepPlan:
     def describe(self, spec: SweepSpec, workers: int | None) -> str:
         """The plan line: cells, seeds, tasks, the estimated CPU and, for a known number of workers, wall time."""
         line = (
-            f"sweep {spec.name}: {spec.n_cells:,} cells × {len(spec.seeds):,} seeds = {self.tasks:,} tasks "
+            f"{spec.name}: {spec.n_cells:,} cells × {len(spec.seeds):,} seeds = {self.tasks:,} tasks "
             f"({self.done:,} already done"
             + (f"; {len(self.damaged):,} damaged parts computed again, first {self.damaged[0]}" if self.damaged else "")
             + f"); the methods' CPU ≈ {_duration(self.cpu_seconds)} ({self.basis})"
