@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import binom, chi2
 
 from benchmarks.common import ROOT, Row, Section, markdown
 
@@ -53,18 +54,34 @@ def honesty_section(spec, table) -> Section:
             )
             failed = sum(1 for r in pick if columns["failure"][r])
             in_range = all(Z2_RANGE[0] <= v <= Z2_RANGE[1] for v in z2)
-            rows.append(
-                Row(
-                    f"{method} on {instrument}",
-                    f"NEES in band **{share:.0%}** of {len(pick)} runs (worst cell {worst['nees_in_band']:.0%}: "
-                    f"{_settings(worst, spec)}); mean z² per cell {min(z2):.2f}–{max(z2):.2f}"
-                    + (f"; {failed} runs failed" if failed else ""),
-                    f"≥ {NEES_TARGET:.0%} in band; mean z² in [{Z2_RANGE[0]:g}, {Z2_RANGE[1]:g}] in every cell",
-                    share >= NEES_TARGET and in_range and not failed,
-                    {"share_in_band": share, "z2_mean_per_cell": z2, "runs": len(pick), "failed": failed},
-                )
+            row = Row(
+                f"{method} on {instrument}",
+                f"NEES in band **{share:.0%}** of {len(pick)} runs (worst cell {worst['nees_in_band']:.0%}: "
+                f"{_settings(worst, spec)}); mean z² per cell {min(z2):.2f}–{max(z2):.2f}"
+                + (f"; {failed} runs failed" if failed else ""),
+                f"≥ {NEES_TARGET:.0%} in band; mean z² in [{Z2_RANGE[0]:g}, {Z2_RANGE[1]:g}] in every cell",
+                share >= NEES_TARGET and in_range and not failed,
+                {"share_in_band": share, "z2_mean_per_cell": z2, "runs": len(pick), "failed": failed},
             )
+            if not row.met and not failed and in_range:
+                row.why = _outside_why(nees, dof)
+            rows.append(row)
     return Section("Honesty over a grid", note(spec), rows)
+
+
+def _outside_why(nees: np.ndarray, dof: np.ndarray) -> str:
+    """Where a row's NEES fall outside their band (too small: σ too large; too large: over-confident), and how
+    likely an honest 95 % band leaves out as many (no cause is known for such a miss)."""
+    from stewart_calib.sweep.summary import nees_in_band
+
+    outside = int(np.sum(~nees_in_band(nees, dof)))
+    below = int(np.sum(nees < chi2.ppf(0.025, dof)))
+    chance = float(binom.sf(outside - 1, len(nees), 0.05))
+    return (
+        f"{below} NEES below the band (σ too large) and {outside - below} above it (over-confident), mean NEES / dof "
+        f"{np.mean(nees / dof):.3f}: an honest 95 % band leaves out {outside} or more of {len(nees)} runs with "
+        f"probability {chance:.2g}"
+    )
 
 
 def section(quick: bool = False, out: Path | None = None, seeds: int | None = None, workers: int | None = None):

@@ -54,18 +54,23 @@ def test_calibrate_writes_the_sha256_of_the_log_it_read(calibrated, tmp_path):
     assert io.read_result(tmp_path / "ekf.json")["log_sha256"] == digest
 
 
-def test_calibrate_digests_the_bytes_it_reads_from_standard_input(calibrated, tmp_path):
-    argv = ["calibrate", "--platform", str(calibrated / "p.toml"), "--log", "-", "--method", "ls"]
+def _from_standard_input(calibrated, command: str, method: str, out) -> dict:
+    """The result ``command --method method`` writes to ``out`` reading the calibration's log from standard input."""
+    argv = [command, "--platform", str(calibrated / "p.toml"), "--log", "-", "--method", method]
     with open(calibrated / "fit.csv", "rb") as log:
         done = subprocess.run(
-            [sys.executable, "-m", "stewart_calib", *argv, "--out", str(tmp_path / "r.json")],
+            [sys.executable, "-m", "stewart_calib", *argv, "--out", str(out)],
             stdin=log,
             capture_output=True,
             cwd=ROOT,
             timeout=300,
         )
     assert done.returncode == 0, done.stderr
-    written = json.loads((tmp_path / "r.json").read_text())
+    return json.loads(out.read_text())
+
+
+def test_calibrate_digests_the_bytes_it_reads_from_standard_input(calibrated, tmp_path):
+    written = _from_standard_input(calibrated, "calibrate", "ls", tmp_path / "r.json")
     assert written["log_sha256"] == io.read_result(calibrated / "r.json")["log_sha256"]
 
 
@@ -107,15 +112,5 @@ def test_track_writes_the_sha256_of_the_log_it_read_and_validate_knows_it(calibr
 
 
 def test_track_digests_the_lines_it_reads_from_standard_input(calibrated, tmp_path):
-    argv = ["track", "--platform", str(calibrated / "p.toml"), "--method", "ekf", "--log", "-"]
-    with open(calibrated / "fit.csv", "rb") as log:
-        done = subprocess.run(
-            [sys.executable, "-m", "stewart_calib", *argv, "--out", str(tmp_path / "t.json")],
-            stdin=log,
-            capture_output=True,
-            cwd=ROOT,
-            timeout=300,
-        )
-    assert done.returncode == 0, done.stderr
-    written = json.loads((tmp_path / "t.json").read_text())
+    written = _from_standard_input(calibrated, "track", "ekf", tmp_path / "t.json")
     assert written["log_sha256"] == io.read_result(calibrated / "r.json")["log_sha256"]

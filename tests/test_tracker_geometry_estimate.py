@@ -184,18 +184,23 @@ def test_the_samples_read_count_fifty_of_a_held_pose():
     assert picked.indices == [*range(HELD_SAMPLES), *range(300, 340)] and picked.poses == 41
 
 
-def test_a_log_that_starts_at_rest_still_shows_the_trackers_residual(logs, tmp_path):
-    """quick's log after 3000 samples at rest (30 s at home before the robot moves). Before, the estimate
-    read those 3000 samples' first 2000, of one pose, on which the drive's fit failed: no estimate, no
-    line, and ekf's σ without the geometry's error (z² 22 on quick)."""
+def _calibrate_after_rest(logs, tmp_path, rest: int) -> tuple[dict, str]:
+    """``calibrate --method ekf`` on quick's log after ``rest`` samples at rest (:func:`_rest_then`)."""
     sim = logs / "real"
     platform = load_platform(sim / "platform.toml")
     rested = tmp_path / "sim"
     rested.mkdir()
-    log = _rest_then(read_log(sim / "log.csv", platform), 3000, np.random.default_rng(3))
+    log = _rest_then(read_log(sim / "log.csv", platform), rest, np.random.default_rng(3))
     write_log(rested / "log.csv", log, platform)
     (rested / "platform.toml").write_text((sim / "platform.toml").read_text(encoding="utf-8"), encoding="utf-8")
-    result, err = _calibrate(rested, "ekf", tmp_path / "r.json")
+    return _calibrate(rested, "ekf", tmp_path / "r.json")
+
+
+def test_a_log_that_starts_at_rest_still_shows_the_trackers_residual(logs, tmp_path):
+    """quick's log after 3000 samples at rest (30 s at home before the robot moves). Before, the estimate
+    read those 3000 samples' first 2000, of one pose, on which the drive's fit failed: no estimate, no
+    line, and ekf's σ without the geometry's error (z² 22 on quick)."""
+    result, err = _calibrate_after_rest(logs, tmp_path, 3000)
     assert "the tracker's own geometry is off its nominal" in err
     assert result["config"]["noise"]["tracker_geometry_sigma_mm"] == pytest.approx(
         RESIDUAL_MM, rel=4 * 0.5 * np.sqrt(2 / 30)
@@ -206,14 +211,7 @@ def test_a_log_at_rest_past_the_head_is_said_to_give_no_estimate(logs, tmp_path,
     from stewart_calib.workflows import tracker_geometry
 
     monkeypatch.setattr(tracker_geometry, "ESTIMATE_SAMPLES", 100)  # the head then holds 2000 samples at most
-    sim = logs / "real"
-    platform = load_platform(sim / "platform.toml")
-    rested = tmp_path / "sim"
-    rested.mkdir()
-    log = _rest_then(read_log(sim / "log.csv", platform), 2500, np.random.default_rng(3))
-    write_log(rested / "log.csv", log, platform)
-    (rested / "platform.toml").write_text((sim / "platform.toml").read_text(encoding="utf-8"), encoding="utf-8")
-    result, err = _calibrate(rested, "ekf", tmp_path / "r.json")
+    result, err = _calibrate_after_rest(logs, tmp_path, 2500)
     assert (
         "warning: the tracker's own geometry was not measured: the log's first 2000 samples hold 1 pose (50 read" in err
     )
