@@ -237,3 +237,65 @@ class Truth:
     drive_terms: dict[str, np.ndarray] = field(default_factory=dict)
     instrument: tuple[tuple[str, ...], np.ndarray] | None = None
     unloaded: np.ndarray | None = None
+
+
+#: a sample whose strokes are all within this of a held pose's first sample's [mm] reads that pose again (a
+#: thousandth of a hexapod's stroke, a hundred times its encoders' noise)
+HOLD_MM = 0.1
+#: the samples of one held pose a :class:`HeldPoseSamples` counts: a robot that rests at home for a minute
+#: before it moves would fill a log's first samples with one pose
+HELD_SAMPLES = 50
+
+
+class HeldPoseSamples:
+    """A log's first ``count`` samples, each held pose's samples past its first :data:`HELD_SAMPLES` left
+    out, among its first ``limit`` (none: all), picked as the samples come: what a look at a log's start
+    reads of its motion, however long the robot rested first. A sample whose strokes are all within
+    :data:`HOLD_MM` of the current pose's first sample's holds that pose, any other starts the next (a slow
+    motion leaves its first sample within a few samples).
+
+    Attributes:
+        indices: the picked samples' indices in the log.
+        seen: the samples looked at.
+        poses: the held poses among them.
+    """
+
+    def __init__(self, count: int, limit: int | None = None) -> None:
+        self.count, self.limit = count, limit
+        self.indices: list[int] = []
+        self.seen = 0
+        self.poses = 0
+        self._first: np.ndarray | None = None
+        self._held = 0
+
+    @property
+    def complete(self) -> bool:
+        """Whether no more samples need be looked at."""
+        return len(self.indices) >= self.count or (self.limit is not None and self.seen >= self.limit)
+
+    def add(self, strokes: np.ndarray) -> bool:
+        """Look at the next samples' strokes ``(n, legs)`` [mm]; whether the pick is then complete."""
+        k = 0
+        while k < len(strokes) and not self.complete:
+            if self._first is None or np.max(np.abs(strokes[k] - self._first)) > HOLD_MM:
+                self._first, self._held = strokes[k], 0
+                self.poses += 1
+            end = len(strokes) if self.limit is None else min(len(strokes), k + self.limit - self.seen)
+            held = self._held_run(strokes[k:end])
+            taken = max(0, min(held, HELD_SAMPLES - self._held, self.count - len(self.indices)))
+            self.indices.extend(range(self.seen, self.seen + taken))
+            self._held += held
+            self.seen += held
+            k += held
+        return self.complete
+
+    def _held_run(self, strokes: np.ndarray) -> int:
+        """How many of ``strokes``' first samples hold the current pose (the first does), looked at in windows
+        that double: a moving log's pose changes every sample, a resting robot's once in thousands."""
+        start, window = 1, 1
+        while start < len(strokes):
+            away = np.max(np.abs(strokes[start : start + window] - self._first), axis=1) > HOLD_MM
+            if away.any():
+                return start + int(np.argmax(away))
+            start, window = start + window, 2 * window
+        return len(strokes)

@@ -66,7 +66,8 @@ def fakes(monkeypatch):
     # diagnosis of a log's mistakes (tests/test_diagnosis.py) would refuse them
     monkeypatch.setattr(calibrate_pipeline, "check_plausible", lambda *args: None)
     monkeypatch.setattr(calibrate_pipeline, "diagnose_log", lambda *args: None)
-    monkeypatch.setattr(calibration, "diagnose_log", lambda *args: None)
+    monkeypatch.setattr(calibration, "diagnose_log", lambda *args, **kwargs: None)
+    monkeypatch.setattr(calibration.diagnosis, "check_moves", lambda *args: None)
     # nor can a drive fit measure a tracker's geometry on them (tests/test_tracker_geometry_estimate.py)
     monkeypatch.setattr(calibrate_pipeline, "applies", lambda platform, config: False)
     monkeypatch.setattr(

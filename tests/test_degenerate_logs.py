@@ -91,8 +91,11 @@ def test_a_robot_dwelling_at_its_last_pose_is_not_taken_for_readings_that_stand_
     assert calib.result()["samples_used"] > len(case.log)
 
 
+@pytest.mark.parametrize("method", ["ls", "ekf"])  # the whole log, and a stream of it
 @pytest.mark.parametrize("instrument", ["tracker", "pose"])
-def test_a_thousand_samples_at_rest_are_refused_as_a_log_that_does_not_move(tmp_path, capsys, pose_case, instrument):
+def test_a_thousand_samples_at_rest_are_refused_as_a_log_that_does_not_move(
+    tmp_path, capsys, pose_case, instrument, method
+):
     """One pose held for 1 000 samples, the readings scattering by their noise only: refused with the
     span of the poses and what a calibration needs, not with a spread ratio of 10⁹ or a solver's failure."""
     rng = np.random.default_rng(5)
@@ -109,7 +112,7 @@ def test_a_thousand_samples_at_rest_are_refused_as_a_log_that_does_not_move(tmp_
     readings = first + rng.normal(0.0, 1.0, (1000, 6)) * noise
     (tmp_path / "p.toml").write_text(platform_to_toml(platform))
     write_log(tmp_path / "log.csv", Log(np.arange(1000) * 0.1, strokes, readings), platform)
-    argv = ["calibrate", "--platform", str(tmp_path / "p.toml"), "--log", str(tmp_path / "log.csv"), "--method", "ls"]
+    argv = ["calibrate", "--platform", str(tmp_path / "p.toml"), "--log", str(tmp_path / "log.csv"), "--method", method]
     assert cli.main([*argv, "--out", str(tmp_path / "r.json")]) == 2
     err = _one_line(capsys)
     assert (
@@ -117,6 +120,25 @@ def test_a_thousand_samples_at_rest_are_refused_as_a_log_that_does_not_move(tmp_
         in err
     )
     assert "distinct poses spread over the workspace" in err
+
+
+def test_a_robot_that_rests_longer_than_a_block_before_it_moves_is_calibrated(tmp_path, capsys, monkeypatch):
+    """1000 samples at one pose (a robot waiting at home), then 60 poses: an online method reads the log a
+    block at a time. Before, its first block stood for the log, and a log that moves was refused as one
+    that does not ("the log does not move: its 1000 samples' strokes span 0 mm")."""
+    from stewart_calib.io import logs
+
+    monkeypatch.setattr(logs, "BLOCK_BYTES", 1 << 14)  # ~100 rows a block
+    rng = np.random.default_rng(6)
+    platform = nim_stewart()
+    log, _ = make_log(platform, rng.normal(0.0, 0.5, 42), random_poses(platform, 60, rng), rng)
+    rest = 1000
+    strokes = np.vstack([np.repeat(log.strokes[:1], rest, axis=0), log.strokes])
+    readings = np.vstack([log.readings[0] + rng.normal(0.0, 0.002, (rest, 6)), log.readings])
+    (tmp_path / "p.toml").write_text(platform_to_toml(platform))
+    write_log(tmp_path / "log.csv", Log(np.arange(rest + 60) * 0.1, strokes, readings), platform)
+    argv = ["calibrate", "--platform", str(tmp_path / "p.toml"), "--log", str(tmp_path / "log.csv"), "--method", "ekf"]
+    assert cli.main([*argv, "--out", str(tmp_path / "r.json")]) == 0, capsys.readouterr().err
 
 
 @pytest.mark.parametrize(

@@ -251,7 +251,8 @@ def _peak_bytes(argv) -> int:
 @pytest.mark.parametrize("command", ["calibrate", "identifiability"])
 def test_online_commands_hold_no_more_at_4n_samples(long_logs, tmp_path, monkeypatch, command):
     # Blocks of ~12 rows, so both logs span many, and calibrate's conditioning sample and the head the
-    # tracker's geometry is measured on of at most 100 (both fixed, whatever N); the first run also
+    # tracker's geometry is measured on of at most 100 (both fixed, whatever N: the head holds at most
+    # HEAD_LIMIT × ESTIMATE_SAMPLES samples while a held pose counts 50 of them); the first run also
     # loads caches and imports.
     from stewart_calib.io import logs
     from stewart_calib.workflows import calibration, tracker_geometry
@@ -259,6 +260,7 @@ def test_online_commands_hold_no_more_at_4n_samples(long_logs, tmp_path, monkeyp
     monkeypatch.setattr(logs, "BLOCK_BYTES", 1 << 12)
     monkeypatch.setattr(calibration, "CHECKED_SAMPLES", 100)
     monkeypatch.setattr(tracker_geometry, "ESTIMATE_SAMPLES", 100)
+    monkeypatch.setattr(tracker_geometry, "HEAD_LIMIT", 1)
     platform = str(nim_stewart().source)
 
     def argv(n):

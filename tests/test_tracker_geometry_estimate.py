@@ -174,12 +174,13 @@ def _rest_then(log, rest: int, rng):
 
 
 def test_the_samples_read_count_fifty_of_a_held_pose():
-    from stewart_calib.workflows.tracker_geometry import HELD_SAMPLES, EstimateSamples
+    from stewart_calib.samples import HELD_SAMPLES
+    from stewart_calib.workflows.tracker_geometry import estimate_samples
 
     rng = np.random.default_rng(2)
     at_rest = np.full((300, 6), 500.0) + rng.normal(0.0, 1e-3, (300, 6))
     moving = 500.0 + np.cumsum(np.full((40, 6), 0.5), axis=0)  # 0.5 mm a sample: every sample a pose
-    picked = EstimateSamples()
+    picked = estimate_samples()
     assert not picked.add(np.vstack([at_rest, moving]))
     assert picked.indices == [*range(HELD_SAMPLES), *range(300, 340)] and picked.poses == 41
 

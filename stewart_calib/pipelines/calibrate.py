@@ -59,7 +59,7 @@ from ..model import kinematics as kin
 from ..model.drive import COMPLIANCE, THERMAL, drive_model, plain_drive
 from ..model.platform import LegGeometry, Platform
 from ..progress import MIN_LOG_ROWS
-from ..samples import Log
+from ..samples import HELD_SAMPLES, Log
 from ..workflows import calibration
 from ..workflows.calibration import (
     Calibration,
@@ -72,7 +72,7 @@ from ..workflows.calibration import (
 from ..workflows.diagnosis import diagnose_log
 from ..workflows.online import Rejections
 from ..workflows.planning import noise_floor
-from ..workflows.tracker_geometry import HELD_SAMPLES, EstimateSamples, applies, with_estimated_geometry
+from ..workflows.tracker_geometry import applies, estimate_samples, with_estimated_geometry
 from ..workflows.validation import (
     measurement_residuals,
     nominal_residuals,
@@ -90,7 +90,7 @@ def _with_measured_geometry(platform: Platform, method: str, config, unmeasured:
     is known to be this robot's: a log of another one is refused for what it is)."""
     measured, estimate = with_estimated_geometry(platform, method, config, log)
     if estimate is None and applies(platform, config):
-        picked = EstimateSamples()
+        picked = estimate_samples()
         picked.add(log.strokes)
         unmeasured.append(
             f"warning: the tracker's own geometry was not measured: the log's first {picked.seen} samples hold "
@@ -287,7 +287,7 @@ def run(args: argparse.Namespace) -> int:
             stack.callback(spool.close)
             # the tracker's geometry measured on the log's head, which the stream reads first (diagnosed)
             measure = applies(platform, config)
-            head = EstimateSamples()
+            head = estimate_samples()
             measured = partial(_with_measured_geometry, platform, args.method, config, unmeasured)
             configure = (lambda block: head.add(block.strokes), measured)
             streaming = stream_calibration(

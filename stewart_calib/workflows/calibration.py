@@ -31,7 +31,8 @@ from ..estimators.base import accounted_estimate, late_index, take_late_rejectio
 from ..io import logs
 from ..model.platform import Platform
 from ..progress import log_progress_bar, progress_bar
-from ..samples import CHANNEL_SHAPES, Log
+from ..samples import CHANNEL_SHAPES, HeldPoseSamples, Log
+from . import diagnosis
 from .diagnosis import diagnose_log
 from .online import Rejections
 
@@ -398,9 +399,25 @@ def stream_calibration(
     rejected: list[int] = []
     first_t_s: list[float] = []
 
+    # whether the log moves is judged on its first samples counting HELD_SAMPLES of a held pose: a robot
+    # that rests for longer than a block before it moves is no log at rest
+    moving = HeldPoseSamples(CHECKED_SAMPLES)
+    picked: list[tuple[np.ndarray, np.ndarray]] = []  # the picked samples' (strokes, readings), block by block
+
+    def check_moves() -> None:
+        strokes, readings = (np.concatenate(arrays) for arrays in zip(*picked, strict=True))
+        diagnosis.check_moves(platform, strokes, readings, path, moving.seen)
+
     def read(block: Log) -> Log:
-        if not checked.seen:  # the first block (the whole of a short log) stands for the log
-            diagnose_log(platform, block.strokes, block.readings, path)
+        if not checked.seen:  # the first block (the whole of a short log) stands for the log's units and wiring
+            diagnose_log(platform, block.strokes, block.readings, path, count=False)
+        if not moving.complete:
+            seen, before = moving.seen, len(moving.indices)
+            moving.add(block.strokes)
+            new = np.asarray(moving.indices[before:], dtype=int) - seen
+            picked.append((block.strokes[new], block.readings[new]))
+            if moving.complete:
+                check_moves()
         checked.add(block)
         skipped.add(block.skipped)
         if on_read is not None:
@@ -419,9 +436,13 @@ def stream_calibration(
         trace_file.write(io.trace_text(block.t_s, params, header=not written, names=names))
         written.append(len(block))
 
-    blocks: Iterable[Log] = read_ahead(
-        read(block) for block in io.read_log_blocks(path, platform, skip_bad_rows, digest=digest)
-    )
+    def read_all() -> Iterator[Log]:
+        for block in io.read_log_blocks(path, platform, skip_bad_rows, digest=digest):
+            yield read(block)
+        if not moving.complete and picked:  # a log of fewer samples than the pick: all of them
+            check_moves()
+
+    blocks: Iterable[Log] = read_ahead(read_all())
     if configure is not None:
         complete, configured = configure
         head = []

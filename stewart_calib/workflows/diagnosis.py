@@ -196,6 +196,15 @@ def _check_moves(platform: Platform, strokes: np.ndarray, readings: np.ndarray, 
     )
 
 
+def check_moves(platform: Platform, strokes: np.ndarray, readings: np.ndarray, where: str, n_samples: int) -> None:
+    """Refuse a log that holds too few distinct poses to calibrate, or rests (:func:`diagnose_log`'s checks of a
+    log to calibrate from): ``strokes`` ``(N, legs)`` and ``readings`` ``(N, m)`` are its samples or a pick of
+    them (a stream's :class:`~stewart_calib.samples.HeldPoseSamples`), of ``n_samples`` in all."""
+    _check_count(platform, readings, where)
+    pick = _evenly(len(strokes))
+    _check_moves(platform, strokes[pick], readings[pick], where, n_samples)
+
+
 def _check_strokes_unit(platform: Platform, strokes: np.ndarray, where: str, stroke_columns: list[str]) -> None:
     """Strokes in metres fill a thousandth of the stroke range (without a range: of the legs'
     initial length), a servo's angles in radians (spec §15: the log holds degrees) π/180 of its
@@ -539,13 +548,10 @@ def diagnose_log(
     readings = np.asarray(readings, dtype=float)
     columns = list(reading_columns or columns_of(platform))
     stroke_columns = _drive_words(platform)[0]
-    if count:
-        _check_count(platform, readings, where)
-    n_samples = len(strokes)
-    pick = _evenly(n_samples)
-    strokes, readings = strokes[pick], readings[pick]
     if count:  # a held-out log may well hold one pose
-        _check_moves(platform, strokes, readings, where, n_samples)
+        check_moves(platform, strokes, readings, where, len(strokes))
+    pick = _evenly(len(strokes))
+    strokes, readings = strokes[pick], readings[pick]
     _check_strokes_unit(platform, strokes, where, stroke_columns)
     fk = _fk(platform, strokes)
     ok = fk.converged

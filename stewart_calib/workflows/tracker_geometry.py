@@ -48,18 +48,12 @@ from ..estimators.measurement import estimator_drive
 from ..instruments import instrument_kind
 from ..model.drive import tracker_reading_residuals
 from ..model.platform import Platform
-from ..samples import Log
+from ..samples import HeldPoseSamples, Log
 
 #: the probability that a tracker of exactly its nominal geometry is taken as off (the test's size)
 FALSE_ALARM = 1e-3
 #: the log's first this many samples are what the estimate reads (a streamed log is not read twice)
 ESTIMATE_SAMPLES = 2000
-#: a sample whose strokes are all within this of a held pose's first sample's [mm] reads that pose again (a
-#: thousandth of a hexapod's stroke, a hundred times its encoders' noise)
-HOLD_MM = 0.1
-#: the samples of one held pose that count toward :data:`ESTIMATE_SAMPLES`: a robot that rests at home for a
-#: minute before it moves would fill the estimate with one pose, on which no drive fit can be made
-HELD_SAMPLES = 50
 #: a streamed log's head holds at most this many times :data:`ESTIMATE_SAMPLES` samples while it looks for
 #: them (a log that holds one pose for longer gets no estimate, and says so)
 HEAD_LIMIT = 20
@@ -115,64 +109,18 @@ def applies(platform: Platform, config: EstimatorConfig) -> bool:
     )
 
 
-class EstimateSamples:
-    """The samples the estimate reads, picked as a log's samples come (a streamed log's head is held
-    until they are complete): the first :data:`ESTIMATE_SAMPLES`, each held pose's samples past its first
-    :data:`HELD_SAMPLES` left out, among the first :data:`HEAD_LIMIT` × :data:`ESTIMATE_SAMPLES`. A sample
-    whose strokes are all within :data:`HOLD_MM` of the current pose's first sample's holds that pose, any
-    other starts the next (a slow motion leaves its first sample within a few samples).
-
-    Attributes:
-        indices: the picked samples' indices in the log.
-        seen: the samples looked at.
-        poses: the held poses among them.
-    """
-
-    def __init__(self) -> None:
-        self.indices: list[int] = []
-        self.seen = 0
-        self.poses = 0
-        self._first: np.ndarray | None = None
-        self._held = 0
-
-    @property
-    def complete(self) -> bool:
-        """Whether no more samples need be read."""
-        return len(self.indices) >= ESTIMATE_SAMPLES or self.seen >= HEAD_LIMIT * ESTIMATE_SAMPLES
-
-    def add(self, strokes: np.ndarray) -> bool:
-        """Look at the next samples' strokes ``(n, legs)`` [mm]; whether the samples are then complete."""
-        k = 0
-        while k < len(strokes) and not self.complete:
-            if self._first is None or np.max(np.abs(strokes[k] - self._first)) > HOLD_MM:
-                self._first, self._held = strokes[k], 0
-                self.poses += 1
-            end = min(len(strokes), k + HEAD_LIMIT * ESTIMATE_SAMPLES - self.seen)
-            held = self._held_run(strokes[k:end])
-            taken = max(0, min(held, HELD_SAMPLES - self._held, ESTIMATE_SAMPLES - len(self.indices)))
-            self.indices.extend(range(self.seen, self.seen + taken))
-            self._held += held
-            self.seen += held
-            k += held
-        return self.complete
-
-    def _held_run(self, strokes: np.ndarray) -> int:
-        """How many of ``strokes``' first samples hold the current pose (the first does), looked at in windows
-        that double: a moving log's pose changes every sample, a resting robot's once in thousands."""
-        start, window = 1, 1
-        while start < len(strokes):
-            away = np.max(np.abs(strokes[start : start + window] - self._first), axis=1) > HOLD_MM
-            if away.any():
-                return start + int(np.argmax(away))
-            start, window = start + window, 2 * window
-        return len(strokes)
+def estimate_samples() -> HeldPoseSamples:
+    """An empty pick of the samples the estimate reads: the log's first :data:`ESTIMATE_SAMPLES`, at most
+    :data:`~stewart_calib.samples.HELD_SAMPLES` of one held pose, among its first :data:`HEAD_LIMIT` ×
+    :data:`ESTIMATE_SAMPLES` (a streamed log's head is held until it is complete)."""
+    return HeldPoseSamples(ESTIMATE_SAMPLES, HEAD_LIMIT * ESTIMATE_SAMPLES)
 
 
 def estimate_tracker_geometry(platform: Platform, log: Log, config: EstimatorConfig) -> TrackerGeometryEstimate | None:
-    """σ_g and σ_w of the module's model, measured on ``log``'s :class:`EstimateSamples`; None where the
+    """σ_g and σ_w of the module's model, measured on ``log``'s :func:`estimate_samples`; None where the
     drive's fit fails or leaves fewer residuals than unknowns: the log is then the method's to judge (its
     plausibility check names a log of another robot), and the geometry stays as given."""
-    picked = EstimateSamples()
+    picked = estimate_samples()
     picked.add(log.strokes)
     log = log.select(np.array(picked.indices, dtype=int))
     noise = dataclasses.replace(config.noise, tracker_geometry_sigma_mm=0.0, pose_misfit_sigma_mm=0.0)
