@@ -76,6 +76,7 @@ RUNNERS = {
     "scale-cli": _scale_cli,
     "startup": _runner("scale", "run_startup"),
     "tracker-geometry": _runner("tracker_geometry", "run"),
+    "tracker-geometry-honesty": _runner("tracker_geometry", "honesty_section"),
     "plan-poses": _runner("plan_poses", "run"),
     "prediction": _runner("prediction", "section"),
     "prediction-power": _runner("prediction_power", "section"),

@@ -28,6 +28,7 @@ SECTIONS = {
     "scale-cli": "Scale through the CLI",
     "startup": "Start-up through the CLI",
     "tracker-geometry": "Tracker geometry",
+    "tracker-geometry-honesty": "The tracker's geometry error measured by calibrate",
     "plan-poses": "Planned poses for outside instruments",
     "prediction": "Predicted errors against the truth",
     "prediction-power": "calibrate's bands over a thousand robots",

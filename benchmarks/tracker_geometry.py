@@ -44,24 +44,40 @@ feature did), the gauge pushed that rigid part into the tracker, millimetres awa
 prior, and every fit with the geometry identified ended at 0.8–1.6 mm closed-loop error.
 
 ``python -m benchmarks.tracker_geometry [--seeds N] [--quick]`` prints the table.
+
+**calibrate's own estimate** (:func:`honesty_section`, ``python -m benchmarks --only
+tracker-geometry-honesty``): the README's quick experiment over 20 seeds, its tracker 15 µm off and
+exact, through the CLI with the default config, which measures σ_g on the log: σ_g against the draw,
+score's z² and the truth in calibrate's 90 % band (see :func:`honesty_note`).
 """
 
 from __future__ import annotations
 
+import json
+import math
+import re
+import tempfile
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import Row, Section, seeded_main
+from benchmarks.common import ROOT, Row, Section, explain, seeded_main
+from benchmarks.prediction import _below as prediction_below
+from benchmarks.prediction import _run, seeds_needed
 from stewart_calib.config import load_estimator_config
 from stewart_calib.instruments import gauge
+from stewart_calib.io import read_log, read_truth
+from stewart_calib.io.platform_file import load_platform
 from stewart_calib.model import kinematics as kin
 from stewart_calib.model.platform import LegGeometry, Platform
+from stewart_calib.pipelines.score import scores
 from stewart_calib.samples import Log
 from stewart_calib.simulation import load_experiment, run_experiment
 from stewart_calib.simulation.experiment import Stage
 from stewart_calib.simulation.trajectories import random_static_poses
 from stewart_calib.workflows.calibration import run_calibration
+from stewart_calib.workflows.tracker_geometry import FALSE_ALARM, applies, estimate_tracker_geometry
 
 METHODS = ("ekf", "isam2", "lm")
 ONLINE_METHODS = ("ekf", "isam2")
@@ -236,6 +252,211 @@ def note(seeds: int, size: Size) -> str:
         "workspace poses P, achieved pose = FK(true drive, strokes), RMS position / orientation error against P, "
         "with the truth in the frames both fits define; mean over seeds. Target: the online methods within "
         f"{RATIO_TARGET}× the joint fit's position error. Times are not part of this table."
+    )
+
+
+# --- calibrate's own estimate of the geometry error, against the truth -------------------------------------------
+
+HONESTY_SEEDS, HONESTY_QUICK_SEEDS = 20, 2
+#: the quick experiment's tracker: its geometry off by i.i.d. 15 µm (its default), and exact (the control)
+HONESTY_CASES = {"off by 15 µm": GEOMETRY_SIGMA_MM, "exact": 0.0}
+QUICK_EXPERIMENT = ROOT / "configs" / "experiments" / "quick.toml"
+
+
+def quick_experiment_text(seed: int, residual_mm: float) -> str:
+    """configs/experiments/quick.toml at ``seed`` with the tracker's geometry off by i.i.d. ``residual_mm``."""
+    text = re.sub(r"(?m)^seed = .*$", f"seed = {seed}", QUICK_EXPERIMENT.read_text(encoding="utf-8"))
+    return f"{text}\n[tracker]\ngeometry_residual_mm = {residual_mm!r}\n"
+
+
+def geometry_rms_mm(platform: Platform, truth) -> float:
+    """The RMS over its 42 values of the simulated tracker's geometry error (the draw's realised σ; 0 where the
+    truth gives none: the nominal geometry) [mm]."""
+    if truth.instrument is None:
+        return 0.0
+    nominal = platform.required_tracker("the tracker's geometry error")
+    return float(np.sqrt(np.mean((truth.instrument[1] - nominal.as_vector()) ** 2)))
+
+
+def calibrate_and_score(seed: int, residual_mm: float, work: Path) -> dict:
+    """One seed of the quick experiment: ``calibrate --method M`` of each method (default config), then
+    ``score``'s numbers against the truth and the prediction's band."""
+    (work / "e.toml").write_text(quick_experiment_text(seed, residual_mm), encoding="utf-8")
+    sim = work / "sim"
+    _run(["simulate", "--experiment", work / "e.toml", "--out", sim])
+    platform = load_platform(sim / "platform.toml")
+    truth = read_truth(sim / "truth.csv", platform)
+    log = read_log(sim / "log.csv", platform)
+    config = load_estimator_config()
+    estimate = estimate_tracker_geometry(platform, log, config) if applies(platform, config) else None
+    out: dict = {
+        "seed": seed,
+        "rows": len(log),
+        "geometry_rms_mm": geometry_rms_mm(platform, truth),
+        "sigma_g_mm": None if estimate is None else estimate.sigma_mm,
+        "sigma_w_mm": None if estimate is None else estimate.white_sigma_mm,
+        "detected": bool(estimate is not None and estimate.detected),
+    }
+    for method in METHODS:
+        result_path = work / f"{method}.json"
+        _run(
+            ["calibrate", "--platform", sim / "platform.toml", "--log", sim / "log.csv", "--method", method]
+            + ["--out", result_path]
+        )
+        result = json.loads(result_path.read_text(encoding="utf-8"))
+        scored = scores(platform, result, truth)
+        # the truth in the simulator's own frames, off those the calibration holds by the draw's rigid part
+        unmoved = scores(platform, result, replace(truth, instrument=None))
+        predicted = result["predicted_closed_loop"]
+        low, high = predicted["position_band_mm"]
+        out[method] = {
+            "z2": scored["z2"],
+            "z2_simulator_frames": unmoved["z2"],
+            "z2_honest_variance": z2_honest_variance(result),
+            "truth_mm": scored["closed_loop_mm"],
+            "predicted_mm": predicted["position_mm"],
+            "band_mm": [low, high],
+            "in_band": bool(low <= scored["closed_loop_mm"] <= high),
+            "rows_dropped": len(log) - int(result["samples_used"]),
+            "rejected": result["samples_rejected"]["by_reason"],
+        }
+    return out
+
+
+def z2_honest_variance(result: dict) -> float:
+    """The variance of ``score``'s z² (the mean of ``(e_i / σ_i)²`` over the drive's parameters) were the
+    result's covariance ``C`` the truth's: ``e ~ N(0, C)`` gives ``2 tr(ρ²) / n²`` with ``ρ`` the
+    parameters' correlation matrix (``n`` independent ones: ``2 / n``, the χ²ₙ/n spread)."""
+    stddev = np.asarray(result["stddev"], dtype=float)
+    n = len(stddev)
+    correlation = np.asarray(result["covariance"], dtype=float)[:n, :n] / np.outer(stddev, stddev)
+    return float(2.0 * np.sum(correlation**2) / n**2)
+
+
+def honesty_rows(case: str, runs: list[dict]) -> list[Row]:
+    """The rows of one geometry case: σ_g against the draw's, each method's z² and band, rows dropped."""
+    n = len(runs)
+    rows = []
+    if case != "exact":
+        measured = np.array([r["sigma_g_mm"] or 0.0 for r in runs]) * 1e3
+        realised = np.array([r["geometry_rms_mm"] for r in runs]) * 1e3
+        ratio = measured / realised
+        rows.append(
+            Row(
+                f"{case}: σ_g measured against the draw's RMS of its 42 values",
+                f"median {np.median(measured):.1f} µm (range {measured.min():.1f}–{measured.max():.1f}) against "
+                f"{np.median(realised):.1f} µm ({realised.min():.1f}–{realised.max():.1f}); ratio median "
+                f"{np.median(ratio):.2f} (range {ratio.min():.2f}–{ratio.max():.2f}); detected in "
+                f"{sum(r['detected'] for r in runs)}/{n}",
+                raw={"measured_um": measured.tolist(), "realised_um": realised.tolist()},
+            )
+        )
+    else:
+        detected = sum(r["detected"] for r in runs)
+        rows.append(
+            Row(
+                f"{case}: a geometry error detected (test of size {FALSE_ALARM:g})",
+                f"{detected}/{n}",
+                f"≤ {_most_false_alarms(n)}/{n}",
+                bool(detected <= _most_false_alarms(n)),
+            )
+        )
+    need = seeds_needed(n)
+    for method in METHODS:
+        z2 = np.array([r[method]["z2"] for r in runs])
+        unmoved = np.mean([r[method]["z2_simulator_frames"] for r in runs])
+        # the mean over seeds of an honest result's z²: 1 within two of its standard errors
+        spread = 2.0 * np.sqrt(np.sum([r[method]["z2_honest_variance"] for r in runs])) / n
+        rows.append(
+            Row(
+                f"{case}: {method}'s z² (score's, the drive's parameters against their σ), mean over seeds",
+                f"**{z2.mean():.2f}** (median {np.median(z2):.2f}, range {z2.min():.2f}–{z2.max():.2f}; the truth "
+                f"in the simulator's frames: {unmoved:.2f})",
+                f"1 ± {spread:.2f} (two standard errors of the mean of an honest result's z²)",
+                bool(abs(z2.mean() - 1.0) <= spread),
+                {"z2": z2.tolist()},
+            )
+        )
+        hits = sum(r[method]["in_band"] for r in runs)
+        ratio = np.array([r[method]["truth_mm"] / r[method]["predicted_mm"] for r in runs])
+        above = sum(r[method]["truth_mm"] > r[method]["band_mm"][1] for r in runs)
+        rows.append(
+            Row(
+                f"{case}: the truth's closed-loop position error in {method}'s 90 % band",
+                f"{hits}/{n} ({above} above; truth ÷ predicted mean median {np.median(ratio):.2f}, range "
+                f"{ratio.min():.2f}–{ratio.max():.2f})",
+                f"≥ {need}/{n} (an honest band falls below with probability {prediction_below(n, need):.2f})",
+                bool(hits >= need),
+                {"truth_over_predicted": ratio.tolist()},
+            )
+        )
+    dropped = {method: [r[method]["rows_dropped"] for r in runs] for method in METHODS}
+    rows.append(
+        Row(
+            f"{case}: rows dropped or rejected (ekf / isam2 / lm, over all seeds)",
+            " / ".join(f"{sum(dropped[m])} of {sum(r['rows'] for r in runs)}" for m in METHODS),
+            "0",
+            bool(all(sum(d) == 0 for d in dropped.values())),
+            {"per_seed": dropped, "rejected": {m: [r[m]["rejected"] for r in runs] for m in METHODS}},
+        )
+    )
+    return rows
+
+
+def _most_false_alarms(n: int) -> int:
+    """The detections of ``n`` exact trackers a test of size :data:`FALSE_ALARM` exceeds with probability < 1 %."""
+    k = 0
+    while 1.0 - sum(math.comb(n, j) * FALSE_ALARM**j * (1 - FALSE_ALARM) ** (n - j) for j in range(k + 1)) > 0.01:
+        k += 1
+    return k
+
+
+#: why a row of the exact tracker may miss its target (measured aside over seeds 1–10 of the same experiment)
+HONESTY_WHY = {
+    prefix: (
+        "with the tracker exact nothing is estimated and the default config runs as it is: ekf's and isam2's "
+        "covariances come out larger than their errors (every band miss below the band) — conservative, not "
+        "over-confident; measured aside over seeds 1–10, neither their random walk (off: z² 0.51 / 0.50) nor the "
+        "readings' σ (the simulated 0.5 µm, strokes 0.1 µm: 0.65 / 0.58) is the cause, and lm's on the same logs "
+        "is honest."
+    )
+    for prefix in ("exact: ekf's", "exact: isam2's", "exact: the truth's closed-loop position error in isam2's")
+}
+
+
+def honesty_section(quick: bool = False, seeds: int | None = None) -> Section:
+    """calibrate's estimate of the tracker's geometry error and its prediction against the truth (see
+    :func:`honesty_note`)."""
+    seeds = seeds or (HONESTY_QUICK_SEEDS if quick else HONESTY_SEEDS)
+    runs: dict[str, list[dict]] = {}
+    for case, residual_mm in HONESTY_CASES.items():
+        for seed in range(1, seeds + 1):
+            with tempfile.TemporaryDirectory() as directory:
+                runs.setdefault(case, []).append(calibrate_and_score(seed, residual_mm, Path(directory)))
+    rows = [row for case, group in runs.items() for row in honesty_rows(case, group)]
+    section = Section(
+        "The tracker's geometry error measured by calibrate", honesty_note(seeds), rows, {"runs": runs, "seeds": seeds}
+    )
+    return explain(section, HONESTY_WHY)
+
+
+def honesty_note(seeds: int) -> str:
+    """The section's methods paragraph."""
+    return (
+        "The README's quick experiment (nim-stewart, a 15 kg platform, 120 rows over a 0 and a 40 kg stage) at "
+        f"seeds 1–{seeds}, its in-situ tracker's own geometry off by i.i.d. 15 µm on its 42 "
+        "values, and exact (the control). Per seed, in this process through the CLI: `simulate`, then `calibrate "
+        "--method M` with the default config (the geometry estimated on the log and, where detected, identified "
+        "under the σ_g measured, the readings at the σ_w measured) for ekf, isam2 and lm, and `score`'s numbers "
+        "against the truth — in the frames the true tracker's joints define (where they best fit their nominal "
+        "ones: the frames the calibration holds; the simulator's differ by the rigid part of the draw, which no "
+        "reading shows). σ_g is set against the RMS of the 42 values the simulator drew. z² is score's: the "
+        "mean over the 42 drive parameters of (estimate − truth)² / σ², 1 on average where the result's covariance "
+        "is honest; its target is 1 within two standard errors of the mean over the seeds, each seed's variance "
+        "2 tr(ρ²)/42² from the result's own correlations ρ (what an honest result's z² spreads by). The band: "
+        "calibrate's 90 % band of the mean closed-loop position error over the workspace against the truth's (score's "
+        "closed loop); its target the binomial rule of the prediction section (the most hits an honest band falls "
+        "below with probability ≤ 0.1). Rows dropped: the log's rows not among the samples used."
     )
 
 

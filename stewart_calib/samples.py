@@ -225,7 +225,8 @@ class Truth:
             (:class:`~stewart_calib.model.drive.LegTerm`; spec §7: the stroke scale k_i); a term the truth
             does not give is absent.
         instrument: ``(names, values)`` of the true outside instrument's unknowns in file units
-            (frame and target(s), spec §7), or None.
+            (frame and target(s), spec §7), or an in-situ tracker's own 42 values off their nominal
+            (``z1x … ls6`` [mm], spec §4), or None.
         unloaded: ``(n_params,)`` an elastic robot's drive with no force on its legs [mm] (spec §10: what an
             elastic calibration estimates, its compliance beside it; ``params`` are that drive loaded at each
             sample), or None (a rigid robot: ``params`` are its drive).

@@ -241,8 +241,11 @@ def whole_run_texts(experiment) -> tuple[str, str]:
         {LOAD_KG: plan.payload_kg},
     )
     params[:, 6::7] += robot.encoder_zero_mm
+    # the outside instrument's truth, or the in-situ tracker's own values where they are off their nominal
     instrument = (
-        None if robot.instrument is None else (robot.instrument.names(), robot.instrument.unknowns.file_values())
+        robot.tracker.truth()
+        if robot.instrument is None
+        else (robot.instrument.names(), robot.instrument.unknowns.file_values())
     )
     terms = {"stroke_scale": robot.stroke_scale}
     truth = Truth(plan.t_s, params, kin.rt_to_pose(sol.R, sol.t), terms, instrument, robot.unloaded_params)

@@ -91,6 +91,17 @@ def kabsch(source: np.ndarray, destination: np.ndarray) -> tuple[np.ndarray, np.
     return R, cd - R @ cs
 
 
+def best_fit_frames(nominal: LegModel, params: np.ndarray) -> tuple[tuple, tuple]:
+    """``((R_J, t_J), (R_D, t_D))``: the rigid motions that best fit (Kabsch) the base-side points of the absolute
+    parameters ``params`` of a leg set onto ``nominal``'s, and its platform joints likewise — the frames in which
+    those joints' rigid part is nominal, which :func:`free_basis`'s constraints (and an in-situ tracker holding
+    the gauge, ``UnknownBlock.holds_gauge``) keep to first order."""
+    base_columns, platform_columns = nominal.gauge_columns
+    values, params = nominal.as_vector(), np.asarray(params, dtype=float)
+    base = kabsch(params[base_columns], values[base_columns])
+    return base, kabsch(params[platform_columns], values[platform_columns])
+
+
 def to_gauge(nominal: LegModel, params: np.ndarray) -> tuple[np.ndarray, tuple, tuple]:
     """Move true absolute parameters ``(n_params,)`` (``nominal.as_vector()`` + the true δM) into the gauge
     of :func:`free_basis`: the base side by the rigid motion that best fits (Kabsch) its points to the
@@ -103,8 +114,12 @@ def to_gauge(nominal: LegModel, params: np.ndarray) -> tuple[np.ndarray, tuple, 
         ``T_J'_J X T_D'_D⁻¹``, a frame ``F = T_J_I`` becomes ``T_J'_J F``, a target ``G = T_D_T``
         becomes ``T_D'_D G`` and target points ``p`` become ``R_D p + t_D``.
     """
-    base_columns, platform_columns = nominal.gauge_columns
-    values, params = nominal.as_vector(), np.asarray(params, dtype=float)
-    base = kabsch(params[base_columns], values[base_columns])
-    platform = kabsch(params[platform_columns], values[platform_columns])
-    return values + nominal.moved(params - values, base, platform), base, platform
+    base, platform = best_fit_frames(nominal, params)
+    return moved_into(nominal, params, base, platform), base, platform
+
+
+def moved_into(nominal: LegModel, params: np.ndarray, base: tuple, platform: tuple) -> np.ndarray:
+    """Absolute parameters ``params`` with the base side moved by the rigid motion ``base = (R, t)`` and the
+    platform joints by ``platform`` (:meth:`~stewart_calib.model.legs.LegModel.moved`)."""
+    values = nominal.as_vector()
+    return values + nominal.moved(np.asarray(params, dtype=float) - values, base, platform)

@@ -30,6 +30,16 @@ With an instrument outside the robot the 12 directions of a rigid move of all ba
 platform) joints are not identified (spec §7): the truth is moved into the estimate's gauge first
 (:func:`stewart_calib.instruments.gauge.to_gauge`), so the scores are those of what a calibration
 can know.
+
+With an in-situ tracker whose own geometry the simulator drew off its nominal (the truth file's
+``z1x … ls6``, spec §4), the frames {J} and {D} are those the tracker's joints define: where they best
+fit their nominal positions (:func:`tracker_frames`), the frames a calibration that identifies the
+tracker's geometry holds (it keeps the joints' common rigid motion at nominal) and the closest ones to
+where one taking it as exact puts them. The truth is moved into them first (``tracker_frames``: true in
+the scores). The simulator's own frames differ by the rigid part of the tracker's draw (12 directions
+no reading shows: a translation of σ/√6 per axis for σ on each of six joints' coordinates, and a rotation
+of about σ over the joints' radius), which would otherwise count as the calibration's error though no
+calibration through that tracker can know it.
 """
 
 from __future__ import annotations
@@ -125,9 +135,13 @@ def scores(platform, result: dict, truth) -> dict:
     # the true robot's drive: rigid, spec §4's last row; elastic, its unloaded drive (its compliance beside it)
     true_drive_params = truth.unloaded if elastic else truth.params[-1]
     loaded_params = truth.params[-1]
+    frames = tracker_frames(platform, truth)
     if instrument_kind(platform).outside:  # its fit leaves the drive's gauge directions where the gauge puts them
         true_drive_params, _, _ = gauge.to_gauge(platform.drive, true_drive_params)
         loaded_params, _, _ = gauge.to_gauge(platform.drive, loaded_params)
+    elif frames is not None:  # {J} and {D} where the true tracker's joints best fit its nominal ones
+        true_drive_params = gauge.moved_into(platform.drive, true_drive_params, *frames)
+        loaded_params = gauge.moved_into(platform.drive, loaded_params, *frames)
     # an elastic result estimates the unloaded drive; a rigid one the drive in force, loaded
     unloaded = elastic and COMPLIANCE in result
     true_params = true_drive_params if unloaded else loaded_params
@@ -166,7 +180,23 @@ def scores(platform, result: dict, truth) -> dict:
     out["poses"] = len(poses)
     out["truth"] = TRUTH_UNLOADED if unloaded else TRUTH_LAST_ROW
     out["closed_loop_settled"] = elastic
+    out["tracker_frames"] = frames is not None
     return out
+
+
+def tracker_frames(platform, truth) -> tuple[tuple, tuple] | None:
+    """The rigid motions ``((R_J, t_J), (R_D, t_D))`` from the simulator's frames {J} and {D} to those in which
+    the true in-situ tracker's base and platform joints best fit (Kabsch) their nominal ones, where the truth
+    gives the tracker's own values off their nominal (spec §4); else None."""
+    from ..instruments import gauge
+    from ..instruments.tracker import tracker_parameter_names
+
+    if platform.tracker is None or truth.instrument is None:
+        return None
+    names, values = truth.instrument
+    if tuple(names) != tracker_parameter_names(platform.tracker):
+        return None
+    return gauge.best_fit_frames(platform.tracker, np.asarray(values, dtype=float))
 
 
 def run(args: argparse.Namespace) -> int:

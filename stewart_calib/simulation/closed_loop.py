@@ -614,6 +614,8 @@ def _measured(robot: TrueRobot, plan: Schedule, rows: slice, strokes, R, t, para
     instrument = None
     if robot.instrument is not None:
         instrument = (robot.instrument.names(), robot.instrument.unknowns.file_values())
+    elif robot.tracker is not None:  # an in-situ tracker's own values, where they are off its nominal ones
+        instrument = robot.tracker.truth()
     truth = Truth(
         t_s=plan.t_s[rows].copy(),
         params=params,

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..instruments.tracker import tracker_parameter_names
 from ..model import kinematics as kin
 from ..model.platform import LegGeometry
 
@@ -27,18 +28,27 @@ class Tracker:
         noise_mm: white ruler noise σ [mm].
         quantum_mm: reading resolution [mm] (50 nm = 5e-5 mm); 0 = none.
         reading_range_mm: ``(min, max)`` [mm] or None.
+        geometry_residual_mm: σ of the residual drawn on its nominal values [mm] (0: the nominal geometry).
     """
 
     geometry: LegGeometry
     noise_mm: float
     quantum_mm: float
     reading_range_mm: tuple[float, float] | None
+    geometry_residual_mm: float = 0.0
 
     @classmethod
     def with_residual(cls, nominal: LegGeometry, residual_mm: float, rng: np.random.Generator, **kw) -> Tracker:
         """True geometry = nominal + i.i.d. normal residual σ = ``residual_mm`` on all its values (42 for six legs)."""
         delta = rng.normal(0.0, residual_mm, nominal.n_params) if residual_mm > 0 else np.zeros(nominal.n_params)
-        return cls(nominal.perturbed(delta), **kw)
+        return cls(nominal.perturbed(delta), geometry_residual_mm=residual_mm, **kw)
+
+    def truth(self) -> tuple[tuple[str, ...], np.ndarray] | None:
+        """``(names, values)`` of its own 42 values (``z1x … ls6`` [mm], spec §4) where they are off their
+        nominal, else None: the truth of the frames its joints define."""
+        if self.geometry_residual_mm <= 0.0:
+            return None
+        return tracker_parameter_names(self.geometry), self.geometry.as_vector()
 
     def true_readings(self, R: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Noise-free readings ``s_i = ‖t + R h_i − z_i‖ − l_si`` on the true geometry, ``(..., 6)`` [mm]."""
